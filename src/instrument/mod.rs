@@ -1,0 +1,160 @@
+//! Instruments: the `Stage` and `Qpd` traits every backend implements (simulated, serial
+//! drivers), the clock that settle/dwell times advance, and device errors.
+//!
+//! Drivers only move and read. Soft limits, step limits, abort and return-to-start live in
+//! `acquire/`, never here.
+
+pub mod sim;
+
+use std::fmt;
+
+/// Stage position (x, y, z) in µm.
+pub type Pos = [f64; 3];
+
+/// Axis names used everywhere at the script boundary.
+pub const AXES: [&str; 3] = ["x", "y", "z"];
+
+/// A device error. Every variant names the device and, where there is one, the command and
+/// what came back, so the message a scientist sees at the prompt says what happened.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DeviceError {
+    #[error("{device}: no reply to `{command}` within {timeout_ms} ms")]
+    Timeout { device: String, command: String, timeout_ms: u64 },
+    #[error("{device}: garbled reply to `{command}`: {reply:?}")]
+    Garbled { device: String, command: String, reply: String },
+    #[error("{device}: controller error {code} after `{command}`: {message}")]
+    Controller { device: String, command: String, code: i64, message: String },
+    #[error("{device}: disconnected during `{command}`: {detail}")]
+    Disconnected { device: String, command: String, detail: String },
+    #[error("{device}: {detail}")]
+    Other { device: String, detail: String },
+}
+
+/// One QPD reading: the mean of `n` samples of Sx, Sy, Sz and their standard deviations
+/// (signals normalised to the beam power for the simulator; volts × calibration for hardware).
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct QpdReading {
+    pub sx: f64,
+    pub sy: f64,
+    pub sz: f64,
+    pub sx_std: f64,
+    pub sy_std: f64,
+    pub sz_std: f64,
+    pub n: usize,
+}
+
+impl fmt::Display for QpdReading {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "sx = {:.6e} ± {:.1e}, sy = {:.6e} ± {:.1e}, sz = {:.6e} ± {:.1e} (n = {})",
+            self.sx, self.sx_std, self.sy, self.sy_std, self.sz, self.sz_std, self.n
+        )
+    }
+}
+
+/// A time source. The simulator's is virtual (waiting advances a counter, costing no wall
+/// time); hardware uses the wall clock.
+pub trait Clock: Send + Sync {
+    /// Seconds since the clock started.
+    fn now(&self) -> f64;
+    /// Wait `seconds` (virtual clocks just advance).
+    fn wait(&self, seconds: f64);
+    /// True when time is simulated.
+    fn is_virtual(&self) -> bool;
+}
+
+/// A three-axis positioning stage. Positions in µm.
+pub trait Stage: Send {
+    /// Human-readable device name for messages (`"sim stage"`, `"PI E-727 on /dev/ttyUSB0"`).
+    fn name(&self) -> String;
+    /// Current position (µm).
+    fn position(&mut self) -> Result<Pos, DeviceError>;
+    /// Absolute move; returns when the controller reports on-target (or errors).
+    fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
+    /// Travel range per axis (min, max) in µm, as the controller reports it.
+    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+    /// Stop all motion at once.
+    fn stop(&mut self) -> Result<(), DeviceError>;
+}
+
+/// A quadrant-photodiode digitiser.
+pub trait Qpd: Send {
+    fn name(&self) -> String;
+    /// Sampling rate in Hz (a read of `n` samples takes `n / rate` seconds).
+    fn sample_rate(&self) -> f64;
+    /// Average `n` samples of (Sx, Sy, Sz). The read itself takes the time it takes: the
+    /// simulated QPD advances the virtual clock by `n / sample_rate`.
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError>;
+}
+
+/// Wall-clock time for real hardware.
+#[derive(Debug)]
+pub struct WallClock {
+    start: std::time::Instant,
+}
+
+impl Default for WallClock {
+    fn default() -> Self {
+        Self { start: std::time::Instant::now() }
+    }
+}
+
+impl Clock for WallClock {
+    fn now(&self) -> f64 {
+        self.start.elapsed().as_secs_f64()
+    }
+    fn wait(&self, seconds: f64) {
+        if seconds > 0.0 && seconds.is_finite() {
+            std::thread::sleep(std::time::Duration::from_secs_f64(seconds));
+        }
+    }
+    fn is_virtual(&self) -> bool {
+        false
+    }
+}
+
+/// Simulated time: `wait` advances the counter instantly.
+#[derive(Debug, Default)]
+pub struct VirtualClock {
+    // seconds stored as f64 bits
+    t: std::sync::atomic::AtomicU64,
+}
+
+impl VirtualClock {
+    pub fn new() -> Self {
+        Self { t: std::sync::atomic::AtomicU64::new(0f64.to_bits()) }
+    }
+}
+
+impl Clock for VirtualClock {
+    fn now(&self) -> f64 {
+        f64::from_bits(self.t.load(std::sync::atomic::Ordering::SeqCst))
+    }
+    fn wait(&self, seconds: f64) {
+        if !(seconds > 0.0 && seconds.is_finite()) {
+            return;
+        }
+        use std::sync::atomic::Ordering::SeqCst;
+        let _ = self.t.fetch_update(SeqCst, SeqCst, |b| Some((f64::from_bits(b) + seconds).to_bits()));
+    }
+    fn is_virtual(&self) -> bool {
+        true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn virtual_clock_advances_without_sleeping() {
+        let c = VirtualClock::new();
+        let t0 = std::time::Instant::now();
+        c.wait(3600.0);
+        c.wait(0.5);
+        c.wait(f64::NAN); // ignored, never poisons time
+        assert_eq!(c.now(), 3600.5);
+        assert!(t0.elapsed().as_secs_f64() < 0.5);
+    }
+}

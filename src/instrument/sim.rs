@@ -1,0 +1,1 @@
+//! Simulated instrument (lands with the physics core).

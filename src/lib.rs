@@ -1,0 +1,15 @@
+//! bfpscope: back-focal-plane (BFP) interferometric microscopy workbench.
+//!
+//! Layout (see `docs/guide.md`): `optics` is the physics (pure functions), `instrument` the
+//! device traits with the simulated and serial backends, `acquire` the scan engine and every
+//! safety rule, `data` scans/images/files, `analysis` the quantitative steps of the paper,
+//! `plot` figures, `script` the Rhai engine and binding registry, `repl` the interactive prompt.
+
+pub mod acquire;
+pub mod analysis;
+pub mod data;
+pub mod instrument;
+pub mod optics;
+pub mod plot;
+pub mod repl;
+pub mod script;

@@ -1,0 +1,1 @@
+fn main() { println!("bfpscope: workbench lands with the CLI"); }

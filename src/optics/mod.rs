@@ -1,0 +1,1 @@
+//! The physics of BFP detection (pure functions, no I/O, no Rhai).

@@ -1,0 +1,1 @@
+//! Interactive REPL (rustyline).
