@@ -158,3 +158,24 @@ mod tests {
         assert!(t0.elapsed().as_secs_f64() < 0.5);
     }
 }
+
+/// Everything the scan engine drives: a stage, a QPD and the clock their waits advance.
+/// Built by `connect` from the config (simulated by default).
+pub struct Instrument {
+    pub stage: Box<dyn Stage>,
+    pub qpd: Box<dyn Qpd>,
+    pub clock: std::sync::Arc<dyn Clock>,
+    /// Settle time after each move (s), waited on `clock`.
+    pub settle_s: f64,
+    /// Short description for `status()` and scan metadata (backend names, ports).
+    pub description: serde_json::Value,
+}
+
+impl Instrument {
+    /// Move and wait the settle time.
+    pub fn move_settle(&mut self, target: Pos) -> Result<(), DeviceError> {
+        self.stage.move_to(target)?;
+        self.clock.wait(self.settle_s);
+        Ok(())
+    }
+}
