@@ -7,8 +7,8 @@ use analysis_support::*;
 use bfpscope::analysis::bead_model::{filament_beads, BeadModelOptions, Filament};
 use bfpscope::analysis::fit::{fit_beads, BeadInit, Channels, FitOptions};
 use bfpscope::analysis::focus::{focus_search, FocusOptions};
-use bfpscope::analysis::orientation::{measure_filament, AngleCurve, AngleCurveOptions, Channel, MeasureOptions};
-use bfpscope::analysis::peaks::{peak_2d, row_peaks, PeakOptions};
+use bfpscope::analysis::orientation::{measure_filament, measure_filament_along, AngleCurve, AngleCurveOptions, Channel, MeasureOptions};
+use bfpscope::analysis::peaks::{peak_2d, point_peak, row_peaks, PeakOptions};
 use bfpscope::analysis::quantities::{self, DiameterCalib, LinDensCalib};
 use bfpscope::analysis::sbr::{sbr, SbrOptions};
 use bfpscope::analysis::sensitivity::{sensitivity, Axis, Stencil};
@@ -28,16 +28,20 @@ fn sensitivity_of_a_bead_peaks_at_its_centre_with_unit_value() {
     let sens = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
     let p = peak_2d(&sens, 0.4, None).unwrap();
     assert!((p.x - 1.013).abs() < 0.003 && (p.y - 1.207).abs() < 0.003, "{p:?}");
-    // 1 − h²/w² = 0.984 from the stencil, minus the parabola-window bias (a few %).
+    // 1 − h²/w² = 0.984 from the stencil, minus the quadratic-window bias (a few %).
     assert!(p.value > 0.9 && p.value < 1.0, "{}", p.value);
     let c5 = peak_2d(&sensitivity(&s.sx, Axis::X, Stencil::Central5).unwrap(), 0.4, None).unwrap();
     assert!(c5.value > p.value, "5-point stencil has less truncation bias");
     // ∂Sy/∂y peaks at the same place with the same value (stand-in is isotropic).
     let py = peak_2d(&sensitivity(&s.sy, Axis::Y, Stencil::Central2).unwrap(), 0.4, None).unwrap();
     assert!((py.value - p.value).abs() < 1e-3 && (py.x - p.x).abs() < 1e-3);
-    // The pipeline value of the template agrees with the direct measurement.
+    // Row-parabola maximum (Sec. 5 method): the pipeline value of the template (averaged over
+    // sub-pixel positions) agrees with this bead's.
+    let pp = point_peak(&sens, &PeakOptions::default()).unwrap();
+    assert!((pp.x - 1.013).abs() < 0.003 && (pp.y - 1.207).abs() < 0.01, "{pp:?}");
     let pipe = tpl.pipeline_max_sens(H, Stencil::Central2, 0.4).unwrap();
-    assert!((pipe - p.value).abs() < 0.01, "{pipe} vs {}", p.value);
+    assert!((pipe - pp.value).abs() < 0.003, "{pipe} vs {}", pp.value);
+    assert!(pipe > 0.95 && pipe < 0.984, "{pipe}");
 }
 
 #[test]
@@ -53,10 +57,12 @@ fn row_maxima_follow_a_filament_with_uncertainties() {
     assert!(pos.len() > 60);
     let m = stats::summary(&pos).unwrap();
     assert!((m.mean - 1.23).abs() < 0.003, "{m:?}");
-    // The reported position uncertainty matches the scatter within a factor 1.6.
+    // The reported (residual-based) position uncertainty is conservative: it includes the
+    // parabola's misfit of the non-parabolic peak, so it exceeds the actual scatter, by less
+    // than 3×.
     let errs: Vec<f64> = rows.iter().filter_map(|r| r.peak().and_then(|p| p.pos_err)).collect();
     let mean_err = errs.iter().sum::<f64>() / errs.len() as f64;
-    assert!(mean_err / m.std > 0.6 && mean_err / m.std < 1.6, "reported {mean_err} vs scatter {}", m.std);
+    assert!(mean_err / m.std > 0.8 && mean_err / m.std < 3.0, "reported {mean_err} vs scatter {}", m.std);
 }
 
 #[test]
@@ -93,10 +99,23 @@ fn template_from_noisy_reference_scans_matches_truth() {
         }
     }
     assert!(maxdev < 0.05 * sx_peak(&truth), "max deviation {maxdev}");
-    assert!(t.sens_peak[0].abs() < 0.01 && t.sens_peak[1].abs() < 0.02, "{:?}", t.sens_peak);
+    // Centring: the zero crossings of Sx(u, 0) and Sy(0, v) (antisymmetric responses) lie within
+    // 10 nm of the origin (the maximum of the noisy derivative, `sens_peak`, is a poorer
+    // locator).
+    let zero = |f: &dyn Fn(f64) -> f64| {
+        let (mut a, mut b) = (-0.1, 0.1);
+        for _ in 0..50 {
+            let m = 0.5 * (a + b);
+            if f(a) * f(m) <= 0.0 { b = m } else { a = m }
+        }
+        0.5 * (a + b)
+    };
+    let ux = zero(&|u| t.eval(u, 0.0)[0]);
+    let vy = zero(&|v| t.eval(0.0, v)[1]);
+    assert!(ux.abs() < 0.01 && vy.abs() < 0.01, "{ux} {vy}");
     // Save / load round trip.
     let back = Template::from_json(&t.to_json()).unwrap();
-    assert_eq!(back, t);
+    assert!(back.approx_eq(&t, 1e-14));
 }
 
 #[test]
@@ -257,12 +276,19 @@ fn background_removal_improves_sbr_threefold() {
     let s = scene(&tpl, &aggs, &[f], 128, H, sigma, 21);
     let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
     let m = MeasureOptions::default();
-    let before = measure_filament(&s.sx, &s.sy, &curve, &m).unwrap();
-    let sb = sbr(&before, &SbrOptions::default()).unwrap();
     let bg = background::remove_point_background(&s.sx, &s.sy, &tpl, &Default::default()).unwrap();
     let fit = bg.fit.as_ref().unwrap();
     let after = measure_filament(&bg.sx, &bg.sy, &curve, &m).unwrap();
+    assert_eq!(after.channel, Channel::SxRows);
+    assert!(after.angle_deg.abs() < 0.5, "{}", after.angle_deg);
     let sa = sbr(&after, &SbrOptions::default()).unwrap();
+    // The same filament line measured in the raw image (as the paper compares before/after).
+    let before = measure_filament_along(&s.sx, &s.sy, &curve, after.channel, after.line, &m).unwrap();
+    let sb = sbr(&before, &SbrOptions::default()).unwrap();
+    // Even in the raw image the robust line search finds the filament.
+    let raw = measure_filament(&s.sx, &s.sy, &curve, &m).unwrap();
+    assert_eq!(raw.channel, Channel::SxRows);
+    assert!((raw.angle_deg - after.angle_deg).abs() < 1.0, "{}", raw.angle_deg);
     println!("SBR (a) before {:.2} after {:.2}; (b) before {:.2} after {:.2}; {} objects fitted", sb.sbr_background, sa.sbr_background, sb.sbr_uniformity, sa.sbr_uniformity, fit.beads.len());
     assert!(sa.sbr_background >= 3.0 * sb.sbr_background);
     assert!(fit.beads.len() >= 14);

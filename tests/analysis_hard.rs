@@ -40,7 +40,14 @@ fn two_beads_closer_than_a_quarter_waist_are_reported_degenerate() {
         let opts = FitOptions { n_beads: Some(2), init, ..Default::default() };
         let r = fit_beads(&s.sx, &s.sy, &tpl, &opts).unwrap();
         assert!(r.is_degenerate(), "{r:?}");
-        assert!(r.degeneracies.iter().any(|d| matches!(d, Degeneracy::CloseBeads { distance_um, .. } if *distance_um < 0.1)));
+        // Either the fit brought them within w0/4 (CloseBeads) or noise kept them apart but the
+        // BIC test found them unresolved (Unresolved): both are reported and merged.
+        assert!(
+            r.degeneracies.iter().any(|d| matches!(d, Degeneracy::CloseBeads { distance_um, .. } if *distance_um < 0.1)
+                || matches!(d, Degeneracy::Unresolved { distance_um, .. } if *distance_um < 0.2)),
+            "{:?}",
+            r.degeneracies
+        );
         assert!(all_finite(&r));
         assert_eq!(r.beads.len(), 1, "merged into one bead");
         assert!((r.total_weight() - 2.0).abs() < 0.04, "{}", r.total_weight());
@@ -104,12 +111,16 @@ fn peak_at_the_window_edge() {
 fn row_with_no_peak() {
     let tpl = standin();
     // A bead in the lower half; the top rows are flat zero (no peak), the middle rows have one.
-    let s = scene(&tpl, &[(1.0, 0.6, 1.0)], &[], 40, H, 0.0, 0);
+    // (the stand-in template is exactly zero beyond 1.6 µm from the bead).
+    let s = scene(&tpl, &[(1.0, 0.3, 1.0)], &[], 40, H, 0.0, 0);
     let sens = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
-    let rows = row_peaks(&sens, &PeakOptions { min_value: Some(1e-6), ..Default::default() }).unwrap();
-    assert!(rows[12].peak().is_some());
+    let rows = row_peaks(&sens, &PeakOptions::default()).unwrap();
+    assert!(rows[6].peak().is_some());
     let top = rows.last().unwrap();
-    assert!(matches!(top.result, Err(PeakMiss::BelowThreshold { .. }) | Err(PeakMiss::NotConcave) | Err(PeakMiss::AtEdge { .. })), "{top:?}");
+    assert_eq!(top.result, Err(PeakMiss::NotConcave), "{top:?}");
+    // A tiny tail is a maximum unless a threshold says otherwise.
+    let rows = row_peaks(&sens, &PeakOptions { min_value: Some(1e-3), ..Default::default() }).unwrap();
+    assert!(matches!(rows[34].result, Err(PeakMiss::BelowThreshold { .. })), "{:?}", rows[34]);
     // Row of pure noise with an SNR threshold → BelowThreshold, with the noise stated.
     let mut noisy = scene(&tpl, &[], &[], 40, H, 0.01, 3);
     noisy.sx.data.row_mut(0).fill(0.0);

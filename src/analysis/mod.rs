@@ -46,7 +46,7 @@ pub mod template;
 
 pub use background::{remove_point_background, BackgroundOptions, BackgroundResult, FilamentAxis};
 pub use bead_model::{BeadModelOptions, Filament};
-pub use fit::{fit_beads, Bead, BeadInit, Channels, FitOptions, FitResult, FitStatus, GrowCriterion};
+pub use fit::{detect_beads, fit_beads, Bead, BeadInit, Channels, Degeneracy, FitOptions, FitResult, FitStatus, GrowCriterion};
 pub use orientation::{AngleCurve, AngleCurveOptions, FilamentMeasurement, MeasureOptions};
 pub use peaks::{LinePeak, Peak, PeakMiss, PeakOptions};
 pub use quantities::n_corr;
