@@ -5,3 +5,5 @@ pub mod grid;
 pub mod params;
 
 pub use params::{Optics, OpticsError};
+pub mod quad;
+pub mod rayleigh;
