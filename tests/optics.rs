@@ -119,3 +119,60 @@ fn finite_and_continuous_through_focus_axis_and_far_away() {
     }
     assert!(at(5.0, 0.0, 0.0)[0].abs() < 1e-30);
 }
+
+mod templates {
+    use bfpscope::optics::grid::Interp;
+    use bfpscope::optics::params::Optics;
+    use bfpscope::optics::rayleigh::{Detection, DetectorModel};
+    use bfpscope::optics::template::*;
+    use std::sync::Arc;
+
+    fn det() -> Arc<Detection> {
+        Arc::new(Detection::new(&Optics::default(), &DetectorModel { polarization: true, misalignment: None }).unwrap())
+    }
+
+    /// The separable matrix-product plane equals direct evaluation at the nodes.
+    #[test]
+    fn plane_nodes_equal_direct_evaluation() {
+        let d = det();
+        for z in [0.0, 0.35, -0.8] {
+            let g = plane_grid(&d, z, 0.05, Interp::Cubic);
+            let peak = d.response_unit(0.23, 0.0, z).0[0].abs();
+            for &(i, j) in &[(0usize, 0usize), (g.nu / 2 + 3, g.nv / 2 - 7), (g.nu - 5, g.nv / 2 + 1)] {
+                let (x, y) = (g.u0 + i as f64 * g.h, g.v0 + j as f64 * g.h);
+                let direct = d.response_unit(x, y, z).0;
+                let node = g.data[j * g.nu + i];
+                for c in 0..3 {
+                    assert!((direct[c] - node[c]).abs() < 1e-10 * peak, "z={z} ({x},{y}) c={c}: {} vs {}", direct[c], node[c]);
+                }
+            }
+        }
+    }
+
+    /// Interpolation error of the default template (h = 20 nm cubic, hz = 50 nm), relative to
+    /// the peak |Sx|, at random points: stated in docs/physics.md.
+    #[test]
+    fn default_template_interpolation_error_is_below_1e_3() {
+        let d = det();
+        let t = ModelTemplate::new(d.clone(), TemplateSpec::default()).unwrap();
+        let peak = (0..100).map(|i| d.response_unit(i as f64 * 0.01, 0.0, 0.0).0[0].abs()).fold(0.0, f64::max);
+        let mut worst: f64 = 0.0;
+        for k in 0..300 {
+            let x = -1.0 + 2.0 * (k as f64 * 0.618_033_988_7).fract();
+            let y = -1.0 + 2.0 * (k as f64 * 0.414_213_562_3).fract();
+            let z = -0.3 + 0.6 * (k as f64 * 0.732_050_807_5).fract();
+            let a = t.eval(x, y, z);
+            let b = d.response_unit(x, y, z).0;
+            for c in 0..3 {
+                worst = worst.max((a[c] - b[c]).abs() / peak);
+            }
+        }
+        eprintln!("default template: worst interpolation error {worst:.2e} of peak; {} planes, {} bytes", t.n_planes(), t.bytes());
+        assert!(worst < 1e-3, "{worst}");
+        let lin = ModelTemplate::new(d.clone(), TemplateSpec { interp: Interp::Linear, ..TemplateSpec::default() }).unwrap();
+        let (x, y, z) = (0.31, -0.17, 0.12);
+        let e_lin = (lin.eval(x, y, z)[0] - d.response_unit(x, y, z).0[0]).abs();
+        let e_cub = (t.eval(x, y, z)[0] - d.response_unit(x, y, z).0[0]).abs();
+        assert!(e_cub < e_lin, "cubic {e_cub:.2e} vs linear {e_lin:.2e}");
+    }
+}

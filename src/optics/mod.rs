@@ -7,3 +7,6 @@ pub mod params;
 pub use params::{Optics, OpticsError};
 pub mod quad;
 pub mod rayleigh;
+pub mod template;
+pub mod calc;
+pub mod finite_size;

@@ -87,6 +87,10 @@ pub struct Node {
     pub amp: f64,
     /// channel weights (Sx, Sy, Sz)
     pub s: [f64; 3],
+    /// quadrature weight × sinθ (area element / r²), for terms without the beam amplitude
+    pub wq: f64,
+    /// |ê_scat|² = 1 − sin²θ cos²φ with the vector dipole field, else 1 (for |E_scat|² terms)
+    pub pol_ss: f64,
 }
 
 /// The detection-cone quadrature for given optics and detector model.
@@ -134,7 +138,8 @@ impl Detection {
                             [ud.signum(), m.gain_y * vd.signum(), 1.0]
                         }
                     };
-                    nodes.push(Node { u, v, c: ct, amp, s });
+                    let pol_ss = if det.polarization { 1.0 - u * u } else { 1.0 };
+                    nodes.push(Node { u, v, c: ct, amp, s, wq: wt * wp * st, pol_ss });
                 }
             }
         }
