@@ -5,6 +5,7 @@
 //! safety rule, `data` scans/images/files, `analysis` the quantitative steps of the paper,
 //! `plot` figures, `script` the Rhai engine and binding registry, `repl` the interactive prompt.
 
+pub mod accuracy;
 pub mod acquire;
 pub mod analysis;
 pub mod data;

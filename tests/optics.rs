@@ -176,3 +176,23 @@ mod templates {
         assert!(e_cub < e_lin, "cubic {e_cub:.2e} vs linear {e_lin:.2e}");
     }
 }
+
+/// The misaligned-QPD rule (polar coordinates about the QPD cross) with zero offset, zero
+/// rotation and unit gain must agree with the ideal rule: two different quadratures of one
+/// integral.
+#[test]
+fn misaligned_rule_with_zero_misalignment_equals_ideal_rule() {
+    let o = Optics { n_theta: 32, n_phi: 16, ..Optics::default() };
+    let ideal = Detection::new(&o, &DetectorModel::default()).unwrap();
+    let zero = Misalignment { offset_x: 0.0, offset_y: 0.0, rotation_deg: 0.0, gain_y: 1.0 };
+    let mis = Detection::new(&o, &DetectorModel { polarization: false, misalignment: Some(zero) }).unwrap();
+    let peak = ideal.response_unit(0.24, 0.0, 0.0).0[0].abs();
+    for &(x, y, z) in &[(0.1, 0.2, 0.0), (0.5, -0.3, 0.4), (-0.7, 0.1, -0.2)] {
+        let (a, b) = (ideal.response_unit(x, y, z).0, mis.response_unit(x, y, z).0);
+        for c in 0..3 {
+            assert!((a[c] - b[c]).abs() < 1e-8 * peak, "({x},{y},{z}) c={c}: {} vs {}", a[c], b[c]);
+        }
+    }
+    let bad = Misalignment { offset_x: 0.9, offset_y: 0.5, ..zero };
+    assert!(Detection::new(&o, &DetectorModel { polarization: false, misalignment: Some(bad) }).is_err());
+}

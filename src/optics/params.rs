@@ -68,10 +68,10 @@ impl Default for Optics {
             na: 1.2,
             qpd_na: f64::INFINITY,
             power_mw: 0.13,
-            // Gauss–Legendre converges exponentially: (24, 12) is 3e-9 of the peak Sx from the
-            // (128, 64) reference (docs/accuracy.md).
-            n_theta: 24,
-            n_phi: 12,
+            // The knee of the accuracy report (docs/accuracy.md): Gauss–Legendre converges
+            // exponentially; (16, 8) is within 3.2e-6 of the peak Sx of the (128, 64) reference.
+            n_theta: 16,
+            n_phi: 8,
         }
     }
 }

@@ -103,43 +103,72 @@ pub struct Detection {
 }
 
 impl Detection {
-    /// Build the nodes: Gauss–Legendre in θ ∈ [0, Θ] (`optics.n_theta`) and in φ over each of the
-    /// four quadrants (`optics.n_phi` each), so the sign discontinuities of the ideal QPD fall on
-    /// rule boundaries.
+    /// Build the nodes. Ideal QPD: Gauss–Legendre in θ ∈ [0, Θ] (`optics.n_theta`) and in φ over
+    /// each of the four quadrants (`optics.n_phi` each), so the sign discontinuities fall on rule
+    /// boundaries and the rule converges exponentially. Misaligned QPD: the same product rule in
+    /// polar coordinates centred on the *QPD's* cross (φ' per quadrant, ρ' from the cross to the
+    /// edge of the detection disk along each φ'), with the measure sinθ dθ dφ = du dv / cosθ
+    /// (u, v = sinθ cosφ, sinθ sinφ), so the shifted and rotated boundaries are again rule
+    /// boundaries.
     pub fn new(optics: &Optics, det: &DetectorModel) -> Result<Self, OpticsError> {
         optics.validate()?;
         let k = optics.k_per_um();
         let w0 = optics.w0_um();
         let theta_max = optics.theta_max();
         let sin_max = theta_max.sin();
-        let (th, wth) = gauss_legendre(optics.n_theta, 0.0, theta_max);
         let mut nodes = Vec::with_capacity(4 * optics.n_theta * optics.n_phi);
-        let (rot_c, rot_s) = det
-            .misalignment
-            .map(|m| ((m.rotation_deg.to_radians()).cos(), (m.rotation_deg.to_radians()).sin()))
-            .unwrap_or((1.0, 0.0));
-        for q in 0..4 {
-            let (ph, wph) = gauss_legendre(optics.n_phi, q as f64 * PI / 2.0, (q + 1) as f64 * PI / 2.0);
-            for (&t, &wt) in th.iter().zip(&wth) {
-                let (st, ct) = t.sin_cos();
-                let gauss = (-(k * w0 * t).powi(2) / 4.0).exp();
-                for (&p, &wp) in ph.iter().zip(&wph) {
-                    let (sp, cp) = p.sin_cos();
-                    let pol = if det.polarization { 1.0 - cp * cp * (1.0 - ct) } else { 1.0 };
-                    let amp = 2.0 * k.powi(3) / PI * wt * wp * st * gauss * pol;
-                    let (u, v) = (st * cp, st * sp);
-                    let s = match det.misalignment {
-                        None => [cp.signum(), sp.signum(), 1.0],
-                        Some(m) => {
-                            // QPD frame: rotate the BFP point into the detector axes, then shift.
-                            let (un, vn) = (u / sin_max, v / sin_max);
-                            let ud = rot_c * un + rot_s * vn - m.offset_x;
-                            let vd = -rot_s * un + rot_c * vn - m.offset_y;
-                            [ud.signum(), m.gain_y * vd.signum(), 1.0]
+        let mut push = |st: f64, ct: f64, t: f64, cp: f64, sp: f64, weight: f64, s: [f64; 3]| {
+            // weight = measure of sinθ dθ dφ carried by this node
+            let gauss = (-(k * w0 * t).powi(2) / 4.0).exp();
+            let pol = if det.polarization { 1.0 - cp * cp * (1.0 - ct) } else { 1.0 };
+            let (u, v) = (st * cp, st * sp);
+            let pol_ss = if det.polarization { 1.0 - u * u } else { 1.0 };
+            let amp = 2.0 * k.powi(3) / PI * weight * gauss * pol;
+            nodes.push(Node { u, v, c: ct, amp, s, wq: weight, pol_ss });
+        };
+        match det.misalignment {
+            None => {
+                let (th, wth) = gauss_legendre(optics.n_theta, 0.0, theta_max);
+                for q in 0..4 {
+                    let (ph, wph) = gauss_legendre(optics.n_phi, q as f64 * PI / 2.0, (q + 1) as f64 * PI / 2.0);
+                    for (&t, &wt) in th.iter().zip(&wth) {
+                        let (st, ct) = t.sin_cos();
+                        for (&p, &wp) in ph.iter().zip(&wph) {
+                            let (sp, cp) = p.sin_cos();
+                            push(st, ct, t, cp, sp, wt * wp * st, [cp.signum(), sp.signum(), 1.0]);
                         }
-                    };
-                    let pol_ss = if det.polarization { 1.0 - u * u } else { 1.0 };
-                    nodes.push(Node { u, v, c: ct, amp, s, wq: wt * wp * st, pol_ss });
+                    }
+                }
+            }
+            Some(m) => {
+                let (ox, oy) = (m.offset_x, m.offset_y);
+                if !(ox.is_finite() && oy.is_finite() && ox.hypot(oy) < 0.95) {
+                    return Err(OpticsError::Invalid(format!(
+                        "misalignment offset ({ox}, {oy}) puts the QPD cross outside the beam: |offset| must be < 0.95 of the cone radius"
+                    )));
+                }
+                let (rs, rc) = m.rotation_deg.to_radians().sin_cos();
+                // disk centre in detector coordinates (d = R·n − o with n the normalised BFP point)
+                let (cx, cy) = (-ox, -oy);
+                for q in 0..4 {
+                    let (ph, wph) = gauss_legendre(optics.n_phi, q as f64 * PI / 2.0, (q + 1) as f64 * PI / 2.0);
+                    for (&p, &wp) in ph.iter().zip(&wph) {
+                        let (sp_d, cp_d) = p.sin_cos();
+                        let ec = cp_d * cx + sp_d * cy;
+                        let t_edge = ec + (ec * ec - (cx * cx + cy * cy) + 1.0).sqrt();
+                        let (rr, wr) = gauss_legendre(optics.n_theta, 0.0, t_edge);
+                        for (&r, &w) in rr.iter().zip(&wr) {
+                            // detector point → normalised BFP point (rotate back, shift)
+                            let (dx, dy) = (r * cp_d + ox, r * sp_d + oy);
+                            let (un, vn) = (rc * dx - rs * dy, rs * dx + rc * dy);
+                            let st = (sin_max * un.hypot(vn)).min(1.0);
+                            let ct = (1.0 - st * st).max(1e-12).sqrt();
+                            let t = st.asin();
+                            let (cp, sp) = if st > 0.0 { (un / un.hypot(vn), vn / un.hypot(vn)) } else { (1.0, 0.0) };
+                            let weight = sin_max * sin_max * r * w * wp / ct;
+                            push(st, ct, t, cp, sp, weight, [cp_d.signum(), m.gain_y * sp_d.signum(), 1.0]);
+                        }
+                    }
                 }
             }
         }
