@@ -5,6 +5,7 @@
 //! `acquire/`, never here.
 
 pub mod sim;
+pub mod trace;
 
 use std::fmt;
 
