@@ -14,9 +14,21 @@ fn scene() -> Scene {
     let mut s = Scene::default();
     for i in 0..10 {
         let a = i as f64 * 0.628;
-        s.add_bead(Bead { pos: [4.0 * a.cos(), 4.0 * a.sin(), 0.0], d_nm: 110.0 + 10.0 * i as f64, n: 1.572 }).unwrap();
+        s.add_bead(Bead {
+            pos: [4.0 * a.cos(), 4.0 * a.sin(), 0.0],
+            d_nm: 110.0 + 10.0 * i as f64,
+            n: 1.572,
+        })
+        .unwrap();
     }
-    s.add_filament(Filament { points: vec![[-3.0, -5.0], [3.0, 3.0]], z: 0.0, profile: DiameterProfile::Constant { d_nm: 60.0 }, n: 1.414, spacing_nm: 50.0 }).unwrap();
+    s.add_filament(Filament {
+        points: vec![[-3.0, -5.0], [3.0, 3.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 60.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
     s
 }
 
@@ -34,11 +46,15 @@ fn bench(c: &mut Criterion) {
         nsc as f64 * 16384.0 * frac,
         r.template.bytes() as f64 / 1e6
     );
-    c.bench_function("render 128x128, 10 beads + 10 µm filament (ideal)", |b| b.iter(|| render_xy(&r, &xs, &xs, 0.0, 1)));
+    c.bench_function("render 128x128, 10 beads + 10 µm filament (ideal)", |b| {
+        b.iter(|| render_xy(&r, &xs, &xs, 0.0, 1))
+    });
     let det = Detection::new(&optics, &DetectorModel::default()).unwrap();
     let mut g = c.benchmark_group("template precompute");
     g.sample_size(10);
-    g.bench_function("one plane at z = 0 (h = 20 nm, cubic)", |b| b.iter(|| plane_grid(&det, 0.0, 0.02, Interp::Cubic)));
+    g.bench_function("one plane at z = 0 (h = 20 nm, cubic)", |b| {
+        b.iter(|| plane_grid(&det, 0.0, 0.02, Interp::Cubic))
+    });
     g.bench_function("renderer for the scene (planes for z = 0)", |b| {
         b.iter(|| {
             let r = Renderer::new(&optics, &scene(), TemplateSpec::default()).unwrap();

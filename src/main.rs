@@ -1,1 +1,3 @@
-fn main() { println!("bfpscope: workbench lands with the CLI"); }
+fn main() {
+    println!("bfpscope: workbench lands with the CLI");
+}

@@ -36,7 +36,10 @@ fn particle_on_the_optical_axis() {
     for z in [-1.0, 0.0, 0.3] {
         let (s, dx, dy) = d.response_unit(0.0, 0.0, z);
         assert!(finite(s) && finite(dx) && finite(dy));
-        assert!(s[0].abs() < 1e-12 && s[1].abs() < 1e-12, "lateral signals on axis must vanish: {s:?}");
+        assert!(
+            s[0].abs() < 1e-12 && s[1].abs() < 1e-12,
+            "lateral signals on axis must vanish: {s:?}"
+        );
         assert!(dx[0] > 0.0, "sensitivity on axis is positive");
     }
 }
@@ -45,9 +48,19 @@ fn particle_on_the_optical_axis() {
 fn detection_cone_at_its_edges() {
     // NA equal to and above the medium index (cone = hemisphere, clamped), and a tiny NA.
     for na in [1.333, 1.5, 0.05] {
-        let o = Optics { na, ..Optics::default() };
+        let o = Optics {
+            na,
+            ..Optics::default()
+        };
         assert!(o.validate().is_ok());
-        let d = Detection::new(&o, &DetectorModel { polarization: true, misalignment: Some(Misalignment::default()) }).unwrap();
+        let d = Detection::new(
+            &o,
+            &DetectorModel {
+                polarization: true,
+                misalignment: Some(Misalignment::default()),
+            },
+        )
+        .unwrap();
         let (s, dx, _) = d.response_unit(0.1, 0.05, 0.2);
         assert!(finite(s) && finite(dx), "na = {na}");
         assert!(d.nodes.iter().all(|n| n.amp.is_finite() && n.c >= -1e-15));
@@ -59,14 +72,27 @@ fn detection_cone_at_its_edges() {
     let x = z * o.theta_max().tan();
     assert!(finite(d.response_unit(x, 0.0, z).0));
     // NA out of range is a clear error
-    let e = Optics { na: 0.0, ..Optics::default() }.validate().unwrap_err().to_string();
+    let e = Optics {
+        na: 0.0,
+        ..Optics::default()
+    }
+    .validate()
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("na") && e.contains('0'), "{e}");
 }
 
 #[test]
 fn five_micrometres_from_focus_underflows_to_zero_not_nan() {
     let d = det();
-    for p in [(5.0, 0.0, 0.0), (0.0, 5.0, 0.0), (5.0, 5.0, 5.0), (0.0, 0.0, 5.0), (50.0, 0.0, 0.0), (0.0, 0.0, 1e4)] {
+    for p in [
+        (5.0, 0.0, 0.0),
+        (0.0, 5.0, 0.0),
+        (5.0, 5.0, 5.0),
+        (0.0, 0.0, 5.0),
+        (50.0, 0.0, 0.0),
+        (0.0, 0.0, 1e4),
+    ] {
         let (s, dx, dy) = d.response_unit(p.0, p.1, p.2);
         assert!(finite(s) && finite(dx) && finite(dy), "{p:?}");
     }
@@ -79,13 +105,25 @@ fn one_nanometre_and_two_micrometre_particles() {
     let small = response(&o, &DetectorModel::default(), [0.1, 0.0, 0.0], 1.0, 1.572).unwrap();
     let ref110 = response(&o, &DetectorModel::default(), [0.1, 0.0, 0.0], 110.0, 1.572).unwrap();
     assert!(small.sx > 0.0 && (small.sx / ref110.sx - (1.0f64 / 110.0).powi(3)).abs() < 1e-15);
-    let big = response(&o, &DetectorModel::default(), [0.1, 0.0, 0.0], 2000.0, 1.572).unwrap();
+    let big = response(
+        &o,
+        &DetectorModel::default(),
+        [0.1, 0.0, 0.0],
+        2000.0,
+        1.572,
+    )
+    .unwrap();
     assert!(big.sx.is_finite() && big.sx > 0.0);
     // finite-size decomposition of a 2 µm bead stays finite and below the point value
     let d = det();
     let fs = bfpscope::optics::finite_size::response_unit_finite(&d, 2000.0, 6, 0.1, 0.0, 0.0);
     assert!(finite(fs.0) && fs.1[0].abs() < d.response_unit(0.1, 0.0, 0.0).1[0]);
-    assert!(response(&o, &DetectorModel::default(), [0.1, 0.0, 0.0], -5.0, 1.572).unwrap_err().to_string().contains("d_nm"));
+    assert!(
+        response(&o, &DetectorModel::default(), [0.1, 0.0, 0.0], -5.0, 1.572)
+            .unwrap_err()
+            .to_string()
+            .contains("d_nm")
+    );
 }
 
 #[test]
@@ -103,10 +141,24 @@ fn index_equal_to_just_above_and_just_below_the_medium() {
 #[test]
 fn filament_of_zero_length_and_of_one_bead() {
     let mut s = Scene::default();
-    s.add_filament(Filament { points: vec![[0.0, 0.0], [0.0, 0.0]], z: 0.0, profile: DiameterProfile::Constant { d_nm: 50.0 }, n: 1.414, spacing_nm: 50.0 }).unwrap();
+    s.add_filament(Filament {
+        points: vec![[0.0, 0.0], [0.0, 0.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
     assert!(s.scatterers(1.333).is_empty());
     let mut one = Scene::default();
-    one.add_filament(Filament { points: vec![[0.0, 0.0], [0.0, 0.05]], z: 0.0, profile: DiameterProfile::Constant { d_nm: 50.0 }, n: 1.414, spacing_nm: 50.0 }).unwrap();
+    one.add_filament(Filament {
+        points: vec![[0.0, 0.0], [0.0, 0.05]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
     let sc = one.scatterers(1.333);
     assert_eq!(sc.len(), 1);
     // one section: α = (3/4)·h·r²·CM
@@ -117,7 +169,14 @@ fn filament_of_zero_length_and_of_one_bead() {
 #[test]
 fn filament_exactly_at_45_degrees_has_equal_sx_and_sy_sensitivity() {
     let mut s = Scene::default();
-    s.add_filament(Filament { points: vec![[-5.0, -5.0], [5.0, 5.0]], z: 0.0, profile: DiameterProfile::Constant { d_nm: 60.0 }, n: 1.414, spacing_nm: 50.0 }).unwrap();
+    s.add_filament(Filament {
+        points: vec![[-5.0, -5.0], [5.0, 5.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 60.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
     let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..41).map(|i| -0.8 + 0.04 * i as f64).collect();
     let img = render_xy(&r, &xs, &xs, 0.0, 1);
@@ -133,7 +192,12 @@ fn filament_exactly_at_45_degrees_has_equal_sx_and_sy_sensitivity() {
 #[test]
 fn large_1024_by_1024_scan_renders_with_bounded_memory() {
     let mut s = Scene::default();
-    s.add_bead(Bead { pos: [0.0, 0.0, 0.0], d_nm: 110.0, n: 1.572 }).unwrap();
+    s.add_bead(Bead {
+        pos: [0.0, 0.0, 0.0],
+        d_nm: 110.0,
+        n: 1.572,
+    })
+    .unwrap();
     let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..1024).map(|i| -5.0 + 10.0 * i as f64 / 1023.0).collect();
     let img = render_xy(&r, &xs, &xs, 0.0, 1);

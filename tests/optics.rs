@@ -16,11 +16,21 @@ fn dawson_matches_quadrature() {
         let mut s = 0.0;
         for i in 0..=n {
             let t = i as f64 * h;
-            let w = if i == 0 || i == n { 1.0 } else if i % 2 == 1 { 4.0 } else { 2.0 };
+            let w = if i == 0 || i == n {
+                1.0
+            } else if i % 2 == 1 {
+                4.0
+            } else {
+                2.0
+            };
             s += w * (t * t - x * x).exp();
         }
         let num = s * h / 3.0;
-        assert!((dawson(x) - num).abs() < 1e-12 * num.abs().max(1e-3), "x={x}: {} vs {num}", dawson(x));
+        assert!(
+            (dawson(x) - num).abs() < 1e-12 * num.abs().max(1e-3),
+            "x={x}: {} vs {num}",
+            dawson(x)
+        );
     }
     // maximum of Dawson's function: F(0.9241388730) = 0.5410442246
     assert!((dawson(0.924_138_873) - 0.541_044_224_6).abs() < 1e-10);
@@ -31,7 +41,13 @@ fn dawson_matches_quadrature() {
 /// closed form along y = 0 at z = 0, with an error shrinking like the paraxial parameter
 /// (2/(k w0))².
 fn paraxial_error(w0_nm: f64) -> f64 {
-    let optics = Optics { w0_nm, na: 1.2, n_theta: 96, n_phi: 32, ..Optics::default() };
+    let optics = Optics {
+        w0_nm,
+        na: 1.2,
+        n_theta: 96,
+        n_phi: 32,
+        ..Optics::default()
+    };
     let det = Detection::new(&optics, &ideal()).unwrap();
     let (k, w0) = (optics.k_per_um(), optics.w0_um());
     let peak = gittes_schmidt_sx(k, 1.0, w0, 0.924 * w0).abs();
@@ -56,13 +72,22 @@ fn paraxial_limit_matches_gittes_schmidt_closed_form() {
     eprintln!("paraxial errors: {e3:.3e} (3 µm) {e8:.3e} (8 µm)");
     assert!(e8 < 6e-4, "w0 = 8 µm: worst relative error {e8:.2e}");
     // (8/3)² ≈ 7.1: the error is the paraxial correction, not quadrature noise
-    assert!(e3 / e8 > 4.0 && e3 / e8 < 10.0, "errors {e3:.2e} (3 µm), {e8:.2e} (8 µm)");
+    assert!(
+        e3 / e8 > 4.0 && e3 / e8 < 10.0,
+        "errors {e3:.2e} (3 µm), {e8:.2e} (8 µm)"
+    );
 }
 
 #[test]
 fn symmetries_of_sx_and_sy() {
     let optics = Optics::default();
-    for model in [ideal(), DetectorModel { polarization: true, misalignment: None }] {
+    for model in [
+        ideal(),
+        DetectorModel {
+            polarization: true,
+            misalignment: None,
+        },
+    ] {
         let det = Detection::new(&optics, &model).unwrap();
         for &(x, y, z) in &[(0.13, 0.21, 0.0), (0.4, -0.07, 0.3), (-0.25, 0.5, -0.6)] {
             let (a, _, _) = det.response_unit(x, y, z);
@@ -128,7 +153,16 @@ mod templates {
     use std::sync::Arc;
 
     fn det() -> Arc<Detection> {
-        Arc::new(Detection::new(&Optics::default(), &DetectorModel { polarization: true, misalignment: None }).unwrap())
+        Arc::new(
+            Detection::new(
+                &Optics::default(),
+                &DetectorModel {
+                    polarization: true,
+                    misalignment: None,
+                },
+            )
+            .unwrap(),
+        )
     }
 
     /// The separable matrix-product plane equals direct evaluation at the nodes.
@@ -138,12 +172,21 @@ mod templates {
         for z in [0.0, 0.35, -0.8] {
             let g = plane_grid(&d, z, 0.05, Interp::Cubic);
             let peak = d.response_unit(0.23, 0.0, z).0[0].abs();
-            for &(i, j) in &[(0usize, 0usize), (g.nu / 2 + 3, g.nv / 2 - 7), (g.nu - 5, g.nv / 2 + 1)] {
+            for &(i, j) in &[
+                (0usize, 0usize),
+                (g.nu / 2 + 3, g.nv / 2 - 7),
+                (g.nu - 5, g.nv / 2 + 1),
+            ] {
                 let (x, y) = (g.u0 + i as f64 * g.h, g.v0 + j as f64 * g.h);
                 let direct = d.response_unit(x, y, z).0;
                 let node = g.data[j * g.nu + i];
                 for c in 0..3 {
-                    assert!((direct[c] - node[c]).abs() < 1e-10 * peak, "z={z} ({x},{y}) c={c}: {} vs {}", direct[c], node[c]);
+                    assert!(
+                        (direct[c] - node[c]).abs() < 1e-10 * peak,
+                        "z={z} ({x},{y}) c={c}: {} vs {}",
+                        direct[c],
+                        node[c]
+                    );
                 }
             }
         }
@@ -155,7 +198,9 @@ mod templates {
     fn default_template_interpolation_error_is_below_1e_3() {
         let d = det();
         let t = ModelTemplate::new(d.clone(), TemplateSpec::default()).unwrap();
-        let peak = (0..100).map(|i| d.response_unit(i as f64 * 0.01, 0.0, 0.0).0[0].abs()).fold(0.0, f64::max);
+        let peak = (0..100)
+            .map(|i| d.response_unit(i as f64 * 0.01, 0.0, 0.0).0[0].abs())
+            .fold(0.0, f64::max);
         let mut worst: f64 = 0.0;
         for k in 0..300 {
             let x = -1.0 + 2.0 * (k as f64 * 0.618_033_988_7).fract();
@@ -167,9 +212,20 @@ mod templates {
                 worst = worst.max((a[c] - b[c]).abs() / peak);
             }
         }
-        eprintln!("default template: worst interpolation error {worst:.2e} of peak; {} planes, {} bytes", t.n_planes(), t.bytes());
+        eprintln!(
+            "default template: worst interpolation error {worst:.2e} of peak; {} planes, {} bytes",
+            t.n_planes(),
+            t.bytes()
+        );
         assert!(worst < 1e-3, "{worst}");
-        let lin = ModelTemplate::new(d.clone(), TemplateSpec { interp: Interp::Linear, ..TemplateSpec::default() }).unwrap();
+        let lin = ModelTemplate::new(
+            d.clone(),
+            TemplateSpec {
+                interp: Interp::Linear,
+                ..TemplateSpec::default()
+            },
+        )
+        .unwrap();
         let (x, y, z) = (0.31, -0.17, 0.12);
         let e_lin = (lin.eval(x, y, z)[0] - d.response_unit(x, y, z).0[0]).abs();
         let e_cub = (t.eval(x, y, z)[0] - d.response_unit(x, y, z).0[0]).abs();
@@ -182,17 +238,49 @@ mod templates {
 /// integral.
 #[test]
 fn misaligned_rule_with_zero_misalignment_equals_ideal_rule() {
-    let o = Optics { n_theta: 32, n_phi: 16, ..Optics::default() };
+    let o = Optics {
+        n_theta: 32,
+        n_phi: 16,
+        ..Optics::default()
+    };
     let ideal = Detection::new(&o, &DetectorModel::default()).unwrap();
-    let zero = Misalignment { offset_x: 0.0, offset_y: 0.0, rotation_deg: 0.0, gain_y: 1.0 };
-    let mis = Detection::new(&o, &DetectorModel { polarization: false, misalignment: Some(zero) }).unwrap();
+    let zero = Misalignment {
+        offset_x: 0.0,
+        offset_y: 0.0,
+        rotation_deg: 0.0,
+        gain_y: 1.0,
+    };
+    let mis = Detection::new(
+        &o,
+        &DetectorModel {
+            polarization: false,
+            misalignment: Some(zero),
+        },
+    )
+    .unwrap();
     let peak = ideal.response_unit(0.24, 0.0, 0.0).0[0].abs();
     for &(x, y, z) in &[(0.1, 0.2, 0.0), (0.5, -0.3, 0.4), (-0.7, 0.1, -0.2)] {
         let (a, b) = (ideal.response_unit(x, y, z).0, mis.response_unit(x, y, z).0);
         for c in 0..3 {
-            assert!((a[c] - b[c]).abs() < 1e-8 * peak, "({x},{y},{z}) c={c}: {} vs {}", a[c], b[c]);
+            assert!(
+                (a[c] - b[c]).abs() < 1e-8 * peak,
+                "({x},{y},{z}) c={c}: {} vs {}",
+                a[c],
+                b[c]
+            );
         }
     }
-    let bad = Misalignment { offset_x: 0.9, offset_y: 0.5, ..zero };
-    assert!(Detection::new(&o, &DetectorModel { polarization: false, misalignment: Some(bad) }).is_err());
+    let bad = Misalignment {
+        offset_x: 0.9,
+        offset_y: 0.5,
+        ..zero
+    };
+    assert!(Detection::new(
+        &o,
+        &DetectorModel {
+            polarization: false,
+            misalignment: Some(bad)
+        }
+    )
+    .is_err());
 }

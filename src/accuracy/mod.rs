@@ -57,32 +57,69 @@ pub fn time_median<T>(reps: usize, mut f: impl FnMut() -> T) -> f64 {
 }
 
 fn test_points() -> Vec<(f64, f64, f64)> {
-    vec![(0.1, 0.0, 0.0), (0.3, 0.2, 0.0), (0.8, -0.5, 0.3), (1.2, 0.4, -0.5), (0.0, 0.0, 0.7), (2.0, 1.0, 1.5), (-0.45, 0.6, 0.1)]
+    vec![
+        (0.1, 0.0, 0.0),
+        (0.3, 0.2, 0.0),
+        (0.8, -0.5, 0.3),
+        (1.2, 0.4, -0.5),
+        (0.0, 0.0, 0.7),
+        (2.0, 1.0, 1.5),
+        (-0.45, 0.6, 0.1),
+    ]
 }
 
 /// Cone quadrature order: worst error of (Sx, Sy, Sz) over test points relative to the peak Sx,
 /// against a (128, 64) rule; time of one response evaluation.
 pub fn knob_quadrature(quick: bool) -> Knob {
-    quadrature_sweep(quick, DetectorModel::default(), "quadrature", "Quadrature order over the detection cone")
+    quadrature_sweep(
+        quick,
+        DetectorModel::default(),
+        "quadrature",
+        "Quadrature order over the detection cone",
+    )
 }
 
 /// The same sweep with the `misalignment` effect: the QPD's sign boundaries no longer fall on
 /// rule boundaries, so convergence is algebraic.
 pub fn knob_quadrature_misaligned(quick: bool) -> Knob {
-    let m = DetectorModel { polarization: false, misalignment: Some(Default::default()) };
-    quadrature_sweep(quick, m, "quadrature_misaligned", "Quadrature order, misaligned QPD")
+    let m = DetectorModel {
+        polarization: false,
+        misalignment: Some(Default::default()),
+    };
+    quadrature_sweep(
+        quick,
+        m,
+        "quadrature_misaligned",
+        "Quadrature order, misaligned QPD",
+    )
 }
 
 fn quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &str) -> Knob {
     let base = Optics::default();
-    let r = Detection::new(&Optics { n_theta: 128, n_phi: 64, ..base.clone() }, &model).unwrap();
+    let r = Detection::new(
+        &Optics {
+            n_theta: 128,
+            n_phi: 64,
+            ..base.clone()
+        },
+        &model,
+    )
+    .unwrap();
     let peak = r.response_unit(0.25, 0.0, 0.0).0[0].abs();
-    let orders: &[usize] = if quick { &[8, 16, 24, 48] } else { &[6, 8, 12, 16, 24, 32, 48, 64] };
+    let orders: &[usize] = if quick {
+        &[8, 16, 24, 48]
+    } else {
+        &[6, 8, 12, 16, 24, 32, 48, 64]
+    };
     let pts = test_points();
     let points = orders
         .iter()
         .map(|&nt| {
-            let o = Optics { n_theta: nt, n_phi: nt / 2, ..base.clone() };
+            let o = Optics {
+                n_theta: nt,
+                n_phi: nt / 2,
+                ..base.clone()
+            };
             let d = Detection::new(&o, &model).unwrap();
             let mut worst: f64 = 0.0;
             for &(x, y, z) in &pts {
@@ -91,7 +128,9 @@ fn quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &str) ->
                     worst = worst.max((a[c] - b[c]).abs() / peak);
                 }
             }
-            let secs = time_median(if quick { 5 } else { 21 }, || d.response_unit(0.31, -0.12, 0.05));
+            let secs = time_median(if quick { 5 } else { 21 }, || {
+                d.response_unit(0.31, -0.12, 0.05)
+            });
             Point {
                 setting: format!("n_theta = {nt}, n_phi = {}", nt / 2),
                 value: (4 * nt * (nt / 2)) as f64,
@@ -119,7 +158,9 @@ pub fn knob_template(quick: bool) -> Knob {
     let det = Arc::new(Detection::new(&o, &DetectorModel::default()).unwrap());
     let z = 0.137;
     let n = if quick { 32 } else { 64 };
-    let xs: Vec<f64> = (0..n).map(|i| -1.0 + 2.0 * i as f64 / (n - 1) as f64).collect();
+    let xs: Vec<f64> = (0..n)
+        .map(|i| -1.0 + 2.0 * i as f64 / (n - 1) as f64)
+        .collect();
     let mut truth = vec![];
     for &y in &xs {
         for &x in &xs {
@@ -127,11 +168,19 @@ pub fn knob_template(quick: bool) -> Knob {
         }
     }
     let peak = truth.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let hs: &[f64] = if quick { &[0.08, 0.04, 0.02] } else { &[0.1, 0.08, 0.04, 0.02, 0.01] };
+    let hs: &[f64] = if quick {
+        &[0.08, 0.04, 0.02]
+    } else {
+        &[0.1, 0.08, 0.04, 0.02, 0.01]
+    };
     let mut points = vec![];
     for interp in [Interp::Linear, Interp::Cubic] {
         for &h in hs {
-            let spec = TemplateSpec { h, hz: 0.05, interp };
+            let spec = TemplateSpec {
+                h,
+                hz: 0.05,
+                interp,
+            };
             let mut err = 0.0;
             let secs = time_median(if quick { 1 } else { 3 }, || {
                 let t = ModelTemplate::new(det.clone(), spec).unwrap();
@@ -171,30 +220,58 @@ pub fn knob_template(quick: bool) -> Knob {
 pub fn knob_bead_spacing(quick: bool) -> Knob {
     let o = Optics::default();
     let n = if quick { 32 } else { 64 };
-    let xs: Vec<f64> = (0..n).map(|i| -1.0 + 2.0 * i as f64 / (n - 1) as f64).collect();
-    let ys: Vec<f64> = (0..n).map(|i| -0.5 + 3.0 * i as f64 / (n - 1) as f64).collect();
+    let xs: Vec<f64> = (0..n)
+        .map(|i| -1.0 + 2.0 * i as f64 / (n - 1) as f64)
+        .collect();
+    let ys: Vec<f64> = (0..n)
+        .map(|i| -0.5 + 3.0 * i as f64 / (n - 1) as f64)
+        .collect();
     let renderer = |spacing_nm: f64| -> Renderer {
         let mut s = Scene::default();
-        s.add_filament(Filament { points: vec![[0.0, 0.0], [0.0, 8.0]], z: 0.0, profile: DiameterProfile::AlphaTip { d_nm: 100.0, tip_um: 3.0 }, n: 1.414, spacing_nm }).unwrap();
+        s.add_filament(Filament {
+            points: vec![[0.0, 0.0], [0.0, 8.0]],
+            z: 0.0,
+            profile: DiameterProfile::AlphaTip {
+                d_nm: 100.0,
+                tip_um: 3.0,
+            },
+            n: 1.414,
+            spacing_nm,
+        })
+        .unwrap();
         Renderer::new(&o, &s, TemplateSpec::default()).unwrap()
     };
     let reference = render_xy(&renderer(2.0), &xs, &ys, 0.0, 1).sx.data;
     let peak = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let spacings: &[f64] = if quick { &[200.0, 100.0, 50.0, 25.0] } else { &[400.0, 200.0, 100.0, 50.0, 25.0, 10.0] };
+    let spacings: &[f64] = if quick {
+        &[200.0, 100.0, 50.0, 25.0]
+    } else {
+        &[400.0, 200.0, 100.0, 50.0, 25.0, 10.0]
+    };
     let points = spacings
         .iter()
         .map(|&sp| {
             let r = renderer(sp);
             let img = render_xy(&r, &xs, &ys, 0.0, 1).sx.data;
             let rms = ((&img - &reference).mapv(|v| v * v).sum() / img.len() as f64).sqrt() / peak;
-            let secs = time_median(if quick { 3 } else { 7 }, || render_xy(&r, &xs, &ys, 0.0, 1));
-            Point { setting: format!("{sp} nm"), value: sp, error: rms.max(1e-16), seconds: secs, is_default: sp == 50.0 }
+            let secs = time_median(if quick { 3 } else { 7 }, || {
+                render_xy(&r, &xs, &ys, 0.0, 1)
+            });
+            Point {
+                setting: format!("{sp} nm"),
+                value: sp,
+                error: rms.max(1e-16),
+                seconds: secs,
+                is_default: sp == 50.0,
+            }
         })
         .collect();
     Knob {
         id: "bead_spacing".into(),
         title: "Bead-model spacing along a filament (α-tip)".into(),
-        metric: format!("RMS error of a {n}×{n} Sx image of a 100 nm fibril's 3 µm α-tip, relative to its peak"),
+        metric: format!(
+            "RMS error of a {n}×{n} Sx image of a 100 nm fibril's 3 µm α-tip, relative to its peak"
+        ),
         timed: "render the image (template ready)".into(),
         reference: "2 nm spacing".into(),
         points,
@@ -208,7 +285,11 @@ pub fn knob_finite_size(quick: bool) -> Knob {
     let d = 500.0;
     let at0 = |n_r: usize| bfpscope_fs_sens(&det, d, n_r);
     let reference = at0(14);
-    let orders: &[usize] = if quick { &[1, 2, 4, 6] } else { &[1, 2, 3, 4, 6, 9] };
+    let orders: &[usize] = if quick {
+        &[1, 2, 4, 6]
+    } else {
+        &[1, 2, 3, 4, 6, 9]
+    };
     let points = orders
         .iter()
         .map(|&n| {
@@ -240,14 +321,24 @@ fn bfpscope_fs_sens(det: &Detection, d_nm: f64, n_r: usize) -> f64 {
 
 /// Every physics knob, in report order.
 pub fn physics_knobs(quick: bool) -> Vec<Knob> {
-    vec![knob_quadrature(quick), knob_quadrature_misaligned(quick), knob_template(quick), knob_bead_spacing(quick), knob_finite_size(quick)]
+    vec![
+        knob_quadrature(quick),
+        knob_quadrature_misaligned(quick),
+        knob_template(quick),
+        knob_bead_spacing(quick),
+        knob_finite_size(quick),
+    ]
 }
 
 /// The knee of a sweep: the cheapest point whose error is within 3× of the best error or below
 /// `good_enough` (the report uses 3e-5 of the peak: even averaged over a 64×64 fit region the paper's per-pixel
 /// noise, 0.84% of the peak, is 1.3e-4 — four times larger).
 pub fn knee(k: &Knob, good_enough: f64) -> Option<&Point> {
-    let best = k.points.iter().map(|p| p.error).fold(f64::INFINITY, f64::min);
+    let best = k
+        .points
+        .iter()
+        .map(|p| p.error)
+        .fold(f64::INFINITY, f64::min);
     k.points
         .iter()
         .filter(|p| p.error <= (3.0 * best).max(good_enough))
@@ -261,7 +352,13 @@ pub fn markdown_table(k: &Knob) -> String {
         k.title, k.metric, k.reference, k.timed
     );
     for p in &k.points {
-        s += &format!("| {} | {:.2e} | {} | {} |\n", p.setting, p.error, fmt_secs(p.seconds), if p.is_default { "**default**" } else { "" });
+        s += &format!(
+            "| {} | {:.2e} | {} | {} |\n",
+            p.setting,
+            p.error,
+            fmt_secs(p.seconds),
+            if p.is_default { "**default**" } else { "" }
+        );
     }
     s
 }
@@ -300,9 +397,27 @@ mod tests {
             timed: "t".into(),
             reference: "r".into(),
             points: vec![
-                Point { setting: "a".into(), value: 1.0, error: 1e-2, seconds: 1.0, is_default: false },
-                Point { setting: "b".into(), value: 2.0, error: 2e-6, seconds: 2.0, is_default: true },
-                Point { setting: "c".into(), value: 3.0, error: 1e-6, seconds: 9.0, is_default: false },
+                Point {
+                    setting: "a".into(),
+                    value: 1.0,
+                    error: 1e-2,
+                    seconds: 1.0,
+                    is_default: false,
+                },
+                Point {
+                    setting: "b".into(),
+                    value: 2.0,
+                    error: 2e-6,
+                    seconds: 2.0,
+                    is_default: true,
+                },
+                Point {
+                    setting: "c".into(),
+                    value: 3.0,
+                    error: 1e-6,
+                    seconds: 9.0,
+                    is_default: false,
+                },
             ],
         };
         assert_eq!(knee(&k, 0.0).unwrap().setting, "b");

@@ -24,9 +24,23 @@ impl Image {
     /// Build an image; panics only on a programming error (axis lengths not matching the data),
     /// never on user input (callers validate first).
     pub fn new(data: Array2<f64>, x: Vec<f64>, y: Vec<f64>) -> Self {
-        assert_eq!(data.ncols(), x.len(), "x axis length must equal the number of columns");
-        assert_eq!(data.nrows(), y.len(), "y axis length must equal the number of rows");
-        Self { data, x, y, x_name: "x".into(), y_name: "y".into() }
+        assert_eq!(
+            data.ncols(),
+            x.len(),
+            "x axis length must equal the number of columns"
+        );
+        assert_eq!(
+            data.nrows(),
+            y.len(),
+            "y axis length must equal the number of rows"
+        );
+        Self {
+            data,
+            x,
+            y,
+            x_name: "x".into(),
+            y_name: "y".into(),
+        }
     }
 
     pub fn with_axis_names(mut self, x_name: &str, y_name: &str) -> Self {
@@ -72,6 +86,10 @@ pub struct Profile {
 impl Profile {
     pub fn new(t: Vec<f64>, v: Vec<f64>) -> Self {
         assert_eq!(t.len(), v.len());
-        Self { t, v, t_name: "x".into() }
+        Self {
+            t,
+            v,
+            t_name: "x".into(),
+        }
     }
 }

@@ -24,7 +24,10 @@ impl std::fmt::Debug for Trace {
 
 impl Trace {
     pub fn new(clock: Arc<dyn Clock>) -> Self {
-        Self { lines: Arc::default(), clock: Some(clock) }
+        Self {
+            lines: Arc::default(),
+            clock: Some(clock),
+        }
     }
 
     fn stamp(&self) -> String {
@@ -94,7 +97,9 @@ impl Stage for TracedStage {
         let r = self.inner.move_to(target);
         match &r {
             Ok(()) => self.trace.record(format!("move {}", pos_str(&target))),
-            Err(e) => self.trace.record(format!("move {} FAILED: {e}", pos_str(&target))),
+            Err(e) => self
+                .trace
+                .record(format!("move {} FAILED: {e}", pos_str(&target))),
         }
         r
     }
@@ -123,7 +128,12 @@ impl Qpd for TracedQpd {
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let r = self.inner.read(n);
         match &r {
-            Ok(v) => self.trace.record(format!("read n={n} sx={} sy={} sz={}", sig4(v.sx), sig4(v.sy), sig4(v.sz))),
+            Ok(v) => self.trace.record(format!(
+                "read n={n} sx={} sy={} sz={}",
+                sig4(v.sx),
+                sig4(v.sy),
+                sig4(v.sz)
+            )),
             Err(e) => self.trace.record(format!("read n={n} FAILED: {e}")),
         }
         r
@@ -135,8 +145,14 @@ impl super::Instrument {
     pub fn traced(self) -> (Self, Trace) {
         let trace = Trace::new(self.clock.clone());
         let inst = Self {
-            stage: Box::new(TracedStage { inner: self.stage, trace: trace.clone() }),
-            qpd: Box::new(TracedQpd { inner: self.qpd, trace: trace.clone() }),
+            stage: Box::new(TracedStage {
+                inner: self.stage,
+                trace: trace.clone(),
+            }),
+            qpd: Box::new(TracedQpd {
+                inner: self.qpd,
+                trace: trace.clone(),
+            }),
             ..self
         };
         (inst, trace)
@@ -153,17 +169,30 @@ pub fn check_golden(actual: &str, path: &std::path::Path, bless: bool) -> Result
         std::fs::write(path, actual).map_err(|e| format!("{}: {e}", path.display()))?;
         return Ok(());
     }
-    let expected = std::fs::read_to_string(path).map_err(|e| format!("golden trace {} unreadable ({e}); run with --bless to create it", path.display()))?;
+    let expected = std::fs::read_to_string(path).map_err(|e| {
+        format!(
+            "golden trace {} unreadable ({e}); run with --bless to create it",
+            path.display()
+        )
+    })?;
     if expected == actual {
         return Ok(());
     }
     let (e, a): (Vec<&str>, Vec<&str>) = (expected.lines().collect(), actual.lines().collect());
-    let mut diff = format!("trace differs from {} (run with --bless to accept):\n", path.display());
+    let mut diff = format!(
+        "trace differs from {} (run with --bless to accept):\n",
+        path.display()
+    );
     let mut shown = 0;
     for i in 0..e.len().max(a.len()) {
         let (x, y) = (e.get(i).copied(), a.get(i).copied());
         if x != y {
-            diff += &format!("@@ line {}\n- {}\n+ {}\n", i + 1, x.unwrap_or("<end>"), y.unwrap_or("<end>"));
+            diff += &format!(
+                "@@ line {}\n- {}\n+ {}\n",
+                i + 1,
+                x.unwrap_or("<end>"),
+                y.unwrap_or("<end>")
+            );
             shown += 1;
             if shown >= 10 {
                 diff += "...\n";
@@ -183,7 +212,12 @@ mod tests {
     #[test]
     fn trace_records_moves_reads_and_notes_with_simulated_time() {
         let mut s = Scene::default();
-        s.add_bead(Bead { pos: [0.0, 0.0, 0.0], d_nm: 110.0, n: 1.572 }).unwrap();
+        s.add_bead(Bead {
+            pos: [0.0, 0.0, 0.0],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
         let core = SimCore::new(&Optics::default(), &s, SimConfig::default()).unwrap();
         let (mut inst, trace) = core.instrument(0.01).traced();
         inst.move_settle([0.1, 0.0, 0.0]).unwrap();
@@ -193,8 +227,15 @@ mod tests {
         let t = trace.text();
         let lines: Vec<&str> = t.lines().collect();
         assert_eq!(lines.len(), 4, "{t}");
-        assert!(lines[0].contains("move x=0.1000 y=0.0000 z=0.0000") && lines[0].trim_start().starts_with("0.0020 s"), "{t}");
-        assert!(lines[1].contains("read n=1000 sx=") && lines[1].trim_start().starts_with("0.0220 s"), "{t}");
+        assert!(
+            lines[0].contains("move x=0.1000 y=0.0000 z=0.0000")
+                && lines[0].trim_start().starts_with("0.0020 s"),
+            "{t}"
+        );
+        assert!(
+            lines[1].contains("read n=1000 sx=") && lines[1].trim_start().starts_with("0.0220 s"),
+            "{t}"
+        );
         assert!(lines[2].ends_with("note done"));
         assert!(lines[3].contains("FAILED") && lines[3].contains("out of limits"));
         // golden comparison: bless, then equal, then a changed line is reported
@@ -204,7 +245,13 @@ mod tests {
         check_golden(&t, &f, false).unwrap();
         let changed = t.replace("note done", "note other");
         let e = check_golden(&changed, &f, false).unwrap_err();
-        assert!(e.contains("- ") && e.contains("note done") && e.contains("+ ") && e.contains("note other"), "{e}");
+        assert!(
+            e.contains("- ")
+                && e.contains("note done")
+                && e.contains("+ ")
+                && e.contains("note other"),
+            "{e}"
+        );
         let _ = std::fs::remove_dir_all(dir);
     }
 }

@@ -22,7 +22,10 @@ pub fn p_scat_ratio(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsErr
     check_range("n", n, 1.0, 5.0)?;
     let k = optics.k_per_um();
     let r = d_nm * 0.5e-3;
-    Ok(8.0 / 3.0 * k.powi(4) * clausius_mossotti(n, optics.n_medium).powi(2) * r.powi(6) / optics.w0_um().powi(2))
+    Ok(
+        8.0 / 3.0 * k.powi(4) * clausius_mossotti(n, optics.n_medium).powi(2) * r.powi(6)
+            / optics.w0_um().powi(2),
+    )
 }
 
 /// Shape for the trap-depth calculator.
@@ -42,7 +45,13 @@ pub enum TrapShape {
 /// The supplement's last line prints 3 n_s²/(w0 c_s) · … · √(π/2) w0; integrating its own
 /// previous line gives the form above (its prefactor is 4 w0 larger and not an energy), see
 /// docs/physics.md. c_s = c0/n_s as in Fig. S3's caption; P = `optics.power_mw`.
-pub fn trap_depth_kt(optics: &Optics, shape: TrapShape, d_nm: f64, n: f64, temperature_k: f64) -> Result<f64, OpticsError> {
+pub fn trap_depth_kt(
+    optics: &Optics,
+    shape: TrapShape,
+    d_nm: f64,
+    n: f64,
+    temperature_k: f64,
+) -> Result<f64, OpticsError> {
     optics.validate()?;
     check_range("d_nm", d_nm, 0.0, 20000.0)?;
     check_range("n", n, 1.0, 5.0)?;

@@ -45,7 +45,14 @@ pub fn sphere_points(d_um: f64, n_r: usize) -> Vec<([f64; 3], f64)> {
 }
 
 /// Volume-averaged per-unit-α response and its x, y derivatives at displacement (x, y, z) µm.
-pub fn response_unit_finite(det: &Detection, d_nm: f64, n_r: usize, x: f64, y: f64, z: f64) -> ([f64; 3], [f64; 3], [f64; 3]) {
+pub fn response_unit_finite(
+    det: &Detection,
+    d_nm: f64,
+    n_r: usize,
+    x: f64,
+    y: f64,
+    z: f64,
+) -> ([f64; 3], [f64; 3], [f64; 3]) {
     let mut s = [0.0; 3];
     let mut dx = [0.0; 3];
     let mut dy = [0.0; 3];
@@ -113,7 +120,10 @@ mod tests {
         let w: f64 = pts.iter().map(|p| p.1).sum();
         assert!((w - 1.0).abs() < 1e-12);
         // <r²> over a uniform ball of radius R = 3R²/5
-        let r2: f64 = pts.iter().map(|(o, w)| w * (o[0] * o[0] + o[1] * o[1] + o[2] * o[2])).sum();
+        let r2: f64 = pts
+            .iter()
+            .map(|(o, w)| w * (o[0] * o[0] + o[1] * o[1] + o[2] * o[2]))
+            .sum();
         assert!((r2 - 0.6 * 0.04).abs() < 1e-12);
         let z2: f64 = pts.iter().map(|(o, w)| w * o[2] * o[2]).sum();
         assert!((z2 - 0.2 * 0.04).abs() < 1e-12);
@@ -125,7 +135,12 @@ mod tests {
         let p = det.response_unit(0.2, 0.1, 0.05).0;
         let f = response_unit_finite(&det, 10.0, 4, 0.2, 0.1, 0.05).0;
         for c in 0..2 {
-            assert!((f[c] / p[c] - 1.0).abs() < 1e-3, "{c}: {} vs {}", f[c], p[c]);
+            assert!(
+                (f[c] / p[c] - 1.0).abs() < 1e-3,
+                "{c}: {} vs {}",
+                f[c],
+                p[c]
+            );
         }
     }
 }

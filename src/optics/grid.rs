@@ -57,7 +57,15 @@ pub struct Grid2 {
 
 impl Grid2 {
     /// Build a grid by evaluating `f(u, v)` at every node.
-    pub fn from_fn(u0: f64, v0: f64, h: f64, nu: usize, nv: usize, interp: Interp, mut f: impl FnMut(f64, f64) -> [f64; 3]) -> Self {
+    pub fn from_fn(
+        u0: f64,
+        v0: f64,
+        h: f64,
+        nu: usize,
+        nv: usize,
+        interp: Interp,
+        mut f: impl FnMut(f64, f64) -> [f64; 3],
+    ) -> Self {
         let mut data = Vec::with_capacity(nu * nv);
         for j in 0..nv {
             let v = v0 + j as f64 * h;
@@ -65,7 +73,15 @@ impl Grid2 {
                 data.push(f(u0 + i as f64 * h, v));
             }
         }
-        Self { u0, v0, h, nu, nv, data, interp }
+        Self {
+            u0,
+            v0,
+            h,
+            nu,
+            nv,
+            data,
+            interp,
+        }
     }
 
     /// Node value at integer indices (zero outside).
@@ -288,6 +304,9 @@ mod tests {
         // Close to the analytic slope of u·exp(-(u²+v²)/0.16) at the origin (= 1). At a node the
         // cubic-convolution derivative is the central difference, error h²/6·f''' = 0.0025 here.
         let slope = g.eval_grad(0.0, 0.0).du[0];
-        assert!((slope - (1.0 - 0.02f64.powi(2) / 6.0 * 37.5)).abs() < 1e-4, "slope {slope}");
+        assert!(
+            (slope - (1.0 - 0.02f64.powi(2) / 6.0 * 37.5)).abs() < 1e-4,
+            "slope {slope}"
+        );
     }
 }

@@ -5,8 +5,8 @@ pub mod grid;
 pub mod params;
 
 pub use params::{Optics, OpticsError};
+pub mod calc;
+pub mod finite_size;
 pub mod quad;
 pub mod rayleigh;
 pub mod template;
-pub mod calc;
-pub mod finite_size;

@@ -53,8 +53,12 @@ mod tests {
             let (x, w) = gauss_legendre(n, -1.0, 2.0);
             let deg = 2 * n - 1;
             let num: f64 = x.iter().zip(&w).map(|(x, w)| w * x.powi(deg as i32)).sum();
-            let exact = (2f64.powi(deg as i32 + 1) - (-1f64).powi(deg as i32 + 1)) / (deg as f64 + 1.0);
-            assert!((num - exact).abs() < 1e-12 * exact.abs().max(1.0), "n={n}: {num} vs {exact}");
+            let exact =
+                (2f64.powi(deg as i32 + 1) - (-1f64).powi(deg as i32 + 1)) / (deg as f64 + 1.0);
+            assert!(
+                (num - exact).abs() < 1e-12 * exact.abs().max(1.0),
+                "n={n}: {num} vs {exact}"
+            );
         }
         let (x, w) = gauss_legendre(20, 0.0, std::f64::consts::PI);
         let s: f64 = x.iter().zip(&w).map(|(x, w)| w * x.sin()).sum();

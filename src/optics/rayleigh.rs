@@ -62,7 +62,12 @@ impl Default for Misalignment {
     /// Defaults chosen to reproduce the paper's ~30% weaker, slightly asymmetric Sy
     /// (measured in `tests/optics.rs`, stated in docs/physics.md).
     fn default() -> Self {
-        Self { offset_x: 0.0, offset_y: 0.15, rotation_deg: 2.0, gain_y: 0.8 }
+        Self {
+            offset_x: 0.0,
+            offset_y: 0.15,
+            rotation_deg: 2.0,
+            gain_y: 0.8,
+        }
     }
 }
 
@@ -120,22 +125,46 @@ impl Detection {
         let mut push = |st: f64, ct: f64, t: f64, cp: f64, sp: f64, weight: f64, s: [f64; 3]| {
             // weight = measure of sinθ dθ dφ carried by this node
             let gauss = (-(k * w0 * t).powi(2) / 4.0).exp();
-            let pol = if det.polarization { 1.0 - cp * cp * (1.0 - ct) } else { 1.0 };
+            let pol = if det.polarization {
+                1.0 - cp * cp * (1.0 - ct)
+            } else {
+                1.0
+            };
             let (u, v) = (st * cp, st * sp);
             let pol_ss = if det.polarization { 1.0 - u * u } else { 1.0 };
             let amp = 2.0 * k.powi(3) / PI * weight * gauss * pol;
-            nodes.push(Node { u, v, c: ct, amp, s, wq: weight, pol_ss });
+            nodes.push(Node {
+                u,
+                v,
+                c: ct,
+                amp,
+                s,
+                wq: weight,
+                pol_ss,
+            });
         };
         match det.misalignment {
             None => {
                 let (th, wth) = gauss_legendre(optics.n_theta, 0.0, theta_max);
                 for q in 0..4 {
-                    let (ph, wph) = gauss_legendre(optics.n_phi, q as f64 * PI / 2.0, (q + 1) as f64 * PI / 2.0);
+                    let (ph, wph) = gauss_legendre(
+                        optics.n_phi,
+                        q as f64 * PI / 2.0,
+                        (q + 1) as f64 * PI / 2.0,
+                    );
                     for (&t, &wt) in th.iter().zip(&wth) {
                         let (st, ct) = t.sin_cos();
                         for (&p, &wp) in ph.iter().zip(&wph) {
                             let (sp, cp) = p.sin_cos();
-                            push(st, ct, t, cp, sp, wt * wp * st, [cp.signum(), sp.signum(), 1.0]);
+                            push(
+                                st,
+                                ct,
+                                t,
+                                cp,
+                                sp,
+                                wt * wp * st,
+                                [cp.signum(), sp.signum(), 1.0],
+                            );
                         }
                     }
                 }
@@ -151,7 +180,11 @@ impl Detection {
                 // disk centre in detector coordinates (d = R·n − o with n the normalised BFP point)
                 let (cx, cy) = (-ox, -oy);
                 for q in 0..4 {
-                    let (ph, wph) = gauss_legendre(optics.n_phi, q as f64 * PI / 2.0, (q + 1) as f64 * PI / 2.0);
+                    let (ph, wph) = gauss_legendre(
+                        optics.n_phi,
+                        q as f64 * PI / 2.0,
+                        (q + 1) as f64 * PI / 2.0,
+                    );
                     for (&p, &wp) in ph.iter().zip(&wph) {
                         let (sp_d, cp_d) = p.sin_cos();
                         let ec = cp_d * cx + sp_d * cy;
@@ -164,15 +197,32 @@ impl Detection {
                             let st = (sin_max * un.hypot(vn)).min(1.0);
                             let ct = (1.0 - st * st).max(1e-12).sqrt();
                             let t = st.asin();
-                            let (cp, sp) = if st > 0.0 { (un / un.hypot(vn), vn / un.hypot(vn)) } else { (1.0, 0.0) };
+                            let (cp, sp) = if st > 0.0 {
+                                (un / un.hypot(vn), vn / un.hypot(vn))
+                            } else {
+                                (1.0, 0.0)
+                            };
                             let weight = sin_max * sin_max * r * w * wp / ct;
-                            push(st, ct, t, cp, sp, weight, [cp_d.signum(), m.gain_y * sp_d.signum(), 1.0]);
+                            push(
+                                st,
+                                ct,
+                                t,
+                                cp,
+                                sp,
+                                weight,
+                                [cp_d.signum(), m.gain_y * sp_d.signum(), 1.0],
+                            );
                         }
                     }
                 }
             }
         }
-        Ok(Self { nodes, k, w0, z_r: optics.z_r_um() })
+        Ok(Self {
+            nodes,
+            k,
+            w0,
+            z_r: optics.z_r_um(),
+        })
     }
 
     /// Beam quantities at axial displacement z (µm): (w(z), 1/R(z), Gouy phase).
@@ -232,7 +282,13 @@ pub struct Signals {
 
 /// QPD response (Sx, Sy, Sz), normalised to the beam power, of a sphere of diameter `d_nm` and
 /// index `n` at displacement (x, y, z) µm from the focus (suppl. S2).
-pub fn response(optics: &Optics, det: &DetectorModel, pos_um: [f64; 3], d_nm: f64, n: f64) -> Result<Signals, OpticsError> {
+pub fn response(
+    optics: &Optics,
+    det: &DetectorModel,
+    pos_um: [f64; 3],
+    d_nm: f64,
+    n: f64,
+) -> Result<Signals, OpticsError> {
     check_particle(d_nm, n)?;
     for (name, v) in [("x", pos_um[0]), ("y", pos_um[1]), ("z", pos_um[2])] {
         check_range(name, v, -1e4, 1e4)?;
@@ -240,7 +296,11 @@ pub fn response(optics: &Optics, det: &DetectorModel, pos_um: [f64; 3], d_nm: f6
     let d = Detection::new(optics, det)?;
     let a = alpha_um3(d_nm, n, optics.n_medium);
     let (s, _, _) = d.response_unit(pos_um[0], pos_um[1], pos_um[2]);
-    Ok(Signals { sx: a * s[0], sy: a * s[1], sz: a * s[2] })
+    Ok(Signals {
+        sx: a * s[0],
+        sy: a * s[1],
+        sz: a * s[2],
+    })
 }
 
 /// Dawson's integral F(x) = e^{−x²} ∫₀ˣ e^{t²} dt, by Rybicki's method (Numerical Recipes

@@ -33,7 +33,11 @@ pub struct TemplateSpec {
 
 impl Default for TemplateSpec {
     fn default() -> Self {
-        Self { h: 0.02, hz: 0.05, interp: Interp::Cubic }
+        Self {
+            h: 0.02,
+            hz: 0.05,
+            interp: Interp::Cubic,
+        }
     }
 }
 
@@ -46,7 +50,13 @@ pub struct ModelTemplate {
 
 impl std::fmt::Debug for ModelTemplate {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "ModelTemplate(h = {} µm, hz = {} µm, {} planes)", self.spec.h, self.spec.hz, self.n_planes())
+        write!(
+            f,
+            "ModelTemplate(h = {} µm, hz = {} µm, {} planes)",
+            self.spec.h,
+            self.spec.hz,
+            self.n_planes()
+        )
     }
 }
 
@@ -54,7 +64,11 @@ impl ModelTemplate {
     pub fn new(det: Arc<Detection>, spec: TemplateSpec) -> Result<Self, OpticsError> {
         super::params::check_range("template h (µm)", spec.h, 1e-4, 0.2)?;
         super::params::check_range("template hz (µm)", spec.hz, 1e-4, 1.0)?;
-        Ok(Self { det, spec, planes: Mutex::new(HashMap::new()) })
+        Ok(Self {
+            det,
+            spec,
+            planes: Mutex::new(HashMap::new()),
+        })
     }
 
     pub fn n_planes(&self) -> usize {
@@ -63,7 +77,10 @@ impl ModelTemplate {
 
     /// Memory held by the cached planes, bytes.
     pub fn bytes(&self) -> usize {
-        self.planes.lock().map(|p| p.values().map(|g| g.bytes()).sum()).unwrap_or(0)
+        self.planes
+            .lock()
+            .map(|p| p.values().map(|g| g.bytes()).sum())
+            .unwrap_or(0)
     }
 
     /// The plane at z-grid index `iz` (z = iz·hz), built on first use.
@@ -71,7 +88,12 @@ impl ModelTemplate {
         if let Some(p) = self.planes.lock().unwrap().get(&iz) {
             return p.clone();
         }
-        let g = Arc::new(plane_grid(&self.det, iz as f64 * self.spec.hz, self.spec.h, self.spec.interp));
+        let g = Arc::new(plane_grid(
+            &self.det,
+            iz as f64 * self.spec.hz,
+            self.spec.h,
+            self.spec.interp,
+        ));
         self.planes.lock().unwrap().entry(iz).or_insert(g).clone()
     }
 
@@ -133,7 +155,9 @@ impl ModelTemplate {
                     0.5 * (-3.0 * t3 + 4.0 * t2 + t),
                     0.5 * (t3 - t2),
                 ];
-                (0..4).map(|j| (self.plane(i0 - 1 + j as i64), w[j])).collect()
+                (0..4)
+                    .map(|j| (self.plane(i0 - 1 + j as i64), w[j]))
+                    .collect()
             }
         }
     }
@@ -185,5 +209,13 @@ pub fn plane_grid(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
             }
         }
     }
-    Grid2 { u0, v0: u0, h, nu: n, nv: n, data, interp }
+    Grid2 {
+        u0,
+        v0: u0,
+        h,
+        nu: n,
+        nv: n,
+        data,
+        interp,
+    }
 }

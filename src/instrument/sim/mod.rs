@@ -29,7 +29,11 @@ pub struct SimConfig {
 
 impl Default for SimConfig {
     fn default() -> Self {
-        Self { travel: [(-37.5, 37.5), (-37.5, 37.5), (-25.0, 25.0)], sample_rate: 1e5, move_time_s: 0.002 }
+        Self {
+            travel: [(-37.5, 37.5), (-37.5, 37.5), (-25.0, 25.0)],
+            sample_rate: 1e5,
+            move_time_s: 0.002,
+        }
     }
 }
 
@@ -59,7 +63,13 @@ impl SimCore {
     pub fn from_renderer(renderer: Arc<Renderer>, cfg: SimConfig) -> Self {
         let seed = renderer.scene.seed;
         Self {
-            state: Arc::new(Mutex::new(SimState { renderer, commanded: [0.0; 3], rng: ChaCha8Rng::seed_from_u64(seed), walk: [0.0; 3], walk_t: 0.0 })),
+            state: Arc::new(Mutex::new(SimState {
+                renderer,
+                commanded: [0.0; 3],
+                rng: ChaCha8Rng::seed_from_u64(seed),
+                walk: [0.0; 3],
+                walk_t: 0.0,
+            })),
             clock: Arc::new(VirtualClock::new()),
             cfg,
         }
@@ -86,7 +96,10 @@ impl SimCore {
             if dt > 0.0 {
                 let s = d.random_walk_nm_sqrt_s * 1e-3 * dt.sqrt();
                 for c in 0..3 {
-                    st.walk[c] += s * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut st.rng);
+                    st.walk[c] += s * <StandardNormal as Distribution<f64>>::sample(
+                        &StandardNormal,
+                        &mut st.rng,
+                    );
                 }
                 st.walk_t = t;
             }
@@ -158,7 +171,10 @@ impl Qpd for SimQpd {
     }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         if n == 0 {
-            return Err(DeviceError::Other { device: self.name(), detail: "read: n = 0 samples; n must be ≥ 1".into() });
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: "read: n = 0 samples; n must be ≥ 1".into(),
+            });
         }
         let dur = n as f64 / self.0.cfg.sample_rate;
         let t_mid = self.0.clock.now() + 0.5 * dur;
@@ -168,7 +184,15 @@ impl Qpd for SimQpd {
         let (v, sd) = r.render_point(pos, n, &mut st.rng);
         drop(st);
         self.0.clock.wait(dur);
-        Ok(QpdReading { sx: v[0], sy: v[1], sz: v[2], sx_std: sd[0], sy_std: sd[1], sz_std: sd[2], n })
+        Ok(QpdReading {
+            sx: v[0],
+            sy: v[1],
+            sz: v[2],
+            sx_std: sd[0],
+            sy_std: sd[1],
+            sz_std: sd[2],
+            n,
+        })
     }
 }
 
@@ -177,9 +201,18 @@ impl Qpd for SimQpd {
 /// `simulate(scene, grid)`, figure scripts and benchmarks.
 pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples: usize) -> Scan {
     let fx = &renderer.scene.effects;
-    let per_pixel = fx.thermal_motion.is_some() || fx.drift.is_some() || fx.pointing_noise.is_some() || fx.cross_terms == Some(true) || fx.laser_power_noise.is_some() || fx.detector_noise.is_some();
+    let per_pixel = fx.thermal_motion.is_some()
+        || fx.drift.is_some()
+        || fx.pointing_noise.is_some()
+        || fx.cross_terms == Some(true)
+        || fx.laser_power_noise.is_some()
+        || fx.detector_noise.is_some();
     let (nx, ny) = (xs.len(), ys.len());
-    let mut ch = [Array2::<f64>::zeros((ny, nx)), Array2::<f64>::zeros((ny, nx)), Array2::<f64>::zeros((ny, nx))];
+    let mut ch = [
+        Array2::<f64>::zeros((ny, nx)),
+        Array2::<f64>::zeros((ny, nx)),
+        Array2::<f64>::zeros((ny, nx)),
+    ];
     if per_pixel {
         let mut rng = ChaCha8Rng::seed_from_u64(renderer.scene.seed);
         let dt = n_samples as f64 / SimConfig::default().sample_rate;

@@ -22,6 +22,9 @@ pub struct StageInfo {
     pub detail: String,
 }
 
+/// Template planes (and z weights) per scatterer, for one stage height.
+type ScattererPlanes = Arc<Vec<Vec<(Arc<Grid2>, f64)>>>;
+
 pub struct Renderer {
     pub optics: Optics,
     pub scene: Scene,
@@ -31,7 +34,7 @@ pub struct Renderer {
     n_objects: usize,
     stages: Mutex<Vec<StageInfo>>,
     /// (stage z bits, per-scatterer planes and weights) for the last z rendered
-    plane_cache: Mutex<Option<(u64, Arc<Vec<Vec<(Arc<Grid2>, f64)>>>)>>,
+    plane_cache: Mutex<Option<(u64, ScattererPlanes)>>,
 }
 
 const SUPERPOSITION: &str = "superposition";
@@ -41,7 +44,10 @@ impl Renderer {
         optics.validate()?;
         let t0 = Instant::now();
         let fx = &scene.effects;
-        let model = DetectorModel { polarization: fx.polarization == Some(true), misalignment: fx.misalignment };
+        let model = DetectorModel {
+            polarization: fx.polarization == Some(true),
+            misalignment: fx.misalignment,
+        };
         let det = Arc::new(Detection::new(optics, &model)?);
         let template = Arc::new(ModelTemplate::new(det.clone(), spec)?);
         let mut scatterers = scene.scatterers(optics.n_medium);
@@ -49,14 +55,39 @@ impl Renderer {
         let mut stages = vec![StageInfo {
             name: SUPERPOSITION.into(),
             seconds: 0.0,
-            detail: format!("{} scatterers from {} objects; template h = {} µm, hz = {} µm, {:?}", scatterers.len(), n_objects, spec.h, spec.hz, spec.interp),
+            detail: format!(
+                "{} scatterers from {} objects; template h = {} µm, hz = {} µm, {:?}",
+                scatterers.len(),
+                n_objects,
+                spec.h,
+                spec.hz,
+                spec.interp
+            ),
         }];
-        let mut push = |name: &str, secs: f64, detail: String| stages.push(StageInfo { name: name.into(), seconds: secs, detail });
+        let mut push = |name: &str, secs: f64, detail: String| {
+            stages.push(StageInfo {
+                name: name.into(),
+                seconds: secs,
+                detail,
+            })
+        };
         if model.polarization {
-            push("polarization", t0.elapsed().as_secs_f64(), "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))".into());
+            push(
+                "polarization",
+                t0.elapsed().as_secs_f64(),
+                "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))"
+                    .into(),
+            );
         }
         if let Some(m) = model.misalignment {
-            push("misalignment", 0.0, format!("QPD offset ({}, {}) of the cone radius, rotation {}°, Sy gain {}", m.offset_x, m.offset_y, m.rotation_deg, m.gain_y));
+            push(
+                "misalignment",
+                0.0,
+                format!(
+                    "QPD offset ({}, {}) of the cone radius, rotation {}°, Sy gain {}",
+                    m.offset_x, m.offset_y, m.rotation_deg, m.gain_y
+                ),
+            );
         }
         if let Some(fs) = fx.finite_size {
             let t = Instant::now();
@@ -65,7 +96,11 @@ impl Renderer {
                 match s.d_nm {
                     Some(d) if d >= fs.min_d_nm && d > 0.0 => {
                         for (o, w) in sphere_points(d * 1e-3, fs.n_r) {
-                            out.push(Scatterer { pos: [s.pos[0] + o[0], s.pos[1] + o[1], s.pos[2] + o[2]], alpha: s.alpha * w, ..*s });
+                            out.push(Scatterer {
+                                pos: [s.pos[0] + o[0], s.pos[1] + o[1], s.pos[2] + o[2]],
+                                alpha: s.alpha * w,
+                                ..*s
+                            });
                         }
                     }
                     _ => out.push(*s),
@@ -73,27 +108,73 @@ impl Renderer {
             }
             let n = out.len();
             scatterers = out;
-            push("finite_size", t.elapsed().as_secs_f64(), format!("beads ≥ {} nm as sphere rules of order {} → {n} dipoles", fs.min_d_nm, fs.n_r));
+            push(
+                "finite_size",
+                t.elapsed().as_secs_f64(),
+                format!(
+                    "beads ≥ {} nm as sphere rules of order {} → {n} dipoles",
+                    fs.min_d_nm, fs.n_r
+                ),
+            );
         }
         if let Some(t) = fx.thermal_motion {
-            push("thermal_motion", 0.0, format!("rigid jitter σ = {} nm per object, {} configurations per read", t.sigma_nm, t.samples));
+            push(
+                "thermal_motion",
+                0.0,
+                format!(
+                    "rigid jitter σ = {} nm per object, {} configurations per read",
+                    t.sigma_nm, t.samples
+                ),
+            );
         }
         if let Some(d) = fx.drift {
-            push("drift", 0.0, format!("{:?} nm/s + random walk {} nm/√s", d.velocity_nm_s, d.random_walk_nm_sqrt_s));
+            push(
+                "drift",
+                0.0,
+                format!(
+                    "{:?} nm/s + random walk {} nm/√s",
+                    d.velocity_nm_s, d.random_walk_nm_sqrt_s
+                ),
+            );
         }
         if let Some(p) = fx.pointing_noise {
-            push("pointing_noise", 0.0, format!("beam jitter σ = {} nm per sample", p.sigma_nm_sample));
+            push(
+                "pointing_noise",
+                0.0,
+                format!("beam jitter σ = {} nm per sample", p.sigma_nm_sample),
+            );
         }
         if fx.cross_terms == Some(true) {
-            push("cross_terms", 0.0, "|Σ E_scat|² over the cone (all scatterers, per pixel)".into());
+            push(
+                "cross_terms",
+                0.0,
+                "|Σ E_scat|² over the cone (all scatterers, per pixel)".into(),
+            );
         }
         if let Some(l) = fx.laser_power_noise {
-            push("laser_power_noise", 0.0, format!("relative power noise σ = {} per sample", l.sigma_rel_sample));
+            push(
+                "laser_power_noise",
+                0.0,
+                format!("relative power noise σ = {} per sample", l.sigma_rel_sample),
+            );
         }
         if let Some(d) = fx.detector_noise {
-            push("detector_noise", 0.0, format!("white noise σ = {:e} per sample", d.sigma_sample));
+            push(
+                "detector_noise",
+                0.0,
+                format!("white noise σ = {:e} per sample", d.sigma_sample),
+            );
         }
-        Ok(Self { optics: optics.clone(), scene: scene.clone(), det, template, scatterers, n_objects, stages: Mutex::new(stages), plane_cache: Mutex::new(None) })
+        Ok(Self {
+            optics: optics.clone(),
+            scene: scene.clone(),
+            det,
+            template,
+            scatterers,
+            n_objects,
+            stages: Mutex::new(stages),
+            plane_cache: Mutex::new(None),
+        })
     }
 
     /// The stages built, in order, with the time spent in each so far.
@@ -106,26 +187,42 @@ impl Renderer {
     }
 
     fn add_time(&self, name: &str, secs: f64) {
-        if let Some(s) = self.stages.lock().unwrap().iter_mut().find(|s| s.name == name) {
+        if let Some(s) = self
+            .stages
+            .lock()
+            .unwrap()
+            .iter_mut()
+            .find(|s| s.name == name)
+        {
             s.seconds += secs;
         }
     }
 
     /// Per-scatterer template planes for stage height z (cached for the last z).
-    fn planes_at(&self, z: f64) -> Arc<Vec<Vec<(Arc<Grid2>, f64)>>> {
+    fn planes_at(&self, z: f64) -> ScattererPlanes {
         let key = z.to_bits();
         if let Some((k, p)) = self.plane_cache.lock().unwrap().as_ref() {
             if *k == key {
                 return p.clone();
             }
         }
-        let p: Arc<Vec<_>> = Arc::new(self.scatterers.iter().map(|s| self.template.planes_for(z - s.pos[2])).collect());
+        let p: Arc<Vec<_>> = Arc::new(
+            self.scatterers
+                .iter()
+                .map(|s| self.template.planes_for(z - s.pos[2]))
+                .collect(),
+        );
         *self.plane_cache.lock().unwrap() = Some((key, p.clone()));
         p
     }
 
     /// Ideal superposition at stage position s with optional per-object lateral offsets (µm).
-    fn superpose(&self, planes: &[Vec<(Arc<Grid2>, f64)>], s: [f64; 3], obj_offset: Option<&[[f64; 2]]>) -> [f64; 3] {
+    fn superpose(
+        &self,
+        planes: &[Vec<(Arc<Grid2>, f64)>],
+        s: [f64; 3],
+        obj_offset: Option<&[[f64; 2]]>,
+    ) -> [f64; 3] {
         let mut out = [0.0; 3];
         for (sc, pl) in self.scatterers.iter().zip(planes) {
             let (mut dx, mut dy) = (s[0] - sc.pos[0], s[1] - sc.pos[1]);
@@ -183,7 +280,12 @@ impl Renderer {
 
     /// One QPD reading at actual stage position `s` (drift already applied by the caller),
     /// averaging `n_samples` samples: the pipeline, stage by stage.
-    pub fn render_point<R: Rng>(&self, s: [f64; 3], n_samples: usize, rng: &mut R) -> ([f64; 3], [f64; 3]) {
+    pub fn render_point<R: Rng>(
+        &self,
+        s: [f64; 3],
+        n_samples: usize,
+        rng: &mut R,
+    ) -> ([f64; 3], [f64; 3]) {
         let fx = &self.scene.effects;
         let n = n_samples.max(1) as f64;
         let mut pos = s;
@@ -203,7 +305,10 @@ impl Renderer {
             let mut offs = vec![[0.0; 2]; self.n_objects];
             for _ in 0..m {
                 for o in offs.iter_mut() {
-                    *o = [sig * rng.sample::<f64, _>(StandardNormal), sig * rng.sample::<f64, _>(StandardNormal)];
+                    *o = [
+                        sig * rng.sample::<f64, _>(StandardNormal),
+                        sig * rng.sample::<f64, _>(StandardNormal),
+                    ];
                 }
                 let a = self.superpose(&planes, pos, Some(&offs));
                 for c in 0..3 {
@@ -289,9 +394,15 @@ fn index_window(a: &[f64], lo: f64, hi: f64) -> (usize, usize) {
     }
     let asc = a.len() < 2 || a[1] >= a[0];
     if asc {
-        (a.partition_point(|&v| v < lo), a.partition_point(|&v| v <= hi))
+        (
+            a.partition_point(|&v| v < lo),
+            a.partition_point(|&v| v <= hi),
+        )
     } else {
         // descending axis: the window is where lo ≤ v ≤ hi
-        (a.partition_point(|&v| v > hi), a.partition_point(|&v| v >= lo))
+        (
+            a.partition_point(|&v| v > hi),
+            a.partition_point(|&v| v >= lo),
+        )
     }
 }

@@ -20,12 +20,20 @@ pub struct Bead {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum DiameterProfile {
-    Constant { d_nm: f64 },
+    Constant {
+        d_nm: f64,
+    },
     /// Linear taper from `d0_nm` at the first point to `d1_nm` at the last.
-    Linear { d0_nm: f64, d1_nm: f64 },
+    Linear {
+        d0_nm: f64,
+        d1_nm: f64,
+    },
     /// Parabola-of-revolution α-tip (Sec. 5): d(s) = d_nm·√(s / tip_um) for s < tip_um, then
     /// d_nm; the cross-section (mass per length) grows linearly over the tip.
-    AlphaTip { d_nm: f64, tip_um: f64 },
+    AlphaTip {
+        d_nm: f64,
+        tip_um: f64,
+    },
 }
 
 impl DiameterProfile {
@@ -33,7 +41,11 @@ impl DiameterProfile {
         match *self {
             Self::Constant { d_nm } => d_nm,
             Self::Linear { d0_nm, d1_nm } => {
-                let t = if length > 0.0 { (s / length).clamp(0.0, 1.0) } else { 0.0 };
+                let t = if length > 0.0 {
+                    (s / length).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
                 d0_nm + (d1_nm - d0_nm) * t
             }
             Self::AlphaTip { d_nm, tip_um } => {
@@ -233,7 +245,9 @@ impl Scene {
 
     pub fn add_filament(&mut self, f: Filament) -> Result<(), OpticsError> {
         if f.points.is_empty() {
-            return Err(OpticsError::Invalid("add_filament: points is empty; give at least one [x, y] vertex".into()));
+            return Err(OpticsError::Invalid(
+                "add_filament: points is empty; give at least one [x, y] vertex".into(),
+            ));
         }
         for p in &f.points {
             check_range("points[..][0] (x)", p[0], -1e4, 1e4)?;
@@ -298,7 +312,11 @@ impl Scene {
                 let x = a.region[0][0] + (a.region[0][1] - a.region[0][0]) * rng.random::<f64>();
                 let y = a.region[1][0] + (a.region[1][1] - a.region[1][0]) * rng.random::<f64>();
                 let d = (v0 + (v1 - v0) * rng.random::<f64>()).cbrt();
-                out.push(Bead { pos: [x, y, a.z], d_nm: d, n: a.n });
+                out.push(Bead {
+                    pos: [x, y, a.z],
+                    d_nm: d,
+                    n: a.n,
+                });
             }
         }
         out
@@ -312,13 +330,22 @@ impl Scene {
         let mut out = vec![];
         let mut obj = 0;
         for b in self.beads.iter().chain(self.aggregate_beads().iter()) {
-            out.push(Scatterer { pos: b.pos, alpha: alpha_um3(b.d_nm, b.n, n_medium), object: obj, d_nm: Some(b.d_nm) });
+            out.push(Scatterer {
+                pos: b.pos,
+                alpha: alpha_um3(b.d_nm, b.n, n_medium),
+                object: obj,
+                d_nm: Some(b.d_nm),
+            });
             obj += 1;
         }
         for f in &self.filaments {
             let cm = clausius_mossotti(f.n, n_medium);
             let h = f.spacing_nm * 1e-3;
-            let seg_len: Vec<f64> = f.points.windows(2).map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1])).collect();
+            let seg_len: Vec<f64> = f
+                .points
+                .windows(2)
+                .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
+                .collect();
             let length: f64 = seg_len.iter().sum();
             let nb = (length / h).round() as usize;
             if nb == 0 {
@@ -327,7 +354,12 @@ impl Scene {
                 if length > 0.0 {
                     let r = 0.5e-3 * f.profile.at(0.0, length);
                     let p = f.points[0];
-                    out.push(Scatterer { pos: [p[0], p[1], f.z], alpha: 0.75 * length * r * r * cm, object: obj, d_nm: None });
+                    out.push(Scatterer {
+                        pos: [p[0], p[1], f.z],
+                        alpha: 0.75 * length * r * r * cm,
+                        object: obj,
+                        d_nm: None,
+                    });
                 }
                 obj += 1;
                 continue;
@@ -339,7 +371,11 @@ impl Scene {
                 let (mut acc, mut p) = (0.0, f.points[0]);
                 for (k, &l) in seg_len.iter().enumerate() {
                     if s <= acc + l || k == seg_len.len() - 1 {
-                        let t = if l > 0.0 { ((s - acc) / l).clamp(0.0, 1.0) } else { 0.0 };
+                        let t = if l > 0.0 {
+                            ((s - acc) / l).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
                         let (a, b) = (f.points[k], f.points[k + 1]);
                         p = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
                         break;
@@ -347,7 +383,12 @@ impl Scene {
                     acc += l;
                 }
                 let r = 0.5e-3 * f.profile.at(s, length);
-                out.push(Scatterer { pos: [p[0], p[1], f.z], alpha: 0.75 * hh * r * r * cm, object: obj, d_nm: None });
+                out.push(Scatterer {
+                    pos: [p[0], p[1], f.z],
+                    alpha: 0.75 * hh * r * r * cm,
+                    object: obj,
+                    d_nm: None,
+                });
             }
             obj += 1;
         }
