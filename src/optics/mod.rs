@@ -1,1 +1,2 @@
 //! The physics of BFP detection (pure functions, no I/O, no Rhai).
+pub mod mie;
