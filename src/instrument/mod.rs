@@ -5,6 +5,13 @@
 //! `acquire/`, never here.
 
 pub mod sim;
+// Hardware: serial drivers, emulators, config, connect (branch hw).
+pub mod config;
+pub mod connect;
+pub mod emulator;
+pub mod gcs;
+pub mod link;
+pub mod scpi;
 
 use std::fmt;
 
