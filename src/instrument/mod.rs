@@ -6,6 +6,13 @@
 
 pub mod sim;
 pub mod trace;
+// Hardware: serial drivers, emulators, config, connect (branch hw).
+pub mod config;
+pub mod connect;
+pub mod emulator;
+pub mod gcs;
+pub mod link;
+pub mod scpi;
 
 use std::fmt;
 
