@@ -3,9 +3,12 @@
 //! f(C₁, x₁, y₁, …, Cₙ, xₙ, yₙ) = ( Σᵢ Cᵢ Sx(x − xᵢ, y − yᵢ) , Σᵢ Cᵢ Sy(x − xᵢ, y − yᵢ) )
 //!
 //! fitted by least squares to the Sx and Sy images together (or to one channel, for the
-//! background removal of Sec. 6) with the `levenberg-marquardt` crate. Weights Cᵢ are in
-//! reference-bead units (a bead identical to the template's reference has C = 1; C scales with
-//! volume × n_corr, Sec. 3.2); positions in µm (stage coordinates).
+//! background removal of Sec. 6) with the `levenberg-marquardt` crate. The images are in
+//! instrument units (as measured or simulated); the template converts: its normalised response
+//! divided by `norm_factor` is the reference bead in instrument units, so the weights Cᵢ come out
+//! in reference-bead units (a bead identical to the template's reference has C = 1; C scales with
+//! volume × n_corr, Sec. 3.2). Positions in µm (stage coordinates); model and residual images and
+//! σ in instrument units.
 //!
 //! **Jacobian.** Analytic, from the template's interpolant: ∂r/∂Cᵢ = S(s − pᵢ),
 //! ∂r/∂xᵢ = −Cᵢ ∂S/∂u, ∂r/∂yᵢ = −Cᵢ ∂S/∂v (`Grid2::eval_grad`). Each bead only touches the pixels
@@ -458,7 +461,7 @@ pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize, min_peak:
                     Channels::Sx => s.du[0],
                     Channels::Sy => s.dv[1],
                 };
-                work[[r, c]] -= b.weight * t;
+                work[[r, c]] -= b.weight * t / tpl.norm_factor;
             }
         }
     };
@@ -492,7 +495,8 @@ pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize, min_peak:
         let fy = para((r > 0).then(|| work[[r - 1, c]]), v, (r + 1 < rows).then(|| work[[r + 1, c]]));
         let x = d.x[c] + fx * ax.h - pu;
         let y = d.y[r] + fy * ay.h - pv;
-        let b = BeadInit { x, y, weight: v / d0 };
+        // Instrument units → reference-bead units: the bead's D peak is C·d0/norm_factor.
+        let b = BeadInit { x, y, weight: v * tpl.norm_factor / d0 };
         sub(&mut work, &b);
         out.push(b);
     }
@@ -513,6 +517,8 @@ struct FitData<'a> {
     area: f64,
     w0: f64,
     min_sep: f64,
+    /// 1/norm_factor: instrument units per reference-bead unit.
+    inv_f: f64,
 }
 
 impl<'a> FitData<'a> {
@@ -557,6 +563,7 @@ impl<'a> FitData<'a> {
             area,
             w0: opts.w0_um,
             min_sep: opts.min_separation * opts.w0_um,
+            inv_f: 1.0 / tpl.norm_factor,
         })
     }
 
@@ -621,7 +628,8 @@ impl<'a> FitData<'a> {
                         } else {
                             crate::optics::grid::Sample { v: self.tpl.eval(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2]), ..Default::default() }
                         };
-                        act.push((i, p[3 * i], s));
+                        // Weights are in reference-bead units, the data in instrument units.
+                        act.push((i, p[3 * i] * self.inv_f, s));
                     }
                 }
                 for &ch in self.chans {
@@ -637,7 +645,7 @@ impl<'a> FitData<'a> {
                     if want_normal && !act.is_empty() {
                         gi.clear();
                         for &(i, w, s) in &act {
-                            g[3 * i] = s.v[ch];
+                            g[3 * i] = s.v[ch] * self.inv_f;
                             g[3 * i + 1] = -w * s.du[ch];
                             g[3 * i + 2] = -w * s.dv[ch];
                             gi.extend_from_slice(&[3 * i, 3 * i + 1, 3 * i + 2]);
@@ -668,7 +676,7 @@ impl<'a> FitData<'a> {
 
     /// Model images of both channels for beads p.
     fn model(&self, p: &[f64]) -> [Array2<f64>; 3] {
-        let beads: Vec<(f64, f64, f64)> = p.chunks(3).map(|b| (b[1], b[2], b[0])).collect();
+        let beads: Vec<(f64, f64, f64)> = p.chunks(3).map(|b| (b[1], b[2], b[0] * self.inv_f)).collect();
         self.tpl.render(&beads, &self.x, &self.y)
     }
 
@@ -991,10 +999,11 @@ pub fn full_jacobian(sx: &Image, sy: &Image, tpl: &Template, beads: &[BeadInit],
             let mut jr = vec![0.0; np];
             for (i, b) in beads.iter().enumerate() {
                 let s = tpl.eval_grad(d.x[col] - b.x, d.y[row] - b.y);
-                model += b.weight * s.v[ch];
-                jr[3 * i] = s.v[ch];
-                jr[3 * i + 1] = -b.weight * s.du[ch];
-                jr[3 * i + 2] = -b.weight * s.dv[ch];
+                let f = d.inv_f;
+                model += b.weight * f * s.v[ch];
+                jr[3 * i] = s.v[ch] * f;
+                jr[3 * i + 1] = -b.weight * f * s.du[ch];
+                jr[3 * i + 2] = -b.weight * f * s.dv[ch];
             }
             r.push(model - v);
             rows.push(jr);

@@ -73,6 +73,15 @@ pub enum AnalysisError {
     Failed(String),
 }
 
+impl From<crate::optics::OpticsError> for AnalysisError {
+    fn from(e: crate::optics::OpticsError) -> Self {
+        match e {
+            crate::optics::OpticsError::OutOfRange { name, value, allowed } => AnalysisError::OutOfRange { name, value, allowed },
+            crate::optics::OpticsError::Invalid(s) => AnalysisError::BadInput { name: "optics", reason: s },
+        }
+    }
+}
+
 /// Result alias of the analysis module.
 pub type Result<T> = std::result::Result<T, AnalysisError>;
 

@@ -103,7 +103,15 @@ pub struct AngleCurve {
     pub sy: Vec<f64>,
     /// Un-normalised S_x maximum at 0° (reference-bead units): the bead-model sensitivity.
     pub sx0: f64,
+    /// The template's norm_factor (reference-bead units per instrument unit): measurements
+    /// convert scan sensitivities with it.
+    #[serde(default = "one")]
+    pub norm_factor: f64,
     pub options: AngleCurveOptions,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl AngleCurve {
@@ -128,7 +136,7 @@ impl AngleCurve {
         let (x90, y90) = straight_filament_max_sens(tpl, d, n, 90.0, opts.pixel_um, &opts.measure, &opts.bead_model)?;
         sx[0] = 0.5 * (sx[0] + x90);
         sy[0] = 0.5 * (sy[0] + y90);
-        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, options: *opts };
+        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, norm_factor: tpl.norm_factor, options: *opts };
         let s0 = c.eval_raw(0.0).0;
         if !(s0 > 0.0) {
             return Err(AnalysisError::Failed(format!("bead-model S_x maximum at 0° is {s0}: the template gives no filament signal")));
@@ -206,7 +214,8 @@ pub struct FilamentPoint {
     pub y: f64,
     /// Arc position along the filament (projection on its direction), µm, increasing.
     pub arc_um: f64,
-    /// Measured maximum sensitivity and its 1σ (None if undetermined).
+    /// Measured maximum sensitivity and its 1σ (None if undetermined), reference-bead units/µm
+    /// (the scan's value × the template's norm_factor).
     pub sens: f64,
     pub sens_err: Option<f64>,
     /// Corrected to the QPD y-axis orientation (step 5).
@@ -240,7 +249,8 @@ pub struct FilamentMeasurement {
     pub mean_corr: f64,
     pub std_corr: f64,
     pub sem_corr: f64,
-    /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y), for SBR and plots.
+    /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y) in reference-bead
+    /// units/µm, for SBR and plots.
     pub sens: Image,
 }
 
@@ -416,7 +426,9 @@ pub fn measure_filament_along(sx: &Image, sy: &Image, curve: &AngleCurve, channe
     measure_sens_along(sens, curve, channel, line, opts)
 }
 
-fn measure_sens_along(sens: Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+fn measure_sens_along(mut sens: Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    // Instrument units → reference-bead units.
+    sens.data.mapv_inplace(|v| v * curve.norm_factor);
     let rows = channel == Channel::SxRows;
     let angle = line.angle_deg;
     let factor = curve.correction(angle, channel)?;
