@@ -286,6 +286,14 @@ fn npz_round_trip_is_bit_for_bit() {
 }
 
 #[test]
+fn scan_display_is_one_line() {
+    let s = aborted_scan().to_string();
+    assert!(s.starts_with("Scan (aborted) 5x7 (rows x cols), x -0.3..0.3 µm, z 1..1.2 µm"), "{s}");
+    assert!(s.ends_with(", 10 unmeasured pixels"), "{s}");
+    assert!(!s.contains('\n'));
+}
+
+#[test]
 fn npz_round_trip_of_non_object_metadata() {
     let dir = test_dir("npz-meta");
     for (k, meta) in [

@@ -4,8 +4,8 @@
 
 use bfpscope::data::{DataError, Image, Profile, Scan, ScanStatus};
 use bfpscope::plot::{
-    image_plot_area, plot_hist, plot_image, plot_profile, plot_scan, plot_xy, Colormap, PlotOpts,
-    ScanPlotOpts, Series, SeriesStyle, XyOpts,
+    histogram, image_plot_area, plot_hist, plot_image, plot_profile, plot_scan, plot_xy, Colormap,
+    PlotOpts, ScanPlotOpts, Series, SeriesStyle, XyOpts,
 };
 use ndarray::Array2;
 use std::collections::HashSet;
@@ -323,6 +323,28 @@ fn profiles_with_legend() {
         blue > 300 && orange > 300,
         "two curves: blue {blue}, orange {orange}"
     );
+}
+
+#[test]
+fn histogram_bins() {
+    let h = histogram(&[0.0, 0.1, 0.5, 0.99, 1.0, f64::NAN, 0.25], 4).unwrap();
+    assert_eq!(h.edges, vec![0.0, 0.25, 0.5, 0.75, 1.0]);
+    assert_eq!(
+        h.counts,
+        vec![2, 1, 1, 2],
+        "0.25 opens bin 1, 1.0 closes the last bin"
+    );
+    assert_eq!((h.nan, h.count()), (1, 6));
+    let h = histogram(&[3.0; 4], 10).unwrap();
+    assert!(h.all_equal);
+    assert_eq!(
+        (h.counts.clone(), h.edges.clone()),
+        (vec![4], vec![2.85, 3.15])
+    );
+    let e = histogram(&[1.0, f64::NEG_INFINITY], 3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("`values[1]` = -inf"), "{e}");
 }
 
 #[test]
