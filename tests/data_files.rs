@@ -10,12 +10,42 @@ use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// A fresh, empty directory for one test.
-fn test_dir(name: &str) -> PathBuf {
+/// A fresh, empty directory for one test; removed when the test passes, kept for inspection
+/// when it fails.
+struct TestDir(PathBuf);
+
+impl TestDir {
+    fn join(&self, p: impl AsRef<Path>) -> PathBuf {
+        self.0.join(p)
+    }
+}
+
+impl std::ops::Deref for TestDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for TestDir {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TestDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+fn test_dir(name: &str) -> TestDir {
     let d = std::env::temp_dir().join(format!("bfpscope-data-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    TestDir(d)
 }
 
 fn files_in(dir: &Path) -> Vec<String> {
@@ -288,7 +318,10 @@ fn npz_round_trip_is_bit_for_bit() {
 #[test]
 fn scan_display_is_one_line() {
     let s = aborted_scan().to_string();
-    assert!(s.starts_with("Scan (aborted) 5x7 (rows x cols), x -0.3..0.3 µm, z 1..1.2 µm"), "{s}");
+    assert!(
+        s.starts_with("Scan (aborted) 5x7 (rows x cols), x -0.3..0.3 µm, z 1..1.2 µm"),
+        "{s}"
+    );
     assert!(s.ends_with(", 10 unmeasured pixels"), "{s}");
     assert!(!s.contains('\n'));
 }
@@ -419,7 +452,7 @@ fn tagged_scan(thread: usize, k: usize) -> Scan {
 #[test]
 fn session_numbers_increase_and_skip_gaps() {
     let dir = test_dir("session-seq");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let p1 = session.autosave(&tagged_scan(0, 1)).unwrap();
     let p2 = session.autosave(&tagged_scan(0, 2)).unwrap();
     assert_eq!(p1.file_name().unwrap(), "scan_0001.npz");
@@ -453,7 +486,7 @@ fn session_numbers_increase_and_skip_gaps() {
 #[test]
 fn session_concurrent_autosaves_get_distinct_files() {
     let dir = test_dir("session-threads");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let (threads, per) = (6, 5);
     let handles: Vec<_> = (0..threads)
         .map(|t| {
@@ -493,7 +526,7 @@ fn session_concurrent_autosaves_get_distinct_files() {
 #[test]
 fn session_reserved_paths_are_never_handed_out_twice() {
     let dir = test_dir("session-reserve");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let a = session.next_scan_path().unwrap();
     let b = session.next_scan_path().unwrap();
     assert_eq!(a.file_name().unwrap(), "scan_0001.npz");
@@ -523,8 +556,8 @@ fn session_folders() {
     std::fs::write(dir.join("file"), b"x").unwrap();
     let e = Session::open(dir.join("file")).unwrap_err().to_string();
     assert!(e.contains("not a folder"), "{e}");
-    let s = Session::open_or_default(Some(&dir)).unwrap();
-    assert_eq!(s.dir(), dir);
+    let s = Session::open_or_default(Some(&*dir)).unwrap();
+    assert_eq!(s.dir(), &*dir);
 }
 
 // ------------------------------------------------------------------ TIFF

@@ -11,13 +11,38 @@ use ndarray::Array2;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
-fn out_dir(name: &str) -> PathBuf {
-    let d = match std::env::var_os("BFPSCOPE_PLOT_OUT") {
-        Some(d) => PathBuf::from(d),
-        None => std::env::temp_dir().join(format!("bfpscope-plots-{}-{name}", std::process::id())),
+/// Where a test writes its figures: `$BFPSCOPE_PLOT_OUT` (kept), else a temporary folder that
+/// is removed when the test passes.
+struct OutDir {
+    dir: PathBuf,
+    keep: bool,
+}
+
+impl std::ops::Deref for OutDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl Drop for OutDir {
+    fn drop(&mut self) {
+        if !self.keep && !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+fn out_dir(name: &str) -> OutDir {
+    let (dir, keep) = match std::env::var_os("BFPSCOPE_PLOT_OUT") {
+        Some(d) => (PathBuf::from(d), true),
+        None => (
+            std::env::temp_dir().join(format!("bfpscope-plots-{}-{name}", std::process::id())),
+            false,
+        ),
     };
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    std::fs::create_dir_all(&dir).unwrap();
+    OutDir { dir, keep }
 }
 
 struct Png {
@@ -446,9 +471,13 @@ fn svg_output_when_asked() {
 
 #[test]
 fn bad_input_gives_clear_errors_and_no_files() {
-    let dir = std::env::temp_dir().join(format!("bfpscope-plots-{}-errors", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    // always a fresh private folder: the test checks that nothing was written into it
+    let dir = OutDir {
+        dir: std::env::temp_dir().join(format!("bfpscope-plots-{}-errors", std::process::id())),
+        keep: false,
+    };
+    let _ = std::fs::remove_dir_all(&*dir);
+    std::fs::create_dir_all(&*dir).unwrap();
     let nan = Image::new(
         Array2::from_elem((4, 4), f64::NAN),
         vec![0.0, 1.0, 2.0, 3.0],
@@ -533,7 +562,7 @@ fn bad_input_gives_clear_errors_and_no_files() {
     let e = msg(plot_profile(dir.join("d.png"), &[], &XyOpts::default()));
     assert!(e.contains("no profiles"), "{e}");
 
-    let left: Vec<_> = std::fs::read_dir(&dir).unwrap().collect();
+    let left: Vec<_> = std::fs::read_dir(&*dir).unwrap().collect();
     assert!(left.is_empty(), "nothing written on error: {left:?}");
 }
 

@@ -8,6 +8,7 @@
 //! that Fiji's cursor read-out shows the scan's µm coordinates. Extra `bfpscope_*` lines (which
 //! ImageJ ignores) keep the exact axis start, step and names for [`load_tiff`].
 
+use super::image::fmt_sig;
 use super::{atomic_write, DataError, Image};
 use ::tiff::decoder::{ifd::Value, Decoder, DecodingResult, Limits};
 use ::tiff::encoder::{colortype::Gray32Float, Rational, TiffEncoder};
@@ -105,11 +106,12 @@ fn imagej_description(img: &Image) -> String {
     // ImageJ calibration: value = (pixel - origin) * pixel size.
     let x0 = img.x.first().copied().unwrap_or(0.0);
     let y0 = img.y.first().copied().unwrap_or(0.0);
+    // 12 significant digits hide rounding noise (3 rather than 2.999999999999999)
     if x0 != 0.0 && dx >= 0.0 {
-        s += &format!("xorigin={}\n", -x0 / px);
+        s += &format!("xorigin={}\n", fmt_sig(-x0 / px, 12));
     }
     if y0 != 0.0 && dy >= 0.0 {
-        s += &format!("yorigin={}\n", -y0 / py);
+        s += &format!("yorigin={}\n", fmt_sig(-y0 / py, 12));
     }
     s += &format!(
         "bfpscope_x0={}\nbfpscope_dx={}\nbfpscope_y0={}\nbfpscope_dy={}\nbfpscope_xname={}\nbfpscope_yname={}\n",
