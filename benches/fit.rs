@@ -1,6 +1,7 @@
 //! Multi-bead template fit benchmarks (issue 4): a 3-bead fit on 64×64 pixels and an 11-bead fit
-//! on 128×128 (50 nm pixels, 170 nm beads, the paper's noise level derived from its 950 kDa mass
-//! resolution). Besides criterion's statistics, the bench writes the scenes, the template and
+//! on 128×128 (50 nm pixels, 170 nm polystyrene beads simulated with the Rayleigh model by
+//! `instrument::sim`, the paper's detector noise σ = 2e-5 per pixel, docs/physics.md §7), fitted
+//! with the model template of the 110 nm reference bead (`Template::from_optics`, 20 nm grid). Besides criterion's statistics, the bench writes the scenes, the template and
 //! the initial guesses as .npy files plus its own timings to `target/fit_bench/` so that
 //! `scripts/py/fit_compare.py` can run the same fits with scipy.optimize.least_squares and
 //! report the speed ratio and accuracies.
@@ -10,13 +11,16 @@
 
 use bfpscope::analysis::fit::{detect_beads, fit_beads, BeadInit, Channels, FitOptions, FitResult};
 use bfpscope::analysis::sensitivity::Stencil;
-use bfpscope::analysis::template::Template;
+use bfpscope::analysis::template::{RefBead, Template};
 use bfpscope::data::Scan;
+use bfpscope::instrument::sim::scene::{Bead as SimBead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use bfpscope::instrument::sim::{render_xy, Renderer};
+use bfpscope::optics::rayleigh::DetectorModel;
+use bfpscope::optics::template::TemplateSpec;
+use bfpscope::optics::Optics;
 use criterion::{criterion_group, criterion_main, Criterion};
 use ndarray::{Array1, Array2};
 use ndarray_npy::write_npy;
-use rand::SeedableRng;
-use rand_distr::{Distribution, Normal};
 use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -32,21 +36,9 @@ struct Case {
     sigma: f64,
 }
 
-/// The template used by the benchmark (the analytic stand-in until the physics templates land).
+/// The template used by the benchmark: the physics model of the 110 nm reference bead.
 fn template() -> Template {
-    Template::analytic_standin(0.4, 0.02, 1.6).unwrap()
-}
-
-fn paper_noise(tpl: &Template) -> f64 {
-    let sigma_c = 950.0 / tpl.reference.mass_kda();
-    let mut s = 0.0;
-    for j in -40..=40 {
-        for i in -40..=40 {
-            let t = tpl.eval(i as f64 * H, j as f64 * H);
-            s += t[0] * t[0] + t[1] * t[1];
-        }
-    }
-    sigma_c * s.sqrt()
+    Template::from_optics(&Optics::default(), &DetectorModel::default(), RefBead::default(), 0.02, 0.0).unwrap()
 }
 
 fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> Case {
@@ -54,13 +46,15 @@ fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> 
     let w = (170.0f64 / 110.0).powi(3);
     let truth: Vec<(f64, f64, f64)> = pos.iter().map(|&(x, y)| (x, y, w)).collect();
     let ax: Vec<f64> = (0..n_px).map(|i| i as f64 * H).collect();
-    let mut scan = tpl.render_scan(&truth, &ax, &ax);
-    let sigma = paper_noise(&tpl);
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let nd = Normal::new(0.0, sigma).unwrap();
-    for img in [&mut scan.sx, &mut scan.sy] {
-        img.data.mapv_inplace(|v| v + nd.sample(&mut rng));
+    let mut scene = Scene::default();
+    for &(x, y) in pos {
+        scene.add_bead(SimBead { pos: [x, y, 0.0], d_nm: 170.0, n: 1.572 }).unwrap();
     }
+    scene.effects.detector_noise = Some(DetectorNoise { sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE });
+    scene.seed = seed;
+    let r = Renderer::new(&Optics::default(), &scene, TemplateSpec::default()).unwrap();
+    let scan = render_xy(&r, &ax, &ax, 0.0, 10_000);
+    let sigma = PAPER_DETECTOR_SIGMA_SAMPLE / 100.0;
     let init = detect_beads(&scan.sx, &scan.sy, &tpl, Channels::Both, truth.len(), Stencil::SavitzkyGolay { half_width: 2 }).unwrap();
     Case { name, tpl, scan, truth, init, sigma }
 }
@@ -117,7 +111,8 @@ fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
         "name": c.name, "pixels": c.scan.sx.data.dim(), "beads": c.truth.len(), "sigma": c.sigma,
         "rust_ms": ms, "iterations": r.iterations, "evaluations": r.evaluations,
         "max_pos_err_nm": ep * 1e3, "max_weight_err_pct": ew * 100.0, "rss": r.rss, "status": format!("{:?}", r.status),
-        "template": "analytic stand-in u·exp(-r²/w²), w = 0.4 µm, 20 nm grid, Keys cubic",
+        "template": "Rayleigh model of the 110 nm PS reference bead (default optics), 20 nm grid, Keys cubic",
+        "norm_factor": c.tpl.norm_factor,
     });
     std::fs::write(d.join("rust.json"), serde_json::to_string_pretty(&json).unwrap()).unwrap();
 }

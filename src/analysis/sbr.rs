@@ -48,8 +48,11 @@ pub struct SbrResult {
     pub sbr_background: f64,
     /// Method (b).
     pub sbr_uniformity: f64,
-    /// Mean and std of the maxima in the region, signal units/µm.
+    /// Mean and std of the maxima in the region (reference-bead units/µm).
     pub mean_sens: f64,
+    /// Mean orientation-corrected maximum in the region (for diameters and linear densities
+    /// from the uniform part of the filament, Sec. 6).
+    pub mean_corr: f64,
     pub std_sens: f64,
     /// Std of the sensitivity image away from the filament.
     pub background_std: f64,
@@ -127,6 +130,7 @@ pub fn sbr(meas: &FilamentMeasurement, opts: &SbrOptions) -> Result<SbrResult> {
         sbr_background: safe(s.mean, bs.std),
         sbr_uniformity: safe(s.mean, s.std),
         mean_sens: s.mean,
+        mean_corr: s.mean * meas.factor,
         std_sens: s.std,
         background_std: bs.std,
         arc_start: start,
