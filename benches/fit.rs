@@ -13,7 +13,9 @@ use bfpscope::analysis::fit::{detect_beads, fit_beads, BeadInit, Channels, FitOp
 use bfpscope::analysis::sensitivity::Stencil;
 use bfpscope::analysis::template::{RefBead, Template};
 use bfpscope::data::Scan;
-use bfpscope::instrument::sim::scene::{Bead as SimBead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use bfpscope::instrument::sim::scene::{
+    Bead as SimBead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE,
+};
 use bfpscope::instrument::sim::{render_xy, Renderer};
 use bfpscope::optics::rayleigh::DetectorModel;
 use bfpscope::optics::template::TemplateSpec;
@@ -38,7 +40,14 @@ struct Case {
 
 /// The template used by the benchmark: the physics model of the 110 nm reference bead.
 fn template() -> Template {
-    Template::from_optics(&Optics::default(), &DetectorModel::default(), RefBead::default(), 0.02, 0.0).unwrap()
+    Template::from_optics(
+        &Optics::default(),
+        &DetectorModel::default(),
+        RefBead::default(),
+        0.02,
+        0.0,
+    )
+    .unwrap()
 }
 
 fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> Case {
@@ -48,38 +57,95 @@ fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> 
     let ax: Vec<f64> = (0..n_px).map(|i| i as f64 * H).collect();
     let mut scene = Scene::default();
     for &(x, y) in pos {
-        scene.add_bead(SimBead { pos: [x, y, 0.0], d_nm: 170.0, n: 1.572 }).unwrap();
+        scene
+            .add_bead(SimBead {
+                pos: [x, y, 0.0],
+                d_nm: 170.0,
+                n: 1.572,
+            })
+            .unwrap();
     }
-    scene.effects.detector_noise = Some(DetectorNoise { sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE });
+    scene.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
     scene.seed = seed;
     let r = Renderer::new(&Optics::default(), &scene, TemplateSpec::default()).unwrap();
     let scan = render_xy(&r, &ax, &ax, 0.0, 10_000);
     let sigma = PAPER_DETECTOR_SIGMA_SAMPLE / 100.0;
-    let init = detect_beads(&scan.sx, &scan.sy, &tpl, Channels::Both, truth.len(), Stencil::SavitzkyGolay { half_width: 2 }).unwrap();
-    Case { name, tpl, scan, truth, init, sigma }
+    let init = detect_beads(
+        &scan.sx,
+        &scan.sy,
+        &tpl,
+        Channels::Both,
+        truth.len(),
+        Stencil::SavitzkyGolay { half_width: 2 },
+    )
+    .unwrap();
+    Case {
+        name,
+        tpl,
+        scan,
+        truth,
+        init,
+        sigma,
+    }
 }
 
 fn cases() -> Vec<Case> {
     vec![
-        make_case("3beads_64", 64, &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)], 1),
+        make_case(
+            "3beads_64",
+            64,
+            &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)],
+            1,
+        ),
         make_case(
             "11beads_128",
             128,
-            &[(1.0, 1.2), (1.35, 1.3), (2.5, 1.0), (3.6, 1.8), (4.8, 1.1), (1.6, 3.3), (2.9, 3.0), (3.2, 3.4), (5.2, 3.6), (2.0, 5.0), (4.4, 5.2)],
+            &[
+                (1.0, 1.2),
+                (1.35, 1.3),
+                (2.5, 1.0),
+                (3.6, 1.8),
+                (4.8, 1.1),
+                (1.6, 3.3),
+                (2.9, 3.0),
+                (3.2, 3.4),
+                (5.2, 3.6),
+                (2.0, 5.0),
+                (4.4, 5.2),
+            ],
             2,
         ),
     ]
 }
 
 fn run(c: &Case) -> FitResult {
-    fit_beads(&c.scan.sx, &c.scan.sy, &c.tpl, &FitOptions { init: Some(c.init.clone()), ..Default::default() }).unwrap()
+    fit_beads(
+        &c.scan.sx,
+        &c.scan.sy,
+        &c.tpl,
+        &FitOptions {
+            init: Some(c.init.clone()),
+            ..Default::default()
+        },
+    )
+    .unwrap()
 }
 
 fn errors(c: &Case, r: &FitResult) -> (f64, f64) {
     let mut ep: f64 = 0.0;
     let mut ew: f64 = 0.0;
     for t in &c.truth {
-        let b = r.beads.iter().min_by(|a, b| (a.x - t.0).hypot(a.y - t.1).total_cmp(&(b.x - t.0).hypot(b.y - t.1))).unwrap();
+        let b = r
+            .beads
+            .iter()
+            .min_by(|a, b| {
+                (a.x - t.0)
+                    .hypot(a.y - t.1)
+                    .total_cmp(&(b.x - t.0).hypot(b.y - t.1))
+            })
+            .unwrap();
         ep = ep.max((b.x - t.0).hypot(b.y - t.1));
         ew = ew.max((b.weight / t.2 - 1.0).abs());
     }
@@ -102,9 +168,13 @@ fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
     let tv = Array1::from((0..g.nv).map(|j| g.v0 + j as f64 * g.h).collect::<Vec<_>>());
     write_npy(d.join("tpl_u.npy"), &tu).unwrap();
     write_npy(d.join("tpl_v.npy"), &tv).unwrap();
-    let init = Array2::from_shape_fn((c.init.len(), 3), |(i, k)| [c.init[i].weight, c.init[i].x, c.init[i].y][k]);
+    let init = Array2::from_shape_fn((c.init.len(), 3), |(i, k)| {
+        [c.init[i].weight, c.init[i].x, c.init[i].y][k]
+    });
     write_npy(d.join("init.npy"), &init).unwrap();
-    let truth = Array2::from_shape_fn((c.truth.len(), 3), |(i, k)| [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]);
+    let truth = Array2::from_shape_fn((c.truth.len(), 3), |(i, k)| {
+        [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]
+    });
     write_npy(d.join("truth.npy"), &truth).unwrap();
     let (ep, ew) = errors(c, r);
     let json = serde_json::json!({
@@ -114,7 +184,11 @@ fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
         "template": "Rayleigh model of the 110 nm PS reference bead (default optics), 20 nm grid, Keys cubic",
         "norm_factor": c.tpl.norm_factor,
     });
-    std::fs::write(d.join("rust.json"), serde_json::to_string_pretty(&json).unwrap()).unwrap();
+    std::fs::write(
+        d.join("rust.json"),
+        serde_json::to_string_pretty(&json).unwrap(),
+    )
+    .unwrap();
 }
 
 fn bench(cr: &mut Criterion) {
