@@ -24,7 +24,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use ndarray::{Array1, Array2};
 use ndarray_npy::write_npy;
 use std::hint::black_box;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const H: f64 = 0.05;
@@ -152,7 +152,7 @@ fn errors(c: &Case, r: &FitResult) -> (f64, f64) {
     (ep, ew)
 }
 
-fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
+fn export(c: &Case, dir: &Path, ms: f64, r: &FitResult) {
     let d = dir.join(c.name);
     std::fs::create_dir_all(&d).unwrap();
     write_npy(d.join("sx.npy"), &c.scan.sx.data).unwrap();

@@ -31,6 +31,9 @@
 //! pixels mark missing data (an aborted scan): they are skipped by every reduction, and derived
 //! images carry NaN only where no finite input supports the value (documented per function).
 
+// NaN-aware comparisons are deliberate throughout: `!(x > 0.0)` is true for NaN, `x <= 0.0` is not.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod background;
 pub mod bead_model;
 pub mod fit;

@@ -301,8 +301,11 @@ pub struct FilamentMeasurement {
     pub sens: Image,
 }
 
-/// Candidate maxima of the lines of `sens`: (line index, line coordinate, position, value).
-fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<(usize, f64, f64, f64)> {
+/// A candidate maximum: (line index, line coordinate, position along the line, value).
+type Cand = (usize, f64, f64, f64);
+
+/// Candidate maxima of the lines of `sens`.
+fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<Cand> {
     // Pixel noise of the sensitivity image from first differences along the lines (robust to
     // the objects' extended signal): 1.4826·MAD/√2.
     let mut diffs = Vec::with_capacity(sens.data.len());
@@ -375,8 +378,8 @@ fn dist(a: f64, b: f64, coord: f64, pos: f64) -> f64 {
 }
 
 /// For each line, the candidate closest to the line (if within `tol`).
-fn inliers(c: &[(usize, f64, f64, f64)], a: f64, b: f64, tol: f64) -> Vec<(usize, f64, f64, f64)> {
-    let mut best: std::collections::BTreeMap<usize, (f64, (usize, f64, f64, f64))> =
+fn inliers(c: &[Cand], a: f64, b: f64, tol: f64) -> Vec<Cand> {
+    let mut best: std::collections::BTreeMap<usize, (f64, Cand)> =
         std::collections::BTreeMap::new();
     for &p in c {
         let d = dist(a, b, p.1, p.2);
@@ -388,7 +391,7 @@ fn inliers(c: &[(usize, f64, f64, f64)], a: f64, b: f64, tol: f64) -> Vec<(usize
 }
 
 /// RANSAC line through candidates (see the module docs).
-fn ransac_line(c: &[(usize, f64, f64, f64)], rows: bool, tol: f64) -> Option<LineFit> {
+fn ransac_line(c: &[Cand], rows: bool, tol: f64) -> Option<LineFit> {
     if c.len() < 3 {
         return None;
     }
