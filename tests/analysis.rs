@@ -7,7 +7,9 @@ use analysis_support::*;
 use bfpscope::analysis::bead_model::{filament_beads, BeadModelOptions, Filament};
 use bfpscope::analysis::fit::{fit_beads, BeadInit, Channels, FitOptions};
 use bfpscope::analysis::focus::{focus_search, FocusOptions};
-use bfpscope::analysis::orientation::{measure_filament, AngleCurve, AngleCurveOptions, Channel, MeasureOptions};
+use bfpscope::analysis::orientation::{
+    measure_filament, AngleCurve, AngleCurveOptions, Channel, MeasureOptions,
+};
 use bfpscope::analysis::peaks::{peak_2d, row_peaks, PeakOptions};
 use bfpscope::analysis::quantities::{self, DiameterCalib, LinDensCalib};
 use bfpscope::analysis::sbr::{sbr, SbrOptions};
@@ -27,13 +29,29 @@ fn sensitivity_of_a_bead_peaks_at_its_centre_with_unit_value() {
     let s = scene(&tpl, &[(1.013, 1.207, 1.0)], &[], 49, H, 0.0, 0);
     let sens = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
     let p = peak_2d(&sens, 0.4, None).unwrap();
-    assert!((p.x - 1.013).abs() < 0.003 && (p.y - 1.207).abs() < 0.003, "{p:?}");
+    assert!(
+        (p.x - 1.013).abs() < 0.003 && (p.y - 1.207).abs() < 0.003,
+        "{p:?}"
+    );
     // 1 − h²/w² = 0.984 from the stencil, minus the parabola-window bias (a few %).
     assert!(p.value > 0.9 && p.value < 1.0, "{}", p.value);
-    let c5 = peak_2d(&sensitivity(&s.sx, Axis::X, Stencil::Central5).unwrap(), 0.4, None).unwrap();
-    assert!(c5.value > p.value, "5-point stencil has less truncation bias");
+    let c5 = peak_2d(
+        &sensitivity(&s.sx, Axis::X, Stencil::Central5).unwrap(),
+        0.4,
+        None,
+    )
+    .unwrap();
+    assert!(
+        c5.value > p.value,
+        "5-point stencil has less truncation bias"
+    );
     // ∂Sy/∂y peaks at the same place with the same value (stand-in is isotropic).
-    let py = peak_2d(&sensitivity(&s.sy, Axis::Y, Stencil::Central2).unwrap(), 0.4, None).unwrap();
+    let py = peak_2d(
+        &sensitivity(&s.sy, Axis::Y, Stencil::Central2).unwrap(),
+        0.4,
+        None,
+    )
+    .unwrap();
     assert!((py.value - p.value).abs() < 1e-3 && (py.x - p.x).abs() < 1e-3);
     // The pipeline value of the template agrees with the direct measurement.
     let pipe = tpl.pipeline_max_sens(H, Stencil::Central2, 0.4).unwrap();
@@ -49,14 +67,24 @@ fn row_maxima_follow_a_filament_with_uncertainties() {
     let s = scene(&tpl, &[], &[f], 64, H, sigma, 11);
     let sens = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
     let rows = row_peaks(&sens, &PeakOptions::default()).unwrap();
-    let pos: Vec<f64> = rows.iter().filter_map(|r| r.peak().map(|p| p.pos)).collect();
+    let pos: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| r.peak().map(|p| p.pos))
+        .collect();
     assert!(pos.len() > 60);
     let m = stats::summary(&pos).unwrap();
     assert!((m.mean - 1.23).abs() < 0.003, "{m:?}");
     // The reported position uncertainty matches the scatter within a factor 1.6.
-    let errs: Vec<f64> = rows.iter().filter_map(|r| r.peak().and_then(|p| p.pos_err)).collect();
+    let errs: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| r.peak().and_then(|p| p.pos_err))
+        .collect();
     let mean_err = errs.iter().sum::<f64>() / errs.len() as f64;
-    assert!(mean_err / m.std > 0.6 && mean_err / m.std < 1.6, "reported {mean_err} vs scatter {}", m.std);
+    assert!(
+        mean_err / m.std > 0.6 && mean_err / m.std < 1.6,
+        "reported {mean_err} vs scatter {}",
+        m.std
+    );
 }
 
 #[test]
@@ -67,18 +95,48 @@ fn template_from_noisy_reference_scans_matches_truth() {
     let truth = standin();
     let sigma = 0.03 * sx_peak(&truth);
     let mut scans: Vec<Scan> = Vec::new();
-    let offs = [(1.51, 1.49), (1.473, 1.534), (1.522, 1.507), (1.488, 1.466), (1.507, 1.521), (1.532, 1.479)];
+    let offs = [
+        (1.51, 1.49),
+        (1.473, 1.534),
+        (1.522, 1.507),
+        (1.488, 1.466),
+        (1.507, 1.521),
+        (1.532, 1.479),
+    ];
     for (k, &(x, y)) in offs.iter().enumerate() {
         // Gain varies by ±5 % between scans (bead size spread), as in the paper's averaging.
         let w = 1.0 + 0.05 * ((k as f64) - 2.5) / 2.5;
-        scans.push(scene(&truth, &[(x, y, w)], &[], 61, H, sigma, 100 + k as u64));
+        scans.push(scene(
+            &truth,
+            &[(x, y, w)],
+            &[],
+            61,
+            H,
+            sigma,
+            100 + k as u64,
+        ));
     }
     let refs: Vec<&Scan> = scans.iter().collect();
-    let t = Template::from_scans(&refs, RefBead::default(), &FromScansOptions { half_width_um: 1.2, ..Default::default() }).unwrap();
+    let t = Template::from_scans(
+        &refs,
+        RefBead::default(),
+        &FromScansOptions {
+            half_width_um: 1.2,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     match &t.source {
-        bfpscope::analysis::TemplateSource::Scans { n_beads, rms_misfit, .. } => {
+        bfpscope::analysis::TemplateSource::Scans {
+            n_beads,
+            rms_misfit,
+            ..
+        } => {
             assert_eq!(*n_beads, 6);
-            assert!((rms_misfit / sigma - 1.0).abs() < 0.3, "misfit {rms_misfit} vs σ {sigma}");
+            assert!(
+                (rms_misfit / sigma - 1.0).abs() < 0.3,
+                "misfit {rms_misfit} vs σ {sigma}"
+            );
         }
         s => panic!("{s:?}"),
     }
@@ -93,7 +151,11 @@ fn template_from_noisy_reference_scans_matches_truth() {
         }
     }
     assert!(maxdev < 0.05 * sx_peak(&truth), "max deviation {maxdev}");
-    assert!(t.sens_peak[0].abs() < 0.01 && t.sens_peak[1].abs() < 0.02, "{:?}", t.sens_peak);
+    assert!(
+        t.sens_peak[0].abs() < 0.01 && t.sens_peak[1].abs() < 0.02,
+        "{:?}",
+        t.sens_peak
+    );
     // Save / load round trip.
     let back = Template::from_json(&t.to_json()).unwrap();
     assert_eq!(back, t);
@@ -112,20 +174,45 @@ fn three_overlapping_170nm_beads_at_paper_noise() {
     let mut worst_w: f64 = 0.0;
     for seed in 0..10 {
         let s = scene(&tpl, &truth, &[], 64, H, sigma, seed);
-        let r = fit_beads(&s.sx, &s.sy, &tpl, &FitOptions { n_beads: Some(3), ..Default::default() }).unwrap();
+        let r = fit_beads(
+            &s.sx,
+            &s.sy,
+            &tpl,
+            &FitOptions {
+                n_beads: Some(3),
+                ..Default::default()
+            },
+        )
+        .unwrap();
         assert_eq!(r.beads.len(), 3);
         assert!(!r.is_degenerate(), "{:?}", r.degeneracies);
         assert!(r.iterations < 50);
         for t in &truth {
-            let b = r.beads.iter().min_by(|a, b| (a.x - t.0).hypot(a.y - t.1).total_cmp(&(b.x - t.0).hypot(b.y - t.1))).unwrap();
+            let b = r
+                .beads
+                .iter()
+                .min_by(|a, b| {
+                    (a.x - t.0)
+                        .hypot(a.y - t.1)
+                        .total_cmp(&(b.x - t.0).hypot(b.y - t.1))
+                })
+                .unwrap();
             worst_pos = worst_pos.max((b.x - t.0).hypot(b.y - t.1));
             worst_w = worst_w.max((b.weight / t.2 - 1.0).abs());
             // Reported uncertainties are consistent with the actual error (< 5σ).
             assert!((b.x - t.0).abs() < 5.0 * b.x_err.unwrap() + 1e-4);
         }
-        assert!((r.sigma / sigma - 1.0).abs() < 0.05, "σ estimate {}", r.sigma);
+        assert!(
+            (r.sigma / sigma - 1.0).abs() < 0.05,
+            "σ estimate {}",
+            r.sigma
+        );
     }
-    println!("3 beads: worst position error {:.2} nm, worst weight error {:.2} %", worst_pos * 1e3, worst_w * 100.0);
+    println!(
+        "3 beads: worst position error {:.2} nm, worst weight error {:.2} %",
+        worst_pos * 1e3,
+        worst_w * 100.0
+    );
     assert!(worst_pos < 0.020, "{worst_pos}");
     assert!(worst_w < 0.05, "{worst_w}");
 }
@@ -136,9 +223,23 @@ fn growing_the_model_finds_the_bead_count() {
     // largest residual while the BIC decreases: it must stop at 4.
     let tpl = standin();
     let sigma = paper_noise(&tpl, H);
-    let truth = [(1.0, 1.0, 1.0), (2.0, 1.3, 2.5), (1.4, 2.2, 0.5), (2.3, 2.4, 3.7)];
+    let truth = [
+        (1.0, 1.0, 1.0),
+        (2.0, 1.3, 2.5),
+        (1.4, 2.2, 0.5),
+        (2.3, 2.4, 3.7),
+    ];
     let s = scene(&tpl, &truth, &[], 64, H, sigma, 5);
-    let r = fit_beads(&s.sx, &s.sy, &tpl, &FitOptions { grow: true, ..Default::default() }).unwrap();
+    let r = fit_beads(
+        &s.sx,
+        &s.sy,
+        &tpl,
+        &FitOptions {
+            grow: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert_eq!(r.beads.len(), 4, "{:?}", r.history);
     assert!(r.history.last().map(|h| !h.accepted).unwrap_or(false));
     let tw: f64 = truth.iter().map(|t| t.2).sum();
@@ -151,13 +252,38 @@ fn eleven_beads_on_128x128() {
     let tpl = standin();
     let sigma = paper_noise(&tpl, H);
     let w = ps_weight(170.0);
-    let pos = [(1.0, 1.2), (1.35, 1.3), (2.5, 1.0), (3.6, 1.8), (4.8, 1.1), (1.6, 3.3), (2.9, 3.0), (3.2, 3.4), (5.2, 3.6), (2.0, 5.0), (4.4, 5.2)];
+    let pos = [
+        (1.0, 1.2),
+        (1.35, 1.3),
+        (2.5, 1.0),
+        (3.6, 1.8),
+        (4.8, 1.1),
+        (1.6, 3.3),
+        (2.9, 3.0),
+        (3.2, 3.4),
+        (5.2, 3.6),
+        (2.0, 5.0),
+        (4.4, 5.2),
+    ];
     let truth: Vec<(f64, f64, f64)> = pos.iter().map(|&(x, y)| (x, y, w)).collect();
     let s = scene(&tpl, &truth, &[], 128, H, sigma, 3);
-    let r = fit_beads(&s.sx, &s.sy, &tpl, &FitOptions { n_beads: Some(11), ..Default::default() }).unwrap();
+    let r = fit_beads(
+        &s.sx,
+        &s.sy,
+        &tpl,
+        &FitOptions {
+            n_beads: Some(11),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert_eq!(r.beads.len(), 11);
     for t in &truth {
-        let d = r.beads.iter().map(|b| (b.x - t.0).hypot(b.y - t.1)).fold(f64::INFINITY, f64::min);
+        let d = r
+            .beads
+            .iter()
+            .map(|b| (b.x - t.0).hypot(b.y - t.1))
+            .fold(f64::INFINITY, f64::min);
         assert!(d < 0.02, "bead at {t:?}: nearest fit {d}");
     }
     assert!((r.chi2 / r.dof as f64 - 1.0).abs() < 0.05);
@@ -193,22 +319,48 @@ fn fibril_diameters_any_angle() {
     let n_col = 1.414;
     let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
     let m = MeasureOptions::default();
-    let cal = DiameterCalib::from_template(&tpl, n_col, 110.0, tpl.reference.n, H, &m, &BeadModelOptions::default()).unwrap();
-    println!("A = {:.2} nm (paper's instrument: 58.6 nm), sens_bm = {:.3}, n_corr = {:.4}", cal.a_nm, cal.sens_bm, cal.n_corr);
+    let cal = DiameterCalib::from_template(
+        &tpl,
+        n_col,
+        110.0,
+        tpl.reference.n,
+        H,
+        &m,
+        &BeadModelOptions::default(),
+    )
+    .unwrap();
+    println!(
+        "A = {:.2} nm (paper's instrument: 58.6 nm), sens_bm = {:.3}, n_corr = {:.4}",
+        cal.a_nm, cal.sens_bm, cal.n_corr
+    );
     let mut worst: f64 = 0.0;
-    for (k, &angle) in [0.0, 15.0, -30.0, 45.0, 60.0, -80.0, 90.0].iter().enumerate() {
+    for (k, &angle) in [0.0, 15.0, -30.0, 45.0, 60.0, -80.0, 90.0]
+        .iter()
+        .enumerate()
+    {
         for &d in &[20.0, 60.0, 150.0] {
             let f = Filament::straight([1.6, 1.6], angle, 8.0, d, n_col);
             let s = scene(&tpl, &[], &[f], 64, H, 0.0, k as u64);
             let meas = measure_filament(&s.sx, &s.sy, &curve, &m).unwrap();
-            assert!((meas.angle_deg - angle).abs() < 0.5 || (meas.angle_deg - angle).abs() > 179.5, "angle {angle}: {}", meas.angle_deg);
-            let exp_ch = if angle.abs() <= 45.0 { Channel::SxRows } else { Channel::SyCols };
+            assert!(
+                (meas.angle_deg - angle).abs() < 0.5 || (meas.angle_deg - angle).abs() > 179.5,
+                "angle {angle}: {}",
+                meas.angle_deg
+            );
+            let exp_ch = if angle.abs() <= 45.0 {
+                Channel::SxRows
+            } else {
+                Channel::SyCols
+            };
             if angle.abs() != 45.0 {
                 assert_eq!(meas.channel, exp_ch, "angle {angle}");
             }
             let dm = cal.diameter_nm(meas.mean_corr).unwrap();
             worst = worst.max((dm - d).abs());
-            assert!((dm - d).abs() < 3.0, "angle {angle}, d {d}: measured {dm:.2} nm");
+            assert!(
+                (dm - d).abs() < 3.0,
+                "angle {angle}, d {d}: measured {dm:.2} nm"
+            );
         }
     }
     println!("fibril diameters: worst error {worst:.2} nm");
@@ -223,7 +375,15 @@ fn microtubule_linear_density_and_protofilaments() {
     tpl.reference.n_medium = 1.335;
     let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
     let m = MeasureOptions::default();
-    let cal = LinDensCalib::from_template(&tpl, quantities::PROTEIN_N, quantities::PROTEIN_DENSITY_G_CM3, H, &m, &BeadModelOptions::default()).unwrap();
+    let cal = LinDensCalib::from_template(
+        &tpl,
+        quantities::PROTEIN_N,
+        quantities::PROTEIN_DENSITY_G_CM3,
+        H,
+        &m,
+        &BeadModelOptions::default(),
+    )
+    .unwrap();
     let sigma = 0.01 * sx_peak(&tpl);
     for npf in 11..=14u32 {
         let mu = npf as f64 * quantities::PROTOFILAMENT_MDA_PER_UM;
@@ -251,8 +411,20 @@ fn background_removal_improves_sbr_threefold() {
     let sigma = 0.005 * sx_peak(&tpl);
     let f = Filament::straight([3.2, 3.2], 0.0, 5.4, 17.0, quantities::PROTEIN_N);
     let aggs = [
-        (1.2, 1.0, 0.8), (2.0, 2.2, 1.5), (4.3, 1.4, 0.6), (5.1, 2.6, 1.2), (2.4, 4.1, 0.9), (4.6, 4.4, 1.4), (1.4, 5.4, 0.4),
-        (5.3, 5.5, 1.0), (3.9, 0.8, 0.7), (2.6, 0.6, 0.5), (5.6, 3.9, 0.3), (1.0, 3.3, 1.1), (2.2, 5.8, 0.6), (4.2, 5.9, 0.8),
+        (1.2, 1.0, 0.8),
+        (2.0, 2.2, 1.5),
+        (4.3, 1.4, 0.6),
+        (5.1, 2.6, 1.2),
+        (2.4, 4.1, 0.9),
+        (4.6, 4.4, 1.4),
+        (1.4, 5.4, 0.4),
+        (5.3, 5.5, 1.0),
+        (3.9, 0.8, 0.7),
+        (2.6, 0.6, 0.5),
+        (5.6, 3.9, 0.3),
+        (1.0, 3.3, 1.1),
+        (2.2, 5.8, 0.6),
+        (4.2, 5.9, 0.8),
     ];
     let s = scene(&tpl, &aggs, &[f], 128, H, sigma, 21);
     let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
@@ -263,7 +435,14 @@ fn background_removal_improves_sbr_threefold() {
     let fit = bg.fit.as_ref().unwrap();
     let after = measure_filament(&bg.sx, &bg.sy, &curve, &m).unwrap();
     let sa = sbr(&after, &SbrOptions::default()).unwrap();
-    println!("SBR (a) before {:.2} after {:.2}; (b) before {:.2} after {:.2}; {} objects fitted", sb.sbr_background, sa.sbr_background, sb.sbr_uniformity, sa.sbr_uniformity, fit.beads.len());
+    println!(
+        "SBR (a) before {:.2} after {:.2}; (b) before {:.2} after {:.2}; {} objects fitted",
+        sb.sbr_background,
+        sa.sbr_background,
+        sb.sbr_uniformity,
+        sa.sbr_uniformity,
+        fit.beads.len()
+    );
     assert!(sa.sbr_background >= 3.0 * sb.sbr_background);
     assert!(fit.beads.len() >= 14);
 }
@@ -285,7 +464,13 @@ fn focus_search_on_a_synthetic_xz_scan() {
     let f = focus_search(&img, &FocusOptions::default()).unwrap();
     assert!((f.z_best - z0).abs() < 0.005, "{f:?}");
     let half = zr * (1.0 / 0.98 - 1.0f64).sqrt();
-    assert!((f.z_lo.unwrap() - (z0 - half)).abs() < 0.02 && (f.z_hi.unwrap() - (z0 + half)).abs() < 0.02, "{:?} {:?}", f.z_lo, f.z_hi);
+    assert!(
+        (f.z_lo.unwrap() - (z0 - half)).abs() < 0.02
+            && (f.z_hi.unwrap() - (z0 + half)).abs() < 0.02,
+        "{:?} {:?}",
+        f.z_lo,
+        f.z_hi
+    );
 }
 
 #[test]
@@ -298,7 +483,13 @@ fn loglog_slope_of_bead_sensitivities() {
         .iter()
         .map(|&d| {
             let s = scene(&tpl, &[(1.2, 1.2, ps_weight(d))], &[], 48, H, 0.0, 0);
-            peak_2d(&sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap(), 0.4, None).unwrap().value
+            peak_2d(
+                &sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap(),
+                0.4,
+                None,
+            )
+            .unwrap()
+            .value
         })
         .collect();
     let f = stats::loglog_fit(&ds, &sens, None).unwrap();
@@ -311,13 +502,26 @@ fn mass_of_a_170nm_bead_from_the_fit_weight() {
     let tpl = standin();
     let sigma = paper_noise(&tpl, H);
     let s = scene(&tpl, &[(1.5, 1.5, ps_weight(170.0))], &[], 60, H, sigma, 9);
-    let r = fit_beads(&s.sx, &s.sy, &tpl, &FitOptions { n_beads: Some(1), ..Default::default() }).unwrap();
+    let r = fit_beads(
+        &s.sx,
+        &s.sy,
+        &tpl,
+        &FitOptions {
+            n_beads: Some(1),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let b = r.beads[0];
     let rb = tpl.reference;
-    let po = quantities::point_object(b.weight, b.weight_err, 1.0, rb.n, rb.density_g_cm3, &rb).unwrap();
+    let po =
+        quantities::point_object(b.weight, b.weight_err, 1.0, rb.n, rb.density_g_cm3, &rb).unwrap();
     let true_mass = quantities::mass_kda(std::f64::consts::PI / 6.0 * 170f64.powi(3), 1.05);
     let err = po.mass_err_kda.unwrap();
-    println!("mass {:.0} ± {:.0} kDa (true {:.0}); resolution {:.0} kDa", po.mass_kda, err, true_mass, err);
+    println!(
+        "mass {:.0} ± {:.0} kDa (true {:.0}); resolution {:.0} kDa",
+        po.mass_kda, err, true_mass, err
+    );
     assert!((po.mass_kda - true_mass).abs() < 3.0 * err);
     // The noise level was set from the paper's 950 kDa resolution: the fit reproduces it.
     assert!((err / 950.0 - 1.0).abs() < 0.15, "{err}");
@@ -332,7 +536,8 @@ fn profile_along_the_fibril_axis() {
     let f = Filament::straight([1.6, 1.6], 0.0, 8.0, 110.0, tpl.reference.n);
     let s = scene(&tpl, &[], &[f], 64, H, 0.0, 0);
     let sens = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
-    let p = profile::profile_polyline(&sens, &[[1.6, 0.5], [1.6, 2.7]], 0.02, Interp::Cubic).unwrap();
+    let p =
+        profile::profile_polyline(&sens, &[[1.6, 0.5], [1.6, 2.7]], 0.02, Interp::Cubic).unwrap();
     let st = stats::summary(&p.v).unwrap();
     assert!(st.std / st.mean < 1e-3, "{st:?}");
     let rows = row_peaks(&sens, &PeakOptions::default()).unwrap();
@@ -344,7 +549,11 @@ fn profile_along_the_fibril_axis() {
 fn bead_model_beads_reproduce_a_single_bead_at_short_length() {
     // A filament section as short as one spacing has the weight of one section: 3h/(2d)·(d/d_ref)³.
     let tpl = standin();
-    let f = Filament { points: vec![[0.0, 0.0], [0.0, 0.05]], d_nm: vec![110.0], n: tpl.reference.n };
+    let f = Filament {
+        points: vec![[0.0, 0.0], [0.0, 0.05]],
+        d_nm: vec![110.0],
+        n: tpl.reference.n,
+    };
     let b = filament_beads(&tpl, &f, &BeadModelOptions::default()).unwrap();
     assert_eq!(b.len(), 1);
     assert!((b[0].2 - 1.5 * 50.0 / 110.0).abs() < 1e-12);
@@ -357,8 +566,29 @@ fn single_channel_fit_recovers_beads() {
     let sigma = paper_noise(&tpl, H);
     let truth = [(1.2, 1.4, 1.0), (2.0, 1.9, 2.0)];
     let s = scene(&tpl, &truth, &[], 64, H, sigma, 4);
-    let init = vec![BeadInit { x: 1.25, y: 1.35, weight: 0.8 }, BeadInit { x: 1.95, y: 1.95, weight: 2.2 }];
-    let r = fit_beads(&s.sx, &s.sy, &tpl, &FitOptions { channels: Channels::Sy, init: Some(init), ..Default::default() }).unwrap();
+    let init = vec![
+        BeadInit {
+            x: 1.25,
+            y: 1.35,
+            weight: 0.8,
+        },
+        BeadInit {
+            x: 1.95,
+            y: 1.95,
+            weight: 2.2,
+        },
+    ];
+    let r = fit_beads(
+        &s.sx,
+        &s.sy,
+        &tpl,
+        &FitOptions {
+            channels: Channels::Sy,
+            init: Some(init),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert_eq!(r.n_residuals, 64 * 64);
     for (b, t) in r.beads.iter().zip(&truth) {
         assert!((b.x - t.0).hypot(b.y - t.1) < 0.02 && (b.weight / t.2 - 1.0).abs() < 0.05);

@@ -58,7 +58,12 @@ pub struct BackgroundOptions {
 
 impl Default for BackgroundOptions {
     fn default() -> Self {
-        Self { axis: FilamentAxis::Y, detect_snr: 6.0, max_objects: 60, fit: FitOptions::default() }
+        Self {
+            axis: FilamentAxis::Y,
+            detect_snr: 6.0,
+            max_objects: 60,
+            fit: FitOptions::default(),
+        }
     }
 }
 
@@ -76,7 +81,12 @@ pub struct BackgroundResult {
 /// Remove point-like objects from a filament scan (Sec. 6). Errors from the fit (shapes,
 /// template coverage) propagate; an image without detectable point objects is returned
 /// unchanged with `fit = None`.
-pub fn remove_point_background(sx: &Image, sy: &Image, tpl: &Template, opts: &BackgroundOptions) -> Result<BackgroundResult> {
+pub fn remove_point_background(
+    sx: &Image,
+    sy: &Image,
+    tpl: &Template,
+    opts: &BackgroundOptions,
+) -> Result<BackgroundResult> {
     check_range("detect_snr", opts.detect_snr, 0.0, 1e6)?;
     check_range("max_objects", opts.max_objects as f64, 1.0, 10_000.0)?;
     let ch = match opts.axis {
@@ -87,14 +97,29 @@ pub fn remove_point_background(sx: &Image, sy: &Image, tpl: &Template, opts: &Ba
     let noise = robust_std(&d.data.iter().copied().collect::<Vec<_>>()).unwrap_or(0.0);
     let init: Vec<BeadInit> = clean(&d, tpl, ch, opts.max_objects, opts.detect_snr * noise);
     if init.is_empty() {
-        return Ok(BackgroundResult { sx: sx.clone(), sy: sy.clone(), fit: None });
+        return Ok(BackgroundResult {
+            sx: sx.clone(),
+            sy: sy.clone(),
+            fit: None,
+        });
     }
-    let fo = FitOptions { channels: ch, init: Some(init), n_beads: None, grow: true, max_beads: opts.max_objects, ..opts.fit.clone() };
+    let fo = FitOptions {
+        channels: ch,
+        init: Some(init),
+        n_beads: None,
+        grow: true,
+        max_beads: opts.max_objects,
+        ..opts.fit.clone()
+    };
     let fit = fit_beads(sx, sy, tpl, &fo)?;
     let sub = |img: &Image, m: &Image| {
         let mut out = img.clone();
         out.data = &img.data - &m.data;
         out
     };
-    Ok(BackgroundResult { sx: sub(sx, &fit.model_sx), sy: sub(sy, &fit.model_sy), fit: Some(fit) })
+    Ok(BackgroundResult {
+        sx: sub(sx, &fit.model_sx),
+        sy: sub(sy, &fit.model_sy),
+        fit: Some(fit),
+    })
 }

@@ -27,7 +27,12 @@ pub struct FocusOptions {
 
 impl Default for FocusOptions {
     fn default() -> Self {
-        Self { stencil: Stencil::Central2, window_um: 0.4, z_window_um: 0.6, level: 0.98 }
+        Self {
+            stencil: Stencil::Central2,
+            window_um: 0.4,
+            z_window_um: 0.6,
+            level: 0.98,
+        }
     }
 }
 
@@ -54,15 +59,33 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     check_range("z_window_um", opts.z_window_um, 1e-3, 1e3)?;
     check_range("level", opts.level, 0.0, 1.0)?;
     let sens = sensitivity(img, Axis::X, opts.stencil)?;
-    let rows = row_peaks(&sens, &PeakOptions { window_um: opts.window_um, ..Default::default() })?;
+    let rows = row_peaks(
+        &sens,
+        &PeakOptions {
+            window_um: opts.window_um,
+            ..Default::default()
+        },
+    )?;
     let z: Vec<f64> = rows.iter().map(|r| r.coord).collect();
-    let v: Vec<f64> = rows.iter().map(|r| r.peak().map(|p| p.value).unwrap_or(f64::NAN)).collect();
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|r| r.peak().map(|p| p.value).unwrap_or(f64::NAN))
+        .collect();
     let n_ok = v.iter().filter(|x| x.is_finite()).count();
     if n_ok < 3 {
-        return Err(AnalysisError::Failed(format!("only {n_ok} z rows show a sensitivity maximum; at least 3 are needed")));
+        return Err(AnalysisError::Failed(format!(
+            "only {n_ok} z rows show a sensitivity maximum; at least 3 are needed"
+        )));
     }
-    let p = peak_1d(&z, &v, &PeakOptions { window_um: opts.z_window_um, ..Default::default() })
-        .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
+    let p = peak_1d(
+        &z,
+        &v,
+        &PeakOptions {
+            window_um: opts.z_window_um,
+            ..Default::default()
+        },
+    )
+    .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
     let thr = opts.level * p.value;
     // Walk outwards from the best row to the first crossings.
     let ib = p.index;
@@ -91,5 +114,13 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
             }
         }
     };
-    Ok(FocusResult { z_best: p.pos, z_err: p.pos_err, max_sens: p.value, max_sens_err: p.value_err, z_lo, z_hi, rows })
+    Ok(FocusResult {
+        z_best: p.pos,
+        z_err: p.pos_err,
+        max_sens: p.value,
+        max_sens_err: p.value_err,
+        z_lo,
+        z_hi,
+        rows,
+    })
 }

@@ -43,7 +43,13 @@ pub struct MeasureOptions {
 
 impl Default for MeasureOptions {
     fn default() -> Self {
-        Self { stencil: Stencil::Central2, window_um: 0.4, min_snr: 0.0, max_offset_um: 0.2, line_fraction: 0.5 }
+        Self {
+            stencil: Stencil::Central2,
+            window_um: 0.4,
+            min_snr: 0.0,
+            max_offset_um: 0.2,
+            line_fraction: 0.5,
+        }
     }
 }
 
@@ -56,7 +62,11 @@ impl MeasureOptions {
         Ok(())
     }
     pub(crate) fn peak_options(&self) -> PeakOptions {
-        PeakOptions { window_um: self.window_um, min_snr: self.min_snr, ..Default::default() }
+        PeakOptions {
+            window_um: self.window_um,
+            min_snr: self.min_snr,
+            ..Default::default()
+        }
     }
 }
 
@@ -77,7 +87,14 @@ pub struct AngleCurveOptions {
 
 impl Default for AngleCurveOptions {
     fn default() -> Self {
-        Self { n_angles: 19, pixel_um: 0.05, d_nm: None, n: None, bead_model: BeadModelOptions::default(), measure: MeasureOptions::default() }
+        Self {
+            n_angles: 19,
+            pixel_um: 0.05,
+            d_nm: None,
+            n: None,
+            bead_model: BeadModelOptions::default(),
+            measure: MeasureOptions::default(),
+        }
     }
 }
 
@@ -108,19 +125,43 @@ impl AngleCurve {
         let mut sy = Vec::with_capacity(k);
         for i in 0..k {
             let a = -90.0 + i as f64 * step;
-            let (x, y) = straight_filament_max_sens(tpl, d, n, a, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+            let (x, y) = straight_filament_max_sens(
+                tpl,
+                d,
+                n,
+                a,
+                opts.pixel_um,
+                &opts.measure,
+                &opts.bead_model,
+            )?;
             angles.push(a);
             sx.push(x);
             sy.push(y);
         }
         // The node at +90° is the same orientation as −90°: average them.
-        let (x90, y90) = straight_filament_max_sens(tpl, d, n, 90.0, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+        let (x90, y90) = straight_filament_max_sens(
+            tpl,
+            d,
+            n,
+            90.0,
+            opts.pixel_um,
+            &opts.measure,
+            &opts.bead_model,
+        )?;
         sx[0] = 0.5 * (sx[0] + x90);
         sy[0] = 0.5 * (sy[0] + y90);
-        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, options: *opts };
+        let mut c = AngleCurve {
+            angles_deg: angles,
+            sx: sx.clone(),
+            sy: sy.clone(),
+            sx0: 1.0,
+            options: *opts,
+        };
         let s0 = c.eval_raw(0.0).0;
         if !(s0 > 0.0) {
-            return Err(AnalysisError::Failed(format!("bead-model S_x maximum at 0° is {s0}: the template gives no filament signal")));
+            return Err(AnalysisError::Failed(format!(
+                "bead-model S_x maximum at 0° is {s0}: the template gives no filament signal"
+            )));
         }
         c.sx = sx.iter().map(|v| v / s0).collect();
         c.sy = sy.iter().map(|v| v / s0).collect();
@@ -172,7 +213,12 @@ impl AngleCurve {
 fn keys(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
-    [0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)]
+    [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ]
 }
 
 /// Which maxima a filament measurement uses.
@@ -233,7 +279,10 @@ pub struct FilamentMeasurement {
 
 /// Fit a line through the strong maxima of `lines` (rows if `rows`), with 3σ clipping.
 fn fit_lines(lines: &[LinePeak], rows: bool, fraction: f64) -> Option<LineFit> {
-    let vals: Vec<f64> = lines.iter().filter_map(|l| l.peak().map(|p| p.value)).collect();
+    let vals: Vec<f64> = lines
+        .iter()
+        .filter_map(|l| l.peak().map(|p| p.value))
+        .collect();
     if vals.len() < 3 {
         return None;
     }
@@ -241,19 +290,37 @@ fn fit_lines(lines: &[LinePeak], rows: bool, fraction: f64) -> Option<LineFit> {
     sorted.sort_by(|a, b| a.total_cmp(b));
     let p90 = sorted[((sorted.len() - 1) as f64 * 0.9).round() as usize];
     let thr = fraction * p90;
-    let mut pts: Vec<(f64, f64)> = lines.iter().filter_map(|l| l.peak().filter(|p| p.value >= thr).map(|p| (l.coord, p.pos))).collect();
+    let mut pts: Vec<(f64, f64)> = lines
+        .iter()
+        .filter_map(|l| {
+            l.peak()
+                .filter(|p| p.value >= thr)
+                .map(|p| (l.coord, p.pos))
+        })
+        .collect();
     for _ in 0..5 {
         if pts.len() < 3 {
             return None;
         }
         let (t, s): (Vec<f64>, Vec<f64>) = pts.iter().copied().unzip();
         let f = linfit(&t, &s, None).ok()?;
-        let res: Vec<f64> = pts.iter().map(|p| p.1 - f.intercept - f.slope * p.0).collect();
+        let res: Vec<f64> = pts
+            .iter()
+            .map(|p| p.1 - f.intercept - f.slope * p.0)
+            .collect();
         let sd = super::stats::robust_std(&res).unwrap_or(0.0).max(1e-6);
-        let keep: Vec<(f64, f64)> = pts.iter().zip(&res).filter(|(_, r)| r.abs() <= 3.0 * sd).map(|(p, _)| *p).collect();
+        let keep: Vec<(f64, f64)> = pts
+            .iter()
+            .zip(&res)
+            .filter(|(_, r)| r.abs() <= 3.0 * sd)
+            .map(|(p, _)| *p)
+            .collect();
         if keep.len() == pts.len() {
             let (angle, err) = if rows {
-                (f.slope.atan().to_degrees(), (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees())
+                (
+                    f.slope.atan().to_degrees(),
+                    (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees(),
+                )
             } else {
                 let mut a = 1.0f64.atan2(f.slope).to_degrees();
                 if a > 90.0 {
@@ -261,7 +328,13 @@ fn fit_lines(lines: &[LinePeak], rows: bool, fraction: f64) -> Option<LineFit> {
                 }
                 (a, (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees())
             };
-            return Some(LineFit { angle_deg: angle, angle_err_deg: err, a: f.intercept, b: f.slope, n: pts.len() });
+            return Some(LineFit {
+                angle_deg: angle,
+                angle_err_deg: err,
+                a: f.intercept,
+                b: f.slope,
+                n: pts.len(),
+            });
         }
         pts = keep;
     }
@@ -271,7 +344,12 @@ fn fit_lines(lines: &[LinePeak], rows: bool, fraction: f64) -> Option<LineFit> {
 /// Steps 4–5 of Sec. 4.2 on one scan (see the module docs). `sx`, `sy`: the raw channels of an
 /// XY scan. Errors: no straight filament found in either channel (fewer than 3 usable maxima),
 /// a curve computed at a pixel size differing by more than 5 % from the scan's, bad options.
-pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+pub fn measure_filament(
+    sx: &Image,
+    sy: &Image,
+    curve: &AngleCurve,
+    opts: &MeasureOptions,
+) -> Result<FilamentMeasurement> {
     opts.validate()?;
     let px = sx.dx().abs().max(sx.dy().abs());
     if px > 0.0 && ((px - curve.options.pixel_um) / px).abs() > 0.05 {
@@ -314,7 +392,11 @@ pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &Measu
     let mut points = Vec::new();
     for l in &lines {
         let Some(p) = l.peak() else { continue };
-        let (x, y) = if use_rows { (p.pos, l.coord) } else { (l.coord, p.pos) };
+        let (x, y) = if use_rows {
+            (p.pos, l.coord)
+        } else {
+            (l.coord, p.pos)
+        };
         // Distance from the fitted line measured along the line direction of the scan axis,
         // converted to perpendicular distance.
         let pred = line.a + line.b * l.coord;
@@ -323,10 +405,20 @@ pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &Measu
         if perp > opts.max_offset_um {
             continue;
         }
-        points.push(FilamentPoint { x, y, arc_um: x * dir.0 + y * dir.1, sens: p.value, sens_err: p.value_err, sens_corr: p.value * factor });
+        points.push(FilamentPoint {
+            x,
+            y,
+            arc_um: x * dir.0 + y * dir.1,
+            sens: p.value,
+            sens_err: p.value_err,
+            sens_corr: p.value * factor,
+        });
     }
     if points.len() < 3 {
-        return Err(AnalysisError::Failed(format!("only {} maxima lie on the fitted filament line", points.len())));
+        return Err(AnalysisError::Failed(format!(
+            "only {} maxima lie on the fitted filament line",
+            points.len()
+        )));
     }
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
     let a0 = points[0].arc_um;

@@ -39,7 +39,12 @@ pub struct PeakOptions {
 
 impl Default for PeakOptions {
     fn default() -> Self {
-        Self { window_um: 0.4, min_value: None, min_snr: 0.0, sigma: None }
+        Self {
+            window_um: 0.4,
+            min_value: None,
+            min_snr: 0.0,
+            sigma: None,
+        }
     }
 }
 
@@ -47,14 +52,22 @@ impl PeakOptions {
     pub(crate) fn validate(&self) -> Result<()> {
         check_above("window_um", self.window_um, 0.0)?;
         if !(self.min_snr.is_finite() && self.min_snr >= 0.0) {
-            return Err(AnalysisError::OutOfRange { name: "min_snr", value: self.min_snr, allowed: "min_snr ≥ 0".into() });
+            return Err(AnalysisError::OutOfRange {
+                name: "min_snr",
+                value: self.min_snr,
+                allowed: "min_snr ≥ 0".into(),
+            });
         }
         if let Some(s) = self.sigma {
             check_above("sigma", s, 0.0)?;
         }
         if let Some(m) = self.min_value {
             if !m.is_finite() {
-                return Err(AnalysisError::OutOfRange { name: "min_value", value: m, allowed: "finite".into() });
+                return Err(AnalysisError::OutOfRange {
+                    name: "min_value",
+                    value: m,
+                    allowed: "finite".into(),
+                });
             }
         }
         Ok(())
@@ -107,7 +120,9 @@ impl std::fmt::Display for PeakMiss {
             PeakMiss::TooFewPoints { n } => write!(f, "{n} finite samples in the window (need 3)"),
             PeakMiss::NotConcave => write!(f, "no maximum (parabola not concave)"),
             PeakMiss::VertexOutside { pos } => write!(f, "vertex {pos} µm outside the window"),
-            PeakMiss::BelowThreshold { value, noise } => write!(f, "peak {value} below threshold (noise {noise})"),
+            PeakMiss::BelowThreshold { value, noise } => {
+                write!(f, "peak {value} below threshold (noise {noise})")
+            }
         }
     }
 }
@@ -128,14 +143,26 @@ impl LinePeak {
     }
     /// (x, y) of the peak in image coordinates for a row peak (`along_x` = true) or column peak.
     pub fn xy(&self, along_x: bool) -> Option<(f64, f64)> {
-        self.peak().map(|p| if along_x { (p.pos, self.coord) } else { (self.coord, p.pos) })
+        self.peak().map(|p| {
+            if along_x {
+                (p.pos, self.coord)
+            } else {
+                (self.coord, p.pos)
+            }
+        })
     }
 }
 
 /// Robust noise of a line: 1.4826·MAD(first differences)/√2 over finite neighbours.
 pub fn line_noise(v: &[f64]) -> f64 {
-    let d: Vec<f64> = v.windows(2).filter(|w| w[0].is_finite() && w[1].is_finite()).map(|w| w[1] - w[0]).collect();
-    super::stats::robust_std(&d).map(|s| s / std::f64::consts::SQRT_2).unwrap_or(0.0)
+    let d: Vec<f64> = v
+        .windows(2)
+        .filter(|w| w[0].is_finite() && w[1].is_finite())
+        .map(|w| w[1] - w[0])
+        .collect();
+    super::stats::robust_std(&d)
+        .map(|s| s / std::f64::consts::SQRT_2)
+        .unwrap_or(0.0)
 }
 
 /// Sub-pixel maximum of samples `v` at positions `t` (µm, monotonic) — see the module docs.
@@ -156,7 +183,11 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<
     let half = 0.5 * opts.window_um * (1.0 + 1e-9);
     let mut centre = t[imax];
     let mut p = fit_parabola(t, v, centre, half, opts.sigma)?;
-    let step = if n > 1 { ((t[n - 1] - t[0]) / (n - 1) as f64).abs() } else { 0.0 };
+    let step = if n > 1 {
+        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
+    } else {
+        0.0
+    };
     if (p.pos - centre).abs() > 0.5 * step {
         // Re-centre once on the vertex; keep the first fit if the second one fails.
         if let Ok(q) = fit_parabola(t, v, p.pos, half, opts.sigma) {
@@ -167,15 +198,30 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<
     p.index = imax;
     let (lo, hi) = (t[0].min(t[n - 1]), t[0].max(t[n - 1]));
     p.truncated = centre - half < lo || centre + half > hi;
-    let noise = if opts.min_snr > 0.0 { line_noise(&v[..n]) } else { 0.0 };
-    if opts.min_value.is_some_and(|m| p.value <= m) || (opts.min_snr > 0.0 && !(p.value > opts.min_snr * noise)) {
-        return Err(PeakMiss::BelowThreshold { value: p.value, noise });
+    let noise = if opts.min_snr > 0.0 {
+        line_noise(&v[..n])
+    } else {
+        0.0
+    };
+    if opts.min_value.is_some_and(|m| p.value <= m)
+        || (opts.min_snr > 0.0 && !(p.value > opts.min_snr * noise))
+    {
+        return Err(PeakMiss::BelowThreshold {
+            value: p.value,
+            noise,
+        });
     }
     Ok(p)
 }
 
 /// Least-squares parabola over finite samples within `centre ± half`.
-fn fit_parabola(t: &[f64], v: &[f64], centre: f64, half: f64, sigma: Option<f64>) -> std::result::Result<Peak, PeakMiss> {
+fn fit_parabola(
+    t: &[f64],
+    v: &[f64],
+    centre: f64,
+    half: f64,
+    sigma: Option<f64>,
+) -> std::result::Result<Peak, PeakMiss> {
     let pts: Vec<(f64, f64)> = t
         .iter()
         .zip(v)
@@ -186,7 +232,11 @@ fn fit_parabola(t: &[f64], v: &[f64], centre: f64, half: f64, sigma: Option<f64>
     if np < 3 {
         return Err(PeakMiss::TooFewPoints { n: np });
     }
-    let (kmin, kmax) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (kmin, kmax) = pts
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.0), b.max(p.0))
+        });
     let mut ata = nalgebra::Matrix3::<f64>::zeros();
     let mut atb = nalgebra::Vector3::<f64>::zeros();
     for &(k, y) in &pts {
@@ -196,7 +246,11 @@ fn fit_parabola(t: &[f64], v: &[f64], centre: f64, half: f64, sigma: Option<f64>
     }
     let inv = ata.try_inverse().ok_or(PeakMiss::TooFewPoints { n: np })?;
     let c = inv * atb;
-    let scale = pts.iter().map(|p| p.1.abs()).fold(0.0, f64::max).max(1e-300);
+    let scale = pts
+        .iter()
+        .map(|p| p.1.abs())
+        .fold(0.0, f64::max)
+        .max(1e-300);
     // Concave with a curvature that is not round-off.
     if !(c[2] < -1e-12 * scale) {
         return Err(PeakMiss::NotConcave);
@@ -210,7 +264,10 @@ fn fit_parabola(t: &[f64], v: &[f64], centre: f64, half: f64, sigma: Option<f64>
     let s2 = match sigma {
         Some(s) => Some(s * s),
         None if np > 3 => {
-            let rss: f64 = pts.iter().map(|&(k, y)| (y - c[0] - c[1] * k - c[2] * k * k).powi(2)).sum();
+            let rss: f64 = pts
+                .iter()
+                .map(|&(k, y)| (y - c[0] - c[1] * k - c[2] * k * k).powi(2))
+                .sum();
             Some(rss / (np - 3) as f64)
         }
         None => None,
@@ -219,7 +276,11 @@ fn fit_parabola(t: &[f64], v: &[f64], centre: f64, half: f64, sigma: Option<f64>
         Some(s2) => {
             let cov = inv * s2;
             let jp = nalgebra::Vector3::new(0.0, -1.0 / (2.0 * c[2]), c[1] / (2.0 * c[2] * c[2]));
-            let jv = nalgebra::Vector3::new(1.0, -c[1] / (2.0 * c[2]), c[1] * c[1] / (4.0 * c[2] * c[2]));
+            let jv = nalgebra::Vector3::new(
+                1.0,
+                -c[1] / (2.0 * c[2]),
+                c[1] * c[1] / (4.0 * c[2] * c[2]),
+            );
             let vp = (jp.transpose() * cov * jp)[0].max(0.0);
             let vv = (jv.transpose() * cov * jv)[0].max(0.0);
             (Some(vp.sqrt() * half), Some(vv.sqrt()))
@@ -244,7 +305,11 @@ pub fn row_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
     Ok((0..img.rows())
         .map(|r| {
             let v: Vec<f64> = img.data.row(r).to_vec();
-            LinePeak { line: r, coord: img.y[r], result: peak_1d(&img.x, &v, opts) }
+            LinePeak {
+                line: r,
+                coord: img.y[r],
+                result: peak_1d(&img.x, &v, opts),
+            }
         })
         .collect())
 }
@@ -256,7 +321,11 @@ pub fn col_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
     Ok((0..img.cols())
         .map(|c| {
             let v: Vec<f64> = img.data.column(c).to_vec();
-            LinePeak { line: c, coord: img.x[c], result: peak_1d(&img.y, &v, opts) }
+            LinePeak {
+                line: c,
+                coord: img.x[c],
+                result: peak_1d(&img.y, &v, opts),
+            }
         })
         .collect())
 }
@@ -317,7 +386,8 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
     if np < 6 {
         return Err(miss(PeakMiss::TooFewPoints { n: np }));
     }
-    let basis = |x: f64, y: f64| nalgebra::SVector::<f64, 6>::from([1.0, x, y, x * x, x * y, y * y]);
+    let basis =
+        |x: f64, y: f64| nalgebra::SVector::<f64, 6>::from([1.0, x, y, x * x, x * y, y * y]);
     let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
     let mut atb = nalgebra::SVector::<f64, 6>::zeros();
     for &(x, y, v) in &pts {
@@ -325,7 +395,9 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
         ata += b * b.transpose();
         atb += b * v;
     }
-    let inv = ata.try_inverse().ok_or_else(|| miss(PeakMiss::TooFewPoints { n: np }))?;
+    let inv = ata
+        .try_inverse()
+        .ok_or_else(|| miss(PeakMiss::TooFewPoints { n: np }))?;
     let co = inv * atb;
     let vertex = |co: &nalgebra::SVector<f64, 6>| -> Option<(f64, f64, f64)> {
         let (b, c, d, e, f) = (co[1], co[2], co[3], co[4], co[5]);
@@ -335,16 +407,25 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
         }
         let x = (-2.0 * f * b + e * c) / det;
         let y = (-2.0 * d * c + e * b) / det;
-        Some((x, y, co[0] + b * x + c * y + d * x * x + e * x * y + f * y * y))
+        Some((
+            x,
+            y,
+            co[0] + b * x + c * y + d * x * x + e * x * y + f * y * y,
+        ))
     };
     let (xs, ys, vs) = vertex(&co).ok_or_else(|| miss(PeakMiss::NotConcave))?;
     if xs.abs() > 1.0 + 1e-9 || ys.abs() > 1.0 + 1e-9 {
-        return Err(miss(PeakMiss::VertexOutside { pos: xc + xs * half }));
+        return Err(miss(PeakMiss::VertexOutside {
+            pos: xc + xs * half,
+        }));
     }
     let s2 = match sigma {
         Some(s) => Some(s * s),
         None if np > 6 => {
-            let rss: f64 = pts.iter().map(|&(x, y, v)| (v - (basis(x, y).transpose() * co)[0]).powi(2)).sum();
+            let rss: f64 = pts
+                .iter()
+                .map(|&(x, y, v)| (v - (basis(x, y).transpose() * co)[0]).powi(2))
+                .sum();
             Some(rss / (np - 6) as f64)
         }
         None => None,
@@ -370,7 +451,15 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
         ye = Some(c3[(1, 1)].max(0.0).sqrt() * half);
         ve = Some(c3[(2, 2)].max(0.0).sqrt());
     }
-    Ok(Peak2 { x: xc + xs * half, y: yc + ys * half, value: vs, x_err: xe, y_err: ye, value_err: ve, n_points: np })
+    Ok(Peak2 {
+        x: xc + xs * half,
+        y: yc + ys * half,
+        value: vs,
+        x_err: xe,
+        y_err: ye,
+        value_err: ve,
+        n_points: np,
+    })
 }
 
 #[cfg(test)]
@@ -392,14 +481,29 @@ mod tests {
     fn misses_are_reported() {
         let t: Vec<f64> = (0..20).map(|i| i as f64 * 0.05).collect();
         let rising: Vec<f64> = t.clone();
-        assert!(matches!(peak_1d(&t, &rising, &PeakOptions::default()), Err(PeakMiss::AtEdge { .. })));
+        assert!(matches!(
+            peak_1d(&t, &rising, &PeakOptions::default()),
+            Err(PeakMiss::AtEdge { .. })
+        ));
         let flat = vec![0.0; 20];
-        assert!(matches!(peak_1d(&t, &flat, &PeakOptions::default()), Err(PeakMiss::NotConcave) | Err(PeakMiss::AtEdge { .. })));
+        assert!(matches!(
+            peak_1d(&t, &flat, &PeakOptions::default()),
+            Err(PeakMiss::NotConcave) | Err(PeakMiss::AtEdge { .. })
+        ));
         let nan = vec![f64::NAN; 20];
-        assert_eq!(peak_1d(&t, &nan, &PeakOptions::default()), Err(PeakMiss::NoData));
+        assert_eq!(
+            peak_1d(&t, &nan, &PeakOptions::default()),
+            Err(PeakMiss::NoData)
+        );
         let v: Vec<f64> = t.iter().map(|t| 1.0 - (t - 0.5).powi(2)).collect();
-        let o = PeakOptions { min_value: Some(2.0), ..Default::default() };
-        assert!(matches!(peak_1d(&t, &v, &o), Err(PeakMiss::BelowThreshold { .. })));
+        let o = PeakOptions {
+            min_value: Some(2.0),
+            ..Default::default()
+        };
+        assert!(matches!(
+            peak_1d(&t, &v, &o),
+            Err(PeakMiss::BelowThreshold { .. })
+        ));
     }
 
     #[test]
@@ -412,6 +516,10 @@ mod tests {
         });
         let img = Image::new(data, x, y);
         let p = peak_2d(&img, 0.4, None).unwrap();
-        assert!((p.x - 0.731).abs() < 1e-9 && (p.y - 0.612).abs() < 1e-9 && (p.value - 2.0).abs() < 1e-9);
+        assert!(
+            (p.x - 0.731).abs() < 1e-9
+                && (p.y - 0.612).abs() < 1e-9
+                && (p.value - 2.0).abs() < 1e-9
+        );
     }
 }

@@ -51,7 +51,11 @@ pub fn sample(img: &Image, x: f64, y: f64, interp: Interp) -> Option<f64> {
 /// Integer base index and fraction of coordinate `t` on an axis; None outside.
 fn frac(a: &AxisMap, t: f64) -> Option<(isize, f64)> {
     if a.n == 1 {
-        return if (t - a.x0).abs() <= 1e-9 { Some((0, 0.0)) } else { None };
+        return if (t - a.x0).abs() <= 1e-9 {
+            Some((0, 0.0))
+        } else {
+            None
+        };
     }
     let f = (t - a.x0) / a.h;
     let eps = 1e-9;
@@ -85,7 +89,12 @@ fn cub_w(t: f64) -> Vec<f64> {
 ///
 /// Errors: fewer than two vertices, non-finite vertices, a zero-length polyline, step ≤ 0, more
 /// than 10⁶ samples.
-pub fn profile_polyline(img: &Image, points: &[[f64; 2]], step_um: f64, interp: Interp) -> Result<Profile> {
+pub fn profile_polyline(
+    img: &Image,
+    points: &[[f64; 2]],
+    step_um: f64,
+    interp: Interp,
+) -> Result<Profile> {
     check_above("step_um", step_um, 0.0)?;
     if img.rows() > 1 {
         check_axis("img.y", &img.y, 1)?;
@@ -94,22 +103,37 @@ pub fn profile_polyline(img: &Image, points: &[[f64; 2]], step_um: f64, interp: 
         check_axis("img.x", &img.x, 1)?;
     }
     if points.len() < 2 {
-        return Err(AnalysisError::BadInput { name: "points", reason: format!("{} vertices; a polyline needs at least 2", points.len()) });
+        return Err(AnalysisError::BadInput {
+            name: "points",
+            reason: format!("{} vertices; a polyline needs at least 2", points.len()),
+        });
     }
     if points.iter().flatten().any(|v| !v.is_finite()) {
-        return Err(AnalysisError::BadInput { name: "points", reason: "vertices must be finite".into() });
+        return Err(AnalysisError::BadInput {
+            name: "points",
+            reason: "vertices must be finite".into(),
+        });
     }
-    let seg: Vec<f64> = points.windows(2).map(|w| ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2)).sqrt()).collect();
+    let seg: Vec<f64> = points
+        .windows(2)
+        .map(|w| ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2)).sqrt())
+        .collect();
     let total: f64 = seg.iter().sum();
     if !(total > 0.0) {
-        return Err(AnalysisError::BadInput { name: "points", reason: "polyline has zero length".into() });
+        return Err(AnalysisError::BadInput {
+            name: "points",
+            reason: "polyline has zero length".into(),
+        });
     }
     let n = (total / step_um).floor() as usize + 1;
     if n > 1_000_000 {
         return Err(AnalysisError::OutOfRange {
             name: "step_um",
             value: step_um,
-            allowed: format!("step_um ≥ {} (at most 10⁶ samples along {total} µm)", total / 1e6),
+            allowed: format!(
+                "step_um ≥ {} (at most 10⁶ samples along {total} µm)",
+                total / 1e6
+            ),
         });
     }
     let mut ts: Vec<f64> = (0..n).map(|i| i as f64 * step_um).collect();
@@ -124,7 +148,11 @@ pub fn profile_polyline(img: &Image, points: &[[f64; 2]], step_um: f64, interp: 
             s0 += seg[k];
             k += 1;
         }
-        let f = if seg[k] > 0.0 { ((t - s0) / seg[k]).clamp(0.0, 1.0) } else { 0.0 };
+        let f = if seg[k] > 0.0 {
+            ((t - s0) / seg[k]).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         let x = points[k][0] + f * (points[k + 1][0] - points[k][0]);
         let y = points[k][1] + f * (points[k + 1][1] - points[k][1]);
         if let Some(v) = sample(img, x, y, interp) {
@@ -155,7 +183,10 @@ mod tests {
         for interp in [Interp::Linear, Interp::Cubic] {
             for &(x, y) in &[(0.37, 0.22), (0.0, 1.0), (1.9, -0.4), (1.05, 0.55)] {
                 let v = sample(&img, x, y, interp).unwrap();
-                assert!((v - (2.0 * x - 3.0 * y + 1.0)).abs() < 1e-12, "{interp:?} at ({x},{y}): {v}");
+                assert!(
+                    (v - (2.0 * x - 3.0 * y + 1.0)).abs() < 1e-12,
+                    "{interp:?} at ({x},{y}): {v}"
+                );
             }
         }
         assert!(sample(&img, 2.0, 0.0, Interp::Cubic).is_none());
@@ -168,7 +199,13 @@ mod tests {
     #[test]
     fn polyline_profile_arc_length() {
         let img = plane();
-        let p = profile_polyline(&img, &[[0.1, 0.0], [0.4, 0.0], [0.4, 0.4]], 0.1, Interp::Cubic).unwrap();
+        let p = profile_polyline(
+            &img,
+            &[[0.1, 0.0], [0.4, 0.0], [0.4, 0.4]],
+            0.1,
+            Interp::Cubic,
+        )
+        .unwrap();
         assert_eq!(p.t.len(), 8);
         assert!((p.t[7] - 0.7).abs() < 1e-12);
         // Along the second leg x = 0.4, y = t − 0.3.

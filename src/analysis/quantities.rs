@@ -85,19 +85,33 @@ pub struct PointObject {
 ///
 /// Errors: `sens_rb` ≤ 0, an invisible object (n_obj = n_medium), or a sensitivity whose sign
 /// contradicts the index contrast (negative volume).
-pub fn point_object(sens_obj: f64, sens_err: Option<f64>, sens_rb: f64, n_obj: f64, density_obj: f64, reference: &RefBead) -> Result<PointObject> {
+pub fn point_object(
+    sens_obj: f64,
+    sens_err: Option<f64>,
+    sens_rb: f64,
+    n_obj: f64,
+    density_obj: f64,
+    reference: &RefBead,
+) -> Result<PointObject> {
     reference.validate()?;
     check_above("sens_rb", sens_rb, 0.0)?;
     check_above("density_obj", density_obj, 0.0)?;
     if !sens_obj.is_finite() {
-        return Err(AnalysisError::OutOfRange { name: "sens_obj", value: sens_obj, allowed: "finite".into() });
+        return Err(AnalysisError::OutOfRange {
+            name: "sens_obj",
+            value: sens_obj,
+            allowed: "finite".into(),
+        });
     }
     let nc = n_corr(n_obj, reference.n, reference.n_medium)?;
     if nc == 0.0 {
         return Err(AnalysisError::OutOfRange {
             name: "n_obj",
             value: n_obj,
-            allowed: format!("n_obj ≠ n_medium = {} (an index-matched object gives no signal)", reference.n_medium),
+            allowed: format!(
+                "n_obj ≠ n_medium = {} (an index-matched object gives no signal)",
+                reference.n_medium
+            ),
         });
     }
     let ratio = sens_obj / (nc * sens_rb);
@@ -110,7 +124,8 @@ pub fn point_object(sens_obj: f64, sens_err: Option<f64>, sens_rb: f64, n_obj: f
     }
     let v = ratio * reference.volume_nm3();
     let m = mass_kda(v, density_obj);
-    let err = sens_err.map(|e| (e / (nc * sens_rb)).abs() * mass_kda(reference.volume_nm3(), density_obj));
+    let err = sens_err
+        .map(|e| (e / (nc * sens_rb)).abs() * mass_kda(reference.volume_nm3(), density_obj));
     Ok(PointObject {
         volume_ratio: ratio,
         volume_nm3: v,
@@ -123,11 +138,20 @@ pub fn point_object(sens_obj: f64, sens_err: Option<f64>, sens_rb: f64, n_obj: f
 
 /// Mass resolution (kDa) implied by a 1σ uncertainty of a fit weight or normalised maximum
 /// sensitivity (Sec. 3.2: "we use the uncertainty in the fit … to find the mass resolution").
-pub fn mass_resolution_kda(sens_err: f64, n_obj: f64, density_obj: f64, reference: &RefBead) -> Result<f64> {
+pub fn mass_resolution_kda(
+    sens_err: f64,
+    n_obj: f64,
+    density_obj: f64,
+    reference: &RefBead,
+) -> Result<f64> {
     check_above("sens_err", sens_err, 0.0)?;
     let nc = n_corr(n_obj, reference.n, reference.n_medium)?;
     if nc == 0.0 {
-        return Err(AnalysisError::OutOfRange { name: "n_obj", value: n_obj, allowed: "n_obj ≠ n_medium".into() });
+        return Err(AnalysisError::OutOfRange {
+            name: "n_obj",
+            value: n_obj,
+            allowed: "n_obj ≠ n_medium".into(),
+        });
     }
     Ok(sens_err / nc.abs() * mass_kda(reference.volume_nm3(), density_obj))
 }
@@ -148,7 +172,13 @@ pub struct DiameterCalib {
 
 impl DiameterCalib {
     /// A from a measured or modelled bead-model sensitivity: A = d_bm/√(sens_bm·n_corr).
-    pub fn from_sens_bm(sens_bm: f64, d_bm_nm: f64, n_bm: f64, n_obj: f64, n_medium: f64) -> Result<Self> {
+    pub fn from_sens_bm(
+        sens_bm: f64,
+        d_bm_nm: f64,
+        n_bm: f64,
+        n_obj: f64,
+        n_medium: f64,
+    ) -> Result<Self> {
         check_above("sens_bm", sens_bm, 0.0)?;
         check_above("d_bm_nm", d_bm_nm, 0.0)?;
         let nc = n_corr(n_obj, n_bm, n_medium)?;
@@ -159,13 +189,28 @@ impl DiameterCalib {
                 allowed: format!("n_obj > n_medium = {n_medium} (a diameter from √sensitivity needs positive contrast)"),
             });
         }
-        Ok(Self { a_nm: d_bm_nm / (sens_bm * nc).sqrt(), d_bm_nm, n_bm, sens_bm, n_obj, n_corr: nc })
+        Ok(Self {
+            a_nm: d_bm_nm / (sens_bm * nc).sqrt(),
+            d_bm_nm,
+            n_bm,
+            sens_bm,
+            n_obj,
+            n_corr: nc,
+        })
     }
 
     /// A from the template's bead model: a straight cylinder of diameter `d_bm_nm` and index
     /// `n_bm` along the QPD y-axis, measured with `measure` on pixels of `pixel_um` (the pixel
     /// size of the scans it will be applied to).
-    pub fn from_template(tpl: &Template, n_obj: f64, d_bm_nm: f64, n_bm: f64, pixel_um: f64, measure: &MeasureOptions, bm: &BeadModelOptions) -> Result<Self> {
+    pub fn from_template(
+        tpl: &Template,
+        n_obj: f64,
+        d_bm_nm: f64,
+        n_bm: f64,
+        pixel_um: f64,
+        measure: &MeasureOptions,
+        bm: &BeadModelOptions,
+    ) -> Result<Self> {
         let sens_bm = straight_filament_max_sens(tpl, d_bm_nm, n_bm, 0.0, pixel_um, measure, bm)?.0;
         Self::from_sens_bm(sens_bm, d_bm_nm, n_bm, n_obj, tpl.reference.n_medium)
     }
@@ -207,33 +252,75 @@ pub struct LinDensCalib {
 impl LinDensCalib {
     /// From a bead-model sensitivity (cylinder of d_bm, n_bm, density_bm along the QPD y-axis).
     #[allow(clippy::too_many_arguments)]
-    pub fn from_sens_bm(sens_bm: f64, d_bm_nm: f64, n_bm: f64, density_bm: f64, n_obj: f64, density_obj: f64, n_medium: f64) -> Result<Self> {
+    pub fn from_sens_bm(
+        sens_bm: f64,
+        d_bm_nm: f64,
+        n_bm: f64,
+        density_bm: f64,
+        n_obj: f64,
+        density_obj: f64,
+        n_medium: f64,
+    ) -> Result<Self> {
         check_above("sens_bm", sens_bm, 0.0)?;
         check_above("d_bm_nm", d_bm_nm, 0.0)?;
         check_above("density_bm", density_bm, 0.0)?;
         check_above("density_obj", density_obj, 0.0)?;
         let nc = n_corr(n_obj, n_bm, n_medium)?;
         if !(nc > 0.0) {
-            return Err(AnalysisError::OutOfRange { name: "n_obj", value: n_obj, allowed: format!("n_obj > n_medium = {n_medium}") });
+            return Err(AnalysisError::OutOfRange {
+                name: "n_obj",
+                value: n_obj,
+                allowed: format!("n_obj > n_medium = {n_medium}"),
+            });
         }
         let area = std::f64::consts::PI / 4.0 * d_bm_nm * d_bm_nm;
         let mu_bm = mass_kda(area * 1000.0, density_bm) / 1000.0;
-        Ok(Self { mu_bm_mda_um: mu_bm, d_bm_nm, density_bm, sens_bm, n_obj, density_obj, n_corr: nc })
+        Ok(Self {
+            mu_bm_mda_um: mu_bm,
+            d_bm_nm,
+            density_bm,
+            sens_bm,
+            n_obj,
+            density_obj,
+            n_corr: nc,
+        })
     }
 
     /// From the template's bead model (reference material: the template's reference bead).
-    pub fn from_template(tpl: &Template, n_obj: f64, density_obj: f64, pixel_um: f64, measure: &MeasureOptions, bm: &BeadModelOptions) -> Result<Self> {
+    pub fn from_template(
+        tpl: &Template,
+        n_obj: f64,
+        density_obj: f64,
+        pixel_um: f64,
+        measure: &MeasureOptions,
+        bm: &BeadModelOptions,
+    ) -> Result<Self> {
         let r = tpl.reference;
         let sens_bm = straight_filament_max_sens(tpl, r.d_nm, r.n, 0.0, pixel_um, measure, bm)?.0;
-        Self::from_sens_bm(sens_bm, r.d_nm, r.n, r.density_g_cm3, n_obj, density_obj, r.n_medium)
+        Self::from_sens_bm(
+            sens_bm,
+            r.d_nm,
+            r.n,
+            r.density_g_cm3,
+            n_obj,
+            density_obj,
+            r.n_medium,
+        )
     }
 
     /// μ (MDa/µm) from a corrected maximum sensitivity; negative/non-finite → error.
     pub fn linear_density(&self, sens_corr: f64) -> Result<f64> {
         if !(sens_corr.is_finite() && sens_corr >= 0.0) {
-            return Err(AnalysisError::OutOfRange { name: "sens_corr", value: sens_corr, allowed: "sens_corr ≥ 0".into() });
+            return Err(AnalysisError::OutOfRange {
+                name: "sens_corr",
+                value: sens_corr,
+                allowed: "sens_corr ≥ 0".into(),
+            });
         }
-        Ok(self.mu_bm_mda_um * (self.density_obj / self.density_bm) * sens_corr / (self.sens_bm * self.n_corr))
+        Ok(
+            self.mu_bm_mda_um * (self.density_obj / self.density_bm) * sens_corr
+                / (self.sens_bm * self.n_corr),
+        )
     }
 }
 
@@ -263,7 +350,11 @@ mod tests {
     fn reference_mass_and_paper_resolution() {
         let rb = RefBead::default();
         // 110 nm polystyrene: V = π/6·110³ nm³ at 1.05 g/cm³ ≈ 440 MDa.
-        assert!((rb.mass_kda() / 1000.0 - 440.6).abs() < 1.0, "{}", rb.mass_kda());
+        assert!(
+            (rb.mass_kda() / 1000.0 - 440.6).abs() < 1.0,
+            "{}",
+            rb.mass_kda()
+        );
         // The paper: 950 kDa resolution for polystyrene ↔ 1.1 MDa for globular protein.
         let dsens = 950.0 / rb.mass_kda();
         let ps = mass_resolution_kda(dsens, rb.n, rb.density_g_cm3, &rb).unwrap();

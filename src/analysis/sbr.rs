@@ -31,7 +31,12 @@ pub struct SbrOptions {
 
 impl Default for SbrOptions {
     fn default() -> Self {
-        Self { skip_um: 1.2, both_ends: true, exclusion_um: 1.0, nonzero_snr: 3.0 }
+        Self {
+            skip_um: 1.2,
+            both_ends: true,
+            exclusion_um: 1.0,
+            nonzero_snr: 3.0,
+        }
     }
 }
 
@@ -91,11 +96,22 @@ pub fn sbr(meas: &FilamentMeasurement, opts: &SbrOptions) -> Result<SbrResult> {
     let first = meas.points.iter().find(|p| p.sens > thr);
     let last = meas.points.iter().rev().find(|p| p.sens > thr);
     let (Some(first), Some(last)) = (first, last) else {
-        return Err(AnalysisError::Failed(format!("no non-zero maximum along the filament (threshold {thr:.3e})")));
+        return Err(AnalysisError::Failed(format!(
+            "no non-zero maximum along the filament (threshold {thr:.3e})"
+        )));
     };
     let start = first.arc_um + opts.skip_um;
-    let end = if opts.both_ends { last.arc_um - opts.skip_um } else { f64::INFINITY };
-    let vals: Vec<f64> = meas.points.iter().filter(|p| p.arc_um >= start && p.arc_um <= end).map(|p| p.sens).collect();
+    let end = if opts.both_ends {
+        last.arc_um - opts.skip_um
+    } else {
+        f64::INFINITY
+    };
+    let vals: Vec<f64> = meas
+        .points
+        .iter()
+        .filter(|p| p.arc_um >= start && p.arc_um <= end)
+        .map(|p| p.sens)
+        .collect();
     if vals.len() < 2 {
         return Err(AnalysisError::Failed(format!(
             "fewer than 2 maxima between {start:.2} and {end:.2} µm: the filament is too short for {} µm skips",

@@ -82,7 +82,9 @@ impl Stencil {
             "central5" => Some(Stencil::Central5),
             _ => {
                 let n: usize = s.strip_prefix("sg")?.parse().ok()?;
-                (n >= 3 && n % 2 == 1).then_some(Stencil::SavitzkyGolay { half_width: (n - 1) / 2 })
+                (n >= 3 && n % 2 == 1).then_some(Stencil::SavitzkyGolay {
+                    half_width: (n - 1) / 2,
+                })
             }
         }
     }
@@ -131,7 +133,10 @@ pub fn sensitivity(img: &Image, axis: Axis, stencil: Stencil) -> Result<Image> {
             for c in 0..cols {
                 let line: Vec<f64> = img.data.column(c).to_vec();
                 let d = derivative_1d(&line, h, stencil);
-                out.column_mut(c).iter_mut().zip(d).for_each(|(o, v)| *o = v);
+                out.column_mut(c)
+                    .iter_mut()
+                    .zip(d)
+                    .for_each(|(o, v)| *o = v);
             }
         }
     }
@@ -169,7 +174,10 @@ pub fn derivative_1d(v: &[f64], h: f64, stencil: Stencil) -> Vec<f64> {
             Stencil::Central2 => {}
             Stencil::Central5 => {
                 if (-2..=2).all(|k| k == 0 || fin(ii + k)) {
-                    d = Some((-at(ii + 2) + 8.0 * at(ii + 1) - 8.0 * at(ii - 1) + at(ii - 2)) / (12.0 * h));
+                    d = Some(
+                        (-at(ii + 2) + 8.0 * at(ii + 1) - 8.0 * at(ii - 1) + at(ii - 2))
+                            / (12.0 * h),
+                    );
                 }
             }
             Stencil::SavitzkyGolay { half_width } => {
@@ -236,15 +244,25 @@ mod tests {
     #[test]
     fn stencils_exact_on_polynomials() {
         let h = 0.05;
-        let v: Vec<f64> = (0..30).map(|i| {
-            let x = i as f64 * h;
-            1.0 + 2.0 * x - 0.7 * x * x
-        }).collect();
-        for st in [Stencil::Central2, Stencil::Central5, Stencil::SavitzkyGolay { half_width: 3 }] {
+        let v: Vec<f64> = (0..30)
+            .map(|i| {
+                let x = i as f64 * h;
+                1.0 + 2.0 * x - 0.7 * x * x
+            })
+            .collect();
+        for st in [
+            Stencil::Central2,
+            Stencil::Central5,
+            Stencil::SavitzkyGolay { half_width: 3 },
+        ] {
             let d = derivative_1d(&v, h, st);
             for i in 1..29 {
                 let x = i as f64 * h;
-                assert!((d[i] - (2.0 - 1.4 * x)).abs() < 1e-9, "{st:?} at {i}: {}", d[i]);
+                assert!(
+                    (d[i] - (2.0 - 1.4 * x)).abs() < 1e-9,
+                    "{st:?} at {i}: {}",
+                    d[i]
+                );
             }
         }
         // Central5 is exact for quartics in the interior.
@@ -260,11 +278,19 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let nd = Normal::new(0.0, 1.0).unwrap();
         let v: Vec<f64> = (0..200_000).map(|_| nd.sample(&mut rng)).collect();
-        for st in [Stencil::Central2, Stencil::Central5, Stencil::SavitzkyGolay { half_width: 2 }] {
+        for st in [
+            Stencil::Central2,
+            Stencil::Central5,
+            Stencil::SavitzkyGolay { half_width: 2 },
+        ] {
             let d = derivative_1d(&v, 1.0, st);
             let inner = &d[10..d.len() - 10];
             let var = inner.iter().map(|x| x * x).sum::<f64>() / inner.len() as f64;
-            assert!((var.sqrt() / st.noise_gain() - 1.0).abs() < 0.01, "{st:?}: {}", var.sqrt());
+            assert!(
+                (var.sqrt() / st.noise_gain() - 1.0).abs() < 0.01,
+                "{st:?}: {}",
+                var.sqrt()
+            );
         }
     }
 
@@ -283,7 +309,10 @@ mod tests {
 
     #[test]
     fn parse_stencils() {
-        assert_eq!(Stencil::parse("sg5"), Some(Stencil::SavitzkyGolay { half_width: 2 }));
+        assert_eq!(
+            Stencil::parse("sg5"),
+            Some(Stencil::SavitzkyGolay { half_width: 2 })
+        );
         assert_eq!(Stencil::parse("sg4"), None);
         assert_eq!(Stencil::parse("central5"), Some(Stencil::Central5));
     }

@@ -28,10 +28,17 @@ pub fn summary(values: &[f64]) -> Result<Summary> {
     let fin: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
     let n = fin.len();
     if n == 0 {
-        return Err(AnalysisError::BadInput { name: "values", reason: "no finite values".into() });
+        return Err(AnalysisError::BadInput {
+            name: "values",
+            reason: "no finite values".into(),
+        });
     }
     let mean = fin.iter().sum::<f64>() / n as f64;
-    let var = if n > 1 { fin.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64 } else { 0.0 };
+    let var = if n > 1 {
+        fin.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64
+    } else {
+        0.0
+    };
     let std = var.sqrt();
     Ok(Summary {
         n,
@@ -52,13 +59,21 @@ pub fn median(values: &[f64]) -> Option<f64> {
     }
     v.sort_by(|a, b| a.total_cmp(b));
     let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
 }
 
 /// Robust standard deviation: 1.4826 × median absolute deviation (σ for Gaussian data).
 pub fn robust_std(values: &[f64]) -> Option<f64> {
     let m = median(values)?;
-    let dev: Vec<f64> = values.iter().filter(|v| v.is_finite()).map(|v| (v - m).abs()).collect();
+    let dev: Vec<f64> = values
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| (v - m).abs())
+        .collect();
     median(&dev).map(|d| 1.4826 * d)
 }
 
@@ -84,7 +99,11 @@ impl Histogram {
 /// data; a single distinct value gets a bin of width 1 centred on it).
 pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Result<Histogram> {
     if bins == 0 || bins > 1_000_000 {
-        return Err(AnalysisError::OutOfRange { name: "bins", value: bins as f64, allowed: "1 ≤ bins ≤ 1e6".into() });
+        return Err(AnalysisError::OutOfRange {
+            name: "bins",
+            value: bins as f64,
+            allowed: "1 ≤ bins ≤ 1e6".into(),
+        });
     }
     let fin: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
     let n_skipped = values.len() - fin.len();
@@ -100,7 +119,10 @@ pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Resu
         }
         None => {
             if fin.is_empty() {
-                return Err(AnalysisError::BadInput { name: "values", reason: "no finite values".into() });
+                return Err(AnalysisError::BadInput {
+                    name: "values",
+                    reason: "no finite values".into(),
+                });
             }
             let lo = fin.iter().copied().fold(f64::INFINITY, f64::min);
             let hi = fin.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -123,7 +145,12 @@ pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Resu
         let i = (((v - lo) / w) as usize).min(bins - 1);
         counts[i] += 1;
     }
-    Ok(Histogram { edges, counts, n_outside, n_skipped })
+    Ok(Histogram {
+        edges,
+        counts,
+        n_outside,
+        n_skipped,
+    })
 }
 
 /// Straight-line fit y = intercept + slope·x.
@@ -179,7 +206,10 @@ pub fn linfit(x: &[f64], y: &[f64], sigma_y: Option<&[f64]>) -> Result<LinFit> {
     }
     let n = pts.len();
     if n < 2 {
-        return Err(AnalysisError::BadInput { name: "x", reason: format!("{n} usable points; a line needs at least 2") });
+        return Err(AnalysisError::BadInput {
+            name: "x",
+            reason: format!("{n} usable points; a line needs at least 2"),
+        });
     }
     let sw: f64 = pts.iter().map(|p| p.2).sum();
     let xm = pts.iter().map(|p| p.2 * p.0).sum::<f64>() / sw;
@@ -188,11 +218,17 @@ pub fn linfit(x: &[f64], y: &[f64], sigma_y: Option<&[f64]>) -> Result<LinFit> {
     let sxy: f64 = pts.iter().map(|p| p.2 * (p.0 - xm) * (p.1 - ym)).sum();
     let syy: f64 = pts.iter().map(|p| p.2 * (p.1 - ym).powi(2)).sum();
     if !(sxx > 1e-300) {
-        return Err(AnalysisError::BadInput { name: "x", reason: "all x values are equal: the slope is undetermined".into() });
+        return Err(AnalysisError::BadInput {
+            name: "x",
+            reason: "all x values are equal: the slope is undetermined".into(),
+        });
     }
     let slope = sxy / sxx;
     let intercept = ym - slope * xm;
-    let chi2: f64 = pts.iter().map(|p| p.2 * (p.1 - intercept - slope * p.0).powi(2)).sum();
+    let chi2: f64 = pts
+        .iter()
+        .map(|p| p.2 * (p.1 - intercept - slope * p.0).powi(2))
+        .sum();
     // Var(slope) = s²/Sxx, Var(b) = s²(1/Σw + x̄²/Sxx), Cov = −x̄ s²/Sxx with s² = 1 (weighted) or
     // the residual variance (unweighted).
     let s2 = if sigma_y.is_some() {
@@ -252,7 +288,12 @@ mod tests {
 
     #[test]
     fn histogram_counts_and_edges() {
-        let h = histogram(&[0.0, 0.1, 0.5, 0.99, 1.0, 2.0, f64::NAN], 2, Some((0.0, 1.0))).unwrap();
+        let h = histogram(
+            &[0.0, 0.1, 0.5, 0.99, 1.0, 2.0, f64::NAN],
+            2,
+            Some((0.0, 1.0)),
+        )
+        .unwrap();
         assert_eq!(h.counts, vec![2, 3]);
         assert_eq!(h.n_outside, 1);
         assert_eq!(h.n_skipped, 1);
@@ -280,7 +321,10 @@ mod tests {
     #[test]
     fn loglog_recovers_power() {
         let d = [110.0, 130.0, 160.0, 200.0];
-        let s: Vec<f64> = d.iter().map(|d: &f64| 3.0 * (d / 110.0).powf(3.02)).collect();
+        let s: Vec<f64> = d
+            .iter()
+            .map(|d: &f64| 3.0 * (d / 110.0).powf(3.02))
+            .collect();
         let f = loglog_fit(&d, &s, None).unwrap();
         assert!((f.slope - 3.02).abs() < 1e-12);
         assert!(loglog_fit(&[1.0, -1.0], &[1.0, 1.0], None).is_err());

@@ -57,7 +57,10 @@ impl RefBead {
             return Err(AnalysisError::OutOfRange {
                 name: "n",
                 value: self.n,
-                allowed: format!("n > n_medium = {} (a reference bead must scatter with positive contrast)", self.n_medium),
+                allowed: format!(
+                    "n > n_medium = {} (a reference bead must scatter with positive contrast)",
+                    self.n_medium
+                ),
             });
         }
         check_above("density_g_cm3", self.density_g_cm3, 0.0)?;
@@ -126,7 +129,13 @@ pub struct FromScansOptions {
 
 impl Default for FromScansOptions {
     fn default() -> Self {
-        Self { half_width_um: 1.5, h_um: None, beads_per_scan: None, threshold: 0.3, iterations: 2 }
+        Self {
+            half_width_um: 1.5,
+            h_um: None,
+            beads_per_scan: None,
+            threshold: 0.3,
+            iterations: 2,
+        }
     }
 }
 
@@ -135,7 +144,13 @@ impl Template {
     /// Errors: a grid smaller than 4×4 nodes, non-positive spacing, non-finite values, or no
     /// positive ∂Sx/∂x anywhere (not a bead response).
     pub fn from_model(grid: Grid2, reference: RefBead, description: &str) -> Result<Template> {
-        Self::normalised(grid, reference, TemplateSource::Model { description: description.into() })
+        Self::normalised(
+            grid,
+            reference,
+            TemplateSource::Model {
+                description: description.into(),
+            },
+        )
     }
 
     /// Closed-form stand-in: Sx = u·g, Sy = v·g, Sz = g with g = exp(−(u²+v²)/w²) (already
@@ -146,28 +161,51 @@ impl Template {
         check_above("half_um", half_um, h_um)?;
         let n = (2.0 * half_um / h_um).round() as usize + 1;
         if n > 4001 {
-            return Err(AnalysisError::OutOfRange { name: "h_um", value: h_um, allowed: format!("h_um ≥ {}", 2.0 * half_um / 4000.0) });
+            return Err(AnalysisError::OutOfRange {
+                name: "h_um",
+                value: h_um,
+                allowed: format!("h_um ≥ {}", 2.0 * half_um / 4000.0),
+            });
         }
         let u0 = -0.5 * (n - 1) as f64 * h_um;
         let grid = Grid2::from_fn(u0, u0, h_um, n, n, Interp::Cubic, |u, v| {
             let g = (-(u * u + v * v) / (w_um * w_um)).exp();
             [u * g, v * g, g]
         });
-        Self::normalised(grid, RefBead::default(), TemplateSource::Analytic { description: format!("u·exp(−r²/w²), w = {w_um} µm") })
+        Self::normalised(
+            grid,
+            RefBead::default(),
+            TemplateSource::Analytic {
+                description: format!("u·exp(−r²/w²), w = {w_um} µm"),
+            },
+        )
     }
 
     fn normalised(mut grid: Grid2, reference: RefBead, source: TemplateSource) -> Result<Template> {
         reference.validate()?;
         if grid.nu < 4 || grid.nv < 4 {
-            return Err(AnalysisError::BadInput { name: "grid", reason: format!("{}×{} nodes; at least 4×4 are needed", grid.nu, grid.nv) });
+            return Err(AnalysisError::BadInput {
+                name: "grid",
+                reason: format!("{}×{} nodes; at least 4×4 are needed", grid.nu, grid.nv),
+            });
         }
         check_above("grid.h", grid.h, 0.0)?;
-        if grid.data.len() != grid.nu * grid.nv || grid.data.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(AnalysisError::BadInput { name: "grid", reason: "node values must be finite and nu·nv in number".into() });
+        if grid.data.len() != grid.nu * grid.nv
+            || grid.data.iter().flatten().any(|v| !v.is_finite())
+        {
+            return Err(AnalysisError::BadInput {
+                name: "grid",
+                reason: "node values must be finite and nu·nv in number".into(),
+            });
         }
         let (peak, smax) = max_dsx_du(&grid);
         if !(smax > 0.0) {
-            return Err(AnalysisError::BadInput { name: "grid", reason: format!("max ∂Sx/∂x = {smax}: not a bead response (must be positive somewhere)") });
+            return Err(AnalysisError::BadInput {
+                name: "grid",
+                reason: format!(
+                    "max ∂Sx/∂x = {smax}: not a bead response (must be positive somewhere)"
+                ),
+            });
         }
         let f = 1.0 / smax;
         for n in grid.data.iter_mut() {
@@ -175,7 +213,13 @@ impl Template {
                 *c *= f;
             }
         }
-        Ok(Template { grid, reference, source, norm_factor: f, sens_peak: peak })
+        Ok(Template {
+            grid,
+            reference,
+            source,
+            norm_factor: f,
+            sens_peak: peak,
+        })
     }
 
     /// (Sx, Sy, Sz) of the reference bead at displacement (u, v) µm; zero outside the grid.
@@ -226,13 +270,26 @@ impl Template {
 
     /// Load from JSON; validates the grid and reference like the constructors.
     pub fn from_json(s: &str) -> Result<Template> {
-        let t: Template = serde_json::from_str(s).map_err(|e| AnalysisError::BadInput { name: "json", reason: e.to_string() })?;
+        let t: Template = serde_json::from_str(s).map_err(|e| AnalysisError::BadInput {
+            name: "json",
+            reason: e.to_string(),
+        })?;
         t.reference.validate()?;
-        if t.grid.nu < 4 || t.grid.nv < 4 || t.grid.data.len() != t.grid.nu * t.grid.nv || !(t.grid.h > 0.0) {
-            return Err(AnalysisError::BadInput { name: "json", reason: "template grid is malformed".into() });
+        if t.grid.nu < 4
+            || t.grid.nv < 4
+            || t.grid.data.len() != t.grid.nu * t.grid.nv
+            || !(t.grid.h > 0.0)
+        {
+            return Err(AnalysisError::BadInput {
+                name: "json",
+                reason: "template grid is malformed".into(),
+            });
         }
         if t.grid.data.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(AnalysisError::BadInput { name: "json", reason: "template grid holds non-finite values".into() });
+            return Err(AnalysisError::BadInput {
+                name: "json",
+                reason: "template grid holds non-finite values".into(),
+            });
         }
         Ok(t)
     }
@@ -241,7 +298,11 @@ impl Template {
     /// (rows) by superposition (eq. ReEEpReEE): returns the (Sx, Sy, Sz) images as arrays
     /// (rows, cols). Axes must be regular.
     pub fn render(&self, beads: &[(f64, f64, f64)], x: &[f64], y: &[f64]) -> [Array2<f64>; 3] {
-        let mut out = [Array2::zeros((y.len(), x.len())), Array2::zeros((y.len(), x.len())), Array2::zeros((y.len(), x.len()))];
+        let mut out = [
+            Array2::zeros((y.len(), x.len())),
+            Array2::zeros((y.len(), x.len())),
+            Array2::zeros((y.len(), x.len())),
+        ];
         let (ax, ay) = (AxisMap::new(x), AxisMap::new(y));
         let ((u0, u1), (v0, v1)) = self.extent();
         for &(bx, by, w) in beads {
@@ -278,16 +339,28 @@ impl Template {
     /// maxima found by parabolas over `window_um` (the largest row maximum, refined across rows
     /// by a parabola through the three best rows). Averaged over 4×4 sub-pixel bead offsets.
     /// This is the denominator for masses and volumes from measured maximum sensitivities.
-    pub fn pipeline_max_sens(&self, pixel_um: f64, stencil: Stencil, window_um: f64) -> Result<f64> {
+    pub fn pipeline_max_sens(
+        &self,
+        pixel_um: f64,
+        stencil: Stencil,
+        window_um: f64,
+    ) -> Result<f64> {
         check_above("pixel_um", pixel_um, 0.0)?;
         check_above("window_um", window_um, 0.0)?;
         let half = 1.2f64.max(2.0 * window_um);
         let n = (2.0 * half / pixel_um).round() as usize + 1;
         if n > 4001 {
-            return Err(AnalysisError::OutOfRange { name: "pixel_um", value: pixel_um, allowed: format!("pixel_um ≥ {}", 2.0 * half / 4000.0) });
+            return Err(AnalysisError::OutOfRange {
+                name: "pixel_um",
+                value: pixel_um,
+                allowed: format!("pixel_um ≥ {}", 2.0 * half / 4000.0),
+            });
         }
         let axis: Vec<f64> = (0..n).map(|i| -half + i as f64 * pixel_um).collect();
-        let opts = PeakOptions { window_um, ..Default::default() };
+        let opts = PeakOptions {
+            window_um,
+            ..Default::default()
+        };
         let mut acc = 0.0;
         let mut cnt = 0;
         for oy in 0..4 {
@@ -304,7 +377,9 @@ impl Template {
             }
         }
         if cnt == 0 {
-            return Err(AnalysisError::Failed("the reference bead shows no maximum of ∂Sx/∂x with this pipeline".into()));
+            return Err(AnalysisError::Failed(
+                "the reference bead shows no maximum of ∂Sx/∂x with this pipeline".into(),
+            ));
         }
         Ok(acc / cnt as f64)
     }
@@ -321,12 +396,19 @@ impl Template {
     /// neighbours would contaminate the average). Nodes outside a scan get no contribution from
     /// it (`min_coverage` reports the least-covered node); nodes covered by no scan are 0.
     /// Errors: no scans, no isolated bead found, bad options.
-    pub fn from_scans(scans: &[&Scan], reference: RefBead, opts: &FromScansOptions) -> Result<Template> {
+    pub fn from_scans(
+        scans: &[&Scan],
+        reference: RefBead,
+        opts: &FromScansOptions,
+    ) -> Result<Template> {
         reference.validate()?;
         check_above("half_width_um", opts.half_width_um, 0.0)?;
         super::check_range("threshold", opts.threshold, 0.0, 1.0)?;
         if scans.is_empty() {
-            return Err(AnalysisError::BadInput { name: "scans", reason: "no scans given".into() });
+            return Err(AnalysisError::BadInput {
+                name: "scans",
+                reason: "no scans given".into(),
+            });
         }
         let mut h = f64::INFINITY;
         let mut dets: Vec<(usize, Image)> = Vec::new();
@@ -334,7 +416,10 @@ impl Template {
             check_axis("scan.x", &s.sx.x, 5)?;
             check_axis("scan.y", &s.sx.y, 5)?;
             if s.sy.data.dim() != s.sx.data.dim() || s.sz.data.dim() != s.sx.data.dim() {
-                return Err(AnalysisError::BadInput { name: "scans", reason: format!("scan {k}: channels differ in shape") });
+                return Err(AnalysisError::BadInput {
+                    name: "scans",
+                    reason: format!("scan {k}: channels differ in shape"),
+                });
             }
             h = h.min(s.sx.dx().abs()).min(s.sx.dy().abs());
             let a = sensitivity(&s.sx, Axis::X, Stencil::SavitzkyGolay { half_width: 2 })?;
@@ -346,14 +431,23 @@ impl Template {
         let hw = opts.half_width_um;
         let nn = (2.0 * hw / h).round() as usize + 1;
         if nn > 2001 {
-            return Err(AnalysisError::OutOfRange { name: "h_um", value: h, allowed: format!("h_um ≥ {} for half_width_um = {hw}", hw / 1000.0) });
+            return Err(AnalysisError::OutOfRange {
+                name: "h_um",
+                value: h,
+                allowed: format!("h_um ≥ {} for half_width_um = {hw}", hw / 1000.0),
+            });
         }
         let u0 = -0.5 * (nn - 1) as f64 * h;
 
         // (1) Detection.
-        let gmax = dets.iter().flat_map(|(_, d)| d.data.iter().copied().filter(|v| v.is_finite())).fold(f64::NEG_INFINITY, f64::max);
+        let gmax = dets
+            .iter()
+            .flat_map(|(_, d)| d.data.iter().copied().filter(|v| v.is_finite()))
+            .fold(f64::NEG_INFINITY, f64::max);
         if !(gmax > 0.0) {
-            return Err(AnalysisError::Failed("no bead found in the scans (∂Sx/∂x + ∂Sy/∂y is nowhere positive)".into()));
+            return Err(AnalysisError::Failed(
+                "no bead found in the scans (∂Sx/∂x + ∂Sy/∂y is nowhere positive)".into(),
+            ));
         }
         let mut found: Vec<(usize, f64, f64)> = Vec::new();
         for (k, d) in &dets {
@@ -361,7 +455,9 @@ impl Template {
             let limit = opts.beads_per_scan.unwrap_or(usize::MAX);
             let mut cands = Vec::new();
             while cands.len() < limit.min(1000) {
-                let Ok(p) = peak_2d(&work, 0.4, None) else { break };
+                let Ok(p) = peak_2d(&work, 0.4, None) else {
+                    break;
+                };
                 if p.value < opts.threshold * gmax {
                     break;
                 }
@@ -376,14 +472,19 @@ impl Template {
                 }
             }
             for (i, &(x, y)) in cands.iter().enumerate() {
-                let isolated = cands.iter().enumerate().all(|(j, &(x2, y2))| j == i || (x - x2).hypot(y - y2) >= 2.0 * hw);
+                let isolated = cands
+                    .iter()
+                    .enumerate()
+                    .all(|(j, &(x2, y2))| j == i || (x - x2).hypot(y - y2) >= 2.0 * hw);
                 if isolated || opts.beads_per_scan == Some(1) {
                     found.push((*k, x, y));
                 }
             }
         }
         if found.is_empty() {
-            return Err(AnalysisError::Failed("no isolated reference bead found in the scans".into()));
+            return Err(AnalysisError::Failed(
+                "no isolated reference bead found in the scans".into(),
+            ));
         }
 
         // (2) First average.
@@ -400,12 +501,19 @@ impl Template {
                     continue;
                 };
                 let fo = FitOptions {
-                    init: Some(vec![BeadInit { x, y, weight: tpl.0.norm_factor.recip() }]),
+                    init: Some(vec![BeadInit {
+                        x,
+                        y,
+                        weight: tpl.0.norm_factor.recip(),
+                    }]),
                     max_truncation: 1.0,
                     ..Default::default()
                 };
                 match fit_beads(&cx, &cy, &tpl.0, &fo) {
-                    Ok(f) if f.beads.len() == 1 && (f.beads[0].x - x).hypot(f.beads[0].y - y) < 0.5 => {
+                    Ok(f)
+                        if f.beads.len() == 1
+                            && (f.beads[0].x - x).hypot(f.beads[0].y - y) < 0.5 =>
+                    {
                         refined.push((k, f.beads[0].x, f.beads[0].y));
                         weights[i] = f.beads[0].weight;
                     }
@@ -419,7 +527,11 @@ impl Template {
         let wm = weights.iter().sum::<f64>() / weights.len() as f64;
         t.source = TemplateSource::Scans {
             n_beads: found.len(),
-            beads: found.iter().zip(&weights).map(|(&(k, x, y), w)| (k, x, y, w / wm)).collect(),
+            beads: found
+                .iter()
+                .zip(&weights)
+                .map(|(&(k, x, y), w)| (k, x, y, w / wm))
+                .collect(),
             rms_misfit: rms,
             min_coverage: cov,
         };
@@ -430,7 +542,11 @@ impl Template {
 /// Largest per-line maximum, refined by a parabola through the best line and its neighbours.
 pub(crate) fn max_over_lines(lines: &[super::peaks::LinePeak]) -> Option<f64> {
     let vals: Vec<Option<f64>> = lines.iter().map(|l| l.peak().map(|p| p.value)).collect();
-    let (ib, vb) = vals.iter().enumerate().filter_map(|(i, v)| v.map(|v| (i, v))).max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let (ib, vb) = vals
+        .iter()
+        .enumerate()
+        .filter_map(|(i, v)| v.map(|v| (i, v)))
+        .max_by(|a, b| a.1.total_cmp(&b.1))?;
     if ib > 0 && ib + 1 < vals.len() {
         if let (Some(a), Some(c)) = (vals[ib - 1], vals[ib + 1]) {
             let den = a - 2.0 * vb + c;
@@ -452,13 +568,23 @@ pub(crate) fn crop(img: &Image, x: f64, y: f64, hw: f64) -> Option<Image> {
     if cr.len() < 5 || rr.len() < 5 {
         return None;
     }
-    let data = img.data.slice(ndarray::s![rr.clone(), cr.clone()]).to_owned();
+    let data = img
+        .data
+        .slice(ndarray::s![rr.clone(), cr.clone()])
+        .to_owned();
     Some(Image::new(data, img.x[cr].to_vec(), img.y[rr].to_vec()))
 }
 
 /// Average the beads' channels resampled on the template grid; returns the normalised template,
 /// the RMS misfit of individual beads (template units) and the minimum node coverage.
-fn average_beads(scans: &[&Scan], beads: &[(usize, f64, f64)], u0: f64, h: f64, nn: usize, reference: RefBead) -> Result<(Template, f64, f64)> {
+fn average_beads(
+    scans: &[&Scan],
+    beads: &[(usize, f64, f64)],
+    u0: f64,
+    h: f64,
+    nn: usize,
+    reference: RefBead,
+) -> Result<(Template, f64, f64)> {
     let mut sum = vec![[0.0f64; 3]; nn * nn];
     let mut sum2 = vec![0.0f64; nn * nn];
     let mut cnt = vec![0usize; nn * nn];
@@ -499,9 +625,30 @@ fn average_beads(scans: &[&Scan], beads: &[(usize, f64, f64)], u0: f64, h: f64, 
         }
     }
     let min_cov = cnt.iter().copied().min().unwrap_or(0) as f64 / beads.len().max(1) as f64;
-    let grid = Grid2 { u0, v0: u0, h, nu: nn, nv: nn, data, interp: Interp::Cubic };
-    let t = Template::normalised(grid, reference, TemplateSource::Scans { n_beads: beads.len(), beads: vec![], rms_misfit: 0.0, min_coverage: min_cov })?;
-    let rms = if ns > 0 { (ss / ns as f64).sqrt() * t.norm_factor } else { 0.0 };
+    let grid = Grid2 {
+        u0,
+        v0: u0,
+        h,
+        nu: nn,
+        nv: nn,
+        data,
+        interp: Interp::Cubic,
+    };
+    let t = Template::normalised(
+        grid,
+        reference,
+        TemplateSource::Scans {
+            n_beads: beads.len(),
+            beads: vec![],
+            rms_misfit: 0.0,
+            min_coverage: min_cov,
+        },
+    )?;
+    let rms = if ns > 0 {
+        (ss / ns as f64).sqrt() * t.norm_factor
+    } else {
+        0.0
+    };
     Ok((t, rms, min_cov))
 }
 

@@ -82,7 +82,11 @@ pub struct AxisMap {
 
 impl Default for AxisMap {
     fn default() -> Self {
-        Self { x: "A".into(), y: "B".into(), z: "C".into() }
+        Self {
+            x: "A".into(),
+            y: "B".into(),
+            z: "C".into(),
+        }
     }
 }
 
@@ -210,7 +214,10 @@ const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 
 /// Soft limits ∩ the controller's travel range, per axis. An axis without soft limits gets
 /// the travel range. Errors when the two do not overlap or the travel range is nonsense.
-pub fn effective_limits(soft: &SoftLimits, travel: [(f64, f64); 3]) -> Result<[(f64, f64); 3], ConfigError> {
+pub fn effective_limits(
+    soft: &SoftLimits,
+    travel: [(f64, f64); 3],
+) -> Result<[(f64, f64); 3], ConfigError> {
     let mut out = [(0.0, 0.0); 3];
     for i in 0..3 {
         let (tlo, thi) = travel[i];
@@ -219,7 +226,9 @@ pub fn effective_limits(soft: &SoftLimits, travel: [(f64, f64); 3]) -> Result<[(
                 origin: "controller".into(),
                 key: format!("travel range {}", AXIS_NAMES[i]),
                 line: None,
-                message: format!("controller reports travel [{tlo}, {thi}] µm, which is not a range"),
+                message: format!(
+                    "controller reports travel [{tlo}, {thi}] µm, which is not a range"
+                ),
             });
         }
         out[i] = match soft.get(i) {
@@ -286,12 +295,25 @@ fn table_header(line: &str) -> Option<String> {
     let first = inner.chars().next()?;
     let ok = !first.is_ascii_digit()
         && first != '-'
-        && inner.chars().all(|c| c.is_ascii_alphanumeric() || "_-.\" ".contains(c));
-    ok.then(|| inner.split('.').map(|s| s.trim().trim_matches('"')).collect::<Vec<_>>().join("."))
+        && inner
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-.\" ".contains(c));
+    ok.then(|| {
+        inner
+            .split('.')
+            .map(|s| s.trim().trim_matches('"'))
+            .collect::<Vec<_>>()
+            .join(".")
+    })
 }
 
 fn err(key: &str, message: impl Into<String>) -> ConfigError {
-    ConfigError { origin: String::new(), key: key.into(), line: None, message: message.into() }
+    ConfigError {
+        origin: String::new(),
+        key: key.into(),
+        line: None,
+        message: message.into(),
+    }
 }
 
 impl Config {
@@ -305,7 +327,12 @@ impl Config {
                 }
                 None => (String::new(), None),
             };
-            ConfigError { origin: origin.into(), key, line, message: e.message().trim().to_string() }
+            ConfigError {
+                origin: origin.into(),
+                key,
+                line,
+                message: e.message().trim().to_string(),
+            }
         })?;
         cfg.validate().map_err(|mut e| {
             e.origin = origin.into();
@@ -357,11 +384,21 @@ impl Config {
         let q = &self.qpd;
         match s.backend {
             Backend::Sim | Backend::Gcs => {}
-            Backend::Scpi => return Err(err("stage.backend", "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"")),
+            Backend::Scpi => {
+                return Err(err(
+                    "stage.backend",
+                    "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"",
+                ))
+            }
         }
         match q.backend {
             Backend::Sim | Backend::Scpi => {}
-            Backend::Gcs => return Err(err("qpd.backend", "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"")),
+            Backend::Gcs => {
+                return Err(err(
+                    "qpd.backend",
+                    "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"",
+                ))
+            }
         }
         if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
             return Err(err(
@@ -375,13 +412,22 @@ impl Config {
             ));
         }
         if s.backend == Backend::Gcs && s.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
-            return Err(err("stage.port", "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"));
+            return Err(err(
+                "stage.port",
+                "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")",
+            ));
         }
         if q.backend == Backend::Scpi && q.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
-            return Err(err("qpd.port", "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")"));
+            return Err(err(
+                "qpd.port",
+                "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")",
+            ));
         }
         if s.backend == Backend::Gcs && s.port == q.port {
-            return Err(err("qpd.port", "the stage and the QPD cannot share one serial port"));
+            return Err(err(
+                "qpd.port",
+                "the stage and the QPD cannot share one serial port",
+            ));
         }
         for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
             if v == 0 {
@@ -395,7 +441,10 @@ impl Config {
             ("qpd.timeout_ms", q.timeout_ms),
         ] {
             if v == 0 || v > 3_600_000 {
-                return Err(err(key, format!("{v} ms: must be between 1 ms and one hour")));
+                return Err(err(
+                    key,
+                    format!("{v} ms: must be between 1 ms and one hour"),
+                ));
             }
         }
         let axes = [&s.axes.x, &s.axes.y, &s.axes.z];
@@ -408,7 +457,10 @@ impl Config {
             }
         }
         if axes[0] == axes[1] || axes[0] == axes[2] || axes[1] == axes[2] {
-            return Err(err("stage.axes", "x, y and z must be different controller axes"));
+            return Err(err(
+                "stage.axes",
+                "x, y and z must be different controller axes",
+            ));
         }
         if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
             return Err(err("stage.units_per_um", "must be a positive number"));
@@ -419,7 +471,10 @@ impl Config {
         for i in 0..3 {
             let g = q.calibration.gain[i];
             if !(g.is_finite() && g != 0.0) {
-                return Err(err("qpd.calibration.gain", format!("channel {i}: {g} must be finite and nonzero")));
+                return Err(err(
+                    "qpd.calibration.gain",
+                    format!("channel {i}: {g} must be finite and nonzero"),
+                ));
             }
             if !q.calibration.offset_v[i].is_finite() {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
@@ -435,7 +490,10 @@ impl Config {
                 }
             }
         }
-        for (key, v) in [("safety.max_step_um", self.safety.max_step_um), ("safety.max_speed_um_s", self.safety.max_speed_um_s)] {
+        for (key, v) in [
+            ("safety.max_step_um", self.safety.max_step_um),
+            ("safety.max_speed_um_s", self.safety.max_speed_um_s),
+        ] {
             if let Some(v) = v {
                 if !(v.is_finite() && v > 0.0) {
                     return Err(err(key, format!("{v}: must be a positive number")));
@@ -474,12 +532,15 @@ fn find_key_line(text: &str, key: &str) -> Option<usize> {
     if last.is_empty() {
         return None;
     }
-    text.lines().position(|l| {
-        let t = l.trim_start();
-        t.strip_prefix(last).is_some_and(|r| r.trim_start().starts_with('=')) || t.contains(&format!(" {last} ="))
-            || t.contains(&format!("{{{last} ="))
-    })
-    .map(|i| i + 1)
+    text.lines()
+        .position(|l| {
+            let t = l.trim_start();
+            t.strip_prefix(last)
+                .is_some_and(|r| r.trim_start().starts_with('='))
+                || t.contains(&format!(" {last} ="))
+                || t.contains(&format!("{{{last} ="))
+        })
+        .map(|i| i + 1)
 }
 
 #[cfg(test)]
@@ -538,7 +599,10 @@ wavelength_nm = 1064.0
         assert_eq!(e.key, "stage.baud");
         assert_eq!(e.line, Some(4));
         assert!(e.message.contains("invalid type"), "{e}");
-        assert!(e.to_string().starts_with("bfpscope.toml: stage.baud: "), "{e}");
+        assert!(
+            e.to_string().starts_with("bfpscope.toml: stage.baud: "),
+            "{e}"
+        );
 
         let e = error_of("[stage]\nbackend = \"gsc\"\n");
         assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
@@ -554,7 +618,8 @@ wavelength_nm = 1064.0
 
     #[test]
     fn validation_errors_name_the_key_path() {
-        let e = error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
+        let e =
+            error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
         assert_eq!(e.key, "stage.port");
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
@@ -571,15 +636,31 @@ wavelength_nm = 1064.0
 
     #[test]
     fn soft_limits_intersect_travel() {
-        let soft = SoftLimits { x: Some([-10.0, 50.0]), y: Some([20.0, 30.0]), z: None };
+        let soft = SoftLimits {
+            x: Some([-10.0, 50.0]),
+            y: Some([20.0, 30.0]),
+            z: None,
+        };
         let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
-        assert_eq!(effective_limits(&soft, travel).unwrap(), [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]);
-        let soft = SoftLimits { z: Some([25.0, 30.0]), ..Default::default() };
+        assert_eq!(
+            effective_limits(&soft, travel).unwrap(),
+            [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]
+        );
+        let soft = SoftLimits {
+            z: Some([25.0, 30.0]),
+            ..Default::default()
+        };
         let e = effective_limits(&soft, travel).unwrap_err();
         assert_eq!(e.key, "safety.soft_limits.z");
         assert!(e.message.contains("[0, 20]"), "{e}");
-        assert!(effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err());
-        assert!(effective_limits(&SoftLimits::default(), [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]).is_err());
+        assert!(
+            effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err()
+        );
+        assert!(effective_limits(
+            &SoftLimits::default(),
+            [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
+        )
+        .is_err());
     }
 
     #[test]

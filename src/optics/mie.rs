@@ -96,7 +96,11 @@ pub enum MieError {
     },
 }
 
-fn invalid(name: &'static str, value: impl std::fmt::Display, allowed: impl Into<String>) -> MieError {
+fn invalid(
+    name: &'static str,
+    value: impl std::fmt::Display,
+    allowed: impl Into<String>,
+) -> MieError {
     MieError::InvalidArgument {
         name,
         value: value.to_string(),
@@ -114,7 +118,11 @@ fn fmt_c(m: C64) -> String {
 
 fn check_x(x: f64) -> Result<(), MieError> {
     if !x.is_finite() || x <= 0.0 || x > X_MAX {
-        return Err(invalid("x", x, format!("finite size parameter, 0 < x ≤ {X_MAX:e}")));
+        return Err(invalid(
+            "x",
+            x,
+            format!("finite size parameter, 0 < x ≤ {X_MAX:e}"),
+        ));
     }
     Ok(())
 }
@@ -135,7 +143,11 @@ fn check_m(x: f64, m: C64) -> Result<(), MieError> {
         return Err(invalid("m", fmt_c(m), "Re m ≥ 0"));
     }
     if m.re == 0.0 && m.im == 0.0 {
-        return Err(invalid("m", fmt_c(m), "m ≠ 0 (perfect conductors are not supported)"));
+        return Err(invalid(
+            "m",
+            fmt_c(m),
+            "m ≠ 0 (perfect conductors are not supported)",
+        ));
     }
     let mx = m.norm() * x;
     if mx > MX_MAX {
@@ -451,7 +463,11 @@ pub fn sphere(
         return Err(invalid("d_nm", d_nm, "finite diameter in nm, d_nm > 0"));
     }
     if !n_medium.is_finite() || n_medium <= 0.0 {
-        return Err(invalid("n_medium", n_medium, "finite medium index, n_medium > 0"));
+        return Err(invalid(
+            "n_medium",
+            n_medium,
+            "finite medium index, n_medium > 0",
+        ));
     }
     if !wavelength_nm.is_finite() || wavelength_nm <= 0.0 {
         return Err(invalid(

@@ -33,7 +33,15 @@ pub fn add_noise(scan: &mut Scan, sigma: f64, seed: u64) {
 
 /// Render beads (x, y, weight) and filaments on an n×n grid of pixel h from origin (0, 0), add
 /// noise.
-pub fn scene(tpl: &Template, beads: &[(f64, f64, f64)], fils: &[Filament], n: usize, h: f64, sigma: f64, seed: u64) -> Scan {
+pub fn scene(
+    tpl: &Template,
+    beads: &[(f64, f64, f64)],
+    fils: &[Filament],
+    n: usize,
+    h: f64,
+    sigma: f64,
+    seed: u64,
+) -> Scan {
     let x = axis(n, h, 0.0);
     let mut s = render_scene(tpl, beads, fils, &BeadModelOptions::default(), &x, &x).unwrap();
     add_noise(&mut s, sigma, seed);
@@ -51,7 +59,11 @@ pub fn sx_peak(tpl: &Template) -> f64 {
 }
 
 pub fn img_max(img: &Image) -> f64 {
-    img.data.iter().copied().filter(|v| v.is_finite()).fold(f64::NEG_INFINITY, f64::max)
+    img.data
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(f64::NEG_INFINITY, f64::max)
 }
 
 /// The paper's noise level, derived from its mass resolution: a single reference-bead fit has a

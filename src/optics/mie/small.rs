@@ -43,7 +43,14 @@ pub(crate) struct SmallCoeffs {
 }
 
 /// Series coefficients of S, T (ψ side, order n) and U, V (χ side).
-fn series(n: usize) -> ([f64; N_SERIES], [f64; N_SERIES], [f64; N_SERIES], [f64; N_SERIES]) {
+fn series(
+    n: usize,
+) -> (
+    [f64; N_SERIES],
+    [f64; N_SERIES],
+    [f64; N_SERIES],
+    [f64; N_SERIES],
+) {
     let nf = n as f64;
     let mut s = [0.0; N_SERIES];
     let mut t = [0.0; N_SERIES];
@@ -222,6 +229,10 @@ mod tests {
             assert!((r - 2.0).norm() < 1e-7, "b_{} ratio {r}", n + 1);
         }
         let c0 = small_coefficients(x, C64::new(1.0, 0.0), 3);
-        assert!(c0.ahat.iter().chain(c0.bhat.iter()).all(|z| z.norm() == 0.0));
+        assert!(c0
+            .ahat
+            .iter()
+            .chain(c0.bhat.iter())
+            .all(|z| z.norm() == 0.0));
     }
 }
