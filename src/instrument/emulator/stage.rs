@@ -71,6 +71,9 @@ impl GcsDevice {
     /// Position and on-target flag of axis `i` now.
     fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
+        if a.from == a.target {
+            return (a.target, true);
+        }
         let f = if settle > 0.0 { now.duration_since(a.t0).as_secs_f64() / settle } else { 1.0 };
         if f >= 1.0 {
             (a.target, true)
