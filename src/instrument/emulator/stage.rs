@@ -1,6 +1,6 @@
 //! A PI GCS 2.0 piezo controller emulator: three closed-loop axes with a travel range, servo
 //! state, settle dynamics (the position ramps linearly from where it was to the target over
-//! the settle time; `ONT?` reports 0 until it arrives) and GCS's single error register
+//! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
 //! (`ERR?` returns the last error and clears it).
 //!
 //! Commands: `*IDN?`, `ERR?`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`, `ONT?`, `TMN?`, `TMX?`,
@@ -22,8 +22,11 @@ pub struct StageEmulatorConfig {
     pub travel: [(f64, f64); 3],
     /// Position at power-on, µm (clamped into the travel range).
     pub start: Pos,
-    /// Time to settle on a new target, s.
+    /// Time to settle on a new target, s (linear ramp).
     pub settle_s: f64,
+    /// `ONT?` reports 1 once the position is within this distance of the target, µm (the
+    /// controller's settling window).
+    pub on_target_window_um: f64,
     /// Servo state at power-on.
     pub servo_on: bool,
     /// `*IDN?` reply.
@@ -40,6 +43,7 @@ impl Default for StageEmulatorConfig {
             travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
             start: [0.0; 3],
             settle_s: 0.002,
+            on_target_window_um: 0.001,
             servo_on: false,
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
                 .into(),
@@ -71,14 +75,12 @@ impl GcsDevice {
     /// Position and on-target flag of axis `i` now.
     fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
-        if a.from == a.target {
-            return (a.target, true);
-        }
         let f = if settle > 0.0 { now.duration_since(a.t0).as_secs_f64() / settle } else { 1.0 };
         if f >= 1.0 {
             (a.target, true)
         } else {
-            (a.from + (a.target - a.from) * f, false)
+            let p = a.from + (a.target - a.from) * f;
+            (p, (p - a.target).abs() <= self.cfg.on_target_window_um)
         }
     }
 
