@@ -48,15 +48,27 @@ const OFFSET: [f64; 3] = [0.1, -0.1, 0.05];
 
 /// The calibration that undoes the emulated detector's gain and offset.
 fn inverse_calibration() -> Calibration {
-    Calibration { gain: [1.0 / VPU[0], 1.0 / VPU[1], 1.0 / VPU[2]], offset_v: OFFSET }
+    Calibration {
+        gain: [1.0 / VPU[0], 1.0 / VPU[1], 1.0 / VPU[2]],
+        offset_v: OFFSET,
+    }
 }
 
 fn qpd_cfg(noise_v: f64) -> QpdEmulatorConfig {
-    QpdEmulatorConfig { volts_per_unit: VPU, offset_v: OFFSET, noise_v: [noise_v; 3], ..Default::default() }
+    QpdEmulatorConfig {
+        volts_per_unit: VPU,
+        offset_v: OFFSET,
+        noise_v: [noise_v; 3],
+        ..Default::default()
+    }
 }
 
 fn scpi_opts(reply_ms: u64) -> ScpiOptions {
-    ScpiOptions { timeout: Duration::from_millis(reply_ms), calibration: inverse_calibration(), statistics: true }
+    ScpiOptions {
+        timeout: Duration::from_millis(reply_ms),
+        calibration: inverse_calibration(),
+        statistics: true,
+    }
 }
 
 fn assert_bounded(t0: Instant, max_s: f64) {
@@ -73,7 +85,10 @@ fn stage_connect_identifies_and_switches_servo_on() {
     let s = open_stage(&emu, 1000);
     assert!(s.idn().contains("Physik Instrumente"), "{}", s.idn());
     assert_eq!(s.name(), format!("PI E-727 on {}", emu.path()));
-    assert_eq!(emu.commands(), vec!["*IDN?", "ERR?", "SVO A 1 B 1 C 1", "ERR?"]);
+    assert_eq!(
+        emu.commands(),
+        vec!["*IDN?", "ERR?", "SVO A 1 B 1 C 1", "ERR?"]
+    );
 }
 
 #[test]
@@ -87,23 +102,37 @@ fn stage_move_and_position_round_trip() {
         assert!((p[i] - target[i]).abs() < 1e-6, "{p:?}");
     }
     assert_eq!(emu.position(), target);
-    assert!(emu.commands().contains(&"MOV A 12.500000 B -33.250000 C 7.125000".to_string()));
+    assert!(emu
+        .commands()
+        .contains(&"MOV A 12.500000 B -33.250000 C 7.125000".to_string()));
 }
 
 #[test]
 fn stage_travel_range_from_tmn_tmx() {
     let emu = stage_emu();
     let mut s = open_stage(&emu, 1000);
-    assert_eq!(s.travel_range().unwrap(), [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)]);
+    assert_eq!(
+        s.travel_range().unwrap(),
+        [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)]
+    );
     let log = emu.commands();
-    assert!(log.contains(&"TMN? A B C".to_string()) && log.contains(&"TMX? A B C".to_string()), "{log:?}");
+    assert!(
+        log.contains(&"TMN? A B C".to_string()) && log.contains(&"TMX? A B C".to_string()),
+        "{log:?}"
+    );
 }
 
 #[test]
 fn stage_numeric_axis_names() {
-    let cfg = StageEmulatorConfig { axes: ["1".into(), "2".into(), "3".into()], ..Default::default() };
+    let cfg = StageEmulatorConfig {
+        axes: ["1".into(), "2".into(), "3".into()],
+        ..Default::default()
+    };
     let emu = start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap();
-    let o = GcsOptions { axes: ["1".into(), "2".into(), "3".into()], ..opts(1000, 2000) };
+    let o = GcsOptions {
+        axes: ["1".into(), "2".into(), "3".into()],
+        ..opts(1000, 2000)
+    };
     let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
     s.move_to([1.0, 2.0, 3.0]).unwrap();
     assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
@@ -114,7 +143,10 @@ fn stage_numeric_axis_names() {
 fn stage_axis_map_swaps_axes() {
     // x on controller axis B, y on A: a move in x moves B.
     let emu = stage_emu();
-    let o = GcsOptions { axes: ["B".into(), "A".into(), "C".into()], ..opts(1000, 2000) };
+    let o = GcsOptions {
+        axes: ["B".into(), "A".into(), "C".into()],
+        ..opts(1000, 2000)
+    };
     let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
     s.move_to([5.0, -7.0, 1.0]).unwrap();
     assert_eq!(emu.position(), [-7.0, 5.0, 1.0]); // emulator order is A, B, C
@@ -129,9 +161,16 @@ fn stage_move_waits_for_on_target() {
     let t0 = Instant::now();
     s.move_to([10.0, 0.0, 0.0]).unwrap();
     let dt = t0.elapsed().as_secs_f64();
-    assert!(dt >= 0.14, "returned after {dt} s, before the stage settled");
+    assert!(
+        dt >= 0.14,
+        "returned after {dt} s, before the stage settled"
+    );
     assert_bounded(t0, 3.0);
-    let polls = emu.commands().iter().filter(|c| c.starts_with("ONT?")).count();
+    let polls = emu
+        .commands()
+        .iter()
+        .filter(|c| c.starts_with("ONT?"))
+        .count();
     assert!(polls >= 2, "ONT? polled {polls} times");
     assert_eq!(s.position().unwrap(), [10.0, 0.0, 0.0]);
 }
@@ -163,7 +202,11 @@ fn fault_stage_no_reply_is_timeout_naming_device_and_command() {
     emu.faults().silent = true;
     let t0 = Instant::now();
     match s.position() {
-        Err(DeviceError::Timeout { device, command, timeout_ms }) => {
+        Err(DeviceError::Timeout {
+            device,
+            command,
+            timeout_ms,
+        }) => {
             assert_eq!(device, format!("PI E-727 on {}", emu.path()));
             assert_eq!(command, "POS? A B C");
             assert_eq!(timeout_ms, 200);
@@ -173,7 +216,11 @@ fn fault_stage_no_reply_is_timeout_naming_device_and_command() {
     // one reply timeout + one ERR? probe
     assert_bounded(t0, 1.5);
     let e = s.move_to([1.0, 1.0, 1.0]).unwrap_err();
-    assert!(e.to_string().contains("ERR? (after `MOV A 1.000000 B 1.000000 C 1.000000`)"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("ERR? (after `MOV A 1.000000 B 1.000000 C 1.000000`)"),
+        "{e}"
+    );
     assert!(e.to_string().contains("no reply"), "{e}");
     // The device recovers: so does the driver. (A silent controller still executes what it
     // hears: the MOV went through although its ERR? got no answer.)
@@ -188,7 +235,11 @@ fn fault_stage_garbled_reply_is_garbled_with_the_text() {
     s.move_to([12.5, 1.0, 2.0]).unwrap();
     emu.faults().garble_replies = 1;
     match s.position() {
-        Err(DeviceError::Garbled { device, command, reply }) => {
+        Err(DeviceError::Garbled {
+            device,
+            command,
+            reply,
+        }) => {
             assert!(device.contains(emu.path()));
             assert_eq!(command, "POS? A B C");
             // the 0xFF byte shows as U+FFFD, digits became '#'
@@ -208,7 +259,10 @@ fn fault_stage_garbled_error_query_after_move() {
     emu.faults().garble_replies = 1; // MOV has no reply: the ERR? reply is garbled
     match s.move_to([1.0, 2.0, 3.0]) {
         Err(DeviceError::Garbled { command, reply, .. }) => {
-            assert_eq!(command, "ERR? (after `MOV A 1.000000 B 2.000000 C 3.000000`)");
+            assert_eq!(
+                command,
+                "ERR? (after `MOV A 1.000000 B 2.000000 C 3.000000`)"
+            );
             assert_eq!(reply, "\u{FFFD}#");
         }
         other => panic!("{other:?}"),
@@ -221,7 +275,12 @@ fn fault_stage_controller_error_code_with_text() {
     let mut s = open_stage(&emu, 200);
     emu.faults().error_next = Some(10);
     match s.move_to([1.0, 2.0, 3.0]) {
-        Err(DeviceError::Controller { device, command, code, message }) => {
+        Err(DeviceError::Controller {
+            device,
+            command,
+            code,
+            message,
+        }) => {
             assert!(device.contains("E-727"));
             assert_eq!(command, "MOV A 1.000000 B 2.000000 C 3.000000");
             assert_eq!(code, 10);
@@ -241,8 +300,16 @@ fn fault_stage_error_on_a_query_explains_the_silence() {
     let mut s = open_stage(&emu, 200);
     emu.faults().error_next = Some(15);
     match s.position() {
-        Err(DeviceError::Controller { command, code, message, .. }) => {
-            assert_eq!((command.as_str(), code, message.as_str()), ("POS? A B C", 15, "Invalid axis identifier"));
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
+            assert_eq!(
+                (command.as_str(), code, message.as_str()),
+                ("POS? A B C", 15, "Invalid axis identifier")
+            );
         }
         other => panic!("{other:?}"),
     }
@@ -251,10 +318,15 @@ fn fault_stage_error_on_a_query_explains_the_silence() {
 #[test]
 fn fault_stage_servo_off_is_error_5() {
     let emu = stage_emu();
-    let o = GcsOptions { servo_on_connect: false, ..opts(1000, 2000) };
+    let o = GcsOptions {
+        servo_on_connect: false,
+        ..opts(1000, 2000)
+    };
     let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
     match s.move_to([1.0, 0.0, 0.0]) {
-        Err(DeviceError::Controller { code: 5, message, .. }) => assert!(message.contains("servo off")),
+        Err(DeviceError::Controller {
+            code: 5, message, ..
+        }) => assert!(message.contains("servo off")),
         other => panic!("{other:?}"),
     }
     s.set_servo(true).unwrap();
@@ -269,14 +341,25 @@ fn fault_stage_out_of_range_target_is_the_controllers_error_7() {
     let mut s = open_stage(&emu, 1000);
     s.move_to([5.0, 5.0, 5.0]).unwrap();
     match s.move_to([75.0, 5.0, 5.0]) {
-        Err(DeviceError::Controller { command, code, message, .. }) => {
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
             assert_eq!(command, "MOV A 75.000000 B 5.000000 C 5.000000");
             assert_eq!((code, message.as_str()), (7, "Position out of limits"));
         }
         other => panic!("{other:?}"),
     }
-    assert!(emu.commands().contains(&"MOV A 75.000000 B 5.000000 C 5.000000".to_string()));
-    assert_eq!(s.position().unwrap(), [5.0, 5.0, 5.0], "the stage must not have moved");
+    assert!(emu
+        .commands()
+        .contains(&"MOV A 75.000000 B 5.000000 C 5.000000".to_string()));
+    assert_eq!(
+        s.position().unwrap(),
+        [5.0, 5.0, 5.0],
+        "the stage must not have moved"
+    );
 }
 
 #[test]
@@ -299,8 +382,16 @@ fn fault_stage_slow_settling_is_an_on_target_timeout() {
     match &e {
         DeviceError::Other { device, detail } => {
             assert!(device.contains("E-727"));
-            assert!(detail.starts_with("not on target within 300 ms after `MOV A 20.000000 B 0.000000 C 0.000000`"), "{detail}");
-            assert!(detail.ends_with("(last `ONT? A B C` reply: A=0 B=1 C=1)"), "{detail}");
+            assert!(
+                detail.starts_with(
+                    "not on target within 300 ms after `MOV A 20.000000 B 0.000000 C 0.000000`"
+                ),
+                "{detail}"
+            );
+            assert!(
+                detail.ends_with("(last `ONT? A B C` reply: A=0 B=1 C=1)"),
+                "{detail}"
+            );
         }
         other => panic!("{other:?}"),
     }
@@ -327,20 +418,30 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     assert_bounded(t0, 2.0);
     assert_eq!(done, 2, "{err}");
     match &err {
-        DeviceError::Disconnected { device, command, .. } => {
+        DeviceError::Disconnected {
+            device, command, ..
+        } => {
             assert!(device.contains(emu.path()));
-            assert_eq!(command, "ERR? (after `MOV A 2.000000 B 0.000000 C 0.000000`)");
+            assert_eq!(
+                command,
+                "ERR? (after `MOV A 2.000000 B 0.000000 C 0.000000`)"
+            );
         }
         other => panic!("{other:?}"),
     }
     assert!(!emu.is_running());
     // Further calls keep failing cleanly.
-    assert!(matches!(s.position(), Err(DeviceError::Disconnected { .. })));
+    assert!(matches!(
+        s.position(),
+        Err(DeviceError::Disconnected { .. })
+    ));
 }
 
 /// A fake controller on a raw PTY: answers `*IDN?`/`ERR?` properly and every `POS?` with the
 /// next scripted reply.
-fn fake_controller(replies: Vec<Vec<u8>>) -> (String, std::thread::JoinHandle<()>, Arc<AtomicBool>) {
+fn fake_controller(
+    replies: Vec<Vec<u8>>,
+) -> (String, std::thread::JoinHandle<()>, Arc<AtomicBool>) {
     let (mut master, slave) = serialport::TTYPort::pair().unwrap();
     let path = serialport::SerialPort::name(&slave).unwrap();
     let stop = Arc::new(AtomicBool::new(false));
@@ -382,7 +483,15 @@ fn fault_stage_garbage_replies_never_panic() {
         b"A=1 \nB=2 \nC=3\n".to_vec(),
     ];
     let (path, h, stop) = fake_controller(garbage);
-    let mut s = GcsStage::open(&path, BAUD, GcsOptions { servo_on_connect: false, ..opts(200, 300) }).unwrap();
+    let mut s = GcsStage::open(
+        &path,
+        BAUD,
+        GcsOptions {
+            servo_on_connect: false,
+            ..opts(200, 300)
+        },
+    )
+    .unwrap();
     assert_eq!(s.name(), format!("PI C-413 on {path}"));
     for k in 0..6 {
         match s.position() {
@@ -420,7 +529,13 @@ fn qpd_connect_identify_and_read_calibrated_signal() {
     // the averaging count is only sent when it changes
     q.read(50).unwrap();
     let log = emu.commands();
-    assert_eq!(log.iter().filter(|c| c.starts_with("SENS:AVER:COUN")).count(), 1, "{log:?}");
+    assert_eq!(
+        log.iter()
+            .filter(|c| c.starts_with("SENS:AVER:COUN"))
+            .count(),
+        1,
+        "{log:?}"
+    );
     assert_eq!(&log[..4], ["*IDN?", "*CLS", "SYST:ERR?", "CONF:RATE?"]);
 }
 
@@ -440,7 +555,10 @@ fn qpd_noise_statistics_in_signal_units() {
 #[test]
 fn qpd_without_statistics_uses_meas_qpd() {
     let emu = qpd_emu(0.0, [0.1, 0.0, 0.0]);
-    let o = ScpiOptions { statistics: false, ..scpi_opts(1000) };
+    let o = ScpiOptions {
+        statistics: false,
+        ..scpi_opts(1000)
+    };
     let mut q = ScpiQpd::open(emu.path(), BAUD, o).unwrap();
     let r = q.read(10).unwrap();
     assert!((r.sx - standin_bead([0.1, 0.0, 0.0])[0]).abs() < 1e-9);
@@ -452,7 +570,12 @@ fn fault_qpd_device_error_queue() {
     let emu = qpd_emu(0.0, [0.0; 3]);
     let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
     match q.read(0) {
-        Err(DeviceError::Controller { device, command, code, message }) => {
+        Err(DeviceError::Controller {
+            device,
+            command,
+            code,
+            message,
+        }) => {
             assert!(device.contains(emu.path()));
             assert_eq!(command, "SENS:AVER:COUN 0");
             assert_eq!((code, message.as_str()), (-222, "Data out of range"));
@@ -460,12 +583,24 @@ fn fault_qpd_device_error_queue() {
         other => panic!("{other:?}"),
     }
     match q.command("SENS:AVER:COUN many") {
-        Err(DeviceError::Controller { code: -104, message, .. }) => assert_eq!(message, "Data type error"),
+        Err(DeviceError::Controller {
+            code: -104,
+            message,
+            ..
+        }) => assert_eq!(message, "Data type error"),
         other => panic!("{other:?}"),
     }
     match q.query("MEAS:VOLT?") {
-        Err(DeviceError::Controller { code: -113, command, message, .. }) => {
-            assert_eq!((command.as_str(), message.as_str()), ("MEAS:VOLT?", "Undefined header"));
+        Err(DeviceError::Controller {
+            code: -113,
+            command,
+            message,
+            ..
+        }) => {
+            assert_eq!(
+                (command.as_str(), message.as_str()),
+                ("MEAS:VOLT?", "Undefined header")
+            );
         }
         other => panic!("{other:?}"),
     }
@@ -480,7 +615,12 @@ fn fault_qpd_injected_error_on_measurement() {
     q.read(5).unwrap();
     emu.faults().error_next = Some(-231);
     match q.read(5) {
-        Err(DeviceError::Controller { command, code, message, .. }) => {
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
             assert_eq!((command.as_str(), code), ("MEAS:QPD:STAT?", -231));
             assert_eq!(message, "Device-specific error");
         }
@@ -496,7 +636,11 @@ fn fault_qpd_no_reply_is_timeout() {
     emu.faults().silent = true;
     let t0 = Instant::now();
     match q.read(10) {
-        Err(DeviceError::Timeout { device, command, timeout_ms }) => {
+        Err(DeviceError::Timeout {
+            device,
+            command,
+            timeout_ms,
+        }) => {
             assert!(device.contains("QPD-EMU"));
             assert_eq!(command, "MEAS:QPD:STAT?");
             assert_eq!(timeout_ms, 200); // 200 ms + 10 samples at 100 kHz
@@ -515,7 +659,10 @@ fn fault_qpd_garbled_reply() {
     match q.read(10) {
         Err(DeviceError::Garbled { command, reply, .. }) => {
             assert_eq!(command, "MEAS:QPD:STAT?");
-            assert!(reply.starts_with('\u{FFFD}') && reply.contains("#.#########e-#"), "{reply}");
+            assert!(
+                reply.starts_with('\u{FFFD}') && reply.contains("#.#########e-#"),
+                "{reply}"
+            );
         }
         other => panic!("{other:?}"),
     }
@@ -533,7 +680,9 @@ fn fault_qpd_unplugged_is_disconnected() {
         std::thread::sleep(Duration::from_millis(2));
     }
     match q.read(10) {
-        Err(DeviceError::Disconnected { device, command, .. }) => {
+        Err(DeviceError::Disconnected {
+            device, command, ..
+        }) => {
             assert!(device.contains(emu.path()));
             assert!(command.starts_with("SENS:AVER:COUN 10"), "{command}");
         }
@@ -596,7 +745,11 @@ fn connect_hardware_from_config_intersects_soft_limits() {
     let c = connect(&cfg, no_sim).unwrap();
     assert_eq!(
         c.limits,
-        SafetyLimits { axes: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)], max_step_um: Some(2.0), max_speed_um_s: None }
+        SafetyLimits {
+            axes: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
+            max_step_um: Some(2.0),
+            max_speed_um_s: None
+        }
     );
     let d = &c.instrument.description;
     assert_eq!(d["stage"]["backend"], "gcs");
@@ -611,7 +764,10 @@ fn connect_hardware_from_config_intersects_soft_limits() {
 fn connect_soft_limits_outside_travel_is_a_config_error() {
     let (se, qe) = pair(0.0);
     let mut cfg = emulator_config(&se, &qe);
-    cfg.safety.soft_limits = SoftLimits { y: Some([5.0, 9.0]), ..Default::default() };
+    cfg.safety.soft_limits = SoftLimits {
+        y: Some([5.0, 9.0]),
+        ..Default::default()
+    };
     match connect(&cfg, no_sim) {
         Err(ConnectError::Config(e)) => {
             assert_eq!(e.key, "safety.soft_limits.y");
@@ -631,8 +787,16 @@ fn connect_missing_port_names_device_and_port() {
     cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
     let e = connect(&cfg, no_sim).err().expect("must fail");
     let msg = e.to_string();
-    assert!(matches!(e, ConnectError::Device(DeviceError::Other { .. })), "{msg}");
-    assert!(msg.starts_with("GCS stage on /dev/bfpscope-no-such-port: cannot open /dev/bfpscope-no-such-port"), "{msg}");
+    assert!(
+        matches!(e, ConnectError::Device(DeviceError::Other { .. })),
+        "{msg}"
+    );
+    assert!(
+        msg.starts_with(
+            "GCS stage on /dev/bfpscope-no-such-port: cannot open /dev/bfpscope-no-such-port"
+        ),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -644,7 +808,11 @@ fn connect_qpd_failure_closes_the_stage_port() {
     cfg.qpd.backend = Backend::Scpi;
     cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
     let e = connect(&cfg, no_sim).err().expect("must fail");
-    assert!(e.to_string().starts_with("SCPI QPD on /dev/bfpscope-no-such-qpd: cannot open"), "{e}");
+    assert!(
+        e.to_string()
+            .starts_with("SCPI QPD on /dev/bfpscope-no-such-qpd: cannot open"),
+        "{e}"
+    );
     // The stage port was released: it opens again.
     let _s = open_stage(&se, 1000);
 }
@@ -678,7 +846,10 @@ impl Qpd for FakeQpd {
         1.0
     }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
-        Ok(QpdReading { n, ..Default::default() })
+        Ok(QpdReading {
+            n,
+            ..Default::default()
+        })
     }
 }
 
@@ -732,15 +903,26 @@ fn scan_through_the_real_drivers_images_the_standin_bead() {
     let mut chi2 = 0.0;
     for (p, r) in &img {
         let want = standin_bead(*p);
-        for (got, want, s) in [(r.sx, want[0], sig(VPU[0])), (r.sy, want[1], sig(VPU[1])), (r.sz, want[2], sig(VPU[2]))] {
-            assert!((got - want).abs() < 5.0 * s, "at {p:?}: {got} vs {want} (σ {s})");
+        for (got, want, s) in [
+            (r.sx, want[0], sig(VPU[0])),
+            (r.sy, want[1], sig(VPU[1])),
+            (r.sz, want[2], sig(VPU[2])),
+        ] {
+            assert!(
+                (got - want).abs() < 5.0 * s,
+                "at {p:?}: {got} vs {want} (σ {s})"
+            );
             chi2 += ((got - want) / s).powi(2);
         }
         max_sx = max_sx.max(r.sx);
     }
     // the residuals are noise of the expected size, not zero and not larger
     let dof = 3.0 * img.len() as f64;
-    assert!(chi2 / dof > 0.6 && chi2 / dof < 1.5, "χ²/dof = {}", chi2 / dof);
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
     // and the image has the bead in it: Sx peaks near x = 0.28 at y = 0 (0.28·e^-0.5 ≈ 0.17)
     assert!(max_sx > 0.15, "{max_sx}");
     // the stage went where the plan said: the last point
@@ -779,7 +961,10 @@ fn emulator_stops_on_drop_and_the_driver_sees_disconnected() {
     emu.stop();
     assert_bounded(t0, 1.0);
     assert!(!emu.is_running());
-    assert!(matches!(s.position(), Err(DeviceError::Disconnected { .. })));
+    assert!(matches!(
+        s.position(),
+        Err(DeviceError::Disconnected { .. })
+    ));
 }
 
 #[test]
@@ -797,7 +982,9 @@ fn emulate_cli_prints_paths_that_work() {
     let (tx, rx) = mpsc::channel();
     let stop = Arc::new(AtomicBool::new(false));
     let stop2 = stop.clone();
-    let h = std::thread::spawn(move || run_emulator_cli_with("both", standin_bead, &mut Chan(tx), stop2));
+    let h = std::thread::spawn(move || {
+        run_emulator_cli_with("both", standin_bead, &mut Chan(tx), stop2)
+    });
     let mut text = String::new();
     let t0 = Instant::now();
     while !text.contains("Serving until") {
@@ -811,9 +998,15 @@ fn emulate_cli_prints_paths_that_work() {
         line.rsplit(" on ").next().unwrap().to_string()
     };
     let (sp, qp) = (path_of("stage:"), path_of("qpd:"));
-    assert!(sp.starts_with("/dev/") && qp.starts_with("/dev/") && sp != qp, "{text}");
+    assert!(
+        sp.starts_with("/dev/") && qp.starts_with("/dev/") && sp != qp,
+        "{text}"
+    );
     // the printed config snippet parses and points at the emulators
-    let toml_part = text.split("# bfpscope.toml for these emulators:").nth(1).unwrap();
+    let toml_part = text
+        .split("# bfpscope.toml for these emulators:")
+        .nth(1)
+        .unwrap();
     let toml_part = toml_part.split("Serving until").next().unwrap();
     let cfg = Config::from_toml_str(toml_part, "snippet").unwrap();
     assert_eq!(cfg.stage.port.as_deref(), Some(sp.as_str()));
@@ -821,7 +1014,10 @@ fn emulate_cli_prints_paths_that_work() {
     s.move_to([0.1, 0.0, 0.0]).unwrap();
     let mut q = ScpiQpd::open(&qp, BAUD, ScpiOptions::default()).unwrap();
     let r = q.read(10).unwrap();
-    assert!((r.sx - standin_bead([0.1, 0.0, 0.0])[0]).abs() < 5e-4, "{r}");
+    assert!(
+        (r.sx - standin_bead([0.1, 0.0, 0.0])[0]).abs() < 5e-4,
+        "{r}"
+    );
     stop.store(true, Ordering::SeqCst);
     h.join().unwrap().unwrap();
     assert!(run_emulator_cli_with("laser", standin_bead, &mut Vec::new(), stop).is_err());

@@ -53,11 +53,17 @@ pub fn connect(
     };
     let travel = instrument.stage.travel_range()?;
     let axes = effective_limits(&cfg.safety.soft_limits, travel)?;
-    let limits =
-        SafetyLimits { axes, max_step_um: cfg.safety.max_step_um, max_speed_um_s: cfg.safety.max_speed_um_s };
+    let limits = SafetyLimits {
+        axes,
+        max_step_um: cfg.safety.max_step_um,
+        max_speed_um_s: cfg.safety.max_speed_um_s,
+    };
     if let serde_json::Value::Object(m) = &mut instrument.description {
         m.insert("travel_um".into(), json!(travel));
-        m.insert("limits".into(), serde_json::to_value(&limits).unwrap_or_default());
+        m.insert(
+            "limits".into(),
+            serde_json::to_value(&limits).unwrap_or_default(),
+        );
     }
     Ok(Connected { instrument, limits })
 }

@@ -31,7 +31,8 @@ impl Transport for Box<dyn serialport::SerialPort> {
         self.set_timeout(timeout).map_err(io::Error::from)
     }
     fn discard_input(&mut self) -> io::Result<()> {
-        self.clear(serialport::ClearBuffer::Input).map_err(io::Error::from)
+        self.clear(serialport::ClearBuffer::Input)
+            .map_err(io::Error::from)
     }
 }
 
@@ -99,12 +100,16 @@ pub fn open_serial(
         .stop_bits(serialport::StopBits::One)
         .flow_control(serialport::FlowControl::None);
     #[cfg(unix)]
-    let opened = builder.open_native().map(|p| Box::new(SerialTransport(p)) as Box<dyn Transport>);
+    let opened = builder
+        .open_native()
+        .map(|p| Box::new(SerialTransport(p)) as Box<dyn Transport>);
     #[cfg(not(unix))]
     let opened = builder.open().map(|p| Box::new(p) as Box<dyn Transport>);
     opened.map_err(|e| {
         let hint = match e.kind() {
-            serialport::ErrorKind::NoDevice => " (is it plugged in, and not opened by another program?)",
+            serialport::ErrorKind::NoDevice => {
+                " (is it plugged in, and not opened by another program?)"
+            }
             serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
                 " (permission denied: add yourself to the `dialout` group and log in again)"
             }
@@ -113,7 +118,10 @@ pub fn open_serial(
             }
             _ => "",
         };
-        DeviceError::Other { device: device.to_string(), detail: format!("cannot open {path}: {e}{hint}") }
+        DeviceError::Other {
+            device: device.to_string(),
+            detail: format!("cannot open {path}: {e}{hint}"),
+        }
     })
 }
 
@@ -149,7 +157,12 @@ pub struct LineLink {
 
 impl LineLink {
     pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
-        Self { io, device: device.into(), buf: Vec::new(), timeout }
+        Self {
+            io,
+            device: device.into(),
+            buf: Vec::new(),
+            timeout,
+        }
     }
 
     pub fn device(&self) -> &str {
@@ -195,7 +208,10 @@ impl LineLink {
             if self.buf.len() > MAX_LINE {
                 let reply = lossy(&self.buf);
                 self.buf.clear();
-                return Err(self.garbled(command, format!("{reply} [no line end after {MAX_LINE} bytes]")));
+                return Err(self.garbled(
+                    command,
+                    format!("{reply} [no line end after {MAX_LINE} bytes]"),
+                ));
             }
             let now = Instant::now();
             if now >= deadline {
@@ -216,7 +232,12 @@ impl LineLink {
                 }
                 Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-                Err(e) if matches!(e.kind(), io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock) => {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                    ) =>
+                {
                     continue; // the deadline check above decides
                 }
                 Err(e) => return Err(io_error(&self.device, command, timeout, &e)),
@@ -229,7 +250,11 @@ impl LineLink {
         self.query_with_timeout(command, self.timeout)
     }
 
-    pub fn query_with_timeout(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+    pub fn query_with_timeout(
+        &mut self,
+        command: &str,
+        timeout: Duration,
+    ) -> Result<String, DeviceError> {
         self.discard_input();
         self.send(command)?;
         self.read_line(command, timeout)
@@ -247,12 +272,19 @@ impl LineLink {
         } else {
             let reply = lossy(&self.buf);
             self.buf.clear();
-            self.garbled(command, format!("{reply} [no line end within {} ms]", timeout.as_millis()))
+            self.garbled(
+                command,
+                format!("{reply} [no line end within {} ms]", timeout.as_millis()),
+            )
         }
     }
 
     pub fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
-        DeviceError::Garbled { device: self.device.clone(), command: command.to_string(), reply: reply.into() }
+        DeviceError::Garbled {
+            device: self.device.clone(),
+            command: command.to_string(),
+            reply: reply.into(),
+        }
     }
 
     fn check_text(&self, command: &str, line: Vec<u8>) -> Result<String, DeviceError> {
@@ -280,7 +312,12 @@ pub(crate) mod mock {
 
     impl Scripted {
         pub fn new(replies: Vec<Vec<u8>>) -> Self {
-            Self { replies: replies.into(), pending: Vec::new(), written: Vec::new(), log: Default::default() }
+            Self {
+                replies: replies.into(),
+                pending: Vec::new(),
+                written: Vec::new(),
+                log: Default::default(),
+            }
         }
     }
 
@@ -301,7 +338,10 @@ pub(crate) mod mock {
             self.written.extend_from_slice(buf);
             while let Some(i) = self.written.iter().position(|&b| b == b'\n') {
                 let line: Vec<u8> = self.written.drain(..=i).collect();
-                self.log.lock().unwrap().push(lossy(&line[..line.len() - 1]));
+                self.log
+                    .lock()
+                    .unwrap()
+                    .push(lossy(&line[..line.len() - 1]));
                 if let Some(r) = self.replies.pop_front() {
                     self.pending.extend_from_slice(&r);
                 }
@@ -343,8 +383,15 @@ mod tests {
     fn silence_is_timeout_partial_is_garbled() {
         let mut l = link(vec![b""]);
         match l.query("Q?") {
-            Err(DeviceError::Timeout { device, command, timeout_ms }) => {
-                assert_eq!((device.as_str(), command.as_str(), timeout_ms), ("dev", "Q?", 20));
+            Err(DeviceError::Timeout {
+                device,
+                command,
+                timeout_ms,
+            }) => {
+                assert_eq!(
+                    (device.as_str(), command.as_str(), timeout_ms),
+                    ("dev", "Q?", 20)
+                );
             }
             other => panic!("{other:?}"),
         }

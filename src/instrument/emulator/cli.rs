@@ -2,8 +2,8 @@
 //! a config snippet, serve until Ctrl-C (or end of input on a terminal).
 
 use super::{
-    shared_position, standin_bead, start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig,
-    SignalSource, StageEmulatorConfig,
+    shared_position, standin_bead, start_qpd_emulator, start_stage_emulator, Emulator,
+    QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
 };
 use std::io::{IsTerminal, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -29,7 +29,11 @@ pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
         let stop = stop.clone();
         std::thread::spawn(move || {
             let mut sink = String::new();
-            while std::io::stdin().read_line(&mut sink).map(|n| n > 0).unwrap_or(false) {
+            while std::io::stdin()
+                .read_line(&mut sink)
+                .map(|n| n > 0)
+                .unwrap_or(false)
+            {
                 sink.clear();
             }
             stop.store(true, Ordering::SeqCst);
@@ -48,17 +52,30 @@ pub fn run_emulator_cli_with(
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<()> {
-    let stage_cfg = StageEmulatorConfig { start: [45.0, 45.0, 10.0], ..StageEmulatorConfig::default() };
+    let stage_cfg = StageEmulatorConfig {
+        start: [45.0, 45.0, 10.0],
+        ..StageEmulatorConfig::default()
+    };
     let pos = shared_position(stage_cfg.start);
     let mut emus: Vec<Emulator> = Vec::new();
     match kind {
         "stage" => emus.push(start_stage_emulator(stage_cfg, pos)?),
-        "qpd" => emus.push(start_qpd_emulator(QpdEmulatorConfig::default(), pos, source)?),
+        "qpd" => emus.push(start_qpd_emulator(
+            QpdEmulatorConfig::default(),
+            pos,
+            source,
+        )?),
         "both" | "pair" | "all" => {
             emus.push(start_stage_emulator(stage_cfg, pos.clone())?);
-            emus.push(start_qpd_emulator(QpdEmulatorConfig::default(), pos, source)?);
+            emus.push(start_qpd_emulator(
+                QpdEmulatorConfig::default(),
+                pos,
+                source,
+            )?);
         }
-        other => anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)"),
+        other => {
+            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)")
+        }
     }
     for e in &emus {
         let what = match e.kind() {
@@ -68,7 +85,10 @@ pub fn run_emulator_cli_with(
         writeln!(out, "{}: {what} on {}", e.kind(), e.path())?;
     }
     if kind == "qpd" {
-        writeln!(out, "(the QPD alone sees a stage parked at (45, 45, 10) µm; use `both` to scan)")?;
+        writeln!(
+            out,
+            "(the QPD alone sees a stage parked at (45, 45, 10) µm; use `both` to scan)"
+        )?;
     }
     writeln!(out, "\n# bfpscope.toml for these emulators:")?;
     for e in &emus {

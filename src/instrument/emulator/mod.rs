@@ -87,7 +87,11 @@ impl Default for Faults {
 /// Garbled form of a reply (see [`Faults::garble_replies`]).
 pub fn garble(reply: &str) -> Vec<u8> {
     let mut out = vec![0xFF];
-    out.extend(reply.bytes().map(|b| if b.is_ascii_digit() { b'#' } else { b }));
+    out.extend(
+        reply
+            .bytes()
+            .map(|b| if b.is_ascii_digit() { b'#' } else { b }),
+    );
     out
 }
 
@@ -196,8 +200,19 @@ fn spawn(
         stop: stop.clone(),
         finished: finished.clone(),
     };
-    let thread = std::thread::Builder::new().name(format!("emulator-{kind}")).spawn(move || ctx.run())?;
-    Ok(Emulator { path, kind, faults, log, stop, finished, position, thread: Some(thread) })
+    let thread = std::thread::Builder::new()
+        .name(format!("emulator-{kind}"))
+        .spawn(move || ctx.run())?;
+    Ok(Emulator {
+        path,
+        kind,
+        faults,
+        log,
+        stop,
+        finished,
+        position,
+        thread: Some(thread),
+    })
 }
 
 struct Serve<D: Device> {
@@ -230,7 +245,9 @@ impl<D: Device> Serve<D> {
             }
             while let Some(i) = buf.iter().position(|&b| b == b'\n') {
                 let raw: Vec<u8> = buf.drain(..=i).collect();
-                let line = String::from_utf8_lossy(&raw[..raw.len() - 1]).trim_end_matches('\r').to_string();
+                let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
+                    .trim_end_matches('\r')
+                    .to_string();
                 if line.trim().is_empty() {
                     continue;
                 }
@@ -280,7 +297,12 @@ impl<D: Device> Serve<D> {
                 r.into_bytes()
             };
             bytes.push(b'\n');
-            if self.master.write_all(&bytes).and_then(|_| self.master.flush()).is_err() {
+            if self
+                .master
+                .write_all(&bytes)
+                .and_then(|_| self.master.flush())
+                .is_err()
+            {
                 // The client went away mid-reply; keep serving for the next one.
             }
         }

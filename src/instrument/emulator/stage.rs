@@ -69,13 +69,20 @@ struct GcsDevice {
 
 impl GcsDevice {
     fn settle(&self) -> f64 {
-        lock(&self.faults).settle_s.unwrap_or(self.cfg.settle_s).max(0.0)
+        lock(&self.faults)
+            .settle_s
+            .unwrap_or(self.cfg.settle_s)
+            .max(0.0)
     }
 
     /// Position and on-target flag of axis `i` now.
     fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
-        let f = if settle > 0.0 { now.duration_since(a.t0).as_secs_f64() / settle } else { 1.0 };
+        let f = if settle > 0.0 {
+            now.duration_since(a.t0).as_secs_f64() / settle
+        } else {
+            1.0
+        };
         if f >= 1.0 {
             (a.target, true)
         } else {
@@ -143,7 +150,10 @@ impl GcsDevice {
 
     /// A multi-line `AXIS=value` reply: every line but the last ends with a space.
     fn reply(&self, idx: &[usize], f: impl Fn(usize) -> String) -> String {
-        let lines: Vec<String> = idx.iter().map(|&i| format!("{}={}", self.cfg.axes[i], f(i))).collect();
+        let lines: Vec<String> = idx
+            .iter()
+            .map(|&i| format!("{}={}", self.cfg.axes[i], f(i)))
+            .collect();
         lines.join(" \n")
     }
 
@@ -250,17 +260,33 @@ impl Device for GcsDevice {
 
 /// Start a GCS stage emulator on a new pseudo-terminal. `position` is updated with the
 /// emulated position (µm) as the stage moves (share it with a QPD emulator).
-pub fn start_stage_emulator(cfg: StageEmulatorConfig, position: SharedPosition) -> std::io::Result<Emulator> {
+pub fn start_stage_emulator(
+    cfg: StageEmulatorConfig,
+    position: SharedPosition,
+) -> std::io::Result<Emulator> {
     let now = Instant::now();
     let mut axes = Vec::new();
     for i in 0..3 {
         let (lo, hi) = cfg.travel[i];
         let x = cfg.start[i].clamp(lo.min(hi), hi.max(lo));
-        axes.push(Axis { from: x, target: x, t0: now, servo: cfg.servo_on });
+        axes.push(Axis {
+            from: x,
+            target: x,
+            t0: now,
+            servo: cfg.servo_on,
+        });
     }
-    let axes: [Axis; 3] = axes.try_into().map_err(|_| std::io::Error::other("three axes"))?;
+    let axes: [Axis; 3] = axes
+        .try_into()
+        .map_err(|_| std::io::Error::other("three axes"))?;
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
-    let dev = GcsDevice { cfg, axes, error: 0, faults: faults.clone(), position: position.clone() };
+    let dev = GcsDevice {
+        cfg,
+        axes,
+        error: 0,
+        faults: faults.clone(),
+        position: position.clone(),
+    };
     dev.publish();
     spawn("stage", dev, faults, position)
 }
