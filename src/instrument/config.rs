@@ -480,11 +480,11 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
-        for i in 0..3 {
+        for (i, name) in AXIS_NAMES.iter().enumerate() {
             if let Some([lo, hi]) = self.safety.soft_limits.get(i) {
                 if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                     return Err(err(
-                        &format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        &format!("safety.soft_limits.{name}"),
                         format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
                     ));
                 }

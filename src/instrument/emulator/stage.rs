@@ -127,7 +127,7 @@ impl GcsDevice {
 
     /// `AXIS value AXIS value …` pairs. Error 1 for a malformed list, 15 for an unknown axis.
     fn pairs(&mut self, args: &[&str]) -> Option<Vec<(usize, f64)>> {
-        if args.is_empty() || args.len() % 2 != 0 {
+        if args.is_empty() || !args.len().is_multiple_of(2) {
             self.set_error(1);
             return None;
         }
