@@ -1,1 +1,212 @@
-fn main() { println!("bfpscope: workbench lands with the CLI"); }
+//! `bfpscope`: the command line. `bfpscope` (= `repl`), `run FILE [--set k=v]...`,
+//! `eval 'EXPR'`, `test [DIR]`, `docs`. Exit codes: 0 ok, 1 script error (or failed tests),
+//! 2 usage error.
+
+use bfpscope::script::{self, show, Settings, Workbench};
+use clap::{Parser, Subcommand};
+use rhai::Dynamic;
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+
+#[derive(Parser)]
+#[command(name = "bfpscope", version, about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)")]
+struct Cli {
+    /// Config file (default: ./bfpscope.toml if present)
+    #[arg(long, global = true, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data)
+    #[arg(long, global = true, value_name = "DIR")]
+    data: Option<PathBuf>,
+    #[command(subcommand)]
+    cmd: Option<Cmd>,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Interactive prompt (the default)
+    Repl,
+    /// Run a script file
+    Run {
+        file: PathBuf,
+        /// Script variable, e.g. --set n=64 --set label=bead1 (int, float, bool or string)
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Evaluate an expression and print its value
+    Eval { expr: String },
+    /// Run the scripted tests (*.rhai) in DIR (default tests/scripts)
+    Test { dir: Option<PathBuf> },
+    /// Regenerate the API reference from the binding declarations
+    Docs {
+        #[arg(long, default_value = "docs/api.md")]
+        out: PathBuf,
+        /// Only check that the file is up to date (exit 1 if stale)
+        #[arg(long)]
+        check: bool,
+    },
+}
+
+fn usage_error(msg: &str) -> ExitCode {
+    eprintln!("error: {msg}");
+    ExitCode::from(2)
+}
+
+/// `key=value` → (key, value as int, float, bool or string).
+fn parse_set(s: &str) -> Result<(String, Dynamic), String> {
+    let (k, v) = s.split_once('=').ok_or_else(|| format!("--set {s}: expected KEY=VALUE"))?;
+    let k = k.trim();
+    let valid = !k.is_empty() && k.chars().next().is_some_and(|c| c.is_alphabetic() || c == '_') && k.chars().all(|c| c.is_alphanumeric() || c == '_');
+    if !valid {
+        return Err(format!("--set {s}: `{k}` is not a valid variable name"));
+    }
+    let d = if let Ok(i) = v.parse::<i64>() {
+        Dynamic::from(i)
+    } else if let Ok(f) = v.parse::<f64>() {
+        Dynamic::from(f)
+    } else if let Ok(b) = v.parse::<bool>() {
+        Dynamic::from(b)
+    } else {
+        Dynamic::from(v.to_string())
+    };
+    Ok((k.to_string(), d))
+}
+
+/// Ctrl-C sets the shared flag (scans stop at the next point, scripts are interrupted); three
+/// presses while the flag is still set end the process.
+fn install_ctrlc(flag: Arc<AtomicBool>) {
+    static PRESSES: AtomicUsize = AtomicUsize::new(0);
+    let _ = ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            if PRESSES.fetch_add(1, Ordering::SeqCst) >= 2 {
+                eprintln!("\nbfpscope: interrupted three times, exiting");
+                std::process::exit(130);
+            }
+        } else {
+            PRESSES.store(0, Ordering::SeqCst);
+        }
+    });
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
+    let mut settings = Settings { progress: std::io::stderr().is_terminal(), ..Settings::default() };
+    let config_path = cli.config.clone().or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
+    if let Some(p) = config_path {
+        let text = match std::fs::read_to_string(&p) {
+            Ok(t) => t,
+            Err(e) => return usage_error(&format!("--config {}: {e}", p.display())),
+        };
+        let v: toml::Value = match toml::from_str(&text) {
+            Ok(v) => v,
+            Err(e) => return usage_error(&format!("{}: {e}", p.display())),
+        };
+        if let Err(e) = settings.apply_config(v, Some(p.clone())) {
+            return usage_error(&format!("{}: {e}", p.display()));
+        }
+    }
+    if let Some(d) = &cli.data {
+        settings.data_dir = d.clone();
+    }
+    install_ctrlc(settings.abort.clone());
+
+    match cli.cmd.unwrap_or(Cmd::Repl) {
+        Cmd::Repl => {
+            let wb = Workbench::new(settings);
+            ExitCode::from(bfpscope::repl::run(wb, bfpscope::repl::default_history()) as u8)
+        }
+        Cmd::Run { file, set } => {
+            if !file.is_file() {
+                return usage_error(&format!("run: {}: no such script file", file.display()));
+            }
+            let mut wb = Workbench::new(settings);
+            for s in &set {
+                match parse_set(s) {
+                    Ok((k, v)) => wb.set_var(&k, v),
+                    Err(e) => return usage_error(&e),
+                }
+            }
+            match wb.run_file(&file) {
+                Ok(_) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(1)
+                }
+            }
+        }
+        Cmd::Eval { expr } => {
+            let mut wb = Workbench::new(settings);
+            match wb.eval_source("eval", &expr) {
+                Ok(v) => {
+                    if !v.is_unit() {
+                        println!("{}", show(&v));
+                    }
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(1)
+                }
+            }
+        }
+        Cmd::Test { dir } => {
+            let dir = dir.unwrap_or_else(|| PathBuf::from("tests/scripts"));
+            if !dir.is_dir() {
+                return usage_error(&format!("test: {}: no such folder", dir.display()));
+            }
+            let mut out = std::io::stdout();
+            match script::testing::run_dir(&dir, &settings, &mut out) {
+                Ok(results) if results.iter().all(|r| r.passed) => ExitCode::SUCCESS,
+                Ok(_) => ExitCode::from(1),
+                Err(e) => usage_error(&format!("test: {}: {e}", dir.display())),
+            }
+        }
+        Cmd::Docs { out, check } => {
+            let text = script::registry::api_markdown(&script::all_docs());
+            if check {
+                let cur = std::fs::read_to_string(&out).unwrap_or_default();
+                if cur == text {
+                    println!("{} is up to date", out.display());
+                    ExitCode::SUCCESS
+                } else {
+                    eprintln!("{} is stale: run `bfpscope docs`", out.display());
+                    ExitCode::from(1)
+                }
+            } else {
+                if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    let _ = std::fs::create_dir_all(d);
+                }
+                match std::fs::write(&out, text) {
+                    Ok(()) => {
+                        println!("wrote {}", out.display());
+                        ExitCode::SUCCESS
+                    }
+                    Err(e) => usage_error(&format!("docs: {}: {e}", out.display())),
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    #[test]
+    fn set_values_parse_by_type() {
+        assert_eq!(parse_set("n=64").unwrap().1.as_int().unwrap(), 64);
+        assert_eq!(parse_set("dwell=0.5").unwrap().1.as_float().unwrap(), 0.5);
+        assert!(parse_set("snake=true").unwrap().1.as_bool().unwrap());
+        assert_eq!(parse_set("label=bead 1").unwrap().1.to_string(), "bead 1");
+        assert!(parse_set("1x=3").is_err());
+        assert!(parse_set("novalue").is_err());
+    }
+}

@@ -1,1 +1,289 @@
-//! Interactive REPL (rustyline).
+//! The interactive prompt (rustyline): history across sessions, completion of binding names,
+//! methods and map keys, signature hints, multi-line input (an entry that Rhai's parser finds
+//! unfinished continues on the next line), Ctrl-C cancels the line being typed or interrupts a
+//! running script or scan, Ctrl-D exits. Works with piped stdin too (one entry per complete
+//! statement), which is how the tests drive it.
+
+use crate::script::registry::Kind;
+use crate::script::{show, Doc, Workbench};
+use rhai::{Engine, ParseErrorType};
+use rustyline::completion::{Completer, Pair};
+use rustyline::error::ReadlineError;
+use rustyline::highlight::Highlighter;
+use rustyline::hint::Hinter;
+use rustyline::history::DefaultHistory;
+use rustyline::validate::{ValidationContext, ValidationResult, Validator};
+use rustyline::{Context, Editor, Helper};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// True when `text` is an unfinished Rhai entry (an open block, bracket or call): the parser
+/// ran into the end of the input.
+pub fn is_incomplete(parser: &Engine, text: &str) -> bool {
+    if text.trim().is_empty() {
+        return false;
+    }
+    match parser.compile(text) {
+        Ok(_) => false,
+        Err(e) => match e.err_type() {
+            ParseErrorType::UnexpectedEOF => true,
+            ParseErrorType::MissingToken(..) => {
+                at_end(text, e.position())
+            }
+            _ => false,
+        },
+    }
+}
+
+fn at_end(text: &str, pos: rhai::Position) -> bool {
+    let Some(line) = pos.line() else { return true };
+    let lines: Vec<&str> = text.trim_end().lines().collect();
+    let n = lines.len().max(1);
+    if line > n {
+        return true;
+    }
+    if line < n {
+        return false;
+    }
+    let col = pos.position().unwrap_or(usize::MAX);
+    col > lines.last().map_or(0, |l| l.chars().count())
+}
+
+/// Completion, hints and multi-line validation for the prompt.
+pub struct ReplHelper {
+    docs: Arc<Vec<Doc>>,
+    /// Variables and script functions defined so far.
+    pub user: Arc<Mutex<Vec<String>>>,
+    parser: Engine,
+}
+
+impl ReplHelper {
+    pub fn new(docs: Arc<Vec<Doc>>) -> Self {
+        Self { docs, user: Arc::default(), parser: Engine::new_raw() }
+    }
+
+    /// Candidates for the word ending at `pos`: `(start, [(display, replacement)])`.
+    pub fn candidates(&self, line: &str, pos: usize) -> (usize, Vec<(String, String)>) {
+        let before = &line[..pos];
+        let start = before.rfind(|c: char| !(c.is_alphanumeric() || c == '_')).map_or(0, |i| i + before[i..].chars().next().map_or(1, |c| c.len_utf8()));
+        let word = &before[start..];
+        let prev = before[..start].chars().last();
+        let mut out: Vec<(String, String)> = vec![];
+        if prev == Some('.') {
+            for d in self.docs.iter() {
+                let (is_m, is_p) = (matches!(d.kind, Kind::Method { .. }), matches!(d.kind, Kind::Property { .. }));
+                if (is_m || is_p) && d.name.starts_with(word) {
+                    let rep = if is_m { format!("{}(", d.name) } else { d.name.clone() };
+                    out.push((format!("{}  ({})", d.signature(), d.family), rep));
+                }
+            }
+        } else if let Some(b) = self.open_map_call(before) {
+            if let Some(d) = self.docs.iter().find(|d| d.name == b && matches!(d.kind, Kind::Function)) {
+                for p in &d.params {
+                    for k in &p.keys {
+                        if k.name.starts_with(word) {
+                            let unit = if k.unit.is_empty() { String::new() } else { format!(" [{}]", k.unit) };
+                            out.push((format!("{}: {}{unit}", k.name, k.ty), format!("{}: ", k.name)));
+                        }
+                    }
+                }
+            }
+        } else {
+            for d in self.docs.iter().filter(|d| matches!(d.kind, Kind::Function)) {
+                if d.name.starts_with(word) {
+                    out.push((d.name.clone(), format!("{}(", d.name)));
+                }
+            }
+            if let Ok(u) = self.user.lock() {
+                for n in u.iter().filter(|n| n.starts_with(word)) {
+                    out.push((n.clone(), n.clone()));
+                }
+            }
+        }
+        out.sort();
+        out.dedup_by(|a, b| a.1 == b.1);
+        (start, out)
+    }
+
+    /// If the cursor is inside `name(#{ … ` (an unclosed map literal passed to a call),
+    /// the name of the call.
+    fn open_map_call(&self, before: &str) -> Option<String> {
+        let mut depth = 0i32;
+        let bytes = before.as_bytes();
+        let mut i = bytes.len();
+        while i > 0 {
+            i -= 1;
+            match bytes[i] {
+                b'}' => depth += 1,
+                b'{' => {
+                    if depth > 0 {
+                        depth -= 1;
+                    } else if i > 0 && bytes[i - 1] == b'#' {
+                        let head = before[..i - 1].trim_end();
+                        let head = head.strip_suffix('(')?.trim_end();
+                        let name: String = head.chars().rev().take_while(|c| c.is_alphanumeric() || *c == '_').collect::<Vec<_>>().into_iter().rev().collect();
+                        return (!name.is_empty()).then_some(name);
+                    } else {
+                        return None;
+                    }
+                }
+                _ => {}
+            }
+        }
+        None
+    }
+
+    /// Hint shown after `name(`: the rest of the signature and the summary.
+    pub fn hint_for(&self, line: &str) -> Option<String> {
+        let head = line.strip_suffix('(')?;
+        let name: String = head.chars().rev().take_while(|c| c.is_alphanumeric() || *c == '_').collect::<Vec<_>>().into_iter().rev().collect();
+        let d = self.docs.iter().find(|d| d.name == name && matches!(d.kind, Kind::Function))?;
+        let sig = d.signature();
+        let rest = sig.strip_prefix(&format!("{name}("))?;
+        Some(format!("{rest}  — {}", d.summary))
+    }
+}
+
+impl Completer for ReplHelper {
+    type Candidate = Pair;
+    fn complete(&self, line: &str, pos: usize, _: &Context<'_>) -> rustyline::Result<(usize, Vec<Pair>)> {
+        let (start, c) = self.candidates(line, pos);
+        Ok((start, c.into_iter().map(|(display, replacement)| Pair { display, replacement }).collect()))
+    }
+}
+
+impl Hinter for ReplHelper {
+    type Hint = String;
+    fn hint(&self, line: &str, pos: usize, _: &Context<'_>) -> Option<String> {
+        (pos == line.len()).then(|| self.hint_for(line)).flatten()
+    }
+}
+
+impl Validator for ReplHelper {
+    fn validate(&self, ctx: &mut ValidationContext) -> rustyline::Result<ValidationResult> {
+        Ok(if is_incomplete(&self.parser, ctx.input()) { ValidationResult::Incomplete } else { ValidationResult::Valid(None) })
+    }
+}
+
+impl Highlighter for ReplHelper {}
+impl Helper for ReplHelper {}
+
+/// `~/.bfpscope_history`.
+pub fn default_history() -> Option<PathBuf> {
+    std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".bfpscope_history"))
+}
+
+/// Run the prompt until Ctrl-D / end of input. Returns the process exit code (0).
+pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
+    let tty = std::io::stdin().is_terminal();
+    let config = rustyline::Config::builder()
+        .auto_add_history(false)
+        .completion_type(rustyline::CompletionType::List)
+        .max_history_size(10_000)
+        .map(|b| b.build())
+        .unwrap_or_default();
+    let mut rl: Editor<ReplHelper, DefaultHistory> = match Editor::with_config(config) {
+        Ok(e) => e,
+        Err(e) => {
+            eprintln!("error: cannot start the prompt: {e}");
+            return 1;
+        }
+    };
+    let helper = ReplHelper::new(wb.docs.clone());
+    let user = helper.user.clone();
+    rl.set_helper(Some(helper));
+    if let Some(h) = history.as_ref().filter(|_| tty) {
+        let _ = rl.load_history(h);
+    }
+    if tty {
+        println!("bfpscope {} — help() lists the bindings, help(\"name\") explains one; Tab completes; Ctrl-C interrupts, Ctrl-D exits.", env!("CARGO_PKG_VERSION"));
+    }
+    let parser = Engine::new_raw();
+    let mut buffer = String::new();
+    loop {
+        let prompt = if buffer.is_empty() { "bfp> " } else { "...> " };
+        match rl.readline(prompt) {
+            Ok(line) => {
+                if !buffer.is_empty() {
+                    buffer.push('\n');
+                }
+                buffer.push_str(&line);
+                if is_incomplete(&parser, &buffer) {
+                    continue;
+                }
+                let entry = std::mem::take(&mut buffer);
+                if entry.trim().is_empty() {
+                    continue;
+                }
+                let _ = rl.add_history_entry(entry.as_str());
+                evaluate(&mut wb, &entry);
+                if let Ok(mut u) = user.lock() {
+                    *u = wb.user_names();
+                }
+            }
+            Err(ReadlineError::Interrupted) => {
+                buffer.clear();
+                println!("^C  (Ctrl-D exits)");
+            }
+            Err(ReadlineError::Eof) => break,
+            Err(e) => {
+                eprintln!("error: {e}");
+                break;
+            }
+        }
+    }
+    if !buffer.trim().is_empty() {
+        evaluate(&mut wb, &buffer); // unfinished entry at end of input: report its error
+    }
+    if let Some(h) = history.as_ref().filter(|_| tty) {
+        let _ = rl.save_history(h);
+    }
+    0
+}
+
+fn evaluate(wb: &mut Workbench, entry: &str) {
+    match wb.eval_line(entry) {
+        Ok(v) => {
+            if !v.is_unit() {
+                println!("{}", show(&v));
+            }
+        }
+        Err(e) if e.interrupted => eprintln!("interrupted (Ctrl-C); the prompt is still here"),
+        Err(e) => eprintln!("error: {e}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn incomplete_entries_are_detected() {
+        let p = Engine::new_raw();
+        assert!(is_incomplete(&p, "fn sq(x) {"));
+        assert!(is_incomplete(&p, "let a = [1, 2,"));
+        assert!(is_incomplete(&p, "mv(#{x: 1.0,"));
+        assert!(!is_incomplete(&p, "fn sq(x) { x * x }"));
+        assert!(!is_incomplete(&p, "let a = 1 +* 2;"));
+        assert!(!is_incomplete(&p, ""));
+    }
+
+    #[test]
+    fn completion_of_names_methods_and_map_keys() {
+        let h = ReplHelper::new(crate::script::all_docs());
+        let (s, c) = h.candidates("scan_x", 6);
+        assert_eq!(s, 0);
+        assert!(c.iter().any(|c| c.1 == "scan_xy("), "{c:?}");
+        assert!(c.iter().any(|c| c.1 == "scan_xz("), "{c:?}");
+        let line = "scan_xy(#{x: [0, 1], n";
+        let (s, c) = h.candidates(line, line.len());
+        assert_eq!(s, line.len() - 1);
+        let reps: Vec<&str> = c.iter().map(|c| c.1.as_str()).collect();
+        assert_eq!(reps, vec!["nx: ", "ny: "]);
+        let line = "let m = s.sx.ab";
+        let (_, c) = h.candidates(line, line.len());
+        assert!(c.iter().any(|c| c.1 == "abs_max("), "{c:?}");
+        assert_eq!(h.hint_for("mv(").unwrap().split("  —").next().unwrap(), "#{x, y, z})");
+    }
+}

@@ -1,1 +1,312 @@
-//! (module under construction: see docs/)
+//! The Rhai engine and the binding registry. One file per binding family; each family is
+//! declared once in [`FAMILIES`]. `Workbench` is one scripting session: engine, variables and
+//! functions that persist across REPL lines, and the shared [`Ctx`].
+
+pub mod core;
+pub mod ctx;
+pub mod motion;
+pub mod registry;
+pub mod scans;
+pub mod testing;
+pub mod types;
+
+pub use ctx::{Ctx, Sandbox, ScriptInfo, Settings};
+pub use registry::{Doc, Registrar};
+pub use types::{show, ImageRef, ProfileRef, ScanRef};
+
+use rhai::{Dynamic, Engine, EvalAltResult, ParseError, Position, Scope, AST};
+use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+/// Every binding family, in the order `help()` lists them. Add a family here once.
+pub const FAMILIES: &[(&str, fn(&mut Registrar))] = &[
+    ("core", core::register),
+    ("motion", motion::register),
+    ("scans", scans::register),
+    ("types", types::register),
+];
+
+/// A script error as the user sees it: one line, with the position.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScriptError {
+    pub message: String,
+    /// Script file (or `repl`, `eval`).
+    pub source: String,
+    pub line: Option<usize>,
+    pub column: Option<usize>,
+    /// Ctrl-C interrupted the script.
+    pub interrupted: bool,
+}
+
+impl std::fmt::Display for ScriptError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.line, self.column) {
+            (Some(l), Some(c)) => write!(f, "{}:{l}:{c}: {}", self.source, self.message),
+            (Some(l), None) => write!(f, "{}:{l}: {}", self.source, self.message),
+            _ => write!(f, "{}: {}", self.source, self.message),
+        }
+    }
+}
+
+impl std::error::Error for ScriptError {}
+
+fn pos_parts(p: Position) -> (Option<usize>, Option<usize>) {
+    (p.line(), p.position())
+}
+
+/// The innermost error of a chain of function calls, its position and source.
+fn innermost(e: &EvalAltResult) -> (&EvalAltResult, Position, Option<String>, Vec<String>) {
+    let mut cur = e;
+    let mut pos = e.position();
+    let mut src = None;
+    let mut chain = vec![];
+    loop {
+        match cur {
+            EvalAltResult::ErrorInFunctionCall(name, s, inner, p) => {
+                chain.push(name.clone());
+                if !s.is_empty() {
+                    src = Some(s.clone());
+                }
+                pos = if inner.position().is_none() { *p } else { inner.position() };
+                cur = inner;
+            }
+            EvalAltResult::ErrorInModule(name, inner, p) => {
+                chain.push(format!("module {name}"));
+                src = Some(name.clone());
+                pos = if inner.position().is_none() { *p } else { inner.position() };
+                cur = inner;
+            }
+            _ => break,
+        }
+    }
+    (cur, pos, src, chain)
+}
+
+/// The text of an error without its position (bindings' own messages come out verbatim).
+pub fn error_message(e: &EvalAltResult) -> String {
+    error_message_with(e, &[])
+}
+
+fn error_message_with(e: &EvalAltResult, docs: &[Doc]) -> String {
+    let (cur, _, _, chain) = innermost(e);
+    let mut msg = match cur {
+        EvalAltResult::ErrorRuntime(d, _) => {
+            if d.is_string() {
+                d.to_string()
+            } else {
+                format!("thrown: {}", show(d))
+            }
+        }
+        EvalAltResult::ErrorTerminated(..) => "interrupted (Ctrl-C)".to_string(),
+        EvalAltResult::ErrorTooManyOperations(..) => {
+            "script stopped: too many operations (runaway loop?); the limit is [sandbox] max_operations in bfpscope.toml".to_string()
+        }
+        EvalAltResult::ErrorStackOverflow(..) => {
+            "script stopped: calls nested too deeply (runaway recursion?); the limit is [sandbox] max_call_levels".to_string()
+        }
+        EvalAltResult::ErrorDataTooLarge(what, _) => {
+            format!("script stopped: {what} too large; the limits are [sandbox] max_string_size / max_array_size / max_map_size")
+        }
+        EvalAltResult::ErrorFunctionNotFound(sig, _) => {
+            let name = sig.split(['(', ' ']).next().unwrap_or(sig).trim();
+            let name = name.rsplit('.').next().unwrap_or(name);
+            match docs.iter().find(|d| d.name == name) {
+                Some(d) => format!("{name}: wrong arguments {}; usage: {}", sig.trim_start_matches(name).trim(), d.usage()),
+                None => format!("function not found: {sig}"),
+            }
+        }
+        EvalAltResult::ErrorVariableNotFound(name, _) => match docs.iter().find(|d| d.name == *name) {
+            Some(d) => format!("{name} is a function; usage: {}", d.usage()),
+            None => format!("variable not found: {name}"),
+        },
+        other => {
+            let text = other.to_string();
+            let suffix = format!(" ({})", other.position());
+            match text.strip_suffix(&suffix) {
+                Some(t) if !other.position().is_none() => t.to_string(),
+                _ => text,
+            }
+        }
+    };
+    let fns: Vec<&String> = chain.iter().filter(|n| !docs.iter().any(|d| &&d.name == n)).collect();
+    if !fns.is_empty() && !matches!(cur, EvalAltResult::ErrorTerminated(..)) {
+        msg.push_str(&format!(" (in {})", fns.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(" ← ")));
+    }
+    msg
+}
+
+impl ScriptError {
+    pub fn from_eval(e: &EvalAltResult, source: &str, docs: &[Doc]) -> ScriptError {
+        let (cur, pos, src, _) = innermost(e);
+        let (line, column) = pos_parts(pos);
+        ScriptError {
+            message: error_message_with(e, docs),
+            source: src.unwrap_or_else(|| source.to_string()),
+            line,
+            column,
+            interrupted: matches!(cur, EvalAltResult::ErrorTerminated(..)),
+        }
+    }
+    pub fn from_parse(e: &ParseError, source: &str) -> ScriptError {
+        let (line, column) = pos_parts(e.position());
+        ScriptError { message: format!("syntax error: {}", e.err_type()), source: source.into(), line, column, interrupted: false }
+    }
+    pub fn plain(message: impl Into<String>, source: &str) -> ScriptError {
+        ScriptError { message: message.into(), source: source.into(), line: None, column: None, interrupted: false }
+    }
+}
+
+/// Build an engine with the sandbox, the abort hook, print routing, module resolution and
+/// every binding family; returns the declarations too.
+pub fn build_engine(ctx: Arc<Ctx>) -> (Engine, Arc<Vec<Doc>>) {
+    let mut engine = Engine::new();
+    let sb = ctx.settings.sandbox;
+    engine
+        .set_max_operations(sb.max_operations)
+        .set_max_call_levels(sb.max_call_levels)
+        .set_max_expr_depths(sb.max_expr_depth, sb.max_expr_depth)
+        .set_max_string_size(sb.max_string_size)
+        .set_max_array_size(sb.max_array_size)
+        .set_max_map_size(sb.max_map_size);
+    let abort = ctx.settings.abort.clone();
+    engine.on_progress(move |_| if abort.load(Ordering::Relaxed) { Some("interrupted (Ctrl-C)".into()) } else { None });
+    let c = ctx.clone();
+    engine.on_print(move |s| c.print(s));
+    let c = ctx.clone();
+    engine.on_debug(move |s, src, pos| {
+        let at = match (src, pos.line()) {
+            (Some(src), Some(l)) => format!("{src}:{l}: "),
+            (None, Some(l)) => format!("line {l}: "),
+            _ => String::new(),
+        };
+        c.print(&format!("{at}{s}"))
+    });
+    // stdlib modules: `import "focus" as focus;` from ./stdlib or the source tree's stdlib/;
+    // no caching, so edited modules are picked up at once.
+    let mut resolvers = rhai::module_resolvers::ModuleResolversCollection::new();
+    for dir in [std::path::PathBuf::from("stdlib"), Path::new(env!("CARGO_MANIFEST_DIR")).join("stdlib")] {
+        let mut r = rhai::module_resolvers::FileModuleResolver::new_with_path(dir);
+        r.enable_cache(false);
+        resolvers.push(r);
+    }
+    engine.set_module_resolver(resolvers);
+
+    let mut docs = vec![];
+    {
+        let mut reg = Registrar::new(&mut engine, &mut docs, ctx.clone());
+        for (_, f) in FAMILIES {
+            f(&mut reg);
+        }
+    }
+    let docs = Arc::new(docs);
+    let _ = ctx.docs.set(docs.clone());
+    (engine, docs)
+}
+
+/// Every declaration (builds a throw-away engine).
+pub fn all_docs() -> Arc<Vec<Doc>> {
+    let (s, _) = Settings::captured(std::env::temp_dir().join("bfpscope-docs"));
+    build_engine(Arc::new(Ctx::new(s))).1
+}
+
+/// One scripting session.
+pub struct Workbench {
+    pub engine: Engine,
+    pub scope: Scope<'static>,
+    /// Functions defined so far (REPL lines are merged in).
+    lib: AST,
+    pub ctx: Arc<Ctx>,
+    pub docs: Arc<Vec<Doc>>,
+}
+
+impl Workbench {
+    pub fn new(settings: Settings) -> Workbench {
+        let ctx = Arc::new(Ctx::new(settings));
+        let (engine, docs) = build_engine(ctx.clone());
+        Workbench { engine, scope: Scope::new(), lib: AST::empty(), ctx, docs }
+    }
+
+    /// Set a script variable (`run --set key=value`).
+    pub fn set_var(&mut self, name: &str, value: Dynamic) {
+        self.scope.set_or_push(name.to_string(), value);
+    }
+
+    /// Names of the variables and script functions defined so far (for completion).
+    pub fn user_names(&self) -> Vec<String> {
+        let mut v: Vec<String> = self.scope.iter_raw().map(|(n, _, _)| n.to_string()).collect();
+        v.extend(self.lib.iter_functions().map(|f| f.name.to_string()));
+        v.sort();
+        v.dedup();
+        v
+    }
+
+    fn compile(&self, source: &str, text: &str) -> Result<AST, ScriptError> {
+        let mut ast = self.engine.compile_with_scope(&self.scope, text).map_err(|e| ScriptError::from_parse(&e, source))?;
+        ast.set_source(source);
+        Ok(ast)
+    }
+
+    fn run_ast(&mut self, ast: &AST, source: &str) -> Result<Dynamic, ScriptError> {
+        self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        let r = self.engine.eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
+        let r = r.map_err(|e| ScriptError::from_eval(&e, source, &self.docs));
+        if r.as_ref().is_err_and(|e| e.interrupted) {
+            self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        }
+        r
+    }
+
+    /// Evaluate one REPL entry: variables and functions persist across entries.
+    pub fn eval_line(&mut self, text: &str) -> Result<Dynamic, ScriptError> {
+        self.ctx.set_script(ScriptInfo { path: None, sha256: None, line: Some(text.to_string()) });
+        let ast = self.compile("repl", text)?;
+        let merged = self.lib.merge(&ast);
+        let r = self.run_ast(&merged, "repl");
+        let mut lib = merged;
+        lib.clear_statements();
+        self.lib = lib;
+        r
+    }
+
+    /// Evaluate source text named `source` (`eval`, tests) with the session's functions.
+    pub fn eval_source(&mut self, source: &str, text: &str) -> Result<Dynamic, ScriptError> {
+        let ast = self.compile(source, text)?;
+        let merged = self.lib.merge(&ast);
+        self.run_ast(&merged, source)
+    }
+
+    /// Compile a script file and record its path and hash for the scans' metadata.
+    pub fn load_file(&mut self, path: &Path) -> Result<AST, ScriptError> {
+        let name = path.display().to_string();
+        let text = std::fs::read(path).map_err(|e| ScriptError::plain(format!("cannot read script: {e}"), &name))?;
+        let src = String::from_utf8(text).map_err(|_| ScriptError::plain("script is not UTF-8 text", &name))?;
+        self.ctx.set_script(ScriptInfo {
+            path: Some(std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())),
+            sha256: Some(ctx::sha256_hex(src.as_bytes())),
+            line: None,
+        });
+        self.compile(&name, &src)
+    }
+
+    /// Run a script file.
+    pub fn run_file(&mut self, path: &Path) -> Result<Dynamic, ScriptError> {
+        let ast = self.load_file(path)?;
+        let merged = self.lib.merge(&ast);
+        self.run_ast(&merged, &path.display().to_string())
+    }
+
+    /// Run an already compiled AST (its top-level statements).
+    pub fn run_compiled(&mut self, ast: &AST, source: &str) -> Result<Dynamic, ScriptError> {
+        self.run_ast(ast, source)
+    }
+
+    /// Call a script function of `ast` without re-running its top-level statements.
+    pub fn call_fn(&mut self, ast: &AST, name: &str, source: &str) -> Result<Dynamic, ScriptError> {
+        self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        let opts = rhai::CallFnOptions::new().eval_ast(false).rewind_scope(true);
+        self.engine
+            .call_fn_with_options::<Dynamic>(opts, &mut self.scope, ast, name, ())
+            .map_err(|e| ScriptError::from_eval(&e, source, &self.docs))
+    }
+}

@@ -1,0 +1,266 @@
+//! The scan engine: executes a [`Plan`] on an [`Instrument`] with every safety rule in one
+//! place.
+//!
+//! 1. Read the start position; pre-flight the whole plan against the soft limits (narrowed to
+//!    the stage's travel range) and the step-size rule. A refused plan moves nothing.
+//! 2. Print the ETA (settle + dwell per point), show a progress bar when stderr is a terminal.
+//! 3. Visit the points; before each one look at the abort flag (Ctrl-C): stop at the next point.
+//! 4. Relative plans return to the start — after completion, after an abort and after a QPD
+//!    error. After a **stage** error the stage is not commanded again (not even to return).
+//! 5. Keep partial data (unmeasured pixels NaN) with status `aborted` / `failed`, attach the
+//!    metadata and autosave — always, also after an abort or a device error.
+
+use super::limits::SoftLimits;
+use super::plan::{fmt_seconds, Plan};
+use crate::data::{Image, Scan, ScanStatus};
+use crate::instrument::{DeviceError, Instrument, Pos};
+use ndarray::Array2;
+use serde_json::{json, Value};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// What the engine needs besides the instrument and the plan.
+pub struct ScanEnv<'a> {
+    /// Soft limits from the config (narrowed to the travel range by the engine).
+    pub limits: &'a SoftLimits,
+    /// Set by Ctrl-C (or a test); the engine clears it when it acts on it.
+    pub abort: &'a AtomicBool,
+    /// Show an indicatif progress bar (callers pass `stderr().is_terminal()`).
+    pub progress: bool,
+    /// Messages for the operator (ETA, return to start, warnings).
+    pub log: &'a dyn Fn(&str),
+    /// Extra metadata merged into `scan.meta` (optics, scene, script path and hash, git...).
+    pub meta: Value,
+    /// Autosave: returns where the scan went.
+    pub save: &'a dyn Fn(&Scan) -> Result<PathBuf, String>,
+}
+
+/// How a scan ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Ended {
+    Complete,
+    /// Ctrl-C after `measured` points.
+    Aborted { measured: usize },
+    /// A device error after `measured` points. `stage_fault`: the stage itself failed and was
+    /// not commanded again.
+    Failed { measured: usize, error: DeviceError, stage_fault: bool },
+}
+
+/// A scan that ran (possibly partially): the data, where it was saved and how it ended.
+#[derive(Debug, Clone)]
+pub struct ScanRun {
+    pub scan: Scan,
+    pub saved: Result<PathBuf, String>,
+    pub ended: Ended,
+    pub returned_to_start: bool,
+}
+
+/// Nothing was measured: the plan was refused, or the start position could not be read.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ScanError {
+    #[error("{0}")]
+    Refused(String),
+    #[error("{kind}: {error} (nothing was moved)")]
+    Device { kind: String, error: DeviceError },
+}
+
+impl ScanRun {
+    /// The outcome as a script sees it: `Ok` for a complete scan (the autosave path, or a
+    /// warning when the autosave failed), `Err` with the whole story otherwise.
+    pub fn summary(&self) -> Result<String, String> {
+        let kind = self.scan.meta["plan"]["kind"].as_str().unwrap_or("scan").to_string();
+        let saved = match &self.saved {
+            Ok(p) => format!("saved to {}", p.display()),
+            Err(e) => format!("AUTOSAVE FAILED: {e}"),
+        };
+        let total = self.scan.meta["points_total"].as_u64().unwrap_or(0);
+        let back = if self.returned_to_start { "; returned to start" } else { "" };
+        match &self.ended {
+            Ended::Complete => Ok(saved),
+            Ended::Aborted { measured } => Err(format!(
+                "{kind} aborted (Ctrl-C) after {measured} of {total} points{back}; partial scan (status aborted) {saved}"
+            )),
+            Ended::Failed { measured, error, stage_fault } => Err(format!(
+                "{kind} failed after {measured} of {total} points: {error}{back}{}; partial scan (status failed) {saved}",
+                if *stage_fault { "; the stage was not commanded further" } else { "" }
+            )),
+        }
+    }
+}
+
+/// Wall-clock time as RFC 3339 UTC (`2026-11-21T16:05:00Z`).
+pub fn utc_now() -> String {
+    let s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let (days, rem) = ((s / 86400) as i64, s % 86400);
+    // civil-from-days (H. Hinnant)
+    let z = days + 719468;
+    let era = z.div_euclid(146097);
+    let doe = z - era * 146097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + (m <= 2) as i64;
+    format!("{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z", rem / 3600, rem % 3600 / 60, rem % 60)
+}
+
+/// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
+pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
+    ((dwell_s * rate_hz).round() as usize).max(1)
+}
+
+/// Run `plan` on `inst`. See the module documentation for the rules.
+pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<ScanRun, ScanError> {
+    let kind = plan.kind.clone();
+    let dev = |error| ScanError::Device { kind: kind.clone(), error };
+    let start: Pos = inst.stage.position().map_err(dev)?;
+    let travel = inst.stage.travel_range().map_err(dev)?;
+    let limits = env.limits.within_travel(travel);
+    let points = limits.preflight(plan, start).map_err(|e| ScanError::Refused(e.0))?;
+
+    let rate = inst.qpd.sample_rate();
+    let n_samples = samples_per_point(plan.dwell_s, rate);
+    let eta = plan.eta_s(inst.settle_s, n_samples as f64 / rate);
+    let clock_kind = if inst.clock.is_virtual() { "simulated" } else { "real" };
+    (env.log)(&format!(
+        "{}: {} points, settle {} + dwell {} per point: ETA {} ({clock_kind} time)",
+        plan.describe(),
+        points.len(),
+        fmt_seconds(inst.settle_s),
+        fmt_seconds(n_samples as f64 / rate),
+        fmt_seconds(eta)
+    ));
+
+    let (rows, cols) = (plan.rows(), plan.cols());
+    let mut sx = Array2::from_elem((rows, cols), f64::NAN);
+    let mut sy = sx.clone();
+    let mut sz = sx.clone();
+    let wall0 = std::time::Instant::now();
+    let wall_start = utc_now();
+    let t0 = inst.clock.now();
+
+    let bar = if env.progress {
+        let b = indicatif::ProgressBar::new(points.len() as u64);
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{msg} [{bar:40}] {pos}/{len} points, ETA {eta}",
+        ) {
+            b.set_style(style.progress_chars("=> "));
+        }
+        b.set_message(kind.clone());
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+
+    let mut ended = Ended::Complete;
+    let mut measured = 0usize;
+    for p in &points {
+        if env.abort.swap(false, Ordering::SeqCst) {
+            ended = Ended::Aborted { measured };
+            break;
+        }
+        if let Err(error) = inst.move_settle(p.target) {
+            ended = Ended::Failed { measured, error, stage_fault: true };
+            break;
+        }
+        match inst.qpd.read(n_samples) {
+            Ok(r) => {
+                sx[[p.row, p.col]] = r.sx;
+                sy[[p.row, p.col]] = r.sy;
+                sz[[p.row, p.col]] = r.sz;
+                measured += 1;
+                bar.inc(1);
+            }
+            Err(error) => {
+                ended = Ended::Failed { measured, error, stage_fault: false };
+                break;
+            }
+        }
+    }
+    bar.finish_and_clear();
+
+    let stage_fault = matches!(ended, Ended::Failed { stage_fault: true, .. });
+    let mut returned = false;
+    let mut return_error = None;
+    if plan.return_to_start && !stage_fault {
+        match inst.move_settle(start) {
+            Ok(()) => returned = true,
+            Err(e) => return_error = Some(e.to_string()),
+        }
+    }
+    if let Some(e) = &return_error {
+        (env.log)(&format!("{kind}: could NOT return to the start position: {e}"));
+    }
+
+    let status = match ended {
+        Ended::Complete => ScanStatus::Complete,
+        Ended::Aborted { .. } => ScanStatus::Aborted,
+        Ended::Failed { .. } => ScanStatus::Failed,
+    };
+    let t1 = inst.clock.now();
+    let colv = plan.col_positions(start);
+    let rowv = plan.row_positions(start);
+    let (xn, yn) = (plan.fast.axis.name(), plan.row_axis().name());
+    let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
+    let mut meta = json!({
+        "plan": plan,
+        "status": status,
+        "points_total": points.len(),
+        "points_measured": measured,
+        "samples_per_point": n_samples,
+        "start_position_um": start,
+        "returned_to_start": returned,
+        "limits": limits,
+        "instrument": inst.description,
+        "time": {
+            "wall_start": wall_start,
+            "wall_end": utc_now(),
+            "wall_s": wall0.elapsed().as_secs_f64(),
+            "clock": if inst.clock.is_virtual() { "virtual" } else { "wall" },
+            "instrument_start_s": t0,
+            "instrument_end_s": t1,
+            "instrument_s": t1 - t0,
+            "eta_s": eta,
+        },
+    });
+    if let Ended::Failed { error, stage_fault, .. } = &ended {
+        meta["error"] = json!({ "message": error.to_string(), "stage_fault": stage_fault });
+    }
+    if let Some(e) = return_error {
+        meta["return_error"] = json!(e);
+    }
+    if let (Value::Object(m), Value::Object(extra)) = (&mut meta, &env.meta) {
+        for (k, v) in extra {
+            m.insert(k.clone(), v.clone());
+        }
+    }
+    let scan = Scan { sx: mk(sx), sy: mk(sy), sz: mk(sz), status, meta };
+    let saved = (env.save)(&scan);
+    if let Err(e) = &saved {
+        (env.log)(&format!("WARNING: {kind}: autosave failed: {e}; save the scan by hand"));
+    }
+    Ok(ScanRun { scan, saved, ended, returned_to_start: returned })
+}
+
+/// Move to an absolute target after checking it against the soft limits (narrowed to the
+/// travel range). `who` names the binding for the message.
+pub fn checked_move(inst: &mut Instrument, limits: &SoftLimits, target: Pos, who: &str) -> Result<(), String> {
+    let travel = inst.stage.travel_range().map_err(|e| format!("{who}: {e}"))?;
+    limits
+        .within_travel(travel)
+        .check(target)
+        .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?;
+    inst.move_settle(target).map_err(|e| format!("{who}: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    #[test]
+    fn utc_now_is_rfc3339() {
+        let s = utc_now();
+        assert_eq!(s.len(), 20, "{s}");
+        assert!(s.starts_with("20") && s.ends_with('Z') && s.as_bytes()[10] == b'T', "{s}");
+    }
+}

@@ -1,0 +1,312 @@
+//! `Grid2`: three signal channels (Sx, Sy, Sz) sampled on a regular 2-D grid of displacements,
+//! with linear or cubic-convolution interpolation and analytic derivatives.
+//!
+//! This is the storage behind every template: the physics model's precomputed single-scatterer
+//! response (`optics::template`) and templates measured from reference-bead scans
+//! (`analysis`). Outside the grid the response is taken as zero: templates are built wide enough
+//! that the response there is negligible (the builder states the truncation level).
+//!
+//! Interpolation error (tested in `tests/optics.rs`): linear is O(h²), cubic convolution
+//! (Keys 1981, a = −1/2) is O(h³) for smooth data.
+
+use serde::{Deserialize, Serialize};
+
+/// Interpolation order, a documented accuracy knob.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Interp {
+    Linear,
+    #[default]
+    Cubic,
+}
+
+impl Interp {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "linear" => Some(Self::Linear),
+            "cubic" => Some(Self::Cubic),
+            _ => None,
+        }
+    }
+}
+
+/// Values and first derivatives of the three channels at one point.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Sample {
+    /// (Sx, Sy, Sz)
+    pub v: [f64; 3],
+    /// ∂/∂u of (Sx, Sy, Sz) along the grid's first (horizontal) coordinate.
+    pub du: [f64; 3],
+    /// ∂/∂v along the second (vertical) coordinate.
+    pub dv: [f64; 3],
+}
+
+/// Regular grid: node (i, j) sits at (u0 + i·h, v0 + j·h); values stored interleaved
+/// `[sx, sy, sz]` per node, row-major in j (so rows = v).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Grid2 {
+    pub u0: f64,
+    pub v0: f64,
+    /// Node spacing (µm), the same along both coordinates.
+    pub h: f64,
+    pub nu: usize,
+    pub nv: usize,
+    pub data: Vec<[f64; 3]>,
+    pub interp: Interp,
+}
+
+impl Grid2 {
+    /// Build a grid by evaluating `f(u, v)` at every node.
+    pub fn from_fn(
+        u0: f64,
+        v0: f64,
+        h: f64,
+        nu: usize,
+        nv: usize,
+        interp: Interp,
+        mut f: impl FnMut(f64, f64) -> [f64; 3],
+    ) -> Self {
+        let mut data = Vec::with_capacity(nu * nv);
+        for j in 0..nv {
+            let v = v0 + j as f64 * h;
+            for i in 0..nu {
+                data.push(f(u0 + i as f64 * h, v));
+            }
+        }
+        Self {
+            u0,
+            v0,
+            h,
+            nu,
+            nv,
+            data,
+            interp,
+        }
+    }
+
+    /// Node value at integer indices (zero outside).
+    #[inline]
+    fn node(&self, i: isize, j: isize) -> [f64; 3] {
+        if i < 0 || j < 0 || i as usize >= self.nu || j as usize >= self.nv {
+            [0.0; 3]
+        } else {
+            self.data[j as usize * self.nu + i as usize]
+        }
+    }
+
+    /// Extent covered by the nodes: ((u_min, u_max), (v_min, v_max)).
+    pub fn extent(&self) -> ((f64, f64), (f64, f64)) {
+        (
+            (self.u0, self.u0 + (self.nu.max(1) - 1) as f64 * self.h),
+            (self.v0, self.v0 + (self.nv.max(1) - 1) as f64 * self.h),
+        )
+    }
+
+    /// True when (u, v) lies inside the node extent.
+    #[inline]
+    pub fn contains(&self, u: f64, v: f64) -> bool {
+        let ((a, b), (c, d)) = self.extent();
+        u >= a && u <= b && v >= c && v <= d
+    }
+
+    /// Interpolated (Sx, Sy, Sz) at (u, v); zero outside the grid or for non-finite input.
+    #[inline]
+    pub fn eval(&self, u: f64, v: f64) -> [f64; 3] {
+        if self.interp == Interp::Cubic && self.nu >= 4 && self.nv >= 4 {
+            // hot path of every render: stencil fully inside → no bounds checks per node
+            let fu = (u - self.u0) / self.h;
+            let fv = (v - self.v0) / self.h;
+            if fu >= 1.0 && fv >= 1.0 && fu < (self.nu - 2) as f64 && fv < (self.nv - 2) as f64 {
+                let (iu, iv) = (fu as usize, fv as usize);
+                let (wu, _) = keys(fu - iu as f64);
+                let (wv, _) = keys(fv - iv as f64);
+                let mut out = [0.0; 3];
+                for (b, &wvb) in wv.iter().enumerate() {
+                    let base = (iv - 1 + b) * self.nu + iu - 1;
+                    let row = &self.data[base..base + 4];
+                    let mut acc = [0.0; 3];
+                    for (n, &wua) in row.iter().zip(&wu) {
+                        acc[0] += wua * n[0];
+                        acc[1] += wua * n[1];
+                        acc[2] += wua * n[2];
+                    }
+                    out[0] += wvb * acc[0];
+                    out[1] += wvb * acc[1];
+                    out[2] += wvb * acc[2];
+                }
+                return out;
+            }
+        }
+        self.sample(u, v, false).v
+    }
+
+    /// Values and derivatives at (u, v).
+    #[inline]
+    pub fn eval_grad(&self, u: f64, v: f64) -> Sample {
+        self.sample(u, v, true)
+    }
+
+    fn sample(&self, u: f64, v: f64, grad: bool) -> Sample {
+        let mut out = Sample::default();
+        if !self.contains(u, v) || self.nu < 2 || self.nv < 2 {
+            return out;
+        }
+        let fu = (u - self.u0) / self.h;
+        let fv = (v - self.v0) / self.h;
+        let iu = (fu.floor() as isize).min(self.nu as isize - 2);
+        let iv = (fv.floor() as isize).min(self.nv as isize - 2);
+        let tu = fu - iu as f64;
+        let tv = fv - iv as f64;
+        let inv_h = 1.0 / self.h;
+        match self.interp {
+            Interp::Linear => {
+                let wu = [1.0 - tu, tu];
+                let wv = [1.0 - tv, tv];
+                let du = [-inv_h, inv_h];
+                let dv = [-inv_h, inv_h];
+                for (b, (&wvb, &dvb)) in wv.iter().zip(&dv).enumerate() {
+                    for (a, (&wua, &dua)) in wu.iter().zip(&du).enumerate() {
+                        let n = self.node(iu + a as isize, iv + b as isize);
+                        for c in 0..3 {
+                            out.v[c] += wua * wvb * n[c];
+                            if grad {
+                                out.du[c] += dua * wvb * n[c];
+                                out.dv[c] += wua * dvb * n[c];
+                            }
+                        }
+                    }
+                }
+            }
+            Interp::Cubic => {
+                let (wu, du) = keys(tu);
+                let (wv, dv) = keys(tv);
+                for b in 0..4 {
+                    let jj = iv - 1 + b as isize;
+                    // row partial sums
+                    let mut row = [0.0; 3];
+                    let mut row_du = [0.0; 3];
+                    for a in 0..4 {
+                        let n = self.node(iu - 1 + a as isize, jj);
+                        for c in 0..3 {
+                            row[c] += wu[a] * n[c];
+                            if grad {
+                                row_du[c] += du[a] * n[c];
+                            }
+                        }
+                    }
+                    for c in 0..3 {
+                        out.v[c] += wv[b] * row[c];
+                        if grad {
+                            out.du[c] += wv[b] * row_du[c] * inv_h;
+                            out.dv[c] += dv[b] * row[c] * inv_h;
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Memory held by the node values, bytes.
+    pub fn bytes(&self) -> usize {
+        self.data.len() * std::mem::size_of::<[f64; 3]>()
+    }
+}
+
+/// Keys (1981) cubic-convolution weights (a = −1/2) for nodes −1, 0, 1, 2 at fraction t,
+/// and their derivatives with respect to t.
+#[inline]
+fn keys(t: f64) -> ([f64; 4], [f64; 4]) {
+    let t2 = t * t;
+    let t3 = t2 * t;
+    let w = [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ];
+    let d = [
+        0.5 * (-3.0 * t2 + 4.0 * t - 1.0),
+        0.5 * (9.0 * t2 - 10.0 * t),
+        0.5 * (-9.0 * t2 + 8.0 * t + 1.0),
+        0.5 * (3.0 * t2 - 2.0 * t),
+    ];
+    (w, d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn smooth(u: f64, v: f64) -> [f64; 3] {
+        let g = (-(u * u + v * v) / 0.16).exp();
+        [u * g, v * g, g]
+    }
+
+    #[test]
+    fn reproduces_nodes_exactly_and_zero_outside() {
+        let g = Grid2::from_fn(-1.0, -1.0, 0.05, 41, 41, Interp::Cubic, smooth);
+        let (u, v) = (-1.0 + 13.0 * 0.05, -1.0 + 27.0 * 0.05);
+        let s = g.eval(u, v);
+        let e = smooth(u, v);
+        for c in 0..3 {
+            assert!((s[c] - e[c]).abs() < 1e-15);
+        }
+        assert_eq!(g.eval(1.2, 0.0), [0.0; 3]);
+        assert_eq!(g.eval(f64::NAN, 0.0), [0.0; 3]);
+    }
+
+    #[test]
+    fn cubic_error_scales_as_h3_and_beats_linear() {
+        let err = |h: f64, interp| {
+            let n = (2.0 / h).round() as usize + 1;
+            let g = Grid2::from_fn(-1.0, -1.0, h, n, n, interp, smooth);
+            let mut m: f64 = 0.0;
+            for k in 0..200 {
+                let u = -0.7 + 1.4 * (k as f64 * 0.6180339887).fract();
+                let v = -0.7 + 1.4 * (k as f64 * 0.4142135623).fract();
+                m = m.max((g.eval(u, v)[0] - smooth(u, v)[0]).abs());
+            }
+            m
+        };
+        let (c1, c2) = (err(0.04, Interp::Cubic), err(0.02, Interp::Cubic));
+        let (l1, l2) = (err(0.04, Interp::Linear), err(0.02, Interp::Linear));
+        assert!(c1 / c2 > 6.0, "cubic order: {c1} / {c2}");
+        assert!(l1 / l2 > 3.5 && l1 / l2 < 4.5, "linear order: {l1} / {l2}");
+        assert!(c2 < l2 / 5.0);
+    }
+
+    #[test]
+    fn fast_path_equals_general_path() {
+        let g = Grid2::from_fn(-1.0, -1.0, 0.05, 41, 41, Interp::Cubic, smooth);
+        for k in 0..500 {
+            let u = -1.1 + 2.2 * (k as f64 * 0.618_033_988_7).fract();
+            let v = -1.1 + 2.2 * (k as f64 * 0.414_213_562_3).fract();
+            let (a, b) = (g.eval(u, v), g.sample(u, v, false).v);
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() < 1e-15, "({u}, {v})");
+            }
+        }
+    }
+
+    #[test]
+    fn derivative_matches_finite_difference() {
+        let g = Grid2::from_fn(-1.0, -1.0, 0.02, 101, 101, Interp::Cubic, smooth);
+        let (u, v) = (0.123, -0.071);
+        let s = g.eval_grad(u, v);
+        let e = 1e-5;
+        for c in 0..3 {
+            let fd_u = (g.eval(u + e, v)[c] - g.eval(u - e, v)[c]) / (2.0 * e);
+            let fd_v = (g.eval(u, v + e)[c] - g.eval(u, v - e)[c]) / (2.0 * e);
+            assert!((s.du[c] - fd_u).abs() < 1e-6, "du c={c}");
+            assert!((s.dv[c] - fd_v).abs() < 1e-6, "dv c={c}");
+        }
+        // Close to the analytic slope of u·exp(-(u²+v²)/0.16) at the origin (= 1). At a node the
+        // cubic-convolution derivative is the central difference, error h²/6·f''' = 0.0025 here.
+        let slope = g.eval_grad(0.0, 0.0).du[0];
+        assert!(
+            (slope - (1.0 - 0.02f64.powi(2) / 6.0 * 37.5)).abs() < 1e-4,
+            "slope {slope}"
+        );
+    }
+}

@@ -1,0 +1,148 @@
+//! Core bindings: `help`, the test assertions (`assert`, `assert_close`, `assert_err`),
+//! `linspace`, `version`.
+
+use super::registry::{fail, find, help_index, int, num, Doc, RResult, Registrar};
+use rhai::{Array, Dynamic, FnPtr, NativeCallContext};
+
+/// `assert_close`'s check, shared with the Rust tests: |a − b| ≤ rel·max(|a|, |b|).
+pub fn close(a: f64, b: f64, rel: f64) -> bool {
+    a == b || (a - b).abs() <= rel * a.abs().max(b.abs())
+}
+
+pub fn register(r: &mut Registrar) {
+    let c = r.ctx();
+    r.bind(
+        Doc::func("help", "core")
+            .opt("name", "string", "", "a binding (`mv`, `img.max`, `scan.sx`) or a family (`scans`)")
+            .form("help(name)")
+            .summary("list every binding by family, or show one binding's arguments, units and examples")
+            .example("help()", "()")
+            .example("help(\"scan_xy\")", "()"),
+        move || {
+            c.print(&help_index(&c.docs()));
+        },
+    );
+    let c = r.ctx();
+    r.overload("help", move |name: &str| -> RResult<()> {
+        let docs = c.docs();
+        let hits = find(&docs, name);
+        if hits.is_empty() {
+            let mut near: Vec<&str> = docs.iter().map(|d| d.name.as_str()).filter(|n| n.contains(name) || name.contains(*n)).collect();
+            near.dedup();
+            return fail(format!(
+                "help: no binding called {name:?}{}; help() lists them all",
+                if near.is_empty() { String::new() } else { format!(" (did you mean {}?)", near.join(", ")) }
+            ));
+        }
+        if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {
+            for d in hits {
+                c.print(&format!("  {}", d.one_line()));
+            }
+        } else {
+            for d in hits {
+                c.print(&d.long_help());
+            }
+        }
+        Ok(())
+    });
+
+    r.bind(
+        Doc::func("assert", "testing")
+            .arg("cond", "bool", "", "must be true")
+            .opt("message", "string", "", "what was expected")
+            .form("assert(cond, message)")
+            .summary("fail the script (test) with `message` unless `cond` is true")
+            .example("assert(1 + 1 == 2, \"arithmetic\")", "()")
+            .example("assert(false, \"the bead is gone\")", "error: assertion failed: the bead is gone"),
+        |cond: Dynamic, msg: &str| -> RResult<()> { check(cond, msg) },
+    );
+    r.overload("assert", |cond: Dynamic| -> RResult<()> { check(cond, "") });
+
+    r.bind(
+        Doc::func("assert_close", "testing")
+            .arg("a", "float", "", "value obtained")
+            .arg("b", "float", "", "value expected")
+            .arg("rel", "float", "", "relative tolerance, 0 ≤ rel")
+            .summary("fail unless |a − b| ≤ rel·max(|a|, |b|); the message shows both values and the relative difference")
+            .example("assert_close(1.0, 1.0005, 1e-3)", "()")
+            .example("assert_close(1.0, 1.1, 1e-3)", "error: assert_close: a = 1 and b = 1.1 differ by 9.091e-2 (relative) > rel = 1e-3"),
+        |a: Dynamic, b: Dynamic, rel: Dynamic| -> RResult<()> {
+            let a = super::registry::to_f64(&a).ok_or_else(|| format!("assert_close: a must be a number, got {} {a}", a.type_name()))?;
+            let b = super::registry::to_f64(&b).ok_or_else(|| format!("assert_close: b must be a number, got {} {b}", b.type_name()))?;
+            let rel = num("assert_close", "rel", &rel)?;
+            if rel < 0.0 {
+                return fail(format!("assert_close: rel = {rel} is out of range: rel ≥ 0"));
+            }
+            if a.is_nan() || b.is_nan() {
+                return fail(format!("assert_close: a = {a}, b = {b}: NaN is never close"));
+            }
+            if close(a, b, rel) {
+                Ok(())
+            } else {
+                let d = (a - b).abs() / a.abs().max(b.abs());
+                fail(format!("assert_close: a = {a} and b = {b} differ by {d:.3e} (relative) > rel = {rel:e}"))
+            }
+        },
+    );
+    r.bind(
+        Doc::func("assert_err", "testing")
+            .arg("f", "fn", "", "a closure `|| …` that must throw")
+            .opt("contains", "string", "", "text the error message must contain")
+            .form("assert_err(f, contains)")
+            .returns("string", "the error message")
+            .summary("pass if calling `f` throws (optionally with a message containing `contains`); returns the message")
+            .example("assert_err(|| mv(#{x: 1000.0}))", "\"mv refused, nothing was moved: x = 1000 µm is above the soft limit x ≤ 50 µm\"")
+            .example("assert_err(|| 1 + 1)", "error: assert_err: expected an error, but the closure returned 2")
+            .example("assert_err(|| qpd(0), \"out of range\").len() > 0", "true"),
+        |ctx: NativeCallContext, f: FnPtr| -> RResult<String> { expect_err(&ctx, &f, None) },
+    );
+    r.overload("assert_err", |ctx: NativeCallContext, f: FnPtr, contains: &str| -> RResult<String> {
+        expect_err(&ctx, &f, Some(contains))
+    });
+
+    r.bind(
+        Doc::func("linspace", "core")
+            .arg("from", "float", "", "first value")
+            .arg("to", "float", "", "last value")
+            .arg("n", "int", "", "number of values, 1 ≤ n ≤ 10000000")
+            .returns("array", "n floats")
+            .summary("evenly spaced values from `from` to `to` inclusive")
+            .example("linspace(0, 1, 5)", "[0.0, 0.25, 0.5, 0.75, 1.0]"),
+        |a: Dynamic, b: Dynamic, n: Dynamic| -> RResult<Array> {
+            let (a, b) = (num("linspace", "from", &a)?, num("linspace", "to", &b)?);
+            let n = int("linspace", "n", &n)?;
+            if !(1..=10_000_000).contains(&n) {
+                return fail(format!("linspace: n = {n} is out of range: 1 ≤ n ≤ 10000000"));
+            }
+            Ok(crate::acquire::plan::linspace(a, b, n as usize).into_iter().map(Dynamic::from).collect())
+        },
+    );
+    r.bind(
+        Doc::func("version", "core").returns("string", "").summary("program name and version").example("version().starts_with(\"bfpscope \")", "true"),
+        || format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
+    );
+}
+
+fn check(cond: Dynamic, msg: &str) -> RResult<()> {
+    match cond.as_bool() {
+        Ok(true) => Ok(()),
+        Ok(false) => fail(if msg.is_empty() { "assertion failed".to_string() } else { format!("assertion failed: {msg}") }),
+        Err(t) => fail(format!("assert: cond must be true or false, got {t} {cond}")),
+    }
+}
+
+fn expect_err(ctx: &NativeCallContext, f: &FnPtr, contains: Option<&str>) -> RResult<String> {
+    match f.call_within_context::<Dynamic>(ctx, ()) {
+        Ok(v) => fail(format!("assert_err: expected an error, but the closure returned {}", super::types::show(&v))),
+        Err(e) => {
+            if matches!(*e, rhai::EvalAltResult::ErrorTerminated(..)) {
+                return Err(e); // Ctrl-C is never swallowed
+            }
+            let msg = super::error_message(&e);
+            match contains {
+                Some(t) if !msg.contains(t) => fail(format!("assert_err: the error {msg:?} does not contain {t:?}")),
+                _ => Ok(msg),
+            }
+        }
+    }
+}

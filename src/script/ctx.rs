@@ -1,0 +1,276 @@
+//! The state every binding shares: settings (data folder, soft limits, sandbox), the connected
+//! instrument, the abort flag, the optics and scene (for metadata), the script being run.
+
+use super::registry::{fail, Doc, RResult};
+use crate::acquire::mock::MockHandle;
+use crate::acquire::{SessionStore, SoftLimits};
+use crate::instrument::Instrument;
+use crate::optics::Optics;
+use serde_json::{json, Value};
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
+
+/// Where text goes (stdout/stderr in the binary, a buffer in tests).
+pub type Printer = Arc<dyn Fn(&str) + Send + Sync>;
+
+/// Rhai sandbox limits (config `[sandbox]`). Generous defaults: a runaway loop stops after
+/// about ten seconds of pure computation.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Sandbox {
+    pub max_operations: u64,
+    pub max_call_levels: usize,
+    pub max_expr_depth: usize,
+    pub max_string_size: usize,
+    pub max_array_size: usize,
+    pub max_map_size: usize,
+}
+
+impl Default for Sandbox {
+    fn default() -> Self {
+        Self {
+            max_operations: 500_000_000,
+            max_call_levels: 128,
+            max_expr_depth: 256,
+            max_string_size: 64 << 20,
+            max_array_size: 50_000_000,
+            max_map_size: 1_000_000,
+        }
+    }
+}
+
+impl Sandbox {
+    /// Read `[sandbox]` from a parsed config (missing keys keep their defaults).
+    pub fn from_toml(config: &toml::Value) -> Result<Sandbox, String> {
+        let mut s = Sandbox::default();
+        let Some(t) = config.get("sandbox") else { return Ok(s) };
+        let t = t.as_table().ok_or("config: [sandbox] must be a table")?;
+        for (k, v) in t {
+            let n = v
+                .as_integer()
+                .filter(|n| *n > 0)
+                .ok_or_else(|| format!("config: sandbox.{k} = {v} must be a positive integer"))?;
+            match k.as_str() {
+                "max_operations" => s.max_operations = n as u64,
+                "max_call_levels" => s.max_call_levels = n as usize,
+                "max_expr_depth" => s.max_expr_depth = n as usize,
+                "max_string_size" => s.max_string_size = n as usize,
+                "max_array_size" => s.max_array_size = n as usize,
+                "max_map_size" => s.max_map_size = n as usize,
+                _ => {
+                    return Err(format!(
+                        "config: unknown key sandbox.{k} (allowed: max_operations, max_call_levels, \
+                         max_expr_depth, max_string_size, max_array_size, max_map_size)"
+                    ))
+                }
+            }
+        }
+        Ok(s)
+    }
+}
+
+/// How a workbench is set up (from the CLI and the config).
+#[derive(Clone)]
+pub struct Settings {
+    /// Session folder for autosaved scans.
+    pub data_dir: PathBuf,
+    pub limits: SoftLimits,
+    pub sandbox: Sandbox,
+    /// Show progress bars (stderr is a terminal).
+    pub progress: bool,
+    /// `print` output and results.
+    pub print: Printer,
+    /// Operator messages: ETA, warnings (stderr).
+    pub log: Printer,
+    /// Set by Ctrl-C.
+    pub abort: Arc<AtomicBool>,
+    /// The parsed config file, if any (other sections are read by their owners).
+    pub config: Option<toml::Value>,
+    pub config_path: Option<PathBuf>,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            data_dir: PathBuf::from("bfpscope_data"),
+            limits: SoftLimits::default(),
+            sandbox: Sandbox::default(),
+            progress: false,
+            print: Arc::new(|s| println!("{s}")),
+            log: Arc::new(|s| eprintln!("{s}")),
+            abort: Arc::new(AtomicBool::new(false)),
+            config: None,
+            config_path: None,
+        }
+    }
+}
+
+impl Settings {
+    /// Settings that capture `print` and log output into one shared string (tests).
+    pub fn captured(data_dir: impl Into<PathBuf>) -> (Settings, Arc<Mutex<String>>) {
+        let buf = Arc::new(Mutex::new(String::new()));
+        let (b1, b2) = (buf.clone(), buf.clone());
+        let s = Settings {
+            data_dir: data_dir.into(),
+            print: Arc::new(move |s| {
+                let mut b = b1.lock().unwrap_or_else(|e| e.into_inner());
+                b.push_str(s);
+                b.push('\n');
+            }),
+            log: Arc::new(move |s| {
+                let mut b = b2.lock().unwrap_or_else(|e| e.into_inner());
+                b.push_str(s);
+                b.push('\n');
+            }),
+            ..Settings::default()
+        };
+        (s, buf)
+    }
+
+    /// Apply a parsed config (`[limits]`, `[sandbox]`, `[session] data_dir`).
+    pub fn apply_config(&mut self, config: toml::Value, path: Option<PathBuf>) -> Result<(), String> {
+        self.limits = SoftLimits::from_toml(&config)?;
+        self.sandbox = Sandbox::from_toml(&config)?;
+        if let Some(d) = config.get("session").and_then(|s| s.get("data_dir")) {
+            let d = d.as_str().ok_or("config: session.data_dir must be a string")?;
+            self.data_dir = PathBuf::from(d);
+        }
+        self.config = Some(config);
+        self.config_path = path;
+        Ok(())
+    }
+}
+
+/// The script (or REPL) whose actions are being recorded.
+#[derive(Debug, Clone, Default)]
+pub struct ScriptInfo {
+    pub path: Option<PathBuf>,
+    pub sha256: Option<String>,
+    /// For the REPL: the line being run.
+    pub line: Option<String>,
+}
+
+/// Shared state of one workbench.
+pub struct Ctx {
+    pub settings: Settings,
+    instrument: Mutex<Option<Instrument>>,
+    pub(crate) mock: Mutex<Option<MockHandle>>,
+    pub store: SessionStore,
+    pub(crate) script: Mutex<ScriptInfo>,
+    /// Optics of the set-up (the physics bindings may change it).
+    pub optics: Mutex<Optics>,
+    /// The scene of the simulated instrument, recorded in scan metadata.
+    pub scene: Mutex<Option<Value>>,
+    pub(crate) docs: OnceLock<Arc<Vec<Doc>>>,
+    git: OnceLock<Option<String>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Ctx {
+    pub fn new(settings: Settings) -> Ctx {
+        Ctx {
+            store: SessionStore::new(settings.data_dir.clone()),
+            settings,
+            instrument: Mutex::new(None),
+            mock: Mutex::new(None),
+            script: Mutex::new(ScriptInfo::default()),
+            optics: Mutex::new(Optics::default()),
+            scene: Mutex::new(None),
+            docs: OnceLock::new(),
+            git: OnceLock::new(),
+        }
+    }
+
+    /// Every binding declaration (available once the engine is built).
+    pub fn docs(&self) -> Arc<Vec<Doc>> {
+        self.docs.get().cloned().unwrap_or_default()
+    }
+
+    pub fn print(&self, s: &str) {
+        (self.settings.print)(s)
+    }
+    pub fn log(&self, s: &str) {
+        (self.settings.log)(s)
+    }
+
+    /// Install an instrument (replacing the previous one).
+    pub fn connect(&self, inst: Instrument, mock: Option<MockHandle>) {
+        *lock(&self.instrument) = Some(inst);
+        *lock(&self.mock) = mock;
+    }
+    pub fn is_connected(&self) -> bool {
+        lock(&self.instrument).is_some()
+    }
+    /// The mock's handle when the mock instrument is connected.
+    pub fn mock(&self) -> Option<MockHandle> {
+        lock(&self.mock).clone()
+    }
+
+    /// Run `f` with the instrument; `who` names the binding in the error when none is connected.
+    pub fn with_instrument<T>(&self, who: &str, f: impl FnOnce(&mut Instrument) -> RResult<T>) -> RResult<T> {
+        let mut g = lock(&self.instrument);
+        match g.as_mut() {
+            Some(inst) => f(inst),
+            None => fail(format!(
+                "{who}: no instrument connected; connect one with connect(#{{backend: \"mock\"}}) \
+                 (the simulated instrument becomes the default when it lands)"
+            )),
+        }
+    }
+
+    pub fn set_script(&self, info: ScriptInfo) {
+        *lock(&self.script) = info;
+    }
+    pub fn script(&self) -> ScriptInfo {
+        lock(&self.script).clone()
+    }
+
+    /// Git revision of the working directory (`git rev-parse`), once per workbench.
+    pub fn git_revision(&self) -> Option<String> {
+        self.git
+            .get_or_init(|| {
+                let dir = self
+                    .script()
+                    .path
+                    .and_then(|p| p.parent().map(|d| d.to_path_buf()))
+                    .filter(|d| !d.as_os_str().is_empty())
+                    .unwrap_or_else(|| PathBuf::from("."));
+                let out = std::process::Command::new("git")
+                    .args(["rev-parse", "--short=12", "HEAD"])
+                    .current_dir(dir)
+                    .stderr(std::process::Stdio::null())
+                    .output()
+                    .ok()?;
+                out.status.success().then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+            })
+            .clone()
+    }
+
+    /// Metadata every scan carries besides the plan and the instrument: optics, scene,
+    /// script path and hash, git revision, program version.
+    pub fn scan_meta(&self) -> Value {
+        let script = self.script();
+        json!({
+            "optics": *lock(&self.optics),
+            "scene": *lock(&self.scene),
+            "script": {
+                "path": script.path.map(|p| p.display().to_string()),
+                "sha256": script.sha256,
+                "repl_line": script.line,
+            },
+            "git_revision": self.git_revision(),
+            "program": format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
+            "config": self.settings.config_path.as_ref().map(|p| p.display().to_string()),
+        })
+    }
+}
+
+/// SHA-256 of some bytes as lowercase hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    let d = sha2::Sha256::digest(bytes);
+    d.iter().map(|b| format!("{b:02x}")).collect()
+}

@@ -1,0 +1,608 @@
+//! The binding registry: every script binding is declared once — name, family, arguments with
+//! types and units, one-line summary, help text, examples with expected results — and from
+//! that one declaration come the Rhai registration, `help()` / `help("name")`, REPL completion
+//! (names and map keys), `docs/api.md` and the test that runs every example.
+//!
+//! A family file (`src/script/<family>.rs`) has one `pub fn register(r: &mut Registrar)`:
+//!
+//! ```ignore
+//! pub fn register(r: &mut Registrar) {
+//!     let ctx = r.ctx();
+//!     let d = Doc::func("p_scat_ratio", "optics")
+//!         .arg("d_nm", "float", "nm", "particle diameter")
+//!         .arg("n", "float", "", "refractive index of the particle")
+//!         .returns("float", "scattered / incident power")
+//!         .summary("fraction of the beam power a small sphere scatters")
+//!         .help("Rayleigh limit, suppl. S3, eq. (S12).")
+//!         .example("p_scat_ratio(110, 1.572) > 0.0", "true");
+//!     r.bind(d, move |d_nm: Dynamic, n: Dynamic| -> RResult<f64> {
+//!         let d_nm = num("p_scat_ratio", "d_nm", &d_nm)?;
+//!         ...
+//!     });
+//! }
+//! ```
+//! and is listed once in [`super::FAMILIES`].
+
+use super::ctx::Ctx;
+use rhai::{Dynamic, Engine, EvalAltResult, Map, RhaiNativeFunc};
+use std::any::Any;
+use std::sync::Arc;
+
+/// Result type of every binding.
+pub type RResult<T> = Result<T, Box<EvalAltResult>>;
+
+/// A script error with `msg` (the binding names itself in the message).
+pub fn fail<T>(msg: impl Into<String>) -> RResult<T> {
+    Err(msg.into().into())
+}
+
+/// One argument (or one key of a map argument).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Param {
+    pub name: String,
+    /// `float`, `int`, `string`, `bool`, `map`, `array`, `Scan`, `Image`, `fn`, `number`
+    /// (int or float), `[from, to]`...
+    pub ty: String,
+    /// Unit at the script boundary (`µm`, `s`, `nm`, ...; empty when dimensionless).
+    pub unit: String,
+    pub doc: String,
+    pub optional: bool,
+    /// Keys of a map argument.
+    pub keys: Vec<Param>,
+}
+
+/// What a binding is in Rhai.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Kind {
+    Function,
+    /// `value.name(args)`: the first Rhai argument is the value of type `ty`.
+    Method { ty: String },
+    /// `value.name`: a property getter of type `ty`.
+    Property { ty: String },
+    /// Operators (`img * 2.0`), documented once, registered by hand.
+    Operator { ty: String },
+}
+
+/// An example and its expected result: a Rhai expression compared by value (floats to a
+/// relative 1e-9), or `error: <text>` meaning the code must fail with a message containing
+/// `<text>`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Example {
+    pub code: String,
+    pub expect: String,
+}
+
+/// The single declaration of a binding.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Doc {
+    pub name: String,
+    pub family: String,
+    pub kind: Kind,
+    pub params: Vec<Param>,
+    /// (type, description incl. units)
+    pub returns: (String, String),
+    pub summary: String,
+    pub help: String,
+    pub examples: Vec<Example>,
+    /// Extra call forms (overloads), e.g. `help(name)`. The first form comes from `params`.
+    pub forms: Vec<String>,
+}
+
+/// What a binding's body needs from its declaration to check its arguments: its name, the
+/// allowed map keys and its usage line.
+#[derive(Debug, Clone)]
+pub struct Spec {
+    pub name: String,
+    pub keys: Vec<String>,
+    pub usage: String,
+}
+
+impl Doc {
+    fn new(name: &str, family: &str, kind: Kind) -> Doc {
+        Doc {
+            name: name.into(),
+            family: family.into(),
+            kind,
+            params: vec![],
+            returns: ("()".into(), String::new()),
+            summary: String::new(),
+            help: String::new(),
+            examples: vec![],
+            forms: vec![],
+        }
+    }
+    /// A free function `name(args)` in `family`.
+    pub fn func(name: &str, family: &str) -> Doc {
+        Doc::new(name, family, Kind::Function)
+    }
+    /// A method `value.name(args)` of the Rhai type `ty` (family = the type).
+    pub fn method(ty: &str, name: &str) -> Doc {
+        Doc::new(name, ty, Kind::Method { ty: ty.into() })
+    }
+    /// A property `value.name` of the Rhai type `ty`.
+    pub fn property(ty: &str, name: &str) -> Doc {
+        Doc::new(name, ty, Kind::Property { ty: ty.into() })
+    }
+    /// Operators of the type `ty`, documented under `name` (e.g. `arithmetic`).
+    pub fn operator(ty: &str, name: &str) -> Doc {
+        Doc::new(name, ty, Kind::Operator { ty: ty.into() })
+    }
+    /// A required argument.
+    pub fn arg(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
+        self.params.push(Param { name: name.into(), ty: ty.into(), unit: unit.into(), doc: doc.into(), optional: false, keys: vec![] });
+        self
+    }
+    /// An optional argument (an overload without it exists).
+    pub fn opt(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
+        self.params.push(Param { name: name.into(), ty: ty.into(), unit: unit.into(), doc: doc.into(), optional: true, keys: vec![] });
+        self
+    }
+    /// A map argument with its keys `(name, type, unit, doc)`; a doc starting with
+    /// `"optional"` or containing `"default"` marks the key optional.
+    pub fn map(mut self, name: &str, doc: &str, keys: &[(&str, &str, &str, &str)]) -> Doc {
+        let keys = keys
+            .iter()
+            .map(|(n, t, u, d)| Param {
+                name: (*n).into(),
+                ty: (*t).into(),
+                unit: (*u).into(),
+                doc: (*d).into(),
+                optional: d.starts_with("optional") || d.contains("default"),
+                keys: vec![],
+            })
+            .collect();
+        self.params.push(Param { name: name.into(), ty: "map".into(), unit: String::new(), doc: doc.into(), optional: false, keys });
+        self
+    }
+    pub fn returns(mut self, ty: &str, doc: &str) -> Doc {
+        self.returns = (ty.into(), doc.into());
+        self
+    }
+    pub fn summary(mut self, s: &str) -> Doc {
+        self.summary = s.into();
+        self
+    }
+    pub fn help(mut self, s: &str) -> Doc {
+        self.help = s.into();
+        self
+    }
+    pub fn example(mut self, code: &str, expect: &str) -> Doc {
+        self.examples.push(Example { code: code.into(), expect: expect.into() });
+        self
+    }
+    /// Another call form shown in the usage (an overload).
+    pub fn form(mut self, sig: &str) -> Doc {
+        self.forms.push(sig.into());
+        self
+    }
+
+    /// The receiver placeholder for methods/properties: `scan`, `img`, `profile`.
+    fn receiver(ty: &str) -> String {
+        match ty {
+            "Image" => "img".into(),
+            other => other.to_ascii_lowercase(),
+        }
+    }
+
+    /// The main call form: `scan_xy(#{x, y, nx, ny, z, dwell, rel, snake})`, `img.row(i)`,
+    /// `scan.sx`.
+    pub fn signature(&self) -> String {
+        let args = self
+            .params
+            .iter()
+            .map(|p| {
+                let s = if p.keys.is_empty() {
+                    p.name.clone()
+                } else {
+                    format!("#{{{}}}", p.keys.iter().map(|k| k.name.as_str()).collect::<Vec<_>>().join(", "))
+                };
+                if p.optional {
+                    format!("[{s}]")
+                } else {
+                    s
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        match &self.kind {
+            Kind::Function => format!("{}({args})", self.name),
+            Kind::Method { ty } => format!("{}.{}({args})", Self::receiver(ty), self.name),
+            Kind::Property { ty } => format!("{}.{}", Self::receiver(ty), self.name),
+            Kind::Operator { .. } => self.forms.first().cloned().unwrap_or_else(|| self.name.clone()),
+        }
+    }
+
+    /// All call forms, one per line.
+    pub fn usage(&self) -> String {
+        let mut v = vec![self.signature()];
+        let skip = matches!(self.kind, Kind::Operator { .. }) as usize;
+        v.extend(self.forms.iter().skip(skip).cloned());
+        v.join("  |  ")
+    }
+
+    /// Units of all arguments and keys, grouped: `x, y, z: µm; dwell: s`.
+    pub fn units(&self) -> String {
+        let mut groups: Vec<(String, Vec<String>)> = vec![];
+        let mut add = |unit: &str, name: &str| {
+            if unit.is_empty() {
+                return;
+            }
+            if let Some(g) = groups.iter_mut().find(|g| g.0 == unit) {
+                if !g.1.iter().any(|n| n == name) {
+                    g.1.push(name.into());
+                }
+            } else {
+                groups.push((unit.into(), vec![name.into()]));
+            }
+        };
+        for p in &self.params {
+            add(&p.unit, &p.name);
+            for k in &p.keys {
+                add(&k.unit, &k.name);
+            }
+        }
+        groups.iter().map(|(u, n)| format!("{}: {u}", n.join(", "))).collect::<Vec<_>>().join("; ")
+    }
+
+    /// One line for `help()`: signature, summary, units.
+    pub fn one_line(&self) -> String {
+        let u = self.units();
+        let units = if u.is_empty() { String::new() } else { format!("  [{u}]") };
+        format!("{:<34} {}{units}", self.signature(), self.summary)
+    }
+
+    /// The long help for `help("name")`.
+    pub fn long_help(&self) -> String {
+        let mut s = format!("{}  —  {}\n", self.usage(), self.summary);
+        s.push_str(&format!("family: {}\n", self.family));
+        let mut args = vec![];
+        for p in &self.params {
+            args.push(param_line(p, "  "));
+            for k in &p.keys {
+                args.push(param_line(k, "      "));
+            }
+        }
+        if !args.is_empty() {
+            s.push_str("arguments:\n");
+            s.push_str(&args.join("\n"));
+            s.push('\n');
+        }
+        if self.returns.0 != "()" || !self.returns.1.is_empty() {
+            s.push_str(&format!("returns: {} {}\n", self.returns.0, self.returns.1).replace(" \n", "\n"));
+        }
+        if !self.help.is_empty() {
+            s.push('\n');
+            s.push_str(self.help.trim());
+            s.push('\n');
+        }
+        if !self.examples.is_empty() {
+            s.push_str("\nexamples:\n");
+            for e in &self.examples {
+                s.push_str(&format!("  {}\n    → {}\n", e.code, e.expect));
+            }
+        }
+        s
+    }
+
+    /// The argument-checking view of this declaration.
+    pub fn spec(&self) -> Arc<Spec> {
+        Arc::new(Spec {
+            name: self.name.clone(),
+            keys: self.params.iter().flat_map(|p| p.keys.iter().map(|k| k.name.clone())).collect(),
+            usage: self.usage(),
+        })
+    }
+}
+
+fn param_line(p: &Param, indent: &str) -> String {
+    let unit = if p.unit.is_empty() { String::new() } else { format!(" [{}]", p.unit) };
+    let opt = if p.optional { " (optional)" } else { "" };
+    format!("{indent}{:<10} {}{unit}{opt}  {}", p.name, p.ty, p.doc)
+}
+
+/// Hands a family file the engine, the context and the list of declarations.
+pub struct Registrar<'a> {
+    engine: &'a mut Engine,
+    docs: &'a mut Vec<Doc>,
+    ctx: Arc<Ctx>,
+}
+
+impl<'a> Registrar<'a> {
+    pub fn new(engine: &'a mut Engine, docs: &'a mut Vec<Doc>, ctx: Arc<Ctx>) -> Self {
+        Self { engine, docs, ctx }
+    }
+    /// The shared context (instrument, limits, abort flag, session folder...), to capture in
+    /// binding closures.
+    pub fn ctx(&self) -> Arc<Ctx> {
+        self.ctx.clone()
+    }
+    /// The engine, for registrations that are not bindings of their own (types, operators).
+    pub fn engine(&mut self) -> &mut Engine {
+        self.engine
+    }
+
+    fn push(&mut self, doc: Doc) {
+        debug_assert!(
+            !self.docs.iter().any(|d| d.name == doc.name && d.family == doc.family),
+            "binding {} declared twice",
+            doc.name
+        );
+        self.docs.push(doc);
+    }
+
+    /// Declare and register a function or method (Rhai name = `doc.name`).
+    pub fn bind<A: 'static, const N: usize, const X: bool, R: Any + Clone + Send + Sync, const F: bool>(
+        &mut self,
+        doc: Doc,
+        f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
+    ) {
+        self.engine.register_fn(doc.name.as_str(), f);
+        self.push(doc);
+    }
+
+    /// Register another form (arity or argument types) of an already declared binding.
+    pub fn overload<A: 'static, const N: usize, const X: bool, R: Any + Clone + Send + Sync, const F: bool>(
+        &mut self,
+        name: &str,
+        f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
+    ) {
+        debug_assert!(self.docs.iter().any(|d| d.name == name), "overload of undeclared {name}");
+        self.engine.register_fn(name, f);
+    }
+
+    /// Declare and register a property getter `value.name`.
+    pub fn getter<T: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+        &mut self,
+        doc: Doc,
+        f: impl Fn(&mut T) -> R + Send + Sync + 'static,
+    ) {
+        self.engine.register_get(doc.name.as_str(), f);
+        self.push(doc);
+    }
+
+    /// Declare something registered by hand through [`Registrar::engine`] (operators).
+    pub fn declare(&mut self, doc: Doc) {
+        self.push(doc);
+    }
+}
+
+/// Number from an int or float argument; the message names the binding, the argument and the
+/// value.
+pub fn num(who: &str, name: &str, v: &Dynamic) -> RResult<f64> {
+    let x = to_f64(v).ok_or_else(|| format!("{who}: {name} must be a number, got {} {v}", v.type_name()))?;
+    if x.is_finite() {
+        Ok(x)
+    } else {
+        fail(format!("{who}: {name} = {x} is not a finite number"))
+    }
+}
+
+/// An integer argument (a float with an integral value is accepted).
+pub fn int(who: &str, name: &str, v: &Dynamic) -> RResult<i64> {
+    if let Ok(i) = v.as_int() {
+        return Ok(i);
+    }
+    match v.as_float() {
+        Ok(f) if f.fract() == 0.0 && f.abs() < 9e15 => Ok(f as i64),
+        _ => fail(format!("{who}: {name} must be an integer, got {} {v}", v.type_name())),
+    }
+}
+
+pub fn to_f64(v: &Dynamic) -> Option<f64> {
+    v.as_float().ok().or_else(|| v.as_int().ok().map(|i| i as f64))
+}
+
+/// Checked access to a map argument against the declared keys.
+pub struct Opts<'a> {
+    spec: &'a Spec,
+    map: &'a Map,
+}
+
+impl<'a> Opts<'a> {
+    /// Refuses keys that were not declared (typos), naming the allowed ones.
+    pub fn new(spec: &'a Spec, map: &'a Map) -> RResult<Opts<'a>> {
+        for k in map.keys() {
+            if !spec.keys.iter().any(|d| d == k.as_str()) {
+                return fail(format!(
+                    "{}: unknown key `{k}`; allowed keys: {}; usage: {}",
+                    spec.name,
+                    spec.keys.join(", "),
+                    spec.usage
+                ));
+            }
+        }
+        Ok(Opts { spec, map })
+    }
+    pub fn has(&self, key: &str) -> bool {
+        self.map.contains_key(key)
+    }
+    fn missing<T>(&self, key: &str) -> RResult<T> {
+        fail(format!("{}: missing key `{key}`; usage: {}", self.spec.name, self.spec.usage))
+    }
+    pub fn f64(&self, key: &str) -> RResult<Option<f64>> {
+        self.map.get(key).map(|v| num(&self.spec.name, key, v)).transpose()
+    }
+    pub fn f64_or(&self, key: &str, default: f64) -> RResult<f64> {
+        Ok(self.f64(key)?.unwrap_or(default))
+    }
+    pub fn req_f64(&self, key: &str) -> RResult<f64> {
+        match self.f64(key)? {
+            Some(v) => Ok(v),
+            None => self.missing(key),
+        }
+    }
+    pub fn int(&self, key: &str) -> RResult<Option<i64>> {
+        self.map.get(key).map(|v| int(&self.spec.name, key, v)).transpose()
+    }
+    pub fn req_int(&self, key: &str) -> RResult<i64> {
+        match self.int(key)? {
+            Some(v) => Ok(v),
+            None => self.missing(key),
+        }
+    }
+    pub fn bool_or(&self, key: &str, default: bool) -> RResult<bool> {
+        match self.map.get(key) {
+            None => Ok(default),
+            Some(v) => v.as_bool().or_else(|_| {
+                fail(format!("{}: {key} must be true or false, got {} {v}", self.spec.name, v.type_name()))
+            }),
+        }
+    }
+    pub fn string(&self, key: &str) -> RResult<Option<String>> {
+        match self.map.get(key) {
+            None => Ok(None),
+            Some(v) if v.is_string() => Ok(Some(v.to_string())),
+            Some(v) => fail(format!("{}: {key} must be a string, got {} {v}", self.spec.name, v.type_name())),
+        }
+    }
+    /// `[from, to]` (µm).
+    pub fn range(&self, key: &str) -> RResult<Option<(f64, f64)>> {
+        let Some(v) = self.map.get(key) else { return Ok(None) };
+        let bad = || {
+            fail(format!(
+                "{}: {key} must be [from, to] (two numbers, µm), got {v}; usage: {}",
+                self.spec.name, self.spec.usage
+            ))
+        };
+        let Some(a) = v.read_lock::<rhai::Array>() else { return bad() };
+        if a.len() != 2 {
+            return bad();
+        }
+        let who = &self.spec.name;
+        Ok(Some((num(who, &format!("{key}[0]"), &a[0])?, num(who, &format!("{key}[1]"), &a[1])?)))
+    }
+    pub fn req_range(&self, key: &str) -> RResult<(f64, f64)> {
+        match self.range(key)? {
+            Some(v) => Ok(v),
+            None => self.missing(key),
+        }
+    }
+}
+
+/// `help()` listing: one line per binding, grouped by family (in registration order).
+pub fn help_index(docs: &[Doc]) -> String {
+    let mut families: Vec<&str> = vec![];
+    for d in docs {
+        if !families.contains(&d.family.as_str()) {
+            families.push(&d.family);
+        }
+    }
+    let mut s = String::new();
+    for f in families {
+        s.push_str(&format!("{f}\n"));
+        for d in docs.iter().filter(|d| d.family == f) {
+            s.push_str(&format!("  {}\n", d.one_line()));
+        }
+    }
+    s.push_str("\nhelp(\"name\") for arguments, units and examples.\n");
+    s
+}
+
+/// Find a declaration by name (functions first, then methods/properties), case-insensitive
+/// fallback; `img.max` / `scan.sx` style names also work.
+pub fn find<'d>(docs: &'d [Doc], name: &str) -> Vec<&'d Doc> {
+    let name = name.trim().trim_end_matches("()");
+    let (ty, n) = match name.split_once('.') {
+        Some((t, n)) => (Some(t.to_ascii_lowercase()), n),
+        None => (None, name),
+    };
+    let mut hits: Vec<&Doc> = docs
+        .iter()
+        .filter(|d| d.name == n)
+        .filter(|d| match (&ty, &d.kind) {
+            (None, _) => true,
+            (Some(t), Kind::Method { ty } | Kind::Property { ty } | Kind::Operator { ty }) => {
+                ty.to_ascii_lowercase() == *t || Doc::receiver(ty) == *t
+            }
+            (Some(_), Kind::Function) => false,
+        })
+        .collect();
+    if hits.is_empty() {
+        hits = docs.iter().filter(|d| d.name.eq_ignore_ascii_case(n) || d.family.eq_ignore_ascii_case(name)).collect();
+    }
+    hits
+}
+
+/// `docs/api.md`, generated from the declarations.
+pub fn api_markdown(docs: &[Doc]) -> String {
+    let mut s = String::from(
+        "# bfpscope script API\n\n\
+         Generated from the binding declarations by `bfpscope docs`; do not edit by hand \
+         (a test fails when this file is stale).\n\n\
+         Units at the script boundary: positions and lengths in µm, diameters and wavelengths \
+         in nm, power in mW, time in s. Every example below is run by the test suite and its \
+         result checked (examples that need an instrument run against the mock instrument, \
+         `connect(#{backend: \"mock\"})`).\n\n",
+    );
+    let mut families: Vec<&str> = vec![];
+    for d in docs {
+        if !families.contains(&d.family.as_str()) {
+            families.push(&d.family);
+        }
+    }
+    s.push_str("## Contents\n\n");
+    for f in &families {
+        let names: Vec<String> = docs
+            .iter()
+            .filter(|d| d.family == *f)
+            .map(|d| format!("[`{}`](#{})", d.name, anchor(d)))
+            .collect();
+        s.push_str(&format!("- **{f}**: {}\n", names.join(", ")));
+    }
+    for f in &families {
+        s.push_str(&format!("\n## {f}\n"));
+        for d in docs.iter().filter(|d| d.family == *f) {
+            s.push_str(&format!("\n<a id=\"{}\"></a>\n### `{}`\n\n", anchor(d), d.signature()));
+            s.push_str(&format!("{}\n\n", d.summary));
+            if !d.forms.is_empty() {
+                s.push_str(&format!("Forms: `{}`\n\n", d.usage().replace("  |  ", "`, `")));
+            }
+            let rows: Vec<&Param> = d.params.iter().collect();
+            if !rows.is_empty() {
+                s.push_str("| argument | type | unit | description |\n|---|---|---|---|\n");
+                for p in rows {
+                    s.push_str(&md_row(p, ""));
+                    for k in &p.keys {
+                        s.push_str(&md_row(k, &format!("{}.", p.name)));
+                    }
+                }
+                s.push('\n');
+            }
+            if d.returns.0 != "()" || !d.returns.1.is_empty() {
+                s.push_str(&format!("Returns: `{}` {}\n\n", d.returns.0, d.returns.1));
+            }
+            if !d.help.is_empty() {
+                s.push_str(d.help.trim());
+                s.push_str("\n\n");
+            }
+            if !d.examples.is_empty() {
+                s.push_str("```rhai\n");
+                for e in &d.examples {
+                    s.push_str(&format!("{}\n// → {}\n", e.code, e.expect));
+                }
+                s.push_str("```\n");
+            }
+        }
+    }
+    s
+}
+
+fn anchor(d: &Doc) -> String {
+    match &d.kind {
+        Kind::Function => d.name.clone(),
+        Kind::Method { ty } | Kind::Property { ty } | Kind::Operator { ty } => {
+            format!("{}-{}", ty.to_ascii_lowercase(), d.name)
+        }
+    }
+}
+
+fn md_row(p: &Param, prefix: &str) -> String {
+    let opt = if p.optional { " (optional)" } else { "" };
+    format!(
+        "| `{prefix}{}` | {} | {} | {}{opt} |\n",
+        p.name,
+        p.ty.replace('|', "\\|"),
+        p.unit,
+        p.doc.replace('|', "\\|")
+    )
+}

@@ -1,0 +1,281 @@
+//! Scan bindings: `scan_line`, `scan_xy`, `scan_xz`, `scan_yz`, SPEC's `ascan`, `dscan`,
+//! `mesh`, `dmesh`, and scan files (`scan.save`, `load_scan`). Bindings only build a
+//! [`Plan`]; `acquire::run_plan` executes it natively with every safety rule.
+
+use super::ctx::Ctx;
+use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
+use super::types::ScanRef;
+use crate::acquire::plan::{Axis, Plan, Sweep, MAX_POINTS_PER_AXIS};
+use crate::acquire::{run_plan, ScanEnv};
+use crate::data::Scan;
+use rhai::{Dynamic, Map};
+use std::path::PathBuf;
+
+/// Default dwell per point (s).
+pub const DEFAULT_DWELL_S: f64 = 1e-3;
+
+/// Execute a plan on the connected instrument; complete → the scan, otherwise a script error
+/// that tells what happened and where the partial scan was saved.
+pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
+    let meta = c.scan_meta();
+    let store = c.store.clone();
+    let save = move |s: &Scan| store.autosave(s).map_err(|e| e.to_string());
+    let log = |s: &str| c.log(s);
+    let kind = plan.kind.clone();
+    c.with_instrument(&kind, |inst| {
+        let env = ScanEnv {
+            limits: &c.settings.limits,
+            abort: &c.settings.abort,
+            progress: c.settings.progress,
+            log: &log,
+            meta,
+            save: &save,
+        };
+        let run = run_plan(inst, &plan, &env).map_err(|e| e.to_string())?;
+        match run.summary() {
+            Ok(msg) => {
+                let t = run.scan.meta["time"]["instrument_s"].as_f64().unwrap_or(0.0);
+                c.log(&format!("{kind}: complete in {} instrument time, {msg}", crate::acquire::plan::fmt_seconds(t)));
+                let path = run.saved.ok().map(|p| p.display().to_string());
+                Ok(ScanRef::new(run.scan, path))
+            }
+            Err(msg) => fail(msg),
+        }
+    })
+}
+
+fn axis_arg(who: &str, v: &Dynamic, usage: &str) -> RResult<Axis> {
+    let s = if v.is_string() { v.to_string() } else { String::new() };
+    Axis::parse(&s).map_or_else(
+        || fail(format!("{who}: axis = {v} is not one of \"x\", \"y\", \"z\"; usage: {usage}")),
+        Ok,
+    )
+}
+
+/// Number of SPEC intervals → points (intervals + 1), checked.
+fn intervals(who: &str, name: &str, v: &Dynamic) -> RResult<i64> {
+    let k = int(who, name, v)?;
+    if k < 1 || k as usize > MAX_POINTS_PER_AXIS - 1 {
+        return fail(format!("{who}: {name} = {k} is out of range: 1 ≤ {name} ≤ {} (SPEC counts intervals: {name} + 1 points)", MAX_POINTS_PER_AXIS - 1));
+    }
+    Ok(k + 1)
+}
+
+fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
+    let (f, s, x) = (fast.name(), slow.name(), fixed.name());
+    let nf = format!("n{f}");
+    let ns = format!("n{s}");
+    let keys: Vec<(String, &str, &str, String)> = vec![
+        (f.into(), "[from, to]", "µm", format!("{f} range (columns)")),
+        (s.into(), "[from, to]", "µm", format!("{s} range (rows)")),
+        (nf.clone(), "int", "", format!("points along {f}, 1 ≤ {nf} ≤ {MAX_POINTS_PER_AXIS}")),
+        (ns.clone(), "int", "", format!("points along {s}, 1 ≤ {ns} ≤ {MAX_POINTS_PER_AXIS}")),
+        (x.into(), "float", "µm", format!("optional: {x} held during the scan (default: where it is)")),
+        ("dwell".into(), "float", "s", "dwell per point, default 0.001".into()),
+        ("rel".into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
+        ("snake".into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
+    ];
+    let keys_ref: Vec<(&str, &str, &str, &str)> = keys.iter().map(|(a, b, c, d)| (a.as_str(), *b, *c, d.as_str())).collect();
+    Doc::func(name, "scans")
+        .map("plan", &format!("the {f}{s} raster"), &keys_ref)
+        .returns("Scan", "sx, sy, sz images (columns along x-axis name, rows along the other), metadata; autosaved")
+        .summary(&format!("2-D scan over {f} (columns) and {s} (rows), {x} fixed"))
+        .help(
+            "The whole plan is checked against the soft limits and the step-size rule before the first \
+             move, and the ETA (settle + dwell per point) is printed. A progress bar shows when stderr is \
+             a terminal. Ctrl-C stops at the next point: a relative scan returns to its start, the partial \
+             scan (unmeasured pixels NaN) is saved with status \"aborted\" and the call fails with a message \
+             naming the file. A device error does the same with status \"failed\" and the device's words; \
+             after a stage error the stage is not commanded again. Every scan is autosaved in the session \
+             folder (`scan.path`).",
+        )
+        .example(
+            &format!("let s = scan_{f}{s}(#{{{f}: [-1.0, 1.0], {s}: [-0.5, 0.5], {nf}: 21, {ns}: 11, dwell: 0.001}}); [s.cols, s.rows, s.status]"),
+            "[21, 11, \"complete\"]",
+        )
+        .example(
+            &format!("scan_{f}{s}(#{{{f}: [-1.0, 1.0], {s}: [0, 1], {nf}: 0, {ns}: 3}})"),
+            &format!("error: scan_{f}{s}: {nf} = 0 is out of range: 1 ≤ {nf} ≤ 4096"),
+        )
+}
+
+fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
+    let name = format!("scan_{}{}", fast.name(), slow.name());
+    let mut d = grid_doc(&name, fast, slow, fixed);
+    if fast == Axis::X && slow == Axis::Y {
+        d = d
+            .example(
+                "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 4, snake: true}); s.sx.at(1, 0) == scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 4}).sx.at(1, 0)",
+                "true",
+            )
+            .example("mv(#{x: 1.0}); scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 5, rel: true}); pos().x", "1.0")
+            .example("scan_xy(#{x: [45.0, 55.0], y: [0, 1], nx: 11, ny: 2})", "error: point 7 of 22: x = 51 µm is above the soft limit x ≤ 50 µm")
+            .example("scan_xy(#{x: [0, 1], y: [0, 1], nx: 2, ny: 2, speed: 3})", "error: unknown key `speed`");
+    }
+    let spec = d.spec();
+    let c = r.ctx();
+    let (fk, sk, xk) = (fast.name(), slow.name(), fixed.name());
+    let (nfk, nsk) = (format!("n{fk}"), format!("n{sk}"));
+    r.bind(d, move |m: Map| -> RResult<ScanRef> {
+        let o = Opts::new(&spec, &m)?;
+        let who = spec.name.as_str();
+        let (f0, f1) = o.req_range(fk)?;
+        let (s0, s1) = o.req_range(sk)?;
+        let fsw = Sweep::new(who, fast, f0, f1, o.req_int(&nfk)?, &nfk).map_err(|e| e.0)?;
+        let ssw = Sweep::new(who, slow, s0, s1, o.req_int(&nsk)?, &nsk).map_err(|e| e.0)?;
+        let fixed_v = o.f64(xk)?.map(|v| vec![(fixed, v)]).unwrap_or_default();
+        let plan = Plan::grid(
+            who,
+            fsw,
+            ssw,
+            fixed_v,
+            o.f64_or("dwell", DEFAULT_DWELL_S)?,
+            o.bool_or("rel", false)?,
+            o.bool_or("snake", false)?,
+        )
+        .map_err(|e| e.0)?;
+        execute(&c, plan)
+    });
+}
+
+pub fn register(r: &mut Registrar) {
+    let d = Doc::func("scan_line", "scans")
+        .map(
+            "plan",
+            "the line",
+            &[
+                ("axis", "string", "", "\"x\", \"y\" or \"z\""),
+                ("from", "float", "µm", "first position"),
+                ("to", "float", "µm", "last position"),
+                ("n", "int", "", "number of points, 1 ≤ n ≤ 4096"),
+                ("dwell", "float", "s", "dwell per point, default 0.001"),
+                ("rel", "bool", "", "from/to relative to the start, return to start at the end; default false"),
+            ],
+        )
+        .returns("Scan", "one row (the line) of sx, sy, sz; autosaved")
+        .summary("line scan along one axis")
+        .help("Same safety rules as scan_xy (pre-flight, ETA, abort, return to start, autosave). Take the profile with `scan.sx.row(0)`.")
+        .example("let s = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}); [s.rows, s.cols, s.x[20]]", "[1, 41, 0.0]")
+        .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
+        .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
+    let spec = d.spec();
+    let c = r.ctx();
+    r.bind(d, move |m: Map| -> RResult<ScanRef> {
+        let o = Opts::new(&spec, &m)?;
+        let axis = match m.get("axis") {
+            Some(a) => axis_arg("scan_line", a, &spec.usage)?,
+            None => return fail(format!("scan_line: missing key `axis`; usage: {}", spec.usage)),
+        };
+        let sw = Sweep::new("scan_line", axis, o.req_f64("from")?, o.req_f64("to")?, o.req_int("n")?, "n").map_err(|e| e.0)?;
+        let plan = Plan::line("scan_line", sw, o.f64_or("dwell", DEFAULT_DWELL_S)?, o.bool_or("rel", false)?).map_err(|e| e.0)?;
+        execute(&c, plan)
+    });
+
+    register_grid(r, Axis::X, Axis::Y, Axis::Z);
+    register_grid(r, Axis::X, Axis::Z, Axis::Y);
+    register_grid(r, Axis::Y, Axis::Z, Axis::X);
+
+    // SPEC vocabulary
+    for (name, rel) in [("ascan", false), ("dscan", true)] {
+        let what = if rel { "relative" } else { "absolute" };
+        let mut d = Doc::func(name, "scans")
+            .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
+            .arg("from", "float", "µm", if rel { "start, relative to the current position" } else { "start position" })
+            .arg("to", "float", "µm", if rel { "end, relative to the current position" } else { "end position" })
+            .arg("intervals", "int", "", "number of intervals (SPEC): intervals + 1 points")
+            .arg("dwell", "float", "s", "count time per point")
+            .returns("Scan", "a line scan (one row); autosaved")
+            .summary(&format!("SPEC {what} line scan: intervals + 1 points from `from` to `to`"))
+            .help(&format!(
+                "As in SPEC, the fourth argument counts intervals, so `{name}(\"x\", -1, 1, 20, 0.01)` measures 21 points. {}",
+                if rel { "Positions are relative to where the stage is, and the stage returns there at the end, after Ctrl-C and after a QPD error." } else { "The stage stays at the last point." }
+            ));
+        d = if rel {
+            d.example("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")
+        } else {
+            d.example("let s = ascan(\"y\", -1, 1, 20, 0.001); [s.cols, s.x[20], pos().y]", "[21, 1.0, 1.0]")
+        };
+        d = d.example(&format!("{name}(\"x\", 0, 1)"), &format!("error: usage: {name}(axis, from, to, intervals, dwell)"));
+        let spec = d.spec();
+        let c = r.ctx();
+        r.bind(d, move |axis: Dynamic, from: Dynamic, to: Dynamic, n: Dynamic, dwell: Dynamic| -> RResult<ScanRef> {
+            let who = spec.name.as_str();
+            let axis = axis_arg(who, &axis, &spec.usage)?;
+            let n = intervals(who, "intervals", &n)?;
+            let sw = Sweep::new(who, axis, num(who, "from", &from)?, num(who, "to", &to)?, n, "points").map_err(|e| e.0)?;
+            let plan = Plan::line(who, sw, num(who, "dwell", &dwell)?, rel).map_err(|e| e.0)?;
+            execute(&c, plan)
+        });
+    }
+    for (name, rel) in [("mesh", false), ("dmesh", true)] {
+        let what = if rel { "relative" } else { "absolute" };
+        let mut d = Doc::func(name, "scans")
+            .arg("axis1", "string", "", "fast axis (columns)")
+            .arg("from1", "float", "µm", "")
+            .arg("to1", "float", "µm", "")
+            .arg("intervals1", "int", "", "intervals along axis1 (intervals1 + 1 points)")
+            .arg("axis2", "string", "", "slow axis (rows)")
+            .arg("from2", "float", "µm", "")
+            .arg("to2", "float", "µm", "")
+            .arg("intervals2", "int", "", "intervals along axis2")
+            .arg("dwell", "float", "s", "count time per point")
+            .returns("Scan", "2-D scan; autosaved")
+            .summary(&format!("SPEC {what} 2-D mesh scan (raster, axis1 fast)"));
+        d = if rel {
+            d.help("Positions relative to the start; returns to the start at the end and after Ctrl-C.")
+                .example("let s = dmesh(\"x\", -0.5, 0.5, 4, \"z\", -0.2, 0.2, 2, 0.001); [s.cols, s.rows, s.axes, pos().z]", "[5, 3, [\"x\", \"z\"], 0.0]")
+        } else {
+            d.example("let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]", "[11, 6]")
+        };
+        d = d.example(&format!("{name}(\"x\", 0, 1, 4, \"x\", 0, 1, 4, 0.001)"), "error: both scan axes are x");
+        let spec = d.spec();
+        let c = r.ctx();
+        r.bind(
+            d,
+            move |a1: Dynamic, f1: Dynamic, t1: Dynamic, n1: Dynamic, a2: Dynamic, f2: Dynamic, t2: Dynamic, n2: Dynamic, dwell: Dynamic| -> RResult<ScanRef> {
+                let who = spec.name.as_str();
+                let a1 = axis_arg(who, &a1, &spec.usage)?;
+                let a2 = axis_arg(who, &a2, &spec.usage)?;
+                let s1 = Sweep::new(who, a1, num(who, "from1", &f1)?, num(who, "to1", &t1)?, intervals(who, "intervals1", &n1)?, "points1").map_err(|e| e.0)?;
+                let s2 = Sweep::new(who, a2, num(who, "from2", &f2)?, num(who, "to2", &t2)?, intervals(who, "intervals2", &n2)?, "points2").map_err(|e| e.0)?;
+                let plan = Plan::grid(who, s1, s2, vec![], num(who, "dwell", &dwell)?, rel, false).map_err(|e| e.0)?;
+                execute(&c, plan)
+            },
+        );
+    }
+
+    // files (interim JSON format until data::npz lands)
+    let c = r.ctx();
+    r.bind(
+        Doc::method("Scan", "save")
+            .arg("path", "string", "", "file to write (never overwritten)")
+            .returns("string", "the path written")
+            .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
+            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.json\"; s.save(p); load_scan(p).cols", "3")
+            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); s.save(s.path)", "error: exists; scans are never overwritten"),
+        move |s: &mut ScanRef, path: &str| -> RResult<String> {
+            let p = resolve(&c, path);
+            crate::acquire::store::save_scan(&p, &s.scan).map_err(|e| format!("scan.save: {}: {e}", p.display()))?;
+            Ok(p.display().to_string())
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("load_scan", "scans")
+            .arg("path", "string", "", "a scan file written by autosave or scan.save")
+            .returns("Scan", "")
+            .summary("load a saved scan (unmeasured pixels come back as NaN)")
+            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); load_scan(s.path).x", "[0.0, 0.5, 1.0]")
+            .example("load_scan(\"no/such/file.json\")", "error: load_scan: no/such/file.json"),
+        move |path: &str| -> RResult<ScanRef> {
+            let p = resolve(&c, path);
+            let s = crate::acquire::store::load_scan(&p).map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
+            Ok(ScanRef::new(s, Some(p.display().to_string())))
+        },
+    );
+}
+
+/// Paths are used as given (relative to the working directory).
+fn resolve(_c: &Ctx, path: &str) -> PathBuf {
+    PathBuf::from(path)
+}

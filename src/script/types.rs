@@ -1,0 +1,623 @@
+//! Rhai types `Scan`, `Image`, `Profile`: property access, statistics, arithmetic, readable
+//! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
+
+use super::registry::{fail, int, num, Doc, RResult, Registrar};
+use crate::data::{Image, Profile, Scan, ScanStatus};
+use ndarray::Array2;
+use rhai::{Array, Dynamic, Map, INT};
+use std::fmt;
+use std::sync::Arc;
+
+/// A scan in a script (`Scan`).
+#[derive(Debug, Clone)]
+pub struct ScanRef {
+    pub scan: Arc<Scan>,
+    /// Where it was saved, if it was.
+    pub path: Option<Arc<str>>,
+}
+
+/// An image in a script (`Image`).
+#[derive(Debug, Clone)]
+pub struct ImageRef(pub Arc<Image>);
+
+/// A 1-D curve in a script (`Profile`).
+#[derive(Debug, Clone)]
+pub struct ProfileRef(pub Arc<Profile>);
+
+impl ScanRef {
+    pub fn new(scan: Scan, path: Option<String>) -> Self {
+        Self { scan: Arc::new(scan), path: path.map(Arc::from) }
+    }
+}
+
+/// Statistics over the finite values (unmeasured NaN pixels are skipped).
+#[derive(Debug, Clone, Copy)]
+pub struct Stats {
+    pub n: usize,
+    pub n_nan: usize,
+    pub min: f64,
+    pub max: f64,
+    pub mean: f64,
+    pub std: f64,
+    pub abs_max: f64,
+}
+
+pub fn stats<'a>(values: impl Iterator<Item = &'a f64>) -> Stats {
+    let (mut n, mut n_nan, mut min, mut max, mut sum, mut sum2) = (0usize, 0usize, f64::INFINITY, f64::NEG_INFINITY, 0.0, 0.0);
+    for &v in values {
+        if v.is_finite() {
+            n += 1;
+            min = min.min(v);
+            max = max.max(v);
+            sum += v;
+            sum2 += v * v;
+        } else {
+            n_nan += 1;
+        }
+    }
+    let mean = if n > 0 { sum / n as f64 } else { f64::NAN };
+    let var = if n > 0 { (sum2 / n as f64 - mean * mean).max(0.0) } else { f64::NAN };
+    Stats { n, n_nan, min, max, mean, std: var.sqrt(), abs_max: min.abs().max(max.abs()) }
+}
+
+fn checked_stats<'a>(who: &str, values: impl Iterator<Item = &'a f64>) -> RResult<Stats> {
+    let s = stats(values);
+    if s.n == 0 {
+        return fail(format!("{who}: no measured (finite) values: every pixel is NaN or the data is empty"));
+    }
+    Ok(s)
+}
+
+fn g(v: f64) -> String {
+    if v == 0.0 || (1e-3..1e5).contains(&v.abs()) {
+        let s = format!("{v:.4}");
+        let s = s.trim_end_matches('0').trim_end_matches('.');
+        s.to_string()
+    } else {
+        format!("{v:.4e}")
+    }
+}
+
+fn axis_desc(name: &str, a: &[f64]) -> String {
+    match a {
+        [] => format!("{name}: empty"),
+        [v] => format!("{name} = {} µm", g(*v)),
+        _ => format!("{name}: {} … {} µm", g(a[0]), g(a[a.len() - 1])),
+    }
+}
+
+impl fmt::Display for ImageRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let i = &self.0;
+        let s = stats(i.data.iter());
+        write!(f, "Image {}×{} (rows × cols; {}, {})", i.rows(), i.cols(), axis_desc(&i.y_name, &i.y), axis_desc(&i.x_name, &i.x))?;
+        if s.n > 0 {
+            write!(f, " min {} max {} mean {} std {}", g(s.min), g(s.max), g(s.mean), g(s.std))?;
+        }
+        if s.n_nan > 0 {
+            write!(f, " ({} unmeasured NaN pixels)", s.n_nan)?;
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Display for ProfileRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let p = &self.0;
+        let s = stats(p.v.iter());
+        write!(f, "Profile of {} points ({})", p.v.len(), axis_desc(&p.t_name, &p.t))?;
+        if s.n > 0 {
+            write!(f, " min {} max {} mean {}", g(s.min), g(s.max), g(s.mean))?;
+        }
+        if s.n_nan > 0 {
+            write!(f, " ({} NaN)", s.n_nan)?;
+        }
+        Ok(())
+    }
+}
+
+pub fn status_name(s: ScanStatus) -> &'static str {
+    match s {
+        ScanStatus::Complete => "complete",
+        ScanStatus::Aborted => "aborted",
+        ScanStatus::Failed => "failed",
+    }
+}
+
+impl fmt::Display for ScanRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s = &self.scan;
+        let kind = s.meta["plan"]["kind"].as_str().unwrap_or("scan");
+        write!(
+            f,
+            "Scan {kind} {}×{} ({}, {}), status {}",
+            s.sx.rows(),
+            s.sx.cols(),
+            axis_desc(&s.sx.y_name, &s.sx.y),
+            axis_desc(&s.sx.x_name, &s.sx.x),
+            status_name(s.status)
+        )?;
+        for (n, im) in [("sx", &s.sx), ("sy", &s.sy), ("sz", &s.sz)] {
+            let st = stats(im.data.iter());
+            if st.n > 0 {
+                write!(f, "; {n} [{}, {}]", g(st.min), g(st.max))?;
+            }
+        }
+        if let Some(t) = s.meta["time"]["instrument_s"].as_f64() {
+            write!(f, "; instrument time {}", crate::acquire::plan::fmt_seconds(t))?;
+        }
+        if let Some(p) = &self.path {
+            write!(f, "; saved to {p}")?;
+        }
+        Ok(())
+    }
+}
+
+/// JSON → Rhai value (maps, arrays, numbers, strings, bools, `()` for null).
+pub fn json_to_dynamic(v: &serde_json::Value) -> Dynamic {
+    use serde_json::Value as J;
+    match v {
+        J::Null => Dynamic::UNIT,
+        J::Bool(b) => Dynamic::from(*b),
+        J::Number(n) => match n.as_i64() {
+            Some(i) => Dynamic::from(i as INT),
+            None => Dynamic::from(n.as_f64().unwrap_or(f64::NAN)),
+        },
+        J::String(s) => Dynamic::from(s.clone()),
+        J::Array(a) => Dynamic::from_array(a.iter().map(json_to_dynamic).collect()),
+        J::Object(o) => {
+            let mut m = Map::new();
+            for (k, v) in o {
+                m.insert(k.as_str().into(), json_to_dynamic(v));
+            }
+            Dynamic::from_map(m)
+        }
+    }
+}
+
+/// Rhai value → JSON (for metadata written by scripts).
+pub fn dynamic_to_json(v: &Dynamic) -> serde_json::Value {
+    use serde_json::Value as J;
+    if v.is_unit() {
+        J::Null
+    } else if let Ok(b) = v.as_bool() {
+        J::Bool(b)
+    } else if let Ok(i) = v.as_int() {
+        J::from(i)
+    } else if let Ok(f) = v.as_float() {
+        J::from(f)
+    } else if v.is_string() {
+        J::String(v.to_string())
+    } else if let Some(a) = v.read_lock::<Array>() {
+        J::Array(a.iter().map(dynamic_to_json).collect())
+    } else if let Some(m) = v.read_lock::<Map>() {
+        J::Object(m.iter().map(|(k, v)| (k.to_string(), dynamic_to_json(v))).collect())
+    } else {
+        J::String(show(v))
+    }
+}
+
+pub fn floats(v: &[f64]) -> Array {
+    v.iter().map(|x| Dynamic::from(*x)).collect()
+}
+
+/// How the REPL and `eval` print a value.
+pub fn show(v: &Dynamic) -> String {
+    show_inner(v, true)
+}
+
+fn show_inner(v: &Dynamic, top: bool) -> String {
+    if let Some(s) = v.read_lock::<ScanRef>() {
+        return s.to_string();
+    }
+    if let Some(s) = v.read_lock::<ImageRef>() {
+        return s.to_string();
+    }
+    if let Some(s) = v.read_lock::<ProfileRef>() {
+        return s.to_string();
+    }
+    if let Some(a) = v.read_lock::<Array>() {
+        const MAX: usize = 24;
+        let mut items: Vec<String> = a.iter().take(MAX).map(|x| show_inner(x, false)).collect();
+        if a.len() > MAX {
+            items.push(format!("… ({} items)", a.len()));
+        }
+        return format!("[{}]", items.join(", "));
+    }
+    if let Some(m) = v.read_lock::<Map>() {
+        let items: Vec<String> = m.iter().map(|(k, x)| format!("{k}: {}", show_inner(x, false))).collect();
+        return format!("#{{{}}}", items.join(", "));
+    }
+    if v.is_string() && !top {
+        return format!("{v:?}");
+    }
+    if v.is_unit() {
+        return if top { String::new() } else { "()".into() };
+    }
+    v.to_string()
+}
+
+fn image_from(like: &Image, data: Array2<f64>) -> ImageRef {
+    ImageRef(Arc::new(Image { data, x: like.x.clone(), y: like.y.clone(), x_name: like.x_name.clone(), y_name: like.y_name.clone() }))
+}
+
+fn same_shape(op: &str, a: &Image, b: &Image) -> RResult<()> {
+    if a.data.dim() != b.data.dim() {
+        return fail(format!(
+            "img {op} img2: image shapes differ: {}×{} vs {}×{} (rows × cols)",
+            a.rows(),
+            a.cols(),
+            b.rows(),
+            b.cols()
+        ));
+    }
+    Ok(())
+}
+
+fn index(who: &str, name: &str, i: &Dynamic, len: usize) -> RResult<usize> {
+    let i = int(who, name, i)?;
+    if i < 0 || i as usize >= len {
+        return fail(format!("{who}: {name} = {i} is out of range: 0 ≤ {name} ≤ {}", len as i64 - 1));
+    }
+    Ok(i as usize)
+}
+
+const SCAN_EX: &str = "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.25, 0.25], nx: 11, ny: 5});";
+
+pub fn register(r: &mut Registrar) {
+    {
+        let e = r.engine();
+        e.register_type_with_name::<ScanRef>("Scan")
+            .register_type_with_name::<ImageRef>("Image")
+            .register_type_with_name::<ProfileRef>("Profile");
+        e.register_fn("to_string", |s: &mut ScanRef| s.to_string())
+            .register_fn("to_debug", |s: &mut ScanRef| s.to_string())
+            .register_fn("to_string", |s: &mut ImageRef| s.to_string())
+            .register_fn("to_debug", |s: &mut ImageRef| s.to_string())
+            .register_fn("to_string", |s: &mut ProfileRef| s.to_string())
+            .register_fn("to_debug", |s: &mut ProfileRef| s.to_string());
+    }
+    register_scan(r);
+    register_image(r);
+    register_profile(r);
+}
+
+fn register_scan(r: &mut Registrar) {
+    for (ch, what) in [("sx", "Sx (x-difference signal)"), ("sy", "Sy (y-difference signal)"), ("sz", "Sz (sum signal)")] {
+        let d = Doc::property("Scan", ch)
+            .returns("Image", &format!("the {what} channel; columns along scan.x, rows along scan.y (µm)"))
+            .summary(&format!("{what} image of the scan"))
+            .example(&format!("{SCAN_EX} s.{ch}.cols"), "11");
+        let ch2 = ch.to_string();
+        r.getter(d, move |s: &mut ScanRef| {
+            ImageRef(Arc::new(s.scan.channel(&ch2).cloned().unwrap_or_else(|| s.scan.sx.clone())))
+        });
+    }
+    r.getter(
+        Doc::property("Scan", "x")
+            .returns("array", "µm, one value per column (absolute stage positions)")
+            .summary("horizontal (column) axis of the scan, µm")
+            .help("For XZ scans the columns are x; for YZ scans y. `scan.axes` names them.")
+            .example(&format!("{SCAN_EX} s.x[0]"), "-0.5"),
+        |s: &mut ScanRef| floats(&s.scan.sx.x),
+    );
+    r.getter(
+        Doc::property("Scan", "y")
+            .returns("array", "µm, one value per row (absolute stage positions)")
+            .summary("vertical (row) axis of the scan, µm (z for XZ/YZ scans)")
+            .example(&format!("{SCAN_EX} s.y[4]"), "0.25"),
+        |s: &mut ScanRef| floats(&s.scan.sx.y),
+    );
+    r.getter(
+        Doc::property("Scan", "axes")
+            .returns("array", "[column axis, row axis], e.g. [\"x\", \"z\"]")
+            .summary("names of the column and row axes")
+            .example(&format!("{SCAN_EX} s.axes"), "[\"x\", \"y\"]"),
+        |s: &mut ScanRef| -> Array { vec![s.scan.sx.x_name.clone().into(), s.scan.sx.y_name.clone().into()] },
+    );
+    r.getter(
+        Doc::property("Scan", "rows").returns("int", "").summary("number of rows").example(&format!("{SCAN_EX} s.rows"), "5"),
+        |s: &mut ScanRef| s.scan.sx.rows() as INT,
+    );
+    r.getter(
+        Doc::property("Scan", "cols").returns("int", "").summary("number of columns").example(&format!("{SCAN_EX} s.cols"), "11"),
+        |s: &mut ScanRef| s.scan.sx.cols() as INT,
+    );
+    r.getter(
+        Doc::property("Scan", "meta")
+            .returns("map", "plan, optics, instrument, scene, script path and sha256, git revision, time (wall and instrument), status")
+            .summary("the scan's metadata")
+            .example(&format!("{SCAN_EX} s.meta.points_total"), "55")
+            .example(&format!("{SCAN_EX} s.meta.plan.kind"), "\"scan_xy\""),
+        |s: &mut ScanRef| json_to_dynamic(&s.scan.meta),
+    );
+    r.getter(
+        Doc::property("Scan", "status")
+            .returns("string", "\"complete\", \"aborted\" (Ctrl-C) or \"failed\" (device error)")
+            .summary("whether the scan ran to its end")
+            .example(&format!("{SCAN_EX} s.status"), "\"complete\""),
+        |s: &mut ScanRef| status_name(s.scan.status).to_string(),
+    );
+    r.getter(
+        Doc::property("Scan", "path")
+            .returns("string", "file path, or () if not saved")
+            .summary("where the scan was (auto)saved")
+            .example(&format!("{SCAN_EX} s.path.ends_with(\".json\")"), "true"),
+        |s: &mut ScanRef| s.path.as_ref().map(|p| Dynamic::from(p.to_string())).unwrap_or(Dynamic::UNIT),
+    );
+    r.bind(
+        Doc::method("Scan", "channel")
+            .arg("name", "string", "", "\"sx\", \"sy\" or \"sz\"")
+            .returns("Image", "")
+            .summary("one channel by name")
+            .example(&format!("{SCAN_EX} s.channel(\"sz\").rows"), "5")
+            .example(&format!("{SCAN_EX} s.channel(\"sq\")"), "error: channel = \"sq\""),
+        |s: &mut ScanRef, name: &str| -> RResult<ImageRef> {
+            match s.scan.channel(name) {
+                Some(i) => Ok(ImageRef(Arc::new(i.clone()))),
+                None => fail(format!("scan.channel: channel = {name:?} is not one of \"sx\", \"sy\", \"sz\"")),
+            }
+        },
+    );
+}
+
+fn register_image(r: &mut Registrar) {
+    const IMG: &str = "let img = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 21, ny: 21}).sx;";
+    r.getter(
+        Doc::property("Image", "rows").returns("int", "").summary("number of rows").example(&format!("{IMG} img.rows"), "21"),
+        |i: &mut ImageRef| i.0.rows() as INT,
+    );
+    r.getter(
+        Doc::property("Image", "cols").returns("int", "").summary("number of columns").example(&format!("{IMG} img.cols"), "21"),
+        |i: &mut ImageRef| i.0.cols() as INT,
+    );
+    r.getter(
+        Doc::property("Image", "x").returns("array", "µm").summary("column axis (pixel centres), µm").example(&format!("{IMG} img.x[20]"), "0.5"),
+        |i: &mut ImageRef| floats(&i.0.x),
+    );
+    r.getter(
+        Doc::property("Image", "y").returns("array", "µm").summary("row axis (pixel centres), µm").example(&format!("{IMG} img.y[0]"), "-0.5"),
+        |i: &mut ImageRef| floats(&i.0.y),
+    );
+    r.getter(
+        Doc::property("Image", "dx").returns("float", "µm").summary("pixel spacing along the columns, µm").example(&format!("{IMG} img.dx"), "0.05"),
+        |i: &mut ImageRef| i.0.dx(),
+    );
+    r.getter(
+        Doc::property("Image", "dy").returns("float", "µm").summary("pixel spacing along the rows, µm").example(&format!("{IMG} img.dy"), "0.05"),
+        |i: &mut ImageRef| i.0.dy(),
+    );
+    type StatFn = fn(&Stats) -> f64;
+    let stat_list: [(&str, &str, StatFn, &str); 5] = [
+        ("max", "largest pixel value", |s| s.max, "0.2426"),
+        ("min", "smallest pixel value", |s| s.min, "-0.2426"),
+        ("mean", "mean pixel value", |s| s.mean, "0.0"),
+        ("std", "standard deviation of the pixel values (population)", |s| s.std, "0.05765"),
+        ("abs_max", "largest absolute pixel value", |s| s.abs_max, "0.2426"),
+    ];
+    for (name, what, f, ex) in stat_list {
+        let ex_code = format!("{IMG} round(img.{name}() * 1e4) / 1e4");
+        let ex_val = match name {
+            "max" | "abs_max" => "0.2426",
+            "min" => "-0.2426",
+            "mean" => "0.0",
+            _ => ex,
+        };
+        let d = Doc::method("Image", name)
+            .returns("float", "signal units")
+            .summary(&format!("{what} (NaN pixels skipped)"))
+            .help("Unmeasured (NaN) pixels of a partial scan are skipped; an image without any finite pixel is an error.")
+            .example(&ex_code, ex_val);
+        let who = format!("img.{name}()");
+        r.bind(d, move |i: &mut ImageRef| -> RResult<f64> { Ok(f(&checked_stats(&who, i.0.data.iter())?)) });
+        // the same as a property (`img.max`)
+        let who = format!("img.{name}");
+        r.engine().register_get(name, move |i: &mut ImageRef| -> RResult<f64> { Ok(f(&checked_stats(&who, i.0.data.iter())?)) });
+    }
+    r.bind(
+        Doc::method("Image", "sum").returns("float", "").summary("sum of the finite pixel values").example(&format!("{IMG} round(img.abs().sum() * 100.0) / 100.0"), "18.05"),
+        |i: &mut ImageRef| -> f64 { i.0.data.iter().filter(|v| v.is_finite()).sum() },
+    );
+    r.bind(
+        Doc::method("Image", "abs").returns("Image", "").summary("absolute value of every pixel").example(&format!("{IMG} img.abs().min() >= 0.0"), "true"),
+        |i: &mut ImageRef| image_from(&i.0, i.0.data.mapv(f64::abs)),
+    );
+    r.bind(
+        Doc::method("Image", "argmax")
+            .returns("map", "#{row, col, x, y, v}: indices, position (µm) and value of the largest pixel")
+            .summary("where the largest pixel is")
+            .example(&format!("{IMG} let m = img.argmax(); [m.row, m.col]"), "[10, 14]"),
+        |i: &mut ImageRef| -> RResult<Map> {
+            let mut best: Option<(usize, usize, f64)> = None;
+            for ((r, c), &v) in i.0.data.indexed_iter() {
+                if v.is_finite() && best.is_none_or(|b| v > b.2) {
+                    best = Some((r, c, v));
+                }
+            }
+            let Some((r, c, v)) = best else { return fail("img.argmax(): no measured (finite) pixels") };
+            let mut m = Map::new();
+            m.insert("row".into(), (r as INT).into());
+            m.insert("col".into(), (c as INT).into());
+            m.insert("x".into(), i.0.x[c].into());
+            m.insert("y".into(), i.0.y[r].into());
+            m.insert("v".into(), v.into());
+            Ok(m)
+        },
+    );
+    r.bind(
+        Doc::method("Image", "at")
+            .arg("i", "int", "", "row index, 0 ≤ i < rows")
+            .arg("j", "int", "", "column index, 0 ≤ j < cols")
+            .returns("float", "")
+            .summary("one pixel value")
+            .example(&format!("{IMG} img.at(10, 10)"), "0.0")
+            .example(&format!("{IMG} img.at(21, 0)"), "error: i = 21 is out of range: 0 ≤ i ≤ 20"),
+        |im: &mut ImageRef, i: Dynamic, j: Dynamic| -> RResult<f64> {
+            let i = index("img.at", "i", &i, im.0.rows())?;
+            let j = index("img.at", "j", &j, im.0.cols())?;
+            Ok(im.0.data[[i, j]])
+        },
+    );
+    r.bind(
+        Doc::method("Image", "row")
+            .arg("i", "int", "", "row index, 0 ≤ i < rows")
+            .returns("Profile", "along the column axis (µm)")
+            .summary("one row as a profile")
+            .example(&format!("{IMG} img.row(10).len"), "21")
+            .example(&format!("{IMG} img.row(-1)"), "error: i = -1 is out of range"),
+        |im: &mut ImageRef, i: Dynamic| -> RResult<ProfileRef> {
+            let i = index("img.row", "i", &i, im.0.rows())?;
+            let mut p = Profile::new(im.0.x.clone(), im.0.data.row(i).to_vec());
+            p.t_name = im.0.x_name.clone();
+            Ok(ProfileRef(Arc::new(p)))
+        },
+    );
+    r.bind(
+        Doc::method("Image", "col")
+            .arg("j", "int", "", "column index, 0 ≤ j < cols")
+            .returns("Profile", "along the row axis (µm)")
+            .summary("one column as a profile")
+            .example(&format!("{IMG} img.col(3).t[0]"), "-0.5"),
+        |im: &mut ImageRef, j: Dynamic| -> RResult<ProfileRef> {
+            let j = index("img.col", "j", &j, im.0.cols())?;
+            let mut p = Profile::new(im.0.y.clone(), im.0.data.column(j).to_vec());
+            p.t_name = im.0.y_name.clone();
+            Ok(ProfileRef(Arc::new(p)))
+        },
+    );
+    r.bind(
+        Doc::method("Image", "crop")
+            .arg("r0", "int", "", "first row")
+            .arg("r1", "int", "", "last row (inclusive)")
+            .arg("c0", "int", "", "first column")
+            .arg("c1", "int", "", "last column (inclusive)")
+            .returns("Image", "with the matching axes")
+            .summary("a rectangular slice by pixel indices (inclusive)")
+            .example(&format!("{IMG} let c = img.crop(5, 15, 0, 9); [c.rows, c.cols, c.x[0]]"), "[11, 10, -0.5]"),
+        |im: &mut ImageRef, r0: Dynamic, r1: Dynamic, c0: Dynamic, c1: Dynamic| -> RResult<ImageRef> {
+            let (nr, nc) = (im.0.rows(), im.0.cols());
+            let r0 = index("img.crop", "r0", &r0, nr)?;
+            let r1 = index("img.crop", "r1", &r1, nr)?;
+            let c0 = index("img.crop", "c0", &c0, nc)?;
+            let c1 = index("img.crop", "c1", &c1, nc)?;
+            if r1 < r0 || c1 < c0 {
+                return fail(format!("img.crop: need r0 ≤ r1 and c0 ≤ c1, got rows {r0}..{r1}, cols {c0}..{c1}"));
+            }
+            let data = im.0.data.slice(ndarray::s![r0..=r1, c0..=c1]).to_owned();
+            Ok(ImageRef(Arc::new(
+                Image::new(data, im.0.x[c0..=c1].to_vec(), im.0.y[r0..=r1].to_vec()).with_axis_names(&im.0.x_name, &im.0.y_name),
+            )))
+        },
+    );
+    r.bind(
+        Doc::method("Image", "to_array")
+            .returns("array", "array of rows, each an array of floats")
+            .summary("pixel values as nested arrays (for small images)")
+            .example(&format!("{IMG} img.crop(0, 1, 0, 2).to_array().len"), "2"),
+        |im: &mut ImageRef| -> Array {
+            im.0.data.rows().into_iter().map(|r| Dynamic::from_array(r.iter().map(|v| Dynamic::from(*v)).collect())).collect()
+        },
+    );
+
+    r.declare(
+        Doc::operator("Image", "arithmetic")
+            .form("img + img2, img - img2, img * img2, img / img2, img * 2.0, 2.0 * img, img + 1, img / 4, -img")
+            .returns("Image", "with the axes of the left image")
+            .summary("pixel-wise arithmetic with another image of the same shape or a number")
+            .example(&format!("{IMG} (img * 2.0).max() / img.max()"), "2.0")
+            .example(&format!("{IMG} (img - img).abs_max()"), "0.0")
+            .example(&format!("{IMG} img - img.crop(0, 1, 0, 1)"), "error: image shapes differ: 21×21 vs 2×2"),
+    );
+    macro_rules! ops {
+        ($($op:tt),*) => {$(
+            let e = r.engine();
+            e.register_fn(stringify!($op), |a: ImageRef, b: ImageRef| -> RResult<ImageRef> {
+                same_shape(stringify!($op), &a.0, &b.0)?;
+                Ok(image_from(&a.0, &a.0.data $op &b.0.data))
+            });
+            e.register_fn(stringify!($op), |a: ImageRef, b: f64| image_from(&a.0, a.0.data.mapv(|v| v $op b)));
+            e.register_fn(stringify!($op), |a: ImageRef, b: INT| image_from(&a.0, a.0.data.mapv(|v| v $op b as f64)));
+            e.register_fn(stringify!($op), |b: f64, a: ImageRef| image_from(&a.0, a.0.data.mapv(|v| b $op v)));
+            e.register_fn(stringify!($op), |b: INT, a: ImageRef| image_from(&a.0, a.0.data.mapv(|v| b as f64 $op v)));
+        )*};
+    }
+    ops!(+, -, *, /);
+    r.engine().register_fn("-", |a: ImageRef| image_from(&a.0, a.0.data.mapv(|v| -v)));
+}
+
+fn register_profile(r: &mut Registrar) {
+    const P: &str = "let p = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}).sx.row(0);";
+    r.getter(
+        Doc::property("Profile", "t").returns("array", "µm (or as named by the profile)").summary("positions of the samples").example(&format!("{P} p.t[40]"), "1.0"),
+        |p: &mut ProfileRef| floats(&p.0.t),
+    );
+    r.getter(
+        Doc::property("Profile", "v").returns("array", "signal units").summary("values of the samples").example(&format!("{P} p.v.len"), "41"),
+        |p: &mut ProfileRef| floats(&p.0.v),
+    );
+    r.getter(
+        Doc::property("Profile", "len").returns("int", "").summary("number of samples").example(&format!("{P} p.len"), "41"),
+        |p: &mut ProfileRef| p.0.v.len() as INT,
+    );
+    type StatFn = fn(&Stats) -> f64;
+    let stat_list: [(&str, &str, StatFn, &str); 5] = [
+        ("max", "largest value", |s| s.max, "0.2426"),
+        ("min", "smallest value", |s| s.min, "-0.2426"),
+        ("mean", "mean value", |s| s.mean, "0.0"),
+        ("std", "standard deviation (population)", |s| s.std, "0.1017"),
+        ("abs_max", "largest absolute value", |s| s.abs_max, "0.2426"),
+    ];
+    for (name, what, f, ex) in stat_list {
+        let d = Doc::method("Profile", name)
+            .returns("float", "")
+            .summary(&format!("{what} (NaN samples skipped); also a property: profile.{name}"))
+            .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex);
+        let who = format!("profile.{name}()");
+        r.bind(d, move |p: &mut ProfileRef| -> RResult<f64> { Ok(f(&checked_stats(&who, p.0.v.iter())?)) });
+        let who = format!("profile.{name}");
+        r.engine().register_get(name, move |p: &mut ProfileRef| -> RResult<f64> { Ok(f(&checked_stats(&who, p.0.v.iter())?)) });
+    }
+    r.bind(
+        Doc::method("Profile", "argmax")
+            .returns("float", "µm")
+            .summary("position t of the largest value")
+            .example(&format!("{P} round(p.argmax() * 1000.0) / 1000.0"), "0.3"),
+        |p: &mut ProfileRef| -> RResult<f64> {
+            let mut best: Option<(f64, f64)> = None;
+            for (&t, &v) in p.0.t.iter().zip(&p.0.v) {
+                if v.is_finite() && best.is_none_or(|b| v > b.1) {
+                    best = Some((t, v));
+                }
+            }
+            best.map(|b| b.0).ok_or_else(|| "profile.argmax(): no finite values".into())
+        },
+    );
+    r.bind(
+        Doc::func("profile", "Profile")
+            .arg("t", "array", "µm", "sample positions")
+            .arg("v", "array", "", "values (same length)")
+            .returns("Profile", "")
+            .summary("make a profile from two arrays of numbers")
+            .example("profile([0, 1, 2], [1.0, 3.0, 2.0]).argmax()", "1.0")
+            .example("profile([0, 1], [1.0])", "error: t has 2 values but v has 1"),
+        |t: Array, v: Array| -> RResult<ProfileRef> {
+            let t: Vec<f64> = t.iter().enumerate().map(|(i, x)| num("profile", &format!("t[{i}]"), x)).collect::<RResult<_>>()?;
+            let v: Vec<f64> = v.iter().enumerate().map(|(i, x)| num("profile", &format!("v[{i}]"), x)).collect::<RResult<_>>()?;
+            if t.len() != v.len() {
+                return fail(format!("profile: t has {} values but v has {}", t.len(), v.len()));
+            }
+            Ok(ProfileRef(Arc::new(Profile::new(t, v))))
+        },
+    );
+}
+
+/// Image statistics for Rust callers.
+pub fn image_stats(i: &Image) -> Stats {
+    stats(i.data.iter())
+}
+
+/// Unused-parameter helper kept for symmetry with `num`.
+#[allow(dead_code)]
+fn number(v: &Dynamic) -> Option<f64> {
+    super::registry::to_f64(v)
+}

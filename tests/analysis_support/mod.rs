@@ -1,0 +1,75 @@
+//! Helpers shared by tests/analysis.rs and tests/analysis_hard.rs: synthetic scenes rendered from
+//! a template by superposition, with seeded Gaussian pixel noise.
+#![allow(dead_code)]
+
+use bfpscope::analysis::bead_model::{render_scene, BeadModelOptions, Filament};
+use bfpscope::analysis::template::Template;
+use bfpscope::data::{Image, Scan};
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+
+/// Analytic stand-in template: Sx = u·exp(−r²/w²), Sy = v·exp(−r²/w²), w = 0.4 µm (so the
+/// reference bead's max ∂Sx/∂x is 1 at the origin), grid 20 nm over ±1.6 µm.
+pub fn standin() -> Template {
+    Template::analytic_standin(0.4, 0.02, 1.6).unwrap()
+}
+
+/// Regular axis of n pixels of size h starting at x0 (µm).
+pub fn axis(n: usize, h: f64, x0: f64) -> Vec<f64> {
+    (0..n).map(|i| x0 + i as f64 * h).collect()
+}
+
+/// Add white Gaussian noise of standard deviation sigma to every channel (seeded).
+pub fn add_noise(scan: &mut Scan, sigma: f64, seed: u64) {
+    if sigma <= 0.0 {
+        return;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let nd = Normal::new(0.0, sigma).unwrap();
+    for img in [&mut scan.sx, &mut scan.sy, &mut scan.sz] {
+        img.data.mapv_inplace(|v| v + nd.sample(&mut rng));
+    }
+}
+
+/// Render beads (x, y, weight) and filaments on an n×n grid of pixel h from origin (0, 0), add
+/// noise.
+pub fn scene(tpl: &Template, beads: &[(f64, f64, f64)], fils: &[Filament], n: usize, h: f64, sigma: f64, seed: u64) -> Scan {
+    let x = axis(n, h, 0.0);
+    let mut s = render_scene(tpl, beads, fils, &BeadModelOptions::default(), &x, &x).unwrap();
+    add_noise(&mut s, sigma, seed);
+    s
+}
+
+/// Weight of a polystyrene bead of diameter d relative to the 110 nm reference: (d/110)³.
+pub fn ps_weight(d_nm: f64) -> f64 {
+    (d_nm / 110.0).powi(3)
+}
+
+/// Peak |Sx| of the template (signal units) — noise levels are stated relative to it.
+pub fn sx_peak(tpl: &Template) -> f64 {
+    tpl.grid.data.iter().map(|n| n[0].abs()).fold(0.0, f64::max)
+}
+
+pub fn img_max(img: &Image) -> f64 {
+    img.data.iter().copied().filter(|v| v.is_finite()).fold(f64::NEG_INFINITY, f64::max)
+}
+
+/// The paper's noise level, derived from its mass resolution: a single reference-bead fit has a
+/// weight uncertainty of 950 kDa / m(110 nm PS) = 950/440 600 ≈ 0.0022 (Sec. 3.2). For white
+/// pixel noise σ on Sx and Sy, σ_C = σ/√Σ(Tx² + Ty²) over the pixels, so
+/// σ = 0.0022·√Σ(Tx² + Ty²) for pixels of `h` µm.
+pub fn paper_noise(tpl: &Template, h: f64) -> f64 {
+    let rb = tpl.reference;
+    let sigma_c = 950.0 / rb.mass_kda();
+    let ((u0, u1), (v0, v1)) = tpl.extent();
+    let mut s = 0.0;
+    let nu = ((u1 - u0) / h) as i64;
+    let nv = ((v1 - v0) / h) as i64;
+    for j in 0..=nv {
+        for i in 0..=nu {
+            let t = tpl.eval(u0 + i as f64 * h, v0 + j as f64 * h);
+            s += t[0] * t[0] + t[1] * t[1];
+        }
+    }
+    sigma_c * s.sqrt()
+}
