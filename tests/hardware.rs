@@ -7,9 +7,12 @@
 use bfpscope::instrument::config::{Backend, Config, SafetyLimits, SoftLimits};
 use bfpscope::instrument::connect::{connect, ConnectError};
 use bfpscope::instrument::emulator::{
-    garble, run_emulator_cli_with, shared_position, standin_bead, start_pair, start_qpd_emulator,
-    start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
+    garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
+    start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
 };
+use bfpscope::instrument::sim::scene::{Bead, Scene};
+use bfpscope::instrument::sim::{SimConfig, SimCore};
+use bfpscope::optics::params::Optics;
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
 use bfpscope::instrument::scpi::{Calibration, ScpiOptions, ScpiQpd};
 use bfpscope::instrument::{DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
@@ -927,6 +930,45 @@ fn scan_through_the_real_drivers_images_the_standin_bead() {
     assert!(max_sx > 0.15, "{max_sx}");
     // the stage went where the plan said: the last point
     assert_eq!(se.position(), [0.6, 0.6, 0.0]);
+}
+
+#[test]
+fn scan_of_a_simulated_bead_through_the_drivers_matches_the_simulator() {
+    // One scene, two instruments: the simulator itself, and the real drivers talking to
+    // emulators whose QPD answers with the simulator's signal at the emulated stage position.
+    let mut scene = Scene::default();
+    scene.add_bead(Bead { pos: [0.1, -0.05, 0.0], d_nm: 200.0, n: 1.572 }).unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    let mut sim = core.instrument(0.0);
+    let (n, half, samples) = (9, 0.5, 100);
+    let sim_img = raster(&mut sim, n, half, samples);
+    let amp = sim_img.iter().map(|(_, r)| r.sx.abs()).fold(0.0, f64::max);
+    assert!(amp > 0.0 && amp.is_finite(), "simulated bead gives no signal: {amp}");
+
+    // emulated detector: 5 V per signal unit, noise such that one averaged reading has σ = 1 % of
+    // the Sx amplitude
+    let vpu = 5.0;
+    let sigma = 0.01 * amp;
+    let noise_v = sigma * vpu * (samples as f64).sqrt();
+    let qcfg = QpdEmulatorConfig { volts_per_unit: [vpu; 3], noise_v: [noise_v; 3], ..Default::default() };
+    let scfg = StageEmulatorConfig { settle_s: 0.001, ..StageEmulatorConfig::like_sim(&core.cfg) };
+    assert_eq!(scfg.travel, SimConfig::default().travel);
+    let (se, qe) = start_pair(scfg, qcfg, sim_signal_source(core.renderer())).unwrap();
+    let mut cfg = emulator_config(&se, &qe);
+    cfg.qpd.calibration = Calibration { gain: [1.0 / vpu; 3], offset_v: [0.0; 3] };
+    let mut hw = connect(&cfg, no_sim).unwrap();
+    let hw_img = raster(&mut hw.instrument, n, half, samples);
+
+    let mut chi2 = 0.0;
+    for ((p, a), (q, b)) in sim_img.iter().zip(&hw_img) {
+        assert_eq!(p, q);
+        for (got, want) in [(b.sx, a.sx), (b.sy, a.sy), (b.sz, a.sz)] {
+            assert!((got - want).abs() < 5.0 * sigma, "at {p:?}: drivers {got} vs simulator {want} (σ {sigma})");
+            chi2 += ((got - want) / sigma).powi(2);
+        }
+    }
+    let dof = 3.0 * sim_img.len() as f64;
+    assert!(chi2 / dof > 0.6 && chi2 / dof < 1.5, "χ²/dof = {}", chi2 / dof);
 }
 
 #[test]
