@@ -2,25 +2,57 @@
 //! numpy when it is installed), the session store, TIFF and CSV round trips.
 
 use bfpscope::data::{
-    load_csv_profile, load_csv_table, load_scan, load_tiff, save_csv_profile, save_csv_table, save_scan,
-    save_tiff, DataError, Image, Profile, Scan, ScanStatus, Session,
+    load_csv_profile, load_csv_table, load_scan, load_tiff, save_csv_profile, save_csv_table,
+    save_scan, save_tiff, DataError, Image, Profile, Scan, ScanStatus, Session,
 };
 use ndarray::{array, Array2};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// A fresh, empty directory for one test.
-fn test_dir(name: &str) -> PathBuf {
+/// A fresh, empty directory for one test; removed when the test passes, kept for inspection
+/// when it fails.
+struct TestDir(PathBuf);
+
+impl TestDir {
+    fn join(&self, p: impl AsRef<Path>) -> PathBuf {
+        self.0.join(p)
+    }
+}
+
+impl std::ops::Deref for TestDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for TestDir {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TestDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+fn test_dir(name: &str) -> TestDir {
     let d = std::env::temp_dir().join(format!("bfpscope-data-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    TestDir(d)
 }
 
 fn files_in(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> =
-        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
     v.sort();
     v
 }
@@ -35,7 +67,11 @@ fn img_bits(i: &Image) -> Vec<u64> {
 
 /// 2x3 image: x = [-1, 0, 1], y = [10, 10.5].
 fn small() -> Image {
-    Image::new(array![[1.0, f64::NAN, 3.0], [-4.0, 5.0, 6.0]], vec![-1.0, 0.0, 1.0], vec![10.0, 10.5])
+    Image::new(
+        array![[1.0, f64::NAN, 3.0], [-4.0, 5.0, 6.0]],
+        vec![-1.0, 0.0, 1.0],
+        vec![10.0, 10.5],
+    )
 }
 
 // ------------------------------------------------------------------ image operations
@@ -55,12 +91,20 @@ fn statistics_skip_nan() {
     assert_eq!(img.nan_count(), 1);
     assert_eq!(img.summary().unwrap().count, 5);
     let neg = img.mul_scalar(-2.0).unwrap();
-    assert_eq!(neg.abs_max().unwrap(), 12.0, "abs_max sees the negative extreme");
+    assert_eq!(
+        neg.abs_max().unwrap(),
+        12.0,
+        "abs_max sees the negative extreme"
+    );
 }
 
 #[test]
 fn statistics_of_all_nan_image_are_errors() {
-    let img = Image::new(Array2::from_elem((2, 2), f64::NAN), vec![0.0, 1.0], vec![0.0, 1.0]);
+    let img = Image::new(
+        Array2::from_elem((2, 2), f64::NAN),
+        vec![0.0, 1.0],
+        vec![0.0, 1.0],
+    );
     for r in [img.min(), img.max(), img.abs_max(), img.mean(), img.std()] {
         let e = r.unwrap_err();
         assert!(matches!(e, DataError::AllNaN { count: 4, .. }), "{e:?}");
@@ -91,7 +135,10 @@ fn out_of_range_indices_name_index_and_range() {
     let e = img.row(2).unwrap_err().to_string();
     assert_eq!(e, "row index 2 is out of range: valid indices are 0..=1");
     let e = img.col(-1).unwrap_err().to_string();
-    assert_eq!(e, "column index -1 is out of range: valid indices are 0..=2");
+    assert_eq!(
+        e,
+        "column index -1 is out of range: valid indices are 0..=2"
+    );
     assert!(img.col(3).is_err());
     assert!(img.row(0).is_ok());
 }
@@ -109,45 +156,77 @@ fn crop_by_axis_range() {
     assert_eq!(c.data[[2, 2]], 33.0);
     let e = img.crop((2.0, 3.0), (0.0, 1.0)).unwrap_err().to_string();
     assert!(e.contains("x_range") && e.contains("-1..1"), "{e}");
-    let e = img.crop((f64::NAN, 1.0), (0.0, 1.0)).unwrap_err().to_string();
+    let e = img
+        .crop((f64::NAN, 1.0), (0.0, 1.0))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("finite"), "{e}");
 }
 
 #[test]
 fn arithmetic_checks_shapes_and_scalars() {
-    let a = Image::new(array![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], vec![0.0, 1.0, 2.0], vec![0.0, 1.0]);
+    let a = Image::new(
+        array![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]],
+        vec![0.0, 1.0, 2.0],
+        vec![0.0, 1.0],
+    );
     let b = a.mul_scalar(10.0).unwrap();
-    assert_eq!(a.add(&b).unwrap().data, array![[11.0, 22.0, 33.0], [44.0, 55.0, 66.0]]);
-    assert_eq!(b.sub(&a).unwrap().data, array![[9.0, 18.0, 27.0], [36.0, 45.0, 54.0]]);
-    assert_eq!(a.mul(&a).unwrap().data, array![[1.0, 4.0, 9.0], [16.0, 25.0, 36.0]]);
+    assert_eq!(
+        a.add(&b).unwrap().data,
+        array![[11.0, 22.0, 33.0], [44.0, 55.0, 66.0]]
+    );
+    assert_eq!(
+        b.sub(&a).unwrap().data,
+        array![[9.0, 18.0, 27.0], [36.0, 45.0, 54.0]]
+    );
+    assert_eq!(
+        a.mul(&a).unwrap().data,
+        array![[1.0, 4.0, 9.0], [16.0, 25.0, 36.0]]
+    );
     assert_eq!(a.add_scalar(1.0).unwrap().data[[1, 2]], 7.0);
     assert_eq!(a.sub_scalar(1.0).unwrap().data[[0, 0]], 0.0);
     assert_eq!(a.div_scalar(4.0).unwrap().data[[0, 1]], 0.5);
     let t = Image::new(Array2::zeros((3, 2)), vec![0.0, 1.0], vec![0.0, 1.0, 2.0]);
     let e = a.sub(&t).unwrap_err().to_string();
-    assert_eq!(e, "image sub: shapes differ: left is 2x3 (rows x cols), right is 3x2");
+    assert_eq!(
+        e,
+        "image sub: shapes differ: left is 2x3 (rows x cols), right is 3x2"
+    );
     let e = a.div_scalar(0.0).unwrap_err().to_string();
     assert!(e.contains("division by zero"), "{e}");
     let e = a.mul_scalar(f64::NAN).unwrap_err().to_string();
     assert!(e.contains("finite"), "{e}");
-    assert_eq!(a.add(&b).unwrap().x, a.x, "result keeps the left operand's axes");
+    assert_eq!(
+        a.add(&b).unwrap().x,
+        a.x,
+        "result keeps the left operand's axes"
+    );
 }
 
 #[test]
 fn display_is_one_readable_line() {
     let s = small().to_string();
-    assert_eq!(s, "Image 2x3 (rows x cols), x -1..1 µm, y 10..10.5 µm, min -4, max 6, 1 NaN");
+    assert_eq!(
+        s,
+        "Image 2x3 (rows x cols), x -1..1 µm, y 10..10.5 µm, min -4, max 6, 1 NaN"
+    );
     let p = small().row(0).unwrap().to_string();
     assert_eq!(p, "Profile 3 points, x -1..1 µm, min 1, max 3, 1 NaN");
 }
 
 #[test]
 fn try_new_validates_user_input() {
-    let e = Image::try_new(Array2::zeros((2, 3)), vec![0.0, 1.0], vec![0.0, 1.0]).unwrap_err().to_string();
+    let e = Image::try_new(Array2::zeros((2, 3)), vec![0.0, 1.0], vec![0.0, 1.0])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("`x`") && e.contains("(3)"), "{e}");
-    let e = Image::try_new(Array2::zeros((2, 2)), vec![0.0, 0.0], vec![0.0, 1.0]).unwrap_err().to_string();
+    let e = Image::try_new(Array2::zeros((2, 2)), vec![0.0, 0.0], vec![0.0, 1.0])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("monotonic"), "{e}");
-    let e = Image::try_new(Array2::zeros((0, 2)), vec![0.0, 1.0], vec![]).unwrap_err().to_string();
+    let e = Image::try_new(Array2::zeros((0, 2)), vec![0.0, 1.0], vec![])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("at least one row"), "{e}");
     assert!(Image::try_new(Array2::zeros((1, 2)), vec![1.0, 0.0], vec![5.0]).is_ok());
 }
@@ -159,8 +238,12 @@ fn aborted_scan() -> Scan {
     let (rows, cols) = (5, 7);
     let x: Vec<f64> = (0..cols).map(|j| -0.3 + 0.1 * j as f64).collect();
     let z: Vec<f64> = (0..rows).map(|i| 1.0 + 0.05 * i as f64).collect();
-    let mut sx = Array2::from_shape_fn((rows, cols), |(i, j)| ((i * cols + j) as f64 * 0.37).sin() * 1e-3);
-    let sy = Array2::from_shape_fn((rows, cols), |(i, j)| (i as f64 - 2.0) * (j as f64 + 0.1) / 3.0);
+    let mut sx = Array2::from_shape_fn((rows, cols), |(i, j)| {
+        ((i * cols + j) as f64 * 0.37).sin() * 1e-3
+    });
+    let sy = Array2::from_shape_fn((rows, cols), |(i, j)| {
+        (i as f64 - 2.0) * (j as f64 + 0.1) / 3.0
+    });
     let mut sz = Array2::from_shape_fn((rows, cols), |(i, j)| 2.5 + 0.01 * (i + j) as f64);
     sx[[0, 0]] = -0.0;
     sx[[0, 1]] = 5e-324; // smallest subnormal
@@ -194,12 +277,20 @@ fn aborted_scan() -> Scan {
 }
 
 fn assert_same_scan(a: &Scan, b: &Scan) {
-    for (name, p, q) in [("sx", &a.sx, &b.sx), ("sy", &a.sy, &b.sy), ("sz", &a.sz, &b.sz)] {
+    for (name, p, q) in [
+        ("sx", &a.sx, &b.sx),
+        ("sy", &a.sy, &b.sy),
+        ("sz", &a.sz, &b.sz),
+    ] {
         assert_eq!(p.shape(), q.shape(), "{name} shape");
         assert_eq!(img_bits(p), img_bits(q), "{name} pixels bit for bit");
         assert_eq!(bits(&p.x), bits(&q.x), "{name} x axis");
         assert_eq!(bits(&p.y), bits(&q.y), "{name} y axis");
-        assert_eq!((&p.x_name, &p.y_name), (&q.x_name, &q.y_name), "{name} axis names");
+        assert_eq!(
+            (&p.x_name, &p.y_name),
+            (&q.x_name, &q.y_name),
+            "{name} axis names"
+        );
     }
     assert_eq!(a.status, b.status);
     assert_eq!(a.meta, b.meta);
@@ -213,7 +304,10 @@ fn npz_round_trip_is_bit_for_bit() {
     save_scan(&path, &scan).unwrap();
     let back = load_scan(&path).unwrap();
     assert_same_scan(&scan, &back);
-    assert!(back.sx.data[[0, 0]].is_sign_negative() && back.sx.data[[0, 0]] == 0.0, "-0.0 kept");
+    assert!(
+        back.sx.data[[0, 0]].is_sign_negative() && back.sx.data[[0, 0]] == 0.0,
+        "-0.0 kept"
+    );
     assert_eq!(back.sx.nan_count(), 3 + 7);
     assert_eq!(back.status, ScanStatus::Aborted);
     assert_eq!(back.sx.y_name, "z");
@@ -222,9 +316,27 @@ fn npz_round_trip_is_bit_for_bit() {
 }
 
 #[test]
+fn scan_display_is_one_line() {
+    let s = aborted_scan().to_string();
+    assert!(
+        s.starts_with("Scan (aborted) 5x7 (rows x cols), x -0.3..0.3 µm, z 1..1.2 µm"),
+        "{s}"
+    );
+    assert!(s.ends_with(", 10 unmeasured pixels"), "{s}");
+    assert!(!s.contains('\n'));
+}
+
+#[test]
 fn npz_round_trip_of_non_object_metadata() {
     let dir = test_dir("npz-meta");
-    for (k, meta) in [serde_json::Value::Null, json!([1, 2, 3]), json!({"status": "laser ok"})].into_iter().enumerate() {
+    for (k, meta) in [
+        serde_json::Value::Null,
+        json!([1, 2, 3]),
+        json!({"status": "laser ok"}),
+    ]
+    .into_iter()
+    .enumerate()
+    {
         let mut scan = aborted_scan();
         scan.status = ScanStatus::Failed;
         scan.meta = meta;
@@ -247,12 +359,16 @@ fn npz_save_replaces_whole_file_and_refuses_bad_places() {
     assert_eq!(back.sx.data[[4, 6]], 1.5);
     assert_eq!(back.status, ScanStatus::Complete);
 
-    let e = save_scan(dir.join("no/such/dir/s.npz"), &scan).unwrap_err().to_string();
+    let e = save_scan(dir.join("no/such/dir/s.npz"), &scan)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("does not exist"), "{e}");
     // inconsistent channels are refused, not written
     let mut bad = aborted_scan();
     bad.sz.x[0] = 99.0;
-    let e = save_scan(dir.join("bad.npz"), &bad).unwrap_err().to_string();
+    let e = save_scan(dir.join("bad.npz"), &bad)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("sz axes"), "{e}");
     assert!(!dir.join("bad.npz").exists());
     assert_eq!(files_in(&dir), vec!["s.npz"]);
@@ -308,10 +424,18 @@ assert int(np.isnan(sx).sum()) == 10 and np.isnan(sx[4]).all() and not np.isnan(
 assert abs(f["x"][1] - (-0.3 + 0.1)) == 0.0 and f["y"][4] == 1.0 + 0.05 * 4
 print("numpy ok", np.__version__, f["sx"].shape)
 "#;
-    let out = Command::new("python3").arg("-c").arg(script).arg(&path).output().unwrap();
+    let out = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&path)
+        .output()
+        .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "numpy check failed:\n{stdout}\n{stderr}");
+    assert!(
+        out.status.success(),
+        "numpy check failed:\n{stdout}\n{stderr}"
+    );
     assert!(stdout.contains("numpy ok"), "{stdout}");
     eprintln!("{}", stdout.trim());
 }
@@ -328,7 +452,7 @@ fn tagged_scan(thread: usize, k: usize) -> Scan {
 #[test]
 fn session_numbers_increase_and_skip_gaps() {
     let dir = test_dir("session-seq");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let p1 = session.autosave(&tagged_scan(0, 1)).unwrap();
     let p2 = session.autosave(&tagged_scan(0, 2)).unwrap();
     assert_eq!(p1.file_name().unwrap(), "scan_0001.npz");
@@ -338,13 +462,23 @@ fn session_numbers_increase_and_skip_gaps() {
     std::fs::write(dir.join("scan_0100.txt"), b"not a scan").unwrap();
     let p8 = session.autosave(&tagged_scan(0, 3)).unwrap();
     assert_eq!(p8.file_name().unwrap(), "scan_0008.npz");
-    assert_eq!(std::fs::read(dir.join("scan_0007.npz")).unwrap(), b"someone else's bytes", "never overwritten");
+    assert_eq!(
+        std::fs::read(dir.join("scan_0007.npz")).unwrap(),
+        b"someone else's bytes",
+        "never overwritten"
+    );
     assert_eq!(load_scan(&p1).unwrap().meta["k"], 1);
     assert_eq!(load_scan(&p8).unwrap().meta["k"], 3);
     assert_eq!(session.latest_scan_path().unwrap().unwrap(), p8);
     assert_eq!(
         files_in(&dir),
-        vec!["scan_0001.npz", "scan_0002.npz", "scan_0007.npz", "scan_0008.npz", "scan_0100.txt"],
+        vec![
+            "scan_0001.npz",
+            "scan_0002.npz",
+            "scan_0007.npz",
+            "scan_0008.npz",
+            "scan_0100.txt"
+        ],
         "no temporary files left"
     );
 }
@@ -352,25 +486,37 @@ fn session_numbers_increase_and_skip_gaps() {
 #[test]
 fn session_concurrent_autosaves_get_distinct_files() {
     let dir = test_dir("session-threads");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let (threads, per) = (6, 5);
     let handles: Vec<_> = (0..threads)
         .map(|t| {
             let s = session.clone();
-            std::thread::spawn(move || (0..per).map(|k| s.autosave(&tagged_scan(t, k)).unwrap()).collect::<Vec<_>>())
+            std::thread::spawn(move || {
+                (0..per)
+                    .map(|k| s.autosave(&tagged_scan(t, k)).unwrap())
+                    .collect::<Vec<_>>()
+            })
         })
         .collect();
-    let mut paths: Vec<PathBuf> = handles.into_iter().flat_map(|h| h.join().unwrap()).collect();
+    let mut paths: Vec<PathBuf> = handles
+        .into_iter()
+        .flat_map(|h| h.join().unwrap())
+        .collect();
     paths.sort();
     paths.dedup();
     assert_eq!(paths.len(), threads * per, "every save got its own file");
-    let expected: Vec<String> = (1..=threads * per).map(|n| format!("scan_{n:04}.npz")).collect();
+    let expected: Vec<String> = (1..=threads * per)
+        .map(|n| format!("scan_{n:04}.npz"))
+        .collect();
     assert_eq!(files_in(&dir), expected);
     // each file holds exactly the scan that was saved under its name
     let mut seen = std::collections::BTreeSet::new();
     for p in &paths {
         let s = load_scan(p).unwrap();
-        let (t, k) = (s.meta["thread"].as_u64().unwrap() as usize, s.meta["k"].as_u64().unwrap() as usize);
+        let (t, k) = (
+            s.meta["thread"].as_u64().unwrap() as usize,
+            s.meta["k"].as_u64().unwrap() as usize,
+        );
         assert_eq!(s.sx.data[[1, 1]], (t * 1000 + k) as f64);
         assert!(seen.insert((t, k)));
     }
@@ -380,7 +526,7 @@ fn session_concurrent_autosaves_get_distinct_files() {
 #[test]
 fn session_reserved_paths_are_never_handed_out_twice() {
     let dir = test_dir("session-reserve");
-    let session = Session::open(&dir).unwrap();
+    let session = Session::open(&*dir).unwrap();
     let a = session.next_scan_path().unwrap();
     let b = session.next_scan_path().unwrap();
     assert_eq!(a.file_name().unwrap(), "scan_0001.npz");
@@ -398,7 +544,10 @@ fn session_reserved_paths_are_never_handed_out_twice() {
 #[test]
 fn session_folders() {
     let t = std::time::UNIX_EPOCH + std::time::Duration::from_secs(1_795_219_200);
-    assert_eq!(Session::default_dir(Path::new("bfpscope_data"), t), Path::new("bfpscope_data/2026-11-21"));
+    assert_eq!(
+        Session::default_dir(Path::new("bfpscope_data"), t),
+        Path::new("bfpscope_data/2026-11-21")
+    );
     let dir = test_dir("session-open");
     let nested = dir.join("a/b");
     let s = Session::open(&nested).unwrap();
@@ -407,8 +556,8 @@ fn session_folders() {
     std::fs::write(dir.join("file"), b"x").unwrap();
     let e = Session::open(dir.join("file")).unwrap_err().to_string();
     assert!(e.contains("not a folder"), "{e}");
-    let s = Session::open_or_default(Some(&dir)).unwrap();
-    assert_eq!(s.dir(), dir);
+    let s = Session::open_or_default(Some(&*dir)).unwrap();
+    assert_eq!(s.dir(), &*dir);
 }
 
 // ------------------------------------------------------------------ TIFF
@@ -452,21 +601,39 @@ fn tiff_header_is_what_imagej_expects() {
     let mut d = Decoder::new(std::io::BufReader::new(std::fs::File::open(&p).unwrap())).unwrap();
     assert_eq!(d.dimensions().unwrap(), (6, 4));
     assert_eq!(d.get_tag_u32(Tag::BitsPerSample).unwrap(), 32);
-    assert_eq!(d.get_tag_u32(Tag::SampleFormat).unwrap(), 3, "IEEE floating point");
+    assert_eq!(
+        d.get_tag_u32(Tag::SampleFormat).unwrap(),
+        3,
+        "IEEE floating point"
+    );
     assert_eq!(d.get_tag_u32(Tag::SamplesPerPixel).unwrap(), 1);
-    assert_eq!(d.get_tag_u32(Tag::PhotometricInterpretation).unwrap(), 1, "BlackIsZero grayscale");
-    let desc = d.get_tag(Tag::ImageDescription).unwrap().into_string().unwrap();
+    assert_eq!(
+        d.get_tag_u32(Tag::PhotometricInterpretation).unwrap(),
+        1,
+        "BlackIsZero grayscale"
+    );
+    let desc = d
+        .get_tag(Tag::ImageDescription)
+        .unwrap()
+        .into_string()
+        .unwrap();
     assert!(desc.starts_with("ImageJ="), "{desc}");
     assert!(desc.contains("\nunit=micron\n"), "{desc}");
     assert!(desc.contains("\nmin=-2.5\nmax=3\n"), "{desc}");
     let prop = |k: &str| -> f64 {
-        let line = desc.lines().find(|l| l.starts_with(&format!("{k}="))).unwrap_or_else(|| panic!("{k} in {desc}"));
+        let line = desc
+            .lines()
+            .find(|l| l.starts_with(&format!("{k}=")))
+            .unwrap_or_else(|| panic!("{k} in {desc}"));
         line[k.len() + 1..].parse().unwrap()
     };
     assert!((prop("xorigin") + 80.0).abs() < 1e-9, "{desc}");
     assert!((prop("yorigin") - 40.0).abs() < 1e-9, "{desc}");
     match d.get_tag(Tag::XResolution).unwrap() {
-        Value::Rational(n, den) => assert!((f64::from(n) / f64::from(den) - 40.0).abs() < 1e-9, "40 px/µm"),
+        Value::Rational(n, den) => assert!(
+            (f64::from(n) / f64::from(den) - 40.0).abs() < 1e-9,
+            "40 px/µm"
+        ),
         v => panic!("XResolution is {v:?}"),
     }
     // not a TIFF
@@ -505,19 +672,33 @@ fn csv_table_round_trip_and_errors() {
     let dir = test_dir("csv-table");
     let path = dir.join("table.csv");
     let headers = ["d_nm", "mass, MDa", "say \"hi\""];
-    let cols = vec![vec![10.0, 20.0, 40.0], vec![1.5e-7, 2.0e9, f64::NAN], vec![1.0, 2.0, 3.0]];
+    let cols = vec![
+        vec![10.0, 20.0, 40.0],
+        vec![1.5e-7, 2.0e9, f64::NAN],
+        vec![1.0, 2.0, 3.0],
+    ];
     save_csv_table(&path, &headers, &cols).unwrap();
     let text = std::fs::read_to_string(&path).unwrap();
-    assert!(text.starts_with("d_nm,\"mass, MDa\",\"say \"\"hi\"\"\"\n"), "{text}");
+    assert!(
+        text.starts_with("d_nm,\"mass, MDa\",\"say \"\"hi\"\"\"\n"),
+        "{text}"
+    );
     assert!(text.contains("\n40,nan,3\n"), "{text}");
     let (h, c) = load_csv_table(&path).unwrap();
     assert_eq!(h, headers);
     for (a, b) in cols.iter().zip(&c) {
         assert_eq!(bits(a), bits(b));
     }
-    let e = save_csv_table(&path, &["a", "b"], &[vec![1.0, 2.0], vec![1.0]]).unwrap_err().to_string();
-    assert!(e.contains("column 1") && e.contains("1 rows") && e.contains("(2 rows)"), "{e}");
-    let e = save_csv_table(&path, &["a"], &[vec![1.0], vec![2.0]]).unwrap_err().to_string();
+    let e = save_csv_table(&path, &["a", "b"], &[vec![1.0, 2.0], vec![1.0]])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("column 1") && e.contains("1 rows") && e.contains("(2 rows)"),
+        "{e}"
+    );
+    let e = save_csv_table(&path, &["a"], &[vec![1.0], vec![2.0]])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("headers"), "{e}");
     // the failed saves left the good file alone
     assert_eq!(load_csv_table(&path).unwrap().0, headers);

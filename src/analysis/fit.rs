@@ -942,8 +942,8 @@ mod tests {
         assert!((rss - r.norm_squared()).abs() < 1e-10 * rss);
         let jtj_full = j.transpose() * &j;
         let jtr_full = j.transpose() * &r;
-        assert!((jtj - jtj_full).amax() < 1e-9 * jtj_full.amax());
-        assert!((jtr - jtr_full).amax() < 1e-9 * jtr_full.amax());
+        assert!((jtj - jtj_full.clone()).amax() < 1e-9 * jtj_full.amax());
+        assert!((jtr - jtr_full.clone()).amax() < 1e-9 * jtr_full.amax());
         // Analytic Jacobian vs central differences of the residuals.
         let h = 1e-6;
         for k in 0..6 {

@@ -33,24 +33,39 @@ pub fn load_csv_profile(path: impl AsRef<Path>) -> Result<Profile, DataError> {
     if cols.len() != 2 {
         return Err(DataError::format(
             path,
-            format!("a profile CSV has 2 columns (position, value); found {}", cols.len()),
+            format!(
+                "a profile CSV has 2 columns (position, value); found {}",
+                cols.len()
+            ),
         ));
     }
     let v = cols.pop().unwrap_or_default();
     let t = cols.pop().unwrap_or_default();
     let name = headers[0].strip_suffix("_um").unwrap_or(&headers[0]);
-    Ok(Profile { t, v, t_name: name.to_string() })
+    Ok(Profile {
+        t,
+        v,
+        t_name: name.to_string(),
+    })
 }
 
 /// Save a table: `headers[k]` names column `columns[k]`; all columns must have the same length.
-pub fn save_csv_table<H, C>(path: impl AsRef<Path>, headers: &[H], columns: &[C]) -> Result<(), DataError>
+pub fn save_csv_table<H, C>(
+    path: impl AsRef<Path>,
+    headers: &[H],
+    columns: &[C],
+) -> Result<(), DataError>
 where
     H: AsRef<str>,
     C: AsRef<[f64]>,
 {
     let path = path.as_ref();
     if headers.is_empty() {
-        return Err(DataError::invalid("headers", "[]", "a table needs at least one column"));
+        return Err(DataError::invalid(
+            "headers",
+            "[]",
+            "a table needs at least one column",
+        ));
     }
     if headers.len() != columns.len() {
         return Err(DataError::invalid(
@@ -84,7 +99,8 @@ where
     }
     atomic_write(path, |tmp| {
         let mut f = std::fs::File::create(tmp).map_err(|e| DataError::io(tmp, e))?;
-        f.write_all(text.as_bytes()).map_err(|e| DataError::io(tmp, e))
+        f.write_all(text.as_bytes())
+            .map_err(|e| DataError::io(tmp, e))
     })
 }
 
@@ -98,7 +114,10 @@ pub fn load_csv_table(path: impl AsRef<Path>) -> Result<(Vec<String>, Vec<Vec<f6
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
     let Some((_, header_line)) = lines.next() else {
-        return Err(DataError::format(path, "no header line (the file is empty)"));
+        return Err(DataError::format(
+            path,
+            "no header line (the file is empty)",
+        ));
     };
     let headers = split_fields(header_line);
     let mut cols: Vec<Vec<f64>> = vec![Vec::new(); headers.len()];
@@ -107,14 +126,24 @@ pub fn load_csv_table(path: impl AsRef<Path>) -> Result<(Vec<String>, Vec<Vec<f6
         if fields.len() != headers.len() {
             return Err(DataError::format(
                 path,
-                format!("line {}: {} fields, the header has {}", lineno + 1, fields.len(), headers.len()),
+                format!(
+                    "line {}: {} fields, the header has {}",
+                    lineno + 1,
+                    fields.len(),
+                    headers.len()
+                ),
             ));
         }
         for (k, f) in fields.iter().enumerate() {
             let v = parse_f64_lenient(f).ok_or_else(|| {
                 DataError::format(
                     path,
-                    format!("line {}, column {:?}: {:?} is not a number", lineno + 1, headers[k], f),
+                    format!(
+                        "line {}, column {:?}: {:?} is not a number",
+                        lineno + 1,
+                        headers[k],
+                        f
+                    ),
                 )
             })?;
             cols[k].push(v);

@@ -183,7 +183,11 @@ impl Image {
         f: impl Fn(f64, f64) -> f64,
     ) -> Result<Image, DataError> {
         if self.shape() != other.shape() {
-            return Err(DataError::ShapeMismatch { op, left: self.shape(), right: other.shape() });
+            return Err(DataError::ShapeMismatch {
+                op,
+                left: self.shape(),
+                right: other.shape(),
+            });
         }
         let mut out = self.clone();
         out.data.zip_mut_with(&other.data, |a, &b| *a = f(*a, b));
@@ -227,7 +231,11 @@ impl Image {
     /// Divide every pixel by a finite, non-zero scalar.
     pub fn div_scalar(&self, k: f64) -> Result<Image, DataError> {
         if k == 0.0 {
-            return Err(DataError::invalid("scalar (div)", k, "division by zero; use a non-zero number"));
+            return Err(DataError::invalid(
+                "scalar (div)",
+                k,
+                "division by zero; use a non-zero number",
+            ));
         }
         self.map_scalar(k, "scalar (div)", |v| v / k)
     }
@@ -287,7 +295,10 @@ impl Profile {
             return Err(DataError::invalid(
                 "v",
                 format!("{} values", v.len()),
-                &format!("a profile needs one value per position ({} positions)", t.len()),
+                &format!(
+                    "a profile needs one value per position ({} positions)",
+                    t.len()
+                ),
             ));
         }
         Ok(Self::new(t, v))
@@ -339,7 +350,13 @@ impl Profile {
 impl fmt::Display for Profile {
     /// One line: length, position range and value range.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "Profile {} points, {} {}", self.len(), self.t_name, axis_summary(&self.t))?;
+        write!(
+            f,
+            "Profile {} points, {} {}",
+            self.len(),
+            self.t_name,
+            axis_summary(&self.t)
+        )?;
         match self.stats("") {
             Ok(s) => write!(f, ", min {}, max {}", fmt_sig(s.min, 4), fmt_sig(s.max, 4))?,
             Err(_) if self.v.is_empty() => write!(f, ", empty")?,
@@ -387,15 +404,28 @@ impl Stats {
             return Err(DataError::Empty(what.to_string()));
         }
         if n == 0 {
-            return Err(DataError::AllNaN { what: what.to_string(), count: total });
+            return Err(DataError::AllNaN {
+                what: what.to_string(),
+                count: total,
+            });
         }
-        Ok(Stats { min, max, mean, std: (m2 / n as f64).max(0.0).sqrt(), count: n })
+        Ok(Stats {
+            min,
+            max,
+            mean,
+            std: (m2 / n as f64).max(0.0).sqrt(),
+            count: n,
+        })
     }
 }
 
 fn check_index(what: &'static str, i: i64, len: usize) -> Result<usize, DataError> {
     if i < 0 || i as u64 >= len as u64 {
-        Err(DataError::IndexOutOfRange { what, index: i, len })
+        Err(DataError::IndexOutOfRange {
+            what,
+            index: i,
+            len,
+        })
     } else {
         Ok(i as usize)
     }
@@ -403,7 +433,11 @@ fn check_index(what: &'static str, i: i64, len: usize) -> Result<usize, DataErro
 
 fn check_axis(name: &str, a: &[f64]) -> Result<(), DataError> {
     if let Some((k, v)) = a.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(DataError::invalid(&format!("{name}[{k}]"), v, "axis values must be finite"));
+        return Err(DataError::invalid(
+            &format!("{name}[{k}]"),
+            v,
+            "axis values must be finite",
+        ));
     }
     if a.len() >= 2 {
         let up = a[1] > a[0];
@@ -413,7 +447,10 @@ fn check_axis(name: &str, a: &[f64]) -> Result<(), DataError> {
                 return Err(DataError::invalid(
                     &format!("{name}[{k}]"),
                     a[k],
-                    &format!("axis values must be strictly monotonic (previous value {})", a[k - 1]),
+                    &format!(
+                        "axis values must be strictly monotonic (previous value {})",
+                        a[k - 1]
+                    ),
                 ));
             }
         }
@@ -430,7 +467,11 @@ fn select_range(axis: &[f64], range: (f64, f64), name: &str) -> Result<Vec<usize
             "bounds must be finite numbers (µm)",
         ));
     }
-    let (lo, hi) = if range.0 <= range.1 { range } else { (range.1, range.0) };
+    let (lo, hi) = if range.0 <= range.1 {
+        range
+    } else {
+        (range.1, range.0)
+    };
     let tol = 1e-9 * axis_step(axis).abs();
     let idx: Vec<usize> = (0..axis.len())
         .filter(|&k| axis[k] >= lo - tol && axis[k] <= hi + tol)
@@ -439,7 +480,10 @@ fn select_range(axis: &[f64], range: (f64, f64), name: &str) -> Result<Vec<usize
         return Err(DataError::invalid(
             &arg,
             format!("[{lo}, {hi}] µm"),
-            &format!("contains no pixel centre; the {name} axis spans {} µm", axis_summary_plain(axis)),
+            &format!(
+                "contains no pixel centre; the {name} axis spans {} µm",
+                axis_summary_plain(axis)
+            ),
         ));
     }
     Ok(idx)
@@ -472,7 +516,11 @@ pub fn fmt_sig(v: f64, sig: usize) -> String {
         let s = format!("{:.*e}", sig - 1, v);
         // trim mantissa zeros: 1.500e-5 -> 1.5e-5
         if let Some((m, ex)) = s.split_once('e') {
-            let m = if m.contains('.') { m.trim_end_matches('0').trim_end_matches('.') } else { m };
+            let m = if m.contains('.') {
+                m.trim_end_matches('0').trim_end_matches('.')
+            } else {
+                m
+            };
             return format!("{m}e{ex}");
         }
         s

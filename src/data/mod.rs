@@ -29,11 +29,19 @@ use std::sync::atomic::{AtomicU64, Ordering};
 pub enum DataError {
     /// An index outside `0..len`.
     #[error("{what} index {index} is out of range: valid indices are {}", valid_range(*.len))]
-    IndexOutOfRange { what: &'static str, index: i64, len: usize },
+    IndexOutOfRange {
+        what: &'static str,
+        index: i64,
+        len: usize,
+    },
 
     /// Two operands of an element-wise operation differ in shape.
     #[error("{op}: shapes differ: left is {}x{} (rows x cols), right is {}x{}", .left.0, .left.1, .right.0, .right.1)]
-    ShapeMismatch { op: &'static str, left: (usize, usize), right: (usize, usize) },
+    ShapeMismatch {
+        op: &'static str,
+        left: (usize, usize),
+        right: (usize, usize),
+    },
 
     /// A statistic of data that holds no finite value to work with.
     #[error("{what}: all {count} values are NaN")]
@@ -45,7 +53,11 @@ pub enum DataError {
 
     /// An argument outside its allowed range.
     #[error("invalid argument `{name}` = {value}: {allowed}")]
-    InvalidArgument { name: String, value: String, allowed: String },
+    InvalidArgument {
+        name: String,
+        value: String,
+        allowed: String,
+    },
 
     /// Reading or writing a file failed at the operating-system level.
     #[error("{}: {source}", .path.display())]
@@ -83,11 +95,17 @@ impl DataError {
     }
 
     pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
-        DataError::Io { path: path.to_path_buf(), source }
+        DataError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
     }
 
     pub(crate) fn format(path: &Path, msg: impl Into<String>) -> Self {
-        DataError::Format { path: path.to_path_buf(), msg: msg.into() }
+        DataError::Format {
+            path: path.to_path_buf(),
+            msg: msg.into(),
+        }
     }
 }
 
@@ -98,7 +116,10 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// the end, because some encoders (the PNG writer) choose the format from the extension.
 pub(crate) fn temp_path_for(path: &Path) -> PathBuf {
     let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let ext = path
         .extension()
         .map(|e| format!(".{}", e.to_string_lossy()))
@@ -163,13 +184,19 @@ where
 
 /// Flush a finished file's contents to disk.
 pub(crate) fn sync_file(path: &Path) -> Result<(), DataError> {
-    File::open(path).and_then(|f| f.sync_all()).map_err(|e| DataError::io(path, e))
+    File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| DataError::io(path, e))
 }
 
 /// Best effort: make a rename durable by syncing the directory (not possible everywhere).
 pub(crate) fn sync_parent_dir(path: &Path) {
     if let Some(dir) = path.parent() {
-        let dir = if dir.as_os_str().is_empty() { Path::new(".") } else { dir };
+        let dir = if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        };
         if let Ok(d) = File::open(dir) {
             let _ = d.sync_all();
         }
@@ -182,7 +209,11 @@ pub fn format_f64_exact(v: f64) -> String {
     if v.is_nan() {
         "nan".to_string()
     } else if v.is_infinite() {
-        if v > 0.0 { "inf".to_string() } else { "-inf".to_string() }
+        if v > 0.0 {
+            "inf".to_string()
+        } else {
+            "-inf".to_string()
+        }
     } else {
         let a = v.abs();
         if a == 0.0 || (1e-4..1e15).contains(&a) {
@@ -210,8 +241,18 @@ mod tests {
 
     #[test]
     fn exact_format_round_trips() {
-        for v in [0.0, -0.0, 1.0, 0.1, 1e-300, -2.5e-7, 123456.789, 1e20, f64::MIN_POSITIVE, f64::MAX]
-        {
+        for v in [
+            0.0,
+            -0.0,
+            1.0,
+            0.1,
+            1e-300,
+            -2.5e-7,
+            123456.789,
+            1e20,
+            f64::MIN_POSITIVE,
+            f64::MAX,
+        ] {
             let s = format_f64_exact(v);
             let back = parse_f64_lenient(&s).unwrap();
             assert_eq!(back.to_bits(), v.to_bits(), "{v} -> {s}");
@@ -224,8 +265,15 @@ mod tests {
 
     #[test]
     fn index_error_names_index_and_range() {
-        let e = DataError::IndexOutOfRange { what: "row", index: 70, len: 64 };
-        assert_eq!(e.to_string(), "row index 70 is out of range: valid indices are 0..=63");
+        let e = DataError::IndexOutOfRange {
+            what: "row",
+            index: 70,
+            len: 64,
+        };
+        assert_eq!(
+            e.to_string(),
+            "row index 70 is out of range: valid indices are 0..=63"
+        );
     }
 
     #[test]

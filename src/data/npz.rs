@@ -31,8 +31,14 @@ pub const FORMAT_NAME: &str = "bfpscope-scan";
 /// Value of the `format_version` key in the stored metadata.
 pub const FORMAT_VERSION: u64 = 1;
 /// Keys of the stored metadata that belong to the file format, not to the scan's metadata.
-pub const RESERVED_META_KEYS: [&str; 6] =
-    ["format", "format_version", "status", "x_name", "y_name", "user_meta"];
+pub const RESERVED_META_KEYS: [&str; 6] = [
+    "format",
+    "format_version",
+    "status",
+    "x_name",
+    "y_name",
+    "user_meta",
+];
 
 /// The JSON object stored in the `meta` array of a scan file (see the module docs).
 pub fn file_meta(scan: &Scan) -> Value {
@@ -43,7 +49,11 @@ pub fn file_meta(scan: &Scan) -> Value {
     m.insert("x_name".into(), scan.sx.x_name.clone().into());
     m.insert("y_name".into(), scan.sx.y_name.clone().into());
     match &scan.meta {
-        Value::Object(user) if !user.keys().any(|k| RESERVED_META_KEYS.contains(&k.as_str())) => {
+        Value::Object(user)
+            if !user
+                .keys()
+                .any(|k| RESERVED_META_KEYS.contains(&k.as_str())) =>
+        {
             for (k, v) in user {
                 m.insert(k.clone(), v.clone());
             }
@@ -83,7 +93,8 @@ pub(crate) fn write_scan_npz(path: &Path, scan: &Scan) -> Result<(), DataError> 
     npz.add_array("y", &y).map_err(werr)?;
     npz.add_array("meta", &meta).map_err(werr)?;
     let buf = npz.finish().map_err(werr)?;
-    buf.into_inner().map_err(|e| DataError::io(path, e.into_error()))?;
+    buf.into_inner()
+        .map_err(|e| DataError::io(path, e.into_error()))?;
     Ok(())
 }
 
@@ -109,7 +120,10 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
         if !has(required) {
             return Err(DataError::format(
                 path,
-                format!("array `{required}` is missing (found: {})", names.join(", ")),
+                format!(
+                    "array `{required}` is missing (found: {})",
+                    names.join(", ")
+                ),
             ));
         }
     }
@@ -122,7 +136,11 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
         if a.dim() != sx.dim() {
             return Err(DataError::format(
                 path,
-                format!("array `{name}` has shape {:?} but `sx` has {:?}", a.dim(), sx.dim()),
+                format!(
+                    "array `{name}` has shape {:?} but `sx` has {:?}",
+                    a.dim(),
+                    sx.dim()
+                ),
             ));
         }
     }
@@ -149,12 +167,23 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
             .map_err(|e| DataError::format(path, format!("`meta` is not valid JSON: {e}")))?;
         split_file_meta(path, stored)?
     } else {
-        (ScanStatus::Complete, "x".to_string(), "y".to_string(), Value::Object(Map::new()))
+        (
+            ScanStatus::Complete,
+            "x".to_string(),
+            "y".to_string(),
+            Value::Object(Map::new()),
+        )
     };
 
     let (x, y) = (x.to_vec(), y.to_vec());
     let mk = |data| Image::new(data, x.clone(), y.clone()).with_axis_names(&x_name, &y_name);
-    Ok(Scan { sx: mk(sx), sy: mk(sy), sz: mk(sz), status, meta })
+    Ok(Scan {
+        sx: mk(sx),
+        sy: mk(sy),
+        sz: mk(sz),
+        status,
+        meta,
+    })
 }
 
 /// Undo [`file_meta`]: the file-format keys and the scan's own metadata.
@@ -170,7 +199,10 @@ fn split_file_meta(
         Some(Value::String(s)) => ScanStatus::parse(&s)
             .map_err(|e| DataError::format(path, format!("`meta`.status: {e}")))?,
         Some(other) => {
-            return Err(DataError::format(path, format!("`meta`.status is not a string: {other}")))
+            return Err(DataError::format(
+                path,
+                format!("`meta`.status is not a string: {other}"),
+            ))
         }
     };
     let mut name = |key: &str, default: &str| match m.remove(key) {
@@ -218,7 +250,13 @@ mod tests {
 
     fn tiny(meta: Value) -> Scan {
         let img = Image::new(Array2::zeros((1, 2)), vec![0.0, 1.0], vec![0.0]);
-        Scan { sx: img.clone(), sy: img.clone(), sz: img, status: ScanStatus::Complete, meta }
+        Scan {
+            sx: img.clone(),
+            sy: img.clone(),
+            sz: img,
+            status: ScanStatus::Complete,
+            meta,
+        }
     }
 
     #[test]
@@ -229,7 +267,10 @@ mod tests {
         assert_eq!(stored["status"], "complete");
         assert!(stored.get("user_meta").is_none());
         let (st, xn, yn, meta) = split_file_meta(Path::new("t"), stored).unwrap();
-        assert_eq!((st, xn.as_str(), yn.as_str()), (ScanStatus::Complete, "x", "y"));
+        assert_eq!(
+            (st, xn.as_str(), yn.as_str()),
+            (ScanStatus::Complete, "x", "y")
+        );
         assert_eq!(meta, s.meta);
     }
 

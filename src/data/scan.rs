@@ -64,7 +64,11 @@ impl Scan {
         for (name, img) in [("sy", &self.sy), ("sz", &self.sz)] {
             if img.shape() != self.sx.shape() {
                 return Err(DataError::ShapeMismatch {
-                    op: if name == "sy" { "scan channels sx vs sy" } else { "scan channels sx vs sz" },
+                    op: if name == "sy" {
+                        "scan channels sx vs sy"
+                    } else {
+                        "scan channels sx vs sz"
+                    },
                     left: self.sx.shape(),
                     right: img.shape(),
                 });
@@ -73,7 +77,13 @@ impl Scan {
             if !same_axes || img.x_name != self.sx.x_name || img.y_name != self.sx.y_name {
                 return Err(DataError::invalid(
                     &format!("{name} axes"),
-                    format!("{} {} / {} {}", img.x_name, img.x.len(), img.y_name, img.y.len()),
+                    format!(
+                        "{} {} / {} {}",
+                        img.x_name,
+                        img.x.len(),
+                        img.y_name,
+                        img.y.len()
+                    ),
                     "all three channels of a scan must share the axes of sx",
                 ));
             }
@@ -99,7 +109,13 @@ impl fmt::Display for Scan {
     /// One line: status, shape, axes and the Sx/Sy/Sz ranges.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let i = &self.sx;
-        write!(f, "Scan ({}) {}x{} (rows x cols)", self.status, i.rows(), i.cols())?;
+        write!(
+            f,
+            "Scan ({}) {}x{} (rows x cols)",
+            self.status,
+            i.rows(),
+            i.cols()
+        )?;
         for (name, axis) in [(&i.x_name, &i.x), (&i.y_name, &i.y)] {
             match axis.as_slice() {
                 [] => write!(f, ", {name} empty")?,

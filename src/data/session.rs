@@ -51,7 +51,10 @@ impl Session {
     pub fn open_or_default(data_dir: Option<&Path>) -> Result<Session, DataError> {
         match data_dir {
             Some(d) => Session::open(d),
-            None => Session::open(Session::default_dir(Path::new(DEFAULT_ROOT), SystemTime::now())),
+            None => Session::open(Session::default_dir(
+                Path::new(DEFAULT_ROOT),
+                SystemTime::now(),
+            )),
         }
     }
 
@@ -200,10 +203,19 @@ mod tests {
     fn dates() {
         assert_eq!(utc_date(UNIX_EPOCH), "1970-01-01");
         // 2000-02-29 12:00 UTC = 951825600 s
-        assert_eq!(utc_date(UNIX_EPOCH + Duration::from_secs(951_825_600)), "2000-02-29");
+        assert_eq!(
+            utc_date(UNIX_EPOCH + Duration::from_secs(951_825_600)),
+            "2000-02-29"
+        );
         // 2026-11-21 00:00 UTC = 1795219200 s; one second earlier is still the 20th
-        assert_eq!(utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_200)), "2026-11-21");
-        assert_eq!(utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_199)), "2026-11-20");
+        assert_eq!(
+            utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_200)),
+            "2026-11-21"
+        );
+        assert_eq!(
+            utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_199)),
+            "2026-11-20"
+        );
         assert_eq!(utc_date(UNIX_EPOCH - Duration::from_secs(1)), "1969-12-31");
     }
 

@@ -8,6 +8,7 @@
 //! that Fiji's cursor read-out shows the scan's µm coordinates. Extra `bfpscope_*` lines (which
 //! ImageJ ignores) keep the exact axis start, step and names for [`load_tiff`].
 
+use super::image::fmt_sig;
 use super::{atomic_write, DataError, Image};
 use ::tiff::decoder::{ifd::Value, Decoder, DecodingResult, Limits};
 use ::tiff::encoder::{colortype::Gray32Float, Rational, TiffEncoder};
@@ -28,24 +29,37 @@ pub fn save_tiff(path: impl AsRef<Path>, img: &Image) -> Result<(), DataError> {
     }
     let (w, h) = match (u32::try_from(cols), u32::try_from(rows)) {
         (Ok(w), Ok(h)) => (w, h),
-        _ => return Err(DataError::invalid("image size", format!("{rows}x{cols}"), "at most 2^32-1 pixels per side")),
+        _ => {
+            return Err(DataError::invalid(
+                "image size",
+                format!("{rows}x{cols}"),
+                "at most 2^32-1 pixels per side",
+            ))
+        }
     };
     let pixels: Vec<f32> = img.data.iter().map(|&v| v as f32).collect();
     let description = imagej_description(img);
-    let (px, py) = (pixel_size(img.dx(), img.dy()), pixel_size(img.dy(), img.dx()));
+    let (px, py) = (
+        pixel_size(img.dx(), img.dy()),
+        pixel_size(img.dy(), img.dx()),
+    );
     atomic_write(path, |tmp| {
         let terr = |e: ::tiff::TiffError| DataError::format(path, format!("writing TIFF: {e}"));
         let file = File::create(tmp).map_err(|e| DataError::io(tmp, e))?;
         let mut enc = TiffEncoder::new(BufWriter::new(file)).map_err(terr)?;
         let mut image = enc.new_image::<Gray32Float>(w, h).map_err(terr)?;
         let dir = image.encoder();
-        dir.write_tag(Tag::ImageDescription, description.as_str()).map_err(terr)?;
+        dir.write_tag(Tag::ImageDescription, description.as_str())
+            .map_err(terr)?;
         dir.write_tag(Tag::Software, "bfpscope").map_err(terr)?;
         // ImageJ: with unit=micron in the description, XResolution is pixels per micron and
         // ResolutionUnit stays "none".
-        dir.write_tag(Tag::ResolutionUnit, ResolutionUnit::None.to_u16()).map_err(terr)?;
-        dir.write_tag(Tag::XResolution, per_unit_rational(px)).map_err(terr)?;
-        dir.write_tag(Tag::YResolution, per_unit_rational(py)).map_err(terr)?;
+        dir.write_tag(Tag::ResolutionUnit, ResolutionUnit::None.to_u16())
+            .map_err(terr)?;
+        dir.write_tag(Tag::XResolution, per_unit_rational(px))
+            .map_err(terr)?;
+        dir.write_tag(Tag::YResolution, per_unit_rational(py))
+            .map_err(terr)?;
         image.write_data(&pixels).map_err(terr)
     })
 }
@@ -70,7 +84,10 @@ fn per_unit_rational(size: f64) -> Rational {
         let d = 10f64.powi(k);
         let n = (per * d).round();
         if n >= 1.0 && n <= f64::from(u32::MAX) {
-            return Rational { n: n as u32, d: d as u32 };
+            return Rational {
+                n: n as u32,
+                d: d as u32,
+            };
         }
     }
     // Extremely large pixels (>= 1e9 µm / px): the smallest representable density.
@@ -89,11 +106,12 @@ fn imagej_description(img: &Image) -> String {
     // ImageJ calibration: value = (pixel - origin) * pixel size.
     let x0 = img.x.first().copied().unwrap_or(0.0);
     let y0 = img.y.first().copied().unwrap_or(0.0);
+    // 12 significant digits hide rounding noise (3 rather than 2.999999999999999)
     if x0 != 0.0 && dx >= 0.0 {
-        s += &format!("xorigin={}\n", -x0 / px);
+        s += &format!("xorigin={}\n", fmt_sig(-x0 / px, 12));
     }
     if y0 != 0.0 && dy >= 0.0 {
-        s += &format!("yorigin={}\n", -y0 / py);
+        s += &format!("yorigin={}\n", fmt_sig(-y0 / py, 12));
     }
     s += &format!(
         "bfpscope_x0={}\nbfpscope_dx={}\nbfpscope_y0={}\nbfpscope_dy={}\nbfpscope_xname={}\nbfpscope_yname={}\n",
@@ -118,7 +136,9 @@ pub fn load_tiff(path: impl AsRef<Path>) -> Result<Image, DataError> {
     let path = path.as_ref();
     let terr = |e: ::tiff::TiffError| DataError::format(path, format!("reading TIFF: {e}"));
     let file = File::open(path).map_err(|e| DataError::io(path, e))?;
-    let mut dec = Decoder::new(BufReader::new(file)).map_err(terr)?.with_limits(Limits::unlimited());
+    let mut dec = Decoder::new(BufReader::new(file))
+        .map_err(terr)?
+        .with_limits(Limits::unlimited());
     let (w, h) = dec.dimensions().map_err(terr)?;
     let (cols, rows) = (w as usize, h as usize);
     let values: Vec<f64> = match dec.read_image().map_err(terr)? {
@@ -129,7 +149,12 @@ pub fn load_tiff(path: impl AsRef<Path>) -> Result<Image, DataError> {
         DecodingResult::U32(v) => v.into_iter().map(f64::from).collect(),
         DecodingResult::I16(v) => v.into_iter().map(f64::from).collect(),
         DecodingResult::I32(v) => v.into_iter().map(f64::from).collect(),
-        _ => return Err(DataError::format(path, "unsupported sample type (expected float32)")),
+        _ => {
+            return Err(DataError::format(
+                path,
+                "unsupported sample type (expected float32)",
+            ))
+        }
     };
     if values.len() != rows * cols {
         return Err(DataError::format(
@@ -157,15 +182,24 @@ pub fn load_tiff(path: impl AsRef<Path>) -> Result<Image, DataError> {
         Ok(Some(Value::Rational(n, d))) if n > 0 && d > 0 => Some(f64::from(d) / f64::from(n)),
         _ => None,
     };
-    let (x, y) = if let (Some(x0), Some(dx), Some(y0), Some(dy)) =
-        (num("bfpscope_x0"), num("bfpscope_dx"), num("bfpscope_y0"), num("bfpscope_dy"))
-    {
+    let (x, y) = if let (Some(x0), Some(dx), Some(y0), Some(dy)) = (
+        num("bfpscope_x0"),
+        num("bfpscope_dx"),
+        num("bfpscope_y0"),
+        num("bfpscope_dy"),
+    ) {
         (uniform_axis(x0, dx, cols), uniform_axis(y0, dy, rows))
-    } else if matches!(props.get("unit"), Some(&"micron") | Some(&"um") | Some(&"µm")) {
+    } else if matches!(
+        props.get("unit"),
+        Some(&"micron") | Some(&"um") | Some(&"µm")
+    ) {
         let pw = rational(&mut dec, Tag::XResolution).unwrap_or(1.0);
         let ph = rational(&mut dec, Tag::YResolution).unwrap_or(pw);
         let (ox, oy) = (num("xorigin").unwrap_or(0.0), num("yorigin").unwrap_or(0.0));
-        (uniform_axis(-ox * pw, pw, cols), uniform_axis(-oy * ph, ph, rows))
+        (
+            uniform_axis(-ox * pw, pw, cols),
+            uniform_axis(-oy * ph, ph, rows),
+        )
     } else {
         (uniform_axis(0.0, 1.0, cols), uniform_axis(0.0, 1.0, rows))
     };

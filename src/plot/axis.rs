@@ -2,7 +2,9 @@
 //! labels (plotters' own log axis gives no ticks at all on ranges narrower than a decade).
 
 use crate::data::image::fmt_sig;
-use plotters::coord::ranged1d::{KeyPointHint, KeyPointWeight, NoDefaultFormatting, Ranged, ValueFormatter};
+use plotters::coord::ranged1d::{
+    KeyPointHint, KeyPointWeight, NoDefaultFormatting, Ranged, ValueFormatter,
+};
 use std::ops::Range;
 
 #[derive(Debug, Clone)]
@@ -36,12 +38,19 @@ impl AxisCoord {
         let maxabs = lo.abs().max(hi.abs());
         let e_max = maxabs.log10().floor() as i32;
         let e_step = step.log10().floor() as i32;
-        let style = if maxabs >= 1e5 || maxabs < 1e-3 {
+        let style = if !(1e-3..1e5).contains(&maxabs) {
             LabelStyle::Sci((e_max - e_step).max(0) as usize)
         } else {
             LabelStyle::Fixed((-e_step).max(0) as usize)
         };
-        AxisCoord { lo, hi, log: false, ticks, minor, style }
+        AxisCoord {
+            lo,
+            hi,
+            log: false,
+            ticks,
+            minor,
+            style,
+        }
     }
 
     /// Logarithmic (base 10) axis over `[lo, hi]` (0 < lo < hi, finite).
@@ -61,14 +70,28 @@ impl AxisCoord {
         }
         if decades.len() >= 2 {
             let every = decades.len().div_ceil(8).max(1);
-            let ticks: Vec<f64> =
-                decades.iter().filter(|k| (**k - first) as usize % every == 0).map(|&k| 10f64.powi(k)).collect();
+            let ticks: Vec<f64> = decades
+                .iter()
+                .filter(|k| ((**k - first) as usize).is_multiple_of(every))
+                .map(|&k| 10f64.powi(k))
+                .collect();
             let plain = ticks.iter().all(|&t| (1e-3..=1e4).contains(&t));
             if every > 1 {
                 minor = decades.iter().map(|&k| 10f64.powi(k)).collect();
             }
-            let style = if plain { LabelStyle::General } else { LabelStyle::Power };
-            return AxisCoord { lo, hi, log: true, ticks, minor, style };
+            let style = if plain {
+                LabelStyle::General
+            } else {
+                LabelStyle::Power
+            };
+            return AxisCoord {
+                lo,
+                hi,
+                log: true,
+                ticks,
+                minor,
+                style,
+            };
         }
         // Less than two decades: 1-2-5 ticks, else plain nice ticks.
         let mut ticks: Vec<f64> = Vec::new();
@@ -81,9 +104,22 @@ impl AxisCoord {
             }
         }
         if ticks.len() < 3 {
-            ticks = nice_ticks(lo, hi, 5).0;
+            // finer and finer nice ticks until there are at least four
+            for n in 5..=12 {
+                ticks = nice_ticks(lo, hi, n).0;
+                if ticks.len() >= 4 {
+                    break;
+                }
+            }
         }
-        AxisCoord { lo, hi, log: true, ticks, minor, style: LabelStyle::General }
+        AxisCoord {
+            lo,
+            hi,
+            log: true,
+            ticks,
+            minor,
+            style: LabelStyle::General,
+        }
     }
 
     /// Position of `v` along the axis as a fraction of its length (0 at `lo`, 1 at `hi`).
@@ -103,7 +139,10 @@ impl AxisCoord {
             LabelStyle::Fixed(d) => {
                 let s = format!("{:.*}", d, v);
                 // avoid "-0.00"
-                if s.trim_start_matches('-').chars().all(|c| c == '0' || c == '.') {
+                if s.trim_start_matches('-')
+                    .chars()
+                    .all(|c| c == '0' || c == '.')
+                {
                     s.trim_start_matches('-').to_string()
                 } else {
                     s
@@ -148,21 +187,17 @@ fn superscript(k: i32) -> String {
 /// About `n` ticks at multiples of 1, 2 or 5 × 10^k inside `[lo, hi]`; also returns the step.
 pub fn nice_ticks(lo: f64, hi: f64, n: usize) -> (Vec<f64>, f64) {
     let span = hi - lo;
-    if !(span > 0.0) || !span.is_finite() {
+    if span.is_nan() || span <= 0.0 || !span.is_finite() {
         return (vec![lo], 1.0);
     }
     let raw = span / n.max(1) as f64;
     let mag = 10f64.powf(raw.log10().floor());
     let norm = raw / mag;
-    let mult = if norm <= 1.0 {
-        1.0
-    } else if norm <= 2.0 {
-        2.0
-    } else if norm <= 5.0 {
-        5.0
-    } else {
-        10.0
-    };
+    // the 1-2-5 multiplier nearest to the raw step (on a log scale)
+    let mult = [1.0f64, 2.0, 5.0, 10.0]
+        .into_iter()
+        .min_by(|a, b| (a / norm).ln().abs().total_cmp(&(b / norm).ln().abs()))
+        .unwrap_or(1.0);
     let step = mult * mag;
     let first = (lo / step - 1e-9).ceil() as i64;
     let last = (hi / step + 1e-9).floor() as i64;
@@ -185,7 +220,11 @@ impl Ranged for AxisCoord {
 
     fn map(&self, value: &f64, limit: (i32, i32)) -> i32 {
         let t = self.fraction(*value);
-        let t = if t.is_finite() { t.clamp(-10.0, 10.0) } else { -10.0 };
+        let t = if t.is_finite() {
+            t.clamp(-10.0, 10.0)
+        } else {
+            -10.0
+        };
         limit.0 + (t * f64::from(limit.1 - limit.0)).round() as i32
     }
 
@@ -220,7 +259,8 @@ mod tests {
         assert_eq!(a.label(-0.5), "-0.5");
         assert_eq!(a.label(0.0), "0.0");
         let a = AxisCoord::linear(0.0, 3e-4, 5);
-        assert_eq!(a.label(1e-4), "1e-4");
+        assert_eq!(a.label(1e-4), "1.0e-4");
+        assert_eq!(a.label(1.5e-4), "1.5e-4");
     }
 
     #[test]

@@ -74,14 +74,25 @@ impl PlotOpts {
         match channel.to_ascii_lowercase().as_str() {
             "sx" | "x" => PlotOpts::diverging("Sx"),
             "sy" | "y" => PlotOpts::diverging("Sy"),
-            "sz" | "z" => PlotOpts { label: "Sz".into(), ..PlotOpts::default() },
-            other => PlotOpts { label: other.to_string(), ..PlotOpts::default() },
+            "sz" | "z" => PlotOpts {
+                label: "Sz".into(),
+                ..PlotOpts::default()
+            },
+            other => PlotOpts {
+                label: other.to_string(),
+                ..PlotOpts::default()
+            },
         }
     }
 
     /// Diverging, symmetric about zero, with this colour-bar label.
     pub fn diverging(label: &str) -> PlotOpts {
-        PlotOpts { label: label.into(), colormap: Colormap::Diverging, symmetric: true, ..PlotOpts::default() }
+        PlotOpts {
+            label: label.into(),
+            colormap: Colormap::Diverging,
+            symmetric: true,
+            ..PlotOpts::default()
+        }
     }
 
     pub fn with_title(mut self, title: &str) -> PlotOpts {
@@ -103,7 +114,11 @@ pub struct ScanPlotOpts {
 
 impl Default for ScanPlotOpts {
     fn default() -> Self {
-        ScanPlotOpts { title: String::new(), include_sz: true, shared_xy_scale: false }
+        ScanPlotOpts {
+            title: String::new(),
+            include_sz: true,
+            shared_xy_scale: false,
+        }
     }
 }
 
@@ -128,10 +143,22 @@ pub struct Series {
 
 impl Series {
     pub fn line(label: &str, x: Vec<f64>, y: Vec<f64>) -> Series {
-        Series { label: label.into(), x, y, yerr: None, style: SeriesStyle::Line }
+        Series {
+            label: label.into(),
+            x,
+            y,
+            yerr: None,
+            style: SeriesStyle::Line,
+        }
     }
     pub fn points(label: &str, x: Vec<f64>, y: Vec<f64>) -> Series {
-        Series { label: label.into(), x, y, yerr: None, style: SeriesStyle::Points }
+        Series {
+            label: label.into(),
+            x,
+            y,
+            yerr: None,
+            style: SeriesStyle::Points,
+        }
     }
     pub fn with_yerr(mut self, yerr: Vec<f64>) -> Series {
         self.yerr = Some(yerr);
@@ -156,7 +183,12 @@ pub struct XyOpts {
 
 impl XyOpts {
     pub fn new(title: &str, xlabel: &str, ylabel: &str) -> XyOpts {
-        XyOpts { title: title.into(), xlabel: xlabel.into(), ylabel: ylabel.into(), ..XyOpts::default() }
+        XyOpts {
+            title: title.into(),
+            xlabel: xlabel.into(),
+            ylabel: ylabel.into(),
+            ..XyOpts::default()
+        }
     }
     pub fn log_log(mut self) -> XyOpts {
         self.log_x = true;
@@ -175,7 +207,9 @@ enum Format {
 }
 
 fn output_format(path: &Path) -> Result<Format, DataError> {
-    let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
     match ext.as_deref() {
         Some("png") => Ok(Format::Png),
         Some("svg") => Ok(Format::Svg),
@@ -199,7 +233,10 @@ fn perr<E: std::fmt::Display>(e: E) -> String {
 
 fn render<F: Figure>(path: &Path, fig: &F) -> Result<(), DataError> {
     let format = output_format(path)?;
-    let plot_err = |msg: String| DataError::Plot { path: path.to_path_buf(), msg };
+    let plot_err = |msg: String| DataError::Plot {
+        path: path.to_path_buf(),
+        msg,
+    };
     ensure_font().map_err(plot_err)?;
     atomic_write(path, |tmp| {
         // Safety net: a panic inside the drawing library becomes an error, not a crash.
@@ -266,7 +303,12 @@ fn draw_centered<DB: DrawingBackend>(
 ) -> Result<(), String> {
     let (w, h) = area.dim_in_pixel();
     let style = font(px).pos(Pos::new(HPos::Center, VPos::Center));
-    area.draw(&Text::new(text.to_string(), (w as i32 / 2, h as i32 / 2), style)).map_err(perr)
+    area.draw(&Text::new(
+        text.to_string(),
+        (w as i32 / 2, h as i32 / 2),
+        style,
+    ))
+    .map_err(perr)
 }
 
 // ---------------------------------------------------------------- heat maps
@@ -291,7 +333,13 @@ fn pixel_edges(a: &[f64], fallback: f64) -> Vec<f64> {
 
 fn pixel_width_fallback(img: &Image) -> (f64, f64) {
     let (dx, dy) = (img.dx().abs(), img.dy().abs());
-    let fx = if dx > 0.0 { dx } else if dy > 0.0 { dy } else { 1.0 };
+    let fx = if dx > 0.0 {
+        dx
+    } else if dy > 0.0 {
+        dy
+    } else {
+        1.0
+    };
     let fy = if dy > 0.0 { dy } else { fx };
     (fx, fy)
 }
@@ -309,14 +357,21 @@ fn extents(img: &Image) -> ((f64, f64), (f64, f64)) {
 
 /// Size in screen pixels of the heat-map plotting area for `img` when its longer side gets
 /// `long_side` pixels: proportional to the extents in µm, so pixels are square in µm when the
-/// axes have equal spacing (the shorter side is not made smaller than 40 screen pixels).
+/// axes have equal spacing. Images more elongated than 4:1 (line scans) are stretched so that
+/// the shorter side keeps a quarter of the longer one (room for ticks and the colour bar).
 pub fn image_plot_area(img: &Image, long_side: u32) -> (u32, u32) {
     let ((x0, x1), (y0, y1)) = extents(img);
     let (ex, ey) = (x1 - x0, y1 - y0);
     let m = ex.max(ey);
-    let w = ((f64::from(long_side) * ex / m).round() as u32).max(40);
-    let h = ((f64::from(long_side) * ey / m).round() as u32).max(40);
+    let min_side = (long_side / 4).max(40);
+    let w = ((f64::from(long_side) * ex / m).round() as u32).max(min_side);
+    let h = ((f64::from(long_side) * ey / m).round() as u32).max(min_side);
     (w, h)
+}
+
+/// Number of ticks for an axis `len` screen pixels long, one per `per` pixels (2 to 6).
+fn ticks_for(len: u32, per: u32) -> usize {
+    ((len / per) as usize).clamp(2, 6)
 }
 
 /// Colour range of a heat map, validated.
@@ -326,16 +381,25 @@ fn color_range(img: &Image, opts: &PlotOpts, what: &str) -> Result<(f64, f64), S
     }
     if let Some((a, b)) = opts.range {
         if !(a.is_finite() && b.is_finite() && a < b) {
-            return Err(format!("colour range ({a}, {b}) must be two finite numbers with vmin < vmax"));
+            return Err(format!(
+                "colour range ({a}, {b}) must be two finite numbers with vmin < vmax"
+            ));
         }
         return Ok((a, b));
     }
     let (lo, hi) = match (img.min(), img.max()) {
         (Ok(lo), Ok(hi)) => (lo, hi),
-        _ => return Err(format!("{what} has no data: all {} pixels are NaN", img.data.len())),
+        _ => {
+            return Err(format!(
+                "{what} has no data: all {} pixels are NaN",
+                img.data.len()
+            ))
+        }
     };
     if !lo.is_finite() || !hi.is_finite() {
-        return Err(format!("{what} contains infinite values (min {lo}, max {hi})"));
+        return Err(format!(
+            "{what} contains infinite values (min {lo}, max {hi})"
+        ));
     }
     let (mut lo, mut hi) = if opts.symmetric {
         let m = lo.abs().max(hi.abs());
@@ -369,14 +433,21 @@ const H_LEFT: u32 = 78;
 const H_BOTTOM: u32 = 58;
 const CB_GAP: u32 = 18;
 const CB_W: u32 = 22;
-const CB_LABELS: u32 = 92;
-const H_RIGHT: u32 = 12;
+const CB_LABELS: u32 = 70;
+const H_RIGHT: u32 = 26;
+/// Room left of the y label area for the rotated axis description.
+const H_MARGIN_LEFT: u32 = 16;
+const TICK_MARK: i32 = 5;
 
 impl HeatPanel<'_> {
     fn size(&self) -> (u32, u32) {
-        let cap = if self.caption.is_empty() { 0 } else { H_CAPTION };
+        let cap = if self.caption.is_empty() {
+            0
+        } else {
+            H_CAPTION
+        };
         (
-            H_LEFT + self.plot_w + CB_GAP + CB_W + CB_LABELS + H_RIGHT,
+            H_MARGIN_LEFT + H_LEFT + self.plot_w + CB_GAP + CB_W + CB_LABELS + H_RIGHT,
             cap + H_TOP + self.plot_h + H_BOTTOM,
         )
     }
@@ -389,18 +460,21 @@ impl HeatPanel<'_> {
             draw_centered(&cap, &self.caption, DESC_PX + 1)?;
             rest
         };
-        let (main, bar) = area.split_horizontally(H_LEFT + self.plot_w);
+        let (main, bar) = area.split_horizontally(H_MARGIN_LEFT + H_LEFT + self.plot_w);
         let img = self.img;
         let ((x0, x1), (y0, y1)) = extents(img);
+        let (nx, ny) = (ticks_for(self.plot_w, 80), ticks_for(self.plot_h, 60));
         let mut chart = ChartBuilder::on(&main)
             .margin_top(H_TOP)
+            .margin_left(H_MARGIN_LEFT)
             .x_label_area_size(H_BOTTOM)
             .y_label_area_size(H_LEFT)
-            .build_cartesian_2d(AxisCoord::linear(x0, x1, 6), AxisCoord::linear(y0, y1, 6))
+            .build_cartesian_2d(AxisCoord::linear(x0, x1, nx), AxisCoord::linear(y0, y1, ny))
             .map_err(perr)?;
         chart
             .configure_mesh()
             .disable_mesh()
+            .set_all_tick_mark_size(TICK_MARK)
             .x_desc(format!("{} (µm)", img.x_name))
             .y_desc(format!("{} (µm)", img.y_name))
             .label_style(font(TICK_PX))
@@ -418,7 +492,10 @@ impl HeatPanel<'_> {
         });
         chart.draw_series(rects).map_err(perr)?;
         chart
-            .draw_series(std::iter::once(Rectangle::new([(x0, y0), (x1, y1)], BLACK.stroke_width(1))))
+            .draw_series(std::iter::once(Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                BLACK.stroke_width(1),
+            )))
             .map_err(perr)?;
 
         // Colour bar.
@@ -428,10 +505,14 @@ impl HeatPanel<'_> {
             .margin_right(H_RIGHT)
             .x_label_area_size(H_BOTTOM)
             .right_y_label_area_size(CB_LABELS)
-            .build_cartesian_2d(AxisCoord::linear(0.0, 1.0, 2), AxisCoord::linear(vmin, vmax, 6))
+            .build_cartesian_2d(
+                AxisCoord::linear(0.0, 1.0, 2),
+                AxisCoord::linear(vmin, vmax, ny),
+            )
             .map_err(perr)?;
         cb.configure_mesh()
             .disable_mesh()
+            .set_all_tick_mark_size(TICK_MARK)
             .disable_x_axis()
             .y_desc(self.label.clone())
             .label_style(font(TICK_PX))
@@ -446,8 +527,11 @@ impl HeatPanel<'_> {
             Rectangle::new([(0.0, a), (1.0, b)], c.filled())
         });
         cb.draw_series(bars).map_err(perr)?;
-        cb.draw_series(std::iter::once(Rectangle::new([(0.0, vmin), (1.0, vmax)], BLACK.stroke_width(1))))
-            .map_err(perr)?;
+        cb.draw_series(std::iter::once(Rectangle::new(
+            [(0.0, vmin), (1.0, vmax)],
+            BLACK.stroke_width(1),
+        )))
+        .map_err(perr)?;
         Ok(())
     }
 }
@@ -492,14 +576,23 @@ fn nan_note(img: &Image) -> String {
 }
 
 fn join_nonempty(parts: &[&str], sep: &str) -> String {
-    parts.iter().filter(|s| !s.is_empty()).copied().collect::<Vec<_>>().join(sep)
+    parts
+        .iter()
+        .filter(|s| !s.is_empty())
+        .copied()
+        .collect::<Vec<_>>()
+        .join(sep)
 }
 
 /// Heat map of one image with µm axes and a colour bar. NaN pixels are grey.
 pub fn plot_image(path: impl AsRef<Path>, img: &Image, opts: &PlotOpts) -> Result<(), DataError> {
     let path = path.as_ref();
     output_format(path)?;
-    let what = if opts.label.is_empty() { "image".to_string() } else { opts.label.clone() };
+    let what = if opts.label.is_empty() {
+        "image".to_string()
+    } else {
+        opts.label.clone()
+    };
     let (vmin, vmax) = color_range(img, opts, &what).map_err(|m| plot_error(path, m))?;
     let (plot_w, plot_h) = image_plot_area(img, 480);
     let note = nan_note(img);
@@ -509,26 +602,49 @@ pub fn plot_image(path: impl AsRef<Path>, img: &Image, opts: &PlotOpts) -> Resul
         vmin,
         vmax,
         label: opts.label.clone(),
-        caption: if opts.title.is_empty() { String::new() } else { note.clone() },
+        caption: if opts.title.is_empty() {
+            String::new()
+        } else {
+            note.clone()
+        },
         plot_w,
         plot_h,
     };
-    let title = if opts.title.is_empty() { note } else { opts.title.clone() };
-    render(path, &HeatFigure { title, panels: vec![panel] })
+    let title = if opts.title.is_empty() {
+        note
+    } else {
+        opts.title.clone()
+    };
+    render(
+        path,
+        &HeatFigure {
+            title,
+            panels: vec![panel],
+        },
+    )
 }
 
 /// Sx, Sy (and Sz) of a scan side by side, each with its colour bar: Sx/Sy diverging and
 /// symmetric about 0, Sz sequential. Aborted or failed scans say so in the title.
-pub fn plot_scan(path: impl AsRef<Path>, scan: &Scan, opts: &ScanPlotOpts) -> Result<(), DataError> {
+pub fn plot_scan(
+    path: impl AsRef<Path>,
+    scan: &Scan,
+    opts: &ScanPlotOpts,
+) -> Result<(), DataError> {
     let path = path.as_ref();
     output_format(path)?;
-    let mut channels: Vec<(&Image, PlotOpts)> =
-        vec![(&scan.sx, PlotOpts::for_channel("sx")), (&scan.sy, PlotOpts::for_channel("sy"))];
+    let mut channels: Vec<(&Image, PlotOpts)> = vec![
+        (&scan.sx, PlotOpts::for_channel("sx")),
+        (&scan.sy, PlotOpts::for_channel("sy")),
+    ];
     if opts.include_sz {
         channels.push((&scan.sz, PlotOpts::for_channel("sz")));
     }
     if opts.shared_xy_scale {
-        let m = [&scan.sx, &scan.sy].iter().filter_map(|i| i.abs_max().ok()).fold(0.0f64, f64::max);
+        let m = [&scan.sx, &scan.sy]
+            .iter()
+            .filter_map(|i| i.abs_max().ok())
+            .fold(0.0f64, f64::max);
         if m > 0.0 && m.is_finite() {
             channels[0].1.range = Some((-m, m));
             channels[1].1.range = Some((-m, m));
@@ -560,7 +676,10 @@ pub fn plot_scan(path: impl AsRef<Path>, scan: &Scan, opts: &ScanPlotOpts) -> Re
 }
 
 fn plot_error(path: &Path, msg: String) -> DataError {
-    DataError::Plot { path: path.to_path_buf(), msg }
+    DataError::Plot {
+        path: path.to_path_buf(),
+        msg,
+    }
 }
 
 // ---------------------------------------------------------------- x–y plots
@@ -575,7 +694,15 @@ fn data_range(values: &[f64], log: bool, pad: bool) -> (f64, f64) {
     if log {
         let (l0, l1) = (lo.log10(), hi.log10());
         let span = l1 - l0;
-        let p = if span > 0.0 { if pad { 0.05 * span } else { 0.0 } } else { 0.3 };
+        let p = if span > 0.0 {
+            if pad {
+                0.05 * span
+            } else {
+                0.0
+            }
+        } else {
+            0.3
+        };
         (10f64.powf(l0 - p), 10f64.powf(l1 + p))
     } else {
         let span = hi - lo;
@@ -604,16 +731,34 @@ fn validate_series(series: &[Series], opts: &XyOpts) -> Result<(Vec<f64>, Vec<f6
     }
     let (mut xs, mut ys) = (Vec::new(), Vec::new());
     for s in series {
-        let name = if s.label.is_empty() { "(unlabelled)".to_string() } else { format!("{:?}", s.label) };
+        let name = if s.label.is_empty() {
+            "(unlabelled)".to_string()
+        } else {
+            format!("{:?}", s.label)
+        };
         if s.x.len() != s.y.len() {
-            return Err(format!("series {name}: x has {} values but y has {}", s.x.len(), s.y.len()));
+            return Err(format!(
+                "series {name}: x has {} values but y has {}",
+                s.x.len(),
+                s.y.len()
+            ));
         }
         if let Some(e) = &s.yerr {
             if e.len() != s.y.len() {
-                return Err(format!("series {name}: yerr has {} values but y has {}", e.len(), s.y.len()));
+                return Err(format!(
+                    "series {name}: yerr has {} values but y has {}",
+                    e.len(),
+                    s.y.len()
+                ));
             }
-            if let Some((k, v)) = e.iter().enumerate().find(|(_, v)| **v < 0.0 || v.is_infinite()) {
-                return Err(format!("series {name}: yerr[{k}] = {v}; error bars must be finite and >= 0"));
+            if let Some((k, v)) = e
+                .iter()
+                .enumerate()
+                .find(|(_, v)| **v < 0.0 || v.is_infinite())
+            {
+                return Err(format!(
+                    "series {name}: yerr[{k}] = {v}; error bars must be finite and >= 0"
+                ));
             }
         }
         for k in 0..s.x.len() {
@@ -629,10 +774,14 @@ fn validate_series(series: &[Series], opts: &XyOpts) -> Result<(Vec<f64>, Vec<f6
                 continue;
             }
             if opts.log_x && x <= 0.0 {
-                return Err(format!("series {name}: x[{k}] = {x}; a log x axis needs x > 0"));
+                return Err(format!(
+                    "series {name}: x[{k}] = {x}; a log x axis needs x > 0"
+                ));
             }
             if opts.log_y && y <= 0.0 {
-                return Err(format!("series {name}: y[{k}] = {y}; a log y axis needs y > 0"));
+                return Err(format!(
+                    "series {name}: y[{k}] = {y}; a log y axis needs y > 0"
+                ));
             }
             xs.push(x);
             ys.push(y);
@@ -708,6 +857,7 @@ impl Figure for XyFigure<'_> {
             .map_err(perr)?;
         chart
             .configure_mesh()
+            .set_all_tick_mark_size(TICK_MARK)
             .x_desc(self.opts.xlabel.clone())
             .y_desc(self.opts.ylabel.clone())
             .label_style(font(TICK_PX))
@@ -720,9 +870,12 @@ impl Figure for XyFigure<'_> {
         if !self.bars.is_empty() {
             let fill = series_color(0).mix(0.75);
             chart
-                .draw_series(self.bars.iter().filter(|b| b.2 > 0.0).map(|&(a, b, c)| {
-                    Rectangle::new([(a, 0.0), (b, c)], fill.filled())
-                }))
+                .draw_series(
+                    self.bars
+                        .iter()
+                        .filter(|b| b.2 > 0.0)
+                        .map(|&(a, b, c)| Rectangle::new([(a, 0.0), (b, c)], fill.filled())),
+                )
                 .map_err(perr)?;
             chart
                 .draw_series(self.bars.iter().filter(|b| b.2 > 0.0).map(|&(a, b, c)| {
@@ -736,13 +889,23 @@ impl Figure for XyFigure<'_> {
             let color = series_color(k);
             let finite: Vec<(f64, f64, Option<f64>)> = (0..s.x.len())
                 .filter(|&i| s.x[i].is_finite() && s.y[i].is_finite())
-                .map(|i| (s.x[i], s.y[i], s.yerr.as_ref().map(|e| e[i]).filter(|e| e.is_finite())))
+                .map(|i| {
+                    (
+                        s.x[i],
+                        s.y[i],
+                        s.yerr.as_ref().map(|e| e[i]).filter(|e| e.is_finite()),
+                    )
+                })
                 .collect();
             // error bars
             let ylo = self.ya.range().start;
             let bars = finite.iter().filter_map(|&(x, y, e)| {
                 e.map(|e| {
-                    let lo = if self.opts.log_y && y - e <= 0.0 { ylo } else { y - e };
+                    let lo = if self.opts.log_y && y - e <= 0.0 {
+                        ylo
+                    } else {
+                        y - e
+                    };
                     ErrorBar::new_vertical(x, lo, y, y + e, color.stroke_width(1), 8)
                 })
             });
@@ -775,7 +938,9 @@ impl Figure for XyFigure<'_> {
                     runs.push(run);
                 }
                 for r in runs {
-                    let anno = chart.draw_series(LineSeries::new(r, color.stroke_width(2))).map_err(perr)?;
+                    let anno = chart
+                        .draw_series(LineSeries::new(r, color.stroke_width(2)))
+                        .map_err(perr)?;
                     if !labelled {
                         label_it(anno, false);
                         labelled = true;
@@ -784,7 +949,11 @@ impl Figure for XyFigure<'_> {
             }
             if matches!(s.style, SeriesStyle::Points | SeriesStyle::LinePoints) {
                 let anno = chart
-                    .draw_series(finite.iter().map(|&(x, y, _)| Circle::new((x, y), 4, color.filled())))
+                    .draw_series(
+                        finite
+                            .iter()
+                            .map(|&(x, y, _)| Circle::new((x, y), 4, color.filled())),
+                    )
                     .map_err(perr)?;
                 if !labelled {
                     label_it(anno, true);
@@ -792,7 +961,9 @@ impl Figure for XyFigure<'_> {
                 }
             }
             if !labelled {
-                let anno = chart.draw_series(std::iter::empty::<Circle<(f64, f64), u32>>()).map_err(perr)?;
+                let anno = chart
+                    .draw_series(std::iter::empty::<Circle<(f64, f64), u32>>())
+                    .map_err(perr)?;
                 label_it(anno, false);
             }
             any_label |= !s.label.is_empty();
@@ -812,7 +983,12 @@ impl Figure for XyFigure<'_> {
             // Pixel ranges are absolute backend coordinates, which is what `root` uses.
             let (xr, yr) = chart.plotting_area().get_pixel_range();
             let style = font(TICK_PX).pos(Pos::new(HPos::Right, VPos::Top));
-            root.draw(&Text::new(self.note.clone(), (xr.end - 10, yr.start + 10), style)).map_err(perr)?;
+            root.draw(&Text::new(
+                self.note.clone(),
+                (xr.end - 10, yr.start + 10),
+                style,
+            ))
+            .map_err(perr)?;
         }
         Ok(())
     }
@@ -830,7 +1006,7 @@ pub fn plot_xy(path: impl AsRef<Path>, series: &[Series], opts: &XyOpts) -> Resu
         series,
         opts,
         xa: axis(x0, x1, opts.log_x, 8),
-        ya: axis(y0, y1, opts.log_y, 7),
+        ya: axis(y0, y1, opts.log_y, 6),
         bars: vec![],
         note: String::new(),
     };
@@ -839,13 +1015,19 @@ pub fn plot_xy(path: impl AsRef<Path>, series: &[Series], opts: &XyOpts) -> Resu
 
 /// Line profiles, one curve per `(label, profile)`, with a legend. The x label defaults to
 /// `"<axis> (µm)"` from the first profile.
-pub fn plot_profile(path: impl AsRef<Path>, profiles: &[(&str, &Profile)], opts: &XyOpts) -> Result<(), DataError> {
+pub fn plot_profile(
+    path: impl AsRef<Path>,
+    profiles: &[(&str, &Profile)],
+    opts: &XyOpts,
+) -> Result<(), DataError> {
     let path = path.as_ref();
     if profiles.is_empty() {
         return Err(plot_error(path, "no profiles to plot (empty list)".into()));
     }
-    let series: Vec<Series> =
-        profiles.iter().map(|(label, p)| Series::line(label, p.t.clone(), p.v.clone())).collect();
+    let series: Vec<Series> = profiles
+        .iter()
+        .map(|(label, p)| Series::line(label, p.t.clone(), p.v.clone()))
+        .collect();
     let mut o = opts.clone();
     if o.xlabel.is_empty() {
         o.xlabel = format!("{} (µm)", profiles[0].1.t_name);
@@ -856,51 +1038,132 @@ pub fn plot_profile(path: impl AsRef<Path>, profiles: &[(&str, &Profile)], opts:
     plot_xy(path, &series, &o)
 }
 
+/// Counts of values in equal bins (what [`plot_hist`] draws).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Histogram {
+    /// `bins + 1` bin edges, increasing.
+    pub edges: Vec<f64>,
+    /// Values per bin; bin `k` is `[edges[k], edges[k+1])`, the last bin includes its right edge.
+    pub counts: Vec<u64>,
+    /// NaN values skipped.
+    pub nan: usize,
+    /// All values were equal: one bin centred on the value (width 10 % of it, or 1 around 0).
+    pub all_equal: bool,
+}
+
+impl Histogram {
+    /// Number of values counted (NaN excluded).
+    pub fn count(&self) -> u64 {
+        self.counts.iter().sum()
+    }
+}
+
+/// Bin the finite values of `values` into `bins` (1..=10000) equal bins from the smallest to
+/// the largest value. NaN values are skipped and counted; infinite values are an error.
+pub fn histogram(values: &[f64], bins: usize) -> Result<Histogram, DataError> {
+    if !(1..=10_000).contains(&bins) {
+        return Err(DataError::invalid("bins", bins, "between 1 and 10000"));
+    }
+    if values.is_empty() {
+        return Err(DataError::Empty("histogram values".into()));
+    }
+    if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| v.is_infinite()) {
+        return Err(DataError::invalid(
+            &format!("values[{k}]"),
+            v,
+            "values must be finite (NaN is skipped)",
+        ));
+    }
+    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    let nan = values.len() - finite.len();
+    if finite.is_empty() {
+        return Err(DataError::AllNaN {
+            what: "histogram values".into(),
+            count: values.len(),
+        });
+    }
+    let lo = finite.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = finite.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let all_equal = lo == hi;
+    // All values equal: one bar centred on the value (finer bins would only show where the
+    // bin edges happen to fall).
+    let (lo, hi, bins) = if all_equal {
+        let half = if lo == 0.0 { 0.5 } else { 0.05 * lo.abs() };
+        (lo - half, lo + half, 1)
+    } else {
+        (lo, hi, bins)
+    };
+    let width = (hi - lo) / bins as f64;
+    let mut counts = vec![0u64; bins];
+    for v in &finite {
+        let k = (((v - lo) / width).floor() as usize).min(bins - 1);
+        counts[k] += 1;
+    }
+    let mut edges: Vec<f64> = (0..=bins).map(|k| lo + width * k as f64).collect();
+    edges[bins] = hi;
+    Ok(Histogram {
+        edges,
+        counts,
+        nan,
+        all_equal,
+    })
+}
+
 /// Histogram of `values` in `bins` equal bins between the smallest and largest finite value.
 /// NaN values are skipped and counted in a note on the figure. Log axes are not supported.
-pub fn plot_hist(path: impl AsRef<Path>, values: &[f64], bins: usize, opts: &XyOpts) -> Result<(), DataError> {
+pub fn plot_hist(
+    path: impl AsRef<Path>,
+    values: &[f64],
+    bins: usize,
+    opts: &XyOpts,
+) -> Result<(), DataError> {
     let path = path.as_ref();
     output_format(path)?;
     if !(1..=10_000).contains(&bins) {
         return Err(DataError::invalid("bins", bins, "between 1 and 10000"));
     }
     if opts.log_x || opts.log_y {
-        return Err(plot_error(path, "histograms are drawn on linear axes (log_x/log_y not supported)".into()));
+        return Err(plot_error(
+            path,
+            "histograms are drawn on linear axes (log_x/log_y not supported)".into(),
+        ));
     }
-    if values.is_empty() {
-        return Err(plot_error(path, "no values for the histogram (empty list)".into()));
-    }
-    if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| v.is_infinite()) {
-        return Err(plot_error(path, format!("values[{k}] = {v}; values must be finite (NaN is skipped)")));
-    }
-    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    let nan = values.len() - finite.len();
-    if finite.is_empty() {
-        return Err(plot_error(path, format!("no data: all {} values are NaN", values.len())));
-    }
-    let (lo, hi) = data_range(&finite, false, false);
+    let h = histogram(values, bins)?;
+    let (counts, finite_n, nan) = (&h.counts, h.count(), h.nan);
+    let (lo, hi) = (h.edges[0], h.edges[h.edges.len() - 1]);
+    let all_equal = h.all_equal;
+    let bins = counts.len();
     let width = (hi - lo) / bins as f64;
-    let mut counts = vec![0.0f64; bins];
-    for v in &finite {
-        let k = (((v - lo) / width).floor() as usize).min(bins - 1);
-        counts[k] += 1.0;
-    }
-    let bars: Vec<(f64, f64, f64)> =
-        (0..bins).map(|k| (lo + width * k as f64, lo + width * (k + 1) as f64, counts[k])).collect();
+    let counts: Vec<f64> = counts.iter().map(|&c| c as f64).collect();
+    let bars: Vec<(f64, f64, f64)> = (0..bins)
+        .map(|k| {
+            (
+                lo + width * k as f64,
+                lo + width * (k + 1) as f64,
+                counts[k],
+            )
+        })
+        .collect();
     let cmax = counts.iter().copied().fold(0.0, f64::max);
     let mut o = opts.clone();
     if o.ylabel.is_empty() {
         o.ylabel = "count".into();
     }
-    let mut note = format!("n = {}", finite.len());
+    let mut note = format!("n = {finite_n}");
+    if all_equal {
+        note += &format!(
+            ", all equal to {}",
+            crate::data::image::fmt_sig((lo + hi) / 2.0, 6)
+        );
+    }
     if nan > 0 {
         note += &format!(", {nan} NaN skipped");
     }
-    let pad = (hi - lo) * 0.02;
+    let pad = (hi - lo) * if all_equal { 2.0 } else { 0.02 };
     let fig = XyFigure {
         series: &[],
         opts: &o,
-        xa: AxisCoord::linear(lo - pad, hi + pad, 8),
+        xa: AxisCoord::linear(lo - pad, hi + pad, if all_equal { 4 } else { 8 }),
         ya: AxisCoord::linear(0.0, cmax * 1.12, 6),
         bars,
         note,

@@ -228,7 +228,7 @@ mod tests {
     /// ψ_n χ_{n−1} − ψ_{n−1} χ_n = 1 (BH §4.8) with χ from the upward recurrence.
     #[test]
     fn psi_recurrence_and_wronskian() {
-        for &x in &[0.3, 2.0, 17.0, 140.0] {
+        for &x in &[0.3f64, 2.0, 17.0, 140.0] {
             let n_max = (x + 4.05 * x.cbrt() + 2.0) as usize + 10;
             let psi = riccati_psi(x, n_max).unwrap();
             let mut chi_prev = -x.sin(); // χ_{−1}
