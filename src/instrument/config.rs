@@ -480,11 +480,11 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
-        for i in 0..3 {
+        for (i, name) in AXIS_NAMES.iter().enumerate() {
             if let Some([lo, hi]) = self.safety.soft_limits.get(i) {
                 if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                     return Err(err(
-                        &format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        &format!("safety.soft_limits.{name}"),
                         format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
                     ));
                 }
@@ -526,21 +526,35 @@ impl Config {
     }
 }
 
-/// Line of the first occurrence of the last component of `key` (for validation errors).
+/// Line where `key` (a dotted path) is set, for validation errors: a `k = …` line whose
+/// table path plus `k` is `key` or a prefix of it (inline tables such as `soft_limits = {x = …}`).
 fn find_key_line(text: &str, key: &str) -> Option<usize> {
-    let last = key.rsplit('.').next()?;
-    if last.is_empty() {
+    if key.is_empty() {
         return None;
     }
-    text.lines()
-        .position(|l| {
-            let t = l.trim_start();
-            t.strip_prefix(last)
-                .is_some_and(|r| r.trim_start().starts_with('='))
-                || t.contains(&format!(" {last} ="))
-                || t.contains(&format!("{{{last} ="))
-        })
-        .map(|i| i + 1)
+    let mut table = String::new();
+    for (n, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if let Some(h) = table_header(t) {
+            table = h;
+            continue;
+        }
+        if t.starts_with('#') {
+            continue;
+        }
+        if let Some((k, _)) = t.split_once('=') {
+            let k = k.trim().trim_matches('"');
+            let path = if table.is_empty() {
+                k.to_string()
+            } else {
+                format!("{table}.{k}")
+            };
+            if key == path || key.starts_with(&format!("{path}.")) {
+                return Some(n + 1);
+            }
+        }
+    }
+    None
 }
 
 #[cfg(test)]
@@ -599,9 +613,9 @@ wavelength_nm = 1064.0
         assert_eq!(e.key, "stage.baud");
         assert_eq!(e.line, Some(4));
         assert!(e.message.contains("invalid type"), "{e}");
-        assert!(
-            e.to_string().starts_with("bfpscope.toml: stage.baud: "),
-            "{e}"
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.baud: invalid type: string \"fast\", expected u32 (line 4)"
         );
 
         let e = error_of("[stage]\nbackend = \"gsc\"\n");
@@ -610,7 +624,11 @@ wavelength_nm = 1064.0
 
         let e = error_of("[safety]\nsoft_limit = { x = [0.0, 1.0] }\n");
         assert_eq!(e.key, "safety.soft_limit");
-        assert!(e.message.contains("unknown field"), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: safety.soft_limit: unknown field `soft_limit`, expected one of `soft_limits`, \
+             `max_step_um`, `max_speed_um_s` (line 2)"
+        );
 
         let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
         assert_eq!(e.key, "qpd.calibration.gain");
@@ -621,6 +639,11 @@ wavelength_nm = 1064.0
         let e =
             error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
         assert_eq!(e.key, "stage.port");
+        assert_eq!(e.line, None, "must not point at qpd.port");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.port: required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"
+        );
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
         let e = error_of("[safety]\nsoft_limits = { x = [5.0, 1.0] }\n");
@@ -661,6 +684,44 @@ wavelength_nm = 1064.0
             [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
         )
         .is_err());
+    }
+
+    #[test]
+    fn example_file_parses() {
+        let c = Config::from_toml_str(
+            include_str!("../../bfpscope.example.toml"),
+            "bfpscope.example.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            (c.stage.backend, c.qpd.backend),
+            (Backend::Gcs, Backend::Scpi)
+        );
+        assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
+        assert_eq!(c.safety.soft_limits.z, Some([1.0, 19.0]));
+        // every key shown with its default really is the default
+        let d = Config::default();
+        assert_eq!(
+            (
+                c.stage.baud,
+                c.stage.timeout_ms,
+                c.stage.on_target_timeout_ms,
+                c.stage.poll_ms,
+                c.stage.settle_s
+            ),
+            (
+                d.stage.baud,
+                d.stage.timeout_ms,
+                d.stage.on_target_timeout_ms,
+                d.stage.poll_ms,
+                d.stage.settle_s
+            )
+        );
+        assert_eq!(
+            (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
+            (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
+        );
+        assert!(c.other.is_empty());
     }
 
     #[test]

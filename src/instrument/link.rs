@@ -45,6 +45,47 @@ impl Transport for serialport::TTYPort {
     }
 }
 
+/// A serial port opened by the drivers. On Unix it is opened exclusively (`TIOCEXCL`: a second
+/// program cannot open it meanwhile) and the exclusivity is cleared again when the port is
+/// closed. Pseudo-terminals keep the flag for as long as their master lives, so without the
+/// clearing a non-root user could not reconnect to an emulator.
+#[cfg(unix)]
+struct SerialTransport(serialport::TTYPort);
+
+#[cfg(unix)]
+impl Read for SerialTransport {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        self.0.read(buf)
+    }
+}
+
+#[cfg(unix)]
+impl Write for SerialTransport {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.0.write(buf)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+#[cfg(unix)]
+impl Transport for SerialTransport {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        self.0.set_read_timeout(timeout)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.0.discard_input()
+    }
+}
+
+#[cfg(unix)]
+impl Drop for SerialTransport {
+    fn drop(&mut self) {
+        let _ = self.0.set_exclusive(false);
+    }
+}
+
 /// Open a serial port (real or pseudo-terminal) with 8N1, no flow control.
 pub fn open_serial(
     device: &str,
@@ -52,32 +93,36 @@ pub fn open_serial(
     baud: u32,
     timeout: Duration,
 ) -> Result<Box<dyn Transport>, DeviceError> {
-    let port = serialport::new(path, baud)
+    let builder = serialport::new(path, baud)
         .timeout(timeout)
         .data_bits(serialport::DataBits::Eight)
         .parity(serialport::Parity::None)
         .stop_bits(serialport::StopBits::One)
-        .flow_control(serialport::FlowControl::None)
-        .open()
-        .map_err(|e| {
-            let hint = match e.kind() {
-                serialport::ErrorKind::NoDevice => {
-                    " (is it plugged in, and not opened by another program?)"
-                }
-                serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
-                    " (permission denied: add yourself to the `dialout` group and log in again)"
-                }
-                serialport::ErrorKind::Io(io::ErrorKind::NotFound) => {
-                    " (no such port: check `port` in bfpscope.toml; `ls /dev/ttyUSB* /dev/ttyACM*`)"
-                }
-                _ => "",
-            };
-            DeviceError::Other {
-                device: device.to_string(),
-                detail: format!("cannot open {path}: {e}{hint}"),
+        .flow_control(serialport::FlowControl::None);
+    #[cfg(unix)]
+    let opened = builder
+        .open_native()
+        .map(|p| Box::new(SerialTransport(p)) as Box<dyn Transport>);
+    #[cfg(not(unix))]
+    let opened = builder.open().map(|p| Box::new(p) as Box<dyn Transport>);
+    opened.map_err(|e| {
+        let hint = match e.kind() {
+            serialport::ErrorKind::NoDevice => {
+                " (is it plugged in, and not opened by another program?)"
             }
-        })?;
-    Ok(Box::new(port))
+            serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
+                " (permission denied: add yourself to the `dialout` group and log in again)"
+            }
+            serialport::ErrorKind::Io(io::ErrorKind::NotFound) => {
+                " (no such port: check `port` in bfpscope.toml; `ls /dev/ttyUSB* /dev/ttyACM*`)"
+            }
+            _ => "",
+        };
+        DeviceError::Other {
+            device: device.to_string(),
+            detail: format!("cannot open {path}: {e}{hint}"),
+        }
+    })
 }
 
 /// Classify an I/O error: timeouts are timeouts, everything else means the link is gone.

@@ -16,7 +16,7 @@ mod cli;
 mod qpd;
 mod stage;
 
-pub use cli::{run_emulator_cli, run_emulator_cli_with};
+pub use cli::{run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators};
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
 pub use stage::{start_stage_emulator, StageEmulatorConfig};
 
@@ -48,6 +48,17 @@ pub fn standin_bead(p: Pos) -> [f64; 3] {
     let [x, y, z] = p;
     let g = (-(x * x + y * y) / 0.16 - z * z / 0.5).exp();
     [x * g, y * g, 0.2 * g]
+}
+
+/// The simulator as a signal source: the ideal (noise-free) signal of `renderer`'s scene at
+/// the stage position, evaluated like a one-pixel `render_grid_ideal`. The emulator adds its own
+/// detector noise (`QpdEmulatorConfig::noise_v`); instrument effects of the scene (drift,
+/// pointing noise, …) are not applied.
+pub fn sim_signal_source(renderer: std::sync::Arc<crate::instrument::sim::Renderer>) -> impl SignalSource {
+    move |p: Pos| {
+        let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
+        [g[0][0], g[1][0], g[2][0]]
+    }
 }
 
 /// Fault-injection switches. Change them at run time with [`Emulator::faults`].

@@ -1,6 +1,6 @@
 //! A PI GCS 2.0 piezo controller emulator: three closed-loop axes with a travel range, servo
 //! state, settle dynamics (the position ramps linearly from where it was to the target over
-//! the settle time; `ONT?` reports 0 until it arrives) and GCS's single error register
+//! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
 //! (`ERR?` returns the last error and clears it).
 //!
 //! Commands: `*IDN?`, `ERR?`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`, `ONT?`, `TMN?`, `TMX?`,
@@ -22,8 +22,11 @@ pub struct StageEmulatorConfig {
     pub travel: [(f64, f64); 3],
     /// Position at power-on, µm (clamped into the travel range).
     pub start: Pos,
-    /// Time to settle on a new target, s.
+    /// Time to settle on a new target, s (linear ramp).
     pub settle_s: f64,
+    /// `ONT?` reports 1 once the position is within this distance of the target, µm (the
+    /// controller's settling window).
+    pub on_target_window_um: f64,
     /// Servo state at power-on.
     pub servo_on: bool,
     /// `*IDN?` reply.
@@ -40,11 +43,19 @@ impl Default for StageEmulatorConfig {
             travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
             start: [0.0; 3],
             settle_s: 0.002,
+            on_target_window_um: 0.001,
             servo_on: false,
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
                 .into(),
             faults: Faults::default(),
         }
+    }
+}
+
+impl StageEmulatorConfig {
+    /// A stage like the simulator's: same travel range and move time, parked at the origin.
+    pub fn like_sim(sim: &crate::instrument::sim::SimConfig) -> Self {
+        Self { travel: sim.travel, settle_s: sim.move_time_s, ..Self::default() }
     }
 }
 
@@ -82,7 +93,8 @@ impl GcsDevice {
         if f >= 1.0 {
             (a.target, true)
         } else {
-            (a.from + (a.target - a.from) * f, false)
+            let p = a.from + (a.target - a.from) * f;
+            (p, (p - a.target).abs() <= self.cfg.on_target_window_um)
         }
     }
 
@@ -122,7 +134,7 @@ impl GcsDevice {
 
     /// `AXIS value AXIS value …` pairs. Error 1 for a malformed list, 15 for an unknown axis.
     fn pairs(&mut self, args: &[&str]) -> Option<Vec<(usize, f64)>> {
-        if args.is_empty() || args.len() % 2 != 0 {
+        if args.is_empty() || !args.len().is_multiple_of(2) {
             self.set_error(1);
             return None;
         }
