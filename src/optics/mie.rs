@@ -339,7 +339,7 @@ pub fn mie_coefficients(
 }
 
 /// Efficiencies from a coefficient set (BH eq. 4.61, 4.62, 4.79; Q_back BH §4.6).
-fn efficiencies(x: f64, m: C64, c: &Coeffs) -> MieResult {
+fn efficiencies(m: C64, c: &Coeffs) -> MieResult {
     let n_terms = c.a.len();
     let mut s_ext = 0.0;
     let mut s_sca = 0.0;
@@ -397,7 +397,7 @@ pub fn mie_q(x: f64, m: C64) -> Result<MieResult, MieError> {
 /// the accuracy-vs-time report.
 pub fn mie_q_terms(x: f64, m: C64, n_terms: Option<usize>) -> Result<MieResult, MieError> {
     let c = coefficients_internal(x, m, n_terms)?;
-    Ok(efficiencies(x, m, &c))
+    Ok(efficiencies(m, &c))
 }
 
 /// Amplitude functions (S_1(θ), S_2(θ)) at the given cosines of the scattering angle

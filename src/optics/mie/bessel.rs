@@ -197,7 +197,7 @@ mod tests {
     /// Closed forms: ψ_1(x) = sin x/x − cos x, D_1(z) = −1/z + 1/(1/z − cot z) (from ψ_1).
     #[test]
     fn psi_and_d1_match_closed_forms() {
-        for &x in &[1e-3, 0.1, 0.7, 1.0, 3.3, 25.0, 300.5] {
+        for &x in &[1e-3f64, 0.1, 0.7, 1.0, 3.3, 25.0, 300.5] {
             let psi = riccati_psi(x, 60).unwrap();
             let p1 = x.sin() / x - x.cos();
             assert!(
@@ -225,10 +225,11 @@ mod tests {
 
     /// ψ_n(x) must satisfy the three-term recurrence at every order, including n > x where
     /// the upward recurrence itself would be unstable; and the Wronskian
-    /// ψ_n χ_{n−1} − ψ_{n−1} χ_n = 1 (BH §4.8) with χ from the upward recurrence.
+    /// ψ_n χ_{n−1} − ψ_{n−1} χ_n = −1 (from j_n y_{n−1} − j_{n−1} y_n = 1/x², Abramowitz &
+    /// Stegun 10.1.6) with χ from the upward recurrence.
     #[test]
     fn psi_recurrence_and_wronskian() {
-        for &x in &[0.3, 2.0, 17.0, 140.0] {
+        for &x in &[0.3f64, 2.0, 17.0, 140.0] {
             let n_max = (x + 4.05 * x.cbrt() + 2.0) as usize + 10;
             let psi = riccati_psi(x, n_max).unwrap();
             let mut chi_prev = -x.sin(); // χ_{−1}
@@ -238,7 +239,7 @@ mod tests {
                 chi_prev = chi;
                 chi = chi_next;
                 let w = psi[n] * chi_prev - psi[n - 1] * chi;
-                assert!((w - 1.0).abs() < 1e-10, "x={x} n={n} W={w}");
+                assert!((w + 1.0).abs() < 1e-10, "x={x} n={n} W={w}");
                 let lhs = psi[n + 1];
                 let rhs = ((2 * n + 1) as f64) / x * psi[n] - psi[n - 1];
                 assert!(
