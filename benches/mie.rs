@@ -60,7 +60,11 @@ fn compare_dump() {
     for &x in &XS {
         for (_, m) in indices() {
             let r = mie_q(x, m).unwrap();
-            let ns = time_ns(|| drop(black_box(mie_q(black_box(x), black_box(m)))), 5, Duration::from_millis(60));
+            let ns = time_ns(
+                || drop(black_box(mie_q(black_box(x), black_box(m)))),
+                5,
+                Duration::from_millis(60),
+            );
             println!("{}", json_line(x, m, "default", &r, ns));
             let n = miepython_terms(x);
             let r = mie_q_terms(x, m, Some(n)).unwrap();
@@ -76,15 +80,24 @@ fn compare_dump() {
 
 /// Accuracy vs term count (relative error against N + 400 terms) and time, for docs/mie.md.
 fn terms_table() {
-    let rel = |a: f64, b: f64| if b == 0.0 { a.abs() } else { ((a - b) / b).abs() };
-    println!("| x | m | N | N − N_default | max rel. err Q_ext,Q_sca,g | rel. err Q_back | µs/call |");
+    let rel = |a: f64, b: f64| {
+        if b == 0.0 {
+            a.abs()
+        } else {
+            ((a - b) / b).abs()
+        }
+    };
+    println!(
+        "| x | m | N | N − N_default | max rel. err Q_ext,Q_sca,g | rel. err Q_back | µs/call |"
+    );
     println!("|---|---|---|---|---|---|---|");
     for &x in &[1.0, 10.0, 100.0, 1000.0] {
         for (label, m) in indices() {
             let nd = default_terms(x, m);
             let nw = wiscombe_terms(x);
             let r_ref = mie_q_terms(x, m, Some(nd + 400)).unwrap();
-            let mut ns_list: Vec<usize> = vec![nw.saturating_sub(4).max(1), nw, nd, nd + 10, nd + 40];
+            let mut ns_list: Vec<usize> =
+                vec![nw.saturating_sub(4).max(1), nw, nd, nd + 10, nd + 40];
             ns_list.dedup();
             for n in ns_list {
                 let r = mie_q_terms(x, m, Some(n)).unwrap();
@@ -97,7 +110,13 @@ fn terms_table() {
                     3,
                     Duration::from_millis(40),
                 );
-                let tag = if n == nw { " (Wiscombe)" } else if n == nd { " (default)" } else { "" };
+                let tag = if n == nw {
+                    " (Wiscombe)"
+                } else if n == nd {
+                    " (default)"
+                } else {
+                    ""
+                };
                 println!(
                     "| {x} | {label} | {n}{tag} | {:+} | {e:.1e} | {eb:.1e} | {:.2} |",
                     n as i64 - nd as i64,

@@ -66,14 +66,50 @@ fn bohren_huffman_appendix_a_angular_table() {
         0.00543998, 0.0160243, 0.0188852, 0.0195254, 0.0301676, 0.0383189,
     ];
     let pol = [
-        0.0, -0.00459811, -0.0458541, -0.364744, -0.534997, 0.00959953, 0.0477927, -0.440604,
-        -0.831996, 0.0341670, 0.230462, -0.713472, -0.756255, -0.281215, -0.239612, -0.850804,
-        -0.706334, -0.891081, -0.783319, -0.196194, 0.0,
+        0.0,
+        -0.00459811,
+        -0.0458541,
+        -0.364744,
+        -0.534997,
+        0.00959953,
+        0.0477927,
+        -0.440604,
+        -0.831996,
+        0.0341670,
+        0.230462,
+        -0.713472,
+        -0.756255,
+        -0.281215,
+        -0.239612,
+        -0.850804,
+        -0.706334,
+        -0.891081,
+        -0.783319,
+        -0.196194,
+        0.0,
     ];
     let s33 = [
-        1.0, 0.999400, 0.986022, 0.843603, 0.686967, 0.959825, 0.985371, 0.648043, 0.203255,
-        0.795354, 0.937497, -0.00717397, -0.0394748, 0.536251, 0.967602, 0.187531, 0.495254,
-        0.453277, -0.391613, -0.962069, -1.0,
+        1.0,
+        0.999400,
+        0.986022,
+        0.843603,
+        0.686967,
+        0.959825,
+        0.985371,
+        0.648043,
+        0.203255,
+        0.795354,
+        0.937497,
+        -0.00717397,
+        -0.0394748,
+        0.536251,
+        0.967602,
+        0.187531,
+        0.495254,
+        0.453277,
+        -0.391613,
+        -0.962069,
+        -1.0,
     ];
     let s34 = [
         0.0, 0.0343261, 0.160184, 0.394076, -0.491787, -0.280434, 0.163584, 0.621216, -0.516208,
@@ -81,7 +117,9 @@ fn bohren_huffman_appendix_a_angular_table() {
         -0.0226817, 0.482752, 0.189556, 0.0,
     ];
     let x = 2.0 * std::f64::consts::PI * 0.525 / 0.6328;
-    let mus: Vec<f64> = (0..21).map(|k| (9.0 * k as f64).to_radians().cos()).collect();
+    let mus: Vec<f64> = (0..21)
+        .map(|k| (9.0 * k as f64).to_radians().cos())
+        .collect();
     let s = mie_s1s2(x, c(1.55, 0.0), &mus).unwrap();
     let f11 = |k: usize| 0.5 * (s[k].1.norm_sqr() + s[k].0.norm_sqr());
     let f0 = f11(0);
@@ -121,8 +159,16 @@ fn wiscombe_miev0_cases_du_table_1() {
     for (x, m, qe, qs) in cases {
         let r = mie_q(x, m).unwrap();
         // 7 significant digits: half a unit in the last place is ≤ 5e-7 relative
-        assert!(rel(r.qext, qe) < 5e-7, "x={x} m={m}: Qext {} vs {qe}", r.qext);
-        assert!(rel(r.qsca, qs) < 5e-7, "x={x} m={m}: Qsca {} vs {qs}", r.qsca);
+        assert!(
+            rel(r.qext, qe) < 5e-7,
+            "x={x} m={m}: Qext {} vs {qe}",
+            r.qext
+        );
+        assert!(
+            rel(r.qsca, qs) < 5e-7,
+            "x={x} m={m}: Qsca {} vs {qs}",
+            r.qsca
+        );
     }
 }
 
@@ -157,9 +203,17 @@ fn wiscombe_miev0_asymmetry_and_efficiencies() {
         // six decimals printed; Wiscombe's last digit is occasionally truncated rather than
         // rounded (case 16: g = 0.846309 vs 0.8463099…), hence 1e-6 absolute
         if let Some(qe) = qe {
-            assert!((r.qext - qe).abs() < 1e-6, "x={x} m={m}: Qext {} vs {qe}", r.qext);
+            assert!(
+                (r.qext - qe).abs() < 1e-6,
+                "x={x} m={m}: Qext {} vs {qe}",
+                r.qext
+            );
         }
-        assert!((r.qsca - qs).abs() < 1e-6, "x={x} m={m}: Qsca {} vs {qs}", r.qsca);
+        assert!(
+            (r.qsca - qs).abs() < 1e-6,
+            "x={x} m={m}: Qsca {} vs {qs}",
+            r.qsca
+        );
         assert!((r.g - g).abs() < 1e-6, "x={x} m={m}: g {} vs {g}", r.g);
     }
 }
@@ -186,12 +240,20 @@ fn wiscombe_case_14_amplitude_functions() {
         (-0.305682, -0.143846),
         (-0.348844, -0.146829),
     ];
-    let mus: Vec<f64> = (0..7).map(|k| (30.0 * k as f64).to_radians().cos()).collect();
+    let mus: Vec<f64> = (0..7)
+        .map(|k| (30.0 * k as f64).to_radians().cos())
+        .collect();
     let s = mie_s1s2(1.0, c(1.5, 1.0), &mus).unwrap();
     for k in 0..7 {
         let (s1, s2) = s[k];
-        assert!((s1.re - s1_w[k].0).abs() < 1e-6 && (s1.im + s1_w[k].1).abs() < 1e-6, "S1 {k}");
-        assert!((s2.re - s2_w[k].0).abs() < 1e-6 && (s2.im + s2_w[k].1).abs() < 1e-6, "S2 {k}");
+        assert!(
+            (s1.re - s1_w[k].0).abs() < 1e-6 && (s1.im + s1_w[k].1).abs() < 1e-6,
+            "S1 {k}"
+        );
+        assert!(
+            (s2.re - s2_w[k].0).abs() < 1e-6 && (s2.im + s2_w[k].1).abs() < 1e-6,
+            "S2 {k}"
+        );
     }
 }
 
@@ -209,8 +271,15 @@ fn wiscombe_backscatter_amplitudes() {
     for (x, m, (re, im), tol) in cases {
         let s = mie_s1s2(x, c(m, 0.0), &[-1.0]).unwrap()[0];
         let w = Complex64::new(re, -im);
-        assert!((s.0 - w).norm() / w.norm() < tol, "x={x}: S1(180°) {} vs {w}", s.0);
-        assert!((s.1 + s.0).norm() <= 1e-12 * s.0.norm(), "S2(180°) = −S1(180°)");
+        assert!(
+            (s.0 - w).norm() / w.norm() < tol,
+            "x={x}: S1(180°) {} vs {w}",
+            s.0
+        );
+        assert!(
+            (s.1 + s.0).norm() <= 1e-12 * s.0.norm(),
+            "S2(180°) = −S1(180°)"
+        );
         let r = mie_q(x, c(m, 0.0)).unwrap();
         assert!(rel(r.qback, 4.0 * s.0.norm_sqr() / (x * x)) < 1e-12);
     }
@@ -247,12 +316,31 @@ fn high_precision_references() {
     for (x, mr, mi, qe, qs, qb, g) in refs {
         let r = mie_q(x, c(mr, mi)).unwrap();
         let tag = format!("x={x} m={mr}+{mi}i");
-        assert!(rel(r.qext, qe) < 1e-13, "{tag}: Qext rel err {:e}", rel(r.qext, qe));
-        assert!(rel(r.qsca, qs) < 1e-13, "{tag}: Qsca rel err {:e}", rel(r.qsca, qs));
-        assert!(rel(r.qback, qb) < 1e-10, "{tag}: Qback rel err {:e}", rel(r.qback, qb));
+        assert!(
+            rel(r.qext, qe) < 1e-13,
+            "{tag}: Qext rel err {:e}",
+            rel(r.qext, qe)
+        );
+        assert!(
+            rel(r.qsca, qs) < 1e-13,
+            "{tag}: Qsca rel err {:e}",
+            rel(r.qsca, qs)
+        );
+        assert!(
+            rel(r.qback, qb) < 1e-10,
+            "{tag}: Qback rel err {:e}",
+            rel(r.qback, qb)
+        );
         // g is a ratio of sums that nearly cancel for small x: 1e-12 relative to |g| + 1e-3
-        assert!((r.g - g).abs() < 1e-12 * (g.abs() + 1e-3), "{tag}: g {} vs {g}", r.g);
-        assert!(rel(r.qabs, qe - qs) < 1e-9 || (qe - qs).abs() < 1e-14 * qe, "{tag}: Qabs");
+        assert!(
+            (r.g - g).abs() < 1e-12 * (g.abs() + 1e-3),
+            "{tag}: g {} vs {g}",
+            r.g
+        );
+        assert!(
+            rel(r.qabs, qe - qs) < 1e-9 || (qe - qs).abs() < 1e-14 * qe,
+            "{tag}: Qabs"
+        );
     }
 }
 
@@ -265,7 +353,14 @@ fn high_precision_references() {
 /// of Q_sca shrinks like x².
 #[test]
 fn rayleigh_limit() {
-    for m in [c(1.5, 0.0), c(1.2, 0.0), c(0.75, 0.0), c(1.5, 1.0), c(1.33, 1e-5), c(3.0, 0.2)] {
+    for m in [
+        c(1.5, 0.0),
+        c(1.2, 0.0),
+        c(0.75, 0.0),
+        c(1.5, 1.0),
+        c(1.33, 1e-5),
+        c(3.0, 0.2),
+    ] {
         let k = (m * m - 1.0) / (m * m + 2.0);
         let dev = |x: f64| {
             let r = mie_q(x, m).unwrap();
@@ -273,12 +368,18 @@ fn rayleigh_limit() {
             assert!(rel(r.qback, 1.5 * qs) < 10.0 * x * x, "m={m} x={x}: Qback");
             assert!(r.g.abs() < x * x, "m={m} x={x}: g = {}", r.g);
             if m.im > 0.0 {
-                assert!(rel(r.qabs, 4.0 * x * k.im) < 10.0 * x * x, "m={m} x={x}: Qabs");
+                assert!(
+                    rel(r.qabs, 4.0 * x * k.im) < 10.0 * x * x,
+                    "m={m} x={x}: Qabs"
+                );
             }
             r.qsca / qs - 1.0
         };
         let (d1, d2) = (dev(1e-3), dev(2e-3));
-        assert!(d1.abs() < 1e-5, "m={m}: Qsca/Rayleigh − 1 = {d1:e} at x = 1e-3");
+        assert!(
+            d1.abs() < 1e-5,
+            "m={m}: Qsca/Rayleigh − 1 = {d1:e} at x = 1e-3"
+        );
         // O(x²): doubling x quadruples the deviation
         let ratio = d2 / d1;
         assert!((ratio - 4.0).abs() < 0.05, "m={m}: deviation ratio {ratio}");
@@ -290,14 +391,27 @@ fn rayleigh_limit() {
 /// S_1(180°) = −S_2(180°), over both branches and a wide range of x and m.
 #[test]
 fn optical_theorem_and_forward_backward_symmetry() {
-    for m in [c(1.5, 0.0), c(1.33, 1e-5), c(1.5, 1.0), c(10.0, 10.0), c(0.75, 0.0), c(1.05, 0.02)] {
+    for m in [
+        c(1.5, 0.0),
+        c(1.33, 1e-5),
+        c(1.5, 1.0),
+        c(10.0, 10.0),
+        c(0.75, 0.0),
+        c(1.05, 0.02),
+    ] {
         for x in log_grid(1e-3, 1e3, 3) {
             let r = mie_q(x, m).unwrap();
             let s = mie_s1s2(x, m, &[1.0, -1.0]).unwrap();
             let ot = 4.0 / (x * x) * s[0].0.re;
             assert!(rel(ot, r.qext) < 1e-12, "x={x} m={m}: {ot} vs {}", r.qext);
-            assert!((s[0].0 - s[0].1).norm() <= 1e-13 * s[0].0.norm(), "S1(0)=S2(0)");
-            assert!((s[1].0 + s[1].1).norm() <= 1e-12 * s[1].0.norm().max(1e-300), "S1(π)=−S2(π)");
+            assert!(
+                (s[0].0 - s[0].1).norm() <= 1e-13 * s[0].0.norm(),
+                "S1(0)=S2(0)"
+            );
+            assert!(
+                (s[1].0 + s[1].1).norm() <= 1e-12 * s[1].0.norm().max(1e-300),
+                "S1(π)=−S2(π)"
+            );
         }
     }
 }
@@ -306,10 +420,22 @@ fn optical_theorem_and_forward_backward_symmetry() {
 /// every coefficient Re a_n = |a_n|² (a_n lies on the circle |a − ½| = ½).
 #[test]
 fn energy_conservation_real_index() {
-    for m in [c(1.5, 0.0), c(0.75, 0.0), c(1.2, 0.0), c(2.5, 0.0), c(1.001, 0.0), c(1.05, 0.0)] {
+    for m in [
+        c(1.5, 0.0),
+        c(0.75, 0.0),
+        c(1.2, 0.0),
+        c(2.5, 0.0),
+        c(1.001, 0.0),
+        c(1.05, 0.0),
+    ] {
         for x in log_grid(1e-4, 1e4, 2) {
             let r = mie_q(x, m).unwrap();
-            assert!(rel(r.qsca, r.qext) < 1e-12, "x={x} m={m}: {} vs {}", r.qsca, r.qext);
+            assert!(
+                rel(r.qsca, r.qext) < 1e-12,
+                "x={x} m={m}: {} vs {}",
+                r.qsca,
+                r.qext
+            );
             assert_eq!(r.qabs, 0.0);
             if x < 2000.0 {
                 let (a, b) = mie_coefficients(x, m, None).unwrap();
@@ -324,7 +450,14 @@ fn energy_conservation_real_index() {
 /// Q_ext = Q_sca + Q_abs for absorbing spheres, Q_abs computed directly (not as a difference).
 #[test]
 fn extinction_is_scattering_plus_absorption() {
-    for m in [c(1.33, 1e-5), c(1.33, 1e-9), c(1.5, 0.01), c(1.5, 1.0), c(10.0, 10.0), c(0.2, 3.0)] {
+    for m in [
+        c(1.33, 1e-5),
+        c(1.33, 1e-9),
+        c(1.5, 0.01),
+        c(1.5, 1.0),
+        c(10.0, 10.0),
+        c(0.2, 3.0),
+    ] {
         for x in log_grid(1e-4, 1e4, 2) {
             let r = mie_q(x, m).unwrap();
             let d = (r.qext - r.qsca - r.qabs).abs();
@@ -338,12 +471,22 @@ fn extinction_is_scattering_plus_absorption() {
 /// no negative efficiency, Q_abs ≥ −tiny, |g| ≤ 1, large-sphere extinction paradox Q_ext → 2.
 #[test]
 fn sweep_1e_minus4_to_1e4_is_finite_and_physical() {
-    for m in [c(1.5, 0.0), c(1.33, 1e-5), c(1.5, 1.0), c(10.0, 10.0), c(0.75, 0.0), c(1.0001, 0.0)] {
+    for m in [
+        c(1.5, 0.0),
+        c(1.33, 1e-5),
+        c(1.5, 1.0),
+        c(10.0, 10.0),
+        c(0.75, 0.0),
+        c(1.0001, 0.0),
+    ] {
         for x in log_grid(1e-4, 1e4, 8) {
             let r = mie_q(x, m).unwrap();
             let all = [r.qext, r.qsca, r.qabs, r.qback, r.g];
             assert!(all.iter().all(|v| v.is_finite()), "x={x} m={m}: {r:?}");
-            assert!(r.qext >= 0.0 && r.qsca >= 0.0 && r.qback >= 0.0, "x={x} m={m}: {r:?}");
+            assert!(
+                r.qext >= 0.0 && r.qsca >= 0.0 && r.qback >= 0.0,
+                "x={x} m={m}: {r:?}"
+            );
             assert!(r.qabs >= -1e-15 * r.qext, "x={x} m={m}: {r:?}");
             assert!(r.qsca <= r.qext * (1.0 + 1e-12), "x={x} m={m}: {r:?}");
             assert!(r.g.abs() <= 1.0, "x={x} m={m}: {r:?}");
@@ -359,7 +502,13 @@ fn sweep_1e_minus4_to_1e4_is_finite_and_physical() {
 /// the recurrences carry a relative error ~1e-16/|m²−1| there, hence the looser g bound.)
 #[test]
 fn branches_join_continuously() {
-    for m in [c(1.5, 0.0), c(1.5, 1.0), c(0.75, 0.0), c(1.0005, 0.0), c(10.0, 10.0)] {
+    for m in [
+        c(1.5, 0.0),
+        c(1.5, 1.0),
+        c(0.75, 0.0),
+        c(1.0005, 0.0),
+        c(10.0, 10.0),
+    ] {
         let xs = X_SMALL / m.norm().max(1.0);
         let below = mie_q(xs * (1.0 - 1e-12), m).unwrap();
         let above = mie_q(xs * (1.0 + 1e-12), m).unwrap();
@@ -370,7 +519,12 @@ fn branches_join_continuously() {
         ] {
             assert!(rel(p, q) < 3e-11, "m={m} {name}: {p} vs {q}");
         }
-        assert!(rel(below.g, above.g) < 1e-9, "m={m} g: {} vs {}", below.g, above.g);
+        assert!(
+            rel(below.g, above.g) < 1e-9,
+            "m={m} g: {} vs {}",
+            below.g,
+            above.g
+        );
     }
 }
 
@@ -391,7 +545,13 @@ fn index_matched_limit() {
 /// (relative) and Q_back by < 1e-9; Wiscombe's exact count is within his stated ~1e-6.
 #[test]
 fn default_term_count_is_converged() {
-    for m in [c(1.5, 0.0), c(1.33, 1e-5), c(1.5, 1.0), c(10.0, 10.0), c(1.2, 0.0)] {
+    for m in [
+        c(1.5, 0.0),
+        c(1.33, 1e-5),
+        c(1.5, 1.0),
+        c(10.0, 10.0),
+        c(1.2, 0.0),
+    ] {
         for x in log_grid(0.15, 5000.0, 2) {
             let r = mie_q(x, m).unwrap();
             let r40 = mie_q_terms(x, m, Some(r.n_terms + 40)).unwrap();
@@ -449,7 +609,10 @@ fn bad_input_gives_clear_errors() {
     }
     assert!(err_text(mie_q(-2.5, m)).contains("-2.5"));
     let e = err_text(mie_q(1.0, c(1.5, -0.1)));
-    assert!(e.contains("`m`") && e.contains("1.5 - 0.1i") && e.contains("Im m ≥ 0"), "{e}");
+    assert!(
+        e.contains("`m`") && e.contains("1.5 - 0.1i") && e.contains("Im m ≥ 0"),
+        "{e}"
+    );
     assert!(err_text(mie_q(1.0, c(f64::NAN, 0.0))).contains("finite"));
     assert!(err_text(mie_q(1.0, c(-1.5, 0.0))).contains("Re m ≥ 0"));
     assert!(err_text(mie_q(1.0, c(0.0, 0.0))).contains("m ≠ 0"));
@@ -459,7 +622,10 @@ fn bad_input_gives_clear_errors() {
     let e = err_text(mie_coefficients(1.0, m, Some(N_TERMS_MAX + 1)));
     assert!(e.contains("n_terms"), "{e}");
     let e = err_text(mie_s1s2(1.0, m, &[0.5, 1.5]));
-    assert!(e.contains("`cos_theta`") && e.contains("1.5") && e.contains("[-1, 1]"), "{e}");
+    assert!(
+        e.contains("`cos_theta`") && e.contains("1.5") && e.contains("[-1, 1]"),
+        "{e}"
+    );
     assert!(err_text(mie_s1s2(1.0, m, &[f64::NAN])).contains("cos_theta"));
     assert!(err_text(sphere(-10.0, m, 1.33, 1064.0)).contains("`d_nm` = -10"));
     assert!(err_text(sphere(100.0, m, 0.0, 1064.0)).contains("`n_medium`"));
@@ -476,7 +642,12 @@ fn extremes_stay_finite() {
     for x in [1e-30, 1e-100, 1e-300] {
         let r = mie_q(x, c(1.5, 1.0)).unwrap();
         assert!(r.qext > 0.0 && r.qext.is_finite() && r.qsca >= 0.0, "{r:?}");
-        assert!(rel(r.qext, 4.0 * x * ((c(1.5, 1.0).powi(2) - 1.0) / (c(1.5, 1.0).powi(2) + 2.0)).im) < 1e-12);
+        assert!(
+            rel(
+                r.qext,
+                4.0 * x * ((c(1.5, 1.0).powi(2) - 1.0) / (c(1.5, 1.0).powi(2) + 2.0)).im
+            ) < 1e-12
+        );
     }
     let r = mie_q_terms(0.5, c(1.5, 0.1), Some(3000)).unwrap();
     let r0 = mie_q(0.5, c(1.5, 0.1)).unwrap();

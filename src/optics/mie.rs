@@ -96,7 +96,11 @@ pub enum MieError {
     },
 }
 
-fn invalid(name: &'static str, value: impl std::fmt::Display, allowed: impl Into<String>) -> MieError {
+fn invalid(
+    name: &'static str,
+    value: impl std::fmt::Display,
+    allowed: impl Into<String>,
+) -> MieError {
     MieError::InvalidArgument {
         name,
         value: value.to_string(),
@@ -114,7 +118,11 @@ fn fmt_c(m: C64) -> String {
 
 fn check_x(x: f64) -> Result<(), MieError> {
     if !x.is_finite() || x <= 0.0 || x > X_MAX {
-        return Err(invalid("x", x, format!("finite size parameter, 0 < x ≤ {X_MAX:e}")));
+        return Err(invalid(
+            "x",
+            x,
+            format!("finite size parameter, 0 < x ≤ {X_MAX:e}"),
+        ));
     }
     Ok(())
 }
@@ -135,7 +143,11 @@ fn check_m(x: f64, m: C64) -> Result<(), MieError> {
         return Err(invalid("m", fmt_c(m), "Re m ≥ 0"));
     }
     if m.re == 0.0 && m.im == 0.0 {
-        return Err(invalid("m", fmt_c(m), "m ≠ 0 (perfect conductors are not supported)"));
+        return Err(invalid(
+            "m",
+            fmt_c(m),
+            "m ≠ 0 (perfect conductors are not supported)",
+        ));
     }
     let mx = m.norm() * x;
     if mx > MX_MAX {
@@ -222,7 +234,14 @@ const CHI_MAX: f64 = 1e250;
 /// ξ_n = ψ_n − iχ_n), plus Re c − |c|² = −Im(A B*)/|A − iB|² (no cancellation for weak
 /// absorption: both products carry Im m explicitly).
 #[inline]
-fn coefficient(dd: C64, psi_n: f64, psi_nm1: f64, chi_n: f64, chi_nm1: f64) -> (C64, f64) {
+fn coefficient(
+    dd: C64,
+    psi_n: f64,
+    psi_nm1: f64,
+    chi_n: f64,
+    chi_nm1: f64,
+    want_absorb: bool,
+) -> (C64, f64) {
     let (a, b) = if dd.re.abs() + dd.im.abs() < 1e150 {
         (
             C64::new(dd.re * psi_n - psi_nm1, dd.im * psi_n),
@@ -238,8 +257,13 @@ fn coefficient(dd: C64, psi_n: f64, psi_nm1: f64, chi_n: f64, chi_nm1: f64) -> (
         return (C64::new(0.0, 0.0), 0.0);
     }
     let c = cdiv(a, den);
-    let (ar, ai, br, bi) = (a.re / s, a.im / s, b.re / s, b.im / s);
-    let (dr, di) = (den.re / s, den.im / s);
+    if !want_absorb {
+        return (c, 0.0);
+    }
+    // scale by 1/s so that |den|² cannot overflow
+    let si = 1.0 / s;
+    let (ar, ai, br, bi) = (a.re * si, a.im * si, b.re * si, b.im * si);
+    let (dr, di) = (den.re * si, den.im * si);
     let absorb = -(ai * br - ar * bi) / (dr * dr + di * di);
     (c, absorb)
 }
@@ -256,6 +280,7 @@ fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError>
     let psi = bessel::riccati_psi(x, n_terms).map_err(|e| nc(e, C64::new(x, 0.0)))?;
     let minv = crecip(m);
     let xinv = 1.0 / x;
+    let absorbing = m.im != 0.0;
     let mut out = Coeffs {
         scale: 1.0,
         scale_x: xinv,
@@ -272,8 +297,15 @@ fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError>
         }
         let nx = n as f64 * xinv;
         let dn = d[n - 1];
-        let (an, abs_a) = coefficient(dn * minv + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
-        let (bn, abs_b) = coefficient(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
+        let (an, abs_a) = coefficient(
+            dn * minv + nx,
+            psi[n],
+            psi[n - 1],
+            chi_n,
+            chi_nm1,
+            absorbing,
+        );
+        let (bn, abs_b) = coefficient(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1, absorbing);
         out.a[n - 1] = an;
         out.b[n - 1] = bn;
         out.absorb[n - 1] = abs_a + abs_b;
@@ -469,7 +501,11 @@ pub fn sphere(
         return Err(invalid("d_nm", d_nm, "finite diameter in nm, d_nm > 0"));
     }
     if !n_medium.is_finite() || n_medium <= 0.0 {
-        return Err(invalid("n_medium", n_medium, "finite medium index, n_medium > 0"));
+        return Err(invalid(
+            "n_medium",
+            n_medium,
+            "finite medium index, n_medium > 0",
+        ));
     }
     if !wavelength_nm.is_finite() || wavelength_nm <= 0.0 {
         return Err(invalid(

@@ -38,12 +38,12 @@ const CF_TOL: f64 = 1e-15;
 pub(crate) fn cdiv(a: C64, b: C64) -> C64 {
     if b.re.abs() >= b.im.abs() {
         let r = b.im / b.re;
-        let den = b.re + b.im * r;
-        C64::new((a.re + a.im * r) / den, (a.im - a.re * r) / den)
+        let inv = 1.0 / (b.re + b.im * r);
+        C64::new((a.re + a.im * r) * inv, (a.im - a.re * r) * inv)
     } else {
         let r = b.re / b.im;
-        let den = b.re * r + b.im;
-        C64::new((a.re * r + a.im) / den, (a.im * r - a.re) / den)
+        let inv = 1.0 / (b.re * r + b.im);
+        C64::new((a.re * r + a.im) * inv, (a.im * r - a.re) * inv)
     }
 }
 
