@@ -252,6 +252,21 @@ fn coefficient(
         (C64::new(psi_n, 0.0), C64::new(chi_n, 0.0))
     };
     let den = C64::new(a.re + b.im, a.im - b.re); // A − iB
+    let n2 = den.re * den.re + den.im * den.im;
+    if n2 > 1e-290 && n2 < 1e290 {
+        // common case: one real division serves the coefficient and its absorption term
+        let inv = 1.0 / n2;
+        let c = C64::new(
+            (a.re * den.re + a.im * den.im) * inv,
+            (a.im * den.re - a.re * den.im) * inv,
+        );
+        let absorb = if want_absorb {
+            -(a.im * b.re - a.re * b.im) * inv
+        } else {
+            0.0
+        };
+        return (c, absorb);
+    }
     let s = den.re.abs().max(den.im.abs());
     if s == 0.0 || !s.is_finite() {
         return (C64::new(0.0, 0.0), 0.0);
@@ -268,8 +283,72 @@ fn coefficient(
     (c, absorb)
 }
 
+/// Real-index version of [`coefficient`]: A, B real, a_n = A/(A − iB) = t/(t − i) with
+/// t = A/B (or 1/(1 − iu), u = B/A), two real divisions and no overflow.
+#[inline]
+fn coefficient_real(dd: f64, psi_n: f64, psi_nm1: f64, chi_n: f64, chi_nm1: f64) -> C64 {
+    let (a, b) = if dd.abs() < 1e150 {
+        (dd * psi_n - psi_nm1, dd * chi_n - chi_nm1)
+    } else {
+        (psi_n, chi_n) // pole of D_n: limit ψ_n/ξ_n
+    };
+    if b.abs() >= a.abs() {
+        if b == 0.0 {
+            return C64::new(0.0, 0.0);
+        }
+        let t = a / b;
+        let d = 1.0 / (1.0 + t * t);
+        C64::new(t * t * d, t * d)
+    } else {
+        let u = b / a;
+        let d = 1.0 / (1.0 + u * u);
+        C64::new(d, u * d)
+    }
+}
+
+/// General-size coefficients for a real relative index, in real arithmetic (same equations as
+/// [`full_coefficients`]; about three times cheaper).
+fn full_coefficients_real(x: f64, m: f64, n_terms: usize) -> Result<Coeffs, MieError> {
+    let z = m * x;
+    let nc = |e: bessel::CfNoConvergence, zz: f64| MieError::NoConvergence {
+        z: zz.to_string(),
+        order: n_terms,
+        iterations: e.iterations,
+    };
+    let d = bessel::log_derivatives_real(z, n_terms).map_err(|e| nc(e, z))?;
+    let psi = bessel::riccati_psi(x, n_terms).map_err(|e| nc(e, x))?;
+    let minv = 1.0 / m;
+    let xinv = 1.0 / x;
+    let mut out = Coeffs {
+        scale: 1.0,
+        scale_x: xinv,
+        scale_x2: xinv * xinv,
+        a: vec![C64::new(0.0, 0.0); n_terms],
+        b: vec![C64::new(0.0, 0.0); n_terms],
+        absorb: vec![0.0; n_terms],
+    };
+    let mut chi_nm1 = x.cos(); // χ_0
+    let mut chi_n = x.cos() * xinv + x.sin(); // χ_1
+    for n in 1..=n_terms {
+        if chi_n.abs() > CHI_MAX {
+            break;
+        }
+        let nx = n as f64 * xinv;
+        let dn = d[n - 1];
+        out.a[n - 1] = coefficient_real(dn * minv + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
+        out.b[n - 1] = coefficient_real(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
+        let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
+        chi_nm1 = chi_n;
+        chi_n = chi_np1;
+    }
+    Ok(out)
+}
+
 /// General-size coefficients (BH eq. 4.88), n = 1 … `n_terms`.
 fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError> {
+    if m.im == 0.0 {
+        return full_coefficients_real(x, m.re, n_terms);
+    }
     let z = m * x;
     let nc = |e: bessel::CfNoConvergence, zz: C64| MieError::NoConvergence {
         z: fmt_c(zz),

@@ -53,6 +53,19 @@ pub(crate) fn crecip(b: C64) -> C64 {
     cdiv(C64::new(1.0, 0.0), b)
 }
 
+/// `1 / b` with a single real division when |b|² is safely inside the normal range, else
+/// Smith's method ([`cdiv`]); same result to rounding, used in the hot recurrences.
+#[inline]
+pub(crate) fn crecip_fast(b: C64) -> C64 {
+    let n2 = b.re * b.re + b.im * b.im;
+    if n2 > 1e-290 && n2 < 1e290 {
+        let inv = 1.0 / n2;
+        C64::new(b.re * inv, -b.im * inv)
+    } else {
+        crecip(b)
+    }
+}
+
 /// Replace an (almost) exactly vanishing complex number by `TINY`, as in the modified Lentz
 /// method; keeps the recurrences finite at the (measure-zero) poles of D_n.
 #[inline]
@@ -95,8 +108,8 @@ pub(crate) fn psi_ratio_cf(n: usize, z: C64) -> Result<C64, CfNoConvergence> {
     for k in 1..=max_iter {
         let bk = b(k);
         // partial numerators are all −1: D_k = b_k − D_{k−1}, C_k = b_k − 1/C_{k−1}
-        d = crecip(guard(bk - d));
-        c = guard(bk - crecip(c));
+        d = crecip_fast(guard(bk - d));
+        c = guard(bk - crecip_fast(c));
         let delta = c * d;
         f *= delta;
         if (delta - 1.0).norm_sqr() <= CF_TOL * CF_TOL {
@@ -145,7 +158,26 @@ pub(crate) fn log_derivatives(z: C64, n_max: usize) -> Result<Vec<C64>, CfNoConv
     d[n_max - 1] = r - zinv * (n_max as f64);
     // r_{n−1} = (2n−1)/z − 1/r_n  and  D_{n−1} = r_{n−1} − (n−1)/z
     for n in (2..=n_max).rev() {
-        let rn1 = zinv * ((2 * n - 1) as f64) - crecip(guard(r));
+        let rn1 = zinv * ((2 * n - 1) as f64) - crecip_fast(guard(r));
+        d[n - 2] = rn1 - zinv * ((n - 1) as f64);
+        r = rn1;
+    }
+    Ok(d)
+}
+
+/// Real-argument version of [`log_derivatives`] (real relative index): D_1(z) … D_N(z) for
+/// real z > 0, in real arithmetic (same recurrence and continued-fraction start).
+pub(crate) fn log_derivatives_real(z: f64, n_max: usize) -> Result<Vec<f64>, CfNoConvergence> {
+    let mut d = vec![0.0; n_max];
+    if n_max == 0 {
+        return Ok(d);
+    }
+    let zinv = 1.0 / z;
+    let mut r = psi_ratio_cf_real(n_max, z)?;
+    d[n_max - 1] = r - zinv * (n_max as f64);
+    for n in (2..=n_max).rev() {
+        let g = if r.abs() < TINY { TINY } else { r };
+        let rn1 = zinv * ((2 * n - 1) as f64) - 1.0 / g;
         d[n - 2] = rn1 - zinv * ((n - 1) as f64);
         r = rn1;
     }
