@@ -199,9 +199,10 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
     }
     let n_up = (x.floor() as usize).min(n_max);
     // upward: ψ_n = (2n−1)/x ψ_{n−1} − ψ_{n−2}
+    let xinv = 1.0 / x;
     let mut prev = x.cos(); // ψ_{−1}
     for n in 1..=n_up {
-        let next = ((2 * n - 1) as f64) / x * psi[n - 1] - prev;
+        let next = ((2 * n - 1) as f64) * xinv * psi[n - 1] - prev;
         prev = psi[n - 1];
         psi[n] = next;
     }
@@ -213,7 +214,7 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
     let mut r = psi_ratio_cf_real(n_max, x)?;
     ratios[n_max] = r;
     for n in ((n_up + 2)..=n_max).rev() {
-        r = ((2 * n - 1) as f64) / x - 1.0 / r;
+        r = ((2 * n - 1) as f64) * xinv - 1.0 / r;
         ratios[n - 1] = r;
     }
     for n in (n_up + 1)..=n_max {
