@@ -13,12 +13,23 @@
 //!   along the y-axis: sens_corr = sens × curve.sx(0°)/curve.sx(θ) (rows) or
 //!   × curve.sx(0°)/curve.sy(θ) (columns).
 //!
+//! **Finding the filament among other objects.** The line is found robustly: every local
+//! maximum of each row (column) above `detect_snr` × the pixel noise of the sensitivity image
+//! (robust, from first differences) is a candidate
+//! (sub-pixel by the parabola), a RANSAC search (deterministic, 4000 candidate pairs from lines at
+//! least 5 apart) picks the line with the most rows (columns) having a candidate within
+//! `max_offset_um`, refined by least squares on the inliers. The maxima along the filament are
+//! then read from each row (column) in a ±`window_um` neighbourhood of the line (a parabola over
+//! `window_um` there), so point objects elsewhere in the row do not replace the filament's
+//! maximum. [`measure_filament_along`] does the last step for a given line (e.g. to measure the
+//! same filament before and after background removal).
+//!
 //! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
 
 use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
-use super::peaks::{col_peaks, row_peaks, LinePeak, PeakOptions};
+use super::peaks::{peak_1d, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
-use super::stats::{linfit, summary};
+use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
@@ -36,20 +47,14 @@ pub struct MeasureOptions {
     pub min_snr: f64,
     /// Maxima farther than this from the fitted filament line are ignored, µm.
     pub max_offset_um: f64,
-    /// Only maxima of at least this fraction of the strongest maxima (90th percentile) are used
-    /// to fit the filament line (the sensitivities are then read from every line near it).
-    pub line_fraction: f64,
+    /// Candidate maxima for the line search must exceed detect_snr × the pixel noise of the
+    /// sensitivity image (1.4826·MAD of first differences/√2).
+    pub detect_snr: f64,
 }
 
 impl Default for MeasureOptions {
     fn default() -> Self {
-        Self {
-            stencil: Stencil::Central2,
-            window_um: 0.4,
-            min_snr: 0.0,
-            max_offset_um: 0.2,
-            line_fraction: 0.5,
-        }
+        Self { stencil: Stencil::Central2, window_um: 0.4, min_snr: 0.0, max_offset_um: 0.15, detect_snr: 4.0 }
     }
 }
 
@@ -58,15 +63,11 @@ impl MeasureOptions {
         check_range("window_um", self.window_um, 1e-3, 100.0)?;
         check_range("min_snr", self.min_snr, 0.0, 1e6)?;
         check_range("max_offset_um", self.max_offset_um, 0.0, 100.0)?;
-        check_range("line_fraction", self.line_fraction, 0.0, 1.0)?;
+        check_range("detect_snr", self.detect_snr, 0.0, 1e6)?;
         Ok(())
     }
     pub(crate) fn peak_options(&self) -> PeakOptions {
-        PeakOptions {
-            window_um: self.window_um,
-            min_snr: self.min_snr,
-            ..Default::default()
-        }
+        PeakOptions { window_um: self.window_um, min_snr: self.min_snr, ..Default::default() }
     }
 }
 
@@ -87,14 +88,7 @@ pub struct AngleCurveOptions {
 
 impl Default for AngleCurveOptions {
     fn default() -> Self {
-        Self {
-            n_angles: 19,
-            pixel_um: 0.05,
-            d_nm: None,
-            n: None,
-            bead_model: BeadModelOptions::default(),
-            measure: MeasureOptions::default(),
-        }
+        Self { n_angles: 19, pixel_um: 0.05, d_nm: None, n: None, bead_model: BeadModelOptions::default(), measure: MeasureOptions::default() }
     }
 }
 
@@ -109,7 +103,15 @@ pub struct AngleCurve {
     pub sy: Vec<f64>,
     /// Un-normalised S_x maximum at 0° (reference-bead units): the bead-model sensitivity.
     pub sx0: f64,
+    /// The template's norm_factor (reference-bead units per instrument unit): measurements
+    /// convert scan sensitivities with it.
+    #[serde(default = "one")]
+    pub norm_factor: f64,
     pub options: AngleCurveOptions,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl AngleCurve {
@@ -125,43 +127,19 @@ impl AngleCurve {
         let mut sy = Vec::with_capacity(k);
         for i in 0..k {
             let a = -90.0 + i as f64 * step;
-            let (x, y) = straight_filament_max_sens(
-                tpl,
-                d,
-                n,
-                a,
-                opts.pixel_um,
-                &opts.measure,
-                &opts.bead_model,
-            )?;
+            let (x, y) = straight_filament_max_sens(tpl, d, n, a, opts.pixel_um, &opts.measure, &opts.bead_model)?;
             angles.push(a);
             sx.push(x);
             sy.push(y);
         }
         // The node at +90° is the same orientation as −90°: average them.
-        let (x90, y90) = straight_filament_max_sens(
-            tpl,
-            d,
-            n,
-            90.0,
-            opts.pixel_um,
-            &opts.measure,
-            &opts.bead_model,
-        )?;
+        let (x90, y90) = straight_filament_max_sens(tpl, d, n, 90.0, opts.pixel_um, &opts.measure, &opts.bead_model)?;
         sx[0] = 0.5 * (sx[0] + x90);
         sy[0] = 0.5 * (sy[0] + y90);
-        let mut c = AngleCurve {
-            angles_deg: angles,
-            sx: sx.clone(),
-            sy: sy.clone(),
-            sx0: 1.0,
-            options: *opts,
-        };
+        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, norm_factor: tpl.norm_factor, options: *opts };
         let s0 = c.eval_raw(0.0).0;
         if !(s0 > 0.0) {
-            return Err(AnalysisError::Failed(format!(
-                "bead-model S_x maximum at 0° is {s0}: the template gives no filament signal"
-            )));
+            return Err(AnalysisError::Failed(format!("bead-model S_x maximum at 0° is {s0}: the template gives no filament signal")));
         }
         c.sx = sx.iter().map(|v| v / s0).collect();
         c.sy = sy.iter().map(|v| v / s0).collect();
@@ -213,12 +191,7 @@ impl AngleCurve {
 fn keys(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
-    [
-        0.5 * (-t3 + 2.0 * t2 - t),
-        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
-        0.5 * (t3 - t2),
-    ]
+    [0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)]
 }
 
 /// Which maxima a filament measurement uses.
@@ -234,12 +207,15 @@ pub enum Channel {
 /// One maximum along a filament.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct FilamentPoint {
+    /// Row (S_x) or column (S_y) index the maximum comes from.
+    pub line: usize,
     /// Position of the maximum, µm.
     pub x: f64,
     pub y: f64,
     /// Arc position along the filament (projection on its direction), µm, increasing.
     pub arc_um: f64,
-    /// Measured maximum sensitivity and its 1σ (None if undetermined).
+    /// Measured maximum sensitivity and its 1σ (None if undetermined), reference-bead units/µm
+    /// (the scan's value × the template's norm_factor).
     pub sens: f64,
     pub sens_err: Option<f64>,
     /// Corrected to the QPD y-axis orientation (step 5).
@@ -273,84 +249,160 @@ pub struct FilamentMeasurement {
     pub mean_corr: f64,
     pub std_corr: f64,
     pub sem_corr: f64,
-    /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y), for SBR and plots.
+    /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y) in reference-bead
+    /// units/µm, for SBR and plots.
     pub sens: Image,
 }
 
-/// Fit a line through the strong maxima of `lines` (rows if `rows`), with 3σ clipping.
-fn fit_lines(lines: &[LinePeak], rows: bool, fraction: f64) -> Option<LineFit> {
-    let vals: Vec<f64> = lines
-        .iter()
-        .filter_map(|l| l.peak().map(|p| p.value))
-        .collect();
-    if vals.len() < 3 {
+/// Candidate maxima of the lines of `sens`: (line index, line coordinate, position, value).
+fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<(usize, f64, f64, f64)> {
+    // Pixel noise of the sensitivity image from first differences along the lines (robust to
+    // the objects' extended signal): 1.4826·MAD/√2.
+    let mut diffs = Vec::with_capacity(sens.data.len());
+    if rows {
+        for r in sens.data.rows() {
+            diffs.extend(r.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+        }
+    } else {
+        for c in sens.data.columns() {
+            diffs.extend(c.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+        }
+    }
+    let noise = robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2;
+    let thr = (opts.detect_snr * noise).max(0.0);
+    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
+    let po = PeakOptions { window_um: opts.window_um, ..Default::default() };
+    let mut out = Vec::new();
+    for l in 0..nl {
+        let v: Vec<f64> = if rows { sens.data.row(l).to_vec() } else { sens.data.column(l).to_vec() };
+        let coord = if rows { sens.y[l] } else { sens.x[l] };
+        let mut loc: Vec<(usize, f64)> = (1..v.len().saturating_sub(1))
+            .filter(|&i| v[i].is_finite() && v[i] > thr && v[i] > v[i - 1] && v[i] >= v[i + 1])
+            .map(|i| (i, v[i]))
+            .collect();
+        loc.sort_by(|a, b| b.1.total_cmp(&a.1));
+        loc.truncate(6);
+        for (i, _) in loc {
+            // Parabola on the neighbourhood of this local maximum only.
+            let (lo, hi) = (t[i] - opts.window_um, t[i] + opts.window_um);
+            let idx: Vec<usize> = (0..v.len()).filter(|&k| t[k] >= lo.min(hi) && t[k] <= hi.max(lo)).collect();
+            let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
+            let vv: Vec<f64> = idx.iter().map(|&k| v[k]).collect();
+            if let Ok(p) = peak_1d(&tt, &vv, &po) {
+                if (p.pos - t[i]).abs() <= 0.5 * opts.window_um {
+                    out.push((l, coord, p.pos, p.value));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Perpendicular distance of a candidate from the line pos = a + b·coord.
+#[inline]
+fn dist(a: f64, b: f64, coord: f64, pos: f64) -> f64 {
+    (pos - a - b * coord).abs() / (1.0 + b * b).sqrt()
+}
+
+/// For each line, the candidate closest to the line (if within `tol`).
+fn inliers(c: &[(usize, f64, f64, f64)], a: f64, b: f64, tol: f64) -> Vec<(usize, f64, f64, f64)> {
+    let mut best: std::collections::BTreeMap<usize, (f64, (usize, f64, f64, f64))> = std::collections::BTreeMap::new();
+    for &p in c {
+        let d = dist(a, b, p.1, p.2);
+        if d <= tol && best.get(&p.0).is_none_or(|q| d < q.0) {
+            best.insert(p.0, (d, p));
+        }
+    }
+    best.into_values().map(|v| v.1).collect()
+}
+
+/// RANSAC line through candidates (see the module docs).
+fn ransac_line(c: &[(usize, f64, f64, f64)], rows: bool, tol: f64) -> Option<LineFit> {
+    if c.len() < 3 {
         return None;
     }
-    let mut sorted = vals.clone();
-    sorted.sort_by(|a, b| a.total_cmp(b));
-    let p90 = sorted[((sorted.len() - 1) as f64 * 0.9).round() as usize];
-    let thr = fraction * p90;
-    let mut pts: Vec<(f64, f64)> = lines
-        .iter()
-        .filter_map(|l| {
-            l.peak()
-                .filter(|p| p.value >= thr)
-                .map(|p| (l.coord, p.pos))
-        })
-        .collect();
-    for _ in 0..5 {
+    let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 33) as usize
+    };
+    let mut best: Option<(usize, f64, f64)> = None;
+    for _ in 0..4000 {
+        let (i, j) = (next() % c.len(), next() % c.len());
+        let (p, q) = (c[i], c[j]);
+        if p.0.abs_diff(q.0) < 5 {
+            continue;
+        }
+        let b = (q.2 - p.2) / (q.1 - p.1);
+        let a = p.2 - b * p.1;
+        let n = inliers(c, a, b, tol).len();
+        if best.is_none_or(|bb| n > bb.0) {
+            best = Some((n, a, b));
+        }
+    }
+    let (_, mut a, mut b) = best?;
+    let mut pts = Vec::new();
+    for _ in 0..3 {
+        pts = inliers(c, a, b, tol);
         if pts.len() < 3 {
             return None;
         }
-        let (t, s): (Vec<f64>, Vec<f64>) = pts.iter().copied().unzip();
+        let t: Vec<f64> = pts.iter().map(|p| p.1).collect();
+        let s: Vec<f64> = pts.iter().map(|p| p.2).collect();
         let f = linfit(&t, &s, None).ok()?;
-        let res: Vec<f64> = pts
-            .iter()
-            .map(|p| p.1 - f.intercept - f.slope * p.0)
-            .collect();
-        let sd = super::stats::robust_std(&res).unwrap_or(0.0).max(1e-6);
-        let keep: Vec<(f64, f64)> = pts
-            .iter()
-            .zip(&res)
-            .filter(|(_, r)| r.abs() <= 3.0 * sd)
-            .map(|(p, _)| *p)
-            .collect();
-        if keep.len() == pts.len() {
-            let (angle, err) = if rows {
-                (
-                    f.slope.atan().to_degrees(),
-                    (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees(),
-                )
-            } else {
-                let mut a = 1.0f64.atan2(f.slope).to_degrees();
-                if a > 90.0 {
-                    a -= 180.0;
-                }
-                (a, (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees())
-            };
-            return Some(LineFit {
-                angle_deg: angle,
-                angle_err_deg: err,
-                a: f.intercept,
-                b: f.slope,
-                n: pts.len(),
-            });
-        }
-        pts = keep;
+        a = f.intercept;
+        b = f.slope;
     }
-    None
+    let t: Vec<f64> = pts.iter().map(|p| p.1).collect();
+    let s: Vec<f64> = pts.iter().map(|p| p.2).collect();
+    let f = linfit(&t, &s, None).ok()?;
+    let err = (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees();
+    let angle = if rows {
+        f.slope.atan().to_degrees()
+    } else {
+        let mut a = 1.0f64.atan2(f.slope).to_degrees();
+        if a > 90.0 {
+            a -= 180.0;
+        }
+        a
+    };
+    Some(LineFit { angle_deg: angle, angle_err_deg: err, a: f.intercept, b: f.slope, n: pts.len() })
 }
 
 /// Steps 4–5 of Sec. 4.2 on one scan (see the module docs). `sx`, `sy`: the raw channels of an
-/// XY scan. Errors: no straight filament found in either channel (fewer than 3 usable maxima),
+/// XY scan. Errors: no straight filament found in either channel (fewer than 3 aligned maxima),
 /// a curve computed at a pixel size differing by more than 5 % from the scan's, bad options.
-pub fn measure_filament(
-    sx: &Image,
-    sy: &Image,
-    curve: &AngleCurve,
-    opts: &MeasureOptions,
-) -> Result<FilamentMeasurement> {
+pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
     opts.validate()?;
+    check_pixel(sx, curve)?;
+    let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
+    let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
+    let lr = ransac_line(&candidates(&sxs, true, opts), true, opts.max_offset_um);
+    let lc = ransac_line(&candidates(&sys, false, opts), false, opts.max_offset_um);
+    let frac_r = lr.map(|l| l.n as f64 / sxs.rows() as f64).unwrap_or(0.0);
+    let frac_c = lc.map(|l| l.n as f64 / sys.cols() as f64).unwrap_or(0.0);
+    let ok_r = lr.is_some_and(|l| l.angle_deg.abs() <= 45.0);
+    let ok_c = lc.is_some_and(|l| l.angle_deg.abs() >= 45.0);
+    let use_rows = match (ok_r, ok_c) {
+        // Both self-consistent: the one covering more of its lines.
+        (true, true) => frac_r >= frac_c,
+        (true, false) => true,
+        (false, true) => false,
+        (false, false) => match (lr, lc) {
+            (None, None) => {
+                return Err(AnalysisError::Failed("no filament found: fewer than 3 aligned maxima of ∂Sx/∂x per row and of ∂Sy/∂y per column".into()));
+            }
+            _ => frac_r >= frac_c,
+        },
+    };
+    let (line, other, channel) = if use_rows { (lr.unwrap(), lc, Channel::SxRows) } else { (lc.unwrap(), lr, Channel::SyCols) };
+    let sens = if use_rows { sxs } else { sys };
+    let mut m = measure_sens_along(sens, curve, channel, line, opts)?;
+    m.other_line = other;
+    Ok(m)
+}
+
+fn check_pixel(sx: &Image, curve: &AngleCurve) -> Result<()> {
     let px = sx.dx().abs().max(sx.dy().abs());
     if px > 0.0 && ((px - curve.options.pixel_um) / px).abs() > 0.05 {
         return Err(AnalysisError::BadInput {
@@ -358,67 +410,51 @@ pub fn measure_filament(
             reason: format!("calibration computed for {} µm pixels, the scan has {px} µm: recompute the curve with pixel_um = {px}", curve.options.pixel_um),
         });
     }
-    let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
-    let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
-    let po = opts.peak_options();
-    let rp = row_peaks(&sxs, &po)?;
-    let cp = col_peaks(&sys, &po)?;
-    let lr = fit_lines(&rp, true, opts.line_fraction);
-    let lc = fit_lines(&cp, false, opts.line_fraction);
-    let use_rows = match (&lr, &lc) {
-        (Some(r), Some(c)) => {
-            if r.angle_deg.abs() <= 45.0 && c.angle_deg.abs() >= 45.0 {
-                // Both self-consistent (near 45°): the one further from its blind direction.
-                r.angle_deg.abs() <= 90.0 - c.angle_deg.abs() || r.n >= c.n
-            } else {
-                r.angle_deg.abs() <= 45.0 || c.angle_deg.abs() < 45.0 && r.n >= c.n
-            }
-        }
-        (Some(_), None) => true,
-        (None, Some(_)) => false,
-        (None, None) => {
-            return Err(AnalysisError::Failed("no filament found: fewer than 3 aligned maxima of ∂Sx/∂x per row and of ∂Sy/∂y per column".into()));
-        }
+    Ok(())
+}
+
+/// Maxima along a given filament line (rows for `Channel::SxRows`: x = a + b·y; columns:
+/// y = a + b·x), read within ±`window_um` of the line in each row (column) — e.g. the same
+/// filament before and after background removal. Errors: fewer than 3 maxima on the line.
+pub fn measure_filament_along(sx: &Image, sy: &Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    opts.validate()?;
+    check_pixel(sx, curve)?;
+    let sens = match channel {
+        Channel::SxRows => sensitivity(sx, Axis::X, opts.stencil)?,
+        Channel::SyCols => sensitivity(sy, Axis::Y, opts.stencil)?,
     };
-    let (line, other, lines, sens, channel) = if use_rows {
-        (lr.unwrap(), lc, rp, sxs, Channel::SxRows)
-    } else {
-        (lc.unwrap(), lr, cp, sys, Channel::SyCols)
-    };
+    measure_sens_along(sens, curve, channel, line, opts)
+}
+
+fn measure_sens_along(mut sens: Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    // Instrument units → reference-bead units.
+    sens.data.mapv_inplace(|v| v * curve.norm_factor);
+    let rows = channel == Channel::SxRows;
     let angle = line.angle_deg;
     let factor = curve.correction(angle, channel)?;
     let th = angle.to_radians();
     let dir = (th.sin(), th.cos());
+    let po = opts.peak_options();
+    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
     let mut points = Vec::new();
-    for l in &lines {
-        let Some(p) = l.peak() else { continue };
-        let (x, y) = if use_rows {
-            (p.pos, l.coord)
-        } else {
-            (l.coord, p.pos)
-        };
-        // Distance from the fitted line measured along the line direction of the scan axis,
-        // converted to perpendicular distance.
-        let pred = line.a + line.b * l.coord;
-        let along = (p.pos - pred).abs();
-        let perp = along / (1.0 + line.b * line.b).sqrt();
-        if perp > opts.max_offset_um {
+    for l in 0..nl {
+        let coord = if rows { sens.y[l] } else { sens.x[l] };
+        let pred = line.a + line.b * coord;
+        let idx: Vec<usize> = (0..t.len()).filter(|&k| (t[k] - pred).abs() <= opts.window_um).collect();
+        if idx.len() < 3 {
             continue;
         }
-        points.push(FilamentPoint {
-            x,
-            y,
-            arc_um: x * dir.0 + y * dir.1,
-            sens: p.value,
-            sens_err: p.value_err,
-            sens_corr: p.value * factor,
-        });
+        let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
+        let vv: Vec<f64> = idx.iter().map(|&k| if rows { sens.data[[l, k]] } else { sens.data[[k, l]] }).collect();
+        let Ok(p) = peak_1d(&tt, &vv, &po) else { continue };
+        if dist(line.a, line.b, coord, p.pos) > opts.max_offset_um {
+            continue;
+        }
+        let (x, y) = if rows { (p.pos, coord) } else { (coord, p.pos) };
+        points.push(FilamentPoint { line: l, x, y, arc_um: x * dir.0 + y * dir.1, sens: p.value, sens_err: p.value_err, sens_corr: p.value * factor });
     }
     if points.len() < 3 {
-        return Err(AnalysisError::Failed(format!(
-            "only {} maxima lie on the fitted filament line",
-            points.len()
-        )));
+        return Err(AnalysisError::Failed(format!("only {} maxima lie on the filament line", points.len())));
     }
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
     let a0 = points[0].arc_um;
@@ -431,7 +467,7 @@ pub fn measure_filament(
         angle_deg: angle,
         angle_err_deg: line.angle_err_deg,
         line,
-        other_line: other,
+        other_line: None,
         factor,
         points,
         mean_corr: s.mean,

@@ -175,6 +175,11 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<
         }
     }
     let imax = imax.ok_or(PeakMiss::NoData)?;
+    let vmin = (0..n).filter(|&i| v[i].is_finite()).map(|i| v[i]).fold(f64::INFINITY, f64::min);
+    if v[imax] == vmin {
+        // All finite samples equal: a flat line has no maximum.
+        return Err(PeakMiss::NotConcave);
+    }
     let first = (0..n).find(|&i| v[i].is_finite()).unwrap_or(0);
     let last = (0..n).rev().find(|&i| v[i].is_finite()).unwrap_or(0);
     if (imax == first || imax == last) && first != last {
@@ -328,6 +333,36 @@ pub fn col_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
             }
         })
         .collect())
+}
+
+/// Maximum sensitivity of a point object the way Sec. 5 measures maxima: a parabola over
+/// `opts.window_um` along every row ([`row_peaks`]), the row with the largest maximum, refined
+/// across rows by a parabola through it and its two neighbours (position and value). x comes
+/// from the best row's parabola. Uncertainties: those of the best row's parabola.
+/// Errors: no row with a maximum.
+pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
+    let rows = row_peaks(sens, opts)?;
+    let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
+    let (ib, pb) = vals
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, p)))
+        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
+        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))?;
+    let (mut y, mut value) = (rows[ib].coord, pb.value);
+    if ib > 0 && ib + 1 < vals.len() {
+        if let (Some(a), Some(c)) = (vals[ib - 1], vals[ib + 1]) {
+            let den = a.value - 2.0 * pb.value + c.value;
+            if den < 0.0 {
+                let d = 0.5 * (a.value - c.value) / den;
+                if d.abs() <= 1.0 {
+                    value = pb.value - 0.25 * (a.value - c.value) * d;
+                    y += d * (rows[ib + 1].coord - rows[ib].coord);
+                }
+            }
+        }
+    }
+    Ok(Peak2 { x: pb.pos, y, value, x_err: pb.pos_err, y_err: None, value_err: pb.value_err, n_points: pb.n_points })
 }
 
 /// A 2-D sub-pixel maximum.

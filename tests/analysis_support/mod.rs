@@ -85,3 +85,59 @@ pub fn paper_noise(tpl: &Template, h: f64) -> f64 {
     }
     sigma_c * s.sqrt()
 }
+
+// ---- Physics model and simulator (optics::template, instrument::sim) ----
+
+use bfpscope::analysis::template::RefBead;
+use bfpscope::instrument::sim::render_xy;
+use bfpscope::instrument::sim::scene::{Bead as SimBead, DetectorNoise, DiameterProfile, Filament as SimFilament, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use bfpscope::instrument::sim::Renderer;
+use bfpscope::optics::rayleigh::DetectorModel;
+use bfpscope::optics::template::TemplateSpec;
+use bfpscope::optics::Optics;
+
+/// Samples per pixel of the paper's 0.1 s dwell at 100 kHz.
+pub const PAPER_SAMPLES: usize = 10_000;
+
+/// The project's "paper noise" per pixel (docs/physics.md §7): 2e-3 per sample over 10⁴ samples
+/// = 2e-5 of the beam power (0.84 % of the 110 nm bead's peak Sx).
+pub fn paper_sigma_pixel() -> f64 {
+    PAPER_DETECTOR_SIGMA_SAMPLE / (PAPER_SAMPLES as f64).sqrt()
+}
+
+/// Model template of the 110 nm polystyrene reference bead for `optics` (ideal QPD unless
+/// `detector` says otherwise), 20 nm grid, in focus.
+pub fn model_template(optics: &Optics, detector: &DetectorModel) -> Template {
+    let rb = RefBead { n_medium: optics.n_medium, ..RefBead::default() };
+    Template::from_optics(optics, detector, rb, 0.02, 0.0).unwrap()
+}
+
+/// Simulate an XY scan of `scene` on an n×n grid of pixel h from (0, 0) at z = 0, with
+/// `n_samples` per pixel (the scene's effects decide the noise).
+pub fn simulate(optics: &Optics, scene: &Scene, n: usize, h: f64, n_samples: usize) -> Scan {
+    let r = Renderer::new(optics, scene, TemplateSpec::default()).unwrap();
+    let ax = axis(n, h, 0.0);
+    render_xy(&r, &ax, &ax, 0.0, n_samples)
+}
+
+pub fn sim_bead(x: f64, y: f64, d_nm: f64, n: f64) -> SimBead {
+    SimBead { pos: [x, y, 0.0], d_nm, n }
+}
+
+pub fn sim_filament(points: Vec<[f64; 2]>, profile: DiameterProfile, n: f64) -> SimFilament {
+    SimFilament { points, z: 0.0, profile, n, spacing_nm: 50.0 }
+}
+
+/// Straight simulated filament through `centre` at `angle_deg` from the y-axis.
+pub fn sim_straight(centre: [f64; 2], angle_deg: f64, length: f64, d_nm: f64, n: f64) -> SimFilament {
+    let t = angle_deg.to_radians();
+    let (dx, dy) = (0.5 * length * t.sin(), 0.5 * length * t.cos());
+    sim_filament(vec![[centre[0] - dx, centre[1] - dy], [centre[0] + dx, centre[1] + dy]], DiameterProfile::Constant { d_nm }, n)
+}
+
+/// A scene with the paper's detector noise (seeded).
+pub fn noisy(mut scene: Scene, sigma_sample: f64, seed: u64) -> Scene {
+    scene.effects.detector_noise = Some(DetectorNoise { sigma_sample });
+    scene.seed = seed;
+    scene
+}
