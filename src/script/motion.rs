@@ -8,8 +8,6 @@ use crate::acquire::mock::{mock_instrument, MockConfig};
 use crate::acquire::{checked_move, Axis};
 use crate::instrument::{Pos, QpdReading};
 use rhai::{Array, Dynamic, Map, INT};
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 /// `#{x, y, z}` in µm.
 pub fn pos_map(p: Pos) -> Map {
@@ -291,5 +289,4 @@ pub fn register(r: &mut Registrar) {
             }
         },
     );
-    let _: Option<Arc<AtomicBool>> = None;
 }
