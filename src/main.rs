@@ -12,7 +12,11 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 #[derive(Parser)]
-#[command(name = "bfpscope", version, about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)")]
+#[command(
+    name = "bfpscope",
+    version,
+    about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)"
+)]
 struct Cli {
     /// Config file (default: ./bfpscope.toml if present)
     #[arg(long, global = true, value_name = "FILE")]
@@ -56,9 +60,15 @@ fn usage_error(msg: &str) -> ExitCode {
 
 /// `key=value` → (key, value as int, float, bool or string).
 fn parse_set(s: &str) -> Result<(String, Dynamic), String> {
-    let (k, v) = s.split_once('=').ok_or_else(|| format!("--set {s}: expected KEY=VALUE"))?;
+    let (k, v) = s
+        .split_once('=')
+        .ok_or_else(|| format!("--set {s}: expected KEY=VALUE"))?;
     let k = k.trim();
-    let valid = !k.is_empty() && k.chars().next().is_some_and(|c| c.is_alphabetic() || c == '_') && k.chars().all(|c| c.is_alphanumeric() || c == '_');
+    let valid = !k.is_empty()
+        && k.chars()
+            .next()
+            .is_some_and(|c| c.is_alphabetic() || c == '_')
+        && k.chars().all(|c| c.is_alphanumeric() || c == '_');
     if !valid {
         return Err(format!("--set {s}: `{k}` is not a valid variable name"));
     }
@@ -99,8 +109,14 @@ fn main() -> ExitCode {
             return ExitCode::from(code);
         }
     };
-    let mut settings = Settings { progress: std::io::stderr().is_terminal(), ..Settings::default() };
-    let config_path = cli.config.clone().or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
+    let mut settings = Settings {
+        progress: std::io::stderr().is_terminal(),
+        ..Settings::default()
+    };
+    let config_path = cli
+        .config
+        .clone()
+        .or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
     if let Some(p) = config_path {
         let text = match std::fs::read_to_string(&p) {
             Ok(t) => t,

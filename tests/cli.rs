@@ -20,7 +20,11 @@ fn tmp(tag: &str) -> PathBuf {
 
 fn run(args: &[&str]) -> (i32, String, String) {
     let o = bin().args(args).stdin(Stdio::null()).output().unwrap();
-    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).into(), String::from_utf8_lossy(&o.stderr).into())
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
 }
 
 #[test]
@@ -49,8 +53,15 @@ fn script_error_exits_1_with_file_line_column() {
     std::fs::write(&f, "let a = 1;\nlet b = linspace(0, 1, 0);\n").unwrap();
     let (code, _, err) = run(&["run", f.to_str().unwrap()]);
     assert_eq!(code, 1);
-    assert!(err.contains("bad.rhai:2:9: linspace: n = 0 is out of range: 1 ≤ n ≤ 10000000"), "{err}");
-    assert_eq!(err.trim().lines().count(), 1, "one line, no backtrace: {err}");
+    assert!(
+        err.contains("bad.rhai:2:9: linspace: n = 0 is out of range: 1 ≤ n ≤ 10000000"),
+        "{err}"
+    );
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "one line, no backtrace: {err}"
+    );
     let (code, _, err) = run(&["eval", "1 +"]);
     assert_eq!(code, 1);
     assert!(err.contains("eval:1:"), "{err}");
@@ -61,7 +72,18 @@ fn run_passes_set_values_as_variables() {
     let d = tmp("set");
     let f = d.join("vars.rhai");
     std::fs::write(&f, "print(`${n * 2} ${label} ${dwell + 0.5} ${flag}`);").unwrap();
-    let (code, out, err) = run(&["run", f.to_str().unwrap(), "--set", "n=21", "--set", "label=bead1", "--set", "dwell=0.25", "--set", "flag=true"]);
+    let (code, out, err) = run(&[
+        "run",
+        f.to_str().unwrap(),
+        "--set",
+        "n=21",
+        "--set",
+        "label=bead1",
+        "--set",
+        "dwell=0.25",
+        "--set",
+        "flag=true",
+    ]);
     assert_eq!(code, 0, "{err}");
     assert_eq!(out.trim(), "42 bead1 0.75 true");
 }
@@ -88,10 +110,24 @@ fn usage_errors_exit_2() {
 fn config_limits_apply_to_scripts() {
     let d = tmp("config");
     let cfg = d.join("bfpscope.toml");
-    std::fs::write(&cfg, "[limits]\nx = [-2.0, 2.0]\n\n[sandbox]\nmax_operations = 100000\n").unwrap();
-    let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "--data", d.join("data").to_str().unwrap(), "eval", "connect(#{backend: \"mock\"}); mv(#{x: 3.0})"]);
+    std::fs::write(
+        &cfg,
+        "[limits]\nx = [-2.0, 2.0]\n\n[sandbox]\nmax_operations = 100000\n",
+    )
+    .unwrap();
+    let (code, _, err) = run(&[
+        "--config",
+        cfg.to_str().unwrap(),
+        "--data",
+        d.join("data").to_str().unwrap(),
+        "eval",
+        "connect(#{backend: \"mock\"}); mv(#{x: 3.0})",
+    ]);
     assert_eq!(code, 1);
-    assert!(err.contains("x = 3 µm is above the soft limit x ≤ 2 µm"), "{err}");
+    assert!(
+        err.contains("x = 3 µm is above the soft limit x ≤ 2 µm"),
+        "{err}"
+    );
     let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "loop {}"]);
     assert_eq!(code, 1);
     assert!(err.contains("too many operations"), "{err}");
@@ -114,14 +150,25 @@ fn repl_through_a_pipe_survives_errors_and_keeps_definitions() {
         .spawn()
         .unwrap();
     let session = "fn sq(x) {\n  x * x\n}\nqpd(1)\nprint(`sq = ${sq(7)}`);\nlet a = [1,\n 2];\na.len\nconnect(#{backend: \"mock\"});\nmv(#{x: 99.0})\npos().x\n";
-    child.stdin.take().unwrap().write_all(session.as_bytes()).unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(session.as_bytes())
+        .unwrap();
     let o = child.wait_with_output().unwrap();
     let out = String::from_utf8_lossy(&o.stdout);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
     assert!(out.contains("sq = 49"), "{out}\n{err}");
-    assert!(out.contains("\n2\n") || out.contains(" 2\n"), "multi-line array: {out}");
-    assert!(err.contains("error: repl:1:1: qpd: no instrument connected"), "{err}");
+    assert!(
+        out.contains("\n2\n") || out.contains(" 2\n"),
+        "multi-line array: {out}"
+    );
+    assert!(
+        err.contains("error: repl:1:1: qpd: no instrument connected"),
+        "{err}"
+    );
     assert!(err.contains("x = 99 µm is above the soft limit"), "{err}");
     assert!(out.contains("0.0"), "{out}");
     assert!(!err.contains("panicked"), "{err}");
@@ -182,5 +229,8 @@ fn demo_script_runs() {
     let data = tmp("demo");
     let (code, out, err) = run(&["--data", data.to_str().unwrap(), "run", "scripts/demo.rhai"]);
     assert_eq!(code, 0, "{out}\n{err}");
-    assert!(std::fs::read_dir(&data).unwrap().count() >= 1, "the demo saves a scan");
+    assert!(
+        std::fs::read_dir(&data).unwrap().count() >= 1,
+        "the demo saves a scan"
+    );
 }

@@ -31,7 +31,10 @@ pub struct SoftLimits {
 impl Default for SoftLimits {
     /// No soft limits of their own: the stage's travel range applies.
     fn default() -> Self {
-        Self { range: [(f64::NEG_INFINITY, f64::INFINITY); 3], max_step_um: DEFAULT_MAX_STEP_UM }
+        Self {
+            range: [(f64::NEG_INFINITY, f64::INFINITY); 3],
+            max_step_um: DEFAULT_MAX_STEP_UM,
+        }
     }
 }
 
@@ -54,27 +57,40 @@ impl SoftLimits {
     /// Read the `[limits]` table of a parsed config (absent table: defaults).
     pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
         let mut l = SoftLimits::default();
-        let Some(t) = config.get("limits") else { return Ok(l) };
+        let Some(t) = config.get("limits") else {
+            return Ok(l);
+        };
         let t = t.as_table().ok_or("config: [limits] must be a table")?;
         for (k, v) in t {
             if let Some(a) = Axis::parse(k) {
                 let arr = v.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
                     format!("config: limits.{k} must be [min, max] in µm, got {v}")
                 })?;
-                let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
+                let num =
+                    |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
                 let (lo, hi) = match (num(&arr[0]), num(&arr[1])) {
                     (Some(lo), Some(hi)) if lo.is_finite() && hi.is_finite() && lo < hi => (lo, hi),
-                    _ => return Err(format!("config: limits.{k} = {v} must be two finite numbers with min < max (µm)")),
+                    _ => {
+                        return Err(format!(
+                        "config: limits.{k} = {v} must be two finite numbers with min < max (µm)"
+                    ))
+                    }
                 };
                 l.range[a.index()] = (lo, hi);
             } else if k == "max_step_um" {
                 let s = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
                 match s {
                     Some(s) if s > 0.0 && s.is_finite() => l.max_step_um = s,
-                    _ => return Err(format!("config: limits.max_step_um = {v} must be a positive number (µm)")),
+                    _ => {
+                        return Err(format!(
+                            "config: limits.max_step_um = {v} must be a positive number (µm)"
+                        ))
+                    }
                 }
             } else {
-                return Err(format!("config: unknown key limits.{k} (allowed: x, y, z, max_step_um)"));
+                return Err(format!(
+                    "config: unknown key limits.{k} (allowed: x, y, z, max_step_um)"
+                ));
             }
         }
         Ok(l)
@@ -83,8 +99,8 @@ impl SoftLimits {
     /// These limits narrowed to the stage's travel range.
     pub fn within_travel(&self, travel: [(f64, f64); 3]) -> SoftLimits {
         let mut l = *self;
-        for i in 0..3 {
-            l.range[i] = (l.range[i].0.max(travel[i].0), l.range[i].1.min(travel[i].1));
+        for (r, t) in l.range.iter_mut().zip(travel) {
+            *r = (r.0.max(t.0), r.1.min(t.1));
         }
         l
     }
@@ -132,11 +148,15 @@ impl SoftLimits {
         }
         let pts = plan.points(start);
         let n = pts.len();
-        self.check(plan.base(start))
-            .map_err(|e| LimitError(format!("{who} refused before any move: start of scan: {e}")))?;
+        self.check(plan.base(start)).map_err(|e| {
+            LimitError(format!("{who} refused before any move: start of scan: {e}"))
+        })?;
         for (i, p) in pts.iter().enumerate() {
             self.check(p.target).map_err(|e| {
-                LimitError(format!("{who} refused before any move: point {} of {n}: {e}", i + 1))
+                LimitError(format!(
+                    "{who} refused before any move: point {} of {n}: {e}",
+                    i + 1
+                ))
             })?;
         }
         Ok(pts)
@@ -162,25 +182,48 @@ mod tests {
 
     #[test]
     fn config_limits_parse_and_refuse_with_axis_value_and_limit() {
-        let cfg: toml::Value = toml::from_str("[limits]\nx = [-5, 5]\nz = [-1.0, 1.0]\nmax_step_um = 0.5").unwrap();
+        let cfg: toml::Value =
+            toml::from_str("[limits]\nx = [-5, 5]\nz = [-1.0, 1.0]\nmax_step_um = 0.5").unwrap();
         let l = SoftLimits::from_toml(&cfg).unwrap();
         assert_eq!(l.range[0], (-5.0, 5.0));
         assert_eq!(l.max_step_um, 0.5);
         let e = l.check([6.0, 0.0, 0.0]).unwrap_err();
         assert_eq!(e.0, "x = 6 µm is above the soft limit x ≤ 5 µm");
-        let plan = Plan::line("ascan", Sweep::new("ascan", Axis::Z, 0.0, 1.5, 4, "n").unwrap(), 0.0, false).unwrap();
+        let plan = Plan::line(
+            "ascan",
+            Sweep::new("ascan", Axis::Z, 0.0, 1.5, 4, "n").unwrap(),
+            0.0,
+            false,
+        )
+        .unwrap();
         let e = l.preflight(&plan, [0.0; 3]).unwrap_err();
-        assert!(e.0.contains("point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm"), "{e}");
-        let coarse = Plan::line("ascan", Sweep::new("ascan", Axis::X, 0.0, 4.0, 3, "n").unwrap(), 0.0, false).unwrap();
+        assert!(
+            e.0.contains("point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm"),
+            "{e}"
+        );
+        let coarse = Plan::line(
+            "ascan",
+            Sweep::new("ascan", Axis::X, 0.0, 4.0, 3, "n").unwrap(),
+            0.0,
+            false,
+        )
+        .unwrap();
         let e = l.preflight(&coarse, [0.0; 3]).unwrap_err();
-        assert!(e.0.contains("step along x = 2 µm exceeds max_step_um = 0.5 µm"), "{e}");
+        assert!(
+            e.0.contains("step along x = 2 µm exceeds max_step_um = 0.5 µm"),
+            "{e}"
+        );
     }
 
     #[test]
     fn bad_config_is_an_error_naming_the_key() {
         let cfg: toml::Value = toml::from_str("[limits]\nx = [5, -5]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg).unwrap_err().contains("limits.x"));
+        assert!(SoftLimits::from_toml(&cfg)
+            .unwrap_err()
+            .contains("limits.x"));
         let cfg: toml::Value = toml::from_str("[limits]\nw = [0, 1]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg).unwrap_err().contains("unknown key limits.w"));
+        assert!(SoftLimits::from_toml(&cfg)
+            .unwrap_err()
+            .contains("unknown key limits.w"));
     }
 }

@@ -27,7 +27,9 @@ impl SessionStore {
 
     /// Highest scan number present in the folder (0 when none).
     pub fn last_number(&self) -> u32 {
-        let Ok(rd) = std::fs::read_dir(&self.dir) else { return 0 };
+        let Ok(rd) = std::fs::read_dir(&self.dir) else {
+            return 0;
+        };
         rd.filter_map(|e| e.ok())
             .filter_map(|e| parse_number(&e.file_name().to_string_lossy()))
             .max()
@@ -43,7 +45,11 @@ impl SessionStore {
     pub fn autosave(&self, scan: &Scan) -> std::io::Result<PathBuf> {
         std::fs::create_dir_all(&self.dir)?;
         let mut n = self.last_number() + 1;
-        let tmp = self.dir.join(format!(".scan_tmp_{}_{}.{SCAN_EXT}", std::process::id(), unique()));
+        let tmp = self.dir.join(format!(
+            ".scan_tmp_{}_{}.{SCAN_EXT}",
+            std::process::id(),
+            unique()
+        ));
         write_file(&tmp, scan)?;
         loop {
             let dest = self.dir.join(scan_file_name(n));
@@ -111,16 +117,32 @@ pub fn save_scan(path: &Path, scan: &Scan) -> std::io::Result<()> {
 /// Load a scan written by [`save_scan`] / [`SessionStore::autosave`]. JSON `null` pixels
 /// (unmeasured points of a partial scan; JSON has no NaN) come back as NaN.
 pub fn load_scan(path: &Path) -> std::io::Result<Scan> {
-    let bad = |what: &str| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{}: {what}", path.display()));
+    let bad = |what: &str| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("{}: {what}", path.display()),
+        )
+    };
     let text = std::fs::read(path)?;
     let v: serde_json::Value = serde_json::from_slice(&text).map_err(|e| bad(&e.to_string()))?;
     let nums = |a: &serde_json::Value| -> Option<Vec<f64>> {
-        a.as_array()?.iter().map(|x| if x.is_null() { Some(f64::NAN) } else { x.as_f64() }).collect()
+        a.as_array()?
+            .iter()
+            .map(|x| {
+                if x.is_null() {
+                    Some(f64::NAN)
+                } else {
+                    x.as_f64()
+                }
+            })
+            .collect()
     };
     let image = |ch: &str| -> std::io::Result<crate::data::Image> {
         let c = v.get(ch).ok_or_else(|| bad(&format!("no channel {ch}")))?;
         let d = c.get("data").ok_or_else(|| bad("no data"))?;
-        let dim = nums(&d["dim"]).filter(|d| d.len() == 2).ok_or_else(|| bad("bad dim"))?;
+        let dim = nums(&d["dim"])
+            .filter(|d| d.len() == 2)
+            .ok_or_else(|| bad("bad dim"))?;
         let data = nums(&d["data"]).ok_or_else(|| bad("bad pixel data"))?;
         let x = nums(&c["x"]).ok_or_else(|| bad("bad x axis"))?;
         let y = nums(&c["y"]).ok_or_else(|| bad("bad y axis"))?;
@@ -128,7 +150,8 @@ pub fn load_scan(path: &Path) -> std::io::Result<Scan> {
         if data.len() != r * cc || x.len() != cc || y.len() != r {
             return Err(bad("array sizes do not match"));
         }
-        let arr = ndarray::Array2::from_shape_vec((r, cc), data).map_err(|e| bad(&e.to_string()))?;
+        let arr =
+            ndarray::Array2::from_shape_vec((r, cc), data).map_err(|e| bad(&e.to_string()))?;
         Ok(crate::data::Image::new(arr, x, y).with_axis_names(
             c["x_name"].as_str().unwrap_or("x"),
             c["y_name"].as_str().unwrap_or("y"),
