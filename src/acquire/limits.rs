@@ -70,9 +70,11 @@ impl SoftLimits {
                     |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
                 let (lo, hi) = match (num(&arr[0]), num(&arr[1])) {
                     (Some(lo), Some(hi)) if lo.is_finite() && hi.is_finite() && lo < hi => (lo, hi),
-                    _ => return Err(format!(
+                    _ => {
+                        return Err(format!(
                         "config: limits.{k} = {v} must be two finite numbers with min < max (µm)"
-                    )),
+                    ))
+                    }
                 };
                 l.range[a.index()] = (lo, hi);
             } else if k == "max_step_um" {
@@ -97,8 +99,8 @@ impl SoftLimits {
     /// These limits narrowed to the stage's travel range.
     pub fn within_travel(&self, travel: [(f64, f64); 3]) -> SoftLimits {
         let mut l = *self;
-        for i in 0..3 {
-            l.range[i] = (l.range[i].0.max(travel[i].0), l.range[i].1.min(travel[i].1));
+        for (r, t) in l.range.iter_mut().zip(travel) {
+            *r = (r.0.max(t.0), r.1.min(t.1));
         }
         l
     }

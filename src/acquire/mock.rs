@@ -109,8 +109,8 @@ impl Stage for MockStage {
             self.broken = true;
             return Err(self.disconnected(&cmd));
         }
-        for i in 0..3 {
-            if !(t[i] >= self.travel[i].0 && t[i] <= self.travel[i].1) {
+        for (v, (lo, hi)) in t.iter().zip(self.travel) {
+            if !(*v >= lo && *v <= hi) {
                 return Err(DeviceError::Controller {
                     device: "mock stage".into(),
                     command: cmd,

@@ -112,12 +112,16 @@ pub fn register(r: &mut Registrar) {
             .example("assert_err(|| mv(#{x: 1000.0}))", "\"mv refused, nothing was moved: x = 1000 µm is above the soft limit x ≤ 50 µm\"")
             .example("assert_err(|| 1 + 1)", "error: assert_err: expected an error, but the closure returned 2")
             .example("assert_err(|| qpd(0), \"out of range\").len() > 0", "true"),
-        |ctx: NativeCallContext, f: FnPtr| -> RResult<String> { expect_err(&ctx, &f, None) },
+        {
+            let c = r.ctx();
+            move |ctx: NativeCallContext, f: FnPtr| -> RResult<String> { expect_err(&ctx, &f, None, &c.docs()) }
+        },
     );
+    let c = r.ctx();
     r.overload(
         "assert_err",
-        |ctx: NativeCallContext, f: FnPtr, contains: &str| -> RResult<String> {
-            expect_err(&ctx, &f, Some(contains))
+        move |ctx: NativeCallContext, f: FnPtr, contains: &str| -> RResult<String> {
+            expect_err(&ctx, &f, Some(contains), &c.docs())
         },
     );
 
@@ -166,7 +170,12 @@ fn check(cond: Dynamic, msg: &str) -> RResult<()> {
     }
 }
 
-fn expect_err(ctx: &NativeCallContext, f: &FnPtr, contains: Option<&str>) -> RResult<String> {
+fn expect_err(
+    ctx: &NativeCallContext,
+    f: &FnPtr,
+    contains: Option<&str>,
+    docs: &[super::Doc],
+) -> RResult<String> {
     match f.call_within_context::<Dynamic>(ctx, ()) {
         Ok(v) => fail(format!(
             "assert_err: expected an error, but the closure returned {}",
@@ -176,7 +185,7 @@ fn expect_err(ctx: &NativeCallContext, f: &FnPtr, contains: Option<&str>) -> RRe
             if matches!(*e, rhai::EvalAltResult::ErrorTerminated(..)) {
                 return Err(e); // Ctrl-C is never swallowed
             }
-            let msg = super::error_message(&e);
+            let msg = super::error_message(&e, docs);
             match contains {
                 Some(t) if !msg.contains(t) => fail(format!(
                     "assert_err: the error {msg:?} does not contain {t:?}"

@@ -59,10 +59,12 @@ impl Sandbox {
                 "max_string_size" => s.max_string_size = n as usize,
                 "max_array_size" => s.max_array_size = n as usize,
                 "max_map_size" => s.max_map_size = n as usize,
-                _ => return Err(format!(
+                _ => {
+                    return Err(format!(
                     "config: unknown key sandbox.{k} (allowed: max_operations, max_call_levels, \
                          max_expr_depth, max_string_size, max_array_size, max_map_size)"
-                )),
+                ))
+                }
             }
         }
         Ok(s)

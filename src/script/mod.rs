@@ -21,7 +21,10 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 /// Every binding family, in the order `help()` lists them. Add a family here once.
-pub const FAMILIES: &[(&str, fn(&mut Registrar))] = &[
+/// A family's registration function.
+pub type RegisterFn = fn(&mut Registrar);
+
+pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("core", core::register),
     ("motion", motion::register),
     ("scans", scans::register),
@@ -93,14 +96,11 @@ fn innermost(e: &EvalAltResult) -> (&EvalAltResult, Position, Option<String>, Ve
     (cur, pos, src, chain)
 }
 
-/// The text of an error without its position (bindings' own messages come out verbatim).
-pub fn error_message(e: &EvalAltResult) -> String {
-    error_message_with(e, &[])
-}
-
-fn error_message_with(e: &EvalAltResult, docs: &[Doc]) -> String {
+/// The text of an error without its position (bindings' own messages come out verbatim);
+/// `docs` turn "function not found" into the binding's usage.
+pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
     let (cur, _, _, chain) = innermost(e);
-    let mut msg = match cur {
+    let msg = match cur {
         EvalAltResult::ErrorRuntime(d, _) => {
             if d.is_string() {
                 d.to_string()
@@ -139,20 +139,19 @@ fn error_message_with(e: &EvalAltResult, docs: &[Doc]) -> String {
             }
         }
     };
-    let fns: Vec<&String> = chain
-        .iter()
-        .filter(|n| !docs.iter().any(|d| &&d.name == n))
-        .collect();
-    if !fns.is_empty() && !matches!(cur, EvalAltResult::ErrorTerminated(..)) {
-        msg.push_str(&format!(
-            " (in {})",
-            fns.iter()
-                .map(|s| s.as_str())
-                .collect::<Vec<_>>()
-                .join(" ← ")
-        ));
-    }
+    let _ = chain;
     msg
+}
+
+/// Script functions (not bindings, not closures) the error passed through, innermost first.
+fn fn_chain(e: &EvalAltResult, docs: &[Doc]) -> Vec<String> {
+    let (_, _, _, chain) = innermost(e);
+    let mut v: Vec<String> = chain
+        .into_iter()
+        .filter(|n| !n.starts_with("anon$") && !docs.iter().any(|d| &d.name == n))
+        .collect();
+    v.reverse();
+    v
 }
 
 impl ScriptError {
@@ -160,7 +159,14 @@ impl ScriptError {
         let (cur, pos, src, _) = innermost(e);
         let (line, column) = pos_parts(pos);
         ScriptError {
-            message: error_message_with(e, docs),
+            message: {
+                let mut m = error_message(e, docs);
+                let fns = fn_chain(e, docs);
+                if !fns.is_empty() && !matches!(cur, EvalAltResult::ErrorTerminated(..)) {
+                    m.push_str(&format!(" (in {})", fns.join(" ← ")));
+                }
+                m
+            },
             source: src.unwrap_or_else(|| source.to_string()),
             line,
             column,

@@ -8,8 +8,6 @@ use crate::acquire::mock::{mock_instrument, MockConfig};
 use crate::acquire::{checked_move, Axis};
 use crate::instrument::{Pos, QpdReading};
 use rhai::{Array, Dynamic, Map, INT};
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 /// `#{x, y, z}` in µm.
 pub fn pos_map(p: Pos) -> Map {
@@ -289,7 +287,7 @@ pub fn register(r: &mut Registrar) {
                     cfg.settle_s = s;
                 }
                 if let Some(r) = o.f64("rate")? {
-                    if !(r >= 1.0 && r <= 1e9) {
+                    if !(1.0..=1e9).contains(&r) {
                         return fail(format!(
                             "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
                         ));
@@ -301,8 +299,8 @@ pub fn register(r: &mut Registrar) {
                         return fail("connect: start must be a map #{x, y, z} (µm)");
                     };
                     let t = axes_map("connect start", &sm)?;
-                    for i in 0..3 {
-                        cfg.start[i] = t[i].unwrap_or(0.0);
+                    for (st, v) in cfg.start.iter_mut().zip(t) {
+                        *st = v.unwrap_or(0.0);
                     }
                 }
                 let count = |k: &str| -> RResult<Option<usize>> {
@@ -348,5 +346,4 @@ pub fn register(r: &mut Registrar) {
             }
         },
     );
-    let _: Option<Arc<AtomicBool>> = None;
 }
