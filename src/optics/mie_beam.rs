@@ -76,6 +76,8 @@ pub struct MieBeamSpec {
     pub scattered_intensity: bool,
     /// Multipole count; `None` = `mie::default_terms` (Wiscombe's rule with a floor).
     pub n_terms: Option<usize>,
+    /// Meaning of `Optics::w0_nm` for the angular spectrum ([`Waist`]).
+    pub waist: Waist,
 }
 
 impl Default for MieBeamSpec {
@@ -88,6 +90,7 @@ impl Default for MieBeamSpec {
             amplitudes: Amplitudes::Mie,
             scattered_intensity: false,
             n_terms: None,
+            waist: Waist::Spectral,
         }
     }
 }
@@ -171,15 +174,214 @@ pub fn scattering_vector(kh: [f64; 3], e: [f64; 3], rh: [f64; 3], s1: C64, s2: C
     ]
 }
 
+/// What `Optics::w0_nm` means for the angular-spectrum beam.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+pub enum Waist {
+    /// w0 is the parameter of the Gaussian plane-wave spectrum e^{−k² w0² sin²θ/4} (the lead's
+    /// design; equals the focal 1/e² radius only for a paraxial, untruncated beam). For the
+    /// paper's w0 = 400 nm and NA 1.2 the focus is then 536 nm (along the polarisation) ×
+    /// 452 nm wide (docs/physics.md §9).
+    #[default]
+    Spectral,
+    /// w0 is the 1/e² radius of the focal intensity (the paper's definition, Sec. 3.1: "the
+    /// radius at which the light intensity in the focal plane decreases by 1/e²"), averaged
+    /// over the x and y directions: the spectral parameter is solved for by
+    /// [`spectral_waist_nm`]. NA 1.2 at 1064 nm cannot focus tighter than a mean 412 nm
+    /// (uniformly filled aperture), so the paper's 400 nm gives an error naming that minimum.
+    Focal,
+    /// An explicit spectral waist in nm (ignores `Optics::w0_nm`); 0 = uniformly filled
+    /// (overfilled) aperture, the tightest focus the objective can make.
+    SpectralNm(f64),
+}
+
+/// The focused beam as a discrete angular spectrum (module docs): plane waves on a
+/// Gauss–Legendre × uniform grid over the aperture, with the Gaussian spectrum of parameter
+/// `w_spec` (µm).
+#[derive(Debug, Clone)]
+pub struct AngularSpectrum {
+    /// wavenumber in the medium, µm⁻¹
+    pub k: f64,
+    /// spectral waist parameter, µm
+    pub w_spec: f64,
+    /// upper polar angle of the grid (aperture or numerical cut), rad
+    pub theta_in: f64,
+    /// wave vectors k_j (µm⁻¹), unit directions, polarisations ê_j, weights c_j = Ã dk_x dk_y
+    pub kin: Vec<[f64; 3]>,
+    pub khat: Vec<[f64; 3]>,
+    pub ein: Vec<[f64; 3]>,
+    pub cw: Vec<f64>,
+    /// beam power ∫|E_b|² r² dΩ (µm⁻², the units of [`AngularSpectrum::field`] squared × µm²)
+    pub power: f64,
+}
+
+impl AngularSpectrum {
+    /// Build the plane-wave grid for `optics` (k, aperture NA) with spectral waist `w_spec_um`.
+    pub fn new(
+        optics: &Optics,
+        w_spec_um: f64,
+        n_theta_in: usize,
+        n_phi_in: usize,
+    ) -> Result<Self, OpticsError> {
+        check_range("w_spec_um", w_spec_um, 0.0, 1000.0)?;
+        check_range("n_theta_in", n_theta_in as f64, 2.0, 512.0)?;
+        check_range("n_phi_in", n_phi_in as f64, 1.0, 512.0)?;
+        let k = optics.k_per_um();
+        let th_obj = theta_aperture(optics);
+        // numerical cut where the spectrum is below e^{-36} (never beyond the aperture)
+        let th_num = if k * w_spec_um > 12.0 {
+            (12.0 / (k * w_spec_um)).asin()
+        } else {
+            PI / 2.0
+        };
+        let theta_in = th_obj.min(th_num);
+        let mut out = Self {
+            k,
+            w_spec: w_spec_um,
+            theta_in,
+            kin: Vec::new(),
+            khat: Vec::new(),
+            ein: Vec::new(),
+            cw: Vec::new(),
+            power: 0.0,
+        };
+        // beam power: 8π³k² ∫ cos²θ Ã² sinθ dθ
+        let (tp, wp) = gauss_legendre(256, 0.0, theta_in);
+        out.power = 8.0
+            * PI.powi(3)
+            * k
+            * k
+            * tp.iter()
+                .zip(&wp)
+                .map(|(&t, &w)| {
+                    let (s, c) = t.sin_cos();
+                    w * c * c * out.spectrum(s).powi(2) * s
+                })
+                .sum::<f64>();
+        let (th, wth) = gauss_legendre(n_theta_in, 0.0, theta_in);
+        let nphi = 4 * n_phi_in;
+        let dphi = 2.0 * PI / nphi as f64;
+        for (&t, &wt) in th.iter().zip(&wth) {
+            let (st, ct) = t.sin_cos();
+            let c = out.spectrum(st) * k * k * ct * st * wt * dphi;
+            for i in 0..nphi {
+                let (sp, cp) = ((i as f64 + 0.5) * dphi).sin_cos();
+                let kh = [st * cp, st * sp, ct];
+                out.khat.push(kh);
+                out.kin.push([k * kh[0], k * kh[1], k * kh[2]]);
+                out.ein.push(pupil_pol(kh[0], kh[1], kh[2]));
+                out.cw.push(c);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Gaussian spectrum Ã at sinθ.
+    #[inline]
+    pub fn spectrum(&self, sin_theta: f64) -> f64 {
+        (-(self.k * self.w_spec * sin_theta).powi(2) / 4.0).exp()
+    }
+
+    /// Focal field at (x, y, z) µm; |E|²/power is the intensity per unit power (µm⁻²).
+    pub fn field(&self, x: f64, y: f64, z: f64) -> [C64; 3] {
+        let mut e = [C64::new(0.0, 0.0); 3];
+        for ((kj, ej), &c) in self.kin.iter().zip(&self.ein).zip(&self.cw) {
+            let (s, co) = (kj[0] * x + kj[1] * y + kj[2] * z).sin_cos();
+            let p = C64::new(co, s) * c;
+            for a in 0..3 {
+                e[a] += p * ej[a];
+            }
+        }
+        e
+    }
+
+    /// Intensity per unit power |E|²/P at (x, y, z) µm, µm⁻².
+    pub fn intensity(&self, x: f64, y: f64, z: f64) -> f64 {
+        let e = self.field(x, y, z);
+        (e[0].norm_sqr() + e[1].norm_sqr() + e[2].norm_sqr()) / self.power
+    }
+
+    /// 1/e² radii of the focal-plane intensity along x (the polarisation) and y, µm (first
+    /// crossing of I(0)·e^{−2} going outward, by bisection on a 5 nm bracket scan).
+    pub fn focal_radii(&self) -> (f64, f64) {
+        let i0 = self.intensity(0.0, 0.0, 0.0);
+        let target = i0 * (-2.0f64).exp();
+        let find = |f: &dyn Fn(f64) -> f64| {
+            let mut a = 0.0;
+            let mut b = 0.005;
+            while f(b) > target && b < 20.0 {
+                a = b;
+                b += 0.005;
+            }
+            for _ in 0..50 {
+                let m = 0.5 * (a + b);
+                if f(m) > target {
+                    a = m
+                } else {
+                    b = m
+                }
+            }
+            0.5 * (a + b)
+        };
+        (
+            find(&|x| self.intensity(x, 0.0, 0.0)),
+            find(&|y| self.intensity(0.0, y, 0.0)),
+        )
+    }
+}
+
+/// The spectral waist (nm) for which the angular-spectrum focus of `optics` has a 1/e²
+/// intensity radius, averaged over x and y, equal to `optics.w0_nm` ([`Waist::Focal`]).
+/// Bisection on the spectral waist (the focal radius grows monotonically with it), 40 steps;
+/// focal field from a (32, 16) incident grid (converged to < 1e-9 within 1.5 µm).
+/// Errors if w0 is below the tightest focus the aperture allows (uniform filling), naming
+/// `w0_nm`, its value and that minimum.
+pub fn spectral_waist_nm(optics: &Optics) -> Result<f64, OpticsError> {
+    optics.validate()?;
+    let mean_r = |ws: f64| -> Result<f64, OpticsError> {
+        let b = AngularSpectrum::new(optics, ws, 32, 16)?;
+        let (rx, ry) = b.focal_radii();
+        Ok(0.5 * (rx + ry))
+    };
+    let target = optics.w0_um();
+    let r_min = mean_r(0.0)?;
+    if target <= r_min {
+        return Err(OpticsError::OutOfRange {
+            name: "w0_nm",
+            value: optics.w0_nm,
+            allowed: format!(
+                "w0_nm > {:.1} nm: the tightest focus of NA {} at {} nm (uniformly filled aperture) with Waist::Focal",
+                1e3 * r_min,
+                optics.na,
+                optics.wavelength_nm
+            ),
+        });
+    }
+    let (mut a, mut b) = (0.0, target.max(0.05));
+    while mean_r(b)? < target {
+        a = b;
+        b *= 2.0;
+        if b > 1000.0 {
+            break;
+        }
+    }
+    for _ in 0..40 {
+        let m = 0.5 * (a + b);
+        if mean_r(m)? < target {
+            a = m
+        } else {
+            b = m
+        }
+    }
+    Ok(1e3 * 0.5 * (a + b))
+}
+
 /// A sphere in the focused beam, with everything that does not depend on its position
 /// precomputed (the pair matrix). See the module docs for the model and its cost.
 #[derive(Debug, Clone)]
 pub struct MieBeam {
     k: f64,
-    /// incident wave vectors k_j, µm⁻¹
-    kin: Vec<[f64; 3]>,
-    /// c_j ê_j (focal-field synthesis), µm⁻²
-    cin: Vec<[f64; 3]>,
+    /// the incident beam
+    beam: AngularSpectrum,
     /// detection directions r̂_n and channel signs
     rdet: Vec<[f64; 3]>,
     sdet: Vec<[f64; 3]>,
@@ -237,52 +439,16 @@ impl MieBeam {
             )));
         }
         let k = optics.k_per_um();
-        let w0 = optics.w0_um();
-        let th_obj = theta_aperture(optics);
-        // numerical cut where the spectrum is below e^{-36} (never beyond the aperture)
-        let th_num = (12.0 / (k * w0)).min(1.0).asin();
-        let theta_in = th_obj.min(th_num);
-        let spectrum = |st: f64| (-(k * w0 * st).powi(2) / 4.0).exp();
-
-        // beam power: 8π³k² ∫ cos²θ Ã² sinθ dθ
-        let (tp, wp) = gauss_legendre(256, 0.0, theta_in);
-        let power = 8.0
-            * PI.powi(3)
-            * k
-            * k
-            * tp.iter()
-                .zip(&wp)
-                .map(|(&t, &w)| {
-                    let (s, c) = t.sin_cos();
-                    w * c * c * spectrum(s).powi(2) * s
-                })
-                .sum::<f64>();
-
-        // incident plane waves
-        let (th, wth) = gauss_legendre(spec.n_theta_in, 0.0, theta_in);
-        let nphi = 4 * spec.n_phi_in;
-        let dphi = 2.0 * PI / nphi as f64;
-        let mut kin = Vec::with_capacity(n_inc);
-        let mut khat = Vec::with_capacity(n_inc);
-        let mut ein = Vec::with_capacity(n_inc);
-        let mut cw = Vec::with_capacity(n_inc);
-        for (&t, &wt) in th.iter().zip(&wth) {
-            let (st, ct) = t.sin_cos();
-            let c = spectrum(st) * k * k * ct * st * wt * dphi;
-            for i in 0..nphi {
-                let (sp, cp) = ((i as f64 + 0.5) * dphi).sin_cos();
-                let kh = [st * cp, st * sp, ct];
-                khat.push(kh);
-                kin.push([k * kh[0], k * kh[1], k * kh[2]]);
-                ein.push(pupil_pol(kh[0], kh[1], kh[2]));
-                cw.push(c);
-            }
-        }
-        let cin: Vec<[f64; 3]> = ein
-            .iter()
-            .zip(&cw)
-            .map(|(e, &c)| [c * e[0], c * e[1], c * e[2]])
-            .collect();
+        let w_spec = match spec.waist {
+            Waist::Spectral => optics.w0_um(),
+            Waist::Focal => spectral_waist_nm(optics)? * 1e-3,
+            Waist::SpectralNm(w) => check_range("waist (spectral, nm)", w, 0.0, 1e6)? * 1e-3,
+        };
+        let beam = AngularSpectrum::new(optics, w_spec, spec.n_theta_in, spec.n_phi_in)?;
+        let theta_in = beam.theta_in;
+        let power = beam.power;
+        let spectrum = |st: f64| beam.spectrum(st);
+        let (khat, ein, cw) = (&beam.khat, &beam.ein, &beam.cw);
 
         // scatterer
         let m_rel = n_particle / optics.n_medium;
@@ -343,8 +509,7 @@ impl MieBeam {
         }
         let out = Self {
             k,
-            kin,
-            cin,
+            beam,
             rdet,
             sdet,
             m_re,
@@ -383,21 +548,18 @@ impl MieBeam {
     }
     /// (detection nodes N, plane waves J): the per-point cost is ∝ N·J.
     pub fn grid_size(&self) -> (usize, usize) {
-        (self.rdet.len(), self.kin.len())
+        (self.rdet.len(), self.beam.kin.len())
     }
 
     /// Focal field E_inc at displacement (x, y, z) µm, in units where |E|²/[`Self::beam_power`] is
     /// the intensity per unit beam power in µm⁻² (a paraxial Gaussian has 2/(π w0²) at its waist).
     pub fn focal_field(&self, x: f64, y: f64, z: f64) -> [C64; 3] {
-        let mut e = [C64::new(0.0, 0.0); 3];
-        for (kj, cj) in self.kin.iter().zip(&self.cin) {
-            let (s, c) = (kj[0] * x + kj[1] * y + kj[2] * z).sin_cos();
-            let p = C64::new(c, s);
-            for a in 0..3 {
-                e[a] += p * cj[a];
-            }
-        }
-        e
+        self.beam.field(x, y, z)
+    }
+
+    /// The incident beam (plane-wave grid, spectral waist, power).
+    pub fn beam(&self) -> &AngularSpectrum {
+        &self.beam
     }
 
     /// Beam power P = ∫|E_b|² r² dΩ in the units of [`Self::focal_field`] (µm⁻²).
@@ -437,17 +599,17 @@ impl MieBeam {
     }
 
     fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> ([f64; 3], [f64; 3], [f64; 3]) {
-        let nj = self.kin.len();
+        let nj = self.beam.kin.len();
         let mut ar = Vec::with_capacity(nj);
         let mut ai = Vec::with_capacity(nj);
-        for kj in &self.kin {
+        for kj in &self.beam.kin {
             let (s, c) = (kj[0] * x + kj[1] * y + kj[2] * z).sin_cos();
             ar.push(c);
             ai.push(s);
         }
         let (mut bxr, mut bxi, mut byr, mut byi) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         if grad {
-            for (j, kj) in self.kin.iter().enumerate() {
+            for (j, kj) in self.beam.kin.iter().enumerate() {
                 bxr.push(ar[j] * kj[0]);
                 bxi.push(ai[j] * kj[0]);
                 byr.push(ar[j] * kj[1]);
@@ -461,18 +623,20 @@ impl MieBeam {
         for (n, (rh, sg)) in self.rdet.iter().zip(&self.sdet).enumerate() {
             let row = n * nj..(n + 1) * nj;
             let (mr, mi) = (&self.m_re[row.clone()], &self.m_im[row.clone()]);
-            let w = cdot(mr, mi, &ar, &ai);
             let (ps, pc) = (-k * (rh[0] * x + rh[1] * y + rh[2] * z)).sin_cos();
             let ph = C64::new(pc, ps);
-            let val = (ph * w).re;
-            let (mut gx, mut gy) = (0.0, 0.0);
+            let (val, gx, gy);
             if grad {
                 // ∂/∂x: i (Σ M a k_jx − k u_n Σ M a)
-                let wx = cdot(mr, mi, &bxr, &bxi);
-                let wy = cdot(mr, mi, &byr, &byi);
+                let [w, wx, wy] = cdot3(mr, mi, [(&ar, &ai), (&bxr, &bxi), (&byr, &byi)]);
                 let i = C64::new(0.0, 1.0);
+                val = (ph * w).re;
                 gx = (ph * i * (wx - w * (k * rh[0]))).re;
                 gy = (ph * i * (wy - w * (k * rh[1]))).re;
+            } else {
+                val = (ph * cdot(mr, mi, &ar, &ai)).re;
+                gx = 0.0;
+                gy = 0.0;
             }
             let (mut q, mut qx, mut qy) = (0.0, 0.0, 0.0);
             if let Some(v) = &self.v {
@@ -486,8 +650,8 @@ impl MieBeam {
                         let t = vrow[j][c] * a;
                         e[c] += t;
                         if grad {
-                            ex[c] += t * self.kin[j][0];
-                            ey[c] += t * self.kin[j][1];
+                            ex[c] += t * self.beam.kin[j][0];
+                            ey[c] += t * self.beam.kin[j][1];
                         }
                     }
                 }
@@ -528,6 +692,35 @@ fn cdot(mr: &[f64], mi: &[f64], ar: &[f64], ai: &[f64]) -> C64 {
     let mut out = C64::new(re[0] + re[1] + re[2] + re[3], im[0] + im[1] + im[2] + im[3]);
     for j in 4 * chunks..n {
         out += C64::new(mr[j] * ar[j] - mi[j] * ai[j], mr[j] * ai[j] + mi[j] * ar[j]);
+    }
+    out
+}
+
+/// Three complex dot products of one matrix row with three vectors in one pass over the row.
+#[inline]
+fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
+    let n = mr.len();
+    let mut re = [[0.0f64; 4]; 3];
+    let mut im = [[0.0f64; 4]; 3];
+    let chunks = n / 4;
+    for c in 0..chunks {
+        let b = 4 * c;
+        for l in 0..4 {
+            let (p, q) = (mr[b + l], mi[b + l]);
+            for t in 0..3 {
+                let (r, s) = (v[t].0[b + l], v[t].1[b + l]);
+                re[t][l] += p * r - q * s;
+                im[t][l] += p * s + q * r;
+            }
+        }
+    }
+    let mut out = [C64::new(0.0, 0.0); 3];
+    for t in 0..3 {
+        out[t] = C64::new(re[t].iter().sum(), im[t].iter().sum());
+        for j in 4 * chunks..n {
+            let (r, s) = (v[t].0[j], v[t].1[j]);
+            out[t] += C64::new(mr[j] * r - mi[j] * s, mr[j] * s + mi[j] * r);
+        }
     }
     out
 }
