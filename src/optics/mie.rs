@@ -550,11 +550,11 @@ pub fn mie_s1s2_terms(
             let mut s2 = C64::new(0.0, 0.0);
             let mut pi_nm1 = 0.0; // π_0
             let mut pi_n = 1.0; // π_1
-            for i in 0..n_terms {
+            for (i, ((an, bn), fi)) in c.a.iter().zip(&c.b).zip(&f).enumerate() {
                 let n = (i + 1) as f64;
                 let tau_n = n * mu * pi_n - (n + 1.0) * pi_nm1;
-                s1 += (c.a[i] * pi_n + c.b[i] * tau_n) * f[i];
-                s2 += (c.a[i] * tau_n + c.b[i] * pi_n) * f[i];
+                s1 += (an * pi_n + bn * tau_n) * fi;
+                s2 += (an * tau_n + bn * pi_n) * fi;
                 let pi_np1 = ((2.0 * n + 1.0) * mu * pi_n - (n + 1.0) * pi_nm1) / n;
                 pi_nm1 = pi_n;
                 pi_n = pi_np1;
