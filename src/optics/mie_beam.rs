@@ -776,7 +776,7 @@ mod tests {
     #[test]
     fn bh_bases_reproduce_the_dipole_projection() {
         let s = C64::new(0.3, -1.7);
-        let dirs = [
+        let dirs: [(f64, f64); 6] = [
             (0.3, 0.2),
             (1.0, -2.0),
             (0.01, 3.0),
