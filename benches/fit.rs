@@ -1,6 +1,7 @@
 //! Multi-bead template fit benchmarks (issue 4): a 3-bead fit on 64×64 pixels and an 11-bead fit
-//! on 128×128 (50 nm pixels, 170 nm beads, the paper's noise level derived from its 950 kDa mass
-//! resolution). Besides criterion's statistics, the bench writes the scenes, the template and
+//! on 128×128 (50 nm pixels, 170 nm polystyrene beads simulated with the Rayleigh model by
+//! `instrument::sim`, the paper's detector noise σ = 2e-5 per pixel, docs/physics.md §7), fitted
+//! with the model template of the 110 nm reference bead (`Template::from_optics`, 20 nm grid). Besides criterion's statistics, the bench writes the scenes, the template and
 //! the initial guesses as .npy files plus its own timings to `target/fit_bench/` so that
 //! `scripts/py/fit_compare.py` can run the same fits with scipy.optimize.least_squares and
 //! report the speed ratio and accuracies.
@@ -10,13 +11,18 @@
 
 use bfpscope::analysis::fit::{detect_beads, fit_beads, BeadInit, Channels, FitOptions, FitResult};
 use bfpscope::analysis::sensitivity::Stencil;
-use bfpscope::analysis::template::Template;
+use bfpscope::analysis::template::{RefBead, Template};
 use bfpscope::data::Scan;
+use bfpscope::instrument::sim::scene::{
+    Bead as SimBead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE,
+};
+use bfpscope::instrument::sim::{render_xy, Renderer};
+use bfpscope::optics::rayleigh::DetectorModel;
+use bfpscope::optics::template::TemplateSpec;
+use bfpscope::optics::Optics;
 use criterion::{criterion_group, criterion_main, Criterion};
 use ndarray::{Array1, Array2};
 use ndarray_npy::write_npy;
-use rand::SeedableRng;
-use rand_distr::{Distribution, Normal};
 use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -32,21 +38,16 @@ struct Case {
     sigma: f64,
 }
 
-/// The template used by the benchmark (the analytic stand-in until the physics templates land).
+/// The template used by the benchmark: the physics model of the 110 nm reference bead.
 fn template() -> Template {
-    Template::analytic_standin(0.4, 0.02, 1.6).unwrap()
-}
-
-fn paper_noise(tpl: &Template) -> f64 {
-    let sigma_c = 950.0 / tpl.reference.mass_kda();
-    let mut s = 0.0;
-    for j in -40..=40 {
-        for i in -40..=40 {
-            let t = tpl.eval(i as f64 * H, j as f64 * H);
-            s += t[0] * t[0] + t[1] * t[1];
-        }
-    }
-    sigma_c * s.sqrt()
+    Template::from_optics(
+        &Optics::default(),
+        &DetectorModel::default(),
+        RefBead::default(),
+        0.02,
+        0.0,
+    )
+    .unwrap()
 }
 
 fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> Case {
@@ -54,38 +55,97 @@ fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> 
     let w = (170.0f64 / 110.0).powi(3);
     let truth: Vec<(f64, f64, f64)> = pos.iter().map(|&(x, y)| (x, y, w)).collect();
     let ax: Vec<f64> = (0..n_px).map(|i| i as f64 * H).collect();
-    let mut scan = tpl.render_scan(&truth, &ax, &ax);
-    let sigma = paper_noise(&tpl);
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let nd = Normal::new(0.0, sigma).unwrap();
-    for img in [&mut scan.sx, &mut scan.sy] {
-        img.data.mapv_inplace(|v| v + nd.sample(&mut rng));
+    let mut scene = Scene::default();
+    for &(x, y) in pos {
+        scene
+            .add_bead(SimBead {
+                pos: [x, y, 0.0],
+                d_nm: 170.0,
+                n: 1.572,
+            })
+            .unwrap();
     }
-    let init = detect_beads(&scan.sx, &scan.sy, &tpl, Channels::Both, truth.len(), Stencil::SavitzkyGolay { half_width: 2 }).unwrap();
-    Case { name, tpl, scan, truth, init, sigma }
+    scene.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    scene.seed = seed;
+    let r = Renderer::new(&Optics::default(), &scene, TemplateSpec::default()).unwrap();
+    let scan = render_xy(&r, &ax, &ax, 0.0, 10_000);
+    let sigma = PAPER_DETECTOR_SIGMA_SAMPLE / 100.0;
+    let init = detect_beads(
+        &scan.sx,
+        &scan.sy,
+        &tpl,
+        Channels::Both,
+        truth.len(),
+        Stencil::SavitzkyGolay { half_width: 2 },
+    )
+    .unwrap();
+    Case {
+        name,
+        tpl,
+        scan,
+        truth,
+        init,
+        sigma,
+    }
 }
 
 fn cases() -> Vec<Case> {
     vec![
-        make_case("3beads_64", 64, &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)], 1),
+        make_case(
+            "3beads_64",
+            64,
+            &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)],
+            1,
+        ),
         make_case(
             "11beads_128",
             128,
-            &[(1.0, 1.2), (1.35, 1.3), (2.5, 1.0), (3.6, 1.8), (4.8, 1.1), (1.6, 3.3), (2.9, 3.0), (3.2, 3.4), (5.2, 3.6), (2.0, 5.0), (4.4, 5.2)],
+            &[
+                (1.0, 1.2),
+                (1.35, 1.3),
+                (2.5, 1.0),
+                (3.6, 1.8),
+                (4.8, 1.1),
+                (1.6, 3.3),
+                (2.9, 3.0),
+                (3.2, 3.4),
+                (5.2, 3.6),
+                (2.0, 5.0),
+                (4.4, 5.2),
+            ],
             2,
         ),
     ]
 }
 
 fn run(c: &Case) -> FitResult {
-    fit_beads(&c.scan.sx, &c.scan.sy, &c.tpl, &FitOptions { init: Some(c.init.clone()), ..Default::default() }).unwrap()
+    fit_beads(
+        &c.scan.sx,
+        &c.scan.sy,
+        &c.tpl,
+        &FitOptions {
+            init: Some(c.init.clone()),
+            ..Default::default()
+        },
+    )
+    .unwrap()
 }
 
 fn errors(c: &Case, r: &FitResult) -> (f64, f64) {
     let mut ep: f64 = 0.0;
     let mut ew: f64 = 0.0;
     for t in &c.truth {
-        let b = r.beads.iter().min_by(|a, b| (a.x - t.0).hypot(a.y - t.1).total_cmp(&(b.x - t.0).hypot(b.y - t.1))).unwrap();
+        let b = r
+            .beads
+            .iter()
+            .min_by(|a, b| {
+                (a.x - t.0)
+                    .hypot(a.y - t.1)
+                    .total_cmp(&(b.x - t.0).hypot(b.y - t.1))
+            })
+            .unwrap();
         ep = ep.max((b.x - t.0).hypot(b.y - t.1));
         ew = ew.max((b.weight / t.2 - 1.0).abs());
     }
@@ -108,18 +168,27 @@ fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
     let tv = Array1::from((0..g.nv).map(|j| g.v0 + j as f64 * g.h).collect::<Vec<_>>());
     write_npy(d.join("tpl_u.npy"), &tu).unwrap();
     write_npy(d.join("tpl_v.npy"), &tv).unwrap();
-    let init = Array2::from_shape_fn((c.init.len(), 3), |(i, k)| [c.init[i].weight, c.init[i].x, c.init[i].y][k]);
+    let init = Array2::from_shape_fn((c.init.len(), 3), |(i, k)| {
+        [c.init[i].weight, c.init[i].x, c.init[i].y][k]
+    });
     write_npy(d.join("init.npy"), &init).unwrap();
-    let truth = Array2::from_shape_fn((c.truth.len(), 3), |(i, k)| [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]);
+    let truth = Array2::from_shape_fn((c.truth.len(), 3), |(i, k)| {
+        [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]
+    });
     write_npy(d.join("truth.npy"), &truth).unwrap();
     let (ep, ew) = errors(c, r);
     let json = serde_json::json!({
         "name": c.name, "pixels": c.scan.sx.data.dim(), "beads": c.truth.len(), "sigma": c.sigma,
         "rust_ms": ms, "iterations": r.iterations, "evaluations": r.evaluations,
         "max_pos_err_nm": ep * 1e3, "max_weight_err_pct": ew * 100.0, "rss": r.rss, "status": format!("{:?}", r.status),
-        "template": "analytic stand-in u·exp(-r²/w²), w = 0.4 µm, 20 nm grid, Keys cubic",
+        "template": "Rayleigh model of the 110 nm PS reference bead (default optics), 20 nm grid, Keys cubic",
+        "norm_factor": c.tpl.norm_factor,
     });
-    std::fs::write(d.join("rust.json"), serde_json::to_string_pretty(&json).unwrap()).unwrap();
+    std::fs::write(
+        d.join("rust.json"),
+        serde_json::to_string_pretty(&json).unwrap(),
+    )
+    .unwrap();
 }
 
 fn bench(cr: &mut Criterion) {

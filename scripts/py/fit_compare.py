@@ -56,7 +56,9 @@ def fit_scipy(case):
     x, y = np.load(os.path.join(d, "x.npy")), np.load(os.path.join(d, "y.npy"))
     tm = TemplateModel(np.load(os.path.join(d, "tpl_u.npy")), np.load(os.path.join(d, "tpl_v.npy")),
                        np.load(os.path.join(d, "tpl_sx.npy")), np.load(os.path.join(d, "tpl_sy.npy")))
-    init = np.load(os.path.join(d, "init.npy"))  # rows: weight, x, y
+    init = np.load(os.path.join(d, "init.npy"))  # rows: weight (reference-bead units), x, y
+    rj = json.load(open(os.path.join(d, "rust.json")))
+    inv_f = 1.0 / rj.get("norm_factor", 1.0)  # template units → instrument units
     xx, yy = np.meshgrid(x, y)
     xx, yy = xx.ravel(), yy.ravel()
     data = np.concatenate([sx.ravel(), sy.ravel()])
@@ -66,8 +68,8 @@ def fit_scipy(case):
         my = np.zeros_like(xx)
         for c, bx, by in p.reshape(-1, 3):
             tx, ty = tm(xx - bx, yy - by)
-            mx += c * tx
-            my += c * ty
+            mx += c * inv_f * tx
+            my += c * inv_f * ty
         return np.concatenate([mx, my]) - data
 
     def jacobian(p):
@@ -75,9 +77,9 @@ def fit_scipy(case):
         j = np.empty((2 * xx.size, 3 * n))
         for i, (c, bx, by) in enumerate(p.reshape(-1, 3)):
             (tx, txu, txv), (ty, tyu, tyv) = tm(xx - bx, yy - by, deriv=True)
-            j[:, 3 * i] = np.concatenate([tx, ty])
-            j[:, 3 * i + 1] = -c * np.concatenate([txu, tyu])
-            j[:, 3 * i + 2] = -c * np.concatenate([txv, tyv])
+            j[:, 3 * i] = inv_f * np.concatenate([tx, ty])
+            j[:, 3 * i + 1] = -c * inv_f * np.concatenate([txu, tyu])
+            j[:, 3 * i + 2] = -c * inv_f * np.concatenate([txv, tyv])
         return j
 
     res = least_squares(residuals, init.ravel(), jac=jacobian, method="trf")

@@ -201,16 +201,26 @@ impl FitOptions {
         }
         if let Some(n) = self.n_beads {
             if n == 0 {
-                return Err(AnalysisError::OutOfRange { name: "n_beads", value: 0.0, allowed: "n_beads ≥ 1".into() });
+                return Err(AnalysisError::OutOfRange {
+                    name: "n_beads",
+                    value: 0.0,
+                    allowed: "n_beads ≥ 1".into(),
+                });
             }
         }
         if let Some(init) = &self.init {
             if init.is_empty() {
-                return Err(AnalysisError::BadInput { name: "init", reason: "empty list of initial beads".into() });
+                return Err(AnalysisError::BadInput {
+                    name: "init",
+                    reason: "empty list of initial beads".into(),
+                });
             }
             for (i, b) in init.iter().enumerate() {
                 if !(b.x.is_finite() && b.y.is_finite() && b.weight.is_finite()) {
-                    return Err(AnalysisError::BadInput { name: "init", reason: format!("bead {i} has non-finite values {b:?}") });
+                    return Err(AnalysisError::BadInput {
+                        name: "init",
+                        reason: format!("bead {i} has non-finite values {b:?}"),
+                    });
                 }
             }
         }
@@ -250,17 +260,32 @@ pub enum FitStatus {
 pub enum Degeneracy {
     /// Two beads closer than min_separation·w0 (positions of the pair, their weights, distance
     /// in µm); `merged` tells whether they were merged into one bead.
-    CloseBeads { a: [f64; 3], b: [f64; 3], distance_um: f64, merged: bool },
+    CloseBeads {
+        a: [f64; 3],
+        b: [f64; 3],
+        distance_um: f64,
+        merged: bool,
+    },
     /// A bead moved out of reach of the image (its template no longer overlaps valid pixels)
     /// and was dropped.
     BeadOutside { x: f64, y: f64, weight: f64 },
     /// Two beads closer than resolve_separation·w0 that the data do not resolve (the merged
     /// model's BIC is lower by `delta_bic`, or one weight is consistent with zero); they were
     /// merged.
-    Unresolved { a: [f64; 3], b: [f64; 3], distance_um: f64, delta_bic: f64 },
+    Unresolved {
+        a: [f64; 3],
+        b: [f64; 3],
+        distance_um: f64,
+        delta_bic: f64,
+    },
     /// A bead whose weight is consistent with zero (|C| < 2σ_C, or |C| < 1e-9): its position is
     /// meaningless. Kept in the result (it is part of the least-squares solution).
-    Insignificant { x: f64, y: f64, weight: f64, weight_err: Option<f64> },
+    Insignificant {
+        x: f64,
+        y: f64,
+        weight: f64,
+        weight_err: Option<f64>,
+    },
     /// Column-scaled JᵀJ has a condition number above `cond_limit`.
     IllConditioned { condition: f64 },
 }
@@ -334,7 +359,10 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             let d = detection_map(sx, sy, opts.channels, opts.detect_stencil)?;
             let found = clean(&d, tpl, opts.channels, n, 0.0);
             if found.is_empty() {
-                return Err(AnalysisError::Failed("no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum".into()));
+                return Err(AnalysisError::Failed(
+                    "no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum"
+                        .into(),
+                ));
             }
             found
         }
@@ -351,22 +379,54 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
     }
     let mut best = data.fit_with_degeneracy(init, opts)?;
     if grow {
-        let mut history = vec![GrowStep { n_beads: best.beads.len(), rss: best.rss, bic: best.bic, accepted: true }];
+        let mut history = vec![GrowStep {
+            n_beads: best.beads.len(),
+            rss: best.rss,
+            bic: best.bic,
+            accepted: true,
+        }];
         while best.beads.len() < opts.max_beads && data.check_count(best.beads.len() + 1).is_ok() {
-            let Ok(d) = detection_map(&best.residual_sx, &best.residual_sy, opts.channels, opts.detect_stencil) else { break };
-            let existing: Vec<BeadInit> = best.beads.iter().map(|b| BeadInit { x: b.x, y: b.y, weight: b.weight }).collect();
+            let Ok(d) = detection_map(
+                &best.residual_sx,
+                &best.residual_sy,
+                opts.channels,
+                opts.detect_stencil,
+            ) else {
+                break;
+            };
+            let existing: Vec<BeadInit> = best
+                .beads
+                .iter()
+                .map(|b| BeadInit {
+                    x: b.x,
+                    y: b.y,
+                    weight: b.weight,
+                })
+                .collect();
             let new = clean(&d, tpl, opts.channels, 1, 0.0);
-            let Some(nb) = new.first().copied() else { break };
+            let Some(nb) = new.first().copied() else {
+                break;
+            };
             let mut init = existing.clone();
             init.push(nb);
             let cand = data.fit_with_degeneracy(init, opts)?;
             let improves = cand.beads.len() > best.beads.len()
-                && !cand.degeneracies.iter().any(|d| matches!(d, Degeneracy::CloseBeads { .. } | Degeneracy::Insignificant { .. }))
+                && !cand.degeneracies.iter().any(|d| {
+                    matches!(
+                        d,
+                        Degeneracy::CloseBeads { .. } | Degeneracy::Insignificant { .. }
+                    )
+                })
                 && match opts.criterion {
                     GrowCriterion::Bic => cand.bic < best.bic,
                     GrowCriterion::RelDrop { min_drop } => cand.rss < (1.0 - min_drop) * best.rss,
                 };
-            history.push(GrowStep { n_beads: cand.beads.len(), rss: cand.rss, bic: cand.bic, accepted: improves });
+            history.push(GrowStep {
+                n_beads: cand.beads.len(),
+                rss: cand.rss,
+                bic: cand.bic,
+                accepted: improves,
+            });
             if !improves {
                 break;
             }
@@ -380,7 +440,14 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
 /// Automatic initial guesses (the same the fit uses when `init` is not given): `n` beads by CLEAN
 /// on the detection map ∂Sx/∂x + ∂Sy/∂y (or the one channel's sensitivity) with the given
 /// stencil. Fewer than `n` are returned when the map has no further positive maximum.
-pub fn detect_beads(sx: &Image, sy: &Image, tpl: &Template, channels: Channels, n: usize, stencil: Stencil) -> Result<Vec<BeadInit>> {
+pub fn detect_beads(
+    sx: &Image,
+    sy: &Image,
+    tpl: &Template,
+    channels: Channels,
+    n: usize,
+    stencil: Stencil,
+) -> Result<Vec<BeadInit>> {
     check_range("n", n as f64, 1.0, 10_000.0)?;
     let d = detection_map(sx, sy, channels, stencil)?;
     Ok(clean(&d, tpl, channels, n, 0.0))
@@ -444,7 +511,13 @@ fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64) {
 
 /// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
 /// not above `min_peak`.
-pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize, min_peak: f64) -> Vec<BeadInit> {
+pub(crate) fn clean(
+    d: &Image,
+    tpl: &Template,
+    ch: Channels,
+    n: usize,
+    min_peak: f64,
+) -> Vec<BeadInit> {
     let (pu, pv, d0) = template_dmap_peak(tpl, ch);
     if !(d0 > 0.0) {
         return vec![];
@@ -491,12 +564,24 @@ pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize, min_peak:
             }
         };
         let (rows, cols) = work.dim();
-        let fx = para((c > 0).then(|| work[[r, c - 1]]), v, (c + 1 < cols).then(|| work[[r, c + 1]]));
-        let fy = para((r > 0).then(|| work[[r - 1, c]]), v, (r + 1 < rows).then(|| work[[r + 1, c]]));
+        let fx = para(
+            (c > 0).then(|| work[[r, c - 1]]),
+            v,
+            (c + 1 < cols).then(|| work[[r, c + 1]]),
+        );
+        let fy = para(
+            (r > 0).then(|| work[[r - 1, c]]),
+            v,
+            (r + 1 < rows).then(|| work[[r + 1, c]]),
+        );
         let x = d.x[c] + fx * ax.h - pu;
         let y = d.y[r] + fy * ay.h - pv;
         // Instrument units → reference-bead units: the bead's D peak is C·d0/norm_factor.
-        let b = BeadInit { x, y, weight: v * tpl.norm_factor / d0 };
+        let b = BeadInit {
+            x,
+            y,
+            weight: v * tpl.norm_factor / d0,
+        };
         sub(&mut work, &b);
         out.push(b);
     }
@@ -524,10 +609,16 @@ struct FitData<'a> {
 impl<'a> FitData<'a> {
     fn new(sx: &Image, sy: &Image, tpl: &'a Template, opts: &FitOptions) -> Result<Self> {
         if sx.data.dim() != sy.data.dim() || sx.x != sy.x || sx.y != sy.y {
-            return Err(AnalysisError::BadInput { name: "sy", reason: "Sx and Sy images must have the same shape and axes".into() });
+            return Err(AnalysisError::BadInput {
+                name: "sy",
+                reason: "Sx and Sy images must have the same shape and axes".into(),
+            });
         }
         if sx.rows() == 0 || sx.cols() == 0 {
-            return Err(AnalysisError::BadInput { name: "sx", reason: "empty image".into() });
+            return Err(AnalysisError::BadInput {
+                name: "sx",
+                reason: "empty image".into(),
+            });
         }
         check_axis("sx.x", &sx.x, 1)?;
         check_axis("sx.y", &sx.y, 1)?;
@@ -540,16 +631,32 @@ impl<'a> FitData<'a> {
                 100.0 * opts.max_truncation
             )));
         }
-        let ch_data = [sx.data.iter().copied().collect::<Vec<_>>(), sy.data.iter().copied().collect::<Vec<_>>()];
+        let ch_data = [
+            sx.data.iter().copied().collect::<Vec<_>>(),
+            sy.data.iter().copied().collect::<Vec<_>>(),
+        ];
         let chans = opts.channels.list();
-        let m: usize = chans.iter().map(|&c| ch_data[c].iter().filter(|v| v.is_finite()).count()).sum();
+        let m: usize = chans
+            .iter()
+            .map(|&c| ch_data[c].iter().filter(|v| v.is_finite()).count())
+            .sum();
         if m == 0 {
-            return Err(AnalysisError::BadInput { name: "sx, sy", reason: "no finite pixel in the fitted channels".into() });
+            return Err(AnalysisError::BadInput {
+                name: "sx, sy",
+                reason: "no finite pixel in the fitted channels".into(),
+            });
         }
         let (ax, ay) = (AxisMap::new(&sx.x), AxisMap::new(&sy.y));
         let (px, py) = (ax.h.abs(), ay.h.abs());
-        let (px, py) = (if px > 0.0 { px } else { py }, if py > 0.0 { py } else { px });
-        let (px, py) = if px > 0.0 { (px, py) } else { (tpl.grid.h, tpl.grid.h) };
+        let (px, py) = (
+            if px > 0.0 { px } else { py },
+            if py > 0.0 { py } else { px },
+        );
+        let (px, py) = if px > 0.0 {
+            (px, py)
+        } else {
+            (tpl.grid.h, tpl.grid.h)
+        };
         let area = sx.cols() as f64 * px * sx.rows() as f64 * py;
         Ok(Self {
             tpl,
@@ -598,11 +705,18 @@ impl<'a> FitData<'a> {
     fn accumulate(&self, p: &[f64], want_normal: bool) -> (f64, DMatrix<f64>, DVector<f64>) {
         let nb = p.len() / 3;
         let np = p.len();
-        let mut jtj = DMatrix::<f64>::zeros(if want_normal { np } else { 0 }, if want_normal { np } else { 0 });
+        let mut jtj = DMatrix::<f64>::zeros(
+            if want_normal { np } else { 0 },
+            if want_normal { np } else { 0 },
+        );
         let mut jtr = DVector::<f64>::zeros(if want_normal { np } else { 0 });
         let ((u0, u1), (v0, v1)) = self.tpl.extent();
-        let cr: Vec<std::ops::Range<usize>> = (0..nb).map(|i| self.ax.range(p[3 * i + 1] + u0, p[3 * i + 1] + u1)).collect();
-        let rr: Vec<std::ops::Range<usize>> = (0..nb).map(|i| self.ay.range(p[3 * i + 2] + v0, p[3 * i + 2] + v1)).collect();
+        let cr: Vec<std::ops::Range<usize>> = (0..nb)
+            .map(|i| self.ax.range(p[3 * i + 1] + u0, p[3 * i + 1] + u1))
+            .collect();
+        let rr: Vec<std::ops::Range<usize>> = (0..nb)
+            .map(|i| self.ay.range(p[3 * i + 2] + v0, p[3 * i + 2] + v1))
+            .collect();
         let nx = self.nx();
         let mut rss = 0.0;
         let mut act: Vec<(usize, f64, crate::optics::grid::Sample)> = Vec::with_capacity(nb);
@@ -616,7 +730,10 @@ impl<'a> FitData<'a> {
             let yv = self.y[r];
             for c in 0..nx {
                 let k = r * nx + c;
-                let valid: [bool; 2] = [self.ch_data[0][k].is_finite(), self.ch_data[1][k].is_finite()];
+                let valid: [bool; 2] = [
+                    self.ch_data[0][k].is_finite(),
+                    self.ch_data[1][k].is_finite(),
+                ];
                 if !self.chans.iter().any(|&ch| valid[ch]) {
                     continue;
                 }
@@ -624,9 +741,13 @@ impl<'a> FitData<'a> {
                 for &i in &row_beads {
                     if cr[i].contains(&c) {
                         let s = if want_normal {
-                            self.tpl.eval_grad(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2])
+                            self.tpl
+                                .eval_grad(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2])
                         } else {
-                            crate::optics::grid::Sample { v: self.tpl.eval(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2]), ..Default::default() }
+                            crate::optics::grid::Sample {
+                                v: self.tpl.eval(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2]),
+                                ..Default::default()
+                            }
                         };
                         // Weights are in reference-bead units, the data in instrument units.
                         act.push((i, p[3 * i] * self.inv_f, s));
@@ -676,28 +797,64 @@ impl<'a> FitData<'a> {
 
     /// Model images of both channels for beads p.
     fn model(&self, p: &[f64]) -> [Array2<f64>; 3] {
-        let beads: Vec<(f64, f64, f64)> = p.chunks(3).map(|b| (b[1], b[2], b[0] * self.inv_f)).collect();
+        let beads: Vec<(f64, f64, f64)> = p
+            .chunks(3)
+            .map(|b| (b[1], b[2], b[0] * self.inv_f))
+            .collect();
         self.tpl.render(&beads, &self.x, &self.y)
     }
 
     /// One LM run from `init`.
     fn run_lm(&self, init: &[BeadInit], opts: &FitOptions) -> Result<RawFit> {
-        let x0 = DVector::from_iterator(init.len() * 3, init.iter().flat_map(|b| [b.weight, b.x, b.y]));
-        let prob = Reduced { data: self, x: x0, cache: RefCell::new(None), njac: Cell::new(0), nres: Cell::new(0) };
-        let lm = LevenbergMarquardt::new().with_ftol(opts.ftol).with_xtol(opts.xtol).with_gtol(opts.gtol).with_patience(opts.patience);
+        let x0 = DVector::from_iterator(
+            init.len() * 3,
+            init.iter().flat_map(|b| [b.weight, b.x, b.y]),
+        );
+        let prob = Reduced {
+            data: self,
+            x: x0,
+            cache: RefCell::new(None),
+            njac: Cell::new(0),
+            nres: Cell::new(0),
+        };
+        let lm = LevenbergMarquardt::new()
+            .with_ftol(opts.ftol)
+            .with_xtol(opts.xtol)
+            .with_gtol(opts.gtol)
+            .with_patience(opts.patience);
         let (prob, report) = lm.minimize(prob);
         let (status, reason) = match &report.termination {
-            TerminationReason::Converged { ftol, xtol } => (FitStatus::Converged, format!("converged (ftol: {ftol}, xtol: {xtol})")),
-            TerminationReason::Orthogonal => (FitStatus::Converged, "converged (gradient orthogonal to residuals, gtol)".into()),
+            TerminationReason::Converged { ftol, xtol } => (
+                FitStatus::Converged,
+                format!("converged (ftol: {ftol}, xtol: {xtol})"),
+            ),
+            TerminationReason::Orthogonal => (
+                FitStatus::Converged,
+                "converged (gradient orthogonal to residuals, gtol)".into(),
+            ),
             TerminationReason::ResidualsZero => (FitStatus::Converged, "residuals are zero".into()),
-            TerminationReason::LostPatience => (FitStatus::MaxEvaluations, format!("evaluation budget exhausted ({} evaluations)", report.number_of_evaluations)),
+            TerminationReason::LostPatience => (
+                FitStatus::MaxEvaluations,
+                format!(
+                    "evaluation budget exhausted ({} evaluations)",
+                    report.number_of_evaluations
+                ),
+            ),
             other => (FitStatus::Failed, format!("{other:?}")),
         };
         let p: Vec<f64> = prob.x.iter().copied().collect();
         if p.iter().any(|v| !v.is_finite()) {
-            return Err(AnalysisError::Failed(format!("the optimiser returned non-finite parameters ({reason})")));
+            return Err(AnalysisError::Failed(format!(
+                "the optimiser returned non-finite parameters ({reason})"
+            )));
         }
-        Ok(RawFit { p, status, reason, iterations: prob.njac.get(), evaluations: prob.nres.get().max(report.number_of_evaluations) })
+        Ok(RawFit {
+            p,
+            status,
+            reason,
+            iterations: prob.njac.get(),
+            evaluations: prob.nres.get().max(report.number_of_evaluations),
+        })
     }
 
     /// LM fit with all degeneracy checks (see the module docs).
@@ -718,13 +875,40 @@ impl<'a> FitData<'a> {
             pairs.sort_by(|a, b| a.2.total_cmp(&b.2));
             for (i, j, d) in pairs {
                 let (a, c) = (b[i], b[j]);
-                let mut init: Vec<BeadInit> = b.iter().enumerate().filter(|(k, _)| *k != i && *k != j).map(|(_, x)| BeadInit { x: x.x, y: x.y, weight: x.weight }).collect();
-                init.push(merge_pair(BeadInit { x: a.x, y: a.y, weight: a.weight }, BeadInit { x: c.x, y: c.y, weight: c.weight }));
+                let mut init: Vec<BeadInit> = b
+                    .iter()
+                    .enumerate()
+                    .filter(|(k, _)| *k != i && *k != j)
+                    .map(|(_, x)| BeadInit {
+                        x: x.x,
+                        y: x.y,
+                        weight: x.weight,
+                    })
+                    .collect();
+                init.push(merge_pair(
+                    BeadInit {
+                        x: a.x,
+                        y: a.y,
+                        weight: a.weight,
+                    },
+                    BeadInit {
+                        x: c.x,
+                        y: c.y,
+                        weight: c.weight,
+                    },
+                ));
                 let mut deg = res.degeneracies.clone();
                 let alt0 = self.fit_merge_close(init, opts, Vec::new())?;
-                let insignificant = |x: &Bead| x.weight.abs() < 1e-9 || x.weight_err.is_some_and(|e| x.weight.abs() < 2.0 * e);
+                let insignificant = |x: &Bead| {
+                    x.weight.abs() < 1e-9 || x.weight_err.is_some_and(|e| x.weight.abs() < 2.0 * e)
+                };
                 if alt0.bic <= res.bic || insignificant(&a) || insignificant(&c) {
-                    deg.push(Degeneracy::Unresolved { a: [a.x, a.y, a.weight], b: [c.x, c.y, c.weight], distance_um: d, delta_bic: res.bic - alt0.bic });
+                    deg.push(Degeneracy::Unresolved {
+                        a: [a.x, a.y, a.weight],
+                        b: [c.x, c.y, c.weight],
+                        distance_um: d,
+                        delta_bic: res.bic - alt0.bic,
+                    });
                     deg.extend(alt0.degeneracies.iter().cloned());
                     let total = res.total_evaluations + alt0.total_evaluations;
                     res = alt0;
@@ -739,8 +923,15 @@ impl<'a> FitData<'a> {
         let extra: Vec<Degeneracy> = res
             .beads
             .iter()
-            .filter(|b| b.weight.abs() < 1e-9 || b.weight_err.is_some_and(|e| b.weight.abs() < 2.0 * e))
-            .map(|b| Degeneracy::Insignificant { x: b.x, y: b.y, weight: b.weight, weight_err: b.weight_err })
+            .filter(|b| {
+                b.weight.abs() < 1e-9 || b.weight_err.is_some_and(|e| b.weight.abs() < 2.0 * e)
+            })
+            .map(|b| Degeneracy::Insignificant {
+                x: b.x,
+                y: b.y,
+                weight: b.weight,
+                weight_err: b.weight_err,
+            })
             .collect();
         res.degeneracies.extend(extra);
         Ok(res)
@@ -748,19 +939,37 @@ impl<'a> FitData<'a> {
 
     /// LM fit with merging of pairs closer than min_separation·w0 and dropping of beads out of
     /// reach, then the statistics.
-    fn fit_merge_close(&self, init: Vec<BeadInit>, opts: &FitOptions, mut degeneracies: Vec<Degeneracy>) -> Result<FitResult> {
+    fn fit_merge_close(
+        &self,
+        init: Vec<BeadInit>,
+        opts: &FitOptions,
+        mut degeneracies: Vec<Degeneracy>,
+    ) -> Result<FitResult> {
         let mut beads = init;
         let mut total_eval = 0;
         let mut raw;
         loop {
             raw = self.run_lm(&beads, opts)?;
             total_eval += raw.evaluations;
-            let cur: Vec<BeadInit> = raw.p.chunks(3).map(|b| BeadInit { weight: b[0], x: b[1], y: b[2] }).collect();
+            let cur: Vec<BeadInit> = raw
+                .p
+                .chunks(3)
+                .map(|b| BeadInit {
+                    weight: b[0],
+                    x: b[1],
+                    y: b[2],
+                })
+                .collect();
             // Beads out of reach.
-            let (keep, gone): (Vec<BeadInit>, Vec<BeadInit>) = cur.iter().partition(|b| self.reaches(b.x, b.y));
+            let (keep, gone): (Vec<BeadInit>, Vec<BeadInit>) =
+                cur.iter().partition(|b| self.reaches(b.x, b.y));
             if !gone.is_empty() && !keep.is_empty() {
                 for b in &gone {
-                    degeneracies.push(Degeneracy::BeadOutside { x: b.x, y: b.y, weight: b.weight });
+                    degeneracies.push(Degeneracy::BeadOutside {
+                        x: b.x,
+                        y: b.y,
+                        weight: b.weight,
+                    });
                 }
                 beads = keep;
                 continue;
@@ -785,7 +994,12 @@ impl<'a> FitData<'a> {
                 });
                 if opts.merge_degenerate {
                     let merged = merge_pair(a, b);
-                    let mut next: Vec<BeadInit> = cur.iter().enumerate().filter(|(k, _)| *k != i && *k != j).map(|(_, b)| *b).collect();
+                    let mut next: Vec<BeadInit> = cur
+                        .iter()
+                        .enumerate()
+                        .filter(|(k, _)| *k != i && *k != j)
+                        .map(|(_, b)| *b)
+                        .collect();
                     next.push(merged);
                     beads = next;
                     continue;
@@ -803,7 +1017,11 @@ impl<'a> FitData<'a> {
             Some(s) => (s, false),
             None => ((rss / dof.max(1) as f64).sqrt(), true),
         };
-        let chi2 = if sigma > 0.0 { rss / (sigma * sigma) } else { 0.0 };
+        let chi2 = if sigma > 0.0 {
+            rss / (sigma * sigma)
+        } else {
+            0.0
+        };
         let mf = self.m as f64;
         let bic = match opts.sigma {
             Some(_) => chi2 + np as f64 * mf.ln(),
@@ -814,11 +1032,27 @@ impl<'a> FitData<'a> {
         if ill {
             degeneracies.push(Degeneracy::IllConditioned { condition });
         }
-        let cov = if ill { None } else { jtj.clone().cholesky().map(|c| c.inverse() * (sigma * sigma)) };
+        let cov = if ill {
+            None
+        } else {
+            jtj.clone()
+                .cholesky()
+                .map(|c| c.inverse() * (sigma * sigma))
+        };
         let beads_out: Vec<Bead> = (0..nb)
             .map(|i| {
-                let e = |k: usize| cov.as_ref().map(|c| c[(3 * i + k, 3 * i + k)].max(0.0).sqrt());
-                Bead { weight: p[3 * i], x: p[3 * i + 1], y: p[3 * i + 2], weight_err: e(0), x_err: e(1), y_err: e(2) }
+                let e = |k: usize| {
+                    cov.as_ref()
+                        .map(|c| c[(3 * i + k, 3 * i + k)].max(0.0).sqrt())
+                };
+                Bead {
+                    weight: p[3 * i],
+                    x: p[3 * i + 1],
+                    y: p[3 * i + 2],
+                    weight_err: e(0),
+                    x_err: e(1),
+                    y_err: e(2),
+                }
             })
             .collect();
         let [msx, msy, _] = self.model(p);
@@ -856,9 +1090,17 @@ fn merge_pair(a: BeadInit, b: BeadInit) -> BeadInit {
     let (wa, wb) = (a.weight.abs(), b.weight.abs());
     let s = wa + wb;
     if s > 0.0 {
-        BeadInit { x: (wa * a.x + wb * b.x) / s, y: (wa * a.y + wb * b.y) / s, weight: a.weight + b.weight }
+        BeadInit {
+            x: (wa * a.x + wb * b.x) / s,
+            y: (wa * a.y + wb * b.y) / s,
+            weight: a.weight + b.weight,
+        }
     } else {
-        BeadInit { x: 0.5 * (a.x + b.x), y: 0.5 * (a.y + b.y), weight: 0.0 }
+        BeadInit {
+            x: 0.5 * (a.x + b.x),
+            y: 0.5 * (a.y + b.y),
+            weight: 0.0,
+        }
     }
 }
 
@@ -882,7 +1124,11 @@ fn scaled_condition(a: &DMatrix<f64>) -> f64 {
     }
     let s = DMatrix::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
     let ev = s.symmetric_eigenvalues();
-    let (lo, hi) = ev.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
+    let (lo, hi) = ev
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
     if !(lo > 0.0) || !hi.is_finite() {
         1e300
     } else {
@@ -917,7 +1163,9 @@ impl Reduced<'_, '_> {
         let (rmat, rt) = match jtj.clone().cholesky() {
             Some(ch) => {
                 let l = ch.l();
-                let rt = l.solve_lower_triangular(&jtr).filter(|v| v.iter().all(|x| x.is_finite()));
+                let rt = l
+                    .solve_lower_triangular(&jtr)
+                    .filter(|v| v.iter().all(|x| x.is_finite()));
                 match rt {
                     Some(rt) => (l.transpose(), rt),
                     None => sym_sqrt(&jtj, &jtr),
@@ -981,8 +1229,18 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Reduced<'_, '_> {
 /// Full residual vector and Jacobian (one row per valid pixel and channel) — the uncompressed
 /// problem, for tests and for users who want J itself. Rows ordered channel-major, then pixel
 /// row-major.
-pub fn full_jacobian(sx: &Image, sy: &Image, tpl: &Template, beads: &[BeadInit], channels: Channels) -> Result<(DVector<f64>, DMatrix<f64>)> {
-    let opts = FitOptions { channels, max_truncation: 1.0, ..Default::default() };
+pub fn full_jacobian(
+    sx: &Image,
+    sy: &Image,
+    tpl: &Template,
+    beads: &[BeadInit],
+    channels: Channels,
+) -> Result<(DVector<f64>, DMatrix<f64>)> {
+    let opts = FitOptions {
+        channels,
+        max_truncation: 1.0,
+        ..Default::default()
+    };
     let d = FitData::new(sx, sy, tpl, &opts)?;
     let np = beads.len() * 3;
     let mut r = Vec::new();
@@ -1010,7 +1268,10 @@ pub fn full_jacobian(sx: &Image, sy: &Image, tpl: &Template, beads: &[BeadInit],
         }
     }
     let m = r.len();
-    Ok((DVector::from_vec(r), DMatrix::from_fn(m, np, |i, j| rows[i][j])))
+    Ok((
+        DVector::from_vec(r),
+        DMatrix::from_fn(m, np, |i, j| rows[i][j]),
+    ))
 }
 
 #[cfg(test)]
@@ -1026,7 +1287,18 @@ mod tests {
         let mut sx = Image::new(sx, x.clone(), x.clone());
         sx.data[[3, 4]] = f64::NAN;
         let sy = Image::new(sy, x.clone(), x.clone());
-        let guess = [BeadInit { x: 0.82, y: 0.88, weight: 1.1 }, BeadInit { x: 1.18, y: 1.13, weight: 1.8 }];
+        let guess = [
+            BeadInit {
+                x: 0.82,
+                y: 0.88,
+                weight: 1.1,
+            },
+            BeadInit {
+                x: 1.18,
+                y: 1.13,
+                weight: 1.8,
+            },
+        ];
         let (r, j) = full_jacobian(&sx, &sy, &tpl, &guess, Channels::Both).unwrap();
         let d = FitData::new(&sx, &sy, &tpl, &FitOptions::default()).unwrap();
         let p: Vec<f64> = guess.iter().flat_map(|b| [b.weight, b.x, b.y]).collect();

@@ -46,7 +46,10 @@ pub mod template;
 
 pub use background::{remove_point_background, BackgroundOptions, BackgroundResult, FilamentAxis};
 pub use bead_model::{BeadModelOptions, Filament};
-pub use fit::{detect_beads, fit_beads, Bead, BeadInit, Channels, Degeneracy, FitOptions, FitResult, FitStatus, GrowCriterion};
+pub use fit::{
+    detect_beads, fit_beads, Bead, BeadInit, Channels, Degeneracy, FitOptions, FitResult,
+    FitStatus, GrowCriterion,
+};
 pub use orientation::{AngleCurve, AngleCurveOptions, FilamentMeasurement, MeasureOptions};
 pub use peaks::{LinePeak, Peak, PeakMiss, PeakOptions};
 pub use quantities::n_corr;
@@ -58,7 +61,11 @@ pub use template::{RefBead, Template, TemplateSource};
 pub enum AnalysisError {
     /// A numeric argument outside its allowed range (or not finite).
     #[error("{name} = {value} is out of range: {allowed}")]
-    OutOfRange { name: &'static str, value: f64, allowed: String },
+    OutOfRange {
+        name: &'static str,
+        value: f64,
+        allowed: String,
+    },
     /// An argument that is unusable for a stated reason (shape, size, content).
     #[error("{name}: {reason}")]
     BadInput { name: &'static str, reason: String },
@@ -76,8 +83,19 @@ pub enum AnalysisError {
 impl From<crate::optics::OpticsError> for AnalysisError {
     fn from(e: crate::optics::OpticsError) -> Self {
         match e {
-            crate::optics::OpticsError::OutOfRange { name, value, allowed } => AnalysisError::OutOfRange { name, value, allowed },
-            crate::optics::OpticsError::Invalid(s) => AnalysisError::BadInput { name: "optics", reason: s },
+            crate::optics::OpticsError::OutOfRange {
+                name,
+                value,
+                allowed,
+            } => AnalysisError::OutOfRange {
+                name,
+                value,
+                allowed,
+            },
+            crate::optics::OpticsError::Invalid(s) => AnalysisError::BadInput {
+                name: "optics",
+                reason: s,
+            },
         }
     }
 }
@@ -90,7 +108,11 @@ pub(crate) fn check_range(name: &'static str, value: f64, lo: f64, hi: f64) -> R
     if value.is_finite() && value >= lo && value <= hi {
         Ok(value)
     } else {
-        Err(AnalysisError::OutOfRange { name, value, allowed: format!("{lo} ≤ {name} ≤ {hi}") })
+        Err(AnalysisError::OutOfRange {
+            name,
+            value,
+            allowed: format!("{lo} ≤ {name} ≤ {hi}"),
+        })
     }
 }
 
@@ -99,7 +121,11 @@ pub(crate) fn check_above(name: &'static str, value: f64, lo: f64) -> Result<f64
     if value.is_finite() && value > lo {
         Ok(value)
     } else {
-        Err(AnalysisError::OutOfRange { name, value, allowed: format!("{name} > {lo} (finite)") })
+        Err(AnalysisError::OutOfRange {
+            name,
+            value,
+            allowed: format!("{name} > {lo} (finite)"),
+        })
     }
 }
 
@@ -113,14 +139,20 @@ pub(crate) fn check_axis(name: &'static str, a: &[f64], min_len: usize) -> Resul
         });
     }
     if a.iter().any(|v| !v.is_finite()) {
-        return Err(AnalysisError::BadInput { name, reason: "axis contains non-finite values".into() });
+        return Err(AnalysisError::BadInput {
+            name,
+            reason: "axis contains non-finite values".into(),
+        });
     }
     if a.len() < 2 {
         return Ok(0.0);
     }
     let h = crate::data::image::axis_step(a);
     if h == 0.0 {
-        return Err(AnalysisError::BadInput { name, reason: "axis is not strictly monotonic".into() });
+        return Err(AnalysisError::BadInput {
+            name,
+            reason: "axis is not strictly monotonic".into(),
+        });
     }
     for w in a.windows(2) {
         let d = w[1] - w[0];
@@ -144,7 +176,11 @@ pub(crate) struct AxisMap {
 
 impl AxisMap {
     pub fn new(a: &[f64]) -> Self {
-        Self { x0: a.first().copied().unwrap_or(0.0), h: crate::data::image::axis_step(a), n: a.len() }
+        Self {
+            x0: a.first().copied().unwrap_or(0.0),
+            h: crate::data::image::axis_step(a),
+            n: a.len(),
+        }
     }
     /// Index range of samples whose coordinate lies in `[lo, hi]`.
     pub fn range(&self, lo: f64, hi: f64) -> std::ops::Range<usize> {
@@ -152,7 +188,11 @@ impl AxisMap {
             return 0..0;
         }
         if self.h == 0.0 {
-            return if self.x0 >= lo && self.x0 <= hi { 0..1 } else { 0..0 };
+            return if self.x0 >= lo && self.x0 <= hi {
+                0..1
+            } else {
+                0..0
+            };
         }
         let (a, b) = ((lo - self.x0) / self.h, (hi - self.x0) / self.h);
         let (a, b) = if a <= b { (a, b) } else { (b, a) };
@@ -172,11 +212,19 @@ mod tests {
 
     #[test]
     fn axis_map_ranges_both_directions() {
-        let up = AxisMap { x0: 0.0, h: 0.1, n: 11 };
+        let up = AxisMap {
+            x0: 0.0,
+            h: 0.1,
+            n: 11,
+        };
         assert_eq!(up.range(0.25, 0.55), 3..6);
         assert_eq!(up.range(-1.0, 0.0), 0..1);
         assert_eq!(up.range(1.01, 2.0), 0..0);
-        let down = AxisMap { x0: 1.0, h: -0.1, n: 11 };
+        let down = AxisMap {
+            x0: 1.0,
+            h: -0.1,
+            n: 11,
+        };
         assert_eq!(down.range(0.25, 0.55), 5..8);
         assert!(check_axis("x", &[0.0, 0.1, 0.3], 2).is_err());
         assert!(check_axis("x", &[0.0], 2).is_err());

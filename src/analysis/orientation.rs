@@ -54,7 +54,13 @@ pub struct MeasureOptions {
 
 impl Default for MeasureOptions {
     fn default() -> Self {
-        Self { stencil: Stencil::Central2, window_um: 0.4, min_snr: 0.0, max_offset_um: 0.15, detect_snr: 4.0 }
+        Self {
+            stencil: Stencil::Central2,
+            window_um: 0.4,
+            min_snr: 0.0,
+            max_offset_um: 0.15,
+            detect_snr: 4.0,
+        }
     }
 }
 
@@ -67,7 +73,11 @@ impl MeasureOptions {
         Ok(())
     }
     pub(crate) fn peak_options(&self) -> PeakOptions {
-        PeakOptions { window_um: self.window_um, min_snr: self.min_snr, ..Default::default() }
+        PeakOptions {
+            window_um: self.window_um,
+            min_snr: self.min_snr,
+            ..Default::default()
+        }
     }
 }
 
@@ -88,7 +98,14 @@ pub struct AngleCurveOptions {
 
 impl Default for AngleCurveOptions {
     fn default() -> Self {
-        Self { n_angles: 19, pixel_um: 0.05, d_nm: None, n: None, bead_model: BeadModelOptions::default(), measure: MeasureOptions::default() }
+        Self {
+            n_angles: 19,
+            pixel_um: 0.05,
+            d_nm: None,
+            n: None,
+            bead_model: BeadModelOptions::default(),
+            measure: MeasureOptions::default(),
+        }
     }
 }
 
@@ -127,19 +144,44 @@ impl AngleCurve {
         let mut sy = Vec::with_capacity(k);
         for i in 0..k {
             let a = -90.0 + i as f64 * step;
-            let (x, y) = straight_filament_max_sens(tpl, d, n, a, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+            let (x, y) = straight_filament_max_sens(
+                tpl,
+                d,
+                n,
+                a,
+                opts.pixel_um,
+                &opts.measure,
+                &opts.bead_model,
+            )?;
             angles.push(a);
             sx.push(x);
             sy.push(y);
         }
         // The node at +90° is the same orientation as −90°: average them.
-        let (x90, y90) = straight_filament_max_sens(tpl, d, n, 90.0, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+        let (x90, y90) = straight_filament_max_sens(
+            tpl,
+            d,
+            n,
+            90.0,
+            opts.pixel_um,
+            &opts.measure,
+            &opts.bead_model,
+        )?;
         sx[0] = 0.5 * (sx[0] + x90);
         sy[0] = 0.5 * (sy[0] + y90);
-        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, norm_factor: tpl.norm_factor, options: *opts };
+        let mut c = AngleCurve {
+            angles_deg: angles,
+            sx: sx.clone(),
+            sy: sy.clone(),
+            sx0: 1.0,
+            norm_factor: tpl.norm_factor,
+            options: *opts,
+        };
         let s0 = c.eval_raw(0.0).0;
         if !(s0 > 0.0) {
-            return Err(AnalysisError::Failed(format!("bead-model S_x maximum at 0° is {s0}: the template gives no filament signal")));
+            return Err(AnalysisError::Failed(format!(
+                "bead-model S_x maximum at 0° is {s0}: the template gives no filament signal"
+            )));
         }
         c.sx = sx.iter().map(|v| v / s0).collect();
         c.sy = sy.iter().map(|v| v / s0).collect();
@@ -191,7 +233,12 @@ impl AngleCurve {
 fn keys(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
-    [0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)]
+    [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ]
 }
 
 /// Which maxima a filament measurement uses.
@@ -261,20 +308,41 @@ fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<(usize, f6
     let mut diffs = Vec::with_capacity(sens.data.len());
     if rows {
         for r in sens.data.rows() {
-            diffs.extend(r.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+            diffs.extend(
+                r.windows(2)
+                    .into_iter()
+                    .map(|w| w[1] - w[0])
+                    .filter(|d| d.is_finite()),
+            );
         }
     } else {
         for c in sens.data.columns() {
-            diffs.extend(c.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+            diffs.extend(
+                c.windows(2)
+                    .into_iter()
+                    .map(|w| w[1] - w[0])
+                    .filter(|d| d.is_finite()),
+            );
         }
     }
     let noise = robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2;
     let thr = (opts.detect_snr * noise).max(0.0);
-    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
-    let po = PeakOptions { window_um: opts.window_um, ..Default::default() };
+    let (nl, t): (usize, &[f64]) = if rows {
+        (sens.rows(), &sens.x)
+    } else {
+        (sens.cols(), &sens.y)
+    };
+    let po = PeakOptions {
+        window_um: opts.window_um,
+        ..Default::default()
+    };
     let mut out = Vec::new();
     for l in 0..nl {
-        let v: Vec<f64> = if rows { sens.data.row(l).to_vec() } else { sens.data.column(l).to_vec() };
+        let v: Vec<f64> = if rows {
+            sens.data.row(l).to_vec()
+        } else {
+            sens.data.column(l).to_vec()
+        };
         let coord = if rows { sens.y[l] } else { sens.x[l] };
         let mut loc: Vec<(usize, f64)> = (1..v.len().saturating_sub(1))
             .filter(|&i| v[i].is_finite() && v[i] > thr && v[i] > v[i - 1] && v[i] >= v[i + 1])
@@ -285,7 +353,9 @@ fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<(usize, f6
         for (i, _) in loc {
             // Parabola on the neighbourhood of this local maximum only.
             let (lo, hi) = (t[i] - opts.window_um, t[i] + opts.window_um);
-            let idx: Vec<usize> = (0..v.len()).filter(|&k| t[k] >= lo.min(hi) && t[k] <= hi.max(lo)).collect();
+            let idx: Vec<usize> = (0..v.len())
+                .filter(|&k| t[k] >= lo.min(hi) && t[k] <= hi.max(lo))
+                .collect();
             let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
             let vv: Vec<f64> = idx.iter().map(|&k| v[k]).collect();
             if let Ok(p) = peak_1d(&tt, &vv, &po) {
@@ -306,7 +376,8 @@ fn dist(a: f64, b: f64, coord: f64, pos: f64) -> f64 {
 
 /// For each line, the candidate closest to the line (if within `tol`).
 fn inliers(c: &[(usize, f64, f64, f64)], a: f64, b: f64, tol: f64) -> Vec<(usize, f64, f64, f64)> {
-    let mut best: std::collections::BTreeMap<usize, (f64, (usize, f64, f64, f64))> = std::collections::BTreeMap::new();
+    let mut best: std::collections::BTreeMap<usize, (f64, (usize, f64, f64, f64))> =
+        std::collections::BTreeMap::new();
     for &p in c {
         let d = dist(a, b, p.1, p.2);
         if d <= tol && best.get(&p.0).is_none_or(|q| d < q.0) {
@@ -323,7 +394,9 @@ fn ransac_line(c: &[(usize, f64, f64, f64)], rows: bool, tol: f64) -> Option<Lin
     }
     let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
     let mut next = || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (state >> 33) as usize
     };
     let mut best: Option<(usize, f64, f64)> = None;
@@ -366,13 +439,24 @@ fn ransac_line(c: &[(usize, f64, f64, f64)], rows: bool, tol: f64) -> Option<Lin
         }
         a
     };
-    Some(LineFit { angle_deg: angle, angle_err_deg: err, a: f.intercept, b: f.slope, n: pts.len() })
+    Some(LineFit {
+        angle_deg: angle,
+        angle_err_deg: err,
+        a: f.intercept,
+        b: f.slope,
+        n: pts.len(),
+    })
 }
 
 /// Steps 4–5 of Sec. 4.2 on one scan (see the module docs). `sx`, `sy`: the raw channels of an
 /// XY scan. Errors: no straight filament found in either channel (fewer than 3 aligned maxima),
 /// a curve computed at a pixel size differing by more than 5 % from the scan's, bad options.
-pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+pub fn measure_filament(
+    sx: &Image,
+    sy: &Image,
+    curve: &AngleCurve,
+    opts: &MeasureOptions,
+) -> Result<FilamentMeasurement> {
     opts.validate()?;
     check_pixel(sx, curve)?;
     let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
@@ -395,7 +479,11 @@ pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &Measu
             _ => frac_r >= frac_c,
         },
     };
-    let (line, other, channel) = if use_rows { (lr.unwrap(), lc, Channel::SxRows) } else { (lc.unwrap(), lr, Channel::SyCols) };
+    let (line, other, channel) = if use_rows {
+        (lr.unwrap(), lc, Channel::SxRows)
+    } else {
+        (lc.unwrap(), lr, Channel::SyCols)
+    };
     let sens = if use_rows { sxs } else { sys };
     let mut m = measure_sens_along(sens, curve, channel, line, opts)?;
     m.other_line = other;
@@ -416,7 +504,14 @@ fn check_pixel(sx: &Image, curve: &AngleCurve) -> Result<()> {
 /// Maxima along a given filament line (rows for `Channel::SxRows`: x = a + b·y; columns:
 /// y = a + b·x), read within ±`window_um` of the line in each row (column) — e.g. the same
 /// filament before and after background removal. Errors: fewer than 3 maxima on the line.
-pub fn measure_filament_along(sx: &Image, sy: &Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+pub fn measure_filament_along(
+    sx: &Image,
+    sy: &Image,
+    curve: &AngleCurve,
+    channel: Channel,
+    line: LineFit,
+    opts: &MeasureOptions,
+) -> Result<FilamentMeasurement> {
     opts.validate()?;
     check_pixel(sx, curve)?;
     let sens = match channel {
@@ -426,7 +521,13 @@ pub fn measure_filament_along(sx: &Image, sy: &Image, curve: &AngleCurve, channe
     measure_sens_along(sens, curve, channel, line, opts)
 }
 
-fn measure_sens_along(mut sens: Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+fn measure_sens_along(
+    mut sens: Image,
+    curve: &AngleCurve,
+    channel: Channel,
+    line: LineFit,
+    opts: &MeasureOptions,
+) -> Result<FilamentMeasurement> {
     // Instrument units → reference-bead units.
     sens.data.mapv_inplace(|v| v * curve.norm_factor);
     let rows = channel == Channel::SxRows;
@@ -435,26 +536,54 @@ fn measure_sens_along(mut sens: Image, curve: &AngleCurve, channel: Channel, lin
     let th = angle.to_radians();
     let dir = (th.sin(), th.cos());
     let po = opts.peak_options();
-    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
+    let (nl, t): (usize, &[f64]) = if rows {
+        (sens.rows(), &sens.x)
+    } else {
+        (sens.cols(), &sens.y)
+    };
     let mut points = Vec::new();
     for l in 0..nl {
         let coord = if rows { sens.y[l] } else { sens.x[l] };
         let pred = line.a + line.b * coord;
-        let idx: Vec<usize> = (0..t.len()).filter(|&k| (t[k] - pred).abs() <= opts.window_um).collect();
+        let idx: Vec<usize> = (0..t.len())
+            .filter(|&k| (t[k] - pred).abs() <= opts.window_um)
+            .collect();
         if idx.len() < 3 {
             continue;
         }
         let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
-        let vv: Vec<f64> = idx.iter().map(|&k| if rows { sens.data[[l, k]] } else { sens.data[[k, l]] }).collect();
-        let Ok(p) = peak_1d(&tt, &vv, &po) else { continue };
+        let vv: Vec<f64> = idx
+            .iter()
+            .map(|&k| {
+                if rows {
+                    sens.data[[l, k]]
+                } else {
+                    sens.data[[k, l]]
+                }
+            })
+            .collect();
+        let Ok(p) = peak_1d(&tt, &vv, &po) else {
+            continue;
+        };
         if dist(line.a, line.b, coord, p.pos) > opts.max_offset_um {
             continue;
         }
         let (x, y) = if rows { (p.pos, coord) } else { (coord, p.pos) };
-        points.push(FilamentPoint { line: l, x, y, arc_um: x * dir.0 + y * dir.1, sens: p.value, sens_err: p.value_err, sens_corr: p.value * factor });
+        points.push(FilamentPoint {
+            line: l,
+            x,
+            y,
+            arc_um: x * dir.0 + y * dir.1,
+            sens: p.value,
+            sens_err: p.value_err,
+            sens_corr: p.value * factor,
+        });
     }
     if points.len() < 3 {
-        return Err(AnalysisError::Failed(format!("only {} maxima lie on the filament line", points.len())));
+        return Err(AnalysisError::Failed(format!(
+            "only {} maxima lie on the filament line",
+            points.len()
+        )));
     }
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
     let a0 = points[0].arc_um;

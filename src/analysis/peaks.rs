@@ -175,7 +175,10 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<
         }
     }
     let imax = imax.ok_or(PeakMiss::NoData)?;
-    let vmin = (0..n).filter(|&i| v[i].is_finite()).map(|i| v[i]).fold(f64::INFINITY, f64::min);
+    let vmin = (0..n)
+        .filter(|&i| v[i].is_finite())
+        .map(|i| v[i])
+        .fold(f64::INFINITY, f64::min);
     if v[imax] == vmin {
         // All finite samples equal: a flat line has no maximum.
         return Err(PeakMiss::NotConcave);
@@ -362,7 +365,15 @@ pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
             }
         }
     }
-    Ok(Peak2 { x: pb.pos, y, value, x_err: pb.pos_err, y_err: None, value_err: pb.value_err, n_points: pb.n_points })
+    Ok(Peak2 {
+        x: pb.pos,
+        y,
+        value,
+        x_err: pb.pos_err,
+        y_err: None,
+        value_err: pb.value_err,
+        n_points: pb.n_points,
+    })
 }
 
 /// A 2-D sub-pixel maximum.

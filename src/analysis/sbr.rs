@@ -37,7 +37,13 @@ pub struct SbrOptions {
 
 impl Default for SbrOptions {
     fn default() -> Self {
-        Self { skip_um: 1.2, both_ends: true, exclusion_um: 1.0, nonzero_snr: 0.0, min_run: 3 }
+        Self {
+            skip_um: 1.2,
+            both_ends: true,
+            exclusion_um: 1.0,
+            nonzero_snr: 0.0,
+            min_run: 3,
+        }
     }
 }
 
@@ -48,8 +54,11 @@ pub struct SbrResult {
     pub sbr_background: f64,
     /// Method (b).
     pub sbr_uniformity: f64,
-    /// Mean and std of the maxima in the region, signal units/µm.
+    /// Mean and std of the maxima in the region (reference-bead units/µm).
     pub mean_sens: f64,
+    /// Mean orientation-corrected maximum in the region (for diameters and linear densities
+    /// from the uniform part of the filament, Sec. 6).
+    pub mean_corr: f64,
     pub std_sens: f64,
     /// Std of the sensitivity image away from the filament.
     pub background_std: f64,
@@ -95,7 +104,8 @@ pub fn sbr(meas: &FilamentMeasurement, opts: &SbrOptions) -> Result<SbrResult> {
     }
     let bs = summary(&bg)?;
     let thr = opts.nonzero_snr * bs.std;
-    let ok: Vec<&super::orientation::FilamentPoint> = meas.points.iter().filter(|p| p.sens > thr).collect();
+    let ok: Vec<&super::orientation::FilamentPoint> =
+        meas.points.iter().filter(|p| p.sens > thr).collect();
     let run = opts.min_run.max(1);
     // Points are in arc order; consecutive lines differ by 1 in index.
     let starts_run = |seq: &[&super::orientation::FilamentPoint], k: usize| -> bool {
@@ -106,15 +116,26 @@ pub fn sbr(meas: &FilamentMeasurement, opts: &SbrOptions) -> Result<SbrResult> {
     };
     let first = (0..ok.len()).find(|&k| starts_run(&ok, k)).map(|k| ok[k]);
     let rev: Vec<&super::orientation::FilamentPoint> = ok.iter().rev().copied().collect();
-    let last = (0..rev.len()).find(|&k| starts_run(&rev, k)).map(|k| rev[k]);
+    let last = (0..rev.len())
+        .find(|&k| starts_run(&rev, k))
+        .map(|k| rev[k]);
     let (Some(first), Some(last)) = (first, last) else {
         return Err(AnalysisError::Failed(format!(
             "no non-zero maximum along the filament: no run of {run} consecutive lines above {thr:.3e} on the line"
         )));
     };
     let start = first.arc_um + opts.skip_um;
-    let end = if opts.both_ends { last.arc_um - opts.skip_um } else { f64::INFINITY };
-    let vals: Vec<f64> = meas.points.iter().filter(|p| p.arc_um >= start && p.arc_um <= end).map(|p| p.sens).collect();
+    let end = if opts.both_ends {
+        last.arc_um - opts.skip_um
+    } else {
+        f64::INFINITY
+    };
+    let vals: Vec<f64> = meas
+        .points
+        .iter()
+        .filter(|p| p.arc_um >= start && p.arc_um <= end)
+        .map(|p| p.sens)
+        .collect();
     if vals.len() < 2 {
         return Err(AnalysisError::Failed(format!(
             "fewer than 2 maxima between {start:.2} and {end:.2} µm: the filament is too short for {} µm skips",
@@ -127,6 +148,7 @@ pub fn sbr(meas: &FilamentMeasurement, opts: &SbrOptions) -> Result<SbrResult> {
         sbr_background: safe(s.mean, bs.std),
         sbr_uniformity: safe(s.mean, s.std),
         mean_sens: s.mean,
+        mean_corr: s.mean * meas.factor,
         std_sens: s.std,
         background_std: bs.std,
         arc_start: start,

@@ -90,7 +90,10 @@ pub fn paper_noise(tpl: &Template, h: f64) -> f64 {
 
 use bfpscope::analysis::template::RefBead;
 use bfpscope::instrument::sim::render_xy;
-use bfpscope::instrument::sim::scene::{Bead as SimBead, DetectorNoise, DiameterProfile, Filament as SimFilament, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use bfpscope::instrument::sim::scene::{
+    Bead as SimBead, DetectorNoise, DiameterProfile, Filament as SimFilament, Scene,
+    PAPER_DETECTOR_SIGMA_SAMPLE,
+};
 use bfpscope::instrument::sim::Renderer;
 use bfpscope::optics::rayleigh::DetectorModel;
 use bfpscope::optics::template::TemplateSpec;
@@ -108,7 +111,10 @@ pub fn paper_sigma_pixel() -> f64 {
 /// Model template of the 110 nm polystyrene reference bead for `optics` (ideal QPD unless
 /// `detector` says otherwise), 20 nm grid, in focus.
 pub fn model_template(optics: &Optics, detector: &DetectorModel) -> Template {
-    let rb = RefBead { n_medium: optics.n_medium, ..RefBead::default() };
+    let rb = RefBead {
+        n_medium: optics.n_medium,
+        ..RefBead::default()
+    };
     Template::from_optics(optics, detector, rb, 0.02, 0.0).unwrap()
 }
 
@@ -121,18 +127,41 @@ pub fn simulate(optics: &Optics, scene: &Scene, n: usize, h: f64, n_samples: usi
 }
 
 pub fn sim_bead(x: f64, y: f64, d_nm: f64, n: f64) -> SimBead {
-    SimBead { pos: [x, y, 0.0], d_nm, n }
+    SimBead {
+        pos: [x, y, 0.0],
+        d_nm,
+        n,
+    }
 }
 
 pub fn sim_filament(points: Vec<[f64; 2]>, profile: DiameterProfile, n: f64) -> SimFilament {
-    SimFilament { points, z: 0.0, profile, n, spacing_nm: 50.0 }
+    SimFilament {
+        points,
+        z: 0.0,
+        profile,
+        n,
+        spacing_nm: 50.0,
+    }
 }
 
 /// Straight simulated filament through `centre` at `angle_deg` from the y-axis.
-pub fn sim_straight(centre: [f64; 2], angle_deg: f64, length: f64, d_nm: f64, n: f64) -> SimFilament {
+pub fn sim_straight(
+    centre: [f64; 2],
+    angle_deg: f64,
+    length: f64,
+    d_nm: f64,
+    n: f64,
+) -> SimFilament {
     let t = angle_deg.to_radians();
     let (dx, dy) = (0.5 * length * t.sin(), 0.5 * length * t.cos());
-    sim_filament(vec![[centre[0] - dx, centre[1] - dy], [centre[0] + dx, centre[1] + dy]], DiameterProfile::Constant { d_nm }, n)
+    sim_filament(
+        vec![
+            [centre[0] - dx, centre[1] - dy],
+            [centre[0] + dx, centre[1] + dy],
+        ],
+        DiameterProfile::Constant { d_nm },
+        n,
+    )
 }
 
 /// A scene with the paper's detector noise (seeded).
