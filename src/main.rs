@@ -2,6 +2,7 @@
 //! `eval 'EXPR'`, `test [DIR]`, `docs`. Exit codes: 0 ok, 1 script error (or failed tests),
 //! 2 usage error.
 
+use bfpscope::script::ctx::{err_line, out_line};
 use bfpscope::script::{self, show, Settings, Workbench};
 use clap::{Parser, Subcommand};
 use rhai::Dynamic;
@@ -54,7 +55,7 @@ enum Cmd {
 }
 
 fn usage_error(msg: &str) -> ExitCode {
-    eprintln!("error: {msg}");
+    err_line(&format!("error: {msg}"));
     ExitCode::from(2)
 }
 
@@ -154,7 +155,7 @@ fn main() -> ExitCode {
             match wb.run_file(&file) {
                 Ok(_) => ExitCode::SUCCESS,
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    err_line(&format!("error: {e}"));
                     ExitCode::from(1)
                 }
             }
@@ -164,12 +165,12 @@ fn main() -> ExitCode {
             match wb.eval_source("eval", &expr) {
                 Ok(v) => {
                     if !v.is_unit() {
-                        println!("{}", show(&v));
+                        out_line(&show(&v));
                     }
                     ExitCode::SUCCESS
                 }
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    err_line(&format!("error: {e}"));
                     ExitCode::from(1)
                 }
             }

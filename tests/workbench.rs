@@ -61,10 +61,12 @@ fn help_lists_every_binding_by_family_with_units() {
             d.signature()
         );
     }
-    let line = text
-        .lines()
-        .find(|l| l.trim_start().starts_with("scan_xy("))
-        .unwrap();
+    let line = docs
+        .iter()
+        .find(|d| d.name == "scan_xy")
+        .unwrap()
+        .one_line();
+    assert!(text.contains(&line), "{text}");
     assert!(
         line.contains("x, y, z: µm") && line.contains("dwell: s"),
         "{line}"
