@@ -1,1 +1,185 @@
-//! (module under construction: see docs/)
+//! Quantitative analysis of BFP scans: every step the paper computes from images.
+//!
+//! Sections and equations refer to the paper and supplement in `seed/000_a01c3b91f68df4b7.txt`
+//! (see `docs/analysis.md` for the map from paper to functions). No I/O and no Rhai here: clean
+//! Rust functions with units in their doc comments. Positions and lengths are in µm, diameters in
+//! nm, masses in kDa/MDa (the name says which), linear densities in MDa/µm; signals are in the
+//! units of the scan (after template normalisation: "reference-bead units", where the reference
+//! bead's maximum ∂Sx/∂x is 1).
+//!
+//! | topic | file | paper |
+//! |---|---|---|
+//! | derivative images ∂Sx/∂x, ∂Sy/∂y | [`sensitivity`] | Sec. 3.2 |
+//! | sub-pixel maxima per row / column, 2-D peaks | [`peaks`] | Sec. 5 (parabola over 0.4 µm) |
+//! | reference template (from scans or the model) | [`template`] | Sec. 3.1, Fig. 2 |
+//! | multi-bead template fit | [`fit`] | eq. multiBeadFit, suppl. S7 |
+//! | filament bead model | [`bead_model`] | Sec. 4.2 |
+//! | orientation calibration and correction | [`orientation`] | Sec. 4.2 steps 1–5, Fig. 4d |
+//! | n_corr, mass, diameter, linear density | [`quantities`] | eqs. nCor, colDiam, OurColD, mtLinDens |
+//! | point-object background removal | [`background`] | Sec. 6 |
+//! | signal-to-background ratio | [`sbr`] | Sec. 6 |
+//! | focus search | [`focus`] | suppl. S5 |
+//! | histograms, summaries, linear fits | [`stats`] | Fig. 3c, Fig. 6d |
+//! | image sampling, polyline profiles | [`profile`] | Fig. 5c |
+//!
+//! Conventions (shared with `docs/physics.md`): scene positions are stage coordinates; the image
+//! of a bead at `p` is `template(s − p)` for the pixel at stage position `s`, so
+//! `tpl.eval(x − x_i, y − y_i)` is the bead at `(x_i, y_i)` and ∂Sx/∂x is positive at its centre.
+//! Filament angles are measured from the QPD +y axis towards +x, in degrees, in (−90°, 90°].
+//!
+//! Bad input gives an [`AnalysisError`] naming the argument, its value and the allowed range. NaN
+//! pixels mark missing data (an aborted scan): they are skipped by every reduction, and derived
+//! images carry NaN only where no finite input supports the value (documented per function).
+
+pub mod background;
+pub mod bead_model;
+pub mod fit;
+pub mod focus;
+pub mod orientation;
+pub mod peaks;
+pub mod profile;
+pub mod quantities;
+pub mod sbr;
+pub mod sensitivity;
+pub mod stats;
+pub mod template;
+
+pub use background::{remove_point_background, BackgroundOptions, BackgroundResult, FilamentAxis};
+pub use bead_model::{BeadModelOptions, Filament};
+pub use fit::{detect_beads, fit_beads, Bead, BeadInit, Channels, Degeneracy, FitOptions, FitResult, FitStatus, GrowCriterion};
+pub use orientation::{AngleCurve, AngleCurveOptions, FilamentMeasurement, MeasureOptions};
+pub use peaks::{LinePeak, Peak, PeakMiss, PeakOptions};
+pub use quantities::n_corr;
+pub use sensitivity::{sensitivity, Axis, Stencil};
+pub use template::{RefBead, Template, TemplateSource};
+
+/// Errors of the analysis functions. Messages name the argument, its value and what is allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AnalysisError {
+    /// A numeric argument outside its allowed range (or not finite).
+    #[error("{name} = {value} is out of range: {allowed}")]
+    OutOfRange { name: &'static str, value: f64, allowed: String },
+    /// An argument that is unusable for a stated reason (shape, size, content).
+    #[error("{name}: {reason}")]
+    BadInput { name: &'static str, reason: String },
+    /// The template does not cover what the fit needs (truncated template, bead off the image).
+    #[error("template does not cover the fit region: {0}")]
+    TemplateCoverage(String),
+    /// More beads than the image can support.
+    #[error("too many beads: {0}")]
+    TooManyBeads(String),
+    /// A computation that could not produce a meaningful answer (stated why).
+    #[error("{0}")]
+    Failed(String),
+}
+
+impl From<crate::optics::OpticsError> for AnalysisError {
+    fn from(e: crate::optics::OpticsError) -> Self {
+        match e {
+            crate::optics::OpticsError::OutOfRange { name, value, allowed } => AnalysisError::OutOfRange { name, value, allowed },
+            crate::optics::OpticsError::Invalid(s) => AnalysisError::BadInput { name: "optics", reason: s },
+        }
+    }
+}
+
+/// Result alias of the analysis module.
+pub type Result<T> = std::result::Result<T, AnalysisError>;
+
+/// Check `lo <= value <= hi` (finite).
+pub(crate) fn check_range(name: &'static str, value: f64, lo: f64, hi: f64) -> Result<f64> {
+    if value.is_finite() && value >= lo && value <= hi {
+        Ok(value)
+    } else {
+        Err(AnalysisError::OutOfRange { name, value, allowed: format!("{lo} ≤ {name} ≤ {hi}") })
+    }
+}
+
+/// Check `value > lo` (finite).
+pub(crate) fn check_above(name: &'static str, value: f64, lo: f64) -> Result<f64> {
+    if value.is_finite() && value > lo {
+        Ok(value)
+    } else {
+        Err(AnalysisError::OutOfRange { name, value, allowed: format!("{name} > {lo} (finite)") })
+    }
+}
+
+/// Validate an axis: at least `min_len` values, finite, strictly monotonic and (nearly) uniform
+/// (relative step deviation ≤ 1e-3). Returns the signed mean step (0 for a single value).
+pub(crate) fn check_axis(name: &'static str, a: &[f64], min_len: usize) -> Result<f64> {
+    if a.len() < min_len {
+        return Err(AnalysisError::BadInput {
+            name,
+            reason: format!("axis has {} values; at least {min_len} are needed", a.len()),
+        });
+    }
+    if a.iter().any(|v| !v.is_finite()) {
+        return Err(AnalysisError::BadInput { name, reason: "axis contains non-finite values".into() });
+    }
+    if a.len() < 2 {
+        return Ok(0.0);
+    }
+    let h = crate::data::image::axis_step(a);
+    if h == 0.0 {
+        return Err(AnalysisError::BadInput { name, reason: "axis is not strictly monotonic".into() });
+    }
+    for w in a.windows(2) {
+        let d = w[1] - w[0];
+        if d * h <= 0.0 || ((d - h) / h).abs() > 1e-3 {
+            return Err(AnalysisError::BadInput {
+                name,
+                reason: format!("axis is not regular: step {d} µm differs from the mean step {h} µm by more than 0.1%"),
+            });
+        }
+    }
+    Ok(h)
+}
+
+/// Map from coordinates to indices on a regular axis (`x0 + i·h`, h may be negative).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct AxisMap {
+    pub x0: f64,
+    pub h: f64,
+    pub n: usize,
+}
+
+impl AxisMap {
+    pub fn new(a: &[f64]) -> Self {
+        Self { x0: a.first().copied().unwrap_or(0.0), h: crate::data::image::axis_step(a), n: a.len() }
+    }
+    /// Index range of samples whose coordinate lies in `[lo, hi]`.
+    pub fn range(&self, lo: f64, hi: f64) -> std::ops::Range<usize> {
+        if self.n == 0 || !(lo <= hi) {
+            return 0..0;
+        }
+        if self.h == 0.0 {
+            return if self.x0 >= lo && self.x0 <= hi { 0..1 } else { 0..0 };
+        }
+        let (a, b) = ((lo - self.x0) / self.h, (hi - self.x0) / self.h);
+        let (a, b) = if a <= b { (a, b) } else { (b, a) };
+        let i0 = a.ceil().max(0.0);
+        let i1 = (b.floor() + 1.0).min(self.n as f64);
+        if i1 <= i0 {
+            0..0
+        } else {
+            i0 as usize..i1 as usize
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn axis_map_ranges_both_directions() {
+        let up = AxisMap { x0: 0.0, h: 0.1, n: 11 };
+        assert_eq!(up.range(0.25, 0.55), 3..6);
+        assert_eq!(up.range(-1.0, 0.0), 0..1);
+        assert_eq!(up.range(1.01, 2.0), 0..0);
+        let down = AxisMap { x0: 1.0, h: -0.1, n: 11 };
+        assert_eq!(down.range(0.25, 0.55), 5..8);
+        assert!(check_axis("x", &[0.0, 0.1, 0.3], 2).is_err());
+        assert!(check_axis("x", &[0.0], 2).is_err());
+        assert!((check_axis("x", &[1.0, 0.9, 0.8], 2).unwrap() + 0.1).abs() < 1e-12);
+    }
+}

@@ -1,7 +1,9 @@
 //! `Scan`: the three QPD channels of one scan with their axes and metadata.
 
 use super::image::Image;
+use super::DataError;
 use serde::{Deserialize, Serialize};
+use std::fmt;
 
 /// Whether a scan ran to its end.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -24,7 +26,71 @@ pub struct Scan {
     pub meta: serde_json::Value,
 }
 
+impl ScanStatus {
+    /// The lower-case name used in files and metadata (`"complete"`, `"aborted"`, `"failed"`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ScanStatus::Complete => "complete",
+            ScanStatus::Aborted => "aborted",
+            ScanStatus::Failed => "failed",
+        }
+    }
+
+    /// Inverse of [`ScanStatus::as_str`].
+    pub fn parse(s: &str) -> Result<ScanStatus, DataError> {
+        match s {
+            "complete" => Ok(ScanStatus::Complete),
+            "aborted" => Ok(ScanStatus::Aborted),
+            "failed" => Ok(ScanStatus::Failed),
+            other => Err(DataError::invalid(
+                "status",
+                format!("{other:?}"),
+                "one of \"complete\", \"aborted\", \"failed\"",
+            )),
+        }
+    }
+}
+
+impl fmt::Display for ScanStatus {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 impl Scan {
+    /// Check that the three channels share one shape, one pair of axes and axis names
+    /// (required to save the scan: the file stores the axes once).
+    pub fn check_consistent(&self) -> Result<(), DataError> {
+        for (name, img) in [("sy", &self.sy), ("sz", &self.sz)] {
+            if img.shape() != self.sx.shape() {
+                return Err(DataError::ShapeMismatch {
+                    op: if name == "sy" {
+                        "scan channels sx vs sy"
+                    } else {
+                        "scan channels sx vs sz"
+                    },
+                    left: self.sx.shape(),
+                    right: img.shape(),
+                });
+            }
+            let same_axes = bits_eq(&img.x, &self.sx.x) && bits_eq(&img.y, &self.sx.y);
+            if !same_axes || img.x_name != self.sx.x_name || img.y_name != self.sx.y_name {
+                return Err(DataError::invalid(
+                    &format!("{name} axes"),
+                    format!(
+                        "{} {} / {} {}",
+                        img.x_name,
+                        img.x.len(),
+                        img.y_name,
+                        img.y.len()
+                    ),
+                    "all three channels of a scan must share the axes of sx",
+                ));
+            }
+        }
+        Ok(())
+    }
+
     pub fn channel(&self, name: &str) -> Option<&Image> {
         match name {
             "sx" | "x" => Some(&self.sx),
@@ -32,5 +98,51 @@ impl Scan {
             "sz" | "z" => Some(&self.sz),
             _ => None,
         }
+    }
+}
+
+fn bits_eq(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits())
+}
+
+impl fmt::Display for Scan {
+    /// One line: status, shape, axes and the Sx/Sy/Sz ranges.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let i = &self.sx;
+        write!(
+            f,
+            "Scan ({}) {}x{} (rows x cols)",
+            self.status,
+            i.rows(),
+            i.cols()
+        )?;
+        for (name, axis) in [(&i.x_name, &i.x), (&i.y_name, &i.y)] {
+            match axis.as_slice() {
+                [] => write!(f, ", {name} empty")?,
+                [v] => write!(f, ", {name} {} µm", super::image::fmt_sig(*v, 5))?,
+                a => write!(
+                    f,
+                    ", {name} {}..{} µm",
+                    super::image::fmt_sig(a[0], 5),
+                    super::image::fmt_sig(a[a.len() - 1], 5)
+                )?,
+            }
+        }
+        for (name, img) in [("sx", &self.sx), ("sy", &self.sy), ("sz", &self.sz)] {
+            match (img.min(), img.max()) {
+                (Ok(lo), Ok(hi)) => write!(
+                    f,
+                    ", {name} {}..{}",
+                    super::image::fmt_sig(lo, 4),
+                    super::image::fmt_sig(hi, 4)
+                )?,
+                _ => write!(f, ", {name} no data")?,
+            }
+        }
+        let nan = self.sx.nan_count();
+        if nan > 0 {
+            write!(f, ", {nan} unmeasured pixels")?;
+        }
+        Ok(())
     }
 }

@@ -5,6 +5,14 @@
 //! `acquire/`, never here.
 
 pub mod sim;
+pub mod trace;
+// Hardware: serial drivers, emulators, config, connect (branch hw).
+pub mod config;
+pub mod connect;
+pub mod emulator;
+pub mod gcs;
+pub mod link;
+pub mod scpi;
 
 use std::fmt;
 
@@ -19,13 +27,30 @@ pub const AXES: [&str; 3] = ["x", "y", "z"];
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DeviceError {
     #[error("{device}: no reply to `{command}` within {timeout_ms} ms")]
-    Timeout { device: String, command: String, timeout_ms: u64 },
+    Timeout {
+        device: String,
+        command: String,
+        timeout_ms: u64,
+    },
     #[error("{device}: garbled reply to `{command}`: {reply:?}")]
-    Garbled { device: String, command: String, reply: String },
+    Garbled {
+        device: String,
+        command: String,
+        reply: String,
+    },
     #[error("{device}: controller error {code} after `{command}`: {message}")]
-    Controller { device: String, command: String, code: i64, message: String },
+    Controller {
+        device: String,
+        command: String,
+        code: i64,
+        message: String,
+    },
     #[error("{device}: disconnected during `{command}`: {detail}")]
-    Disconnected { device: String, command: String, detail: String },
+    Disconnected {
+        device: String,
+        command: String,
+        detail: String,
+    },
     #[error("{device}: {detail}")]
     Other { device: String, detail: String },
 }
@@ -96,7 +121,9 @@ pub struct WallClock {
 
 impl Default for WallClock {
     fn default() -> Self {
-        Self { start: std::time::Instant::now() }
+        Self {
+            start: std::time::Instant::now(),
+        }
     }
 }
 
@@ -123,7 +150,9 @@ pub struct VirtualClock {
 
 impl VirtualClock {
     pub fn new() -> Self {
-        Self { t: std::sync::atomic::AtomicU64::new(0f64.to_bits()) }
+        Self {
+            t: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
+        }
     }
 }
 
@@ -136,26 +165,12 @@ impl Clock for VirtualClock {
             return;
         }
         use std::sync::atomic::Ordering::SeqCst;
-        let _ = self.t.fetch_update(SeqCst, SeqCst, |b| Some((f64::from_bits(b) + seconds).to_bits()));
+        let _ = self.t.fetch_update(SeqCst, SeqCst, |b| {
+            Some((f64::from_bits(b) + seconds).to_bits())
+        });
     }
     fn is_virtual(&self) -> bool {
         true
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn virtual_clock_advances_without_sleeping() {
-        let c = VirtualClock::new();
-        let t0 = std::time::Instant::now();
-        c.wait(3600.0);
-        c.wait(0.5);
-        c.wait(f64::NAN); // ignored, never poisons time
-        assert_eq!(c.now(), 3600.5);
-        assert!(t0.elapsed().as_secs_f64() < 0.5);
     }
 }
 
@@ -177,5 +192,21 @@ impl Instrument {
         self.stage.move_to(target)?;
         self.clock.wait(self.settle_s);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn virtual_clock_advances_without_sleeping() {
+        let c = VirtualClock::new();
+        let t0 = std::time::Instant::now();
+        c.wait(3600.0);
+        c.wait(0.5);
+        c.wait(f64::NAN); // ignored, never poisons time
+        assert_eq!(c.now(), 3600.5);
+        assert!(t0.elapsed().as_secs_f64() < 0.5);
     }
 }

@@ -1,7 +1,14 @@
 //! The physics of BFP detection (pure functions, no I/O, no Rhai). Each formula cites the
 //! section or equation of the paper (`docs/physics.md` lists the conventions).
 
+pub mod calc;
+pub mod finite_size;
 pub mod grid;
+pub mod mie;
+pub mod mie_beam;
 pub mod params;
+pub mod quad;
+pub mod rayleigh;
+pub mod template;
 
 pub use params::{Optics, OpticsError};

@@ -5,6 +5,7 @@
 pub mod core;
 pub mod ctx;
 pub mod motion;
+pub mod physics;
 pub mod registry;
 pub mod scans;
 pub mod testing;
@@ -28,6 +29,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("motion", motion::register),
     ("scans", scans::register),
     ("types", types::register),
+    ("physics", physics::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.

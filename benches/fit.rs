@@ -1,0 +1,153 @@
+//! Multi-bead template fit benchmarks (issue 4): a 3-bead fit on 64×64 pixels and an 11-bead fit
+//! on 128×128 (50 nm pixels, 170 nm beads, the paper's noise level derived from its 950 kDa mass
+//! resolution). Besides criterion's statistics, the bench writes the scenes, the template and
+//! the initial guesses as .npy files plus its own timings to `target/fit_bench/` so that
+//! `scripts/py/fit_compare.py` can run the same fits with scipy.optimize.least_squares and
+//! report the speed ratio and accuracies.
+//!
+//! Run: `cargo bench --bench fit` then `python3 scripts/py/fit_compare.py`
+//! (or `python3 scripts/py/fit_compare.py --run-bench` to do both).
+
+use bfpscope::analysis::fit::{detect_beads, fit_beads, BeadInit, Channels, FitOptions, FitResult};
+use bfpscope::analysis::sensitivity::Stencil;
+use bfpscope::analysis::template::Template;
+use bfpscope::data::Scan;
+use criterion::{criterion_group, criterion_main, Criterion};
+use ndarray::{Array1, Array2};
+use ndarray_npy::write_npy;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+use std::hint::black_box;
+use std::path::PathBuf;
+use std::time::Instant;
+
+const H: f64 = 0.05;
+
+struct Case {
+    name: &'static str,
+    tpl: Template,
+    scan: Scan,
+    truth: Vec<(f64, f64, f64)>,
+    init: Vec<BeadInit>,
+    sigma: f64,
+}
+
+/// The template used by the benchmark (the analytic stand-in until the physics templates land).
+fn template() -> Template {
+    Template::analytic_standin(0.4, 0.02, 1.6).unwrap()
+}
+
+fn paper_noise(tpl: &Template) -> f64 {
+    let sigma_c = 950.0 / tpl.reference.mass_kda();
+    let mut s = 0.0;
+    for j in -40..=40 {
+        for i in -40..=40 {
+            let t = tpl.eval(i as f64 * H, j as f64 * H);
+            s += t[0] * t[0] + t[1] * t[1];
+        }
+    }
+    sigma_c * s.sqrt()
+}
+
+fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> Case {
+    let tpl = template();
+    let w = (170.0f64 / 110.0).powi(3);
+    let truth: Vec<(f64, f64, f64)> = pos.iter().map(|&(x, y)| (x, y, w)).collect();
+    let ax: Vec<f64> = (0..n_px).map(|i| i as f64 * H).collect();
+    let mut scan = tpl.render_scan(&truth, &ax, &ax);
+    let sigma = paper_noise(&tpl);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let nd = Normal::new(0.0, sigma).unwrap();
+    for img in [&mut scan.sx, &mut scan.sy] {
+        img.data.mapv_inplace(|v| v + nd.sample(&mut rng));
+    }
+    let init = detect_beads(&scan.sx, &scan.sy, &tpl, Channels::Both, truth.len(), Stencil::SavitzkyGolay { half_width: 2 }).unwrap();
+    Case { name, tpl, scan, truth, init, sigma }
+}
+
+fn cases() -> Vec<Case> {
+    vec![
+        make_case("3beads_64", 64, &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)], 1),
+        make_case(
+            "11beads_128",
+            128,
+            &[(1.0, 1.2), (1.35, 1.3), (2.5, 1.0), (3.6, 1.8), (4.8, 1.1), (1.6, 3.3), (2.9, 3.0), (3.2, 3.4), (5.2, 3.6), (2.0, 5.0), (4.4, 5.2)],
+            2,
+        ),
+    ]
+}
+
+fn run(c: &Case) -> FitResult {
+    fit_beads(&c.scan.sx, &c.scan.sy, &c.tpl, &FitOptions { init: Some(c.init.clone()), ..Default::default() }).unwrap()
+}
+
+fn errors(c: &Case, r: &FitResult) -> (f64, f64) {
+    let mut ep: f64 = 0.0;
+    let mut ew: f64 = 0.0;
+    for t in &c.truth {
+        let b = r.beads.iter().min_by(|a, b| (a.x - t.0).hypot(a.y - t.1).total_cmp(&(b.x - t.0).hypot(b.y - t.1))).unwrap();
+        ep = ep.max((b.x - t.0).hypot(b.y - t.1));
+        ew = ew.max((b.weight / t.2 - 1.0).abs());
+    }
+    (ep, ew)
+}
+
+fn export(c: &Case, dir: &PathBuf, ms: f64, r: &FitResult) {
+    let d = dir.join(c.name);
+    std::fs::create_dir_all(&d).unwrap();
+    write_npy(d.join("sx.npy"), &c.scan.sx.data).unwrap();
+    write_npy(d.join("sy.npy"), &c.scan.sy.data).unwrap();
+    write_npy(d.join("x.npy"), &Array1::from(c.scan.sx.x.clone())).unwrap();
+    write_npy(d.join("y.npy"), &Array1::from(c.scan.sx.y.clone())).unwrap();
+    let g = &c.tpl.grid;
+    let tx = Array2::from_shape_fn((g.nv, g.nu), |(j, i)| g.data[j * g.nu + i][0]);
+    let ty = Array2::from_shape_fn((g.nv, g.nu), |(j, i)| g.data[j * g.nu + i][1]);
+    write_npy(d.join("tpl_sx.npy"), &tx).unwrap();
+    write_npy(d.join("tpl_sy.npy"), &ty).unwrap();
+    let tu = Array1::from((0..g.nu).map(|i| g.u0 + i as f64 * g.h).collect::<Vec<_>>());
+    let tv = Array1::from((0..g.nv).map(|j| g.v0 + j as f64 * g.h).collect::<Vec<_>>());
+    write_npy(d.join("tpl_u.npy"), &tu).unwrap();
+    write_npy(d.join("tpl_v.npy"), &tv).unwrap();
+    let init = Array2::from_shape_fn((c.init.len(), 3), |(i, k)| [c.init[i].weight, c.init[i].x, c.init[i].y][k]);
+    write_npy(d.join("init.npy"), &init).unwrap();
+    let truth = Array2::from_shape_fn((c.truth.len(), 3), |(i, k)| [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]);
+    write_npy(d.join("truth.npy"), &truth).unwrap();
+    let (ep, ew) = errors(c, r);
+    let json = serde_json::json!({
+        "name": c.name, "pixels": c.scan.sx.data.dim(), "beads": c.truth.len(), "sigma": c.sigma,
+        "rust_ms": ms, "iterations": r.iterations, "evaluations": r.evaluations,
+        "max_pos_err_nm": ep * 1e3, "max_weight_err_pct": ew * 100.0, "rss": r.rss, "status": format!("{:?}", r.status),
+        "template": "analytic stand-in u·exp(-r²/w²), w = 0.4 µm, 20 nm grid, Keys cubic",
+    });
+    std::fs::write(d.join("rust.json"), serde_json::to_string_pretty(&json).unwrap()).unwrap();
+}
+
+fn bench(cr: &mut Criterion) {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/fit_bench");
+    for c in cases() {
+        // Own timing (median of repeated runs) for the comparison report.
+        let r = run(&c);
+        let mut t = Vec::new();
+        for _ in 0..15 {
+            let s = Instant::now();
+            black_box(run(&c));
+            t.push(s.elapsed().as_secs_f64() * 1e3);
+        }
+        t.sort_by(|a, b| a.total_cmp(b));
+        let ms = t[t.len() / 2];
+        let (ep, ew) = errors(&c, &r);
+        println!(
+            "{}: {:.2} ms (median of 15), {} iterations, {} evaluations, max position error {:.1} nm, max weight error {:.2} %",
+            c.name, ms, r.iterations, r.evaluations, ep * 1e3, ew * 100.0
+        );
+        export(&c, &dir, ms, &r);
+        cr.bench_function(c.name, |b| b.iter(|| black_box(run(&c))));
+    }
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(20);
+    targets = bench
+}
+criterion_main!(benches);

@@ -1,0 +1,1058 @@
+//! Multi-bead template fit (eq. multiBeadFit, Sec. 4.1; suppl. S7 with 11 beads):
+//!
+//! f(C₁, x₁, y₁, …, Cₙ, xₙ, yₙ) = ( Σᵢ Cᵢ Sx(x − xᵢ, y − yᵢ) , Σᵢ Cᵢ Sy(x − xᵢ, y − yᵢ) )
+//!
+//! fitted by least squares to the Sx and Sy images together (or to one channel, for the
+//! background removal of Sec. 6) with the `levenberg-marquardt` crate. The images are in
+//! instrument units (as measured or simulated); the template converts: its normalised response
+//! divided by `norm_factor` is the reference bead in instrument units, so the weights Cᵢ come out
+//! in reference-bead units (a bead identical to the template's reference has C = 1; C scales with
+//! volume × n_corr, Sec. 3.2). Positions in µm (stage coordinates); model and residual images and
+//! σ in instrument units.
+//!
+//! **Jacobian.** Analytic, from the template's interpolant: ∂r/∂Cᵢ = S(s − pᵢ),
+//! ∂r/∂xᵢ = −Cᵢ ∂S/∂u, ∂r/∂yᵢ = −Cᵢ ∂S/∂v (`Grid2::eval_grad`). Each bead only touches the pixels
+//! inside the template's extent around it.
+//!
+//! **Compressed problem (speed).** The residual vector has one entry per valid pixel and
+//! channel (32 768 for a 128×128 two-channel fit). Instead of handing the crate that M×N
+//! Jacobian (whose pivoted QR costs O(M·N²) per iteration), each evaluation accumulates the
+//! Gauss–Newton matrix JᵀJ, the gradient Jᵀr and ‖r‖² over the pixels (exploiting that beads
+//! overlap only locally), and the crate is given the equivalent (N+1)-row problem
+//! J̃ = [R; 0], r̃ = [R⁻ᵀJᵀr; √(‖r‖² − ‖R⁻ᵀJᵀr‖²)] with RᵀR = JᵀJ (Cholesky, or a symmetric
+//! square root when singular). ‖r̃‖ = ‖r‖, J̃ᵀJ̃ = JᵀJ, J̃ᵀr̃ = Jᵀr and the column norms agree, so
+//! the crate's iterates, trust-region steps and stopping tests are those of the full problem.
+//!
+//! **Uncertainties** from the covariance σ²(JᵀJ)⁻¹ at the solution, σ the given pixel noise
+//! or, if absent, √(RSS/(m − 3n)).
+//!
+//! **Degeneracy** (the crate reports `Converged` for a fully degenerate fit — one weight
+//! absorbing the other, the lost bead's position wandering off). After every fit:
+//! beads closer than `min_separation` × w0 (default w0/4) are reported
+//! ([`Degeneracy::CloseBeads`]) and, with `merge_degenerate` (default), merged (weights summed,
+//! positions |C|-weighted) and the fit repeated; pairs closer than `resolve_separation` × w0
+//! (default w0/2) are refitted merged and kept merged when that does not raise the BIC or when
+//! one of them has a weight consistent with zero — the data do not resolve them
+//! ([`Degeneracy::Unresolved`]; this catches a degenerate pair that noise pushed apart, e.g. two
+//! beads 60 nm apart fitted as 1.87 + 0.12 ± 0.20 at 123 nm); beads that
+//! left the region their template can reach are reported and dropped; weights consistent with
+//! zero are reported ([`Degeneracy::Insignificant`], the position is then meaningless); the
+//! condition number of the column-scaled JᵀJ is reported and, above `cond_limit`,
+//! [`Degeneracy::IllConditioned`] is reported and the uncertainties are `None`. Weights and
+//! positions are therefore always finite and never "wild".
+//!
+//! **Initial guesses** (when `init` is not given): CLEAN on the detection map
+//! D = ∂Sx/∂x + ∂Sy/∂y (or the one fitted channel's sensitivity): the highest maximum gives a bead
+//! (sub-pixel by parabolas, weight from its height relative to the template's own D peak), its
+//! template D response is subtracted, repeat. **Adding beads** (`grow`): after a fit, a bead is
+//! added at the largest maximum of the residual's D map and all beads are refitted; the larger
+//! model is kept while the criterion improves (BIC by default: χ² + k ln m with known σ, else
+//! m ln(RSS/m) + k ln m, k = 3n; or a relative RSS drop of at least `min_drop`).
+//!
+//! **Limits** (clear errors): images of different shapes or irregular axes; no valid pixel; a
+//! template truncated at its border by more than `max_truncation` of its peak (it does not cover
+//! the response it must represent); an initial bead farther outside the image than the
+//! template reaches; more beads than the image supports — each bead needs its own
+//! (min_separation·w0)² patch of the scanned area and the fit needs more residuals than
+//! parameters.
+
+use super::sensitivity::{sensitivity, Axis, Stencil};
+use super::template::Template;
+use super::{check_above, check_axis, check_range, AnalysisError, AxisMap, Result};
+use crate::data::Image;
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt, TerminationReason};
+use nalgebra::storage::Owned;
+use nalgebra::{DMatrix, DVector, Dyn};
+use ndarray::Array2;
+use serde::{Deserialize, Serialize};
+use std::cell::{Cell, RefCell};
+
+/// Which channels enter the fit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Channels {
+    /// Sx and Sy together (eq. multiBeadFit).
+    #[default]
+    Both,
+    Sx,
+    Sy,
+}
+
+impl Channels {
+    fn list(&self) -> &'static [usize] {
+        match self {
+            Channels::Both => &[0, 1],
+            Channels::Sx => &[0],
+            Channels::Sy => &[1],
+        }
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "both" | "xy" => Some(Channels::Both),
+            "sx" | "x" => Some(Channels::Sx),
+            "sy" | "y" => Some(Channels::Sy),
+            _ => None,
+        }
+    }
+}
+
+/// An initial guess: position (µm) and weight (reference-bead units).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BeadInit {
+    pub x: f64,
+    pub y: f64,
+    pub weight: f64,
+}
+
+/// Stopping rule when adding beads one at a time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum GrowCriterion {
+    /// Bayesian information criterion must decrease.
+    Bic,
+    /// RSS must drop by at least this fraction (e.g. 0.02 = 2 %).
+    RelDrop { min_drop: f64 },
+}
+
+/// Options of [`fit_beads`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FitOptions {
+    pub channels: Channels,
+    /// Number of beads for automatic initial guesses (ignored when `init` is given). With neither
+    /// `n_beads` nor `init`, the fit grows from one bead (as with `grow`).
+    pub n_beads: Option<usize>,
+    /// Initial guesses.
+    pub init: Option<Vec<BeadInit>>,
+    /// Add beads one at a time at the largest residual while `criterion` improves.
+    pub grow: bool,
+    /// Upper limit on the number of beads when growing.
+    pub max_beads: usize,
+    pub criterion: GrowCriterion,
+    /// Pixel noise σ (signal units); None: estimated from the residuals.
+    pub sigma: Option<f64>,
+    /// Relative tolerances of the crate (ftol on the objective, xtol on the parameters, gtol on
+    /// the gradient–residual cosine).
+    pub ftol: f64,
+    pub xtol: f64,
+    pub gtol: f64,
+    /// Residual evaluations allowed = patience × (3n + 1).
+    pub patience: usize,
+    /// Beam waist, µm (sets the degeneracy distance).
+    pub w0_um: f64,
+    /// Beads closer than `min_separation × w0_um` are degenerate (default 1/4).
+    pub min_separation: f64,
+    /// Merge degenerate pairs and refit (default true); false: only report them.
+    pub merge_degenerate: bool,
+    /// Pairs closer than `resolve_separation × w0_um` (default 1/2) are tested: if merging them
+    /// does not raise the BIC, the data do not resolve them and they are merged
+    /// ([`Degeneracy::Unresolved`]). 0 disables the test.
+    pub resolve_separation: f64,
+    /// Condition number of the column-scaled JᵀJ above which the fit is reported ill-conditioned.
+    pub cond_limit: f64,
+    /// Largest allowed template border value relative to its peak.
+    pub max_truncation: f64,
+    /// Derivative used for the detection map.
+    pub detect_stencil: Stencil,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            channels: Channels::Both,
+            n_beads: None,
+            init: None,
+            grow: false,
+            max_beads: 30,
+            criterion: GrowCriterion::Bic,
+            sigma: None,
+            ftol: 1e-10,
+            xtol: 1e-10,
+            gtol: 1e-10,
+            patience: 100,
+            w0_um: 0.4,
+            min_separation: 0.25,
+            merge_degenerate: true,
+            resolve_separation: 0.5,
+            cond_limit: 1e10,
+            max_truncation: 0.05,
+            detect_stencil: Stencil::SavitzkyGolay { half_width: 2 },
+        }
+    }
+}
+
+impl FitOptions {
+    fn validate(&self) -> Result<()> {
+        check_range("ftol", self.ftol, 0.0, 1.0)?;
+        check_range("xtol", self.xtol, 0.0, 1.0)?;
+        check_range("gtol", self.gtol, 0.0, 1.0)?;
+        check_range("patience", self.patience as f64, 1.0, 1e6)?;
+        check_range("w0_um", self.w0_um, 0.01, 100.0)?;
+        check_range("min_separation", self.min_separation, 0.0, 10.0)?;
+        check_range("resolve_separation", self.resolve_separation, 0.0, 10.0)?;
+        check_above("cond_limit", self.cond_limit, 1.0)?;
+        check_range("max_truncation", self.max_truncation, 0.0, 1.0)?;
+        check_range("max_beads", self.max_beads as f64, 1.0, 10_000.0)?;
+        if let Some(s) = self.sigma {
+            check_above("sigma", s, 0.0)?;
+        }
+        if let GrowCriterion::RelDrop { min_drop } = self.criterion {
+            check_range("min_drop", min_drop, 0.0, 1.0)?;
+        }
+        if let Some(n) = self.n_beads {
+            if n == 0 {
+                return Err(AnalysisError::OutOfRange { name: "n_beads", value: 0.0, allowed: "n_beads ≥ 1".into() });
+            }
+        }
+        if let Some(init) = &self.init {
+            if init.is_empty() {
+                return Err(AnalysisError::BadInput { name: "init", reason: "empty list of initial beads".into() });
+            }
+            for (i, b) in init.iter().enumerate() {
+                if !(b.x.is_finite() && b.y.is_finite() && b.weight.is_finite()) {
+                    return Err(AnalysisError::BadInput { name: "init", reason: format!("bead {i} has non-finite values {b:?}") });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A fitted bead.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Bead {
+    /// Position, µm.
+    pub x: f64,
+    pub y: f64,
+    /// Weight Cᵢ, reference-bead units.
+    pub weight: f64,
+    /// 1σ uncertainties; None when the fit is ill-conditioned (see `degeneracies`).
+    pub x_err: Option<f64>,
+    pub y_err: Option<f64>,
+    pub weight_err: Option<f64>,
+}
+
+/// How the optimiser stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FitStatus {
+    /// ftol/xtol/gtol met or residuals zero.
+    Converged,
+    /// Evaluation budget (patience) exhausted.
+    MaxEvaluations,
+    /// Numerical failure or tolerances below machine precision (see `reason`).
+    Failed,
+}
+
+/// A degeneracy found in the fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Degeneracy {
+    /// Two beads closer than min_separation·w0 (positions of the pair, their weights, distance
+    /// in µm); `merged` tells whether they were merged into one bead.
+    CloseBeads { a: [f64; 3], b: [f64; 3], distance_um: f64, merged: bool },
+    /// A bead moved out of reach of the image (its template no longer overlaps valid pixels)
+    /// and was dropped.
+    BeadOutside { x: f64, y: f64, weight: f64 },
+    /// Two beads closer than resolve_separation·w0 that the data do not resolve (the merged
+    /// model's BIC is lower by `delta_bic`, or one weight is consistent with zero); they were
+    /// merged.
+    Unresolved { a: [f64; 3], b: [f64; 3], distance_um: f64, delta_bic: f64 },
+    /// A bead whose weight is consistent with zero (|C| < 2σ_C, or |C| < 1e-9): its position is
+    /// meaningless. Kept in the result (it is part of the least-squares solution).
+    Insignificant { x: f64, y: f64, weight: f64, weight_err: Option<f64> },
+    /// Column-scaled JᵀJ has a condition number above `cond_limit`.
+    IllConditioned { condition: f64 },
+}
+
+/// One step of the bead-adding procedure.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GrowStep {
+    pub n_beads: usize,
+    pub rss: f64,
+    pub bic: f64,
+    pub accepted: bool,
+}
+
+/// Result of [`fit_beads`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitResult {
+    pub beads: Vec<Bead>,
+    /// Model images (both channels, whatever was fitted) and residuals data − model (NaN where
+    /// the data are NaN).
+    pub model_sx: Image,
+    pub model_sy: Image,
+    pub residual_sx: Image,
+    pub residual_sy: Image,
+    /// Σ (data − model)² over the fitted channels' valid pixels.
+    pub rss: f64,
+    /// rss / σ².
+    pub chi2: f64,
+    /// Residuals m minus parameters 3n.
+    pub dof: usize,
+    pub n_residuals: usize,
+    /// σ used for uncertainties and χ², and whether it was estimated from the residuals.
+    pub sigma: f64,
+    pub sigma_estimated: bool,
+    pub bic: f64,
+    /// Jacobian evaluations (= accepted LM iterations + 1) and residual evaluations of the final
+    /// fit (and summed over all refits in `total_evaluations`).
+    pub iterations: usize,
+    pub evaluations: usize,
+    pub total_evaluations: usize,
+    pub status: FitStatus,
+    /// The crate's termination reason, in words.
+    pub reason: String,
+    /// Condition number of the column-scaled JᵀJ (capped at 1e300 when singular).
+    pub condition: f64,
+    pub degeneracies: Vec<Degeneracy>,
+    /// Bead-adding history (empty when not growing).
+    pub history: Vec<GrowStep>,
+}
+
+impl FitResult {
+    pub fn is_degenerate(&self) -> bool {
+        !self.degeneracies.is_empty()
+    }
+    /// Σ weights (reference-bead units).
+    pub fn total_weight(&self) -> f64 {
+        self.beads.iter().map(|b| b.weight).sum()
+    }
+}
+
+/// Fit `n` shifted, weighted copies of `tpl` to the scan channels `sx`, `sy` (eq.
+/// multiBeadFit). See the module docs for the method, outcomes and errors.
+pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> Result<FitResult> {
+    opts.validate()?;
+    let data = FitData::new(sx, sy, tpl, opts)?;
+    let grow = opts.grow || (opts.init.is_none() && opts.n_beads.is_none());
+    let init: Vec<BeadInit> = match &opts.init {
+        Some(b) => b.clone(),
+        None => {
+            let n = if grow { 1 } else { opts.n_beads.unwrap_or(1) };
+            data.check_count(n)?;
+            let d = detection_map(sx, sy, opts.channels, opts.detect_stencil)?;
+            let found = clean(&d, tpl, opts.channels, n, 0.0);
+            if found.is_empty() {
+                return Err(AnalysisError::Failed("no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum".into()));
+            }
+            found
+        }
+    };
+    data.check_count(init.len())?;
+    for (i, b) in init.iter().enumerate() {
+        if !data.reaches(b.x, b.y) {
+            let ((u0, u1), (v0, v1)) = tpl.extent();
+            return Err(AnalysisError::TemplateCoverage(format!(
+                "initial bead {i} at ({}, {}) µm is farther outside the image than the template reaches (u ∈ [{u0}, {u1}], v ∈ [{v0}, {v1}] µm)",
+                b.x, b.y
+            )));
+        }
+    }
+    let mut best = data.fit_with_degeneracy(init, opts)?;
+    if grow {
+        let mut history = vec![GrowStep { n_beads: best.beads.len(), rss: best.rss, bic: best.bic, accepted: true }];
+        while best.beads.len() < opts.max_beads && data.check_count(best.beads.len() + 1).is_ok() {
+            let Ok(d) = detection_map(&best.residual_sx, &best.residual_sy, opts.channels, opts.detect_stencil) else { break };
+            let existing: Vec<BeadInit> = best.beads.iter().map(|b| BeadInit { x: b.x, y: b.y, weight: b.weight }).collect();
+            let new = clean(&d, tpl, opts.channels, 1, 0.0);
+            let Some(nb) = new.first().copied() else { break };
+            let mut init = existing.clone();
+            init.push(nb);
+            let cand = data.fit_with_degeneracy(init, opts)?;
+            let improves = cand.beads.len() > best.beads.len()
+                && !cand.degeneracies.iter().any(|d| matches!(d, Degeneracy::CloseBeads { .. } | Degeneracy::Insignificant { .. }))
+                && match opts.criterion {
+                    GrowCriterion::Bic => cand.bic < best.bic,
+                    GrowCriterion::RelDrop { min_drop } => cand.rss < (1.0 - min_drop) * best.rss,
+                };
+            history.push(GrowStep { n_beads: cand.beads.len(), rss: cand.rss, bic: cand.bic, accepted: improves });
+            if !improves {
+                break;
+            }
+            best = cand;
+        }
+        best.history = history;
+    }
+    Ok(best)
+}
+
+/// Automatic initial guesses (the same the fit uses when `init` is not given): `n` beads by CLEAN
+/// on the detection map ∂Sx/∂x + ∂Sy/∂y (or the one channel's sensitivity) with the given
+/// stencil. Fewer than `n` are returned when the map has no further positive maximum.
+pub fn detect_beads(sx: &Image, sy: &Image, tpl: &Template, channels: Channels, n: usize, stencil: Stencil) -> Result<Vec<BeadInit>> {
+    check_range("n", n as f64, 1.0, 10_000.0)?;
+    let d = detection_map(sx, sy, channels, stencil)?;
+    Ok(clean(&d, tpl, channels, n, 0.0))
+}
+
+/// The detection map: ∂Sx/∂x + ∂Sy/∂y (or the fitted channel's sensitivity).
+pub(crate) fn detection_map(sx: &Image, sy: &Image, ch: Channels, st: Stencil) -> Result<Image> {
+    let a = match ch {
+        Channels::Sy => None,
+        _ => Some(sensitivity(sx, Axis::X, st)?),
+    };
+    let b = match ch {
+        Channels::Sx => None,
+        _ => Some(sensitivity(sy, Axis::Y, st)?),
+    };
+    Ok(match (a, b) {
+        (Some(a), Some(b)) => Image::new(&a.data + &b.data, a.x, a.y),
+        (Some(a), None) => a,
+        (None, Some(b)) => b,
+        (None, None) => unreachable!(),
+    })
+}
+
+/// The template's own detection response and its peak.
+fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64) {
+    let g = &tpl.grid;
+    let f = |u: f64, v: f64| {
+        let s = g.eval_grad(u, v);
+        match ch {
+            Channels::Both => s.du[0] + s.dv[1],
+            Channels::Sx => s.du[0],
+            Channels::Sy => s.dv[1],
+        }
+    };
+    let mut best = (0.0, 0.0, f64::NEG_INFINITY);
+    for j in 1..g.nv - 1 {
+        for i in 1..g.nu - 1 {
+            let (u, v) = (g.u0 + i as f64 * g.h, g.v0 + j as f64 * g.h);
+            let d = f(u, v);
+            if d > best.2 {
+                best = (u, v, d);
+            }
+        }
+    }
+    let mut step = g.h / 4.0;
+    for _ in 0..3 {
+        let (cu, cv) = (best.0, best.1);
+        for b in -4..=4 {
+            for a in -4..=4 {
+                let (u, v) = (cu + a as f64 * step, cv + b as f64 * step);
+                let d = f(u, v);
+                if d > best.2 {
+                    best = (u, v, d);
+                }
+            }
+        }
+        step /= 4.0;
+    }
+    best
+}
+
+/// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
+/// not above `min_peak`.
+pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize, min_peak: f64) -> Vec<BeadInit> {
+    let (pu, pv, d0) = template_dmap_peak(tpl, ch);
+    if !(d0 > 0.0) {
+        return vec![];
+    }
+    let mut work = d.data.clone();
+    let (ax, ay) = (AxisMap::new(&d.x), AxisMap::new(&d.y));
+    let ((u0, u1), (v0, v1)) = tpl.extent();
+    let sub = |work: &mut Array2<f64>, b: &BeadInit| {
+        for r in ay.range(b.y + v0, b.y + v1) {
+            for c in ax.range(b.x + u0, b.x + u1) {
+                let s = tpl.eval_grad(d.x[c] - b.x, d.y[r] - b.y);
+                let t = match ch {
+                    Channels::Both => s.du[0] + s.dv[1],
+                    Channels::Sx => s.du[0],
+                    Channels::Sy => s.dv[1],
+                };
+                work[[r, c]] -= b.weight * t / tpl.norm_factor;
+            }
+        }
+    };
+    let mut out = Vec::new();
+    for _ in 0..n {
+        let mut best: Option<(usize, usize, f64)> = None;
+        for ((r, c), &v) in work.indexed_iter() {
+            if v.is_finite() && best.is_none_or(|b| v > b.2) {
+                best = Some((r, c, v));
+            }
+        }
+        let Some((r, c, v)) = best else { break };
+        if !(v > 0.0 && v > min_peak) {
+            break;
+        }
+        let para = |a: Option<f64>, b: f64, cc: Option<f64>| -> f64 {
+            match (a, cc) {
+                (Some(a), Some(cc)) if a.is_finite() && cc.is_finite() => {
+                    let den = a - 2.0 * b + cc;
+                    if den < 0.0 {
+                        (0.5 * (a - cc) / den).clamp(-0.5, 0.5)
+                    } else {
+                        0.0
+                    }
+                }
+                _ => 0.0,
+            }
+        };
+        let (rows, cols) = work.dim();
+        let fx = para((c > 0).then(|| work[[r, c - 1]]), v, (c + 1 < cols).then(|| work[[r, c + 1]]));
+        let fy = para((r > 0).then(|| work[[r - 1, c]]), v, (r + 1 < rows).then(|| work[[r + 1, c]]));
+        let x = d.x[c] + fx * ax.h - pu;
+        let y = d.y[r] + fy * ay.h - pv;
+        // Instrument units → reference-bead units: the bead's D peak is C·d0/norm_factor.
+        let b = BeadInit { x, y, weight: v * tpl.norm_factor / d0 };
+        sub(&mut work, &b);
+        out.push(b);
+    }
+    out
+}
+
+/// The images prepared for fitting.
+struct FitData<'a> {
+    tpl: &'a Template,
+    x: Vec<f64>,
+    y: Vec<f64>,
+    ax: AxisMap,
+    ay: AxisMap,
+    /// Row-major (rows, cols) data of the two channels; NaN = invalid.
+    ch_data: [Vec<f64>; 2],
+    chans: &'static [usize],
+    m: usize,
+    area: f64,
+    w0: f64,
+    min_sep: f64,
+    /// 1/norm_factor: instrument units per reference-bead unit.
+    inv_f: f64,
+}
+
+impl<'a> FitData<'a> {
+    fn new(sx: &Image, sy: &Image, tpl: &'a Template, opts: &FitOptions) -> Result<Self> {
+        if sx.data.dim() != sy.data.dim() || sx.x != sy.x || sx.y != sy.y {
+            return Err(AnalysisError::BadInput { name: "sy", reason: "Sx and Sy images must have the same shape and axes".into() });
+        }
+        if sx.rows() == 0 || sx.cols() == 0 {
+            return Err(AnalysisError::BadInput { name: "sx", reason: "empty image".into() });
+        }
+        check_axis("sx.x", &sx.x, 1)?;
+        check_axis("sx.y", &sx.y, 1)?;
+        let tr = tpl.truncation();
+        if tr > opts.max_truncation {
+            let ((u0, u1), (v0, v1)) = tpl.extent();
+            return Err(AnalysisError::TemplateCoverage(format!(
+                "the template is truncated: its border value is {:.1}% of its peak (allowed {:.1}%); it covers only u ∈ [{u0}, {u1}], v ∈ [{v0}, {v1}] µm, build it wider",
+                100.0 * tr,
+                100.0 * opts.max_truncation
+            )));
+        }
+        let ch_data = [sx.data.iter().copied().collect::<Vec<_>>(), sy.data.iter().copied().collect::<Vec<_>>()];
+        let chans = opts.channels.list();
+        let m: usize = chans.iter().map(|&c| ch_data[c].iter().filter(|v| v.is_finite()).count()).sum();
+        if m == 0 {
+            return Err(AnalysisError::BadInput { name: "sx, sy", reason: "no finite pixel in the fitted channels".into() });
+        }
+        let (ax, ay) = (AxisMap::new(&sx.x), AxisMap::new(&sy.y));
+        let (px, py) = (ax.h.abs(), ay.h.abs());
+        let (px, py) = (if px > 0.0 { px } else { py }, if py > 0.0 { py } else { px });
+        let (px, py) = if px > 0.0 { (px, py) } else { (tpl.grid.h, tpl.grid.h) };
+        let area = sx.cols() as f64 * px * sx.rows() as f64 * py;
+        Ok(Self {
+            tpl,
+            x: sx.x.clone(),
+            y: sx.y.clone(),
+            ax,
+            ay,
+            ch_data,
+            chans,
+            m,
+            area,
+            w0: opts.w0_um,
+            min_sep: opts.min_separation * opts.w0_um,
+            inv_f: 1.0 / tpl.norm_factor,
+        })
+    }
+
+    fn nx(&self) -> usize {
+        self.x.len()
+    }
+
+    /// Error when the image cannot support `n` beads.
+    fn check_count(&self, n: usize) -> Result<()> {
+        let patch = (self.min_sep.max(0.25 * self.w0)).powi(2);
+        let by_area = (self.area / patch).floor() as usize;
+        let by_data = self.m.saturating_sub(1) / 3;
+        let nmax = by_area.min(by_data);
+        if n > nmax {
+            return Err(AnalysisError::TooManyBeads(format!(
+                "n = {n} beads but this image supports at most {nmax} (area {:.3} µm² / ({:.3} µm)² per bead = {by_area}; {} residuals allow {by_data} beads of 3 parameters)",
+                self.area,
+                patch.sqrt(),
+                self.m
+            )));
+        }
+        Ok(())
+    }
+
+    /// True when a bead at (x, y) has template support overlapping the image.
+    fn reaches(&self, x: f64, y: f64) -> bool {
+        let ((u0, u1), (v0, v1)) = self.tpl.extent();
+        !self.ax.range(x + u0, x + u1).is_empty() && !self.ay.range(y + v0, y + v1).is_empty()
+    }
+
+    /// Accumulate RSS, JᵀJ and Jᵀr at parameters p = [C, x, y]ᵢ.
+    fn accumulate(&self, p: &[f64], want_normal: bool) -> (f64, DMatrix<f64>, DVector<f64>) {
+        let nb = p.len() / 3;
+        let np = p.len();
+        let mut jtj = DMatrix::<f64>::zeros(if want_normal { np } else { 0 }, if want_normal { np } else { 0 });
+        let mut jtr = DVector::<f64>::zeros(if want_normal { np } else { 0 });
+        let ((u0, u1), (v0, v1)) = self.tpl.extent();
+        let cr: Vec<std::ops::Range<usize>> = (0..nb).map(|i| self.ax.range(p[3 * i + 1] + u0, p[3 * i + 1] + u1)).collect();
+        let rr: Vec<std::ops::Range<usize>> = (0..nb).map(|i| self.ay.range(p[3 * i + 2] + v0, p[3 * i + 2] + v1)).collect();
+        let nx = self.nx();
+        let mut rss = 0.0;
+        let mut act: Vec<(usize, f64, crate::optics::grid::Sample)> = Vec::with_capacity(nb);
+        let mut g = vec![0.0f64; np];
+        let mut gi: Vec<usize> = Vec::with_capacity(np);
+        let mut row_beads: Vec<usize> = Vec::with_capacity(nb);
+        // Local 3k×3k accumulation: for each pixel the active parameter list is short.
+        for r in 0..self.y.len() {
+            row_beads.clear();
+            row_beads.extend((0..nb).filter(|&i| rr[i].contains(&r)));
+            let yv = self.y[r];
+            for c in 0..nx {
+                let k = r * nx + c;
+                let valid: [bool; 2] = [self.ch_data[0][k].is_finite(), self.ch_data[1][k].is_finite()];
+                if !self.chans.iter().any(|&ch| valid[ch]) {
+                    continue;
+                }
+                act.clear();
+                for &i in &row_beads {
+                    if cr[i].contains(&c) {
+                        let s = if want_normal {
+                            self.tpl.eval_grad(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2])
+                        } else {
+                            crate::optics::grid::Sample { v: self.tpl.eval(self.x[c] - p[3 * i + 1], yv - p[3 * i + 2]), ..Default::default() }
+                        };
+                        // Weights are in reference-bead units, the data in instrument units.
+                        act.push((i, p[3 * i] * self.inv_f, s));
+                    }
+                }
+                for &ch in self.chans {
+                    if !valid[ch] {
+                        continue;
+                    }
+                    let mut model = 0.0;
+                    for &(_, w, s) in &act {
+                        model += w * s.v[ch];
+                    }
+                    let res = model - self.ch_data[ch][k];
+                    rss += res * res;
+                    if want_normal && !act.is_empty() {
+                        gi.clear();
+                        for &(i, w, s) in &act {
+                            g[3 * i] = s.v[ch] * self.inv_f;
+                            g[3 * i + 1] = -w * s.du[ch];
+                            g[3 * i + 2] = -w * s.dv[ch];
+                            gi.extend_from_slice(&[3 * i, 3 * i + 1, 3 * i + 2]);
+                        }
+                        for (a, &ia) in gi.iter().enumerate() {
+                            let ga = g[ia];
+                            jtr[ia] += ga * res;
+                            for &ib in &gi[a..] {
+                                jtj[(ia, ib)] += ga * g[ib];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if want_normal {
+            // Symmetrise (only pairs (ia ≤ ib in the per-pixel order) were filled).
+            for a in 0..np {
+                for b in a + 1..np {
+                    let s = jtj[(a, b)] + jtj[(b, a)];
+                    jtj[(a, b)] = s;
+                    jtj[(b, a)] = s;
+                }
+            }
+        }
+        (rss, jtj, jtr)
+    }
+
+    /// Model images of both channels for beads p.
+    fn model(&self, p: &[f64]) -> [Array2<f64>; 3] {
+        let beads: Vec<(f64, f64, f64)> = p.chunks(3).map(|b| (b[1], b[2], b[0] * self.inv_f)).collect();
+        self.tpl.render(&beads, &self.x, &self.y)
+    }
+
+    /// One LM run from `init`.
+    fn run_lm(&self, init: &[BeadInit], opts: &FitOptions) -> Result<RawFit> {
+        let x0 = DVector::from_iterator(init.len() * 3, init.iter().flat_map(|b| [b.weight, b.x, b.y]));
+        let prob = Reduced { data: self, x: x0, cache: RefCell::new(None), njac: Cell::new(0), nres: Cell::new(0) };
+        let lm = LevenbergMarquardt::new().with_ftol(opts.ftol).with_xtol(opts.xtol).with_gtol(opts.gtol).with_patience(opts.patience);
+        let (prob, report) = lm.minimize(prob);
+        let (status, reason) = match &report.termination {
+            TerminationReason::Converged { ftol, xtol } => (FitStatus::Converged, format!("converged (ftol: {ftol}, xtol: {xtol})")),
+            TerminationReason::Orthogonal => (FitStatus::Converged, "converged (gradient orthogonal to residuals, gtol)".into()),
+            TerminationReason::ResidualsZero => (FitStatus::Converged, "residuals are zero".into()),
+            TerminationReason::LostPatience => (FitStatus::MaxEvaluations, format!("evaluation budget exhausted ({} evaluations)", report.number_of_evaluations)),
+            other => (FitStatus::Failed, format!("{other:?}")),
+        };
+        let p: Vec<f64> = prob.x.iter().copied().collect();
+        if p.iter().any(|v| !v.is_finite()) {
+            return Err(AnalysisError::Failed(format!("the optimiser returned non-finite parameters ({reason})")));
+        }
+        Ok(RawFit { p, status, reason, iterations: prob.njac.get(), evaluations: prob.nres.get().max(report.number_of_evaluations) })
+    }
+
+    /// LM fit with all degeneracy checks (see the module docs).
+    fn fit_with_degeneracy(&self, init: Vec<BeadInit>, opts: &FitOptions) -> Result<FitResult> {
+        let mut res = self.fit_merge_close(init, opts, Vec::new())?;
+        let lim = opts.resolve_separation * self.w0;
+        'outer: while opts.merge_degenerate && lim > 0.0 && res.beads.len() > 1 {
+            let b = &res.beads;
+            let mut pairs: Vec<(usize, usize, f64)> = Vec::new();
+            for i in 0..b.len() {
+                for j in i + 1..b.len() {
+                    let d = (b[i].x - b[j].x).hypot(b[i].y - b[j].y);
+                    if d < lim {
+                        pairs.push((i, j, d));
+                    }
+                }
+            }
+            pairs.sort_by(|a, b| a.2.total_cmp(&b.2));
+            for (i, j, d) in pairs {
+                let (a, c) = (b[i], b[j]);
+                let mut init: Vec<BeadInit> = b.iter().enumerate().filter(|(k, _)| *k != i && *k != j).map(|(_, x)| BeadInit { x: x.x, y: x.y, weight: x.weight }).collect();
+                init.push(merge_pair(BeadInit { x: a.x, y: a.y, weight: a.weight }, BeadInit { x: c.x, y: c.y, weight: c.weight }));
+                let mut deg = res.degeneracies.clone();
+                let alt0 = self.fit_merge_close(init, opts, Vec::new())?;
+                let insignificant = |x: &Bead| x.weight.abs() < 1e-9 || x.weight_err.is_some_and(|e| x.weight.abs() < 2.0 * e);
+                if alt0.bic <= res.bic || insignificant(&a) || insignificant(&c) {
+                    deg.push(Degeneracy::Unresolved { a: [a.x, a.y, a.weight], b: [c.x, c.y, c.weight], distance_um: d, delta_bic: res.bic - alt0.bic });
+                    deg.extend(alt0.degeneracies.iter().cloned());
+                    let total = res.total_evaluations + alt0.total_evaluations;
+                    res = alt0;
+                    res.degeneracies = deg;
+                    res.total_evaluations = total;
+                    continue 'outer;
+                }
+            }
+            break;
+        }
+        // Weights consistent with zero.
+        let extra: Vec<Degeneracy> = res
+            .beads
+            .iter()
+            .filter(|b| b.weight.abs() < 1e-9 || b.weight_err.is_some_and(|e| b.weight.abs() < 2.0 * e))
+            .map(|b| Degeneracy::Insignificant { x: b.x, y: b.y, weight: b.weight, weight_err: b.weight_err })
+            .collect();
+        res.degeneracies.extend(extra);
+        Ok(res)
+    }
+
+    /// LM fit with merging of pairs closer than min_separation·w0 and dropping of beads out of
+    /// reach, then the statistics.
+    fn fit_merge_close(&self, init: Vec<BeadInit>, opts: &FitOptions, mut degeneracies: Vec<Degeneracy>) -> Result<FitResult> {
+        let mut beads = init;
+        let mut total_eval = 0;
+        let mut raw;
+        loop {
+            raw = self.run_lm(&beads, opts)?;
+            total_eval += raw.evaluations;
+            let cur: Vec<BeadInit> = raw.p.chunks(3).map(|b| BeadInit { weight: b[0], x: b[1], y: b[2] }).collect();
+            // Beads out of reach.
+            let (keep, gone): (Vec<BeadInit>, Vec<BeadInit>) = cur.iter().partition(|b| self.reaches(b.x, b.y));
+            if !gone.is_empty() && !keep.is_empty() {
+                for b in &gone {
+                    degeneracies.push(Degeneracy::BeadOutside { x: b.x, y: b.y, weight: b.weight });
+                }
+                beads = keep;
+                continue;
+            }
+            // Closest pair below the separation limit.
+            let mut pair: Option<(usize, usize, f64)> = None;
+            for i in 0..cur.len() {
+                for j in i + 1..cur.len() {
+                    let d = (cur[i].x - cur[j].x).hypot(cur[i].y - cur[j].y);
+                    if d < self.min_sep && pair.is_none_or(|p| d < p.2) {
+                        pair = Some((i, j, d));
+                    }
+                }
+            }
+            if let Some((i, j, d)) = pair {
+                let (a, b) = (cur[i], cur[j]);
+                degeneracies.push(Degeneracy::CloseBeads {
+                    a: [a.x, a.y, a.weight],
+                    b: [b.x, b.y, b.weight],
+                    distance_um: d,
+                    merged: opts.merge_degenerate,
+                });
+                if opts.merge_degenerate {
+                    let merged = merge_pair(a, b);
+                    let mut next: Vec<BeadInit> = cur.iter().enumerate().filter(|(k, _)| *k != i && *k != j).map(|(_, b)| *b).collect();
+                    next.push(merged);
+                    beads = next;
+                    continue;
+                }
+            }
+            break;
+        }
+        // Statistics at the solution.
+        let p = &raw.p;
+        let nb = p.len() / 3;
+        let (rss, jtj, _) = self.accumulate(p, true);
+        let np = p.len();
+        let dof = self.m.saturating_sub(np);
+        let (sigma, est) = match opts.sigma {
+            Some(s) => (s, false),
+            None => ((rss / dof.max(1) as f64).sqrt(), true),
+        };
+        let chi2 = if sigma > 0.0 { rss / (sigma * sigma) } else { 0.0 };
+        let mf = self.m as f64;
+        let bic = match opts.sigma {
+            Some(_) => chi2 + np as f64 * mf.ln(),
+            None => mf * (rss.max(1e-300) / mf).ln() + np as f64 * mf.ln(),
+        };
+        let condition = scaled_condition(&jtj);
+        let ill = !(condition <= opts.cond_limit);
+        if ill {
+            degeneracies.push(Degeneracy::IllConditioned { condition });
+        }
+        let cov = if ill { None } else { jtj.clone().cholesky().map(|c| c.inverse() * (sigma * sigma)) };
+        let beads_out: Vec<Bead> = (0..nb)
+            .map(|i| {
+                let e = |k: usize| cov.as_ref().map(|c| c[(3 * i + k, 3 * i + k)].max(0.0).sqrt());
+                Bead { weight: p[3 * i], x: p[3 * i + 1], y: p[3 * i + 2], weight_err: e(0), x_err: e(1), y_err: e(2) }
+            })
+            .collect();
+        let [msx, msy, _] = self.model(p);
+        let shape = msx.dim();
+        let dsx = Array2::from_shape_vec(shape, self.ch_data[0].clone()).expect("shape");
+        let dsy = Array2::from_shape_vec(shape, self.ch_data[1].clone()).expect("shape");
+        let img = |a: Array2<f64>| Image::new(a, self.x.clone(), self.y.clone());
+        Ok(FitResult {
+            beads: beads_out,
+            residual_sx: img(&dsx - &msx),
+            residual_sy: img(&dsy - &msy),
+            model_sx: img(msx),
+            model_sy: img(msy),
+            rss,
+            chi2,
+            dof,
+            n_residuals: self.m,
+            sigma,
+            sigma_estimated: est,
+            bic,
+            iterations: raw.iterations,
+            evaluations: raw.evaluations,
+            total_evaluations: total_eval,
+            status: raw.status,
+            reason: raw.reason,
+            condition,
+            degeneracies,
+            history: vec![],
+        })
+    }
+}
+
+/// One bead replacing two: weights summed, position |C|-weighted.
+fn merge_pair(a: BeadInit, b: BeadInit) -> BeadInit {
+    let (wa, wb) = (a.weight.abs(), b.weight.abs());
+    let s = wa + wb;
+    if s > 0.0 {
+        BeadInit { x: (wa * a.x + wb * b.x) / s, y: (wa * a.y + wb * b.y) / s, weight: a.weight + b.weight }
+    } else {
+        BeadInit { x: 0.5 * (a.x + b.x), y: 0.5 * (a.y + b.y), weight: 0.0 }
+    }
+}
+
+struct RawFit {
+    p: Vec<f64>,
+    status: FitStatus,
+    reason: String,
+    iterations: usize,
+    evaluations: usize,
+}
+
+/// Condition number of D⁻¹AD⁻¹ with D = √diag(A) (1e300 when singular).
+fn scaled_condition(a: &DMatrix<f64>) -> f64 {
+    let n = a.nrows();
+    if n == 0 {
+        return 1.0;
+    }
+    let d: Vec<f64> = (0..n).map(|i| a[(i, i)].max(0.0).sqrt()).collect();
+    if d.iter().any(|&v| !(v > 0.0)) {
+        return 1e300;
+    }
+    let s = DMatrix::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
+    let ev = s.symmetric_eigenvalues();
+    let (lo, hi) = ev.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
+    if !(lo > 0.0) || !hi.is_finite() {
+        1e300
+    } else {
+        (hi / lo).min(1e300)
+    }
+}
+
+/// The (3n+1)-row problem equivalent to the full pixel problem (see the module docs).
+struct Reduced<'a, 'b> {
+    data: &'b FitData<'a>,
+    x: DVector<f64>,
+    #[allow(clippy::type_complexity)]
+    cache: RefCell<Option<(DVector<f64>, DVector<f64>, DMatrix<f64>)>>,
+    njac: Cell<usize>,
+    nres: Cell<usize>,
+}
+
+impl Reduced<'_, '_> {
+    fn compute(&self) -> Option<(DVector<f64>, DMatrix<f64>)> {
+        if let Some((x, r, j)) = self.cache.borrow().as_ref() {
+            if *x == self.x {
+                return Some((r.clone(), j.clone()));
+            }
+        }
+        self.nres.set(self.nres.get() + 1);
+        let p: Vec<f64> = self.x.iter().copied().collect();
+        let (rss, jtj, jtr) = self.data.accumulate(&p, true);
+        if !rss.is_finite() || jtj.iter().any(|v| !v.is_finite()) {
+            return None;
+        }
+        let n = p.len();
+        let (rmat, rt) = match jtj.clone().cholesky() {
+            Some(ch) => {
+                let l = ch.l();
+                let rt = l.solve_lower_triangular(&jtr).filter(|v| v.iter().all(|x| x.is_finite()));
+                match rt {
+                    Some(rt) => (l.transpose(), rt),
+                    None => sym_sqrt(&jtj, &jtr),
+                }
+            }
+            None => sym_sqrt(&jtj, &jtr),
+        };
+        let extra = (rss - rt.norm_squared()).max(0.0).sqrt();
+        let mut r = DVector::zeros(n + 1);
+        r.rows_mut(0, n).copy_from(&rt);
+        r[n] = extra;
+        let mut j = DMatrix::zeros(n + 1, n);
+        j.view_mut((0, 0), (n, n)).copy_from(&rmat);
+        *self.cache.borrow_mut() = Some((self.x.clone(), r.clone(), j.clone()));
+        Some((r, j))
+    }
+}
+
+/// R = Λ^{1/2}Vᵀ and r̃ = Λ^{-1/2}VᵀJᵀr for a symmetric positive semi-definite JᵀJ = VΛVᵀ
+/// (null directions get zero rows).
+fn sym_sqrt(jtj: &DMatrix<f64>, jtr: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
+    let n = jtj.nrows();
+    let e = jtj.clone().symmetric_eigen();
+    let lmax = e.eigenvalues.iter().copied().fold(0.0, f64::max);
+    let mut r = DMatrix::zeros(n, n);
+    let mut rt = DVector::zeros(n);
+    let vt_g = e.eigenvectors.transpose() * jtr;
+    for k in 0..n {
+        let l = e.eigenvalues[k];
+        if l > 1e-14 * lmax && l > 0.0 {
+            let s = l.sqrt();
+            for c in 0..n {
+                r[(k, c)] = s * e.eigenvectors[(c, k)];
+            }
+            rt[k] = vt_g[k] / s;
+        }
+    }
+    (r, rt)
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Reduced<'_, '_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.x.copy_from(x);
+    }
+    fn params(&self) -> DVector<f64> {
+        self.x.clone()
+    }
+    fn residuals(&self) -> Option<DVector<f64>> {
+        self.compute().map(|c| c.0)
+    }
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        self.njac.set(self.njac.get() + 1);
+        self.compute().map(|c| c.1)
+    }
+}
+
+/// Full residual vector and Jacobian (one row per valid pixel and channel) — the uncompressed
+/// problem, for tests and for users who want J itself. Rows ordered channel-major, then pixel
+/// row-major.
+pub fn full_jacobian(sx: &Image, sy: &Image, tpl: &Template, beads: &[BeadInit], channels: Channels) -> Result<(DVector<f64>, DMatrix<f64>)> {
+    let opts = FitOptions { channels, max_truncation: 1.0, ..Default::default() };
+    let d = FitData::new(sx, sy, tpl, &opts)?;
+    let np = beads.len() * 3;
+    let mut r = Vec::new();
+    let mut rows: Vec<Vec<f64>> = Vec::new();
+    let nx = d.nx();
+    for &ch in d.chans {
+        for k in 0..d.ch_data[ch].len() {
+            let v = d.ch_data[ch][k];
+            if !v.is_finite() {
+                continue;
+            }
+            let (row, col) = (k / nx, k % nx);
+            let mut model = 0.0;
+            let mut jr = vec![0.0; np];
+            for (i, b) in beads.iter().enumerate() {
+                let s = tpl.eval_grad(d.x[col] - b.x, d.y[row] - b.y);
+                let f = d.inv_f;
+                model += b.weight * f * s.v[ch];
+                jr[3 * i] = s.v[ch] * f;
+                jr[3 * i + 1] = -b.weight * f * s.du[ch];
+                jr[3 * i + 2] = -b.weight * f * s.dv[ch];
+            }
+            r.push(model - v);
+            rows.push(jr);
+        }
+    }
+    let m = r.len();
+    Ok((DVector::from_vec(r), DMatrix::from_fn(m, np, |i, j| rows[i][j])))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compressed_problem_matches_full_normal_equations() {
+        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
+        let x: Vec<f64> = (0..40).map(|i| i as f64 * 0.05).collect();
+        let truth = [(0.8, 0.9, 1.0), (1.2, 1.1, 2.0)];
+        let [sx, sy, _] = tpl.render(&truth, &x, &x);
+        let mut sx = Image::new(sx, x.clone(), x.clone());
+        sx.data[[3, 4]] = f64::NAN;
+        let sy = Image::new(sy, x.clone(), x.clone());
+        let guess = [BeadInit { x: 0.82, y: 0.88, weight: 1.1 }, BeadInit { x: 1.18, y: 1.13, weight: 1.8 }];
+        let (r, j) = full_jacobian(&sx, &sy, &tpl, &guess, Channels::Both).unwrap();
+        let d = FitData::new(&sx, &sy, &tpl, &FitOptions::default()).unwrap();
+        let p: Vec<f64> = guess.iter().flat_map(|b| [b.weight, b.x, b.y]).collect();
+        let (rss, jtj, jtr) = d.accumulate(&p, true);
+        assert!((rss - r.norm_squared()).abs() < 1e-10 * rss);
+        let jtj_full = j.transpose() * &j;
+        let jtr_full = j.transpose() * &r;
+        assert!((jtj - &jtj_full).amax() < 1e-9 * jtj_full.amax());
+        assert!((jtr - &jtr_full).amax() < 1e-9 * jtr_full.amax());
+        // Analytic Jacobian vs central differences of the residuals.
+        let h = 1e-6;
+        for k in 0..6 {
+            let mut gp = guess;
+            let mut gm = guess;
+            let (bi, pi) = (k / 3, k % 3);
+            let bump = |b: &mut BeadInit, s: f64| match pi {
+                0 => b.weight += s,
+                1 => b.x += s,
+                _ => b.y += s,
+            };
+            bump(&mut gp[bi], h);
+            bump(&mut gm[bi], -h);
+            let (rp, _) = full_jacobian(&sx, &sy, &tpl, &gp, Channels::Both).unwrap();
+            let (rm, _) = full_jacobian(&sx, &sy, &tpl, &gm, Channels::Both).unwrap();
+            let fd = (rp - rm) / (2.0 * h);
+            assert!((fd - j.column(k)).amax() < 1e-6, "column {k}");
+        }
+    }
+}

@@ -1,0 +1,126 @@
+//! Focus search (suppl. S5): from an XZ (or YZ) scan of a small object, the maximum sensitivity
+//! of each z row (parabola over `window_um`, as in Sec. 5), then the best z by a parabola through
+//! the row maxima around the best row (over `z_window_um`), with its uncertainty, and the z range
+//! over which the maximum sensitivity stays within `level` (paper: 98 %) of its peak.
+//!
+//! Input: the channel image with the lateral scan axis as columns and z as rows (Sx of an XZ
+//! scan; Sy of a YZ scan with y as columns). Units: z and positions in µm.
+
+use super::peaks::{peak_1d, row_peaks, LinePeak, PeakOptions};
+use super::sensitivity::{sensitivity, Axis, Stencil};
+use super::{check_range, AnalysisError, Result};
+use crate::data::Image;
+use serde::{Deserialize, Serialize};
+
+/// Options of [`focus_search`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FocusOptions {
+    pub stencil: Stencil,
+    /// Lateral parabola window, µm.
+    pub window_um: f64,
+    /// Window of the parabola over z, µm.
+    pub z_window_um: f64,
+    /// Fraction of the peak defining the tolerated z range (paper: 0.98).
+    pub level: f64,
+}
+
+impl Default for FocusOptions {
+    fn default() -> Self {
+        Self {
+            stencil: Stencil::Central2,
+            window_um: 0.4,
+            z_window_um: 0.6,
+            level: 0.98,
+        }
+    }
+}
+
+/// Result of [`focus_search`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FocusResult {
+    /// Best z (µm) and its 1σ (None when the parabola has no residual degrees of freedom).
+    pub z_best: f64,
+    pub z_err: Option<f64>,
+    /// Maximum sensitivity at z_best.
+    pub max_sens: f64,
+    pub max_sens_err: Option<f64>,
+    /// Lower and upper z where the row maxima fall to `level`·max_sens (linear interpolation);
+    /// None on a side where they stay above it up to the end of the scan.
+    pub z_lo: Option<f64>,
+    pub z_hi: Option<f64>,
+    /// Per-row maxima (rows are z).
+    pub rows: Vec<LinePeak>,
+}
+
+/// Best focus from an XZ/YZ scan channel (see the module docs). Errors: fewer than 3 rows with a
+/// maximum, no maximum over z (best row at the scan's end: extend the z range), bad options.
+pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
+    check_range("z_window_um", opts.z_window_um, 1e-3, 1e3)?;
+    check_range("level", opts.level, 0.0, 1.0)?;
+    let sens = sensitivity(img, Axis::X, opts.stencil)?;
+    let rows = row_peaks(
+        &sens,
+        &PeakOptions {
+            window_um: opts.window_um,
+            ..Default::default()
+        },
+    )?;
+    let z: Vec<f64> = rows.iter().map(|r| r.coord).collect();
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|r| r.peak().map(|p| p.value).unwrap_or(f64::NAN))
+        .collect();
+    let n_ok = v.iter().filter(|x| x.is_finite()).count();
+    if n_ok < 3 {
+        return Err(AnalysisError::Failed(format!(
+            "only {n_ok} z rows show a sensitivity maximum; at least 3 are needed"
+        )));
+    }
+    let p = peak_1d(
+        &z,
+        &v,
+        &PeakOptions {
+            window_um: opts.z_window_um,
+            ..Default::default()
+        },
+    )
+    .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
+    let thr = opts.level * p.value;
+    // Walk outwards from the best row to the first crossings.
+    let ib = p.index;
+    let cross = |range: Box<dyn Iterator<Item = usize>>| -> Option<f64> {
+        let mut prev = ib;
+        for i in range {
+            if v[i].is_finite() {
+                if v[i] < thr {
+                    let f = (v[prev] - thr) / (v[prev] - v[i]);
+                    return Some(z[prev] + f * (z[i] - z[prev]));
+                }
+                prev = i;
+            }
+        }
+        None
+    };
+    let a = cross(Box::new((0..ib).rev()));
+    let b = cross(Box::new(ib + 1..z.len()));
+    let (z_lo, z_hi) = match (a, b) {
+        (Some(a), Some(b)) => (Some(a.min(b)), Some(a.max(b))),
+        (a, b) => {
+            if z.first() <= z.last() {
+                (a, b)
+            } else {
+                (b, a)
+            }
+        }
+    };
+    Ok(FocusResult {
+        z_best: p.pos,
+        z_err: p.pos_err,
+        max_sens: p.value,
+        max_sens_err: p.value_err,
+        z_lo,
+        z_hi,
+        rows,
+    })
+}

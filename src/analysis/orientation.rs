@@ -1,0 +1,478 @@
+//! Filament orientation (Sec. 4.2, the 5-step procedure, Fig. 4d).
+//!
+//! - [`AngleCurve`]: the calibration curve — maximum Sx and Sy sensitivity of a uniform
+//!   bead-model filament versus its angle to the QPD y-axis, at 19 angles spanning 180°
+//!   (−90°…90° in 10° steps; ±90° are the same orientation and are averaged), computed from the
+//!   template through the same measurement pipeline as the data (pixel size, derivative stencil,
+//!   parabola window), interpolated periodically (period 180°, cubic convolution).
+//! - [`measure_filament`]: steps 4–5 — maximum S_x sensitivity per row and S_y sensitivity per
+//!   column, the filament orientation from a straight-line fit through the maxima positions
+//!   (rows: x = a + b·y, angle = atan b; columns: y = a + b·x, angle = atan2(1, b)), the channel
+//!   chosen as the paper prescribes (closer to the y-axis, |angle| ≤ 45°: S_x per row; closer to
+//!   the x-axis: S_y per column), and the correction to the sensitivity the filament would give
+//!   along the y-axis: sens_corr = sens × curve.sx(0°)/curve.sx(θ) (rows) or
+//!   × curve.sx(0°)/curve.sy(θ) (columns).
+//!
+//! **Finding the filament among other objects.** The line is found robustly: every local
+//! maximum of each row (column) above `detect_snr` × the pixel noise of the sensitivity image
+//! (robust, from first differences) is a candidate
+//! (sub-pixel by the parabola), a RANSAC search (deterministic, 4000 candidate pairs from lines at
+//! least 5 apart) picks the line with the most rows (columns) having a candidate within
+//! `max_offset_um`, refined by least squares on the inliers. The maxima along the filament are
+//! then read from each row (column) in a ±`window_um` neighbourhood of the line (a parabola over
+//! `window_um` there), so point objects elsewhere in the row do not replace the filament's
+//! maximum. [`measure_filament_along`] does the last step for a given line (e.g. to measure the
+//! same filament before and after background removal).
+//!
+//! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
+
+use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
+use super::peaks::{peak_1d, PeakOptions};
+use super::sensitivity::{sensitivity, Axis, Stencil};
+use super::stats::{linfit, robust_std, summary};
+use super::template::Template;
+use super::{check_range, AnalysisError, Result};
+use crate::data::Image;
+use serde::{Deserialize, Serialize};
+
+/// The measurement pipeline for maximum sensitivities: derivative stencil, parabola window,
+/// and detection threshold (per-line SNR; 0 = off).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct MeasureOptions {
+    pub stencil: Stencil,
+    /// Parabola window, µm (paper: 0.4).
+    pub window_um: f64,
+    /// Per-line maxima below min_snr × line noise are ignored (0: keep all).
+    pub min_snr: f64,
+    /// Maxima farther than this from the fitted filament line are ignored, µm.
+    pub max_offset_um: f64,
+    /// Candidate maxima for the line search must exceed detect_snr × the pixel noise of the
+    /// sensitivity image (1.4826·MAD of first differences/√2).
+    pub detect_snr: f64,
+}
+
+impl Default for MeasureOptions {
+    fn default() -> Self {
+        Self { stencil: Stencil::Central2, window_um: 0.4, min_snr: 0.0, max_offset_um: 0.15, detect_snr: 4.0 }
+    }
+}
+
+impl MeasureOptions {
+    pub(crate) fn validate(&self) -> Result<()> {
+        check_range("window_um", self.window_um, 1e-3, 100.0)?;
+        check_range("min_snr", self.min_snr, 0.0, 1e6)?;
+        check_range("max_offset_um", self.max_offset_um, 0.0, 100.0)?;
+        check_range("detect_snr", self.detect_snr, 0.0, 1e6)?;
+        Ok(())
+    }
+    pub(crate) fn peak_options(&self) -> PeakOptions {
+        PeakOptions { window_um: self.window_um, min_snr: self.min_snr, ..Default::default() }
+    }
+}
+
+/// Options of [`AngleCurve::compute`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct AngleCurveOptions {
+    /// Angles spanning 180° (paper: 19).
+    pub n_angles: usize,
+    /// Pixel size of the scans the curve will be applied to, µm.
+    pub pixel_um: f64,
+    /// Bead-model filament: diameter (nm) and index (None: the template's reference bead).
+    pub d_nm: Option<f64>,
+    pub n: Option<f64>,
+    pub bead_model: BeadModelOptions,
+    pub measure: MeasureOptions,
+}
+
+impl Default for AngleCurveOptions {
+    fn default() -> Self {
+        Self { n_angles: 19, pixel_um: 0.05, d_nm: None, n: None, bead_model: BeadModelOptions::default(), measure: MeasureOptions::default() }
+    }
+}
+
+/// Calibration curve of maximum sensitivities versus filament angle (Fig. 4d), normalised so
+/// that the S_x maximum at 0° is 1.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AngleCurve {
+    /// Angles of the nodes (degrees, −90 ≤ θ < 90, uniform; period 180°).
+    pub angles_deg: Vec<f64>,
+    /// Normalised maximum S_x and S_y sensitivities at the nodes.
+    pub sx: Vec<f64>,
+    pub sy: Vec<f64>,
+    /// Un-normalised S_x maximum at 0° (reference-bead units): the bead-model sensitivity.
+    pub sx0: f64,
+    /// The template's norm_factor (reference-bead units per instrument unit): measurements
+    /// convert scan sensitivities with it.
+    #[serde(default = "one")]
+    pub norm_factor: f64,
+    pub options: AngleCurveOptions,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+impl AngleCurve {
+    /// Compute the curve from a template (step 2 of the paper's procedure).
+    pub fn compute(tpl: &Template, opts: &AngleCurveOptions) -> Result<AngleCurve> {
+        check_range("n_angles", opts.n_angles as f64, 5.0, 721.0)?;
+        let d = opts.d_nm.unwrap_or(tpl.reference.d_nm);
+        let n = opts.n.unwrap_or(tpl.reference.n);
+        let k = opts.n_angles - 1; // unique orientations
+        let step = 180.0 / k as f64;
+        let mut angles = Vec::with_capacity(k);
+        let mut sx = Vec::with_capacity(k);
+        let mut sy = Vec::with_capacity(k);
+        for i in 0..k {
+            let a = -90.0 + i as f64 * step;
+            let (x, y) = straight_filament_max_sens(tpl, d, n, a, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+            angles.push(a);
+            sx.push(x);
+            sy.push(y);
+        }
+        // The node at +90° is the same orientation as −90°: average them.
+        let (x90, y90) = straight_filament_max_sens(tpl, d, n, 90.0, opts.pixel_um, &opts.measure, &opts.bead_model)?;
+        sx[0] = 0.5 * (sx[0] + x90);
+        sy[0] = 0.5 * (sy[0] + y90);
+        let mut c = AngleCurve { angles_deg: angles, sx: sx.clone(), sy: sy.clone(), sx0: 1.0, norm_factor: tpl.norm_factor, options: *opts };
+        let s0 = c.eval_raw(0.0).0;
+        if !(s0 > 0.0) {
+            return Err(AnalysisError::Failed(format!("bead-model S_x maximum at 0° is {s0}: the template gives no filament signal")));
+        }
+        c.sx = sx.iter().map(|v| v / s0).collect();
+        c.sy = sy.iter().map(|v| v / s0).collect();
+        c.sx0 = s0;
+        Ok(c)
+    }
+
+    fn eval_raw(&self, angle_deg: f64) -> (f64, f64) {
+        let k = self.angles_deg.len();
+        let step = 180.0 / k as f64;
+        let t = (angle_deg + 90.0).rem_euclid(180.0) / step;
+        let i = t.floor() as isize;
+        let f = t - i as f64;
+        let w = keys(f);
+        let idx = |j: isize| (j.rem_euclid(k as isize)) as usize;
+        let (mut a, mut b) = (0.0, 0.0);
+        for (m, wm) in w.iter().enumerate() {
+            let j = idx(i - 1 + m as isize);
+            a += wm * self.sx[j];
+            b += wm * self.sy[j];
+        }
+        (a, b)
+    }
+
+    /// Normalised (S_x, S_y) maximum sensitivity at any angle (periodic cubic interpolation).
+    pub fn eval(&self, angle_deg: f64) -> (f64, f64) {
+        self.eval_raw(angle_deg)
+    }
+
+    /// Correction factor for a filament at `angle_deg` measured in `channel`: multiply the
+    /// measured maximum sensitivity by it to get the value along the QPD y-axis (step 5).
+    /// Errors when the curve is not positive at that angle in that channel.
+    pub fn correction(&self, angle_deg: f64, channel: Channel) -> Result<f64> {
+        let (a, b) = self.eval(angle_deg);
+        let s0 = self.eval(0.0).0;
+        let v = match channel {
+            Channel::SxRows => a,
+            Channel::SyCols => b,
+        };
+        if !(v > 1e-6 * s0.abs()) {
+            return Err(AnalysisError::Failed(format!(
+                "the calibration curve is {v:.3e} at {angle_deg:.1}° in {channel:?}: the filament is invisible there, use the other channel"
+            )));
+        }
+        Ok(s0 / v)
+    }
+}
+
+fn keys(t: f64) -> [f64; 4] {
+    let t2 = t * t;
+    let t3 = t2 * t;
+    [0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)]
+}
+
+/// Which maxima a filament measurement uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Channel {
+    /// ∂Sx/∂x maxima per row (filament closer to the QPD y-axis).
+    SxRows,
+    /// ∂Sy/∂y maxima per column (filament closer to the QPD x-axis).
+    SyCols,
+}
+
+/// One maximum along a filament.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FilamentPoint {
+    /// Row (S_x) or column (S_y) index the maximum comes from.
+    pub line: usize,
+    /// Position of the maximum, µm.
+    pub x: f64,
+    pub y: f64,
+    /// Arc position along the filament (projection on its direction), µm, increasing.
+    pub arc_um: f64,
+    /// Measured maximum sensitivity and its 1σ (None if undetermined), reference-bead units/µm
+    /// (the scan's value × the template's norm_factor).
+    pub sens: f64,
+    pub sens_err: Option<f64>,
+    /// Corrected to the QPD y-axis orientation (step 5).
+    pub sens_corr: f64,
+}
+
+/// A straight-line fit through maxima positions.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LineFit {
+    pub angle_deg: f64,
+    pub angle_err_deg: f64,
+    /// Intercept and slope (rows: x = a + b·y; columns: y = a + b·x).
+    pub a: f64,
+    pub b: f64,
+    pub n: usize,
+}
+
+/// Result of [`measure_filament`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FilamentMeasurement {
+    pub channel: Channel,
+    pub angle_deg: f64,
+    pub angle_err_deg: f64,
+    pub line: LineFit,
+    /// The other channel's line fit, when it had enough points (for comparison).
+    pub other_line: Option<LineFit>,
+    /// Correction factor applied (sens_corr = factor·sens).
+    pub factor: f64,
+    pub points: Vec<FilamentPoint>,
+    /// Mean, std and sem of sens_corr over the points.
+    pub mean_corr: f64,
+    pub std_corr: f64,
+    pub sem_corr: f64,
+    /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y) in reference-bead
+    /// units/µm, for SBR and plots.
+    pub sens: Image,
+}
+
+/// Candidate maxima of the lines of `sens`: (line index, line coordinate, position, value).
+fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<(usize, f64, f64, f64)> {
+    // Pixel noise of the sensitivity image from first differences along the lines (robust to
+    // the objects' extended signal): 1.4826·MAD/√2.
+    let mut diffs = Vec::with_capacity(sens.data.len());
+    if rows {
+        for r in sens.data.rows() {
+            diffs.extend(r.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+        }
+    } else {
+        for c in sens.data.columns() {
+            diffs.extend(c.windows(2).into_iter().map(|w| w[1] - w[0]).filter(|d| d.is_finite()));
+        }
+    }
+    let noise = robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2;
+    let thr = (opts.detect_snr * noise).max(0.0);
+    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
+    let po = PeakOptions { window_um: opts.window_um, ..Default::default() };
+    let mut out = Vec::new();
+    for l in 0..nl {
+        let v: Vec<f64> = if rows { sens.data.row(l).to_vec() } else { sens.data.column(l).to_vec() };
+        let coord = if rows { sens.y[l] } else { sens.x[l] };
+        let mut loc: Vec<(usize, f64)> = (1..v.len().saturating_sub(1))
+            .filter(|&i| v[i].is_finite() && v[i] > thr && v[i] > v[i - 1] && v[i] >= v[i + 1])
+            .map(|i| (i, v[i]))
+            .collect();
+        loc.sort_by(|a, b| b.1.total_cmp(&a.1));
+        loc.truncate(6);
+        for (i, _) in loc {
+            // Parabola on the neighbourhood of this local maximum only.
+            let (lo, hi) = (t[i] - opts.window_um, t[i] + opts.window_um);
+            let idx: Vec<usize> = (0..v.len()).filter(|&k| t[k] >= lo.min(hi) && t[k] <= hi.max(lo)).collect();
+            let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
+            let vv: Vec<f64> = idx.iter().map(|&k| v[k]).collect();
+            if let Ok(p) = peak_1d(&tt, &vv, &po) {
+                if (p.pos - t[i]).abs() <= 0.5 * opts.window_um {
+                    out.push((l, coord, p.pos, p.value));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Perpendicular distance of a candidate from the line pos = a + b·coord.
+#[inline]
+fn dist(a: f64, b: f64, coord: f64, pos: f64) -> f64 {
+    (pos - a - b * coord).abs() / (1.0 + b * b).sqrt()
+}
+
+/// For each line, the candidate closest to the line (if within `tol`).
+fn inliers(c: &[(usize, f64, f64, f64)], a: f64, b: f64, tol: f64) -> Vec<(usize, f64, f64, f64)> {
+    let mut best: std::collections::BTreeMap<usize, (f64, (usize, f64, f64, f64))> = std::collections::BTreeMap::new();
+    for &p in c {
+        let d = dist(a, b, p.1, p.2);
+        if d <= tol && best.get(&p.0).is_none_or(|q| d < q.0) {
+            best.insert(p.0, (d, p));
+        }
+    }
+    best.into_values().map(|v| v.1).collect()
+}
+
+/// RANSAC line through candidates (see the module docs).
+fn ransac_line(c: &[(usize, f64, f64, f64)], rows: bool, tol: f64) -> Option<LineFit> {
+    if c.len() < 3 {
+        return None;
+    }
+    let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 33) as usize
+    };
+    let mut best: Option<(usize, f64, f64)> = None;
+    for _ in 0..4000 {
+        let (i, j) = (next() % c.len(), next() % c.len());
+        let (p, q) = (c[i], c[j]);
+        if p.0.abs_diff(q.0) < 5 {
+            continue;
+        }
+        let b = (q.2 - p.2) / (q.1 - p.1);
+        let a = p.2 - b * p.1;
+        let n = inliers(c, a, b, tol).len();
+        if best.is_none_or(|bb| n > bb.0) {
+            best = Some((n, a, b));
+        }
+    }
+    let (_, mut a, mut b) = best?;
+    let mut pts = Vec::new();
+    for _ in 0..3 {
+        pts = inliers(c, a, b, tol);
+        if pts.len() < 3 {
+            return None;
+        }
+        let t: Vec<f64> = pts.iter().map(|p| p.1).collect();
+        let s: Vec<f64> = pts.iter().map(|p| p.2).collect();
+        let f = linfit(&t, &s, None).ok()?;
+        a = f.intercept;
+        b = f.slope;
+    }
+    let t: Vec<f64> = pts.iter().map(|p| p.1).collect();
+    let s: Vec<f64> = pts.iter().map(|p| p.2).collect();
+    let f = linfit(&t, &s, None).ok()?;
+    let err = (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees();
+    let angle = if rows {
+        f.slope.atan().to_degrees()
+    } else {
+        let mut a = 1.0f64.atan2(f.slope).to_degrees();
+        if a > 90.0 {
+            a -= 180.0;
+        }
+        a
+    };
+    Some(LineFit { angle_deg: angle, angle_err_deg: err, a: f.intercept, b: f.slope, n: pts.len() })
+}
+
+/// Steps 4–5 of Sec. 4.2 on one scan (see the module docs). `sx`, `sy`: the raw channels of an
+/// XY scan. Errors: no straight filament found in either channel (fewer than 3 aligned maxima),
+/// a curve computed at a pixel size differing by more than 5 % from the scan's, bad options.
+pub fn measure_filament(sx: &Image, sy: &Image, curve: &AngleCurve, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    opts.validate()?;
+    check_pixel(sx, curve)?;
+    let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
+    let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
+    let lr = ransac_line(&candidates(&sxs, true, opts), true, opts.max_offset_um);
+    let lc = ransac_line(&candidates(&sys, false, opts), false, opts.max_offset_um);
+    let frac_r = lr.map(|l| l.n as f64 / sxs.rows() as f64).unwrap_or(0.0);
+    let frac_c = lc.map(|l| l.n as f64 / sys.cols() as f64).unwrap_or(0.0);
+    let ok_r = lr.is_some_and(|l| l.angle_deg.abs() <= 45.0);
+    let ok_c = lc.is_some_and(|l| l.angle_deg.abs() >= 45.0);
+    let use_rows = match (ok_r, ok_c) {
+        // Both self-consistent: the one covering more of its lines.
+        (true, true) => frac_r >= frac_c,
+        (true, false) => true,
+        (false, true) => false,
+        (false, false) => match (lr, lc) {
+            (None, None) => {
+                return Err(AnalysisError::Failed("no filament found: fewer than 3 aligned maxima of ∂Sx/∂x per row and of ∂Sy/∂y per column".into()));
+            }
+            _ => frac_r >= frac_c,
+        },
+    };
+    let (line, other, channel) = if use_rows { (lr.unwrap(), lc, Channel::SxRows) } else { (lc.unwrap(), lr, Channel::SyCols) };
+    let sens = if use_rows { sxs } else { sys };
+    let mut m = measure_sens_along(sens, curve, channel, line, opts)?;
+    m.other_line = other;
+    Ok(m)
+}
+
+fn check_pixel(sx: &Image, curve: &AngleCurve) -> Result<()> {
+    let px = sx.dx().abs().max(sx.dy().abs());
+    if px > 0.0 && ((px - curve.options.pixel_um) / px).abs() > 0.05 {
+        return Err(AnalysisError::BadInput {
+            name: "curve",
+            reason: format!("calibration computed for {} µm pixels, the scan has {px} µm: recompute the curve with pixel_um = {px}", curve.options.pixel_um),
+        });
+    }
+    Ok(())
+}
+
+/// Maxima along a given filament line (rows for `Channel::SxRows`: x = a + b·y; columns:
+/// y = a + b·x), read within ±`window_um` of the line in each row (column) — e.g. the same
+/// filament before and after background removal. Errors: fewer than 3 maxima on the line.
+pub fn measure_filament_along(sx: &Image, sy: &Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    opts.validate()?;
+    check_pixel(sx, curve)?;
+    let sens = match channel {
+        Channel::SxRows => sensitivity(sx, Axis::X, opts.stencil)?,
+        Channel::SyCols => sensitivity(sy, Axis::Y, opts.stencil)?,
+    };
+    measure_sens_along(sens, curve, channel, line, opts)
+}
+
+fn measure_sens_along(mut sens: Image, curve: &AngleCurve, channel: Channel, line: LineFit, opts: &MeasureOptions) -> Result<FilamentMeasurement> {
+    // Instrument units → reference-bead units.
+    sens.data.mapv_inplace(|v| v * curve.norm_factor);
+    let rows = channel == Channel::SxRows;
+    let angle = line.angle_deg;
+    let factor = curve.correction(angle, channel)?;
+    let th = angle.to_radians();
+    let dir = (th.sin(), th.cos());
+    let po = opts.peak_options();
+    let (nl, t): (usize, &[f64]) = if rows { (sens.rows(), &sens.x) } else { (sens.cols(), &sens.y) };
+    let mut points = Vec::new();
+    for l in 0..nl {
+        let coord = if rows { sens.y[l] } else { sens.x[l] };
+        let pred = line.a + line.b * coord;
+        let idx: Vec<usize> = (0..t.len()).filter(|&k| (t[k] - pred).abs() <= opts.window_um).collect();
+        if idx.len() < 3 {
+            continue;
+        }
+        let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
+        let vv: Vec<f64> = idx.iter().map(|&k| if rows { sens.data[[l, k]] } else { sens.data[[k, l]] }).collect();
+        let Ok(p) = peak_1d(&tt, &vv, &po) else { continue };
+        if dist(line.a, line.b, coord, p.pos) > opts.max_offset_um {
+            continue;
+        }
+        let (x, y) = if rows { (p.pos, coord) } else { (coord, p.pos) };
+        points.push(FilamentPoint { line: l, x, y, arc_um: x * dir.0 + y * dir.1, sens: p.value, sens_err: p.value_err, sens_corr: p.value * factor });
+    }
+    if points.len() < 3 {
+        return Err(AnalysisError::Failed(format!("only {} maxima lie on the filament line", points.len())));
+    }
+    points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
+    let a0 = points[0].arc_um;
+    for p in points.iter_mut() {
+        p.arc_um -= a0;
+    }
+    let s = summary(&points.iter().map(|p| p.sens_corr).collect::<Vec<_>>())?;
+    Ok(FilamentMeasurement {
+        channel,
+        angle_deg: angle,
+        angle_err_deg: line.angle_err_deg,
+        line,
+        other_line: None,
+        factor,
+        points,
+        mean_corr: s.mean,
+        std_corr: s.std,
+        sem_corr: s.sem,
+        sens,
+    })
+}

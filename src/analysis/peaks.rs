@@ -1,0 +1,560 @@
+//! Maximum sensitivity at sub-pixel resolution (Sec. 5: "fitting a parabola to a 0.4 µm wide
+//! region around the peak"): per row (S_x sensitivity), per column (S_y sensitivity), and in 2-D
+//! (point objects).
+//!
+//! **Method.** The discrete maximum of the finite samples is found; a parabola
+//! v = a + b·t + c·t² is least-squares fitted to the finite samples within ±window/2 of it; the
+//! window is re-centred once on the vertex if that moved by more than half a sample. The vertex
+//! gives position and value. **Uncertainty**: from the parameter covariance, σ²(AᵀA)⁻¹, with σ the
+//! given pixel noise (`PeakOptions::sigma`) or, if absent, the residual standard deviation of the
+//! fit (needs more than 3 points; with exactly 3 points and no σ the uncertainties are `None`),
+//! propagated linearly to t* = −b/2c and v* = a − b²/4c.
+//!
+//! **Outcomes** (never a NaN value): a line gives either a [`Peak`] or a [`PeakMiss`] saying
+//! why not — no finite samples, maximum on the first/last sample (the true peak may lie outside:
+//! `AtEdge`), fewer than 3 finite samples in the window, a parabola that is not concave
+//! (`NotConcave`, e.g. a flat line), a vertex outside the fitted samples, or a value below the
+//! thresholds (`BelowThreshold`). A window cut by the image edge (but with the maximum inside) is
+//! fitted and flagged `truncated`.
+
+use super::{check_above, AnalysisError, Result};
+use crate::data::Image;
+use serde::{Deserialize, Serialize};
+
+/// Options of the parabola peak finder.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PeakOptions {
+    /// Full width of the fit window, µm (paper: 0.4 µm).
+    pub window_um: f64,
+    /// Reject peaks whose value is not above this (signal units/µm). None: no absolute threshold.
+    pub min_value: Option<f64>,
+    /// Reject peaks with value < min_snr × (line noise), the noise estimated robustly as
+    /// 1.4826·MAD(first differences)/√2 (exact for uncorrelated noise, i.e. Central2 derivatives).
+    /// 0 disables (default).
+    pub min_snr: f64,
+    /// Known noise σ of the samples; None: estimate from the fit residuals.
+    pub sigma: Option<f64>,
+}
+
+impl Default for PeakOptions {
+    fn default() -> Self {
+        Self {
+            window_um: 0.4,
+            min_value: None,
+            min_snr: 0.0,
+            sigma: None,
+        }
+    }
+}
+
+impl PeakOptions {
+    pub(crate) fn validate(&self) -> Result<()> {
+        check_above("window_um", self.window_um, 0.0)?;
+        if !(self.min_snr.is_finite() && self.min_snr >= 0.0) {
+            return Err(AnalysisError::OutOfRange {
+                name: "min_snr",
+                value: self.min_snr,
+                allowed: "min_snr ≥ 0".into(),
+            });
+        }
+        if let Some(s) = self.sigma {
+            check_above("sigma", s, 0.0)?;
+        }
+        if let Some(m) = self.min_value {
+            if !m.is_finite() {
+                return Err(AnalysisError::OutOfRange {
+                    name: "min_value",
+                    value: m,
+                    allowed: "finite".into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A sub-pixel maximum.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Peak {
+    /// Vertex position along the line, µm.
+    pub pos: f64,
+    /// Vertex value (signal units/µm for sensitivity lines).
+    pub value: f64,
+    /// 1σ uncertainty of `pos` (µm) and `value`; None when undetermined (3 points, no σ).
+    pub pos_err: Option<f64>,
+    pub value_err: Option<f64>,
+    /// Second derivative of the fitted parabola, 2c (value/µm²), negative.
+    pub curvature: f64,
+    /// Samples used by the fit.
+    pub n_points: usize,
+    /// Index of the discrete maximum.
+    pub index: usize,
+    /// The window was cut by the end of the line.
+    pub truncated: bool,
+}
+
+/// Why a line has no peak.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum PeakMiss {
+    /// No finite samples.
+    NoData,
+    /// The maximum is on the first or last sample: the peak may lie outside the line.
+    AtEdge { pos: f64 },
+    /// Fewer than 3 finite samples in the window.
+    TooFewPoints { n: usize },
+    /// The fitted parabola is not concave (flat or rising line).
+    NotConcave,
+    /// The vertex lies outside the fitted samples.
+    VertexOutside { pos: f64 },
+    /// Below `min_value` or `min_snr`.
+    BelowThreshold { value: f64, noise: f64 },
+}
+
+impl std::fmt::Display for PeakMiss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PeakMiss::NoData => write!(f, "no finite samples"),
+            PeakMiss::AtEdge { pos } => write!(f, "maximum at the edge ({pos} µm)"),
+            PeakMiss::TooFewPoints { n } => write!(f, "{n} finite samples in the window (need 3)"),
+            PeakMiss::NotConcave => write!(f, "no maximum (parabola not concave)"),
+            PeakMiss::VertexOutside { pos } => write!(f, "vertex {pos} µm outside the window"),
+            PeakMiss::BelowThreshold { value, noise } => {
+                write!(f, "peak {value} below threshold (noise {noise})")
+            }
+        }
+    }
+}
+
+/// The peak of one row (or column) of an image.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LinePeak {
+    /// Row (or column) index.
+    pub line: usize,
+    /// Coordinate of the row (its y) or column (its x), µm.
+    pub coord: f64,
+    pub result: std::result::Result<Peak, PeakMiss>,
+}
+
+impl LinePeak {
+    pub fn peak(&self) -> Option<&Peak> {
+        self.result.as_ref().ok()
+    }
+    /// (x, y) of the peak in image coordinates for a row peak (`along_x` = true) or column peak.
+    pub fn xy(&self, along_x: bool) -> Option<(f64, f64)> {
+        self.peak().map(|p| {
+            if along_x {
+                (p.pos, self.coord)
+            } else {
+                (self.coord, p.pos)
+            }
+        })
+    }
+}
+
+/// Robust noise of a line: 1.4826·MAD(first differences)/√2 over finite neighbours.
+pub fn line_noise(v: &[f64]) -> f64 {
+    let d: Vec<f64> = v
+        .windows(2)
+        .filter(|w| w[0].is_finite() && w[1].is_finite())
+        .map(|w| w[1] - w[0])
+        .collect();
+    super::stats::robust_std(&d)
+        .map(|s| s / std::f64::consts::SQRT_2)
+        .unwrap_or(0.0)
+}
+
+/// Sub-pixel maximum of samples `v` at positions `t` (µm, monotonic) — see the module docs.
+pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<Peak, PeakMiss> {
+    let n = t.len().min(v.len());
+    let mut imax = None;
+    for i in 0..n {
+        if v[i].is_finite() && t[i].is_finite() && imax.is_none_or(|j: usize| v[i] > v[j]) {
+            imax = Some(i);
+        }
+    }
+    let imax = imax.ok_or(PeakMiss::NoData)?;
+    let vmin = (0..n).filter(|&i| v[i].is_finite()).map(|i| v[i]).fold(f64::INFINITY, f64::min);
+    if v[imax] == vmin {
+        // All finite samples equal: a flat line has no maximum.
+        return Err(PeakMiss::NotConcave);
+    }
+    let first = (0..n).find(|&i| v[i].is_finite()).unwrap_or(0);
+    let last = (0..n).rev().find(|&i| v[i].is_finite()).unwrap_or(0);
+    if (imax == first || imax == last) && first != last {
+        return Err(PeakMiss::AtEdge { pos: t[imax] });
+    }
+    let half = 0.5 * opts.window_um * (1.0 + 1e-9);
+    let mut centre = t[imax];
+    let mut p = fit_parabola(t, v, centre, half, opts.sigma)?;
+    let step = if n > 1 {
+        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
+    } else {
+        0.0
+    };
+    if (p.pos - centre).abs() > 0.5 * step {
+        // Re-centre once on the vertex; keep the first fit if the second one fails.
+        if let Ok(q) = fit_parabola(t, v, p.pos, half, opts.sigma) {
+            centre = p.pos;
+            p = q;
+        }
+    }
+    p.index = imax;
+    let (lo, hi) = (t[0].min(t[n - 1]), t[0].max(t[n - 1]));
+    p.truncated = centre - half < lo || centre + half > hi;
+    let noise = if opts.min_snr > 0.0 {
+        line_noise(&v[..n])
+    } else {
+        0.0
+    };
+    if opts.min_value.is_some_and(|m| p.value <= m)
+        || (opts.min_snr > 0.0 && !(p.value > opts.min_snr * noise))
+    {
+        return Err(PeakMiss::BelowThreshold {
+            value: p.value,
+            noise,
+        });
+    }
+    Ok(p)
+}
+
+/// Least-squares parabola over finite samples within `centre ± half`.
+fn fit_parabola(
+    t: &[f64],
+    v: &[f64],
+    centre: f64,
+    half: f64,
+    sigma: Option<f64>,
+) -> std::result::Result<Peak, PeakMiss> {
+    let pts: Vec<(f64, f64)> = t
+        .iter()
+        .zip(v)
+        .filter(|(ti, vi)| vi.is_finite() && (**ti - centre).abs() <= half)
+        .map(|(ti, vi)| ((ti - centre) / half, *vi))
+        .collect();
+    let np = pts.len();
+    if np < 3 {
+        return Err(PeakMiss::TooFewPoints { n: np });
+    }
+    let (kmin, kmax) = pts
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.0), b.max(p.0))
+        });
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = nalgebra::Vector3::<f64>::zeros();
+    for &(k, y) in &pts {
+        let row = nalgebra::Vector3::new(1.0, k, k * k);
+        ata += row * row.transpose();
+        atb += row * y;
+    }
+    let inv = ata.try_inverse().ok_or(PeakMiss::TooFewPoints { n: np })?;
+    let c = inv * atb;
+    let scale = pts
+        .iter()
+        .map(|p| p.1.abs())
+        .fold(0.0, f64::max)
+        .max(1e-300);
+    // Concave with a curvature that is not round-off.
+    if !(c[2] < -1e-12 * scale) {
+        return Err(PeakMiss::NotConcave);
+    }
+    let ks = -c[1] / (2.0 * c[2]);
+    let pos = centre + ks * half;
+    if ks < kmin - 1e-9 || ks > kmax + 1e-9 {
+        return Err(PeakMiss::VertexOutside { pos });
+    }
+    let value = c[0] - c[1] * c[1] / (4.0 * c[2]);
+    let s2 = match sigma {
+        Some(s) => Some(s * s),
+        None if np > 3 => {
+            let rss: f64 = pts
+                .iter()
+                .map(|&(k, y)| (y - c[0] - c[1] * k - c[2] * k * k).powi(2))
+                .sum();
+            Some(rss / (np - 3) as f64)
+        }
+        None => None,
+    };
+    let (pos_err, value_err) = match s2 {
+        Some(s2) => {
+            let cov = inv * s2;
+            let jp = nalgebra::Vector3::new(0.0, -1.0 / (2.0 * c[2]), c[1] / (2.0 * c[2] * c[2]));
+            let jv = nalgebra::Vector3::new(
+                1.0,
+                -c[1] / (2.0 * c[2]),
+                c[1] * c[1] / (4.0 * c[2] * c[2]),
+            );
+            let vp = (jp.transpose() * cov * jp)[0].max(0.0);
+            let vv = (jv.transpose() * cov * jv)[0].max(0.0);
+            (Some(vp.sqrt() * half), Some(vv.sqrt()))
+        }
+        None => (None, None),
+    };
+    Ok(Peak {
+        pos,
+        value,
+        pos_err,
+        value_err,
+        curvature: 2.0 * c[2] / (half * half),
+        n_points: np,
+        index: 0,
+        truncated: false,
+    })
+}
+
+/// Maximum of every row along x (for ∂Sx/∂x images). Errors only for bad options.
+pub fn row_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
+    opts.validate()?;
+    Ok((0..img.rows())
+        .map(|r| {
+            let v: Vec<f64> = img.data.row(r).to_vec();
+            LinePeak {
+                line: r,
+                coord: img.y[r],
+                result: peak_1d(&img.x, &v, opts),
+            }
+        })
+        .collect())
+}
+
+/// Maximum of every column along y (for ∂Sy/∂y images, and z-profiles). Errors only for bad
+/// options.
+pub fn col_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
+    opts.validate()?;
+    Ok((0..img.cols())
+        .map(|c| {
+            let v: Vec<f64> = img.data.column(c).to_vec();
+            LinePeak {
+                line: c,
+                coord: img.x[c],
+                result: peak_1d(&img.y, &v, opts),
+            }
+        })
+        .collect())
+}
+
+/// Maximum sensitivity of a point object the way Sec. 5 measures maxima: a parabola over
+/// `opts.window_um` along every row ([`row_peaks`]), the row with the largest maximum, refined
+/// across rows by a parabola through it and its two neighbours (position and value). x comes
+/// from the best row's parabola. Uncertainties: those of the best row's parabola.
+/// Errors: no row with a maximum.
+pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
+    let rows = row_peaks(sens, opts)?;
+    let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
+    let (ib, pb) = vals
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, p)))
+        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
+        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))?;
+    let (mut y, mut value) = (rows[ib].coord, pb.value);
+    if ib > 0 && ib + 1 < vals.len() {
+        if let (Some(a), Some(c)) = (vals[ib - 1], vals[ib + 1]) {
+            let den = a.value - 2.0 * pb.value + c.value;
+            if den < 0.0 {
+                let d = 0.5 * (a.value - c.value) / den;
+                if d.abs() <= 1.0 {
+                    value = pb.value - 0.25 * (a.value - c.value) * d;
+                    y += d * (rows[ib + 1].coord - rows[ib].coord);
+                }
+            }
+        }
+    }
+    Ok(Peak2 { x: pb.pos, y, value, x_err: pb.pos_err, y_err: None, value_err: pb.value_err, n_points: pb.n_points })
+}
+
+/// A 2-D sub-pixel maximum.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Peak2 {
+    pub x: f64,
+    pub y: f64,
+    pub value: f64,
+    /// 1σ uncertainties (None when undetermined: 6 points and no σ).
+    pub x_err: Option<f64>,
+    pub y_err: Option<f64>,
+    pub value_err: Option<f64>,
+    pub n_points: usize,
+}
+
+/// 2-D maximum of an image (e.g. the maximum sensitivity of a point object): the discrete
+/// maximum of the finite pixels, then a least-squares quadratic surface
+/// a + bx + cy + dx² + exy + fy² over the finite pixels within a square of side `window_um`
+/// around it; the vertex gives position and value, uncertainties as in [`peak_1d`].
+///
+/// Errors (`AnalysisError::Failed` with the [`PeakMiss`] reason): no finite pixel, maximum on
+/// the image border, fewer than 6 pixels in the window, surface not concave, vertex outside the
+/// window.
+pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2> {
+    check_above("window_um", window_um, 0.0)?;
+    let miss = |m: PeakMiss| AnalysisError::Failed(format!("no 2-D maximum: {m}"));
+    let (rows, cols) = img.data.dim();
+    let mut best: Option<(usize, usize)> = None;
+    for r in 0..rows {
+        for c in 0..cols {
+            let v = img.data[[r, c]];
+            if v.is_finite() && best.is_none_or(|(br, bc)| v > img.data[[br, bc]]) {
+                best = Some((r, c));
+            }
+        }
+    }
+    let (br, bc) = best.ok_or_else(|| miss(PeakMiss::NoData))?;
+    if (rows > 1 && (br == 0 || br == rows - 1)) || (cols > 1 && (bc == 0 || bc == cols - 1)) {
+        return Err(miss(PeakMiss::AtEdge { pos: img.x[bc] }));
+    }
+    let half = 0.5 * window_um * (1.0 + 1e-9);
+    let (xc, yc) = (img.x[bc], img.y[br]);
+    let mut pts = Vec::new();
+    for r in 0..rows {
+        if (img.y[r] - yc).abs() > half {
+            continue;
+        }
+        for c in 0..cols {
+            let v = img.data[[r, c]];
+            if v.is_finite() && (img.x[c] - xc).abs() <= half {
+                pts.push(((img.x[c] - xc) / half, (img.y[r] - yc) / half, v));
+            }
+        }
+    }
+    let np = pts.len();
+    if np < 6 {
+        return Err(miss(PeakMiss::TooFewPoints { n: np }));
+    }
+    let basis =
+        |x: f64, y: f64| nalgebra::SVector::<f64, 6>::from([1.0, x, y, x * x, x * y, y * y]);
+    let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
+    let mut atb = nalgebra::SVector::<f64, 6>::zeros();
+    for &(x, y, v) in &pts {
+        let b = basis(x, y);
+        ata += b * b.transpose();
+        atb += b * v;
+    }
+    let inv = ata
+        .try_inverse()
+        .ok_or_else(|| miss(PeakMiss::TooFewPoints { n: np }))?;
+    let co = inv * atb;
+    let vertex = |co: &nalgebra::SVector<f64, 6>| -> Option<(f64, f64, f64)> {
+        let (b, c, d, e, f) = (co[1], co[2], co[3], co[4], co[5]);
+        let det = 4.0 * d * f - e * e;
+        if !(d < 0.0 && det > 0.0) {
+            return None;
+        }
+        let x = (-2.0 * f * b + e * c) / det;
+        let y = (-2.0 * d * c + e * b) / det;
+        Some((
+            x,
+            y,
+            co[0] + b * x + c * y + d * x * x + e * x * y + f * y * y,
+        ))
+    };
+    let (xs, ys, vs) = vertex(&co).ok_or_else(|| miss(PeakMiss::NotConcave))?;
+    if xs.abs() > 1.0 + 1e-9 || ys.abs() > 1.0 + 1e-9 {
+        return Err(miss(PeakMiss::VertexOutside {
+            pos: xc + xs * half,
+        }));
+    }
+    let s2 = match sigma {
+        Some(s) => Some(s * s),
+        None if np > 6 => {
+            let rss: f64 = pts
+                .iter()
+                .map(|&(x, y, v)| (v - (basis(x, y).transpose() * co)[0]).powi(2))
+                .sum();
+            Some(rss / (np - 6) as f64)
+        }
+        None => None,
+    };
+    let (mut xe, mut ye, mut ve) = (None, None, None);
+    if let Some(s2) = s2 {
+        // Linear propagation with a numerical Jacobian of the vertex w.r.t. the coefficients.
+        let cov = inv * s2;
+        let mut jac = nalgebra::SMatrix::<f64, 3, 6>::zeros();
+        for k in 0..6 {
+            let e = 1e-6 * co[k].abs().max(1e-9 * co.amax().max(1e-300));
+            let (mut cp, mut cm) = (co, co);
+            cp[k] += e;
+            cm[k] -= e;
+            if let (Some(p), Some(m)) = (vertex(&cp), vertex(&cm)) {
+                jac[(0, k)] = (p.0 - m.0) / (2.0 * e);
+                jac[(1, k)] = (p.1 - m.1) / (2.0 * e);
+                jac[(2, k)] = (p.2 - m.2) / (2.0 * e);
+            }
+        }
+        let c3 = jac * cov * jac.transpose();
+        xe = Some(c3[(0, 0)].max(0.0).sqrt() * half);
+        ye = Some(c3[(1, 1)].max(0.0).sqrt() * half);
+        ve = Some(c3[(2, 2)].max(0.0).sqrt());
+    }
+    Ok(Peak2 {
+        x: xc + xs * half,
+        y: yc + ys * half,
+        value: vs,
+        x_err: xe,
+        y_err: ye,
+        value_err: ve,
+        n_points: np,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parabola_vertex_exact() {
+        let t: Vec<f64> = (0..40).map(|i| i as f64 * 0.05).collect();
+        let v: Vec<f64> = t.iter().map(|t| 3.0 - 10.0 * (t - 1.013).powi(2)).collect();
+        let p = peak_1d(&t, &v, &PeakOptions::default()).unwrap();
+        assert!((p.pos - 1.013).abs() < 1e-12 && (p.value - 3.0).abs() < 1e-12);
+        assert!((p.curvature + 20.0).abs() < 1e-9);
+        assert_eq!(p.n_points, 9);
+        assert!(p.pos_err.unwrap() < 1e-9);
+    }
+
+    #[test]
+    fn misses_are_reported() {
+        let t: Vec<f64> = (0..20).map(|i| i as f64 * 0.05).collect();
+        let rising: Vec<f64> = t.clone();
+        assert!(matches!(
+            peak_1d(&t, &rising, &PeakOptions::default()),
+            Err(PeakMiss::AtEdge { .. })
+        ));
+        let flat = vec![0.0; 20];
+        assert!(matches!(
+            peak_1d(&t, &flat, &PeakOptions::default()),
+            Err(PeakMiss::NotConcave) | Err(PeakMiss::AtEdge { .. })
+        ));
+        let nan = vec![f64::NAN; 20];
+        assert_eq!(
+            peak_1d(&t, &nan, &PeakOptions::default()),
+            Err(PeakMiss::NoData)
+        );
+        let v: Vec<f64> = t.iter().map(|t| 1.0 - (t - 0.5).powi(2)).collect();
+        let o = PeakOptions {
+            min_value: Some(2.0),
+            ..Default::default()
+        };
+        assert!(matches!(
+            peak_1d(&t, &v, &o),
+            Err(PeakMiss::BelowThreshold { .. })
+        ));
+    }
+
+    #[test]
+    fn quadratic_surface_vertex() {
+        let x: Vec<f64> = (0..30).map(|i| i as f64 * 0.05).collect();
+        let y: Vec<f64> = (0..25).map(|i| i as f64 * 0.05).collect();
+        let data = ndarray::Array2::from_shape_fn((25, 30), |(r, c)| {
+            let (dx, dy) = (x[c] - 0.731, y[r] - 0.612);
+            2.0 - 5.0 * dx * dx - 3.0 * dy * dy + 2.0 * dx * dy
+        });
+        let img = Image::new(data, x, y);
+        let p = peak_2d(&img, 0.4, None).unwrap();
+        assert!(
+            (p.x - 0.731).abs() < 1e-9
+                && (p.y - 0.612).abs() < 1e-9
+                && (p.value - 2.0).abs() < 1e-9
+        );
+    }
+}

@@ -1,0 +1,287 @@
+//! Scans as NumPy `.npz` files (`numpy.load` reads them).
+//!
+//! Layout (one `.npy` member per array, deflate-compressed zip):
+//!
+//! | array  | dtype     | shape        | content                                   |
+//! |--------|-----------|--------------|-------------------------------------------|
+//! | `sx`   | `<f8`     | (rows, cols) | QPD x difference signal                   |
+//! | `sy`   | `<f8`     | (rows, cols) | QPD y difference signal                   |
+//! | `sz`   | `<f8`     | (rows, cols) | QPD sum signal                            |
+//! | `x`    | `<f8`     | (cols,)      | horizontal axis, pixel centres, µm        |
+//! | `y`    | `<f8`     | (rows,)      | vertical axis (y, or z for XZ/YZ), µm     |
+//! | `meta` | `\|u1`    | (n,)         | UTF-8 JSON text of the metadata           |
+//!
+//! Python: `m = json.loads(f["meta"].tobytes())`. The JSON object holds the reserved keys
+//! `format` (`"bfpscope-scan"`), `format_version` (1), `status` (`"complete"`, `"aborted"`,
+//! `"failed"`), `x_name`, `y_name`, and next to them the scan's own metadata keys (plan, optics,
+//! instrument, scene, script, time, ...). If the scan's metadata is not a JSON object, or uses a
+//! reserved key itself, it is stored whole under `user_meta` instead, so loading always gives
+//! back exactly what was saved. Unmeasured pixels (aborted scans) are NaN.
+
+use super::{atomic_write, image::Image, DataError, Scan, ScanStatus};
+use ndarray::{Array1, Array2};
+use ndarray_npy::{NpzReader, NpzWriter, ReadNpzError};
+use serde_json::{Map, Value};
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+
+/// Value of the `format` key in the stored metadata.
+pub const FORMAT_NAME: &str = "bfpscope-scan";
+/// Value of the `format_version` key in the stored metadata.
+pub const FORMAT_VERSION: u64 = 1;
+/// Keys of the stored metadata that belong to the file format, not to the scan's metadata.
+pub const RESERVED_META_KEYS: [&str; 6] = [
+    "format",
+    "format_version",
+    "status",
+    "x_name",
+    "y_name",
+    "user_meta",
+];
+
+/// The JSON object stored in the `meta` array of a scan file (see the module docs).
+pub fn file_meta(scan: &Scan) -> Value {
+    let mut m = Map::new();
+    m.insert("format".into(), FORMAT_NAME.into());
+    m.insert("format_version".into(), FORMAT_VERSION.into());
+    m.insert("status".into(), scan.status.as_str().into());
+    m.insert("x_name".into(), scan.sx.x_name.clone().into());
+    m.insert("y_name".into(), scan.sx.y_name.clone().into());
+    match &scan.meta {
+        Value::Object(user)
+            if !user
+                .keys()
+                .any(|k| RESERVED_META_KEYS.contains(&k.as_str())) =>
+        {
+            for (k, v) in user {
+                m.insert(k.clone(), v.clone());
+            }
+        }
+        other => {
+            m.insert("user_meta".into(), other.clone());
+        }
+    }
+    Value::Object(m)
+}
+
+/// Save a scan as `.npz` (atomically: temporary file in the same directory, then rename;
+/// an existing file of that name is replaced only once the new one is complete).
+///
+/// The three channels must share shape and axes ([`Scan::check_consistent`]).
+pub fn save_scan(path: impl AsRef<Path>, scan: &Scan) -> Result<(), DataError> {
+    let path = path.as_ref();
+    scan.check_consistent()?;
+    atomic_write(path, |tmp| write_scan_npz(tmp, scan))
+}
+
+/// Write the `.npz` directly to `path` (no temporary; callers provide atomicity).
+pub(crate) fn write_scan_npz(path: &Path, scan: &Scan) -> Result<(), DataError> {
+    scan.check_consistent()?;
+    let meta_bytes = serde_json::to_vec(&file_meta(scan))
+        .map_err(|e| DataError::format(path, format!("cannot encode metadata as JSON: {e}")))?;
+    let meta = Array1::from_vec(meta_bytes);
+    let x = Array1::from_vec(scan.sx.x.clone());
+    let y = Array1::from_vec(scan.sx.y.clone());
+    let file = File::create(path).map_err(|e| DataError::io(path, e))?;
+    let werr = |e: ndarray_npy::WriteNpzError| DataError::format(path, format!("writing npz: {e}"));
+    let mut npz = NpzWriter::new_compressed(BufWriter::new(file));
+    npz.add_array("sx", &scan.sx.data).map_err(werr)?;
+    npz.add_array("sy", &scan.sy.data).map_err(werr)?;
+    npz.add_array("sz", &scan.sz.data).map_err(werr)?;
+    npz.add_array("x", &x).map_err(werr)?;
+    npz.add_array("y", &y).map_err(werr)?;
+    npz.add_array("meta", &meta).map_err(werr)?;
+    let buf = npz.finish().map_err(werr)?;
+    buf.into_inner()
+        .map_err(|e| DataError::io(path, e.into_error()))?;
+    Ok(())
+}
+
+/// Load a scan written by [`save_scan`] (or any `.npz` with float arrays `sx`, `sy`, `sz`, `x`,
+/// `y`; `meta` is optional, float32 arrays are widened to float64).
+pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
+    let path = path.as_ref();
+    let file = File::open(path).map_err(|e| DataError::io(path, e))?;
+    let len = file.metadata().map(|m| m.len()).unwrap_or(1);
+    if len == 0 {
+        return Err(DataError::format(
+            path,
+            "empty file: a reserved scan slot that was never written (the save did not complete)",
+        ));
+    }
+    let mut npz = NpzReader::new(file)
+        .map_err(|e| DataError::format(path, format!("not a readable .npz file: {e}")))?;
+    let names = npz
+        .names()
+        .map_err(|e| DataError::format(path, format!("cannot list the arrays: {e}")))?;
+    let has = |n: &str| names.iter().any(|m| m == n || m == &format!("{n}.npy"));
+    for required in ["sx", "sy", "sz", "x", "y"] {
+        if !has(required) {
+            return Err(DataError::format(
+                path,
+                format!(
+                    "array `{required}` is missing (found: {})",
+                    names.join(", ")
+                ),
+            ));
+        }
+    }
+    let sx: Array2<f64> = read_f64(&mut npz, path, "sx")?;
+    let sy: Array2<f64> = read_f64(&mut npz, path, "sy")?;
+    let sz: Array2<f64> = read_f64(&mut npz, path, "sz")?;
+    let x: Array1<f64> = read_f64(&mut npz, path, "x")?;
+    let y: Array1<f64> = read_f64(&mut npz, path, "y")?;
+    for (name, a) in [("sy", &sy), ("sz", &sz)] {
+        if a.dim() != sx.dim() {
+            return Err(DataError::format(
+                path,
+                format!(
+                    "array `{name}` has shape {:?} but `sx` has {:?}",
+                    a.dim(),
+                    sx.dim()
+                ),
+            ));
+        }
+    }
+    if x.len() != sx.ncols() || y.len() != sx.nrows() {
+        return Err(DataError::format(
+            path,
+            format!(
+                "axes do not match the images: `x` has {} values, `y` {}, images are {}x{} (rows x cols)",
+                x.len(),
+                y.len(),
+                sx.nrows(),
+                sx.ncols()
+            ),
+        ));
+    }
+
+    let (status, x_name, y_name, meta) = if has("meta") {
+        let bytes: Array1<u8> = npz
+            .by_name("meta")
+            .map_err(|e| DataError::format(path, format!("array `meta`: {e}")))?;
+        let text = String::from_utf8(bytes.to_vec())
+            .map_err(|e| DataError::format(path, format!("`meta` is not UTF-8 text: {e}")))?;
+        let stored: Value = serde_json::from_str(&text)
+            .map_err(|e| DataError::format(path, format!("`meta` is not valid JSON: {e}")))?;
+        split_file_meta(path, stored)?
+    } else {
+        (
+            ScanStatus::Complete,
+            "x".to_string(),
+            "y".to_string(),
+            Value::Object(Map::new()),
+        )
+    };
+
+    let (x, y) = (x.to_vec(), y.to_vec());
+    let mk = |data| Image::new(data, x.clone(), y.clone()).with_axis_names(&x_name, &y_name);
+    Ok(Scan {
+        sx: mk(sx),
+        sy: mk(sy),
+        sz: mk(sz),
+        status,
+        meta,
+    })
+}
+
+/// Undo [`file_meta`]: the file-format keys and the scan's own metadata.
+fn split_file_meta(
+    path: &Path,
+    stored: Value,
+) -> Result<(ScanStatus, String, String, Value), DataError> {
+    let Value::Object(mut m) = stored else {
+        return Err(DataError::format(path, "`meta` JSON is not an object"));
+    };
+    let status = match m.remove("status") {
+        None => ScanStatus::Complete,
+        Some(Value::String(s)) => ScanStatus::parse(&s)
+            .map_err(|e| DataError::format(path, format!("`meta`.status: {e}")))?,
+        Some(other) => {
+            return Err(DataError::format(
+                path,
+                format!("`meta`.status is not a string: {other}"),
+            ))
+        }
+    };
+    let mut name = |key: &str, default: &str| match m.remove(key) {
+        Some(Value::String(s)) => s,
+        _ => default.to_string(),
+    };
+    let x_name = name("x_name", "x");
+    let y_name = name("y_name", "y");
+    if let Some(v) = m.remove("format_version") {
+        if v.as_u64().is_none_or(|n| n > FORMAT_VERSION) {
+            return Err(DataError::format(
+                path,
+                format!("scan file format version {v} is newer than this program reads ({FORMAT_VERSION})"),
+            ));
+        }
+    }
+    m.remove("format");
+    let meta = match m.remove("user_meta") {
+        Some(v) => v,
+        None => Value::Object(m),
+    };
+    Ok((status, x_name, y_name, meta))
+}
+
+/// Read a float array, accepting float64 or (widened) float32.
+fn read_f64<D: ndarray::Dimension>(
+    npz: &mut NpzReader<File>,
+    path: &Path,
+    name: &str,
+) -> Result<ndarray::Array<f64, D>, DataError> {
+    let err = |e: ReadNpzError| DataError::format(path, format!("array `{name}`: {e}"));
+    match npz.by_name::<ndarray::OwnedRepr<f64>, D>(name) {
+        Ok(a) => Ok(a),
+        Err(e64) => match npz.by_name::<ndarray::OwnedRepr<f32>, D>(name) {
+            Ok(a) => Ok(a.mapv(f64::from)),
+            Err(_) => Err(err(e64)),
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn tiny(meta: Value) -> Scan {
+        let img = Image::new(Array2::zeros((1, 2)), vec![0.0, 1.0], vec![0.0]);
+        Scan {
+            sx: img.clone(),
+            sy: img.clone(),
+            sz: img,
+            status: ScanStatus::Complete,
+            meta,
+        }
+    }
+
+    #[test]
+    fn object_meta_is_merged_and_split_back() {
+        let s = tiny(json!({"plan": {"nx": 2}, "time": "now"}));
+        let stored = file_meta(&s);
+        assert_eq!(stored["plan"]["nx"], 2);
+        assert_eq!(stored["status"], "complete");
+        assert!(stored.get("user_meta").is_none());
+        let (st, xn, yn, meta) = split_file_meta(Path::new("t"), stored).unwrap();
+        assert_eq!(
+            (st, xn.as_str(), yn.as_str()),
+            (ScanStatus::Complete, "x", "y")
+        );
+        assert_eq!(meta, s.meta);
+    }
+
+    #[test]
+    fn non_object_or_clashing_meta_goes_to_user_meta() {
+        for meta in [Value::Null, json!([1, 2]), json!({"status": "device ok"})] {
+            let s = tiny(meta.clone());
+            let stored = file_meta(&s);
+            assert_eq!(stored["user_meta"], meta);
+            let (_, _, _, back) = split_file_meta(Path::new("t"), stored).unwrap();
+            assert_eq!(back, meta);
+        }
+    }
+}

@@ -1,0 +1,736 @@
+//! The instrument part of `bfpscope.toml`: backends and ports, serial settings, axis map,
+//! settle time, soft limits, step and speed limits, QPD calibration.
+//!
+//! ```toml
+//! [stage]
+//! backend = "gcs"               # "sim" (default) | "gcs"
+//! port = "/dev/ttyUSB0"
+//! baud = 115200
+//! axes = { x = "A", y = "B", z = "C" }
+//!
+//! [qpd]
+//! backend = "scpi"              # "sim" (default) | "scpi"
+//! port = "/dev/ttyUSB1"
+//! calibration = { gain = [0.5, 0.5, 0.25], offset_v = [0.0, 0.0, 0.0] }
+//!
+//! [safety]
+//! soft_limits = { x = [10.0, 90.0], y = [10.0, 90.0], z = [2.0, 18.0] }
+//! max_step_um = 20.0
+//! max_speed_um_s = 500.0
+//! ```
+//!
+//! With no file, everything is simulated. Other top-level sections (`[optics]`, …) belong to
+//! other parts of the workbench and are kept in [`Config::other`] untouched. Inside `[stage]`,
+//! `[qpd]` and `[safety]` an unknown key is an error (a typo in a safety setting must not be
+//! ignored silently); errors name the key path (`stage.baud`) and the line.
+
+use super::gcs::GcsOptions;
+use super::scpi::{Calibration, ScpiOptions};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// The config file looked for in the working directory.
+pub const DEFAULT_FILE: &str = "bfpscope.toml";
+/// Environment variable naming a config file (takes precedence over `./bfpscope.toml`).
+pub const ENV_VAR: &str = "BFPSCOPE_CONFIG";
+
+/// A config problem: where (file, key path, line) and what.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{origin}: {key}: {message}{}", line.map(|l| format!(" (line {l})")).unwrap_or_default())]
+pub struct ConfigError {
+    /// The file (or `"<string>"`, `"defaults"`).
+    pub origin: String,
+    /// Dotted key path, e.g. `stage.baud` (empty for the whole file).
+    pub key: String,
+    /// 1-based line in the file, when known.
+    pub line: Option<usize>,
+    pub message: String,
+}
+
+/// Device backends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// The simulated instrument (scene + optics).
+    #[default]
+    Sim,
+    /// PI GCS 2.0 piezo controller (stage).
+    Gcs,
+    /// SCPI QPD digitiser (qpd).
+    Scpi,
+}
+
+impl Backend {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Backend::Sim => "sim",
+            Backend::Gcs => "gcs",
+            Backend::Scpi => "scpi",
+        }
+    }
+}
+
+/// Controller axis identifiers for x, y, z.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AxisMap {
+    pub x: String,
+    pub y: String,
+    pub z: String,
+}
+
+impl Default for AxisMap {
+    fn default() -> Self {
+        Self {
+            x: "A".into(),
+            y: "B".into(),
+            z: "C".into(),
+        }
+    }
+}
+
+/// `[stage]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StageConfig {
+    pub backend: Backend,
+    /// Serial port (`/dev/ttyUSB0`, `/dev/serial/by-id/…`, `COM3`); required for `gcs`.
+    pub port: Option<String>,
+    pub baud: u32,
+    /// Reply timeout per command, ms.
+    pub timeout_ms: u64,
+    /// Longest wait for on-target after a move, ms.
+    pub on_target_timeout_ms: u64,
+    /// `ONT?` polling interval, ms.
+    pub poll_ms: u64,
+    pub axes: AxisMap,
+    /// Switch the closed-loop servos on at connect.
+    pub servo_on_connect: bool,
+    /// Controller position units per µm (1 for PI piezo controllers).
+    pub units_per_um: f64,
+    /// Extra settle time after each move, s (after on-target for hardware).
+    pub settle_s: f64,
+}
+
+impl Default for StageConfig {
+    fn default() -> Self {
+        Self {
+            backend: Backend::Sim,
+            port: None,
+            baud: 115_200,
+            timeout_ms: 1000,
+            on_target_timeout_ms: 5000,
+            poll_ms: 5,
+            axes: AxisMap::default(),
+            servo_on_connect: true,
+            units_per_um: 1.0,
+            settle_s: 0.005,
+        }
+    }
+}
+
+/// `[qpd]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct QpdConfig {
+    pub backend: Backend,
+    /// Serial port; required for `scpi`.
+    pub port: Option<String>,
+    pub baud: u32,
+    /// Reply timeout per command, ms (a measurement adds n / sample rate).
+    pub timeout_ms: u64,
+    /// Ask for standard deviations too (`MEAS:QPD:STAT?`).
+    pub statistics: bool,
+    /// Volts → signal units.
+    pub calibration: Calibration,
+}
+
+impl Default for QpdConfig {
+    fn default() -> Self {
+        Self {
+            backend: Backend::Sim,
+            port: None,
+            baud: 115_200,
+            timeout_ms: 1000,
+            statistics: true,
+            calibration: Calibration::default(),
+        }
+    }
+}
+
+/// Soft limits per axis, `[min, max]` µm. A missing axis is limited by the controller's
+/// travel range only.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SoftLimits {
+    pub x: Option<[f64; 2]>,
+    pub y: Option<[f64; 2]>,
+    pub z: Option<[f64; 2]>,
+}
+
+impl SoftLimits {
+    pub fn get(&self, axis: usize) -> Option<[f64; 2]> {
+        [self.x, self.y, self.z].get(axis).copied().flatten()
+    }
+}
+
+/// `[safety]`: read by `acquire/`, which enforces every rule before anything is sent.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SafetyConfig {
+    pub soft_limits: SoftLimits,
+    /// Largest single move, µm (larger moves are refused or split by `acquire/`).
+    pub max_step_um: Option<f64>,
+    /// Highest stage speed, µm/s.
+    pub max_speed_um_s: Option<f64>,
+}
+
+/// The limits in force for a connected instrument: soft limits ∩ controller travel range,
+/// plus step and speed limits. Computed by `connect`, enforced by `acquire/`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SafetyLimits {
+    /// (min, max) per axis x, y, z, µm.
+    pub axes: [(f64, f64); 3],
+    pub max_step_um: Option<f64>,
+    pub max_speed_um_s: Option<f64>,
+}
+
+/// The whole `bfpscope.toml` as far as the instrument is concerned.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Config {
+    #[serde(default)]
+    pub stage: StageConfig,
+    #[serde(default)]
+    pub qpd: QpdConfig,
+    #[serde(default)]
+    pub safety: SafetyConfig,
+    /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
+    #[serde(flatten)]
+    pub other: toml::Table,
+}
+
+const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
+
+/// Soft limits ∩ the controller's travel range, per axis. An axis without soft limits gets
+/// the travel range. Errors when the two do not overlap or the travel range is nonsense.
+pub fn effective_limits(
+    soft: &SoftLimits,
+    travel: [(f64, f64); 3],
+) -> Result<[(f64, f64); 3], ConfigError> {
+    let mut out = [(0.0, 0.0); 3];
+    for i in 0..3 {
+        let (tlo, thi) = travel[i];
+        if !(tlo.is_finite() && thi.is_finite() && tlo < thi) {
+            return Err(ConfigError {
+                origin: "controller".into(),
+                key: format!("travel range {}", AXIS_NAMES[i]),
+                line: None,
+                message: format!(
+                    "controller reports travel [{tlo}, {thi}] µm, which is not a range"
+                ),
+            });
+        }
+        out[i] = match soft.get(i) {
+            None => (tlo, thi),
+            Some([lo, hi]) => {
+                let (a, b) = (lo.max(tlo), hi.min(thi));
+                if a >= b {
+                    return Err(ConfigError {
+                        origin: "bfpscope.toml".into(),
+                        key: format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        line: None,
+                        message: format!(
+                            "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
+                        ),
+                    });
+                }
+                (a, b)
+            }
+        };
+    }
+    Ok(out)
+}
+
+/// The key path and 1-based line at byte `offset` of a TOML text, by tracking `[table]`
+/// headers and `key =` lines (good enough for error messages).
+fn key_path_at(src: &str, offset: usize) -> (String, usize) {
+    let mut table = String::new();
+    let mut key = String::new();
+    let mut start = 0usize;
+    for (n, line) in src.split_inclusive('\n').enumerate() {
+        let t = line.trim();
+        if let Some(header) = table_header(t) {
+            table = header;
+            key.clear();
+        } else if let Some((k, _)) = t.split_once('=') {
+            if !t.starts_with('#') {
+                key = k.trim().trim_matches('"').to_string();
+            }
+        }
+        let end = start + line.len();
+        if offset < end || end == src.len() {
+            let path = match (table.is_empty(), key.is_empty()) {
+                (_, true) => table.clone(),
+                (true, false) => key.clone(),
+                (false, false) => format!("{table}.{key}"),
+            };
+            return (path, n + 1);
+        }
+        start = end;
+    }
+    (String::new(), 1)
+}
+
+/// `[a.b]` / `[[a.b]]` → `a.b`; None for other lines (including arrays such as `[1, 2],`).
+fn table_header(line: &str) -> Option<String> {
+    let inner = line.strip_prefix('[')?;
+    let inner = inner.strip_prefix('[').unwrap_or(inner);
+    let (inner, rest) = inner.split_once(']')?;
+    let rest = rest.trim_start_matches(']').trim();
+    if !(rest.is_empty() || rest.starts_with('#')) {
+        return None;
+    }
+    let inner = inner.trim();
+    let first = inner.chars().next()?;
+    let ok = !first.is_ascii_digit()
+        && first != '-'
+        && inner
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-.\" ".contains(c));
+    ok.then(|| {
+        inner
+            .split('.')
+            .map(|s| s.trim().trim_matches('"'))
+            .collect::<Vec<_>>()
+            .join(".")
+    })
+}
+
+fn err(key: &str, message: impl Into<String>) -> ConfigError {
+    ConfigError {
+        origin: String::new(),
+        key: key.into(),
+        line: None,
+        message: message.into(),
+    }
+}
+
+impl Config {
+    /// Parse and validate TOML text. `origin` names the text in messages (a file path).
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Config, ConfigError> {
+        let cfg: Config = toml::from_str(text).map_err(|e| {
+            let (key, line) = match e.span() {
+                Some(span) => {
+                    let (k, l) = key_path_at(text, span.start);
+                    (k, Some(l))
+                }
+                None => (String::new(), None),
+            };
+            ConfigError {
+                origin: origin.into(),
+                key,
+                line,
+                message: e.message().trim().to_string(),
+            }
+        })?;
+        cfg.validate().map_err(|mut e| {
+            e.origin = origin.into();
+            e.line = find_key_line(text, &e.key);
+            e
+        })?;
+        Ok(cfg)
+    }
+
+    /// Read, parse and validate a config file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| ConfigError {
+            origin: origin.clone(),
+            key: String::new(),
+            line: None,
+            message: format!("cannot read: {e}"),
+        })?;
+        Self::from_toml_str(&text, &origin)
+    }
+
+    /// The config in force: the file named by `$BFPSCOPE_CONFIG`, else `./bfpscope.toml`,
+    /// else the defaults (everything simulated). Returns the file used.
+    pub fn discover() -> Result<(Config, Option<PathBuf>), ConfigError> {
+        if let Some(p) = std::env::var_os(ENV_VAR).filter(|p| !p.is_empty()) {
+            let p = PathBuf::from(p);
+            return Ok((Self::load(&p)?, Some(p)));
+        }
+        let p = PathBuf::from(DEFAULT_FILE);
+        if p.is_file() {
+            return Ok((Self::load(&p)?, Some(p)));
+        }
+        Ok((Config::default(), None))
+    }
+
+    /// TOML text of this config.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise config: {e}\n"))
+    }
+
+    /// True when both devices are simulated.
+    pub fn is_simulated(&self) -> bool {
+        self.stage.backend == Backend::Sim && self.qpd.backend == Backend::Sim
+    }
+
+    /// Check values and combinations. Errors name the key path.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
+        match s.backend {
+            Backend::Sim | Backend::Gcs => {}
+            Backend::Scpi => {
+                return Err(err(
+                    "stage.backend",
+                    "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"",
+                ))
+            }
+        }
+        match q.backend {
+            Backend::Sim | Backend::Scpi => {}
+            Backend::Gcs => {
+                return Err(err(
+                    "qpd.backend",
+                    "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"",
+                ))
+            }
+        }
+        if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
+            return Err(err(
+                "qpd.backend",
+                format!(
+                    "stage is \"{}\" but qpd is \"{}\": use both simulated or both hardware (the simulated QPD \
+                     images the simulated stage's scene)",
+                    s.backend.as_str(),
+                    q.backend.as_str()
+                ),
+            ));
+        }
+        if s.backend == Backend::Gcs && s.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
+            return Err(err(
+                "stage.port",
+                "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")",
+            ));
+        }
+        if q.backend == Backend::Scpi && q.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
+            return Err(err(
+                "qpd.port",
+                "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")",
+            ));
+        }
+        if s.backend == Backend::Gcs && s.port == q.port {
+            return Err(err(
+                "qpd.port",
+                "the stage and the QPD cannot share one serial port",
+            ));
+        }
+        for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
+            if v == 0 {
+                return Err(err(key, "must be a positive baud rate (e.g. 115200)"));
+            }
+        }
+        for (key, v) in [
+            ("stage.timeout_ms", s.timeout_ms),
+            ("stage.on_target_timeout_ms", s.on_target_timeout_ms),
+            ("stage.poll_ms", s.poll_ms),
+            ("qpd.timeout_ms", q.timeout_ms),
+        ] {
+            if v == 0 || v > 3_600_000 {
+                return Err(err(
+                    key,
+                    format!("{v} ms: must be between 1 ms and one hour"),
+                ));
+            }
+        }
+        let axes = [&s.axes.x, &s.axes.y, &s.axes.z];
+        for (i, a) in axes.iter().enumerate() {
+            if a.is_empty() || a.contains(char::is_whitespace) || a.contains('=') {
+                return Err(err(
+                    &format!("stage.axes.{}", AXIS_NAMES[i]),
+                    format!("{a:?} is not a controller axis identifier"),
+                ));
+            }
+        }
+        if axes[0] == axes[1] || axes[0] == axes[2] || axes[1] == axes[2] {
+            return Err(err(
+                "stage.axes",
+                "x, y and z must be different controller axes",
+            ));
+        }
+        if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
+            return Err(err("stage.units_per_um", "must be a positive number"));
+        }
+        if !(s.settle_s.is_finite() && (0.0..=60.0).contains(&s.settle_s)) {
+            return Err(err("stage.settle_s", "must be between 0 and 60 s"));
+        }
+        for i in 0..3 {
+            let g = q.calibration.gain[i];
+            if !(g.is_finite() && g != 0.0) {
+                return Err(err(
+                    "qpd.calibration.gain",
+                    format!("channel {i}: {g} must be finite and nonzero"),
+                ));
+            }
+            if !q.calibration.offset_v[i].is_finite() {
+                return Err(err("qpd.calibration.offset_v", "must be finite"));
+            }
+        }
+        for (i, name) in AXIS_NAMES.iter().enumerate() {
+            if let Some([lo, hi]) = self.safety.soft_limits.get(i) {
+                if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                    return Err(err(
+                        &format!("safety.soft_limits.{name}"),
+                        format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
+                    ));
+                }
+            }
+        }
+        for (key, v) in [
+            ("safety.max_step_um", self.safety.max_step_um),
+            ("safety.max_speed_um_s", self.safety.max_speed_um_s),
+        ] {
+            if let Some(v) = v {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(err(key, format!("{v}: must be a positive number")));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Driver settings for the GCS stage.
+    pub fn gcs_options(&self) -> GcsOptions {
+        let s = &self.stage;
+        GcsOptions {
+            axes: [s.axes.x.clone(), s.axes.y.clone(), s.axes.z.clone()],
+            timeout: Duration::from_millis(s.timeout_ms),
+            on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
+            poll_interval: Duration::from_millis(s.poll_ms),
+            servo_on_connect: s.servo_on_connect,
+            units_per_um: s.units_per_um,
+        }
+    }
+
+    /// Driver settings for the SCPI QPD.
+    pub fn scpi_options(&self) -> ScpiOptions {
+        ScpiOptions {
+            timeout: Duration::from_millis(self.qpd.timeout_ms),
+            calibration: self.qpd.calibration,
+            statistics: self.qpd.statistics,
+        }
+    }
+}
+
+/// Line where `key` (a dotted path) is set, for validation errors: a `k = …` line whose
+/// table path plus `k` is `key` or a prefix of it (inline tables such as `soft_limits = {x = …}`).
+fn find_key_line(text: &str, key: &str) -> Option<usize> {
+    if key.is_empty() {
+        return None;
+    }
+    let mut table = String::new();
+    for (n, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if let Some(h) = table_header(t) {
+            table = h;
+            continue;
+        }
+        if t.starts_with('#') {
+            continue;
+        }
+        if let Some((k, _)) = t.split_once('=') {
+            let k = k.trim().trim_matches('"');
+            let path = if table.is_empty() {
+                k.to_string()
+            } else {
+                format!("{table}.{k}")
+            };
+            if key == path || key.starts_with(&format!("{path}.")) {
+                return Some(n + 1);
+            }
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_file_is_simulated() {
+        let c = Config::from_toml_str("", "t").unwrap();
+        assert!(c.is_simulated());
+        assert_eq!(c, Config::default());
+    }
+
+    #[test]
+    fn full_config_round_trip() {
+        let text = r#"
+[stage]
+backend = "gcs"
+port = "/dev/ttyUSB0"
+baud = 57600
+axes = { x = "1", y = "2", z = "3" }
+settle_s = 0.01
+
+[qpd]
+backend = "scpi"
+port = "/dev/ttyUSB1"
+calibration = { gain = [2.0, 2.0, 0.5], offset_v = [0.1, 0.0, 0.0] }
+
+[safety]
+soft_limits = { x = [10.0, 90.0], z = [1.0, 19.0] }
+max_step_um = 5.0
+
+[optics]
+wavelength_nm = 1064.0
+"#;
+        let c = Config::from_toml_str(text, "t").unwrap();
+        assert_eq!(c.stage.backend, Backend::Gcs);
+        assert_eq!(c.stage.baud, 57600);
+        assert_eq!(c.gcs_options().axes, ["1", "2", "3"]);
+        assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
+        assert_eq!(c.safety.soft_limits.x, Some([10.0, 90.0]));
+        assert_eq!(c.safety.soft_limits.y, None);
+        assert_eq!(c.safety.max_step_um, Some(5.0));
+        assert_eq!(c.other["optics"]["wavelength_nm"].as_float(), Some(1064.0));
+        let again = Config::from_toml_str(&c.to_toml(), "t2").unwrap();
+        assert_eq!(again, c);
+    }
+
+    fn error_of(text: &str) -> ConfigError {
+        Config::from_toml_str(text, "bfpscope.toml").unwrap_err()
+    }
+
+    #[test]
+    fn parse_errors_name_the_key_path() {
+        let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\nbaud = \"fast\"\n");
+        assert_eq!(e.key, "stage.baud");
+        assert_eq!(e.line, Some(4));
+        assert!(e.message.contains("invalid type"), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.baud: invalid type: string \"fast\", expected u32 (line 4)"
+        );
+
+        let e = error_of("[stage]\nbackend = \"gsc\"\n");
+        assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
+        assert!(e.message.contains("gsc"), "{e}");
+
+        let e = error_of("[safety]\nsoft_limit = { x = [0.0, 1.0] }\n");
+        assert_eq!(e.key, "safety.soft_limit");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: safety.soft_limit: unknown field `soft_limit`, expected one of `soft_limits`, \
+             `max_step_um`, `max_speed_um_s` (line 2)"
+        );
+
+        let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
+        assert_eq!(e.key, "qpd.calibration.gain");
+    }
+
+    #[test]
+    fn validation_errors_name_the_key_path() {
+        let e =
+            error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
+        assert_eq!(e.key, "stage.port");
+        assert_eq!(e.line, None, "must not point at qpd.port");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.port: required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"
+        );
+        let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
+        assert_eq!(e.key, "qpd.backend");
+        let e = error_of("[safety]\nsoft_limits = { x = [5.0, 1.0] }\n");
+        assert_eq!(e.key, "safety.soft_limits.x");
+        assert_eq!(e.line, Some(2));
+        let e = error_of("[stage]\naxes = { x = \"A\", y = \"A\", z = \"C\" }\n");
+        assert_eq!(e.key, "stage.axes");
+        let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
+        assert_eq!(e.key, "qpd.calibration.gain");
+        let e = error_of("[safety]\nmax_step_um = -1.0\n");
+        assert_eq!(e.key, "safety.max_step_um");
+    }
+
+    #[test]
+    fn soft_limits_intersect_travel() {
+        let soft = SoftLimits {
+            x: Some([-10.0, 50.0]),
+            y: Some([20.0, 30.0]),
+            z: None,
+        };
+        let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
+        assert_eq!(
+            effective_limits(&soft, travel).unwrap(),
+            [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]
+        );
+        let soft = SoftLimits {
+            z: Some([25.0, 30.0]),
+            ..Default::default()
+        };
+        let e = effective_limits(&soft, travel).unwrap_err();
+        assert_eq!(e.key, "safety.soft_limits.z");
+        assert!(e.message.contains("[0, 20]"), "{e}");
+        assert!(
+            effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err()
+        );
+        assert!(effective_limits(
+            &SoftLimits::default(),
+            [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn example_file_parses() {
+        let c = Config::from_toml_str(
+            include_str!("../../bfpscope.example.toml"),
+            "bfpscope.example.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            (c.stage.backend, c.qpd.backend),
+            (Backend::Gcs, Backend::Scpi)
+        );
+        assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
+        assert_eq!(c.safety.soft_limits.z, Some([1.0, 19.0]));
+        // every key shown with its default really is the default
+        let d = Config::default();
+        assert_eq!(
+            (
+                c.stage.baud,
+                c.stage.timeout_ms,
+                c.stage.on_target_timeout_ms,
+                c.stage.poll_ms,
+                c.stage.settle_s
+            ),
+            (
+                d.stage.baud,
+                d.stage.timeout_ms,
+                d.stage.on_target_timeout_ms,
+                d.stage.poll_ms,
+                d.stage.settle_s
+            )
+        );
+        assert_eq!(
+            (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
+            (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
+        );
+        assert!(c.other.is_empty());
+    }
+
+    #[test]
+    fn key_path_tracker() {
+        let t = "a = 1\n[x.y]\nb = 2\nc = [\n  1,\n]\n";
+        assert_eq!(key_path_at(t, 0), ("a".into(), 1));
+        assert_eq!(key_path_at(t, t.find("b =").unwrap()), ("x.y.b".into(), 3));
+        assert_eq!(key_path_at(t, t.find("  1").unwrap()), ("x.y.c".into(), 5));
+        let t = "[scene]\npoints = [\n  [1, 2],\n  [x],\n]\n";
+        assert_eq!(key_path_at(t, t.find("[x]").unwrap()).0, "scene.points");
+    }
+}

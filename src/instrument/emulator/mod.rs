@@ -1,0 +1,365 @@
+//! Device emulators on pseudo-terminals: a PI GCS 2.0 piezo stage and a SCPI QPD digitiser.
+//!
+//! Each emulator runs on its own thread and serves the master side of a PTY pair
+//! (`serialport::TTYPort::pair()`); a driver opens the slave path ([`Emulator::path`], e.g.
+//! `/dev/pts/7`) exactly as it would open `/dev/ttyUSB0`. The stage and QPD emulators share the
+//! stage position ([`SharedPosition`]), so the QPD answers with the signal of a
+//! [`SignalSource`] at the emulated stage's current position and a scan through the real
+//! drivers images the emulated scene.
+//!
+//! Faults are switched at run time through [`Emulator::faults`]: go silent, garble replies,
+//! an error code on the next command, unplug after N commands, slow settling, accept
+//! out-of-range targets. Every thread stops on its stop flag (set by [`Emulator::stop`] and on
+//! drop) or when it unplugs itself.
+
+mod cli;
+mod qpd;
+mod stage;
+
+pub use cli::{run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators};
+pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
+pub use stage::{start_stage_emulator, StageEmulatorConfig};
+
+use super::Pos;
+use serialport::TTYPort;
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// The emulated stage position (µm) shared by the stage and QPD emulators.
+pub type SharedPosition = Arc<Mutex<Pos>>;
+
+/// A new shared position at `p`.
+pub fn shared_position(p: Pos) -> SharedPosition {
+    Arc::new(Mutex::new(p))
+}
+
+/// Where the QPD emulator's signal comes from: stage position (µm) → (Sx, Sy, Sz) in
+/// workbench signal units. Plug the simulator in here; tests use [`standin_bead`].
+pub trait SignalSource: Fn(Pos) -> [f64; 3] + Send + 'static {}
+impl<F: Fn(Pos) -> [f64; 3] + Send + 'static> SignalSource for F {}
+
+/// A simple analytic stand-in for a bead at the origin (not physics; it proves the plumbing):
+/// with `g = exp(−(x²+y²)/0.16 − z²/0.5)`: Sx = x·g, Sy = y·g, Sz = 0.2·g (x, y, z in µm).
+pub fn standin_bead(p: Pos) -> [f64; 3] {
+    let [x, y, z] = p;
+    let g = (-(x * x + y * y) / 0.16 - z * z / 0.5).exp();
+    [x * g, y * g, 0.2 * g]
+}
+
+/// The simulator as a signal source: the ideal (noise-free) signal of `renderer`'s scene at
+/// the stage position, evaluated like a one-pixel `render_grid_ideal`. The emulator adds its own
+/// detector noise (`QpdEmulatorConfig::noise_v`); instrument effects of the scene (drift,
+/// pointing noise, …) are not applied.
+pub fn sim_signal_source(renderer: std::sync::Arc<crate::instrument::sim::Renderer>) -> impl SignalSource {
+    move |p: Pos| {
+        let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
+        [g[0][0], g[1][0], g[2][0]]
+    }
+}
+
+/// Fault-injection switches. Change them at run time with [`Emulator::faults`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Faults {
+    /// Read commands but never answer (a hung controller, a cable with only TX connected).
+    pub silent: bool,
+    /// Garble the next N replies: a 0xFF byte, then the reply with every digit replaced by
+    /// `#`. (Replies only: commands without a reply are not affected.)
+    pub garble_replies: usize,
+    /// Reject the next command (other than the error query itself) with this error code: the
+    /// command is not executed, a query gets no reply, and the error query returns the code.
+    pub error_next: Option<i64>,
+    /// Serve this many more commands, then close the port (unplugged cable, power loss).
+    pub unplug_after: Option<usize>,
+    /// Stage: time to settle on a new target in s, overriding the configured settle time
+    /// (slow settling).
+    pub settle_s: Option<f64>,
+    /// Stage: reject targets outside the travel range with error 7, as real controllers do.
+    /// When false the target is silently clamped to the travel range.
+    pub reject_out_of_range: bool,
+}
+
+impl Default for Faults {
+    fn default() -> Self {
+        Self {
+            silent: false,
+            garble_replies: 0,
+            error_next: None,
+            unplug_after: None,
+            settle_s: None,
+            reject_out_of_range: true,
+        }
+    }
+}
+
+/// Garbled form of a reply (see [`Faults::garble_replies`]).
+pub fn garble(reply: &str) -> Vec<u8> {
+    let mut out = vec![0xFF];
+    out.extend(
+        reply
+            .bytes()
+            .map(|b| if b.is_ascii_digit() { b'#' } else { b }),
+    );
+    out
+}
+
+/// Most commands kept in an emulator's command log.
+const LOG_CAP: usize = 100_000;
+
+/// A running emulator. Dropping it stops the thread and closes the port.
+pub struct Emulator {
+    path: String,
+    kind: &'static str,
+    faults: Arc<Mutex<Faults>>,
+    log: Arc<Mutex<VecDeque<String>>>,
+    stop: Arc<AtomicBool>,
+    finished: Arc<AtomicBool>,
+    position: SharedPosition,
+    thread: Option<JoinHandle<()>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Emulator {
+    /// The pseudo-terminal path a driver opens (`/dev/pts/N`).
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    /// `"stage"` or `"qpd"`.
+    pub fn kind(&self) -> &'static str {
+        self.kind
+    }
+
+    /// The fault switches (hold the guard briefly: the emulator thread waits on it).
+    pub fn faults(&self) -> MutexGuard<'_, Faults> {
+        lock(&self.faults)
+    }
+
+    /// Every command line received so far (oldest first; the last 100 000).
+    pub fn commands(&self) -> Vec<String> {
+        lock(&self.log).iter().cloned().collect()
+    }
+
+    /// The shared emulated stage position (µm).
+    pub fn position(&self) -> Pos {
+        *lock(&self.position)
+    }
+
+    pub fn shared_position(&self) -> SharedPosition {
+        self.position.clone()
+    }
+
+    /// False once the thread has ended (stopped or unplugged).
+    pub fn is_running(&self) -> bool {
+        !self.finished.load(Ordering::SeqCst)
+    }
+
+    /// Stop serving and close the port; returns when the thread has ended.
+    pub fn stop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Emulator {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// What an emulated device does with one command line.
+trait Device: Send + 'static {
+    /// Handle one command; `Some(reply)` (without the final LF) if it answers.
+    fn handle(&mut self, line: &str) -> Option<String>;
+    /// Record a device error code (fault injection).
+    fn inject_error(&mut self, code: i64);
+    /// True for the error query (`ERR?`, `SYST:ERR?`), which injected errors do not hit.
+    fn is_error_query(&self, line: &str) -> bool;
+    /// Called about every 5 ms and before each command: advance dynamics.
+    fn tick(&mut self) {}
+}
+
+/// Open a PTY pair, and serve `device` on the master side on a new thread.
+fn spawn(
+    kind: &'static str,
+    device: impl Device,
+    faults: Arc<Mutex<Faults>>,
+    position: SharedPosition,
+) -> std::io::Result<Emulator> {
+    let (master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
+    let path = serialport::SerialPort::name(&slave)
+        .ok_or_else(|| std::io::Error::other("pseudo-terminal without a name"))?;
+    let log = Arc::new(Mutex::new(VecDeque::new()));
+    let stop = Arc::new(AtomicBool::new(false));
+    let finished = Arc::new(AtomicBool::new(false));
+    let ctx = Serve {
+        master,
+        // Holding the slave open keeps the pseudo-terminal alive between client sessions
+        // (a master whose slave is closed by everyone reports hang-up).
+        _slave: slave,
+        device,
+        faults: faults.clone(),
+        log: log.clone(),
+        stop: stop.clone(),
+        finished: finished.clone(),
+    };
+    let thread = std::thread::Builder::new()
+        .name(format!("emulator-{kind}"))
+        .spawn(move || ctx.run())?;
+    Ok(Emulator {
+        path,
+        kind,
+        faults,
+        log,
+        stop,
+        finished,
+        position,
+        thread: Some(thread),
+    })
+}
+
+struct Serve<D: Device> {
+    master: TTYPort,
+    _slave: TTYPort,
+    device: D,
+    faults: Arc<Mutex<Faults>>,
+    log: Arc<Mutex<VecDeque<String>>>,
+    stop: Arc<AtomicBool>,
+    finished: Arc<AtomicBool>,
+}
+
+/// Longest command line accepted; longer input is dropped as line noise.
+const MAX_COMMAND: usize = 4096;
+
+impl<D: Device> Serve<D> {
+    fn run(mut self) {
+        let _ = serialport::SerialPort::set_timeout(&mut self.master, Duration::from_millis(5));
+        let mut buf: Vec<u8> = Vec::new();
+        let mut chunk = [0u8; 1024];
+        'serve: while !self.stop.load(Ordering::SeqCst) && !self.unplugged() {
+            self.device.tick();
+            match self.master.read(&mut chunk) {
+                Ok(0) => std::thread::sleep(Duration::from_millis(5)),
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                // No client has the slave open (we hold it, so rare): wait for one.
+                Err(_) => std::thread::sleep(Duration::from_millis(5)),
+            }
+            while let Some(i) = buf.iter().position(|&b| b == b'\n') {
+                let raw: Vec<u8> = buf.drain(..=i).collect();
+                let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
+                    .trim_end_matches('\r')
+                    .to_string();
+                if line.trim().is_empty() {
+                    continue;
+                }
+                if !self.serve_line(&line) {
+                    break 'serve;
+                }
+            }
+            if buf.len() > MAX_COMMAND {
+                buf.clear();
+            }
+        }
+        self.finished.store(true, Ordering::SeqCst);
+        // Dropping `self` closes master and slave: the client sees a hang-up.
+    }
+
+    /// Serve one command line; false when the emulator unplugs itself.
+    fn serve_line(&mut self, line: &str) -> bool {
+        {
+            let mut log = lock(&self.log);
+            if log.len() >= LOG_CAP {
+                log.pop_front();
+            }
+            log.push_back(line.to_string());
+        }
+        self.device.tick();
+        let (silent, inject, garble_it) = {
+            let mut f = lock(&self.faults);
+            let inject = if f.error_next.is_some() && !self.device.is_error_query(line) {
+                f.error_next.take()
+            } else {
+                None
+            };
+            (f.silent, inject, f.garble_replies > 0)
+        };
+        let reply = if let Some(code) = inject {
+            self.device.inject_error(code);
+            None
+        } else {
+            self.device.handle(line)
+        };
+        if let (Some(r), false) = (reply, silent) {
+            let mut bytes = if garble_it {
+                let mut f = lock(&self.faults);
+                f.garble_replies = f.garble_replies.saturating_sub(1);
+                garble(&r)
+            } else {
+                r.into_bytes()
+            };
+            bytes.push(b'\n');
+            if self
+                .master
+                .write_all(&bytes)
+                .and_then(|_| self.master.flush())
+                .is_err()
+            {
+                // The client went away mid-reply; keep serving for the next one.
+            }
+        }
+        let mut f = lock(&self.faults);
+        if let Some(n) = f.unplug_after {
+            f.unplug_after = Some(n.saturating_sub(1));
+        }
+        f.unplug_after != Some(0)
+    }
+
+    fn unplugged(&self) -> bool {
+        lock(&self.faults).unplug_after == Some(0)
+    }
+}
+
+/// Start a stage and a QPD emulator sharing one stage position: a scan through the real
+/// drivers images `source`.
+pub fn start_pair(
+    stage: StageEmulatorConfig,
+    qpd: QpdEmulatorConfig,
+    source: impl SignalSource,
+) -> std::io::Result<(Emulator, Emulator)> {
+    let pos = shared_position(stage.start);
+    let s = start_stage_emulator(stage, pos.clone())?;
+    let q = start_qpd_emulator(qpd, pos, source)?;
+    Ok((s, q))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn standin_is_odd_in_x_and_peaks_near_0_28() {
+        let a = standin_bead([0.2, 0.0, 0.0]);
+        let b = standin_bead([-0.2, 0.0, 0.0]);
+        assert_eq!(a[0], -b[0]);
+        // d/dx x·exp(−x²/0.16) = 0 at x = sqrt(0.08)
+        let x0 = 0.08f64.sqrt();
+        assert!(standin_bead([x0, 0.0, 0.0])[0] > standin_bead([x0 + 0.01, 0.0, 0.0])[0]);
+        assert!(standin_bead([x0, 0.0, 0.0])[0] > standin_bead([x0 - 0.01, 0.0, 0.0])[0]);
+        assert_eq!(standin_bead([0.0; 3]), [0.0, 0.0, 0.2]);
+    }
+
+    #[test]
+    fn garble_replaces_digits() {
+        assert_eq!(garble("A=12.5"), b"\xffA=##.#".to_vec());
+    }
+}

@@ -1,0 +1,299 @@
+//! A PI GCS 2.0 piezo controller emulator: three closed-loop axes with a travel range, servo
+//! state, settle dynamics (the position ramps linearly from where it was to the target over
+//! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
+//! (`ERR?` returns the last error and clears it).
+//!
+//! Commands: `*IDN?`, `ERR?`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`, `ONT?`, `TMN?`, `TMX?`,
+//! `STP`, `HLT`. Queries take an optional axis list (all axes without one). Errors: 1
+//! parameter syntax, 2 unknown command, 5 servo off, 7 position out of limits, 10 stopped,
+//! 15 invalid axis identifier.
+
+use super::{lock, spawn, Device, Emulator, Faults, SharedPosition};
+use crate::instrument::Pos;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// Stage emulator settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StageEmulatorConfig {
+    /// Axis identifiers for x, y, z.
+    pub axes: [String; 3],
+    /// Travel range (min, max) per axis, µm.
+    pub travel: [(f64, f64); 3],
+    /// Position at power-on, µm (clamped into the travel range).
+    pub start: Pos,
+    /// Time to settle on a new target, s (linear ramp).
+    pub settle_s: f64,
+    /// `ONT?` reports 1 once the position is within this distance of the target, µm (the
+    /// controller's settling window).
+    pub on_target_window_um: f64,
+    /// Servo state at power-on.
+    pub servo_on: bool,
+    /// `*IDN?` reply.
+    pub idn: String,
+    /// Initial fault switches.
+    pub faults: Faults,
+}
+
+impl Default for StageEmulatorConfig {
+    /// A P-517.3CD-like stage on an E-727: 100 × 100 × 20 µm, parked at the origin.
+    fn default() -> Self {
+        Self {
+            axes: ["A".into(), "B".into(), "C".into()],
+            travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
+            start: [0.0; 3],
+            settle_s: 0.002,
+            on_target_window_um: 0.001,
+            servo_on: false,
+            idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
+                .into(),
+            faults: Faults::default(),
+        }
+    }
+}
+
+impl StageEmulatorConfig {
+    /// A stage like the simulator's: same travel range and move time, parked at the origin.
+    pub fn like_sim(sim: &crate::instrument::sim::SimConfig) -> Self {
+        Self { travel: sim.travel, settle_s: sim.move_time_s, ..Self::default() }
+    }
+}
+
+struct Axis {
+    from: f64,
+    target: f64,
+    t0: Instant,
+    servo: bool,
+}
+
+struct GcsDevice {
+    cfg: StageEmulatorConfig,
+    axes: [Axis; 3],
+    error: i64,
+    faults: Arc<Mutex<Faults>>,
+    position: SharedPosition,
+}
+
+impl GcsDevice {
+    fn settle(&self) -> f64 {
+        lock(&self.faults)
+            .settle_s
+            .unwrap_or(self.cfg.settle_s)
+            .max(0.0)
+    }
+
+    /// Position and on-target flag of axis `i` now.
+    fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
+        let a = &self.axes[i];
+        let f = if settle > 0.0 {
+            now.duration_since(a.t0).as_secs_f64() / settle
+        } else {
+            1.0
+        };
+        if f >= 1.0 {
+            (a.target, true)
+        } else {
+            let p = a.from + (a.target - a.from) * f;
+            (p, (p - a.target).abs() <= self.cfg.on_target_window_um)
+        }
+    }
+
+    fn positions(&self) -> ([f64; 3], [bool; 3]) {
+        let settle = self.settle();
+        let now = Instant::now();
+        let mut p = [0.0; 3];
+        let mut o = [false; 3];
+        for i in 0..3 {
+            (p[i], o[i]) = self.axis_now(i, settle, now);
+        }
+        (p, o)
+    }
+
+    fn set_error(&mut self, code: i64) {
+        // GCS keeps only the last error.
+        self.error = code;
+    }
+
+    /// Axis indices named in `args` (all axes if none). Error 15 for an unknown name.
+    fn axis_list(&mut self, args: &[&str]) -> Option<Vec<usize>> {
+        if args.is_empty() {
+            return Some(vec![0, 1, 2]);
+        }
+        let mut v = Vec::new();
+        for a in args {
+            match self.cfg.axes.iter().position(|n| n == a) {
+                Some(i) => v.push(i),
+                None => {
+                    self.set_error(15);
+                    return None;
+                }
+            }
+        }
+        Some(v)
+    }
+
+    /// `AXIS value AXIS value …` pairs. Error 1 for a malformed list, 15 for an unknown axis.
+    fn pairs(&mut self, args: &[&str]) -> Option<Vec<(usize, f64)>> {
+        if args.is_empty() || !args.len().is_multiple_of(2) {
+            self.set_error(1);
+            return None;
+        }
+        let mut v = Vec::new();
+        for c in args.chunks(2) {
+            let Some(i) = self.cfg.axes.iter().position(|n| n == c[0]) else {
+                self.set_error(15);
+                return None;
+            };
+            match c[1].parse::<f64>() {
+                Ok(x) if x.is_finite() => v.push((i, x)),
+                _ => {
+                    self.set_error(1);
+                    return None;
+                }
+            }
+        }
+        Some(v)
+    }
+
+    /// A multi-line `AXIS=value` reply: every line but the last ends with a space.
+    fn reply(&self, idx: &[usize], f: impl Fn(usize) -> String) -> String {
+        let lines: Vec<String> = idx
+            .iter()
+            .map(|&i| format!("{}={}", self.cfg.axes[i], f(i)))
+            .collect();
+        lines.join(" \n")
+    }
+
+    fn publish(&self) {
+        let (p, _) = self.positions();
+        *lock(&self.position) = p;
+    }
+
+    fn halt(&mut self) {
+        let (p, _) = self.positions();
+        let now = Instant::now();
+        for (a, x) in self.axes.iter_mut().zip(p) {
+            a.from = x;
+            a.target = x;
+            a.t0 = now;
+        }
+        self.set_error(10);
+    }
+}
+
+impl Device for GcsDevice {
+    fn tick(&mut self) {
+        self.publish();
+    }
+
+    fn is_error_query(&self, line: &str) -> bool {
+        line.trim().eq_ignore_ascii_case("ERR?")
+    }
+
+    fn inject_error(&mut self, code: i64) {
+        self.set_error(code);
+    }
+
+    fn handle(&mut self, line: &str) -> Option<String> {
+        let mut words = line.split_whitespace();
+        let cmd = words.next()?.to_ascii_uppercase();
+        let args: Vec<&str> = words.collect();
+        let reply = match cmd.as_str() {
+            "*IDN?" => Some(self.cfg.idn.clone()),
+            "ERR?" => {
+                let e = self.error;
+                self.error = 0;
+                Some(e.to_string())
+            }
+            "POS?" | "ONT?" | "TMN?" | "TMX?" | "SVO?" | "MOV?" => {
+                let idx = self.axis_list(&args)?;
+                let (p, ont) = self.positions();
+                let t = self.cfg.travel;
+                Some(match cmd.as_str() {
+                    "POS?" => self.reply(&idx, |i| format!("{:.6}", p[i])),
+                    "ONT?" => self.reply(&idx, |i| u8::from(ont[i]).to_string()),
+                    "TMN?" => self.reply(&idx, |i| format!("{:.6}", t[i].0)),
+                    "TMX?" => self.reply(&idx, |i| format!("{:.6}", t[i].1)),
+                    "SVO?" => self.reply(&idx, |i| u8::from(self.axes[i].servo).to_string()),
+                    _ => self.reply(&idx, |i| format!("{:.6}", self.axes[i].target)),
+                })
+            }
+            "SVO" => {
+                let pairs = self.pairs(&args)?;
+                if pairs.iter().any(|&(_, v)| v != 0.0 && v != 1.0) {
+                    self.set_error(1);
+                    return None;
+                }
+                for (i, v) in pairs {
+                    self.axes[i].servo = v == 1.0;
+                }
+                None
+            }
+            "MOV" => {
+                let pairs = self.pairs(&args)?;
+                if pairs.iter().any(|&(i, _)| !self.axes[i].servo) {
+                    self.set_error(5);
+                    return None;
+                }
+                let reject = lock(&self.faults).reject_out_of_range;
+                let t = self.cfg.travel;
+                if reject && pairs.iter().any(|&(i, v)| v < t[i].0 || v > t[i].1) {
+                    self.set_error(7);
+                    return None;
+                }
+                let (p, _) = self.positions();
+                let now = Instant::now();
+                for (i, v) in pairs {
+                    let a = &mut self.axes[i];
+                    a.from = p[i];
+                    a.target = v.clamp(t[i].0, t[i].1);
+                    a.t0 = now;
+                }
+                None
+            }
+            "STP" | "HLT" => {
+                self.halt();
+                None
+            }
+            _ => {
+                self.set_error(2);
+                None
+            }
+        };
+        self.publish();
+        reply
+    }
+}
+
+/// Start a GCS stage emulator on a new pseudo-terminal. `position` is updated with the
+/// emulated position (µm) as the stage moves (share it with a QPD emulator).
+pub fn start_stage_emulator(
+    cfg: StageEmulatorConfig,
+    position: SharedPosition,
+) -> std::io::Result<Emulator> {
+    let now = Instant::now();
+    let mut axes = Vec::new();
+    for i in 0..3 {
+        let (lo, hi) = cfg.travel[i];
+        let x = cfg.start[i].clamp(lo.min(hi), hi.max(lo));
+        axes.push(Axis {
+            from: x,
+            target: x,
+            t0: now,
+            servo: cfg.servo_on,
+        });
+    }
+    let axes: [Axis; 3] = axes
+        .try_into()
+        .map_err(|_| std::io::Error::other("three axes"))?;
+    let faults = Arc::new(Mutex::new(cfg.faults.clone()));
+    let dev = GcsDevice {
+        cfg,
+        axes,
+        error: 0,
+        faults: faults.clone(),
+        position: position.clone(),
+    };
+    dev.publish();
+    spawn("stage", dev, faults, position)
+}

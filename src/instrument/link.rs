@@ -1,0 +1,416 @@
+//! Line-oriented ASCII links over a serial port (or anything that reads and writes bytes with
+//! a timeout): the transport the GCS and SCPI drivers share.
+//!
+//! Every way a device can misbehave on the wire becomes a [`DeviceError`] naming the device,
+//! the command and what came back:
+//! - nothing within the timeout → `Timeout`;
+//! - bytes without a line terminator within the timeout, an over-long line, non-UTF-8 or
+//!   control characters → `Garbled` with the text received (lossy);
+//! - end of file, hang-up, broken pipe, I/O error → `Disconnected`.
+//!
+//! Nothing here panics on device input.
+
+use super::DeviceError;
+use std::io::{self, Read, Write};
+use std::time::{Duration, Instant};
+
+/// Longest reply line accepted (bytes). Anything longer is garbage, not a reply.
+pub const MAX_LINE: usize = 4096;
+
+/// A byte stream with a settable read timeout: a serial port, a pseudo-terminal, or an
+/// in-memory double in unit tests.
+pub trait Transport: Read + Write + Send {
+    /// Set the longest time one `read` may block.
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()>;
+    /// Drop whatever was received and not read yet (stale replies after a fault).
+    fn discard_input(&mut self) -> io::Result<()>;
+}
+
+impl Transport for Box<dyn serialport::SerialPort> {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        self.set_timeout(timeout).map_err(io::Error::from)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.clear(serialport::ClearBuffer::Input)
+            .map_err(io::Error::from)
+    }
+}
+
+impl Transport for serialport::TTYPort {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        serialport::SerialPort::set_timeout(self, timeout).map_err(io::Error::from)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        serialport::SerialPort::clear(self, serialport::ClearBuffer::Input).map_err(io::Error::from)
+    }
+}
+
+/// A serial port opened by the drivers. On Unix it is opened exclusively (`TIOCEXCL`: a second
+/// program cannot open it meanwhile) and the exclusivity is cleared again when the port is
+/// closed. Pseudo-terminals keep the flag for as long as their master lives, so without the
+/// clearing a non-root user could not reconnect to an emulator.
+#[cfg(unix)]
+struct SerialTransport(serialport::TTYPort);
+
+#[cfg(unix)]
+impl Read for SerialTransport {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        self.0.read(buf)
+    }
+}
+
+#[cfg(unix)]
+impl Write for SerialTransport {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.0.write(buf)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+#[cfg(unix)]
+impl Transport for SerialTransport {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        self.0.set_read_timeout(timeout)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.0.discard_input()
+    }
+}
+
+#[cfg(unix)]
+impl Drop for SerialTransport {
+    fn drop(&mut self) {
+        let _ = self.0.set_exclusive(false);
+    }
+}
+
+/// Open a serial port (real or pseudo-terminal) with 8N1, no flow control.
+pub fn open_serial(
+    device: &str,
+    path: &str,
+    baud: u32,
+    timeout: Duration,
+) -> Result<Box<dyn Transport>, DeviceError> {
+    let builder = serialport::new(path, baud)
+        .timeout(timeout)
+        .data_bits(serialport::DataBits::Eight)
+        .parity(serialport::Parity::None)
+        .stop_bits(serialport::StopBits::One)
+        .flow_control(serialport::FlowControl::None);
+    #[cfg(unix)]
+    let opened = builder
+        .open_native()
+        .map(|p| Box::new(SerialTransport(p)) as Box<dyn Transport>);
+    #[cfg(not(unix))]
+    let opened = builder.open().map(|p| Box::new(p) as Box<dyn Transport>);
+    opened.map_err(|e| {
+        let hint = match e.kind() {
+            serialport::ErrorKind::NoDevice => {
+                " (is it plugged in, and not opened by another program?)"
+            }
+            serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
+                " (permission denied: add yourself to the `dialout` group and log in again)"
+            }
+            serialport::ErrorKind::Io(io::ErrorKind::NotFound) => {
+                " (no such port: check `port` in bfpscope.toml; `ls /dev/ttyUSB* /dev/ttyACM*`)"
+            }
+            _ => "",
+        };
+        DeviceError::Other {
+            device: device.to_string(),
+            detail: format!("cannot open {path}: {e}{hint}"),
+        }
+    })
+}
+
+/// Classify an I/O error: timeouts are timeouts, everything else means the link is gone.
+fn io_error(device: &str, command: &str, timeout: Duration, e: &io::Error) -> DeviceError {
+    match e.kind() {
+        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
+            device: device.to_string(),
+            command: command.to_string(),
+            timeout_ms: timeout.as_millis() as u64,
+        },
+        _ => DeviceError::Disconnected {
+            device: device.to_string(),
+            command: command.to_string(),
+            detail: e.to_string(),
+        },
+    }
+}
+
+/// Text of a byte string for messages: lossy UTF-8, control characters escaped by `{:?}`.
+pub fn lossy(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// A line-terminated (LF, optional CR before it) ASCII command link.
+pub struct LineLink {
+    io: Box<dyn Transport>,
+    device: String,
+    buf: Vec<u8>,
+    /// Default reply timeout.
+    pub timeout: Duration,
+}
+
+impl LineLink {
+    pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
+        Self {
+            io,
+            device: device.into(),
+            buf: Vec::new(),
+            timeout,
+        }
+    }
+
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+
+    pub fn set_device(&mut self, device: impl Into<String>) {
+        self.device = device.into();
+    }
+
+    /// Forget stale input (ours and the port's) before a new exchange.
+    pub fn discard_input(&mut self) {
+        self.buf.clear();
+        // Best effort: a port that cannot flush will show its problem on the next read/write.
+        let _ = self.io.discard_input();
+    }
+
+    /// Send one command line (LF appended).
+    pub fn send(&mut self, command: &str) -> Result<(), DeviceError> {
+        let mut line = Vec::with_capacity(command.len() + 1);
+        line.extend_from_slice(command.as_bytes());
+        line.push(b'\n');
+        let timeout = self.timeout;
+        self.io
+            .write_all(&line)
+            .and_then(|_| self.io.flush())
+            .map_err(|e| io_error(&self.device, command, timeout, &e))
+    }
+
+    /// Read one reply line to `command` (terminator and a trailing CR removed, other
+    /// whitespace kept), waiting at most `timeout` in total.
+    pub fn read_line(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
+                let mut line: Vec<u8> = self.buf.drain(..=i).collect();
+                line.pop();
+                if line.last() == Some(&b'\r') {
+                    line.pop();
+                }
+                return self.check_text(command, line);
+            }
+            if self.buf.len() > MAX_LINE {
+                let reply = lossy(&self.buf);
+                self.buf.clear();
+                return Err(self.garbled(
+                    command,
+                    format!("{reply} [no line end after {MAX_LINE} bytes]"),
+                ));
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(self.timed_out(command, timeout));
+            }
+            let remaining = (deadline - now).max(Duration::from_millis(1));
+            if let Err(e) = self.io.set_read_timeout(remaining) {
+                return Err(io_error(&self.device, command, timeout, &e));
+            }
+            let mut chunk = [0u8; 512];
+            match self.io.read(&mut chunk) {
+                Ok(0) => {
+                    return Err(DeviceError::Disconnected {
+                        device: self.device.clone(),
+                        command: command.to_string(),
+                        detail: "end of file on the port (device closed the line)".into(),
+                    })
+                }
+                Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                    ) =>
+                {
+                    continue; // the deadline check above decides
+                }
+                Err(e) => return Err(io_error(&self.device, command, timeout, &e)),
+            }
+        }
+    }
+
+    /// Send `command` and read one reply line.
+    pub fn query(&mut self, command: &str) -> Result<String, DeviceError> {
+        self.query_with_timeout(command, self.timeout)
+    }
+
+    pub fn query_with_timeout(
+        &mut self,
+        command: &str,
+        timeout: Duration,
+    ) -> Result<String, DeviceError> {
+        self.discard_input();
+        self.send(command)?;
+        self.read_line(command, timeout)
+    }
+
+    /// A timeout. If part of a line arrived, that is a garbled (unterminated) reply instead,
+    /// and the message shows it.
+    fn timed_out(&mut self, command: &str, timeout: Duration) -> DeviceError {
+        if self.buf.is_empty() {
+            DeviceError::Timeout {
+                device: self.device.clone(),
+                command: command.to_string(),
+                timeout_ms: timeout.as_millis() as u64,
+            }
+        } else {
+            let reply = lossy(&self.buf);
+            self.buf.clear();
+            self.garbled(
+                command,
+                format!("{reply} [no line end within {} ms]", timeout.as_millis()),
+            )
+        }
+    }
+
+    pub fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
+        DeviceError::Garbled {
+            device: self.device.clone(),
+            command: command.to_string(),
+            reply: reply.into(),
+        }
+    }
+
+    fn check_text(&self, command: &str, line: Vec<u8>) -> Result<String, DeviceError> {
+        match String::from_utf8(line) {
+            Ok(s) if s.chars().all(|c| c == '\t' || !c.is_control()) && s.is_ascii() => Ok(s),
+            Ok(s) => Err(self.garbled(command, s)),
+            Err(e) => Err(self.garbled(command, lossy(e.as_bytes()))),
+        }
+    }
+}
+
+/// An in-memory transport for unit tests: replies are scripted per written line.
+#[cfg(test)]
+pub(crate) mod mock {
+    use super::*;
+    use std::collections::VecDeque;
+
+    /// Each command written pops the next scripted reply (raw bytes, may be empty = silence).
+    pub struct Scripted {
+        pub replies: VecDeque<Vec<u8>>,
+        pending: Vec<u8>,
+        written: Vec<u8>,
+        pub log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    }
+
+    impl Scripted {
+        pub fn new(replies: Vec<Vec<u8>>) -> Self {
+            Self {
+                replies: replies.into(),
+                pending: Vec::new(),
+                written: Vec::new(),
+                log: Default::default(),
+            }
+        }
+    }
+
+    impl Read for Scripted {
+        fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+            if self.pending.is_empty() {
+                return Err(io::Error::new(io::ErrorKind::TimedOut, "mock timeout"));
+            }
+            let n = buf.len().min(self.pending.len());
+            buf[..n].copy_from_slice(&self.pending[..n]);
+            self.pending.drain(..n);
+            Ok(n)
+        }
+    }
+
+    impl Write for Scripted {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            self.written.extend_from_slice(buf);
+            while let Some(i) = self.written.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = self.written.drain(..=i).collect();
+                self.log
+                    .lock()
+                    .unwrap()
+                    .push(lossy(&line[..line.len() - 1]));
+                if let Some(r) = self.replies.pop_front() {
+                    self.pending.extend_from_slice(&r);
+                }
+            }
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Transport for Scripted {
+        fn set_read_timeout(&mut self, _timeout: Duration) -> io::Result<()> {
+            Ok(())
+        }
+        fn discard_input(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::mock::Scripted;
+    use super::*;
+
+    fn link(replies: Vec<&[u8]>) -> LineLink {
+        let s = Scripted::new(replies.into_iter().map(|r| r.to_vec()).collect());
+        LineLink::new(Box::new(s), "dev", Duration::from_millis(20))
+    }
+
+    #[test]
+    fn reads_lines_and_strips_cr() {
+        let mut l = link(vec![b"hello\r\n"]);
+        assert_eq!(l.query("Q?").unwrap(), "hello");
+    }
+
+    #[test]
+    fn silence_is_timeout_partial_is_garbled() {
+        let mut l = link(vec![b""]);
+        match l.query("Q?") {
+            Err(DeviceError::Timeout {
+                device,
+                command,
+                timeout_ms,
+            }) => {
+                assert_eq!(
+                    (device.as_str(), command.as_str(), timeout_ms),
+                    ("dev", "Q?", 20)
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        let mut l = link(vec![b"A=1.0"]);
+        match l.query("POS?") {
+            Err(DeviceError::Garbled { reply, command, .. }) => {
+                assert!(reply.starts_with("A=1.0"), "{reply}");
+                assert_eq!(command, "POS?");
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn binary_and_overlong_are_garbled() {
+        let mut l = link(vec![b"\xff\xfe\x01\n"]);
+        assert!(matches!(l.query("Q?"), Err(DeviceError::Garbled { .. })));
+        let long = vec![b'x'; MAX_LINE + 10];
+        let mut l = link(vec![&long]);
+        assert!(matches!(l.query("Q?"), Err(DeviceError::Garbled { .. })));
+    }
+}

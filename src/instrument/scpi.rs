@@ -1,0 +1,351 @@
+//! Driver for a QPD digitiser speaking bfpscope's small SCPI dialect (documented in full in
+//! `docs/hardware.md`):
+//!
+//! | command                      | reply                                  |
+//! |------------------------------|----------------------------------------|
+//! | `*IDN?`                      | `maker,model,serial,firmware`          |
+//! | `*CLS` / `*RST`              | — (clear error queue / defaults)       |
+//! | `SENS:AVER:COUN <n>`         | — (samples averaged per measurement)   |
+//! | `SENS:AVER:COUN?`            | `<n>`                                  |
+//! | `CONF:RATE?`                 | sample rate in Hz                      |
+//! | `MEAS:QPD?`                  | `sx,sy,sz` (volts, mean of n samples)  |
+//! | `MEAS:QPD:STAT?`             | `sx,sy,sz,sdx,sdy,sdz` (means and per-sample standard deviations, volts) |
+//! | `SYST:ERR?`                  | `0,"No error"` or `-222,"Data out of range"` … (FIFO queue) |
+//!
+//! Every command is followed by `SYST:ERR?`. Volts become workbench signal units through the
+//! configured [`Calibration`]: `signal = gain · (volts − offset_v)` per channel.
+
+use super::link::{open_serial, LineLink, Transport};
+use super::{DeviceError, Qpd, QpdReading};
+use std::time::Duration;
+
+/// Volts → signal units, per channel (Sx, Sy, Sz): `signal = gain · (volts − offset_v)`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Calibration {
+    /// Signal units per volt.
+    pub gain: [f64; 3],
+    /// Volts read with the beam centred and no sample (dark/centred offset).
+    pub offset_v: [f64; 3],
+}
+
+impl Default for Calibration {
+    fn default() -> Self {
+        Self {
+            gain: [1.0; 3],
+            offset_v: [0.0; 3],
+        }
+    }
+}
+
+impl Calibration {
+    /// Convert a volt reading (means and per-sample standard deviations) into a `QpdReading`.
+    pub fn apply(&self, volts: [f64; 3], std_v: [f64; 3], n: usize) -> QpdReading {
+        let s = |i: usize| self.gain[i] * (volts[i] - self.offset_v[i]);
+        let d = |i: usize| self.gain[i].abs() * std_v[i];
+        QpdReading {
+            sx: s(0),
+            sy: s(1),
+            sz: s(2),
+            sx_std: d(0),
+            sy_std: d(1),
+            sz_std: d(2),
+            n,
+        }
+    }
+}
+
+/// Driver settings (see `[qpd]` in `bfpscope.toml`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScpiOptions {
+    /// Reply timeout for one command, not counting the acquisition itself (the driver adds
+    /// `n / sample_rate` for a measurement of `n` samples).
+    pub timeout: Duration,
+    pub calibration: Calibration,
+    /// Use `MEAS:QPD:STAT?` (means and standard deviations); otherwise `MEAS:QPD?` and the
+    /// standard deviations are reported as 0.
+    pub statistics: bool,
+}
+
+impl Default for ScpiOptions {
+    fn default() -> Self {
+        Self {
+            timeout: Duration::from_millis(1000),
+            calibration: Calibration::default(),
+            statistics: true,
+        }
+    }
+}
+
+/// Parse a `SYST:ERR?` reply: `<code>,"<message>"`.
+pub fn parse_scpi_error(reply: &str) -> Option<(i64, String)> {
+    let (code, msg) = reply.split_once(',')?;
+    let code = code.trim().parse::<i64>().ok()?;
+    let msg = msg.trim();
+    let msg = msg.strip_prefix('"')?.strip_suffix('"')?;
+    Some((code, msg.to_string()))
+}
+
+/// Parse `k` comma-separated finite numbers.
+pub fn parse_numbers(reply: &str, k: usize) -> Option<Vec<f64>> {
+    let v: Vec<f64> = reply
+        .split(',')
+        .map(|s| s.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
+        .collect::<Option<_>>()?;
+    (v.len() == k).then_some(v)
+}
+
+/// A QPD digitiser on a serial line.
+pub struct ScpiQpd {
+    link: LineLink,
+    opts: ScpiOptions,
+    idn: String,
+    rate: f64,
+    /// Averaging count last set on the device (so it is only sent when it changes).
+    count: Option<usize>,
+}
+
+impl ScpiQpd {
+    /// Open a serial port and connect.
+    pub fn open(port: &str, baud: u32, opts: ScpiOptions) -> Result<Self, DeviceError> {
+        let device = format!("SCPI QPD on {port}");
+        let io = open_serial(&device, port, baud, opts.timeout)?;
+        Self::connect(io, port, opts)
+    }
+
+    /// Connect over any transport: `*IDN?`, `*CLS`, `CONF:RATE?`.
+    pub fn connect(
+        io: Box<dyn Transport>,
+        port: &str,
+        opts: ScpiOptions,
+    ) -> Result<Self, DeviceError> {
+        let link = LineLink::new(io, format!("SCPI QPD on {port}"), opts.timeout);
+        let mut q = Self {
+            link,
+            opts,
+            idn: String::new(),
+            rate: 0.0,
+            count: None,
+        };
+        q.idn = q.query("*IDN?")?.trim().to_string();
+        if let Some(model) = q
+            .idn
+            .split(',')
+            .nth(1)
+            .map(str::trim)
+            .filter(|m| !m.is_empty())
+        {
+            q.link.set_device(format!("QPD {model} on {port}"));
+        }
+        q.command("*CLS")?;
+        let r = q.query("CONF:RATE?")?;
+        q.rate = match r.trim().parse::<f64>() {
+            Ok(v) if v.is_finite() && v > 0.0 => v,
+            _ => return Err(q.link.garbled("CONF:RATE?", r)),
+        };
+        Ok(q)
+    }
+
+    pub fn idn(&self) -> &str {
+        &self.idn
+    }
+
+    pub fn options(&self) -> &ScpiOptions {
+        &self.opts
+    }
+
+    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after`.
+    pub fn check_error(&mut self, after: &str) -> Result<(), DeviceError> {
+        let label = format!("SYST:ERR? (after `{after}`)");
+        let line = self
+            .link
+            .query_with_timeout("SYST:ERR?", self.opts.timeout)
+            .map_err(|e| relabel(e, &label))?;
+        match parse_scpi_error(&line) {
+            Some((0, _)) => Ok(()),
+            Some((code, message)) => Err(DeviceError::Controller {
+                device: self.link.device().to_string(),
+                command: after.to_string(),
+                code,
+                message,
+            }),
+            None => Err(self.link.garbled(&label, line)),
+        }
+    }
+
+    /// Send a command without reply, then check the error queue.
+    pub fn command(&mut self, command: &str) -> Result<(), DeviceError> {
+        self.link.discard_input();
+        self.link.send(command)?;
+        self.check_error(command)
+    }
+
+    /// Send a query and return its reply line. On a timeout the error queue is asked once:
+    /// an error there explains the silence (a rejected query gets no reply).
+    pub fn query(&mut self, command: &str) -> Result<String, DeviceError> {
+        self.query_timeout(command, self.opts.timeout)
+    }
+
+    fn query_timeout(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+        match self.link.query_with_timeout(command, timeout) {
+            Ok(l) => Ok(l),
+            Err(e @ DeviceError::Timeout { .. }) => match self.check_error(command) {
+                Err(c @ DeviceError::Controller { .. }) => Err(c),
+                _ => Err(e),
+            },
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Set the number of samples averaged per measurement (only sent when it changes).
+    pub fn set_count(&mut self, n: usize) -> Result<(), DeviceError> {
+        if self.count == Some(n) {
+            return Ok(());
+        }
+        self.count = None;
+        self.command(&format!("SENS:AVER:COUN {n}"))?;
+        self.count = Some(n);
+        Ok(())
+    }
+
+    /// One measurement in volts: means and per-sample standard deviations.
+    pub fn measure_volts(&mut self, n: usize) -> Result<([f64; 3], [f64; 3]), DeviceError> {
+        self.set_count(n)?;
+        let acquisition = Duration::from_secs_f64((n as f64 / self.rate).min(3600.0));
+        let timeout = self.opts.timeout + acquisition;
+        let (cmd, k) = if self.opts.statistics {
+            ("MEAS:QPD:STAT?", 6)
+        } else {
+            ("MEAS:QPD?", 3)
+        };
+        let line = self.query_timeout(cmd, timeout)?;
+        let v = parse_numbers(&line, k).ok_or_else(|| self.link.garbled(cmd, line.clone()))?;
+        self.check_error(cmd)?;
+        let std = if k == 6 { [v[3], v[4], v[5]] } else { [0.0; 3] };
+        if std.iter().any(|s| *s < 0.0) {
+            return Err(self.link.garbled(cmd, line));
+        }
+        Ok(([v[0], v[1], v[2]], std))
+    }
+}
+
+fn relabel(e: DeviceError, command: &str) -> DeviceError {
+    match e {
+        DeviceError::Timeout {
+            device, timeout_ms, ..
+        } => DeviceError::Timeout {
+            device,
+            command: command.to_string(),
+            timeout_ms,
+        },
+        DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
+            device,
+            command: command.to_string(),
+            reply,
+        },
+        DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
+            device,
+            command: command.to_string(),
+            detail,
+        },
+        other => other,
+    }
+}
+
+impl Qpd for ScpiQpd {
+    fn name(&self) -> String {
+        self.link.device().to_string()
+    }
+
+    fn sample_rate(&self) -> f64 {
+        self.rate
+    }
+
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        let (v, s) = self.measure_volts(n)?;
+        Ok(self.opts.calibration.apply(v, s, n))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::link::mock::Scripted;
+    use super::*;
+    use proptest::prelude::*;
+
+    fn qpd(replies: Vec<&[u8]>) -> ScpiQpd {
+        let mut all: Vec<Vec<u8>> = vec![
+            b"bfpscope,QPD-1,0001,1.0\n".to_vec(),
+            b"".to_vec(),
+            b"0,\"No error\"\n".to_vec(),
+            b"1.0e5\n".to_vec(),
+        ];
+        all.extend(replies.into_iter().map(|r| r.to_vec()));
+        let opts = ScpiOptions {
+            timeout: Duration::from_millis(10),
+            calibration: Calibration {
+                gain: [2.0, 2.0, -1.0],
+                offset_v: [0.5, 0.0, 0.0],
+            },
+            statistics: true,
+        };
+        ScpiQpd::connect(Box::new(Scripted::new(all)), "mock", opts).unwrap()
+    }
+
+    const OK: &[u8] = b"0,\"No error\"\n";
+
+    #[test]
+    fn reads_and_calibrates() {
+        let mut q = qpd(vec![b"", OK, b"1.5,0.25,-2,0.1,0.2,0.3\n", OK]);
+        assert_eq!(q.name(), "QPD QPD-1 on mock");
+        assert_eq!(q.sample_rate(), 1.0e5);
+        let r = q.read(100).unwrap();
+        assert_eq!((r.sx, r.sy, r.sz), (2.0, 0.5, 2.0));
+        assert_eq!((r.sx_std, r.sy_std, r.sz_std), (0.2, 0.4, 0.3));
+        assert_eq!(r.n, 100);
+    }
+
+    #[test]
+    fn device_error_queue() {
+        let mut q = qpd(vec![b"", b"-222,\"Data out of range\"\n"]);
+        match q.read(0) {
+            Err(DeviceError::Controller {
+                code,
+                message,
+                command,
+                ..
+            }) => {
+                assert_eq!(
+                    (code, message.as_str(), command.as_str()),
+                    (-222, "Data out of range", "SENS:AVER:COUN 0")
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn parsers() {
+        assert_eq!(
+            parse_scpi_error("-113,\"Undefined header\""),
+            Some((-113, "Undefined header".into()))
+        );
+        assert_eq!(parse_scpi_error("0,No error"), None);
+        assert_eq!(parse_numbers("1,2,3", 3), Some(vec![1.0, 2.0, 3.0]));
+        assert_eq!(parse_numbers("1,2", 3), None);
+        assert_eq!(parse_numbers("1,nan,3", 3), None);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+        #[test]
+        fn garbage_never_panics(reply in proptest::collection::vec(any::<u8>(), 0..200)) {
+            let mut q = qpd(vec![b"", OK, &reply, OK, OK]);
+            match q.read(10) {
+                Ok(r) => prop_assert!(r.sx.is_finite() && r.sz_std >= 0.0),
+                Err(DeviceError::Garbled { .. }) | Err(DeviceError::Timeout { .. }) => {}
+                Err(e) => prop_assert!(false, "unexpected {e:?}"),
+            }
+        }
+    }
+}

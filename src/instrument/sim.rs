@@ -1,1 +1,0 @@
-//! Simulated instrument (lands with the physics core).

@@ -1,0 +1,256 @@
+//! The simulated instrument: a stage and a QPD that image a `Scene` through the render pipeline,
+//! on a virtual clock (settle and dwell advance simulated time, not wall time).
+
+pub mod render;
+pub mod scene;
+
+use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use crate::data::{Image, Scan, ScanStatus};
+use crate::optics::params::{Optics, OpticsError};
+use crate::optics::template::TemplateSpec;
+use ndarray::Array2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+pub use render::{Renderer, StageInfo};
+pub use scene::Scene;
+use std::sync::{Arc, Mutex};
+
+/// Simulated hardware settings.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SimConfig {
+    /// Travel range per axis, µm (a PDQ375-like piezo stage centred on 0).
+    pub travel: [(f64, f64); 3],
+    /// QPD digitiser sampling rate, Hz.
+    pub sample_rate: f64,
+    /// Time a move takes before the stage is on target, s.
+    pub move_time_s: f64,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            travel: [(-37.5, 37.5), (-37.5, 37.5), (-25.0, 25.0)],
+            sample_rate: 1e5,
+            move_time_s: 0.002,
+        }
+    }
+}
+
+struct SimState {
+    renderer: Arc<Renderer>,
+    commanded: Pos,
+    rng: ChaCha8Rng,
+    /// random-walk part of the drift, µm, and the time it was last advanced
+    walk: [f64; 3],
+    walk_t: f64,
+}
+
+/// Shared core of the simulated stage and QPD.
+#[derive(Clone)]
+pub struct SimCore {
+    state: Arc<Mutex<SimState>>,
+    pub clock: Arc<VirtualClock>,
+    pub cfg: SimConfig,
+}
+
+impl SimCore {
+    pub fn new(optics: &Optics, scene: &Scene, cfg: SimConfig) -> Result<Self, OpticsError> {
+        let renderer = Arc::new(Renderer::new(optics, scene, TemplateSpec::default())?);
+        Ok(Self::from_renderer(renderer, cfg))
+    }
+
+    pub fn from_renderer(renderer: Arc<Renderer>, cfg: SimConfig) -> Self {
+        let seed = renderer.scene.seed;
+        Self {
+            state: Arc::new(Mutex::new(SimState {
+                renderer,
+                commanded: [0.0; 3],
+                rng: ChaCha8Rng::seed_from_u64(seed),
+                walk: [0.0; 3],
+                walk_t: 0.0,
+            })),
+            clock: Arc::new(VirtualClock::new()),
+            cfg,
+        }
+    }
+
+    pub fn renderer(&self) -> Arc<Renderer> {
+        self.state.lock().unwrap().renderer.clone()
+    }
+
+    /// Replace the scene (keeps position and clock).
+    pub fn set_scene(&self, optics: &Optics, scene: &Scene) -> Result<(), OpticsError> {
+        let r = Arc::new(Renderer::new(optics, scene, TemplateSpec::default())?);
+        let mut st = self.state.lock().unwrap();
+        st.rng = ChaCha8Rng::seed_from_u64(scene.seed);
+        st.renderer = r;
+        Ok(())
+    }
+
+    /// The stage position the sample really has at time t: commanded + drift.
+    fn actual(st: &mut SimState, t: f64) -> Pos {
+        let mut p = st.commanded;
+        if let Some(d) = st.renderer.scene.effects.drift {
+            let dt = t - st.walk_t;
+            if dt > 0.0 {
+                let s = d.random_walk_nm_sqrt_s * 1e-3 * dt.sqrt();
+                for c in 0..3 {
+                    st.walk[c] += s * <StandardNormal as Distribution<f64>>::sample(
+                        &StandardNormal,
+                        &mut st.rng,
+                    );
+                }
+                st.walk_t = t;
+            }
+            for c in 0..3 {
+                p[c] += d.velocity_nm_s[c] * 1e-3 * t + st.walk[c];
+            }
+        }
+        p
+    }
+
+    /// An `Instrument` (stage + QPD + virtual clock) over this core.
+    pub fn instrument(&self, settle_s: f64) -> Instrument {
+        Instrument {
+            stage: Box::new(SimStage(self.clone())),
+            qpd: Box::new(SimQpd(self.clone())),
+            clock: self.clock.clone(),
+            settle_s,
+            description: serde_json::json!({
+                "backend": "sim",
+                "stage": "simulated piezo stage",
+                "qpd": format!("simulated QPD at {} Hz", self.cfg.sample_rate),
+                "travel_um": self.cfg.travel,
+            }),
+        }
+    }
+}
+
+pub struct SimStage(pub SimCore);
+pub struct SimQpd(pub SimCore);
+
+impl Stage for SimStage {
+    fn name(&self) -> String {
+        "sim stage".into()
+    }
+    fn position(&mut self) -> Result<Pos, DeviceError> {
+        Ok(self.0.state.lock().unwrap().commanded)
+    }
+    fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
+        for (c, &v) in target.iter().enumerate() {
+            let (lo, hi) = self.0.cfg.travel[c];
+            if !(v >= lo && v <= hi) {
+                // what a real controller does (GCS error 7); acquire/ refuses such moves first
+                return Err(DeviceError::Controller {
+                    device: self.name(),
+                    command: format!("MOV {} {v}", super::AXES[c]),
+                    code: 7,
+                    message: format!("Position out of limits ({lo} … {hi} µm)"),
+                });
+            }
+        }
+        self.0.state.lock().unwrap().commanded = target;
+        self.0.clock.wait(self.0.cfg.move_time_s);
+        Ok(())
+    }
+    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
+        Ok(self.0.cfg.travel)
+    }
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
+}
+
+impl Qpd for SimQpd {
+    fn name(&self) -> String {
+        "sim QPD".into()
+    }
+    fn sample_rate(&self) -> f64 {
+        self.0.cfg.sample_rate
+    }
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        if n == 0 {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: "read: n = 0 samples; n must be ≥ 1".into(),
+            });
+        }
+        let dur = n as f64 / self.0.cfg.sample_rate;
+        let t_mid = self.0.clock.now() + 0.5 * dur;
+        let mut st = self.0.state.lock().unwrap();
+        let pos = SimCore::actual(&mut st, t_mid);
+        let r = st.renderer.clone();
+        let (v, sd) = r.render_point(pos, n, &mut st.rng);
+        drop(st);
+        self.0.clock.wait(dur);
+        Ok(QpdReading {
+            sx: v[0],
+            sy: v[1],
+            sz: v[2],
+            sx_std: sd[0],
+            sy_std: sd[1],
+            sz_std: sd[2],
+            n,
+        })
+    }
+}
+
+/// Render an XY image of a scene directly (no stage, no clock): the ideal superposition over
+/// the grid, plus the per-pixel effects in pixel order when the scene asks for them. Used by
+/// `simulate(scene, grid)`, figure scripts and benchmarks.
+pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples: usize) -> Scan {
+    let fx = &renderer.scene.effects;
+    let per_pixel = fx.thermal_motion.is_some()
+        || fx.drift.is_some()
+        || fx.pointing_noise.is_some()
+        || fx.cross_terms == Some(true)
+        || fx.laser_power_noise.is_some()
+        || fx.detector_noise.is_some();
+    let (nx, ny) = (xs.len(), ys.len());
+    let mut ch = [
+        Array2::<f64>::zeros((ny, nx)),
+        Array2::<f64>::zeros((ny, nx)),
+        Array2::<f64>::zeros((ny, nx)),
+    ];
+    if per_pixel {
+        let mut rng = ChaCha8Rng::seed_from_u64(renderer.scene.seed);
+        let dt = n_samples as f64 / SimConfig::default().sample_rate;
+        for (iy, &y) in ys.iter().enumerate() {
+            for (ix, &x) in xs.iter().enumerate() {
+                let mut p = [x, y, z];
+                if let Some(d) = fx.drift {
+                    let t = (iy * nx + ix) as f64 * dt;
+                    for c in 0..3 {
+                        p[c] += d.velocity_nm_s[c] * 1e-3 * t;
+                    }
+                }
+                let (v, _) = renderer.render_point(p, n_samples, &mut rng);
+                for c in 0..3 {
+                    ch[c][[iy, ix]] = v[c];
+                }
+            }
+        }
+    } else {
+        let out = renderer.render_grid_ideal(xs, ys, z);
+        for c in 0..3 {
+            ch[c] = Array2::from_shape_vec((ny, nx), out[c].clone()).expect("grid shape");
+        }
+    }
+    let [sx, sy, sz] = ch;
+    let img = |a| Image::new(a, xs.to_vec(), ys.to_vec());
+    Scan {
+        sx: img(sx),
+        sy: img(sy),
+        sz: img(sz),
+        status: ScanStatus::Complete,
+        meta: serde_json::json!({
+            "kind": "simulate",
+            "z_um": z,
+            "n_samples": n_samples,
+            "optics": renderer.optics,
+            "scene": renderer.scene,
+            "pipeline": renderer.stages(),
+        }),
+    }
+}

@@ -1,0 +1,257 @@
+//! Golden traces (issue 5 item 4): wrappers around any `Stage` and `Qpd` that record every move
+//! and read with the instrument's time, plus the decisions a protocol notes, as readable text
+//! lines. Tests compare a protocol's trace with a committed file, so a change in behaviour shows
+//! up as a line diff; `bfpscope test --bless` rewrites the files deliberately.
+//!
+//! Values are printed with limited precision (positions to 0.1 nm, signals to 4 significant
+//! digits, time to 0.1 ms) so that harmless floating-point noise does not break a trace.
+
+use super::{Clock, DeviceError, Pos, Qpd, QpdReading, Stage};
+use std::sync::{Arc, Mutex};
+
+/// Shared, append-only event log.
+#[derive(Clone, Default)]
+pub struct Trace {
+    lines: Arc<Mutex<Vec<String>>>,
+    clock: Option<Arc<dyn Clock>>,
+}
+
+impl std::fmt::Debug for Trace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Trace({} lines)", self.len())
+    }
+}
+
+impl Trace {
+    pub fn new(clock: Arc<dyn Clock>) -> Self {
+        Self {
+            lines: Arc::default(),
+            clock: Some(clock),
+        }
+    }
+
+    fn stamp(&self) -> String {
+        match &self.clock {
+            Some(c) => format!("{:>10.4} s", c.now()),
+            None => "          ".into(),
+        }
+    }
+
+    /// Record a line with the current time.
+    pub fn record(&self, what: impl AsRef<str>) {
+        let line = format!("{}  {}", self.stamp(), what.as_ref());
+        self.lines.lock().unwrap().push(line);
+    }
+
+    /// A protocol's decision ("focus: best z = 0.0213 µm").
+    pub fn note(&self, what: impl AsRef<str>) {
+        self.record(format!("note {}", what.as_ref()));
+    }
+
+    pub fn len(&self) -> usize {
+        self.lines.lock().unwrap().len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn text(&self) -> String {
+        let mut s = self.lines.lock().unwrap().join("\n");
+        s.push('\n');
+        s
+    }
+
+    pub fn clear(&self) {
+        self.lines.lock().unwrap().clear();
+    }
+}
+
+/// Signal with 4 significant digits, exponent form.
+pub fn sig4(v: f64) -> String {
+    if v == 0.0 {
+        "0".into()
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+fn pos_str(p: &Pos) -> String {
+    format!("x={:.4} y={:.4} z={:.4}", p[0], p[1], p[2])
+}
+
+/// A stage that records what it is told to do.
+pub struct TracedStage {
+    pub inner: Box<dyn Stage>,
+    pub trace: Trace,
+}
+
+impl Stage for TracedStage {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn position(&mut self) -> Result<Pos, DeviceError> {
+        self.inner.position()
+    }
+    fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
+        let r = self.inner.move_to(target);
+        match &r {
+            Ok(()) => self.trace.record(format!("move {}", pos_str(&target))),
+            Err(e) => self
+                .trace
+                .record(format!("move {} FAILED: {e}", pos_str(&target))),
+        }
+        r
+    }
+    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
+        self.inner.travel_range()
+    }
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        self.trace.record("stop");
+        self.inner.stop()
+    }
+}
+
+/// A QPD that records each read.
+pub struct TracedQpd {
+    pub inner: Box<dyn Qpd>,
+    pub trace: Trace,
+}
+
+impl Qpd for TracedQpd {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn sample_rate(&self) -> f64 {
+        self.inner.sample_rate()
+    }
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        let r = self.inner.read(n);
+        match &r {
+            Ok(v) => self.trace.record(format!(
+                "read n={n} sx={} sy={} sz={}",
+                sig4(v.sx),
+                sig4(v.sy),
+                sig4(v.sz)
+            )),
+            Err(e) => self.trace.record(format!("read n={n} FAILED: {e}")),
+        }
+        r
+    }
+}
+
+impl super::Instrument {
+    /// Wrap the stage and QPD so every move and read lands in the returned trace.
+    pub fn traced(self) -> (Self, Trace) {
+        let trace = Trace::new(self.clock.clone());
+        let inst = Self {
+            stage: Box::new(TracedStage {
+                inner: self.stage,
+                trace: trace.clone(),
+            }),
+            qpd: Box::new(TracedQpd {
+                inner: self.qpd,
+                trace: trace.clone(),
+            }),
+            ..self
+        };
+        (inst, trace)
+    }
+}
+
+/// Compare a trace with a golden file: `Ok(())` when equal; when `bless` is set the file is
+/// (re)written; otherwise an error with a unified-style diff of the first differing lines.
+pub fn check_golden(actual: &str, path: &std::path::Path, bless: bool) -> Result<(), String> {
+    if bless {
+        if let Some(d) = path.parent() {
+            std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
+        }
+        std::fs::write(path, actual).map_err(|e| format!("{}: {e}", path.display()))?;
+        return Ok(());
+    }
+    let expected = std::fs::read_to_string(path).map_err(|e| {
+        format!(
+            "golden trace {} unreadable ({e}); run with --bless to create it",
+            path.display()
+        )
+    })?;
+    if expected == actual {
+        return Ok(());
+    }
+    let (e, a): (Vec<&str>, Vec<&str>) = (expected.lines().collect(), actual.lines().collect());
+    let mut diff = format!(
+        "trace differs from {} (run with --bless to accept):\n",
+        path.display()
+    );
+    let mut shown = 0;
+    for i in 0..e.len().max(a.len()) {
+        let (x, y) = (e.get(i).copied(), a.get(i).copied());
+        if x != y {
+            diff += &format!(
+                "@@ line {}\n- {}\n+ {}\n",
+                i + 1,
+                x.unwrap_or("<end>"),
+                y.unwrap_or("<end>")
+            );
+            shown += 1;
+            if shown >= 10 {
+                diff += "...\n";
+                break;
+            }
+        }
+    }
+    Err(diff)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::instrument::sim::{scene::Bead, Scene, SimConfig, SimCore};
+    use crate::optics::params::Optics;
+
+    #[test]
+    fn trace_records_moves_reads_and_notes_with_simulated_time() {
+        let mut s = Scene::default();
+        s.add_bead(Bead {
+            pos: [0.0, 0.0, 0.0],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
+        let core = SimCore::new(&Optics::default(), &s, SimConfig::default()).unwrap();
+        let (mut inst, trace) = core.instrument(0.01).traced();
+        inst.move_settle([0.1, 0.0, 0.0]).unwrap();
+        inst.qpd.read(1000).unwrap();
+        trace.note("done");
+        assert!(inst.stage.move_to([0.0, 0.0, 99.0]).is_err());
+        let t = trace.text();
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 4, "{t}");
+        assert!(
+            lines[0].contains("move x=0.1000 y=0.0000 z=0.0000")
+                && lines[0].trim_start().starts_with("0.0020 s"),
+            "{t}"
+        );
+        assert!(
+            lines[1].contains("read n=1000 sx=") && lines[1].trim_start().starts_with("0.0220 s"),
+            "{t}"
+        );
+        assert!(lines[2].ends_with("note done"));
+        assert!(lines[3].contains("FAILED") && lines[3].contains("out of limits"));
+        // golden comparison: bless, then equal, then a changed line is reported
+        let dir = std::env::temp_dir().join(format!("bfp_golden_{}", std::process::id()));
+        let f = dir.join("t.trace");
+        check_golden(&t, &f, true).unwrap();
+        check_golden(&t, &f, false).unwrap();
+        let changed = t.replace("note done", "note other");
+        let e = check_golden(&changed, &f, false).unwrap_err();
+        assert!(
+            e.contains("- ")
+                && e.contains("note done")
+                && e.contains("+ ")
+                && e.contains("note other"),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}

@@ -1,0 +1,237 @@
+//! The simulated instrument: pipeline built from the scene's effects only, additivity,
+//! reproducible randomness, virtual clock (issue 2 items 4, 5, 8).
+
+use bfpscope::instrument::sim::scene::*;
+use bfpscope::instrument::sim::*;
+use bfpscope::optics::params::Optics;
+use bfpscope::optics::template::TemplateSpec;
+
+fn bead(x: f64, y: f64, d: f64) -> Bead {
+    Bead {
+        pos: [x, y, 0.0],
+        d_nm: d,
+        n: 1.572,
+    }
+}
+
+fn axis(lo: f64, hi: f64, n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| lo + (hi - lo) * i as f64 / (n - 1) as f64)
+        .collect()
+}
+
+fn renderer(scene: &Scene) -> Renderer {
+    Renderer::new(&Optics::default(), scene, TemplateSpec::default()).unwrap()
+}
+
+#[test]
+fn ideal_scene_builds_superposition_alone_and_each_effect_adds_its_own_stage() {
+    let mut s = Scene::default();
+    s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
+    assert_eq!(renderer(&s).stage_names(), vec!["superposition"]);
+    for name in EFFECT_NAMES.iter().filter(|n| **n != "mie") {
+        let mut e = s.clone();
+        e.effects.enable(name).unwrap();
+        assert_eq!(
+            renderer(&e).stage_names(),
+            vec!["superposition".to_string(), name.to_string()],
+            "effect {name}"
+        );
+    }
+    let mut all = s.clone();
+    for name in EFFECT_NAMES.iter().filter(|n| **n != "mie") {
+        all.effects.enable(name).unwrap();
+    }
+    assert_eq!(renderer(&all).stage_names().len(), EFFECT_NAMES.len());
+    let err = s.effects.clone().enable("fog").unwrap_err().to_string();
+    assert!(
+        err.contains("fog") && err.contains("detector_noise"),
+        "{err}"
+    );
+}
+
+#[test]
+fn images_are_sums_of_single_bead_images() {
+    let xs = axis(-1.5, 1.5, 41);
+    let ys = axis(-1.2, 1.2, 33);
+    let mut a = Scene::default();
+    a.add_bead(bead(-0.2, 0.1, 110.0)).unwrap();
+    let mut b = Scene::default();
+    b.add_bead(bead(0.25, -0.15, 170.0)).unwrap();
+    let mut ab = a.clone();
+    ab.add_bead(bead(0.25, -0.15, 170.0)).unwrap();
+    let (ia, ib, iab) = (
+        render_xy(&renderer(&a), &xs, &ys, 0.0, 1),
+        render_xy(&renderer(&b), &xs, &ys, 0.0, 1),
+        render_xy(&renderer(&ab), &xs, &ys, 0.0, 1),
+    );
+    let scale = iab.sx.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for ((p, q), r) in ia
+        .sx
+        .data
+        .iter()
+        .zip(ib.sx.data.iter())
+        .zip(iab.sx.data.iter())
+    {
+        assert!((p + q - r).abs() < 1e-12 * scale);
+    }
+}
+
+#[test]
+fn grid_renderer_equals_point_renderer_and_bead_is_not_mirrored() {
+    let mut s = Scene::default();
+    s.add_bead(bead(0.3, -0.2, 110.0)).unwrap();
+    let r = renderer(&s);
+    let xs = axis(-0.5, 1.1, 33);
+    let ys = axis(-1.0, 0.6, 33);
+    let img = render_xy(&r, &xs, &ys, 0.0, 1);
+    let mut rng = rand::rng();
+    for &(iy, ix) in &[(16usize, 16usize), (3, 29), (20, 10)] {
+        let (v, _) = r.render_point([xs[ix], ys[iy], 0.0], 1, &mut rng);
+        assert!((v[0] - img.sx.data[[iy, ix]]).abs() < 1e-15);
+    }
+    // Sx crosses zero at the bead with a positive slope: ∂Sx/∂x > 0 at x = 0.3
+    let iy = ys.iter().position(|&y| (y + 0.2).abs() < 1e-9).unwrap();
+    let ix = xs.iter().position(|&x| (x - 0.3).abs() < 1e-9).unwrap();
+    assert!(img.sx.data[[iy, ix]].abs() < 1e-12);
+    assert!(img.sx.data[[iy, ix + 1]] > 0.0 && img.sx.data[[iy, ix - 1]] < 0.0);
+}
+
+#[test]
+fn random_effects_are_seeded_and_reproducible() {
+    let mut s = Scene {
+        seed: 7,
+        ..Default::default()
+    };
+    s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
+    s.effects.enable("detector_noise").unwrap();
+    s.effects.enable("pointing_noise").unwrap();
+    let xs = axis(-0.5, 0.5, 9);
+    let a = render_xy(&renderer(&s), &xs, &xs, 0.0, 100);
+    let b = render_xy(&renderer(&s), &xs, &xs, 0.0, 100);
+    assert_eq!(a.sx.data, b.sx.data);
+    s.seed = 8;
+    let c = render_xy(&renderer(&s), &xs, &xs, 0.0, 100);
+    assert_ne!(a.sx.data, c.sx.data);
+}
+
+#[test]
+fn detector_noise_shrinks_as_one_over_root_n() {
+    let mut s = Scene {
+        seed: 1,
+        ..Default::default()
+    };
+    s.effects.enable("detector_noise").unwrap();
+    let xs = axis(-1.0, 1.0, 40);
+    let std = |n| {
+        let img = render_xy(&renderer(&s), &xs, &xs, 0.0, n);
+        let v: Vec<f64> = img.sx.data.iter().copied().collect();
+        let m = v.iter().sum::<f64>() / v.len() as f64;
+        (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+    };
+    let (s1, s100) = (std(1), std(100));
+    assert!((s1 / PAPER_DETECTOR_SIGMA_SAMPLE - 1.0).abs() < 0.1, "{s1}");
+    assert!((s1 / s100 - 10.0).abs() < 1.0, "{s1} {s100}");
+}
+
+#[test]
+fn misalignment_weakens_sy_by_about_30_percent_and_breaks_antisymmetry() {
+    let xs = axis(-1.0, 1.0, 81);
+    let mut s = Scene::default();
+    s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
+    let ideal = render_xy(&renderer(&s), &xs, &xs, 0.0, 1);
+    s.effects.enable("misalignment").unwrap();
+    let mis = render_xy(&renderer(&s), &xs, &xs, 0.0, 1);
+    let amax = |a: &ndarray::Array2<f64>| a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let ratio = amax(&mis.sy.data) / amax(&mis.sx.data);
+    let ideal_ratio = amax(&ideal.sy.data) / amax(&ideal.sx.data);
+    eprintln!("Sy/Sx peak ratio: ideal {ideal_ratio:.3}, misaligned {ratio:.3}");
+    assert!((ideal_ratio - 1.0).abs() < 1e-6);
+    assert!(ratio > 0.6 && ratio < 0.8, "{ratio}");
+    // Sy(x, −y) ≠ −Sy(x, y) (the reflection across the x axis)
+    let n = xs.len();
+    let asym: f64 = (0..n)
+        .map(|i| (mis.sy.data[[n - 1 - 20, i]] + mis.sy.data[[20, i]]).abs())
+        .sum::<f64>();
+    assert!(asym > 1e-3 * amax(&mis.sy.data), "{asym}");
+}
+
+#[test]
+fn filament_along_y_is_invisible_in_sy_and_shows_in_sx() {
+    let mut s = Scene::default();
+    s.add_filament(Filament {
+        points: vec![[0.0, -6.0], [0.0, 6.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
+    let xs = axis(-1.0, 1.0, 41);
+    let ys = axis(-1.0, 1.0, 21);
+    let img = render_xy(&renderer(&s), &xs, &ys, 0.0, 1);
+    let amax = |a: &ndarray::Array2<f64>| a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(amax(&img.sx.data) > 0.0);
+    assert!(
+        amax(&img.sy.data) < 1e-3 * amax(&img.sx.data),
+        "Sy {}",
+        amax(&img.sy.data)
+    );
+}
+
+#[test]
+fn sim_instrument_refuses_moves_beyond_travel_and_counts_virtual_time() {
+    let mut s = Scene::default();
+    s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
+    let core = SimCore::new(&Optics::default(), &s, SimConfig::default()).unwrap();
+    let mut inst = core.instrument(0.01);
+    inst.move_settle([0.05, 0.0, 0.0]).unwrap();
+    let r = inst.qpd.read(10_000).unwrap();
+    assert!(r.sx > 0.0);
+    let t = inst.clock.now();
+    assert!((t - (0.002 + 0.01 + 0.1)).abs() < 1e-9, "{t}");
+    let e = inst
+        .stage
+        .move_to([0.0, 0.0, 40.0])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("out of limits") && e.contains("sim stage"),
+        "{e}"
+    );
+    assert_eq!(inst.stage.position().unwrap(), [0.05, 0.0, 0.0]);
+}
+
+#[test]
+fn zero_length_and_one_bead_filaments_are_finite() {
+    let mut s = Scene::default();
+    s.add_filament(Filament {
+        points: vec![[0.0, 0.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
+    s.add_filament(Filament {
+        points: vec![[0.5, 0.0], [0.5, 0.05]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
+    assert_eq!(s.scatterers(1.333).len(), 1);
+    let xs = axis(-1.0, 1.0, 11);
+    let img = render_xy(&renderer(&s), &xs, &xs, 0.0, 1);
+    assert!(img.sx.data.iter().all(|v| v.is_finite()));
+    assert!(Scene::default()
+        .add_filament(Filament {
+            points: vec![],
+            z: 0.0,
+            profile: DiameterProfile::Constant { d_nm: 50.0 },
+            n: 1.414,
+            spacing_nm: 50.0
+        })
+        .is_err());
+}
