@@ -268,7 +268,7 @@ fn scans_record_the_script_path_and_hash() {
     assert_eq!(json["optics"]["wavelength_nm"], 1064.0);
     assert_eq!(json["plan"]["kind"], "scan_line");
     assert!(json["program"].as_str().unwrap().starts_with("bfpscope "));
-    assert!(dir.join("data/scan_0001.json").exists());
+    assert!(dir.join("data/scan_0001.npz").exists());
 }
 
 #[test]
