@@ -22,7 +22,7 @@ struct Cli {
     /// Config file (default: ./bfpscope.toml if present)
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data)
+    /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data/YYYY-MM-DD)
     #[arg(long, global = true, value_name = "DIR")]
     data: Option<PathBuf>,
     #[command(subcommand)]
@@ -123,6 +123,12 @@ fn main() -> ExitCode {
             Ok(t) => t,
             Err(e) => return usage_error(&format!("--config {}: {e}", p.display())),
         };
+        // the instrument config validates [stage], [qpd] and [safety] (unknown keys are errors)
+        if let Err(e) =
+            bfpscope::instrument::config::Config::from_toml_str(&text, &p.display().to_string())
+        {
+            return usage_error(&e.to_string());
+        }
         let v: toml::Value = match toml::from_str(&text) {
             Ok(v) => v,
             Err(e) => return usage_error(&format!("{}: {e}", p.display())),
@@ -133,6 +139,12 @@ fn main() -> ExitCode {
     }
     if let Some(d) = &cli.data {
         settings.data_dir = d.clone();
+    } else if settings.data_dir == PathBuf::from(bfpscope::data::session::DEFAULT_ROOT) {
+        // no --data, no [session] data_dir: today's folder, ./bfpscope_data/YYYY-MM-DD/
+        settings.data_dir = bfpscope::data::session::Session::default_dir(
+            std::path::Path::new(bfpscope::data::session::DEFAULT_ROOT),
+            std::time::SystemTime::now(),
+        );
     }
     install_ctrlc(settings.abort.clone());
 

@@ -99,10 +99,10 @@ fn usage_errors_exit_2() {
     assert_eq!(run(&["run", f.to_str().unwrap(), "--set", "9x=1"]).0, 2);
     assert_eq!(run(&["--config", "/no/such/config.toml", "eval", "1"]).0, 2);
     let cfg = d.join("bad.toml");
-    std::fs::write(&cfg, "[limits]\nx = [1, -1]\n").unwrap();
+    std::fs::write(&cfg, "[safety]\nsoft_limits = { x = [1, -1] }\n").unwrap();
     let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "1"]);
     assert_eq!(code, 2);
-    assert!(err.contains("limits.x"), "{err}");
+    assert!(err.contains("soft_limits"), "{err}");
     assert_eq!(run(&["--version"]).0, 0);
 }
 
@@ -112,7 +112,7 @@ fn config_limits_apply_to_scripts() {
     let cfg = d.join("bfpscope.toml");
     std::fs::write(
         &cfg,
-        "[limits]\nx = [-2.0, 2.0]\n\n[sandbox]\nmax_operations = 100000\n",
+        "[safety]\nsoft_limits = { x = [-2.0, 2.0] }\n\n[sandbox]\nmax_operations = 100000\n",
     )
     .unwrap();
     let (code, _, err) = run(&[

@@ -92,8 +92,10 @@ fn out_of_limit_plan_is_refused_before_any_move() {
 #[test]
 fn config_soft_limits_narrow_the_travel_range() {
     let mut h = Harness::new("config-limits");
-    h.limits =
-        SoftLimits::from_toml(&toml::from_str("[limits]\nz = [-2.0, 2.0]").unwrap()).unwrap();
+    h.limits = SoftLimits::from_toml(
+        &toml::from_str("[safety]\nsoft_limits = { z = [-2.0, 2.0] }").unwrap(),
+    )
+    .unwrap();
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let plan = line("dscan", Axis::Z, -3.0, 3.0, 61, true);
     let e = h.run(&mut inst, &plan).unwrap_err().to_string();

@@ -129,7 +129,8 @@ impl Settings {
         (s, buf)
     }
 
-    /// Apply a parsed config (`[limits]`, `[sandbox]`, `[session] data_dir`).
+    /// Apply a parsed config (`[safety]` soft limits and max step, `[sandbox]`,
+    /// `[session] data_dir`).
     pub fn apply_config(
         &mut self,
         config: toml::Value,
