@@ -101,6 +101,32 @@ fn install_ctrlc(flag: Arc<AtomicBool>) {
     });
 }
 
+/// Connect what the config names (no config: the simulated instrument with an empty scene;
+/// `simulate(scene)` puts objects in front of it). A device that cannot be opened is an
+/// error naming it (exit 1).
+fn connect_default(
+    wb: &Workbench,
+    cfg: &bfpscope::instrument::config::Config,
+) -> Result<(), ExitCode> {
+    use bfpscope::instrument::sim::{scene::Scene, SimConfig, SimCore};
+    let optics = wb.ctx.optics.lock().map(|o| o.clone()).unwrap_or_default();
+    let make_sim = |c: &bfpscope::instrument::config::Config| {
+        let core = SimCore::new(&optics, &Scene::default(), SimConfig::default())
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(core.instrument(c.stage.settle_s))
+    };
+    match bfpscope::instrument::connect::connect(cfg, make_sim) {
+        Ok(c) => {
+            wb.ctx.connect(c.instrument, None);
+            Ok(())
+        }
+        Err(e) => {
+            err_line(&format!("error: connect: {e}"));
+            Err(ExitCode::from(1))
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(c) => c,
@@ -114,6 +140,7 @@ fn main() -> ExitCode {
         progress: std::io::stderr().is_terminal(),
         ..Settings::default()
     };
+    let mut inst_config: Option<bfpscope::instrument::config::Config> = None;
     let config_path = cli
         .config
         .clone()
@@ -124,10 +151,9 @@ fn main() -> ExitCode {
             Err(e) => return usage_error(&format!("--config {}: {e}", p.display())),
         };
         // the instrument config validates [stage], [qpd] and [safety] (unknown keys are errors)
-        if let Err(e) =
-            bfpscope::instrument::config::Config::from_toml_str(&text, &p.display().to_string())
-        {
-            return usage_error(&e.to_string());
+        match bfpscope::instrument::config::Config::from_toml_str(&text, &p.display().to_string()) {
+            Ok(c) => inst_config = Some(c),
+            Err(e) => return usage_error(&e.to_string()),
         }
         let v: toml::Value = match toml::from_str(&text) {
             Ok(v) => v,
@@ -147,10 +173,14 @@ fn main() -> ExitCode {
         );
     }
     install_ctrlc(settings.abort.clone());
+    let inst_config = inst_config.unwrap_or_default();
 
     match cli.cmd.unwrap_or(Cmd::Repl) {
         Cmd::Repl => {
             let wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             ExitCode::from(bfpscope::repl::run(wb, bfpscope::repl::default_history()) as u8)
         }
         Cmd::Run { file, set } => {
@@ -158,6 +188,9 @@ fn main() -> ExitCode {
                 return usage_error(&format!("run: {}: no such script file", file.display()));
             }
             let mut wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             for s in &set {
                 match parse_set(s) {
                     Ok((k, v)) => wb.set_var(&k, v),
@@ -174,6 +207,9 @@ fn main() -> ExitCode {
         }
         Cmd::Eval { expr } => {
             let mut wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             match wb.eval_source("eval", &expr) {
                 Ok(v) => {
                     if !v.is_unit() {

@@ -149,7 +149,7 @@ fn repl_through_a_pipe_survives_errors_and_keeps_definitions() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let session = "fn sq(x) {\n  x * x\n}\nqpd(1)\nprint(`sq = ${sq(7)}`);\nlet a = [1,\n 2];\na.len\nconnect(#{backend: \"mock\"});\nmv(#{x: 99.0})\npos().x\n";
+    let session = "fn sq(x) {\n  x * x\n}\nqpd(0)\nprint(`sq = ${sq(7)}`);\nlet a = [1,\n 2];\na.len\nconnect(#{backend: \"mock\"});\nmv(#{x: 99.0})\npos().x\n";
     child
         .stdin
         .take()
@@ -166,7 +166,7 @@ fn repl_through_a_pipe_survives_errors_and_keeps_definitions() {
         "multi-line array: {out}"
     );
     assert!(
-        err.contains("error: repl:1:1: qpd: no instrument connected"),
+        err.contains("error: repl:1:1: qpd: n = 0 is out of range"),
         "{err}"
     );
     assert!(err.contains("x = 99 µm is above the soft limit"), "{err}");
@@ -222,6 +222,19 @@ fn repl_survives_ctrl_c_during_a_running_script() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
     assert!(err.contains("interrupted (Ctrl-C)"), "{err}");
+}
+
+#[test]
+fn the_simulated_instrument_is_connected_by_default() {
+    let data = tmp("default-sim");
+    let (code, out, err) = run(&[
+        "--data",
+        data.to_str().unwrap(),
+        "eval",
+        "[status().instrument.backend, limits().x]",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "[\"sim\", [-37.5, 37.5]]");
 }
 
 #[test]
