@@ -55,6 +55,9 @@ pub const X_MAX: f64 = 1.0e6;
 /// |m x| exceeds the term count).
 pub const MX_MAX: f64 = 2.0e7;
 
+/// Largest accepted |m| (the small-particle branch forms powers up to m^18).
+pub const M_MAX: f64 = 1.0e6;
+
 /// Largest accepted explicit term count.
 pub const N_TERMS_MAX: usize = 2_000_000;
 
@@ -148,6 +151,9 @@ fn check_m(x: f64, m: C64) -> Result<(), MieError> {
             fmt_c(m),
             "m ≠ 0 (perfect conductors are not supported)",
         ));
+    }
+    if m.norm() > M_MAX {
+        return Err(invalid("m", fmt_c(m), format!("|m| ≤ {M_MAX:e}")));
     }
     let mx = m.norm() * x;
     if mx > MX_MAX {
@@ -550,11 +556,11 @@ pub fn mie_s1s2_terms(
             let mut s2 = C64::new(0.0, 0.0);
             let mut pi_nm1 = 0.0; // π_0
             let mut pi_n = 1.0; // π_1
-            for i in 0..n_terms {
+            for (i, ((an, bn), fi)) in c.a.iter().zip(&c.b).zip(&f).enumerate() {
                 let n = (i + 1) as f64;
                 let tau_n = n * mu * pi_n - (n + 1.0) * pi_nm1;
-                s1 += (c.a[i] * pi_n + c.b[i] * tau_n) * f[i];
-                s2 += (c.a[i] * tau_n + c.b[i] * pi_n) * f[i];
+                s1 += (an * pi_n + bn * tau_n) * fi;
+                s2 += (an * tau_n + bn * pi_n) * fi;
                 let pi_np1 = ((2.0 * n + 1.0) * mu * pi_n - (n + 1.0) * pi_nm1) / n;
                 pi_nm1 = pi_n;
                 pi_n = pi_np1;
@@ -593,11 +599,17 @@ pub fn sphere(
             "finite vacuum wavelength in nm, wavelength_nm > 0",
         ));
     }
-    if !n_particle.re.is_finite() || !n_particle.im.is_finite() || n_particle.im < 0.0 {
+    if !n_particle.re.is_finite()
+        || !n_particle.im.is_finite()
+        || n_particle.im < 0.0
+        || n_particle.re < 0.0
+        || n_particle == C64::new(0.0, 0.0)
+    {
         return Err(invalid(
             "n_particle",
             fmt_c(n_particle),
-            "finite complex index with Im ≥ 0 (Bohren–Huffman convention, Im > 0 absorbs)",
+            "finite, non-zero complex index with Re ≥ 0 and Im ≥ 0 (Bohren–Huffman convention, \
+             Im > 0 absorbs)",
         ));
     }
     let x = std::f64::consts::PI * d_nm * n_medium / wavelength_nm;
