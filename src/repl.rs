@@ -4,6 +4,7 @@
 //! running script or scan, Ctrl-D exits. Works with piped stdin too (one entry per complete
 //! statement), which is how the tests drive it.
 
+use crate::script::ctx::{err_line, out_line};
 use crate::script::registry::Kind;
 use crate::script::{show, Doc, Workbench};
 use rhai::{Engine, ParseErrorType};
@@ -308,11 +309,11 @@ fn evaluate(wb: &mut Workbench, entry: &str) {
     match wb.eval_line(entry) {
         Ok(v) => {
             if !v.is_unit() {
-                println!("{}", show(&v));
+                out_line(&show(&v));
             }
         }
-        Err(e) if e.interrupted => eprintln!("interrupted (Ctrl-C); the prompt is still here"),
-        Err(e) => eprintln!("error: {e}"),
+        Err(e) if e.interrupted => err_line("interrupted (Ctrl-C); the prompt is still here"),
+        Err(e) => err_line(&format!("error: {e}")),
     }
 }
 

@@ -99,10 +99,10 @@ fn usage_errors_exit_2() {
     assert_eq!(run(&["run", f.to_str().unwrap(), "--set", "9x=1"]).0, 2);
     assert_eq!(run(&["--config", "/no/such/config.toml", "eval", "1"]).0, 2);
     let cfg = d.join("bad.toml");
-    std::fs::write(&cfg, "[limits]\nx = [1, -1]\n").unwrap();
+    std::fs::write(&cfg, "[safety]\nsoft_limits = { x = [1, -1] }\n").unwrap();
     let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "1"]);
     assert_eq!(code, 2);
-    assert!(err.contains("limits.x"), "{err}");
+    assert!(err.contains("soft_limits"), "{err}");
     assert_eq!(run(&["--version"]).0, 0);
 }
 
@@ -112,7 +112,7 @@ fn config_limits_apply_to_scripts() {
     let cfg = d.join("bfpscope.toml");
     std::fs::write(
         &cfg,
-        "[limits]\nx = [-2.0, 2.0]\n\n[sandbox]\nmax_operations = 100000\n",
+        "[safety]\nsoft_limits = { x = [-2.0, 2.0] }\n\n[sandbox]\nmax_operations = 100000\n",
     )
     .unwrap();
     let (code, _, err) = run(&[
@@ -149,7 +149,7 @@ fn repl_through_a_pipe_survives_errors_and_keeps_definitions() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let session = "fn sq(x) {\n  x * x\n}\nqpd(1)\nprint(`sq = ${sq(7)}`);\nlet a = [1,\n 2];\na.len\nconnect(#{backend: \"mock\"});\nmv(#{x: 99.0})\npos().x\n";
+    let session = "fn sq(x) {\n  x * x\n}\nqpd(0)\nprint(`sq = ${sq(7)}`);\nlet a = [1,\n 2];\na.len\nconnect(#{backend: \"mock\"});\nmv(#{x: 99.0})\npos().x\n";
     child
         .stdin
         .take()
@@ -166,7 +166,7 @@ fn repl_through_a_pipe_survives_errors_and_keeps_definitions() {
         "multi-line array: {out}"
     );
     assert!(
-        err.contains("error: repl:1:1: qpd: no instrument connected"),
+        err.contains("error: repl:1:1: qpd: n = 0 is out of range"),
         "{err}"
     );
     assert!(err.contains("x = 99 µm is above the soft limit"), "{err}");
@@ -222,6 +222,19 @@ fn repl_survives_ctrl_c_during_a_running_script() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
     assert!(err.contains("interrupted (Ctrl-C)"), "{err}");
+}
+
+#[test]
+fn the_simulated_instrument_is_connected_by_default() {
+    let data = tmp("default-sim");
+    let (code, out, err) = run(&[
+        "--data",
+        data.to_str().unwrap(),
+        "eval",
+        "[status().instrument.backend, limits().x]",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "[\"sim\", [-37.5, 37.5]]");
 }
 
 #[test]

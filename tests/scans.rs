@@ -92,8 +92,10 @@ fn out_of_limit_plan_is_refused_before_any_move() {
 #[test]
 fn config_soft_limits_narrow_the_travel_range() {
     let mut h = Harness::new("config-limits");
-    h.limits =
-        SoftLimits::from_toml(&toml::from_str("[limits]\nz = [-2.0, 2.0]").unwrap()).unwrap();
+    h.limits = SoftLimits::from_toml(
+        &toml::from_str("[safety]\nsoft_limits = { z = [-2.0, 2.0] }").unwrap(),
+    )
+    .unwrap();
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let plan = line("dscan", Axis::Z, -3.0, 3.0, 61, true);
     let e = h.run(&mut inst, &plan).unwrap_err().to_string();
@@ -274,7 +276,7 @@ fn snake_scan_stores_pixels_in_image_order() {
 fn autosave_numbering_never_overwrites() {
     let dir = tmp("numbering");
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("scan_0003.json"), "precious").unwrap();
+    std::fs::write(dir.join("scan_0003.npz"), "precious").unwrap();
     std::fs::write(dir.join("notes.txt"), "x").unwrap();
     let store = SessionStore::new(&dir);
     let h = Harness::new("numbering-src");
@@ -283,11 +285,11 @@ fn autosave_numbering_never_overwrites() {
         .run(&mut inst, &line("ascan", Axis::X, 0.0, 1.0, 3, false))
         .unwrap()
         .scan;
-    assert_eq!(store.next_scan_path(), dir.join("scan_0004.json"));
+    assert_eq!(store.next_scan_path(), dir.join("scan_0004.npz"));
     let p = store.autosave(&scan).unwrap();
-    assert_eq!(p, dir.join("scan_0004.json"));
+    assert_eq!(p, dir.join("scan_0004.npz"));
     assert_eq!(
-        std::fs::read_to_string(dir.join("scan_0003.json")).unwrap(),
+        std::fs::read_to_string(dir.join("scan_0003.npz")).unwrap(),
         "precious"
     );
     // concurrent writers: every scan gets its own file
@@ -308,20 +310,15 @@ fn autosave_numbering_never_overwrites() {
     uniq.dedup();
     assert_eq!(uniq.len(), 40);
     assert_eq!(store.last_number(), 44);
-    // no temporary files left behind
+    // no temporary files left behind: only the scans and notes.txt
     let tmp_left = std::fs::read_dir(&dir)
         .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .starts_with(".scan_tmp")
-        })
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .filter(|n| n != "notes.txt" && bfpscope::data::session::scan_number(n).is_none())
         .count();
     assert_eq!(tmp_left, 0);
     assert!(
-        bfpscope::acquire::store::save_scan(&dir.join("scan_0004.json"), &scan).is_err(),
+        bfpscope::acquire::store::save_scan(&dir.join("scan_0004.npz"), &scan).is_err(),
         "save_scan must refuse to overwrite"
     );
 }

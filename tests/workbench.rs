@@ -61,10 +61,12 @@ fn help_lists_every_binding_by_family_with_units() {
             d.signature()
         );
     }
-    let line = text
-        .lines()
-        .find(|l| l.trim_start().starts_with("scan_xy("))
-        .unwrap();
+    let line = docs
+        .iter()
+        .find(|d| d.name == "scan_xy")
+        .unwrap()
+        .one_line();
+    assert!(text.contains(&line), "{text}");
     assert!(
         line.contains("x, y, z: µm") && line.contains("dwell: s"),
         "{line}"
@@ -266,7 +268,7 @@ fn scans_record_the_script_path_and_hash() {
     assert_eq!(json["optics"]["wavelength_nm"], 1064.0);
     assert_eq!(json["plan"]["kind"], "scan_line");
     assert!(json["program"].as_str().unwrap().starts_with("bfpscope "));
-    assert!(dir.join("data/scan_0001.json").exists());
+    assert!(dir.join("data/scan_0001.npz").exists());
 }
 
 #[test]

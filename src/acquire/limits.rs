@@ -4,10 +4,8 @@
 //! Config (`bfpscope.toml`):
 //!
 //! ```toml
-//! [limits]
-//! x = [-40.0, 40.0]      # µm
-//! y = [-40.0, 40.0]
-//! z = [-5.0, 5.0]
+//! [safety]
+//! soft_limits = { x = [-40.0, 40.0], y = [-40.0, 40.0], z = [-5.0, 5.0] }   # µm
 //! max_step_um = 10.0     # largest pixel pitch a scan may use (catches nm/µm mix-ups)
 //! ```
 //!
@@ -54,43 +52,54 @@ fn fmt_um(v: f64) -> String {
 }
 
 impl SoftLimits {
-    /// Read the `[limits]` table of a parsed config (absent table: defaults).
+    /// Read `[safety]` of a parsed config (`soft_limits = { x = [min, max], ... }`,
+    /// `max_step_um`); absent: defaults. The instrument config (`instrument::config`) shares
+    /// this section and validates the rest of it.
     pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
         let mut l = SoftLimits::default();
-        let Some(t) = config.get("limits") else {
+        let Some(t) = config.get("safety") else {
             return Ok(l);
         };
-        let t = t.as_table().ok_or("config: [limits] must be a table")?;
+        let t = t.as_table().ok_or("config: [safety] must be a table")?;
+        let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
         for (k, v) in t {
-            if let Some(a) = Axis::parse(k) {
-                let arr = v.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-                    format!("config: limits.{k} must be [min, max] in µm, got {v}")
-                })?;
-                let num =
-                    |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
-                let (lo, hi) = match (num(&arr[0]), num(&arr[1])) {
-                    (Some(lo), Some(hi)) if lo.is_finite() && hi.is_finite() && lo < hi => (lo, hi),
-                    _ => {
-                        return Err(format!(
-                        "config: limits.{k} = {v} must be two finite numbers with min < max (µm)"
-                    ))
+            match k.as_str() {
+                "soft_limits" => {
+                    let st = v.as_table().ok_or_else(|| {
+                        format!("config: safety.soft_limits must be a table {{ x = [min, max], ... }} (µm), got {v}")
+                    })?;
+                    for (ak, av) in st {
+                        let a = Axis::parse(ak).ok_or_else(|| {
+                            format!("config: unknown axis safety.soft_limits.{ak} (allowed: x, y, z)")
+                        })?;
+                        let arr = av.as_array().filter(|a| a.len() == 2);
+                        let pair = arr.and_then(|a| Some((num(&a[0])?, num(&a[1])?)));
+                        match pair {
+                            Some((lo, hi)) if lo.is_finite() && hi.is_finite() && lo < hi => {
+                                l.range[a.index()] = (lo, hi)
+                            }
+                            _ => {
+                                return Err(format!(
+                                    "config: safety.soft_limits.{ak} = {av} must be [min, max], two finite numbers with min < max (µm)"
+                                ))
+                            }
+                        }
                     }
-                };
-                l.range[a.index()] = (lo, hi);
-            } else if k == "max_step_um" {
-                let s = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
-                match s {
+                }
+                "max_step_um" => match num(v) {
                     Some(s) if s > 0.0 && s.is_finite() => l.max_step_um = s,
                     _ => {
                         return Err(format!(
-                            "config: limits.max_step_um = {v} must be a positive number (µm)"
+                            "config: safety.max_step_um = {v} must be a positive number (µm)"
                         ))
                     }
+                },
+                "max_speed_um_s" => {} // the drivers' business
+                _ => {
+                    return Err(format!(
+                        "config: unknown key safety.{k} (allowed: soft_limits, max_step_um, max_speed_um_s)"
+                    ))
                 }
-            } else {
-                return Err(format!(
-                    "config: unknown key limits.{k} (allowed: x, y, z, max_step_um)"
-                ));
             }
         }
         Ok(l)
@@ -139,7 +148,7 @@ impl SoftLimits {
             if s.step() > self.max_step_um {
                 return Err(LimitError(format!(
                     "{who} refused before any move: step along {} = {} µm exceeds max_step_um = {} µm \
-                     (raise [limits] max_step_um in bfpscope.toml if this is intended)",
+                     (raise [safety] max_step_um in bfpscope.toml if this is intended)",
                     s.axis,
                     fmt_um(s.step()),
                     fmt_um(self.max_step_um)
@@ -182,8 +191,10 @@ mod tests {
 
     #[test]
     fn config_limits_parse_and_refuse_with_axis_value_and_limit() {
-        let cfg: toml::Value =
-            toml::from_str("[limits]\nx = [-5, 5]\nz = [-1.0, 1.0]\nmax_step_um = 0.5").unwrap();
+        let cfg: toml::Value = toml::from_str(
+            "[safety]\nsoft_limits = { x = [-5, 5], z = [-1.0, 1.0] }\nmax_step_um = 0.5",
+        )
+        .unwrap();
         let l = SoftLimits::from_toml(&cfg).unwrap();
         assert_eq!(l.range[0], (-5.0, 5.0));
         assert_eq!(l.max_step_um, 0.5);
@@ -217,13 +228,11 @@ mod tests {
 
     #[test]
     fn bad_config_is_an_error_naming_the_key() {
-        let cfg: toml::Value = toml::from_str("[limits]\nx = [5, -5]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg)
-            .unwrap_err()
-            .contains("limits.x"));
-        let cfg: toml::Value = toml::from_str("[limits]\nw = [0, 1]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg)
-            .unwrap_err()
-            .contains("unknown key limits.w"));
+        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { x = [5, -5] }").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert!(e.contains("safety.soft_limits.x"), "{e}");
+        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { w = [0, 1] }").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert!(e.contains("unknown axis safety.soft_limits.w"), "{e}");
     }
 }

@@ -98,8 +98,8 @@ impl Default for Settings {
             limits: SoftLimits::default(),
             sandbox: Sandbox::default(),
             progress: false,
-            print: Arc::new(|s| println!("{s}")),
-            log: Arc::new(|s| eprintln!("{s}")),
+            print: Arc::new(|s| out_line(s)),
+            log: Arc::new(|s| err_line(s)),
             abort: Arc::new(AtomicBool::new(false)),
             config: None,
             config_path: None,
@@ -129,7 +129,8 @@ impl Settings {
         (s, buf)
     }
 
-    /// Apply a parsed config (`[limits]`, `[sandbox]`, `[session] data_dir`).
+    /// Apply a parsed config (`[safety]` soft limits and max step, `[sandbox]`,
+    /// `[session] data_dir`).
     pub fn apply_config(
         &mut self,
         config: toml::Value,
@@ -147,6 +148,18 @@ impl Settings {
         self.config_path = path;
         Ok(())
     }
+}
+
+/// A line to stdout; a closed pipe (`bfpscope eval 'help()' | head`) is not an error.
+pub fn out_line(s: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stdout().lock(), "{s}");
+}
+
+/// A line to stderr, ignoring a closed pipe.
+pub fn err_line(s: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "{s}");
 }
 
 /// The script (or REPL) whose actions are being recorded.

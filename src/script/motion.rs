@@ -115,7 +115,7 @@ pub fn register(r: &mut Registrar) {
             .map("target", "absolute target, any subset of the axes", AXES_KEYS)
             .summary("move the stage to an absolute position (any subset of x, y, z)")
             .help(
-                "The target is checked against the soft limits (config [limits], narrowed to the stage's \
+                "The target is checked against the soft limits (config [safety] soft_limits, narrowed to the stage's \
                  travel range) before the move; a refused move moves nothing. Waits the settle time.",
             )
             .example("mv(#{x: 1.0, z: -0.5}); pos()", "#{x: 1.0, y: 0.0, z: -0.5}")

@@ -297,7 +297,12 @@ impl Doc {
         } else {
             format!("  [{u}]")
         };
-        format!("{:<34} {}{units}", self.signature(), self.summary)
+        let sig = self.signature();
+        if sig.chars().count() > 34 {
+            format!("{sig}\n      {:<30} {}{units}", "", self.summary)
+        } else {
+            format!("{sig:<34} {}{units}", self.summary)
+        }
     }
 
     /// The long help for `help("name")`.

@@ -338,14 +338,14 @@ pub fn register(r: &mut Registrar) {
         );
     }
 
-    // files (interim JSON format until data::npz lands)
+    // files (.npz through data::npz)
     let c = r.ctx();
     r.bind(
         Doc::method("Scan", "save")
             .arg("path", "string", "", "file to write (never overwritten)")
             .returns("string", "the path written")
             .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
-            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.json\"; s.save(p); load_scan(p).cols", "3")
+            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.npz\"; s.save(p); load_scan(p).cols", "3")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); s.save(s.path)", "error: exists; scans are never overwritten"),
         move |s: &mut ScanRef, path: &str| -> RResult<String> {
             let p = resolve(&c, path);
@@ -369,8 +369,8 @@ pub fn register(r: &mut Registrar) {
                 "[0.0, 0.5, 1.0]",
             )
             .example(
-                "load_scan(\"no/such/file.json\")",
-                "error: load_scan: no/such/file.json",
+                "load_scan(\"no/such/file.npz\")",
+                "error: load_scan: no/such/file.npz",
             ),
         move |path: &str| -> RResult<ScanRef> {
             let p = resolve(&c, path);

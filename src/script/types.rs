@@ -428,7 +428,7 @@ fn register_scan(r: &mut Registrar) {
         Doc::property("Scan", "path")
             .returns("string", "file path, or () if not saved")
             .summary("where the scan was (auto)saved")
-            .example(&format!("{SCAN_EX} s.path.ends_with(\".json\")"), "true"),
+            .example(&format!("{SCAN_EX} s.path.ends_with(\".npz\")"), "true"),
         |s: &mut ScanRef| {
             s.path
                 .as_ref()
