@@ -17,7 +17,7 @@
 //! lines start with `#` (so the file stays loadable with `numpy.loadtxt(..., comments="#")`).
 
 use bfpscope::optics::mie::Complex64 as C64;
-use bfpscope::optics::mie_beam::{Amplitudes, MieBeam, MieBeamSpec, Waist};
+use bfpscope::optics::mie_beam::{optics_for_reach, Amplitudes, MieBeam, MieBeamSpec, Waist};
 use bfpscope::optics::params::{Optics, REF_BEAD_D_NM, REF_BEAD_N};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
 
@@ -84,7 +84,8 @@ fn main() {
     )
     .unwrap();
     // a grid converged well beyond the profile's ±1.5 µm (docs/physics.md §9)
-    let base = MieBeamSpec::for_reach(&o, 2.5);
+    let om = optics_for_reach(&o, 2.0);
+    let base = MieBeamSpec::for_reach(&om, 2.0, 0.5);
     let np = C64::new(n, 0.0);
     let beams: Vec<Beam> = [
         ("w400", Waist::Spectral),
@@ -95,9 +96,9 @@ fn main() {
         let spec = MieBeamSpec { waist, ..base };
         Beam {
             tag,
-            mie: MieBeam::new(&o, d, np, spec).unwrap(),
+            mie: MieBeam::new(&om, d, np, spec).unwrap(),
             mie_full: MieBeam::new(
-                &o,
+                &om,
                 d,
                 np,
                 MieBeamSpec {
@@ -107,7 +108,7 @@ fn main() {
             )
             .unwrap(),
             dip: MieBeam::new(
-                &o,
+                &om,
                 d,
                 np,
                 MieBeamSpec {
@@ -128,8 +129,8 @@ fn main() {
         .map(|i| -1.5 + 3.0 * i as f64 / (n_pts - 1) as f64)
         .collect();
     println!(
-        "# Fig. 2b: Sx(x, 0, 0) of a {d} nm bead, n = {n}, default optics (w0 = {} nm, NA {}); incident grid n_theta_in = {}, n_phi_in = {}",
-        o.w0_nm, o.na, base.n_theta_in, base.n_phi_in
+        "# Fig. 2b: Sx(x, 0, 0) of a {d} nm bead, n = {n}, default optics (w0 = {} nm, NA {}); Mie tier grids (reach 2 µm): incident n_theta_in = {}, n_phi_in = {}, detection n_theta = {}, n_phi = {}",
+        o.w0_nm, o.na, base.n_theta_in, base.n_phi_in, om.n_theta, om.n_phi
     );
     println!("# beams: w400 = Gaussian spectrum with w0 = 400 nm (Waist::Spectral); fill = uniformly filled NA 1.2 aperture (Waist::SpectralNm(0), the tightest focus)");
     let mut header = String::from("x_um,rayleigh,rayleigh_pol,I_gauss");
