@@ -26,7 +26,10 @@ fn bench(c: &mut Criterion) {
             b.iter(|| m.response(black_box(0.31), black_box(-0.12), 0.05).unwrap())
         });
         g.bench_with_input(BenchmarkId::new("response_grad", j), &m, |b, m| {
-            b.iter(|| m.response_grad(black_box(0.31), black_box(-0.12), 0.05).unwrap())
+            b.iter(|| {
+                m.response_grad(black_box(0.31), black_box(-0.12), 0.05)
+                    .unwrap()
+            })
         });
     }
     let full = MieBeam::new(
@@ -40,7 +43,10 @@ fn bench(c: &mut Criterion) {
     )
     .unwrap();
     g.bench_function("response_with_scattered_intensity/288", |b| {
-        b.iter(|| full.response(black_box(0.31), black_box(-0.12), 0.05).unwrap())
+        b.iter(|| {
+            full.response(black_box(0.31), black_box(-0.12), 0.05)
+                .unwrap()
+        })
     });
     g.finish();
     let mut g = c.benchmark_group("mie_beam_build");

@@ -1,11 +1,12 @@
 //! Paper Fig. 2b: line profiles Sx(x, y = 0, z = 0) of the 110 nm polystyrene reference bead
 //! (n = 1.572 in water 1.333, λ = 1064 nm, w0 = 400 nm, NA 1.2) for
-//!   * `rayleigh`      — the paper's model (suppl. S2): paraxial Gaussian focus, scalar dipole;
-//!   * `rayleigh_pol`  — the same with the vector dipole field (`polarization` effect);
-//!   * `as_dipole`     — angular-spectrum focused beam (truncated by the NA 1.2 aperture),
-//!                       point dipole (Mie amplitudes replaced by their dipole limit);
-//!   * `mie`           — angular-spectrum beam, exact Lorenz–Mie sphere (interference term);
-//!   * `mie_full`      — `mie` plus the |E_s|² term;
+//! * `rayleigh` — the paper's model (suppl. S2): paraxial Gaussian focus, scalar dipole;
+//! * `rayleigh_pol` — the same with the vector dipole field (`polarization` effect);
+//! * `as_dipole` — angular-spectrum focused beam (truncated by the NA 1.2 aperture), point
+//!   dipole (Mie amplitudes replaced by their dipole limit);
+//! * `mie` — angular-spectrum beam, exact Lorenz–Mie sphere (interference term);
+//! * `mie_full` — `mie` plus the |E_s|² term;
+//!
 //! and the focal fields |E|²/P along x and y (µm⁻²) of the paraxial Gaussian and of the
 //! angular-spectrum beams, which explain the overshoot (docs/paper-figures.md, "Fig. 2b").
 //! The angular-spectrum columns come for two beams: `w400`, a Gaussian spectrum of waist
@@ -87,39 +88,36 @@ fn main() {
     let om = optics_for_reach(&o, 2.0);
     let base = MieBeamSpec::for_reach(&om, 2.0, 0.5);
     let np = C64::new(n, 0.0);
-    let beams: Vec<Beam> = [
-        ("w400", Waist::Spectral),
-        ("fill", Waist::SpectralNm(0.0)),
-    ]
-    .into_iter()
-    .map(|(tag, waist)| {
-        let spec = MieBeamSpec { waist, ..base };
-        Beam {
-            tag,
-            mie: MieBeam::new(&om, d, np, spec).unwrap(),
-            mie_full: MieBeam::new(
-                &om,
-                d,
-                np,
-                MieBeamSpec {
-                    scattered_intensity: true,
-                    ..spec
-                },
-            )
-            .unwrap(),
-            dip: MieBeam::new(
-                &om,
-                d,
-                np,
-                MieBeamSpec {
-                    amplitudes: Amplitudes::Dipole,
-                    ..spec
-                },
-            )
-            .unwrap(),
-        }
-    })
-    .collect();
+    let beams: Vec<Beam> = [("w400", Waist::Spectral), ("fill", Waist::SpectralNm(0.0))]
+        .into_iter()
+        .map(|(tag, waist)| {
+            let spec = MieBeamSpec { waist, ..base };
+            Beam {
+                tag,
+                mie: MieBeam::new(&om, d, np, spec).unwrap(),
+                mie_full: MieBeam::new(
+                    &om,
+                    d,
+                    np,
+                    MieBeamSpec {
+                        scattered_intensity: true,
+                        ..spec
+                    },
+                )
+                .unwrap(),
+                dip: MieBeam::new(
+                    &om,
+                    d,
+                    np,
+                    MieBeamSpec {
+                        amplitudes: Amplitudes::Dipole,
+                        ..spec
+                    },
+                )
+                .unwrap(),
+            }
+        })
+        .collect();
     let w0 = o.w0_um();
     let gauss_i =
         |r: f64| 2.0 / (std::f64::consts::PI * w0 * w0) * (-2.0 * r * r / (w0 * w0)).exp();
@@ -196,8 +194,14 @@ fn main() {
     for b in &beams {
         let bm = b.mie.beam();
         let e00 = bm.field(0.0, 0.0, 0.0)[0].re;
-        let ex: Vec<f64> = fine.iter().map(|&x| bm.field(x, 0.0, 0.0)[0].re / e00).collect();
-        let ey: Vec<f64> = fine.iter().map(|&y| bm.field(0.0, y, 0.0)[0].re / e00).collect();
+        let ex: Vec<f64> = fine
+            .iter()
+            .map(|&x| bm.field(x, 0.0, 0.0)[0].re / e00)
+            .collect();
+        let ey: Vec<f64> = fine
+            .iter()
+            .map(|&y| bm.field(0.0, y, 0.0)[0].re / e00)
+            .collect();
         println!("{}", describe(&format!("Ex(x)_{}", b.tag), &fine, &ex));
         println!("{}", describe(&format!("Ex(y)_{}", b.tag), &fine, &ey));
         let (rx, ry) = bm.focal_radii();

@@ -1,20 +1,21 @@
 //! Paper Fig. 3c: maximum sensitivity (∂Sx/∂x)max vs diameter for polystyrene beads
 //! (n = 1.572 in water, default optics), maximised over the axial position z (x = y = 0), for
-//!   * `point`      — Rayleigh point dipole (paper suppl. S2), ∝ d³ exactly;
-//!   * `finite`     — finite-size Rayleigh (suppl. S6, `finite_size::max_sensitivity_unit`,
-//!                    sphere rule n_r = 8);
-//!   * `mie_w400`   — angular-spectrum beam, Gaussian spectrum w0 = 400 nm, exact Mie,
-//!                    interference term only (as the Rayleigh models);
-//!   * `mief_w400`  — the same plus the |E_s|² term;
-//!   * `mie_fill`, `mief_fill` — the uniformly filled NA 1.2 aperture (tightest focus, mean
-//!                    1/e² radius 412 nm, closest to the paper's measured 400 nm).
+//! * `point` — Rayleigh point dipole (paper suppl. S2), ∝ d³ exactly;
+//! * `finite` — finite-size Rayleigh (suppl. S6, `finite_size::max_sensitivity_unit`, sphere
+//!   rule n_r = 8);
+//! * `mie_w400` — angular-spectrum beam, Gaussian spectrum w0 = 400 nm, exact Mie, interference
+//!   term only (as the Rayleigh models);
+//! * `mief_w400` — the same plus the |E_s|² term;
+//! * `mie_fill`, `mief_fill` — the uniformly filled NA 1.2 aperture (tightest focus, mean 1/e²
+//!   radius 412 nm, closest to the paper's measured 400 nm).
+//!
 //! All curves normalised to 1 at 110 nm (as the paper); `dev0_*` is the departure from the
 //! model's own small-particle limit (1 − S/S_{d→0}), `dev110_*` from the volume scaling
 //! anchored at 110 nm (S/S(110)·(110/d)³ − 1, the paper's "scaling the bead maximum
 //! sensitivity with volume"). Then the diameters where each model departs from d³ by 1% and 10%.
 //!
 //! Run: `cargo run --release --example fig3c > fig3c.csv` (CSV on stdout, `#` summary lines;
-//! about a minute on one core).
+//! a few minutes on one core).
 
 use bfpscope::optics::finite_size::max_sensitivity_unit;
 use bfpscope::optics::mie::Complex64 as C64;
@@ -80,11 +81,7 @@ fn main() {
                     (_, false) => "mie_fill",
                     _ => "mief_fill",
                 },
-                f: Box::new(move |d| {
-                    MieBeam::new(&o2, d, np, spec)
-                        .unwrap()
-                        .max_sensitivity_x()
-                }),
+                f: Box::new(move |d| MieBeam::new(&o2, d, np, spec).unwrap().max_sensitivity_x()),
                 limit_per_alpha: lim,
             });
         }

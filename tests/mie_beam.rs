@@ -3,7 +3,7 @@
 
 use bfpscope::optics::mie::{mie_q, Complex64 as C64};
 use bfpscope::optics::mie_beam::{
-    spectral_waist_nm, AngularSpectrum, Amplitudes, MieBeam, MieBeamSpec, Waist,
+    spectral_waist_nm, Amplitudes, AngularSpectrum, MieBeam, MieBeamSpec, Waist,
 };
 use bfpscope::optics::params::{Optics, OpticsError};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel, Misalignment};
@@ -43,13 +43,20 @@ fn small_sphere_mie_equals_dipole_limit_to_order_x_squared() {
         assert!(peak > 0.0);
         let mut worst: f64 = 0.0;
         for &(a, b, c) in &pts {
-            let (m, p) = (mie.response(a, b, c).unwrap(), dip.response(a, b, c).unwrap());
+            let (m, p) = (
+                mie.response(a, b, c).unwrap(),
+                dip.response(a, b, c).unwrap(),
+            );
             for ch in 0..3 {
                 worst = worst.max((m[ch] - p[ch]).abs() / peak);
             }
         }
         let r = worst / (x * x);
-        assert!(r < 0.1, "d = {d}: difference {worst:e} is not O(x²) (x² = {:e})", x * x);
+        assert!(
+            r < 0.1,
+            "d = {d}: difference {worst:e} is not O(x²) (x² = {:e})",
+            x * x
+        );
         assert!(worst > 0.0, "d = {d}: Mie path identical to dipole path");
         ratios.push(r);
     }
@@ -224,7 +231,10 @@ fn analytic_gradient_matches_central_difference() {
     }
     let s0 = mie.sensitivity_x(0.1).unwrap();
     assert_eq!(s0, mie.response_grad(0.0, 0.0, 0.1).unwrap().1[0]);
-    assert!(s0 > 0.0, "∂Sx/∂x must be positive at a bead (paper Fig. 2c)");
+    assert!(
+        s0 > 0.0,
+        "∂Sx/∂x must be positive at a bead (paper Fig. 2c)"
+    );
 }
 
 /// Zero contrast gives exactly zero; a weaker contrast gives a smaller signal of the same sign.
@@ -242,11 +252,17 @@ fn zero_contrast_gives_zero_and_signal_grows_with_contrast() {
     // near zero contrast the signal is linear in (m − 1)
     let s1 = MieBeam::new(&o, 300.0, C64::new(o.n_medium * (1.0 + 1e-6), 0.0), full).unwrap();
     let s2 = MieBeam::new(&o, 300.0, C64::new(o.n_medium * (1.0 + 2e-6), 0.0), full).unwrap();
-    let (a1, a2) = (s1.sensitivity_x(0.0).unwrap(), s2.sensitivity_x(0.0).unwrap());
+    let (a1, a2) = (
+        s1.sensitivity_x(0.0).unwrap(),
+        s2.sensitivity_x(0.0).unwrap(),
+    );
     assert!(a1 > 0.0 && (a2 / a1 - 2.0).abs() < 1e-4, "{a1} {a2}");
     let lo = MieBeam::new(&o, 300.0, C64::new(1.45, 0.0), full).unwrap();
     let hi = MieBeam::new(&o, 300.0, ps(), full).unwrap();
-    let (a, b) = (lo.sensitivity_x(0.0).unwrap(), hi.sensitivity_x(0.0).unwrap());
+    let (a, b) = (
+        lo.sensitivity_x(0.0).unwrap(),
+        hi.sensitivity_x(0.0).unwrap(),
+    );
     assert!(a > 0.0 && b > a, "{a} {b}");
     // below the medium's index the sign flips
     let neg = MieBeam::new(&o, 100.0, C64::new(1.2, 0.0), MieBeamSpec::default()).unwrap();
@@ -273,11 +289,18 @@ fn filled_aperture_profile_overshoots_near_0_7_um_and_gaussian_does_not() {
     let inner = mie.response(0.6, 0.0, 0.0).unwrap()[0];
     let over = mie.response(0.78, 0.0, 0.0).unwrap()[0];
     assert!(peak > 0.0 && inner > 0.0, "{peak} {inner}");
-    assert!(over < -0.08 * peak && over > -0.13 * peak, "{}", over / peak);
+    assert!(
+        over < -0.08 * peak && over > -0.13 * peak,
+        "{}",
+        over / peak
+    );
     let det = Detection::new(&o, &DetectorModel::default()).unwrap();
     for i in 0..40 {
         let x = 0.3 + 0.03 * i as f64;
-        assert!(det.response_unit(x, 0.0, 0.0).0[0] > 0.0, "Gaussian model at x = {x}");
+        assert!(
+            det.response_unit(x, 0.0, 0.0).0[0] > 0.0,
+            "Gaussian model at x = {x}"
+        );
     }
 }
 
@@ -285,7 +308,11 @@ fn filled_aperture_profile_overshoots_near_0_7_um_and_gaussian_does_not() {
 fn focal_waist_convention_solves_for_the_focal_radius_or_names_the_limit() {
     let o = Optics::default();
     match spectral_waist_nm(&o) {
-        Err(OpticsError::OutOfRange { name, value, allowed }) => {
+        Err(OpticsError::OutOfRange {
+            name,
+            value,
+            allowed,
+        }) => {
             assert_eq!(name, "w0_nm");
             assert_eq!(value, 400.0);
             assert!(allowed.contains("412"), "{allowed}");
@@ -332,7 +359,10 @@ fn misaligned_qpd_weakens_sy_and_breaks_its_antisymmetry() {
         .unwrap()
     };
     let (ideal, mis) = (mk(None), mk(Some(Misalignment::default())));
-    let (a, b) = (ideal.response(0.0, 0.3, 0.0).unwrap(), mis.response(0.0, 0.3, 0.0).unwrap());
+    let (a, b) = (
+        ideal.response(0.0, 0.3, 0.0).unwrap(),
+        mis.response(0.0, 0.3, 0.0).unwrap(),
+    );
     assert!(b[1] < 0.9 * a[1] && b[1] > 0.5 * a[1], "{} {}", a[1], b[1]);
     let bm = mis.response(0.0, -0.3, 0.0).unwrap();
     assert!((bm[1] + b[1]).abs() > 1e-3 * b[1].abs());
@@ -347,11 +377,18 @@ fn bad_input_gives_errors_naming_the_argument_and_never_nan() {
         Ok(_) => "ok".into(),
     };
     for d in [0.0, -5.0, f64::NAN, 1e6] {
-        assert!(name_of(MieBeam::new(&o, d, ps(), s)).contains("d_nm"), "{d}");
+        assert!(
+            name_of(MieBeam::new(&o, d, ps(), s)).contains("d_nm"),
+            "{d}"
+        );
     }
     assert!(name_of(MieBeam::new(&o, 100.0, C64::new(1.5, -0.1), s)).contains("imaginary"));
     assert!(name_of(MieBeam::new(&o, 100.0, C64::new(f64::NAN, 0.0), s)).contains("n_particle"));
-    for (nt, np, what) in [(0, 8, "n_theta_in"), (16, 0, "n_phi_in"), (2000, 8, "n_theta_in")] {
+    for (nt, np, what) in [
+        (0, 8, "n_theta_in"),
+        (16, 0, "n_phi_in"),
+        (2000, 8, "n_theta_in"),
+    ] {
         let e = name_of(MieBeam::new(
             &o,
             100.0,
@@ -397,7 +434,12 @@ fn bad_input_gives_errors_naming_the_argument_and_never_nan() {
     // on the axis far out of focus, at the focus, at the edge of the reach: finite
     let edge = 0.999 * m.reach_um(0.0);
     assert!(edge > 1.4, "default reach {edge}");
-    for &(x, y, z) in &[(0.0, 0.0, 0.0), (0.0, 0.0, -3.0), (0.0, 0.0, 9.0), (edge, 0.0, 0.0)] {
+    for &(x, y, z) in &[
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, -3.0),
+        (0.0, 0.0, 9.0),
+        (edge, 0.0, 0.0),
+    ] {
         let (s, gx, gy) = m.response_grad(x, y, z).unwrap();
         assert!(s.iter().chain(&gx).chain(&gy).all(|v| v.is_finite()));
     }

@@ -47,6 +47,9 @@ use super::rayleigh::{Detection, DetectorModel};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
+/// (S, ∂S/∂x, ∂S/∂y) for the channels (Sx, Sy, Sz); derivatives in µm⁻¹.
+pub type Grad3 = ([f64; 3], [f64; 3], [f64; 3]);
+
 /// Which amplitude functions scatter each plane wave.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Amplitudes {
@@ -151,8 +154,8 @@ pub fn grid_reach_um(optics: &Optics, spec: &MieBeamSpec, z_um: f64) -> f64 {
     let ks_in = k * th.sin();
     let ks_det = k * optics.theta_max().sin();
     let r_phi = (4.0 * spec.n_phi_in as f64 - 12.0) / ks_in;
-    let r_th = (2.5 * (spec.n_theta_in as f64 - 4.0) - 0.5 * k * z_um.abs() * (1.0 - th.cos()))
-        / ks_in;
+    let r_th =
+        (2.5 * (spec.n_theta_in as f64 - 4.0) - 0.5 * k * z_um.abs() * (1.0 - th.cos())) / ks_in;
     let r_det = ((optics.n_theta.min(2 * optics.n_phi)) as f64 - 8.0) / (0.75 * ks_det);
     r_phi.min(r_th).min(r_det).max(0.0)
 }
@@ -524,7 +527,9 @@ impl MieBeam {
             }
             let s12: Vec<(C64, C64)> = match spec.amplitudes {
                 // zero contrast scatters nothing: exact zeros (the recurrences leave ~1e-17)
-                _ if m_rel == C64::new(1.0, 0.0) => vec![(C64::new(0.0, 0.0), C64::new(0.0, 0.0)); n_inc],
+                _ if m_rel == C64::new(1.0, 0.0) => {
+                    vec![(C64::new(0.0, 0.0), C64::new(0.0, 0.0)); n_inc]
+                }
                 Amplitudes::Mie => {
                     mie_s1s2_terms(x_size, m_rel, &cosv, spec.n_terms).map_err(mie_err)?
                 }
@@ -615,12 +620,7 @@ impl MieBeam {
     }
 
     /// (S, ∂S/∂x, ∂S/∂y) for the three channels at (x, y, z) µm; derivatives analytic (µm⁻¹).
-    pub fn response_grad(
-        &self,
-        x: f64,
-        y: f64,
-        z: f64,
-    ) -> Result<([f64; 3], [f64; 3], [f64; 3]), OpticsError> {
+    pub fn response_grad(&self, x: f64, y: f64, z: f64) -> Result<Grad3, OpticsError> {
         self.check_pos(x, y, z)?;
         Ok(self.eval(x, y, z, true))
     }
@@ -663,7 +663,7 @@ impl MieBeam {
         Ok(())
     }
 
-    fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> ([f64; 3], [f64; 3], [f64; 3]) {
+    fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> Grad3 {
         let nj = self.beam.kin.len();
         let mut ar = Vec::with_capacity(nj);
         let mut ai = Vec::with_capacity(nj);
