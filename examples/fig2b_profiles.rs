@@ -1,11 +1,12 @@
 //! Paper Fig. 2b: line profiles Sx(x, y = 0, z = 0) of the 110 nm polystyrene reference bead
 //! (n = 1.572 in water 1.333, λ = 1064 nm, w0 = 400 nm, NA 1.2) for
-//!   * `rayleigh`      — the paper's model (suppl. S2): paraxial Gaussian focus, scalar dipole;
-//!   * `rayleigh_pol`  — the same with the vector dipole field (`polarization` effect);
-//!   * `as_dipole`     — angular-spectrum focused beam (truncated by the NA 1.2 aperture),
-//!                       point dipole (Mie amplitudes replaced by their dipole limit);
-//!   * `mie`           — angular-spectrum beam, exact Lorenz–Mie sphere (interference term);
-//!   * `mie_full`      — `mie` plus the |E_s|² term;
+//! * `rayleigh` — the paper's model (suppl. S2): paraxial Gaussian focus, scalar dipole;
+//! * `rayleigh_pol` — the same with the vector dipole field (`polarization` effect);
+//! * `as_dipole` — angular-spectrum focused beam (truncated by the NA 1.2 aperture), point
+//!   dipole (Mie amplitudes replaced by their dipole limit);
+//! * `mie` — angular-spectrum beam, exact Lorenz–Mie sphere (interference term);
+//! * `mie_full` — `mie` plus the |E_s|² term;
+//!
 //! and the focal fields |E|²/P along x and y (µm⁻²) of the paraxial Gaussian and of the
 //! angular-spectrum beams, which explain the overshoot (docs/paper-figures.md, "Fig. 2b").
 //! The angular-spectrum columns come for two beams: `w400`, a Gaussian spectrum of waist
@@ -17,7 +18,7 @@
 //! lines start with `#` (so the file stays loadable with `numpy.loadtxt(..., comments="#")`).
 
 use bfpscope::optics::mie::Complex64 as C64;
-use bfpscope::optics::mie_beam::{Amplitudes, MieBeam, MieBeamSpec, Waist};
+use bfpscope::optics::mie_beam::{optics_for_reach, Amplitudes, MieBeam, MieBeamSpec, Waist};
 use bfpscope::optics::params::{Optics, REF_BEAD_D_NM, REF_BEAD_N};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
 
@@ -84,41 +85,39 @@ fn main() {
     )
     .unwrap();
     // a grid converged well beyond the profile's ±1.5 µm (docs/physics.md §9)
-    let base = MieBeamSpec::for_reach(&o, 2.5);
+    let om = optics_for_reach(&o, 2.0);
+    let base = MieBeamSpec::for_reach(&om, 2.0, 0.5);
     let np = C64::new(n, 0.0);
-    let beams: Vec<Beam> = [
-        ("w400", Waist::Spectral),
-        ("fill", Waist::SpectralNm(0.0)),
-    ]
-    .into_iter()
-    .map(|(tag, waist)| {
-        let spec = MieBeamSpec { waist, ..base };
-        Beam {
-            tag,
-            mie: MieBeam::new(&o, d, np, spec).unwrap(),
-            mie_full: MieBeam::new(
-                &o,
-                d,
-                np,
-                MieBeamSpec {
-                    scattered_intensity: true,
-                    ..spec
-                },
-            )
-            .unwrap(),
-            dip: MieBeam::new(
-                &o,
-                d,
-                np,
-                MieBeamSpec {
-                    amplitudes: Amplitudes::Dipole,
-                    ..spec
-                },
-            )
-            .unwrap(),
-        }
-    })
-    .collect();
+    let beams: Vec<Beam> = [("w400", Waist::Spectral), ("fill", Waist::SpectralNm(0.0))]
+        .into_iter()
+        .map(|(tag, waist)| {
+            let spec = MieBeamSpec { waist, ..base };
+            Beam {
+                tag,
+                mie: MieBeam::new(&om, d, np, spec).unwrap(),
+                mie_full: MieBeam::new(
+                    &om,
+                    d,
+                    np,
+                    MieBeamSpec {
+                        scattered_intensity: true,
+                        ..spec
+                    },
+                )
+                .unwrap(),
+                dip: MieBeam::new(
+                    &om,
+                    d,
+                    np,
+                    MieBeamSpec {
+                        amplitudes: Amplitudes::Dipole,
+                        ..spec
+                    },
+                )
+                .unwrap(),
+            }
+        })
+        .collect();
     let w0 = o.w0_um();
     let gauss_i =
         |r: f64| 2.0 / (std::f64::consts::PI * w0 * w0) * (-2.0 * r * r / (w0 * w0)).exp();
@@ -128,8 +127,8 @@ fn main() {
         .map(|i| -1.5 + 3.0 * i as f64 / (n_pts - 1) as f64)
         .collect();
     println!(
-        "# Fig. 2b: Sx(x, 0, 0) of a {d} nm bead, n = {n}, default optics (w0 = {} nm, NA {}); incident grid n_theta_in = {}, n_phi_in = {}",
-        o.w0_nm, o.na, base.n_theta_in, base.n_phi_in
+        "# Fig. 2b: Sx(x, 0, 0) of a {d} nm bead, n = {n}, default optics (w0 = {} nm, NA {}); Mie tier grids (reach 2 µm): incident n_theta_in = {}, n_phi_in = {}, detection n_theta = {}, n_phi = {}",
+        o.w0_nm, o.na, base.n_theta_in, base.n_phi_in, om.n_theta, om.n_phi
     );
     println!("# beams: w400 = Gaussian spectrum with w0 = 400 nm (Waist::Spectral); fill = uniformly filled NA 1.2 aperture (Waist::SpectralNm(0), the tightest focus)");
     let mut header = String::from("x_um,rayleigh,rayleigh_pol,I_gauss");
@@ -195,8 +194,14 @@ fn main() {
     for b in &beams {
         let bm = b.mie.beam();
         let e00 = bm.field(0.0, 0.0, 0.0)[0].re;
-        let ex: Vec<f64> = fine.iter().map(|&x| bm.field(x, 0.0, 0.0)[0].re / e00).collect();
-        let ey: Vec<f64> = fine.iter().map(|&y| bm.field(0.0, y, 0.0)[0].re / e00).collect();
+        let ex: Vec<f64> = fine
+            .iter()
+            .map(|&x| bm.field(x, 0.0, 0.0)[0].re / e00)
+            .collect();
+        let ey: Vec<f64> = fine
+            .iter()
+            .map(|&y| bm.field(0.0, y, 0.0)[0].re / e00)
+            .collect();
         println!("{}", describe(&format!("Ex(x)_{}", b.tag), &fine, &ex));
         println!("{}", describe(&format!("Ex(y)_{}", b.tag), &fine, &ey));
         let (rx, ry) = bm.focal_radii();

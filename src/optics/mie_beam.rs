@@ -34,10 +34,11 @@
 //! nodes, J = 4·n_theta_in·n_phi_in incident plane waves. Measured numbers: docs/physics.md §9
 //! and `cargo bench --bench mie_beam`.
 //!
-//! **Reach.** A discrete plane-wave sum represents the focal field only where the grid resolves
-//! the phase k_j·x: with the default grid the response is converged for ρ ≲ 2 µm and |z| ≲ 1 µm
-//! (docs/physics.md §9); further out the answer stays finite but aliases. [`MieBeamSpec::for_reach`]
-//! picks a grid for a larger reach.
+//! **Reach.** A discrete plane-wave sum represents the response only where both grids resolve
+//! the phases k_j·x and k r̂_n·x ([`grid_reach_um`]): with the default grids ρ ≤ 1.5 µm
+//! (≈ 1e-5 of the peak there; 1e-13 on the axis); further out it aliases (1e-2 of the peak at
+//! 5 µm), so positions beyond the reach are refused with an error.
+//! [`MieBeamSpec::for_reach`] and [`optics_for_reach`] give grids for a larger reach.
 
 use super::mie::{mie_s1s2_terms, Complex64 as C64, MieError};
 use super::params::{check_above, check_range, Optics, OpticsError};
@@ -45,6 +46,9 @@ use super::quad::gauss_legendre;
 use super::rayleigh::{Detection, DetectorModel};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
+
+/// (S, ∂S/∂x, ∂S/∂y) for the channels (Sx, Sy, Sz); derivatives in µm⁻¹.
+pub type Grad3 = ([f64; 3], [f64; 3], [f64; 3]);
 
 /// Which amplitude functions scatter each plane wave.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -96,29 +100,64 @@ impl Default for MieBeamSpec {
 }
 
 /// Default incident θ order (knee of the accuracy sweep, docs/physics.md §9).
-pub const DEFAULT_N_THETA_IN: usize = 16;
+pub const DEFAULT_N_THETA_IN: usize = 12;
 /// Default incident φ nodes per quadrant.
-pub const DEFAULT_N_PHI_IN: usize = 8;
-/// Largest accepted number of (detection node, plane wave) pairs: 4·10⁶ pairs is 64 MB for the
-/// pair matrix (×4 with `scattered_intensity`).
-pub const MAX_PAIRS: usize = 4_000_000;
+pub const DEFAULT_N_PHI_IN: usize = 6;
+/// Largest accepted number of (detection node, plane wave) pairs: 8·10⁶ pairs is 128 MB for the
+/// pair matrix (+384 MB with `scattered_intensity`).
+pub const MAX_PAIRS: usize = 8_000_000;
 
 impl MieBeamSpec {
-    /// A grid that resolves the plane-wave phases out to a lateral reach ρ ≤ `reach_um` and
-    /// |z| ≤ `reach_um` for the given optics: n_phi_in·4 ≥ 2(kρ sinΘ) + 16 (azimuthal Bessel
-    /// orders up to k ρ sinΘ plus a margin) and n_theta_in ≥ (kρ sinΘ + kz(1 − cosΘ))/2 + 10.
-    /// `for_reach(o, 2.0)` gives about the default grid for the default optics.
-    pub fn for_reach(optics: &Optics, reach_um: f64) -> Self {
+    /// An incident grid that resolves the plane-wave phases out to a lateral distance
+    /// `rho_um` from the focus at axial displacements up to `z_um` (the inverse of the
+    /// incident-grid part of [`grid_reach_um`]): 4·n_phi_in ≥ kρ sinΘ + 12 and
+    /// n_theta_in ≥ (kρ sinΘ + k|z|(1 − cosΘ)/2)/2.5 + 4. The detection grid must follow
+    /// ([`optics_for_reach`]).
+    pub fn for_reach(optics: &Optics, rho_um: f64, z_um: f64) -> Self {
         let k = optics.k_per_um();
         let th = theta_aperture(optics);
-        let kr = k * reach_um.max(0.0) * th.sin();
-        let kz = k * reach_um.max(0.0) * (1.0 - th.cos());
+        let kr = k * rho_um.max(0.0) * th.sin();
+        let kz = 0.5 * k * z_um.abs() * (1.0 - th.cos());
         Self {
-            n_theta_in: ((0.5 * (kr + kz) + 10.0).ceil() as usize).clamp(8, 256),
-            n_phi_in: (((2.0 * kr + 16.0) / 4.0).ceil() as usize).clamp(4, 128),
+            n_theta_in: (((kr + kz) / 2.5 + 4.0).ceil() as usize).clamp(8, 256),
+            n_phi_in: (((kr + 12.0) / 4.0).ceil() as usize).clamp(4, 128),
             ..Self::default()
         }
     }
+}
+
+/// `optics` with the detection quadrature raised (never lowered) so that it resolves the
+/// scattered far field out to a lateral distance `rho_um`: min(n_theta, 2 n_phi) ≥
+/// 0.75 kρ sinΘ_det + 8 (the detection part of [`grid_reach_um`]).
+pub fn optics_for_reach(optics: &Optics, rho_um: f64) -> Optics {
+    let ks = optics.k_per_um() * optics.theta_max().sin();
+    let nt = ((0.75 * ks * rho_um.max(0.0) + 8.0).ceil() as usize).min(256);
+    Optics {
+        n_theta: optics.n_theta.max(nt),
+        n_phi: optics.n_phi.max(nt.div_ceil(2)),
+        ..optics.clone()
+    }
+}
+
+/// Lateral reach (µm) of the plane-wave grids at axial displacement `z_um`: the largest
+/// ρ = √(x² + y²) at which both the incident grid (`spec`) and the detection grid
+/// (`optics.n_theta`, `optics.n_phi`) resolve the phases of the response to ≈ 1e-5 of its
+/// peak. Calibrated against (48, 24)/(40, 20) reference grids for 110 and 500 nm beads
+/// (docs/physics.md §9):
+///   incident:  ρ ≤ min(4 n_phi_in − 12, 2.5 (n_theta_in − 4) − k|z|(1 − cosΘ)/2) / (k sinΘ),
+///   detection: ρ ≤ (min(n_theta, 2 n_phi) − 8) / (0.75 k sinΘ_det).
+/// Beyond it a discrete plane-wave sum aliases (errors of 1e-2 of the peak at 5 µm with the
+/// default grids), so [`MieBeam::response`] refuses such positions.
+pub fn grid_reach_um(optics: &Optics, spec: &MieBeamSpec, z_um: f64) -> f64 {
+    let k = optics.k_per_um();
+    let th = theta_aperture(optics);
+    let ks_in = k * th.sin();
+    let ks_det = k * optics.theta_max().sin();
+    let r_phi = (4.0 * spec.n_phi_in as f64 - 12.0) / ks_in;
+    let r_th =
+        (2.5 * (spec.n_theta_in as f64 - 4.0) - 0.5 * k * z_um.abs() * (1.0 - th.cos())) / ks_in;
+    let r_det = ((optics.n_theta.min(2 * optics.n_phi)) as f64 - 8.0) / (0.75 * ks_det);
+    r_phi.min(r_th).min(r_det).max(0.0)
 }
 
 /// The objective's aperture half-angle in the medium, asin(min(NA, n)/n).
@@ -396,6 +435,7 @@ pub struct MieBeam {
     m_rel: C64,
     d_nm: f64,
     spec: MieBeamSpec,
+    optics: Optics,
 }
 
 fn mie_err(e: MieError) -> OpticsError {
@@ -486,6 +526,10 @@ impl MieBeam {
                 cosv[j] = dot(*kh, rh).clamp(-1.0, 1.0);
             }
             let s12: Vec<(C64, C64)> = match spec.amplitudes {
+                // zero contrast scatters nothing: exact zeros (the recurrences leave ~1e-17)
+                _ if m_rel == C64::new(1.0, 0.0) => {
+                    vec![(C64::new(0.0, 0.0), C64::new(0.0, 0.0)); n_inc]
+                }
                 Amplitudes::Mie => {
                     mie_s1s2_terms(x_size, m_rel, &cosv, spec.n_terms).map_err(mie_err)?
                 }
@@ -521,6 +565,7 @@ impl MieBeam {
             m_rel,
             d_nm,
             spec,
+            optics: optics.clone(),
         };
         Ok(out)
     }
@@ -570,24 +615,19 @@ impl MieBeam {
     /// (Sx, Sy, Sz) at displacement (x, y, z) µm (sphere − focus), normalised to the beam power
     /// (dimensionless). Errors if a coordinate is non-finite or beyond ±1e4 µm.
     pub fn response(&self, x: f64, y: f64, z: f64) -> Result<[f64; 3], OpticsError> {
-        check_pos(x, y, z)?;
+        self.check_pos(x, y, z)?;
         Ok(self.eval(x, y, z, false).0)
     }
 
     /// (S, ∂S/∂x, ∂S/∂y) for the three channels at (x, y, z) µm; derivatives analytic (µm⁻¹).
-    pub fn response_grad(
-        &self,
-        x: f64,
-        y: f64,
-        z: f64,
-    ) -> Result<([f64; 3], [f64; 3], [f64; 3]), OpticsError> {
-        check_pos(x, y, z)?;
+    pub fn response_grad(&self, x: f64, y: f64, z: f64) -> Result<Grad3, OpticsError> {
+        self.check_pos(x, y, z)?;
         Ok(self.eval(x, y, z, true))
     }
 
     /// ∂Sx/∂x at x = y = 0 and axial displacement z µm (analytic derivative), µm⁻¹.
     pub fn sensitivity_x(&self, z: f64) -> Result<f64, OpticsError> {
-        check_pos(0.0, 0.0, z)?;
+        self.check_pos(0.0, 0.0, z)?;
         Ok(self.eval(0.0, 0.0, z, true).1[0])
     }
 
@@ -598,7 +638,32 @@ impl MieBeam {
         golden_max(|z| self.eval(0.0, 0.0, z, true).1[0])
     }
 
-    fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> ([f64; 3], [f64; 3], [f64; 3]) {
+    /// Lateral reach (µm) of this response's grids at axial displacement z ([`grid_reach_um`]).
+    pub fn reach_um(&self, z: f64) -> f64 {
+        grid_reach_um(&self.optics, &self.spec, z)
+    }
+
+    /// Positions must be finite, |x|, |y|, |z| ≤ 1e4 µm, and within the grids' reach.
+    fn check_pos(&self, x: f64, y: f64, z: f64) -> Result<(), OpticsError> {
+        check_range("x", x, -1e4, 1e4)?;
+        check_range("y", y, -1e4, 1e4)?;
+        check_range("z", z, -1e4, 1e4)?;
+        let rho = x.hypot(y);
+        let reach = self.reach_um(z);
+        if rho > reach {
+            return Err(OpticsError::OutOfRange {
+                name: "ρ = √(x² + y²) (µm)",
+                value: rho,
+                allowed: format!(
+                    "ρ ≤ {reach:.3} µm at z = {z} µm, the reach of the plane-wave grids (incident n_theta_in = {}, n_phi_in = {}; detection n_theta = {}, n_phi = {}); build with MieBeamSpec::for_reach and mie_beam::optics_for_reach for a larger reach",
+                    self.spec.n_theta_in, self.spec.n_phi_in, self.optics.n_theta, self.optics.n_phi
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> Grad3 {
         let nj = self.beam.kin.len();
         let mut ar = Vec::with_capacity(nj);
         let mut ai = Vec::with_capacity(nj);
@@ -725,13 +790,6 @@ fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
     out
 }
 
-fn check_pos(x: f64, y: f64, z: f64) -> Result<(), OpticsError> {
-    check_range("x", x, -1e4, 1e4)?;
-    check_range("y", y, -1e4, 1e4)?;
-    check_range("z", z, -1e4, 1e4)?;
-    Ok(())
-}
-
 /// Maximise f over z ∈ [−1, 1] µm: 0.05 µm scan, then golden section on the best bracket.
 fn golden_max(f: impl Fn(f64) -> f64) -> (f64, f64) {
     let (mut best_z, mut best) = (0.0, f(0.0));
@@ -765,6 +823,88 @@ fn golden_max(f: impl Fn(f64) -> f64) -> (f64, f64) {
     }
     let z = 0.5 * (a + b);
     (f(z), z)
+}
+
+/// Accuracy knob (docs/accuracy.md): the incident plane-wave grid (n_theta_in, n_phi_in),
+/// 500 nm polystyrene bead, default optics (detection grid (16, 8), whose own error is the
+/// `quadrature` knob). Error: the larger of (i) the relative error of (∂Sx/∂x)max (maximised
+/// over z at x = y = 0) and (ii) the worst |ΔS| of (Sx, Sy, Sz) relative to the peak Sx over
+/// 18 points within ρ ≤ 1.5 µm, |z| ≤ 1 µm (the default detection grid's reach), against a
+/// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
+/// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
+/// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
+pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
+    use crate::accuracy::{time_median, Knob, Point};
+    let o = Optics::default();
+    let n = C64::new(super::params::REF_BEAD_N, 0.0);
+    let d = 500.0;
+    let build = |nt: usize, np: usize| {
+        MieBeam::new(
+            &o,
+            d,
+            n,
+            MieBeamSpec {
+                n_theta_in: nt,
+                n_phi_in: np,
+                ..MieBeamSpec::default()
+            },
+        )
+        .expect("valid default optics")
+    };
+    let (rt, rp) = (32, 16);
+    let reference = build(rt, rp);
+    let ref_max = reference.max_sensitivity_x().0;
+    let peak = reference.eval(0.3, 0.0, 0.0, false).0[0].abs();
+    let pts: Vec<[f64; 3]> = (0..18)
+        .map(|i| {
+            let rho = 1.5 * ((i % 6) + 1) as f64 / 6.0;
+            let a = 0.4 + 1.1 * i as f64;
+            [rho * a.cos(), rho * a.sin(), [0.0, 0.5, -1.0][i % 3]]
+        })
+        .collect();
+    let ref_vals: Vec<[f64; 3]> = pts
+        .iter()
+        .map(|p| reference.eval(p[0], p[1], p[2], false).0)
+        .collect();
+    let grids: &[(usize, usize)] = if quick {
+        &[(6, 3), (8, 4), (12, 6), (16, 8)]
+    } else {
+        &[(4, 2), (6, 3), (8, 4), (10, 5), (12, 6), (16, 8), (24, 12)]
+    };
+    let points = grids
+        .iter()
+        .map(|&(nt, np)| {
+            let m = build(nt, np);
+            let mut err = ((m.max_sensitivity_x().0 - ref_max) / ref_max).abs();
+            for (p, r) in pts.iter().zip(&ref_vals) {
+                let v = m.eval(p[0], p[1], p[2], false).0;
+                for c in 0..3 {
+                    err = err.max((v[c] - r[c]).abs() / peak);
+                }
+            }
+            let secs = time_median(if quick { 5 } else { 11 }, || {
+                m.eval(0.31, -0.12, 0.05, false)
+            });
+            Point {
+                setting: format!(
+                    "n_theta_in = {nt}, n_phi_in = {np} ({} plane waves)",
+                    4 * nt * np
+                ),
+                value: (4 * nt * np) as f64,
+                error: err.max(1e-16),
+                seconds: secs,
+                is_default: nt == DEFAULT_N_THETA_IN && np == DEFAULT_N_PHI_IN,
+            }
+        })
+        .collect();
+    Knob {
+        id: "mie_grid".into(),
+        title: "Mie tier: incident plane-wave grid, 500 nm bead".into(),
+        metric: "max of rel. error of (∂Sx/∂x)max and worst |ΔS|/peak within ρ ≤ 1.5 µm".into(),
+        timed: "one (Sx, Sy, Sz) evaluation at a point (512 detection nodes)".into(),
+        reference: format!("n_theta_in = {rt}, n_phi_in = {rp}"),
+        points,
+    }
 }
 
 #[cfg(test)]
