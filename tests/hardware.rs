@@ -4,18 +4,20 @@
 //! fault tests use 200 ms reply timeouts and check that every failure is bounded in time and
 //! names the device, the command and what came back.
 
-use bfpscope::instrument::config::{Backend, Config, SafetyLimits, SoftLimits};
+use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
+use bfpscope::data::{Scan, ScanStatus};
+use bfpscope::instrument::config::{Backend, Config, LimitsConfig, SafetyLimits};
 use bfpscope::instrument::connect::{connect, ConnectError};
 use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
     start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
 };
-use bfpscope::instrument::sim::scene::{Bead, Scene};
-use bfpscope::instrument::sim::{SimConfig, SimCore};
-use bfpscope::optics::params::Optics;
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
 use bfpscope::instrument::scpi::{Calibration, ScpiOptions, ScpiQpd};
+use bfpscope::instrument::sim::scene::{Bead, Scene};
+use bfpscope::instrument::sim::{SimConfig, SimCore};
 use bfpscope::instrument::{DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use bfpscope::optics::params::Optics;
 use std::io::{Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc};
@@ -697,7 +699,11 @@ fn fault_qpd_unplugged_is_disconnected() {
 // Config, connect, scans
 
 fn emulator_config(stage: &Emulator, qpd: &Emulator) -> Config {
-    let text = format!(
+    Config::from_toml_str(&emulator_config_text(stage, qpd), "test.toml").unwrap()
+}
+
+fn emulator_config_text(stage: &Emulator, qpd: &Emulator) -> String {
+    format!(
         r#"
 [stage]
 backend = "gcs"
@@ -712,8 +718,9 @@ backend = "scpi"
 port = "{}"
 calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
 
-[safety]
-soft_limits = {{ x = [-1.0, 1.0], z = [-5.0, 0.5] }}
+[limits]
+x = [-1.0, 1.0]
+z = [-5.0, 0.5]
 max_step_um = 2.0
 "#,
         stage.path(),
@@ -724,8 +731,7 @@ max_step_um = 2.0
         OFFSET[0],
         OFFSET[1],
         OFFSET[2]
-    );
-    Config::from_toml_str(&text, "test.toml").unwrap()
+    )
 }
 
 fn pair(noise_v: f64) -> (Emulator, Emulator) {
@@ -767,13 +773,13 @@ fn connect_hardware_from_config_intersects_soft_limits() {
 fn connect_soft_limits_outside_travel_is_a_config_error() {
     let (se, qe) = pair(0.0);
     let mut cfg = emulator_config(&se, &qe);
-    cfg.safety.soft_limits = SoftLimits {
+    cfg.limits = LimitsConfig {
         y: Some([5.0, 9.0]),
         ..Default::default()
     };
     match connect(&cfg, no_sim) {
         Err(ConnectError::Config(e)) => {
-            assert_eq!(e.key, "safety.soft_limits.y");
+            assert_eq!(e.key, "limits.y");
             assert!(e.message.contains("travel range [-2, 2]"), "{e}");
         }
         Err(e) => panic!("{e}"),
@@ -858,7 +864,7 @@ impl Qpd for FakeQpd {
 
 #[test]
 fn connect_without_config_builds_the_simulator() {
-    let cfg = Config::from_toml_str("[safety]\nsoft_limits = { z = [2.0, 8.0] }\n", "t").unwrap();
+    let cfg = Config::from_toml_str("[limits]\nz = [2.0, 8.0]\n", "t").unwrap();
     let mut called = false;
     let c = connect(&cfg, |c| {
         called = true;
@@ -937,25 +943,44 @@ fn scan_of_a_simulated_bead_through_the_drivers_matches_the_simulator() {
     // One scene, two instruments: the simulator itself, and the real drivers talking to
     // emulators whose QPD answers with the simulator's signal at the emulated stage position.
     let mut scene = Scene::default();
-    scene.add_bead(Bead { pos: [0.1, -0.05, 0.0], d_nm: 200.0, n: 1.572 }).unwrap();
+    scene
+        .add_bead(Bead {
+            pos: [0.1, -0.05, 0.0],
+            d_nm: 200.0,
+            n: 1.572,
+        })
+        .unwrap();
     let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
     let mut sim = core.instrument(0.0);
     let (n, half, samples) = (9, 0.5, 100);
     let sim_img = raster(&mut sim, n, half, samples);
     let amp = sim_img.iter().map(|(_, r)| r.sx.abs()).fold(0.0, f64::max);
-    assert!(amp > 0.0 && amp.is_finite(), "simulated bead gives no signal: {amp}");
+    assert!(
+        amp > 0.0 && amp.is_finite(),
+        "simulated bead gives no signal: {amp}"
+    );
 
     // emulated detector: 5 V per signal unit, noise such that one averaged reading has σ = 1 % of
     // the Sx amplitude
     let vpu = 5.0;
     let sigma = 0.01 * amp;
     let noise_v = sigma * vpu * (samples as f64).sqrt();
-    let qcfg = QpdEmulatorConfig { volts_per_unit: [vpu; 3], noise_v: [noise_v; 3], ..Default::default() };
-    let scfg = StageEmulatorConfig { settle_s: 0.001, ..StageEmulatorConfig::like_sim(&core.cfg) };
+    let qcfg = QpdEmulatorConfig {
+        volts_per_unit: [vpu; 3],
+        noise_v: [noise_v; 3],
+        ..Default::default()
+    };
+    let scfg = StageEmulatorConfig {
+        settle_s: 0.001,
+        ..StageEmulatorConfig::like_sim(&core.cfg)
+    };
     assert_eq!(scfg.travel, SimConfig::default().travel);
     let (se, qe) = start_pair(scfg, qcfg, sim_signal_source(core.renderer())).unwrap();
     let mut cfg = emulator_config(&se, &qe);
-    cfg.qpd.calibration = Calibration { gain: [1.0 / vpu; 3], offset_v: [0.0; 3] };
+    cfg.qpd.calibration = Calibration {
+        gain: [1.0 / vpu; 3],
+        offset_v: [0.0; 3],
+    };
     let mut hw = connect(&cfg, no_sim).unwrap();
     let hw_img = raster(&mut hw.instrument, n, half, samples);
 
@@ -963,12 +988,19 @@ fn scan_of_a_simulated_bead_through_the_drivers_matches_the_simulator() {
     for ((p, a), (q, b)) in sim_img.iter().zip(&hw_img) {
         assert_eq!(p, q);
         for (got, want) in [(b.sx, a.sx), (b.sy, a.sy), (b.sz, a.sz)] {
-            assert!((got - want).abs() < 5.0 * sigma, "at {p:?}: drivers {got} vs simulator {want} (σ {sigma})");
+            assert!(
+                (got - want).abs() < 5.0 * sigma,
+                "at {p:?}: drivers {got} vs simulator {want} (σ {sigma})"
+            );
             chi2 += ((got - want) / sigma).powi(2);
         }
     }
     let dof = 3.0 * sim_img.len() as f64;
-    assert!(chi2 / dof > 0.6 && chi2 / dof < 1.5, "χ²/dof = {}", chi2 / dof);
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
 }
 
 #[test]
@@ -1063,4 +1095,173 @@ fn emulate_cli_prints_paths_that_work() {
     stop.store(true, Ordering::SeqCst);
     h.join().unwrap().unwrap();
     assert!(run_emulator_cli_with("laser", standin_bead, &mut Vec::new(), stop).is_err());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Through the scan engine (acquire/): its safety rules hold on the real drivers
+
+/// Connect to a fresh emulator pair from a config file text, with the scan engine's own reading
+/// of the same `[limits]` table.
+fn engine_setup() -> (
+    Emulator,
+    Emulator,
+    bfpscope::instrument::connect::Connected,
+    SoftLimits,
+) {
+    let (se, qe) = pair(0.0);
+    let text = emulator_config_text(&se, &qe);
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let limits = SoftLimits::from_toml(&toml::from_str::<toml::Value>(&text).unwrap()).unwrap();
+    assert_eq!(limits.range[0], (-1.0, 1.0));
+    assert_eq!(limits.max_step_um, 2.0);
+    let c = connect(&cfg, no_sim).unwrap();
+    (se, qe, c, limits)
+}
+
+/// Run a plan, collecting log lines and the autosaved scans.
+fn run(
+    inst: &mut Instrument,
+    plan: &Plan,
+    limits: &SoftLimits,
+) -> (Result<bfpscope::acquire::ScanRun, ScanError>, Vec<Scan>) {
+    let saved = std::sync::Mutex::new(Vec::new());
+    let abort = AtomicBool::new(false);
+    let log = |_: &str| {};
+    let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
+        saved.lock().unwrap().push(s.clone());
+        Ok(std::path::PathBuf::from("memory"))
+    };
+    let env = ScanEnv {
+        limits,
+        abort: &abort,
+        progress: false,
+        log: &log,
+        meta: serde_json::json!({}),
+        save: &save,
+    };
+    let r = run_plan(inst, plan, &env);
+    (r, saved.into_inner().unwrap())
+}
+
+fn line_x(from: f64, to: f64, n: i64, rel: bool) -> Plan {
+    let kind = if rel { "dscan" } else { "ascan" };
+    Plan::line(
+        kind,
+        Sweep::new(kind, Axis::X, from, to, n, "n").unwrap(),
+        1e-4,
+        rel,
+    )
+    .unwrap()
+}
+
+#[test]
+fn engine_scan_through_the_drivers_completes() {
+    let (se, _qe, mut c, limits) = engine_setup();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.5, 0.5, 5, false), &limits);
+    let r = r.unwrap();
+    assert_eq!(r.ended, Ended::Complete);
+    assert_eq!(saved.len(), 1);
+    for (i, x) in [-0.5, -0.25, 0.0, 0.25, 0.5].iter().enumerate() {
+        let want = standin_bead([*x, 0.0, 0.0])[0];
+        assert!((r.scan.sx.data[[0, i]] - want).abs() < 1e-9, "x = {x}");
+    }
+    assert_eq!(se.position(), [0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn engine_refuses_an_out_of_limits_plan_before_anything_is_sent() {
+    // x soft limit [-1, 1] (travel is [-2, 2]): the driver would send this and the controller
+    // would accept it; the engine's pre-flight refuses it first.
+    let (se, _qe, mut c, limits) = engine_setup();
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(0.0, 1.5, 4, false), &limits);
+    match r {
+        Err(ScanError::Refused(msg)) => {
+            assert!(msg.contains("refused before any move"), "{msg}");
+            assert!(
+                msg.contains("x = 1.5 µm is above the soft limit x ≤ 1 µm"),
+                "{msg}"
+            );
+        }
+        other => panic!("{:?}", other.map(|r| r.ended)),
+    }
+    assert!(saved.is_empty());
+    let sent = &se.commands()[before..];
+    assert!(sent.iter().all(|c| !c.starts_with("MOV")), "{sent:?}");
+    assert_eq!(se.position(), [0.0; 3]);
+}
+
+#[test]
+fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
+    let (se, _qe, mut c, limits) = engine_setup();
+    c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
+    // settle at once: each move is exactly MOV, ERR?, ONT?. The engine first sends POS?, TMN?,
+    // TMX?; so the 10th command is the 3rd point's MOV: the controller rejects it.
+    se.faults().settle_s = Some(0.0);
+    se.faults().error_after = Some((9, -1024));
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            measured,
+            error:
+                DeviceError::Controller {
+                    command,
+                    code,
+                    message,
+                    ..
+                },
+            stage_fault,
+        } => {
+            assert_eq!((*measured, *code, *stage_fault), (2, -1024, true));
+            assert_eq!(command, "MOV A 0.200000 B 0.100000 C 0.000000"); // start + 0.0
+            assert!(message.starts_with("Motion error"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    // partial scan saved, status failed, unmeasured pixels NaN
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    let row: Vec<f64> = saved[0].sx.data.row(0).to_vec();
+    assert!(
+        row[..2].iter().all(|v| v.is_finite()) && row[2..].iter().all(|v| v.is_nan()),
+        "{row:?}"
+    );
+    // relative scan, but after a stage fault the stage is not commanded again (not even back to
+    // the start): the rejected MOV and its ERR? are the last commands it got
+    assert!(!r.returned_to_start);
+    std::thread::sleep(Duration::from_millis(100));
+    let sent = se.commands()[before..].to_vec();
+    assert_eq!(sent.len(), 11, "{sent:?}");
+    assert_eq!(&sent[9..], ["MOV A 0.200000 B 0.100000 C 0.000000", "ERR?"]);
+    assert!(r
+        .summary()
+        .unwrap_err()
+        .contains("the stage was not commanded further"));
+}
+
+#[test]
+fn engine_qpd_unplugged_mid_scan_returns_relative_scan_to_start() {
+    let (se, qe, mut c, limits) = engine_setup();
+    c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
+    // first read: COUN, ERR?, STAT?, ERR?; later reads: STAT?, ERR?: unplug after 3 points
+    qe.faults().unplug_after = Some(8);
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            measured: 3,
+            error: DeviceError::Disconnected { device, .. },
+            stage_fault: false,
+        } => {
+            assert!(device.contains(qe.path()));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(r.returned_to_start);
+    assert_eq!(se.position(), [0.2, 0.1, 0.0]);
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert_eq!(saved[0].meta["points_measured"], 3);
 }

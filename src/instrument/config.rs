@@ -13,15 +13,16 @@
 //! port = "/dev/ttyUSB1"
 //! calibration = { gain = [0.5, 0.5, 0.25], offset_v = [0.0, 0.0, 0.0] }
 //!
-//! [safety]
-//! soft_limits = { x = [10.0, 90.0], y = [10.0, 90.0], z = [2.0, 18.0] }
-//! max_step_um = 20.0
-//! max_speed_um_s = 500.0
+//! [limits]                     # the same table `acquire::SoftLimits::from_toml` reads
+//! x = [10.0, 90.0]              # µm
+//! y = [10.0, 90.0]
+//! z = [2.0, 18.0]
+//! max_step_um = 10.0
 //! ```
 //!
 //! With no file, everything is simulated. Other top-level sections (`[optics]`, …) belong to
 //! other parts of the workbench and are kept in [`Config::other`] untouched. Inside `[stage]`,
-//! `[qpd]` and `[safety]` an unknown key is an error (a typo in a safety setting must not be
+//! `[qpd]` and `[limits]` an unknown key is an error (a typo in a safety setting must not be
 //! ignored silently); errors name the key path (`stage.baud`) and the line.
 
 use super::gcs::GcsOptions;
@@ -111,6 +112,8 @@ pub struct StageConfig {
     pub units_per_um: f64,
     /// Extra settle time after each move, s (after on-target for hardware).
     pub settle_s: f64,
+    /// Highest stage speed, µm/s (enforced by `acquire/`; none: no limit).
+    pub max_speed_um_s: Option<f64>,
 }
 
 impl Default for StageConfig {
@@ -126,6 +129,7 @@ impl Default for StageConfig {
             servo_on_connect: true,
             units_per_um: 1.0,
             settle_s: 0.005,
+            max_speed_um_s: None,
         }
     }
 }
@@ -159,31 +163,24 @@ impl Default for QpdConfig {
     }
 }
 
-/// Soft limits per axis, `[min, max]` µm. A missing axis is limited by the controller's
-/// travel range only.
+/// `[limits]`: soft limits per axis, `[min, max]` µm (a missing axis is limited by the
+/// controller's travel range only) and the largest pixel pitch. The scan engine (`acquire/`)
+/// enforces them before anything is sent; `acquire::SoftLimits::from_toml` reads the same
+/// table.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct SoftLimits {
+pub struct LimitsConfig {
     pub x: Option<[f64; 2]>,
     pub y: Option<[f64; 2]>,
     pub z: Option<[f64; 2]>,
+    /// Largest pixel pitch a scan may use, µm (catches nm/µm mix-ups).
+    pub max_step_um: Option<f64>,
 }
 
-impl SoftLimits {
+impl LimitsConfig {
     pub fn get(&self, axis: usize) -> Option<[f64; 2]> {
         [self.x, self.y, self.z].get(axis).copied().flatten()
     }
-}
-
-/// `[safety]`: read by `acquire/`, which enforces every rule before anything is sent.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct SafetyConfig {
-    pub soft_limits: SoftLimits,
-    /// Largest single move, µm (larger moves are refused or split by `acquire/`).
-    pub max_step_um: Option<f64>,
-    /// Highest stage speed, µm/s.
-    pub max_speed_um_s: Option<f64>,
 }
 
 /// The limits in force for a connected instrument: soft limits ∩ controller travel range,
@@ -204,7 +201,7 @@ pub struct Config {
     #[serde(default)]
     pub qpd: QpdConfig,
     #[serde(default)]
-    pub safety: SafetyConfig,
+    pub limits: LimitsConfig,
     /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
     #[serde(flatten)]
     pub other: toml::Table,
@@ -215,7 +212,7 @@ const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 /// Soft limits ∩ the controller's travel range, per axis. An axis without soft limits gets
 /// the travel range. Errors when the two do not overlap or the travel range is nonsense.
 pub fn effective_limits(
-    soft: &SoftLimits,
+    soft: &LimitsConfig,
     travel: [(f64, f64); 3],
 ) -> Result<[(f64, f64); 3], ConfigError> {
     let mut out = [(0.0, 0.0); 3];
@@ -238,7 +235,7 @@ pub fn effective_limits(
                 if a >= b {
                     return Err(ConfigError {
                         origin: "bfpscope.toml".into(),
-                        key: format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        key: format!("limits.{}", AXIS_NAMES[i]),
                         line: None,
                         message: format!(
                             "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
@@ -481,18 +478,18 @@ impl Config {
             }
         }
         for (i, name) in AXIS_NAMES.iter().enumerate() {
-            if let Some([lo, hi]) = self.safety.soft_limits.get(i) {
+            if let Some([lo, hi]) = self.limits.get(i) {
                 if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                     return Err(err(
-                        &format!("safety.soft_limits.{name}"),
+                        &format!("limits.{name}"),
                         format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
                     ));
                 }
             }
         }
         for (key, v) in [
-            ("safety.max_step_um", self.safety.max_step_um),
-            ("safety.max_speed_um_s", self.safety.max_speed_um_s),
+            ("limits.max_step_um", self.limits.max_step_um),
+            ("stage.max_speed_um_s", self.stage.max_speed_um_s),
         ] {
             if let Some(v) = v {
                 if !(v.is_finite() && v > 0.0) {
@@ -527,7 +524,7 @@ impl Config {
 }
 
 /// Line where `key` (a dotted path) is set, for validation errors: a `k = …` line whose
-/// table path plus `k` is `key` or a prefix of it (inline tables such as `soft_limits = {x = …}`).
+/// table path plus `k` is `key` or a prefix of it (inline tables such as `axes = { x = … }`).
 fn find_key_line(text: &str, key: &str) -> Option<usize> {
     if key.is_empty() {
         return None;
@@ -583,8 +580,9 @@ backend = "scpi"
 port = "/dev/ttyUSB1"
 calibration = { gain = [2.0, 2.0, 0.5], offset_v = [0.1, 0.0, 0.0] }
 
-[safety]
-soft_limits = { x = [10.0, 90.0], z = [1.0, 19.0] }
+[limits]
+x = [10, 90]
+z = [1.0, 19.0]
 max_step_um = 5.0
 
 [optics]
@@ -595,9 +593,9 @@ wavelength_nm = 1064.0
         assert_eq!(c.stage.baud, 57600);
         assert_eq!(c.gcs_options().axes, ["1", "2", "3"]);
         assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
-        assert_eq!(c.safety.soft_limits.x, Some([10.0, 90.0]));
-        assert_eq!(c.safety.soft_limits.y, None);
-        assert_eq!(c.safety.max_step_um, Some(5.0));
+        assert_eq!(c.limits.x, Some([10.0, 90.0])); // integers are fine
+        assert_eq!(c.limits.y, None);
+        assert_eq!(c.limits.max_step_um, Some(5.0));
         assert_eq!(c.other["optics"]["wavelength_nm"].as_float(), Some(1064.0));
         let again = Config::from_toml_str(&c.to_toml(), "t2").unwrap();
         assert_eq!(again, c);
@@ -622,12 +620,12 @@ wavelength_nm = 1064.0
         assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
         assert!(e.message.contains("gsc"), "{e}");
 
-        let e = error_of("[safety]\nsoft_limit = { x = [0.0, 1.0] }\n");
-        assert_eq!(e.key, "safety.soft_limit");
+        let e = error_of("[limits]\nx = [0.0, 1.0]\nmax_step = 2.0\n");
+        assert_eq!(e.key, "limits.max_step");
         assert_eq!(
             e.to_string(),
-            "bfpscope.toml: safety.soft_limit: unknown field `soft_limit`, expected one of `soft_limits`, \
-             `max_step_um`, `max_speed_um_s` (line 2)"
+            "bfpscope.toml: limits.max_step: unknown field `max_step`, expected one of `x`, `y`, `z`, \
+             `max_step_um` (line 3)"
         );
 
         let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
@@ -646,41 +644,45 @@ wavelength_nm = 1064.0
         );
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
-        let e = error_of("[safety]\nsoft_limits = { x = [5.0, 1.0] }\n");
-        assert_eq!(e.key, "safety.soft_limits.x");
-        assert_eq!(e.line, Some(2));
+        let e = error_of("[limits]\ny = [0.0, 1.0]\nx = [5.0, 1.0]\n");
+        assert_eq!(e.key, "limits.x");
+        assert_eq!(e.line, Some(3));
         let e = error_of("[stage]\naxes = { x = \"A\", y = \"A\", z = \"C\" }\n");
         assert_eq!(e.key, "stage.axes");
         let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
         assert_eq!(e.key, "qpd.calibration.gain");
-        let e = error_of("[safety]\nmax_step_um = -1.0\n");
-        assert_eq!(e.key, "safety.max_step_um");
+        let e = error_of("[limits]\nmax_step_um = -1.0\n");
+        assert_eq!(e.key, "limits.max_step_um");
+        let e = error_of("[stage]\nmax_speed_um_s = 0.0\n");
+        assert_eq!((e.key.as_str(), e.line), ("stage.max_speed_um_s", Some(2)));
     }
 
     #[test]
     fn soft_limits_intersect_travel() {
-        let soft = SoftLimits {
+        let soft = LimitsConfig {
             x: Some([-10.0, 50.0]),
             y: Some([20.0, 30.0]),
-            z: None,
+            ..Default::default()
         };
         let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
         assert_eq!(
             effective_limits(&soft, travel).unwrap(),
             [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]
         );
-        let soft = SoftLimits {
+        let soft = LimitsConfig {
             z: Some([25.0, 30.0]),
             ..Default::default()
         };
         let e = effective_limits(&soft, travel).unwrap_err();
-        assert_eq!(e.key, "safety.soft_limits.z");
+        assert_eq!(e.key, "limits.z");
         assert!(e.message.contains("[0, 20]"), "{e}");
-        assert!(
-            effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err()
-        );
         assert!(effective_limits(
-            &SoftLimits::default(),
+            &LimitsConfig::default(),
+            [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]
+        )
+        .is_err());
+        assert!(effective_limits(
+            &LimitsConfig::default(),
             [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
         )
         .is_err());
@@ -698,7 +700,7 @@ wavelength_nm = 1064.0
             (Backend::Gcs, Backend::Scpi)
         );
         assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
-        assert_eq!(c.safety.soft_limits.z, Some([1.0, 19.0]));
+        assert_eq!(c.limits.z, Some([1.0, 19.0]));
         // every key shown with its default really is the default
         let d = Config::default();
         assert_eq!(

@@ -56,6 +56,7 @@ pub fn gcs_error_text(code: i64) -> &'static str {
         25 => "Invalid floating point number",
         26 => "Parameter missing",
         27 => "Soft limit out of range",
+        -1024 => "Motion error: position error too large, servo is switched off automatically",
         _ => "see the controller manual's error list",
     }
 }

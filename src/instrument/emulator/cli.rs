@@ -2,8 +2,8 @@
 //! a config snippet, serve until Ctrl-C (or end of input on a terminal).
 
 use super::{
-    shared_position, sim_signal_source, standin_bead, start_qpd_emulator, start_stage_emulator, Emulator,
-    QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
+    shared_position, sim_signal_source, standin_bead, start_qpd_emulator, start_stage_emulator,
+    Emulator, QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
 };
 use crate::instrument::sim::{Renderer, SimConfig};
 use std::io::{IsTerminal, Write};
@@ -28,7 +28,11 @@ fn stop_on_ctrlc_or_eof() -> Arc<AtomicBool> {
         let stop = stop.clone();
         std::thread::spawn(move || {
             let mut sink = String::new();
-            while std::io::stdin().read_line(&mut sink).map(|n| n > 0).unwrap_or(false) {
+            while std::io::stdin()
+                .read_line(&mut sink)
+                .map(|n| n > 0)
+                .unwrap_or(false)
+            {
                 sink.clear();
             }
             stop.store(true, Ordering::SeqCst);
@@ -49,9 +53,16 @@ pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
 /// As [`run_emulator_cli`], with the simulator's signal: the QPD answers with the ideal signal
 /// of `renderer`'s scene (plus the emulator's detector noise) at the emulated stage position;
 /// the stage has the simulator's travel range and move time.
-pub fn run_emulator_cli_sim(kind: &str, renderer: Arc<Renderer>, sim: &SimConfig) -> anyhow::Result<()> {
+pub fn run_emulator_cli_sim(
+    kind: &str,
+    renderer: Arc<Renderer>,
+    sim: &SimConfig,
+) -> anyhow::Result<()> {
     let stop = stop_on_ctrlc_or_eof();
-    let qpd = QpdEmulatorConfig { sample_rate_hz: sim.sample_rate, ..QpdEmulatorConfig::default() };
+    let qpd = QpdEmulatorConfig {
+        sample_rate_hz: sim.sample_rate,
+        ..QpdEmulatorConfig::default()
+    };
     serve_emulators(
         kind,
         StageEmulatorConfig::like_sim(sim),
@@ -71,7 +82,10 @@ pub fn run_emulator_cli_with(
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<()> {
-    let stage = StageEmulatorConfig { start: [45.0, 45.0, 10.0], ..StageEmulatorConfig::default() };
+    let stage = StageEmulatorConfig {
+        start: [45.0, 45.0, 10.0],
+        ..StageEmulatorConfig::default()
+    };
     serve_emulators(kind, stage, QpdEmulatorConfig::default(), source, out, stop)
 }
 
@@ -112,14 +126,23 @@ pub fn serve_emulators(
             emus.push(start_stage_emulator(stage_cfg, pos.clone())?);
             emus.push(start_qpd_emulator(qpd_cfg, pos, source)?);
         }
-        other => anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)"),
+        other => {
+            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)")
+        }
     }
     for e in &emus {
-        let what = if e.kind() == "stage" { &stage_desc } else { &qpd_desc };
+        let what = if e.kind() == "stage" {
+            &stage_desc
+        } else {
+            &qpd_desc
+        };
         writeln!(out, "{}: {what} on {}", e.kind(), e.path())?;
     }
     if kind == "qpd" {
-        writeln!(out, "(the QPD alone sees a stage parked at {start:?} µm; use `both` to scan)")?;
+        writeln!(
+            out,
+            "(the QPD alone sees a stage parked at {start:?} µm; use `both` to scan)"
+        )?;
     }
     writeln!(out, "\n# bfpscope.toml for these emulators:")?;
     for e in &emus {

@@ -54,7 +54,9 @@ pub fn standin_bead(p: Pos) -> [f64; 3] {
 /// the stage position, evaluated like a one-pixel `render_grid_ideal`. The emulator adds its own
 /// detector noise (`QpdEmulatorConfig::noise_v`); instrument effects of the scene (drift,
 /// pointing noise, …) are not applied.
-pub fn sim_signal_source(renderer: std::sync::Arc<crate::instrument::sim::Renderer>) -> impl SignalSource {
+pub fn sim_signal_source(
+    renderer: std::sync::Arc<crate::instrument::sim::Renderer>,
+) -> impl SignalSource {
     move |p: Pos| {
         let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
         [g[0][0], g[1][0], g[2][0]]
@@ -72,7 +74,12 @@ pub struct Faults {
     /// Reject the next command (other than the error query itself) with this error code: the
     /// command is not executed, a query gets no reply, and the error query returns the code.
     pub error_next: Option<i64>,
-    /// Serve this many more commands, then close the port (unplugged cable, power loss).
+    /// `Some((n, code))`: serve n more commands normally, then reject the next command (other
+    /// than the error query) with `code`, as `error_next` does. Deterministic mid-sequence
+    /// errors (the 3rd `MOV` of a scan, …).
+    pub error_after: Option<(usize, i64)>,
+    /// Serve this many more commands, then close the port (unplugged cable, power loss). The
+    /// last reply is sent 50 ms before the line goes dead; commands sent meanwhile are lost.
     pub unplug_after: Option<usize>,
     /// Stage: time to settle on a new target in s, overriding the configured settle time
     /// (slow settling).
@@ -88,6 +95,7 @@ impl Default for Faults {
             silent: false,
             garble_replies: 0,
             error_next: None,
+            error_after: None,
             unplug_after: None,
             settle_s: None,
             reject_out_of_range: true,
@@ -263,6 +271,9 @@ impl<D: Device> Serve<D> {
                     continue;
                 }
                 if !self.serve_line(&line) {
+                    // Let the last reply reach the client before the line goes dead (a
+                    // pseudo-terminal that hangs up with data pending loses that data).
+                    std::thread::sleep(Duration::from_millis(50));
                     break 'serve;
                 }
             }
@@ -286,7 +297,16 @@ impl<D: Device> Serve<D> {
         self.device.tick();
         let (silent, inject, garble_it) = {
             let mut f = lock(&self.faults);
-            let inject = if f.error_next.is_some() && !self.device.is_error_query(line) {
+            let is_err_query = self.device.is_error_query(line);
+            if let Some((0, code)) = f.error_after {
+                if !is_err_query {
+                    f.error_after = None;
+                    f.error_next = Some(code);
+                }
+            } else if let Some((n, code)) = f.error_after {
+                f.error_after = Some((n - 1, code));
+            }
+            let inject = if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
             } else {
                 None

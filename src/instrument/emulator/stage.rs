@@ -55,7 +55,11 @@ impl Default for StageEmulatorConfig {
 impl StageEmulatorConfig {
     /// A stage like the simulator's: same travel range and move time, parked at the origin.
     pub fn like_sim(sim: &crate::instrument::sim::SimConfig) -> Self {
-        Self { travel: sim.travel, settle_s: sim.move_time_s, ..Self::default() }
+        Self {
+            travel: sim.travel,
+            settle_s: sim.move_time_s,
+            ..Self::default()
+        }
     }
 }
 
