@@ -18,7 +18,7 @@ fn workbench(tag: &str) -> Workbench {
     let _ = std::fs::remove_dir_all(&dir);
     let (s, _) = Settings::captured(dir);
     let mut w = Workbench::new(s);
-    w.eval_line("connect(#{backend: \"mock\"});").unwrap();
+    let _ = w.eval_line("connect(#{backend: \"mock\"});").unwrap();
     w
 }
 
@@ -27,11 +27,11 @@ fn binding_call(c: &mut Criterion) {
     let script = format!("let t = 0.0; for i in 0..{CALLS} {{ t = clock(); }} t");
     // one measured run for the headline number
     let t0 = Instant::now();
-    w.eval_line(&script).unwrap();
+    let _ = w.eval_line(&script).unwrap();
     let rate = CALLS as f64 / t0.elapsed().as_secs_f64();
     let empty = format!("let t = 0.0; for i in 0..{CALLS} {{ t = 1.0; }} t");
     let t0 = Instant::now();
-    w.eval_line(&empty).unwrap();
+    let _ = w.eval_line(&empty).unwrap();
     let loop_rate = CALLS as f64 / t0.elapsed().as_secs_f64();
     eprintln!("binding_call: {:.2} M calls/s of clock() through the registry (empty loop: {:.2} M iterations/s)", rate / 1e6, loop_rate / 1e6);
 

@@ -2,6 +2,7 @@
 //! `eval 'EXPR'`, `test [DIR]`, `docs`. Exit codes: 0 ok, 1 script error (or failed tests),
 //! 2 usage error.
 
+use bfpscope::script::ctx::{err_line, out_line};
 use bfpscope::script::{self, show, Settings, Workbench};
 use clap::{Parser, Subcommand};
 use rhai::Dynamic;
@@ -12,12 +13,16 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 #[derive(Parser)]
-#[command(name = "bfpscope", version, about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)")]
+#[command(
+    name = "bfpscope",
+    version,
+    about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)"
+)]
 struct Cli {
     /// Config file (default: ./bfpscope.toml if present)
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data)
+    /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data/YYYY-MM-DD)
     #[arg(long, global = true, value_name = "DIR")]
     data: Option<PathBuf>,
     #[command(subcommand)]
@@ -50,15 +55,21 @@ enum Cmd {
 }
 
 fn usage_error(msg: &str) -> ExitCode {
-    eprintln!("error: {msg}");
+    err_line(&format!("error: {msg}"));
     ExitCode::from(2)
 }
 
 /// `key=value` → (key, value as int, float, bool or string).
 fn parse_set(s: &str) -> Result<(String, Dynamic), String> {
-    let (k, v) = s.split_once('=').ok_or_else(|| format!("--set {s}: expected KEY=VALUE"))?;
+    let (k, v) = s
+        .split_once('=')
+        .ok_or_else(|| format!("--set {s}: expected KEY=VALUE"))?;
     let k = k.trim();
-    let valid = !k.is_empty() && k.chars().next().is_some_and(|c| c.is_alphabetic() || c == '_') && k.chars().all(|c| c.is_alphanumeric() || c == '_');
+    let valid = !k.is_empty()
+        && k.chars()
+            .next()
+            .is_some_and(|c| c.is_alphabetic() || c == '_')
+        && k.chars().all(|c| c.is_alphanumeric() || c == '_');
     if !valid {
         return Err(format!("--set {s}: `{k}` is not a valid variable name"));
     }
@@ -90,6 +101,32 @@ fn install_ctrlc(flag: Arc<AtomicBool>) {
     });
 }
 
+/// Connect what the config names (no config: the simulated instrument with an empty scene;
+/// `simulate(scene)` puts objects in front of it). A device that cannot be opened is an
+/// error naming it (exit 1).
+fn connect_default(
+    wb: &Workbench,
+    cfg: &bfpscope::instrument::config::Config,
+) -> Result<(), ExitCode> {
+    use bfpscope::instrument::sim::{scene::Scene, SimConfig, SimCore};
+    let optics = wb.ctx.optics.lock().map(|o| o.clone()).unwrap_or_default();
+    let make_sim = |c: &bfpscope::instrument::config::Config| {
+        let core = SimCore::new(&optics, &Scene::default(), SimConfig::default())
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(core.instrument(c.stage.settle_s))
+    };
+    match bfpscope::instrument::connect::connect(cfg, make_sim) {
+        Ok(c) => {
+            wb.ctx.connect(c.instrument, None);
+            Ok(())
+        }
+        Err(e) => {
+            err_line(&format!("error: connect: {e}"));
+            Err(ExitCode::from(1))
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(c) => c,
@@ -99,13 +136,25 @@ fn main() -> ExitCode {
             return ExitCode::from(code);
         }
     };
-    let mut settings = Settings { progress: std::io::stderr().is_terminal(), ..Settings::default() };
-    let config_path = cli.config.clone().or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
+    let mut settings = Settings {
+        progress: std::io::stderr().is_terminal(),
+        ..Settings::default()
+    };
+    let mut inst_config: Option<bfpscope::instrument::config::Config> = None;
+    let config_path = cli
+        .config
+        .clone()
+        .or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
     if let Some(p) = config_path {
         let text = match std::fs::read_to_string(&p) {
             Ok(t) => t,
             Err(e) => return usage_error(&format!("--config {}: {e}", p.display())),
         };
+        // the instrument config validates [stage], [qpd] and [safety] (unknown keys are errors)
+        match bfpscope::instrument::config::Config::from_toml_str(&text, &p.display().to_string()) {
+            Ok(c) => inst_config = Some(c),
+            Err(e) => return usage_error(&e.to_string()),
+        }
         let v: toml::Value = match toml::from_str(&text) {
             Ok(v) => v,
             Err(e) => return usage_error(&format!("{}: {e}", p.display())),
@@ -116,12 +165,22 @@ fn main() -> ExitCode {
     }
     if let Some(d) = &cli.data {
         settings.data_dir = d.clone();
+    } else if settings.data_dir == PathBuf::from(bfpscope::data::session::DEFAULT_ROOT) {
+        // no --data, no [session] data_dir: today's folder, ./bfpscope_data/YYYY-MM-DD/
+        settings.data_dir = bfpscope::data::session::Session::default_dir(
+            std::path::Path::new(bfpscope::data::session::DEFAULT_ROOT),
+            std::time::SystemTime::now(),
+        );
     }
     install_ctrlc(settings.abort.clone());
+    let inst_config = inst_config.unwrap_or_default();
 
     match cli.cmd.unwrap_or(Cmd::Repl) {
         Cmd::Repl => {
             let wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             ExitCode::from(bfpscope::repl::run(wb, bfpscope::repl::default_history()) as u8)
         }
         Cmd::Run { file, set } => {
@@ -129,6 +188,9 @@ fn main() -> ExitCode {
                 return usage_error(&format!("run: {}: no such script file", file.display()));
             }
             let mut wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             for s in &set {
                 match parse_set(s) {
                     Ok((k, v)) => wb.set_var(&k, v),
@@ -138,22 +200,25 @@ fn main() -> ExitCode {
             match wb.run_file(&file) {
                 Ok(_) => ExitCode::SUCCESS,
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    err_line(&format!("error: {e}"));
                     ExitCode::from(1)
                 }
             }
         }
         Cmd::Eval { expr } => {
             let mut wb = Workbench::new(settings);
+            if let Err(code) = connect_default(&wb, &inst_config) {
+                return code;
+            }
             match wb.eval_source("eval", &expr) {
                 Ok(v) => {
                     if !v.is_unit() {
-                        println!("{}", show(&v));
+                        out_line(&show(&v));
                     }
                     ExitCode::SUCCESS
                 }
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    err_line(&format!("error: {e}"));
                     ExitCode::from(1)
                 }
             }

@@ -4,6 +4,7 @@
 //! running script or scan, Ctrl-D exits. Works with piped stdin too (one entry per complete
 //! statement), which is how the tests drive it.
 
+use crate::script::ctx::{err_line, out_line};
 use crate::script::registry::Kind;
 use crate::script::{show, Doc, Workbench};
 use rhai::{Engine, ParseErrorType};
@@ -28,9 +29,7 @@ pub fn is_incomplete(parser: &Engine, text: &str) -> bool {
         Ok(_) => false,
         Err(e) => match e.err_type() {
             ParseErrorType::UnexpectedEOF => true,
-            ParseErrorType::MissingToken(..) => {
-                at_end(text, e.position())
-            }
+            ParseErrorType::MissingToken(..) => at_end(text, e.position()),
             _ => false,
         },
     }
@@ -60,37 +59,67 @@ pub struct ReplHelper {
 
 impl ReplHelper {
     pub fn new(docs: Arc<Vec<Doc>>) -> Self {
-        Self { docs, user: Arc::default(), parser: Engine::new_raw() }
+        Self {
+            docs,
+            user: Arc::default(),
+            parser: Engine::new_raw(),
+        }
     }
 
     /// Candidates for the word ending at `pos`: `(start, [(display, replacement)])`.
     pub fn candidates(&self, line: &str, pos: usize) -> (usize, Vec<(String, String)>) {
         let before = &line[..pos];
-        let start = before.rfind(|c: char| !(c.is_alphanumeric() || c == '_')).map_or(0, |i| i + before[i..].chars().next().map_or(1, |c| c.len_utf8()));
+        let start = before
+            .rfind(|c: char| !(c.is_alphanumeric() || c == '_'))
+            .map_or(0, |i| {
+                i + before[i..].chars().next().map_or(1, |c| c.len_utf8())
+            });
         let word = &before[start..];
         let prev = before[..start].chars().last();
         let mut out: Vec<(String, String)> = vec![];
         if prev == Some('.') {
             for d in self.docs.iter() {
-                let (is_m, is_p) = (matches!(d.kind, Kind::Method { .. }), matches!(d.kind, Kind::Property { .. }));
+                let (is_m, is_p) = (
+                    matches!(d.kind, Kind::Method { .. }),
+                    matches!(d.kind, Kind::Property { .. }),
+                );
                 if (is_m || is_p) && d.name.starts_with(word) {
-                    let rep = if is_m { format!("{}(", d.name) } else { d.name.clone() };
+                    let rep = if is_m {
+                        format!("{}(", d.name)
+                    } else {
+                        d.name.clone()
+                    };
                     out.push((format!("{}  ({})", d.signature(), d.family), rep));
                 }
             }
         } else if let Some(b) = self.open_map_call(before) {
-            if let Some(d) = self.docs.iter().find(|d| d.name == b && matches!(d.kind, Kind::Function)) {
+            if let Some(d) = self
+                .docs
+                .iter()
+                .find(|d| d.name == b && matches!(d.kind, Kind::Function))
+            {
                 for p in &d.params {
                     for k in &p.keys {
                         if k.name.starts_with(word) {
-                            let unit = if k.unit.is_empty() { String::new() } else { format!(" [{}]", k.unit) };
-                            out.push((format!("{}: {}{unit}", k.name, k.ty), format!("{}: ", k.name)));
+                            let unit = if k.unit.is_empty() {
+                                String::new()
+                            } else {
+                                format!(" [{}]", k.unit)
+                            };
+                            out.push((
+                                format!("{}: {}{unit}", k.name, k.ty),
+                                format!("{}: ", k.name),
+                            ));
                         }
                     }
                 }
             }
         } else {
-            for d in self.docs.iter().filter(|d| matches!(d.kind, Kind::Function)) {
+            for d in self
+                .docs
+                .iter()
+                .filter(|d| matches!(d.kind, Kind::Function))
+            {
                 if d.name.starts_with(word) {
                     out.push((d.name.clone(), format!("{}(", d.name)));
                 }
@@ -122,7 +151,14 @@ impl ReplHelper {
                     } else if i > 0 && bytes[i - 1] == b'#' {
                         let head = before[..i - 1].trim_end();
                         let head = head.strip_suffix('(')?.trim_end();
-                        let name: String = head.chars().rev().take_while(|c| c.is_alphanumeric() || *c == '_').collect::<Vec<_>>().into_iter().rev().collect();
+                        let name: String = head
+                            .chars()
+                            .rev()
+                            .take_while(|c| c.is_alphanumeric() || *c == '_')
+                            .collect::<Vec<_>>()
+                            .into_iter()
+                            .rev()
+                            .collect();
                         return (!name.is_empty()).then_some(name);
                     } else {
                         return None;
@@ -137,8 +173,18 @@ impl ReplHelper {
     /// Hint shown after `name(`: the rest of the signature and the summary.
     pub fn hint_for(&self, line: &str) -> Option<String> {
         let head = line.strip_suffix('(')?;
-        let name: String = head.chars().rev().take_while(|c| c.is_alphanumeric() || *c == '_').collect::<Vec<_>>().into_iter().rev().collect();
-        let d = self.docs.iter().find(|d| d.name == name && matches!(d.kind, Kind::Function))?;
+        let name: String = head
+            .chars()
+            .rev()
+            .take_while(|c| c.is_alphanumeric() || *c == '_')
+            .collect::<Vec<_>>()
+            .into_iter()
+            .rev()
+            .collect();
+        let d = self
+            .docs
+            .iter()
+            .find(|d| d.name == name && matches!(d.kind, Kind::Function))?;
         let sig = d.signature();
         let rest = sig.strip_prefix(&format!("{name}("))?;
         Some(format!("{rest}  — {}", d.summary))
@@ -147,9 +193,22 @@ impl ReplHelper {
 
 impl Completer for ReplHelper {
     type Candidate = Pair;
-    fn complete(&self, line: &str, pos: usize, _: &Context<'_>) -> rustyline::Result<(usize, Vec<Pair>)> {
+    fn complete(
+        &self,
+        line: &str,
+        pos: usize,
+        _: &Context<'_>,
+    ) -> rustyline::Result<(usize, Vec<Pair>)> {
         let (start, c) = self.candidates(line, pos);
-        Ok((start, c.into_iter().map(|(display, replacement)| Pair { display, replacement }).collect()))
+        Ok((
+            start,
+            c.into_iter()
+                .map(|(display, replacement)| Pair {
+                    display,
+                    replacement,
+                })
+                .collect(),
+        ))
     }
 }
 
@@ -162,7 +221,11 @@ impl Hinter for ReplHelper {
 
 impl Validator for ReplHelper {
     fn validate(&self, ctx: &mut ValidationContext) -> rustyline::Result<ValidationResult> {
-        Ok(if is_incomplete(&self.parser, ctx.input()) { ValidationResult::Incomplete } else { ValidationResult::Valid(None) })
+        Ok(if is_incomplete(&self.parser, ctx.input()) {
+            ValidationResult::Incomplete
+        } else {
+            ValidationResult::Valid(None)
+        })
     }
 }
 
@@ -246,11 +309,11 @@ fn evaluate(wb: &mut Workbench, entry: &str) {
     match wb.eval_line(entry) {
         Ok(v) => {
             if !v.is_unit() {
-                println!("{}", show(&v));
+                out_line(&show(&v));
             }
         }
-        Err(e) if e.interrupted => eprintln!("interrupted (Ctrl-C); the prompt is still here"),
-        Err(e) => eprintln!("error: {e}"),
+        Err(e) if e.interrupted => err_line("interrupted (Ctrl-C); the prompt is still here"),
+        Err(e) => err_line(&format!("error: {e}")),
     }
 }
 
@@ -284,6 +347,9 @@ mod tests {
         let line = "let m = s.sx.ab";
         let (_, c) = h.candidates(line, line.len());
         assert!(c.iter().any(|c| c.1 == "abs_max("), "{c:?}");
-        assert_eq!(h.hint_for("mv(").unwrap().split("  —").next().unwrap(), "#{x, y, z})");
+        assert_eq!(
+            h.hint_for("mv(").unwrap().split("  —").next().unwrap(),
+            "#{x, y, z})"
+        );
     }
 }

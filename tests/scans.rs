@@ -24,9 +24,18 @@ struct Harness {
 
 impl Harness {
     fn new(tag: &str) -> Self {
-        Self { limits: SoftLimits::default(), abort: Arc::default(), store: SessionStore::new(tmp(tag)), log: Arc::default() }
+        Self {
+            limits: SoftLimits::default(),
+            abort: Arc::default(),
+            store: SessionStore::new(tmp(tag)),
+            log: Arc::default(),
+        }
     }
-    fn run(&self, inst: &mut bfpscope::instrument::Instrument, plan: &Plan) -> Result<bfpscope::acquire::ScanRun, ScanError> {
+    fn run(
+        &self,
+        inst: &mut bfpscope::instrument::Instrument,
+        plan: &Plan,
+    ) -> Result<bfpscope::acquire::ScanRun, ScanError> {
         let log = self.log.clone();
         let logf = move |s: &str| log.lock().unwrap().push(s.to_string());
         let store = self.store.clone();
@@ -44,7 +53,13 @@ impl Harness {
 }
 
 fn line(kind: &str, axis: Axis, from: f64, to: f64, n: i64, rel: bool) -> Plan {
-    Plan::line(kind, Sweep::new(kind, axis, from, to, n, "n").unwrap(), 0.001, rel).unwrap()
+    Plan::line(
+        kind,
+        Sweep::new(kind, axis, from, to, n, "n").unwrap(),
+        0.001,
+        rel,
+    )
+    .unwrap()
 }
 
 fn grid(nx: i64, ny: i64, rel: bool, snake: bool) -> Plan {
@@ -77,11 +92,17 @@ fn out_of_limit_plan_is_refused_before_any_move() {
 #[test]
 fn config_soft_limits_narrow_the_travel_range() {
     let mut h = Harness::new("config-limits");
-    h.limits = SoftLimits::from_toml(&toml::from_str("[limits]\nz = [-2.0, 2.0]").unwrap()).unwrap();
+    h.limits = SoftLimits::from_toml(
+        &toml::from_str("[safety]\nsoft_limits = { z = [-2.0, 2.0] }").unwrap(),
+    )
+    .unwrap();
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let plan = line("dscan", Axis::Z, -3.0, 3.0, 61, true);
     let e = h.run(&mut inst, &plan).unwrap_err().to_string();
-    assert!(e.contains("point 1 of 61: z = -3 µm is below the soft limit z ≥ -2 µm"), "{e}");
+    assert!(
+        e.contains("point 1 of 61: z = -3 µm is below the soft limit z ≥ -2 µm"),
+        "{e}"
+    );
     assert!(mock.moves().is_empty());
 }
 
@@ -91,14 +112,20 @@ fn step_size_rule_refuses_coarse_plans() {
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let plan = line("ascan", Axis::Y, -40.0, 40.0, 5, false);
     let e = h.run(&mut inst, &plan).unwrap_err().to_string();
-    assert!(e.contains("step along y = 20 µm exceeds max_step_um = 10 µm"), "{e}");
+    assert!(
+        e.contains("step along y = 20 µm exceeds max_step_um = 10 µm"),
+        "{e}"
+    );
     assert!(mock.moves().is_empty());
 }
 
 #[test]
 fn relative_scan_returns_to_start_after_completion() {
     let h = Harness::new("rel-complete");
-    let (mut inst, mock) = mock_instrument(MockConfig { start: [1.0, 2.0, 0.5], ..MockConfig::default() });
+    let (mut inst, mock) = mock_instrument(MockConfig {
+        start: [1.0, 2.0, 0.5],
+        ..MockConfig::default()
+    });
     let run = h.run(&mut inst, &grid(5, 4, true, false)).unwrap();
     assert_eq!(run.ended, Ended::Complete);
     assert!(run.returned_to_start);
@@ -108,7 +135,11 @@ fn relative_scan_returns_to_start_after_completion() {
     assert_eq!(run.scan.sx.x[0], 0.5);
     assert_eq!(run.scan.sx.y[3], 2.5);
     assert!(run.scan.sx.data.iter().all(|v| v.is_finite()));
-    assert!(h.log.lock().unwrap().iter().any(|l| l.contains("ETA")), "ETA printed: {:?}", h.log.lock().unwrap());
+    assert!(
+        h.log.lock().unwrap().iter().any(|l| l.contains("ETA")),
+        "ETA printed: {:?}",
+        h.log.lock().unwrap()
+    );
 }
 
 #[test]
@@ -123,7 +154,10 @@ fn relative_scan_returns_to_start_after_ctrl_c_and_keeps_partial_data() {
     assert_eq!(run.ended, Ended::Aborted { measured: 7 });
     assert!(run.returned_to_start);
     assert_eq!(mock.position(), [3.0, -1.0, 0.0]);
-    assert!(!h.abort.load(Ordering::SeqCst), "the engine clears the flag it acted on");
+    assert!(
+        !h.abort.load(Ordering::SeqCst),
+        "the engine clears the flag it acted on"
+    );
     assert_eq!(run.scan.status, ScanStatus::Aborted);
     let finite = run.scan.sx.data.iter().filter(|v| v.is_finite()).count();
     assert_eq!(finite, 7);
@@ -135,17 +169,35 @@ fn relative_scan_returns_to_start_after_ctrl_c_and_keeps_partial_data() {
     assert_eq!(saved.meta["points_measured"], 7);
     assert_eq!(saved.sx.data.iter().filter(|v| v.is_nan()).count(), 9);
     let msg = run.summary().unwrap_err();
-    assert!(msg.contains("aborted (Ctrl-C) after 7 of 16 points; returned to start"), "{msg}");
+    assert!(
+        msg.contains("aborted (Ctrl-C) after 7 of 16 points; returned to start"),
+        "{msg}"
+    );
 }
 
 #[test]
 fn relative_scan_returns_to_start_after_a_qpd_error() {
     let h = Harness::new("qpd-error");
-    let (mut inst, mock) = mock_instrument(MockConfig { start: [0.0, 0.0, 1.0], fail_read_after: Some(5), ..MockConfig::default() });
-    let run = h.run(&mut inst, &line("dscan", Axis::Z, -0.5, 0.5, 11, true)).unwrap();
+    let (mut inst, mock) = mock_instrument(MockConfig {
+        start: [0.0, 0.0, 1.0],
+        fail_read_after: Some(5),
+        ..MockConfig::default()
+    });
+    let run = h
+        .run(&mut inst, &line("dscan", Axis::Z, -0.5, 0.5, 11, true))
+        .unwrap();
     match &run.ended {
-        Ended::Failed { measured: 5, stage_fault: false, error } => {
-            assert!(error.to_string().contains("mock QPD: no reply to `MEAS:QPD?`"), "{error}")
+        Ended::Failed {
+            measured: 5,
+            stage_fault: false,
+            error,
+        } => {
+            assert!(
+                error
+                    .to_string()
+                    .contains("mock QPD: no reply to `MEAS:QPD?`"),
+                "{error}"
+            )
         }
         other => panic!("{other:?}"),
     }
@@ -153,26 +205,56 @@ fn relative_scan_returns_to_start_after_a_qpd_error() {
     assert_eq!(mock.position(), [0.0, 0.0, 1.0]);
     let saved = load_scan(run.saved.as_ref().unwrap()).unwrap();
     assert_eq!(saved.status, ScanStatus::Failed);
-    assert!(saved.meta["error"]["message"].as_str().unwrap().contains("no reply"));
+    assert!(saved.meta["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("no reply"));
     let msg = run.summary().unwrap_err();
-    assert!(msg.contains("failed after 5 of 11 points: mock QPD: no reply"), "{msg}");
+    assert!(
+        msg.contains("failed after 5 of 11 points: mock QPD: no reply"),
+        "{msg}"
+    );
 }
 
 #[test]
 fn stage_error_stops_commanding_the_stage_and_saves_the_partial_scan() {
     let h = Harness::new("stage-error");
-    let (mut inst, mock) = mock_instrument(MockConfig { fail_move_after: Some(6), ..MockConfig::default() });
+    let (mut inst, mock) = mock_instrument(MockConfig {
+        fail_move_after: Some(6),
+        ..MockConfig::default()
+    });
     let run = h.run(&mut inst, &grid(4, 3, true, false)).unwrap();
-    assert!(matches!(run.ended, Ended::Failed { measured: 6, stage_fault: true, .. }), "{:?}", run.ended);
+    assert!(
+        matches!(
+            run.ended,
+            Ended::Failed {
+                measured: 6,
+                stage_fault: true,
+                ..
+            }
+        ),
+        "{:?}",
+        run.ended
+    );
     assert!(!run.returned_to_start);
     let cmds = mock.commands();
-    assert!(cmds.last().unwrap().starts_with("move"), "commands after the failed move: {cmds:?}");
-    assert_eq!(mock.moves().len(), 7, "6 good moves + the failed one, nothing after");
+    assert!(
+        cmds.last().unwrap().starts_with("move"),
+        "commands after the failed move: {cmds:?}"
+    );
+    assert_eq!(
+        mock.moves().len(),
+        7,
+        "6 good moves + the failed one, nothing after"
+    );
     let saved = load_scan(run.saved.as_ref().unwrap()).unwrap();
     assert_eq!(saved.status, ScanStatus::Failed);
     assert_eq!(saved.sx.data.iter().filter(|v| v.is_finite()).count(), 6);
     let msg = run.summary().unwrap_err();
-    assert!(msg.contains("mock stage: disconnected during `MOV"), "{msg}");
+    assert!(
+        msg.contains("mock stage: disconnected during `MOV"),
+        "{msg}"
+    );
     assert!(msg.contains("the stage was not commanded further"), "{msg}");
 }
 
@@ -194,20 +276,32 @@ fn snake_scan_stores_pixels_in_image_order() {
 fn autosave_numbering_never_overwrites() {
     let dir = tmp("numbering");
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("scan_0003.json"), "precious").unwrap();
+    std::fs::write(dir.join("scan_0003.npz"), "precious").unwrap();
     std::fs::write(dir.join("notes.txt"), "x").unwrap();
     let store = SessionStore::new(&dir);
     let h = Harness::new("numbering-src");
     let (mut inst, _) = mock_instrument(MockConfig::default());
-    let scan = h.run(&mut inst, &line("ascan", Axis::X, 0.0, 1.0, 3, false)).unwrap().scan;
-    assert_eq!(store.next_scan_path(), dir.join("scan_0004.json"));
+    let scan = h
+        .run(&mut inst, &line("ascan", Axis::X, 0.0, 1.0, 3, false))
+        .unwrap()
+        .scan;
+    assert_eq!(store.next_scan_path(), dir.join("scan_0004.npz"));
     let p = store.autosave(&scan).unwrap();
-    assert_eq!(p, dir.join("scan_0004.json"));
-    assert_eq!(std::fs::read_to_string(dir.join("scan_0003.json")).unwrap(), "precious");
+    assert_eq!(p, dir.join("scan_0004.npz"));
+    assert_eq!(
+        std::fs::read_to_string(dir.join("scan_0003.npz")).unwrap(),
+        "precious"
+    );
     // concurrent writers: every scan gets its own file
     let paths: Vec<PathBuf> = std::thread::scope(|s| {
         let hs: Vec<_> = (0..4)
-            .map(|_| s.spawn(|| (0..10).map(|_| store.autosave(&scan).unwrap()).collect::<Vec<_>>()))
+            .map(|_| {
+                s.spawn(|| {
+                    (0..10)
+                        .map(|_| store.autosave(&scan).unwrap())
+                        .collect::<Vec<_>>()
+                })
+            })
             .collect();
         hs.into_iter().flat_map(|h| h.join().unwrap()).collect()
     });
@@ -216,16 +310,26 @@ fn autosave_numbering_never_overwrites() {
     uniq.dedup();
     assert_eq!(uniq.len(), 40);
     assert_eq!(store.last_number(), 44);
-    // no temporary files left behind
-    let tmp_left = std::fs::read_dir(&dir).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with(".scan_tmp")).count();
+    // no temporary files left behind: only the scans and notes.txt
+    let tmp_left = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .filter(|n| n != "notes.txt" && bfpscope::data::session::scan_number(n).is_none())
+        .count();
     assert_eq!(tmp_left, 0);
-    assert!(bfpscope::acquire::store::save_scan(&dir.join("scan_0004.json"), &scan).is_err(), "save_scan must refuse to overwrite");
+    assert!(
+        bfpscope::acquire::store::save_scan(&dir.join("scan_0004.npz"), &scan).is_err(),
+        "save_scan must refuse to overwrite"
+    );
 }
 
 #[test]
 fn metadata_records_plan_instrument_time_and_status() {
     let h = Harness::new("meta");
-    let (mut inst, _) = mock_instrument(MockConfig { settle_s: 0.002, ..MockConfig::default() });
+    let (mut inst, _) = mock_instrument(MockConfig {
+        settle_s: 0.002,
+        ..MockConfig::default()
+    });
     let run = h.run(&mut inst, &grid(8, 8, false, false)).unwrap();
     let m = &run.scan.meta;
     assert_eq!(m["plan"]["kind"], "scan_xy");
@@ -238,5 +342,8 @@ fn metadata_records_plan_instrument_time_and_status() {
     assert!((t - 64.0 * 0.003).abs() < 1e-9, "{t}");
     assert_eq!(m["time"]["clock"], "virtual");
     assert!(m["time"]["wall_start"].as_str().unwrap().ends_with('Z'));
-    assert!((m["time"]["eta_s"].as_f64().unwrap() - t).abs() < 1e-9, "ETA = actual time on the virtual clock");
+    assert!(
+        (m["time"]["eta_s"].as_f64().unwrap() - t).abs() < 1e-9,
+        "ETA = actual time on the virtual clock"
+    );
 }

@@ -18,14 +18,24 @@ fn every_binding_example_runs_and_gives_its_expected_result() {
     let docs = all_docs();
     let (n, failures) = bfpscope::script::testing::check_examples(&docs);
     assert!(n >= 60, "only {n} examples");
-    assert!(failures.is_empty(), "{} of {n} examples failed:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {n} examples failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]
 fn every_binding_has_a_summary_and_an_example() {
     for d in all_docs().iter() {
         assert!(!d.summary.is_empty(), "{} has no summary", d.name);
-        assert!(!d.examples.is_empty(), "{} ({}) has no example", d.name, d.family);
+        assert!(
+            !d.examples.is_empty(),
+            "{} ({}) has no example",
+            d.name,
+            d.family
+        );
     }
 }
 
@@ -34,7 +44,10 @@ fn api_reference_is_up_to_date() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/api.md");
     let want = api_markdown(&all_docs());
     let have = std::fs::read_to_string(&path).unwrap_or_default();
-    assert!(have == want, "docs/api.md is stale: run `cargo run -- docs` and commit it");
+    assert!(
+        have == want,
+        "docs/api.md is stale: run `cargo run -- docs` and commit it"
+    );
 }
 
 #[test]
@@ -42,19 +55,34 @@ fn help_lists_every_binding_by_family_with_units() {
     let docs = all_docs();
     let text = help_index(&docs);
     for d in docs.iter() {
-        assert!(text.contains(&d.signature()), "help() misses {}", d.signature());
+        assert!(
+            text.contains(&d.signature()),
+            "help() misses {}",
+            d.signature()
+        );
     }
-    let line = text.lines().find(|l| l.trim_start().starts_with("scan_xy(")).unwrap();
-    assert!(line.contains("x, y, z: µm") && line.contains("dwell: s"), "{line}");
-    assert!(text.contains("\nmotion\n") && text.contains("\nscans\n"), "{text}");
+    let line = docs
+        .iter()
+        .find(|d| d.name == "scan_xy")
+        .unwrap()
+        .one_line();
+    assert!(text.contains(&line), "{text}");
+    assert!(
+        line.contains("x, y, z: µm") && line.contains("dwell: s"),
+        "{line}"
+    );
+    assert!(
+        text.contains("\nmotion\n") && text.contains("\nscans\n"),
+        "{text}"
+    );
 
     let (mut w, buf) = wb("help");
-    w.eval_line("help(\"mv\")").unwrap();
+    let _ = w.eval_line("help(\"mv\")").unwrap();
     let out = buf.lock().unwrap().clone();
     assert!(out.contains("mv(#{x, y, z})"), "{out}");
     assert!(out.contains("[µm]"), "{out}");
     assert!(out.contains("examples:"), "{out}");
-    w.eval_line("help(\"img.max\")").unwrap();
+    let _ = w.eval_line("help(\"img.max\")").unwrap();
     assert!(buf.lock().unwrap().contains("img.max()"));
     let e = w.eval_line("help(\"scan_xyz\")").unwrap_err();
     assert!(e.message.contains("did you mean scan_xy"), "{e}");
@@ -64,9 +92,21 @@ fn help_lists_every_binding_by_family_with_units() {
 fn methods_and_properties_are_declared_with_their_type() {
     let docs = all_docs();
     let has = |ty: &str, name: &str| {
-        docs.iter().any(|d| d.name == name && matches!(&d.kind, Kind::Method { ty: t } | Kind::Property { ty: t } if t == ty))
+        docs.iter().any(|d| {
+            d.name == name
+                && matches!(&d.kind, Kind::Method { ty: t } | Kind::Property { ty: t } if t == ty)
+        })
     };
-    for (ty, name) in [("Scan", "sx"), ("Scan", "meta"), ("Scan", "status"), ("Image", "rows"), ("Image", "abs_max"), ("Image", "row"), ("Profile", "max"), ("Profile", "t")] {
+    for (ty, name) in [
+        ("Scan", "sx"),
+        ("Scan", "meta"),
+        ("Scan", "status"),
+        ("Image", "rows"),
+        ("Image", "abs_max"),
+        ("Image", "row"),
+        ("Profile", "max"),
+        ("Profile", "t"),
+    ] {
         assert!(has(ty, name), "{ty}.{name} not declared");
     }
 }
@@ -74,16 +114,16 @@ fn methods_and_properties_are_declared_with_their_type() {
 #[test]
 fn repl_lines_keep_functions_and_variables() {
     let (mut w, _) = wb("repl");
-    w.eval_line("fn sq(x) { x * x }").unwrap();
+    let _ = w.eval_line("fn sq(x) { x * x }").unwrap();
     assert_eq!(w.eval_line("sq(7)").unwrap().as_int().unwrap(), 49);
-    w.eval_line("let a = 5;").unwrap();
+    let _ = w.eval_line("let a = 5;").unwrap();
     assert_eq!(w.eval_line("a + sq(2)").unwrap().as_int().unwrap(), 9);
     // an error does not lose earlier definitions
     assert!(w.eval_line("sq(").is_err());
     assert!(w.eval_line("nope()").is_err());
     assert_eq!(w.eval_line("sq(a)").unwrap().as_int().unwrap(), 25);
     // redefinition wins
-    w.eval_line("fn sq(x) { x * x * 2 }").unwrap();
+    let _ = w.eval_line("fn sq(x) { x * x * 2 }").unwrap();
     assert_eq!(w.eval_line("sq(3)").unwrap().as_int().unwrap(), 18);
     assert!(w.user_names().contains(&"a".to_string()));
 }
@@ -91,17 +131,33 @@ fn repl_lines_keep_functions_and_variables() {
 #[test]
 fn errors_are_one_line_with_position() {
     let (mut w, _) = wb("errors");
-    let e = w.eval_source("t.rhai", "let a = 1;\nlet b = qpd(0);").unwrap_err();
+    let e = w
+        .eval_source("t.rhai", "let a = 1;\nlet b = qpd(10);")
+        .unwrap_err();
     assert_eq!(e.to_string().lines().count(), 1);
-    assert_eq!((e.source.as_str(), e.line, e.column), ("t.rhai", Some(2), Some(9)), "{e}");
+    assert_eq!(
+        (e.source.as_str(), e.line, e.column),
+        ("t.rhai", Some(2), Some(9)),
+        "{e}"
+    );
     assert!(e.message.contains("no instrument connected"), "{e}");
-    let e = w.eval_source("t.rhai", "fn f(x) {\n  x + undefined_var\n}\nf(1)").unwrap_err();
+    let e = w
+        .eval_source("t.rhai", "fn f(x) {\n  x + undefined_var\n}\nf(1)")
+        .unwrap_err();
     assert_eq!(e.line, Some(2), "{e}");
-    assert!(e.message.contains("undefined_var") && e.message.contains("(in f)"), "{e}");
+    assert!(
+        e.message.contains("undefined_var") && e.message.contains("(in f)"),
+        "{e}"
+    );
     let e = w.eval_source("t.rhai", "let x = ;").unwrap_err();
     assert!(e.message.starts_with("syntax error"), "{e}");
     let e = w.eval_line("scan_xy").unwrap_err();
-    assert!(e.message.contains("scan_xy is a function; usage: scan_xy(#{x, y, nx, ny, z, dwell, rel, snake})"), "{e}");
+    assert!(
+        e.message.contains(
+            "scan_xy is a function; usage: scan_xy(#{x, y, nx, ny, z, dwell, rel, snake})"
+        ),
+        "{e}"
+    );
 }
 
 #[test]
@@ -112,14 +168,23 @@ fn runaway_loop_is_stopped_with_a_clear_message() {
     let mut w = Workbench::new(s);
     let t0 = Instant::now();
     let e = w.eval_line("let i = 0; loop { i += 1; }").unwrap_err();
-    assert!(e.message.contains("too many operations (runaway loop?)"), "{e}");
+    assert!(
+        e.message.contains("too many operations (runaway loop?)"),
+        "{e}"
+    );
     assert!(t0.elapsed() < Duration::from_secs(5));
     let e = w.eval_line("fn r(n) { r(n + 1) } r(0)").unwrap_err();
-    assert!(e.message.contains("nested too deeply") || e.message.contains("too many operations"), "{e}");
+    assert!(
+        e.message.contains("nested too deeply") || e.message.contains("too many operations"),
+        "{e}"
+    );
     // the session survives
     assert_eq!(w.eval_line("1 + 1").unwrap().as_int().unwrap(), 2);
     let e = w.eval_line("let s = \"x\"; loop { s += s; }").unwrap_err();
-    assert!(e.message.contains("too large") || e.message.contains("too many operations"), "{e}");
+    assert!(
+        e.message.contains("too large") || e.message.contains("too many operations"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -136,7 +201,10 @@ fn ctrl_c_interrupts_pure_computation_and_the_session_survives() {
     assert!(e.interrupted, "{e}");
     assert!(e.message.contains("interrupted (Ctrl-C)"), "{e}");
     assert!(t0.elapsed() < Duration::from_secs(5));
-    assert!(!w.ctx.settings.abort.load(Ordering::SeqCst), "flag cleared after the interruption");
+    assert!(
+        !w.ctx.settings.abort.load(Ordering::SeqCst),
+        "flag cleared after the interruption"
+    );
     assert_eq!(w.eval_line("40 + 2").unwrap().as_int().unwrap(), 42);
 }
 
@@ -156,12 +224,21 @@ fn ctrl_c_is_not_swallowed_by_assert_err() {
 #[test]
 fn values_print_readably() {
     let (mut w, buf) = wb("print");
-    w.eval_line("connect(#{backend: \"mock\"})").unwrap();
-    w.eval_line("let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.2, 0.2], nx: 11, ny: 5}); print(s); print(s.sx); print(s.sx.row(2));").unwrap();
+    let _ = w.eval_line("connect(#{backend: \"mock\"})").unwrap();
+    let _ = w.eval_line("let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.2, 0.2], nx: 11, ny: 5}); print(s); print(s.sx); print(s.sx.row(2));").unwrap();
     let out = buf.lock().unwrap().clone();
-    assert!(out.contains("Scan scan_xy 5×11 (y: -0.2 … 0.2 µm, x: -0.5 … 0.5 µm), status complete"), "{out}");
-    assert!(out.contains("Image 5×11 (rows × cols; y: -0.2 … 0.2 µm, x: -0.5 … 0.5 µm) min"), "{out}");
-    assert!(out.contains("Profile of 11 points (x: -0.5 … 0.5 µm)"), "{out}");
+    assert!(
+        out.contains("Scan scan_xy 5×11 (y: -0.2 … 0.2 µm, x: -0.5 … 0.5 µm), status complete"),
+        "{out}"
+    );
+    assert!(
+        out.contains("Image 5×11 (rows × cols; y: -0.2 … 0.2 µm, x: -0.5 … 0.5 µm) min"),
+        "{out}"
+    );
+    assert!(
+        out.contains("Profile of 11 points (x: -0.5 … 0.5 µm)"),
+        "{out}"
+    );
     let v = w.eval_line("s.sx").unwrap();
     assert!(bfpscope::script::show(&v).starts_with("Image 5×11"));
     let v = w.eval_line("#{a: [1, 2.5], b: \"t\"}").unwrap();
@@ -180,12 +257,18 @@ fn scans_record_the_script_path_and_hash() {
     let mut w = Workbench::new(s);
     let meta = w.run_file(&script).unwrap();
     let json = bfpscope::script::types::dynamic_to_json(&meta);
-    assert_eq!(json["script"]["sha256"], bfpscope::script::ctx::sha256_hex(text.as_bytes()));
-    assert!(json["script"]["path"].as_str().unwrap().ends_with("prov.rhai"));
+    assert_eq!(
+        json["script"]["sha256"],
+        bfpscope::script::ctx::sha256_hex(text.as_bytes())
+    );
+    assert!(json["script"]["path"]
+        .as_str()
+        .unwrap()
+        .ends_with("prov.rhai"));
     assert_eq!(json["optics"]["wavelength_nm"], 1064.0);
     assert_eq!(json["plan"]["kind"], "scan_line");
     assert!(json["program"].as_str().unwrap().starts_with("bfpscope "));
-    assert!(dir.join("data/scan_0001.json").exists());
+    assert!(dir.join("data/scan_0001.npz").exists());
 }
 
 #[test]
@@ -194,8 +277,16 @@ fn scripted_test_runner_counts_passes_and_failures() {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("a.rhai"), "fn test_ok() { assert(true, \"\") }\nfn test_bad() { assert_close(1.0, 1.5, 0.01) }\nfn helper() {}").unwrap();
-    std::fs::write(dir.join("b.rhai"), "let x = 1;\nassert(x == 1, \"whole file\");").unwrap();
-    std::fs::write(dir.join("c.rhai"), "print(\"shown on failure\");\nlet y = ;").unwrap();
+    std::fs::write(
+        dir.join("b.rhai"),
+        "let x = 1;\nassert(x == 1, \"whole file\");",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("c.rhai"),
+        "print(\"shown on failure\");\nlet y = ;",
+    )
+    .unwrap();
     std::fs::write(dir.join("notes.txt"), "not a test").unwrap();
     let mut out = Vec::new();
     let r = bfpscope::script::testing::run_dir(&dir, &Settings::default(), &mut out).unwrap();
@@ -204,7 +295,10 @@ fn scripted_test_runner_counts_passes_and_failures() {
     assert_eq!(text.lines().last().unwrap(), "2 passed, 2 failed", "{text}");
     assert!(text.contains("ok    a.rhai::test_ok"), "{text}");
     assert!(text.contains("FAIL  a.rhai::test_bad: "), "{text}");
-    assert!(text.contains("a.rhai:2:"), "position of the failure: {text}");
+    assert!(
+        text.contains("a.rhai:2:"),
+        "position of the failure: {text}"
+    );
     assert!(text.contains("differ by"), "{text}");
     assert!(text.contains("ok    b.rhai"), "{text}");
     assert!(text.contains("FAIL  c.rhai"), "{text}");

@@ -40,10 +40,16 @@ pub struct ScanEnv<'a> {
 pub enum Ended {
     Complete,
     /// Ctrl-C after `measured` points.
-    Aborted { measured: usize },
+    Aborted {
+        measured: usize,
+    },
     /// A device error after `measured` points. `stage_fault`: the stage itself failed and was
     /// not commanded again.
-    Failed { measured: usize, error: DeviceError, stage_fault: bool },
+    Failed {
+        measured: usize,
+        error: DeviceError,
+        stage_fault: bool,
+    },
 }
 
 /// A scan that ran (possibly partially): the data, where it was saved and how it ended.
@@ -68,13 +74,20 @@ impl ScanRun {
     /// The outcome as a script sees it: `Ok` for a complete scan (the autosave path, or a
     /// warning when the autosave failed), `Err` with the whole story otherwise.
     pub fn summary(&self) -> Result<String, String> {
-        let kind = self.scan.meta["plan"]["kind"].as_str().unwrap_or("scan").to_string();
+        let kind = self.scan.meta["plan"]["kind"]
+            .as_str()
+            .unwrap_or("scan")
+            .to_string();
         let saved = match &self.saved {
             Ok(p) => format!("saved to {}", p.display()),
             Err(e) => format!("AUTOSAVE FAILED: {e}"),
         };
         let total = self.scan.meta["points_total"].as_u64().unwrap_or(0);
-        let back = if self.returned_to_start { "; returned to start" } else { "" };
+        let back = if self.returned_to_start {
+            "; returned to start"
+        } else {
+            ""
+        };
         match &self.ended {
             Ended::Complete => Ok(saved),
             Ended::Aborted { measured } => Err(format!(
@@ -90,7 +103,10 @@ impl ScanRun {
 
 /// Wall-clock time as RFC 3339 UTC (`2026-11-21T16:05:00Z`).
 pub fn utc_now() -> String {
-    let s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let s = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
     let (days, rem) = ((s / 86400) as i64, s % 86400);
     // civil-from-days (H. Hinnant)
     let z = days + 719468;
@@ -102,7 +118,12 @@ pub fn utc_now() -> String {
     let d = doy - (153 * mp + 2) / 5 + 1;
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
     let y = yoe + era * 400 + (m <= 2) as i64;
-    format!("{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z", rem / 3600, rem % 3600 / 60, rem % 60)
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
 }
 
 /// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
@@ -113,16 +134,25 @@ pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
 /// Run `plan` on `inst`. See the module documentation for the rules.
 pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<ScanRun, ScanError> {
     let kind = plan.kind.clone();
-    let dev = |error| ScanError::Device { kind: kind.clone(), error };
+    let dev = |error| ScanError::Device {
+        kind: kind.clone(),
+        error,
+    };
     let start: Pos = inst.stage.position().map_err(dev)?;
     let travel = inst.stage.travel_range().map_err(dev)?;
     let limits = env.limits.within_travel(travel);
-    let points = limits.preflight(plan, start).map_err(|e| ScanError::Refused(e.0))?;
+    let points = limits
+        .preflight(plan, start)
+        .map_err(|e| ScanError::Refused(e.0))?;
 
     let rate = inst.qpd.sample_rate();
     let n_samples = samples_per_point(plan.dwell_s, rate);
     let eta = plan.eta_s(inst.settle_s, n_samples as f64 / rate);
-    let clock_kind = if inst.clock.is_virtual() { "simulated" } else { "real" };
+    let clock_kind = if inst.clock.is_virtual() {
+        "simulated"
+    } else {
+        "real"
+    };
     (env.log)(&format!(
         "{}: {} points, settle {} + dwell {} per point: ETA {} ({clock_kind} time)",
         plan.describe(),
@@ -161,7 +191,11 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             break;
         }
         if let Err(error) = inst.move_settle(p.target) {
-            ended = Ended::Failed { measured, error, stage_fault: true };
+            ended = Ended::Failed {
+                measured,
+                error,
+                stage_fault: true,
+            };
             break;
         }
         match inst.qpd.read(n_samples) {
@@ -173,14 +207,24 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                 bar.inc(1);
             }
             Err(error) => {
-                ended = Ended::Failed { measured, error, stage_fault: false };
+                ended = Ended::Failed {
+                    measured,
+                    error,
+                    stage_fault: false,
+                };
                 break;
             }
         }
     }
     bar.finish_and_clear();
 
-    let stage_fault = matches!(ended, Ended::Failed { stage_fault: true, .. });
+    let stage_fault = matches!(
+        ended,
+        Ended::Failed {
+            stage_fault: true,
+            ..
+        }
+    );
     let mut returned = false;
     let mut return_error = None;
     if plan.return_to_start && !stage_fault {
@@ -190,7 +234,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         }
     }
     if let Some(e) = &return_error {
-        (env.log)(&format!("{kind}: could NOT return to the start position: {e}"));
+        (env.log)(&format!(
+            "{kind}: could NOT return to the start position: {e}"
+        ));
     }
 
     let status = match ended {
@@ -224,7 +270,10 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             "eta_s": eta,
         },
     });
-    if let Ended::Failed { error, stage_fault, .. } = &ended {
+    if let Ended::Failed {
+        error, stage_fault, ..
+    } = &ended
+    {
         meta["error"] = json!({ "message": error.to_string(), "stage_fault": stage_fault });
     }
     if let Some(e) = return_error {
@@ -235,18 +284,39 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             m.insert(k.clone(), v.clone());
         }
     }
-    let scan = Scan { sx: mk(sx), sy: mk(sy), sz: mk(sz), status, meta };
+    let scan = Scan {
+        sx: mk(sx),
+        sy: mk(sy),
+        sz: mk(sz),
+        status,
+        meta,
+    };
     let saved = (env.save)(&scan);
     if let Err(e) = &saved {
-        (env.log)(&format!("WARNING: {kind}: autosave failed: {e}; save the scan by hand"));
+        (env.log)(&format!(
+            "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
+        ));
     }
-    Ok(ScanRun { scan, saved, ended, returned_to_start: returned })
+    Ok(ScanRun {
+        scan,
+        saved,
+        ended,
+        returned_to_start: returned,
+    })
 }
 
 /// Move to an absolute target after checking it against the soft limits (narrowed to the
 /// travel range). `who` names the binding for the message.
-pub fn checked_move(inst: &mut Instrument, limits: &SoftLimits, target: Pos, who: &str) -> Result<(), String> {
-    let travel = inst.stage.travel_range().map_err(|e| format!("{who}: {e}"))?;
+pub fn checked_move(
+    inst: &mut Instrument,
+    limits: &SoftLimits,
+    target: Pos,
+    who: &str,
+) -> Result<(), String> {
+    let travel = inst
+        .stage
+        .travel_range()
+        .map_err(|e| format!("{who}: {e}"))?;
     limits
         .within_travel(travel)
         .check(target)
@@ -261,6 +331,9 @@ mod tests {
     fn utc_now_is_rfc3339() {
         let s = utc_now();
         assert_eq!(s.len(), 20, "{s}");
-        assert!(s.starts_with("20") && s.ends_with('Z') && s.as_bytes()[10] == b'T', "{s}");
+        assert!(
+            s.starts_with("20") && s.ends_with('Z') && s.as_bytes()[10] == b'T',
+            "{s}"
+        );
     }
 }

@@ -4,10 +4,8 @@
 //! Config (`bfpscope.toml`):
 //!
 //! ```toml
-//! [limits]
-//! x = [-40.0, 40.0]      # µm
-//! y = [-40.0, 40.0]
-//! z = [-5.0, 5.0]
+//! [safety]
+//! soft_limits = { x = [-40.0, 40.0], y = [-40.0, 40.0], z = [-5.0, 5.0] }   # µm
 //! max_step_um = 10.0     # largest pixel pitch a scan may use (catches nm/µm mix-ups)
 //! ```
 //!
@@ -31,7 +29,10 @@ pub struct SoftLimits {
 impl Default for SoftLimits {
     /// No soft limits of their own: the stage's travel range applies.
     fn default() -> Self {
-        Self { range: [(f64::NEG_INFINITY, f64::INFINITY); 3], max_step_um: DEFAULT_MAX_STEP_UM }
+        Self {
+            range: [(f64::NEG_INFINITY, f64::INFINITY); 3],
+            max_step_um: DEFAULT_MAX_STEP_UM,
+        }
     }
 }
 
@@ -51,30 +52,54 @@ fn fmt_um(v: f64) -> String {
 }
 
 impl SoftLimits {
-    /// Read the `[limits]` table of a parsed config (absent table: defaults).
+    /// Read `[safety]` of a parsed config (`soft_limits = { x = [min, max], ... }`,
+    /// `max_step_um`); absent: defaults. The instrument config (`instrument::config`) shares
+    /// this section and validates the rest of it.
     pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
         let mut l = SoftLimits::default();
-        let Some(t) = config.get("limits") else { return Ok(l) };
-        let t = t.as_table().ok_or("config: [limits] must be a table")?;
+        let Some(t) = config.get("safety") else {
+            return Ok(l);
+        };
+        let t = t.as_table().ok_or("config: [safety] must be a table")?;
+        let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
         for (k, v) in t {
-            if let Some(a) = Axis::parse(k) {
-                let arr = v.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-                    format!("config: limits.{k} must be [min, max] in µm, got {v}")
-                })?;
-                let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
-                let (lo, hi) = match (num(&arr[0]), num(&arr[1])) {
-                    (Some(lo), Some(hi)) if lo.is_finite() && hi.is_finite() && lo < hi => (lo, hi),
-                    _ => return Err(format!("config: limits.{k} = {v} must be two finite numbers with min < max (µm)")),
-                };
-                l.range[a.index()] = (lo, hi);
-            } else if k == "max_step_um" {
-                let s = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
-                match s {
-                    Some(s) if s > 0.0 && s.is_finite() => l.max_step_um = s,
-                    _ => return Err(format!("config: limits.max_step_um = {v} must be a positive number (µm)")),
+            match k.as_str() {
+                "soft_limits" => {
+                    let st = v.as_table().ok_or_else(|| {
+                        format!("config: safety.soft_limits must be a table {{ x = [min, max], ... }} (µm), got {v}")
+                    })?;
+                    for (ak, av) in st {
+                        let a = Axis::parse(ak).ok_or_else(|| {
+                            format!("config: unknown axis safety.soft_limits.{ak} (allowed: x, y, z)")
+                        })?;
+                        let arr = av.as_array().filter(|a| a.len() == 2);
+                        let pair = arr.and_then(|a| Some((num(&a[0])?, num(&a[1])?)));
+                        match pair {
+                            Some((lo, hi)) if lo.is_finite() && hi.is_finite() && lo < hi => {
+                                l.range[a.index()] = (lo, hi)
+                            }
+                            _ => {
+                                return Err(format!(
+                                    "config: safety.soft_limits.{ak} = {av} must be [min, max], two finite numbers with min < max (µm)"
+                                ))
+                            }
+                        }
+                    }
                 }
-            } else {
-                return Err(format!("config: unknown key limits.{k} (allowed: x, y, z, max_step_um)"));
+                "max_step_um" => match num(v) {
+                    Some(s) if s > 0.0 && s.is_finite() => l.max_step_um = s,
+                    _ => {
+                        return Err(format!(
+                            "config: safety.max_step_um = {v} must be a positive number (µm)"
+                        ))
+                    }
+                },
+                "max_speed_um_s" => {} // the drivers' business
+                _ => {
+                    return Err(format!(
+                        "config: unknown key safety.{k} (allowed: soft_limits, max_step_um, max_speed_um_s)"
+                    ))
+                }
             }
         }
         Ok(l)
@@ -83,8 +108,8 @@ impl SoftLimits {
     /// These limits narrowed to the stage's travel range.
     pub fn within_travel(&self, travel: [(f64, f64); 3]) -> SoftLimits {
         let mut l = *self;
-        for i in 0..3 {
-            l.range[i] = (l.range[i].0.max(travel[i].0), l.range[i].1.min(travel[i].1));
+        for (r, t) in l.range.iter_mut().zip(travel) {
+            *r = (r.0.max(t.0), r.1.min(t.1));
         }
         l
     }
@@ -123,7 +148,7 @@ impl SoftLimits {
             if s.step() > self.max_step_um {
                 return Err(LimitError(format!(
                     "{who} refused before any move: step along {} = {} µm exceeds max_step_um = {} µm \
-                     (raise [limits] max_step_um in bfpscope.toml if this is intended)",
+                     (raise [safety] max_step_um in bfpscope.toml if this is intended)",
                     s.axis,
                     fmt_um(s.step()),
                     fmt_um(self.max_step_um)
@@ -132,11 +157,15 @@ impl SoftLimits {
         }
         let pts = plan.points(start);
         let n = pts.len();
-        self.check(plan.base(start))
-            .map_err(|e| LimitError(format!("{who} refused before any move: start of scan: {e}")))?;
+        self.check(plan.base(start)).map_err(|e| {
+            LimitError(format!("{who} refused before any move: start of scan: {e}"))
+        })?;
         for (i, p) in pts.iter().enumerate() {
             self.check(p.target).map_err(|e| {
-                LimitError(format!("{who} refused before any move: point {} of {n}: {e}", i + 1))
+                LimitError(format!(
+                    "{who} refused before any move: point {} of {n}: {e}",
+                    i + 1
+                ))
             })?;
         }
         Ok(pts)
@@ -162,25 +191,48 @@ mod tests {
 
     #[test]
     fn config_limits_parse_and_refuse_with_axis_value_and_limit() {
-        let cfg: toml::Value = toml::from_str("[limits]\nx = [-5, 5]\nz = [-1.0, 1.0]\nmax_step_um = 0.5").unwrap();
+        let cfg: toml::Value = toml::from_str(
+            "[safety]\nsoft_limits = { x = [-5, 5], z = [-1.0, 1.0] }\nmax_step_um = 0.5",
+        )
+        .unwrap();
         let l = SoftLimits::from_toml(&cfg).unwrap();
         assert_eq!(l.range[0], (-5.0, 5.0));
         assert_eq!(l.max_step_um, 0.5);
         let e = l.check([6.0, 0.0, 0.0]).unwrap_err();
         assert_eq!(e.0, "x = 6 µm is above the soft limit x ≤ 5 µm");
-        let plan = Plan::line("ascan", Sweep::new("ascan", Axis::Z, 0.0, 1.5, 4, "n").unwrap(), 0.0, false).unwrap();
+        let plan = Plan::line(
+            "ascan",
+            Sweep::new("ascan", Axis::Z, 0.0, 1.5, 4, "n").unwrap(),
+            0.0,
+            false,
+        )
+        .unwrap();
         let e = l.preflight(&plan, [0.0; 3]).unwrap_err();
-        assert!(e.0.contains("point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm"), "{e}");
-        let coarse = Plan::line("ascan", Sweep::new("ascan", Axis::X, 0.0, 4.0, 3, "n").unwrap(), 0.0, false).unwrap();
+        assert!(
+            e.0.contains("point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm"),
+            "{e}"
+        );
+        let coarse = Plan::line(
+            "ascan",
+            Sweep::new("ascan", Axis::X, 0.0, 4.0, 3, "n").unwrap(),
+            0.0,
+            false,
+        )
+        .unwrap();
         let e = l.preflight(&coarse, [0.0; 3]).unwrap_err();
-        assert!(e.0.contains("step along x = 2 µm exceeds max_step_um = 0.5 µm"), "{e}");
+        assert!(
+            e.0.contains("step along x = 2 µm exceeds max_step_um = 0.5 µm"),
+            "{e}"
+        );
     }
 
     #[test]
     fn bad_config_is_an_error_naming_the_key() {
-        let cfg: toml::Value = toml::from_str("[limits]\nx = [5, -5]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg).unwrap_err().contains("limits.x"));
-        let cfg: toml::Value = toml::from_str("[limits]\nw = [0, 1]").unwrap();
-        assert!(SoftLimits::from_toml(&cfg).unwrap_err().contains("unknown key limits.w"));
+        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { x = [5, -5] }").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert!(e.contains("safety.soft_limits.x"), "{e}");
+        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { w = [0, 1] }").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert!(e.contains("unknown axis safety.soft_limits.w"), "{e}");
     }
 }

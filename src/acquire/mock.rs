@@ -7,7 +7,9 @@
 //! sent, so tests can assert what was (not) commanded, and both devices can be told to fail
 //! or to raise the abort flag after a given number of operations.
 
-use crate::instrument::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use crate::instrument::{
+    Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock,
+};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -65,7 +67,10 @@ impl MockHandle {
     }
     /// Only the move commands.
     pub fn moves(&self) -> Vec<String> {
-        self.commands().into_iter().filter(|c| c.starts_with("move")).collect()
+        self.commands()
+            .into_iter()
+            .filter(|c| c.starts_with("move"))
+            .collect()
     }
     /// The true stage position.
     pub fn position(&self) -> Pos {
@@ -104,8 +109,8 @@ impl Stage for MockStage {
             self.broken = true;
             return Err(self.disconnected(&cmd));
         }
-        for i in 0..3 {
-            if !(t[i] >= self.travel[i].0 && t[i] <= self.travel[i].1) {
+        for (v, (lo, hi)) in t.iter().zip(self.travel) {
+            if !(*v >= lo && *v <= hi) {
                 return Err(DeviceError::Controller {
                     device: "mock stage".into(),
                     command: cmd,
@@ -157,7 +162,11 @@ impl Qpd for MockQpd {
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         self.h.push(format!("read {n}"));
         if self.fail_after.is_some_and(|k| self.reads >= k) {
-            return Err(DeviceError::Timeout { device: "mock QPD".into(), command: "MEAS:QPD?".into(), timeout_ms: 500 });
+            return Err(DeviceError::Timeout {
+                device: "mock QPD".into(),
+                command: "MEAS:QPD?".into(),
+                timeout_ms: 500,
+            });
         }
         self.clock.wait(n as f64 / self.rate);
         self.reads += 1;
@@ -167,15 +176,32 @@ impl Qpd for MockQpd {
             }
         }
         let (sx, sy, sz) = mock_signal(self.h.position());
-        Ok(QpdReading { sx, sy, sz, sx_std: 0.0, sy_std: 0.0, sz_std: 0.0, n })
+        Ok(QpdReading {
+            sx,
+            sy,
+            sz,
+            sx_std: 0.0,
+            sy_std: 0.0,
+            sz_std: 0.0,
+            n,
+        })
     }
 }
 
 /// Build a mock instrument on a fresh virtual clock, and the handle to inspect it.
 pub fn mock_instrument(cfg: MockConfig) -> (Instrument, MockHandle) {
-    let h = MockHandle { log: Arc::default(), pos: Arc::new(Mutex::new(cfg.start)) };
+    let h = MockHandle {
+        log: Arc::default(),
+        pos: Arc::new(Mutex::new(cfg.start)),
+    };
     let clock: Arc<dyn Clock> = Arc::new(VirtualClock::new());
-    let stage = MockStage { h: h.clone(), travel: cfg.travel, moves_ok: 0, fail_after: cfg.fail_move_after, broken: false };
+    let stage = MockStage {
+        h: h.clone(),
+        travel: cfg.travel,
+        moves_ok: 0,
+        fail_after: cfg.fail_move_after,
+        broken: false,
+    };
     let qpd = MockQpd {
         h: h.clone(),
         clock: clock.clone(),

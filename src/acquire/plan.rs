@@ -64,7 +64,14 @@ pub struct Sweep {
 impl Sweep {
     /// Validate: finite ends, `1 ≤ n ≤ 4096`. `who` is the binding name, `n_name` the name of
     /// the point-count argument as the user typed it (`nx`, `n`, ...).
-    pub fn new(who: &str, axis: Axis, from: f64, to: f64, n: i64, n_name: &str) -> Result<Sweep, PlanError> {
+    pub fn new(
+        who: &str,
+        axis: Axis,
+        from: f64,
+        to: f64,
+        n: i64,
+        n_name: &str,
+    ) -> Result<Sweep, PlanError> {
         for (name, v) in [("from", from), ("to", to)] {
             if !v.is_finite() {
                 return Err(PlanError(format!(
@@ -77,7 +84,12 @@ impl Sweep {
                 "{who}: {n_name} = {n} is out of range: 1 ≤ {n_name} ≤ {MAX_POINTS_PER_AXIS}"
             )));
         }
-        Ok(Sweep { axis, from, to, n: n as usize })
+        Ok(Sweep {
+            axis,
+            from,
+            to,
+            n: n as usize,
+        })
     }
     /// The positions (µm), `from` first.
     pub fn values(&self) -> Vec<f64> {
@@ -98,7 +110,9 @@ pub fn linspace(a: f64, b: f64, n: usize) -> Vec<f64> {
     match n {
         0 => vec![],
         1 => vec![a],
-        _ => (0..n).map(|i| a + (b - a) * i as f64 / (n - 1) as f64).collect(),
+        _ => (0..n)
+            .map(|i| a + (b - a) * i as f64 / (n - 1) as f64)
+            .collect(),
     }
 }
 
@@ -136,7 +150,9 @@ pub fn check_dwell(who: &str, dwell: f64) -> Result<f64, PlanError> {
     if dwell.is_finite() && (0.0..=MAX_DWELL_S).contains(&dwell) {
         Ok(dwell)
     } else {
-        Err(PlanError(format!("{who}: dwell = {dwell} is out of range: 0 ≤ dwell ≤ {MAX_DWELL_S} s")))
+        Err(PlanError(format!(
+            "{who}: dwell = {dwell} is out of range: 0 ≤ dwell ≤ {MAX_DWELL_S} s"
+        )))
     }
 }
 
@@ -166,14 +182,21 @@ impl Plan {
         snake: bool,
     ) -> Result<Plan, PlanError> {
         if fast.axis == slow.axis {
-            return Err(PlanError(format!("{kind}: both scan axes are {}: pick two different axes", fast.axis)));
+            return Err(PlanError(format!(
+                "{kind}: both scan axes are {}: pick two different axes",
+                fast.axis
+            )));
         }
         for (a, v) in &fixed {
             if *a == fast.axis || *a == slow.axis {
-                return Err(PlanError(format!("{kind}: {a} is both scanned and held fixed")));
+                return Err(PlanError(format!(
+                    "{kind}: {a} is both scanned and held fixed"
+                )));
             }
             if !v.is_finite() {
-                return Err(PlanError(format!("{kind}: {a} = {v} is not a finite position (µm)")));
+                return Err(PlanError(format!(
+                    "{kind}: {a} = {v} is not a finite position (µm)"
+                )));
             }
         }
         Ok(Plan {
@@ -209,7 +232,11 @@ impl Plan {
 
     /// Absolute column positions (µm).
     pub fn col_positions(&self, start: Pos) -> Vec<f64> {
-        let off = if self.rel { start[self.fast.axis.index()] } else { 0.0 };
+        let off = if self.rel {
+            start[self.fast.axis.index()]
+        } else {
+            0.0
+        };
         self.fast.values().into_iter().map(|v| v + off).collect()
     }
     /// Absolute row positions (µm); for a line scan, the position of the row axis (see
@@ -250,7 +277,11 @@ impl Plan {
                 if let (Some(s), Some(rows)) = (self.slow, rows.as_ref()) {
                     t[s.axis.index()] = rows[r];
                 }
-                out.push(Point { row: r, col: c, target: t });
+                out.push(Point {
+                    row: r,
+                    col: c,
+                    target: t,
+                });
             }
         }
         out
@@ -265,8 +296,20 @@ impl Plan {
     /// One-line description: `scan_xy 64×32 (x × y) snake rel, dwell 1 ms`.
     pub fn describe(&self) -> String {
         let mut s = match self.slow {
-            Some(sl) => format!("{} {}×{} ({} × {})", self.kind, self.cols(), self.rows(), self.fast.axis, sl.axis),
-            None => format!("{} {} points along {}", self.kind, self.cols(), self.fast.axis),
+            Some(sl) => format!(
+                "{} {}×{} ({} × {})",
+                self.kind,
+                self.cols(),
+                self.rows(),
+                self.fast.axis,
+                sl.axis
+            ),
+            None => format!(
+                "{} {} points along {}",
+                self.kind,
+                self.cols(),
+                self.fast.axis
+            ),
         };
         if self.snake {
             s.push_str(" snake");
@@ -322,7 +365,13 @@ mod tests {
 
     #[test]
     fn relative_plan_offsets_from_start() {
-        let p = Plan::line("dscan", Sweep::new("t", Axis::Y, -1.0, 1.0, 3, "n").unwrap(), 0.01, true).unwrap();
+        let p = Plan::line(
+            "dscan",
+            Sweep::new("t", Axis::Y, -1.0, 1.0, 3, "n").unwrap(),
+            0.01,
+            true,
+        )
+        .unwrap();
         let pts = p.points([1.0, 2.0, 3.0]);
         assert_eq!(pts[0].target, [1.0, 1.0, 3.0]);
         assert_eq!(pts[2].target, [1.0, 3.0, 3.0]);

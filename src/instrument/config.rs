@@ -13,15 +13,16 @@
 //! port = "/dev/ttyUSB1"
 //! calibration = { gain = [0.5, 0.5, 0.25], offset_v = [0.0, 0.0, 0.0] }
 //!
-//! [safety]
-//! soft_limits = { x = [10.0, 90.0], y = [10.0, 90.0], z = [2.0, 18.0] }
-//! max_step_um = 20.0
-//! max_speed_um_s = 500.0
+//! [limits]                     # the same table `acquire::SoftLimits::from_toml` reads
+//! x = [10.0, 90.0]              # µm
+//! y = [10.0, 90.0]
+//! z = [2.0, 18.0]
+//! max_step_um = 10.0
 //! ```
 //!
 //! With no file, everything is simulated. Other top-level sections (`[optics]`, …) belong to
 //! other parts of the workbench and are kept in [`Config::other`] untouched. Inside `[stage]`,
-//! `[qpd]` and `[safety]` an unknown key is an error (a typo in a safety setting must not be
+//! `[qpd]` and `[limits]` an unknown key is an error (a typo in a safety setting must not be
 //! ignored silently); errors name the key path (`stage.baud`) and the line.
 
 use super::gcs::GcsOptions;
@@ -82,7 +83,11 @@ pub struct AxisMap {
 
 impl Default for AxisMap {
     fn default() -> Self {
-        Self { x: "A".into(), y: "B".into(), z: "C".into() }
+        Self {
+            x: "A".into(),
+            y: "B".into(),
+            z: "C".into(),
+        }
     }
 }
 
@@ -107,6 +112,8 @@ pub struct StageConfig {
     pub units_per_um: f64,
     /// Extra settle time after each move, s (after on-target for hardware).
     pub settle_s: f64,
+    /// Highest stage speed, µm/s (enforced by `acquire/`; none: no limit).
+    pub max_speed_um_s: Option<f64>,
 }
 
 impl Default for StageConfig {
@@ -122,6 +129,7 @@ impl Default for StageConfig {
             servo_on_connect: true,
             units_per_um: 1.0,
             settle_s: 0.005,
+            max_speed_um_s: None,
         }
     }
 }
@@ -155,31 +163,24 @@ impl Default for QpdConfig {
     }
 }
 
-/// Soft limits per axis, `[min, max]` µm. A missing axis is limited by the controller's
-/// travel range only.
+/// `[limits]`: soft limits per axis, `[min, max]` µm (a missing axis is limited by the
+/// controller's travel range only) and the largest pixel pitch. The scan engine (`acquire/`)
+/// enforces them before anything is sent; `acquire::SoftLimits::from_toml` reads the same
+/// table.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct SoftLimits {
+pub struct LimitsConfig {
     pub x: Option<[f64; 2]>,
     pub y: Option<[f64; 2]>,
     pub z: Option<[f64; 2]>,
+    /// Largest pixel pitch a scan may use, µm (catches nm/µm mix-ups).
+    pub max_step_um: Option<f64>,
 }
 
-impl SoftLimits {
+impl LimitsConfig {
     pub fn get(&self, axis: usize) -> Option<[f64; 2]> {
         [self.x, self.y, self.z].get(axis).copied().flatten()
     }
-}
-
-/// `[safety]`: read by `acquire/`, which enforces every rule before anything is sent.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct SafetyConfig {
-    pub soft_limits: SoftLimits,
-    /// Largest single move, µm (larger moves are refused or split by `acquire/`).
-    pub max_step_um: Option<f64>,
-    /// Highest stage speed, µm/s.
-    pub max_speed_um_s: Option<f64>,
 }
 
 /// The limits in force for a connected instrument: soft limits ∩ controller travel range,
@@ -200,7 +201,7 @@ pub struct Config {
     #[serde(default)]
     pub qpd: QpdConfig,
     #[serde(default)]
-    pub safety: SafetyConfig,
+    pub limits: LimitsConfig,
     /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
     #[serde(flatten)]
     pub other: toml::Table,
@@ -210,7 +211,10 @@ const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 
 /// Soft limits ∩ the controller's travel range, per axis. An axis without soft limits gets
 /// the travel range. Errors when the two do not overlap or the travel range is nonsense.
-pub fn effective_limits(soft: &SoftLimits, travel: [(f64, f64); 3]) -> Result<[(f64, f64); 3], ConfigError> {
+pub fn effective_limits(
+    soft: &LimitsConfig,
+    travel: [(f64, f64); 3],
+) -> Result<[(f64, f64); 3], ConfigError> {
     let mut out = [(0.0, 0.0); 3];
     for i in 0..3 {
         let (tlo, thi) = travel[i];
@@ -219,7 +223,9 @@ pub fn effective_limits(soft: &SoftLimits, travel: [(f64, f64); 3]) -> Result<[(
                 origin: "controller".into(),
                 key: format!("travel range {}", AXIS_NAMES[i]),
                 line: None,
-                message: format!("controller reports travel [{tlo}, {thi}] µm, which is not a range"),
+                message: format!(
+                    "controller reports travel [{tlo}, {thi}] µm, which is not a range"
+                ),
             });
         }
         out[i] = match soft.get(i) {
@@ -229,7 +235,7 @@ pub fn effective_limits(soft: &SoftLimits, travel: [(f64, f64); 3]) -> Result<[(
                 if a >= b {
                     return Err(ConfigError {
                         origin: "bfpscope.toml".into(),
-                        key: format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        key: format!("limits.{}", AXIS_NAMES[i]),
                         line: None,
                         message: format!(
                             "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
@@ -286,12 +292,25 @@ fn table_header(line: &str) -> Option<String> {
     let first = inner.chars().next()?;
     let ok = !first.is_ascii_digit()
         && first != '-'
-        && inner.chars().all(|c| c.is_ascii_alphanumeric() || "_-.\" ".contains(c));
-    ok.then(|| inner.split('.').map(|s| s.trim().trim_matches('"')).collect::<Vec<_>>().join("."))
+        && inner
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-.\" ".contains(c));
+    ok.then(|| {
+        inner
+            .split('.')
+            .map(|s| s.trim().trim_matches('"'))
+            .collect::<Vec<_>>()
+            .join(".")
+    })
 }
 
 fn err(key: &str, message: impl Into<String>) -> ConfigError {
-    ConfigError { origin: String::new(), key: key.into(), line: None, message: message.into() }
+    ConfigError {
+        origin: String::new(),
+        key: key.into(),
+        line: None,
+        message: message.into(),
+    }
 }
 
 impl Config {
@@ -305,7 +324,12 @@ impl Config {
                 }
                 None => (String::new(), None),
             };
-            ConfigError { origin: origin.into(), key, line, message: e.message().trim().to_string() }
+            ConfigError {
+                origin: origin.into(),
+                key,
+                line,
+                message: e.message().trim().to_string(),
+            }
         })?;
         cfg.validate().map_err(|mut e| {
             e.origin = origin.into();
@@ -357,11 +381,21 @@ impl Config {
         let q = &self.qpd;
         match s.backend {
             Backend::Sim | Backend::Gcs => {}
-            Backend::Scpi => return Err(err("stage.backend", "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"")),
+            Backend::Scpi => {
+                return Err(err(
+                    "stage.backend",
+                    "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"",
+                ))
+            }
         }
         match q.backend {
             Backend::Sim | Backend::Scpi => {}
-            Backend::Gcs => return Err(err("qpd.backend", "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"")),
+            Backend::Gcs => {
+                return Err(err(
+                    "qpd.backend",
+                    "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"",
+                ))
+            }
         }
         if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
             return Err(err(
@@ -375,13 +409,22 @@ impl Config {
             ));
         }
         if s.backend == Backend::Gcs && s.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
-            return Err(err("stage.port", "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"));
+            return Err(err(
+                "stage.port",
+                "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")",
+            ));
         }
         if q.backend == Backend::Scpi && q.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
-            return Err(err("qpd.port", "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")"));
+            return Err(err(
+                "qpd.port",
+                "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")",
+            ));
         }
         if s.backend == Backend::Gcs && s.port == q.port {
-            return Err(err("qpd.port", "the stage and the QPD cannot share one serial port"));
+            return Err(err(
+                "qpd.port",
+                "the stage and the QPD cannot share one serial port",
+            ));
         }
         for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
             if v == 0 {
@@ -395,7 +438,10 @@ impl Config {
             ("qpd.timeout_ms", q.timeout_ms),
         ] {
             if v == 0 || v > 3_600_000 {
-                return Err(err(key, format!("{v} ms: must be between 1 ms and one hour")));
+                return Err(err(
+                    key,
+                    format!("{v} ms: must be between 1 ms and one hour"),
+                ));
             }
         }
         let axes = [&s.axes.x, &s.axes.y, &s.axes.z];
@@ -408,7 +454,10 @@ impl Config {
             }
         }
         if axes[0] == axes[1] || axes[0] == axes[2] || axes[1] == axes[2] {
-            return Err(err("stage.axes", "x, y and z must be different controller axes"));
+            return Err(err(
+                "stage.axes",
+                "x, y and z must be different controller axes",
+            ));
         }
         if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
             return Err(err("stage.units_per_um", "must be a positive number"));
@@ -419,23 +468,29 @@ impl Config {
         for i in 0..3 {
             let g = q.calibration.gain[i];
             if !(g.is_finite() && g != 0.0) {
-                return Err(err("qpd.calibration.gain", format!("channel {i}: {g} must be finite and nonzero")));
+                return Err(err(
+                    "qpd.calibration.gain",
+                    format!("channel {i}: {g} must be finite and nonzero"),
+                ));
             }
             if !q.calibration.offset_v[i].is_finite() {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
-        for i in 0..3 {
-            if let Some([lo, hi]) = self.safety.soft_limits.get(i) {
+        for (i, name) in AXIS_NAMES.iter().enumerate() {
+            if let Some([lo, hi]) = self.limits.get(i) {
                 if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                     return Err(err(
-                        &format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                        &format!("limits.{name}"),
                         format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
                     ));
                 }
             }
         }
-        for (key, v) in [("safety.max_step_um", self.safety.max_step_um), ("safety.max_speed_um_s", self.safety.max_speed_um_s)] {
+        for (key, v) in [
+            ("limits.max_step_um", self.limits.max_step_um),
+            ("stage.max_speed_um_s", self.stage.max_speed_um_s),
+        ] {
             if let Some(v) = v {
                 if !(v.is_finite() && v > 0.0) {
                     return Err(err(key, format!("{v}: must be a positive number")));
@@ -468,18 +523,35 @@ impl Config {
     }
 }
 
-/// Line of the first occurrence of the last component of `key` (for validation errors).
+/// Line where `key` (a dotted path) is set, for validation errors: a `k = …` line whose
+/// table path plus `k` is `key` or a prefix of it (inline tables such as `axes = { x = … }`).
 fn find_key_line(text: &str, key: &str) -> Option<usize> {
-    let last = key.rsplit('.').next()?;
-    if last.is_empty() {
+    if key.is_empty() {
         return None;
     }
-    text.lines().position(|l| {
-        let t = l.trim_start();
-        t.strip_prefix(last).is_some_and(|r| r.trim_start().starts_with('=')) || t.contains(&format!(" {last} ="))
-            || t.contains(&format!("{{{last} ="))
-    })
-    .map(|i| i + 1)
+    let mut table = String::new();
+    for (n, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if let Some(h) = table_header(t) {
+            table = h;
+            continue;
+        }
+        if t.starts_with('#') {
+            continue;
+        }
+        if let Some((k, _)) = t.split_once('=') {
+            let k = k.trim().trim_matches('"');
+            let path = if table.is_empty() {
+                k.to_string()
+            } else {
+                format!("{table}.{k}")
+            };
+            if key == path || key.starts_with(&format!("{path}.")) {
+                return Some(n + 1);
+            }
+        }
+    }
+    None
 }
 
 #[cfg(test)]
@@ -508,8 +580,9 @@ backend = "scpi"
 port = "/dev/ttyUSB1"
 calibration = { gain = [2.0, 2.0, 0.5], offset_v = [0.1, 0.0, 0.0] }
 
-[safety]
-soft_limits = { x = [10.0, 90.0], z = [1.0, 19.0] }
+[limits]
+x = [10, 90]
+z = [1.0, 19.0]
 max_step_um = 5.0
 
 [optics]
@@ -520,9 +593,9 @@ wavelength_nm = 1064.0
         assert_eq!(c.stage.baud, 57600);
         assert_eq!(c.gcs_options().axes, ["1", "2", "3"]);
         assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
-        assert_eq!(c.safety.soft_limits.x, Some([10.0, 90.0]));
-        assert_eq!(c.safety.soft_limits.y, None);
-        assert_eq!(c.safety.max_step_um, Some(5.0));
+        assert_eq!(c.limits.x, Some([10.0, 90.0])); // integers are fine
+        assert_eq!(c.limits.y, None);
+        assert_eq!(c.limits.max_step_um, Some(5.0));
         assert_eq!(c.other["optics"]["wavelength_nm"].as_float(), Some(1064.0));
         let again = Config::from_toml_str(&c.to_toml(), "t2").unwrap();
         assert_eq!(again, c);
@@ -538,15 +611,22 @@ wavelength_nm = 1064.0
         assert_eq!(e.key, "stage.baud");
         assert_eq!(e.line, Some(4));
         assert!(e.message.contains("invalid type"), "{e}");
-        assert!(e.to_string().starts_with("bfpscope.toml: stage.baud: "), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.baud: invalid type: string \"fast\", expected u32 (line 4)"
+        );
 
         let e = error_of("[stage]\nbackend = \"gsc\"\n");
         assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
         assert!(e.message.contains("gsc"), "{e}");
 
-        let e = error_of("[safety]\nsoft_limit = { x = [0.0, 1.0] }\n");
-        assert_eq!(e.key, "safety.soft_limit");
-        assert!(e.message.contains("unknown field"), "{e}");
+        let e = error_of("[limits]\nx = [0.0, 1.0]\nmax_step = 2.0\n");
+        assert_eq!(e.key, "limits.max_step");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: limits.max_step: unknown field `max_step`, expected one of `x`, `y`, `z`, \
+             `max_step_um` (line 3)"
+        );
 
         let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
         assert_eq!(e.key, "qpd.calibration.gain");
@@ -554,32 +634,96 @@ wavelength_nm = 1064.0
 
     #[test]
     fn validation_errors_name_the_key_path() {
-        let e = error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
+        let e =
+            error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
         assert_eq!(e.key, "stage.port");
+        assert_eq!(e.line, None, "must not point at qpd.port");
+        assert_eq!(
+            e.to_string(),
+            "bfpscope.toml: stage.port: required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"
+        );
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
-        let e = error_of("[safety]\nsoft_limits = { x = [5.0, 1.0] }\n");
-        assert_eq!(e.key, "safety.soft_limits.x");
-        assert_eq!(e.line, Some(2));
+        let e = error_of("[limits]\ny = [0.0, 1.0]\nx = [5.0, 1.0]\n");
+        assert_eq!(e.key, "limits.x");
+        assert_eq!(e.line, Some(3));
         let e = error_of("[stage]\naxes = { x = \"A\", y = \"A\", z = \"C\" }\n");
         assert_eq!(e.key, "stage.axes");
         let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
         assert_eq!(e.key, "qpd.calibration.gain");
-        let e = error_of("[safety]\nmax_step_um = -1.0\n");
-        assert_eq!(e.key, "safety.max_step_um");
+        let e = error_of("[limits]\nmax_step_um = -1.0\n");
+        assert_eq!(e.key, "limits.max_step_um");
+        let e = error_of("[stage]\nmax_speed_um_s = 0.0\n");
+        assert_eq!((e.key.as_str(), e.line), ("stage.max_speed_um_s", Some(2)));
     }
 
     #[test]
     fn soft_limits_intersect_travel() {
-        let soft = SoftLimits { x: Some([-10.0, 50.0]), y: Some([20.0, 30.0]), z: None };
+        let soft = LimitsConfig {
+            x: Some([-10.0, 50.0]),
+            y: Some([20.0, 30.0]),
+            ..Default::default()
+        };
         let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
-        assert_eq!(effective_limits(&soft, travel).unwrap(), [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]);
-        let soft = SoftLimits { z: Some([25.0, 30.0]), ..Default::default() };
+        assert_eq!(
+            effective_limits(&soft, travel).unwrap(),
+            [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]
+        );
+        let soft = LimitsConfig {
+            z: Some([25.0, 30.0]),
+            ..Default::default()
+        };
         let e = effective_limits(&soft, travel).unwrap_err();
-        assert_eq!(e.key, "safety.soft_limits.z");
+        assert_eq!(e.key, "limits.z");
         assert!(e.message.contains("[0, 20]"), "{e}");
-        assert!(effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err());
-        assert!(effective_limits(&SoftLimits::default(), [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]).is_err());
+        assert!(effective_limits(
+            &LimitsConfig::default(),
+            [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]
+        )
+        .is_err());
+        assert!(effective_limits(
+            &LimitsConfig::default(),
+            [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn example_file_parses() {
+        let c = Config::from_toml_str(
+            include_str!("../../bfpscope.example.toml"),
+            "bfpscope.example.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            (c.stage.backend, c.qpd.backend),
+            (Backend::Gcs, Backend::Scpi)
+        );
+        assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
+        assert_eq!(c.limits.z, Some([1.0, 19.0]));
+        // every key shown with its default really is the default
+        let d = Config::default();
+        assert_eq!(
+            (
+                c.stage.baud,
+                c.stage.timeout_ms,
+                c.stage.on_target_timeout_ms,
+                c.stage.poll_ms,
+                c.stage.settle_s
+            ),
+            (
+                d.stage.baud,
+                d.stage.timeout_ms,
+                d.stage.on_target_timeout_ms,
+                d.stage.poll_ms,
+                d.stage.settle_s
+            )
+        );
+        assert_eq!(
+            (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
+            (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
+        );
+        assert!(c.other.is_empty());
     }
 
     #[test]

@@ -35,7 +35,7 @@ pub enum ConnectError {
 /// - `gcs` + `scpi`: open both ports, identify both devices (`*IDN?`), switch the servos on,
 ///   read the travel range (`TMN?`/`TMX?`) and the sample rate. The clock is the wall clock.
 ///
-/// In both cases the stage's travel range is intersected with `[safety] soft_limits`. A
+/// In both cases the stage's travel range is intersected with the `[limits]` soft limits. A
 /// failure names the device and what it said; a half-opened pair is closed again.
 pub fn connect(
     cfg: &Config,
@@ -52,12 +52,18 @@ pub fn connect(
         _ => connect_hardware(cfg)?,
     };
     let travel = instrument.stage.travel_range()?;
-    let axes = effective_limits(&cfg.safety.soft_limits, travel)?;
-    let limits =
-        SafetyLimits { axes, max_step_um: cfg.safety.max_step_um, max_speed_um_s: cfg.safety.max_speed_um_s };
+    let axes = effective_limits(&cfg.limits, travel)?;
+    let limits = SafetyLimits {
+        axes,
+        max_step_um: cfg.limits.max_step_um,
+        max_speed_um_s: cfg.stage.max_speed_um_s,
+    };
     if let serde_json::Value::Object(m) = &mut instrument.description {
         m.insert("travel_um".into(), json!(travel));
-        m.insert("limits".into(), serde_json::to_value(&limits).unwrap_or_default());
+        m.insert(
+            "limits".into(),
+            serde_json::to_value(&limits).unwrap_or_default(),
+        );
     }
     Ok(Connected { instrument, limits })
 }

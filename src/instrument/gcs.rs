@@ -56,6 +56,7 @@ pub fn gcs_error_text(code: i64) -> &'static str {
         25 => "Invalid floating point number",
         26 => "Parameter missing",
         27 => "Soft limit out of range",
+        -1024 => "Motion error: position error too large, servo is switched off automatically",
         _ => "see the controller manual's error list",
     }
 }
@@ -111,14 +112,27 @@ impl GcsStage {
 
     /// Connect over any transport: identify (`*IDN?`), clear a pending error (`ERR?`), and
     /// switch the servos on if configured. `port` only labels messages.
-    pub fn connect(io: Box<dyn Transport>, port: &str, opts: GcsOptions) -> Result<Self, DeviceError> {
+    pub fn connect(
+        io: Box<dyn Transport>,
+        port: &str,
+        opts: GcsOptions,
+    ) -> Result<Self, DeviceError> {
         let link = LineLink::new(io, format!("GCS stage on {port}"), opts.timeout);
-        let mut s = Self { link, opts, idn: String::new() };
+        let mut s = Self {
+            link,
+            opts,
+            idn: String::new(),
+        };
         s.check_axes()?;
         let idn = s.query_lines("*IDN?")?.join(" ");
         s.idn = idn.trim().to_string();
         // Name the device by its model: "(c)… Physik Instrumente (PI) GmbH & Co. KG, E-727, serial, fw".
-        let model = s.idn.split(',').nth(1).map(str::trim).filter(|m| !m.is_empty());
+        let model = s
+            .idn
+            .split(',')
+            .nth(1)
+            .map(str::trim)
+            .filter(|m| !m.is_empty());
         let label = match model {
             Some(m) => format!("PI {m} on {port}"),
             None => format!("GCS stage on {port}"),
@@ -143,14 +157,18 @@ impl GcsStage {
 
     fn check_axes(&self) -> Result<(), DeviceError> {
         let a = &self.opts.axes;
-        let bad = a.iter().any(|n| n.is_empty() || n.contains(char::is_whitespace) || n.contains('='))
+        let bad = a
+            .iter()
+            .any(|n| n.is_empty() || n.contains(char::is_whitespace) || n.contains('='))
             || a[0] == a[1]
             || a[0] == a[2]
             || a[1] == a[2];
         if bad {
             return Err(DeviceError::Other {
                 device: self.link.device().to_string(),
-                detail: format!("invalid axis map {a:?}: need three distinct identifiers without spaces"),
+                detail: format!(
+                    "invalid axis map {a:?}: need three distinct identifiers without spaces"
+                ),
             });
         }
         Ok(())
@@ -184,9 +202,13 @@ impl GcsStage {
     /// the command the code refers to, for messages.
     pub fn error_code(&mut self, after: &str) -> Result<i64, DeviceError> {
         let label = format!("ERR? (after `{after}`)");
-        let line = self.link.query_with_timeout("ERR?", self.opts.timeout).map_err(|e| rename(e, &label))?;
+        let line = self
+            .link
+            .query_with_timeout("ERR?", self.opts.timeout)
+            .map_err(|e| rename(e, &label))?;
         let t = line.trim();
-        t.parse::<i64>().map_err(|_| self.link.garbled(&label, line.clone()))
+        t.parse::<i64>()
+            .map_err(|_| self.link.garbled(&label, line.clone()))
     }
 
     /// Send a query and read its (possibly multi-line) reply: lines ending in a space are
@@ -232,7 +254,9 @@ impl GcsStage {
         let mut out: [Option<T>; 3] = [None, None, None];
         let whole = || lines.join("\\n");
         for line in &lines {
-            let (key, value) = line.split_once('=').ok_or_else(|| self.link.garbled(&cmd, whole()))?;
+            let (key, value) = line
+                .split_once('=')
+                .ok_or_else(|| self.link.garbled(&cmd, whole()))?;
             let i = self
                 .opts
                 .axes
@@ -299,7 +323,13 @@ impl GcsStage {
     /// `SVO A s B s C s`.
     pub fn set_servo(&mut self, on: bool) -> Result<(), DeviceError> {
         let s = u8::from(on);
-        let cmd = self.opts.axes.iter().map(|a| format!("{a} {s}")).collect::<Vec<_>>().join(" ");
+        let cmd = self
+            .opts
+            .axes
+            .iter()
+            .map(|a| format!("{a} {s}"))
+            .collect::<Vec<_>>()
+            .join(" ");
         self.command(&format!("SVO {cmd}"))
     }
 
@@ -312,8 +342,13 @@ impl GcsStage {
             });
         }
         let k = self.opts.units_per_um;
-        let parts: Vec<String> =
-            self.opts.axes.iter().zip(target).map(|(a, v)| format!("{a} {:.6}", v * k)).collect();
+        let parts: Vec<String> = self
+            .opts
+            .axes
+            .iter()
+            .zip(target)
+            .map(|(a, v)| format!("{a} {:.6}", v * k))
+            .collect();
         let cmd = format!("MOV {}", parts.join(" "));
         self.command(&cmd)?;
         Ok(cmd)
@@ -323,15 +358,23 @@ impl GcsStage {
 /// Re-label the command of an error (e.g. the `ERR?` that followed a `MOV`).
 fn rename(e: DeviceError, command: &str) -> DeviceError {
     match e {
-        DeviceError::Timeout { device, timeout_ms, .. } => {
-            DeviceError::Timeout { device, command: command.to_string(), timeout_ms }
-        }
-        DeviceError::Garbled { device, reply, .. } => {
-            DeviceError::Garbled { device, command: command.to_string(), reply }
-        }
-        DeviceError::Disconnected { device, detail, .. } => {
-            DeviceError::Disconnected { device, command: command.to_string(), detail }
-        }
+        DeviceError::Timeout {
+            device, timeout_ms, ..
+        } => DeviceError::Timeout {
+            device,
+            command: command.to_string(),
+            timeout_ms,
+        },
+        DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
+            device,
+            command: command.to_string(),
+            reply,
+        },
+        DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
+            device,
+            command: command.to_string(),
+            detail,
+        },
         other => other,
     }
 }
@@ -385,8 +428,10 @@ mod tests {
     }
 
     fn stage(replies: Vec<&[u8]>) -> GcsStage {
-        let mut all: Vec<Vec<u8>> =
-            vec![b"(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 1, 1\n".to_vec(), b"0\n".to_vec()];
+        let mut all: Vec<Vec<u8>> = vec![
+            b"(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 1, 1\n".to_vec(),
+            b"0\n".to_vec(),
+        ];
         all.extend(replies.into_iter().map(|r| r.to_vec()));
         GcsStage::connect(Box::new(Scripted::new(all)), "mock", opts()).unwrap()
     }
@@ -416,14 +461,22 @@ mod tests {
         let mut s = stage(vec![b"A=0.001 \nB=0.002 \nC=0.003\n"]);
         s.opts.units_per_um = 0.001; // controller in mm
         let p = s.position().unwrap();
-        assert!((p[0] - 1.0).abs() < 1e-12 && (p[2] - 3.0).abs() < 1e-12, "{p:?}");
+        assert!(
+            (p[0] - 1.0).abs() < 1e-12 && (p[2] - 3.0).abs() < 1e-12,
+            "{p:?}"
+        );
     }
 
     #[test]
     fn controller_error_after_move() {
         let mut s = stage(vec![b"", b"7\n"]);
         match s.move_to([500.0, 0.0, 0.0]) {
-            Err(DeviceError::Controller { code, message, command, .. }) => {
+            Err(DeviceError::Controller {
+                code,
+                message,
+                command,
+                ..
+            }) => {
                 assert_eq!(code, 7);
                 assert_eq!(message, "Position out of limits");
                 assert_eq!(command, "MOV A 500.000000 B 0.000000 C 0.000000");
@@ -443,7 +496,10 @@ mod tests {
         let script = Scripted::new(vec![b"x, E-727, 1, 1\n".to_vec(), b"0\n".to_vec()]);
         let log = script.log.clone();
         let mut s = GcsStage::connect(Box::new(script), "mock", opts()).unwrap();
-        assert!(matches!(s.move_to([f64::NAN, 0.0, 0.0]), Err(DeviceError::Other { .. })));
+        assert!(matches!(
+            s.move_to([f64::NAN, 0.0, 0.0]),
+            Err(DeviceError::Other { .. })
+        ));
         assert_eq!(*log.lock().unwrap(), vec!["*IDN?", "ERR?"]);
     }
 

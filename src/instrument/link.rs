@@ -31,7 +31,8 @@ impl Transport for Box<dyn serialport::SerialPort> {
         self.set_timeout(timeout).map_err(io::Error::from)
     }
     fn discard_input(&mut self) -> io::Result<()> {
-        self.clear(serialport::ClearBuffer::Input).map_err(io::Error::from)
+        self.clear(serialport::ClearBuffer::Input)
+            .map_err(io::Error::from)
     }
 }
 
@@ -44,6 +45,47 @@ impl Transport for serialport::TTYPort {
     }
 }
 
+/// A serial port opened by the drivers. On Unix it is opened exclusively (`TIOCEXCL`: a second
+/// program cannot open it meanwhile) and the exclusivity is cleared again when the port is
+/// closed. Pseudo-terminals keep the flag for as long as their master lives, so without the
+/// clearing a non-root user could not reconnect to an emulator.
+#[cfg(unix)]
+struct SerialTransport(serialport::TTYPort);
+
+#[cfg(unix)]
+impl Read for SerialTransport {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        self.0.read(buf)
+    }
+}
+
+#[cfg(unix)]
+impl Write for SerialTransport {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.0.write(buf)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+#[cfg(unix)]
+impl Transport for SerialTransport {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        self.0.set_read_timeout(timeout)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.0.discard_input()
+    }
+}
+
+#[cfg(unix)]
+impl Drop for SerialTransport {
+    fn drop(&mut self) {
+        let _ = self.0.set_exclusive(false);
+    }
+}
+
 /// Open a serial port (real or pseudo-terminal) with 8N1, no flow control.
 pub fn open_serial(
     device: &str,
@@ -51,29 +93,36 @@ pub fn open_serial(
     baud: u32,
     timeout: Duration,
 ) -> Result<Box<dyn Transport>, DeviceError> {
-    let port = serialport::new(path, baud)
+    let builder = serialport::new(path, baud)
         .timeout(timeout)
         .data_bits(serialport::DataBits::Eight)
         .parity(serialport::Parity::None)
         .stop_bits(serialport::StopBits::One)
-        .flow_control(serialport::FlowControl::None)
-        .open()
-        .map_err(|e| {
-            let hint = match e.kind() {
-                serialport::ErrorKind::NoDevice => {
-                    " (is it plugged in, and not opened by another program?)"
-                }
-                serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
-                    " (permission denied: add yourself to the `dialout` group and log in again)"
-                }
-                serialport::ErrorKind::Io(io::ErrorKind::NotFound) => {
-                    " (no such port: check `port` in bfpscope.toml; `ls /dev/ttyUSB* /dev/ttyACM*`)"
-                }
-                _ => "",
-            };
-            DeviceError::Other { device: device.to_string(), detail: format!("cannot open {path}: {e}{hint}") }
-        })?;
-    Ok(Box::new(port))
+        .flow_control(serialport::FlowControl::None);
+    #[cfg(unix)]
+    let opened = builder
+        .open_native()
+        .map(|p| Box::new(SerialTransport(p)) as Box<dyn Transport>);
+    #[cfg(not(unix))]
+    let opened = builder.open().map(|p| Box::new(p) as Box<dyn Transport>);
+    opened.map_err(|e| {
+        let hint = match e.kind() {
+            serialport::ErrorKind::NoDevice => {
+                " (is it plugged in, and not opened by another program?)"
+            }
+            serialport::ErrorKind::Io(io::ErrorKind::PermissionDenied) => {
+                " (permission denied: add yourself to the `dialout` group and log in again)"
+            }
+            serialport::ErrorKind::Io(io::ErrorKind::NotFound) => {
+                " (no such port: check `port` in bfpscope.toml; `ls /dev/ttyUSB* /dev/ttyACM*`)"
+            }
+            _ => "",
+        };
+        DeviceError::Other {
+            device: device.to_string(),
+            detail: format!("cannot open {path}: {e}{hint}"),
+        }
+    })
 }
 
 /// Classify an I/O error: timeouts are timeouts, everything else means the link is gone.
@@ -108,7 +157,12 @@ pub struct LineLink {
 
 impl LineLink {
     pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
-        Self { io, device: device.into(), buf: Vec::new(), timeout }
+        Self {
+            io,
+            device: device.into(),
+            buf: Vec::new(),
+            timeout,
+        }
     }
 
     pub fn device(&self) -> &str {
@@ -154,7 +208,10 @@ impl LineLink {
             if self.buf.len() > MAX_LINE {
                 let reply = lossy(&self.buf);
                 self.buf.clear();
-                return Err(self.garbled(command, format!("{reply} [no line end after {MAX_LINE} bytes]")));
+                return Err(self.garbled(
+                    command,
+                    format!("{reply} [no line end after {MAX_LINE} bytes]"),
+                ));
             }
             let now = Instant::now();
             if now >= deadline {
@@ -175,7 +232,12 @@ impl LineLink {
                 }
                 Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-                Err(e) if matches!(e.kind(), io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock) => {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                    ) =>
+                {
                     continue; // the deadline check above decides
                 }
                 Err(e) => return Err(io_error(&self.device, command, timeout, &e)),
@@ -188,7 +250,11 @@ impl LineLink {
         self.query_with_timeout(command, self.timeout)
     }
 
-    pub fn query_with_timeout(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+    pub fn query_with_timeout(
+        &mut self,
+        command: &str,
+        timeout: Duration,
+    ) -> Result<String, DeviceError> {
         self.discard_input();
         self.send(command)?;
         self.read_line(command, timeout)
@@ -206,12 +272,19 @@ impl LineLink {
         } else {
             let reply = lossy(&self.buf);
             self.buf.clear();
-            self.garbled(command, format!("{reply} [no line end within {} ms]", timeout.as_millis()))
+            self.garbled(
+                command,
+                format!("{reply} [no line end within {} ms]", timeout.as_millis()),
+            )
         }
     }
 
     pub fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
-        DeviceError::Garbled { device: self.device.clone(), command: command.to_string(), reply: reply.into() }
+        DeviceError::Garbled {
+            device: self.device.clone(),
+            command: command.to_string(),
+            reply: reply.into(),
+        }
     }
 
     fn check_text(&self, command: &str, line: Vec<u8>) -> Result<String, DeviceError> {
@@ -239,7 +312,12 @@ pub(crate) mod mock {
 
     impl Scripted {
         pub fn new(replies: Vec<Vec<u8>>) -> Self {
-            Self { replies: replies.into(), pending: Vec::new(), written: Vec::new(), log: Default::default() }
+            Self {
+                replies: replies.into(),
+                pending: Vec::new(),
+                written: Vec::new(),
+                log: Default::default(),
+            }
         }
     }
 
@@ -260,7 +338,10 @@ pub(crate) mod mock {
             self.written.extend_from_slice(buf);
             while let Some(i) = self.written.iter().position(|&b| b == b'\n') {
                 let line: Vec<u8> = self.written.drain(..=i).collect();
-                self.log.lock().unwrap().push(lossy(&line[..line.len() - 1]));
+                self.log
+                    .lock()
+                    .unwrap()
+                    .push(lossy(&line[..line.len() - 1]));
                 if let Some(r) = self.replies.pop_front() {
                     self.pending.extend_from_slice(&r);
                 }
@@ -302,8 +383,15 @@ mod tests {
     fn silence_is_timeout_partial_is_garbled() {
         let mut l = link(vec![b""]);
         match l.query("Q?") {
-            Err(DeviceError::Timeout { device, command, timeout_ms }) => {
-                assert_eq!((device.as_str(), command.as_str(), timeout_ms), ("dev", "Q?", 20));
+            Err(DeviceError::Timeout {
+                device,
+                command,
+                timeout_ms,
+            }) => {
+                assert_eq!(
+                    (device.as_str(), command.as_str(), timeout_ms),
+                    ("dev", "Q?", 20)
+                );
             }
             other => panic!("{other:?}"),
         }

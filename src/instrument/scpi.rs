@@ -31,7 +31,10 @@ pub struct Calibration {
 
 impl Default for Calibration {
     fn default() -> Self {
-        Self { gain: [1.0; 3], offset_v: [0.0; 3] }
+        Self {
+            gain: [1.0; 3],
+            offset_v: [0.0; 3],
+        }
     }
 }
 
@@ -40,7 +43,15 @@ impl Calibration {
     pub fn apply(&self, volts: [f64; 3], std_v: [f64; 3], n: usize) -> QpdReading {
         let s = |i: usize| self.gain[i] * (volts[i] - self.offset_v[i]);
         let d = |i: usize| self.gain[i].abs() * std_v[i];
-        QpdReading { sx: s(0), sy: s(1), sz: s(2), sx_std: d(0), sy_std: d(1), sz_std: d(2), n }
+        QpdReading {
+            sx: s(0),
+            sy: s(1),
+            sz: s(2),
+            sx_std: d(0),
+            sy_std: d(1),
+            sz_std: d(2),
+            n,
+        }
     }
 }
 
@@ -58,7 +69,11 @@ pub struct ScpiOptions {
 
 impl Default for ScpiOptions {
     fn default() -> Self {
-        Self { timeout: Duration::from_millis(1000), calibration: Calibration::default(), statistics: true }
+        Self {
+            timeout: Duration::from_millis(1000),
+            calibration: Calibration::default(),
+            statistics: true,
+        }
     }
 }
 
@@ -73,7 +88,10 @@ pub fn parse_scpi_error(reply: &str) -> Option<(i64, String)> {
 
 /// Parse `k` comma-separated finite numbers.
 pub fn parse_numbers(reply: &str, k: usize) -> Option<Vec<f64>> {
-    let v: Vec<f64> = reply.split(',').map(|s| s.trim().parse::<f64>().ok().filter(|x| x.is_finite())).collect::<Option<_>>()?;
+    let v: Vec<f64> = reply
+        .split(',')
+        .map(|s| s.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
+        .collect::<Option<_>>()?;
     (v.len() == k).then_some(v)
 }
 
@@ -96,11 +114,27 @@ impl ScpiQpd {
     }
 
     /// Connect over any transport: `*IDN?`, `*CLS`, `CONF:RATE?`.
-    pub fn connect(io: Box<dyn Transport>, port: &str, opts: ScpiOptions) -> Result<Self, DeviceError> {
+    pub fn connect(
+        io: Box<dyn Transport>,
+        port: &str,
+        opts: ScpiOptions,
+    ) -> Result<Self, DeviceError> {
         let link = LineLink::new(io, format!("SCPI QPD on {port}"), opts.timeout);
-        let mut q = Self { link, opts, idn: String::new(), rate: 0.0, count: None };
+        let mut q = Self {
+            link,
+            opts,
+            idn: String::new(),
+            rate: 0.0,
+            count: None,
+        };
         q.idn = q.query("*IDN?")?.trim().to_string();
-        if let Some(model) = q.idn.split(',').nth(1).map(str::trim).filter(|m| !m.is_empty()) {
+        if let Some(model) = q
+            .idn
+            .split(',')
+            .nth(1)
+            .map(str::trim)
+            .filter(|m| !m.is_empty())
+        {
             q.link.set_device(format!("QPD {model} on {port}"));
         }
         q.command("*CLS")?;
@@ -123,7 +157,10 @@ impl ScpiQpd {
     /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after`.
     pub fn check_error(&mut self, after: &str) -> Result<(), DeviceError> {
         let label = format!("SYST:ERR? (after `{after}`)");
-        let line = self.link.query_with_timeout("SYST:ERR?", self.opts.timeout).map_err(|e| relabel(e, &label))?;
+        let line = self
+            .link
+            .query_with_timeout("SYST:ERR?", self.opts.timeout)
+            .map_err(|e| relabel(e, &label))?;
         match parse_scpi_error(&line) {
             Some((0, _)) => Ok(()),
             Some((code, message)) => Err(DeviceError::Controller {
@@ -176,7 +213,11 @@ impl ScpiQpd {
         self.set_count(n)?;
         let acquisition = Duration::from_secs_f64((n as f64 / self.rate).min(3600.0));
         let timeout = self.opts.timeout + acquisition;
-        let (cmd, k) = if self.opts.statistics { ("MEAS:QPD:STAT?", 6) } else { ("MEAS:QPD?", 3) };
+        let (cmd, k) = if self.opts.statistics {
+            ("MEAS:QPD:STAT?", 6)
+        } else {
+            ("MEAS:QPD?", 3)
+        };
         let line = self.query_timeout(cmd, timeout)?;
         let v = parse_numbers(&line, k).ok_or_else(|| self.link.garbled(cmd, line.clone()))?;
         self.check_error(cmd)?;
@@ -190,15 +231,23 @@ impl ScpiQpd {
 
 fn relabel(e: DeviceError, command: &str) -> DeviceError {
     match e {
-        DeviceError::Timeout { device, timeout_ms, .. } => {
-            DeviceError::Timeout { device, command: command.to_string(), timeout_ms }
-        }
-        DeviceError::Garbled { device, reply, .. } => {
-            DeviceError::Garbled { device, command: command.to_string(), reply }
-        }
-        DeviceError::Disconnected { device, detail, .. } => {
-            DeviceError::Disconnected { device, command: command.to_string(), detail }
-        }
+        DeviceError::Timeout {
+            device, timeout_ms, ..
+        } => DeviceError::Timeout {
+            device,
+            command: command.to_string(),
+            timeout_ms,
+        },
+        DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
+            device,
+            command: command.to_string(),
+            reply,
+        },
+        DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
+            device,
+            command: command.to_string(),
+            detail,
+        },
         other => other,
     }
 }
@@ -234,7 +283,10 @@ mod tests {
         all.extend(replies.into_iter().map(|r| r.to_vec()));
         let opts = ScpiOptions {
             timeout: Duration::from_millis(10),
-            calibration: Calibration { gain: [2.0, 2.0, -1.0], offset_v: [0.5, 0.0, 0.0] },
+            calibration: Calibration {
+                gain: [2.0, 2.0, -1.0],
+                offset_v: [0.5, 0.0, 0.0],
+            },
             statistics: true,
         };
         ScpiQpd::connect(Box::new(Scripted::new(all)), "mock", opts).unwrap()
@@ -257,8 +309,16 @@ mod tests {
     fn device_error_queue() {
         let mut q = qpd(vec![b"", b"-222,\"Data out of range\"\n"]);
         match q.read(0) {
-            Err(DeviceError::Controller { code, message, command, .. }) => {
-                assert_eq!((code, message.as_str(), command.as_str()), (-222, "Data out of range", "SENS:AVER:COUN 0"));
+            Err(DeviceError::Controller {
+                code,
+                message,
+                command,
+                ..
+            }) => {
+                assert_eq!(
+                    (code, message.as_str(), command.as_str()),
+                    (-222, "Data out of range", "SENS:AVER:COUN 0")
+                );
             }
             other => panic!("{other:?}"),
         }
@@ -266,7 +326,10 @@ mod tests {
 
     #[test]
     fn parsers() {
-        assert_eq!(parse_scpi_error("-113,\"Undefined header\""), Some((-113, "Undefined header".into())));
+        assert_eq!(
+            parse_scpi_error("-113,\"Undefined header\""),
+            Some((-113, "Undefined header".into()))
+        );
         assert_eq!(parse_scpi_error("0,No error"), None);
         assert_eq!(parse_numbers("1,2,3", 3), Some(vec![1.0, 2.0, 3.0]));
         assert_eq!(parse_numbers("1,2", 3), None);

@@ -5,6 +5,7 @@ pub mod calc;
 pub mod finite_size;
 pub mod grid;
 pub mod mie;
+pub mod mie_beam;
 pub mod params;
 pub mod quad;
 pub mod rayleigh;

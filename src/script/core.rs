@@ -13,9 +13,16 @@ pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.bind(
         Doc::func("help", "core")
-            .opt("name", "string", "", "a binding (`mv`, `img.max`, `scan.sx`) or a family (`scans`)")
+            .opt(
+                "name",
+                "string",
+                "",
+                "a binding (`mv`, `img.max`, `scan.sx`) or a family (`scans`)",
+            )
             .form("help(name)")
-            .summary("list every binding by family, or show one binding's arguments, units and examples")
+            .summary(
+                "list every binding by family, or show one binding's arguments, units and examples",
+            )
             .example("help()", "()")
             .example("help(\"scan_xy\")", "()"),
         move || {
@@ -27,11 +34,19 @@ pub fn register(r: &mut Registrar) {
         let docs = c.docs();
         let hits = find(&docs, name);
         if hits.is_empty() {
-            let mut near: Vec<&str> = docs.iter().map(|d| d.name.as_str()).filter(|n| n.contains(name) || name.contains(*n)).collect();
+            let mut near: Vec<&str> = docs
+                .iter()
+                .map(|d| d.name.as_str())
+                .filter(|n| n.contains(name) || name.contains(*n))
+                .collect();
             near.dedup();
             return fail(format!(
                 "help: no binding called {name:?}{}; help() lists them all",
-                if near.is_empty() { String::new() } else { format!(" (did you mean {}?)", near.join(", ")) }
+                if near.is_empty() {
+                    String::new()
+                } else {
+                    format!(" (did you mean {}?)", near.join(", "))
+                }
             ));
         }
         if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {
@@ -53,7 +68,10 @@ pub fn register(r: &mut Registrar) {
             .form("assert(cond, message)")
             .summary("fail the script (test) with `message` unless `cond` is true")
             .example("assert(1 + 1 == 2, \"arithmetic\")", "()")
-            .example("assert(false, \"the bead is gone\")", "error: assertion failed: the bead is gone"),
+            .example(
+                "assert(false, \"the bead is gone\")",
+                "error: assertion failed: the bead is gone",
+            ),
         |cond: Dynamic, msg: &str| -> RResult<()> { check(cond, msg) },
     );
     r.overload("assert", |cond: Dynamic| -> RResult<()> { check(cond, "") });
@@ -94,11 +112,18 @@ pub fn register(r: &mut Registrar) {
             .example("assert_err(|| mv(#{x: 1000.0}))", "\"mv refused, nothing was moved: x = 1000 µm is above the soft limit x ≤ 50 µm\"")
             .example("assert_err(|| 1 + 1)", "error: assert_err: expected an error, but the closure returned 2")
             .example("assert_err(|| qpd(0), \"out of range\").len() > 0", "true"),
-        |ctx: NativeCallContext, f: FnPtr| -> RResult<String> { expect_err(&ctx, &f, None) },
+        {
+            let c = r.ctx();
+            move |ctx: NativeCallContext, f: FnPtr| -> RResult<String> { expect_err(&ctx, &f, None, &c.docs()) }
+        },
     );
-    r.overload("assert_err", |ctx: NativeCallContext, f: FnPtr, contains: &str| -> RResult<String> {
-        expect_err(&ctx, &f, Some(contains))
-    });
+    let c = r.ctx();
+    r.overload(
+        "assert_err",
+        move |ctx: NativeCallContext, f: FnPtr, contains: &str| -> RResult<String> {
+            expect_err(&ctx, &f, Some(contains), &c.docs())
+        },
+    );
 
     r.bind(
         Doc::func("linspace", "core")
@@ -112,13 +137,21 @@ pub fn register(r: &mut Registrar) {
             let (a, b) = (num("linspace", "from", &a)?, num("linspace", "to", &b)?);
             let n = int("linspace", "n", &n)?;
             if !(1..=10_000_000).contains(&n) {
-                return fail(format!("linspace: n = {n} is out of range: 1 ≤ n ≤ 10000000"));
+                return fail(format!(
+                    "linspace: n = {n} is out of range: 1 ≤ n ≤ 10000000"
+                ));
             }
-            Ok(crate::acquire::plan::linspace(a, b, n as usize).into_iter().map(Dynamic::from).collect())
+            Ok(crate::acquire::plan::linspace(a, b, n as usize)
+                .into_iter()
+                .map(Dynamic::from)
+                .collect())
         },
     );
     r.bind(
-        Doc::func("version", "core").returns("string", "").summary("program name and version").example("version().starts_with(\"bfpscope \")", "true"),
+        Doc::func("version", "core")
+            .returns("string", "")
+            .summary("program name and version")
+            .example("version().starts_with(\"bfpscope \")", "true"),
         || format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
     );
 }
@@ -126,21 +159,37 @@ pub fn register(r: &mut Registrar) {
 fn check(cond: Dynamic, msg: &str) -> RResult<()> {
     match cond.as_bool() {
         Ok(true) => Ok(()),
-        Ok(false) => fail(if msg.is_empty() { "assertion failed".to_string() } else { format!("assertion failed: {msg}") }),
-        Err(t) => fail(format!("assert: cond must be true or false, got {t} {cond}")),
+        Ok(false) => fail(if msg.is_empty() {
+            "assertion failed".to_string()
+        } else {
+            format!("assertion failed: {msg}")
+        }),
+        Err(t) => fail(format!(
+            "assert: cond must be true or false, got {t} {cond}"
+        )),
     }
 }
 
-fn expect_err(ctx: &NativeCallContext, f: &FnPtr, contains: Option<&str>) -> RResult<String> {
+fn expect_err(
+    ctx: &NativeCallContext,
+    f: &FnPtr,
+    contains: Option<&str>,
+    docs: &[super::Doc],
+) -> RResult<String> {
     match f.call_within_context::<Dynamic>(ctx, ()) {
-        Ok(v) => fail(format!("assert_err: expected an error, but the closure returned {}", super::types::show(&v))),
+        Ok(v) => fail(format!(
+            "assert_err: expected an error, but the closure returned {}",
+            super::types::show(&v)
+        )),
         Err(e) => {
             if matches!(*e, rhai::EvalAltResult::ErrorTerminated(..)) {
                 return Err(e); // Ctrl-C is never swallowed
             }
-            let msg = super::error_message(&e);
+            let msg = super::error_message(&e, docs);
             match contains {
-                Some(t) if !msg.contains(t) => fail(format!("assert_err: the error {msg:?} does not contain {t:?}")),
+                Some(t) if !msg.contains(t) => fail(format!(
+                    "assert_err: the error {msg:?} does not contain {t:?}"
+                )),
                 _ => Ok(msg),
             }
         }

@@ -43,7 +43,9 @@ impl Sandbox {
     /// Read `[sandbox]` from a parsed config (missing keys keep their defaults).
     pub fn from_toml(config: &toml::Value) -> Result<Sandbox, String> {
         let mut s = Sandbox::default();
-        let Some(t) = config.get("sandbox") else { return Ok(s) };
+        let Some(t) = config.get("sandbox") else {
+            return Ok(s);
+        };
         let t = t.as_table().ok_or("config: [sandbox] must be a table")?;
         for (k, v) in t {
             let n = v
@@ -59,9 +61,9 @@ impl Sandbox {
                 "max_map_size" => s.max_map_size = n as usize,
                 _ => {
                     return Err(format!(
-                        "config: unknown key sandbox.{k} (allowed: max_operations, max_call_levels, \
+                    "config: unknown key sandbox.{k} (allowed: max_operations, max_call_levels, \
                          max_expr_depth, max_string_size, max_array_size, max_map_size)"
-                    ))
+                ))
                 }
             }
         }
@@ -96,8 +98,8 @@ impl Default for Settings {
             limits: SoftLimits::default(),
             sandbox: Sandbox::default(),
             progress: false,
-            print: Arc::new(|s| println!("{s}")),
-            log: Arc::new(|s| eprintln!("{s}")),
+            print: Arc::new(|s| out_line(s)),
+            log: Arc::new(|s| err_line(s)),
             abort: Arc::new(AtomicBool::new(false)),
             config: None,
             config_path: None,
@@ -127,18 +129,37 @@ impl Settings {
         (s, buf)
     }
 
-    /// Apply a parsed config (`[limits]`, `[sandbox]`, `[session] data_dir`).
-    pub fn apply_config(&mut self, config: toml::Value, path: Option<PathBuf>) -> Result<(), String> {
+    /// Apply a parsed config (`[safety]` soft limits and max step, `[sandbox]`,
+    /// `[session] data_dir`).
+    pub fn apply_config(
+        &mut self,
+        config: toml::Value,
+        path: Option<PathBuf>,
+    ) -> Result<(), String> {
         self.limits = SoftLimits::from_toml(&config)?;
         self.sandbox = Sandbox::from_toml(&config)?;
         if let Some(d) = config.get("session").and_then(|s| s.get("data_dir")) {
-            let d = d.as_str().ok_or("config: session.data_dir must be a string")?;
+            let d = d
+                .as_str()
+                .ok_or("config: session.data_dir must be a string")?;
             self.data_dir = PathBuf::from(d);
         }
         self.config = Some(config);
         self.config_path = path;
         Ok(())
     }
+}
+
+/// A line to stdout; a closed pipe (`bfpscope eval 'help()' | head`) is not an error.
+pub fn out_line(s: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stdout().lock(), "{s}");
+}
+
+/// A line to stderr, ignoring a closed pipe.
+pub fn err_line(s: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "{s}");
 }
 
 /// The script (or REPL) whose actions are being recorded.
@@ -210,7 +231,11 @@ impl Ctx {
     }
 
     /// Run `f` with the instrument; `who` names the binding in the error when none is connected.
-    pub fn with_instrument<T>(&self, who: &str, f: impl FnOnce(&mut Instrument) -> RResult<T>) -> RResult<T> {
+    pub fn with_instrument<T>(
+        &self,
+        who: &str,
+        f: impl FnOnce(&mut Instrument) -> RResult<T>,
+    ) -> RResult<T> {
         let mut g = lock(&self.instrument);
         match g.as_mut() {
             Some(inst) => f(inst),
@@ -244,7 +269,9 @@ impl Ctx {
                     .stderr(std::process::Stdio::null())
                     .output()
                     .ok()?;
-                out.status.success().then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+                out.status
+                    .success()
+                    .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
             })
             .clone()
     }

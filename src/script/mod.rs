@@ -5,6 +5,7 @@
 pub mod core;
 pub mod ctx;
 pub mod motion;
+pub mod physics;
 pub mod registry;
 pub mod scans;
 pub mod testing;
@@ -20,11 +21,15 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 /// Every binding family, in the order `help()` lists them. Add a family here once.
-pub const FAMILIES: &[(&str, fn(&mut Registrar))] = &[
+/// A family's registration function.
+pub type RegisterFn = fn(&mut Registrar);
+
+pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("core", core::register),
     ("motion", motion::register),
     ("scans", scans::register),
     ("types", types::register),
+    ("physics", physics::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.
@@ -68,13 +73,21 @@ fn innermost(e: &EvalAltResult) -> (&EvalAltResult, Position, Option<String>, Ve
                 if !s.is_empty() {
                     src = Some(s.clone());
                 }
-                pos = if inner.position().is_none() { *p } else { inner.position() };
+                pos = if inner.position().is_none() {
+                    *p
+                } else {
+                    inner.position()
+                };
                 cur = inner;
             }
             EvalAltResult::ErrorInModule(name, inner, p) => {
                 chain.push(format!("module {name}"));
                 src = Some(name.clone());
-                pos = if inner.position().is_none() { *p } else { inner.position() };
+                pos = if inner.position().is_none() {
+                    *p
+                } else {
+                    inner.position()
+                };
                 cur = inner;
             }
             _ => break,
@@ -83,14 +96,11 @@ fn innermost(e: &EvalAltResult) -> (&EvalAltResult, Position, Option<String>, Ve
     (cur, pos, src, chain)
 }
 
-/// The text of an error without its position (bindings' own messages come out verbatim).
-pub fn error_message(e: &EvalAltResult) -> String {
-    error_message_with(e, &[])
-}
-
-fn error_message_with(e: &EvalAltResult, docs: &[Doc]) -> String {
+/// The text of an error without its position (bindings' own messages come out verbatim);
+/// `docs` turn "function not found" into the binding's usage.
+pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
     let (cur, _, _, chain) = innermost(e);
-    let mut msg = match cur {
+    let msg = match cur {
         EvalAltResult::ErrorRuntime(d, _) => {
             if d.is_string() {
                 d.to_string()
@@ -129,11 +139,19 @@ fn error_message_with(e: &EvalAltResult, docs: &[Doc]) -> String {
             }
         }
     };
-    let fns: Vec<&String> = chain.iter().filter(|n| !docs.iter().any(|d| &&d.name == n)).collect();
-    if !fns.is_empty() && !matches!(cur, EvalAltResult::ErrorTerminated(..)) {
-        msg.push_str(&format!(" (in {})", fns.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(" ← ")));
-    }
+    let _ = chain;
     msg
+}
+
+/// Script functions (not bindings, not closures) the error passed through, innermost first.
+fn fn_chain(e: &EvalAltResult, docs: &[Doc]) -> Vec<String> {
+    let (_, _, _, chain) = innermost(e);
+    let mut v: Vec<String> = chain
+        .into_iter()
+        .filter(|n| !n.starts_with("anon$") && !docs.iter().any(|d| &d.name == n))
+        .collect();
+    v.reverse();
+    v
 }
 
 impl ScriptError {
@@ -141,7 +159,14 @@ impl ScriptError {
         let (cur, pos, src, _) = innermost(e);
         let (line, column) = pos_parts(pos);
         ScriptError {
-            message: error_message_with(e, docs),
+            message: {
+                let mut m = error_message(e, docs);
+                let fns = fn_chain(e, docs);
+                if !fns.is_empty() && !matches!(cur, EvalAltResult::ErrorTerminated(..)) {
+                    m.push_str(&format!(" (in {})", fns.join(" ← ")));
+                }
+                m
+            },
             source: src.unwrap_or_else(|| source.to_string()),
             line,
             column,
@@ -150,10 +175,22 @@ impl ScriptError {
     }
     pub fn from_parse(e: &ParseError, source: &str) -> ScriptError {
         let (line, column) = pos_parts(e.position());
-        ScriptError { message: format!("syntax error: {}", e.err_type()), source: source.into(), line, column, interrupted: false }
+        ScriptError {
+            message: format!("syntax error: {}", e.err_type()),
+            source: source.into(),
+            line,
+            column,
+            interrupted: false,
+        }
     }
     pub fn plain(message: impl Into<String>, source: &str) -> ScriptError {
-        ScriptError { message: message.into(), source: source.into(), line: None, column: None, interrupted: false }
+        ScriptError {
+            message: message.into(),
+            source: source.into(),
+            line: None,
+            column: None,
+            interrupted: false,
+        }
     }
 }
 
@@ -170,7 +207,13 @@ pub fn build_engine(ctx: Arc<Ctx>) -> (Engine, Arc<Vec<Doc>>) {
         .set_max_array_size(sb.max_array_size)
         .set_max_map_size(sb.max_map_size);
     let abort = ctx.settings.abort.clone();
-    engine.on_progress(move |_| if abort.load(Ordering::Relaxed) { Some("interrupted (Ctrl-C)".into()) } else { None });
+    engine.on_progress(move |_| {
+        if abort.load(Ordering::Relaxed) {
+            Some("interrupted (Ctrl-C)".into())
+        } else {
+            None
+        }
+    });
     let c = ctx.clone();
     engine.on_print(move |s| c.print(s));
     let c = ctx.clone();
@@ -185,7 +228,10 @@ pub fn build_engine(ctx: Arc<Ctx>) -> (Engine, Arc<Vec<Doc>>) {
     // stdlib modules: `import "focus" as focus;` from ./stdlib or the source tree's stdlib/;
     // no caching, so edited modules are picked up at once.
     let mut resolvers = rhai::module_resolvers::ModuleResolversCollection::new();
-    for dir in [std::path::PathBuf::from("stdlib"), Path::new(env!("CARGO_MANIFEST_DIR")).join("stdlib")] {
+    for dir in [
+        std::path::PathBuf::from("stdlib"),
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("stdlib"),
+    ] {
         let mut r = rhai::module_resolvers::FileModuleResolver::new_with_path(dir);
         r.enable_cache(false);
         resolvers.push(r);
@@ -224,7 +270,13 @@ impl Workbench {
     pub fn new(settings: Settings) -> Workbench {
         let ctx = Arc::new(Ctx::new(settings));
         let (engine, docs) = build_engine(ctx.clone());
-        Workbench { engine, scope: Scope::new(), lib: AST::empty(), ctx, docs }
+        Workbench {
+            engine,
+            scope: Scope::new(),
+            lib: AST::empty(),
+            ctx,
+            docs,
+        }
     }
 
     /// Set a script variable (`run --set key=value`).
@@ -234,7 +286,11 @@ impl Workbench {
 
     /// Names of the variables and script functions defined so far (for completion).
     pub fn user_names(&self) -> Vec<String> {
-        let mut v: Vec<String> = self.scope.iter_raw().map(|(n, _, _)| n.to_string()).collect();
+        let mut v: Vec<String> = self
+            .scope
+            .iter_raw()
+            .map(|(n, _, _)| n.to_string())
+            .collect();
         v.extend(self.lib.iter_functions().map(|f| f.name.to_string()));
         v.sort();
         v.dedup();
@@ -242,14 +298,19 @@ impl Workbench {
     }
 
     fn compile(&self, source: &str, text: &str) -> Result<AST, ScriptError> {
-        let mut ast = self.engine.compile_with_scope(&self.scope, text).map_err(|e| ScriptError::from_parse(&e, source))?;
+        let mut ast = self
+            .engine
+            .compile_with_scope(&self.scope, text)
+            .map_err(|e| ScriptError::from_parse(&e, source))?;
         ast.set_source(source);
         Ok(ast)
     }
 
     fn run_ast(&mut self, ast: &AST, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
-        let r = self.engine.eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
+        let r = self
+            .engine
+            .eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
         let r = r.map_err(|e| ScriptError::from_eval(&e, source, &self.docs));
         if r.as_ref().is_err_and(|e| e.interrupted) {
             self.ctx.settings.abort.store(false, Ordering::SeqCst);
@@ -259,7 +320,11 @@ impl Workbench {
 
     /// Evaluate one REPL entry: variables and functions persist across entries.
     pub fn eval_line(&mut self, text: &str) -> Result<Dynamic, ScriptError> {
-        self.ctx.set_script(ScriptInfo { path: None, sha256: None, line: Some(text.to_string()) });
+        self.ctx.set_script(ScriptInfo {
+            path: None,
+            sha256: None,
+            line: Some(text.to_string()),
+        });
         let ast = self.compile("repl", text)?;
         let merged = self.lib.merge(&ast);
         let r = self.run_ast(&merged, "repl");
@@ -279,8 +344,10 @@ impl Workbench {
     /// Compile a script file and record its path and hash for the scans' metadata.
     pub fn load_file(&mut self, path: &Path) -> Result<AST, ScriptError> {
         let name = path.display().to_string();
-        let text = std::fs::read(path).map_err(|e| ScriptError::plain(format!("cannot read script: {e}"), &name))?;
-        let src = String::from_utf8(text).map_err(|_| ScriptError::plain("script is not UTF-8 text", &name))?;
+        let text = std::fs::read(path)
+            .map_err(|e| ScriptError::plain(format!("cannot read script: {e}"), &name))?;
+        let src = String::from_utf8(text)
+            .map_err(|_| ScriptError::plain("script is not UTF-8 text", &name))?;
         self.ctx.set_script(ScriptInfo {
             path: Some(std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())),
             sha256: Some(ctx::sha256_hex(src.as_bytes())),
@@ -304,7 +371,9 @@ impl Workbench {
     /// Call a script function of `ast` without re-running its top-level statements.
     pub fn call_fn(&mut self, ast: &AST, name: &str, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
-        let opts = rhai::CallFnOptions::new().eval_ast(false).rewind_scope(true);
+        let opts = rhai::CallFnOptions::new()
+            .eval_ast(false)
+            .rewind_scope(true);
         self.engine
             .call_fn_with_options::<Dynamic>(opts, &mut self.scope, ast, name, ())
             .map_err(|e| ScriptError::from_eval(&e, source, &self.docs))

@@ -8,8 +8,6 @@ use crate::acquire::mock::{mock_instrument, MockConfig};
 use crate::acquire::{checked_move, Axis};
 use crate::instrument::{Pos, QpdReading};
 use rhai::{Array, Dynamic, Map, INT};
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 /// `#{x, y, z}` in µm.
 pub fn pos_map(p: Pos) -> Map {
@@ -22,7 +20,14 @@ pub fn pos_map(p: Pos) -> Map {
 
 fn reading_map(r: &QpdReading) -> Map {
     let mut m = Map::new();
-    for (k, v) in [("sx", r.sx), ("sy", r.sy), ("sz", r.sz), ("sx_std", r.sx_std), ("sy_std", r.sy_std), ("sz_std", r.sz_std)] {
+    for (k, v) in [
+        ("sx", r.sx),
+        ("sy", r.sy),
+        ("sz", r.sz),
+        ("sx_std", r.sx_std),
+        ("sy_std", r.sy_std),
+        ("sz_std", r.sz_std),
+    ] {
         m.insert(k.into(), v.into());
     }
     m.insert("n".into(), (r.n as INT).into());
@@ -33,11 +38,15 @@ fn reading_map(r: &QpdReading) -> Map {
 fn axes_map(who: &str, m: &Map) -> RResult<[Option<f64>; 3]> {
     let mut out = [None; 3];
     if m.is_empty() {
-        return fail(format!("{who}: give at least one axis, e.g. {who}(#{{x: 1.0}}) (µm)"));
+        return fail(format!(
+            "{who}: give at least one axis, e.g. {who}(#{{x: 1.0}}) (µm)"
+        ));
     }
     for (k, v) in m {
         let Some(a) = Axis::parse(k) else {
-            return fail(format!("{who}: unknown axis `{k}`; allowed keys: x, y, z (µm)"));
+            return fail(format!(
+                "{who}: unknown axis `{k}`; allowed keys: x, y, z (µm)"
+            ));
         };
         out[a.index()] = Some(num(who, k, v)?);
     }
@@ -73,17 +82,30 @@ pub fn register(r: &mut Registrar) {
             .summary("current stage position")
             .example("pos()", "#{x: 0.0, y: 0.0, z: 0.0}")
             .example("mv(#{x: 1.5}); pos().x", "1.5"),
-        move || -> RResult<Map> { c.with_instrument("pos", |i| Ok(pos_map(i.stage.position().map_err(|e| format!("pos: {e}"))?))) },
+        move || -> RResult<Map> {
+            c.with_instrument("pos", |i| {
+                Ok(pos_map(
+                    i.stage.position().map_err(|e| format!("pos: {e}"))?,
+                ))
+            })
+        },
     );
     let c = ctx.clone();
     r.bind(
         Doc::func("wa", "motion")
             .summary("where all: print the position of every axis")
-            .help("SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.")
+            .help(
+                "SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.",
+            )
             .example("wa()", "()"),
         move || -> RResult<()> {
-            let p = c.with_instrument("wa", |i| i.stage.position().map_err(|e| format!("wa: {e}").into()))?;
-            c.print(&format!("x = {:.4} µm   y = {:.4} µm   z = {:.4} µm", p[0], p[1], p[2]));
+            let p = c.with_instrument("wa", |i| {
+                i.stage.position().map_err(|e| format!("wa: {e}").into())
+            })?;
+            c.print(&format!(
+                "x = {:.4} µm   y = {:.4} µm   z = {:.4} µm",
+                p[0], p[1], p[2]
+            ));
             Ok(())
         },
     );
@@ -93,7 +115,7 @@ pub fn register(r: &mut Registrar) {
             .map("target", "absolute target, any subset of the axes", AXES_KEYS)
             .summary("move the stage to an absolute position (any subset of x, y, z)")
             .help(
-                "The target is checked against the soft limits (config [limits], narrowed to the stage's \
+                "The target is checked against the soft limits (config [safety] soft_limits, narrowed to the stage's \
                  travel range) before the move; a refused move moves nothing. Waits the settle time.",
             )
             .example("mv(#{x: 1.0, z: -0.5}); pos()", "#{x: 1.0, y: 0.0, z: -0.5}")
@@ -133,11 +155,16 @@ pub fn register(r: &mut Registrar) {
             .summary("count: read the QPD for a given time (SPEC's ct)")
             .help("Reads round(seconds × sample rate) samples (at least one).")
             .example("ct(0.01).n", "1000")
-            .example("ct(-1)", "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600"),
+            .example(
+                "ct(-1)",
+                "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600",
+            ),
         move |t: Dynamic| -> RResult<Map> {
             let t = num("ct", "seconds", &t)?;
             if !(t > 0.0 && t <= 3600.0) {
-                return fail(format!("ct: seconds = {t} is out of range: 0 < seconds ≤ 3600"));
+                return fail(format!(
+                    "ct: seconds = {t} is out of range: 0 < seconds ≤ 3600"
+                ));
             }
             c.with_instrument("ct", |i| {
                 let n = crate::acquire::engine::samples_per_point(t, i.qpd.sample_rate());
@@ -151,27 +178,40 @@ pub fn register(r: &mut Registrar) {
     r.bind(
         Doc::func("clock", "reads")
             .returns("float", "s")
-            .summary("instrument time: simulated seconds on a virtual clock, wall seconds on hardware")
+            .summary(
+                "instrument time: simulated seconds on a virtual clock, wall seconds on hardware",
+            )
             .example("let t0 = clock(); ct(0.5); clock() - t0", "0.5"),
         move || -> RResult<f64> { c.with_instrument("clock", |i| Ok(i.clock.now())) },
     );
     let c = ctx.clone();
     r.bind(
         Doc::func("limits", "motion")
-            .returns("map", "#{x: [min, max], y: [...], z: [...], max_step_um} in µm")
+            .returns(
+                "map",
+                "#{x: [min, max], y: [...], z: [...], max_step_um} in µm",
+            )
             .summary("the soft limits in force (config ∩ stage travel range)")
             .example("limits().x", "[-50.0, 50.0]"),
         move || -> RResult<Map> {
             let l = c.settings.limits;
-            let l = if c.is_connected() {
-                c.with_instrument("limits", |i| Ok(l.within_travel(i.stage.travel_range().map_err(|e| format!("limits: {e}"))?)))?
-            } else {
-                l
-            };
+            let l =
+                if c.is_connected() {
+                    c.with_instrument("limits", |i| {
+                        Ok(l.within_travel(
+                            i.stage.travel_range().map_err(|e| format!("limits: {e}"))?,
+                        ))
+                    })?
+                } else {
+                    l
+                };
             let mut m = Map::new();
             for a in Axis::ALL {
                 let (lo, hi) = l.range[a.index()];
-                m.insert(a.name().into(), Dynamic::from_array(vec![lo.into(), hi.into()]));
+                m.insert(
+                    a.name().into(),
+                    Dynamic::from_array(vec![lo.into(), hi.into()]),
+                );
             }
             m.insert("max_step_um".into(), l.max_step_um.into());
             Ok(m)
@@ -240,32 +280,41 @@ pub fn register(r: &mut Registrar) {
                 let mut cfg = MockConfig::default();
                 if let Some(s) = o.f64("settle")? {
                     if !(0.0..=10.0).contains(&s) {
-                        return fail(format!("connect: settle = {s} is out of range: 0 ≤ settle ≤ 10 s"));
+                        return fail(format!(
+                            "connect: settle = {s} is out of range: 0 ≤ settle ≤ 10 s"
+                        ));
                     }
                     cfg.settle_s = s;
                 }
                 if let Some(r) = o.f64("rate")? {
-                    if !(r >= 1.0 && r <= 1e9) {
-                        return fail(format!("connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"));
+                    if !(1.0..=1e9).contains(&r) {
+                        return fail(format!(
+                            "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
+                        ));
                     }
                     cfg.rate_hz = r;
                 }
                 if let Some(s) = m.get("start") {
-                    let Some(sm) = s.read_lock::<Map>() else { return fail("connect: start must be a map #{x, y, z} (µm)") };
+                    let Some(sm) = s.read_lock::<Map>() else {
+                        return fail("connect: start must be a map #{x, y, z} (µm)");
+                    };
                     let t = axes_map("connect start", &sm)?;
-                    for i in 0..3 {
-                        cfg.start[i] = t[i].unwrap_or(0.0);
+                    for (st, v) in cfg.start.iter_mut().zip(t) {
+                        *st = v.unwrap_or(0.0);
                     }
                 }
                 let count = |k: &str| -> RResult<Option<usize>> {
                     match o.int(k)? {
-                        Some(v) if v < 0 => fail(format!("connect: {k} = {v} is out of range: {k} ≥ 0")),
+                        Some(v) if v < 0 => {
+                            fail(format!("connect: {k} = {v} is out of range: {k} ≥ 0"))
+                        }
                         v => Ok(v.map(|v| v as usize)),
                     }
                 };
                 cfg.fail_move_after = count("fail_move_after")?;
                 cfg.fail_read_after = count("fail_read_after")?;
-                cfg.abort_after_reads = count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
+                cfg.abort_after_reads =
+                    count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
                 let (inst, h) = mock_instrument(cfg);
                 let desc = inst.description.to_string();
                 c.connect(inst, Some(h));
@@ -281,9 +330,15 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(
         Doc::func("mock_commands", "mock")
-            .returns("array", "strings such as \"move 1 0 0\", \"read 100\", \"position?\"")
+            .returns(
+                "array",
+                "strings such as \"move 1 0 0\", \"read 100\", \"position?\"",
+            )
             .summary("every command the mock instrument was sent (for tests of the safety rules)")
-            .example("mv(#{x: 1}); mock_commands().filter(|c| c.starts_with(\"move\"))", "[\"move 1 0 0\"]"),
+            .example(
+                "mv(#{x: 1}); mock_commands().filter(|c| c.starts_with(\"move\"))",
+                "[\"move 1 0 0\"]",
+            ),
         move || -> RResult<Array> {
             match c.mock() {
                 Some(h) => Ok(h.commands().into_iter().map(Dynamic::from).collect()),
@@ -291,5 +346,4 @@ pub fn register(r: &mut Registrar) {
             }
         },
     );
-    let _: Option<Arc<AtomicBool>> = None;
 }

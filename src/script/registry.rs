@@ -56,11 +56,17 @@ pub struct Param {
 pub enum Kind {
     Function,
     /// `value.name(args)`: the first Rhai argument is the value of type `ty`.
-    Method { ty: String },
+    Method {
+        ty: String,
+    },
     /// `value.name`: a property getter of type `ty`.
-    Property { ty: String },
+    Property {
+        ty: String,
+    },
     /// Operators (`img * 2.0`), documented once, registered by hand.
-    Operator { ty: String },
+    Operator {
+        ty: String,
+    },
 }
 
 /// An example and its expected result: a Rhai expression compared by value (floats to a
@@ -129,12 +135,26 @@ impl Doc {
     }
     /// A required argument.
     pub fn arg(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
-        self.params.push(Param { name: name.into(), ty: ty.into(), unit: unit.into(), doc: doc.into(), optional: false, keys: vec![] });
+        self.params.push(Param {
+            name: name.into(),
+            ty: ty.into(),
+            unit: unit.into(),
+            doc: doc.into(),
+            optional: false,
+            keys: vec![],
+        });
         self
     }
     /// An optional argument (an overload without it exists).
     pub fn opt(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
-        self.params.push(Param { name: name.into(), ty: ty.into(), unit: unit.into(), doc: doc.into(), optional: true, keys: vec![] });
+        self.params.push(Param {
+            name: name.into(),
+            ty: ty.into(),
+            unit: unit.into(),
+            doc: doc.into(),
+            optional: true,
+            keys: vec![],
+        });
         self
     }
     /// A map argument with its keys `(name, type, unit, doc)`; a doc starting with
@@ -151,7 +171,14 @@ impl Doc {
                 keys: vec![],
             })
             .collect();
-        self.params.push(Param { name: name.into(), ty: "map".into(), unit: String::new(), doc: doc.into(), optional: false, keys });
+        self.params.push(Param {
+            name: name.into(),
+            ty: "map".into(),
+            unit: String::new(),
+            doc: doc.into(),
+            optional: false,
+            keys,
+        });
         self
     }
     pub fn returns(mut self, ty: &str, doc: &str) -> Doc {
@@ -167,7 +194,10 @@ impl Doc {
         self
     }
     pub fn example(mut self, code: &str, expect: &str) -> Doc {
-        self.examples.push(Example { code: code.into(), expect: expect.into() });
+        self.examples.push(Example {
+            code: code.into(),
+            expect: expect.into(),
+        });
         self
     }
     /// Another call form shown in the usage (an overload).
@@ -194,7 +224,14 @@ impl Doc {
                 let s = if p.keys.is_empty() {
                     p.name.clone()
                 } else {
-                    format!("#{{{}}}", p.keys.iter().map(|k| k.name.as_str()).collect::<Vec<_>>().join(", "))
+                    format!(
+                        "#{{{}}}",
+                        p.keys
+                            .iter()
+                            .map(|k| k.name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
                 };
                 if p.optional {
                     format!("[{s}]")
@@ -208,7 +245,11 @@ impl Doc {
             Kind::Function => format!("{}({args})", self.name),
             Kind::Method { ty } => format!("{}.{}({args})", Self::receiver(ty), self.name),
             Kind::Property { ty } => format!("{}.{}", Self::receiver(ty), self.name),
-            Kind::Operator { .. } => self.forms.first().cloned().unwrap_or_else(|| self.name.clone()),
+            Kind::Operator { .. } => self
+                .forms
+                .first()
+                .cloned()
+                .unwrap_or_else(|| self.name.clone()),
         }
     }
 
@@ -241,14 +282,27 @@ impl Doc {
                 add(&k.unit, &k.name);
             }
         }
-        groups.iter().map(|(u, n)| format!("{}: {u}", n.join(", "))).collect::<Vec<_>>().join("; ")
+        groups
+            .iter()
+            .map(|(u, n)| format!("{}: {u}", n.join(", ")))
+            .collect::<Vec<_>>()
+            .join("; ")
     }
 
     /// One line for `help()`: signature, summary, units.
     pub fn one_line(&self) -> String {
         let u = self.units();
-        let units = if u.is_empty() { String::new() } else { format!("  [{u}]") };
-        format!("{:<34} {}{units}", self.signature(), self.summary)
+        let units = if u.is_empty() {
+            String::new()
+        } else {
+            format!("  [{u}]")
+        };
+        let sig = self.signature();
+        if sig.chars().count() > 34 {
+            format!("{sig}\n      {:<30} {}{units}", "", self.summary)
+        } else {
+            format!("{sig:<34} {}{units}", self.summary)
+        }
     }
 
     /// The long help for `help("name")`.
@@ -268,7 +322,9 @@ impl Doc {
             s.push('\n');
         }
         if self.returns.0 != "()" || !self.returns.1.is_empty() {
-            s.push_str(&format!("returns: {} {}\n", self.returns.0, self.returns.1).replace(" \n", "\n"));
+            s.push_str(
+                &format!("returns: {} {}\n", self.returns.0, self.returns.1).replace(" \n", "\n"),
+            );
         }
         if !self.help.is_empty() {
             s.push('\n');
@@ -288,14 +344,22 @@ impl Doc {
     pub fn spec(&self) -> Arc<Spec> {
         Arc::new(Spec {
             name: self.name.clone(),
-            keys: self.params.iter().flat_map(|p| p.keys.iter().map(|k| k.name.clone())).collect(),
+            keys: self
+                .params
+                .iter()
+                .flat_map(|p| p.keys.iter().map(|k| k.name.clone()))
+                .collect(),
             usage: self.usage(),
         })
     }
 }
 
 fn param_line(p: &Param, indent: &str) -> String {
-    let unit = if p.unit.is_empty() { String::new() } else { format!(" [{}]", p.unit) };
+    let unit = if p.unit.is_empty() {
+        String::new()
+    } else {
+        format!(" [{}]", p.unit)
+    };
     let opt = if p.optional { " (optional)" } else { "" };
     format!("{indent}{:<10} {}{unit}{opt}  {}", p.name, p.ty, p.doc)
 }
@@ -323,7 +387,10 @@ impl<'a> Registrar<'a> {
 
     fn push(&mut self, doc: Doc) {
         debug_assert!(
-            !self.docs.iter().any(|d| d.name == doc.name && d.family == doc.family),
+            !self
+                .docs
+                .iter()
+                .any(|d| d.name == doc.name && d.family == doc.family),
             "binding {} declared twice",
             doc.name
         );
@@ -331,7 +398,13 @@ impl<'a> Registrar<'a> {
     }
 
     /// Declare and register a function or method (Rhai name = `doc.name`).
-    pub fn bind<A: 'static, const N: usize, const X: bool, R: Any + Clone + Send + Sync, const F: bool>(
+    pub fn bind<
+        A: 'static,
+        const N: usize,
+        const X: bool,
+        R: Any + Clone + Send + Sync,
+        const F: bool,
+    >(
         &mut self,
         doc: Doc,
         f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
@@ -341,12 +414,21 @@ impl<'a> Registrar<'a> {
     }
 
     /// Register another form (arity or argument types) of an already declared binding.
-    pub fn overload<A: 'static, const N: usize, const X: bool, R: Any + Clone + Send + Sync, const F: bool>(
+    pub fn overload<
+        A: 'static,
+        const N: usize,
+        const X: bool,
+        R: Any + Clone + Send + Sync,
+        const F: bool,
+    >(
         &mut self,
         name: &str,
         f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
     ) {
-        debug_assert!(self.docs.iter().any(|d| d.name == name), "overload of undeclared {name}");
+        debug_assert!(
+            self.docs.iter().any(|d| d.name == name),
+            "overload of undeclared {name}"
+        );
         self.engine.register_fn(name, f);
     }
 
@@ -369,7 +451,8 @@ impl<'a> Registrar<'a> {
 /// Number from an int or float argument; the message names the binding, the argument and the
 /// value.
 pub fn num(who: &str, name: &str, v: &Dynamic) -> RResult<f64> {
-    let x = to_f64(v).ok_or_else(|| format!("{who}: {name} must be a number, got {} {v}", v.type_name()))?;
+    let x = to_f64(v)
+        .ok_or_else(|| format!("{who}: {name} must be a number, got {} {v}", v.type_name()))?;
     if x.is_finite() {
         Ok(x)
     } else {
@@ -384,12 +467,17 @@ pub fn int(who: &str, name: &str, v: &Dynamic) -> RResult<i64> {
     }
     match v.as_float() {
         Ok(f) if f.fract() == 0.0 && f.abs() < 9e15 => Ok(f as i64),
-        _ => fail(format!("{who}: {name} must be an integer, got {} {v}", v.type_name())),
+        _ => fail(format!(
+            "{who}: {name} must be an integer, got {} {v}",
+            v.type_name()
+        )),
     }
 }
 
 pub fn to_f64(v: &Dynamic) -> Option<f64> {
-    v.as_float().ok().or_else(|| v.as_int().ok().map(|i| i as f64))
+    v.as_float()
+        .ok()
+        .or_else(|| v.as_int().ok().map(|i| i as f64))
 }
 
 /// Checked access to a map argument against the declared keys.
@@ -417,10 +505,16 @@ impl<'a> Opts<'a> {
         self.map.contains_key(key)
     }
     fn missing<T>(&self, key: &str) -> RResult<T> {
-        fail(format!("{}: missing key `{key}`; usage: {}", self.spec.name, self.spec.usage))
+        fail(format!(
+            "{}: missing key `{key}`; usage: {}",
+            self.spec.name, self.spec.usage
+        ))
     }
     pub fn f64(&self, key: &str) -> RResult<Option<f64>> {
-        self.map.get(key).map(|v| num(&self.spec.name, key, v)).transpose()
+        self.map
+            .get(key)
+            .map(|v| num(&self.spec.name, key, v))
+            .transpose()
     }
     pub fn f64_or(&self, key: &str, default: f64) -> RResult<f64> {
         Ok(self.f64(key)?.unwrap_or(default))
@@ -432,7 +526,10 @@ impl<'a> Opts<'a> {
         }
     }
     pub fn int(&self, key: &str) -> RResult<Option<i64>> {
-        self.map.get(key).map(|v| int(&self.spec.name, key, v)).transpose()
+        self.map
+            .get(key)
+            .map(|v| int(&self.spec.name, key, v))
+            .transpose()
     }
     pub fn req_int(&self, key: &str) -> RResult<i64> {
         match self.int(key)? {
@@ -444,7 +541,11 @@ impl<'a> Opts<'a> {
         match self.map.get(key) {
             None => Ok(default),
             Some(v) => v.as_bool().or_else(|_| {
-                fail(format!("{}: {key} must be true or false, got {} {v}", self.spec.name, v.type_name()))
+                fail(format!(
+                    "{}: {key} must be true or false, got {} {v}",
+                    self.spec.name,
+                    v.type_name()
+                ))
             }),
         }
     }
@@ -452,24 +553,35 @@ impl<'a> Opts<'a> {
         match self.map.get(key) {
             None => Ok(None),
             Some(v) if v.is_string() => Ok(Some(v.to_string())),
-            Some(v) => fail(format!("{}: {key} must be a string, got {} {v}", self.spec.name, v.type_name())),
+            Some(v) => fail(format!(
+                "{}: {key} must be a string, got {} {v}",
+                self.spec.name,
+                v.type_name()
+            )),
         }
     }
     /// `[from, to]` (µm).
     pub fn range(&self, key: &str) -> RResult<Option<(f64, f64)>> {
-        let Some(v) = self.map.get(key) else { return Ok(None) };
+        let Some(v) = self.map.get(key) else {
+            return Ok(None);
+        };
         let bad = || {
             fail(format!(
                 "{}: {key} must be [from, to] (two numbers, µm), got {v}; usage: {}",
                 self.spec.name, self.spec.usage
             ))
         };
-        let Some(a) = v.read_lock::<rhai::Array>() else { return bad() };
+        let Some(a) = v.read_lock::<rhai::Array>() else {
+            return bad();
+        };
         if a.len() != 2 {
             return bad();
         }
         let who = &self.spec.name;
-        Ok(Some((num(who, &format!("{key}[0]"), &a[0])?, num(who, &format!("{key}[1]"), &a[1])?)))
+        Ok(Some((
+            num(who, &format!("{key}[0]"), &a[0])?,
+            num(who, &format!("{key}[1]"), &a[1])?,
+        )))
     }
     pub fn req_range(&self, key: &str) -> RResult<(f64, f64)> {
         match self.range(key)? {
@@ -518,7 +630,10 @@ pub fn find<'d>(docs: &'d [Doc], name: &str) -> Vec<&'d Doc> {
         })
         .collect();
     if hits.is_empty() {
-        hits = docs.iter().filter(|d| d.name.eq_ignore_ascii_case(n) || d.family.eq_ignore_ascii_case(name)).collect();
+        hits = docs
+            .iter()
+            .filter(|d| d.name.eq_ignore_ascii_case(n) || d.family.eq_ignore_ascii_case(name))
+            .collect();
     }
     hits
 }
@@ -552,10 +667,17 @@ pub fn api_markdown(docs: &[Doc]) -> String {
     for f in &families {
         s.push_str(&format!("\n## {f}\n"));
         for d in docs.iter().filter(|d| d.family == *f) {
-            s.push_str(&format!("\n<a id=\"{}\"></a>\n### `{}`\n\n", anchor(d), d.signature()));
+            s.push_str(&format!(
+                "\n<a id=\"{}\"></a>\n### `{}`\n\n",
+                anchor(d),
+                d.signature()
+            ));
             s.push_str(&format!("{}\n\n", d.summary));
             if !d.forms.is_empty() {
-                s.push_str(&format!("Forms: `{}`\n\n", d.usage().replace("  |  ", "`, `")));
+                s.push_str(&format!(
+                    "Forms: `{}`\n\n",
+                    d.usage().replace("  |  ", "`, `")
+                ));
             }
             let rows: Vec<&Param> = d.params.iter().collect();
             if !rows.is_empty() {

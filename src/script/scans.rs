@@ -34,8 +34,13 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
         let run = run_plan(inst, &plan, &env).map_err(|e| e.to_string())?;
         match run.summary() {
             Ok(msg) => {
-                let t = run.scan.meta["time"]["instrument_s"].as_f64().unwrap_or(0.0);
-                c.log(&format!("{kind}: complete in {} instrument time, {msg}", crate::acquire::plan::fmt_seconds(t)));
+                let t = run.scan.meta["time"]["instrument_s"]
+                    .as_f64()
+                    .unwrap_or(0.0);
+                c.log(&format!(
+                    "{kind}: complete in {} instrument time, {msg}",
+                    crate::acquire::plan::fmt_seconds(t)
+                ));
                 let path = run.saved.ok().map(|p| p.display().to_string());
                 Ok(ScanRef::new(run.scan, path))
             }
@@ -45,9 +50,17 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
 }
 
 fn axis_arg(who: &str, v: &Dynamic, usage: &str) -> RResult<Axis> {
-    let s = if v.is_string() { v.to_string() } else { String::new() };
+    let s = if v.is_string() {
+        v.to_string()
+    } else {
+        String::new()
+    };
     Axis::parse(&s).map_or_else(
-        || fail(format!("{who}: axis = {v} is not one of \"x\", \"y\", \"z\"; usage: {usage}")),
+        || {
+            fail(format!(
+                "{who}: axis = {v} is not one of \"x\", \"y\", \"z\"; usage: {usage}"
+            ))
+        },
         Ok,
     )
 }
@@ -75,7 +88,10 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         ("rel".into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
         ("snake".into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
     ];
-    let keys_ref: Vec<(&str, &str, &str, &str)> = keys.iter().map(|(a, b, c, d)| (a.as_str(), *b, *c, d.as_str())).collect();
+    let keys_ref: Vec<(&str, &str, &str, &str)> = keys
+        .iter()
+        .map(|(a, b, c, d)| (a.as_str(), *b, *c, d.as_str()))
+        .collect();
     Doc::func(name, "scans")
         .map("plan", &format!("the {f}{s} raster"), &keys_ref)
         .returns("Scan", "sx, sy, sz images (columns along x-axis name, rows along the other), metadata; autosaved")
@@ -164,10 +180,29 @@ pub fn register(r: &mut Registrar) {
         let o = Opts::new(&spec, &m)?;
         let axis = match m.get("axis") {
             Some(a) => axis_arg("scan_line", a, &spec.usage)?,
-            None => return fail(format!("scan_line: missing key `axis`; usage: {}", spec.usage)),
+            None => {
+                return fail(format!(
+                    "scan_line: missing key `axis`; usage: {}",
+                    spec.usage
+                ))
+            }
         };
-        let sw = Sweep::new("scan_line", axis, o.req_f64("from")?, o.req_f64("to")?, o.req_int("n")?, "n").map_err(|e| e.0)?;
-        let plan = Plan::line("scan_line", sw, o.f64_or("dwell", DEFAULT_DWELL_S)?, o.bool_or("rel", false)?).map_err(|e| e.0)?;
+        let sw = Sweep::new(
+            "scan_line",
+            axis,
+            o.req_f64("from")?,
+            o.req_f64("to")?,
+            o.req_int("n")?,
+            "n",
+        )
+        .map_err(|e| e.0)?;
+        let plan = Plan::line(
+            "scan_line",
+            sw,
+            o.f64_or("dwell", DEFAULT_DWELL_S)?,
+            o.bool_or("rel", false)?,
+        )
+        .map_err(|e| e.0)?;
         execute(&c, plan)
     });
 
@@ -193,19 +228,41 @@ pub fn register(r: &mut Registrar) {
         d = if rel {
             d.example("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")
         } else {
-            d.example("let s = ascan(\"y\", -1, 1, 20, 0.001); [s.cols, s.x[20], pos().y]", "[21, 1.0, 1.0]")
+            d.example(
+                "let s = ascan(\"y\", -1, 1, 20, 0.001); [s.cols, s.x[20], pos().y]",
+                "[21, 1.0, 1.0]",
+            )
         };
-        d = d.example(&format!("{name}(\"x\", 0, 1)"), &format!("error: usage: {name}(axis, from, to, intervals, dwell)"));
+        d = d.example(
+            &format!("{name}(\"x\", 0, 1)"),
+            &format!("error: usage: {name}(axis, from, to, intervals, dwell)"),
+        );
         let spec = d.spec();
         let c = r.ctx();
-        r.bind(d, move |axis: Dynamic, from: Dynamic, to: Dynamic, n: Dynamic, dwell: Dynamic| -> RResult<ScanRef> {
-            let who = spec.name.as_str();
-            let axis = axis_arg(who, &axis, &spec.usage)?;
-            let n = intervals(who, "intervals", &n)?;
-            let sw = Sweep::new(who, axis, num(who, "from", &from)?, num(who, "to", &to)?, n, "points").map_err(|e| e.0)?;
-            let plan = Plan::line(who, sw, num(who, "dwell", &dwell)?, rel).map_err(|e| e.0)?;
-            execute(&c, plan)
-        });
+        r.bind(
+            d,
+            move |axis: Dynamic,
+                  from: Dynamic,
+                  to: Dynamic,
+                  n: Dynamic,
+                  dwell: Dynamic|
+                  -> RResult<ScanRef> {
+                let who = spec.name.as_str();
+                let axis = axis_arg(who, &axis, &spec.usage)?;
+                let n = intervals(who, "intervals", &n)?;
+                let sw = Sweep::new(
+                    who,
+                    axis,
+                    num(who, "from", &from)?,
+                    num(who, "to", &to)?,
+                    n,
+                    "points",
+                )
+                .map_err(|e| e.0)?;
+                let plan = Plan::line(who, sw, num(who, "dwell", &dwell)?, rel).map_err(|e| e.0)?;
+                execute(&c, plan)
+            },
+        );
     }
     for (name, rel) in [("mesh", false), ("dmesh", true)] {
         let what = if rel { "relative" } else { "absolute" };
@@ -213,7 +270,12 @@ pub fn register(r: &mut Registrar) {
             .arg("axis1", "string", "", "fast axis (columns)")
             .arg("from1", "float", "µm", "")
             .arg("to1", "float", "µm", "")
-            .arg("intervals1", "int", "", "intervals along axis1 (intervals1 + 1 points)")
+            .arg(
+                "intervals1",
+                "int",
+                "",
+                "intervals along axis1 (intervals1 + 1 points)",
+            )
             .arg("axis2", "string", "", "slow axis (rows)")
             .arg("from2", "float", "µm", "")
             .arg("to2", "float", "µm", "")
@@ -225,33 +287,65 @@ pub fn register(r: &mut Registrar) {
             d.help("Positions relative to the start; returns to the start at the end and after Ctrl-C.")
                 .example("let s = dmesh(\"x\", -0.5, 0.5, 4, \"z\", -0.2, 0.2, 2, 0.001); [s.cols, s.rows, s.axes, pos().z]", "[5, 3, [\"x\", \"z\"], 0.0]")
         } else {
-            d.example("let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]", "[11, 6]")
+            d.example(
+                "let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]",
+                "[11, 6]",
+            )
         };
-        d = d.example(&format!("{name}(\"x\", 0, 1, 4, \"x\", 0, 1, 4, 0.001)"), "error: both scan axes are x");
+        d = d.example(
+            &format!("{name}(\"x\", 0, 1, 4, \"x\", 0, 1, 4, 0.001)"),
+            "error: both scan axes are x",
+        );
         let spec = d.spec();
         let c = r.ctx();
         r.bind(
             d,
-            move |a1: Dynamic, f1: Dynamic, t1: Dynamic, n1: Dynamic, a2: Dynamic, f2: Dynamic, t2: Dynamic, n2: Dynamic, dwell: Dynamic| -> RResult<ScanRef> {
+            move |a1: Dynamic,
+                  f1: Dynamic,
+                  t1: Dynamic,
+                  n1: Dynamic,
+                  a2: Dynamic,
+                  f2: Dynamic,
+                  t2: Dynamic,
+                  n2: Dynamic,
+                  dwell: Dynamic|
+                  -> RResult<ScanRef> {
                 let who = spec.name.as_str();
                 let a1 = axis_arg(who, &a1, &spec.usage)?;
                 let a2 = axis_arg(who, &a2, &spec.usage)?;
-                let s1 = Sweep::new(who, a1, num(who, "from1", &f1)?, num(who, "to1", &t1)?, intervals(who, "intervals1", &n1)?, "points1").map_err(|e| e.0)?;
-                let s2 = Sweep::new(who, a2, num(who, "from2", &f2)?, num(who, "to2", &t2)?, intervals(who, "intervals2", &n2)?, "points2").map_err(|e| e.0)?;
-                let plan = Plan::grid(who, s1, s2, vec![], num(who, "dwell", &dwell)?, rel, false).map_err(|e| e.0)?;
+                let s1 = Sweep::new(
+                    who,
+                    a1,
+                    num(who, "from1", &f1)?,
+                    num(who, "to1", &t1)?,
+                    intervals(who, "intervals1", &n1)?,
+                    "points1",
+                )
+                .map_err(|e| e.0)?;
+                let s2 = Sweep::new(
+                    who,
+                    a2,
+                    num(who, "from2", &f2)?,
+                    num(who, "to2", &t2)?,
+                    intervals(who, "intervals2", &n2)?,
+                    "points2",
+                )
+                .map_err(|e| e.0)?;
+                let plan = Plan::grid(who, s1, s2, vec![], num(who, "dwell", &dwell)?, rel, false)
+                    .map_err(|e| e.0)?;
                 execute(&c, plan)
             },
         );
     }
 
-    // files (interim JSON format until data::npz lands)
+    // files (.npz through data::npz)
     let c = r.ctx();
     r.bind(
         Doc::method("Scan", "save")
             .arg("path", "string", "", "file to write (never overwritten)")
             .returns("string", "the path written")
             .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
-            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.json\"; s.save(p); load_scan(p).cols", "3")
+            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.npz\"; s.save(p); load_scan(p).cols", "3")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); s.save(s.path)", "error: exists; scans are never overwritten"),
         move |s: &mut ScanRef, path: &str| -> RResult<String> {
             let p = resolve(&c, path);
@@ -262,14 +356,26 @@ pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.bind(
         Doc::func("load_scan", "scans")
-            .arg("path", "string", "", "a scan file written by autosave or scan.save")
+            .arg(
+                "path",
+                "string",
+                "",
+                "a scan file written by autosave or scan.save",
+            )
             .returns("Scan", "")
             .summary("load a saved scan (unmeasured pixels come back as NaN)")
-            .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); load_scan(s.path).x", "[0.0, 0.5, 1.0]")
-            .example("load_scan(\"no/such/file.json\")", "error: load_scan: no/such/file.json"),
+            .example(
+                "let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); load_scan(s.path).x",
+                "[0.0, 0.5, 1.0]",
+            )
+            .example(
+                "load_scan(\"no/such/file.npz\")",
+                "error: load_scan: no/such/file.npz",
+            ),
         move |path: &str| -> RResult<ScanRef> {
             let p = resolve(&c, path);
-            let s = crate::acquire::store::load_scan(&p).map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
+            let s = crate::acquire::store::load_scan(&p)
+                .map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
             Ok(ScanRef::new(s, Some(p.display().to_string())))
         },
     );

@@ -35,32 +35,48 @@ pub fn test_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
 fn fresh_dir(tag: &str) -> PathBuf {
     use std::sync::atomic::{AtomicU64, Ordering};
     static N: AtomicU64 = AtomicU64::new(0);
-    std::env::temp_dir().join(format!("bfpscope-test-{}-{}-{tag}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)))
+    std::env::temp_dir().join(format!(
+        "bfpscope-test-{}-{}-{tag}",
+        std::process::id(),
+        N.fetch_add(1, Ordering::Relaxed)
+    ))
 }
 
 /// Run every test in `dir`; `base` provides the sandbox, limits and abort flag; printing goes
 /// to a per-test buffer shown only when the test fails. Writes the report to `out`.
-pub fn run_dir(dir: &Path, base: &Settings, out: &mut dyn Write) -> std::io::Result<Vec<TestResult>> {
+pub fn run_dir(
+    dir: &Path,
+    base: &Settings,
+    out: &mut dyn Write,
+) -> std::io::Result<Vec<TestResult>> {
     let files = test_files(dir)?;
     let mut results = vec![];
     for file in &files {
-        let fname = file.file_name().map(|f| f.to_string_lossy().to_string()).unwrap_or_default();
+        let fname = file
+            .file_name()
+            .map(|f| f.to_string_lossy().to_string())
+            .unwrap_or_default();
         // Compile once to find the test functions.
         let probe = Workbench::new(settings_for(base, "probe").0);
-        let fns: Vec<String> = match std::fs::read_to_string(file).map(|src| probe.engine.compile(&src)) {
-            Ok(Ok(ast)) => {
-                let mut v: Vec<String> = ast
-                    .iter_functions()
-                    .filter(|f| f.name.starts_with("test_") && f.params.is_empty())
-                    .map(|f| f.name.to_string())
-                    .collect();
-                v.sort();
-                v.dedup();
-                v
-            }
-            _ => vec![], // reported by the run below
+        let fns: Vec<String> =
+            match std::fs::read_to_string(file).map(|src| probe.engine.compile(&src)) {
+                Ok(Ok(ast)) => {
+                    let mut v: Vec<String> = ast
+                        .iter_functions()
+                        .filter(|f| f.name.starts_with("test_") && f.params.is_empty())
+                        .map(|f| f.name.to_string())
+                        .collect();
+                    v.sort();
+                    v.dedup();
+                    v
+                }
+                _ => vec![], // reported by the run below
+            };
+        let tests: Vec<Option<String>> = if fns.is_empty() {
+            vec![None]
+        } else {
+            fns.into_iter().map(Some).collect()
         };
-        let tests: Vec<Option<String>> = if fns.is_empty() { vec![None] } else { fns.into_iter().map(Some).collect() };
         for t in tests {
             let name = match &t {
                 Some(f) => format!("{fname}::{f}"),
@@ -84,7 +100,12 @@ pub fn run_dir(dir: &Path, base: &Settings, out: &mut dyn Write) -> std::io::Res
                 Ok(()) => {
                     writeln!(out, "ok    {name} ({secs:.2} s)")?;
                     let _ = std::fs::remove_dir_all(&dir);
-                    TestResult { name, passed: true, message: String::new(), seconds: secs }
+                    TestResult {
+                        name,
+                        passed: true,
+                        message: String::new(),
+                        seconds: secs,
+                    }
                 }
                 Err(e) => {
                     writeln!(out, "FAIL  {name}: {e}")?;
@@ -92,7 +113,12 @@ pub fn run_dir(dir: &Path, base: &Settings, out: &mut dyn Write) -> std::io::Res
                     for l in printed.lines().take(40) {
                         writeln!(out, "      | {l}")?;
                     }
-                    TestResult { name, passed: false, message: e.to_string(), seconds: secs }
+                    TestResult {
+                        name,
+                        passed: false,
+                        message: e.to_string(),
+                        seconds: secs,
+                    }
                 }
             };
             results.push(res);
@@ -127,7 +153,9 @@ pub fn values_match(a: &rhai::Dynamic, b: &rhai::Dynamic) -> bool {
         return x.len() == y.len() && x.iter().zip(y.iter()).all(|(p, q)| values_match(p, q));
     }
     if let (Some(x), Some(y)) = (a.read_lock::<rhai::Map>(), b.read_lock::<rhai::Map>()) {
-        return x.len() == y.len() && x.iter().all(|(k, v)| y.get(k).is_some_and(|w| values_match(v, w)));
+        return x.len() == y.len()
+            && x.iter()
+                .all(|(k, v)| y.get(k).is_some_and(|w| values_match(v, w)));
     }
     if a.is_unit() || b.is_unit() {
         return a.is_unit() && b.is_unit();
@@ -154,19 +182,37 @@ pub fn check_examples(docs: &[super::Doc]) -> (usize, Vec<String>) {
             match (ex.expect.strip_prefix("error:"), got) {
                 (Some(text), Err(e)) => {
                     if !e.message.contains(text.trim()) {
-                        failures.push(format!("{what}: error {:?} does not contain {:?}", e.message, text.trim()));
+                        failures.push(format!(
+                            "{what}: error {:?} does not contain {:?}",
+                            e.message,
+                            text.trim()
+                        ));
                     }
                 }
-                (Some(_), Ok(v)) => failures.push(format!("{what}: expected an error, got {}", super::show(&v))),
+                (Some(_), Ok(v)) => failures.push(format!(
+                    "{what}: expected an error, got {}",
+                    super::show(&v)
+                )),
                 (None, Err(e)) => failures.push(format!("{what}: failed: {e}")),
-                (None, Ok(v)) => match Workbench::new(settings_for(&Settings::default(), "expect").0).eval_source("expected", &ex.expect) {
-                    Err(e) => failures.push(format!("{what}: expected value `{}` does not evaluate: {e}", ex.expect)),
-                    Ok(want) => {
-                        if !values_match(&v, &want) {
-                            failures.push(format!("{what}: got {} (debug {v:?}), expected {}", super::show(&v), ex.expect));
+                (None, Ok(v)) => {
+                    match Workbench::new(settings_for(&Settings::default(), "expect").0)
+                        .eval_source("expected", &ex.expect)
+                    {
+                        Err(e) => failures.push(format!(
+                            "{what}: expected value `{}` does not evaluate: {e}",
+                            ex.expect
+                        )),
+                        Ok(want) => {
+                            if !values_match(&v, &want) {
+                                failures.push(format!(
+                                    "{what}: got {} (debug {v:?}), expected {}",
+                                    super::show(&v),
+                                    ex.expect
+                                ));
+                            }
                         }
                     }
-                },
+                }
             }
             let _ = std::fs::remove_dir_all(&dir);
         }

@@ -2,21 +2,21 @@
 //! a config snippet, serve until Ctrl-C (or end of input on a terminal).
 
 use super::{
-    shared_position, standin_bead, start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig,
-    SignalSource, StageEmulatorConfig,
+    shared_position, sim_signal_source, standin_bead, start_qpd_emulator, start_stage_emulator,
+    Emulator, QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
 };
+use crate::instrument::sim::{Renderer, SimConfig};
 use std::io::{IsTerminal, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// Where the CLI's stand-in bead sits (µm): the middle of the emulated travel range.
+/// Where the stand-in bead of [`run_emulator_cli`] sits (µm): the middle of the default
+/// emulated travel range.
 pub const BEAD: [f64; 3] = [50.0, 50.0, 10.0];
 
-/// Start the emulators named by `kind` (`stage`, `qpd`, or `both`: a stage and a QPD sharing
-/// the stage position) with the analytic stand-in bead at [`BEAD`] as the QPD's signal, print where they
-/// are and serve until Ctrl-C, or end of input when stdin is a terminal (Ctrl-D).
-pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
+/// A stop flag raised by Ctrl-C, or by end of input when stdin is a terminal (Ctrl-D).
+fn stop_on_ctrlc_or_eof() -> Arc<AtomicBool> {
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
@@ -24,61 +24,139 @@ pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
         // process as usual, which also stops the emulators.
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
     }
-    let stdin = std::io::stdin();
-    if stdin.is_terminal() {
+    if std::io::stdin().is_terminal() {
         let stop = stop.clone();
         std::thread::spawn(move || {
             let mut sink = String::new();
-            while std::io::stdin().read_line(&mut sink).map(|n| n > 0).unwrap_or(false) {
+            while std::io::stdin()
+                .read_line(&mut sink)
+                .map(|n| n > 0)
+                .unwrap_or(false)
+            {
                 sink.clear();
             }
             stop.store(true, Ordering::SeqCst);
         });
     }
-    // The stand-in bead sits in the middle of the emulated travel range.
+    stop
+}
+
+/// Start the emulators named by `kind` (`stage`, `qpd`, or `both`: a stage and a QPD sharing
+/// the stage position) with an analytic stand-in bead at [`BEAD`] as the QPD's signal, print
+/// where they are and serve until Ctrl-C, or end of input when stdin is a terminal (Ctrl-D).
+pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
+    let stop = stop_on_ctrlc_or_eof();
     let source = |p: [f64; 3]| standin_bead([p[0] - BEAD[0], p[1] - BEAD[1], p[2] - BEAD[2]]);
     run_emulator_cli_with(kind, source, &mut std::io::stdout(), stop)
 }
 
-/// As [`run_emulator_cli`], with the QPD signal from `source` (plug the simulator in here),
-/// printing to `out` and serving until `stop` is set.
+/// As [`run_emulator_cli`], with the simulator's signal: the QPD answers with the ideal signal
+/// of `renderer`'s scene (plus the emulator's detector noise) at the emulated stage position;
+/// the stage has the simulator's travel range and move time.
+pub fn run_emulator_cli_sim(
+    kind: &str,
+    renderer: Arc<Renderer>,
+    sim: &SimConfig,
+) -> anyhow::Result<()> {
+    let stop = stop_on_ctrlc_or_eof();
+    let qpd = QpdEmulatorConfig {
+        sample_rate_hz: sim.sample_rate,
+        ..QpdEmulatorConfig::default()
+    };
+    serve_emulators(
+        kind,
+        StageEmulatorConfig::like_sim(sim),
+        qpd,
+        sim_signal_source(renderer),
+        &mut std::io::stdout(),
+        stop,
+    )
+}
+
+/// As [`run_emulator_cli`], with the QPD signal from `source` (stage coordinates, default
+/// emulated travel 0–100 × 0–100 × 0–20 µm, parked at (45, 45, 10) µm), printing to `out` and
+/// serving until `stop` is set.
 pub fn run_emulator_cli_with(
     kind: &str,
     source: impl SignalSource,
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<()> {
-    let stage_cfg = StageEmulatorConfig { start: [45.0, 45.0, 10.0], ..StageEmulatorConfig::default() };
-    let pos = shared_position(stage_cfg.start);
+    let stage = StageEmulatorConfig {
+        start: [45.0, 45.0, 10.0],
+        ..StageEmulatorConfig::default()
+    };
+    serve_emulators(kind, stage, QpdEmulatorConfig::default(), source, out, stop)
+}
+
+fn range(t: (f64, f64)) -> String {
+    format!("{}–{}", t.0, t.1)
+}
+
+/// Start the emulators named by `kind` with these settings, print their paths and a
+/// `bfpscope.toml` snippet to `out`, and serve until `stop` is set or every emulator has
+/// stopped (unplug fault).
+pub fn serve_emulators(
+    kind: &str,
+    stage_cfg: StageEmulatorConfig,
+    qpd_cfg: QpdEmulatorConfig,
+    source: impl SignalSource,
+    out: &mut dyn Write,
+    stop: Arc<AtomicBool>,
+) -> anyhow::Result<()> {
+    let stage_desc = format!(
+        "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off)",
+        stage_cfg.axes.join(" "),
+        range(stage_cfg.travel[0]),
+        range(stage_cfg.travel[1]),
+        range(stage_cfg.travel[2])
+    );
+    let qpd_desc = format!(
+        "SCPI QPD digitiser ({} Hz, {:?} V per signal unit)",
+        qpd_cfg.sample_rate_hz, qpd_cfg.volts_per_unit
+    );
+    let axes = stage_cfg.axes.clone();
+    let start = stage_cfg.start;
+    let pos = shared_position(start);
     let mut emus: Vec<Emulator> = Vec::new();
     match kind {
         "stage" => emus.push(start_stage_emulator(stage_cfg, pos)?),
-        "qpd" => emus.push(start_qpd_emulator(QpdEmulatorConfig::default(), pos, source)?),
+        "qpd" => emus.push(start_qpd_emulator(qpd_cfg, pos, source)?),
         "both" | "pair" | "all" => {
             emus.push(start_stage_emulator(stage_cfg, pos.clone())?);
-            emus.push(start_qpd_emulator(QpdEmulatorConfig::default(), pos, source)?);
+            emus.push(start_qpd_emulator(qpd_cfg, pos, source)?);
         }
-        other => anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)"),
+        other => {
+            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)")
+        }
     }
     for e in &emus {
-        let what = match e.kind() {
-            "stage" => "PI GCS 2.0 stage (axes A B C, travel 0–100 × 0–100 × 0–20 µm, servo off)",
-            _ => "SCPI QPD digitiser (100 kHz, 1 V per signal unit)",
+        let what = if e.kind() == "stage" {
+            &stage_desc
+        } else {
+            &qpd_desc
         };
         writeln!(out, "{}: {what} on {}", e.kind(), e.path())?;
     }
     if kind == "qpd" {
-        writeln!(out, "(the QPD alone sees a stage parked at (45, 45, 10) µm; use `both` to scan)")?;
+        writeln!(
+            out,
+            "(the QPD alone sees a stage parked at {start:?} µm; use `both` to scan)"
+        )?;
     }
     writeln!(out, "\n# bfpscope.toml for these emulators:")?;
     for e in &emus {
-        match e.kind() {
-            "stage" => writeln!(
+        if e.kind() == "stage" {
+            writeln!(
                 out,
-                "[stage]\nbackend = \"gcs\"\nport = \"{}\"\naxes = {{ x = \"A\", y = \"B\", z = \"C\" }}\n",
-                e.path()
-            )?,
-            _ => writeln!(out, "[qpd]\nbackend = \"scpi\"\nport = \"{}\"\n", e.path())?,
+                "[stage]\nbackend = \"gcs\"\nport = \"{}\"\naxes = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\n",
+                e.path(),
+                axes[0],
+                axes[1],
+                axes[2]
+            )?;
+        } else {
+            writeln!(out, "[qpd]\nbackend = \"scpi\"\nport = \"{}\"\n", e.path())?;
         }
     }
     writeln!(out, "Serving until Ctrl-C.")?;

@@ -16,7 +16,7 @@ mod cli;
 mod qpd;
 mod stage;
 
-pub use cli::{run_emulator_cli, run_emulator_cli_with};
+pub use cli::{run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators};
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
 pub use stage::{start_stage_emulator, StageEmulatorConfig};
 
@@ -50,6 +50,19 @@ pub fn standin_bead(p: Pos) -> [f64; 3] {
     [x * g, y * g, 0.2 * g]
 }
 
+/// The simulator as a signal source: the ideal (noise-free) signal of `renderer`'s scene at
+/// the stage position, evaluated like a one-pixel `render_grid_ideal`. The emulator adds its own
+/// detector noise (`QpdEmulatorConfig::noise_v`); instrument effects of the scene (drift,
+/// pointing noise, …) are not applied.
+pub fn sim_signal_source(
+    renderer: std::sync::Arc<crate::instrument::sim::Renderer>,
+) -> impl SignalSource {
+    move |p: Pos| {
+        let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
+        [g[0][0], g[1][0], g[2][0]]
+    }
+}
+
 /// Fault-injection switches. Change them at run time with [`Emulator::faults`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Faults {
@@ -61,7 +74,12 @@ pub struct Faults {
     /// Reject the next command (other than the error query itself) with this error code: the
     /// command is not executed, a query gets no reply, and the error query returns the code.
     pub error_next: Option<i64>,
-    /// Serve this many more commands, then close the port (unplugged cable, power loss).
+    /// `Some((n, code))`: serve n more commands normally, then reject the next command (other
+    /// than the error query) with `code`, as `error_next` does. Deterministic mid-sequence
+    /// errors (the 3rd `MOV` of a scan, …).
+    pub error_after: Option<(usize, i64)>,
+    /// Serve this many more commands, then close the port (unplugged cable, power loss). The
+    /// last reply is sent 50 ms before the line goes dead; commands sent meanwhile are lost.
     pub unplug_after: Option<usize>,
     /// Stage: time to settle on a new target in s, overriding the configured settle time
     /// (slow settling).
@@ -77,6 +95,7 @@ impl Default for Faults {
             silent: false,
             garble_replies: 0,
             error_next: None,
+            error_after: None,
             unplug_after: None,
             settle_s: None,
             reject_out_of_range: true,
@@ -87,7 +106,11 @@ impl Default for Faults {
 /// Garbled form of a reply (see [`Faults::garble_replies`]).
 pub fn garble(reply: &str) -> Vec<u8> {
     let mut out = vec![0xFF];
-    out.extend(reply.bytes().map(|b| if b.is_ascii_digit() { b'#' } else { b }));
+    out.extend(
+        reply
+            .bytes()
+            .map(|b| if b.is_ascii_digit() { b'#' } else { b }),
+    );
     out
 }
 
@@ -196,8 +219,19 @@ fn spawn(
         stop: stop.clone(),
         finished: finished.clone(),
     };
-    let thread = std::thread::Builder::new().name(format!("emulator-{kind}")).spawn(move || ctx.run())?;
-    Ok(Emulator { path, kind, faults, log, stop, finished, position, thread: Some(thread) })
+    let thread = std::thread::Builder::new()
+        .name(format!("emulator-{kind}"))
+        .spawn(move || ctx.run())?;
+    Ok(Emulator {
+        path,
+        kind,
+        faults,
+        log,
+        stop,
+        finished,
+        position,
+        thread: Some(thread),
+    })
 }
 
 struct Serve<D: Device> {
@@ -230,11 +264,16 @@ impl<D: Device> Serve<D> {
             }
             while let Some(i) = buf.iter().position(|&b| b == b'\n') {
                 let raw: Vec<u8> = buf.drain(..=i).collect();
-                let line = String::from_utf8_lossy(&raw[..raw.len() - 1]).trim_end_matches('\r').to_string();
+                let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
+                    .trim_end_matches('\r')
+                    .to_string();
                 if line.trim().is_empty() {
                     continue;
                 }
                 if !self.serve_line(&line) {
+                    // Let the last reply reach the client before the line goes dead (a
+                    // pseudo-terminal that hangs up with data pending loses that data).
+                    std::thread::sleep(Duration::from_millis(50));
                     break 'serve;
                 }
             }
@@ -258,7 +297,16 @@ impl<D: Device> Serve<D> {
         self.device.tick();
         let (silent, inject, garble_it) = {
             let mut f = lock(&self.faults);
-            let inject = if f.error_next.is_some() && !self.device.is_error_query(line) {
+            let is_err_query = self.device.is_error_query(line);
+            if let Some((0, code)) = f.error_after {
+                if !is_err_query {
+                    f.error_after = None;
+                    f.error_next = Some(code);
+                }
+            } else if let Some((n, code)) = f.error_after {
+                f.error_after = Some((n - 1, code));
+            }
+            let inject = if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
             } else {
                 None
@@ -280,7 +328,12 @@ impl<D: Device> Serve<D> {
                 r.into_bytes()
             };
             bytes.push(b'\n');
-            if self.master.write_all(&bytes).and_then(|_| self.master.flush()).is_err() {
+            if self
+                .master
+                .write_all(&bytes)
+                .and_then(|_| self.master.flush())
+                .is_err()
+            {
                 // The client went away mid-reply; keep serving for the next one.
             }
         }

@@ -137,7 +137,13 @@ impl ScpiDevice {
             }
             let mean = sum / n as f64;
             out[c] = v + mean;
-            out[c + 3] = if n > 1 { ((sum2 - n as f64 * mean * mean) / (n as f64 - 1.0)).max(0.0).sqrt() } else { 0.0 };
+            out[c + 3] = if n > 1 {
+                ((sum2 - n as f64 * mean * mean) / (n as f64 - 1.0))
+                    .max(0.0)
+                    .sqrt()
+            } else {
+                0.0
+            };
         }
         if self.cfg.realtime {
             let t = (n as f64 / self.cfg.sample_rate_hz).min(10.0);
@@ -198,7 +204,9 @@ impl Device for ScpiDevice {
             match arg.map(str::parse::<i64>) {
                 None => self.push_error(-109),
                 Some(Err(_)) => self.push_error(-104),
-                Some(Ok(n)) if n < 1 || n as u64 > self.cfg.max_count as u64 => self.push_error(-222),
+                Some(Ok(n)) if n < 1 || n as u64 > self.cfg.max_count as u64 => {
+                    self.push_error(-222)
+                }
                 Some(Ok(n)) => self.count = n as usize,
             }
             return None;
@@ -232,7 +240,14 @@ pub fn start_qpd_emulator(
 ) -> std::io::Result<Emulator> {
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
     let rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed);
-    let dev = ScpiDevice { cfg, count: 1, errors: VecDeque::new(), position: position.clone(), source: Box::new(source), rng };
+    let dev = ScpiDevice {
+        cfg,
+        count: 1,
+        errors: VecDeque::new(),
+        position: position.clone(),
+        source: Box::new(source),
+        rng,
+    };
     spawn("qpd", dev, faults, position)
 }
 
@@ -252,7 +267,11 @@ mod tests {
     }
 
     fn dev(noise: f64) -> ScpiDevice {
-        let cfg = QpdEmulatorConfig { noise_v: [noise; 3], realtime: false, ..Default::default() };
+        let cfg = QpdEmulatorConfig {
+            noise_v: [noise; 3],
+            realtime: false,
+            ..Default::default()
+        };
         ScpiDevice {
             cfg,
             count: 1,
@@ -274,7 +293,9 @@ mod tests {
         for _ in 0..20 {
             d.handle("BOGUS");
         }
-        let codes: Vec<String> = (0..QUEUE + 1).map(|_| d.handle("SYST:ERR?").unwrap()).collect();
+        let codes: Vec<String> = (0..QUEUE + 1)
+            .map(|_| d.handle("SYST:ERR?").unwrap())
+            .collect();
         assert!(codes[QUEUE - 1].starts_with("-350"), "{codes:?}");
         assert!(codes[QUEUE].starts_with("0,"));
     }

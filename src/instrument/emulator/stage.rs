@@ -1,6 +1,6 @@
 //! A PI GCS 2.0 piezo controller emulator: three closed-loop axes with a travel range, servo
 //! state, settle dynamics (the position ramps linearly from where it was to the target over
-//! the settle time; `ONT?` reports 0 until it arrives) and GCS's single error register
+//! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
 //! (`ERR?` returns the last error and clears it).
 //!
 //! Commands: `*IDN?`, `ERR?`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`, `ONT?`, `TMN?`, `TMX?`,
@@ -22,8 +22,11 @@ pub struct StageEmulatorConfig {
     pub travel: [(f64, f64); 3],
     /// Position at power-on, µm (clamped into the travel range).
     pub start: Pos,
-    /// Time to settle on a new target, s.
+    /// Time to settle on a new target, s (linear ramp).
     pub settle_s: f64,
+    /// `ONT?` reports 1 once the position is within this distance of the target, µm (the
+    /// controller's settling window).
+    pub on_target_window_um: f64,
     /// Servo state at power-on.
     pub servo_on: bool,
     /// `*IDN?` reply.
@@ -40,10 +43,22 @@ impl Default for StageEmulatorConfig {
             travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
             start: [0.0; 3],
             settle_s: 0.002,
+            on_target_window_um: 0.001,
             servo_on: false,
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
                 .into(),
             faults: Faults::default(),
+        }
+    }
+}
+
+impl StageEmulatorConfig {
+    /// A stage like the simulator's: same travel range and move time, parked at the origin.
+    pub fn like_sim(sim: &crate::instrument::sim::SimConfig) -> Self {
+        Self {
+            travel: sim.travel,
+            settle_s: sim.move_time_s,
+            ..Self::default()
         }
     }
 }
@@ -65,17 +80,25 @@ struct GcsDevice {
 
 impl GcsDevice {
     fn settle(&self) -> f64 {
-        lock(&self.faults).settle_s.unwrap_or(self.cfg.settle_s).max(0.0)
+        lock(&self.faults)
+            .settle_s
+            .unwrap_or(self.cfg.settle_s)
+            .max(0.0)
     }
 
     /// Position and on-target flag of axis `i` now.
     fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
-        let f = if settle > 0.0 { now.duration_since(a.t0).as_secs_f64() / settle } else { 1.0 };
+        let f = if settle > 0.0 {
+            now.duration_since(a.t0).as_secs_f64() / settle
+        } else {
+            1.0
+        };
         if f >= 1.0 {
             (a.target, true)
         } else {
-            (a.from + (a.target - a.from) * f, false)
+            let p = a.from + (a.target - a.from) * f;
+            (p, (p - a.target).abs() <= self.cfg.on_target_window_um)
         }
     }
 
@@ -115,7 +138,7 @@ impl GcsDevice {
 
     /// `AXIS value AXIS value …` pairs. Error 1 for a malformed list, 15 for an unknown axis.
     fn pairs(&mut self, args: &[&str]) -> Option<Vec<(usize, f64)>> {
-        if args.is_empty() || args.len() % 2 != 0 {
+        if args.is_empty() || !args.len().is_multiple_of(2) {
             self.set_error(1);
             return None;
         }
@@ -138,7 +161,10 @@ impl GcsDevice {
 
     /// A multi-line `AXIS=value` reply: every line but the last ends with a space.
     fn reply(&self, idx: &[usize], f: impl Fn(usize) -> String) -> String {
-        let lines: Vec<String> = idx.iter().map(|&i| format!("{}={}", self.cfg.axes[i], f(i))).collect();
+        let lines: Vec<String> = idx
+            .iter()
+            .map(|&i| format!("{}={}", self.cfg.axes[i], f(i)))
+            .collect();
         lines.join(" \n")
     }
 
@@ -245,17 +271,33 @@ impl Device for GcsDevice {
 
 /// Start a GCS stage emulator on a new pseudo-terminal. `position` is updated with the
 /// emulated position (µm) as the stage moves (share it with a QPD emulator).
-pub fn start_stage_emulator(cfg: StageEmulatorConfig, position: SharedPosition) -> std::io::Result<Emulator> {
+pub fn start_stage_emulator(
+    cfg: StageEmulatorConfig,
+    position: SharedPosition,
+) -> std::io::Result<Emulator> {
     let now = Instant::now();
     let mut axes = Vec::new();
     for i in 0..3 {
         let (lo, hi) = cfg.travel[i];
         let x = cfg.start[i].clamp(lo.min(hi), hi.max(lo));
-        axes.push(Axis { from: x, target: x, t0: now, servo: cfg.servo_on });
+        axes.push(Axis {
+            from: x,
+            target: x,
+            t0: now,
+            servo: cfg.servo_on,
+        });
     }
-    let axes: [Axis; 3] = axes.try_into().map_err(|_| std::io::Error::other("three axes"))?;
+    let axes: [Axis; 3] = axes
+        .try_into()
+        .map_err(|_| std::io::Error::other("three axes"))?;
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
-    let dev = GcsDevice { cfg, axes, error: 0, faults: faults.clone(), position: position.clone() };
+    let dev = GcsDevice {
+        cfg,
+        axes,
+        error: 0,
+        faults: faults.clone(),
+        position: position.clone(),
+    };
     dev.publish();
     spawn("stage", dev, faults, position)
 }

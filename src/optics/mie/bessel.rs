@@ -38,12 +38,12 @@ const CF_TOL: f64 = 1e-15;
 pub(crate) fn cdiv(a: C64, b: C64) -> C64 {
     if b.re.abs() >= b.im.abs() {
         let r = b.im / b.re;
-        let den = b.re + b.im * r;
-        C64::new((a.re + a.im * r) / den, (a.im - a.re * r) / den)
+        let inv = 1.0 / (b.re + b.im * r);
+        C64::new((a.re + a.im * r) * inv, (a.im - a.re * r) * inv)
     } else {
         let r = b.re / b.im;
-        let den = b.re * r + b.im;
-        C64::new((a.re * r + a.im) / den, (a.im * r - a.re) / den)
+        let inv = 1.0 / (b.re * r + b.im);
+        C64::new((a.re * r + a.im) * inv, (a.im * r - a.re) * inv)
     }
 }
 
@@ -51,6 +51,19 @@ pub(crate) fn cdiv(a: C64, b: C64) -> C64 {
 #[inline]
 pub(crate) fn crecip(b: C64) -> C64 {
     cdiv(C64::new(1.0, 0.0), b)
+}
+
+/// `1 / b` with a single real division when |b|² is safely inside the normal range, else
+/// Smith's method ([`cdiv`]); same result to rounding, used in the hot recurrences.
+#[inline]
+pub(crate) fn crecip_fast(b: C64) -> C64 {
+    let n2 = b.re * b.re + b.im * b.im;
+    if n2 > 1e-290 && n2 < 1e290 {
+        let inv = 1.0 / n2;
+        C64::new(b.re * inv, -b.im * inv)
+    } else {
+        crecip(b)
+    }
 }
 
 /// Replace an (almost) exactly vanishing complex number by `TINY`, as in the modified Lentz
@@ -95,8 +108,8 @@ pub(crate) fn psi_ratio_cf(n: usize, z: C64) -> Result<C64, CfNoConvergence> {
     for k in 1..=max_iter {
         let bk = b(k);
         // partial numerators are all −1: D_k = b_k − D_{k−1}, C_k = b_k − 1/C_{k−1}
-        d = crecip(guard(bk - d));
-        c = guard(bk - crecip(c));
+        d = crecip_fast(guard(bk - d));
+        c = guard(bk - crecip_fast(c));
         let delta = c * d;
         f *= delta;
         if (delta - 1.0).norm_sqr() <= CF_TOL * CF_TOL {
@@ -145,7 +158,26 @@ pub(crate) fn log_derivatives(z: C64, n_max: usize) -> Result<Vec<C64>, CfNoConv
     d[n_max - 1] = r - zinv * (n_max as f64);
     // r_{n−1} = (2n−1)/z − 1/r_n  and  D_{n−1} = r_{n−1} − (n−1)/z
     for n in (2..=n_max).rev() {
-        let rn1 = zinv * ((2 * n - 1) as f64) - crecip(guard(r));
+        let rn1 = zinv * ((2 * n - 1) as f64) - crecip_fast(guard(r));
+        d[n - 2] = rn1 - zinv * ((n - 1) as f64);
+        r = rn1;
+    }
+    Ok(d)
+}
+
+/// Real-argument version of [`log_derivatives`] (real relative index): D_1(z) … D_N(z) for
+/// real z > 0, in real arithmetic (same recurrence and continued-fraction start).
+pub(crate) fn log_derivatives_real(z: f64, n_max: usize) -> Result<Vec<f64>, CfNoConvergence> {
+    let mut d = vec![0.0; n_max];
+    if n_max == 0 {
+        return Ok(d);
+    }
+    let zinv = 1.0 / z;
+    let mut r = psi_ratio_cf_real(n_max, z)?;
+    d[n_max - 1] = r - zinv * (n_max as f64);
+    for n in (2..=n_max).rev() {
+        let g = if r.abs() < TINY { TINY } else { r };
+        let rn1 = zinv * ((2 * n - 1) as f64) - 1.0 / g;
         d[n - 2] = rn1 - zinv * ((n - 1) as f64);
         r = rn1;
     }
@@ -167,9 +199,10 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
     }
     let n_up = (x.floor() as usize).min(n_max);
     // upward: ψ_n = (2n−1)/x ψ_{n−1} − ψ_{n−2}
+    let xinv = 1.0 / x;
     let mut prev = x.cos(); // ψ_{−1}
     for n in 1..=n_up {
-        let next = ((2 * n - 1) as f64) / x * psi[n - 1] - prev;
+        let next = ((2 * n - 1) as f64) * xinv * psi[n - 1] - prev;
         prev = psi[n - 1];
         psi[n] = next;
     }
@@ -181,7 +214,7 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
     let mut r = psi_ratio_cf_real(n_max, x)?;
     ratios[n_max] = r;
     for n in ((n_up + 2)..=n_max).rev() {
-        r = ((2 * n - 1) as f64) / x - 1.0 / r;
+        r = ((2 * n - 1) as f64) * xinv - 1.0 / r;
         ratios[n - 1] = r;
     }
     for n in (n_up + 1)..=n_max {
@@ -197,7 +230,7 @@ mod tests {
     /// Closed forms: ψ_1(x) = sin x/x − cos x, D_1(z) = −1/z + 1/(1/z − cot z) (from ψ_1).
     #[test]
     fn psi_and_d1_match_closed_forms() {
-        for &x in &[1e-3, 0.1, 0.7, 1.0, 3.3, 25.0, 300.5] {
+        for &x in &[1e-3f64, 0.1, 0.7, 1.0, 3.3, 25.0, 300.5] {
             let psi = riccati_psi(x, 60).unwrap();
             let p1 = x.sin() / x - x.cos();
             assert!(
@@ -225,7 +258,8 @@ mod tests {
 
     /// ψ_n(x) must satisfy the three-term recurrence at every order, including n > x where
     /// the upward recurrence itself would be unstable; and the Wronskian
-    /// ψ_n χ_{n−1} − ψ_{n−1} χ_n = 1 (BH §4.8) with χ from the upward recurrence.
+    /// ψ_n χ_{n−1} − ψ_{n−1} χ_n = −1 (from j_n y_{n−1} − j_{n−1} y_n = 1/x², Abramowitz &
+    /// Stegun 10.1.6) with χ from the upward recurrence.
     #[test]
     fn psi_recurrence_and_wronskian() {
         for &x in &[0.3f64, 2.0, 17.0, 140.0] {
@@ -238,7 +272,7 @@ mod tests {
                 chi_prev = chi;
                 chi = chi_next;
                 let w = psi[n] * chi_prev - psi[n - 1] * chi;
-                assert!((w - 1.0).abs() < 1e-10, "x={x} n={n} W={w}");
+                assert!((w + 1.0).abs() < 1e-10, "x={x} n={n} W={w}");
                 let lhs = psi[n + 1];
                 let rhs = ((2 * n + 1) as f64) / x * psi[n] - psi[n - 1];
                 assert!(

@@ -1,0 +1,866 @@
+//! Physics and simulation bindings: `optics`, `set_optics`, `response`, `p_scat_ratio`,
+//! `trap_depth_kt`, `n_corr`, `sphere_mass_kda`, `max_sensitivity_model`, `scene()` with its
+//! methods, `simulate`, `pipeline`, `mie_q`, `mie`. Units at the boundary: µm for positions, nm for
+//! diameters and wavelengths, mW for power (docs/physics.md).
+
+use super::ctx::Ctx;
+use super::registry::{fail, num, Doc, Opts, RResult, Registrar};
+use super::types::{floats, json_to_dynamic, ScanRef};
+use crate::instrument::sim::scene::{
+    Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
+};
+use crate::instrument::sim::{render_xy, SimConfig, SimCore};
+use crate::optics::calc::{
+    n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
+};
+use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
+use crate::optics::params::Optics;
+use crate::optics::rayleigh::{alpha_um3, response, Detection, DetectorModel};
+use rhai::{Array, Dynamic, Map, INT};
+use std::sync::{Arc, Mutex};
+
+/// A scene in scripts (cloned by value like every Rhai value; small).
+#[derive(Debug, Clone, Default)]
+pub struct SceneRef(pub Scene);
+
+/// The simulated instrument the bindings installed (to re-render after `set_optics`).
+#[derive(Clone, Default)]
+struct SimSlot(Arc<Mutex<Option<SimCore>>>);
+
+fn optics_map(o: &Optics) -> Map {
+    let mut m = Map::new();
+    m.insert("wavelength_nm".into(), o.wavelength_nm.into());
+    m.insert("n_medium".into(), o.n_medium.into());
+    m.insert("w0_nm".into(), o.w0_nm.into());
+    m.insert("na".into(), o.na.into());
+    m.insert("qpd_na".into(), o.qpd_na.into());
+    m.insert("power_mw".into(), o.power_mw.into());
+    m.insert("n_theta".into(), (o.n_theta as INT).into());
+    m.insert("n_phi".into(), (o.n_phi as INT).into());
+    m
+}
+
+fn err(who: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
+    format!("{who}: {e}").into()
+}
+
+fn optics_of(ctx: &Ctx) -> Optics {
+    ctx.optics.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
+/// `[[x, y], ...]` → polyline.
+fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!(
+            "{who}: points must be an array of [x, y] pairs (µm), got {v}"
+        ));
+    };
+    a.iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let Some(q) = p.read_lock::<Array>() else {
+                return fail(format!("{who}: points[{i}] must be [x, y] (µm), got {p}"));
+            };
+            if q.len() != 2 {
+                return fail(format!(
+                    "{who}: points[{i}] must have 2 numbers [x, y], got {} values",
+                    q.len()
+                ));
+            }
+            Ok([
+                num(who, &format!("points[{i}][0]"), &q[0])?,
+                num(who, &format!("points[{i}][1]"), &q[1])?,
+            ])
+        })
+        .collect()
+}
+
+fn pair(who: &str, key: &str, v: &Dynamic) -> RResult<[f64; 2]> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!("{who}: {key} must be [lo, hi], got {v}"));
+    };
+    if a.len() != 2 {
+        return fail(format!(
+            "{who}: {key} must be [lo, hi] (2 numbers), got {} values",
+            a.len()
+        ));
+    }
+    Ok([
+        num(who, &format!("{key}[0]"), &a[0])?,
+        num(who, &format!("{key}[1]"), &a[1])?,
+    ])
+}
+
+const SCENE_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572});";
+
+pub fn register(r: &mut Registrar) {
+    let ctx = r.ctx();
+    let slot = SimSlot::default();
+    r.engine()
+        .register_type_with_name::<SceneRef>("Scene")
+        .register_fn("to_string", |s: &mut SceneRef| scene_summary(&s.0))
+        .register_fn("to_debug", |s: &mut SceneRef| scene_summary(&s.0));
+
+    // ---------------- optics ----------------
+    let c = ctx.clone();
+    r.bind(
+        Doc::func("optics", "optics")
+            .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi}")
+            .summary("the current optical parameters (nm, mW)")
+            .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
+            .example("optics().wavelength_nm", "1064.0")
+            .example("optics().w0_nm", "400.0"),
+        move || -> Map { optics_map(&optics_of(&c)) },
+    );
+    let d = Doc::func("set_optics", "optics")
+        .map(
+            "changes",
+            "any subset of the optical parameters",
+            &[
+                (
+                    "wavelength_nm",
+                    "float",
+                    "nm",
+                    "optional: vacuum wavelength",
+                ),
+                (
+                    "n_medium",
+                    "float",
+                    "",
+                    "optional: refractive index of the medium",
+                ),
+                (
+                    "w0_nm",
+                    "float",
+                    "nm",
+                    "optional: beam waist (1/e² intensity radius)",
+                ),
+                ("na", "float", "", "optional: detection (condenser) NA"),
+                (
+                    "qpd_na",
+                    "float",
+                    "",
+                    "optional: NA subtended by the QPD (inf: not limiting)",
+                ),
+                (
+                    "power_mw",
+                    "float",
+                    "mW",
+                    "optional: laser power at the focus",
+                ),
+                ("n_theta", "int", "", "optional: cone quadrature nodes in θ"),
+                (
+                    "n_phi",
+                    "int",
+                    "",
+                    "optional: cone quadrature nodes in φ per quadrant",
+                ),
+            ],
+        )
+        .returns("map", "the new optics")
+        .summary("change optical parameters (validated; the simulator re-renders with them)")
+        .example("set_optics(#{w0_nm: 450.0}).w0_nm", "450.0")
+        .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range");
+    let spec = d.spec();
+    let (c, sl) = (ctx.clone(), slot.clone());
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let mut new = optics_of(&c);
+        for (k, f) in [
+            ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
+            ("n_medium", &mut new.n_medium),
+            ("w0_nm", &mut new.w0_nm),
+            ("na", &mut new.na),
+            ("qpd_na", &mut new.qpd_na),
+            ("power_mw", &mut new.power_mw),
+        ] {
+            if let Some(v) = o.f64(k)? {
+                *f = v;
+            }
+        }
+        if let Some(v) = o.int("n_theta")? {
+            new.n_theta = v.clamp(0, 100_000) as usize;
+        }
+        if let Some(v) = o.int("n_phi")? {
+            new.n_phi = v.clamp(0, 100_000) as usize;
+        }
+        new.validate().map_err(|e| err("set_optics", e))?;
+        if let Some(core) = sl.0.lock().unwrap().as_ref() {
+            let scene = core.renderer().scene.clone();
+            core.set_scene(&new, &scene)
+                .map_err(|e| err("set_optics", e))?;
+        }
+        *c.optics.lock().unwrap() = new.clone();
+        Ok(optics_map(&new))
+    });
+
+    let d = Doc::func("response", "optics")
+        .map(
+            "at",
+            "particle displacement from the focus and the particle",
+            &[
+                ("x", "float", "µm", "optional: displacement (default 0)"),
+                ("y", "float", "µm", "optional: displacement (default 0)"),
+                ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
+                ("d_nm", "float", "nm", "optional: diameter (default 110)"),
+                ("n", "float", "", "optional: refractive index (default 1.572, polystyrene)"),
+                ("polarization", "bool", "", "optional: vector dipole field (default false)"),
+            ],
+        )
+        .returns("map", "#{sx, sy, sz}: QPD signals normalised to the beam power")
+        .summary("Rayleigh-dipole QPD response of one sphere (suppl. S2)")
+        .help("The paper's model: Gaussian focus, dipole scattering, interference integrated over the detection cone per quadrant. Sx = right − left, Sy = top − bottom (docs/physics.md).")
+        .example("response(#{x: 0.0}).sx", "0.0")
+        .example("response(#{x: 0.2}).sx > 0.0 && response(#{x: -0.2}).sx < 0.0", "true")
+        .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
+        .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let model = DetectorModel {
+            polarization: o.bool_or("polarization", false)?,
+            misalignment: None,
+        };
+        let s = response(
+            &optics_of(&c),
+            &model,
+            [
+                o.f64_or("x", 0.0)?,
+                o.f64_or("y", 0.0)?,
+                o.f64_or("z", 0.0)?,
+            ],
+            o.f64_or("d_nm", 110.0)?,
+            o.f64_or("n", 1.572)?,
+        )
+        .map_err(|e| err("response", e))?;
+        let mut out = Map::new();
+        out.insert("sx".into(), s.sx.into());
+        out.insert("sy".into(), s.sy.into());
+        out.insert("sz".into(), s.sz.into());
+        Ok(out)
+    });
+
+    let c = ctx.clone();
+    r.bind(
+        Doc::func("p_scat_ratio", "optics")
+            .arg("d_nm", "float", "nm", "sphere diameter")
+            .arg("n", "float", "", "refractive index of the sphere")
+            .returns("float", "P_scat / P_beam")
+            .summary(
+                "fraction of the beam power a Rayleigh sphere at the focus scatters (suppl. S1)",
+            )
+            .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "2.35e-5")
+            .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
+        move |d: Dynamic, n: Dynamic| -> RResult<f64> {
+            p_scat_ratio(
+                &optics_of(&c),
+                num("p_scat_ratio", "d_nm", &d)?,
+                num("p_scat_ratio", "n", &n)?,
+            )
+            .map_err(|e| err("p_scat_ratio", e))
+        },
+    );
+
+    let d = Doc::func("trap_depth_kt", "optics")
+        .map(
+            "object",
+            "the trapped object",
+            &[
+                (
+                    "shape",
+                    "string",
+                    "",
+                    "\"sphere\" or \"cylinder\" (a fibril in the focal plane)",
+                ),
+                ("d_nm", "float", "nm", "diameter"),
+                ("n", "float", "", "refractive index"),
+                (
+                    "temperature_k",
+                    "float",
+                    "K",
+                    "optional: temperature (default 295.15)",
+                ),
+            ],
+        )
+        .returns("float", "depth of the gradient-force potential in kT")
+        .summary("trap depth of a bead or fibril at the laser power of optics() (suppl. S3)")
+        .example(
+            "trap_depth_kt(#{shape: \"cylinder\", d_nm: 150.0, n: 1.414}) < 1.0",
+            "true",
+        )
+        .example(
+            "trap_depth_kt(#{shape: \"cube\", d_nm: 10.0, n: 1.5})",
+            "error: shape = \"cube\"",
+        );
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.bind(d, move |m: Map| -> RResult<f64> {
+        let o = Opts::new(&spec, &m)?;
+        let shape = match o.string("shape")?.as_deref() {
+            Some("sphere") => TrapShape::Sphere,
+            Some("cylinder") => TrapShape::Cylinder,
+            other => {
+                return fail(format!(
+                    "trap_depth_kt: shape = {:?} is not one of \"sphere\", \"cylinder\"",
+                    other.unwrap_or("")
+                ))
+            }
+        };
+        trap_depth_kt(
+            &optics_of(&c),
+            shape,
+            o.req_f64("d_nm")?,
+            o.req_f64("n")?,
+            o.f64_or("temperature_k", ROOM_T_K)?,
+        )
+        .map_err(|e| err("trap_depth_kt", e))
+    });
+
+    let c = ctx.clone();
+    r.bind(
+        Doc::func("n_corr", "optics")
+            .arg("n_obj", "float", "", "index of the measured object")
+            .arg("n_ref", "float", "", "index of the reference bead")
+            .returns("float", "sensitivity ratio at equal volume")
+            .summary("refractive-index correction (eq. nCor) in the medium of optics()")
+            .example("n_corr(1.572, 1.572)", "1.0")
+            .example("round(n_corr(1.414, 1.57) * 1e4) / 1e4", "0.3505"),
+        move |a: Dynamic, b: Dynamic| -> RResult<f64> {
+            n_corr(
+                num("n_corr", "n_obj", &a)?,
+                num("n_corr", "n_ref", &b)?,
+                optics_of(&c).n_medium,
+            )
+            .map_err(|e| err("n_corr", e))
+        },
+    );
+    r.bind(
+        Doc::func("sphere_mass_kda", "optics")
+            .arg("d_nm", "float", "nm", "diameter")
+            .arg(
+                "density_g_cm3",
+                "float",
+                "g/cm³",
+                "density (polystyrene 1.05)",
+            )
+            .returns("float", "mass in kDa")
+            .summary("mass of a sphere")
+            .example("round(sphere_mass_kda(110.0, 1.05) / 1e3)", "441.0"),
+        |d: Dynamic, rho: Dynamic| -> RResult<f64> {
+            sphere_mass_kda(
+                num("sphere_mass_kda", "d_nm", &d)?,
+                num("sphere_mass_kda", "density_g_cm3", &rho)?,
+            )
+            .map_err(|e| err("sphere_mass_kda", e))
+        },
+    );
+
+    let d = Doc::func("max_sensitivity_model", "optics")
+        .map(
+            "bead",
+            "the sphere and the model tier",
+            &[
+                ("d_nm", "float", "nm", "diameter"),
+                ("n", "float", "", "optional: index (default 1.572)"),
+                ("model", "string", "", "optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
+            ],
+        )
+        .returns("map", "#{sens: (∂Sx/∂x)max in 1/µm, z: best focus in µm}")
+        .summary("model maximum Sx sensitivity of a sphere at its best focus (Fig. 3c)")
+        .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
+        .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", 1.572)?);
+        crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
+        let optics = optics_of(&c);
+        let det = Detection::new(&optics, &DetectorModel::default()).map_err(|e| err("max_sensitivity_model", e))?;
+        let size = match o.string("model")?.as_deref() {
+            None | Some("rayleigh") => None,
+            Some("finite_size") => Some(dn),
+            Some(other) => return fail(format!("max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\"")),
+        };
+        let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
+        let mut out = Map::new();
+        out.insert("sens".into(), (s * alpha_um3(dn, n, optics.n_medium)).into());
+        out.insert("z".into(), z.into());
+        Ok(out)
+    });
+
+    // ---------------- scene ----------------
+    r.bind(
+        Doc::func("scene", "scene")
+            .returns("Scene", "an empty scene")
+            .summary("start a scene for the simulated instrument")
+            .help("Add objects with s.add_bead / s.add_filament / s.add_aggregates, choose effects with s.effects([...]), then simulate(s). Positions are stage coordinates (µm): an object at p is in the focus when the stage reads p.")
+            .example("let s = scene(); s.add_bead(#{x: 1.0}); s.n_objects", "1"),
+        SceneRef::default,
+    );
+    r.engine().register_get("n_objects", |s: &mut SceneRef| {
+        (s.0.beads.len()
+            + s.0.filaments.len()
+            + s.0.aggregates.iter().map(|a| a.count).sum::<usize>()) as INT
+    });
+    r.engine()
+        .register_get("seed", |s: &mut SceneRef| s.0.seed as INT);
+    r.engine().register_set("seed", |s: &mut SceneRef, v: INT| {
+        s.0.seed = v.max(0) as u64
+    });
+    r.engine()
+        .register_get("effect_names", |s: &mut SceneRef| -> Array {
+            s.0.effects
+                .names()
+                .into_iter()
+                .map(|n| Dynamic::from(n.to_string()))
+                .collect()
+        });
+
+    let d = Doc::method("Scene", "add_bead")
+        .map(
+            "bead",
+            "a sphere",
+            &[
+                ("x", "float", "µm", "optional: position (default 0)"),
+                ("y", "float", "µm", "optional: position (default 0)"),
+                ("z", "float", "µm", "optional: height (default 0)"),
+                ("d_nm", "float", "nm", "optional: diameter (default 110)"),
+                (
+                    "n",
+                    "float",
+                    "",
+                    "optional: refractive index (default 1.572, polystyrene)",
+                ),
+            ],
+        )
+        .summary("add a bead")
+        .example(&format!("{SCENE_EX} s.n_objects"), "1")
+        .example(
+            "let s = scene(); s.add_bead(#{d_nm: -1.0})",
+            "error: d_nm = -1",
+        );
+    let spec = d.spec();
+    r.bind(d, move |s: &mut SceneRef, m: Map| -> RResult<()> {
+        let o = Opts::new(&spec, &m)?;
+        s.0.add_bead(Bead {
+            pos: [
+                o.f64_or("x", 0.0)?,
+                o.f64_or("y", 0.0)?,
+                o.f64_or("z", 0.0)?,
+            ],
+            d_nm: o.f64_or("d_nm", 110.0)?,
+            n: o.f64_or("n", 1.572)?,
+        })
+        .map_err(|e| err("add_bead", e))
+    });
+
+    let d = Doc::method("Scene", "add_filament")
+        .map(
+            "filament",
+            "a polyline filament (bead model, Sec. 4.2)",
+            &[
+                ("points", "array", "µm", "vertices [[x, y], ...]"),
+                ("z", "float", "µm", "optional: height (default 0)"),
+                ("d_nm", "float", "nm", "optional: constant diameter (default 60)"),
+                ("taper", "array", "nm", "optional: [d_start, d_end] linear taper instead of d_nm"),
+                ("alpha_tip", "map", "nm, µm", "optional: #{d_nm, tip_um}: parabola-of-revolution α-tip from the first point (Sec. 5)"),
+                ("n", "float", "", "optional: refractive index (default 1.414, hydrated collagen)"),
+                ("spacing_nm", "float", "nm", "optional: bead-model spacing (default 50)"),
+            ],
+        )
+        .summary("add a filament (bead model: spheres every spacing_nm, volume factor 3h/4r)")
+        .example("let s = scene(); s.add_filament(#{points: [[0.0, -5.0], [0.0, 5.0]], d_nm: 25.0, n: 1.587}); s.n_objects", "1")
+        .example("let s = scene(); s.add_filament(#{points: []})", "error: points is empty");
+    let spec = d.spec();
+    r.bind(d, move |s: &mut SceneRef, m: Map| -> RResult<()> {
+        let o = Opts::new(&spec, &m)?;
+        let pts = match m.get("points") {
+            Some(v) => points("add_filament", v)?,
+            None => return fail("add_filament: missing key `points` ([[x, y], ...] µm)"),
+        };
+        let profile = if let Some(t) = m.get("taper") {
+            let [a, b] = pair("add_filament", "taper", t)?;
+            DiameterProfile::Linear { d0_nm: a, d1_nm: b }
+        } else if let Some(t) = m.get("alpha_tip") {
+            let Some(tm) = t.read_lock::<Map>() else {
+                return fail(format!(
+                    "add_filament: alpha_tip must be #{{d_nm, tip_um}}, got {t}"
+                ));
+            };
+            let g = |k: &str| {
+                tm.get(k)
+                    .map(|v| num("add_filament", &format!("alpha_tip.{k}"), v))
+                    .transpose()
+            };
+            DiameterProfile::AlphaTip {
+                d_nm: g("d_nm")?.unwrap_or(100.0),
+                tip_um: g("tip_um")?.unwrap_or(3.0),
+            }
+        } else {
+            DiameterProfile::Constant {
+                d_nm: o.f64_or("d_nm", 60.0)?,
+            }
+        };
+        s.0.add_filament(Filament {
+            points: pts,
+            z: o.f64_or("z", 0.0)?,
+            profile,
+            n: o.f64_or("n", 1.414)?,
+            spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+        })
+        .map_err(|e| err("add_filament", e))
+    });
+
+    let d = Doc::method("Scene", "add_aggregates")
+        .map(
+            "aggregates",
+            "point-like aggregates at random positions (Sec. 6 background)",
+            &[
+                ("count", "int", "", "how many"),
+                (
+                    "d_nm",
+                    "array",
+                    "nm",
+                    "optional: [lo, hi] diameter range (default [40, 90])",
+                ),
+                (
+                    "n",
+                    "float",
+                    "",
+                    "optional: refractive index (default 1.45)",
+                ),
+                (
+                    "x",
+                    "array",
+                    "µm",
+                    "optional: [x0, x1] region (default [-3, 3])",
+                ),
+                (
+                    "y",
+                    "array",
+                    "µm",
+                    "optional: [y0, y1] region (default [-3, 3])",
+                ),
+                ("z", "float", "µm", "optional: height (default 0)"),
+                ("seed", "int", "", "optional: random seed (default 1)"),
+            ],
+        )
+        .summary("add point-like aggregates (random sizes and positions from a seed)")
+        .example(
+            "let s = scene(); s.add_aggregates(#{count: 12, seed: 3}); s.n_objects",
+            "12",
+        );
+    let spec = d.spec();
+    r.bind(d, move |s: &mut SceneRef, m: Map| -> RResult<()> {
+        let o = Opts::new(&spec, &m)?;
+        let count = o.req_int("count")?;
+        if !(0..=100_000).contains(&count) {
+            return fail(format!(
+                "add_aggregates: count = {count} is out of range: 0 ≤ count ≤ 100000"
+            ));
+        }
+        let get_pair = |k: &str, dflt: [f64; 2]| -> RResult<[f64; 2]> {
+            m.get(k)
+                .map(|v| pair("add_aggregates", k, v))
+                .transpose()
+                .map(|p| p.unwrap_or(dflt))
+        };
+        s.0.add_aggregates(Aggregates {
+            count: count as usize,
+            d_nm: get_pair("d_nm", [40.0, 90.0])?,
+            n: o.f64_or("n", 1.45)?,
+            region: [get_pair("x", [-3.0, 3.0])?, get_pair("y", [-3.0, 3.0])?],
+            z: o.f64_or("z", 0.0)?,
+            seed: o.int("seed")?.unwrap_or(1).max(0) as u64,
+        })
+        .map_err(|e| err("add_aggregates", e))
+    });
+
+    r.bind(
+        Doc::method("Scene", "effects")
+            .arg("names", "array", "", &format!("effect names: {}", EFFECT_NAMES.join(", ")))
+            .summary("choose the effects to simulate (each adds exactly one pipeline stage; none = ideal superposition)")
+            .help("Parameters take their documented defaults (docs/physics.md §7); change one with s.effect(name, #{...}).")
+            .example("let s = scene(); s.effects([\"detector_noise\", \"drift\"]); s.effect_names", "[\"drift\", \"detector_noise\"]")
+            .example("let s = scene(); s.effects([\"fog\"])", "error: unknown effect \"fog\""),
+        |s: &mut SceneRef, names: Array| -> RResult<()> {
+            let mut fx = crate::instrument::sim::scene::Effects::default();
+            for n in names {
+                let name = n.into_string().map_err(|t| err("effects", format!("effect names must be strings, got {t}")))?;
+                fx.enable(&name).map_err(|e| err("effects", e))?;
+            }
+            s.0.effects = fx;
+            Ok(())
+        },
+    );
+    r.bind(
+        Doc::method("Scene", "effect")
+            .arg("name", "string", "", "effect name")
+            .arg("params", "map", "", "parameters, e.g. #{sigma_sample: 1e-3} for detector_noise (see help)")
+            .summary("enable one effect with parameters")
+            .help("detector_noise #{sigma_sample}; laser_power_noise #{sigma_rel_sample}; pointing_noise #{sigma_nm_sample}; drift #{velocity_nm_s: [vx, vy, vz], random_walk_nm_sqrt_s}; misalignment #{offset_x, offset_y, rotation_deg, gain_y}; finite_size #{n_r, min_d_nm}; thermal_motion #{sigma_nm, samples}; polarization and cross_terms take #{}.")
+            .example("let s = scene(); s.effect(\"detector_noise\", #{sigma_sample: 1e-3}); s.effect_names", "[\"detector_noise\"]")
+            .example("let s = scene(); s.effect(\"drift\", #{speed: 1.0})", "error: drift"),
+        |s: &mut SceneRef, name: &str, params: Map| -> RResult<()> {
+            let mut fx = s.0.effects.clone();
+            fx.enable(name).map_err(|e| err("effect", e))?;
+            // overlay the parameters on the defaults through serde (unknown keys refused)
+            let mut full = serde_json::to_value(&fx).map_err(|e| err("effect", e))?;
+            let slot = &mut full[name];
+            if let (Some(obj), false) = (slot.as_object_mut(), params.is_empty()) {
+                for (k, v) in params {
+                    if !obj.contains_key(k.as_str()) {
+                        let allowed: Vec<&String> = obj.keys().collect();
+                        return fail(format!("effect: {name} has no parameter `{k}`; allowed: {allowed:?}"));
+                    }
+                    obj.insert(k.to_string(), super::types::dynamic_to_json(&v));
+                }
+            }
+            let fx2: crate::instrument::sim::scene::Effects = serde_json::from_value(full).map_err(|e| err("effect", format!("{name}: {e}")))?;
+            s.0.effects = fx2;
+            Ok(())
+        },
+    );
+    r.bind(
+        Doc::method("Scene", "rotate")
+            .arg(
+                "angle_deg",
+                "float",
+                "°",
+                "counter-clockwise rotation of the sample",
+            )
+            .summary("rotate every object about the origin (the 19-angle rotation series)")
+            .example(
+                "let s = scene(); s.add_bead(#{x: 1.0}); s.rotate(90.0); s.n_objects",
+                "1",
+            ),
+        |s: &mut SceneRef, a: Dynamic| -> RResult<()> {
+            s.0.rotate(num("rotate", "angle_deg", &a)?, [0.0, 0.0]);
+            Ok(())
+        },
+    );
+
+    // ---------------- simulate ----------------
+    let grid_keys: &[(&str, &str, &str, &str)] = &[
+        ("x", "array", "µm", "[from, to]"),
+        ("y", "array", "µm", "[from, to]"),
+        ("nx", "int", "", "pixels along x"),
+        ("ny", "int", "", "pixels along y"),
+        ("z", "float", "µm", "optional: stage height (default 0)"),
+        (
+            "n_samples",
+            "int",
+            "",
+            "optional: samples averaged per pixel (noise effects; default 10000)",
+        ),
+    ];
+    let (c, sl) = (ctx.clone(), slot.clone());
+    r.bind(
+        Doc::func("simulate", "scene")
+            .arg("scene", "Scene", "", "what the simulated instrument sees")
+            .map("grid", "optional second argument: render an XY image directly, without stage or clock", grid_keys)
+            .form("simulate(scene) -> map")
+            .form("simulate(scene, grid) -> Scan")
+            .returns("map | Scan", "simulate(scene): #{stages, scatterers} of the pipeline built; simulate(scene, grid): the rendered scan (not autosaved)")
+            .summary("put a scene under the simulated instrument, or render it straight to an XY scan")
+            .help("simulate(scene) connects the simulated instrument (the stage position and virtual clock are kept when one is already connected); scans then image the scene. The pipeline contains only the stages the scene's effects name. simulate(scene, grid) renders an image without moving anything (figures, tests).")
+            .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\"]")
+            .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
+            .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0"),
+        move |s: SceneRef| -> RResult<Map> { install(&c, &sl, &s.0) },
+    );
+    let d = Doc::func("simulate", "scene").map("grid", "", grid_keys);
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.overload("simulate", move |s: SceneRef, m: Map| -> RResult<ScanRef> {
+        let o = Opts::new(&spec, &m)?;
+        let (x0, x1) = o.req_range("x")?;
+        let (y0, y1) = o.req_range("y")?;
+        let nx = o.req_int("nx")?;
+        let ny = o.req_int("ny")?;
+        for (k, v) in [("nx", nx), ("ny", ny)] {
+            if !(1..=4096).contains(&v) {
+                return fail(format!(
+                    "simulate: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"
+                ));
+            }
+        }
+        let ns = o.int("n_samples")?.unwrap_or(10_000);
+        if !(1..=100_000_000).contains(&ns) {
+            return fail(format!(
+                "simulate: n_samples = {ns} is out of range: 1 ≤ n_samples ≤ 100000000"
+            ));
+        }
+        let axis = |a: f64, b: f64, n: i64| -> Vec<f64> {
+            (0..n)
+                .map(|i| {
+                    if n == 1 {
+                        a
+                    } else {
+                        a + (b - a) * i as f64 / (n - 1) as f64
+                    }
+                })
+                .collect()
+        };
+        let r = crate::instrument::sim::Renderer::new(&optics_of(&c), &s.0, Default::default())
+            .map_err(|e| err("simulate", e))?;
+        let scan = render_xy(
+            &r,
+            &axis(x0, x1, nx),
+            &axis(y0, y1, ny),
+            o.f64_or("z", 0.0)?,
+            ns as usize,
+        );
+        Ok(ScanRef::new(scan, None))
+    });
+    let sl = slot.clone();
+    r.bind(
+        Doc::func("pipeline", "scene")
+            .returns(
+                "array",
+                "[#{name, seconds, detail}] of the simulated instrument's render pipeline",
+            )
+            .summary("the stages the simulator built and the wall time spent in each so far")
+            .example(
+                &format!("{SCENE_EX} simulate(s); pipeline()[0].name"),
+                "\"superposition\"",
+            ),
+        move || -> RResult<Array> {
+            let g = sl.0.lock().unwrap();
+            let Some(core) = g.as_ref() else {
+                return fail("pipeline: no simulated instrument; call simulate(scene) first");
+            };
+            Ok(core
+                .renderer()
+                .stages()
+                .iter()
+                .map(|s| json_to_dynamic(&serde_json::to_value(s).unwrap_or_default()))
+                .collect())
+        },
+    );
+
+    // ---------------- Mie ----------------
+    let d = Doc::func("mie_q", "mie")
+        .map(
+            "sphere",
+            "size parameter and relative index",
+            &[
+                ("x", "float", "", "size parameter π d n_medium / λ"),
+                ("m_re", "float", "", "real part of the relative index"),
+                ("m_im", "float", "", "optional: absorption, ≥ 0 (default 0)"),
+            ],
+        )
+        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms}")
+        .summary("Lorenz–Mie efficiencies of a homogeneous sphere (Bohren & Huffman)")
+        .example(
+            "let q = mie_q(#{x: 1.0, m_re: 1.5}); round((q.qext - q.qsca) * 1e9)",
+            "0.0",
+        )
+        .example("mie_q(#{x: -1.0, m_re: 1.5})", "error: x");
+    let spec = d.spec();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let q = crate::optics::mie::mie_q(
+            o.req_f64("x")?,
+            num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
+        )
+        .map_err(|e| err("mie_q", e))?;
+        Ok(mie_map(&q))
+    });
+    let d = Doc::func("mie", "mie")
+        .map(
+            "sphere",
+            "a sphere in the medium and wavelength of optics()",
+            &[
+                ("d_nm", "float", "nm", "diameter"),
+                ("n", "float", "", "refractive index"),
+                (
+                    "n_im",
+                    "float",
+                    "",
+                    "optional: absorption part of the index, ≥ 0",
+                ),
+            ],
+        )
+        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
+        .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
+        .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let op = optics_of(&c);
+        let dn = o.req_f64("d_nm")?;
+        let q = crate::optics::mie::sphere(
+            dn,
+            num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
+            op.n_medium,
+            op.wavelength_nm,
+        )
+        .map_err(|e| err("mie", e))?;
+        let mut mm = mie_map(&q);
+        mm.insert(
+            "x".into(),
+            (std::f64::consts::PI * dn * op.n_medium / op.wavelength_nm).into(),
+        );
+        Ok(mm)
+    });
+    let _ = floats;
+}
+
+fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
+    let mut m = Map::new();
+    for (k, v) in [
+        ("qext", q.qext),
+        ("qsca", q.qsca),
+        ("qabs", q.qabs),
+        ("qback", q.qback),
+        ("g", q.g),
+    ] {
+        m.insert(k.into(), v.into());
+    }
+    m.insert("n_terms".into(), (q.n_terms as INT).into());
+    m
+}
+
+/// Connect (or re-scene) the simulated instrument.
+fn install(ctx: &Ctx, slot: &SimSlot, scene: &Scene) -> RResult<Map> {
+    let optics = optics_of(ctx);
+    let mut g = slot.0.lock().unwrap();
+    let core = match g.as_ref() {
+        Some(core) if ctx.is_connected() => {
+            core.set_scene(&optics, scene)
+                .map_err(|e| err("simulate", e))?;
+            core.clone()
+        }
+        _ => {
+            let core = SimCore::new(&optics, scene, SimConfig::default())
+                .map_err(|e| err("simulate", e))?;
+            ctx.connect(core.instrument(0.01), None);
+            *g = Some(core.clone());
+            core
+        }
+    };
+    *ctx.scene.lock().unwrap() = serde_json::to_value(scene).ok();
+    let r = core.renderer();
+    let mut m = Map::new();
+    m.insert(
+        "stages".into(),
+        Dynamic::from_array(r.stage_names().into_iter().map(Dynamic::from).collect()),
+    );
+    m.insert("scatterers".into(), (r.scatterers.len() as INT).into());
+    Ok(m)
+}
+
+fn scene_summary(s: &Scene) -> String {
+    format!(
+        "Scene: {} beads, {} filaments, {} aggregates; effects: [{}]; seed {}",
+        s.beads.len(),
+        s.filaments.len(),
+        s.aggregates.iter().map(|a| a.count).sum::<usize>(),
+        s.effects.names().join(", "),
+        s.seed
+    )
+}

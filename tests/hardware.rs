@@ -1,0 +1,1267 @@
+//! The serial drivers against device emulators on pseudo-terminals: no hardware needed.
+//!
+//! Normal operation uses generous timeouts (a loaded CI machine must not make them flaky);
+//! fault tests use 200 ms reply timeouts and check that every failure is bounded in time and
+//! names the device, the command and what came back.
+
+use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
+use bfpscope::data::{Scan, ScanStatus};
+use bfpscope::instrument::config::{Backend, Config, LimitsConfig, SafetyLimits};
+use bfpscope::instrument::connect::{connect, ConnectError};
+use bfpscope::instrument::emulator::{
+    garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
+    start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
+};
+use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+use bfpscope::instrument::scpi::{Calibration, ScpiOptions, ScpiQpd};
+use bfpscope::instrument::sim::scene::{Bead, Scene};
+use bfpscope::instrument::sim::{SimConfig, SimCore};
+use bfpscope::instrument::{DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use bfpscope::optics::params::Optics;
+use std::io::{Read, Write};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc};
+use std::time::{Duration, Instant};
+
+const BAUD: u32 = 115_200;
+
+fn opts(reply_ms: u64, on_target_ms: u64) -> GcsOptions {
+    GcsOptions {
+        timeout: Duration::from_millis(reply_ms),
+        on_target_timeout: Duration::from_millis(on_target_ms),
+        poll_interval: Duration::from_millis(1),
+        ..GcsOptions::default()
+    }
+}
+
+/// A stage emulator with a symmetric travel range and a fast settle.
+fn stage_emu() -> Emulator {
+    let cfg = StageEmulatorConfig {
+        travel: [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)],
+        settle_s: 0.005,
+        ..StageEmulatorConfig::default()
+    };
+    start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap()
+}
+
+fn open_stage(emu: &Emulator, reply_ms: u64) -> GcsStage {
+    GcsStage::open(emu.path(), BAUD, opts(reply_ms, 2000)).unwrap()
+}
+
+const VPU: [f64; 3] = [2.0, 2.0, 4.0];
+const OFFSET: [f64; 3] = [0.1, -0.1, 0.05];
+
+/// The calibration that undoes the emulated detector's gain and offset.
+fn inverse_calibration() -> Calibration {
+    Calibration {
+        gain: [1.0 / VPU[0], 1.0 / VPU[1], 1.0 / VPU[2]],
+        offset_v: OFFSET,
+    }
+}
+
+fn qpd_cfg(noise_v: f64) -> QpdEmulatorConfig {
+    QpdEmulatorConfig {
+        volts_per_unit: VPU,
+        offset_v: OFFSET,
+        noise_v: [noise_v; 3],
+        ..Default::default()
+    }
+}
+
+fn scpi_opts(reply_ms: u64) -> ScpiOptions {
+    ScpiOptions {
+        timeout: Duration::from_millis(reply_ms),
+        calibration: inverse_calibration(),
+        statistics: true,
+    }
+}
+
+fn assert_bounded(t0: Instant, max_s: f64) {
+    let dt = t0.elapsed().as_secs_f64();
+    assert!(dt < max_s, "took {dt:.3} s (bound {max_s} s)");
+}
+
+// ---------------------------------------------------------------------------------------------
+// GCS stage: normal operation
+
+#[test]
+fn stage_connect_identifies_and_switches_servo_on() {
+    let emu = stage_emu();
+    let s = open_stage(&emu, 1000);
+    assert!(s.idn().contains("Physik Instrumente"), "{}", s.idn());
+    assert_eq!(s.name(), format!("PI E-727 on {}", emu.path()));
+    assert_eq!(
+        emu.commands(),
+        vec!["*IDN?", "ERR?", "SVO A 1 B 1 C 1", "ERR?"]
+    );
+}
+
+#[test]
+fn stage_move_and_position_round_trip() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 1000);
+    let target = [12.5, -33.25, 7.125];
+    s.move_to(target).unwrap();
+    let p = s.position().unwrap();
+    for i in 0..3 {
+        assert!((p[i] - target[i]).abs() < 1e-6, "{p:?}");
+    }
+    assert_eq!(emu.position(), target);
+    assert!(emu
+        .commands()
+        .contains(&"MOV A 12.500000 B -33.250000 C 7.125000".to_string()));
+}
+
+#[test]
+fn stage_travel_range_from_tmn_tmx() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 1000);
+    assert_eq!(
+        s.travel_range().unwrap(),
+        [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)]
+    );
+    let log = emu.commands();
+    assert!(
+        log.contains(&"TMN? A B C".to_string()) && log.contains(&"TMX? A B C".to_string()),
+        "{log:?}"
+    );
+}
+
+#[test]
+fn stage_numeric_axis_names() {
+    let cfg = StageEmulatorConfig {
+        axes: ["1".into(), "2".into(), "3".into()],
+        ..Default::default()
+    };
+    let emu = start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap();
+    let o = GcsOptions {
+        axes: ["1".into(), "2".into(), "3".into()],
+        ..opts(1000, 2000)
+    };
+    let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
+    s.move_to([1.0, 2.0, 3.0]).unwrap();
+    assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
+    assert!(emu.commands().contains(&"POS? 1 2 3".to_string()));
+}
+
+#[test]
+fn stage_axis_map_swaps_axes() {
+    // x on controller axis B, y on A: a move in x moves B.
+    let emu = stage_emu();
+    let o = GcsOptions {
+        axes: ["B".into(), "A".into(), "C".into()],
+        ..opts(1000, 2000)
+    };
+    let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
+    s.move_to([5.0, -7.0, 1.0]).unwrap();
+    assert_eq!(emu.position(), [-7.0, 5.0, 1.0]); // emulator order is A, B, C
+    assert_eq!(s.position().unwrap(), [5.0, -7.0, 1.0]);
+}
+
+#[test]
+fn stage_move_waits_for_on_target() {
+    let emu = stage_emu();
+    emu.faults().settle_s = Some(0.15);
+    let mut s = open_stage(&emu, 1000);
+    let t0 = Instant::now();
+    s.move_to([10.0, 0.0, 0.0]).unwrap();
+    let dt = t0.elapsed().as_secs_f64();
+    assert!(
+        dt >= 0.14,
+        "returned after {dt} s, before the stage settled"
+    );
+    assert_bounded(t0, 3.0);
+    let polls = emu
+        .commands()
+        .iter()
+        .filter(|c| c.starts_with("ONT?"))
+        .count();
+    assert!(polls >= 2, "ONT? polled {polls} times");
+    assert_eq!(s.position().unwrap(), [10.0, 0.0, 0.0]);
+}
+
+#[test]
+fn stage_stop_halts_motion_where_it_is() {
+    let emu = stage_emu();
+    emu.faults().settle_s = Some(2.0);
+    let mut s = open_stage(&emu, 1000);
+    s.move_no_wait([40.0, 0.0, 0.0]).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    s.stop().unwrap(); // error 10 "stopped" is expected and cleared
+    let p1 = s.position().unwrap();
+    assert!(p1[0] > 0.0 && p1[0] < 40.0, "{p1:?}");
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(s.position().unwrap(), p1, "still moving after STP");
+    assert_eq!(s.on_target().unwrap(), [true; 3]);
+    // The error register was cleared by the driver: the next command is clean.
+    s.move_to(p1).unwrap();
+}
+
+// ---------------------------------------------------------------------------------------------
+// GCS stage: faults
+
+#[test]
+fn fault_stage_no_reply_is_timeout_naming_device_and_command() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    emu.faults().silent = true;
+    let t0 = Instant::now();
+    match s.position() {
+        Err(DeviceError::Timeout {
+            device,
+            command,
+            timeout_ms,
+        }) => {
+            assert_eq!(device, format!("PI E-727 on {}", emu.path()));
+            assert_eq!(command, "POS? A B C");
+            assert_eq!(timeout_ms, 200);
+        }
+        other => panic!("{other:?}"),
+    }
+    // one reply timeout + one ERR? probe
+    assert_bounded(t0, 1.5);
+    let e = s.move_to([1.0, 1.0, 1.0]).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("ERR? (after `MOV A 1.000000 B 1.000000 C 1.000000`)"),
+        "{e}"
+    );
+    assert!(e.to_string().contains("no reply"), "{e}");
+    // The device recovers: so does the driver. (A silent controller still executes what it
+    // hears: the MOV went through although its ERR? got no answer.)
+    emu.faults().silent = false;
+    assert_eq!(s.position().unwrap(), [1.0; 3]);
+}
+
+#[test]
+fn fault_stage_garbled_reply_is_garbled_with_the_text() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    s.move_to([12.5, 1.0, 2.0]).unwrap();
+    emu.faults().garble_replies = 1;
+    match s.position() {
+        Err(DeviceError::Garbled {
+            device,
+            command,
+            reply,
+        }) => {
+            assert!(device.contains(emu.path()));
+            assert_eq!(command, "POS? A B C");
+            // the 0xFF byte shows as U+FFFD, digits became '#'
+            assert_eq!(reply, "\u{FFFD}A=##.###### ");
+        }
+        other => panic!("{other:?}"),
+    }
+    // The next exchange resynchronises.
+    assert_eq!(s.position().unwrap(), [12.5, 1.0, 2.0]);
+    assert_eq!(garble("7"), vec![0xFF, b'#']);
+}
+
+#[test]
+fn fault_stage_garbled_error_query_after_move() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    emu.faults().garble_replies = 1; // MOV has no reply: the ERR? reply is garbled
+    match s.move_to([1.0, 2.0, 3.0]) {
+        Err(DeviceError::Garbled { command, reply, .. }) => {
+            assert_eq!(
+                command,
+                "ERR? (after `MOV A 1.000000 B 2.000000 C 3.000000`)"
+            );
+            assert_eq!(reply, "\u{FFFD}#");
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn fault_stage_controller_error_code_with_text() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    emu.faults().error_next = Some(10);
+    match s.move_to([1.0, 2.0, 3.0]) {
+        Err(DeviceError::Controller {
+            device,
+            command,
+            code,
+            message,
+        }) => {
+            assert!(device.contains("E-727"));
+            assert_eq!(command, "MOV A 1.000000 B 2.000000 C 3.000000");
+            assert_eq!(code, 10);
+            assert_eq!(message, "Controller was stopped by command");
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(emu.position(), [0.0; 3], "a rejected MOV must not move");
+    // The error was read (and so cleared): the same move now works.
+    s.move_to([1.0, 2.0, 3.0]).unwrap();
+}
+
+#[test]
+fn fault_stage_error_on_a_query_explains_the_silence() {
+    // A controller does not answer a query it rejects; the driver asks ERR? and reports it.
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    emu.faults().error_next = Some(15);
+    match s.position() {
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
+            assert_eq!(
+                (command.as_str(), code, message.as_str()),
+                ("POS? A B C", 15, "Invalid axis identifier")
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn fault_stage_servo_off_is_error_5() {
+    let emu = stage_emu();
+    let o = GcsOptions {
+        servo_on_connect: false,
+        ..opts(1000, 2000)
+    };
+    let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
+    match s.move_to([1.0, 0.0, 0.0]) {
+        Err(DeviceError::Controller {
+            code: 5, message, ..
+        }) => assert!(message.contains("servo off")),
+        other => panic!("{other:?}"),
+    }
+    s.set_servo(true).unwrap();
+    s.move_to([1.0, 0.0, 0.0]).unwrap();
+}
+
+#[test]
+fn fault_stage_out_of_range_target_is_the_controllers_error_7() {
+    // The driver refuses nothing itself (the pre-flight limit check lives in acquire/): the
+    // command goes out and the controller's own error 7 comes back as a Controller error.
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 1000);
+    s.move_to([5.0, 5.0, 5.0]).unwrap();
+    match s.move_to([75.0, 5.0, 5.0]) {
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
+            assert_eq!(command, "MOV A 75.000000 B 5.000000 C 5.000000");
+            assert_eq!((code, message.as_str()), (7, "Position out of limits"));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(emu
+        .commands()
+        .contains(&"MOV A 75.000000 B 5.000000 C 5.000000".to_string()));
+    assert_eq!(
+        s.position().unwrap(),
+        [5.0, 5.0, 5.0],
+        "the stage must not have moved"
+    );
+}
+
+#[test]
+fn fault_stage_clamping_controller_when_rejection_is_off() {
+    let emu = stage_emu();
+    emu.faults().reject_out_of_range = false;
+    let mut s = open_stage(&emu, 1000);
+    s.move_to([75.0, 5.0, 25.0]).unwrap();
+    assert_eq!(s.position().unwrap(), [50.0, 5.0, 20.0]);
+}
+
+#[test]
+fn fault_stage_slow_settling_is_an_on_target_timeout() {
+    let emu = stage_emu();
+    let mut s = GcsStage::open(emu.path(), BAUD, opts(200, 300)).unwrap();
+    emu.faults().settle_s = Some(30.0);
+    let t0 = Instant::now();
+    let e = s.move_to([20.0, 0.0, 0.0]).unwrap_err();
+    assert_bounded(t0, 2.0);
+    match &e {
+        DeviceError::Other { device, detail } => {
+            assert!(device.contains("E-727"));
+            assert!(
+                detail.starts_with(
+                    "not on target within 300 ms after `MOV A 20.000000 B 0.000000 C 0.000000`"
+                ),
+                "{detail}"
+            );
+            assert!(
+                detail.ends_with("(last `ONT? A B C` reply: A=0 B=1 C=1)"),
+                "{detail}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    let p = s.position().unwrap();
+    assert!(p[0] > 0.0 && p[0] < 1.0, "{p:?}");
+}
+
+#[test]
+fn fault_stage_unplugged_mid_sequence_is_disconnected() {
+    let emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    // With instant settling each move is MOV, ERR?, ONT?: unplug right after the 3rd MOV.
+    emu.faults().settle_s = Some(0.0);
+    emu.faults().unplug_after = Some(7);
+    let t0 = Instant::now();
+    let mut done = 0;
+    let err = loop {
+        match s.move_to([done as f64, 0.0, 0.0]) {
+            Ok(()) => done += 1,
+            Err(e) => break e,
+        }
+        assert!(done < 10, "never unplugged");
+    };
+    assert_bounded(t0, 2.0);
+    assert_eq!(done, 2, "{err}");
+    match &err {
+        DeviceError::Disconnected {
+            device, command, ..
+        } => {
+            assert!(device.contains(emu.path()));
+            assert_eq!(
+                command,
+                "ERR? (after `MOV A 2.000000 B 0.000000 C 0.000000`)"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(!emu.is_running());
+    // Further calls keep failing cleanly.
+    assert!(matches!(
+        s.position(),
+        Err(DeviceError::Disconnected { .. })
+    ));
+}
+
+/// A fake controller on a raw PTY: answers `*IDN?`/`ERR?` properly and every `POS?` with the
+/// next scripted reply.
+fn fake_controller(
+    replies: Vec<Vec<u8>>,
+) -> (String, std::thread::JoinHandle<()>, Arc<AtomicBool>) {
+    let (mut master, slave) = serialport::TTYPort::pair().unwrap();
+    let path = serialport::SerialPort::name(&slave).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop2 = stop.clone();
+    let h = std::thread::spawn(move || {
+        let _slave = slave;
+        serialport::SerialPort::set_timeout(&mut master, Duration::from_millis(5)).unwrap();
+        let mut replies = replies.into_iter();
+        let mut buf = Vec::new();
+        while !stop2.load(Ordering::SeqCst) {
+            let mut chunk = [0u8; 256];
+            if let Ok(n) = master.read(&mut chunk) {
+                buf.extend_from_slice(&chunk[..n]);
+            }
+            while let Some(i) = buf.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = buf.drain(..=i).collect();
+                let reply: Vec<u8> = match &line[..line.len() - 1] {
+                    b"*IDN?" => b"PI, C-413, 1, 1\n".to_vec(),
+                    b"ERR?" => b"0\n".to_vec(),
+                    l if l.starts_with(b"POS?") => replies.next().unwrap_or_default(),
+                    _ => vec![],
+                };
+                let _ = master.write_all(&reply);
+            }
+        }
+    });
+    (path, h, stop)
+}
+
+#[test]
+fn fault_stage_garbage_replies_never_panic() {
+    let garbage: Vec<Vec<u8>> = vec![
+        b"A=1 \nB=zz\nC=3\n".to_vec(),
+        b"\x00\x01\x02\x03\n".to_vec(),
+        b"A=1e999 \nB=0 \nC=0\n".to_vec(),
+        b"A=1 \nA=1 \nB=1\n".to_vec(),
+        b"X=1 \nB=0 \nC=0\n".to_vec(),
+        vec![b'7'; 4200],
+        b"A=1 \nB=2 \nC=3\n".to_vec(),
+    ];
+    let (path, h, stop) = fake_controller(garbage);
+    let mut s = GcsStage::open(
+        &path,
+        BAUD,
+        GcsOptions {
+            servo_on_connect: false,
+            ..opts(200, 300)
+        },
+    )
+    .unwrap();
+    assert_eq!(s.name(), format!("PI C-413 on {path}"));
+    for k in 0..6 {
+        match s.position() {
+            Err(DeviceError::Garbled { command, .. }) => assert_eq!(command, "POS? A B C"),
+            other => panic!("garbage #{k}: {other:?}"),
+        }
+    }
+    assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
+    stop.store(true, Ordering::SeqCst);
+    h.join().unwrap();
+}
+
+// ---------------------------------------------------------------------------------------------
+// SCPI QPD
+
+fn qpd_emu(noise_v: f64, at: Pos) -> Emulator {
+    start_qpd_emulator(qpd_cfg(noise_v), shared_position(at), standin_bead).unwrap()
+}
+
+#[test]
+fn qpd_connect_identify_and_read_calibrated_signal() {
+    let at = [0.2, -0.1, 0.3];
+    let emu = qpd_emu(0.0, at);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(1000)).unwrap();
+    assert_eq!(q.idn(), "bfpscope,QPD-EMU,0001,1.0");
+    assert_eq!(q.name(), format!("QPD QPD-EMU on {}", emu.path()));
+    assert_eq!(q.sample_rate(), 100_000.0);
+    let r = q.read(50).unwrap();
+    let want = standin_bead(at);
+    for (got, want) in [(r.sx, want[0]), (r.sy, want[1]), (r.sz, want[2])] {
+        assert!((got - want).abs() < 1e-9, "{r} vs {want:?}");
+    }
+    assert_eq!(r.n, 50);
+    assert_eq!((r.sx_std, r.sy_std, r.sz_std), (0.0, 0.0, 0.0));
+    // the averaging count is only sent when it changes
+    q.read(50).unwrap();
+    let log = emu.commands();
+    assert_eq!(
+        log.iter()
+            .filter(|c| c.starts_with("SENS:AVER:COUN"))
+            .count(),
+        1,
+        "{log:?}"
+    );
+    assert_eq!(&log[..4], ["*IDN?", "*CLS", "SYST:ERR?", "CONF:RATE?"]);
+}
+
+#[test]
+fn qpd_noise_statistics_in_signal_units() {
+    let emu = qpd_emu(0.02, [0.0; 3]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(1000)).unwrap();
+    let r = q.read(2000).unwrap();
+    // per-sample std is 0.02 V → 0.01 units on x (gain 1/2), 0.005 on z (gain 1/4)
+    assert!((r.sx_std - 0.01).abs() < 0.001, "{r}");
+    assert!((r.sz_std - 0.005).abs() < 0.0005, "{r}");
+    // the mean of 2000 samples is within 5 σ/√n of the true value (0, 0, 0.2)
+    assert!(r.sx.abs() < 5.0 * 0.01 / 2000f64.sqrt(), "{r}");
+    assert!((r.sz - 0.2).abs() < 5.0 * 0.005 / 2000f64.sqrt(), "{r}");
+}
+
+#[test]
+fn qpd_without_statistics_uses_meas_qpd() {
+    let emu = qpd_emu(0.0, [0.1, 0.0, 0.0]);
+    let o = ScpiOptions {
+        statistics: false,
+        ..scpi_opts(1000)
+    };
+    let mut q = ScpiQpd::open(emu.path(), BAUD, o).unwrap();
+    let r = q.read(10).unwrap();
+    assert!((r.sx - standin_bead([0.1, 0.0, 0.0])[0]).abs() < 1e-9);
+    assert!(emu.commands().contains(&"MEAS:QPD?".to_string()));
+}
+
+#[test]
+fn fault_qpd_device_error_queue() {
+    let emu = qpd_emu(0.0, [0.0; 3]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
+    match q.read(0) {
+        Err(DeviceError::Controller {
+            device,
+            command,
+            code,
+            message,
+        }) => {
+            assert!(device.contains(emu.path()));
+            assert_eq!(command, "SENS:AVER:COUN 0");
+            assert_eq!((code, message.as_str()), (-222, "Data out of range"));
+        }
+        other => panic!("{other:?}"),
+    }
+    match q.command("SENS:AVER:COUN many") {
+        Err(DeviceError::Controller {
+            code: -104,
+            message,
+            ..
+        }) => assert_eq!(message, "Data type error"),
+        other => panic!("{other:?}"),
+    }
+    match q.query("MEAS:VOLT?") {
+        Err(DeviceError::Controller {
+            code: -113,
+            command,
+            message,
+            ..
+        }) => {
+            assert_eq!(
+                (command.as_str(), message.as_str()),
+                ("MEAS:VOLT?", "Undefined header")
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    // The queue is empty again and reads work.
+    q.read(5).unwrap();
+}
+
+#[test]
+fn fault_qpd_injected_error_on_measurement() {
+    let emu = qpd_emu(0.0, [0.0; 3]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
+    q.read(5).unwrap();
+    emu.faults().error_next = Some(-231);
+    match q.read(5) {
+        Err(DeviceError::Controller {
+            command,
+            code,
+            message,
+            ..
+        }) => {
+            assert_eq!((command.as_str(), code), ("MEAS:QPD:STAT?", -231));
+            assert_eq!(message, "Device-specific error");
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn fault_qpd_no_reply_is_timeout() {
+    let emu = qpd_emu(0.0, [0.0; 3]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
+    q.read(10).unwrap();
+    emu.faults().silent = true;
+    let t0 = Instant::now();
+    match q.read(10) {
+        Err(DeviceError::Timeout {
+            device,
+            command,
+            timeout_ms,
+        }) => {
+            assert!(device.contains("QPD-EMU"));
+            assert_eq!(command, "MEAS:QPD:STAT?");
+            assert_eq!(timeout_ms, 200); // 200 ms + 10 samples at 100 kHz
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_bounded(t0, 1.5);
+}
+
+#[test]
+fn fault_qpd_garbled_reply() {
+    let emu = qpd_emu(0.0, [0.1, 0.0, 0.0]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
+    q.read(10).unwrap();
+    emu.faults().garble_replies = 1;
+    match q.read(10) {
+        Err(DeviceError::Garbled { command, reply, .. }) => {
+            assert_eq!(command, "MEAS:QPD:STAT?");
+            assert!(
+                reply.starts_with('\u{FFFD}') && reply.contains("#.#########e-#"),
+                "{reply}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    q.read(10).unwrap();
+}
+
+#[test]
+fn fault_qpd_unplugged_is_disconnected() {
+    let emu = qpd_emu(0.0, [0.0; 3]);
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(200)).unwrap();
+    emu.faults().unplug_after = Some(0);
+    let t0 = Instant::now();
+    while emu.is_running() {
+        assert_bounded(t0, 1.0);
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    match q.read(10) {
+        Err(DeviceError::Disconnected {
+            device, command, ..
+        }) => {
+            assert!(device.contains(emu.path()));
+            assert!(command.starts_with("SENS:AVER:COUN 10"), "{command}");
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Config, connect, scans
+
+fn emulator_config(stage: &Emulator, qpd: &Emulator) -> Config {
+    Config::from_toml_str(&emulator_config_text(stage, qpd), "test.toml").unwrap()
+}
+
+fn emulator_config_text(stage: &Emulator, qpd: &Emulator) -> String {
+    format!(
+        r#"
+[stage]
+backend = "gcs"
+port = "{}"
+timeout_ms = 1000
+on_target_timeout_ms = 2000
+poll_ms = 1
+settle_s = 0.0
+
+[qpd]
+backend = "scpi"
+port = "{}"
+calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
+
+[limits]
+x = [-1.0, 1.0]
+z = [-5.0, 0.5]
+max_step_um = 2.0
+"#,
+        stage.path(),
+        qpd.path(),
+        1.0 / VPU[0],
+        1.0 / VPU[1],
+        1.0 / VPU[2],
+        OFFSET[0],
+        OFFSET[1],
+        OFFSET[2]
+    )
+}
+
+fn pair(noise_v: f64) -> (Emulator, Emulator) {
+    let stage = StageEmulatorConfig {
+        travel: [(-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0)],
+        settle_s: 0.001,
+        ..Default::default()
+    };
+    start_pair(stage, qpd_cfg(noise_v), standin_bead).unwrap()
+}
+
+fn no_sim(_: &Config) -> anyhow::Result<Instrument> {
+    panic!("the simulator must not be built for a hardware config")
+}
+
+#[test]
+fn connect_hardware_from_config_intersects_soft_limits() {
+    let (se, qe) = pair(0.0);
+    let cfg = emulator_config(&se, &qe);
+    let c = connect(&cfg, no_sim).unwrap();
+    assert_eq!(
+        c.limits,
+        SafetyLimits {
+            axes: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
+            max_step_um: Some(2.0),
+            max_speed_um_s: None
+        }
+    );
+    let d = &c.instrument.description;
+    assert_eq!(d["stage"]["backend"], "gcs");
+    assert_eq!(d["stage"]["port"], se.path());
+    assert_eq!(d["qpd"]["sample_rate_hz"], 100_000.0);
+    assert!(d["stage"]["idn"].as_str().unwrap().contains("E-727"));
+    assert_eq!(d["limits"]["axes"][0], serde_json::json!([-1.0, 1.0]));
+    assert!(!c.instrument.clock.is_virtual());
+}
+
+#[test]
+fn connect_soft_limits_outside_travel_is_a_config_error() {
+    let (se, qe) = pair(0.0);
+    let mut cfg = emulator_config(&se, &qe);
+    cfg.limits = LimitsConfig {
+        y: Some([5.0, 9.0]),
+        ..Default::default()
+    };
+    match connect(&cfg, no_sim) {
+        Err(ConnectError::Config(e)) => {
+            assert_eq!(e.key, "limits.y");
+            assert!(e.message.contains("travel range [-2, 2]"), "{e}");
+        }
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("connected"),
+    }
+}
+
+#[test]
+fn connect_missing_port_names_device_and_port() {
+    let mut cfg = Config::default();
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some("/dev/bfpscope-no-such-port".into());
+    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
+    let e = connect(&cfg, no_sim).err().expect("must fail");
+    let msg = e.to_string();
+    assert!(
+        matches!(e, ConnectError::Device(DeviceError::Other { .. })),
+        "{msg}"
+    );
+    assert!(
+        msg.starts_with(
+            "GCS stage on /dev/bfpscope-no-such-port: cannot open /dev/bfpscope-no-such-port"
+        ),
+        "{msg}"
+    );
+}
+
+#[test]
+fn connect_qpd_failure_closes_the_stage_port() {
+    let se = stage_emu();
+    let mut cfg = Config::default();
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some(se.path().into());
+    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
+    let e = connect(&cfg, no_sim).err().expect("must fail");
+    assert!(
+        e.to_string()
+            .starts_with("SCPI QPD on /dev/bfpscope-no-such-qpd: cannot open"),
+        "{e}"
+    );
+    // The stage port was released: it opens again.
+    let _s = open_stage(&se, 1000);
+}
+
+/// A minimal stand-in for the simulated backend, to check `connect`'s sim path.
+struct FakeStage(Pos);
+impl Stage for FakeStage {
+    fn name(&self) -> String {
+        "fake stage".into()
+    }
+    fn position(&mut self) -> Result<Pos, DeviceError> {
+        Ok(self.0)
+    }
+    fn move_to(&mut self, t: Pos) -> Result<(), DeviceError> {
+        self.0 = t;
+        Ok(())
+    }
+    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
+        Ok([(0.0, 80.0), (0.0, 80.0), (0.0, 10.0)])
+    }
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
+}
+struct FakeQpd;
+impl Qpd for FakeQpd {
+    fn name(&self) -> String {
+        "fake qpd".into()
+    }
+    fn sample_rate(&self) -> f64 {
+        1.0
+    }
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        Ok(QpdReading {
+            n,
+            ..Default::default()
+        })
+    }
+}
+
+#[test]
+fn connect_without_config_builds_the_simulator() {
+    let cfg = Config::from_toml_str("[limits]\nz = [2.0, 8.0]\n", "t").unwrap();
+    let mut called = false;
+    let c = connect(&cfg, |c| {
+        called = true;
+        Ok(Instrument {
+            stage: Box::new(FakeStage([0.0; 3])),
+            qpd: Box::new(FakeQpd),
+            clock: Arc::new(VirtualClock::new()),
+            settle_s: c.stage.settle_s,
+            description: serde_json::json!({"backend": "sim"}),
+        })
+    })
+    .unwrap();
+    assert!(called);
+    assert_eq!(c.limits.axes, [(0.0, 80.0), (0.0, 80.0), (2.0, 8.0)]);
+    assert_eq!(c.instrument.settle_s, 0.005);
+    assert_eq!(c.instrument.description["backend"], "sim");
+}
+
+/// Raster an image of Sx through the real drivers; returns (positions, readings).
+fn raster(inst: &mut Instrument, n: usize, half: f64, samples: usize) -> Vec<(Pos, QpdReading)> {
+    let mut out = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let x = -half + 2.0 * half * i as f64 / (n - 1) as f64;
+            let y = -half + 2.0 * half * j as f64 / (n - 1) as f64;
+            let p = [x, y, 0.0];
+            inst.move_settle(p).unwrap();
+            out.push((p, inst.qpd.read(samples).unwrap()));
+        }
+    }
+    out
+}
+
+#[test]
+fn scan_through_the_real_drivers_images_the_standin_bead() {
+    let noise_v = 0.004;
+    let (se, qe) = pair(noise_v);
+    let cfg = emulator_config(&se, &qe);
+    let mut c = connect(&cfg, no_sim).unwrap();
+    let samples = 100;
+    let img = raster(&mut c.instrument, 11, 0.6, samples);
+    // expected σ of a mean, in signal units (gain 1/2 on x, y; 1/4 on z)
+    let sig = |vpu: f64| noise_v / vpu / (samples as f64).sqrt();
+    let mut max_sx = f64::MIN;
+    let mut chi2 = 0.0;
+    for (p, r) in &img {
+        let want = standin_bead(*p);
+        for (got, want, s) in [
+            (r.sx, want[0], sig(VPU[0])),
+            (r.sy, want[1], sig(VPU[1])),
+            (r.sz, want[2], sig(VPU[2])),
+        ] {
+            assert!(
+                (got - want).abs() < 5.0 * s,
+                "at {p:?}: {got} vs {want} (σ {s})"
+            );
+            chi2 += ((got - want) / s).powi(2);
+        }
+        max_sx = max_sx.max(r.sx);
+    }
+    // the residuals are noise of the expected size, not zero and not larger
+    let dof = 3.0 * img.len() as f64;
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
+    // and the image has the bead in it: Sx peaks near x = 0.28 at y = 0 (0.28·e^-0.5 ≈ 0.17)
+    assert!(max_sx > 0.15, "{max_sx}");
+    // the stage went where the plan said: the last point
+    assert_eq!(se.position(), [0.6, 0.6, 0.0]);
+}
+
+#[test]
+fn scan_of_a_simulated_bead_through_the_drivers_matches_the_simulator() {
+    // One scene, two instruments: the simulator itself, and the real drivers talking to
+    // emulators whose QPD answers with the simulator's signal at the emulated stage position.
+    let mut scene = Scene::default();
+    scene
+        .add_bead(Bead {
+            pos: [0.1, -0.05, 0.0],
+            d_nm: 200.0,
+            n: 1.572,
+        })
+        .unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    let mut sim = core.instrument(0.0);
+    let (n, half, samples) = (9, 0.5, 100);
+    let sim_img = raster(&mut sim, n, half, samples);
+    let amp = sim_img.iter().map(|(_, r)| r.sx.abs()).fold(0.0, f64::max);
+    assert!(
+        amp > 0.0 && amp.is_finite(),
+        "simulated bead gives no signal: {amp}"
+    );
+
+    // emulated detector: 5 V per signal unit, noise such that one averaged reading has σ = 1 % of
+    // the Sx amplitude
+    let vpu = 5.0;
+    let sigma = 0.01 * amp;
+    let noise_v = sigma * vpu * (samples as f64).sqrt();
+    let qcfg = QpdEmulatorConfig {
+        volts_per_unit: [vpu; 3],
+        noise_v: [noise_v; 3],
+        ..Default::default()
+    };
+    let scfg = StageEmulatorConfig {
+        settle_s: 0.001,
+        ..StageEmulatorConfig::like_sim(&core.cfg)
+    };
+    assert_eq!(scfg.travel, SimConfig::default().travel);
+    let (se, qe) = start_pair(scfg, qcfg, sim_signal_source(core.renderer())).unwrap();
+    let mut cfg = emulator_config(&se, &qe);
+    cfg.qpd.calibration = Calibration {
+        gain: [1.0 / vpu; 3],
+        offset_v: [0.0; 3],
+    };
+    let mut hw = connect(&cfg, no_sim).unwrap();
+    let hw_img = raster(&mut hw.instrument, n, half, samples);
+
+    let mut chi2 = 0.0;
+    for ((p, a), (q, b)) in sim_img.iter().zip(&hw_img) {
+        assert_eq!(p, q);
+        for (got, want) in [(b.sx, a.sx), (b.sy, a.sy), (b.sz, a.sz)] {
+            assert!(
+                (got - want).abs() < 5.0 * sigma,
+                "at {p:?}: drivers {got} vs simulator {want} (σ {sigma})"
+            );
+            chi2 += ((got - want) / sigma).powi(2);
+        }
+    }
+    let dof = 3.0 * sim_img.len() as f64;
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
+}
+
+#[test]
+fn scan_unplugged_mid_scan_stops_with_disconnected() {
+    let (se, qe) = pair(0.0);
+    let cfg = emulator_config(&se, &qe);
+    let mut c = connect(&cfg, no_sim).unwrap();
+    qe.faults().unplug_after = Some(9); // after 3 points (COUN set once, then STAT? + ERR? per point)
+    let mut got = 0;
+    let err = loop {
+        let p = [-0.5 + 0.1 * got as f64, 0.0, 0.0];
+        if let Err(e) = c.instrument.move_settle(p) {
+            break e;
+        }
+        match c.instrument.qpd.read(10) {
+            Ok(_) => got += 1,
+            Err(e) => break e,
+        }
+        assert!(got < 20, "never unplugged");
+    };
+    assert!(matches!(err, DeviceError::Disconnected { .. }), "{err}");
+    assert_eq!(got, 3, "{err}");
+    // the stage still answers: the scan engine can decide what to do with it
+    assert_eq!(c.instrument.stage.position().unwrap(), [-0.2, 0.0, 0.0]);
+}
+
+#[test]
+fn emulator_stops_on_drop_and_the_driver_sees_disconnected() {
+    let mut emu = stage_emu();
+    let mut s = open_stage(&emu, 200);
+    let t0 = Instant::now();
+    emu.stop();
+    assert_bounded(t0, 1.0);
+    assert!(!emu.is_running());
+    assert!(matches!(
+        s.position(),
+        Err(DeviceError::Disconnected { .. })
+    ));
+}
+
+#[test]
+fn emulate_cli_prints_paths_that_work() {
+    struct Chan(mpsc::Sender<Vec<u8>>);
+    impl Write for Chan {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            let _ = self.0.send(b.to_vec());
+            Ok(b.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let (tx, rx) = mpsc::channel();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop2 = stop.clone();
+    let h = std::thread::spawn(move || {
+        run_emulator_cli_with("both", standin_bead, &mut Chan(tx), stop2)
+    });
+    let mut text = String::new();
+    let t0 = Instant::now();
+    while !text.contains("Serving until") {
+        assert_bounded(t0, 5.0);
+        if let Ok(b) = rx.recv_timeout(Duration::from_millis(100)) {
+            text.push_str(&String::from_utf8_lossy(&b));
+        }
+    }
+    let path_of = |kind: &str| {
+        let line = text.lines().find(|l| l.starts_with(kind)).unwrap();
+        line.rsplit(" on ").next().unwrap().to_string()
+    };
+    let (sp, qp) = (path_of("stage:"), path_of("qpd:"));
+    assert!(
+        sp.starts_with("/dev/") && qp.starts_with("/dev/") && sp != qp,
+        "{text}"
+    );
+    // the printed config snippet parses and points at the emulators
+    let toml_part = text
+        .split("# bfpscope.toml for these emulators:")
+        .nth(1)
+        .unwrap();
+    let toml_part = toml_part.split("Serving until").next().unwrap();
+    let cfg = Config::from_toml_str(toml_part, "snippet").unwrap();
+    assert_eq!(cfg.stage.port.as_deref(), Some(sp.as_str()));
+    let mut s = GcsStage::open(&sp, BAUD, opts(1000, 2000)).unwrap();
+    s.move_to([0.1, 0.0, 0.0]).unwrap();
+    let mut q = ScpiQpd::open(&qp, BAUD, ScpiOptions::default()).unwrap();
+    let r = q.read(10).unwrap();
+    assert!(
+        (r.sx - standin_bead([0.1, 0.0, 0.0])[0]).abs() < 5e-4,
+        "{r}"
+    );
+    stop.store(true, Ordering::SeqCst);
+    h.join().unwrap().unwrap();
+    assert!(run_emulator_cli_with("laser", standin_bead, &mut Vec::new(), stop).is_err());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Through the scan engine (acquire/): its safety rules hold on the real drivers
+
+/// Connect to a fresh emulator pair from a config file text, with the scan engine's own reading
+/// of the same `[limits]` table.
+fn engine_setup() -> (
+    Emulator,
+    Emulator,
+    bfpscope::instrument::connect::Connected,
+    SoftLimits,
+) {
+    let (se, qe) = pair(0.0);
+    let text = emulator_config_text(&se, &qe);
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let limits = SoftLimits::from_toml(&toml::from_str::<toml::Value>(&text).unwrap()).unwrap();
+    assert_eq!(limits.range[0], (-1.0, 1.0));
+    assert_eq!(limits.max_step_um, 2.0);
+    let c = connect(&cfg, no_sim).unwrap();
+    (se, qe, c, limits)
+}
+
+/// Run a plan, collecting log lines and the autosaved scans.
+fn run(
+    inst: &mut Instrument,
+    plan: &Plan,
+    limits: &SoftLimits,
+) -> (Result<bfpscope::acquire::ScanRun, ScanError>, Vec<Scan>) {
+    let saved = std::sync::Mutex::new(Vec::new());
+    let abort = AtomicBool::new(false);
+    let log = |_: &str| {};
+    let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
+        saved.lock().unwrap().push(s.clone());
+        Ok(std::path::PathBuf::from("memory"))
+    };
+    let env = ScanEnv {
+        limits,
+        abort: &abort,
+        progress: false,
+        log: &log,
+        meta: serde_json::json!({}),
+        save: &save,
+    };
+    let r = run_plan(inst, plan, &env);
+    (r, saved.into_inner().unwrap())
+}
+
+fn line_x(from: f64, to: f64, n: i64, rel: bool) -> Plan {
+    let kind = if rel { "dscan" } else { "ascan" };
+    Plan::line(
+        kind,
+        Sweep::new(kind, Axis::X, from, to, n, "n").unwrap(),
+        1e-4,
+        rel,
+    )
+    .unwrap()
+}
+
+#[test]
+fn engine_scan_through_the_drivers_completes() {
+    let (se, _qe, mut c, limits) = engine_setup();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.5, 0.5, 5, false), &limits);
+    let r = r.unwrap();
+    assert_eq!(r.ended, Ended::Complete);
+    assert_eq!(saved.len(), 1);
+    for (i, x) in [-0.5, -0.25, 0.0, 0.25, 0.5].iter().enumerate() {
+        let want = standin_bead([*x, 0.0, 0.0])[0];
+        assert!((r.scan.sx.data[[0, i]] - want).abs() < 1e-9, "x = {x}");
+    }
+    assert_eq!(se.position(), [0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn engine_refuses_an_out_of_limits_plan_before_anything_is_sent() {
+    // x soft limit [-1, 1] (travel is [-2, 2]): the driver would send this and the controller
+    // would accept it; the engine's pre-flight refuses it first.
+    let (se, _qe, mut c, limits) = engine_setup();
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(0.0, 1.5, 4, false), &limits);
+    match r {
+        Err(ScanError::Refused(msg)) => {
+            assert!(msg.contains("refused before any move"), "{msg}");
+            assert!(
+                msg.contains("x = 1.5 µm is above the soft limit x ≤ 1 µm"),
+                "{msg}"
+            );
+        }
+        other => panic!("{:?}", other.map(|r| r.ended)),
+    }
+    assert!(saved.is_empty());
+    let sent = &se.commands()[before..];
+    assert!(sent.iter().all(|c| !c.starts_with("MOV")), "{sent:?}");
+    assert_eq!(se.position(), [0.0; 3]);
+}
+
+#[test]
+fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
+    let (se, _qe, mut c, limits) = engine_setup();
+    c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
+    // settle at once: each move is exactly MOV, ERR?, ONT?. The engine first sends POS?, TMN?,
+    // TMX?; so the 10th command is the 3rd point's MOV: the controller rejects it.
+    se.faults().settle_s = Some(0.0);
+    se.faults().error_after = Some((9, -1024));
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            measured,
+            error:
+                DeviceError::Controller {
+                    command,
+                    code,
+                    message,
+                    ..
+                },
+            stage_fault,
+        } => {
+            assert_eq!((*measured, *code, *stage_fault), (2, -1024, true));
+            assert_eq!(command, "MOV A 0.200000 B 0.100000 C 0.000000"); // start + 0.0
+            assert!(message.starts_with("Motion error"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    // partial scan saved, status failed, unmeasured pixels NaN
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    let row: Vec<f64> = saved[0].sx.data.row(0).to_vec();
+    assert!(
+        row[..2].iter().all(|v| v.is_finite()) && row[2..].iter().all(|v| v.is_nan()),
+        "{row:?}"
+    );
+    // relative scan, but after a stage fault the stage is not commanded again (not even back to
+    // the start): the rejected MOV and its ERR? are the last commands it got
+    assert!(!r.returned_to_start);
+    std::thread::sleep(Duration::from_millis(100));
+    let sent = se.commands()[before..].to_vec();
+    assert_eq!(sent.len(), 11, "{sent:?}");
+    assert_eq!(&sent[9..], ["MOV A 0.200000 B 0.100000 C 0.000000", "ERR?"]);
+    assert!(r
+        .summary()
+        .unwrap_err()
+        .contains("the stage was not commanded further"));
+}
+
+#[test]
+fn engine_qpd_unplugged_mid_scan_returns_relative_scan_to_start() {
+    let (se, qe, mut c, limits) = engine_setup();
+    c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
+    // first read: COUN, ERR?, STAT?, ERR?; later reads: STAT?, ERR?: unplug after 3 points
+    qe.faults().unplug_after = Some(8);
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            measured: 3,
+            error: DeviceError::Disconnected { device, .. },
+            stage_fault: false,
+        } => {
+            assert!(device.contains(qe.path()));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(r.returned_to_start);
+    assert_eq!(se.position(), [0.2, 0.1, 0.0]);
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert_eq!(saved[0].meta["points_measured"], 3);
+}
