@@ -12,7 +12,7 @@
 //! sections of height L/N centred in their sub-segments).
 
 use super::orientation::MeasureOptions;
-use super::peaks::{col_peaks, row_peaks, LinePeak, PeakOptions};
+use super::peaks::{col_peaks, peak_near, row_peaks, LinePeak, PeakOptions};
 use super::quantities::n_corr;
 use super::sensitivity::{sensitivity, Axis};
 use super::template::Template;
@@ -222,7 +222,11 @@ pub(crate) fn line_value(lp: &LinePeak, img: &Image, along_x: bool) -> Option<f6
 /// (mean over rows of the per-row maximum of ∂Sx/∂x, mean over columns of the per-column maximum
 /// of ∂Sy/∂y), the rows/columns taken in a 9-pixel band through the filament's middle and the
 /// filament shifted by 0, ¼, ½, ¾ pixel to average over its position relative to the pixels.
-/// (Lines without a parabola peak contribute their largest sample.)
+/// Each line's parabola is centred where the filament crosses it (as [`measure_filament`]
+/// reads data); lines the filament crosses at a grazing angle (< 11.5°) or without a parabola
+/// peak contribute their own maximum (parabola at the discrete maximum, or the largest sample).
+///
+/// [`measure_filament`]: super::orientation::measure_filament
 pub fn straight_filament_max_sens(
     tpl: &Template,
     d_nm: f64,
@@ -260,8 +264,17 @@ pub fn straight_filament_max_sens(
             Axis::X,
             measure.stencil,
         )?;
+        let (sn, cs) = angle_deg.to_radians().sin_cos();
         for lp in row_peaks(&sens, &popts)? {
-            if let Some(v) = line_value(&lp, &sens, true) {
+            // Centred where the filament crosses the row, as `measure_filament` reads data.
+            let row: Vec<f64> = sens.data.row(lp.line).to_vec();
+            let near = (cs.abs() > 0.2)
+                .then(|| peak_near(&full, &row, off + (lp.coord - off) * sn / cs, &popts).ok())
+                .flatten();
+            if let Some(v) = near
+                .map(|p| p.value)
+                .or_else(|| line_value(&lp, &sens, true))
+            {
                 sx_acc += v;
                 nsx += 1;
             }
@@ -273,7 +286,14 @@ pub fn straight_filament_max_sens(
             measure.stencil,
         )?;
         for lp in col_peaks(&sens, &popts)? {
-            if let Some(v) = line_value(&lp, &sens, false) {
+            let col: Vec<f64> = sens.data.column(lp.line).to_vec();
+            let near = (sn.abs() > 0.2)
+                .then(|| peak_near(&full, &col, off + (lp.coord - off) * cs / sn, &popts).ok())
+                .flatten();
+            if let Some(v) = near
+                .map(|p| p.value)
+                .or_else(|| line_value(&lp, &sens, false))
+            {
                 sy_acc += v;
                 nsy += 1;
             }

@@ -19,15 +19,15 @@
 //! (sub-pixel by the parabola), a RANSAC search (deterministic, 4000 candidate pairs from lines at
 //! least 5 apart) picks the line with the most rows (columns) having a candidate within
 //! `max_offset_um`, refined by least squares on the inliers. The maxima along the filament are
-//! then read from each row (column) in a ±`window_um` neighbourhood of the line (a parabola over
-//! `window_um` there), so point objects elsewhere in the row do not replace the filament's
-//! maximum. [`measure_filament_along`] does the last step for a given line (e.g. to measure the
+//! then read from each row (column) by a parabola over `window_um` centred where the line crosses
+//! it (re-centred on the vertex), so point objects elsewhere in the row do not replace the
+//! filament's maximum and the noisy discrete maximum does not bias the value upwards. [`measure_filament_along`] does the last step for a given line (e.g. to measure the
 //! same filament before and after background removal).
 //!
 //! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
 
 use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
-use super::peaks::{peak_1d, PeakOptions};
+use super::peaks::{peak_1d, peak_near, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
 use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
@@ -548,16 +548,8 @@ fn measure_sens_along(
     for l in 0..nl {
         let coord = if rows { sens.y[l] } else { sens.x[l] };
         let pred = line.a + line.b * coord;
-        let idx: Vec<usize> = (0..t.len())
-            .filter(|&k| (t[k] - pred).abs() <= opts.window_um)
-            .collect();
-        if idx.len() < 3 {
-            continue;
-        }
-        let tt: Vec<f64> = idx.iter().map(|&k| t[k]).collect();
-        let vv: Vec<f64> = idx
-            .iter()
-            .map(|&k| {
+        let vv: Vec<f64> = (0..t.len())
+            .map(|k| {
                 if rows {
                     sens.data[[l, k]]
                 } else {
@@ -565,7 +557,8 @@ fn measure_sens_along(
                 }
             })
             .collect();
-        let Ok(p) = peak_1d(&tt, &vv, &po) else {
+        // Parabola centred on the line's crossing (no selection bias from the noisy maximum).
+        let Ok(p) = peak_near(t, &vv, pred, &po) else {
             continue;
         };
         if dist(line.a, line.b, coord, p.pos) > opts.max_offset_um {
