@@ -58,6 +58,22 @@ impl SoftLimits {
     pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
         let mut l = SoftLimits::default();
         let Some(t) = config.get("safety") else {
+            // The instrument config's `[limits]` table (x/y/z = [min, max] µm, max_step_um),
+            // as written by `instrument::config` and docs/hardware.md.
+            if let Some(t) = config.get("limits").and_then(|t| t.as_table()) {
+                let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
+                for (i, ax) in ["x", "y", "z"].iter().enumerate() {
+                    if let Some(a) = t.get(*ax).and_then(|v| v.as_array()) {
+                        match (a.first().and_then(num), a.get(1).and_then(num)) {
+                            (Some(lo), Some(hi)) if lo < hi => l.range[i] = (lo, hi),
+                            _ => return Err(format!("config: limits.{ax} must be [min, max] µm with min < max")),
+                        }
+                    }
+                }
+                if let Some(v) = t.get("max_step_um").and_then(num) {
+                    l.max_step_um = v;
+                }
+            }
             return Ok(l);
         };
         let t = t.as_table().ok_or("config: [safety] must be a table")?;
