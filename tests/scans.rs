@@ -347,3 +347,32 @@ fn metadata_records_plan_instrument_time_and_status() {
         "ETA = actual time on the virtual clock"
     );
 }
+
+#[test]
+fn simulated_scan_metadata_reports_the_render_pipeline() {
+    use bfpscope::instrument::sim::scene::Bead;
+    use bfpscope::instrument::sim::{Scene, SimConfig, SimCore};
+    use bfpscope::optics::Optics;
+    let h = Harness::new("pipeline");
+    let mut scene = Scene::default();
+    scene
+        .add_bead(Bead {
+            pos: [0.0, 0.0, 0.0],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
+    scene.effects.enable("detector_noise").unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    let mut inst = core.instrument(0.0);
+    let run = h.run(&mut inst, &grid(4, 4, false, false)).unwrap();
+    let stages = run.scan.meta["pipeline"].as_array().expect("pipeline in meta");
+    let names: Vec<&str> = stages.iter().map(|s| s["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["superposition", "detector_noise"]);
+    // 16 reads went through the superposition stage: it has spent some time
+    assert!(stages[0]["seconds"].as_f64().unwrap() > 0.0, "{stages:?}");
+    // the mock instrument has no pipeline and reports none
+    let (mut mock, _) = mock_instrument(MockConfig::default());
+    let run = h.run(&mut mock, &grid(2, 2, false, false)).unwrap();
+    assert!(run.scan.meta.get("pipeline").is_none());
+}

@@ -279,6 +279,11 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     if let Some(e) = return_error {
         meta["return_error"] = json!(e);
     }
+    if let Some(Value::Object(q)) = inst.qpd.metadata() {
+        for (k, v) in q {
+            meta[k.as_str()] = v;
+        }
+    }
     if let (Value::Object(m), Value::Object(extra)) = (&mut meta, &env.meta) {
         for (k, v) in extra {
             m.insert(k.clone(), v.clone());

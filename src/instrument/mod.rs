@@ -111,6 +111,11 @@ pub trait Qpd: Send {
     /// Average `n` samples of (Sx, Sy, Sz). The read itself takes the time it takes: the
     /// simulated QPD advances the virtual clock by `n / sample_rate`.
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError>;
+    /// What produced the signal, for scan metadata: the simulator reports its render pipeline
+    /// (stages built and the wall time spent in each); hardware reports nothing extra.
+    fn metadata(&self) -> Option<serde_json::Value> {
+        None
+    }
 }
 
 /// Wall-clock time for real hardware.

@@ -125,6 +125,9 @@ impl Qpd for TracedQpd {
     fn sample_rate(&self) -> f64 {
         self.inner.sample_rate()
     }
+    fn metadata(&self) -> Option<serde_json::Value> {
+        self.inner.metadata()
+    }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let r = self.inner.read(n);
         match &r {

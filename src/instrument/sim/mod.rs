@@ -169,6 +169,10 @@ impl Qpd for SimQpd {
     fn sample_rate(&self) -> f64 {
         self.0.cfg.sample_rate
     }
+    fn metadata(&self) -> Option<serde_json::Value> {
+        let st = self.0.state.lock().unwrap();
+        Some(serde_json::json!({ "pipeline": st.renderer.stages() }))
+    }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         if n == 0 {
             return Err(DeviceError::Other {
