@@ -366,7 +366,9 @@ fn simulated_scan_metadata_reports_the_render_pipeline() {
     let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
     let mut inst = core.instrument(0.0);
     let run = h.run(&mut inst, &grid(4, 4, false, false)).unwrap();
-    let stages = run.scan.meta["pipeline"].as_array().expect("pipeline in meta");
+    let stages = run.scan.meta["pipeline"]
+        .as_array()
+        .expect("pipeline in meta");
     let names: Vec<&str> = stages.iter().map(|s| s["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["superposition", "detector_noise"]);
     // 16 reads went through the superposition stage: it has spent some time

@@ -61,12 +61,17 @@ impl SoftLimits {
             // The instrument config's `[limits]` table (x/y/z = [min, max] µm, max_step_um),
             // as written by `instrument::config` and docs/hardware.md.
             if let Some(t) = config.get("limits").and_then(|t| t.as_table()) {
-                let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
+                let num =
+                    |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
                 for (i, ax) in ["x", "y", "z"].iter().enumerate() {
                     if let Some(a) = t.get(*ax).and_then(|v| v.as_array()) {
                         match (a.first().and_then(num), a.get(1).and_then(num)) {
                             (Some(lo), Some(hi)) if lo < hi => l.range[i] = (lo, hi),
-                            _ => return Err(format!("config: limits.{ax} must be [min, max] µm with min < max")),
+                            _ => {
+                                return Err(format!(
+                                    "config: limits.{ax} must be [min, max] µm with min < max"
+                                ))
+                            }
                         }
                     }
                 }
