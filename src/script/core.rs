@@ -148,6 +148,30 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
+        Doc::func("fmt", "core")
+            .arg("x", "number", "", "a value")
+            .arg("digits", "int", "", "significant digits, 1–17")
+            .returns(
+                "string",
+                "x with that many significant digits (scientific notation outside 1e-3…1e6)",
+            )
+            .summary("format a number for printing")
+            .example("fmt(3.14159265, 3)", "\"3.14\"")
+            .example("fmt(0.000012345, 2)", "\"1.2e-5\"")
+            .example("fmt(1.0, 0)", "error: digits = 0"),
+        |x: Dynamic, d: Dynamic| -> RResult<String> {
+            let x = crate::script::registry::to_f64(&x)
+                .ok_or_else(|| format!("fmt: x must be a number, got {} {x}", x.type_name()))?;
+            let d = int("fmt", "digits", &d)?;
+            if !(1..=17).contains(&d) {
+                return fail(format!(
+                    "fmt: digits = {d} is out of range: 1 ≤ digits ≤ 17"
+                ));
+            }
+            Ok(fmt_sig(x, d as usize))
+        },
+    );
+    r.bind(
         Doc::func("version", "core")
             .returns("string", "")
             .summary("program name and version")
@@ -193,5 +217,23 @@ fn expect_err(
                 _ => Ok(msg),
             }
         }
+    }
+}
+
+/// `x` with `d` significant digits: fixed notation for 1e-3 ≤ |x| < 1e6, otherwise scientific.
+pub fn fmt_sig(x: f64, d: usize) -> String {
+    if !x.is_finite() {
+        return x.to_string();
+    }
+    if x == 0.0 {
+        return "0".into();
+    }
+    let e = x.abs().log10().floor() as i32;
+    if (-3..6).contains(&e) {
+        let dec = (d as i32 - 1 - e).max(0) as usize;
+        format!("{x:.dec$}")
+    } else {
+        let s = format!("{:.*e}", d - 1, x);
+        s
     }
 }
