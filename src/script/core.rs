@@ -171,6 +171,46 @@ pub fn register(r: &mut Registrar) {
             Ok(fmt_sig(x, d as usize))
         },
     );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("ask", "core")
+            .arg("question", "string", "", "what the operator must do or answer")
+            .returns("string", "the answer line (without the newline)")
+            .summary("ask the operator and wait for the answer (hardware protocols: \"rotate the sample, then press Enter\")")
+            .help("Prints the question and reads one line from the terminal. Answers queued with answer([...]) are used first, so scripted tests can answer prompts. End of input (no terminal, no queued answer) is an error, so an unattended script never waits forever.")
+            .example("answer([\"yes\"]); ask(\"rotated?\")", "\"yes\""),
+        move |q: &str| -> RResult<String> {
+            if let Some(a) = c.answers.lock().unwrap_or_else(|e| e.into_inner()).pop_front() {
+                c.print(&format!("{q} {a}"));
+                return Ok(a);
+            }
+            c.print(q);
+            let mut line = String::new();
+            match std::io::stdin().read_line(&mut line) {
+                Ok(0) => fail(format!("ask: no answer to \"{q}\": end of input (queue answers with answer([...]) when running unattended)")),
+                Ok(_) => Ok(line.trim_end_matches(['\n', '\r']).to_string()),
+                Err(e) => fail(format!("ask: cannot read the answer to \"{q}\": {e}")),
+            }
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("answer", "core")
+            .arg(
+                "answers",
+                "array",
+                "",
+                "strings, used in order by the next calls of ask()",
+            )
+            .returns("int", "answers now queued")
+            .summary("queue answers for ask() (scripted tests and unattended runs)")
+            .example("answer([\"y\", \"y\"])", "2"),
+        move |a: Array| -> i64 {
+            let mut q = c.answers.lock().unwrap_or_else(|e| e.into_inner());
+            q.extend(a.iter().map(|v| v.to_string()));
+            q.len() as i64
+        },
+    );
     r.bind(
         Doc::func("version", "core")
             .returns("string", "")
