@@ -1207,3 +1207,34 @@ fn background_removal_for_a_filament_along_x() {
         );
     }
 }
+
+#[test]
+fn focus_range_is_bracketing_and_stable_with_noisy_rows() {
+    // Noise of 1 % of the peak on every pixel: the row maxima scatter by about as much as the
+    // 2 % band itself. The range comes from the parabola over z, so it must bracket z_best and
+    // stay near the noise-free half-width zR·√(1/0.98 − 1) (within 30 %).
+    let (z0, zr, w0) = (0.05, 1.0, 0.4);
+    let x: Vec<f64> = (0..61).map(|i| -1.5 + i as f64 * H).collect();
+    let z: Vec<f64> = (0..41).map(|i| -1.0 + i as f64 * 0.05).collect();
+    let mut state: u64 = 7;
+    let mut noise = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * 3f64.sqrt() * 0.01 * 0.26
+    };
+    let data = ndarray::Array2::from_shape_fn((z.len(), x.len()), |(r, c)| {
+        let q = 1.0 + ((z[r] - z0) / zr).powi(2);
+        let w = w0 * q.sqrt();
+        x[c] * (-(x[c] * x[c]) / (w * w)).exp() / q + noise()
+    });
+    let img = Image::new(data, x, z).with_axis_names("x", "z");
+    let f = focus_search(&img, &FocusOptions::default()).unwrap();
+    let (lo, hi) = (f.z_lo.unwrap(), f.z_hi.unwrap());
+    assert!(lo < f.z_best && f.z_best < hi, "{lo} {} {hi}", f.z_best);
+    let half = zr * (1.0 / 0.98 - 1.0f64).sqrt();
+    assert!(
+        ((hi - lo) / 2.0 - half).abs() < 0.3 * half,
+        "{lo} {hi} vs ±{half}"
+    );
+}

@@ -520,3 +520,31 @@ fn bad_options_are_range_errors_not_panics() {
     )
     .is_err());
 }
+
+#[test]
+fn measured_template_with_noisy_border_is_not_called_truncated() {
+    // A wide template (response decayed to < 1e-6 at ±1.5 µm) with pixel noise of 4 % of its
+    // peak on every node, as a template averaged from a few measured beads has: the border's
+    // noise must not be mistaken for a truncated response (the mean along each side is used).
+    let mut g = Grid2::from_fn(-1.5, -1.5, 0.05, 61, 61, Interp::Cubic, |u, v| {
+        let e = (-(u * u + v * v) / 0.16).exp();
+        [u * e, v * e, e]
+    });
+    let peak = 0.2828 * (-0.5f64).exp();
+    // deterministic pseudo-noise: a fixed LCG, uniform on [-√3σ, √3σ] (σ = 4 % of the peak)
+    let mut state: u64 = 12345;
+    let mut next = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * 3f64.sqrt() * 0.04 * peak
+    };
+    for n in g.data.iter_mut() {
+        n[0] += next();
+        n[1] += next();
+    }
+    let t = Template::from_model(g, RefBead::default(), "noisy wide template").unwrap();
+    let tr = t.truncation();
+    // mean of 61 noise values: σ/√61 ≈ 0.5 % of the peak; 4 sides × 2 channels → < 2 %
+    assert!(tr < 0.02, "truncation {tr}");
+}

@@ -45,8 +45,10 @@ pub struct FocusResult {
     /// Maximum sensitivity at z_best.
     pub max_sens: f64,
     pub max_sens_err: Option<f64>,
-    /// Lower and upper z where the row maxima fall to `level`·max_sens (linear interpolation);
-    /// None on a side where they stay above it up to the end of the scan.
+    /// Lower and upper z where the sensitivity falls to `level`·max_sens: the crossings of the
+    /// fitted parabola over z when they lie inside its window (robust to the noise of single
+    /// rows), otherwise the first row maxima below the level walking out from the best row
+    /// (linear interpolation); None on a side where they stay above it up to the end of the scan.
     pub z_lo: Option<f64>,
     pub z_hi: Option<f64>,
     /// Per-row maxima (rows are z).
@@ -113,6 +115,20 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
                 (b, a)
             }
         }
+    };
+    // The level crossings of the fitted parabola, z_best ± √(2(1 − level)·max/|2c|): robust to
+    // the noise of the individual row maxima (a 2 % band is easily within it). Used when they
+    // lie inside the fitted window and the scan; otherwise the walked crossings above.
+    let half = (2.0 * (1.0 - opts.level) * p.value / -p.curvature).sqrt();
+    let (zmin, zmax) = (z[0].min(z[z.len() - 1]), z[0].max(z[z.len() - 1]));
+    let (z_lo, z_hi) = if half.is_finite()
+        && half <= 0.5 * opts.z_window_um
+        && p.pos - half >= zmin
+        && p.pos + half <= zmax
+    {
+        (Some(p.pos - half), Some(p.pos + half))
+    } else {
+        (z_lo, z_hi)
     };
     Ok(FocusResult {
         z_best: p.pos,

@@ -302,28 +302,38 @@ impl Template {
         self.grid.extent()
     }
 
-    /// Truncation level: the largest |Sx| or |Sy| on the border nodes relative to the largest
-    /// anywhere. A template whose response has not decayed at its border (large value) cannot
-    /// represent beads beyond its extent: the fit refuses it (see `FitOptions::max_truncation`).
+    /// Truncation level: the response left at the template's border relative to its peak — the
+    /// largest |mean| of Sx or Sy along one side of the grid, over the peak |Sx|, |Sy|. A template
+    /// whose response has not decayed at its border (large value) cannot represent beads beyond
+    /// its extent: the fit refuses it (see `FitOptions::max_truncation`). The mean along a side
+    /// (not the largest node) keeps the measure meaningful for measured templates, whose border
+    /// nodes carry pixel noise: noise averages out over the side, a truncated response does not
+    /// (Sx keeps its sign along the left and right sides, Sy along the top and bottom).
     pub fn truncation(&self) -> f64 {
         let (nu, nv) = (self.grid.nu, self.grid.nv);
+        let node = |i: usize, j: usize| self.grid.data[j * nu + i];
+        let all = self
+            .grid
+            .data
+            .iter()
+            .map(|n| n[0].abs().max(n[1].abs()))
+            .fold(0.0, f64::max);
+        if !(all > 0.0) || nu < 2 || nv < 2 {
+            return 0.0;
+        }
         let mut border: f64 = 0.0;
-        let mut all: f64 = 0.0;
-        for j in 0..nv {
-            for i in 0..nu {
-                let n = self.grid.data[j * nu + i];
-                let m = n[0].abs().max(n[1].abs());
-                all = all.max(m);
-                if i == 0 || j == 0 || i == nu - 1 || j == nv - 1 {
-                    border = border.max(m);
-                }
+        for ch in 0..2 {
+            let sides = [
+                (0..nu).map(|i| node(i, 0)[ch]).sum::<f64>() / nu as f64,
+                (0..nu).map(|i| node(i, nv - 1)[ch]).sum::<f64>() / nu as f64,
+                (0..nv).map(|j| node(0, j)[ch]).sum::<f64>() / nv as f64,
+                (0..nv).map(|j| node(nu - 1, j)[ch]).sum::<f64>() / nv as f64,
+            ];
+            for m in sides {
+                border = border.max(m.abs());
             }
         }
-        if all > 0.0 {
-            border / all
-        } else {
-            0.0
-        }
+        border / all
     }
 
     /// True when both templates have the same grid geometry, metadata and node values within a
