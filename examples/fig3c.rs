@@ -7,7 +7,10 @@
 //!   term only (as the Rayleigh models);
 //! * `mief_w400` — the same plus the |E_s|² term;
 //! * `mie_fill`, `mief_fill` — the uniformly filled NA 1.2 aperture (tightest focus, mean 1/e²
-//!   radius 412 nm, closest to the paper's measured 400 nm).
+//!   radius 412 nm, closest to the paper's measured 400 nm);
+//! * `fsas_w400`, `fsas_fill` — finite-size Rayleigh (volume average of point dipoles, suppl.
+//!   S6) in the same angular-spectrum beams: the like-for-like partner of `mie_*` (Mie tends to
+//!   it as m → 1, tests/mie_beam.rs), which separates Mie physics from the beam model.
 //!
 //! All curves normalised to 1 at 110 nm (as the paper); `dev0_*` is the departure from the
 //! model's own small-particle limit (1 − S/S_{d→0}), `dev110_*` from the volume scaling
@@ -17,13 +20,41 @@
 //! Run: `cargo run --release --example fig3c > fig3c.csv` (CSV on stdout, `#` summary lines;
 //! a few minutes on one core).
 
-use bfpscope::optics::finite_size::max_sensitivity_unit;
+use bfpscope::optics::finite_size::{max_sensitivity_unit, sphere_points};
 use bfpscope::optics::mie::Complex64 as C64;
 use bfpscope::optics::mie_beam::{Amplitudes, MieBeam, MieBeamSpec, Waist};
 use bfpscope::optics::params::{Optics, REF_BEAD_D_NM, REF_BEAD_N};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
 
 const N_R: usize = 8;
+/// Sphere rule for the finite-size model in the angular-spectrum beam (250 dipoles).
+const N_R_AS: usize = 5;
+
+/// Maximise f over z ∈ [−1, 1] µm: 0.05 µm scan, then golden section (as
+/// `MieBeam::max_sensitivity_x` and `finite_size::max_sensitivity_unit`).
+fn golden_max(f: impl Fn(f64) -> f64) -> (f64, f64) {
+    let (mut best_z, mut best) = (0.0, f(0.0));
+    for i in -20..=20 {
+        let z = i as f64 * 0.05;
+        let v = f(z);
+        if v > best {
+            best = v;
+            best_z = z;
+        }
+    }
+    let (mut a, mut b) = (best_z - 0.05, best_z + 0.05);
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    for _ in 0..30 {
+        let (c, d) = (b - g * (b - a), a + g * (b - a));
+        if f(c) > f(d) {
+            b = d
+        } else {
+            a = c
+        }
+    }
+    let z = 0.5 * (a + b);
+    (f(z), z)
+}
 
 struct Model {
     name: &'static str,
@@ -68,6 +99,35 @@ fn main() {
         )
         .unwrap();
         let lim = dip.max_sensitivity_x().0 / alpha(10.0);
+        // finite-size Rayleigh in the same angular-spectrum beam: the volume average of the
+        // dipole-limit response (suppl. S6 construction), which Mie approaches as m → 1
+        let o3 = o.clone();
+        models.push(Model {
+            name: if tag == "w400" {
+                "fsas_w400"
+            } else {
+                "fsas_fill"
+            },
+            f: Box::new(move |d| {
+                let dip = MieBeam::new(
+                    &o3,
+                    d,
+                    np,
+                    MieBeamSpec {
+                        amplitudes: Amplitudes::Dipole,
+                        ..base
+                    },
+                )
+                .unwrap();
+                let pts = sphere_points(d * 1e-3, N_R_AS);
+                golden_max(|z| {
+                    pts.iter()
+                        .map(|(p, w)| w * dip.response_grad(p[0], p[1], p[2] + z).unwrap().1[0])
+                        .sum()
+                })
+            }),
+            limit_per_alpha: lim,
+        });
         for full in [false, true] {
             let o2 = o.clone();
             let spec = MieBeamSpec {

@@ -146,7 +146,8 @@ fn focal_intensity_per_power_is_the_gaussian_peak_for_a_wide_beam() {
 /// Optical theorem: with the detection cone equal to the aperture, the interference term
 /// collects everything the beam loses, so Sz at the focus is −P_ext/P = −C_ext I(0)/P, with
 /// C_ext = Q_ext π a² from `mie::mie_q` (an independent path: efficiencies from a_n, b_n, not
-/// S(Θ) over a grid) — for a sphere small against the beam, to O((a/w0)²).
+/// S(Θ) over a grid) — for a sphere small against the beam, to O(1/w0²) (measured 1.9e-5 and
+/// 2.4e-4 here, 4× smaller at w0 = 8 µm).
 #[test]
 fn sz_at_focus_is_minus_extinction_optical_theorem() {
     let o = Optics {
@@ -163,7 +164,7 @@ fn sz_at_focus_is_minus_extinction_optical_theorem() {
         let a = 0.5 * d * 1e-3;
         let want = -q.qext * PI * a * a * mie.beam().intensity(0.0, 0.0, 0.0);
         assert!(
-            (s[2] / want - 1.0).abs() < 2e-3,
+            (s[2] / want - 1.0).abs() < 5e-4,
             "d = {d}, n = {n}: Sz {:e} vs −C_ext I0/P {want:e}",
             s[2]
         );
