@@ -14,7 +14,7 @@ fn bench(c: &mut Criterion) {
     let n = C64::new(1.572, 0.0);
     let mut g = c.benchmark_group("mie_beam_point");
     g.sample_size(20);
-    for &(nt, np) in &[(6usize, 3usize), (8, 4), (12, 6), (16, 8), (24, 12)] {
+    for &(nt, np) in &[(8usize, 4usize), (10, 5), (12, 6), (16, 8), (24, 12)] {
         let spec = MieBeamSpec {
             n_theta_in: nt,
             n_phi_in: np,

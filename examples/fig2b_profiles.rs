@@ -14,13 +14,16 @@
 //! (`Waist::SpectralNm(0.0)`), the tightest focus the objective makes (mean 1/e² radius 412 nm,
 //! the closest to the paper's measured w0 ≈ 400 nm).
 //!
-//! Run: `cargo run --release --example fig2b_profiles > fig2b.csv` — CSV on stdout, summary
-//! lines start with `#` (so the file stays loadable with `numpy.loadtxt(..., comments="#")`).
+//! Run: `cargo run --release --example fig2b_profiles -- [fig2b.png] > fig2b.csv` — CSV on
+//! stdout, summary lines start with `#` (so the file stays loadable with
+//! `numpy.loadtxt(..., comments="#")`); the figure (profiles normalised to their peaks) goes to
+//! the path given, default `fig2b.png`.
 
 use bfpscope::optics::mie::Complex64 as C64;
 use bfpscope::optics::mie_beam::{optics_for_reach, Amplitudes, MieBeam, MieBeamSpec, Waist};
 use bfpscope::optics::params::{Optics, REF_BEAD_D_NM, REF_BEAD_N};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
+use bfpscope::plot::{plot_xy, Series, XyOpts};
 
 /// Summary of an antisymmetric profile sampled on x ≥ 0: main peak, first sign change beyond
 /// it, and the extremum of opposite sign (the "overshoot") beyond that.
@@ -177,6 +180,36 @@ fn main() {
     for (name, c) in &cols {
         println!("{}", describe(name, &xs, c));
     }
+    let png = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| "fig2b.png".to_string());
+    let label = |name: &str| match name {
+        "rayleigh" => "Rayleigh, paraxial Gaussian (paper model)",
+        "rayleigh_pol" => "Rayleigh + polarization",
+        "mie_w400" => "Mie, Gaussian spectrum w0 = 400 nm",
+        "mie_fill" => "Mie, filled NA 1.2 aperture",
+        "as_dipole_fill" => "point dipole, filled aperture",
+        _ => "",
+    };
+    let series: Vec<Series> = cols
+        .iter()
+        .filter(|(n, _)| !label(n).is_empty())
+        .map(|(n, c)| {
+            let peak = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            Series::line(label(n), xs.clone(), c.iter().map(|v| v / peak).collect())
+        })
+        .collect();
+    plot_xy(
+        &png,
+        &series,
+        &XyOpts::new(
+            "Fig. 2b: Sx(x, y = 0) of a 110 nm polystyrene bead, normalised to its peak",
+            "x (µm)",
+            "Sx / peak",
+        ),
+    )
+    .expect("write the figure");
+    println!("# figure: {png}");
     let sens = |c: &[f64]| {
         let i = n_pts / 2;
         (c[i + 1] - c[i - 1]) / (xs[i + 1] - xs[i - 1])

@@ -146,7 +146,8 @@ fn focal_intensity_per_power_is_the_gaussian_peak_for_a_wide_beam() {
 /// Optical theorem: with the detection cone equal to the aperture, the interference term
 /// collects everything the beam loses, so Sz at the focus is −P_ext/P = −C_ext I(0)/P, with
 /// C_ext = Q_ext π a² from `mie::mie_q` (an independent path: efficiencies from a_n, b_n, not
-/// S(Θ) over a grid) — for a sphere small against the beam, to O((a/w0)²).
+/// S(Θ) over a grid) — for a sphere small against the beam, to O(1/w0²) (measured 1.9e-5 and
+/// 2.4e-4 here, 4× smaller at w0 = 8 µm).
 #[test]
 fn sz_at_focus_is_minus_extinction_optical_theorem() {
     let o = Optics {
@@ -163,7 +164,7 @@ fn sz_at_focus_is_minus_extinction_optical_theorem() {
         let a = 0.5 * d * 1e-3;
         let want = -q.qext * PI * a * a * mie.beam().intensity(0.0, 0.0, 0.0);
         assert!(
-            (s[2] / want - 1.0).abs() < 2e-3,
+            (s[2] / want - 1.0).abs() < 5e-4,
             "d = {d}, n = {n}: Sz {:e} vs −C_ext I0/P {want:e}",
             s[2]
         );
@@ -481,4 +482,71 @@ fn weak_contrast_mie_equals_volume_averaged_dipoles() {
         devs.push(dev);
     }
     assert!((devs[0] / devs[1] - 2.0).abs() < 0.1, "{devs:?}");
+}
+
+/// The renderer's Mie template (coarse exact evaluation + windowed-sinc upsampling + cubic
+/// interpolation, `optics::mie_template`) equals the direct response: measured 2.5e-5 of the
+/// peak for ρ < 0.7 L and 6e-5 up to the support radius L (the response beyond L, up to
+/// 1.6e-3 of the peak in the aperture's diffraction rings, is dropped and leaks into the edge
+/// band through the kernel); off-plane z is interpolated between planes.
+#[test]
+fn mie_template_matches_the_direct_response() {
+    use bfpscope::optics::mie_beam::optics_for_reach;
+    use bfpscope::optics::mie_template::{MieTemplate, MieTemplateSpec};
+    use bfpscope::optics::template::TemplateSpec;
+    let o = Optics::default();
+    let t = MieTemplate::new(
+        &o,
+        500.0,
+        PS,
+        MieTemplateSpec {
+            grid: TemplateSpec::default(),
+            detector: DetectorModel::default(),
+            scattered_intensity: false,
+        },
+    )
+    .unwrap();
+    assert!((t.widen - 1.339).abs() < 1e-3, "{}", t.widen);
+    let om = optics_for_reach(&o, 2.5);
+    let direct = MieBeam::new(&om, 500.0, ps(), MieBeamSpec::for_reach(&o, 2.5, 0.1)).unwrap();
+    let a = t.alpha;
+    let peak = direct.response(0.3, 0.0, 0.0).unwrap()[0].abs() / a;
+    let l = t.support_um(0.0);
+    assert!((l - 3.5 * 0.4 * t.widen).abs() < 1e-12);
+    let (mut inner, mut all, mut edge) = (0.0f64, 0.0f64, 0.0f64);
+    for i in 0..150 {
+        let rho = 0.98 * l * ((i as f64 * 0.618_034).fract()).sqrt();
+        let ang = i as f64 * 2.399_963;
+        let (x, y) = (rho * ang.cos(), rho * ang.sin());
+        let v = t.eval(x, y, 0.0).unwrap();
+        let w = direct.response(x, y, 0.0).unwrap();
+        for c in 0..3 {
+            let e = (v[c] - w[c] / a).abs() / peak;
+            all = all.max(e);
+            if rho < 0.7 * l {
+                inner = inner.max(e);
+            }
+        }
+    }
+    for i in 0..36 {
+        let ang = i as f64 * 0.1745;
+        let w = direct.response(l * ang.cos(), l * ang.sin(), 0.0).unwrap();
+        edge = edge.max(w.iter().fold(0.0f64, |m, v| m.max(v.abs())) / a / peak);
+    }
+    eprintln!("template vs direct / peak: ρ < 0.7 L {inner:.2e}, ρ < L {all:.2e}; |S| at ρ = L: {edge:.2e}");
+    assert!(
+        inner < 4e-5 && all < 1e-4 && edge < 3e-3,
+        "{inner} {all} {edge}"
+    );
+    // between planes (z = 0.02: cubic in z over planes −0.05 … 0.1)
+    let v = t.eval(0.25, 0.1, 0.02).unwrap();
+    let w = direct.response(0.25, 0.1, 0.02).unwrap();
+    for c in 0..3 {
+        assert!(
+            (v[c] - w[c] / a).abs() < 2e-4 * peak,
+            "{c}: {} vs {}",
+            v[c],
+            w[c] / a
+        );
+    }
 }

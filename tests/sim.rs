@@ -29,7 +29,7 @@ fn ideal_scene_builds_superposition_alone_and_each_effect_adds_its_own_stage() {
     let mut s = Scene::default();
     s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
     assert_eq!(renderer(&s).stage_names(), vec!["superposition"]);
-    for name in EFFECT_NAMES.iter().filter(|n| **n != "mie") {
+    for name in EFFECT_NAMES.iter() {
         let mut e = s.clone();
         e.effects.enable(name).unwrap();
         assert_eq!(
@@ -39,10 +39,10 @@ fn ideal_scene_builds_superposition_alone_and_each_effect_adds_its_own_stage() {
         );
     }
     let mut all = s.clone();
-    for name in EFFECT_NAMES.iter().filter(|n| **n != "mie") {
+    for name in EFFECT_NAMES.iter() {
         all.effects.enable(name).unwrap();
     }
-    assert_eq!(renderer(&all).stage_names().len(), EFFECT_NAMES.len());
+    assert_eq!(renderer(&all).stage_names().len(), EFFECT_NAMES.len() + 1);
     let err = s.effects.clone().enable("fog").unwrap_err().to_string();
     assert!(
         err.contains("fog") && err.contains("detector_noise"),
@@ -234,4 +234,162 @@ fn zero_length_and_one_bead_filaments_are_finite() {
             spacing_nm: 50.0
         })
         .is_err());
+}
+
+/// The `mie` effect: exactly its own stage; beads become Mie spheres (one template per distinct
+/// (d, n)), filaments and aggregates stay Rayleigh bead models.
+#[test]
+fn mie_effect_builds_its_own_stage_and_renders_only_beads_as_mie() {
+    let mut s = Scene::default();
+    s.add_bead(bead(0.0, 0.0, 500.0)).unwrap();
+    s.add_bead(bead(2.0, 0.0, 500.0)).unwrap();
+    s.add_bead(bead(-2.0, 1.0, 110.0)).unwrap();
+    s.add_filament(Filament {
+        points: vec![[0.0, -3.0], [0.0, -2.0]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm: 50.0 },
+        n: 1.414,
+        spacing_nm: 50.0,
+    })
+    .unwrap();
+    s.add_aggregates(Aggregates {
+        count: 3,
+        d_nm: [40.0, 60.0],
+        n: 1.5,
+        region: [[3.0, 4.0], [3.0, 4.0]],
+        z: 0.0,
+        seed: 2,
+    })
+    .unwrap();
+    s.effects.enable("mie").unwrap();
+    assert_eq!(s.effects.names(), vec!["mie"]);
+    let r = renderer(&s);
+    assert_eq!(r.stage_names(), vec!["superposition", "mie"]);
+    assert_eq!(r.mie.len(), 2, "two distinct (d, n): 500 and 110 nm");
+    let n_mie = r.mie_of.iter().filter(|m| m.is_some()).count();
+    assert_eq!(n_mie, 3);
+    // the filament's and the aggregates' scatterers stay Rayleigh
+    assert!(r.scatterers.len() > 3 + 3 + 10);
+    for (sc, m) in r.scatterers.iter().zip(&r.mie_of) {
+        assert_eq!(m.is_some(), sc.object < 3, "object {}", sc.object);
+    }
+    // with finite_size too, Mie beads are not decomposed into dipoles
+    let mut f = s.clone();
+    f.effects.enable("finite_size").unwrap();
+    let rf = renderer(&f);
+    assert_eq!(
+        rf.stage_names(),
+        vec!["superposition", "finite_size", "mie"]
+    );
+    assert_eq!(rf.mie_of.iter().filter(|m| m.is_some()).count(), 3);
+    // min_d_nm keeps small beads Rayleigh
+    let mut g = s.clone();
+    g.effects.mie = Some(MieEffect {
+        min_d_nm: 200.0,
+        scattered_intensity: false,
+    });
+    assert_eq!(renderer(&g).mie.len(), 1);
+}
+
+/// A small bead rendered by the `mie` stage equals the Rayleigh render (with the vector-dipole
+/// `polarization` effect, as the Mie tier is vectorial) in a wide, weakly focused beam, where
+/// the paraxial Gaussian of the Rayleigh tier and the angular-spectrum beam of the Mie tier are
+/// the same beam (to the paraxial correction ∝ 1/(k w0)², docs/physics.md §9).
+#[test]
+fn mie_render_of_a_small_bead_agrees_with_the_rayleigh_render() {
+    let o = Optics {
+        w0_nm: 1000.0,
+        na: 1.0,
+        ..Optics::default()
+    };
+    let mut s = Scene::default();
+    s.add_bead(bead(0.1, -0.05, 30.0)).unwrap();
+    let mut ray = s.clone();
+    ray.effects.enable("polarization").unwrap();
+    s.effects.enable("mie").unwrap();
+    let rm = Renderer::new(&o, &s, TemplateSpec::default()).unwrap();
+    let rr = Renderer::new(&o, &ray, TemplateSpec::default()).unwrap();
+    let xs = axis(-2.0, 2.0, 41);
+    let (im, ir) = (
+        render_xy(&rm, &xs, &xs, 0.0, 1),
+        render_xy(&rr, &xs, &xs, 0.0, 1),
+    );
+    let amax = |a: &ndarray::Array2<f64>| a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    // all channels relative to the Sx peak (the Rayleigh tier's Sz vanishes in the focal plane;
+    // the Mie sphere's is its extinction, −C_ext I/P, 3.5e-4 of the Sx peak here)
+    let peak = amax(&ir.sx.data);
+    let mut worst = [0.0; 3];
+    for (c, (a, b)) in [(&im.sx, &ir.sx), (&im.sy, &ir.sy), (&im.sz, &ir.sz)]
+        .into_iter()
+        .enumerate()
+    {
+        assert!(amax(&a.data) > 0.0);
+        worst[c] = a
+            .data
+            .iter()
+            .zip(b.data.iter())
+            .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()))
+            / peak;
+    }
+    // measured 2.4e-2 (Sx), 2.3e-2 (Sy), 3.5e-4 (Sz): the paraxial correction at k·w0 = 7.9
+    eprintln!("worst |Mie − Rayleigh| / peak Sx: {worst:?}");
+    assert!(worst.iter().all(|&w| w < 0.03), "{worst:?}");
+    assert!(worst[2] < 1e-3, "{worst:?}");
+    // the Mie stage's time is recorded
+    assert!(rm.stages()[1].seconds > 0.0);
+}
+
+/// A 500 nm bead renders finitely with the Mie stage, the image equals the direct focused-beam
+/// Mie response at its pixels, and its slope at the bead is below the point-dipole Rayleigh
+/// value (the finite size, paper Fig. 3c).
+#[test]
+fn mie_render_of_a_500_nm_bead_is_finite_and_matches_the_direct_response() {
+    use bfpscope::optics::mie::Complex64;
+    use bfpscope::optics::mie_beam::{MieBeam, MieBeamSpec};
+    let o = Optics::default();
+    let mut s = Scene::default();
+    s.add_bead(bead(0.2, 0.1, 500.0)).unwrap();
+    let ray = renderer(&s);
+    s.effects.enable("mie").unwrap();
+    let r = renderer(&s);
+    let xs = axis(-1.0, 1.4, 25);
+    let img = render_xy(&r, &xs, &xs, 0.0, 1);
+    for ch in [&img.sx, &img.sy, &img.sz] {
+        assert!(ch.data.iter().all(|v| v.is_finite()));
+    }
+    let direct = MieBeam::new(
+        &o,
+        500.0,
+        Complex64::new(1.572, 0.0),
+        MieBeamSpec::default(),
+    )
+    .unwrap();
+    let peak = img.sx.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(peak > 0.0);
+    for &(ix, iy) in &[(12usize, 11usize), (15, 14), (5, 20), (20, 3)] {
+        let d = direct.response(xs[ix] - 0.2, xs[iy] - 0.1, 0.0).unwrap();
+        let v = [
+            img.sx.data[[iy, ix]],
+            img.sy.data[[iy, ix]],
+            img.sz.data[[iy, ix]],
+        ];
+        for c in 0..3 {
+            assert!(
+                (v[c] - d[c]).abs() < 2e-4 * peak,
+                "pixel ({ix}, {iy}) ch {c}: {} vs {}",
+                v[c],
+                d[c]
+            );
+        }
+    }
+    // slope at the bead along x vs the Rayleigh point dipole
+    let mut rng = rand::rng();
+    let h = 0.01;
+    let slope = |rr: &Renderer, rng: &mut rand::rngs::ThreadRng| {
+        (rr.render_point([0.2 + h, 0.1, 0.0], 1, rng).0[0]
+            - rr.render_point([0.2 - h, 0.1, 0.0], 1, rng).0[0])
+            / (2.0 * h)
+    };
+    let (sm, sr) = (slope(&r, &mut rng), slope(&ray, &mut rng));
+    assert!(sm > 0.0 && sm < 0.8 * sr, "Mie slope {sm} vs Rayleigh {sr}");
 }

@@ -312,48 +312,60 @@ fn coefficient_real(dd: f64, psi_n: f64, psi_nm1: f64, chi_n: f64, chi_nm1: f64)
     }
 }
 
-/// General-size coefficients for a real relative index, in real arithmetic (same equations as
-/// [`full_coefficients`]; about three times cheaper).
-fn full_coefficients_real(x: f64, m: f64, n_terms: usize) -> Result<Coeffs, MieError> {
+/// Streams the general-size coefficients for a real relative index, in real arithmetic (same
+/// equations as [`stream_complex`]; about three times cheaper): calls `sink(a_n, b_n, 0)` for
+/// n = 1 … `n_terms` in order (zeros once |χ_n| > CHI_MAX).
+fn stream_real(
+    x: f64,
+    m: f64,
+    n_terms: usize,
+    mut sink: impl FnMut(C64, C64, f64),
+) -> Result<(), MieError> {
     let z = m * x;
     let nc = |e: bessel::CfNoConvergence, zz: f64| MieError::NoConvergence {
         z: zz.to_string(),
         order: n_terms,
         iterations: e.iterations,
     };
-    let d = bessel::log_derivatives_real(z, n_terms).map_err(|e| nc(e, z))?;
-    let psi = bessel::riccati_psi(x, n_terms).map_err(|e| nc(e, x))?;
-    let minv = 1.0 / m;
-    let xinv = 1.0 / x;
-    let mut out = Coeffs {
-        scale: 1.0,
-        scale_x: xinv,
-        scale_x2: xinv * xinv,
-        a: vec![C64::new(0.0, 0.0); n_terms],
-        b: vec![C64::new(0.0, 0.0); n_terms],
-        absorb: vec![0.0; n_terms],
-    };
-    let mut chi_nm1 = x.cos(); // χ_0
-    let mut chi_n = x.cos() * xinv + x.sin(); // χ_1
-    for n in 1..=n_terms {
-        if chi_n.abs() > CHI_MAX {
-            break;
+    SCRATCH.with(|sc| {
+        let mut sc = sc.borrow_mut();
+        let (d, psi, ratios) = sc.real_parts();
+        bessel::log_derivatives_real_into(z, n_terms, d).map_err(|e| nc(e, z))?;
+        bessel::riccati_psi_into(x, n_terms, psi, ratios).map_err(|e| nc(e, x))?;
+        let minv = 1.0 / m;
+        let xinv = 1.0 / x;
+        let (sx, cx) = x.sin_cos();
+        let mut chi_nm1 = cx; // χ_0
+        let mut chi_n = cx * xinv + sx; // χ_1
+        let zero = C64::new(0.0, 0.0);
+        for n in 1..=n_terms {
+            if chi_n.abs() > CHI_MAX {
+                sink(zero, zero, 0.0);
+                continue;
+            }
+            let nx = n as f64 * xinv;
+            let dn = d[n - 1];
+            let an = coefficient_real(dn * minv + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
+            let bn = coefficient_real(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
+            sink(an, bn, 0.0);
+            let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
+            chi_nm1 = chi_n;
+            chi_n = chi_np1;
         }
-        let nx = n as f64 * xinv;
-        let dn = d[n - 1];
-        out.a[n - 1] = coefficient_real(dn * minv + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
-        out.b[n - 1] = coefficient_real(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
-        let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
-        chi_nm1 = chi_n;
-        chi_n = chi_np1;
-    }
-    Ok(out)
+        Ok(())
+    })
 }
 
-/// General-size coefficients (BH eq. 4.88), n = 1 … `n_terms`.
-fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError> {
+/// Streams the general-size coefficients (BH eq. 4.88), n = 1 … `n_terms`:
+/// `sink(a_n, b_n, Re a_n − |a_n|² + Re b_n − |b_n|²)` in order.
+fn stream_complex(
+    x: f64,
+    m: C64,
+    n_terms: usize,
+    mut sink: impl FnMut(C64, C64, f64),
+) -> Result<(), MieError> {
     if m.im == 0.0 {
-        return full_coefficients_real(x, m.re, n_terms);
+        return stream_real(x, m.re, n_terms, sink);
     }
     let z = m * x;
     let nc = |e: bessel::CfNoConvergence, zz: C64| MieError::NoConvergence {
@@ -361,43 +373,83 @@ fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError>
         order: n_terms,
         iterations: e.iterations,
     };
-    let d = bessel::log_derivatives(z, n_terms).map_err(|e| nc(e, z))?;
-    let psi = bessel::riccati_psi(x, n_terms).map_err(|e| nc(e, C64::new(x, 0.0)))?;
-    let minv = crecip(m);
+    SCRATCH.with(|sc| {
+        let mut sc = sc.borrow_mut();
+        let (d, psi, ratios) = sc.complex_parts();
+        bessel::log_derivatives_into(z, n_terms, d).map_err(|e| nc(e, z))?;
+        bessel::riccati_psi_into(x, n_terms, psi, ratios).map_err(|e| nc(e, C64::new(x, 0.0)))?;
+        let minv = crecip(m);
+        let xinv = 1.0 / x;
+        let absorbing = m.im != 0.0;
+        let (sx, cx) = x.sin_cos();
+        let mut chi_nm1 = cx; // χ_0
+        let mut chi_n = cx * xinv + sx; // χ_1
+        let zero = C64::new(0.0, 0.0);
+        for n in 1..=n_terms {
+            if chi_n.abs() > CHI_MAX {
+                sink(zero, zero, 0.0);
+                continue;
+            }
+            let nx = n as f64 * xinv;
+            let dn = d[n - 1];
+            let (an, abs_a) = coefficient(
+                dn * minv + nx,
+                psi[n],
+                psi[n - 1],
+                chi_n,
+                chi_nm1,
+                absorbing,
+            );
+            let (bn, abs_b) =
+                coefficient(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1, absorbing);
+            sink(an, bn, abs_a + abs_b);
+            let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
+            chi_nm1 = chi_n;
+            chi_n = chi_np1;
+        }
+        Ok(())
+    })
+}
+
+/// Per-thread work buffers of the general-size path (D_n, ψ_n and the ψ ratios), reused
+/// across calls so that `mie_q` allocates nothing in steady state.
+#[derive(Default)]
+struct Scratch {
+    d_real: Vec<f64>,
+    d_complex: Vec<C64>,
+    psi: Vec<f64>,
+    ratios: Vec<f64>,
+}
+
+impl Scratch {
+    fn real_parts(&mut self) -> (&mut Vec<f64>, &mut Vec<f64>, &mut Vec<f64>) {
+        (&mut self.d_real, &mut self.psi, &mut self.ratios)
+    }
+    fn complex_parts(&mut self) -> (&mut Vec<C64>, &mut Vec<f64>, &mut Vec<f64>) {
+        (&mut self.d_complex, &mut self.psi, &mut self.ratios)
+    }
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+/// General-size coefficients (BH eq. 4.88), n = 1 … `n_terms`, stored.
+fn full_coefficients(x: f64, m: C64, n_terms: usize) -> Result<Coeffs, MieError> {
     let xinv = 1.0 / x;
-    let absorbing = m.im != 0.0;
     let mut out = Coeffs {
         scale: 1.0,
         scale_x: xinv,
         scale_x2: xinv * xinv,
-        a: vec![C64::new(0.0, 0.0); n_terms],
-        b: vec![C64::new(0.0, 0.0); n_terms],
-        absorb: vec![0.0; n_terms],
+        a: Vec::with_capacity(n_terms),
+        b: Vec::with_capacity(n_terms),
+        absorb: Vec::with_capacity(n_terms),
     };
-    let mut chi_nm1 = x.cos(); // χ_0
-    let mut chi_n = x.cos() * xinv + x.sin(); // χ_1
-    for n in 1..=n_terms {
-        if chi_n.abs() > CHI_MAX {
-            break;
-        }
-        let nx = n as f64 * xinv;
-        let dn = d[n - 1];
-        let (an, abs_a) = coefficient(
-            dn * minv + nx,
-            psi[n],
-            psi[n - 1],
-            chi_n,
-            chi_nm1,
-            absorbing,
-        );
-        let (bn, abs_b) = coefficient(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1, absorbing);
-        out.a[n - 1] = an;
-        out.b[n - 1] = bn;
-        out.absorb[n - 1] = abs_a + abs_b;
-        let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
-        chi_nm1 = chi_n;
-        chi_n = chi_np1;
-    }
+    stream_complex(x, m, n_terms, |a, b, ab| {
+        out.a.push(a);
+        out.b.push(b);
+        out.absorb.push(ab);
+    })?;
     Ok(out)
 }
 
@@ -455,42 +507,71 @@ pub fn mie_coefficients(
     ))
 }
 
-/// Efficiencies from a coefficient set (BH eq. 4.61, 4.62, 4.79; Q_back BH §4.6).
-fn efficiencies(m: C64, c: &Coeffs) -> MieResult {
-    let n_terms = c.a.len();
-    let mut s_ext = 0.0;
-    let mut s_sca = 0.0;
-    let mut s_abs = 0.0;
-    let mut s_g = 0.0;
-    let mut back = C64::new(0.0, 0.0);
-    let mut sign = -1.0; // (−1)^n
-    for i in 0..n_terms {
-        let n = (i + 1) as f64;
-        let (an, bn) = (c.a[i], c.b[i]);
+/// Running sums of the efficiency series (BH eq. 4.61, 4.62, 4.79; Q_back BH §4.6), fed one
+/// order at a time, so the general-size path never stores the coefficients.
+#[derive(Default)]
+struct EffSums {
+    n: usize,
+    s_ext: f64,
+    s_sca: f64,
+    s_abs: f64,
+    s_g: f64,
+    back: C64,
+    prev: (C64, C64),
+}
+
+impl EffSums {
+    #[inline]
+    fn push(&mut self, an: C64, bn: C64, absorb: f64) {
+        self.n += 1;
+        let n = self.n as f64;
         let w = 2.0 * n + 1.0;
-        s_ext += w * (an.re + bn.re);
-        s_sca += w * (an.norm_sqr() + bn.norm_sqr());
-        s_abs += w * c.absorb[i];
-        back += (an - bn) * (w * sign);
-        sign = -sign;
+        self.s_ext += w * (an.re + bn.re);
+        self.s_sca += w * (an.norm_sqr() + bn.norm_sqr());
+        self.s_abs += w * absorb;
+        // (−1)^n
+        let sign = if self.n % 2 == 1 { -1.0 } else { 1.0 };
+        self.back += (an - bn) * (w * sign);
         // g·Q_sca = (4/x²)[Σ n(n+2)/(n+1) Re(a_n a*_{n+1} + b_n b*_{n+1})
         //                  + Σ (2n+1)/(n(n+1)) Re(a_n b*_n)]          (BH eq. 4.79)
-        if i + 1 < n_terms {
-            let (an1, bn1) = (c.a[i + 1], c.b[i + 1]);
-            s_g += n * (n + 2.0) / (n + 1.0) * ((an * an1.conj()).re + (bn * bn1.conj()).re);
+        if self.n > 1 {
+            let (pa, pb) = self.prev;
+            let np = n - 1.0;
+            self.s_g += np * (np + 2.0) / (np + 1.0) * ((pa * an.conj()).re + (pb * bn.conj()).re);
         }
-        s_g += w / (n * (n + 1.0)) * (an * bn.conj()).re;
+        self.s_g += w / (n * (n + 1.0)) * (an * bn.conj()).re;
+        self.prev = (an, bn);
     }
-    let (sx, sx2) = (c.scale_x, c.scale_x2); // a_n = scale·â_n
-    let qabs = if m.im == 0.0 { 0.0 } else { 2.0 * sx2 * s_abs };
-    MieResult {
-        qext: 2.0 * sx2 * s_ext,
-        qsca: 2.0 * sx * sx * s_sca,
-        qabs,
-        qback: sx * sx * back.norm_sqr(),
-        g: if s_sca > 0.0 { 2.0 * s_g / s_sca } else { 0.0 },
-        n_terms,
+
+    /// Efficiencies for coefficients a_n = scale·â_n (`sx` = scale/x, `sx2` = scale/x²).
+    fn finish(&self, m: C64, sx: f64, sx2: f64, n_terms: usize) -> MieResult {
+        let qabs = if m.im == 0.0 {
+            0.0
+        } else {
+            2.0 * sx2 * self.s_abs
+        };
+        MieResult {
+            qext: 2.0 * sx2 * self.s_ext,
+            qsca: 2.0 * sx * sx * self.s_sca,
+            qabs,
+            qback: sx * sx * self.back.norm_sqr(),
+            g: if self.s_sca > 0.0 {
+                2.0 * self.s_g / self.s_sca
+            } else {
+                0.0
+            },
+            n_terms,
+        }
     }
+}
+
+/// Efficiencies from a stored coefficient set.
+fn efficiencies(m: C64, c: &Coeffs) -> MieResult {
+    let mut acc = EffSums::default();
+    for i in 0..c.a.len() {
+        acc.push(c.a[i], c.b[i], c.absorb[i]);
+    }
+    acc.finish(m, c.scale_x, c.scale_x2, c.a.len())
 }
 
 /// Extinction, scattering, absorption and backscattering efficiencies and asymmetry parameter
@@ -513,8 +594,19 @@ pub fn mie_q(x: f64, m: C64) -> Result<MieResult, MieError> {
 /// [`mie_q`] with an explicit term count (`None` = [`default_terms`]); the accuracy knob used by
 /// the accuracy-vs-time report.
 pub fn mie_q_terms(x: f64, m: C64, n_terms: Option<usize>) -> Result<MieResult, MieError> {
-    let c = coefficients_internal(x, m, n_terms)?;
-    Ok(efficiencies(m, &c))
+    check_x(x)?;
+    check_m(x, m)?;
+    check_terms(n_terms)?;
+    let n = n_terms.unwrap_or_else(|| default_terms(x, m));
+    if m == C64::new(1.0, 0.0) || x * m.norm().max(1.0) <= X_SMALL {
+        let c = coefficients_internal(x, m, n_terms)?;
+        return Ok(efficiencies(m, &c));
+    }
+    // general size: stream the coefficients into the sums (nothing stored)
+    let mut acc = EffSums::default();
+    stream_complex(x, m, n, |a, b, ab| acc.push(a, b, ab))?;
+    let xinv = 1.0 / x;
+    Ok(acc.finish(m, xinv, xinv * xinv, n))
 }
 
 /// Amplitude functions (S_1(θ), S_2(θ)) at the given cosines of the scattering angle

@@ -6,6 +6,7 @@ pub mod finite_size;
 pub mod grid;
 pub mod mie;
 pub mod mie_beam;
+pub mod mie_template;
 pub mod params;
 pub mod quad;
 pub mod rayleigh;

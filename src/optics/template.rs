@@ -131,34 +131,42 @@ impl ModelTemplate {
 
     /// Planes and weights that interpolate z (one plane when z sits on a node).
     pub fn planes_for(&self, z: f64) -> Vec<(Arc<Grid2>, f64)> {
-        if !z.is_finite() {
-            return vec![];
-        }
-        let f = z / self.spec.hz;
-        let i0 = f.floor();
-        let t = f - i0;
-        let i0 = i0 as i64;
-        if t.abs() < 1e-9 {
-            return vec![(self.plane(i0), 1.0)];
-        }
-        if 1.0 - t < 1e-9 {
-            return vec![(self.plane(i0 + 1), 1.0)];
-        }
-        match self.spec.interp {
-            Interp::Linear => vec![(self.plane(i0), 1.0 - t), (self.plane(i0 + 1), t)],
-            Interp::Cubic => {
-                let t2 = t * t;
-                let t3 = t2 * t;
-                let w = [
-                    0.5 * (-t3 + 2.0 * t2 - t),
-                    0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-                    0.5 * (-3.0 * t3 + 4.0 * t2 + t),
-                    0.5 * (t3 - t2),
-                ];
-                (0..4)
-                    .map(|j| (self.plane(i0 - 1 + j as i64), w[j]))
-                    .collect()
-            }
+        z_stencil(z, self.spec.hz, self.spec.interp)
+            .into_iter()
+            .map(|(iz, w)| (self.plane(iz), w))
+            .collect()
+    }
+}
+
+/// z-grid indices and weights that interpolate axial position `z` from planes every `hz`
+/// (one node when z sits on it; two for linear, four for cubic convolution; none for
+/// non-finite z). Shared by the Rayleigh and the Mie templates.
+pub fn z_stencil(z: f64, hz: f64, interp: Interp) -> Vec<(i64, f64)> {
+    if !z.is_finite() {
+        return vec![];
+    }
+    let f = z / hz;
+    let i0 = f.floor();
+    let t = f - i0;
+    let i0 = i0 as i64;
+    if t.abs() < 1e-9 {
+        return vec![(i0, 1.0)];
+    }
+    if 1.0 - t < 1e-9 {
+        return vec![(i0 + 1, 1.0)];
+    }
+    match interp {
+        Interp::Linear => vec![(i0, 1.0 - t), (i0 + 1, t)],
+        Interp::Cubic => {
+            let t2 = t * t;
+            let t3 = t2 * t;
+            let w = [
+                0.5 * (-t3 + 2.0 * t2 - t),
+                0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+                0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+                0.5 * (t3 - t2),
+            ];
+            (0..4).map(|j| (i0 - 1 + j as i64, w[j])).collect()
         }
     }
 }

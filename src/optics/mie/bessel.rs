@@ -149,9 +149,21 @@ pub(crate) fn psi_ratio_cf_real(n: usize, x: f64) -> Result<f64, CfNoConvergence
 /// recurrence D_{n−1} = n/z − 1/(D_n + n/z) (BH eq. 4.89) started from Lentz's continued
 /// fraction at n = N. Stable for every complex z (Wiscombe 1980; Kattawar & Plass 1967).
 pub(crate) fn log_derivatives(z: C64, n_max: usize) -> Result<Vec<C64>, CfNoConvergence> {
-    let mut d = vec![C64::new(0.0, 0.0); n_max];
+    let mut d = Vec::new();
+    log_derivatives_into(z, n_max, &mut d)?;
+    Ok(d)
+}
+
+/// [`log_derivatives`] into a reused buffer (resized to `n_max`).
+pub(crate) fn log_derivatives_into(
+    z: C64,
+    n_max: usize,
+    d: &mut Vec<C64>,
+) -> Result<(), CfNoConvergence> {
+    d.clear();
+    d.resize(n_max, C64::new(0.0, 0.0));
     if n_max == 0 {
-        return Ok(d);
+        return Ok(());
     }
     let zinv = crecip(z);
     let mut r = psi_ratio_cf(n_max, z)?; // r_N = ψ_{N−1}/ψ_N = D_N + N/z
@@ -162,15 +174,21 @@ pub(crate) fn log_derivatives(z: C64, n_max: usize) -> Result<Vec<C64>, CfNoConv
         d[n - 2] = rn1 - zinv * ((n - 1) as f64);
         r = rn1;
     }
-    Ok(d)
+    Ok(())
 }
 
 /// Real-argument version of [`log_derivatives`] (real relative index): D_1(z) … D_N(z) for
 /// real z > 0, in real arithmetic (same recurrence and continued-fraction start).
-pub(crate) fn log_derivatives_real(z: f64, n_max: usize) -> Result<Vec<f64>, CfNoConvergence> {
-    let mut d = vec![0.0; n_max];
+/// (Written into a reused buffer, resized to `n_max`.)
+pub(crate) fn log_derivatives_real_into(
+    z: f64,
+    n_max: usize,
+    d: &mut Vec<f64>,
+) -> Result<(), CfNoConvergence> {
+    d.clear();
+    d.resize(n_max, 0.0);
     if n_max == 0 {
-        return Ok(d);
+        return Ok(());
     }
     let zinv = 1.0 / z;
     let mut r = psi_ratio_cf_real(n_max, z)?;
@@ -181,7 +199,7 @@ pub(crate) fn log_derivatives_real(z: f64, n_max: usize) -> Result<Vec<f64>, CfN
         d[n - 2] = rn1 - zinv * ((n - 1) as f64);
         r = rn1;
     }
-    Ok(d)
+    Ok(())
 }
 
 /// Riccati–Bessel ψ_0(x) … ψ_N(x) for real x > 0 (`psi[n] = ψ_n(x)`), stable at every order:
@@ -191,11 +209,25 @@ pub(crate) fn log_derivatives_real(z: f64, n_max: usize) -> Result<Vec<f64>, CfN
 /// For n > x, ψ_n has no zeros (its first zero lies beyond n + 1.8 n^{1/3}), so every r_n is
 /// finite and positive and the division keeps full relative precision; ψ_n underflows
 /// gracefully to 0 for very high orders.
+#[cfg(test)]
 pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConvergence> {
-    let mut psi = vec![0.0; n_max + 1];
+    let (mut psi, mut ratios) = (Vec::new(), Vec::new());
+    riccati_psi_into(x, n_max, &mut psi, &mut ratios)?;
+    Ok(psi)
+}
+
+/// `riccati_psi` into reused buffers (`psi` resized to `n_max + 1`; `ratios` is scratch).
+pub(crate) fn riccati_psi_into(
+    x: f64,
+    n_max: usize,
+    psi: &mut Vec<f64>,
+    ratios: &mut Vec<f64>,
+) -> Result<(), CfNoConvergence> {
+    psi.clear();
+    psi.resize(n_max + 1, 0.0);
     psi[0] = x.sin();
     if n_max == 0 {
-        return Ok(psi);
+        return Ok(());
     }
     let n_up = (x.floor() as usize).min(n_max);
     // upward: ψ_n = (2n−1)/x ψ_{n−1} − ψ_{n−2}
@@ -207,10 +239,11 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
         psi[n] = next;
     }
     if n_up == n_max {
-        return Ok(psi);
+        return Ok(());
     }
     // ratios r_n for n = n_up+1 ..= N, downward from the continued fraction at N
-    let mut ratios = vec![0.0; n_max + 1];
+    ratios.clear();
+    ratios.resize(n_max + 1, 0.0);
     let mut r = psi_ratio_cf_real(n_max, x)?;
     ratios[n_max] = r;
     for n in ((n_up + 2)..=n_max).rev() {
@@ -220,7 +253,7 @@ pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConverge
     for n in (n_up + 1)..=n_max {
         psi[n] = psi[n - 1] / ratios[n];
     }
-    Ok(psi)
+    Ok(())
 }
 
 #[cfg(test)]
