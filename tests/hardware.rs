@@ -6,7 +6,7 @@
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::data::{Scan, ScanStatus};
-use bfpscope::instrument::config::{Backend, Config, LimitsConfig, SafetyLimits};
+use bfpscope::instrument::config::{Backend, Config};
 use bfpscope::instrument::connect::{connect, ConnectError};
 use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
@@ -718,9 +718,8 @@ backend = "scpi"
 port = "{}"
 calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
 
-[limits]
-x = [-1.0, 1.0]
-z = [-5.0, 0.5]
+[safety]
+soft_limits = {{ x = [-1.0, 1.0], z = [-5.0, 0.5] }}
 max_step_um = 2.0
 "#,
         stage.path(),
@@ -754,9 +753,9 @@ fn connect_hardware_from_config_intersects_soft_limits() {
     let c = connect(&cfg, no_sim).unwrap();
     assert_eq!(
         c.limits,
-        SafetyLimits {
-            axes: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
-            max_step_um: Some(2.0),
+        SoftLimits {
+            range: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
+            max_step_um: 2.0,
             max_speed_um_s: None
         }
     );
@@ -765,7 +764,8 @@ fn connect_hardware_from_config_intersects_soft_limits() {
     assert_eq!(d["stage"]["port"], se.path());
     assert_eq!(d["qpd"]["sample_rate_hz"], 100_000.0);
     assert!(d["stage"]["idn"].as_str().unwrap().contains("E-727"));
-    assert_eq!(d["limits"]["axes"][0], serde_json::json!([-1.0, 1.0]));
+    assert_eq!(d["limits"]["range"][0], serde_json::json!([-1.0, 1.0]));
+    assert_eq!(d["backend"], "hardware");
     assert!(!c.instrument.clock.is_virtual());
 }
 
@@ -773,13 +773,10 @@ fn connect_hardware_from_config_intersects_soft_limits() {
 fn connect_soft_limits_outside_travel_is_a_config_error() {
     let (se, qe) = pair(0.0);
     let mut cfg = emulator_config(&se, &qe);
-    cfg.limits = LimitsConfig {
-        y: Some([5.0, 9.0]),
-        ..Default::default()
-    };
+    cfg.safety.soft_limits.y = Some([5.0, 9.0]);
     match connect(&cfg, no_sim) {
         Err(ConnectError::Config(e)) => {
-            assert_eq!(e.key, "limits.y");
+            assert_eq!(e.key, "safety.soft_limits.y");
             assert!(e.message.contains("travel range [-2, 2]"), "{e}");
         }
         Err(e) => panic!("{e}"),
@@ -864,7 +861,7 @@ impl Qpd for FakeQpd {
 
 #[test]
 fn connect_without_config_builds_the_simulator() {
-    let cfg = Config::from_toml_str("[limits]\nz = [2.0, 8.0]\n", "t").unwrap();
+    let cfg = Config::from_toml_str("[safety]\nsoft_limits = { z = [2.0, 8.0] }\n", "t").unwrap();
     let mut called = false;
     let c = connect(&cfg, |c| {
         called = true;
@@ -878,7 +875,7 @@ fn connect_without_config_builds_the_simulator() {
     })
     .unwrap();
     assert!(called);
-    assert_eq!(c.limits.axes, [(0.0, 80.0), (0.0, 80.0), (2.0, 8.0)]);
+    assert_eq!(c.limits.range, [(0.0, 80.0), (0.0, 80.0), (2.0, 8.0)]);
     assert_eq!(c.instrument.settle_s, 0.005);
     assert_eq!(c.instrument.description["backend"], "sim");
 }
@@ -1101,7 +1098,7 @@ fn emulate_cli_prints_paths_that_work() {
 // Through the scan engine (acquire/): its safety rules hold on the real drivers
 
 /// Connect to a fresh emulator pair from a config file text, with the scan engine's own reading
-/// of the same `[limits]` table.
+/// of the same `[safety]` table.
 fn engine_setup() -> (
     Emulator,
     Emulator,
