@@ -366,8 +366,6 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert_eq!(status.code(), Some(0));
-    // the ports are gone
-    assert!(GcsStage::open(&sp, 115_200, GcsOptions::default()).is_err());
 }
 
 #[test]

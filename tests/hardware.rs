@@ -1262,3 +1262,121 @@ fn engine_qpd_unplugged_mid_scan_returns_relative_scan_to_start() {
     assert_eq!(saved[0].status, ScanStatus::Failed);
     assert_eq!(saved[0].meta["points_measured"], 3);
 }
+
+#[test]
+fn engine_speed_limit_holds_on_the_real_drivers_before_anything_is_sent() {
+    // settle 0 (config) + dwell 0.1 ms (10 samples at 100 kHz); steps of 0.25 µm → 2500 µm/s
+    let (se, _qe, mut c, mut limits) = engine_setup();
+    limits.max_speed_um_s = Some(1000.0);
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.5, 0.5, 5, false), &limits);
+    match r {
+        Err(ScanError::Refused(msg)) => assert!(
+            msg.contains(
+                "from point 1 to point 2 of 5 the stage moves 0.25 µm in settle 0 s + dwell 1.000e-4 s = \
+                 1.000e-4 s per point: 2500 µm/s exceeds max_speed_um_s = 1000 µm/s"
+            ),
+            "{msg}"
+        ),
+        other => panic!("{:?}", other.map(|r| r.ended)),
+    }
+    assert!(saved.is_empty());
+    let sent = &se.commands()[before..];
+    assert!(sent.iter().all(|c| !c.starts_with("MOV")), "{sent:?}");
+    // the same line with a dwell of 1 ms: 250 µm/s, runs
+    let slow = Plan::line(
+        "ascan",
+        Sweep::new("ascan", Axis::X, -0.5, 0.5, 5, "n").unwrap(),
+        1e-3,
+        false,
+    )
+    .unwrap();
+    let (r, _) = run(&mut c.instrument, &slow, &limits);
+    let r = r.unwrap();
+    assert_eq!(r.ended, Ended::Complete);
+    let v = r.scan.meta["max_speed_between_points_um_s"]
+        .as_f64()
+        .unwrap();
+    assert!((v - 250.0).abs() < 1e-9, "{v}");
+    assert_eq!(se.position(), [0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
+    use bfpscope::instrument::connect::connect_emulated;
+    let mut scene = Scene::default();
+    scene
+        .add_bead(Bead {
+            pos: [0.0; 3],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    let mut base = Config::from_toml_str(
+        "[safety]\nsoft_limits = { x = [-1.0, 1.0] }\n[stage]\nsettle_s = 0.0\n",
+        "t",
+    )
+    .unwrap();
+    base.stage.port = Some("/dev/ignored-for-emulators".into());
+    let noise_v = 2e-4;
+    let mut e = connect_emulated(core.renderer(), &core.cfg, &base, noise_v).unwrap();
+    let d = &e.connected.instrument.description;
+    assert_eq!(d["backend"], "emulated");
+    assert_eq!(d["stage"]["port"], e.stage.path());
+    assert_eq!(d["emulators"]["qpd"], e.qpd.path());
+    // [safety] of the base config ∩ the simulator's travel range
+    assert_eq!(
+        e.connected.limits.range,
+        [(-1.0, 1.0), (-37.5, 37.5), (-25.0, 25.0)]
+    );
+    assert_eq!(e.connected.instrument.settle_s, 0.0);
+    // one scan on both instruments, through the engine
+    let plan = Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, -0.5, 0.5, 9, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, -0.5, 0.5, 9, "ny").unwrap(),
+        vec![],
+        1e-3,
+        false,
+        true,
+    )
+    .unwrap();
+    let limits = e.connected.limits;
+    let (hw, _) = run(&mut e.connected.instrument, &plan, &limits);
+    let (sim, _) = run(&mut core.instrument(0.0), &plan, &limits);
+    let (hw, sim) = (hw.unwrap(), sim.unwrap());
+    assert_eq!(
+        (hw.ended.clone(), sim.ended.clone()),
+        (Ended::Complete, Ended::Complete)
+    );
+    let sigma = noise_v / 100f64.sqrt(); // 100 samples per point, 1 V per signal unit
+    assert!(sim.scan.sx.data.iter().any(|v| v.abs() > 50.0 * sigma));
+    let mut chi2 = 0.0;
+    for (a, b) in [
+        (&hw.scan.sx, &sim.scan.sx),
+        (&hw.scan.sy, &sim.scan.sy),
+        (&hw.scan.sz, &sim.scan.sz),
+    ] {
+        assert_eq!(a.x, b.x);
+        for (p, q) in a.data.iter().zip(b.data.iter()) {
+            assert!((p - q).abs() < 5.0 * sigma, "{p} vs {q} (σ {sigma})");
+            chi2 += ((p - q) / sigma).powi(2);
+        }
+    }
+    let dof = 3.0 * 81.0;
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
+    assert_eq!(hw.scan.meta["instrument"]["backend"], "emulated");
+    // the scan went through the serial protocol
+    let cmds = e.stage.commands();
+    assert!(
+        cmds.iter().filter(|c| c.starts_with("MOV")).count() >= 81,
+        "{}",
+        cmds.len()
+    );
+    assert!(e.qpd.commands().iter().any(|c| c == "MEAS:QPD:STAT?"));
+}

@@ -243,6 +243,7 @@ pub fn register(r: &mut Registrar) {
             .help("backend is \"mock\", \"sim\", \"hardware\" or \"emulated\" (() when nothing is connected); instrument is the connected instrument's description: device names, ports, baud rates, identification strings, travel range and limits for hardware.")
             .example("status().connected", "true")
             .example("status().backend", "\"mock\"")
+            .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
             .example("status().position.x", "0.0"),
         move || -> RResult<Map> {
             let mut m = Map::new();
@@ -256,6 +257,10 @@ pub fn register(r: &mut Registrar) {
             m.insert("limits".into(), c.settings.limits.describe().into());
             if c.is_connected() {
                 c.with_instrument("status", |i| {
+                    // the rules in force: soft limits narrowed to the travel range
+                    if let Ok(t) = i.stage.travel_range() {
+                        m.insert("limits".into(), c.settings.limits.within_travel(t).describe().into());
+                    }
                     m.insert("instrument".into(), super::types::json_to_dynamic(&i.description));
                     match i.stage.position() {
                         Ok(p) => m.insert("position".into(), pos_map(p).into()),
