@@ -58,7 +58,7 @@ pub fn connect(
         m.insert("travel_um".into(), json!(travel));
         m.insert(
             "limits".into(),
-            serde_json::to_value(&limits).unwrap_or_default(),
+            serde_json::to_value(limits).unwrap_or_default(),
         );
     }
     Ok(Connected { instrument, limits })
