@@ -2,6 +2,7 @@
 //! declared once in [`FAMILIES`]. `Workbench` is one scripting session: engine, variables and
 //! functions that persist across REPL lines, and the shared [`Ctx`].
 
+pub mod analysis;
 pub mod core;
 pub mod ctx;
 pub mod motion;
@@ -30,6 +31,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("scans", scans::register),
     ("types", types::register),
     ("physics", physics::register),
+    ("analysis", analysis::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.
@@ -369,11 +371,10 @@ impl Workbench {
     }
 
     /// Call a script function of `ast` without re-running its top-level statements.
+    /// Evaluate the script's top level, then call its function `name` (no arguments).
     pub fn call_fn(&mut self, ast: &AST, name: &str, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
-        let opts = rhai::CallFnOptions::new()
-            .eval_ast(false)
-            .rewind_scope(true);
+        let opts = rhai::CallFnOptions::new().eval_ast(true).rewind_scope(true);
         self.engine
             .call_fn_with_options::<Dynamic>(opts, &mut self.scope, ast, name, ())
             .map_err(|e| ScriptError::from_eval(&e, source, &self.docs))

@@ -44,7 +44,7 @@ fn optics_of(ctx: &Ctx) -> Optics {
 }
 
 /// `[[x, y], ...]` → polyline.
-fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
+pub(crate) fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
     let Some(a) = v.read_lock::<Array>() else {
         return fail(format!(
             "{who}: points must be an array of [x, y] pairs (µm), got {v}"

@@ -85,14 +85,16 @@ pub fn run_dir(
             let (settings, buf, dir) = settings_for(base, &fname);
             let t0 = Instant::now();
             let mut wb = Workbench::new(settings);
+            // A test function runs after the file's top level (which `call_fn` evaluates first,
+            // so its `const`s are visible as `global::NAME`); a file without test functions is
+            // its top level.
             let r = match wb.load_file(file) {
                 Err(e) => Err(e),
-                Ok(ast) => match wb.run_compiled(&ast, &file.display().to_string()) {
-                    Err(e) => Err(e),
-                    Ok(_) => match &t {
-                        Some(f) => wb.call_fn(&ast, f, &file.display().to_string()).map(|_| ()),
-                        None => Ok(()),
-                    },
+                Ok(ast) => match &t {
+                    Some(f) => wb.call_fn(&ast, f, &file.display().to_string()).map(|_| ()),
+                    None => wb
+                        .run_compiled(&ast, &file.display().to_string())
+                        .map(|_| ()),
                 },
             };
             let secs = t0.elapsed().as_secs_f64();

@@ -261,6 +261,9 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if let Some(s) = v.read_lock::<ProfileRef>() {
         return s.to_string();
     }
+    if let Some(s) = super::analysis::show_custom(v) {
+        return s;
+    }
     if let Some(a) = v.read_lock::<Array>() {
         const MAX: usize = 24;
         let mut items: Vec<String> = a.iter().take(MAX).map(|x| show_inner(x, false)).collect();
