@@ -1380,3 +1380,51 @@ fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
     );
     assert!(e.qpd.commands().iter().any(|c| c == "MEAS:QPD:STAT?"));
 }
+
+#[test]
+fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
+    use bfpscope::script::{Settings, Workbench};
+    let (se, qe) = pair(0.0);
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-wb-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
+        se.path(),
+        qe.path()
+    );
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert!(
+        r.starts_with("connected hardware: PI E-727 on /dev/"),
+        "{r}"
+    );
+    // again, to the same (exclusively opened) ports: the old connection is closed first
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert!(r.starts_with("connected hardware"), "{r}");
+    let st = wb
+        .eval_source(
+            "t",
+            "mv(#{x: 0.5}); [status().backend, status().instrument.stage.port, pos().x]",
+        )
+        .unwrap();
+    assert_eq!(
+        bfpscope::script::show(&st),
+        format!("[\"hardware\", \"{}\", 0.5]", se.path())
+    );
+    assert_eq!(se.position()[0], 0.5);
+    // a connect that fails (bad QPD port) after closing the shared stage port leaves nothing
+    // half-open: the stage port opens again
+    let bad = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"/dev/bfpscope-no-such-qpd\"}})",
+        se.path()
+    );
+    let e = wb.eval_source("t", &bad).unwrap_err();
+    assert!(
+        e.message.contains(
+            "connect: backend = \"hardware\": SCPI QPD on /dev/bfpscope-no-such-qpd: cannot open"
+        ),
+        "{e}"
+    );
+    let _s = open_stage(&se, 1000);
+    let _ = std::fs::remove_dir_all(&dir);
+}

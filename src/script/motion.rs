@@ -456,6 +456,22 @@ pub fn connect_config(ctx: &Ctx, cfg: &Config) -> Result<String, String> {
 }
 
 fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, String> {
+    // Reconnecting to a port the connected instrument holds (drivers open ports exclusively):
+    // close that connection first. Otherwise the current instrument stays until the new one
+    // is up, so a failed connect leaves it alone.
+    let wanted = [cfg.stage.port.clone(), cfg.qpd.port.clone()];
+    let held = ctx
+        .with_instrument("connect", |i| {
+            let d = &i.description;
+            Ok([&d["stage"]["port"], &d["qpd"]["port"]]
+                .iter()
+                .filter_map(|v| v.as_str().map(String::from))
+                .collect::<Vec<_>>())
+        })
+        .unwrap_or_default();
+    if wanted.iter().flatten().any(|p| held.contains(p)) {
+        ctx.disconnect();
+    }
     let c = crate::instrument::connect::connect(cfg, |_| {
         Err(anyhow::anyhow!(
             "a hardware config does not build the simulator"
