@@ -1713,7 +1713,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                     "n_obj",
                     "float",
                     "",
-                    "optional: index of the filament (default 1.55, protein-like as Sec. 6)",
+                    "optional: index of the filament (default 1.587, dry globular protein as Sec. 6)",
                 ),
                 (
                     "density_obj",
@@ -1763,7 +1763,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         let mo = measure_opts(who, &o, MeasureOptions::default())?;
         let c = LinDensCalib::from_template(
             &t.0,
-            o.f64_or("n_obj", 1.55)?,
+            o.f64_or("n_obj", 1.587)?,
             o.f64_or("density_obj", 1.35)?,
             o.f64_or("pixel_um", 0.05)?,
             &mo,

@@ -148,6 +148,70 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
+        Doc::func("fmt", "core")
+            .arg("x", "number", "", "a value")
+            .arg("digits", "int", "", "significant digits, 1–17")
+            .returns(
+                "string",
+                "x with that many significant digits (scientific notation outside 1e-3…1e6)",
+            )
+            .summary("format a number for printing")
+            .example("fmt(3.14159265, 3)", "\"3.14\"")
+            .example("fmt(0.000012345, 2)", "\"1.2e-5\"")
+            .example("fmt(1.0, 0)", "error: digits = 0"),
+        |x: Dynamic, d: Dynamic| -> RResult<String> {
+            let x = crate::script::registry::to_f64(&x)
+                .ok_or_else(|| format!("fmt: x must be a number, got {} {x}", x.type_name()))?;
+            let d = int("fmt", "digits", &d)?;
+            if !(1..=17).contains(&d) {
+                return fail(format!(
+                    "fmt: digits = {d} is out of range: 1 ≤ digits ≤ 17"
+                ));
+            }
+            Ok(fmt_sig(x, d as usize))
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("ask", "core")
+            .arg("question", "string", "", "what the operator must do or answer")
+            .returns("string", "the answer line (without the newline)")
+            .summary("ask the operator and wait for the answer (hardware protocols: \"rotate the sample, then press Enter\")")
+            .help("Prints the question and reads one line from the terminal. Answers queued with answer([...]) are used first, so scripted tests can answer prompts. End of input (no terminal, no queued answer) is an error, so an unattended script never waits forever.")
+            .example("answer([\"yes\"]); ask(\"rotated?\")", "\"yes\""),
+        move |q: &str| -> RResult<String> {
+            if let Some(a) = c.answers.lock().unwrap_or_else(|e| e.into_inner()).pop_front() {
+                c.print(&format!("{q} {a}"));
+                return Ok(a);
+            }
+            c.print(q);
+            let mut line = String::new();
+            match std::io::stdin().read_line(&mut line) {
+                Ok(0) => fail(format!("ask: no answer to \"{q}\": end of input (queue answers with answer([...]) when running unattended)")),
+                Ok(_) => Ok(line.trim_end_matches(['\n', '\r']).to_string()),
+                Err(e) => fail(format!("ask: cannot read the answer to \"{q}\": {e}")),
+            }
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("answer", "core")
+            .arg(
+                "answers",
+                "array",
+                "",
+                "strings, used in order by the next calls of ask()",
+            )
+            .returns("int", "answers now queued")
+            .summary("queue answers for ask() (scripted tests and unattended runs)")
+            .example("answer([\"y\", \"y\"])", "2"),
+        move |a: Array| -> i64 {
+            let mut q = c.answers.lock().unwrap_or_else(|e| e.into_inner());
+            q.extend(a.iter().map(|v| v.to_string()));
+            q.len() as i64
+        },
+    );
+    r.bind(
         Doc::func("version", "core")
             .returns("string", "")
             .summary("program name and version")
@@ -193,5 +257,23 @@ fn expect_err(
                 _ => Ok(msg),
             }
         }
+    }
+}
+
+/// `x` with `d` significant digits: fixed notation for 1e-3 ≤ |x| < 1e6, otherwise scientific.
+pub fn fmt_sig(x: f64, d: usize) -> String {
+    if !x.is_finite() {
+        return x.to_string();
+    }
+    if x == 0.0 {
+        return "0".into();
+    }
+    let e = x.abs().log10().floor() as i32;
+    if (-3..6).contains(&e) {
+        let dec = (d as i32 - 1 - e).max(0) as usize;
+        format!("{x:.dec$}")
+    } else {
+        let s = format!("{:.*e}", d - 1, x);
+        s
     }
 }

@@ -199,6 +199,8 @@ pub struct Ctx {
     pub optics: Mutex<Optics>,
     /// The scene of the simulated instrument, recorded in scan metadata.
     pub scene: Mutex<Option<Value>>,
+    /// Answers queued by `answer([...])` for `ask` (scripted tests of operator prompts).
+    pub answers: Mutex<std::collections::VecDeque<String>>,
     pub(crate) docs: OnceLock<Arc<Vec<Doc>>>,
     git: OnceLock<Option<String>>,
 }
@@ -220,6 +222,7 @@ impl Ctx {
             script: Mutex::new(ScriptInfo::default()),
             optics: Mutex::new(Optics::default()),
             scene: Mutex::new(None),
+            answers: Mutex::new(Default::default()),
             docs: OnceLock::new(),
             git: OnceLock::new(),
         }

@@ -5,6 +5,7 @@
 pub mod analysis;
 pub mod core;
 pub mod ctx;
+pub mod files;
 pub mod motion;
 pub mod physics;
 pub mod registry;
@@ -32,6 +33,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("types", types::register),
     ("physics", physics::register),
     ("analysis", analysis::register),
+    ("files", files::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.

@@ -1,0 +1,423 @@
+//! Figures and interchange files: `plot` (heat maps of scans and images), `plot_profile`,
+//! `plot_hist`, `plot_xy`, `save_tiff` / `load_tiff` (float32 TIFF for Fiji), `save_csv`
+//! (profiles and tables). Figures are PNG or SVG by extension, drawn with the embedded font.
+//! Parent folders are created; figures and CSV files are overwritten (they are derived
+//! products — scans, the measurements, are never overwritten).
+
+use super::registry::{fail, to_f64, Doc, Opts, RResult, Registrar};
+use super::types::{ImageRef, ProfileRef, ScanRef};
+use crate::plot::{
+    plot_hist, plot_image, plot_profile, plot_scan, plot_xy, PlotOpts, ScanPlotOpts, Series,
+    SeriesStyle, XyOpts,
+};
+use rhai::{Array, Dynamic, Map};
+use std::path::Path;
+use std::sync::Arc;
+
+fn prepare(who: &str, path: &str) -> RResult<()> {
+    if path.is_empty() {
+        return fail(format!("{who}: path is empty"));
+    }
+    if let Some(dir) = Path::new(path)
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+    {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
+    }
+    Ok(())
+}
+
+fn ferr(who: &str, path: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
+    format!("{who}: {path}: {e}").into()
+}
+
+fn floats_of(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!(
+            "{who}: {name} must be an array of numbers, got {}",
+            v.type_name()
+        ));
+    };
+    a.iter()
+        .enumerate()
+        .map(|(i, x)| {
+            to_f64(x).map_or_else(
+                || {
+                    fail(format!(
+                        "{who}: {name}[{i}] must be a number, got {} {x}",
+                        x.type_name()
+                    ))
+                },
+                Ok,
+            )
+        })
+        .collect()
+}
+
+fn xy_opts(o: &Opts) -> RResult<XyOpts> {
+    Ok(XyOpts {
+        title: o.string("title")?.unwrap_or_default(),
+        xlabel: o.string("xlabel")?.unwrap_or_default(),
+        ylabel: o.string("ylabel")?.unwrap_or_default(),
+        log_x: o.bool_or("log_x", false)?,
+        log_y: o.bool_or("log_y", false)?,
+    })
+}
+
+const XY_KEYS: &[(&str, &str, &str, &str)] = &[
+    ("title", "string", "", "optional: figure title"),
+    ("xlabel", "string", "", "optional: x-axis label"),
+    ("ylabel", "string", "", "optional: y-axis label"),
+    ("log_x", "bool", "", "optional: logarithmic x axis"),
+    ("log_y", "bool", "", "optional: logarithmic y axis"),
+];
+
+const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
+
+pub fn register(r: &mut Registrar) {
+    let d = Doc::func("plot", "figures")
+        .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
+        .arg("path", "string", "", "figure file, .png or .svg (overwritten; folders created)")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("title", "string", "", "optional: figure title"),
+                ("channel", "string", "", "optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
+                ("include_sz", "bool", "", "optional (scans): draw the Sz panel (default true)"),
+                ("shared_xy_scale", "bool", "", "optional (scans): Sx and Sy on one colour range"),
+                ("label", "string", "", "optional (images): colour-bar label"),
+                ("colormap", "string", "", "optional (images): \"diverging\" (symmetric about 0) or \"sequential\" (default)"),
+                ("range", "array", "", "optional (images): fixed colour range [lo, hi]"),
+            ],
+        )
+        .form("plot(what, path) -> string")
+        .returns("string", "the path written")
+        .summary("heat map with colour bar and µm axes: Sx/Sy diverging about 0, Sz sequential")
+        .example(&format!("{SCENE} plot(sc, dir + \"/ex_scan.png\").ends_with(\"ex_scan.png\")"), "true")
+        .example(&format!("{SCENE} plot(sc.sx, dir + \"/ex_sx.svg\", #{{colormap: \"diverging\", title: \"Sx\"}}).ends_with(\".svg\")"), "true")
+        .example(&format!("{SCENE} plot(sc, dir + \"/ex.jpg\")"), "error: figure files end in .png or .svg")
+        .example(&format!("{SCENE} plot(sc, dir + \"/ex.png\", #{{channel: \"sq\"}})"), "error: channel = \"sq\"");
+    let spec = d.spec();
+    let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
+        let who = "plot";
+        let o = Opts::new(&spec, &m)?;
+        prepare(who, path)?;
+        let title = o.string("title")?.unwrap_or_default();
+        let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
+            let mut p = match o.string("colormap")?.as_deref() {
+                None | Some("sequential") => PlotOpts {
+                    label: default_label.into(),
+                    ..PlotOpts::default()
+                },
+                Some("diverging") => PlotOpts::diverging(default_label),
+                Some(c) => {
+                    return fail(format!(
+                        "{who}: colormap = \"{c}\" is not one of \"diverging\", \"sequential\""
+                    ))
+                }
+            };
+            if let Some(l) = o.string("label")? {
+                p.label = l;
+            }
+            if let Some((a, b)) = o.range("range")? {
+                if !(a < b) {
+                    return fail(format!("{who}: range = [{a}, {b}] must have lo < hi"));
+                }
+                p.range = Some((a, b));
+            }
+            Ok(p.with_title(&title))
+        };
+        if let Some(s) = v.read_lock::<ScanRef>() {
+            if let Some(ch) = o.string("channel")? {
+                let img = match ch.as_str() {
+                    "sx" => &s.scan.sx,
+                    "sy" => &s.scan.sy,
+                    "sz" => &s.scan.sz,
+                    _ => {
+                        return fail(format!(
+                            "{who}: channel = \"{ch}\" is not one of \"sx\", \"sy\", \"sz\""
+                        ))
+                    }
+                };
+                let mut p = PlotOpts::for_channel(&ch).with_title(&title);
+                if let Some(l) = o.string("label")? {
+                    p.label = l;
+                }
+                if let Some((a, b)) = o.range("range")? {
+                    p.range = Some((a, b));
+                }
+                plot_image(path, img, &p).map_err(|e| ferr(who, path, e))?;
+            } else {
+                let so = ScanPlotOpts {
+                    title,
+                    include_sz: o.bool_or("include_sz", true)?,
+                    shared_xy_scale: o.bool_or("shared_xy_scale", false)?,
+                };
+                plot_scan(path, &s.scan, &so).map_err(|e| ferr(who, path, e))?;
+            }
+        } else if let Some(i) = v.read_lock::<ImageRef>() {
+            let p = image_opts(&o, "")?;
+            plot_image(path, &i.0, &p).map_err(|e| ferr(who, path, e))?;
+        } else {
+            return fail(format!(
+                "{who}: what must be a Scan or an Image, got {}",
+                v.type_name()
+            ));
+        }
+        Ok(path.to_string())
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("plot", move |v: Dynamic, path: &str| {
+        f2(v, path, Map::new())
+    });
+
+    let d = Doc::func("plot_profile", "figures")
+        .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
+        .arg("path", "string", "", "figure file, .png or .svg")
+        .map("opts", "optional", XY_KEYS)
+        .form("plot_profile(profiles, path) -> string")
+        .returns("string", "the path written")
+        .summary("line plot of one or more profiles with a legend")
+        .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
+        .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
+    let spec = d.spec();
+    let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
+        let who = "plot_profile";
+        let o = Opts::new(&spec, &m)?;
+        prepare(who, path)?;
+        let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
+        let bad = |x: &Dynamic| -> RResult<()> {
+            fail(format!(
+                "{who}: profiles must be Profile values, got {}",
+                x.type_name()
+            ))
+        };
+        if let Some(p) = v.read_lock::<ProfileRef>() {
+            list.push((String::new(), p.0.clone()));
+        } else if let Some(a) = v.read_lock::<Array>() {
+            for (i, x) in a.iter().enumerate() {
+                match x.read_lock::<ProfileRef>() {
+                    Some(p) => list.push((format!("{}", i + 1), p.0.clone())),
+                    None => bad(x)?,
+                }
+            }
+        } else if let Some(mp) = v.read_lock::<Map>() {
+            for (k, x) in mp.iter() {
+                match x.read_lock::<ProfileRef>() {
+                    Some(p) => list.push((k.to_string(), p.0.clone())),
+                    None => bad(x)?,
+                }
+            }
+        } else {
+            bad(&v)?;
+        }
+        let refs: Vec<(&str, &crate::data::Profile)> =
+            list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
+        plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+        Ok(path.to_string())
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("plot_profile", move |v: Dynamic, path: &str| {
+        f2(v, path, Map::new())
+    });
+
+    let d = Doc::func("plot_xy", "figures")
+        .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
+        .arg("path", "string", "", "figure file, .png or .svg")
+        .map("opts", "optional", XY_KEYS)
+        .form("plot_xy(series, path) -> string")
+        .returns("string", "the path written")
+        .summary("x–y plot of curves and points with error bars, optionally log–log")
+        .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
+        .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
+    let spec = d.spec();
+    let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
+        let who = "plot_xy";
+        let o = Opts::new(&spec, &m)?;
+        prepare(who, path)?;
+        let mut series = vec![];
+        for (i, s) in a.iter().enumerate() {
+            let Some(sm) = s.read_lock::<Map>() else {
+                return fail(format!(
+                    "{who}: series[{i}] must be #{{x, y, label, style, yerr}}, got {}",
+                    s.type_name()
+                ));
+            };
+            for k in sm.keys() {
+                if !["x", "y", "label", "style", "yerr"].contains(&k.as_str()) {
+                    return fail(format!(
+                        "{who}: series[{i}]: unknown key `{k}`; allowed keys: x, y, label, style, yerr"
+                    ));
+                }
+            }
+            let get = |k: &str| -> RResult<Vec<f64>> {
+                match sm.get(k) {
+                    Some(v) => floats_of(who, &format!("series[{i}].{k}"), v),
+                    None => fail(format!("{who}: series[{i}] lacks `{k}`")),
+                }
+            };
+            let (x, y) = (get("x")?, get("y")?);
+            if x.len() != y.len() {
+                return fail(format!(
+                    "{who}: series[{i}]: x and y differ in length ({} vs {})",
+                    x.len(),
+                    y.len()
+                ));
+            }
+            let label = sm.get("label").map(|v| v.to_string()).unwrap_or_default();
+            let style = match sm.get("style").map(|v| v.to_string()).as_deref() {
+                None | Some("line") => SeriesStyle::Line,
+                Some("points") => SeriesStyle::Points,
+                Some("linepoints") => SeriesStyle::LinePoints,
+                Some(s) => {
+                    return fail(format!(
+                        "{who}: series[{i}].style = \"{s}\" is not one of \"line\", \"points\", \"linepoints\""
+                    ))
+                }
+            };
+            let mut se = Series::line(&label, x, y).with_style(style);
+            if sm.contains_key("yerr") {
+                let e = get("yerr")?;
+                if e.len() != se.y.len() {
+                    return fail(format!(
+                        "{who}: series[{i}]: yerr has {} values for {} points",
+                        e.len(),
+                        se.y.len()
+                    ));
+                }
+                se = se.with_yerr(e);
+            }
+            series.push(se);
+        }
+        if series.is_empty() {
+            return fail(format!("{who}: series is empty"));
+        }
+        plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+        Ok(path.to_string())
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("plot_xy", move |a: Array, path: &str| {
+        f2(a, path, Map::new())
+    });
+
+    let d = Doc::func("plot_hist", "figures")
+        .arg("values", "array", "", "numbers (NaN skipped and noted)")
+        .arg("path", "string", "", "figure file, .png or .svg")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("bins", "int", "", "optional: number of bins (default 20)"),
+                ("title", "string", "", "optional: figure title"),
+                ("xlabel", "string", "", "optional: x-axis label"),
+                ("ylabel", "string", "", "optional: y-axis label (default \"count\")"),
+            ],
+        )
+        .form("plot_hist(values, path) -> string")
+        .returns("string", "the path written")
+        .summary("histogram figure (e.g. bead diameters, Fig. 3b)")
+        .example("let p = status().data_dir + \"/ex_hist.png\"; plot_hist([1.0, 2.0, 2.0, 3.0], p, #{bins: 3, xlabel: \"d (nm)\"}) == p", "true")
+        .example("plot_hist([1.0], status().data_dir + \"/ex_hist.png\", #{bins: 0})", "error: bins");
+    let spec = d.spec();
+    let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
+        let who = "plot_hist";
+        let o = Opts::new(&spec, &m)?;
+        prepare(who, path)?;
+        let v = floats_of(who, "values", &Dynamic::from_array(a))?;
+        let bins = o.int("bins")?.unwrap_or(20);
+        if !(1..=10_000).contains(&bins) {
+            return fail(format!(
+                "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ 10000"
+            ));
+        }
+        let xo = XyOpts {
+            title: o.string("title")?.unwrap_or_default(),
+            xlabel: o.string("xlabel")?.unwrap_or_default(),
+            ylabel: o.string("ylabel")?.unwrap_or_default(),
+            ..XyOpts::default()
+        };
+        plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;
+        Ok(path.to_string())
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("plot_hist", move |a: Array, path: &str| {
+        f2(a, path, Map::new())
+    });
+
+    // ---------------------------------------------------------------- TIFF and CSV
+    r.bind(
+        Doc::func("save_tiff", "files")
+            .arg(
+                "img",
+                "Image",
+                "",
+                "an image (a Scan channel, a sensitivity map…)",
+            )
+            .arg("path", "string", "", ".tif file (overwritten)")
+            .returns("string", "the path written")
+            .summary(
+                "32-bit float grayscale TIFF that Fiji/ImageJ opens (pixel size in µm in the tags)",
+            )
+            .example(
+                &format!(
+                    "{SCENE} let p = dir + \"/ex.tif\"; save_tiff(sc.sx, p); load_tiff(p).cols"
+                ),
+                "21",
+            ),
+        |i: ImageRef, path: &str| -> RResult<String> {
+            prepare("save_tiff", path)?;
+            crate::data::tiff::save_tiff(path, &i.0).map_err(|e| ferr("save_tiff", path, e))?;
+            Ok(path.to_string())
+        },
+    );
+    r.bind(
+        Doc::func("load_tiff", "files")
+            .arg("path", "string", "", "a TIFF written by save_tiff")
+            .returns("Image", "")
+            .summary("read a float32 TIFF back into an Image")
+            .example(
+                "load_tiff(\"no/such.tif\")",
+                "error: load_tiff: no/such.tif",
+            ),
+        |path: &str| -> RResult<ImageRef> {
+            let i = crate::data::tiff::load_tiff(path).map_err(|e| ferr("load_tiff", path, e))?;
+            Ok(ImageRef(Arc::new(i)))
+        },
+    );
+    let d = Doc::func("save_csv", "files")
+        .arg("data", "Profile | map", "", "a Profile (two columns) or a table #{column: [numbers], …} (columns of equal length, in key order)")
+        .arg("path", "string", "", ".csv file (overwritten)")
+        .returns("string", "the path written")
+        .summary("CSV for spreadsheets and numpy.loadtxt(delimiter=\",\", skiprows=1)")
+        .example(&format!("{SCENE} let p = dir + \"/ex.csv\"; save_csv(sc.sx.row(10), p) == p"), "true")
+        .example("let p = status().data_dir + \"/ex_t.csv\"; save_csv(#{d_nm: [50.0, 60.0], sens: [0.1, 0.2]}, p) == p", "true")
+        .example("save_csv(#{a: [1.0], b: [1.0, 2.0]}, status().data_dir + \"/ex_bad.csv\")", "error: ");
+    r.bind(d, |v: Dynamic, path: &str| -> RResult<String> {
+        let who = "save_csv";
+        prepare(who, path)?;
+        if let Some(p) = v.read_lock::<ProfileRef>() {
+            crate::data::csv::save_csv_profile(path, &p.0).map_err(|e| ferr(who, path, e))?;
+        } else if let Some(m) = v.read_lock::<Map>() {
+            let mut heads = vec![];
+            let mut cols = vec![];
+            for (k, c) in m.iter() {
+                heads.push(k.to_string());
+                cols.push(floats_of(who, k, c)?);
+            }
+            crate::data::csv::save_csv_table(path, &heads, &cols)
+                .map_err(|e| ferr(who, path, e))?;
+        } else {
+            return fail(format!(
+                "{who}: data must be a Profile or a map of columns, got {}",
+                v.type_name()
+            ));
+        }
+        Ok(path.to_string())
+    });
+}
