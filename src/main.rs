@@ -1,5 +1,5 @@
 //! `bfpscope`: the command line. `bfpscope` (= `repl`), `run FILE [--set k=v]...`,
-//! `eval 'EXPR'`, `test [DIR]`, `docs`. Exit codes: 0 ok, 1 script error (or failed tests),
+//! `eval 'EXPR'`, `test [DIR]`, `docs`, `emulate stage|qpd|pair`. Exit codes: 0 ok, 1 script error (or failed tests),
 //! 2 usage error.
 
 use bfpscope::script::ctx::{err_line, out_line};
@@ -51,6 +51,15 @@ enum Cmd {
         /// Only check that the file is up to date (exit 1 if stale)
         #[arg(long)]
         check: bool,
+    },
+    /// Serve device emulators on pseudo-terminals (try the hardware path without hardware):
+    /// prints their paths and a bfpscope.toml snippet, serves until Ctrl-C
+    Emulate {
+        /// `stage` (PI GCS 2.0), `qpd` (SCPI digitiser) or `pair` (both, sharing the stage position)
+        device: String,
+        /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
+        #[arg(long, value_name = "FILE")]
+        scene: Option<PathBuf>,
     },
 }
 
@@ -108,21 +117,59 @@ fn connect_default(
     wb: &Workbench,
     cfg: &bfpscope::instrument::config::Config,
 ) -> Result<(), ExitCode> {
-    use bfpscope::instrument::sim::{scene::Scene, SimConfig, SimCore};
-    let optics = wb.ctx.optics.lock().map(|o| o.clone()).unwrap_or_default();
-    let make_sim = |c: &bfpscope::instrument::config::Config| {
-        let core = SimCore::new(&optics, &Scene::default(), SimConfig::default())
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        Ok(core.instrument(c.stage.settle_s))
-    };
-    match bfpscope::instrument::connect::connect(cfg, make_sim) {
-        Ok(c) => {
-            wb.ctx.connect(c.instrument, None);
-            Ok(())
-        }
+    match script::motion::connect_config(&wb.ctx, cfg) {
+        Ok(_) => Ok(()),
         Err(e) => {
-            err_line(&format!("error: connect: {e}"));
+            err_line(&format!("error: {e}"));
             Err(ExitCode::from(1))
+        }
+    }
+}
+
+/// `bfpscope emulate stage|qpd|pair [--scene FILE]`: emulators whose QPD images a simulated
+/// scene at the emulated stage position.
+fn emulate(device: &str, scene: Option<&std::path::Path>) -> ExitCode {
+    use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
+    if !["stage", "qpd", "pair", "both"].contains(&device) {
+        return usage_error(&format!(
+            "emulate: unknown device `{device}` (expected `stage`, `qpd` or `pair`)"
+        ));
+    }
+    let scene = match scene {
+        None => script::motion::reference_bead_scene(),
+        Some(p) => {
+            let parsed = std::fs::read_to_string(p)
+                .map_err(|e| e.to_string())
+                .and_then(|t| serde_json::from_str::<Scene>(&t).map_err(|e| e.to_string()));
+            match parsed {
+                Ok(s) => s,
+                Err(e) => return usage_error(&format!("emulate: --scene {}: {e}", p.display())),
+            }
+        }
+    };
+    let optics = bfpscope::optics::Optics::default();
+    let renderer = match Renderer::new(
+        &optics,
+        &scene,
+        bfpscope::optics::template::TemplateSpec::default(),
+    ) {
+        Ok(r) => std::sync::Arc::new(r),
+        Err(e) => return usage_error(&format!("emulate: scene: {e}")),
+    };
+    out_line(&format!(
+        "scene: {} bead(s), {} filament(s), imaged by the QPD emulator at the emulated stage position",
+        scene.beads.len(),
+        scene.filaments.len()
+    ));
+    match bfpscope::instrument::emulator::run_emulator_cli_sim(
+        device,
+        renderer,
+        &SimConfig::default(),
+    ) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            err_line(&format!("error: emulate: {e}"));
+            ExitCode::from(1)
         }
     }
 }
@@ -171,6 +218,10 @@ fn main() -> ExitCode {
             std::path::Path::new(bfpscope::data::session::DEFAULT_ROOT),
             std::time::SystemTime::now(),
         );
+    }
+    if let Some(Cmd::Emulate { device, scene }) = &cli.cmd {
+        // the emulators install their own Ctrl-C handler (stop serving)
+        return emulate(device, scene.as_deref());
     }
     install_ctrlc(settings.abort.clone());
     let inst_config = inst_config.unwrap_or_default();
@@ -235,6 +286,7 @@ fn main() -> ExitCode {
                 Err(e) => usage_error(&format!("test: {}: {e}", dir.display())),
             }
         }
+        Cmd::Emulate { .. } => unreachable!("handled before the Ctrl-C handler is installed"),
         Cmd::Docs { out, check } => {
             let text = script::registry::api_markdown(&script::all_docs());
             if check {

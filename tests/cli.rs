@@ -247,3 +247,176 @@ fn demo_script_runs() {
         "the demo saves a scan"
     );
 }
+
+/// Lines of a child's stdout, read on a thread (so waiting for one can time out).
+fn line_reader(out: std::process::ChildStdout) -> std::sync::mpsc::Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines() {
+            let Ok(l) = line else { break };
+            if tx.send(l).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+#[test]
+fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
+    use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+    use bfpscope::instrument::scpi::{ScpiOptions, ScpiQpd};
+    use bfpscope::instrument::sim::Renderer;
+    use bfpscope::instrument::{Qpd, Stage};
+
+    let mut child = bin()
+        .args(["emulate", "pair"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let rx = line_reader(child.stdout.take().unwrap());
+    let mut text = String::new();
+    let t0 = Instant::now();
+    while !text.contains("Serving until Ctrl-C") {
+        if t0.elapsed() > Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("no `Serving until` within 60 s:\n{text}");
+        }
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
+            text.push_str(&l);
+            text.push('\n');
+        }
+    }
+    assert!(
+        text.starts_with("scene: 1 bead(s), 0 filament(s)"),
+        "{text}"
+    );
+    let path_of = |kind: &str| {
+        let line = text.lines().find(|l| l.starts_with(kind)).unwrap();
+        line.rsplit(" on ").next().unwrap().to_string()
+    };
+    let (sp, qp) = (path_of("stage:"), path_of("qpd:"));
+    assert!(
+        sp.starts_with("/dev/") && qp.starts_with("/dev/") && sp != qp,
+        "{text}"
+    );
+    assert!(
+        text.contains("travel -37.5–37.5 × -37.5–37.5 × -25–25 µm"),
+        "{text}"
+    );
+    // the printed bfpscope.toml snippet points at the emulators
+    let snippet = text
+        .split("# bfpscope.toml for these emulators:")
+        .nth(1)
+        .unwrap();
+    let snippet = snippet.split("Serving until").next().unwrap();
+    let cfg = bfpscope::instrument::config::Config::from_toml_str(snippet, "snippet").unwrap();
+    assert_eq!(cfg.qpd.port.as_deref(), Some(qp.as_str()));
+
+    // the real drivers talk to them; the QPD images the reference bead at the stage position
+    let mut stage = GcsStage::open(&sp, 115_200, GcsOptions::default()).unwrap();
+    let mut qpd = ScpiQpd::open(&qp, 115_200, ScpiOptions::default()).unwrap();
+    let renderer = Renderer::new(
+        &bfpscope::optics::Optics::default(),
+        &bfpscope::script::motion::reference_bead_scene(),
+        bfpscope::optics::template::TemplateSpec::default(),
+    )
+    .unwrap();
+    let n = 1000;
+    let sigma = 1e-4 / (n as f64).sqrt(); // emulator noise 1e-4 V per sample, 1 V per unit
+    let mut seen = vec![];
+    for x in [-0.2, 0.2] {
+        stage.move_to([x, 0.0, 0.0]).unwrap();
+        assert_eq!(stage.position().unwrap(), [x, 0.0, 0.0]);
+        let r = qpd.read(n).unwrap();
+        let want = renderer.render_grid_ideal(&[x], &[0.0], 0.0);
+        for (got, want) in [(r.sx, want[0][0]), (r.sy, want[1][0]), (r.sz, want[2][0])] {
+            assert!(
+                (got - want).abs() < 5.0 * sigma,
+                "at x = {x}: {got} vs the simulator's {want} (σ {sigma})"
+            );
+        }
+        assert!(
+            want[0][0].abs() > 50.0 * sigma,
+            "bead signal {}",
+            want[0][0]
+        );
+        seen.push(r.sx);
+    }
+    assert!(seen[0] * seen[1] < 0.0, "Sx is odd in x: {seen:?}");
+    drop((stage, qpd));
+
+    // Ctrl-C (SIGINT) stops it cleanly
+    let ok = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t0.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("emulate did not stop on SIGINT");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(0));
+}
+
+#[test]
+fn emulate_rejects_an_unknown_device_and_a_bad_scene_file() {
+    let (code, _, err) = run(&["emulate", "laser"]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("emulate: unknown device `laser` (expected `stage`, `qpd` or `pair`)"),
+        "{err}"
+    );
+    let d = tmp("emulate-scene");
+    let f = d.join("scene.json");
+    std::fs::write(&f, "{\"beads\": 3}").unwrap();
+    let (code, _, err) = run(&["emulate", "pair", "--scene", f.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("emulate: --scene") && err.contains("scene.json"),
+        "{err}"
+    );
+}
+
+#[test]
+fn config_speed_limit_and_legacy_limits_table() {
+    let d = tmp("speed");
+    let cfg = d.join("bfpscope.toml");
+    std::fs::write(&cfg, "[safety]\nmax_speed_um_s = 10.0\n").unwrap();
+    // mock: settle 1 ms, dwell 1 ms; 0.1 µm steps → 50 µm/s
+    let (code, _, err) = run(&[
+        "--config",
+        cfg.to_str().unwrap(),
+        "--data",
+        d.join("data").to_str().unwrap(),
+        "eval",
+        "connect(#{backend: \"mock\"}); [limits().max_speed_um_s, scan_line(#{axis: \"x\", from: 0.0, to: 1.0, n: 11})]",
+    ]);
+    assert_eq!(code, 1);
+    assert!(
+        err.contains("50 µm/s exceeds max_speed_um_s = 10 µm/s"),
+        "{err}"
+    );
+    let (code, out, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "status().limits"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("max speed 10 µm/s"), "{out}");
+    // the old [limits] table: a usage error that gives the [safety] equivalent
+    std::fs::write(&cfg, "[limits]\nx = [-5.0, 5.0]\n").unwrap();
+    let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "1"]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("limits: the [limits] table is now [safety]")
+            && err.contains("write [safety] soft_limits = { x = [-5.0, 5.0] }")
+            && err.contains("(line 1)"),
+        "{err}"
+    );
+}

@@ -6,7 +6,7 @@
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::data::{Scan, ScanStatus};
-use bfpscope::instrument::config::{Backend, Config, LimitsConfig, SafetyLimits};
+use bfpscope::instrument::config::{Backend, Config};
 use bfpscope::instrument::connect::{connect, ConnectError};
 use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
@@ -718,9 +718,8 @@ backend = "scpi"
 port = "{}"
 calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
 
-[limits]
-x = [-1.0, 1.0]
-z = [-5.0, 0.5]
+[safety]
+soft_limits = {{ x = [-1.0, 1.0], z = [-5.0, 0.5] }}
 max_step_um = 2.0
 "#,
         stage.path(),
@@ -754,9 +753,9 @@ fn connect_hardware_from_config_intersects_soft_limits() {
     let c = connect(&cfg, no_sim).unwrap();
     assert_eq!(
         c.limits,
-        SafetyLimits {
-            axes: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
-            max_step_um: Some(2.0),
+        SoftLimits {
+            range: [(-1.0, 1.0), (-2.0, 2.0), (-1.0, 0.5)],
+            max_step_um: 2.0,
             max_speed_um_s: None
         }
     );
@@ -765,7 +764,8 @@ fn connect_hardware_from_config_intersects_soft_limits() {
     assert_eq!(d["stage"]["port"], se.path());
     assert_eq!(d["qpd"]["sample_rate_hz"], 100_000.0);
     assert!(d["stage"]["idn"].as_str().unwrap().contains("E-727"));
-    assert_eq!(d["limits"]["axes"][0], serde_json::json!([-1.0, 1.0]));
+    assert_eq!(d["limits"]["range"][0], serde_json::json!([-1.0, 1.0]));
+    assert_eq!(d["backend"], "hardware");
     assert!(!c.instrument.clock.is_virtual());
 }
 
@@ -773,13 +773,10 @@ fn connect_hardware_from_config_intersects_soft_limits() {
 fn connect_soft_limits_outside_travel_is_a_config_error() {
     let (se, qe) = pair(0.0);
     let mut cfg = emulator_config(&se, &qe);
-    cfg.limits = LimitsConfig {
-        y: Some([5.0, 9.0]),
-        ..Default::default()
-    };
+    cfg.safety.soft_limits.y = Some([5.0, 9.0]);
     match connect(&cfg, no_sim) {
         Err(ConnectError::Config(e)) => {
-            assert_eq!(e.key, "limits.y");
+            assert_eq!(e.key, "safety.soft_limits.y");
             assert!(e.message.contains("travel range [-2, 2]"), "{e}");
         }
         Err(e) => panic!("{e}"),
@@ -864,7 +861,7 @@ impl Qpd for FakeQpd {
 
 #[test]
 fn connect_without_config_builds_the_simulator() {
-    let cfg = Config::from_toml_str("[limits]\nz = [2.0, 8.0]\n", "t").unwrap();
+    let cfg = Config::from_toml_str("[safety]\nsoft_limits = { z = [2.0, 8.0] }\n", "t").unwrap();
     let mut called = false;
     let c = connect(&cfg, |c| {
         called = true;
@@ -878,7 +875,7 @@ fn connect_without_config_builds_the_simulator() {
     })
     .unwrap();
     assert!(called);
-    assert_eq!(c.limits.axes, [(0.0, 80.0), (0.0, 80.0), (2.0, 8.0)]);
+    assert_eq!(c.limits.range, [(0.0, 80.0), (0.0, 80.0), (2.0, 8.0)]);
     assert_eq!(c.instrument.settle_s, 0.005);
     assert_eq!(c.instrument.description["backend"], "sim");
 }
@@ -1101,7 +1098,7 @@ fn emulate_cli_prints_paths_that_work() {
 // Through the scan engine (acquire/): its safety rules hold on the real drivers
 
 /// Connect to a fresh emulator pair from a config file text, with the scan engine's own reading
-/// of the same `[limits]` table.
+/// of the same `[safety]` table.
 fn engine_setup() -> (
     Emulator,
     Emulator,
@@ -1264,4 +1261,170 @@ fn engine_qpd_unplugged_mid_scan_returns_relative_scan_to_start() {
     assert_eq!(saved.len(), 1);
     assert_eq!(saved[0].status, ScanStatus::Failed);
     assert_eq!(saved[0].meta["points_measured"], 3);
+}
+
+#[test]
+fn engine_speed_limit_holds_on_the_real_drivers_before_anything_is_sent() {
+    // settle 0 (config) + dwell 0.1 ms (10 samples at 100 kHz); steps of 0.25 µm → 2500 µm/s
+    let (se, _qe, mut c, mut limits) = engine_setup();
+    limits.max_speed_um_s = Some(1000.0);
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.5, 0.5, 5, false), &limits);
+    match r {
+        Err(ScanError::Refused(msg)) => assert!(
+            msg.contains(
+                "from point 1 to point 2 of 5 the stage moves 0.25 µm in settle 0 s + dwell 1.000e-4 s = \
+                 1.000e-4 s per point: 2500 µm/s exceeds max_speed_um_s = 1000 µm/s"
+            ),
+            "{msg}"
+        ),
+        other => panic!("{:?}", other.map(|r| r.ended)),
+    }
+    assert!(saved.is_empty());
+    let sent = &se.commands()[before..];
+    assert!(sent.iter().all(|c| !c.starts_with("MOV")), "{sent:?}");
+    // the same line with a dwell of 1 ms: 250 µm/s, runs
+    let slow = Plan::line(
+        "ascan",
+        Sweep::new("ascan", Axis::X, -0.5, 0.5, 5, "n").unwrap(),
+        1e-3,
+        false,
+    )
+    .unwrap();
+    let (r, _) = run(&mut c.instrument, &slow, &limits);
+    let r = r.unwrap();
+    assert_eq!(r.ended, Ended::Complete);
+    let v = r.scan.meta["max_speed_between_points_um_s"]
+        .as_f64()
+        .unwrap();
+    assert!((v - 250.0).abs() < 1e-9, "{v}");
+    assert_eq!(se.position(), [0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
+    use bfpscope::instrument::connect::connect_emulated;
+    let mut scene = Scene::default();
+    scene
+        .add_bead(Bead {
+            pos: [0.0; 3],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    let mut base = Config::from_toml_str(
+        "[safety]\nsoft_limits = { x = [-1.0, 1.0] }\n[stage]\nsettle_s = 0.0\n",
+        "t",
+    )
+    .unwrap();
+    base.stage.port = Some("/dev/ignored-for-emulators".into());
+    let noise_v = 2e-4;
+    let mut e = connect_emulated(core.renderer(), &core.cfg, &base, noise_v).unwrap();
+    let d = &e.connected.instrument.description;
+    assert_eq!(d["backend"], "emulated");
+    assert_eq!(d["stage"]["port"], e.stage.path());
+    assert_eq!(d["emulators"]["qpd"], e.qpd.path());
+    // [safety] of the base config ∩ the simulator's travel range
+    assert_eq!(
+        e.connected.limits.range,
+        [(-1.0, 1.0), (-37.5, 37.5), (-25.0, 25.0)]
+    );
+    assert_eq!(e.connected.instrument.settle_s, 0.0);
+    // one scan on both instruments, through the engine
+    let plan = Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, -0.5, 0.5, 9, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, -0.5, 0.5, 9, "ny").unwrap(),
+        vec![],
+        1e-3,
+        false,
+        true,
+    )
+    .unwrap();
+    let limits = e.connected.limits;
+    let (hw, _) = run(&mut e.connected.instrument, &plan, &limits);
+    let (sim, _) = run(&mut core.instrument(0.0), &plan, &limits);
+    let (hw, sim) = (hw.unwrap(), sim.unwrap());
+    assert_eq!(
+        (hw.ended.clone(), sim.ended.clone()),
+        (Ended::Complete, Ended::Complete)
+    );
+    let sigma = noise_v / 100f64.sqrt(); // 100 samples per point, 1 V per signal unit
+    assert!(sim.scan.sx.data.iter().any(|v| v.abs() > 50.0 * sigma));
+    let mut chi2 = 0.0;
+    for (a, b) in [
+        (&hw.scan.sx, &sim.scan.sx),
+        (&hw.scan.sy, &sim.scan.sy),
+        (&hw.scan.sz, &sim.scan.sz),
+    ] {
+        assert_eq!(a.x, b.x);
+        for (p, q) in a.data.iter().zip(b.data.iter()) {
+            assert!((p - q).abs() < 5.0 * sigma, "{p} vs {q} (σ {sigma})");
+            chi2 += ((p - q) / sigma).powi(2);
+        }
+    }
+    let dof = 3.0 * 81.0;
+    assert!(
+        chi2 / dof > 0.6 && chi2 / dof < 1.5,
+        "χ²/dof = {}",
+        chi2 / dof
+    );
+    assert_eq!(hw.scan.meta["instrument"]["backend"], "emulated");
+    // the scan went through the serial protocol
+    let cmds = e.stage.commands();
+    assert!(
+        cmds.iter().filter(|c| c.starts_with("MOV")).count() >= 81,
+        "{}",
+        cmds.len()
+    );
+    assert!(e.qpd.commands().iter().any(|c| c == "MEAS:QPD:STAT?"));
+}
+
+#[test]
+fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
+    use bfpscope::script::{Settings, Workbench};
+    let (se, qe) = pair(0.0);
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-wb-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
+        se.path(),
+        qe.path()
+    );
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert!(
+        r.starts_with("connected hardware: PI E-727 on /dev/"),
+        "{r}"
+    );
+    // again, to the same (exclusively opened) ports: the old connection is closed first
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert!(r.starts_with("connected hardware"), "{r}");
+    let st = wb
+        .eval_source(
+            "t",
+            "mv(#{x: 0.5}); [status().backend, status().instrument.stage.port, pos().x]",
+        )
+        .unwrap();
+    assert_eq!(
+        bfpscope::script::show(&st),
+        format!("[\"hardware\", \"{}\", 0.5]", se.path())
+    );
+    assert_eq!(se.position()[0], 0.5);
+    // a connect that fails (bad QPD port) after closing the shared stage port leaves nothing
+    // half-open: the stage port opens again
+    let bad = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"/dev/bfpscope-no-such-qpd\"}})",
+        se.path()
+    );
+    let e = wb.eval_source("t", &bad).unwrap_err();
+    assert!(
+        e.message.contains(
+            "connect: backend = \"hardware\": SCPI QPD on /dev/bfpscope-no-such-qpd: cannot open"
+        ),
+        "{e}"
+    );
+    let _s = open_stage(&se, 1000);
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -120,6 +120,57 @@ fn step_size_rule_refuses_coarse_plans() {
 }
 
 #[test]
+fn speed_limit_refuses_a_fast_plan_naming_the_values_and_snake_passes() {
+    // mock: settle 1 ms, 100 kHz; dwell 1 ms → 2 ms per point. 11 × 11 raster over 1 µm:
+    // steps of 0.1 µm → 50 µm/s; the fly-back from x = 0.5 to x = -0.5 one row up is
+    // √(1 + 0.01) = 1.005 µm → 502.5 µm/s.
+    let mut h = Harness::new("speed");
+    h.limits =
+        SoftLimits::from_toml(&toml::from_str("[safety]\nmax_speed_um_s = 100").unwrap()).unwrap();
+    assert_eq!(h.limits.max_speed_um_s, Some(100.0));
+    let (mut inst, mock) = mock_instrument(MockConfig::default());
+    let e = h
+        .run(&mut inst, &grid(11, 11, false, false))
+        .unwrap_err()
+        .to_string();
+    assert_eq!(
+        e,
+        "scan_xy refused before any move: from point 11 to point 12 of 121 the stage moves 1.005 µm in \
+         settle 0.001 s + dwell 0.001 s = 0.002 s per point: 502.5 µm/s exceeds max_speed_um_s = 100 µm/s \
+         ([safety] in bfpscope.toml; use a longer dwell or settle, or smaller steps); this is a row change: \
+         a snake scan (snake: true) avoids the fly-back"
+    );
+    assert!(mock.moves().is_empty(), "moves sent: {:?}", mock.moves());
+    assert_eq!(h.store.last_number(), 0, "a refused plan saves nothing");
+    // the same raster as a snake: every move is one pitch, 50 µm/s
+    let run = h.run(&mut inst, &grid(11, 11, false, true)).unwrap();
+    assert_eq!(run.ended, Ended::Complete);
+    let v = run.scan.meta["max_speed_between_points_um_s"]
+        .as_f64()
+        .unwrap();
+    assert!((v - 50.0).abs() < 1e-9, "{v}");
+    // exactly at the limit is allowed; just above is not (a line of 0.2 µm steps: 100 µm/s)
+    let (mut inst, _) = mock_instrument(MockConfig::default());
+    assert!(h
+        .run(&mut inst, &line("ascan", Axis::X, 0.0, 1.0, 6, false))
+        .is_ok());
+    h.limits.max_speed_um_s = Some(99.9);
+    let e = h
+        .run(&mut inst, &line("ascan", Axis::X, 0.0, 1.0, 6, false))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("from point 1 to point 2 of 6 the stage moves 0.2 µm"),
+        "{e}"
+    );
+    assert!(
+        e.contains("100 µm/s exceeds max_speed_um_s = 99.9 µm/s"),
+        "{e}"
+    );
+    assert!(!e.contains("row change"), "{e}");
+}
+
+#[test]
 fn relative_scan_returns_to_start_after_completion() {
     let h = Harness::new("rel-complete");
     let (mut inst, mock) = mock_instrument(MockConfig {

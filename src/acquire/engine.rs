@@ -2,7 +2,8 @@
 //! place.
 //!
 //! 1. Read the start position; pre-flight the whole plan against the soft limits (narrowed to
-//!    the stage's travel range) and the step-size rule. A refused plan moves nothing.
+//!    the stage's travel range), the step-size rule and the speed limit (distance between
+//!    consecutive points / (settle + dwell), see `limits`). A refused plan moves nothing.
 //! 2. Print the ETA (settle + dwell per point), show a progress bar when stderr is a terminal.
 //! 3. Visit the points; before each one look at the abort flag (Ctrl-C): stop at the next point.
 //! 4. Relative plans return to the start — after completion, after an abort and after a QPD
@@ -147,7 +148,11 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
 
     let rate = inst.qpd.sample_rate();
     let n_samples = samples_per_point(plan.dwell_s, rate);
-    let eta = plan.eta_s(inst.settle_s, n_samples as f64 / rate);
+    let dwell_s = n_samples as f64 / rate;
+    let speed = limits
+        .check_speed(&kind, &points, inst.settle_s, dwell_s)
+        .map_err(|e| ScanError::Refused(e.0))?;
+    let eta = plan.eta_s(inst.settle_s, dwell_s);
     let clock_kind = if inst.clock.is_virtual() {
         "simulated"
     } else {
@@ -258,6 +263,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         "start_position_um": start,
         "returned_to_start": returned,
         "limits": limits,
+        "max_speed_between_points_um_s": speed,
         "instrument": inst.description,
         "time": {
             "wall_start": wall_start,

@@ -1,15 +1,32 @@
-//! Soft limits and the pre-flight check: every position a plan (or a single move) would
-//! command is checked before the first move; a plan that leaves the limits is refused whole.
+//! Soft limits, the step-size rule and the speed limit: every position a plan (or a single
+//! move) would command is checked before the first move; a plan that breaks a rule is refused
+//! whole, with nothing sent to the stage. The rules hold for every backend (mock, simulator,
+//! serial drivers, emulators): they live here, not in the drivers.
 //!
-//! Config (`bfpscope.toml`):
+//! Config (`bfpscope.toml`), the one place these are set:
 //!
 //! ```toml
 //! [safety]
 //! soft_limits = { x = [-40.0, 40.0], y = [-40.0, 40.0], z = [-5.0, 5.0] }   # µm
-//! max_step_um = 10.0     # largest pixel pitch a scan may use (catches nm/µm mix-ups)
+//! max_step_um = 10.0       # largest pixel pitch of a scan, µm (catches nm/µm mix-ups)
+//! max_speed_um_s = 500.0   # fastest a scan may move the stage, µm/s (default: no limit)
 //! ```
 //!
-//! The limits in force are the config's intersected with the travel range the stage reports.
+//! - **Soft limits** are intersected with the travel range the stage reports.
+//! - **`max_step_um`** is the *pixel pitch*: the spacing of neighbouring points along each
+//!   scanned axis. It is not a limit on single moves: the move to a scan's first point, a
+//!   raster's fly-back to the start of the next row and `mv` are positioning moves and may be
+//!   longer (they are bounded by the soft limits, and fly-backs by the speed limit).
+//! - **`max_speed_um_s`**: a scan grants each point `settle + dwell` seconds (the settle time
+//!   after the move plus the QPD's integration time); moving from one point to the next over
+//!   a distance d therefore implies the speed d / (settle + dwell). Every consecutive pair of
+//!   points of a plan (steps, row changes, a raster's fly-back) must stay at or below the
+//!   limit. The time the controller itself needs to reach the target only makes the real
+//!   speed lower, so the rule is conservative. Positioning moves (`mv`, the move to the first
+//!   point, the return to the start) run at the controller's own velocity setting.
+//!
+//! The legacy `[limits]` table (x, y, z, max_step_um) and `[stage] max_speed_um_s` are refused
+//! with a message giving the `[safety]` equivalent (`instrument::config`).
 
 use super::plan::{Axis, Plan, Point};
 use crate::instrument::Pos;
@@ -18,20 +35,103 @@ use serde::{Deserialize, Serialize};
 /// Default largest pixel pitch of a scan (µm).
 pub const DEFAULT_MAX_STEP_UM: f64 = 10.0;
 
+/// `[safety] soft_limits`: `[min, max]` µm per axis; a missing axis is limited by the stage's
+/// travel range only.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AxisRanges {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub x: Option<[f64; 2]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub y: Option<[f64; 2]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub z: Option<[f64; 2]>,
+}
+
+impl AxisRanges {
+    pub fn get(&self, axis: usize) -> Option<[f64; 2]> {
+        [self.x, self.y, self.z].get(axis).copied().flatten()
+    }
+}
+
+/// `[safety]` as written in `bfpscope.toml` (parsed with the rest of the file by
+/// `instrument::config::Config`; [`SafetyConfig::limits`] turns it into the rules in force).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SafetyConfig {
+    pub soft_limits: AxisRanges,
+    /// Largest pixel pitch, µm (default [`DEFAULT_MAX_STEP_UM`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_step_um: Option<f64>,
+    /// Fastest a scan may move the stage, µm/s (none: no limit).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_speed_um_s: Option<f64>,
+}
+
+impl SafetyConfig {
+    /// Check the values. `Err((key path, message))`, e.g. `("safety.soft_limits.x", …)`.
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        for (i, a) in Axis::ALL.iter().enumerate() {
+            if let Some([lo, hi]) = self.soft_limits.get(i) {
+                if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                    return Err((
+                        format!("safety.soft_limits.{a}"),
+                        format!(
+                            "[{lo}, {hi}]: need [min, max], two finite numbers with min < max (µm)"
+                        ),
+                    ));
+                }
+            }
+        }
+        for (key, v, unit) in [
+            ("safety.max_step_um", self.max_step_um, "µm"),
+            ("safety.max_speed_um_s", self.max_speed_um_s, "µm/s"),
+        ] {
+            if let Some(v) = v {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err((
+                        key.into(),
+                        format!("{v}: must be a positive number ({unit})"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The rules in force before narrowing to a stage's travel range (call after `validate`).
+    pub fn limits(&self) -> SoftLimits {
+        let mut l = SoftLimits::default();
+        for (i, r) in l.range.iter_mut().enumerate() {
+            if let Some([lo, hi]) = self.soft_limits.get(i) {
+                *r = (lo, hi);
+            }
+        }
+        if let Some(s) = self.max_step_um {
+            l.max_step_um = s;
+        }
+        l.max_speed_um_s = self.max_speed_um_s;
+        l
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct SoftLimits {
     /// (min, max) per axis x, y, z, µm.
     pub range: [(f64, f64); 3],
     /// Largest pixel pitch along any scanned axis, µm.
     pub max_step_um: f64,
+    /// Fastest a scan may move the stage between consecutive points, µm/s (none: no limit).
+    pub max_speed_um_s: Option<f64>,
 }
 
 impl Default for SoftLimits {
-    /// No soft limits of their own: the stage's travel range applies.
+    /// No soft limits of their own: the stage's travel range applies; no speed limit.
     fn default() -> Self {
         Self {
             range: [(f64::NEG_INFINITY, f64::INFINITY); 3],
             max_step_um: DEFAULT_MAX_STEP_UM,
+            max_speed_um_s: None,
         }
     }
 }
@@ -51,79 +151,42 @@ fn fmt_um(v: f64) -> String {
     }
 }
 
+/// A computed value with 4 significant digits (`502.5`, `1.005`, `0.0125`).
+fn fmt_sig(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let decimals = (3 - v.abs().log10().floor() as i32).max(0) as usize;
+    let s = format!("{v:.decimals$}");
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
+/// Seconds (`0.006`, `1.500e-5`).
+fn fmt_s(v: f64) -> String {
+    if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e4) {
+        format!("{v:.3e}")
+    } else {
+        fmt_um(v)
+    }
+}
+
 impl SoftLimits {
-    /// Read `[safety]` of a parsed config (`soft_limits = { x = [min, max], ... }`,
-    /// `max_step_um`); absent: defaults. The instrument config (`instrument::config`) shares
-    /// this section and validates the rest of it.
+    /// The rules of a parsed config's `[safety]` table (absent: defaults). The whole config is
+    /// validated as `instrument::config::Config` does (one parser for the file): errors name
+    /// the key path, e.g. `config: safety.soft_limits.x: [5, -5]: need [min, max] …`.
     pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
-        let mut l = SoftLimits::default();
-        let Some(t) = config.get("safety") else {
-            // The instrument config's `[limits]` table (x/y/z = [min, max] µm, max_step_um),
-            // as written by `instrument::config` and docs/hardware.md.
-            if let Some(t) = config.get("limits").and_then(|t| t.as_table()) {
-                let num =
-                    |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
-                for (i, ax) in ["x", "y", "z"].iter().enumerate() {
-                    if let Some(a) = t.get(*ax).and_then(|v| v.as_array()) {
-                        match (a.first().and_then(num), a.get(1).and_then(num)) {
-                            (Some(lo), Some(hi)) if lo < hi => l.range[i] = (lo, hi),
-                            _ => {
-                                return Err(format!(
-                                    "config: limits.{ax} must be [min, max] µm with min < max"
-                                ))
-                            }
-                        }
-                    }
-                }
-                if let Some(v) = t.get("max_step_um").and_then(num) {
-                    l.max_step_um = v;
-                }
-            }
-            return Ok(l);
-        };
-        let t = t.as_table().ok_or("config: [safety] must be a table")?;
-        let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
-        for (k, v) in t {
-            match k.as_str() {
-                "soft_limits" => {
-                    let st = v.as_table().ok_or_else(|| {
-                        format!("config: safety.soft_limits must be a table {{ x = [min, max], ... }} (µm), got {v}")
-                    })?;
-                    for (ak, av) in st {
-                        let a = Axis::parse(ak).ok_or_else(|| {
-                            format!("config: unknown axis safety.soft_limits.{ak} (allowed: x, y, z)")
-                        })?;
-                        let arr = av.as_array().filter(|a| a.len() == 2);
-                        let pair = arr.and_then(|a| Some((num(&a[0])?, num(&a[1])?)));
-                        match pair {
-                            Some((lo, hi)) if lo.is_finite() && hi.is_finite() && lo < hi => {
-                                l.range[a.index()] = (lo, hi)
-                            }
-                            _ => {
-                                return Err(format!(
-                                    "config: safety.soft_limits.{ak} = {av} must be [min, max], two finite numbers with min < max (µm)"
-                                ))
-                            }
-                        }
-                    }
-                }
-                "max_step_um" => match num(v) {
-                    Some(s) if s > 0.0 && s.is_finite() => l.max_step_um = s,
-                    _ => {
-                        return Err(format!(
-                            "config: safety.max_step_um = {v} must be a positive number (µm)"
-                        ))
-                    }
-                },
-                "max_speed_um_s" => {} // the drivers' business
-                _ => {
-                    return Err(format!(
-                        "config: unknown key safety.{k} (allowed: soft_limits, max_step_um, max_speed_um_s)"
-                    ))
-                }
-            }
-        }
-        Ok(l)
+        let text = toml::to_string(config).map_err(|e| format!("config: {e}"))?;
+        let cfg = crate::instrument::config::Config::from_toml_str(&text, "config").map_err(
+            |mut e| {
+                e.line = None; // lines of the re-serialised text would mislead
+                e.to_string()
+            },
+        )?;
+        Ok(cfg.safety.limits())
     }
 
     /// These limits narrowed to the stage's travel range.
@@ -192,17 +255,74 @@ impl SoftLimits {
         Ok(pts)
     }
 
-    /// Describe the limits in force: `x [-50, 50] µm, y [...], z [...]`.
+    /// The speed rule (see the module documentation): each point of `points` (visiting
+    /// order) is granted `settle_s + dwell_s`; the distance between consecutive points over
+    /// that time must not exceed `max_speed_um_s`. Returns the highest implied speed, µm/s
+    /// (0 for a single point).
+    pub fn check_speed(
+        &self,
+        kind: &str,
+        points: &[Point],
+        settle_s: f64,
+        dwell_s: f64,
+    ) -> Result<f64, LimitError> {
+        let t = settle_s + dwell_s;
+        let n = points.len();
+        let mut fastest = 0.0f64;
+        for (i, w) in points.windows(2).enumerate() {
+            let d = dist(w[0].target, w[1].target);
+            let v = if d == 0.0 { 0.0 } else { d / t };
+            fastest = fastest.max(v);
+            let Some(max) = self.max_speed_um_s else {
+                continue;
+            };
+            // within rounding of the limit is at the limit
+            if v > max * (1.0 + 1e-9) || v.is_nan() {
+                let hint = if w[0].row != w[1].row && d > 0.0 {
+                    "; this is a row change: a snake scan (snake: true) avoids the fly-back"
+                } else {
+                    ""
+                };
+                return Err(LimitError(format!(
+                    "{kind} refused before any move: from point {} to point {} of {n} the stage moves {} µm \
+                     in settle {} s + dwell {} s = {} s per point: {} µm/s exceeds max_speed_um_s = {} µm/s \
+                     ([safety] in bfpscope.toml; use a longer dwell or settle, or smaller steps){hint}",
+                    i + 1,
+                    i + 2,
+                    fmt_sig(d),
+                    fmt_s(settle_s),
+                    fmt_s(dwell_s),
+                    fmt_s(t),
+                    fmt_sig(v),
+                    fmt_um(max),
+                )));
+            }
+        }
+        Ok(fastest)
+    }
+
+    /// Describe the rules in force: `x [-50, 50] µm, y [...], z [...]; max step 10 µm; max
+    /// speed 500 µm/s` (or `no speed limit`).
     pub fn describe(&self) -> String {
-        Axis::ALL
+        let axes = Axis::ALL
             .iter()
             .map(|a| {
                 let (lo, hi) = self.range[a.index()];
                 format!("{a} [{}, {}] µm", fmt_um(lo), fmt_um(hi))
             })
             .collect::<Vec<_>>()
-            .join(", ")
+            .join(", ");
+        let speed = match self.max_speed_um_s {
+            Some(v) => format!("max speed {} µm/s", fmt_um(v)),
+            None => "no speed limit".into(),
+        };
+        format!("{axes}; max step {} µm; {speed}", fmt_um(self.max_step_um))
     }
+}
+
+/// Euclidean distance between two positions, µm.
+fn dist(a: Pos, b: Pos) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
 #[cfg(test)]
@@ -254,6 +374,69 @@ mod tests {
         assert!(e.contains("safety.soft_limits.x"), "{e}");
         let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { w = [0, 1] }").unwrap();
         let e = SoftLimits::from_toml(&cfg).unwrap_err();
-        assert!(e.contains("unknown axis safety.soft_limits.w"), "{e}");
+        assert!(e.contains("safety.soft_limits"), "{e}");
+        assert!(
+            e.contains("unknown field `w`, expected one of `x`, `y`, `z`"),
+            "{e}"
+        );
+        let cfg: toml::Value = toml::from_str("[safety]\nmax_speed_um_s = -3").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert_eq!(
+            e,
+            "config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"
+        );
+        // the legacy table: refused, with its [safety] equivalent
+        let cfg: toml::Value = toml::from_str("[limits]\nz = [0.0, 1.0]").unwrap();
+        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+        assert!(
+            e.contains("write [safety] soft_limits = { z = [0.0, 1.0] }"),
+            "{e}"
+        );
+        // no [safety]: defaults, no speed limit
+        let l = SoftLimits::from_toml(&toml::from_str("[sandbox]\nmax_operations = 5").unwrap())
+            .unwrap();
+        assert_eq!(l, SoftLimits::default());
+    }
+
+    #[test]
+    fn speed_rule_is_distance_over_settle_plus_dwell() {
+        let l = SoftLimits {
+            max_speed_um_s: Some(50.0),
+            ..SoftLimits::default()
+        };
+        let plan = Plan::line(
+            "ascan",
+            Sweep::new("ascan", Axis::Z, 0.0, 0.3, 4, "n").unwrap(),
+            0.0,
+            false,
+        )
+        .unwrap();
+        let pts = plan.points([0.0; 3]);
+        // 0.1 µm per point in 1 ms + 1 ms: 50 µm/s, at the limit
+        let v = l.check_speed("ascan", &pts, 0.001, 0.001).unwrap();
+        assert!((v - 50.0).abs() < 1e-9, "{v}");
+        // in 1 ms + 0.5 ms: 66.67 µm/s
+        let e = l.check_speed("ascan", &pts, 0.001, 0.0005).unwrap_err();
+        assert!(
+            e.0.contains("moves 0.1 µm in settle 0.001 s + dwell 5.000e-4 s = 0.0015 s per point: 66.67 µm/s exceeds max_speed_um_s = 50 µm/s"),
+            "{e}"
+        );
+        // no limit: the fastest speed is still reported; one point has no speed
+        assert!(
+            (SoftLimits::default()
+                .check_speed("a", &pts, 0.0, 0.001)
+                .unwrap()
+                - 100.0)
+                .abs()
+                < 1e-9
+        );
+        assert_eq!(l.check_speed("a", &pts[..1], 0.0, 0.0).unwrap(), 0.0);
+        assert_eq!(fmt_sig(502.49378), "502.5");
+        assert_eq!(fmt_sig(1.00498756), "1.005");
+        assert_eq!(fmt_sig(2500.0), "2500");
+        assert!(SoftLimits::default()
+            .describe()
+            .ends_with("; max step 10 µm; no speed limit"));
+        assert!(l.describe().ends_with("max speed 50 µm/s"));
     }
 }

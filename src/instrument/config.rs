@@ -1,5 +1,7 @@
 //! The instrument part of `bfpscope.toml`: backends and ports, serial settings, axis map,
-//! settle time, soft limits, step and speed limits, QPD calibration.
+//! settle time, QPD calibration, and the `[safety]` table (soft limits, step and speed limits;
+//! defined and enforced by `acquire::limits`, parsed and validated here with the rest of the
+//! file).
 //!
 //! ```toml
 //! [stage]
@@ -13,20 +15,21 @@
 //! port = "/dev/ttyUSB1"
 //! calibration = { gain = [0.5, 0.5, 0.25], offset_v = [0.0, 0.0, 0.0] }
 //!
-//! [limits]                     # the same table `acquire::SoftLimits::from_toml` reads
-//! x = [10.0, 90.0]              # µm
-//! y = [10.0, 90.0]
-//! z = [2.0, 18.0]
-//! max_step_um = 10.0
+//! [safety]                     # enforced by the scan engine for every backend
+//! soft_limits = { x = [10.0, 90.0], y = [10.0, 90.0], z = [2.0, 18.0] }   # µm
+//! max_step_um = 10.0            # largest pixel pitch of a scan, µm
+//! max_speed_um_s = 500.0        # fastest a scan may move the stage, µm/s
 //! ```
 //!
 //! With no file, everything is simulated. Other top-level sections (`[optics]`, …) belong to
 //! other parts of the workbench and are kept in [`Config::other`] untouched. Inside `[stage]`,
-//! `[qpd]` and `[limits]` an unknown key is an error (a typo in a safety setting must not be
-//! ignored silently); errors name the key path (`stage.baud`) and the line.
+//! `[qpd]` and `[safety]` an unknown key is an error (a typo in a safety setting must not be
+//! ignored silently); errors name the key path (`stage.baud`) and the line. The legacy
+//! `[limits]` table and `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
 
 use super::gcs::GcsOptions;
 use super::scpi::{Calibration, ScpiOptions};
+use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -112,8 +115,6 @@ pub struct StageConfig {
     pub units_per_um: f64,
     /// Extra settle time after each move, s (after on-target for hardware).
     pub settle_s: f64,
-    /// Highest stage speed, µm/s (enforced by `acquire/`; none: no limit).
-    pub max_speed_um_s: Option<f64>,
 }
 
 impl Default for StageConfig {
@@ -129,7 +130,6 @@ impl Default for StageConfig {
             servo_on_connect: true,
             units_per_um: 1.0,
             settle_s: 0.005,
-            max_speed_um_s: None,
         }
     }
 }
@@ -163,36 +163,6 @@ impl Default for QpdConfig {
     }
 }
 
-/// `[limits]`: soft limits per axis, `[min, max]` µm (a missing axis is limited by the
-/// controller's travel range only) and the largest pixel pitch. The scan engine (`acquire/`)
-/// enforces them before anything is sent; `acquire::SoftLimits::from_toml` reads the same
-/// table.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct LimitsConfig {
-    pub x: Option<[f64; 2]>,
-    pub y: Option<[f64; 2]>,
-    pub z: Option<[f64; 2]>,
-    /// Largest pixel pitch a scan may use, µm (catches nm/µm mix-ups).
-    pub max_step_um: Option<f64>,
-}
-
-impl LimitsConfig {
-    pub fn get(&self, axis: usize) -> Option<[f64; 2]> {
-        [self.x, self.y, self.z].get(axis).copied().flatten()
-    }
-}
-
-/// The limits in force for a connected instrument: soft limits ∩ controller travel range,
-/// plus step and speed limits. Computed by `connect`, enforced by `acquire/`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SafetyLimits {
-    /// (min, max) per axis x, y, z, µm.
-    pub axes: [(f64, f64); 3],
-    pub max_step_um: Option<f64>,
-    pub max_speed_um_s: Option<f64>,
-}
-
 /// The whole `bfpscope.toml` as far as the instrument is concerned.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Config {
@@ -200,8 +170,9 @@ pub struct Config {
     pub stage: StageConfig,
     #[serde(default)]
     pub qpd: QpdConfig,
+    /// `[safety]`: soft limits, step and speed limits (`acquire::limits`).
     #[serde(default)]
-    pub limits: LimitsConfig,
+    pub safety: SafetyConfig,
     /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
     #[serde(flatten)]
     pub other: toml::Table,
@@ -209,13 +180,14 @@ pub struct Config {
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 
-/// Soft limits ∩ the controller's travel range, per axis. An axis without soft limits gets
-/// the travel range. Errors when the two do not overlap or the travel range is nonsense.
+/// Soft limits ∩ the controller's travel range, per axis (step and speed limits kept). An
+/// axis without soft limits gets the travel range. Errors when the two do not overlap or the
+/// travel range is nonsense.
 pub fn effective_limits(
-    soft: &LimitsConfig,
+    soft: &SoftLimits,
     travel: [(f64, f64); 3],
-) -> Result<[(f64, f64); 3], ConfigError> {
-    let mut out = [(0.0, 0.0); 3];
+) -> Result<SoftLimits, ConfigError> {
+    let mut out = *soft;
     for i in 0..3 {
         let (tlo, thi) = travel[i];
         if !(tlo.is_finite() && thi.is_finite() && tlo < thi) {
@@ -228,23 +200,19 @@ pub fn effective_limits(
                 ),
             });
         }
-        out[i] = match soft.get(i) {
-            None => (tlo, thi),
-            Some([lo, hi]) => {
-                let (a, b) = (lo.max(tlo), hi.min(thi));
-                if a >= b {
-                    return Err(ConfigError {
-                        origin: "bfpscope.toml".into(),
-                        key: format!("limits.{}", AXIS_NAMES[i]),
-                        line: None,
-                        message: format!(
-                            "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
-                        ),
-                    });
-                }
-                (a, b)
-            }
-        };
+        let (lo, hi) = soft.range[i];
+        let (a, b) = (lo.max(tlo), hi.min(thi));
+        if a >= b {
+            return Err(ConfigError {
+                origin: "bfpscope.toml".into(),
+                key: format!("safety.soft_limits.{}", AXIS_NAMES[i]),
+                line: None,
+                message: format!(
+                    "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
+                ),
+            });
+        }
+        out.range[i] = (a, b);
     }
     Ok(out)
 }
@@ -316,6 +284,20 @@ fn err(key: &str, message: impl Into<String>) -> ConfigError {
 impl Config {
     /// Parse and validate TOML text. `origin` names the text in messages (a file path).
     pub fn from_toml_str(text: &str, origin: &str) -> Result<Config, ConfigError> {
+        // `[stage] max_speed_um_s` moved to `[safety]`: say so rather than "unknown field".
+        if let Ok(raw) = toml::from_str::<toml::Table>(text) {
+            if let Some(v) = raw.get("stage").and_then(|s| s.get("max_speed_um_s")) {
+                return Err(ConfigError {
+                    origin: origin.into(),
+                    key: "stage.max_speed_um_s".into(),
+                    line: find_key_line(text, "stage.max_speed_um_s"),
+                    message: format!(
+                        "moved to [safety]: write `max_speed_um_s = {v}` in [safety] (enforced by the scan engine \
+                         for every backend)"
+                    ),
+                });
+            }
+        }
         let cfg: Config = toml::from_str(text).map_err(|e| {
             let (key, line) = match e.span() {
                 Some(span) => {
@@ -333,7 +315,7 @@ impl Config {
         })?;
         cfg.validate().map_err(|mut e| {
             e.origin = origin.into();
-            e.line = find_key_line(text, &e.key);
+            e.line = find_key_line(text, &e.key).or_else(|| find_table_line(text, &e.key));
             e
         })?;
         Ok(cfg)
@@ -477,27 +459,16 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
-        for (i, name) in AXIS_NAMES.iter().enumerate() {
-            if let Some([lo, hi]) = self.limits.get(i) {
-                if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-                    return Err(err(
-                        &format!("limits.{name}"),
-                        format!("[{lo}, {hi}]: need finite [min, max] with min < max (µm)"),
-                    ));
-                }
-            }
+        if let Some(old) = self.other.get("limits") {
+            return Err(err("limits", legacy_limits_message(old)));
         }
-        for (key, v) in [
-            ("limits.max_step_um", self.limits.max_step_um),
-            ("stage.max_speed_um_s", self.stage.max_speed_um_s),
-        ] {
-            if let Some(v) = v {
-                if !(v.is_finite() && v > 0.0) {
-                    return Err(err(key, format!("{v}: must be a positive number")));
-                }
-            }
-        }
+        self.safety.validate().map_err(|(k, m)| err(&k, m))?;
         Ok(())
+    }
+
+    /// The safety rules in force before narrowing to a stage's travel range.
+    pub fn soft_limits(&self) -> SoftLimits {
+        self.safety.limits()
     }
 
     /// Driver settings for the GCS stage.
@@ -521,6 +492,35 @@ impl Config {
             statistics: self.qpd.statistics,
         }
     }
+}
+
+/// The message for a legacy `[limits]` table: its `[safety]` equivalent, spelled out.
+fn legacy_limits_message(old: &toml::Value) -> String {
+    let mut axes = vec![];
+    let mut rest = vec![];
+    if let Some(t) = old.as_table() {
+        for (k, v) in t {
+            match k.as_str() {
+                "x" | "y" | "z" => axes.push(format!("{k} = {v}")),
+                _ => rest.push(format!("{k} = {v}")),
+            }
+        }
+    }
+    let mut s = String::from("the [limits] table is now [safety] (same meanings; max_step_um is the largest pixel pitch of a scan): write [safety]");
+    if !axes.is_empty() {
+        s.push_str(&format!(" soft_limits = {{ {} }}", axes.join(", ")));
+    }
+    for r in rest {
+        s.push_str(&format!(", {r}"));
+    }
+    s
+}
+
+/// Line of the `[table]` header for `key` (validation errors about a whole table).
+fn find_table_line(text: &str, key: &str) -> Option<usize> {
+    text.lines()
+        .position(|l| table_header(l.trim()).as_deref() == Some(key))
+        .map(|n| n + 1)
 }
 
 /// Line where `key` (a dotted path) is set, for validation errors: a `k = …` line whose
@@ -557,6 +557,7 @@ fn find_key_line(text: &str, key: &str) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::acquire::limits::DEFAULT_MAX_STEP_UM;
 
     #[test]
     fn empty_file_is_simulated() {
@@ -580,10 +581,10 @@ backend = "scpi"
 port = "/dev/ttyUSB1"
 calibration = { gain = [2.0, 2.0, 0.5], offset_v = [0.1, 0.0, 0.0] }
 
-[limits]
-x = [10, 90]
-z = [1.0, 19.0]
+[safety]
+soft_limits = { x = [10, 90], z = [1.0, 19.0] }
 max_step_um = 5.0
+max_speed_um_s = 200
 
 [optics]
 wavelength_nm = 1064.0
@@ -593,9 +594,13 @@ wavelength_nm = 1064.0
         assert_eq!(c.stage.baud, 57600);
         assert_eq!(c.gcs_options().axes, ["1", "2", "3"]);
         assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
-        assert_eq!(c.limits.x, Some([10.0, 90.0])); // integers are fine
-        assert_eq!(c.limits.y, None);
-        assert_eq!(c.limits.max_step_um, Some(5.0));
+        assert_eq!(c.safety.soft_limits.x, Some([10.0, 90.0])); // integers are fine
+        assert_eq!(c.safety.soft_limits.y, None);
+        assert_eq!(c.safety.max_step_um, Some(5.0));
+        let l = c.soft_limits();
+        assert_eq!(l.range[0], (10.0, 90.0));
+        assert_eq!(l.range[1], (f64::NEG_INFINITY, f64::INFINITY));
+        assert_eq!((l.max_step_um, l.max_speed_um_s), (5.0, Some(200.0)));
         assert_eq!(c.other["optics"]["wavelength_nm"].as_float(), Some(1064.0));
         let again = Config::from_toml_str(&c.to_toml(), "t2").unwrap();
         assert_eq!(again, c);
@@ -620,13 +625,16 @@ wavelength_nm = 1064.0
         assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
         assert!(e.message.contains("gsc"), "{e}");
 
-        let e = error_of("[limits]\nx = [0.0, 1.0]\nmax_step = 2.0\n");
-        assert_eq!(e.key, "limits.max_step");
+        let e = error_of("[safety]\nsoft_limits = { x = [0.0, 1.0] }\nmax_step = 2.0\n");
+        assert_eq!(e.key, "safety.max_step");
         assert_eq!(
             e.to_string(),
-            "bfpscope.toml: limits.max_step: unknown field `max_step`, expected one of `x`, `y`, `z`, \
-             `max_step_um` (line 3)"
+            "bfpscope.toml: safety.max_step: unknown field `max_step`, expected one of `soft_limits`, \
+             `max_step_um`, `max_speed_um_s` (line 3)"
         );
+        let e = error_of("[safety]\nsoft_limits = { w = [0.0, 1.0] }\n");
+        assert_eq!((e.key.as_str(), e.line), ("safety.soft_limits", Some(2)));
+        assert!(e.message.contains("unknown field `w`"), "{e}");
 
         let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
         assert_eq!(e.key, "qpd.calibration.gain");
@@ -644,45 +652,70 @@ wavelength_nm = 1064.0
         );
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
-        let e = error_of("[limits]\ny = [0.0, 1.0]\nx = [5.0, 1.0]\n");
-        assert_eq!(e.key, "limits.x");
+        let e = error_of(
+            "[safety]\nmax_step_um = 1.0\nsoft_limits = { y = [0.0, 1.0], x = [5.0, 1.0] }\n",
+        );
+        assert_eq!(e.key, "safety.soft_limits.x");
         assert_eq!(e.line, Some(3));
         let e = error_of("[stage]\naxes = { x = \"A\", y = \"A\", z = \"C\" }\n");
         assert_eq!(e.key, "stage.axes");
         let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
         assert_eq!(e.key, "qpd.calibration.gain");
-        let e = error_of("[limits]\nmax_step_um = -1.0\n");
-        assert_eq!(e.key, "limits.max_step_um");
-        let e = error_of("[stage]\nmax_speed_um_s = 0.0\n");
-        assert_eq!((e.key.as_str(), e.line), ("stage.max_speed_um_s", Some(2)));
+        let e = error_of("[safety]\nmax_step_um = -1.0\n");
+        assert_eq!(e.key, "safety.max_step_um");
+        let e = error_of("\n[safety]\nmax_speed_um_s = 0.0\n");
+        assert_eq!((e.key.as_str(), e.line), ("safety.max_speed_um_s", Some(3)));
+        assert!(e.message.contains("positive"), "{e}");
+    }
+
+    #[test]
+    fn legacy_tables_are_refused_with_their_safety_equivalent() {
+        let e = error_of("[stage]\nbaud = 9600\n\n[limits]\nx = [5.0, 95.0]\nmax_step_um = 2.0\n");
+        assert_eq!((e.key.as_str(), e.line), ("limits", Some(4)));
+        assert_eq!(
+            e.message,
+            "the [limits] table is now [safety] (same meanings; max_step_um is the largest pixel pitch of a \
+             scan): write [safety] soft_limits = { x = [5.0, 95.0] }, max_step_um = 2.0"
+        );
+        // the suggested text is a valid config with the same meaning
+        let c = Config::from_toml_str(
+            "[safety]\nsoft_limits = { x = [5.0, 95.0] }\nmax_step_um = 2.0\n",
+            "t",
+        )
+        .unwrap();
+        assert_eq!(c.soft_limits().range[0], (5.0, 95.0));
+        assert_eq!(c.soft_limits().max_step_um, 2.0);
+        let e = error_of("[stage]\nbaud = 9600\nmax_speed_um_s = 500.0\n");
+        assert_eq!((e.key.as_str(), e.line), ("stage.max_speed_um_s", Some(3)));
+        assert!(
+            e.message
+                .starts_with("moved to [safety]: write `max_speed_um_s = 500.0` in [safety]"),
+            "{e}"
+        );
     }
 
     #[test]
     fn soft_limits_intersect_travel() {
-        let soft = LimitsConfig {
-            x: Some([-10.0, 50.0]),
-            y: Some([20.0, 30.0]),
-            ..Default::default()
-        };
-        let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
-        assert_eq!(
-            effective_limits(&soft, travel).unwrap(),
-            [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]
-        );
-        let soft = LimitsConfig {
-            z: Some([25.0, 30.0]),
-            ..Default::default()
-        };
-        let e = effective_limits(&soft, travel).unwrap_err();
-        assert_eq!(e.key, "limits.z");
-        assert!(e.message.contains("[0, 20]"), "{e}");
-        assert!(effective_limits(
-            &LimitsConfig::default(),
-            [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]
+        let soft = Config::from_toml_str(
+            "[safety]\nsoft_limits = { x = [-10.0, 50.0], y = [20.0, 30.0] }\nmax_speed_um_s = 50",
+            "t",
         )
-        .is_err());
+        .unwrap()
+        .soft_limits();
+        let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
+        let l = effective_limits(&soft, travel).unwrap();
+        assert_eq!(l.range, [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]);
+        assert_eq!((l.max_step_um, l.max_speed_um_s), (10.0, Some(50.0)));
+        let mut soft = SoftLimits::default();
+        soft.range[2] = (25.0, 30.0);
+        let e = effective_limits(&soft, travel).unwrap_err();
+        assert_eq!(e.key, "safety.soft_limits.z");
+        assert!(e.message.contains("[0, 20]"), "{e}");
+        assert!(
+            effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err()
+        );
         assert!(effective_limits(
-            &LimitsConfig::default(),
+            &SoftLimits::default(),
             [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
         )
         .is_err());
@@ -700,7 +733,8 @@ wavelength_nm = 1064.0
             (Backend::Gcs, Backend::Scpi)
         );
         assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
-        assert_eq!(c.limits.z, Some([1.0, 19.0]));
+        assert_eq!(c.safety.soft_limits.z, Some([1.0, 19.0]));
+        assert_eq!(c.soft_limits().max_step_um, DEFAULT_MAX_STEP_UM);
         // every key shown with its default really is the default
         let d = Config::default();
         assert_eq!(

@@ -1,11 +1,12 @@
 //! Build an [`Instrument`] from the config: simulated, or a GCS stage and a SCPI QPD on
-//! serial ports. Also computes the limits in force (soft limits ∩ the travel range the stage
-//! reports), which `acquire/` enforces.
+//! serial ports. Also computes the limits in force (`[safety]` soft limits ∩ the travel range
+//! the stage reports, with the step and speed limits), which `acquire/` enforces.
 
-use super::config::{effective_limits, Backend, Config, ConfigError, SafetyLimits};
+use super::config::{effective_limits, Backend, Config, ConfigError};
 use super::gcs::GcsStage;
 use super::scpi::ScpiQpd;
 use super::{DeviceError, Instrument, WallClock};
+use crate::acquire::SoftLimits;
 use serde_json::json;
 use std::sync::Arc;
 
@@ -13,7 +14,7 @@ use std::sync::Arc;
 pub struct Connected {
     pub instrument: Instrument,
     /// Soft limits ∩ travel range, max step and speed (µm, µm/s).
-    pub limits: SafetyLimits,
+    pub limits: SoftLimits,
 }
 
 /// Why `connect` failed.
@@ -35,7 +36,7 @@ pub enum ConnectError {
 /// - `gcs` + `scpi`: open both ports, identify both devices (`*IDN?`), switch the servos on,
 ///   read the travel range (`TMN?`/`TMX?`) and the sample rate. The clock is the wall clock.
 ///
-/// In both cases the stage's travel range is intersected with the `[limits]` soft limits. A
+/// In both cases the stage's travel range is intersected with the `[safety]` soft limits. A
 /// failure names the device and what it said; a half-opened pair is closed again.
 pub fn connect(
     cfg: &Config,
@@ -52,17 +53,12 @@ pub fn connect(
         _ => connect_hardware(cfg)?,
     };
     let travel = instrument.stage.travel_range()?;
-    let axes = effective_limits(&cfg.limits, travel)?;
-    let limits = SafetyLimits {
-        axes,
-        max_step_um: cfg.limits.max_step_um,
-        max_speed_um_s: cfg.stage.max_speed_um_s,
-    };
+    let limits = effective_limits(&cfg.soft_limits(), travel)?;
     if let serde_json::Value::Object(m) = &mut instrument.description {
         m.insert("travel_um".into(), json!(travel));
         m.insert(
             "limits".into(),
-            serde_json::to_value(&limits).unwrap_or_default(),
+            serde_json::to_value(limits).unwrap_or_default(),
         );
     }
     Ok(Connected { instrument, limits })
@@ -75,6 +71,7 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
     // If the QPD fails, `stage` is dropped here and its port closed.
     let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
     let description = json!({
+        "backend": "hardware",
         "stage": {
             "backend": "gcs",
             "name": super::Stage::name(&stage),
@@ -101,5 +98,85 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description,
+    })
+}
+
+/// An emulated instrument connected through the real drivers (`connect_emulated`): the
+/// connection and the two emulators it talks to (keep them alive as long as the connection).
+pub struct Emulated {
+    pub connected: Connected,
+    pub stage: super::emulator::Emulator,
+    pub qpd: super::emulator::Emulator,
+}
+
+/// Start a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process and
+/// connect the real drivers to them: the hardware path without hardware.
+///
+/// The stage has the simulator's travel range and move time (`StageEmulatorConfig::like_sim`,
+/// parked at the origin); the QPD answers with the ideal signal of `renderer`'s scene at the
+/// emulated stage position (`sim_signal_source`), 1 V per signal unit, plus white detector
+/// noise of `noise_v` volts rms per sample, in real time (a read of n samples takes n / rate).
+/// From `base` only the `[safety]` table and `stage.settle_s` are used (its ports and serial
+/// settings belong to the real hardware). The description's `backend` is `"emulated"`.
+pub fn connect_emulated(
+    renderer: Arc<super::sim::Renderer>,
+    sim: &super::sim::SimConfig,
+    base: &Config,
+    noise_v: f64,
+) -> Result<Emulated, ConnectError> {
+    use super::emulator::{sim_signal_source, start_pair, QpdEmulatorConfig, StageEmulatorConfig};
+    if !(noise_v.is_finite() && noise_v >= 0.0) {
+        return Err(ConnectError::Config(ConfigError {
+            origin: "connect".into(),
+            key: "noise_v".into(),
+            line: None,
+            message: format!("{noise_v} V: must be a finite number ≥ 0"),
+        }));
+    }
+    let qcfg = QpdEmulatorConfig {
+        sample_rate_hz: sim.sample_rate,
+        noise_v: [noise_v; 3],
+        ..QpdEmulatorConfig::default()
+    };
+    let (stage, qpd) = start_pair(
+        StageEmulatorConfig::like_sim(sim),
+        qcfg,
+        sim_signal_source(renderer),
+    )
+    .map_err(|e| DeviceError::Other {
+        device: "emulator".into(),
+        detail: format!("cannot start the emulators on pseudo-terminals: {e}"),
+    })?;
+    let mut cfg = Config {
+        safety: base.safety,
+        ..Config::default()
+    };
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some(stage.path().to_string());
+    cfg.stage.settle_s = base.stage.settle_s;
+    cfg.stage.poll_ms = 1;
+    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.port = Some(qpd.path().to_string());
+    let mut connected = connect(&cfg, |_| {
+        Err(anyhow::anyhow!(
+            "a hardware config does not build the simulator"
+        ))
+    })?;
+    if let serde_json::Value::Object(m) = &mut connected.instrument.description {
+        m.insert("backend".into(), json!("emulated"));
+        m.insert(
+            "emulators".into(),
+            json!({
+                "stage": stage.path(),
+                "qpd": qpd.path(),
+                "noise_v": noise_v,
+                "signal": "simulator (ideal signal of the scene) at the emulated stage position",
+            }),
+        );
+    }
+    Ok(Emulated {
+        connected,
+        stage,
+        qpd,
     })
 }

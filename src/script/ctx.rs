@@ -4,6 +4,7 @@
 use super::registry::{fail, Doc, RResult};
 use crate::acquire::mock::MockHandle;
 use crate::acquire::{SessionStore, SoftLimits};
+use crate::instrument::sim::SimCore;
 use crate::instrument::Instrument;
 use crate::optics::Optics;
 use serde_json::{json, Value};
@@ -171,11 +172,27 @@ pub struct ScriptInfo {
     pub line: Option<String>,
 }
 
+/// What comes with a connected instrument besides the `Instrument` itself.
+#[derive(Default)]
+pub struct Attached {
+    /// The mock's command log (mock backend).
+    pub mock: Option<MockHandle>,
+    /// The simulator's core (sim backend): `simulate(scene)` re-scenes it.
+    pub sim: Option<SimCore>,
+    /// Whatever must live exactly as long as the connection (the in-process emulators of the
+    /// `emulated` backend); dropped after the instrument on disconnect.
+    pub keepalive: Option<Box<dyn std::any::Any + Send>>,
+}
+
 /// Shared state of one workbench.
 pub struct Ctx {
     pub settings: Settings,
     instrument: Mutex<Option<Instrument>>,
+    /// Backend name of the connected instrument (`mock`, `sim`, `hardware`, `emulated`).
+    backend: Mutex<Option<String>>,
     pub(crate) mock: Mutex<Option<MockHandle>>,
+    sim: Mutex<Option<SimCore>>,
+    keepalive: Mutex<Option<Box<dyn std::any::Any + Send>>>,
     pub store: SessionStore,
     pub(crate) script: Mutex<ScriptInfo>,
     /// Optics of the set-up (the physics bindings may change it).
@@ -198,7 +215,10 @@ impl Ctx {
             store: SessionStore::new(settings.data_dir.clone()),
             settings,
             instrument: Mutex::new(None),
+            backend: Mutex::new(None),
             mock: Mutex::new(None),
+            sim: Mutex::new(None),
+            keepalive: Mutex::new(None),
             script: Mutex::new(ScriptInfo::default()),
             optics: Mutex::new(Optics::default()),
             scene: Mutex::new(None),
@@ -220,13 +240,73 @@ impl Ctx {
         (self.settings.log)(s)
     }
 
-    /// Install an instrument (replacing the previous one).
+    /// Install an instrument (replacing the previous one). The backend name is `mock` with a
+    /// mock handle, else the description's `backend` (`sim`, …), else `hardware`.
     pub fn connect(&self, inst: Instrument, mock: Option<MockHandle>) {
-        *lock(&self.instrument) = Some(inst);
-        *lock(&self.mock) = mock;
+        let backend = if mock.is_some() {
+            "mock".to_string()
+        } else {
+            inst.description["backend"]
+                .as_str()
+                .unwrap_or("hardware")
+                .to_string()
+        };
+        self.attach(
+            &backend,
+            inst,
+            Attached {
+                mock,
+                ..Attached::default()
+            },
+        );
     }
+
+    /// Install an instrument under a backend name with what comes with it, replacing (and
+    /// closing) the previous one.
+    pub fn attach(&self, backend: &str, inst: Instrument, extra: Attached) {
+        let _ = self.disconnect();
+        *lock(&self.instrument) = Some(inst);
+        *lock(&self.backend) = Some(backend.to_string());
+        *lock(&self.mock) = extra.mock;
+        *lock(&self.sim) = extra.sim;
+        *lock(&self.keepalive) = extra.keepalive;
+    }
+
+    /// Install the simulated instrument over `core`.
+    pub fn attach_sim(&self, core: SimCore, settle_s: f64) {
+        let inst = core.instrument(settle_s);
+        self.attach(
+            "sim",
+            inst,
+            Attached {
+                sim: Some(core),
+                ..Attached::default()
+            },
+        );
+    }
+
+    /// Drop the connected instrument (closing its ports), then what came with it (emulators
+    /// stop). Returns the backend name of what was connected.
+    pub fn disconnect(&self) -> Option<String> {
+        let old = lock(&self.instrument).take();
+        drop(old);
+        *lock(&self.mock) = None;
+        *lock(&self.sim) = None;
+        let keep = lock(&self.keepalive).take();
+        drop(keep);
+        lock(&self.backend).take()
+    }
+
     pub fn is_connected(&self) -> bool {
         lock(&self.instrument).is_some()
+    }
+    /// Backend name of the connected instrument (`mock`, `sim`, `hardware`, `emulated`).
+    pub fn backend(&self) -> Option<String> {
+        lock(&self.backend).clone()
+    }
+    /// The simulator's core when the simulated instrument is what is connected.
+    pub fn sim_core(&self) -> Option<SimCore> {
+        lock(&self.sim).clone()
     }
     /// The mock's handle when the mock instrument is connected.
     pub fn mock(&self) -> Option<MockHandle> {
@@ -243,8 +323,8 @@ impl Ctx {
         match g.as_mut() {
             Some(inst) => f(inst),
             None => fail(format!(
-                "{who}: no instrument connected; connect one with connect(#{{backend: \"mock\"}}) \
-                 (the simulated instrument becomes the default when it lands)"
+                "{who}: no instrument connected; connect one with connect() (what the config names), \
+                 connect(#{{backend: \"sim\"}}) or connect(#{{backend: \"mock\"}})"
             )),
         }
     }

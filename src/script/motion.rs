@@ -1,13 +1,25 @@
-//! Motion and reads: `pos`, `wa`, `mv`, `mvr`, `qpd`, `ct`, `status`, `connect`, `clock`,
-//! `limits`, and the mock instrument's `mock_commands`. Every move goes through
-//! `acquire::checked_move` (soft limits first).
+//! Motion and reads: `pos`, `wa`, `mv`, `mvr`, `qpd`, `ct`, `status`, `connect`,
+//! `disconnect`, `clock`, `limits`, and the mock instrument's `mock_commands`. Every move goes
+//! through `acquire::checked_move` (soft limits first).
+//!
+//! Backends of `connect`: `mock`, `sim` (the simulated instrument), `hardware` (PI GCS stage +
+//! SCPI QPD on serial ports, from the config and/or the map) and `emulated` (the same drivers
+//! talking to in-process emulators on pseudo-terminals whose QPD images the simulator's scene).
 
-use super::ctx::Ctx;
+use super::ctx::{Attached, Ctx};
+use super::physics::SceneRef;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
 use crate::acquire::mock::{mock_instrument, MockConfig};
 use crate::acquire::{checked_move, Axis};
-use crate::instrument::{Pos, QpdReading};
+use crate::instrument::config::{Backend, Config};
+use crate::instrument::connect::connect_emulated;
+use crate::instrument::sim::scene::{Bead, Scene};
+use crate::instrument::sim::{Renderer, SimConfig, SimCore};
+use crate::instrument::{Instrument, Pos, QpdReading};
+use crate::optics::params::{REF_BEAD_D_NM, REF_BEAD_N};
+use crate::optics::template::TemplateSpec;
 use rhai::{Array, Dynamic, Map, INT};
+use std::sync::Arc;
 
 /// `#{x, y, z}` in µm.
 pub fn pos_map(p: Pos) -> Map {
@@ -189,10 +201,12 @@ pub fn register(r: &mut Registrar) {
         Doc::func("limits", "motion")
             .returns(
                 "map",
-                "#{x: [min, max], y: [...], z: [...], max_step_um} in µm",
+                "#{x: [min, max], y: [...], z: [...], max_step_um, max_speed_um_s} in µm and µm/s (max_speed_um_s is () without a speed limit)",
             )
-            .summary("the soft limits in force (config ∩ stage travel range)")
-            .example("limits().x", "[-50.0, 50.0]"),
+            .summary("the safety rules in force: soft limits (config [safety] ∩ stage travel range), largest pixel pitch, speed limit")
+            .example("limits().x", "[-50.0, 50.0]")
+            .example("limits().max_step_um", "10.0")
+            .example("limits().max_speed_um_s", "()"),
         move || -> RResult<Map> {
             let l = c.settings.limits;
             let l =
@@ -214,24 +228,39 @@ pub fn register(r: &mut Registrar) {
                 );
             }
             m.insert("max_step_um".into(), l.max_step_um.into());
+            m.insert(
+                "max_speed_um_s".into(),
+                l.max_speed_um_s.map_or(Dynamic::UNIT, Dynamic::from),
+            );
             Ok(m)
         },
     );
     let c = ctx.clone();
     r.bind(
         Doc::func("status", "motion")
-            .returns("map", "#{connected, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
-            .summary("what is connected, where the stage is, where scans go")
+            .returns("map", "#{connected, backend, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
+            .summary("what is connected (backend, devices, ports), where the stage is, the safety rules, where scans go")
+            .help("backend is \"mock\", \"sim\", \"hardware\" or \"emulated\" (() when nothing is connected); instrument is the connected instrument's description: device names, ports, baud rates, identification strings, travel range and limits for hardware.")
             .example("status().connected", "true")
+            .example("status().backend", "\"mock\"")
+            .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
             .example("status().position.x", "0.0"),
         move || -> RResult<Map> {
             let mut m = Map::new();
             m.insert("connected".into(), c.is_connected().into());
+            m.insert(
+                "backend".into(),
+                c.backend().map_or(Dynamic::UNIT, Dynamic::from),
+            );
             m.insert("data_dir".into(), c.store.dir().display().to_string().into());
             m.insert("last_scan".into(), (c.store.last_number() as INT).into());
             m.insert("limits".into(), c.settings.limits.describe().into());
             if c.is_connected() {
                 c.with_instrument("status", |i| {
+                    // the rules in force: soft limits narrowed to the travel range
+                    if let Ok(t) = i.stage.travel_range() {
+                        m.insert("limits".into(), c.settings.limits.within_travel(t).describe().into());
+                    }
                     m.insert("instrument".into(), super::types::json_to_dynamic(&i.description));
                     match i.stage.position() {
                         Ok(p) => m.insert("position".into(), pos_map(p).into()),
@@ -249,10 +278,18 @@ pub fn register(r: &mut Registrar) {
     let d = Doc::func("connect", "motion")
         .map(
             "config",
-            "which backend and its options",
+            "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "\"mock\" (analytic test signal); \"sim\" and serial backends when they land"),
-                ("settle", "float", "s", "optional: settle time per move (mock; default 0.001)"),
+                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
+                ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)"),
+                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware)"),
+                ("baud", "int", "baud", "optional: baud rate of both ports (hardware)"),
+                ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)"),
+                ("qpd_baud", "int", "baud", "optional: QPD baud rate (hardware)"),
+                ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)"),
+                ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)"),
+                ("noise_v", "float", "V", "optional: emulated QPD noise per sample, rms (emulated; default 1e-4, 1 V per signal unit)"),
+                ("settle", "float", "s", "optional: settle time per move (default [stage] settle_s; mock 0.001)"),
                 ("rate", "float", "Hz", "optional: QPD sample rate (mock; default 100000)"),
                 ("start", "map", "µm", "optional: initial position #{x, y, z} (mock)"),
                 ("fail_move_after", "int", "", "optional: the stage disconnects on the move after this many (mock fault injection)"),
@@ -260,72 +297,64 @@ pub fn register(r: &mut Registrar) {
                 ("abort_after_reads", "int", "", "optional: raise the Ctrl-C flag after this many reads (mock)"),
             ],
         )
-        .returns("string", "description of the connected instrument")
-        .summary("connect an instrument backend (replaces the current one)")
+        .form("connect() -> string")
+        .returns("string", "what was connected")
+        .summary("connect an instrument backend (replaces and closes the current one)")
         .help(
-            "The mock backend is for tests and examples: a noiseless analytic signal \
+            "connect() connects what bfpscope.toml names ([stage]/[qpd] backends and ports; the simulator without \
+             a config), as `bfpscope repl|run|eval` do at start. \"sim\": the simulated instrument. \"hardware\": \
+             the PI GCS 2.0 stage and SCPI QPD drivers on the config's ports (stage_port, qpd_port, baud, … \
+             override them); connecting identifies both devices, switches the servos on and reads the travel range. \
+             \"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
+             and connects the real drivers to them; the QPD answers with the simulator's signal of the scene at the \
+             emulated stage position, so scans go through the whole hardware path without hardware (real time). \
+             The mock backend is for tests and examples: a noiseless analytic signal \
              sx = x·exp(-(x²+y²)/0.16)·exp(-z²/0.5), sy = 0.7·y·(same), sz = 1 - 0.1·(same), on a \
              virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
-             abort flag, to test the safety rules from scripts.",
+             abort flag, to test the safety rules from scripts. The [safety] rules apply to every backend. \
+             Errors name the backend and the device or port (docs/hardware.md).",
         )
         .example("connect(#{backend: \"mock\", start: #{x: 2.0}}); pos().x", "2.0")
+        .example("connect(#{backend: \"sim\"}); status().backend", "\"sim\"")
+        .example("connect(); status().instrument.stage", "\"simulated piezo stage\"")
+        .example(
+            "connect(#{backend: \"hardware\", stage_port: \"/dev/bfpscope-no-such-port\", qpd_port: \"/dev/bfpscope-no-such-qpd\"})",
+            "error: connect: backend = \"hardware\": GCS stage on /dev/bfpscope-no-such-port: cannot open",
+        )
+        .example(
+            "connect(#{backend: \"gcs\"})",
+            "error: connect: backend = \"gcs\": config: stage.port: required when backend = \"gcs\"",
+        )
+        .example("connect(#{backend: \"sim\", stage_port: \"/dev/ttyUSB0\"})", "error: connect: stage_port applies to backend \"hardware\"")
         .example("connect(#{backend: \"hexapod\"})", "error: backend = \"hexapod\" is not available");
     let spec = d.spec();
     let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<String> {
         let o = Opts::new(&spec, &m)?;
-        let backend = o.string("backend")?.unwrap_or_else(|| "mock".into());
-        match backend.as_str() {
-            "mock" => {
-                let mut cfg = MockConfig::default();
-                if let Some(s) = o.f64("settle")? {
-                    if !(0.0..=10.0).contains(&s) {
-                        return fail(format!(
-                            "connect: settle = {s} is out of range: 0 ≤ settle ≤ 10 s"
-                        ));
-                    }
-                    cfg.settle_s = s;
-                }
-                if let Some(r) = o.f64("rate")? {
-                    if !(1.0..=1e9).contains(&r) {
-                        return fail(format!(
-                            "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
-                        ));
-                    }
-                    cfg.rate_hz = r;
-                }
-                if let Some(s) = m.get("start") {
-                    let Some(sm) = s.read_lock::<Map>() else {
-                        return fail("connect: start must be a map #{x, y, z} (µm)");
-                    };
-                    let t = axes_map("connect start", &sm)?;
-                    for (st, v) in cfg.start.iter_mut().zip(t) {
-                        *st = v.unwrap_or(0.0);
-                    }
-                }
-                let count = |k: &str| -> RResult<Option<usize>> {
-                    match o.int(k)? {
-                        Some(v) if v < 0 => {
-                            fail(format!("connect: {k} = {v} is out of range: {k} ≥ 0"))
-                        }
-                        v => Ok(v.map(|v| v as usize)),
-                    }
-                };
-                cfg.fail_move_after = count("fail_move_after")?;
-                cfg.fail_read_after = count("fail_read_after")?;
-                cfg.abort_after_reads =
-                    count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
-                let (inst, h) = mock_instrument(cfg);
-                let desc = inst.description.to_string();
-                c.connect(inst, Some(h));
-                Ok(format!("connected: {desc}"))
-            }
-            other => fail(format!(
-                "connect: backend = {other:?} is not available; available: \"mock\" \
-                 (the simulator and the serial drivers plug in here when they land)"
-            )),
-        }
+        connect_binding(&c, &o, &m)
     });
+    let c = ctx.clone();
+    r.overload("connect", move || -> RResult<String> {
+        let cfg = base_config(&c)?;
+        connect_config(&c, &cfg).map_err(Into::into)
+    });
+
+    let c = ctx.clone();
+    r.bind(
+        Doc::func("disconnect", "motion")
+            .returns("string", "what was disconnected")
+            .summary("disconnect the instrument: close its ports (emulators stop); moves and reads then fail until connect()")
+            .help("The stage is left where it is (servos stay on). Disconnecting twice is not an error.")
+            .example("disconnect(); status().connected", "false")
+            .example("disconnect()", "\"disconnected mock\"")
+            .example("disconnect(); pos()", "error: pos: no instrument connected"),
+        move || -> String {
+            match c.disconnect() {
+                Some(b) => format!("disconnected {b}"),
+                None => "nothing was connected".into(),
+            }
+        },
+    );
 
     let c = ctx.clone();
     r.bind(
@@ -346,4 +375,289 @@ pub fn register(r: &mut Registrar) {
             }
         },
     );
+}
+
+/// The config in force for this workbench (the file given at start-up), or the defaults.
+fn base_config(ctx: &Ctx) -> RResult<Config> {
+    let Some(v) = &ctx.settings.config else {
+        return Ok(Config::default());
+    };
+    let origin = ctx
+        .settings
+        .config_path
+        .as_ref()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| "config".into());
+    let text = toml::to_string(v).map_err(|e| format!("connect: {origin}: {e}"))?;
+    Config::from_toml_str(&text, &origin).map_err(|mut e| {
+        e.line = None;
+        format!("connect: {e}").into()
+    })
+}
+
+/// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
+fn connected_line(backend: &str, inst: &Instrument) -> String {
+    format!(
+        "connected {backend}: {}, {}",
+        inst.stage.name(),
+        inst.qpd.name()
+    )
+}
+
+/// The scene for the simulator (`fallback` when no scene was given and none simulated yet).
+fn scene_for(ctx: &Ctx, m: &Map, fallback: impl FnOnce() -> Scene) -> RResult<Scene> {
+    if let Some(v) = m.get("scene") {
+        return match v.clone().try_cast::<SceneRef>() {
+            Some(s) => Ok(s.0),
+            None => fail(format!(
+                "connect: scene must be a Scene (from scene()), got {}",
+                v.type_name()
+            )),
+        };
+    }
+    let last = ctx.scene.lock().map(|g| g.clone()).unwrap_or(None);
+    Ok(last
+        .and_then(|j| serde_json::from_value::<Scene>(j).ok())
+        .unwrap_or_else(fallback))
+}
+
+/// The scene `bfpscope emulate` and the emulated backend image by default: the paper's
+/// reference bead (110 nm polystyrene, n = 1.572) at the origin.
+pub fn reference_bead_scene() -> Scene {
+    let mut s = Scene::default();
+    let _ = s.add_bead(Bead {
+        pos: [0.0; 3],
+        d_nm: REF_BEAD_D_NM,
+        n: REF_BEAD_N,
+    });
+    s
+}
+
+fn optics_of(ctx: &Ctx) -> crate::optics::Optics {
+    ctx.optics.lock().map(|o| o.clone()).unwrap_or_default()
+}
+
+/// Connect the simulated instrument imaging `scene`.
+fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64) -> Result<String, String> {
+    let core = SimCore::new(&optics_of(ctx), scene, SimConfig::default())
+        .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
+    let line = connected_line("sim", &core.instrument(settle_s));
+    ctx.attach_sim(core, settle_s);
+    Ok(line)
+}
+
+/// Connect what `cfg` names: the simulated instrument (empty scene) or the serial drivers.
+/// Used by `connect()` and by `bfpscope repl|run|eval` at start.
+pub fn connect_config(ctx: &Ctx, cfg: &Config) -> Result<String, String> {
+    if cfg.is_simulated() {
+        return connect_sim(ctx, &Scene::default(), cfg.stage.settle_s);
+    }
+    connect_hardware(ctx, cfg, "config")
+}
+
+fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, String> {
+    // Reconnecting to a port the connected instrument holds (drivers open ports exclusively):
+    // close that connection first. Otherwise the current instrument stays until the new one
+    // is up, so a failed connect leaves it alone.
+    let wanted = [cfg.stage.port.clone(), cfg.qpd.port.clone()];
+    let held = ctx
+        .with_instrument("connect", |i| {
+            let d = &i.description;
+            Ok([&d["stage"]["port"], &d["qpd"]["port"]]
+                .iter()
+                .filter_map(|v| v.as_str().map(String::from))
+                .collect::<Vec<_>>())
+        })
+        .unwrap_or_default();
+    if wanted.iter().flatten().any(|p| held.contains(p)) {
+        ctx.disconnect();
+    }
+    let c = crate::instrument::connect::connect(cfg, |_| {
+        Err(anyhow::anyhow!(
+            "a hardware config does not build the simulator"
+        ))
+    })
+    .map_err(|e| format!("connect: backend = {name:?}: {e}"))?;
+    let line = connected_line("hardware", &c.instrument);
+    ctx.attach("hardware", c.instrument, Attached::default());
+    Ok(line)
+}
+
+/// Keys of `connect`'s map and the backends they apply to.
+const BACKEND_KEYS: &[(&str, &[&str])] = &[
+    ("stage_port", &["hardware"]),
+    ("qpd_port", &["hardware"]),
+    ("baud", &["hardware"]),
+    ("stage_baud", &["hardware"]),
+    ("qpd_baud", &["hardware"]),
+    ("timeout_ms", &["hardware"]),
+    ("scene", &["sim", "emulated"]),
+    ("noise_v", &["emulated"]),
+    ("rate", &["mock"]),
+    ("start", &["mock"]),
+    ("fail_move_after", &["mock"]),
+    ("fail_read_after", &["mock"]),
+    ("abort_after_reads", &["mock"]),
+];
+
+fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
+    let backend = o.string("backend")?.unwrap_or_else(|| "config".into());
+    let kind = match backend.as_str() {
+        "gcs" | "scpi" | "hardware" => "hardware",
+        "config" | "sim" | "emulated" | "mock" => backend.as_str(),
+        other => {
+            return fail(format!(
+                "connect: backend = {other:?} is not available; available: \"config\", \"sim\", \"hardware\" \
+                 (\"gcs\", \"scpi\"), \"emulated\", \"mock\""
+            ))
+        }
+    };
+    let mut cfg = base_config(c)?;
+    // "config" means the config's own backend: check the keys against that
+    let effective = match kind {
+        "config" if cfg.is_simulated() => "sim",
+        "config" => "hardware",
+        k => k,
+    };
+    for (k, applies) in BACKEND_KEYS {
+        if m.contains_key(*k) && !applies.contains(&effective) {
+            return fail(format!(
+                "connect: {k} applies to backend {} only, not {backend:?}",
+                applies
+                    .iter()
+                    .map(|b| format!("\"{b}\""))
+                    .collect::<Vec<_>>()
+                    .join(" / ")
+            ));
+        }
+    }
+    let settle = match o.f64("settle")? {
+        Some(s) if !(0.0..=10.0).contains(&s) => {
+            return fail(format!(
+                "connect: settle = {s} is out of range: 0 ≤ settle ≤ 10 s"
+            ))
+        }
+        s => s,
+    };
+    if let Some(s) = settle {
+        cfg.stage.settle_s = s;
+    }
+    match effective {
+        "sim" => {
+            let scene = scene_for(c, m, Scene::default)?;
+            connect_sim(c, &scene, cfg.stage.settle_s).map_err(Into::into)
+        }
+        "hardware" => {
+            cfg.stage.backend = Backend::Gcs;
+            cfg.qpd.backend = Backend::Scpi;
+            if let Some(p) = o.string("stage_port")? {
+                cfg.stage.port = Some(p);
+            }
+            if let Some(p) = o.string("qpd_port")? {
+                cfg.qpd.port = Some(p);
+            }
+            let positive = |k: &str, max: i64| -> RResult<Option<i64>> {
+                match o.int(k)? {
+                    Some(v) if !(1..=max).contains(&v) => fail(format!(
+                        "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
+                    )),
+                    v => Ok(v),
+                }
+            };
+            if let Some(b) = positive("baud", 4_000_000)? {
+                cfg.stage.baud = b as u32;
+                cfg.qpd.baud = b as u32;
+            }
+            if let Some(b) = positive("stage_baud", 4_000_000)? {
+                cfg.stage.baud = b as u32;
+            }
+            if let Some(b) = positive("qpd_baud", 4_000_000)? {
+                cfg.qpd.baud = b as u32;
+            }
+            if let Some(t) = positive("timeout_ms", 3_600_000)? {
+                cfg.stage.timeout_ms = t as u64;
+                cfg.qpd.timeout_ms = t as u64;
+            }
+            connect_hardware(c, &cfg, &backend).map_err(Into::into)
+        }
+        "emulated" => {
+            let scene = scene_for(c, m, reference_bead_scene)?;
+            let noise_v = o.f64("noise_v")?.unwrap_or(1e-4);
+            if !(0.0..=10.0).contains(&noise_v) {
+                return fail(format!(
+                    "connect: noise_v = {noise_v} is out of range: 0 ≤ noise_v ≤ 10 V"
+                ));
+            }
+            let sim = SimConfig::default();
+            let renderer = Arc::new(
+                Renderer::new(&optics_of(c), &scene, TemplateSpec::default())
+                    .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
+            );
+            let e = connect_emulated(renderer, &sim, &cfg, noise_v)
+                .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
+            let line = format!(
+                "{} (emulators on {} and {})",
+                connected_line("emulated", &e.connected.instrument),
+                e.stage.path(),
+                e.qpd.path()
+            );
+            c.attach(
+                "emulated",
+                e.connected.instrument,
+                Attached {
+                    keepalive: Some(Box::new((e.stage, e.qpd))),
+                    ..Attached::default()
+                },
+            );
+            *c.scene.lock().unwrap_or_else(|e| e.into_inner()) = serde_json::to_value(&scene).ok();
+            Ok(line)
+        }
+        "mock" => {
+            let mut cfg = MockConfig::default();
+            if let Some(s) = settle {
+                cfg.settle_s = s;
+            }
+            if let Some(r) = o.f64("rate")? {
+                if !(1.0..=1e9).contains(&r) {
+                    return fail(format!(
+                        "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
+                    ));
+                }
+                cfg.rate_hz = r;
+            }
+            if let Some(s) = m.get("start") {
+                let Some(sm) = s.read_lock::<Map>() else {
+                    return fail("connect: start must be a map #{x, y, z} (µm)");
+                };
+                let t = axes_map("connect start", &sm)?;
+                for (st, v) in cfg.start.iter_mut().zip(t) {
+                    *st = v.unwrap_or(0.0);
+                }
+            }
+            let count = |k: &str| -> RResult<Option<usize>> {
+                match o.int(k)? {
+                    Some(v) if v < 0 => {
+                        fail(format!("connect: {k} = {v} is out of range: {k} ≥ 0"))
+                    }
+                    v => Ok(v.map(|v| v as usize)),
+                }
+            };
+            cfg.fail_move_after = count("fail_move_after")?;
+            cfg.fail_read_after = count("fail_read_after")?;
+            cfg.abort_after_reads =
+                count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
+            let (inst, h) = mock_instrument(cfg);
+            let line = connected_line("mock", &inst);
+            c.attach(
+                "mock",
+                inst,
+                Attached {
+                    mock: Some(h),
+                    ..Attached::default()
+                },
+            );
+            Ok(line)
+        }
+        _ => unreachable!("backend names are checked above"),
+    }
 }

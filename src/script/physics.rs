@@ -17,15 +17,10 @@ use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
 use crate::optics::params::Optics;
 use crate::optics::rayleigh::{alpha_um3, response, Detection, DetectorModel};
 use rhai::{Array, Dynamic, Map, INT};
-use std::sync::{Arc, Mutex};
 
 /// A scene in scripts (cloned by value like every Rhai value; small).
 #[derive(Debug, Clone, Default)]
 pub struct SceneRef(pub Scene);
-
-/// The simulated instrument the bindings installed (to re-render after `set_optics`).
-#[derive(Clone, Default)]
-struct SimSlot(Arc<Mutex<Option<SimCore>>>);
 
 fn optics_map(o: &Optics) -> Map {
     let mut m = Map::new();
@@ -95,7 +90,6 @@ const SCENE_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
-    let slot = SimSlot::default();
     r.engine()
         .register_type_with_name::<SceneRef>("Scene")
         .register_fn("to_string", |s: &mut SceneRef| scene_summary(&s.0))
@@ -162,7 +156,7 @@ pub fn register(r: &mut Registrar) {
         .example("set_optics(#{w0_nm: 450.0}).w0_nm", "450.0")
         .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range");
     let spec = d.spec();
-    let (c, sl) = (ctx.clone(), slot.clone());
+    let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<Map> {
         let o = Opts::new(&spec, &m)?;
         let mut new = optics_of(&c);
@@ -185,7 +179,7 @@ pub fn register(r: &mut Registrar) {
             new.n_phi = v.clamp(0, 100_000) as usize;
         }
         new.validate().map_err(|e| err("set_optics", e))?;
-        if let Some(core) = sl.0.lock().unwrap().as_ref() {
+        if let Some(core) = c.sim_core() {
             let scene = core.renderer().scene.clone();
             core.set_scene(&new, &scene)
                 .map_err(|e| err("set_optics", e))?;
@@ -656,7 +650,7 @@ pub fn register(r: &mut Registrar) {
             "optional: samples averaged per pixel (noise effects; default 10000)",
         ),
     ];
-    let (c, sl) = (ctx.clone(), slot.clone());
+    let c = ctx.clone();
     r.bind(
         Doc::func("simulate", "scene")
             .arg("scene", "Scene", "", "what the simulated instrument sees")
@@ -669,7 +663,7 @@ pub fn register(r: &mut Registrar) {
             .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\"]")
             .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
             .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0"),
-        move |s: SceneRef| -> RResult<Map> { install(&c, &sl, &s.0) },
+        move |s: SceneRef| -> RResult<Map> { install(&c, &s.0) },
     );
     let d = Doc::func("simulate", "scene").map("grid", "", grid_keys);
     let spec = d.spec();
@@ -715,7 +709,7 @@ pub fn register(r: &mut Registrar) {
         );
         Ok(ScanRef::new(scan, None))
     });
-    let sl = slot.clone();
+    let c = ctx.clone();
     r.bind(
         Doc::func("pipeline", "scene")
             .returns(
@@ -728,8 +722,7 @@ pub fn register(r: &mut Registrar) {
                 "\"superposition\"",
             ),
         move || -> RResult<Array> {
-            let g = sl.0.lock().unwrap();
-            let Some(core) = g.as_ref() else {
+            let Some(core) = c.sim_core() else {
                 return fail("pipeline: no simulated instrument; call simulate(scene) first");
             };
             Ok(core
@@ -825,21 +818,21 @@ fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
     m
 }
 
-/// Connect (or re-scene) the simulated instrument.
-fn install(ctx: &Ctx, slot: &SimSlot, scene: &Scene) -> RResult<Map> {
+/// Connect (or re-scene) the simulated instrument: when the simulator is what is connected,
+/// its scene is replaced (position and clock kept); otherwise (nothing, the mock, hardware) a
+/// new simulated instrument replaces the connected one.
+fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
     let optics = optics_of(ctx);
-    let mut g = slot.0.lock().unwrap();
-    let core = match g.as_ref() {
-        Some(core) if ctx.is_connected() => {
+    let core = match ctx.sim_core() {
+        Some(core) => {
             core.set_scene(&optics, scene)
                 .map_err(|e| err("simulate", e))?;
-            core.clone()
+            core
         }
-        _ => {
+        None => {
             let core = SimCore::new(&optics, scene, SimConfig::default())
                 .map_err(|e| err("simulate", e))?;
-            ctx.connect(core.instrument(0.01), None);
-            *g = Some(core.clone());
+            ctx.attach_sim(core.clone(), 0.01);
             core
         }
     };

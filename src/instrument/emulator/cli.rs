@@ -1,4 +1,4 @@
-//! `bfpscope emulate stage|qpd|both`: start emulators, print their pseudo-terminal paths and
+//! `bfpscope emulate stage|qpd|pair`: start emulators, print their pseudo-terminal paths and
 //! a config snippet, serve until Ctrl-C (or end of input on a terminal).
 
 use super::{
@@ -41,7 +41,7 @@ fn stop_on_ctrlc_or_eof() -> Arc<AtomicBool> {
     stop
 }
 
-/// Start the emulators named by `kind` (`stage`, `qpd`, or `both`: a stage and a QPD sharing
+/// Start the emulators named by `kind` (`stage`, `qpd`, or `pair` (alias `both`): a stage and a QPD sharing
 /// the stage position) with an analytic stand-in bead at [`BEAD`] as the QPD's signal, print
 /// where they are and serve until Ctrl-C, or end of input when stdin is a terminal (Ctrl-D).
 pub fn run_emulator_cli(kind: &str) -> anyhow::Result<()> {
@@ -127,7 +127,7 @@ pub fn serve_emulators(
             emus.push(start_qpd_emulator(qpd_cfg, pos, source)?);
         }
         other => {
-            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `both`)")
+            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `pair`)")
         }
     }
     for e in &emus {
@@ -141,7 +141,7 @@ pub fn serve_emulators(
     if kind == "qpd" {
         writeln!(
             out,
-            "(the QPD alone sees a stage parked at {start:?} µm; use `both` to scan)"
+            "(the QPD alone sees a stage parked at {start:?} µm; use `pair` to scan)"
         )?;
     }
     writeln!(out, "\n# bfpscope.toml for these emulators:")?;
