@@ -52,6 +52,18 @@ enum Cmd {
         #[arg(long)]
         check: bool,
     },
+    /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
+    /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
+    Accuracy {
+        /// Short sweeps (CI; under a minute in a release build)
+        #[arg(long)]
+        quick: bool,
+        #[arg(long, default_value = "docs")]
+        out: PathBuf,
+        /// Criterion results to summarise (default target/criterion when present)
+        #[arg(long, value_name = "DIR")]
+        criterion: Option<PathBuf>,
+    },
 }
 
 fn usage_error(msg: &str) -> ExitCode {
@@ -233,6 +245,28 @@ fn main() -> ExitCode {
                 Ok(results) if results.iter().all(|r| r.passed) => ExitCode::SUCCESS,
                 Ok(_) => ExitCode::from(1),
                 Err(e) => usage_error(&format!("test: {}: {e}", dir.display())),
+            }
+        }
+        Cmd::Accuracy {
+            quick,
+            out,
+            criterion,
+        } => {
+            let opts = bfpscope::accuracy::report::ReportOptions {
+                quick,
+                out,
+                criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
+                verbose: true,
+            };
+            match bfpscope::accuracy::report::run(&opts) {
+                Ok(r) => {
+                    println!("wrote {} ({:.0} s)", r.markdown.display(), r.seconds);
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    err_line(&format!("error: accuracy: {e}"));
+                    ExitCode::from(1)
+                }
             }
         }
         Cmd::Docs { out, check } => {
