@@ -208,7 +208,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     } else {
         &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
     };
-    let seeds = if quick { 2 } else { 4 };
+    let seeds = if quick { 2 } else { 6 };
     let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
     let es = |e: crate::analysis::AnalysisError| e.to_string();
 
@@ -401,9 +401,11 @@ pub fn knob_dwell(t: &Tradeoff) -> Knob {
 pub fn fmt_dwell(s: f64) -> String {
     if s < 1e-3 {
         format!("{:.0} µs", s * 1e6)
+    } else if s < 1e-2 {
+        format!("{:.1} ms", s * 1e3)
     } else if s < 1.0 {
         format!("{:.0} ms", s * 1e3)
     } else {
-        format!("{s} s")
+        format!("{s:.2} s")
     }
 }

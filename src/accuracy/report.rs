@@ -64,7 +64,7 @@ pub fn tolerance(id: &str) -> (f64, String) {
         ),
         "stencil" => (
             0.0,
-            "none beyond 3× the best: the error is the measurement's own (bias + noise)".into(),
+            "none beyond 3× the best: the error is the calibrated measurement's own noise".into(),
         ),
         "mie_terms" => (
             1e-13,
@@ -129,7 +129,15 @@ fn verdict_text(v: &KneeVerdict) -> String {
 /// when several settings share it, e.g. Linear/Cubic), the default and the knee marked.
 pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     let mut groups: Vec<(String, Vec<usize>)> = vec![];
-    let key = |s: &str| s.split(", ").next().unwrap_or(s).to_string();
+    let model = k.id.starts_with("model_");
+    let key = |s: &str| {
+        if model {
+            // one series per model (Rayleigh / finite-size / Mie)
+            s.split_whitespace().next().unwrap_or(s).to_string()
+        } else {
+            s.split(", ").next().unwrap_or(s).to_string()
+        }
+    };
     for (i, p) in k.points.iter().enumerate() {
         let g = key(&p.setting);
         match groups.iter_mut().find(|(n, _)| *n == g) {
@@ -137,7 +145,7 @@ pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
             None => groups.push((g, vec![i])),
         }
     }
-    if groups.iter().any(|(_, v)| v.len() < 2) {
+    if !model && groups.iter().any(|(_, v)| v.len() < 2) {
         groups = vec![("sweep".into(), (0..k.points.len()).collect())];
     }
     let mut series: Vec<Series> = groups
@@ -357,11 +365,17 @@ fn markdown(
         let kn = knee(k, r.tolerance)
             .map(|p| p.setting.clone())
             .unwrap_or_else(|| "—".into());
+        let tol = if k.id == "dwell" {
+            format!("{:.0} kDa", r.tolerance)
+        } else if r.tolerance > 0.0 {
+            format!("{:.0e}", r.tolerance)
+        } else {
+            "—".into()
+        };
         s += &format!(
-            "| [{}](#{}) | {d} | {e} | {tm} | {kn} | {:.0e} | {} |\n",
+            "| [{}](#{}) | {d} | {e} | {tm} | {kn} | {tol} | {} |\n",
             k.title,
             k.id,
-            r.tolerance,
             verdict_text(&r.verdict)
         );
     }
@@ -422,9 +436,13 @@ fn knob_note(id: &str) -> Option<&'static str> {
         "dwell" => "The scan bindings' default dwell (1 ms) is an operator default for quick navigation scans, not an \
                     accuracy setting: it does not reach the paper's 950 kDa with one 64×64 scan. The dwell needed is in \
                     the trade-off section below.",
-        "stencil" => "All stencils cost about the same; what differs is bias against noise. Central2 (the paper's choice) \
-                      has the largest noise-free bias, but every calibration in the crate (A, μ_bm, angle curve) reads \
-                      its model through the same stencil and pixel size, so the bias cancels in the ratios the analysis reports.",
+        "stencil" => "All stencils cost about the same; what differs is bias against noise. The error shown is the \
+                      calibrated one: every calibration in the crate (reference-bead maximum, A, μ_bm, angle curve) \
+                      reads its model through the same stencil and pixel size, so the stencil's bias (and the \
+                      parabola window's) cancels and what remains is noise; the uncalibrated bias and RMS are in the \
+                      setting column. Savitzky–Golay stencils average over 2m+1 pixels along x: less noise, but the \
+                      sensitivity profile widens by about the same number of pixels, which costs lateral resolution \
+                      (closely spaced objects, α-tip profiles) that this metric does not see.",
         _ => return None,
     })
 }
@@ -553,7 +571,7 @@ fn calibration_markdown(t: &Tradeoff) -> String {
          uncertainty is σ_C = σ_s/√(f·(t/h²)·I) (module docs of `accuracy::instrument`), with I = ∫(Tx² + Ty²) dA = \
          {:.3e} µm² for the 110 nm bead: only the noise per sample and the **time per unit area** t/h² enter. \
          The project's choice (0.1 s per 50 nm pixel = 40 s/µm²) is an assumption; the paper's 950 kDa at the same σ_s \
-         corresponds to {:.1} s/µm² — e.g. 6 ms per 50 nm pixel, or 0.1 s per 200 nm pixel — or, at 40 s/µm², to a \
+         corresponds to {:.1} s/µm² — e.g. {} per 50 nm pixel, or {} per 200 nm pixel — or, at 40 s/µm², to a \
          per-sample σ about {:.1}× larger. Two further factors make the paper's number larger than our fit's: it fits \
          Sx only (\"the uncertainty in the fit to the S_x response\"; ×{:.2} here), and its residuals include \
          template mismatch, drift and the other noise sources of S8, not white detector noise alone. Which of these \
@@ -563,6 +581,8 @@ fn calibration_markdown(t: &Tradeoff) -> String {
          (tests/analysis_support `paper_noise`), and this report gives the scan time at which the simulator reaches it.\n\n",
         t.template_integral,
         density_needed(t.bead_k_kda_sqrt_s),
+        instrument::fmt_dwell(density_needed(t.bead_k_kda_sqrt_s) * 0.05 * 0.05),
+        instrument::fmt_dwell(density_needed(t.bead_k_kda_sqrt_s) * 0.2 * 0.2),
         ratio.unwrap_or(f64::NAN),
         t.bead_k_sx_only / t.bead_k_kda_sqrt_s,
         ratio.map(|r| format!("{r:.1}")).unwrap_or_else(|| "—".into()),
