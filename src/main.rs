@@ -177,7 +177,9 @@ fn main() -> ExitCode {
     }
     if let Some(d) = &cli.data {
         settings.data_dir = d.clone();
-    } else if settings.data_dir == PathBuf::from(bfpscope::data::session::DEFAULT_ROOT) {
+    } else if settings.data_dir.as_path()
+        == std::path::Path::new(bfpscope::data::session::DEFAULT_ROOT)
+    {
         // no --data, no [session] data_dir: today's folder, ./bfpscope_data/YYYY-MM-DD/
         settings.data_dir = bfpscope::data::session::Session::default_dir(
             std::path::Path::new(bfpscope::data::session::DEFAULT_ROOT),

@@ -125,6 +125,10 @@ pub struct Tradeoff {
     pub template_integral: f64,
     /// Mass of the reference bead, kDa.
     pub ref_mass_kda: f64,
+    /// Averaging: `averaged_scans` scans of `averaged.dwell_s` averaged pixel by pixel (its
+    /// `scan_s` and `clock_s` are the totals over the scans).
+    pub averaged: TradeRow,
+    pub averaged_scans: usize,
 }
 
 impl Tradeoff {
@@ -208,7 +212,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     } else {
         &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
     };
-    let seeds = if quick { 2 } else { 6 };
+    let seeds = if quick { 2 } else { 16 };
     let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
     let es = |e: crate::analysis::AnalysisError| e.to_string();
 
@@ -219,7 +223,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         Template::from_optics(&optics, &DetectorModel::default(), rb, 0.02, 0.0).map_err(es)?;
     let c = SCAN_PIXELS as f64 * PIXEL_UM / 2.0;
     let mut bead = vec![];
-    for &dwell in dwells {
+    for (i, &dwell) in dwells.iter().enumerate() {
         let (mut m, mut e, mut e_sx, mut e_p, mut clock) = (vec![], vec![], vec![], vec![], 0.0);
         for s in 0..seeds {
             let mut sc = Scene::default();
@@ -232,7 +236,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
             sc.effects.detector_noise = Some(DetectorNoise {
                 sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
             });
-            sc.seed = 1000 + s as u64;
+            sc.seed = 10_000 + 100 * i as u64 + s as u64;
             let (scan, dt) = engine_scan(&optics, &sc, dwell)?;
             clock += dt / seeds as f64;
             let init = Some(vec![BeadInit {
@@ -278,6 +282,69 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         });
     }
 
+    // --- averaging: k scans of dwell d averaged vs one scan of dwell k·d
+    let (k_avg, d_avg) = (4usize, 0.025);
+    let (mut m, mut e, mut clock) = (vec![], vec![], 0.0);
+    for s in 0..seeds {
+        let mut sum: Option<Scan> = None;
+        for rep in 0..k_avg {
+            let mut sc = Scene::default();
+            sc.add_bead(Bead {
+                pos: [c, c + 0.013, 0.0],
+                d_nm: rb.d_nm,
+                n: REF_BEAD_N,
+            })
+            .map_err(|e| e.to_string())?;
+            sc.effects.detector_noise = Some(DetectorNoise {
+                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+            });
+            sc.seed = 30_000 + (s * k_avg + rep) as u64;
+            let (scan, dt) = engine_scan(&optics, &sc, d_avg)?;
+            clock += dt / seeds as f64;
+            sum = Some(match sum {
+                None => scan,
+                Some(mut a) => {
+                    a.sx.data = &a.sx.data + &scan.sx.data;
+                    a.sy.data = &a.sy.data + &scan.sy.data;
+                    a
+                }
+            });
+        }
+        let mut a = sum.ok_or("no scans to average")?;
+        a.sx.data.mapv_inplace(|v| v / k_avg as f64);
+        a.sy.data.mapv_inplace(|v| v / k_avg as f64);
+        let r = fit_beads(
+            &a.sx,
+            &a.sy,
+            &tpl,
+            &FitOptions {
+                init: Some(vec![BeadInit {
+                    x: c,
+                    y: c,
+                    weight: 1.0,
+                }]),
+                ..FitOptions::default()
+            },
+        )
+        .map_err(es)?;
+        let b = r.beads[0];
+        let we = b.weight_err.ok_or("bead fit without an uncertainty")?;
+        e.push(mass_resolution_kda(we, rb.n, rb.density_g_cm3, &rb).map_err(es)?);
+        m.push(b.weight * rb.mass_kda());
+    }
+    let (mean, scatter) = mean_std(&m);
+    let averaged = TradeRow {
+        dwell_s: d_avg,
+        scan_s: k_avg as f64 * d_avg * npix,
+        clock_s: clock,
+        sigma_fit: mean_std(&e).0,
+        sigma_scatter: scatter,
+        mean,
+        sigma_protein_kda: f64::NAN,
+        sigma_fit_sx_only: f64::NAN,
+        found: m.len(),
+    };
+
     // --- microtubule
     let o_mt = Optics {
         n_medium: 1.335,
@@ -302,7 +369,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     .map_err(es)?;
     let mt_true_mu = 13.0 * quantities::PROTOFILAMENT_MDA_PER_UM;
     let mut microtubule = vec![];
-    for &dwell in dwells {
+    for (i, &dwell) in dwells.iter().enumerate() {
         let (mut mu, mut e, mut clock) = (vec![], vec![], 0.0);
         for s in 0..seeds {
             let mut sc = Scene::default();
@@ -321,7 +388,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
             sc.effects.detector_noise = Some(DetectorNoise {
                 sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
             });
-            sc.seed = 2000 + s as u64;
+            sc.seed = 20_000 + 100 * i as u64 + s as u64;
             let (scan, dt) = engine_scan(&o_mt, &sc, dwell)?;
             clock += dt / seeds as f64;
             match measure_filament(&scan.sx, &scan.sy, &curve, &mo) {
@@ -367,6 +434,8 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         mt_true_mu,
         template_integral: template_integral(&tpl, 0.02),
         ref_mass_kda: rb.mass_kda(),
+        averaged,
+        averaged_scans: k_avg,
     })
 }
 

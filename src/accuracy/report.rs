@@ -126,7 +126,8 @@ fn verdict_text(v: &KneeVerdict) -> String {
 }
 
 /// Pareto plot: error vs time, log–log; one series per group of settings (text before ", "
-/// when several settings share it, e.g. Linear/Cubic), the default and the knee marked.
+/// when several settings share it, e.g. Linear/Cubic; one per model for the model knobs),
+/// joined in sweep order, with the knee tolerance, the default and the knee marked.
 pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     let mut groups: Vec<(String, Vec<usize>)> = vec![];
     let model = k.id.starts_with("model_");
@@ -151,14 +152,18 @@ pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     let mut series: Vec<Series> = groups
         .iter()
         .map(|(name, idx)| {
-            let mut idx = idx.clone();
-            idx.sort_by(|&a, &b| k.points[a].seconds.total_cmp(&k.points[b].seconds));
+            // in sweep order (the order of the table), not by time: timings of nearly equal
+            // settings are noise
             Series::line(
                 name,
                 idx.iter().map(|&i| k.points[i].seconds).collect(),
                 idx.iter().map(|&i| k.points[i].error).collect(),
             )
-            .with_style(SeriesStyle::LinePoints)
+            .with_style(if model {
+                SeriesStyle::Points
+            } else {
+                SeriesStyle::LinePoints
+            })
         })
         .collect();
     let (t_lo, t_hi) = k.points.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
@@ -169,7 +174,11 @@ pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     });
     if tol > e_lo && tol < e_hi {
         series.push(Series::line(
-            &format!("tolerance {tol:.0e}"),
+            &if tol >= 1.0 {
+                format!("tolerance {tol:.0}")
+            } else {
+                format!("tolerance {tol:.0e}")
+            },
             vec![t_lo, t_hi],
             vec![tol, tol],
         ));
@@ -473,6 +482,30 @@ fn tradeoff_markdown(t: &Tradeoff) -> String {
             r.sigma_protein_kda
         );
     }
+    let a = &t.averaged;
+    if let Some(one) = t
+        .bead
+        .iter()
+        .find(|r| (r.dwell_s - a.dwell_s * t.averaged_scans as f64).abs() < 1e-12)
+    {
+        s += &format!(
+            "\n**Averaging.** {} scans of {} averaged pixel by pixel: 1σ {:.0} kDa (scatter {:.0} kDa), {:.1} s of dwell, \
+             {:.1} s on the virtual clock; one scan of {}: 1σ {:.0} kDa, {:.1} s of dwell, {:.1} s on the virtual clock. \
+             With white detector noise alone averaging is a longer dwell in disguise (same σ for the same dwell time); \
+             it costs the stage moves of every extra scan, and pays off only against slow disturbances (drift) that \
+             this sweep does not switch on.\n",
+            t.averaged_scans,
+            instrument::fmt_dwell(a.dwell_s),
+            a.sigma_fit,
+            a.sigma_scatter,
+            a.scan_s,
+            a.clock_s,
+            instrument::fmt_dwell(one.dwell_s),
+            one.sigma_fit,
+            one.scan_s,
+            one.clock_s
+        );
+    }
     let tp = Tradeoff::time_for(t.bead_k_kda_sqrt_s, instrument::PAPER_RESOLUTION_PS_KDA);
     let tp_sx = Tradeoff::time_for(t.bead_k_sx_only, instrument::PAPER_RESOLUTION_PS_KDA);
     let tpp = Tradeoff::time_for(t.bead_k_protein, instrument::PAPER_RESOLUTION_PROTEIN_KDA);
@@ -519,6 +552,14 @@ fn tradeoff_markdown(t: &Tradeoff) -> String {
             r.sigma_fit,
             r.sigma_scatter,
             r.sigma_fit * 1e3
+        );
+    }
+    if let Some(first) = t.microtubule.iter().find(|r| r.found == t.seeds) {
+        s += &format!(
+            "\nAt the shortest dwell that finds the filament in every seed the mean μ is {:+.1} % off (≈ {:.1} σ of the \
+             mean): at low signal-to-noise the per-row maximum of noisy data is biased high.\n",
+            100.0 * (first.mean / t.mt_true_mu - 1.0),
+            (first.mean - t.mt_true_mu).abs() / (first.sigma_scatter / (t.seeds as f64).sqrt())
         );
     }
     let floor = t.mt_min_found_s().unwrap_or(f64::NAN);
@@ -610,10 +651,14 @@ pub fn bench_markdown(dir: Option<&Path>) -> String {
         })
         .unwrap_or_else(|| "not recorded".into());
     s += &format!(
-        "From `cargo bench` (criterion, release profile) on this machine; load average (1 min) before → after the \
-         run: {load}. Median of criterion's samples; ratio = time / fastest benchmark in the same group. \
-         Benches: `benches/{{render,engine,mie,fit,mie_beam}}.rs`.\n\n| group | benchmark | median | ratio |\n|---|---|---|---|\n"
+        "From `cargo bench` (criterion, release profile) on this machine; load average (1 min) at the start and end of \
+         each `cargo bench` invocation: {load} (2 cores; an idle machine would be faster in absolute terms — compare ratios). Median of criterion's samples; ratio = time / fastest benchmark in the same group. \
+         Benches: `benches/{{render,engine,mie,fit,mie_beam}}.rs`.\n\n"
     );
+    if let Some(notes) = dir.and_then(|d| std::fs::read_to_string(d.join("notes.txt")).ok()) {
+        s += &format!("Notes on this run: {}\n\n", notes.trim());
+    }
+    s += "| group | benchmark | median | ratio |\n|---|---|---|---|\n";
     let mut groups: Vec<String> = rows.iter().map(|r| r.0.clone()).collect();
     groups.dedup();
     for g in groups {
@@ -671,6 +716,79 @@ pub fn read_criterion(dir: &Path) -> Vec<(String, String, f64)> {
             }
         }
     }
-    out.sort_by(|a, b| (&a.0, &a.1).cmp(&(&b.0, &b.1)));
+    out.sort_by_key(|r| (natural_key(&r.0), natural_key(&r.1)));
     out
+}
+
+/// Sort key that orders digit runs by value ("19" after "1", "100" after "60").
+fn natural_key(s: &str) -> String {
+    let mut out = String::new();
+    let mut digits = String::new();
+    for c in s.chars().chain(std::iter::once('\u{0}')) {
+        if c.is_ascii_digit() {
+            digits.push(c);
+        } else {
+            if !digits.is_empty() {
+                out += &format!("{:0>20}", digits);
+                digits.clear();
+            }
+            if c != '\u{0}' {
+                out.push(c);
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::accuracy::Point;
+
+    fn knob(points: &[(f64, f64, bool)]) -> Knob {
+        Knob {
+            id: "t".into(),
+            title: "t".into(),
+            metric: "m".into(),
+            timed: "t".into(),
+            reference: "r".into(),
+            points: points
+                .iter()
+                .enumerate()
+                .map(|(i, &(error, seconds, is_default))| Point {
+                    setting: format!("s{i}"),
+                    value: i as f64,
+                    error,
+                    seconds,
+                    is_default,
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn verdicts_at_above_and_below_the_knee() {
+        // knee = s1 (cheapest within max(3·1e-9, 1e-5))
+        let pts = [(1e-3, 1.0, false), (1e-6, 2.0, false), (1e-9, 8.0, false)];
+        let mut k = knob(&pts);
+        k.points[1].is_default = true;
+        assert_eq!(verdict(&k, 1e-5), KneeVerdict::AtKnee);
+        k.points[1].is_default = false;
+        k.points[2].is_default = true;
+        assert_eq!(verdict(&k, 1e-5), KneeVerdict::Above { time_ratio: 4.0 });
+        k.points[2].is_default = false;
+        k.points[0].is_default = true;
+        assert_eq!(verdict(&k, 1e-5), KneeVerdict::Below { error_ratio: 100.0 });
+        // within 1.5× of the knee's time counts as the knee (timing noise)
+        let k = knob(&[(1e-6, 2.0, false), (1e-7, 2.9, true)]);
+        assert_eq!(verdict(&k, 1e-5), KneeVerdict::AtKnee);
+        assert_eq!(verdict(&knob(&pts), 1e-5), KneeVerdict::NoDefault);
+    }
+
+    #[test]
+    fn natural_order_of_bench_names() {
+        let mut v = vec!["100", "60", "m=1.5/1000", "m=1.5/10", "19", "181", "1"];
+        v.sort_by_key(|s| natural_key(s));
+        assert_eq!(v, ["1", "19", "60", "100", "181", "m=1.5/10", "m=1.5/1000"]);
+    }
 }
