@@ -432,6 +432,10 @@ fn knob_note(id: &str) -> Option<&'static str> {
                         low (it errs low at 500 nm too): the rule averages the incident field over the sphere but \
                         keeps the static polarisability, and for this index contrast the two corrections Mie contains \
                         nearly cancel at small sizes (an observation from these numbers, not a derivation).",
+        "mie_grid" => "This sweep is the Mie tier's own (`optics::mie_beam::knob_mie_grid`); its default (12, 6) was \
+                       chosen there. Against this report's 3e-5 criterion (10, 5) is enough; the two differ by about \
+                       1.5× in time, which is at the edge of this report's timing slack, so the verdict can flip \
+                       between runs — a call for the Mie tier's owner, not changed here.",
         "fit_patience" => "A 3-bead fit converges within the smallest budget (patience 1 = 10 residual evaluations), even \
                            from the displaced start, so the budget only matters for fits that do not converge; the \
                            default (100) is a cap that costs nothing when the fit converges.",
