@@ -60,6 +60,17 @@ enum Cmd {
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
         scene: Option<PathBuf>,
+    /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
+    /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
+    Accuracy {
+        /// Short sweeps (CI; under a minute in a release build)
+        #[arg(long)]
+        quick: bool,
+        #[arg(long, default_value = "docs")]
+        out: PathBuf,
+        /// Criterion results to summarise (default target/criterion when present)
+        #[arg(long, value_name = "DIR")]
+        criterion: Option<PathBuf>,
     },
 }
 
@@ -287,6 +298,28 @@ fn main() -> ExitCode {
             }
         }
         Cmd::Emulate { .. } => unreachable!("handled before the Ctrl-C handler is installed"),
+        Cmd::Accuracy {
+            quick,
+            out,
+            criterion,
+        } => {
+            let opts = bfpscope::accuracy::report::ReportOptions {
+                quick,
+                out,
+                criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
+                verbose: true,
+            };
+            match bfpscope::accuracy::report::run(&opts) {
+                Ok(r) => {
+                    println!("wrote {} ({:.0} s)", r.markdown.display(), r.seconds);
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    err_line(&format!("error: accuracy: {e}"));
+                    ExitCode::from(1)
+                }
+            }
+        }
         Cmd::Docs { out, check } => {
             let text = script::registry::api_markdown(&script::all_docs());
             if check {

@@ -548,3 +548,102 @@ fn measured_template_with_noisy_border_is_not_called_truncated() {
     // mean of 61 noise values: σ/√61 ≈ 0.5 % of the peak; 4 sides × 2 channels → < 2 %
     assert!(tr < 0.02, "truncation {tr}");
 }
+
+#[test]
+fn coincident_beads_and_beads_1nm_apart_in_a_fit() {
+    // Two reference beads at exactly the same position, and 1 nm apart, started as two beads
+    // at the true positions: the Jacobian's columns of the pair are identical (or nearly), so
+    // the pair's split is undetermined. The fit must report the degeneracy, return finite
+    // values and keep the total weight (2) and the position (within 5 nm).
+    let tpl = standin();
+    let sigma = paper_noise(&tpl, H);
+    for sep in [0.0, 0.001] {
+        let truth = [(1.5, 1.5, 1.0), (1.5 + sep, 1.5, 1.0)];
+        let s = scene(&tpl, &truth, &[], 60, H, sigma, 21);
+        let init = Some(
+            truth
+                .iter()
+                .map(|&(x, y, _)| BeadInit { x, y, weight: 1.0 })
+                .collect(),
+        );
+        for merge in [true, false] {
+            let r = fit_beads(
+                &s.sx,
+                &s.sy,
+                &tpl,
+                &FitOptions {
+                    init: init.clone(),
+                    merge_degenerate: merge,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+            assert!(all_finite(&r), "sep {sep}, merge {merge}: {r:?}");
+            assert!(r.is_degenerate(), "sep {sep}: {:?}", r.degeneracies);
+            assert!(
+                (r.total_weight() - 2.0).abs() < 0.04,
+                "sep {sep}, merge {merge}: total {}",
+                r.total_weight()
+            );
+            if merge {
+                assert_eq!(r.beads.len(), 1, "merged into one bead");
+                let b = r.beads[0];
+                assert!((b.x - 1.5 - sep / 2.0).abs() < 0.005 && (b.y - 1.5).abs() < 0.005);
+                assert!(b.weight_err.is_some_and(|e| e.is_finite() && e > 0.0));
+            }
+        }
+    }
+}
+
+#[test]
+fn infinite_pixels_are_treated_as_missing() {
+    // A saturated digitiser can deliver ±inf: such pixels must count as missing data, exactly
+    // like NaN — never propagate into the sensitivity, the peaks or the fit.
+    let tpl = standin();
+    let sigma = paper_noise(&tpl, H);
+    let truth = [(1.2, 1.0, 2.0), (1.9, 1.3, 1.5)];
+    let mut s = scene(&tpl, &truth, &[], 50, H, sigma, 31);
+    let bad = [(10, 10), (20, 24), (25, 25), (49, 0)];
+    for (k, &(r, c)) in bad.iter().enumerate() {
+        let v = if k % 2 == 0 {
+            f64::INFINITY
+        } else {
+            f64::NEG_INFINITY
+        };
+        s.sx.data[[r, c]] = v;
+        s.sy.data[[r, c]] = v;
+    }
+    let sens = sensitivity(&s.sx, Axis::X, Stencil::Central5).unwrap();
+    assert!(
+        sens.data.iter().all(|v| v.is_finite() || v.is_nan()),
+        "no infinity in the sensitivity"
+    );
+    for &(r, c) in &bad {
+        assert!(sens.data[[r, c]].is_nan(), "missing where the input is inf");
+    }
+    for r in row_peaks(&sens, &PeakOptions::default()).unwrap() {
+        if let Some(p) = r.peak() {
+            assert!(p.value.is_finite() && p.pos.is_finite());
+        }
+    }
+    let r = fit_beads(
+        &s.sx,
+        &s.sy,
+        &tpl,
+        &FitOptions {
+            n_beads: Some(2),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert!(all_finite(&r));
+    assert_eq!(r.n_residuals, 2 * (50 * 50 - bad.len()));
+    for t in &truth {
+        let d = r
+            .beads
+            .iter()
+            .map(|b| (b.x - t.0).hypot(b.y - t.1))
+            .fold(f64::INFINITY, f64::min);
+        assert!(d < 0.02, "{d}");
+    }
+}

@@ -3,6 +3,10 @@
 //! the same run and the time spent (median of repeats). `bfpscope accuracy` writes the tables and
 //! Pareto plots to docs/accuracy.md.
 
+pub mod analysis_knobs;
+pub mod instrument;
+pub mod report;
+
 use crate::instrument::sim::scene::{DiameterProfile, Filament, Scene};
 use crate::instrument::sim::{render_xy, Renderer};
 use crate::optics::finite_size::max_sensitivity_unit;

@@ -1,0 +1,480 @@
+//! Instrument-time trade-off (issue 7, item 3): mass and linear-density uncertainty against the
+//! total scan time on the simulated instrument (virtual clock) with the `detector_noise` effect
+//! at the project's paper-noise level (docs/physics.md §7).
+//!
+//! Every scan goes through the real scan engine (`acquire::run_plan`) on the simulated stage and
+//! QPD, so the times are what the virtual clock counts: dwell × pixels, plus the simulated stage
+//! moves (2 ms each, `SimConfig::move_time_s`) which the report states separately.
+//!
+//! **Scaling law.** With white noise of σ_s per sample at rate f, a pixel read for a dwell t has
+//! σ_pix = σ_s/√(f t). A one-bead least-squares fit of the weight C (positions are orthogonal to
+//! the weight at the bead centre by symmetry) has σ_C = σ_pix/√(Σ_pixels (Tx² + Ty²)), and the sum
+//! is (1/h²)∫(Tx² + Ty²) dA = I/h² for pixel pitch h. Hence
+//! σ_C = σ_s · h / √(f t I) = σ_s / √(f · (t/h²) · I):
+//! the mass uncertainty depends only on the time spent per unit area, t/h² (s/µm²), not on the
+//! pixel size or dwell separately, as long as the scan covers the template's support.
+
+use super::analysis_knobs::PIXEL_UM;
+use super::{Knob, Point};
+use crate::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
+use crate::analysis::bead_model::BeadModelOptions;
+use crate::analysis::fit::{fit_beads, BeadInit, Channels, FitOptions};
+use crate::analysis::orientation::{
+    measure_filament, AngleCurve, AngleCurveOptions, MeasureOptions,
+};
+use crate::analysis::quantities::{
+    self, mass_resolution_kda, LinDensCalib, PROTEIN_DENSITY_G_CM3, PROTEIN_N,
+};
+use crate::analysis::template::{RefBead, Template};
+use crate::data::Scan;
+use crate::instrument::sim::scene::{
+    Bead, DetectorNoise, DiameterProfile, Filament, Scene, PAPER_DETECTOR_SIGMA_SAMPLE,
+};
+use crate::instrument::sim::{SimConfig, SimCore};
+use crate::instrument::Clock;
+use crate::optics::params::{Optics, REF_BEAD_N};
+use crate::optics::rayleigh::DetectorModel;
+use serde::Serialize;
+use std::sync::atomic::AtomicBool;
+
+/// The paper's mass resolution for polystyrene (Sec. 3.2), kDa.
+pub const PAPER_RESOLUTION_PS_KDA: f64 = 950.0;
+/// The paper's mass resolution for globular protein (Sec. 3.2), kDa.
+pub const PAPER_RESOLUTION_PROTEIN_KDA: f64 = 1100.0;
+/// Pixels per side of the trade-off scans.
+pub const SCAN_PIXELS: usize = 64;
+
+/// One XY scan of `scene` through the scan engine on the simulated instrument: 64×64 pixels of
+/// 50 nm from (0, 0), dwell `dwell_s`. Returns the scan and the virtual-clock time it took.
+pub fn engine_scan(optics: &Optics, scene: &Scene, dwell_s: f64) -> Result<(Scan, f64), String> {
+    let core = SimCore::new(optics, scene, SimConfig::default()).map_err(|e| e.to_string())?;
+    let mut inst = core.instrument(0.0);
+    let n = SCAN_PIXELS;
+    let to = (n - 1) as f64 * PIXEL_UM;
+    let sweep = |a| Sweep::new("accuracy", a, 0.0, to, n as i64, "n").map_err(|e| e.0);
+    let plan = Plan::grid(
+        "accuracy",
+        sweep(Axis::X)?,
+        sweep(Axis::Y)?,
+        vec![(Axis::Z, 0.0)],
+        dwell_s,
+        false,
+        false,
+    )
+    .map_err(|e| e.0)?;
+    let limits = SoftLimits::default();
+    let abort = AtomicBool::new(false);
+    let log = |_: &str| {};
+    let save = |_: &Scan| Ok(std::path::PathBuf::from("(not saved)"));
+    let env = ScanEnv {
+        limits: &limits,
+        abort: &abort,
+        progress: false,
+        log: &log,
+        meta: serde_json::json!({"script": {"path": "bfpscope accuracy"}}),
+        save: &save,
+    };
+    let t0 = core.clock.now();
+    let run = run_plan(&mut inst, &plan, &env).map_err(|e| e.to_string())?;
+    let dt = core.clock.now() - t0;
+    run.summary()?;
+    Ok((run.scan, dt))
+}
+
+/// One row of a trade-off sweep.
+#[derive(Debug, Clone, Serialize)]
+pub struct TradeRow {
+    pub dwell_s: f64,
+    /// dwell × pixels, s.
+    pub scan_s: f64,
+    /// Virtual-clock time of the whole scan (moves included), s.
+    pub clock_s: f64,
+    /// Mean of the fits' own 1σ over the seeds (kDa for beads, MDa/µm for the microtubule).
+    pub sigma_fit: f64,
+    /// Standard deviation of the estimates over the seeds (same unit).
+    pub sigma_scatter: f64,
+    /// Mean estimate (kDa or MDa/µm).
+    pub mean: f64,
+    /// Protein-equivalent of `sigma_fit` (beads only), kDa.
+    pub sigma_protein_kda: f64,
+    /// Fit with Sx only (the paper's "fit to the S_x response"), mean 1σ, kDa (beads only).
+    pub sigma_fit_sx_only: f64,
+    /// Seeds in which the object was found and measured.
+    pub found: usize,
+}
+
+/// The bead and microtubule trade-offs and the calibration numbers derived from them.
+#[derive(Debug, Clone, Serialize)]
+pub struct Tradeoff {
+    pub bead: Vec<TradeRow>,
+    pub microtubule: Vec<TradeRow>,
+    /// Number of noise seeds per point.
+    pub seeds: usize,
+    /// 1σ mass (kDa, polystyrene) × √(scan time s) from a fit over the bead rows (the 1/√t law).
+    pub bead_k_kda_sqrt_s: f64,
+    /// Same with the Sx-only fit.
+    pub bead_k_sx_only: f64,
+    /// Protein-equivalent constant.
+    pub bead_k_protein: f64,
+    /// σ_μ (MDa/µm) × √(scan time s) for the microtubule (from the dwells where every seed
+    /// found the filament).
+    pub mt_k: f64,
+    /// True linear density of the simulated 13-protofilament microtubule, MDa/µm.
+    pub mt_true_mu: f64,
+    /// Template integral I = ∫(Tx² + Ty²) dA of the reference bead (δP/P units² µm²).
+    pub template_integral: f64,
+    /// Mass of the reference bead, kDa.
+    pub ref_mass_kda: f64,
+    /// Averaging: `averaged_scans` scans of `averaged.dwell_s` averaged pixel by pixel (its
+    /// `scan_s` and `clock_s` are the totals over the scans).
+    pub averaged: TradeRow,
+    pub averaged_scans: usize,
+}
+
+impl Tradeoff {
+    /// Scan time (dwell × pixels, s) at which the bead's 1σ mass reaches `target_kda` for the
+    /// given constant (σ = k/√t).
+    pub fn time_for(k: f64, target: f64) -> f64 {
+        (k / target).powi(2)
+    }
+
+    /// The scaling law's 1σ mass (kDa, polystyrene) for a one-bead fit of both channels at
+    /// `dwell_s` per pixel of `pixel_um`: σ_s·h·m_rb/√(f·t·I) (module docs).
+    pub fn predicted_sigma_kda(&self, dwell_s: f64, pixel_um: f64) -> f64 {
+        let f = SimConfig::default().sample_rate;
+        PAPER_DETECTOR_SIGMA_SAMPLE * pixel_um / (f * dwell_s * self.template_integral).sqrt()
+            * self.ref_mass_kda
+    }
+
+    /// Shortest scan time (s) at which the microtubule was found in every seed.
+    pub fn mt_min_found_s(&self) -> Option<f64> {
+        self.microtubule
+            .iter()
+            .filter(|r| r.found == self.seeds)
+            .map(|r| r.scan_s)
+            .reduce(f64::min)
+    }
+}
+
+/// Least-squares k in σ = k/√t (fit of log σ = log k − ½ log t with the slope fixed).
+fn sqrt_law(rows: &[TradeRow], f: impl Fn(&TradeRow) -> f64) -> f64 {
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|r| (f(r) * r.scan_s.sqrt()).ln())
+        .filter(|v| v.is_finite())
+        .collect();
+    (v.iter().sum::<f64>() / v.len().max(1) as f64).exp()
+}
+
+/// Mean and sample standard deviation of the finite values (NaN when there are none).
+fn mean_std(v: &[f64]) -> (f64, f64) {
+    let v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let s = if v.len() > 1 {
+        (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    } else {
+        f64::NAN
+    };
+    (m, s)
+}
+
+/// ∫(Tx² + Ty²) dA of a template in the data's units (T/norm_factor, δP/P), (δP/P)²·µm².
+pub fn template_integral(tpl: &Template, h: f64) -> f64 {
+    let ((u0, u1), (v0, v1)) = tpl.extent();
+    let (nu, nv) = (((u1 - u0) / h) as i64, ((v1 - v0) / h) as i64);
+    let mut s = 0.0;
+    for j in 0..=nv {
+        for i in 0..=nu {
+            let t = tpl.eval(u0 + i as f64 * h, v0 + j as f64 * h);
+            s += t[0] * t[0] + t[1] * t[1];
+        }
+    }
+    s * h * h / (tpl.norm_factor * tpl.norm_factor)
+}
+
+/// Equivalent diameter (nm) of a protein cylinder with the linear density of an
+/// `npf`-protofilament microtubule (110 kDa per 8 nm per protofilament, ρ = 1/0.745 g/cm³).
+pub fn mt_equivalent_d_nm(npf: u32) -> f64 {
+    let mu = npf as f64 * quantities::PROTOFILAMENT_MDA_PER_UM;
+    let da_per_nm3 = PROTEIN_DENSITY_G_CM3 * 1e-21 * quantities::DA_PER_G;
+    let area_nm2 = mu * 1e6 / 1000.0 / da_per_nm3;
+    (4.0 * area_nm2 / std::f64::consts::PI).sqrt()
+}
+
+/// Run both trade-offs: dwell sweeps of 64×64-pixel scans (50 nm) of a 110 nm polystyrene bead
+/// (fit: one bead, both channels and Sx only, σ from the residuals) and of a 13-protofilament
+/// microtubule along y (protein cylinder, n = 1.587, in buffer n_s = 1.335; linear density from
+/// the per-row maximum sensitivities, Sec. 5), `seeds` noise realisations per dwell.
+pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
+    let dwells: &[f64] = if quick {
+        &[1e-4, 1e-3, 1e-2, 1e-1]
+    } else {
+        &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
+    };
+    let seeds = if quick { 2 } else { 16 };
+    let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
+    let es = |e: crate::analysis::AnalysisError| e.to_string();
+
+    // --- bead
+    let optics = Optics::default();
+    let rb = RefBead::default();
+    let tpl =
+        Template::from_optics(&optics, &DetectorModel::default(), rb, 0.02, 0.0).map_err(es)?;
+    let c = SCAN_PIXELS as f64 * PIXEL_UM / 2.0;
+    let mut bead = vec![];
+    for (i, &dwell) in dwells.iter().enumerate() {
+        let (mut m, mut e, mut e_sx, mut e_p, mut clock) = (vec![], vec![], vec![], vec![], 0.0);
+        for s in 0..seeds {
+            let mut sc = Scene::default();
+            sc.add_bead(Bead {
+                pos: [c, c + 0.013, 0.0],
+                d_nm: rb.d_nm,
+                n: REF_BEAD_N,
+            })
+            .map_err(|e| e.to_string())?;
+            sc.effects.detector_noise = Some(DetectorNoise {
+                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+            });
+            sc.seed = 10_000 + 100 * i as u64 + s as u64;
+            let (scan, dt) = engine_scan(&optics, &sc, dwell)?;
+            clock += dt / seeds as f64;
+            let init = Some(vec![BeadInit {
+                x: c,
+                y: c,
+                weight: 1.0,
+            }]);
+            for (ch, out) in [(Channels::Both, &mut e), (Channels::Sx, &mut e_sx)] {
+                let r = fit_beads(
+                    &scan.sx,
+                    &scan.sy,
+                    &tpl,
+                    &FitOptions {
+                        channels: ch,
+                        init: init.clone(),
+                        ..FitOptions::default()
+                    },
+                )
+                .map_err(es)?;
+                let b = r.beads[0];
+                let we = b.weight_err.ok_or("bead fit without an uncertainty")?;
+                out.push(mass_resolution_kda(we, rb.n, rb.density_g_cm3, &rb).map_err(es)?);
+                if ch == Channels::Both {
+                    m.push(b.weight * rb.mass_kda());
+                    e_p.push(
+                        mass_resolution_kda(we, PROTEIN_N, PROTEIN_DENSITY_G_CM3, &rb)
+                            .map_err(es)?,
+                    );
+                }
+            }
+        }
+        let (mean, scatter) = mean_std(&m);
+        bead.push(TradeRow {
+            dwell_s: dwell,
+            scan_s: dwell * npix,
+            clock_s: clock,
+            sigma_fit: mean_std(&e).0,
+            sigma_scatter: scatter,
+            mean,
+            sigma_protein_kda: mean_std(&e_p).0,
+            sigma_fit_sx_only: mean_std(&e_sx).0,
+            found: m.len(),
+        });
+    }
+
+    // --- averaging: k scans of dwell d averaged vs one scan of dwell k·d
+    let (k_avg, d_avg) = (4usize, 0.025);
+    let (mut m, mut e, mut clock) = (vec![], vec![], 0.0);
+    for s in 0..seeds {
+        let mut sum: Option<Scan> = None;
+        for rep in 0..k_avg {
+            let mut sc = Scene::default();
+            sc.add_bead(Bead {
+                pos: [c, c + 0.013, 0.0],
+                d_nm: rb.d_nm,
+                n: REF_BEAD_N,
+            })
+            .map_err(|e| e.to_string())?;
+            sc.effects.detector_noise = Some(DetectorNoise {
+                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+            });
+            sc.seed = 30_000 + (s * k_avg + rep) as u64;
+            let (scan, dt) = engine_scan(&optics, &sc, d_avg)?;
+            clock += dt / seeds as f64;
+            sum = Some(match sum {
+                None => scan,
+                Some(mut a) => {
+                    a.sx.data = &a.sx.data + &scan.sx.data;
+                    a.sy.data = &a.sy.data + &scan.sy.data;
+                    a
+                }
+            });
+        }
+        let mut a = sum.ok_or("no scans to average")?;
+        a.sx.data.mapv_inplace(|v| v / k_avg as f64);
+        a.sy.data.mapv_inplace(|v| v / k_avg as f64);
+        let r = fit_beads(
+            &a.sx,
+            &a.sy,
+            &tpl,
+            &FitOptions {
+                init: Some(vec![BeadInit {
+                    x: c,
+                    y: c,
+                    weight: 1.0,
+                }]),
+                ..FitOptions::default()
+            },
+        )
+        .map_err(es)?;
+        let b = r.beads[0];
+        let we = b.weight_err.ok_or("bead fit without an uncertainty")?;
+        e.push(mass_resolution_kda(we, rb.n, rb.density_g_cm3, &rb).map_err(es)?);
+        m.push(b.weight * rb.mass_kda());
+    }
+    let (mean, scatter) = mean_std(&m);
+    let averaged = TradeRow {
+        dwell_s: d_avg,
+        scan_s: k_avg as f64 * d_avg * npix,
+        clock_s: clock,
+        sigma_fit: mean_std(&e).0,
+        sigma_scatter: scatter,
+        mean,
+        sigma_protein_kda: f64::NAN,
+        sigma_fit_sx_only: f64::NAN,
+        found: m.len(),
+    };
+
+    // --- microtubule
+    let o_mt = Optics {
+        n_medium: 1.335,
+        ..Optics::default()
+    };
+    let rb_mt = RefBead {
+        n_medium: o_mt.n_medium,
+        ..RefBead::default()
+    };
+    let tpl_mt =
+        Template::from_optics(&o_mt, &DetectorModel::default(), rb_mt, 0.02, 0.0).map_err(es)?;
+    let curve = AngleCurve::compute(&tpl_mt, &AngleCurveOptions::default()).map_err(es)?;
+    let mo = MeasureOptions::default();
+    let cal = LinDensCalib::from_template(
+        &tpl_mt,
+        PROTEIN_N,
+        PROTEIN_DENSITY_G_CM3,
+        PIXEL_UM,
+        &mo,
+        &BeadModelOptions::default(),
+    )
+    .map_err(es)?;
+    let mt_true_mu = 13.0 * quantities::PROTOFILAMENT_MDA_PER_UM;
+    let mut microtubule = vec![];
+    for (i, &dwell) in dwells.iter().enumerate() {
+        let (mut mu, mut e, mut clock) = (vec![], vec![], 0.0);
+        for s in 0..seeds {
+            let mut sc = Scene::default();
+            let t = 2f64.to_radians();
+            let (dx, dy) = (4.0 * t.sin(), 4.0 * t.cos());
+            sc.add_filament(Filament {
+                points: vec![[c - dx, c - dy], [c + dx, c + dy]],
+                z: 0.0,
+                profile: DiameterProfile::Constant {
+                    d_nm: mt_equivalent_d_nm(13),
+                },
+                n: PROTEIN_N,
+                spacing_nm: 50.0,
+            })
+            .map_err(|e| e.to_string())?;
+            sc.effects.detector_noise = Some(DetectorNoise {
+                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+            });
+            sc.seed = 20_000 + 100 * i as u64 + s as u64;
+            let (scan, dt) = engine_scan(&o_mt, &sc, dwell)?;
+            clock += dt / seeds as f64;
+            match measure_filament(&scan.sx, &scan.sy, &curve, &mo) {
+                Ok(meas) => {
+                    mu.push(cal.linear_density(meas.mean_corr.max(0.0)).map_err(es)?);
+                    e.push(cal.linear_density(meas.sem_corr).map_err(es)?);
+                }
+                Err(_) => {
+                    // too noisy to find the filament: no measurement at this dwell
+                    mu.push(f64::NAN);
+                    e.push(f64::NAN);
+                }
+            }
+        }
+        let (mean, scatter) = mean_std(&mu);
+        microtubule.push(TradeRow {
+            dwell_s: dwell,
+            scan_s: dwell * npix,
+            clock_s: clock,
+            sigma_fit: mean_std(&e).0,
+            sigma_scatter: scatter,
+            mean,
+            sigma_protein_kda: f64::NAN,
+            sigma_fit_sx_only: f64::NAN,
+            found: mu.iter().filter(|v| v.is_finite()).count(),
+        });
+    }
+    Ok(Tradeoff {
+        bead_k_kda_sqrt_s: sqrt_law(&bead, |r| r.sigma_fit),
+        bead_k_sx_only: sqrt_law(&bead, |r| r.sigma_fit_sx_only),
+        bead_k_protein: sqrt_law(&bead, |r| r.sigma_protein_kda),
+        mt_k: sqrt_law(
+            &microtubule
+                .iter()
+                .filter(|r| r.found == seeds)
+                .cloned()
+                .collect::<Vec<_>>(),
+            |r| r.sigma_fit,
+        ),
+        bead,
+        microtubule,
+        seeds,
+        mt_true_mu,
+        template_integral: template_integral(&tpl, 0.02),
+        ref_mass_kda: rb.mass_kda(),
+        averaged,
+        averaged_scans: k_avg,
+    })
+}
+
+/// The dwell knob for the accuracy report: 1σ mass of the 110 nm bead (kDa) against the scan
+/// time on the virtual clock (dwell × pixels); default = the scan bindings' default dwell.
+pub fn knob_dwell(t: &Tradeoff) -> Knob {
+    let default_dwell = crate::script::scans::DEFAULT_DWELL_S;
+    Knob {
+        id: "dwell".into(),
+        title: "Dwell per pixel (averaging), 110 nm bead, paper noise, 64×64 × 50 nm".into(),
+        metric: "1σ mass of the bead from the fit (kDa, polystyrene)".into(),
+        timed: "instrument time on the virtual clock: dwell × 4096 pixels".into(),
+        reference: "the simulated bead's true mass (440.7 MDa); σ from the fit's residuals".into(),
+        points: t
+            .bead
+            .iter()
+            .map(|r| Point {
+                setting: format!(
+                    "dwell {} ({} samples)",
+                    fmt_dwell(r.dwell_s),
+                    (r.dwell_s * 1e5).round()
+                ),
+                value: r.dwell_s,
+                error: r.sigma_fit,
+                seconds: r.scan_s,
+                is_default: (r.dwell_s - default_dwell).abs() < 1e-12,
+            })
+            .collect(),
+    }
+}
+
+pub fn fmt_dwell(s: f64) -> String {
+    if s < 1e-3 {
+        format!("{:.0} µs", s * 1e6)
+    } else if s < 1e-2 {
+        format!("{:.1} ms", s * 1e3)
+    } else if s < 1.0 {
+        format!("{:.0} ms", s * 1e3)
+    } else {
+        format!("{s:.2} s")
+    }
+}
