@@ -60,6 +60,7 @@ enum Cmd {
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
         scene: Option<PathBuf>,
+    },
     /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
     /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
     Accuracy {
