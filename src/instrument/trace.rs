@@ -67,9 +67,10 @@ impl Trace {
     }
 }
 
-/// Signal with 4 significant digits, exponent form.
+/// Signal with 4 significant digits, exponent form; |v| < 1e-12 (round-off of a zero signal,
+/// e.g. Sy on the x-axis by symmetry) prints as 0 so traces do not depend on the last bits.
 pub fn sig4(v: f64) -> String {
-    if v == 0.0 {
+    if v.abs() < 1e-12 {
         "0".into()
     } else {
         format!("{v:.3e}")

@@ -211,6 +211,48 @@ pub fn register(r: &mut Registrar) {
             q.len() as i64
         },
     );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("trace_start", "trace")
+            .returns("()", "")
+            .summary("record every move, read and protocol decision of the connected instrument, with its clock's time (golden traces)")
+            .help("Protocols call trace_note at their decisions. tests/golden.rs compares traces of protocol runs on the simulator with the committed files in tests/golden/; BFPSCOPE_BLESS=1 cargo test --test golden rewrites them deliberately.")
+            .example("trace_start(); mv(#{x: 0.5}); trace_text().contains(\"move\")", "true"),
+        move || -> RResult<()> { c.trace_start() },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("trace_note", "trace")
+            .arg(
+                "text",
+                "string",
+                "",
+                "a decision, e.g. \"focus: best z = 0.012 µm\"",
+            )
+            .returns("()", "")
+            .summary("record a protocol decision in the running trace (nothing when not tracing)")
+            .example(
+                "trace_start(); trace_note(\"chose z\"); trace_text().contains(\"chose z\")",
+                "true",
+            ),
+        move |t: &str| c.trace_note(t),
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("trace_text", "trace")
+            .returns(
+                "string",
+                "one line per event: simulated time, then what happened",
+            )
+            .summary("the trace recorded since trace_start()")
+            .example("trace_text()", "error: trace_text: not tracing"),
+        move || -> RResult<String> {
+            c.trace_text().map_or_else(
+                || fail("trace_text: not tracing; call trace_start() first"),
+                Ok,
+            )
+        },
+    );
     r.bind(
         Doc::func("version", "core")
             .returns("string", "")

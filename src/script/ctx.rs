@@ -199,6 +199,8 @@ pub struct Ctx {
     pub optics: Mutex<Optics>,
     /// The scene of the simulated instrument, recorded in scan metadata.
     pub scene: Mutex<Option<Value>>,
+    /// The trace being recorded by `trace_start()` (golden traces of protocol runs).
+    pub trace: Mutex<Option<crate::instrument::trace::Trace>>,
     /// Answers queued by `answer([...])` for `ask` (scripted tests of operator prompts).
     pub answers: Mutex<std::collections::VecDeque<String>>,
     pub(crate) docs: OnceLock<Arc<Vec<Doc>>>,
@@ -223,6 +225,7 @@ impl Ctx {
             optics: Mutex::new(Optics::default()),
             scene: Mutex::new(None),
             answers: Mutex::new(Default::default()),
+            trace: Mutex::new(None),
             docs: OnceLock::new(),
             git: OnceLock::new(),
         }
@@ -314,6 +317,31 @@ impl Ctx {
     }
 
     /// Run `f` with the instrument; `who` names the binding in the error when none is connected.
+    /// Wrap the connected instrument so every move and read is recorded (with the clock's time)
+    /// into a fresh trace; a trace already running is replaced.
+    pub fn trace_start(&self) -> RResult<()> {
+        let mut g = lock(&self.instrument);
+        let Some(inst) = g.take() else {
+            return fail("trace_start: no instrument connected");
+        };
+        let (inst, trace) = inst.traced();
+        *g = Some(inst);
+        *lock(&self.trace) = Some(trace);
+        Ok(())
+    }
+
+    /// Record a protocol's decision in the running trace (no-op when not tracing).
+    pub fn trace_note(&self, what: &str) {
+        if let Some(t) = lock(&self.trace).as_ref() {
+            t.note(what);
+        }
+    }
+
+    /// The running trace's text (None when not tracing).
+    pub fn trace_text(&self) -> Option<String> {
+        lock(&self.trace).as_ref().map(|t| t.text())
+    }
+
     pub fn with_instrument<T>(
         &self,
         who: &str,
