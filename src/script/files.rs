@@ -122,7 +122,7 @@ pub fn register(r: &mut Registrar) {
                 p.label = l;
             }
             if let Some((a, b)) = o.range("range")? {
-                if !(a < b) {
+                if a.partial_cmp(&b) != Some(std::cmp::Ordering::Less) {
                     return fail(format!("{who}: range = [{a}, {b}] must have lo < hi"));
                 }
                 p.range = Some((a, b));
