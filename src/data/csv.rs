@@ -1,7 +1,7 @@
 //! CSV for profiles and tables: one header line, comma-separated, one row per sample,
 //! numbers in the shortest form that reads back to the same `f64` (`nan`, `inf`, `-inf` for
 //! the non-finite values). Readable with `numpy.genfromtxt(path, delimiter=",", names=True)`,
-//! `pandas.read_csv(path)`, spreadsheets. Lines starting with `#` are ignored when reading.
+//! `pandas.read_csv(path, comment="#")` (files written from scripts end with a `#` provenance line), spreadsheets. Lines starting with `#` are ignored when reading.
 
 use super::{atomic_write, format_f64_exact, parse_f64_lenient, DataError, Profile};
 use std::io::Write;

@@ -7,6 +7,7 @@
 pub mod csv;
 pub mod image;
 pub mod npz;
+pub mod provenance;
 pub mod scan;
 pub mod session;
 pub mod tiff;

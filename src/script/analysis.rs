@@ -822,18 +822,23 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .map_err(|e| aerr("max_sens", e))
         },
     );
+    let c = ctx.clone();
     r.bind(
         Doc::method("Template", "save")
             .arg("path", "string", "", "file (JSON)")
             .returns("string", "the path written")
-            .summary("save the template (JSON with grid, reference bead, source)")
+            .summary("save the template (JSON with grid, reference bead, source and the script's provenance)")
             .example(&format!("{TPL} let p = status().data_dir + \"/tpl_example.json\"; t.save(p); load_template(p).h_um"), "0.025"),
-        |t: &mut TemplateRef, path: &str| -> RResult<String> {
+        move |t: &mut TemplateRef, path: &str| -> RResult<String> {
             let p = std::path::Path::new(path);
             if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
                 std::fs::create_dir_all(dir).map_err(|e| aerr("save", format!("{}: {e}", dir.display())))?;
             }
-            std::fs::write(p, t.0.to_json()).map_err(|e| aerr("save", format!("{path}: {e}")))?;
+            // the template plus the provenance of this script (ignored when loading)
+            let mut v = serde_json::to_value(&*t.0).map_err(|e| aerr("save", e))?;
+            v["provenance"] = c.provenance();
+            let text = serde_json::to_string_pretty(&v).map_err(|e| aerr("save", e))?;
+            std::fs::write(p, text).map_err(|e| aerr("save", format!("{path}: {e}")))?;
             Ok(path.to_string())
         },
     );

@@ -2,7 +2,7 @@
 //! `linspace`, `version`.
 
 use super::registry::{fail, find, help_index, int, num, Doc, RResult, Registrar};
-use rhai::{Array, Dynamic, FnPtr, NativeCallContext};
+use rhai::{Array, Dynamic, FnPtr, Map, NativeCallContext};
 
 /// `assert_close`'s check, shared with the Rust tests: |a − b| ≤ rel·max(|a|, |b|).
 pub fn close(a: f64, b: f64, rel: f64) -> bool {
@@ -210,6 +210,43 @@ pub fn register(r: &mut Registrar) {
             q.extend(a.iter().map(|v| v.to_string()));
             q.len() as i64
         },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("protocol_begin", "provenance")
+            .arg("name", "string", "", "the protocol (stdlib module and function)")
+            .arg("args", "map", "", "its arguments")
+            .returns("()", "")
+            .summary("mark the start of a protocol: every scan, template, figure and CSV written until protocol_end() records it with its arguments")
+            .example("protocol_begin(\"focus::search\", #{axis: \"x\"}); provenance().protocol.name", "\"focus::search\""),
+        move |name: &str, args: Map| {
+            let v = serde_json::json!({
+                "name": name,
+                "args": super::types::dynamic_to_json(&Dynamic::from_map(args)),
+            });
+            c.protocols.lock().unwrap_or_else(|e| e.into_inner()).push(v);
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("protocol_end", "provenance")
+            .returns("()", "")
+            .summary("mark the end of the innermost protocol")
+            .example(
+                "protocol_begin(\"x\", #{}); protocol_end(); provenance().protocol",
+                "()",
+            ),
+        move || {
+            c.protocols.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("provenance", "provenance")
+            .returns("map", "#{program, script: #{path, sha256, repl_line}, git_revision, protocol: #{name, args} or (), written}")
+            .summary("what every file written from a script carries (scan metadata, template JSON, PNG text chunk, CSV trailer)")
+            .example("provenance().program.starts_with(\"bfpscope\")", "true"),
+        move || -> Dynamic { super::types::json_to_dynamic(&c.provenance()) },
     );
     let c = r.ctx();
     r.bind(

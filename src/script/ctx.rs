@@ -199,6 +199,8 @@ pub struct Ctx {
     pub optics: Mutex<Optics>,
     /// The scene of the simulated instrument, recorded in scan metadata.
     pub scene: Mutex<Option<Value>>,
+    /// Protocols running (innermost last): #{name, args}, set by protocol_begin/protocol_end.
+    pub protocols: Mutex<Vec<Value>>,
     /// The trace being recorded by `trace_start()` (golden traces of protocol runs).
     pub trace: Mutex<Option<crate::instrument::trace::Trace>>,
     /// Answers queued by `answer([...])` for `ask` (scripted tests of operator prompts).
@@ -226,6 +228,7 @@ impl Ctx {
             scene: Mutex::new(None),
             answers: Mutex::new(Default::default()),
             trace: Mutex::new(None),
+            protocols: Mutex::new(vec![]),
             docs: OnceLock::new(),
             git: OnceLock::new(),
         }
@@ -402,6 +405,29 @@ impl Ctx {
             "git_revision": self.git_revision(),
             "program": format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
             "config": self.settings.config_path.as_ref().map(|p| p.display().to_string()),
+            "protocol": self.protocol(),
+        })
+    }
+
+    /// The innermost running protocol (#{name, args}) or null.
+    pub fn protocol(&self) -> Value {
+        lock(&self.protocols).last().cloned().unwrap_or(Value::Null)
+    }
+
+    /// What every file a script writes carries: program, script path and hash, git revision,
+    /// the running protocol with its arguments, and the time written.
+    pub fn provenance(&self) -> Value {
+        let script = self.script();
+        json!({
+            "program": format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
+            "script": {
+                "path": script.path.map(|p| p.display().to_string()),
+                "sha256": script.sha256,
+                "repl_line": script.line,
+            },
+            "git_revision": self.git_revision(),
+            "protocol": self.protocol(),
+            "written": crate::acquire::engine::utc_now(),
         })
     }
 }

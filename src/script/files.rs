@@ -4,6 +4,7 @@
 //! Parent folders are created; figures and CSV files are overwritten (they are derived
 //! products — scans, the measurements, are never overwritten).
 
+use super::ctx::Ctx;
 use super::registry::{fail, to_f64, Doc, Opts, RResult, Registrar};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::plot::{
@@ -26,6 +27,15 @@ fn prepare(who: &str, path: &str) -> RResult<()> {
             .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
     }
     Ok(())
+}
+
+/// Embed the script's provenance in the file just written (PNG text chunk, SVG comment, CSV
+/// trailer; other formats untouched) and return its path.
+fn stamp(c: &Ctx, path: &str) -> RResult<String> {
+    let json = c.provenance().to_string();
+    crate::data::provenance::embed(Path::new(path), &json)
+        .map_err(|e| format!("provenance: {e}"))?;
+    Ok(path.to_string())
 }
 
 fn ferr(who: &str, path: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
@@ -76,6 +86,7 @@ const XY_KEYS: &[(&str, &str, &str, &str)] = &[
 const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
 
 pub fn register(r: &mut Registrar) {
+    let ctx = r.ctx();
     let d = Doc::func("plot", "figures")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
         .arg("path", "string", "", "figure file, .png or .svg (overwritten; folders created)")
@@ -100,6 +111,7 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.jpg\")"), "error: figure files end in .png or .svg")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.png\", #{{channel: \"sq\"}})"), "error: channel = \"sq\"");
     let spec = d.spec();
+    let c = ctx.clone();
     let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
         let who = "plot";
         let o = Opts::new(&spec, &m)?;
@@ -166,7 +178,7 @@ pub fn register(r: &mut Registrar) {
                 v.type_name()
             ));
         }
-        Ok(path.to_string())
+        stamp(&c, path)
     };
     let f2 = f.clone();
     r.bind(d, f);
@@ -184,6 +196,7 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
         .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
     let spec = d.spec();
+    let c = ctx.clone();
     let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
         let who = "plot_profile";
         let o = Opts::new(&spec, &m)?;
@@ -217,7 +230,7 @@ pub fn register(r: &mut Registrar) {
         let refs: Vec<(&str, &crate::data::Profile)> =
             list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
         plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-        Ok(path.to_string())
+        stamp(&c, path)
     };
     let f2 = f.clone();
     r.bind(d, f);
@@ -235,6 +248,7 @@ pub fn register(r: &mut Registrar) {
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
         .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
     let spec = d.spec();
+    let c = ctx.clone();
     let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
         let who = "plot_xy";
         let o = Opts::new(&spec, &m)?;
@@ -297,7 +311,7 @@ pub fn register(r: &mut Registrar) {
             return fail(format!("{who}: series is empty"));
         }
         plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-        Ok(path.to_string())
+        stamp(&c, path)
     };
     let f2 = f.clone();
     r.bind(d, f);
@@ -324,6 +338,7 @@ pub fn register(r: &mut Registrar) {
         .example("let p = status().data_dir + \"/ex_hist.png\"; plot_hist([1.0, 2.0, 2.0, 3.0], p, #{bins: 3, xlabel: \"d (nm)\"}) == p", "true")
         .example("plot_hist([1.0], status().data_dir + \"/ex_hist.png\", #{bins: 0})", "error: bins");
     let spec = d.spec();
+    let c = ctx.clone();
     let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
         let who = "plot_hist";
         let o = Opts::new(&spec, &m)?;
@@ -342,7 +357,7 @@ pub fn register(r: &mut Registrar) {
             ..XyOpts::default()
         };
         plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;
-        Ok(path.to_string())
+        stamp(&c, path)
     };
     let f2 = f.clone();
     r.bind(d, f);
@@ -351,6 +366,7 @@ pub fn register(r: &mut Registrar) {
     });
 
     // ---------------------------------------------------------------- TIFF and CSV
+    let c = ctx.clone();
     r.bind(
         Doc::func("save_tiff", "files")
             .arg(
@@ -370,10 +386,10 @@ pub fn register(r: &mut Registrar) {
                 ),
                 "21",
             ),
-        |i: ImageRef, path: &str| -> RResult<String> {
+        move |i: ImageRef, path: &str| -> RResult<String> {
             prepare("save_tiff", path)?;
             crate::data::tiff::save_tiff(path, &i.0).map_err(|e| ferr("save_tiff", path, e))?;
-            Ok(path.to_string())
+            stamp(&c, path)
         },
     );
     r.bind(
@@ -398,7 +414,8 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} let p = dir + \"/ex.csv\"; save_csv(sc.sx.row(10), p) == p"), "true")
         .example("let p = status().data_dir + \"/ex_t.csv\"; save_csv(#{d_nm: [50.0, 60.0], sens: [0.1, 0.2]}, p) == p", "true")
         .example("save_csv(#{a: [1.0], b: [1.0, 2.0]}, status().data_dir + \"/ex_bad.csv\")", "error: ");
-    r.bind(d, |v: Dynamic, path: &str| -> RResult<String> {
+    let c = ctx.clone();
+    r.bind(d, move |v: Dynamic, path: &str| -> RResult<String> {
         let who = "save_csv";
         prepare(who, path)?;
         if let Some(p) = v.read_lock::<ProfileRef>() {
@@ -418,6 +435,6 @@ pub fn register(r: &mut Registrar) {
                 v.type_name()
             ));
         }
-        Ok(path.to_string())
+        stamp(&c, path)
     });
 }

@@ -312,6 +312,12 @@ impl Workbench {
 
     fn run_ast(&mut self, ast: &AST, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        // a protocol that failed earlier never reached protocol_end(): a new entry starts clean
+        self.ctx
+            .protocols
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
         let r = self
             .engine
             .eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
@@ -376,6 +382,11 @@ impl Workbench {
     /// Evaluate the script's top level, then call its function `name` (no arguments).
     pub fn call_fn(&mut self, ast: &AST, name: &str, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        self.ctx
+            .protocols
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
         let opts = rhai::CallFnOptions::new().eval_ast(true).rewind_scope(true);
         self.engine
             .call_fn_with_options::<Dynamic>(opts, &mut self.scope, ast, name, ())
