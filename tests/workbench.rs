@@ -126,6 +126,11 @@ fn repl_lines_keep_functions_and_variables() {
     let _ = w.eval_line("fn sq(x) { x * x * 2 }").unwrap();
     assert_eq!(w.eval_line("sq(3)").unwrap().as_int().unwrap(), 18);
     assert!(w.user_names().contains(&"a".to_string()));
+    // a stdlib module imported on one line stays imported (protocols at the prompt)
+    let _ = w.eval_line(r#"import "focus" as focus;"#).unwrap();
+    let h = w.eval_line("focus::help()").unwrap().into_string().unwrap();
+    assert!(h.starts_with("focus::search"), "{h}");
+    assert!(w.eval_line(r#"import "no_such_module" as nope;"#).is_err());
 }
 
 #[test]

@@ -341,6 +341,21 @@ impl Workbench {
         let mut lib = merged;
         lib.clear_statements();
         self.lib = lib;
+        if r.is_ok() {
+            // `import "focus" as focus;` lasts for the session, as variables do: the module is
+            // resolved once more and registered under its alias for the following entries.
+            for (path, alias) in import_statements(text) {
+                let m = self.engine.module_resolver().resolve(
+                    &self.engine,
+                    None,
+                    &path,
+                    Position::NONE,
+                );
+                if let Ok(m) = m {
+                    self.engine.register_static_module(alias.as_str(), m);
+                }
+            }
+        }
         r
     }
 
@@ -391,5 +406,62 @@ impl Workbench {
         self.engine
             .call_fn_with_options::<Dynamic>(opts, &mut self.scope, ast, name, ())
             .map_err(|e| ScriptError::from_eval(&e, source, &self.docs))
+    }
+}
+
+/// `(path, alias)` of every `import "path" as alias` statement in a REPL entry (a plain scan:
+/// string literals and comments elsewhere on the line are not imports Rhai would accept either,
+/// and a failed resolve is ignored).
+fn import_statements(text: &str) -> Vec<(String, String)> {
+    let mut out = vec![];
+    let mut rest = text;
+    while let Some(i) = rest.find("import") {
+        let before_ok = rest[..i]
+            .chars()
+            .last()
+            .is_none_or(|c| !(c.is_alphanumeric() || c == '_'));
+        rest = &rest[i + 6..];
+        if !before_ok {
+            continue;
+        }
+        let t = rest.trim_start();
+        let Some(t) = t.strip_prefix('"') else {
+            continue;
+        };
+        let Some(end) = t.find('"') else { continue };
+        let path = t[..end].to_string();
+        let t = t[end + 1..].trim_start();
+        let Some(t) = t.strip_prefix("as") else {
+            continue;
+        };
+        if !t.starts_with(char::is_whitespace) {
+            continue;
+        }
+        let alias: String = t
+            .trim_start()
+            .chars()
+            .take_while(|c| c.is_alphanumeric() || *c == '_')
+            .collect();
+        if !alias.is_empty() {
+            out.push((path, alias));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod import_tests {
+    use super::import_statements;
+
+    #[test]
+    fn finds_import_statements() {
+        assert_eq!(
+            import_statements(r#"import "focus" as focus; let x = 1; import "tips" as t;"#),
+            vec![
+                ("focus".into(), "focus".into()),
+                ("tips".into(), "t".into())
+            ]
+        );
+        assert!(import_statements(r#"let reimport = "x" ; important()"#).is_empty());
     }
 }
