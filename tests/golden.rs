@@ -57,7 +57,7 @@ fn rotation_protocol_trace() {
         s.add_filament(#{points: [[0.5, -5.0], [0.5, 5.0]], d_nm: 80.0, n: 1.41});
         simulate(s);
         trace_start();
-        rotation::series(#{scene: s, fiducial: [-2.0, 1.5], filament: [0.5, 0.0], n_angles: 3, n: 7, box_um: 1.2, fid_n: 9});
+        rotation::series(#{scene: s, fiducial: [-2.0, 1.5], filament: [0.5, 0.0], n_angles: 3, n: 7, box_um: 1.2, fid_n: 9, focus: false});
         trace_text()
         "#,
     );
