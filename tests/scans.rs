@@ -429,3 +429,43 @@ fn simulated_scan_metadata_reports_the_render_pipeline() {
     let run = h.run(&mut mock, &grid(2, 2, false, false)).unwrap();
     assert!(run.scan.meta.get("pipeline").is_none());
 }
+
+#[test]
+fn simulated_scan_eta_includes_the_stage_move_time() {
+    // The simulated stage takes 2 ms per move before the settle time: the ETA printed before a
+    // scan must count it, and equal the instrument time the scan then takes on the virtual clock.
+    use bfpscope::instrument::sim::scene::Bead;
+    use bfpscope::instrument::sim::{Scene, SimConfig, SimCore};
+    use bfpscope::optics::Optics;
+    let h = Harness::new("eta");
+    let mut scene = Scene::default();
+    scene
+        .add_bead(Bead {
+            pos: [0.0, 0.0, 0.0],
+            d_nm: 110.0,
+            n: 1.572,
+        })
+        .unwrap();
+    let core = SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap();
+    assert!(core.cfg.move_time_s > 0.0);
+    let mut inst = core.instrument(0.005);
+    let run = h.run(&mut inst, &grid(8, 8, false, false)).unwrap();
+    let t = &run.scan.meta["time"];
+    let (eta, took) = (
+        t["eta_s"].as_f64().unwrap(),
+        t["instrument_s"].as_f64().unwrap(),
+    );
+    assert!(
+        (eta - took).abs() <= 0.01 * took,
+        "ETA {eta} s, took {took} s"
+    );
+    assert!(
+        h.log
+            .lock()
+            .unwrap()
+            .iter()
+            .any(|l| l.contains("move 2 ms")),
+        "{:?}",
+        h.log.lock().unwrap()
+    );
+}

@@ -152,16 +152,22 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let speed = limits
         .check_speed(&kind, &points, inst.settle_s, dwell_s)
         .map_err(|e| ScanError::Refused(e.0))?;
-    let eta = plan.eta_s(inst.settle_s, dwell_s);
+    let move_s = inst.stage.move_time_s();
+    let eta = plan.eta_s(inst.settle_s + move_s, dwell_s);
     let clock_kind = if inst.clock.is_virtual() {
         "simulated"
     } else {
         "real"
     };
     (env.log)(&format!(
-        "{}: {} points, settle {} + dwell {} per point: ETA {} ({clock_kind} time)",
+        "{}: {} points, {}settle {} + dwell {} per point: ETA {} ({clock_kind} time)",
         plan.describe(),
         points.len(),
+        if move_s > 0.0 {
+            format!("move {} + ", fmt_seconds(move_s))
+        } else {
+            String::new()
+        },
         fmt_seconds(inst.settle_s),
         fmt_seconds(n_samples as f64 / rate),
         fmt_seconds(eta)

@@ -101,6 +101,11 @@ pub trait Stage: Send {
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
     /// Stop all motion at once.
     fn stop(&mut self) -> Result<(), DeviceError>;
+    /// Time a move takes before it returns, when the device model knows it (the simulated stage),
+    /// for the scan ETA; 0 when unknown (hardware returns on target, the settle time follows).
+    fn move_time_s(&self) -> f64 {
+        0.0
+    }
 }
 
 /// A quadrant-photodiode digitiser.

@@ -88,6 +88,9 @@ pub struct TracedStage {
 }
 
 impl Stage for TracedStage {
+    fn move_time_s(&self) -> f64 {
+        self.inner.move_time_s()
+    }
     fn name(&self) -> String {
         self.inner.name()
     }

@@ -160,6 +160,9 @@ impl Stage for SimStage {
     fn stop(&mut self) -> Result<(), DeviceError> {
         Ok(())
     }
+    fn move_time_s(&self) -> f64 {
+        self.0.cfg.move_time_s
+    }
 }
 
 impl Qpd for SimQpd {
