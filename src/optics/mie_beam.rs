@@ -635,7 +635,7 @@ impl MieBeam {
     /// scan, suppl. S5) and the z where it occurs: a 0.05 µm scan of z ∈ [−1, 1] µm, then golden
     /// section to 1e-7 µm (the same search as `finite_size::max_sensitivity_unit`).
     pub fn max_sensitivity_x(&self) -> (f64, f64) {
-        golden_max(|z| self.eval(0.0, 0.0, z, true).1[0])
+        super::finite_size::best_focus(|z| self.eval(0.0, 0.0, z, true).1[0])
     }
 
     /// Lateral reach (µm) of this response's grids at axial displacement z ([`grid_reach_um`]).
@@ -788,41 +788,6 @@ fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
         }
     }
     out
-}
-
-/// Maximise f over z ∈ [−1, 1] µm: 0.05 µm scan, then golden section on the best bracket.
-fn golden_max(f: impl Fn(f64) -> f64) -> (f64, f64) {
-    let (mut best_z, mut best) = (0.0, f(0.0));
-    for i in -20..=20 {
-        let z = i as f64 * 0.05;
-        let v = f(z);
-        if v > best {
-            best = v;
-            best_z = z;
-        }
-    }
-    let (mut a, mut b) = (best_z - 0.05, best_z + 0.05);
-    let g = 0.5 * (5f64.sqrt() - 1.0);
-    let mut c = b - g * (b - a);
-    let mut d = a + g * (b - a);
-    let (mut fc, mut fd) = (f(c), f(d));
-    for _ in 0..30 {
-        if fc > fd {
-            b = d;
-            d = c;
-            fd = fc;
-            c = b - g * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = d;
-            fc = fd;
-            d = a + g * (b - a);
-            fd = f(d);
-        }
-    }
-    let z = 0.5 * (a + b);
-    (f(z), z)
 }
 
 /// Accuracy knob (docs/accuracy.md): the incident plane-wave grid (n_theta_in, n_phi_in),

@@ -10,8 +10,9 @@
 //! Custom types: `Template`, `FitResult`, `AngleCurve`, `FilamentMeasurement`.
 
 use super::ctx::Ctx;
-use super::registry::{fail, num, to_f64, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, num, numbers, Doc, Opts, RResult, Registrar};
 use super::types::{floats, json_to_dynamic, ImageRef, ProfileRef, ScanRef};
+use crate::acquire::plan::linspace;
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::fit::Bead as FitBead;
 use crate::analysis::focus::{focus_search, FocusOptions};
@@ -134,10 +135,6 @@ pub fn show_custom(v: &Dynamic) -> Option<String> {
     None
 }
 
-fn aerr(who: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
-    format!("{who}: {e}").into()
-}
-
 /// Any serialisable value as a Rhai map/array.
 fn to_dyn<T: Serialize>(v: &T) -> Dynamic {
     json_to_dynamic(&serde_json::to_value(v).unwrap_or_default())
@@ -145,30 +142,6 @@ fn to_dyn<T: Serialize>(v: &T) -> Dynamic {
 
 fn to_map<T: Serialize>(v: &T) -> Map {
     to_dyn(v).try_cast::<Map>().unwrap_or_default()
-}
-
-/// Numbers of an array argument.
-fn f64s(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
-    let Some(a) = v.read_lock::<Array>() else {
-        return fail(format!(
-            "{who}: {name} must be an array of numbers, got {}",
-            v.type_name()
-        ));
-    };
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            to_f64(x).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: {name}[{i}] must be a number, got {} {x}",
-                        x.type_name()
-                    ))
-                },
-                Ok,
-            )
-        })
-        .collect()
 }
 
 fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
@@ -222,6 +195,43 @@ fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult<MeasureOpt
         max_offset_um: pos_f64(who, o, "max_offset_um", base.max_offset_um, 0.0, 100.0)?,
         detect_snr: pos_f64(who, o, "detect_snr", base.detect_snr, 0.0, 1e6)?,
     })
+}
+
+/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`).
+const PIPELINE_KEYS: &[(&str, &str, &str, &str)] = &[
+    (
+        "pixel_um",
+        "float",
+        "µm",
+        "optional: pixel size of the scans (default 0.05)",
+    ),
+    (
+        "spacing_nm",
+        "float",
+        "nm",
+        "optional: bead-model spacing (default 50)",
+    ),
+    (
+        "stencil",
+        "string",
+        "",
+        "optional: derivative stencil (default central2)",
+    ),
+    (
+        "window_um",
+        "float",
+        "µm",
+        "optional: parabola window (default 0.4)",
+    ),
+];
+
+/// Pixel size, measurement options and bead-model options from the `PIPELINE_KEYS`.
+fn pipeline_opts(who: &str, o: &Opts) -> RResult<(f64, MeasureOptions, BeadModelOptions)> {
+    let mo = measure_opts(who, o, MeasureOptions::default())?;
+    let bm = BeadModelOptions {
+        spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+    };
+    Ok((o.f64_or("pixel_um", 0.05)?, mo, bm))
 }
 
 fn line_peaks(v: &[LinePeak]) -> Array {
@@ -300,7 +310,7 @@ fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::Filament> {
     };
     let d_nm = match m.get("d_nm") {
         None => return fail(format!("{who}: filament lacks `d_nm` (nm)")),
-        Some(d) if d.is_array() => f64s(who, "d_nm", d)?,
+        Some(d) if d.is_array() => numbers(who, "d_nm", d)?,
         Some(d) => vec![num(who, "d_nm", d)?],
     };
     let n = match m.get("n") {
@@ -308,23 +318,12 @@ fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::Filament> {
         Some(v) => num(who, "n", v)?,
     };
     let f = crate::analysis::Filament { points, d_nm, n };
-    f.validate().map_err(|e| aerr(who, e))?;
+    f.validate().map_err(|e| err(who, e))?;
     Ok(f)
 }
 
-fn axis(a: f64, b: f64, n: i64) -> Vec<f64> {
-    (0..n)
-        .map(|i| {
-            if n == 1 {
-                a
-            } else {
-                a + (b - a) * i as f64 / (n - 1) as f64
-            }
-        })
-        .collect()
-}
-
-fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
+/// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).
+pub(crate) fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
     let (x0, x1) = o.req_range("x")?;
     let (y0, y1) = o.req_range("y")?;
     let nx = o.req_int("nx")?;
@@ -334,7 +333,7 @@ fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
             return fail(format!("{who}: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"));
         }
     }
-    Ok((axis(x0, x1, nx), axis(y0, y1, ny)))
+    Ok((linspace(x0, x1, nx as usize), linspace(y0, y1, ny as usize)))
 }
 
 fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
@@ -345,7 +344,7 @@ fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
         n_medium,
         density_g_cm3: o.f64_or("density", d.density_g_cm3)?,
     };
-    r.validate().map_err(|e| aerr(who, e))?;
+    r.validate().map_err(|e| err(who, e))?;
     Ok(r)
 }
 
@@ -447,7 +446,7 @@ fn register_sensitivity(r: &mut Registrar) {
                 v.type_name()
             ));
         };
-        let out = sensitivity(&im, axis, st).map_err(|e| aerr("sensitivity", e))?;
+        let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
         Ok(ImageRef(Arc::new(out)))
     };
     let run2 = run.clone();
@@ -506,7 +505,7 @@ fn register_sensitivity(r: &mut Registrar) {
             } else {
                 col_peaks(&i.0, &po)
             }
-            .map_err(|e| aerr(name, e))?;
+            .map_err(|e| err(name, e))?;
             Ok(line_peaks(&v))
         };
         let f2 = f.clone();
@@ -525,7 +524,7 @@ fn register_sensitivity(r: &mut Registrar) {
     let f = move |i: ImageRef, m: Map| -> RResult<Map> {
         let o = Opts::new(&spec, &m)?;
         let po = peak_opts("max_sens", &o)?;
-        let p = point_peak(&i.0, &po).map_err(|e| aerr("max_sens", e))?;
+        let p = point_peak(&i.0, &po).map_err(|e| err("max_sens", e))?;
         Ok(to_map(&p))
     };
     let f2 = f.clone();
@@ -568,7 +567,7 @@ fn register_sensitivity(r: &mut Registrar) {
                 v.type_name()
             ));
         };
-        let res = focus_search(&im, &fo).map_err(|e| aerr("focus_search", e))?;
+        let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
         let mut out = Map::new();
         out.insert("z_best".into(), res.z_best.into());
         out.insert("z_err".into(), to_dyn(&res.z_err));
@@ -614,7 +613,7 @@ fn register_sensitivity(r: &mut Registrar) {
     let f = |i: ImageRef, p: Array, step: f64| -> RResult<ProfileRef> {
         let pts = super::physics::points("profile_along", &Dynamic::from_array(p))?;
         let pr = profile_polyline(&i.0, &pts, step, Interp::Cubic)
-            .map_err(|e| aerr("profile_along", e))?;
+            .map_err(|e| err("profile_along", e))?;
         Ok(ProfileRef(Arc::new(pr)))
     };
     r.bind(d, f);
@@ -696,7 +695,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             o.f64_or("h_um", 0.02)?,
             o.f64_or("z_um", 0.0)?,
         )
-        .map_err(|e| aerr("template_model", e))?;
+        .map_err(|e| err("template_model", e))?;
         Ok(TemplateRef(Arc::new(t)))
     };
     let f2 = f.clone();
@@ -741,7 +740,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
         };
         let scans = scans_arg("template_from_scans", &a)?;
         let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();
-        let t = Template::from_scans(&refs, rb, &fo).map_err(|e| aerr("template_from_scans", e))?;
+        let t = Template::from_scans(&refs, rb, &fo).map_err(|e| err("template_from_scans", e))?;
         Ok(TemplateRef(Arc::new(t)))
     };
     let f2 = f.clone();
@@ -808,7 +807,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             .example(&format!("{TPL} let m = t.max_sens(0.05); m > 0.9 && m < 1.0"), "true"),
         |t: &mut TemplateRef, px: f64| -> RResult<f64> {
             t.0.pipeline_max_sens(px, Stencil::Central2, 0.4)
-                .map_err(|e| aerr("max_sens", e))
+                .map_err(|e| err("max_sens", e))
         },
     );
     r.overload(
@@ -819,7 +818,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 Ok,
             )?;
             t.0.pipeline_max_sens(px, s, 0.4)
-                .map_err(|e| aerr("max_sens", e))
+                .map_err(|e| err("max_sens", e))
         },
     );
     let c = ctx.clone();
@@ -832,13 +831,13 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
         move |t: &mut TemplateRef, path: &str| -> RResult<String> {
             let p = std::path::Path::new(path);
             if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).map_err(|e| aerr("save", format!("{}: {e}", dir.display())))?;
+                std::fs::create_dir_all(dir).map_err(|e| err("save", format!("{}: {e}", dir.display())))?;
             }
             // the template plus the provenance of this script (ignored when loading)
-            let mut v = serde_json::to_value(&*t.0).map_err(|e| aerr("save", e))?;
+            let mut v = serde_json::to_value(&*t.0).map_err(|e| err("save", e))?;
             v["provenance"] = c.provenance();
-            let text = serde_json::to_string_pretty(&v).map_err(|e| aerr("save", e))?;
-            std::fs::write(p, text).map_err(|e| aerr("save", format!("{path}: {e}")))?;
+            let text = serde_json::to_string_pretty(&v).map_err(|e| err("save", e))?;
+            std::fs::write(p, text).map_err(|e| err("save", format!("{path}: {e}")))?;
             Ok(path.to_string())
         },
     );
@@ -853,9 +852,9 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             ),
         |path: &str| -> RResult<TemplateRef> {
             let s = std::fs::read_to_string(path)
-                .map_err(|e| aerr("load_template", format!("{path}: {e}")))?;
+                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
             let t = Template::from_json(&s)
-                .map_err(|e| aerr("load_template", format!("{path}: {e}")))?;
+                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
             Ok(TemplateRef(Arc::new(t)))
         },
     );
@@ -906,11 +905,11 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             spacing_nm: o.f64_or("spacing_nm", 50.0)?,
         };
         let (x, y) = grid_axes(who, &o)?;
-        let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| aerr(who, e))?;
+        let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| err(who, e))?;
         // reference-bead units → the instrument units of the template's source (what a scan
         // of these objects records; fits and filament measurements expect those units)
         let k = 1.0 / t.0.norm_factor;
-        let sc = |i: &Image| i.mul_scalar(k).map_err(|e| aerr(who, e));
+        let sc = |i: &Image| i.mul_scalar(k).map_err(|e| err(who, e));
         let meta =
             serde_json::json!({ "kind": "render_beads", "units": "instrument (template source)" });
         Ok(scan_of(sc(&s.sx)?, sc(&s.sy)?, sc(&s.sz)?, meta))
@@ -926,7 +925,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let f = |t: TemplateRef, fm: Map, sp: f64| -> RResult<Array> {
         let fil = filament_arg("bead_model", &Dynamic::from_map(fm))?;
         let b = filament_beads(&t.0, &fil, &BeadModelOptions { spacing_nm: sp })
-            .map_err(|e| aerr("bead_model", e))?;
+            .map_err(|e| err("bead_model", e))?;
         Ok(b.iter()
             .map(|&(x, y, w)| {
                 let mut m = Map::new();
@@ -1024,7 +1023,7 @@ fn register_fit(r: &mut Registrar) {
             merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
             ..d
         };
-        let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| aerr(who, e))?;
+        let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
         Ok(FitRef(Arc::new(r)))
     };
     let f2 = f.clone();
@@ -1167,16 +1166,8 @@ fn register_fit(r: &mut Registrar) {
             ),
         |f: &mut FitRef, s: ScanRef| -> RResult<ScanRef> {
             let r = &f.0;
-            let sx = s
-                .scan
-                .sx
-                .sub(&r.model_sx)
-                .map_err(|e| aerr("subtract", e))?;
-            let sy = s
-                .scan
-                .sy
-                .sub(&r.model_sy)
-                .map_err(|e| aerr("subtract", e))?;
+            let sx = s.scan.sx.sub(&r.model_sx).map_err(|e| err("subtract", e))?;
+            let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
             let mut meta = s.scan.meta.clone();
             meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
             Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
@@ -1297,7 +1288,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             },
             measure: measure_opts(who, &o, d.measure)?,
         };
-        let c = AngleCurve::compute(&t.0, &co).map_err(|e| aerr(who, e))?;
+        let c = AngleCurve::compute(&t.0, &co).map_err(|e| err(who, e))?;
         Ok(CurveRef(Arc::new(c)))
     };
     let f2 = f.clone();
@@ -1363,8 +1354,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                     ))
                 }
             };
-            c.0.correction(a, channel)
-                .map_err(|e| aerr("correction", e))
+            c.0.correction(a, channel).map_err(|e| err("correction", e))
         },
     );
     r.getter(
@@ -1401,7 +1391,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         let o = Opts::new(&spec, &m)?;
         let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
         let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
-            .map_err(|e| aerr("measure_filament", e))?;
+            .map_err(|e| err("measure_filament", e))?;
         Ok(FilamentRef(Arc::new(r)))
     };
     let f2 = f.clone();
@@ -1506,7 +1496,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             };
             let t: Vec<f64> = pts.iter().map(|p| p.arc_um).collect();
             let p = crate::data::Profile::try_new(t, v)
-                .map_err(|e| aerr("profile", e))?
+                .map_err(|e| err("profile", e))?
                 .with_t_name("arc length");
             Ok(ProfileRef(Arc::new(p)))
         },
@@ -1541,7 +1531,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             nonzero_snr: o.f64_or("nonzero_snr", d.nonzero_snr)?,
             min_run: count("sbr", &o, "min_run", 1, 100_000)?.unwrap_or(d.min_run),
         };
-        let r = sbr(&m.0, &so).map_err(|e| aerr("sbr", e))?;
+        let r = sbr(&m.0, &so).map_err(|e| err("sbr", e))?;
         Ok(to_map(&r))
     };
     let f2 = f.clone();
@@ -1587,7 +1577,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             fit: d.fit.clone(),
         };
         let r =
-            remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| aerr(who, e))?;
+            remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
         let mut out = Map::new();
         let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
         let mut meta = s.scan.meta.clone();
@@ -1614,53 +1604,33 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     // quantities
-    let calib_keys: &[(&str, &str, &str, &str)] = &[
-        (
-            "n_obj",
-            "float",
-            "",
-            "refractive index of the filament (collagen 1.41 in the paper)",
-        ),
-        (
-            "d_bm_nm",
-            "float",
-            "nm",
-            "optional: bead-model cylinder diameter (default: the reference bead's)",
-        ),
-        (
-            "n_bm",
-            "float",
-            "",
-            "optional: bead-model index (default: the reference bead's)",
-        ),
-        (
-            "pixel_um",
-            "float",
-            "µm",
-            "optional: pixel size of the scans (default 0.05)",
-        ),
-        (
-            "spacing_nm",
-            "float",
-            "nm",
-            "optional: bead-model spacing (default 50)",
-        ),
-        (
-            "stencil",
-            "string",
-            "",
-            "optional: derivative stencil (default central2)",
-        ),
-        (
-            "window_um",
-            "float",
-            "µm",
-            "optional: parabola window (default 0.4)",
-        ),
-    ];
+    let calib_keys = [
+        &[
+            (
+                "n_obj",
+                "float",
+                "",
+                "refractive index of the filament (collagen 1.41 in the paper)",
+            ),
+            (
+                "d_bm_nm",
+                "float",
+                "nm",
+                "optional: bead-model cylinder diameter (default: the reference bead's)",
+            ),
+            (
+                "n_bm",
+                "float",
+                "",
+                "optional: bead-model index (default: the reference bead's)",
+            ),
+        ][..],
+        PIPELINE_KEYS,
+    ]
+    .concat();
     let d = Doc::func("diameter_calib", "filaments")
         .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "", calib_keys)
+        .map("opts", "", &calib_keys)
         .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr}: d = A·√(sens_corr) (eqs. colDiam, OurColD)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")
         .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline; not hard-coded (the paper's 58.6 nm is for its own optics).")
@@ -1670,20 +1640,18 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
         let who = "diameter_calib";
         let o = Opts::new(&spec, &m)?;
-        let mo = measure_opts(who, &o, MeasureOptions::default())?;
+        let (px, mo, bm) = pipeline_opts(who, &o)?;
         let rb = t.0.reference;
         let c = DiameterCalib::from_template(
             &t.0,
             o.req_f64("n_obj")?,
             o.f64_or("d_bm_nm", rb.d_nm)?,
             o.f64_or("n_bm", rb.n)?,
-            o.f64_or("pixel_um", 0.05)?,
+            px,
             &mo,
-            &BeadModelOptions {
-                spacing_nm: o.f64_or("spacing_nm", 50.0)?,
-            },
+            &bm,
         )
-        .map_err(|e| aerr(who, e))?;
+        .map_err(|e| err(who, e))?;
         Ok(to_map(&c))
     });
     r.bind(
@@ -1700,7 +1668,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             .example("fibril_diameter(0.25, 60.0)", "30.0")
             .example("fibril_diameter(-0.1, 60.0)", "error: sens_corr = -0.1"),
         |s: f64, a: f64| -> RResult<f64> {
-            fibril_diameter_nm(s, a).map_err(|e| aerr("fibril_diameter", e))
+            fibril_diameter_nm(s, a).map_err(|e| err("fibril_diameter", e))
         },
     );
     let d = Doc::func("lin_dens_calib", "filaments")
@@ -1714,6 +1682,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "opts",
             "",
             &[
+                &[
                 (
                     "n_obj",
                     "float",
@@ -1726,31 +1695,10 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                     "g/cm³",
                     "optional: its density (default 1.35, protein)",
                 ),
-                (
-                    "pixel_um",
-                    "float",
-                    "µm",
-                    "optional: pixel size (default 0.05)",
-                ),
-                (
-                    "spacing_nm",
-                    "float",
-                    "nm",
-                    "optional: bead-model spacing (default 50)",
-                ),
-                (
-                    "stencil",
-                    "string",
-                    "",
-                    "optional: derivative stencil (default central2)",
-                ),
-                (
-                    "window_um",
-                    "float",
-                    "µm",
-                    "optional: parabola window (default 0.4)",
-                ),
-            ],
+                ][..],
+                PIPELINE_KEYS,
+            ]
+            .concat(),
         )
         .returns(
             "map",
@@ -1765,18 +1713,16 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
         let who = "lin_dens_calib";
         let o = Opts::new(&spec, &m)?;
-        let mo = measure_opts(who, &o, MeasureOptions::default())?;
+        let (px, mo, bm) = pipeline_opts(who, &o)?;
         let c = LinDensCalib::from_template(
             &t.0,
             o.f64_or("n_obj", 1.587)?,
             o.f64_or("density_obj", 1.35)?,
-            o.f64_or("pixel_um", 0.05)?,
+            px,
             &mo,
-            &BeadModelOptions {
-                spacing_nm: o.f64_or("spacing_nm", 50.0)?,
-            },
+            &bm,
         )
-        .map_err(|e| aerr(who, e))?;
+        .map_err(|e| err(who, e))?;
         Ok(to_map(&c))
     });
     let d = Doc::func("linear_density", "filaments")
@@ -1805,8 +1751,8 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             density_obj: get("density_obj")?,
             n_corr: get("n_corr")?,
         };
-        let mu = cal.linear_density(s).map_err(|e| aerr(who, e))?;
-        let (x, n) = protofilaments(mu).map_err(|e| aerr(who, e))?;
+        let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
+        let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
         let mut m = Map::new();
         m.insert("mu_mda_um".into(), mu.into());
         m.insert("protofilaments".into(), (n as i64).into());
@@ -1842,7 +1788,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             o.f64_or("density", rb.density_g_cm3)?,
             &rb,
         )
-        .map_err(|e| aerr(who, e))?;
+        .map_err(|e| err(who, e))?;
         Ok(to_map(&p))
     });
 }
@@ -1863,8 +1809,8 @@ fn register_stats(r: &mut Registrar) {
             .example("summary([1.0, 2.0, 3.0]).std", "1.0")
             .example("summary([])", "error: "),
         |a: Array| -> RResult<Map> {
-            let v = f64s_nan("summary", &a)?;
-            let s = summary(&v).map_err(|e| aerr("summary", e))?;
+            let v = numbers("summary", "values", &Dynamic::from_array(a))?;
+            let s = summary(&v).map_err(|e| err("summary", e))?;
             Ok(to_map(&s))
         },
     );
@@ -1887,15 +1833,15 @@ fn register_stats(r: &mut Registrar) {
                 "histogram: bins = {bins} is out of range: 1 ≤ bins ≤ 10000"
             ));
         }
-        let v = f64s_nan("histogram", &a)?;
-        let h = histogram(&v, bins as usize, range).map_err(|e| aerr("histogram", e))?;
+        let v = numbers("histogram", "values", &Dynamic::from_array(a))?;
+        let h = histogram(&v, bins as usize, range).map_err(|e| err("histogram", e))?;
         let mut m = to_map(&h);
         m.insert("centres".into(), floats(&h.centres()).into());
         Ok(m)
     };
     r.bind(d, move |a: Array, b: i64| f(a, b, None));
     r.overload("histogram", move |a: Array, b: i64, rg: Array| {
-        let v = f64s("histogram", "range", &Dynamic::from_array(rg))?;
+        let v = numbers("histogram", "range", &Dynamic::from_array(rg))?;
         if v.len() != 2 {
             return fail("histogram: range must be [lo, hi]");
         }
@@ -1918,9 +1864,11 @@ fn register_stats(r: &mut Registrar) {
             )
             .example(&format!("{name}([1.0, 1.0], [1.0, 2.0])"), "error: ");
         let f = move |x: Array, y: Array, s: Option<Array>| -> RResult<Map> {
-            let x = f64s_nan(name, &x)?;
-            let y = f64s_nan(name, &y)?;
-            let s = s.map(|s| f64s_nan(name, &s)).transpose()?;
+            let x = numbers(name, "x", &Dynamic::from_array(x))?;
+            let y = numbers(name, "y", &Dynamic::from_array(y))?;
+            let s = s
+                .map(|s| numbers(name, "sigma_y", &Dynamic::from_array(s)))
+                .transpose()?;
             if x.len() != y.len() || s.as_ref().is_some_and(|s| s.len() != x.len()) {
                 return fail(format!(
                     "{name}: x, y (and sigma_y) must have the same length, got {} and {}",
@@ -1933,28 +1881,10 @@ fn register_stats(r: &mut Registrar) {
             } else {
                 linfit(&x, &y, s.as_deref())
             }
-            .map_err(|e| aerr(name, e))?;
+            .map_err(|e| err(name, e))?;
             Ok(to_map(&r))
         };
         r.bind(d, move |x: Array, y: Array| f(x, y, None));
         r.overload(name, move |x: Array, y: Array, s: Array| f(x, y, Some(s)));
     }
-}
-
-/// Numbers of an array; non-numbers are an error, NaN/inf pass through (the statistics skip them).
-fn f64s_nan(who: &str, a: &Array) -> RResult<Vec<f64>> {
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            to_f64(x).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: values[{i}] must be a number, got {} {x}",
-                        x.type_name()
-                    ))
-                },
-                Ok,
-            )
-        })
-        .collect()
 }

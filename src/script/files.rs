@@ -5,7 +5,7 @@
 //! products — scans, the measurements, are never overwritten).
 
 use super::ctx::Ctx;
-use super::registry::{fail, to_f64, Doc, Opts, RResult, Registrar};
+use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::plot::{
     plot_hist, plot_image, plot_profile, plot_scan, plot_xy, PlotOpts, ScanPlotOpts, Series,
@@ -40,29 +40,6 @@ fn stamp(c: &Ctx, path: &str) -> RResult<String> {
 
 fn ferr(who: &str, path: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
     format!("{who}: {path}: {e}").into()
-}
-
-fn floats_of(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
-    let Some(a) = v.read_lock::<Array>() else {
-        return fail(format!(
-            "{who}: {name} must be an array of numbers, got {}",
-            v.type_name()
-        ));
-    };
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            to_f64(x).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: {name}[{i}] must be a number, got {} {x}",
-                        x.type_name()
-                    ))
-                },
-                Ok,
-            )
-        })
-        .collect()
 }
 
 fn xy_opts(o: &Opts) -> RResult<XyOpts> {
@@ -270,7 +247,7 @@ pub fn register(r: &mut Registrar) {
             }
             let get = |k: &str| -> RResult<Vec<f64>> {
                 match sm.get(k) {
-                    Some(v) => floats_of(who, &format!("series[{i}].{k}"), v),
+                    Some(v) => numbers(who, &format!("series[{i}].{k}"), v),
                     None => fail(format!("{who}: series[{i}] lacks `{k}`")),
                 }
             };
@@ -343,7 +320,7 @@ pub fn register(r: &mut Registrar) {
         let who = "plot_hist";
         let o = Opts::new(&spec, &m)?;
         prepare(who, path)?;
-        let v = floats_of(who, "values", &Dynamic::from_array(a))?;
+        let v = numbers(who, "values", &Dynamic::from_array(a))?;
         let bins = o.int("bins")?.unwrap_or(20);
         if !(1..=10_000).contains(&bins) {
             return fail(format!(
@@ -425,7 +402,7 @@ pub fn register(r: &mut Registrar) {
             let mut cols = vec![];
             for (k, c) in m.iter() {
                 heads.push(k.to_string());
-                cols.push(floats_of(who, k, c)?);
+                cols.push(numbers(who, k, c)?);
             }
             crate::data::csv::save_csv_table(path, &heads, &cols)
                 .map_err(|e| ferr(who, path, e))?;

@@ -4,7 +4,7 @@
 //! diameters and wavelengths, mW for power (docs/physics.md).
 
 use super::ctx::Ctx;
-use super::registry::{fail, num, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
 use super::types::{floats, json_to_dynamic, ScanRef};
 use crate::instrument::sim::scene::{
     Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
@@ -33,10 +33,6 @@ fn optics_map(o: &Optics) -> Map {
     m.insert("n_theta".into(), (o.n_theta as INT).into());
     m.insert("n_phi".into(), (o.n_phi as INT).into());
     m
-}
-
-fn err(who: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {
-    format!("{who}: {e}").into()
 }
 
 fn optics_of(ctx: &Ctx) -> Optics {
@@ -670,43 +666,16 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.overload("simulate", move |s: SceneRef, m: Map| -> RResult<ScanRef> {
         let o = Opts::new(&spec, &m)?;
-        let (x0, x1) = o.req_range("x")?;
-        let (y0, y1) = o.req_range("y")?;
-        let nx = o.req_int("nx")?;
-        let ny = o.req_int("ny")?;
-        for (k, v) in [("nx", nx), ("ny", ny)] {
-            if !(1..=4096).contains(&v) {
-                return fail(format!(
-                    "simulate: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"
-                ));
-            }
-        }
+        let (xs, ys) = super::analysis::grid_axes("simulate", &o)?;
         let ns = o.int("n_samples")?.unwrap_or(10_000);
         if !(1..=100_000_000).contains(&ns) {
             return fail(format!(
                 "simulate: n_samples = {ns} is out of range: 1 ≤ n_samples ≤ 100000000"
             ));
         }
-        let axis = |a: f64, b: f64, n: i64| -> Vec<f64> {
-            (0..n)
-                .map(|i| {
-                    if n == 1 {
-                        a
-                    } else {
-                        a + (b - a) * i as f64 / (n - 1) as f64
-                    }
-                })
-                .collect()
-        };
         let r = crate::instrument::sim::Renderer::new(&optics_of(&c), &s.0, Default::default())
             .map_err(|e| err("simulate", e))?;
-        let scan = render_xy(
-            &r,
-            &axis(x0, x1, nx),
-            &axis(y0, y1, ny),
-            o.f64_or("z", 0.0)?,
-            ns as usize,
-        );
+        let scan = render_xy(&r, &xs, &ys, o.f64_or("z", 0.0)?, ns as usize);
         Ok(ScanRef::new(scan, None))
     });
     let c = ctx.clone();

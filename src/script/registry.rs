@@ -448,6 +448,36 @@ impl<'a> Registrar<'a> {
     }
 }
 
+/// The numbers of an array argument (`who: name[i] must be a number` otherwise). Non-finite
+/// values pass through: reductions skip them, checks that need finite values make their own.
+pub fn numbers(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
+    let Some(a) = v.read_lock::<rhai::Array>() else {
+        return fail(format!(
+            "{who}: {name} must be an array of numbers, got {}",
+            v.type_name()
+        ));
+    };
+    a.iter()
+        .enumerate()
+        .map(|(i, x)| {
+            to_f64(x).map_or_else(
+                || {
+                    fail(format!(
+                        "{who}: {name}[{i}] must be a number, got {} {x}",
+                        x.type_name()
+                    ))
+                },
+                Ok,
+            )
+        })
+        .collect()
+}
+
+/// A script error `who: e` from any displayable error of the library.
+pub fn err(who: &str, e: impl std::fmt::Display) -> Box<EvalAltResult> {
+    format!("{who}: {e}").into()
+}
+
 /// Number from an int or float argument; the message names the binding, the argument and the
 /// value.
 pub fn num(who: &str, name: &str, v: &Dynamic) -> RResult<f64> {
