@@ -142,8 +142,10 @@ pub struct FiniteSize {
 }
 /// Lorenz–Mie beads (issue 8, docs/physics.md §9): every scene bead of diameter ≥ `min_d_nm`
 /// is rendered with the focused-beam Mie response of its sphere (angular-spectrum beam, one
-/// template per distinct (d, n)) instead of a Rayleigh point dipole; filaments and aggregates
-/// stay Rayleigh bead models. `scattered_intensity` adds the |E_s|² term.
+/// template per distinct (d, n)) instead of a Rayleigh point dipole. Every other scatterer
+/// (filaments, aggregates, smaller beads) becomes a point dipole in the same angular-spectrum
+/// beam, so the scene stays one instrument. `scattered_intensity` adds the |E_s|² term of the
+/// Mie spheres.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct MieEffect {
     pub min_d_nm: f64,
