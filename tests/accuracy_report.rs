@@ -67,8 +67,8 @@ fn quick_report_writes_files_and_defaults_sit_at_the_knee() {
     // defaults at the knee; the two documented exceptions must stay what the report says
     for k in &r.knobs {
         match (k.knob.id.as_str(), &k.verdict) {
-            // the point dipole is not meant for 500 nm beads; the 1 ms dwell is a navigation default
-            ("model_500" | "dwell", v) => {
+            // the point dipole is not meant for 500 nm beads (docs/accuracy.md#model_500)
+            ("model_500", v) => {
                 assert!(
                     matches!(v, KneeVerdict::Below { .. }),
                     "{}: {v:?}",
@@ -83,6 +83,16 @@ fn quick_report_writes_files_and_defaults_sit_at_the_knee() {
             (id, v) => panic!("{id}: default not at the knee: {v:?}"),
         }
     }
+
+    // the point dipole's domain for polystyrene: within 1 % of Mie at 170 nm (the paper's largest
+    // bead), beyond it at 350 nm; the 1 % diameter lies between (measured ≈ 252 nm)
+    let ps = &r.validity[0];
+    assert_eq!(ps.n, 1.572);
+    assert!(ps.points[0].1.abs() < 0.01, "{:?}", ps.points);
+    assert!(ps.points.last().unwrap().1.abs() > 0.03, "{:?}", ps.points);
+    let d1 = ps.d_1pct.unwrap();
+    assert!((200.0..350.0).contains(&d1), "{d1}");
+    assert!(md.contains("Where the point dipole holds"));
 
     // trade-off: σ ∝ 1/√t between decades of dwell, and the closed-form law at 0.1 s
     let t = &r.tradeoff;

@@ -392,14 +392,14 @@ fn config_speed_limit_and_legacy_limits_table() {
     let d = tmp("speed");
     let cfg = d.join("bfpscope.toml");
     std::fs::write(&cfg, "[safety]\nmax_speed_um_s = 10.0\n").unwrap();
-    // mock: settle 1 ms, dwell 1 ms; 0.1 µm steps → 50 µm/s
+    // mock: settle 1 ms, dwell 1 ms (explicit: the default is 10 ms); 0.1 µm steps → 50 µm/s
     let (code, _, err) = run(&[
         "--config",
         cfg.to_str().unwrap(),
         "--data",
         d.join("data").to_str().unwrap(),
         "eval",
-        "connect(#{backend: \"mock\"}); [limits().max_speed_um_s, scan_line(#{axis: \"x\", from: 0.0, to: 1.0, n: 11})]",
+        "connect(#{backend: \"mock\"}); [limits().max_speed_um_s, scan_line(#{axis: \"x\", from: 0.0, to: 1.0, n: 11, dwell: 0.001})]",
     ]);
     assert_eq!(code, 1);
     assert!(

@@ -465,3 +465,88 @@ pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
         points,
     }
 }
+
+/// Where the point dipole holds: for beads of index `n` and diameter d, the point dipole's
+/// relative error in the paper's normalised sensitivity (∂Sx/∂x)max(d, n)/(∂Sx/∂x)max(110 nm PS)
+/// (Fig. 3c; the reference bead is the paper's polystyrene one), against the focused-beam Mie
+/// tier in one beam: err = [M(d, n)/α(d, n)] / [M(110, PS)/α(110, PS)] − 1, where M is the Mie
+/// tier's maximum sensitivity and α the static polarisability (Clausius–Mossotti, µm³).
+#[derive(Debug, Clone)]
+pub struct Validity {
+    /// Bead index (real).
+    pub n: f64,
+    /// (diameter nm, relative error) pairs, increasing d.
+    pub points: Vec<(f64, f64)>,
+    /// Largest diameter of the sweep below which every point is within 1 %, linearly
+    /// interpolated to the first crossing; None when the smallest diameter already fails or no
+    /// point does (then `points` says which).
+    pub d_1pct: Option<f64>,
+}
+
+/// The validity sweep for polystyrene (n = 1.572), silica (1.45) and a high-index bead (2.0);
+/// quick: polystyrene only, three diameters.
+pub fn model_validity(quick: bool) -> Vec<Validity> {
+    let o = Optics::default();
+    let spec = MieBeamSpec::default();
+    let per_alpha = |d: f64, n: f64| -> f64 {
+        MieBeam::new(&o, d, Complex64::new(n, 0.0), spec)
+            .expect("valid Mie bead")
+            .max_sensitivity_x()
+            .0
+            / alpha_um3(d, n, o.n_medium)
+    };
+    let reference = per_alpha(110.0, REF_BEAD_N);
+    let (indices, ds): (&[f64], &[f64]) = if quick {
+        (&[REF_BEAD_N], &[170.0, 250.0, 350.0])
+    } else {
+        (
+            &[1.45, REF_BEAD_N, 2.0],
+            &[60.0, 110.0, 170.0, 210.0, 250.0, 300.0, 350.0, 500.0],
+        )
+    };
+    indices
+        .iter()
+        .map(|&n| {
+            let points: Vec<(f64, f64)> = ds
+                .iter()
+                .map(|&d| (d, per_alpha(d, n) / reference - 1.0))
+                .collect();
+            Validity {
+                n,
+                d_1pct: first_crossing(&points, 0.01),
+                points,
+            }
+        })
+        .collect()
+}
+
+/// Linear interpolation of the first d where |err| reaches `tol` (None if the first point is
+/// already beyond it or none is).
+fn first_crossing(points: &[(f64, f64)], tol: f64) -> Option<f64> {
+    if points.first().is_none_or(|p| p.1.abs() > tol) {
+        return None;
+    }
+    points.windows(2).find_map(|w| {
+        let ((d0, e0), (d1, e1)) = (w[0], w[1]);
+        (e1.abs() > tol).then(|| d0 + (d1 - d0) * (tol - e0.abs()) / (e1.abs() - e0.abs()))
+    })
+}
+
+#[cfg(test)]
+mod validity_tests {
+    use super::first_crossing;
+
+    #[test]
+    fn first_crossing_interpolates_and_refuses_the_impossible() {
+        let p = [
+            (100.0, 0.002),
+            (200.0, -0.006),
+            (300.0, 0.014),
+            (400.0, 0.5),
+        ];
+        // |e| goes 0.006 → 0.014 between 200 and 300 nm: 1 % at 250 nm
+        assert!((first_crossing(&p, 0.01).unwrap() - 250.0).abs() < 1e-9);
+        assert_eq!(first_crossing(&p, 1.0), None);
+        assert_eq!(first_crossing(&[(60.0, 0.02), (110.0, 0.03)], 0.01), None);
+    }
+}

@@ -50,6 +50,8 @@ pub struct KnobResult {
 #[derive(Debug, Clone)]
 pub struct Report {
     pub knobs: Vec<KnobResult>,
+    /// Where the point dipole is within 1 % of the Mie tier (per bead index).
+    pub validity: Vec<ak::Validity>,
     pub tradeoff: Tradeoff,
     pub markdown: PathBuf,
     pub seconds: f64,
@@ -246,6 +248,8 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
     step("Mie terms", &|| ak::knob_mie_terms(q));
     step("model 170 nm", &|| ak::knob_model(q, 170.0));
     step("model 500 nm", &|| ak::knob_model(q, 500.0));
+    say("point-dipole validity");
+    let validity = ak::model_validity(q);
     step("fit tolerance", &|| ak::knob_fit_tolerance(q));
     step("fit patience", &|| ak::knob_fit_patience(q));
     step("stencil", &|| ak::knob_stencil(q));
@@ -270,7 +274,7 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
     let trade_png = png_dir.join("tradeoff.png");
     tradeoff_png(&trade_png, &trade)?;
     let seconds = t0.elapsed().as_secs_f64();
-    let md = markdown(opts, &machine, &results, &trade, seconds);
+    let md = markdown(opts, &machine, &results, &validity, &trade, seconds);
     let md_path = opts.out.join("accuracy.md");
     let tmp = md_path.with_extension("md.tmp");
     std::fs::write(&tmp, md.as_bytes())
@@ -279,6 +283,7 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
     say(&format!("wrote {}", md_path.display()));
     Ok(Report {
         knobs: results,
+        validity,
         tradeoff: trade,
         markdown: md_path,
         seconds,
@@ -344,6 +349,7 @@ fn markdown(
     opts: &ReportOptions,
     machine: &str,
     results: &[KnobResult],
+    validity: &[ak::Validity],
     t: &Tradeoff,
     seconds: f64,
 ) -> String {
@@ -406,6 +412,9 @@ fn markdown(
             s += note;
             s += "\n\n";
         }
+        if k.id == "model_500" {
+            s += &validity_markdown(validity);
+        }
         if k.id == "mie_terms" {
             if let (Some(kn), Some(d)) = (knee(k, 3e-5), k.default_point()) {
                 s += &format!(
@@ -421,6 +430,50 @@ fn markdown(
     }
     s += &tradeoff_markdown(t);
     s += &bench_markdown(opts.criterion.as_deref());
+    s
+}
+
+/// The point dipole's domain: its error per bead index and diameter, and the 1 % diameter.
+fn validity_markdown(v: &[ak::Validity]) -> String {
+    let Some(first) = v.first() else {
+        return String::new();
+    };
+    let mut s = String::from(
+        "**Where the point dipole holds.** Relative error of the point dipole in the paper's normalised sensitivity \
+         (∂Sx/∂x)max(d, n)/(∂Sx/∂x)max(110 nm polystyrene), against the Mie tier in one beam \
+         (err = [M(d, n)/α(d, n)] / [M(110, PS)/α(110, PS)] − 1; M the Mie tier's maximum sensitivity, α the static \
+         polarisability):\n\n| n \\ d (nm) |",
+    );
+    for (d, _) in &first.points {
+        s += &format!(" {d:.0} |");
+    }
+    s += " within 1 % up to |\n|---|";
+    for _ in &first.points {
+        s += "---|";
+    }
+    s += "---|\n";
+    for r in v {
+        s += &format!("| {:.3} |", r.n);
+        for (_, e) in &r.points {
+            s += &format!(" {:+.2} % |", 100.0 * e);
+        }
+        s += &match r.d_1pct {
+            Some(d) => format!(" {d:.0} nm |\n"),
+            None if r.points.first().is_some_and(|p| p.1.abs() > 0.01) => {
+                format!(" below {:.0} nm |\n", r.points[0].0)
+            }
+            None => format!(" beyond {:.0} nm |\n", r.points.last().map_or(0.0, |p| p.0)),
+        };
+    }
+    s += "\nThe simulator's default stays the paraxial point dipole (the paper's model, suppl. S2) and does not switch \
+          to Mie by itself: the Mie tier is a different beam (its angular-spectrum focus is 1.34× wider and its dipole \
+          limit's maximum sensitivity 1.6× smaller at the paper's optics, docs/physics.md §9), so switching one bead \
+          would change every other object's signal, and the model-based calibrations (`template_model`, \
+          `diameter_calib`, `lin_dens_calib`) are paraxial. A scene that needs Mie asks for it with the `mie` effect, \
+          which since session 3 renders the whole scene in the one angular-spectrum beam; calibrate such scenes with \
+          reference beads in the same scene. Making both tiers one beam (a Rayleigh tier in the angular-spectrum \
+          beam) would let the model follow the bead size automatically; it is an open physics decision, not a knob \
+          setting.\n\n";
     s
 }
 
@@ -442,13 +495,19 @@ fn knob_note(id: &str) -> Option<&'static str> {
         "model_500" => "At 500 nm neither dipole model is within 1 % of the focused-beam Mie tier: the point dipole \
                         overestimates the normalised sensitivity (it grows as d³; paper Fig. 3c shows the measurements \
                         and Mie saturating) and the finite-size sphere rule (dipoles driven by the incident field, S6) \
-                        underestimates it by about as much. Only the Mie tier meets the criterion (the simulator's \
-                        `mie` effect is being wired in under issue 8). The point dipole stays the simulator's default \
-                        because the paper's objects (110–170 nm beads, filaments ≤ 150 nm) are small — the 170 nm \
-                        knob shows it within 0.2 % of Mie there; this row documents where that stops.",
-        "dwell" => "The scan bindings' default dwell (1 ms) is an operator default for quick navigation scans, not an \
-                    accuracy setting: it does not reach the paper's 950 kDa with one 64×64 scan. The dwell needed is in \
-                    the trade-off section below.",
+                        underestimates it by about as much. Only the Mie tier (the simulator's `mie` effect) meets the \
+                        criterion, at about 100× the time of the point dipole. The paper's objects (110–170 nm \
+                        polystyrene beads, filaments ≤ 150 nm) are inside the point dipole's domain (table below); the \
+                        500 nm fiducial beads of the rotation experiment (Sec. 4.2) are outside it, which is harmless \
+                        for a position reference.",
+        "dwell" => "The scan bindings' default dwell (`scans::DEFAULT_DWELL_S`, 10 ms) is this knee: the cheapest dwell at \
+                    which one 64×64 scan of 50 nm pixels reaches the paper's 950 kDa for a 110 nm bead at the \
+                    simulator's paper noise (41 s of dwell; the exact crossing is in the trade-off section below). \
+                    The paper itself stops at least 0.1 s at each position (suppl. S1). Until session 3 the default \
+                    was 1 ms, 2.9× short of the criterion; quick navigation scans still pass `dwell: 0.001`, and the \
+                    focus search keeps its own 1 ms default (its result is a height, verified to ±20 nm by \
+                    tests/scripts/protocols.rhai), while the reference-bead calibration defaults to 10 ms because its \
+                    template's noise enters every later measurement.",
         "stencil" => "All stencils cost about the same; what differs is bias against noise. The error shown is the \
                       calibrated one: every calibration in the crate (reference-bead maximum, A, μ_bm, angle curve) \
                       reads its model through the same stencil and pixel size, so the stencil's bias (and the \
@@ -611,13 +670,14 @@ fn calibration_markdown(t: &Tradeoff) -> String {
     );
     s += &format!(
         "The reason is that the per-sample σ was never calibrated against the paper's resolution: the paper gives the \
-         mass resolution (950 kDa, Sec. 3.2) but neither its dwell per pixel, its pixel pitch, the fitted area nor the \
-         per-sample noise (supplement S8 is qualitative; its DAQ samples at 800 kHz). For white noise the weight's \
+         mass resolution (950 kDa, Sec. 3.2) and says the stage stops at least 0.1 s at each position (suppl. S1), but \
+         gives neither its pixel pitch, the fitted area nor the per-sample noise (supplement S8 is qualitative; its DAQ \
+         samples at 800 kHz). For white noise the weight's \
          uncertainty is σ_C = σ_s/√(f·(t/h²)·I) (module docs of `accuracy::instrument`), with I = ∫(Tx² + Ty²) dA = \
          {:.3e} µm² for the 110 nm bead: only the noise per sample and the **time per unit area** t/h² enter. \
          The project's choice (0.1 s per 50 nm pixel = 40 s/µm²) is an assumption; the paper's 950 kDa at the same σ_s \
-         corresponds to {:.1} s/µm² — e.g. {} per 50 nm pixel, or {} per 200 nm pixel — or, at 40 s/µm², to a \
-         per-sample σ about {:.1}× larger. Two further factors make the paper's number larger than our fit's: it fits \
+         corresponds to {:.1} s/µm² — e.g. {} per 50 nm pixel, or, at the paper's 0.1 s per position, pixels of {:.0} nm \
+         — or, at 40 s/µm², to a per-sample σ about {:.1}× larger. Two further factors make the paper's number larger than our fit's: it fits \
          Sx only (\"the uncertainty in the fit to the S_x response\"; ×{:.2} here), and its residuals include \
          template mismatch, drift and the other noise sources of S8, not white detector noise alone. Which of these \
          the paper's factor of {} comes from cannot be decided from the text. **Consequence:** the simulator's \
@@ -627,7 +687,7 @@ fn calibration_markdown(t: &Tradeoff) -> String {
         t.template_integral,
         density_needed(t.bead_k_kda_sqrt_s),
         instrument::fmt_dwell(density_needed(t.bead_k_kda_sqrt_s) * 0.05 * 0.05),
-        instrument::fmt_dwell(density_needed(t.bead_k_kda_sqrt_s) * 0.2 * 0.2),
+        1e3 * (0.1 / density_needed(t.bead_k_kda_sqrt_s)).sqrt(),
         ratio.unwrap_or(f64::NAN),
         t.bead_k_sx_only / t.bead_k_kda_sqrt_s,
         ratio.map(|r| format!("{r:.1}")).unwrap_or_else(|| "—".into()),
