@@ -469,8 +469,7 @@ pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
 /// Where the point dipole holds: for beads of index `n` and diameter d, the point dipole's
 /// relative error in the paper's normalised sensitivity (∂Sx/∂x)max(d, n)/(∂Sx/∂x)max(110 nm PS)
 /// (Fig. 3c; the reference bead is the paper's polystyrene one), against the focused-beam Mie
-/// tier in one beam: err = [M(d, n)/α(d, n)] / [M(110, PS)/α(110, PS)] − 1, where M is the Mie
-/// tier's maximum sensitivity and α the static polarisability (Clausius–Mossotti, µm³).
+/// tier in one beam (`mie_beam::point_dipole_error`).
 #[derive(Debug, Clone)]
 pub struct Validity {
     /// Bead index (real).
@@ -487,15 +486,6 @@ pub struct Validity {
 /// quick: polystyrene only, three diameters.
 pub fn model_validity(quick: bool) -> Vec<Validity> {
     let o = Optics::default();
-    let spec = MieBeamSpec::default();
-    let per_alpha = |d: f64, n: f64| -> f64 {
-        MieBeam::new(&o, d, Complex64::new(n, 0.0), spec)
-            .expect("valid Mie bead")
-            .max_sensitivity_x()
-            .0
-            / alpha_um3(d, n, o.n_medium)
-    };
-    let reference = per_alpha(110.0, REF_BEAD_N);
     let (indices, ds): (&[f64], &[f64]) = if quick {
         (&[REF_BEAD_N], &[170.0, 250.0, 350.0])
     } else {
@@ -509,7 +499,11 @@ pub fn model_validity(quick: bool) -> Vec<Validity> {
         .map(|&n| {
             let points: Vec<(f64, f64)> = ds
                 .iter()
-                .map(|&d| (d, per_alpha(d, n) / reference - 1.0))
+                .map(|&d| {
+                    let e = crate::optics::mie_beam::point_dipole_error(&o, d, n)
+                        .expect("valid Mie bead");
+                    (d, e)
+                })
                 .collect();
             Validity {
                 n,

@@ -441,8 +441,8 @@ fn validity_markdown(v: &[ak::Validity]) -> String {
     let mut s = String::from(
         "**Where the point dipole holds.** Relative error of the point dipole in the paper's normalised sensitivity \
          (∂Sx/∂x)max(d, n)/(∂Sx/∂x)max(110 nm polystyrene), against the Mie tier in one beam \
-         (err = [M(d, n)/α(d, n)] / [M(110, PS)/α(110, PS)] − 1; M the Mie tier's maximum sensitivity, α the static \
-         polarisability):\n\n| n \\ d (nm) |",
+         (err = [α(d, n)/α(110, PS)] / [M(d, n)/M(110, PS)] − 1; M the Mie tier's maximum sensitivity, α the static \
+         polarisability; positive: the point dipole is too large):\n\n| n \\ d (nm) |",
     );
     for (d, _) in &first.points {
         s += &format!(" {d:.0} |");

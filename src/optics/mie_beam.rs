@@ -790,6 +790,45 @@ fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
     out
 }
 
+/// How far the point dipole is off for a bead of diameter `d_nm` (nm) and real index `n`:
+/// the relative error of its normalised maximum sensitivity
+/// (∂Sx/∂x)max(d, n)/(∂Sx/∂x)max(110 nm polystyrene) (paper Fig. 3c, Sec. 3.2), against the
+/// focused-beam Mie tier in one beam:
+/// err = [α(d, n)/α(110, PS)] / [M(d, n)/M(110, PS)] − 1, with M the Mie tier's maximum
+/// sensitivity (default grid) and α the static Clausius–Mossotti polarisability (µm³): the
+/// point dipole's normalised sensitivity is α(d, n)/α(110, PS) exactly, Mie's is the M ratio.
+/// Dimensionless; about 0.1 s per new (optics, d, n) in a release build, then cached for the
+/// process (the simulator asks it for large or unusual beads, docs/accuracy.md#model_500).
+pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    type Key = (String, u64, u64);
+    static CACHE: OnceLock<Mutex<HashMap<Key, f64>>> = OnceLock::new();
+    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
+    let okey = format!("{optics:?}");
+    let per_alpha = |d: f64, n: f64| -> Result<f64, OpticsError> {
+        let key = (okey.clone(), d.to_bits(), n.to_bits());
+        if let Some(v) = cache.lock().unwrap().get(&key) {
+            return Ok(*v);
+        }
+        let alpha = super::rayleigh::alpha_um3(d, n, optics.n_medium);
+        if alpha == 0.0 {
+            return Err(OpticsError::Invalid(format!(
+                "point_dipole_error: n = {n} equals the medium index {}: α = 0",
+                optics.n_medium
+            )));
+        }
+        let m = MieBeam::new(optics, d, C64::new(n, 0.0), MieBeamSpec::default())?
+            .max_sensitivity_x()
+            .0;
+        let v = m / alpha;
+        cache.lock().unwrap().insert(key, v);
+        Ok(v)
+    };
+    let reference = per_alpha(super::params::REF_BEAD_D_NM, super::params::REF_BEAD_N)?;
+    Ok(reference / per_alpha(d_nm, n)? - 1.0)
+}
+
 /// Accuracy knob (docs/accuracy.md): the incident plane-wave grid (n_theta_in, n_phi_in),
 /// 500 nm polystyrene bead, default optics (detection grid (16, 8), whose own error is the
 /// `quadrature` knob). Error: the larger of (i) the relative error of (∂Sx/∂x)max (maximised

@@ -653,10 +653,11 @@ pub fn register(r: &mut Registrar) {
             .map("grid", "optional second argument: render an XY image directly, without stage or clock", grid_keys)
             .form("simulate(scene) -> map")
             .form("simulate(scene, grid) -> Scan")
-            .returns("map | Scan", "simulate(scene): #{stages, scatterers} of the pipeline built; simulate(scene, grid): the rendered scan (not autosaved)")
+            .returns("map | Scan", "simulate(scene): #{stages, scatterers, notes} of the pipeline built (notes: beads the point dipole renders > 1 % off Mie); simulate(scene, grid): the rendered scan (not autosaved)")
             .summary("put a scene under the simulated instrument, or render it straight to an XY scan")
             .help("simulate(scene) connects the simulated instrument (the stage position and virtual clock are kept when one is already connected); scans then image the scene. The pipeline contains only the stages the scene's effects name. simulate(scene, grid) renders an image without moving anything (figures, tests).")
             .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\"]")
+            .example("let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 500.0}); simulate(s).notes.len()", "1")
             .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
             .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0"),
         move |s: SceneRef| -> RResult<Map> { install(&c, &s.0) },
@@ -675,6 +676,9 @@ pub fn register(r: &mut Registrar) {
         }
         let r = crate::instrument::sim::Renderer::new(&optics_of(&c), &s.0, Default::default())
             .map_err(|e| err("simulate", e))?;
+        for n in &r.notes {
+            c.log(&format!("simulate: note: {n}"));
+        }
         let scan = render_xy(&r, &xs, &ys, o.f64_or("z", 0.0)?, ns as usize);
         Ok(ScanRef::new(scan, None))
     });
@@ -813,6 +817,13 @@ fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
         Dynamic::from_array(r.stage_names().into_iter().map(Dynamic::from).collect()),
     );
     m.insert("scatterers".into(), (r.scatterers.len() as INT).into());
+    for n in &r.notes {
+        ctx.log(&format!("simulate: note: {n}"));
+    }
+    m.insert(
+        "notes".into(),
+        Dynamic::from_array(r.notes.iter().cloned().map(Dynamic::from).collect()),
+    );
     Ok(m)
 }
 

@@ -174,7 +174,11 @@ impl Qpd for SimQpd {
     }
     fn metadata(&self) -> Option<serde_json::Value> {
         let st = self.0.state.lock().unwrap();
-        Some(serde_json::json!({ "pipeline": st.renderer.stages() }))
+        let mut m = serde_json::json!({ "pipeline": st.renderer.stages() });
+        if !st.renderer.notes.is_empty() {
+            m["model_notes"] = serde_json::json!(st.renderer.notes);
+        }
+        Some(m)
     }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         if n == 0 {

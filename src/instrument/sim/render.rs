@@ -39,11 +39,49 @@ pub struct Renderer {
     pub mie_of: Vec<Option<usize>>,
     n_objects: usize,
     stages: Mutex<Vec<StageInfo>>,
+    /// Beads outside the point dipole's domain in a scene without `mie` or `finite_size`: what
+    /// the simulator noticed about its own model (recorded in scan metadata, printed by
+    /// `simulate`).
+    pub notes: Vec<String>,
     /// (stage z bits, per-scatterer planes and weights) for the last z rendered
     plane_cache: Mutex<Option<(u64, ScattererPlanes)>>,
 }
 
 const SUPERPOSITION: &str = "superposition";
+
+/// Point-dipole error beyond which the simulator says so (the model knob's 1 % criterion,
+/// docs/accuracy.md#model_500).
+pub const MODEL_NOTE_TOLERANCE: f64 = 0.01;
+
+/// Notes on beads the point dipole renders more than 1 % off the Mie tier (normalised to the
+/// 110 nm polystyrene reference, `mie_beam::point_dipole_error`). Only beads that can be off are
+/// checked, to keep ordinary scenes free: d ≥ 200 nm, or d ≥ 60 nm with an index more than 0.03
+/// from polystyrene's (polystyrene is within 1 % up to 251 nm; silica crosses at ≈ 110 nm, n = 2
+/// at ≈ 70 nm; docs/accuracy.md).
+fn model_notes(optics: &Optics, scene: &Scene) -> Vec<String> {
+    use crate::optics::params::REF_BEAD_N;
+    let mut seen: Vec<(f64, f64)> = vec![];
+    let mut notes = vec![];
+    for b in &scene.beads {
+        let (d, n) = (b.d_nm, b.n);
+        let suspect = d >= 200.0 || (d >= 60.0 && (n - REF_BEAD_N).abs() > 0.03);
+        if !suspect || seen.contains(&(d, n)) {
+            continue;
+        }
+        seen.push((d, n));
+        if let Ok(e) = crate::optics::mie_beam::point_dipole_error(optics, d, n) {
+            if e.abs() > MODEL_NOTE_TOLERANCE {
+                notes.push(format!(
+                    "bead d = {d} nm, n = {n}: the point dipole's sensitivity is {:+.1} % off the Mie tier \
+                     (relative to a 110 nm polystyrene bead; docs/accuracy.md#model_500); add the `mie` effect if \
+                     its amplitude matters",
+                    100.0 * e
+                ));
+            }
+        }
+    }
+    notes
+}
 
 /// The sphere whose Mie template stands for a point dipole in the angular-spectrum beam (`mie`
 /// effect): 1 nm (x = 0.004 at 1064 nm in water), so its response per unit α equals the dipole
@@ -245,7 +283,13 @@ impl Renderer {
                 format!("white noise σ = {:e} per sample", d.sigma_sample),
             );
         }
+        let notes = if fx.mie.is_none() && fx.finite_size.is_none() {
+            model_notes(optics, scene)
+        } else {
+            vec![]
+        };
         Ok(Self {
+            notes,
             optics: optics.clone(),
             scene: scene.clone(),
             det,
