@@ -99,7 +99,9 @@ impl Default for MieBeamSpec {
     }
 }
 
-/// Default incident θ order (knee of the accuracy sweep, docs/physics.md §9).
+/// Default incident θ order: the knee of the accuracy sweep (`knob_mie_grid`, docs/accuracy.md),
+/// i.e. the cheapest grid that is within 3e-5 of the peak *and* whose guaranteed reach
+/// ([`grid_reach_um`]) covers the knob's region ρ ≤ 1.5 µm (docs/physics.md §9).
 pub const DEFAULT_N_THETA_IN: usize = 12;
 /// Default incident φ nodes per quadrant.
 pub const DEFAULT_N_PHI_IN: usize = 6;
@@ -837,6 +839,9 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
 /// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
 /// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
 /// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
+/// Lateral radius (µm) of the region the `mie_grid` knob's error covers.
+const KNOB_REGION_UM: f64 = 1.5;
+
 pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
     use crate::accuracy::{time_median, Knob, Point};
     let o = Optics::default();
@@ -861,7 +866,7 @@ pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
     let peak = reference.eval(0.3, 0.0, 0.0, false).0[0].abs();
     let pts: Vec<[f64; 3]> = (0..18)
         .map(|i| {
-            let rho = 1.5 * ((i % 6) + 1) as f64 / 6.0;
+            let rho = KNOB_REGION_UM * ((i % 6) + 1) as f64 / 6.0;
             let a = 0.4 + 1.1 * i as f64;
             [rho * a.cos(), rho * a.sin(), [0.0, 0.5, -1.0][i % 3]]
         })
@@ -886,13 +891,27 @@ pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
                     err = err.max((v[c] - r[c]).abs() / peak);
                 }
             }
-            let secs = time_median(if quick { 5 } else { 11 }, || {
+            // A grid whose guaranteed reach is short of the region refuses part of it
+            // (`response` errors beyond the reach): no answer there counts as a 100 % error.
+            let reach = (0..3)
+                .map(|i| m.reach_um([0.0, 0.5, -1.0][i]))
+                .fold(f64::INFINITY, f64::min);
+            let short = reach < KNOB_REGION_UM;
+            if short {
+                err = err.max(1.0);
+            }
+            let secs = time_median(if quick { 21 } else { 201 }, || {
                 m.eval(0.31, -0.12, 0.05, false)
             });
             Point {
                 setting: format!(
-                    "n_theta_in = {nt}, n_phi_in = {np} ({} plane waves)",
-                    4 * nt * np
+                    "n_theta_in = {nt}, n_phi_in = {np} ({} plane waves{})",
+                    4 * nt * np,
+                    if short {
+                        format!("; reach {reach:.2} µm < {KNOB_REGION_UM} µm: refuses part of the region")
+                    } else {
+                        String::new()
+                    }
                 ),
                 value: (4 * nt * np) as f64,
                 error: err.max(1e-16),
