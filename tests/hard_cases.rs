@@ -291,3 +291,38 @@ fn large_1024_by_1024_scan_through_the_analysis() {
         p.value
     );
 }
+
+/// The simulator's point-dipole domain check at its extremes: a bead index-matched to the
+/// medium (α = 0: nothing to check, no note), one just above it (a 300 nm near-matched sphere is
+/// a Rayleigh–Gans sphere: its form factor makes the point dipole 12 % too large), a 2 µm bead
+/// (the dipole is hundreds of times too large: the note says "×", not a huge percentage) and a
+/// 100 nm bead of index 2.5. The renderer builds, every note is finite.
+#[test]
+fn point_dipole_domain_notes_at_the_extremes() {
+    use bfpscope::instrument::sim::scene::{Bead, Scene};
+    use bfpscope::instrument::sim::Renderer;
+    use bfpscope::optics::params::Optics;
+    let o = Optics::default();
+    let mut s = Scene::default();
+    for (x, d_nm, n) in [
+        (0.0, 300.0, o.n_medium),
+        (2.0, 300.0, o.n_medium + 1e-4),
+        (4.0, 2000.0, 1.572),
+        (6.0, 100.0, 2.5),
+    ] {
+        s.add_bead(Bead {
+            pos: [x, 0.0, 0.0],
+            d_nm,
+            n,
+        })
+        .unwrap();
+    }
+    let r = Renderer::new(&o, &s, Default::default()).unwrap();
+    assert_eq!(r.notes.len(), 3, "{:#?}", r.notes);
+    for n in &r.notes {
+        assert!(!n.contains("NaN") && !n.contains("inf"), "{n}");
+    }
+    assert!(r.notes[0].contains("d = 300 nm") && r.notes[0].contains("% off"));
+    assert!(r.notes[1].contains("d = 2000 nm") && r.notes[1].contains("× the value of"));
+    assert!(r.notes[2].contains("n = 2.5") && r.notes[2].contains("% off"));
+}

@@ -71,11 +71,15 @@ fn model_notes(optics: &Optics, scene: &Scene) -> Vec<String> {
         seen.push((d, n));
         if let Ok(e) = crate::optics::mie_beam::point_dipole_error(optics, d, n) {
             if e.abs() > MODEL_NOTE_TOLERANCE {
+                let off = if e.abs() < 1.0 {
+                    format!("{:+.1} % off", 100.0 * e)
+                } else {
+                    format!("{:.3}× the value of", 1.0 + e)
+                };
                 notes.push(format!(
-                    "bead d = {d} nm, n = {n}: the point dipole's sensitivity is {:+.1} % off the Mie tier \
+                    "bead d = {d} nm, n = {n}: the point dipole's sensitivity is {off} the Mie tier \
                      (relative to a 110 nm polystyrene bead; docs/accuracy.md#model_500); add the `mie` effect if \
-                     its amplitude matters",
-                    100.0 * e
+                     its amplitude matters"
                 ));
             }
         }
