@@ -202,6 +202,23 @@ pub fn mt_equivalent_d_nm(npf: u32) -> f64 {
     (4.0 * area_nm2 / std::f64::consts::PI).sqrt()
 }
 
+/// One polystyrene bead of diameter `d_nm` at (x, y) µm, z = 0, with `detector_noise` at the
+/// project's paper-noise level and the given seed.
+fn noisy_bead_scene(xy: [f64; 2], d_nm: f64, seed: u64) -> Result<Scene, String> {
+    let mut sc = Scene::default();
+    sc.add_bead(Bead {
+        pos: [xy[0], xy[1], 0.0],
+        d_nm,
+        n: REF_BEAD_N,
+    })
+    .map_err(|e| e.to_string())?;
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    sc.seed = seed;
+    Ok(sc)
+}
+
 /// Run both trade-offs: dwell sweeps of 64×64-pixel scans (50 nm) of a 110 nm polystyrene bead
 /// (fit: one bead, both channels and Sx only, σ from the residuals) and of a 13-protofilament
 /// microtubule along y (protein cylinder, n = 1.587, in buffer n_s = 1.335; linear density from
@@ -226,17 +243,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     for (i, &dwell) in dwells.iter().enumerate() {
         let (mut m, mut e, mut e_sx, mut e_p, mut clock) = (vec![], vec![], vec![], vec![], 0.0);
         for s in 0..seeds {
-            let mut sc = Scene::default();
-            sc.add_bead(Bead {
-                pos: [c, c + 0.013, 0.0],
-                d_nm: rb.d_nm,
-                n: REF_BEAD_N,
-            })
-            .map_err(|e| e.to_string())?;
-            sc.effects.detector_noise = Some(DetectorNoise {
-                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
-            });
-            sc.seed = 10_000 + 100 * i as u64 + s as u64;
+            let sc = noisy_bead_scene([c, c + 0.013], rb.d_nm, 10_000 + 100 * i as u64 + s as u64)?;
             let (scan, dt) = engine_scan(&optics, &sc, dwell)?;
             clock += dt / seeds as f64;
             let init = Some(vec![BeadInit {
@@ -288,17 +295,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     for s in 0..seeds {
         let mut sum: Option<Scan> = None;
         for rep in 0..k_avg {
-            let mut sc = Scene::default();
-            sc.add_bead(Bead {
-                pos: [c, c + 0.013, 0.0],
-                d_nm: rb.d_nm,
-                n: REF_BEAD_N,
-            })
-            .map_err(|e| e.to_string())?;
-            sc.effects.detector_noise = Some(DetectorNoise {
-                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
-            });
-            sc.seed = 30_000 + (s * k_avg + rep) as u64;
+            let sc = noisy_bead_scene([c, c + 0.013], rb.d_nm, 30_000 + (s * k_avg + rep) as u64)?;
             let (scan, dt) = engine_scan(&optics, &sc, d_avg)?;
             clock += dt / seeds as f64;
             sum = Some(match sum {

@@ -21,6 +21,12 @@ pub struct ReportOptions {
     pub verbose: bool,
 }
 
+/// The unit of a knob's error when it is a physical quantity (the dwell knob's 1σ mass); None
+/// for the relative errors of every other knob.
+fn error_unit(k: &Knob) -> Option<&'static str> {
+    (k.id == "dwell").then_some("kDa")
+}
+
 /// Where a knob's default sits relative to its knee.
 #[derive(Debug, Clone, PartialEq)]
 pub enum KneeVerdict {
@@ -176,10 +182,9 @@ pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     });
     if tol > e_lo && tol < e_hi {
         series.push(Series::line(
-            &if tol >= 1.0 {
-                format!("tolerance {tol:.0} kDa (paper, Sec. 3.2)")
-            } else {
-                format!("tolerance {tol:.0e}")
+            &match error_unit(k) {
+                Some(u) => format!("tolerance {tol:.0} {u} (paper, Sec. 3.2)"),
+                None => format!("tolerance {tol:.0e}"),
             },
             vec![t_lo, t_hi],
             vec![tol, tol],
@@ -215,12 +220,11 @@ pub fn pareto_png(path: &Path, k: &Knob, tol: f64) -> Result<(), String> {
     } else {
         "wall time (s, median)"
     };
-    let ylabel = if k.id == "dwell" {
-        "1σ mass (kDa)"
-    } else {
-        "error"
+    let ylabel = match error_unit(k) {
+        Some(u) => format!("1σ mass ({u})"),
+        None => "error".into(),
     };
-    let opts = XyOpts::new(&k.title, xlabel, ylabel).log_log();
+    let opts = XyOpts::new(&k.title, xlabel, &ylabel).log_log();
     plot_xy(path, &series, &opts).map_err(|e| e.to_string())
 }
 
@@ -385,8 +389,8 @@ fn markdown(
         let kn = knee(k, r.tolerance)
             .map(|p| p.setting.clone())
             .unwrap_or_else(|| "—".into());
-        let tol = if k.id == "dwell" {
-            format!("{:.0} kDa", r.tolerance)
+        let tol = if let Some(u) = error_unit(k) {
+            format!("{:.0} {u}", r.tolerance)
         } else if r.tolerance > 0.0 {
             format!("{:.0e}", r.tolerance)
         } else {

@@ -839,8 +839,9 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
 /// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
 /// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
 /// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
-/// Lateral radius (µm) of the region the `mie_grid` knob's error covers.
+/// Lateral radius (µm) of the region the `mie_grid` knob's error covers, and its test heights.
 const KNOB_REGION_UM: f64 = 1.5;
+const KNOB_HEIGHTS_UM: [f64; 3] = [0.0, 0.5, -1.0];
 
 pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
     use crate::accuracy::{time_median, Knob, Point};
@@ -868,7 +869,7 @@ pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
         .map(|i| {
             let rho = KNOB_REGION_UM * ((i % 6) + 1) as f64 / 6.0;
             let a = 0.4 + 1.1 * i as f64;
-            [rho * a.cos(), rho * a.sin(), [0.0, 0.5, -1.0][i % 3]]
+            [rho * a.cos(), rho * a.sin(), KNOB_HEIGHTS_UM[i % 3]]
         })
         .collect();
     let ref_vals: Vec<[f64; 3]> = pts
@@ -893,8 +894,9 @@ pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
             }
             // A grid whose guaranteed reach is short of the region refuses part of it
             // (`response` errors beyond the reach): no answer there counts as a 100 % error.
-            let reach = (0..3)
-                .map(|i| m.reach_um([0.0, 0.5, -1.0][i]))
+            let reach = KNOB_HEIGHTS_UM
+                .iter()
+                .map(|&z| m.reach_um(z))
                 .fold(f64::INFINITY, f64::min);
             let short = reach < KNOB_REGION_UM;
             if short {

@@ -234,7 +234,7 @@ impl Renderer {
                 format!(
                     "{n_mie} beads ≥ {} nm as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
                     m.min_d_nm,
-                    mie.len() - usize::from(n_dip > 0),
+                    keys.len(),
                     if m.scattered_intensity { ", with |E_s|²" } else { "" }
                 ),
             );
