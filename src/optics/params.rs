@@ -64,6 +64,49 @@ pub struct Optics {
     pub n_theta: usize,
     /// Quadrature nodes over φ per quadrant (accuracy knob).
     pub n_phi: usize,
+    /// Which focused beam every tier is rendered in ([`Beam`]).
+    pub beam: Beam,
+    /// Gaussian pupil filling factor f0 of the objective for `Beam::Vector` (Novotny & Hecht
+    /// eq. 3.52): f_w(θ) = exp(−sin²θ / (f0² sin²θ_max)), f0 = pupil 1/e field radius over the
+    /// aperture radius; f64::INFINITY = uniformly filled (the real instrument). Unused by
+    /// `Beam::Paraxial`, whose width is `w0_nm`.
+    pub pupil_filling: f64,
+}
+
+/// The focused beam of the instrument (issue 19).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Beam {
+    /// The paper's paraxial scalar Gaussian of waist w0 (suppl. S2/S3), a named approximation:
+    /// the paper's numbers are reproduced through it.
+    #[default]
+    Paraxial,
+    /// Vectorial focus of an aplanatic objective of NA `na` (Richards & Wolf 1959, Proc. R. Soc.
+    /// A 253, 358; Novotny & Hecht §3.6): angular spectrum with the 1/√cosθ apodisation, Gaussian
+    /// pupil filling `pupil_filling`, x-polarised; every scatterer (point dipoles, finite-size
+    /// spheres, filaments, aggregates, Lorenz–Mie spheres) is rendered in it
+    /// (`optics::mie_beam`, docs/physics.md §10).
+    Vector,
+}
+
+impl Beam {
+    /// The name used by `set_optics(#{beam: …})`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Beam::Paraxial => "paraxial",
+            Beam::Vector => "vector",
+        }
+    }
+    /// Parse a script name; the error names the key, the value and the allowed names.
+    pub fn parse(s: &str) -> Result<Self, OpticsError> {
+        match s {
+            "paraxial" => Ok(Beam::Paraxial),
+            "vector" => Ok(Beam::Vector),
+            _ => Err(OpticsError::Invalid(format!(
+                "beam = \"{s}\" is not a beam model: allowed \"vector\" (aplanatic vectorial focus) or \"paraxial\" (the paper's scalar Gaussian, suppl. S3)"
+            ))),
+        }
+    }
 }
 
 /// Reference bead of the paper: 110 nm polystyrene, n = 1.572 at 1064 nm, 1.05 g/cm³.
@@ -84,6 +127,8 @@ impl Default for Optics {
             // exponentially; (16, 8) is within 3.2e-6 of the peak Sx of the (128, 64) reference.
             n_theta: 16,
             n_phi: 8,
+            beam: Beam::Paraxial,
+            pupil_filling: f64::INFINITY,
         }
     }
 }
@@ -105,6 +150,13 @@ impl Optics {
         check_range("power_mw", self.power_mw, 0.0, 10000.0)?;
         check_range("n_theta", self.n_theta as f64, 4.0, 512.0)?;
         check_range("n_phi", self.n_phi as f64, 2.0, 512.0)?;
+        if self.pupil_filling.is_nan() || self.pupil_filling <= 0.0 {
+            return Err(OpticsError::OutOfRange {
+                name: "pupil_filling",
+                value: self.pupil_filling,
+                allowed: "pupil_filling > 0 (inf: uniformly filled aperture)".into(),
+            });
+        }
         // The beam must fit in the paraxial picture at least loosely: k·w0 > 1.
         if self.k_per_um() * self.w0_um() <= 1.0 {
             return Err(OpticsError::Invalid(format!(
