@@ -321,7 +321,7 @@ fn pupil_filling_definition() {
 }
 
 /// Tier consistency in one beam: a 30 nm PS sphere as exact Lorenz–Mie, as a point dipole, and
-/// as a finite-size sphere (S6: volume average of point dipoles) agree within 1 %.
+/// as a finite-size sphere (S6: volume average of point dipoles) agree within 1 % (asserted 0.5 %).
 #[test]
 fn tiers_agree_for_30_nm_sphere_in_the_vector_beam() {
     let o = Optics::default();
@@ -341,8 +341,9 @@ fn tiers_agree_for_30_nm_sphere_in_the_vector_beam() {
     };
     let (smax, zb) = dip.max_sensitivity_x();
     let (smie, _) = mie.max_sensitivity_x();
-    assert!(rel(smie, smax) < 0.01, "{smie} vs {smax}");
+    assert!(rel(smie, smax) < 0.005, "{smie} vs {smax}");
     let peak = dip.response(0.3, 0.0, zb).unwrap()[0].abs();
+    let mut worst = [0.0f64; 2];
     for (x, y, z) in [
         (0.1, 0.0, zb),
         (0.3, 0.2, 0.1),
@@ -354,13 +355,23 @@ fn tiers_agree_for_30_nm_sphere_in_the_vector_beam() {
         let f = fin(x, y, z);
         for c in 0..2 {
             assert!(
-                (b[c] - a[c]).abs() < 0.01 * peak,
+                (b[c] - a[c]).abs() < 0.005 * peak,
                 "mie {c} at {x},{y},{z}: {b:?} vs {a:?}"
             );
             assert!(
-                (f[c] - a[c]).abs() < 0.01 * peak,
+                (f[c] - a[c]).abs() < 0.005 * peak,
                 "fs {c} at {x},{y},{z}: {f:?} vs {a:?}"
             );
+            worst[0] = worst[0].max((b[c] - a[c]).abs() / peak);
+            worst[1] = worst[1].max((f[c] - a[c]).abs() / peak);
         }
     }
+    // measured: sensitivity 7.3e-5, worst 5.0e-4 (Mie) and 1.7e-3 (finite size, O((ka)²)) of the
+    // peak; the issue asks for 1 %, asserted at 0.5 %
+    eprintln!(
+        "30 nm: sensitivity Mie/dipole − 1 = {:.2e}; worst |Mie − dipole|, |finite − dipole| / peak = {:.2e}, {:.2e}",
+        smie / smax - 1.0,
+        worst[0],
+        worst[1]
+    );
 }
