@@ -58,6 +58,7 @@ pub struct Optics {
     /// the aqueous sample).
     pub na: f64,
     /// NA subtended by the QPD active area (f64::INFINITY: the QPD is not limiting).
+    #[serde(deserialize_with = "null_is_inf")]
     pub qpd_na: f64,
     pub power_mw: f64,
     /// Quadrature nodes over θ in the detection cone (accuracy knob).
@@ -70,7 +71,14 @@ pub struct Optics {
     /// eq. 3.52): f_w(θ) = exp(−sin²θ / (f0² sin²θ_max)), f0 = pupil 1/e field radius over the
     /// aperture radius; f64::INFINITY = uniformly filled (the real instrument). Unused by
     /// `Beam::Paraxial`, whose width is `w0_nm`.
+    #[serde(deserialize_with = "null_is_inf")]
     pub pupil_filling: f64,
+}
+
+/// JSON has no infinity: serde_json writes f64::INFINITY as `null`; read `null` back as
+/// infinity (`qpd_na`, `pupil_filling`: "not limiting" / "uniformly filled").
+fn null_is_inf<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
 }
 
 /// The focused beam of the instrument (issue 19).
@@ -183,5 +191,44 @@ impl Optics {
     /// Half-angle of the detection cone in the medium, Θ = asin(min(NA, NA_qpd, n)/n).
     pub fn theta_max(&self) -> f64 {
         (self.na.min(self.qpd_na).min(self.n_medium) / self.n_medium).asin()
+    }
+}
+
+#[cfg(test)]
+mod beam_tests {
+    use super::*;
+
+    /// The beam key parses the two names and refuses others naming the key and the choices;
+    /// a non-positive pupil filling is refused; the optics round-trip through JSON (scan
+    /// metadata) with the new keys.
+    #[test]
+    fn beam_names_pupil_filling_and_json_round_trip() {
+        assert_eq!(Beam::parse("vector").unwrap(), Beam::Vector);
+        assert_eq!(Beam::parse("paraxial").unwrap(), Beam::Paraxial);
+        let e = Beam::parse("gauss").unwrap_err().to_string();
+        assert!(
+            e.contains("beam = \"gauss\"") && e.contains("\"vector\""),
+            "{e}"
+        );
+        let bad = Optics {
+            pupil_filling: 0.0,
+            ..Optics::default()
+        };
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("pupil_filling = 0"));
+        let o = Optics {
+            beam: Beam::Vector,
+            pupil_filling: 1.5,
+            ..Optics::default()
+        };
+        let back: Optics = serde_json::from_str(&serde_json::to_string(&o).unwrap()).unwrap();
+        assert_eq!(back, o);
+        let d: Optics = serde_json::from_str(&serde_json::to_string(&Optics::default()).unwrap())
+            .unwrap_or_else(|e| panic!("default optics JSON: {e}"));
+        assert_eq!(d.beam, Beam::Paraxial);
+        assert!(d.pupil_filling.is_infinite());
     }
 }
