@@ -9,7 +9,8 @@
 //!   θ_j ∈ [0, Θ_in] × a uniform (trapezoidal, exact for the periodic φ-integrand) grid in φ_j;
 //!   Θ_in = Θ_obj = asin(min(NA, n)/n) (the objective aperture), or smaller where the Gaussian
 //!   spectrum is below e^{−36}; c_j = Ã(θ_j) k² cosθ_j sinθ_j Δθ_j Δφ_j (dk_x dk_y),
-//!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0), and
+//!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0; × 1/√cosθ with
+//!   [`Apodization::Aplanatic`], the aplanatic objective of issue 19, docs/physics.md §10), and
 //!   ê_j = cosφ ê_θ − sinφ ê_φ (x-polarised pupil, Richards–Wolf), written without a
 //!   singularity as ê = (1 − u²/(1+c), −uv/(1+c), −u), (u, v, c) = k̂.
 //! * **Beam far field** (stationary phase of the angular spectrum, Mandel & Wolf §3.3):
