@@ -157,7 +157,7 @@ pub fn register(r: &mut Registrar) {
                     "pupil_filling",
                     "float",
                     "",
-                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); inf = uniformly filled (default)",
+                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)",
                 ),
             ],
         )
