@@ -9,7 +9,8 @@
 //!   θ_j ∈ [0, Θ_in] × a uniform (trapezoidal, exact for the periodic φ-integrand) grid in φ_j;
 //!   Θ_in = Θ_obj = asin(min(NA, n)/n) (the objective aperture), or smaller where the Gaussian
 //!   spectrum is below e^{−36}; c_j = Ã(θ_j) k² cosθ_j sinθ_j Δθ_j Δφ_j (dk_x dk_y),
-//!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0), and
+//!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0; × 1/√cosθ with
+//!   [`Apodization::Aplanatic`], the aplanatic objective of issue 19, docs/physics.md §10), and
 //!   ê_j = cosφ ê_θ − sinφ ê_φ (x-polarised pupil, Richards–Wolf), written without a
 //!   singularity as ê = (1 − u²/(1+c), −uv/(1+c), −u), (u, v, c) = k̂.
 //! * **Beam far field** (stationary phase of the angular spectrum, Mandel & Wolf §3.3):
@@ -82,6 +83,53 @@ pub struct MieBeamSpec {
     pub n_terms: Option<usize>,
     /// Meaning of `Optics::w0_nm` for the angular spectrum ([`Waist`]).
     pub waist: Waist,
+    /// Pupil apodisation of the objective ([`Apodization`]). `Aplanatic` is the vectorial focus
+    /// of an aplanatic objective (Richards & Wolf 1959; Novotny & Hecht, *Principles of
+    /// Nano-Optics*, 2nd ed., eq. 3.66); `None` is the beam this tier had before issue 19.
+    pub apodization: Apodization,
+}
+
+/// How the objective maps the pupil field onto the plane-wave spectrum.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum Apodization {
+    /// Plane-wave amplitude per dk_x dk_y = f_w(θ) (no aplanatic factor; the Mie tier's beam
+    /// until issue 19: its far field is ∝ cosθ f_w(θ)).
+    #[default]
+    None,
+    /// Aplanatic (sine-condition) objective: far-field amplitude ∝ f_w(θ) √cosθ (energy
+    /// conservation across the reference sphere, Richards & Wolf 1959, Proc. R. Soc. A 253,
+    /// 358, eq. 2.22; Novotny & Hecht eq. 3.47), i.e. plane-wave amplitude per dk_x dk_y
+    /// = f_w(θ)/√cosθ.
+    Aplanatic,
+}
+
+impl Apodization {
+    /// Factor g(cosθ) multiplying the Gaussian filling f_w in the amplitude per dk_x dk_y.
+    #[inline]
+    pub fn factor(self, cos_theta: f64) -> f64 {
+        match self {
+            Apodization::None => 1.0,
+            Apodization::Aplanatic => 1.0 / cos_theta.max(1e-300).sqrt(),
+        }
+    }
+}
+
+/// Spectral waist (µm) of the Gaussian pupil filling with filling factor `f0` (Novotny & Hecht
+/// eq. 3.52: f_w(θ) = exp(−sin²θ / (f0² sin²θ_max)), f0 = w_pupil / (f sinθ_max), the pupil's
+/// 1/e field radius over the aperture radius). Since f_w = exp(−k² w_s² sin²θ / 4),
+/// w_s = 2 / (k f0 sinθ_max). f0 = ∞ gives 0 (uniformly filled aperture). Errors for f0 ≤ 0.
+pub fn filling_to_spectral_um(optics: &Optics, f0: f64) -> Result<f64, OpticsError> {
+    if f0.is_nan() || f0 <= 0.0 {
+        return Err(OpticsError::OutOfRange {
+            name: "pupil_filling",
+            value: f0,
+            allowed: "pupil_filling > 0 (inf: uniformly filled aperture)".into(),
+        });
+    }
+    if f0.is_infinite() {
+        return Ok(0.0);
+    }
+    Ok(2.0 / (optics.k_per_um() * f0 * theta_aperture(optics).sin()))
 }
 
 impl Default for MieBeamSpec {
@@ -95,6 +143,7 @@ impl Default for MieBeamSpec {
             scattered_intensity: false,
             n_terms: None,
             waist: Waist::Spectral,
+            apodization: Apodization::None,
         }
     }
 }
@@ -233,6 +282,9 @@ pub enum Waist {
     /// An explicit spectral waist in nm (ignores `Optics::w0_nm`); 0 = uniformly filled
     /// (overfilled) aperture, the tightest focus the objective can make.
     SpectralNm(f64),
+    /// Gaussian pupil filling factor f0 ([`filling_to_spectral_um`], Novotny & Hecht eq. 3.52);
+    /// f64::INFINITY = uniformly filled. Ignores `Optics::w0_nm`.
+    Filling(f64),
 }
 
 /// The focused beam as a discrete angular spectrum (module docs): plane waves on a
@@ -251,6 +303,8 @@ pub struct AngularSpectrum {
     pub khat: Vec<[f64; 3]>,
     pub ein: Vec<[f64; 3]>,
     pub cw: Vec<f64>,
+    /// pupil apodisation (aplanatic factor or none)
+    pub apodization: Apodization,
     /// beam power ∫|E_b|² r² dΩ (µm⁻², the units of [`AngularSpectrum::field`] squared × µm²)
     pub power: f64,
 }
@@ -262,6 +316,18 @@ impl AngularSpectrum {
         w_spec_um: f64,
         n_theta_in: usize,
         n_phi_in: usize,
+    ) -> Result<Self, OpticsError> {
+        Self::with_apodization(optics, w_spec_um, n_theta_in, n_phi_in, Apodization::None)
+    }
+
+    /// As [`AngularSpectrum::new`] with a pupil apodisation: amplitude per dk_x dk_y
+    /// Ã(θ) g(θ) ([`Apodization::factor`]); c_j = Ã g k² cosθ sinθ Δθ Δφ.
+    pub fn with_apodization(
+        optics: &Optics,
+        w_spec_um: f64,
+        n_theta_in: usize,
+        n_phi_in: usize,
+        apodization: Apodization,
     ) -> Result<Self, OpticsError> {
         check_range("w_spec_um", w_spec_um, 0.0, 1000.0)?;
         check_range("n_theta_in", n_theta_in as f64, 2.0, 512.0)?;
@@ -283,9 +349,10 @@ impl AngularSpectrum {
             khat: Vec::new(),
             ein: Vec::new(),
             cw: Vec::new(),
+            apodization,
             power: 0.0,
         };
-        // beam power: 8π³k² ∫ cos²θ Ã² sinθ dθ
+        // beam power: 8π³k² ∫ cos²θ (Ã g)² sinθ dθ
         let (tp, wp) = gauss_legendre(256, 0.0, theta_in);
         out.power = 8.0
             * PI.powi(3)
@@ -295,7 +362,7 @@ impl AngularSpectrum {
                 .zip(&wp)
                 .map(|(&t, &w)| {
                     let (s, c) = t.sin_cos();
-                    w * c * c * out.spectrum(s).powi(2) * s
+                    w * c * c * out.amplitude(s, c).powi(2) * s
                 })
                 .sum::<f64>();
         let (th, wth) = gauss_legendre(n_theta_in, 0.0, theta_in);
@@ -303,7 +370,7 @@ impl AngularSpectrum {
         let dphi = 2.0 * PI / nphi as f64;
         for (&t, &wt) in th.iter().zip(&wth) {
             let (st, ct) = t.sin_cos();
-            let c = out.spectrum(st) * k * k * ct * st * wt * dphi;
+            let c = out.amplitude(st, ct) * k * k * ct * st * wt * dphi;
             for i in 0..nphi {
                 let (sp, cp) = ((i as f64 + 0.5) * dphi).sin_cos();
                 let kh = [st * cp, st * sp, ct];
@@ -320,6 +387,12 @@ impl AngularSpectrum {
     #[inline]
     pub fn spectrum(&self, sin_theta: f64) -> f64 {
         (-(self.k * self.w_spec * sin_theta).powi(2) / 4.0).exp()
+    }
+
+    /// Plane-wave amplitude per dk_x dk_y at (sinθ, cosθ): Ã(θ) times the apodisation factor.
+    #[inline]
+    pub fn amplitude(&self, sin_theta: f64, cos_theta: f64) -> f64 {
+        self.spectrum(sin_theta) * self.apodization.factor(cos_theta)
     }
 
     /// Focal field at (x, y, z) µm; |E|²/power is the intensity per unit power (µm⁻²).
@@ -377,9 +450,17 @@ impl AngularSpectrum {
 /// Errors if w0 is below the tightest focus the aperture allows (uniform filling), naming
 /// `w0_nm`, its value and that minimum.
 pub fn spectral_waist_nm(optics: &Optics) -> Result<f64, OpticsError> {
+    spectral_waist_nm_with(optics, Apodization::None)
+}
+
+/// [`spectral_waist_nm`] for a beam with pupil apodisation `apodization`.
+pub fn spectral_waist_nm_with(
+    optics: &Optics,
+    apodization: Apodization,
+) -> Result<f64, OpticsError> {
     optics.validate()?;
     let mean_r = |ws: f64| -> Result<f64, OpticsError> {
-        let b = AngularSpectrum::new(optics, ws, 32, 16)?;
+        let b = AngularSpectrum::with_apodization(optics, ws, 32, 16, apodization)?;
         let (rx, ry) = b.focal_radii();
         Ok(0.5 * (rx + ry))
     };
@@ -483,13 +564,20 @@ impl MieBeam {
         let k = optics.k_per_um();
         let w_spec = match spec.waist {
             Waist::Spectral => optics.w0_um(),
-            Waist::Focal => spectral_waist_nm(optics)? * 1e-3,
+            Waist::Focal => spectral_waist_nm_with(optics, spec.apodization)? * 1e-3,
             Waist::SpectralNm(w) => check_range("waist (spectral, nm)", w, 0.0, 1e6)? * 1e-3,
+            Waist::Filling(f0) => filling_to_spectral_um(optics, f0)?,
         };
-        let beam = AngularSpectrum::new(optics, w_spec, spec.n_theta_in, spec.n_phi_in)?;
+        let beam = AngularSpectrum::with_apodization(
+            optics,
+            w_spec,
+            spec.n_theta_in,
+            spec.n_phi_in,
+            spec.apodization,
+        )?;
         let theta_in = beam.theta_in;
         let power = beam.power;
-        let spectrum = |st: f64| beam.spectrum(st);
+        let amplitude = |st: f64, ct: f64| beam.amplitude(st, ct);
         let (khat, ein, cw) = (&beam.khat, &beam.ein, &beam.cw);
 
         // scatterer
@@ -515,9 +603,9 @@ impl MieBeam {
             rdet.push(rh);
             sdet.push(node.s);
             let sn = node.u.hypot(node.v);
-            // E_b,n = −2πi k c Ã ê_b (zero outside the incident aperture)
+            // E_b,n = −2πi k c Ã g ê_b (zero outside the incident aperture)
             let eb_amp = if sn.asin() <= theta_in + 1e-12 {
-                2.0 * PI * k * node.c * spectrum(sn)
+                2.0 * PI * k * node.c * amplitude(sn, node.c)
             } else {
                 0.0
             };

@@ -25,8 +25,23 @@
 
 use super::grid::Grid2;
 use super::mie::Complex64 as C64;
-use super::mie_beam::{optics_for_reach, AngularSpectrum, MieBeam, MieBeamSpec};
-use super::params::{check_range, Optics, OpticsError};
+use super::mie_beam::{
+    filling_to_spectral_um, optics_for_reach, AngularSpectrum, Apodization, MieBeam, MieBeamSpec,
+    Waist,
+};
+use super::params::{check_range, Beam, Optics, OpticsError};
+
+/// (spectral waist µm, apodisation) of the angular-spectrum beam the Mie templates use for
+/// `optics.beam` (see [`MieTemplate::new`]).
+fn beam_of(optics: &Optics) -> Result<(f64, Apodization), OpticsError> {
+    Ok(match optics.beam {
+        Beam::Paraxial => (optics.w0_um(), Apodization::None),
+        Beam::Vector => (
+            filling_to_spectral_um(optics, optics.pupil_filling)?,
+            Apodization::Aplanatic,
+        ),
+    })
+}
 use super::rayleigh::{alpha_um3, DetectorModel};
 use super::template::{z_stencil, TemplateSpec, SUPPORT_W};
 use rayon::prelude::*;
@@ -113,10 +128,11 @@ impl MieTemplate {
             optics,
             d_nm,
             C64::new(n_particle, 0.0),
-            Self::beam_spec(&spec, 2, 1),
+            Self::beam_spec(optics, &spec, 2, 1),
         )?;
-        // focal radius of the angular-spectrum beam MieBeam uses (Waist::Spectral)
-        let (rx, ry) = AngularSpectrum::new(optics, optics.w0_um(), 16, 8)?.focal_radii();
+        // focal radius of the angular-spectrum beam MieBeam uses
+        let (ws, apod) = beam_of(optics)?;
+        let (rx, ry) = AngularSpectrum::with_apodization(optics, ws, 16, 8, apod)?.focal_radii();
         let widen = (rx.max(ry) / optics.w0_um()).max(1.0);
         Ok(Self {
             optics: optics.clone(),
@@ -129,12 +145,19 @@ impl MieTemplate {
         })
     }
 
-    fn beam_spec(spec: &MieTemplateSpec, nt: usize, np: usize) -> MieBeamSpec {
+    fn beam_spec(optics: &Optics, spec: &MieTemplateSpec, nt: usize, np: usize) -> MieBeamSpec {
+        let (waist, apodization) = match optics.beam {
+            // the Mie tier's pre-issue-19 beam: spectral waist w0, no aplanatic factor
+            Beam::Paraxial => (Waist::Spectral, Apodization::None),
+            Beam::Vector => (Waist::Filling(optics.pupil_filling), Apodization::Aplanatic),
+        };
         MieBeamSpec {
             n_theta_in: nt,
             n_phi_in: np,
             detector: spec.detector,
             scattered_intensity: spec.scattered_intensity,
+            waist,
+            apodization,
             ..MieBeamSpec::default()
         }
     }
@@ -193,7 +216,7 @@ impl MieTemplate {
         let r = l + hc;
         let om = optics_for_reach(o, r);
         let reach_spec = MieBeamSpec::for_reach(o, r, z);
-        let spec = Self::beam_spec(&self.spec, reach_spec.n_theta_in, reach_spec.n_phi_in);
+        let spec = Self::beam_spec(o, &self.spec, reach_spec.n_theta_in, reach_spec.n_phi_in);
         let mb = MieBeam::new(&om, self.d_nm, C64::new(self.n_particle, 0.0), spec)?;
         // coarse nodes X_i = (i − m)·hc, i = 0 … 2m
         let m = (r / hc).ceil() as usize + TAPS;

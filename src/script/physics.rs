@@ -14,7 +14,7 @@ use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
 use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
-use crate::optics::params::Optics;
+use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::{alpha_um3, response, Detection, DetectorModel};
 use rhai::{Array, Dynamic, Map, INT};
 
@@ -32,6 +32,8 @@ fn optics_map(o: &Optics) -> Map {
     m.insert("power_mw".into(), o.power_mw.into());
     m.insert("n_theta".into(), (o.n_theta as INT).into());
     m.insert("n_phi".into(), (o.n_phi as INT).into());
+    m.insert("beam".into(), o.beam.name().into());
+    m.insert("pupil_filling".into(), o.pupil_filling.into());
     m
 }
 
@@ -145,12 +147,26 @@ pub fn register(r: &mut Registrar) {
                     "",
                     "optional: cone quadrature nodes in φ per quadrant",
                 ),
+                (
+                    "beam",
+                    "string",
+                    "",
+                    "optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)",
+                ),
+                (
+                    "pupil_filling",
+                    "float",
+                    "",
+                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)",
+                ),
             ],
         )
         .returns("map", "the new optics")
         .summary("change optical parameters (validated; the simulator re-renders with them)")
         .example("set_optics(#{w0_nm: 450.0}).w0_nm", "450.0")
-        .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range");
+        .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range")
+        .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
+        .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
     let spec = d.spec();
     let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<Map> {
@@ -163,6 +179,7 @@ pub fn register(r: &mut Registrar) {
             ("na", &mut new.na),
             ("qpd_na", &mut new.qpd_na),
             ("power_mw", &mut new.power_mw),
+            ("pupil_filling", &mut new.pupil_filling),
         ] {
             if let Some(v) = o.f64(k)? {
                 *f = v;
@@ -173,6 +190,9 @@ pub fn register(r: &mut Registrar) {
         }
         if let Some(v) = o.int("n_phi")? {
             new.n_phi = v.clamp(0, 100_000) as usize;
+        }
+        if let Some(b) = o.string("beam")? {
+            new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
         }
         new.validate().map_err(|e| err("set_optics", e))?;
         if let Some(core) = c.sim_core() {

@@ -2,11 +2,11 @@
 //! what the scene calls for"). An ideal scene is one stage, `superposition`: Σ αᵢ·T(s − pᵢ)
 //! over precomputed single-scatterer templates (Sec. 4.1).
 
-use super::scene::{Scatterer, Scene};
+use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
 use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
-use crate::optics::params::{Optics, OpticsError};
+use crate::optics::params::{Beam, Optics, OpticsError};
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
 use rand::Rng;
@@ -87,6 +87,35 @@ fn model_notes(optics: &Optics, scene: &Scene) -> Vec<String> {
     notes
 }
 
+/// Issue 19, the scene picks the tier (vector beam only): the beads (object indices) outside the
+/// point dipole's measured domain — more than [`MODEL_NOTE_TOLERANCE`] off the Mie tier by the
+/// error table of docs/accuracy.md (`mie_beam::point_dipole_error`, same suspect rule as
+/// [`model_notes`]) — with one note each. They are rendered as Lorenz–Mie spheres in the vector
+/// beam automatically unless the scene pins a tier by naming `mie` or `finite_size`.
+fn auto_mie_beads(optics: &Optics, scene: &Scene) -> (Vec<usize>, Vec<String>) {
+    use crate::optics::params::REF_BEAD_N;
+    let (mut out, mut notes, mut seen) = (vec![], vec![], vec![]);
+    for (i, b) in scene.beads.iter().enumerate() {
+        let (d, n) = (b.d_nm, b.n);
+        if !(d >= 200.0 || (d >= 60.0 && (n - REF_BEAD_N).abs() > 0.03)) {
+            continue;
+        }
+        let e = match crate::optics::mie_beam::point_dipole_error(optics, d, n) {
+            Ok(e) if e.abs() > MODEL_NOTE_TOLERANCE => e,
+            _ => continue,
+        };
+        out.push(i);
+        if !seen.contains(&(d, n)) {
+            seen.push((d, n));
+            notes.push(format!(
+                "bead d = {d} nm, n = {n}: outside the point dipole's domain ({:+.1} % off the Mie tier, docs/accuracy.md#model_500): rendered by the Lorenz–Mie tier in the vector beam (name the `mie` or `finite_size` effect to pin a tier)",
+                100.0 * e
+            ));
+        }
+    }
+    (out, notes)
+}
+
 /// The sphere whose Mie template stands for a point dipole in the angular-spectrum beam (`mie`
 /// effect): 1 nm (x = 0.004 at 1064 nm in water), so its response per unit α equals the dipole
 /// limit to O(x²) ≈ 1e-5; the index only sets α, which the template divides out.
@@ -107,8 +136,24 @@ impl Renderer {
         let mut scatterers = scene.scatterers(optics.n_medium);
         // beads come first in `scatterers` (objects 0 … n_beads − 1)
         let n_beads = scene.beads.len();
-        let is_mie = |s: &Scatterer| match (fx.mie, s.d_nm) {
-            (Some(m), Some(d)) => s.object < n_beads && d >= m.min_d_nm && d > 0.0,
+        // Issue 19: with the vector beam every scatterer goes through the angular-spectrum
+        // templates (dipole limit), and beads outside the dipole's domain through Mie, unless
+        // the scene pins a tier (`mie` / `finite_size`).
+        let vector = optics.beam == Beam::Vector;
+        let pinned = fx.mie.is_some() || fx.finite_size.is_some();
+        let (auto_mie, auto_notes) = if vector && !pinned {
+            auto_mie_beads(optics, scene)
+        } else {
+            (vec![], vec![])
+        };
+        let mie_fx = fx.mie.or(vector.then_some(MieEffect {
+            min_d_nm: f64::INFINITY,
+            scattered_intensity: false,
+        }));
+        let is_mie = |s: &Scatterer| match (mie_fx, s.d_nm) {
+            (Some(m), Some(d)) => {
+                s.object < n_beads && (d >= m.min_d_nm || auto_mie.contains(&s.object)) && d > 0.0
+            }
             _ => false,
         };
         let n_objects = scatterers.iter().map(|s| s.object + 1).max().unwrap_or(0);
@@ -180,7 +225,7 @@ impl Renderer {
         }
         let mut mie: Vec<Arc<MieTemplate>> = Vec::new();
         let mut mie_of = vec![None; scatterers.len()];
-        if let Some(m) = fx.mie {
+        if let Some(m) = mie_fx {
             let t = Instant::now();
             let spec = MieTemplateSpec {
                 grid: spec,
@@ -232,8 +277,18 @@ impl Renderer {
                 "mie",
                 t.elapsed().as_secs_f64(),
                 format!(
-                    "{n_mie} beads ≥ {} nm as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
+                    "{}{n_mie} beads ≥ {} nm{} as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
+                    if vector {
+                        format!("aplanatic vector beam, NA {}, pupil filling {}: ", optics.na, optics.pupil_filling)
+                    } else {
+                        String::new()
+                    },
                     m.min_d_nm,
+                    if auto_mie.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" or outside the point dipole's domain ({} picked by the scene)", auto_mie.len())
+                    },
                     keys.len(),
                     if m.scattered_intensity { ", with |E_s|²" } else { "" }
                 ),
@@ -287,7 +342,9 @@ impl Renderer {
                 format!("white noise σ = {:e} per sample", d.sigma_sample),
             );
         }
-        let notes = if fx.mie.is_none() && fx.finite_size.is_none() {
+        let notes = if vector {
+            auto_notes
+        } else if fx.mie.is_none() && fx.finite_size.is_none() {
             model_notes(optics, scene)
         } else {
             vec![]
