@@ -120,7 +120,11 @@ pub fn user_words(msg: &str) -> String {
             .find(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':'))
             .map_or(rest.len(), |j| i + j);
         let token = &rest[start..end];
-        let is_rust = token.starts_with("bfpscope::") || token.starts_with("rhai::") || token.starts_with("alloc::") || token.starts_with("std::") || token.starts_with("core::");
+        let is_rust = token.starts_with("bfpscope::")
+            || token.starts_with("rhai::")
+            || token.starts_with("alloc::")
+            || token.starts_with("std::")
+            || token.starts_with("core::");
         out.push_str(&rest[..start]);
         if is_rust {
             out.push_str(&user_type(token));
@@ -185,7 +189,9 @@ fn decl_args(decl: &Map) -> RResult<Vec<Map>> {
         return Ok(vec![]);
     };
     let Some(a) = args.read_lock::<Array>() else {
-        return fail(format!("protocol_options: {name}: args must be an array of maps"));
+        return fail(format!(
+            "protocol_options: {name}: args must be an array of maps"
+        ));
     };
     a.iter()
         .map(|x| {
@@ -278,7 +284,10 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
             ));
         }
     }
-    if let Some(choices) = a.get("one_of").and_then(|c| c.read_lock::<Array>().map(|c| c.clone())) {
+    if let Some(choices) = a
+        .get("one_of")
+        .and_then(|c| c.read_lock::<Array>().map(|c| c.clone()))
+    {
         if !choices.iter().any(|c| c.to_string() == out.to_string()) {
             let list: Vec<String> = choices.iter().map(show_default).collect();
             return fail(format!(
@@ -287,7 +296,12 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
                 list.join(", "),
                 suggestion(
                     &out.to_string(),
-                    choices.iter().map(|c| c.clone().into_string().unwrap_or_default()).collect::<Vec<_>>().iter().map(|s| s.as_str())
+                    choices
+                        .iter()
+                        .map(|c| c.clone().into_string().unwrap_or_default())
+                        .collect::<Vec<_>>()
+                        .iter()
+                        .map(|s| s.as_str())
                 )
             ));
         }
@@ -341,7 +355,11 @@ pub fn protocol_options(decl: &Map, opts: &Dynamic) -> RResult<Map> {
 
 /// The one-line summary of a protocol for `help()`.
 pub fn protocol_line(decl: &Map) -> String {
-    format!("  {:<34} {}", get_str(decl, "name"), get_str(decl, "summary"))
+    format!(
+        "  {:<34} {}",
+        get_str(decl, "name"),
+        get_str(decl, "summary")
+    )
 }
 
 /// The full help page of a protocol, from its declaration.
@@ -352,7 +370,10 @@ pub fn protocol_page(decl: &Map) -> RResult<String> {
         c => c,
     };
     let mut s = format!("{call}  —  {}\n", get_str(decl, "summary"));
-    if let Some(p) = decl.get("params").and_then(|p| p.read_lock::<Array>().map(|a| a.clone())) {
+    if let Some(p) = decl
+        .get("params")
+        .and_then(|p| p.read_lock::<Array>().map(|a| a.clone()))
+    {
         if !p.is_empty() {
             s.push_str("arguments:\n");
             for x in p {
@@ -392,7 +413,10 @@ pub fn protocol_page(decl: &Map) -> RResult<String> {
                 (None, Some(h)) => extra.push(format!("≤ {}", fmt_num(h))),
                 _ => {}
             }
-            if let Some(c) = a.get("one_of").and_then(|c| c.read_lock::<Array>().map(|c| c.clone())) {
+            if let Some(c) = a
+                .get("one_of")
+                .and_then(|c| c.read_lock::<Array>().map(|c| c.clone()))
+            {
                 extra.push(format!(
                     "one of {}",
                     c.iter().map(show_default).collect::<Vec<_>>().join(", ")
@@ -407,7 +431,11 @@ pub fn protocol_page(decl: &Map) -> RResult<String> {
             ));
         }
     }
-    for (k, title) in [("returns", "returns"), ("saves", "saves"), ("stage", "stage")] {
+    for (k, title) in [
+        ("returns", "returns"),
+        ("saves", "saves"),
+        ("stage", "stage"),
+    ] {
         let v = get_str(decl, k);
         if !v.is_empty() {
             s.push_str(&format!("{title}: {v}\n"));
@@ -454,13 +482,14 @@ pub fn module_protocols(module: &str) -> Option<Vec<Map>> {
         }
     };
     let opts = rhai::CallFnOptions::new().eval_ast(false);
-    let v: Dynamic = match engine.call_fn_with_options(opts, &mut rhai::Scope::new(), &ast, "protocols", ()) {
-        Ok(v) => v,
-        Err(e) => {
-            eprintln!("{}: {e}", path.display());
-            return None;
-        }
-    };
+    let v: Dynamic =
+        match engine.call_fn_with_options(opts, &mut rhai::Scope::new(), &ast, "protocols", ()) {
+            Ok(v) => v,
+            Err(e) => {
+                eprintln!("{}: {e}", path.display());
+                return None;
+            }
+        };
     let a = v.read_lock::<Array>()?.clone();
     Some(
         a.iter()
@@ -494,7 +523,9 @@ pub fn stdlib_modules() -> Vec<String> {
 
 /// `help()`'s protocol section: one line per protocol of every stdlib module.
 pub fn protocols_index() -> String {
-    let mut s = String::from("protocols (stdlib: import \"focus\" as focus; help(\"focus\") for the page)\n");
+    let mut s = String::from(
+        "protocols (stdlib: import \"focus\" as focus; help(\"focus\") for the page)\n",
+    );
     for m in stdlib_modules() {
         for d in module_protocols(&m).unwrap_or_default() {
             s.push_str(&protocol_line(&d));
@@ -526,6 +557,27 @@ pub fn protocol_help(name: &str) -> Option<String> {
 }
 
 pub fn register(r: &mut Registrar) {
+    let c = r.ctx();
+    r.overload(
+        "save",
+        move |t: &mut super::analysis::TemplateRef, path: &str, m: Map| -> RResult<String> {
+            for k in m.keys() {
+                if k.as_str() != "overwrite" {
+                    return fail(format!(
+                        "save: unknown key `{k}`{}; allowed keys: overwrite",
+                        suggestion(k, ["overwrite"])
+                    ));
+                }
+            }
+            let ow = match m.get("overwrite") {
+                None => false,
+                Some(v) => v
+                    .as_bool()
+                    .map_err(|_| format!("save: overwrite must be true or false, got {v}"))?,
+            };
+            save_template(&c, t, path, ow)
+        },
+    );
     r.bind(
         Doc::func("protocol_options", "protocols")
             .arg("decl", "map", "", "the protocol's declaration #{name, summary, usage, args: [#{key, ty, unit, default, min, max, one_of, required, doc}], returns, saves, example}")
@@ -585,7 +637,10 @@ mod tests {
             "Function not found: measure_filament (Scan, string)"
         );
         assert_eq!(user_words("focus::search failed"), "focus::search failed");
-        assert_eq!(user_type("bfpscope::script::analysis::CurveRef"), "AngleCurve");
+        assert_eq!(
+            user_type("bfpscope::script::analysis::CurveRef"),
+            "AngleCurve"
+        );
     }
 
     #[test]
@@ -605,12 +660,120 @@ mod protocol_tests {
 
     #[test]
     fn every_stdlib_module_declares_its_protocols() {
-        for m in ["focus", "calibrate", "rotation", "aggregates", "tips", "microtubule", "beads"] {
+        for m in [
+            "focus",
+            "calibrate",
+            "rotation",
+            "aggregates",
+            "tips",
+            "microtubule",
+            "beads",
+        ] {
             let d = module_protocols(m).unwrap_or_else(|| panic!("{m}: no protocols()"));
             assert!(!d.is_empty(), "{m}");
             let page = protocol_help(m).unwrap();
             assert!(page.contains(&format!("{m}::")), "{page}");
-            assert!(page.contains("example:") && page.contains("returns:"), "{page}");
+            assert!(
+                page.contains("example:") && page.contains("returns:"),
+                "{page}"
+            );
         }
     }
+}
+
+/// The one place every saved output (figure, CSV, TIFF, template, protocol output) gets its
+/// path: a relative path resolves inside the session folder (unless it already starts with
+/// it); an existing file is never replaced unless `overwrite` — the next free numbered name
+/// `stem_0002.ext`, `stem_0003.ext`, … is used instead (as scans are numbered); parent folders
+/// are created. Returns the path to write.
+pub fn output_path(session: &Path, who: &str, path: &str, overwrite: bool) -> RResult<PathBuf> {
+    if path.trim().is_empty() {
+        return fail(format!("{who}: path is empty"));
+    }
+    let p = Path::new(path);
+    let p = if p.is_absolute() || p.starts_with(session) {
+        p.to_path_buf()
+    } else {
+        session.join(p)
+    };
+    if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
+    }
+    if overwrite || !p.exists() {
+        return Ok(p);
+    }
+    let stem = p
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("out")
+        .to_string();
+    let ext = p
+        .extension()
+        .and_then(|s| s.to_str())
+        .map(|e| format!(".{e}"))
+        .unwrap_or_default();
+    for n in 2..100_000u32 {
+        let q = p.with_file_name(format!("{stem}_{n:04}{ext}"));
+        if !q.exists() {
+            return Ok(q);
+        }
+    }
+    fail(format!("{who}: no free numbered name for {}", p.display()))
+}
+
+#[cfg(test)]
+mod output_tests {
+    use super::output_path;
+
+    #[test]
+    fn outputs_are_numbered_not_overwritten_and_live_in_the_session() {
+        let dir = std::env::temp_dir().join(format!("bfpscope-out-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let a = output_path(&dir, "t", "fig.png", false).unwrap();
+        assert_eq!(a, dir.join("fig.png"));
+        std::fs::write(&a, "1").unwrap();
+        let b = output_path(&dir, "t", "fig.png", false).unwrap();
+        assert_eq!(b, dir.join("fig_0002.png"));
+        std::fs::write(&b, "2").unwrap();
+        assert_eq!(
+            output_path(&dir, "t", "fig.png", false).unwrap(),
+            dir.join("fig_0003.png")
+        );
+        assert_eq!(
+            output_path(&dir, "t", "fig.png", true).unwrap(),
+            dir.join("fig.png")
+        );
+        // a path already inside the session folder is not nested again; subfolders are made
+        let inside = dir.join("sub/x.csv");
+        assert_eq!(
+            output_path(&dir, "t", inside.to_str().unwrap(), false).unwrap(),
+            inside
+        );
+        assert!(dir.join("sub").is_dir());
+        assert!(output_path(&dir, "t", " ", false)
+            .unwrap_err()
+            .to_string()
+            .contains("path is empty"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+/// `template.save(path[, #{overwrite}])`: JSON with the script's provenance, through
+/// [`output_path`]; prints where it went.
+pub fn save_template(
+    c: &super::ctx::Ctx,
+    t: &super::analysis::TemplateRef,
+    path: &str,
+    overwrite: bool,
+) -> RResult<String> {
+    let who = "save";
+    let p = output_path(c.store.dir(), who, path, overwrite)?;
+    let mut v = serde_json::to_value(&*t.0).map_err(|e| format!("{who}: {e}"))?;
+    v["provenance"] = c.provenance();
+    let text = serde_json::to_string_pretty(&v).map_err(|e| format!("{who}: {e}"))?;
+    std::fs::write(&p, text).map_err(|e| format!("{who}: {}: {e}", p.display()))?;
+    c.print(&format!("saved {}", p.display()));
+    Ok(p.display().to_string())
 }
