@@ -38,6 +38,7 @@ pub mod background;
 pub mod bead_model;
 pub mod fit;
 pub mod focus;
+pub mod kind;
 pub mod orientation;
 pub mod peaks;
 pub mod profile;

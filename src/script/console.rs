@@ -557,6 +557,14 @@ pub fn protocol_help(name: &str) -> Option<String> {
 }
 
 pub fn register(r: &mut Registrar) {
+    r.getter(
+        Doc::property("Scan", "kind")
+            .returns("string", "\"XY\", \"XZ\", \"YZ\" or \"line\"")
+            .summary("what kind of scan this is (from its axes); analyses refuse the wrong kind, naming it")
+            .example("connect(#{backend: \"mock\"}); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}).kind", "\"XZ\"")
+            .example("connect(#{backend: \"mock\"}); scan_line(#{axis: \"x\", from: -0.5, to: 0.5, n: 5, dwell: 0.0001}).kind", "\"line\""),
+        |s: &mut super::types::ScanRef| -> String { crate::analysis::kind::plane(&s.scan.sx) },
+    );
     let c = r.ctx();
     r.overload(
         "save",
