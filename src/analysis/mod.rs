@@ -45,6 +45,7 @@ pub mod profile;
 pub mod quantities;
 pub mod sbr;
 pub mod sensitivity;
+pub mod spec;
 pub mod stats;
 pub mod template;
 

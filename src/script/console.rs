@@ -556,7 +556,290 @@ pub fn protocol_help(name: &str) -> Option<String> {
     }
 }
 
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// `(number, path)` of the scan files in the session folder, by number.
+fn scan_files(dir: &Path) -> Vec<(u64, PathBuf)> {
+    let mut v: Vec<(u64, PathBuf)> = std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.flatten()
+                .filter_map(|e| {
+                    crate::data::session::scan_number(&e.file_name().to_string_lossy())
+                        .map(|n| (n, e.path()))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+/// One session scan as `scans()` lists it.
+fn scan_entry(path: &Path, number: u64) -> Map {
+    let mut m = Map::new();
+    m.insert("number".into(), Dynamic::from_int(number as i64));
+    m.insert("path".into(), path.display().to_string().into());
+    match crate::data::npz::load_scan(path) {
+        Ok(sc) => {
+            let meta = &sc.meta;
+            m.insert("kind".into(), crate::analysis::kind::plane(&sc.sx).into());
+            m.insert("status".into(), sc.status.as_str().to_string().into());
+            let s = |v: &serde_json::Value| -> Dynamic {
+                v.as_str().map_or(Dynamic::UNIT, |x| x.to_string().into())
+            };
+            m.insert("time".into(), s(&meta["time"]["wall_start"]));
+            m.insert("protocol".into(), s(&meta["protocol"]["name"]));
+            let notes: Array = meta["notes"]
+                .as_array()
+                .map(|a| {
+                    a.iter()
+                        .filter_map(|n| n.as_str())
+                        .map(|n| n.to_string().into())
+                        .collect()
+                })
+                .unwrap_or_default();
+            m.insert("notes".into(), notes.into());
+            m.insert(
+                "shape".into(),
+                format!("{}×{}", sc.sx.cols(), sc.sx.rows()).into(),
+            );
+        }
+        Err(e) => {
+            m.insert("error".into(), e.to_string().into());
+        }
+    }
+    m
+}
+
+/// The chosen channel of a line scan, as (t, v).
+fn line_channel(
+    who: &str,
+    sc: &super::types::ScanRef,
+    channel: &str,
+) -> RResult<(Vec<f64>, Vec<f64>)> {
+    let img = match channel {
+        "sx" => &sc.scan.sx,
+        "sy" => &sc.scan.sy,
+        "sz" => &sc.scan.sz,
+        other => {
+            return fail(format!(
+                "{who}: channel = {other:?} is not one of \"sx\", \"sy\", \"sz\"{}",
+                suggestion(other, ["sx", "sy", "sz"])
+            ))
+        }
+    };
+    if img.rows() == 1 {
+        Ok((img.x.clone(), img.data.row(0).to_vec()))
+    } else if img.cols() == 1 {
+        Ok((img.y.clone(), img.data.column(0).to_vec()))
+    } else {
+        fail(format!(
+            "{who}: this is an {} scan; {who} needs a line scan (scan_line, ascan, dscan, lup)",
+            crate::analysis::kind::plane(img)
+        ))
+    }
+}
+
 pub fn register(r: &mut Registrar) {
+    let c = r.ctx();
+    r.bind(
+        Doc::func("pwd", "session")
+            .returns("string", "the session folder")
+            .summary("the session folder: where scans, figures, templates and the session log go")
+            .example("pwd() == status().data_dir", "true"),
+        move || -> String { c.store.dir().display().to_string() },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("ls", "session")
+            .returns("array", "file names in the session folder, sorted")
+            .summary("list the session folder")
+            .example("ls().len() >= 0", "true"),
+        move || -> Array {
+            let mut v: Vec<String> = std::fs::read_dir(c.store.dir())
+                .map(|rd| {
+                    rd.flatten()
+                        .map(|e| e.file_name().to_string_lossy().to_string())
+                        .collect()
+                })
+                .unwrap_or_default();
+            v.sort();
+            v.into_iter().map(Dynamic::from).collect()
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("note", "session")
+            .arg("text", "string", "", "a note (sample, condition, what you are doing)")
+            .returns("array", "all notes so far")
+            .summary("add a note to the metadata of every later scan (meta.notes); note() with \"\" clears them")
+            .example("note(\"sample 3, 110 nm PS\"); note(\"after refocus\").len()", "2")
+            .example("note(\"a\"); note(\"\").len()", "0"),
+        move |text: &str| -> Array {
+            let mut n = lock(&c.notes);
+            if text.trim().is_empty() {
+                n.clear();
+            } else {
+                n.push(text.to_string());
+            }
+            n.iter().map(|s| Dynamic::from(s.clone())).collect()
+        },
+    );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("scans", "session")
+            .map("filter", "optional", &[
+                ("kind", "string", "", "optional: \"XY\", \"XZ\", \"YZ\" or \"line\""),
+                ("protocol", "string", "", "optional: part of the protocol name (\"focus\")"),
+                ("note", "string", "", "optional: part of a note"),
+                ("since", "string", "", "optional: ISO time; scans started at or after it"),
+            ])
+            .returns("array", "#{number, path, kind, status, time, protocol, notes, shape} per scan, oldest first")
+            .summary("list and search the session's scans by kind, time, protocol and notes")
+            .example("connect(#{backend: \"mock\"}); note(\"test\"); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}); let l = scans(#{kind: \"XZ\"}); [l.len(), l[0].notes[0]]", "[1, \"test\"]")
+            .example("scans(#{knd: \"XY\"})", "error: did you mean `kind`?"),
+        {
+            let c = c.clone();
+            move |filter: Map| -> RResult<Array> {
+                let keys = ["kind", "protocol", "note", "since"];
+                for k in filter.keys() {
+                    if !keys.contains(&k.as_str()) {
+                        return fail(format!("scans: unknown key `{k}`{}; allowed keys: {}", suggestion(k, keys), keys.join(", ")));
+                    }
+                }
+                let get = |k: &str| filter.get(k).map(|v| v.to_string());
+                let files = scan_files(c.store.dir());
+                let mut out = Array::new();
+                for (n, p) in files {
+                    let m = scan_entry(&p, n);
+                    let field = |k: &str| m.get(k).map(|v| v.to_string()).unwrap_or_default();
+                    if let Some(k) = get("kind") {
+                        if !field("kind").eq_ignore_ascii_case(&k) { continue; }
+                    }
+                    if let Some(pr) = get("protocol") {
+                        if !field("protocol").contains(&pr) { continue; }
+                    }
+                    if let Some(nt) = get("note") {
+                        let has = m.get("notes").and_then(|a| a.read_lock::<Array>().map(|a| a.iter().any(|x| x.to_string().contains(&nt)))).unwrap_or(false);
+                        if !has { continue; }
+                    }
+                    if let Some(since) = get("since") {
+                        if field("time") < since { continue; }
+                    }
+                    out.push(m.into());
+                }
+                Ok(out)
+            }
+        },
+    );
+    r.overload("scans", move || -> RResult<Array> {
+        let files = scan_files(c.store.dir());
+        Ok(files
+            .into_iter()
+            .map(|(n, p)| scan_entry(&p, n).into())
+            .collect())
+    });
+    // SPEC words
+    r.bind(
+        Doc::func("wm", "motion")
+            .summary("SPEC's `wm` (where motor): print the position of every axis (as wa)")
+            .example("wm()", "()"),
+        |ctx: rhai::NativeCallContext| -> RResult<()> { ctx.call_native_fn::<()>("wa", ()) },
+    );
+    for (name, base, what) in [("umv", "mv", "absolute"), ("umvr", "mvr", "relative")] {
+        r.bind(
+            Doc::func(name, "motion")
+                .map(
+                    "target",
+                    &format!("{what} move, any subset of the axes"),
+                    &[
+                        ("x", "float", "µm", "optional"),
+                        ("y", "float", "µm", "optional"),
+                        ("z", "float", "µm", "optional"),
+                    ],
+                )
+                .summary(&format!(
+                    "SPEC's `{name}`: {base} and then show where the stage is"
+                ))
+                .example(&format!("{name}(#{{x: 0.5}}); pos().x"), "0.5"),
+            move |ctx: rhai::NativeCallContext, m: Map| -> RResult<()> {
+                let _ = ctx.call_native_fn::<Dynamic>(base, (m,))?;
+                ctx.call_native_fn::<()>("wa", ())
+            },
+        );
+    }
+    r.bind(
+        Doc::func("lup", "scans")
+            .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
+            .arg(
+                "from",
+                "float",
+                "µm",
+                "start, relative to the current position",
+            )
+            .arg("to", "float", "µm", "end, relative to the current position")
+            .arg(
+                "intervals",
+                "int",
+                "",
+                "number of intervals: intervals + 1 points",
+            )
+            .arg("dwell", "float", "s", "count time per point")
+            .returns(
+                "Scan",
+                "a line scan; autosaved; the stage returns to the start",
+            )
+            .summary("SPEC's `lup` (line-up scan) = dscan")
+            .example(
+                "mv(#{x: 2.0}); let s = lup(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, pos().x]",
+                "[11, 2.0]",
+            ),
+        |ctx: rhai::NativeCallContext,
+         a: Dynamic,
+         f: Dynamic,
+         t: Dynamic,
+         n: Dynamic,
+         d: Dynamic|
+         -> RResult<Dynamic> { ctx.call_native_fn::<Dynamic>("dscan", (a, f, t, n, d)) },
+    );
+    for (name, what) in [
+        (
+            "peak",
+            "position of the largest deviation from the line's median",
+        ),
+        ("cen", "centre: the middle of the half-maximum crossings"),
+        ("com", "centre of mass of |v − median|"),
+        ("fwhm", "full width at half maximum of |v − median|"),
+    ] {
+        r.bind(
+            Doc::func(name, "scans")
+                .arg("scan", "Scan", "", "a line scan (scan_line, ascan, dscan, lup)")
+                .opt("channel", "string", "", "\"sx\", \"sy\" or \"sz\" (default \"sz\")")
+                .returns("float", "µm along the scanned axis")
+                .summary(&format!("SPEC's `{name}` after a line scan: {what}"))
+                .help("QPD signals are signed and sit on an offset: the statistics use w = |v − median(v)| of the chosen channel.")
+                .example(&format!("mv(#{{x: 0.0}}); let s = dscan(\"x\", -1.0, 1.0, 40, 0.001); {name}(s, \"sx\") < 1.0"), "true")
+                .example(&format!("{name}(scan_xy(#{{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 5}}))"), "error: this is an XY scan"),
+            move |sc: super::types::ScanRef, channel: &str| -> RResult<f64> {
+                let (t, v) = line_channel(name, &sc, channel)?;
+                let s = crate::analysis::spec::line_stats(&t, &v).map_err(|e| format!("{name}: {e}"))?;
+                Ok(match name { "peak" => s.peak, "cen" => s.cen, "com" => s.com, _ => s.fwhm })
+            },
+        );
+        r.overload(name, move |sc: super::types::ScanRef| -> RResult<f64> {
+            let (t, v) = line_channel(name, &sc, "sz")?;
+            let s =
+                crate::analysis::spec::line_stats(&t, &v).map_err(|e| format!("{name}: {e}"))?;
+            Ok(match name {
+                "peak" => s.peak,
+                "cen" => s.cen,
+                "com" => s.com,
+                _ => s.fwhm,
+            })
+        });
+    }
     r.getter(
         Doc::property("Scan", "kind")
             .returns("string", "\"XY\", \"XZ\", \"YZ\" or \"line\"")
