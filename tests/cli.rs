@@ -450,6 +450,10 @@ fn repl_console_words_last_result_notes_session_log_and_quit() {
     assert!(out.contains("x = 0.2500 µm"), "umvr shows where: {out}");
     assert!(err.contains("did you mean `scan_xy`?"), "{err}");
     assert!(!err.contains("bfpscope::"), "Rust type path in {err}");
+    assert!(
+        err.contains("Scan has no property `sxx`; did you mean `sx`?"),
+        "{err}"
+    );
     assert!(!out.contains("after quit"), "{out}");
     // the session log holds the entries and what they gave
     let log = std::fs::read_to_string(data.join("session.log")).unwrap();

@@ -53,7 +53,12 @@ pub fn did_you_mean<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str
         .collect();
     hits.sort();
     hits.dedup_by(|a, b| a.1 == b.1);
-    hits.into_iter().take(3).map(|(_, c)| c).collect()
+    let best = hits.first().map_or(0, |h| h.0);
+    hits.into_iter()
+        .take_while(|h| h.0 == best)
+        .take(3)
+        .map(|(_, c)| c)
+        .collect()
 }
 
 /// ` (did you mean `a`, `b`?)` or nothing.
@@ -136,6 +141,36 @@ pub fn user_words(msg: &str) -> String {
     out.push_str(rest);
     s = out;
     s
+}
+
+/// "Unknown property 'sxx' - a getter is not registered for type 'Scan'" → "Scan has no
+/// property `sxx`; did you mean `sx`?" (properties and methods of that type from the
+/// declarations); other messages unchanged.
+pub fn property_hint(msg: &str, docs: &[Doc]) -> String {
+    let Some(rest) = msg.strip_prefix("Unknown property '") else {
+        return msg.to_string();
+    };
+    let Some((name, rest)) = rest.split_once('\'') else {
+        return msg.to_string();
+    };
+    let ty = rest
+        .rsplit_once("for type '")
+        .map(|(_, t)| user_type(t.trim_end_matches('\'')))
+        .unwrap_or_default();
+    use super::registry::Kind;
+    let members: Vec<&str> = docs
+        .iter()
+        .filter(|d| match &d.kind {
+            Kind::Property { ty: t } | Kind::Method { ty: t } => *t == ty,
+            _ => false,
+        })
+        .map(|d| d.name.as_str())
+        .collect();
+    format!(
+        "{ty} has no property `{name}`{}; its properties and methods: {}",
+        suggestion(name, members.iter().copied()),
+        members.join(", ")
+    )
 }
 
 /// A number for messages: up to 6 significant digits, no trailing zeros.
@@ -919,6 +954,7 @@ mod tests {
         assert_eq!(did_you_mean("pth", ["path", "beads", "n"]), vec!["path"]);
         assert_eq!(did_you_mean("axes", ["axis", "half_um"]), vec!["axis"]);
         assert!(did_you_mean("zzzzzz", ["path", "beads"]).is_empty());
+        assert_eq!(did_you_mean("sxx", ["sx", "sy", "sz", "save"]), vec!["sx"]);
     }
 
     #[test]

@@ -142,10 +142,11 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
         other => {
             let text = other.to_string();
             let suffix = format!(" ({})", other.position());
-            match text.strip_suffix(&suffix) {
+            let t = match text.strip_suffix(&suffix) {
                 Some(t) if !other.position().is_none() => t.to_string(),
                 _ => text,
-            }
+            };
+            console::property_hint(&t, docs)
         }
     };
     let _ = chain;
