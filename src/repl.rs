@@ -221,11 +221,10 @@ impl Hinter for ReplHelper {
 
 impl Validator for ReplHelper {
     fn validate(&self, ctx: &mut ValidationContext) -> rustyline::Result<ValidationResult> {
-        Ok(if is_incomplete(&self.parser, ctx.input()) {
-            ValidationResult::Incomplete
-        } else {
-            ValidationResult::Valid(None)
-        })
+        // The prompt loop itself continues unfinished entries under a `...> ` prompt (the
+        // same at a terminal and through a pipe), so every line is accepted here.
+        let _ = (&self.parser, ctx.input());
+        Ok(ValidationResult::Valid(None))
     }
 }
 

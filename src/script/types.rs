@@ -285,7 +285,19 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if v.is_unit() {
         return if top { String::new() } else { "()".into() };
     }
+    if let Ok(x) = v.as_float() {
+        return show_float(x);
+    }
     v.to_string()
+}
+
+/// A float for people: 6 significant digits (`0.05`, not `0.049999999999999996`); integral
+/// values keep a `.0` so floats stay recognisable.
+pub fn show_float(x: f64) -> String {
+    if x.is_finite() && x.fract() == 0.0 && x.abs() < 1e15 {
+        return format!("{x:.1}");
+    }
+    super::console::fmt_num(x)
 }
 
 fn image_from(like: &Image, data: Array2<f64>) -> ImageRef {
