@@ -462,4 +462,11 @@ fn repl_console_words_last_result_notes_session_log_and_quit() {
     // the note is in the scan's metadata
     let sc = bfpscope::data::npz::load_scan(data.join("scan_0001.npz")).unwrap();
     assert_eq!(sc.meta["notes"], serde_json::json!(["sample 3"]));
+    // where docs/files.md says the metadata sits in the file: under user_meta
+    let stored = bfpscope::data::npz::file_meta(&sc);
+    assert_eq!(
+        stored["user_meta"]["notes"],
+        serde_json::json!(["sample 3"])
+    );
+    assert!(stored["user_meta"]["plan"].is_object(), "{stored}");
 }

@@ -31,8 +31,8 @@ pub fn require_plane(who: &str, img: &Image, allowed: &[&str]) -> Result<()> {
     Err(AnalysisError::BadInput {
         name: "scan",
         reason: format!(
-            "this is {what}; {who} needs {}",
-            format!("an {} scan", allowed.join(" or "))
+            "this is {what}; {who} needs an {} scan",
+            allowed.join(" or ")
         ),
     })
 }
