@@ -272,7 +272,7 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
             }
             v.clone()
         }
-        "array" | "[from, to]" => {
+        "array" | "[from, to]" | "[x, y]" => {
             let Some(arr) = v.read_lock::<Array>() else {
                 return wrong(if ty == "array" {
                     "an array"
@@ -280,9 +280,9 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
                     "[from, to] (two numbers)"
                 });
             };
-            if ty == "[from, to]" && (arr.len() != 2 || arr.iter().any(|x| to_f64(x).is_none())) {
+            if ty != "array" && (arr.len() != 2 || arr.iter().any(|x| to_f64(x).is_none())) {
                 drop(arr);
-                return wrong("[from, to] (two numbers)");
+                return wrong(&format!("{ty} (two numbers)"));
             }
             drop(arr);
             v.clone()
