@@ -277,7 +277,12 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
             .iter()
             .map(|(k, x)| format!("{k}: {}", show_inner(x, false)))
             .collect();
-        return format!("#{{{}}}", items.join(", "));
+        let one = format!("#{{{}}}", items.join(", "));
+        // a long result map at the prompt (status(), protocol results): one key per line
+        if top && one.chars().count() > 100 {
+            return format!("#{{\n  {}\n}}", items.join(",\n  "));
+        }
+        return one;
     }
     if v.is_string() && !top {
         return format!("{v:?}");
