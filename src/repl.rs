@@ -77,6 +77,32 @@ impl ReplHelper {
         let word = &before[start..];
         let prev = before[..start].chars().last();
         let mut out: Vec<(String, String)> = vec![];
+        if let Some(head) = before[..start].strip_suffix("::") {
+            // `focus::<Tab>`: the module's protocols (from their declarations) and help
+            let module: String = head
+                .chars()
+                .rev()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            let mut names = vec![("help".to_string(), "the module's help page".to_string())];
+            for d in crate::script::console::module_protocols(&module).unwrap_or_default() {
+                let full = d.get("name").map(|v| v.to_string()).unwrap_or_default();
+                let summary = d.get("summary").map(|v| v.to_string()).unwrap_or_default();
+                if let Some(f) = full.strip_prefix(&format!("{module}::")) {
+                    names.push((f.to_string(), summary));
+                }
+            }
+            for (n, summary) in names {
+                if n.starts_with(word) {
+                    out.push((format!("{n}  — {summary}"), format!("{n}(")));
+                }
+            }
+            out.sort();
+            return (start, out);
+        }
         if prev == Some('.') {
             for d in self.docs.iter() {
                 let (is_m, is_p) = (
@@ -462,6 +488,19 @@ mod tests {
         let line = "let m = s.sx.ab";
         let (_, c) = h.candidates(line, line.len());
         assert!(c.iter().any(|c| c.1 == "abs_max("), "{c:?}");
+        let line = "focus::se";
+        let (s, c) = h.candidates(line, line.len());
+        assert_eq!(s, 7);
+        assert_eq!(
+            c.iter().map(|c| c.1.as_str()).collect::<Vec<_>>(),
+            vec!["search("]
+        );
+        let (_, c) = h.candidates("beads::", 7);
+        let reps: Vec<&str> = c.iter().map(|c| c.1.as_str()).collect();
+        assert!(
+            reps.contains(&"multi(") && reps.contains(&"sizes(") && reps.contains(&"help("),
+            "{reps:?}"
+        );
         assert_eq!(
             h.hint_for("mv(").unwrap().split("  —").next().unwrap(),
             "#{x, y, z})"
