@@ -77,6 +77,32 @@ impl ReplHelper {
         let word = &before[start..];
         let prev = before[..start].chars().last();
         let mut out: Vec<(String, String)> = vec![];
+        if let Some(head) = before[..start].strip_suffix("::") {
+            // `focus::<Tab>`: the module's protocols (from their declarations) and help
+            let module: String = head
+                .chars()
+                .rev()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            let mut names = vec![("help".to_string(), "the module's help page".to_string())];
+            for d in crate::script::console::module_protocols(&module).unwrap_or_default() {
+                let full = d.get("name").map(|v| v.to_string()).unwrap_or_default();
+                let summary = d.get("summary").map(|v| v.to_string()).unwrap_or_default();
+                if let Some(f) = full.strip_prefix(&format!("{module}::")) {
+                    names.push((f.to_string(), summary));
+                }
+            }
+            for (n, summary) in names {
+                if n.starts_with(word) {
+                    out.push((format!("{n}  — {summary}"), format!("{n}(")));
+                }
+            }
+            out.sort();
+            return (start, out);
+        }
         if prev == Some('.') {
             for d in self.docs.iter() {
                 let (is_m, is_p) = (
@@ -221,11 +247,10 @@ impl Hinter for ReplHelper {
 
 impl Validator for ReplHelper {
     fn validate(&self, ctx: &mut ValidationContext) -> rustyline::Result<ValidationResult> {
-        Ok(if is_incomplete(&self.parser, ctx.input()) {
-            ValidationResult::Incomplete
-        } else {
-            ValidationResult::Valid(None)
-        })
+        // The prompt loop itself continues unfinished entries under a `...> ` prompt (the
+        // same at a terminal and through a pipe), so every line is accepted here.
+        let _ = (&self.parser, ctx.input());
+        Ok(ValidationResult::Valid(None))
     }
 }
 
@@ -280,6 +305,9 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
                     continue;
                 }
                 let _ = rl.add_history_entry(entry.as_str());
+                if is_exit(&entry) {
+                    break;
+                }
                 evaluate(&mut wb, &entry);
                 if let Ok(mut u) = user.lock() {
                     *u = wb.user_names();
@@ -305,21 +333,134 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
     0
 }
 
-fn evaluate(wb: &mut Workbench, entry: &str) {
-    match wb.eval_line(entry) {
-        Ok(v) => {
-            if !v.is_unit() {
-                out_line(&show(&v));
+/// The REPL's `_` (the last result) becomes the variable `_last` (Rhai has no variable `_`):
+/// a lone `_` outside strings and comments, not a `switch` arm's `_ =>`.
+pub fn subst_last(entry: &str) -> String {
+    let c: Vec<char> = entry.chars().collect();
+    let mut out = String::with_capacity(entry.len() + 8);
+    let mut i = 0;
+    let ident = |ch: char| ch.is_alphanumeric() || ch == '_';
+    while i < c.len() {
+        let ch = c[i];
+        if ch == '"' || ch == '`' || ch == '\'' {
+            // copy the string literal
+            out.push(ch);
+            i += 1;
+            while i < c.len() {
+                out.push(c[i]);
+                if c[i] == '\\' && i + 1 < c.len() {
+                    out.push(c[i + 1]);
+                    i += 2;
+                    continue;
+                }
+                if c[i] == ch {
+                    break;
+                }
+                i += 1;
+            }
+            i += 1;
+            continue;
+        }
+        if ch == '/' && c.get(i + 1) == Some(&'/') {
+            while i < c.len() && c[i] != '\n' {
+                out.push(c[i]);
+                i += 1;
+            }
+            continue;
+        }
+        if ch == '_' && (i == 0 || !ident(c[i - 1])) && c.get(i + 1).is_none_or(|n| !ident(*n)) {
+            let rest: String = c[i + 1..].iter().collect();
+            if !rest.trim_start().starts_with("=>") {
+                out.push_str("_last");
+                i += 1;
+                continue;
             }
         }
-        Err(e) if e.interrupted => err_line("interrupted (Ctrl-C); the prompt is still here"),
-        Err(e) => err_line(&format!("error: {e}")),
+        out.push(ch);
+        i += 1;
     }
+    out
+}
+
+/// `exit`, `quit` (with or without `()` and `;`) end the session.
+pub fn is_exit(entry: &str) -> bool {
+    let e = entry.trim().trim_end_matches(';').trim();
+    matches!(e, "exit" | "quit" | "exit()" | "quit()")
+}
+
+/// Append to the session log (`session.log` in the session folder): the entry and what it gave.
+fn log_session(wb: &Workbench, entry: &str, out: &str) {
+    use std::io::Write;
+    let p = wb.ctx.store.dir().join("session.log");
+    let _ = std::fs::create_dir_all(wb.ctx.store.dir());
+    if let Ok(mut f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(p)
+    {
+        let mut s = String::new();
+        for (i, l) in entry.lines().enumerate() {
+            s.push_str(if i == 0 { "bfp> " } else { "...> " });
+            s.push_str(l);
+            s.push('\n');
+        }
+        if !out.is_empty() {
+            s.push_str(out);
+            s.push('\n');
+        }
+        let _ = f.write_all(s.as_bytes());
+    }
+}
+
+fn evaluate(wb: &mut Workbench, entry: &str) {
+    let out = match wb.eval_line(&subst_last(entry)) {
+        Ok(v) => {
+            let text = if v.is_unit() { String::new() } else { show(&v) };
+            if !v.is_unit() {
+                out_line(&text);
+                // `_` is the last result
+                wb.set_var("_last", v);
+            }
+            text
+        }
+        Err(e) if e.interrupted => {
+            let m = "interrupted (Ctrl-C); the prompt is still here".to_string();
+            err_line(&m);
+            m
+        }
+        Err(e) => {
+            let m = format!("error: {e}");
+            err_line(&m);
+            m
+        }
+    };
+    log_session(wb, entry, &out);
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn underscore_is_the_last_result() {
+        assert_eq!(subst_last("_ * 10"), "_last * 10");
+        assert_eq!(subst_last("let a = _.sx;"), "let a = _last.sx;");
+        assert_eq!(subst_last(r#"print("_"); // _"#), r#"print("_"); // _"#);
+        assert_eq!(
+            subst_last("switch x { 1 => 2, _ => 3 }"),
+            "switch x { 1 => 2, _ => 3 }"
+        );
+        assert_eq!(subst_last("let _x = 1; a_b"), "let _x = 1; a_b");
+    }
+
+    #[test]
+    fn exit_and_quit_end_the_session() {
+        for e in ["exit", "quit", " quit() ", "exit;"] {
+            assert!(is_exit(e), "{e}");
+        }
+        assert!(!is_exit("exits"));
+        assert!(!is_exit("let quit = 1"));
+    }
 
     #[test]
     fn incomplete_entries_are_detected() {
@@ -347,6 +488,19 @@ mod tests {
         let line = "let m = s.sx.ab";
         let (_, c) = h.candidates(line, line.len());
         assert!(c.iter().any(|c| c.1 == "abs_max("), "{c:?}");
+        let line = "focus::se";
+        let (s, c) = h.candidates(line, line.len());
+        assert_eq!(s, 7);
+        assert_eq!(
+            c.iter().map(|c| c.1.as_str()).collect::<Vec<_>>(),
+            vec!["search("]
+        );
+        let (_, c) = h.candidates("beads::", 7);
+        let reps: Vec<&str> = c.iter().map(|c| c.1.as_str()).collect();
+        assert!(
+            reps.contains(&"multi(") && reps.contains(&"sizes(") && reps.contains(&"help("),
+            "{reps:?}"
+        );
         assert_eq!(
             h.hint_for("mv(").unwrap().split("  —").next().unwrap(),
             "#{x, y, z})"

@@ -420,3 +420,53 @@ fn config_speed_limit_and_legacy_limits_table() {
         "{err}"
     );
 }
+
+#[test]
+fn repl_console_words_last_result_notes_session_log_and_quit() {
+    let data = tmp("console");
+    let mut child = bin()
+        .args(["--data", data.to_str().unwrap(), "repl"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let session = "6 * 7\n_ + 1\nconnect(#{backend: \"mock\"});\nnote(\"sample 3\");\nlet s = lup(\"x\", -0.5, 0.5, 10, 0.001);\nscans(#{note: \"sample\"}).len()\nscans()[0].kind\numvr(#{x: 0.25})\nscna_xy(#{})\ns.sxx\nquit\nprint(\"after quit\");\n";
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(session.as_bytes())
+        .unwrap();
+    let o = child.wait_with_output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    assert!(out.contains("42\n43\n"), "{out}");
+    assert!(
+        out.contains("\n1\n\"line\"\n") || out.contains("\n1\nline\n"),
+        "{out}"
+    );
+    assert!(out.contains("x = 0.2500 µm"), "umvr shows where: {out}");
+    assert!(err.contains("did you mean `scan_xy`?"), "{err}");
+    assert!(!err.contains("bfpscope::"), "Rust type path in {err}");
+    assert!(
+        err.contains("Scan has no property `sxx`; did you mean `sx`?"),
+        "{err}"
+    );
+    assert!(!out.contains("after quit"), "{out}");
+    // the session log holds the entries and what they gave
+    let log = std::fs::read_to_string(data.join("session.log")).unwrap();
+    assert!(log.contains("bfp> 6 * 7\n42\n"), "{log}");
+    assert!(log.contains("did you mean `scan_xy`?"), "{log}");
+    // the note is in the scan's metadata
+    let sc = bfpscope::data::npz::load_scan(data.join("scan_0001.npz")).unwrap();
+    assert_eq!(sc.meta["notes"], serde_json::json!(["sample 3"]));
+    // where docs/files.md says the metadata sits in the file: under user_meta
+    let stored = bfpscope::data::npz::file_meta(&sc);
+    assert_eq!(
+        stored["user_meta"]["notes"],
+        serde_json::json!(["sample 3"])
+    );
+    assert!(stored["user_meta"]["plan"].is_object(), "{stored}");
+}

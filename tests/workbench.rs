@@ -248,6 +248,19 @@ fn values_print_readably() {
     assert!(bfpscope::script::show(&v).starts_with("Image 5×11"));
     let v = w.eval_line("#{a: [1, 2.5], b: \"t\"}").unwrap();
     assert_eq!(bfpscope::script::show(&v), "#{a: [1, 2.5], b: \"t\"}");
+    // a long result map (status()) on several lines, one key per line
+    let v = w.eval_line("status()").unwrap();
+    let st = bfpscope::script::show(&v);
+    assert!(st.starts_with("#{\n  backend: \"mock\","), "{st}");
+    assert!(st.lines().count() > 5, "{st}");
+    // floats with sensible significant digits, integral floats keep their .0
+    let v = w
+        .eval_line("[0.1 + 0.2, 0.049999999999999996, 2.0, 1.0 / 3.0, 1e-9]")
+        .unwrap();
+    assert_eq!(
+        bfpscope::script::show(&v),
+        "[0.3, 0.05, 2.0, 0.333333, 1e-9]"
+    );
 }
 
 #[test]

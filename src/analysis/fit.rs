@@ -349,6 +349,7 @@ impl FitResult {
 /// multiBeadFit). See the module docs for the method, outcomes and errors.
 pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> Result<FitResult> {
     opts.validate()?;
+    super::kind::require_plane("fit_beads", sx, &["XY"])?;
     let data = FitData::new(sx, sy, tpl, opts)?;
     let grow = opts.grow || (opts.init.is_none() && opts.n_beads.is_none());
     let init: Vec<BeadInit> = match &opts.init {

@@ -60,6 +60,7 @@ pub struct FocusResult {
 pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     check_range("z_window_um", opts.z_window_um, 1e-3, 1e3)?;
     check_range("level", opts.level, 0.0, 1.0)?;
+    super::kind::require_plane("focus_search", img, &["XZ", "YZ"])?;
     let sens = sensitivity(img, Axis::X, opts.stencil)?;
     let rows = row_peaks(
         &sens,

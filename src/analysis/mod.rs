@@ -38,12 +38,14 @@ pub mod background;
 pub mod bead_model;
 pub mod fit;
 pub mod focus;
+pub mod kind;
 pub mod orientation;
 pub mod peaks;
 pub mod profile;
 pub mod quantities;
 pub mod sbr;
 pub mod sensitivity;
+pub mod spec;
 pub mod stats;
 pub mod template;
 

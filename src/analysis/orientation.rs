@@ -461,6 +461,7 @@ pub fn measure_filament(
     opts: &MeasureOptions,
 ) -> Result<FilamentMeasurement> {
     opts.validate()?;
+    super::kind::require_plane("measure_filament", sx, &["XY"])?;
     check_pixel(sx, curve)?;
     let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
     let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
@@ -490,6 +491,8 @@ pub fn measure_filament(
     let sens = if use_rows { sxs } else { sys };
     let mut m = measure_sens_along(sens, curve, channel, line, opts)?;
     m.other_line = other;
+    let pts: Vec<(f64, f64)> = m.points.iter().map(|p| (p.arc_um, p.sens)).collect();
+    super::kind::check_filament_maxima(&pts)?;
     Ok(m)
 }
 

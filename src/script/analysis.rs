@@ -824,21 +824,12 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let c = ctx.clone();
     r.bind(
         Doc::method("Template", "save")
-            .arg("path", "string", "", "file (JSON)")
+            .arg("path", "string", "", "file (JSON; relative: in the session folder; an existing file is kept and a numbered name used)")
             .returns("string", "the path written")
             .summary("save the template (JSON with grid, reference bead, source and the script's provenance)")
             .example(&format!("{TPL} let p = status().data_dir + \"/tpl_example.json\"; t.save(p); load_template(p).h_um"), "0.025"),
         move |t: &mut TemplateRef, path: &str| -> RResult<String> {
-            let p = std::path::Path::new(path);
-            if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).map_err(|e| err("save", format!("{}: {e}", dir.display())))?;
-            }
-            // the template plus the provenance of this script (ignored when loading)
-            let mut v = serde_json::to_value(&*t.0).map_err(|e| err("save", e))?;
-            v["provenance"] = c.provenance();
-            let text = serde_json::to_string_pretty(&v).map_err(|e| err("save", e))?;
-            std::fs::write(p, text).map_err(|e| err("save", format!("{path}: {e}")))?;
-            Ok(path.to_string())
+            super::console::save_template(&c, t, path, false)
         },
     );
     r.bind(

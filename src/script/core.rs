@@ -27,6 +27,7 @@ pub fn register(r: &mut Registrar) {
             .example("help(\"scan_xy\")", "()"),
         move || {
             c.print(&help_index(&c.docs()));
+            c.print(&super::console::protocols_index());
         },
     );
     let c = r.ctx();
@@ -34,6 +35,10 @@ pub fn register(r: &mut Registrar) {
         let docs = c.docs();
         let hits = find(&docs, name);
         if hits.is_empty() {
+            if let Some(page) = super::console::protocol_help(name) {
+                c.print(&page);
+                return Ok(());
+            }
             let mut near: Vec<&str> = docs
                 .iter()
                 .map(|d| d.name.as_str())

@@ -205,6 +205,8 @@ pub struct Ctx {
     pub trace: Mutex<Option<crate::instrument::trace::Trace>>,
     /// Answers queued by `answer([...])` for `ask` (scripted tests of operator prompts).
     pub answers: Mutex<std::collections::VecDeque<String>>,
+    /// Notes from `note("…")`, recorded in the metadata of every later scan (`notes`).
+    pub notes: Mutex<Vec<String>>,
     pub(crate) docs: OnceLock<Arc<Vec<Doc>>>,
     git: OnceLock<Option<String>>,
 }
@@ -227,6 +229,7 @@ impl Ctx {
             optics: Mutex::new(Optics::default()),
             scene: Mutex::new(None),
             answers: Mutex::new(Default::default()),
+            notes: Mutex::new(vec![]),
             trace: Mutex::new(None),
             protocols: Mutex::new(vec![]),
             docs: OnceLock::new(),
@@ -406,6 +409,7 @@ impl Ctx {
             "program": format!("bfpscope {}", env!("CARGO_PKG_VERSION")),
             "config": self.settings.config_path.as_ref().map(|p| p.display().to_string()),
             "protocol": self.protocol(),
+            "notes": *lock(&self.notes),
         })
     }
 

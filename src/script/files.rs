@@ -1,8 +1,9 @@
 //! Figures and interchange files: `plot` (heat maps of scans and images), `plot_profile`,
 //! `plot_hist`, `plot_xy`, `save_tiff` / `load_tiff` (float32 TIFF for Fiji), `save_csv`
 //! (profiles and tables). Figures are PNG or SVG by extension, drawn with the embedded font.
-//! Parent folders are created; figures and CSV files are overwritten (they are derived
-//! products — scans, the measurements, are never overwritten).
+//! Relative paths resolve in the session folder; parent folders are created; an existing file
+//! is never replaced (a numbered name is used) unless `overwrite: true`; every save prints
+//! where it went.
 
 use super::ctx::Ctx;
 use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar};
@@ -15,18 +16,11 @@ use rhai::{Array, Dynamic, Map};
 use std::path::Path;
 use std::sync::Arc;
 
-fn prepare(who: &str, path: &str) -> RResult<()> {
-    if path.is_empty() {
-        return fail(format!("{who}: path is empty"));
-    }
-    if let Some(dir) = Path::new(path)
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-    {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
-    }
-    Ok(())
+/// The path to write (see [`super::console::output_path`]: relative paths in the session folder,
+/// existing files never replaced unless `overwrite`).
+fn prepare(c: &Ctx, who: &str, path: &str, overwrite: bool) -> RResult<String> {
+    let p = super::console::output_path(c.store.dir(), who, path, overwrite)?;
+    Ok(p.display().to_string())
 }
 
 /// Embed the script's provenance in the file just written (PNG text chunk, SVG comment, CSV
@@ -35,6 +29,7 @@ fn stamp(c: &Ctx, path: &str) -> RResult<String> {
     let json = c.provenance().to_string();
     crate::data::provenance::embed(Path::new(path), &json)
         .map_err(|e| format!("provenance: {e}"))?;
+    c.print(&format!("saved {path}"));
     Ok(path.to_string())
 }
 
@@ -58,6 +53,12 @@ const XY_KEYS: &[(&str, &str, &str, &str)] = &[
     ("ylabel", "string", "", "optional: y-axis label"),
     ("log_x", "bool", "", "optional: logarithmic x axis"),
     ("log_y", "bool", "", "optional: logarithmic y axis"),
+    (
+        "overwrite",
+        "bool",
+        "",
+        "optional: replace an existing file (default false: a numbered name, never overwriting)",
+    ),
 ];
 
 const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
@@ -66,12 +67,13 @@ pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
     let d = Doc::func("plot", "figures")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
-        .arg("path", "string", "", "figure file, .png or .svg (overwritten; folders created)")
+        .arg("path", "string", "", "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
         .map(
             "opts",
             "optional",
             &[
                 ("title", "string", "", "optional: figure title"),
+                ("overwrite", "bool", "", "optional: replace an existing file (default false: a numbered name, never overwriting)"),
                 ("channel", "string", "", "optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
                 ("include_sz", "bool", "", "optional (scans): draw the Sz panel (default true)"),
                 ("shared_xy_scale", "bool", "", "optional (scans): Sx and Sy on one colour range"),
@@ -92,7 +94,7 @@ pub fn register(r: &mut Registrar) {
     let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
         let who = "plot";
         let o = Opts::new(&spec, &m)?;
-        prepare(who, path)?;
+        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
         let title = o.string("title")?.unwrap_or_default();
         let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
             let mut p = match o.string("colormap")?.as_deref() {
@@ -177,7 +179,7 @@ pub fn register(r: &mut Registrar) {
     let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
         let who = "plot_profile";
         let o = Opts::new(&spec, &m)?;
-        prepare(who, path)?;
+        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
         let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
         let bad = |x: &Dynamic| -> RResult<()> {
             fail(format!(
@@ -229,7 +231,7 @@ pub fn register(r: &mut Registrar) {
     let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
         let who = "plot_xy";
         let o = Opts::new(&spec, &m)?;
-        prepare(who, path)?;
+        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
         let mut series = vec![];
         for (i, s) in a.iter().enumerate() {
             let Some(sm) = s.read_lock::<Map>() else {
@@ -305,6 +307,7 @@ pub fn register(r: &mut Registrar) {
             &[
                 ("bins", "int", "", "optional: number of bins (default 20)"),
                 ("title", "string", "", "optional: figure title"),
+                ("overwrite", "bool", "", "optional: replace an existing file (default false: a numbered name, never overwriting)"),
                 ("xlabel", "string", "", "optional: x-axis label"),
                 ("ylabel", "string", "", "optional: y-axis label (default \"count\")"),
             ],
@@ -319,7 +322,7 @@ pub fn register(r: &mut Registrar) {
     let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
         let who = "plot_hist";
         let o = Opts::new(&spec, &m)?;
-        prepare(who, path)?;
+        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
         let v = numbers(who, "values", &Dynamic::from_array(a))?;
         let bins = o.int("bins")?.unwrap_or(20);
         if !(1..=10_000).contains(&bins) {
@@ -364,7 +367,7 @@ pub fn register(r: &mut Registrar) {
                 "21",
             ),
         move |i: ImageRef, path: &str| -> RResult<String> {
-            prepare("save_tiff", path)?;
+            let path = &prepare(&c, "save_tiff", path, false)?;
             crate::data::tiff::save_tiff(path, &i.0).map_err(|e| ferr("save_tiff", path, e))?;
             stamp(&c, path)
         },
@@ -394,7 +397,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(d, move |v: Dynamic, path: &str| -> RResult<String> {
         let who = "save_csv";
-        prepare(who, path)?;
+        let path = &prepare(&c, who, path, false)?;
         if let Some(p) = v.read_lock::<ProfileRef>() {
             crate::data::csv::save_csv_profile(path, &p.0).map_err(|e| ferr(who, path, e))?;
         } else if let Some(m) = v.read_lock::<Map>() {

@@ -3,6 +3,7 @@
 //! functions that persist across REPL lines, and the shared [`Ctx`].
 
 pub mod analysis;
+pub mod console;
 pub mod core;
 pub mod ctx;
 pub mod files;
@@ -34,6 +35,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("physics", physics::register),
     ("analysis", analysis::register),
     ("files", files::register),
+    ("console", console::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.
@@ -127,24 +129,28 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
             let name = name.rsplit('.').next().unwrap_or(name);
             match docs.iter().find(|d| d.name == name) {
                 Some(d) => format!("{name}: wrong arguments {}; usage: {}", sig.trim_start_matches(name).trim(), d.usage()),
-                None => format!("function not found: {sig}"),
+                None => {
+                    let names = docs.iter().map(|d| d.name.as_str());
+                    format!("function not found: {}{}", console::user_words(sig), console::suggestion(name, names))
+                }
             }
         }
         EvalAltResult::ErrorVariableNotFound(name, _) => match docs.iter().find(|d| d.name == *name) {
             Some(d) => format!("{name} is a function; usage: {}", d.usage()),
-            None => format!("variable not found: {name}"),
+            None => format!("variable not found: {name}{}", console::suggestion(name, docs.iter().map(|d| d.name.as_str()))),
         },
         other => {
             let text = other.to_string();
             let suffix = format!(" ({})", other.position());
-            match text.strip_suffix(&suffix) {
+            let t = match text.strip_suffix(&suffix) {
                 Some(t) if !other.position().is_none() => t.to_string(),
                 _ => text,
-            }
+            };
+            console::property_hint(&t, docs)
         }
     };
     let _ = chain;
-    msg
+    console::user_words(&msg)
 }
 
 /// Script functions (not bindings, not closures) the error passed through, innermost first.

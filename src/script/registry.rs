@@ -522,8 +522,9 @@ impl<'a> Opts<'a> {
         for k in map.keys() {
             if !spec.keys.iter().any(|d| d == k.as_str()) {
                 return fail(format!(
-                    "{}: unknown key `{k}`; allowed keys: {}; usage: {}",
+                    "{}: unknown key `{k}`{}; allowed keys: {}; usage: {}",
                     spec.name,
+                    super::console::suggestion(k, spec.keys.iter().map(|s| s.as_str())),
                     spec.keys.join(", "),
                     spec.usage
                 ));

@@ -277,7 +277,12 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
             .iter()
             .map(|(k, x)| format!("{k}: {}", show_inner(x, false)))
             .collect();
-        return format!("#{{{}}}", items.join(", "));
+        let one = format!("#{{{}}}", items.join(", "));
+        // a long result map at the prompt (status(), protocol results): one key per line
+        if top && one.chars().count() > 100 {
+            return format!("#{{\n  {}\n}}", items.join(",\n  "));
+        }
+        return one;
     }
     if v.is_string() && !top {
         return format!("{v:?}");
@@ -285,7 +290,19 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if v.is_unit() {
         return if top { String::new() } else { "()".into() };
     }
+    if let Ok(x) = v.as_float() {
+        return show_float(x);
+    }
     v.to_string()
+}
+
+/// A float for people: 6 significant digits (`0.05`, not `0.049999999999999996`); integral
+/// values keep a `.0` so floats stay recognisable.
+pub fn show_float(x: f64) -> String {
+    if x.is_finite() && x.fract() == 0.0 && x.abs() < 1e15 {
+        return format!("{x:.1}");
+    }
+    super::console::fmt_num(x)
 }
 
 fn image_from(like: &Image, data: Array2<f64>) -> ImageRef {
