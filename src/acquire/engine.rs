@@ -13,6 +13,7 @@
 
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
+use crate::data::clock::utc_now;
 use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::{DeviceError, Instrument, Pos};
 use ndarray::Array2;
@@ -100,31 +101,6 @@ impl ScanRun {
             )),
         }
     }
-}
-
-/// Wall-clock time as RFC 3339 UTC (`2026-11-21T16:05:00Z`).
-pub fn utc_now() -> String {
-    let s = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
-    let (days, rem) = ((s / 86400) as i64, s % 86400);
-    // civil-from-days (H. Hinnant)
-    let z = days + 719468;
-    let era = z.div_euclid(146097);
-    let doe = z - era * 146097;
-    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + (m <= 2) as i64;
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
-    )
 }
 
 /// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
@@ -339,18 +315,4 @@ pub fn checked_move(
         .check(target)
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?;
     inst.move_settle(target).map_err(|e| format!("{who}: {e}"))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    #[test]
-    fn utc_now_is_rfc3339() {
-        let s = utc_now();
-        assert_eq!(s.len(), 20, "{s}");
-        assert!(
-            s.starts_with("20") && s.ends_with('Z') && s.as_bytes()[10] == b'T',
-            "{s}"
-        );
-    }
 }

@@ -14,12 +14,13 @@
 //!   placeholder.
 //! - The default folder is `./bfpscope_data/YYYY-MM-DD/` with the UTC date.
 
+use super::clock::utc_date;
 use super::npz::write_scan_npz;
 use super::{sync_file, sync_parent_dir, temp_path_for, DataError, Scan};
 use std::fs::OpenOptions;
 use std::io::ErrorKind;
 use std::path::{Path, PathBuf};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::SystemTime;
 
 /// Root of the default session folders, relative to the working directory.
 pub const DEFAULT_ROOT: &str = "bfpscope_data";
@@ -169,55 +170,9 @@ pub fn scan_number(file_name: &str) -> Option<u64> {
     digits.parse().ok()
 }
 
-/// `YYYY-MM-DD` (UTC) of a system time.
-pub fn utc_date(time: SystemTime) -> String {
-    let secs = match time.duration_since(UNIX_EPOCH) {
-        Ok(d) => d.as_secs() as i64,
-        Err(e) => -(e.duration().as_secs() as i64) - 1,
-    };
-    let (y, m, d) = civil_from_days(secs.div_euclid(86_400));
-    format!("{y:04}-{m:02}-{d:02}")
-}
-
-/// Days since 1970-01-01 to (year, month, day) in the proleptic Gregorian calendar
-/// (H. Hinnant's `civil_from_days`).
-fn civil_from_days(z: i64) -> (i64, u32, u32) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    (y, m, d)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::time::Duration;
-
-    #[test]
-    fn dates() {
-        assert_eq!(utc_date(UNIX_EPOCH), "1970-01-01");
-        // 2000-02-29 12:00 UTC = 951825600 s
-        assert_eq!(
-            utc_date(UNIX_EPOCH + Duration::from_secs(951_825_600)),
-            "2000-02-29"
-        );
-        // 2026-11-21 00:00 UTC = 1795219200 s; one second earlier is still the 20th
-        assert_eq!(
-            utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_200)),
-            "2026-11-21"
-        );
-        assert_eq!(
-            utc_date(UNIX_EPOCH + Duration::from_secs(1_795_219_199)),
-            "2026-11-20"
-        );
-        assert_eq!(utc_date(UNIX_EPOCH - Duration::from_secs(1)), "1969-12-31");
-    }
 
     #[test]
     fn scan_numbers() {

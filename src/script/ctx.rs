@@ -431,7 +431,7 @@ impl Ctx {
             },
             "git_revision": self.git_revision(),
             "protocol": self.protocol(),
-            "written": crate::acquire::engine::utc_now(),
+            "written": crate::data::clock::utc_now(),
         })
     }
 }
