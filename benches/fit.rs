@@ -69,7 +69,7 @@ fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> 
         sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
     });
     scene.seed = seed;
-    let r = Renderer::new(&Optics::default(), &scene, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&Optics::default(), &scene, TemplateSpec::default()).unwrap();
     let scan = render_xy(&r, &ax, &ax, 0.0, 10_000);
     let sigma = PAPER_DETECTOR_SIGMA_SAMPLE / 100.0;
     let init = detect_beads(

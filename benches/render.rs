@@ -34,7 +34,7 @@ fn scene() -> Scene {
 
 fn bench(c: &mut Criterion) {
     let optics = Optics::default();
-    let r = Renderer::new(&optics, &scene(), TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&optics, &scene(), TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..128).map(|i| -6.0 + 12.0 * i as f64 / 127.0).collect();
     let _ = render_xy(&r, &xs, &xs, 0.0, 1); // build the template plane once
     let nsc = r.scatterers.len();
@@ -57,7 +57,7 @@ fn bench(c: &mut Criterion) {
     });
     g.bench_function("renderer for the scene (planes for z = 0)", |b| {
         b.iter(|| {
-            let r = Renderer::new(&optics, &scene(), TemplateSpec::default()).unwrap();
+            let r = Renderer::checked(&optics, &scene(), TemplateSpec::default()).unwrap();
             r.template.prepare(0.0, 0.0);
             r
         })

@@ -62,7 +62,7 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("render 128x128, 10 beads + 10 µm filament");
     g.sample_size(20);
     for (name, o) in [("paraxial", Optics::default()), ("vector", vector.clone())] {
-        let r = Renderer::new(&o, &scene(), TemplateSpec::default()).unwrap();
+        let r = Renderer::checked(&o, &scene(), TemplateSpec::default()).unwrap();
         let _ = render_xy(&r, &xs, &xs, 0.0, 1); // templates built once
         g.bench_function(name, |b| b.iter(|| render_xy(&r, &xs, &xs, 0.0, 1)));
     }

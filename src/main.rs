@@ -160,7 +160,7 @@ fn emulate(device: &str, scene: Option<&std::path::Path>) -> ExitCode {
         }
     };
     let optics = bfpscope::optics::Optics::default();
-    let renderer = match Renderer::new(
+    let renderer = match Renderer::checked(
         &optics,
         &scene,
         bfpscope::optics::template::TemplateSpec::default(),

@@ -971,7 +971,7 @@ fn model_focus_search_on_a_simulated_xz_scan() {
     let o = Optics::default();
     let mut sc = Scene::default();
     sc.add_bead(sim_bead(0.0, 0.0, 110.0, 1.572)).unwrap();
-    let r = Renderer::new(&o, &sc, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&o, &sc, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..61).map(|i| -1.5 + i as f64 * H).collect();
     let zs: Vec<f64> = (0..49).map(|i| -0.6 + i as f64 * 0.025).collect();
     let mut data = ndarray::Array2::zeros((zs.len(), xs.len()));

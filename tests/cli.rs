@@ -318,7 +318,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
     // the real drivers talk to them; the QPD images the reference bead at the stage position
     let mut stage = GcsStage::open(&sp, 115_200, GcsOptions::default()).unwrap();
     let mut qpd = ScpiQpd::open(&qp, 115_200, ScpiOptions::default()).unwrap();
-    let renderer = Renderer::new(
+    let renderer = Renderer::checked(
         &bfpscope::optics::Optics::default(),
         &bfpscope::script::motion::reference_bead_scene(),
         bfpscope::optics::template::TemplateSpec::default(),

@@ -177,7 +177,7 @@ fn filament_exactly_at_45_degrees_has_equal_sx_and_sy_sensitivity() {
         spacing_nm: 50.0,
     })
     .unwrap();
-    let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&Optics::default(), &s, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..41).map(|i| -0.8 + 0.04 * i as f64).collect();
     let img = render_xy(&r, &xs, &xs, 0.0, 1);
     // mirror symmetry across the diagonal: Sx(x, y) = Sy(y, x)
@@ -198,7 +198,7 @@ fn large_1024_by_1024_scan_renders_with_bounded_memory() {
         n: 1.572,
     })
     .unwrap();
-    let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&Optics::default(), &s, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..1024).map(|i| -5.0 + 10.0 * i as f64 / 1023.0).collect();
     let img = render_xy(&r, &xs, &xs, 0.0, 1);
     assert_eq!(img.sx.data.dim(), (1024, 1024));
@@ -242,7 +242,7 @@ proptest! {
         let mut both = one(x1, y1);
         both.add_bead(Bead { pos: [x2, y2, 0.0], d_nm: 100.0, n: 1.572 }).unwrap();
         let xs: Vec<f64> = (0..9).map(|i| -1.0 + 0.25 * i as f64).collect();
-        let r = |s: &Scene| render_xy(&Renderer::new(&Optics::default(), s, TemplateSpec::default()).unwrap(), &xs, &xs, 0.0, 1);
+        let r = |s: &Scene| render_xy(&Renderer::checked(&Optics::default(), s, TemplateSpec::default()).unwrap(), &xs, &xs, 0.0, 1);
         let (a, b, ab) = (r(&one(x1, y1)), r(&one(x2, y2)), r(&both));
         for ((p, q), t) in a.sx.data.iter().zip(b.sx.data.iter()).zip(ab.sx.data.iter()) {
             prop_assert!((p + q - t).abs() <= 1e-12 * (p.abs() + q.abs()) + 1e-20);
@@ -264,7 +264,7 @@ fn large_1024_by_1024_scan_through_the_analysis() {
         n: 1.572,
     })
     .unwrap();
-    let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&Optics::default(), &s, TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..1024).map(|i| -5.12 + 0.01 * i as f64).collect();
     let img = render_xy(&r, &xs, &xs, 0.0, 1);
     assert_eq!(
@@ -317,7 +317,7 @@ fn point_dipole_domain_notes_at_the_extremes() {
         })
         .unwrap();
     }
-    let r = Renderer::new(&o, &s, Default::default()).unwrap();
+    let r = Renderer::checked(&o, &s, Default::default()).unwrap();
     assert_eq!(r.notes.len(), 3, "{:#?}", r.notes);
     for n in &r.notes {
         assert!(!n.contains("NaN") && !n.contains("inf"), "{n}");

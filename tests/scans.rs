@@ -1,10 +1,10 @@
 //! Safety behaviours of the scan engine, one test each, on the mock instrument (the mock
 //! stage records every command it is sent).
 
-use bfpscope::acquire::mock::{mock_instrument, MockConfig};
 use bfpscope::acquire::store::{load_scan, SessionStore};
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::data::ScanStatus;
+use bfpscope::instrument::mock::{mock_instrument, MockConfig};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -319,7 +319,7 @@ fn snake_scan_stores_pixels_in_image_order() {
     assert_eq!(raster.sx.data, snake.sx.data);
     assert_eq!(raster.sz.data, snake.sz.data);
     // and the data is the mock's signal at the pixel positions
-    let (sx, _, _) = bfpscope::acquire::mock::mock_signal([snake.sx.x[6], snake.sx.y[1], 0.0]);
+    let (sx, _, _) = bfpscope::instrument::mock::mock_signal([snake.sx.x[6], snake.sx.y[1], 0.0]);
     assert_eq!(snake.sx.data[[1, 6]], sx);
 }
 

@@ -21,7 +21,7 @@ fn axis(lo: f64, hi: f64, n: usize) -> Vec<f64> {
 }
 
 fn renderer(scene: &Scene) -> Renderer {
-    Renderer::new(&Optics::default(), scene, TemplateSpec::default()).unwrap()
+    Renderer::checked(&Optics::default(), scene, TemplateSpec::default()).unwrap()
 }
 
 #[test]
@@ -354,8 +354,8 @@ fn mie_render_of_a_small_bead_agrees_with_the_rayleigh_render() {
     let mut ray = s.clone();
     ray.effects.enable("polarization").unwrap();
     s.effects.enable("mie").unwrap();
-    let rm = Renderer::new(&o, &s, TemplateSpec::default()).unwrap();
-    let rr = Renderer::new(&o, &ray, TemplateSpec::default()).unwrap();
+    let rm = Renderer::checked(&o, &s, TemplateSpec::default()).unwrap();
+    let rr = Renderer::checked(&o, &ray, TemplateSpec::default()).unwrap();
     let xs = axis(-2.0, 2.0, 41);
     let (im, ir) = (
         render_xy(&rm, &xs, &xs, 0.0, 1),

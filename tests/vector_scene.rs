@@ -46,7 +46,7 @@ fn direct(d: f64, amplitudes: Amplitudes) -> MieBeam {
 fn vector_scene_renders_point_dipoles_in_the_aplanatic_focus() {
     let mut s = Scene::default();
     s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
-    let r = Renderer::new(&vector(), &s, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&vector(), &s, TemplateSpec::default()).unwrap();
     assert!(r.notes.is_empty(), "{:?}", r.notes);
     let st = r.stages();
     let mie = st
@@ -96,7 +96,7 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
     let mut s = Scene::default();
     s.add_bead(bead(0.0, 0.0, 500.0)).unwrap();
     s.add_bead(bead(1.0, 0.0, 110.0)).unwrap();
-    let r = Renderer::new(&vector(), &s, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(&vector(), &s, TemplateSpec::default()).unwrap();
     assert_eq!(r.notes.len(), 1, "{:?}", r.notes);
     assert!(
         r.notes[0].contains("d = 500 nm") && r.notes[0].contains("Lorenz–Mie tier"),
@@ -127,7 +127,7 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
         }
     }
     s.effects.enable("finite_size").unwrap();
-    let pinned = Renderer::new(&vector(), &s, TemplateSpec::default()).unwrap();
+    let pinned = Renderer::checked(&vector(), &s, TemplateSpec::default()).unwrap();
     assert!(pinned.notes.is_empty(), "{:?}", pinned.notes);
     let mie = pinned
         .stages()

@@ -59,7 +59,8 @@ pub fn bead_scan(beads: &[(f64, f64, f64)], n: usize, noise: bool, seed: u64) ->
         });
         s.seed = seed;
     }
-    let r = Renderer::new(&Optics::default(), &s, TemplateSpec::default()).expect("valid scene");
+    let r =
+        Renderer::checked(&Optics::default(), &s, TemplateSpec::default()).expect("valid scene");
     let ax = axis(n);
     render_xy(&r, &ax, &ax, 0.0, PAPER_SAMPLES)
 }

@@ -439,7 +439,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
 /// The dwell knob for the accuracy report: 1σ mass of the 110 nm bead (kDa) against the scan
 /// time on the virtual clock (dwell × pixels); default = the scan bindings' default dwell.
 pub fn knob_dwell(t: &Tradeoff) -> Knob {
-    let default_dwell = crate::script::scans::DEFAULT_DWELL_S;
+    let default_dwell = crate::acquire::plan::DEFAULT_DWELL_S;
     Knob {
         id: "dwell".into(),
         title: "Dwell per pixel (averaging), 110 nm bead, paper noise, 64×64 × 50 nm".into(),

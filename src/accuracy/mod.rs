@@ -5,6 +5,7 @@
 
 pub mod analysis_knobs;
 pub mod instrument;
+pub mod mie_knobs;
 pub mod report;
 
 use crate::instrument::sim::scene::{DiameterProfile, Filament, Scene};
@@ -243,7 +244,7 @@ pub fn knob_bead_spacing(quick: bool) -> Knob {
             spacing_nm,
         })
         .unwrap();
-        Renderer::new(&o, &s, TemplateSpec::default()).unwrap()
+        Renderer::checked(&o, &s, TemplateSpec::default()).unwrap()
     };
     let reference = render_xy(&renderer(2.0), &xs, &ys, 0.0, 1).sx.data;
     let peak = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -477,6 +478,3 @@ pub fn summary_table(knobs: &[Knob], good_enough: f64) -> String {
     }
     s
 }
-
-#[cfg(test)]
-mod date_tests {}

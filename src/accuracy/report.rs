@@ -253,7 +253,7 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
     step("template", &|| super::knob_template(q));
     step("bead spacing", &|| super::knob_bead_spacing(q));
     step("finite size", &|| super::knob_finite_size(q));
-    step("Mie grid", &|| crate::optics::mie_beam::knob_mie_grid(q));
+    step("Mie grid", &|| super::mie_knobs::knob_mie_grid(q));
     step("Mie terms", &|| ak::knob_mie_terms(q));
     step("model 170 nm", &|| ak::knob_model(q, 170.0));
     step("model 500 nm", &|| ak::knob_model(q, 500.0));
@@ -494,7 +494,7 @@ fn knob_note(id: &str) -> Option<&'static str> {
                         low (it errs low at 500 nm too): the rule averages the incident field over the sphere but \
                         keeps the static polarisability, and for this index contrast the two corrections Mie contains \
                         nearly cancel at small sizes (an observation from these numbers, not a derivation).",
-        "mie_grid" => "This sweep is the Mie tier's own (`optics::mie_beam::knob_mie_grid`). A grid counts only if its \
+        "mie_grid" => "This sweep is the Mie tier's own (`accuracy::mie_knobs::knob_mie_grid`). A grid counts only if its \
                        guaranteed reach (`mie_beam::grid_reach_um`, beyond which `response` refuses rather than \
                        return aliased numbers) covers the error region ρ ≤ 1.5 µm at all three test heights; (10, 5) \
                        is accurate enough there when evaluated anyway (3.2e-6), but its reach is 1.13 µm, so it \
@@ -511,7 +511,7 @@ fn knob_note(id: &str) -> Option<&'static str> {
                         polystyrene beads, filaments ≤ 150 nm) are inside the point dipole's domain (table below); the \
                         500 nm fiducial beads of the rotation experiment (Sec. 4.2) are outside it, which is harmless \
                         for a position reference.",
-        "dwell" => "The scan bindings' default dwell (`scans::DEFAULT_DWELL_S`, 10 ms) is this knee: the cheapest dwell at \
+        "dwell" => "The scan bindings' default dwell (`acquire::plan::DEFAULT_DWELL_S`, 10 ms) is this knee: the cheapest dwell at \
                     which one 64×64 scan of 50 nm pixels reaches the paper's 950 kDa for a 110 nm bead at the \
                     simulator's paper noise (41 s of dwell; the exact crossing is in the trade-off section below). \
                     The paper itself stops at least 0.1 s at each position (suppl. S1). Until session 3 the default \

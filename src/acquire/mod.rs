@@ -6,7 +6,6 @@
 
 pub mod engine;
 pub mod limits;
-pub mod mock;
 pub mod plan;
 pub mod store;
 

@@ -500,7 +500,11 @@ mod tests {
             s.move_to([f64::NAN, 0.0, 0.0]),
             Err(DeviceError::Other { .. })
         ));
-        assert_eq!(*log.lock().unwrap(), vec!["*IDN?", "ERR?"]);
+        assert_eq!(
+            *log.lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+            vec!["*IDN?", "ERR?"]
+        );
     }
 
     #[test]

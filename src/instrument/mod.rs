@@ -4,9 +4,10 @@
 //! Drivers only move and read. Soft limits, step limits, abort and return-to-start live in
 //! `acquire/`, never here.
 
+pub mod mock;
 pub mod sim;
 pub mod trace;
-// Hardware: serial drivers, emulators, config, connect (branch hw).
+// Hardware: serial drivers, emulators, config, connect.
 pub mod config;
 pub mod connect;
 pub mod emulator;

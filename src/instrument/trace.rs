@@ -40,7 +40,10 @@ impl Trace {
     /// Record a line with the current time.
     pub fn record(&self, what: impl AsRef<str>) {
         let line = format!("{}  {}", self.stamp(), what.as_ref());
-        self.lines.lock().unwrap().push(line);
+        self.lines
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push(line);
     }
 
     /// A protocol's decision ("focus: best z = 0.0213 µm").
@@ -49,7 +52,10 @@ impl Trace {
     }
 
     pub fn len(&self) -> usize {
-        self.lines.lock().unwrap().len()
+        self.lines
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .len()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -57,13 +63,20 @@ impl Trace {
     }
 
     pub fn text(&self) -> String {
-        let mut s = self.lines.lock().unwrap().join("\n");
+        let mut s = self
+            .lines
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .join("\n");
         s.push('\n');
         s
     }
 
     pub fn clear(&self) {
-        self.lines.lock().unwrap().clear();
+        self.lines
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
     }
 }
 

@@ -133,7 +133,7 @@ pub fn filling_to_spectral_um(optics: &Optics, f0: f64) -> Result<f64, OpticsErr
 }
 
 impl Default for MieBeamSpec {
-    /// Default grid: the knee of `knob_mie_grid` (docs/physics.md §9).
+    /// Default grid: the knee of `accuracy::mie_knobs::knob_mie_grid` (docs/physics.md §9).
     fn default() -> Self {
         Self {
             n_theta_in: DEFAULT_N_THETA_IN,
@@ -148,7 +148,7 @@ impl Default for MieBeamSpec {
     }
 }
 
-/// Default incident θ order: the knee of the accuracy sweep (`knob_mie_grid`, docs/accuracy.md),
+/// Default incident θ order: the knee of the accuracy sweep (`accuracy::mie_knobs::knob_mie_grid`, docs/accuracy.md),
 /// i.e. the cheapest grid that is within 3e-5 of the peak *and* whose guaranteed reach
 /// ([`grid_reach_um`]) covers the knob's region ρ ≤ 1.5 µm (docs/physics.md §9).
 pub const DEFAULT_N_THETA_IN: usize = 12;
@@ -715,6 +715,13 @@ impl MieBeam {
         Ok(self.eval(x, y, z, true))
     }
 
+    /// (Sx, Sy, Sz) at (x, y, z) µm without the range and reach checks of [`Self::response`]:
+    /// for convergence studies (the accuracy report's `mie_grid` knob) that measure how wrong a
+    /// grid is beyond its reach. Not for measurements.
+    pub fn response_unchecked(&self, x: f64, y: f64, z: f64) -> [f64; 3] {
+        self.eval(x, y, z, false).0
+    }
+
     /// ∂Sx/∂x at x = y = 0 and axial displacement z µm (analytic derivative), µm⁻¹.
     pub fn sensitivity_x(&self, z: f64) -> Result<f64, OpticsError> {
         self.check_pos(0.0, 0.0, z)?;
@@ -887,20 +894,10 @@ fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
 /// err = [α(d, n)/α(110, PS)] / [M(d, n)/M(110, PS)] − 1, with M the Mie tier's maximum
 /// sensitivity (default grid) and α the static Clausius–Mossotti polarisability (µm³): the
 /// point dipole's normalised sensitivity is α(d, n)/α(110, PS) exactly, Mie's is the M ratio.
-/// Dimensionless; about 0.1 s per new (optics, d, n) in a release build, then cached for the
-/// process (the simulator asks it for large or unusual beads, docs/accuracy.md#model_500).
+/// Dimensionless; about 0.2 s in a release build (two Mie responses). Pure: the simulator's
+/// domain check (`instrument::sim::domain`) remembers results in a bounded memo it owns.
 pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
-    use std::collections::HashMap;
-    use std::sync::{Mutex, OnceLock};
-    type Key = (String, u64, u64);
-    static CACHE: OnceLock<Mutex<HashMap<Key, f64>>> = OnceLock::new();
-    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
-    let okey = format!("{optics:?}");
     let per_alpha = |d: f64, n: f64| -> Result<f64, OpticsError> {
-        let key = (okey.clone(), d.to_bits(), n.to_bits());
-        if let Some(v) = cache.lock().unwrap().get(&key) {
-            return Ok(*v);
-        }
         let alpha = super::rayleigh::alpha_um3(d, n, optics.n_medium);
         if alpha == 0.0 {
             return Err(OpticsError::Invalid(format!(
@@ -911,113 +908,10 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
         let m = MieBeam::new(optics, d, C64::new(n, 0.0), MieBeamSpec::default())?
             .max_sensitivity_x()
             .0;
-        let v = m / alpha;
-        cache.lock().unwrap().insert(key, v);
-        Ok(v)
+        Ok(m / alpha)
     };
     let reference = per_alpha(super::params::REF_BEAD_D_NM, super::params::REF_BEAD_N)?;
     Ok(reference / per_alpha(d_nm, n)? - 1.0)
-}
-
-/// Accuracy knob (docs/accuracy.md): the incident plane-wave grid (n_theta_in, n_phi_in),
-/// 500 nm polystyrene bead, default optics (detection grid (16, 8), whose own error is the
-/// `quadrature` knob). Error: the larger of (i) the relative error of (∂Sx/∂x)max (maximised
-/// over z at x = y = 0) and (ii) the worst |ΔS| of (Sx, Sy, Sz) relative to the peak Sx over
-/// 18 points within ρ ≤ 1.5 µm, |z| ≤ 1 µm (the default detection grid's reach), against a
-/// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
-/// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
-/// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
-/// Lateral radius (µm) of the region the `mie_grid` knob's error covers, and its test heights.
-const KNOB_REGION_UM: f64 = 1.5;
-const KNOB_HEIGHTS_UM: [f64; 3] = [0.0, 0.5, -1.0];
-
-pub fn knob_mie_grid(quick: bool) -> crate::accuracy::Knob {
-    use crate::accuracy::{time_median, Knob, Point};
-    let o = Optics::default();
-    let n = C64::new(super::params::REF_BEAD_N, 0.0);
-    let d = 500.0;
-    let build = |nt: usize, np: usize| {
-        MieBeam::new(
-            &o,
-            d,
-            n,
-            MieBeamSpec {
-                n_theta_in: nt,
-                n_phi_in: np,
-                ..MieBeamSpec::default()
-            },
-        )
-        .expect("valid default optics")
-    };
-    let (rt, rp) = (32, 16);
-    let reference = build(rt, rp);
-    let ref_max = reference.max_sensitivity_x().0;
-    let peak = reference.eval(0.3, 0.0, 0.0, false).0[0].abs();
-    let pts: Vec<[f64; 3]> = (0..18)
-        .map(|i| {
-            let rho = KNOB_REGION_UM * ((i % 6) + 1) as f64 / 6.0;
-            let a = 0.4 + 1.1 * i as f64;
-            [rho * a.cos(), rho * a.sin(), KNOB_HEIGHTS_UM[i % 3]]
-        })
-        .collect();
-    let ref_vals: Vec<[f64; 3]> = pts
-        .iter()
-        .map(|p| reference.eval(p[0], p[1], p[2], false).0)
-        .collect();
-    let grids: &[(usize, usize)] = if quick {
-        &[(6, 3), (8, 4), (12, 6), (16, 8)]
-    } else {
-        &[(4, 2), (6, 3), (8, 4), (10, 5), (12, 6), (16, 8), (24, 12)]
-    };
-    let points = grids
-        .iter()
-        .map(|&(nt, np)| {
-            let m = build(nt, np);
-            let mut err = ((m.max_sensitivity_x().0 - ref_max) / ref_max).abs();
-            for (p, r) in pts.iter().zip(&ref_vals) {
-                let v = m.eval(p[0], p[1], p[2], false).0;
-                for c in 0..3 {
-                    err = err.max((v[c] - r[c]).abs() / peak);
-                }
-            }
-            // A grid whose guaranteed reach is short of the region refuses part of it
-            // (`response` errors beyond the reach): no answer there counts as a 100 % error.
-            let reach = KNOB_HEIGHTS_UM
-                .iter()
-                .map(|&z| m.reach_um(z))
-                .fold(f64::INFINITY, f64::min);
-            let short = reach < KNOB_REGION_UM;
-            if short {
-                err = err.max(1.0);
-            }
-            let secs = time_median(if quick { 21 } else { 201 }, || {
-                m.eval(0.31, -0.12, 0.05, false)
-            });
-            Point {
-                setting: format!(
-                    "n_theta_in = {nt}, n_phi_in = {np} ({} plane waves{})",
-                    4 * nt * np,
-                    if short {
-                        format!("; reach {reach:.2} µm < {KNOB_REGION_UM} µm: refuses part of the region")
-                    } else {
-                        String::new()
-                    }
-                ),
-                value: (4 * nt * np) as f64,
-                error: err.max(1e-16),
-                seconds: secs,
-                is_default: nt == DEFAULT_N_THETA_IN && np == DEFAULT_N_PHI_IN,
-            }
-        })
-        .collect();
-    Knob {
-        id: "mie_grid".into(),
-        title: "Mie tier: incident plane-wave grid, 500 nm bead".into(),
-        metric: "max of rel. error of (∂Sx/∂x)max and worst |ΔS|/peak within ρ ≤ 1.5 µm".into(),
-        timed: "one (Sx, Sy, Sz) evaluation at a point (512 detection nodes)".into(),
-        reference: format!("n_theta_in = {rt}, n_phi_in = {rp}"),
-        points,
-    }
 }
 
 #[cfg(test)]

@@ -177,11 +177,22 @@ impl MieTemplate {
 
     /// The plane at z-grid index `iz` (z = iz·hz), built on first use.
     pub fn plane(&self, iz: i64) -> Result<Arc<Grid2>, OpticsError> {
-        if let Some(p) = self.planes.lock().unwrap().get(&iz) {
+        if let Some(p) = self
+            .planes
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(&iz)
+        {
             return Ok(p.clone());
         }
         let g = Arc::new(self.build_plane(iz as f64 * self.spec.grid.hz)?);
-        Ok(self.planes.lock().unwrap().entry(iz).or_insert(g).clone())
+        Ok(self
+            .planes
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .entry(iz)
+            .or_insert(g)
+            .clone())
     }
 
     /// Planes and weights that interpolate z (as `ModelTemplate::planes_for`).

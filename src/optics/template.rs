@@ -85,7 +85,12 @@ impl ModelTemplate {
 
     /// The plane at z-grid index `iz` (z = iz·hz), built on first use.
     pub fn plane(&self, iz: i64) -> Arc<Grid2> {
-        if let Some(p) = self.planes.lock().unwrap().get(&iz) {
+        if let Some(p) = self
+            .planes
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(&iz)
+        {
             return p.clone();
         }
         let g = Arc::new(plane_grid(
@@ -94,7 +99,12 @@ impl ModelTemplate {
             self.spec.h,
             self.spec.interp,
         ));
-        self.planes.lock().unwrap().entry(iz).or_insert(g).clone()
+        self.planes
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .entry(iz)
+            .or_insert(g)
+            .clone()
     }
 
     /// Build all planes covering z ∈ [z_lo, z_hi] now (so timing and memory are predictable).

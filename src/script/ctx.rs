@@ -2,8 +2,8 @@
 //! instrument, the abort flag, the optics and scene (for metadata), the script being run.
 
 use super::registry::{fail, Doc, RResult};
-use crate::acquire::mock::MockHandle;
 use crate::acquire::{SessionStore, SoftLimits};
+use crate::instrument::mock::MockHandle;
 use crate::instrument::sim::SimCore;
 use crate::instrument::Instrument;
 use crate::optics::Optics;

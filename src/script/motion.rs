@@ -9,10 +9,10 @@
 use super::ctx::{Attached, Ctx};
 use super::physics::SceneRef;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
-use crate::acquire::mock::{mock_instrument, MockConfig};
 use crate::acquire::{checked_move, Axis};
 use crate::instrument::config::{Backend, Config};
 use crate::instrument::connect::connect_emulated;
+use crate::instrument::mock::{mock_instrument, MockConfig};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
 use crate::instrument::{Instrument, Pos, QpdReading};
@@ -590,7 +590,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             }
             let sim = SimConfig::default();
             let renderer = Arc::new(
-                Renderer::new(&optics_of(c), &scene, TemplateSpec::default())
+                Renderer::checked(&optics_of(c), &scene, TemplateSpec::default())
                     .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
             );
             let e = connect_emulated(renderer, &sim, &cfg, noise_v)

@@ -200,7 +200,9 @@ pub fn register(r: &mut Registrar) {
             core.set_scene(&new, &scene)
                 .map_err(|e| err("set_optics", e))?;
         }
-        *c.optics.lock().unwrap() = new.clone();
+        *c.optics
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = new.clone();
         Ok(optics_map(&new))
     });
 
@@ -694,7 +696,7 @@ pub fn register(r: &mut Registrar) {
                 "simulate: n_samples = {ns} is out of range: 1 ≤ n_samples ≤ 100000000"
             ));
         }
-        let r = crate::instrument::sim::Renderer::new(&optics_of(&c), &s.0, Default::default())
+        let r = crate::instrument::sim::Renderer::checked(&optics_of(&c), &s.0, Default::default())
             .map_err(|e| err("simulate", e))?;
         for n in &r.notes {
             c.log(&format!("simulate: note: {n}"));
@@ -829,7 +831,9 @@ fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
             core
         }
     };
-    *ctx.scene.lock().unwrap() = serde_json::to_value(scene).ok();
+    *ctx.scene
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner) = serde_json::to_value(scene).ok();
     let r = core.renderer();
     let mut m = Map::new();
     m.insert(

@@ -5,21 +5,18 @@
 use super::ctx::Ctx;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
 use super::types::ScanRef;
-use crate::acquire::plan::{Axis, Plan, Sweep, MAX_POINTS_PER_AXIS};
+use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
 use crate::acquire::{run_plan, ScanEnv};
 use crate::data::Scan;
 use rhai::{Dynamic, Map};
 use std::path::PathBuf;
 
-/// Default dwell per point (s) of the scan primitives: 10 ms, the knee of the dwell knob in
-/// docs/accuracy.md (the cheapest dwell at which one 64×64 scan of 50 nm pixels reaches the
-/// paper's 950 kDa mass resolution for a 110 nm bead at the simulator's paper noise, Sec. 3.2).
-/// The paper itself stops at least 0.1 s per position (suppl. S1); quick navigation scans pass
-/// `dwell: 0.001` explicitly.
-pub const DEFAULT_DWELL_S: f64 = 1e-2;
-
 /// The help text of the `dwell` option, naming the default.
-const DWELL_HELP: &str = "dwell per point, default 0.01 (10 ms: the accuracy report's knee for the paper's mass resolution)";
+fn dwell_help() -> String {
+    format!(
+        "dwell per point, default {DEFAULT_DWELL_S} (the accuracy report's knee for the paper's mass resolution)"
+    )
+}
 
 /// Execute a plan on the connected instrument; complete → the scan, otherwise a script error
 /// that tells what happened and where the partial scan was saved.
@@ -91,7 +88,7 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         (nf.clone(), "int", "", format!("points along {f}, 1 ≤ {nf} ≤ {MAX_POINTS_PER_AXIS}")),
         (ns.clone(), "int", "", format!("points along {s}, 1 ≤ {ns} ≤ {MAX_POINTS_PER_AXIS}")),
         (x.into(), "float", "µm", format!("optional: {x} held during the scan (default: where it is)")),
-        ("dwell".into(), "float", "s", DWELL_HELP.into()),
+        ("dwell".into(), "float", "s", dwell_help()),
         ("rel".into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
         ("snake".into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
     ];
@@ -170,8 +167,8 @@ pub fn register(r: &mut Registrar) {
                 ("axis", "string", "", "\"x\", \"y\" or \"z\""),
                 ("from", "float", "µm", "first position"),
                 ("to", "float", "µm", "last position"),
-                ("n", "int", "", "number of points, 1 ≤ n ≤ 4096"),
-                ("dwell", "float", "s", DWELL_HELP),
+                ("n", "int", "", &format!("number of points, 1 ≤ n ≤ {MAX_POINTS_PER_AXIS}")),
+                ("dwell", "float", "s", &dwell_help()),
                 ("rel", "bool", "", "from/to relative to the start, return to start at the end; default false"),
             ],
         )

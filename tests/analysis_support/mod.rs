@@ -121,7 +121,7 @@ pub fn model_template(optics: &Optics, detector: &DetectorModel) -> Template {
 /// Simulate an XY scan of `scene` on an n×n grid of pixel h from (0, 0) at z = 0, with
 /// `n_samples` per pixel (the scene's effects decide the noise).
 pub fn simulate(optics: &Optics, scene: &Scene, n: usize, h: f64, n_samples: usize) -> Scan {
-    let r = Renderer::new(optics, scene, TemplateSpec::default()).unwrap();
+    let r = Renderer::checked(optics, scene, TemplateSpec::default()).unwrap();
     let ax = axis(n, h, 0.0);
     render_xy(&r, &ax, &ax, 0.0, n_samples)
 }

@@ -1,6 +1,7 @@
 //! The simulated instrument: a stage and a QPD that image a `Scene` through the render pipeline,
 //! on a virtual clock (settle and dwell advance simulated time, not wall time).
 
+pub mod domain;
 pub mod render;
 pub mod scene;
 
@@ -8,13 +9,20 @@ use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, Virtual
 use crate::data::{Image, Scan, ScanStatus};
 use crate::optics::params::{Optics, OpticsError};
 use crate::optics::template::TemplateSpec;
+use domain::{DomainCheck, DomainMemo};
 use ndarray::Array2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 pub use render::{Renderer, StageInfo};
 pub use scene::Scene;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// Lock a mutex, recovering the data if a panic elsewhere poisoned it (a simulator state is
+/// plain data: every update leaves it consistent).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 /// Simulated hardware settings.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -50,14 +58,26 @@ struct SimState {
 #[derive(Clone)]
 pub struct SimCore {
     state: Arc<Mutex<SimState>>,
+    /// The point dipole's domain results of this session (bounded), for every scene set.
+    domain: Arc<Mutex<DomainMemo>>,
     pub clock: Arc<VirtualClock>,
     pub cfg: SimConfig,
 }
 
 impl SimCore {
     pub fn new(optics: &Optics, scene: &Scene, cfg: SimConfig) -> Result<Self, OpticsError> {
-        let renderer = Arc::new(Renderer::new(optics, scene, TemplateSpec::default())?);
-        Ok(Self::from_renderer(renderer, cfg))
+        let mut memo = DomainMemo::default();
+        optics.validate()?;
+        let domain = DomainCheck::run(optics, scene, &mut memo);
+        let renderer = Arc::new(Renderer::new(
+            optics,
+            scene,
+            TemplateSpec::default(),
+            &domain,
+        )?);
+        let core = Self::from_renderer(renderer, cfg);
+        *lock(&core.domain) = memo;
+        Ok(core)
     }
 
     pub fn from_renderer(renderer: Arc<Renderer>, cfg: SimConfig) -> Self {
@@ -70,19 +90,34 @@ impl SimCore {
                 walk: [0.0; 3],
                 walk_t: 0.0,
             })),
+            domain: Arc::new(Mutex::new(DomainMemo::default())),
             clock: Arc::new(VirtualClock::new()),
             cfg,
         }
     }
 
     pub fn renderer(&self) -> Arc<Renderer> {
-        self.state.lock().unwrap().renderer.clone()
+        self.state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .renderer
+            .clone()
     }
 
     /// Replace the scene (keeps position and clock).
     pub fn set_scene(&self, optics: &Optics, scene: &Scene) -> Result<(), OpticsError> {
-        let r = Arc::new(Renderer::new(optics, scene, TemplateSpec::default())?);
-        let mut st = self.state.lock().unwrap();
+        optics.validate()?;
+        let domain = DomainCheck::run(optics, scene, &mut lock(&self.domain));
+        let r = Arc::new(Renderer::new(
+            optics,
+            scene,
+            TemplateSpec::default(),
+            &domain,
+        )?);
+        let mut st = self
+            .state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         st.rng = ChaCha8Rng::seed_from_u64(scene.seed);
         st.renderer = r;
         Ok(())
@@ -135,7 +170,12 @@ impl Stage for SimStage {
         "sim stage".into()
     }
     fn position(&mut self) -> Result<Pos, DeviceError> {
-        Ok(self.0.state.lock().unwrap().commanded)
+        Ok(self
+            .0
+            .state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .commanded)
     }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         for (c, &v) in target.iter().enumerate() {
@@ -150,7 +190,11 @@ impl Stage for SimStage {
                 });
             }
         }
-        self.0.state.lock().unwrap().commanded = target;
+        self.0
+            .state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .commanded = target;
         self.0.clock.wait(self.0.cfg.move_time_s);
         Ok(())
     }
@@ -173,7 +217,11 @@ impl Qpd for SimQpd {
         self.0.cfg.sample_rate
     }
     fn metadata(&self) -> Option<serde_json::Value> {
-        let st = self.0.state.lock().unwrap();
+        let st = self
+            .0
+            .state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let mut m = serde_json::json!({ "pipeline": st.renderer.stages() });
         if !st.renderer.notes.is_empty() {
             m["model_notes"] = serde_json::json!(st.renderer.notes);
@@ -189,7 +237,11 @@ impl Qpd for SimQpd {
         }
         let dur = n as f64 / self.0.cfg.sample_rate;
         let t_mid = self.0.clock.now() + 0.5 * dur;
-        let mut st = self.0.state.lock().unwrap();
+        let mut st = self
+            .0
+            .state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let pos = SimCore::actual(&mut st, t_mid);
         let r = st.renderer.clone();
         let (v, sd) = r.render_point(pos, n, &mut st.rng);

@@ -2,6 +2,7 @@
 //! what the scene calls for"). An ideal scene is one stage, `superposition`: Σ αᵢ·T(s − pᵢ)
 //! over precomputed single-scatterer templates (Sec. 4.1).
 
+use super::domain::{DomainCheck, DomainMemo};
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
@@ -49,70 +50,51 @@ pub struct Renderer {
 
 const SUPERPOSITION: &str = "superposition";
 
-/// Point-dipole error beyond which the simulator says so (the model knob's 1 % criterion,
-/// docs/accuracy.md#model_500).
-pub const MODEL_NOTE_TOLERANCE: f64 = 0.01;
-
 /// Notes on beads the point dipole renders more than 1 % off the Mie tier (normalised to the
-/// 110 nm polystyrene reference, `mie_beam::point_dipole_error`). Only beads that can be off are
-/// checked, to keep ordinary scenes free: d ≥ 200 nm, or d ≥ 60 nm with an index more than 0.03
-/// from polystyrene's (polystyrene is within 1 % up to 251 nm; silica crosses at ≈ 110 nm, n = 2
-/// at ≈ 70 nm; docs/accuracy.md).
-fn model_notes(optics: &Optics, scene: &Scene) -> Vec<String> {
-    use crate::optics::params::REF_BEAD_N;
-    let mut seen: Vec<(f64, f64)> = vec![];
+/// 110 nm polystyrene reference), from the domain check.
+fn model_notes(domain: &DomainCheck) -> Vec<String> {
     let mut notes = vec![];
-    for b in &scene.beads {
-        let (d, n) = (b.d_nm, b.n);
-        let suspect = d >= 200.0 || (d >= 60.0 && (n - REF_BEAD_N).abs() > 0.03);
-        if !suspect || seen.contains(&(d, n)) {
-            continue;
-        }
-        seen.push((d, n));
-        if let Ok(e) = crate::optics::mie_beam::point_dipole_error(optics, d, n) {
-            if e.abs() > MODEL_NOTE_TOLERANCE {
-                let off = if e.abs() < 1.0 {
-                    format!("{:+.1} % off", 100.0 * e)
-                } else {
-                    format!("{:.3}× the value of", 1.0 + e)
-                };
-                notes.push(format!(
-                    "bead d = {d} nm, n = {n}: the point dipole's sensitivity is {off} the Mie tier \
-                     (relative to a 110 nm polystyrene bead; docs/accuracy.md#model_500); add the `mie` effect if \
-                     its amplitude matters"
-                ));
-            }
+    for d in &domain.entries {
+        if let Some(e) = domain.outside(d.d_nm, d.n) {
+            let off = if e.abs() < 1.0 {
+                format!("{:+.1} % off", 100.0 * e)
+            } else {
+                format!("{:.3}× the value of", 1.0 + e)
+            };
+            notes.push(format!(
+                "bead d = {} nm, n = {}: the point dipole's sensitivity is {off} the Mie tier \
+                 (relative to a 110 nm polystyrene bead; docs/accuracy.md#model_500); add the `mie` effect if \
+                 its amplitude matters",
+                d.d_nm, d.n
+            ));
         }
     }
     notes
 }
 
 /// Issue 19, the scene picks the tier (vector beam only): the beads (object indices) outside the
-/// point dipole's measured domain — more than [`MODEL_NOTE_TOLERANCE`] off the Mie tier by the
-/// error table of docs/accuracy.md (`mie_beam::point_dipole_error`, same suspect rule as
-/// [`model_notes`]) — with one note each. They are rendered as Lorenz–Mie spheres in the vector
-/// beam automatically unless the scene pins a tier by naming `mie` or `finite_size`.
-fn auto_mie_beads(optics: &Optics, scene: &Scene) -> (Vec<usize>, Vec<String>) {
-    use crate::optics::params::REF_BEAD_N;
-    let (mut out, mut notes, mut seen) = (vec![], vec![], vec![]);
+/// point dipole's measured domain (the domain check) with one note per species. They are
+/// rendered as Lorenz–Mie spheres in the vector beam automatically unless the scene pins a tier
+/// by naming `mie` or `finite_size`.
+fn auto_mie_beads(scene: &Scene, domain: &DomainCheck) -> (Vec<usize>, Vec<String>) {
+    let mut out = vec![];
     for (i, b) in scene.beads.iter().enumerate() {
-        let (d, n) = (b.d_nm, b.n);
-        if !(d >= 200.0 || (d >= 60.0 && (n - REF_BEAD_N).abs() > 0.03)) {
-            continue;
-        }
-        let e = match crate::optics::mie_beam::point_dipole_error(optics, d, n) {
-            Ok(e) if e.abs() > MODEL_NOTE_TOLERANCE => e,
-            _ => continue,
-        };
-        out.push(i);
-        if !seen.contains(&(d, n)) {
-            seen.push((d, n));
-            notes.push(format!(
-                "bead d = {d} nm, n = {n}: outside the point dipole's domain ({:+.1} % off the Mie tier, docs/accuracy.md#model_500): rendered by the Lorenz–Mie tier in the vector beam (name the `mie` or `finite_size` effect to pin a tier)",
-                100.0 * e
-            ));
+        if domain.outside(b.d_nm, b.n).is_some() {
+            out.push(i);
         }
     }
+    let notes = domain
+        .entries
+        .iter()
+        .filter_map(|d| {
+            domain.outside(d.d_nm, d.n).map(|e| {
+                format!(
+                    "bead d = {} nm, n = {}: outside the point dipole's domain ({:+.1} % off the Mie tier, docs/accuracy.md#model_500): rendered by the Lorenz–Mie tier in the vector beam (name the `mie` or `finite_size` effect to pin a tier)",
+                    d.d_nm, d.n, 100.0 * e
+                )
+            })
+        })
+        .collect();
     (out, notes)
 }
 
@@ -123,7 +105,26 @@ const DIPOLE_D_NM: f64 = 1.0;
 const DIPOLE_N: f64 = 1.5;
 
 impl Renderer {
-    pub fn new(optics: &Optics, scene: &Scene, spec: TemplateSpec) -> Result<Self, OpticsError> {
+    /// Build the pipeline for `scene`, first running the point dipole's domain check (a stage
+    /// of its own, `domain check`, with a fresh memo). The simulator runs the check through its
+    /// session memo and calls [`Renderer::new`].
+    pub fn checked(
+        optics: &Optics,
+        scene: &Scene,
+        spec: TemplateSpec,
+    ) -> Result<Self, OpticsError> {
+        optics.validate()?;
+        let domain = DomainCheck::run(optics, scene, &mut DomainMemo::default());
+        Self::new(optics, scene, spec, &domain)
+    }
+
+    /// Build the pipeline for `scene` with the result of its domain check.
+    pub fn new(
+        optics: &Optics,
+        scene: &Scene,
+        spec: TemplateSpec,
+        domain: &DomainCheck,
+    ) -> Result<Self, OpticsError> {
         optics.validate()?;
         let t0 = Instant::now();
         let fx = &scene.effects;
@@ -142,7 +143,7 @@ impl Renderer {
         let vector = optics.beam == Beam::Vector;
         let pinned = fx.mie.is_some() || fx.finite_size.is_some();
         let (auto_mie, auto_notes) = if vector && !pinned {
-            auto_mie_beads(optics, scene)
+            auto_mie_beads(scene, domain)
         } else {
             (vec![], vec![])
         };
@@ -176,6 +177,16 @@ impl Renderer {
                 detail,
             })
         };
+        if !domain.entries.is_empty() {
+            push(
+                "domain check",
+                domain.seconds,
+                format!(
+                    "point dipole vs Mie tier for {} bead species (d ≥ 200 nm, or ≥ 60 nm off polystyrene's index)",
+                    domain.entries.len()
+                ),
+            );
+        }
         if model.polarization {
             push(
                 "polarization",
@@ -345,7 +356,7 @@ impl Renderer {
         let notes = if vector {
             auto_notes
         } else if fx.mie.is_none() && fx.finite_size.is_none() {
-            model_notes(optics, scene)
+            model_notes(domain)
         } else {
             vec![]
         };
@@ -366,7 +377,10 @@ impl Renderer {
 
     /// The stages built, in order, with the time spent in each so far.
     pub fn stages(&self) -> Vec<StageInfo> {
-        self.stages.lock().unwrap().clone()
+        self.stages
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
     }
 
     pub fn stage_names(&self) -> Vec<String> {
@@ -388,7 +402,12 @@ impl Renderer {
     /// Per-scatterer template planes for stage height z (cached for the last z).
     fn planes_at(&self, z: f64) -> ScattererPlanes {
         let key = z.to_bits();
-        if let Some((k, p)) = self.plane_cache.lock().unwrap().as_ref() {
+        if let Some((k, p)) = self
+            .plane_cache
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .as_ref()
+        {
             if *k == key {
                 return p.clone();
             }
@@ -403,7 +422,10 @@ impl Renderer {
                 })
                 .collect(),
         );
-        *self.plane_cache.lock().unwrap() = Some((key, p.clone()));
+        *self
+            .plane_cache
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some((key, p.clone()));
         p
     }
 

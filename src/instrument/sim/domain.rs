@@ -1,0 +1,145 @@
+//! The point dipole's domain check: an explicit, bounded stage of the render pipeline.
+//!
+//! For every bead that can be off (the suspect rule below), the check asks the focused-beam Mie
+//! tier how far the point dipole's normalised sensitivity is off
+//! ([`mie_beam::point_dipole_error`], about 0.1 s per new (optics, d, n) in a release build).
+//! The renderer reads the result: model notes in the paraxial beam, automatic Mie spheres in
+//! the vector beam (issue 19). Results are remembered in a [`DomainMemo`] the caller owns
+//! (the simulator keeps one per session), bounded to [`DomainMemo::CAPACITY`] entries.
+
+use crate::optics::mie_beam;
+use crate::optics::params::{Optics, OpticsError, REF_BEAD_N};
+use std::collections::VecDeque;
+use std::time::Instant;
+
+use super::scene::Scene;
+
+/// Point-dipole error beyond which the simulator says so (the model knob's 1 % criterion,
+/// docs/accuracy.md#model_500).
+pub const MODEL_NOTE_TOLERANCE: f64 = 0.01;
+
+/// Only beads that can be off are checked, to keep ordinary scenes free: d ≥ 200 nm, or
+/// d ≥ 60 nm with an index more than 0.03 from polystyrene's (polystyrene is within 1 % up to
+/// 251 nm; silica crosses at ≈ 110 nm, n = 2 at ≈ 70 nm; docs/accuracy.md).
+pub fn is_suspect(d_nm: f64, n: f64) -> bool {
+    d_nm >= 200.0 || (d_nm >= 60.0 && (n - REF_BEAD_N).abs() > 0.03)
+}
+
+/// Remembered point-dipole errors, keyed by (optics, d, n); oldest dropped first beyond
+/// [`Self::CAPACITY`].
+#[derive(Debug, Default)]
+pub struct DomainMemo {
+    entries: VecDeque<(Optics, u64, u64, Result<f64, OpticsError>)>,
+}
+
+impl DomainMemo {
+    /// Most (optics, d, n) results kept (a result is 24 bytes plus the optics, ~200 B).
+    pub const CAPACITY: usize = 64;
+
+    /// The point dipole's error for (d_nm nm, n) under `optics`, computed once per memo entry.
+    pub fn error(&mut self, optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+        let key = (d_nm.to_bits(), n.to_bits());
+        if let Some(e) = self
+            .entries
+            .iter()
+            .find(|(o, d, nn, _)| (*d, *nn) == key && o == optics)
+        {
+            return e.3.clone();
+        }
+        let e = mie_beam::point_dipole_error(optics, d_nm, n);
+        if self.entries.len() == Self::CAPACITY {
+            self.entries.pop_front();
+        }
+        self.entries
+            .push_back((optics.clone(), key.0, key.1, e.clone()));
+        e
+    }
+
+    /// Number of remembered results.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// True when nothing is remembered.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+}
+
+/// One suspect bead species of a scene and how far the point dipole is off for it
+/// (relative error, dimensionless; `None` when the Mie tier could not say, e.g. n = medium).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DomainEntry {
+    pub d_nm: f64,
+    pub n: f64,
+    pub error: Option<f64>,
+}
+
+/// The result of the domain check for one (optics, scene).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DomainCheck {
+    /// Suspect species, in order of first appearance, each once.
+    pub entries: Vec<DomainEntry>,
+    /// Wall time the check took (s), shown as the render stage `domain check`.
+    pub seconds: f64,
+}
+
+impl DomainCheck {
+    /// Check every suspect bead species of `scene` (see [`is_suspect`]), through `memo`.
+    /// Nothing to check when the scene pins a tier by naming `mie` or `finite_size`: the
+    /// renderer then neither notes nor switches models.
+    pub fn run(optics: &Optics, scene: &Scene, memo: &mut DomainMemo) -> DomainCheck {
+        let t = Instant::now();
+        let mut entries: Vec<DomainEntry> = vec![];
+        let pinned = scene.effects.mie.is_some() || scene.effects.finite_size.is_some();
+        for b in scene.beads.iter().filter(|_| !pinned) {
+            let (d, n) = (b.d_nm, b.n);
+            if !is_suspect(d, n) || entries.iter().any(|e| (e.d_nm, e.n) == (d, n)) {
+                continue;
+            }
+            entries.push(DomainEntry {
+                d_nm: d,
+                n,
+                error: memo.error(optics, d, n).ok(),
+            });
+        }
+        DomainCheck {
+            entries,
+            seconds: t.elapsed().as_secs_f64(),
+        }
+    }
+
+    /// The point dipole's error for bead (d, n) when it is beyond [`MODEL_NOTE_TOLERANCE`].
+    pub fn outside(&self, d_nm: f64, n: f64) -> Option<f64> {
+        self.entries
+            .iter()
+            .find(|e| (e.d_nm, e.n) == (d_nm, n))
+            .and_then(|e| e.error)
+            .filter(|e| e.abs() > MODEL_NOTE_TOLERANCE)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn memo_is_bounded_and_remembers() {
+        let o = Optics::default();
+        let mut m = DomainMemo::default();
+        // n = medium index: the check errors fast (α = 0), which is enough to fill the memo.
+        for i in 0..(DomainMemo::CAPACITY + 5) {
+            let _ = m.error(&o, 100.0 + i as f64, o.n_medium);
+        }
+        assert_eq!(m.len(), DomainMemo::CAPACITY);
+    }
+
+    #[test]
+    fn suspect_rule() {
+        assert!(!is_suspect(110.0, REF_BEAD_N));
+        assert!(is_suspect(200.0, REF_BEAD_N));
+        assert!(is_suspect(60.0, 1.45));
+        assert!(!is_suspect(59.0, 1.45));
+        assert!(!is_suspect(150.0, REF_BEAD_N + 0.02));
+    }
+}
