@@ -459,22 +459,3 @@ pub fn machine_line() -> String {
 
 pub use crate::data::clock::today;
 
-/// Summary table: each knob's default, its error and time, and the knee.
-pub fn summary_table(knobs: &[Knob], good_enough: f64) -> String {
-    let mut s = String::from("| knob | default | error | time | knee (cheapest with error ≤ max(3×best, tolerance)) |\n|---|---|---|---|---|\n");
-    for k in knobs {
-        let (d, e, t) = match k.default_point() {
-            Some(p) => (
-                p.setting.clone(),
-                format!("{:.2e}", p.error),
-                fmt_secs(p.seconds),
-            ),
-            None => ("—".into(), "—".into(), "—".into()),
-        };
-        let kn = knee(k, good_enough)
-            .map(|p| p.setting.clone())
-            .unwrap_or_else(|| "—".into());
-        s += &format!("| {} | {d} | {e} | {t} | {kn} |\n", k.title);
-    }
-    s
-}

@@ -26,7 +26,7 @@
 //! An image with a single sample along the derivative axis is an error (no derivative exists).
 
 use super::{check_axis, AnalysisError, Result};
-use crate::data::{Image, Scan};
+use crate::data::Image;
 use ndarray::Array2;
 use serde::{Deserialize, Serialize};
 
@@ -144,16 +144,6 @@ pub fn sensitivity(img: &Image, axis: Axis, stencil: Stencil) -> Result<Image> {
     res.x_name = img.x_name.clone();
     res.y_name = img.y_name.clone();
     Ok(res)
-}
-
-/// S_x sensitivity ∂Sx/∂x of a scan (horizontal derivative of the Sx channel).
-pub fn sens_x(scan: &Scan, stencil: Stencil) -> Result<Image> {
-    sensitivity(&scan.sx, Axis::X, stencil)
-}
-
-/// S_y sensitivity ∂Sy/∂y of an XY scan (vertical derivative of the Sy channel).
-pub fn sens_y(scan: &Scan, stencil: Stencil) -> Result<Image> {
-    sensitivity(&scan.sy, Axis::Y, stencil)
 }
 
 /// Derivative of equally spaced samples `v` (spacing `h`, may be negative) with the fallbacks

@@ -681,11 +681,6 @@ impl MieBeam {
     pub fn theta_in(&self) -> f64 {
         self.theta_in
     }
-    /// (detection nodes N, plane waves J): the per-point cost is ∝ N·J.
-    pub fn grid_size(&self) -> (usize, usize) {
-        (self.rdet.len(), self.beam.kin.len())
-    }
-
     /// Focal field E_inc at displacement (x, y, z) µm, in units where |E|²/[`Self::beam_power`] is
     /// the intensity per unit beam power in µm⁻² (a paraxial Gaussian has 2/(π w0²) at its waist).
     pub fn focal_field(&self, x: f64, y: f64, z: f64) -> [C64; 3] {

@@ -20,7 +20,7 @@ use crate::data::{atomic_write, DataError, Image, Profile, Scan, ScanStatus};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 
 /// The embedded font (DejaVu Sans, Bitstream Vera licence: `assets/fonts/DejaVuSans-LICENSE.txt`).
@@ -1171,8 +1171,3 @@ pub fn plot_hist(
     render(path, &fig)
 }
 
-/// Convenience: the default file name for a figure of a scan file (`scan_0001.npz` →
-/// `scan_0001.png`).
-pub fn figure_path_for(scan_path: &Path) -> PathBuf {
-    scan_path.with_extension("png")
-}

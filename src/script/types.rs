@@ -831,7 +831,3 @@ fn register_profile(r: &mut Registrar) {
     );
 }
 
-/// Image statistics for Rust callers.
-pub fn image_stats(i: &Image) -> Stats {
-    stats(i.data.iter())
-}
