@@ -2,10 +2,11 @@
 //! pixels where the title is, the colour bar, the expected colours of the heat map, grey NaN
 //! pixels. Set `BFPSCOPE_PLOT_OUT=/some/dir` to keep the figures for looking at them.
 
+use bfpscope::analysis::stats::histogram;
 use bfpscope::data::{DataError, Image, Profile, Scan, ScanStatus};
 use bfpscope::plot::{
-    histogram, image_plot_area, plot_hist, plot_image, plot_profile, plot_scan, plot_xy, Colormap,
-    PlotOpts, ScanPlotOpts, Series, SeriesStyle, XyOpts,
+    image_plot_area, plot_hist, plot_image, plot_profile, plot_scan, plot_xy, Colormap, PlotOpts,
+    ScanPlotOpts, Series, SeriesStyle, XyOpts,
 };
 use ndarray::Array2;
 use std::collections::HashSet;
@@ -352,24 +353,24 @@ fn profiles_with_legend() {
 
 #[test]
 fn histogram_bins() {
-    let h = histogram(&[0.0, 0.1, 0.5, 0.99, 1.0, f64::NAN, 0.25], 4).unwrap();
+    let h = histogram(&[0.0, 0.1, 0.5, 0.99, 1.0, f64::NAN, 0.25], 4, None).unwrap();
     assert_eq!(h.edges, vec![0.0, 0.25, 0.5, 0.75, 1.0]);
     assert_eq!(
         h.counts,
         vec![2, 1, 1, 2],
         "0.25 opens bin 1, 1.0 closes the last bin"
     );
-    assert_eq!((h.nan, h.count()), (1, 6));
-    let h = histogram(&[3.0; 4], 10).unwrap();
+    assert_eq!((h.n_skipped, h.count()), (1, 6));
+    let h = histogram(&[3.0; 4], 10, None).unwrap();
     assert!(h.all_equal);
     assert_eq!(
         (h.counts.clone(), h.edges.clone()),
         (vec![4], vec![2.85, 3.15])
     );
-    let e = histogram(&[1.0, f64::NEG_INFINITY], 3)
+    let e = histogram(&[1.0, f64::NEG_INFINITY], 3, None)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("`values[1]` = -inf"), "{e}");
+    assert!(e.contains("values[1] = -inf"), "{e}");
 }
 
 #[test]
@@ -547,7 +548,7 @@ fn bad_input_gives_clear_errors_and_no_files() {
         &XyOpts::default(),
     ));
     assert!(
-        e.contains("bins") && e.contains("between 1 and 10000"),
+        e.contains("bins = 0") && e.contains("1 ≤ bins ≤ 10000"),
         "{e}"
     );
     let e = msg(plot_hist(

@@ -458,4 +458,3 @@ pub fn machine_line() -> String {
 }
 
 pub use crate::data::clock::today;
-

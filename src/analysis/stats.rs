@@ -80,12 +80,17 @@ pub fn robust_std(values: &[f64]) -> Option<f64> {
 /// A histogram: `counts[i]` values fell in `[edges[i], edges[i+1])` (the last bin is closed).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Histogram {
+    /// `bins + 1` bin edges, increasing.
     pub edges: Vec<f64>,
-    pub counts: Vec<usize>,
+    /// Values per bin; bin `k` is `[edges[k], edges[k+1])`, the last bin includes its right edge.
+    pub counts: Vec<u64>,
     /// Finite values outside the range (only when a range was given).
     pub n_outside: usize,
-    /// Non-finite values skipped.
+    /// NaN values skipped (unmeasured pixels of an aborted scan are NaN).
     pub n_skipped: usize,
+    /// All values were equal and no range was given: one bin centred on the value, 10 % of it
+    /// wide (1 wide around 0), since finer bins would only show where the edges happen to fall.
+    pub all_equal: bool,
 }
 
 impl Histogram {
@@ -93,56 +98,78 @@ impl Histogram {
     pub fn centres(&self) -> Vec<f64> {
         self.edges.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect()
     }
+    /// Number of values counted (NaN and outside excluded).
+    pub fn count(&self) -> u64 {
+        self.counts.iter().sum()
+    }
 }
 
-/// Histogram of the finite values in `bins` equal bins over `range` (default: min..max of the
-/// data; a single distinct value gets a bin of width 1 centred on it).
+/// Largest number of bins of a histogram.
+pub const MAX_BINS: usize = 10_000;
+
+/// The one histogram of the project (the `histogram` binding and `plot_hist` both use it):
+/// `bins` (1..=[`MAX_BINS`]) equal bins over `range`, by default from the smallest to the largest
+/// value. NaN values are skipped and counted; an infinite value is an error naming its index
+/// (it has no bin, and dropping it would hide a bad input).
 pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Result<Histogram> {
-    if bins == 0 || bins > 1_000_000 {
+    if !(1..=MAX_BINS).contains(&bins) {
         return Err(AnalysisError::OutOfRange {
             name: "bins",
             value: bins as f64,
-            allowed: "1 ≤ bins ≤ 1e6".into(),
+            allowed: format!("1 ≤ bins ≤ {MAX_BINS}"),
+        });
+    }
+    if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| v.is_infinite()) {
+        return Err(AnalysisError::BadInput {
+            name: "values",
+            reason: format!("values[{k}] = {v}: values must be finite (NaN is skipped)"),
         });
     }
     let fin: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
     let n_skipped = values.len() - fin.len();
-    let (lo, hi) = match range {
+    let mut all_equal = false;
+    let (lo, hi, bins) = match range {
         Some((lo, hi)) => {
             if !(lo.is_finite() && hi.is_finite() && hi > lo) {
                 return Err(AnalysisError::BadInput {
                     name: "range",
-                    reason: format!("({lo}, {hi}) must be finite with hi > lo"),
+                    reason: format!("[{lo}, {hi}] must be finite with hi > lo"),
                 });
             }
-            (lo, hi)
+            (lo, hi, bins)
         }
         None => {
             if fin.is_empty() {
                 return Err(AnalysisError::BadInput {
                     name: "values",
-                    reason: "no finite values".into(),
+                    reason: format!(
+                        "no finite values (all {} are NaN or the list is empty)",
+                        values.len()
+                    ),
                 });
             }
             let lo = fin.iter().copied().fold(f64::INFINITY, f64::min);
             let hi = fin.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             if hi > lo {
-                (lo, hi)
+                (lo, hi, bins)
             } else {
-                (lo - 0.5, lo + 0.5)
+                all_equal = true;
+                let half = if lo == 0.0 { 0.5 } else { 0.05 * lo.abs() };
+                (lo - half, lo + half, 1)
             }
         }
     };
     let w = (hi - lo) / bins as f64;
-    let edges: Vec<f64> = (0..=bins).map(|i| lo + i as f64 * w).collect();
-    let mut counts = vec![0usize; bins];
+    let mut edges: Vec<f64> = (0..=bins).map(|i| lo + i as f64 * w).collect();
+    edges[bins] = hi;
+    let mut counts = vec![0u64; bins];
     let mut n_outside = 0;
     for v in fin {
         if v < lo || v > hi {
             n_outside += 1;
             continue;
         }
-        let i = (((v - lo) / w) as usize).min(bins - 1);
+        let i = (((v - lo) / w).floor() as usize).min(bins - 1);
         counts[i] += 1;
     }
     Ok(Histogram {
@@ -150,6 +177,7 @@ pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Resu
         counts,
         n_outside,
         n_skipped,
+        all_equal,
     })
 }
 
@@ -300,7 +328,18 @@ mod tests {
         assert_eq!(h.centres(), vec![0.25, 0.75]);
         assert!(histogram(&[1.0], 0, None).is_err());
         let h1 = histogram(&[3.0, 3.0], 4, None).unwrap();
-        assert_eq!(h1.counts.iter().sum::<usize>(), 2);
+        assert!(h1.all_equal);
+        assert_eq!(
+            (h1.counts.clone(), h1.edges.clone()),
+            (vec![2], vec![2.85, 3.15])
+        );
+        let h0 = histogram(&[0.0, 0.0], 4, None).unwrap();
+        assert_eq!(h0.edges, vec![-0.5, 0.5]);
+        let e = histogram(&[1.0, f64::NEG_INFINITY], 3, None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("values[1] = -inf"), "{e}");
+        assert!(histogram(&[1.0], MAX_BINS + 1, None).is_err());
     }
 
     #[test]

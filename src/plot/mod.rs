@@ -16,6 +16,7 @@ mod colormap;
 pub use axis::{nice_ticks, AxisCoord};
 pub use colormap::{Colormap, NAN_RGB};
 
+use crate::analysis::stats::histogram;
 use crate::data::{atomic_write, DataError, Image, Profile, Scan, ScanStatus};
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -1038,77 +1039,6 @@ pub fn plot_profile(
     plot_xy(path, &series, &o)
 }
 
-/// Counts of values in equal bins (what [`plot_hist`] draws).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Histogram {
-    /// `bins + 1` bin edges, increasing.
-    pub edges: Vec<f64>,
-    /// Values per bin; bin `k` is `[edges[k], edges[k+1])`, the last bin includes its right edge.
-    pub counts: Vec<u64>,
-    /// NaN values skipped.
-    pub nan: usize,
-    /// All values were equal: one bin centred on the value (width 10 % of it, or 1 around 0).
-    pub all_equal: bool,
-}
-
-impl Histogram {
-    /// Number of values counted (NaN excluded).
-    pub fn count(&self) -> u64 {
-        self.counts.iter().sum()
-    }
-}
-
-/// Bin the finite values of `values` into `bins` (1..=10000) equal bins from the smallest to
-/// the largest value. NaN values are skipped and counted; infinite values are an error.
-pub fn histogram(values: &[f64], bins: usize) -> Result<Histogram, DataError> {
-    if !(1..=10_000).contains(&bins) {
-        return Err(DataError::invalid("bins", bins, "between 1 and 10000"));
-    }
-    if values.is_empty() {
-        return Err(DataError::Empty("histogram values".into()));
-    }
-    if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| v.is_infinite()) {
-        return Err(DataError::invalid(
-            &format!("values[{k}]"),
-            v,
-            "values must be finite (NaN is skipped)",
-        ));
-    }
-    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    let nan = values.len() - finite.len();
-    if finite.is_empty() {
-        return Err(DataError::AllNaN {
-            what: "histogram values".into(),
-            count: values.len(),
-        });
-    }
-    let lo = finite.iter().copied().fold(f64::INFINITY, f64::min);
-    let hi = finite.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let all_equal = lo == hi;
-    // All values equal: one bar centred on the value (finer bins would only show where the
-    // bin edges happen to fall).
-    let (lo, hi, bins) = if all_equal {
-        let half = if lo == 0.0 { 0.5 } else { 0.05 * lo.abs() };
-        (lo - half, lo + half, 1)
-    } else {
-        (lo, hi, bins)
-    };
-    let width = (hi - lo) / bins as f64;
-    let mut counts = vec![0u64; bins];
-    for v in &finite {
-        let k = (((v - lo) / width).floor() as usize).min(bins - 1);
-        counts[k] += 1;
-    }
-    let mut edges: Vec<f64> = (0..=bins).map(|k| lo + width * k as f64).collect();
-    edges[bins] = hi;
-    Ok(Histogram {
-        edges,
-        counts,
-        nan,
-        all_equal,
-    })
-}
-
 /// Histogram of `values` in `bins` equal bins between the smallest and largest finite value.
 /// NaN values are skipped and counted in a note on the figure. Log axes are not supported.
 pub fn plot_hist(
@@ -1119,17 +1049,14 @@ pub fn plot_hist(
 ) -> Result<(), DataError> {
     let path = path.as_ref();
     output_format(path)?;
-    if !(1..=10_000).contains(&bins) {
-        return Err(DataError::invalid("bins", bins, "between 1 and 10000"));
-    }
     if opts.log_x || opts.log_y {
         return Err(plot_error(
             path,
             "histograms are drawn on linear axes (log_x/log_y not supported)".into(),
         ));
     }
-    let h = histogram(values, bins)?;
-    let (counts, finite_n, nan) = (&h.counts, h.count(), h.nan);
+    let h = histogram(values, bins, None).map_err(|e| plot_error(path, e.to_string()))?;
+    let (counts, finite_n, nan) = (&h.counts, h.count(), h.n_skipped);
     let (lo, hi) = (h.edges[0], h.edges[h.edges.len() - 1]);
     let all_equal = h.all_equal;
     let bins = counts.len();
@@ -1170,4 +1097,3 @@ pub fn plot_hist(
     };
     render(path, &fig)
 }
-

@@ -23,7 +23,7 @@ use crate::analysis::quantities::{
     fibril_diameter_nm, point_object, protofilaments, DiameterCalib, LinDensCalib,
 };
 use crate::analysis::sbr::{sbr, SbrOptions};
-use crate::analysis::stats::{histogram, linfit, loglog_fit, summary};
+use crate::analysis::stats::{histogram, linfit, loglog_fit, summary, MAX_BINS};
 use crate::analysis::template::FromScansOptions;
 use crate::analysis::{
     fit_beads, remove_point_background, sensitivity, AngleCurve, AngleCurveOptions,
@@ -1807,21 +1807,29 @@ fn register_stats(r: &mut Registrar) {
     );
     let d = Doc::func("histogram", "stats")
         .arg("values", "array", "", "numbers")
-        .arg("bins", "int", "", "number of bins (1–10000)")
+        .arg(
+            "bins",
+            "int",
+            "",
+            &format!("number of bins, 1 ≤ bins ≤ {MAX_BINS}"),
+        )
         .opt(
             "range",
             "array",
             "",
             "[lo, hi] (default: min and max of the values)",
         )
-        .returns("map", "#{edges, counts, centres, n_outside, n_skipped}")
+        .returns(
+            "map",
+            "#{edges, counts, centres, n_outside, n_skipped, all_equal}",
+        )
         .summary("histogram with equal bins")
         .example("histogram([1.0, 2.0, 2.5, 4.0], 3).counts", "[1, 2, 1]")
         .example("histogram([1.0], 0)", "error: bins = 0");
     let f = |a: Array, bins: i64, range: Option<(f64, f64)>| -> RResult<Map> {
-        if !(1..=10_000).contains(&bins) {
+        if !(1..=MAX_BINS as i64).contains(&bins) {
             return fail(format!(
-                "histogram: bins = {bins} is out of range: 1 ≤ bins ≤ 10000"
+                "histogram: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
             ));
         }
         let v = numbers("histogram", "values", &Dynamic::from_array(a))?;

@@ -8,6 +8,7 @@
 use super::ctx::Ctx;
 use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar};
 use super::types::{ImageRef, ProfileRef, ScanRef};
+use crate::analysis::stats::MAX_BINS;
 use crate::plot::{
     plot_hist, plot_image, plot_profile, plot_scan, plot_xy, PlotOpts, ScanPlotOpts, Series,
     SeriesStyle, XyOpts,
@@ -325,9 +326,9 @@ pub fn register(r: &mut Registrar) {
         let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
         let v = numbers(who, "values", &Dynamic::from_array(a))?;
         let bins = o.int("bins")?.unwrap_or(20);
-        if !(1..=10_000).contains(&bins) {
+        if !(1..=MAX_BINS as i64).contains(&bins) {
             return fail(format!(
-                "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ 10000"
+                "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
             ));
         }
         let xo = XyOpts {

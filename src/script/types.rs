@@ -830,4 +830,3 @@ fn register_profile(r: &mut Registrar) {
         },
     );
 }
-
