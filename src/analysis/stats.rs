@@ -142,10 +142,11 @@ pub fn histogram(values: &[f64], bins: usize, range: Option<(f64, f64)>) -> Resu
             if fin.is_empty() {
                 return Err(AnalysisError::BadInput {
                     name: "values",
-                    reason: format!(
-                        "no finite values (all {} are NaN or the list is empty)",
-                        values.len()
-                    ),
+                    reason: if values.is_empty() {
+                        "no data (empty list)".into()
+                    } else {
+                        format!("all {} values are NaN", values.len())
+                    },
                 });
             }
             let lo = fin.iter().copied().fold(f64::INFINITY, f64::min);
