@@ -1,5 +1,11 @@
-//! Colour maps: a blue–white–red diverging map (ColorBrewer RdBu, reversed) for signed signals
-//! such as Sx and Sy, and viridis for one-signed quantities such as Sz or sensitivities.
+//! Colour maps: ColorBrewer RdBu, reversed (blue–white–red), for signed signals such as Sx and
+//! Sy, and viridis for one-signed quantities such as Sz or sensitivities.
+//!
+//! - Viridis is the `colorous` crate's (matplotlib's 256 published samples).
+//! - RdBu is matplotlib's definition: linear interpolation between ColorBrewer's 11 RdBu classes
+//!   (matplotlib `_cm.py`, `_RdBu_data`). colorous' RED_BLUE is d3's B-spline through the same
+//!   classes, which misses the white centre (#f1efed instead of #f7f7f7), so the 11 published
+//!   classes are kept here.
 
 /// Which colour map a heat map uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -13,6 +19,7 @@ pub enum Colormap {
 /// Colour of pixels without data (NaN).
 pub const NAN_RGB: (u8, u8, u8) = (150, 150, 150);
 
+/// ColorBrewer RdBu (11 classes), reversed: blue … #f7f7f7 … red.
 const RDBU_R: [(u8, u8, u8); 11] = [
     (0x05, 0x30, 0x61),
     (0x21, 0x66, 0xac),
@@ -27,29 +34,20 @@ const RDBU_R: [(u8, u8, u8); 11] = [
     (0x67, 0x00, 0x1f),
 ];
 
-const VIRIDIS: [(u8, u8, u8); 9] = [
-    (0x44, 0x01, 0x54),
-    (0x47, 0x2d, 0x7b),
-    (0x3b, 0x52, 0x8b),
-    (0x2c, 0x72, 0x8e),
-    (0x21, 0x91, 0x8c),
-    (0x28, 0xae, 0x80),
-    (0x5e, 0xc9, 0x62),
-    (0xad, 0xdc, 0x30),
-    (0xfd, 0xe7, 0x25),
-];
-
 impl Colormap {
     /// Colour at fraction `t` of the range (clamped to [0, 1]); NaN gives [`NAN_RGB`].
     pub fn rgb(self, t: f64) -> (u8, u8, u8) {
         if t.is_nan() {
             return NAN_RGB;
         }
-        let table: &[(u8, u8, u8)] = match self {
-            Colormap::Diverging => &RDBU_R,
-            Colormap::Sequential => &VIRIDIS,
-        };
-        interpolate(table, t.clamp(0.0, 1.0))
+        let t = t.clamp(0.0, 1.0);
+        match self {
+            Colormap::Diverging => interpolate(&RDBU_R, t),
+            Colormap::Sequential => {
+                let c = colorous::VIRIDIS.eval_continuous(t);
+                (c.r, c.g, c.b)
+            }
+        }
     }
 
     /// Colour of value `v` on the scale `[vmin, vmax]`.
@@ -61,6 +59,7 @@ impl Colormap {
     }
 }
 
+/// Linear interpolation in a table of equally spaced colours, `t` in [0, 1].
 fn interpolate(table: &[(u8, u8, u8)], t: f64) -> (u8, u8, u8) {
     let x = t * (table.len() - 1) as f64;
     let k = (x.floor() as usize).min(table.len() - 2);
@@ -77,19 +76,28 @@ mod tests {
     #[test]
     fn diverging_is_white_at_centre_blue_below_red_above() {
         let c = Colormap::Diverging;
+        // ColorBrewer RdBu's centre class is #f7f7f7
         assert_eq!(c.rgb_value(0.0, -2.0, 2.0), (0xf7, 0xf7, 0xf7));
         let (r, _, b) = c.rgb_value(-1.5, -2.0, 2.0);
         assert!(b > r + 50, "negative values are blue");
         let (r, _, b) = c.rgb_value(1.5, -2.0, 2.0);
         assert!(r > b + 50, "positive values are red");
         assert_eq!(c.rgb(f64::NAN), NAN_RGB);
-        // clamped outside the range
-        assert_eq!(c.rgb(7.0), RDBU_R[10]);
+        // ends: RdBu's darkest classes #053061 (blue) and #67001f (red); clamped outside
+        assert_eq!(c.rgb(-3.0), (0x05, 0x30, 0x61));
+        assert_eq!(c.rgb(7.0), (0x67, 0x00, 0x1f));
     }
 
     #[test]
-    fn viridis_ends() {
-        assert_eq!(Colormap::Sequential.rgb(0.0), VIRIDIS[0]);
-        assert_eq!(Colormap::Sequential.rgb(1.0), VIRIDIS[8]);
+    fn viridis_published_values() {
+        // matplotlib's viridis: #440154 at 0, #21918c at 0.5, #fde725 at 1
+        assert_eq!(Colormap::Sequential.rgb(0.0), (0x44, 0x01, 0x54));
+        assert_eq!(Colormap::Sequential.rgb(1.0), (0xfd, 0xe7, 0x25));
+        let (r, g, b) = Colormap::Sequential.rgb(0.5);
+        assert!(
+            r.abs_diff(0x21) <= 1 && g.abs_diff(0x91) <= 1 && b.abs_diff(0x8c) <= 1,
+            "{:?}",
+            (r, g, b)
+        );
     }
 }
