@@ -15,6 +15,20 @@ pub const PNG_KEYWORD: &str = "bfpscope-provenance";
 /// the JSON strings they occur in, so the chunk's text stays parseable JSON.
 pub fn png_add_text(path: &Path, keyword: &str, text: &str) -> Result<(), String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    replace(path, png_with_text(path, &bytes, keyword, text)?)
+}
+
+/// Replace `path`'s contents atomically (temporary file, fsync, rename): a reader, or a crash,
+/// sees the finished file before or after the stamp, never a torn one.
+fn replace(path: &Path, bytes: Vec<u8>) -> Result<(), String> {
+    super::atomic_write(path, |tmp| {
+        std::fs::write(tmp, &bytes).map_err(|e| super::DataError::io(tmp, e))
+    })
+    .map_err(|e| e.to_string())
+}
+
+/// The bytes of PNG `bytes` (read from `path`) with a `tEXt` chunk inserted after IHDR.
+fn png_with_text(path: &Path, bytes: &[u8], keyword: &str, text: &str) -> Result<Vec<u8>, String> {
     const SIG: &[u8] = b"\x89PNG\r\n\x1a\n";
     if bytes.len() < 33 || &bytes[..8] != SIG || &bytes[12..16] != b"IHDR" {
         return Err(format!("{}: not a PNG file", path.display()));
@@ -45,7 +59,7 @@ pub fn png_add_text(path: &Path, keyword: &str, text: &str) -> Result<(), String
     out.extend(&bytes[..after_ihdr]);
     out.extend(&chunk);
     out.extend(&bytes[after_ihdr..]);
-    std::fs::write(path, out).map_err(|e| format!("{}: {e}", path.display()))
+    Ok(out)
 }
 
 /// Read the text of the first `tEXt` chunk with `keyword` (None when absent).
@@ -69,20 +83,17 @@ pub fn png_text(path: &Path, keyword: &str) -> Option<String> {
 }
 
 /// Embed provenance JSON in a figure (.png: text chunk; .svg: trailing XML comment) or a CSV
-/// file (trailing `#` line), chosen by the extension. Other files are left alone.
+/// file (trailing `#` line), chosen by the extension. Other files are left alone. The stamped
+/// file replaces the unstamped one atomically (never rewritten in place).
 pub fn embed(path: &Path, json: &str) -> Result<(), String> {
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
     let append = |line: String| -> Result<(), String> {
-        use std::io::Write;
-        let mut f = std::fs::OpenOptions::new()
-            .append(true)
-            .open(path)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
-        f.write_all(line.as_bytes())
-            .map_err(|e| format!("{}: {e}", path.display()))
+        let mut bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        bytes.extend(line.as_bytes());
+        replace(path, bytes)
     };
     match ext.as_str() {
         "png" => png_add_text(path, PNG_KEYWORD, json),
