@@ -138,7 +138,8 @@ pub struct FitOptions {
     pub gtol: f64,
     /// Residual evaluations allowed = patience × (3n + 1).
     pub patience: usize,
-    /// Beam waist, µm (sets the degeneracy distance).
+    /// Beam waist, µm (sets the degeneracy distance); the `fit_beads` binding takes it from the
+    /// session's optics (`set_optics(#{w0_nm})`).
     pub w0_um: f64,
     /// Beads closer than `min_separation × w0_um` are degenerate (default 1/4).
     pub min_separation: f64,

@@ -396,7 +396,7 @@ pub fn register(r: &mut Registrar) {
     }
     register_sensitivity(r);
     register_templates(r, &ctx);
-    register_fit(r);
+    register_fit(r, &ctx);
     register_filaments(r, &ctx);
     register_stats(r);
 }
@@ -933,7 +933,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
 
 // ------------------------------------------------------------------ fit
 
-fn register_fit(r: &mut Registrar) {
+fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let d = Doc::func("fit_beads", "templates")
         .arg("scan", "Scan", "", "XY scan (Sx and Sy)")
         .arg("tpl", "Template", "", "the point-particle template")
@@ -963,10 +963,15 @@ fn register_fit(r: &mut Registrar) {
         .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
         .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
     let spec = d.spec();
+    let c = ctx.clone();
     let f = move |s: ScanRef, t: TemplateRef, m: Map| -> RResult<FitRef> {
         let who = "fit_beads";
         let o = Opts::new(&spec, &m)?;
-        let d = FitOptions::default();
+        // the degeneracy and merge distances scale with the session's beam waist (set_optics)
+        let d = FitOptions {
+            w0_um: c.optics().w0_nm / 1000.0,
+            ..FitOptions::default()
+        };
         let channels = match o.string("channels")? {
             None => d.channels,
             Some(c) => Channels::parse(&c).map_or_else(

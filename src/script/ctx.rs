@@ -216,6 +216,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Ctx {
+    /// The session's optics (`set_optics`), recovering from a poisoned lock.
+    pub fn optics(&self) -> Optics {
+        self.optics
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
     pub fn new(settings: Settings) -> Ctx {
         Ctx {
             store: SessionStore::new(settings.data_dir.clone()),

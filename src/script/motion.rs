@@ -165,8 +165,12 @@ pub fn register(r: &mut Registrar) {
             .arg("seconds", "float", "s", "counting time, 0 < seconds ≤ 3600")
             .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n, seconds}")
             .summary("count: read the QPD for a given time (SPEC's ct)")
-            .help("Reads round(seconds × sample rate) samples (at least one).")
+            .help(
+                "Reads n = round(seconds × sample rate) samples (at least one); `seconds` in the \
+                 result is the time actually counted, n / sample rate.",
+            )
             .example("ct(0.01).n", "1000")
+            .example("ct(0.0000123).seconds", "0.00001")
             .example(
                 "ct(-1)",
                 "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600",
@@ -179,9 +183,10 @@ pub fn register(r: &mut Registrar) {
                 ));
             }
             c.with_instrument("ct", |i| {
-                let n = crate::acquire::engine::samples_per_point(t, i.qpd.sample_rate());
+                let rate = i.qpd.sample_rate();
+                let n = crate::acquire::engine::samples_per_point(t, rate);
                 let mut m = reading_map(&i.qpd.read(n).map_err(|e| format!("ct: {e}"))?);
-                m.insert("seconds".into(), t.into());
+                m.insert("seconds".into(), (n as f64 / rate).into());
                 Ok(m)
             })
         },
@@ -433,13 +438,10 @@ pub fn reference_bead_scene() -> Scene {
     s
 }
 
-fn optics_of(ctx: &Ctx) -> crate::optics::Optics {
-    ctx.optics.lock().map(|o| o.clone()).unwrap_or_default()
-}
 
 /// Connect the simulated instrument imaging `scene`.
 fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64) -> Result<String, String> {
-    let core = SimCore::new(&optics_of(ctx), scene, SimConfig::default())
+    let core = SimCore::new(&ctx.optics(), scene, SimConfig::default())
         .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
     let line = connected_line("sim", &core.instrument(settle_s));
     ctx.attach_sim(core, settle_s);
@@ -590,7 +592,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             }
             let sim = SimConfig::default();
             let renderer = Arc::new(
-                Renderer::checked(&optics_of(c), &scene, TemplateSpec::default())
+                Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
                     .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
             );
             let e = connect_emulated(renderer, &sim, &cfg, noise_v)

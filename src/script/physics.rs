@@ -37,9 +37,6 @@ fn optics_map(o: &Optics) -> Map {
     m
 }
 
-fn optics_of(ctx: &Ctx) -> Optics {
-    ctx.optics.lock().unwrap_or_else(|e| e.into_inner()).clone()
-}
 
 /// `[[x, y], ...]` → polyline.
 pub(crate) fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
@@ -102,7 +99,7 @@ pub fn register(r: &mut Registrar) {
             .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
             .example("optics().wavelength_nm", "1064.0")
             .example("optics().w0_nm", "400.0"),
-        move || -> Map { optics_map(&optics_of(&c)) },
+        move || -> Map { optics_map(&c.optics()) },
     );
     let d = Doc::func("set_optics", "optics")
         .map(
@@ -171,7 +168,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<Map> {
         let o = Opts::new(&spec, &m)?;
-        let mut new = optics_of(&c);
+        let mut new = c.optics();
         for (k, f) in [
             ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
             ("n_medium", &mut new.n_medium),
@@ -235,7 +232,7 @@ pub fn register(r: &mut Registrar) {
             misalignment: None,
         };
         let s = response(
-            &optics_of(&c),
+            &c.optics(),
             &model,
             [
                 o.f64_or("x", 0.0)?,
@@ -266,7 +263,7 @@ pub fn register(r: &mut Registrar) {
             .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
         move |d: Dynamic, n: Dynamic| -> RResult<f64> {
             p_scat_ratio(
-                &optics_of(&c),
+                &c.optics(),
                 num("p_scat_ratio", "d_nm", &d)?,
                 num("p_scat_ratio", "n", &n)?,
             )
@@ -320,7 +317,7 @@ pub fn register(r: &mut Registrar) {
             }
         };
         trap_depth_kt(
-            &optics_of(&c),
+            &c.optics(),
             shape,
             o.req_f64("d_nm")?,
             o.req_f64("n")?,
@@ -342,7 +339,7 @@ pub fn register(r: &mut Registrar) {
             n_corr(
                 num("n_corr", "n_obj", &a)?,
                 num("n_corr", "n_ref", &b)?,
-                optics_of(&c).n_medium,
+                c.optics().n_medium,
             )
             .map_err(|e| err("n_corr", e))
         },
@@ -388,7 +385,7 @@ pub fn register(r: &mut Registrar) {
         let o = Opts::new(&spec, &m)?;
         let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", 1.572)?);
         crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
-        let optics = optics_of(&c);
+        let optics = c.optics();
         let det = Detection::new(&optics, &DetectorModel::default()).map_err(|e| err("max_sensitivity_model", e))?;
         let size = match o.string("model")?.as_deref() {
             None | Some("rayleigh") => None,
@@ -696,7 +693,7 @@ pub fn register(r: &mut Registrar) {
                 "simulate: n_samples = {ns} is out of range: 1 ≤ n_samples ≤ 100000000"
             ));
         }
-        let r = crate::instrument::sim::Renderer::checked(&optics_of(&c), &s.0, Default::default())
+        let r = crate::instrument::sim::Renderer::checked(&c.optics(), &s.0, Default::default())
             .map_err(|e| err("simulate", e))?;
         for n in &r.notes {
             c.log(&format!("simulate: note: {n}"));
@@ -779,7 +776,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<Map> {
         let o = Opts::new(&spec, &m)?;
-        let op = optics_of(&c);
+        let op = c.optics();
         let dn = o.req_f64("d_nm")?;
         let q = crate::optics::mie::sphere(
             dn,
@@ -817,7 +814,7 @@ fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
 /// its scene is replaced (position and clock kept); otherwise (nothing, the mock, hardware) a
 /// new simulated instrument replaces the connected one.
 fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
-    let optics = optics_of(ctx);
+    let optics = ctx.optics();
     let core = match ctx.sim_core() {
         Some(core) => {
             core.set_scene(&optics, scene)
