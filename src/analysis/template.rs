@@ -797,7 +797,8 @@ fn max_dsx_du(g: &Grid2) -> ([f64; 2], f64) {
             }
         }
     }
-    // Two rounds of a 9×9 local search shrinking the step.
+    // Three rounds of a 9×9 local search, the step shrinking 4× each round (h/4, h/16, h/64:
+    // the last one resolves the peak to h/128).
     let mut step = g.h / 4.0;
     for _ in 0..3 {
         let (cu, cv) = (best.0, best.1);
