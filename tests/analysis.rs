@@ -510,25 +510,36 @@ fn focus_search_on_a_synthetic_xz_scan() {
 
 #[test]
 fn loglog_slope_of_bead_sensitivities() {
-    // Fig. 3c: (∂Sx/∂x)max ∝ d³ for small beads. Noise-free rendered beads of 60–200 nm measured
-    // through the pipeline give slope 3 (the stand-in is exactly linear in weight).
-    let tpl = standin();
-    let ds = [60.0, 90.0, 110.0, 140.0, 170.0, 200.0];
-    let sens: Vec<f64> = ds
-        .iter()
-        .map(|&d| {
-            let s = scene(&tpl, &[(1.2, 1.2, ps_weight(d))], &[], 48, H, 0.0, 0);
-            peak_2d(
-                &sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap(),
-                0.4,
-                None,
-            )
-            .unwrap()
-            .value
-        })
-        .collect();
+    // Fig. 3c / Sec. 3.2: between 110 and 160 nm the paper measures (∂Sx/∂x)max ∝ d^(3.02±0.04),
+    // and both its models give slope 3, within 1 % of volume scaling below 240 nm. Here the
+    // scenes come from an independent path: every bead rendered by the focused-beam Lorenz–Mie
+    // tier (`mie` effect), not by the point dipole whose weight is linear in d³. The pipeline
+    // (sensitivity, peak) measures each scan. The Mie tier's finite-size departure from d³ is
+    // below 1 % up to 240 nm, i.e. a slope within ln(1.01)/ln(240/110) ≈ 0.013 of 3.
+    let o = Optics::default();
+    let measure = |d: f64| -> f64 {
+        let mut sc = Scene::default();
+        sc.add_bead(sim_bead(0.8, 0.8, d, 1.572)).unwrap();
+        sc.effects.enable("mie").unwrap();
+        let s = simulate(&o, &sc, 33, 0.05, 1);
+        peak_2d(
+            &sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap(),
+            0.4,
+            None,
+        )
+        .unwrap()
+        .value
+    };
+    let ds = [110.0, 125.0, 140.0, 160.0];
+    let sens: Vec<f64> = ds.iter().map(|&d| measure(d)).collect();
     let f = stats::loglog_fit(&ds, &sens, None).unwrap();
-    assert!((f.slope - 3.0).abs() < 1e-6, "{f:?}");
+    assert!((f.slope - 3.0).abs() < 0.013, "slope {f:?}"); // measured 3.005
+    // volume scaling holds within 1 % up to 240 nm (paper), relative to 110 nm
+    let s240 = measure(240.0);
+    let ratio = s240 / sens[0] / (240.0f64 / 110.0).powi(3);
+    // measured 0.9943: a 240 nm sphere samples a weaker field than its centre's (w0 ≈ 400 nm),
+    // so it stays below volume scaling; a point dipole would give exactly 1
+    assert!(ratio > 0.99 && ratio < 0.999, "240 nm / 110 nm vs volume: {ratio}");
 }
 
 #[test]
