@@ -534,12 +534,15 @@ fn loglog_slope_of_bead_sensitivities() {
     let sens: Vec<f64> = ds.iter().map(|&d| measure(d)).collect();
     let f = stats::loglog_fit(&ds, &sens, None).unwrap();
     assert!((f.slope - 3.0).abs() < 0.013, "slope {f:?}"); // measured 3.005
-    // volume scaling holds within 1 % up to 240 nm (paper), relative to 110 nm
+                                                           // volume scaling holds within 1 % up to 240 nm (paper), relative to 110 nm
     let s240 = measure(240.0);
     let ratio = s240 / sens[0] / (240.0f64 / 110.0).powi(3);
     // measured 0.9943: a 240 nm sphere samples a weaker field than its centre's (w0 ≈ 400 nm),
     // so it stays below volume scaling; a point dipole would give exactly 1
-    assert!(ratio > 0.99 && ratio < 0.999, "240 nm / 110 nm vs volume: {ratio}");
+    assert!(
+        ratio > 0.99 && ratio < 0.999,
+        "240 nm / 110 nm vs volume: {ratio}"
+    );
 }
 
 #[test]

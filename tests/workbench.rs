@@ -85,7 +85,11 @@ fn help_lists_every_binding_by_family_with_units() {
     let _ = w.eval_line("help(\"img.max\")").unwrap();
     assert!(buf.lock().unwrap().contains("img.max()"));
     let e = w.eval_line("help(\"scan_xyz\")").unwrap_err();
-    assert!(e.message.contains("did you mean scan_xy"), "{e}");
+    assert!(
+        e.message
+            .contains("did you mean `scan_xy` or `scan_xz` or `scan_yz`?"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -1044,10 +1044,20 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         ("condition", "condition number of the column-scaled JᵀJ"),
         ("total_weight", "Σ weights (reference-bead units)"),
     ] {
+        // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
+        // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
+        // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
+        let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
         let (ex, expect) = match name {
             "total_weight" => (format!("{fx} round(f.total_weight * 1000.0)"), "1000.0"),
-            "bic" => (format!("{fx} type_of(f.bic)"), "\"f64\""),
-            _ => (format!("{fx} f.{name} >= 0.0"), "true"),
+            "chi2" => (format!("{fx} f.chi2"), "3359.0"),
+            "rss" => (format!("{fx} f.rss < 1e-20"), "true"),
+            "sigma" => (format!("{fx} f.sigma < 1e-15"), "true"),
+            "bic" => (
+                format!("{sig} abs(f.bic - 3.0 * ln(2.0 * 41.0 * 41.0)) < 1e-9"),
+                "true",
+            ),
+            _ => (format!("{fx} round(f.condition * 1000.0) / 1000.0"), "1.0"),
         };
         r.getter(
             Doc::property("FitResult", name)

@@ -23,8 +23,10 @@ pub fn register(r: &mut Registrar) {
             .summary(
                 "list every binding by family, or show one binding's arguments, units and examples",
             )
-            .example("help()", "()")
-            .example("help(\"scan_xy\")", "()"),
+            .example(
+                "help(\"scan_lne\")",
+                "error: help: no binding called \"scan_lne\"; did you mean `scan_line`?",
+            ),
         move || {
             c.print(&help_index(&c.docs()));
             c.print(&super::console::protocols_index());
@@ -39,19 +41,10 @@ pub fn register(r: &mut Registrar) {
                 c.print(&page);
                 return Ok(());
             }
-            let mut near: Vec<&str> = docs
-                .iter()
-                .map(|d| d.name.as_str())
-                .filter(|n| n.contains(name) || name.contains(*n))
-                .collect();
-            near.dedup();
+            let names: Vec<&str> = docs.iter().map(|d| d.name.as_str()).collect();
             return fail(format!(
                 "help: no binding called {name:?}{}; help() lists them all",
-                if near.is_empty() {
-                    String::new()
-                } else {
-                    format!(" (did you mean {}?)", near.join(", "))
-                }
+                super::console::suggestion(name, names)
             ));
         }
         if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {

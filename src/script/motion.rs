@@ -438,7 +438,6 @@ pub fn reference_bead_scene() -> Scene {
     s
 }
 
-
 /// Connect the simulated instrument imaging `scene`.
 fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64) -> Result<String, String> {
     let core = SimCore::new(&ctx.optics(), scene, SimConfig::default())

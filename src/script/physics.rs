@@ -37,7 +37,6 @@ fn optics_map(o: &Optics) -> Map {
     m
 }
 
-
 /// `[[x, y], ...]` → polyline.
 pub(crate) fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
     let Some(a) = v.read_lock::<Array>() else {
