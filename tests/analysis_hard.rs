@@ -483,42 +483,85 @@ fn more_beads_than_the_image_supports() {
 
 #[test]
 fn bad_options_are_range_errors_not_panics() {
+    // Each bad option gets an error that names the option and its value.
     let tpl = standin();
     let s = scene(&tpl, &[(1.0, 1.0, 1.0)], &[], 40, H, 0.0, 0);
-    for o in [
-        FitOptions {
-            ftol: -1.0,
-            ..Default::default()
-        },
-        FitOptions {
-            patience: 0,
-            ..Default::default()
-        },
-        FitOptions {
-            sigma: Some(f64::NAN),
-            ..Default::default()
-        },
-        FitOptions {
-            init: Some(vec![BeadInit {
-                x: f64::NAN,
-                y: 1.0,
-                weight: 1.0,
-            }]),
-            ..Default::default()
-        },
-    ] {
-        let e = fit_beads(&s.sx, &s.sy, &tpl, &o).unwrap_err();
-        assert!(!e.to_string().is_empty());
+    let cases: Vec<(FitOptions, [&str; 2])> = vec![
+        (
+            FitOptions {
+                ftol: -1.0,
+                ..Default::default()
+            },
+            ["ftol", "-1"],
+        ),
+        (
+            FitOptions {
+                patience: 0,
+                ..Default::default()
+            },
+            ["patience", "0"],
+        ),
+        (
+            FitOptions {
+                sigma: Some(f64::NAN),
+                ..Default::default()
+            },
+            ["sigma", "NaN"],
+        ),
+        (
+            FitOptions {
+                init: Some(vec![BeadInit {
+                    x: f64::NAN,
+                    y: 1.0,
+                    weight: 1.0,
+                }]),
+                ..Default::default()
+            },
+            ["x", "NaN"],
+        ),
+        (
+            FitOptions {
+                w0_um: 0.0,
+                ..Default::default()
+            },
+            ["w0_um", "0"],
+        ),
+        (
+            FitOptions {
+                min_separation: -0.5,
+                ..Default::default()
+            },
+            ["min_separation", "-0.5"],
+        ),
+        (
+            FitOptions {
+                max_truncation: 2.0,
+                ..Default::default()
+            },
+            ["max_truncation", "2"],
+        ),
+    ];
+    for (o, [name, value]) in cases {
+        let e = fit_beads(&s.sx, &s.sy, &tpl, &o).unwrap_err().to_string();
+        assert!(
+            e.contains(name) && e.contains(&format!("= {value}")),
+            "{name} = {value}: {e}"
+        );
     }
-    assert!(sensitivity(&s.sx, Axis::X, Stencil::SavitzkyGolay { half_width: 0 }).is_err());
-    assert!(row_peaks(
+    let e = sensitivity(&s.sx, Axis::X, Stencil::SavitzkyGolay { half_width: 0 })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("half_width") && e.contains("= 0"), "{e}");
+    let e = row_peaks(
         &s.sx,
         &PeakOptions {
             window_um: -0.4,
             ..Default::default()
-        }
+        },
     )
-    .is_err());
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("window_um") && e.contains("= -0.4"), "{e}");
 }
 
 #[test]

@@ -217,11 +217,13 @@ impl FitOptions {
                 });
             }
             for (i, b) in init.iter().enumerate() {
-                if !(b.x.is_finite() && b.y.is_finite() && b.weight.is_finite()) {
-                    return Err(AnalysisError::BadInput {
-                        name: "init",
-                        reason: format!("bead {i} has non-finite values {b:?}"),
-                    });
+                for (key, v) in [("x", b.x), ("y", b.y), ("weight", b.weight)] {
+                    if !v.is_finite() {
+                        return Err(AnalysisError::BadInput {
+                            name: "init",
+                            reason: format!("bead {i}: {key} = {v}; initial values must be finite"),
+                        });
+                    }
                 }
             }
         }
