@@ -76,8 +76,11 @@ fn quick_report_writes_files_and_defaults_sit_at_the_knee() {
                 )
             }
             (_, KneeVerdict::AtKnee) => {}
-            // timing noise of a loaded machine in the dev profile
-            (_, KneeVerdict::Above { time_ratio }) if *time_ratio < 4.0 => {
+            // Timing noise can make a setting whose time is within the noise of the default's
+            // look cheaper, and so be called the knee; it cannot make a setting that is really
+            // 1.5× cheaper. Measured: every default at its knee in two runs on a loaded 2-core
+            // machine (issue 15; was allowed 4×).
+            (_, KneeVerdict::Above { time_ratio }) if *time_ratio < 1.5 => {
                 eprintln!("{}: default above the knee by {time_ratio:.2}×", k.knob.id)
             }
             (id, v) => panic!("{id}: default not at the knee: {v:?}"),

@@ -743,7 +743,10 @@ fn model_fibril_diameters_any_angle() {
         "A = {:.2} nm for λ = 1064 nm, w0 = 400 nm, NA 1.2, n_s = 1.333, n_cf = 1.414, d_bm = 110 nm PS (paper: 58.6 nm); sens_bm = {:.3}, n_corr = {:.4}",
         cal.a_nm, cal.sens_bm, cal.n_corr
     );
-    assert!(cal.a_nm > 40.0 && cal.a_nm < 80.0);
+    // Regression pin: the noise-free model gives A = 69.38 nm for these optics (deterministic;
+    // the paper's 58.6 nm is its own instrument's, "determined independently by scanning a
+    // reference object"). Whether A is right is tested below: diameters recovered with it.
+    assert!((cal.a_nm - 69.38).abs() < 0.05, "A = {} nm", cal.a_nm);
     let mut worst: f64 = 0.0;
     for (k, &angle) in [0.0, 20.0, -35.0, 45.0, 60.0, -75.0, 90.0]
         .iter()

@@ -105,9 +105,18 @@ mod tests {
         // S1: "would have to exceed 300 nm before … 1%": ratio crosses 1e-2 near 300 nm
         let d1 = 110.0 * (1e-2 / r).powf(1.0 / 6.0);
         assert!((d1 - 300.0).abs() < 10.0, "{d1}");
-        // S3: collagen fibrils up to 150 nm stay below 1 kT
+        // S3: collagen fibrils up to 150 nm stay below 1 kT. The closed form written out with
+        // SI values (P = 0.13 mW, n_s = 1.333, n = 1.414, d = 150 nm, w0 = 400 nm, c0 exact,
+        // T = 295.15 K): U = (3/4) P n_s² d² CM √(π/2) / (w0 c_s) / (k_B T) = 0.53409 kT;
+        // the code's c0 = 2.998e8 m/s differs from the exact value by 2.6e-5 relative.
         let u = trap_depth_kt(&o, TrapShape::Cylinder, 150.0, 1.414, ROOM_T_K).unwrap();
-        assert!(u > 0.3 && u < 1.0, "{u}");
+        let (p, ns, n, d, w0) = (0.13e-3, 1.333f64, 1.414f64, 150e-9f64, 400e-9);
+        let cm = (n * n - ns * ns) / (n * n + 2.0 * ns * ns);
+        let want = 0.75 * p * ns * ns * d * d * cm * (PI / 2.0).sqrt()
+            / (w0 * (299_792_458.0 / ns))
+            / (1.380_649e-23 * 295.15);
+        assert!((u / want - 1.0).abs() < 5e-5, "{u} vs {want}");
+        assert!(u < 1.0, "{u}");
         // closed forms: sphere ∝ d³, cylinder ∝ d²
         let a = trap_depth_kt(&o, TrapShape::Sphere, 50.0, 1.572, 300.0).unwrap();
         let b = trap_depth_kt(&o, TrapShape::Sphere, 100.0, 1.572, 300.0).unwrap();
