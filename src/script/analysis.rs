@@ -227,7 +227,13 @@ const PIPELINE_KEYS: &[(&str, &str, &str, &str)] = &[
 
 /// Pixel size, measurement options and bead-model options from the `PIPELINE_KEYS`.
 fn pipeline_opts(who: &str, o: &Opts) -> RResult<(f64, MeasureOptions, BeadModelOptions)> {
-    let mo = measure_opts(who, o, MeasureOptions::default())?;
+    // only the declared keys: stencil and window; the rest of the measurement keeps its defaults
+    let base = MeasureOptions::default();
+    let mo = MeasureOptions {
+        stencil: stencil_of(who, o, base.stencil)?,
+        window_um: pos_f64(who, o, "window_um", base.window_um, 1e-3, 100.0)?,
+        ..base
+    };
     let bm = BeadModelOptions {
         spacing_nm: o.f64_or("spacing_nm", 50.0)?,
     };

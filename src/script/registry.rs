@@ -176,7 +176,8 @@ impl Doc {
             ty: "map".into(),
             unit: String::new(),
             doc: doc.into(),
-            optional: false,
+            // "optional …": a form without the map exists
+            optional: doc.starts_with("optional"),
             keys,
         });
         self
@@ -360,7 +361,11 @@ fn param_line(p: &Param, indent: &str) -> String {
     } else {
         format!(" [{}]", p.unit)
     };
-    let opt = if p.optional { " (optional)" } else { "" };
+    let opt = if p.optional && !p.doc.starts_with("optional") {
+        " (optional)"
+    } else {
+        ""
+    };
     format!("{indent}{:<10} {}{unit}{opt}  {}", p.name, p.ty, p.doc)
 }
 
@@ -409,6 +414,16 @@ impl<'a> Registrar<'a> {
         doc: Doc,
         f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
     ) {
+        // The closure takes what the declaration says: the value for a method, then the
+        // declared arguments, with or without the optional ones (the other forms are overloads).
+        let this = usize::from(matches!(doc.kind, Kind::Method { .. }));
+        let required = doc.params.iter().filter(|p| !p.optional).count() + this;
+        let all = doc.params.len() + this;
+        debug_assert!(
+            (required..=all).contains(&N),
+            "{}: the closure takes {N} arguments, the declaration {required} to {all}",
+            doc.name
+        );
         self.engine.register_fn(doc.name.as_str(), f);
         self.push(doc);
     }
@@ -532,8 +547,20 @@ impl<'a> Opts<'a> {
         }
         Ok(Opts { spec, map })
     }
+    /// The value of a declared key. A binding that reads a key it did not declare (a typo in
+    /// the code, which would silently fall back to the default) panics in debug builds, so the
+    /// example tests catch it.
+    fn get(&self, key: &str) -> Option<&'a rhai::Dynamic> {
+        debug_assert!(
+            self.spec.keys.iter().any(|d| d == key),
+            "{}: the code reads option `{key}`, which its declaration does not have (declared: {})",
+            self.spec.name,
+            self.spec.keys.join(", ")
+        );
+        self.map.get(key)
+    }
     pub fn has(&self, key: &str) -> bool {
-        self.map.contains_key(key)
+        self.get(key).is_some()
     }
     fn missing<T>(&self, key: &str) -> RResult<T> {
         fail(format!(
@@ -542,8 +569,7 @@ impl<'a> Opts<'a> {
         ))
     }
     pub fn f64(&self, key: &str) -> RResult<Option<f64>> {
-        self.map
-            .get(key)
+        self.get(key)
             .map(|v| num(&self.spec.name, key, v))
             .transpose()
     }
@@ -557,8 +583,7 @@ impl<'a> Opts<'a> {
         }
     }
     pub fn int(&self, key: &str) -> RResult<Option<i64>> {
-        self.map
-            .get(key)
+        self.get(key)
             .map(|v| int(&self.spec.name, key, v))
             .transpose()
     }
@@ -569,7 +594,7 @@ impl<'a> Opts<'a> {
         }
     }
     pub fn bool_or(&self, key: &str, default: bool) -> RResult<bool> {
-        match self.map.get(key) {
+        match self.get(key) {
             None => Ok(default),
             Some(v) => v.as_bool().or_else(|_| {
                 fail(format!(
@@ -581,7 +606,7 @@ impl<'a> Opts<'a> {
         }
     }
     pub fn string(&self, key: &str) -> RResult<Option<String>> {
-        match self.map.get(key) {
+        match self.get(key) {
             None => Ok(None),
             Some(v) if v.is_string() => Ok(Some(v.to_string())),
             Some(v) => fail(format!(
@@ -593,7 +618,7 @@ impl<'a> Opts<'a> {
     }
     /// `[from, to]` (µm).
     pub fn range(&self, key: &str) -> RResult<Option<(f64, f64)>> {
-        let Some(v) = self.map.get(key) else {
+        let Some(v) = self.get(key) else {
             return Ok(None);
         };
         let bad = || {
@@ -750,7 +775,11 @@ fn anchor(d: &Doc) -> String {
 }
 
 fn md_row(p: &Param, prefix: &str) -> String {
-    let opt = if p.optional { " (optional)" } else { "" };
+    let opt = if p.optional && !p.doc.starts_with("optional") {
+        " (optional)"
+    } else {
+        ""
+    };
     format!(
         "| `{prefix}{}` | {} | {} | {}{opt} |\n",
         p.name,
