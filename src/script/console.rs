@@ -680,7 +680,7 @@ fn line_channel(
 pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.bind(
-        Doc::func("pwd", "session")
+        Doc::func("pwd")
             .returns("string", "the session folder")
             .summary("the session folder: where scans, figures, templates and the session log go")
             .example("pwd() == status().data_dir", "true"),
@@ -688,7 +688,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("ls", "session")
+        Doc::func("ls")
             .returns("array", "file names in the session folder, sorted")
             .summary("list the session folder")
             .example("ls().len() >= 0", "true"),
@@ -706,7 +706,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("note", "session")
+        Doc::func("note")
             .arg("text", "string", "", "a note (sample, condition, what you are doing)")
             .returns("array", "all notes so far")
             .summary("add a note to the metadata of every later scan (meta.notes); note() with \"\" clears them")
@@ -724,7 +724,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("scans", "session")
+        Doc::func("scans")
             .map("filter", "optional", &[
                 ("kind", "string", "", "optional: \"XY\", \"XZ\", \"YZ\" or \"line\""),
                 ("protocol", "string", "", "optional: part of the protocol name (\"focus\")"),
@@ -778,14 +778,14 @@ pub fn register(r: &mut Registrar) {
     });
     // SPEC words
     r.bind(
-        Doc::func("wm", "motion")
+        Doc::func("wm")
             .summary("SPEC's `wm` (where motor): print the position of every axis (as wa)")
             .example("wm()", "()"),
         |ctx: rhai::NativeCallContext| -> RResult<()> { ctx.call_native_fn::<()>("wa", ()) },
     );
     for (name, base, what) in [("umv", "mv", "absolute"), ("umvr", "mvr", "relative")] {
         r.bind(
-            Doc::func(name, "motion")
+            Doc::func(name)
                 .map(
                     "target",
                     &format!("{what} move, any subset of the axes"),
@@ -806,7 +806,7 @@ pub fn register(r: &mut Registrar) {
         );
     }
     r.bind(
-        Doc::func("lup", "scans")
+        Doc::func("lup")
             .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
             .arg(
                 "from",
@@ -849,7 +849,7 @@ pub fn register(r: &mut Registrar) {
         ("fwhm", "full width at half maximum of |v − median|"),
     ] {
         r.bind(
-            Doc::func(name, "scans")
+            Doc::func(name)
                 .arg("scan", "Scan", "", "a line scan (scan_line, ascan, dscan, lup)")
                 .opt("channel", "string", "", "\"sx\", \"sy\" or \"sz\" (default \"sz\")")
                 .returns("float", "µm along the scanned axis")
@@ -886,7 +886,7 @@ pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.overload(
         "save",
-        move |t: &mut super::analysis::TemplateRef, path: &str, m: Map| -> RResult<String> {
+        move |t: &mut super::analysis_values::TemplateRef, path: &str, m: Map| -> RResult<String> {
             for k in m.keys() {
                 if k.as_str() != "overwrite" {
                     return fail(format!(
@@ -905,7 +905,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("protocol_options", "protocols")
+        Doc::func("protocol_options")
             .arg("decl", "map", "", "the protocol's declaration #{name, summary, usage, args: [#{key, ty, unit, default, min, max, one_of, required, doc}], returns, saves, example}")
             .arg("opts", "map", "", "the options the user passed")
             .returns("map", "the options, checked, with the defaults filled in")
@@ -917,7 +917,7 @@ pub fn register(r: &mut Registrar) {
         |decl: Map, opts: Dynamic| -> RResult<Map> { protocol_options(&decl, &opts) },
     );
     r.bind(
-        Doc::func("protocol_page", "protocols")
+        Doc::func("protocol_page")
             .arg("decls", "map | array", "", "one protocol declaration or an array of them")
             .returns("string", "the help page(s)")
             .summary("the help page of a protocol, made from its declaration (what `calibrate::help()` returns)")
@@ -965,7 +965,7 @@ mod tests {
         );
         assert_eq!(user_words("focus::search failed"), "focus::search failed");
         assert_eq!(
-            user_type("bfpscope::script::analysis::CurveRef"),
+            user_type("bfpscope::script::analysis_values::CurveRef"),
             "AngleCurve"
         );
     }
@@ -1091,7 +1091,7 @@ mod output_tests {
 /// [`output_path`]; prints where it went.
 pub fn save_template(
     c: &super::ctx::Ctx,
-    t: &super::analysis::TemplateRef,
+    t: &super::analysis_values::TemplateRef,
     path: &str,
     overwrite: bool,
 ) -> RResult<String> {

@@ -12,7 +12,7 @@ pub fn close(a: f64, b: f64, rel: f64) -> bool {
 pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.bind(
-        Doc::func("help", "core")
+        Doc::func("help")
             .opt(
                 "name",
                 "string",
@@ -60,7 +60,7 @@ pub fn register(r: &mut Registrar) {
     });
 
     r.bind(
-        Doc::func("assert", "testing")
+        Doc::func("assert")
             .arg("cond", "bool", "", "must be true")
             .opt("message", "string", "", "what was expected")
             .form("assert(cond, message)")
@@ -75,7 +75,7 @@ pub fn register(r: &mut Registrar) {
     r.overload("assert", |cond: Dynamic| -> RResult<()> { check(cond, "") });
 
     r.bind(
-        Doc::func("assert_close", "testing")
+        Doc::func("assert_close")
             .arg("a", "float", "", "value obtained")
             .arg("b", "float", "", "value expected")
             .arg("rel", "float", "", "relative tolerance, 0 ≤ rel")
@@ -101,7 +101,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("assert_err", "testing")
+        Doc::func("assert_err")
             .arg("f", "fn", "", "a closure `|| …` that must throw")
             .opt("contains", "string", "", "text the error message must contain")
             .form("assert_err(f, contains)")
@@ -124,7 +124,7 @@ pub fn register(r: &mut Registrar) {
     );
 
     r.bind(
-        Doc::func("linspace", "core")
+        Doc::func("linspace")
             .arg("from", "float", "", "first value")
             .arg("to", "float", "", "last value")
             .arg("n", "int", "", "number of values, 1 ≤ n ≤ 10000000")
@@ -146,7 +146,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("fmt", "core")
+        Doc::func("fmt")
             .arg("x", "number", "", "a value")
             .arg("digits", "int", "", "significant digits, 1–17")
             .returns(
@@ -171,7 +171,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("ask", "core")
+        Doc::func("ask")
             .arg("question", "string", "", "what the operator must do or answer")
             .returns("string", "the answer line (without the newline)")
             .summary("ask the operator and wait for the answer (hardware protocols: \"rotate the sample, then press Enter\")")
@@ -193,7 +193,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("answer", "core")
+        Doc::func("answer")
             .arg(
                 "answers",
                 "array",
@@ -211,7 +211,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("protocol_begin", "provenance")
+        Doc::func("protocol_begin")
             .arg("name", "string", "", "the protocol (stdlib module and function)")
             .arg("args", "map", "", "its arguments")
             .returns("()", "")
@@ -227,7 +227,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("protocol_end", "provenance")
+        Doc::func("protocol_end")
             .returns("()", "")
             .summary("mark the end of the innermost protocol")
             .example(
@@ -240,7 +240,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("provenance", "provenance")
+        Doc::func("provenance")
             .returns("map", "#{program, script: #{path, sha256, repl_line}, git_revision, protocol: #{name, args} or (), written}")
             .summary("what every file written from a script carries (scan metadata, template JSON, PNG text chunk, CSV trailer)")
             .example("provenance().program.starts_with(\"bfpscope\")", "true"),
@@ -248,7 +248,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("trace_start", "trace")
+        Doc::func("trace_start")
             .returns("()", "")
             .summary("record every move, read and protocol decision of the connected instrument, with its clock's time (golden traces)")
             .help("Protocols call trace_note at their decisions. tests/golden.rs compares traces of protocol runs on the simulator with the committed files in tests/golden/; BFPSCOPE_BLESS=1 cargo test --test golden rewrites them deliberately.")
@@ -257,7 +257,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("trace_note", "trace")
+        Doc::func("trace_note")
             .arg(
                 "text",
                 "string",
@@ -274,7 +274,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("trace_text", "trace")
+        Doc::func("trace_text")
             .returns(
                 "string",
                 "one line per event: simulated time, then what happened",
@@ -289,7 +289,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("version", "core")
+        Doc::func("version")
             .returns("string", "")
             .summary("program name and version")
             .example("version().starts_with(\"bfpscope \")", "true"),

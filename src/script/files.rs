@@ -66,7 +66,7 @@ const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, 
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
-    let d = Doc::func("plot", "figures")
+    let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
         .arg("path", "string", "", "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
         .map(
@@ -166,7 +166,7 @@ pub fn register(r: &mut Registrar) {
         f2(v, path, Map::new())
     });
 
-    let d = Doc::func("plot_profile", "figures")
+    let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
         .arg("path", "string", "", "figure file, .png or .svg")
         .map("opts", "optional", XY_KEYS)
@@ -218,7 +218,7 @@ pub fn register(r: &mut Registrar) {
         f2(v, path, Map::new())
     });
 
-    let d = Doc::func("plot_xy", "figures")
+    let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
         .arg("path", "string", "", "figure file, .png or .svg")
         .map("opts", "optional", XY_KEYS)
@@ -299,7 +299,7 @@ pub fn register(r: &mut Registrar) {
         f2(a, path, Map::new())
     });
 
-    let d = Doc::func("plot_hist", "figures")
+    let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
         .arg("path", "string", "", "figure file, .png or .svg")
         .map(
@@ -349,7 +349,7 @@ pub fn register(r: &mut Registrar) {
     // ---------------------------------------------------------------- TIFF and CSV
     let c = ctx.clone();
     r.bind(
-        Doc::func("save_tiff", "files")
+        Doc::func("save_tiff")
             .arg(
                 "img",
                 "Image",
@@ -374,7 +374,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("load_tiff", "files")
+        Doc::func("load_tiff")
             .arg("path", "string", "", "a TIFF written by save_tiff")
             .returns("Image", "")
             .summary("read a float32 TIFF back into an Image")
@@ -387,7 +387,7 @@ pub fn register(r: &mut Registrar) {
             Ok(ImageRef(Arc::new(i)))
         },
     );
-    let d = Doc::func("save_csv", "files")
+    let d = Doc::func("save_csv")
         .arg("data", "Profile | map", "", "a Profile (two columns) or a table #{column: [numbers], …} (columns of equal length, in key order)")
         .arg("path", "string", "", ".csv file (overwritten)")
         .returns("string", "the path written")

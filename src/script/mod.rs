@@ -2,15 +2,21 @@
 //! declared once in [`FAMILIES`]. `Workbench` is one scripting session: engine, variables and
 //! functions that persist across REPL lines, and the shared [`Ctx`].
 
-pub mod analysis;
+pub mod analysis_values;
 pub mod console;
 pub mod core;
 pub mod ctx;
+pub mod filaments;
 pub mod files;
+pub mod mie;
 pub mod motion;
-pub mod physics;
+pub mod optics;
 pub mod registry;
 pub mod scans;
+pub mod scene;
+pub mod sensitivity;
+pub mod stats;
+pub mod templates;
 pub mod testing;
 pub mod types;
 
@@ -32,8 +38,13 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("motion", motion::register),
     ("scans", scans::register),
     ("types", types::register),
-    ("physics", physics::register),
-    ("analysis", analysis::register),
+    ("optics", optics::register),
+    ("scene", scene::register),
+    ("mie", mie::register),
+    ("sensitivity", sensitivity::register),
+    ("templates", templates::register),
+    ("filaments", filaments::register),
+    ("stats", stats::register),
     ("files", files::register),
     ("console", console::register),
 ];
@@ -251,7 +262,8 @@ pub fn build_engine(ctx: Arc<Ctx>) -> (Engine, Arc<Vec<Doc>>) {
     let mut docs = vec![];
     {
         let mut reg = Registrar::new(&mut engine, &mut docs, ctx.clone());
-        for (_, f) in FAMILIES {
+        for (family, f) in FAMILIES {
+            reg.begin_family(family);
             f(&mut reg);
         }
     }

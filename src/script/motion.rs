@@ -7,8 +7,8 @@
 //! talking to in-process emulators on pseudo-terminals whose QPD images the simulator's scene).
 
 use super::ctx::{Attached, Ctx};
-use super::physics::SceneRef;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
+use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::instrument::config::{Backend, Config};
 use crate::instrument::connect::connect_emulated;
@@ -89,7 +89,7 @@ pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
     let c = ctx.clone();
     r.bind(
-        Doc::func("pos", "motion")
+        Doc::func("pos")
             .returns("map", "#{x, y, z} in µm")
             .summary("current stage position")
             .example("pos()", "#{x: 0.0, y: 0.0, z: 0.0}")
@@ -104,7 +104,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("wa", "motion")
+        Doc::func("wa")
             .summary("where all: print the position of every axis")
             .help(
                 "SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.",
@@ -123,7 +123,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("mv", "motion")
+        Doc::func("mv")
             .map("target", "absolute target, any subset of the axes", AXES_KEYS)
             .summary("move the stage to an absolute position (any subset of x, y, z)")
             .help(
@@ -137,7 +137,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("mvr", "motion")
+        Doc::func("mvr")
             .map("step", "relative move, any subset of the axes", AXES_KEYS)
             .summary("move the stage relative to where it is")
             .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25"),
@@ -145,7 +145,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("qpd", "reads")
+        Doc::func("qpd")
             .arg("n", "int", "samples", "number of samples to average, 1 ≤ n ≤ 10000000")
             .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n}: means and standard deviations (QPD signal units)")
             .summary("read the QPD: the mean of n samples of Sx, Sy, Sz")
@@ -161,7 +161,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("ct", "reads")
+        Doc::func("ct")
             .arg("seconds", "float", "s", "counting time, 0 < seconds ≤ 3600")
             .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n, seconds}")
             .summary("count: read the QPD for a given time (SPEC's ct)")
@@ -193,7 +193,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("clock", "reads")
+        Doc::func("clock")
             .returns("float", "s")
             .summary(
                 "instrument time: simulated seconds on a virtual clock, wall seconds on hardware",
@@ -203,7 +203,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("limits", "motion")
+        Doc::func("limits")
             .returns(
                 "map",
                 "#{x: [min, max], y: [...], z: [...], max_step_um, max_speed_um_s} in µm and µm/s (max_speed_um_s is () without a speed limit)",
@@ -242,7 +242,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = ctx.clone();
     r.bind(
-        Doc::func("status", "motion")
+        Doc::func("status")
             .returns("map", "#{connected, backend, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
             .summary("what is connected (backend, devices, ports), where the stage is, the safety rules, where scans go")
             .help("backend is \"mock\", \"sim\", \"hardware\" or \"emulated\" (() when nothing is connected); instrument is the connected instrument's description: device names, ports, baud rates, identification strings, travel range and limits for hardware.")
@@ -280,7 +280,7 @@ pub fn register(r: &mut Registrar) {
         },
     );
 
-    let d = Doc::func("connect", "motion")
+    let d = Doc::func("connect")
         .map(
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
@@ -346,7 +346,7 @@ pub fn register(r: &mut Registrar) {
 
     let c = ctx.clone();
     r.bind(
-        Doc::func("disconnect", "motion")
+        Doc::func("disconnect")
             .returns("string", "what was disconnected")
             .summary("disconnect the instrument: close its ports (emulators stop); moves and reads then fail until connect()")
             .help("The stage is left where it is (servos stay on). Disconnecting twice is not an error.")
@@ -363,7 +363,7 @@ pub fn register(r: &mut Registrar) {
 
     let c = ctx.clone();
     r.bind(
-        Doc::func("mock_commands", "mock")
+        Doc::func("mock_commands")
             .returns(
                 "array",
                 "strings such as \"move 1 0 0\", \"read 100\", \"position?\"",

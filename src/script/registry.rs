@@ -8,7 +8,7 @@
 //! ```ignore
 //! pub fn register(r: &mut Registrar) {
 //!     let ctx = r.ctx();
-//!     let d = Doc::func("p_scat_ratio", "optics")
+//!     let d = Doc::func("p_scat_ratio")
 //!         .arg("d_nm", "float", "nm", "particle diameter")
 //!         .arg("n", "float", "", "refractive index of the particle")
 //!         .returns("float", "scattered / incident power")
@@ -21,7 +21,7 @@
 //!     });
 //! }
 //! ```
-//! and is listed once in [`super::FAMILIES`].
+//! and is listed once in [`super::FAMILIES`]: the family of a binding is the name of its file.
 
 use super::ctx::Ctx;
 use rhai::{Dynamic, Engine, EvalAltResult, Map, RhaiNativeFunc};
@@ -117,21 +117,21 @@ impl Doc {
             forms: vec![],
         }
     }
-    /// A free function `name(args)` in `family`.
-    pub fn func(name: &str, family: &str) -> Doc {
-        Doc::new(name, family, Kind::Function)
+    /// A free function `name(args)`; its family is the file that declares it.
+    pub fn func(name: &str) -> Doc {
+        Doc::new(name, "", Kind::Function)
     }
     /// A method `value.name(args)` of the Rhai type `ty` (family = the type).
     pub fn method(ty: &str, name: &str) -> Doc {
-        Doc::new(name, ty, Kind::Method { ty: ty.into() })
+        Doc::new(name, "", Kind::Method { ty: ty.into() })
     }
     /// A property `value.name` of the Rhai type `ty`.
     pub fn property(ty: &str, name: &str) -> Doc {
-        Doc::new(name, ty, Kind::Property { ty: ty.into() })
+        Doc::new(name, "", Kind::Property { ty: ty.into() })
     }
     /// Operators of the type `ty`, documented under `name` (e.g. `arithmetic`).
     pub fn operator(ty: &str, name: &str) -> Doc {
-        Doc::new(name, ty, Kind::Operator { ty: ty.into() })
+        Doc::new(name, "", Kind::Operator { ty: ty.into() })
     }
     /// A required argument.
     pub fn arg(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
@@ -309,7 +309,10 @@ impl Doc {
     /// The long help for `help("name")`.
     pub fn long_help(&self) -> String {
         let mut s = format!("{}  —  {}\n", self.usage(), self.summary);
-        s.push_str(&format!("family: {}\n", self.family));
+        s.push_str(&format!(
+            "family: {} (src/script/{}.rs)\n",
+            self.family, self.family
+        ));
         let mut args = vec![];
         for p in &self.params {
             args.push(param_line(p, "  "));
@@ -374,11 +377,23 @@ pub struct Registrar<'a> {
     engine: &'a mut Engine,
     docs: &'a mut Vec<Doc>,
     ctx: Arc<Ctx>,
+    /// The family being registered: its name in `FAMILIES`, which is its file
+    /// `src/script/<family>.rs`. Every declaration gets it.
+    family: &'static str,
 }
 
 impl<'a> Registrar<'a> {
     pub fn new(engine: &'a mut Engine, docs: &'a mut Vec<Doc>, ctx: Arc<Ctx>) -> Self {
-        Self { engine, docs, ctx }
+        Self {
+            engine,
+            docs,
+            ctx,
+            family: "",
+        }
+    }
+    /// Declarations from now on belong to `family` (the `FAMILIES` loop calls this).
+    pub fn begin_family(&mut self, family: &'static str) {
+        self.family = family;
     }
     /// The shared context (instrument, limits, abort flag, session folder...), to capture in
     /// binding closures.
@@ -390,12 +405,13 @@ impl<'a> Registrar<'a> {
         self.engine
     }
 
-    fn push(&mut self, doc: Doc) {
+    fn push(&mut self, mut doc: Doc) {
+        doc.family = self.family.to_string();
         debug_assert!(
             !self
                 .docs
                 .iter()
-                .any(|d| d.name == doc.name && d.family == doc.family),
+                .any(|d| d.name == doc.name && d.kind == doc.kind),
             "binding {} declared twice",
             doc.name
         );

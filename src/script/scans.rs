@@ -96,7 +96,7 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         .iter()
         .map(|(a, b, c, d)| (a.as_str(), *b, *c, d.as_str()))
         .collect();
-    Doc::func(name, "scans")
+    Doc::func(name)
         .map("plan", &format!("the {f}{s} raster"), &keys_ref)
         .returns("Scan", "sx, sy, sz images (columns along x-axis name, rows along the other), metadata; autosaved")
         .summary(&format!("2-D scan over {f} (columns) and {s} (rows), {x} fixed"))
@@ -159,7 +159,7 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
 }
 
 pub fn register(r: &mut Registrar) {
-    let d = Doc::func("scan_line", "scans")
+    let d = Doc::func("scan_line")
         .map(
             "plan",
             "the line",
@@ -217,7 +217,7 @@ pub fn register(r: &mut Registrar) {
     // SPEC vocabulary
     for (name, rel) in [("ascan", false), ("dscan", true)] {
         let what = if rel { "relative" } else { "absolute" };
-        let mut d = Doc::func(name, "scans")
+        let mut d = Doc::func(name)
             .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
             .arg("from", "float", "µm", if rel { "start, relative to the current position" } else { "start position" })
             .arg("to", "float", "µm", if rel { "end, relative to the current position" } else { "end position" })
@@ -270,7 +270,7 @@ pub fn register(r: &mut Registrar) {
     }
     for (name, rel) in [("mesh", false), ("dmesh", true)] {
         let what = if rel { "relative" } else { "absolute" };
-        let mut d = Doc::func(name, "scans")
+        let mut d = Doc::func(name)
             .arg("axis1", "string", "", "fast axis (columns)")
             .arg("from1", "float", "µm", "")
             .arg("to1", "float", "µm", "")
@@ -359,7 +359,7 @@ pub fn register(r: &mut Registrar) {
     );
     let c = r.ctx();
     r.bind(
-        Doc::func("load_scan", "scans")
+        Doc::func("load_scan")
             .arg(
                 "path",
                 "string",

@@ -261,7 +261,7 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if let Some(s) = v.read_lock::<ProfileRef>() {
         return s.to_string();
     }
-    if let Some(s) = super::analysis::show_custom(v) {
+    if let Some(s) = super::analysis_values::show_custom(v) {
         return s;
     }
     if let Some(a) = v.read_lock::<Array>() {
@@ -342,6 +342,7 @@ fn index(who: &str, name: &str, i: &Dynamic, len: usize) -> RResult<usize> {
 const SCAN_EX: &str = "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.25, 0.25], nx: 11, ny: 5});";
 
 pub fn register(r: &mut Registrar) {
+    super::analysis_values::register_types(r.engine());
     {
         let e = r.engine();
         e.register_type_with_name::<ScanRef>("Scan")
@@ -798,7 +799,7 @@ fn register_profile(r: &mut Registrar) {
         },
     );
     r.bind(
-        Doc::func("profile", "Profile")
+        Doc::func("profile")
             .arg("t", "array", "µm", "sample positions")
             .arg("v", "array", "", "values (same length)")
             .returns("Profile", "")

@@ -1,41 +1,18 @@
-//! Physics and simulation bindings: `optics`, `set_optics`, `response`, `p_scat_ratio`,
-//! `trap_depth_kt`, `n_corr`, `sphere_mass_kda`, `max_sensitivity_model`, `scene()` with its
-//! methods, `simulate`, `pipeline`, `mie_q`, `mie`. Units at the boundary: µm for positions, nm for
-//! diameters and wavelengths, mW for power (docs/physics.md).
+//! Binding family `scene`: scenes for the simulated instrument (`scene()`, beads, filaments,
+//! aggregates, effects), `simulate` and the render `pipeline`.
 
 use super::ctx::Ctx;
 use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
-use super::types::{floats, json_to_dynamic, ScanRef};
+use super::types::{json_to_dynamic, ScanRef};
 use crate::instrument::sim::scene::{
     Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
 };
 use crate::instrument::sim::{render_xy, SimConfig, SimCore};
-use crate::optics::calc::{
-    n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
-};
-use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
-use crate::optics::params::{Beam, Optics};
-use crate::optics::rayleigh::{alpha_um3, response, Detection, DetectorModel};
 use rhai::{Array, Dynamic, Map, INT};
 
 /// A scene in scripts (cloned by value like every Rhai value; small).
 #[derive(Debug, Clone, Default)]
 pub struct SceneRef(pub Scene);
-
-fn optics_map(o: &Optics) -> Map {
-    let mut m = Map::new();
-    m.insert("wavelength_nm".into(), o.wavelength_nm.into());
-    m.insert("n_medium".into(), o.n_medium.into());
-    m.insert("w0_nm".into(), o.w0_nm.into());
-    m.insert("na".into(), o.na.into());
-    m.insert("qpd_na".into(), o.qpd_na.into());
-    m.insert("power_mw".into(), o.power_mw.into());
-    m.insert("n_theta".into(), (o.n_theta as INT).into());
-    m.insert("n_phi".into(), (o.n_phi as INT).into());
-    m.insert("beam".into(), o.beam.name().into());
-    m.insert("pupil_filling".into(), o.pupil_filling.into());
-    m
-}
 
 /// `[[x, y], ...]` → polyline.
 pub(crate) fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
@@ -89,318 +66,8 @@ pub fn register(r: &mut Registrar) {
         .register_fn("to_string", |s: &mut SceneRef| scene_summary(&s.0))
         .register_fn("to_debug", |s: &mut SceneRef| scene_summary(&s.0));
 
-    // ---------------- optics ----------------
-    let c = ctx.clone();
     r.bind(
-        Doc::func("optics", "optics")
-            .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi}")
-            .summary("the current optical parameters (nm, mW)")
-            .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
-            .example("optics().wavelength_nm", "1064.0")
-            .example("optics().w0_nm", "400.0"),
-        move || -> Map { optics_map(&c.optics()) },
-    );
-    let d = Doc::func("set_optics", "optics")
-        .map(
-            "changes",
-            "any subset of the optical parameters",
-            &[
-                (
-                    "wavelength_nm",
-                    "float",
-                    "nm",
-                    "optional: vacuum wavelength",
-                ),
-                (
-                    "n_medium",
-                    "float",
-                    "",
-                    "optional: refractive index of the medium",
-                ),
-                (
-                    "w0_nm",
-                    "float",
-                    "nm",
-                    "optional: beam waist (1/e² intensity radius)",
-                ),
-                ("na", "float", "", "optional: detection (condenser) NA"),
-                (
-                    "qpd_na",
-                    "float",
-                    "",
-                    "optional: NA subtended by the QPD (inf: not limiting)",
-                ),
-                (
-                    "power_mw",
-                    "float",
-                    "mW",
-                    "optional: laser power at the focus",
-                ),
-                ("n_theta", "int", "", "optional: cone quadrature nodes in θ"),
-                (
-                    "n_phi",
-                    "int",
-                    "",
-                    "optional: cone quadrature nodes in φ per quadrant",
-                ),
-                (
-                    "beam",
-                    "string",
-                    "",
-                    "optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)",
-                ),
-                (
-                    "pupil_filling",
-                    "float",
-                    "",
-                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)",
-                ),
-            ],
-        )
-        .returns("map", "the new optics")
-        .summary("change optical parameters (validated; the simulator re-renders with them)")
-        .example("set_optics(#{w0_nm: 450.0}).w0_nm", "450.0")
-        .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range")
-        .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
-        .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
-    let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let mut new = c.optics();
-        for (k, f) in [
-            ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
-            ("n_medium", &mut new.n_medium),
-            ("w0_nm", &mut new.w0_nm),
-            ("na", &mut new.na),
-            ("qpd_na", &mut new.qpd_na),
-            ("power_mw", &mut new.power_mw),
-            ("pupil_filling", &mut new.pupil_filling),
-        ] {
-            if let Some(v) = o.f64(k)? {
-                *f = v;
-            }
-        }
-        if let Some(v) = o.int("n_theta")? {
-            new.n_theta = v.clamp(0, 100_000) as usize;
-        }
-        if let Some(v) = o.int("n_phi")? {
-            new.n_phi = v.clamp(0, 100_000) as usize;
-        }
-        if let Some(b) = o.string("beam")? {
-            new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
-        }
-        new.validate().map_err(|e| err("set_optics", e))?;
-        if let Some(core) = c.sim_core() {
-            let scene = core.renderer().scene.clone();
-            core.set_scene(&new, &scene)
-                .map_err(|e| err("set_optics", e))?;
-        }
-        *c.optics
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = new.clone();
-        Ok(optics_map(&new))
-    });
-
-    let d = Doc::func("response", "optics")
-        .map(
-            "at",
-            "particle displacement from the focus and the particle",
-            &[
-                ("x", "float", "µm", "optional: displacement (default 0)"),
-                ("y", "float", "µm", "optional: displacement (default 0)"),
-                ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
-                ("d_nm", "float", "nm", "optional: diameter (default 110)"),
-                ("n", "float", "", "optional: refractive index (default 1.572, polystyrene)"),
-                ("polarization", "bool", "", "optional: vector dipole field (default false)"),
-            ],
-        )
-        .returns("map", "#{sx, sy, sz}: QPD signals normalised to the beam power")
-        .summary("Rayleigh-dipole QPD response of one sphere (suppl. S2)")
-        .help("The paper's model: Gaussian focus, dipole scattering, interference integrated over the detection cone per quadrant. Sx = right − left, Sy = top − bottom (docs/physics.md).")
-        .example("response(#{x: 0.0}).sx", "0.0")
-        .example("response(#{x: 0.2}).sx > 0.0 && response(#{x: -0.2}).sx < 0.0", "true")
-        .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
-        .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
-    let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let model = DetectorModel {
-            polarization: o.bool_or("polarization", false)?,
-            misalignment: None,
-        };
-        let s = response(
-            &c.optics(),
-            &model,
-            [
-                o.f64_or("x", 0.0)?,
-                o.f64_or("y", 0.0)?,
-                o.f64_or("z", 0.0)?,
-            ],
-            o.f64_or("d_nm", 110.0)?,
-            o.f64_or("n", 1.572)?,
-        )
-        .map_err(|e| err("response", e))?;
-        let mut out = Map::new();
-        out.insert("sx".into(), s.sx.into());
-        out.insert("sy".into(), s.sy.into());
-        out.insert("sz".into(), s.sz.into());
-        Ok(out)
-    });
-
-    let c = ctx.clone();
-    r.bind(
-        Doc::func("p_scat_ratio", "optics")
-            .arg("d_nm", "float", "nm", "sphere diameter")
-            .arg("n", "float", "", "refractive index of the sphere")
-            .returns("float", "P_scat / P_beam")
-            .summary(
-                "fraction of the beam power a Rayleigh sphere at the focus scatters (suppl. S1)",
-            )
-            .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "2.35e-5")
-            .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
-        move |d: Dynamic, n: Dynamic| -> RResult<f64> {
-            p_scat_ratio(
-                &c.optics(),
-                num("p_scat_ratio", "d_nm", &d)?,
-                num("p_scat_ratio", "n", &n)?,
-            )
-            .map_err(|e| err("p_scat_ratio", e))
-        },
-    );
-
-    let d = Doc::func("trap_depth_kt", "optics")
-        .map(
-            "object",
-            "the trapped object",
-            &[
-                (
-                    "shape",
-                    "string",
-                    "",
-                    "\"sphere\" or \"cylinder\" (a fibril in the focal plane)",
-                ),
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "refractive index"),
-                (
-                    "temperature_k",
-                    "float",
-                    "K",
-                    "optional: temperature (default 295.15)",
-                ),
-            ],
-        )
-        .returns("float", "depth of the gradient-force potential in kT")
-        .summary("trap depth of a bead or fibril at the laser power of optics() (suppl. S3)")
-        .example(
-            "trap_depth_kt(#{shape: \"cylinder\", d_nm: 150.0, n: 1.414}) < 1.0",
-            "true",
-        )
-        .example(
-            "trap_depth_kt(#{shape: \"cube\", d_nm: 10.0, n: 1.5})",
-            "error: shape = \"cube\"",
-        );
-    let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<f64> {
-        let o = Opts::new(&spec, &m)?;
-        let shape = match o.string("shape")?.as_deref() {
-            Some("sphere") => TrapShape::Sphere,
-            Some("cylinder") => TrapShape::Cylinder,
-            other => {
-                return fail(format!(
-                    "trap_depth_kt: shape = {:?} is not one of \"sphere\", \"cylinder\"",
-                    other.unwrap_or("")
-                ))
-            }
-        };
-        trap_depth_kt(
-            &c.optics(),
-            shape,
-            o.req_f64("d_nm")?,
-            o.req_f64("n")?,
-            o.f64_or("temperature_k", ROOM_T_K)?,
-        )
-        .map_err(|e| err("trap_depth_kt", e))
-    });
-
-    let c = ctx.clone();
-    r.bind(
-        Doc::func("n_corr", "optics")
-            .arg("n_obj", "float", "", "index of the measured object")
-            .arg("n_ref", "float", "", "index of the reference bead")
-            .returns("float", "sensitivity ratio at equal volume")
-            .summary("refractive-index correction (eq. nCor) in the medium of optics()")
-            .example("n_corr(1.572, 1.572)", "1.0")
-            .example("round(n_corr(1.414, 1.57) * 1e4) / 1e4", "0.3505"),
-        move |a: Dynamic, b: Dynamic| -> RResult<f64> {
-            n_corr(
-                num("n_corr", "n_obj", &a)?,
-                num("n_corr", "n_ref", &b)?,
-                c.optics().n_medium,
-            )
-            .map_err(|e| err("n_corr", e))
-        },
-    );
-    r.bind(
-        Doc::func("sphere_mass_kda", "optics")
-            .arg("d_nm", "float", "nm", "diameter")
-            .arg(
-                "density_g_cm3",
-                "float",
-                "g/cm³",
-                "density (polystyrene 1.05)",
-            )
-            .returns("float", "mass in kDa")
-            .summary("mass of a sphere")
-            .example("round(sphere_mass_kda(110.0, 1.05) / 1e3)", "441.0"),
-        |d: Dynamic, rho: Dynamic| -> RResult<f64> {
-            sphere_mass_kda(
-                num("sphere_mass_kda", "d_nm", &d)?,
-                num("sphere_mass_kda", "density_g_cm3", &rho)?,
-            )
-            .map_err(|e| err("sphere_mass_kda", e))
-        },
-    );
-
-    let d = Doc::func("max_sensitivity_model", "optics")
-        .map(
-            "bead",
-            "the sphere and the model tier",
-            &[
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "optional: index (default 1.572)"),
-                ("model", "string", "", "optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
-            ],
-        )
-        .returns("map", "#{sens: (∂Sx/∂x)max in 1/µm, z: best focus in µm}")
-        .summary("model maximum Sx sensitivity of a sphere at its best focus (Fig. 3c)")
-        .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
-        .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
-    let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", 1.572)?);
-        crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
-        let optics = c.optics();
-        let det = Detection::new(&optics, &DetectorModel::default()).map_err(|e| err("max_sensitivity_model", e))?;
-        let size = match o.string("model")?.as_deref() {
-            None | Some("rayleigh") => None,
-            Some("finite_size") => Some(dn),
-            Some(other) => return fail(format!("max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\"")),
-        };
-        let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
-        let mut out = Map::new();
-        out.insert("sens".into(), (s * alpha_um3(dn, n, optics.n_medium)).into());
-        out.insert("z".into(), z.into());
-        Ok(out)
-    });
-
-    // ---------------- scene ----------------
-    r.bind(
-        Doc::func("scene", "scene")
+        Doc::func("scene")
             .returns("Scene", "an empty scene")
             .summary("start a scene for the simulated instrument")
             .help("Add objects with s.add_bead / s.add_filament / s.add_aggregates, choose effects with s.effects([...]), then simulate(s). Positions are stage coordinates (µm): an object at p is in the focus when the stage reads p.")
@@ -666,7 +333,7 @@ pub fn register(r: &mut Registrar) {
     ];
     let c = ctx.clone();
     r.bind(
-        Doc::func("simulate", "scene")
+        Doc::func("simulate")
             .arg("scene", "Scene", "", "what the simulated instrument sees")
             .map("grid", "optional second argument: render an XY image directly, without stage or clock", grid_keys)
             .form("simulate(scene) -> map")
@@ -680,12 +347,12 @@ pub fn register(r: &mut Registrar) {
             .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0"),
         move |s: SceneRef| -> RResult<Map> { install(&c, &s.0) },
     );
-    let d = Doc::func("simulate", "scene").map("grid", "", grid_keys);
+    let d = Doc::func("simulate").map("grid", "", grid_keys);
     let spec = d.spec();
     let c = ctx.clone();
     r.overload("simulate", move |s: SceneRef, m: Map| -> RResult<ScanRef> {
         let o = Opts::new(&spec, &m)?;
-        let (xs, ys) = super::analysis::grid_axes("simulate", &o)?;
+        let (xs, ys) = super::analysis_values::grid_axes("simulate", &o)?;
         let ns = o.int("n_samples")?.unwrap_or(10_000);
         if !(1..=100_000_000).contains(&ns) {
             return fail(format!(
@@ -702,7 +369,7 @@ pub fn register(r: &mut Registrar) {
     });
     let c = ctx.clone();
     r.bind(
-        Doc::func("pipeline", "scene")
+        Doc::func("pipeline")
             .returns(
                 "array",
                 "[#{name, seconds, detail}] of the simulated instrument's render pipeline",
@@ -724,89 +391,6 @@ pub fn register(r: &mut Registrar) {
                 .collect())
         },
     );
-
-    // ---------------- Mie ----------------
-    let d = Doc::func("mie_q", "mie")
-        .map(
-            "sphere",
-            "size parameter and relative index",
-            &[
-                ("x", "float", "", "size parameter π d n_medium / λ"),
-                ("m_re", "float", "", "real part of the relative index"),
-                ("m_im", "float", "", "optional: absorption, ≥ 0 (default 0)"),
-            ],
-        )
-        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms}")
-        .summary("Lorenz–Mie efficiencies of a homogeneous sphere (Bohren & Huffman)")
-        .example(
-            "let q = mie_q(#{x: 1.0, m_re: 1.5}); round((q.qext - q.qsca) * 1e9)",
-            "0.0",
-        )
-        .example("mie_q(#{x: -1.0, m_re: 1.5})", "error: x");
-    let spec = d.spec();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let q = crate::optics::mie::mie_q(
-            o.req_f64("x")?,
-            num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
-        )
-        .map_err(|e| err("mie_q", e))?;
-        Ok(mie_map(&q))
-    });
-    let d = Doc::func("mie", "mie")
-        .map(
-            "sphere",
-            "a sphere in the medium and wavelength of optics()",
-            &[
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "refractive index"),
-                (
-                    "n_im",
-                    "float",
-                    "",
-                    "optional: absorption part of the index, ≥ 0",
-                ),
-            ],
-        )
-        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
-        .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
-        .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
-    let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let op = c.optics();
-        let dn = o.req_f64("d_nm")?;
-        let q = crate::optics::mie::sphere(
-            dn,
-            num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
-            op.n_medium,
-            op.wavelength_nm,
-        )
-        .map_err(|e| err("mie", e))?;
-        let mut mm = mie_map(&q);
-        mm.insert(
-            "x".into(),
-            (std::f64::consts::PI * dn * op.n_medium / op.wavelength_nm).into(),
-        );
-        Ok(mm)
-    });
-    let _ = floats;
-}
-
-fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
-    let mut m = Map::new();
-    for (k, v) in [
-        ("qext", q.qext),
-        ("qsca", q.qsca),
-        ("qabs", q.qabs),
-        ("qback", q.qback),
-        ("g", q.g),
-    ] {
-        m.insert(k.into(), v.into());
-    }
-    m.insert("n_terms".into(), (q.n_terms as INT).into());
-    m
 }
 
 /// Connect (or re-scene) the simulated instrument: when the simulator is what is connected,

@@ -1,0 +1,392 @@
+//! Values and argument helpers shared by the analysis families (`sensitivity`, `templates`,
+//! `filaments`, `stats`): the script types `Template`, `FitResult`, `AngleCurve`,
+//! `FilamentMeasurement`, and the parsing of their common options.
+//!
+//! Units at the boundary: µm for positions, nm for diameters, kDa / MDa·µm⁻¹ for masses and
+//! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
+//! after a template's normalisation (the reference bead's max ∂Sx/∂x = 1).
+
+use super::registry::{err, fail, num, numbers, Opts, RResult};
+use super::types::{json_to_dynamic, ScanRef};
+use crate::acquire::plan::linspace;
+use crate::analysis::fit::Bead as FitBead;
+use crate::analysis::{
+    AngleCurve, BeadModelOptions, FilamentMeasurement, FitResult, LinePeak, MeasureOptions,
+    PeakOptions, RefBead, Stencil, Template,
+};
+use crate::data::{Image, Scan, ScanStatus};
+use rhai::{Array, Dynamic, Map};
+use serde::Serialize;
+use std::sync::Arc;
+
+/// A reference template in a script (`Template`).
+#[derive(Debug, Clone)]
+pub struct TemplateRef(pub Arc<Template>);
+/// A multi-bead fit in a script (`FitResult`).
+#[derive(Debug, Clone)]
+pub struct FitRef(pub Arc<FitResult>);
+/// An orientation calibration curve in a script (`AngleCurve`).
+#[derive(Debug, Clone)]
+pub struct CurveRef(pub Arc<AngleCurve>);
+/// A measured filament in a script (`FilamentMeasurement`).
+#[derive(Debug, Clone)]
+pub struct FilamentRef(pub Arc<FilamentMeasurement>);
+
+impl std::fmt::Display for TemplateRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let t = &self.0;
+        let src = match &t.source {
+            crate::analysis::TemplateSource::Model { .. } => "physics model".to_string(),
+            crate::analysis::TemplateSource::Scans { n_beads, .. } => {
+                format!("{n_beads} measured beads")
+            }
+            crate::analysis::TemplateSource::Analytic { .. } => "analytic stand-in".to_string(),
+        };
+        write!(
+            f,
+            "Template({src}; {}×{} nodes every {} µm; reference {} nm, n = {}; norm_factor {:.4e})",
+            t.grid.nu, t.grid.nv, t.grid.h, t.reference.d_nm, t.reference.n, t.norm_factor
+        )
+    }
+}
+
+impl std::fmt::Display for FitRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = &self.0;
+        write!(
+            f,
+            "FitResult({} beads, χ² = {:.4e}, dof {}, status {:?}: {}{})",
+            r.beads.len(),
+            r.chi2,
+            r.dof,
+            r.status,
+            r.reason,
+            if r.is_degenerate() {
+                format!(", {} degeneracies", r.degeneracies.len())
+            } else {
+                String::new()
+            }
+        )
+    }
+}
+
+impl std::fmt::Display for CurveRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let c = &self.0;
+        write!(
+            f,
+            "AngleCurve({} angles, pixel {} µm, bead-model sensitivity at 0° {:.4})",
+            c.angles_deg.len(),
+            c.options.pixel_um,
+            c.sx0
+        )
+    }
+}
+
+impl std::fmt::Display for FilamentRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let m = &self.0;
+        write!(
+            f,
+            "FilamentMeasurement({:?}, angle {:.2}° ± {:.2}°, {} maxima, corrected sensitivity {:.4} ± {:.4})",
+            m.channel,
+            m.angle_deg,
+            m.angle_err_deg,
+            m.points.len(),
+            m.mean_corr,
+            m.sem_corr
+        )
+    }
+}
+
+/// Printing of this module's types (the REPL's `show`).
+pub fn show_custom(v: &Dynamic) -> Option<String> {
+    if let Some(t) = v.read_lock::<TemplateRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<FitRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<CurveRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<FilamentRef>() {
+        return Some(t.to_string());
+    }
+    None
+}
+
+/// Any serialisable value as a Rhai map/array.
+pub(crate) fn to_dyn<T: Serialize>(v: &T) -> Dynamic {
+    json_to_dynamic(&serde_json::to_value(v).unwrap_or_default())
+}
+
+pub(crate) fn to_map<T: Serialize>(v: &T) -> Map {
+    to_dyn(v).try_cast::<Map>().unwrap_or_default()
+}
+
+pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
+    match o.string("stencil")? {
+        None => Ok(default),
+        Some(s) => Stencil::parse(&s).map_or_else(
+            || {
+                fail(format!(
+                    "{who}: stencil = \"{s}\" is not one of \"central2\", \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay with an odd number ≥ 3 of points)"
+                ))
+            },
+            Ok,
+        ),
+    }
+}
+
+pub(crate) fn pos_f64(
+    who: &str,
+    o: &Opts,
+    key: &str,
+    default: f64,
+    lo: f64,
+    hi: f64,
+) -> RResult<f64> {
+    let v = o.f64_or(key, default)?;
+    if !(v >= lo && v <= hi) {
+        return fail(format!(
+            "{who}: {key} = {v} is out of range: {lo} ≤ {key} ≤ {hi}"
+        ));
+    }
+    Ok(v)
+}
+
+pub(crate) fn count(who: &str, o: &Opts, key: &str, lo: i64, hi: i64) -> RResult<Option<usize>> {
+    match o.int(key)? {
+        None => Ok(None),
+        Some(v) if (lo..=hi).contains(&v) => Ok(Some(v as usize)),
+        Some(v) => fail(format!(
+            "{who}: {key} = {v} is out of range: {lo} ≤ {key} ≤ {hi}"
+        )),
+    }
+}
+
+pub(crate) fn peak_opts(who: &str, o: &Opts) -> RResult<PeakOptions> {
+    Ok(PeakOptions {
+        window_um: pos_f64(who, o, "window_um", 0.4, 1e-3, 100.0)?,
+        min_value: o.f64("min_value")?,
+        min_snr: pos_f64(who, o, "min_snr", 0.0, 0.0, 1e6)?,
+        sigma: o.f64("sigma")?,
+    })
+}
+
+pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult<MeasureOptions> {
+    Ok(MeasureOptions {
+        stencil: stencil_of(who, o, base.stencil)?,
+        window_um: pos_f64(who, o, "window_um", base.window_um, 1e-3, 100.0)?,
+        min_snr: pos_f64(who, o, "min_snr", base.min_snr, 0.0, 1e6)?,
+        max_offset_um: pos_f64(who, o, "max_offset_um", base.max_offset_um, 0.0, 100.0)?,
+        detect_snr: pos_f64(who, o, "detect_snr", base.detect_snr, 0.0, 1e6)?,
+    })
+}
+
+/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`).
+pub(crate) const PIPELINE_KEYS: &[(&str, &str, &str, &str)] = &[
+    (
+        "pixel_um",
+        "float",
+        "µm",
+        "optional: pixel size of the scans (default 0.05)",
+    ),
+    (
+        "spacing_nm",
+        "float",
+        "nm",
+        "optional: bead-model spacing (default 50)",
+    ),
+    (
+        "stencil",
+        "string",
+        "",
+        "optional: derivative stencil (default central2)",
+    ),
+    (
+        "window_um",
+        "float",
+        "µm",
+        "optional: parabola window (default 0.4)",
+    ),
+];
+
+/// Pixel size, measurement options and bead-model options from the `PIPELINE_KEYS`.
+pub(crate) fn pipeline_opts(
+    who: &str,
+    o: &Opts,
+) -> RResult<(f64, MeasureOptions, BeadModelOptions)> {
+    // only the declared keys: stencil and window; the rest of the measurement keeps its defaults
+    let base = MeasureOptions::default();
+    let mo = MeasureOptions {
+        stencil: stencil_of(who, o, base.stencil)?,
+        window_um: pos_f64(who, o, "window_um", base.window_um, 1e-3, 100.0)?,
+        ..base
+    };
+    let bm = BeadModelOptions {
+        spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+    };
+    Ok((o.f64_or("pixel_um", 0.05)?, mo, bm))
+}
+
+pub(crate) fn line_peaks(v: &[LinePeak]) -> Array {
+    v.iter()
+        .map(|lp| {
+            let mut m = Map::new();
+            m.insert("line".into(), (lp.line as i64).into());
+            m.insert("coord".into(), lp.coord.into());
+            match &lp.result {
+                Ok(p) => {
+                    m.insert("ok".into(), true.into());
+                    for (k, v) in to_map(p) {
+                        m.insert(k, v);
+                    }
+                }
+                Err(miss) => {
+                    m.insert("ok".into(), false.into());
+                    m.insert("miss".into(), miss.to_string().into());
+                }
+            }
+            Dynamic::from_map(m)
+        })
+        .collect()
+}
+
+pub(crate) fn bead_map(b: &FitBead) -> Dynamic {
+    to_dyn(b)
+}
+
+/// `[#{x, y, weight}]` → (x, y, weight) triples.
+pub(crate) fn bead_list(who: &str, v: &Dynamic) -> RResult<Vec<(f64, f64, f64)>> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!(
+            "{who}: beads must be an array of #{{x, y, weight}} maps (µm, reference-bead units), got {}",
+            v.type_name()
+        ));
+    };
+    a.iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let Some(m) = b.read_lock::<Map>() else {
+                return fail(format!(
+                    "{who}: beads[{i}] must be #{{x, y, weight}}, got {b}"
+                ));
+            };
+            let g = |k: &str, d: Option<f64>| -> RResult<f64> {
+                match (m.get(k), d) {
+                    (Some(v), _) => num(who, &format!("beads[{i}].{k}"), v),
+                    (None, Some(d)) => Ok(d),
+                    (None, None) => fail(format!("{who}: beads[{i}] lacks `{k}` (µm)")),
+                }
+            };
+            Ok((g("x", None)?, g("y", None)?, g("weight", Some(1.0))?))
+        })
+        .collect()
+}
+
+/// `#{points: [[x, y], …], d_nm: 50.0 | [..], n: 1.41}` → a bead-model filament.
+pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::Filament> {
+    let Some(m) = v.read_lock::<Map>() else {
+        return fail(format!(
+            "{who}: a filament is #{{points: [[x, y], …], d_nm, n}}, got {}",
+            v.type_name()
+        ));
+    };
+    for k in m.keys() {
+        if !["points", "d_nm", "n"].contains(&k.as_str()) {
+            return fail(format!(
+                "{who}: unknown filament key `{k}`; allowed keys: points, d_nm, n"
+            ));
+        }
+    }
+    let points = match m.get("points") {
+        Some(p) => super::scene::points(who, p)?,
+        None => return fail(format!("{who}: filament lacks `points` ([[x, y], …] µm)")),
+    };
+    let d_nm = match m.get("d_nm") {
+        None => return fail(format!("{who}: filament lacks `d_nm` (nm)")),
+        Some(d) if d.is_array() => numbers(who, "d_nm", d)?,
+        Some(d) => vec![num(who, "d_nm", d)?],
+    };
+    let n = match m.get("n") {
+        None => return fail(format!("{who}: filament lacks `n` (refractive index)")),
+        Some(v) => num(who, "n", v)?,
+    };
+    let f = crate::analysis::Filament { points, d_nm, n };
+    f.validate().map_err(|e| err(who, e))?;
+    Ok(f)
+}
+
+/// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).
+pub(crate) fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
+    let (x0, x1) = o.req_range("x")?;
+    let (y0, y1) = o.req_range("y")?;
+    let nx = o.req_int("nx")?;
+    let ny = o.req_int("ny")?;
+    for (k, v) in [("nx", nx), ("ny", ny)] {
+        if !(1..=4096).contains(&v) {
+            return fail(format!("{who}: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"));
+        }
+    }
+    Ok((linspace(x0, x1, nx as usize), linspace(y0, y1, ny as usize)))
+}
+
+pub(crate) fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
+    let d = RefBead::default();
+    let r = RefBead {
+        d_nm: o.f64_or("d_nm", d.d_nm)?,
+        n: o.f64_or("n", d.n)?,
+        n_medium,
+        density_g_cm3: o.f64_or("density", d.density_g_cm3)?,
+    };
+    r.validate().map_err(|e| err(who, e))?;
+    Ok(r)
+}
+
+pub(crate) fn scans_arg(who: &str, v: &Array) -> RResult<Vec<Arc<Scan>>> {
+    v.iter()
+        .enumerate()
+        .map(|(i, s)| match s.read_lock::<ScanRef>() {
+            Some(s) => Ok(s.scan.clone()),
+            None => fail(format!(
+                "{who}: scans[{i}] must be a Scan, got {}",
+                s.type_name()
+            )),
+        })
+        .collect()
+}
+
+pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) -> ScanRef {
+    ScanRef::new(
+        Scan {
+            sx,
+            sy,
+            sz,
+            status: ScanStatus::Complete,
+            meta,
+        },
+        None,
+    )
+}
+
+pub(crate) const TPL: &str = "let t = template_model(#{h_um: 0.025});";
+pub(crate) const ONE_BEAD: &str = "let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.1, y: -0.05, weight: 1.0}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41});";
+
+/// Register the analysis types' names and printing with the engine (called by the `types`
+/// family).
+pub fn register_types(e: &mut rhai::Engine) {
+    e.register_type_with_name::<TemplateRef>("Template")
+        .register_type_with_name::<FitRef>("FitResult")
+        .register_type_with_name::<CurveRef>("AngleCurve")
+        .register_type_with_name::<FilamentRef>("FilamentMeasurement");
+    e.register_fn("to_string", |s: &mut TemplateRef| s.to_string())
+        .register_fn("to_debug", |s: &mut TemplateRef| s.to_string())
+        .register_fn("to_string", |s: &mut FitRef| s.to_string())
+        .register_fn("to_debug", |s: &mut FitRef| s.to_string())
+        .register_fn("to_string", |s: &mut CurveRef| s.to_string())
+        .register_fn("to_debug", |s: &mut CurveRef| s.to_string())
+        .register_fn("to_string", |s: &mut FilamentRef| s.to_string())
+        .register_fn("to_debug", |s: &mut FilamentRef| s.to_string());
+}

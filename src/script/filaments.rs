@@ -1,0 +1,629 @@
+//! Binding family `filaments`: the orientation calibration (19-angle curve), filament
+//! measurement, SBR and aggregate removal with the Sy channel, fibril diameters, microtubule
+//! linear density, masses.
+
+use super::ctx::Ctx;
+use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
+use super::types::{floats, ImageRef, ProfileRef, ScanRef};
+use crate::analysis::orientation::{measure_filament, Channel};
+use crate::analysis::quantities::{
+    fibril_diameter_nm, point_object, protofilaments, DiameterCalib, LinDensCalib,
+};
+use crate::analysis::sbr::{sbr, SbrOptions};
+use crate::analysis::{
+    remove_point_background, AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions,
+    FilamentAxis, RefBead,
+};
+use rhai::{Array, Dynamic, Map};
+use std::sync::Arc;
+
+/// A reference template in a script (`Template`).
+use super::analysis_values::*;
+
+pub fn register(r: &mut Registrar) {
+    let ctx = r.ctx();
+    register_filaments(r, &ctx);
+}
+
+// ------------------------------------------------------------------ filaments
+
+fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    let _ = ctx;
+    let meas_keys: Vec<(&str, &str, &str, &str)> = vec![
+        (
+            "stencil",
+            "string",
+            "",
+            "optional: derivative stencil (default central2)",
+        ),
+        (
+            "window_um",
+            "float",
+            "µm",
+            "optional: parabola window (default 0.4)",
+        ),
+        (
+            "min_snr",
+            "float",
+            "",
+            "optional: ignore line maxima below min_snr × line noise (default 0)",
+        ),
+        (
+            "max_offset_um",
+            "float",
+            "µm",
+            "optional: ignore maxima farther than this from the fitted line (default 0.15)",
+        ),
+        (
+            "detect_snr",
+            "float",
+            "",
+            "optional: candidate maxima above detect_snr × pixel noise (default 4)",
+        ),
+    ];
+    let mut curve_keys = vec![
+        (
+            "n_angles",
+            "int",
+            "",
+            "optional: angles spanning 180° (default 19, Fig. 4d)",
+        ),
+        (
+            "pixel_um",
+            "float",
+            "µm",
+            "optional: pixel size of the scans it will be applied to (default 0.05)",
+        ),
+        (
+            "d_nm",
+            "float",
+            "nm",
+            "optional: bead-model filament diameter (default: the reference bead's)",
+        ),
+        (
+            "n",
+            "float",
+            "",
+            "optional: its index (default: the reference bead's)",
+        ),
+        (
+            "spacing_nm",
+            "float",
+            "nm",
+            "optional: bead-model spacing (default 50)",
+        ),
+    ];
+    curve_keys.extend(meas_keys.iter().copied());
+    const CURVE: &str =
+        "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7});";
+    let d = Doc::func("angle_curve")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .map("opts", "optional", &curve_keys)
+        .form("angle_curve(tpl) -> AngleCurve")
+        .returns("AngleCurve", "max Sx and Sy sensitivity vs filament angle, normalised to Sx at 0° (interpolated, period 180°)")
+        .summary("orientation calibration curve from the bead model (Sec. 4.2 step 2, Fig. 4d)")
+        .help("Each angle: a long straight bead-model filament rendered on pixels of pixel_um, measured by the same pipeline as data (stencil, parabola window), averaged over sub-pixel offsets. The default 19 angles over 180° follow the paper's rotation series.")
+        .example(&format!("{CURVE} round(c.at(0.0).sx * 1000.0)"), "1000.0")
+        .example(&format!("{CURVE} c.at(90.0).sy > 0.5"), "true")
+        .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2})", "error: n_angles = 2");
+    let spec = d.spec();
+    let f = move |t: TemplateRef, m: Map| -> RResult<CurveRef> {
+        let who = "angle_curve";
+        let o = Opts::new(&spec, &m)?;
+        let d = AngleCurveOptions::default();
+        let co = AngleCurveOptions {
+            n_angles: o
+                .int("n_angles")?
+                .map_or(d.n_angles, |v| v.clamp(0, 100_000) as usize),
+            pixel_um: o.f64_or("pixel_um", d.pixel_um)?,
+            d_nm: o.f64("d_nm")?,
+            n: o.f64("n")?,
+            bead_model: BeadModelOptions {
+                spacing_nm: o.f64_or("spacing_nm", d.bead_model.spacing_nm)?,
+            },
+            measure: measure_opts(who, &o, d.measure)?,
+        };
+        let c = AngleCurve::compute(&t.0, &co).map_err(|e| err(who, e))?;
+        Ok(CurveRef(Arc::new(c)))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("angle_curve", move |t: TemplateRef| f2(t, Map::new()));
+
+    r.bind(
+        Doc::method("AngleCurve", "at")
+            .arg(
+                "angle_deg",
+                "float",
+                "°",
+                "filament angle from the QPD y-axis towards +x",
+            )
+            .returns(
+                "map",
+                "#{sx, sy} normalised maximum sensitivities (interpolated)",
+            )
+            .summary("the calibration curve at an angle")
+            .example(
+                &format!(
+                    "{CURVE} let a = c.at(30.0); let b = c.at(-150.0); round((a.sx - b.sx) * 1e9)"
+                ),
+                "0.0",
+            ),
+        |c: &mut CurveRef, a: f64| -> Map {
+            let (sx, sy) = c.0.eval(a);
+            let mut m = Map::new();
+            m.insert("sx".into(), sx.into());
+            m.insert("sy".into(), sy.into());
+            m
+        },
+    );
+    r.bind(
+        Doc::method("AngleCurve", "correction")
+            .arg("angle_deg", "float", "°", "filament angle")
+            .arg(
+                "channel",
+                "string",
+                "",
+                "\"sx\" (row maxima) or \"sy\" (column maxima)",
+            )
+            .returns(
+                "float",
+                "factor that maps the measured maximum to the QPD y-axis orientation (step 5)",
+            )
+            .summary("orientation correction factor")
+            .example(
+                &format!("{CURVE} round(c.correction(0.0, \"sx\") * 1000.0)"),
+                "1000.0",
+            )
+            .example(
+                &format!("{CURVE} c.correction(0.0, \"sz\")"),
+                "error: channel = \"sz\"",
+            ),
+        |c: &mut CurveRef, a: f64, ch: &str| -> RResult<f64> {
+            let channel = match ch {
+                "sx" | "x" => Channel::SxRows,
+                "sy" | "y" => Channel::SyCols,
+                _ => {
+                    return fail(format!(
+                        "correction: channel = \"{ch}\" is not one of \"sx\", \"sy\""
+                    ))
+                }
+            };
+            c.0.correction(a, channel).map_err(|e| err("correction", e))
+        },
+    );
+    r.getter(
+        Doc::property("AngleCurve", "nodes")
+            .returns(
+                "map",
+                "#{angle_deg: [..], sx: [..], sy: [..], sx0, pixel_um}",
+            )
+            .summary("the computed nodes of the curve (for plots and tables)")
+            .example(&format!("{CURVE} c.nodes.angle_deg.len()"), "6"),
+        |c: &mut CurveRef| -> Map {
+            let c = &c.0;
+            let mut m = Map::new();
+            m.insert("angle_deg".into(), floats(&c.angles_deg).into());
+            m.insert("sx".into(), floats(&c.sx).into());
+            m.insert("sy".into(), floats(&c.sy).into());
+            m.insert("sx0".into(), c.sx0.into());
+            m.insert("pixel_um".into(), c.options.pixel_um.into());
+            m
+        },
+    );
+
+    let d = Doc::func("measure_filament")
+        .arg("scan", "Scan", "", "XY scan of a filament")
+        .arg("curve", "AngleCurve", "", "orientation calibration for the scan's pixel size")
+        .map("opts", "optional (default: the curve's measurement options)", &meas_keys)
+        .form("measure_filament(scan, curve) -> FilamentMeasurement")
+        .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
+        .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
+        .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation.");
+    let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
+    let spec = d.spec();
+    let f = move |s: ScanRef, c: CurveRef, m: Map| -> RResult<FilamentRef> {
+        let o = Opts::new(&spec, &m)?;
+        let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
+        let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
+            .map_err(|e| err("measure_filament", e))?;
+        Ok(FilamentRef(Arc::new(r)))
+    };
+    let f2 = f.clone();
+    r.bind(
+        d.example(&format!("{fil_ex} round(m.angle_deg)"), "14.0")
+            .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
+        f,
+    );
+    r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
+        f2(s, c, Map::new())
+    });
+    for (name, doc) in [
+        (
+            "angle_deg",
+            "filament angle from the QPD y-axis towards +x, degrees",
+        ),
+        ("angle_err_deg", "1σ of the angle, degrees"),
+        (
+            "factor",
+            "orientation correction applied (sens_corr = factor · sens)",
+        ),
+        (
+            "mean_corr",
+            "mean corrected max sensitivity (reference-bead units/µm)",
+        ),
+        ("std_corr", "std of the corrected maxima"),
+        ("sem_corr", "standard error of mean_corr"),
+    ] {
+        r.getter(
+            Doc::property("FilamentMeasurement", name)
+                .returns("float", doc)
+                .summary(doc)
+                .example(&format!("{fil_ex} type_of(m.{name})"), "\"f64\""),
+            move |m: &mut FilamentRef| -> f64 {
+                let m = &m.0;
+                match name {
+                    "angle_deg" => m.angle_deg,
+                    "angle_err_deg" => m.angle_err_deg,
+                    "factor" => m.factor,
+                    "mean_corr" => m.mean_corr,
+                    "std_corr" => m.std_corr,
+                    _ => m.sem_corr,
+                }
+            },
+        );
+    }
+    r.getter(
+        Doc::property("FilamentMeasurement", "channel")
+            .returns("string", "\"sx_rows\" or \"sy_cols\"")
+            .summary("which maxima were used")
+            .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
+        |m: &mut FilamentRef| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
+    );
+    r.getter(
+        Doc::property("FilamentMeasurement", "points")
+            .returns(
+                "array",
+                "[#{line, x, y, arc_um, sens, sens_err, sens_corr}] along the filament",
+            )
+            .summary("the maxima along the filament")
+            .example(&format!("{fil_ex} m.points.len() > 40"), "true"),
+        |m: &mut FilamentRef| -> Array { m.0.points.iter().map(to_dyn).collect() },
+    );
+    r.getter(
+        Doc::property("FilamentMeasurement", "sens")
+            .returns(
+                "Image",
+                "the sensitivity image used (reference-bead units/µm)",
+            )
+            .summary("sensitivity image of the chosen channel")
+            .example(&format!("{fil_ex} m.sens.cols"), "61"),
+        |m: &mut FilamentRef| -> ImageRef { ImageRef(Arc::new(m.0.sens.clone())) },
+    );
+    r.bind(
+        Doc::method("FilamentMeasurement", "profile")
+            .arg(
+                "key",
+                "string",
+                "",
+                "\"sens_corr\", \"sens\" or \"diameter\" (with the second argument)",
+            )
+            .returns("Profile", "the value vs arc length along the filament (µm)")
+            .summary("a quantity along the filament as a Profile (for plot_profile and CSV)")
+            .example(
+                &format!("{fil_ex} m.profile(\"sens_corr\").len > 40"),
+                "true",
+            )
+            .example(
+                &format!("{fil_ex} m.profile(\"mass\")"),
+                "error: key = \"mass\"",
+            ),
+        |m: &mut FilamentRef, key: &str| -> RResult<ProfileRef> {
+            let pts = &m.0.points;
+            let v: Vec<f64> = match key {
+                "sens_corr" => pts.iter().map(|p| p.sens_corr).collect(),
+                "sens" => pts.iter().map(|p| p.sens).collect(),
+                _ => {
+                    return fail(format!(
+                        "profile: key = \"{key}\" is not one of \"sens_corr\", \"sens\""
+                    ))
+                }
+            };
+            let t: Vec<f64> = pts.iter().map(|p| p.arc_um).collect();
+            let p = crate::data::Profile::try_new(t, v)
+                .map_err(|e| err("profile", e))?
+                .with_t_name("arc length");
+            Ok(ProfileRef(Arc::new(p)))
+        },
+    );
+
+    let d = Doc::func("sbr")
+        .arg("m", "FilamentMeasurement", "", "a measured filament")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("skip_um", "float", "µm", "optional: arc skipped from the first non-zero maximum (default 1.2, Sec. 6)"),
+                ("both_ends", "bool", "", "optional: also skip at the far end (default true)"),
+                ("exclusion_um", "float", "µm", "optional: background pixels farther than this from the line (default 1.0)"),
+                ("nonzero_snr", "float", "", "optional: a maximum is non-zero above this × background std (default 0)"),
+                ("min_run", "int", "", "optional: consecutive lines that start the filament (default 3)"),
+            ],
+        )
+        .form("sbr(m) -> map")
+        .returns("map", "#{sbr_background, sbr_uniformity, mean_sens, mean_corr, std_sens, background_std, arc_start, arc_end, n_points, n_background}")
+        .summary("signal-to-background ratio both ways the paper defines (Sec. 6)")
+        .example(&format!("{fil_ex} sbr(m, #{{skip_um: 0.2}}).n_points > 10"), "true")
+        .example(&format!("{fil_ex} sbr(m, #{{skip_um: -1.0}})"), "error: skip_um = -1");
+    let spec = d.spec();
+    let f = move |m: FilamentRef, mm: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &mm)?;
+        let d = SbrOptions::default();
+        let so = SbrOptions {
+            skip_um: o.f64_or("skip_um", d.skip_um)?,
+            both_ends: o.bool_or("both_ends", d.both_ends)?,
+            exclusion_um: o.f64_or("exclusion_um", d.exclusion_um)?,
+            nonzero_snr: o.f64_or("nonzero_snr", d.nonzero_snr)?,
+            min_run: count("sbr", &o, "min_run", 1, 100_000)?.unwrap_or(d.min_run),
+        };
+        let r = sbr(&m.0, &so).map_err(|e| err("sbr", e))?;
+        Ok(to_map(&r))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("sbr", move |m: FilamentRef| f2(m, Map::new()));
+
+    let d = Doc::func("remove_background")
+        .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("axis", "string", "", "optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\""),
+                ("angle_deg", "float", "°", "optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")"),
+                ("detect_snr", "float", "", "optional: detections above detect_snr × robust noise (default 6)"),
+                ("max_objects", "int", "", "optional: most point objects fitted (default 60)"),
+            ],
+        )
+        .form("remove_background(scan, tpl) -> map")
+        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects}")
+        .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
+        .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
+        .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
+    let spec = d.spec();
+    let f = move |s: ScanRef, t: TemplateRef, m: Map| -> RResult<Map> {
+        let who = "remove_background";
+        let o = Opts::new(&spec, &m)?;
+        let d = BackgroundOptions::default();
+        let axis = match (o.string("axis")?.as_deref(), o.f64("angle_deg")?) {
+            (Some("y"), _) => FilamentAxis::Y,
+            (Some("x"), _) => FilamentAxis::X,
+            (Some(a), _) => {
+                return fail(format!("{who}: axis = \"{a}\" is not one of \"x\", \"y\""))
+            }
+            (None, Some(a)) => FilamentAxis::from_angle(a),
+            (None, None) => d.axis,
+        };
+        let bo = BackgroundOptions {
+            axis,
+            detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
+            max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
+            fit: d.fit.clone(),
+        };
+        let r =
+            remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
+        let mut out = Map::new();
+        let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
+        let mut meta = s.scan.meta.clone();
+        meta["background_removed"] = serde_json::json!({
+            "axis": format!("{:?}", bo.axis),
+            "n_objects": n,
+        });
+        out.insert(
+            "scan".into(),
+            Dynamic::from(scan_of(r.sx, r.sy, s.scan.sz.clone(), meta)),
+        );
+        out.insert(
+            "fit".into(),
+            r.fit
+                .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
+        );
+        out.insert("n_objects".into(), (n as i64).into());
+        Ok(out)
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
+        f2(s, t, Map::new())
+    });
+
+    // quantities
+    let calib_keys = [
+        &[
+            (
+                "n_obj",
+                "float",
+                "",
+                "refractive index of the filament (collagen 1.41 in the paper)",
+            ),
+            (
+                "d_bm_nm",
+                "float",
+                "nm",
+                "optional: bead-model cylinder diameter (default: the reference bead's)",
+            ),
+            (
+                "n_bm",
+                "float",
+                "",
+                "optional: bead-model index (default: the reference bead's)",
+            ),
+        ][..],
+        PIPELINE_KEYS,
+    ]
+    .concat();
+    let d = Doc::func("diameter_calib")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .map("opts", "", &calib_keys)
+        .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr}: d = A·√(sens_corr) (eqs. colDiam, OurColD)")
+        .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")
+        .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline; not hard-coded (the paper's 58.6 nm is for its own optics).")
+        .example(&format!("{TPL} let a = diameter_calib(t, #{{n_obj: 1.41}}).a_nm; a > 40.0 && a < 90.0"), "true")
+        .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2}})"), "error: n_obj");
+    let spec = d.spec();
+    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
+        let who = "diameter_calib";
+        let o = Opts::new(&spec, &m)?;
+        let (px, mo, bm) = pipeline_opts(who, &o)?;
+        let rb = t.0.reference;
+        let c = DiameterCalib::from_template(
+            &t.0,
+            o.req_f64("n_obj")?,
+            o.f64_or("d_bm_nm", rb.d_nm)?,
+            o.f64_or("n_bm", rb.n)?,
+            px,
+            &mo,
+            &bm,
+        )
+        .map_err(|e| err(who, e))?;
+        Ok(to_map(&c))
+    });
+    r.bind(
+        Doc::func("fibril_diameter")
+            .arg(
+                "sens_corr",
+                "float",
+                "",
+                "orientation-corrected max sensitivity (reference-bead units/µm)",
+            )
+            .arg("a_nm", "float", "nm", "the constant A from diameter_calib")
+            .returns("float", "diameter, nm: d = A·√(sens_corr) (eq. OurColD)")
+            .summary("fibril diameter from its corrected sensitivity")
+            .example("fibril_diameter(0.25, 60.0)", "30.0")
+            .example("fibril_diameter(-0.1, 60.0)", "error: sens_corr = -0.1"),
+        |s: f64, a: f64| -> RResult<f64> {
+            fibril_diameter_nm(s, a).map_err(|e| err("fibril_diameter", e))
+        },
+    );
+    let d = Doc::func("lin_dens_calib")
+        .arg(
+            "tpl",
+            "Template",
+            "",
+            "the point-particle template (its reference bead is the bead-model material)",
+        )
+        .map(
+            "opts",
+            "",
+            &[
+                &[
+                (
+                    "n_obj",
+                    "float",
+                    "",
+                    "optional: index of the filament (default 1.587, dry globular protein as Sec. 6)",
+                ),
+                (
+                    "density_obj",
+                    "float",
+                    "g/cm³",
+                    "optional: its density (default 1.35, protein)",
+                ),
+                ][..],
+                PIPELINE_KEYS,
+            ]
+            .concat(),
+        )
+        .returns(
+            "map",
+            "#{mu_bm_mda_um, d_bm_nm, density_bm, sens_bm, n_obj, density_obj, n_corr}",
+        )
+        .summary("calibration of linear densities (eq. mtLinDens) from the template's bead model")
+        .example(
+            &format!("{TPL} lin_dens_calib(t, #{{}}).mu_bm_mda_um > 0.0"),
+            "true",
+        );
+    let spec = d.spec();
+    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
+        let who = "lin_dens_calib";
+        let o = Opts::new(&spec, &m)?;
+        let (px, mo, bm) = pipeline_opts(who, &o)?;
+        let c = LinDensCalib::from_template(
+            &t.0,
+            o.f64_or("n_obj", 1.587)?,
+            o.f64_or("density_obj", 1.35)?,
+            px,
+            &mo,
+            &bm,
+        )
+        .map_err(|e| err(who, e))?;
+        Ok(to_map(&c))
+    });
+    let d = Doc::func("linear_density")
+        .arg("sens_corr", "float", "", "orientation-corrected max sensitivity (reference-bead units/µm)")
+        .arg("calib", "map", "", "from lin_dens_calib")
+        .returns("map", "#{mu_mda_um, protofilaments, protofilaments_exact} (13.75 MDa/µm per protofilament: 110 kDa per 8 nm dimer)")
+        .summary("microtubule linear density and the protofilament number it implies (eq. mtLinDens, Sec. 6)")
+        .example("linear_density(1.0, #{mu_bm_mda_um: 6.0, d_bm_nm: 110.0, density_bm: 1.05, sens_bm: 1.0, n_obj: 1.55, density_obj: 1.35, n_corr: 0.5}).mu_mda_um", "15.428571428571429")
+        .example("linear_density(1.0, #{})", "error: calib");
+    r.bind(d, |s: f64, c: Map| -> RResult<Map> {
+        let who = "linear_density";
+        let get = |k: &str| -> RResult<f64> {
+            match c.get(k) {
+                Some(v) => num(who, &format!("calib.{k}"), v),
+                None => fail(format!(
+                    "{who}: calib lacks `{k}`: pass the map lin_dens_calib returns"
+                )),
+            }
+        };
+        let cal = LinDensCalib {
+            mu_bm_mda_um: get("mu_bm_mda_um")?,
+            d_bm_nm: get("d_bm_nm")?,
+            density_bm: get("density_bm")?,
+            sens_bm: get("sens_bm")?,
+            n_obj: get("n_obj")?,
+            density_obj: get("density_obj")?,
+            n_corr: get("n_corr")?,
+        };
+        let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
+        let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
+        let mut m = Map::new();
+        m.insert("mu_mda_um".into(), mu.into());
+        m.insert("protofilaments".into(), (n as i64).into());
+        m.insert("protofilaments_exact".into(), x.into());
+        Ok(m)
+    });
+    let d = Doc::func("point_mass")
+        .map(
+            "obj",
+            "the measured object",
+            &[
+                ("sens", "float", "", "its max sensitivity (same units as sens_rb)"),
+                ("sens_err", "float", "", "optional: 1σ of sens"),
+                ("sens_rb", "float", "", "optional: the reference bead's max sensitivity in the same pipeline (default 1: reference-bead units)"),
+                ("n_obj", "float", "", "optional: index of the object (default: the reference bead's)"),
+                ("density", "float", "g/cm³", "optional: density of the object (default: the reference bead's)"),
+            ],
+        )
+        .returns("map", "#{volume_ratio, volume_nm3, sphere_d_nm, mass_kda, mass_err_kda, n_corr}")
+        .summary("volume and mass of a point-like object from its max sensitivity (eqs. after nCor)")
+        .example("round(point_mass(#{sens: 1.0}).sphere_d_nm * 1000.0) / 1000.0", "110.0")
+        .example("point_mass(#{sens: -1.0})", "error: sens_obj = -1");
+    let spec = d.spec();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let who = "point_mass";
+        let o = Opts::new(&spec, &m)?;
+        let rb = RefBead::default();
+        let p = point_object(
+            o.req_f64("sens")?,
+            o.f64("sens_err")?,
+            o.f64_or("sens_rb", 1.0)?,
+            o.f64_or("n_obj", rb.n)?,
+            o.f64_or("density", rb.density_g_cm3)?,
+            &rb,
+        )
+        .map_err(|e| err(who, e))?;
+        Ok(to_map(&p))
+    });
+}

@@ -1,0 +1,88 @@
+//! Binding family `mie`: Lorenz–Mie efficiencies and the focused-beam Mie response of a sphere.
+
+use super::registry::{err, Doc, Opts, RResult, Registrar};
+use rhai::{Map, INT};
+
+pub fn register(r: &mut Registrar) {
+    let ctx = r.ctx();
+    let d = Doc::func("mie_q")
+        .map(
+            "sphere",
+            "size parameter and relative index",
+            &[
+                ("x", "float", "", "size parameter π d n_medium / λ"),
+                ("m_re", "float", "", "real part of the relative index"),
+                ("m_im", "float", "", "optional: absorption, ≥ 0 (default 0)"),
+            ],
+        )
+        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms}")
+        .summary("Lorenz–Mie efficiencies of a homogeneous sphere (Bohren & Huffman)")
+        .example(
+            "let q = mie_q(#{x: 1.0, m_re: 1.5}); round((q.qext - q.qsca) * 1e9)",
+            "0.0",
+        )
+        .example("mie_q(#{x: -1.0, m_re: 1.5})", "error: x");
+    let spec = d.spec();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let q = crate::optics::mie::mie_q(
+            o.req_f64("x")?,
+            num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
+        )
+        .map_err(|e| err("mie_q", e))?;
+        Ok(mie_map(&q))
+    });
+    let d = Doc::func("mie")
+        .map(
+            "sphere",
+            "a sphere in the medium and wavelength of optics()",
+            &[
+                ("d_nm", "float", "nm", "diameter"),
+                ("n", "float", "", "refractive index"),
+                (
+                    "n_im",
+                    "float",
+                    "",
+                    "optional: absorption part of the index, ≥ 0",
+                ),
+            ],
+        )
+        .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
+        .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
+        .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
+    let spec = d.spec();
+    let c = ctx.clone();
+    r.bind(d, move |m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let op = c.optics();
+        let dn = o.req_f64("d_nm")?;
+        let q = crate::optics::mie::sphere(
+            dn,
+            num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
+            op.n_medium,
+            op.wavelength_nm,
+        )
+        .map_err(|e| err("mie", e))?;
+        let mut mm = mie_map(&q);
+        mm.insert(
+            "x".into(),
+            (std::f64::consts::PI * dn * op.n_medium / op.wavelength_nm).into(),
+        );
+        Ok(mm)
+    });
+}
+
+fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
+    let mut m = Map::new();
+    for (k, v) in [
+        ("qext", q.qext),
+        ("qsca", q.qsca),
+        ("qabs", q.qabs),
+        ("qback", q.qback),
+        ("g", q.g),
+    ] {
+        m.insert(k.into(), v.into());
+    }
+    m.insert("n_terms".into(), (q.n_terms as INT).into());
+    m
+}

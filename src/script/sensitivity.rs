@@ -1,0 +1,243 @@
+//! Binding family `sensitivity`: derivatives of scans (∂S/∂x, eq. sens), their maxima (eq.
+//! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
+
+use super::registry::{err, fail, Doc, Opts, RResult, Registrar};
+use super::types::{ImageRef, ProfileRef, ScanRef};
+use crate::analysis::focus::{focus_search, FocusOptions};
+use crate::analysis::peaks::{col_peaks, point_peak, row_peaks};
+use crate::analysis::profile::profile_polyline;
+use crate::analysis::{sensitivity, Stencil};
+use crate::data::Image;
+use crate::optics::grid::Interp;
+use rhai::{Array, Dynamic, Map};
+use std::sync::Arc;
+
+/// A reference template in a script (`Template`).
+use super::analysis_values::*;
+
+pub fn register(r: &mut Registrar) {
+    register_sensitivity(r);
+}
+
+// ------------------------------------------------------------------ sensitivity
+
+fn register_sensitivity(r: &mut Registrar) {
+    let d = Doc::func("sensitivity")
+        .arg("img", "Image | Scan", "", "an image (or a scan: Sx for axis x, Sy for axis y)")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("axis", "string", "", "\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
+                ("stencil", "string", "", "\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
+            ],
+        )
+        .returns("Image", "the derivative, signal units per µm")
+        .summary("sensitivity image ∂S/∂x or ∂S/∂y (Sec. 3.2)")
+        .help("Central differences inside, one-sided at the edges (documented in docs/analysis.md). The noise gain of each stencil: σ(derivative) = gain·σ(pixel)/h with gain 0.707 (central2), 0.950 (central5), 0.316 (sg5). NaN pixels propagate only to the derivatives that use them.")
+        .form("sensitivity(img) -> Image")
+        .example(&format!("{ONE_BEAD} let s = sensitivity(sc); round(s.max() * t.norm_factor * 10.0) / 10.0"), "1.0")
+        .example(&format!("{ONE_BEAD} sensitivity(sc.sx, #{{axis: \"z\"}})"), "error: axis = \"z\"");
+    let spec = d.spec();
+    let run = move |v: Dynamic, m: Map| -> RResult<ImageRef> {
+        let o = Opts::new(&spec, &m)?;
+        let ax = o.string("axis")?.unwrap_or_else(|| "x".into());
+        let axis = crate::analysis::Axis::parse(&ax).map_or_else(
+            || {
+                fail(format!(
+                    "sensitivity: axis = \"{ax}\" is not one of \"x\", \"y\""
+                ))
+            },
+            Ok,
+        )?;
+        let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
+        let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
+            match axis {
+                crate::analysis::Axis::X => Arc::new(s.scan.sx.clone()),
+                crate::analysis::Axis::Y => Arc::new(s.scan.sy.clone()),
+            }
+        } else if let Some(i) = v.read_lock::<ImageRef>() {
+            i.0.clone()
+        } else {
+            return fail(format!(
+                "sensitivity: img must be an Image or a Scan, got {}",
+                v.type_name()
+            ));
+        };
+        let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
+        Ok(ImageRef(Arc::new(out)))
+    };
+    let run2 = run.clone();
+    r.bind(d, run);
+    r.overload("sensitivity", move |v: Dynamic| run2(v, Map::new()));
+
+    let keys: &[(&str, &str, &str, &str)] = &[
+        (
+            "window_um",
+            "float",
+            "µm",
+            "optional: parabola window (default 0.4, Sec. 5)",
+        ),
+        (
+            "min_snr",
+            "float",
+            "",
+            "optional: reject maxima below min_snr × line noise (default 0)",
+        ),
+        (
+            "min_value",
+            "float",
+            "",
+            "optional: reject maxima below this value",
+        ),
+        (
+            "sigma",
+            "float",
+            "",
+            "optional: known pixel noise (default: from the fit residuals)",
+        ),
+    ];
+    for (name, rows) in [("row_peaks", true), ("col_peaks", false)] {
+        let d = Doc::func(name)
+            .arg("img", "Image", "", "usually a sensitivity image")
+            .map("opts", "optional", keys)
+            .form(&format!("{name}(img) -> array"))
+            .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, n_points, truncated} or #{line, coord, ok: false, miss}")
+            .summary(if rows {
+                "sub-pixel maximum of every row (x position) by a parabola over the window"
+            } else {
+                "sub-pixel maximum of every column (y position) by a parabola over the window"
+            })
+            .help("The parabola is fitted by least squares over the samples within ±window/2 of the discrete maximum; pos_err and value_err are 1σ from the residual scatter (or the given sigma). A line whose maximum sits on its first or last sample, or has no concave parabola, reports ok: false with the reason.")
+            .example(
+                &format!("{ONE_BEAD} let p = {name}(sensitivity(sc, #{{axis: \"{}\"}})); p.len()", if rows { "x" } else { "y" }),
+                "41",
+            )
+            .example(&format!("{ONE_BEAD} {name}(sc.sx, #{{window_um: -1.0}})"), "error: window_um = -1");
+        let spec = d.spec();
+        let f = move |i: ImageRef, m: Map| -> RResult<Array> {
+            let o = Opts::new(&spec, &m)?;
+            let po = peak_opts(name, &o)?;
+            let v = if rows {
+                row_peaks(&i.0, &po)
+            } else {
+                col_peaks(&i.0, &po)
+            }
+            .map_err(|e| err(name, e))?;
+            Ok(line_peaks(&v))
+        };
+        let f2 = f.clone();
+        r.bind(d, f);
+        r.overload(name, move |i: ImageRef| f2(i, Map::new()));
+    }
+
+    let d = Doc::func("max_sens")
+        .arg("img", "Image", "", "a sensitivity image around one point object")
+        .map("opts", "optional", keys)
+        .form("max_sens(img) -> map")
+        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points} (µm; value in the image's units)")
+        .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
+        .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
+    let spec = d.spec();
+    let f = move |i: ImageRef, m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let po = peak_opts("max_sens", &o)?;
+        let p = point_peak(&i.0, &po).map_err(|e| err("max_sens", e))?;
+        Ok(to_map(&p))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("max_sens", move |i: ImageRef| f2(i, Map::new()));
+
+    let d = Doc::func("focus_search")
+        .arg("img", "Image | Scan", "", "an XZ (or YZ) scan channel: rows are z (a Scan: its Sx)")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("stencil", "string", "", "optional: derivative stencil (default central2)"),
+                ("window_um", "float", "µm", "optional: lateral parabola window (default 0.4)"),
+                ("z_window_um", "float", "µm", "optional: window of the parabola over z (default 0.6)"),
+                ("level", "float", "", "optional: fraction of the peak that defines the tolerated z range (default 0.98)"),
+            ],
+        )
+        .form("focus_search(img) -> map")
+        .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows} (µm; rows: per-z maxima)")
+        .summary("best focus: max sensitivity per z row, parabola over z (suppl. S5)")
+        .help("z_lo/z_hi: where the row maxima fall to level × max (paper: within 2 % over ±200 nm); () on a side where the scan ends first.");
+    let spec = d.spec();
+    let f = move |v: Dynamic, m: Map| -> RResult<Map> {
+        let o = Opts::new(&spec, &m)?;
+        let d = FocusOptions::default();
+        let fo = FocusOptions {
+            stencil: stencil_of("focus_search", &o, d.stencil)?,
+            window_um: pos_f64("focus_search", &o, "window_um", d.window_um, 1e-3, 100.0)?,
+            z_window_um: pos_f64("focus_search", &o, "z_window_um", d.z_window_um, 1e-3, 1e3)?,
+            level: pos_f64("focus_search", &o, "level", d.level, 0.0, 1.0)?,
+        };
+        let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
+            Arc::new(s.scan.sx.clone())
+        } else if let Some(i) = v.read_lock::<ImageRef>() {
+            i.0.clone()
+        } else {
+            return fail(format!(
+                "focus_search: img must be an Image or a Scan, got {}",
+                v.type_name()
+            ));
+        };
+        let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
+        let mut out = Map::new();
+        out.insert("z_best".into(), res.z_best.into());
+        out.insert("z_err".into(), to_dyn(&res.z_err));
+        out.insert("max_sens".into(), res.max_sens.into());
+        out.insert("max_sens_err".into(), to_dyn(&res.max_sens_err));
+        out.insert("z_lo".into(), to_dyn(&res.z_lo));
+        out.insert("z_hi".into(), to_dyn(&res.z_hi));
+        out.insert("rows".into(), line_peaks(&res.rows).into());
+        Ok(out)
+    };
+    let f2 = f.clone();
+    r.bind(
+        d.example(
+            "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.0, d_nm: 110.0, n: 1.572}); let t = template_model(#{h_um: 0.025}); let xs = []; let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 5, ny: 5}); focus_search(sc.sx, #{level: 2.0})",
+            "error: level = 2",
+        ),
+        f,
+    );
+    r.overload("focus_search", move |v: Dynamic| f2(v, Map::new()));
+
+    let d = Doc::func("profile_along")
+        .arg("img", "Image", "", "any image")
+        .arg("points", "array", "µm", "polyline [[x, y], …]")
+        .opt(
+            "step_um",
+            "float",
+            "µm",
+            "sampling step along the arc (default: the pixel size)",
+        )
+        .returns(
+            "Profile",
+            "values vs arc length from the first vertex (bicubic interpolation)",
+        )
+        .summary("profile of an image along a polyline (Fig. 5c)")
+        .example(
+            &format!("{ONE_BEAD} profile_along(sc.sx, [[-0.5, 0.0], [0.5, 0.0]], 0.1).len"),
+            "11",
+        )
+        .example(
+            &format!("{ONE_BEAD} profile_along(sc.sx, [[0.0, 0.0]])"),
+            "error: ",
+        );
+    let f = |i: ImageRef, p: Array, step: f64| -> RResult<ProfileRef> {
+        let pts = super::scene::points("profile_along", &Dynamic::from_array(p))?;
+        let pr = profile_polyline(&i.0, &pts, step, Interp::Cubic)
+            .map_err(|e| err("profile_along", e))?;
+        Ok(ProfileRef(Arc::new(pr)))
+    };
+    r.bind(d, f);
+    r.overload("profile_along", move |i: ImageRef, p: Array| {
+        let h = i.0.dx().abs().min(i.0.dy().abs());
+        let h = if h > 0.0 { h } else { 0.01 };
+        f(i, p, h)
+    });
+}

@@ -1,0 +1,597 @@
+//! Binding family `templates`: reference-bead templates (from the model or from scans,
+//! suppl. S5), the multi-bead fit (eq. multiBeadFit) and its `FitResult`, rendering beads and
+//! filaments with a template (the bead model).
+
+use super::ctx::Ctx;
+use super::registry::{err, fail, Doc, Opts, RResult, Registrar};
+use super::types::{json_to_dynamic, ImageRef, ScanRef};
+use crate::analysis::bead_model::{filament_beads, render_scene};
+use crate::analysis::template::FromScansOptions;
+use crate::analysis::{
+    fit_beads, BeadInit, BeadModelOptions, Channels, FitOptions, GrowCriterion, Stencil, Template,
+};
+use crate::data::{Image, Scan};
+use crate::optics::rayleigh::DetectorModel;
+use rhai::{Array, Dynamic, Map};
+use std::sync::Arc;
+
+/// A reference template in a script (`Template`).
+use super::analysis_values::*;
+
+pub fn register(r: &mut Registrar) {
+    let ctx = r.ctx();
+    register_templates(r, &ctx);
+    register_fit(r, &ctx);
+}
+
+// ------------------------------------------------------------------ templates
+
+fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    let d = Doc::func("template_model")
+        .map(
+            "opts",
+            "optional",
+            &[
+                (
+                    "h_um",
+                    "float",
+                    "µm",
+                    "optional: node spacing (default 0.02; 0.001–0.2)",
+                ),
+                (
+                    "z_um",
+                    "float",
+                    "µm",
+                    "optional: axial offset of the bead from the focus (default 0)",
+                ),
+                (
+                    "d_nm",
+                    "float",
+                    "nm",
+                    "optional: reference bead diameter (default 110)",
+                ),
+                (
+                    "n",
+                    "float",
+                    "",
+                    "optional: reference bead index (default 1.572)",
+                ),
+                (
+                    "density",
+                    "float",
+                    "g/cm³",
+                    "optional: reference bead density (default 1.05)",
+                ),
+                (
+                    "polarization",
+                    "bool",
+                    "",
+                    "optional: vector dipole field (default false)",
+                ),
+            ],
+        )
+        .form("template_model() -> Template")
+        .returns(
+            "Template",
+            "normalised so the reference bead's max ∂Sx/∂x = 1",
+        )
+        .summary("reference template from the physics model in the current optics (Sec. 3.1)")
+        .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
+        .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
+    let spec = d.spec();
+    let c = ctx.clone();
+    let f = move |m: Map| -> RResult<TemplateRef> {
+        let o = Opts::new(&spec, &m)?;
+        let optics = c.optics.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let rb = ref_bead("template_model", &o, optics.n_medium)?;
+        let det = DetectorModel {
+            polarization: o.bool_or("polarization", false)?,
+            ..Default::default()
+        };
+        let t = Template::from_optics(
+            &optics,
+            &det,
+            rb,
+            o.f64_or("h_um", 0.02)?,
+            o.f64_or("z_um", 0.0)?,
+        )
+        .map_err(|e| err("template_model", e))?;
+        Ok(TemplateRef(Arc::new(t)))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("template_model", move || f2(Map::new()));
+
+    let d = Doc::func("template_from_scans")
+        .arg("scans", "array", "", "XY scans of reference beads [Scan, …]")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("half_width_um", "float", "µm", "optional: half-width of the template (default 1.5)"),
+                ("h_um", "float", "µm", "optional: node spacing (default: the finest pixel)"),
+                ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)"),
+                ("threshold", "float", "", "optional: detection threshold, fraction of the largest peak (default 0.3)"),
+                ("iterations", "int", "", "optional: alignment iterations (default 2)"),
+                ("d_nm", "float", "nm", "optional: reference bead diameter (default 110)"),
+                ("n", "float", "", "optional: reference bead index (default 1.572)"),
+                ("density", "float", "g/cm³", "optional: density (default 1.05)"),
+            ],
+        )
+        .form("template_from_scans(scans) -> Template")
+        .returns("Template", "aligned average of the beads, normalised so max ∂Sx/∂x = 1; .source tells the beads used and the misfit")
+        .summary("reference template from measured scans of several reference beads: locate, align sub-pixel, average, normalise")
+        .example(&format!("{TPL} let a = render_beads(t, #{{beads: [#{{x: 0.03, y: 0.0}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); let b = render_beads(t, #{{beads: [#{{x: -0.02, y: 0.04}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); template_from_scans([a, b]).source.n_beads"), "2")
+        .example("template_from_scans([])", "error: no scans");
+    let spec = d.spec();
+    let c = ctx.clone();
+    let f = move |a: Array, m: Map| -> RResult<TemplateRef> {
+        let o = Opts::new(&spec, &m)?;
+        let n_medium = c.optics.lock().unwrap_or_else(|e| e.into_inner()).n_medium;
+        let rb = ref_bead("template_from_scans", &o, n_medium)?;
+        let d = FromScansOptions::default();
+        let fo = FromScansOptions {
+            half_width_um: o.f64_or("half_width_um", d.half_width_um)?,
+            h_um: o.f64("h_um")?,
+            beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
+            threshold: o.f64_or("threshold", d.threshold)?,
+            iterations: count("template_from_scans", &o, "iterations", 0, 100)?
+                .unwrap_or(d.iterations),
+        };
+        let scans = scans_arg("template_from_scans", &a)?;
+        let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();
+        let t = Template::from_scans(&refs, rb, &fo).map_err(|e| err("template_from_scans", e))?;
+        Ok(TemplateRef(Arc::new(t)))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("template_from_scans", move |a: Array| f2(a, Map::new()));
+
+    // properties and methods
+    r.getter(
+        Doc::property("Template", "norm_factor")
+            .returns("float", "factor applied to the source data so that max ∂Sx/∂x = 1 (reference-bead units per scan unit)")
+            .summary("normalisation of the template")
+            .example(&format!("{TPL} t.norm_factor > 1.0"), "true"),
+        |t: &mut TemplateRef| t.0.norm_factor,
+    );
+    r.getter(
+        Doc::property("Template", "reference")
+            .returns("map", "#{d_nm, n, n_medium, density_g_cm3}")
+            .summary("the reference bead the template represents")
+            .example(&format!("{TPL} t.reference.d_nm"), "110.0"),
+        |t: &mut TemplateRef| to_map(&t.0.reference),
+    );
+    r.getter(
+        Doc::property("Template", "source")
+            .returns(
+                "map",
+                "#{kind: \"model\" | \"scans\" | \"analytic\", …} (beads used, misfit)",
+            )
+            .summary("where the template came from")
+            .example(&format!("{TPL} t.source.kind"), "\"model\""),
+        |t: &mut TemplateRef| to_map(&t.0.source),
+    );
+    r.getter(
+        Doc::property("Template", "h_um")
+            .returns("float", "node spacing, µm")
+            .summary("grid spacing of the template")
+            .example(&format!("{TPL} t.h_um"), "0.025"),
+        |t: &mut TemplateRef| t.0.grid.h,
+    );
+    r.bind(
+        Doc::method("Template", "at")
+            .arg("u", "float", "µm", "x − x_bead")
+            .arg("v", "float", "µm", "y − y_bead")
+            .returns(
+                "map",
+                "#{sx, sy, sz} in reference-bead units (interpolated)",
+            )
+            .summary("the template's response at a displacement from the bead")
+            .example(&format!("{TPL} t.at(0.0, 0.0).sx"), "0.0"),
+        |t: &mut TemplateRef, u: f64, v: f64| -> Map {
+            let s = t.0.eval(u, v);
+            let mut m = Map::new();
+            m.insert("sx".into(), s[0].into());
+            m.insert("sy".into(), s[1].into());
+            m.insert("sz".into(), s[2].into());
+            m
+        },
+    );
+    r.bind(
+        Doc::method("Template", "max_sens")
+            .arg("pixel_um", "float", "µm", "pixel size of the scans to be measured")
+            .opt("stencil", "string", "", "derivative stencil (default central2)")
+            .returns("float", "max ∂Sx/∂x of the reference bead as the pixel pipeline measures it (≈ 1)")
+            .summary("the reference bead's max sensitivity through the measurement pipeline (denominator of masses)")
+            .example(&format!("{TPL} let m = t.max_sens(0.05); m > 0.9 && m < 1.0"), "true"),
+        |t: &mut TemplateRef, px: f64| -> RResult<f64> {
+            t.0.pipeline_max_sens(px, Stencil::Central2, 0.4)
+                .map_err(|e| err("max_sens", e))
+        },
+    );
+    r.overload(
+        "max_sens",
+        |t: &mut TemplateRef, px: f64, st: &str| -> RResult<f64> {
+            let s = Stencil::parse(st).map_or_else(
+                || fail(format!("max_sens: stencil = \"{st}\" is not one of \"central2\", \"central5\", \"sg5\", …")),
+                Ok,
+            )?;
+            t.0.pipeline_max_sens(px, s, 0.4)
+                .map_err(|e| err("max_sens", e))
+        },
+    );
+    let c = ctx.clone();
+    r.bind(
+        Doc::method("Template", "save")
+            .arg("path", "string", "", "file (JSON; relative: in the session folder; an existing file is kept and a numbered name used)")
+            .returns("string", "the path written")
+            .summary("save the template (JSON with grid, reference bead, source and the script's provenance)")
+            .example(&format!("{TPL} let p = status().data_dir + \"/tpl_example.json\"; t.save(p); load_template(p).h_um"), "0.025"),
+        move |t: &mut TemplateRef, path: &str| -> RResult<String> {
+            super::console::save_template(&c, t, path, false)
+        },
+    );
+    r.bind(
+        Doc::func("load_template")
+            .arg("path", "string", "", "a file written by template.save")
+            .returns("Template", "")
+            .summary("load a saved template")
+            .example(
+                "load_template(\"no/such/template.json\")",
+                "error: load_template: no/such/template.json",
+            ),
+        |path: &str| -> RResult<TemplateRef> {
+            let s = std::fs::read_to_string(path)
+                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
+            let t = Template::from_json(&s)
+                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
+            Ok(TemplateRef(Arc::new(t)))
+        },
+    );
+
+    let d = Doc::func("render_beads")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .map(
+            "what",
+            "objects and the grid",
+            &[
+                ("beads", "array", "", "optional: [#{x, y, weight}] point objects (µm; weight in reference-bead units, default 1)"),
+                ("filaments", "array", "", "optional: [#{points: [[x, y], …], d_nm, n}] bead-model filaments (d_nm: one value or one per vertex)"),
+                ("spacing_nm", "float", "nm", "optional: bead-model spacing (default 50, Sec. 4.2)"),
+                ("x", "array", "µm", "[from, to]"),
+                ("y", "array", "µm", "[from, to]"),
+                ("nx", "int", "", "pixels along x"),
+                ("ny", "int", "", "pixels along y"),
+            ],
+        )
+        .returns("Scan", "noise-free scan in the template's instrument units (superposition, eq. ReEEpReEE; × norm_factor gives reference-bead units)")
+        .summary("render point objects and filaments from a template (the bead model of Sec. 4.2)")
+        .example(&format!("{ONE_BEAD} sc.sx.cols"), "41")
+        .example(&format!("{TPL} render_beads(t, #{{filaments: [#{{points: [[0.0, -1.0], [0.0, 1.0]], d_nm: 50.0, n: 1.41}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}).rows"), "21")
+        .example(&format!("{TPL} render_beads(t, #{{filaments: [#{{points: [[0.0, 0.0]], d_nm: 50.0, n: 1.41}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}})"), "error: ");
+    let spec = d.spec();
+    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<ScanRef> {
+        let o = Opts::new(&spec, &m)?;
+        let who = "render_beads";
+        let beads = match m.get("beads") {
+            Some(b) => bead_list(who, b)?,
+            None => vec![],
+        };
+        let fils = match m.get("filaments") {
+            Some(f) => match f.read_lock::<Array>() {
+                Some(a) => a
+                    .iter()
+                    .map(|x| filament_arg(who, x))
+                    .collect::<RResult<Vec<_>>>()?,
+                None => {
+                    return fail(format!(
+                        "{who}: filaments must be an array of filament maps"
+                    ))
+                }
+            },
+            None => vec![],
+        };
+        let bm = BeadModelOptions {
+            spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+        };
+        let (x, y) = grid_axes(who, &o)?;
+        let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| err(who, e))?;
+        // reference-bead units → the instrument units of the template's source (what a scan
+        // of these objects records; fits and filament measurements expect those units)
+        let k = 1.0 / t.0.norm_factor;
+        let sc = |i: &Image| i.mul_scalar(k).map_err(|e| err(who, e));
+        let meta =
+            serde_json::json!({ "kind": "render_beads", "units": "instrument (template source)" });
+        Ok(scan_of(sc(&s.sx)?, sc(&s.sy)?, sc(&s.sz)?, meta))
+    });
+
+    let d = Doc::func("bead_model")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .arg("filament", "map", "", "#{points: [[x, y], …] (µm), d_nm (one or per vertex), n}")
+        .opt("spacing_nm", "float", "nm", "bead spacing (default 50)")
+        .returns("array", "[#{x, y, weight}] the beads (weights in reference-bead units: (3/4)·h·d²·n_corr / d_ref³·… , Sec. 4.2)")
+        .summary("the beads of a filament's bead model")
+        .example(&format!("{TPL} bead_model(t, #{{points: [[0.0, 0.0], [0.0, 1.0]], d_nm: 110.0, n: 1.572}}, 50.0).len()"), "20");
+    let f = |t: TemplateRef, fm: Map, sp: f64| -> RResult<Array> {
+        let fil = filament_arg("bead_model", &Dynamic::from_map(fm))?;
+        let b = filament_beads(&t.0, &fil, &BeadModelOptions { spacing_nm: sp })
+            .map_err(|e| err("bead_model", e))?;
+        Ok(b.iter()
+            .map(|&(x, y, w)| {
+                let mut m = Map::new();
+                m.insert("x".into(), x.into());
+                m.insert("y".into(), y.into());
+                m.insert("weight".into(), w.into());
+                Dynamic::from_map(m)
+            })
+            .collect())
+    };
+    r.bind(d, f);
+    r.overload("bead_model", move |t: TemplateRef, fm: Map| f(t, fm, 50.0));
+}
+
+// ------------------------------------------------------------------ fit
+
+fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    let d = Doc::func("fit_beads")
+        .arg("scan", "Scan", "", "XY scan (Sx and Sy)")
+        .arg("tpl", "Template", "", "the point-particle template")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("channels", "string", "", "optional: \"both\" (default, eq. multiBeadFit), \"sx\", \"sy\""),
+                ("n_beads", "int", "", "optional: number of beads for automatic initial guesses from peaks"),
+                ("init", "array", "", "optional: initial guesses [#{x, y, weight}]"),
+                ("grow", "bool", "", "optional: add beads one at a time at the largest residual while the criterion improves (default when neither n_beads nor init)"),
+                ("max_beads", "int", "", "optional: limit when growing (default 30)"),
+                ("criterion", "string", "", "optional: \"bic\" (default) or \"rel_drop\""),
+                ("min_drop", "float", "", "optional: RSS drop needed with criterion rel_drop (default 0.02)"),
+                ("sigma", "float", "", "optional: pixel noise (default: from the residuals)"),
+                ("ftol", "float", "", "optional: relative tolerance on the objective (default 1e-10)"),
+                ("xtol", "float", "", "optional: relative tolerance on the parameters (default 1e-10)"),
+                ("gtol", "float", "", "optional: gradient tolerance (default 1e-10)"),
+                ("patience", "int", "", "optional: residual evaluations allowed = patience × (3n + 1) (default 100)"),
+                ("min_separation", "float", "", "optional: beads closer than this × w0 are degenerate (default 0.25)"),
+                ("merge_degenerate", "bool", "", "optional: merge degenerate pairs and refit (default true)"),
+            ],
+        )
+        .form("fit_beads(scan, tpl) -> FitResult")
+        .returns("FitResult", "beads with uncertainties, residual images, χ², status and reason, degeneracies")
+        .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
+        .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
+        .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
+    let spec = d.spec();
+    let c = ctx.clone();
+    let f = move |s: ScanRef, t: TemplateRef, m: Map| -> RResult<FitRef> {
+        let who = "fit_beads";
+        let o = Opts::new(&spec, &m)?;
+        // the degeneracy and merge distances scale with the session's beam waist (set_optics)
+        let d = FitOptions {
+            w0_um: c.optics().w0_nm / 1000.0,
+            ..FitOptions::default()
+        };
+        let channels = match o.string("channels")? {
+            None => d.channels,
+            Some(c) => Channels::parse(&c).map_or_else(
+                || {
+                    fail(format!(
+                        "{who}: channels = \"{c}\" is not one of \"both\", \"sx\", \"sy\""
+                    ))
+                },
+                Ok,
+            )?,
+        };
+        let init = match m.get("init") {
+            None => None,
+            Some(v) => Some(
+                bead_list(who, v)?
+                    .into_iter()
+                    .map(|(x, y, weight)| BeadInit { x, y, weight })
+                    .collect(),
+            ),
+        };
+        let criterion = match o.string("criterion")?.as_deref() {
+            None | Some("bic") => GrowCriterion::Bic,
+            Some("rel_drop") => GrowCriterion::RelDrop {
+                min_drop: o.f64_or("min_drop", 0.02)?,
+            },
+            Some(c) => {
+                return fail(format!(
+                    "{who}: criterion = \"{c}\" is not one of \"bic\", \"rel_drop\""
+                ))
+            }
+        };
+        let fo = FitOptions {
+            channels,
+            n_beads: count(who, &o, "n_beads", 1, 10_000)?,
+            init,
+            grow: o.bool_or("grow", d.grow)?,
+            max_beads: count(who, &o, "max_beads", 1, 10_000)?.unwrap_or(d.max_beads),
+            criterion,
+            sigma: o.f64("sigma")?,
+            ftol: o.f64_or("ftol", d.ftol)?,
+            xtol: o.f64_or("xtol", d.xtol)?,
+            gtol: o.f64_or("gtol", d.gtol)?,
+            patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
+            min_separation: o.f64_or("min_separation", d.min_separation)?,
+            merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
+            ..d
+        };
+        let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+        Ok(FitRef(Arc::new(r)))
+    };
+    let f2 = f.clone();
+    r.bind(d, f);
+    r.overload("fit_beads", move |s: ScanRef, t: TemplateRef| {
+        f2(s, t, Map::new())
+    });
+
+    let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
+    r.getter(
+        Doc::property("FitResult", "beads")
+            .returns("array", "[#{x, y, weight, x_err, y_err, weight_err}] (µm, reference-bead units; errors 1σ or () when ill-conditioned)")
+            .summary("the fitted beads")
+            .example(&format!("{fx} round(f.beads[0].weight * 1000.0)"), "1000.0"),
+        |f: &mut FitRef| -> Array { f.0.beads.iter().map(bead_map).collect() },
+    );
+    for (name, doc) in [
+        ("chi2", "rss / σ²"),
+        ("rss", "Σ (data − model)² over the fitted pixels"),
+        ("sigma", "pixel noise used (given or estimated)"),
+        ("bic", "Bayesian information criterion"),
+        ("condition", "condition number of the column-scaled JᵀJ"),
+        ("total_weight", "Σ weights (reference-bead units)"),
+    ] {
+        // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
+        // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
+        // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
+        let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
+        let (ex, expect) = match name {
+            "total_weight" => (format!("{fx} round(f.total_weight * 1000.0)"), "1000.0"),
+            "chi2" => (format!("{fx} f.chi2"), "3359.0"),
+            "rss" => (format!("{fx} f.rss < 1e-20"), "true"),
+            "sigma" => (format!("{fx} f.sigma < 1e-15"), "true"),
+            "bic" => (
+                format!("{sig} abs(f.bic - 3.0 * ln(2.0 * 41.0 * 41.0)) < 1e-9"),
+                "true",
+            ),
+            _ => (format!("{fx} round(f.condition * 1000.0) / 1000.0"), "1.0"),
+        };
+        r.getter(
+            Doc::property("FitResult", name)
+                .returns("float", doc)
+                .summary(doc)
+                .example(&ex, expect),
+            move |f: &mut FitRef| -> f64 {
+                let r = &f.0;
+                match name {
+                    "chi2" => r.chi2,
+                    "rss" => r.rss,
+                    "sigma" => r.sigma,
+                    "bic" => r.bic,
+                    "condition" => r.condition,
+                    _ => r.total_weight(),
+                }
+            },
+        );
+    }
+    for (name, doc) in [
+        ("dof", "residuals minus parameters"),
+        ("iterations", "Jacobian evaluations of the final fit"),
+        ("evaluations", "residual evaluations of the final fit"),
+        ("n_beads", "number of beads"),
+    ] {
+        r.getter(
+            Doc::property("FitResult", name)
+                .returns("int", doc)
+                .summary(doc)
+                .example(&format!("{fx} f.{name} > 0"), "true"),
+            move |f: &mut FitRef| -> i64 {
+                let r = &f.0;
+                (match name {
+                    "dof" => r.dof,
+                    "iterations" => r.iterations,
+                    "evaluations" => r.evaluations,
+                    _ => r.beads.len(),
+                }) as i64
+            },
+        );
+    }
+    r.getter(
+        Doc::property("FitResult", "status")
+            .returns("string", "\"converged\", \"max_evaluations\" or \"failed\"")
+            .summary("how the optimiser stopped (see .reason)")
+            .example(&format!("{fx} f.status"), "\"converged\""),
+        |f: &mut FitRef| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
+    );
+    r.getter(
+        Doc::property("FitResult", "reason")
+            .returns("string", "the optimiser's termination reason in words")
+            .summary("why the fit stopped")
+            .example(&format!("{fx} type_of(f.reason)"), "\"string\""),
+        |f: &mut FitRef| -> String { f.0.reason.clone() },
+    );
+    r.getter(
+        Doc::property("FitResult", "degeneracies")
+            .returns("array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]")
+            .summary("what the fit could not resolve (empty when well-posed)")
+            .example(&format!("{fx} f.degeneracies.len()"), "0"),
+        |f: &mut FitRef| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
+    );
+    r.getter(
+        Doc::property("FitResult", "history")
+            .returns(
+                "array",
+                "[#{n_beads, rss, bic, accepted}] of the bead-adding steps",
+            )
+            .summary("bead-adding history (empty unless growing)")
+            .example(
+                &format!("{ONE_BEAD} fit_beads(sc, t).history.len() >= 2"),
+                "true",
+            ),
+        |f: &mut FitRef| -> Array { f.0.history.iter().map(to_dyn).collect() },
+    );
+    for (name, doc) in [
+        ("model_sx", "model Sx image"),
+        ("model_sy", "model Sy image"),
+        ("residual_sx", "data − model, Sx"),
+        ("residual_sy", "data − model, Sy"),
+    ] {
+        r.getter(
+            Doc::property("FitResult", name)
+                .returns("Image", doc)
+                .summary(doc)
+                .example(&format!("{fx} f.{name}.cols"), "41"),
+            move |f: &mut FitRef| -> ImageRef {
+                let r = &f.0;
+                ImageRef(Arc::new(
+                    match name {
+                        "model_sx" => &r.model_sx,
+                        "model_sy" => &r.model_sy,
+                        "residual_sx" => &r.residual_sx,
+                        _ => &r.residual_sy,
+                    }
+                    .clone(),
+                ))
+            },
+        );
+    }
+    r.bind(
+        Doc::method("FitResult", "subtract")
+            .arg("scan", "Scan", "", "the scan that was fitted")
+            .returns(
+                "Scan",
+                "the scan minus the fitted model in Sx and Sy (Sz unchanged)",
+            )
+            .summary("remove the fitted beads from a scan")
+            .example(
+                &format!("{fx} let c = f.subtract(sc); abs(c.sx.max()) < 1e-3"),
+                "true",
+            ),
+        |f: &mut FitRef, s: ScanRef| -> RResult<ScanRef> {
+            let r = &f.0;
+            let sx = s.scan.sx.sub(&r.model_sx).map_err(|e| err("subtract", e))?;
+            let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
+            let mut meta = s.scan.meta.clone();
+            meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
+            Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
+        },
+    );
+    r.bind(
+        Doc::method("FitResult", "to_map")
+            .returns("map", "everything but the images")
+            .summary("the fit as a map (for printing and saving)")
+            .example(&format!("{fx} f.to_map().status"), "\"converged\""),
+        |f: &mut FitRef| -> Map {
+            let mut v = serde_json::to_value(&*f.0).unwrap_or_default();
+            if let Some(o) = v.as_object_mut() {
+                for k in ["model_sx", "model_sy", "residual_sx", "residual_sy"] {
+                    o.remove(k);
+                }
+            }
+            json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()
+        },
+    );
+}
