@@ -19,7 +19,7 @@ use std::sync::Arc;
     about = "Back-focal-plane interferometric microscopy workbench (Rhai REPL, scans, analysis)"
 )]
 struct Cli {
-    /// Config file (default: ./bfpscope.toml if present)
+    /// Config file (default: $BFPSCOPE_CONFIG, else ./bfpscope.toml if present)
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
     /// Session folder for autosaved scans (default: config [session] data_dir, else ./bfpscope_data/YYYY-MM-DD)
@@ -125,10 +125,7 @@ fn install_ctrlc(flag: Arc<AtomicBool>) {
 /// Connect what the config names (no config: the simulated instrument with an empty scene;
 /// `simulate(scene)` puts objects in front of it). A device that cannot be opened is an
 /// error naming it (exit 1).
-fn connect_default(
-    wb: &Workbench,
-    cfg: &bfpscope::instrument::config::Config,
-) -> Result<(), ExitCode> {
+fn connect_default(wb: &Workbench, cfg: &bfpscope::config::Config) -> Result<(), ExitCode> {
     match script::motion::connect_config(&wb.ctx, cfg) {
         Ok(_) => Ok(()),
         Err(e) => {
@@ -199,28 +196,26 @@ fn main() -> ExitCode {
         progress: std::io::stderr().is_terminal(),
         ..Settings::default()
     };
-    let mut inst_config: Option<bfpscope::instrument::config::Config> = None;
+    let mut inst_config: Option<bfpscope::config::Config> = None;
+    // --config, else $BFPSCOPE_CONFIG, else ./bfpscope.toml; parsed once, [safety] included
     let config_path = cli
         .config
         .clone()
-        .or_else(|| Some(PathBuf::from("bfpscope.toml")).filter(|p| p.exists()));
+        .or_else(|| {
+            std::env::var_os(bfpscope::config::ENV_VAR)
+                .filter(|p| !p.is_empty())
+                .map(PathBuf::from)
+        })
+        .or_else(|| Some(PathBuf::from(bfpscope::config::DEFAULT_FILE)).filter(|p| p.exists()));
     if let Some(p) = config_path {
-        let text = match std::fs::read_to_string(&p) {
-            Ok(t) => t,
-            Err(e) => return usage_error(&format!("--config {}: {e}", p.display())),
-        };
-        // the instrument config validates [stage], [qpd] and [safety] (unknown keys are errors)
-        match bfpscope::instrument::config::Config::from_toml_str(&text, &p.display().to_string()) {
-            Ok(c) => inst_config = Some(c),
+        let c = match bfpscope::config::Config::load(&p) {
+            Ok(c) => c,
             Err(e) => return usage_error(&e.to_string()),
-        }
-        let v: toml::Value = match toml::from_str(&text) {
-            Ok(v) => v,
-            Err(e) => return usage_error(&format!("{}: {e}", p.display())),
         };
-        if let Err(e) = settings.apply_config(v, Some(p.clone())) {
+        if let Err(e) = settings.apply_config(c.clone(), Some(p.clone())) {
             return usage_error(&format!("{}: {e}", p.display()));
         }
+        inst_config = Some(c);
     }
     if let Some(d) = &cli.data {
         settings.data_dir = d.clone();

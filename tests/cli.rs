@@ -312,7 +312,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
         .nth(1)
         .unwrap();
     let snippet = snippet.split("Serving until").next().unwrap();
-    let cfg = bfpscope::instrument::config::Config::from_toml_str(snippet, "snippet").unwrap();
+    let cfg = bfpscope::config::Config::from_toml_str(snippet, "snippet").unwrap();
     assert_eq!(cfg.qpd.port.as_deref(), Some(qp.as_str()));
 
     // the real drivers talk to them; the QPD images the reference bead at the stage position
@@ -469,4 +469,45 @@ fn repl_console_words_last_result_notes_session_log_and_quit() {
         serde_json::json!(["sample 3"])
     );
     assert!(stored["user_meta"]["plan"].is_object(), "{stored}");
+}
+
+#[test]
+fn bfpscope_config_variable_is_honoured_with_its_safety_table() {
+    // Issue 16: bfpscope.example.toml says "point $BFPSCOPE_CONFIG at it"; a config loaded that
+    // way must bring its [safety] table, and a bad one must stop the start, not be dropped.
+    let dir = tmp("envcfg");
+    let good = dir.join("lab.toml");
+    std::fs::write(&good, "[safety]\nsoft_limits = { x = [-3.0, 4.0] }\n").unwrap();
+    let out = bin()
+        .env("BFPSCOPE_CONFIG", &good)
+        .args([
+            "--data",
+            dir.join("d").to_str().unwrap(),
+            "eval",
+            "limits().x",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(stdout.trim(), "[-3.0, 4.0]");
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, "[safety]\nsoft_limits = { x = [4.0, -3.0] }\n").unwrap();
+    let out = bin()
+        .env("BFPSCOPE_CONFIG", &bad)
+        .args([
+            "--data",
+            dir.join("d").to_str().unwrap(),
+            "eval",
+            "limits().x",
+        ])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("safety.soft_limits.x"), "{stderr}");
 }

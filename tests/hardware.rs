@@ -5,9 +5,9 @@
 //! names the device, the command and what came back.
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
+use bfpscope::config::connect::{connect, ConnectError};
+use bfpscope::config::{Backend, Config};
 use bfpscope::data::{Scan, ScanStatus};
-use bfpscope::instrument::config::{Backend, Config};
-use bfpscope::instrument::connect::{connect, ConnectError};
 use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
     start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
@@ -1097,18 +1097,18 @@ fn emulate_cli_prints_paths_that_work() {
 // ---------------------------------------------------------------------------------------------
 // Through the scan engine (acquire/): its safety rules hold on the real drivers
 
-/// Connect to a fresh emulator pair from a config file text, with the scan engine's own reading
-/// of the same `[safety]` table.
+/// Connect to a fresh emulator pair from a config file text, with the rules of its `[safety]`
+/// table (the one parse).
 fn engine_setup() -> (
     Emulator,
     Emulator,
-    bfpscope::instrument::connect::Connected,
+    bfpscope::config::connect::Connected,
     SoftLimits,
 ) {
     let (se, qe) = pair(0.0);
     let text = emulator_config_text(&se, &qe);
     let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
-    let limits = SoftLimits::from_toml(&toml::from_str::<toml::Value>(&text).unwrap()).unwrap();
+    let limits = cfg.soft_limits();
     assert_eq!(limits.range[0], (-1.0, 1.0));
     assert_eq!(limits.max_step_um, 2.0);
     let c = connect(&cfg, no_sim).unwrap();
@@ -1303,7 +1303,7 @@ fn engine_speed_limit_holds_on_the_real_drivers_before_anything_is_sent() {
 
 #[test]
 fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
-    use bfpscope::instrument::connect::connect_emulated;
+    use bfpscope::config::connect::connect_emulated;
     let mut scene = Scene::default();
     scene
         .add_bead(Bead {

@@ -3,6 +3,7 @@
 
 use bfpscope::acquire::store::{load_scan, SessionStore};
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
+use bfpscope::config::Config;
 use bfpscope::data::ScanStatus;
 use bfpscope::instrument::mock::{mock_instrument, MockConfig};
 use std::path::PathBuf;
@@ -92,10 +93,9 @@ fn out_of_limit_plan_is_refused_before_any_move() {
 #[test]
 fn config_soft_limits_narrow_the_travel_range() {
     let mut h = Harness::new("config-limits");
-    h.limits = SoftLimits::from_toml(
-        &toml::from_str("[safety]\nsoft_limits = { z = [-2.0, 2.0] }").unwrap(),
-    )
-    .unwrap();
+    h.limits = Config::from_toml_str("[safety]\nsoft_limits = { z = [-2.0, 2.0] }", "t")
+        .unwrap()
+        .soft_limits();
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let plan = line("dscan", Axis::Z, -3.0, 3.0, 61, true);
     let e = h.run(&mut inst, &plan).unwrap_err().to_string();
@@ -125,8 +125,9 @@ fn speed_limit_refuses_a_fast_plan_naming_the_values_and_snake_passes() {
     // steps of 0.1 µm → 50 µm/s; the fly-back from x = 0.5 to x = -0.5 one row up is
     // √(1 + 0.01) = 1.005 µm → 502.5 µm/s.
     let mut h = Harness::new("speed");
-    h.limits =
-        SoftLimits::from_toml(&toml::from_str("[safety]\nmax_speed_um_s = 100").unwrap()).unwrap();
+    h.limits = Config::from_toml_str("[safety]\nmax_speed_um_s = 100", "t")
+        .unwrap()
+        .soft_limits();
     assert_eq!(h.limits.max_speed_um_s, Some(100.0));
     let (mut inst, mock) = mock_instrument(MockConfig::default());
     let e = h

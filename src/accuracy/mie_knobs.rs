@@ -18,7 +18,6 @@ const KNOB_HEIGHTS_UM: [f64; 3] = [0.0, 0.5, -1.0];
 /// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
 /// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
 /// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
-
 pub fn knob_mie_grid(quick: bool) -> Knob {
     let o = Optics::default();
     let n = C64::new(REF_BEAD_N, 0.0);

@@ -117,7 +117,10 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     };
     let start: Pos = inst.stage.position().map_err(dev)?;
     let travel = inst.stage.travel_range().map_err(dev)?;
-    let limits = env.limits.within_travel(travel);
+    let limits = env
+        .limits
+        .within_travel(travel)
+        .map_err(|e| ScanError::Refused(e.message))?;
     let points = limits
         .preflight(plan, start)
         .map_err(|e| ScanError::Refused(e.0))?;
@@ -312,6 +315,7 @@ pub fn checked_move(
         .map_err(|e| format!("{who}: {e}"))?;
     limits
         .within_travel(travel)
+        .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?
         .check(target)
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?;
     inst.move_settle(target).map_err(|e| format!("{who}: {e}"))

@@ -174,28 +174,49 @@ fn fmt_s(v: f64) -> String {
     }
 }
 
-impl SoftLimits {
-    /// The rules of a parsed config's `[safety]` table (absent: defaults). The whole config is
-    /// validated as `instrument::config::Config` does (one parser for the file): errors name
-    /// the key path, e.g. `config: safety.soft_limits.x: [5, -5]: need [min, max] …`.
-    pub fn from_toml(config: &toml::Value) -> Result<SoftLimits, String> {
-        let text = toml::to_string(config).map_err(|e| format!("config: {e}"))?;
-        let cfg = crate::instrument::config::Config::from_toml_str(&text, "config").map_err(
-            |mut e| {
-                e.line = None; // lines of the re-serialised text would mislead
-                e.to_string()
-            },
-        )?;
-        Ok(cfg.safety.limits())
-    }
+/// Soft limits and the stage's travel range cannot be combined on `axis`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TravelError {
+    pub axis: &'static str,
+    pub message: String,
+}
 
-    /// These limits narrowed to the stage's travel range.
-    pub fn within_travel(&self, travel: [(f64, f64); 3]) -> SoftLimits {
-        let mut l = *self;
-        for (r, t) in l.range.iter_mut().zip(travel) {
-            *r = (r.0.max(t.0), r.1.min(t.1));
+impl std::fmt::Display for TravelError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl SoftLimits {
+    /// These limits ∩ the stage's travel range, per axis (step and speed limits kept): the one
+    /// intersection, used at connect, before every move and every scan. An axis without soft
+    /// limits gets the travel range. Errors (naming the axis and both ranges) when the two do
+    /// not overlap or the travel range reported by the controller is not a range.
+    pub fn within_travel(&self, travel: [(f64, f64); 3]) -> Result<SoftLimits, TravelError> {
+        let mut out = *self;
+        for (i, axis) in ["x", "y", "z"].iter().enumerate() {
+            let (tlo, thi) = travel[i];
+            if !(tlo.is_finite() && thi.is_finite() && tlo < thi) {
+                return Err(TravelError {
+                    axis,
+                    message: format!(
+                        "the stage reports a travel range [{tlo}, {thi}] µm for {axis}, which is not a range"
+                    ),
+                });
+            }
+            let (lo, hi) = self.range[i];
+            let (a, b) = (lo.max(tlo), hi.min(thi));
+            if a >= b {
+                return Err(TravelError {
+                    axis,
+                    message: format!(
+                        "safety.soft_limits.{axis} = [{lo}, {hi}] µm does not overlap the stage's travel range [{tlo}, {thi}] µm"
+                    ),
+                });
+            }
+            out.range[i] = (a, b);
         }
-        l
+        Ok(out)
     }
 
     /// Check one absolute position; the message names the axis, the value and the limit.
@@ -332,13 +353,10 @@ mod tests {
 
     #[test]
     fn config_limits_parse_and_refuse_with_axis_value_and_limit() {
-        let cfg: toml::Value = toml::from_str(
-            "[safety]\nsoft_limits = { x = [-5, 5], z = [-1.0, 1.0] }\nmax_step_um = 0.5",
-        )
-        .unwrap();
-        let l = SoftLimits::from_toml(&cfg).unwrap();
-        assert_eq!(l.range[0], (-5.0, 5.0));
-        assert_eq!(l.max_step_um, 0.5);
+        let mut l = SoftLimits::default();
+        l.range[0] = (-5.0, 5.0);
+        l.range[2] = (-1.0, 1.0);
+        l.max_step_um = 0.5;
         let e = l.check([6.0, 0.0, 0.0]).unwrap_err();
         assert_eq!(e.0, "x = 6 µm is above the soft limit x ≤ 5 µm");
         let plan = Plan::line(
@@ -368,34 +386,31 @@ mod tests {
     }
 
     #[test]
-    fn bad_config_is_an_error_naming_the_key() {
-        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { x = [5, -5] }").unwrap();
-        let e = SoftLimits::from_toml(&cfg).unwrap_err();
-        assert!(e.contains("safety.soft_limits.x"), "{e}");
-        let cfg: toml::Value = toml::from_str("[safety]\nsoft_limits = { w = [0, 1] }").unwrap();
-        let e = SoftLimits::from_toml(&cfg).unwrap_err();
-        assert!(e.contains("safety.soft_limits"), "{e}");
-        assert!(
-            e.contains("unknown field `w`, expected one of `x`, `y`, `z`"),
-            "{e}"
-        );
-        let cfg: toml::Value = toml::from_str("[safety]\nmax_speed_um_s = -3").unwrap();
-        let e = SoftLimits::from_toml(&cfg).unwrap_err();
+    fn soft_limits_intersect_travel_once_and_refuse_no_overlap() {
+        let mut soft = SoftLimits::default();
+        soft.range[0] = (-10.0, 50.0);
+        soft.range[1] = (20.0, 30.0);
+        soft.max_speed_um_s = Some(50.0);
+        let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
+        let l = soft.within_travel(travel).unwrap();
+        assert_eq!(l.range, [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]);
+        assert_eq!((l.max_step_um, l.max_speed_um_s), (10.0, Some(50.0)));
+        // no overlap is an error, never an inverted range
+        let mut soft = SoftLimits::default();
+        soft.range[2] = (25.0, 30.0);
+        let e = soft.within_travel(travel).unwrap_err();
+        assert_eq!(e.axis, "z");
         assert_eq!(
-            e,
-            "config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"
+            e.message,
+            "safety.soft_limits.z = [25, 30] µm does not overlap the stage's travel range [0, 20] µm"
         );
-        // the legacy table: refused, with its [safety] equivalent
-        let cfg: toml::Value = toml::from_str("[limits]\nz = [0.0, 1.0]").unwrap();
-        let e = SoftLimits::from_toml(&cfg).unwrap_err();
-        assert!(
-            e.contains("write [safety] soft_limits = { z = [0.0, 1.0] }"),
-            "{e}"
+        let bad = [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)];
+        assert_eq!(
+            SoftLimits::default().within_travel(bad).unwrap_err().axis,
+            "y"
         );
-        // no [safety]: defaults, no speed limit
-        let l = SoftLimits::from_toml(&toml::from_str("[sandbox]\nmax_operations = 5").unwrap())
-            .unwrap();
-        assert_eq!(l, SoftLimits::default());
+        let nan = [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)];
+        assert!(SoftLimits::default().within_travel(nan).is_err());
     }
 
     #[test]

@@ -1,15 +1,14 @@
 //! Instruments: the `Stage` and `Qpd` traits every backend implements (simulated, serial
 //! drivers), the clock that settle/dwell times advance, and device errors.
 //!
-//! Drivers only move and read. Soft limits, step limits, abort and return-to-start live in
-//! `acquire/`, never here.
+//! Drivers only move, read and report their travel and capabilities. Soft limits, step limits,
+//! abort and return-to-start live in `acquire/`; the config file and connecting what it names
+//! in `config/`. Nothing here imports either (tests/architecture.rs).
 
 pub mod mock;
 pub mod sim;
 pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
-pub mod config;
-pub mod connect;
 pub mod emulator;
 pub mod gcs;
 pub mod link;

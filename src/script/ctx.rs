@@ -87,8 +87,8 @@ pub struct Settings {
     pub log: Printer,
     /// Set by Ctrl-C.
     pub abort: Arc<AtomicBool>,
-    /// The parsed config file, if any (other sections are read by their owners).
-    pub config: Option<toml::Value>,
+    /// The config file, parsed once at start-up (`config::Config`), if any.
+    pub config: Option<crate::config::Config>,
     pub config_path: Option<PathBuf>,
 }
 
@@ -130,16 +130,17 @@ impl Settings {
         (s, buf)
     }
 
-    /// Apply a parsed config (`[safety]` soft limits and max step, `[sandbox]`,
-    /// `[session] data_dir`).
+    /// Apply the parsed config: `[safety]` (soft limits, step and speed limits), `[sandbox]`,
+    /// `[session] data_dir`.
     pub fn apply_config(
         &mut self,
-        config: toml::Value,
+        config: crate::config::Config,
         path: Option<PathBuf>,
     ) -> Result<(), String> {
-        self.limits = SoftLimits::from_toml(&config)?;
-        self.sandbox = Sandbox::from_toml(&config)?;
-        if let Some(d) = config.get("session").and_then(|s| s.get("data_dir")) {
+        self.limits = config.soft_limits();
+        let rest = toml::Value::Table(config.other.clone());
+        self.sandbox = Sandbox::from_toml(&rest)?;
+        if let Some(d) = rest.get("session").and_then(|s| s.get("data_dir")) {
             let d = d
                 .as_str()
                 .ok_or("config: session.data_dir must be a string")?;

@@ -10,8 +10,8 @@ use super::ctx::{Attached, Ctx};
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
-use crate::instrument::config::{Backend, Config};
-use crate::instrument::connect::connect_emulated;
+use crate::config::connect::connect_emulated;
+use crate::config::{Backend, Config};
 use crate::instrument::mock::{mock_instrument, MockConfig};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
@@ -217,9 +217,11 @@ pub fn register(r: &mut Registrar) {
             let l =
                 if c.is_connected() {
                     c.with_instrument("limits", |i| {
-                        Ok(l.within_travel(
-                            i.stage.travel_range().map_err(|e| format!("limits: {e}"))?,
-                        ))
+                        Ok(l
+                            .within_travel(
+                                i.stage.travel_range().map_err(|e| format!("limits: {e}"))?,
+                            )
+                            .map_err(|e| format!("limits: {e}"))?)
                     })?
                 } else {
                     l
@@ -264,7 +266,9 @@ pub fn register(r: &mut Registrar) {
                 c.with_instrument("status", |i| {
                     // the rules in force: soft limits narrowed to the travel range
                     if let Ok(t) = i.stage.travel_range() {
-                        m.insert("limits".into(), c.settings.limits.within_travel(t).describe().into());
+                        let l = c.settings.limits.within_travel(t);
+                        let text = l.map_or_else(|e| format!("refused: {e}"), |l| l.describe());
+                        m.insert("limits".into(), text.into());
                     }
                     m.insert("instrument".into(), super::types::json_to_dynamic(&i.description));
                     match i.stage.position() {
@@ -384,20 +388,7 @@ pub fn register(r: &mut Registrar) {
 
 /// The config in force for this workbench (the file given at start-up), or the defaults.
 fn base_config(ctx: &Ctx) -> RResult<Config> {
-    let Some(v) = &ctx.settings.config else {
-        return Ok(Config::default());
-    };
-    let origin = ctx
-        .settings
-        .config_path
-        .as_ref()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|| "config".into());
-    let text = toml::to_string(v).map_err(|e| format!("connect: {origin}: {e}"))?;
-    Config::from_toml_str(&text, &origin).map_err(|mut e| {
-        e.line = None;
-        format!("connect: {e}").into()
-    })
+    Ok(ctx.settings.config.clone().unwrap_or_default())
 }
 
 /// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
@@ -473,7 +464,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     if wanted.iter().flatten().any(|p| held.contains(p)) {
         ctx.disconnect();
     }
-    let c = crate::instrument::connect::connect(cfg, |_| {
+    let c = crate::config::connect::connect(cfg, |_| {
         Err(anyhow::anyhow!(
             "a hardware config does not build the simulator"
         ))

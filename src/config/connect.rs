@@ -2,11 +2,11 @@
 //! serial ports. Also computes the limits in force (`[safety]` soft limits ∩ the travel range
 //! the stage reports, with the step and speed limits), which `acquire/` enforces.
 
-use super::config::{effective_limits, Backend, Config, ConfigError};
-use super::gcs::GcsStage;
-use super::scpi::ScpiQpd;
-use super::{DeviceError, Instrument, WallClock};
+use super::{Backend, Config, ConfigError};
 use crate::acquire::SoftLimits;
+use crate::instrument::gcs::GcsStage;
+use crate::instrument::scpi::ScpiQpd;
+use crate::instrument::{DeviceError, Instrument, WallClock};
 use serde_json::json;
 use std::sync::Arc;
 
@@ -53,7 +53,15 @@ pub fn connect(
         _ => connect_hardware(cfg)?,
     };
     let travel = instrument.stage.travel_range()?;
-    let limits = effective_limits(&cfg.soft_limits(), travel)?;
+    let limits = cfg
+        .soft_limits()
+        .within_travel(travel)
+        .map_err(|e| ConfigError {
+            origin: "bfpscope.toml".into(),
+            key: format!("safety.soft_limits.{}", e.axis),
+            line: None,
+            message: e.message,
+        })?;
     if let serde_json::Value::Object(m) = &mut instrument.description {
         m.insert("travel_um".into(), json!(travel));
         m.insert(
@@ -74,7 +82,7 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         "backend": "hardware",
         "stage": {
             "backend": "gcs",
-            "name": super::Stage::name(&stage),
+            "name": crate::instrument::Stage::name(&stage),
             "port": sport,
             "baud": cfg.stage.baud,
             "idn": stage.idn(),
@@ -83,11 +91,11 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         },
         "qpd": {
             "backend": "scpi",
-            "name": super::Qpd::name(&qpd),
+            "name": crate::instrument::Qpd::name(&qpd),
             "port": qport,
             "baud": cfg.qpd.baud,
             "idn": qpd.idn(),
-            "sample_rate_hz": super::Qpd::sample_rate(&qpd),
+            "sample_rate_hz": crate::instrument::Qpd::sample_rate(&qpd),
             "calibration": cfg.qpd.calibration,
         },
         "settle_s": cfg.stage.settle_s,
@@ -105,8 +113,8 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
 /// connection and the two emulators it talks to (keep them alive as long as the connection).
 pub struct Emulated {
     pub connected: Connected,
-    pub stage: super::emulator::Emulator,
-    pub qpd: super::emulator::Emulator,
+    pub stage: crate::instrument::emulator::Emulator,
+    pub qpd: crate::instrument::emulator::Emulator,
 }
 
 /// Start a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process and
@@ -119,12 +127,14 @@ pub struct Emulated {
 /// From `base` only the `[safety]` table and `stage.settle_s` are used (its ports and serial
 /// settings belong to the real hardware). The description's `backend` is `"emulated"`.
 pub fn connect_emulated(
-    renderer: Arc<super::sim::Renderer>,
-    sim: &super::sim::SimConfig,
+    renderer: Arc<crate::instrument::sim::Renderer>,
+    sim: &crate::instrument::sim::SimConfig,
     base: &Config,
     noise_v: f64,
 ) -> Result<Emulated, ConnectError> {
-    use super::emulator::{sim_signal_source, start_pair, QpdEmulatorConfig, StageEmulatorConfig};
+    use crate::instrument::emulator::{
+        sim_signal_source, start_pair, QpdEmulatorConfig, StageEmulatorConfig,
+    };
     if !(noise_v.is_finite() && noise_v >= 0.0) {
         return Err(ConnectError::Config(ConfigError {
             origin: "connect".into(),

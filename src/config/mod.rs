@@ -27,9 +27,11 @@
 //! ignored silently); errors name the key path (`stage.baud`) and the line. The legacy
 //! `[limits]` table and `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
 
-use super::gcs::GcsOptions;
-use super::scpi::{Calibration, ScpiOptions};
+pub mod connect;
+
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
+use crate::instrument::gcs::GcsOptions;
+use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -179,43 +181,6 @@ pub struct Config {
 }
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
-
-/// Soft limits ∩ the controller's travel range, per axis (step and speed limits kept). An
-/// axis without soft limits gets the travel range. Errors when the two do not overlap or the
-/// travel range is nonsense.
-pub fn effective_limits(
-    soft: &SoftLimits,
-    travel: [(f64, f64); 3],
-) -> Result<SoftLimits, ConfigError> {
-    let mut out = *soft;
-    for i in 0..3 {
-        let (tlo, thi) = travel[i];
-        if !(tlo.is_finite() && thi.is_finite() && tlo < thi) {
-            return Err(ConfigError {
-                origin: "controller".into(),
-                key: format!("travel range {}", AXIS_NAMES[i]),
-                line: None,
-                message: format!(
-                    "controller reports travel [{tlo}, {thi}] µm, which is not a range"
-                ),
-            });
-        }
-        let (lo, hi) = soft.range[i];
-        let (a, b) = (lo.max(tlo), hi.min(thi));
-        if a >= b {
-            return Err(ConfigError {
-                origin: "bfpscope.toml".into(),
-                key: format!("safety.soft_limits.{}", AXIS_NAMES[i]),
-                line: None,
-                message: format!(
-                    "[{lo}, {hi}] µm does not overlap the controller's travel range [{tlo}, {thi}] µm"
-                ),
-            });
-        }
-        out.range[i] = (a, b);
-    }
-    Ok(out)
-}
 
 /// The key path and 1-based line at byte `offset` of a TOML text, by tracking `[table]`
 /// headers and `key =` lines (good enough for error messages).
@@ -695,33 +660,6 @@ wavelength_nm = 1064.0
     }
 
     #[test]
-    fn soft_limits_intersect_travel() {
-        let soft = Config::from_toml_str(
-            "[safety]\nsoft_limits = { x = [-10.0, 50.0], y = [20.0, 30.0] }\nmax_speed_um_s = 50",
-            "t",
-        )
-        .unwrap()
-        .soft_limits();
-        let travel = [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)];
-        let l = effective_limits(&soft, travel).unwrap();
-        assert_eq!(l.range, [(0.0, 50.0), (20.0, 30.0), (0.0, 20.0)]);
-        assert_eq!((l.max_step_um, l.max_speed_um_s), (10.0, Some(50.0)));
-        let mut soft = SoftLimits::default();
-        soft.range[2] = (25.0, 30.0);
-        let e = effective_limits(&soft, travel).unwrap_err();
-        assert_eq!(e.key, "safety.soft_limits.z");
-        assert!(e.message.contains("[0, 20]"), "{e}");
-        assert!(
-            effective_limits(&SoftLimits::default(), [(0.0, 1.0), (1.0, 1.0), (0.0, 1.0)]).is_err()
-        );
-        assert!(effective_limits(
-            &SoftLimits::default(),
-            [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)]
-        )
-        .is_err());
-    }
-
-    #[test]
     fn example_file_parses() {
         let c = Config::from_toml_str(
             include_str!("../../bfpscope.example.toml"),
@@ -768,5 +706,36 @@ wavelength_nm = 1064.0
         assert_eq!(key_path_at(t, t.find("  1").unwrap()), ("x.y.c".into(), 5));
         let t = "[scene]\npoints = [\n  [1, 2],\n  [x],\n]\n";
         assert_eq!(key_path_at(t, t.find("[x]").unwrap()).0, "scene.points");
+    }
+
+    #[test]
+    fn bad_safety_table_is_an_error_naming_the_key() {
+        let safety = |t: &str| {
+            Config::from_toml_str(t, "config")
+                .map(|c| c.soft_limits())
+                .map_err(|e| e.to_string())
+        };
+        let e = safety("[safety]\nsoft_limits = { x = [5, -5] }").unwrap_err();
+        assert!(e.contains("safety.soft_limits.x"), "{e}");
+        let e = safety("[safety]\nsoft_limits = { w = [0, 1] }").unwrap_err();
+        assert!(e.contains("safety.soft_limits"), "{e}");
+        assert!(
+            e.contains("unknown field `w`, expected one of `x`, `y`, `z`"),
+            "{e}"
+        );
+        let e = safety("[safety]\nmax_speed_um_s = -3").unwrap_err();
+        assert!(
+            e.contains("config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"),
+            "{e}"
+        );
+        // the legacy table: refused, with its [safety] equivalent
+        let e = safety("[limits]\nz = [0.0, 1.0]").unwrap_err();
+        assert!(
+            e.contains("write [safety] soft_limits = { z = [0.0, 1.0] }"),
+            "{e}"
+        );
+        // no [safety]: defaults, no speed limit
+        let l = safety("[sandbox]\nmax_operations = 5").unwrap();
+        assert_eq!(l, SoftLimits::default());
     }
 }
