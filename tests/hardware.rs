@@ -92,7 +92,7 @@ fn stage_connect_identifies_and_switches_servo_on() {
     assert_eq!(s.name(), format!("PI E-727 on {}", emu.path()));
     assert_eq!(
         emu.commands(),
-        vec!["*IDN?", "ERR?", "SVO A 1 B 1 C 1", "ERR?"]
+        vec!["*IDN?", "ERR?", "MOV? A B C", "SVO A 1 B 1 C 1", "ERR?"]
     );
 }
 
@@ -352,14 +352,13 @@ fn fault_stage_out_of_range_target_is_the_controllers_error_7() {
             message,
             ..
         }) => {
-            assert_eq!(command, "MOV A 75.000000 B 5.000000 C 5.000000");
+            // only the axis that changes is named
+            assert_eq!(command, "MOV A 75.000000");
             assert_eq!((code, message.as_str()), (7, "Position out of limits"));
         }
         other => panic!("{other:?}"),
     }
-    assert!(emu
-        .commands()
-        .contains(&"MOV A 75.000000 B 5.000000 C 5.000000".to_string()));
+    assert!(emu.commands().contains(&"MOV A 75.000000".to_string()));
     assert_eq!(
         s.position().unwrap(),
         [5.0, 5.0, 5.0],
@@ -388,9 +387,7 @@ fn fault_stage_slow_settling_is_an_on_target_timeout() {
         DeviceError::Other { device, detail } => {
             assert!(device.contains("E-727"));
             assert!(
-                detail.starts_with(
-                    "not on target within 300 ms after `MOV A 20.000000 B 0.000000 C 0.000000`"
-                ),
+                detail.starts_with("not on target within 300 ms after `MOV A 20.000000`"),
                 "{detail}"
             );
             assert!(
@@ -408,7 +405,8 @@ fn fault_stage_slow_settling_is_an_on_target_timeout() {
 fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     let emu = stage_emu();
     let mut s = open_stage(&emu, 200);
-    // With instant settling each move is MOV, ERR?, ONT?: unplug right after the 3rd MOV.
+    // With instant settling each move is MOV, ERR?, ONT?, and the first (to where the stage
+    // already is) sends nothing: unplug right after the 3rd MOV, the 4th move's.
     emu.faults().settle_s = Some(0.0);
     emu.faults().unplug_after = Some(7);
     let t0 = Instant::now();
@@ -421,16 +419,13 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
         assert!(done < 10, "never unplugged");
     };
     assert_bounded(t0, 2.0);
-    assert_eq!(done, 2, "{err}");
+    assert_eq!(done, 3, "{err}");
     match &err {
         DeviceError::Disconnected {
             device, command, ..
         } => {
             assert!(device.contains(emu.path()));
-            assert_eq!(
-                command,
-                "ERR? (after `MOV A 2.000000 B 0.000000 C 0.000000`)"
-            );
+            assert_eq!(command, "ERR? (after `MOV A 3.000000`)");
         }
         other => panic!("{other:?}"),
     }
@@ -442,8 +437,8 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     ));
 }
 
-/// A fake controller on a raw PTY: answers `*IDN?`/`ERR?` properly and every `POS?` with the
-/// next scripted reply.
+/// A fake controller on a raw PTY: answers `*IDN?`/`ERR?`/`MOV?` properly and every `POS?`
+/// with the next scripted reply.
 fn fake_controller(
     replies: Vec<Vec<u8>>,
 ) -> (String, std::thread::JoinHandle<()>, Arc<AtomicBool>) {
@@ -466,6 +461,7 @@ fn fake_controller(
                 let reply: Vec<u8> = match &line[..line.len() - 1] {
                     b"*IDN?" => b"PI, C-413, 1, 1\n".to_vec(),
                     b"ERR?" => b"0\n".to_vec(),
+                    l if l.starts_with(b"MOV?") => b"A=0 \nB=0 \nC=0\n".to_vec(),
                     l if l.starts_with(b"POS?") => replies.next().unwrap_or_default(),
                     _ => vec![],
                 };
@@ -1192,10 +1188,11 @@ fn engine_refuses_an_out_of_limits_plan_before_anything_is_sent() {
 fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     let (se, _qe, mut c, limits) = engine_setup();
     c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
-    // settle at once: each move is exactly MOV, ERR?, ONT?. The engine first sends POS?, TMN?,
-    // TMX?; so the 10th command is the 3rd point's MOV: the controller rejects it.
+    // settle at once: each move is exactly MOV, ERR?, ONT?. The engine first sends TMN?, TMX?
+    // (the start is the commanded target, known since connect); so the 9th command is the 3rd
+    // point's MOV: the controller rejects it.
     se.faults().settle_s = Some(0.0);
-    se.faults().error_after = Some((9, -1024));
+    se.faults().error_after = Some((8, -1024));
     let before = se.commands().len();
     let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
     let r = r.unwrap();
@@ -1212,7 +1209,7 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
             stage_fault,
         } => {
             assert_eq!((*measured, *code, *stage_fault), (2, -1024, true));
-            assert_eq!(command, "MOV A 0.200000 B 0.100000 C 0.000000"); // start + 0.0
+            assert_eq!(command, "MOV A 0.200000"); // start + 0.0, only x moves
             assert!(message.starts_with("Motion error"), "{message}");
         }
         other => panic!("{other:?}"),
@@ -1230,8 +1227,8 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     assert!(!r.returned_to_start);
     std::thread::sleep(Duration::from_millis(100));
     let sent = se.commands()[before..].to_vec();
-    assert_eq!(sent.len(), 11, "{sent:?}");
-    assert_eq!(&sent[9..], ["MOV A 0.200000 B 0.100000 C 0.000000", "ERR?"]);
+    assert_eq!(sent.len(), 10, "{sent:?}");
+    assert_eq!(&sent[8..], ["MOV A 0.200000", "ERR?"]);
     assert!(r
         .summary()
         .unwrap_err()
@@ -1427,4 +1424,66 @@ fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
     );
     let _s = open_stage(&se, 1000);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the_target() {
+    // Issue 16, item 1. A closed-loop piezo reads its sensor with nanometre noise around the
+    // target (the emulator's POS? here carries ±2 nm). Moves must name only the axes asked
+    // for, and relative moves must add to the last commanded target (PI's MVR), not to a fresh
+    // POS?: before the fix, `mvr(#{x: 0.5, y: -0.25})` re-commanded z from POS? and 50 relative
+    // moves of 0.1 µm accumulated the sensor noise into x's target.
+    use bfpscope::script::{Settings, Workbench};
+    let stage = StageEmulatorConfig {
+        travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
+        settle_s: 0.0005,
+        ..Default::default()
+    };
+    let (se, qe) = start_pair(stage, qpd_cfg(0.0), standin_bead).unwrap();
+    se.faults().pos_noise_um = 0.002;
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-mvr-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
+        se.path(),
+        qe.path()
+    );
+    wb.eval_source("t", &call).unwrap();
+    wb.eval_source("t", "mv(#{x: 40, y: 45, z: 10})").unwrap();
+    // the sensor really is noisy: POS? is not the target
+    let p = wb.eval_source("t", "pos().x").unwrap().as_float().unwrap();
+    assert!(p != 40.0 && (p - 40.0).abs() <= 0.002, "{p}");
+    let before = se.commands().len();
+    wb.eval_source("t", "mvr(#{x: 0.5, y: -0.25})").unwrap();
+    let movs: Vec<String> = se.commands()[before..]
+        .iter()
+        .filter(|c| c.starts_with("MOV "))
+        .cloned()
+        .collect();
+    assert_eq!(
+        movs,
+        ["MOV A 40.500000 B 44.750000"],
+        "z was not asked to move"
+    );
+    let before = se.commands().len();
+    wb.eval_source("t", "mv(#{x: 40}); for i in 0..50 { mvr(#{x: 0.1}) }")
+        .unwrap();
+    let sent = se.commands()[before..].to_vec();
+    assert!(
+        sent.iter()
+            .filter(|c| c.starts_with("MOV "))
+            .all(|c| c.starts_with("MOV A ") && !c.contains(" B ") && !c.contains(" C ")),
+        "only x is commanded: {sent:?}"
+    );
+    assert_eq!(sent.iter().filter(|c| c.starts_with("MOV ")).count(), 51);
+    // x's target: 40 + 50 × 0.1 = 45.000000 as sent (f64 sums to 44.99999999999998, which the
+    // 6-decimal command rounds to 45.000000); y and z: exactly what was commanded
+    drop(wb); // release the port, then ask the controller itself (MOV? at connect)
+    let mut s = GcsStage::open(se.path(), BAUD, opts(1000, 2000)).unwrap();
+    let t = s.commanded_target().unwrap();
+    assert_eq!(t, [45.0, 44.75, 10.0]);
+    for (i, want) in [45.0f64, 44.75, 10.0].iter().enumerate() {
+        assert_eq!(t[i].to_bits(), want.to_bits(), "axis {i}");
+    }
 }

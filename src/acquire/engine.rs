@@ -115,7 +115,8 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         kind: kind.clone(),
         error,
     };
-    let start: Pos = inst.stage.position().map_err(dev)?;
+    // the start is the commanded target: a relative scan returns exactly there
+    let start: Pos = inst.stage.target().map_err(dev)?;
     let travel = inst.stage.travel_range().map_err(dev)?;
     let limits = env
         .limits

@@ -100,6 +100,10 @@ pub struct GcsStage {
     link: LineLink,
     opts: GcsOptions,
     idn: String,
+    /// The last commanded target (µm) as sent, per axis: read with `MOV?` when unknown (at the
+    /// first move, after a stop), then kept. PI defines relative moves (`MVR`) on the target,
+    /// not on the measured position; untouched axes are never re-commanded.
+    commanded: Option<Pos>,
 }
 
 impl GcsStage {
@@ -122,6 +126,7 @@ impl GcsStage {
             link,
             opts,
             idn: String::new(),
+            commanded: None,
         };
         s.check_axes()?;
         let idn = s.query_lines("*IDN?")?.join(" ");
@@ -140,6 +145,8 @@ impl GcsStage {
         s.link.set_device(label);
         // A stale error from before we connected is not ours: read and forget it.
         s.error_code("*IDN?")?;
+        // The targets in force: relative moves start from them, untouched axes keep them.
+        s.commanded_target()?;
         if s.opts.servo_on_connect {
             s.set_servo(true)?;
         }
@@ -333,25 +340,51 @@ impl GcsStage {
         self.command(&format!("SVO {cmd}"))
     }
 
-    /// `MOV A x B y C z` without waiting (positions in µm).
-    pub fn move_no_wait(&mut self, target: Pos) -> Result<String, DeviceError> {
+    /// The last commanded target (µm): `MOV?` when not known yet, then what was sent.
+    pub fn commanded_target(&mut self) -> Result<Pos, DeviceError> {
+        match self.commanded {
+            Some(t) => Ok(t),
+            None => {
+                let t = self.query_positions("MOV?")?;
+                self.commanded = Some(t);
+                Ok(t)
+            }
+        }
+    }
+
+    /// `MOV` for the axes whose target changes, without waiting (positions in µm). An axis
+    /// whose target, as sent (6 decimals of controller units), equals its last commanded target
+    /// is not named, so the targets of untouched axes never wander. Returns the command sent,
+    /// or `None` when no axis changes.
+    pub fn move_no_wait(&mut self, target: Pos) -> Result<Option<String>, DeviceError> {
         if target.iter().any(|v| !v.is_finite()) {
             return Err(DeviceError::Other {
                 device: self.link.device().to_string(),
                 detail: format!("refusing to send a non-finite target {target:?} µm"),
             });
         }
+        let now = self.commanded_target()?;
         let k = self.opts.units_per_um;
-        let parts: Vec<String> = self
-            .opts
-            .axes
-            .iter()
-            .zip(target)
-            .map(|(a, v)| format!("{a} {:.6}", v * k))
+        let sent = |v: f64| format!("{:.6}", v * k);
+        let parts: Vec<String> = (0..3)
+            .filter(|&i| sent(target[i]) != sent(now[i]))
+            .map(|i| format!("{} {}", self.opts.axes[i], sent(target[i])))
             .collect();
+        if parts.is_empty() {
+            return Ok(None);
+        }
         let cmd = format!("MOV {}", parts.join(" "));
+        // unknown until the controller has accepted it (an error leaves the old targets)
+        self.commanded = None;
         self.command(&cmd)?;
-        Ok(cmd)
+        let mut t = now;
+        for i in 0..3 {
+            if sent(target[i]) != sent(now[i]) {
+                t[i] = sent(target[i]).parse::<f64>().unwrap_or(target[i] * k) / k;
+            }
+        }
+        self.commanded = Some(t);
+        Ok(Some(cmd))
     }
 }
 
@@ -388,9 +421,15 @@ impl Stage for GcsStage {
         self.query_positions("POS?")
     }
 
+    fn target(&mut self) -> Result<Pos, DeviceError> {
+        self.commanded_target()
+    }
+
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
-        let cmd = self.move_no_wait(target)?;
-        self.wait_on_target(&cmd)
+        match self.move_no_wait(target)? {
+            Some(cmd) => self.wait_on_target(&cmd),
+            None => Ok(()),
+        }
     }
 
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
@@ -402,6 +441,8 @@ impl Stage for GcsStage {
     /// `STP`, then `ERR?`: error 10 ("stopped by command") is the expected answer and is
     /// cleared; any other nonzero code is reported.
     fn stop(&mut self) -> Result<(), DeviceError> {
+        // where the axes stop is where the controller says their targets are now
+        self.commanded = None;
         self.link.discard_input();
         self.link.send("STP")?;
         match self.error_code("STP")? {
@@ -431,6 +472,7 @@ mod tests {
         let mut all: Vec<Vec<u8>> = vec![
             b"(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 1, 1\n".to_vec(),
             b"0\n".to_vec(),
+            b"A=0.000000 \nB=0.000000 \nC=0.000000\n".to_vec(),
         ];
         all.extend(replies.into_iter().map(|r| r.to_vec()));
         GcsStage::connect(Box::new(Scripted::new(all)), "mock", opts()).unwrap()
@@ -479,7 +521,8 @@ mod tests {
             }) => {
                 assert_eq!(code, 7);
                 assert_eq!(message, "Position out of limits");
-                assert_eq!(command, "MOV A 500.000000 B 0.000000 C 0.000000");
+                // only the axis that changes is named
+                assert_eq!(command, "MOV A 500.000000");
             }
             other => panic!("{other:?}"),
         }
@@ -493,7 +536,11 @@ mod tests {
 
     #[test]
     fn non_finite_target_is_not_sent() {
-        let script = Scripted::new(vec![b"x, E-727, 1, 1\n".to_vec(), b"0\n".to_vec()]);
+        let script = Scripted::new(vec![
+            b"x, E-727, 1, 1\n".to_vec(),
+            b"0\n".to_vec(),
+            b"A=0 \nB=0 \nC=0\n".to_vec(),
+        ]);
         let log = script.log.clone();
         let mut s = GcsStage::connect(Box::new(script), "mock", opts()).unwrap();
         assert!(matches!(
@@ -503,7 +550,7 @@ mod tests {
         assert_eq!(
             *log.lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner),
-            vec!["*IDN?", "ERR?"]
+            vec!["*IDN?", "ERR?", "MOV? A B C"]
         );
     }
 

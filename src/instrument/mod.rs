@@ -93,8 +93,14 @@ pub trait Clock: Send + Sync {
 pub trait Stage: Send {
     /// Human-readable device name for messages (`"sim stage"`, `"PI E-727 on /dev/ttyUSB0"`).
     fn name(&self) -> String;
-    /// Current position (µm).
+    /// Current position (µm), as measured.
     fn position(&mut self) -> Result<Pos, DeviceError>;
+    /// The last commanded target (µm): relative moves and return-to-start start from it, as PI
+    /// defines `MVR`, so that repeated relative moves do not accumulate the position noise.
+    /// Devices that do not distinguish the two return the position.
+    fn target(&mut self) -> Result<Pos, DeviceError> {
+        self.position()
+    }
     /// Absolute move; returns when the controller reports on-target (or errors).
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
     /// Travel range per axis (min, max) in µm, as the controller reports it.

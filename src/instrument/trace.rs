@@ -110,6 +110,9 @@ impl Stage for TracedStage {
     fn position(&mut self) -> Result<Pos, DeviceError> {
         self.inner.position()
     }
+    fn target(&mut self) -> Result<Pos, DeviceError> {
+        self.inner.target()
+    }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         let r = self.inner.move_to(target);
         match &r {

@@ -75,7 +75,8 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
     let t = axes_map(who, m)?;
     let limits = ctx.settings.limits;
     ctx.with_instrument(who, |inst| {
-        let mut target = inst.stage.position().map_err(|e| format!("{who}: {e}"))?;
+        // from the last commanded target: axes not named keep theirs exactly
+        let mut target = inst.stage.target().map_err(|e| format!("{who}: {e}"))?;
         for i in 0..3 {
             if let Some(v) = t[i] {
                 target[i] = if relative { target[i] + v } else { v };

@@ -87,6 +87,10 @@ pub struct Faults {
     /// Stage: reject targets outside the travel range with error 7, as real controllers do.
     /// When false the target is silently clamped to the travel range.
     pub reject_out_of_range: bool,
+    /// Stage: sensor noise of `POS?` replies, µm (uniform, ± this value; deterministic). A
+    /// closed-loop piezo reads its capacitive sensor with nanometre noise around the target;
+    /// `MOV?` answers the target itself.
+    pub pos_noise_um: f64,
 }
 
 impl Default for Faults {
@@ -99,6 +103,7 @@ impl Default for Faults {
             unplug_after: None,
             settle_s: None,
             reject_out_of_range: true,
+            pos_noise_um: 0.0,
         }
     }
 }

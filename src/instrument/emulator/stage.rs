@@ -76,9 +76,22 @@ struct GcsDevice {
     error: i64,
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
+    /// State of the sensor-noise generator (`Faults::pos_noise_um`).
+    noise_state: std::cell::Cell<u64>,
 }
 
 impl GcsDevice {
+    /// Deterministic noise, uniform in [−1, 1] (a 64-bit LCG, Knuth's MMIX constants).
+    fn next_noise(&self) -> f64 {
+        let s = self
+            .noise_state
+            .get()
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        self.noise_state.set(s);
+        (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+
     fn settle(&self) -> f64 {
         lock(&self.faults)
             .settle_s
@@ -214,7 +227,11 @@ impl Device for GcsDevice {
                 let (p, ont) = self.positions();
                 let t = self.cfg.travel;
                 Some(match cmd.as_str() {
-                    "POS?" => self.reply(&idx, |i| format!("{:.6}", p[i])),
+                    "POS?" => {
+                        let noise = lock(&self.faults).pos_noise_um;
+                        let p = p.map(|v| v + noise * self.next_noise());
+                        self.reply(&idx, |i| format!("{:.6}", p[i]))
+                    }
                     "ONT?" => self.reply(&idx, |i| u8::from(ont[i]).to_string()),
                     "TMN?" => self.reply(&idx, |i| format!("{:.6}", t[i].0)),
                     "TMX?" => self.reply(&idx, |i| format!("{:.6}", t[i].1)),
@@ -297,6 +314,7 @@ pub fn start_stage_emulator(
         error: 0,
         faults: faults.clone(),
         position: position.clone(),
+        noise_state: std::cell::Cell::new(0x5eed),
     };
     dev.publish();
     spawn("stage", dev, faults, position)
