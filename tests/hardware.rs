@@ -1449,13 +1449,13 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
         se.path(),
         qe.path()
     );
-    wb.eval_source("t", &call).unwrap();
-    wb.eval_source("t", "mv(#{x: 40, y: 45, z: 10})").unwrap();
+    let _ = wb.eval_source("t", &call).unwrap();
+    let _ = wb.eval_source("t", "mv(#{x: 40, y: 45, z: 10})").unwrap();
     // the sensor really is noisy: POS? is not the target
     let p = wb.eval_source("t", "pos().x").unwrap().as_float().unwrap();
     assert!(p != 40.0 && (p - 40.0).abs() <= 0.002, "{p}");
     let before = se.commands().len();
-    wb.eval_source("t", "mvr(#{x: 0.5, y: -0.25})").unwrap();
+    let _ = wb.eval_source("t", "mvr(#{x: 0.5, y: -0.25})").unwrap();
     let movs: Vec<String> = se.commands()[before..]
         .iter()
         .filter(|c| c.starts_with("MOV "))
@@ -1467,7 +1467,8 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
         "z was not asked to move"
     );
     let before = se.commands().len();
-    wb.eval_source("t", "mv(#{x: 40}); for i in 0..50 { mvr(#{x: 0.1}) }")
+    let _ = wb
+        .eval_source("t", "mv(#{x: 40}); for i in 0..50 { mvr(#{x: 0.1}) }")
         .unwrap();
     let sent = se.commands()[before..].to_vec();
     assert!(
