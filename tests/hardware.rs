@@ -1222,13 +1222,14 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
         row[..2].iter().all(|v| v.is_finite()) && row[2..].iter().all(|v| v.is_nan()),
         "{row:?}"
     );
-    // relative scan, but after a stage fault the stage is not commanded again (not even back to
-    // the start): the rejected MOV and its ERR? are the last commands it got
+    // relative scan, but after a stage fault the stage is not moved again (not even back to
+    // the start): after the rejected MOV and its ERR?, the one command it gets is STP (and the
+    // ERR? that reads STP's own code 10)
     assert!(!r.returned_to_start);
     std::thread::sleep(Duration::from_millis(100));
     let sent = se.commands()[before..].to_vec();
-    assert_eq!(sent.len(), 10, "{sent:?}");
-    assert_eq!(&sent[8..], ["MOV A 0.200000", "ERR?"]);
+    assert_eq!(sent.len(), 12, "{sent:?}");
+    assert_eq!(&sent[8..], ["MOV A 0.200000", "ERR?", "STP", "ERR?"]);
     assert!(r
         .summary()
         .unwrap_err()
@@ -1487,4 +1488,49 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
     for (i, want) in [45.0f64, 44.75, 10.0].iter().enumerate() {
         assert_eq!(t[i].to_bits(), want.to_bits(), "axis {i}");
     }
+}
+
+#[test]
+fn engine_on_target_timeout_mid_scan_sends_stp_and_saves_the_partial_scan() {
+    // Issue 16, item 2: when the on-target wait times out the axis may still be moving; the one
+    // command the stage then gets is STP (PI's stop: all axes, error 10 afterwards), the partial
+    // scan is saved as failed, and nothing moves it back to the start.
+    let (se, qe) = pair(0.0);
+    let text = emulator_config_text(&se, &qe)
+        .replace("on_target_timeout_ms = 2000", "on_target_timeout_ms = 150");
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap();
+    let limits = cfg.soft_limits();
+    se.faults().settle_s = Some(30.0);
+    let before = se.commands().len();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            measured,
+            error: DeviceError::Other { detail, .. },
+            stage_fault,
+        } => {
+            assert_eq!((*measured, *stage_fault), (0, true));
+            assert!(
+                detail.starts_with("not on target within 150 ms"),
+                "{detail}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    std::thread::sleep(Duration::from_millis(50));
+    let sent = se.commands()[before..].to_vec();
+    let stp = sent.iter().position(|c| c == "STP").expect("STP sent");
+    assert!(
+        sent[stp + 1..].iter().all(|c| !c.starts_with("MOV")),
+        "no motion after the stop: {sent:?}"
+    );
+    assert_eq!(
+        sent.iter().filter(|c| c.starts_with("MOV ")).count(),
+        1,
+        "{sent:?}"
+    );
 }

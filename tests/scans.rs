@@ -289,9 +289,10 @@ fn stage_error_stops_commanding_the_stage_and_saves_the_partial_scan() {
         run.ended
     );
     assert!(!run.returned_to_start);
+    // after the failed move: the stop, and nothing else
     let cmds = mock.commands();
     assert!(
-        cmds.last().unwrap().starts_with("move"),
+        cmds[cmds.len() - 2].starts_with("move") && cmds[cmds.len() - 1] == "stop",
         "commands after the failed move: {cmds:?}"
     );
     assert_eq!(

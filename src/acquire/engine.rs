@@ -97,8 +97,23 @@ impl ScanRun {
             )),
             Ended::Failed { measured, error, stage_fault } => Err(format!(
                 "{kind} failed after {measured} of {total} points: {error}{back}{}; partial scan (status failed) {saved}",
-                if *stage_fault { "; the stage was not commanded further" } else { "" }
+                if *stage_fault { "; the stage was not commanded further, but for a stop" } else { "" }
             )),
+        }
+    }
+}
+
+/// Send the stage its stop command after a fault (PI: `STP`), logging what happened; the error
+/// text when the stop itself failed (e.g. the cable is gone).
+fn stop_stage(inst: &mut Instrument, who: &str, env: &ScanEnv) -> Option<String> {
+    match inst.stage.stop() {
+        Ok(()) => {
+            (env.log)(&format!("{who}: stage stopped ({})", inst.stage.name()));
+            None
+        }
+        Err(e) => {
+            (env.log)(&format!("{who}: the stop command failed too: {e}"));
+            Some(e.to_string())
         }
     }
 }
@@ -229,6 +244,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             "{kind}: could NOT return to the start position: {e}"
         ));
     }
+    // After a stage fault (a controller error mid-move, an on-target timeout: the axis may
+    // still be moving) or a failed return, the one command the stage still gets is a stop.
+    let stop = (stage_fault || return_error.is_some()).then(|| stop_stage(inst, &kind, env));
 
     let status = match ended {
         Ended::Complete => ScanStatus::Complete,
@@ -248,6 +266,8 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         "samples_per_point": n_samples,
         "start_position_um": start,
         "returned_to_start": returned,
+        "stop_sent": stop.is_some(),
+        "stop_error": stop.clone().flatten(),
         "limits": limits,
         "max_speed_between_points_um_s": speed,
         "instrument": inst.description,
@@ -319,5 +339,12 @@ pub fn checked_move(
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?
         .check(target)
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?;
-    inst.move_settle(target).map_err(|e| format!("{who}: {e}"))
+    inst.move_settle(target).map_err(|e| {
+        // the axis may still be moving: stop it, and say whether that worked
+        let stopped = match inst.stage.stop() {
+            Ok(()) => "the stage was stopped".to_string(),
+            Err(s) => format!("the stop command failed too: {s}"),
+        };
+        format!("{who}: {e}; {stopped}")
+    })
 }
