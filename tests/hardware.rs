@@ -1534,3 +1534,53 @@ fn engine_on_target_timeout_mid_scan_sends_stp_and_saves_the_partial_scan() {
         "{sent:?}"
     );
 }
+
+#[test]
+fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
+    // Issue 16, item 3: a servo trip (−1024) is an asynchronous error: the MOV was accepted,
+    // then the axis stops, servo off, never on target. Polling ERR? with ONT? reports it as
+    // itself within ERR_POLL_EVERY polls, not as an on-target timeout seconds later (the
+    // on-target timeout here is 2 s), and the engine then sends the stop.
+    let (se, qe) = pair(0.0);
+    let cfg = emulator_config(&se, &qe);
+    let mut c = connect(&cfg, no_sim).unwrap();
+    let limits = cfg.soft_limits();
+    se.faults().settle_s = Some(0.05);
+    se.faults().servo_trip_next_move = true;
+    let before = se.commands().len();
+    let t0 = Instant::now();
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, false), &limits);
+    assert!(
+        t0.elapsed() < Duration::from_millis(1000),
+        "{:?}",
+        t0.elapsed()
+    );
+    match &r.unwrap().ended {
+        Ended::Failed {
+            measured: 0,
+            error:
+                DeviceError::Controller {
+                    command,
+                    code: -1024,
+                    message,
+                    ..
+                },
+            stage_fault: true,
+        } => {
+            assert_eq!(command, "MOV A -0.400000");
+            assert_eq!(
+                message,
+                "Motion error: position error too large, servo is switched off automatically"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    let sent = se.commands()[before..].to_vec();
+    let onts = sent.iter().filter(|c| c.starts_with("ONT?")).count();
+    assert!(
+        onts <= bfpscope::instrument::gcs::ERR_POLL_EVERY,
+        "{sent:?}"
+    );
+    assert_eq!(&sent[sent.len() - 2..], ["STP", "ERR?"], "{sent:?}");
+}

@@ -106,6 +106,9 @@ pub struct GcsStage {
     commanded: Option<Pos>,
 }
 
+/// `ONT?` polls between two `ERR?` while waiting for a move to end.
+pub const ERR_POLL_EVERY: usize = 10;
+
 impl GcsStage {
     /// Open a serial port (e.g. `/dev/ttyUSB0`, or an emulator's `/dev/pts/N`) and connect.
     pub fn open(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
@@ -300,12 +303,24 @@ impl GcsStage {
     /// Poll `ONT?` until every axis is on target, at most `on_target_timeout` after `after`.
     pub fn wait_on_target(&mut self, after: &str) -> Result<(), DeviceError> {
         let t0 = Instant::now();
+        let mut polls = 0usize;
         loop {
             let ont = self.on_target()?;
             if ont.iter().all(|&b| b) {
                 return Ok(());
             }
-            if t0.elapsed() >= self.opts.on_target_timeout {
+            polls += 1;
+            let timed_out = t0.elapsed() >= self.opts.on_target_timeout;
+            // Asynchronous errors (e.g. −1024, the servo tripped) surface only in ERR?: read it
+            // every ERR_POLL_EVERY polls and when the wait ends badly, so a servo trip is
+            // reported as itself, not as "not on target".
+            if timed_out || polls % ERR_POLL_EVERY == 0 {
+                let code = self.error_code(after)?;
+                if code != 0 {
+                    return Err(self.controller_error(after, code));
+                }
+            }
+            if timed_out {
                 let state: Vec<String> = self
                     .opts
                     .axes

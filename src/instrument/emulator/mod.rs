@@ -91,6 +91,10 @@ pub struct Faults {
     /// closed-loop piezo reads its capacitive sensor with nanometre noise around the target;
     /// `MOV?` answers the target itself.
     pub pos_noise_um: f64,
+    /// Stage: the next `MOV` is accepted, then the servo of its axes trips as a real E-727's
+    /// does when the position error grows too large: the axes stop where they are, servo off,
+    /// never on target, and the error register holds −1024 (read by the next `ERR?`).
+    pub servo_trip_next_move: bool,
 }
 
 impl Default for Faults {
@@ -104,6 +108,7 @@ impl Default for Faults {
             settle_s: None,
             reject_out_of_range: true,
             pos_noise_um: 0.0,
+            servo_trip_next_move: false,
         }
     }
 }

@@ -68,6 +68,8 @@ struct Axis {
     target: f64,
     t0: Instant,
     servo: bool,
+    /// The servo tripped (error −1024): the axis stays at `from`, off target.
+    tripped: bool,
 }
 
 struct GcsDevice {
@@ -102,6 +104,9 @@ impl GcsDevice {
     /// Position and on-target flag of axis `i` now.
     fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
+        if a.tripped {
+            return (a.from, false);
+        }
         let f = if settle > 0.0 {
             now.duration_since(a.t0).as_secs_f64() / settle
         } else {
@@ -193,6 +198,7 @@ impl GcsDevice {
             a.from = x;
             a.target = x;
             a.t0 = now;
+            a.tripped = false;
         }
         self.set_error(10);
     }
@@ -246,7 +252,13 @@ impl Device for GcsDevice {
                     return None;
                 }
                 for (i, v) in pairs {
-                    self.axes[i].servo = v == 1.0;
+                    let a = &mut self.axes[i];
+                    a.servo = v == 1.0;
+                    if a.servo && a.tripped {
+                        // servo back on: it holds where the axis stopped
+                        a.tripped = false;
+                        a.target = a.from;
+                    }
                 }
                 None
             }
@@ -264,11 +276,19 @@ impl Device for GcsDevice {
                 }
                 let (p, _) = self.positions();
                 let now = Instant::now();
+                let trip = std::mem::take(&mut lock(&self.faults).servo_trip_next_move);
                 for (i, v) in pairs {
                     let a = &mut self.axes[i];
                     a.from = p[i];
                     a.target = v.clamp(t[i].0, t[i].1);
                     a.t0 = now;
+                    if trip {
+                        a.tripped = true;
+                        a.servo = false;
+                    }
+                }
+                if trip {
+                    self.set_error(-1024);
                 }
                 None
             }
@@ -302,6 +322,7 @@ pub fn start_stage_emulator(
             target: x,
             t0: now,
             servo: cfg.servo_on,
+            tripped: false,
         });
     }
     let axes: [Axis; 3] = axes
