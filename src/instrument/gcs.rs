@@ -314,7 +314,7 @@ impl GcsStage {
             // Asynchronous errors (e.g. −1024, the servo tripped) surface only in ERR?: read it
             // every ERR_POLL_EVERY polls and when the wait ends badly, so a servo trip is
             // reported as itself, not as "not on target".
-            if timed_out || polls % ERR_POLL_EVERY == 0 {
+            if timed_out || polls.is_multiple_of(ERR_POLL_EVERY) {
                 let code = self.error_code(after)?;
                 if code != 0 {
                     return Err(self.controller_error(after, code));
