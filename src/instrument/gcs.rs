@@ -215,7 +215,7 @@ impl GcsStage {
         let line = self
             .link
             .query_with_timeout("ERR?", self.opts.timeout)
-            .map_err(|e| rename(e, &label))?;
+            .map_err(|e| e.during(&label))?;
         let t = line.trim();
         t.parse::<i64>()
             .map_err(|_| self.link.garbled(&label, line.clone()))
@@ -400,30 +400,6 @@ impl GcsStage {
         }
         self.commanded = Some(t);
         Ok(Some(cmd))
-    }
-}
-
-/// Re-label the command of an error (e.g. the `ERR?` that followed a `MOV`).
-fn rename(e: DeviceError, command: &str) -> DeviceError {
-    match e {
-        DeviceError::Timeout {
-            device, timeout_ms, ..
-        } => DeviceError::Timeout {
-            device,
-            command: command.to_string(),
-            timeout_ms,
-        },
-        DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
-            device,
-            command: command.to_string(),
-            reply,
-        },
-        DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
-            device,
-            command: command.to_string(),
-            detail,
-        },
-        other => other,
     }
 }
 

@@ -55,6 +55,34 @@ pub enum DeviceError {
     Other { device: String, detail: String },
 }
 
+impl DeviceError {
+    /// The same error, naming `command` as the one it happened in (e.g. the `ERR?` that
+    /// followed a `MOV`: `ERR? (after `MOV A 1.000000`)`). Errors that carry no command are
+    /// returned unchanged.
+    pub fn during(self, command: &str) -> DeviceError {
+        match self {
+            DeviceError::Timeout {
+                device, timeout_ms, ..
+            } => DeviceError::Timeout {
+                device,
+                command: command.to_string(),
+                timeout_ms,
+            },
+            DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
+                device,
+                command: command.to_string(),
+                reply,
+            },
+            DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
+                device,
+                command: command.to_string(),
+                detail,
+            },
+            other => other,
+        }
+    }
+}
+
 /// One QPD reading: the mean of `n` samples of Sx, Sy, Sz and their standard deviations
 /// (signals normalised to the beam power for the simulator; volts × calibration for hardware).
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]

@@ -160,7 +160,7 @@ impl ScpiQpd {
         let line = self
             .link
             .query_with_timeout("SYST:ERR?", self.opts.timeout)
-            .map_err(|e| relabel(e, &label))?;
+            .map_err(|e| e.during(&label))?;
         match parse_scpi_error(&line) {
             Some((0, _)) => Ok(()),
             Some((code, message)) => Err(DeviceError::Controller {
@@ -226,29 +226,6 @@ impl ScpiQpd {
             return Err(self.link.garbled(cmd, line));
         }
         Ok(([v[0], v[1], v[2]], std))
-    }
-}
-
-fn relabel(e: DeviceError, command: &str) -> DeviceError {
-    match e {
-        DeviceError::Timeout {
-            device, timeout_ms, ..
-        } => DeviceError::Timeout {
-            device,
-            command: command.to_string(),
-            timeout_ms,
-        },
-        DeviceError::Garbled { device, reply, .. } => DeviceError::Garbled {
-            device,
-            command: command.to_string(),
-            reply,
-        },
-        DeviceError::Disconnected { device, detail, .. } => DeviceError::Disconnected {
-            device,
-            command: command.to_string(),
-            detail,
-        },
-        other => other,
     }
 }
 
