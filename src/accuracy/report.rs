@@ -728,7 +728,7 @@ pub fn bench_markdown(dir: Option<&Path>) -> String {
     s += &format!(
         "From `cargo bench` (criterion, release profile) on this machine; load average (1 min) at the start and end of \
          each `cargo bench` invocation: {load} (2 cores; an idle machine would be faster in absolute terms — compare ratios). Median of criterion's samples; ratio = time / fastest benchmark in the same group. \
-         Benches: `benches/{{render,engine,mie,fit,mie_beam}}.rs`.\n\n"
+         Benches: `tests/benches/{{render,engine,mie,fit,mie_beam}}.rs`.\n\n"
     );
     if let Some(notes) = dir.and_then(|d| std::fs::read_to_string(d.join("notes.txt")).ok()) {
         s += &format!("Notes on this run: {}\n\n", notes.trim());

@@ -662,7 +662,7 @@ wavelength_nm = 1064.0
     #[test]
     fn example_file_parses() {
         let c = Config::from_toml_str(
-            include_str!("../../bfpscope.example.toml"),
+            include_str!("../../docs/bfpscope.example.toml"),
             "bfpscope.example.toml",
         )
         .unwrap();

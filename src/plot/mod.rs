@@ -1,7 +1,7 @@
 //! Figures with plotters: heat maps of images and scans, line profiles, histograms and x–y
 //! plots (linear or log axes, error bars). PNG, or SVG when the path ends in `.svg`.
 //!
-//! Text uses DejaVu Sans embedded in the binary (`assets/fonts/`), registered once with
+//! Text uses DejaVu Sans embedded in the binary (`src/plot/fonts/`), registered once with
 //! plotters' `ab_glyph` backend, so no system font is needed (without a registered font plotters
 //! writes blank images without any error). Files are written to a temporary name and renamed.
 //! Bad input (empty data, all-NaN images, non-positive values on a log axis, a missing folder,
@@ -24,8 +24,8 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
 use std::sync::OnceLock;
 
-/// The embedded font (DejaVu Sans, Bitstream Vera licence: `assets/fonts/DejaVuSans-LICENSE.txt`).
-pub static FONT_TTF: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+/// The embedded font (DejaVu Sans, Bitstream Vera licence: `src/plot/fonts/DejaVuSans-LICENSE.txt`).
+pub static FONT_TTF: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 
 /// Font family name used by every figure.
 pub const FONT: &str = "sans-serif";
