@@ -1584,3 +1584,43 @@ fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
     );
     assert_eq!(&sent[sent.len() - 2..], ["STP", "ERR?"], "{sent:?}");
 }
+
+#[test]
+fn gcs_query_sends_queries_only() {
+    // Issue 16, item 7: raw access for debugging, queries only; a motion command is refused
+    // before anything reaches the port.
+    use bfpscope::script::{Settings, Workbench};
+    let (se, qe) = pair(0.0);
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-gq-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
+        se.path(),
+        qe.path()
+    );
+    let _ = wb.eval_source("t", &call).unwrap();
+    let r = wb.eval_source("t", "gcs_query(\"MOV? A B\")").unwrap();
+    assert_eq!(
+        bfpscope::script::show(&r),
+        "[\"A=0.000000\", \"B=0.000000\"]"
+    );
+    let before = se.commands().len();
+    for bad in ["MOV A 1", "SVO A 0", "STP", "POS?; MOV A 1"] {
+        let e = wb
+            .eval_source("t", &format!("gcs_query(\"{bad}\")"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is not a query"), "{bad}: {e}");
+    }
+    assert_eq!(se.commands().len(), before, "nothing was sent");
+    // an unknown query is the controller's own error 2, named
+    let e = wb
+        .eval_source("t", "gcs_query(\"XYZ?\")")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("controller error 2") && e.contains("XYZ?"),
+        "{e}"
+    );
+}

@@ -416,6 +416,26 @@ impl Stage for GcsStage {
         self.commanded_target()
     }
 
+    /// A GCS query: a command word ending in `?` with its arguments (`SAI?`, `POS? 1`, `*IDN?`,
+    /// `VEL?`). Everything else is refused before anything is sent: motion goes through the
+    /// engine.
+    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        let q = query.trim();
+        let word = q.split_whitespace().next().unwrap_or("");
+        let safe_chars = q
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || " ?*._-".contains(c));
+        if !(word.ends_with('?') && safe_chars) {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!(
+                    "`{q}` is not a query: only GCS queries (a command ending in `?`) are sent from the prompt; moves go through mv, mvr and the scans"
+                ),
+            });
+        }
+        self.query_lines(q)
+    }
+
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         match self.move_no_wait(target)? {
             Some(cmd) => self.wait_on_target(&cmd),

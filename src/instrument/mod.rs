@@ -135,6 +135,15 @@ pub trait Stage: Send {
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
     /// Stop all motion at once.
     fn stop(&mut self) -> Result<(), DeviceError>;
+    /// Send a raw *query* to the controller and return its reply lines, for debugging at the
+    /// prompt (`gcs_query("SAI?")`). Only queries: anything that could move is refused by the
+    /// driver. Backends without a command language say so.
+    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        Err(DeviceError::Other {
+            device: self.name(),
+            detail: format!("`{query}`: this stage has no command language to query"),
+        })
+    }
     /// Time a move takes before it returns, when the device model knows it (the simulated stage),
     /// for the scan ETA; 0 when unknown (hardware returns on target, the settle time follows).
     fn move_time_s(&self) -> f64 {

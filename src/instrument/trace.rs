@@ -113,6 +113,9 @@ impl Stage for TracedStage {
     fn target(&mut self) -> Result<Pos, DeviceError> {
         self.inner.target()
     }
+    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        self.inner.raw_query(query)
+    }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         let r = self.inner.move_to(target);
         match &r {

@@ -8,6 +8,7 @@ pub mod core;
 pub mod ctx;
 pub mod filaments;
 pub mod files;
+pub mod hardware;
 pub mod mie;
 pub mod motion;
 pub mod optics;
@@ -36,6 +37,7 @@ pub type RegisterFn = fn(&mut Registrar);
 pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("core", core::register),
     ("motion", motion::register),
+    ("hardware", hardware::register),
     ("scans", scans::register),
     ("types", types::register),
     ("optics", optics::register),
