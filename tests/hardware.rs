@@ -1624,3 +1624,33 @@ fn gcs_query_sends_queries_only() {
         "{e}"
     );
 }
+
+#[test]
+fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
+    // Issue 16, item 5: positioning moves respect the [safety] speed limit too: connect sends
+    // it as VEL (µm/s × units_per_um), and status() reports the controller's VEL?.
+    use bfpscope::script::{Settings, Workbench};
+    let (se, qe) = pair(0.0);
+    let text = emulator_config_text(&se, &qe).replace(
+        "max_step_um = 2.0",
+        "max_step_um = 2.0\nmax_speed_um_s = 250.0",
+    );
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-vel-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let (mut settings, _buf) = Settings::captured(&dir);
+    settings.apply_config(cfg, None).unwrap();
+    let mut wb = Workbench::new(settings);
+    let _ = wb.eval_source("t", "connect()").unwrap();
+    assert!(
+        se.commands()
+            .contains(&"VEL A 250.000000 B 250.000000 C 250.000000".to_string()),
+        "{:?}",
+        se.commands()
+    );
+    let v = wb.eval_source("t", "status().velocity_um_s").unwrap();
+    assert_eq!(
+        bfpscope::script::show(&v),
+        "#{x: 250.0, y: 250.0, z: 250.0}"
+    );
+}

@@ -62,6 +62,10 @@ pub fn connect(
             line: None,
             message: e.message,
         })?;
+    // positioning moves respect the [safety] speed limit too, not only scan steps
+    if let Some(v) = limits.max_speed_um_s {
+        instrument.stage.set_velocity(v)?;
+    }
     if let serde_json::Value::Object(m) = &mut instrument.description {
         m.insert("travel_um".into(), json!(travel));
         m.insert(

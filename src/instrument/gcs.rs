@@ -416,6 +416,31 @@ impl Stage for GcsStage {
         self.commanded_target()
     }
 
+    /// `VEL A v B v C v` (controller units per s), then `ERR?`.
+    fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError> {
+        if !(um_s.is_finite() && um_s > 0.0) {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!("refusing to send a velocity of {um_s} µm/s"),
+            });
+        }
+        let v = format!("{:.6}", um_s * self.opts.units_per_um);
+        let cmd = format!(
+            "VEL {}",
+            self.opts
+                .axes
+                .iter()
+                .map(|a| format!("{a} {v}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        self.command(&cmd)
+    }
+
+    fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
+        self.query_positions("VEL?").map(Some)
+    }
+
     /// A GCS query: a command word ending in `?` with its arguments (`SAI?`, `POS? 1`, `*IDN?`,
     /// `VEL?`). Everything else is refused before anything is sent: motion goes through the
     /// engine.

@@ -135,6 +135,16 @@ pub trait Stage: Send {
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
     /// Stop all motion at once.
     fn stop(&mut self) -> Result<(), DeviceError>;
+    /// Set the closed-loop velocity of every axis (µm/s) for all later moves, when the device
+    /// has one (PI: `VEL`); the connect step sends the `[safety]` speed limit. Devices without
+    /// a velocity setting accept it and do nothing.
+    fn set_velocity(&mut self, _um_s: f64) -> Result<(), DeviceError> {
+        Ok(())
+    }
+    /// The velocity per axis (µm/s) the device reports (PI: `VEL?`), when it has one.
+    fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
+        Ok(None)
+    }
     /// Send a raw *query* to the controller and return its reply lines, for debugging at the
     /// prompt (`gcs_query("SAI?")`). Only queries: anything that could move is refused by the
     /// driver. Backends without a command language say so.

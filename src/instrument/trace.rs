@@ -116,6 +116,12 @@ impl Stage for TracedStage {
     fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
         self.inner.raw_query(query)
     }
+    fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError> {
+        self.inner.set_velocity(um_s)
+    }
+    fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
+        self.inner.velocity()
+    }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         let r = self.inner.move_to(target);
         match &r {

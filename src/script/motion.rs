@@ -276,6 +276,12 @@ pub fn register(r: &mut Registrar) {
                         Ok(p) => m.insert("position".into(), pos_map(p).into()),
                         Err(e) => m.insert("position".into(), format!("unknown: {e}").into()),
                     };
+                    // the stage's own velocity setting (PI: VEL?), when it has one
+                    match i.stage.velocity() {
+                        Ok(Some(v)) => m.insert("velocity_um_s".into(), pos_map(v).into()),
+                        Ok(None) => None,
+                        Err(e) => m.insert("velocity_um_s".into(), format!("unknown: {e}").into()),
+                    };
                     m.insert("clock_s".into(), i.clock.now().into());
                     m.insert("virtual_clock".into(), i.clock.is_virtual().into());
                     Ok(())

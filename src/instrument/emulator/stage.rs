@@ -80,6 +80,9 @@ struct GcsDevice {
     position: SharedPosition,
     /// State of the sensor-noise generator (`Faults::pos_noise_um`).
     noise_state: std::cell::Cell<u64>,
+    /// Closed-loop velocity per axis (`VEL`), units/s: stored and reported (`VEL?`); the
+    /// emulated motion keeps its settle-time ramp.
+    velocity: [f64; 3],
 }
 
 impl GcsDevice {
@@ -228,6 +231,22 @@ impl Device for GcsDevice {
                 self.error = 0;
                 Some(e.to_string())
             }
+            "VEL" => {
+                let pairs = self.pairs(&args)?;
+                if pairs.iter().any(|&(_, v)| !(v > 0.0)) {
+                    self.set_error(1);
+                    return None;
+                }
+                for (i, v) in pairs {
+                    self.velocity[i] = v;
+                }
+                None
+            }
+            "VEL?" => {
+                let idx = self.axis_list(&args)?;
+                let v = self.velocity;
+                Some(self.reply(&idx, |i| format!("{:.6}", v[i])))
+            }
             "POS?" | "ONT?" | "TMN?" | "TMX?" | "SVO?" | "MOV?" => {
                 let idx = self.axis_list(&args)?;
                 let (p, ont) = self.positions();
@@ -336,6 +355,7 @@ pub fn start_stage_emulator(
         faults: faults.clone(),
         position: position.clone(),
         noise_state: std::cell::Cell::new(0x5eed),
+        velocity: [10_000.0; 3],
     };
     dev.publish();
     spawn("stage", dev, faults, position)
