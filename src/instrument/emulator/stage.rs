@@ -233,7 +233,7 @@ impl Device for GcsDevice {
             }
             "VEL" => {
                 let pairs = self.pairs(&args)?;
-                if pairs.iter().any(|&(_, v)| !(v > 0.0)) {
+                if pairs.iter().any(|&(_, v)| v.is_nan() || v <= 0.0) {
                     self.set_error(1);
                     return None;
                 }
