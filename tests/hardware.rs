@@ -1434,7 +1434,6 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
     // for, and relative moves must add to the last commanded target (PI's MVR), not to a fresh
     // POS?: before the fix, `mvr(#{x: 0.5, y: -0.25})` re-commanded z from POS? and 50 relative
     // moves of 0.1 µm accumulated the sensor noise into x's target.
-    use bfpscope::script::{Settings, Workbench};
     let stage = StageEmulatorConfig {
         travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
         settle_s: 0.0005,
@@ -1442,15 +1441,7 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
     };
     let (se, qe) = start_pair(stage, qpd_cfg(0.0), standin_bead).unwrap();
     se.faults().pos_noise_um = 0.002;
-    let dir = std::env::temp_dir().join(format!("bfpscope-hw-mvr-{}", std::process::id()));
-    let (settings, _buf) = Settings::captured(&dir);
-    let mut wb = Workbench::new(settings);
-    let call = format!(
-        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
-        se.path(),
-        qe.path()
-    );
-    let _ = wb.eval_source("t", &call).unwrap();
+    let mut wb = workbench_on(&se, &qe, "mvr");
     let _ = wb.eval_source("t", "mv(#{x: 40, y: 45, z: 10})").unwrap();
     // the sensor really is noisy: POS? is not the target
     let p = wb.eval_source("t", "pos().x").unwrap().as_float().unwrap();
@@ -1589,17 +1580,8 @@ fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
 fn gcs_query_sends_queries_only() {
     // Issue 16, item 7: raw access for debugging, queries only; a motion command is refused
     // before anything reaches the port.
-    use bfpscope::script::{Settings, Workbench};
     let (se, qe) = pair(0.0);
-    let dir = std::env::temp_dir().join(format!("bfpscope-hw-gq-{}", std::process::id()));
-    let (settings, _buf) = Settings::captured(&dir);
-    let mut wb = Workbench::new(settings);
-    let call = format!(
-        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
-        se.path(),
-        qe.path()
-    );
-    let _ = wb.eval_source("t", &call).unwrap();
+    let mut wb = workbench_on(&se, &qe, "gq");
     let r = wb.eval_source("t", "gcs_query(\"MOV? A B\")").unwrap();
     assert_eq!(
         bfpscope::script::show(&r),
@@ -1653,4 +1635,19 @@ fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
         bfpscope::script::show(&v),
         "#{x: 250.0, y: 250.0, z: 250.0}"
     );
+}
+
+/// A workbench connected to the emulator pair through the `connect` binding.
+fn workbench_on(se: &Emulator, qe: &Emulator, tag: &str) -> bfpscope::script::Workbench {
+    use bfpscope::script::{Settings, Workbench};
+    let dir = std::env::temp_dir().join(format!("bfpscope-hw-{tag}-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
+        se.path(),
+        qe.path()
+    );
+    let _ = wb.eval_source("t", &call).unwrap();
+    wb
 }
