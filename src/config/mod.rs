@@ -33,7 +33,7 @@ use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
 use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 /// The config file looked for in the working directory.
@@ -296,20 +296,6 @@ impl Config {
             message: format!("cannot read: {e}"),
         })?;
         Self::from_toml_str(&text, &origin)
-    }
-
-    /// The config in force: the file named by `$BFPSCOPE_CONFIG`, else `./bfpscope.toml`,
-    /// else the defaults (everything simulated). Returns the file used.
-    pub fn discover() -> Result<(Config, Option<PathBuf>), ConfigError> {
-        if let Some(p) = std::env::var_os(ENV_VAR).filter(|p| !p.is_empty()) {
-            let p = PathBuf::from(p);
-            return Ok((Self::load(&p)?, Some(p)));
-        }
-        let p = PathBuf::from(DEFAULT_FILE);
-        if p.is_file() {
-            return Ok((Self::load(&p)?, Some(p)));
-        }
-        Ok((Config::default(), None))
     }
 
     /// TOML text of this config.
