@@ -1,6 +1,6 @@
 //! Values and argument helpers shared by the analysis families (`sensitivity`, `templates`,
-//! `filaments`, `stats`): the script types `Template`, `FitResult`, `AngleCurve`,
-//! `FilamentMeasurement`, and the parsing of their common options.
+//! `filaments`, `stats`): the parsing of their common options (their script types
+//! `Template`, `FitResult`, `AngleCurve`, `FilamentMeasurement` are in `types`).
 //!
 //! Units at the boundary: µm for positions, nm for diameters, kDa / MDa·µm⁻¹ for masses and
 //! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
@@ -8,114 +8,14 @@
 
 use super::registry::{err, fail, num, numbers, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
-use crate::acquire::plan::linspace;
 use crate::analysis::fit::Bead as FitBead;
-use crate::analysis::{
-    AngleCurve, BeadModelOptions, FilamentMeasurement, FitResult, LinePeak, MeasureOptions,
-    PeakOptions, RefBead, Stencil, Template,
-};
+use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
 use crate::data::{Image, Scan, ScanStatus};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
 use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
-#[derive(Debug, Clone)]
-pub struct TemplateRef(pub Arc<Template>);
-/// A multi-bead fit in a script (`FitResult`).
-#[derive(Debug, Clone)]
-pub struct FitRef(pub Arc<FitResult>);
-/// An orientation calibration curve in a script (`AngleCurve`).
-#[derive(Debug, Clone)]
-pub struct CurveRef(pub Arc<AngleCurve>);
-/// A measured filament in a script (`FilamentMeasurement`).
-#[derive(Debug, Clone)]
-pub struct FilamentRef(pub Arc<FilamentMeasurement>);
-
-impl std::fmt::Display for TemplateRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let t = &self.0;
-        let src = match &t.source {
-            crate::analysis::TemplateSource::Model { .. } => "physics model".to_string(),
-            crate::analysis::TemplateSource::Scans { n_beads, .. } => {
-                format!("{n_beads} measured beads")
-            }
-            crate::analysis::TemplateSource::Analytic { .. } => "analytic stand-in".to_string(),
-        };
-        write!(
-            f,
-            "Template({src}; {}×{} nodes every {} µm; reference {} nm, n = {}; norm_factor {:.4e})",
-            t.grid.nu, t.grid.nv, t.grid.h, t.reference.d_nm, t.reference.n, t.norm_factor
-        )
-    }
-}
-
-impl std::fmt::Display for FitRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let r = &self.0;
-        write!(
-            f,
-            "FitResult({} beads, χ² = {:.4e}, dof {}, status {:?}: {}{})",
-            r.beads.len(),
-            r.chi2,
-            r.dof,
-            r.status,
-            r.reason,
-            if r.is_degenerate() {
-                format!(", {} degeneracies", r.degeneracies.len())
-            } else {
-                String::new()
-            }
-        )
-    }
-}
-
-impl std::fmt::Display for CurveRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let c = &self.0;
-        write!(
-            f,
-            "AngleCurve({} angles, pixel {} µm, bead-model sensitivity at 0° {:.4})",
-            c.angles_deg.len(),
-            c.options.pixel_um,
-            c.sx0
-        )
-    }
-}
-
-impl std::fmt::Display for FilamentRef {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let m = &self.0;
-        write!(
-            f,
-            "FilamentMeasurement({:?}, angle {:.2}° ± {:.2}°, {} maxima, corrected sensitivity {:.4} ± {:.4})",
-            m.channel,
-            m.angle_deg,
-            m.angle_err_deg,
-            m.points.len(),
-            m.mean_corr,
-            m.sem_corr
-        )
-    }
-}
-
-/// Printing of this module's types (the REPL's `show`).
-pub fn show_custom(v: &Dynamic) -> Option<String> {
-    if let Some(t) = v.read_lock::<TemplateRef>() {
-        return Some(t.to_string());
-    }
-    if let Some(t) = v.read_lock::<FitRef>() {
-        return Some(t.to_string());
-    }
-    if let Some(t) = v.read_lock::<CurveRef>() {
-        return Some(t.to_string());
-    }
-    if let Some(t) = v.read_lock::<FilamentRef>() {
-        return Some(t.to_string());
-    }
-    None
-}
-
 /// Any serialisable value as a Rhai map/array.
 pub(crate) fn to_dyn<T: Serialize>(v: &T) -> Dynamic {
     json_to_dynamic(&serde_json::to_value(v).unwrap_or_default())
@@ -302,7 +202,7 @@ pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::F
         }
     }
     let points = match m.get("points") {
-        Some(p) => super::scene::points(who, p)?,
+        Some(p) => super::registry::points(who, p)?,
         None => return fail(format!("{who}: filament lacks `points` ([[x, y], …] µm)")),
     };
     let d_nm = match m.get("d_nm") {
@@ -317,20 +217,6 @@ pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::F
     let f = crate::analysis::Filament { points, d_nm, n };
     f.validate().map_err(|e| err(who, e))?;
     Ok(f)
-}
-
-/// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).
-pub(crate) fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
-    let (x0, x1) = o.req_range("x")?;
-    let (y0, y1) = o.req_range("y")?;
-    let nx = o.req_int("nx")?;
-    let ny = o.req_int("ny")?;
-    for (k, v) in [("nx", nx), ("ny", ny)] {
-        if !(1..=4096).contains(&v) {
-            return fail(format!("{who}: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"));
-        }
-    }
-    Ok((linspace(x0, x1, nx as usize), linspace(y0, y1, ny as usize)))
 }
 
 pub(crate) fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
@@ -373,20 +259,3 @@ pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) 
 
 pub(crate) const TPL: &str = "let t = template_model(#{h_um: 0.025});";
 pub(crate) const ONE_BEAD: &str = "let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.1, y: -0.05, weight: 1.0}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41});";
-
-/// Register the analysis types' names and printing with the engine (called by the `types`
-/// family).
-pub fn register_types(e: &mut rhai::Engine) {
-    e.register_type_with_name::<TemplateRef>("Template")
-        .register_type_with_name::<FitRef>("FitResult")
-        .register_type_with_name::<CurveRef>("AngleCurve")
-        .register_type_with_name::<FilamentRef>("FilamentMeasurement");
-    e.register_fn("to_string", |s: &mut TemplateRef| s.to_string())
-        .register_fn("to_debug", |s: &mut TemplateRef| s.to_string())
-        .register_fn("to_string", |s: &mut FitRef| s.to_string())
-        .register_fn("to_debug", |s: &mut FitRef| s.to_string())
-        .register_fn("to_string", |s: &mut CurveRef| s.to_string())
-        .register_fn("to_debug", |s: &mut CurveRef| s.to_string())
-        .register_fn("to_string", |s: &mut FilamentRef| s.to_string())
-        .register_fn("to_debug", |s: &mut FilamentRef| s.to_string());
-}

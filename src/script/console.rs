@@ -886,7 +886,7 @@ pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.overload(
         "save",
-        move |t: &mut super::analysis_values::TemplateRef, path: &str, m: Map| -> RResult<String> {
+        move |t: &mut super::types::TemplateRef, path: &str, m: Map| -> RResult<String> {
             for k in m.keys() {
                 if k.as_str() != "overwrite" {
                     return fail(format!(
@@ -964,10 +964,7 @@ mod tests {
             "Function not found: measure_filament (Scan, string)"
         );
         assert_eq!(user_words("focus::search failed"), "focus::search failed");
-        assert_eq!(
-            user_type("bfpscope::script::analysis_values::CurveRef"),
-            "AngleCurve"
-        );
+        assert_eq!(user_type("bfpscope::script::types::CurveRef"), "AngleCurve");
     }
 
     #[test]
@@ -1091,7 +1088,7 @@ mod output_tests {
 /// [`output_path`]; prints where it went.
 pub fn save_template(
     c: &super::ctx::Ctx,
-    t: &super::analysis_values::TemplateRef,
+    t: &super::types::TemplateRef,
     path: &str,
     overwrite: bool,
 ) -> RResult<String> {

@@ -19,6 +19,7 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
+use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef};
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();

@@ -24,7 +24,8 @@
 //! and is listed once in [`super::FAMILIES`]: the family of a binding is the name of its file.
 
 use super::ctx::Ctx;
-use rhai::{Dynamic, Engine, EvalAltResult, Map, RhaiNativeFunc};
+use crate::acquire::plan::linspace;
+use rhai::{Array, Dynamic, Engine, EvalAltResult, Map, RhaiNativeFunc};
 use std::any::Any;
 use std::sync::Arc;
 
@@ -803,4 +804,45 @@ fn md_row(p: &Param, prefix: &str) -> String {
         p.unit,
         p.doc.replace('|', "\\|")
     )
+}
+
+/// `[[x, y], ...]` → polyline.
+pub fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!(
+            "{who}: points must be an array of [x, y] pairs (µm), got {v}"
+        ));
+    };
+    a.iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let Some(q) = p.read_lock::<Array>() else {
+                return fail(format!("{who}: points[{i}] must be [x, y] (µm), got {p}"));
+            };
+            if q.len() != 2 {
+                return fail(format!(
+                    "{who}: points[{i}] must have 2 numbers [x, y], got {} values",
+                    q.len()
+                ));
+            }
+            Ok([
+                num(who, &format!("points[{i}][0]"), &q[0])?,
+                num(who, &format!("points[{i}][1]"), &q[1])?,
+            ])
+        })
+        .collect()
+}
+
+/// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).
+pub fn grid_axes(who: &str, o: &Opts) -> RResult<(Vec<f64>, Vec<f64>)> {
+    let (x0, x1) = o.req_range("x")?;
+    let (y0, y1) = o.req_range("y")?;
+    let nx = o.req_int("nx")?;
+    let ny = o.req_int("ny")?;
+    for (k, v) in [("nx", nx), ("ny", ny)] {
+        if !(1..=4096).contains(&v) {
+            return fail(format!("{who}: {k} = {v} is out of range: 1 ≤ {k} ≤ 4096"));
+        }
+    }
+    Ok((linspace(x0, x1, nx as usize), linspace(y0, y1, ny as usize)))
 }

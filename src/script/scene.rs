@@ -2,7 +2,7 @@
 //! aggregates, effects), `simulate` and the render `pipeline`.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, num, points, Doc, Opts, RResult, Registrar};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::instrument::sim::scene::{
     Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
@@ -13,33 +13,6 @@ use rhai::{Array, Dynamic, Map, INT};
 /// A scene in scripts (cloned by value like every Rhai value; small).
 #[derive(Debug, Clone, Default)]
 pub struct SceneRef(pub Scene);
-
-/// `[[x, y], ...]` → polyline.
-pub(crate) fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
-    let Some(a) = v.read_lock::<Array>() else {
-        return fail(format!(
-            "{who}: points must be an array of [x, y] pairs (µm), got {v}"
-        ));
-    };
-    a.iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let Some(q) = p.read_lock::<Array>() else {
-                return fail(format!("{who}: points[{i}] must be [x, y] (µm), got {p}"));
-            };
-            if q.len() != 2 {
-                return fail(format!(
-                    "{who}: points[{i}] must have 2 numbers [x, y], got {} values",
-                    q.len()
-                ));
-            }
-            Ok([
-                num(who, &format!("points[{i}][0]"), &q[0])?,
-                num(who, &format!("points[{i}][1]"), &q[1])?,
-            ])
-        })
-        .collect()
-}
 
 fn pair(who: &str, key: &str, v: &Dynamic) -> RResult<[f64; 2]> {
     let Some(a) = v.read_lock::<Array>() else {
@@ -352,7 +325,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.overload("simulate", move |s: SceneRef, m: Map| -> RResult<ScanRef> {
         let o = Opts::new(&spec, &m)?;
-        let (xs, ys) = super::analysis_values::grid_axes("simulate", &o)?;
+        let (xs, ys) = super::registry::grid_axes("simulate", &o)?;
         let ns = o.int("n_samples")?.unwrap_or(10_000);
         if !(1..=100_000_000).contains(&ns) {
             return fail(format!(

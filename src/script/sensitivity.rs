@@ -229,7 +229,7 @@ fn register_sensitivity(r: &mut Registrar) {
             "error: ",
         );
     let f = |i: ImageRef, p: Array, step: f64| -> RResult<ProfileRef> {
-        let pts = super::scene::points("profile_along", &Dynamic::from_array(p))?;
+        let pts = super::registry::points("profile_along", &Dynamic::from_array(p))?;
         let pr = profile_polyline(&i.0, &pts, step, Interp::Cubic)
             .map_err(|e| err("profile_along", e))?;
         Ok(ProfileRef(Arc::new(pr)))

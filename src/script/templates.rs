@@ -17,6 +17,8 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
+use super::registry::grid_axes;
+use super::types::{FitRef, TemplateRef};
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();

@@ -2,6 +2,7 @@
 //! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
 
 use super::registry::{fail, int, num, Doc, RResult, Registrar};
+use crate::analysis::{AngleCurve, FilamentMeasurement, FitResult, Template};
 use crate::data::{Image, Profile, Scan, ScanStatus};
 use ndarray::Array2;
 use rhai::{Array, Dynamic, Map, INT};
@@ -261,7 +262,7 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if let Some(s) = v.read_lock::<ProfileRef>() {
         return s.to_string();
     }
-    if let Some(s) = super::analysis_values::show_custom(v) {
+    if let Some(s) = show_custom(v) {
         return s;
     }
     if let Some(a) = v.read_lock::<Array>() {
@@ -342,7 +343,7 @@ fn index(who: &str, name: &str, i: &Dynamic, len: usize) -> RResult<usize> {
 const SCAN_EX: &str = "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.25, 0.25], nx: 11, ny: 5});";
 
 pub fn register(r: &mut Registrar) {
-    super::analysis_values::register_types(r.engine());
+    register_types(r.engine());
     {
         let e = r.engine();
         e.register_type_with_name::<ScanRef>("Scan")
@@ -830,4 +831,118 @@ fn register_profile(r: &mut Registrar) {
             Ok(ProfileRef(Arc::new(Profile::new(t, v))))
         },
     );
+}
+
+// ------------------------------------------------------------------ analysis values
+
+#[derive(Debug, Clone)]
+pub struct TemplateRef(pub Arc<Template>);
+/// A multi-bead fit in a script (`FitResult`).
+#[derive(Debug, Clone)]
+pub struct FitRef(pub Arc<FitResult>);
+/// An orientation calibration curve in a script (`AngleCurve`).
+#[derive(Debug, Clone)]
+pub struct CurveRef(pub Arc<AngleCurve>);
+/// A measured filament in a script (`FilamentMeasurement`).
+#[derive(Debug, Clone)]
+pub struct FilamentRef(pub Arc<FilamentMeasurement>);
+
+impl std::fmt::Display for TemplateRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let t = &self.0;
+        let src = match &t.source {
+            crate::analysis::TemplateSource::Model { .. } => "physics model".to_string(),
+            crate::analysis::TemplateSource::Scans { n_beads, .. } => {
+                format!("{n_beads} measured beads")
+            }
+            crate::analysis::TemplateSource::Analytic { .. } => "analytic stand-in".to_string(),
+        };
+        write!(
+            f,
+            "Template({src}; {}×{} nodes every {} µm; reference {} nm, n = {}; norm_factor {:.4e})",
+            t.grid.nu, t.grid.nv, t.grid.h, t.reference.d_nm, t.reference.n, t.norm_factor
+        )
+    }
+}
+
+impl std::fmt::Display for FitRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = &self.0;
+        write!(
+            f,
+            "FitResult({} beads, χ² = {:.4e}, dof {}, status {:?}: {}{})",
+            r.beads.len(),
+            r.chi2,
+            r.dof,
+            r.status,
+            r.reason,
+            if r.is_degenerate() {
+                format!(", {} degeneracies", r.degeneracies.len())
+            } else {
+                String::new()
+            }
+        )
+    }
+}
+
+impl std::fmt::Display for CurveRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let c = &self.0;
+        write!(
+            f,
+            "AngleCurve({} angles, pixel {} µm, bead-model sensitivity at 0° {:.4})",
+            c.angles_deg.len(),
+            c.options.pixel_um,
+            c.sx0
+        )
+    }
+}
+
+impl std::fmt::Display for FilamentRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let m = &self.0;
+        write!(
+            f,
+            "FilamentMeasurement({:?}, angle {:.2}° ± {:.2}°, {} maxima, corrected sensitivity {:.4} ± {:.4})",
+            m.channel,
+            m.angle_deg,
+            m.angle_err_deg,
+            m.points.len(),
+            m.mean_corr,
+            m.sem_corr
+        )
+    }
+}
+
+/// Printing of this module's types (the REPL's `show`).
+pub fn show_custom(v: &Dynamic) -> Option<String> {
+    if let Some(t) = v.read_lock::<TemplateRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<FitRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<CurveRef>() {
+        return Some(t.to_string());
+    }
+    if let Some(t) = v.read_lock::<FilamentRef>() {
+        return Some(t.to_string());
+    }
+    None
+}
+
+/// Register the analysis types' names and printing with the engine (part of the `types` family).
+pub fn register_types(e: &mut rhai::Engine) {
+    e.register_type_with_name::<TemplateRef>("Template")
+        .register_type_with_name::<FitRef>("FitResult")
+        .register_type_with_name::<CurveRef>("AngleCurve")
+        .register_type_with_name::<FilamentRef>("FilamentMeasurement");
+    e.register_fn("to_string", |s: &mut TemplateRef| s.to_string())
+        .register_fn("to_debug", |s: &mut TemplateRef| s.to_string())
+        .register_fn("to_string", |s: &mut FitRef| s.to_string())
+        .register_fn("to_debug", |s: &mut FitRef| s.to_string())
+        .register_fn("to_string", |s: &mut CurveRef| s.to_string())
+        .register_fn("to_debug", |s: &mut CurveRef| s.to_string())
+        .register_fn("to_string", |s: &mut FilamentRef| s.to_string())
+        .register_fn("to_debug", |s: &mut FilamentRef| s.to_string());
 }
