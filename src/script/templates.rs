@@ -335,30 +335,36 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
 
 // ------------------------------------------------------------------ fit
 
+/// Default relative RSS drop of the `rel_drop` growth criterion.
+const DEFAULT_MIN_DROP: f64 = 0.02;
+
 fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    // the defaults in the help come from FitOptions::default(), never repeated here
+    let fd = FitOptions::default();
+    let keys: Vec<(&str, &str, &str, String)> = vec![
+        ("channels", "string", "", "optional: \"both\" (default, eq. multiBeadFit), \"sx\", \"sy\"".into()),
+        ("n_beads", "int", "", "optional: number of beads for automatic initial guesses from peaks".into()),
+        ("init", "array", "", "optional: initial guesses [#{x, y, weight}]".into()),
+        ("grow", "bool", "", "optional: add beads one at a time at the largest residual while the criterion improves (default when neither n_beads nor init)".into()),
+        ("max_beads", "int", "", format!("optional: limit when growing (default {})", fd.max_beads)),
+        ("criterion", "string", "", "optional: \"bic\" (default) or \"rel_drop\"".into()),
+        ("min_drop", "float", "", format!("optional: RSS drop needed with criterion rel_drop (default {DEFAULT_MIN_DROP})")),
+        ("sigma", "float", "", "optional: pixel noise (default: from the residuals)".into()),
+        ("ftol", "float", "", format!("optional: relative tolerance on the objective (default {:e})", fd.ftol)),
+        ("xtol", "float", "", format!("optional: relative tolerance on the parameters (default {:e})", fd.xtol)),
+        ("gtol", "float", "", format!("optional: gradient tolerance (default {:e})", fd.gtol)),
+        ("patience", "int", "", format!("optional: residual evaluations allowed = patience × (3n + 1) (default {})", fd.patience)),
+        ("min_separation", "float", "", format!("optional: beads closer than this × w0 (set_optics) are degenerate (default {})", fd.min_separation)),
+        ("merge_degenerate", "bool", "", format!("optional: merge degenerate pairs and refit (default {})", fd.merge_degenerate)),
+    ];
+    let keys_ref: Vec<(&str, &str, &str, &str)> = keys
+        .iter()
+        .map(|(a, b, c, d)| (*a, *b, *c, d.as_str()))
+        .collect();
     let d = Doc::func("fit_beads")
         .arg("scan", "Scan", "", "XY scan (Sx and Sy)")
         .arg("tpl", "Template", "", "the point-particle template")
-        .map(
-            "opts",
-            "optional",
-            &[
-                ("channels", "string", "", "optional: \"both\" (default, eq. multiBeadFit), \"sx\", \"sy\""),
-                ("n_beads", "int", "", "optional: number of beads for automatic initial guesses from peaks"),
-                ("init", "array", "", "optional: initial guesses [#{x, y, weight}]"),
-                ("grow", "bool", "", "optional: add beads one at a time at the largest residual while the criterion improves (default when neither n_beads nor init)"),
-                ("max_beads", "int", "", "optional: limit when growing (default 30)"),
-                ("criterion", "string", "", "optional: \"bic\" (default) or \"rel_drop\""),
-                ("min_drop", "float", "", "optional: RSS drop needed with criterion rel_drop (default 0.02)"),
-                ("sigma", "float", "", "optional: pixel noise (default: from the residuals)"),
-                ("ftol", "float", "", "optional: relative tolerance on the objective (default 1e-10)"),
-                ("xtol", "float", "", "optional: relative tolerance on the parameters (default 1e-10)"),
-                ("gtol", "float", "", "optional: gradient tolerance (default 1e-10)"),
-                ("patience", "int", "", "optional: residual evaluations allowed = patience × (3n + 1) (default 100)"),
-                ("min_separation", "float", "", "optional: beads closer than this × w0 are degenerate (default 0.25)"),
-                ("merge_degenerate", "bool", "", "optional: merge degenerate pairs and refit (default true)"),
-            ],
-        )
+        .map("opts", "optional", &keys_ref)
         .form("fit_beads(scan, tpl) -> FitResult")
         .returns("FitResult", "beads with uncertainties, residual images, χ², status and reason, degeneracies")
         .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
@@ -397,7 +403,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         let criterion = match o.string("criterion")?.as_deref() {
             None | Some("bic") => GrowCriterion::Bic,
             Some("rel_drop") => GrowCriterion::RelDrop {
-                min_drop: o.f64_or("min_drop", 0.02)?,
+                min_drop: o.f64_or("min_drop", DEFAULT_MIN_DROP)?,
             },
             Some(c) => {
                 return fail(format!(
