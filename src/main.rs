@@ -125,8 +125,9 @@ fn install_ctrlc(flag: Arc<AtomicBool>) {
 /// Connect what the config names (no config: the simulated instrument with an empty scene;
 /// `simulate(scene)` puts objects in front of it). A device that cannot be opened is an
 /// error naming it (exit 1).
-fn connect_default(wb: &Workbench, cfg: &bfpscope::config::Config) -> Result<(), ExitCode> {
-    match script::motion::connect_config(&wb.ctx, cfg) {
+fn connect_default(wb: &Workbench) -> Result<(), ExitCode> {
+    let cfg = wb.ctx.settings.config.clone().unwrap_or_default();
+    match script::motion::connect_config(&wb.ctx, &cfg) {
         Ok(_) => Ok(()),
         Err(e) => {
             err_line(&format!("error: {e}"));
@@ -196,7 +197,6 @@ fn main() -> ExitCode {
         progress: std::io::stderr().is_terminal(),
         ..Settings::default()
     };
-    let mut inst_config: Option<bfpscope::config::Config> = None;
     // --config, else $BFPSCOPE_CONFIG, else ./bfpscope.toml; parsed once, [safety] included
     let config_path = cli
         .config
@@ -212,10 +212,9 @@ fn main() -> ExitCode {
             Ok(c) => c,
             Err(e) => return usage_error(&e.to_string()),
         };
-        if let Err(e) = settings.apply_config(c.clone(), Some(p.clone())) {
+        if let Err(e) = settings.apply_config(c, Some(p.clone())) {
             return usage_error(&format!("{}: {e}", p.display()));
         }
-        inst_config = Some(c);
     }
     if let Some(d) = &cli.data {
         settings.data_dir = d.clone();
@@ -231,12 +230,11 @@ fn main() -> ExitCode {
         return emulate(device, scene.as_deref());
     }
     install_ctrlc(settings.abort.clone());
-    let inst_config = inst_config.unwrap_or_default();
 
     match cli.cmd.unwrap_or(Cmd::Repl) {
         Cmd::Repl => {
             let wb = Workbench::new(settings);
-            if let Err(code) = connect_default(&wb, &inst_config) {
+            if let Err(code) = connect_default(&wb) {
                 return code;
             }
             ExitCode::from(bfpscope::repl::run(wb, bfpscope::repl::default_history()) as u8)
@@ -246,7 +244,7 @@ fn main() -> ExitCode {
                 return usage_error(&format!("run: {}: no such script file", file.display()));
             }
             let mut wb = Workbench::new(settings);
-            if let Err(code) = connect_default(&wb, &inst_config) {
+            if let Err(code) = connect_default(&wb) {
                 return code;
             }
             for s in &set {
@@ -265,7 +263,7 @@ fn main() -> ExitCode {
         }
         Cmd::Eval { expr } => {
             let mut wb = Workbench::new(settings);
-            if let Err(code) = connect_default(&wb, &inst_config) {
+            if let Err(code) = connect_default(&wb) {
                 return code;
             }
             match wb.eval_source("eval", &expr) {

@@ -476,18 +476,22 @@ fn bfpscope_config_variable_is_honoured_with_its_safety_table() {
     // Issue 16: bfpscope.example.toml says "point $BFPSCOPE_CONFIG at it"; a config loaded that
     // way must bring its [safety] table, and a bad one must stop the start, not be dropped.
     let dir = tmp("envcfg");
-    let good = dir.join("lab.toml");
-    std::fs::write(&good, "[safety]\nsoft_limits = { x = [-3.0, 4.0] }\n").unwrap();
-    let out = bin()
-        .env("BFPSCOPE_CONFIG", &good)
-        .args([
-            "--data",
-            dir.join("d").to_str().unwrap(),
-            "eval",
-            "limits().x",
-        ])
-        .output()
-        .unwrap();
+    // `limits().x` with $BFPSCOPE_CONFIG naming a file holding `safety`
+    let limits_x_with = |name: &str, safety: &str| {
+        let file = dir.join(name);
+        std::fs::write(&file, format!("[safety]\n{safety}\n")).unwrap();
+        bin()
+            .env("BFPSCOPE_CONFIG", &file)
+            .args([
+                "--data",
+                dir.join("d").to_str().unwrap(),
+                "eval",
+                "limits().x",
+            ])
+            .output()
+            .unwrap()
+    };
+    let out = limits_x_with("lab.toml", "soft_limits = { x = [-3.0, 4.0] }");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),
@@ -495,18 +499,7 @@ fn bfpscope_config_variable_is_honoured_with_its_safety_table() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert_eq!(stdout.trim(), "[-3.0, 4.0]");
-    let bad = dir.join("bad.toml");
-    std::fs::write(&bad, "[safety]\nsoft_limits = { x = [4.0, -3.0] }\n").unwrap();
-    let out = bin()
-        .env("BFPSCOPE_CONFIG", &bad)
-        .args([
-            "--data",
-            dir.join("d").to_str().unwrap(),
-            "eval",
-            "limits().x",
-        ])
-        .output()
-        .unwrap();
+    let out = limits_x_with("bad.toml", "soft_limits = { x = [4.0, -3.0] }");
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(stderr.contains("safety.soft_limits.x"), "{stderr}");

@@ -1386,11 +1386,7 @@ fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
     let dir = std::env::temp_dir().join(format!("bfpscope-hw-wb-{}", std::process::id()));
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
-    let call = format!(
-        "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
-        se.path(),
-        qe.path()
-    );
+    let call = connect_call(&se, &qe);
     let r = wb.eval_source("t", &call).unwrap().to_string();
     assert!(
         r.starts_with("connected hardware: PI E-727 on /dev/"),
@@ -1643,11 +1639,15 @@ fn workbench_on(se: &Emulator, qe: &Emulator, tag: &str) -> bfpscope::script::Wo
     let dir = std::env::temp_dir().join(format!("bfpscope-hw-{tag}-{}", std::process::id()));
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
-    let call = format!(
+    let _ = wb.eval_source("t", &connect_call(se, qe)).unwrap();
+    wb
+}
+
+/// The `connect` call for the emulator pair.
+fn connect_call(se: &Emulator, qe: &Emulator) -> String {
+    format!(
         "connect(#{{backend: \"hardware\", stage_port: \"{}\", qpd_port: \"{}\", timeout_ms: 1000}})",
         se.path(),
         qe.path()
-    );
-    let _ = wb.eval_source("t", &call).unwrap();
-    wb
+    )
 }

@@ -381,22 +381,25 @@ impl GcsStage {
         let now = self.commanded_target()?;
         let k = self.opts.units_per_um;
         let sent = |v: f64| format!("{:.6}", v * k);
-        let parts: Vec<String> = (0..3)
-            .filter(|&i| sent(target[i]) != sent(now[i]))
-            .map(|i| format!("{} {}", self.opts.axes[i], sent(target[i])))
+        // (axis, value as sent) for the axes whose target changes
+        let changed: Vec<(usize, String)> = (0..3)
+            .map(|i| (i, sent(target[i])))
+            .filter(|(i, v)| *v != sent(now[*i]))
             .collect();
-        if parts.is_empty() {
+        if changed.is_empty() {
             return Ok(None);
         }
+        let parts: Vec<String> = changed
+            .iter()
+            .map(|(i, v)| format!("{} {v}", self.opts.axes[*i]))
+            .collect();
         let cmd = format!("MOV {}", parts.join(" "));
         // unknown until the controller has accepted it (an error leaves the old targets)
         self.commanded = None;
         self.command(&cmd)?;
         let mut t = now;
-        for i in 0..3 {
-            if sent(target[i]) != sent(now[i]) {
-                t[i] = sent(target[i]).parse::<f64>().unwrap_or(target[i] * k) / k;
-            }
+        for (i, v) in &changed {
+            t[*i] = v.parse::<f64>().unwrap_or(target[*i] * k) / k;
         }
         self.commanded = Some(t);
         Ok(Some(cmd))
