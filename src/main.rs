@@ -32,7 +32,14 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// Interactive prompt (the default)
-    Repl,
+    Repl {
+        /// Open the live view: a local web page showing every scan while it runs (address printed)
+        #[arg(long)]
+        view: bool,
+        /// Port of the live view (default: a free one); implies --view
+        #[arg(long, value_name = "PORT")]
+        view_port: Option<u16>,
+    },
     /// Run a script file
     Run {
         file: PathBuf,
@@ -185,6 +192,7 @@ fn emulate(device: &str, scene: Option<&std::path::Path>) -> ExitCode {
 }
 
 fn main() -> ExitCode {
+    bfpscope::tune_allocator();
     let cli = match Cli::try_parse() {
         Ok(c) => c,
         Err(e) => {
@@ -231,11 +239,21 @@ fn main() -> ExitCode {
     }
     install_ctrlc(settings.abort.clone());
 
-    match cli.cmd.unwrap_or(Cmd::Repl) {
-        Cmd::Repl => {
+    let default_cmd = Cmd::Repl {
+        view: false,
+        view_port: None,
+    };
+    match cli.cmd.unwrap_or(default_cmd) {
+        Cmd::Repl { view, view_port } => {
             let wb = Workbench::new(settings);
             if let Err(code) = connect_default(&wb) {
                 return code;
+            }
+            if view || view_port.is_some() {
+                match script::view::start_view(&wb.ctx, "127.0.0.1", view_port.unwrap_or(0)) {
+                    Ok(url) => err_line(&format!("live view: {url}")),
+                    Err(e) => return usage_error(&e),
+                }
             }
             ExitCode::from(bfpscope::repl::run(wb, bfpscope::repl::default_history()) as u8)
         }

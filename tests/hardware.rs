@@ -1131,6 +1131,7 @@ fn run(
         log: &log,
         meta: serde_json::json!({}),
         save: &save,
+        observer: None,
     };
     let r = run_plan(inst, plan, &env);
     (r, saved.into_inner().unwrap())

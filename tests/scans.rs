@@ -48,6 +48,7 @@ impl Harness {
             log: &logf,
             meta: serde_json::json!({"script": {"path": "test"}}),
             save: &save,
+            observer: None,
         };
         run_plan(inst, plan, &env)
     }

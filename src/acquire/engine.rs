@@ -35,6 +35,93 @@ pub struct ScanEnv<'a> {
     pub meta: Value,
     /// Autosave: returns where the scan went.
     pub save: &'a dyn Fn(&Scan) -> Result<PathBuf, String>,
+    /// A live display told of every point (the browser view), if any.
+    pub observer: Option<&'a dyn ScanObserver>,
+}
+
+/// What a live display (the browser view, `view/`) is told while a scan runs. Each call must
+/// return at once (store and notify, never wait on a client): the engine makes them between
+/// points, and a slow display must not slow a scan.
+pub trait ScanObserver: Send + Sync {
+    /// The scan starts: its grid (column and row positions, µm) and what it is.
+    fn started(&self, start: &ScanStart);
+    /// Points measured: each pixel (row, col) and its (Sx, Sy, Sz), in the order measured. The
+    /// engine hands them over in batches (see [`Batcher`]), one at a time on a slow instrument.
+    fn points(&self, pts: &[(usize, usize, [f64; 3])]);
+    /// The scan ended (complete, aborted or failed) and was saved to `saved` (if it was).
+    fn ended(&self, scan: &Scan, saved: Option<&std::path::Path>);
+}
+
+/// Hands measured points to an observer in batches: one point per call while points come
+/// slowly (hardware: the display follows every point), growing to [`Batcher::MAX`] while they
+/// come fast (the simulator: one lock per batch, not per point, so the display costs the scan
+/// next to nothing). The batch doubles while flushes come less than [`Batcher::FAST`] apart and
+/// halves when they come more than [`Batcher::SLOW`] apart.
+pub struct Batcher {
+    pending: Vec<(usize, usize, [f64; 3])>,
+    size: usize,
+    last: std::time::Instant,
+}
+
+impl Batcher {
+    pub const MAX: usize = 256;
+    pub const FAST: std::time::Duration = std::time::Duration::from_millis(5);
+    pub const SLOW: std::time::Duration = std::time::Duration::from_millis(50);
+
+    pub fn new() -> Batcher {
+        Batcher {
+            pending: Vec::with_capacity(Self::MAX),
+            size: 1,
+            last: std::time::Instant::now(),
+        }
+    }
+
+    /// Add a point; hand the batch over when it is full.
+    pub fn push(&mut self, o: &dyn ScanObserver, p: (usize, usize, [f64; 3])) {
+        self.pending.push(p);
+        if self.pending.len() >= self.size {
+            let dt = self.last.elapsed();
+            self.flush(o);
+            if dt < Self::FAST {
+                self.size = (self.size * 2).min(Self::MAX);
+            } else if dt > Self::SLOW {
+                self.size = (self.size / 2).max(1);
+            }
+        }
+    }
+
+    /// Hand over what is pending.
+    pub fn flush(&mut self, o: &dyn ScanObserver) {
+        if !self.pending.is_empty() {
+            o.points(&self.pending);
+            self.pending.clear();
+        }
+        self.last = std::time::Instant::now();
+    }
+}
+
+impl Default for Batcher {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// The header of a scan for a live display.
+pub struct ScanStart<'a> {
+    pub kind: &'a str,
+    pub rows: usize,
+    pub cols: usize,
+    /// Column positions along the fast axis, µm.
+    pub x: &'a [f64],
+    /// Row positions along the slow axis, µm (one row for line and z scans).
+    pub y: &'a [f64],
+    pub x_name: &'a str,
+    pub y_name: &'a str,
+    pub points_total: usize,
+    /// The engine's estimate of the instrument time, s.
+    pub eta_s: f64,
+    /// The script's metadata (protocol, notes, …) as it will be saved.
+    pub meta: &'a Value,
 }
 
 /// How a scan ended.
@@ -169,6 +256,23 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     ));
 
     let (rows, cols) = (plan.rows(), plan.cols());
+    let colv = plan.col_positions(start);
+    let rowv = plan.row_positions(start);
+    let (xn, yn) = (plan.fast.axis.name(), plan.row_axis().name());
+    if let Some(o) = env.observer {
+        o.started(&ScanStart {
+            kind: &kind,
+            rows,
+            cols,
+            x: &colv,
+            y: &rowv,
+            x_name: xn,
+            y_name: yn,
+            points_total: points.len(),
+            eta_s: eta,
+            meta: &env.meta,
+        });
+    }
     let mut sx = Array2::from_elem((rows, cols), f64::NAN);
     let mut sy = sx.clone();
     let mut sz = sx.clone();
@@ -191,6 +295,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
 
     let mut ended = Ended::Complete;
     let mut measured = 0usize;
+    let mut batch = Batcher::new();
     for p in &points {
         if env.abort.swap(false, Ordering::SeqCst) {
             ended = Ended::Aborted { measured };
@@ -209,6 +314,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                 sx[[p.row, p.col]] = r.sx;
                 sy[[p.row, p.col]] = r.sy;
                 sz[[p.row, p.col]] = r.sz;
+                if let Some(o) = env.observer {
+                    batch.push(o, (p.row, p.col, [r.sx, r.sy, r.sz]));
+                }
                 measured += 1;
                 bar.inc(1);
             }
@@ -223,6 +331,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         }
     }
     bar.finish_and_clear();
+    if let Some(o) = env.observer {
+        batch.flush(o);
+    }
 
     let stage_fault = matches!(
         ended,
@@ -254,9 +365,6 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         Ended::Failed { .. } => ScanStatus::Failed,
     };
     let t1 = inst.clock.now();
-    let colv = plan.col_positions(start);
-    let rowv = plan.row_positions(start);
-    let (xn, yn) = (plan.fast.axis.name(), plan.row_axis().name());
     let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
     let mut meta = json!({
         "plan": plan,
@@ -313,6 +421,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         (env.log)(&format!(
             "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
         ));
+    }
+    if let Some(o) = env.observer {
+        o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
     }
     Ok(ScanRun {
         scan,

@@ -9,7 +9,9 @@ pub mod limits;
 pub mod plan;
 pub mod store;
 
-pub use engine::{checked_move, run_plan, Ended, ScanEnv, ScanError, ScanRun};
+pub use engine::{
+    checked_move, run_plan, Batcher, Ended, ScanEnv, ScanError, ScanObserver, ScanRun, ScanStart,
+};
 pub use limits::SoftLimits;
 pub use plan::{Axis, Plan, Sweep};
 pub use store::SessionStore;

@@ -204,18 +204,40 @@ impl Clock for WallClock {
     }
 }
 
-/// Simulated time: `wait` advances the counter instantly.
+/// Simulated time: `wait` advances the counter instantly, or, paced, also sleeps `pace` wall
+/// seconds per simulated second (1 = real time: the simulator then runs at a real instrument's
+/// speed, for demonstrations and the live view's tests).
 #[derive(Debug, Default)]
 pub struct VirtualClock {
     // seconds stored as f64 bits
     t: std::sync::atomic::AtomicU64,
+    // wall seconds per simulated second, as f64 bits (0: no sleeping)
+    pace: std::sync::atomic::AtomicU64,
 }
 
 impl VirtualClock {
     pub fn new() -> Self {
         Self {
             t: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
+            pace: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
         }
+    }
+
+    /// Wall seconds each simulated second costs from now on (0: none; negative or non-finite
+    /// values count as 0).
+    pub fn set_pace(&self, pace: f64) {
+        let p = if pace.is_finite() && pace > 0.0 {
+            pace
+        } else {
+            0.0
+        };
+        self.pace
+            .store(p.to_bits(), std::sync::atomic::Ordering::SeqCst);
+    }
+
+    /// The pace set by [`set_pace`](Self::set_pace).
+    pub fn pace(&self) -> f64 {
+        f64::from_bits(self.pace.load(std::sync::atomic::Ordering::SeqCst))
     }
 }
 
@@ -231,6 +253,10 @@ impl Clock for VirtualClock {
         let _ = self.t.fetch_update(SeqCst, SeqCst, |b| {
             Some((f64::from_bits(b) + seconds).to_bits())
         });
+        let pace = self.pace();
+        if pace > 0.0 {
+            std::thread::sleep(std::time::Duration::from_secs_f64(seconds * pace));
+        }
     }
     fn is_virtual(&self) -> bool {
         true
@@ -271,5 +297,21 @@ mod tests {
         c.wait(f64::NAN); // ignored, never poisons time
         assert_eq!(c.now(), 3600.5);
         assert!(t0.elapsed().as_secs_f64() < 0.5);
+    }
+
+    #[test]
+    fn paced_clock_sleeps_its_pace() {
+        let c = VirtualClock::new();
+        c.set_pace(0.5);
+        let t0 = std::time::Instant::now();
+        c.wait(0.2);
+        let wall = t0.elapsed().as_secs_f64();
+        assert_eq!(c.now(), 0.2);
+        assert!(
+            wall >= 0.1,
+            "slept {wall} s, pace 0.5 × 0.2 s asks for 0.1 s"
+        );
+        c.set_pace(f64::NAN);
+        assert_eq!(c.pace(), 0.0);
     }
 }

@@ -210,6 +210,8 @@ pub struct Ctx {
     pub notes: Mutex<Vec<String>>,
     pub(crate) docs: OnceLock<Arc<Vec<Doc>>>,
     git: OnceLock<Option<String>>,
+    /// The live view, once `view()` or `repl --view` started it.
+    view: Mutex<Option<crate::view::View>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -243,6 +245,61 @@ impl Ctx {
             protocols: Mutex::new(vec![]),
             docs: OnceLock::new(),
             git: OnceLock::new(),
+            view: Mutex::new(None),
+        }
+    }
+
+    /// The running view's state (None when no view was started).
+    pub fn view_hub(&self) -> Option<Arc<crate::view::Hub>> {
+        lock(&self.view).as_ref().map(|v| v.hub.clone())
+    }
+
+    /// The running view's address, if any.
+    pub fn view_url(&self) -> Option<String> {
+        lock(&self.view).as_ref().map(|v| v.url())
+    }
+
+    /// Keep `view` as this workbench's view (replacing and stopping an earlier one).
+    pub fn set_view(&self, view: Option<crate::view::View>) {
+        let old = std::mem::replace(&mut *lock(&self.view), view);
+        drop(old);
+    }
+
+    /// What the view shows of the instrument, read only when nothing else is using it (a
+    /// binding or a scan holds the instrument: `None`, try later). Reads the stage position.
+    pub fn instrument_glance(&self) -> Option<Value> {
+        let mut g = self.instrument.try_lock().ok()?;
+        let backend = self.backend.try_lock().ok()?.clone();
+        Some(match g.as_mut() {
+            Some(inst) => {
+                let (pos, err) = match inst.stage.position() {
+                    Ok(p) => (json!(p), Value::Null),
+                    Err(e) => (Value::Null, json!(e.to_string())),
+                };
+                json!({
+                    "connected": true,
+                    "backend": backend,
+                    "stage": inst.stage.name(),
+                    "qpd": inst.qpd.name(),
+                    "position_um": pos,
+                    "position_error": err,
+                })
+            }
+            None => json!({ "connected": false, "backend": null, "position_um": null }),
+        })
+    }
+
+    /// A figure was written: the view shows it.
+    pub fn view_figure(&self, path: &std::path::Path) {
+        if let Some(h) = self.view_hub() {
+            h.add_figure(path);
+        }
+    }
+
+    /// The operator saw this error: the view shows it as the last one.
+    pub fn view_error(&self, message: &str) {
+        if let Some(h) = self.view_hub() {
+            h.set_error(message);
         }
     }
 

@@ -31,7 +31,41 @@ fn stamp(c: &Ctx, path: &str) -> RResult<String> {
     crate::data::provenance::embed(Path::new(path), &json)
         .map_err(|e| format!("provenance: {e}"))?;
     c.print(&format!("saved {path}"));
+    let p = Path::new(path);
+    if p.extension().is_some_and(|e| e == "png" || e == "svg") {
+        let kept = keep_in_session(c, p)?;
+        c.view_figure(&kept);
+    }
     Ok(path.to_string())
+}
+
+/// Every figure is kept in the session folder: one written elsewhere (an absolute path) is
+/// copied there too (numbered, never overwriting). Returns the copy in the session folder.
+fn keep_in_session(c: &Ctx, p: &Path) -> RResult<std::path::PathBuf> {
+    let session = c.store.dir();
+    let inside = |q: &Path| {
+        let (a, b) = (std::fs::canonicalize(q), std::fs::canonicalize(session));
+        matches!((a, b), (Ok(a), Ok(b)) if a.starts_with(&b))
+    };
+    if inside(p) {
+        return Ok(p.to_path_buf());
+    }
+    let name = p
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "figure.png".into());
+    let copy = super::console::output_path(session, "figure", &name, false)?;
+    std::fs::copy(p, &copy).map_err(|e| {
+        format!(
+            "figure: cannot keep a copy in the session folder {}: {e}",
+            copy.display()
+        )
+    })?;
+    c.print(&format!(
+        "  (a copy is kept in the session folder: {})",
+        copy.display()
+    ));
+    Ok(copy)
 }
 
 fn ferr(who: &str, path: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltResult> {

@@ -20,6 +20,7 @@ pub mod stats;
 pub mod templates;
 pub mod testing;
 pub mod types;
+pub mod view;
 
 pub use ctx::{Ctx, Sandbox, ScriptInfo, Settings};
 pub use registry::{Doc, Registrar};
@@ -49,6 +50,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("stats", stats::register),
     ("files", files::register),
     ("console", console::register),
+    ("view", view::register),
 ];
 
 /// A script error as the user sees it: one line, with the position.
@@ -342,6 +344,9 @@ impl Workbench {
             .engine
             .eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
         let r = r.map_err(|e| ScriptError::from_eval(&e, source, &self.docs));
+        if let Err(e) = &r {
+            self.ctx.view_error(&e.to_string());
+        }
         if r.as_ref().is_err_and(|e| e.interrupted) {
             self.ctx.settings.abort.store(false, Ordering::SeqCst);
         }

@@ -306,6 +306,7 @@ pub fn register(r: &mut Registrar) {
                 ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)"),
                 ("noise_v", "float", "V", "optional: emulated QPD noise per sample, rms (emulated; default 1e-4, 1 V per signal unit)"),
                 ("settle", "float", "s", "optional: settle time per move (default [stage] settle_s; mock 0.001)"),
+                ("pace", "float", "", "optional: wall seconds per simulated second (sim; default 0: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())"),
                 ("rate", "float", "Hz", "optional: QPD sample rate (mock; default 100000)"),
                 ("start", "map", "µm", "optional: initial position #{x, y, z} (mock)"),
                 ("fail_move_after", "int", "", "optional: the stage disconnects on the move after this many (mock fault injection)"),
@@ -332,6 +333,7 @@ pub fn register(r: &mut Registrar) {
         )
         .example("connect(#{backend: \"mock\", start: #{x: 2.0}}); pos().x", "2.0")
         .example("connect(#{backend: \"sim\"}); status().backend", "\"sim\"")
+        .example("connect(#{backend: \"sim\", pace: -1.0})", "error: connect: pace = -1.0 is out of range")
         .example("connect(); status().instrument.stage", "\"simulated piezo stage\"")
         .example(
             "connect(#{backend: \"hardware\", stage_port: \"/dev/bfpscope-no-such-port\", qpd_port: \"/dev/bfpscope-no-such-qpd\"})",
@@ -437,9 +439,10 @@ pub fn reference_bead_scene() -> Scene {
 }
 
 /// Connect the simulated instrument imaging `scene`.
-fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64) -> Result<String, String> {
+fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64, pace: f64) -> Result<String, String> {
     let core = SimCore::new(&ctx.optics(), scene, SimConfig::default())
         .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
+    core.clock.set_pace(pace);
     let line = connected_line("sim", &core.instrument(settle_s));
     ctx.attach_sim(core, settle_s);
     Ok(line)
@@ -449,7 +452,7 @@ fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64) -> Result<String, String
 /// Used by `connect()` and by `bfpscope repl|run|eval` at start.
 pub fn connect_config(ctx: &Ctx, cfg: &Config) -> Result<String, String> {
     if cfg.is_simulated() {
-        return connect_sim(ctx, &Scene::default(), cfg.stage.settle_s);
+        return connect_sim(ctx, &Scene::default(), cfg.stage.settle_s, 0.0);
     }
     connect_hardware(ctx, cfg, "config")
 }
@@ -491,6 +494,7 @@ const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("qpd_baud", &["hardware"]),
     ("timeout_ms", &["hardware"]),
     ("scene", &["sim", "emulated"]),
+    ("pace", &["sim"]),
     ("noise_v", &["emulated"]),
     ("rate", &["mock"]),
     ("start", &["mock"]),
@@ -544,7 +548,15 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     match effective {
         "sim" => {
             let scene = scene_for(c, m, Scene::default)?;
-            connect_sim(c, &scene, cfg.stage.settle_s).map_err(Into::into)
+            let pace = match o.f64("pace")? {
+                Some(p) if !(0.0..=100.0).contains(&p) => {
+                    return fail(format!(
+                        "connect: pace = {p:?} is out of range: 0 ≤ pace ≤ 100 wall seconds per simulated second"
+                    ))
+                }
+                p => p.unwrap_or(0.0),
+            };
+            connect_sim(c, &scene, cfg.stage.settle_s, pace).map_err(Into::into)
         }
         "hardware" => {
             cfg.stage.backend = Backend::Gcs;

@@ -26,6 +26,7 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
     let save = move |s: &Scan| store.autosave(s).map_err(|e| e.to_string());
     let log = |s: &str| c.log(s);
     let kind = plan.kind.clone();
+    let hub = c.view_hub();
     c.with_instrument(&kind, |inst| {
         let env = ScanEnv {
             limits: &c.settings.limits,
@@ -34,6 +35,9 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
             log: &log,
             meta,
             save: &save,
+            observer: hub
+                .as_deref()
+                .map(|h| h as &dyn crate::acquire::ScanObserver),
         };
         let run = run_plan(inst, &plan, &env).map_err(|e| e.to_string())?;
         match run.summary() {
