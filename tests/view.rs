@@ -268,10 +268,13 @@ fn a_request_without_the_token_is_refused() {
         .parse()
         .unwrap();
     let token = url.split("token=").nth(1).unwrap();
+    // the same length, one character different
+    let wrong = format!("{}{}", if token.starts_with('0') { '1' } else { '0' }, &token[1..]);
+    assert_ne!(wrong, token);
     for path in ["/", "/events", "/api/state", "/figure/1", "/api/scan/1"] {
         assert_eq!(http(addr, "GET", path, None).0, 403, "{path}");
         assert_eq!(
-            http(addr, "GET", &format!("{path}?token=0{}", &token[1..]), None).0,
+            http(addr, "GET", &format!("{path}?token={wrong}"), None).0,
             403,
             "{path} with a wrong token"
         );
