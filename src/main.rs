@@ -62,11 +62,18 @@ enum Cmd {
     /// Serve device emulators on pseudo-terminals (try the hardware path without hardware):
     /// prints their paths and a bfpscope.toml snippet, serves until Ctrl-C
     Emulate {
-        /// `stage` (PI GCS 2.0), `qpd` (SCPI digitiser) or `pair` (both, sharing the stage position)
+        /// `stage` (alias `gcs`: PI GCS 2.0), `qpd` (SCPI digitiser) or `pair` (both, sharing the stage position)
         device: String,
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
         scene: Option<PathBuf>,
+        /// Serve the GCS stage on this TCP address instead of a pseudo-terminal, as a PI
+        /// controller's port 50000 (`127.0.0.1:0`: a free loopback port; the address is printed)
+        #[arg(long, value_name = "ADDR")]
+        tcp: Option<String>,
+        /// The emulated stage answers a query naming several axes for the first one only
+        #[arg(long)]
+        one_axis_per_query: bool,
     },
     /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
     /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
@@ -145,11 +152,15 @@ fn connect_default(wb: &Workbench) -> Result<(), ExitCode> {
 
 /// `bfpscope emulate stage|qpd|pair [--scene FILE]`: emulators whose QPD images a simulated
 /// scene at the emulated stage position.
-fn emulate(device: &str, scene: Option<&std::path::Path>) -> ExitCode {
+fn emulate(
+    device: &str,
+    scene: Option<&std::path::Path>,
+    opts: &bfpscope::instrument::emulator::EmulateOptions,
+) -> ExitCode {
     use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
-    if !["stage", "qpd", "pair", "both"].contains(&device) {
+    if !["stage", "gcs", "qpd", "pair", "both"].contains(&device) {
         return usage_error(&format!(
-            "emulate: unknown device `{device}` (expected `stage`, `qpd` or `pair`)"
+            "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
         ));
     }
     let scene = match scene {
@@ -182,6 +193,7 @@ fn emulate(device: &str, scene: Option<&std::path::Path>) -> ExitCode {
         device,
         renderer,
         &SimConfig::default(),
+        opts,
     ) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -233,9 +245,19 @@ fn main() -> ExitCode {
             std::time::SystemTime::now(),
         );
     }
-    if let Some(Cmd::Emulate { device, scene }) = &cli.cmd {
+    if let Some(Cmd::Emulate {
+        device,
+        scene,
+        tcp,
+        one_axis_per_query,
+    }) = &cli.cmd
+    {
         // the emulators install their own Ctrl-C handler (stop serving)
-        return emulate(device, scene.as_deref());
+        let opts = bfpscope::instrument::emulator::EmulateOptions {
+            tcp: tcp.clone(),
+            one_axis_per_query: *one_axis_per_query,
+        };
+        return emulate(device, scene.as_deref(), &opts);
     }
     install_ctrlc(settings.abort.clone());
 

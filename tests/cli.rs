@@ -369,11 +369,107 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
 }
 
 #[test]
+fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() {
+    // Issue 16, item 6: PI controllers speak GCS on TCP port 50000; the emulator serves the
+    // same on a loopback port and prints where.
+    use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+    use bfpscope::instrument::{DeviceError, Stage};
+
+    let mut child = bin()
+        .args([
+            "emulate",
+            "gcs",
+            "--tcp",
+            "127.0.0.1:0",
+            "--one-axis-per-query",
+        ])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let rx = line_reader(child.stdout.take().unwrap());
+    let mut text = String::new();
+    let t0 = Instant::now();
+    while !text.contains("Serving until Ctrl-C") {
+        if t0.elapsed() > Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("no `Serving until` within 60 s:\n{text}");
+        }
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
+            text.push_str(&l);
+            text.push('\n');
+        }
+    }
+    let line = text.lines().find(|l| l.starts_with("stage:")).unwrap();
+    assert!(
+        line.starts_with("stage: PI GCS 2.0 stage (axes 1 2 3, travel -37.5–37.5 × -37.5–37.5 × -25–25 µm, servo off, one axis per query) on tcp://127.0.0.1:"),
+        "{text}"
+    );
+    let url = line.rsplit(" on ").next().unwrap().to_string();
+    // the printed snippet names the TCP port
+    let snippet = text
+        .split("# bfpscope.toml for these emulators:")
+        .nth(1)
+        .unwrap()
+        .split("Serving until")
+        .next()
+        .unwrap();
+    assert!(
+        snippet.contains(&format!(
+            "[stage]\nbackend = \"gcs\"\nport = \"{url}\"\naxes = {{ x = \"1\", y = \"2\", z = \"3\" }}\n"
+        )),
+        "{snippet}"
+    );
+
+    // connect (one axis per query detected), move, fault, stop
+    let mut s = GcsStage::open(&url, 115_200, GcsOptions::default()).unwrap();
+    assert_eq!(s.name(), format!("PI E-727 on {url}"));
+    assert!(s.one_axis_per_query());
+    s.move_to([1.5, -2.0, 0.5]).unwrap();
+    assert_eq!(s.position().unwrap(), [1.5, -2.0, 0.5]);
+    match s.move_to([100.0, -2.0, 0.5]) {
+        Err(DeviceError::Controller {
+            command, code: 7, ..
+        }) => assert_eq!(command, "MOV 1 100.000000"),
+        other => panic!("{other:?}"),
+    }
+    s.stop().unwrap();
+    assert_eq!(s.position().unwrap(), [1.5, -2.0, 0.5]);
+    drop(s);
+
+    let ok = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t0.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("emulate did not stop on SIGINT");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(0));
+    // the port is closed
+    let e = GcsStage::open(&url, 115_200, GcsOptions::default())
+        .err()
+        .expect("closed");
+    assert!(e.to_string().contains("cannot connect to"), "{e}");
+}
+
+#[test]
 fn emulate_rejects_an_unknown_device_and_a_bad_scene_file() {
     let (code, _, err) = run(&["emulate", "laser"]);
     assert_eq!(code, 2);
     assert!(
-        err.contains("emulate: unknown device `laser` (expected `stage`, `qpd` or `pair`)"),
+        err.contains(
+            "emulate: unknown device `laser` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+        ),
         "{err}"
     );
     let d = tmp("emulate-scene");

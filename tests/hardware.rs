@@ -12,7 +12,7 @@ use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
     start_qpd_emulator, start_stage_emulator, Emulator, QpdEmulatorConfig, StageEmulatorConfig,
 };
-use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+use bfpscope::instrument::gcs::{axes_xyz, GcsOptions, GcsStage};
 use bfpscope::instrument::scpi::{Calibration, ScpiOptions, ScpiQpd};
 use bfpscope::instrument::sim::scene::{Bead, Scene};
 use bfpscope::instrument::sim::{SimConfig, SimCore};
@@ -92,7 +92,15 @@ fn stage_connect_identifies_and_switches_servo_on() {
     assert_eq!(s.name(), format!("PI E-727 on {}", emu.path()));
     assert_eq!(
         emu.commands(),
-        vec!["*IDN?", "ERR?", "MOV? A B C", "SVO A 1 B 1 C 1", "ERR?"]
+        vec![
+            "*IDN?",
+            "ERR?",
+            "SAI?",
+            "SVO? 1 2 3",
+            "MOV? 1 2 3",
+            "SVO 1 1 2 1 3 1",
+            "ERR?"
+        ]
     );
 }
 
@@ -109,7 +117,7 @@ fn stage_move_and_position_round_trip() {
     assert_eq!(emu.position(), target);
     assert!(emu
         .commands()
-        .contains(&"MOV A 12.500000 B -33.250000 C 7.125000".to_string()));
+        .contains(&"MOV 1 12.500000 2 -33.250000 3 7.125000".to_string()));
 }
 
 #[test]
@@ -122,39 +130,44 @@ fn stage_travel_range_from_tmn_tmx() {
     );
     let log = emu.commands();
     assert!(
-        log.contains(&"TMN? A B C".to_string()) && log.contains(&"TMX? A B C".to_string()),
+        log.contains(&"TMN? 1 2 3".to_string()) && log.contains(&"TMX? 1 2 3".to_string()),
         "{log:?}"
     );
 }
 
 #[test]
-fn stage_numeric_axis_names() {
+fn stage_letter_axis_names() {
+    // controllers named A B C (SAI? answers them) work when configured so
     let cfg = StageEmulatorConfig {
-        axes: ["1".into(), "2".into(), "3".into()],
+        axes: ["A".into(), "B".into(), "C".into()],
         ..Default::default()
     };
     let emu = start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap();
     let o = GcsOptions {
-        axes: ["1".into(), "2".into(), "3".into()],
+        axes: axes_xyz(["A", "B", "C"]),
         ..opts(1000, 2000)
     };
     let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
+    assert_eq!(s.sai(), ["A", "B", "C"]);
     s.move_to([1.0, 2.0, 3.0]).unwrap();
     assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
-    assert!(emu.commands().contains(&"POS? 1 2 3".to_string()));
+    assert!(emu.commands().contains(&"POS? A B C".to_string()));
+    assert!(emu
+        .commands()
+        .contains(&"MOV A 1.000000 B 2.000000 C 3.000000".to_string()));
 }
 
 #[test]
 fn stage_axis_map_swaps_axes() {
-    // x on controller axis B, y on A: a move in x moves B.
+    // x on controller axis 2, y on 1: a move in x moves 2.
     let emu = stage_emu();
     let o = GcsOptions {
-        axes: ["B".into(), "A".into(), "C".into()],
+        axes: axes_xyz(["2", "1", "3"]),
         ..opts(1000, 2000)
     };
     let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
     s.move_to([5.0, -7.0, 1.0]).unwrap();
-    assert_eq!(emu.position(), [-7.0, 5.0, 1.0]); // emulator order is A, B, C
+    assert_eq!(emu.position(), [-7.0, 5.0, 1.0]); // emulator order is 1, 2, 3
     assert_eq!(s.position().unwrap(), [5.0, -7.0, 1.0]);
 }
 
@@ -213,7 +226,7 @@ fn fault_stage_no_reply_is_timeout_naming_device_and_command() {
             timeout_ms,
         }) => {
             assert_eq!(device, format!("PI E-727 on {}", emu.path()));
-            assert_eq!(command, "POS? A B C");
+            assert_eq!(command, "POS? 1 2 3");
             assert_eq!(timeout_ms, 200);
         }
         other => panic!("{other:?}"),
@@ -223,7 +236,7 @@ fn fault_stage_no_reply_is_timeout_naming_device_and_command() {
     let e = s.move_to([1.0, 1.0, 1.0]).unwrap_err();
     assert!(
         e.to_string()
-            .contains("ERR? (after `MOV A 1.000000 B 1.000000 C 1.000000`)"),
+            .contains("ERR? (after `MOV 1 1.000000 2 1.000000 3 1.000000`)"),
         "{e}"
     );
     assert!(e.to_string().contains("no reply"), "{e}");
@@ -246,9 +259,9 @@ fn fault_stage_garbled_reply_is_garbled_with_the_text() {
             reply,
         }) => {
             assert!(device.contains(emu.path()));
-            assert_eq!(command, "POS? A B C");
+            assert_eq!(command, "POS? 1 2 3");
             // the 0xFF byte shows as U+FFFD, digits became '#'
-            assert_eq!(reply, "\u{FFFD}A=##.###### ");
+            assert_eq!(reply, "\u{FFFD}#=##.###### ");
         }
         other => panic!("{other:?}"),
     }
@@ -266,7 +279,7 @@ fn fault_stage_garbled_error_query_after_move() {
         Err(DeviceError::Garbled { command, reply, .. }) => {
             assert_eq!(
                 command,
-                "ERR? (after `MOV A 1.000000 B 2.000000 C 3.000000`)"
+                "ERR? (after `MOV 1 1.000000 2 2.000000 3 3.000000`)"
             );
             assert_eq!(reply, "\u{FFFD}#");
         }
@@ -287,7 +300,7 @@ fn fault_stage_controller_error_code_with_text() {
             message,
         }) => {
             assert!(device.contains("E-727"));
-            assert_eq!(command, "MOV A 1.000000 B 2.000000 C 3.000000");
+            assert_eq!(command, "MOV 1 1.000000 2 2.000000 3 3.000000");
             assert_eq!(code, 10);
             assert_eq!(message, "Controller was stopped by command");
         }
@@ -313,7 +326,7 @@ fn fault_stage_error_on_a_query_explains_the_silence() {
         }) => {
             assert_eq!(
                 (command.as_str(), code, message.as_str()),
-                ("POS? A B C", 15, "Invalid axis identifier")
+                ("POS? 1 2 3", 15, "Invalid axis identifier")
             );
         }
         other => panic!("{other:?}"),
@@ -353,12 +366,12 @@ fn fault_stage_out_of_range_target_is_the_controllers_error_7() {
             ..
         }) => {
             // only the axis that changes is named
-            assert_eq!(command, "MOV A 75.000000");
+            assert_eq!(command, "MOV 1 75.000000");
             assert_eq!((code, message.as_str()), (7, "Position out of limits"));
         }
         other => panic!("{other:?}"),
     }
-    assert!(emu.commands().contains(&"MOV A 75.000000".to_string()));
+    assert!(emu.commands().contains(&"MOV 1 75.000000".to_string()));
     assert_eq!(
         s.position().unwrap(),
         [5.0, 5.0, 5.0],
@@ -387,11 +400,11 @@ fn fault_stage_slow_settling_is_an_on_target_timeout() {
         DeviceError::Other { device, detail } => {
             assert!(device.contains("E-727"));
             assert!(
-                detail.starts_with("not on target within 300 ms after `MOV A 20.000000`"),
+                detail.starts_with("not on target within 300 ms after `MOV 1 20.000000`"),
                 "{detail}"
             );
             assert!(
-                detail.ends_with("(last `ONT? A B C` reply: A=0 B=1 C=1)"),
+                detail.ends_with("(last `ONT? 1 2 3` reply: 1=0 2=1 3=1)"),
                 "{detail}"
             );
         }
@@ -425,7 +438,7 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
             device, command, ..
         } => {
             assert!(device.contains(emu.path()));
-            assert_eq!(command, "ERR? (after `MOV A 3.000000`)");
+            assert_eq!(command, "ERR? (after `MOV 1 3.000000`)");
         }
         other => panic!("{other:?}"),
     }
@@ -437,7 +450,7 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     ));
 }
 
-/// A fake controller on a raw PTY: answers `*IDN?`/`ERR?`/`MOV?` properly and every `POS?`
+/// A fake controller on a raw PTY: answers `*IDN?`/`ERR?`/`SAI?`/`SVO?`/`MOV?` properly and every `POS?`
 /// with the next scripted reply.
 fn fake_controller(
     replies: Vec<Vec<u8>>,
@@ -461,7 +474,9 @@ fn fake_controller(
                 let reply: Vec<u8> = match &line[..line.len() - 1] {
                     b"*IDN?" => b"PI, C-413, 1, 1\n".to_vec(),
                     b"ERR?" => b"0\n".to_vec(),
-                    l if l.starts_with(b"MOV?") => b"A=0 \nB=0 \nC=0\n".to_vec(),
+                    b"SAI?" => b"1 \n2 \n3\n".to_vec(),
+                    l if l.starts_with(b"SVO?") => b"1=0 \n2=0 \n3=0\n".to_vec(),
+                    l if l.starts_with(b"MOV?") => b"1=0 \n2=0 \n3=0\n".to_vec(),
                     l if l.starts_with(b"POS?") => replies.next().unwrap_or_default(),
                     _ => vec![],
                 };
@@ -475,13 +490,13 @@ fn fake_controller(
 #[test]
 fn fault_stage_garbage_replies_never_panic() {
     let garbage: Vec<Vec<u8>> = vec![
-        b"A=1 \nB=zz\nC=3\n".to_vec(),
+        b"1=1 \n2=zz\n3=3\n".to_vec(),
         b"\x00\x01\x02\x03\n".to_vec(),
-        b"A=1e999 \nB=0 \nC=0\n".to_vec(),
-        b"A=1 \nA=1 \nB=1\n".to_vec(),
-        b"X=1 \nB=0 \nC=0\n".to_vec(),
+        b"1=1e999 \n2=0 \n3=0\n".to_vec(),
+        b"1=1 \n1=1 \n2=1\n".to_vec(),
+        b"X=1 \n2=0 \n3=0\n".to_vec(),
         vec![b'7'; 4200],
-        b"A=1 \nB=2 \nC=3\n".to_vec(),
+        b"1=1 \n2=2 \n3=3\n".to_vec(),
     ];
     let (path, h, stop) = fake_controller(garbage);
     let mut s = GcsStage::open(
@@ -496,7 +511,7 @@ fn fault_stage_garbage_replies_never_panic() {
     assert_eq!(s.name(), format!("PI C-413 on {path}"));
     for k in 0..6 {
         match s.position() {
-            Err(DeviceError::Garbled { command, .. }) => assert_eq!(command, "POS? A B C"),
+            Err(DeviceError::Garbled { command, .. }) => assert_eq!(command, "POS? 1 2 3"),
             other => panic!("garbage #{k}: {other:?}"),
         }
     }
@@ -1210,7 +1225,7 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
             stage_fault,
         } => {
             assert_eq!((*measured, *code, *stage_fault), (2, -1024, true));
-            assert_eq!(command, "MOV A 0.200000"); // start + 0.0, only x moves
+            assert_eq!(command, "MOV 1 0.200000"); // start + 0.0, only x moves
             assert!(message.starts_with("Motion error"), "{message}");
         }
         other => panic!("{other:?}"),
@@ -1230,7 +1245,7 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     std::thread::sleep(Duration::from_millis(100));
     let sent = se.commands()[before..].to_vec();
     assert_eq!(sent.len(), 12, "{sent:?}");
-    assert_eq!(&sent[8..], ["MOV A 0.200000", "ERR?", "STP", "ERR?"]);
+    assert_eq!(&sent[8..], ["MOV 1 0.200000", "ERR?", "STP", "ERR?"]);
     assert!(r
         .summary()
         .unwrap_err()
@@ -1452,7 +1467,7 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
         .collect();
     assert_eq!(
         movs,
-        ["MOV A 40.500000 B 44.750000"],
+        ["MOV 1 40.500000 2 44.750000"],
         "z was not asked to move"
     );
     let before = se.commands().len();
@@ -1463,7 +1478,7 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
     assert!(
         sent.iter()
             .filter(|c| c.starts_with("MOV "))
-            .all(|c| c.starts_with("MOV A ") && !c.contains(" B ") && !c.contains(" C ")),
+            .all(|c| c.starts_with("MOV 1 ") && !c.contains(" 2 ") && !c.contains(" 3 ")),
         "only x is commanded: {sent:?}"
     );
     assert_eq!(sent.iter().filter(|c| c.starts_with("MOV ")).count(), 51);
@@ -1555,7 +1570,7 @@ fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
                 },
             stage_fault: true,
         } => {
-            assert_eq!(command, "MOV A -0.400000");
+            assert_eq!(command, "MOV 1 -0.400000");
             assert_eq!(
                 message,
                 "Motion error: position error too large, servo is switched off automatically"
@@ -1579,13 +1594,13 @@ fn gcs_query_sends_queries_only() {
     // before anything reaches the port.
     let (se, qe) = pair(0.0);
     let mut wb = workbench_on(&se, &qe, "gq");
-    let r = wb.eval_source("t", "gcs_query(\"MOV? A B\")").unwrap();
+    let r = wb.eval_source("t", "gcs_query(\"MOV? 1 2\")").unwrap();
     assert_eq!(
         bfpscope::script::show(&r),
-        "[\"A=0.000000\", \"B=0.000000\"]"
+        "[\"1=0.000000\", \"2=0.000000\"]"
     );
     let before = se.commands().len();
-    for bad in ["MOV A 1", "SVO A 0", "STP", "POS?; MOV A 1"] {
+    for bad in ["MOV 1 1", "SVO 1 0", "STP", "POS?; MOV 1 1"] {
         let e = wb
             .eval_source("t", &format!("gcs_query(\"{bad}\")"))
             .unwrap_err()
@@ -1623,7 +1638,7 @@ fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
     let _ = wb.eval_source("t", "connect()").unwrap();
     assert!(
         se.commands()
-            .contains(&"VEL A 250.000000 B 250.000000 C 250.000000".to_string()),
+            .contains(&"VEL 1 250.000000 2 250.000000 3 250.000000".to_string()),
         "{:?}",
         se.commands()
     );
@@ -1651,4 +1666,518 @@ fn connect_call(se: &Emulator, qe: &Emulator) -> String {
         se.path(),
         qe.path()
     )
+}
+
+// ---------------------------------------------------------------------------------------------
+// Issue 16, item 4: connect like PI's own software (SAI?, SVO?, TMN?/TMX? before SVO), one
+// axis per query, stages split across controllers
+
+#[test]
+fn connect_reads_sai_svo_and_the_travel_range_before_switching_servos_on() {
+    let (se, qe) = pair(0.0);
+    let cfg = emulator_config(&se, &qe);
+    let c = connect(&cfg, no_sim).unwrap();
+    assert_eq!(
+        se.commands(),
+        [
+            "*IDN?",
+            "ERR?",
+            "SAI?",
+            "SVO? 1 2 3",
+            "MOV? 1 2 3",
+            "TMN? 1 2 3",
+            "TMX? 1 2 3",
+            "SVO 1 1 2 1 3 1",
+            "ERR?"
+        ]
+    );
+    let ctl = &c.instrument.description["stage"]["controllers"][0];
+    assert_eq!(ctl["sai"], serde_json::json!(["1", "2", "3"]));
+    assert_eq!(
+        ctl["servo_at_connect"],
+        serde_json::json!({"x": false, "y": false, "z": false})
+    );
+    assert_eq!(ctl["one_axis_per_query"], false);
+}
+
+#[test]
+fn connect_refused_for_its_limits_leaves_the_servos_as_found() {
+    // y's soft limits [5, 9] do not overlap the travel [-2, 2]: the connect is refused after
+    // TMN?/TMX? and before any SVO, so the servos stay off (as the emulator powers up).
+    let (se, qe) = pair(0.0);
+    se.faults().settle_s = Some(0.0);
+    let mut cfg = emulator_config(&se, &qe);
+    cfg.safety.soft_limits.y = Some([5.0, 9.0]);
+    let e = connect(&cfg, no_sim).err().expect("refused");
+    assert_eq!(
+        e.to_string(),
+        "bfpscope.toml: safety.soft_limits.y: safety.soft_limits.y = [5, 9] µm does not overlap \
+         the stage's travel range [-2, 2] µm"
+    );
+    let sent = se.commands();
+    assert_eq!(
+        sent.last().map(String::as_str),
+        Some("TMX? 1 2 3"),
+        "{sent:?}"
+    );
+    assert!(
+        sent.iter()
+            .all(|c| !c.starts_with("SVO ") && !c.starts_with("VEL ")),
+        "{sent:?}"
+    );
+    // ask the controller itself, on a fresh connection that switches nothing on
+    let mut s = GcsStage::open_checked(se.path(), BAUD, opts(1000, 2000)).unwrap();
+    assert_eq!(s.query_only("SVO?").unwrap(), ["1=0", "2=0", "3=0"]);
+    assert_eq!(s.servo_at_connect(), [Some(false); 3]);
+}
+
+#[test]
+fn connect_switches_on_only_the_servos_found_off() {
+    let stage = StageEmulatorConfig {
+        travel: [(-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0)],
+        servo_on: true,
+        ..Default::default()
+    };
+    let (se, qe) = start_pair(stage, qpd_cfg(0.0), standin_bead).unwrap();
+    let cfg = emulator_config(&se, &qe);
+    let mut c = connect(&cfg, no_sim).unwrap();
+    assert!(
+        se.commands().iter().all(|c| !c.starts_with("SVO ")),
+        "{:?}",
+        se.commands()
+    );
+    c.instrument.stage.move_to([0.5, 0.0, 0.0]).unwrap();
+    assert_eq!(se.position(), [0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn connect_with_axes_the_controller_lacks_names_device_axes_and_sai_reply() {
+    let stage = StageEmulatorConfig {
+        inactive_axes: vec!["4".into()],
+        ..Default::default()
+    };
+    let (se, qe) = start_pair(stage, qpd_cfg(0.0), standin_bead).unwrap();
+    let text = emulator_config_text(&se, &qe).replace(
+        "poll_ms = 1",
+        "poll_ms = 1\naxes = { x = \"1\", y = \"2\", z = \"4\" }",
+    );
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let e = connect(&cfg, no_sim).err().expect("refused");
+    assert_eq!(
+        e.to_string(),
+        format!(
+            "PI E-727 on {}: configured axes x = \"1\", y = \"2\", z = \"4\" are not all axes of this \
+             controller: `SAI?` answered 1 2 3 (`SAI? ALL`, deactivated axes too: 1 2 3 4); 4 missing. \
+             Set [stage] axes in bfpscope.toml to the controller's identifiers, e.g. axes = {{ x = \"1\", \
+             y = \"2\", z = \"3\" }}",
+            se.path()
+        )
+    );
+    assert_eq!(se.commands(), ["*IDN?", "ERR?", "SAI?", "SAI? ALL"]);
+}
+
+#[test]
+fn emulator_answers_sai_and_sai_all_as_pi_documents() {
+    let cfg = StageEmulatorConfig {
+        inactive_axes: vec!["4".into()],
+        ..Default::default()
+    };
+    let emu = start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap();
+    let mut s = open_stage(&emu, 200);
+    // one identifier per line, every line but the last ending in a space
+    assert_eq!(s.query_lines("SAI?").unwrap(), ["1", "2", "3"]);
+    assert_eq!(s.query_lines("SAI? ALL").unwrap(), ["1", "2", "3", "4"]);
+    assert_eq!(s.query_lines("sai? all").unwrap(), ["1", "2", "3", "4"]);
+    match s.query_lines("SAI? 1") {
+        Err(DeviceError::Controller {
+            code: 1, command, ..
+        }) => assert_eq!(command, "SAI? 1"),
+        other => panic!("{other:?}"),
+    }
+}
+
+/// A stage emulator that answers one axis per query.
+fn one_axis_emu() -> Emulator {
+    let cfg = StageEmulatorConfig {
+        travel: [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)],
+        settle_s: 0.005,
+        one_axis_per_query: true,
+        ..StageEmulatorConfig::default()
+    };
+    start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap()
+}
+
+#[test]
+fn one_axis_per_query_controller_is_detected_and_asked_axis_by_axis() {
+    let emu = one_axis_emu();
+    let mut s = open_stage(&emu, 1000);
+    assert!(s.one_axis_per_query());
+    // the emulated controller really answers the first axis only
+    assert_eq!(s.query_only("POS? 1 2 3").unwrap(), ["1=0.000000"]);
+    assert_eq!(
+        emu.commands()[..11],
+        [
+            "*IDN?",
+            "ERR?",
+            "SAI?",
+            "SVO? 1 2 3",
+            "SVO? 2",
+            "SVO? 3",
+            "MOV? 1",
+            "MOV? 2",
+            "MOV? 3",
+            "SVO 1 1 2 1 3 1",
+            "ERR?"
+        ]
+    );
+    let before = emu.commands().len();
+    s.move_to([1.5, -2.5, 3.5]).unwrap();
+    assert_eq!(s.position().unwrap(), [1.5, -2.5, 3.5]);
+    assert_eq!(s.travel_range().unwrap()[1], (-40.0, 60.0));
+    let sent = emu.commands()[before..].to_vec();
+    assert_eq!(sent[..2], ["MOV 1 1.500000 2 -2.500000 3 3.500000", "ERR?"]);
+    assert!(sent.contains(&"ONT? 3".to_string()), "{sent:?}");
+    assert!(
+        sent.iter()
+            .filter(|c| c.ends_with('?') || c.contains("? "))
+            .all(|c| c.split_whitespace().count() <= 2),
+        "a query named several axes: {sent:?}"
+    );
+    let n = sent.len();
+    assert_eq!(sent[n - 9..n - 6], ["POS? 1", "POS? 2", "POS? 3"]);
+    // an on-target timeout names the last per-axis query
+    emu.faults().settle_s = Some(30.0);
+    drop(s);
+    let mut s = GcsStage::open(emu.path(), BAUD, opts(200, 200)).unwrap();
+    let e = s.move_to([20.0, -2.5, 3.5]).unwrap_err().to_string();
+    assert!(e.ends_with("(last `ONT? 3` reply: 1=0 2=1 3=1)"), "{e}");
+}
+
+#[test]
+fn one_axis_per_query_can_be_configured() {
+    let emu = one_axis_emu();
+    let o = GcsOptions {
+        one_axis_per_query: true,
+        ..opts(1000, 2000)
+    };
+    let mut s = GcsStage::open(emu.path(), BAUD, o).unwrap();
+    assert_eq!(emu.commands()[3..6], ["SVO? 1", "SVO? 2", "SVO? 3"]);
+    s.move_to([1.0, 2.0, 3.0]).unwrap();
+    assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
+}
+
+/// Two emulated controllers: XY on an E-727 (pseudo-terminal), Z on an E-709 served over TCP
+/// (its axis 1; the emulator has three channels, only axis 1 is configured), and a QPD.
+fn split_setup() -> (Emulator, Emulator, Emulator, Config) {
+    let xy = StageEmulatorConfig {
+        travel: [(-2.0, 2.0), (-2.0, 2.0), (0.0, 1.0)],
+        settle_s: 0.001,
+        ..Default::default()
+    };
+    let z = StageEmulatorConfig {
+        travel: [(-1.0, 1.0), (0.0, 1.0), (0.0, 1.0)],
+        settle_s: 0.001,
+        idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-709, 0000000001, 1.0.0 (bfpscope emulator)"
+            .into(),
+        ..Default::default()
+    };
+    let sxy = start_stage_emulator(xy, shared_position([0.0; 3])).unwrap();
+    let sz = bfpscope::instrument::emulator::start_stage_emulator_tcp(
+        z,
+        shared_position([0.0; 3]),
+        "127.0.0.1:0",
+    )
+    .unwrap();
+    let qe = qpd_emu(0.0, [0.0; 3]);
+    let text = format!(
+        r#"
+[stage]
+backend = "gcs"
+ports = {{ x = "{xy}", y = "{xy}", z = "{z}" }}
+axes = {{ x = "1", y = "2", z = "1" }}
+timeout_ms = 500
+on_target_timeout_ms = 2000
+poll_ms = 1
+settle_s = 0.0
+
+[qpd]
+backend = "scpi"
+port = "{q}"
+"#,
+        xy = sxy.path(),
+        z = sz.path(),
+        q = qe.path()
+    );
+    let cfg = Config::from_toml_str(&text, "split.toml").unwrap();
+    (sxy, sz, qe, cfg)
+}
+
+#[test]
+fn stage_split_across_two_controllers_moves_each_its_own_axes() {
+    let (sxy, sz, _qe, cfg) = split_setup();
+    assert!(sz.path().starts_with("tcp://127.0.0.1:"), "{}", sz.path());
+    let mut c = connect(&cfg, no_sim).unwrap();
+    let stage = &mut c.instrument.stage;
+    assert_eq!(
+        stage.name(),
+        format!(
+            "PI E-727 on {} (x, y) + PI E-709 on {} (z)",
+            sxy.path(),
+            sz.path()
+        )
+    );
+    // each controller is checked and switched on for its own axes only
+    assert_eq!(
+        sxy.commands(),
+        [
+            "*IDN?",
+            "ERR?",
+            "SAI?",
+            "SVO? 1 2",
+            "MOV? 1 2",
+            "TMN? 1 2",
+            "TMX? 1 2",
+            "SVO 1 1 2 1",
+            "ERR?"
+        ]
+    );
+    assert_eq!(
+        sz.commands(),
+        ["*IDN?", "ERR?", "SAI?", "SVO? 1", "MOV? 1", "TMN? 1", "TMX? 1", "SVO 1 1", "ERR?"]
+    );
+    assert_eq!(c.limits.range, [(-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0)]);
+    let (nxy, nz) = (sxy.commands().len(), sz.commands().len());
+    stage.move_to([0.5, -0.25, 0.75]).unwrap();
+    assert_eq!(
+        sxy.commands()[nxy..nxy + 2],
+        ["MOV 1 0.500000 2 -0.250000", "ERR?"]
+    );
+    assert_eq!(sz.commands()[nz..nz + 2], ["MOV 1 0.750000", "ERR?"]);
+    assert_eq!(stage.position().unwrap(), [0.5, -0.25, 0.75]);
+    assert_eq!(sxy.position(), [0.5, -0.25, 0.0]);
+    assert_eq!(sz.position(), [0.75, 0.0, 0.0]);
+    // a move of z alone talks to the E-709 only
+    let nxy = sxy.commands().len();
+    stage.move_to([0.5, -0.25, 0.5]).unwrap();
+    assert_eq!(sxy.commands().len(), nxy, "{:?}", &sxy.commands()[nxy..]);
+    assert_eq!(stage.target().unwrap(), [0.5, -0.25, 0.5]);
+    let d = &c.instrument.description["stage"];
+    assert_eq!(d["port"]["z"], sz.path());
+    assert_eq!(d["controllers"][1]["axes"], serde_json::json!({"z": "1"}));
+}
+
+#[test]
+fn stage_split_fault_on_one_controller_stops_all_of_them() {
+    use bfpscope::acquire::checked_move;
+    let (sxy, sz, _qe, cfg) = split_setup();
+    let mut c = connect(&cfg, no_sim).unwrap();
+    // TMN? 1 and TMX? 1 (checked_move reads the travel range) pass, the MOV is rejected
+    sz.faults().error_after = Some((2, 7));
+    let (nxy, nz) = (sxy.commands().len(), sz.commands().len());
+    let e = checked_move(
+        &mut c.instrument,
+        &c.limits,
+        [0.5, 0.5, 0.5],
+        "mv",
+        &AtomicBool::new(false),
+    )
+    .unwrap_err();
+    assert_eq!(
+        e,
+        format!(
+            "mv: PI E-709 on {}: controller error 7 after `MOV 1 0.500000`: Position out of limits; \
+             the stage was stopped",
+            sz.path()
+        )
+    );
+    // the E-727 got its MOV first (the axes move together), then both got STP and nothing after
+    let sent_xy = sxy.commands()[nxy..].to_vec();
+    let sent_z = sz.commands()[nz..].to_vec();
+    assert_eq!(
+        &sent_xy[sent_xy.len() - 2..],
+        ["STP", "ERR?"],
+        "{sent_xy:?}"
+    );
+    assert_eq!(&sent_z[sent_z.len() - 2..], ["STP", "ERR?"], "{sent_z:?}");
+    assert!(sent_z.contains(&"MOV 1 0.500000".to_string()));
+}
+
+#[test]
+fn stage_split_ports_that_do_not_open_close_the_ones_opened() {
+    let (sxy, sz, _qe, cfg) = split_setup();
+    let text = cfg.to_toml().replace(sz.path(), "tcp://127.0.0.1:1");
+    let cfg = Config::from_toml_str(&text, "split.toml").unwrap();
+    let e = connect(&cfg, no_sim).err().expect("must fail").to_string();
+    assert!(
+        e.starts_with("GCS stage on tcp://127.0.0.1:1: cannot connect to tcp://127.0.0.1:1:"),
+        "{e}"
+    );
+    // the E-727 was only read, and its port is free again
+    assert!(sxy.commands().iter().all(|c| !c.starts_with("SVO ")));
+    let _s = open_stage(&sxy, 1000);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Issue 16, item 6: GCS over TCP (PI controllers' port 50000), here on loopback
+
+fn tcp_stage_emu() -> Emulator {
+    let cfg = StageEmulatorConfig {
+        travel: [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)],
+        settle_s: 0.005,
+        ..StageEmulatorConfig::default()
+    };
+    bfpscope::instrument::emulator::start_stage_emulator_tcp(
+        cfg,
+        shared_position([0.0; 3]),
+        "127.0.0.1:0",
+    )
+    .unwrap()
+}
+
+#[test]
+fn tcp_connect_move_fault_stop_over_loopback() {
+    let emu = tcp_stage_emu();
+    let url = emu.path().to_string();
+    assert!(url.starts_with("tcp://127.0.0.1:"), "{url}");
+    let mut s = GcsStage::open(&url, BAUD, opts(200, 2000)).unwrap();
+    assert_eq!(s.name(), format!("PI E-727 on {url}"));
+    assert_eq!(emu.commands()[..3], ["*IDN?", "ERR?", "SAI?"]);
+    // move
+    s.move_to([12.5, -33.25, 7.125]).unwrap();
+    assert_eq!(s.position().unwrap(), [12.5, -33.25, 7.125]);
+    assert!(emu
+        .commands()
+        .contains(&"MOV 1 12.500000 2 -33.250000 3 7.125000".to_string()));
+    // controller error, named
+    emu.faults().error_next = Some(7);
+    match s.move_to([1.0, 2.0, 3.0]) {
+        Err(DeviceError::Controller {
+            device,
+            command,
+            code,
+            message,
+        }) => {
+            assert_eq!(device, format!("PI E-727 on {url}"));
+            assert_eq!(command, "MOV 1 1.000000 2 2.000000 3 3.000000");
+            assert_eq!((code, message.as_str()), (7, "Position out of limits"));
+        }
+        other => panic!("{other:?}"),
+    }
+    // no reply: a timeout within the reply timeout, naming the query
+    emu.faults().silent = true;
+    let t0 = Instant::now();
+    match s.position() {
+        Err(DeviceError::Timeout {
+            command,
+            timeout_ms,
+            ..
+        }) => assert_eq!((command.as_str(), timeout_ms), ("POS? 1 2 3", 200)),
+        other => panic!("{other:?}"),
+    }
+    assert_bounded(t0, 1.5);
+    emu.faults().silent = false;
+    // garbled, then resynchronised
+    emu.faults().garble_replies = 1;
+    assert!(matches!(s.position(), Err(DeviceError::Garbled { .. })));
+    assert_eq!(s.position().unwrap(), [12.5, -33.25, 7.125]);
+    // stop mid-move: STP, the axis stays where it stopped
+    emu.faults().settle_s = Some(2.0);
+    s.move_no_wait([40.0, -33.25, 7.125]).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    s.stop().unwrap();
+    let p1 = s.position().unwrap();
+    assert!(p1[0] > 12.5 && p1[0] < 40.0, "{p1:?}");
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(s.position().unwrap(), p1, "still moving after STP");
+    let log = emu.commands();
+    let stp = log.iter().rposition(|c| c == "STP").expect("STP sent");
+    assert_eq!(log[stp + 1], "ERR?");
+    // a second client after the first leaves
+    drop(s);
+    let mut s2 = GcsStage::open(&url, BAUD, opts(1000, 2000)).unwrap();
+    assert_eq!(s2.commanded_target().unwrap(), p1);
+    // unplugged after the next command (its reply is delivered): then disconnected, bounded
+    emu.faults().unplug_after = Some(1);
+    assert_eq!(s2.position(), Ok(p1));
+    std::thread::sleep(Duration::from_millis(100));
+    let t0 = Instant::now();
+    match s2.position() {
+        Err(DeviceError::Disconnected {
+            device, command, ..
+        }) => assert_eq!(
+            (device, command),
+            (format!("PI E-727 on {url}"), "POS? 1 2 3".to_string())
+        ),
+        other => panic!("{other:?}"),
+    }
+    assert_bounded(t0, 2.0);
+}
+
+#[test]
+fn tcp_port_in_the_config_connects_and_a_dead_port_is_named() {
+    let se = tcp_stage_emu();
+    let qe = qpd_emu(0.0, [0.0; 3]);
+    let mut cfg = Config::default();
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some(se.path().into());
+    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.port = Some(qe.path().into());
+    let mut c = connect(&cfg, no_sim).unwrap();
+    assert_eq!(c.instrument.description["stage"]["port"], se.path());
+    c.instrument.stage.move_to([1.0, 2.0, 3.0]).unwrap();
+    assert_eq!(se.position(), [1.0, 2.0, 3.0]);
+    drop(c);
+    cfg.stage.port = Some("tcp://127.0.0.1:1".into());
+    let e = connect(&cfg, no_sim).err().expect("must fail").to_string();
+    assert!(
+        e.starts_with("GCS stage on tcp://127.0.0.1:1: cannot connect to tcp://127.0.0.1:1: ")
+            && e.ends_with("PI controllers listen on 50000)"),
+        "{e}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Ctrl-C during a single move's on-target wait: STP
+
+#[test]
+fn ctrl_c_during_a_single_move_sends_stp() {
+    let (se, qe) = pair(0.0);
+    let mut wb = workbench_on(&se, &qe, "ctrlc");
+    se.faults().settle_s = Some(30.0); // the move would take 30 s
+    let abort = wb.ctx.settings.abort.clone();
+    let raiser = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(300));
+        abort.store(true, Ordering::SeqCst);
+    });
+    let before = se.commands().len();
+    let t0 = Instant::now();
+    let e = wb
+        .eval_source("t", "mv(#{x: 1.5})")
+        .unwrap_err()
+        .to_string();
+    raiser.join().unwrap();
+    assert_bounded(t0, 1.5);
+    assert!(
+        e.contains(&format!(
+            "mv interrupted (Ctrl-C) before PI E-727 on {} was on target; the stage was stopped",
+            se.path()
+        )),
+        "{e}"
+    );
+    std::thread::sleep(Duration::from_millis(50));
+    let sent = se.commands()[before..].to_vec();
+    assert_eq!(sent[..2], ["TMN? 1 2 3", "TMX? 1 2 3"], "{sent:?}");
+    assert_eq!(sent[2..4], ["MOV 1 1.500000", "ERR?"], "{sent:?}");
+    assert_eq!(&sent[sent.len() - 2..], ["STP", "ERR?"], "{sent:?}");
+    assert!(
+        sent[4..sent.len() - 2]
+            .iter()
+            .all(|c| c == "ONT? 1 2 3" || c == "ERR?"),
+        "{sent:?}"
+    );
+    // stopped on the way, not at the target, and not moving any more
+    let p = se.position();
+    assert!(p[0] > 0.0 && p[0] < 1.5, "{p:?}");
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(se.position(), p);
 }

@@ -434,12 +434,15 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
 }
 
 /// Move to an absolute target after checking it against the soft limits (narrowed to the
-/// travel range). `who` names the binding for the message.
+/// travel range). `who` names the binding for the message. Ctrl-C (`abort`) during the wait for
+/// on-target stops the stage (PI: `STP`) and fails the call; the flag stays raised, so the
+/// script is interrupted too.
 pub fn checked_move(
     inst: &mut Instrument,
     limits: &SoftLimits,
     target: Pos,
     who: &str,
+    abort: &AtomicBool,
 ) -> Result<(), String> {
     let travel = inst
         .stage
@@ -450,12 +453,21 @@ pub fn checked_move(
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?
         .check(target)
         .map_err(|e| format!("{who} refused, nothing was moved: {e}"))?;
-    inst.move_settle(target).map_err(|e| {
+    let stop = |inst: &mut Instrument| match inst.stage.stop() {
+        Ok(()) => "the stage was stopped".to_string(),
+        Err(s) => format!("the stop command failed too: {s}"),
+    };
+    match inst.stage.move_to_or_abort(target, abort) {
+        Ok(true) => {
+            inst.clock.wait(inst.settle_s);
+            Ok(())
+        }
+        Ok(false) => Err(format!(
+            "{who} interrupted (Ctrl-C) before {} was on target; {}",
+            inst.stage.name(),
+            stop(inst)
+        )),
         // the axis may still be moving: stop it, and say whether that worked
-        let stopped = match inst.stage.stop() {
-            Ok(()) => "the stage was stopped".to_string(),
-            Err(s) => format!("the stop command failed too: {s}"),
-        };
-        format!("{who}: {e}; {stopped}")
-    })
+        Err(e) => Err(format!("{who}: {e}; {}", stop(inst))),
+    }
 }

@@ -5,6 +5,7 @@
 use super::{Backend, Config, ConfigError};
 use crate::acquire::SoftLimits;
 use crate::instrument::gcs::GcsStage;
+use crate::instrument::gcs_split::GcsSplitStage;
 use crate::instrument::scpi::ScpiQpd;
 use crate::instrument::{DeviceError, Instrument, WallClock};
 use serde_json::json;
@@ -33,11 +34,15 @@ pub enum ConnectError {
 ///
 /// - `sim`: `make_sim(cfg)` builds the simulated instrument (the caller owns the scene and
 ///   optics; it should use `cfg.stage.settle_s`).
-/// - `gcs` + `scpi`: open both ports, identify both devices (`*IDN?`), switch the servos on,
-///   read the travel range (`TMN?`/`TMX?`) and the sample rate. The clock is the wall clock.
+/// - `gcs` + `scpi`: open the ports (one or several stage controllers, serial or TCP),
+///   identify the devices (`*IDN?`), check the configured axes against `SAI?`, read `SVO?` and
+///   `MOV?`, the travel range (`TMN?`/`TMX?`) and the sample rate. The clock is the wall clock.
 ///
-/// In both cases the stage's travel range is intersected with the `[safety]` soft limits. A
-/// failure names the device and what it said; a half-opened pair is closed again.
+/// In both cases the stage's travel range is then intersected with the `[safety]` soft
+/// limits, and only when they fit is the stage switched on (`Stage::enable`: PI `SVO` for the
+/// axes found off) and the speed limit sent (`VEL`): a connect refused for its limits leaves
+/// the controller as it was found. A failure names the device and what it said; a half-opened
+/// set of ports is closed again.
 pub fn connect(
     cfg: &Config,
     make_sim: impl FnOnce(&Config) -> anyhow::Result<Instrument>,
@@ -62,6 +67,7 @@ pub fn connect(
             line: None,
             message: e.message,
         })?;
+    instrument.stage.enable()?;
     // positioning moves respect the [safety] speed limit too, not only scan steps
     if let Some(v) = limits.max_speed_um_s {
         instrument.stage.set_velocity(v)?;
@@ -77,21 +83,42 @@ pub fn connect(
 }
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
-    let sport = cfg.stage.port.clone().unwrap_or_default();
     let qport = cfg.qpd.port.clone().unwrap_or_default();
-    let stage = GcsStage::open(&sport, cfg.stage.baud, cfg.gcs_options())?;
-    // If the QPD fails, `stage` is dropped here and its port closed.
+    let controllers = cfg.gcs_controllers();
+    // Opened read-only: nothing is switched on before `connect` has checked the limits.
+    let (stage, parts): (Box<dyn crate::instrument::Stage>, Vec<serde_json::Value>) =
+        if controllers.len() == 1 {
+            let (port, o) = &controllers[0];
+            let s = GcsStage::open_checked(port, cfg.stage.baud, o.clone())?;
+            let d = controller_json(&s, port);
+            (Box::new(s), vec![d])
+        } else {
+            let s = GcsSplitStage::open_checked(&controllers, cfg.stage.baud)?;
+            let d = s
+                .controllers()
+                .iter()
+                .zip(&controllers)
+                .map(|(c, (port, _))| controller_json(c, port))
+                .collect();
+            (Box::new(s), d)
+        };
+    // If the QPD fails, `stage` is dropped here and its ports closed.
     let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
+    let port = match &cfg.stage.ports {
+        Some(p) => json!({ "x": p.x, "y": p.y, "z": p.z }),
+        None => json!(cfg.stage.port.clone().unwrap_or_default()),
+    };
     let description = json!({
         "backend": "hardware",
         "stage": {
             "backend": "gcs",
-            "name": crate::instrument::Stage::name(&stage),
-            "port": sport,
+            "name": stage.name(),
+            "port": port,
             "baud": cfg.stage.baud,
-            "idn": stage.idn(),
+            "idn": parts.iter().map(|p| p["idn"].as_str().unwrap_or_default()).collect::<Vec<_>>().join(" + "),
             "axes": { "x": cfg.stage.axes.x, "y": cfg.stage.axes.y, "z": cfg.stage.axes.z },
             "units_per_um": cfg.stage.units_per_um,
+            "controllers": parts,
         },
         "qpd": {
             "backend": "scpi",
@@ -105,11 +132,40 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         "settle_s": cfg.stage.settle_s,
     });
     Ok(Instrument {
-        stage: Box::new(stage),
+        stage,
         qpd: Box::new(qpd),
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description,
+    })
+}
+
+/// One controller as found at connect: name, port, `*IDN?`, `SAI?`, the axes it drives and
+/// their servo state before anything was switched on.
+fn controller_json(s: &GcsStage, port: &str) -> serde_json::Value {
+    let xyz = ["x", "y", "z"];
+    let mut axes = serde_json::Map::new();
+    let mut servo = serde_json::Map::new();
+    for (i, (id, on)) in s
+        .options()
+        .axes
+        .iter()
+        .zip(s.servo_at_connect())
+        .enumerate()
+    {
+        if let (Some(id), Some(on)) = (id, on) {
+            axes.insert(xyz[i].into(), json!(id));
+            servo.insert(xyz[i].into(), json!(on));
+        }
+    }
+    json!({
+        "name": crate::instrument::Stage::name(s),
+        "port": port,
+        "idn": s.idn(),
+        "sai": s.sai(),
+        "axes": axes,
+        "servo_at_connect": servo,
+        "one_axis_per_query": s.one_axis_per_query(),
     })
 }
 

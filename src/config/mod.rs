@@ -6,9 +6,10 @@
 //! ```toml
 //! [stage]
 //! backend = "gcs"               # "sim" (default) | "gcs"
-//! port = "/dev/ttyUSB0"
+//! port = "/dev/ttyUSB0"        # or "tcp://192.168.0.10:50000"; or, split across controllers:
+//!                               # ports = { x = "/dev/ttyUSB0", y = "/dev/ttyUSB0", z = "/dev/ttyUSB2" }
 //! baud = 115200
-//! axes = { x = "A", y = "B", z = "C" }
+//! axes = { x = "1", y = "2", z = "3" }   # checked against the controller's SAI? at connect
 //!
 //! [qpd]
 //! backend = "scpi"              # "sim" (default) | "scpi"
@@ -31,6 +32,7 @@ pub mod connect;
 
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
+use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -87,11 +89,42 @@ pub struct AxisMap {
 }
 
 impl Default for AxisMap {
+    /// An E-727's axes (`SAI?` answers `1 2 3`).
     fn default() -> Self {
         Self {
-            x: "A".into(),
-            y: "B".into(),
-            z: "C".into(),
+            x: "1".into(),
+            y: "2".into(),
+            z: "3".into(),
+        }
+    }
+}
+
+impl AxisMap {
+    pub fn get(&self, i: usize) -> &str {
+        match i {
+            0 => &self.x,
+            1 => &self.y,
+            _ => &self.z,
+        }
+    }
+}
+
+/// `stage.ports`: the port of the controller driving each axis, for a stage split across
+/// controllers (XY on an E-727, Z on an E-709; or one single-axis controller per axis).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AxisPorts {
+    pub x: String,
+    pub y: String,
+    pub z: String,
+}
+
+impl AxisPorts {
+    pub fn get(&self, i: usize) -> &str {
+        match i {
+            0 => &self.x,
+            1 => &self.y,
+            _ => &self.z,
         }
     }
 }
@@ -101,8 +134,13 @@ impl Default for AxisMap {
 #[serde(deny_unknown_fields, default)]
 pub struct StageConfig {
     pub backend: Backend,
-    /// Serial port (`/dev/ttyUSB0`, `/dev/serial/by-id/…`, `COM3`); required for `gcs`.
+    /// Serial port (`/dev/ttyUSB0`, `/dev/serial/by-id/…`, `COM3`) or `tcp://HOST:50000`, of
+    /// the one controller driving x, y, z; for `gcs`, this or `ports`.
     pub port: Option<String>,
+    /// Ports per axis for a stage split across controllers (axes on one port are one
+    /// controller); for `gcs`, this or `port`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ports: Option<AxisPorts>,
     pub baud: u32,
     /// Reply timeout per command, ms.
     pub timeout_ms: u64,
@@ -117,6 +155,9 @@ pub struct StageConfig {
     pub units_per_um: f64,
     /// Extra settle time after each move, s (after on-target for hardware).
     pub settle_s: f64,
+    /// Ask the controller one axis per query (`POS? 1`, `POS? 2`, …); detected at connect
+    /// anyway when a controller answers a several-axis query for the first axis only.
+    pub one_axis_per_query: bool,
 }
 
 impl Default for StageConfig {
@@ -124,6 +165,7 @@ impl Default for StageConfig {
         Self {
             backend: Backend::Sim,
             port: None,
+            ports: None,
             baud: 115_200,
             timeout_ms: 1000,
             on_target_timeout_ms: 5000,
@@ -132,6 +174,7 @@ impl Default for StageConfig {
             servo_on_connect: true,
             units_per_um: 1.0,
             settle_s: 0.005,
+            one_axis_per_query: false,
         }
     }
 }
@@ -341,11 +384,8 @@ impl Config {
                 ),
             ));
         }
-        if s.backend == Backend::Gcs && s.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
-            return Err(err(
-                "stage.port",
-                "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")",
-            ));
+        if s.backend == Backend::Gcs {
+            self.validate_stage_ports()?;
         }
         if q.backend == Backend::Scpi && q.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
             return Err(err(
@@ -353,11 +393,15 @@ impl Config {
                 "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")",
             ));
         }
-        if s.backend == Backend::Gcs && s.port == q.port {
-            return Err(err(
-                "qpd.port",
-                "the stage and the QPD cannot share one serial port",
-            ));
+        if s.backend == Backend::Gcs {
+            if let Some(qp) = &q.port {
+                if self.stage_ports().iter().any(|p| p == qp) {
+                    return Err(err(
+                        "qpd.port",
+                        format!("{qp:?}: the stage and the QPD cannot share one port"),
+                    ));
+                }
+            }
         }
         for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
             if v == 0 {
@@ -386,11 +430,24 @@ impl Config {
                 ));
             }
         }
-        if axes[0] == axes[1] || axes[0] == axes[2] || axes[1] == axes[2] {
-            return Err(err(
-                "stage.axes",
-                "x, y and z must be different controller axes",
-            ));
+        // axes on one controller (one port) must differ
+        let port_of = |i: usize| match &s.ports {
+            Some(p) => p.get(i).to_string(),
+            None => s.port.clone().unwrap_or_default(),
+        };
+        for i in 0..3 {
+            for j in i + 1..3 {
+                if axes[i] == axes[j] && port_of(i) == port_of(j) {
+                    return Err(err(
+                        "stage.axes",
+                        format!(
+                            "{} and {} are both {:?} on one controller: x, y and z must be different \
+                             controller axes (the identifiers `SAI?` lists)",
+                            AXIS_NAMES[i], AXIS_NAMES[j], axes[i]
+                        ),
+                    ));
+                }
+            }
         }
         if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
             return Err(err("stage.units_per_um", "must be a positive number"));
@@ -422,16 +479,115 @@ impl Config {
         self.safety.limits()
     }
 
-    /// Driver settings for the GCS stage.
+    /// `stage.port` and `stage.ports`: one of the two, each port `tcp://HOST:PORT` or a
+    /// serial path.
+    fn validate_stage_ports(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        match (&s.port, &s.ports) {
+            (Some(p), Some(ps)) => {
+                return Err(err(
+                    "stage.ports",
+                    format!(
+                        "both stage.port = {p:?} and stage.ports = {{ x = {:?}, y = {:?}, z = {:?} }} are set: \
+                         give stage.port (one controller for x, y and z) or stage.ports (the controller of \
+                         each axis), not both",
+                        ps.x, ps.y, ps.z
+                    ),
+                ))
+            }
+            (None, None) => {
+                return Err(err(
+                    "stage.port",
+                    "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\" or \"tcp://192.168.0.10:50000\"; \
+                     or stage.ports = { x = …, y = …, z = … } for a stage split across controllers)",
+                ))
+            }
+            _ => {}
+        }
+        let keyed: Vec<(String, &str)> = match (&s.port, &s.ports) {
+            (Some(p), _) => vec![("stage.port".into(), p.as_str())],
+            (_, Some(ps)) => (0..3)
+                .map(|i| (format!("stage.ports.{}", AXIS_NAMES[i]), ps.get(i)))
+                .collect(),
+            _ => vec![],
+        };
+        for (key, p) in keyed {
+            if p.trim().is_empty() {
+                return Err(err(
+                    &key,
+                    "empty: a serial port (e.g. \"/dev/ttyUSB0\") or \"tcp://HOST:PORT\" (e.g. \
+                     \"tcp://192.168.0.10:50000\")",
+                ));
+            }
+            if let Some(addr) = p.strip_prefix(TCP_PREFIX) {
+                let ok = addr.rsplit_once(':').is_some_and(|(host, port)| {
+                    !host.is_empty() && port.parse::<u16>().is_ok_and(|n| n > 0)
+                });
+                if !ok {
+                    return Err(err(
+                        &key,
+                        format!(
+                            "{p:?} is not tcp://HOST:PORT: allowed are a serial port (e.g. \"/dev/ttyUSB0\") or \
+                             tcp:// with a host and a port 1–65535 (PI controllers: \"tcp://192.168.0.10:50000\")"
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The distinct stage ports, in x, y, z order of first use (empty unless `gcs`).
+    pub fn stage_ports(&self) -> Vec<String> {
+        let s = &self.stage;
+        let mut out: Vec<String> = Vec::new();
+        match (&s.port, &s.ports) {
+            (Some(p), _) => out.push(p.clone()),
+            (None, Some(ps)) => {
+                for i in 0..3 {
+                    if !out.iter().any(|p| p == ps.get(i)) {
+                        out.push(ps.get(i).to_string());
+                    }
+                }
+            }
+            _ => {}
+        }
+        out
+    }
+
+    /// Driver settings for the GCS stage on one controller (all three axes).
     pub fn gcs_options(&self) -> GcsOptions {
         let s = &self.stage;
         GcsOptions {
-            axes: [s.axes.x.clone(), s.axes.y.clone(), s.axes.z.clone()],
+            axes: [0, 1, 2].map(|i| Some(s.axes.get(i).to_string())),
             timeout: Duration::from_millis(s.timeout_ms),
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
             poll_interval: Duration::from_millis(s.poll_ms),
             servo_on_connect: s.servo_on_connect,
             units_per_um: s.units_per_um,
+            one_axis_per_query: s.one_axis_per_query,
+        }
+    }
+
+    /// The GCS controllers of the stage: (port, driver settings naming the axes on that port),
+    /// one per distinct port in x, y, z order; a single entry for `stage.port`.
+    pub fn gcs_controllers(&self) -> Vec<(String, GcsOptions)> {
+        let base = self.gcs_options();
+        match &self.stage.ports {
+            None => vec![(self.stage.port.clone().unwrap_or_default(), base)],
+            Some(ps) => self
+                .stage_ports()
+                .into_iter()
+                .map(|port| {
+                    let mut o = base.clone();
+                    for i in 0..3 {
+                        if ps.get(i) != port {
+                            o.axes[i] = None;
+                        }
+                    }
+                    (port, o)
+                })
+                .collect(),
         }
     }
 
@@ -543,7 +699,10 @@ wavelength_nm = 1064.0
         let c = Config::from_toml_str(text, "t").unwrap();
         assert_eq!(c.stage.backend, Backend::Gcs);
         assert_eq!(c.stage.baud, 57600);
-        assert_eq!(c.gcs_options().axes, ["1", "2", "3"]);
+        assert_eq!(
+            c.gcs_options().axes,
+            crate::instrument::gcs::axes_xyz(["1", "2", "3"])
+        );
         assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
         assert_eq!(c.safety.soft_limits.x, Some([10.0, 90.0])); // integers are fine
         assert_eq!(c.safety.soft_limits.y, None);
@@ -599,7 +758,9 @@ wavelength_nm = 1064.0
         assert_eq!(e.line, None, "must not point at qpd.port");
         assert_eq!(
             e.to_string(),
-            "bfpscope.toml: stage.port: required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\")"
+            "bfpscope.toml: stage.port: required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\" or \
+             \"tcp://192.168.0.10:50000\"; or stage.ports = { x = …, y = …, z = … } for a stage split \
+             across controllers)"
         );
         let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
         assert_eq!(e.key, "qpd.backend");
@@ -608,8 +769,13 @@ wavelength_nm = 1064.0
         );
         assert_eq!(e.key, "safety.soft_limits.x");
         assert_eq!(e.line, Some(3));
-        let e = error_of("[stage]\naxes = { x = \"A\", y = \"A\", z = \"C\" }\n");
+        let e = error_of("[stage]\naxes = { x = \"1\", y = \"1\", z = \"3\" }\n");
         assert_eq!(e.key, "stage.axes");
+        assert!(
+            e.message
+                .starts_with("x and y are both \"1\" on one controller"),
+            "{e}"
+        );
         let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
         assert_eq!(e.key, "qpd.calibration.gain");
         let e = error_of("[safety]\nmax_step_um = -1.0\n");
@@ -678,10 +844,119 @@ wavelength_nm = 1064.0
             )
         );
         assert_eq!(
+            (
+                &c.stage.axes,
+                c.stage.servo_on_connect,
+                c.stage.units_per_um,
+                c.stage.one_axis_per_query
+            ),
+            (
+                &d.stage.axes,
+                d.stage.servo_on_connect,
+                d.stage.units_per_um,
+                d.stage.one_axis_per_query
+            )
+        );
+        assert_eq!(
             (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
             (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
         );
         assert!(c.other.is_empty());
+    }
+
+    const HW: &str =
+        "[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB9\"\n[stage]\nbackend = \"gcs\"\n";
+
+    #[test]
+    fn default_axes_are_an_e727s() {
+        let c = Config::default();
+        assert_eq!(
+            [&c.stage.axes.x, &c.stage.axes.y, &c.stage.axes.z],
+            ["1", "2", "3"]
+        );
+    }
+
+    #[test]
+    fn tcp_ports_are_checked_naming_key_value_and_allowed_form() {
+        let c = Config::from_toml_str(&format!("{HW}port = \"tcp://192.168.0.10:50000\"\n"), "t")
+            .unwrap();
+        assert_eq!(c.stage_ports(), ["tcp://192.168.0.10:50000"]);
+        for bad in [
+            "tcp://192.168.0.10",
+            "tcp://:50000",
+            "tcp://host:0",
+            "tcp://host:port",
+        ] {
+            let e = error_of(&format!("{HW}port = \"{bad}\"\n"));
+            assert_eq!(e.key, "stage.port", "{bad}");
+            assert_eq!(e.line, Some(6), "{bad}");
+            assert_eq!(
+                e.message,
+                format!(
+                    "\"{bad}\" is not tcp://HOST:PORT: allowed are a serial port (e.g. \"/dev/ttyUSB0\") or \
+                     tcp:// with a host and a port 1–65535 (PI controllers: \"tcp://192.168.0.10:50000\")"
+                )
+            );
+        }
+    }
+
+    #[test]
+    fn stage_split_across_controllers_groups_axes_by_port() {
+        let c = Config::from_toml_str(
+            &format!(
+                "{HW}ports = {{ x = \"/dev/ttyUSB0\", y = \"/dev/ttyUSB0\", z = \"tcp://10.0.0.2:50000\" }}\n\
+                 axes = {{ x = \"1\", y = \"2\", z = \"1\" }}\n"
+            ),
+            "t",
+        )
+        .unwrap();
+        let ctl = c.gcs_controllers();
+        assert_eq!(ctl.len(), 2);
+        assert_eq!(ctl[0].0, "/dev/ttyUSB0");
+        assert_eq!(
+            ctl[0].1.axes,
+            [Some("1".to_string()), Some("2".to_string()), None]
+        );
+        assert_eq!(ctl[1].0, "tcp://10.0.0.2:50000");
+        assert_eq!(ctl[1].1.axes, [None, None, Some("1".to_string())]);
+        // the same identifier twice on one controller is an error
+        let e = error_of(&format!(
+            "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }}\naxes = {{ x = \"1\", y = \"1\", z = \"1\" }}\n"
+        ));
+        assert_eq!(e.key, "stage.axes");
+        assert!(
+            e.message
+                .starts_with("x and y are both \"1\" on one controller"),
+            "{e}"
+        );
+        // port and ports together
+        let e = error_of(&format!(
+            "{HW}port = \"/dev/a\"\nports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }}\n"
+        ));
+        assert_eq!(e.key, "stage.ports");
+        assert!(e.message.starts_with("both stage.port = \"/dev/a\" and stage.ports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" } are set"), "{e}");
+        // an axis left out, an unknown axis, the QPD on a stage port
+        let e = error_of(&format!(
+            "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\" }}\n"
+        ));
+        assert_eq!(e.key, "stage.ports");
+        assert!(e.message.contains("missing field `z`"), "{e}");
+        let e = error_of(&format!(
+            "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\", w = \"/dev/c\" }}\n"
+        ));
+        assert!(
+            e.message
+                .contains("unknown field `w`, expected one of `x`, `y`, `z`"),
+            "{e}"
+        );
+        let e = error_of(&format!(
+            "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/ttyUSB9\" }}\n"
+        ));
+        assert_eq!(e.key, "qpd.port");
+        assert_eq!(
+            e.message,
+            "\"/dev/ttyUSB9\": the stage and the QPD cannot share one port"
+        );
     }
 
     #[test]

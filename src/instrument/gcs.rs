@@ -1,5 +1,5 @@
 //! Driver for piezo stage controllers speaking PI's GCS 2.0 ASCII command set (E-727, E-709,
-//! E-712, E-517, C-413 …) over RS-232 / USB-serial.
+//! E-712, E-517, C-413 …) over RS-232 / USB-serial or TCP (port 50000).
 //!
 //! The subset used (see `docs/hardware.md`):
 //!
@@ -7,22 +7,26 @@
 //! |--------------------|----------------------------|---------------------------------------|
 //! | `*IDN?`            | one line                   | identify at connect                   |
 //! | `ERR?`             | error code (`0` = none)    | after every command; clears the error |
-//! | `SVO A 1 B 1 C 1`  | —                          | closed-loop servo on at connect       |
-//! | `MOV A x B y C z`  | —                          | absolute move (controller units)      |
-//! | `ONT? A B C`       | `A=1 ␠\nB=1 ␠\nC=0\n`      | poll until every axis is on target    |
-//! | `POS? A B C`       | `A=12.3456 ␠\nB=… ␠\nC=…\n` | position                              |
-//! | `TMN? A B C` / `TMX? A B C` | as `POS?`         | travel range                          |
+//! | `SAI?`             | `1 ␠\n2 ␠\n3\n`             | axis identifiers, checked at connect  |
+//! | `SVO? 1 2 3`       | `1=0 ␠\n2=0 ␠\n3=0\n`       | servo state at connect                |
+//! | `SVO 1 1 2 1 3 1`  | —                          | closed-loop servo on, after the checks |
+//! | `MOV 1 x 2 y 3 z`  | —                          | absolute move (controller units)      |
+//! | `ONT? 1 2 3`       | `1=1 ␠\n2=1 ␠\n3=0\n`       | poll until every axis is on target    |
+//! | `POS? 1 2 3`       | `1=12.3456 ␠\n2=… ␠\n3=…\n` | position                              |
+//! | `TMN? 1 2 3` / `TMX? 1 2 3` | as `POS?`         | travel range                          |
 //! | `STP`              | — (sets error 10)          | stop all axes                         |
 //!
 //! Lines end with LF. A multi-line reply marks every line but the last with a space before the
-//! LF ("space before LF means more lines follow").
+//! LF ("space before LF means more lines follow"). Controllers that answer a query naming
+//! several axes for the first axis only are asked one axis per query (`POS? 1`, `POS? 2`, …).
 //!
 //! The driver only moves and reads: it does not check soft limits (that is `acquire/`'s
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
-use super::link::{open_serial, LineLink, Transport};
+use super::link::{open_port, LineLink, Transport};
 use super::{DeviceError, Pos, Stage};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// Text of the common GCS controller error codes (PI GCS 2.0 error list).
@@ -67,68 +71,127 @@ const MAX_REPLY_LINES: usize = 64;
 /// Driver settings (see `[stage]` in `bfpscope.toml`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GcsOptions {
-    /// Controller axis identifiers for x, y, z (`["A","B","C"]`, `["1","2","3"]`, …).
-    pub axes: [String; 3],
+    /// Controller axis identifiers for x, y, z (`1 2 3` on an E-727); `None` for an axis this
+    /// controller does not drive (a stage split across controllers, e.g. z on a second one).
+    pub axes: [Option<String>; 3],
     /// Reply timeout for one command.
     pub timeout: Duration,
     /// Longest wait for `ONT?` to report every axis on target after a move.
     pub on_target_timeout: Duration,
     /// Interval between `ONT?` polls.
     pub poll_interval: Duration,
-    /// Switch closed-loop servo on for the three axes at connect (`SVO`).
+    /// Switch closed-loop servo on at connect (`SVO`) for the axes `SVO?` reports off.
     pub servo_on_connect: bool,
     /// Controller position units per µm (1 for PI piezo controllers, which work in µm;
     /// 0.001 for a controller configured in mm).
     pub units_per_um: f64,
+    /// Ask one axis per query (`POS? 1`, then `POS? 2`, …), for controllers that answer a query
+    /// naming several axes for the first one only. Also switched on at connect when the
+    /// controller answers the several-axis `SVO?` that way.
+    pub one_axis_per_query: bool,
+}
+
+/// `[Some("1"), Some("2"), Some("3")]` from `["1", "2", "3"]`.
+pub fn axes_xyz(ids: [&str; 3]) -> [Option<String>; 3] {
+    ids.map(|s| Some(s.to_string()))
 }
 
 impl Default for GcsOptions {
     fn default() -> Self {
         Self {
-            axes: ["A".into(), "B".into(), "C".into()],
+            axes: axes_xyz(["1", "2", "3"]),
             timeout: Duration::from_millis(1000),
             on_target_timeout: Duration::from_millis(5000),
             poll_interval: Duration::from_millis(5),
             servo_on_connect: true,
             units_per_um: 1.0,
+            one_axis_per_query: false,
         }
     }
 }
 
-/// A three-axis PI GCS 2.0 stage.
+/// Values per stage axis (x, y, z) of one controller: `None` for the axes it does not drive.
+pub type PerAxis<T> = [Option<T>; 3];
+
+/// A PI GCS 2.0 controller driving some or all of the stage's x, y, z axes. With all three it
+/// is a [`Stage`]; a stage split across controllers is a [`GcsSplitStage`] of several.
 pub struct GcsStage {
     link: LineLink,
     opts: GcsOptions,
     idn: String,
-    /// The last commanded target (µm) as sent, per axis: read with `MOV?` when unknown (at the
-    /// first move, after a stop), then kept. PI defines relative moves (`MVR`) on the target,
+    /// (x/y/z index, controller identifier) of the axes driven here, in x, y, z order.
+    axes: Vec<(usize, String)>,
+    /// The controller's `SAI?` reply at connect.
+    sai: Vec<String>,
+    /// `SVO?` at connect, per driven axis (before anything was switched on).
+    servo_at_connect: Vec<bool>,
+    /// One axis per query (configured or detected at connect).
+    per_axis: bool,
+    /// The last commanded target (µm) per driven axis, as sent: read with `MOV?` when unknown
+    /// (at connect, after a stop), then kept. PI defines relative moves (`MVR`) on the target,
     /// not on the measured position; untouched axes are never re-commanded.
-    commanded: Option<Pos>,
+    commanded: Option<Vec<f64>>,
 }
 
 /// `ONT?` polls between two `ERR?` while waiting for a move to end.
 pub const ERR_POLL_EVERY: usize = 10;
 
+const XYZ: [&str; 3] = ["x", "y", "z"];
+
 impl GcsStage {
-    /// Open a serial port (e.g. `/dev/ttyUSB0`, or an emulator's `/dev/pts/N`) and connect.
+    /// Open a port (a serial path such as `/dev/ttyUSB0` or an emulator's `/dev/pts/N`, or
+    /// `tcp://HOST:50000`) and connect: identify, check the axes against `SAI?`, read `SVO?`
+    /// and `MOV?`, then switch the servos on ([`GcsStage::enable`]).
     pub fn open(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
-        let device = format!("GCS stage on {port}");
-        let io = open_serial(&device, port, baud, opts.timeout)?;
-        Self::connect(io, port, opts)
+        let mut s = Self::open_checked(port, baud, opts)?;
+        s.enable()?;
+        Ok(s)
     }
 
-    /// Connect over any transport: identify (`*IDN?`), clear a pending error (`ERR?`), and
-    /// switch the servos on if configured. `port` only labels messages.
+    /// As [`GcsStage::open`] without switching anything on: the caller checks the travel range
+    /// (`TMN?`/`TMX?`) against its soft limits first, then calls [`GcsStage::enable`].
+    /// Dropping the stage before that leaves the controller as it was found.
+    pub fn open_checked(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
+        let device = format!("GCS stage on {port}");
+        let io = open_port(&device, port, baud, opts.timeout)?;
+        Self::connect_checked(io, port, opts)
+    }
+
+    /// Connect over any transport and switch the servos on. `port` only labels messages.
     pub fn connect(
         io: Box<dyn Transport>,
         port: &str,
         opts: GcsOptions,
     ) -> Result<Self, DeviceError> {
+        let mut s = Self::connect_checked(io, port, opts)?;
+        s.enable()?;
+        Ok(s)
+    }
+
+    /// Connect as PI's own software does, reading only: identify (`*IDN?`), clear a pending
+    /// error (`ERR?`), read the axis identifiers (`SAI?`) and check the configured ones against
+    /// them, read the servo state (`SVO?`) and the targets in force (`MOV?`). Nothing is
+    /// switched on or moved.
+    pub fn connect_checked(
+        io: Box<dyn Transport>,
+        port: &str,
+        opts: GcsOptions,
+    ) -> Result<Self, DeviceError> {
         let link = LineLink::new(io, format!("GCS stage on {port}"), opts.timeout);
+        let axes: Vec<(usize, String)> = opts
+            .axes
+            .iter()
+            .enumerate()
+            .filter_map(|(i, a)| a.clone().map(|a| (i, a)))
+            .collect();
         let mut s = Self {
             link,
+            per_axis: opts.one_axis_per_query,
             opts,
             idn: String::new(),
+            axes,
+            sai: Vec::new(),
+            servo_at_connect: Vec::new(),
             commanded: None,
         };
         s.check_axes()?;
@@ -148,12 +211,31 @@ impl GcsStage {
         s.link.set_device(label);
         // A stale error from before we connected is not ours: read and forget it.
         s.error_code("*IDN?")?;
+        s.check_sai()?;
+        // The servo state as found; a controller answering one axis per query shows it here.
+        s.servo_at_connect = s.query_axes_detect("SVO?", parse_bool)?;
         // The targets in force: relative moves start from them, untouched axes keep them.
-        s.commanded_target()?;
-        if s.opts.servo_on_connect {
-            s.set_servo(true)?;
-        }
+        s.commanded_partial()?;
         Ok(s)
+    }
+
+    /// Switch the closed loop on (`SVO <axis> 1`) for the axes `SVO?` found off at connect,
+    /// when `servo_on_connect` is set; axes already on are not commanded.
+    pub fn enable(&mut self) -> Result<(), DeviceError> {
+        if !self.opts.servo_on_connect {
+            return Ok(());
+        }
+        let off: Vec<String> = self
+            .axes
+            .iter()
+            .zip(&self.servo_at_connect)
+            .filter(|(_, on)| !**on)
+            .map(|((_, id), _)| format!("{id} 1"))
+            .collect();
+        if off.is_empty() {
+            return Ok(());
+        }
+        self.command(&format!("SVO {}", off.join(" ")))
     }
 
     /// The controller's `*IDN?` reply.
@@ -165,27 +247,121 @@ impl GcsStage {
         &self.opts
     }
 
+    /// The controller's axis identifiers (`SAI?` at connect).
+    pub fn sai(&self) -> &[String] {
+        &self.sai
+    }
+
+    /// Servo state per driven axis as found at connect (`SVO?`), before anything was sent.
+    pub fn servo_at_connect(&self) -> PerAxis<bool> {
+        let mut out = [None; 3];
+        for ((i, _), on) in self.axes.iter().zip(&self.servo_at_connect) {
+            out[*i] = Some(*on);
+        }
+        out
+    }
+
+    /// True when queries name one axis each (configured, or detected at connect).
+    pub fn one_axis_per_query(&self) -> bool {
+        self.per_axis
+    }
+
+    /// The stage axes (0 = x, 1 = y, 2 = z) this controller drives.
+    pub fn driven(&self) -> Vec<usize> {
+        self.axes.iter().map(|(i, _)| *i).collect()
+    }
+
     fn check_axes(&self) -> Result<(), DeviceError> {
-        let a = &self.opts.axes;
-        let bad = a
+        let ids: Vec<&str> = self.axes.iter().map(|(_, a)| a.as_str()).collect();
+        let bad_name = ids
             .iter()
-            .any(|n| n.is_empty() || n.contains(char::is_whitespace) || n.contains('='))
-            || a[0] == a[1]
-            || a[0] == a[2]
-            || a[1] == a[2];
-        if bad {
+            .any(|n| n.is_empty() || n.contains(char::is_whitespace) || n.contains('='));
+        let dup = (0..ids.len()).any(|i| ids[i + 1..].contains(&ids[i]));
+        if ids.is_empty() || bad_name || dup {
             return Err(DeviceError::Other {
                 device: self.link.device().to_string(),
                 detail: format!(
-                    "invalid axis map {a:?}: need three distinct identifiers without spaces"
+                    "invalid axis map {}: need distinct identifiers without spaces",
+                    self.axis_map()
                 ),
             });
         }
         Ok(())
     }
 
+    /// `x = "1", y = "2", z = "3"` for the driven axes.
+    fn axis_map(&self) -> String {
+        self.axes
+            .iter()
+            .map(|(i, a)| format!("{} = {a:?}", XYZ[*i]))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// `SAI?`: every configured identifier must be one of the controller's axes.
+    fn check_sai(&mut self) -> Result<(), DeviceError> {
+        let lines = self.query_lines("SAI?")?;
+        self.sai = lines
+            .iter()
+            .flat_map(|l| l.split_whitespace())
+            .map(str::to_string)
+            .collect();
+        let missing: Vec<&str> = self
+            .axes
+            .iter()
+            .map(|(_, a)| a.as_str())
+            .filter(|a| !self.sai.iter().any(|s| s == a))
+            .collect();
+        if missing.is_empty() {
+            return Ok(());
+        }
+        let missing = missing.join(", ");
+        // Deactivated axes are listed by `SAI? ALL` only: say so when that is the reason.
+        let all = match self.query_lines("SAI? ALL") {
+            Ok(l) => l
+                .iter()
+                .flat_map(|l| l.split_whitespace())
+                .map(str::to_string)
+                .collect::<Vec<_>>(),
+            Err(_) => Vec::new(),
+        };
+        let inactive = if !all.is_empty() && all != self.sai {
+            format!(" (`SAI? ALL`, deactivated axes too: {})", all.join(" "))
+        } else {
+            String::new()
+        };
+        let suggestion = if self.sai.len() >= self.axes.len() {
+            let s: Vec<String> = self
+                .axes
+                .iter()
+                .zip(&self.sai)
+                .map(|((i, _), id)| format!("{} = {id:?}", XYZ[*i]))
+                .collect();
+            format!(", e.g. axes = {{ {} }}", s.join(", "))
+        } else {
+            String::new()
+        };
+        Err(DeviceError::Other {
+            device: self.link.device().to_string(),
+            detail: format!(
+                "configured axes {} are not all axes of this controller: `SAI?` answered {}{inactive}; \
+                 {missing} missing. Set [stage] axes in bfpscope.toml to the controller's identifiers{suggestion}",
+                self.axis_map(),
+                if self.sai.is_empty() {
+                    "nothing".to_string()
+                } else {
+                    self.sai.join(" ")
+                },
+            ),
+        })
+    }
+
     fn axes_list(&self) -> String {
-        self.opts.axes.join(" ")
+        self.axes
+            .iter()
+            .map(|(_, a)| a.as_str())
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 
     /// Send a command that has no reply, then `ERR?`; a nonzero code is a `Controller` error
@@ -253,61 +429,162 @@ impl GcsStage {
         }
     }
 
-    /// Query `CMD? A B C` and parse `A=value` lines into x, y, z order.
+    /// Parse `ID=value` lines answering `cmd`, which asked for the driven axes `asked`
+    /// (indices into `self.axes`): every asked axis exactly once, nothing else.
+    fn parse_axis_lines<T>(
+        &self,
+        cmd: &str,
+        lines: &[String],
+        asked: &[usize],
+        parse: &impl Fn(&str) -> Option<T>,
+    ) -> Result<Vec<T>, DeviceError> {
+        let whole = || lines.join("\\n");
+        let mut out: Vec<Option<T>> = asked.iter().map(|_| None).collect();
+        for line in lines {
+            let (key, value) = line
+                .split_once('=')
+                .ok_or_else(|| self.link.garbled(cmd, whole()))?;
+            let k = asked
+                .iter()
+                .position(|&j| self.axes[j].1 == key.trim())
+                .ok_or_else(|| self.link.garbled(cmd, whole()))?;
+            let v = parse(value.trim()).ok_or_else(|| self.link.garbled(cmd, whole()))?;
+            if out[k].is_some() {
+                return Err(self.link.garbled(cmd, whole()));
+            }
+            out[k] = Some(v);
+        }
+        out.into_iter()
+            .map(|v| v.ok_or_else(|| self.link.garbled(cmd, whole())))
+            .collect()
+    }
+
+    /// Query `CMD? 1 2 3` (or `CMD? 1`, `CMD? 2`, … one axis per query) and parse the
+    /// `ID=value` lines, in the order of the driven axes.
     fn query_axes<T>(
         &mut self,
         command: &str,
         parse: impl Fn(&str) -> Option<T>,
-    ) -> Result<[T; 3], DeviceError> {
+    ) -> Result<Vec<T>, DeviceError> {
+        if self.per_axis {
+            let mut out = Vec::with_capacity(self.axes.len());
+            for k in 0..self.axes.len() {
+                out.extend(self.query_one_axis(command, k, &parse)?);
+            }
+            return Ok(out);
+        }
         let cmd = format!("{command} {}", self.axes_list());
         let lines = self.query_lines(&cmd)?;
-        let mut out: [Option<T>; 3] = [None, None, None];
-        let whole = || lines.join("\\n");
-        for line in &lines {
-            let (key, value) = line
-                .split_once('=')
-                .ok_or_else(|| self.link.garbled(&cmd, whole()))?;
-            let i = self
-                .opts
-                .axes
-                .iter()
-                .position(|a| a == key.trim())
-                .ok_or_else(|| self.link.garbled(&cmd, whole()))?;
-            let v = parse(value.trim()).ok_or_else(|| self.link.garbled(&cmd, whole()))?;
-            if out[i].is_some() {
-                return Err(self.link.garbled(&cmd, whole()));
-            }
-            out[i] = Some(v);
-        }
-        match out {
-            [Some(x), Some(y), Some(z)] => Ok([x, y, z]),
-            _ => Err(self.link.garbled(&cmd, whole())),
-        }
+        let all: Vec<usize> = (0..self.axes.len()).collect();
+        self.parse_axis_lines(&cmd, &lines, &all, &parse)
     }
 
-    fn query_positions(&mut self, command: &str) -> Result<Pos, DeviceError> {
+    fn query_one_axis<T>(
+        &mut self,
+        command: &str,
+        k: usize,
+        parse: &impl Fn(&str) -> Option<T>,
+    ) -> Result<Vec<T>, DeviceError> {
+        let cmd = format!("{command} {}", self.axes[k].1);
+        let lines = self.query_lines(&cmd)?;
+        self.parse_axis_lines(&cmd, &lines, &[k], parse)
+    }
+
+    /// As [`Self::query_axes`], and a controller that answers the several-axis query with the
+    /// first axis alone (one `ID=value` line naming it) is switched to one axis per query, the
+    /// remaining axes asked one by one. Used once, at connect.
+    fn query_axes_detect<T>(
+        &mut self,
+        command: &str,
+        parse: impl Fn(&str) -> Option<T>,
+    ) -> Result<Vec<T>, DeviceError> {
+        if self.per_axis || self.axes.len() < 2 {
+            return self.query_axes(command, parse);
+        }
+        let cmd = format!("{command} {}", self.axes_list());
+        let lines = self.query_lines(&cmd)?;
+        let first_only = lines.len() == 1
+            && lines[0]
+                .split_once('=')
+                .is_some_and(|(k, _)| k.trim() == self.axes[0].1);
+        if !first_only {
+            let all: Vec<usize> = (0..self.axes.len()).collect();
+            return self.parse_axis_lines(&cmd, &lines, &all, &parse);
+        }
+        self.per_axis = true;
+        let mut out = self.parse_axis_lines(&cmd, &lines, &[0], &parse)?;
+        for k in 1..self.axes.len() {
+            out.extend(self.query_one_axis(command, k, &parse)?);
+        }
+        Ok(out)
+    }
+
+    fn query_positions(&mut self, command: &str) -> Result<Vec<f64>, DeviceError> {
         let k = self.opts.units_per_um;
         let v = self.query_axes(command, |s| s.parse::<f64>().ok().filter(|v| v.is_finite()))?;
-        Ok([v[0] / k, v[1] / k, v[2] / k])
+        Ok(v.into_iter().map(|v| v / k).collect())
     }
 
-    /// `ONT? A B C`: on-target state of x, y, z.
+    /// Driven-axis values to x, y, z (None for the axes driven elsewhere).
+    fn per_axis_of<T: Copy>(&self, v: &[T]) -> PerAxis<T> {
+        let mut out = [None; 3];
+        for ((i, _), x) in self.axes.iter().zip(v) {
+            out[*i] = Some(*x);
+        }
+        out
+    }
+
+    /// All three axes, or an error naming the ones this controller does not drive.
+    fn full<T: Copy>(&self, v: PerAxis<T>, what: &str) -> Result<[T; 3], DeviceError> {
+        match v {
+            [Some(x), Some(y), Some(z)] => Ok([x, y, z]),
+            _ => Err(DeviceError::Other {
+                device: self.link.device().to_string(),
+                detail: format!(
+                    "{what}: this controller drives only {} (a stage split across controllers is a GcsSplitStage)",
+                    self.axis_map()
+                ),
+            }),
+        }
+    }
+
+    fn require_all(&self, what: &str) -> Result<(), DeviceError> {
+        self.full(self.per_axis_of(&[(); 3]), what).map(|_| ())
+    }
+
+    /// A query of positions-like values (`POS?`, `MOV?`, `TMN?`, `VEL?`…), µm, per x, y, z.
+    pub fn read_axes(&mut self, command: &str) -> Result<PerAxis<f64>, DeviceError> {
+        let v = self.query_positions(command)?;
+        Ok(self.per_axis_of(&v))
+    }
+
+    /// `ONT?`: on-target state of x, y, z (axes not driven here count as on target).
     pub fn on_target(&mut self) -> Result<[bool; 3], DeviceError> {
-        self.query_axes("ONT?", |s| match s {
-            "1" => Some(true),
-            "0" => Some(false),
-            _ => None,
-        })
+        let v = self.query_axes("ONT?", parse_bool)?;
+        Ok(self.per_axis_of(&v).map(|b| b.unwrap_or(true)))
     }
 
     /// Poll `ONT?` until every axis is on target, at most `on_target_timeout` after `after`.
     pub fn wait_on_target(&mut self, after: &str) -> Result<(), DeviceError> {
+        self.wait_on_target_or_abort(after, None).map(|_| ())
+    }
+
+    /// As [`Self::wait_on_target`]; returns `Ok(false)` as soon as `abort` is raised (Ctrl-C),
+    /// without stopping anything: the caller sends the stop.
+    pub fn wait_on_target_or_abort(
+        &mut self,
+        after: &str,
+        abort: Option<&AtomicBool>,
+    ) -> Result<bool, DeviceError> {
         let t0 = Instant::now();
         let mut polls = 0usize;
         loop {
-            let ont = self.on_target()?;
+            let ont = self.query_axes("ONT?", parse_bool)?;
             if ont.iter().all(|&b| b) {
-                return Ok(());
+                return Ok(true);
+            }
+            if abort.is_some_and(|a| a.load(Ordering::SeqCst)) {
+                return Ok(false);
             }
             polls += 1;
             let timed_out = t0.elapsed() >= self.opts.on_target_timeout;
@@ -322,18 +599,21 @@ impl GcsStage {
             }
             if timed_out {
                 let state: Vec<String> = self
-                    .opts
                     .axes
                     .iter()
                     .zip(ont)
-                    .map(|(a, b)| format!("{a}={}", u8::from(b)))
+                    .map(|((_, a), b)| format!("{a}={}", u8::from(b)))
                     .collect();
+                let asked = if self.per_axis {
+                    format!("ONT? {}", self.axes[self.axes.len() - 1].1)
+                } else {
+                    format!("ONT? {}", self.axes_list())
+                };
                 return Err(DeviceError::Other {
                     device: self.link.device().to_string(),
                     detail: format!(
-                        "not on target within {} ms after `{after}` (last `ONT? {}` reply: {})",
+                        "not on target within {} ms after `{after}` (last `{asked}` reply: {})",
                         self.opts.on_target_timeout.as_millis(),
-                        self.axes_list(),
                         state.join(" ")
                     ),
                 });
@@ -342,67 +622,141 @@ impl GcsStage {
         }
     }
 
-    /// `SVO A s B s C s`.
+    /// `SVO <axis> s` for every driven axis.
     pub fn set_servo(&mut self, on: bool) -> Result<(), DeviceError> {
         let s = u8::from(on);
         let cmd = self
-            .opts
             .axes
             .iter()
-            .map(|a| format!("{a} {s}"))
+            .map(|(_, a)| format!("{a} {s}"))
             .collect::<Vec<_>>()
             .join(" ");
         self.command(&format!("SVO {cmd}"))
     }
 
-    /// The last commanded target (µm): `MOV?` when not known yet, then what was sent.
-    pub fn commanded_target(&mut self) -> Result<Pos, DeviceError> {
-        match self.commanded {
-            Some(t) => Ok(t),
-            None => {
-                let t = self.query_positions("MOV?")?;
-                self.commanded = Some(t);
-                Ok(t)
-            }
-        }
+    /// The last commanded target (µm) of the driven axes: `MOV?` when not known yet, then what
+    /// was sent.
+    pub fn commanded_partial(&mut self) -> Result<PerAxis<f64>, DeviceError> {
+        let t = self.commanded_vec()?;
+        Ok(self.per_axis_of(&t))
     }
 
-    /// `MOV` for the axes whose target changes, without waiting (positions in µm). An axis
-    /// whose target, as sent (6 decimals of controller units), equals its last commanded target
-    /// is not named, so the targets of untouched axes never wander. Returns the command sent,
-    /// or `None` when no axis changes.
+    /// The commanded targets per driven axis, read with `MOV?` when unknown.
+    fn commanded_vec(&mut self) -> Result<Vec<f64>, DeviceError> {
+        if let Some(t) = &self.commanded {
+            return Ok(t.clone());
+        }
+        let t = self.query_positions("MOV?")?;
+        self.commanded = Some(t.clone());
+        Ok(t)
+    }
+
+    /// The last commanded target (µm) of x, y, z (all three driven here).
+    pub fn commanded_target(&mut self) -> Result<Pos, DeviceError> {
+        let t = self.commanded_partial()?;
+        self.full(t, "MOV?")
+    }
+
+    /// `MOV` for the driven axes whose target changes, without waiting (positions in µm; the
+    /// entries of axes driven elsewhere are ignored). An axis whose target, as sent (6 decimals
+    /// of controller units), equals its last commanded target is not named, so the targets of
+    /// untouched axes never wander. Returns the command sent, or `None` when no axis changes.
     pub fn move_no_wait(&mut self, target: Pos) -> Result<Option<String>, DeviceError> {
-        if target.iter().any(|v| !v.is_finite()) {
+        if self.axes.iter().any(|(i, _)| !target[*i].is_finite()) {
             return Err(DeviceError::Other {
                 device: self.link.device().to_string(),
                 detail: format!("refusing to send a non-finite target {target:?} µm"),
             });
         }
-        let now = self.commanded_target()?;
+        let now = self.commanded_vec()?;
         let k = self.opts.units_per_um;
         let sent = |v: f64| format!("{:.6}", v * k);
-        // (axis, value as sent) for the axes whose target changes
-        let changed: Vec<(usize, String)> = (0..3)
-            .map(|i| (i, sent(target[i])))
-            .filter(|(i, v)| *v != sent(now[*i]))
+        // (driven-axis index, value as sent) for the axes whose target changes
+        let changed: Vec<(usize, String)> = self
+            .axes
+            .iter()
+            .enumerate()
+            .map(|(j, (i, _))| (j, sent(target[*i])))
+            .filter(|(j, v)| *v != sent(now[*j]))
             .collect();
         if changed.is_empty() {
             return Ok(None);
         }
         let parts: Vec<String> = changed
             .iter()
-            .map(|(i, v)| format!("{} {v}", self.opts.axes[*i]))
+            .map(|(j, v)| format!("{} {v}", self.axes[*j].1))
             .collect();
         let cmd = format!("MOV {}", parts.join(" "));
         // unknown until the controller has accepted it (an error leaves the old targets)
         self.commanded = None;
         self.command(&cmd)?;
         let mut t = now;
-        for (i, v) in &changed {
-            t[*i] = v.parse::<f64>().unwrap_or(target[*i] * k) / k;
+        for (j, v) in &changed {
+            t[*j] = v.parse::<f64>().unwrap_or(target[self.axes[*j].0] * k) / k;
         }
         self.commanded = Some(t);
         Ok(Some(cmd))
+    }
+
+    /// `VEL <axis> v …` for the driven axes (controller units per s), then `ERR?`.
+    pub fn send_velocity(&mut self, um_s: f64) -> Result<(), DeviceError> {
+        if !(um_s.is_finite() && um_s > 0.0) {
+            return Err(DeviceError::Other {
+                device: self.link.device().to_string(),
+                detail: format!("refusing to send a velocity of {um_s} µm/s"),
+            });
+        }
+        let v = format!("{:.6}", um_s * self.opts.units_per_um);
+        let cmd = format!(
+            "VEL {}",
+            self.axes
+                .iter()
+                .map(|(_, a)| format!("{a} {v}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        self.command(&cmd)
+    }
+
+    /// `STP`, then `ERR?`: error 10 ("stopped by command") is the expected answer and is
+    /// cleared; any other nonzero code is reported.
+    pub fn send_stop(&mut self) -> Result<(), DeviceError> {
+        // where the axes stop is where the controller says their targets are now
+        self.commanded = None;
+        self.link.discard_input();
+        self.link.send("STP")?;
+        match self.error_code("STP")? {
+            0 | 10 => Ok(()),
+            code => Err(self.controller_error("STP", code)),
+        }
+    }
+
+    /// A GCS query: a command word ending in `?` with its arguments (`SAI?`, `POS? 1`,
+    /// `*IDN?`, `VEL?`). Everything else is refused before anything is sent: motion goes
+    /// through the engine.
+    pub fn query_only(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        let q = query.trim();
+        let word = q.split_whitespace().next().unwrap_or("");
+        let safe_chars = q
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || " ?*._-".contains(c));
+        if !(word.ends_with('?') && safe_chars) {
+            return Err(DeviceError::Other {
+                device: self.link.device().to_string(),
+                detail: format!(
+                    "`{q}` is not a query: only GCS queries (a command ending in `?`) are sent from the prompt; moves go through mv, mvr and the scans"
+                ),
+            });
+        }
+        self.query_lines(q)
+    }
+}
+
+fn parse_bool(s: &str) -> Option<bool> {
+    match s {
+        "1" => Some(true),
+        "0" => Some(false),
+        _ => None,
     }
 }
 
@@ -412,82 +766,56 @@ impl Stage for GcsStage {
     }
 
     fn position(&mut self) -> Result<Pos, DeviceError> {
-        self.query_positions("POS?")
+        let p = self.read_axes("POS?")?;
+        self.full(p, "POS?")
     }
 
     fn target(&mut self) -> Result<Pos, DeviceError> {
         self.commanded_target()
     }
 
-    /// `VEL A v B v C v` (controller units per s), then `ERR?`.
+    fn enable(&mut self) -> Result<(), DeviceError> {
+        GcsStage::enable(self)
+    }
+
     fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError> {
-        if !(um_s.is_finite() && um_s > 0.0) {
-            return Err(DeviceError::Other {
-                device: self.name(),
-                detail: format!("refusing to send a velocity of {um_s} µm/s"),
-            });
-        }
-        let v = format!("{:.6}", um_s * self.opts.units_per_um);
-        let cmd = format!(
-            "VEL {}",
-            self.opts
-                .axes
-                .iter()
-                .map(|a| format!("{a} {v}"))
-                .collect::<Vec<_>>()
-                .join(" ")
-        );
-        self.command(&cmd)
+        self.send_velocity(um_s)
     }
 
     fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
-        self.query_positions("VEL?").map(Some)
+        let v = self.read_axes("VEL?")?;
+        self.full(v, "VEL?").map(Some)
     }
 
-    /// A GCS query: a command word ending in `?` with its arguments (`SAI?`, `POS? 1`, `*IDN?`,
-    /// `VEL?`). Everything else is refused before anything is sent: motion goes through the
-    /// engine.
     fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
-        let q = query.trim();
-        let word = q.split_whitespace().next().unwrap_or("");
-        let safe_chars = q
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || " ?*._-".contains(c));
-        if !(word.ends_with('?') && safe_chars) {
-            return Err(DeviceError::Other {
-                device: self.name(),
-                detail: format!(
-                    "`{q}` is not a query: only GCS queries (a command ending in `?`) are sent from the prompt; moves go through mv, mvr and the scans"
-                ),
-            });
-        }
-        self.query_lines(q)
+        self.query_only(query)
     }
 
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
+        self.require_all("MOV")?;
         match self.move_no_wait(target)? {
             Some(cmd) => self.wait_on_target(&cmd),
             None => Ok(()),
         }
     }
 
+    fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError> {
+        self.require_all("MOV")?;
+        match self.move_no_wait(target)? {
+            Some(cmd) => self.wait_on_target_or_abort(&cmd, Some(abort)),
+            None => Ok(true),
+        }
+    }
+
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
-        let lo = self.query_positions("TMN?")?;
-        let hi = self.query_positions("TMX?")?;
+        let lo = self.read_axes("TMN?")?;
+        let hi = self.read_axes("TMX?")?;
+        let (lo, hi) = (self.full(lo, "TMN?")?, self.full(hi, "TMX?")?);
         Ok([(lo[0], hi[0]), (lo[1], hi[1]), (lo[2], hi[2])])
     }
 
-    /// `STP`, then `ERR?`: error 10 ("stopped by command") is the expected answer and is
-    /// cleared; any other nonzero code is reported.
     fn stop(&mut self) -> Result<(), DeviceError> {
-        // where the axes stop is where the controller says their targets are now
-        self.commanded = None;
-        self.link.discard_input();
-        self.link.send("STP")?;
-        match self.error_code("STP")? {
-            0 | 10 => Ok(()),
-            code => Err(self.controller_error("STP", code)),
-        }
+        self.send_stop()
     }
 }
 
@@ -507,31 +835,40 @@ mod tests {
         }
     }
 
-    fn stage(replies: Vec<&[u8]>) -> GcsStage {
-        let mut all: Vec<Vec<u8>> = vec![
+    /// Replies to the connect sequence of an E-727 with axes 1 2 3, servos on.
+    fn connect_replies() -> Vec<Vec<u8>> {
+        vec![
             b"(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 1, 1\n".to_vec(),
             b"0\n".to_vec(),
-            b"A=0.000000 \nB=0.000000 \nC=0.000000\n".to_vec(),
-        ];
+            b"1 \n2 \n3\n".to_vec(),
+            b"1=1 \n2=1 \n3=1\n".to_vec(),
+            b"1=0.000000 \n2=0.000000 \n3=0.000000\n".to_vec(),
+        ]
+    }
+
+    fn stage(replies: Vec<&[u8]>) -> GcsStage {
+        let mut all = connect_replies();
         all.extend(replies.into_iter().map(|r| r.to_vec()));
         GcsStage::connect(Box::new(Scripted::new(all)), "mock", opts()).unwrap()
     }
 
     #[test]
     fn multi_line_reply_and_name() {
-        let mut s = stage(vec![b"A=1.5 \nB=-2.25 \nC=10\n"]);
+        let mut s = stage(vec![b"1=1.5 \n2=-2.25 \n3=10\n"]);
         assert_eq!(s.name(), "PI E-727 on mock");
+        assert_eq!(s.sai(), ["1", "2", "3"]);
+        assert_eq!(s.servo_at_connect(), [Some(true); 3]);
         assert_eq!(s.position().unwrap(), [1.5, -2.25, 10.0]);
     }
 
     #[test]
     fn reply_lines_in_any_order_but_complete() {
-        let mut s = stage(vec![b"C=3 \nA=1 \nB=2\n", b"A=1 \nB=2\n"]);
+        let mut s = stage(vec![b"3=3 \n1=1 \n2=2\n", b"1=1 \n2=2\n"]);
         assert_eq!(s.position().unwrap(), [1.0, 2.0, 3.0]);
         match s.position() {
             Err(DeviceError::Garbled { reply, command, .. }) => {
-                assert_eq!(command, "POS? A B C");
-                assert_eq!(reply, "A=1\\nB=2");
+                assert_eq!(command, "POS? 1 2 3");
+                assert_eq!(reply, "1=1\\n2=2");
             }
             other => panic!("{other:?}"),
         }
@@ -539,7 +876,7 @@ mod tests {
 
     #[test]
     fn units_scale() {
-        let mut s = stage(vec![b"A=0.001 \nB=0.002 \nC=0.003\n"]);
+        let mut s = stage(vec![b"1=0.001 \n2=0.002 \n3=0.003\n"]);
         s.opts.units_per_um = 0.001; // controller in mm
         let p = s.position().unwrap();
         assert!(
@@ -561,7 +898,7 @@ mod tests {
                 assert_eq!(code, 7);
                 assert_eq!(message, "Position out of limits");
                 // only the axis that changes is named
-                assert_eq!(command, "MOV A 500.000000");
+                assert_eq!(command, "MOV 1 500.000000");
             }
             other => panic!("{other:?}"),
         }
@@ -575,11 +912,7 @@ mod tests {
 
     #[test]
     fn non_finite_target_is_not_sent() {
-        let script = Scripted::new(vec![
-            b"x, E-727, 1, 1\n".to_vec(),
-            b"0\n".to_vec(),
-            b"A=0 \nB=0 \nC=0\n".to_vec(),
-        ]);
+        let script = Scripted::new(connect_replies());
         let log = script.log.clone();
         let mut s = GcsStage::connect(Box::new(script), "mock", opts()).unwrap();
         assert!(matches!(
@@ -589,8 +922,91 @@ mod tests {
         assert_eq!(
             *log.lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner),
-            vec!["*IDN?", "ERR?", "MOV? A B C"]
+            vec!["*IDN?", "ERR?", "SAI?", "SVO? 1 2 3", "MOV? 1 2 3"]
         );
+    }
+
+    #[test]
+    fn axes_not_on_the_controller_are_refused_naming_what_sai_answered() {
+        let mut replies = connect_replies();
+        replies.truncate(3);
+        replies.push(b"1 \n2 \n3 \n4\n".to_vec()); // SAI? ALL: a deactivated fourth axis
+        let script = Scripted::new(replies);
+        let log = script.log.clone();
+        let o = GcsOptions {
+            axes: axes_xyz(["A", "B", "C"]),
+            ..opts()
+        };
+        let e = GcsStage::connect(Box::new(script), "mock", o)
+            .err()
+            .expect("refused");
+        assert_eq!(
+            e.to_string(),
+            "PI E-727 on mock: configured axes x = \"A\", y = \"B\", z = \"C\" are not all axes of this \
+             controller: `SAI?` answered 1 2 3 (`SAI? ALL`, deactivated axes too: 1 2 3 4); A, B, C \
+             missing. Set [stage] axes in bfpscope.toml to the controller's identifiers, e.g. axes = \
+             { x = \"1\", y = \"2\", z = \"3\" }"
+        );
+        // nothing after the check: no SVO?, no SVO
+        assert_eq!(
+            *log.lock().unwrap(),
+            vec!["*IDN?", "ERR?", "SAI?", "SAI? ALL"]
+        );
+    }
+
+    #[test]
+    fn one_axis_per_query_is_detected_from_the_svo_reply() {
+        let replies: Vec<Vec<u8>> = vec![
+            b"x, E-709, 1, 1\n".to_vec(),
+            b"0\n".to_vec(),
+            b"1 \n2 \n3\n".to_vec(),
+            b"1=0\n".to_vec(), // SVO? 1 2 3 answered for axis 1 only
+            b"2=1\n".to_vec(),
+            b"3=0\n".to_vec(),
+            b"1=1.0\n".to_vec(), // MOV? 1
+            b"2=2.0\n".to_vec(),
+            b"3=3.0\n".to_vec(),
+            b"1=4.5\n".to_vec(), // POS? 1
+            b"2=5.5\n".to_vec(),
+            b"3=6.5\n".to_vec(),
+        ];
+        let script = Scripted::new(replies);
+        let log = script.log.clone();
+        let mut s = GcsStage::connect(Box::new(script), "mock", opts()).unwrap();
+        assert!(s.one_axis_per_query());
+        assert_eq!(s.servo_at_connect(), [Some(false), Some(true), Some(false)]);
+        assert_eq!(s.commanded_target().unwrap(), [1.0, 2.0, 3.0]);
+        assert_eq!(s.position().unwrap(), [4.5, 5.5, 6.5]);
+        assert_eq!(
+            log.lock().unwrap()[3..],
+            [
+                "SVO? 1 2 3",
+                "SVO? 2",
+                "SVO? 3",
+                "MOV? 1",
+                "MOV? 2",
+                "MOV? 3",
+                "POS? 1",
+                "POS? 2",
+                "POS? 3"
+            ]
+        );
+    }
+
+    #[test]
+    fn enable_switches_on_only_the_axes_found_off() {
+        let mut replies = connect_replies();
+        replies[3] = b"1=1 \n2=0 \n3=0\n".to_vec();
+        replies.push(b"".to_vec()); // SVO
+        replies.push(b"0\n".to_vec()); // ERR?
+        let script = Scripted::new(replies);
+        let log = script.log.clone();
+        let o = GcsOptions {
+            servo_on_connect: true,
+            ..opts()
+        };
+        let _s = GcsStage::connect(Box::new(script), "mock", o).unwrap();
+        assert_eq!(log.lock().unwrap()[5..], ["SVO 2 1 3 1", "ERR?"]);
     }
 
     #[test]

@@ -1,5 +1,6 @@
-//! Line-oriented ASCII links over a serial port (or anything that reads and writes bytes with
-//! a timeout): the transport the GCS and SCPI drivers share.
+//! Line-oriented ASCII links over a serial port, a TCP connection (`tcp://HOST:PORT`, e.g. a PI
+//! controller's GCS port 50000) or anything that reads and writes bytes with a timeout: the
+//! transport the GCS and SCPI drivers share.
 //!
 //! Every way a device can misbehave on the wire becomes a [`DeviceError`] naming the device,
 //! the command and what came back:
@@ -123,6 +124,105 @@ pub fn open_serial(
             detail: format!("cannot open {path}: {e}{hint}"),
         }
     })
+}
+
+/// The prefix of a TCP port in the config: `tcp://HOST:PORT`.
+pub const TCP_PREFIX: &str = "tcp://";
+
+/// A TCP connection to a controller (PI controllers speak GCS on port 50000): the same line
+/// handling as a serial port, read timeouts from the socket.
+pub struct TcpTransport(std::net::TcpStream);
+
+impl Read for TcpTransport {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        self.0.read(buf)
+    }
+}
+
+impl Write for TcpTransport {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.0.write(buf)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+impl Transport for TcpTransport {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        self.0
+            .set_read_timeout(Some(timeout.max(Duration::from_millis(1))))
+    }
+    /// Read whatever has arrived without waiting, and drop it.
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.0.set_nonblocking(true)?;
+        let mut chunk = [0u8; 512];
+        let r = loop {
+            match self.0.read(&mut chunk) {
+                Ok(0) => break Ok(()), // closed: the next read reports it
+                Ok(_) => continue,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break Ok(()),
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+                Err(e) => break Err(e),
+            }
+        };
+        self.0.set_nonblocking(false)?;
+        r
+    }
+}
+
+/// Connect to `tcp://HOST:PORT` within `timeout`.
+pub fn open_tcp(
+    device: &str,
+    url: &str,
+    timeout: Duration,
+) -> Result<Box<dyn Transport>, DeviceError> {
+    use std::net::ToSocketAddrs;
+    let fail = |detail: String| DeviceError::Other {
+        device: device.to_string(),
+        detail,
+    };
+    let addr = url.strip_prefix(TCP_PREFIX).unwrap_or(url);
+    let addrs: Vec<std::net::SocketAddr> = addr
+        .to_socket_addrs()
+        .map_err(|e| {
+            fail(format!(
+                "cannot connect to {url}: {e} (write tcp://HOST:PORT, e.g. tcp://192.168.0.10:50000)"
+            ))
+        })?
+        .collect();
+    let mut last = None;
+    for a in &addrs {
+        match std::net::TcpStream::connect_timeout(a, timeout.max(Duration::from_millis(1))) {
+            Ok(stream) => {
+                let _ = stream.set_nodelay(true);
+                stream
+                    .set_read_timeout(Some(timeout.max(Duration::from_millis(1))))
+                    .map_err(|e| fail(format!("cannot connect to {url}: {e}")))?;
+                return Ok(Box::new(TcpTransport(stream)));
+            }
+            Err(e) => last = Some(e),
+        }
+    }
+    let why = last.map_or_else(|| "no address".to_string(), |e| e.to_string());
+    Err(fail(format!(
+        "cannot connect to {url}: {why} (is the controller on, on this network, and its GCS port open? \
+         PI controllers listen on 50000)"
+    )))
+}
+
+/// Open `port`: `tcp://HOST:PORT` over TCP, anything else as a serial port at `baud`.
+pub fn open_port(
+    device: &str,
+    port: &str,
+    baud: u32,
+    timeout: Duration,
+) -> Result<Box<dyn Transport>, DeviceError> {
+    if port.starts_with(TCP_PREFIX) {
+        open_tcp(device, port, timeout)
+    } else {
+        open_serial(device, port, baud, timeout)
+    }
 }
 
 /// Classify an I/O error: timeouts are timeouts, everything else means the link is gone.

@@ -11,6 +11,7 @@ pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
 pub mod emulator;
 pub mod gcs;
+pub mod gcs_split;
 pub mod link;
 pub mod scpi;
 
@@ -131,6 +132,22 @@ pub trait Stage: Send {
     }
     /// Absolute move; returns when the controller reports on-target (or errors).
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
+    /// As `move_to`, but the wait for on-target ends early with `Ok(false)` when `abort` is
+    /// raised (Ctrl-C): the axes may still be moving and the caller stops them (`stop`).
+    /// `Ok(true)`: on target. Devices whose moves return at once keep the default.
+    fn move_to_or_abort(
+        &mut self,
+        target: Pos,
+        _abort: &std::sync::atomic::AtomicBool,
+    ) -> Result<bool, DeviceError> {
+        self.move_to(target).map(|()| true)
+    }
+    /// Switch the device on for motion after the connect step's checks (PI: the servos, `SVO`,
+    /// for the axes `SVO?` found off), so a connect refused for its limits leaves the device as
+    /// it was found. Devices with nothing to switch keep the default.
+    fn enable(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
     /// Travel range per axis (min, max) in µm, as the controller reports it.
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
     /// Stop all motion at once.

@@ -132,6 +132,26 @@ impl Stage for TracedStage {
         }
         r
     }
+    fn move_to_or_abort(
+        &mut self,
+        target: Pos,
+        abort: &std::sync::atomic::AtomicBool,
+    ) -> Result<bool, DeviceError> {
+        let r = self.inner.move_to_or_abort(target, abort);
+        match &r {
+            Ok(true) => self.trace.record(format!("move {}", pos_str(&target))),
+            Ok(false) => self
+                .trace
+                .record(format!("move {} INTERRUPTED", pos_str(&target))),
+            Err(e) => self
+                .trace
+                .record(format!("move {} FAILED: {e}", pos_str(&target))),
+        }
+        r
+    }
+    fn enable(&mut self) -> Result<(), DeviceError> {
+        self.inner.enable()
+    }
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
         self.inner.travel_range()
     }

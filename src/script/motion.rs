@@ -82,7 +82,7 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
                 target[i] = if relative { target[i] + v } else { v };
             }
         }
-        checked_move(inst, &limits, target, who).map_err(Into::into)
+        checked_move(inst, &limits, target, who, &ctx.settings.abort).map_err(Into::into)
     })
 }
 
@@ -562,7 +562,9 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             cfg.stage.backend = Backend::Gcs;
             cfg.qpd.backend = Backend::Scpi;
             if let Some(p) = o.string("stage_port")? {
+                // one controller on this port, in place of the config's port(s)
                 cfg.stage.port = Some(p);
+                cfg.stage.ports = None;
             }
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);

@@ -1,9 +1,10 @@
-//! `bfpscope emulate stage|qpd|pair`: start emulators, print their pseudo-terminal paths and
-//! a config snippet, serve until Ctrl-C (or end of input on a terminal).
+//! `bfpscope emulate stage|gcs|qpd|pair`: start emulators, print their pseudo-terminal paths
+//! (or the stage's `tcp://` address with `--tcp`) and a config snippet, serve until Ctrl-C (or
+//! end of input on a terminal).
 
 use super::{
     shared_position, sim_signal_source, standin_bead, start_qpd_emulator, start_stage_emulator,
-    Emulator, QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
+    start_stage_emulator_tcp, Emulator, QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
 };
 use crate::instrument::sim::{Renderer, SimConfig};
 use std::io::{IsTerminal, Write};
@@ -14,6 +15,16 @@ use std::time::Duration;
 /// Where the stand-in bead of [`run_emulator_cli`] sits (µm): the middle of the default
 /// emulated travel range.
 pub const BEAD: [f64; 3] = [50.0, 50.0, 10.0];
+
+/// How `bfpscope emulate` serves the stage.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct EmulateOptions {
+    /// Serve the GCS stage on this TCP address (`127.0.0.1:0`: a free loopback port) instead
+    /// of a pseudo-terminal, as a PI controller's GCS port 50000.
+    pub tcp: Option<String>,
+    /// The stage answers a query naming several axes for the first one only.
+    pub one_axis_per_query: bool,
+}
 
 /// A stop flag raised by Ctrl-C, or by end of input when stdin is a terminal (Ctrl-D).
 fn stop_on_ctrlc_or_eof() -> Arc<AtomicBool> {
@@ -57,6 +68,7 @@ pub fn run_emulator_cli_sim(
     kind: &str,
     renderer: Arc<Renderer>,
     sim: &SimConfig,
+    opts: &EmulateOptions,
 ) -> anyhow::Result<()> {
     let stop = stop_on_ctrlc_or_eof();
     let qpd = QpdEmulatorConfig {
@@ -70,6 +82,7 @@ pub fn run_emulator_cli_sim(
         sim_signal_source(renderer),
         &mut std::io::stdout(),
         stop,
+        opts,
     )
 }
 
@@ -86,30 +99,45 @@ pub fn run_emulator_cli_with(
         start: [45.0, 45.0, 10.0],
         ..StageEmulatorConfig::default()
     };
-    serve_emulators(kind, stage, QpdEmulatorConfig::default(), source, out, stop)
+    serve_emulators(
+        kind,
+        stage,
+        QpdEmulatorConfig::default(),
+        source,
+        out,
+        stop,
+        &EmulateOptions::default(),
+    )
 }
 
 fn range(t: (f64, f64)) -> String {
     format!("{}–{}", t.0, t.1)
 }
 
-/// Start the emulators named by `kind` with these settings, print their paths and a
-/// `bfpscope.toml` snippet to `out`, and serve until `stop` is set or every emulator has
-/// stopped (unplug fault).
+/// Start the emulators named by `kind` (`stage` or its alias `gcs`, `qpd`, `pair`) with these
+/// settings, print their paths and a `bfpscope.toml` snippet to `out`, and serve until `stop`
+/// is set or every emulator has stopped (unplug fault).
 pub fn serve_emulators(
     kind: &str,
-    stage_cfg: StageEmulatorConfig,
+    mut stage_cfg: StageEmulatorConfig,
     qpd_cfg: QpdEmulatorConfig,
     source: impl SignalSource,
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
+    opts: &EmulateOptions,
 ) -> anyhow::Result<()> {
+    stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
     let stage_desc = format!(
-        "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off)",
+        "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off{})",
         stage_cfg.axes.join(" "),
         range(stage_cfg.travel[0]),
         range(stage_cfg.travel[1]),
-        range(stage_cfg.travel[2])
+        range(stage_cfg.travel[2]),
+        if stage_cfg.one_axis_per_query {
+            ", one axis per query"
+        } else {
+            ""
+        }
     );
     let qpd_desc = format!(
         "SCPI QPD digitiser ({} Hz, {:?} V per signal unit)",
@@ -118,16 +146,28 @@ pub fn serve_emulators(
     let axes = stage_cfg.axes.clone();
     let start = stage_cfg.start;
     let pos = shared_position(start);
+    let start_stage = |cfg, pos| match &opts.tcp {
+        Some(addr) => start_stage_emulator_tcp(cfg, pos, addr)
+            .map_err(|e| anyhow::anyhow!("emulate: --tcp {addr}: {e}")),
+        None => start_stage_emulator(cfg, pos).map_err(anyhow::Error::from),
+    };
     let mut emus: Vec<Emulator> = Vec::new();
     match kind {
-        "stage" => emus.push(start_stage_emulator(stage_cfg, pos)?),
+        "stage" | "gcs" => emus.push(start_stage(stage_cfg, pos)?),
+        "qpd" if opts.tcp.is_some() => {
+            anyhow::bail!(
+                "emulate: --tcp serves the GCS stage; `emulate qpd` has none (use `gcs` or `pair`)"
+            )
+        }
         "qpd" => emus.push(start_qpd_emulator(qpd_cfg, pos, source)?),
         "both" | "pair" | "all" => {
-            emus.push(start_stage_emulator(stage_cfg, pos.clone())?);
+            emus.push(start_stage(stage_cfg, pos.clone())?);
             emus.push(start_qpd_emulator(qpd_cfg, pos, source)?);
         }
         other => {
-            anyhow::bail!("emulate: unknown device `{other}` (expected `stage`, `qpd` or `pair`)")
+            anyhow::bail!(
+                "emulate: unknown device `{other}` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+            )
         }
     }
     for e in &emus {

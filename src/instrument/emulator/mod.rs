@@ -1,4 +1,6 @@
 //! Device emulators on pseudo-terminals: a PI GCS 2.0 piezo stage and a SCPI QPD digitiser.
+//! The stage can also be served on a TCP port, as a PI controller's GCS port 50000 is
+//! ([`start_stage_emulator_tcp`], path `tcp://127.0.0.1:PORT`).
 //!
 //! Each emulator runs on its own thread and serves the master side of a PTY pair
 //! (`serialport::TTYPort::pair()`); a driver opens the slave path ([`Emulator::path`], e.g.
@@ -16,9 +18,11 @@ mod cli;
 mod qpd;
 mod stage;
 
-pub use cli::{run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators};
+pub use cli::{
+    run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators, EmulateOptions,
+};
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
-pub use stage::{start_stage_emulator, StageEmulatorConfig};
+pub use stage::{start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig};
 
 use super::Pos;
 use serialport::TTYPort;
@@ -205,6 +209,74 @@ trait Device: Send + 'static {
     fn tick(&mut self) {}
 }
 
+/// Where an emulator serves: the master side of a pseudo-terminal, or a TCP listener serving
+/// one client at a time (a PI controller's GCS port).
+enum Line {
+    Pty {
+        master: TTYPort,
+        // Holding the slave open keeps the pseudo-terminal alive between client sessions
+        // (a master whose slave is closed by everyone reports hang-up).
+        _slave: TTYPort,
+    },
+    Tcp {
+        listener: std::net::TcpListener,
+        client: Option<std::net::TcpStream>,
+    },
+}
+
+impl Line {
+    /// Read what arrived within about 5 ms: `Ok(0)` when nothing did (or no client is
+    /// connected yet), `Err(TimedOut)` on a timeout. A new TCP client starts a new session
+    /// (`new_session` is set: drop partial input).
+    fn read(&mut self, buf: &mut [u8], new_session: &mut bool) -> std::io::Result<usize> {
+        match self {
+            Line::Pty { master, .. } => master.read(buf),
+            Line::Tcp { listener, client } => {
+                let Some(c) = client else {
+                    match listener.accept() {
+                        Ok((stream, _)) => {
+                            stream.set_nonblocking(false)?;
+                            stream.set_read_timeout(Some(Duration::from_millis(5)))?;
+                            let _ = stream.set_nodelay(true);
+                            *client = Some(stream);
+                            *new_session = true;
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                        Err(e) => return Err(e),
+                    }
+                    return Ok(0);
+                };
+                match c.read(buf) {
+                    Ok(0) => {
+                        // the client closed: wait for the next one
+                        *client = None;
+                        Ok(0)
+                    }
+                    Ok(n) => Ok(n),
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => Err(
+                        std::io::Error::new(std::io::ErrorKind::TimedOut, "no input"),
+                    ),
+                    Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Err(e),
+                    Err(_) => {
+                        *client = None;
+                        Ok(0)
+                    }
+                }
+            }
+        }
+    }
+
+    fn write_all(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        match self {
+            Line::Pty { master, .. } => master.write_all(bytes).and_then(|_| master.flush()),
+            Line::Tcp { client, .. } => match client {
+                Some(c) => c.write_all(bytes).and_then(|_| c.flush()),
+                None => Ok(()),
+            },
+        }
+    }
+}
+
 /// Open a PTY pair, and serve `device` on the master side on a new thread.
 fn spawn(
     kind: &'static str,
@@ -212,17 +284,49 @@ fn spawn(
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
-    let (master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
+    let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
     let path = serialport::SerialPort::name(&slave)
         .ok_or_else(|| std::io::Error::other("pseudo-terminal without a name"))?;
+    let _ = serialport::SerialPort::set_timeout(&mut master, Duration::from_millis(5));
+    let line = Line::Pty {
+        master,
+        _slave: slave,
+    };
+    spawn_on(kind, device, faults, position, line, path)
+}
+
+/// Listen on `addr` (e.g. `127.0.0.1:0` for a free port) and serve `device` to one TCP client
+/// at a time on a new thread; the emulator's path is `tcp://IP:PORT`.
+fn spawn_tcp(
+    kind: &'static str,
+    device: impl Device,
+    faults: Arc<Mutex<Faults>>,
+    position: SharedPosition,
+    addr: &str,
+) -> std::io::Result<Emulator> {
+    let listener = std::net::TcpListener::bind(addr)?;
+    listener.set_nonblocking(true)?;
+    let path = format!("tcp://{}", listener.local_addr()?);
+    let line = Line::Tcp {
+        listener,
+        client: None,
+    };
+    spawn_on(kind, device, faults, position, line, path)
+}
+
+fn spawn_on(
+    kind: &'static str,
+    device: impl Device,
+    faults: Arc<Mutex<Faults>>,
+    position: SharedPosition,
+    line: Line,
+    path: String,
+) -> std::io::Result<Emulator> {
     let log = Arc::new(Mutex::new(VecDeque::new()));
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
     let ctx = Serve {
-        master,
-        // Holding the slave open keeps the pseudo-terminal alive between client sessions
-        // (a master whose slave is closed by everyone reports hang-up).
-        _slave: slave,
+        line,
         device,
         faults: faults.clone(),
         log: log.clone(),
@@ -245,8 +349,7 @@ fn spawn(
 }
 
 struct Serve<D: Device> {
-    master: TTYPort,
-    _slave: TTYPort,
+    line: Line,
     device: D,
     faults: Arc<Mutex<Faults>>,
     log: Arc<Mutex<VecDeque<String>>>,
@@ -259,12 +362,16 @@ const MAX_COMMAND: usize = 4096;
 
 impl<D: Device> Serve<D> {
     fn run(mut self) {
-        let _ = serialport::SerialPort::set_timeout(&mut self.master, Duration::from_millis(5));
         let mut buf: Vec<u8> = Vec::new();
         let mut chunk = [0u8; 1024];
         'serve: while !self.stop.load(Ordering::SeqCst) && !self.unplugged() {
             self.device.tick();
-            match self.master.read(&mut chunk) {
+            let mut new_session = false;
+            let r = self.line.read(&mut chunk, &mut new_session);
+            if new_session {
+                buf.clear();
+            }
+            match r {
                 Ok(0) => std::thread::sleep(Duration::from_millis(5)),
                 Ok(n) => buf.extend_from_slice(&chunk[..n]),
                 Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
@@ -292,7 +399,8 @@ impl<D: Device> Serve<D> {
             }
         }
         self.finished.store(true, Ordering::SeqCst);
-        // Dropping `self` closes master and slave: the client sees a hang-up.
+        // Dropping `self` closes master and slave (or the TCP connection and the listener):
+        // the client sees a hang-up.
     }
 
     /// Serve one command line; false when the emulator unplugs itself.
@@ -305,8 +413,17 @@ impl<D: Device> Serve<D> {
             log.push_back(line.to_string());
         }
         self.device.tick();
-        let (silent, inject, garble_it) = {
+        let (silent, inject, garble_it, last) = {
             let mut f = lock(&self.faults);
+            // counted before the reply goes out: a client that set the switch after reading
+            // the previous reply must not find that reply's command counted against it
+            let last = match f.unplug_after {
+                Some(n) => {
+                    f.unplug_after = Some(n.saturating_sub(1));
+                    n <= 1
+                }
+                None => false,
+            };
             let is_err_query = self.device.is_error_query(line);
             if let Some((0, code)) = f.error_after {
                 if !is_err_query {
@@ -321,7 +438,7 @@ impl<D: Device> Serve<D> {
             } else {
                 None
             };
-            (f.silent, inject, f.garble_replies > 0)
+            (f.silent, inject, f.garble_replies > 0, last)
         };
         let reply = if let Some(code) = inject {
             self.device.inject_error(code);
@@ -338,20 +455,11 @@ impl<D: Device> Serve<D> {
                 r.into_bytes()
             };
             bytes.push(b'\n');
-            if self
-                .master
-                .write_all(&bytes)
-                .and_then(|_| self.master.flush())
-                .is_err()
-            {
+            if self.line.write_all(&bytes).is_err() {
                 // The client went away mid-reply; keep serving for the next one.
             }
         }
-        let mut f = lock(&self.faults);
-        if let Some(n) = f.unplug_after {
-            f.unplug_after = Some(n.saturating_sub(1));
-        }
-        f.unplug_after != Some(0)
+        !last
     }
 
     fn unplugged(&self) -> bool {

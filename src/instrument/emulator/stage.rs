@@ -3,12 +3,17 @@
 //! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
 //! (`ERR?` returns the last error and clears it).
 //!
-//! Commands: `*IDN?`, `ERR?`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`, `ONT?`, `TMN?`, `TMX?`,
-//! `STP`, `HLT`. Queries take an optional axis list (all axes without one). Errors: 1
-//! parameter syntax, 2 unknown command, 5 servo off, 7 position out of limits, 10 stopped,
-//! 15 invalid axis identifier.
+//! Commands: `*IDN?`, `ERR?`, `SAI?`, `SAI? ALL`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`,
+//! `ONT?`, `TMN?`, `TMX?`, `VEL`, `VEL?`, `STP`, `HLT`. Queries take an optional axis list (all
+//! axes without one). Errors: 1 parameter syntax, 2 unknown command, 5 servo off, 7 position
+//! out of limits, 10 stopped, 15 invalid axis identifier.
+//!
+//! `SAI?` as PI documents it: the identifiers of the configured (active) axes, one per line
+//! (`1 ␠\n2 ␠\n3\n`); `SAI? ALL` also lists deactivated axes ([`StageEmulatorConfig::inactive_axes`]).
+//! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
+//! answers a query naming several axes for the first one only.
 
-use super::{lock, spawn, Device, Emulator, Faults, SharedPosition};
+use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, SharedPosition};
 use crate::instrument::Pos;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -16,8 +21,14 @@ use std::time::Instant;
 /// Stage emulator settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StageEmulatorConfig {
-    /// Axis identifiers for x, y, z.
+    /// Axis identifiers for x, y, z (an E-727: `1 2 3`).
     pub axes: [String; 3],
+    /// Deactivated axes: listed by `SAI? ALL` only, not by `SAI?`, and refused (error 15)
+    /// elsewhere.
+    pub inactive_axes: Vec<String>,
+    /// A query naming several axes (`POS? 1 2 3`) is answered for the first axis only, as by
+    /// controllers that take one axis per query.
+    pub one_axis_per_query: bool,
     /// Travel range (min, max) per axis, µm.
     pub travel: [(f64, f64); 3],
     /// Position at power-on, µm (clamped into the travel range).
@@ -39,7 +50,9 @@ impl Default for StageEmulatorConfig {
     /// A P-517.3CD-like stage on an E-727: 100 × 100 × 20 µm, parked at the origin.
     fn default() -> Self {
         Self {
-            axes: ["A".into(), "B".into(), "C".into()],
+            axes: ["1".into(), "2".into(), "3".into()],
+            inactive_axes: Vec::new(),
+            one_axis_per_query: false,
             travel: [(0.0, 100.0), (0.0, 100.0), (0.0, 20.0)],
             start: [0.0; 3],
             settle_s: 0.002,
@@ -70,6 +83,9 @@ struct Axis {
     servo: bool,
     /// The servo tripped (error −1024): the axis stays at `from`, off target.
     tripped: bool,
+    /// Settle time of the move under way, s, fixed when it was commanded (a later change of
+    /// `Faults::settle_s` applies to later moves).
+    settle: f64,
 }
 
 struct GcsDevice {
@@ -105,13 +121,13 @@ impl GcsDevice {
     }
 
     /// Position and on-target flag of axis `i` now.
-    fn axis_now(&self, i: usize, settle: f64, now: Instant) -> (f64, bool) {
+    fn axis_now(&self, i: usize, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
         if a.tripped {
             return (a.from, false);
         }
-        let f = if settle > 0.0 {
-            now.duration_since(a.t0).as_secs_f64() / settle
+        let f = if a.settle > 0.0 {
+            now.duration_since(a.t0).as_secs_f64() / a.settle
         } else {
             1.0
         };
@@ -124,12 +140,11 @@ impl GcsDevice {
     }
 
     fn positions(&self) -> ([f64; 3], [bool; 3]) {
-        let settle = self.settle();
         let now = Instant::now();
         let mut p = [0.0; 3];
         let mut o = [false; 3];
         for i in 0..3 {
-            (p[i], o[i]) = self.axis_now(i, settle, now);
+            (p[i], o[i]) = self.axis_now(i, now);
         }
         (p, o)
     }
@@ -226,6 +241,20 @@ impl Device for GcsDevice {
         let args: Vec<&str> = words.collect();
         let reply = match cmd.as_str() {
             "*IDN?" => Some(self.cfg.idn.clone()),
+            "SAI?" => {
+                let mut ids = self.cfg.axes.to_vec();
+                match args.as_slice() {
+                    [] => {}
+                    [all] if all.eq_ignore_ascii_case("ALL") => {
+                        ids.extend(self.cfg.inactive_axes.iter().cloned())
+                    }
+                    _ => {
+                        self.set_error(1);
+                        return None;
+                    }
+                }
+                Some(ids.join(" \n"))
+            }
             "ERR?" => {
                 let e = self.error;
                 self.error = 0;
@@ -243,12 +272,18 @@ impl Device for GcsDevice {
                 None
             }
             "VEL?" => {
-                let idx = self.axis_list(&args)?;
+                let mut idx = self.axis_list(&args)?;
+                if self.cfg.one_axis_per_query {
+                    idx.truncate(1);
+                }
                 let v = self.velocity;
                 Some(self.reply(&idx, |i| format!("{:.6}", v[i])))
             }
             "POS?" | "ONT?" | "TMN?" | "TMX?" | "SVO?" | "MOV?" => {
-                let idx = self.axis_list(&args)?;
+                let mut idx = self.axis_list(&args)?;
+                if self.cfg.one_axis_per_query {
+                    idx.truncate(1);
+                }
                 let (p, ont) = self.positions();
                 let t = self.cfg.travel;
                 Some(match cmd.as_str() {
@@ -296,11 +331,13 @@ impl Device for GcsDevice {
                 let (p, _) = self.positions();
                 let now = Instant::now();
                 let trip = std::mem::take(&mut lock(&self.faults).servo_trip_next_move);
+                let settle = self.settle();
                 for (i, v) in pairs {
                     let a = &mut self.axes[i];
                     a.from = p[i];
                     a.target = v.clamp(t[i].0, t[i].1);
                     a.t0 = now;
+                    a.settle = settle;
                     if trip {
                         a.tripped = true;
                         a.servo = false;
@@ -331,6 +368,26 @@ pub fn start_stage_emulator(
     cfg: StageEmulatorConfig,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
+    let (dev, faults) = device(cfg, position.clone())?;
+    spawn("stage", dev, faults, position)
+}
+
+/// As [`start_stage_emulator`], served on a TCP port as a PI controller's GCS port is: `addr`
+/// such as `127.0.0.1:0` (a free port); [`Emulator::path`] is `tcp://127.0.0.1:PORT`, which is
+/// also what `[stage] port` takes. One client at a time; the next may connect when it leaves.
+pub fn start_stage_emulator_tcp(
+    cfg: StageEmulatorConfig,
+    position: SharedPosition,
+    addr: &str,
+) -> std::io::Result<Emulator> {
+    let (dev, faults) = device(cfg, position.clone())?;
+    spawn_tcp("stage", dev, faults, position, addr)
+}
+
+fn device(
+    cfg: StageEmulatorConfig,
+    position: SharedPosition,
+) -> std::io::Result<(GcsDevice, Arc<Mutex<Faults>>)> {
     let now = Instant::now();
     let mut axes = Vec::new();
     for i in 0..3 {
@@ -342,6 +399,7 @@ pub fn start_stage_emulator(
             t0: now,
             servo: cfg.servo_on,
             tripped: false,
+            settle: 0.0,
         });
     }
     let axes: [Axis; 3] = axes
@@ -353,10 +411,10 @@ pub fn start_stage_emulator(
         axes,
         error: 0,
         faults: faults.clone(),
-        position: position.clone(),
+        position,
         noise_state: std::cell::Cell::new(0x5eed),
         velocity: [10_000.0; 3],
     };
     dev.publish();
-    spawn("stage", dev, faults, position)
+    Ok((dev, faults))
 }
