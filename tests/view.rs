@@ -122,6 +122,26 @@ fn a_64_by_64_scan_fills_in_row_by_row_and_the_pointer_reads_stage_coordinates()
         full_c > full_a && full_c < 64,
         "rows {full_a} then {full_c}: the canvas must grow row by row while the scan runs"
     );
+    // a reload in the middle of the scan draws what is already measured, then follows
+    b.goto(&url);
+    b.wait_for(
+        "return document.getElementById('conn').textContent === 'live'",
+        Duration::from_secs(20),
+        "the reloaded page's event stream",
+    );
+    b.wait_for(
+        &format!(
+            "return document.getElementById('progress').value * 4096 >= {}",
+            64 * full_c
+        ),
+        Duration::from_secs(20),
+        "the reloaded page to catch up",
+    );
+    let (full_r, ok_r) = fill_pattern(&rows_painted(&b, 64), 64);
+    assert!(
+        ok_r && full_r >= full_c,
+        "after the reload: {full_r} rows (before it: {full_c})"
+    );
     let (_wb, r) = scan.join().unwrap();
     r.expect("the scan completes");
     b.wait_for(
@@ -220,6 +240,27 @@ fn a_figure_appears_and_an_aborted_scan_is_listed_with_its_status() {
     );
     b.screenshot(&shots().join("view_figure.png"));
 
+    // a line scan draws as a line plot; clicking a saved scan in the list shows it with its
+    // metadata
+    let _ = wb.eval_source("t", &format!("{BEAD} connect(#{{backend: \"sim\", scene: s}}); scan_line(#{{axis: \"x\", from: -1.0, to: 1.0, n: 41, dwell: 0.001}});"));
+    b.wait_for(
+        "return document.getElementById('map').dataset.kind === 'line' && \
+         document.getElementById('progress-text').textContent.startsWith('41 / 41 points · complete')",
+        Duration::from_secs(20),
+        "the line scan as a line plot",
+    );
+    b.js(
+        "document.querySelector('#scans tbody tr[data-number=\"1\"]').click()",
+        json!([]),
+    );
+    b.wait_for(
+        "return !document.getElementById('meta').hidden && \
+         document.getElementById('meta-text').textContent.includes('\"kind\": \"scan_line\"')",
+        Duration::from_secs(20),
+        "scan 1 and its metadata",
+    );
+    b.js("document.getElementById('live-button').click()", json!([]));
+
     // a scan interrupted as Ctrl-C does (the shared abort flag)
     let _ = wb
         .eval_source(
@@ -246,9 +287,9 @@ fn a_figure_appears_and_an_aborted_scan_is_listed_with_its_status() {
     assert!(err.contains("aborted"), "{err}");
     b.wait_for(
         "return [...document.querySelectorAll('#scans tbody tr')].some(r => r.dataset.status === 'aborted' \
-         && r.textContent.includes('aborted') && r.dataset.number === '1')",
+         && r.textContent.includes('aborted') && r.dataset.number === '2')",
         Duration::from_secs(20),
-        "scan 1 listed as aborted",
+        "scan 2 listed as aborted",
     );
     let progress = b.js(
         "return document.getElementById('progress-text').textContent",
@@ -269,7 +310,11 @@ fn a_request_without_the_token_is_refused() {
         .unwrap();
     let token = url.split("token=").nth(1).unwrap();
     // the same length, one character different
-    let wrong = format!("{}{}", if token.starts_with('0') { '1' } else { '0' }, &token[1..]);
+    let wrong = format!(
+        "{}{}",
+        if token.starts_with('0') { '1' } else { '0' },
+        &token[1..]
+    );
     assert_ne!(wrong, token);
     for path in ["/", "/events", "/api/state", "/figure/1", "/api/scan/1"] {
         assert_eq!(http(addr, "GET", path, None).0, 403, "{path}");
