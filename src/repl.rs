@@ -49,11 +49,42 @@ fn at_end(text: &str, pos: rhai::Position) -> bool {
     col > lines.last().map_or(0, |l| l.chars().count())
 }
 
+/// `head` ends inside an argument list: the call's name and which argument (0-based) comes
+/// next, walking back over balanced brackets and counting the commas between.
+fn call_and_argument(head: &str) -> Option<(String, usize)> {
+    let (mut depth, mut arg) = (0i32, 0usize);
+    for (j, ch) in head.char_indices().rev() {
+        match ch {
+            ')' | ']' | '}' => depth += 1,
+            '(' | '[' | '{' if depth > 0 => depth -= 1,
+            '(' => {
+                let name: String = head[..j]
+                    .trim_end()
+                    .chars()
+                    .rev()
+                    .take_while(|c| c.is_alphanumeric() || *c == '_')
+                    .collect::<Vec<_>>()
+                    .into_iter()
+                    .rev()
+                    .collect();
+                return (!name.is_empty()).then_some((name, arg));
+            }
+            '[' | '{' => return None,
+            ',' if depth == 0 => arg += 1,
+            _ => {}
+        }
+    }
+    None
+}
+
 /// Completion, hints and multi-line validation for the prompt.
 pub struct ReplHelper {
     docs: Arc<Vec<Doc>>,
     /// Variables and script functions defined so far.
     pub user: Arc<Mutex<Vec<String>>>,
+    /// The type of each variable (`Scan`, `Image`, `map`, …) and, for maps, their keys: after
+    /// `name.` only what that type has is offered.
+    pub types: Arc<Mutex<std::collections::HashMap<String, (String, Vec<String>)>>>,
     parser: Engine,
 }
 
@@ -62,6 +93,7 @@ impl ReplHelper {
         Self {
             docs,
             user: Arc::default(),
+            types: Arc::default(),
             parser: Engine::new_raw(),
         }
     }
@@ -104,12 +136,35 @@ impl ReplHelper {
             return (start, out);
         }
         if prev == Some('.') {
+            // the receiver: a variable whose type (or, for a map, whose keys) we know
+            let recv: String = before[..start - 1]
+                .chars()
+                .rev()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            let known = self.types.lock().ok().and_then(|t| t.get(&recv).cloned());
+            if let Some((ty, keys)) = &known {
+                if ty == "map" {
+                    for k in keys.iter().filter(|k| k.starts_with(word)) {
+                        out.push((format!("{k}  (key of {recv})"), k.clone()));
+                    }
+                    out.sort();
+                    return (start, out);
+                }
+            }
             for d in self.docs.iter() {
-                let (is_m, is_p) = (
-                    matches!(d.kind, Kind::Method { .. }),
-                    matches!(d.kind, Kind::Property { .. }),
-                );
-                if (is_m || is_p) && d.name.starts_with(word) {
+                let ty = match &d.kind {
+                    Kind::Method { ty } | Kind::Property { ty } => ty,
+                    _ => continue,
+                };
+                if known.as_ref().is_some_and(|(t, _)| t != ty) {
+                    continue;
+                }
+                let is_m = matches!(d.kind, Kind::Method { .. });
+                if d.name.starts_with(word) {
                     let rep = if is_m {
                         format!("{}(", d.name)
                     } else {
@@ -118,13 +173,13 @@ impl ReplHelper {
                     out.push((format!("{}  ({})", d.signature(), d.family), rep));
                 }
             }
-        } else if let Some(b) = self.open_map_call(before) {
+        } else if let Some((b, arg)) = self.open_map_call(before) {
             if let Some(d) = self
                 .docs
                 .iter()
                 .find(|d| d.name == b && matches!(d.kind, Kind::Function))
             {
-                for p in &d.params {
+                for p in d.params.get(arg) {
                     for k in &p.keys {
                         if k.name.starts_with(word) {
                             let unit = if k.unit.is_empty() {
@@ -161,9 +216,9 @@ impl ReplHelper {
         (start, out)
     }
 
-    /// If the cursor is inside `name(#{ … ` (an unclosed map literal passed to a call),
-    /// the name of the call.
-    fn open_map_call(&self, before: &str) -> Option<String> {
+    /// If the cursor is inside `name(a, b, #{ … ` (an unclosed map literal passed to a call, as
+    /// any of its arguments), the name of the call and the argument's index.
+    fn open_map_call(&self, before: &str) -> Option<(String, usize)> {
         let mut depth = 0i32;
         let bytes = before.as_bytes();
         let mut i = bytes.len();
@@ -175,17 +230,7 @@ impl ReplHelper {
                     if depth > 0 {
                         depth -= 1;
                     } else if i > 0 && bytes[i - 1] == b'#' {
-                        let head = before[..i - 1].trim_end();
-                        let head = head.strip_suffix('(')?.trim_end();
-                        let name: String = head
-                            .chars()
-                            .rev()
-                            .take_while(|c| c.is_alphanumeric() || *c == '_')
-                            .collect::<Vec<_>>()
-                            .into_iter()
-                            .rev()
-                            .collect();
-                        return (!name.is_empty()).then_some(name);
+                        return call_and_argument(&before[..i - 1]);
                     } else {
                         return None;
                     }
@@ -280,6 +325,7 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
     };
     let helper = ReplHelper::new(wb.docs.clone());
     let user = helper.user.clone();
+    let types = helper.types.clone();
     rl.set_helper(Some(helper));
     if let Some(h) = history.as_ref().filter(|_| tty) {
         let _ = rl.load_history(h);
@@ -311,6 +357,9 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
                 evaluate(&mut wb, &entry);
                 if let Ok(mut u) = user.lock() {
                     *u = wb.user_names();
+                }
+                if let Ok(mut t) = types.lock() {
+                    *t = wb.user_types();
                 }
             }
             Err(ReadlineError::Interrupted) => {
@@ -504,6 +553,48 @@ mod tests {
         assert_eq!(
             h.hint_for("mv(").unwrap().split("  —").next().unwrap(),
             "#{x, y, z})"
+        );
+        // keys of a map that is not the first argument
+        let line = "plot(sc, \"f.png\", #{ti";
+        let (_, c) = h.candidates(line, line.len());
+        assert_eq!(
+            c.iter().map(|c| c.1.as_str()).collect::<Vec<_>>(),
+            vec!["title: "]
+        );
+        assert_eq!(
+            call_and_argument("f(a, [1, 2], g(3, 4), "),
+            Some(("f".into(), 3))
+        );
+        assert_eq!(call_and_argument("let m = [1, "), None);
+    }
+
+    #[test]
+    fn completion_after_a_dot_knows_the_variables_type() {
+        let h = ReplHelper::new(crate::script::all_docs());
+        h.types
+            .lock()
+            .unwrap()
+            .insert("t".into(), ("Template".into(), vec![]));
+        h.types.lock().unwrap().insert(
+            "r".into(),
+            (
+                "map".into(),
+                vec!["angle_deg".into(), "angle_err_deg".into(), "n".into()],
+            ),
+        );
+        // `t.` offers what a Template has, not an Image's methods
+        let (_, c) = h.candidates("t.", 2);
+        let reps: Vec<&str> = c.iter().map(|c| c.1.as_str()).collect();
+        assert!(reps.contains(&"save("), "{reps:?}");
+        assert!(!reps.contains(&"abs_max("), "{reps:?}");
+        // an unknown receiver: every method
+        let (_, c) = h.candidates("q.ab", 4);
+        assert!(c.iter().any(|c| c.1 == "abs_max("), "{c:?}");
+        // a map: its keys
+        let (_, c) = h.candidates("r.an", 4);
+        assert_eq!(
+            c.iter().map(|c| c.1.as_str()).collect::<Vec<_>>(),
+            vec!["angle_deg", "angle_err_deg"]
         );
     }
 }

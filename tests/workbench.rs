@@ -325,3 +325,22 @@ fn scripted_test_runner_counts_passes_and_failures() {
     assert!(text.contains("ok    b.rhai"), "{text}");
     assert!(text.contains("FAIL  c.rhai"), "{text}");
 }
+
+#[test]
+fn variable_types_for_completion_use_the_script_names() {
+    let (mut w, _) = wb("types");
+    let _ = w
+        .eval_line(
+            "connect(#{backend: \"mock\"}); let sc = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 5, dwell: 0.001}); \
+             let im = sc.sx; let r = #{angle_deg: 1.0, n: 3}; let a = [1, 2];",
+        )
+        .unwrap();
+    let t = w.user_types();
+    assert_eq!(t["sc"].0, "Scan");
+    assert_eq!(t["im"].0, "Image");
+    assert_eq!(t["r"].0, "map");
+    let mut keys = t["r"].1.clone();
+    keys.sort();
+    assert_eq!(keys, ["angle_deg", "n"]);
+    assert_eq!(t["a"].0, "array");
+}

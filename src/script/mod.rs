@@ -323,6 +323,22 @@ impl Workbench {
         v
     }
 
+    /// Each variable's type as scripts name it (`Scan`, `Image`, `map`, `array`, …) and, for a
+    /// map, its keys (for completion after `name.`).
+    pub fn user_types(&self) -> std::collections::HashMap<String, (String, Vec<String>)> {
+        self.scope
+            .iter_raw()
+            .map(|(n, _, v)| {
+                let ty = self.engine.map_type_name(v.type_name()).to_string();
+                let keys = v
+                    .read_lock::<rhai::Map>()
+                    .map(|m| m.keys().map(|k| k.to_string()).collect())
+                    .unwrap_or_default();
+                (n.to_string(), (ty, keys))
+            })
+            .collect()
+    }
+
     fn compile(&self, source: &str, text: &str) -> Result<AST, ScriptError> {
         let mut ast = self
             .engine
