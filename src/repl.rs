@@ -478,17 +478,95 @@ fn evaluate(wb: &mut Workbench, entry: &str) {
             m
         }
         Err(e) => {
-            let m = format!("error: {e}");
+            let mut m = format!("error: {e}");
             err_line(&m);
+            if let Some(note) = bind_partial(wb, entry) {
+                err_line(&note);
+                m.push('\n');
+                m.push_str(&note);
+            }
             m
         }
     };
     log_session(wb, entry, &out);
 }
 
+/// The scan bindings whose result a partial scan stands in for.
+const SCAN_CALLS: &[&str] = &[
+    "scan_line",
+    "scan_xy",
+    "scan_xz",
+    "scan_yz",
+    "ascan",
+    "dscan",
+    "mesh",
+    "dmesh",
+    "lup",
+    "a2scan",
+    "d2scan",
+];
+
+/// `let NAME = scan_xy(…)` / `NAME = scan_xy(…)`: the variable a scan call was assigned to.
+pub fn assigned_scan_variable(entry: &str) -> Option<String> {
+    let t = entry.trim_start();
+    let t = t.strip_prefix("let ").map(str::trim_start).unwrap_or(t);
+    let name: String = t
+        .chars()
+        .take_while(|c| c.is_alphanumeric() || *c == '_')
+        .collect();
+    if name.is_empty() || name.starts_with(|c: char| c.is_ascii_digit()) {
+        return None;
+    }
+    let rest = t[name.len()..].trim_start();
+    let rhs = rest
+        .strip_prefix('=')
+        .filter(|r| !r.starts_with('='))?
+        .trim_start();
+    let call: String = rhs
+        .chars()
+        .take_while(|c| c.is_alphanumeric() || *c == '_')
+        .collect();
+    let after = rhs[call.len()..].trim_start();
+    (SCAN_CALLS.contains(&call.as_str()) && after.starts_with('(')).then_some(name)
+}
+
+/// After a scan ended early (Ctrl-C, a device fault), bind its partial scan to `_` and to the
+/// variable the entry was assigning it to; the note says where it went.
+fn bind_partial(wb: &mut Workbench, entry: &str) -> Option<String> {
+    let scan = wb.ctx.take_partial()?;
+    let status = scan.scan.status;
+    let measured = scan.scan.meta["points_measured"].as_u64().unwrap_or(0);
+    let total = scan.scan.meta["points_total"].as_u64().unwrap_or(0);
+    wb.set_var("_last", rhai::Dynamic::from(scan.clone()));
+    let var = assigned_scan_variable(entry);
+    if let Some(v) = &var {
+        wb.set_var(v, rhai::Dynamic::from(scan));
+    }
+    Some(format!(
+        "the partial scan ({status}, {measured} of {total} points) is in {}_",
+        var.map(|v| format!("`{v}` and ")).unwrap_or_default()
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_variable_a_scan_is_assigned_to() {
+        assert_eq!(
+            assigned_scan_variable("let s = scan_xy(#{x: [0, 1]})").as_deref(),
+            Some("s")
+        );
+        assert_eq!(
+            assigned_scan_variable("  big2 = ascan(\"x\", 0, 1, 4, 0.01)").as_deref(),
+            Some("big2")
+        );
+        assert_eq!(assigned_scan_variable("let r = focus::search(#{})"), None);
+        assert_eq!(assigned_scan_variable("s == scan_xy(#{})"), None);
+        assert_eq!(assigned_scan_variable("scan_xy(#{})"), None);
+        assert_eq!(assigned_scan_variable("let n = scan_xy"), None);
+    }
 
     #[test]
     fn underscore_is_the_last_result() {

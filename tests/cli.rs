@@ -600,3 +600,34 @@ fn bfpscope_config_variable_is_honoured_with_its_safety_table() {
     assert!(!out.status.success());
     assert!(stderr.contains("safety.soft_limits.x"), "{stderr}");
 }
+
+#[test]
+fn repl_binds_a_partial_scan_to_the_variable_being_assigned() {
+    let data = tmp("partial");
+    let mut child = bin()
+        .args(["--data", data.to_str().unwrap(), "repl"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // the mock raises the Ctrl-C flag after 7 reads, as the key would
+    let session = "connect(#{backend: \"mock\", abort_after_reads: 7});\n\
+                   let s = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 21, dwell: 0.001});\n\
+                   print(`${s.status} ${s.meta.points_measured} ${s.cols}`);\n\
+                   _.status\n";
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(session.as_bytes())
+        .unwrap();
+    let o = child.wait_with_output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("the partial scan (aborted, 7 of 21 points) is in `s` and _"),
+        "{err}"
+    );
+    assert!(out.contains("aborted 7 21\naborted\n"), "{out}\n{err}");
+}

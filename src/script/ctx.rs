@@ -212,6 +212,9 @@ pub struct Ctx {
     git: OnceLock<Option<String>>,
     /// The live view, once `view()` or `repl --view` started it.
     view: Mutex<Option<crate::view::View>>,
+    /// The partial scan of the last scan that did not complete (Ctrl-C, a device fault), for
+    /// the prompt to bind to the variable being assigned (or `_`).
+    partial: Mutex<Option<super::types::ScanRef>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -246,7 +249,18 @@ impl Ctx {
             docs: OnceLock::new(),
             git: OnceLock::new(),
             view: Mutex::new(None),
+            partial: Mutex::new(None),
         }
+    }
+
+    /// Keep the partial scan of a scan that ended early.
+    pub fn set_partial(&self, scan: Option<super::types::ScanRef>) {
+        *lock(&self.partial) = scan;
+    }
+
+    /// Take the partial scan kept by the last scan that ended early, if any.
+    pub fn take_partial(&self) -> Option<super::types::ScanRef> {
+        lock(&self.partial).take()
     }
 
     /// The running view's state (None when no view was started).

@@ -350,6 +350,7 @@ impl Workbench {
 
     fn run_ast(&mut self, ast: &AST, source: &str) -> Result<Dynamic, ScriptError> {
         self.ctx.settings.abort.store(false, Ordering::SeqCst);
+        self.ctx.set_partial(None);
         // a protocol that failed earlier never reached protocol_end(): a new entry starts clean
         self.ctx
             .protocols

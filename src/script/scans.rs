@@ -52,7 +52,11 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
                 let path = run.saved.ok().map(|p| p.display().to_string());
                 Ok(ScanRef::new(run.scan, path))
             }
-            Err(msg) => fail(msg),
+            Err(msg) => {
+                let path = run.saved.as_ref().ok().map(|p| p.display().to_string());
+                c.set_partial(Some(ScanRef::new(run.scan, path)));
+                fail(msg)
+            }
         }
     })
 }
