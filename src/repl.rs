@@ -84,7 +84,7 @@ pub struct ReplHelper {
     pub user: Arc<Mutex<Vec<String>>>,
     /// The type of each variable (`Scan`, `Image`, `map`, …) and, for maps, their keys: after
     /// `name.` only what that type has is offered.
-    pub types: Arc<Mutex<std::collections::HashMap<String, (String, Vec<String>)>>>,
+    pub types: Arc<Mutex<crate::script::VarTypes>>,
     parser: Engine,
 }
 
@@ -179,7 +179,7 @@ impl ReplHelper {
                 .iter()
                 .find(|d| d.name == b && matches!(d.kind, Kind::Function))
             {
-                for p in d.params.get(arg) {
+                if let Some(p) = d.params.get(arg) {
                     for k in &p.keys {
                         if k.name.starts_with(word) {
                             let unit = if k.unit.is_empty() {

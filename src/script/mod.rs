@@ -53,6 +53,9 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("view", view::register),
 ];
 
+/// Each variable's type as scripts name it and, for a map, its keys (completion after `name.`).
+pub type VarTypes = std::collections::HashMap<String, (String, Vec<String>)>;
+
 /// A script error as the user sees it: one line, with the position.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ScriptError {
@@ -325,7 +328,7 @@ impl Workbench {
 
     /// Each variable's type as scripts name it (`Scan`, `Image`, `map`, `array`, …) and, for a
     /// map, its keys (for completion after `name.`).
-    pub fn user_types(&self) -> std::collections::HashMap<String, (String, Vec<String>)> {
+    pub fn user_types(&self) -> VarTypes {
         self.scope
             .iter_raw()
             .map(|(n, _, v)| {
