@@ -1385,6 +1385,16 @@ fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
         chi2 / dof
     );
     assert_eq!(hw.scan.meta["instrument"]["backend"], "emulated");
+    // real time: the first row's cost per point is measured (and the ETA revised from it): at
+    // least the 1 ms dwell, and what the wall clock says of the whole scan within a factor 2
+    let t = &hw.scan.meta["time"];
+    let per = t["measured_s_per_point_first_row"].as_f64().unwrap();
+    let whole = t["wall_s"].as_f64().unwrap() / 81.0;
+    assert!(
+        per >= 1e-3 && per < 2.0 * whole && per > 0.5 * whole,
+        "{per} s vs {whole} s per point"
+    );
+    assert!(sim.scan.meta["time"]["measured_s_per_point_first_row"].is_null());
     // the scan went through the serial protocol
     let cmds = e.stage.commands();
     assert!(

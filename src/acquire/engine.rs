@@ -296,6 +296,16 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let mut ended = Ended::Complete;
     let mut measured = 0usize;
     let mut batch = Batcher::new();
+    // On a real-time instrument the ETA above is a floor (settle + dwell, and the move time
+    // when the device knows it); after the first row the measured cost per point, link and
+    // polling included, gives the real one.
+    let per_point_eta = eta / points.len().max(1) as f64;
+    let revise_after = if inst.clock.is_virtual() || rows < 2 {
+        usize::MAX
+    } else {
+        cols
+    };
+    let mut measured_s_per_point: Option<f64> = None;
     for p in &points {
         if env.abort.swap(false, Ordering::SeqCst) {
             ended = Ended::Aborted { measured };
@@ -318,6 +328,19 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                     batch.push(o, (p.row, p.col, [r.sx, r.sy, r.sz]));
                 }
                 measured += 1;
+                if measured == revise_after {
+                    let per = wall0.elapsed().as_secs_f64() / measured as f64;
+                    measured_s_per_point = Some(per);
+                    if (per - per_point_eta).abs() > 0.1 * per_point_eta {
+                        (env.log)(&format!(
+                            "{kind}: the first row took {} per point (the ETA assumed {}): ETA now {} for the remaining {} points",
+                            fmt_seconds(per),
+                            fmt_seconds(per_point_eta),
+                            fmt_seconds(per * (points.len() - measured) as f64),
+                            points.len() - measured
+                        ));
+                    }
+                }
                 bar.inc(1);
             }
             Err(error) => {
@@ -388,6 +411,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             "instrument_end_s": t1,
             "instrument_s": t1 - t0,
             "eta_s": eta,
+            "measured_s_per_point_first_row": measured_s_per_point,
         },
     });
     if let Ended::Failed {
