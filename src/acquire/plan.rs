@@ -131,6 +131,10 @@ pub struct Plan {
     /// The binding that built the plan (`scan_xy`, `dscan`, ...).
     pub kind: String,
     pub fast: Sweep,
+    /// A second axis moved in step with `fast` (SPEC's `a2scan`/`d2scan`: point `i` of both
+    /// sweeps together); line plans only. The image's columns follow `fast`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub with: Option<Sweep>,
     pub slow: Option<Sweep>,
     /// Axes held at a fixed position during the scan (µm; offsets when `rel`).
     pub fixed: Vec<(Axis, f64)>,
@@ -169,6 +173,7 @@ impl Plan {
         Ok(Plan {
             kind: kind.into(),
             fast: sweep,
+            with: None,
             slow: None,
             fixed: vec![],
             rel,
@@ -209,6 +214,7 @@ impl Plan {
         Ok(Plan {
             kind: kind.into(),
             fast,
+            with: None,
             slow: Some(slow),
             fixed,
             rel,
@@ -216,6 +222,32 @@ impl Plan {
             dwell_s: check_dwell(kind, dwell_s)?,
             return_to_start: rel,
         })
+    }
+
+    /// A line scan moving two axes together (SPEC `a2scan`, `d2scan`): point `i` is at
+    /// `first.values()[i]` on `first.axis` and `second.values()[i]` on `second.axis`.
+    pub fn line2(
+        kind: &str,
+        first: Sweep,
+        second: Sweep,
+        dwell_s: f64,
+        rel: bool,
+    ) -> Result<Plan, PlanError> {
+        if first.axis == second.axis {
+            return Err(PlanError(format!(
+                "{kind}: both motors are {}: pick two different axes",
+                first.axis
+            )));
+        }
+        if first.n != second.n {
+            return Err(PlanError(format!(
+                "{kind}: the two sweeps have {} and {} points: they must match",
+                first.n, second.n
+            )));
+        }
+        let mut p = Plan::line(kind, first, dwell_s, rel)?;
+        p.with = Some(second);
+        Ok(p)
     }
 
     pub fn rows(&self) -> usize {
@@ -257,15 +289,25 @@ impl Plan {
             None => vec![self.base(start)[self.row_axis().index()]],
         }
     }
-    /// The axis along the image rows (for a line scan: the next axis after the fast one).
+    /// The axis along the image rows (for a line scan: the next axis after the fast one that
+    /// is not moved with it).
     pub fn row_axis(&self) -> Axis {
         match self.slow {
             Some(s) => s.axis,
-            None => match self.fast.axis {
-                Axis::X => Axis::Y,
-                Axis::Y => Axis::X,
-                Axis::Z => Axis::X,
-            },
+            None => {
+                let next = match self.fast.axis {
+                    Axis::X => Axis::Y,
+                    Axis::Y => Axis::X,
+                    Axis::Z => Axis::X,
+                };
+                match self.with {
+                    Some(w) if w.axis == next => Axis::ALL
+                        .into_iter()
+                        .find(|a| *a != self.fast.axis && *a != w.axis)
+                        .unwrap_or(next),
+                    _ => next,
+                }
+            }
         }
     }
 
@@ -274,6 +316,13 @@ impl Plan {
         let base = self.base(start);
         let cols = self.col_positions(start);
         let rows = self.slow.map(|_| self.row_positions(start));
+        let with = self.with.map(|w| {
+            let off = if self.rel { start[w.axis.index()] } else { 0.0 };
+            (
+                w.axis,
+                w.values().into_iter().map(|v| v + off).collect::<Vec<_>>(),
+            )
+        });
         let mut out = Vec::with_capacity(self.n_points());
         for r in 0..self.rows() {
             let reverse = self.snake && r % 2 == 1;
@@ -283,6 +332,9 @@ impl Plan {
                 t[self.fast.axis.index()] = cols[c];
                 if let (Some(s), Some(rows)) = (self.slow, rows.as_ref()) {
                     t[s.axis.index()] = rows[r];
+                }
+                if let Some((a, v)) = &with {
+                    t[a.index()] = v[c];
                 }
                 out.push(Point {
                     row: r,
@@ -312,10 +364,13 @@ impl Plan {
                 sl.axis
             ),
             None => format!(
-                "{} {} points along {}",
+                "{} {} points along {}{}",
                 self.kind,
                 self.cols(),
-                self.fast.axis
+                self.fast.axis,
+                self.with
+                    .map(|w| format!(" and {}", w.axis))
+                    .unwrap_or_default()
             ),
         };
         if self.snake {
@@ -349,6 +404,34 @@ pub fn fmt_seconds(s: f64) -> String {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn two_motor_line_moves_both_axes_together() {
+        let x = Sweep::new("a2scan", Axis::X, 0.0, 1.0, 5, "points").unwrap();
+        let z = Sweep::new("a2scan", Axis::Z, 2.0, 0.0, 5, "points").unwrap();
+        let p = Plan::line2("d2scan", x, z, 0.001, true).unwrap();
+        let pts = p.points([10.0, 20.0, 30.0]);
+        assert_eq!(pts.len(), 5);
+        assert_eq!(pts[0].target, [10.0, 20.0, 32.0]);
+        assert_eq!(pts[2].target, [10.5, 20.0, 31.0]);
+        assert_eq!(pts[4].target, [11.0, 20.0, 30.0]);
+        assert_eq!((pts[4].row, pts[4].col), (0, 4));
+        // the image rows are along y, the axis neither motor moves
+        assert_eq!(p.row_axis(), Axis::Y);
+        assert!(p
+            .describe()
+            .starts_with("d2scan 5 points along x and z relative"));
+        let y = Sweep::new("a2scan", Axis::Y, 0.0, 1.0, 4, "points").unwrap();
+        assert!(Plan::line2("a2scan", x, y, 0.001, false)
+            .unwrap_err()
+            .0
+            .contains("5 and 4 points"));
+        assert!(Plan::line2("a2scan", x, x, 0.001, false)
+            .unwrap_err()
+            .0
+            .contains("both motors are x"));
+    }
+
     use super::*;
 
     #[test]

@@ -276,6 +276,79 @@ pub fn register(r: &mut Registrar) {
             },
         );
     }
+    for (name, rel) in [("a2scan", false), ("d2scan", true)] {
+        let what = if rel { "relative" } else { "absolute" };
+        let mut d = Doc::func(name)
+            .arg("axis1", "string", "", "first motor: \"x\", \"y\" or \"z\" (the image's columns follow it)")
+            .arg("from1", "float", "µm", "")
+            .arg("to1", "float", "µm", "")
+            .arg("axis2", "string", "", "second motor, moved together with the first")
+            .arg("from2", "float", "µm", "")
+            .arg("to2", "float", "µm", "")
+            .arg("intervals", "int", "", "number of intervals (SPEC): intervals + 1 points")
+            .arg("dwell", "float", "s", "count time per point")
+            .returns("Scan", "a line scan (one row) along both axes; autosaved (meta.plan.with is the second motor)")
+            .summary(&format!("SPEC {what} two-motor line scan: both axes step together, intervals + 1 points"))
+            .help(&format!(
+                "Point i is at from1 + i·(to1 − from1)/intervals on axis1 and from2 + i·(to2 − from2)/intervals on \
+                 axis2: a line across the sample at any angle. {} Every point is checked against the soft \
+                 limits before the first move, like every scan.",
+                if rel { "Positions are relative to where the stage is, and the stage returns there at the end, after Ctrl-C and after a QPD error." } else { "The stage stays at the last point." }
+            ));
+        d = if rel {
+            d.example("mv(#{x: 2.0, y: 1.0}); let s = d2scan(\"x\", -0.5, 0.5, \"y\", 0.0, 1.0, 4, 0.001); [s.cols, s.x[4], pos().y]", "[5, 2.5, 1.0]")
+        } else {
+            d.example(
+                "let s = a2scan(\"x\", 0, 1, \"y\", 0, -2, 4, 0.001); [s.cols, s.x[2], pos().x, pos().y]",
+                "[5, 0.5, 1.0, -2.0]",
+            )
+        };
+        d = d
+            .example(
+                &format!("{name}(\"x\", 0, 1, \"x\", 0, 1, 4, 0.001)"),
+                &format!("error: {name}: both motors are x"),
+            )
+            .example(
+                &format!("{name}(\"x\", 0, 1)"),
+                &format!(
+                    "error: usage: {name}(axis1, from1, to1, axis2, from2, to2, intervals, dwell)"
+                ),
+            );
+        let spec = d.spec();
+        let c = r.ctx();
+        r.bind(
+            d,
+            move |a1: Dynamic,
+                  f1: Dynamic,
+                  t1: Dynamic,
+                  a2: Dynamic,
+                  f2: Dynamic,
+                  t2: Dynamic,
+                  n: Dynamic,
+                  dwell: Dynamic|
+                  -> RResult<ScanRef> {
+                let who = spec.name.as_str();
+                let n = intervals(who, "intervals", &n)?;
+                let sweep = |a: &Dynamic, f: &Dynamic, t: &Dynamic, k: &str| -> RResult<Sweep> {
+                    let axis = axis_arg(who, a, &spec.usage)?;
+                    Sweep::new(
+                        who,
+                        axis,
+                        num(who, &format!("from{k}"), f)?,
+                        num(who, &format!("to{k}"), t)?,
+                        n,
+                        "points",
+                    )
+                    .map_err(|e| e.0.into())
+                };
+                let first = sweep(&a1, &f1, &t1, "1")?;
+                let second = sweep(&a2, &f2, &t2, "2")?;
+                let plan = Plan::line2(who, first, second, num(who, "dwell", &dwell)?, rel)
+                    .map_err(|e| e.0)?;
+                execute(&c, plan)
+            },
+        );
+    }
     for (name, rel) in [("mesh", false), ("dmesh", true)] {
         let what = if rel { "relative" } else { "absolute" };
         let mut d = Doc::func(name)
