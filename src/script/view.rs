@@ -42,7 +42,7 @@ fn spawn_refresher(ctx: Weak<Ctx>) {
             let Some(hub) = c.view_hub() else { return };
             if !hub.scanning() {
                 if let Some(g) = c.instrument_glance() {
-                    hub.set_instrument(g);
+                    hub.set_instrument(with_time(g));
                 }
             }
         });
