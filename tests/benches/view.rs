@@ -10,7 +10,7 @@
 //! - `view, stalled reader`: one client that connects and never reads (a frozen tab), so its
 //!   socket fills up and its sender blocks.
 //!
-//! Runs alternate between the three set-ups; the table gives the median wall time of each and
+//! Runs alternate between the set-ups (the order rotating every round); the table gives the median wall time of each and
 //! its ratio to `none`.
 //!
 //! Memory: process RSS growth over 100 and 300 scans of 32 × 32 with the view open and a
@@ -121,13 +121,21 @@ fn timing() {
     for w in [&mut plain, &mut quiet, &mut live, &mut stalled] {
         time(w);
     }
-    let (mut a, mut b, mut c, mut d) = (vec![], vec![], vec![], vec![]);
-    for _ in 0..ROUNDS {
-        a.push(time(&mut plain));
-        d.push(time(&mut quiet));
-        b.push(time(&mut live));
-        c.push(time(&mut stalled));
+    // the order rotates every round, so no set-up always runs first (cache, frequency)
+    let mut t: [Vec<f64>; 4] = Default::default();
+    for round in 0..ROUNDS {
+        for k in 0..4 {
+            let i = (round + k) % 4;
+            let w = match i {
+                0 => &mut plain,
+                1 => &mut quiet,
+                2 => &mut live,
+                _ => &mut stalled,
+            };
+            t[i].push(time(w));
+        }
     }
+    let [a, d, b, c] = t;
     let (ma, mb, mc, md) = (median(a), median(b), median(c), median(d));
     println!("128 × 128 scan on the simulator, median of {ROUNDS} interleaved runs");
     println!("| set-up | wall ms | ratio to no view |");
