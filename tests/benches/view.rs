@@ -169,6 +169,7 @@ fn memory() {
         let _ = m.eval_line(small).unwrap();
     }
     let with = rss_kib() as i64 - rss0 as i64;
+    let held100 = hub.held_bytes();
     // and more (200, or $BFPSCOPE_VIEW_BENCH_MORE): bounded, or growing with the number of scans?
     let more: usize = std::env::var("BFPSCOPE_VIEW_BENCH_MORE")
         .ok()
@@ -180,9 +181,11 @@ fn memory() {
     let with300 = rss_kib() as i64 - rss0 as i64;
     println!();
     println!(
-        "after 100 scans of 32 × 32: the view holds {} bytes (the last scan's points, 100 list rows); \
-         process RSS grew {with} KiB with the view ({with300} KiB after {}), {peer} KiB without",
+        "after 100 scans of 32 × 32: the view holds {held100} bytes (the last scan's points, 100 list rows; \
+         {} bytes after {}); process RSS grew {with} KiB with the view ({with300} KiB after {}), {peer} KiB \
+         over 100 scans without",
         hub.held_bytes(),
+        100 + more,
         100 + more
     );
 }
