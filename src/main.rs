@@ -158,9 +158,14 @@ fn emulate(
     opts: &bfpscope::instrument::emulator::EmulateOptions,
 ) -> ExitCode {
     use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
-    if !["stage", "gcs", "qpd", "pair", "both"].contains(&device) {
+    if ![
+        "stage", "gcs", "qpd", "pair", "both", "kpa101", "kpz101", "thorlabs",
+    ]
+    .contains(&device)
+    {
         return usage_error(&format!(
-            "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+            "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
+             `kpz101` or `thorlabs`)"
         ));
     }
     let scene = match scene {

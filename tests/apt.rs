@@ -428,3 +428,55 @@ fn cube_that_stops_answering_mid_scan_ends_with_partial_scan_and_a_hold() {
         .unwrap_err()
         .contains("the stage was not commanded further"));
 }
+
+/// A `Write` shared with the emulator thread.
+#[derive(Clone, Default)]
+struct SharedBuf(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+impl std::io::Write for SharedBuf {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(b);
+        Ok(b.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+#[test]
+fn emulate_thorlabs_prints_a_snippet_that_connects() {
+    use bfpscope::instrument::emulator::run_emulator_cli_with;
+    use std::sync::atomic::Ordering;
+    let buf = SharedBuf::default();
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let h = {
+        let (mut buf, stop) = (buf.clone(), stop.clone());
+        std::thread::spawn(move || run_emulator_cli_with("thorlabs", standin_bead, &mut buf, stop))
+    };
+    let text = loop {
+        let t = String::from_utf8_lossy(&buf.0.lock().unwrap()).into_owned();
+        if t.contains("Serving until Ctrl-C.") {
+            break t;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let toml = text
+        .split("# bfpscope.toml for these emulators:")
+        .nth(1)
+        .unwrap()
+        .replace("Serving until Ctrl-C.", "");
+    assert!(toml.contains("backend = \"kpz101\""), "{toml}");
+    assert!(toml.contains("backend = \"kpa101\""), "{toml}");
+    let cfg = Config::from_toml_str(&toml, "snippet").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap();
+    // the scene's origin is the middle of the travel; calibration: Sz = (Sum − 5 V)/5 V
+    c.instrument.stage.move_to([10.1, 10.0, 10.0]).unwrap();
+    let r = c.instrument.qpd.read(2).unwrap();
+    let want = standin_bead([0.1, 0.0, 0.0]);
+    assert!((r.sx - want[0]).abs() < 0.03, "{r} vs {want:?}");
+    assert!((r.sz - want[2]).abs() < 0.03, "{r} vs {want:?}");
+    drop(c);
+    stop.store(true, Ordering::SeqCst);
+    h.join().unwrap().unwrap();
+    assert!(run_emulator_cli_with("kpz999", standin_bead, &mut Vec::new(), stop).is_err());
+}
