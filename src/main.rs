@@ -1,5 +1,5 @@
 //! `bfpscope`: the command line. `bfpscope` (= `repl`), `run FILE [--set k=v]...`,
-//! `eval 'EXPR'`, `test [DIR]`, `docs`, `emulate stage|qpd|pair`. Exit codes: 0 ok, 1 script error (or failed tests),
+//! `eval 'EXPR'`, `test [DIR]`, `docs`, `emulate stage|qpd|pair|kpa101|kpz101|thorlabs`. Exit codes: 0 ok, 1 script error (or failed tests),
 //! 2 usage error.
 
 use bfpscope::script::ctx::{err_line, out_line};
@@ -62,7 +62,8 @@ enum Cmd {
     /// Serve device emulators on pseudo-terminals (try the hardware path without hardware):
     /// prints their paths and a bfpscope.toml snippet, serves until Ctrl-C
     Emulate {
-        /// `stage` (alias `gcs`: PI GCS 2.0), `qpd` (SCPI digitiser) or `pair` (both, sharing the stage position)
+        /// `stage` (alias `gcs`: PI GCS 2.0), `qpd` (SCPI digitiser), `pair` (both, sharing the stage position),
+        /// `kpz101` (three Thorlabs piezo cubes), `kpa101` (Thorlabs position aligner) or `thorlabs` (both)
         device: String,
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
@@ -150,7 +151,7 @@ fn connect_default(wb: &Workbench) -> Result<(), ExitCode> {
     }
 }
 
-/// `bfpscope emulate stage|qpd|pair [--scene FILE]`: emulators whose QPD images a simulated
+/// `bfpscope emulate stage|qpd|pair|kpa101|kpz101|thorlabs [--scene FILE]`: emulators whose QPD images a simulated
 /// scene at the emulated stage position.
 fn emulate(
     device: &str,
@@ -158,9 +159,14 @@ fn emulate(
     opts: &bfpscope::instrument::emulator::EmulateOptions,
 ) -> ExitCode {
     use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
-    if !["stage", "gcs", "qpd", "pair", "both"].contains(&device) {
+    if ![
+        "stage", "gcs", "qpd", "pair", "both", "kpa101", "kpz101", "thorlabs",
+    ]
+    .contains(&device)
+    {
         return usage_error(&format!(
-            "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+            "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
+             `kpz101` or `thorlabs`)"
         ));
     }
     let scene = match scene {

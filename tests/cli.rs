@@ -468,7 +468,8 @@ fn emulate_rejects_an_unknown_device_and_a_bad_scene_file() {
     assert_eq!(code, 2);
     assert!(
         err.contains(
-            "emulate: unknown device `laser` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+            "emulate: unknown device `laser` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
+             `kpz101` or `thorlabs`)"
         ),
         "{err}"
     );

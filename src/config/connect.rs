@@ -83,6 +83,9 @@ pub fn connect(
 }
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
+    if cfg.stage.backend == Backend::Kpz101 || cfg.qpd.backend == Backend::Kpa101 {
+        return connect_apt(cfg);
+    }
     let qport = cfg.qpd.port.clone().unwrap_or_default();
     let controllers = cfg.gcs_controllers();
     // Opened read-only: nothing is switched on before `connect` has checked the limits.
@@ -137,6 +140,94 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description,
+    })
+}
+
+/// Thorlabs APT devices (and, for a mixed set-up, a GCS stage or a SCPI QPD): KPZ101 cubes as
+/// the stage and/or a KPA101 as the QPD.
+fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
+    use crate::instrument::apt::kpa101::Kpa101;
+    use crate::instrument::apt::kpz101::Kpz101Stage;
+    use crate::instrument::{Qpd, Stage};
+    let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
+        Backend::Kpz101 => {
+            let ps = cfg.stage.ports.clone().unwrap_or_else(|| super::AxisPorts {
+                x: String::new(),
+                y: String::new(),
+                z: String::new(),
+            });
+            let s = Kpz101Stage::open(
+                [&ps.x, &ps.y, &ps.z],
+                cfg.kpz_options(),
+                cfg.stage.travel_um,
+            )?;
+            let cubes: Vec<serde_json::Value> = s
+                .axes()
+                .iter()
+                .zip(["x", "y", "z"])
+                .map(|(a, ax)| {
+                    json!({
+                        "axis": ax,
+                        "port": a.port(),
+                        "device": a.info(),
+                        "travel_um": a.travel_um(),
+                        "reported_travel_um": a.reported_travel_um(),
+                        "enabled_at_connect": a.enabled_at_connect(),
+                        "mode_at_connect": a.mode_at_connect(),
+                    })
+                })
+                .collect();
+            let d = json!({
+                "backend": "kpz101",
+                "name": s.name(),
+                "port": { "x": ps.x, "y": ps.y, "z": ps.z },
+                "full_scale": cfg.stage.full_scale,
+                "tolerance_um": cfg.stage.tolerance_um,
+                "cubes": cubes,
+            });
+            (Box::new(s), d)
+        }
+        _ => {
+            let controllers = cfg.gcs_controllers();
+            let s = GcsSplitStage::open_checked(&controllers, cfg.stage.baud)?;
+            let d = json!({ "backend": "gcs", "name": s.name() });
+            (Box::new(s), d)
+        }
+    };
+    let qport = cfg.qpd.port.clone().unwrap_or_default();
+    let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
+        Backend::Kpa101 => {
+            let q = Kpa101::open(&qport, cfg.kpa_options())?;
+            let d = json!({
+                "backend": "kpa101",
+                "name": q.name(),
+                "port": qport,
+                "device": q.info(),
+                "sample_rate_hz": q.sample_rate(),
+                "calibration": cfg.qpd.calibration,
+                "sum_scale": cfg.qpd.sum_scale,
+                "x_sign": cfg.qpd.x_sign,
+                "signed": cfg.qpd.signed,
+            });
+            (Box::new(q), d)
+        }
+        _ => {
+            let q = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
+            let d = json!({ "backend": "scpi", "name": q.name(), "port": qport, "idn": q.idn() });
+            (Box::new(q), d)
+        }
+    };
+    Ok(Instrument {
+        stage,
+        qpd,
+        clock: Arc::new(WallClock::default()),
+        settle_s: cfg.stage.settle_s,
+        description: json!({
+            "backend": "hardware",
+            "stage": stage_desc,
+            "qpd": qpd_desc,
+            "settle_s": cfg.stage.settle_s,
+        }),
     })
 }
 

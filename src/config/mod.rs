@@ -67,6 +67,10 @@ pub enum Backend {
     Gcs,
     /// SCPI QPD digitiser (qpd).
     Scpi,
+    /// Thorlabs KPA101/TPA101 position aligner over APT (qpd).
+    Kpa101,
+    /// Three Thorlabs KPZ101 piezo cubes over APT, one per axis (stage).
+    Kpz101,
 }
 
 impl Backend {
@@ -75,6 +79,8 @@ impl Backend {
             Backend::Sim => "sim",
             Backend::Gcs => "gcs",
             Backend::Scpi => "scpi",
+            Backend::Kpa101 => "kpa101",
+            Backend::Kpz101 => "kpz101",
         }
     }
 }
@@ -158,6 +164,14 @@ pub struct StageConfig {
     /// Ask the controller one axis per query (`POS? 1`, `POS? 2`, …); detected at connect
     /// anyway when a controller answers a several-axis query for the first axis only.
     pub one_axis_per_query: bool,
+    /// kpz101: travel of the x, y, z actuators in µm, instead of what each cube reports
+    /// (`MGMSG_PZ_REQ_MAXTRAVEL`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub travel_um: Option<[f64; 3]>,
+    /// kpz101: position counts for 100 % of the travel (32767 per Thorlabs' document; 65535).
+    pub full_scale: u32,
+    /// kpz101: on target within this distance, µm.
+    pub tolerance_um: f64,
 }
 
 impl Default for StageConfig {
@@ -175,6 +189,9 @@ impl Default for StageConfig {
             units_per_um: 1.0,
             settle_s: 0.005,
             one_axis_per_query: false,
+            travel_um: None,
+            full_scale: 32767,
+            tolerance_um: 0.05,
         }
     }
 }
@@ -193,6 +210,12 @@ pub struct QpdConfig {
     pub statistics: bool,
     /// Volts → signal units.
     pub calibration: Calibration,
+    /// kpa101: volts per count of the Sum reading (document: 10/65535).
+    pub sum_scale: f64,
+    /// kpa101: sign applied to the X difference, 1 or -1.
+    pub x_sign: f64,
+    /// kpa101: the Sum word is a signed 16-bit number.
+    pub signed: bool,
 }
 
 impl Default for QpdConfig {
@@ -204,6 +227,9 @@ impl Default for QpdConfig {
             timeout_ms: 1000,
             statistics: true,
             calibration: Calibration::default(),
+            sum_scale: 10.0 / 65535.0,
+            x_sign: 1.0,
+            signed: false,
         }
     }
 }
@@ -356,20 +382,26 @@ impl Config {
         let s = &self.stage;
         let q = &self.qpd;
         match s.backend {
-            Backend::Sim | Backend::Gcs => {}
-            Backend::Scpi => {
+            Backend::Sim | Backend::Gcs | Backend::Kpz101 => {}
+            b @ (Backend::Scpi | Backend::Kpa101) => {
                 return Err(err(
                     "stage.backend",
-                    "\"scpi\" is a QPD backend; a stage is \"sim\" or \"gcs\"",
+                    format!(
+                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\"",
+                    b.as_str()
+                ),
                 ))
             }
         }
         match q.backend {
-            Backend::Sim | Backend::Scpi => {}
-            Backend::Gcs => {
+            Backend::Sim | Backend::Scpi | Backend::Kpa101 => {}
+            b @ (Backend::Gcs | Backend::Kpz101) => {
                 return Err(err(
                     "qpd.backend",
-                    "\"gcs\" is a stage backend; a QPD is \"sim\" or \"scpi\"",
+                    format!(
+                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\"",
+                    b.as_str()
+                ),
                 ))
             }
         }
@@ -387,13 +419,41 @@ impl Config {
         if s.backend == Backend::Gcs {
             self.validate_stage_ports()?;
         }
-        if q.backend == Backend::Scpi && q.port.as_deref().is_none_or(|p| p.trim().is_empty()) {
+        if s.backend == Backend::Kpz101 {
+            self.validate_kpz101()?;
+        }
+        if matches!(q.backend, Backend::Scpi | Backend::Kpa101)
+            && q.port.as_deref().is_none_or(|p| p.trim().is_empty())
+        {
             return Err(err(
                 "qpd.port",
-                "required when backend = \"scpi\" (e.g. \"/dev/ttyUSB1\")",
+                format!(
+                    "required when backend = \"{}\" (e.g. \"/dev/ttyUSB1\")",
+                    q.backend.as_str()
+                ),
             ));
         }
-        if s.backend == Backend::Gcs {
+        if q.backend == Backend::Kpa101 {
+            if !(q.x_sign == 1.0 || q.x_sign == -1.0) {
+                return Err(err(
+                    "qpd.x_sign",
+                    format!("{}: allowed values are 1 and -1", q.x_sign),
+                ));
+            }
+            if !(q.sum_scale.is_finite() && q.sum_scale > 0.0) {
+                return Err(err(
+                    "qpd.sum_scale",
+                    format!(
+                        "{}: must be a positive number of volts per count (document: 10/65535 = {:e}; \
+                         pylablib: 20/32767 = {:e})",
+                        q.sum_scale,
+                        10.0 / 65535.0,
+                        20.0 / 32767.0
+                    ),
+                ));
+            }
+        }
+        if matches!(s.backend, Backend::Gcs | Backend::Kpz101) {
             if let Some(qp) = &q.port {
                 if self.stage_ports().iter().any(|p| p == qp) {
                     return Err(err(
@@ -535,6 +595,110 @@ impl Config {
             }
         }
         Ok(())
+    }
+
+    /// `kpz101`: one cube per axis, so `stage.ports` with three different serial ports.
+    fn validate_kpz101(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let Some(ps) = &s.ports else {
+            return Err(err(
+                "stage.ports",
+                match &s.port {
+                    Some(p) => format!(
+                        "required when backend = \"kpz101\" (one cube per axis); stage.port = {p:?} names one: \
+                         write stage.ports = {{ x = \"/dev/ttyUSB0\", y = \"/dev/ttyUSB1\", z = \"/dev/ttyUSB2\" }}"
+                    ),
+                    None => "required when backend = \"kpz101\" (one cube per axis): e.g. stage.ports = \
+                             { x = \"/dev/ttyUSB0\", y = \"/dev/ttyUSB1\", z = \"/dev/ttyUSB2\" }"
+                        .to_string(),
+                },
+            ));
+        };
+        if let Some(p) = &s.port {
+            return Err(err(
+                "stage.port",
+                format!(
+                    "{p:?}: with backend = \"kpz101\" give stage.ports only (one cube per axis)"
+                ),
+            ));
+        }
+        for i in 0..3 {
+            let p = ps.get(i);
+            let key = format!("stage.ports.{}", AXIS_NAMES[i]);
+            if p.trim().is_empty() || p.starts_with(TCP_PREFIX) {
+                return Err(err(
+                    &key,
+                    format!("{p:?}: a KPZ101 is a USB-serial device: allowed is a serial port (e.g. \"/dev/ttyUSB0\")"),
+                ));
+            }
+            for j in 0..i {
+                if ps.get(j) == p {
+                    return Err(err(
+                        &key,
+                        format!(
+                            "{p:?} is also stage.ports.{}: a KPZ101 drives one axis, each axis needs its own cube",
+                            AXIS_NAMES[j]
+                        ),
+                    ));
+                }
+            }
+        }
+        if !(s.full_scale == 32767 || s.full_scale == 65535) {
+            return Err(err(
+                "stage.full_scale",
+                format!(
+                    "{}: allowed values are 32767 (Thorlabs' document) and 65535",
+                    s.full_scale
+                ),
+            ));
+        }
+        if !(s.tolerance_um.is_finite() && s.tolerance_um > 0.0) {
+            return Err(err(
+                "stage.tolerance_um",
+                format!("{}: must be a positive distance in µm", s.tolerance_um),
+            ));
+        }
+        if let Some(t) = s.travel_um {
+            for i in 0..3 {
+                if !(t[i].is_finite() && t[i] > 0.0 && t[i] <= 6553.5) {
+                    return Err(err(
+                        "stage.travel_um",
+                        format!(
+                            "{}: {} µm must be a positive travel up to 6553.5 µm",
+                            AXIS_NAMES[i], t[i]
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Driver settings for the KPZ101 cubes.
+    pub fn kpz_options(&self) -> crate::instrument::apt::kpz101::KpzOptions {
+        let s = &self.stage;
+        crate::instrument::apt::kpz101::KpzOptions {
+            timeout: Duration::from_millis(s.timeout_ms),
+            on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
+            poll_interval: Duration::from_millis(s.poll_ms),
+            tolerance_um: s.tolerance_um,
+            travel_um: None,
+            full_scale: s.full_scale as u16,
+            rtscts: true,
+        }
+    }
+
+    /// Driver settings for the KPA101.
+    pub fn kpa_options(&self) -> crate::instrument::apt::kpa101::KpaOptions {
+        let q = &self.qpd;
+        crate::instrument::apt::kpa101::KpaOptions {
+            timeout: Duration::from_millis(q.timeout_ms),
+            calibration: q.calibration,
+            sum_scale: q.sum_scale,
+            x_sign: q.x_sign,
+            signed: q.signed,
+            rtscts: true,
+        }
     }
 
     /// The distinct stage ports, in x, y, z order of first use (empty unless `gcs`).

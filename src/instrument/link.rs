@@ -94,12 +94,29 @@ pub fn open_serial(
     baud: u32,
     timeout: Duration,
 ) -> Result<Box<dyn Transport>, DeviceError> {
+    open_serial_with_flow(device, path, baud, timeout, false)
+}
+
+/// Open a serial port with 8N1 and, when `rtscts`, hardware (RTS/CTS) flow control (Thorlabs'
+/// FTDI bridges).
+pub fn open_serial_with_flow(
+    device: &str,
+    path: &str,
+    baud: u32,
+    timeout: Duration,
+    rtscts: bool,
+) -> Result<Box<dyn Transport>, DeviceError> {
+    let flow = if rtscts {
+        serialport::FlowControl::Hardware
+    } else {
+        serialport::FlowControl::None
+    };
     let builder = serialport::new(path, baud)
         .timeout(timeout)
         .data_bits(serialport::DataBits::Eight)
         .parity(serialport::Parity::None)
         .stop_bits(serialport::StopBits::One)
-        .flow_control(serialport::FlowControl::None);
+        .flow_control(flow);
     #[cfg(unix)]
     let opened = builder
         .open_native()

@@ -9,6 +9,7 @@ pub mod mock;
 pub mod sim;
 pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
+pub mod apt;
 pub mod emulator;
 pub mod gcs;
 pub mod gcs_split;

@@ -126,6 +126,14 @@ pub fn serve_emulators(
     stop: Arc<AtomicBool>,
     opts: &EmulateOptions,
 ) -> anyhow::Result<()> {
+    if matches!(kind, "kpa101" | "kpz101" | "thorlabs") {
+        if opts.tcp.is_some() {
+            anyhow::bail!(
+                "emulate: --tcp serves the GCS stage; Thorlabs cubes are serial (USB) devices"
+            );
+        }
+        return serve_apt(kind, source, out, stop);
+    }
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
     let stage_desc = format!(
         "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off{})",
@@ -166,7 +174,8 @@ pub fn serve_emulators(
         }
         other => {
             anyhow::bail!(
-                "emulate: unknown device `{other}` (expected `stage` (alias `gcs`), `qpd` or `pair`)"
+                "emulate: unknown device `{other}` (expected `stage` (alias `gcs`), `qpd`, `pair`, \
+                 `kpa101`, `kpz101` or `thorlabs`)"
             )
         }
     }
@@ -208,5 +217,85 @@ pub fn serve_emulators(
         std::thread::sleep(Duration::from_millis(50));
     }
     drop(emus);
+    Ok(())
+}
+
+/// Middle of the emulated KPZ101 cubes' 0–20 µm travel: the scene's origin sits here.
+pub const APT_CENTRE: [f64; 3] = [10.0, 10.0, 10.0];
+
+/// `kpa101` (the aligner alone, stage parked at the centre), `kpz101` (three cubes, x y z) or
+/// `thorlabs` (both, sharing the stage position): the scene's origin at [`APT_CENTRE`].
+fn serve_apt(
+    kind: &str,
+    source: impl SignalSource,
+    out: &mut dyn Write,
+    stop: Arc<AtomicBool>,
+) -> anyhow::Result<()> {
+    use super::{start_kpa101_emulator, start_kpz101_stage, KpaEmulatorConfig};
+    let pos = shared_position(APT_CENTRE);
+    let shifted = move |p: [f64; 3]| {
+        source([
+            p[0] - APT_CENTRE[0],
+            p[1] - APT_CENTRE[1],
+            p[2] - APT_CENTRE[2],
+        ])
+    };
+    let mut cubes: Vec<Emulator> = Vec::new();
+    let mut kpa: Option<Emulator> = None;
+    if kind != "kpa101" {
+        cubes.extend(start_kpz101_stage([20.0; 3], pos.clone())?);
+    }
+    if kind != "kpz101" {
+        kpa = Some(start_kpa101_emulator(
+            KpaEmulatorConfig::default(),
+            pos,
+            shifted,
+        )?);
+    }
+    for (e, ax) in cubes.iter().zip(["x", "y", "z"]) {
+        writeln!(
+            out,
+            "kpz101 {ax}: Thorlabs KPZ101 piezo cube (travel 0–20 µm, open loop, channel disabled) on {}",
+            e.path()
+        )?;
+    }
+    if let Some(q) = &kpa {
+        writeln!(
+            out,
+            "kpa101: Thorlabs KPA101 position aligner (Sum 5 V with no sample; scene origin at {APT_CENTRE:?} µm) on {}",
+            q.path()
+        )?;
+    }
+    writeln!(out, "\n# bfpscope.toml for these emulators:")?;
+    if !cubes.is_empty() {
+        writeln!(
+            out,
+            "[stage]\nbackend = \"kpz101\"\nports = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\n",
+            cubes[0].path(),
+            cubes[1].path(),
+            cubes[2].path()
+        )?;
+    }
+    if let Some(q) = &kpa {
+        writeln!(
+            out,
+            "[qpd]\nbackend = \"kpa101\"\nport = \"{}\"\ncalibration = {{ gain = [1.0, 1.0, 0.2], offset_v = [0.0, 0.0, 5.0] }}   # Sz = (Sum - 5 V) / 5 V\n",
+            q.path()
+        )?;
+    }
+    if kind != "thorlabs" {
+        writeln!(
+            out,
+            "(the other device must be hardware too: `bfpscope emulate thorlabs` serves both)"
+        )?;
+    }
+    writeln!(out, "Serving until Ctrl-C.")?;
+    out.flush()?;
+    while !stop.load(Ordering::SeqCst) {
+        if cubes.iter().chain(kpa.iter()).all(|e| !e.is_running()) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
     Ok(())
 }

@@ -14,10 +14,15 @@
 //! out-of-range targets. Every thread stops on its stop flag (set by [`Emulator::stop`] and on
 //! drop) or when it unplugs itself.
 
+mod apt;
 mod cli;
 mod qpd;
 mod stage;
 
+pub use apt::{
+    start_kpa101_emulator, start_kpz101_emulator, start_kpz101_stage, KpaEmulatorConfig,
+    KpzEmulatorConfig, UNKNOWN_ID,
+};
 pub use cli::{
     run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators, EmulateOptions,
 };
@@ -99,6 +104,12 @@ pub struct Faults {
     /// does when the position error grows too large: the axes stop where they are, servo off,
     /// never on target, and the error register holds −1024 (read by the next `ERR?`).
     pub servo_trip_next_move: bool,
+    /// APT emulators: send a message with an unknown id (`UNKNOWN_ID`) before each of the
+    /// next n replies (the driver must skip it).
+    pub apt_unsolicited: usize,
+    /// APT emulators: serve n more messages, then go silent (a device that stops answering
+    /// at a chosen point of a scan).
+    pub silent_after: Option<usize>,
 }
 
 impl Default for Faults {
@@ -113,6 +124,8 @@ impl Default for Faults {
             reject_out_of_range: true,
             pos_noise_um: 0.0,
             servo_trip_next_move: false,
+            apt_unsolicited: 0,
+            silent_after: None,
         }
     }
 }
