@@ -381,11 +381,15 @@ impl ScanObserver for Hub {
         let id = s.next_live_id;
         let mut header = header;
         header["id"] = json!(id);
+        // reuse the last scan's buffer: no fresh pages to fault in, scan after scan
+        let mut points = s.live.take().map(|l| l.points).unwrap_or_default();
+        points.clear();
+        points.reserve(st.points_total);
         s.live = Some(Live {
             id,
             header,
             started: Instant::now(),
-            points: Vec::with_capacity(st.points_total),
+            points,
             status: "running".into(),
             end: Value::Null,
         });
