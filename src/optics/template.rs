@@ -181,9 +181,116 @@ pub fn z_stencil(z: f64, hz: f64, interp: Interp) -> Vec<(i64, f64)> {
     }
 }
 
-/// One plane of the per-unit-α response at axial displacement z, nodes every `h` µm over
-/// ±SUPPORT_W·w(z) in x and y.
+/// One plane of the per-unit-α response at axial displacement z (µm), nodes every `h` µm over
+/// ±SUPPORT_W·w(z) in x and y; dimensionless signals per unit α (µm⁻³), suppl. S2 (the
+/// summed form in `optics::rayleigh`'s module doc, the paper's Sec. 2.1).
+///
+/// With x = m·h on the grid, every factor of e^{iΨ}·envelope is separable (module doc):
+/// * the Gaussian e^{−x²/w²} and the curvature phase e^{ikx²/2R} depend on the x node only:
+///   one `exp` and one `sin_cos` per node (not per node and cone node);
+/// * the tilt e^{−ikxu} = e^{−iθm} with θ = khu is tabulated per cone node from
+///   e^{−iθr} (r < 8) and e^{−i8θq}, so e^{−iθm} = e^{−iθr}·e^{−i8θq} (m = 8q + r) and
+///   e^{−iθ(−m)} its conjugate: 2·(8 + half/8 + 1) `sin_cos` per cone node instead of 2n;
+/// * the plane is then one real product [EXre | EXim](n × 2K) · [Qim; Qre](2K × 3n).
+///
+/// Agrees with [`plane_grid_reference`] to rounding (≤ 1e-12 of the plane's peak signal,
+/// `tests/optics.rs`).
 pub fn plane_grid(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
+    let (w, inv_r, gouy) = det.beam_at(z);
+    let half = ((SUPPORT_W * w) / h).ceil() as usize;
+    let n = 2 * half + 1;
+    let u0 = -(half as f64) * h;
+    let k = det.k;
+    let kn = det.nodes.len();
+    // per x node: e^{−x²/w²} e^{i k x² inv_r/2}
+    let env: Vec<(f64, f64)> = (0..n)
+        .map(|i| {
+            let x = u0 + i as f64 * h;
+            let g = (-x * x / (w * w)).exp();
+            let (s, c) = (0.5 * k * x * x * inv_r).sin_cos();
+            (g * c, g * s)
+        })
+        .collect();
+    const B: usize = 8;
+    let nq = half / B + 1;
+    // e^{−iθm}, m = 0 ..= half, for θ = k h u (two-level table)
+    let tilt = |theta: f64, out: &mut Vec<(f64, f64)>| {
+        out.clear();
+        let lo: Vec<(f64, f64)> = (0..B)
+            .map(|r| {
+                let (s, c) = (-theta * r as f64).sin_cos();
+                (c, s)
+            })
+            .collect();
+        for q in 0..nq {
+            let (s8, c8) = (-theta * (B * q) as f64).sin_cos();
+            for &(c, s) in &lo {
+                if out.len() > half {
+                    break;
+                }
+                out.push((c8 * c - s8 * s, c8 * s + s8 * c));
+            }
+        }
+    };
+    // a[i, j] = EXre, a[i, K + j] = EXim; b[j, c·n + i] = Qim, b[K + j, c·n + i] = Qre
+    let mut a = Array2::<f64>::zeros((n, 2 * kn));
+    let mut b = Array2::<f64>::zeros((2 * kn, 3 * n));
+    let amp0 = det.w0 / w;
+    let (mut tu, mut tv) = (Vec::with_capacity(half + 1), Vec::with_capacity(half + 1));
+    for (j, node) in det.nodes.iter().enumerate() {
+        let (sd, cd) = (k * z - gouy - k * z * node.c).sin_cos();
+        let d = node.amp * amp0;
+        tilt(k * h * node.u, &mut tu);
+        tilt(k * h * node.v, &mut tv);
+        for (i, &(er, ei)) in env.iter().enumerate() {
+            let (m, neg) = if i >= half {
+                (i - half, false)
+            } else {
+                (half - i, true)
+            };
+            let (c, s) = tu[m];
+            let s = if neg { -s } else { s };
+            // (er + i ei)(c + i s)
+            a[[i, j]] = er * c - ei * s;
+            a[[i, kn + j]] = er * s + ei * c;
+            let (c, s) = tv[m];
+            let s = if neg { -s } else { s };
+            let (re0, im0) = (er * c - ei * s, er * s + ei * c);
+            // (cd + i sd)(re0 + i im0)
+            let (re, im) = (cd * re0 - sd * im0, cd * im0 + sd * re0);
+            for ch in 0..3 {
+                let sc = node.s[ch] * d;
+                b[[j, ch * n + i]] = sc * im;
+                b[[kn + j, ch * n + i]] = sc * re;
+            }
+        }
+    }
+    // S = −Im(EX · Q) = −(EXre·Qim + EXim·Qre); rows = x index, cols = (channel, y index)
+    let s = a.dot(&b);
+    let mut data = vec![[0.0; 3]; n * n];
+    for jy in 0..n {
+        for ix in 0..n {
+            let cell = &mut data[jy * n + ix];
+            for ch in 0..3 {
+                cell[ch] = -s[[ix, ch * n + jy]];
+            }
+        }
+    }
+    Grid2 {
+        u0,
+        v0: u0,
+        h,
+        nu: n,
+        nv: n,
+        data,
+        interp,
+    }
+}
+
+/// The reference implementation of [`plane_grid`] (before issue 20): a Gaussian `exp` and two
+/// `sin_cos` per (x node, cone node). Kept for the test that holds [`plane_grid`] to it
+/// (`tests/optics.rs`) and for the render bench's "before" numbers. Same units and equations.
+pub fn plane_grid_reference(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
     let (w, inv_r, gouy) = det.beam_at(z);
     let half = ((SUPPORT_W * w) / h).ceil() as usize;
     let n = 2 * half + 1;

@@ -596,11 +596,91 @@ impl Renderer {
         (v, std.map(f64::sqrt))
     }
 
-    /// Ideal superposition over a whole XY grid at stage height z, scatterer-major (each
-    /// scatterer only touches the pixels inside its template's support). Returns row-major
-    /// (y, x) arrays of Sx, Sy, Sz. This is the benchmarked hot path.
+    /// Ideal superposition over a whole XY grid at stage height z: Σ αᵢ·T(s − pᵢ) (Sec. 4.1),
+    /// dimensionless signals. Returns row-major (y, x) arrays of Sx, Sy, Sz. This is the
+    /// benchmarked hot path (docs/performance.md, "Rendering").
+    ///
+    /// Rows are rendered in parallel (rayon); each pixel sums its scatterers in the scene's
+    /// order, and each scatterer only touches the pixels inside its template's support. The
+    /// cubic stencil along x (node index and Keys weights) is computed once per scatterer and
+    /// pixel column, along y once per scatterer and row, with [`Grid2::eval`]'s own arithmetic,
+    /// so the image is bit-identical to [`Renderer::render_grid_reference`].
     pub fn render_grid_ideal(&self, xs: &[f64], ys: &[f64], z: f64) -> [Vec<f64>; 3] {
+        use rayon::prelude::*;
         let t = Instant::now();
+        let (nx, ny) = (xs.len(), ys.len());
+        let planes = self.planes_at(z);
+        /// One (scatterer, template plane) term with its pixel window and x stencils.
+        struct Term<'a> {
+            g: &'a Grid2,
+            f: f64,
+            pos: [f64; 2],
+            ix0: usize,
+            iy: (usize, usize),
+            sx: Vec<Option<(usize, [f64; 4])>>,
+        }
+        let mut terms = Vec::new();
+        for (sc, pl) in self.scatterers.iter().zip(planes.iter()) {
+            for (g, w) in pl {
+                let ((u0, u1), (v0, v1)) = g.extent();
+                let (ix0, ix1) = index_window(xs, sc.pos[0] + u0, sc.pos[0] + u1);
+                let (iy0, iy1) = index_window(ys, sc.pos[1] + v0, sc.pos[1] + v1);
+                if ix0 >= ix1 || iy0 >= iy1 {
+                    continue;
+                }
+                terms.push(Term {
+                    g,
+                    f: w * sc.alpha,
+                    pos: [sc.pos[0], sc.pos[1]],
+                    ix0,
+                    iy: (iy0, iy1),
+                    sx: xs[ix0..ix1]
+                        .iter()
+                        .map(|&x| g.stencil_u(x - sc.pos[0]))
+                        .collect(),
+                });
+            }
+        }
+        let mut px = vec![[0.0f64; 3]; nx * ny];
+        px.par_chunks_mut(nx.max(1))
+            .enumerate()
+            .for_each(|(iy, row)| {
+                for tm in terms.iter().filter(|tm| tm.iy.0 <= iy && iy < tm.iy.1) {
+                    let (g, f) = (tm.g, tm.f);
+                    let dy = ys[iy] - tm.pos[1];
+                    let out = &mut row[tm.ix0..tm.ix0 + tm.sx.len()];
+                    match g.stencil_v(dy) {
+                        Some((iv, wv)) => {
+                            for ((o, st), &x) in out.iter_mut().zip(&tm.sx).zip(&xs[tm.ix0..]) {
+                                let v = match st {
+                                    Some((iu, wu)) => g.eval_stencil((*iu, wu), (iv, &wv)),
+                                    None => g.eval(x - tm.pos[0], dy),
+                                };
+                                o[0] += f * v[0];
+                                o[1] += f * v[1];
+                                o[2] += f * v[2];
+                            }
+                        }
+                        None => {
+                            for (o, &x) in out.iter_mut().zip(&xs[tm.ix0..]) {
+                                let v = g.eval(x - tm.pos[0], dy);
+                                o[0] += f * v[0];
+                                o[1] += f * v[1];
+                                o[2] += f * v[2];
+                            }
+                        }
+                    }
+                }
+            });
+        let out = [0, 1, 2].map(|c| px.iter().map(|p| p[c]).collect());
+        self.add_time(SUPERPOSITION, t.elapsed().as_secs_f64());
+        out
+    }
+
+    /// The reference implementation of [`Renderer::render_grid_ideal`] (before issue 20):
+    /// serial, scatterer-major, [`Grid2::eval`] per scatterer and pixel. Kept for the test that
+    /// holds the fast path to it (`tests/sim.rs`) and for the render bench's "before" numbers.
+    pub fn render_grid_reference(&self, xs: &[f64], ys: &[f64], z: f64) -> [Vec<f64>; 3] {
         let (nx, ny) = (xs.len(), ys.len());
         let mut out = [vec![0.0; nx * ny], vec![0.0; nx * ny], vec![0.0; nx * ny]];
         let planes = self.planes_at(z);
@@ -622,7 +702,6 @@ impl Renderer {
                 }
             }
         }
-        self.add_time(SUPERPOSITION, t.elapsed().as_secs_f64());
         out
     }
 }
