@@ -2,7 +2,7 @@
 //! what the scene calls for"). An ideal scene is one stage, `superposition`: Σ αᵢ·T(s − pᵢ)
 //! over precomputed single-scatterer templates (Sec. 4.1).
 
-use super::domain::{DomainCheck, DomainMemo};
+use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
@@ -106,15 +106,16 @@ const DIPOLE_N: f64 = 1.5;
 
 impl Renderer {
     /// Build the pipeline for `scene`, first running the point dipole's domain check (a stage
-    /// of its own, `domain check`, with a fresh memo). The simulator runs the check through its
-    /// session memo and calls [`Renderer::new`].
+    /// of its own, `domain check`) through the process-wide memo
+    /// ([`DomainCheck::run_shared`]), so a scene built again costs no Mie response. The
+    /// simulator runs the check through its session memo and calls [`Renderer::new`].
     pub fn checked(
         optics: &Optics,
         scene: &Scene,
         spec: TemplateSpec,
     ) -> Result<Self, OpticsError> {
         optics.validate()?;
-        let domain = DomainCheck::run(optics, scene, &mut DomainMemo::default());
+        let domain = DomainCheck::run_shared(optics, scene);
         Self::new(optics, scene, spec, &domain)
     }
 
