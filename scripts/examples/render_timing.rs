@@ -80,7 +80,12 @@ fn main() {
         r.template.prepare(0.0, 0.0);
         r
     });
-    println!("  new + planes for z = 0             {t_all:8.3}");
+    let r0 = Renderer::new(&optics, &sc, TemplateSpec::default(), &dom).unwrap();
+    r0.template.prepare(0.0, 0.0);
+    println!(
+        "  new + planes for z = 0             {t_all:8.3}  ({} planes: cubic convolution in z builds iz = -1, 0, 1)",
+        r0.template.n_planes()
+    );
     let t_chk = best(5, || {
         let r = Renderer::checked(&optics, &sc, TemplateSpec::default()).unwrap();
         r.template.prepare(0.0, 0.0);
