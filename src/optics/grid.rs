@@ -140,6 +140,60 @@ impl Grid2 {
         self.sample(u, v, false).v
     }
 
+    /// The fast path's stencil along u: when the cubic stencil at `u` lies fully inside the
+    /// grid along u, the first node index (iu − 1) and the four Keys weights, computed exactly as
+    /// [`Grid2::eval`] computes them (so a caller can precompute them once per pixel column and
+    /// get bit-identical values from [`Grid2::eval_stencil`]). `None` for linear grids, grids
+    /// under 4 × 4 nodes, or a stencil reaching outside (then call [`Grid2::eval`]).
+    #[inline]
+    pub fn stencil_u(&self, u: f64) -> Option<(usize, [f64; 4])> {
+        self.stencil(u, self.u0, self.nu)
+    }
+
+    /// As [`Grid2::stencil_u`], along v.
+    #[inline]
+    pub fn stencil_v(&self, v: f64) -> Option<(usize, [f64; 4])> {
+        self.stencil(v, self.v0, self.nv)
+    }
+
+    #[inline]
+    fn stencil(&self, u: f64, u0: f64, n: usize) -> Option<(usize, [f64; 4])> {
+        if self.interp != Interp::Cubic || self.nu < 4 || self.nv < 4 {
+            return None;
+        }
+        let fu = (u - u0) / self.h;
+        if fu >= 1.0 && fu < (n - 2) as f64 {
+            let iu = fu as usize;
+            Some((iu - 1, keys(fu - iu as f64).0))
+        } else {
+            None
+        }
+    }
+
+    /// Cubic interpolation from precomputed stencils ([`Grid2::stencil_u`],
+    /// [`Grid2::stencil_v`]): the same arithmetic, in the same order, as [`Grid2::eval`]'s
+    /// fast path, so the result is bit-identical to `eval(u, v)`.
+    #[inline]
+    pub fn eval_stencil(&self, su: (usize, &[f64; 4]), sv: (usize, &[f64; 4])) -> [f64; 3] {
+        let (iu, wu) = su;
+        let (iv, wv) = sv;
+        let mut out = [0.0; 3];
+        for (b, &wvb) in wv.iter().enumerate() {
+            let base = (iv + b) * self.nu + iu;
+            let row = &self.data[base..base + 4];
+            let mut acc = [0.0; 3];
+            for (n, &wua) in row.iter().zip(wu) {
+                acc[0] += wua * n[0];
+                acc[1] += wua * n[1];
+                acc[2] += wua * n[2];
+            }
+            out[0] += wvb * acc[0];
+            out[1] += wvb * acc[1];
+            out[2] += wvb * acc[2];
+        }
+        out
+    }
+
     /// Values and derivatives at (u, v).
     #[inline]
     pub fn eval_grad(&self, u: f64, v: f64) -> Sample {
@@ -287,6 +341,30 @@ mod tests {
                 assert!((a[c] - b[c]).abs() < 1e-15, "({u}, {v})");
             }
         }
+    }
+
+    /// Precomputed stencils give exactly `eval`'s values, and say `None` where `eval` leaves
+    /// its fast path.
+    #[test]
+    fn stencils_are_bit_identical_to_eval() {
+        let g = Grid2::from_fn(-1.0, -1.0, 0.05, 41, 41, Interp::Cubic, smooth);
+        let mut fast = 0;
+        for k in 0..500 {
+            let u = -1.1 + 2.2 * (k as f64 * 0.618_033_988_7).fract();
+            let v = -1.1 + 2.2 * (k as f64 * 0.414_213_562_3).fract();
+            if let (Some((iu, wu)), Some((iv, wv))) = (g.stencil_u(u), g.stencil_v(v)) {
+                assert_eq!(
+                    g.eval_stencil((iu, &wu), (iv, &wv)),
+                    g.eval(u, v),
+                    "({u}, {v})"
+                );
+                fast += 1;
+            }
+        }
+        assert!(fast > 300, "{fast}");
+        assert!(g.stencil_u(-0.96).is_none() && g.stencil_u(0.96).is_none());
+        let lin = Grid2::from_fn(-1.0, -1.0, 0.05, 41, 41, Interp::Linear, smooth);
+        assert!(lin.stencil_u(0.0).is_none());
     }
 
     #[test]

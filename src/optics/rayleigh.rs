@@ -105,6 +105,12 @@ pub struct Detection {
     pub k: f64,
     pub w0: f64,
     pub z_r: f64,
+    /// True when the nodes come in mirror quartets (u, v), (−u, v), (u, −v), (−u, −v) with
+    /// equal weights, amplitudes and cos θ and channel weights (sign u, sign v, 1): the ideal
+    /// QPD's product rule, with or without the vector dipole field (whose factor depends on
+    /// cos²φ only). The template builder then sums a quarter of the nodes
+    /// (`optics::template::plane_grid`).
+    pub mirror_symmetric: bool,
 }
 
 impl Detection {
@@ -222,6 +228,7 @@ impl Detection {
             k,
             w0,
             z_r: optics.z_r_um(),
+            mirror_symmetric: det.misalignment.is_none(),
         })
     }
 

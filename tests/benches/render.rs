@@ -1,13 +1,29 @@
-//! Render benchmarks (issue 2): a 128×128 XY scan of 10 beads + a 10 µm filament, and the
-//! template precompute. Run: `cargo bench --bench render`.
+//! Render benchmarks (issue 2, issue 20): a 128×128 XY scan of 10 beads + a 10 µm filament,
+//! and the template precompute, each next to the kept reference implementation (the code before
+//! issue 20) so one run gives before and after on the same machine. Run:
+//! `cargo bench --bench render`; numbers and the floor estimate in docs/performance.md
+//! ("Rendering"). `cargo run --release --example render_timing` breaks the times down.
+//!
+//! Measured 2026-11-25 on the 2-core AMD EPYC build machine (shared, load ≈ 5, so rayon's
+//! second core was mostly busy), criterion medians:
+//!
+//! | bench | before (reference) | after | target |
+//! |---|---|---|---|
+//! | render 128×128 (ideal) | 10.2 ms | 2.57 ms | ≤ 2 ms |
+//! | one plane at z = 0 | 11.1 ms | 0.53 ms | ≤ 3 ms |
+//! | renderer for the scene (memo warm) | (3 planes ≈ 25 ms) | 1.60 ms | ≤ 10 ms |
+//! | renderer, cold domain check | — | 128 ms | not met (2 Mie responses) |
+//!
+//! Best-of runs (`render_timing`) on the same machine: render 6.7 → 1.7 ms, plane 5.5 → 0.34 ms.
 
+use bfpscope::instrument::sim::domain::{DomainCheck, DomainMemo};
 use bfpscope::instrument::sim::render_xy;
 use bfpscope::instrument::sim::scene::*;
 use bfpscope::instrument::sim::Renderer;
 use bfpscope::optics::grid::Interp;
 use bfpscope::optics::params::Optics;
 use bfpscope::optics::rayleigh::{Detection, DetectorModel};
-use bfpscope::optics::template::{plane_grid, TemplateSpec};
+use bfpscope::optics::template::{plane_grid, plane_grid_reference, TemplateSpec};
 use criterion::{criterion_group, criterion_main, Criterion};
 
 fn scene() -> Scene {
@@ -49,15 +65,33 @@ fn bench(c: &mut Criterion) {
     c.bench_function("render 128x128, 10 beads + 10 µm filament (ideal)", |b| {
         b.iter(|| render_xy(&r, &xs, &xs, 0.0, 1))
     });
+    c.bench_function("render 128x128, reference path (before issue 20)", |b| {
+        b.iter(|| r.render_grid_reference(&xs, &xs, 0.0))
+    });
     let det = Detection::new(&optics, &DetectorModel::default()).unwrap();
     let mut g = c.benchmark_group("template precompute");
     g.sample_size(10);
     g.bench_function("one plane at z = 0 (h = 20 nm, cubic)", |b| {
         b.iter(|| plane_grid(&det, 0.0, 0.02, Interp::Cubic))
     });
+    g.bench_function("one plane at z = 0, reference (before issue 20)", |b| {
+        b.iter(|| plane_grid_reference(&det, 0.0, 0.02, Interp::Cubic))
+    });
+    // `checked` runs the domain check through the process-wide memo: warm after the first
+    // build, as for every `simulate` of a scene seen before
     g.bench_function("renderer for the scene (planes for z = 0)", |b| {
         b.iter(|| {
             let r = Renderer::checked(&optics, &scene(), TemplateSpec::default()).unwrap();
+            r.template.prepare(0.0, 0.0);
+            r
+        })
+    });
+    // cold: a fresh memo, so the 200 nm bead's domain check runs the Mie tier (two responses)
+    g.bench_function("renderer for the scene, cold domain check", |b| {
+        b.iter(|| {
+            let s = scene();
+            let d = DomainCheck::run(&optics, &s, &mut DomainMemo::default());
+            let r = Renderer::new(&optics, &s, TemplateSpec::default(), &d).unwrap();
             r.template.prepare(0.0, 0.0);
             r
         })

@@ -8,7 +8,7 @@
 //! (the simulator keeps one per session), bounded to [`DomainMemo::CAPACITY`] entries.
 
 use crate::optics::mie_beam;
-use crate::optics::params::{Optics, OpticsError, REF_BEAD_N};
+use crate::optics::params::{Optics, OpticsError, REF_BEAD_D_NM, REF_BEAD_N};
 use std::collections::VecDeque;
 use std::time::Instant;
 
@@ -26,17 +26,30 @@ pub fn is_suspect(d_nm: f64, n: f64) -> bool {
 }
 
 /// Remembered point-dipole errors, keyed by (optics, d, n); oldest dropped first beyond
-/// [`Self::CAPACITY`].
+/// [`Self::CAPACITY`]. The reference bead's Mie sensitivity (the error's denominator) is
+/// remembered per optics apart, so a new species costs one Mie response, not two.
 #[derive(Debug, Default)]
 pub struct DomainMemo {
     entries: VecDeque<(Optics, u64, u64, Result<f64, OpticsError>)>,
+    /// (optics, the 110 nm polystyrene bead's M/α), the most recent [`Self::REF_CAPACITY`]
+    refs: VecDeque<(Optics, Result<f64, OpticsError>)>,
 }
+
+/// The memo [`DomainCheck::run_shared`] uses: one per process, so that scenes rendered again
+/// and again (`simulate`, `Renderer::checked`) pay the Mie tier once per bead species.
+static SHARED: std::sync::Mutex<DomainMemo> = std::sync::Mutex::new(DomainMemo {
+    entries: VecDeque::new(),
+    refs: VecDeque::new(),
+});
 
 impl DomainMemo {
     /// Most (optics, d, n) results kept (a result is 24 bytes plus the optics, ~200 B).
     pub const CAPACITY: usize = 64;
+    /// Most reference-bead results kept (one per optics).
+    pub const REF_CAPACITY: usize = 8;
 
-    /// The point dipole's error for (d_nm nm, n) under `optics`, computed once per memo entry.
+    /// The point dipole's error for (d_nm nm, n) under `optics`, computed once per memo entry:
+    /// [`mie_beam::point_dipole_error`]'s value, from its two factors.
     pub fn error(&mut self, optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
         let key = (d_nm.to_bits(), n.to_bits());
         if let Some(e) = self
@@ -46,13 +59,28 @@ impl DomainMemo {
         {
             return e.3.clone();
         }
-        let e = mie_beam::point_dipole_error(optics, d_nm, n);
+        let e = self
+            .reference(optics)
+            .and_then(|r| Ok(r / mie_beam::max_sensitivity_per_alpha(optics, d_nm, n)? - 1.0));
         if self.entries.len() == Self::CAPACITY {
             self.entries.pop_front();
         }
         self.entries
             .push_back((optics.clone(), key.0, key.1, e.clone()));
         e
+    }
+
+    /// The reference bead's M/α under `optics` (remembered).
+    fn reference(&mut self, optics: &Optics) -> Result<f64, OpticsError> {
+        if let Some((_, r)) = self.refs.iter().find(|(o, _)| o == optics) {
+            return r.clone();
+        }
+        let r = mie_beam::max_sensitivity_per_alpha(optics, REF_BEAD_D_NM, REF_BEAD_N);
+        if self.refs.len() == Self::REF_CAPACITY {
+            self.refs.pop_front();
+        }
+        self.refs.push_back((optics.clone(), r.clone()));
+        r
     }
 
     /// Number of remembered results.
@@ -109,6 +137,15 @@ impl DomainCheck {
         }
     }
 
+    /// [`DomainCheck::run`] through the process-wide memo (bounded like any memo): what
+    /// [`super::Renderer::checked`] and so `simulate` use.
+    pub fn run_shared(optics: &Optics, scene: &Scene) -> DomainCheck {
+        let mut memo = SHARED
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        Self::run(optics, scene, &mut memo)
+    }
+
     /// The point dipole's error for bead (d, n) when it is beyond [`MODEL_NOTE_TOLERANCE`].
     pub fn outside(&self, d_nm: f64, n: f64) -> Option<f64> {
         self.entries
@@ -132,6 +169,18 @@ mod tests {
             let _ = m.error(&o, 100.0 + i as f64, o.n_medium);
         }
         assert_eq!(m.len(), DomainMemo::CAPACITY);
+    }
+
+    /// The memo's error, from the two remembered factors, is exactly the optics function's.
+    #[test]
+    fn memo_error_equals_point_dipole_error() {
+        let o = Optics::default();
+        let mut m = DomainMemo::default();
+        let want = mie_beam::point_dipole_error(&o, 250.0, 1.572).unwrap();
+        assert!(want.abs() > 1e-3, "{want}");
+        assert_eq!(m.error(&o, 250.0, 1.572).unwrap(), want);
+        assert_eq!(m.refs.len(), 1);
+        assert_eq!(m.error(&o, 250.0, 1.572).unwrap(), want);
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! what the scene calls for"). An ideal scene is one stage, `superposition`: Σ αᵢ·T(s − pᵢ)
 //! over precomputed single-scatterer templates (Sec. 4.1).
 
-use super::domain::{DomainCheck, DomainMemo};
+use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
@@ -106,15 +106,16 @@ const DIPOLE_N: f64 = 1.5;
 
 impl Renderer {
     /// Build the pipeline for `scene`, first running the point dipole's domain check (a stage
-    /// of its own, `domain check`, with a fresh memo). The simulator runs the check through its
-    /// session memo and calls [`Renderer::new`].
+    /// of its own, `domain check`) through the process-wide memo
+    /// ([`DomainCheck::run_shared`]), so a scene built again costs no Mie response. The
+    /// simulator runs the check through its session memo and calls [`Renderer::new`].
     pub fn checked(
         optics: &Optics,
         scene: &Scene,
         spec: TemplateSpec,
     ) -> Result<Self, OpticsError> {
         optics.validate()?;
-        let domain = DomainCheck::run(optics, scene, &mut DomainMemo::default());
+        let domain = DomainCheck::run_shared(optics, scene);
         Self::new(optics, scene, spec, &domain)
     }
 
@@ -596,11 +597,80 @@ impl Renderer {
         (v, std.map(f64::sqrt))
     }
 
-    /// Ideal superposition over a whole XY grid at stage height z, scatterer-major (each
-    /// scatterer only touches the pixels inside its template's support). Returns row-major
-    /// (y, x) arrays of Sx, Sy, Sz. This is the benchmarked hot path.
+    /// Ideal superposition over a whole XY grid at stage height z: Σ αᵢ·T(s − pᵢ) (Sec. 4.1),
+    /// dimensionless signals. Returns row-major (y, x) arrays of Sx, Sy, Sz. This is the
+    /// benchmarked hot path (docs/performance.md, "Rendering").
+    ///
+    /// Rows are rendered in parallel (rayon); each pixel sums its scatterers in the scene's
+    /// order, and each scatterer only touches the pixels inside its template's support. The
+    /// cubic stencil along x (node index and Keys weights) is computed once per scatterer and
+    /// pixel column, along y once per scatterer and row, with [`Grid2::eval`]'s own arithmetic,
+    /// so the image is bit-identical to [`Renderer::render_grid_reference`].
     pub fn render_grid_ideal(&self, xs: &[f64], ys: &[f64], z: f64) -> [Vec<f64>; 3] {
+        use rayon::prelude::*;
         let t = Instant::now();
+        let (nx, ny) = (xs.len(), ys.len());
+        let planes = self.planes_at(z);
+        // each distinct plane once, its nodes padded to four lanes (Sx, Sy, Sz, 0) so that one
+        // node is one 256-bit vector
+        let mut distinct: Vec<(*const Grid2, Vec<[f64; 4]>)> = Vec::new();
+        let mut terms = Vec::new();
+        for (sc, pl) in self.scatterers.iter().zip(planes.iter()) {
+            for (g, w) in pl {
+                let ((u0, u1), (v0, v1)) = g.extent();
+                let (ix0, ix1) = index_window(xs, sc.pos[0] + u0, sc.pos[0] + u1);
+                let (iy0, iy1) = index_window(ys, sc.pos[1] + v0, sc.pos[1] + v1);
+                if ix0 >= ix1 || iy0 >= iy1 {
+                    continue;
+                }
+                let key = Arc::as_ptr(g);
+                let plane = match distinct.iter().position(|(p, _)| *p == key) {
+                    Some(k) => k,
+                    None => {
+                        let pad = g.data.iter().map(|v| [v[0], v[1], v[2], 0.0]).collect();
+                        distinct.push((key, pad));
+                        distinct.len() - 1
+                    }
+                };
+                terms.push(Term {
+                    g,
+                    plane,
+                    f: w * sc.alpha,
+                    pos: [sc.pos[0], sc.pos[1]],
+                    ix0,
+                    iy: (iy0, iy1),
+                    sx: xs[ix0..ix1]
+                        .iter()
+                        .map(|&x| g.stencil_u(x - sc.pos[0]))
+                        .collect(),
+                });
+            }
+        }
+        let padded: Vec<&[[f64; 4]]> = distinct.iter().map(|(_, p)| p.as_slice()).collect();
+        let mut px = vec![[0.0f64; 4]; nx * ny];
+        #[cfg(target_arch = "x86_64")]
+        let avx = std::arch::is_x86_feature_detected!("avx");
+        px.par_chunks_mut(nx.max(1))
+            .enumerate()
+            .for_each(|(iy, row)| {
+                #[cfg(target_arch = "x86_64")]
+                if avx {
+                    // SAFETY: the CPU has AVX (checked above); the function only differs from
+                    // `render_row` in the instructions the compiler may pick.
+                    unsafe { render_row_avx(iy, row, &terms, &padded, xs, ys) };
+                    return;
+                }
+                render_row(iy, row, &terms, &padded, xs, ys)
+            });
+        let out = [0, 1, 2].map(|c| px.iter().map(|p| p[c]).collect());
+        self.add_time(SUPERPOSITION, t.elapsed().as_secs_f64());
+        out
+    }
+
+    /// The reference implementation of [`Renderer::render_grid_ideal`] (before issue 20):
+    /// serial, scatterer-major, [`Grid2::eval`] per scatterer and pixel. Kept for the test that
+    /// holds the fast path to it (`tests/sim.rs`) and for the render bench's "before" numbers.
+    pub fn render_grid_reference(&self, xs: &[f64], ys: &[f64], z: f64) -> [Vec<f64>; 3] {
         let (nx, ny) = (xs.len(), ys.len());
         let mut out = [vec![0.0; nx * ny], vec![0.0; nx * ny], vec![0.0; nx * ny]];
         let planes = self.planes_at(z);
@@ -622,9 +692,84 @@ impl Renderer {
                 }
             }
         }
-        self.add_time(SUPERPOSITION, t.elapsed().as_secs_f64());
         out
     }
+}
+
+/// One (scatterer, template plane) term of [`Renderer::render_grid_ideal`]: its weight w·α,
+/// pixel window and cubic stencils along x (one per pixel column of the window).
+struct Term<'a> {
+    g: &'a Grid2,
+    /// index of the padded copy of `g`'s nodes
+    plane: usize,
+    f: f64,
+    pos: [f64; 2],
+    ix0: usize,
+    iy: (usize, usize),
+    sx: Vec<Option<(usize, [f64; 4])>>,
+}
+
+/// Add every term's contribution to pixel row `iy` (four lanes per pixel: Sx, Sy, Sz, 0).
+/// Per lane the arithmetic is [`Grid2::eval`]'s fast path, in its order, without fused
+/// multiply-adds, so the sums are bit-identical to the reference path.
+#[inline(always)]
+fn render_row(
+    iy: usize,
+    row: &mut [[f64; 4]],
+    terms: &[Term],
+    padded: &[&[[f64; 4]]],
+    xs: &[f64],
+    ys: &[f64],
+) {
+    for tm in terms.iter().filter(|tm| tm.iy.0 <= iy && iy < tm.iy.1) {
+        let (g, f) = (tm.g, tm.f);
+        let dy = ys[iy] - tm.pos[1];
+        let out = &mut row[tm.ix0..tm.ix0 + tm.sx.len()];
+        let sv = g.stencil_v(dy);
+        let data = padded[tm.plane];
+        for ((o, st), &x) in out.iter_mut().zip(&tm.sx).zip(&xs[tm.ix0..]) {
+            let v = match (st, &sv) {
+                (Some((iu, wu)), Some((iv, wv))) => {
+                    let mut v = [0.0; 4];
+                    for (b, &wvb) in wv.iter().enumerate() {
+                        let base = (iv + b) * g.nu + iu;
+                        let nodes = &data[base..base + 4];
+                        let mut acc = [0.0; 4];
+                        for (n, &wua) in nodes.iter().zip(wu) {
+                            for c in 0..4 {
+                                acc[c] += wua * n[c];
+                            }
+                        }
+                        for c in 0..4 {
+                            v[c] += wvb * acc[c];
+                        }
+                    }
+                    v
+                }
+                _ => {
+                    let e = g.eval(x - tm.pos[0], dy);
+                    [e[0], e[1], e[2], 0.0]
+                }
+            };
+            for c in 0..4 {
+                o[c] += f * v[c];
+            }
+        }
+    }
+}
+
+/// [`render_row`] compiled for AVX (four f64 lanes: one template node per vector).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn render_row_avx(
+    iy: usize,
+    row: &mut [[f64; 4]],
+    terms: &[Term],
+    padded: &[&[[f64; 4]]],
+    xs: &[f64],
+    ys: &[f64],
+) {
+    render_row(iy, row, terms, padded, xs, ys)
 }
 
 /// Indices [i0, i1) of a monotonic axis whose values fall inside [lo, hi].
