@@ -49,6 +49,17 @@ fn at_end(text: &str, pos: rhai::Position) -> bool {
     col > lines.last().map_or(0, |l| l.chars().count())
 }
 
+/// The identifier (letters, digits, `_`) that `s` ends with; empty when none.
+fn trailing_ident(s: &str) -> String {
+    let start = s
+        .char_indices()
+        .rev()
+        .take_while(|(_, c)| c.is_alphanumeric() || *c == '_')
+        .last()
+        .map_or(s.len(), |(i, _)| i);
+    s[start..].to_string()
+}
+
 /// `head` ends inside an argument list: the call's name and which argument (0-based) comes
 /// next, walking back over balanced brackets and counting the commas between.
 fn call_and_argument(head: &str) -> Option<(String, usize)> {
@@ -58,15 +69,7 @@ fn call_and_argument(head: &str) -> Option<(String, usize)> {
             ')' | ']' | '}' => depth += 1,
             '(' | '[' | '{' if depth > 0 => depth -= 1,
             '(' => {
-                let name: String = head[..j]
-                    .trim_end()
-                    .chars()
-                    .rev()
-                    .take_while(|c| c.is_alphanumeric() || *c == '_')
-                    .collect::<Vec<_>>()
-                    .into_iter()
-                    .rev()
-                    .collect();
+                let name = trailing_ident(head[..j].trim_end());
                 return (!name.is_empty()).then_some((name, arg));
             }
             '[' | '{' => return None,
@@ -111,14 +114,7 @@ impl ReplHelper {
         let mut out: Vec<(String, String)> = vec![];
         if let Some(head) = before[..start].strip_suffix("::") {
             // `focus::<Tab>`: the module's protocols (from their declarations) and help
-            let module: String = head
-                .chars()
-                .rev()
-                .take_while(|c| c.is_alphanumeric() || *c == '_')
-                .collect::<Vec<_>>()
-                .into_iter()
-                .rev()
-                .collect();
+            let module = trailing_ident(head);
             let mut names = vec![("help".to_string(), "the module's help page".to_string())];
             for d in crate::script::console::module_protocols(&module).unwrap_or_default() {
                 let full = d.get("name").map(|v| v.to_string()).unwrap_or_default();
@@ -137,14 +133,7 @@ impl ReplHelper {
         }
         if prev == Some('.') {
             // the receiver: a variable whose type (or, for a map, whose keys) we know
-            let recv: String = before[..start - 1]
-                .chars()
-                .rev()
-                .take_while(|c| c.is_alphanumeric() || *c == '_')
-                .collect::<Vec<_>>()
-                .into_iter()
-                .rev()
-                .collect();
+            let recv = trailing_ident(&before[..start - 1]);
             let known = self.types.lock().ok().and_then(|t| t.get(&recv).cloned());
             if let Some((ty, keys)) = &known {
                 if ty == "map" {
@@ -243,15 +232,7 @@ impl ReplHelper {
 
     /// Hint shown after `name(`: the rest of the signature and the summary.
     pub fn hint_for(&self, line: &str) -> Option<String> {
-        let head = line.strip_suffix('(')?;
-        let name: String = head
-            .chars()
-            .rev()
-            .take_while(|c| c.is_alphanumeric() || *c == '_')
-            .collect::<Vec<_>>()
-            .into_iter()
-            .rev()
-            .collect();
+        let name = trailing_ident(line.strip_suffix('(')?);
         let d = self
             .docs
             .iter()
@@ -644,6 +625,9 @@ mod tests {
             Some(("f".into(), 3))
         );
         assert_eq!(call_and_argument("let m = [1, "), None);
+        assert_eq!(trailing_ident("let x = abc_1"), "abc_1");
+        assert_eq!(trailing_ident("f(µm"), "µm");
+        assert_eq!(trailing_ident("f("), "");
     }
 
     #[test]
