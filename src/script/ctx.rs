@@ -268,6 +268,11 @@ impl Ctx {
         lock(&self.view).as_ref().map(|v| v.hub.clone())
     }
 
+    /// The running view's port, if any.
+    pub fn view_port(&self) -> Option<u16> {
+        lock(&self.view).as_ref().map(|v| v.addr().port())
+    }
+
     /// The running view's address, if any.
     pub fn view_url(&self) -> Option<String> {
         lock(&self.view).as_ref().map(|v| v.url())

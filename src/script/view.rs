@@ -12,7 +12,15 @@ const IDLE_REFRESH: Duration = Duration::from_secs(1);
 
 /// Start the view on `host:port` (0: a free port) unless one runs; returns its address.
 pub fn start_view(ctx: &Arc<Ctx>, host: &str, port: u16) -> Result<String, String> {
+    // the rules hold also when a view already runs
+    crate::view::server::loopback(host)?;
     if let Some(url) = ctx.view_url() {
+        let running = ctx.view_port().unwrap_or(0);
+        if port != 0 && port != running {
+            return Err(format!(
+                "view: port = {port}: the view already runs at {url} (one view per session)"
+            ));
+        }
         return Ok(url);
     }
     let view = crate::view::View::start(host, port, ctx.store.dir())?;
@@ -73,7 +81,8 @@ pub fn register(r: &mut Registrar) {
         .example("view().starts_with(\"http://127.0.0.1:\")", "true")
         .example("view() == view()", "true")
         .example("view(#{host: \"0.0.0.0\"})", "error: view: host = \"0.0.0.0\" is not a loopback address")
-        .example("view(#{port: 70000})", "error: view: port = 70000 is out of range");
+        .example("view(#{port: 70000})", "error: view: port = 70000 is out of range")
+        .example("view(); view(#{host: \"0.0.0.0\"})", "error: view: host = \"0.0.0.0\" is not a loopback address");
     let spec = d.spec();
     let c = r.ctx();
     r.bind(d, move |m: Map| -> RResult<String> {
