@@ -450,6 +450,25 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     ));
 }
 
+#[test]
+fn cr_lf_line_endings_read_the_same_values() {
+    let emu = stage_emu();
+    emu.faults().crlf = true;
+    let mut s = open_stage(&emu, 200);
+    // connect read IDN, SAI?, SVO?, MOV?, TMN?/TMX? through CR LF replies
+    assert_eq!(
+        s.travel_range().unwrap(),
+        [(-50.0, 50.0), (-40.0, 60.0), (0.0, 20.0)]
+    );
+    s.move_to([1.25, -2.5, 3.0]).unwrap();
+    assert_eq!(s.position().unwrap(), [1.25, -2.5, 3.0]);
+    assert_eq!(s.target().unwrap(), [1.25, -2.5, 3.0]);
+    // a multi-line reply: no CR left on any line
+    let lines = s.raw_query("SAI?").unwrap();
+    assert_eq!(lines, ["1", "2", "3"]);
+    assert!(emu.commands().iter().any(|c| c == "SAI?"));
+}
+
 /// A fake controller on a raw PTY: answers `*IDN?`/`ERR?`/`SAI?`/`SVO?`/`MOV?` properly and every `POS?`
 /// with the next scripted reply.
 fn fake_controller(

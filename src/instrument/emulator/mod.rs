@@ -110,6 +110,9 @@ pub struct Faults {
     /// APT emulators: serve n more messages, then go silent (a device that stops answering
     /// at a chosen point of a scan).
     pub silent_after: Option<usize>,
+    /// Text emulators: end every reply line with CR LF instead of LF (controllers and
+    /// USB–serial bridges that do; the driver must read the same values).
+    pub crlf: bool,
 }
 
 impl Default for Faults {
@@ -126,6 +129,7 @@ impl Default for Faults {
             servo_trip_next_move: false,
             apt_unsolicited: 0,
             silent_after: None,
+            crlf: false,
         }
     }
 }
@@ -468,6 +472,16 @@ impl<D: Device> Serve<D> {
                 r.into_bytes()
             };
             bytes.push(b'\n');
+            if lock(&self.faults).crlf {
+                let mut v = Vec::with_capacity(bytes.len() + 8);
+                for b in bytes {
+                    if b == b'\n' {
+                        v.push(b'\r');
+                    }
+                    v.push(b);
+                }
+                bytes = v;
+            }
             if self.line.write_all(&bytes).is_err() {
                 // The client went away mid-reply; keep serving for the next one.
             }
