@@ -480,3 +480,52 @@ fn emulate_thorlabs_prints_a_snippet_that_connects() {
     h.join().unwrap().unwrap();
     assert!(run_emulator_cli_with("kpz999", standin_bead, &mut Vec::new(), stop).is_err());
 }
+
+#[test]
+fn connect_thorlabs_at_the_prompt_names_the_cubes_and_the_aligner() {
+    use bfpscope::script::{Settings, Workbench};
+    let k = kit(bead);
+    let dir = std::env::temp_dir().join(format!("bfpscope-apt-wb-{}", std::process::id()));
+    let (s, _) = Settings::captured(&dir);
+    let mut wb = Workbench::new(s);
+    let line = wb
+        .eval_source(
+            "t",
+            &format!(
+                "connect(#{{backend: \"thorlabs\", stage_ports: #{{x: \"{}\", y: \"{}\", z: \"{}\"}}, qpd_port: \"{}\", timeout_ms: 300}})",
+                k.cubes[0].path(),
+                k.cubes[1].path(),
+                k.cubes[2].path(),
+                k.kpa.path()
+            ),
+        )
+        .unwrap()
+        .to_string();
+    assert!(line.starts_with("connected hardware: "), "{line}");
+    assert!(line.contains("KPZ101") && line.contains("KPA101"), "{line}");
+    // the cubes start at 10 µm: the position reads back through the APT protocol
+    let x = wb.eval_source("t", "pos().x").unwrap().as_float().unwrap();
+    assert!((x - 10.0).abs() < 1e-3, "{x}");
+    let e = wb
+        .eval_source(
+            "t",
+            "connect(#{backend: \"thorlabs\", stage_ports: #{x: \"a\", y: \"b\"}})",
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("stage_ports must be #{x: \"…\", y: \"…\", z: \"…\"} (z is missing)"),
+        "{e}"
+    );
+    let e = wb
+        .eval_source(
+            "t",
+            "connect(#{backend: \"thorlabs\", stage_port: \"/dev/x\"})",
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("stage_port applies to backend \"hardware\" only"),
+        "{e}"
+    );
+}

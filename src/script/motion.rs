@@ -296,9 +296,10 @@ pub fn register(r: &mut Registrar) {
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
+                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
                 ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)"),
-                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware)"),
+                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)"),
+                ("stage_ports", "map", "", "optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)"),
                 ("baud", "int", "baud", "optional: baud rate of both ports (hardware)"),
                 ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)"),
                 ("qpd_baud", "int", "baud", "optional: QPD baud rate (hardware)"),
@@ -488,11 +489,12 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
 /// Keys of `connect`'s map and the backends they apply to.
 const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("stage_port", &["hardware"]),
-    ("qpd_port", &["hardware"]),
+    ("qpd_port", &["hardware", "thorlabs"]),
+    ("stage_ports", &["thorlabs"]),
     ("baud", &["hardware"]),
     ("stage_baud", &["hardware"]),
     ("qpd_baud", &["hardware"]),
-    ("timeout_ms", &["hardware"]),
+    ("timeout_ms", &["hardware", "thorlabs"]),
     ("scene", &["sim", "emulated"]),
     ("pace", &["sim"]),
     ("noise_v", &["emulated"]),
@@ -507,11 +509,12 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     let backend = o.string("backend")?.unwrap_or_else(|| "config".into());
     let kind = match backend.as_str() {
         "gcs" | "scpi" | "hardware" => "hardware",
+        "thorlabs" | "kpz101" | "kpa101" => "thorlabs",
         "config" | "sim" | "emulated" | "mock" => backend.as_str(),
         other => {
             return fail(format!(
                 "connect: backend = {other:?} is not available; available: \"config\", \"sim\", \"hardware\" \
-                 (\"gcs\", \"scpi\"), \"emulated\", \"mock\""
+                 (\"gcs\", \"scpi\"), \"thorlabs\" (\"kpz101\", \"kpa101\"), \"emulated\", \"mock\""
             ))
         }
     };
@@ -519,9 +522,12 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     // "config" means the config's own backend: check the keys against that
     let effective = match kind {
         "config" if cfg.is_simulated() => "sim",
+        "config" if cfg.stage.backend == Backend::Kpz101 => "thorlabs",
         "config" => "hardware",
         k => k,
     };
+    // "config" keeps the config's own backends (a GCS stage may read a KPA101, say)
+    let from_config = kind == "config";
     for (k, applies) in BACKEND_KEYS {
         if m.contains_key(*k) && !applies.contains(&effective) {
             return fail(format!(
@@ -559,8 +565,10 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             connect_sim(c, &scene, cfg.stage.settle_s, pace).map_err(Into::into)
         }
         "hardware" => {
-            cfg.stage.backend = Backend::Gcs;
-            cfg.qpd.backend = Backend::Scpi;
+            if !from_config {
+                cfg.stage.backend = Backend::Gcs;
+                cfg.qpd.backend = Backend::Scpi;
+            }
             if let Some(p) = o.string("stage_port")? {
                 // one controller on this port, in place of the config's port(s)
                 cfg.stage.port = Some(p);
@@ -588,6 +596,29 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 cfg.qpd.baud = b as u32;
             }
             if let Some(t) = positive("timeout_ms", 3_600_000)? {
+                cfg.stage.timeout_ms = t as u64;
+                cfg.qpd.timeout_ms = t as u64;
+            }
+            connect_hardware(c, &cfg, &backend).map_err(Into::into)
+        }
+        "thorlabs" => {
+            if !from_config {
+                cfg.stage.backend = Backend::Kpz101;
+                cfg.qpd.backend = Backend::Kpa101;
+            }
+            if let Some([x, y, z]) = o.axis_strings("stage_ports")? {
+                cfg.stage.port = None;
+                cfg.stage.ports = Some(crate::config::AxisPorts { x, y, z });
+            }
+            if let Some(p) = o.string("qpd_port")? {
+                cfg.qpd.port = Some(p);
+            }
+            if let Some(t) = o.int("timeout_ms")? {
+                if !(1..=3_600_000).contains(&t) {
+                    return fail(format!(
+                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ 3600000"
+                    ));
+                }
                 cfg.stage.timeout_ms = t as u64;
                 cfg.qpd.timeout_ms = t as u64;
             }

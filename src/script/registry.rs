@@ -633,6 +633,33 @@ impl<'a> Opts<'a> {
             )),
         }
     }
+    /// `#{x: "…", y: "…", z: "…"}`: one string per axis (all three required).
+    pub fn axis_strings(&self, key: &str) -> RResult<Option<[String; 3]>> {
+        let Some(v) = self.get(key) else {
+            return Ok(None);
+        };
+        let bad = |why: &str| {
+            fail(format!(
+                "{}: {key} must be #{{x: \"…\", y: \"…\", z: \"…\"}} ({why}), got {v}",
+                self.spec.name
+            ))
+        };
+        let Some(m) = v.read_lock::<rhai::Map>() else {
+            return bad("a map");
+        };
+        if let Some(k) = m.keys().find(|k| !["x", "y", "z"].contains(&k.as_str())) {
+            return bad(&format!("unknown axis `{k}`"));
+        }
+        let mut out: [String; 3] = Default::default();
+        for (i, a) in ["x", "y", "z"].iter().enumerate() {
+            match m.get(*a) {
+                Some(s) if s.is_string() => out[i] = s.to_string(),
+                Some(_) => return bad(&format!("{a} must be a string")),
+                None => return bad(&format!("{a} is missing")),
+            }
+        }
+        Ok(Some(out))
+    }
     /// `[from, to]` (µm).
     pub fn range(&self, key: &str) -> RResult<Option<(f64, f64)>> {
         let Some(v) = self.get(key) else {
