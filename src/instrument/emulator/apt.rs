@@ -14,7 +14,6 @@ use super::{lock, Emulator, Faults, Line, SharedPosition, SignalSource, LOG_CAP}
 use crate::instrument::apt::kpa101::{RawReading, MODE_CLOSED_LOOP, SUB_OPER_MODE, SUB_READINGS};
 use crate::instrument::apt::kpz101::{chan_word, CHAN_DISABLED, CHAN_ENABLED, MODE_OPEN_LOOP};
 use crate::instrument::apt::{id, parse, HwInfo, Message, Parsed, CHAN1, USB_UNIT};
-use serialport::TTYPort;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -307,37 +306,19 @@ fn spawn_apt(
     device: impl AptDevice,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
-    let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
-    let path = serialport::SerialPort::name(&slave)
-        .ok_or_else(|| std::io::Error::other("pseudo-terminal without a name"))?;
-    let _ = serialport::SerialPort::set_timeout(&mut master, Duration::from_millis(5));
+    let (line, path) = super::pty_line()?;
     let faults = Arc::new(Mutex::new(Faults::default()));
-    let log = Arc::new(Mutex::new(VecDeque::new()));
-    let stop = Arc::new(AtomicBool::new(false));
-    let finished = Arc::new(AtomicBool::new(false));
-    let ctx = AptServe {
-        line: Line::Pty {
-            master,
-            _slave: slave,
-        },
-        device,
-        faults: faults.clone(),
-        log: log.clone(),
-        stop: stop.clone(),
-        finished: finished.clone(),
-    };
-    let thread = std::thread::Builder::new()
-        .name(format!("emulator-{kind}"))
-        .spawn(move || ctx.run())?;
-    Ok(Emulator {
-        path,
-        kind,
-        faults,
-        log,
-        stop,
-        finished,
-        position,
-        thread: Some(thread),
+    let f = faults.clone();
+    super::launch(kind, faults, position, path, move |h| {
+        AptServe {
+            line,
+            device,
+            faults: f,
+            log: h.log,
+            stop: h.stop,
+            finished: h.finished,
+        }
+        .run()
     })
 }
 

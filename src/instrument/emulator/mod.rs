@@ -294,6 +294,21 @@ impl Line {
     }
 }
 
+/// A pseudo-terminal pair: the master side an emulator serves, and the path clients open.
+fn pty_line() -> std::io::Result<(Line, String)> {
+    let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
+    let path = serialport::SerialPort::name(&slave)
+        .ok_or_else(|| std::io::Error::other("pseudo-terminal without a name"))?;
+    let _ = serialport::SerialPort::set_timeout(&mut master, Duration::from_millis(5));
+    Ok((
+        Line::Pty {
+            master,
+            _slave: slave,
+        },
+        path,
+    ))
+}
+
 /// Open a PTY pair, and serve `device` on the master side on a new thread.
 fn spawn(
     kind: &'static str,
@@ -301,14 +316,7 @@ fn spawn(
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
-    let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::from)?;
-    let path = serialport::SerialPort::name(&slave)
-        .ok_or_else(|| std::io::Error::other("pseudo-terminal without a name"))?;
-    let _ = serialport::SerialPort::set_timeout(&mut master, Duration::from_millis(5));
-    let line = Line::Pty {
-        master,
-        _slave: slave,
-    };
+    let (line, path) = pty_line()?;
     spawn_on(kind, device, faults, position, line, path)
 }
 
@@ -339,20 +347,47 @@ fn spawn_on(
     line: Line,
     path: String,
 ) -> std::io::Result<Emulator> {
+    let f = faults.clone();
+    launch(kind, faults, position, path, move |h| {
+        Serve {
+            line,
+            device,
+            faults: f,
+            log: h.log,
+            stop: h.stop,
+            finished: h.finished,
+        }
+        .run()
+    })
+}
+
+/// What a serving thread shares with its [`Emulator`] handle.
+struct Served {
+    pub log: Arc<Mutex<VecDeque<String>>>,
+    pub stop: Arc<AtomicBool>,
+    pub finished: Arc<AtomicBool>,
+}
+
+/// Run `serve` on a new thread named after `kind` and return the handle that shares its log,
+/// stop and finished flags (every emulator, text or binary protocol, starts this way).
+fn launch(
+    kind: &'static str,
+    faults: Arc<Mutex<Faults>>,
+    position: SharedPosition,
+    path: String,
+    serve: impl FnOnce(Served) + Send + 'static,
+) -> std::io::Result<Emulator> {
     let log = Arc::new(Mutex::new(VecDeque::new()));
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
-    let ctx = Serve {
-        line,
-        device,
-        faults: faults.clone(),
+    let shared = Served {
         log: log.clone(),
         stop: stop.clone(),
         finished: finished.clone(),
     };
     let thread = std::thread::Builder::new()
         .name(format!("emulator-{kind}"))
-        .spawn(move || ctx.run())?;
+        .spawn(move || serve(shared))?;
     Ok(Emulator {
         path,
         kind,
