@@ -21,7 +21,7 @@
 //! The points on which public sources disagree (Sum scaling, sign of X, Sum signed or not) are
 //! options ([`KpaOptions`]); see docs/hardware.md.
 
-use super::{hex, id, open_apt_serial, AptLink, HwInfo, Message, HW_INFO_LEN};
+use super::{hex, id, open_apt_serial, AptLink, HwInfo, Message};
 use crate::instrument::link::Transport;
 use crate::instrument::scpi::Calibration;
 use crate::instrument::{DeviceError, Qpd, QpdReading};
@@ -143,19 +143,7 @@ impl Kpa101 {
         opts: KpaOptions,
     ) -> Result<Self, DeviceError> {
         let mut link = AptLink::new(io, format!("Thorlabs KPA101 on {port}"), opts.timeout);
-        link.send(&Message::short(id::HW_NO_FLASH_PROGRAMMING, 0, 0))?;
-        link.send(&Message::short(id::HW_STOP_UPDATEMSGS, 0, 0))?;
-        let req = Message::short(id::HW_REQ_INFO, 0, 0);
-        let r = link.request(&req, id::HW_GET_INFO)?;
-        let info = HwInfo::decode(r.bytes()).ok_or_else(|| DeviceError::Garbled {
-            device: link.device().to_string(),
-            command: req.describe(),
-            reply: format!(
-                "{} with {} data bytes, expected {HW_INFO_LEN}",
-                r.describe(),
-                r.bytes().len()
-            ),
-        })?;
+        let info = link.identify()?;
         let model = info.model.to_ascii_uppercase();
         if !(model.starts_with("KPA") || model.starts_with("TPA") || model.starts_with("TQD")) {
             return Err(DeviceError::Other {
@@ -163,7 +151,7 @@ impl Kpa101 {
                 detail: format!(
                     "`{}` answered model {:?} (serial {}): not a position aligner (KPA101, TPA101, TQD001); \
                      check qpd.port",
-                    req.describe(),
+                    Message::short(id::HW_REQ_INFO, 0, 0).describe(),
                     info.model,
                     info.serial
                 ),

@@ -20,7 +20,7 @@
 //! nor disable the channel: both drop the actuator to its zero, a move of up to the whole
 //! travel.
 
-use super::{id, open_apt_serial, AptLink, HwInfo, Message, CHAN1, HW_INFO_LEN};
+use super::{id, open_apt_serial, AptLink, HwInfo, Message, CHAN1};
 use crate::instrument::link::Transport;
 use crate::instrument::{DeviceError, Pos, Stage};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -111,19 +111,7 @@ impl Kpz101 {
             format!("Thorlabs KPZ101 ({axis}) on {port}"),
             opts.timeout,
         );
-        link.send(&Message::short(id::HW_NO_FLASH_PROGRAMMING, 0, 0))?;
-        link.send(&Message::short(id::HW_STOP_UPDATEMSGS, 0, 0))?;
-        let req = Message::short(id::HW_REQ_INFO, 0, 0);
-        let r = link.request(&req, id::HW_GET_INFO)?;
-        let info = HwInfo::decode(r.bytes()).ok_or_else(|| DeviceError::Garbled {
-            device: link.device().to_string(),
-            command: req.describe(),
-            reply: format!(
-                "{} with {} data bytes, expected {HW_INFO_LEN}",
-                r.describe(),
-                r.bytes().len()
-            ),
-        })?;
+        let info = link.identify()?;
         let model = info.model.to_ascii_uppercase();
         if !(model.starts_with("KPZ") || model.starts_with("TPZ")) {
             return Err(DeviceError::Other {
@@ -131,7 +119,7 @@ impl Kpz101 {
                 detail: format!(
                     "`{}` answered model {:?} (serial {}): not a piezo cube (KPZ101, TPZ001); check \
                      stage.ports.{axis}",
-                    req.describe(),
+                    Message::short(id::HW_REQ_INFO, 0, 0).describe(),
                     info.model,
                     info.serial
                 ),

@@ -373,6 +373,25 @@ impl AptLink {
         self.device = device.into();
     }
 
+    /// The start of every connect: flash writes off (`HW_NO_FLASH_PROGRAMMING`), no unsolicited
+    /// status updates (`HW_STOP_UPDATEMSGS`), then the unit's identity (`HW_REQ_INFO` →
+    /// `HW_GET_INFO`); a reply of the wrong length is garbled.
+    pub fn identify(&mut self) -> Result<HwInfo, DeviceError> {
+        self.send(&Message::short(id::HW_NO_FLASH_PROGRAMMING, 0, 0))?;
+        self.send(&Message::short(id::HW_STOP_UPDATEMSGS, 0, 0))?;
+        let req = Message::short(id::HW_REQ_INFO, 0, 0);
+        let r = self.request(&req, id::HW_GET_INFO)?;
+        HwInfo::decode(r.bytes()).ok_or_else(|| DeviceError::Garbled {
+            device: self.device.clone(),
+            command: req.describe(),
+            reply: format!(
+                "{} with {} data bytes, expected {HW_INFO_LEN}",
+                r.describe(),
+                r.bytes().len()
+            ),
+        })
+    }
+
     fn io_error(&self, command: &str, e: &io::Error) -> DeviceError {
         match e.kind() {
             io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
