@@ -312,6 +312,9 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
         let _ = rl.load_history(h);
     }
     if tty {
+        wb.ctx.set_pause_question(Some(Arc::new(ask_paused)));
+    }
+    if tty {
         println!("bfpscope {} — help() lists the bindings, help(\"name\") explains one; Tab completes; Ctrl-C interrupts, Ctrl-D exits.", env!("CARGO_PKG_VERSION"));
     }
     let parser = Engine::new_raw();
@@ -361,6 +364,30 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
         let _ = rl.save_history(h);
     }
     0
+}
+
+/// Ctrl-C during a scan at the terminal: the scan waits between points (the stage at rest, nothing
+/// commanded) and asks. Enter or `r` resumes; `a` (or Ctrl-C, Ctrl-D) aborts, keeping the
+/// partial scan, and a relative scan returns to its start. Scripts run without a terminal
+/// keep Ctrl-C = abort.
+fn ask_paused(p: &crate::acquire::Paused) -> bool {
+    eprintln!(
+        "{} paused after {} of {} points; the stage waits at x = {:.3}, y = {:.3}, z = {:.3} µm.\n  Enter or r: resume · a: abort (the partial scan is kept; a relative scan returns to its start)",
+        p.kind, p.measured, p.total, p.at[0], p.at[1], p.at[2]
+    );
+    let Ok(mut ed) = rustyline::DefaultEditor::new() else {
+        return false;
+    };
+    loop {
+        match ed.readline("paused> ") {
+            Ok(l) => match l.trim() {
+                "" | "r" | "resume" => return true,
+                "a" | "abort" => return false,
+                other => eprintln!("`{other}`: Enter or r resumes the scan, a aborts it"),
+            },
+            Err(_) => return false,
+        }
+    }
 }
 
 /// The REPL's `_` (the last result) becomes the variable `_last` (Rhai has no variable `_`):

@@ -323,6 +323,7 @@ fn run(
         meta: serde_json::json!({}),
         save: &save,
         observer: None,
+        pause: None,
     };
     let r: Result<_, ScanError> = run_plan(inst, plan, &env);
     (r.unwrap(), saved.into_inner().unwrap())

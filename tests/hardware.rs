@@ -1166,6 +1166,7 @@ fn run(
         meta: serde_json::json!({}),
         save: &save,
         observer: None,
+        pause: None,
     };
     let r = run_plan(inst, plan, &env);
     (r, saved.into_inner().unwrap())

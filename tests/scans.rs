@@ -2,7 +2,9 @@
 //! stage records every command it is sent).
 
 use bfpscope::acquire::store::{load_scan, SessionStore};
-use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
+use bfpscope::acquire::{
+    run_plan, Axis, Ended, Paused, Plan, ScanEnv, ScanError, SoftLimits, Sweep,
+};
 use bfpscope::config::Config;
 use bfpscope::data::ScanStatus;
 use bfpscope::instrument::mock::{mock_instrument, MockConfig};
@@ -37,6 +39,14 @@ impl Harness {
         inst: &mut bfpscope::instrument::Instrument,
         plan: &Plan,
     ) -> Result<bfpscope::acquire::ScanRun, ScanError> {
+        self.run_paused(inst, plan, None)
+    }
+    fn run_paused(
+        &self,
+        inst: &mut bfpscope::instrument::Instrument,
+        plan: &Plan,
+        pause: Option<&dyn Fn(&Paused) -> bool>,
+    ) -> Result<bfpscope::acquire::ScanRun, ScanError> {
         let log = self.log.clone();
         let logf = move |s: &str| log.lock().unwrap().push(s.to_string());
         let store = self.store.clone();
@@ -49,6 +59,7 @@ impl Harness {
             meta: serde_json::json!({"script": {"path": "test"}}),
             save: &save,
             observer: None,
+            pause,
         };
         run_plan(inst, plan, &env)
     }
@@ -226,6 +237,82 @@ fn relative_scan_returns_to_start_after_ctrl_c_and_keeps_partial_data() {
         msg.contains("aborted (Ctrl-C) after 7 of 16 points; returned to start"),
         "{msg}"
     );
+}
+
+#[test]
+fn ctrl_c_pauses_a_scan_that_resumes_where_it_stopped() {
+    let h = Harness::new("pause");
+    let (mut inst, mock) = mock_instrument(MockConfig {
+        start: [3.0, -1.0, 0.0],
+        abort_after_reads: Some((7, h.abort.clone())),
+        ..MockConfig::default()
+    });
+    let (m2, a2) = (mock.clone(), h.abort.clone());
+    let asked = Mutex::new(vec![]);
+    let ask = |p: &Paused| {
+        // while the question is open the stage rests on the 7th point: row 0 (4 points), then
+        // row 1 right to left (snake) to its 3rd point, column 1; nothing else was commanded
+        asked
+            .lock()
+            .unwrap()
+            .push((p.measured, p.total, p.at, m2.position()));
+        assert_eq!(m2.moves().len(), 7, "{:?}", m2.moves());
+        assert!(
+            !a2.load(Ordering::SeqCst),
+            "the flag is cleared while asking"
+        );
+        true
+    };
+    let run = h
+        .run_paused(&mut inst, &grid(4, 4, true, true), Some(&ask))
+        .unwrap();
+    assert_eq!(run.ended, Ended::Complete);
+    let asked = asked.into_inner().unwrap();
+    assert_eq!(asked.len(), 1);
+    let (measured, total, at, stage) = asked[0];
+    assert_eq!((measured, total), (7, 16));
+    // grid(4, 4, rel): x, y from −0.5 to 0.5 µm in 4 points around the start (3, −1)
+    let x1 = 3.0 - 0.5 + 1.0 / 3.0;
+    let y1 = -1.0 - 0.5 + 1.0 / 3.0;
+    assert!(
+        (at[0] - x1).abs() < 1e-12 && (at[1] - y1).abs() < 1e-12,
+        "{at:?}"
+    );
+    assert_eq!(stage, at);
+    // all 16 points measured, each once; the stage returned to the start
+    assert!(run.scan.sx.data.iter().all(|v| v.is_finite()));
+    assert_eq!(mock.moves().len(), 16 + 1, "16 points and the return");
+    assert_eq!(mock.position(), [3.0, -1.0, 0.0]);
+    let p = &run.scan.meta["pauses"];
+    assert_eq!(p.as_array().unwrap().len(), 1, "{p}");
+    assert_eq!(p[0]["after_points"], 7);
+    assert_eq!(p[0]["resumed"], true);
+    assert!(h
+        .log
+        .lock()
+        .unwrap()
+        .iter()
+        .any(|l| l.contains("resumed at point 8 of 16")));
+}
+
+#[test]
+fn a_paused_scan_answered_abort_ends_as_ctrl_c_did() {
+    let h = Harness::new("pause-abort");
+    let (mut inst, mock) = mock_instrument(MockConfig {
+        start: [3.0, -1.0, 0.0],
+        abort_after_reads: Some((7, h.abort.clone())),
+        ..MockConfig::default()
+    });
+    let ask = |_: &Paused| false;
+    let run = h
+        .run_paused(&mut inst, &grid(4, 4, true, true), Some(&ask))
+        .unwrap();
+    assert_eq!(run.ended, Ended::Aborted { measured: 7 });
+    assert!(run.returned_to_start);
+    assert_eq!(mock.position(), [3.0, -1.0, 0.0]);
+    assert_eq!(mock.moves().len(), 7 + 1);
+    assert_eq!(run.scan.meta["pauses"][0]["resumed"], false);
+    assert_eq!(run.scan.status, ScanStatus::Aborted);
 }
 
 #[test]

@@ -74,6 +74,7 @@ pub fn engine_scan(optics: &Optics, scene: &Scene, dwell_s: f64) -> Result<(Scan
         meta: serde_json::json!({"script": {"path": "bfpscope accuracy"}}),
         save: &save,
         observer: None,
+        pause: None,
     };
     let t0 = core.clock.now();
     let run = run_plan(&mut inst, &plan, &env).map_err(|e| e.to_string())?;

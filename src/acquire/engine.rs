@@ -37,6 +37,23 @@ pub struct ScanEnv<'a> {
     pub save: &'a dyn Fn(&Scan) -> Result<PathBuf, String>,
     /// A live display told of every point (the browser view), if any.
     pub observer: Option<&'a dyn ScanObserver>,
+    /// Asked when Ctrl-C comes during the scan, if set (the prompt on a terminal): the scan is
+    /// paused between points — the stage at rest on the last point, nothing commanded — until
+    /// it answers `true` (resume at the next point) or `false` (abort: the partial scan is kept
+    /// and a relative scan returns to its start). Unset (scripts, tests): Ctrl-C aborts.
+    pub pause: Option<&'a dyn Fn(&Paused) -> bool>,
+}
+
+/// Where a scan stands when Ctrl-C pauses it (see [`ScanEnv::pause`]).
+#[derive(Debug, Clone)]
+pub struct Paused<'a> {
+    pub kind: &'a str,
+    /// Points measured so far, and in all.
+    pub measured: usize,
+    pub total: usize,
+    /// The stage's commanded position (µm) where it waits: the last point measured, or the
+    /// start before the first.
+    pub at: Pos,
 }
 
 /// What a live display (the browser view, `view/`) is told while a scan runs. Each call must
@@ -306,10 +323,39 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         cols
     };
     let mut measured_s_per_point: Option<f64> = None;
+    // pauses (Ctrl-C answered "resume"): where and how long, wall time excluded from the
+    // per-point cost
+    let mut pauses: Vec<Value> = vec![];
+    let mut paused_wall = 0.0;
+    let mut at = start;
     for p in &points {
         if env.abort.swap(false, Ordering::SeqCst) {
-            ended = Ended::Aborted { measured };
-            break;
+            let resume = env.pause.is_some_and(|ask| {
+                let t = std::time::Instant::now();
+                let info = Paused {
+                    kind: &kind,
+                    measured,
+                    total: points.len(),
+                    at,
+                };
+                let r = bar.suspend(|| ask(&info));
+                let dt = t.elapsed().as_secs_f64();
+                paused_wall += dt;
+                pauses.push(
+                    json!({"after_points": measured, "at_um": at, "wall_s": dt, "resumed": r}),
+                );
+                r
+            });
+            // a Ctrl-C pressed while the question was open counts as the answer
+            if !resume || env.abort.swap(false, Ordering::SeqCst) {
+                ended = Ended::Aborted { measured };
+                break;
+            }
+            (env.log)(&format!(
+                "{kind}: resumed at point {} of {}",
+                measured + 1,
+                points.len()
+            ));
         }
         if let Err(error) = inst.move_settle(p.target) {
             ended = Ended::Failed {
@@ -324,12 +370,13 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                 sx[[p.row, p.col]] = r.sx;
                 sy[[p.row, p.col]] = r.sy;
                 sz[[p.row, p.col]] = r.sz;
+                at = p.target;
                 if let Some(o) = env.observer {
                     batch.push(o, (p.row, p.col, [r.sx, r.sy, r.sz]));
                 }
                 measured += 1;
                 if measured == revise_after {
-                    let per = wall0.elapsed().as_secs_f64() / measured as f64;
+                    let per = (wall0.elapsed().as_secs_f64() - paused_wall) / measured as f64;
                     measured_s_per_point = Some(per);
                     if (per - per_point_eta).abs() > 0.1 * per_point_eta {
                         (env.log)(&format!(
@@ -412,8 +459,12 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             "instrument_s": t1 - t0,
             "eta_s": eta,
             "measured_s_per_point_first_row": measured_s_per_point,
+            "paused_wall_s": paused_wall,
         },
     });
+    if !pauses.is_empty() {
+        meta["pauses"] = Value::Array(pauses);
+    }
     if let Ended::Failed {
         error, stage_fault, ..
     } = &ended

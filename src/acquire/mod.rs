@@ -10,7 +10,8 @@ pub mod plan;
 pub mod store;
 
 pub use engine::{
-    checked_move, run_plan, Batcher, Ended, ScanEnv, ScanError, ScanObserver, ScanRun, ScanStart,
+    checked_move, run_plan, Batcher, Ended, Paused, ScanEnv, ScanError, ScanObserver, ScanRun,
+    ScanStart,
 };
 pub use limits::SoftLimits;
 pub use plan::{Axis, Plan, Sweep};

@@ -33,7 +33,7 @@ pub struct MockConfig {
     pub fail_move_after: Option<usize>,
     /// The QPD times out on the read after this many successful reads.
     pub fail_read_after: Option<usize>,
-    /// Raise the abort flag (as Ctrl-C would) after this many reads.
+    /// Raise the abort flag (as one Ctrl-C would) once, at this read.
     pub abort_after_reads: Option<(usize, Arc<AtomicBool>)>,
 }
 
@@ -169,7 +169,7 @@ impl Qpd for MockQpd {
         self.clock.wait(n as f64 / self.rate);
         self.reads += 1;
         if let Some((k, flag)) = &self.abort_after {
-            if self.reads >= *k {
+            if self.reads == *k {
                 flag.store(true, Ordering::SeqCst);
             }
         }

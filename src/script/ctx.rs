@@ -215,7 +215,13 @@ pub struct Ctx {
     /// The partial scan of the last scan that did not complete (Ctrl-C, a device fault), for
     /// the prompt to bind to the variable being assigned (or `_`).
     partial: Mutex<Option<super::types::ScanRef>>,
+    /// What a Ctrl-C during a scan asks (the prompt on a terminal sets it): `true` resumes.
+    /// Unset, Ctrl-C aborts the scan.
+    pause_question: Mutex<Option<PauseQuestion>>,
 }
+
+/// The question a paused scan asks the operator (see [`crate::acquire::ScanEnv::pause`]).
+pub type PauseQuestion = Arc<dyn Fn(&crate::acquire::Paused) -> bool + Send + Sync>;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -250,7 +256,18 @@ impl Ctx {
             git: OnceLock::new(),
             view: Mutex::new(None),
             partial: Mutex::new(None),
+            pause_question: Mutex::new(None),
         }
+    }
+
+    /// Ctrl-C during a scan pauses it and asks `q` (resume or abort); `None`: Ctrl-C aborts.
+    pub fn set_pause_question(&self, q: Option<PauseQuestion>) {
+        *lock(&self.pause_question) = q;
+    }
+
+    /// The pause question, if the prompt set one.
+    pub fn pause_question(&self) -> Option<PauseQuestion> {
+        lock(&self.pause_question).clone()
     }
 
     /// Keep the partial scan of a scan that ended early.

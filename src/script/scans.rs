@@ -27,6 +27,7 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
     let log = |s: &str| c.log(s);
     let kind = plan.kind.clone();
     let hub = c.view_hub();
+    let question = c.pause_question();
     c.with_instrument(&kind, |inst| {
         let env = ScanEnv {
             limits: &c.settings.limits,
@@ -38,6 +39,9 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
             observer: hub
                 .as_deref()
                 .map(|h| h as &dyn crate::acquire::ScanObserver),
+            pause: question
+                .as_deref()
+                .map(|q| q as &dyn Fn(&crate::acquire::Paused) -> bool),
         };
         let run = run_plan(inst, &plan, &env).map_err(|e| e.to_string())?;
         match run.summary() {
@@ -111,9 +115,10 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         .help(
             "The whole plan is checked against the soft limits and the step-size rule before the first \
              move, and the ETA (settle + dwell per point) is printed. A progress bar shows when stderr is \
-             a terminal. Ctrl-C stops at the next point: a relative scan returns to its start, the partial \
-             scan (unmeasured pixels NaN) is saved with status \"aborted\" and the call fails with a message \
-             naming the file. A device error does the same with status \"failed\" and the device's words; \
+             a terminal. Ctrl-C at the prompt pauses the scan at the next point (the stage at rest, nothing \
+             commanded) and asks: Enter resumes, `a` aborts. Aborted (or Ctrl-C in a script run): a relative \
+             scan returns to its start, the partial scan (unmeasured pixels NaN) is saved with status \
+             \"aborted\" and the call fails with a message naming the file. A device error does the same with status \"failed\" and the device's words; \
              after a stage error the stage is not commanded again. Every scan is autosaved in the session \
              folder (`scan.path`).",
         )
