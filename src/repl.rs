@@ -313,6 +313,7 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
     }
     if tty {
         wb.ctx.set_pause_question(Some(Arc::new(ask_paused)));
+        wb.ctx.set_pager(Some(Arc::new(page)));
     }
     if tty {
         println!("bfpscope {} — help() lists the bindings, help(\"name\") explains one; Tab completes; Ctrl-C interrupts, Ctrl-D exits.", env!("CARGO_PKG_VERSION"));
@@ -386,6 +387,47 @@ fn ask_paused(p: &crate::acquire::Paused) -> bool {
                 other => eprintln!("`{other}`: Enter or r resumes the scan, a aborts it"),
             },
             Err(_) => return false,
+        }
+    }
+}
+
+/// Long text (`help()`) a screen at a time at the terminal: a page fills the screen but one line,
+/// then `-- more --` waits: Enter (or space) shows the next page, `q` (or Ctrl-C, Ctrl-D) stops.
+fn page(text: &str) {
+    let lines: Vec<&str> = text.lines().collect();
+    let Ok(mut ed) = rustyline::DefaultEditor::new() else {
+        println!("{text}");
+        return;
+    };
+    // rows the terminal reports (24 when it reports none)
+    let rows = match ed.dimensions() {
+        Some((_, r)) if r > 0 => usize::from(r).max(6),
+        _ => 24,
+    };
+    if lines.len() < rows {
+        println!("{text}");
+        return;
+    }
+    let mut at = 0;
+    while at < lines.len() {
+        let end = (at + rows - 1).min(lines.len());
+        for l in &lines[at..end] {
+            println!("{l}");
+        }
+        at = end;
+        if at == lines.len() {
+            break;
+        }
+        let more = format!(
+            "-- more: {at} of {} lines; Enter: next page, q: stop -- ",
+            lines.len()
+        );
+        match ed.readline(&more) {
+            Ok(a) if a.trim().is_empty() => {}
+            _ => {
+                println!("({} lines not shown)", lines.len() - at);
+                break;
+            }
         }
     }
 }

@@ -87,3 +87,34 @@ fn ctrl_c_then_a_aborts_keeps_the_partial_scan_and_returns() {
         eprintln!("{out}");
     }
 }
+
+#[test]
+fn help_is_paged_at_the_terminal() {
+    let mut p = Prompt::start(&dir("help"), &[]);
+    let from = p.out.len();
+    p.type_line("help()");
+    p.wait_for_from(from, "-- more: ", T);
+    let first = p.out[from..].to_string();
+    // a screen's worth (the terminal's rows but one), starting with the first family
+    let shown = first.lines().count();
+    assert!((10..=60).contains(&shown), "{shown} lines:\n{first}");
+    assert!(
+        first.contains("core") && !first.contains("protocols (stdlib"),
+        "{first}"
+    );
+    let from2 = p.out.len();
+    p.type_line("");
+    p.wait_for_from(from2, "-- more: ", T);
+    let from3 = p.out.len();
+    p.type_line("q");
+    p.wait_for_from(from3, "bfp> ", T);
+    assert!(
+        p.out[from3..].contains("lines not shown"),
+        "{}",
+        &p.out[from3..]
+    );
+    // a short page is printed whole, without stopping
+    let o = p.enter("help(\"mv\")", T);
+    assert!(o.contains("mv(") && !o.contains("-- more"), "{o}");
+    p.quit();
+}

@@ -16,7 +16,7 @@ fn wb(tag: &str) -> (Workbench, std::sync::Arc<std::sync::Mutex<String>>) {
 #[test]
 fn every_binding_example_runs_and_gives_its_expected_result() {
     let docs = all_docs();
-    let (n, failures) = bfpscope::script::testing::check_examples(&docs);
+    let (n, failures, keys) = bfpscope::script::testing::run_examples(&docs);
     assert!(n >= 60, "only {n} examples");
     assert!(
         failures.is_empty(),
@@ -24,7 +24,22 @@ fn every_binding_example_runs_and_gives_its_expected_result() {
         failures.len(),
         failures.join("\n")
     );
+    // every number in a result has its unit: in its key (`w0_nm`), printed after it (`x`), or
+    // it is one of the dimensionless quantities listed here
+    let unknown: Vec<&String> = keys
+        .iter()
+        .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
+        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
+        .collect();
+    assert!(
+        unknown.is_empty(),
+        "result keys without a unit (name it in the key, add a bare key to script::units::BARE, or list it as dimensionless): {unknown:?}"
+    );
 }
+
+/// Result keys whose numbers carry no unit: signals normalised to the beam power, counts,
+/// indices, ratios, fit statistics, refractive indices.
+const DIMENSIONLESS: &[&str] = &[];
 
 #[test]
 fn every_binding_has_a_summary_and_an_example() {

@@ -28,8 +28,11 @@ pub fn register(r: &mut Registrar) {
                 "error: help: no binding called \"scan_lne\"; did you mean `scan_line`?",
             ),
         move || {
-            c.print(&help_index(&c.docs()));
-            c.print(&super::console::protocols_index());
+            c.page(&format!(
+                "{}\n{}",
+                help_index(&c.docs()),
+                super::console::protocols_index()
+            ));
         },
     );
     let c = r.ctx();
@@ -38,7 +41,7 @@ pub fn register(r: &mut Registrar) {
         let hits = find(&docs, name);
         if hits.is_empty() {
             if let Some(page) = super::console::protocol_help(name) {
-                c.print(&page);
+                c.page(&page);
                 return Ok(());
             }
             let names: Vec<&str> = docs.iter().map(|d| d.name.as_str()).collect();
@@ -47,15 +50,13 @@ pub fn register(r: &mut Registrar) {
                 super::console::suggestion(name, names)
             ));
         }
-        if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {
-            for d in hits {
-                c.print(&format!("  {}", d.one_line()));
-            }
-        } else {
-            for d in hits {
-                c.print(&d.long_help());
-            }
-        }
+        let text: Vec<String> =
+            if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {
+                hits.iter().map(|d| format!("  {}", d.one_line())).collect()
+            } else {
+                hits.iter().map(|d| d.long_help()).collect()
+            };
+        c.page(&text.join("\n"));
         Ok(())
     });
 

@@ -218,7 +218,13 @@ pub struct Ctx {
     /// What a Ctrl-C during a scan asks (the prompt on a terminal sets it): `true` resumes.
     /// Unset, Ctrl-C aborts the scan.
     pause_question: Mutex<Option<PauseQuestion>>,
+    /// Shows long text a screen at a time (the prompt on a terminal sets it); unset, `page`
+    /// prints.
+    pager: Mutex<Option<Pager>>,
 }
+
+/// Shows a long text a page at a time (see [`Ctx::page`]).
+pub type Pager = Arc<dyn Fn(&str) + Send + Sync>;
 
 /// The question a paused scan asks the operator (see [`crate::acquire::ScanEnv::pause`]).
 pub type PauseQuestion = Arc<dyn Fn(&crate::acquire::Paused) -> bool + Send + Sync>;
@@ -257,6 +263,21 @@ impl Ctx {
             view: Mutex::new(None),
             partial: Mutex::new(None),
             pause_question: Mutex::new(None),
+            pager: Mutex::new(None),
+        }
+    }
+
+    /// Long text (`help()`) goes through `p` from now on; `None`: printed whole.
+    pub fn set_pager(&self, p: Option<Pager>) {
+        *lock(&self.pager) = p;
+    }
+
+    /// Print long text a page at a time when the prompt set a pager (a terminal), else whole.
+    pub fn page(&self, text: &str) {
+        let pager = lock(&self.pager).clone();
+        match pager {
+            Some(p) => p(text),
+            None => self.print(text),
         }
     }
 

@@ -20,6 +20,7 @@ pub mod stats;
 pub mod templates;
 pub mod testing;
 pub mod types;
+pub mod units;
 pub mod view;
 
 pub use ctx::{Ctx, Sandbox, ScriptInfo, Settings};

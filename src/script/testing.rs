@@ -165,11 +165,39 @@ pub fn values_match(a: &rhai::Dynamic, b: &rhai::Dynamic) -> bool {
     a.type_name() == b.type_name() && super::show(a) == super::show(b)
 }
 
+/// The keys of every number in a result (maps inside maps and arrays too), for the check that
+/// every result value has its unit (`script::units`).
+pub fn numeric_keys(v: &rhai::Dynamic, out: &mut std::collections::BTreeSet<String>) {
+    if let Some(a) = v.read_lock::<rhai::Array>() {
+        a.iter().for_each(|x| numeric_keys(x, out));
+    } else if let Some(m) = v.read_lock::<rhai::Map>() {
+        for (k, x) in m.iter() {
+            if super::registry::to_f64(x).is_some() {
+                out.insert(k.to_string());
+            } else if let Some(a) = x.read_lock::<rhai::Array>() {
+                if a.iter().any(|e| super::registry::to_f64(e).is_some()) {
+                    out.insert(k.to_string());
+                }
+            }
+            numeric_keys(x, out);
+        }
+    }
+}
+
 /// Run every example of every declaration in a fresh workbench connected to the mock
 /// instrument; returns the number run and one message per mismatch.
 pub fn check_examples(docs: &[super::Doc]) -> (usize, Vec<String>) {
+    let (n, failures, _) = run_examples(docs);
+    (n, failures)
+}
+
+/// As [`check_examples`], also returning the keys of the numbers in the examples' results.
+pub fn run_examples(
+    docs: &[super::Doc],
+) -> (usize, Vec<String>, std::collections::BTreeSet<String>) {
     let mut n = 0;
     let mut failures = vec![];
+    let mut keys = std::collections::BTreeSet::new();
     for d in docs {
         for ex in &d.examples {
             n += 1;
@@ -197,6 +225,7 @@ pub fn check_examples(docs: &[super::Doc]) -> (usize, Vec<String>) {
                 )),
                 (None, Err(e)) => failures.push(format!("{what}: failed: {e}")),
                 (None, Ok(v)) => {
+                    numeric_keys(&v, &mut keys);
                     match Workbench::new(settings_for(&Settings::default(), "expect").0)
                         .eval_source("expected", &ex.expect)
                     {
@@ -219,5 +248,5 @@ pub fn check_examples(docs: &[super::Doc]) -> (usize, Vec<String>) {
             let _ = std::fs::remove_dir_all(&dir);
         }
     }
-    (n, failures)
+    (n, failures, keys)
 }

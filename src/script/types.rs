@@ -276,7 +276,13 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
     if let Some(m) = v.read_lock::<Map>() {
         let items: Vec<String> = m
             .iter()
-            .map(|(k, x)| format!("{k}: {}", show_inner(x, false)))
+            .map(|(k, x)| match super::units::printed_unit(k) {
+                // a number under a bare key with a unit (`x`, `z_best`, `sens`): value and unit
+                Some(u) if super::registry::to_f64(x).is_some() => {
+                    format!("{k}: {} {u}", show_inner(x, false))
+                }
+                _ => format!("{k}: {}", show_inner(x, false)),
+            })
             .collect();
         let one = format!("#{{{}}}", items.join(", "));
         // a long result map at the prompt (status(), protocol results): one key per line

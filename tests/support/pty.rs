@@ -45,6 +45,16 @@ impl Prompt {
                 t.c_iflag |= libc::ICRNL;
                 t.c_oflag |= libc::OPOST | libc::ONLCR;
                 t.c_cc[libc::VINTR] = 3;
+                // a 40 × 120 window, as a terminal emulator reports it
+                let ws = libc::winsize {
+                    ws_row: 40,
+                    ws_col: 120,
+                    ws_xpixel: 0,
+                    ws_ypixel: 0,
+                };
+                if libc::ioctl(0, libc::TIOCSWINSZ as _, &ws) < 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
                 if libc::tcsetattr(0, libc::TCSANOW, &t) < 0 {
                     return Err(std::io::Error::last_os_error());
                 }
