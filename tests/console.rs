@@ -118,3 +118,72 @@ fn help_is_paged_at_the_terminal() {
     assert!(o.contains("mv(") && !o.contains("-- more"), "{o}");
     p.quit();
 }
+
+/// The closing note's session: a scientist at the prompt, reading only the help pages, runs
+/// the reference-bead calibration, a focus search, a 7-angle rotation series and aggregate
+/// removal before the linear density of a microtubule, on a simulated scene with the paper's
+/// detector noise. The transcript is written to `$CARGO_TARGET_TMPDIR/console-session.txt`.
+#[test]
+fn a_session_calibration_focus_rotation_aggregates() {
+    let mut p = Prompt::start(&dir("session"), &[]);
+    let mut say = |line: &str| p.enter(line, Duration::from_secs(300));
+    for page in [
+        "calibrate",
+        "focus",
+        "rotation",
+        "aggregates",
+        "microtubule",
+    ] {
+        let o = say(&format!("help(\"{page}\")"));
+        assert!(
+            o.contains("options (map keys):") && o.contains("returns:"),
+            "{o}"
+        );
+    }
+    say("let s = scene();");
+    say("s.add_bead(#{x: -4.0, y: 3.0, d_nm: 110.0, n: 1.572}); s.add_bead(#{x: 4.0, y: 3.0, d_nm: 110.0, n: 1.572});");
+    say("let d_mt = sqrt(4.0 * 13.0 * 13.75e3 / (1.35 * 602.214076) / PI());   // 13 protofilaments as a protein cylinder, nm");
+    say("s.add_filament(#{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: d_mt, n: 1.587});");
+    say("s.add_filament(#{points: [[0.0, 4.5], [0.0, 8.5]], d_nm: 80.0, n: 1.41});   // a collagen fibril for the rotation series");
+    say("s.add_aggregates(#{count: 30, d_nm: [50.0, 100.0], x: [-2.5, 2.5], y: [-3.0, 3.0], seed: 4});");
+    say("s.effects([\"detector_noise\"]);");
+    let o = say("simulate(s)");
+    assert!(o.contains("detector_noise"), "{o}");
+    // 1. calibration
+    say("import \"calibrate\" as calibrate;");
+    let o = say("let c = calibrate::reference_beads(#{beads: [[-4.0, 3.0], [4.0, 3.0]]});");
+    assert!(o.contains("saved ") && o.contains("template.json"), "{o}");
+    let o = say("[c.n_beads, c.sens_x, c.asymmetry, c.model_asymmetry]");
+    let o = say("abs(c.asymmetry / c.model_asymmetry - 1.0) < 0.03 && c.n_beads == 2");
+    assert!(o.contains("true"), "{o}");
+    // 2. focus on the left bead, starting 250 nm above it
+    say("import \"focus\" as focus;");
+    say("mv(#{x: -4.0, y: 3.0, z: 0.25});");
+    let o = say("let f = focus::search(#{n: 31, nz: 25}); f");
+    assert!(o.contains("z_best: ") && o.contains(" µm"), "{o}");
+    let o = say("[abs(f.z_best) < 2.0 * f.z_err, abs(pos().z - f.z_best) < 1e-9]");
+    assert!(o.contains("[true, true]"), "{o}");
+    // 3. rotation series of the collagen fibril (objects keep their distance from the rotation
+    // centre: the fibril, 4.5-8.5 µm out, never meets the microtubule or the aggregates)
+    say("import \"rotation\" as rotation;");
+    let o = say("let r = rotation::series(#{scene: s, fiducial: [-4.0, 3.0], filament: [0.0, 6.0], template: c.template, n_angles: 7, n: 41, dwell: 0.001});");
+    assert!(!o.contains("error"), "{o}");
+    let o = say("[r.angles_deg, r.rms_dev_sx, r.rms_dev_sy]");
+    let o2 = say("r.angles_deg.len() == 7 && r.rms_dev_sx < 0.1");
+    assert!(o2.contains("true"), "{o}");
+    // 4. aggregates, then the microtubule's linear density
+    say("simulate(s);   // the scene at 0° again");
+    say("import \"aggregates\" as aggregates;");
+    say("let m = scan_xy(#{x: [-2.5, 2.5], y: [-2.5, 2.5], nx: 81, ny: 81, dwell: 0.01, snake: true});");
+    let o = say("let a = aggregates::remove(m, c.template); a");
+    assert!(o.contains("n_objects: "), "{o}");
+    let o = say("a.n_objects >= 10 && a.improvement > 1.3");
+    assert!(o.contains("true"), "{o}");
+    say("import \"microtubule\" as microtubule;");
+    let o = say("let mt = microtubule::density(a.scan, c.template); mt");
+    assert!(o.contains("mu_mda_um: "), "{o}");
+    let out = p.quit();
+    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("console-session.txt");
+    std::fs::write(&path, &out).unwrap();
+    eprintln!("transcript: {}", path.display());
+}

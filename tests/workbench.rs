@@ -39,7 +39,77 @@ fn every_binding_example_runs_and_gives_its_expected_result() {
 
 /// Result keys whose numbers carry no unit: signals normalised to the beam power, counts,
 /// indices, ratios, fit statistics, refractive indices.
-const DIMENSIONLESS: &[&str] = &[];
+const DIMENSIONLESS: &[&str] = &[
+    // ratios of signals or sensitivities
+    "asymmetry",
+    "model_asymmetry",
+    "implied_gain_y",
+    "bead_fraction",
+    "improvement",
+    "mean_corr",
+    "mean_corr_after",
+    "sbr",
+    "sbr_before",
+    "sbr_after",
+    "uniformity",
+    "uniformity_before",
+    "uniformity_after",
+    "pupil_filling",
+    // counts and indices
+    "last_scan",
+    "n_beads",
+    "n_objects",
+    "n_points",
+    "n_theta",
+    "n_phi",
+    "protofilaments",
+    "protofilaments_exact",
+    // refractive index, numerical apertures
+    "n_medium",
+    "na",
+    "qpd_na",
+];
+
+#[test]
+fn every_number_in_a_protocol_result_has_its_unit() {
+    let (mut w, _) = wb("units");
+    let v = w
+        .eval_source(
+            "units",
+            r#"
+            import "calibrate" as calibrate; import "focus" as focus;
+            import "aggregates" as aggregates; import "microtubule" as microtubule;
+            let s = scene();
+            s.add_bead(#{x: -3.0, y: 3.0, d_nm: 110.0, n: 1.572});
+            s.add_filament(#{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 17.0, n: 1.587});
+            s.add_aggregates(#{count: 6, x: [-1.0, 1.0], y: [-1.5, 1.5], seed: 2});
+            s.effects(["detector_noise"]);
+            simulate(s);
+            let c = calibrate::reference_beads(#{beads: [[-3.0, 3.0]], n: 33, dwell: 0.001});
+            mv(#{x: -3.0, y: 3.0, z: 0.2});
+            let f = focus::search(#{n: 21, nz: 17});
+            let m = simulate(s, #{x: [-1.5, 1.5], y: [-2.0, 2.0], nx: 61, ny: 81, n_samples: 1000});
+            let t = template_model(#{h_um: 0.02});
+            let a = aggregates::remove(m, t);
+            let d = microtubule::density(a.scan, t, #{skip_um: 0.2});
+            c.remove("template"); a.remove("scan");
+            [c, f, a, d, status(), optics(), pos()]
+            "#,
+        )
+        .unwrap();
+    let mut keys = std::collections::BTreeSet::new();
+    bfpscope::script::testing::numeric_keys(&v, &mut keys);
+    assert!(keys.len() > 20, "{keys:?}");
+    let unknown: Vec<&String> = keys
+        .iter()
+        .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
+        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
+        .collect();
+    assert!(
+        unknown.is_empty(),
+        "result keys without a unit: {unknown:?}"
+    );
+}
 
 #[test]
 fn every_binding_has_a_summary_and_an_example() {

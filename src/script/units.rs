@@ -37,6 +37,8 @@ pub const BARE: &[(&str, &str)] = &[
     ("z_lo", "µm"),
     ("z_hi", "µm"),
     ("z_err", "µm"),
+    ("start_z", "µm"),
+    ("stage_z", "µm"),
     ("cen", "µm"),
     ("com", "µm"),
     ("fwhm", "µm"),
@@ -45,6 +47,9 @@ pub const BARE: &[(&str, &str)] = &[
     ("max_sens_err", "1/µm"),
     ("sens_bm", "1/µm"),
     ("sens_corr", "1/µm"),
+    ("sens_x", "1/µm"),
+    ("sens_y", "1/µm"),
+    ("sens_x_sd", "1/µm"),
 ];
 
 /// The unit a value under `key` is printed with, if the key does not already name it: bare
