@@ -153,7 +153,7 @@ fn a_session_calibration_focus_rotation_aggregates() {
     say("import \"calibrate\" as calibrate;");
     let o = say("let c = calibrate::reference_beads(#{beads: [[-4.0, 3.0], [4.0, 3.0]]});");
     assert!(o.contains("saved ") && o.contains("template.json"), "{o}");
-    let o = say("[c.n_beads, c.sens_x, c.asymmetry, c.model_asymmetry]");
+    say("[c.n_beads, c.sens_x, c.asymmetry, c.model_asymmetry]");
     let o = say("abs(c.asymmetry / c.model_asymmetry - 1.0) < 0.03 && c.n_beads == 2");
     assert!(o.contains("true"), "{o}");
     // 2. focus on the left bead, starting 250 nm above it
