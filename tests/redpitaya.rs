@@ -422,9 +422,7 @@ fn emulator_data_formats_as_the_document_describes() {
 // Config and connect
 
 fn config_error(text: &str) -> bfpscope::config::ConfigError {
-    Config::from_toml_str(text, "test.toml")
-        .err()
-        .expect("must be refused")
+    Config::from_toml_str(text, "test.toml").expect_err("must be refused")
 }
 
 const STAGE: &str = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n";
@@ -569,11 +567,12 @@ calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
     let mut wb = Workbench::new(settings);
     let r = wb.eval_source("t", "connect()").unwrap().to_string();
     assert!(r.contains("Red Pitaya on 127.0.0.1:"), "{r}");
-    wb.eval_source(
-        "t",
-        "scan_line(#{axis: \"x\", from: -0.4, to: 0.4, n: 5, dwell: 0.001})",
-    )
-    .unwrap();
+    let _scan = wb
+        .eval_source(
+            "t",
+            "scan_line(#{axis: \"x\", from: -0.4, to: 0.4, n: 5, dwell: 0.001})",
+        )
+        .unwrap();
     // the scan file is on disk, and holds what the inputs carried
     let files: Vec<_> = walk(&dir)
         .into_iter()

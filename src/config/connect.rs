@@ -253,6 +253,7 @@ fn open_redpitaya(
         "name": q.name(),
         "host": host,
         "port": port,
+        "address": format!("{host}:{port}"),
         "idn": q.idn(),
         "buffer_samples": q.buffer_size(),
         "channels": cfg.qpd.channels,
