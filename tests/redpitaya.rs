@@ -610,3 +610,59 @@ fn walk(d: &std::path::Path) -> Vec<std::path::PathBuf> {
     }
     out
 }
+
+#[test]
+fn connect_at_the_prompt_names_the_board_and_reconnects_to_the_same_address() {
+    use bfpscope::script::{Settings, Workbench};
+    let pos = shared_position([0.0; 3]);
+    let stage = start_stage_emulator(
+        StageEmulatorConfig {
+            travel: [(-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0)],
+            ..Default::default()
+        },
+        pos.clone(),
+    )
+    .unwrap();
+    let (rp, _ext) =
+        start_redpitaya_emulator(emu_cfg(false, 0.0), pos, standin_bead, "127.0.0.1:0").unwrap();
+    let (h, p) = host_port(&rp);
+    let dir = std::env::temp_dir().join(format!("bfpscope-rp-wb-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let call = format!(
+        "connect(#{{backend: \"redpitaya\", stage_port: \"{}\", qpd_host: \"{h}\", qpd_port: \"{p}\"}})",
+        stage.path()
+    );
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert_eq!(
+        r,
+        format!(
+            "connected hardware: PI E-727 on {}, Red Pitaya on {h}:{p}",
+            stage.path()
+        )
+    );
+    // again: the board serves one client at a time, so the old connection is closed first
+    let r = wb.eval_source("t", &call).unwrap().to_string();
+    assert!(r.ends_with(&format!("Red Pitaya on {h}:{p}")), "{r}");
+    let st = wb
+        .eval_source("t", "[status().instrument.qpd.backend, ct(0.001).n]")
+        .unwrap();
+    assert_eq!(
+        bfpscope::script::show(&st),
+        "[\"redpitaya\", 15625]".to_string()
+    );
+    // qpd_host on a SCPI QPD is refused, naming the key
+    let e = wb
+        .eval_source(
+            "t",
+            "connect(#{backend: \"hardware\", stage_port: \"/dev/x\", qpd_host: \"rp.local\"})",
+        )
+        .unwrap_err();
+    assert!(
+        e.message.contains(
+            "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not \"scpi\""
+        ),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
