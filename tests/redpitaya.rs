@@ -666,3 +666,31 @@ fn connect_at_the_prompt_names_the_board_and_reconnects_to_the_same_address() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn board_error_and_unplugged_board_name_device_and_command() {
+    let (e, _) = start(emu_cfg(false, 0.0), [0.0; 3]);
+    let mut rp = open(&e, false, 300);
+    // the board rejects the next command with its error code
+    e.faults().error_next = Some(-200);
+    match rp.read(100) {
+        Err(DeviceError::Controller { command, code, .. }) => {
+            assert_eq!((command.as_str(), code), ("ACQ:DEC 8", -200));
+        }
+        other => panic!("{other:?}"),
+    }
+    // the next read works again
+    assert_eq!(rp.read(100).unwrap().n, 15625);
+    // the cable is pulled after two more commands
+    e.faults().unplug_after = Some(2);
+    match rp.read(100) {
+        Err(DeviceError::Disconnected {
+            device, command, ..
+        }) => {
+            assert!(device.starts_with("Red Pitaya on 127.0.0.1:"), "{device}");
+            // ACQ:START and its error query are served, then the line goes dead
+            assert_eq!(command, "SYST:ERR? (after `ACQ:TRIG NOW`)");
+        }
+        other => panic!("{other:?}"),
+    }
+}
