@@ -1,5 +1,5 @@
 //! `bfpscope`: the command line. `bfpscope` (= `repl`), `run FILE [--set k=v]...`,
-//! `eval 'EXPR'`, `test [DIR]`, `docs`, `emulate stage|qpd|pair|kpa101|kpz101|thorlabs`. Exit codes: 0 ok, 1 script error (or failed tests),
+//! `eval 'EXPR'`, `test [DIR]`, `docs`, `emulate stage|qpd|pair|kpa101|kpz101|thorlabs|redpitaya`. Exit codes: 0 ok, 1 script error (or failed tests),
 //! 2 usage error.
 
 use bfpscope::script::ctx::{err_line, out_line};
@@ -63,7 +63,8 @@ enum Cmd {
     /// prints their paths and a bfpscope.toml snippet, serves until Ctrl-C
     Emulate {
         /// `stage` (alias `gcs`: PI GCS 2.0), `qpd` (SCPI digitiser), `pair` (both, sharing the stage position),
-        /// `kpz101` (three Thorlabs piezo cubes), `kpa101` (Thorlabs position aligner) or `thorlabs` (both)
+        /// `kpz101` (three Thorlabs piezo cubes), `kpa101` (Thorlabs position aligner), `thorlabs` (both)
+        /// or `redpitaya` (a GCS stage and a Red Pitaya STEMlab on a loopback TCP port)
         device: String,
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
@@ -75,6 +76,13 @@ enum Cmd {
         /// The emulated stage answers a query naming several axes for the first one only
         #[arg(long)]
         one_axis_per_query: bool,
+        /// `redpitaya`: serve the board's SCPI server on this loopback TCP port (default: a free
+        /// port, printed; a real board listens on 5000)
+        #[arg(long, value_name = "N")]
+        port: Option<u16>,
+        /// `redpitaya`: 2 fast inputs (STEMlab 125-14, default) or 4 (its 4-input model, Sz on IN3)
+        #[arg(long, value_name = "N")]
+        inputs: Option<usize>,
     },
     /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
     /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
@@ -160,13 +168,21 @@ fn emulate(
 ) -> ExitCode {
     use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
     if ![
-        "stage", "gcs", "qpd", "pair", "both", "kpa101", "kpz101", "thorlabs",
+        "stage",
+        "gcs",
+        "qpd",
+        "pair",
+        "both",
+        "kpa101",
+        "kpz101",
+        "thorlabs",
+        "redpitaya",
     ]
     .contains(&device)
     {
         return usage_error(&format!(
             "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
-             `kpz101` or `thorlabs`)"
+             `kpz101`, `thorlabs` or `redpitaya`)"
         ));
     }
     let scene = match scene {
@@ -256,12 +272,16 @@ fn main() -> ExitCode {
         scene,
         tcp,
         one_axis_per_query,
+        port,
+        inputs,
     }) = &cli.cmd
     {
         // the emulators install their own Ctrl-C handler (stop serving)
         let opts = bfpscope::instrument::emulator::EmulateOptions {
             tcp: tcp.clone(),
             one_axis_per_query: *one_axis_per_query,
+            port: *port,
+            inputs: inputs.unwrap_or(0),
         };
         return emulate(device, scene.as_deref(), &opts);
     }

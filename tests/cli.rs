@@ -463,13 +463,85 @@ fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() 
 }
 
 #[test]
+fn emulate_redpitaya_serves_the_board_on_a_loopback_port_until_ctrl_c() {
+    // Issue 21: `bfpscope emulate redpitaya --inputs 4` serves a GCS stage and a Red Pitaya
+    // SCPI server sharing the stage position, and prints a config for both.
+    use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
+    use bfpscope::instrument::Qpd;
+
+    let mut child = bin()
+        .args(["emulate", "redpitaya", "--inputs", "4"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let rx = line_reader(child.stdout.take().unwrap());
+    let mut text = String::new();
+    let t0 = Instant::now();
+    while !text.contains("Serving until Ctrl-C") {
+        if t0.elapsed() > Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("no `Serving until` within 60 s:\n{text}");
+        }
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
+            text.push_str(&l);
+            text.push('\n');
+        }
+    }
+    let line = text.lines().find(|l| l.starts_with("redpitaya:")).unwrap();
+    assert!(line.contains("STEMlab 125-14 4-input"), "{text}");
+    let url = line.rsplit(" on ").next().unwrap();
+    let (host, port) = url.trim_start_matches("tcp://").rsplit_once(':').unwrap();
+    assert_eq!(host, "127.0.0.1");
+    assert!(
+        text.contains(&format!(
+            "[qpd]\nbackend = \"redpitaya\"\nhost = \"127.0.0.1\"\nport = {port}\nchannels = {{ sx = 1, sy = 2, sz = 3 }}\n"
+        )),
+        "{text}"
+    );
+    let opts = RedPitayaOptions {
+        channels: ChannelMap {
+            sx: 1,
+            sy: 2,
+            sz: Some(3),
+        },
+        ..RedPitayaOptions::default()
+    };
+    let mut rp = RedPitaya::open(host, port.parse().unwrap(), opts).unwrap();
+    assert!(rp.idn().starts_with("REDPITAYA,"));
+    // the stage is parked away from the bead: Sz of the scene is finite, the read succeeds
+    let r = rp.read(100).unwrap();
+    assert_eq!(r.n, 15625);
+    assert!(r.sz.is_finite() && r.sx_std > 0.0, "{r}");
+    drop(rp);
+    let ok = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t0.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("emulate did not stop on SIGINT");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(0));
+}
+
+#[test]
 fn emulate_rejects_an_unknown_device_and_a_bad_scene_file() {
     let (code, _, err) = run(&["emulate", "laser"]);
     assert_eq!(code, 2);
     assert!(
         err.contains(
             "emulate: unknown device `laser` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
-             `kpz101` or `thorlabs`)"
+             `kpz101`, `thorlabs` or `redpitaya`)"
         ),
         "{err}"
     );

@@ -106,7 +106,22 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
             (Box::new(s), d)
         };
     // If the QPD fails, `stage` is dropped here and its ports closed.
-    let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
+    let (qpd, qpd_desc): (Box<dyn crate::instrument::Qpd>, serde_json::Value) =
+        if cfg.qpd.backend == Backend::Redpitaya {
+            open_redpitaya(cfg)?
+        } else {
+            let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
+            let d = json!({
+                "backend": "scpi",
+                "name": crate::instrument::Qpd::name(&qpd),
+                "port": qport,
+                "baud": cfg.qpd.baud,
+                "idn": qpd.idn(),
+                "sample_rate_hz": crate::instrument::Qpd::sample_rate(&qpd),
+                "calibration": cfg.qpd.calibration,
+            });
+            (Box::new(qpd), d)
+        };
     let port = match &cfg.stage.ports {
         Some(p) => json!({ "x": p.x, "y": p.y, "z": p.z }),
         None => json!(cfg.stage.port.clone().unwrap_or_default()),
@@ -123,20 +138,12 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
             "units_per_um": cfg.stage.units_per_um,
             "controllers": parts,
         },
-        "qpd": {
-            "backend": "scpi",
-            "name": crate::instrument::Qpd::name(&qpd),
-            "port": qport,
-            "baud": cfg.qpd.baud,
-            "idn": qpd.idn(),
-            "sample_rate_hz": crate::instrument::Qpd::sample_rate(&qpd),
-            "calibration": cfg.qpd.calibration,
-        },
+        "qpd": qpd_desc,
         "settle_s": cfg.stage.settle_s,
     });
     Ok(Instrument {
         stage,
-        qpd: Box::new(qpd),
+        qpd,
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description,
@@ -211,6 +218,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
             });
             (Box::new(q), d)
         }
+        Backend::Redpitaya => open_redpitaya(cfg)?,
         _ => {
             let q = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
             let d = json!({ "backend": "scpi", "name": q.name(), "port": qport, "idn": q.idn() });
@@ -229,6 +237,31 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
             "settle_s": cfg.stage.settle_s,
         }),
     })
+}
+
+/// Connect the Red Pitaya `[qpd]` names, and describe it for the scan metadata.
+fn open_redpitaya(
+    cfg: &Config,
+) -> Result<(Box<dyn crate::instrument::Qpd>, serde_json::Value), ConnectError> {
+    use crate::instrument::redpitaya::RedPitaya;
+    use crate::instrument::Qpd;
+    let host = cfg.qpd.host.clone().unwrap_or_default();
+    let port = cfg.redpitaya_port()?;
+    let q = RedPitaya::open(&host, port, cfg.redpitaya_options())?;
+    let d = json!({
+        "backend": "redpitaya",
+        "name": q.name(),
+        "host": host,
+        "port": port,
+        "address": format!("{host}:{port}"),
+        "idn": q.idn(),
+        "buffer_samples": q.buffer_size(),
+        "channels": cfg.qpd.channels,
+        "input_gain": cfg.qpd.input_gain,
+        "sample_rate_hz": q.sample_rate(),
+        "calibration": cfg.qpd.calibration,
+    });
+    Ok((Box::new(q), d))
 }
 
 /// One controller as found at connect: name, port, `*IDN?`, `SAI?`, the axes it drives and

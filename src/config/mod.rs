@@ -12,9 +12,16 @@
 //! axes = { x = "1", y = "2", z = "3" }   # checked against the controller's SAI? at connect
 //!
 //! [qpd]
-//! backend = "scpi"              # "sim" (default) | "scpi"
+//! backend = "scpi"              # "sim" (default) | "scpi" | "kpa101" | "redpitaya"
 //! port = "/dev/ttyUSB1"
 //! calibration = { gain = [0.5, 0.5, 0.25], offset_v = [0.0, 0.0, 0.0] }
+//! # a Red Pitaya STEMlab instead (TCP, SCPI server port 5000):
+//! # backend = "redpitaya"
+//! # host = "rp-f0a1b2.local"
+//! # port = 5000
+//! # channels = { sx = 1, sy = 2, sz = 3 }   # inputs IN1..IN4; sz only on the 4-input model
+//! # sample_rate_hz = 100000.0              # nominal QPD rate: a read of n samples lasts n / rate
+//! # input_gain = "LV"                      # LV ±1 V | HV ±20 V, as the jumpers are set
 //!
 //! [safety]                     # enforced by the scan engine for every backend
 //! soft_limits = { x = [10.0, 90.0], y = [10.0, 90.0], z = [2.0, 18.0] }   # µm
@@ -33,6 +40,7 @@ pub mod connect;
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
 use crate::instrument::link::TCP_PREFIX;
+use crate::instrument::redpitaya::{ChannelMap, InputGain, RedPitayaOptions};
 use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -71,6 +79,8 @@ pub enum Backend {
     Kpa101,
     /// Three Thorlabs KPZ101 piezo cubes over APT, one per axis (stage).
     Kpz101,
+    /// Red Pitaya STEMlab board over its SCPI server (qpd).
+    Redpitaya,
 }
 
 impl Backend {
@@ -81,6 +91,7 @@ impl Backend {
             Backend::Scpi => "scpi",
             Backend::Kpa101 => "kpa101",
             Backend::Kpz101 => "kpz101",
+            Backend::Redpitaya => "redpitaya",
         }
     }
 }
@@ -201,8 +212,19 @@ impl Default for StageConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct QpdConfig {
     pub backend: Backend,
-    /// Serial port; required for `scpi`.
+    /// Serial port; required for `scpi` and `kpa101`. For `redpitaya` the TCP port of the
+    /// SCPI server (a number, default 5000).
+    #[serde(deserialize_with = "string_or_number", default)]
     pub port: Option<String>,
+    /// redpitaya: host name or IP address of the board.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub host: Option<String>,
+    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz.
+    pub channels: ChannelMap,
+    /// redpitaya: nominal QPD sample rate, Hz (a read of n samples covers n / rate seconds).
+    pub sample_rate_hz: f64,
+    /// redpitaya: input range, "LV" (±1 V) or "HV" (±20 V), as the jumpers are set.
+    pub input_gain: InputGain,
     pub baud: u32,
     /// Reply timeout per command, ms (a measurement adds n / sample rate).
     pub timeout_ms: u64,
@@ -223,6 +245,10 @@ impl Default for QpdConfig {
         Self {
             backend: Backend::Sim,
             port: None,
+            host: None,
+            channels: ChannelMap::default(),
+            sample_rate_hz: 100_000.0,
+            input_gain: InputGain::LV,
             baud: 115_200,
             timeout_ms: 1000,
             statistics: true,
@@ -250,6 +276,20 @@ pub struct Config {
 }
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
+
+/// `qpd.port`: a serial port path (string) or, for a TCP device, a port number.
+fn string_or_number<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum V {
+        S(String),
+        N(i64),
+    }
+    Ok(Option::<V>::deserialize(d)?.map(|v| match v {
+        V::S(s) => s,
+        V::N(n) => n.to_string(),
+    }))
+}
 
 /// The key path and 1-based line at byte `offset` of a TOML text, by tracking `[table]`
 /// headers and `key =` lines (good enough for error messages).
@@ -383,7 +423,7 @@ impl Config {
         let q = &self.qpd;
         match s.backend {
             Backend::Sim | Backend::Gcs | Backend::Kpz101 => {}
-            b @ (Backend::Scpi | Backend::Kpa101) => {
+            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya) => {
                 return Err(err(
                     "stage.backend",
                     format!(
@@ -394,12 +434,12 @@ impl Config {
             }
         }
         match q.backend {
-            Backend::Sim | Backend::Scpi | Backend::Kpa101 => {}
+            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya => {}
             b @ (Backend::Gcs | Backend::Kpz101) => {
                 return Err(err(
                     "qpd.backend",
                     format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\"",
+                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\"",
                     b.as_str()
                 ),
                 ))
@@ -433,6 +473,9 @@ impl Config {
                 ),
             ));
         }
+        if q.backend == Backend::Redpitaya {
+            self.validate_redpitaya()?;
+        }
         if q.backend == Backend::Kpa101 {
             if !(q.x_sign == 1.0 || q.x_sign == -1.0) {
                 return Err(err(
@@ -453,7 +496,7 @@ impl Config {
                 ));
             }
         }
-        if matches!(s.backend, Backend::Gcs | Backend::Kpz101) {
+        if matches!(s.backend, Backend::Gcs | Backend::Kpz101) && q.backend != Backend::Redpitaya {
             if let Some(qp) = &q.port {
                 if self.stage_ports().iter().any(|p| p == qp) {
                     return Err(err(
@@ -756,6 +799,67 @@ impl Config {
     }
 
     /// Driver settings for the SCPI QPD.
+    /// `[qpd]` for a Red Pitaya: `host` required (a name or address, without a port), `port`
+    /// a TCP port number, the channel map inputs 1–4 and different, a positive sample rate up
+    /// to the board's 125 MHz.
+    fn validate_redpitaya(&self) -> Result<(), ConfigError> {
+        let q = &self.qpd;
+        let host = q.host.as_deref().unwrap_or("").trim();
+        if host.is_empty() {
+            return Err(err(
+                "qpd.host",
+                "required when backend = \"redpitaya\" (the board's name or address, e.g. \"rp-f0a1b2.local\" or \"192.168.1.100\")",
+            ));
+        }
+        if host.contains("://")
+            || host.contains(char::is_whitespace)
+            || host.matches(':').count() == 1
+        {
+            return Err(err(
+                "qpd.host",
+                format!("{host:?} is not a host name or address (give the port separately: port = 5000)"),
+            ));
+        }
+        self.redpitaya_port()?;
+        q.channels
+            .check()
+            .map_err(|(k, m)| err(&format!("qpd.channels.{k}"), m))?;
+        let r = q.sample_rate_hz;
+        if !(r.is_finite() && r > 0.0 && r <= crate::instrument::redpitaya::BASE_RATE_HZ) {
+            return Err(err(
+                "qpd.sample_rate_hz",
+                format!("{r} Hz: must be above 0 and at most 125e6 Hz (the board's ADC rate)"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The Red Pitaya's TCP port: `qpd.port` as a number (default 5000).
+    pub fn redpitaya_port(&self) -> Result<u16, ConfigError> {
+        match self.qpd.port.as_deref() {
+            None => Ok(crate::instrument::redpitaya::DEFAULT_PORT),
+            Some(p) => match p.trim().parse::<u16>() {
+                Ok(n) if n > 0 => Ok(n),
+                _ => Err(err(
+                    "qpd.port",
+                    format!("{p:?}: the SCPI server's TCP port, a number from 1 to 65535 (Red Pitaya: 5000)"),
+                )),
+            },
+        }
+    }
+
+    /// Red Pitaya driver settings from `[qpd]`.
+    pub fn redpitaya_options(&self) -> RedPitayaOptions {
+        RedPitayaOptions {
+            timeout: Duration::from_millis(self.qpd.timeout_ms),
+            calibration: self.qpd.calibration,
+            channels: self.qpd.channels,
+            sample_rate_hz: self.qpd.sample_rate_hz,
+            gain: self.qpd.input_gain,
+            ..RedPitayaOptions::default()
+        }
+    }
+
     pub fn scpi_options(&self) -> ScpiOptions {
         ScpiOptions {
             timeout: Duration::from_millis(self.qpd.timeout_ms),

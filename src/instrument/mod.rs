@@ -14,6 +14,7 @@ pub mod emulator;
 pub mod gcs;
 pub mod gcs_split;
 pub mod link;
+pub mod redpitaya;
 pub mod scpi;
 
 use std::fmt;
@@ -191,6 +192,95 @@ pub trait Qpd: Send {
     /// (stages built and the wall time spent in each); hardware reports nothing extra.
     fn metadata(&self) -> Option<serde_json::Value> {
         None
+    }
+    /// Arm a triggered, hardware-timed buffered acquisition of `n_samples` samples at (at
+    /// least) `sample_rate` Hz, started by `trigger`: the fast path of a raster line, where the
+    /// stage sweeps under its controller's clock and the controller's trigger output starts the
+    /// digitiser. Returns what the device will actually record (digitisers have fixed rate
+    /// steps). Digitisers without a triggered buffer keep the default: an error saying so.
+    fn arm_buffered(
+        &mut self,
+        n_samples: usize,
+        sample_rate: f64,
+        trigger: Trigger,
+    ) -> Result<BufferedArm, DeviceError> {
+        let _ = (n_samples, sample_rate, trigger);
+        Err(no_buffer(self.name(), "arm_buffered"))
+    }
+    /// Wait (at most `timeout` for the trigger, then the acquisition time) and read the
+    /// acquisition armed by [`arm_buffered`](Self::arm_buffered). A trigger that never comes is
+    /// an error naming the device, the trigger-state query and its last reply; the device's
+    /// acquisition is stopped first.
+    fn read_buffered(
+        &mut self,
+        timeout: std::time::Duration,
+    ) -> Result<BufferedTrace, DeviceError> {
+        let _ = timeout;
+        Err(no_buffer(self.name(), "read_buffered"))
+    }
+    /// Stop an armed buffered acquisition (Ctrl-C, a fault elsewhere). Nothing to do by default.
+    fn stop_buffered(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
+}
+
+fn no_buffer(device: String, call: &str) -> DeviceError {
+    DeviceError::Other {
+        device,
+        detail: format!(
+            "{call}: this digitiser has no triggered buffer (a Red Pitaya, `[qpd] backend = \"redpitaya\"`, has one)"
+        ),
+    }
+}
+
+/// What starts a buffered acquisition ([`Qpd::arm_buffered`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Trigger {
+    /// At once, when armed (software trigger).
+    Now,
+    /// A rising edge on the digitiser's external trigger input (a controller's trigger output).
+    ExternalRising,
+    /// A falling edge on the external trigger input.
+    ExternalFalling,
+}
+
+/// What an armed buffered acquisition will record.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BufferedArm {
+    /// Samples per channel recorded from the trigger on.
+    pub n_samples: usize,
+    /// Actual sample rate, Hz (≥ the rate asked for, when the device can).
+    pub sample_rate: f64,
+}
+
+/// A triggered buffered acquisition: samples of Sx, Sy, Sz (signal units, calibrated as point
+/// reads are) and their time base. Sample `i` was taken `t0_s + i · dt_s` seconds after the
+/// trigger.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct BufferedTrace {
+    /// Time of the first sample after the trigger, s.
+    pub t0_s: f64,
+    /// Sample interval, s.
+    pub dt_s: f64,
+    pub sx: Vec<f64>,
+    pub sy: Vec<f64>,
+    /// Zeros when the digitiser has no input wired to the sum signal (see `sz_measured`).
+    pub sz: Vec<f64>,
+    /// False when Sz was not digitised (a 2-input board with Sx and Sy wired).
+    pub sz_measured: bool,
+}
+
+impl BufferedTrace {
+    /// Samples per channel.
+    pub fn len(&self) -> usize {
+        self.sx.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.sx.is_empty()
+    }
+    /// Time of sample `i` after the trigger, s.
+    pub fn time(&self, i: usize) -> f64 {
+        self.t0_s + i as f64 * self.dt_s
     }
 }
 

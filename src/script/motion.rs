@@ -296,9 +296,10 @@ pub fn register(r: &mut Registrar) {
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
+                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
                 ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)"),
                 ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)"),
+                ("qpd_host", "string", "", "optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default 5000)"),
                 ("stage_ports", "map", "", "optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)"),
                 ("baud", "int", "baud", "optional: baud rate of both ports (hardware)"),
                 ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)"),
@@ -339,6 +340,10 @@ pub fn register(r: &mut Registrar) {
         .example(
             "connect(#{backend: \"hardware\", stage_port: \"/dev/bfpscope-no-such-port\", qpd_port: \"/dev/bfpscope-no-such-qpd\"})",
             "error: connect: backend = \"hardware\": GCS stage on /dev/bfpscope-no-such-port: cannot open",
+        )
+        .example(
+            "connect(#{backend: \"redpitaya\", stage_port: \"/dev/bfpscope-no-such-port\"})",
+            "error: connect: backend = \"redpitaya\": config: qpd.host: required when backend = \"redpitaya\"",
         )
         .example(
             "connect(#{backend: \"gcs\"})",
@@ -462,14 +467,23 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     // Reconnecting to a port the connected instrument holds (drivers open ports exclusively):
     // close that connection first. Otherwise the current instrument stays until the new one
     // is up, so a failed connect leaves it alone.
-    let wanted = [cfg.stage.port.clone(), cfg.qpd.port.clone()];
+    // (a Red Pitaya by its address: its SCPI server serves one client at a time)
+    let rp_address = (cfg.qpd.backend == Backend::Redpitaya)
+        .then(|| {
+            let port = cfg.redpitaya_port().ok()?;
+            Some(format!("{}:{port}", cfg.qpd.host.as_deref()?))
+        })
+        .flatten();
+    let wanted = [cfg.stage.port.clone(), cfg.qpd.port.clone(), rp_address];
     let held = ctx
         .with_instrument("connect", |i| {
             let d = &i.description;
-            Ok([&d["stage"]["port"], &d["qpd"]["port"]]
-                .iter()
-                .filter_map(|v| v.as_str().map(String::from))
-                .collect::<Vec<_>>())
+            Ok(
+                [&d["stage"]["port"], &d["qpd"]["port"], &d["qpd"]["address"]]
+                    .iter()
+                    .filter_map(|v| v.as_str().map(String::from))
+                    .collect::<Vec<_>>(),
+            )
         })
         .unwrap_or_default();
     if wanted.iter().flatten().any(|p| held.contains(p)) {
@@ -490,6 +504,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
 const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("stage_port", &["hardware"]),
     ("qpd_port", &["hardware", "thorlabs"]),
+    ("qpd_host", &["hardware"]),
     ("stage_ports", &["thorlabs"]),
     ("baud", &["hardware"]),
     ("stage_baud", &["hardware"]),
@@ -508,13 +523,13 @@ const BACKEND_KEYS: &[(&str, &[&str])] = &[
 fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     let backend = o.string("backend")?.unwrap_or_else(|| "config".into());
     let kind = match backend.as_str() {
-        "gcs" | "scpi" | "hardware" => "hardware",
+        "gcs" | "scpi" | "hardware" | "redpitaya" => "hardware",
         "thorlabs" | "kpz101" | "kpa101" => "thorlabs",
         "config" | "sim" | "emulated" | "mock" => backend.as_str(),
         other => {
             return fail(format!(
                 "connect: backend = {other:?} is not available; available: \"config\", \"sim\", \"hardware\" \
-                 (\"gcs\", \"scpi\"), \"thorlabs\" (\"kpz101\", \"kpa101\"), \"emulated\", \"mock\""
+                 (\"gcs\", \"scpi\"), \"redpitaya\", \"thorlabs\" (\"kpz101\", \"kpa101\"), \"emulated\", \"mock\""
             ))
         }
     };
@@ -567,7 +582,20 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
         "hardware" => {
             if !from_config {
                 cfg.stage.backend = Backend::Gcs;
-                cfg.qpd.backend = Backend::Scpi;
+                cfg.qpd.backend = if backend == "redpitaya" {
+                    Backend::Redpitaya
+                } else {
+                    Backend::Scpi
+                };
+            }
+            if let Some(h) = o.string("qpd_host")? {
+                if cfg.qpd.backend != Backend::Redpitaya {
+                    return fail(format!(
+                        "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not {:?}",
+                        cfg.qpd.backend.as_str()
+                    ));
+                }
+                cfg.qpd.host = Some(h);
             }
             if let Some(p) = o.string("stage_port")? {
                 // one controller on this port, in place of the config's port(s)

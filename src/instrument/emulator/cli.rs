@@ -1,4 +1,4 @@
-//! `bfpscope emulate stage|gcs|qpd|pair`: start emulators, print their pseudo-terminal paths
+//! `bfpscope emulate stage|gcs|qpd|pair|redpitaya`: start emulators, print their pseudo-terminal paths
 //! (or the stage's `tcp://` address with `--tcp`) and a config snippet, serve until Ctrl-C (or
 //! end of input on a terminal).
 
@@ -24,6 +24,12 @@ pub struct EmulateOptions {
     pub tcp: Option<String>,
     /// The stage answers a query naming several axes for the first one only.
     pub one_axis_per_query: bool,
+    /// `redpitaya`: serve the board's SCPI server on this loopback port (None: a free port;
+    /// a real board listens on 5000).
+    pub port: Option<u16>,
+    /// `redpitaya`: fast inputs, 2 (STEMlab 125-14, the default when 0) or 4 (4-input model,
+    /// Sz on IN3).
+    pub inputs: usize,
 }
 
 /// A stop flag raised by Ctrl-C, or by end of input when stdin is a terminal (Ctrl-D).
@@ -126,6 +132,12 @@ pub fn serve_emulators(
     stop: Arc<AtomicBool>,
     opts: &EmulateOptions,
 ) -> anyhow::Result<()> {
+    if kind == "redpitaya" {
+        return serve_redpitaya(stage_cfg, source, out, stop, opts);
+    }
+    if opts.port.is_some() || opts.inputs != 0 {
+        anyhow::bail!("emulate: --port and --inputs are for `emulate redpitaya`");
+    }
     if matches!(kind, "kpa101" | "kpz101" | "thorlabs") {
         if opts.tcp.is_some() {
             anyhow::bail!(
@@ -175,7 +187,7 @@ pub fn serve_emulators(
         other => {
             anyhow::bail!(
                 "emulate: unknown device `{other}` (expected `stage` (alias `gcs`), `qpd`, `pair`, \
-                 `kpa101`, `kpz101` or `thorlabs`)"
+                 `kpa101`, `kpz101`, `thorlabs` or `redpitaya`)"
             )
         }
     }
@@ -217,6 +229,79 @@ pub fn serve_emulators(
         std::thread::sleep(Duration::from_millis(50));
     }
     drop(emus);
+    Ok(())
+}
+
+/// `redpitaya`: a GCS stage (pseudo-terminal, or TCP with `--tcp`) and a Red Pitaya board on
+/// a loopback TCP port sharing the stage position, the board's inputs carrying `source`
+/// (Sx → IN1, Sy → IN2, Sz → IN3 on the 4-input model), 1 V per signal unit, 1 mV rms noise.
+fn serve_redpitaya(
+    mut stage_cfg: StageEmulatorConfig,
+    source: impl SignalSource,
+    out: &mut dyn Write,
+    stop: Arc<AtomicBool>,
+    opts: &EmulateOptions,
+) -> anyhow::Result<()> {
+    use super::{start_redpitaya_emulator, RedPitayaEmulatorConfig};
+    let rp_cfg = match opts.inputs {
+        0 | 2 => RedPitayaEmulatorConfig::default(),
+        4 => RedPitayaEmulatorConfig::four_inputs(),
+        n => anyhow::bail!(
+            "emulate: --inputs {n}: a STEMlab 125-14 has 2 fast inputs, its 4-input model 4"
+        ),
+    };
+    let four = rp_cfg.inputs == 4;
+    stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
+    let axes = stage_cfg.axes.clone();
+    let pos = shared_position(stage_cfg.start);
+    let stage = match &opts.tcp {
+        Some(addr) => start_stage_emulator_tcp(stage_cfg, pos.clone(), addr)
+            .map_err(|e| anyhow::anyhow!("emulate: --tcp {addr}: {e}"))?,
+        None => start_stage_emulator(stage_cfg, pos.clone())?,
+    };
+    let addr = format!("127.0.0.1:{}", opts.port.unwrap_or(0));
+    let (rp, _ext) = start_redpitaya_emulator(rp_cfg, pos, source, &addr)
+        .map_err(|e| anyhow::anyhow!("emulate: redpitaya on {addr}: {e}"))?;
+    let hostport = rp.path().trim_start_matches("tcp://").to_string();
+    let (host, port) = hostport.rsplit_once(':').unwrap_or((&hostport, "5000"));
+    writeln!(
+        out,
+        "stage: PI GCS 2.0 stage (axes {}) on {}",
+        axes.join(" "),
+        stage.path()
+    )?;
+    writeln!(
+        out,
+        "redpitaya: Red Pitaya STEMlab 125-14{} SCPI server (16384-sample buffers, 125 MS/s / decimation;          external trigger not wired) on {}",
+        if four { " 4-input" } else { "" },
+        rp.path()
+    )?;
+    writeln!(out, "\n# bfpscope.toml for these emulators:")?;
+    writeln!(
+        out,
+        "[stage]\nbackend = \"gcs\"\nport = \"{}\"\naxes = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\n",
+        stage.path(),
+        axes[0],
+        axes[1],
+        axes[2]
+    )?;
+    writeln!(
+        out,
+        "[qpd]\nbackend = \"redpitaya\"\nhost = \"{host}\"\nport = {port}\nchannels = {}\n",
+        if four {
+            "{ sx = 1, sy = 2, sz = 3 }"
+        } else {
+            "{ sx = 1, sy = 2 }"
+        }
+    )?;
+    writeln!(out, "Serving until Ctrl-C.")?;
+    out.flush()?;
+    while !stop.load(Ordering::SeqCst) {
+        if !stage.is_running() && !rp.is_running() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
     Ok(())
 }
 

@@ -17,6 +17,7 @@
 mod apt;
 mod cli;
 mod qpd;
+mod redpitaya;
 mod stage;
 
 pub use apt::{
@@ -27,6 +28,7 @@ pub use cli::{
     run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators, EmulateOptions,
 };
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
+pub use redpitaya::{start_redpitaya_emulator, ExtTrigger, Generator, RedPitayaEmulatorConfig};
 pub use stage::{start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig};
 
 use super::Pos;
@@ -113,6 +115,9 @@ pub struct Faults {
     /// Text emulators: end every reply line with CR LF instead of LF (controllers and
     /// USB–serial bridges that do; the driver must read the same values).
     pub crlf: bool,
+    /// Digitisers (Red Pitaya): no trigger ever fires (a trigger cable not connected, a
+    /// controller that never sends its trigger); `ACQ:TRIG:STAT?` stays `WAIT`.
+    pub no_trigger: bool,
 }
 
 impl Default for Faults {
@@ -130,6 +135,7 @@ impl Default for Faults {
             apt_unsolicited: 0,
             silent_after: None,
             crlf: false,
+            no_trigger: false,
         }
     }
 }

@@ -1,0 +1,910 @@
+//! A Red Pitaya STEMlab emulator: the board's SCPI server on a loopback TCP port, written from
+//! Red Pitaya's public command reference (`commands-acq`, `redpitaya_scpi.py`; see
+//! `docs/hardware.md`, "Red Pitaya STEMlab"), not from the driver.
+//!
+//! What it models:
+//! - 2 inputs (STEMlab 125-14) or 4 (its 4-input model), a 16384-sample ring buffer per input,
+//!   written at 125 MS/s / decimation (`ACQ:DEC`, powers of two 1…65536); with `ACQ:AVG ON`
+//!   (the default) a decimated sample averages `dec` ADC samples, so the white noise per sample
+//!   is `noise_v / √dec`;
+//! - `ACQ:START`/`ACQ:STOP` (clears the trigger source)/`ACQ:RST`; trigger sources `DISABLED`, `NOW`, `CHn_PE/NE` (level
+//!   `ACQ:TRIG:LEV`), `EXT_PE/NE` (pulses on [`ExtTrigger`], the extension connector's DIO0_P),
+//!   `AWG_PE/NE` (accepted, never fires: no generator is emulated); when the trigger fires the
+//!   source reads back `DISABLED`, and `ACQ:TRIG:STAT?` answers `TD` exactly when the source is
+//!   `DISABLED` (so before any `ACQ:TRIG`, too), `WAIT` otherwise;
+//! - `ACQ:TRIG:DLY d`: `8192 + d` samples are written after the trigger (clamped to 0…16384),
+//!   then writing stops and `ACQ:TRIG:FILL?` answers 1; all in wall-clock time;
+//! - `ACQ:WPOS?`, `ACQ:TPOS?`, `ACQ:BUF:SIZE?`, `ACQ:SOUR<n>:GAIN LV|HV` (inputs clip at ±1 V /
+//!   ±20 V; RAW counts are 14-bit, ±8192 at full scale);
+//! - data: `ACQ:SOUR<n>:DATA?` (the whole buffer from the oldest sample), `:DATA:STA:N? s,n`,
+//!   `:DATA:STA:END? s,e`, `:DATA:OLD:N? n`, `:DATA:LAT:N? n`, in `ACQ:DATA:UNITS VOLTS|RAW`
+//!   and `ACQ:DATA:FORMAT ASCII|BIN`: ASCII `{v1,v2,…}` (volts as `%f`, raw as integers); BIN
+//!   `#<k><len><bytes>` of `f32` volts or `i16` counts, big-endian unless
+//!   `ACQ:DATA:BYTE:ORDER LEND`; every reply ends in CR LF;
+//! - errors: a wrong or malformed command gets no reply and leaves `code,"message"` in the
+//!   error queue read by `SYST:ERR?` (`SYST:ERR:NEXT?`); `*STB?` bit 2 says the queue is not
+//!   empty; `*CLS` clears it.
+//!
+//! The signal: each input carries the volts of the [`SignalSource`] at the shared stage
+//! position, taken once when the trigger fires (`volts = volts_per_unit · signal + offset`,
+//! Sx → IN1, Sy → IN2, Sz → IN3 by default), plus an optional test generator (volts per input
+//! as a function of the time since the trigger) and white noise.
+//!
+//! Faults ([`Faults`]): `silent` (reads commands, never answers), `garble_replies` (text replies
+//! garbled, binary blocks lose their `#`), `no_trigger` (no trigger source ever fires, `NOW`
+//! included), `error_next`, `unplug_after` (closes the connection and stops).
+//!
+//! Not modelled: deep-memory (DMA) acquisition, split triggers, `ACQ:TRIG:DLY:NS`, hysteresis,
+//! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, the
+//! stage moving during one acquisition (the position is sampled once, at the trigger).
+
+use super::{garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, LOG_CAP};
+use rand::{Rng, SeedableRng};
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+const BUF: usize = 16384;
+const BASE_RATE_HZ: f64 = 125e6;
+const QUEUE: usize = 16;
+
+/// Volts per input (IN1..IN4) as a function of seconds since the trigger: a function generator
+/// wired to the inputs in a bench test.
+pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
+
+/// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
+/// is one rising and one falling edge. Clone it into whatever emulates the controller's
+/// trigger output.
+#[derive(Debug, Clone, Default)]
+pub struct ExtTrigger(Arc<AtomicU64>);
+
+impl ExtTrigger {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// One trigger pulse.
+    pub fn pulse(&self) {
+        self.0.fetch_add(1, Ordering::SeqCst);
+    }
+    /// Pulses so far.
+    pub fn count(&self) -> u64 {
+        self.0.load(Ordering::SeqCst)
+    }
+}
+
+/// Red Pitaya emulator settings.
+#[derive(Clone)]
+pub struct RedPitayaEmulatorConfig {
+    /// `*IDN?` reply (the server answers `REDPITAYA,INSTR<year>,<build date>,<commit>`).
+    pub idn: String,
+    /// Fast analog inputs: 2 (STEMlab 125-14) or 4 (its 4-input model).
+    pub inputs: usize,
+    /// Input (1-based) each signal Sx, Sy, Sz is wired to; 0: not wired.
+    pub wiring: [usize; 3],
+    /// Detector gain: volts per signal unit for Sx, Sy, Sz.
+    pub volts_per_unit: [f64; 3],
+    /// DC offset per input, volts.
+    pub offset_v: [f64; 4],
+    /// White noise per ADC sample (decimation 1), volts rms; averaging divides it by √dec.
+    pub noise_v: f64,
+    /// Noise seed.
+    pub seed: u64,
+    /// Extra volts per input vs time since the trigger (tests: a known ramp).
+    pub generator: Option<Generator>,
+    /// Initial fault switches.
+    pub faults: Faults,
+}
+
+impl Default for RedPitayaEmulatorConfig {
+    fn default() -> Self {
+        Self {
+            idn: "REDPITAYA,INSTR2020,0,bfpscope-emulator".into(),
+            inputs: 2,
+            wiring: [1, 2, 0],
+            volts_per_unit: [1.0; 3],
+            offset_v: [0.0; 4],
+            noise_v: 1e-3,
+            seed: 1,
+            generator: None,
+            faults: Faults::default(),
+        }
+    }
+}
+
+impl RedPitayaEmulatorConfig {
+    /// The 4-input model with Sz wired to IN3.
+    pub fn four_inputs() -> Self {
+        Self {
+            inputs: 4,
+            wiring: [1, 2, 3],
+            ..Self::default()
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Src {
+    Disabled,
+    Now,
+    ChPe(usize),
+    ChNe(usize),
+    ExtPe,
+    ExtNe,
+    AwgPe,
+    AwgNe,
+}
+
+const SOURCES: [(&str, Src); 16] = [
+    ("DISABLED", Src::Disabled),
+    ("NOW", Src::Now),
+    ("CH1_PE", Src::ChPe(0)),
+    ("CH1_NE", Src::ChNe(0)),
+    ("CH2_PE", Src::ChPe(1)),
+    ("CH2_NE", Src::ChNe(1)),
+    ("CH3_PE", Src::ChPe(2)),
+    ("CH3_NE", Src::ChNe(2)),
+    ("CH4_PE", Src::ChPe(3)),
+    ("CH4_NE", Src::ChNe(3)),
+    ("EXT_PE", Src::ExtPe),
+    ("EXT_NE", Src::ExtNe),
+    ("AWG_PE", Src::AwgPe),
+    ("AWG_NE", Src::AwgNe),
+    ("EXT_AE", Src::ExtPe),
+    ("AWG_AE", Src::AwgPe),
+];
+
+/// Where the acquisition is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Acq {
+    /// Not writing (after reset or stop, or before the first start).
+    Idle,
+    /// Writing since `since`, waiting for the trigger.
+    Running { since: Instant, ext_seen: u64 },
+    /// Triggered at `at`, `post` samples still to be written after it.
+    Triggered { at: Instant, post: usize },
+}
+
+struct Board {
+    cfg: RedPitayaEmulatorConfig,
+    errors: VecDeque<(i64, String)>,
+    position: SharedPosition,
+    source: Box<dyn SignalSource>,
+    ext: ExtTrigger,
+    rng: rand_chacha::ChaCha8Rng,
+    faults: Arc<Mutex<Faults>>,
+    dec: u32,
+    avg: bool,
+    src: Src,
+    level_v: f64,
+    delay: i64,
+    raw: bool,
+    binary: bool,
+    little_endian: bool,
+    hv: [bool; 4],
+    acq: Acq,
+    /// Write pointer when writing started (the acquisition begins where the last one ended).
+    wpos0: usize,
+    /// Write pointer at the trigger, and where writing stopped.
+    tpos: usize,
+    wstop: usize,
+    /// Volts per input and sample.
+    data: Vec<Vec<f32>>,
+    last_level: [Option<f64>; 4],
+    /// `ACQ:TRIG:FILL?`: the post-trigger samples are written.
+    filled: bool,
+}
+
+/// The text of the SCPI error codes used.
+fn error_text(code: i64) -> &'static str {
+    match code {
+        0 => "No error",
+        -102 => "Syntax error",
+        -108 => "Parameter not allowed",
+        -109 => "Missing parameter",
+        -113 => "Undefined header",
+        -222 => "Data out of range",
+        -224 => "Illegal parameter value",
+        -350 => "Queue overflow",
+        _ => "Device-specific error",
+    }
+}
+
+/// A reply: text (CR LF added) or a binary block (CR LF added).
+enum Reply {
+    Text(String),
+    Bin(Vec<u8>),
+}
+
+impl Board {
+    fn push_error(&mut self, code: i64, info: &str) {
+        if self.errors.len() >= QUEUE {
+            if let Some(last) = self.errors.back_mut() {
+                *last = (-350, String::new());
+            }
+        } else {
+            self.errors.push_back((code, info.to_string()));
+        }
+    }
+
+    fn dt(&self) -> f64 {
+        self.dec as f64 / BASE_RATE_HZ
+    }
+
+    /// Volts on the inputs from the signal source at the current stage position.
+    fn input_volts(&self) -> [f64; 4] {
+        let p = *lock(&self.position);
+        let s = (self.source)(p);
+        let mut v = self.cfg.offset_v;
+        for (i, &w) in self.cfg.wiring.iter().enumerate() {
+            if (1..=self.cfg.inputs).contains(&w) {
+                v[w - 1] += self.cfg.volts_per_unit[i] * s[i];
+            }
+        }
+        v
+    }
+
+    fn post_samples(&self) -> usize {
+        (BUF as i64 / 2 + self.delay).clamp(0, BUF as i64) as usize
+    }
+
+    fn elapsed_samples(&self, since: Instant, now: Instant) -> usize {
+        ((now - since).as_secs_f64() / self.dt()) as usize
+    }
+
+    fn fire(&mut self, now: Instant) {
+        let Acq::Running { since, .. } = self.acq else {
+            return;
+        };
+        let written = self.elapsed_samples(since, now);
+        self.tpos = (self.wpos0 + written) % BUF;
+        self.src = Src::Disabled;
+        self.acq = Acq::Triggered {
+            at: now,
+            post: self.post_samples(),
+        };
+        self.record();
+    }
+
+    /// Fill the ring buffer for the trigger at `tpos`: samples before it are pre-trigger
+    /// (negative times), from it on post-trigger.
+    fn record(&mut self) {
+        let base = self.input_volts();
+        let dt = self.dt();
+        let post = self.post_samples();
+        let sigma = if self.avg {
+            self.cfg.noise_v / (self.dec as f64).sqrt()
+        } else {
+            self.cfg.noise_v
+        };
+        let normal = rand_distr::Normal::new(0.0, sigma.max(0.0)).ok();
+        for ch in 0..self.cfg.inputs {
+            let fs = if self.hv[ch] { 20.0 } else { 1.0 };
+            for k in 0..BUF {
+                // index k holds sample j = k − tpos after the trigger (wrapped into −pre..post)
+                let mut j = (k + BUF - self.tpos) % BUF;
+                if j >= post.max(1) {
+                    j = j.wrapping_sub(BUF);
+                }
+                let t = j as isize as f64 * dt;
+                let mut v = base[ch];
+                if let Some(g) = &self.cfg.generator {
+                    v += g(t)[ch];
+                }
+                if let Some(n) = normal {
+                    if sigma > 0.0 {
+                        v += self.rng.sample(n);
+                    }
+                }
+                self.data[ch][k] = v.clamp(-fs, fs) as f32;
+            }
+        }
+    }
+
+    /// Advance the acquisition to `now`: triggers, end of writing.
+    fn update(&mut self) {
+        let now = Instant::now();
+        let no_trigger = lock(&self.faults).no_trigger;
+        if let Acq::Running { ext_seen, .. } = self.acq {
+            let fire = !no_trigger
+                && match self.src {
+                    Src::Now => true,
+                    Src::ExtPe | Src::ExtNe => self.ext.count() > ext_seen,
+                    Src::ChPe(c) | Src::ChNe(c) if c < self.cfg.inputs => {
+                        let v = self.input_volts()[c];
+                        let prev = self.last_level[c].replace(v);
+                        match (self.src, prev) {
+                            (Src::ChPe(_), Some(p)) => p < self.level_v && v >= self.level_v,
+                            (Src::ChNe(_), Some(p)) => p > self.level_v && v <= self.level_v,
+                            _ => false,
+                        }
+                    }
+                    _ => false,
+                };
+            if fire {
+                self.fire(now);
+            }
+        }
+        if let Acq::Triggered { at, post } = self.acq {
+            if self.elapsed_samples(at, now) >= post {
+                self.wstop = (self.tpos + post) % BUF;
+                self.wpos0 = self.wstop;
+                self.acq = Acq::Idle;
+                // stays "filled" until the next start
+                self.filled = true;
+            }
+        }
+    }
+
+    fn wpos(&self) -> usize {
+        let now = Instant::now();
+        match self.acq {
+            Acq::Idle => self.wstop,
+            Acq::Running { since, .. } => (self.wpos0 + self.elapsed_samples(since, now)) % BUF,
+            Acq::Triggered { at, .. } => (self.tpos + self.elapsed_samples(at, now)) % BUF,
+        }
+    }
+
+    /// `count` samples of input `ch` from buffer index `start` (wrapping), formatted.
+    fn data_reply(&mut self, ch: usize, start: usize, count: usize) -> Reply {
+        let vals: Vec<f32> = (0..count)
+            .map(|i| self.data[ch][(start + i) % BUF])
+            .collect();
+        let fs = if self.hv[ch] { 20.0 } else { 1.0 };
+        let counts = || {
+            vals.iter()
+                .map(|&v| ((v as f64 / fs * 8192.0).round() as i64).clamp(-8192, 8191) as i16)
+        };
+        match (self.binary, self.raw) {
+            (false, false) => Reply::Text(format!(
+                "{{{}}}",
+                vals.iter()
+                    .map(|v| format!("{v:.6}"))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            )),
+            (false, true) => Reply::Text(format!(
+                "{{{}}}",
+                counts()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join(",")
+            )),
+            (true, raw) => {
+                let mut body = Vec::new();
+                if raw {
+                    for c in counts() {
+                        body.extend(if self.little_endian {
+                            c.to_le_bytes()
+                        } else {
+                            c.to_be_bytes()
+                        });
+                    }
+                } else {
+                    for v in &vals {
+                        body.extend(if self.little_endian {
+                            v.to_le_bytes()
+                        } else {
+                            v.to_be_bytes()
+                        });
+                    }
+                }
+                let len = body.len().to_string();
+                let mut out = format!("#{}{}", len.len(), len).into_bytes();
+                out.extend(body);
+                Reply::Bin(out)
+            }
+        }
+    }
+
+    fn reset(&mut self) {
+        self.dec = 1;
+        self.avg = true;
+        self.src = Src::Disabled;
+        self.level_v = 0.0;
+        self.delay = 0;
+        self.raw = false;
+        self.acq = Acq::Idle;
+    }
+
+    /// Handle one command line.
+    fn handle(&mut self, line: &str) -> Option<Reply> {
+        self.update();
+        let line = line.trim();
+        let (head, arg) = match line.split_once(char::is_whitespace) {
+            Some((h, a)) => (h, a.trim()),
+            None => (line, ""),
+        };
+        let h = head.trim_start_matches(':').to_ascii_uppercase();
+        let text = |s: String| Some(Reply::Text(s));
+        let need_no_arg = |b: &mut Self| {
+            if !arg.is_empty() {
+                b.push_error(-108, "Parameter not allowed");
+                false
+            } else {
+                true
+            }
+        };
+        // channel commands: ACQ:SOUR<n>:...
+        if let Some(rest) = h.strip_prefix("ACQ:SOUR") {
+            let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+            let tail = &rest[digits.len()..];
+            let ch = match digits.parse::<usize>() {
+                Ok(n) if (1..=self.cfg.inputs).contains(&n) => n - 1,
+                _ => {
+                    self.push_error(-113, "Undefined header");
+                    return None;
+                }
+            };
+            return self.channel_command(ch, tail, arg);
+        }
+        match h.as_str() {
+            "*IDN?" => need_no_arg(self).then(|| Reply::Text(self.cfg.idn.clone())),
+            "*CLS" => {
+                self.errors.clear();
+                None
+            }
+            "*RST" => {
+                self.reset();
+                self.errors.clear();
+                None
+            }
+            "*STB?" => text(if self.errors.is_empty() { "0" } else { "4" }.into()),
+            "SYST:ERR?" | "SYST:ERR:NEXT?" | "SYSTEM:ERROR?" | "SYSTEM:ERROR:NEXT?" => {
+                let (code, info) = self.errors.pop_front().unwrap_or((0, String::new()));
+                let msg = error_text(code);
+                text(if info.is_empty() || info == msg {
+                    format!("{code},\"{msg}\"")
+                } else {
+                    format!("{code},\"{msg};{info}\"")
+                })
+            }
+            "ACQ:START" => {
+                self.acq = Acq::Running {
+                    since: Instant::now(),
+                    ext_seen: self.ext.count(),
+                };
+                self.filled = false;
+                self.last_level = [None; 4];
+                None
+            }
+            "ACQ:STOP" => {
+                if !matches!(self.acq, Acq::Idle) {
+                    self.wstop = self.wpos();
+                    self.wpos0 = self.wstop;
+                }
+                self.acq = Acq::Idle;
+                // stopping resets the write state machine, which clears the trigger source
+                self.src = Src::Disabled;
+                None
+            }
+            "ACQ:RST" => {
+                self.reset();
+                None
+            }
+            "ACQ:DEC" => {
+                match arg.parse::<u32>() {
+                    Ok(d) if d.is_power_of_two() && d <= 65536 => self.dec = d,
+                    Ok(_) => self.push_error(-224, "Parameter decimation is invalid."),
+                    Err(_) if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
+                    Err(_) => self.push_error(-224, "Parameter decimation is invalid."),
+                }
+                None
+            }
+            "ACQ:DEC?" => text(self.dec.to_string()),
+            "ACQ:AVG" => {
+                match arg.to_ascii_uppercase().as_str() {
+                    "ON" => self.avg = true,
+                    "OFF" => self.avg = false,
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:AVG?" => text(if self.avg { "ON" } else { "OFF" }.into()),
+            "ACQ:TRIG" => {
+                let a = arg.to_ascii_uppercase();
+                match SOURCES.iter().find(|(n, _)| *n == a) {
+                    Some((_, s)) => {
+                        self.src = *s;
+                        if let Acq::Running { .. } = self.acq {
+                            self.update();
+                        }
+                    }
+                    None if a.is_empty() => self.push_error(-109, "Missing first parameter."),
+                    None => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:TRIG:STAT?" => text(
+                if self.src == Src::Disabled {
+                    "TD"
+                } else {
+                    "WAIT"
+                }
+                .into(),
+            ),
+            "ACQ:TRIG:FILL?" => text(if self.filled { "1" } else { "0" }.into()),
+            "ACQ:TRIG:DLY" => {
+                match arg.parse::<i64>() {
+                    Ok(d) if d.abs() <= 1 << 30 => self.delay = d,
+                    _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:TRIG:DLY?" => text(self.delay.to_string()),
+            "ACQ:TRIG:LEV" => {
+                let up = arg.to_ascii_uppercase();
+                let (num, scale) = match up.strip_suffix("MV") {
+                    Some(n) => (n.trim(), 1e-3),
+                    None => (up.strip_suffix('V').unwrap_or(&up).trim(), 1.0),
+                };
+                match num.parse::<f64>() {
+                    Ok(v) if v.is_finite() => self.level_v = v * scale,
+                    _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:TRIG:LEV?" => text(format!("{:.6}", self.level_v)),
+            "ACQ:WPOS?" => text(self.wpos().to_string()),
+            "ACQ:TPOS?" => text(self.tpos.to_string()),
+            "ACQ:BUF:SIZE?" => text(BUF.to_string()),
+            "ACQ:DATA:UNITS" => {
+                match arg.to_ascii_uppercase().as_str() {
+                    "VOLTS" => self.raw = false,
+                    "RAW" => self.raw = true,
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:DATA:UNITS?" => text(if self.raw { "RAW" } else { "VOLTS" }.into()),
+            "ACQ:DATA:FORMAT" => {
+                match arg.to_ascii_uppercase().as_str() {
+                    "ASCII" => self.binary = false,
+                    "BIN" => self.binary = true,
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            "ACQ:DATA:FORMAT?" => text(if self.binary { "BIN" } else { "ASCII" }.into()),
+            "ACQ:DATA:BYTE:ORDER" => {
+                match arg.to_ascii_uppercase().as_str() {
+                    "LEND" => self.little_endian = true,
+                    "BEND" => self.little_endian = false,
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            _ => {
+                self.push_error(-113, "Undefined header");
+                None
+            }
+        }
+    }
+
+    fn channel_command(&mut self, ch: usize, tail: &str, arg: &str) -> Option<Reply> {
+        let nums: Vec<Option<usize>> = if arg.is_empty() {
+            vec![]
+        } else {
+            arg.split(',')
+                .map(|s| s.trim().parse::<usize>().ok())
+                .collect()
+        };
+        let want = |b: &mut Self, k: usize| -> Option<Vec<usize>> {
+            if nums.len() != k || nums.iter().any(Option::is_none) {
+                b.push_error(-109, "Missing or malformed parameter.");
+                return None;
+            }
+            let v: Vec<usize> = nums.iter().map(|x| x.unwrap_or(0)).collect();
+            if v.iter().any(|&x| x > BUF) {
+                b.push_error(-222, "Data out of range");
+                return None;
+            }
+            Some(v)
+        };
+        match tail {
+            ":GAIN" => {
+                match arg.to_ascii_uppercase().as_str() {
+                    "LV" => self.hv[ch] = false,
+                    "HV" => self.hv[ch] = true,
+                    _ => self.push_error(-224, "Illegal parameter value"),
+                }
+                None
+            }
+            ":GAIN?" => Some(Reply::Text(if self.hv[ch] { "HV" } else { "LV" }.into())),
+            ":DATA?" => {
+                let start = self.wstop;
+                Some(self.data_reply(ch, start, BUF))
+            }
+            ":DATA:STA:N?" | ":DATA:START:N?" => {
+                let v = want(self, 2)?;
+                if v[0] >= BUF {
+                    self.push_error(-222, "Data out of range");
+                    return None;
+                }
+                Some(self.data_reply(ch, v[0], v[1]))
+            }
+            ":DATA:STA:END?" | ":DATA:START:END?" => {
+                let v = want(self, 2)?;
+                if v[0] >= BUF || v[1] >= BUF {
+                    self.push_error(-222, "Data out of range");
+                    return None;
+                }
+                let n = (v[1] + BUF - v[0]) % BUF + 1;
+                Some(self.data_reply(ch, v[0], n))
+            }
+            ":DATA:OLD:N?" => {
+                let v = want(self, 1)?;
+                let start = self.wstop;
+                Some(self.data_reply(ch, start, v[0]))
+            }
+            ":DATA:LAT:N?" | ":DATA:LATEST:N?" => {
+                let v = want(self, 1)?;
+                let start = (self.wstop + BUF - v[0]) % BUF;
+                Some(self.data_reply(ch, start, v[0]))
+            }
+            _ => {
+                self.push_error(-113, "Undefined header");
+                None
+            }
+        }
+    }
+}
+
+/// Start a Red Pitaya emulator listening on `addr` (`127.0.0.1:0`: a free loopback port; the
+/// emulator's path is `tcp://IP:PORT`), its inputs carrying `source` at the shared stage
+/// `position`. Returns the emulator and its external trigger input.
+pub fn start_redpitaya_emulator(
+    cfg: RedPitayaEmulatorConfig,
+    position: SharedPosition,
+    source: impl SignalSource,
+    addr: &str,
+) -> std::io::Result<(Emulator, ExtTrigger)> {
+    if !(cfg.inputs == 2 || cfg.inputs == 4) {
+        return Err(std::io::Error::other(format!(
+            "inputs {}: a STEMlab 125-14 has 2 fast inputs, its 4-input model 4",
+            cfg.inputs
+        )));
+    }
+    let listener = std::net::TcpListener::bind(addr)?;
+    listener.set_nonblocking(true)?;
+    let path = format!("tcp://{}", listener.local_addr()?);
+    let faults = Arc::new(Mutex::new(cfg.faults.clone()));
+    let ext = ExtTrigger::new();
+    let inputs = cfg.inputs;
+    let board = Board {
+        rng: rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed),
+        cfg,
+        errors: VecDeque::new(),
+        position: position.clone(),
+        source: Box::new(source),
+        ext: ext.clone(),
+        faults: faults.clone(),
+        dec: 1,
+        avg: true,
+        src: Src::Disabled,
+        level_v: 0.0,
+        delay: 0,
+        raw: false,
+        binary: false,
+        little_endian: false,
+        hv: [false; 4],
+        acq: Acq::Idle,
+        wpos0: 0,
+        tpos: 0,
+        wstop: 0,
+        data: vec![vec![0.0; BUF]; inputs],
+        last_level: [None; 4],
+        filled: false,
+    };
+    let f = faults.clone();
+    let emu = launch("redpitaya", faults, position, path, move |h| {
+        serve(listener, board, f, h)
+    })?;
+    Ok((emu, ext))
+}
+
+fn serve(
+    listener: std::net::TcpListener,
+    mut board: Board,
+    faults: Arc<Mutex<Faults>>,
+    h: super::Served,
+) {
+    let mut client: Option<std::net::TcpStream> = None;
+    let mut buf: Vec<u8> = Vec::new();
+    let mut chunk = [0u8; 4096];
+    'serve: while !h.stop.load(Ordering::SeqCst) {
+        board.update();
+        let Some(c) = client.as_mut() else {
+            match listener.accept() {
+                Ok((s, _)) => {
+                    let _ = s.set_nonblocking(false);
+                    let _ = s.set_read_timeout(Some(Duration::from_millis(5)));
+                    let _ = s.set_nodelay(true);
+                    client = Some(s);
+                    buf.clear();
+                    // a new connection has its own data format settings, as on the board
+                    board.binary = false;
+                    board.little_endian = false;
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(5)),
+            }
+            continue;
+        };
+        match c.read(&mut chunk) {
+            Ok(0) => {
+                client = None;
+                continue;
+            }
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock
+                        | std::io::ErrorKind::TimedOut
+                        | std::io::ErrorKind::Interrupted
+                ) => {}
+            Err(_) => {
+                client = None;
+                continue;
+            }
+        }
+        while let Some(i) = buf.iter().position(|&b| b == b'\n') {
+            let raw: Vec<u8> = buf.drain(..=i).collect();
+            let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
+                .trim_end_matches('\r')
+                .to_string();
+            if line.trim().is_empty() {
+                continue;
+            }
+            {
+                let mut log = lock(&h.log);
+                if log.len() >= LOG_CAP {
+                    log.pop_front();
+                }
+                log.push_back(line.clone());
+            }
+            let (silent, inject, garble_it, last) = {
+                let mut f = lock(&faults);
+                let last = match f.unplug_after {
+                    Some(n) => {
+                        f.unplug_after = Some(n.saturating_sub(1));
+                        n <= 1
+                    }
+                    None => false,
+                };
+                let is_err_q = line.to_ascii_uppercase().starts_with("SYST");
+                let inject = if !is_err_q { f.error_next.take() } else { None };
+                let g = f.garble_replies > 0;
+                (f.silent, inject, g, last)
+            };
+            let reply = match inject {
+                Some(code) => {
+                    board.push_error(code, "");
+                    None
+                }
+                None => board.handle(&line),
+            };
+            if let (Some(r), false) = (reply, silent) {
+                let mut bytes = match r {
+                    Reply::Text(t) if garble_it => garble(&t),
+                    Reply::Text(t) => t.into_bytes(),
+                    Reply::Bin(mut b) if garble_it => {
+                        b[0] = 0xFF;
+                        b
+                    }
+                    Reply::Bin(b) => b,
+                };
+                if garble_it {
+                    let mut f = lock(&faults);
+                    f.garble_replies = f.garble_replies.saturating_sub(1);
+                }
+                bytes.extend_from_slice(b"\r\n");
+                if let Some(c) = client.as_mut() {
+                    if c.write_all(&bytes).and_then(|_| c.flush()).is_err() {
+                        client = None;
+                    }
+                }
+            }
+            if last {
+                std::thread::sleep(Duration::from_millis(50));
+                break 'serve;
+            }
+        }
+        if buf.len() > 1 << 16 {
+            buf.clear();
+        }
+    }
+    h.finished.store(true, Ordering::SeqCst);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn board(cfg: RedPitayaEmulatorConfig) -> Board {
+        let inputs = cfg.inputs;
+        Board {
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+            errors: VecDeque::new(),
+            position: super::super::shared_position([0.1, 0.0, 0.0]),
+            source: Box::new(super::super::standin_bead),
+            ext: ExtTrigger::new(),
+            faults: Arc::new(Mutex::new(Faults::default())),
+            dec: 1,
+            avg: true,
+            src: Src::Disabled,
+            level_v: 0.0,
+            delay: 0,
+            raw: false,
+            binary: false,
+            little_endian: false,
+            hv: [false; 4],
+            acq: Acq::Idle,
+            wpos0: 0,
+            tpos: 0,
+            wstop: 0,
+            data: vec![vec![0.0; BUF]; inputs],
+            last_level: [None; 4],
+            filled: false,
+        }
+    }
+
+    fn text(r: Option<Reply>) -> String {
+        match r {
+            Some(Reply::Text(t)) => t,
+            Some(Reply::Bin(_)) => panic!("binary"),
+            None => panic!("no reply"),
+        }
+    }
+
+    #[test]
+    fn wrong_commands_queue_errors_and_get_no_reply() {
+        let mut b = board(RedPitayaEmulatorConfig::default());
+        assert!(b.handle("ACQ:BOGUS?").is_none());
+        assert!(b.handle("ACQ:DEC 3").is_none());
+        assert!(
+            b.handle("ACQ:SOUR3:DATA?").is_none(),
+            "2-input board has no IN3"
+        );
+        assert_eq!(text(b.handle("*STB?")), "4");
+        assert_eq!(text(b.handle("SYST:ERR?")), "-113,\"Undefined header\"");
+        assert_eq!(
+            text(b.handle("SYST:ERR?")),
+            "-224,\"Illegal parameter value;Parameter decimation is invalid.\""
+        );
+        assert_eq!(text(b.handle("SYST:ERR?")), "-113,\"Undefined header\"");
+        assert_eq!(text(b.handle("SYST:ERR?")), "0,\"No error\"");
+        assert_eq!(text(b.handle("ACQ:DEC?")), "1");
+    }
+
+    #[test]
+    fn trigger_state_follows_the_source() {
+        let mut b = board(RedPitayaEmulatorConfig::default());
+        // before any trigger source: TD (disabled counts as triggered)
+        assert_eq!(text(b.handle("ACQ:TRIG:STAT?")), "TD");
+        b.handle("ACQ:START");
+        b.handle("ACQ:TRIG EXT_PE");
+        assert_eq!(text(b.handle("ACQ:TRIG:STAT?")), "WAIT");
+        b.ext.pulse();
+        assert_eq!(text(b.handle("ACQ:TRIG:STAT?")), "TD");
+        // ASCII volts: x·exp(−x²/0.16) at x = 0.1 µm, within the 1 mV noise
+        b.handle("ACQ:TRIG:DLY -8191");
+        b.handle("ACQ:START");
+        b.handle("ACQ:TRIG NOW");
+        std::thread::sleep(Duration::from_millis(2));
+        assert_eq!(text(b.handle("ACQ:TRIG:FILL?")), "1");
+        let tpos: usize = text(b.handle("ACQ:TPOS?")).parse().unwrap();
+        let r = text(b.handle(&format!("ACQ:SOUR1:DATA:STA:N? {tpos},1")));
+        let v: f64 = r.trim_matches(|c| c == '{' || c == '}').parse().unwrap();
+        let exact = 0.1 * (-0.01f64 / 0.16).exp();
+        assert!((v - exact).abs() < 5e-3, "{r} vs {exact}");
+        b.handle("ACQ:DATA:UNITS RAW");
+        let r = text(b.handle(&format!("ACQ:SOUR1:DATA:STA:N? {tpos},1")));
+        let c: i64 = r.trim_matches(|c| c == '{' || c == '}').parse().unwrap();
+        assert!((c as f64 - exact * 8192.0).abs() < 50.0, "{r}");
+    }
+}

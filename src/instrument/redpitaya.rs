@@ -1,0 +1,905 @@
+//! Driver for a Red Pitaya STEMlab board (125-14, 2 inputs, or its 4-input model) as the QPD
+//! digitiser, over Red Pitaya's public SCPI server (TCP port 5000, commands and replies end in
+//! CR LF). Protocol as documented in `docs/hardware.md` ("Red Pitaya STEMlab"), learned from
+//! Red Pitaya's command reference (`commands-acq`) and their client `redpitaya_scpi.py`.
+//!
+//! Acquisition model: each input has a 16384-sample ring buffer filled at 125 MS/s / decimation
+//! (decimations 1, 2, 4, …, 65536). `ACQ:START` starts writing, `ACQ:TRIG <source>` arms the
+//! trigger; when it fires the source reads back `DISABLED` and `ACQ:TRIG:STAT?` answers `TD`.
+//! `ACQ:TRIG:DLY d` records `8192 + d` samples after the trigger, then stops; `ACQ:TRIG:FILL?`
+//! answers `1` once they are written. `ACQ:TPOS?` is the buffer index of the trigger sample,
+//! and `ACQ:SOUR<n>:DATA:STA:N? <start>,<n>` reads n samples from there (wrapping). Data come
+//! as `ACQ:DATA:FORMAT BIN` + `ACQ:DATA:UNITS VOLTS`: an IEEE 488.2 definite-length block
+//! `#<k><len><len bytes>` of big-endian `f32` volts, then CR LF.
+//!
+//! A point read of n samples at the nominal QPD rate r covers a window T = n / r seconds. The
+//! driver records that window at the smallest decimation d (a power of two) whose full buffer
+//! is at least as long, `16384 · d / 125 MHz ≥ T`, i.e. `m = round(T · 125 MHz / d)` ≤ 16384
+//! samples per input (T ≤ 8.59 s at d = 65536), triggered at once (`NOW`), and returns their
+//! mean and per-sample standard deviation (volts → signal through [`Calibration`]); the
+//! reading's `n` is m, the samples actually averaged.
+//!
+//! A buffered read ([`Qpd::arm_buffered`]) records from an external trigger (`EXT_PE`, the
+//! controller's trigger output on the extension connector) at the largest decimation whose
+//! rate is at least the rate asked for, widened when the line would not fit the buffer.
+//!
+//! Every fault names the device, the command and the reply; the acquisition is then stopped
+//! (`ACQ:STOP`). A query the server rejects gets no reply: the error queue (`SYST:ERR?`) is
+//! read to say why.
+
+use super::link::{lossy, open_tcp, Transport};
+use super::scpi::{parse_scpi_error, Calibration};
+use super::{BufferedArm, BufferedTrace, DeviceError, Qpd, QpdReading, Trigger};
+use std::io;
+use std::time::{Duration, Instant};
+
+/// ADC sample rate at decimation 1, Hz (STEMlab 125-14).
+pub const BASE_RATE_HZ: f64 = 125e6;
+/// Samples per input in the acquisition buffer (`ACQ:BUF:SIZE?`).
+pub const BUFFER_SAMPLES: usize = 16384;
+/// Largest decimation.
+pub const MAX_DECIMATION: u32 = 65536;
+/// The SCPI server's TCP port.
+pub const DEFAULT_PORT: u16 = 5000;
+/// Largest data reply accepted (bytes): 16384 ASCII numbers of up to 12 characters, with room.
+const MAX_REPLY: usize = 1 << 20;
+
+/// Sample rate (Hz) at decimation `dec`: 125 MHz / dec.
+pub fn rate_at(dec: u32) -> f64 {
+    BASE_RATE_HZ / dec as f64
+}
+
+/// Is `dec` a decimation the driver uses (a power of two from 1 to 65536)?
+pub fn is_decimation(dec: u32) -> bool {
+    dec.is_power_of_two() && dec <= MAX_DECIMATION
+}
+
+/// Decimation and sample count for a point read over `window_s` seconds: the smallest power of
+/// two `d` with `buffer · d / 125 MHz ≥ window_s`, and `m = round(window_s · 125 MHz / d)`
+/// (1 ≤ m ≤ buffer). Errors name the window and the longest one the buffer holds.
+pub fn point_plan(window_s: f64, buffer: usize) -> Result<(u32, usize), String> {
+    if !(window_s.is_finite() && window_s > 0.0) {
+        return Err(format!("read window {window_s} s: must be a positive time"));
+    }
+    let longest = buffer as f64 * MAX_DECIMATION as f64 / BASE_RATE_HZ;
+    if window_s > longest * (1.0 + 1e-12) {
+        return Err(format!(
+            "read window {window_s} s: longer than the {longest:.3} s the {buffer}-sample buffer holds \
+             at decimation {MAX_DECIMATION} (read fewer samples, or average several reads)"
+        ));
+    }
+    let mut d = 1u32;
+    while (buffer as f64) * (d as f64) / BASE_RATE_HZ < window_s * (1.0 - 1e-12)
+        && d < MAX_DECIMATION
+    {
+        d *= 2;
+    }
+    let m = ((window_s * rate_at(d)).round() as usize).clamp(1, buffer);
+    Ok((d, m))
+}
+
+/// Decimation and sample count for a buffered read of `n` samples at `rate` Hz (a line of
+/// `n / rate` seconds): the largest power-of-two decimation whose rate is ≥ `rate`, raised
+/// until the line fits the buffer; `m = ceil(duration · actual rate)` samples. Errors name the
+/// argument, its value and the allowed range.
+pub fn buffered_plan(n: usize, rate: f64, buffer: usize) -> Result<(u32, usize), String> {
+    if n == 0 {
+        return Err("n_samples 0: must be at least 1".into());
+    }
+    if !(rate.is_finite() && rate > 0.0 && rate <= BASE_RATE_HZ) {
+        return Err(format!(
+            "sample_rate {rate} Hz: must be between {} Hz and {BASE_RATE_HZ:e} Hz",
+            rate_at(MAX_DECIMATION)
+        ));
+    }
+    let duration = n as f64 / rate;
+    let mut d = 1u32;
+    while d < MAX_DECIMATION && rate_at(d * 2) >= rate * (1.0 - 1e-12) {
+        d *= 2;
+    }
+    while (buffer as f64) / rate_at(d) < duration * (1.0 - 1e-12) {
+        if d >= MAX_DECIMATION {
+            return Err(format!(
+                "line of {n} samples at {rate} Hz ({duration} s): longer than the {:.3} s the \
+                 {buffer}-sample buffer holds at decimation {MAX_DECIMATION}",
+                buffer as f64 / rate_at(MAX_DECIMATION)
+            ));
+        }
+        d *= 2;
+    }
+    let m = ((duration * rate_at(d) - 1e-9).ceil() as usize).clamp(1, buffer);
+    Ok((d, m))
+}
+
+/// Input range jumper setting (`ACQ:SOUR<n>:GAIN`): LV ±1 V, HV ±20 V.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+pub enum InputGain {
+    #[default]
+    LV,
+    HV,
+}
+
+impl InputGain {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            InputGain::LV => "LV",
+            InputGain::HV => "HV",
+        }
+    }
+    /// Full scale, volts.
+    pub fn full_scale_v(self) -> f64 {
+        match self {
+            InputGain::LV => 1.0,
+            InputGain::HV => 20.0,
+        }
+    }
+}
+
+/// Which fast analog input (1–4) digitises each signal. Sz is optional: a 2-input board has
+/// Sx and Sy only, and Sz then reads 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelMap {
+    pub sx: u8,
+    pub sy: u8,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sz: Option<u8>,
+}
+
+impl Default for ChannelMap {
+    fn default() -> Self {
+        Self {
+            sx: 1,
+            sy: 2,
+            sz: None,
+        }
+    }
+}
+
+impl ChannelMap {
+    /// The inputs in the order Sx, Sy, Sz.
+    pub fn inputs(&self) -> [Option<u8>; 3] {
+        [Some(self.sx), Some(self.sy), self.sz]
+    }
+
+    /// Inputs are 1 to 4 and all different. Err: (signal name, message).
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        let names = ["sx", "sy", "sz"];
+        let ins = self.inputs();
+        for (i, c) in ins.iter().enumerate() {
+            if let Some(c) = c {
+                if !(1..=4).contains(c) {
+                    return Err((
+                        names[i],
+                        format!(
+                            "input {c}: allowed inputs are 1 and 2 (STEMlab 125-14) or 1 to 4 (its 4-input model)"
+                        ),
+                    ));
+                }
+            }
+        }
+        for i in 0..3 {
+            for j in i + 1..3 {
+                if let (Some(a), Some(b)) = (ins[i], ins[j]) {
+                    if a == b {
+                        return Err((
+                            names[j],
+                            format!(
+                                "input {b} is already {}: each signal needs its own input",
+                                names[i]
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Driver settings (see `[qpd]` with `backend = "redpitaya"` in `bfpscope.toml`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RedPitayaOptions {
+    /// Reply timeout for one command, not counting the acquisition itself.
+    pub timeout: Duration,
+    /// Volts → signal units, per signal (Sx, Sy, Sz).
+    pub calibration: Calibration,
+    pub channels: ChannelMap,
+    /// Nominal QPD sample rate, Hz: a point read of n samples covers n / rate seconds.
+    pub sample_rate_hz: f64,
+    /// Input range set on every mapped input (must match the jumpers).
+    pub gain: InputGain,
+    /// Interval between trigger/fill state polls.
+    pub poll: Duration,
+}
+
+impl Default for RedPitayaOptions {
+    fn default() -> Self {
+        Self {
+            timeout: Duration::from_millis(1000),
+            calibration: Calibration::default(),
+            channels: ChannelMap::default(),
+            sample_rate_hz: 100_000.0,
+            gain: InputGain::LV,
+            poll: Duration::from_millis(1),
+        }
+    }
+}
+
+/// CR LF line link with IEEE 488.2 binary blocks.
+struct RpLink {
+    io: Box<dyn Transport>,
+    device: String,
+    buf: Vec<u8>,
+}
+
+impl RpLink {
+    fn send(&mut self, command: &str) -> Result<(), DeviceError> {
+        let mut line = Vec::with_capacity(command.len() + 2);
+        line.extend_from_slice(command.as_bytes());
+        line.extend_from_slice(b"\r\n");
+        self.io
+            .write_all(&line)
+            .and_then(|_| self.io.flush())
+            .map_err(|e| self.io_error(command, Duration::ZERO, &e))
+    }
+
+    fn io_error(&self, command: &str, timeout: Duration, e: &io::Error) -> DeviceError {
+        match e.kind() {
+            io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
+                device: self.device.clone(),
+                command: command.into(),
+                timeout_ms: timeout.as_millis() as u64,
+            },
+            _ => DeviceError::Disconnected {
+                device: self.device.clone(),
+                command: command.into(),
+                detail: e.to_string(),
+            },
+        }
+    }
+
+    fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
+        DeviceError::Garbled {
+            device: self.device.clone(),
+            command: command.into(),
+            reply: reply.into(),
+        }
+    }
+
+    /// Read more bytes before `deadline`; a timeout with nothing received is `Timeout`, with
+    /// a partial reply `Garbled` showing it.
+    fn fill(
+        &mut self,
+        command: &str,
+        deadline: Instant,
+        timeout: Duration,
+    ) -> Result<(), DeviceError> {
+        loop {
+            let now = Instant::now();
+            if now >= deadline {
+                if self.buf.is_empty() {
+                    return Err(DeviceError::Timeout {
+                        device: self.device.clone(),
+                        command: command.into(),
+                        timeout_ms: timeout.as_millis() as u64,
+                    });
+                }
+                let shown: Vec<u8> = self.buf.iter().take(200).copied().collect();
+                self.buf.clear();
+                return Err(self.garbled(
+                    command,
+                    format!(
+                        "{} [incomplete within {} ms]",
+                        lossy(&shown),
+                        timeout.as_millis()
+                    ),
+                ));
+            }
+            let remaining = (deadline - now).max(Duration::from_millis(1));
+            if let Err(e) = self.io.set_read_timeout(remaining) {
+                return Err(self.io_error(command, timeout, &e));
+            }
+            let mut chunk = [0u8; 65536];
+            match self.io.read(&mut chunk) {
+                Ok(0) => {
+                    return Err(DeviceError::Disconnected {
+                        device: self.device.clone(),
+                        command: command.into(),
+                        detail: "the board closed the connection".into(),
+                    })
+                }
+                Ok(n) => {
+                    self.buf.extend_from_slice(&chunk[..n]);
+                    return Ok(());
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                    ) => {}
+                Err(e) => return Err(self.io_error(command, timeout, &e)),
+            }
+        }
+    }
+
+    /// One text reply line (CR LF or LF removed), printable ASCII only.
+    fn read_line(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
+                let mut line: Vec<u8> = self.buf.drain(..=i).collect();
+                line.pop();
+                if line.last() == Some(&b'\r') {
+                    line.pop();
+                }
+                return match String::from_utf8(line) {
+                    Ok(s) if s.is_ascii() && !s.chars().any(|c| c.is_control() && c != '\t') => {
+                        Ok(s)
+                    }
+                    Ok(s) => Err(self.garbled(command, s)),
+                    Err(e) => Err(self.garbled(command, lossy(e.as_bytes()))),
+                };
+            }
+            if self.buf.len() > MAX_REPLY {
+                let shown: Vec<u8> = self.buf.iter().take(200).copied().collect();
+                self.buf.clear();
+                return Err(self.garbled(
+                    command,
+                    format!("{} [no line end after {MAX_REPLY} bytes]", lossy(&shown)),
+                ));
+            }
+            self.fill(command, deadline, timeout)?;
+        }
+    }
+
+    /// A definite-length block `#<k><len digits><len bytes>` followed by CR LF.
+    fn read_block(&mut self, command: &str, timeout: Duration) -> Result<Vec<u8>, DeviceError> {
+        let deadline = Instant::now() + timeout;
+        while self.buf.len() < 2 {
+            self.fill(command, deadline, timeout)?;
+        }
+        let bad = |s: &mut Self, why: &str| {
+            let shown: Vec<u8> = s.buf.iter().take(80).copied().collect();
+            s.buf.clear();
+            s.garbled(command, format!("{} [{why}]", lossy(&shown)))
+        };
+        if self.buf[0] != b'#' {
+            return Err(bad(self, "expected a binary block starting with `#`"));
+        }
+        let k = match (self.buf[1] as char).to_digit(10) {
+            Some(k @ 1..=9) => k as usize,
+            _ => return Err(bad(self, "bad block header: digit count")),
+        };
+        while self.buf.len() < 2 + k {
+            self.fill(command, deadline, timeout)?;
+        }
+        let len: usize = match std::str::from_utf8(&self.buf[2..2 + k])
+            .ok()
+            .and_then(|t| t.parse().ok())
+        {
+            Some(l) if l <= MAX_REPLY => l,
+            _ => return Err(bad(self, "bad block header: length")),
+        };
+        let start = 2 + k;
+        while self.buf.len() < start + len {
+            self.fill(command, deadline, timeout)?;
+        }
+        let data: Vec<u8> = self.buf[start..start + len].to_vec();
+        self.buf.drain(..start + len);
+        // the CR LF after the block (may still be on its way)
+        let short = Instant::now() + Duration::from_millis(50).min(timeout);
+        while self.buf.len() < 2 && Instant::now() < short {
+            if self.fill(command, short, timeout).is_err() {
+                break;
+            }
+        }
+        if self.buf.starts_with(b"\r\n") {
+            self.buf.drain(..2);
+        } else if self.buf.starts_with(b"\n") {
+            self.buf.drain(..1);
+        }
+        Ok(data)
+    }
+
+    fn discard_input(&mut self) {
+        self.buf.clear();
+        let _ = self.io.discard_input();
+    }
+}
+
+/// What the current acquisition records.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Armed {
+    dec: u32,
+    m: usize,
+    source: &'static str,
+}
+
+/// A Red Pitaya board as the QPD digitiser.
+pub struct RedPitaya {
+    link: RpLink,
+    opts: RedPitayaOptions,
+    idn: String,
+    buffer: usize,
+    dec: Option<u32>,
+    delay: Option<i64>,
+    armed: Option<Armed>,
+    last: Option<Armed>,
+    /// An acquisition was started and not yet read or stopped.
+    running: bool,
+}
+
+impl RedPitaya {
+    /// Connect to `host:port` (TCP).
+    pub fn open(host: &str, port: u16, opts: RedPitayaOptions) -> Result<Self, DeviceError> {
+        let label = format!("{host}:{port}");
+        let device = format!("Red Pitaya on {label}");
+        let io = open_tcp(&device, &format!("tcp://{label}"), opts.timeout).map_err(|e| match e {
+            DeviceError::Other { device, detail } => DeviceError::Other {
+                device,
+                detail: format!(
+                    "{} (Red Pitaya: is the board on this network and its SCPI server started, in \
+                     the web interface's Development > SCPI server? It listens on port {DEFAULT_PORT})",
+                    detail.split(" (is the controller").next().unwrap_or(&detail)
+                ),
+            },
+            other => other,
+        })?;
+        Self::connect(io, &label, opts)
+    }
+
+    /// Connect over any transport: `*IDN?` (must name REDPITAYA), `*CLS`, `ACQ:RST`, data as
+    /// binary volts, `ACQ:BUF:SIZE?`, and the input range of every mapped input.
+    pub fn connect(
+        io: Box<dyn Transport>,
+        label: &str,
+        opts: RedPitayaOptions,
+    ) -> Result<Self, DeviceError> {
+        let mut rp = Self {
+            link: RpLink {
+                io,
+                device: format!("Red Pitaya on {label}"),
+                buf: Vec::new(),
+            },
+            opts,
+            idn: String::new(),
+            buffer: BUFFER_SAMPLES,
+            dec: None,
+            delay: None,
+            armed: None,
+            last: None,
+            running: false,
+        };
+        let idn = rp.query("*IDN?")?;
+        if !idn.trim().to_ascii_uppercase().starts_with("REDPITAYA") {
+            return Err(DeviceError::Other {
+                device: rp.link.device.clone(),
+                detail: format!(
+                    "`*IDN?` answered {idn:?}: not a Red Pitaya SCPI server (expected REDPITAYA,…)"
+                ),
+            });
+        }
+        rp.idn = idn.trim().to_string();
+        rp.command("*CLS")?;
+        rp.command("ACQ:RST")?;
+        rp.command("ACQ:DATA:FORMAT BIN")?;
+        rp.command("ACQ:DATA:UNITS VOLTS")?;
+        let b = rp.query("ACQ:BUF:SIZE?")?;
+        rp.buffer = match b.trim().parse::<usize>() {
+            Ok(v) if (2..=1 << 20).contains(&v) => v,
+            _ => return Err(rp.link.garbled("ACQ:BUF:SIZE?", b)),
+        };
+        for c in rp.opts.channels.inputs().into_iter().flatten() {
+            rp.command(&format!("ACQ:SOUR{c}:GAIN {}", rp.opts.gain.as_str()))?;
+        }
+        Ok(rp)
+    }
+
+    pub fn idn(&self) -> &str {
+        &self.idn
+    }
+
+    pub fn options(&self) -> &RedPitayaOptions {
+        &self.opts
+    }
+
+    /// Samples per input in the board's buffer (`ACQ:BUF:SIZE?`).
+    pub fn buffer_size(&self) -> usize {
+        self.buffer
+    }
+
+    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after`.
+    pub fn check_error(&mut self, after: &str) -> Result<(), DeviceError> {
+        let label = format!("SYST:ERR? (after `{after}`)");
+        self.link.send("SYST:ERR?").map_err(|e| e.during(&label))?;
+        let line = self
+            .link
+            .read_line(&label, self.opts.timeout)
+            .map_err(|e| e.during(&label))?;
+        match parse_scpi_error(&line) {
+            Some((0, _)) => Ok(()),
+            Some((code, message)) => Err(DeviceError::Controller {
+                device: self.link.device.clone(),
+                command: after.to_string(),
+                code,
+                message,
+            }),
+            None => Err(self.link.garbled(&label, line)),
+        }
+    }
+
+    /// Send a command without reply, then check the error queue.
+    pub fn command(&mut self, command: &str) -> Result<(), DeviceError> {
+        self.link.discard_input();
+        self.link.send(command)?;
+        self.check_error(command)
+    }
+
+    /// Send a query and read its reply line. On a timeout the error queue is asked once: a
+    /// rejected query gets no reply, and the queue says why.
+    pub fn query(&mut self, command: &str) -> Result<String, DeviceError> {
+        self.link.discard_input();
+        self.link.send(command)?;
+        match self.link.read_line(command, self.opts.timeout) {
+            Ok(l) => Ok(l),
+            Err(e @ DeviceError::Timeout { .. }) => match self.check_error(command) {
+                Err(c @ DeviceError::Controller { .. }) => Err(c),
+                _ => Err(e),
+            },
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Stop the acquisition after a fault, confirmed by the error query when the board still
+    /// answers (the error returned already says what failed).
+    fn stop_quietly(&mut self) {
+        self.armed = None;
+        self.running = false;
+        let _ = self.command("ACQ:STOP");
+    }
+
+    fn arm(&mut self, dec: u32, m: usize, source: &'static str) -> Result<(), DeviceError> {
+        if self.dec != Some(dec) {
+            self.dec = None;
+            self.command(&format!("ACQ:DEC {dec}"))?;
+            self.dec = Some(dec);
+        }
+        // record m samples after the trigger: the delay counts from the half buffer
+        let delay = m as i64 - (self.buffer / 2) as i64;
+        if self.delay != Some(delay) {
+            self.delay = None;
+            self.command(&format!("ACQ:TRIG:DLY {delay}"))?;
+            self.delay = Some(delay);
+        }
+        self.running = true;
+        self.command("ACQ:START")?;
+        self.command(&format!("ACQ:TRIG {source}"))?;
+        self.armed = Some(Armed { dec, m, source });
+        Ok(())
+    }
+
+    /// Poll `query` until it answers `done`; `wait` (the other legal reply) keeps polling until
+    /// `deadline`, anything else is garbled. Returns the last reply on timeout.
+    fn poll(
+        &mut self,
+        query: &str,
+        done: &str,
+        wait: &str,
+        deadline: Instant,
+    ) -> Result<Result<(), String>, DeviceError> {
+        loop {
+            let r = self.query(query)?;
+            let t = r.trim();
+            if t == done {
+                return Ok(Ok(()));
+            }
+            if t != wait {
+                return Err(self.link.garbled(query, r));
+            }
+            if Instant::now() >= deadline {
+                return Ok(Err(r));
+            }
+            std::thread::sleep(self.opts.poll);
+        }
+    }
+
+    /// Wait for the trigger (at most `trigger_timeout`) and the buffer, then read the mapped
+    /// inputs: volts per signal (Sx, Sy, Sz; None for an unmapped Sz).
+    fn collect(&mut self, trigger_timeout: Duration) -> Result<[Option<Vec<f64>>; 3], DeviceError> {
+        let Some(a) = self.armed else {
+            return Err(DeviceError::Other {
+                device: self.link.device.clone(),
+                detail: "read_buffered: nothing armed (call arm_buffered first)".into(),
+            });
+        };
+        let t0 = Instant::now();
+        match self.poll("ACQ:TRIG:STAT?", "TD", "WAIT", t0 + trigger_timeout)? {
+            Ok(()) => {}
+            Err(last) => {
+                return Err(DeviceError::Other {
+                    device: self.link.device.clone(),
+                    detail: format!(
+                        "no trigger within {} ms: `ACQ:TRIG:STAT?` still answers {last:?} (source {}; \
+                         acquisition stopped with ACQ:STOP){}",
+                        trigger_timeout.as_millis(),
+                        a.source,
+                        if a.source.starts_with("EXT") {
+                            ": is the controller's trigger output wired to DIO0_P (external trigger) of extension connector E1, and enabled?"
+                        } else {
+                            ""
+                        }
+                    ),
+                });
+            }
+        }
+        let acq = Duration::from_secs_f64(a.m as f64 / rate_at(a.dec));
+        std::thread::sleep(acq);
+        let fill_timeout = self.opts.timeout + acq;
+        match self.poll("ACQ:TRIG:FILL?", "1", "0", Instant::now() + fill_timeout)? {
+            Ok(()) => {}
+            Err(last) => {
+                return Err(DeviceError::Other {
+                    device: self.link.device.clone(),
+                    detail: format!(
+                        "buffer not filled {} ms after the trigger: `ACQ:TRIG:FILL?` still answers {last:?} \
+                         (acquisition stopped with ACQ:STOP)",
+                        fill_timeout.as_millis()
+                    ),
+                });
+            }
+        }
+        let r = self.query("ACQ:TPOS?")?;
+        let tpos = match r.trim().parse::<usize>() {
+            Ok(p) if p < self.buffer => p,
+            _ => return Err(self.link.garbled("ACQ:TPOS?", r)),
+        };
+        let mut out: [Option<Vec<f64>>; 3] = [None, None, None];
+        let timeout = self.opts.timeout + Duration::from_millis(a.m as u64 / 100);
+        for (i, c) in self.opts.channels.inputs().into_iter().enumerate() {
+            let Some(c) = c else { continue };
+            let cmd = format!("ACQ:SOUR{c}:DATA:STA:N? {tpos},{}", a.m);
+            self.link.discard_input();
+            self.link.send(&cmd)?;
+            let block = match self.link.read_block(&cmd, timeout) {
+                Ok(b) => b,
+                Err(e @ DeviceError::Timeout { .. }) => {
+                    return match self.check_error(&cmd) {
+                        Err(c @ DeviceError::Controller { .. }) => Err(c),
+                        _ => Err(e),
+                    }
+                }
+                Err(e) => return Err(e),
+            };
+            if block.len() != 4 * a.m {
+                return Err(self.link.garbled(
+                    &cmd,
+                    format!(
+                        "{} bytes of data, expected {} ({} float32 samples)",
+                        block.len(),
+                        4 * a.m,
+                        a.m
+                    ),
+                ));
+            }
+            let v: Vec<f64> = block
+                .chunks_exact(4)
+                .map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]) as f64)
+                .collect();
+            if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                return Err(self.link.garbled(
+                    &cmd,
+                    format!("sample {k} is {} (not a finite voltage)", v[k]),
+                ));
+            }
+            out[i] = Some(v);
+        }
+        self.check_error("ACQ:SOUR<n>:DATA:STA:N?")?;
+        self.running = false;
+        self.last = self.armed.take();
+        Ok(out)
+    }
+
+    /// Volts → calibrated signal for signal `i` (0 = Sx, 1 = Sy, 2 = Sz).
+    fn to_signal(&self, i: usize, v: f64) -> f64 {
+        let c = &self.opts.calibration;
+        c.gain[i] * (v - c.offset_v[i])
+    }
+
+    fn err_other(&self, detail: String) -> DeviceError {
+        DeviceError::Other {
+            device: self.link.device.clone(),
+            detail,
+        }
+    }
+}
+
+/// Mean and sample standard deviation (0 for fewer than 2 samples).
+fn mean_std(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    if v.len() < 2 {
+        return (mean, 0.0);
+    }
+    let var = v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1.0);
+    (mean, var.sqrt())
+}
+
+impl Qpd for RedPitaya {
+    fn name(&self) -> String {
+        self.link.device.clone()
+    }
+
+    fn sample_rate(&self) -> f64 {
+        self.opts.sample_rate_hz
+    }
+
+    fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        let window = n as f64 / self.opts.sample_rate_hz;
+        let (dec, m) = point_plan(window, self.buffer).map_err(|e| {
+            self.err_other(format!("read({n}) at {} Hz: {e}", self.opts.sample_rate_hz))
+        })?;
+        let r = self
+            .arm(dec, m, "NOW")
+            .and_then(|()| self.collect(self.opts.timeout));
+        let v = match r {
+            Ok(v) => v,
+            Err(e) => {
+                self.stop_quietly();
+                return Err(e);
+            }
+        };
+        let mut mean = [0.0; 3];
+        let mut std = [0.0; 3];
+        for (i, ch) in v.iter().enumerate() {
+            if let Some(s) = ch {
+                let (m_v, s_v) = mean_std(s);
+                mean[i] = m_v;
+                std[i] = s_v;
+            } else {
+                // not digitised: 0 signal, whatever the calibration offset
+                mean[i] = self.opts.calibration.offset_v[i];
+            }
+        }
+        Ok(self.opts.calibration.apply(mean, std, m))
+    }
+
+    fn metadata(&self) -> Option<serde_json::Value> {
+        Some(serde_json::json!({
+            "idn": self.idn,
+            "buffer_samples": self.buffer,
+            "channels": self.opts.channels,
+            "input_gain": self.opts.gain.as_str(),
+            "last_acquisition": self.last.map(|a| serde_json::json!({
+                "decimation": a.dec,
+                "sample_rate_hz": rate_at(a.dec),
+                "samples": a.m,
+                "trigger": a.source,
+            })),
+        }))
+    }
+
+    fn arm_buffered(
+        &mut self,
+        n_samples: usize,
+        sample_rate: f64,
+        trigger: Trigger,
+    ) -> Result<BufferedArm, DeviceError> {
+        let (dec, m) = buffered_plan(n_samples, sample_rate, self.buffer)
+            .map_err(|e| self.err_other(format!("arm_buffered: {e}")))?;
+        let source = match trigger {
+            Trigger::Now => "NOW",
+            Trigger::ExternalRising => "EXT_PE",
+            Trigger::ExternalFalling => "EXT_NE",
+        };
+        if let Err(e) = self.arm(dec, m, source) {
+            self.stop_quietly();
+            return Err(e);
+        }
+        Ok(BufferedArm {
+            n_samples: m,
+            sample_rate: rate_at(dec),
+        })
+    }
+
+    fn read_buffered(&mut self, timeout: Duration) -> Result<BufferedTrace, DeviceError> {
+        let dec = self.armed.map(|a| a.dec);
+        let v = match self.collect(timeout) {
+            Ok(v) => v,
+            Err(e) => {
+                self.stop_quietly();
+                return Err(e);
+            }
+        };
+        let dt = dec.map_or(0.0, |d| 1.0 / rate_at(d));
+        let conv = |s: &Self, i: usize, ch: &Option<Vec<f64>>, n: usize| match ch {
+            Some(v) => v.iter().map(|&x| s.to_signal(i, x)).collect(),
+            None => vec![0.0; n],
+        };
+        let n = v[0].as_ref().map_or(0, Vec::len);
+        Ok(BufferedTrace {
+            t0_s: 0.0,
+            dt_s: dt,
+            sx: conv(self, 0, &v[0], n),
+            sy: conv(self, 1, &v[1], n),
+            sz: conv(self, 2, &v[2], n),
+            sz_measured: v[2].is_some(),
+        })
+    }
+
+    fn stop_buffered(&mut self) -> Result<(), DeviceError> {
+        self.armed = None;
+        self.running = false;
+        self.command("ACQ:STOP")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn point_plan_fits_the_buffer() {
+        // 1 ms: 125 000 samples at full rate → decimation 8 (15625 samples, 131 µs·8 = 1.05 ms)
+        assert_eq!(point_plan(1e-3, 16384), Ok((8, 15625)));
+        // exactly one full buffer at decimation 1
+        assert_eq!(point_plan(16384.0 / 125e6, 16384), Ok((1, 16384)));
+        // a hair longer needs decimation 2
+        assert_eq!(point_plan(16385.0 / 125e6, 16384).unwrap().0, 2);
+        // the longest window: 16384 · 65536 / 125 MHz = 8.589934592 s
+        assert_eq!(point_plan(8.589934592, 16384), Ok((65536, 16384)));
+        let e = point_plan(9.0, 16384).unwrap_err();
+        assert!(e.contains("9 s") && e.contains("8.590 s"), "{e}");
+        assert!(point_plan(0.0, 16384).unwrap_err().contains("0 s"));
+        assert!(point_plan(f64::NAN, 16384).is_err());
+        // a very short window still reads one sample
+        assert_eq!(point_plan(1e-12, 16384), Ok((1, 1)));
+    }
+
+    #[test]
+    fn buffered_plan_rate_and_length() {
+        // 100 kHz asked: 125 MHz / 1024 = 122.07 kHz is the slowest rate ≥ 100 kHz
+        let (d, m) = buffered_plan(100, 1e5, 16384).unwrap();
+        assert_eq!(d, 1024);
+        assert_eq!(m, (1e-3 * 125e6 / 1024.0_f64).ceil() as usize); // 123
+                                                                    // exact rates stay exact
+        assert_eq!(buffered_plan(1000, 125e6 / 64.0, 16384), Ok((64, 1000)));
+        // a line too long for the buffer at the asked rate is decimated further
+        let (d, m) = buffered_plan(40_000, 125e6 / 64.0, 16384).unwrap();
+        assert_eq!(d, 256);
+        assert_eq!(m, 10_000);
+        assert!(buffered_plan(0, 1e5, 16384)
+            .unwrap_err()
+            .contains("n_samples 0"));
+        assert!(buffered_plan(10, 2e8, 16384)
+            .unwrap_err()
+            .contains("sample_rate"));
+        assert!(buffered_plan(10, -1.0, 16384).is_err());
+    }
+
+    #[test]
+    fn channel_map_checks() {
+        assert!(ChannelMap::default().check().is_ok());
+        let bad = ChannelMap {
+            sx: 1,
+            sy: 1,
+            sz: None,
+        };
+        assert_eq!(bad.check().unwrap_err().0, "sy");
+        let bad = ChannelMap {
+            sx: 1,
+            sy: 2,
+            sz: Some(5),
+        };
+        let (k, m) = bad.check().unwrap_err();
+        assert_eq!(k, "sz");
+        assert!(m.contains("input 5"), "{m}");
+    }
+
+    #[test]
+    fn mean_std_of_known_values() {
+        assert_eq!(mean_std(&[1.0, 3.0]), (2.0, 2f64.sqrt()));
+        assert_eq!(mean_std(&[5.0]), (5.0, 0.0));
+    }
+}
