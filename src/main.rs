@@ -75,6 +75,14 @@ enum Cmd {
         /// The emulated stage answers a query naming several axes for the first one only
         #[arg(long)]
         one_axis_per_query: bool,
+        /// Baud rate of the modelled serial links (10 bits per byte, both ways); `max` (or 0):
+        /// the pseudo-terminal's full speed
+        #[arg(long, default_value = "115200", value_name = "RATE")]
+        baud: String,
+        /// Reply latency of the modelled links, ms (from the end of a command to the start of
+        /// its reply; a USB-serial bridge adds about 1 ms)
+        #[arg(long, default_value_t = 1.0, value_name = "MS")]
+        latency_ms: f64,
     },
     /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
     /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
@@ -256,12 +264,19 @@ fn main() -> ExitCode {
         scene,
         tcp,
         one_axis_per_query,
+        baud,
+        latency_ms,
     }) = &cli.cmd
     {
+        let link = match bfpscope::instrument::emulator::parse_link(baud, *latency_ms) {
+            Ok(l) => l,
+            Err(e) => return usage_error(&e),
+        };
         // the emulators install their own Ctrl-C handler (stop serving)
         let opts = bfpscope::instrument::emulator::EmulateOptions {
             tcp: tcp.clone(),
             one_axis_per_query: *one_axis_per_query,
+            link,
         };
         return emulate(device, scene.as_deref(), &opts);
     }

@@ -172,10 +172,17 @@ pub trait Stage: Send {
             detail: format!("`{query}`: this stage has no command language to query"),
         })
     }
-    /// Time a move takes before it returns, when the device model knows it (the simulated stage),
-    /// for the scan ETA; 0 when unknown (hardware returns on target, the settle time follows).
+    /// Time a move takes before it returns, for the scan ETA: the simulated stage's model, or
+    /// the running mean of the moves measured so far (PI GCS: `MOV` to on target, link
+    /// included); 0 when unknown.
     fn move_time_s(&self) -> f64 {
         0.0
+    }
+    /// What each kind of command cost on the device's link since the last call (count, bytes,
+    /// write and reply time), for the scan's per-phase timing; empty for backends without a
+    /// command link.
+    fn link_costs(&mut self) -> link::LinkCosts {
+        Vec::new()
     }
 }
 
@@ -191,6 +198,15 @@ pub trait Qpd: Send {
     /// (stages built and the wall time spent in each); hardware reports nothing extra.
     fn metadata(&self) -> Option<serde_json::Value> {
         None
+    }
+    /// Wall time a read takes beyond its samples' n / rate (the link, the device's reply), s:
+    /// the running mean of the reads so far, for the scan ETA; 0 when unknown.
+    fn overhead_s(&self) -> f64 {
+        0.0
+    }
+    /// As [`Stage::link_costs`].
+    fn link_costs(&mut self) -> link::LinkCosts {
+        Vec::new()
     }
 }
 
