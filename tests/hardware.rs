@@ -1426,7 +1426,15 @@ fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
         "{}",
         cmds.len()
     );
-    assert!(e.qpd.commands().iter().any(|c| c == "MEAS:QPD:STAT?"));
+    // one measurement per pixel, of the means the scan stores
+    assert_eq!(
+        e.qpd
+            .commands()
+            .iter()
+            .filter(|c| *c == "MEAS:QPD?")
+            .count(),
+        81
+    );
 }
 
 #[test]
@@ -2243,7 +2251,7 @@ fn motion_is_polled_with_the_single_byte_5_and_a_garbled_reply_stops_the_scan() 
     se.faults().settle_s = Some(0.0);
     let before = se.commands().len();
     se.faults().error_after = None;
-    let limits2 = limits.clone();
+    let limits2 = limits;
     let stage_path = se.path().to_string();
     // garble the reply to the 2nd point's `#5` (commands: TMN?, TMX?, MOV, #5, ERR?, MOV, #5)
     let garbler = {
@@ -2337,7 +2345,9 @@ fn a_scan_on_the_emulators_records_where_its_time_went() {
     );
     // the averaging count is set once (with its SYST:ERR?), for the first of the 5 points
     let qpd = &p["qpd_link"];
-    assert_eq!(qpd["MEAS:QPD:STAT?"]["per_point"], 1.0);
+    // (the means only: `MEAS:QPD?`, though `statistics` is on for `qpd()` readings)
+    assert_eq!(qpd["MEAS:QPD?"]["per_point"], 1.0);
+    assert!(qpd.get("MEAS:QPD:STAT?").is_none(), "{p}");
     assert_eq!(qpd["SYST:ERR?"]["per_point"], 0.2);
     // bytes: "MOV 1 -0.400000\n" is 16 (twice), "MOV 1 0.000000\n" 15 (three times);
     // "ERR?\n" + "0\n" 7; 0x05 + "0\n" 3 per #5

@@ -341,7 +341,8 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         inst.clock.wait(inst.settle_s);
         phases.settle_s += t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
-        let read = inst.qpd.read(n_samples);
+        // the scan stores the means only: the device may send less (SCPI: `MEAS:QPD?`)
+        let read = inst.qpd.read_means(n_samples);
         phases.qpd_s += t.elapsed().as_secs_f64();
         match read {
             Ok(r) => {

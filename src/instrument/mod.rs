@@ -194,6 +194,13 @@ pub trait Qpd: Send {
     /// Average `n` samples of (Sx, Sy, Sz). The read itself takes the time it takes: the
     /// simulated QPD advances the virtual clock by `n / sample_rate`.
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError>;
+    /// As `read`, for a caller that uses the means only (the scan engine stores Sx, Sy, Sz per
+    /// pixel, not their standard deviations): a device may then ask for less (the SCPI
+    /// digitiser: `MEAS:QPD?`, three numbers, instead of six). The standard deviations of the
+    /// result may be 0.
+    fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        self.read(n)
+    }
     /// What produced the signal, for scan metadata: the simulator reports its render pipeline
     /// (stages built and the wall time spent in each); hardware reports nothing extra.
     fn metadata(&self) -> Option<serde_json::Value> {

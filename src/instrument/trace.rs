@@ -183,6 +183,9 @@ impl Qpd for TracedQpd {
     fn overhead_s(&self) -> f64 {
         self.inner.overhead_s()
     }
+    fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        self.read(n)
+    }
     fn link_costs(&mut self) -> super::link::LinkCosts {
         self.inner.link_costs()
     }
