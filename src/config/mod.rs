@@ -186,7 +186,7 @@ impl Default for StageConfig {
             baud: 115_200,
             timeout_ms: 1000,
             on_target_timeout_ms: 5000,
-            poll_ms: 1,
+            poll_ms: 5,
             motion_status: true,
             axes: AxisMap::default(),
             servo_on_connect: true,

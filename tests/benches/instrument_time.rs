@@ -2,8 +2,8 @@
 //! through the real GCS and SCPI drivers, dwell 10 ms and 1 ms, settle 5 ms, on a modelled
 //! 115200-baud link with 1 ms reply latency and at the pseudo-terminal's full speed; "before"
 //! is the protocol of the drivers before issue 20 reproduced by their options (`ONT?` polled
-//! every 5 ms, `MEAS:QPD:STAT?` and `SYST:ERR?` after every measurement), "after" the defaults
-//! (`#5` polled every 1 ms, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
+//! every 5 ms, `MEAS:QPD:STAT?` and `SYST:ERR?` after every measurement), "after" the new
+//! defaults with a 1 ms polling interval (`stage.poll_ms = 1`; the default stays 5 ms) (`#5`, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
 //! scan stores, no `SYST:ERR?` after a well-formed reading).
 //! Prints a Markdown table (ms per point against settle + dwell, and the per-phase split from
 //! `meta.time.phases`) for docs/performance.md.

@@ -167,7 +167,15 @@ pub fn serve_emulators(
         return serve_apt(kind, source, out, stop);
     }
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
-    stage_cfg.link = opts.link;
+    // TCP has no baud rate: the stage's link keeps only the latency there
+    stage_cfg.link = if opts.tcp.is_some() {
+        LinkModel {
+            baud: None,
+            ..opts.link
+        }
+    } else {
+        opts.link
+    };
     let mut qpd_cfg = qpd_cfg;
     qpd_cfg.link = opts.link;
     let stage_desc = format!(
@@ -181,7 +189,7 @@ pub fn serve_emulators(
         } else {
             ""
         },
-        opts.link.describe()
+        stage_cfg.link.describe()
     );
     let qpd_desc = format!(
         "SCPI QPD digitiser ({} Hz, {:?} V per signal unit, {})",

@@ -188,7 +188,7 @@ impl LinkModel {
         match self.baud {
             None if self.latency.is_zero() => "pseudo-terminal full speed".into(),
             None => format!(
-                "full speed, {} ms latency",
+                "no baud limit, {} ms latency",
                 self.latency.as_secs_f64() * 1e3
             ),
             Some(b) => format!("{b} baud, {} ms latency", self.latency.as_secs_f64() * 1e3),
