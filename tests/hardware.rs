@@ -2247,51 +2247,41 @@ fn motion_is_polled_with_the_single_byte_5_and_a_garbled_reply_stops_the_scan() 
     );
     assert_eq!(sent.iter().filter(|c| c.starts_with("MOV ")).count(), 5);
     assert_eq!(sent.iter().filter(|c| *c == "ERR?").count(), 5);
-    // a garbled `#5` reply mid-scan: a stage fault naming `#5` and the reply, then STP only
+    // a garbled `#5` reply mid-scan: a stage fault naming `#5` and the reply, then STP only.
+    // Settling at once, the scan sends TMN?, TMX?, then per point MOV, #5, ERR?: the 7th
+    // command is the 2nd point's #5.
     se.faults().settle_s = Some(0.0);
+    se.faults().garble_after = Some(6);
     let before = se.commands().len();
-    se.faults().error_after = None;
-    let limits2 = limits;
-    let stage_path = se.path().to_string();
-    // garble the reply to the 2nd point's `#5` (commands: TMN?, TMX?, MOV, #5, ERR?, MOV, #5)
-    let garbler = {
-        let se_faults = &se;
-        move || {
-            while se_faults.commands().len() < before + 6 {
-                std::thread::yield_now();
-            }
-            se_faults.faults().garble_replies = 1;
+    let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, false), &limits);
+    let r = r.unwrap();
+    match &r.ended {
+        Ended::Failed {
+            error:
+                DeviceError::Garbled {
+                    device,
+                    command,
+                    reply,
+                },
+            stage_fault: true,
+            measured: 1,
+        } => {
+            assert!(device.contains(se.path()), "{device}");
+            assert_eq!(command, "#5");
+            assert_eq!(reply, "\u{fffd}#");
         }
-    };
-    std::thread::scope(|sc| {
-        sc.spawn(garbler);
-        let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, false), &limits2);
-        let r = r.unwrap();
-        match &r.ended {
-            Ended::Failed {
-                error:
-                    DeviceError::Garbled {
-                        device,
-                        command,
-                        reply,
-                    },
-                stage_fault: true,
-                measured,
-            } => {
-                assert!(device.contains(&stage_path), "{device}");
-                assert_eq!(command, "#5");
-                assert!(reply.starts_with('\u{fffd}'), "{reply:?}");
-                assert!(*measured <= 2, "{measured}");
-            }
-            other => panic!("{other:?}"),
-        }
-        assert!(r.summary().unwrap_err().contains("garbled reply to `#5`"));
-        assert_eq!(saved[0].status, ScanStatus::Failed);
-        std::thread::sleep(Duration::from_millis(50));
-        let sent = se.commands()[before..].to_vec();
-        let i = sent.iter().rposition(|c| c == "#5").unwrap();
-        assert_eq!(&sent[i + 1..], ["STP", "ERR?"], "{sent:?}");
-    });
+        other => panic!("{other:?}"),
+    }
+    assert!(r.summary().unwrap_err().contains("garbled reply to `#5`"));
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    std::thread::sleep(Duration::from_millis(50));
+    let sent = se.commands()[before..].to_vec();
+    assert_eq!(sent.len(), 9, "{sent:?}");
+    assert_eq!(
+        &sent[5..],
+        ["MOV 1 -0.200000", "#5", "STP", "ERR?"],
+        "{sent:?}"
+    );
 }
 
 #[test]

@@ -111,6 +111,9 @@ pub struct Faults {
     /// APT emulators: serve n more messages, then go silent (a device that stops answering
     /// at a chosen point of a scan).
     pub silent_after: Option<usize>,
+    /// `Some(n)`: serve n more commands normally, then garble the reply to the next one (as
+    /// `garble_replies = 1` then): a garbled reply at a chosen point of a scan.
+    pub garble_after: Option<usize>,
     /// Text emulators: end every reply line with CR LF instead of LF (controllers and
     /// USB–serial bridges that do; the driver must read the same values).
     pub crlf: bool,
@@ -130,6 +133,7 @@ impl Default for Faults {
             servo_trip_next_move: false,
             apt_unsolicited: 0,
             silent_after: None,
+            garble_after: None,
             crlf: false,
         }
     }
@@ -577,6 +581,14 @@ impl<D: Device> Serve<D> {
                 }
             } else if let Some((n, code)) = f.error_after {
                 f.error_after = Some((n - 1, code));
+            }
+            match f.garble_after {
+                Some(0) => {
+                    f.garble_after = None;
+                    f.garble_replies += 1;
+                }
+                Some(n) => f.garble_after = Some(n - 1),
+                None => {}
             }
             let inject = if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
