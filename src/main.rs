@@ -83,6 +83,14 @@ enum Cmd {
         /// `redpitaya`: 2 fast inputs (STEMlab 125-14, default) or 4 (its 4-input model, Sz on IN3)
         #[arg(long, value_name = "N")]
         inputs: Option<usize>,
+        /// Baud rate of the modelled serial links (10 bits per byte, both ways); `max` (or 0):
+        /// the pseudo-terminal's full speed
+        #[arg(long, default_value = "115200", value_name = "RATE")]
+        baud: String,
+        /// Reply latency of the modelled links, ms (from the end of a command to the start of
+        /// its reply; a USB-serial bridge adds about 1 ms)
+        #[arg(long, default_value_t = 1.0, value_name = "MS")]
+        latency_ms: f64,
     },
     /// Measure what accuracy costs in time (every knob, instrument-time trade-off, benchmark
     /// summary) and write OUT/accuracy.md and OUT/accuracy/*.png
@@ -274,14 +282,21 @@ fn main() -> ExitCode {
         one_axis_per_query,
         port,
         inputs,
+        baud,
+        latency_ms,
     }) = &cli.cmd
     {
+        let link = match bfpscope::instrument::emulator::parse_link(baud, *latency_ms) {
+            Ok(l) => l,
+            Err(e) => return usage_error(&e),
+        };
         // the emulators install their own Ctrl-C handler (stop serving)
         let opts = bfpscope::instrument::emulator::EmulateOptions {
             tcp: tcp.clone(),
             one_axis_per_query: *one_axis_per_query,
             port: *port,
             inputs: inputs.unwrap_or(0),
+            link,
         };
         return emulate(device, scene.as_deref(), &opts);
     }

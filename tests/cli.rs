@@ -403,7 +403,7 @@ fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() 
     }
     let line = text.lines().find(|l| l.starts_with("stage:")).unwrap();
     assert!(
-        line.starts_with("stage: PI GCS 2.0 stage (axes 1 2 3, travel -37.5–37.5 × -37.5–37.5 × -25–25 µm, servo off, one axis per query) on tcp://127.0.0.1:"),
+        line.starts_with("stage: PI GCS 2.0 stage (axes 1 2 3, travel -37.5–37.5 × -37.5–37.5 × -25–25 µm, servo off, one axis per query, no baud limit, 1 ms latency) on tcp://127.0.0.1:"),
         "{text}"
     );
     let url = line.rsplit(" on ").next().unwrap().to_string();

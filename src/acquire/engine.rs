@@ -4,12 +4,15 @@
 //! 1. Read the start position; pre-flight the whole plan against the soft limits (narrowed to
 //!    the stage's travel range), the step-size rule and the speed limit (distance between
 //!    consecutive points / (settle + dwell), see `limits`). A refused plan moves nothing.
-//! 2. Print the ETA (settle + dwell per point), show a progress bar when stderr is a terminal.
+//! 2. Print the ETA (settle + dwell per point, plus the move and QPD link times measured so
+//!    far on hardware), show a progress bar when stderr is a terminal.
 //! 3. Visit the points; before each one look at the abort flag (Ctrl-C): stop at the next point.
 //! 4. Relative plans return to the start — after completion, after an abort and after a QPD
 //!    error. After a **stage** error the stage is not commanded again (not even to return).
 //! 5. Keep partial data (unmeasured pixels NaN) with status `aborted` / `failed`, attach the
-//!    metadata and autosave — always, also after an abort or a device error.
+//!    metadata and autosave — always, also after an abort or a device error. On a real-time
+//!    instrument the metadata has `time.phases`: milliseconds per point spent moving, settling
+//!    and reading the QPD, and per command what the links carried (printed as one line).
 
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
@@ -251,15 +254,18 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let speed = limits
         .check_speed(&kind, &points, inst.settle_s, dwell_s)
         .map_err(|e| ScanError::Refused(e.0))?;
+    // the move time (the simulator's model, or the mean of the moves measured so far on
+    // hardware, link included) and the QPD's measured time beyond its samples (link, reply)
     let move_s = inst.stage.move_time_s();
-    let eta = plan.eta_s(inst.settle_s + move_s, dwell_s);
+    let read_extra_s = inst.qpd.overhead_s();
+    let eta = plan.eta_s(inst.settle_s + move_s + read_extra_s, dwell_s);
     let clock_kind = if inst.clock.is_virtual() {
         "simulated"
     } else {
         "real"
     };
     (env.log)(&format!(
-        "{}: {} points, {}settle {} + dwell {} per point: ETA {} ({clock_kind} time)",
+        "{}: {} points, {}settle {} + dwell {}{} per point: ETA {} ({clock_kind} time)",
         plan.describe(),
         points.len(),
         if move_s > 0.0 {
@@ -269,6 +275,11 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         },
         fmt_seconds(inst.settle_s),
         fmt_seconds(n_samples as f64 / rate),
+        if read_extra_s > 0.0 {
+            format!(" + QPD link {}", fmt_seconds(read_extra_s))
+        } else {
+            String::new()
+        },
         fmt_seconds(eta)
     ));
 
@@ -328,6 +339,10 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let mut pauses: Vec<Value> = vec![];
     let mut paused_wall = 0.0;
     let mut at = start;
+    // per-phase wall time of the points (real-time clocks), and the links' costs from here on
+    let mut phases = Phases::default();
+    let _ = (inst.stage.link_costs(), inst.qpd.link_costs());
+    let loop0 = std::time::Instant::now();
     for p in &points {
         if env.abort.swap(false, Ordering::SeqCst) {
             let resume = env.pause.is_some_and(|ask| {
@@ -357,7 +372,10 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                 points.len()
             ));
         }
-        if let Err(error) = inst.move_settle(p.target) {
+        let t = std::time::Instant::now();
+        let moved = inst.stage.move_to(p.target);
+        phases.move_s += t.elapsed().as_secs_f64();
+        if let Err(error) = moved {
             ended = Ended::Failed {
                 measured,
                 error,
@@ -365,7 +383,14 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             };
             break;
         }
-        match inst.qpd.read(n_samples) {
+        let t = std::time::Instant::now();
+        inst.clock.wait(inst.settle_s);
+        phases.settle_s += t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        // the scan stores the means only: the device may send less (SCPI: `MEAS:QPD?`)
+        let read = inst.qpd.read_means(n_samples);
+        phases.qpd_s += t.elapsed().as_secs_f64();
+        match read {
             Ok(r) => {
                 sx[[p.row, p.col]] = r.sx;
                 sy[[p.row, p.col]] = r.sy;
@@ -400,9 +425,18 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             }
         }
     }
+    phases.loop_s = loop0.elapsed().as_secs_f64() - paused_wall;
+    phases.points = measured;
+    phases.dwell_s = dwell_s;
+    phases.stage_link = inst.stage.link_costs();
+    phases.qpd_link = inst.qpd.link_costs();
     bar.finish_and_clear();
     if let Some(o) = env.observer {
         batch.flush(o);
+    }
+    let phases_json = (!inst.clock.is_virtual() && measured > 0).then(|| phases.to_json());
+    if let Some(line) = phases_json.as_ref().and_then(|j| phase_summary(&kind, j)) {
+        (env.log)(&line);
     }
 
     let stage_fault = matches!(
@@ -465,6 +499,9 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     if !pauses.is_empty() {
         meta["pauses"] = Value::Array(pauses);
     }
+    if let Some(j) = phases_json {
+        meta["time"]["phases"] = j;
+    }
     if let Ended::Failed {
         error, stage_fault, ..
     } = &ended
@@ -506,6 +543,103 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         ended,
         returned_to_start: returned,
     })
+}
+
+/// Wall time of a scan's points by phase (real-time instruments), and what the links carried.
+#[derive(Default)]
+struct Phases {
+    points: usize,
+    /// The loop over the points, s.
+    loop_s: f64,
+    /// `move_to` (PI: `MOV`, `ERR?`, motion polling until on target), s, summed.
+    move_s: f64,
+    /// The settle wait, s, summed.
+    settle_s: f64,
+    /// QPD reads (command, acquisition, reply), s, summed.
+    qpd_s: f64,
+    /// Acquisition time per read, samples / rate, s.
+    dwell_s: f64,
+    stage_link: crate::instrument::link::LinkCosts,
+    qpd_link: crate::instrument::link::LinkCosts,
+}
+
+impl Phases {
+    /// `meta.time.phases`: milliseconds per point for each phase; per command word the count,
+    /// bytes (both ways), write and reply milliseconds per point.
+    fn to_json(&self) -> Value {
+        let n = self.points.max(1) as f64;
+        let ms = |s: f64| s / n * 1e3;
+        let link = |costs: &crate::instrument::link::LinkCosts| {
+            let mut m = serde_json::Map::new();
+            for (w, c) in costs {
+                m.insert(
+                    w.clone(),
+                    json!({
+                        "per_point": c.n as f64 / n,
+                        "bytes_per_point": (c.bytes_out + c.bytes_in) as f64 / n,
+                        "write_ms": ms(c.write_s),
+                        "reply_ms": ms(c.reply_s),
+                    }),
+                );
+            }
+            Value::Object(m)
+        };
+        let bytes: u64 = self
+            .stage_link
+            .iter()
+            .chain(&self.qpd_link)
+            .map(|(_, c)| c.bytes_out + c.bytes_in)
+            .sum();
+        let per_point = ms(self.loop_s);
+        json!({
+            "points": self.points,
+            "per_point_ms": per_point,
+            "move_ms": ms(self.move_s),
+            "settle_ms": ms(self.settle_s),
+            "qpd_ms": ms(self.qpd_s),
+            "dwell_ms": self.dwell_s * 1e3,
+            "qpd_beyond_dwell_ms": ms(self.qpd_s) - self.dwell_s * 1e3,
+            "other_ms": per_point - ms(self.move_s + self.settle_s + self.qpd_s),
+            "stage_link": link(&self.stage_link),
+            "qpd_link": link(&self.qpd_link),
+            "link_bytes_per_point": bytes as f64 / n,
+        })
+    }
+}
+
+/// One line for the operator from `meta.time.phases`: where the time per point went.
+pub fn phase_summary(kind: &str, p: &Value) -> Option<String> {
+    let f = |k: &str| p[k].as_f64();
+    let cmds = |k: &str| -> String {
+        p[k].as_object()
+            .map(|m| {
+                m.iter()
+                    .map(|(w, c)| {
+                        format!(
+                            "{w} {:.2}× {:.2} ms",
+                            c["per_point"].as_f64().unwrap_or(0.0),
+                            c["write_ms"].as_f64().unwrap_or(0.0)
+                                + c["reply_ms"].as_f64().unwrap_or(0.0)
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            })
+            .unwrap_or_default()
+    };
+    Some(format!(
+        "{kind}: {} points, {:.2} ms per point = move {:.2} ms [{}] + settle {:.2} ms + QPD {:.2} ms (dwell {:.2} ms) [{}] + other {:.2} ms; links {:.0} bytes per point",
+        p["points"].as_u64()?,
+        f("per_point_ms")?,
+        f("move_ms")?,
+        cmds("stage_link"),
+        f("settle_ms")?,
+        f("qpd_ms")?,
+        f("dwell_ms")?,
+        cmds("qpd_link"),
+        f("other_ms")?,
+        f("link_bytes_per_point")?,
+    ))
 }
 
 /// Move to an absolute target after checking it against the soft limits (narrowed to the

@@ -163,8 +163,11 @@ pub struct StageConfig {
     pub timeout_ms: u64,
     /// Longest wait for on-target after a move, ms.
     pub on_target_timeout_ms: u64,
-    /// `ONT?` polling interval, ms.
+    /// Interval between motion polls (`#5`, or `ONT?`) after a move, ms.
     pub poll_ms: u64,
+    /// Poll the end of a move with PI's single-character `#5` (falls back to `ONT?` on a
+    /// controller without it); false: always `ONT?`.
+    pub motion_status: bool,
     pub axes: AxisMap,
     /// Switch the closed-loop servos on at connect.
     pub servo_on_connect: bool,
@@ -195,6 +198,7 @@ impl Default for StageConfig {
             timeout_ms: 1000,
             on_target_timeout_ms: 5000,
             poll_ms: 5,
+            motion_status: true,
             axes: AxisMap::default(),
             servo_on_connect: true,
             units_per_um: 1.0,
@@ -773,6 +777,7 @@ impl Config {
             servo_on_connect: s.servo_on_connect,
             units_per_um: s.units_per_um,
             one_axis_per_query: s.one_axis_per_query,
+            motion_status: s.motion_status,
         }
     }
 
@@ -865,6 +870,7 @@ impl Config {
             timeout: Duration::from_millis(self.qpd.timeout_ms),
             calibration: self.qpd.calibration,
             statistics: self.qpd.statistics,
+            ..ScpiOptions::default()
         }
     }
 }

@@ -89,6 +89,11 @@ pub struct GcsOptions {
     /// naming several axes for the first one only. Also switched on at connect when the
     /// controller answers the several-axis `SVO?` that way.
     pub one_axis_per_query: bool,
+    /// Wait for the end of a move with PI's single-character `#5` (motion status: one byte
+    /// out, a hexadecimal bit mask of the moving axes back) instead of `ONT? 1 2 3`. A
+    /// controller without `#5` (it sets error 2 and does not answer) is asked `ONT?` from then
+    /// on. False: always `ONT?`.
+    pub motion_status: bool,
 }
 
 /// `[Some("1"), Some("2"), Some("3")]` from `["1", "2", "3"]`.
@@ -106,6 +111,7 @@ impl Default for GcsOptions {
             servo_on_connect: true,
             units_per_um: 1.0,
             one_axis_per_query: false,
+            motion_status: true,
         }
     }
 }
@@ -131,6 +137,33 @@ pub struct GcsStage {
     /// (at connect, after a stop), then kept. PI defines relative moves (`MVR`) on the target,
     /// not on the measured position; untouched axes are never re-commanded.
     commanded: Option<Vec<f64>>,
+    /// `#5` answered (`Some(true)`), refused (`Some(false)`: `ONT?` is polled), or not tried.
+    motion_status: Option<bool>,
+    /// A `MOV` was sent without its `ERR?`: the wait for the end of the move reads it (see
+    /// [`GcsStage::move_no_wait`]).
+    error_check_pending: bool,
+    /// Wall time of recent moves (MOV to on target), s: a running mean for the scan ETA.
+    move_time: MeanTime,
+}
+
+/// A running mean of durations (exponential, weight 1/8 for the newest), for ETAs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MeanTime(Option<f64>);
+
+impl MeanTime {
+    /// Add one measured duration, s.
+    pub fn add(&mut self, s: f64) {
+        if s.is_finite() && s >= 0.0 {
+            self.0 = Some(match self.0 {
+                None => s,
+                Some(m) => m + (s - m) / 8.0,
+            });
+        }
+    }
+    /// The mean, s (0 before the first).
+    pub fn get(&self) -> f64 {
+        self.0.unwrap_or(0.0)
+    }
 }
 
 /// `ONT?` polls between two `ERR?` while waiting for a move to end.
@@ -193,6 +226,9 @@ impl GcsStage {
             sai: Vec::new(),
             servo_at_connect: Vec::new(),
             commanded: None,
+            motion_status: None,
+            error_check_pending: false,
+            move_time: MeanTime::default(),
         };
         s.check_axes()?;
         let idn = s.query_lines("*IDN?")?.join(" ");
@@ -579,8 +615,15 @@ impl GcsStage {
         let t0 = Instant::now();
         let mut polls = 0usize;
         loop {
-            let ont = self.query_axes("ONT?", parse_bool)?;
+            let (ont, via) = self.poll_motion()?;
             if ont.iter().all(|&b| b) {
+                if std::mem::take(&mut self.error_check_pending) {
+                    let code = self.error_code(after)?;
+                    if code != 0 {
+                        self.commanded = None;
+                        return Err(self.controller_error(after, code));
+                    }
+                }
                 return Ok(true);
             }
             if abort.is_some_and(|a| a.load(Ordering::SeqCst)) {
@@ -594,6 +637,8 @@ impl GcsStage {
             if timed_out || polls.is_multiple_of(ERR_POLL_EVERY) {
                 let code = self.error_code(after)?;
                 if code != 0 {
+                    self.error_check_pending = false;
+                    self.commanded = None;
                     return Err(self.controller_error(after, code));
                 }
             }
@@ -604,7 +649,9 @@ impl GcsStage {
                     .zip(ont)
                     .map(|((_, a), b)| format!("{a}={}", u8::from(b)))
                     .collect();
-                let asked = if self.per_axis {
+                let asked = if via == "#5" {
+                    via
+                } else if self.per_axis {
                     format!("ONT? {}", self.axes[self.axes.len() - 1].1)
                 } else {
                     format!("ONT? {}", self.axes_list())
@@ -620,6 +667,79 @@ impl GcsStage {
             }
             std::thread::sleep(self.opts.poll_interval);
         }
+    }
+
+    /// Whether the driven axes are done moving: `#5` where the controller answers it, else
+    /// `ONT?`. Returns one flag per driven axis (true: on target / not in motion) and the
+    /// query used.
+    fn poll_motion(&mut self) -> Result<(Vec<bool>, String), DeviceError> {
+        if self.opts.motion_status && self.motion_status != Some(false) {
+            match self.query_motion_status() {
+                Ok(v) => {
+                    self.motion_status = Some(true);
+                    return Ok((v, "#5".into()));
+                }
+                // the first `#5` refused as unknown (error 2): a controller without it
+                Err(DeviceError::Controller { code: 2, .. }) if self.motion_status.is_none() => {
+                    self.motion_status = Some(false);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok((self.query_axes("ONT?", parse_bool)?, "ONT?".into()))
+    }
+
+    /// `#5` (the single byte 0x05, no line end): the controller answers the motion status as a
+    /// hexadecimal bit mask, bit 0 for the first axis of `SAI?`, bit 1 the second, … ("5":
+    /// the first and third axes are moving). Returns per driven axis: not in motion. A reply
+    /// that is not hexadecimal is `Garbled` naming `#5`; no reply is a `Timeout`, or the
+    /// controller's error when `ERR?` holds one (2: the controller has no `#5`).
+    pub fn query_motion_status(&mut self) -> Result<Vec<bool>, DeviceError> {
+        const CMD: &str = "#5";
+        self.link.discard_input();
+        self.link.send_raw(&[0x05], CMD)?;
+        let line = match self.link.read_line(CMD, self.opts.timeout) {
+            Ok(l) => l,
+            Err(e @ DeviceError::Timeout { .. }) => {
+                return Err(match self.error_code(CMD) {
+                    Ok(code) if code != 0 => self.controller_error(CMD, code),
+                    _ => e,
+                })
+            }
+            Err(e) => return Err(e),
+        };
+        let t = line.trim();
+        let mask = (!t.is_empty() && t.len() <= 16)
+            .then(|| u64::from_str_radix(t, 16).ok())
+            .flatten()
+            .ok_or_else(|| self.link.garbled(CMD, line.clone()))?;
+        self.axes
+            .iter()
+            .map(|(_, id)| match self.sai.iter().position(|s| s == id) {
+                Some(bit) if bit < 64 => Ok(mask & (1u64 << bit) == 0),
+                _ => Err(self.link.garbled(CMD, line.clone())),
+            })
+            .collect()
+    }
+
+    /// How motion is polled: `"#5"`, `"ONT?"` (configured, or `#5` refused), or `None`
+    /// before the first move.
+    pub fn motion_query(&self) -> Option<&'static str> {
+        match (self.opts.motion_status, self.motion_status) {
+            (false, _) | (true, Some(false)) => Some("ONT?"),
+            (true, Some(true)) => Some("#5"),
+            (true, None) => None,
+        }
+    }
+
+    /// Running mean wall time of a move (`MOV` to on target), s; 0 before the first.
+    pub fn mean_move_s(&self) -> f64 {
+        self.move_time.get()
+    }
+
+    /// The link's per-command costs since the last call.
+    pub fn take_link_costs(&mut self) -> super::link::LinkCosts {
+        self.link.take_costs()
     }
 
     /// `SVO <axis> s` for every driven axis.
@@ -689,7 +809,18 @@ impl GcsStage {
         let cmd = format!("MOV {}", parts.join(" "));
         // unknown until the controller has accepted it (an error leaves the old targets)
         self.commanded = None;
-        self.command(&cmd)?;
+        if self.opts.motion_status && self.motion_status == Some(true) {
+            // With `#5` the `ERR?` comes once the motion has ended: it reports a refused `MOV`
+            // (which does not move, so `#5` answers 0 at once) and an error during the move
+            // (−1024, the servo tripped: the axis stops and `#5` answers 0 too) alike, in one
+            // round trip per move. Until `#5` has answered once, `MOV` is followed by its
+            // `ERR?` at once (a controller without `#5` overwrites the error register with 2).
+            self.link.discard_input();
+            self.link.send(&cmd)?;
+            self.error_check_pending = true;
+        } else {
+            self.command(&cmd)?;
+        }
         let mut t = now;
         for (j, v) in &changed {
             t[*j] = v.parse::<f64>().unwrap_or(target[self.axes[*j].0] * k) / k;
@@ -723,6 +854,7 @@ impl GcsStage {
     pub fn send_stop(&mut self) -> Result<(), DeviceError> {
         // where the axes stop is where the controller says their targets are now
         self.commanded = None;
+        self.error_check_pending = false;
         self.link.discard_input();
         self.link.send("STP")?;
         match self.error_code("STP")? {
@@ -793,8 +925,13 @@ impl Stage for GcsStage {
 
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         self.require_all("MOV")?;
+        let t0 = Instant::now();
         match self.move_no_wait(target)? {
-            Some(cmd) => self.wait_on_target(&cmd),
+            Some(cmd) => {
+                self.wait_on_target(&cmd)?;
+                self.move_time.add(t0.elapsed().as_secs_f64());
+                Ok(())
+            }
             None => Ok(()),
         }
     }
@@ -805,6 +942,14 @@ impl Stage for GcsStage {
             Some(cmd) => self.wait_on_target_or_abort(&cmd, Some(abort)),
             None => Ok(true),
         }
+    }
+
+    fn move_time_s(&self) -> f64 {
+        self.mean_move_s()
+    }
+
+    fn link_costs(&mut self) -> super::link::LinkCosts {
+        self.link.take_costs()
     }
 
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {

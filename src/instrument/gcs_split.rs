@@ -155,6 +155,34 @@ impl Stage for GcsSplitStage {
         self.merge(|p| p.read_axes("VEL?")).map(Some)
     }
 
+    /// The slowest controller's mean move time.
+    fn move_time_s(&self) -> f64 {
+        self.parts
+            .iter()
+            .map(GcsStage::mean_move_s)
+            .fold(0.0, f64::max)
+    }
+
+    /// Every controller's costs, summed per command word.
+    fn link_costs(&mut self) -> super::link::LinkCosts {
+        let mut out: super::link::LinkCosts = Vec::new();
+        for p in &mut self.parts {
+            for (w, c) in p.take_link_costs() {
+                match out.iter_mut().find(|(k, _)| *k == w) {
+                    Some((_, t)) => {
+                        t.n += c.n;
+                        t.bytes_out += c.bytes_out;
+                        t.bytes_in += c.bytes_in;
+                        t.write_s += c.write_s;
+                        t.reply_s += c.reply_s;
+                    }
+                    None => out.push((w, c)),
+                }
+            }
+        }
+        out
+    }
+
     /// The query to every controller; each reply line is prefixed with the controller's name.
     fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
         let mut out = Vec::new();

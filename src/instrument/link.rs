@@ -263,6 +263,24 @@ pub fn lossy(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
+/// What one kind of command (its first word: `MOV`, `ERR?`, `#5`, `MEAS:QPD?`) cost on a
+/// link: how often it was sent, the bytes each way (line ends included), the wall time spent
+/// writing it and waiting for (and reading) its reply.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct CommandCost {
+    pub n: u64,
+    pub bytes_out: u64,
+    pub bytes_in: u64,
+    /// Seconds spent in writes.
+    pub write_s: f64,
+    /// Seconds from the end of the write to the reply's line end (the device's work, e.g. an
+    /// acquisition, included).
+    pub reply_s: f64,
+}
+
+/// Per-command costs of a link since the last [`LineLink::take_costs`], in first-use order.
+pub type LinkCosts = Vec<(String, CommandCost)>;
+
 /// A line-terminated (LF, optional CR before it) ASCII command link.
 pub struct LineLink {
     io: Box<dyn Transport>,
@@ -270,6 +288,7 @@ pub struct LineLink {
     buf: Vec<u8>,
     /// Default reply timeout.
     pub timeout: Duration,
+    costs: LinkCosts,
 }
 
 impl LineLink {
@@ -279,7 +298,25 @@ impl LineLink {
             device: device.into(),
             buf: Vec::new(),
             timeout,
+            costs: Vec::new(),
         }
+    }
+
+    /// The costs per command word since the last call (and start counting anew).
+    pub fn take_costs(&mut self) -> LinkCosts {
+        std::mem::take(&mut self.costs)
+    }
+
+    fn cost(&mut self, command: &str) -> &mut CommandCost {
+        let word = command.split_whitespace().next().unwrap_or("");
+        let i = match self.costs.iter().position(|(w, _)| w == word) {
+            Some(i) => i,
+            None => {
+                self.costs.push((word.to_string(), CommandCost::default()));
+                self.costs.len() - 1
+            }
+        };
+        &mut self.costs[i].1
     }
 
     pub fn device(&self) -> &str {
@@ -303,15 +340,49 @@ impl LineLink {
         line.extend_from_slice(command.as_bytes());
         line.push(b'\n');
         let timeout = self.timeout;
-        self.io
+        let t0 = Instant::now();
+        let r = self
+            .io
             .write_all(&line)
             .and_then(|_| self.io.flush())
-            .map_err(|e| io_error(&self.device, command, timeout, &e))
+            .map_err(|e| io_error(&self.device, command, timeout, &e));
+        let c = self.cost(command);
+        c.n += 1;
+        c.bytes_out += line.len() as u64;
+        c.write_s += t0.elapsed().as_secs_f64();
+        r
+    }
+
+    /// Send raw bytes without a line end (PI's single-character commands such as `#5`,
+    /// 0x05); `label` names them in errors.
+    pub fn send_raw(&mut self, bytes: &[u8], label: &str) -> Result<(), DeviceError> {
+        let timeout = self.timeout;
+        let t0 = Instant::now();
+        let r = self
+            .io
+            .write_all(bytes)
+            .and_then(|_| self.io.flush())
+            .map_err(|e| io_error(&self.device, label, timeout, &e));
+        let c = self.cost(label);
+        c.n += 1;
+        c.bytes_out += bytes.len() as u64;
+        c.write_s += t0.elapsed().as_secs_f64();
+        r
     }
 
     /// Read one reply line to `command` (terminator and a trailing CR removed, other
     /// whitespace kept), waiting at most `timeout` in total.
     pub fn read_line(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
+        let t0 = Instant::now();
+        let r = self.read_line_inner(command, timeout);
+        let n = r.as_ref().map_or(0, |l| l.len() + 1);
+        let c = self.cost(command);
+        c.bytes_in += n as u64;
+        c.reply_s += t0.elapsed().as_secs_f64();
+        r
+    }
+
+    fn read_line_inner(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
         let deadline = Instant::now() + timeout;
         loop {
             if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {

@@ -173,10 +173,17 @@ pub trait Stage: Send {
             detail: format!("`{query}`: this stage has no command language to query"),
         })
     }
-    /// Time a move takes before it returns, when the device model knows it (the simulated stage),
-    /// for the scan ETA; 0 when unknown (hardware returns on target, the settle time follows).
+    /// Time a move takes before it returns, for the scan ETA: the simulated stage's model, or
+    /// the running mean of the moves measured so far (PI GCS: `MOV` to on target, link
+    /// included); 0 when unknown.
     fn move_time_s(&self) -> f64 {
         0.0
+    }
+    /// What each kind of command cost on the device's link since the last call (count, bytes,
+    /// write and reply time), for the scan's per-phase timing; empty for backends without a
+    /// command link.
+    fn link_costs(&mut self) -> link::LinkCosts {
+        Vec::new()
     }
 }
 
@@ -188,6 +195,13 @@ pub trait Qpd: Send {
     /// Average `n` samples of (Sx, Sy, Sz). The read itself takes the time it takes: the
     /// simulated QPD advances the virtual clock by `n / sample_rate`.
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError>;
+    /// As `read`, for a caller that uses the means only (the scan engine stores Sx, Sy, Sz per
+    /// pixel, not their standard deviations): a device may then ask for less (the SCPI
+    /// digitiser: `MEAS:QPD?`, three numbers, instead of six). The standard deviations of the
+    /// result may be 0.
+    fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        self.read(n)
+    }
     /// What produced the signal, for scan metadata: the simulator reports its render pipeline
     /// (stages built and the wall time spent in each); hardware reports nothing extra.
     fn metadata(&self) -> Option<serde_json::Value> {
@@ -221,6 +235,15 @@ pub trait Qpd: Send {
     /// Stop an armed buffered acquisition (Ctrl-C, a fault elsewhere). Nothing to do by default.
     fn stop_buffered(&mut self) -> Result<(), DeviceError> {
         Ok(())
+    }
+    /// Wall time a read takes beyond its samples' n / rate (the link, the device's reply), s:
+    /// the running mean of the reads so far, for the scan ETA; 0 when unknown.
+    fn overhead_s(&self) -> f64 {
+        0.0
+    }
+    /// As [`Stage::link_costs`].
+    fn link_costs(&mut self) -> link::LinkCosts {
+        Vec::new()
     }
 }
 

@@ -104,6 +104,9 @@ impl Stage for TracedStage {
     fn move_time_s(&self) -> f64 {
         self.inner.move_time_s()
     }
+    fn link_costs(&mut self) -> super::link::LinkCosts {
+        self.inner.link_costs()
+    }
     fn name(&self) -> String {
         self.inner.name()
     }
@@ -176,6 +179,15 @@ impl Qpd for TracedQpd {
     }
     fn metadata(&self) -> Option<serde_json::Value> {
         self.inner.metadata()
+    }
+    fn overhead_s(&self) -> f64 {
+        self.inner.overhead_s()
+    }
+    fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
+        self.read(n)
+    }
+    fn link_costs(&mut self) -> super::link::LinkCosts {
+        self.inner.link_costs()
     }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let r = self.inner.read(n);

@@ -226,6 +226,8 @@ pub struct Ctx {
 /// Shows a long text a page at a time (see [`Ctx::page`]).
 pub type Pager = Arc<dyn Fn(&str) + Send + Sync>;
 
+pub use crate::acquire::Paused;
+
 /// The question a paused scan asks the operator (see [`crate::acquire::ScanEnv::pause`]).
 pub type PauseQuestion = Arc<dyn Fn(&crate::acquire::Paused) -> bool + Send + Sync>;
 

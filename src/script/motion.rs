@@ -278,7 +278,14 @@ pub fn register(r: &mut Registrar) {
                     };
                     // the stage's own velocity setting (PI: VEL?), when it has one
                     match i.stage.velocity() {
-                        Ok(Some(v)) => m.insert("velocity_um_s".into(), pos_map(v).into()),
+                        // per axis, keys naming the unit (`x_um_s`): a bare `x` prints as µm
+                        Ok(Some(v)) => {
+                            let mut vm = Map::new();
+                            for a in Axis::ALL {
+                                vm.insert(format!("{}_um_s", a.name()).into(), v[a.index()].into());
+                            }
+                            m.insert("velocity_um_s".into(), vm.into())
+                        }
                         Ok(None) => None,
                         Err(e) => m.insert("velocity_um_s".into(), format!("unknown: {e}").into()),
                     };

@@ -4,7 +4,8 @@
 
 use super::{
     shared_position, sim_signal_source, standin_bead, start_qpd_emulator, start_stage_emulator,
-    start_stage_emulator_tcp, Emulator, QpdEmulatorConfig, SignalSource, StageEmulatorConfig,
+    start_stage_emulator_tcp, Emulator, LinkModel, QpdEmulatorConfig, SignalSource,
+    StageEmulatorConfig,
 };
 use crate::instrument::sim::{Renderer, SimConfig};
 use std::io::{IsTerminal, Write};
@@ -30,6 +31,37 @@ pub struct EmulateOptions {
     /// `redpitaya`: fast inputs, 2 (STEMlab 125-14, the default when 0) or 4 (4-input model,
     /// Sz on IN3).
     pub inputs: usize,
+    /// The serial link both emulators model (`--baud`, `--latency-ms`; the command line's
+    /// default is [`LinkModel::USB_SERIAL_115200`], this struct's the pty's full speed).
+    pub link: LinkModel,
+}
+
+/// `--baud` and `--latency-ms` of `bfpscope emulate` → a [`LinkModel`]: `baud` a rate in
+/// 300–12 000 000 bit/s, or `max` / `0` for the pseudo-terminal's full speed; `latency_ms`
+/// 0–1000.
+pub fn parse_link(baud: &str, latency_ms: f64) -> Result<LinkModel, String> {
+    let b = baud.trim();
+    let rate = if b.eq_ignore_ascii_case("max") || b == "0" {
+        None
+    } else {
+        match b.parse::<u32>() {
+            Ok(r) if (300..=12_000_000).contains(&r) => Some(r),
+            _ => {
+                return Err(format!(
+                    "emulate: --baud {b}: allowed are 300–12000000 (bit/s; PI controllers: 115200) or `max` (the pseudo-terminal's full speed)"
+                ))
+            }
+        }
+    };
+    if !(latency_ms.is_finite() && (0.0..=1000.0).contains(&latency_ms)) {
+        return Err(format!(
+            "emulate: --latency-ms {latency_ms}: allowed are 0–1000 (ms from the end of a command to the start of its reply)"
+        ));
+    }
+    Ok(LinkModel {
+        baud: rate,
+        latency: Duration::from_secs_f64(latency_ms / 1e3),
+    })
 }
 
 /// A stop flag raised by Ctrl-C, or by end of input when stdin is a terminal (Ctrl-D).
@@ -147,8 +179,19 @@ pub fn serve_emulators(
         return serve_apt(kind, source, out, stop);
     }
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
+    // TCP has no baud rate: the stage's link keeps only the latency there
+    stage_cfg.link = if opts.tcp.is_some() {
+        LinkModel {
+            baud: None,
+            ..opts.link
+        }
+    } else {
+        opts.link
+    };
+    let mut qpd_cfg = qpd_cfg;
+    qpd_cfg.link = opts.link;
     let stage_desc = format!(
-        "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off{})",
+        "PI GCS 2.0 stage (axes {}, travel {} × {} × {} µm, servo off{}, {})",
         stage_cfg.axes.join(" "),
         range(stage_cfg.travel[0]),
         range(stage_cfg.travel[1]),
@@ -157,11 +200,14 @@ pub fn serve_emulators(
             ", one axis per query"
         } else {
             ""
-        }
+        },
+        stage_cfg.link.describe()
     );
     let qpd_desc = format!(
-        "SCPI QPD digitiser ({} Hz, {:?} V per signal unit)",
-        qpd_cfg.sample_rate_hz, qpd_cfg.volts_per_unit
+        "SCPI QPD digitiser ({} Hz, {:?} V per signal unit, {})",
+        qpd_cfg.sample_rate_hz,
+        qpd_cfg.volts_per_unit,
+        opts.link.describe()
     );
     let axes = stage_cfg.axes.clone();
     let start = stage_cfg.start;

@@ -25,7 +25,8 @@ pub use apt::{
     KpzEmulatorConfig, UNKNOWN_ID,
 };
 pub use cli::{
-    run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators, EmulateOptions,
+    parse_link, run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators,
+    EmulateOptions,
 };
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
 pub use redpitaya::{start_redpitaya_emulator, ExtTrigger, Generator, RedPitayaEmulatorConfig};
@@ -112,6 +113,9 @@ pub struct Faults {
     /// APT emulators: serve n more messages, then go silent (a device that stops answering
     /// at a chosen point of a scan).
     pub silent_after: Option<usize>,
+    /// `Some(n)`: serve n more commands normally, then garble the reply to the next one (as
+    /// `garble_replies = 1` then): a garbled reply at a chosen point of a scan.
+    pub garble_after: Option<usize>,
     /// Text emulators: end every reply line with CR LF instead of LF (controllers and
     /// USB–serial bridges that do; the driver must read the same values).
     pub crlf: bool,
@@ -134,6 +138,7 @@ impl Default for Faults {
             servo_trip_next_move: false,
             apt_unsolicited: 0,
             silent_after: None,
+            garble_after: None,
             crlf: false,
             no_trigger: false,
         }
@@ -149,6 +154,70 @@ pub fn garble(reply: &str) -> Vec<u8> {
             .map(|b| if b.is_ascii_digit() { b'#' } else { b }),
     );
     out
+}
+
+/// The serial link an emulator models (a USB-serial PI controller, a digitiser on a serial
+/// line): each byte takes 10 bit times (8N1: start, 8 data, stop) at `baud`, both ways, and a
+/// reply starts `latency` after the command has arrived (the device's processing plus the
+/// USB-serial bridge's buffering). `baud: None` and zero latency: the pseudo-terminal's full
+/// speed (what the tests use).
+///
+/// The emulator's thread is the wire: while a command's bytes arrive and while a reply goes
+/// out it serves nothing else, as a controller with one serial port does.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkModel {
+    /// Bits per second; `None`: no limit (the pseudo-terminal's own speed).
+    pub baud: Option<u32>,
+    /// Time from the end of a command to the start of its reply.
+    pub latency: Duration,
+}
+
+impl LinkModel {
+    /// The pseudo-terminal's full speed: no baud limit, no latency.
+    pub const FULL_SPEED: LinkModel = LinkModel {
+        baud: None,
+        latency: Duration::ZERO,
+    };
+    /// A USB-serial PI controller (E-727, E-709, C-867) at its default 115200 baud with 1 ms
+    /// reply latency: `bfpscope emulate`'s default.
+    pub const USB_SERIAL_115200: LinkModel = LinkModel {
+        baud: Some(115_200),
+        latency: Duration::from_millis(1),
+    };
+
+    /// Seconds `bytes` take on the wire: `bytes · 10 / baud` (0 at full speed).
+    pub fn wire_s(&self, bytes: usize) -> f64 {
+        match self.baud {
+            Some(b) if b > 0 => bytes as f64 * 10.0 / b as f64,
+            _ => 0.0,
+        }
+    }
+
+    /// `115200 baud, 1 ms latency` or `full speed`.
+    pub fn describe(&self) -> String {
+        match self.baud {
+            None if self.latency.is_zero() => "pseudo-terminal full speed".into(),
+            None => format!(
+                "no baud limit, {} ms latency",
+                self.latency.as_secs_f64() * 1e3
+            ),
+            Some(b) => format!("{b} baud, {} ms latency", self.latency.as_secs_f64() * 1e3),
+        }
+    }
+}
+
+impl Default for LinkModel {
+    /// [`LinkModel::FULL_SPEED`] (the Rust configs, used by the tests);
+    /// `bfpscope emulate` uses [`LinkModel::USB_SERIAL_115200`].
+    fn default() -> Self {
+        Self::FULL_SPEED
+    }
+}
+
+fn sleep_s(s: f64) {
+    if s > 0.0 && s.is_finite() {
+        std::thread::sleep(Duration::from_secs_f64(s));
+    }
 }
 
 /// Most commands kept in an emulator's command log.
@@ -230,6 +299,11 @@ trait Device: Send + 'static {
     fn is_error_query(&self, line: &str) -> bool;
     /// Called about every 5 ms and before each command: advance dynamics.
     fn tick(&mut self) {}
+    /// A single-character command this device answers at once, without a line end (PI GCS:
+    /// `#5` = 0x05, `#7` = 0x07, `#24` = 0x18): its name (`"#5"`), handled as that line.
+    fn single_char(&self, _byte: u8) -> Option<&'static str> {
+        None
+    }
 }
 
 /// Where an emulator serves: the master side of a pseudo-terminal, or a TCP listener serving
@@ -321,9 +395,10 @@ fn spawn(
     device: impl Device,
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
+    link: LinkModel,
 ) -> std::io::Result<Emulator> {
     let (line, path) = pty_line()?;
-    spawn_on(kind, device, faults, position, line, path)
+    spawn_on(kind, device, faults, position, line, path, link)
 }
 
 /// Listen on `addr` (e.g. `127.0.0.1:0` for a free port) and serve `device` to one TCP client
@@ -334,6 +409,7 @@ fn spawn_tcp(
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
     addr: &str,
+    link: LinkModel,
 ) -> std::io::Result<Emulator> {
     let listener = std::net::TcpListener::bind(addr)?;
     listener.set_nonblocking(true)?;
@@ -342,7 +418,7 @@ fn spawn_tcp(
         listener,
         client: None,
     };
-    spawn_on(kind, device, faults, position, line, path)
+    spawn_on(kind, device, faults, position, line, path, link)
 }
 
 fn spawn_on(
@@ -352,6 +428,7 @@ fn spawn_on(
     position: SharedPosition,
     line: Line,
     path: String,
+    link: LinkModel,
 ) -> std::io::Result<Emulator> {
     let f = faults.clone();
     launch(kind, faults, position, path, move |h| {
@@ -359,6 +436,7 @@ fn spawn_on(
             line,
             device,
             faults: f,
+            link,
             log: h.log,
             stop: h.stop,
             finished: h.finished,
@@ -410,6 +488,7 @@ struct Serve<D: Device> {
     line: Line,
     device: D,
     faults: Arc<Mutex<Faults>>,
+    link: LinkModel,
     log: Arc<Mutex<VecDeque<String>>>,
     stop: Arc<AtomicBool>,
     finished: Arc<AtomicBool>,
@@ -437,19 +516,33 @@ impl<D: Device> Serve<D> {
                 // No client has the slave open (we hold it, so rare): wait for one.
                 Err(_) => std::thread::sleep(Duration::from_millis(5)),
             }
-            while let Some(i) = buf.iter().position(|&b| b == b'\n') {
-                let raw: Vec<u8> = buf.drain(..=i).collect();
-                let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
-                    .trim_end_matches('\r')
-                    .to_string();
-                if line.trim().is_empty() {
-                    continue;
-                }
-                if !self.serve_line(&line) {
-                    // Let the last reply reach the client before the line goes dead (a
-                    // pseudo-terminal that hangs up with data pending loses that data).
-                    std::thread::sleep(Duration::from_millis(50));
-                    break 'serve;
+            // in the order received: a line at its LF; a single-character command (PI's #5,
+            // #7, #24) at once, even in the middle of a line
+            let mut i = 0;
+            while i < buf.len() {
+                if buf[i] == b'\n' {
+                    let raw: Vec<u8> = buf.drain(..=i).collect();
+                    i = 0;
+                    let line = String::from_utf8_lossy(&raw[..raw.len() - 1])
+                        .trim_end_matches('\r')
+                        .to_string();
+                    if line.trim().is_empty() {
+                        continue;
+                    }
+                    if !self.serve_command(&line, raw.len()) {
+                        // Let the last reply reach the client before the line goes dead (a
+                        // pseudo-terminal that hangs up with data pending loses that data).
+                        std::thread::sleep(Duration::from_millis(50));
+                        break 'serve;
+                    }
+                } else if let Some(name) = self.device.single_char(buf[i]) {
+                    buf.remove(i);
+                    if !self.serve_command(name, 1) {
+                        std::thread::sleep(Duration::from_millis(50));
+                        break 'serve;
+                    }
+                } else {
+                    i += 1;
                 }
             }
             if buf.len() > MAX_COMMAND {
@@ -461,8 +554,12 @@ impl<D: Device> Serve<D> {
         // the client sees a hang-up.
     }
 
-    /// Serve one command line; false when the emulator unplugs itself.
-    fn serve_line(&mut self, line: &str) -> bool {
+    /// Serve one command of `wire_bytes` bytes as sent (line end included); false when the
+    /// emulator unplugs itself. With a [`LinkModel`] the command's bytes take their time to
+    /// arrive before the device acts on it, and a reply starts after the latency and takes its
+    /// bytes' time to go out.
+    fn serve_command(&mut self, line: &str, wire_bytes: usize) -> bool {
+        sleep_s(self.link.wire_s(wire_bytes));
         {
             let mut log = lock(&self.log);
             if log.len() >= LOG_CAP {
@@ -491,6 +588,14 @@ impl<D: Device> Serve<D> {
             } else if let Some((n, code)) = f.error_after {
                 f.error_after = Some((n - 1, code));
             }
+            match f.garble_after {
+                Some(0) => {
+                    f.garble_after = None;
+                    f.garble_replies += 1;
+                }
+                Some(n) => f.garble_after = Some(n - 1),
+                None => {}
+            }
             let inject = if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
             } else {
@@ -510,7 +615,10 @@ impl<D: Device> Serve<D> {
                 f.garble_replies = f.garble_replies.saturating_sub(1);
                 garble(&r)
             } else {
-                r.into_bytes()
+                // ISO 8859-1: PI's `#7` answers the single byte 0xB1 ("±"); all else is ASCII
+                r.chars()
+                    .map(|c| u8::try_from(u32::from(c)).unwrap_or(b'?'))
+                    .collect()
             };
             bytes.push(b'\n');
             if lock(&self.faults).crlf {
@@ -523,6 +631,7 @@ impl<D: Device> Serve<D> {
                 }
                 bytes = v;
             }
+            sleep_s(self.link.latency.as_secs_f64() + self.link.wire_s(bytes.len()));
             if self.line.write_all(&bytes).is_err() {
                 // The client went away mid-reply; keep serving for the next one.
             }

@@ -9,7 +9,7 @@
 //! Headers take SCPI short or long forms, any case (`SENS:AVER:COUN`,
 //! `sense:average:count`). Errors go to a FIFO queue of 16 read with `SYST:ERR?`.
 
-use super::{lock, spawn, Device, Emulator, Faults, SharedPosition, SignalSource};
+use super::{lock, spawn, Device, Emulator, Faults, LinkModel, SharedPosition, SignalSource};
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
@@ -35,6 +35,8 @@ pub struct QpdEmulatorConfig {
     pub max_count: usize,
     /// Initial fault switches.
     pub faults: Faults,
+    /// The serial link modelled (baud rate, reply latency); default the pty's full speed.
+    pub link: LinkModel,
 }
 
 impl Default for QpdEmulatorConfig {
@@ -49,6 +51,7 @@ impl Default for QpdEmulatorConfig {
             seed: 1,
             max_count: 1_000_000,
             faults: Faults::default(),
+            link: LinkModel::FULL_SPEED,
         }
     }
 }
@@ -239,6 +242,7 @@ pub fn start_qpd_emulator(
     source: impl SignalSource,
 ) -> std::io::Result<Emulator> {
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
+    let link = cfg.link;
     let rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed);
     let dev = ScpiDevice {
         cfg,
@@ -248,7 +252,7 @@ pub fn start_qpd_emulator(
         source: Box::new(source),
         rng,
     };
-    spawn("qpd", dev, faults, position)
+    spawn("qpd", dev, faults, position, link)
 }
 
 #[cfg(test)]

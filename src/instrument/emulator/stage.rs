@@ -3,7 +3,7 @@
 //! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
 //! (`ERR?` returns the last error and clears it).
 //!
-//! Commands: `*IDN?`, `ERR?`, `SAI?`, `SAI? ALL`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`,
+//! Commands: `#5` (motion status), `#7` (ready), `#24` (stop) as single characters, `*IDN?`, `ERR?`, `SAI?`, `SAI? ALL`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`,
 //! `ONT?`, `TMN?`, `TMX?`, `VEL`, `VEL?`, `STP`, `HLT`. Queries take an optional axis list (all
 //! axes without one). Errors: 1 parameter syntax, 2 unknown command, 5 servo off, 7 position
 //! out of limits, 10 stopped, 15 invalid axis identifier.
@@ -13,7 +13,7 @@
 //! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
 //! answers a query naming several axes for the first one only.
 
-use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, SharedPosition};
+use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, LinkModel, SharedPosition};
 use crate::instrument::Pos;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -44,6 +44,12 @@ pub struct StageEmulatorConfig {
     pub idn: String,
     /// Initial fault switches.
     pub faults: Faults,
+    /// Answer PI's single-character commands `#5` (motion status), `#7` (ready) and `#24`
+    /// (stop). False: a controller without them (they set error 2, "Unknown command", and
+    /// get no reply).
+    pub single_char_commands: bool,
+    /// The serial link modelled (baud rate, reply latency); default the pty's full speed.
+    pub link: LinkModel,
 }
 
 impl Default for StageEmulatorConfig {
@@ -61,6 +67,8 @@ impl Default for StageEmulatorConfig {
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
                 .into(),
             faults: Faults::default(),
+            single_char_commands: true,
+            link: LinkModel::FULL_SPEED,
         }
     }
 }
@@ -231,6 +239,15 @@ impl Device for GcsDevice {
         line.trim().eq_ignore_ascii_case("ERR?")
     }
 
+    fn single_char(&self, byte: u8) -> Option<&'static str> {
+        match byte {
+            0x05 => Some("#5"),
+            0x07 => Some("#7"),
+            0x18 => Some("#24"),
+            _ => None,
+        }
+    }
+
     fn inject_error(&mut self, code: i64) {
         self.set_error(code);
     }
@@ -240,6 +257,27 @@ impl Device for GcsDevice {
         let cmd = words.next()?.to_ascii_uppercase();
         let args: Vec<&str> = words.collect();
         let reply = match cmd.as_str() {
+            "#5" | "#7" | "#24" if !self.cfg.single_char_commands => {
+                self.set_error(2);
+                None
+            }
+            // #5, motion status: a hexadecimal bit mask of the axes in motion, bit 0 the first
+            // axis of `SAI?` (PI: "1 = first axis in motion, 2 = second, 4 = third"); a
+            // closed-loop axis is in motion until it is on target; a tripped axis has stopped.
+            "#5" => {
+                let (_, ont) = self.positions();
+                let mask = (0..3)
+                    .filter(|&i| !ont[i] && !self.axes[i].tripped)
+                    .fold(0u32, |m, i| m | (1 << i));
+                Some(format!("{mask:X}"))
+            }
+            // #7, controller ready: 0xB1 ("±" in ISO 8859-1) ready, 0xB0 not ready; a piezo
+            // controller is ready for the next command at once
+            "#7" => Some("\u{b1}".to_string()),
+            "#24" => {
+                self.halt();
+                None
+            }
             "*IDN?" => Some(self.cfg.idn.clone()),
             "SAI?" => {
                 let mut ids = self.cfg.axes.to_vec();
@@ -368,8 +406,9 @@ pub fn start_stage_emulator(
     cfg: StageEmulatorConfig,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
+    let link = cfg.link;
     let (dev, faults) = device(cfg, position.clone())?;
-    spawn("stage", dev, faults, position)
+    spawn("stage", dev, faults, position, link)
 }
 
 /// As [`start_stage_emulator`], served on a TCP port as a PI controller's GCS port is: `addr`
@@ -380,8 +419,9 @@ pub fn start_stage_emulator_tcp(
     position: SharedPosition,
     addr: &str,
 ) -> std::io::Result<Emulator> {
+    let link = cfg.link;
     let (dev, faults) = device(cfg, position.clone())?;
-    spawn_tcp("stage", dev, faults, position, addr)
+    spawn_tcp("stage", dev, faults, position, addr, link)
 }
 
 fn device(
