@@ -17,8 +17,9 @@
 //! **Compressed problem (speed).** The residual vector has one entry per valid pixel and
 //! channel (32 768 for a 128×128 two-channel fit). Instead of handing the crate that M×N
 //! Jacobian (whose pivoted QR costs O(M·N²) per iteration), each evaluation accumulates the
-//! Gauss–Newton matrix JᵀJ, the gradient Jᵀr and ‖r‖² over the pixels (exploiting that beads
-//! overlap only locally), and the crate is given the equivalent (N+1)-row problem
+//! Gauss–Newton matrix JᵀJ, the gradient Jᵀr and ‖r‖² bead by bead over each bead's window
+//! (JᵀJ is block-sparse: a pair of beads couples only through the overlap of their windows; see
+//! `FitData::accumulate`, linear in the number of beads), and the crate is given the equivalent (N+1)-row problem
 //! J̃ = [R; 0], r̃ = [R⁻ᵀJᵀr; √(‖r‖² − ‖R⁻ᵀJᵀr‖²)] with RᵀR = JᵀJ (Cholesky, or a symmetric
 //! square root when singular). ‖r̃‖ = ‖r‖, J̃ᵀJ̃ = JᵀJ, J̃ᵀr̃ = Jᵀr and the column norms agree, so
 //! the crate's iterates, trust-region steps and stopping tests are those of the full problem.

@@ -120,8 +120,11 @@ fn selected(name: &str) -> bool {
     }
 }
 
+/// A case: name, pixels per side, bead positions (µm), noise seed.
+type CaseSpec = (&'static str, usize, Vec<(f64, f64)>, u64);
+
 fn cases() -> Vec<Case> {
-    let all: Vec<(&'static str, usize, Vec<(f64, f64)>, u64)> = vec![
+    let all: Vec<CaseSpec> = vec![
         (
             "3beads_64",
             64,
