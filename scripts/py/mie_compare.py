@@ -8,10 +8,13 @@ Usage (from the repository root):
     python3 scripts/py/mie_compare.py reference X M_RE M_IM [EXTRA]   # needs mpmath
 
 `compare` builds and runs `MIE_COMPARE_JSON=1 cargo bench --bench mie` (the Rust timings and
-values on the grid x = 0.1 ... 1000), then, in the same run, times miepython's
+values on the grid x = 0.1 ... 1000, and its time per sphere on array sweeps of 1000 spheres
+over x ≤ 10 and x ≤ 1000), then, in the same run, times miepython's
 `efficiencies_mx` on the same grid, once with its default pure-Python/numpy backend and once
 with its numba JIT backend (MIEPYTHON_USE_JIT=1, compile time excluded), and prints per-point
-speed ratios and relative agreement. The machine is shared and noisy: read the ratios, not the
+speed ratios and relative agreement. The sweeps are timed both ways: the whole array in one
+`efficiencies_mx` call (numba's fast path, warmed up) and one sphere per call; with
+MIE_COMPARE_OUT=FILE the numbers are also written as JSON (scripts/bench.sh uses it). The machine is shared and noisy: read the ratios, not the
 absolute times. Nothing in the test suite needs this script or miepython.
 
 Index convention: bfpscope takes m = n + i k (Bohren-Huffman, k >= 0 absorbs); miepython takes
@@ -115,6 +118,46 @@ print(json.dumps(out))
     return json.loads(res.stdout)
 
 
+def time_miepython_sweeps(sweeps, jit):
+    """Time miepython on the Rust bench's array sweeps, in a subprocess (MIEPYTHON_USE_JIT must
+    be set before import): the whole array in one `efficiencies_mx` call (warmed up: the first
+    call compiles), and the same spheres one call at a time. ns per sphere, median of 5 rounds."""
+    env = dict(os.environ, MIEPYTHON_USE_JIT="1" if jit else "0")
+    code = r"""
+import json, sys, time
+import numpy as np
+import miepython as mie
+out = []
+for s in json.loads(sys.stdin.read()):
+    n, x_max = s["n"], s["x_max"]
+    xs = 0.1 + (x_max - 0.1) * np.arange(1, n + 1) / n
+    m = complex(s["m_re"], -s["m_im"])
+    mie.efficiencies_mx(m, xs)          # warm-up (and JIT compile)
+    mie.efficiencies_mx(m, float(xs[0]))
+    def rounds(f, budget):
+        ts = []
+        for _ in range(5):
+            k = 0
+            t0 = time.perf_counter()
+            while True:
+                f()
+                k += 1
+                if time.perf_counter() - t0 > budget:
+                    break
+            ts.append((time.perf_counter() - t0) / k / n * 1e9)
+        ts.sort()
+        return ts[len(ts) // 2]
+    arr = rounds(lambda: mie.efficiencies_mx(m, xs), 0.1)
+    one = rounds(lambda: [mie.efficiencies_mx(m, float(x)) for x in xs], 0.0)
+    out.append(dict(s, array_ns=arr, one_ns=one))
+print(json.dumps(out))
+"""
+    res = subprocess.run(
+        [sys.executable, "-c", code], input=json.dumps(sweeps), env=env, capture_output=True, text=True, check=True
+    )
+    return json.loads(res.stdout)
+
+
 def rel(a, b):
     return abs(a - b) / abs(b) if b != 0 else abs(a)
 
@@ -127,6 +170,9 @@ def compare(repo):
         return 1
     rust1 = rust_dump(repo)
     points = [p for p in rust1 if p["tag"] == "default"]
+    sweeps = [p for p in rust1 if p["tag"] == "sweep"]
+    sw_nojit = time_miepython_sweeps(sweeps, jit=False)
+    sw_jit = time_miepython_sweeps(sweeps, jit=True)
     py_nojit = time_miepython(points, jit=False)
     py_jit = time_miepython(points, jit=True)
     rust2 = rust_dump(repo)  # second Rust run: the machine is noisy, take the faster of the two
@@ -154,6 +200,28 @@ def compare(repo):
           f"geometric mean {gm(ratios_nojit):.1f}x")
     print(f"speed ratio vs miepython (numba JIT backend): min {min(ratios_jit):.1f}x, geometric mean {gm(ratios_jit):.1f}x")
     print(f"worst relative difference in Qext/Qsca/g (ours default terms vs miepython): {worst:.1e}")
+    print("\nArray sweeps: 1000 spheres, x evenly spaced over (0.1, x_max]; ns per sphere; "
+          "ratio = miepython / bfpscope (< 1: miepython is faster)")
+    print("| x ≤ | m | bfpscope | jit, array | ratio | jit, one at a time | ratio | no jit, array | ratio | no jit, one at a time | ratio |")
+    print("|" + "---|" * 11)
+    sweep_rows = []
+    for s, nj, j in zip(sweeps, sw_nojit, sw_jit):
+        key = (s["x_max"], s["m_re"], s["m_im"])
+        s2 = next(r for r in rust2 if r["tag"] == "sweep" and (r["x_max"], r["m_re"], r["m_im"]) == key)
+        ours = min(s["ns_per_sphere"], s2["ns_per_sphere"])
+        row = dict(x_max=s["x_max"], m=f"{s['m_re']}+{s['m_im']}i", ours_ns=ours, jit_array_ns=j["array_ns"],
+                   jit_one_ns=j["one_ns"], nojit_array_ns=nj["array_ns"], nojit_one_ns=nj["one_ns"])
+        sweep_rows.append(row)
+        print(f"| {s['x_max']:g} | {row['m']} | {ours:.0f} | {j['array_ns']:.0f} | {j['array_ns'] / ours:.2f} | "
+              f"{j['one_ns']:.0f} | {j['one_ns'] / ours:.1f} | {nj['array_ns']:.0f} | {nj['array_ns'] / ours:.1f} | "
+              f"{nj['one_ns']:.0f} | {nj['one_ns'] / ours:.1f} |")
+    if os.environ.get("MIE_COMPARE_OUT"):
+        with open(os.environ["MIE_COMPARE_OUT"], "w") as f:
+            json.dump(dict(version=py_nojit[0]["version"], sweeps=sweep_rows,
+                           points=[dict(x=p["x"], m=f"{p['m_re']}+{p['m_im']}i", ours_ns=min(p["ns_per_call"], next(
+                               r for r in rust2 if r["tag"] == "default" and (r["x"], r["m_re"], r["m_im"]) == (p["x"], p["m_re"], p["m_im"]))["ns_per_call"]),
+                                        nojit_ns=a["ns_per_call"], jit_ns=b["ns_per_call"]) for p, a, b in zip(points, py_nojit, py_jit)]),
+                      f, indent=2)
     return 0
 
 

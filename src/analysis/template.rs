@@ -409,10 +409,23 @@ impl Template {
             if w == 0.0 {
                 continue;
             }
+            // The cubic stencil of each column computed once per bead (bit-identical to `eval`,
+            // see `Grid2::eval_stencil`); `eval` where a stencil reaches outside the grid.
+            let cols = ax.range(bx + u0, bx + u1);
+            let su: Vec<Option<(usize, [f64; 4])>> = cols
+                .clone()
+                .map(|c| self.grid.stencil_u(x[c] - bx))
+                .collect();
             for r in ay.range(by + v0, by + v1) {
                 let v = y[r] - by;
-                for c in ax.range(bx + u0, bx + u1) {
-                    let s = self.grid.eval(x[c] - bx, v);
+                let sv = self.grid.stencil_v(v);
+                for (c, su) in cols.clone().zip(&su) {
+                    let s = match (su, &sv) {
+                        (Some((iu, wu)), Some((iv, wv))) => {
+                            self.grid.eval_stencil((*iu, wu), (*iv, wv))
+                        }
+                        _ => self.grid.eval(x[c] - bx, v),
+                    };
                     for ch in 0..3 {
                         out[ch][[r, c]] += w * s[ch];
                     }

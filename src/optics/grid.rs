@@ -41,6 +41,29 @@ pub struct Sample {
     pub dv: [f64; 3],
 }
 
+/// Precomputed stencil of one axis for [`Grid2::eval_grad2_stencil`] (see
+/// [`Grid2::grad_stencil_u`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct GradStencil {
+    /// The coordinate lies inside the node extent (else the sample is zero).
+    pub inside: bool,
+    /// Index of the stencil's first node (may be −1 at the border: nodes outside count as 0).
+    pub first: isize,
+    /// Keys weights and their derivatives with respect to the fraction (not yet divided by h).
+    pub w: [f64; 4],
+    pub d: [f64; 4],
+    /// All four nodes lie inside the grid (no bounds checks needed).
+    pub full: bool,
+}
+
+/// Values and first derivatives of Sx and Sy (channels 0 and 1 of [`Sample`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Sample2 {
+    pub v: [f64; 2],
+    pub du: [f64; 2],
+    pub dv: [f64; 2],
+}
+
 /// Regular grid: node (i, j) sits at (u0 + i·h, v0 + j·h); values stored interleaved
 /// `[sx, sy, sz]` per node, row-major in j (so rows = v).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -261,6 +284,87 @@ impl Grid2 {
         out
     }
 
+    /// One axis of [`Grid2::eval_grad`]'s cubic stencil at coordinate `u` (along u), computed
+    /// exactly as `eval_grad` computes it, so that a caller sampling many pixels of one row or
+    /// column can compute it once and get bit-identical values from
+    /// [`Grid2::eval_grad2_stencil`]. `None` for linear grids and grids under 2 × 2 nodes (call
+    /// `eval_grad` there).
+    #[inline]
+    pub fn grad_stencil_u(&self, u: f64) -> Option<GradStencil> {
+        let ((a, b), _) = self.extent();
+        self.grad_stencil(u, self.u0, self.nu, a, b)
+    }
+
+    /// As [`Grid2::grad_stencil_u`], along v.
+    #[inline]
+    pub fn grad_stencil_v(&self, v: f64) -> Option<GradStencil> {
+        let (_, (a, b)) = self.extent();
+        self.grad_stencil(v, self.v0, self.nv, a, b)
+    }
+
+    #[inline]
+    fn grad_stencil(&self, u: f64, u0: f64, n: usize, lo: f64, hi: f64) -> Option<GradStencil> {
+        if self.interp != Interp::Cubic || self.nu < 2 || self.nv < 2 {
+            return None;
+        }
+        let inside = u >= lo && u <= hi;
+        let fu = (u - u0) / self.h;
+        let i = if inside {
+            (fu.floor() as isize).min(n as isize - 2)
+        } else {
+            0
+        };
+        let (w, d) = if inside {
+            keys(fu - i as f64)
+        } else {
+            ([0.0; 4], [0.0; 4])
+        };
+        Some(GradStencil {
+            inside,
+            first: i - 1,
+            w,
+            d,
+            full: inside && i >= 1 && i + 2 < n as isize,
+        })
+    }
+
+    /// Sx, Sy and their ∂/∂u, ∂/∂v (channels 0 and 1 of [`Grid2::eval_grad`]) from precomputed
+    /// stencils: the same arithmetic in the same order, so the values are bit-identical to
+    /// `eval_grad(u, v)`'s (tested). Zero outside the grid, as there.
+    #[inline]
+    pub fn eval_grad2_stencil(&self, su: &GradStencil, sv: &GradStencil) -> Sample2 {
+        let mut out = Sample2::default();
+        if !(su.inside && sv.inside) {
+            return out;
+        }
+        let inv_h = 1.0 / self.h;
+        let node = |i: isize, j: isize| -> [f64; 3] {
+            if su.full && sv.full {
+                self.data[j as usize * self.nu + i as usize]
+            } else {
+                self.node(i, j)
+            }
+        };
+        for b in 0..4 {
+            let jj = sv.first + b as isize;
+            let mut row = [0.0; 2];
+            let mut row_du = [0.0; 2];
+            for a in 0..4 {
+                let n = node(su.first + a as isize, jj);
+                for c in 0..2 {
+                    row[c] += su.w[a] * n[c];
+                    row_du[c] += su.d[a] * n[c];
+                }
+            }
+            for c in 0..2 {
+                out.v[c] += sv.w[b] * row[c];
+                out.du[c] += sv.w[b] * row_du[c] * inv_h;
+                out.dv[c] += sv.d[b] * row[c] * inv_h;
+            }
+        }
+        out
+    }
+
     /// Memory held by the node values, bytes.
     pub fn bytes(&self) -> usize {
         self.data.len() * std::mem::size_of::<[f64; 3]>()
@@ -345,6 +449,36 @@ mod tests {
 
     /// Precomputed stencils give exactly `eval`'s values, and say `None` where `eval` leaves
     /// its fast path.
+    #[test]
+    fn grad_stencils_are_bit_identical_to_eval_grad() {
+        let g = Grid2::from_fn(-0.5, -0.4, 0.02, 51, 41, Interp::Cubic, smooth);
+        let mut n_inside = 0;
+        // Inside, at the borders (stencils reaching outside), exactly on nodes and the extent's
+        // ends, and outside.
+        for k in 0..=140 {
+            for l in 0..=120 {
+                let u = -0.54 + k as f64 * 0.0077;
+                let v = -0.44 + l as f64 * 0.0071;
+                for (u, v) in [(u, v), (0.5, v), (u, 0.4), (-0.5, -0.4), (0.5 - 1e-15, v)] {
+                    let e = g.eval_grad(u, v);
+                    let s = g.eval_grad2_stencil(
+                        &g.grad_stencil_u(u).unwrap(),
+                        &g.grad_stencil_v(v).unwrap(),
+                    );
+                    for c in 0..2 {
+                        assert_eq!(e.v[c].to_bits(), s.v[c].to_bits(), "v at ({u}, {v})");
+                        assert_eq!(e.du[c].to_bits(), s.du[c].to_bits(), "du at ({u}, {v})");
+                        assert_eq!(e.dv[c].to_bits(), s.dv[c].to_bits(), "dv at ({u}, {v})");
+                    }
+                    n_inside += usize::from(e.v[0] != 0.0);
+                }
+            }
+        }
+        assert!(n_inside > 10_000);
+        let lin = Grid2::from_fn(-0.5, -0.4, 0.02, 51, 41, Interp::Linear, smooth);
+        assert!(lin.grad_stencil_u(0.0).is_none());
+    }
+
     #[test]
     fn stencils_are_bit_identical_to_eval() {
         let g = Grid2::from_fn(-1.0, -1.0, 0.05, 41, 41, Interp::Cubic, smooth);

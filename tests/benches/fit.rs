@@ -91,18 +91,50 @@ fn make_case(name: &'static str, n_px: usize, pos: &[(f64, f64)], seed: u64) -> 
     }
 }
 
+/// Positions of `n` beads in a square field `[lo, hi]²` µm, no two closer than `min_sep` µm,
+/// drawn from a fixed 64-bit LCG (Knuth's MMIX constants) so the scene is the same on every
+/// machine and run.
+fn spread(n: usize, lo: f64, hi: f64, min_sep: f64, seed: u64) -> Vec<(f64, f64)> {
+    let mut s = seed;
+    let mut next = move || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut out: Vec<(f64, f64)> = Vec::with_capacity(n);
+    while out.len() < n {
+        let p = (lo + (hi - lo) * next(), lo + (hi - lo) * next());
+        if out.iter().all(|q| (p.0 - q.0).hypot(p.1 - q.1) >= min_sep) {
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// Which cases to run: all, or those named in `FIT_BENCH_CASES` (comma-separated).
+fn selected(name: &str) -> bool {
+    match std::env::var("FIT_BENCH_CASES") {
+        Ok(v) if !v.trim().is_empty() => v.split(',').any(|c| c.trim() == name),
+        _ => true,
+    }
+}
+
+/// A case: name, pixels per side, bead positions (µm), noise seed.
+type CaseSpec = (&'static str, usize, Vec<(f64, f64)>, u64);
+
 fn cases() -> Vec<Case> {
-    vec![
-        make_case(
+    let all: Vec<CaseSpec> = vec![
+        (
             "3beads_64",
             64,
-            &[(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)],
+            vec![(1.40, 1.50), (1.78, 1.62), (1.55, 1.92)],
             1,
         ),
-        make_case(
+        (
             "11beads_128",
             128,
-            &[
+            vec![
                 (1.0, 1.2),
                 (1.35, 1.3),
                 (2.5, 1.0),
@@ -117,7 +149,14 @@ fn cases() -> Vec<Case> {
             ],
             2,
         ),
-    ]
+        // A field of the size of the paper's microtubule scenes with aggregates (Sec. 6): 40
+        // point-like objects over 12.75 µm × 12.75 µm, at least 0.5 µm (1.25 w0) apart.
+        ("40beads_256", 256, spread(40, 0.8, 12.0, 0.5, 40), 3),
+    ];
+    all.into_iter()
+        .filter(|c| selected(c.0))
+        .map(|(name, n, pos, seed)| make_case(name, n, &pos, seed))
+        .collect()
 }
 
 fn run(c: &Case) -> FitResult {
@@ -176,6 +215,10 @@ fn export(c: &Case, dir: &Path, ms: f64, r: &FitResult) {
         [c.truth[i].2, c.truth[i].0, c.truth[i].1][k]
     });
     write_npy(d.join("truth.npy"), &truth).unwrap();
+    let fit = Array2::from_shape_fn((r.beads.len(), 3), |(i, k)| {
+        [r.beads[i].weight, r.beads[i].x, r.beads[i].y][k]
+    });
+    write_npy(d.join("fit.npy"), &fit).unwrap();
     let (ep, ew) = errors(c, r);
     let json = serde_json::json!({
         "name": c.name, "pixels": c.scan.sx.data.dim(), "beads": c.truth.len(), "sigma": c.sigma,
@@ -191,8 +234,18 @@ fn export(c: &Case, dir: &Path, ms: f64, r: &FitResult) {
     .unwrap();
 }
 
+/// Where the scenes are exchanged with `scripts/py/fit_compare.py`: `$FIT_BENCH_DIR`, else
+/// `<repository>/target/fit_bench` (the same rule as the script's; it does not follow
+/// `CARGO_TARGET_DIR`, so the script finds the scenes whatever target directory cargo used).
+fn exchange_dir() -> PathBuf {
+    match std::env::var_os("FIT_BENCH_DIR") {
+        Some(d) if !d.is_empty() => PathBuf::from(d),
+        _ => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/fit_bench"),
+    }
+}
+
 fn bench(cr: &mut Criterion) {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/fit_bench");
+    let dir = exchange_dir();
     for c in cases() {
         // Own timing (median of repeated runs) for the comparison report.
         let r = run(&c);

@@ -55,8 +55,38 @@ fn json_line(x: f64, m: Complex64, tag: &str, r: &MieResult, ns: f64) -> String 
     )
 }
 
+/// The array sweeps of the comparison: 1000 size parameters evenly spaced over (0.1, x_max].
+const SWEEP_MAX: [f64; 2] = [10.0, 1000.0];
+const SWEEP_N: usize = 1000;
+
+fn sweep(x_max: f64) -> Vec<f64> {
+    (0..SWEEP_N)
+        .map(|k| 0.1 + (x_max - 0.1) * (k + 1) as f64 / SWEEP_N as f64)
+        .collect()
+}
+
 /// JSON dump for scripts/py/mie_compare.py.
 fn compare_dump() {
+    for &x_max in &SWEEP_MAX {
+        let xs = sweep(x_max);
+        for (_, m) in indices() {
+            let ns = time_ns(
+                || {
+                    for &x in &xs {
+                        drop(black_box(mie_q(black_box(x), black_box(m))));
+                    }
+                },
+                5,
+                Duration::from_millis(100),
+            );
+            println!(
+                "{{\"tag\":\"sweep\",\"x_max\":{x_max:e},\"n\":{SWEEP_N},\"m_re\":{:e},\"m_im\":{:e},\"ns_per_sphere\":{:.1}}}",
+                m.re,
+                m.im,
+                ns / SWEEP_N as f64
+            );
+        }
+    }
     for &x in &XS {
         for (_, m) in indices() {
             let r = mie_q(x, m).unwrap();
