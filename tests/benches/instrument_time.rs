@@ -122,6 +122,7 @@ fn scan(stage: &str, qpd: &str, dwell_s: f64, before: bool) -> serde_json::Value
         meta: serde_json::json!({}),
         save: &save,
         observer: None,
+        pause: None,
     };
     let run = run_plan(&mut inst, &plan, &env).expect("scan");
     run.scan.meta["time"]["phases"].clone()
