@@ -27,7 +27,7 @@
 //! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
 
 use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
-use super::peaks::{peak_1d, peak_near, PeakOptions};
+use super::peaks::{peak_1d, peak_at, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
 use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
@@ -560,8 +560,9 @@ fn measure_sens_along(
                 }
             })
             .collect();
-        // Parabola centred on the line's crossing (no selection bias from the noisy maximum).
-        let Ok(p) = peak_near(t, &vv, pred, &po) else {
+        // Parabola on a window fixed on the line's crossing: no selection bias from the noisy
+        // maximum, nor from a window that follows the noise (the line is fitted to all rows).
+        let Ok(p) = peak_at(t, &vv, pred, &po) else {
             continue;
         };
         if dist(line.a, line.b, coord, p.pos) > opts.max_offset_um {
