@@ -32,6 +32,16 @@ fn start_and_interrupt(tag: &str) -> Prompt {
     p
 }
 
+/// The relative scan left the stage where it started; quit (`BFPSCOPE_SHOW=1`: print the session).
+fn back_at_the_start_and_quit(mut p: Prompt) {
+    let o = p.enter("wm()", T);
+    assert!(o.contains("x = 1") && o.contains("y = 2"), "{o}");
+    let out = p.quit();
+    if std::env::var_os("BFPSCOPE_SHOW").is_some() {
+        eprintln!("{out}");
+    }
+}
+
 #[test]
 fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
     let mut p = start_and_interrupt("resume");
@@ -55,12 +65,7 @@ fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
         T,
     );
     assert!(o.contains("[true, true, true]"), "{o}");
-    let o = p.enter("wm()", T);
-    assert!(o.contains("x = 1") && o.contains("y = 2"), "{o}");
-    let out = p.quit();
-    if std::env::var_os("BFPSCOPE_SHOW").is_some() {
-        eprintln!("{out}");
-    }
+    back_at_the_start_and_quit(p);
 }
 
 #[test]
@@ -80,12 +85,7 @@ fn ctrl_c_then_a_aborts_keeps_the_partial_scan_and_returns() {
         T,
     );
     assert!(o.contains("[true, true, true]"), "{o}");
-    let o = p.enter("wm()", T);
-    assert!(o.contains("x = 1") && o.contains("y = 2"), "{o}");
-    let out = p.quit();
-    if std::env::var_os("BFPSCOPE_SHOW").is_some() {
-        eprintln!("{out}");
-    }
+    back_at_the_start_and_quit(p);
 }
 
 #[test]

@@ -26,15 +26,19 @@ fn every_binding_example_runs_and_gives_its_expected_result() {
     );
     // every number in a result has its unit: in its key (`w0_nm`), printed after it (`x`), or
     // it is one of the dimensionless quantities listed here
-    let unknown: Vec<&String> = keys
-        .iter()
-        .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
-        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
-        .collect();
+    let unknown = without_unit(&keys);
     assert!(
         unknown.is_empty(),
         "result keys without a unit (name it in the key, add a bare key to script::units::BARE, or list it as dimensionless): {unknown:?}"
     );
+}
+
+/// The keys with neither a unit (`script::units`) nor a place in [`DIMENSIONLESS`].
+fn without_unit(keys: &std::collections::BTreeSet<String>) -> Vec<&String> {
+    keys.iter()
+        .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
+        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
+        .collect()
 }
 
 /// Result keys whose numbers carry no unit: signals normalised to the beam power, counts,
@@ -100,11 +104,7 @@ fn every_number_in_a_protocol_result_has_its_unit() {
     let mut keys = std::collections::BTreeSet::new();
     bfpscope::script::testing::numeric_keys(&v, &mut keys);
     assert!(keys.len() > 20, "{keys:?}");
-    let unknown: Vec<&String> = keys
-        .iter()
-        .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
-        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
-        .collect();
+    let unknown = without_unit(&keys);
     assert!(
         unknown.is_empty(),
         "result keys without a unit: {unknown:?}"
