@@ -1436,6 +1436,17 @@ fn connect_emulated_scans_the_simulated_scene_through_the_drivers() {
             .count(),
         81
     );
+    // the ETA of the next scan counts what the first measured beyond settle + dwell: the mean
+    // move (link and on-target polling included) and the QPD's reply time
+    let move_ms = t["phases"]["move_ms"].as_f64().unwrap();
+    assert!(move_ms > 0.0, "{}", t["phases"]);
+    let (again, _) = run(&mut e.connected.instrument, &plan, &limits);
+    let eta = again.unwrap().scan.meta["time"]["eta_s"].as_f64().unwrap();
+    let bare = 81.0 * (0.0 + 1e-3);
+    assert!(
+        eta - bare >= 0.5 * 81.0 * move_ms * 1e-3,
+        "ETA {eta} s: settle + dwell {bare} s and the first scan's moves {move_ms} ms per point"
+    );
 }
 
 #[test]
