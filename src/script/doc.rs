@@ -137,15 +137,20 @@ impl Doc {
     }
     /// A map argument with its keys `(name, type, unit, doc)`; a doc starting with
     /// `"optional"` or containing `"default"` marks the key optional.
-    pub fn map(mut self, name: &str, doc: &str, keys: &[(&str, &str, &str, &str)]) -> Doc {
+    pub fn map<D: AsRef<str>>(
+        mut self,
+        name: &str,
+        doc: &str,
+        keys: &[(&str, &str, &str, D)],
+    ) -> Doc {
         let keys = keys
             .iter()
             .map(|(n, t, u, d)| Param {
                 name: (*n).into(),
                 ty: (*t).into(),
                 unit: (*u).into(),
-                doc: (*d).into(),
-                optional: d.starts_with("optional") || d.contains("default"),
+                doc: d.as_ref().into(),
+                optional: d.as_ref().starts_with("optional") || d.as_ref().contains("default"),
                 keys: vec![],
             })
             .collect();
