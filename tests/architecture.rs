@@ -122,3 +122,243 @@ fn layering_rules_hold() {
         }
     }
 }
+
+/// Identifiers a path starting at `rest` names first: `name` or each item's first segment of a
+/// `{a, b::c, …}` group (nested groups count by their first segment only).
+fn path_heads(rest: &str) -> Vec<String> {
+    let ident = |s: &str| -> String {
+        s.trim_start()
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+            .collect()
+    };
+    if let Some(group) = rest.trim_start().strip_prefix('{') {
+        let (mut depth, mut end) = (0usize, group.len());
+        for (i, c) in group.char_indices() {
+            match c {
+                '{' => depth += 1,
+                '}' if depth == 0 => {
+                    end = i;
+                    break;
+                }
+                '}' => depth -= 1,
+                _ => {}
+            }
+        }
+        let mut heads = vec![];
+        let (mut depth, mut start) = (0usize, 0usize);
+        let inner = &group[..end];
+        for (i, c) in inner
+            .char_indices()
+            .chain(std::iter::once((inner.len(), ',')))
+        {
+            match c {
+                '{' => depth += 1,
+                '}' => depth -= 1,
+                ',' if depth == 0 => {
+                    let h = ident(&inner[start..i.min(inner.len())]);
+                    if !h.is_empty() {
+                        heads.push(h);
+                    }
+                    start = i + 1;
+                }
+                _ => {}
+            }
+        }
+        heads
+    } else {
+        vec![ident(rest)]
+    }
+}
+
+/// Code without comments and without what follows the first `#[cfg(test)]`.
+fn code_only(text: &str) -> String {
+    let code = text.split("#[cfg(test)]").next().unwrap_or("");
+    code.lines()
+        .map(|l| l.split("//").next().unwrap_or(""))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The `pub use child::{…};` statements of a `mod.rs`: re-exported name → the file defining it,
+/// and the text without them (re-exports and `mod` declarations are the facade, not a use).
+fn reexports(code: &str, files: &BTreeSet<String>) -> (BTreeMap<String, String>, String) {
+    let mut map = BTreeMap::new();
+    let mut rest = String::new();
+    for stmt in code.split_inclusive(';') {
+        let s = stmt.trim_start();
+        let s = s.trim_start_matches("#[doc(inline)]").trim_start();
+        if let Some(body) = s.strip_prefix("pub use ") {
+            let child = path_heads(body).remove(0);
+            if files.contains(&child) {
+                let after = body.trim_start()[child.len()..].trim_start_matches("::");
+                for name in path_heads(after) {
+                    map.insert(name, child.clone());
+                }
+                continue;
+            }
+        }
+        if s.starts_with("pub mod ") || s.starts_with("mod ") && !s.contains('{') {
+            continue;
+        }
+        rest.push_str(stmt);
+    }
+    (map, rest)
+}
+
+/// The file graph inside `src/<dir>/`: each file (`mod` for mod.rs) → the files of the same
+/// directory it uses (`super::x`, `crate::<dir>::x`, and in mod.rs `x::…`/`self::x`). A name that
+/// is no file is an item of mod.rs, or of the file mod.rs re-exports it from.
+fn inner_graph(dir: &str) -> Graph {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("src").join(dir);
+    let mut files = BTreeSet::new();
+    for e in std::fs::read_dir(&root).unwrap() {
+        let p = e.unwrap().path();
+        assert!(
+            !p.is_dir(),
+            "{dir}/ has a sub-directory: extend inner_graph"
+        );
+        if p.extension().is_some_and(|x| x == "rs") {
+            files.insert(p.file_stem().unwrap().to_string_lossy().to_string());
+        }
+    }
+    let mod_code = code_only(&std::fs::read_to_string(root.join("mod.rs")).unwrap());
+    let (reexported, mod_rest) = reexports(&mod_code, &files);
+    let resolve = |name: &str| -> Option<String> {
+        if name == "self" || name == "super" || name == "crate" || name.is_empty() {
+            None
+        } else if files.contains(name) {
+            Some(name.to_string())
+        } else {
+            Some(reexported.get(name).cloned().unwrap_or("mod".into()))
+        }
+    };
+    let mut g = Graph::new();
+    for f in &files {
+        let code = if f == "mod" {
+            mod_rest.clone()
+        } else {
+            code_only(&std::fs::read_to_string(root.join(format!("{f}.rs"))).unwrap())
+        };
+        let mut prefixes = vec![format!("crate::{dir}::")];
+        if f == "mod" {
+            prefixes.push("self::".into());
+        } else {
+            prefixes.push("super::".into());
+        }
+        let mut deps = BTreeSet::new();
+        for p in &prefixes {
+            let mut rest = code.as_str();
+            while let Some(i) = rest.find(p.as_str()) {
+                let before = rest[..i].chars().last();
+                rest = &rest[i + p.len()..];
+                if p == "super::" && before == Some(':') {
+                    continue; // `super::super::…` leaves the directory
+                }
+                deps.extend(path_heads(rest).iter().filter_map(|h| resolve(h)));
+            }
+        }
+        if f == "mod" {
+            // mod.rs names its files directly: `child::item`.
+            for child in files.iter().filter(|c| *c != "mod") {
+                let pat = format!("{child}::");
+                let mut rest = code.as_str();
+                while let Some(i) = rest.find(&pat) {
+                    let before = rest[..i].chars().last();
+                    rest = &rest[i + pat.len()..];
+                    if !before.is_some_and(|c| c.is_ascii_alphanumeric() || c == '_' || c == ':') {
+                        deps.insert(child.clone());
+                    }
+                }
+            }
+        }
+        deps.remove(f);
+        g.insert(f.clone(), deps);
+    }
+    g
+}
+
+/// A cycle of `g`, if it has one (as the list of its nodes, first repeated at the end).
+fn find_cycle(g: &Graph) -> Option<Vec<String>> {
+    fn visit(
+        n: &str,
+        g: &Graph,
+        state: &mut BTreeMap<String, u8>,
+        stack: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        state.insert(n.into(), 1);
+        stack.push(n.into());
+        for d in g.get(n).into_iter().flatten() {
+            match state.get(d.as_str()).copied().unwrap_or(0) {
+                1 => {
+                    let at = stack.iter().position(|s| s == d).unwrap();
+                    let mut c = stack[at..].to_vec();
+                    c.push(d.clone());
+                    return Some(c);
+                }
+                0 => {
+                    if let Some(c) = visit(d, g, state, stack) {
+                        return Some(c);
+                    }
+                }
+                _ => {}
+            }
+        }
+        stack.pop();
+        state.insert(n.into(), 2);
+        None
+    }
+    let mut state = BTreeMap::new();
+    for n in g.keys() {
+        if !state.contains_key(n.as_str()) {
+            if let Some(c) = visit(n, g, &mut state, &mut vec![]) {
+                return Some(c);
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn cycle_finder_finds_cycles() {
+    let g = |edges: &[(&str, &str)]| {
+        let mut g = Graph::new();
+        for (a, b) in edges {
+            g.entry(a.to_string()).or_default().insert(b.to_string());
+            g.entry(b.to_string()).or_default();
+        }
+        g
+    };
+    assert_eq!(find_cycle(&g(&[("a", "b"), ("b", "c"), ("a", "c")])), None);
+    assert_eq!(
+        find_cycle(&g(&[("a", "b"), ("b", "c"), ("c", "a")])),
+        Some(vec!["a".into(), "b".into(), "c".into(), "a".into()])
+    );
+    assert_eq!(
+        path_heads(" {fit::{A, B}, peaks, Result};"),
+        vec!["fit".to_string(), "peaks".into(), "Result".into()]
+    );
+}
+
+#[test]
+fn files_inside_analysis_and_script_import_no_cycle() {
+    for dir in ["analysis", "script"] {
+        let g = inner_graph(dir);
+        if let Some(c) = find_cycle(&g) {
+            let table: Vec<String> = g
+                .iter()
+                .map(|(f, d)| {
+                    format!(
+                        "  {f}: {}",
+                        d.iter().cloned().collect::<Vec<_>>().join(", ")
+                    )
+                })
+                .collect();
+            panic!(
+                "files inside src/{dir}/ import each other in a cycle: {}\n{}",
+                c.join(" → "),
+                table.join("\n")
+            );
+        }
+    }
+}

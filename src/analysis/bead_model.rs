@@ -11,9 +11,9 @@
 //! interpolation between vertices); sections are spaced evenly along the polyline (N = ⌈L/h⌉
 //! sections of height L/N centred in their sub-segments).
 
-use super::orientation::MeasureOptions;
+use super::measure::MeasureOptions;
 use super::peaks::{col_peaks, peak_near, row_peaks, LinePeak, PeakOptions};
-use super::quantities::n_corr;
+use super::scaling::n_corr;
 use super::sensitivity::{sensitivity, Axis};
 use super::template::Template;
 use super::{check_range, AnalysisError, Result};

@@ -11,11 +11,13 @@
 //! |---|---|---|
 //! | derivative images ∂Sx/∂x, ∂Sy/∂y | [`sensitivity`] | Sec. 3.2 |
 //! | sub-pixel maxima per row / column, 2-D peaks | [`peaks`] | Sec. 5 (parabola over 0.4 µm) |
-//! | reference template (from scans or the model) | [`template`] | Sec. 3.1, Fig. 2 |
+//! | reference template (from scans or the model) | [`template`], [`template_from_scans`] | Sec. 3.1, Fig. 2 |
 //! | multi-bead template fit | [`fit`] | eq. multiBeadFit, suppl. S7 |
 //! | filament bead model | [`bead_model`] | Sec. 4.2 |
 //! | orientation calibration and correction | [`orientation`] | Sec. 4.2 steps 1–5, Fig. 4d |
+//! | n_corr, mass of a volume | [`scaling`] | eq. nCor, Sec. 3.2 |
 //! | n_corr, mass, diameter, linear density | [`quantities`] | eqs. nCor, colDiam, OurColD, mtLinDens |
+//! | the maximum-sensitivity pipeline's options | [`measure`] | Sec. 5 |
 //! | point-object background removal | [`background`] | Sec. 6 |
 //! | signal-to-background ratio | [`sbr`] | Sec. 6 |
 //! | focus search | [`focus`] | suppl. S5 |
@@ -39,15 +41,18 @@ pub mod bead_model;
 pub mod fit;
 pub mod focus;
 pub mod kind;
+pub mod measure;
 pub mod orientation;
 pub mod peaks;
 pub mod profile;
 pub mod quantities;
 pub mod sbr;
+pub mod scaling;
 pub mod sensitivity;
 pub mod spec;
 pub mod stats;
 pub mod template;
+pub mod template_from_scans;
 
 pub use background::{remove_point_background, BackgroundOptions, BackgroundResult, FilamentAxis};
 pub use bead_model::{BeadModelOptions, Filament};

@@ -27,59 +27,14 @@
 //! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
 
 use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
+pub use super::measure::MeasureOptions;
 use super::peaks::{peak_1d, peak_at, PeakOptions};
-use super::sensitivity::{sensitivity, Axis, Stencil};
+use super::sensitivity::{sensitivity, Axis};
 use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
 use serde::{Deserialize, Serialize};
-
-/// The measurement pipeline for maximum sensitivities: derivative stencil, parabola window,
-/// and detection threshold (per-line SNR; 0 = off).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct MeasureOptions {
-    pub stencil: Stencil,
-    /// Parabola window, µm (paper: 0.4).
-    pub window_um: f64,
-    /// Per-line maxima below min_snr × line noise are ignored (0: keep all).
-    pub min_snr: f64,
-    /// Maxima farther than this from the fitted filament line are ignored, µm.
-    pub max_offset_um: f64,
-    /// Candidate maxima for the line search must exceed detect_snr × the pixel noise of the
-    /// sensitivity image (1.4826·MAD of first differences/√2).
-    pub detect_snr: f64,
-}
-
-impl Default for MeasureOptions {
-    fn default() -> Self {
-        Self {
-            stencil: Stencil::Central2,
-            window_um: 0.4,
-            min_snr: 0.0,
-            max_offset_um: 0.15,
-            detect_snr: 4.0,
-        }
-    }
-}
-
-impl MeasureOptions {
-    pub(crate) fn validate(&self) -> Result<()> {
-        check_range("window_um", self.window_um, 1e-3, 100.0)?;
-        check_range("min_snr", self.min_snr, 0.0, 1e6)?;
-        check_range("max_offset_um", self.max_offset_um, 0.0, 100.0)?;
-        check_range("detect_snr", self.detect_snr, 0.0, 1e6)?;
-        Ok(())
-    }
-    pub(crate) fn peak_options(&self) -> PeakOptions {
-        PeakOptions {
-            window_um: self.window_um,
-            min_snr: self.min_snr,
-            ..Default::default()
-        }
-    }
-}
 
 /// Options of [`AngleCurve::compute`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

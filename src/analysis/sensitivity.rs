@@ -75,6 +75,15 @@ impl Stencil {
         }
     }
 
+    /// The name [`Stencil::parse`] reads: `"central2"`, `"central5"`, `"sg<2m+1>"`.
+    pub fn name(&self) -> String {
+        match *self {
+            Stencil::Central2 => "central2".into(),
+            Stencil::Central5 => "central5".into(),
+            Stencil::SavitzkyGolay { half_width } => format!("sg{}", 2 * half_width + 1),
+        }
+    }
+
     /// Parse `"central2"`, `"central5"`, `"sg5"`/`"sg7"`/… (SG with 2m+1 points).
     pub fn parse(s: &str) -> Option<Self> {
         match s {
@@ -305,5 +314,13 @@ mod tests {
         );
         assert_eq!(Stencil::parse("sg4"), None);
         assert_eq!(Stencil::parse("central5"), Some(Stencil::Central5));
+        for st in [
+            Stencil::Central2,
+            Stencil::Central5,
+            Stencil::SavitzkyGolay { half_width: 3 },
+        ] {
+            assert_eq!(Stencil::parse(&st.name()), Some(st), "{}", st.name());
+        }
+        assert_eq!(Stencil::SavitzkyGolay { half_width: 2 }.name(), "sg5");
     }
 }

@@ -9,7 +9,9 @@
 use super::registry::{err, fail, num, numbers, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
-use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
+use crate::analysis::{
+    AngleCurveOptions, BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil,
+};
 use crate::data::{Image, Scan, ScanStatus};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
@@ -85,35 +87,103 @@ pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult
     })
 }
 
-/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`).
-pub(crate) const PIPELINE_KEYS: &[(&str, &str, &str, &str)] = &[
-    (
-        "pixel_um",
-        "float",
-        "µm",
-        "optional: pixel size of the scans (default 0.05)",
-    ),
-    (
-        "spacing_nm",
-        "float",
-        "nm",
-        "optional: bead-model spacing (default 50)",
-    ),
-    (
-        "stencil",
-        "string",
-        "",
-        "optional: derivative stencil (default central2)",
-    ),
-    (
-        "window_um",
-        "float",
-        "µm",
-        "optional: parabola window (default 0.4)",
-    ),
-];
+/// A map key's declaration: name, type, unit, help (owned, so that a default can be `format!`ed
+/// into the help from the constant the code reads).
+pub(crate) type Key = (&'static str, &'static str, &'static str, String);
 
-/// Pixel size, measurement options and bead-model options from the `PIPELINE_KEYS`.
+/// Keys of the measurement pipeline (`measure_opts`): help texts read their defaults from
+/// `MeasureOptions::default()`.
+pub(crate) fn measure_keys() -> Vec<Key> {
+    let d = MeasureOptions::default();
+    vec![
+        (
+            "stencil",
+            "string",
+            "",
+            format!(
+                "optional: derivative stencil (default {})",
+                d.stencil.name()
+            ),
+        ),
+        (
+            "window_um",
+            "float",
+            "µm",
+            format!("optional: parabola window (default {})", d.window_um),
+        ),
+        (
+            "min_snr",
+            "float",
+            "",
+            format!(
+                "optional: ignore line maxima below min_snr × line noise (default {})",
+                d.min_snr
+            ),
+        ),
+        (
+            "max_offset_um",
+            "float",
+            "µm",
+            format!(
+                "optional: ignore maxima farther than this from the fitted line (default {})",
+                d.max_offset_um
+            ),
+        ),
+        (
+            "detect_snr",
+            "float",
+            "",
+            format!(
+                "optional: candidate maxima above detect_snr × pixel noise (default {})",
+                d.detect_snr
+            ),
+        ),
+    ]
+}
+
+/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`);
+/// defaults from `AngleCurveOptions::default()` (pixel), `BeadModelOptions::default()`
+/// (spacing) and `MeasureOptions::default()` (stencil, window).
+pub(crate) fn pipeline_keys() -> Vec<Key> {
+    let m = MeasureOptions::default();
+    vec![
+        (
+            "pixel_um",
+            "float",
+            "µm",
+            format!(
+                "optional: pixel size of the scans (default {})",
+                AngleCurveOptions::default().pixel_um
+            ),
+        ),
+        (
+            "spacing_nm",
+            "float",
+            "nm",
+            format!(
+                "optional: bead-model spacing (default {})",
+                BeadModelOptions::default().spacing_nm
+            ),
+        ),
+        (
+            "stencil",
+            "string",
+            "",
+            format!(
+                "optional: derivative stencil (default {})",
+                m.stencil.name()
+            ),
+        ),
+        (
+            "window_um",
+            "float",
+            "µm",
+            format!("optional: parabola window (default {})", m.window_um),
+        ),
+    ]
+}
+
+/// Pixel size, measurement options and bead-model options from the `pipeline_keys()`.
 pub(crate) fn pipeline_opts(
     who: &str,
     o: &Opts,
@@ -126,9 +196,13 @@ pub(crate) fn pipeline_opts(
         ..base
     };
     let bm = BeadModelOptions {
-        spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+        spacing_nm: o.f64_or("spacing_nm", BeadModelOptions::default().spacing_nm)?,
     };
-    Ok((o.f64_or("pixel_um", 0.05)?, mo, bm))
+    Ok((
+        o.f64_or("pixel_um", AngleCurveOptions::default().pixel_um)?,
+        mo,
+        bm,
+    ))
 }
 
 pub(crate) fn line_peaks(v: &[LinePeak]) -> Array {

@@ -327,7 +327,7 @@ fn expect_err(
             if matches!(*e, rhai::EvalAltResult::ErrorTerminated(..)) {
                 return Err(e); // Ctrl-C is never swallowed
             }
-            let msg = super::error_message(&e, docs);
+            let msg = super::errors::error_message(&e, docs);
             match contains {
                 Some(t) if !msg.contains(t) => fail(format!(
                     "assert_err: the error {msg:?} does not contain {t:?}"

@@ -1,7 +1,7 @@
 //! The state every binding shares: settings (data folder, soft limits, sandbox), the connected
 //! instrument, the abort flag, the optics and scene (for metadata), the script being run.
 
-use super::registry::{fail, Doc, RResult};
+use super::doc::{fail, Doc, RResult};
 use crate::acquire::{SessionStore, SoftLimits};
 use crate::instrument::mock::MockHandle;
 use crate::instrument::sim::SimCore;
@@ -214,7 +214,7 @@ pub struct Ctx {
     view: Mutex<Option<crate::view::View>>,
     /// The partial scan of the last scan that did not complete (Ctrl-C, a device fault), for
     /// the prompt to bind to the variable being assigned (or `_`).
-    partial: Mutex<Option<super::types::ScanRef>>,
+    partial: Mutex<Option<super::values::ScanRef>>,
     /// What a Ctrl-C during a scan asks (the prompt on a terminal sets it): `true` resumes.
     /// Unset, Ctrl-C aborts the scan.
     pause_question: Mutex<Option<PauseQuestion>>,
@@ -294,12 +294,12 @@ impl Ctx {
     }
 
     /// Keep the partial scan of a scan that ended early.
-    pub fn set_partial(&self, scan: Option<super::types::ScanRef>) {
+    pub fn set_partial(&self, scan: Option<super::values::ScanRef>) {
         *lock(&self.partial) = scan;
     }
 
     /// Take the partial scan kept by the last scan that ended early, if any.
-    pub fn take_partial(&self) -> Option<super::types::ScanRef> {
+    pub fn take_partial(&self) -> Option<super::values::ScanRef> {
         lock(&self.partial).take()
     }
 

@@ -7,7 +7,7 @@ use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
 use crate::analysis::quantities::{
-    fibril_diameter_nm, point_object, protofilaments, DiameterCalib, LinDensCalib,
+    fibril_diameter_nm, point_object, protofilaments, DiameterCalib, LinDensCalib, PROTEIN_N,
 };
 use crate::analysis::sbr::{sbr, SbrOptions};
 use crate::analysis::{
@@ -26,75 +26,58 @@ pub fn register(r: &mut Registrar) {
     register_filaments(r, &ctx);
 }
 
+/// `lin_dens_calib`'s default density of the filament, g/cm³ (protein; kept as it was: the
+/// globular-protein value of Sec. 3.2, `quantities::PROTEIN_DENSITY_G_CM3` = 1/0.745, is 1.342).
+const LIN_DENS_DENSITY_OBJ_G_CM3: f64 = 1.35;
+
 // ------------------------------------------------------------------ filaments
 
 fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let _ = ctx;
-    let meas_keys: Vec<(&str, &str, &str, &str)> = vec![
-        (
-            "stencil",
-            "string",
-            "",
-            "optional: derivative stencil (default central2)",
-        ),
-        (
-            "window_um",
-            "float",
-            "µm",
-            "optional: parabola window (default 0.4)",
-        ),
-        (
-            "min_snr",
-            "float",
-            "",
-            "optional: ignore line maxima below min_snr × line noise (default 0)",
-        ),
-        (
-            "max_offset_um",
-            "float",
-            "µm",
-            "optional: ignore maxima farther than this from the fitted line (default 0.15)",
-        ),
-        (
-            "detect_snr",
-            "float",
-            "",
-            "optional: candidate maxima above detect_snr × pixel noise (default 4)",
-        ),
-    ];
-    let mut curve_keys = vec![
+    let meas_keys = measure_keys();
+    let c = AngleCurveOptions::default();
+    let mut curve_keys: Vec<Key> = vec![
         (
             "n_angles",
             "int",
             "",
-            "optional: angles spanning 180° (default 19, Fig. 4d)",
+            format!(
+                "optional: angles spanning 180° (default {}, Fig. 4d)",
+                c.n_angles
+            ),
         ),
         (
             "pixel_um",
             "float",
             "µm",
-            "optional: pixel size of the scans it will be applied to (default 0.05)",
+            format!(
+                "optional: pixel size of the scans it will be applied to (default {})",
+                c.pixel_um
+            ),
         ),
         (
             "d_nm",
             "float",
             "nm",
-            "optional: bead-model filament diameter (default: the reference bead's)",
+            "optional: bead-model filament diameter (default: the reference bead's)".into(),
         ),
         (
             "n",
             "float",
             "",
-            "optional: its index (default: the reference bead's)",
+            "optional: its index (default: the reference bead's)".into(),
         ),
         (
             "spacing_nm",
             "float",
             "nm",
-            "optional: bead-model spacing (default 50)",
+            format!(
+                "optional: bead-model spacing (default {})",
+                c.bead_model.spacing_nm
+            ),
         ),
     ];
-    curve_keys.extend(meas_keys.iter().copied());
+    curve_keys.extend(meas_keys.iter().cloned());
     const CURVE: &str =
         "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7});";
     let d = Doc::func("angle_curve")
@@ -103,7 +86,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .form("angle_curve(tpl) -> AngleCurve")
         .returns("AngleCurve", "max Sx and Sy sensitivity vs filament angle, normalised to Sx at 0° (interpolated, period 180°)")
         .summary("orientation calibration curve from the bead model (Sec. 4.2 step 2, Fig. 4d)")
-        .help("Each angle: a long straight bead-model filament rendered on pixels of pixel_um, measured by the same pipeline as data (stencil, parabola window), averaged over sub-pixel offsets. The default 19 angles over 180° follow the paper's rotation series.")
+        .help(&format!("Each angle: a long straight bead-model filament rendered on pixels of pixel_um, measured by the same pipeline as data (stencil, parabola window), averaged over sub-pixel offsets. The default {} angles over 180° follow the paper's rotation series.", c.n_angles))
         .example(&format!("{CURVE} round(c.at(0.0).sx * 1000.0)"), "1000.0")
         .example(&format!("{CURVE} c.at(90.0).sy > 0.5"), "true")
         .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2})", "error: n_angles = 2");
@@ -440,30 +423,27 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     // quantities
-    let calib_keys = [
-        &[
-            (
-                "n_obj",
-                "float",
-                "",
-                "refractive index of the filament (collagen 1.41 in the paper)",
-            ),
-            (
-                "d_bm_nm",
-                "float",
-                "nm",
-                "optional: bead-model cylinder diameter (default: the reference bead's)",
-            ),
-            (
-                "n_bm",
-                "float",
-                "",
-                "optional: bead-model index (default: the reference bead's)",
-            ),
-        ][..],
-        PIPELINE_KEYS,
-    ]
-    .concat();
+    let mut calib_keys: Vec<Key> = vec![
+        (
+            "n_obj",
+            "float",
+            "",
+            "refractive index of the filament (collagen 1.41 in the paper)".into(),
+        ),
+        (
+            "d_bm_nm",
+            "float",
+            "nm",
+            "optional: bead-model cylinder diameter (default: the reference bead's)".into(),
+        ),
+        (
+            "n_bm",
+            "float",
+            "",
+            "optional: bead-model index (default: the reference bead's)".into(),
+        ),
+    ];
+    calib_keys.extend(pipeline_keys());
     let d = Doc::func("diameter_calib")
         .arg("tpl", "Template", "", "the point-particle template")
         .map("opts", "", &calib_keys)
@@ -507,6 +487,11 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             fibril_diameter_nm(s, a).map_err(|e| err("fibril_diameter", e))
         },
     );
+    let mut lin_keys: Vec<Key> = vec![
+        ("n_obj", "float", "", format!("optional: index of the filament (default {PROTEIN_N}, dry globular protein as Sec. 6)")),
+        ("density_obj", "float", "g/cm³", format!("optional: its density (default {LIN_DENS_DENSITY_OBJ_G_CM3}, protein)")),
+    ];
+    lin_keys.extend(pipeline_keys());
     let d = Doc::func("lin_dens_calib")
         .arg(
             "tpl",
@@ -514,28 +499,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "",
             "the point-particle template (its reference bead is the bead-model material)",
         )
-        .map(
-            "opts",
-            "",
-            &[
-                &[
-                (
-                    "n_obj",
-                    "float",
-                    "",
-                    "optional: index of the filament (default 1.587, dry globular protein as Sec. 6)",
-                ),
-                (
-                    "density_obj",
-                    "float",
-                    "g/cm³",
-                    "optional: its density (default 1.35, protein)",
-                ),
-                ][..],
-                PIPELINE_KEYS,
-            ]
-            .concat(),
-        )
+        .map("opts", "", &lin_keys)
         .returns(
             "map",
             "#{mu_bm_mda_um, d_bm_nm, density_bm, sens_bm, n_obj, density_obj, n_corr}",
@@ -552,8 +516,8 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         let (px, mo, bm) = pipeline_opts(who, &o)?;
         let c = LinDensCalib::from_template(
             &t.0,
-            o.f64_or("n_obj", 1.587)?,
-            o.f64_or("density_obj", 1.35)?,
+            o.f64_or("n_obj", PROTEIN_N)?,
+            o.f64_or("density_obj", LIN_DENS_DENSITY_OBJ_G_CM3)?,
             px,
             &mo,
             &bm,

@@ -1,6 +1,7 @@
 //! Binding family `mie`: Lorenz–Mie efficiencies and the focused-beam Mie response of a sphere.
 
-use super::registry::{err, Doc, Opts, RResult, Registrar};
+use super::ctx::Ctx;
+use super::registry::{err, Doc, Opts, RResult, Registrar, Spec};
 use rhai::{Map, INT};
 
 pub fn register(r: &mut Registrar) {
@@ -23,15 +24,7 @@ pub fn register(r: &mut Registrar) {
         )
         .example("mie_q(#{x: -1.0, m_re: 1.5})", "error: x");
     let spec = d.spec();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let q = crate::optics::mie::mie_q(
-            o.req_f64("x")?,
-            num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
-        )
-        .map_err(|e| err("mie_q", e))?;
-        Ok(mie_map(&q))
-    });
+    r.bind(d, move |m: Map| mie_q(&spec, &m));
     let d = Doc::func("mie")
         .map(
             "sphere",
@@ -52,24 +45,40 @@ pub fn register(r: &mut Registrar) {
         .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let op = c.optics();
-        let dn = o.req_f64("d_nm")?;
-        let q = crate::optics::mie::sphere(
-            dn,
-            num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
-            op.n_medium,
-            op.wavelength_nm,
-        )
-        .map_err(|e| err("mie", e))?;
-        let mut mm = mie_map(&q);
-        mm.insert(
-            "x".into(),
-            (std::f64::consts::PI * dn * op.n_medium / op.wavelength_nm).into(),
-        );
-        Ok(mm)
-    });
+    r.bind(d, move |m: Map| mie(&c, &spec, &m));
+}
+
+/// `mie_q(#{x, m_re, m_im})`: Lorenz–Mie efficiencies of a sphere of size parameter x and
+/// relative index m_re + i·m_im (Bohren & Huffman).
+fn mie_q(spec: &Spec, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let q = crate::optics::mie::mie_q(
+        o.req_f64("x")?,
+        num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
+    )
+    .map_err(|e| err("mie_q", e))?;
+    Ok(mie_map(&q))
+}
+
+/// `mie(#{d_nm, n, n_im})`: efficiencies of a sphere of diameter d_nm (nm) in the medium and at
+/// the wavelength of the session's optics; adds the size parameter x = π·d·n_medium/λ.
+fn mie(ctx: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let op = ctx.optics();
+    let dn = o.req_f64("d_nm")?;
+    let q = crate::optics::mie::sphere(
+        dn,
+        num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
+        op.n_medium,
+        op.wavelength_nm,
+    )
+    .map_err(|e| err("mie", e))?;
+    let mut mm = mie_map(&q);
+    mm.insert(
+        "x".into(),
+        (std::f64::consts::PI * dn * op.n_medium / op.wavelength_nm).into(),
+    );
+    Ok(mm)
 }
 
 fn mie_map(q: &crate::optics::mie::MieResult) -> Map {

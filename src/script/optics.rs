@@ -3,6 +3,7 @@
 //! index correction, mass, maximum sensitivity; suppl. S1–S3).
 
 use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
+use super::scene::{BEAD_D_NM, BEAD_N};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
@@ -149,8 +150,8 @@ pub fn register(r: &mut Registrar) {
                 ("x", "float", "µm", "optional: displacement (default 0)"),
                 ("y", "float", "µm", "optional: displacement (default 0)"),
                 ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
-                ("d_nm", "float", "nm", "optional: diameter (default 110)"),
-                ("n", "float", "", "optional: refractive index (default 1.572, polystyrene)"),
+                ("d_nm", "float", "nm", format!("optional: diameter (default {BEAD_D_NM})").as_str()),
+                ("n", "float", "", format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
                 ("polarization", "bool", "", "optional: vector dipole field (default false)"),
             ],
         )
@@ -177,8 +178,8 @@ pub fn register(r: &mut Registrar) {
                 o.f64_or("y", 0.0)?,
                 o.f64_or("z", 0.0)?,
             ],
-            o.f64_or("d_nm", 110.0)?,
-            o.f64_or("n", 1.572)?,
+            o.f64_or("d_nm", BEAD_D_NM)?,
+            o.f64_or("n", BEAD_N)?,
         )
         .map_err(|e| err("response", e))?;
         let mut out = Map::new();
@@ -309,7 +310,7 @@ pub fn register(r: &mut Registrar) {
             "the sphere and the model tier",
             &[
                 ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "optional: index (default 1.572)"),
+                ("n", "float", "", format!("optional: index (default {BEAD_N})").as_str()),
                 ("model", "string", "", "optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
             ],
         )
@@ -321,7 +322,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(d, move |m: Map| -> RResult<Map> {
         let o = Opts::new(&spec, &m)?;
-        let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", 1.572)?);
+        let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
         crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
         let optics = c.optics();
         let det = Detection::new(&optics, &DetectorModel::default()).map_err(|e| err("max_sensitivity_model", e))?;

@@ -32,6 +32,16 @@ fn pair(who: &str, key: &str, v: &Dynamic) -> RResult<[f64; 2]> {
 
 const SCENE_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572});";
 
+/// Default bead of `add_bead`, `response` and `max_sensitivity_model`: the paper's reference
+/// bead, 110 nm polystyrene (Sec. 3.1). Diameter nm, refractive index.
+pub(crate) const BEAD_D_NM: f64 = 110.0;
+pub(crate) const BEAD_N: f64 = 1.572;
+/// Default filament of `add_filament`: a hydrated collagen fibril, diameter nm and index, and
+/// its bead-model spacing, nm (Sec. 4.2).
+pub(crate) const FILAMENT_D_NM: f64 = 60.0;
+pub(crate) const FILAMENT_N: f64 = 1.414;
+pub(crate) const FILAMENT_SPACING_NM: f64 = 50.0;
+
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
     r.engine()
@@ -74,12 +84,17 @@ pub fn register(r: &mut Registrar) {
                 ("x", "float", "µm", "optional: position (default 0)"),
                 ("y", "float", "µm", "optional: position (default 0)"),
                 ("z", "float", "µm", "optional: height (default 0)"),
-                ("d_nm", "float", "nm", "optional: diameter (default 110)"),
+                (
+                    "d_nm",
+                    "float",
+                    "nm",
+                    format!("optional: diameter (default {BEAD_D_NM})").as_str(),
+                ),
                 (
                     "n",
                     "float",
                     "",
-                    "optional: refractive index (default 1.572, polystyrene)",
+                    format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str(),
                 ),
             ],
         )
@@ -98,8 +113,8 @@ pub fn register(r: &mut Registrar) {
                 o.f64_or("y", 0.0)?,
                 o.f64_or("z", 0.0)?,
             ],
-            d_nm: o.f64_or("d_nm", 110.0)?,
-            n: o.f64_or("n", 1.572)?,
+            d_nm: o.f64_or("d_nm", BEAD_D_NM)?,
+            n: o.f64_or("n", BEAD_N)?,
         })
         .map_err(|e| err("add_bead", e))
     });
@@ -111,11 +126,11 @@ pub fn register(r: &mut Registrar) {
             &[
                 ("points", "array", "µm", "vertices [[x, y], ...]"),
                 ("z", "float", "µm", "optional: height (default 0)"),
-                ("d_nm", "float", "nm", "optional: constant diameter (default 60)"),
+                ("d_nm", "float", "nm", format!("optional: constant diameter (default {FILAMENT_D_NM})").as_str()),
                 ("taper", "array", "nm", "optional: [d_start, d_end] linear taper instead of d_nm"),
                 ("alpha_tip", "map", "nm, µm", "optional: #{d_nm, tip_um}: parabola-of-revolution α-tip from the first point (Sec. 5)"),
-                ("n", "float", "", "optional: refractive index (default 1.414, hydrated collagen)"),
-                ("spacing_nm", "float", "nm", "optional: bead-model spacing (default 50)"),
+                ("n", "float", "", format!("optional: refractive index (default {FILAMENT_N}, hydrated collagen)").as_str()),
+                ("spacing_nm", "float", "nm", format!("optional: bead-model spacing (default {FILAMENT_SPACING_NM})").as_str()),
             ],
         )
         .summary("add a filament (bead model: spheres every spacing_nm, volume factor 3h/4r)")
@@ -148,15 +163,15 @@ pub fn register(r: &mut Registrar) {
             }
         } else {
             DiameterProfile::Constant {
-                d_nm: o.f64_or("d_nm", 60.0)?,
+                d_nm: o.f64_or("d_nm", FILAMENT_D_NM)?,
             }
         };
         s.0.add_filament(Filament {
             points: pts,
             z: o.f64_or("z", 0.0)?,
             profile,
-            n: o.f64_or("n", 1.414)?,
-            spacing_nm: o.f64_or("spacing_nm", 50.0)?,
+            n: o.f64_or("n", FILAMENT_N)?,
+            spacing_nm: o.f64_or("spacing_nm", FILAMENT_SPACING_NM)?,
         })
         .map_err(|e| err("add_filament", e))
     });

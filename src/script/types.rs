@@ -2,37 +2,13 @@
 //! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
 
 use super::registry::{fail, int, num, Doc, RResult, Registrar};
+pub use super::values::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::{AngleCurve, FilamentMeasurement, FitResult, Template};
-use crate::data::{Image, Profile, Scan, ScanStatus};
+use crate::data::{Image, Profile, ScanStatus};
 use ndarray::Array2;
 use rhai::{Array, Dynamic, Map, INT};
 use std::fmt;
 use std::sync::Arc;
-
-/// A scan in a script (`Scan`).
-#[derive(Debug, Clone)]
-pub struct ScanRef {
-    pub scan: Arc<Scan>,
-    /// Where it was saved, if it was.
-    pub path: Option<Arc<str>>,
-}
-
-/// An image in a script (`Image`).
-#[derive(Debug, Clone)]
-pub struct ImageRef(pub Arc<Image>);
-
-/// A 1-D curve in a script (`Profile`).
-#[derive(Debug, Clone)]
-pub struct ProfileRef(pub Arc<Profile>);
-
-impl ScanRef {
-    pub fn new(scan: Scan, path: Option<String>) -> Self {
-        Self {
-            scan: Arc::new(scan),
-            path: path.map(Arc::from),
-        }
-    }
-}
 
 /// Statistics over the finite values (unmeasured NaN pixels are skipped).
 #[derive(Debug, Clone, Copy)]
@@ -309,7 +285,7 @@ pub fn show_float(x: f64) -> String {
     if x.is_finite() && x.fract() == 0.0 && x.abs() < 1e15 {
         return format!("{x:.1}");
     }
-    super::console::fmt_num(x)
+    super::words::fmt_num(x)
 }
 
 fn image_from(like: &Image, data: Array2<f64>) -> ImageRef {
