@@ -351,3 +351,191 @@ fn position_distance_trigger_fires_between_start_and_stop_thresholds() {
     std::thread::sleep(Duration::from_millis(10));
     assert_eq!(t.count(), 6);
 }
+
+// ---------------------------------------------------------------------------------------
+// The driver's line sweep, over a pseudo-terminal.
+
+use bfpscope::instrument::emulator::start_stage_emulator;
+use bfpscope::instrument::gcs::{parse_gcs_array, GcsOptions, GcsStage, LineSweep};
+use bfpscope::instrument::{DeviceError, Stage};
+use std::sync::atomic::AtomicBool;
+
+fn pty_stage(wave: WaveConfig) -> (Emulator, GcsStage) {
+    let cfg = StageEmulatorConfig {
+        start: [10.0, 10.0, 5.0],
+        settle_s: 0.002,
+        wave,
+        ..StageEmulatorConfig::default()
+    };
+    let e = start_stage_emulator(cfg, shared_position([0.0; 3])).unwrap();
+    let opts = GcsOptions {
+        timeout: Duration::from_millis(1000),
+        on_target_timeout: Duration::from_millis(1000),
+        poll_interval: Duration::from_millis(1),
+        ..GcsOptions::default()
+    };
+    let mut s = GcsStage::open(e.path(), 115_200, opts).unwrap();
+    Stage::enable(&mut s).unwrap();
+    (e, s)
+}
+
+fn line(from: f64, to: f64) -> LineSweep {
+    LineSweep {
+        axis: 0,
+        from_um: from,
+        to_um: to,
+        points: 400,
+        speedupdown: 20,
+        rate: 1,
+        record_rate: 1,
+        trigger_line: Some(1),
+        table: 1,
+        servo_cycle_s: DT,
+    }
+}
+
+#[test]
+fn driver_sweeps_a_line_pulses_the_trigger_once_and_reads_the_recorder() {
+    let t = ExtTrigger::new();
+    let (e, mut s) = pty_stage(WaveConfig {
+        servo_cycle_s: DT,
+        lag_s: TAU,
+        trigger_out: [Some(t.clone()), None, None],
+        ..WaveConfig::default()
+    });
+    let l = line(10.0, 20.0);
+    Stage::move_to(&mut s, [10.0, 10.0, 5.0]).unwrap();
+    let rec = s
+        .sweep_line(&l, &AtomicBool::new(false))
+        .unwrap()
+        .expect("not aborted");
+    assert_eq!(t.count(), 1, "one trigger pulse per line");
+    assert_eq!(rec.sample_time_s, DT);
+    assert_eq!(rec.target_um.len(), 400);
+    assert_eq!(rec.position_um.len(), 400);
+    assert!((rec.target_um[0] - 10.0).abs() <= 1e-6);
+    assert!((rec.target_um[399] - 20.0).abs() <= 1e-6);
+    // constant speed between the speed-up and the speed-down: v = 10 µm / (379 · 50 µs)
+    let v = l.speed_um_s();
+    assert!((v - 10.0 / (379.0 * DT)).abs() < 1e-9 * v);
+    for j in 30..370 {
+        let d = rec.target_um[j + 1] - rec.target_um[j];
+        assert!((d - v * DT).abs() <= 2e-6, "{j}: {d}");
+    }
+    // the measured position trails by v·dt/(exp(dt/τ) − 1) once the lag has settled (≥ 10 τ
+    // into the constant-speed part)
+    let lag = v * DT / ((DT / TAU).exp() - 1.0);
+    for j in 250..370 {
+        let e = rec.target_um[j] - rec.position_um[j];
+        assert!((e - lag).abs() <= 3e-6, "{j}: {e} vs {lag}");
+    }
+    let log = e.commands();
+    assert!(log
+        .iter()
+        .any(|c| c == "WAV 1 X LIN 400 10.000000 10.000000 400 0 20"));
+    assert!(log.iter().any(|c| c == "WGO 1 1"));
+    assert!(log.iter().any(|c| c == "DRR? 1 400 1 2"));
+    assert!(!log.iter().any(|c| c == "STP"), "no stop on a good line");
+    // the driver reads the target again after the generator moved the axis
+    assert!((Stage::target(&mut s).unwrap()[0] - 20.0).abs() < 1e-6);
+}
+
+#[test]
+fn aborted_line_stops_the_generator_and_the_axes() {
+    let (e, mut s) = pty_stage(WaveConfig::default());
+    let mut l = line(10.0, 20.0);
+    l.points = 20_000; // 1 s
+    let r = s.sweep_line(&l, &AtomicBool::new(true)).unwrap();
+    assert!(r.is_none());
+    let log = e.commands();
+    let i = log.iter().position(|c| c == "WGO 1 1").unwrap();
+    let tail: Vec<&str> = log[i..].iter().map(String::as_str).collect();
+    assert!(
+        tail.contains(&"WGO 1 0") && tail.contains(&"STP"),
+        "{tail:?}"
+    );
+    let mut c = s.query_only("WGO? 1").unwrap();
+    assert_eq!(c.remove(0), "1=0");
+}
+
+#[test]
+fn a_recorder_that_never_fills_is_a_fault_that_stops_everything() {
+    // record tables of 100 points: the 400 asked never come
+    let (e, mut s) = pty_stage(WaveConfig {
+        record_points: 100,
+        ..WaveConfig::default()
+    });
+    let err = s
+        .sweep_line(&line(10.0, 20.0), &AtomicBool::new(false))
+        .unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        msg.contains("DRL? 1 2") && msg.contains("[100, 100]") && msg.contains("400"),
+        "{msg}"
+    );
+    assert!(matches!(err, DeviceError::Other { .. }));
+    let log = e.commands();
+    let n = log.len();
+    assert!(
+        log[n - 3..].iter().any(|c| c == "WGO 1 0"),
+        "{:?}",
+        &log[n - 4..]
+    );
+    assert!(
+        log[n - 3..].iter().any(|c| c == "STP"),
+        "{:?}",
+        &log[n - 4..]
+    );
+}
+
+#[test]
+fn a_rejected_line_names_the_command_and_the_controller_error() {
+    // a wave beyond the 100 µm travel: WGO is refused with error 7
+    let (e, mut s) = pty_stage(WaveConfig::default());
+    let err = s
+        .sweep_line(&line(10.0, 120.0), &AtomicBool::new(false))
+        .unwrap_err();
+    match &err {
+        DeviceError::Controller { command, code, .. } => {
+            assert_eq!(command, "WGO 1 1");
+            assert_eq!(*code, 7);
+        }
+        other => panic!("{other}"),
+    }
+    assert!(err.to_string().contains("Position out of limits"));
+    assert!(e.commands().iter().any(|c| c == "STP"));
+}
+
+#[test]
+fn gcs_array_parser_reads_pipython_s_format_and_names_what_is_wrong() {
+    let ok: Vec<String> = [
+        "# VERSION = 1",
+        "# TYPE = 1",
+        "# SEPARATOR = 32",
+        "# DIM = 2",
+        "# SAMPLE_TIME = 0.000050",
+        "# NDATA = 2",
+        "# NAME0 = Target Position of axis 1",
+        "# END_HEADER",
+        "1.5 2.5",
+        "3.5 4.5",
+    ]
+    .map(String::from)
+    .to_vec();
+    let a = parse_gcs_array(&ok).unwrap();
+    assert_eq!(a.columns, vec![vec![1.5, 3.5], vec![2.5, 4.5]]);
+    assert_eq!(a.get("NAME0"), Some("Target Position of axis 1"));
+    let mut short = ok.clone();
+    short.pop();
+    assert_eq!(parse_gcs_array(&short).unwrap_err(), "1 rows, NDATA is 2");
+    let mut bad = ok.clone();
+    bad[9] = "3.5 x".into();
+    assert!(parse_gcs_array(&bad)
+        .unwrap_err()
+        .contains("row 2 is not numbers"));
+    let mut one = ok;
+    one[9] = "3.5".into();
+    assert!(parse_gcs_array(&one)
+        .unwrap_err()
+        .contains("row 2 has 1 values, DIM is 2"));
+}
