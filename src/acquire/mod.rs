@@ -7,6 +7,7 @@
 pub mod engine;
 pub mod limits;
 pub mod plan;
+pub mod raster;
 pub mod store;
 
 pub use engine::{

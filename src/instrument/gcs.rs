@@ -24,6 +24,10 @@
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
+#[path = "gcs_wave.rs"]
+mod wave;
+pub use wave::{parse_gcs_array, GcsArray, LineSweep, SweepRecord};
+
 use super::link::{open_port, LineLink, Transport};
 use super::{DeviceError, Pos, Stage};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -60,6 +64,15 @@ pub fn gcs_error_text(code: i64) -> &'static str {
         25 => "Invalid floating point number",
         26 => "Parameter missing",
         27 => "Soft limit out of range",
+        54 => "Unknown parameter",
+        57 => "Data recorder table does not exist",
+        58 => "Source option does not exist; number too low or too high",
+        59 => "Source ID (channel or axis) too low or too high",
+        67 => "Not enough memory available for requested wave curve",
+        70 => "The requested arrays have different lengths; query them separately",
+        73 => "Motion commands are not allowed when wave generator output is active; use WGO to disable generator output",
+        75 => "Generator started (WGO) without having selected a wave table (WSL)",
+        77 => "Data Record Table does not hold enough recorded data",
         -1024 => "Motion error: position error too large, servo is switched off automatically",
         _ => "see the controller manual's error list",
     }

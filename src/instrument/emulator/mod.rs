@@ -30,7 +30,7 @@ pub use cli::{
 };
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
 pub use redpitaya::{start_redpitaya_emulator, ExtTrigger, Generator, RedPitayaEmulatorConfig};
-pub use stage::{start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig};
+pub use stage::{start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig, WaveConfig};
 
 use super::Pos;
 use serialport::TTYPort;

@@ -60,6 +60,13 @@ pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 #[derive(Debug, Clone, Default)]
 pub struct ExtTrigger(Arc<AtomicU64>);
 
+/// Two handles are equal when they are the same wire.
+impl PartialEq for ExtTrigger {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
 impl ExtTrigger {
     pub fn new() -> Self {
         Self::default()

@@ -8,15 +8,24 @@
 //! axes without one). Errors: 1 parameter syntax, 2 unknown command, 5 servo off, 7 position
 //! out of limits, 10 stopped, 15 invalid axis identifier.
 //!
+//! The wave generator (`WAV` `LIN`/`RAMP`/`PNT`, `WAV?`, `WSL`, `WGC`, `WTR`, `WGO`, their
+//! queries and `#9`), the trigger outputs (`CTO`, `CTO?`, `TWS`, `TWC`) and the data recorder
+//! (`DRC`, `DRC?`, `DRT`, `DRT?`, `RTR`, `RTR?`, `DRL?`, `DRR?`) run under the controller's
+//! servo clock: see [`WaveConfig`] and the `stage_wave` module. `STP`, `HLT` and `#24` stop
+//! the generators too; `MOV`/`SVO` on an axis whose generator runs are refused (error 73).
+//!
 //! `SAI?` as PI documents it: the identifiers of the configured (active) axes, one per line
 //! (`1 ␠\n2 ␠\n3\n`); `SAI? ALL` also lists deactivated axes ([`StageEmulatorConfig::inactive_axes`]).
 //! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
 //! answers a query naming several axes for the first one only.
 
 use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, LinkModel, SharedPosition};
+#[path = "stage_wave.rs"]
+mod wave;
 use crate::instrument::Pos;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
+pub use wave::WaveConfig;
 
 /// Stage emulator settings.
 #[derive(Debug, Clone, PartialEq)]
@@ -50,6 +59,9 @@ pub struct StageEmulatorConfig {
     pub single_char_commands: bool,
     /// The serial link modelled (baud rate, reply latency); default the pty's full speed.
     pub link: LinkModel,
+    /// Wave generator, data recorder and trigger outputs (servo clock, axis lag, sizes, and
+    /// what OUT1…OUT3 are wired to).
+    pub wave: WaveConfig,
 }
 
 impl Default for StageEmulatorConfig {
@@ -69,6 +81,7 @@ impl Default for StageEmulatorConfig {
             faults: Faults::default(),
             single_char_commands: true,
             link: LinkModel::FULL_SPEED,
+            wave: WaveConfig::default(),
         }
     }
 }
@@ -94,6 +107,9 @@ struct Axis {
     /// Settle time of the move under way, s, fixed when it was commanded (a later change of
     /// `Faults::settle_s` applies to later moves).
     settle: f64,
+    /// Under the wave generator's first-order lag model: the current position, µm (until the
+    /// next `MOV` or stop).
+    lag: Option<f64>,
 }
 
 struct GcsDevice {
@@ -107,6 +123,8 @@ struct GcsDevice {
     /// Closed-loop velocity per axis (`VEL`), units/s: stored and reported (`VEL?`); the
     /// emulated motion keeps its settle-time ramp.
     velocity: [f64; 3],
+    /// Wave generator, recorder, trigger outputs.
+    wave: wave::Wave,
 }
 
 impl GcsDevice {
@@ -133,6 +151,10 @@ impl GcsDevice {
         let a = &self.axes[i];
         if a.tripped {
             return (a.from, false);
+        }
+        if let Some(x) = a.lag {
+            let on = !self.wave.running(i) && (x - a.target).abs() <= self.cfg.on_target_window_um;
+            return (x, on);
         }
         let f = if a.settle > 0.0 {
             now.duration_since(a.t0).as_secs_f64() / a.settle
@@ -218,6 +240,8 @@ impl GcsDevice {
     }
 
     fn halt(&mut self) {
+        self.advance(Instant::now());
+        self.wave.stop_all();
         let (p, _) = self.positions();
         let now = Instant::now();
         for (a, x) in self.axes.iter_mut().zip(p) {
@@ -225,6 +249,7 @@ impl GcsDevice {
             a.target = x;
             a.t0 = now;
             a.tripped = false;
+            a.lag = None;
         }
         self.set_error(10);
     }
@@ -232,6 +257,7 @@ impl GcsDevice {
 
 impl Device for GcsDevice {
     fn tick(&mut self) {
+        self.advance(Instant::now());
         self.publish();
     }
 
@@ -244,6 +270,7 @@ impl Device for GcsDevice {
             0x05 => Some("#5"),
             0x07 => Some("#7"),
             0x18 => Some("#24"),
+            0x09 => Some("#9"),
             _ => None,
         }
     }
@@ -256,8 +283,13 @@ impl Device for GcsDevice {
         let mut words = line.split_whitespace();
         let cmd = words.next()?.to_ascii_uppercase();
         let args: Vec<&str> = words.collect();
+        self.advance(Instant::now());
+        if let Some(reply) = self.wave_command(&cmd, &args) {
+            self.publish();
+            return reply;
+        }
         let reply = match cmd.as_str() {
-            "#5" | "#7" | "#24" if !self.cfg.single_char_commands => {
+            "#5" | "#7" | "#9" | "#24" if !self.cfg.single_char_commands => {
                 self.set_error(2);
                 None
             }
@@ -343,6 +375,10 @@ impl Device for GcsDevice {
                     self.set_error(1);
                     return None;
                 }
+                if pairs.iter().any(|&(i, _)| self.wave.running(i)) {
+                    self.set_error(73);
+                    return None;
+                }
                 for (i, v) in pairs {
                     let a = &mut self.axes[i];
                     a.servo = v == 1.0;
@@ -358,6 +394,10 @@ impl Device for GcsDevice {
                 let pairs = self.pairs(&args)?;
                 if pairs.iter().any(|&(i, _)| !self.axes[i].servo) {
                     self.set_error(5);
+                    return None;
+                }
+                if pairs.iter().any(|&(i, _)| self.wave.running(i)) {
+                    self.set_error(73);
                     return None;
                 }
                 let reject = lock(&self.faults).reject_out_of_range;
@@ -376,6 +416,7 @@ impl Device for GcsDevice {
                     a.target = v.clamp(t[i].0, t[i].1);
                     a.t0 = now;
                     a.settle = settle;
+                    a.lag = None;
                     if trip {
                         a.tripped = true;
                         a.servo = false;
@@ -384,6 +425,7 @@ impl Device for GcsDevice {
                 if trip {
                     self.set_error(-1024);
                 }
+                self.wave.position_command();
                 None
             }
             "STP" | "HLT" => {
@@ -440,12 +482,14 @@ fn device(
             servo: cfg.servo_on,
             tripped: false,
             settle: 0.0,
+            lag: None,
         });
     }
     let axes: [Axis; 3] = axes
         .try_into()
         .map_err(|_| std::io::Error::other("three axes"))?;
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
+    let cfg_wave = cfg.wave.clone();
     let dev = GcsDevice {
         cfg,
         axes,
@@ -454,6 +498,7 @@ fn device(
         position,
         noise_state: std::cell::Cell::new(0x5eed),
         velocity: [10_000.0; 3],
+        wave: wave::Wave::new(cfg_wave, now),
     };
     dev.publish();
     Ok((dev, faults))

@@ -1,0 +1,395 @@
+//! Hardware-timed line sweeps on a PI GCS 2.0 controller: the wave generator drives one axis
+//! along a constant-speed line under the controller's servo clock, a digital output pulses at
+//! the first wave point (to start a digitiser), and the data recorder keeps the target and
+//! the measured position of every servo sample.
+//!
+//! Commands (PI GCS 2.0; argument order as PIPython's `gcsbasecommands.py` documents it):
+//!
+//! | command | use |
+//! |---|---|
+//! | `WAV t X LIN seg amp off n 0 s` | the line: `n` points from `off` to `off + amp` (µm), `s` points of speed-up/down at each end |
+//! | `WSL g t`, `WGC g 1`, `WTR g r 0` | generator `g` (the axis' position in `SAI?`) plays table `t` once, `r` servo cycles per point |
+//! | `CTO l 2 axis l 3 4`, `TWC`, `TWS l 1 1 l 2 0` | output `l` in generator-trigger mode: high at wave point 1 only, one pulse per line |
+//! | `DRC 1 axis 1 2 axis 2`, `RTR r` | record tables 1, 2: target and current position every `r` cycles |
+//! | `WGO g 1` | start (the recorder triggers on it, `DRT` default) |
+//! | `#9` (or `WGO?`) | poll until the generator has stopped |
+//! | `DRL? 1 2`, `DRR? 1 N 1 2` | wait for the points, read them as a GCS array |
+//! | `WGO g 0`, `STP` | on abort and after any fault |
+//!
+//! Units: positions in µm at this interface (`units_per_um` converts), times in s. The
+//! driver only configures, starts, reads and stops: the sweep's limits and speed are checked
+//! by `acquire/` before anything moves.
+
+use super::{DeviceError, GcsStage};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+/// One hardware-timed line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LineSweep {
+    /// Stage axis swept: 0 = x, 1 = y, 2 = z.
+    pub axis: usize,
+    /// Start and end of the wave, µm (absolute).
+    pub from_um: f64,
+    pub to_um: f64,
+    /// Wave points, speed-up and speed-down included.
+    pub points: usize,
+    /// Points of constant acceleration at each end of the wave.
+    pub speedupdown: usize,
+    /// Servo cycles per wave point (`WTR`).
+    pub rate: u32,
+    /// Servo cycles per recorded sample (`RTR`).
+    pub record_rate: u32,
+    /// Digital output (1…3) pulsed at the first wave point; `None`: no trigger output.
+    pub trigger_line: Option<u8>,
+    /// Wave table used.
+    pub table: u32,
+    /// The controller's servo cycle, s (for the sweep's duration and its timeout).
+    pub servo_cycle_s: f64,
+}
+
+impl LineSweep {
+    /// Duration of the wave, s: `points · rate · servo cycle`.
+    pub fn duration_s(&self) -> f64 {
+        self.points as f64 * f64::from(self.rate) * self.servo_cycle_s
+    }
+
+    /// Speed on the constant-speed part, µm/s.
+    pub fn speed_um_s(&self) -> f64 {
+        let steps = self.points as f64 - 1.0 - self.speedupdown as f64;
+        (self.to_um - self.from_um).abs() / (steps * f64::from(self.rate) * self.servo_cycle_s)
+    }
+
+    /// Recorded samples covering the wave.
+    pub fn samples(&self) -> usize {
+        let cycles = self.points as u64 * u64::from(self.rate);
+        cycles.div_ceil(u64::from(self.record_rate.max(1))) as usize
+    }
+}
+
+/// What the data recorder gave for one line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SweepRecord {
+    /// Time between samples, s (`SAMPLE_TIME` of the GCS array header).
+    pub sample_time_s: f64,
+    /// Commanded (target) position per sample, µm.
+    pub target_um: Vec<f64>,
+    /// Measured position per sample, µm.
+    pub position_um: Vec<f64>,
+}
+
+/// A GCS array (`DRR?` and friends): header `KEY = VALUE` pairs and the data columns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GcsArray {
+    pub header: Vec<(String, String)>,
+    pub columns: Vec<Vec<f64>>,
+}
+
+impl GcsArray {
+    pub fn get(&self, key: &str) -> Option<&str> {
+        self.header
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
+}
+
+/// Parse the lines of a GCS array reply (marker spaces removed): `# KEY = VALUE` header lines
+/// up to `# END_HEADER`, then rows of `DIM` numbers separated by `SEPARATOR` (32, a space).
+/// `Err` names what is wrong.
+pub fn parse_gcs_array(lines: &[String]) -> Result<GcsArray, String> {
+    let mut header = Vec::new();
+    let mut it = lines.iter();
+    let mut ended = false;
+    for l in it.by_ref() {
+        let Some(h) = l.strip_prefix('#') else {
+            return Err(format!("header line without `#`: {l:?}"));
+        };
+        let h = h.trim();
+        if h.eq_ignore_ascii_case("END_HEADER") {
+            ended = true;
+            break;
+        }
+        if let Some((k, v)) = h.split_once('=') {
+            header.push((k.trim().to_string(), v.trim().to_string()));
+        }
+    }
+    if !ended {
+        return Err("no `# END_HEADER` line".into());
+    }
+    let num = |k: &str| -> Result<usize, String> {
+        header
+            .iter()
+            .find(|(h, _)| h == k)
+            .and_then(|(_, v)| v.parse::<usize>().ok())
+            .ok_or_else(|| format!("no numeric {k} in the header"))
+    };
+    let dim = num("DIM")?;
+    let ndata = num("NDATA")?;
+    let sep = num("SEPARATOR").unwrap_or(32);
+    let sep = char::from_u32(sep as u32).unwrap_or(' ');
+    let mut columns = vec![Vec::with_capacity(ndata); dim];
+    for (i, l) in it.enumerate() {
+        let vals: Vec<f64> = l
+            .split(sep)
+            .filter(|s| !s.trim().is_empty())
+            .map(|s| s.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("row {} is not numbers: {l:?}", i + 1))?;
+        if vals.len() != dim {
+            return Err(format!(
+                "row {} has {} values, DIM is {dim}: {l:?}",
+                i + 1,
+                vals.len()
+            ));
+        }
+        for (c, v) in columns.iter_mut().zip(vals) {
+            c.push(v);
+        }
+    }
+    let rows = columns.first().map_or(0, Vec::len);
+    if rows != ndata {
+        return Err(format!("{rows} rows, NDATA is {ndata}"));
+    }
+    Ok(GcsArray { header, columns })
+}
+
+/// Most rows a GCS array reply may have.
+const MAX_ARRAY_ROWS: usize = 1 << 20;
+
+impl GcsStage {
+    /// The controller identifier and wave generator (its 1-based position in `SAI?`) of stage
+    /// axis `axis`.
+    fn generator_of(&self, axis: usize) -> Result<(String, usize), DeviceError> {
+        let id = self
+            .axes
+            .iter()
+            .find(|(i, _)| *i == axis)
+            .map(|(_, a)| a.clone())
+            .ok_or_else(|| DeviceError::Other {
+                device: self.link.device().to_string(),
+                detail: format!(
+                    "axis {} is not driven by this controller",
+                    ["x", "y", "z"].get(axis).unwrap_or(&"?")
+                ),
+            })?;
+        let g = self.sai.iter().position(|s| *s == id).map_or(1, |p| p + 1);
+        Ok((id, g))
+    }
+
+    fn other(&self, detail: String) -> DeviceError {
+        DeviceError::Other {
+            device: self.link.device().to_string(),
+            detail,
+        }
+    }
+
+    /// Configure the wave, the generator, the trigger output and the recorder for `s`
+    /// (nothing moves).
+    pub fn configure_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        if !(s.from_um.is_finite() && s.to_um.is_finite())
+            || s.points < 2
+            || 2 * s.speedupdown + 1 > s.points
+            || s.rate == 0
+            || s.record_rate == 0
+            || !(s.servo_cycle_s.is_finite() && s.servo_cycle_s > 0.0)
+        {
+            return Err(self.other(format!("refusing to configure the line sweep {s:?}")));
+        }
+        let (id, g) = self.generator_of(s.axis)?;
+        let u = self.opts.units_per_um;
+        let t = s.table;
+        self.command(&format!(
+            "WAV {t} X LIN {n} {amp:.6} {off:.6} {n} 0 {sud}",
+            n = s.points,
+            amp = (s.to_um - s.from_um) * u,
+            off = s.from_um * u,
+            sud = s.speedupdown
+        ))?;
+        self.command(&format!("WSL {g} {t}"))?;
+        self.command(&format!("WGC {g} 1"))?;
+        self.command(&format!("WTR {g} {} 0", s.rate))?;
+        if let Some(l) = s.trigger_line {
+            self.command(&format!("CTO {l} 2 {id} {l} 3 4"))?;
+            self.command("TWC")?;
+            self.command(&format!("TWS {l} 1 1 {l} 2 0"))?;
+        }
+        self.command(&format!("DRC 1 {id} 1 2 {id} 2"))?;
+        self.command(&format!("RTR {}", s.record_rate))?;
+        Ok(())
+    }
+
+    /// `WGO g 1`: start the line (the recorder starts with it).
+    pub fn start_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        let (_, g) = self.generator_of(s.axis)?;
+        // the target changes under the generator: read it again after the line
+        self.commanded = None;
+        self.command(&format!("WGO {g} 1"))
+    }
+
+    /// Whether generator `g` runs: `#9` (bit g−1 of a hexadecimal mask).
+    fn generator_running(&mut self, g: usize) -> Result<bool, DeviceError> {
+        self.link.discard_input();
+        self.link.send_raw(&[0x09], "#9")?;
+        let line = self.link.read_line("#9", self.opts.timeout)?;
+        let mask = u32::from_str_radix(line.trim(), 16)
+            .map_err(|_| self.link.garbled("#9", line.clone()))?;
+        Ok(mask & (1 << (g - 1)) != 0)
+    }
+
+    /// Poll `#9` until the line's generator has stopped. `Ok(false)`: `abort` was set (the
+    /// generator and the axes are stopped). A generator still running at twice the line's
+    /// duration plus the on-target timeout is a fault.
+    pub fn wait_line(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
+        let (_, g) = self.generator_of(s.axis)?;
+        let limit = Duration::from_secs_f64(2.0 * s.duration_s()) + self.opts.on_target_timeout;
+        let t0 = Instant::now();
+        loop {
+            if abort.load(Ordering::SeqCst) {
+                self.stop_line(s)?;
+                return Ok(false);
+            }
+            if !self.generator_running(g)? {
+                return Ok(true);
+            }
+            if t0.elapsed() > limit {
+                return Err(self.other(format!(
+                    "wave generator {g} still running {:.3} s after `WGO {g} 1` (the line takes {:.3} s)",
+                    t0.elapsed().as_secs_f64(),
+                    s.duration_s()
+                )));
+            }
+            std::thread::sleep(self.opts.poll_interval);
+        }
+    }
+
+    /// Read `n` samples of record tables 1 and 2: wait until `DRL?` has them, then `DRR? 1 n
+    /// 1 2`.
+    pub fn read_record(&mut self, n: usize) -> Result<SweepRecord, DeviceError> {
+        let t0 = Instant::now();
+        loop {
+            let lines = self.query_lines("DRL? 1 2")?;
+            let have = lines
+                .iter()
+                .map(|l| {
+                    l.split_once('=')
+                        .and_then(|(_, v)| v.trim().parse::<usize>().ok())
+                })
+                .collect::<Option<Vec<usize>>>()
+                .filter(|v| v.len() == 2)
+                .ok_or_else(|| self.link.garbled("DRL? 1 2", lines.join("\\n")))?;
+            if have.iter().all(|&h| h >= n) {
+                break;
+            }
+            if t0.elapsed() > self.opts.on_target_timeout {
+                return Err(self.other(format!(
+                    "the data recorder holds {have:?} points after {:.3} s, {n} expected (`DRL? 1 2`)",
+                    t0.elapsed().as_secs_f64()
+                )));
+            }
+            std::thread::sleep(self.opts.poll_interval);
+        }
+        let cmd = format!("DRR? 1 {n} 1 2");
+        let a = self.query_gcs_array(&cmd)?;
+        let u = self.opts.units_per_um;
+        let bad = |why: String| self.link.garbled(&cmd, why);
+        if a.columns.len() != 2 || a.columns[0].len() != n {
+            return Err(bad(format!(
+                "{} columns of {} rows, 2 of {n} asked",
+                a.columns.len(),
+                a.columns.first().map_or(0, Vec::len)
+            )));
+        }
+        let sample_time_s = a
+            .get("SAMPLE_TIME")
+            .and_then(|v| v.parse::<f64>().ok())
+            .filter(|v| v.is_finite() && *v > 0.0)
+            .ok_or_else(|| bad("no positive SAMPLE_TIME in the header".into()))?;
+        let mut cols = a.columns.into_iter();
+        let conv = |v: Vec<f64>| v.into_iter().map(|x| x / u).collect::<Vec<_>>();
+        let target_um = conv(cols.next().unwrap_or_default());
+        let position_um = conv(cols.next().unwrap_or_default());
+        Ok(SweepRecord {
+            sample_time_s,
+            target_um,
+            position_um,
+        })
+    }
+
+    /// Send a query answered by a GCS array and parse it. A rejected query (no reply) is the
+    /// controller's error; a malformed array is `Garbled` with what came.
+    pub fn query_gcs_array(&mut self, cmd: &str) -> Result<GcsArray, DeviceError> {
+        self.link.discard_input();
+        self.link.send(cmd)?;
+        let mut lines = Vec::new();
+        loop {
+            let line = match self.link.read_line(cmd, self.opts.timeout) {
+                Ok(l) => l,
+                Err(e @ DeviceError::Timeout { .. }) if lines.is_empty() => {
+                    return Err(match self.error_code(cmd) {
+                        Ok(code) if code != 0 => self.controller_error(cmd, code),
+                        _ => e,
+                    });
+                }
+                Err(e) => return Err(e),
+            };
+            let more = line.ends_with(' ');
+            lines.push(line.trim_end().to_string());
+            if !more {
+                break;
+            }
+            if lines.len() > MAX_ARRAY_ROWS {
+                return Err(self
+                    .link
+                    .garbled(cmd, format!("more than {MAX_ARRAY_ROWS} lines")));
+            }
+        }
+        let a = parse_gcs_array(&lines).map_err(|why| {
+            let head: Vec<&str> = lines.iter().take(12).map(String::as_str).collect();
+            self.link
+                .garbled(cmd, format!("{why}; reply began {:?}", head.join("\\n")))
+        })?;
+        match self.error_code(cmd)? {
+            0 => Ok(a),
+            code => Err(self.controller_error(cmd, code)),
+        }
+    }
+
+    /// `WGO g 0` then `STP`: the generator off, every axis stopped. Both are sent even if the
+    /// first fails; the first error is returned.
+    pub fn stop_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        let (_, g) = self.generator_of(s.axis)?;
+        let cmd = format!("WGO {g} 0");
+        let r1 = self.link.send(&cmd);
+        let r2 = self.send_stop();
+        r1.and(r2)
+    }
+
+    /// A whole line: configure, start, wait, read. Any fault (or `abort`) sends `WGO g 0` and
+    /// `STP` before the error is returned; `Ok(None)` when aborted.
+    pub fn sweep_line(
+        &mut self,
+        s: &LineSweep,
+        abort: &AtomicBool,
+    ) -> Result<Option<SweepRecord>, DeviceError> {
+        let r = self.sweep_line_steps(s, abort);
+        if r.is_err() {
+            // best effort: the original fault is the one reported
+            let _ = self.stop_line(s);
+        }
+        r
+    }
+
+    fn sweep_line_steps(
+        &mut self,
+        s: &LineSweep,
+        abort: &AtomicBool,
+    ) -> Result<Option<SweepRecord>, DeviceError> {
+        self.configure_line(s)?;
+        self.start_line(s)?;
+        if !self.wait_line(s, abort)? {
+            return Ok(None);
+        }
+        self.read_record(s.samples()).map(Some)
+    }
+}
