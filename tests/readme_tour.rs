@@ -2,11 +2,11 @@
 //! (the REPL sees a terminal, as a person at the instrument); every output line the README shows
 //! must appear, in order.
 
-use serialport::{SerialPort, TTYPort};
-use std::io::{Read, Write};
-use std::os::fd::{FromRawFd, IntoRawFd, OwnedFd};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+#[path = "support/pty.rs"]
+mod pty;
+
+use pty::Prompt;
+use std::time::Duration;
 
 /// (input lines, expected output lines) of the tour block.
 fn tour() -> (Vec<String>, Vec<String>) {
@@ -30,67 +30,16 @@ fn tour() -> (Vec<String>, Vec<String>) {
     (inputs, outputs)
 }
 
-fn read_until_prompt(m: &mut TTYPort, out: &mut String, deadline: Instant) {
-    let mut buf = [0u8; 4096];
-    while Instant::now() < deadline {
-        match m.read(&mut buf) {
-            Ok(0) => break,
-            Ok(n) => {
-                out.push_str(&String::from_utf8_lossy(&buf[..n]));
-                let t = out.trim_end_matches([' ', '\r', '\n']);
-                if out.ends_with("bfp> ") || out.ends_with("...> ") || t.ends_with("exit") {
-                    return;
-                }
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
-            Err(_) => break,
-        }
-    }
-}
-
 #[test]
 fn readme_tour_runs_at_the_prompt() {
     let (inputs, expected) = tour();
     assert!(inputs.len() > 10 && expected.len() > 10);
     let dir = std::env::temp_dir().join(format!("bfpscope-tour-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let (mut master, slave) = TTYPort::pair().expect("pseudo-terminal");
-    master.set_timeout(Duration::from_millis(200)).unwrap();
-    let fd = unsafe { OwnedFd::from_raw_fd(slave.into_raw_fd()) };
-    let mut child = Command::new(env!("CARGO_BIN_EXE_bfpscope"))
-        .args(["--data", dir.to_str().unwrap(), "repl"])
-        .env("TERM", "dumb")
-        .env("HOME", &dir)
-        .stdin(Stdio::from(fd.try_clone().unwrap()))
-        .stdout(Stdio::from(fd.try_clone().unwrap()))
-        .stderr(Stdio::from(fd))
-        .spawn()
-        .unwrap();
-    let mut out = String::new();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    read_until_prompt(&mut master, &mut out, deadline);
-    for line in &inputs {
-        master.write_all(line.as_bytes()).unwrap();
-        master.write_all(b"\n").unwrap();
-        if line == "quit" {
-            break;
-        }
-        read_until_prompt(&mut master, &mut out, deadline);
+    let mut p = Prompt::start(&dir, &[]);
+    for line in inputs.iter().take_while(|l| *l != "quit") {
+        p.enter_line(line, Duration::from_secs(60));
     }
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        let mut buf = [0u8; 4096];
-        if let Ok(n) = master.read(&mut buf) {
-            out.push_str(&String::from_utf8_lossy(&buf[..n]));
-        }
-        assert!(
-            Instant::now() < deadline,
-            "the prompt did not exit on quit:\n{out}"
-        );
-    };
-    assert!(status.success(), "{out}");
+    let out = p.quit();
     let text = out.replace('\r', "");
     let mut at = 0;
     for e in &expected {

@@ -85,18 +85,26 @@ impl Prompt {
     /// Read until the terminal's output (since byte `from`) contains `what`; panics with the
     /// session so far after `timeout`.
     pub fn wait_for_from(&mut self, from: usize, what: &str, timeout: Duration) {
+        self.wait_for_any_from(from, &[what], timeout)
+    }
+
+    /// As [`wait_for_from`](Self::wait_for_from), until any of `whats` shows.
+    pub fn wait_for_any_from(&mut self, from: usize, whats: &[&str], timeout: Duration) {
         let deadline = Instant::now() + timeout;
         let mut buf = [0u8; 4096];
-        while !self.out[from.min(self.out.len())..].contains(what) {
+        while !whats
+            .iter()
+            .any(|w| self.out[from.min(self.out.len())..].contains(w))
+        {
             assert!(
                 Instant::now() < deadline,
-                "waited {timeout:?} for {what:?}; the session so far:\n{}",
+                "waited {timeout:?} for {whats:?}; the session so far:\n{}",
                 self.out
             );
             match self.master.read(&mut buf) {
                 Ok(0) => {
                     if let Ok(Some(s)) = self.child.try_wait() {
-                        panic!("the prompt ended ({s}) before {what:?}:\n{}", self.out);
+                        panic!("the prompt ended ({s}) before {whats:?}:\n{}", self.out);
                     }
                 }
                 Ok(n) => self
@@ -120,6 +128,14 @@ impl Prompt {
         self.type_line(line);
         self.wait_for_from(from, "bfp> ", timeout);
         self.out[from..].to_string()
+    }
+
+    /// Type one line of a possibly unfinished entry and Enter; wait for the next prompt, the
+    /// entry's (`bfp> `) or a continuation (`...> `).
+    pub fn enter_line(&mut self, line: &str, timeout: Duration) {
+        let from = self.out.len();
+        self.type_line(line);
+        self.wait_for_any_from(from, &["bfp> ", "...> "], timeout);
     }
 
     /// Type `line` and Enter, without waiting.
