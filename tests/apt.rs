@@ -315,16 +315,7 @@ fn run(
         saved.lock().unwrap().push(s.clone());
         Ok(std::path::PathBuf::from("memory"))
     };
-    let env = ScanEnv {
-        limits,
-        abort: &abort,
-        progress: false,
-        log: &log,
-        meta: serde_json::json!({}),
-        save: &save,
-        observer: None,
-        pause: None,
-    };
+    let env = ScanEnv::plain(limits, &abort, &log, &save);
     let r: Result<_, ScanError> = run_plan(inst, plan, &env);
     (r.unwrap(), saved.into_inner().unwrap())
 }

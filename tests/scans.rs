@@ -52,14 +52,9 @@ impl Harness {
         let store = self.store.clone();
         let save = move |s: &bfpscope::data::Scan| store.autosave(s).map_err(|e| e.to_string());
         let env = ScanEnv {
-            limits: &self.limits,
-            abort: &self.abort,
-            progress: false,
-            log: &logf,
             meta: serde_json::json!({"script": {"path": "test"}}),
-            save: &save,
-            observer: None,
             pause,
+            ..ScanEnv::plain(&self.limits, &self.abort, &logf, &save)
         };
         run_plan(inst, plan, &env)
     }

@@ -67,14 +67,8 @@ pub fn engine_scan(optics: &Optics, scene: &Scene, dwell_s: f64) -> Result<(Scan
     let log = |_: &str| {};
     let save = |_: &Scan| Ok(std::path::PathBuf::from("(not saved)"));
     let env = ScanEnv {
-        limits: &limits,
-        abort: &abort,
-        progress: false,
-        log: &log,
         meta: serde_json::json!({"script": {"path": "bfpscope accuracy"}}),
-        save: &save,
-        observer: None,
-        pause: None,
+        ..ScanEnv::plain(&limits, &abort, &log, &save)
     };
     let t0 = core.clock.now();
     let run = run_plan(&mut inst, &plan, &env).map_err(|e| e.to_string())?;

@@ -47,6 +47,29 @@ pub struct ScanEnv<'a> {
     pub pause: Option<&'a dyn Fn(&Paused) -> bool>,
 }
 
+impl<'a> ScanEnv<'a> {
+    /// An environment with no progress bar, no live display, no pause question (Ctrl-C aborts)
+    /// and empty extra metadata: the accuracy report, tests and benches. Set other fields with
+    /// struct update syntax (`ScanEnv { meta, ..ScanEnv::plain(…) }`).
+    pub fn plain(
+        limits: &'a SoftLimits,
+        abort: &'a AtomicBool,
+        log: &'a dyn Fn(&str),
+        save: &'a dyn Fn(&Scan) -> Result<PathBuf, String>,
+    ) -> Self {
+        ScanEnv {
+            limits,
+            abort,
+            progress: false,
+            log,
+            meta: json!({}),
+            save,
+            observer: None,
+            pause: None,
+        }
+    }
+}
+
 /// Where a scan stands when Ctrl-C pauses it (see [`ScanEnv::pause`]).
 #[derive(Debug, Clone)]
 pub struct Paused<'a> {

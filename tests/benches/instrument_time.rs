@@ -114,16 +114,7 @@ fn scan(stage: &str, qpd: &str, dwell_s: f64, before: bool) -> serde_json::Value
     let abort = AtomicBool::new(false);
     let log = |s: &str| eprintln!("  {s}");
     let save = |_: &bfpscope::data::Scan| Ok(std::path::PathBuf::from("memory"));
-    let env = ScanEnv {
-        limits: &limits,
-        abort: &abort,
-        progress: false,
-        log: &log,
-        meta: serde_json::json!({}),
-        save: &save,
-        observer: None,
-        pause: None,
-    };
+    let env = ScanEnv::plain(&limits, &abort, &log, &save);
     let run = run_plan(&mut inst, &plan, &env).expect("scan");
     run.scan.meta["time"]["phases"].clone()
 }
