@@ -354,6 +354,7 @@ fn one_pixel_wide_scan() {
         sz: Image::new(sz, vec![0.0], y.clone()),
         status: ScanStatus::Complete,
         meta: serde_json::Value::Null,
+        raw: Vec::new(),
     };
     // ∂/∂x of a single column: clear error naming the axis and the reason.
     let e = sensitivity(&scan.sx, Axis::X, Stencil::Central2).unwrap_err();

@@ -273,6 +273,7 @@ fn aborted_scan() -> Scan {
             "time": "2026-11-21T16:00:00Z",
             "note": "µm ünïcode ✓"
         }),
+        raw: Vec::new(),
     }
 }
 

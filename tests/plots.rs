@@ -153,6 +153,7 @@ fn scan_xy(n: usize) -> Scan {
         sz,
         status: ScanStatus::Complete,
         meta: serde_json::json!({}),
+        raw: Vec::new(),
     }
 }
 

@@ -550,6 +550,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         sz: mk(sz),
         status,
         meta,
+        raw: Vec::new(),
     };
     let saved = (env.save)(&scan);
     if let Err(e) = &saved {

@@ -458,6 +458,7 @@ impl Template {
             sz: Image::new(sz, x.to_vec(), y.to_vec()),
             status: crate::data::ScanStatus::Complete,
             meta: serde_json::Value::Null,
+            raw: Vec::new(),
         }
     }
 

@@ -10,6 +10,7 @@
 //! | `x`    | `<f8`     | (cols,)      | horizontal axis, pixel centres, µm        |
 //! | `y`    | `<f8`     | (rows,)      | vertical axis (y, or z for XZ/YZ), µm     |
 //! | `meta` | `\|u1`    | (n,)         | UTF-8 JSON text of the metadata           |
+//! | `raw_*` | `<f8`    | (rows, n)    | raster scans only: raw samples per line (see below) |
 //!
 //! Python: `m = json.loads(f["meta"].tobytes())`. The JSON object holds the reserved keys
 //! `format` (`"bfpscope-scan"`), `format_version` (1), `status` (`"complete"`, `"aborted"`,
@@ -17,6 +18,12 @@
 //! instrument, scene, script, time, ...). If the scan's metadata is not a JSON object, or uses a
 //! reserved key itself, it is stored whole under `user_meta` instead, so loading always gives
 //! back exactly what was saved. Unmeasured pixels (aborted scans) are NaN.
+//!
+//! A hardware-timed raster scan keeps what it binned, one row per line, NaN after a line's
+//! last sample: `raw_sx`, `raw_sy`, `raw_sz` (the digitiser's samples), `raw_position_um`
+//! (the stage's measured position at each digitiser sample, interpolated from the recorder),
+//! `raw_record_target_um` and `raw_record_position_um` (the recorder's own samples). Their
+//! time bases are in `meta.raster`.
 
 use super::{atomic_write, image::Image, DataError, Scan, ScanStatus};
 use ndarray::{Array1, Array2};
@@ -92,6 +99,9 @@ pub(crate) fn write_scan_npz(path: &Path, scan: &Scan) -> Result<(), DataError> 
     npz.add_array("x", &x).map_err(werr)?;
     npz.add_array("y", &y).map_err(werr)?;
     npz.add_array("meta", &meta).map_err(werr)?;
+    for (name, a) in &scan.raw {
+        npz.add_array(format!("raw_{name}"), a).map_err(werr)?;
+    }
     let buf = npz.finish().map_err(werr)?;
     buf.into_inner()
         .map_err(|e| DataError::io(path, e.into_error()))?;
@@ -175,6 +185,14 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
         )
     };
 
+    let mut raw = Vec::new();
+    for n in &names {
+        let n = n.strip_suffix(".npy").unwrap_or(n);
+        if let Some(name) = n.strip_prefix("raw_") {
+            let a: Array2<f64> = read_f64(&mut npz, path, n)?;
+            raw.push((name.to_string(), a));
+        }
+    }
     let (x, y) = (x.to_vec(), y.to_vec());
     let mk = |data| Image::new(data, x.clone(), y.clone()).with_axis_names(&x_name, &y_name);
     Ok(Scan {
@@ -183,6 +201,7 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
         sz: mk(sz),
         status,
         meta,
+        raw,
     })
 }
 
@@ -256,6 +275,7 @@ mod tests {
             sz: img,
             status: ScanStatus::Complete,
             meta,
+            raw: Vec::new(),
         }
     }
 

@@ -24,6 +24,11 @@ pub struct Scan {
     pub status: ScanStatus,
     /// Free-form metadata (plan, optics, instrument, scene, script path/hash, time, pipeline).
     pub meta: serde_json::Value,
+    /// Samples measured beside the images, kept so that nothing measured is lost: a raster
+    /// scan's digitiser samples and the stage's recorded positions, one row per line
+    /// (NaN-padded). Saved as `.npz` members `raw_<name>`; empty for point-by-point scans.
+    #[serde(skip)]
+    pub raw: Vec<(String, ndarray::Array2<f64>)>,
 }
 
 impl ScanStatus {

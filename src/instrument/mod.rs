@@ -13,6 +13,7 @@ pub mod apt;
 pub mod emulator;
 pub mod gcs;
 pub mod gcs_split;
+pub mod line;
 pub mod link;
 pub mod redpitaya;
 pub mod scpi;
@@ -184,6 +185,54 @@ pub trait Stage: Send {
     /// command link.
     fn link_costs(&mut self) -> link::LinkCosts {
         Vec::new()
+    }
+    /// What hardware-timed lines (a wave generator and a data recorder) this stage has: `None`
+    /// (the default) when it has none, and the raster engine refuses `mode: "raster"`.
+    fn line_timing(&mut self) -> Result<Option<line::LineTiming>, DeviceError> {
+        Ok(None)
+    }
+    /// Load the line `s` into the controller (wave, generator, trigger output, recorder).
+    /// Nothing moves. The stage sits at the wave's first point (the engine moved it there).
+    fn configure_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
+        let _ = s;
+        Err(no_lines(self.name(), "configure_line"))
+    }
+    /// Start the configured line (PI: `WGO g 1`): the digitiser's trigger and the recorder
+    /// start with it.
+    fn start_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
+        let _ = s;
+        Err(no_lines(self.name(), "start_line"))
+    }
+    /// Wait until the line has been played. `Ok(false)`: `abort` was raised, the generator
+    /// and the axes were stopped. A line still running well past its duration is a fault.
+    fn wait_line(
+        &mut self,
+        s: &line::LineSweep,
+        abort: &std::sync::atomic::AtomicBool,
+    ) -> Result<bool, DeviceError> {
+        let _ = (s, abort);
+        Err(no_lines(self.name(), "wait_line"))
+    }
+    /// The recorder's target and measured position of every sample of the line just played.
+    fn read_line_record(&mut self, s: &line::LineSweep) -> Result<line::SweepRecord, DeviceError> {
+        let _ = s;
+        Err(no_lines(self.name(), "read_line_record"))
+    }
+    /// Stop a line (PI: `WGO g 0`, then `STP`): the generator off, every axis stopped. Sent
+    /// after Ctrl-C and after any fault during a raster; both commands go out even if the
+    /// first fails.
+    fn stop_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
+        let _ = s;
+        self.stop()
+    }
+}
+
+fn no_lines(device: String, call: &str) -> DeviceError {
+    DeviceError::Other {
+        device,
+        detail: format!(
+            "{call}: this stage has no wave generator and data recorder for hardware-timed lines"
+        ),
     }
 }
 

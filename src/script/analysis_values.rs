@@ -326,6 +326,7 @@ pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) 
             sz,
             status: ScanStatus::Complete,
             meta,
+            raw: Vec::new(),
         },
         None,
     )

@@ -315,5 +315,6 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
             "scene": renderer.scene,
             "pipeline": renderer.stages(),
         }),
+        raw: Vec::new(),
     }
 }
