@@ -263,7 +263,7 @@ pub fn register(r: &mut Registrar) {
             .arg("name", "string", "", "effect name")
             .arg("params", "map", "", "parameters, e.g. #{sigma_sample: 1e-3} for detector_noise (see help)")
             .summary("enable one effect with parameters")
-            .help("detector_noise #{sigma_sample}; laser_power_noise #{sigma_rel_sample}; pointing_noise #{sigma_nm_sample}; drift #{velocity_nm_s: [vx, vy, vz], random_walk_nm_sqrt_s}; misalignment #{offset_x, offset_y, rotation_deg, gain_y}; finite_size #{n_r, min_d_nm}; thermal_motion #{sigma_nm, samples}; mie #{min_d_nm, scattered_intensity} (beads as Lorenz–Mie spheres, docs/physics.md §9); polarization and cross_terms take #{}.")
+            .help("detector_noise #{sigma_sample}; laser_power_noise #{sigma_rel_sample}; pointing_noise #{sigma_nm_sample}; drift #{velocity_nm_s: [vx, vy, vz], random_walk_nm_sqrt_s}; misalignment #{offset_x, offset_y, rotation_deg, gain_y}; finite_size #{n_r, min_d_nm}; thermal_motion #{sigma_nm, samples}; mie #{min_d_nm, scattered_intensity} (beads as Lorenz–Mie spheres, docs/physics.md §9); stage_bandwidth #{hz} (the stage lags its target under the wave generator of raster scans, τ = 1/(2π hz)); polarization and cross_terms take #{}.")
             .example("let s = scene(); s.effect(\"detector_noise\", #{sigma_sample: 1e-3}); s.effect_names", "[\"detector_noise\"]")
             .example("let s = scene(); s.effect(\"drift\", #{speed: 1.0})", "error: drift"),
         |s: &mut SceneRef, name: &str, params: Map| -> RResult<()> {
@@ -282,6 +282,7 @@ pub fn register(r: &mut Registrar) {
                 }
             }
             let fx2: crate::instrument::sim::scene::Effects = serde_json::from_value(full).map_err(|e| err("effect", format!("{name}: {e}")))?;
+            fx2.check().map_err(|e| err("effect", e))?;
             s.0.effects = fx2;
             Ok(())
         },
