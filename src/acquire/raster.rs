@@ -193,7 +193,12 @@ pub fn plan_lines(
 /// A line binned into pixels.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LineBins {
-    /// Mean of the samples per pixel.
+    /// The pixel's value at its centre: the least-squares line through its samples (value
+    /// against measured position) evaluated at the centre. That is the samples' mean, moved
+    /// to the centre along the local slope: where the samples fall in a pixel depends on the
+    /// digitiser's phase (up to half a sample spacing off centre, the same way on every line
+    /// of a one-way raster), and the plain mean would shift the image by that much. A pixel
+    /// with one sample, or samples all at one position, takes their mean.
     pub mean: Vec<f64>,
     /// Samples per pixel.
     pub count: Vec<usize>,
@@ -274,18 +279,29 @@ pub fn bin_line(
     let mut sum = vec![0.0; n];
     let mut pos = vec![0.0; n];
     let mut count = vec![0usize; n];
-    for (&x, &v) in positions.iter().zip(values) {
-        if !(x.is_finite() && v.is_finite()) {
-            continue;
-        }
+    let pixel = |x: f64| {
         let u = (x - from) / w + 0.5;
-        if u < 0.0 || u >= n as f64 {
-            continue;
+        (u >= 0.0 && u < n as f64).then_some(u as usize)
+    };
+    let valid = |x: f64, v: f64| x.is_finite() && v.is_finite();
+    for (&x, &v) in positions.iter().zip(values) {
+        if let Some(i) = pixel(x).filter(|_| valid(x, v)) {
+            sum[i] += v;
+            pos[i] += x;
+            count[i] += 1;
         }
-        let i = u as usize;
-        sum[i] += v;
-        pos[i] += x;
-        count[i] += 1;
+    }
+    // second pass, centred sums: slope = Σ(x − x̄)(v − v̄) / Σ(x − x̄)²
+    let mean_x: Vec<f64> = (0..n).map(|i| pos[i] / count[i].max(1) as f64).collect();
+    let mean_v: Vec<f64> = (0..n).map(|i| sum[i] / count[i].max(1) as f64).collect();
+    let mut sxx = vec![0.0; n];
+    let mut sxv = vec![0.0; n];
+    for (&x, &v) in positions.iter().zip(values) {
+        if let Some(i) = pixel(x).filter(|_| valid(x, v)) {
+            let dx = x - mean_x[i];
+            sxx[i] += dx * dx;
+            sxv[i] += dx * (v - mean_v[i]);
+        }
     }
     if let Some(i) = count.iter().position(|&c| c == 0) {
         return Err(format!(
@@ -293,9 +309,20 @@ pub fn bin_line(
             from + i as f64 * w
         ));
     }
+    let mean = (0..n)
+        .map(|i| {
+            let centre = from + i as f64 * w;
+            // the samples' spread must resolve a slope: not one sample, not one position
+            if count[i] < 2 || sxx[i] <= 1e-24 * w * w * count[i] as f64 {
+                mean_v[i]
+            } else {
+                mean_v[i] + sxv[i] / sxx[i] * (centre - mean_x[i])
+            }
+        })
+        .collect();
     Ok(LineBins {
-        mean: sum.iter().zip(&count).map(|(s, &c)| s / c as f64).collect(),
-        position: pos.iter().zip(&count).map(|(s, &c)| s / c as f64).collect(),
+        mean,
+        position: mean_x,
         count,
     })
 }
@@ -807,6 +834,32 @@ mod tests {
         assert!(positions_at_samples(&rec, 0.0, 1, 1.0, 0.0)
             .unwrap_err()
             .contains("record_dt = 0"));
+    }
+
+    /// Samples that fall off-centre in every pixel the same way (a one-way raster's digitiser
+    /// phase): on a linear signal the pixel value is the signal at the centre exactly, where
+    /// the plain mean would be off by slope × the offset.
+    #[test]
+    fn pixel_values_are_moved_to_the_pixel_centre() {
+        let f = |x: f64| 0.3 + 2.0 * x;
+        // pixels 0.1 wide centred on 0, 0.1, …, 0.5; 4 samples each at −0.05, −0.025, 0, 0.025
+        let x: Vec<f64> = (0..24).map(|k| -0.05 + 0.025 * k as f64).collect();
+        let v: Vec<f64> = x.iter().map(|&p| f(p)).collect();
+        let b = bin_line(&x, &v, 0.0, 0.5, 6).unwrap();
+        for i in 0..6 {
+            let c = 0.1 * i as f64;
+            assert_eq!(b.count[i], 4);
+            assert!((b.position[i] - (c - 0.0125)).abs() < 1e-12);
+            assert!(
+                (b.mean[i] - f(c)).abs() < 1e-12,
+                "{i}: {} vs {}",
+                b.mean[i],
+                f(c)
+            );
+        }
+        // one sample, or all at one position: their mean
+        let b = bin_line(&[0.0, 1.0, 1.0], &[5.0, 1.0, 3.0], 0.0, 1.0, 2).unwrap();
+        assert_eq!(b.mean, vec![5.0, 2.0]);
     }
 
     #[test]

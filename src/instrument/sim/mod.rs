@@ -470,7 +470,8 @@ impl Qpd for SimQpd {
         let r = st.renderer.clone();
         let dt = 1.0 / rate;
         let mut tr = super::BufferedTrace {
-            t0_s: 0.0,
+            // sample i averages [i·dt, (i+1)·dt) after the trigger: its time is the middle
+            t0_s: 0.5 * dt,
             dt_s: dt,
             sx: Vec::with_capacity(n),
             sy: Vec::with_capacity(n),
@@ -479,8 +480,7 @@ impl Qpd for SimQpd {
         };
         let commanded = st.commanded;
         for i in 0..n {
-            // the sample averages the detector over [t, t + dt): its position at the middle
-            let t = (i as f64 + 0.5) * dt;
+            let t = tr.t0_s + i as f64 * dt;
             let x = st.line.as_ref().map_or(base[axis], |l| l.x_at(t));
             let drifted = SimCore::actual(&mut st, t_start + t);
             let mut p = base;
