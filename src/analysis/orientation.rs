@@ -42,7 +42,9 @@ use serde::{Deserialize, Serialize};
 pub struct AngleCurveOptions {
     /// Angles spanning 180° (paper: 19).
     pub n_angles: usize,
-    /// Pixel size of the scans the curve will be applied to, µm.
+    /// Pixel size of the scans the curve will be applied to, µm. The Rust default is 0.05 µm;
+    /// the `angle_curve` binding requires it (or takes it from a scan), and `measure_filament`
+    /// refuses a scan whose pixel size differs by more than 5 % (docs/physics.md §11).
     pub pixel_um: f64,
     /// Bead-model filament: diameter (nm) and index (None: the template's reference bead).
     pub d_nm: Option<f64>,

@@ -14,9 +14,23 @@ pub const DALTON_G: f64 = 1.660_539_066_6e-24;
 /// Default temperature for kT, K (room temperature, 22 °C).
 pub const ROOM_T_K: f64 = 295.15;
 
-/// Ratio of scattered to beam power for a Rayleigh sphere at the focus (suppl. S1):
-///   P_scat/P_beam = (8/3) (2π n_s/λ)⁴ ((m²−1)/(m²+2))² r⁶ / w0².  Dimensionless.
+/// Ratio of scattered to beam power for a Rayleigh sphere at the focus (suppl. S1), with w0 the
+/// **1/e² intensity radius** (the convention of every other formula in this crate):
+///   P_scat = I0·σ, σ = (8π/3) k⁴ CM² r⁶ (Rayleigh cross-section), k = 2π n_s/λ,
+///   I0 = 2P/(π w0²) (peak of a Gaussian of 1/e² radius w0), so
+///   P_scat/P_beam = (16/3) k⁴ CM² r⁶ / w0².  Dimensionless (r, w0 in µm, k in 1/µm).
+/// CM = (m²−1)/(m²+2), m = n/n_s. The supplement (S1, the equations after "We can express
+/// P_beam as") integrates I0·e^{−(x²+y²)/w0²}, i.e. takes w0 as a 1/e intensity radius, and gets
+/// half this value: see [`p_scat_ratio_paper`] (2.35e-5 for the 110 nm reference bead, its
+/// "≈ 2×10⁻⁵"; 4.70e-5 here).
 pub fn p_scat_ratio(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+    Ok(2.0 * p_scat_ratio_paper(optics, d_nm, n)?)
+}
+
+/// The supplement's S1 value in its own convention (w0 read as the 1/e intensity radius, P_beam
+/// = I0 π w0²): P_scat/P_beam = (8/3) k⁴ CM² r⁶ / w0², half of [`p_scat_ratio`]. Kept to
+/// reproduce the paper's "≈ 2×10⁻⁵" and "exceed 300 nm before … 1 %".
+pub fn p_scat_ratio_paper(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
     optics.validate()?;
     check_range("d_nm", d_nm, 0.0, 20000.0)?;
     check_range("n", n, 1.0, 5.0)?;
@@ -45,6 +59,11 @@ pub enum TrapShape {
 /// The supplement's last line prints 3 n_s²/(w0 c_s) · … · √(π/2) w0; integrating its own
 /// previous line gives the form above (its prefactor is 4 w0 larger and not an energy), see
 /// docs/physics.md. c_s = c0/n_s as in Fig. S3's caption; P = `optics.power_mw`.
+/// Both keep the paper's n_s²: S3 converts power to field without the medium's n_s²
+/// (I = ε0 c_s|E|²/2), so the n_s² of the polarisability survives; the textbook dipole potential
+/// P d³ CM/(2 w0² c_s) is n_s² (1.777 in water) smaller. The peak intensity is the 1/e² one,
+/// 2P/(π w0²), as everywhere in this crate (docs/physics.md §6, "Where the trap formula keeps the
+/// paper's factors").
 pub fn trap_depth_kt(
     optics: &Optics,
     shape: TrapShape,
@@ -99,9 +118,17 @@ mod tests {
     #[test]
     fn paper_numbers() {
         let o = Optics::default();
-        // S1: "≈ 2×10⁻⁵" for the 110 nm polystyrene reference bead
-        let r = p_scat_ratio(&o, 110.0, 1.572).unwrap();
+        // S1: "≈ 2×10⁻⁵" for the 110 nm polystyrene reference bead, in the paper's 1/e convention
+        let r = p_scat_ratio_paper(&o, 110.0, 1.572).unwrap();
         assert!((r - 2.35e-5).abs() < 0.01e-5, "{r:e}");
+        // 1/e² convention, written out: k = 2π·1.333/1.064 µm⁻¹ = 7.871697 µm⁻¹,
+        // CM = (m²−1)/(m²+2) with m = 1.572/1.333: 0.1152364; r = 0.055 µm, w0 = 0.4 µm:
+        // (16/3)·k⁴·CM²·r⁶/w0² = 4.70444e-5 (twice the paper's value).
+        let r2 = p_scat_ratio(&o, 110.0, 1.572).unwrap();
+        assert!((r2 / 4.70444e-5 - 1.0).abs() < 1e-5, "{r2:e}");
+        // 1 % of the beam at 110·(1e-2/4.70444e-5)^(1/6) = 268.7 nm in the 1/e² convention
+        let d2 = 110.0 * (1e-2 / r2).powf(1.0 / 6.0);
+        assert!((d2 - 268.72).abs() < 0.05, "{d2}");
         // S1: "would have to exceed 300 nm before … 1%": ratio crosses 1e-2 near 300 nm
         let d1 = 110.0 * (1e-2 / r).powf(1.0 / 6.0);
         assert!((d1 - 300.0).abs() < 10.0, "{d1}");

@@ -9,9 +9,7 @@
 use super::registry::{err, fail, num, numbers, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
-use crate::analysis::{
-    AngleCurveOptions, BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil,
-};
+use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
 use crate::data::{Image, Scan, ScanStatus};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
@@ -141,21 +139,77 @@ pub(crate) fn measure_keys() -> Vec<Key> {
     ]
 }
 
-/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`);
-/// defaults from `AngleCurveOptions::default()` (pixel), `BeadModelOptions::default()`
-/// (spacing) and `MeasureOptions::default()` (stencil, window).
-pub(crate) fn pipeline_keys() -> Vec<Key> {
-    let m = MeasureOptions::default();
+/// The two keys that give a calibration the pixel size of the data it will be applied to
+/// (`pixel_of`): `scan` (the data itself) or `pixel_um`; one of them is required (no silent
+/// 50 nm: every maximum sensitivity read through the pipeline depends on it, see docs/physics.md
+/// "Calibrations and the measurement pipeline").
+pub(crate) fn pixel_keys() -> Vec<Key> {
     vec![
         (
             "pixel_um",
             "float",
             "µm",
-            format!(
-                "optional: pixel size of the scans (default {})",
-                AngleCurveOptions::default().pixel_um
-            ),
+            "pixel size of the scans it will be applied to (required unless scan is given)".into(),
         ),
+        (
+            "scan",
+            "Scan | Image",
+            "",
+            "optional: the scan (or image) it will be applied to; its pixel size |dx| is used"
+                .into(),
+        ),
+    ]
+}
+
+/// The pixel size (µm) of the data a calibration is for: `scan`'s |dx| or `pixel_um` (one is
+/// required; both must agree within 1 %). Range 1 nm – 10 µm.
+pub(crate) fn pixel_of(who: &str, o: &Opts) -> RResult<f64> {
+    let from_scan = match o.value("scan") {
+        None => None,
+        Some(v) => {
+            let dx = if let Some(s) = v.read_lock::<ScanRef>() {
+                s.scan.sx.dx()
+            } else if let Some(i) = v.read_lock::<super::types::ImageRef>() {
+                i.0.dx()
+            } else {
+                return fail(format!(
+                    "{who}: scan must be a Scan or an Image (the data the calibration is for), got {}",
+                    v.type_name()
+                ));
+            };
+            Some(dx.abs())
+        }
+    };
+    let given = o.f64("pixel_um")?;
+    let px = match (from_scan, given) {
+        (Some(a), Some(b)) if ((a - b) / a).abs() > 0.01 => {
+            return fail(format!(
+                "{who}: pixel_um = {b} contradicts the scan's pixel size {a} µm; give one of them"
+            ))
+        }
+        (Some(a), _) => a,
+        (None, Some(b)) => b,
+        (None, None) => {
+            return fail(format!(
+                "{who}: pixel_um is required: the pixel size (µm) of the scans this calibration is applied to (or pass scan: the scan itself); maximum sensitivities depend on it (the reference bead reads 0.948 at 0.05 µm, 0.881 at 0.1 µm)"
+            ))
+        }
+    };
+    if !(1e-3..=10.0).contains(&px) {
+        return fail(format!(
+            "{who}: pixel_um = {px} is out of range: 0.001 ≤ pixel_um ≤ 10 (µm)"
+        ));
+    }
+    Ok(px)
+}
+
+/// Keys of the bead-model measurement pipeline shared by the calibrations (`pipeline_opts`):
+/// the pixel size (`pixel_keys`, required), spacing from `BeadModelOptions::default()`, stencil
+/// and window from `MeasureOptions::default()`.
+pub(crate) fn pipeline_keys() -> Vec<Key> {
+    let m = MeasureOptions::default();
+    let mut v = pixel_keys();
+    v.extend([
         (
             "spacing_nm",
             "float",
@@ -180,7 +234,8 @@ pub(crate) fn pipeline_keys() -> Vec<Key> {
             "µm",
             format!("optional: parabola window (default {})", m.window_um),
         ),
-    ]
+    ]);
+    v
 }
 
 /// Pixel size, measurement options and bead-model options from the `pipeline_keys()`.
@@ -198,11 +253,7 @@ pub(crate) fn pipeline_opts(
     let bm = BeadModelOptions {
         spacing_nm: o.f64_or("spacing_nm", BeadModelOptions::default().spacing_nm)?,
     };
-    Ok((
-        o.f64_or("pixel_um", AngleCurveOptions::default().pixel_um)?,
-        mo,
-        bm,
-    ))
+    Ok((pixel_of(who, o)?, mo, bm))
 }
 
 pub(crate) fn line_peaks(v: &[LinePeak]) -> Array {

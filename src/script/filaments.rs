@@ -47,15 +47,6 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             ),
         ),
         (
-            "pixel_um",
-            "float",
-            "µm",
-            format!(
-                "optional: pixel size of the scans it will be applied to (default {})",
-                c.pixel_um
-            ),
-        ),
-        (
             "d_nm",
             "float",
             "nm",
@@ -77,19 +68,21 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             ),
         ),
     ];
+    curve_keys.extend(pixel_keys());
     curve_keys.extend(meas_keys.iter().cloned());
     const CURVE: &str =
-        "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7});";
+        "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05});";
     let d = Doc::func("angle_curve")
         .arg("tpl", "Template", "", "the point-particle template")
         .map("opts", "optional", &curve_keys)
-        .form("angle_curve(tpl) -> AngleCurve")
+        .form("angle_curve(tpl, #{pixel_um}) -> AngleCurve")
         .returns("AngleCurve", "max Sx and Sy sensitivity vs filament angle, normalised to Sx at 0° (interpolated, period 180°)")
         .summary("orientation calibration curve from the bead model (Sec. 4.2 step 2, Fig. 4d)")
-        .help(&format!("Each angle: a long straight bead-model filament rendered on pixels of pixel_um, measured by the same pipeline as data (stencil, parabola window), averaged over sub-pixel offsets. The default {} angles over 180° follow the paper's rotation series.", c.n_angles))
+        .help(&format!("Each angle: a long straight bead-model filament rendered on pixels of pixel_um (required, or taken from scan), measured by the same pipeline as data (stencil, parabola window), averaged over sub-pixel offsets; measure_filament refuses a curve made for another pixel size. The default {} angles over 180° follow the paper's rotation series.", c.n_angles))
         .example(&format!("{CURVE} round(c.at(0.0).sx * 1000.0)"), "1000.0")
         .example(&format!("{CURVE} c.at(90.0).sy > 0.5"), "true")
-        .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2})", "error: n_angles = 2");
+        .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2, pixel_um: 0.05})", "error: n_angles = 2")
+        .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 7})", "error: angle_curve: pixel_um is required");
     let spec = d.spec();
     let f = move |t: TemplateRef, m: Map| -> RResult<CurveRef> {
         let who = "angle_curve";
@@ -99,7 +92,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             n_angles: o
                 .int("n_angles")?
                 .map_or(d.n_angles, |v| v.clamp(0, 100_000) as usize),
-            pixel_um: o.f64_or("pixel_um", d.pixel_um)?,
+            pixel_um: pixel_of(who, &o)?,
             d_nm: o.f64("d_nm")?,
             n: o.f64("n")?,
             bead_model: BeadModelOptions {
@@ -204,7 +197,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation.");
-    let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
+    let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
     let spec = d.spec();
     let f = move |s: ScanRef, c: CurveRef, m: Map| -> RResult<FilamentRef> {
         let o = Opts::new(&spec, &m)?;
@@ -449,9 +442,10 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .map("opts", "", &calib_keys)
         .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr}: d = A·√(sens_corr) (eqs. colDiam, OurColD)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")
-        .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline; not hard-coded (the paper's 58.6 nm is for its own optics).")
-        .example(&format!("{TPL} let a = diameter_calib(t, #{{n_obj: 1.41}}).a_nm; a > 40.0 && a < 90.0"), "true")
-        .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2}})"), "error: n_obj");
+        .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline of the data (pixel_um or scan: required; stencil, window), so A belongs to that pixel size (default optics: 71.1 nm at 0.05 µm, 73.3 nm at 0.1 µm, 70.4 nm as the pixel → 0; docs/physics.md); not hard-coded (the paper's 58.6 nm is for its own optics).")
+        .example(&format!("{TPL} let a = diameter_calib(t, #{{n_obj: 1.41, pixel_um: 0.05}}).a_nm; a > 40.0 && a < 90.0"), "true")
+        .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2, pixel_um: 0.05}})"), "error: n_obj")
+        .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.41}})"), "error: diameter_calib: pixel_um is required");
     let spec = d.spec();
     r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
         let who = "diameter_calib";
@@ -506,7 +500,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         )
         .summary("calibration of linear densities (eq. mtLinDens) from the template's bead model")
         .example(
-            &format!("{TPL} lin_dens_calib(t, #{{}}).mu_bm_mda_um > 0.0"),
+            &format!("{TPL} lin_dens_calib(t, #{{pixel_um: 0.05}}).mu_bm_mda_um > 0.0"),
             "true",
         );
     let spec = d.spec();
@@ -559,36 +553,87 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         m.insert("protofilaments_exact".into(), x.into());
         Ok(m)
     });
+    let mut pm_keys: Vec<Key> = vec![
+        ("sens", "float", "", "its max sensitivity (reference-bead units: scan values × tpl.norm_factor; or a fit weight with fit_weight: true)".into()),
+        ("sens_err", "float", "", "optional: 1σ of sens".into()),
+        ("sens_rb", "float", "", "the reference bead's max sensitivity through the same pipeline (e.g. tpl.max_sens(pixel_um)); or give tpl and the pixel size, or fit_weight: true".into()),
+        ("tpl", "Template", "", "the template: sens_rb = its reference bead read through the pipeline of the data (pixel_um or scan required; stencil, window_um)".into()),
+        ("fit_weight", "bool", "", "optional: sens is a template-fit weight (reference-bead units by construction: sens_rb = 1)".into()),
+        ("n_obj", "float", "", "optional: index of the object (default: the reference bead's)".into()),
+        ("density", "float", "g/cm³", "optional: density of the object (default: the reference bead's)".into()),
+    ];
+    pm_keys.extend(pixel_keys());
+    let m_def = crate::analysis::MeasureOptions::default();
+    pm_keys.push((
+        "stencil",
+        "string",
+        "",
+        format!(
+            "optional: derivative stencil of the data (default {})",
+            m_def.stencil.name()
+        ),
+    ));
+    pm_keys.push((
+        "window_um",
+        "float",
+        "µm",
+        format!(
+            "optional: parabola window of the data (default {})",
+            m_def.window_um
+        ),
+    ));
     let d = Doc::func("point_mass")
-        .map(
-            "obj",
-            "the measured object",
-            &[
-                ("sens", "float", "", "its max sensitivity (same units as sens_rb)"),
-                ("sens_err", "float", "", "optional: 1σ of sens"),
-                ("sens_rb", "float", "", "optional: the reference bead's max sensitivity in the same pipeline (default 1: reference-bead units)"),
-                ("n_obj", "float", "", "optional: index of the object (default: the reference bead's)"),
-                ("density", "float", "g/cm³", "optional: density of the object (default: the reference bead's)"),
-            ],
-        )
-        .returns("map", "#{volume_ratio, volume_nm3, sphere_d_nm, mass_kda, mass_err_kda, n_corr}")
+        .map("obj", "the measured object", &pm_keys)
+        .returns("map", "#{volume_ratio, volume_nm3, sphere_d_nm, mass_kda, mass_err_kda, n_corr, sens_rb}")
         .summary("volume and mass of a point-like object from its max sensitivity (eqs. after nCor)")
-        .example("round(point_mass(#{sens: 1.0}).sphere_d_nm * 1000.0) / 1000.0", "110.0")
-        .example("point_mass(#{sens: -1.0})", "error: sens_obj = -1");
+        .help("V/V_rb = sens/(n_corr·sens_rb). A maximum read off a sensitivity image (max_sens) depends on the pixel size, stencil and window; so does the reference bead's, and the two must come from the same pipeline: at 0.05 µm pixels the reference bead itself reads 0.948 (not 1), so dividing by 1 would make every mass 5 % low. Give exactly one of: sens_rb; tpl with pixel_um or scan (sens_rb computed as tpl.max_sens does, 4×4 sub-pixel offsets); fit_weight: true (template-fit weights are already in reference-bead units).")
+        .example(&format!("{TPL} round(point_mass(#{{sens: t.max_sens(0.05), tpl: t, pixel_um: 0.05}}).sphere_d_nm * 1000.0) / 1000.0"), "110.0")
+        .example("round(point_mass(#{sens: 1.0, fit_weight: true}).sphere_d_nm * 1000.0) / 1000.0", "110.0")
+        .example("point_mass(#{sens: 1.0})", "error: point_mass: the reference bead's sensitivity is missing")
+        .example("point_mass(#{sens: -1.0, fit_weight: true})", "error: sens_obj = -1");
     let spec = d.spec();
     r.bind(d, move |m: Map| -> RResult<Map> {
         let who = "point_mass";
         let o = Opts::new(&spec, &m)?;
         let rb = RefBead::default();
+        let tpl = match o.value("tpl") {
+            None => None,
+            Some(v) => match v.read_lock::<TemplateRef>() {
+                Some(t) => Some(t.clone()),
+                None => return fail(format!("{who}: tpl must be a Template, got {}", v.type_name())),
+            },
+        };
+        let fit = o.bool_or("fit_weight", false)?;
+        let given = o.f64("sens_rb")?;
+        let n_ways = usize::from(given.is_some()) + usize::from(tpl.is_some()) + usize::from(fit);
+        if n_ways > 1 {
+            return fail(format!("{who}: give only one of sens_rb, tpl (with the pixel size) and fit_weight: true"));
+        }
+        let sens_rb = match (given, tpl) {
+            (Some(v), _) => v,
+            (None, Some(t)) => {
+                let px = pixel_of(who, &o)?;
+                let base = crate::analysis::MeasureOptions::default();
+                let st = stencil_of(who, &o, base.stencil)?;
+                let win = pos_f64(who, &o, "window_um", base.window_um, 1e-3, 100.0)?;
+                t.0.pipeline_max_sens(px, st, win).map_err(|e| err(who, e))?
+            }
+            (None, None) if fit => 1.0,
+            (None, None) => {
+                return fail(format!("{who}: the reference bead's sensitivity is missing: give sens_rb (its max sensitivity through the same pipeline, e.g. tpl.max_sens(pixel_um)), or tpl with pixel_um (or scan), or fit_weight: true for a template-fit weight"));
+            }
+        };
         let p = point_object(
             o.req_f64("sens")?,
             o.f64("sens_err")?,
-            o.f64_or("sens_rb", 1.0)?,
+            sens_rb,
             o.f64_or("n_obj", rb.n)?,
             o.f64_or("density", rb.density_g_cm3)?,
             &rb,
         )
         .map_err(|e| err(who, e))?;
-        Ok(to_map(&p))
+        let mut out = to_map(&p);
+        out.insert("sens_rb".into(), sens_rb.into());
+        Ok(out)
     });
 }

@@ -194,11 +194,12 @@ pub fn register(r: &mut Registrar) {
         Doc::func("p_scat_ratio")
             .arg("d_nm", "float", "nm", "sphere diameter")
             .arg("n", "float", "", "refractive index of the sphere")
-            .returns("float", "P_scat / P_beam")
+            .returns("float", "P_scat / P_beam, w0 read as the 1/e² intensity radius")
             .summary(
                 "fraction of the beam power a Rayleigh sphere at the focus scatters (suppl. S1)",
             )
-            .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "2.35e-5")
+            .help("P_scat/P_beam = (16/3)·k⁴·CM²·r⁶/w0² with k = 2π n_s/λ, CM = (m²−1)/(m²+2), m = n/n_s and w0 the 1/e² intensity radius of set_optics (peak intensity 2P/(π w0²)). The supplement (S1) integrates the beam as I0·e^(−r²/w0²), i.e. reads w0 as a 1/e radius, and gets half this value: the paper's convention gives 2.35e-5 for the 110 nm reference bead (its \"≈ 2×10⁻⁵\") where this gives 4.70e-5, and 1 % at 302 nm (paper: \"exceed 300 nm\") where this gives 269 nm. See docs/physics.md §6.")
+            .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "4.7e-5")
             .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
         move |d: Dynamic, n: Dynamic| -> RResult<f64> {
             p_scat_ratio(

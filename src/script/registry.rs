@@ -241,6 +241,10 @@ impl<'a> Opts<'a> {
         );
         self.map.get(key)
     }
+    /// The raw value of a declared key (for keys whose type is a script object, e.g. a Scan).
+    pub fn value(&self, key: &str) -> Option<&'a rhai::Dynamic> {
+        self.get(key)
+    }
     pub fn has(&self, key: &str) -> bool {
         self.get(key).is_some()
     }
