@@ -38,7 +38,9 @@
 //! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, the
 //! stage moving during one acquisition (the position is sampled once, at the trigger).
 
-use super::{garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, LOG_CAP};
+use super::{
+    garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
+};
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::io::{Read, Write};
@@ -57,8 +59,12 @@ pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 /// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
 /// is one rising and one falling edge. Clone it into whatever emulates the controller's
 /// trigger output.
+///
+/// A pulse carries the instant its rising edge happened (the controller emulator computes its
+/// servo loop lazily, so it may register the pulse a few ms after its edge): the board dates
+/// its trigger by that instant.
 #[derive(Debug, Clone, Default)]
-pub struct ExtTrigger(Arc<AtomicU64>);
+pub struct ExtTrigger(Arc<(AtomicU64, Mutex<Option<Instant>>)>);
 
 /// Two handles are equal when they are the same wire.
 impl PartialEq for ExtTrigger {
@@ -71,13 +77,22 @@ impl ExtTrigger {
     pub fn new() -> Self {
         Self::default()
     }
-    /// One trigger pulse.
+    /// One trigger pulse, now.
     pub fn pulse(&self) {
-        self.0.fetch_add(1, Ordering::SeqCst);
+        self.pulse_at(Instant::now());
+    }
+    /// One trigger pulse whose rising edge was at `at`.
+    pub fn pulse_at(&self, at: Instant) {
+        *lock(&self.0 .1) = Some(at);
+        self.0 .0.fetch_add(1, Ordering::SeqCst);
     }
     /// Pulses so far.
     pub fn count(&self) -> u64 {
-        self.0.load(Ordering::SeqCst)
+        self.0 .0.load(Ordering::SeqCst)
+    }
+    /// The instant of the last pulse's rising edge.
+    pub fn last_edge(&self) -> Option<Instant> {
+        *lock(&self.0 .1)
     }
 }
 
@@ -100,6 +115,11 @@ pub struct RedPitayaEmulatorConfig {
     pub seed: u64,
     /// Extra volts per input vs time since the trigger (tests: a known ramp).
     pub generator: Option<Generator>,
+    /// The path of the stage under a running wave generator (shared with the GCS stage
+    /// emulator, [`WaveConfig::path`](super::WaveConfig::path)): each sample after the trigger
+    /// carries the signal at the stage position at its own time. `None`: the position is
+    /// taken once, at the trigger.
+    pub path: Option<StagePath>,
     /// Initial fault switches.
     pub faults: Faults,
 }
@@ -115,6 +135,7 @@ impl Default for RedPitayaEmulatorConfig {
             noise_v: 1e-3,
             seed: 1,
             generator: None,
+            path: None,
             faults: Faults::default(),
         }
     }
@@ -242,6 +263,11 @@ impl Board {
     /// Volts on the inputs from the signal source at the current stage position.
     fn input_volts(&self) -> [f64; 4] {
         let p = *lock(&self.position);
+        self.volts_at(p)
+    }
+
+    /// Volts on the inputs from the signal source at stage position `p`.
+    fn volts_at(&self, p: crate::instrument::Pos) -> [f64; 4] {
         let s = (self.source)(p);
         let mut v = self.cfg.offset_v;
         for (i, &w) in self.cfg.wiring.iter().enumerate() {
@@ -260,9 +286,17 @@ impl Board {
         ((now - since).as_secs_f64() / self.dt()) as usize
     }
 
+    /// The trigger fired at `now` (at the external pulse's edge for `EXT_*`).
     fn fire(&mut self, now: Instant) {
         let Acq::Running { since, .. } = self.acq else {
             return;
+        };
+        let now = match self.src {
+            Src::ExtPe | Src::ExtNe => self
+                .ext
+                .last_edge()
+                .map_or(now, |e| e.clamp(since, now)),
+            _ => now,
         };
         let written = self.elapsed_samples(since, now);
         self.tpos = (self.wpos0 + written) % BUF;
@@ -271,13 +305,42 @@ impl Board {
             at: now,
             post: self.post_samples(),
         };
-        self.record();
+        self.record(now);
     }
 
-    /// Fill the ring buffer for the trigger at `tpos`: samples before it are pre-trigger
-    /// (negative times), from it on post-trigger.
-    fn record(&mut self) {
+    /// Fill the ring buffer for the trigger at `tpos` (instant `at`): samples before it are
+    /// pre-trigger (negative times), from it on post-trigger. Without a stage path every
+    /// sample carries the signal at the position at the trigger; with one, post-trigger sample
+    /// j carries the signal at the path's position at `at + j · dt`.
+    fn record(&mut self, at: Instant) {
         let base = self.input_volts();
+        let path = self.cfg.path.as_ref().and_then(StagePath::get);
+        let post_n = self.post_samples();
+        let dt_s = self.dt();
+        // the volts per post-trigger sample; consecutive samples in one servo cycle share a
+        // position, so the source is evaluated once per distinct position
+        let moving: Option<Vec<[f64; 4]>> = path.map(|p| {
+            let mut last: Option<(crate::instrument::Pos, [f64; 4])> = None;
+            (0..post_n.max(1))
+                .map(|j| {
+                    let t = at + Duration::from_secs_f64(j as f64 * dt_s);
+                    let k = if t < p.start {
+                        0
+                    } else {
+                        ((t - p.start).as_secs_f64() / p.dt) as usize
+                    };
+                    let pos = if t < p.start { p.base } else { p.at_cycle(k) };
+                    match last {
+                        Some((lp, v)) if lp == pos => v,
+                        _ => {
+                            let v = self.volts_at(pos);
+                            last = Some((pos, v));
+                            v
+                        }
+                    }
+                })
+                .collect()
+        });
         let dt = self.dt();
         let post = self.post_samples();
         let sigma = if self.avg {
@@ -295,7 +358,10 @@ impl Board {
                     j = j.wrapping_sub(BUF);
                 }
                 let t = j as isize as f64 * dt;
-                let mut v = base[ch];
+                let mut v = match &moving {
+                    Some(m) if (j as isize) >= 0 && j < m.len() => m[j][ch],
+                    _ => base[ch],
+                };
                 if let Some(g) = &self.cfg.generator {
                     v += g(t)[ch];
                 }
