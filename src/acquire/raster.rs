@@ -1,11 +1,194 @@
-//! Hardware-timed raster lines: binning a line's digitiser samples into pixels by the stage's
-//! *measured* position (issue 21). Pure functions, no I/O; the raster engine that drives the
-//! wave generator and the digitiser is still to be written (docs/hardware.md §10).
+//! Hardware-timed raster scans (`scan_xy(#{…, mode: "raster"})`): the fast axis sweeps each
+//! line at constant speed under the controller's clock (a wave generator), the controller's
+//! trigger output starts the digitiser, the data recorder gives the measured position of the
+//! stage, and each line's digitiser samples are binned into pixels by that *measured* position
+//! (docs/hardware.md §10).
+//!
+//! The engine ([`run_raster`]) keeps every rule of the point-by-point engine and extends the
+//! stop rule to the wave generator:
+//! 1. pre-flight: every pixel and the whole waveform (ramps and margins included) against the
+//!    soft limits, and the line speed (pitch / dwell) against the speed limit, before the
+//!    first move; a refused plan moves nothing;
+//! 2. ETA (per line: the move to the line's start, settle, the wave, the reads) and progress
+//!    per line;
+//! 3. per line: move to the wave's first point and settle; configure the line; arm the
+//!    digitiser on the external trigger; start the wave; wait for it; read the digitiser and
+//!    the recorder; bin;
+//! 4. Ctrl-C or any fault: the digitiser stopped, the wave generator and the axes stopped
+//!    (PI: `WGO g 0`, `STP`), the completed lines saved (later rows NaN), no further motion
+//!    (not even the return of a relative scan);
+//! 5. the scan file keeps the raw samples beside the binned image (`Scan::raw`) and records
+//!    the line speed, samples per pixel and the position error in `meta.raster`.
 //!
 //! Conventions: positions in µm, times in s. A line of `n` pixels from `from` to `to` has its
 //! pixel centres at `from + i·w`, `w = (to − from)/(n − 1)` (as the point-by-point scans), and
 //! pixel `i` takes the samples whose measured position lies within `w/2` of its centre
 //! (half-open: `[c − w/2, c + w/2)` in the sweep direction).
+
+use super::engine::{Batcher, Ended, ScanEnv, ScanError, ScanRun, ScanStart};
+use super::limits::SoftLimits;
+use super::plan::{fmt_seconds, Plan};
+use crate::data::clock::utc_now;
+use crate::data::{Image, Scan, ScanStatus};
+use crate::instrument::line::{LineSweep, LineTiming, SweepRecord};
+use crate::instrument::{BufferedTrace, DeviceError, Instrument, Pos, Trigger};
+use ndarray::Array2;
+use serde_json::{json, Value};
+use std::sync::atomic::Ordering;
+
+/// Digitiser samples asked per pixel (the digitiser may give more: its rates are steps).
+pub const DEFAULT_SAMPLES_PER_PIXEL: usize = 20;
+
+/// One line of a raster: the row it fills, where the other axes stand, and the wave.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RasterLine {
+    pub row: usize,
+    /// The stage position at the wave's first point (µm).
+    pub start: Pos,
+    pub sweep: LineSweep,
+}
+
+/// The lines of a raster plan and what they imply.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RasterPlan {
+    pub lines: Vec<RasterLine>,
+    /// Pixel centres along the fast axis, image order (µm).
+    pub cols: Vec<f64>,
+    /// Row positions (µm).
+    pub rows: Vec<f64>,
+    /// Constant line speed, µm/s: pitch / dwell.
+    pub speed_um_s: f64,
+    /// Wave duration per line, s (ramps and margins included).
+    pub line_s: f64,
+    /// Time of a line not spent on its pixels (ramps, margins), s.
+    pub turnaround_s: f64,
+}
+
+/// The waves of `plan` (a 2-D grid, ≥ 2 columns) for a stage with `timing`: each line sweeps
+/// the fast axis at `speed = pitch / dwell` over its pixels' bins (`[c₀ − w/2, c_last + w/2]`)
+/// plus a margin of `speed · settle_s` at each end, for the stage's lag to settle, with speed
+/// ramps of `settle_s` (at least 4 servo cycles) outside. Snake plans alternate the direction.
+/// The whole waveform is checked against `limits` and the line speed against its speed limit.
+pub fn plan_lines(
+    plan: &Plan,
+    start: Pos,
+    timing: &LineTiming,
+    settle_s: f64,
+    limits: &SoftLimits,
+) -> Result<RasterPlan, String> {
+    let who = format!("{} (raster)", plan.kind);
+    let dt = timing.servo_cycle_s;
+    if !(dt.is_finite() && dt > 0.0) {
+        return Err(format!(
+            "{who}: the controller's servo cycle {dt} s is not usable"
+        ));
+    }
+    if plan.slow.is_none() || plan.with.is_some() {
+        return Err(format!(
+            "{who}: mode \"raster\" is for 2-D scans (scan_xy, scan_xz, scan_yz)"
+        ));
+    }
+    let cols = plan.col_positions(start);
+    let n = cols.len();
+    if n < 2 {
+        return Err(format!(
+            "{who}: {} columns: a raster line needs at least 2 pixels",
+            n
+        ));
+    }
+    let rows = plan.row_positions(start);
+    let pitch = (cols[n - 1] - cols[0]) / (n - 1) as f64;
+    if pitch == 0.0 {
+        return Err(format!("{who}: the fast axis range is empty (from = to)"));
+    }
+    let v = pitch.abs() / plan.dwell_s;
+    if let Some(max) = limits.max_speed_um_s {
+        if v > max * (1.0 + 1e-12) {
+            return Err(format!(
+                "{who}: line speed {v:.4} µm/s (pitch {:.4} µm / dwell {} s) exceeds max_speed_um_s = {max} µm/s; \
+                 use a dwell ≥ {:.3e} s or a finer pitch",
+                pitch.abs(),
+                plan.dwell_s,
+                pitch.abs() / max
+            ));
+        }
+    }
+    let ramp_cycles = ((settle_s / dt).ceil() as usize).max(4);
+    let margin = v * settle_s;
+    let cover = (cols[n - 1] - cols[0]).abs() + pitch.abs() + 2.0 * margin;
+    // servo cycles per wave point: the wave must fit one table
+    let mut rate = 1u32;
+    let (points, amp, s_pts) = loop {
+        let v_pt = v * f64::from(rate) * dt;
+        let s_pts = ramp_cycles.div_ceil(rate as usize).max(1);
+        let t = 2 * s_pts + (cover / v_pt).ceil() as usize;
+        let points = t + 1;
+        if points <= timing.max_wave_points {
+            break (points, v_pt * (t - s_pts) as f64, s_pts);
+        }
+        if rate > 1 << 16 {
+            return Err(format!(
+                "{who}: a line of {:.1} s does not fit the wave table of {} points",
+                points as f64 * f64::from(rate) * dt,
+                timing.max_wave_points
+            ));
+        }
+        rate = rate.saturating_mul(2);
+    };
+    let cycles = points as u64 * u64::from(rate);
+    let record_rate = cycles
+        .div_ceil(timing.max_record_points.max(1) as u64)
+        .max(1) as u32;
+    let axis = plan.fast.axis.index();
+    let centre = 0.5 * (cols[0] + cols[n - 1]);
+    let base = plan.base(start);
+    let slow = plan.slow.map(|s| s.axis.index()).unwrap_or(axis);
+    let mut lines = Vec::with_capacity(rows.len());
+    for (r, &y) in rows.iter().enumerate() {
+        let forward = !(plan.snake && r % 2 == 1);
+        let dir = pitch.signum() * if forward { 1.0 } else { -1.0 };
+        let (from_um, to_um) = (centre - dir * amp / 2.0, centre + dir * amp / 2.0);
+        let mut p0 = base;
+        p0[slow] = y;
+        p0[axis] = from_um;
+        let mut p1 = p0;
+        p1[axis] = to_um;
+        for (what, p) in [("start", p0), ("end", p1)] {
+            limits.check(p).map_err(|e| {
+                format!(
+                    "{who}: the wave of row {} ({what}, ramps and margins included) leaves the soft limits: {}",
+                    r + 1,
+                    e.0
+                )
+            })?;
+        }
+        lines.push(RasterLine {
+            row: r,
+            start: p0,
+            sweep: LineSweep {
+                axis,
+                from_um,
+                to_um,
+                points,
+                speedupdown: s_pts,
+                rate,
+                record_rate,
+                trigger_line: timing.trigger_line,
+                table: 1,
+                servo_cycle_s: dt,
+            },
+        });
+    }
+    let line_s = lines[0].sweep.duration_s();
+    Ok(RasterPlan {
+        lines,
+        cols,
+        rows,
+        speed_um_s: v,
+        line_s,
+        turnaround_s: line_s - n as f64 * plan.dwell_s,
+    })
+}
 
 /// A line binned into pixels.
 #[derive(Debug, Clone, PartialEq)]
@@ -114,6 +297,458 @@ pub fn bin_line(
         mean: sum.iter().zip(&count).map(|(s, &c)| s / c as f64).collect(),
         position: pos.iter().zip(&count).map(|(s, &c)| s / c as f64).collect(),
         count,
+    })
+}
+
+/// Options of a raster scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RasterOptions {
+    /// Digitiser samples asked per pixel.
+    pub samples_per_pixel: usize,
+}
+
+impl Default for RasterOptions {
+    fn default() -> Self {
+        RasterOptions {
+            samples_per_pixel: DEFAULT_SAMPLES_PER_PIXEL,
+        }
+    }
+}
+
+/// One line measured: the binned row and what was binned.
+struct LineData {
+    bins: [LineBins; 3],
+    trace: BufferedTrace,
+    positions: Vec<f64>,
+    record: SweepRecord,
+}
+
+/// Wall time per line by phase (real-time instruments), s summed.
+#[derive(Default)]
+struct LinePhases {
+    lines: usize,
+    move_s: f64,
+    configure_s: f64,
+    wave_s: f64,
+    qpd_s: f64,
+    record_s: f64,
+}
+
+/// Measure one line (the stage at rest on its first point). Any error: the caller stops.
+fn measure_line(
+    inst: &mut Instrument,
+    l: &RasterLine,
+    cols: &[f64],
+    opts: &RasterOptions,
+    dwell_s: f64,
+    env: &ScanEnv,
+    ph: &mut LinePhases,
+) -> Result<Option<LineData>, DeviceError> {
+    let s = &l.sweep;
+    let t = std::time::Instant::now();
+    inst.stage.configure_line(s)?;
+    let rate = opts.samples_per_pixel as f64 / dwell_s;
+    let n = (s.duration_s() * rate).ceil() as usize + 1;
+    inst.qpd.arm_buffered(n, rate, Trigger::ExternalRising)?;
+    ph.configure_s += t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    inst.stage.start_line(s)?;
+    if !inst.stage.wait_line(s, env.abort)? {
+        ph.wave_s += t.elapsed().as_secs_f64();
+        return Ok(None);
+    }
+    ph.wave_s += t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    let timeout = std::time::Duration::from_secs_f64(s.duration_s() + 2.0);
+    let trace = inst.qpd.read_buffered(timeout)?;
+    ph.qpd_s += t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    let record = inst.stage.read_line_record(s)?;
+    ph.record_s += t.elapsed().as_secs_f64();
+    let bad = |detail: String| DeviceError::Other {
+        device: format!("{} + {}", inst.qpd.name(), inst.stage.name()),
+        detail,
+    };
+    // samples after the record's end have no measured position: left out
+    let rec_end = (record.position_um.len().max(1) - 1) as f64 * record.sample_time_s;
+    let keep = (0..trace.len())
+        .take_while(|&k| trace.time(k) <= rec_end + 1e-12)
+        .count();
+    let positions = positions_at_samples(
+        &record.position_um,
+        record.sample_time_s,
+        keep,
+        trace.dt_s,
+        trace.t0_s,
+    )
+    .map_err(|e| bad(format!("row {}: {e}", l.row + 1)))?;
+    let (c0, c1) = (cols[0], cols[cols.len() - 1]);
+    let bin = |v: &[f64]| {
+        bin_line(&positions, &v[..keep], c0, c1, cols.len())
+            .map_err(|e| bad(format!("row {}: {e}", l.row + 1)))
+    };
+    let bins = [bin(&trace.sx)?, bin(&trace.sy)?, bin(&trace.sz)?];
+    Ok(Some(LineData {
+        bins,
+        trace,
+        positions,
+        record,
+    }))
+}
+
+/// Rows × longest of `rows`, NaN-padded.
+fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
+    let w = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let mut a = Array2::from_elem((n_rows, w), f64::NAN);
+    for (r, v) in rows.iter().enumerate() {
+        for (k, &x) in v.iter().enumerate() {
+            a[[r, k]] = x;
+        }
+    }
+    a
+}
+
+/// Run `plan` as a hardware-timed raster on `inst`. See the module documentation.
+pub fn run_raster(
+    inst: &mut Instrument,
+    plan: &Plan,
+    opts: &RasterOptions,
+    env: &ScanEnv,
+) -> Result<ScanRun, ScanError> {
+    let kind = plan.kind.clone();
+    let dev = |error| ScanError::Device {
+        kind: kind.clone(),
+        error,
+    };
+    let refuse = |m: String| ScanError::Refused(m);
+    let start: Pos = inst.stage.target().map_err(dev)?;
+    let travel = inst.stage.travel_range().map_err(dev)?;
+    let limits = env
+        .limits
+        .within_travel(travel)
+        .map_err(|e| refuse(e.message))?;
+    limits.preflight(plan, start).map_err(|e| refuse(e.0))?;
+    let Some(timing) = inst.stage.line_timing().map_err(dev)? else {
+        return Err(refuse(format!(
+            "{kind}: mode \"raster\" needs a stage with a wave generator and a data recorder; {} has none (use the default mode \"points\")",
+            inst.stage.name()
+        )));
+    };
+    if opts.samples_per_pixel < 1 {
+        return Err(refuse(format!(
+            "{kind}: samples_per_pixel = {}: must be ≥ 1",
+            opts.samples_per_pixel
+        )));
+    }
+    let rp = plan_lines(plan, start, &timing, inst.settle_s, &limits).map_err(refuse)?;
+    let (rows, cols) = (plan.rows(), plan.cols());
+    let move_s = inst.stage.move_time_s();
+    let per_line = move_s + inst.settle_s + rp.line_s + inst.qpd.overhead_s();
+    let eta = rows as f64 * per_line
+        + if plan.return_to_start {
+            inst.settle_s
+        } else {
+            0.0
+        };
+    let clock_kind = if inst.clock.is_virtual() {
+        "simulated"
+    } else {
+        "real"
+    };
+    (env.log)(&format!(
+        "{} raster: {rows} lines of {cols} pixels at {:.4} µm/s ({} per pixel, line {} incl. turnaround {}), ETA {} ({clock_kind} time)",
+        plan.describe(),
+        rp.speed_um_s,
+        fmt_seconds(plan.dwell_s),
+        fmt_seconds(rp.line_s),
+        fmt_seconds(rp.turnaround_s),
+        fmt_seconds(eta)
+    ));
+    let (xn, yn) = (plan.fast.axis.name(), plan.row_axis().name());
+    if let Some(o) = env.observer {
+        o.started(&ScanStart {
+            kind: &kind,
+            rows,
+            cols,
+            x: &rp.cols,
+            y: &rp.rows,
+            x_name: xn,
+            y_name: yn,
+            points_total: rows * cols,
+            eta_s: eta,
+            meta: &env.meta,
+        });
+    }
+    let bar = if env.progress {
+        let b = indicatif::ProgressBar::new(rows as u64);
+        if let Ok(style) =
+            indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} lines, ETA {eta}")
+        {
+            b.set_style(style.progress_chars("=> "));
+        }
+        b.set_message(kind.clone());
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut img = [
+        Array2::from_elem((rows, cols), f64::NAN),
+        Array2::from_elem((rows, cols), f64::NAN),
+        Array2::from_elem((rows, cols), f64::NAN),
+    ];
+    let mut raw: [Vec<Vec<f64>>; 6] = Default::default();
+    let (mut err_max, mut err_ss, mut n_err) = (0.0f64, 0.0, 0usize);
+    let (mut spp_min, mut spp_sum) = (usize::MAX, 0usize);
+    let mut lag_sum = (0.0, 0usize);
+    let mut sample_rate = None;
+    let mut sz_measured = true;
+    let mut ph = LinePhases::default();
+    let wall0 = std::time::Instant::now();
+    let wall_start = utc_now();
+    let t0 = inst.clock.now();
+    let mut batch = Batcher::new();
+    let mut ended = Ended::Complete;
+    let mut measured = 0usize;
+    let mut stop_note: Option<String> = None;
+    let mut revised = false;
+    for l in &rp.lines {
+        if env.abort.swap(false, Ordering::SeqCst) {
+            ended = Ended::Aborted { measured };
+            break;
+        }
+        let t = std::time::Instant::now();
+        let moved = inst.move_settle(l.start);
+        ph.move_s += t.elapsed().as_secs_f64();
+        let result =
+            moved.and_then(|()| measure_line(inst, l, &rp.cols, opts, plan.dwell_s, env, &mut ph));
+        match result {
+            Ok(Some(d)) => {
+                for (c, b) in d.bins.iter().enumerate() {
+                    for (i, &m) in b.mean.iter().enumerate() {
+                        img[c][[l.row, i]] = m;
+                    }
+                }
+                for (i, (&p, &n)) in d.bins[0].position.iter().zip(&d.bins[0].count).enumerate() {
+                    let e = p - rp.cols[i];
+                    err_max = err_max.max(e.abs());
+                    err_ss += e * e;
+                    n_err += 1;
+                    spp_min = spp_min.min(n);
+                    spp_sum += n;
+                }
+                // the lag: target − measured over the line's pixels
+                let lo = rp.cols[0].min(rp.cols[cols - 1]);
+                let hi = rp.cols[0].max(rp.cols[cols - 1]);
+                for (t, x) in d.record.target_um.iter().zip(&d.record.position_um) {
+                    if *x >= lo && *x <= hi {
+                        lag_sum.0 += (t - x).abs();
+                        lag_sum.1 += 1;
+                    }
+                }
+                sample_rate = Some(1.0 / d.trace.dt_s);
+                sz_measured &= d.trace.sz_measured;
+                raw[0].push(d.trace.sx[..d.positions.len()].to_vec());
+                raw[1].push(d.trace.sy[..d.positions.len()].to_vec());
+                raw[2].push(d.trace.sz[..d.positions.len()].to_vec());
+                raw[3].push(d.positions);
+                raw[4].push(d.record.target_um);
+                raw[5].push(d.record.position_um);
+                if let Some(o) = env.observer {
+                    for i in 0..cols {
+                        batch.push(
+                            o,
+                            (
+                                l.row,
+                                i,
+                                [img[0][[l.row, i]], img[1][[l.row, i]], img[2][[l.row, i]]],
+                            ),
+                        );
+                    }
+                    batch.flush(o);
+                }
+                measured += cols;
+                ph.lines += 1;
+                bar.inc(1);
+                if !revised && !inst.clock.is_virtual() && rows > 1 {
+                    revised = true;
+                    let per = wall0.elapsed().as_secs_f64();
+                    if (per - per_line).abs() > 0.1 * per_line {
+                        (env.log)(&format!(
+                            "{kind}: the first line took {} (the ETA assumed {}): ETA now {} for the remaining {} lines",
+                            fmt_seconds(per),
+                            fmt_seconds(per_line),
+                            fmt_seconds(per * (rows - 1) as f64),
+                            rows - 1
+                        ));
+                    }
+                }
+            }
+            Ok(None) => {
+                // Ctrl-C during the wave: the stage stopped the generator and the axes
+                let _ = inst.qpd.stop_buffered();
+                stop_note = Some(format!(
+                    "the wave generator and the axes were stopped during row {}",
+                    l.row + 1
+                ));
+                ended = Ended::Aborted { measured };
+                break;
+            }
+            Err(error) => {
+                // every fault: digitiser stopped, wave generator off, axes stopped
+                let q = inst.qpd.stop_buffered().err();
+                let st = inst.stage.stop_line(&l.sweep).err();
+                stop_note = Some(match (q, st) {
+                    (_, Some(e)) => format!("stopping the wave generator and the axes failed too: {e}"),
+                    (Some(e), None) => format!("the wave generator and the axes were stopped; stopping the digitiser failed: {e}"),
+                    (None, None) => "the wave generator and the axes were stopped".into(),
+                });
+                ended = Ended::Failed {
+                    measured,
+                    error,
+                    stage_fault: true,
+                };
+                break;
+            }
+        }
+    }
+    bar.finish_and_clear();
+    if let Some(o) = env.observer {
+        batch.flush(o);
+    }
+    if let Some(n) = &stop_note {
+        (env.log)(&format!("{kind}: {n}; no further motion"));
+    }
+    let mut returned = false;
+    let mut return_error = None;
+    if plan.return_to_start && ended == Ended::Complete {
+        match inst.move_settle(start) {
+            Ok(()) => returned = true,
+            Err(e) => {
+                (env.log)(&format!(
+                    "{kind}: could NOT return to the start position: {e}"
+                ));
+                let _ = inst.stage.stop();
+                return_error = Some(e.to_string());
+            }
+        }
+    }
+    let status = match ended {
+        Ended::Complete => ScanStatus::Complete,
+        Ended::Aborted { .. } => ScanStatus::Aborted,
+        Ended::Failed { .. } => ScanStatus::Failed,
+    };
+    let t1 = inst.clock.now();
+    let n_lines = ph.lines.max(1) as f64;
+    let ms = |s: f64| s / n_lines * 1e3;
+    let first = &rp.lines[0].sweep;
+    let mut meta = json!({
+        "plan": plan,
+        "mode": "raster",
+        "status": status,
+        "points_total": rows * cols,
+        "points_measured": measured,
+        "lines_measured": ph.lines,
+        "start_position_um": start,
+        "returned_to_start": returned,
+        "stop": stop_note,
+        "limits": limits,
+        "instrument": inst.description,
+        "raster": {
+            "line_speed_um_s": rp.speed_um_s,
+            "dwell_s": plan.dwell_s,
+            "line_s": rp.line_s,
+            "turnaround_s": rp.turnaround_s,
+            "servo_cycle_s": timing.servo_cycle_s,
+            "wave_points": first.points,
+            "wave_rate": first.rate,
+            "speedupdown_points": first.speedupdown,
+            "record_rate": first.record_rate,
+            "record_sample_s": f64::from(first.record_rate) * timing.servo_cycle_s,
+            "trigger_line": timing.trigger_line,
+            "sample_rate_hz": sample_rate,
+            "samples_per_pixel_asked": opts.samples_per_pixel,
+            "samples_per_pixel_min": (spp_min != usize::MAX).then_some(spp_min),
+            "samples_per_pixel_mean": (n_err > 0).then(|| spp_sum as f64 / n_err as f64),
+            "position_error_um_max": (n_err > 0).then_some(err_max),
+            "position_error_um_rms": (n_err > 0).then(|| (err_ss / n_err as f64).sqrt()),
+            "lag_um_mean": (lag_sum.1 > 0).then(|| lag_sum.0 / lag_sum.1 as f64),
+            "sz_measured": sz_measured,
+            "binning": "each pixel: the mean of the digitiser samples whose measured stage position (recorder, interpolated) lies within half a pitch of its centre",
+        },
+        "time": {
+            "wall_start": wall_start,
+            "wall_end": utc_now(),
+            "wall_s": wall0.elapsed().as_secs_f64(),
+            "clock": if inst.clock.is_virtual() { "virtual" } else { "wall" },
+            "instrument_start_s": t0,
+            "instrument_end_s": t1,
+            "instrument_s": t1 - t0,
+            "eta_s": eta,
+            "lines": {
+                "move_settle_ms": ms(ph.move_s),
+                "configure_arm_ms": ms(ph.configure_s),
+                "wave_ms": ms(ph.wave_s),
+                "qpd_read_ms": ms(ph.qpd_s),
+                "record_read_ms": ms(ph.record_s),
+            },
+        },
+    });
+    if let Ended::Failed { error, .. } = &ended {
+        meta["error"] = json!({ "message": error.to_string(), "stage_fault": true });
+    }
+    if let Some(e) = return_error {
+        meta["return_error"] = json!(e);
+    }
+    if let Some(Value::Object(q)) = inst.qpd.metadata() {
+        for (k, v) in q {
+            meta[k.as_str()] = v;
+        }
+    }
+    if let (Value::Object(m), Value::Object(extra)) = (&mut meta, &env.meta) {
+        for (k, v) in extra {
+            m.insert(k.clone(), v.clone());
+        }
+    }
+    let mk =
+        |d: Array2<f64>| Image::new(d, rp.cols.clone(), rp.rows.clone()).with_axis_names(xn, yn);
+    let [sx, sy, mut sz] = img;
+    if !sz_measured {
+        sz.fill(f64::NAN);
+    }
+    let names = [
+        "sx",
+        "sy",
+        "sz",
+        "position_um",
+        "record_target_um",
+        "record_position_um",
+    ];
+    let scan = Scan {
+        sx: mk(sx),
+        sy: mk(sy),
+        sz: mk(sz),
+        status,
+        meta,
+        raw: names
+            .iter()
+            .zip(&raw)
+            .map(|(n, v)| (n.to_string(), padded(v, rows)))
+            .collect(),
+    };
+    let saved = (env.save)(&scan);
+    if let Err(e) = &saved {
+        (env.log)(&format!(
+            "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
+        ));
+    }
+    if let Some(o) = env.observer {
+        o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
+    }
+    Ok(ScanRun {
+        scan,
+        saved,
+        ended,
+        returned_to_start: returned,
     })
 }
 

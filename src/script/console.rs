@@ -13,11 +13,13 @@
 //! is `float` (int accepted), `int`, `bool`, `string`, `array`, `map`, `[from, to]`, or any
 //! other type name (`Template`, `AngleCurve`: checked by Rhai's type name).
 
+use super::ctx::Ctx;
 use super::registry::{fail, to_f64, Doc, RResult, Registrar};
+use super::types::ScanRef;
 pub use super::words::{
     did_you_mean, edit_distance, fmt_num, suggestion, user_type, user_type_name, user_words,
 };
-use rhai::{Array, Dynamic, Engine, Map};
+use rhai::{Array, Dynamic, Engine, Map, NativeCallContext};
 use std::path::{Path, PathBuf};
 
 fn get_str(m: &Map, k: &str) -> String {
@@ -538,166 +540,99 @@ fn line_channel(
 }
 
 pub fn register(r: &mut Registrar) {
+    let d = Doc::func("pwd")
+        .returns("string", "the session folder")
+        .summary("the session folder: where scans, figures, templates and the session log go")
+        .example("pwd() == status().data_dir", "true");
     let c = r.ctx();
-    r.bind(
-        Doc::func("pwd")
-            .returns("string", "the session folder")
-            .summary("the session folder: where scans, figures, templates and the session log go")
-            .example("pwd() == status().data_dir", "true"),
-        move || -> String { c.store.dir().display().to_string() },
-    );
+    r.bind(d, move || pwd(&c));
+
+    let d = Doc::func("ls")
+        .returns("array", "file names in the session folder, sorted")
+        .summary("list the session folder")
+        .example("ls().len() >= 0", "true");
     let c = r.ctx();
-    r.bind(
-        Doc::func("ls")
-            .returns("array", "file names in the session folder, sorted")
-            .summary("list the session folder")
-            .example("ls().len() >= 0", "true"),
-        move || -> Array {
-            let mut v: Vec<String> = std::fs::read_dir(c.store.dir())
-                .map(|rd| {
-                    rd.flatten()
-                        .map(|e| e.file_name().to_string_lossy().to_string())
-                        .collect()
-                })
-                .unwrap_or_default();
-            v.sort();
-            v.into_iter().map(Dynamic::from).collect()
-        },
-    );
+    r.bind(d, move || ls(&c));
+
+    let d = Doc::func("note")
+        .arg("text", "string", "", "a note (sample, condition, what you are doing)")
+        .returns("array", "all notes so far")
+        .summary("add a note to the metadata of every later scan (meta.notes); note() with \"\" clears them")
+        .example("note(\"sample 3, 110 nm PS\"); note(\"after refocus\").len()", "2")
+        .example("note(\"a\"); note(\"\").len()", "0");
     let c = r.ctx();
-    r.bind(
-        Doc::func("note")
-            .arg("text", "string", "", "a note (sample, condition, what you are doing)")
-            .returns("array", "all notes so far")
-            .summary("add a note to the metadata of every later scan (meta.notes); note() with \"\" clears them")
-            .example("note(\"sample 3, 110 nm PS\"); note(\"after refocus\").len()", "2")
-            .example("note(\"a\"); note(\"\").len()", "0"),
-        move |text: &str| -> Array {
-            let mut n = lock(&c.notes);
-            if text.trim().is_empty() {
-                n.clear();
-            } else {
-                n.push(text.to_string());
-            }
-            n.iter().map(|s| Dynamic::from(s.clone())).collect()
-        },
-    );
+    r.bind(d, move |text: &str| note(&c, text));
+
+    let d = Doc::func("scans")
+        .map("filter", "optional", &[
+            ("kind", "string", "", "optional: \"XY\", \"XZ\", \"YZ\" or \"line\""),
+            ("protocol", "string", "", "optional: part of the protocol name (\"focus\")"),
+            ("note", "string", "", "optional: part of a note"),
+            ("since", "string", "", "optional: ISO time; scans started at or after it"),
+        ])
+        .returns("array", "#{number, path, kind, status, time, protocol, notes, shape} per scan, oldest first")
+        .summary("list and search the session's scans by kind, time, protocol and notes")
+        .example("connect(#{backend: \"mock\"}); note(\"test\"); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}); let l = scans(#{kind: \"XZ\"}); [l.len(), l[0].notes[0]]", "[1, \"test\"]")
+        .example("scans(#{knd: \"XY\"})", "error: did you mean `kind`?");
     let c = r.ctx();
-    r.bind(
-        Doc::func("scans")
-            .map("filter", "optional", &[
-                ("kind", "string", "", "optional: \"XY\", \"XZ\", \"YZ\" or \"line\""),
-                ("protocol", "string", "", "optional: part of the protocol name (\"focus\")"),
-                ("note", "string", "", "optional: part of a note"),
-                ("since", "string", "", "optional: ISO time; scans started at or after it"),
-            ])
-            .returns("array", "#{number, path, kind, status, time, protocol, notes, shape} per scan, oldest first")
-            .summary("list and search the session's scans by kind, time, protocol and notes")
-            .example("connect(#{backend: \"mock\"}); note(\"test\"); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}); let l = scans(#{kind: \"XZ\"}); [l.len(), l[0].notes[0]]", "[1, \"test\"]")
-            .example("scans(#{knd: \"XY\"})", "error: did you mean `kind`?"),
-        {
-            let c = c.clone();
-            move |filter: Map| -> RResult<Array> {
-                let keys = ["kind", "protocol", "note", "since"];
-                for k in filter.keys() {
-                    if !keys.contains(&k.as_str()) {
-                        return fail(format!("scans: unknown key `{k}`{}; allowed keys: {}", suggestion(k, keys), keys.join(", ")));
-                    }
-                }
-                let get = |k: &str| filter.get(k).map(|v| v.to_string());
-                let files = scan_files(c.store.dir());
-                let mut out = Array::new();
-                for (n, p) in files {
-                    let m = scan_entry(&p, n);
-                    let field = |k: &str| m.get(k).map(|v| v.to_string()).unwrap_or_default();
-                    if let Some(k) = get("kind") {
-                        if !field("kind").eq_ignore_ascii_case(&k) { continue; }
-                    }
-                    if let Some(pr) = get("protocol") {
-                        if !field("protocol").contains(&pr) { continue; }
-                    }
-                    if let Some(nt) = get("note") {
-                        let has = m.get("notes").and_then(|a| a.read_lock::<Array>().map(|a| a.iter().any(|x| x.to_string().contains(&nt)))).unwrap_or(false);
-                        if !has { continue; }
-                    }
-                    if let Some(since) = get("since") {
-                        if field("time") < since { continue; }
-                    }
-                    out.push(m.into());
-                }
-                Ok(out)
-            }
-        },
-    );
-    r.overload("scans", move || -> RResult<Array> {
-        let files = scan_files(c.store.dir());
-        Ok(files
-            .into_iter()
-            .map(|(n, p)| scan_entry(&p, n).into())
-            .collect())
-    });
+    r.bind(d, move |filter: Map| scans(&c, &filter));
+    let c = r.ctx();
+    r.overload("scans", move || scans_all(&c));
+
     // SPEC words
-    r.bind(
-        Doc::func("wm")
-            .summary("SPEC's `wm` (where motor): print the position of every axis (as wa)")
-            .example("wm()", "()"),
-        |ctx: rhai::NativeCallContext| -> RResult<()> { ctx.call_native_fn::<()>("wa", ()) },
-    );
+    let d = Doc::func("wm")
+        .summary("SPEC's `wm` (where motor): print the position of every axis (as wa)")
+        .example("wm()", "()");
+    r.bind(d, |ctx: NativeCallContext| wm(&ctx));
     for (name, base, what) in [("umv", "mv", "absolute"), ("umvr", "mvr", "relative")] {
-        r.bind(
-            Doc::func(name)
-                .map(
-                    "target",
-                    &format!("{what} move, any subset of the axes"),
-                    &[
-                        ("x", "float", "µm", "optional"),
-                        ("y", "float", "µm", "optional"),
-                        ("z", "float", "µm", "optional"),
-                    ],
-                )
-                .summary(&format!(
-                    "SPEC's `{name}`: {base} and then show where the stage is"
-                ))
-                .example(&format!("{name}(#{{x: 0.5}}); pos().x"), "0.5"),
-            move |ctx: rhai::NativeCallContext, m: Map| -> RResult<()> {
-                let _ = ctx.call_native_fn::<Dynamic>(base, (m,))?;
-                ctx.call_native_fn::<()>("wa", ())
-            },
-        );
+        let d = Doc::func(name)
+            .map(
+                "target",
+                &format!("{what} move, any subset of the axes"),
+                &[
+                    ("x", "float", "µm", "optional"),
+                    ("y", "float", "µm", "optional"),
+                    ("z", "float", "µm", "optional"),
+                ],
+            )
+            .summary(&format!(
+                "SPEC's `{name}`: {base} and then show where the stage is"
+            ))
+            .example(&format!("{name}(#{{x: 0.5}}); pos().x"), "0.5");
+        r.bind(d, move |ctx: NativeCallContext, m: Map| {
+            move_and_show(&ctx, base, m)
+        });
     }
+    let d = Doc::func("lup")
+        .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
+        .arg(
+            "from",
+            "float",
+            "µm",
+            "start, relative to the current position",
+        )
+        .arg("to", "float", "µm", "end, relative to the current position")
+        .arg(
+            "intervals",
+            "int",
+            "",
+            "number of intervals: intervals + 1 points",
+        )
+        .arg("dwell", "float", "s", "count time per point")
+        .returns(
+            "Scan",
+            "a line scan; autosaved; the stage returns to the start",
+        )
+        .summary("SPEC's `lup` (line-up scan) = dscan")
+        .example(
+            "mv(#{x: 2.0}); let s = lup(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, pos().x]",
+            "[11, 2.0]",
+        );
     r.bind(
-        Doc::func("lup")
-            .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
-            .arg(
-                "from",
-                "float",
-                "µm",
-                "start, relative to the current position",
-            )
-            .arg("to", "float", "µm", "end, relative to the current position")
-            .arg(
-                "intervals",
-                "int",
-                "",
-                "number of intervals: intervals + 1 points",
-            )
-            .arg("dwell", "float", "s", "count time per point")
-            .returns(
-                "Scan",
-                "a line scan; autosaved; the stage returns to the start",
-            )
-            .summary("SPEC's `lup` (line-up scan) = dscan")
-            .example(
-                "mv(#{x: 2.0}); let s = lup(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, pos().x]",
-                "[11, 2.0]",
-            ),
-        |ctx: rhai::NativeCallContext,
-         a: Dynamic,
-         f: Dynamic,
-         t: Dynamic,
-         n: Dynamic,
-         d: Dynamic|
-         -> RResult<Dynamic> { ctx.call_native_fn::<Dynamic>("dscan", (a, f, t, n, d)) },
+        d,
+        |ctx: NativeCallContext, a: Dynamic, f: Dynamic, t: Dynamic, n: Dynamic, d: Dynamic| {
+            lup(&ctx, a, f, t, n, d)
+        },
     );
     for (name, what) in [
         (
@@ -708,97 +643,231 @@ pub fn register(r: &mut Registrar) {
         ("com", "centre of mass of |v − median|"),
         ("fwhm", "full width at half maximum of |v − median|"),
     ] {
-        r.bind(
-            Doc::func(name)
-                .arg("scan", "Scan", "", "a line scan (scan_line, ascan, dscan, lup)")
-                .opt("channel", "string", "", "\"sx\", \"sy\" or \"sz\" (default \"sz\")")
-                .returns("float", "µm along the scanned axis")
-                .summary(&format!("SPEC's `{name}` after a line scan: {what}"))
-                .help("QPD signals are signed and sit on an offset: the statistics use w = |v − median(v)| of the chosen channel.")
-                .example(&format!("mv(#{{x: 0.0}}); let s = dscan(\"x\", -1.0, 1.0, 40, 0.001); {name}(s, \"sx\") < 1.0"), "true")
-                .example(&format!("{name}(scan_xy(#{{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 5}}))"), "error: this is an XY scan"),
-            move |sc: super::types::ScanRef, channel: &str| -> RResult<f64> {
-                let (t, v) = line_channel(name, &sc, channel)?;
-                let s = crate::analysis::spec::line_stats(&t, &v).map_err(|e| format!("{name}: {e}"))?;
-                Ok(match name { "peak" => s.peak, "cen" => s.cen, "com" => s.com, _ => s.fwhm })
-            },
-        );
-        r.overload(name, move |sc: super::types::ScanRef| -> RResult<f64> {
-            let (t, v) = line_channel(name, &sc, "sz")?;
-            let s =
-                crate::analysis::spec::line_stats(&t, &v).map_err(|e| format!("{name}: {e}"))?;
-            Ok(match name {
-                "peak" => s.peak,
-                "cen" => s.cen,
-                "com" => s.com,
-                _ => s.fwhm,
-            })
+        let d = Doc::func(name)
+            .arg("scan", "Scan", "", "a line scan (scan_line, ascan, dscan, lup)")
+            .opt("channel", "string", "", &format!("\"sx\", \"sy\" or \"sz\" (default {LINE_CHANNEL:?})"))
+            .returns("float", "µm along the scanned axis")
+            .summary(&format!("SPEC's `{name}` after a line scan: {what}"))
+            .help("QPD signals are signed and sit on an offset: the statistics use w = |v − median(v)| of the chosen channel.")
+            .example(&format!("mv(#{{x: 0.0}}); let s = dscan(\"x\", -1.0, 1.0, 40, 0.001); {name}(s, \"sx\") < 1.0"), "true")
+            .example(&format!("{name}(scan_xy(#{{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 5, ny: 5}}))"), "error: this is an XY scan");
+        r.bind(d, move |sc: ScanRef, channel: &str| {
+            line_statistic(name, &sc, channel)
+        });
+        r.overload(name, move |sc: ScanRef| {
+            line_statistic(name, &sc, LINE_CHANNEL)
         });
     }
-    r.getter(
-        Doc::property("Scan", "kind")
-            .returns("string", "\"XY\", \"XZ\", \"YZ\" or \"line\"")
-            .summary("what kind of scan this is (from its axes); analyses refuse the wrong kind, naming it")
-            .example("connect(#{backend: \"mock\"}); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}).kind", "\"XZ\"")
-            .example("connect(#{backend: \"mock\"}); scan_line(#{axis: \"x\", from: -0.5, to: 0.5, n: 5, dwell: 0.0001}).kind", "\"line\""),
-        |s: &mut super::types::ScanRef| -> String { crate::analysis::kind::plane(&s.scan.sx) },
-    );
+    let d = Doc::property("Scan", "kind")
+        .returns("string", "\"XY\", \"XZ\", \"YZ\" or \"line\"")
+        .summary("what kind of scan this is (from its axes); analyses refuse the wrong kind, naming it")
+        .example("connect(#{backend: \"mock\"}); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}).kind", "\"XZ\"")
+        .example("connect(#{backend: \"mock\"}); scan_line(#{axis: \"x\", from: -0.5, to: 0.5, n: 5, dwell: 0.0001}).kind", "\"line\"");
+    r.getter(d, |s: &mut ScanRef| scan_kind(s));
     let c = r.ctx();
     r.overload(
         "save",
-        move |t: &mut super::types::TemplateRef, path: &str, m: Map| -> RResult<String> {
-            for k in m.keys() {
-                if k.as_str() != "overwrite" {
-                    return fail(format!(
-                        "save: unknown key `{k}`{}; allowed keys: overwrite",
-                        suggestion(k, ["overwrite"])
-                    ));
-                }
-            }
-            let ow = match m.get("overwrite") {
-                None => false,
-                Some(v) => v
-                    .as_bool()
-                    .map_err(|_| format!("save: overwrite must be true or false, got {v}"))?,
-            };
-            save_template(&c, t, path, ow)
+        move |t: &mut super::types::TemplateRef, path: &str, m: Map| {
+            save_template_with(&c, t, path, &m)
         },
     );
-    r.bind(
-        Doc::func("protocol_options")
-            .arg("decl", "map", "", "the protocol's declaration #{name, summary, usage, args: [#{key, ty, unit, default, min, max, one_of, required, doc}], returns, saves, example}")
-            .arg("opts", "map", "", "the options the user passed")
-            .returns("map", "the options, checked, with the defaults filled in")
-            .summary("check a protocol's options against its declaration (unknown keys, types, ranges) and fill in defaults")
-            .help("Used by every stdlib protocol so that its options are checked as strictly as a binding's: an unknown key is refused with a \"did you mean\", a value outside [min, max] with the allowed range and unit. The same declaration makes the protocol's help page (help(\"calibrate\")).")
-            .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", \"default\": 0.01, min: 1e-5, max: 10.0}]}, #{}).dwell", "0.01")
-            .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", \"default\": 0.01}]}, #{dwel: 0.001})", "error: unknown option `dwel`; did you mean `dwell`?")
-            .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", min: 1e-5, max: 10.0}]}, #{dwell: 20})", "error: dwell = 20 s is out of range; allowed: [0.00001, 10] s"),
-        |decl: Map, opts: Dynamic| -> RResult<Map> { protocol_options(&decl, &opts) },
-    );
-    r.bind(
-        Doc::func("protocol_page")
-            .arg("decls", "map | array", "", "one protocol declaration or an array of them")
-            .returns("string", "the help page(s)")
-            .summary("the help page of a protocol, made from its declaration (what `calibrate::help()` returns)")
-            .example("protocol_page(#{name: \"p::run\", summary: \"does p\", args: [#{key: \"n\", ty: \"int\", \"default\": 3, doc: \"points\"}]}).contains(\"default 3\")", "true"),
-        |decls: Dynamic| -> RResult<String> {
-            if let Some(m) = decls.read_lock::<Map>() {
-                return protocol_page(&m);
+
+    let d = Doc::func("protocol_options")
+        .arg("decl", "map", "", "the protocol's declaration #{name, summary, usage, args: [#{key, ty, unit, default, min, max, one_of, required, doc}], returns, saves, example}")
+        .arg("opts", "map", "", "the options the user passed")
+        .returns("map", "the options, checked, with the defaults filled in")
+        .summary("check a protocol's options against its declaration (unknown keys, types, ranges) and fill in defaults")
+        .help("Used by every stdlib protocol so that its options are checked as strictly as a binding's: an unknown key is refused with a \"did you mean\", a value outside [min, max] with the allowed range and unit. The same declaration makes the protocol's help page (help(\"calibrate\")).")
+        .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", \"default\": 0.01, min: 1e-5, max: 10.0}]}, #{}).dwell", "0.01")
+        .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", \"default\": 0.01}]}, #{dwel: 0.001})", "error: unknown option `dwel`; did you mean `dwell`?")
+        .example("protocol_options(#{name: \"p\", args: [#{key: \"dwell\", ty: \"float\", unit: \"s\", min: 1e-5, max: 10.0}]}, #{dwell: 20})", "error: dwell = 20 s is out of range; allowed: [0.00001, 10] s");
+    r.bind(d, |decl: Map, opts: Dynamic| protocol_options(&decl, &opts));
+
+    let d = Doc::func("protocol_page")
+        .arg("decls", "map | array", "", "one protocol declaration or an array of them")
+        .returns("string", "the help page(s)")
+        .summary("the help page of a protocol, made from its declaration (what `calibrate::help()` returns)")
+        .example("protocol_page(#{name: \"p::run\", summary: \"does p\", args: [#{key: \"n\", ty: \"int\", \"default\": 3, doc: \"points\"}]}).contains(\"default 3\")", "true");
+    r.bind(d, |decls: Dynamic| protocol_pages(&decls));
+}
+
+/// The channel the SPEC line statistics (`peak`, `cen`, `com`, `fwhm`) read when none is given.
+const LINE_CHANNEL: &str = "sz";
+
+/// `pwd()`: the session folder.
+fn pwd(c: &Ctx) -> String {
+    c.store.dir().display().to_string()
+}
+
+/// `ls()`: the file names in the session folder, sorted (empty if it cannot be read).
+fn ls(c: &Ctx) -> Array {
+    let mut v: Vec<String> = std::fs::read_dir(c.store.dir())
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| e.file_name().to_string_lossy().to_string())
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v.into_iter().map(Dynamic::from).collect()
+}
+
+/// `note(text)`: add a note for the metadata of later scans (blank text clears them); returns
+/// all notes.
+fn note(c: &Ctx, text: &str) -> Array {
+    let mut n = lock(&c.notes);
+    if text.trim().is_empty() {
+        n.clear();
+    } else {
+        n.push(text.to_string());
+    }
+    n.iter().map(|s| Dynamic::from(s.clone())).collect()
+}
+
+/// `scans(#{kind, protocol, note, since})`: the session's scans that match every given filter,
+/// oldest first.
+fn scans(c: &Ctx, filter: &Map) -> RResult<Array> {
+    let keys = ["kind", "protocol", "note", "since"];
+    for k in filter.keys() {
+        if !keys.contains(&k.as_str()) {
+            return fail(format!(
+                "scans: unknown key `{k}`{}; allowed keys: {}",
+                suggestion(k, keys),
+                keys.join(", ")
+            ));
+        }
+    }
+    let get = |k: &str| filter.get(k).map(|v| v.to_string());
+    let files = scan_files(c.store.dir());
+    let mut out = Array::new();
+    for (n, p) in files {
+        let m = scan_entry(&p, n);
+        let field = |k: &str| m.get(k).map(|v| v.to_string()).unwrap_or_default();
+        if let Some(k) = get("kind") {
+            if !field("kind").eq_ignore_ascii_case(&k) {
+                continue;
             }
-            let Some(a) = decls.read_lock::<Array>() else {
-                return fail(format!("protocol_page: decls must be a map or an array of maps, got {}", user_type_name(&decls)));
-            };
-            let mut pages = vec![];
-            for d in a.iter() {
-                let Some(m) = d.read_lock::<Map>() else {
-                    return fail("protocol_page: every declaration must be a map");
-                };
-                pages.push(protocol_page(&m)?);
+        }
+        if let Some(pr) = get("protocol") {
+            if !field("protocol").contains(&pr) {
+                continue;
             }
-            Ok(pages.join("\n"))
-        },
-    );
+        }
+        if let Some(nt) = get("note") {
+            let has = m
+                .get("notes")
+                .and_then(|a| {
+                    a.read_lock::<Array>()
+                        .map(|a| a.iter().any(|x| x.to_string().contains(&nt)))
+                })
+                .unwrap_or(false);
+            if !has {
+                continue;
+            }
+        }
+        if let Some(since) = get("since") {
+            if field("time") < since {
+                continue;
+            }
+        }
+        out.push(m.into());
+    }
+    Ok(out)
+}
+
+/// `scans()`: every scan of the session, oldest first.
+fn scans_all(c: &Ctx) -> RResult<Array> {
+    let files = scan_files(c.store.dir());
+    Ok(files
+        .into_iter()
+        .map(|(n, p)| scan_entry(&p, n).into())
+        .collect())
+}
+
+/// `wm()`: SPEC's where-motor, which is `wa()`.
+fn wm(ctx: &NativeCallContext) -> RResult<()> {
+    ctx.call_native_fn::<()>("wa", ())
+}
+
+/// `umv` / `umvr`: the move `base` (`mv` / `mvr`), then `wa()`.
+fn move_and_show(ctx: &NativeCallContext, base: &str, m: Map) -> RResult<()> {
+    let _ = ctx.call_native_fn::<Dynamic>(base, (m,))?;
+    ctx.call_native_fn::<()>("wa", ())
+}
+
+/// `lup(axis, from, to, intervals, dwell)`: SPEC's line-up scan, which is `dscan`.
+fn lup(
+    ctx: &NativeCallContext,
+    a: Dynamic,
+    f: Dynamic,
+    t: Dynamic,
+    n: Dynamic,
+    d: Dynamic,
+) -> RResult<Dynamic> {
+    ctx.call_native_fn::<Dynamic>("dscan", (a, f, t, n, d))
+}
+
+/// `peak` / `cen` / `com` / `fwhm` (`name`) of a line scan's `channel`, in µm along the scanned
+/// axis (statistics of w = |v − median(v)|).
+fn line_statistic(name: &str, sc: &ScanRef, channel: &str) -> RResult<f64> {
+    let (t, v) = line_channel(name, sc, channel)?;
+    let s = crate::analysis::spec::line_stats(&t, &v).map_err(|e| format!("{name}: {e}"))?;
+    Ok(match name {
+        "peak" => s.peak,
+        "cen" => s.cen,
+        "com" => s.com,
+        _ => s.fwhm,
+    })
+}
+
+/// `scan.kind`: "XY", "XZ", "YZ" or "line", from the scan's axes.
+fn scan_kind(s: &ScanRef) -> String {
+    crate::analysis::kind::plane(&s.scan.sx)
+}
+
+/// `template.save(path, #{overwrite})`: check the one option, then [`save_template`].
+fn save_template_with(
+    c: &Ctx,
+    t: &super::types::TemplateRef,
+    path: &str,
+    m: &Map,
+) -> RResult<String> {
+    for k in m.keys() {
+        if k.as_str() != "overwrite" {
+            return fail(format!(
+                "save: unknown key `{k}`{}; allowed keys: overwrite",
+                suggestion(k, ["overwrite"])
+            ));
+        }
+    }
+    let ow = match m.get("overwrite") {
+        None => false,
+        Some(v) => v
+            .as_bool()
+            .map_err(|_| format!("save: overwrite must be true or false, got {v}"))?,
+    };
+    save_template(c, t, path, ow)
+}
+
+/// `protocol_page(decls)`: the help page of one declaration, or the pages of an array of them.
+fn protocol_pages(decls: &Dynamic) -> RResult<String> {
+    if let Some(m) = decls.read_lock::<Map>() {
+        return protocol_page(&m);
+    }
+    let Some(a) = decls.read_lock::<Array>() else {
+        return fail(format!(
+            "protocol_page: decls must be a map or an array of maps, got {}",
+            user_type_name(decls)
+        ));
+    };
+    let mut pages = vec![];
+    for d in a.iter() {
+        let Some(m) = d.read_lock::<Map>() else {
+            return fail("protocol_page: every declaration must be a map");
+        };
+        pages.push(protocol_page(&m)?);
+    }
+    Ok(pages.join("\n"))
 }
 
 #[cfg(test)]

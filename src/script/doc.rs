@@ -99,7 +99,8 @@ impl Doc {
     pub fn func(name: &str) -> Doc {
         Doc::new(name, "", Kind::Function)
     }
-    /// A method `value.name(args)` of the Rhai type `ty` (family = the type).
+    /// A method `value.name(args)` of the Rhai type `ty`; its family, too, is the file that
+    /// declares it (not the type).
     pub fn method(ty: &str, name: &str) -> Doc {
         Doc::new(name, "", Kind::Method { ty: ty.into() })
     }

@@ -6,12 +6,11 @@
 //! where it went.
 
 use super::ctx::Ctx;
-use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar};
+use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::stats::MAX_BINS;
 use crate::plot::{
-    plot_hist, plot_image, plot_profile, plot_scan, plot_xy, PlotOpts, ScanPlotOpts, Series,
-    SeriesStyle, XyOpts,
+    self as figure, plot_image, plot_scan, PlotOpts, ScanPlotOpts, Series, SeriesStyle, XyOpts,
 };
 use rhai::{Array, Dynamic, Map};
 use std::path::Path;
@@ -96,6 +95,9 @@ const XY_KEYS: &[(&str, &str, &str, &str)] = &[
     ),
 ];
 
+/// `plot_hist`'s number of bins when `bins` is not given.
+const PLOT_HIST_BINS: i64 = 20;
+
 const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
 
 pub fn register(r: &mut Registrar) {
@@ -124,81 +126,7 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} plot(sc.sx, dir + \"/ex_sx.svg\", #{{colormap: \"diverging\", title: \"Sx\"}}).ends_with(\".svg\")"), "true")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.jpg\")"), "error: figure files end in .png or .svg")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.png\", #{{channel: \"sq\"}})"), "error: channel = \"sq\"");
-    let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
-        let who = "plot";
-        let o = Opts::new(&spec, &m)?;
-        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
-        let title = o.string("title")?.unwrap_or_default();
-        let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
-            let mut p = match o.string("colormap")?.as_deref() {
-                None | Some("sequential") => PlotOpts {
-                    label: default_label.into(),
-                    ..PlotOpts::default()
-                },
-                Some("diverging") => PlotOpts::diverging(default_label),
-                Some(c) => {
-                    return fail(format!(
-                        "{who}: colormap = \"{c}\" is not one of \"diverging\", \"sequential\""
-                    ))
-                }
-            };
-            if let Some(l) = o.string("label")? {
-                p.label = l;
-            }
-            if let Some((a, b)) = o.range("range")? {
-                if a.partial_cmp(&b) != Some(std::cmp::Ordering::Less) {
-                    return fail(format!("{who}: range = [{a}, {b}] must have lo < hi"));
-                }
-                p.range = Some((a, b));
-            }
-            Ok(p.with_title(&title))
-        };
-        if let Some(s) = v.read_lock::<ScanRef>() {
-            if let Some(ch) = o.string("channel")? {
-                let img = match ch.as_str() {
-                    "sx" => &s.scan.sx,
-                    "sy" => &s.scan.sy,
-                    "sz" => &s.scan.sz,
-                    _ => {
-                        return fail(format!(
-                            "{who}: channel = \"{ch}\" is not one of \"sx\", \"sy\", \"sz\""
-                        ))
-                    }
-                };
-                let mut p = PlotOpts::for_channel(&ch).with_title(&title);
-                if let Some(l) = o.string("label")? {
-                    p.label = l;
-                }
-                if let Some((a, b)) = o.range("range")? {
-                    p.range = Some((a, b));
-                }
-                plot_image(path, img, &p).map_err(|e| ferr(who, path, e))?;
-            } else {
-                let so = ScanPlotOpts {
-                    title,
-                    include_sz: o.bool_or("include_sz", true)?,
-                    shared_xy_scale: o.bool_or("shared_xy_scale", false)?,
-                };
-                plot_scan(path, &s.scan, &so).map_err(|e| ferr(who, path, e))?;
-            }
-        } else if let Some(i) = v.read_lock::<ImageRef>() {
-            let p = image_opts(&o, "")?;
-            plot_image(path, &i.0, &p).map_err(|e| ferr(who, path, e))?;
-        } else {
-            return fail(format!(
-                "{who}: what must be a Scan or an Image, got {}",
-                v.type_name()
-            ));
-        }
-        stamp(&c, path)
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("plot", move |v: Dynamic, path: &str| {
-        f2(v, path, Map::new())
-    });
+    bind_figure(r, d, &ctx, plot);
 
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
@@ -209,48 +137,7 @@ pub fn register(r: &mut Registrar) {
         .summary("line plot of one or more profiles with a legend")
         .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
         .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
-    let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |v: Dynamic, path: &str, m: Map| -> RResult<String> {
-        let who = "plot_profile";
-        let o = Opts::new(&spec, &m)?;
-        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
-        let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
-        let bad = |x: &Dynamic| -> RResult<()> {
-            fail(format!(
-                "{who}: profiles must be Profile values, got {}",
-                x.type_name()
-            ))
-        };
-        if let Some(p) = v.read_lock::<ProfileRef>() {
-            list.push((String::new(), p.0.clone()));
-        } else if let Some(a) = v.read_lock::<Array>() {
-            for (i, x) in a.iter().enumerate() {
-                match x.read_lock::<ProfileRef>() {
-                    Some(p) => list.push((format!("{}", i + 1), p.0.clone())),
-                    None => bad(x)?,
-                }
-            }
-        } else if let Some(mp) = v.read_lock::<Map>() {
-            for (k, x) in mp.iter() {
-                match x.read_lock::<ProfileRef>() {
-                    Some(p) => list.push((k.to_string(), p.0.clone())),
-                    None => bad(x)?,
-                }
-            }
-        } else {
-            bad(&v)?;
-        }
-        let refs: Vec<(&str, &crate::data::Profile)> =
-            list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
-        plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-        stamp(&c, path)
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("plot_profile", move |v: Dynamic, path: &str| {
-        f2(v, path, Map::new())
-    });
+    bind_figure(r, d, &ctx, plot_profile);
 
     let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
@@ -261,77 +148,7 @@ pub fn register(r: &mut Registrar) {
         .summary("x–y plot of curves and points with error bars, optionally log–log")
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
         .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
-    let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
-        let who = "plot_xy";
-        let o = Opts::new(&spec, &m)?;
-        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
-        let mut series = vec![];
-        for (i, s) in a.iter().enumerate() {
-            let Some(sm) = s.read_lock::<Map>() else {
-                return fail(format!(
-                    "{who}: series[{i}] must be #{{x, y, label, style, yerr}}, got {}",
-                    s.type_name()
-                ));
-            };
-            for k in sm.keys() {
-                if !["x", "y", "label", "style", "yerr"].contains(&k.as_str()) {
-                    return fail(format!(
-                        "{who}: series[{i}]: unknown key `{k}`; allowed keys: x, y, label, style, yerr"
-                    ));
-                }
-            }
-            let get = |k: &str| -> RResult<Vec<f64>> {
-                match sm.get(k) {
-                    Some(v) => numbers(who, &format!("series[{i}].{k}"), v),
-                    None => fail(format!("{who}: series[{i}] lacks `{k}`")),
-                }
-            };
-            let (x, y) = (get("x")?, get("y")?);
-            if x.len() != y.len() {
-                return fail(format!(
-                    "{who}: series[{i}]: x and y differ in length ({} vs {})",
-                    x.len(),
-                    y.len()
-                ));
-            }
-            let label = sm.get("label").map(|v| v.to_string()).unwrap_or_default();
-            let style = match sm.get("style").map(|v| v.to_string()).as_deref() {
-                None | Some("line") => SeriesStyle::Line,
-                Some("points") => SeriesStyle::Points,
-                Some("linepoints") => SeriesStyle::LinePoints,
-                Some(s) => {
-                    return fail(format!(
-                        "{who}: series[{i}].style = \"{s}\" is not one of \"line\", \"points\", \"linepoints\""
-                    ))
-                }
-            };
-            let mut se = Series::line(&label, x, y).with_style(style);
-            if sm.contains_key("yerr") {
-                let e = get("yerr")?;
-                if e.len() != se.y.len() {
-                    return fail(format!(
-                        "{who}: series[{i}]: yerr has {} values for {} points",
-                        e.len(),
-                        se.y.len()
-                    ));
-                }
-                se = se.with_yerr(e);
-            }
-            series.push(se);
-        }
-        if series.is_empty() {
-            return fail(format!("{who}: series is empty"));
-        }
-        plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-        stamp(&c, path)
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("plot_xy", move |a: Array, path: &str| {
-        f2(a, path, Map::new())
-    });
+    bind_figure(r, d, &ctx, plot_xy);
 
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
@@ -340,7 +157,7 @@ pub fn register(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("bins", "int", "", "optional: number of bins (default 20)"),
+                ("bins", "int", "", format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
                 ("title", "string", "", "optional: figure title"),
                 ("overwrite", "bool", "", "optional: replace an existing file (default false: a numbered name, never overwriting)"),
                 ("xlabel", "string", "", "optional: x-axis label"),
@@ -352,75 +169,38 @@ pub fn register(r: &mut Registrar) {
         .summary("histogram figure (e.g. bead diameters, Fig. 3b)")
         .example("let p = status().data_dir + \"/ex_hist.png\"; plot_hist([1.0, 2.0, 2.0, 3.0], p, #{bins: 3, xlabel: \"d (nm)\"}) == p", "true")
         .example("plot_hist([1.0], status().data_dir + \"/ex_hist.png\", #{bins: 0})", "error: bins");
-    let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |a: Array, path: &str, m: Map| -> RResult<String> {
-        let who = "plot_hist";
-        let o = Opts::new(&spec, &m)?;
-        let path = &prepare(&c, who, path, o.bool_or("overwrite", false)?)?;
-        let v = numbers(who, "values", &Dynamic::from_array(a))?;
-        let bins = o.int("bins")?.unwrap_or(20);
-        if !(1..=MAX_BINS as i64).contains(&bins) {
-            return fail(format!(
-                "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
-            ));
-        }
-        let xo = XyOpts {
-            title: o.string("title")?.unwrap_or_default(),
-            xlabel: o.string("xlabel")?.unwrap_or_default(),
-            ylabel: o.string("ylabel")?.unwrap_or_default(),
-            ..XyOpts::default()
-        };
-        plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;
-        stamp(&c, path)
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("plot_hist", move |a: Array, path: &str| {
-        f2(a, path, Map::new())
-    });
+    bind_figure(r, d, &ctx, plot_hist);
 
     // ---------------------------------------------------------------- TIFF and CSV
+    let d = Doc::func("save_tiff")
+        .arg(
+            "img",
+            "Image",
+            "",
+            "an image (a Scan channel, a sensitivity map…)",
+        )
+        .arg("path", "string", "", ".tif file (overwritten)")
+        .returns("string", "the path written")
+        .summary(
+            "32-bit float grayscale TIFF that Fiji/ImageJ opens (pixel size in µm in the tags)",
+        )
+        .example(
+            &format!("{SCENE} let p = dir + \"/ex.tif\"; save_tiff(sc.sx, p); load_tiff(p).cols"),
+            "21",
+        );
     let c = ctx.clone();
-    r.bind(
-        Doc::func("save_tiff")
-            .arg(
-                "img",
-                "Image",
-                "",
-                "an image (a Scan channel, a sensitivity map…)",
-            )
-            .arg("path", "string", "", ".tif file (overwritten)")
-            .returns("string", "the path written")
-            .summary(
-                "32-bit float grayscale TIFF that Fiji/ImageJ opens (pixel size in µm in the tags)",
-            )
-            .example(
-                &format!(
-                    "{SCENE} let p = dir + \"/ex.tif\"; save_tiff(sc.sx, p); load_tiff(p).cols"
-                ),
-                "21",
-            ),
-        move |i: ImageRef, path: &str| -> RResult<String> {
-            let path = &prepare(&c, "save_tiff", path, false)?;
-            crate::data::tiff::save_tiff(path, &i.0).map_err(|e| ferr("save_tiff", path, e))?;
-            stamp(&c, path)
-        },
-    );
-    r.bind(
-        Doc::func("load_tiff")
-            .arg("path", "string", "", "a TIFF written by save_tiff")
-            .returns("Image", "")
-            .summary("read a float32 TIFF back into an Image")
-            .example(
-                "load_tiff(\"no/such.tif\")",
-                "error: load_tiff: no/such.tif",
-            ),
-        |path: &str| -> RResult<ImageRef> {
-            let i = crate::data::tiff::load_tiff(path).map_err(|e| ferr("load_tiff", path, e))?;
-            Ok(ImageRef(Arc::new(i)))
-        },
-    );
+    r.bind(d, move |i: ImageRef, path: &str| save_tiff(&c, &i, path));
+
+    let d = Doc::func("load_tiff")
+        .arg("path", "string", "", "a TIFF written by save_tiff")
+        .returns("Image", "")
+        .summary("read a float32 TIFF back into an Image")
+        .example(
+            "load_tiff(\"no/such.tif\")",
+            "error: load_tiff: no/such.tif",
+        );
+    r.bind(d, |path: &str| load_tiff(path));
+
     let d = Doc::func("save_csv")
         .arg("data", "Profile | map", "", "a Profile (two columns) or a table #{column: [numbers], …} (columns of equal length, in key order)")
         .arg("path", "string", "", ".csv file (overwritten)")
@@ -430,26 +210,258 @@ pub fn register(r: &mut Registrar) {
         .example("let p = status().data_dir + \"/ex_t.csv\"; save_csv(#{d_nm: [50.0, 60.0], sens: [0.1, 0.2]}, p) == p", "true")
         .example("save_csv(#{a: [1.0], b: [1.0, 2.0]}, status().data_dir + \"/ex_bad.csv\")", "error: ");
     let c = ctx.clone();
-    r.bind(d, move |v: Dynamic, path: &str| -> RResult<String> {
-        let who = "save_csv";
-        let path = &prepare(&c, who, path, false)?;
-        if let Some(p) = v.read_lock::<ProfileRef>() {
-            crate::data::csv::save_csv_profile(path, &p.0).map_err(|e| ferr(who, path, e))?;
-        } else if let Some(m) = v.read_lock::<Map>() {
-            let mut heads = vec![];
-            let mut cols = vec![];
-            for (k, c) in m.iter() {
-                heads.push(k.to_string());
-                cols.push(numbers(who, k, c)?);
+    r.bind(d, move |v: Dynamic, path: &str| save_csv(&c, &v, path));
+}
+
+/// Bind a figure binding `name(what, path[, opts])` and its form without `opts`: both call `f`
+/// (without `opts`: an empty map, so every option takes its default).
+fn bind_figure<T: std::any::Any + Clone + Send + Sync>(
+    r: &mut Registrar,
+    d: Doc,
+    ctx: &Arc<Ctx>,
+    f: fn(&Ctx, &Spec, T, &str, &Map) -> RResult<String>,
+) {
+    let name = d.name.clone();
+    let spec = Arc::new(d.spec());
+    let (c, s) = (ctx.clone(), spec.clone());
+    r.bind(d, move |v: T, path: &str, m: Map| f(&c, &s, v, path, &m));
+    let c = ctx.clone();
+    r.overload(&name, move |v: T, path: &str| {
+        f(&c, &spec, v, path, &Map::new())
+    });
+}
+
+/// `save_tiff(img, path)`: a 32-bit float grayscale TIFF (pixel size in µm in the tags).
+fn save_tiff(c: &Ctx, i: &ImageRef, path: &str) -> RResult<String> {
+    let path = &prepare(c, "save_tiff", path, false)?;
+    crate::data::tiff::save_tiff(path, &i.0).map_err(|e| ferr("save_tiff", path, e))?;
+    stamp(c, path)
+}
+
+/// `load_tiff(path)`: a float32 TIFF back into an Image.
+fn load_tiff(path: &str) -> RResult<ImageRef> {
+    let i = crate::data::tiff::load_tiff(path).map_err(|e| ferr("load_tiff", path, e))?;
+    Ok(ImageRef(Arc::new(i)))
+}
+
+/// `save_csv(data, path)`: a Profile as two columns, or a map of equal-length number columns (in
+/// key order), as CSV with a header line.
+fn save_csv(c: &Ctx, v: &Dynamic, path: &str) -> RResult<String> {
+    let who = "save_csv";
+    let path = &prepare(c, who, path, false)?;
+    if let Some(p) = v.read_lock::<ProfileRef>() {
+        crate::data::csv::save_csv_profile(path, &p.0).map_err(|e| ferr(who, path, e))?;
+    } else if let Some(m) = v.read_lock::<Map>() {
+        let mut heads = vec![];
+        let mut cols = vec![];
+        for (k, col) in m.iter() {
+            heads.push(k.to_string());
+            cols.push(numbers(who, k, col)?);
+        }
+        crate::data::csv::save_csv_table(path, &heads, &cols).map_err(|e| ferr(who, path, e))?;
+    } else {
+        return fail(format!(
+            "{who}: data must be a Profile or a map of columns, got {}",
+            v.type_name()
+        ));
+    }
+    stamp(c, path)
+}
+
+/// `plot(what, path[, opts])`: a heat map with colour bar and µm axes of a scan (Sx, Sy, Sz
+/// panels, or one `channel`) or of one image.
+fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
+    let who = "plot";
+    let o = Opts::new(spec, m)?;
+    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let title = o.string("title")?.unwrap_or_default();
+    let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
+        let mut p = match o.string("colormap")?.as_deref() {
+            None | Some("sequential") => PlotOpts {
+                label: default_label.into(),
+                ..PlotOpts::default()
+            },
+            Some("diverging") => PlotOpts::diverging(default_label),
+            Some(c) => {
+                return fail(format!(
+                    "{who}: colormap = \"{c}\" is not one of \"diverging\", \"sequential\""
+                ))
             }
-            crate::data::csv::save_csv_table(path, &heads, &cols)
-                .map_err(|e| ferr(who, path, e))?;
+        };
+        if let Some(l) = o.string("label")? {
+            p.label = l;
+        }
+        if let Some((a, b)) = o.range("range")? {
+            if a.partial_cmp(&b) != Some(std::cmp::Ordering::Less) {
+                return fail(format!("{who}: range = [{a}, {b}] must have lo < hi"));
+            }
+            p.range = Some((a, b));
+        }
+        Ok(p.with_title(&title))
+    };
+    if let Some(s) = v.read_lock::<ScanRef>() {
+        if let Some(ch) = o.string("channel")? {
+            let img = match ch.as_str() {
+                "sx" => &s.scan.sx,
+                "sy" => &s.scan.sy,
+                "sz" => &s.scan.sz,
+                _ => {
+                    return fail(format!(
+                        "{who}: channel = \"{ch}\" is not one of \"sx\", \"sy\", \"sz\""
+                    ))
+                }
+            };
+            let mut p = PlotOpts::for_channel(&ch).with_title(&title);
+            if let Some(l) = o.string("label")? {
+                p.label = l;
+            }
+            if let Some((a, b)) = o.range("range")? {
+                p.range = Some((a, b));
+            }
+            plot_image(path, img, &p).map_err(|e| ferr(who, path, e))?;
         } else {
+            let so = ScanPlotOpts {
+                title,
+                include_sz: o.bool_or("include_sz", true)?,
+                shared_xy_scale: o.bool_or("shared_xy_scale", false)?,
+            };
+            plot_scan(path, &s.scan, &so).map_err(|e| ferr(who, path, e))?;
+        }
+    } else if let Some(i) = v.read_lock::<ImageRef>() {
+        let p = image_opts(&o, "")?;
+        plot_image(path, &i.0, &p).map_err(|e| ferr(who, path, e))?;
+    } else {
+        return fail(format!(
+            "{who}: what must be a Scan or an Image, got {}",
+            v.type_name()
+        ));
+    }
+    stamp(c, path)
+}
+
+/// `plot_profile(profiles, path[, opts])`: one or more profiles as lines with a legend (labels:
+/// the map's keys, or 1, 2, … for an array).
+fn plot_profile(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
+    let who = "plot_profile";
+    let o = Opts::new(spec, m)?;
+    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
+    let bad = |x: &Dynamic| -> RResult<()> {
+        fail(format!(
+            "{who}: profiles must be Profile values, got {}",
+            x.type_name()
+        ))
+    };
+    if let Some(p) = v.read_lock::<ProfileRef>() {
+        list.push((String::new(), p.0.clone()));
+    } else if let Some(a) = v.read_lock::<Array>() {
+        for (i, x) in a.iter().enumerate() {
+            match x.read_lock::<ProfileRef>() {
+                Some(p) => list.push((format!("{}", i + 1), p.0.clone())),
+                None => bad(x)?,
+            }
+        }
+    } else if let Some(mp) = v.read_lock::<Map>() {
+        for (k, x) in mp.iter() {
+            match x.read_lock::<ProfileRef>() {
+                Some(p) => list.push((k.to_string(), p.0.clone())),
+                None => bad(x)?,
+            }
+        }
+    } else {
+        bad(&v)?;
+    }
+    let refs: Vec<(&str, &crate::data::Profile)> =
+        list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
+    figure::plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+    stamp(c, path)
+}
+
+/// `plot_xy(series, path[, opts])`: x–y curves and points, with error bars `yerr`.
+fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
+    let who = "plot_xy";
+    let o = Opts::new(spec, m)?;
+    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let mut series = vec![];
+    for (i, s) in a.iter().enumerate() {
+        let Some(sm) = s.read_lock::<Map>() else {
             return fail(format!(
-                "{who}: data must be a Profile or a map of columns, got {}",
-                v.type_name()
+                "{who}: series[{i}] must be #{{x, y, label, style, yerr}}, got {}",
+                s.type_name()
+            ));
+        };
+        for k in sm.keys() {
+            if !["x", "y", "label", "style", "yerr"].contains(&k.as_str()) {
+                return fail(format!(
+                    "{who}: series[{i}]: unknown key `{k}`; allowed keys: x, y, label, style, yerr"
+                ));
+            }
+        }
+        let get = |k: &str| -> RResult<Vec<f64>> {
+            match sm.get(k) {
+                Some(v) => numbers(who, &format!("series[{i}].{k}"), v),
+                None => fail(format!("{who}: series[{i}] lacks `{k}`")),
+            }
+        };
+        let (x, y) = (get("x")?, get("y")?);
+        if x.len() != y.len() {
+            return fail(format!(
+                "{who}: series[{i}]: x and y differ in length ({} vs {})",
+                x.len(),
+                y.len()
             ));
         }
-        stamp(&c, path)
-    });
+        let label = sm.get("label").map(|v| v.to_string()).unwrap_or_default();
+        let style = match sm.get("style").map(|v| v.to_string()).as_deref() {
+            None | Some("line") => SeriesStyle::Line,
+            Some("points") => SeriesStyle::Points,
+            Some("linepoints") => SeriesStyle::LinePoints,
+            Some(s) => {
+                return fail(format!(
+                    "{who}: series[{i}].style = \"{s}\" is not one of \"line\", \"points\", \"linepoints\""
+                ))
+            }
+        };
+        let mut se = Series::line(&label, x, y).with_style(style);
+        if sm.contains_key("yerr") {
+            let e = get("yerr")?;
+            if e.len() != se.y.len() {
+                return fail(format!(
+                    "{who}: series[{i}]: yerr has {} values for {} points",
+                    e.len(),
+                    se.y.len()
+                ));
+            }
+            se = se.with_yerr(e);
+        }
+        series.push(se);
+    }
+    if series.is_empty() {
+        return fail(format!("{who}: series is empty"));
+    }
+    figure::plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+    stamp(c, path)
+}
+
+/// `plot_hist(values, path[, opts])`: a histogram figure of the values in `bins` equal bins
+/// (default [`PLOT_HIST_BINS`]).
+fn plot_hist(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
+    let who = "plot_hist";
+    let o = Opts::new(spec, m)?;
+    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let v = numbers(who, "values", &Dynamic::from_array(a))?;
+    let bins = o.int("bins")?.unwrap_or(PLOT_HIST_BINS);
+    if !(1..=MAX_BINS as i64).contains(&bins) {
+        return fail(format!(
+            "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
+        ));
+    }
+    let xo = XyOpts {
+        title: o.string("title")?.unwrap_or_default(),
+        xlabel: o.string("xlabel")?.unwrap_or_default(),
+        ylabel: o.string("ylabel")?.unwrap_or_default(),
+        ..XyOpts::default()
+    };
+    figure::plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;
+    stamp(c, path)
 }

@@ -7,7 +7,7 @@
 //! talking to in-process emulators on pseudo-terminals whose QPD images the simulator's scene).
 
 use super::ctx::{Attached, Ctx};
-use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
+use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::connect_emulated;
@@ -88,215 +88,101 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
+    let d = Doc::func("pos")
+        .returns("map", "#{x, y, z} in µm")
+        .summary("current stage position")
+        .example("pos()", "#{x: 0.0, y: 0.0, z: 0.0}")
+        .example("mv(#{x: 1.5}); pos().x", "1.5");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("pos")
-            .returns("map", "#{x, y, z} in µm")
-            .summary("current stage position")
-            .example("pos()", "#{x: 0.0, y: 0.0, z: 0.0}")
-            .example("mv(#{x: 1.5}); pos().x", "1.5"),
-        move || -> RResult<Map> {
-            c.with_instrument("pos", |i| {
-                Ok(pos_map(
-                    i.stage.position().map_err(|e| format!("pos: {e}"))?,
-                ))
-            })
-        },
-    );
+    r.bind(d, move || pos(&c));
+
+    let d = Doc::func("wa")
+        .summary("where all: print the position of every axis")
+        .help("SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.")
+        .example("wa()", "()");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("wa")
-            .summary("where all: print the position of every axis")
-            .help(
-                "SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.",
-            )
-            .example("wa()", "()"),
-        move || -> RResult<()> {
-            let p = c.with_instrument("wa", |i| {
-                i.stage.position().map_err(|e| format!("wa: {e}").into())
-            })?;
-            c.print(&format!(
-                "x = {:.4} µm   y = {:.4} µm   z = {:.4} µm",
-                p[0], p[1], p[2]
-            ));
-            Ok(())
-        },
-    );
+    r.bind(d, move || wa(&c));
+
+    let d = Doc::func("mv")
+        .map("target", "absolute target, any subset of the axes", AXES_KEYS)
+        .summary("move the stage to an absolute position (any subset of x, y, z)")
+        .help(
+            "The target is checked against the soft limits (config [safety] soft_limits, narrowed to the stage's \
+             travel range) before the move; a refused move moves nothing. Waits the settle time.",
+        )
+        .example("mv(#{x: 1.0, z: -0.5}); pos()", "#{x: 1.0, y: 0.0, z: -0.5}")
+        .example("mv(#{x: 80.0})", "error: x = 80 µm is above the soft limit x ≤ 50 µm")
+        .example("mv(#{w: 1.0})", "error: unknown axis `w`");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("mv")
-            .map("target", "absolute target, any subset of the axes", AXES_KEYS)
-            .summary("move the stage to an absolute position (any subset of x, y, z)")
-            .help(
-                "The target is checked against the soft limits (config [safety] soft_limits, narrowed to the stage's \
-                 travel range) before the move; a refused move moves nothing. Waits the settle time.",
-            )
-            .example("mv(#{x: 1.0, z: -0.5}); pos()", "#{x: 1.0, y: 0.0, z: -0.5}")
-            .example("mv(#{x: 80.0})", "error: x = 80 µm is above the soft limit x ≤ 50 µm")
-            .example("mv(#{w: 1.0})", "error: unknown axis `w`"),
-        move |m: Map| do_move(&c, "mv", &m, false),
-    );
+    r.bind(d, move |m: Map| do_move(&c, "mv", &m, false));
+
+    let d = Doc::func("mvr")
+        .map("step", "relative move, any subset of the axes", AXES_KEYS)
+        .summary("move the stage relative to where it is")
+        .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("mvr")
-            .map("step", "relative move, any subset of the axes", AXES_KEYS)
-            .summary("move the stage relative to where it is")
-            .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25"),
-        move |m: Map| do_move(&c, "mvr", &m, true),
-    );
+    r.bind(d, move |m: Map| do_move(&c, "mvr", &m, true));
+
+    let d = Doc::func("qpd")
+        .arg("n", "int", "samples", &format!("number of samples to average, 1 ≤ n ≤ {QPD_MAX_SAMPLES}"))
+        .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n}: means and standard deviations (QPD signal units)")
+        .summary("read the QPD: the mean of n samples of Sx, Sy, Sz")
+        .example("mv(#{x: 0.2}); round(qpd(100).sx * 1e4) / 1e4", "0.1558")
+        .example("qpd(0)", "error: qpd: n = 0 is out of range: 1 ≤ n ≤ 10000000");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("qpd")
-            .arg("n", "int", "samples", "number of samples to average, 1 ≤ n ≤ 10000000")
-            .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n}: means and standard deviations (QPD signal units)")
-            .summary("read the QPD: the mean of n samples of Sx, Sy, Sz")
-            .example("mv(#{x: 0.2}); round(qpd(100).sx * 1e4) / 1e4", "0.1558")
-            .example("qpd(0)", "error: qpd: n = 0 is out of range: 1 ≤ n ≤ 10000000"),
-        move |n: Dynamic| -> RResult<Map> {
-            let n = int("qpd", "n", &n)?;
-            if !(1..=10_000_000).contains(&n) {
-                return fail(format!("qpd: n = {n} is out of range: 1 ≤ n ≤ 10000000"));
-            }
-            c.with_instrument("qpd", |i| Ok(reading_map(&i.qpd.read(n as usize).map_err(|e| format!("qpd: {e}"))?)))
-        },
-    );
+    r.bind(d, move |n: Dynamic| qpd(&c, &n));
+
+    let d = Doc::func("ct")
+        .arg(
+            "seconds",
+            "float",
+            "s",
+            &format!("counting time, 0 < seconds ≤ {CT_MAX_S}"),
+        )
+        .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n, seconds}")
+        .summary("count: read the QPD for a given time (SPEC's ct)")
+        .help(
+            "Reads n = round(seconds × sample rate) samples (at least one); `seconds` in the \
+             result is the time actually counted, n / sample rate.",
+        )
+        .example("ct(0.01).n", "1000")
+        .example("ct(0.0000123).seconds", "0.00001")
+        .example(
+            "ct(-1)",
+            "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600",
+        );
     let c = ctx.clone();
-    r.bind(
-        Doc::func("ct")
-            .arg("seconds", "float", "s", "counting time, 0 < seconds ≤ 3600")
-            .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n, seconds}")
-            .summary("count: read the QPD for a given time (SPEC's ct)")
-            .help(
-                "Reads n = round(seconds × sample rate) samples (at least one); `seconds` in the \
-                 result is the time actually counted, n / sample rate.",
-            )
-            .example("ct(0.01).n", "1000")
-            .example("ct(0.0000123).seconds", "0.00001")
-            .example(
-                "ct(-1)",
-                "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600",
-            ),
-        move |t: Dynamic| -> RResult<Map> {
-            let t = num("ct", "seconds", &t)?;
-            if !(t > 0.0 && t <= 3600.0) {
-                return fail(format!(
-                    "ct: seconds = {t} is out of range: 0 < seconds ≤ 3600"
-                ));
-            }
-            c.with_instrument("ct", |i| {
-                let rate = i.qpd.sample_rate();
-                let n = crate::acquire::engine::samples_per_point(t, rate);
-                let mut m = reading_map(&i.qpd.read(n).map_err(|e| format!("ct: {e}"))?);
-                m.insert("seconds".into(), (n as f64 / rate).into());
-                Ok(m)
-            })
-        },
-    );
+    r.bind(d, move |t: Dynamic| ct(&c, &t));
+
+    let d = Doc::func("clock")
+        .returns("float", "s")
+        .summary("instrument time: simulated seconds on a virtual clock, wall seconds on hardware")
+        .example("let t0 = clock(); ct(0.5); clock() - t0", "0.5");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("clock")
-            .returns("float", "s")
-            .summary(
-                "instrument time: simulated seconds on a virtual clock, wall seconds on hardware",
-            )
-            .example("let t0 = clock(); ct(0.5); clock() - t0", "0.5"),
-        move || -> RResult<f64> { c.with_instrument("clock", |i| Ok(i.clock.now())) },
-    );
+    r.bind(d, move || clock(&c));
+
+    let d = Doc::func("limits")
+        .returns(
+            "map",
+            "#{x: [min, max], y: [...], z: [...], max_step_um, max_speed_um_s} in µm and µm/s (max_speed_um_s is () without a speed limit)",
+        )
+        .summary("the safety rules in force: soft limits (config [safety] ∩ stage travel range), largest pixel pitch, speed limit")
+        .example("limits().x", "[-50.0, 50.0]")
+        .example("limits().max_step_um", "10.0")
+        .example("limits().max_speed_um_s", "()");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("limits")
-            .returns(
-                "map",
-                "#{x: [min, max], y: [...], z: [...], max_step_um, max_speed_um_s} in µm and µm/s (max_speed_um_s is () without a speed limit)",
-            )
-            .summary("the safety rules in force: soft limits (config [safety] ∩ stage travel range), largest pixel pitch, speed limit")
-            .example("limits().x", "[-50.0, 50.0]")
-            .example("limits().max_step_um", "10.0")
-            .example("limits().max_speed_um_s", "()"),
-        move || -> RResult<Map> {
-            let l = c.settings.limits;
-            let l =
-                if c.is_connected() {
-                    c.with_instrument("limits", |i| {
-                        Ok(l
-                            .within_travel(
-                                i.stage.travel_range().map_err(|e| format!("limits: {e}"))?,
-                            )
-                            .map_err(|e| format!("limits: {e}"))?)
-                    })?
-                } else {
-                    l
-                };
-            let mut m = Map::new();
-            for a in Axis::ALL {
-                let (lo, hi) = l.range[a.index()];
-                m.insert(
-                    a.name().into(),
-                    Dynamic::from_array(vec![lo.into(), hi.into()]),
-                );
-            }
-            m.insert("max_step_um".into(), l.max_step_um.into());
-            m.insert(
-                "max_speed_um_s".into(),
-                l.max_speed_um_s.map_or(Dynamic::UNIT, Dynamic::from),
-            );
-            Ok(m)
-        },
-    );
+    r.bind(d, move || limits(&c));
+
+    let d = Doc::func("status")
+        .returns("map", "#{connected, backend, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
+        .summary("what is connected (backend, devices, ports), where the stage is, the safety rules, where scans go")
+        .help("backend is \"mock\", \"sim\", \"hardware\" or \"emulated\" (() when nothing is connected); instrument is the connected instrument's description: device names, ports, baud rates, identification strings, travel range and limits for hardware.")
+        .example("status().connected", "true")
+        .example("status().backend", "\"mock\"")
+        .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
+        .example("status().position.x", "0.0");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("status")
-            .returns("map", "#{connected, backend, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
-            .summary("what is connected (backend, devices, ports), where the stage is, the safety rules, where scans go")
-            .help("backend is \"mock\", \"sim\", \"hardware\" or \"emulated\" (() when nothing is connected); instrument is the connected instrument's description: device names, ports, baud rates, identification strings, travel range and limits for hardware.")
-            .example("status().connected", "true")
-            .example("status().backend", "\"mock\"")
-            .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
-            .example("status().position.x", "0.0"),
-        move || -> RResult<Map> {
-            let mut m = Map::new();
-            m.insert("connected".into(), c.is_connected().into());
-            m.insert(
-                "backend".into(),
-                c.backend().map_or(Dynamic::UNIT, Dynamic::from),
-            );
-            m.insert("data_dir".into(), c.store.dir().display().to_string().into());
-            m.insert("last_scan".into(), (c.store.last_number() as INT).into());
-            m.insert("limits".into(), c.settings.limits.describe().into());
-            if c.is_connected() {
-                c.with_instrument("status", |i| {
-                    // the rules in force: soft limits narrowed to the travel range
-                    if let Ok(t) = i.stage.travel_range() {
-                        let l = c.settings.limits.within_travel(t);
-                        let text = l.map_or_else(|e| format!("refused: {e}"), |l| l.describe());
-                        m.insert("limits".into(), text.into());
-                    }
-                    m.insert("instrument".into(), super::types::json_to_dynamic(&i.description));
-                    match i.stage.position() {
-                        Ok(p) => m.insert("position".into(), pos_map(p).into()),
-                        Err(e) => m.insert("position".into(), format!("unknown: {e}").into()),
-                    };
-                    // the stage's own velocity setting (PI: VEL?), when it has one
-                    match i.stage.velocity() {
-                        // per axis, keys naming the unit (`x_um_s`): a bare `x` prints as µm
-                        Ok(Some(v)) => {
-                            let mut vm = Map::new();
-                            for a in Axis::ALL {
-                                vm.insert(format!("{}_um_s", a.name()).into(), v[a.index()].into());
-                            }
-                            m.insert("velocity_um_s".into(), vm.into())
-                        }
-                        Ok(None) => None,
-                        Err(e) => m.insert("velocity_um_s".into(), format!("unknown: {e}").into()),
-                    };
-                    m.insert("clock_s".into(), i.clock.now().into());
-                    m.insert("virtual_clock".into(), i.clock.is_virtual().into());
-                    Ok(())
-                })?;
-            }
-            Ok(m)
-        },
-    );
+    r.bind(d, move || status(&c));
 
     let d = Doc::func("connect")
         .map(
@@ -360,52 +246,205 @@ pub fn register(r: &mut Registrar) {
         .example("connect(#{backend: \"hexapod\"})", "error: backend = \"hexapod\" is not available");
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<String> {
-        let o = Opts::new(&spec, &m)?;
-        connect_binding(&c, &o, &m)
-    });
+    r.bind(d, move |m: Map| connect(&c, &spec, &m));
     let c = ctx.clone();
-    r.overload("connect", move || -> RResult<String> {
-        let cfg = base_config(&c)?;
-        connect_config(&c, &cfg).map_err(Into::into)
-    });
+    r.overload("connect", move || connect_default(&c));
 
+    let d = Doc::func("disconnect")
+        .returns("string", "what was disconnected")
+        .summary("disconnect the instrument: close its ports (emulators stop); moves and reads then fail until connect()")
+        .help("The stage is left where it is (servos stay on). Disconnecting twice is not an error.")
+        .example("disconnect(); status().connected", "false")
+        .example("disconnect()", "\"disconnected mock\"")
+        .example("disconnect(); pos()", "error: pos: no instrument connected");
     let c = ctx.clone();
-    r.bind(
-        Doc::func("disconnect")
-            .returns("string", "what was disconnected")
-            .summary("disconnect the instrument: close its ports (emulators stop); moves and reads then fail until connect()")
-            .help("The stage is left where it is (servos stay on). Disconnecting twice is not an error.")
-            .example("disconnect(); status().connected", "false")
-            .example("disconnect()", "\"disconnected mock\"")
-            .example("disconnect(); pos()", "error: pos: no instrument connected"),
-        move || -> String {
-            match c.disconnect() {
-                Some(b) => format!("disconnected {b}"),
-                None => "nothing was connected".into(),
-            }
-        },
-    );
+    r.bind(d, move || disconnect(&c));
 
+    let d = Doc::func("mock_commands")
+        .returns(
+            "array",
+            "strings such as \"move 1 0 0\", \"read 100\", \"position?\"",
+        )
+        .summary("every command the mock instrument was sent (for tests of the safety rules)")
+        .example(
+            "mv(#{x: 1}); mock_commands().filter(|c| c.starts_with(\"move\"))",
+            "[\"move 1 0 0\"]",
+        );
     let c = ctx.clone();
-    r.bind(
-        Doc::func("mock_commands")
-            .returns(
-                "array",
-                "strings such as \"move 1 0 0\", \"read 100\", \"position?\"",
+    r.bind(d, move || mock_commands(&c));
+}
+
+/// The largest sample count `qpd(n)` reads.
+const QPD_MAX_SAMPLES: i64 = 10_000_000;
+/// The longest counting time `ct(seconds)` accepts, in s.
+const CT_MAX_S: f64 = 3600.0;
+
+/// `pos()`: the stage position #{x, y, z} in µm.
+fn pos(c: &Ctx) -> RResult<Map> {
+    c.with_instrument("pos", |i| {
+        Ok(pos_map(
+            i.stage.position().map_err(|e| format!("pos: {e}"))?,
+        ))
+    })
+}
+
+/// `wa()`: print the position of every axis (µm).
+fn wa(c: &Ctx) -> RResult<()> {
+    let p = c.with_instrument("wa", |i| {
+        i.stage.position().map_err(|e| format!("wa: {e}").into())
+    })?;
+    c.print(&format!(
+        "x = {:.4} µm   y = {:.4} µm   z = {:.4} µm",
+        p[0], p[1], p[2]
+    ));
+    Ok(())
+}
+
+/// `qpd(n)`: the mean and standard deviation of n QPD samples of Sx, Sy, Sz.
+fn qpd(c: &Ctx, n: &Dynamic) -> RResult<Map> {
+    let n = int("qpd", "n", n)?;
+    if !(1..=QPD_MAX_SAMPLES).contains(&n) {
+        return fail(format!(
+            "qpd: n = {n} is out of range: 1 ≤ n ≤ {QPD_MAX_SAMPLES}"
+        ));
+    }
+    c.with_instrument("qpd", |i| {
+        Ok(reading_map(
+            &i.qpd.read(n as usize).map_err(|e| format!("qpd: {e}"))?,
+        ))
+    })
+}
+
+/// `ct(seconds)`: read the QPD for n = round(seconds × sample rate) samples; `seconds` in the
+/// result is n / sample rate, the time actually counted.
+fn ct(c: &Ctx, t: &Dynamic) -> RResult<Map> {
+    let t = num("ct", "seconds", t)?;
+    if !(t > 0.0 && t <= CT_MAX_S) {
+        return fail(format!(
+            "ct: seconds = {t} is out of range: 0 < seconds ≤ {CT_MAX_S}"
+        ));
+    }
+    c.with_instrument("ct", |i| {
+        let rate = i.qpd.sample_rate();
+        let n = crate::acquire::engine::samples_per_point(t, rate);
+        let mut m = reading_map(&i.qpd.read(n).map_err(|e| format!("ct: {e}"))?);
+        m.insert("seconds".into(), (n as f64 / rate).into());
+        Ok(m)
+    })
+}
+
+/// `clock()`: the instrument's time in s (virtual on the simulator and mock).
+fn clock(c: &Ctx) -> RResult<f64> {
+    c.with_instrument("clock", |i| Ok(i.clock.now()))
+}
+
+/// `limits()`: the soft limits (narrowed to the stage's travel range when connected), the
+/// largest step and the speed limit.
+fn limits(c: &Ctx) -> RResult<Map> {
+    let l = c.settings.limits;
+    let l = if c.is_connected() {
+        c.with_instrument("limits", |i| {
+            Ok(
+                l.within_travel(i.stage.travel_range().map_err(|e| format!("limits: {e}"))?)
+                    .map_err(|e| format!("limits: {e}"))?,
             )
-            .summary("every command the mock instrument was sent (for tests of the safety rules)")
-            .example(
-                "mv(#{x: 1}); mock_commands().filter(|c| c.starts_with(\"move\"))",
-                "[\"move 1 0 0\"]",
-            ),
-        move || -> RResult<Array> {
-            match c.mock() {
-                Some(h) => Ok(h.commands().into_iter().map(Dynamic::from).collect()),
-                None => fail("mock_commands: the connected instrument is not the mock"),
-            }
-        },
+        })?
+    } else {
+        l
+    };
+    let mut m = Map::new();
+    for a in Axis::ALL {
+        let (lo, hi) = l.range[a.index()];
+        m.insert(
+            a.name().into(),
+            Dynamic::from_array(vec![lo.into(), hi.into()]),
+        );
+    }
+    m.insert("max_step_um".into(), l.max_step_um.into());
+    m.insert(
+        "max_speed_um_s".into(),
+        l.max_speed_um_s.map_or(Dynamic::UNIT, Dynamic::from),
     );
+    Ok(m)
+}
+
+/// `status()`: what is connected, where the stage is, the rules in force, where scans go.
+fn status(c: &Ctx) -> RResult<Map> {
+    let mut m = Map::new();
+    m.insert("connected".into(), c.is_connected().into());
+    m.insert(
+        "backend".into(),
+        c.backend().map_or(Dynamic::UNIT, Dynamic::from),
+    );
+    m.insert(
+        "data_dir".into(),
+        c.store.dir().display().to_string().into(),
+    );
+    m.insert("last_scan".into(), (c.store.last_number() as INT).into());
+    m.insert("limits".into(), c.settings.limits.describe().into());
+    if c.is_connected() {
+        c.with_instrument("status", |i| {
+            // the rules in force: soft limits narrowed to the travel range
+            if let Ok(t) = i.stage.travel_range() {
+                let l = c.settings.limits.within_travel(t);
+                let text = l.map_or_else(|e| format!("refused: {e}"), |l| l.describe());
+                m.insert("limits".into(), text.into());
+            }
+            m.insert(
+                "instrument".into(),
+                super::types::json_to_dynamic(&i.description),
+            );
+            match i.stage.position() {
+                Ok(p) => m.insert("position".into(), pos_map(p).into()),
+                Err(e) => m.insert("position".into(), format!("unknown: {e}").into()),
+            };
+            // the stage's own velocity setting (PI: VEL?), when it has one
+            match i.stage.velocity() {
+                // per axis, keys naming the unit (`x_um_s`): a bare `x` prints as µm
+                Ok(Some(v)) => {
+                    let mut vm = Map::new();
+                    for a in Axis::ALL {
+                        vm.insert(format!("{}_um_s", a.name()).into(), v[a.index()].into());
+                    }
+                    m.insert("velocity_um_s".into(), vm.into())
+                }
+                Ok(None) => None,
+                Err(e) => m.insert("velocity_um_s".into(), format!("unknown: {e}").into()),
+            };
+            m.insert("clock_s".into(), i.clock.now().into());
+            m.insert("virtual_clock".into(), i.clock.is_virtual().into());
+            Ok(())
+        })?;
+    }
+    Ok(m)
+}
+
+/// `connect(#{...})`: check the keys, then connect the backend ([`connect_binding`]).
+fn connect(c: &Ctx, spec: &Spec, m: &Map) -> RResult<String> {
+    let o = Opts::new(spec, m)?;
+    connect_binding(c, &o, m)
+}
+
+/// `connect()`: connect what the config names ([`connect_config`]).
+fn connect_default(c: &Ctx) -> RResult<String> {
+    let cfg = base_config(c)?;
+    connect_config(c, &cfg).map_err(Into::into)
+}
+
+/// `disconnect()`: close the instrument's ports; says what was connected.
+fn disconnect(c: &Ctx) -> String {
+    match c.disconnect() {
+        Some(b) => format!("disconnected {b}"),
+        None => "nothing was connected".into(),
+    }
+}
+
+/// `mock_commands()`: every command the mock instrument was sent.
+fn mock_commands(c: &Ctx) -> RResult<Array> {
+    match c.mock() {
+        Some(h) => Ok(h.commands().into_iter().map(Dynamic::from).collect()),
+        None => fail("mock_commands: the connected instrument is not the mock"),
+    }
 }
 
 /// The config in force for this workbench (the file given at start-up), or the defaults.

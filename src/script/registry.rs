@@ -15,13 +15,20 @@
 //!         .summary("fraction of the beam power a small sphere scatters")
 //!         .help("Rayleigh limit, suppl. S3, eq. (S12).")
 //!         .example("p_scat_ratio(110, 1.572) > 0.0", "true");
-//!     r.bind(d, move |d_nm: Dynamic, n: Dynamic| -> RResult<f64> {
-//!         let d_nm = num("p_scat_ratio", "d_nm", &d_nm)?;
-//!         ...
-//!     });
+//!     r.bind(d, |d_nm: Dynamic, n: Dynamic| p_scat_ratio(&d_nm, &n));
+//! }
+//!
+//! /// `p_scat_ratio(d_nm, n)`: ... (physics and units of the binding)
+//! fn p_scat_ratio(d_nm: &Dynamic, n: &Dynamic) -> RResult<f64> {
+//!     let d_nm = num("p_scat_ratio", "d_nm", d_nm)?;
+//!     ...
 //! }
 //! ```
-//! and is listed once in [`super::FAMILIES`]: the family of a binding is the name of its file.
+//! The closure given to `bind` is one line that calls a named function with the binding's
+//! name (or a name that contains it), so `help("name")` → family → file → function is a text
+//! search. Defaults and limits that a help text states come from one `const` that the help
+//! text formats and the code reads. A family is listed once in [`super::FAMILIES`]: the family
+//! of a binding is the name of its file.
 
 use super::ctx::Ctx;
 use crate::acquire::plan::linspace;

@@ -6,6 +6,7 @@ use super::ctx::Ctx;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
+use crate::acquire::raster::{run_raster, RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
 use crate::acquire::{run_plan, ScanEnv};
 use crate::data::Scan;
 use rhai::{Dynamic, Map};
@@ -21,6 +22,12 @@ fn dwell_help() -> String {
 /// Execute a plan on the connected instrument; complete → the scan, otherwise a script error
 /// that tells what happened and where the partial scan was saved.
 pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
+    execute_mode(c, plan, None)
+}
+
+/// As [`execute`]; `raster`: a hardware-timed raster (`acquire::raster::run_raster`) with
+/// these options instead of point by point.
+pub fn execute_mode(c: &Ctx, plan: Plan, raster: Option<RasterOptions>) -> RResult<ScanRef> {
     let meta = c.scan_meta();
     let store = c.store.clone();
     let save = move |s: &Scan| store.autosave(s).map_err(|e| e.to_string());
@@ -43,7 +50,11 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
                 .as_deref()
                 .map(|q| q as &dyn Fn(&crate::acquire::Paused) -> bool),
         };
-        let run = run_plan(inst, &plan, &env).map_err(|e| e.to_string())?;
+        let run = match &raster {
+            Some(o) => run_raster(inst, &plan, o, &env),
+            None => run_plan(inst, &plan, &env),
+        }
+        .map_err(|e| e.to_string())?;
         match run.summary() {
             Ok(msg) => {
                 let t = run.scan.meta["time"]["instrument_s"]
@@ -103,6 +114,8 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         ("dwell".into(), "float", "s", dwell_help()),
         ("rel".into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
         ("snake".into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
+        ("mode".into(), "string", "", format!("\"points\" (default: move, settle, read at every pixel) or \"raster\": hardware-timed lines, the {f} axis sweeping each row at pitch/dwell under the controller's clock, the digitiser's samples binned by the stage's measured position (needs a wave generator and a triggered digitiser: the simulator, PI GCS + Red Pitaya)")),
+        ("samples_per_pixel".into(), "int", "", format!("raster: digitiser samples asked per pixel, ≥ 1; default {DEFAULT_SAMPLES_PER_PIXEL}")),
     ];
     let keys_ref: Vec<(&str, &str, &str, &str)> = keys
         .iter()
@@ -157,6 +170,30 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
         let fsw = Sweep::new(who, fast, f0, f1, o.req_int(&nfk)?, &nfk).map_err(|e| e.0)?;
         let ssw = Sweep::new(who, slow, s0, s1, o.req_int(&nsk)?, &nsk).map_err(|e| e.0)?;
         let fixed_v = o.f64(xk)?.map(|v| vec![(fixed, v)]).unwrap_or_default();
+        let raster = match o.string("mode")?.as_deref() {
+            None | Some("points") => {
+                if o.has("samples_per_pixel") {
+                    return fail(format!("{who}: samples_per_pixel is for mode \"raster\""));
+                }
+                None
+            }
+            Some("raster") => {
+                let spp = o.int("samples_per_pixel")?.unwrap_or(DEFAULT_SAMPLES_PER_PIXEL as i64);
+                if !(1..=1_000_000).contains(&spp) {
+                    return fail(format!(
+                        "{who}: samples_per_pixel = {spp} is out of range: 1 ≤ samples_per_pixel ≤ 1000000"
+                    ));
+                }
+                Some(RasterOptions {
+                    samples_per_pixel: spp as usize,
+                })
+            }
+            Some(other) => {
+                return fail(format!(
+                    "{who}: mode = {other:?} is not one of \"points\", \"raster\""
+                ))
+            }
+        };
         let plan = Plan::grid(
             who,
             fsw,
@@ -167,7 +204,7 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
             o.bool_or("snake", false)?,
         )
         .map_err(|e| e.0)?;
-        execute(&c, plan)
+        execute_mode(&c, plan, raster)
     });
 }
 

@@ -1,38 +1,25 @@
 //! Binding family `stats`: summaries, histograms and straight-line fits of numbers.
 
+use super::analysis_values::to_map;
 use super::registry::{err, fail, numbers, Doc, RResult, Registrar};
 use super::types::floats;
 use crate::analysis::stats::{histogram, linfit, loglog_fit, summary, MAX_BINS};
 use rhai::{Array, Dynamic, Map};
 
-/// A reference template in a script (`Template`).
-use super::analysis_values::*;
-
 pub fn register(r: &mut Registrar) {
-    register_stats(r);
-}
+    let d = Doc::func("summary")
+        .arg(
+            "values",
+            "array",
+            "",
+            "numbers (non-finite values are skipped and counted)",
+        )
+        .returns("map", "#{n, n_skipped, mean, std, sem, min, max}")
+        .summary("mean, sample std, standard error, min, max")
+        .example("summary([1.0, 2.0, 3.0]).std", "1.0")
+        .example("summary([])", "error: ");
+    r.bind(d, |a: Array| summary_of(a));
 
-// ------------------------------------------------------------------ stats
-
-fn register_stats(r: &mut Registrar) {
-    r.bind(
-        Doc::func("summary")
-            .arg(
-                "values",
-                "array",
-                "",
-                "numbers (non-finite values are skipped and counted)",
-            )
-            .returns("map", "#{n, n_skipped, mean, std, sem, min, max}")
-            .summary("mean, sample std, standard error, min, max")
-            .example("summary([1.0, 2.0, 3.0]).std", "1.0")
-            .example("summary([])", "error: "),
-        |a: Array| -> RResult<Map> {
-            let v = numbers("summary", "values", &Dynamic::from_array(a))?;
-            let s = summary(&v).map_err(|e| err("summary", e))?;
-            Ok(to_map(&s))
-        },
-    );
     let d = Doc::func("histogram")
         .arg("values", "array", "", "numbers")
         .arg(
@@ -54,26 +41,11 @@ fn register_stats(r: &mut Registrar) {
         .summary("histogram with equal bins")
         .example("histogram([1.0, 2.0, 2.5, 4.0], 3).counts", "[1, 2, 1]")
         .example("histogram([1.0], 0)", "error: bins = 0");
-    let f = |a: Array, bins: i64, range: Option<(f64, f64)>| -> RResult<Map> {
-        if !(1..=MAX_BINS as i64).contains(&bins) {
-            return fail(format!(
-                "histogram: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
-            ));
-        }
-        let v = numbers("histogram", "values", &Dynamic::from_array(a))?;
-        let h = histogram(&v, bins as usize, range).map_err(|e| err("histogram", e))?;
-        let mut m = to_map(&h);
-        m.insert("centres".into(), floats(&h.centres()).into());
-        Ok(m)
-    };
-    r.bind(d, move |a: Array, b: i64| f(a, b, None));
-    r.overload("histogram", move |a: Array, b: i64, rg: Array| {
-        let v = numbers("histogram", "range", &Dynamic::from_array(rg))?;
-        if v.len() != 2 {
-            return fail("histogram: range must be [lo, hi]");
-        }
-        f(a, b, Some((v[0], v[1])))
+    r.bind(d, |a: Array, bins: i64| histogram_of(a, bins, None));
+    r.overload("histogram", |a: Array, bins: i64, range: Array| {
+        histogram_of(a, bins, Some(range))
     });
+
     for (name, log) in [("linfit", false), ("loglog_fit", true)] {
         let d = Doc::func(name)
             .arg("x", "array", "", "abscissae")
@@ -90,28 +62,66 @@ fn register_stats(r: &mut Registrar) {
                 if log { "3.0" } else { "2.0" },
             )
             .example(&format!("{name}([1.0, 1.0], [1.0, 2.0])"), "error: ");
-        let f = move |x: Array, y: Array, s: Option<Array>| -> RResult<Map> {
-            let x = numbers(name, "x", &Dynamic::from_array(x))?;
-            let y = numbers(name, "y", &Dynamic::from_array(y))?;
-            let s = s
-                .map(|s| numbers(name, "sigma_y", &Dynamic::from_array(s)))
-                .transpose()?;
-            if x.len() != y.len() || s.as_ref().is_some_and(|s| s.len() != x.len()) {
-                return fail(format!(
-                    "{name}: x, y (and sigma_y) must have the same length, got {} and {}",
-                    x.len(),
-                    y.len()
-                ));
-            }
-            let r = if log {
-                loglog_fit(&x, &y, s.as_deref())
-            } else {
-                linfit(&x, &y, s.as_deref())
-            }
-            .map_err(|e| err(name, e))?;
-            Ok(to_map(&r))
-        };
-        r.bind(d, move |x: Array, y: Array| f(x, y, None));
-        r.overload(name, move |x: Array, y: Array, s: Array| f(x, y, Some(s)));
+        r.bind(d, move |x: Array, y: Array| line_fit(name, log, x, y, None));
+        r.overload(name, move |x: Array, y: Array, s: Array| {
+            line_fit(name, log, x, y, Some(s))
+        });
     }
+}
+
+/// `summary(values)`: count, mean, sample standard deviation, standard error, min and max of
+/// the finite values (the others are skipped and counted).
+fn summary_of(a: Array) -> RResult<Map> {
+    let v = numbers("summary", "values", &Dynamic::from_array(a))?;
+    let s = summary(&v).map_err(|e| err("summary", e))?;
+    Ok(to_map(&s))
+}
+
+/// `histogram(values, bins[, range])`: counts in `bins` equal bins over `range` = [lo, hi]
+/// (default: min and max of the values), with edges and centres.
+fn histogram_of(a: Array, bins: i64, range: Option<Array>) -> RResult<Map> {
+    let range = match range {
+        None => None,
+        Some(rg) => {
+            let v = numbers("histogram", "range", &Dynamic::from_array(rg))?;
+            if v.len() != 2 {
+                return fail("histogram: range must be [lo, hi]");
+            }
+            Some((v[0], v[1]))
+        }
+    };
+    if !(1..=MAX_BINS as i64).contains(&bins) {
+        return fail(format!(
+            "histogram: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
+        ));
+    }
+    let v = numbers("histogram", "values", &Dynamic::from_array(a))?;
+    let h = histogram(&v, bins as usize, range).map_err(|e| err("histogram", e))?;
+    let mut m = to_map(&h);
+    m.insert("centres".into(), floats(&h.centres()).into());
+    Ok(m)
+}
+
+/// `linfit(x, y[, sigma_y])` (`log` false): least-squares line y = intercept + slope·x;
+/// `loglog_fit` (`log` true): the same through (ln x, ln y). Weighted by 1/sigma_y² when given.
+fn line_fit(name: &str, log: bool, x: Array, y: Array, sigma_y: Option<Array>) -> RResult<Map> {
+    let x = numbers(name, "x", &Dynamic::from_array(x))?;
+    let y = numbers(name, "y", &Dynamic::from_array(y))?;
+    let s = sigma_y
+        .map(|s| numbers(name, "sigma_y", &Dynamic::from_array(s)))
+        .transpose()?;
+    if x.len() != y.len() || s.as_ref().is_some_and(|s| s.len() != x.len()) {
+        return fail(format!(
+            "{name}: x, y (and sigma_y) must have the same length, got {} and {}",
+            x.len(),
+            y.len()
+        ));
+    }
+    let r = if log {
+        loglog_fit(&x, &y, s.as_deref())
+    } else {
+        linfit(&x, &y, s.as_deref())
+    }
+    .map_err(|e| err(name, e))?;
+    Ok(to_map(&r))
 }

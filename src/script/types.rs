@@ -356,15 +356,7 @@ fn register_scan(r: &mut Registrar) {
             )
             .summary(&format!("{what} image of the scan"))
             .example(&format!("{SCAN_EX} s.{ch}.cols"), "11");
-        let ch2 = ch.to_string();
-        r.getter(d, move |s: &mut ScanRef| {
-            ImageRef(Arc::new(
-                s.scan
-                    .channel(&ch2)
-                    .cloned()
-                    .unwrap_or_else(|| s.scan.sx.clone()),
-            ))
-        });
+        r.getter(d, move |s: &mut ScanRef| scan_channel(s, ch));
     }
     r.getter(
         Doc::property("Scan", "x")
@@ -389,12 +381,7 @@ fn register_scan(r: &mut Registrar) {
             .returns("array", "[column axis, row axis], e.g. [\"x\", \"z\"]")
             .summary("names of the column and row axes")
             .example(&format!("{SCAN_EX} s.axes"), "[\"x\", \"y\"]"),
-        |s: &mut ScanRef| -> Array {
-            vec![
-                s.scan.sx.x_name.clone().into(),
-                s.scan.sx.y_name.clone().into(),
-            ]
-        },
+        |s: &mut ScanRef| scan_axes(s),
     );
     r.getter(
         Doc::property("Scan", "rows")
@@ -433,12 +420,7 @@ fn register_scan(r: &mut Registrar) {
             .returns("string", "file path, or () if not saved")
             .summary("where the scan was (auto)saved")
             .example(&format!("{SCAN_EX} s.path.ends_with(\".npz\")"), "true"),
-        |s: &mut ScanRef| {
-            s.path
-                .as_ref()
-                .map(|p| Dynamic::from(p.to_string()))
-                .unwrap_or(Dynamic::UNIT)
-        },
+        |s: &mut ScanRef| scan_path(s),
     );
     r.bind(
         Doc::method("Scan", "channel")
@@ -450,14 +432,7 @@ fn register_scan(r: &mut Registrar) {
                 &format!("{SCAN_EX} s.channel(\"sq\")"),
                 "error: channel = \"sq\"",
             ),
-        |s: &mut ScanRef, name: &str| -> RResult<ImageRef> {
-            match s.scan.channel(name) {
-                Some(i) => Ok(ImageRef(Arc::new(i.clone()))),
-                None => fail(format!(
-                    "scan.channel: channel = {name:?} is not one of \"sx\", \"sy\", \"sz\""
-                )),
-            }
-        },
+        |s: &mut ScanRef, name: &str| scan_channel_named(s, name),
     );
 }
 
@@ -505,7 +480,6 @@ fn register_image(r: &mut Registrar) {
             .example(&format!("{IMG} img.dy"), "0.05"),
         |i: &mut ImageRef| i.0.dy(),
     );
-    type StatFn = fn(&Stats) -> f64;
     // expected values checked independently with numpy (mock signal on a 21×21 grid)
     let stat_list: [(&str, &str, StatFn, &str); 5] = [
         ("max", "largest pixel value", |s| s.max, "0.1709"),
@@ -532,15 +506,11 @@ fn register_image(r: &mut Registrar) {
             .help("Unmeasured (NaN) pixels of a partial scan are skipped; an image without any finite pixel is an error.")
             .example(&ex_code, ex_val);
         let who = format!("img.{name}()");
-        r.bind(d, move |i: &mut ImageRef| -> RResult<f64> {
-            Ok(f(&checked_stats(&who, i.0.data.iter())?))
-        });
+        r.bind(d, move |i: &mut ImageRef| image_stat(&who, i, f));
         // the same as a property (`img.max`)
         let who = format!("img.{name}");
         r.engine()
-            .register_get(name, move |i: &mut ImageRef| -> RResult<f64> {
-                Ok(f(&checked_stats(&who, i.0.data.iter())?))
-            });
+            .register_get(name, move |i: &mut ImageRef| image_stat(&who, i, f));
     }
     r.bind(
         Doc::method("Image", "sum")
@@ -550,7 +520,7 @@ fn register_image(r: &mut Registrar) {
                 &format!("{IMG} round(img.abs().sum() * 100.0) / 100.0"),
                 "34.83",
             ),
-        |i: &mut ImageRef| -> f64 { i.0.data.iter().filter(|v| v.is_finite()).sum() },
+        |i: &mut ImageRef| image_sum(i),
     );
     r.bind(
         Doc::method("Image", "abs")
@@ -570,24 +540,7 @@ fn register_image(r: &mut Registrar) {
                 &format!("{IMG} let m = img.argmax(); [m.row, m.col]"),
                 "[10, 16]",
             ),
-        |i: &mut ImageRef| -> RResult<Map> {
-            let mut best: Option<(usize, usize, f64)> = None;
-            for ((r, c), &v) in i.0.data.indexed_iter() {
-                if v.is_finite() && best.is_none_or(|b| v > b.2) {
-                    best = Some((r, c, v));
-                }
-            }
-            let Some((r, c, v)) = best else {
-                return fail("img.argmax(): no measured (finite) pixels");
-            };
-            let mut m = Map::new();
-            m.insert("row".into(), (r as INT).into());
-            m.insert("col".into(), (c as INT).into());
-            m.insert("x".into(), i.0.x[c].into());
-            m.insert("y".into(), i.0.y[r].into());
-            m.insert("v".into(), v.into());
-            Ok(m)
-        },
+        |i: &mut ImageRef| image_argmax(i),
     );
     r.bind(
         Doc::method("Image", "at")
@@ -600,11 +553,7 @@ fn register_image(r: &mut Registrar) {
                 &format!("{IMG} img.at(21, 0)"),
                 "error: i = 21 is out of range: 0 ≤ i ≤ 20",
             ),
-        |im: &mut ImageRef, i: Dynamic, j: Dynamic| -> RResult<f64> {
-            let i = index("img.at", "i", &i, im.0.rows())?;
-            let j = index("img.at", "j", &j, im.0.cols())?;
-            Ok(im.0.data[[i, j]])
-        },
+        |im: &mut ImageRef, i: Dynamic, j: Dynamic| image_at(im, &i, &j),
     );
     r.bind(
         Doc::method("Image", "row")
@@ -616,12 +565,7 @@ fn register_image(r: &mut Registrar) {
                 &format!("{IMG} img.row(-1)"),
                 "error: i = -1 is out of range",
             ),
-        |im: &mut ImageRef, i: Dynamic| -> RResult<ProfileRef> {
-            let i = index("img.row", "i", &i, im.0.rows())?;
-            let mut p = Profile::new(im.0.x.clone(), im.0.data.row(i).to_vec());
-            p.t_name = im.0.x_name.clone();
-            Ok(ProfileRef(Arc::new(p)))
-        },
+        |im: &mut ImageRef, i: Dynamic| image_row(im, &i),
     );
     r.bind(
         Doc::method("Image", "col")
@@ -629,12 +573,7 @@ fn register_image(r: &mut Registrar) {
             .returns("Profile", "along the row axis (µm)")
             .summary("one column as a profile")
             .example(&format!("{IMG} img.col(3).t[0]"), "-0.5"),
-        |im: &mut ImageRef, j: Dynamic| -> RResult<ProfileRef> {
-            let j = index("img.col", "j", &j, im.0.cols())?;
-            let mut p = Profile::new(im.0.y.clone(), im.0.data.column(j).to_vec());
-            p.t_name = im.0.y_name.clone();
-            Ok(ProfileRef(Arc::new(p)))
-        },
+        |im: &mut ImageRef, j: Dynamic| image_col(im, &j),
     );
     r.bind(
         Doc::method("Image", "crop")
@@ -648,27 +587,8 @@ fn register_image(r: &mut Registrar) {
                 &format!("{IMG} let c = img.crop(5, 15, 0, 9); [c.rows, c.cols, c.x[0]]"),
                 "[11, 10, -0.5]",
             ),
-        |im: &mut ImageRef,
-         r0: Dynamic,
-         r1: Dynamic,
-         c0: Dynamic,
-         c1: Dynamic|
-         -> RResult<ImageRef> {
-            let (nr, nc) = (im.0.rows(), im.0.cols());
-            let r0 = index("img.crop", "r0", &r0, nr)?;
-            let r1 = index("img.crop", "r1", &r1, nr)?;
-            let c0 = index("img.crop", "c0", &c0, nc)?;
-            let c1 = index("img.crop", "c1", &c1, nc)?;
-            if r1 < r0 || c1 < c0 {
-                return fail(format!(
-                    "img.crop: need r0 ≤ r1 and c0 ≤ c1, got rows {r0}..{r1}, cols {c0}..{c1}"
-                ));
-            }
-            let data = im.0.data.slice(ndarray::s![r0..=r1, c0..=c1]).to_owned();
-            Ok(ImageRef(Arc::new(
-                Image::new(data, im.0.x[c0..=c1].to_vec(), im.0.y[r0..=r1].to_vec())
-                    .with_axis_names(&im.0.x_name, &im.0.y_name),
-            )))
+        |im: &mut ImageRef, r0: Dynamic, r1: Dynamic, c0: Dynamic, c1: Dynamic| {
+            image_crop(im, [&r0, &r1, &c0, &c1])
         },
     );
     r.bind(
@@ -676,13 +596,7 @@ fn register_image(r: &mut Registrar) {
             .returns("array", "array of rows, each an array of floats")
             .summary("pixel values as nested arrays (for small images)")
             .example(&format!("{IMG} img.crop(0, 1, 0, 2).to_array().len"), "2"),
-        |im: &mut ImageRef| -> Array {
-            im.0.data
-                .rows()
-                .into_iter()
-                .map(|r| Dynamic::from_array(r.iter().map(|v| Dynamic::from(*v)).collect()))
-                .collect()
-        },
+        |im: &mut ImageRef| image_to_array(im),
     );
 
     r.declare(
@@ -735,7 +649,6 @@ fn register_profile(r: &mut Registrar) {
             .example(&format!("{P} p.len"), "41"),
         |p: &mut ProfileRef| p.0.v.len() as INT,
     );
-    type StatFn = fn(&Stats) -> f64;
     let stat_list: [(&str, &str, StatFn, &str); 5] = [
         ("max", "largest value", |s| s.max, "0.1709"),
         ("min", "smallest value", |s| s.min, "-0.1709"),
@@ -756,30 +669,17 @@ fn register_profile(r: &mut Registrar) {
             ))
             .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex);
         let who = format!("profile.{name}()");
-        r.bind(d, move |p: &mut ProfileRef| -> RResult<f64> {
-            Ok(f(&checked_stats(&who, p.0.v.iter())?))
-        });
+        r.bind(d, move |p: &mut ProfileRef| profile_stat(&who, p, f));
         let who = format!("profile.{name}");
         r.engine()
-            .register_get(name, move |p: &mut ProfileRef| -> RResult<f64> {
-                Ok(f(&checked_stats(&who, p.0.v.iter())?))
-            });
+            .register_get(name, move |p: &mut ProfileRef| profile_stat(&who, p, f));
     }
     r.bind(
         Doc::method("Profile", "argmax")
             .returns("float", "µm")
             .summary("position t of the largest value")
             .example(&format!("{P} round(p.argmax() * 1000.0) / 1000.0"), "0.3"),
-        |p: &mut ProfileRef| -> RResult<f64> {
-            let mut best: Option<(f64, f64)> = None;
-            for (&t, &v) in p.0.t.iter().zip(&p.0.v) {
-                if v.is_finite() && best.is_none_or(|b| v > b.1) {
-                    best = Some((t, v));
-                }
-            }
-            best.map(|b| b.0)
-                .ok_or_else(|| "profile.argmax(): no finite values".into())
-        },
+        |p: &mut ProfileRef| profile_argmax(p),
     );
     r.bind(
         Doc::func("profile")
@@ -792,27 +692,167 @@ fn register_profile(r: &mut Registrar) {
                 "profile([0, 1], [1.0])",
                 "error: t has 2 values but v has 1",
             ),
-        |t: Array, v: Array| -> RResult<ProfileRef> {
-            let t: Vec<f64> = t
-                .iter()
-                .enumerate()
-                .map(|(i, x)| num("profile", &format!("t[{i}]"), x))
-                .collect::<RResult<_>>()?;
-            let v: Vec<f64> = v
-                .iter()
-                .enumerate()
-                .map(|(i, x)| num("profile", &format!("v[{i}]"), x))
-                .collect::<RResult<_>>()?;
-            if t.len() != v.len() {
-                return fail(format!(
-                    "profile: t has {} values but v has {}",
-                    t.len(),
-                    v.len()
-                ));
-            }
-            Ok(ProfileRef(Arc::new(Profile::new(t, v))))
-        },
+        |t: Array, v: Array| profile(&t, &v),
     );
+}
+
+/// The statistics (max, min, mean, std, abs_max) of a binding, as a function of [`Stats`].
+type StatFn = fn(&Stats) -> f64;
+
+/// `scan.sx` / `scan.sy` / `scan.sz`: one channel as an Image.
+fn scan_channel(s: &ScanRef, ch: &str) -> ImageRef {
+    ImageRef(Arc::new(
+        s.scan
+            .channel(ch)
+            .cloned()
+            .unwrap_or_else(|| s.scan.sx.clone()),
+    ))
+}
+
+/// `scan.axes`: the names of the column and row axes.
+fn scan_axes(s: &ScanRef) -> Array {
+    vec![
+        s.scan.sx.x_name.clone().into(),
+        s.scan.sx.y_name.clone().into(),
+    ]
+}
+
+/// `scan.path`: where the scan was saved, or () if it was not.
+fn scan_path(s: &ScanRef) -> Dynamic {
+    s.path
+        .as_ref()
+        .map(|p| Dynamic::from(p.to_string()))
+        .unwrap_or(Dynamic::UNIT)
+}
+
+/// `scan.channel(name)`: one channel by name ("sx", "sy", "sz").
+fn scan_channel_named(s: &ScanRef, name: &str) -> RResult<ImageRef> {
+    match s.scan.channel(name) {
+        Some(i) => Ok(ImageRef(Arc::new(i.clone()))),
+        None => fail(format!(
+            "scan.channel: channel = {name:?} is not one of \"sx\", \"sy\", \"sz\""
+        )),
+    }
+}
+
+/// `img.max()` and the other statistics `f` of the finite pixels (`who` names the call).
+fn image_stat(who: &str, i: &ImageRef, f: StatFn) -> RResult<f64> {
+    Ok(f(&checked_stats(who, i.0.data.iter())?))
+}
+
+/// `img.sum()`: the sum of the finite pixel values.
+fn image_sum(i: &ImageRef) -> f64 {
+    i.0.data.iter().filter(|v| v.is_finite()).sum()
+}
+
+/// `img.argmax()`: #{row, col, x, y, v} of the largest finite pixel (x, y in µm).
+fn image_argmax(i: &ImageRef) -> RResult<Map> {
+    let mut best: Option<(usize, usize, f64)> = None;
+    for ((r, c), &v) in i.0.data.indexed_iter() {
+        if v.is_finite() && best.is_none_or(|b| v > b.2) {
+            best = Some((r, c, v));
+        }
+    }
+    let Some((r, c, v)) = best else {
+        return fail("img.argmax(): no measured (finite) pixels");
+    };
+    let mut m = Map::new();
+    m.insert("row".into(), (r as INT).into());
+    m.insert("col".into(), (c as INT).into());
+    m.insert("x".into(), i.0.x[c].into());
+    m.insert("y".into(), i.0.y[r].into());
+    m.insert("v".into(), v.into());
+    Ok(m)
+}
+
+/// `img.at(i, j)`: the pixel of row i, column j.
+fn image_at(im: &ImageRef, i: &Dynamic, j: &Dynamic) -> RResult<f64> {
+    let i = index("img.at", "i", i, im.0.rows())?;
+    let j = index("img.at", "j", j, im.0.cols())?;
+    Ok(im.0.data[[i, j]])
+}
+
+/// `img.row(i)`: row i as a profile along the column axis.
+fn image_row(im: &ImageRef, i: &Dynamic) -> RResult<ProfileRef> {
+    let i = index("img.row", "i", i, im.0.rows())?;
+    let mut p = Profile::new(im.0.x.clone(), im.0.data.row(i).to_vec());
+    p.t_name = im.0.x_name.clone();
+    Ok(ProfileRef(Arc::new(p)))
+}
+
+/// `img.col(j)`: column j as a profile along the row axis.
+fn image_col(im: &ImageRef, j: &Dynamic) -> RResult<ProfileRef> {
+    let j = index("img.col", "j", j, im.0.cols())?;
+    let mut p = Profile::new(im.0.y.clone(), im.0.data.column(j).to_vec());
+    p.t_name = im.0.y_name.clone();
+    Ok(ProfileRef(Arc::new(p)))
+}
+
+/// `img.crop(r0, r1, c0, c1)`: rows r0..=r1 and columns c0..=c1, with their axes.
+fn image_crop(im: &ImageRef, [r0, r1, c0, c1]: [&Dynamic; 4]) -> RResult<ImageRef> {
+    let (nr, nc) = (im.0.rows(), im.0.cols());
+    let r0 = index("img.crop", "r0", r0, nr)?;
+    let r1 = index("img.crop", "r1", r1, nr)?;
+    let c0 = index("img.crop", "c0", c0, nc)?;
+    let c1 = index("img.crop", "c1", c1, nc)?;
+    if r1 < r0 || c1 < c0 {
+        return fail(format!(
+            "img.crop: need r0 ≤ r1 and c0 ≤ c1, got rows {r0}..{r1}, cols {c0}..{c1}"
+        ));
+    }
+    let data = im.0.data.slice(ndarray::s![r0..=r1, c0..=c1]).to_owned();
+    Ok(ImageRef(Arc::new(
+        Image::new(data, im.0.x[c0..=c1].to_vec(), im.0.y[r0..=r1].to_vec())
+            .with_axis_names(&im.0.x_name, &im.0.y_name),
+    )))
+}
+
+/// `img.to_array()`: the pixel values as an array of rows.
+fn image_to_array(im: &ImageRef) -> Array {
+    im.0.data
+        .rows()
+        .into_iter()
+        .map(|r| Dynamic::from_array(r.iter().map(|v| Dynamic::from(*v)).collect()))
+        .collect()
+}
+
+/// `profile.max()` and the other statistics `f` of the finite samples (`who` names the call).
+fn profile_stat(who: &str, p: &ProfileRef, f: StatFn) -> RResult<f64> {
+    Ok(f(&checked_stats(who, p.0.v.iter())?))
+}
+
+/// `profile.argmax()`: the position t of the largest finite value.
+fn profile_argmax(p: &ProfileRef) -> RResult<f64> {
+    let mut best: Option<(f64, f64)> = None;
+    for (&t, &v) in p.0.t.iter().zip(&p.0.v) {
+        if v.is_finite() && best.is_none_or(|b| v > b.1) {
+            best = Some((t, v));
+        }
+    }
+    best.map(|b| b.0)
+        .ok_or_else(|| "profile.argmax(): no finite values".into())
+}
+
+/// `profile(t, v)`: a profile from positions t (µm) and values v of the same length.
+fn profile(t: &Array, v: &Array) -> RResult<ProfileRef> {
+    let t: Vec<f64> = t
+        .iter()
+        .enumerate()
+        .map(|(i, x)| num("profile", &format!("t[{i}]"), x))
+        .collect::<RResult<_>>()?;
+    let v: Vec<f64> = v
+        .iter()
+        .enumerate()
+        .map(|(i, x)| num("profile", &format!("v[{i}]"), x))
+        .collect::<RResult<_>>()?;
+    if t.len() != v.len() {
+        return fail(format!(
+            "profile: t has {} values but v has {}",
+            t.len(),
+            v.len()
+        ));
+    }
+    Ok(ProfileRef(Arc::new(Profile::new(t, v))))
 }
 
 // ------------------------------------------------------------------ analysis values

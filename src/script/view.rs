@@ -2,10 +2,13 @@
 //! starts too. The view only reads; see `src/view/`.
 
 use super::ctx::Ctx;
-use super::registry::{fail, Doc, Opts, RResult, Registrar};
+use super::registry::{fail, Doc, Opts, RResult, Registrar, Spec};
 use rhai::Map;
 use std::sync::{Arc, Weak};
 use std::time::Duration;
+
+/// The address the view listens on unless `host` says otherwise.
+const DEFAULT_HOST: &str = "127.0.0.1";
 
 /// How often the instrument's state is refreshed while no scan runs.
 const IDLE_REFRESH: Duration = Duration::from_secs(1);
@@ -63,7 +66,7 @@ pub fn register(r: &mut Registrar) {
             "where to serve (all optional)",
             &[
                 ("port", "int", "", "optional: TCP port (default 0: a free one)"),
-                ("host", "string", "", "optional: loopback address, \"127.0.0.1\" (default), \"::1\" or \"localhost\"; any other is refused"),
+                ("host", "string", "", format!("optional: loopback address, {DEFAULT_HOST:?} (default), \"::1\" or \"localhost\"; any other is refused").as_str()),
             ],
         )
         .form("view() -> string")
@@ -85,25 +88,29 @@ pub fn register(r: &mut Registrar) {
         .example("view(); view(#{host: \"0.0.0.0\"})", "error: view: host = \"0.0.0.0\" is not a loopback address");
     let spec = d.spec();
     let c = r.ctx();
-    r.bind(d, move |m: Map| -> RResult<String> {
-        let o = Opts::new(&spec, &m)?;
-        let port = match o.int("port")? {
-            Some(p) if !(0..=65535).contains(&p) => {
-                return fail(format!(
-                    "view: port = {p} is out of range: 0 ≤ port ≤ 65535 (0: a free port)"
-                ))
-            }
-            p => p.unwrap_or(0) as u16,
-        };
-        let host = o.string("host")?.unwrap_or_else(|| "127.0.0.1".into());
-        let url = start_view(&c, &host, port)?;
-        c.print(&format!("live view: {url}"));
-        Ok(url)
-    });
+    r.bind(d, move |m: Map| view(&c, &spec, &m));
     let c = r.ctx();
-    r.overload("view", move || -> RResult<String> {
-        let url = start_view(&c, "127.0.0.1", 0)?;
-        c.print(&format!("live view: {url}"));
-        Ok(url)
-    });
+    r.overload("view", move || open_view(&c, DEFAULT_HOST, 0));
+}
+
+/// `view(#{port, host})`: check the options, then [`open_view`].
+fn view(ctx: &Arc<Ctx>, spec: &Spec, m: &Map) -> RResult<String> {
+    let o = Opts::new(spec, m)?;
+    let port = match o.int("port")? {
+        Some(p) if !(0..=65535).contains(&p) => {
+            return fail(format!(
+                "view: port = {p} is out of range: 0 ≤ port ≤ 65535 (0: a free port)"
+            ))
+        }
+        p => p.unwrap_or(0) as u16,
+    };
+    let host = o.string("host")?.unwrap_or_else(|| DEFAULT_HOST.into());
+    open_view(ctx, &host, port)
+}
+
+/// `view()`: start the view (or find the running one) and print its address.
+fn open_view(ctx: &Arc<Ctx>, host: &str, port: u16) -> RResult<String> {
+    let url = start_view(ctx, host, port)?;
+    ctx.print(&format!("live view: {url}"));
+    Ok(url)
 }

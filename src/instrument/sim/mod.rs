@@ -33,6 +33,11 @@ pub struct SimConfig {
     pub sample_rate: f64,
     /// Time a move takes before the stage is on target, s.
     pub move_time_s: f64,
+    /// Servo cycle of the simulated controller's wave generator and data recorder, s.
+    pub servo_cycle_s: f64,
+    /// Most points of one wave table, and of one record table.
+    pub wave_points: usize,
+    pub record_points: usize,
 }
 
 impl Default for SimConfig {
@@ -41,6 +46,10 @@ impl Default for SimConfig {
             travel: [(-37.5, 37.5), (-37.5, 37.5), (-25.0, 25.0)],
             sample_rate: 1e5,
             move_time_s: 0.002,
+            // as a PI E-727: 50 µs servo cycle, 2^16-point wave and record tables
+            servo_cycle_s: 50e-6,
+            wave_points: 65_536,
+            record_points: 65_536,
         }
     }
 }
@@ -52,6 +61,41 @@ struct SimState {
     /// random-walk part of the drift, µm, and the time it was last advanced
     walk: [f64; 3],
     walk_t: f64,
+    /// The hardware-timed line configured or played last (raster scans).
+    line: Option<SimLine>,
+    /// The digitiser's armed buffered acquisition: samples, rate (Hz), servo samples averaged
+    /// per digitiser sample.
+    armed: Option<(usize, f64, usize)>,
+}
+
+/// A hardware-timed line in the simulator: the wave's target per servo cycle and the stage's
+/// position following it through the `stage_bandwidth` lag (none without that effect).
+struct SimLine {
+    sweep: super::line::LineSweep,
+    targets: Vec<f64>,
+    x: Vec<f64>,
+    /// Where the other axes stand (µm).
+    base: Pos,
+    /// Instrument time of the wave's start (`None`: configured, not started).
+    t_start: Option<f64>,
+    /// Servo cycles played (fewer than the wave after a stop).
+    played: usize,
+}
+
+impl SimLine {
+    /// The axis' position `t` s after the wave's start, interpolated between servo cycles; it
+    /// holds the last position played after the wave (or a stop).
+    fn x_at(&self, t: f64) -> f64 {
+        let dt = self.sweep.servo_cycle_s;
+        let last = self.played.max(1) - 1;
+        let u = (t / dt).max(0.0);
+        let i = (u.floor() as usize).min(last);
+        if i >= last {
+            return self.x[last];
+        }
+        let f = u - i as f64;
+        self.x[i] + f * (self.x[i + 1] - self.x[i])
+    }
 }
 
 /// Shared core of the simulated stage and QPD.
@@ -89,6 +133,8 @@ impl SimCore {
                 rng: ChaCha8Rng::seed_from_u64(seed),
                 walk: [0.0; 3],
                 walk_t: 0.0,
+                line: None,
+                armed: None,
             })),
             domain: Arc::new(Mutex::new(DomainMemo::default())),
             clock: Arc::new(VirtualClock::new()),
@@ -207,6 +253,122 @@ impl Stage for SimStage {
     fn move_time_s(&self) -> f64 {
         self.0.cfg.move_time_s
     }
+    fn line_timing(&mut self) -> Result<Option<super::line::LineTiming>, DeviceError> {
+        Ok(Some(super::line::LineTiming {
+            servo_cycle_s: self.0.cfg.servo_cycle_s,
+            max_wave_points: self.0.cfg.wave_points,
+            max_record_points: self.0.cfg.record_points,
+            trigger_line: None,
+        }))
+    }
+    fn configure_line(&mut self, s: &super::line::LineSweep) -> Result<(), DeviceError> {
+        let (lo, hi) = self.0.cfg.travel[s.axis.min(2)];
+        for v in [s.from_um, s.to_um] {
+            if !(v >= lo && v <= hi) {
+                return Err(DeviceError::Controller {
+                    device: self.name(),
+                    command: format!("WAV 1 X LIN … {v}"),
+                    code: 7,
+                    message: format!("Position out of limits ({lo} … {hi} µm)"),
+                });
+            }
+        }
+        if s.points > self.0.cfg.wave_points || s.points < 2 || s.rate == 0 {
+            return Err(self.line_error(
+                "WAV",
+                format!(
+                    "a wave of {} points at rate {}: the table holds 2 … {}",
+                    s.points, s.rate, self.0.cfg.wave_points
+                ),
+            ));
+        }
+        let mut st = lock(&self.0.state);
+        let tau = st
+            .renderer
+            .scene
+            .effects
+            .stage_bandwidth
+            .map_or(0.0, |b| b.tau_s());
+        let targets = s.targets_per_cycle();
+        let x = super::line::lagged(&targets, s.servo_cycle_s, tau);
+        let base = st.commanded;
+        st.line = Some(SimLine {
+            sweep: s.clone(),
+            played: targets.len(),
+            targets,
+            x,
+            base,
+            t_start: None,
+        });
+        Ok(())
+    }
+    fn start_line(&mut self, _s: &super::line::LineSweep) -> Result<(), DeviceError> {
+        let now = self.0.clock.now();
+        let mut st = lock(&self.0.state);
+        match st.line.as_mut() {
+            Some(l) => {
+                l.t_start = Some(now);
+                Ok(())
+            }
+            None => Err(self.line_error("WGO 1 1", "no line configured".into())),
+        }
+    }
+    fn wait_line(
+        &mut self,
+        s: &super::line::LineSweep,
+        abort: &std::sync::atomic::AtomicBool,
+    ) -> Result<bool, DeviceError> {
+        if abort.load(std::sync::atomic::Ordering::SeqCst) {
+            // stopped at its start: nothing played
+            if let Some(l) = lock(&self.0.state).line.as_mut() {
+                l.played = 1;
+            }
+            self.stop_line(s)?;
+            return Ok(false);
+        }
+        self.0.clock.wait(s.duration_s());
+        let mut st = lock(&self.0.state);
+        if let Some(l) = st.line.as_ref() {
+            let mut p = l.base;
+            p[l.sweep.axis] = *l.targets.last().unwrap_or(&p[l.sweep.axis]);
+            st.commanded = p;
+        }
+        Ok(true)
+    }
+    fn read_line_record(
+        &mut self,
+        _s: &super::line::LineSweep,
+    ) -> Result<super::line::SweepRecord, DeviceError> {
+        let st = lock(&self.0.state);
+        let Some(l) = st.line.as_ref() else {
+            return Err(self.line_error("DRR? 1 0 1 2", "no line played".into()));
+        };
+        let r = l.sweep.record_rate.max(1) as usize;
+        let idx = (0..l.played).step_by(r);
+        Ok(super::line::SweepRecord {
+            sample_time_s: r as f64 * l.sweep.servo_cycle_s,
+            target_um: idx.clone().map(|j| l.targets[j]).collect(),
+            position_um: idx.map(|j| l.x[j]).collect(),
+        })
+    }
+    fn stop_line(&mut self, _s: &super::line::LineSweep) -> Result<(), DeviceError> {
+        let mut st = lock(&self.0.state);
+        if let Some(l) = st.line.as_ref() {
+            let mut p = l.base;
+            p[l.sweep.axis] = l.x[l.played.max(1) - 1];
+            st.commanded = p;
+        }
+        Ok(())
+    }
+}
+
+impl SimStage {
+    fn line_error(&self, command: &str, detail: String) -> DeviceError {
+        DeviceError::Other {
+            device: self.name(),
+            detail: format!("`{command}`: {detail}"),
+        }
+    }
 }
 
 impl Qpd for SimQpd {
@@ -256,6 +418,82 @@ impl Qpd for SimQpd {
             sz_std: sd[2],
             n,
         })
+    }
+    /// The simulated digitiser decimates as a Red Pitaya does: each buffered sample is the
+    /// mean of `k = round(sample_rate / rate)` detector samples (at least 1), so a pixel of
+    /// a raster line has the noise of a point read of the same dwell. Its trigger is the
+    /// simulated stage's wave start.
+    fn arm_buffered(
+        &mut self,
+        n_samples: usize,
+        sample_rate: f64,
+        _trigger: super::Trigger,
+    ) -> Result<super::BufferedArm, DeviceError> {
+        if n_samples == 0 || !(sample_rate.is_finite() && sample_rate > 0.0) {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!(
+                    "arm_buffered: {n_samples} samples at {sample_rate} Hz: need ≥ 1 sample and a finite rate > 0"
+                ),
+            });
+        }
+        let k = ((self.0.cfg.sample_rate / sample_rate).floor() as usize).max(1);
+        let rate = self.0.cfg.sample_rate / k as f64;
+        let n = ((n_samples as f64 * rate / sample_rate).ceil() as usize).max(1);
+        lock(&self.0.state).armed = Some((n, rate, k));
+        Ok(super::BufferedArm {
+            n_samples: n,
+            sample_rate: rate,
+        })
+    }
+    fn read_buffered(
+        &mut self,
+        _timeout: std::time::Duration,
+    ) -> Result<super::BufferedTrace, DeviceError> {
+        let mut st = lock(&self.0.state);
+        let Some((n, rate, k)) = st.armed.take() else {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: "read_buffered: no acquisition armed".into(),
+            });
+        };
+        let Some((t_start, axis, base)) = st
+            .line
+            .as_ref()
+            .and_then(|l| l.t_start.map(|t| (t, l.sweep.axis, l.base)))
+        else {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: "read_buffered: the trigger never came (no line was started)".into(),
+            });
+        };
+        let r = st.renderer.clone();
+        let dt = 1.0 / rate;
+        let mut tr = super::BufferedTrace {
+            t0_s: 0.0,
+            dt_s: dt,
+            sx: Vec::with_capacity(n),
+            sy: Vec::with_capacity(n),
+            sz: Vec::with_capacity(n),
+            sz_measured: true,
+        };
+        let commanded = st.commanded;
+        for i in 0..n {
+            // the sample averages the detector over [t, t + dt): its position at the middle
+            let t = (i as f64 + 0.5) * dt;
+            let x = st.line.as_ref().map_or(base[axis], |l| l.x_at(t));
+            let drifted = SimCore::actual(&mut st, t_start + t);
+            let mut p = base;
+            p[axis] = x;
+            for c in 0..3 {
+                p[c] += drifted[c] - commanded[c];
+            }
+            let (v, _) = r.render_point(p, k, &mut st.rng);
+            tr.sx.push(v[0]);
+            tr.sy.push(v[1]);
+            tr.sz.push(v[2]);
+        }
+        Ok(tr)
     }
 }
 

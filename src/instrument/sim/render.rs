@@ -326,6 +326,17 @@ impl Renderer {
                 ),
             );
         }
+        if let Some(b) = fx.stage_bandwidth {
+            push(
+                "stage_bandwidth",
+                0.0,
+                format!(
+                    "stage lag τ = {:.3} ms ({} Hz) under the wave generator (raster lines)",
+                    b.tau_s() * 1e3,
+                    b.hz
+                ),
+            );
+        }
         if let Some(p) = fx.pointing_noise {
             push(
                 "pointing_noise",

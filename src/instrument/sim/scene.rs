@@ -109,6 +109,7 @@ pub struct Effects {
     pub cross_terms: Option<bool>,
     pub thermal_motion: Option<ThermalMotion>,
     pub mie: Option<MieEffect>,
+    pub stage_bandwidth: Option<StageBandwidth>,
 }
 
 /// White detector noise (suppl. S8): standard deviation of one sample, in units of the beam
@@ -152,6 +153,23 @@ pub struct MieEffect {
     pub scattered_intensity: bool,
 }
 
+/// A stage of finite bandwidth (hardware-timed raster lines, issue 21): under the wave
+/// generator the stage follows its target with a first-order lag of time constant
+/// τ = 1/(2π·`hz`) (a closed-loop piezo of −3 dB bandwidth `hz`), so its measured position
+/// trails the command by ≈ v·τ on a line of speed v. Point-by-point scans settle after each
+/// move and do not see it. Without this effect the simulated stage follows its target exactly.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StageBandwidth {
+    pub hz: f64,
+}
+
+impl StageBandwidth {
+    /// The lag's time constant τ = 1/(2π·hz), s.
+    pub fn tau_s(&self) -> f64 {
+        1.0 / (2.0 * std::f64::consts::PI * self.hz)
+    }
+}
+
 /// Thermal fluctuation of loosely bound objects (S4): rigid Gaussian jitter per object and read,
 /// averaged over `samples` configurations per read (blur), σ in nm.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -164,13 +182,14 @@ pub struct ThermalMotion {
 pub const PAPER_DETECTOR_SIGMA_SAMPLE: f64 = 2e-3;
 
 /// All effect names, in pipeline order.
-pub const EFFECT_NAMES: [&str; 10] = [
+pub const EFFECT_NAMES: [&str; 11] = [
     "polarization",
     "misalignment",
     "finite_size",
     "mie",
     "thermal_motion",
     "drift",
+    "stage_bandwidth",
     "pointing_noise",
     "cross_terms",
     "laser_power_noise",
@@ -202,6 +221,8 @@ impl Effects {
                     random_walk_nm_sqrt_s: 0.05,
                 })
             }
+            // 318 Hz: τ = 0.5 ms, the GCS emulator's default lag (a loaded closed-loop piezo)
+            "stage_bandwidth" => self.stage_bandwidth = Some(StageBandwidth { hz: 318.0 }),
             "misalignment" => self.misalignment = Some(Default::default()),
             "polarization" => self.polarization = Some(true),
             "finite_size" => {
@@ -233,6 +254,49 @@ impl Effects {
         Ok(())
     }
 
+    /// Check the effects' parameters: each names the effect, the parameter, its value and
+    /// the allowed range.
+    pub fn check(&self) -> Result<(), OpticsError> {
+        let mut nonneg: Vec<(&str, &str, f64)> = vec![];
+        if let Some(d) = self.detector_noise {
+            nonneg.push(("detector_noise", "sigma_sample", d.sigma_sample));
+        }
+        if let Some(l) = self.laser_power_noise {
+            nonneg.push(("laser_power_noise", "sigma_rel_sample", l.sigma_rel_sample));
+        }
+        if let Some(p) = self.pointing_noise {
+            nonneg.push(("pointing_noise", "sigma_nm_sample", p.sigma_nm_sample));
+        }
+        if let Some(d) = self.drift {
+            nonneg.push(("drift", "random_walk_nm_sqrt_s", d.random_walk_nm_sqrt_s));
+            if d.velocity_nm_s.iter().any(|v| !v.is_finite()) {
+                return Err(OpticsError::Invalid(format!(
+                    "drift: velocity_nm_s = {:?}: must be finite",
+                    d.velocity_nm_s
+                )));
+            }
+        }
+        if let Some(t) = self.thermal_motion {
+            nonneg.push(("thermal_motion", "sigma_nm", t.sigma_nm));
+        }
+        for (fx, k, v) in nonneg {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(OpticsError::Invalid(format!(
+                    "{fx}: {k} = {v}: must be finite and ≥ 0"
+                )));
+            }
+        }
+        if let Some(b) = self.stage_bandwidth {
+            if !(b.hz.is_finite() && b.hz > 0.0) {
+                return Err(OpticsError::Invalid(format!(
+                    "stage_bandwidth: hz = {}: must be finite and > 0",
+                    b.hz
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// Names of the enabled effects, in pipeline order.
     pub fn names(&self) -> Vec<&'static str> {
         let on = [
@@ -242,6 +306,7 @@ impl Effects {
             ("mie", self.mie.is_some()),
             ("thermal_motion", self.thermal_motion.is_some()),
             ("drift", self.drift.is_some()),
+            ("stage_bandwidth", self.stage_bandwidth.is_some()),
             ("pointing_noise", self.pointing_noise.is_some()),
             ("cross_terms", self.cross_terms == Some(true)),
             ("laser_power_noise", self.laser_power_noise.is_some()),
