@@ -204,6 +204,11 @@ pub struct Faults {
     /// Digitisers (Red Pitaya): no trigger ever fires (a trigger cable not connected, a
     /// controller that never sends its trigger); `ACQ:TRIG:STAT?` stays `WAIT`.
     pub no_trigger: bool,
+    /// Text emulators: `Some((word, n, code))`: serve n more commands whose first word is
+    /// `word` (case-insensitive, e.g. `"DRR?"`) normally, then reject the next one with `code`
+    /// as `error_next` does (a query gets no reply; the error query returns the code). A
+    /// chosen command failing at a chosen point of a scan (the 3rd line's `DRR?`).
+    pub reject: Option<(String, usize, i64)>,
 }
 
 impl Default for Faults {
@@ -223,6 +228,7 @@ impl Default for Faults {
             garble_after: None,
             crlf: false,
             no_trigger: false,
+            reject: None,
         }
     }
 }
@@ -337,9 +343,22 @@ impl Emulator {
         lock(&self.faults)
     }
 
+    /// The fault switches as a shared handle (for a thread that flips one when something
+    /// happens).
+    pub fn faults_handle(&self) -> Arc<Mutex<Faults>> {
+        self.faults.clone()
+    }
+
     /// Every command line received so far (oldest first; the last 100 000).
     pub fn commands(&self) -> Vec<String> {
         lock(&self.log).iter().cloned().collect()
+    }
+
+    /// A reader of the command log that outlives this borrow (for a watcher thread that acts
+    /// when a command arrives): each call returns [`commands`](Self::commands) as of then.
+    pub fn command_log(&self) -> impl Fn() -> Vec<String> + Send + 'static {
+        let log = self.log.clone();
+        move || lock(&log).iter().cloned().collect()
     }
 
     /// The shared emulated stage position (µm).
@@ -678,7 +697,23 @@ impl<D: Device> Serve<D> {
                 Some(n) => f.garble_after = Some(n - 1),
                 None => {}
             }
-            let inject = if f.error_next.is_some() && !is_err_query {
+            let word = line.split_whitespace().next().unwrap_or("");
+            let mut rejected = None;
+            if let Some((w, n, code)) = &mut f.reject {
+                if w.eq_ignore_ascii_case(word) {
+                    if *n == 0 {
+                        rejected = Some(*code);
+                    } else {
+                        *n -= 1;
+                    }
+                }
+            }
+            if rejected.is_some() {
+                f.reject = None;
+            }
+            let inject = if rejected.is_some() {
+                rejected
+            } else if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
             } else {
                 None
