@@ -8,7 +8,7 @@
 
 use bfpscope::acquire::raster::{run_raster, RasterOptions};
 use bfpscope::acquire::{Axis, Ended, Plan, ScanEnv, ScanError, ScanRun, SoftLimits, Sweep};
-use bfpscope::config::connect::{connect_emulated_redpitaya, EmulatedStageLink, Emulated};
+use bfpscope::config::connect::{connect_emulated_redpitaya, Emulated, EmulatedStageLink};
 use bfpscope::config::Config;
 use bfpscope::data::npz::{load_scan, save_scan};
 use bfpscope::data::{Scan, ScanStatus};
@@ -178,11 +178,9 @@ fn a_raster_through_the_drivers_images_the_scene() {
         assert_eq!(r.scan.meta["mode"], "raster");
         assert_eq!(r.scan.meta["raster"]["trigger_line"], 1);
         // the ideal image of the same scene, pixel by pixel
-        let want = core.renderer().render_grid_ideal(
-            &r.scan.sx.x,
-            &r.scan.sx.y,
-            0.0,
-        );
+        let want = core
+            .renderer()
+            .render_grid_ideal(&r.scan.sx.x, &r.scan.sx.y, 0.0);
         let peak = want[0].iter().fold(0.0f64, |m, v| m.max(v.abs()));
         assert!(peak > 1e-3, "{peak}");
         let mut worst = 0.0f64;
@@ -195,7 +193,10 @@ fn a_raster_through_the_drivers_images_the_scene() {
         // a binned pixel is the mean over its pitch (0.067 µm) of a response about 0.3 µm
         // wide, the ideal image its value at the centre: they differ by the curvature term
         // f''·pitch²/24, measured 1.4 % of the Sx peak (noise: 1e-4 V per ADC sample, ≪)
-        assert!(worst < 0.02, "{link:?}: worst difference {worst} of the Sx peak");
+        assert!(
+            worst < 0.02,
+            "{link:?}: worst difference {worst} of the Sx peak"
+        );
         assert_file(&path, NY as usize, ScanStatus::Complete);
         let log = e.stage.commands();
         assert_eq!(log.iter().filter(|c| *c == "WGO 1 1").count(), NY as usize);
@@ -208,7 +209,9 @@ fn a_raster_through_the_drivers_images_the_scene() {
 fn failure(r: Result<ScanRun, ScanError>, done_pixels: usize) -> String {
     let r = r.unwrap();
     match &r.ended {
-        Ended::Failed { measured, error, .. } => {
+        Ended::Failed {
+            measured, error, ..
+        } => {
             assert_eq!(*measured, done_pixels);
             assert_eq!(r.scan.meta["error"]["message"], error.to_string());
             error.to_string()
@@ -223,7 +226,9 @@ fn ctrl_c_mid_line_stops_the_generator_and_the_axes_and_keeps_the_lines_done() {
     let (_core, mut e) = setup(EmulatedStageLink::Pty, 0.002);
     let abort = Arc::new(AtomicBool::new(false));
     let a = abort.clone();
-    when_logged(&e.stage, "WGO 1 1", 3, move || a.store(true, Ordering::SeqCst));
+    when_logged(&e.stage, "WGO 1 1", 3, move || {
+        a.store(true, Ordering::SeqCst)
+    });
     let (r, path) = run(&mut e, &plan(5e-3), &abort, "ctrlc");
     let r = r.unwrap();
     assert_eq!(

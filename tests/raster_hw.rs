@@ -170,9 +170,7 @@ fn the_board_samples_the_moving_stage_at_the_recorders_positions() {
     Stage::move_to(&mut s, [10.0, 10.0, 5.0]).unwrap();
     Stage::configure_line(&mut s, &l).unwrap();
     // 16 ms of the 20 ms line at ≥ 100 kHz: decimation 1024 (122 kHz), 1954 samples
-    let arm = rp
-        .arm_buffered(1600, 1e5, Trigger::ExternalRising)
-        .unwrap();
+    let arm = rp.arm_buffered(1600, 1e5, Trigger::ExternalRising).unwrap();
     assert_eq!(arm.n_samples, 1954);
     Stage::start_line(&mut s, &l).unwrap();
     assert!(Stage::wait_line(&mut s, &l, &AtomicBool::new(false)).unwrap());
@@ -194,7 +192,11 @@ fn the_board_samples_the_moving_stage_at_the_recorders_positions() {
             trace.sx[i],
             want[0]
         );
-        assert!((trace.sy[i] - want[1]).abs() < 2e-6, "sample {i}: sy {}", trace.sy[i]);
+        assert!(
+            (trace.sy[i] - want[1]).abs() < 2e-6,
+            "sample {i}: sy {}",
+            trace.sy[i]
+        );
     }
     // the stage moved during the acquisition: from 10 µm to past 17 µm
     assert!(trace.sx[0] < -0.249 && trace.sx[trace.len() - 1] > 0.1);

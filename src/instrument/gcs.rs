@@ -174,6 +174,9 @@ pub struct GcsStage {
     move_time: MeanTime,
     /// What the wave generator and the recorder can do, read once ([`Stage::line_timing`]).
     line_timing: Option<super::line::LineTiming>,
+    /// Bytes per second of a serial link (baud / 10, 8N1); `None` over TCP or an unknown
+    /// transport. Long replies (`DRR?`) get their wire time added to the reply timeout.
+    wire_bytes_per_s: Option<f64>,
 }
 
 /// A running mean of durations (exponential, weight 1/8 for the newest), for ETAs.
@@ -217,7 +220,11 @@ impl GcsStage {
     pub fn open_checked(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
         let device = format!("GCS stage on {port}");
         let io = open_port(&device, port, baud, opts.timeout)?;
-        Self::connect_checked(io, port, opts)
+        let mut s = Self::connect_checked(io, port, opts)?;
+        if !port.starts_with("tcp://") && baud > 0 {
+            s.wire_bytes_per_s = Some(f64::from(baud) / 10.0);
+        }
+        Ok(s)
     }
 
     /// Connect over any transport and switch the servos on. `port` only labels messages.
@@ -260,6 +267,7 @@ impl GcsStage {
             error_check_pending: false,
             move_time: MeanTime::default(),
             line_timing: None,
+            wire_bytes_per_s: None,
         };
         s.check_axes()?;
         let idn = s.query_lines("*IDN?")?.join(" ");

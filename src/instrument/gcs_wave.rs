@@ -237,7 +237,13 @@ impl GcsStage {
             std::thread::sleep(self.opts.poll_interval);
         }
         let cmd = format!("DRR? 1 {n} 1 2");
-        let a = self.query_gcs_array(&cmd)?;
+        // the reply is long (about 24 bytes a row, a 300-byte header): on a serial link its
+        // wire time (50 kB: 4.3 s at 115200 baud) comes on top of the reply timeout
+        let wire = self
+            .wire_bytes_per_s
+            .map_or(0.0, |b| (300.0 + 24.0 * n as f64) / b);
+        let timeout = self.opts.timeout + Duration::from_secs_f64(1.5 * wire);
+        let a = self.query_gcs_array_within(&cmd, timeout)?;
         let u = self.opts.units_per_um;
         let bad = |why: String| self.link.garbled(&cmd, why);
         if a.columns.len() != 2 || a.columns[0].len() != n {
@@ -266,11 +272,20 @@ impl GcsStage {
     /// Send a query answered by a GCS array and parse it. A rejected query (no reply) is the
     /// controller's error; a malformed array is `Garbled` with what came.
     pub fn query_gcs_array(&mut self, cmd: &str) -> Result<GcsArray, DeviceError> {
+        self.query_gcs_array_within(cmd, self.opts.timeout)
+    }
+
+    /// As [`query_gcs_array`](Self::query_gcs_array), waiting at most `timeout` for each line.
+    fn query_gcs_array_within(
+        &mut self,
+        cmd: &str,
+        timeout: Duration,
+    ) -> Result<GcsArray, DeviceError> {
         self.link.discard_input();
         self.link.send(cmd)?;
         let mut lines = Vec::new();
         loop {
-            let line = match self.link.read_line(cmd, self.opts.timeout) {
+            let line = match self.link.read_line(cmd, timeout) {
                 Ok(l) => l,
                 Err(e @ DeviceError::Timeout { .. }) if lines.is_empty() => {
                     return Err(match self.error_code(cmd) {
@@ -305,11 +320,26 @@ impl GcsStage {
     /// `WGO g 0` then `STP`: the generator off, every axis stopped. Both are sent even if the
     /// first fails; the first error is returned.
     pub fn wave_stop(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        // a fault may have left the rest of a long reply (a `DRR?` that timed out) on the
+        // line: let it pass, so that `STP`'s `ERR?` reads its own answer
+        self.drain_until_quiet(Duration::from_millis(20), Duration::from_secs(10));
         let r1 = self
             .generator_of(s.axis)
             .and_then(|(_, g)| self.link.send(&format!("WGO {g} 0")));
         let r2 = self.send_stop();
         r1.and(r2)
+    }
+
+    /// Read and drop whatever arrives until the link has been quiet for `quiet` (at most
+    /// `limit` in all).
+    fn drain_until_quiet(&mut self, quiet: Duration, limit: Duration) {
+        let t0 = Instant::now();
+        while t0.elapsed() < limit {
+            if self.link.read_line("(draining)", quiet).is_err() {
+                break;
+            }
+        }
+        self.link.discard_input();
     }
 
     /// `SPA? <item> <id>`: one parameter's value (the text after `=`).

@@ -298,7 +298,18 @@ fn serve_redpitaya(
     };
     let four = rp_cfg.inputs == 4;
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
+    // the stage's serial link as modelled (TCP has no baud rate: only the latency stays); the
+    // board is on TCP at full speed
+    stage_cfg.link = if opts.tcp.is_some() {
+        LinkModel {
+            baud: None,
+            ..opts.link
+        }
+    } else {
+        opts.link
+    };
     let axes = stage_cfg.axes.clone();
+    let link_desc = stage_cfg.link.describe();
     let pos = shared_position(stage_cfg.start);
     // the stage's OUT1 drives the board's external trigger; the board follows the wave's path
     let path = super::StagePath::new();
@@ -320,8 +331,9 @@ fn serve_redpitaya(
     let (host, port) = hostport.rsplit_once(':').unwrap_or((&hostport, "5000"));
     writeln!(
         out,
-        "stage: PI GCS 2.0 stage (axes {}) on {}",
+        "stage: PI GCS 2.0 stage (axes {}, {}) on {}",
         axes.join(" "),
+        link_desc,
         stage.path()
     )?;
     writeln!(

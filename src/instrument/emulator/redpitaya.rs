@@ -25,18 +25,24 @@
 //!   error queue read by `SYST:ERR?` (`SYST:ERR:NEXT?`); `*STB?` bit 2 says the queue is not
 //!   empty; `*CLS` clears it.
 //!
-//! The signal: each input carries the volts of the [`SignalSource`] at the shared stage
-//! position, taken once when the trigger fires (`volts = volts_per_unit · signal + offset`,
-//! Sx → IN1, Sy → IN2, Sz → IN3 by default), plus an optional test generator (volts per input
-//! as a function of the time since the trigger) and white noise.
+//! The signal: each input carries the volts of the [`SignalSource`] at the stage position
+//! (`volts = volts_per_unit · signal + offset`, Sx → IN1, Sy → IN2, Sz → IN3 by default), plus
+//! an optional test generator (volts per input as a function of the time since the trigger)
+//! and white noise. The position: with a [`StagePath`] shared with the GCS stage emulator
+//! (`RedPitayaEmulatorConfig::path`) and a wave running, post-trigger sample j carries the
+//! signal at the path's position at `trigger + j · dt` (the trigger dated by the external
+//! pulse's edge, [`ExtTrigger::last_edge`]): the board follows the moving stage during a
+//! hardware-timed line. Otherwise (and for pre-trigger samples) the shared position at the
+//! trigger.
 //!
 //! Faults ([`Faults`]): `silent` (reads commands, never answers), `garble_replies` (text replies
 //! garbled, binary blocks lose their `#`), `no_trigger` (no trigger source ever fires, `NOW`
 //! included), `error_next`, `unplug_after` (closes the connection and stops).
 //!
 //! Not modelled: deep-memory (DMA) acquisition, split triggers, `ACQ:TRIG:DLY:NS`, hysteresis,
-//! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, the
-//! stage moving during one acquisition (the position is sampled once, at the trigger).
+//! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, a
+//! stage stopped during an acquisition after the trigger (the samples are computed at the
+//! trigger from the path as published then).
 
 use super::{
     garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
@@ -292,10 +298,7 @@ impl Board {
             return;
         };
         let now = match self.src {
-            Src::ExtPe | Src::ExtNe => self
-                .ext
-                .last_edge()
-                .map_or(now, |e| e.clamp(since, now)),
+            Src::ExtPe | Src::ExtNe => self.ext.last_edge().map_or(now, |e| e.clamp(since, now)),
             _ => now,
         };
         let written = self.elapsed_samples(since, now);

@@ -36,10 +36,19 @@
 //!   switch 0 = low, 1 = high; point 1 = the first point of the axis' generator). Each rising
 //!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`] wired to it.
 //!
+//! - parameters (`SPA? <item> <id>`, E-727 parameter list; PIPython's `getservotime` and
+//!   `getmaxnumvalues` read them): 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder
+//!   Max Points (all tables), 0x16000300 Data Recorder Chan Number; `WMS? [<table> …]`: points
+//!   per wave table (PI's "maximum size of the wave storage");
+//! - the path of a running wave is published at `WGO` on [`WaveConfig::path`] (see
+//!   [`StagePath`]), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
+//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`]).
+//!
 //! Errors (GCS codes): 1 syntax, 5 servo off, 7 wave outside the travel range, 15 unknown axis,
-//! 17 an id or value out of range, 57 no such record table, 58 no such record option, 59 no
-//! such record source, 67 wave table full, 73 motion command or wave change while a generator
-//! runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet recorded.
+//! 17 an id or value out of range, 54 a parameter not emulated, 57 no such record table, 58 no
+//! such record option, 59 no such record source, 67 wave table full, 73 motion command or wave
+//! change while a generator runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet
+//! recorded.
 
 use super::super::{ExtTrigger, PathData, StagePath};
 use super::GcsDevice;
