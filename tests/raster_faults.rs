@@ -306,3 +306,40 @@ fn a_failed_recorder_read_stops_everything_and_names_the_controller_error() {
     assert_at_rest(&mut e);
     assert_file(&path, 2, ScanStatus::Failed);
 }
+
+#[test]
+fn scan_xy_in_raster_mode_at_the_prompt_runs_through_the_emulated_red_pitaya() {
+    use bfpscope::script::{Settings, Workbench};
+    let dir = std::env::temp_dir().join(format!("bfpscope-rasterhw-wb-{}", std::process::id()));
+    let (settings, _buf) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    let r = wb
+        .eval_source(
+            "t",
+            r#"connect(#{backend: "emulated", qpd: "redpitaya", noise_v: 1e-4})"#,
+        )
+        .unwrap()
+        .to_string();
+    assert!(
+        r.starts_with("connected emulated: PI E-727 on /dev/pts/")
+            && r.contains("Red Pitaya on 127.0.0.1:"),
+        "{r}"
+    );
+    let s = wb
+        .eval_source(
+            "t",
+            r#"let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 12, ny: 4, dwell: 0.001, mode: "raster"});
+               [s.meta.mode, s.meta.status, s.meta.raster.trigger_line, s.meta.instrument.backend]"#,
+        )
+        .unwrap()
+        .to_string();
+    assert_eq!(s, r#"["raster", "complete", 1, "emulated"]"#);
+    let bad = wb
+        .eval_source("t", r#"connect(#{backend: "emulated", qpd: "kpa101"})"#)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        bad.contains(r#"connect: qpd = "kpa101" is not an emulated digitiser; allowed: "scpi" (default), "redpitaya""#),
+        "{bad}"
+    );
+}
