@@ -10,7 +10,7 @@ use super::ctx::{Attached, Ctx};
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
-use crate::config::connect::connect_emulated;
+use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
 use crate::config::{Backend, Config};
 use crate::instrument::mock::{mock_instrument, MockConfig};
 use crate::instrument::sim::scene::{Bead, Scene};
@@ -200,6 +200,7 @@ pub fn register(r: &mut Registrar) {
                 ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)"),
                 ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)"),
                 ("noise_v", "float", "V", "optional: emulated QPD noise per sample, rms (emulated; default 1e-4, 1 V per signal unit)"),
+                ("qpd", "string", "", "optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)"),
                 ("settle", "float", "s", "optional: settle time per move (default [stage] settle_s; mock 0.001)"),
                 ("pace", "float", "", "optional: wall seconds per simulated second (sim; default 0: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())"),
                 ("rate", "float", "Hz", "optional: QPD sample rate (mock; default 100000)"),
@@ -219,7 +220,9 @@ pub fn register(r: &mut Registrar) {
              override them); connecting identifies both devices, switches the servos on and reads the travel range. \
              \"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
              and connects the real drivers to them; the QPD answers with the simulator's signal of the scene at the \
-             emulated stage position, so scans go through the whole hardware path without hardware (real time). \
+             emulated stage position, so scans go through the whole hardware path without hardware (real time); \
+             with qpd: \"redpitaya\" the QPD is a Red Pitaya board emulator over loopback TCP whose external \
+             trigger is wired to the stage's trigger output OUT1, for hardware-timed rasters (mode: \"raster\"). \
              The mock backend is for tests and examples: a noiseless analytic signal \
              sx = x·exp(-(x²+y²)/0.16)·exp(-z²/0.5), sy = 0.7·y·(same), sz = 1 - 0.1·(same), on a \
              virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
@@ -559,6 +562,7 @@ const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("scene", &["sim", "emulated"]),
     ("pace", &["sim"]),
     ("noise_v", &["emulated"]),
+    ("qpd", &["emulated"]),
     ("rate", &["mock"]),
     ("start", &["mock"]),
     ("fail_move_after", &["mock"]),
@@ -711,8 +715,22 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
                     .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
             );
-            let e = connect_emulated(renderer, &sim, &cfg, noise_v)
-                .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
+            let e = match o.string("qpd")?.as_deref() {
+                None | Some("scpi") => connect_emulated(renderer, &sim, &cfg, noise_v),
+                Some("redpitaya") => connect_emulated_redpitaya(
+                    renderer,
+                    &sim,
+                    &cfg,
+                    noise_v,
+                    EmulatedStageLink::Pty,
+                ),
+                Some(other) => {
+                    return fail(format!(
+                        "connect: qpd = {other:?} is not an emulated digitiser; allowed: \"scpi\" (default), \"redpitaya\""
+                    ))
+                }
+            }
+            .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
             let line = format!(
                 "{} (emulators on {} and {})",
                 connected_line("emulated", &e.connected.instrument),
