@@ -39,6 +39,9 @@ use std::sync::atomic::Ordering;
 /// Digitiser samples asked per pixel (the digitiser may give more: its rates are steps).
 pub const DEFAULT_SAMPLES_PER_PIXEL: usize = 20;
 
+/// Data-recorder samples per pixel (at least one per servo cycle when pixels are shorter).
+const RECORD_PER_PIXEL: f64 = 4.0;
+
 /// One line of a raster: the row it fills, where the other axes stand, and the wave.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RasterLine {
@@ -135,10 +138,17 @@ pub fn plan_lines(
         }
         rate = rate.saturating_mul(2);
     };
+    // the recorder: about 4 samples per pixel (a constant-speed line is linear between
+    // them; on the ramps, interpolating the lagged position between samples h apart errs by
+    // a·h²/8 ≈ 0.1 nm at 50 µm/s, 5 ms ramps, h = 0.25 ms), and no more than a table holds;
+    // every servo cycle would cost 20 bytes per 50 µs on the link (a 115200-baud `DRR?` of a
+    // 64-pixel line at 1 ms: 3 s)
     let cycles = points as u64 * u64::from(rate);
-    let record_rate = cycles
+    let fit_table = cycles
         .div_ceil(timing.max_record_points.max(1) as u64)
-        .max(1) as u32;
+        .max(1);
+    let per_pixel = ((plan.dwell_s / (RECORD_PER_PIXEL * dt)).floor() as u64).max(1);
+    let record_rate = fit_table.max(per_pixel).min(u64::from(u32::MAX)) as u32;
     let axis = plan.fast.axis.index();
     let centre = 0.5 * (cols[0] + cols[n - 1]);
     let base = plan.base(start);
@@ -350,9 +360,11 @@ struct LineData {
     record: SweepRecord,
 }
 
-/// Wall time per line by phase (real-time instruments), s summed.
+/// Wall time per line by phase (real-time instruments), s summed; and the line the
+/// controller holds.
 #[derive(Default)]
 struct LinePhases {
+    configured: Option<LineSweep>,
     lines: usize,
     move_s: f64,
     configure_s: f64,
@@ -361,22 +373,38 @@ struct LinePhases {
     record_s: f64,
 }
 
-/// Measure one line (the stage at rest on its first point). Any error: the caller stops.
+/// Arm the digitiser for line `s` on the controller's trigger (before the move to the line's
+/// start: the trigger comes only with the wave).
+fn arm(
+    inst: &mut Instrument,
+    s: &LineSweep,
+    opts: &RasterOptions,
+    dwell_s: f64,
+) -> Result<(), DeviceError> {
+    let rate = opts.samples_per_pixel as f64 / dwell_s;
+    let n = (s.duration_s() * rate).ceil() as usize + 1;
+    inst.qpd
+        .arm_buffered(n, rate, Trigger::ExternalRising)
+        .map(|_| ())
+}
+
+/// Measure one line (armed, the stage at rest on its first point). Any error: the caller stops.
 fn measure_line(
     inst: &mut Instrument,
     l: &RasterLine,
     cols: &[f64],
-    opts: &RasterOptions,
-    dwell_s: f64,
     env: &ScanEnv,
     ph: &mut LinePhases,
 ) -> Result<Option<LineData>, DeviceError> {
     let s = &l.sweep;
     let t = std::time::Instant::now();
-    inst.stage.configure_line(s)?;
-    let rate = opts.samples_per_pixel as f64 / dwell_s;
-    let n = (s.duration_s() * rate).ceil() as usize + 1;
-    inst.qpd.arm_buffered(n, rate, Trigger::ExternalRising)?;
+    // the same wave as the last line's (one-way rasters: the slow axis is set by the move to
+    // the line's start): the controller keeps it, the recorder restarts with the generator
+    if ph.configured.as_ref() != Some(s) {
+        ph.configured = None;
+        inst.stage.configure_line(s)?;
+        ph.configured = Some(s.clone());
+    }
     ph.configure_s += t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
     inst.stage.start_line(s)?;
@@ -544,10 +572,12 @@ pub fn run_raster(
             break;
         }
         let t = std::time::Instant::now();
-        let moved = inst.move_settle(l.start);
+        let armed = arm(inst, &l.sweep, opts, plan.dwell_s);
+        ph.configure_s += t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        let moved = armed.and_then(|()| inst.move_settle(l.start));
         ph.move_s += t.elapsed().as_secs_f64();
-        let result =
-            moved.and_then(|()| measure_line(inst, l, &rp.cols, opts, plan.dwell_s, env, &mut ph));
+        let result = moved.and_then(|()| measure_line(inst, l, &rp.cols, env, &mut ph));
         match result {
             Ok(Some(d)) => {
                 for (c, b) in d.bins.iter().enumerate() {

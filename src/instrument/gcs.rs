@@ -1002,7 +1002,17 @@ impl Stage for GcsStage {
         self.send_stop()
     }
 
+    /// The line timing, refused without a configured trigger output: a raster needs the
+    /// controller to start the digitiser (`[stage] trigger_line`, wired to its external trigger).
     fn line_timing(&mut self) -> Result<Option<super::line::LineTiming>, DeviceError> {
+        if self.opts.trigger_line.is_none() {
+            return Err(DeviceError::Other {
+                device: self.link.device().to_string(),
+                detail: "a raster needs the controller's trigger output wired to the digitiser's \
+                         external trigger: set `[stage] trigger_line` (1…3, the OUT line wired)"
+                    .into(),
+            });
+        }
         self.read_line_timing().map(Some)
     }
 

@@ -118,7 +118,7 @@ impl LineSweep {
 /// `tau = 0`: no lag, the position is the target). On a ramp of speed `v` the position trails
 /// by `v·dt/(exp(dt/τ) − 1)` ≈ `v·(τ − dt/2)`.
 pub fn lagged(targets: &[f64], dt: f64, tau: f64) -> Vec<f64> {
-    if !(tau > 0.0) {
+    if tau.is_nan() || tau <= 0.0 {
         return targets.to_vec();
     }
     let a = 1.0 - (-dt / tau).exp();

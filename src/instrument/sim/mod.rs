@@ -305,9 +305,13 @@ impl Stage for SimStage {
     fn start_line(&mut self, _s: &super::line::LineSweep) -> Result<(), DeviceError> {
         let now = self.0.clock.now();
         let mut st = lock(&self.0.state);
+        let here = st.commanded;
         match st.line.as_mut() {
             Some(l) => {
+                // the wave plays again from wherever the other axes now stand
                 l.t_start = Some(now);
+                l.base = here;
+                l.played = l.targets.len();
                 Ok(())
             }
             None => Err(self.line_error("WGO 1 1", "no line configured".into())),
