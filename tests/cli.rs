@@ -491,6 +491,9 @@ fn emulate_redpitaya_serves_the_board_on_a_loopback_port_until_ctrl_c() {
     }
     let line = text.lines().find(|l| l.starts_with("redpitaya:")).unwrap();
     assert!(line.contains("STEMlab 125-14 4-input"), "{text}");
+    // the stage's OUT1 drives the board's external trigger, and the config says so
+    assert!(line.contains("DIO0_P wired to the stage's OUT1"), "{text}");
+    assert!(text.contains("}\ntrigger_line = 1\n"), "{text}");
     let url = line.rsplit(" on ").next().unwrap();
     let (host, port) = url.trim_start_matches("tcp://").rsplit_once(':').unwrap();
     assert_eq!(host, "127.0.0.1");

@@ -363,7 +363,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             let n = if grow { 1 } else { opts.n_beads.unwrap_or(1) };
             data.check_count(n)?;
             let d = detection_map(sx, sy, opts.channels, opts.detect_stencil)?;
-            let found = clean(&d, tpl, opts.channels, n, 0.0);
+            let found = clean(&d, tpl, opts.channels, n, 0.0, 0.0);
             if found.is_empty() {
                 return Err(AnalysisError::Failed(
                     "no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum"
@@ -409,7 +409,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
                     weight: b.weight,
                 })
                 .collect();
-            let new = clean(&d, tpl, opts.channels, 1, 0.0);
+            let new = clean(&d, tpl, opts.channels, 1, 0.0, 0.0);
             let Some(nb) = new.first().copied() else {
                 break;
             };
@@ -456,7 +456,7 @@ pub fn detect_beads(
 ) -> Result<Vec<BeadInit>> {
     check_range("n", n as f64, 1.0, 10_000.0)?;
     let d = detection_map(sx, sy, channels, stencil)?;
-    Ok(clean(&d, tpl, channels, n, 0.0))
+    Ok(clean(&d, tpl, channels, n, 0.0, 0.0))
 }
 
 /// The detection map: ∂Sx/∂x + ∂Sy/∂y (or the fitted channel's sensitivity).
@@ -516,13 +516,15 @@ fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64) {
 }
 
 /// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
-/// not above `min_peak`.
+/// not above `min_peak` (instrument units of the map) or its bead would weigh no more than
+/// `min_weight` (reference-bead units).
 pub(crate) fn clean(
     d: &Image,
     tpl: &Template,
     ch: Channels,
     n: usize,
     min_peak: f64,
+    min_weight: f64,
 ) -> Vec<BeadInit> {
     let (pu, pv, d0) = template_dmap_peak(tpl, ch);
     if !(d0 > 0.0) {
@@ -553,7 +555,7 @@ pub(crate) fn clean(
             }
         }
         let Some((r, c, v)) = best else { break };
-        if !(v > 0.0 && v > min_peak) {
+        if !(v > 0.0 && v > min_peak && v * tpl.norm_factor / d0 > min_weight) {
             break;
         }
         let para = |a: Option<f64>, b: f64, cc: Option<f64>| -> f64 {

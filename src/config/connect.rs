@@ -374,3 +374,114 @@ pub fn connect_emulated(
         qpd,
     })
 }
+
+/// How [`connect_emulated_redpitaya`] serves the GCS stage emulator.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EmulatedStageLink {
+    /// A pseudo-terminal, as a USB-serial controller (no baud limit).
+    #[default]
+    Pty,
+    /// A loopback TCP port, as a controller's GCS port 50000.
+    Tcp,
+}
+
+/// As [`connect_emulated`], with a Red Pitaya STEMlab 125-14 4-input emulator in place of the
+/// SCPI QPD: the instrument of a hardware-timed raster. The stage's trigger output OUT1 is
+/// wired to the board's external trigger (`[stage] trigger_line = 1`), the stage publishes the
+/// path of a running wave and the board samples it (each sample carries the scene's signal at
+/// the stage position at its own time). Sx, Sy, Sz → IN1, IN2, IN3, 1 V per signal unit,
+/// `noise_v` volts rms per ADC sample (125 MS/s; a decimated sample averages `dec` of them).
+/// The stage is served on a pseudo-terminal or a loopback TCP port (`link`), the board on a
+/// loopback TCP port. The description's `backend` is `"emulated"`.
+pub fn connect_emulated_redpitaya(
+    renderer: Arc<crate::instrument::sim::Renderer>,
+    sim: &crate::instrument::sim::SimConfig,
+    base: &Config,
+    noise_v: f64,
+    link: EmulatedStageLink,
+) -> Result<Emulated, ConnectError> {
+    use crate::instrument::emulator::{
+        shared_position, sim_signal_source, start_redpitaya_emulator, start_stage_emulator,
+        start_stage_emulator_tcp, RedPitayaEmulatorConfig, StageEmulatorConfig, StagePath,
+    };
+    if !(noise_v.is_finite() && noise_v >= 0.0) {
+        return Err(ConnectError::Config(ConfigError {
+            origin: "connect".into(),
+            key: "noise_v".into(),
+            line: None,
+            message: format!("{noise_v} V: must be a finite number ≥ 0"),
+        }));
+    }
+    let emu_err = |what: &str, e: std::io::Error| DeviceError::Other {
+        device: "emulator".into(),
+        detail: format!("cannot start the {what} emulator: {e}"),
+    };
+    let mut stage_cfg = StageEmulatorConfig::like_sim(sim);
+    let pos = shared_position(stage_cfg.start);
+    let path = StagePath::new();
+    let (qpd, ext) = start_redpitaya_emulator(
+        RedPitayaEmulatorConfig {
+            noise_v,
+            path: Some(path.clone()),
+            ..RedPitayaEmulatorConfig::four_inputs()
+        },
+        pos.clone(),
+        sim_signal_source(renderer),
+        "127.0.0.1:0",
+    )
+    .map_err(|e| emu_err("Red Pitaya", e))?;
+    stage_cfg.wave.trigger_out[0] = Some(ext);
+    stage_cfg.wave.path = Some(path);
+    let stage = match link {
+        EmulatedStageLink::Pty => start_stage_emulator(stage_cfg, pos),
+        EmulatedStageLink::Tcp => start_stage_emulator_tcp(stage_cfg, pos, "127.0.0.1:0"),
+    }
+    .map_err(|e| emu_err("GCS stage", e))?;
+    let hostport = qpd.path().trim_start_matches("tcp://").to_string();
+    let (host, port) = hostport
+        .rsplit_once(':')
+        .map(|(h, p)| (h.to_string(), p.to_string()))
+        .unwrap_or((hostport.clone(), "5000".into()));
+    let mut cfg = Config {
+        safety: base.safety,
+        ..Config::default()
+    };
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some(stage.path().to_string());
+    cfg.stage.settle_s = base.stage.settle_s;
+    cfg.stage.poll_ms = 1;
+    cfg.stage.trigger_line = Some(1);
+    cfg.qpd.backend = Backend::Redpitaya;
+    cfg.qpd.host = Some(host);
+    cfg.qpd.port = Some(port);
+    cfg.qpd.channels = crate::instrument::redpitaya::ChannelMap {
+        sx: 1,
+        sy: 2,
+        sz: Some(3),
+    };
+    cfg.qpd.sample_rate_hz = sim.sample_rate;
+    let mut connected = connect(&cfg, |_| {
+        Err(anyhow::anyhow!(
+            "a hardware config does not build the simulator"
+        ))
+    })?;
+    if let serde_json::Value::Object(m) = &mut connected.instrument.description {
+        m.insert("backend".into(), json!("emulated"));
+        m.insert(
+            "emulators".into(),
+            json!({
+                "stage": stage.path(),
+                "qpd": qpd.path(),
+                "qpd_model": "Red Pitaya STEMlab 125-14 4-input",
+                "trigger": "stage OUT1 → board DIO0_P (EXT trigger)",
+                "noise_v": noise_v,
+                "signal": "simulator (ideal signal of the scene) at the emulated stage position, followed sample by sample during a wave",
+            }),
+        );
+    }
+    Ok(Emulated {
+        connected,
+        stage,
+        qpd,
+    })
+}

@@ -193,6 +193,21 @@ pub struct StageConfig {
     pub full_scale: u32,
     /// kpz101: on target within this distance, µm.
     pub tolerance_um: f64,
+    /// gcs: the controller's digital output (1…3) wired to the digitiser's external trigger
+    /// (a Red Pitaya's DIO0_P): pulsed at the first point of every hardware-timed raster line
+    /// (`CTO` generator-trigger mode). Unset: no raster with an externally triggered digitiser.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub trigger_line: Option<u8>,
+    /// gcs: servo cycle in s, for a controller that does not answer `SPA? <axis> 0x0E000200`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub servo_cycle_s: Option<f64>,
+    /// gcs: points per wave table, for a controller that does not answer `WMS?`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_wave_points: Option<usize>,
+    /// gcs: points per data-recorder table, for a controller that does not answer
+    /// `SPA? <axis> 0x16000200` / `0x16000300`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_record_points: Option<usize>,
 }
 
 impl Default for StageConfig {
@@ -214,6 +229,10 @@ impl Default for StageConfig {
             travel_um: None,
             full_scale: 32767,
             tolerance_um: 0.05,
+            trigger_line: None,
+            servo_cycle_s: None,
+            max_wave_points: None,
+            max_record_points: None,
         }
     }
 }
@@ -569,6 +588,32 @@ impl Config {
         if !(s.settle_s.is_finite() && (0.0..=60.0).contains(&s.settle_s)) {
             return Err(err("stage.settle_s", "must be between 0 and 60 s"));
         }
+        if let Some(l) = s.trigger_line {
+            if !(1..=3).contains(&l) {
+                return Err(err(
+                    "stage.trigger_line",
+                    format!(
+                        "{l}: the controller's digital output wired to the digitiser's trigger, 1, 2 or 3 (OUT1…OUT3, `CTO`)"
+                    ),
+                ));
+            }
+        }
+        if let Some(c) = s.servo_cycle_s {
+            if !(c.is_finite() && c > 0.0 && c <= 0.1) {
+                return Err(err(
+                    "stage.servo_cycle_s",
+                    format!("{c}: the servo cycle must be between 0 and 0.1 s (E-727: 50e-6)"),
+                ));
+            }
+        }
+        for (key, v) in [
+            ("stage.max_wave_points", s.max_wave_points),
+            ("stage.max_record_points", s.max_record_points),
+        ] {
+            if v == Some(0) {
+                return Err(err(key, "0: must be a positive number of points"));
+            }
+        }
         for i in 0..3 {
             let g = q.calibration.gain[i];
             if !(g.is_finite() && g != 0.0) {
@@ -785,6 +830,10 @@ impl Config {
             units_per_um: s.units_per_um,
             one_axis_per_query: s.one_axis_per_query,
             motion_status: s.motion_status,
+            trigger_line: s.trigger_line,
+            servo_cycle_s: s.servo_cycle_s,
+            max_wave_points: s.max_wave_points,
+            max_record_points: s.max_record_points,
         }
     }
 
@@ -1090,6 +1139,26 @@ wavelength_nm = 1064.0
                 .starts_with("moved to [safety]: write `max_speed_um_s = 500.0` in [safety]"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn raster_keys_are_checked_and_reach_the_driver() {
+        let e = error_of("[stage]\nsettle_s = 0.01\ntrigger_line = 4\n");
+        assert_eq!((e.key.as_str(), e.line), ("stage.trigger_line", Some(3)));
+        assert!(
+            e.message.starts_with("4: ") && e.message.contains("1, 2 or 3"),
+            "{e}"
+        );
+        let e = error_of("[stage]\nservo_cycle_s = -5e-5\n");
+        assert_eq!(e.key, "stage.servo_cycle_s");
+        assert!(e.message.starts_with("-0.00005: "), "{e}");
+        let e = error_of("[stage]\nmax_record_points = 0\n");
+        assert_eq!(e.key, "stage.max_record_points");
+        let c = Config::from_toml_str("[stage]\ntrigger_line = 2\nservo_cycle_s = 4e-5\n", "t")
+            .unwrap();
+        let o = c.gcs_options();
+        assert_eq!((o.trigger_line, o.servo_cycle_s), (Some(2), Some(4e-5)));
+        assert_eq!((o.max_wave_points, o.max_record_points), (None, None));
     }
 
     #[test]

@@ -107,6 +107,17 @@ pub struct GcsOptions {
     /// controller without `#5` (it sets error 2 and does not answer) is asked `ONT?` from then
     /// on. False: always `ONT?`.
     pub motion_status: bool,
+    /// The digital output (1…3, `CTO`) wired to the digitiser's external trigger, pulsed at
+    /// the first point of every hardware-timed line; `None`: not wired (no raster with an
+    /// externally triggered digitiser).
+    pub trigger_line: Option<u8>,
+    /// Servo cycle, s, used when the controller does not answer `SPA? <axis> 0x0E000200`.
+    pub servo_cycle_s: Option<f64>,
+    /// Points per wave table, used when the controller does not answer `WMS?`.
+    pub max_wave_points: Option<usize>,
+    /// Points per data-recorder table, used when the controller does not answer its
+    /// data-recorder parameters (`SPA? <axis> 0x16000200` / `0x16000300`).
+    pub max_record_points: Option<usize>,
 }
 
 /// `[Some("1"), Some("2"), Some("3")]` from `["1", "2", "3"]`.
@@ -125,6 +136,10 @@ impl Default for GcsOptions {
             units_per_um: 1.0,
             one_axis_per_query: false,
             motion_status: true,
+            trigger_line: None,
+            servo_cycle_s: None,
+            max_wave_points: None,
+            max_record_points: None,
         }
     }
 }
@@ -157,6 +172,11 @@ pub struct GcsStage {
     error_check_pending: bool,
     /// Wall time of recent moves (MOV to on target), s: a running mean for the scan ETA.
     move_time: MeanTime,
+    /// What the wave generator and the recorder can do, read once ([`Stage::line_timing`]).
+    line_timing: Option<super::line::LineTiming>,
+    /// Bytes per second of a serial link (baud / 10, 8N1); `None` over TCP or an unknown
+    /// transport. Long replies (`DRR?`) get their wire time added to the reply timeout.
+    wire_bytes_per_s: Option<f64>,
 }
 
 /// A running mean of durations (exponential, weight 1/8 for the newest), for ETAs.
@@ -200,7 +220,11 @@ impl GcsStage {
     pub fn open_checked(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
         let device = format!("GCS stage on {port}");
         let io = open_port(&device, port, baud, opts.timeout)?;
-        Self::connect_checked(io, port, opts)
+        let mut s = Self::connect_checked(io, port, opts)?;
+        if !port.starts_with("tcp://") && baud > 0 {
+            s.wire_bytes_per_s = Some(f64::from(baud) / 10.0);
+        }
+        Ok(s)
     }
 
     /// Connect over any transport and switch the servos on. `port` only labels messages.
@@ -242,6 +266,8 @@ impl GcsStage {
             motion_status: None,
             error_check_pending: false,
             move_time: MeanTime::default(),
+            line_timing: None,
+            wire_bytes_per_s: None,
         };
         s.check_axes()?;
         let idn = s.query_lines("*IDN?")?.join(" ");
@@ -974,6 +1000,30 @@ impl Stage for GcsStage {
 
     fn stop(&mut self) -> Result<(), DeviceError> {
         self.send_stop()
+    }
+
+    fn line_timing(&mut self) -> Result<Option<super::line::LineTiming>, DeviceError> {
+        self.read_line_timing().map(Some)
+    }
+
+    fn configure_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        self.wave_configure(s)
+    }
+
+    fn start_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        self.wave_start(s)
+    }
+
+    fn wait_line(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
+        self.wave_wait(s, abort)
+    }
+
+    fn read_line_record(&mut self, s: &LineSweep) -> Result<SweepRecord, DeviceError> {
+        self.read_record(s.samples())
+    }
+
+    fn stop_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        self.wave_stop(s)
     }
 }
 

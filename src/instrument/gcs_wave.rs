@@ -20,7 +20,7 @@
 //! driver only configures, starts, reads and stops: the sweep's limits and speed are checked
 //! by `acquire/` before anything moves.
 
-pub use super::super::line::{LineSweep, SweepRecord};
+pub use super::super::line::{LineSweep, LineTiming, SweepRecord};
 use super::{DeviceError, GcsStage};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -133,7 +133,7 @@ impl GcsStage {
 
     /// Configure the wave, the generator, the trigger output and the recorder for `s`
     /// (nothing moves).
-    pub fn configure_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+    pub fn wave_configure(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         if !(s.from_um.is_finite() && s.to_um.is_finite())
             || s.points < 2
             || 2 * s.speedupdown + 1 > s.points
@@ -167,7 +167,7 @@ impl GcsStage {
     }
 
     /// `WGO g 1`: start the line (the recorder starts with it).
-    pub fn start_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+    pub fn wave_start(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         let (_, g) = self.generator_of(s.axis)?;
         // the target changes under the generator: read it again after the line
         self.commanded = None;
@@ -187,13 +187,13 @@ impl GcsStage {
     /// Poll `#9` until the line's generator has stopped. `Ok(false)`: `abort` was set (the
     /// generator and the axes are stopped). A generator still running at twice the line's
     /// duration plus the on-target timeout is a fault.
-    pub fn wait_line(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
+    pub fn wave_wait(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
         let (_, g) = self.generator_of(s.axis)?;
         let limit = Duration::from_secs_f64(2.0 * s.duration_s()) + self.opts.on_target_timeout;
         let t0 = Instant::now();
         loop {
             if abort.load(Ordering::SeqCst) {
-                self.stop_line(s)?;
+                self.wave_stop(s)?;
                 return Ok(false);
             }
             if !self.generator_running(g)? {
@@ -237,7 +237,13 @@ impl GcsStage {
             std::thread::sleep(self.opts.poll_interval);
         }
         let cmd = format!("DRR? 1 {n} 1 2");
-        let a = self.query_gcs_array(&cmd)?;
+        // the reply is long (about 24 bytes a row, a 300-byte header): on a serial link its
+        // wire time (50 kB: 4.3 s at 115200 baud) comes on top of the reply timeout
+        let wire = self
+            .wire_bytes_per_s
+            .map_or(0.0, |b| (300.0 + 24.0 * n as f64) / b);
+        let timeout = self.opts.timeout + Duration::from_secs_f64(1.5 * wire);
+        let a = self.query_gcs_array_within(&cmd, timeout)?;
         let u = self.opts.units_per_um;
         let bad = |why: String| self.link.garbled(&cmd, why);
         if a.columns.len() != 2 || a.columns[0].len() != n {
@@ -266,11 +272,20 @@ impl GcsStage {
     /// Send a query answered by a GCS array and parse it. A rejected query (no reply) is the
     /// controller's error; a malformed array is `Garbled` with what came.
     pub fn query_gcs_array(&mut self, cmd: &str) -> Result<GcsArray, DeviceError> {
+        self.query_gcs_array_within(cmd, self.opts.timeout)
+    }
+
+    /// As [`query_gcs_array`](Self::query_gcs_array), waiting at most `timeout` for each line.
+    fn query_gcs_array_within(
+        &mut self,
+        cmd: &str,
+        timeout: Duration,
+    ) -> Result<GcsArray, DeviceError> {
         self.link.discard_input();
         self.link.send(cmd)?;
         let mut lines = Vec::new();
         loop {
-            let line = match self.link.read_line(cmd, self.opts.timeout) {
+            let line = match self.link.read_line(cmd, timeout) {
                 Ok(l) => l,
                 Err(e @ DeviceError::Timeout { .. }) if lines.is_empty() => {
                     return Err(match self.error_code(cmd) {
@@ -304,12 +319,117 @@ impl GcsStage {
 
     /// `WGO g 0` then `STP`: the generator off, every axis stopped. Both are sent even if the
     /// first fails; the first error is returned.
-    pub fn stop_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
-        let (_, g) = self.generator_of(s.axis)?;
-        let cmd = format!("WGO {g} 0");
-        let r1 = self.link.send(&cmd);
+    pub fn wave_stop(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
+        // a fault may have left the rest of a long reply (a `DRR?` that timed out) on the
+        // line: let it pass, so that `STP`'s `ERR?` reads its own answer
+        self.drain_until_quiet(Duration::from_millis(20), Duration::from_secs(10));
+        let r1 = self
+            .generator_of(s.axis)
+            .and_then(|(_, g)| self.link.send(&format!("WGO {g} 0")));
         let r2 = self.send_stop();
         r1.and(r2)
+    }
+
+    /// Read and drop whatever arrives until the link has been quiet for `quiet` (at most
+    /// `limit` in all).
+    fn drain_until_quiet(&mut self, quiet: Duration, limit: Duration) {
+        let t0 = Instant::now();
+        while t0.elapsed() < limit {
+            if self.link.read_line("(draining)", quiet).is_err() {
+                break;
+            }
+        }
+        self.link.discard_input();
+    }
+
+    /// `SPA? <item> <id>`: one parameter's value (the text after `=`).
+    fn parameter(&mut self, item: &str, id: u32) -> Result<(String, String), DeviceError> {
+        let cmd = format!("SPA? {item} 0x{id:08X}");
+        let lines = self.query_lines(&cmd)?;
+        let v = lines
+            .first()
+            .and_then(|l| l.split_once('='))
+            .map(|(_, v)| v.trim().to_string())
+            .ok_or_else(|| self.link.garbled(&cmd, lines.join("\\n")))?;
+        Ok((cmd, v))
+    }
+
+    /// What the wave generator and the data recorder of this controller can do, read once
+    /// per connection (PIPython's `getservotime` and `getmaxnumvalues` ask the same):
+    /// - servo cycle: `SPA? <axis> 0x0E000200` (Servo Update Time, s);
+    /// - points per wave table: `WMS? 1` (`1=<points>`);
+    /// - points per record table: `SPA? <axis> 0x16000200` (Data Recorder Max Points, shared
+    ///   by all tables) / `SPA? <axis> 0x16000300` (Data Recorder Chan Number).
+    ///
+    /// A query the controller rejects (a `Controller` error: an unknown command or
+    /// parameter) falls back on the config value (`[stage] servo_cycle_s`, `max_wave_points`,
+    /// `max_record_points`); with none configured the error says which key to set. A reply
+    /// that is not a positive number is `Garbled`. `trigger_line` is the config's.
+    pub fn read_line_timing(&mut self) -> Result<LineTiming, DeviceError> {
+        if let Some(t) = self.line_timing {
+            return Ok(t);
+        }
+        let item = self
+            .axes
+            .first()
+            .map(|(_, a)| a.clone())
+            .unwrap_or_else(|| "1".into());
+        let fallback = |me: &Self, e: DeviceError, v: Option<f64>, key: &str| match (e, v) {
+            (DeviceError::Controller { .. }, Some(v)) => Ok(v),
+            (e @ DeviceError::Controller { .. }, None) => Err(me.other(format!(
+                "{e}; set `[stage] {key}` in the config for a controller without it"
+            ))),
+            (e, _) => Err(e),
+        };
+        let positive = |me: &Self, cmd: &str, v: &str| {
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .ok_or_else(|| me.link.garbled(cmd, v.to_string()))
+        };
+        let servo_cycle_s = match self.parameter(&item, 0x0E00_0200) {
+            Ok((cmd, v)) => positive(self, &cmd, &v)?,
+            Err(e) => fallback(self, e, self.opts.servo_cycle_s, "servo_cycle_s")?,
+        };
+        let max_wave_points = match self.query_lines("WMS? 1") {
+            Ok(lines) => {
+                let v = lines
+                    .first()
+                    .and_then(|l| l.split_once('='))
+                    .map_or(String::new(), |(_, v)| v.trim().to_string());
+                positive(self, "WMS? 1", &v)? as usize
+            }
+            Err(e) => fallback(
+                self,
+                e,
+                self.opts.max_wave_points.map(|v| v as f64),
+                "max_wave_points",
+            )? as usize,
+        };
+        let max_record_points = match self
+            .parameter(&item, 0x1600_0200)
+            .and_then(|a| Ok((a, self.parameter(&item, 0x1600_0300)?)))
+        {
+            Ok(((c1, total), (c2, tables))) => {
+                let total = positive(self, &c1, &total)?;
+                let tables = positive(self, &c2, &tables)?;
+                (total / tables).floor() as usize
+            }
+            Err(e) => fallback(
+                self,
+                e,
+                self.opts.max_record_points.map(|v| v as f64),
+                "max_record_points",
+            )? as usize,
+        };
+        let t = LineTiming {
+            servo_cycle_s,
+            max_wave_points,
+            max_record_points,
+            trigger_line: self.opts.trigger_line,
+        };
+        self.line_timing = Some(t);
+        Ok(t)
     }
 
     /// A whole line: configure, start, wait, read. Any fault (or `abort`) sends `WGO g 0` and
@@ -322,7 +442,7 @@ impl GcsStage {
         let r = self.sweep_line_steps(s, abort);
         if r.is_err() {
             // best effort: the original fault is the one reported
-            let _ = self.stop_line(s);
+            let _ = self.wave_stop(s);
         }
         r
     }
@@ -332,9 +452,9 @@ impl GcsStage {
         s: &LineSweep,
         abort: &AtomicBool,
     ) -> Result<Option<SweepRecord>, DeviceError> {
-        self.configure_line(s)?;
-        self.start_line(s)?;
-        if !self.wait_line(s, abort)? {
+        self.wave_configure(s)?;
+        self.wave_start(s)?;
+        if !self.wave_wait(s, abort)? {
             return Ok(None);
         }
         self.read_record(s.samples()).map(Some)

@@ -551,7 +551,7 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
         axis,
         detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
         max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
-        fit: d.fit.clone(),
+        ..d.clone()
     };
     let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
     let mut out = Map::new();

@@ -10,7 +10,7 @@ use super::ctx::{Attached, Ctx};
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
-use crate::config::connect::connect_emulated;
+use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
 use crate::config::{Backend, Config, MAX_BAUD, MAX_TIMEOUT_MS};
 use crate::instrument::emulator::QpdEmulatorConfig;
 use crate::instrument::mock::{mock_instrument, MockConfig};
@@ -202,6 +202,7 @@ pub fn register(r: &mut Registrar) {
                 ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)".to_string()),
                 ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)".to_string()),
                 ("noise_v", "float", "V", format!("optional: emulated QPD noise per sample, rms (emulated; default {:e}, {} V per signal unit)", emu.noise_v[0], emu.volts_per_unit[0])),
+                ("qpd", "string", "", "optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)".to_string()),
                 ("settle", "float", "s", format!("optional: settle time per move (default [stage] settle_s; mock {})", mock.settle_s)),
                 ("pace", "float", "", format!("optional: wall seconds per simulated second (sim; default {}: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())", VirtualClock::DEFAULT_PACE)),
                 ("rate", "float", "Hz", format!("optional: QPD sample rate (mock; default {})", mock.rate_hz)),
@@ -221,7 +222,9 @@ pub fn register(r: &mut Registrar) {
              override them); connecting identifies both devices, switches the servos on and reads the travel range. \
              \"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
              and connects the real drivers to them; the QPD answers with the simulator's signal of the scene at the \
-             emulated stage position, so scans go through the whole hardware path without hardware (real time). \
+             emulated stage position, so scans go through the whole hardware path without hardware (real time); \
+             with qpd: \"redpitaya\" the QPD is a Red Pitaya board emulator over loopback TCP whose external \
+             trigger is wired to the stage's trigger output OUT1, for hardware-timed rasters (mode: \"raster\"). \
              The mock backend is for tests and examples: a noiseless analytic signal \
              sx = x·exp(-(x²+y²)/0.16)·exp(-z²/0.5), sy = 0.7·y·(same), sz = 1 - 0.1·(same), on a \
              virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
@@ -561,6 +564,7 @@ const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("scene", &["sim", "emulated"]),
     ("pace", &["sim"]),
     ("noise_v", &["emulated"]),
+    ("qpd", &["emulated"]),
     ("rate", &["mock"]),
     ("start", &["mock"]),
     ("fail_move_after", &["mock"]),
@@ -715,8 +719,22 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
                     .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
             );
-            let e = connect_emulated(renderer, &sim, &cfg, noise_v)
-                .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
+            let e = match o.string("qpd")?.as_deref() {
+                None | Some("scpi") => connect_emulated(renderer, &sim, &cfg, noise_v),
+                Some("redpitaya") => connect_emulated_redpitaya(
+                    renderer,
+                    &sim,
+                    &cfg,
+                    noise_v,
+                    EmulatedStageLink::Pty,
+                ),
+                Some(other) => {
+                    return fail(format!(
+                        "connect: qpd = {other:?} is not an emulated digitiser; allowed: \"scpi\" (default), \"redpitaya\""
+                    ))
+                }
+            }
+            .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
             let line = format!(
                 "{} (emulators on {} and {})",
                 connected_line("emulated", &e.connected.instrument),

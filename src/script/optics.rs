@@ -365,9 +365,11 @@ fn max_sensitivity_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let size = match o.string("model")?.as_deref() {
         None | Some("rayleigh") => None,
         Some("finite_size") => Some(dn),
-        Some(other) => return fail(format!(
+        Some(other) => {
+            return fail(format!(
             "max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\""
-        )),
+        ))
+        }
     };
     let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
     let mut out = Map::new();

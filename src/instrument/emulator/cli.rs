@@ -298,34 +298,54 @@ fn serve_redpitaya(
     };
     let four = rp_cfg.inputs == 4;
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
+    // the stage's serial link as modelled (TCP has no baud rate: only the latency stays); the
+    // board is on TCP at full speed
+    stage_cfg.link = if opts.tcp.is_some() {
+        LinkModel {
+            baud: None,
+            ..opts.link
+        }
+    } else {
+        opts.link
+    };
     let axes = stage_cfg.axes.clone();
+    let link_desc = stage_cfg.link.describe();
     let pos = shared_position(stage_cfg.start);
+    // the stage's OUT1 drives the board's external trigger; the board follows the wave's path
+    let path = super::StagePath::new();
+    let rp_cfg = RedPitayaEmulatorConfig {
+        path: Some(path.clone()),
+        ..rp_cfg
+    };
+    let addr = format!("127.0.0.1:{}", opts.port.unwrap_or(0));
+    let (rp, ext) = start_redpitaya_emulator(rp_cfg, pos.clone(), source, &addr)
+        .map_err(|e| anyhow::anyhow!("emulate: redpitaya on {addr}: {e}"))?;
+    stage_cfg.wave.trigger_out[0] = Some(ext);
+    stage_cfg.wave.path = Some(path);
     let stage = match &opts.tcp {
         Some(addr) => start_stage_emulator_tcp(stage_cfg, pos.clone(), addr)
             .map_err(|e| anyhow::anyhow!("emulate: --tcp {addr}: {e}"))?,
-        None => start_stage_emulator(stage_cfg, pos.clone())?,
+        None => start_stage_emulator(stage_cfg, pos)?,
     };
-    let addr = format!("127.0.0.1:{}", opts.port.unwrap_or(0));
-    let (rp, _ext) = start_redpitaya_emulator(rp_cfg, pos, source, &addr)
-        .map_err(|e| anyhow::anyhow!("emulate: redpitaya on {addr}: {e}"))?;
     let hostport = rp.path().trim_start_matches("tcp://").to_string();
     let (host, port) = hostport.rsplit_once(':').unwrap_or((&hostport, "5000"));
     writeln!(
         out,
-        "stage: PI GCS 2.0 stage (axes {}) on {}",
+        "stage: PI GCS 2.0 stage (axes {}, {}) on {}",
         axes.join(" "),
+        link_desc,
         stage.path()
     )?;
     writeln!(
         out,
-        "redpitaya: Red Pitaya STEMlab 125-14{} SCPI server (16384-sample buffers, 125 MS/s / decimation;          external trigger not wired) on {}",
+        "redpitaya: Red Pitaya STEMlab 125-14{} SCPI server (16384-sample buffers, 125 MS/s / decimation; external trigger DIO0_P wired to the stage's OUT1) on {}",
         if four { " 4-input" } else { "" },
         rp.path()
     )?;
     writeln!(out, "\n# bfpscope.toml for these emulators:")?;
     writeln!(
         out,
-        "[stage]\nbackend = \"gcs\"\nport = \"{}\"\naxes = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\n",
+        "[stage]\nbackend = \"gcs\"\nport = \"{}\"\naxes = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\ntrigger_line = 1\n",
         stage.path(),
         axes[0],
         axes[1],

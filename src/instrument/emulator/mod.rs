@@ -49,6 +49,88 @@ pub fn shared_position(p: Pos) -> SharedPosition {
     Arc::new(Mutex::new(p))
 }
 
+/// The path of the axes a running wave generator drives, published by the GCS stage emulator
+/// at `WGO` for the digitiser emulators that sample the stage during a whole acquisition (the
+/// Red Pitaya's triggered buffer): the start instant (servo cycle 0 = the generator's first
+/// cycle, when its trigger output fires), the servo cycle and the position of each driven
+/// axis after every cycle, computed at `WGO` from the wave table and the lag model as the
+/// servo loop computes it (deterministic), truncated at `WGO g 0`, `STP`, `HLT` (the axes hold
+/// where they stopped) and cleared by the next `MOV`. Clone it into both emulators.
+#[derive(Debug, Clone, Default)]
+pub struct StagePath(Arc<Mutex<Option<PathData>>>);
+
+/// Two handles are equal when they are the same path.
+impl PartialEq for StagePath {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+/// One published path (see [`StagePath`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PathData {
+    /// Instant of servo cycle 0.
+    pub start: std::time::Instant,
+    /// Servo cycle, s.
+    pub dt: f64,
+    /// Position of every axis when the generator started, µm.
+    pub base: Pos,
+    /// Per axis: the position after servo cycle k (`None`: the axis is not driven).
+    pub x: [Option<Vec<f64>>; 3],
+    /// The cycle at which the generator was stopped, if it was.
+    pub stop: Option<usize>,
+}
+
+impl PathData {
+    /// Stage position at servo cycle `k` (µm).
+    pub fn at_cycle(&self, k: usize) -> Pos {
+        let mut p = self.base;
+        for (i, x) in self.x.iter().enumerate() {
+            if let Some(x) = x {
+                if let Some(last) = x.len().checked_sub(1) {
+                    p[i] = x[k.min(self.stop.unwrap_or(last)).min(last)];
+                }
+            }
+        }
+        p
+    }
+}
+
+impl StagePath {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Publish a new path (at `WGO`).
+    pub fn set(&self, p: PathData) {
+        *lock(&self.0) = Some(p);
+    }
+    /// The generator stopped at servo cycle `k` after the start: the axes hold from then on.
+    pub fn truncate(&self, k: usize) {
+        if let Some(p) = lock(&self.0).as_mut() {
+            p.stop = Some(p.stop.map_or(k, |s| s.min(k)));
+        }
+    }
+    /// No path any more (a `MOV` took over the axes).
+    pub fn clear(&self) {
+        *lock(&self.0) = None;
+    }
+    /// A copy of the path in force.
+    pub fn get(&self) -> Option<PathData> {
+        lock(&self.0).clone()
+    }
+    /// Stage position at instant `t` (µm): the position after the last servo cycle begun by
+    /// `t`; the start position before the start; `None` without a path.
+    pub fn position_at(&self, t: std::time::Instant) -> Option<Pos> {
+        let g = lock(&self.0);
+        let p = g.as_ref()?;
+        if t < p.start {
+            return Some(p.base);
+        }
+        let k = ((t - p.start).as_secs_f64() / p.dt) as usize;
+        Some(p.at_cycle(k))
+    }
+}
+
 /// Where the QPD emulator's signal comes from: stage position (µm) → (Sx, Sy, Sz) in
 /// workbench signal units. Plug the simulator in here; tests use [`standin_bead`].
 pub trait SignalSource: Fn(Pos) -> [f64; 3] + Send + 'static {}
@@ -122,6 +204,11 @@ pub struct Faults {
     /// Digitisers (Red Pitaya): no trigger ever fires (a trigger cable not connected, a
     /// controller that never sends its trigger); `ACQ:TRIG:STAT?` stays `WAIT`.
     pub no_trigger: bool,
+    /// Text emulators: `Some((word, n, code))`: serve n more commands whose first word is
+    /// `word` (case-insensitive, e.g. `"DRR?"`) normally, then reject the next one with `code`
+    /// as `error_next` does (a query gets no reply; the error query returns the code). A
+    /// chosen command failing at a chosen point of a scan (the 3rd line's `DRR?`).
+    pub reject: Option<(String, usize, i64)>,
 }
 
 impl Default for Faults {
@@ -141,6 +228,7 @@ impl Default for Faults {
             garble_after: None,
             crlf: false,
             no_trigger: false,
+            reject: None,
         }
     }
 }
@@ -255,9 +343,22 @@ impl Emulator {
         lock(&self.faults)
     }
 
+    /// The fault switches as a shared handle (for a thread that flips one when something
+    /// happens).
+    pub fn faults_handle(&self) -> Arc<Mutex<Faults>> {
+        self.faults.clone()
+    }
+
     /// Every command line received so far (oldest first; the last 100 000).
     pub fn commands(&self) -> Vec<String> {
         lock(&self.log).iter().cloned().collect()
+    }
+
+    /// A reader of the command log that outlives this borrow (for a watcher thread that acts
+    /// when a command arrives): each call returns [`commands`](Self::commands) as of then.
+    pub fn command_log(&self) -> impl Fn() -> Vec<String> + Send + 'static {
+        let log = self.log.clone();
+        move || lock(&log).iter().cloned().collect()
     }
 
     /// The shared emulated stage position (µm).
@@ -596,7 +697,23 @@ impl<D: Device> Serve<D> {
                 Some(n) => f.garble_after = Some(n - 1),
                 None => {}
             }
-            let inject = if f.error_next.is_some() && !is_err_query {
+            let word = line.split_whitespace().next().unwrap_or("");
+            let mut rejected = None;
+            if let Some((w, n, code)) = &mut f.reject {
+                if w.eq_ignore_ascii_case(word) {
+                    if *n == 0 {
+                        rejected = Some(*code);
+                    } else {
+                        *n -= 1;
+                    }
+                }
+            }
+            if rejected.is_some() {
+                f.reject = None;
+            }
+            let inject = if rejected.is_some() {
+                rejected
+            } else if f.error_next.is_some() && !is_err_query {
                 f.error_next.take()
             } else {
                 None

@@ -25,20 +25,28 @@
 //!   error queue read by `SYST:ERR?` (`SYST:ERR:NEXT?`); `*STB?` bit 2 says the queue is not
 //!   empty; `*CLS` clears it.
 //!
-//! The signal: each input carries the volts of the [`SignalSource`] at the shared stage
-//! position, taken once when the trigger fires (`volts = volts_per_unit · signal + offset`,
-//! Sx → IN1, Sy → IN2, Sz → IN3 by default), plus an optional test generator (volts per input
-//! as a function of the time since the trigger) and white noise.
+//! The signal: each input carries the volts of the [`SignalSource`] at the stage position
+//! (`volts = volts_per_unit · signal + offset`, Sx → IN1, Sy → IN2, Sz → IN3 by default), plus
+//! an optional test generator (volts per input as a function of the time since the trigger)
+//! and white noise. The position: with a [`StagePath`] shared with the GCS stage emulator
+//! (`RedPitayaEmulatorConfig::path`) and a wave running, post-trigger sample j carries the
+//! signal at the path's position at `trigger + j · dt` (the trigger dated by the external
+//! pulse's edge, [`ExtTrigger::last_edge`]): the board follows the moving stage during a
+//! hardware-timed line. Otherwise (and for pre-trigger samples) the shared position at the
+//! trigger.
 //!
 //! Faults ([`Faults`]): `silent` (reads commands, never answers), `garble_replies` (text replies
 //! garbled, binary blocks lose their `#`), `no_trigger` (no trigger source ever fires, `NOW`
 //! included), `error_next`, `unplug_after` (closes the connection and stops).
 //!
 //! Not modelled: deep-memory (DMA) acquisition, split triggers, `ACQ:TRIG:DLY:NS`, hysteresis,
-//! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, the
-//! stage moving during one acquisition (the position is sampled once, at the trigger).
+//! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, a
+//! stage stopped during an acquisition after the trigger (the samples are computed at the
+//! trigger from the path as published then).
 
-use super::{garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, LOG_CAP};
+use super::{
+    garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
+};
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::io::{Read, Write};
@@ -49,6 +57,8 @@ use std::time::{Duration, Instant};
 const BUF: usize = 16384;
 const BASE_RATE_HZ: f64 = 125e6;
 const QUEUE: usize = 16;
+/// Spacing of the nodes a moving stage's signal is evaluated on, µm (see `Board::volts_along`).
+const PATH_NODE_UM: f64 = 0.005;
 
 /// Volts per input (IN1..IN4) as a function of seconds since the trigger: a function generator
 /// wired to the inputs in a bench test.
@@ -57,8 +67,12 @@ pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 /// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
 /// is one rising and one falling edge. Clone it into whatever emulates the controller's
 /// trigger output.
+///
+/// A pulse carries the instant its rising edge happened (the controller emulator computes its
+/// servo loop lazily, so it may register the pulse a few ms after its edge): the board dates
+/// its trigger by that instant.
 #[derive(Debug, Clone, Default)]
-pub struct ExtTrigger(Arc<AtomicU64>);
+pub struct ExtTrigger(Arc<(AtomicU64, Mutex<Option<Instant>>)>);
 
 /// Two handles are equal when they are the same wire.
 impl PartialEq for ExtTrigger {
@@ -71,13 +85,22 @@ impl ExtTrigger {
     pub fn new() -> Self {
         Self::default()
     }
-    /// One trigger pulse.
+    /// One trigger pulse, now.
     pub fn pulse(&self) {
-        self.0.fetch_add(1, Ordering::SeqCst);
+        self.pulse_at(Instant::now());
+    }
+    /// One trigger pulse whose rising edge was at `at`.
+    pub fn pulse_at(&self, at: Instant) {
+        *lock(&self.0 .1) = Some(at);
+        self.0 .0.fetch_add(1, Ordering::SeqCst);
     }
     /// Pulses so far.
     pub fn count(&self) -> u64 {
-        self.0.load(Ordering::SeqCst)
+        self.0 .0.load(Ordering::SeqCst)
+    }
+    /// The instant of the last pulse's rising edge.
+    pub fn last_edge(&self) -> Option<Instant> {
+        *lock(&self.0 .1)
     }
 }
 
@@ -100,6 +123,11 @@ pub struct RedPitayaEmulatorConfig {
     pub seed: u64,
     /// Extra volts per input vs time since the trigger (tests: a known ramp).
     pub generator: Option<Generator>,
+    /// The path of the stage under a running wave generator (shared with the GCS stage
+    /// emulator, [`WaveConfig::path`](super::WaveConfig::path)): each sample after the trigger
+    /// carries the signal at the stage position at its own time. `None`: the position is
+    /// taken once, at the trigger.
+    pub path: Option<StagePath>,
     /// Initial fault switches.
     pub faults: Faults,
 }
@@ -115,6 +143,7 @@ impl Default for RedPitayaEmulatorConfig {
             noise_v: 1e-3,
             seed: 1,
             generator: None,
+            path: None,
             faults: Faults::default(),
         }
     }
@@ -242,6 +271,11 @@ impl Board {
     /// Volts on the inputs from the signal source at the current stage position.
     fn input_volts(&self) -> [f64; 4] {
         let p = *lock(&self.position);
+        self.volts_at(p)
+    }
+
+    /// Volts on the inputs from the signal source at stage position `p`.
+    fn volts_at(&self, p: crate::instrument::Pos) -> [f64; 4] {
         let s = (self.source)(p);
         let mut v = self.cfg.offset_v;
         for (i, &w) in self.cfg.wiring.iter().enumerate() {
@@ -252,6 +286,59 @@ impl Board {
         v
     }
 
+    /// Volts at each of `positions` (a path's samples). When only one axis varies, the
+    /// source is evaluated on nodes every [`PATH_NODE_UM`] along it (at most 4097 nodes) and
+    /// interpolated linearly between them (exact for a source linear in that axis; for a
+    /// scene, an error of f''·h²/8, about 1e-4 of the peak for a 300 nm wide response): a
+    /// simulated scene costs a rendering per node, not per sample. Otherwise once per
+    /// distinct position.
+    fn volts_along(&self, positions: &[crate::instrument::Pos]) -> Vec<[f64; 4]> {
+        let Some(first) = positions.first().copied() else {
+            return Vec::new();
+        };
+        let varying: Vec<usize> = (0..3)
+            .filter(|&a| positions.iter().any(|p| p[a] != first[a]))
+            .collect();
+        if let [a] = varying[..] {
+            let (lo, hi) = positions
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| {
+                    (l.min(p[a]), h.max(p[a]))
+                });
+            let n = (((hi - lo) / PATH_NODE_UM).ceil() as usize).clamp(1, 4096);
+            let h = (hi - lo) / n as f64;
+            let nodes: Vec<[f64; 4]> = (0..=n)
+                .map(|i| {
+                    let mut q = first;
+                    q[a] = if i == n { hi } else { lo + i as f64 * h };
+                    self.volts_at(q)
+                })
+                .collect();
+            return positions
+                .iter()
+                .map(|p| {
+                    let u = if h > 0.0 { (p[a] - lo) / h } else { 0.0 };
+                    let i = (u.floor().max(0.0) as usize).min(n.saturating_sub(1));
+                    let f = if n == 0 { 0.0 } else { u - i as f64 };
+                    let (v0, v1) = (nodes[i], nodes[(i + 1).min(n)]);
+                    std::array::from_fn(|c| v0[c] + f * (v1[c] - v0[c]))
+                })
+                .collect();
+        }
+        let mut last: Option<(crate::instrument::Pos, [f64; 4])> = None;
+        positions
+            .iter()
+            .map(|&pos| match last {
+                Some((lp, v)) if lp == pos => v,
+                _ => {
+                    let v = self.volts_at(pos);
+                    last = Some((pos, v));
+                    v
+                }
+            })
+            .collect()
+    }
+
     fn post_samples(&self) -> usize {
         (BUF as i64 / 2 + self.delay).clamp(0, BUF as i64) as usize
     }
@@ -260,9 +347,14 @@ impl Board {
         ((now - since).as_secs_f64() / self.dt()) as usize
     }
 
+    /// The trigger fired at `now` (at the external pulse's edge for `EXT_*`).
     fn fire(&mut self, now: Instant) {
         let Acq::Running { since, .. } = self.acq else {
             return;
+        };
+        let now = match self.src {
+            Src::ExtPe | Src::ExtNe => self.ext.last_edge().map_or(now, |e| e.clamp(since, now)),
+            _ => now,
         };
         let written = self.elapsed_samples(since, now);
         self.tpos = (self.wpos0 + written) % BUF;
@@ -271,13 +363,32 @@ impl Board {
             at: now,
             post: self.post_samples(),
         };
-        self.record();
+        self.record(now);
     }
 
-    /// Fill the ring buffer for the trigger at `tpos`: samples before it are pre-trigger
-    /// (negative times), from it on post-trigger.
-    fn record(&mut self) {
+    /// Fill the ring buffer for the trigger at `tpos` (instant `at`): samples before it are
+    /// pre-trigger (negative times), from it on post-trigger. Without a stage path every
+    /// sample carries the signal at the position at the trigger; with one, post-trigger sample
+    /// j carries the signal at the path's position at `at + j · dt`.
+    fn record(&mut self, at: Instant) {
         let base = self.input_volts();
+        let path = self.cfg.path.as_ref().and_then(StagePath::get);
+        let post_n = self.post_samples();
+        let dt_s = self.dt();
+        // the volts per post-trigger sample at the path's position at its time
+        let moving: Option<Vec<[f64; 4]>> = path.map(|p| {
+            let positions: Vec<crate::instrument::Pos> = (0..post_n.max(1))
+                .map(|j| {
+                    let t = at + Duration::from_secs_f64(j as f64 * dt_s);
+                    if t < p.start {
+                        p.base
+                    } else {
+                        p.at_cycle(((t - p.start).as_secs_f64() / p.dt) as usize)
+                    }
+                })
+                .collect();
+            self.volts_along(&positions)
+        });
         let dt = self.dt();
         let post = self.post_samples();
         let sigma = if self.avg {
@@ -295,7 +406,10 @@ impl Board {
                     j = j.wrapping_sub(BUF);
                 }
                 let t = j as isize as f64 * dt;
-                let mut v = base[ch];
+                let mut v = match &moving {
+                    Some(m) if (j as isize) >= 0 && j < m.len() => m[j][ch],
+                    _ => base[ch],
+                };
                 if let Some(g) = &self.cfg.generator {
                     v += g(t)[ch];
                 }

@@ -170,7 +170,10 @@ impl GcsDevice {
     }
 
     fn positions(&self) -> ([f64; 3], [bool; 3]) {
-        let now = Instant::now();
+        self.positions_at(Instant::now())
+    }
+
+    fn positions_at(&self, now: Instant) -> ([f64; 3], [bool; 3]) {
         let mut p = [0.0; 3];
         let mut o = [false; 3];
         for i in 0..3 {
@@ -425,6 +428,7 @@ impl Device for GcsDevice {
                 if trip {
                     self.set_error(-1024);
                 }
+                self.wave.clear_path();
                 self.wave.position_command();
                 None
             }

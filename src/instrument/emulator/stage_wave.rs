@@ -36,12 +36,21 @@
 //!   switch 0 = low, 1 = high; point 1 = the first point of the axis' generator). Each rising
 //!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`] wired to it.
 //!
+//! - parameters (`SPA? <item> <id>`, E-727 parameter list; PIPython's `getservotime` and
+//!   `getmaxnumvalues` read them): 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder
+//!   Max Points (all tables), 0x16000300 Data Recorder Chan Number; `WMS? [<table> …]`: points
+//!   per wave table (PI's "maximum size of the wave storage");
+//! - the path of a running wave is published at `WGO` on [`WaveConfig::path`] (see
+//!   [`StagePath`]), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
+//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`]).
+//!
 //! Errors (GCS codes): 1 syntax, 5 servo off, 7 wave outside the travel range, 15 unknown axis,
-//! 17 an id or value out of range, 57 no such record table, 58 no such record option, 59 no
-//! such record source, 67 wave table full, 73 motion command or wave change while a generator
-//! runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet recorded.
+//! 17 an id or value out of range, 54 a parameter not emulated, 57 no such record table, 58 no
+//! such record option, 59 no such record source, 67 wave table full, 73 motion command or wave
+//! change while a generator runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet
+//! recorded.
 
-use super::super::ExtTrigger;
+use super::super::{ExtTrigger, PathData, StagePath};
 use super::GcsDevice;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -63,6 +72,9 @@ pub struct WaveConfig {
     pub record_points: usize,
     /// What the digital outputs OUT1…OUT3 are wired to (a digitiser's external trigger).
     pub trigger_out: [Option<ExtTrigger>; 3],
+    /// Where the path of a running wave is published for a digitiser that samples the stage
+    /// during a whole acquisition (see [`StagePath`]).
+    pub path: Option<StagePath>,
 }
 
 impl Default for WaveConfig {
@@ -77,6 +89,7 @@ impl Default for WaveConfig {
             record_tables: 8,
             record_points: 65_536,
             trigger_out: [None, None, None],
+            path: None,
         }
     }
 }
@@ -207,8 +220,33 @@ impl Wave {
 
     /// Stop every generator (`STP`, `HLT`, `#24`); they hold their last output.
     pub(super) fn stop_all(&mut self) {
+        if self.gens.iter().any(|g| g.running) {
+            self.truncate_path();
+        }
         for g in &mut self.gens {
             g.running = false;
+        }
+    }
+
+    /// The published path ends at the current servo cycle.
+    fn truncate_path(&mut self) {
+        if let Some(p) = &self.cfg.path {
+            if let Some(d) = p.get() {
+                let k0 = self.cycle_of(d.start);
+                p.truncate(self.cycle.saturating_sub(k0) as usize);
+            }
+        }
+    }
+
+    /// The servo cycle whose instant is `t` (the inverse of [`instant_of`](Self::instant_of)).
+    fn cycle_of(&self, t: Instant) -> u64 {
+        (t.saturating_duration_since(self.clock0).as_secs_f64() / self.dt()).round() as u64
+    }
+
+    /// A `MOV` took the axes over: no wave path any more.
+    pub(super) fn clear_path(&mut self) {
+        if let Some(p) = &self.cfg.path {
+            p.clear();
         }
     }
 
@@ -271,7 +309,61 @@ fn lin_curve(amp: f64, n: usize, s: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Most servo cycles a published path holds (about 3.5 min at 50 µs).
+const MAX_PATH_CYCLES: usize = 1 << 22;
+
 impl GcsDevice {
+    /// Publish the path of the generators just started (`WGO`), computed as
+    /// [`servo_cycle`](Self::servo_cycle) will compute it: the generator's output per cycle,
+    /// the lag `x += α·(target − x)`, then `10 τ` more cycles for the lag to settle on the
+    /// last point (after that the path holds its last value).
+    fn publish_path(&mut self, now: Instant) {
+        let Some(handle) = self.wave.cfg.path.clone() else {
+            return;
+        };
+        let (base, _) = self.positions_at(now);
+        let dt = self.wave.dt();
+        let tail = (10.0 * self.wave.cfg.lag_s / dt).ceil() as usize + 1;
+        let mut start = None;
+        let mut x: [Option<Vec<f64>>; 3] = [None, None, None];
+        for (i, xi) in x.iter_mut().enumerate() {
+            let g = &self.wave.gens[i];
+            if !g.running {
+                continue;
+            }
+            start = Some(start.map_or(g.start, |s: u64| s.min(g.start)));
+            let table = &self.wave.tables[g.table - 1];
+            let len = table.len().max(1);
+            let rate = g.rate.max(1) as usize;
+            let wave_cycles = if g.cycles == 0 {
+                MAX_PATH_CYCLES
+            } else {
+                (len * rate).saturating_mul(g.cycles as usize)
+            };
+            let n = wave_cycles.saturating_add(tail).min(MAX_PATH_CYCLES);
+            let mut p = self.axes[i].lag.unwrap_or(base[i]);
+            let mut target = self.axes[i].target;
+            let mut v = Vec::with_capacity(n);
+            for j in 0..n {
+                if j < wave_cycles {
+                    target = table[(j / rate) % len];
+                }
+                p += self.wave.alpha * (target - p);
+                v.push(p);
+            }
+            *xi = Some(v);
+        }
+        if let Some(k0) = start {
+            handle.set(PathData {
+                start: self.wave.instant_of(k0),
+                dt,
+                base,
+                x,
+                stop: None,
+            });
+        }
+    }
+
     /// Advance the servo clock to `now`: generator outputs, lagged axes, trigger outputs and
     /// the recorder, cycle by cycle.
     pub(super) fn advance(&mut self, now: Instant) {
@@ -384,7 +476,7 @@ impl GcsDevice {
             };
             l.last_x = Some(xi);
             if pulse {
-                out.pulse();
+                out.pulse_at(t);
             }
         }
         // data recorder
@@ -458,6 +550,22 @@ impl GcsDevice {
             },
             "RTR?" if args.is_empty() => Ok(Some(self.wave.rtr.to_string())),
             "DRR?" => self.drr(args).map(Some),
+            "SPA?" => self.spa_q(args).map(Some),
+            "WMS?" => {
+                let ids: Result<Vec<usize>, i64> = if args.is_empty() {
+                    Ok((1..=self.wave.tables.len()).collect())
+                } else {
+                    args.iter().map(|a| self.table_id(a)).collect()
+                };
+                ids.map(|ids| {
+                    Some(
+                        ids.iter()
+                            .map(|t| format!("{t}={}", self.wave.cfg.table_points))
+                            .collect::<Vec<_>>()
+                            .join(" \n"),
+                    )
+                })
+            }
             _ => return None,
         };
         Some(match r {
@@ -493,6 +601,38 @@ impl GcsDevice {
             .map(|&t| format!("{t}={}", f(&self.wave, &self.cfg.axes, t - 1)))
             .collect();
         Ok(Some(lines.join(" \n")))
+    }
+
+    /// `SPA? {<item> <parameter id>}`: the wave generator's and recorder's parameters
+    /// (E-727 parameter list; PIPython's `getservotime`/`getmaxnumvalues` read the same ids):
+    /// 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder Max Points (all tables
+    /// together), 0x16000300 Data Recorder Chan Number (tables). Lines `item id=value`, the id
+    /// as given. Error 15 for an unknown item, 54 for a parameter not emulated.
+    fn spa_q(&mut self, args: &[&str]) -> Result<String, i64> {
+        if args.is_empty() || !args.len().is_multiple_of(2) {
+            return Err(1);
+        }
+        let mut out = Vec::new();
+        for c in args.chunks(2) {
+            if !self.cfg.axes.iter().any(|a| a == c[0]) {
+                return Err(15);
+            }
+            let id = match c[1].strip_prefix("0x").or_else(|| c[1].strip_prefix("0X")) {
+                Some(h) => u32::from_str_radix(h, 16).ok(),
+                None => c[1].parse::<u32>().ok(),
+            }
+            .ok_or(1i64)?;
+            let v = match id {
+                0x0E00_0200 => format!("{:e}", self.wave.cfg.servo_cycle_s),
+                0x1600_0200 => {
+                    (self.wave.cfg.record_points * self.wave.cfg.record_tables).to_string()
+                }
+                0x1600_0300 => self.wave.cfg.record_tables.to_string(),
+                _ => return Err(54),
+            };
+            out.push(format!("{} {}={v}", c[0], c[1]));
+        }
+        Ok(out.join(" \n"))
     }
 
     fn gen_id(&self, s: &str) -> Result<usize, i64> {
@@ -692,6 +832,9 @@ impl GcsDevice {
                 _ => {
                     self.wave.gens[g].mode = v as u32;
                     if v == 0 {
+                        if self.wave.gens[g].running {
+                            self.wave.truncate_path();
+                        }
                         self.wave.gens[g].running = false;
                     } else {
                         let (p, _) = self.axis_now(g, now);
@@ -709,6 +852,9 @@ impl GcsDevice {
         }
         if started && (self.wave.drt == 0 || self.wave.drt == 1) {
             self.wave.trigger_recording();
+        }
+        if started {
+            self.publish_path(now);
         }
         Ok(())
     }

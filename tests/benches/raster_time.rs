@@ -1,0 +1,196 @@
+//! Hardware-timed raster against point-by-point (issue 21, "Done means"): a 64 × 64 image at
+//! 1 ms per pixel on `bfpscope emulate redpitaya` (a PI GCS stage whose trigger output OUT1 is
+//! wired to a Red Pitaya 4-input board, loopback TCP), through the real drivers and the
+//! engines: `run_raster` (wave generator, triggered buffer, recorder) and `run_plan` (move,
+//! settle 5 ms, read) over the same field. The stage on a pseudo-terminal modelling a
+//! 115200-baud USB-serial link with 1 ms reply latency, at the pseudo-terminal's full speed,
+//! and on a loopback TCP port (a controller's GCS port 50000, 1 ms latency, no baud limit).
+//! The issue's target: raster wall time ≤ 1.2 × (4096 × 1 ms + turnarounds) = 1.2 × 64 × line
+//! duration. Prints a Markdown table and the per-line phases for docs/performance.md.
+//!
+//! `cargo bench --bench raster_time`
+
+use bfpscope::acquire::raster::{run_raster, RasterOptions};
+use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
+use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
+use bfpscope::instrument::{Instrument, WallClock};
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+const SETTLE_S: f64 = 0.005;
+const N: i64 = 64;
+const DWELL_S: f64 = 1e-3;
+
+/// Start `bfpscope emulate redpitaya --inputs 4` with these flags; the child, the stage path
+/// and the board's `host:port`.
+fn emulate(flags: &[&str]) -> (std::process::Child, String, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_bfpscope"))
+        .args(["emulate", "redpitaya", "--inputs", "4"])
+        .args(flags)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start bfpscope emulate redpitaya");
+    let out = BufReader::new(child.stdout.take().expect("stdout"));
+    let (mut stage, mut board) = (String::new(), String::new());
+    for line in out.lines() {
+        let line = line.expect("emulator output");
+        let path = || line.rsplit(" on ").next().unwrap_or("").to_string();
+        if line.starts_with("stage:") {
+            stage = path();
+        } else if line.starts_with("redpitaya:") {
+            board = path().trim_start_matches("tcp://").to_string();
+        } else if line.starts_with("Serving until") {
+            break;
+        }
+    }
+    (child, stage, board)
+}
+
+fn instrument(stage: &str, board: &str) -> Instrument {
+    let gcs = GcsOptions {
+        poll_interval: Duration::from_millis(1),
+        trigger_line: Some(1),
+        ..GcsOptions::default()
+    };
+    let (h, p) = board.rsplit_once(':').expect("host:port");
+    let rp = RedPitaya::open(
+        h,
+        p.parse().expect("port"),
+        RedPitayaOptions {
+            channels: ChannelMap {
+                sx: 1,
+                sy: 2,
+                sz: Some(3),
+            },
+            ..RedPitayaOptions::default()
+        },
+    )
+    .expect("board");
+    Instrument {
+        stage: Box::new(GcsStage::open(stage, 115_200, gcs).expect("stage")),
+        qpd: Box::new(rp),
+        clock: Arc::new(WallClock::default()),
+        settle_s: SETTLE_S,
+        description: serde_json::json!({}),
+    }
+}
+
+fn plan() -> Plan {
+    Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, -0.5, 0.5, N, "nx").expect("x"),
+        Sweep::new("scan_xy", Axis::Y, -0.5, 0.5, N, "ny").expect("y"),
+        vec![(Axis::Z, 0.0)],
+        DWELL_S,
+        false,
+        false,
+    )
+    .expect("plan")
+}
+
+/// One scan; its metadata.
+fn scan(inst: &mut Instrument, raster: bool) -> serde_json::Value {
+    inst.stage.move_to([-0.5, -0.5, 0.0]).expect("park");
+    let limits = SoftLimits::default();
+    let abort = AtomicBool::new(false);
+    let log = |s: &str| eprintln!("  {s}");
+    let save = |_: &bfpscope::data::Scan| Ok(std::path::PathBuf::from("memory"));
+    let env = ScanEnv::plain(&limits, &abort, &log, &save);
+    let run = if raster {
+        run_raster(inst, &plan(), &RasterOptions::default(), &env).expect("raster")
+    } else {
+        run_plan(inst, &plan(), &env).expect("points")
+    };
+    assert_eq!(run.ended, bfpscope::acquire::Ended::Complete);
+    run.scan.meta
+}
+
+fn main() {
+    // `cargo test --benches` runs benches with --bench absent: skip the slow work there
+    if !std::env::args().any(|a| a == "--bench") {
+        return;
+    }
+    let links: [(&str, &[&str], bool); 3] = [
+        (
+            "pty, 115200 baud, 1 ms latency",
+            &["--baud", "115200", "--latency-ms", "1"],
+            true,
+        ),
+        (
+            "pty full speed",
+            &["--baud", "max", "--latency-ms", "0"],
+            true,
+        ),
+        (
+            "TCP, 1 ms latency",
+            &["--tcp", "127.0.0.1:0", "--latency-ms", "1"],
+            false,
+        ),
+    ];
+    let mut table = Vec::new();
+    let mut phases = Vec::new();
+    for (name, flags, points_too) in links {
+        let (mut child, stage, board) = emulate(flags);
+        let mut inst = instrument(&stage, &board);
+        eprintln!("{name}: raster");
+        let m = scan(&mut inst, true);
+        let r = &m["raster"];
+        let line_s = r["line_s"].as_f64().unwrap_or(f64::NAN);
+        let wall = m["time"]["wall_s"].as_f64().unwrap_or(f64::NAN);
+        let target = 1.2 * N as f64 * line_s;
+        let points = if points_too {
+            eprintln!("{name}: point by point");
+            let p = scan(&mut inst, false);
+            p["time"]["wall_s"].as_f64()
+        } else {
+            None
+        };
+        table.push(format!(
+            "| {name} | {:.2} s | {:.1} ms ({:.1} ms turnaround) | {:.2} s | {:.2}× | {} | {} |",
+            wall,
+            line_s * 1e3,
+            r["turnaround_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            target,
+            wall / target,
+            points.map_or("—".into(), |p| format!("{p:.1} s")),
+            points.map_or("—".into(), |p| format!("{:.1}×", p / wall)),
+        ));
+        let l = &m["time"]["lines"];
+        let f = |k: &str| l[k].as_f64().unwrap_or(f64::NAN);
+        phases.push(format!(
+            "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} |",
+            wall / N as f64 * 1e3,
+            f("move_settle_ms"),
+            f("configure_arm_ms"),
+            f("wave_ms"),
+            f("qpd_read_ms"),
+            f("record_read_ms"),
+            r["samples_per_pixel_mean"]
+                .as_f64()
+                .map_or("—".into(), |v| format!("{v:.1}")),
+            r["record_rate"],
+        ));
+        drop(inst);
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    println!("| stage link | raster wall time | line (64 px + turnaround) | target 1.2 × 64 lines | raster / target | point by point (settle 5 ms) | points / raster |");
+    println!("|---|---|---|---|---|---|---|");
+    for r in &table {
+        println!("{r}");
+    }
+    println!();
+    println!("Per line, ms (`meta.time.lines`):");
+    println!();
+    println!("| stage link | wall per line | move + settle | configure + arm | wave | board read | recorder read (`DRR?`) | samples per pixel | record rate (cycles) |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in &phases {
+        println!("{r}");
+    }
+}
