@@ -187,17 +187,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("float", doc)
                 .summary(doc)
                 .example(&format!("{fil_ex} type_of(m.{name})"), "\"f64\""),
-            move |m: &mut FilamentRef| -> f64 {
-                let m = &m.0;
-                match name {
-                    "angle_deg" => m.angle_deg,
-                    "angle_err_deg" => m.angle_err_deg,
-                    "factor" => m.factor,
-                    "mean_corr" => m.mean_corr,
-                    "std_corr" => m.std_corr,
-                    _ => m.sem_corr,
-                }
-            },
+            move |m: &mut FilamentRef| filament_float(m, name),
         );
     }
     r.getter(
@@ -697,4 +687,18 @@ fn point_mass(spec: &Spec, m: &Map) -> RResult<Map> {
     let mut out = to_map(&p);
     out.insert("sens_rb".into(), sens_rb.into());
     Ok(out)
+}
+
+/// The float properties of a `FilamentMeasurement`: angle_deg and angle_err_deg (°), factor,
+/// mean_corr and std_corr (reference-bead units/µm) and (any other name) sem_corr.
+fn filament_float(m: &FilamentRef, name: &str) -> f64 {
+    let m = &m.0;
+    match name {
+        "angle_deg" => m.angle_deg,
+        "angle_err_deg" => m.angle_err_deg,
+        "factor" => m.factor,
+        "mean_corr" => m.mean_corr,
+        "std_corr" => m.std_corr,
+        _ => m.sem_corr,
+    }
 }

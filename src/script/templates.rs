@@ -179,17 +179,6 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.overload("max_sens", |t: &mut TemplateRef, px: f64, st: &str| {
         template_max_sens(t, px, Some(st))
     });
-    r.overload(
-        "max_sens",
-        |t: &mut TemplateRef, px: f64, st: &str| -> RResult<f64> {
-            let s = Stencil::parse(st).map_or_else(
-                || fail(format!("max_sens: stencil = \"{st}\" is not one of \"central2\", \"central5\", \"sg5\", …")),
-                Ok,
-            )?;
-            t.0.pipeline_max_sens(px, s, 0.4)
-                .map_err(|e| err("max_sens", e))
-        },
-    );
     let c = ctx.clone();
     r.bind(
         Doc::method("Template", "save")
@@ -331,17 +320,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("float", doc)
                 .summary(doc)
                 .example(&ex, expect),
-            move |f: &mut FitRef| -> f64 {
-                let r = &f.0;
-                match name {
-                    "chi2" => r.chi2,
-                    "rss" => r.rss,
-                    "sigma" => r.sigma,
-                    "bic" => r.bic,
-                    "condition" => r.condition,
-                    _ => r.total_weight(),
-                }
-            },
+            move |f: &mut FitRef| fit_float(f, name),
         );
     }
     for (name, doc) in [
@@ -355,15 +334,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("int", doc)
                 .summary(doc)
                 .example(&format!("{fx} f.{name} > 0"), "true"),
-            move |f: &mut FitRef| -> i64 {
-                let r = &f.0;
-                (match name {
-                    "dof" => r.dof,
-                    "iterations" => r.iterations,
-                    "evaluations" => r.evaluations,
-                    _ => r.beads.len(),
-                }) as i64
-            },
+            move |f: &mut FitRef| fit_count(f, name),
         );
     }
     r.getter(
@@ -411,18 +382,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("Image", doc)
                 .summary(doc)
                 .example(&format!("{fx} f.{name}.cols"), "41"),
-            move |f: &mut FitRef| -> ImageRef {
-                let r = &f.0;
-                ImageRef(Arc::new(
-                    match name {
-                        "model_sx" => &r.model_sx,
-                        "model_sy" => &r.model_sy,
-                        "residual_sx" => &r.residual_sx,
-                        _ => &r.residual_sy,
-                    }
-                    .clone(),
-                ))
-            },
+            move |f: &mut FitRef| fit_image(f, name),
         );
     }
     r.bind(
@@ -660,4 +620,45 @@ fn fit_map(f: &FitRef) -> Map {
         }
     }
     json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()
+}
+
+/// The float properties of a `FitResult`: chi2 = rss/σ², rss, sigma, bic, condition and (any
+/// other name) total_weight in reference-bead units.
+fn fit_float(f: &FitRef, name: &str) -> f64 {
+    let r = &f.0;
+    match name {
+        "chi2" => r.chi2,
+        "rss" => r.rss,
+        "sigma" => r.sigma,
+        "bic" => r.bic,
+        "condition" => r.condition,
+        _ => r.total_weight(),
+    }
+}
+
+/// The integer properties of a `FitResult`: dof, iterations, evaluations and (any other name)
+/// the number of beads.
+fn fit_count(f: &FitRef, name: &str) -> i64 {
+    let r = &f.0;
+    (match name {
+        "dof" => r.dof,
+        "iterations" => r.iterations,
+        "evaluations" => r.evaluations,
+        _ => r.beads.len(),
+    }) as i64
+}
+
+/// The image properties of a `FitResult`: model_sx, model_sy, residual_sx and (any other name)
+/// residual_sy = data − model.
+fn fit_image(f: &FitRef, name: &str) -> ImageRef {
+    let r = &f.0;
+    ImageRef(Arc::new(
+        match name {
+            "model_sx" => &r.model_sx,
+            "model_sy" => &r.model_sy,
+            "residual_sx" => &r.residual_sx,
+            _ => &r.residual_sy,
+        }
+        .clone(),
+    ))
 }
