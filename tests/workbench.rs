@@ -248,7 +248,7 @@ fn errors_are_one_line_with_position() {
     let e = w.eval_line("scan_xy").unwrap_err();
     assert!(
         e.message.contains(
-            "scan_xy is a function; usage: scan_xy(#{x, y, nx, ny, z, dwell, rel, snake})"
+            "scan_xy is a function; usage: scan_xy(#{x, y, nx, ny, z, dwell, rel, snake, mode, samples_per_pixel})"
         ),
         "{e}"
     );

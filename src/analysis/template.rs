@@ -132,6 +132,9 @@ pub struct FromScansOptions {
     pub iterations: usize,
 }
 
+/// Default node spacing (µm) of a model template (`Template::from_optics`), paper-like.
+pub const DEFAULT_MODEL_H_UM: f64 = 0.02;
+
 impl Default for FromScansOptions {
     fn default() -> Self {
         Self {

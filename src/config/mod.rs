@@ -51,6 +51,13 @@ pub const DEFAULT_FILE: &str = "bfpscope.toml";
 /// Environment variable naming a config file (takes precedence over `./bfpscope.toml`).
 pub const ENV_VAR: &str = "BFPSCOPE_CONFIG";
 
+/// Longest reply timeout a device may be given, ms (one hour): `[stage]`/`[qpd]` `timeout_ms`
+/// and `connect(#{timeout_ms})`.
+pub const MAX_TIMEOUT_MS: u64 = 3_600_000;
+
+/// Highest serial baud rate `connect(#{baud, stage_baud, qpd_baud})` accepts.
+pub const MAX_BAUD: u32 = 4_000_000;
+
 /// A config problem: where (file, key path, line) and what.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{origin}: {key}: {message}{}", line.map(|l| format!(" (line {l})")).unwrap_or_default())]
@@ -540,7 +547,7 @@ impl Config {
             ("stage.poll_ms", s.poll_ms),
             ("qpd.timeout_ms", q.timeout_ms),
         ] {
-            if v == 0 || v > 3_600_000 {
+            if v == 0 || v > MAX_TIMEOUT_MS {
                 return Err(err(
                     key,
                     format!("{v} ms: must be between 1 ms and one hour"),

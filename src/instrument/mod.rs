@@ -396,10 +396,13 @@ pub struct VirtualClock {
 }
 
 impl VirtualClock {
+    /// The pace of a new clock: 0, no sleeping (as fast as the simulator computes).
+    pub const DEFAULT_PACE: f64 = 0.0;
+
     pub fn new() -> Self {
         Self {
             t: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
-            pace: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
+            pace: std::sync::atomic::AtomicU64::new(Self::DEFAULT_PACE.to_bits()),
         }
     }
 

@@ -66,13 +66,54 @@ pub(crate) fn count(who: &str, o: &Opts, key: &str, lo: i64, hi: i64) -> RResult
     }
 }
 
+/// Peak options from the `peak_keys()`; defaults from `PeakOptions::default()` (the same values
+/// the help texts print).
 pub(crate) fn peak_opts(who: &str, o: &Opts) -> RResult<PeakOptions> {
+    let d = PeakOptions::default();
     Ok(PeakOptions {
-        window_um: pos_f64(who, o, "window_um", 0.4, 1e-3, 100.0)?,
+        window_um: pos_f64(who, o, "window_um", d.window_um, 1e-3, 100.0)?,
         min_value: o.f64("min_value")?,
-        min_snr: pos_f64(who, o, "min_snr", 0.0, 0.0, 1e6)?,
+        min_snr: pos_f64(who, o, "min_snr", d.min_snr, 0.0, 1e6)?,
         sigma: o.f64("sigma")?,
     })
+}
+
+/// Keys of the line-maximum options (`peak_opts`): help texts read their defaults from
+/// `PeakOptions::default()`.
+pub(crate) fn peak_keys() -> Vec<Key> {
+    let d = PeakOptions::default();
+    vec![
+        (
+            "window_um",
+            "float",
+            "µm",
+            format!(
+                "optional: parabola window (default {}, Sec. 5)",
+                d.window_um
+            ),
+        ),
+        (
+            "min_snr",
+            "float",
+            "",
+            format!(
+                "optional: reject maxima below min_snr × line noise (default {})",
+                d.min_snr
+            ),
+        ),
+        (
+            "min_value",
+            "float",
+            "",
+            "optional: reject maxima below this value".into(),
+        ),
+        (
+            "sigma",
+            "float",
+            "",
+            "optional: known pixel noise (default: from the fit residuals)".into(),
+        ),
+    ]
 }
 
 pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult<MeasureOptions> {

@@ -3,7 +3,7 @@
 //! linear density, masses.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
 use crate::analysis::quantities::{
@@ -84,28 +84,11 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2, pixel_um: 0.05})", "error: n_angles = 2")
         .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 7})", "error: angle_curve: pixel_um is required");
     let spec = d.spec();
-    let f = move |t: TemplateRef, m: Map| -> RResult<CurveRef> {
-        let who = "angle_curve";
-        let o = Opts::new(&spec, &m)?;
-        let d = AngleCurveOptions::default();
-        let co = AngleCurveOptions {
-            n_angles: o
-                .int("n_angles")?
-                .map_or(d.n_angles, |v| v.clamp(0, 100_000) as usize),
-            pixel_um: pixel_of(who, &o)?,
-            d_nm: o.f64("d_nm")?,
-            n: o.f64("n")?,
-            bead_model: BeadModelOptions {
-                spacing_nm: o.f64_or("spacing_nm", d.bead_model.spacing_nm)?,
-            },
-            measure: measure_opts(who, &o, d.measure)?,
-        };
-        let c = AngleCurve::compute(&t.0, &co).map_err(|e| err(who, e))?;
-        Ok(CurveRef(Arc::new(c)))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("angle_curve", move |t: TemplateRef| f2(t, Map::new()));
+    let s2 = spec.clone();
+    r.bind(d, move |t: TemplateRef, m: Map| angle_curve(&spec, &t, &m));
+    r.overload("angle_curve", move |t: TemplateRef| {
+        angle_curve(&s2, &t, &Map::new())
+    });
 
     r.bind(
         Doc::method("AngleCurve", "at")
@@ -126,13 +109,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 ),
                 "0.0",
             ),
-        |c: &mut CurveRef, a: f64| -> Map {
-            let (sx, sy) = c.0.eval(a);
-            let mut m = Map::new();
-            m.insert("sx".into(), sx.into());
-            m.insert("sy".into(), sy.into());
-            m
-        },
+        |c: &mut CurveRef, a: f64| curve_at(c, a),
     );
     r.bind(
         Doc::method("AngleCurve", "correction")
@@ -156,18 +133,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 &format!("{CURVE} c.correction(0.0, \"sz\")"),
                 "error: channel = \"sz\"",
             ),
-        |c: &mut CurveRef, a: f64, ch: &str| -> RResult<f64> {
-            let channel = match ch {
-                "sx" | "x" => Channel::SxRows,
-                "sy" | "y" => Channel::SyCols,
-                _ => {
-                    return fail(format!(
-                        "correction: channel = \"{ch}\" is not one of \"sx\", \"sy\""
-                    ))
-                }
-            };
-            c.0.correction(a, channel).map_err(|e| err("correction", e))
-        },
+        |c: &mut CurveRef, a: f64, ch: &str| curve_correction(c, a, ch),
     );
     r.getter(
         Doc::property("AngleCurve", "nodes")
@@ -177,16 +143,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             )
             .summary("the computed nodes of the curve (for plots and tables)")
             .example(&format!("{CURVE} c.nodes.angle_deg.len()"), "6"),
-        |c: &mut CurveRef| -> Map {
-            let c = &c.0;
-            let mut m = Map::new();
-            m.insert("angle_deg".into(), floats(&c.angles_deg).into());
-            m.insert("sx".into(), floats(&c.sx).into());
-            m.insert("sy".into(), floats(&c.sy).into());
-            m.insert("sx0".into(), c.sx0.into());
-            m.insert("pixel_um".into(), c.options.pixel_um.into());
-            m
-        },
+        |c: &mut CurveRef| curve_nodes(c),
     );
 
     let d = Doc::func("measure_filament")
@@ -199,21 +156,14 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation.");
     let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
     let spec = d.spec();
-    let f = move |s: ScanRef, c: CurveRef, m: Map| -> RResult<FilamentRef> {
-        let o = Opts::new(&spec, &m)?;
-        let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
-        let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
-            .map_err(|e| err("measure_filament", e))?;
-        Ok(FilamentRef(Arc::new(r)))
-    };
-    let f2 = f.clone();
+    let s2 = spec.clone();
     r.bind(
         d.example(&format!("{fil_ex} round(m.angle_deg)"), "14.0")
             .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
-        f,
+        move |s: ScanRef, c: CurveRef, m: Map| measure_filament_of(&spec, &s, &c, &m),
     );
     r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
-        f2(s, c, Map::new())
+        measure_filament_of(&s2, &s, &c, &Map::new())
     });
     for (name, doc) in [
         (
@@ -237,17 +187,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("float", doc)
                 .summary(doc)
                 .example(&format!("{fil_ex} type_of(m.{name})"), "\"f64\""),
-            move |m: &mut FilamentRef| -> f64 {
-                let m = &m.0;
-                match name {
-                    "angle_deg" => m.angle_deg,
-                    "angle_err_deg" => m.angle_err_deg,
-                    "factor" => m.factor,
-                    "mean_corr" => m.mean_corr,
-                    "std_corr" => m.std_corr,
-                    _ => m.sem_corr,
-                }
-            },
+            move |m: &mut FilamentRef| filament_float(m, name),
         );
     }
     r.getter(
@@ -295,36 +235,21 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 &format!("{fil_ex} m.profile(\"mass\")"),
                 "error: key = \"mass\"",
             ),
-        |m: &mut FilamentRef, key: &str| -> RResult<ProfileRef> {
-            let pts = &m.0.points;
-            let v: Vec<f64> = match key {
-                "sens_corr" => pts.iter().map(|p| p.sens_corr).collect(),
-                "sens" => pts.iter().map(|p| p.sens).collect(),
-                _ => {
-                    return fail(format!(
-                        "profile: key = \"{key}\" is not one of \"sens_corr\", \"sens\""
-                    ))
-                }
-            };
-            let t: Vec<f64> = pts.iter().map(|p| p.arc_um).collect();
-            let p = crate::data::Profile::try_new(t, v)
-                .map_err(|e| err("profile", e))?
-                .with_t_name("arc length");
-            Ok(ProfileRef(Arc::new(p)))
-        },
+        |m: &mut FilamentRef, key: &str| filament_profile(m, key),
     );
 
+    let sd = SbrOptions::default();
     let d = Doc::func("sbr")
         .arg("m", "FilamentMeasurement", "", "a measured filament")
         .map(
             "opts",
             "optional",
             &[
-                ("skip_um", "float", "µm", "optional: arc skipped from the first non-zero maximum (default 1.2, Sec. 6)"),
-                ("both_ends", "bool", "", "optional: also skip at the far end (default true)"),
-                ("exclusion_um", "float", "µm", "optional: background pixels farther than this from the line (default 1.0)"),
-                ("nonzero_snr", "float", "", "optional: a maximum is non-zero above this × background std (default 0)"),
-                ("min_run", "int", "", "optional: consecutive lines that start the filament (default 3)"),
+                ("skip_um", "float", "µm", format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", sd.skip_um)),
+                ("both_ends", "bool", "", format!("optional: also skip at the far end (default {})", sd.both_ends)),
+                ("exclusion_um", "float", "µm", format!("optional: background pixels farther than this from the line (default {:?})", sd.exclusion_um)),
+                ("nonzero_snr", "float", "", format!("optional: a maximum is non-zero above this × background std (default {})", sd.nonzero_snr)),
+                ("min_run", "int", "", format!("optional: consecutive lines that start the filament (default {})", sd.min_run)),
             ],
         )
         .form("sbr(m) -> map")
@@ -333,23 +258,11 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{fil_ex} sbr(m, #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{fil_ex} sbr(m, #{{skip_um: -1.0}})"), "error: skip_um = -1");
     let spec = d.spec();
-    let f = move |m: FilamentRef, mm: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &mm)?;
-        let d = SbrOptions::default();
-        let so = SbrOptions {
-            skip_um: o.f64_or("skip_um", d.skip_um)?,
-            both_ends: o.bool_or("both_ends", d.both_ends)?,
-            exclusion_um: o.f64_or("exclusion_um", d.exclusion_um)?,
-            nonzero_snr: o.f64_or("nonzero_snr", d.nonzero_snr)?,
-            min_run: count("sbr", &o, "min_run", 1, 100_000)?.unwrap_or(d.min_run),
-        };
-        let r = sbr(&m.0, &so).map_err(|e| err("sbr", e))?;
-        Ok(to_map(&r))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("sbr", move |m: FilamentRef| f2(m, Map::new()));
+    let s2 = spec.clone();
+    r.bind(d, move |m: FilamentRef, mm: Map| sbr_of(&spec, &m, &mm));
+    r.overload("sbr", move |m: FilamentRef| sbr_of(&s2, &m, &Map::new()));
 
+    let bd = BackgroundOptions::default();
     let d = Doc::func("remove_background")
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
         .arg("tpl", "Template", "", "the point-particle template")
@@ -357,10 +270,10 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "opts",
             "optional",
             &[
-                ("axis", "string", "", "optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\""),
-                ("angle_deg", "float", "°", "optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")"),
-                ("detect_snr", "float", "", "optional: detections above detect_snr × robust noise (default 6)"),
-                ("max_objects", "int", "", "optional: most point objects fitted (default 60)"),
+                ("axis", "string", "", "optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
+                ("angle_deg", "float", "°", "optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
+                ("detect_snr", "float", "", format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
+                ("max_objects", "int", "", format!("optional: most point objects fitted (default {})", bd.max_objects)),
             ],
         )
         .form("remove_background(scan, tpl) -> map")
@@ -369,50 +282,12 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
     let spec = d.spec();
-    let f = move |s: ScanRef, t: TemplateRef, m: Map| -> RResult<Map> {
-        let who = "remove_background";
-        let o = Opts::new(&spec, &m)?;
-        let d = BackgroundOptions::default();
-        let axis = match (o.string("axis")?.as_deref(), o.f64("angle_deg")?) {
-            (Some("y"), _) => FilamentAxis::Y,
-            (Some("x"), _) => FilamentAxis::X,
-            (Some(a), _) => {
-                return fail(format!("{who}: axis = \"{a}\" is not one of \"x\", \"y\""))
-            }
-            (None, Some(a)) => FilamentAxis::from_angle(a),
-            (None, None) => d.axis,
-        };
-        let bo = BackgroundOptions {
-            axis,
-            detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
-            max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
-            ..d.clone()
-        };
-        let r =
-            remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
-        let mut out = Map::new();
-        let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
-        let mut meta = s.scan.meta.clone();
-        meta["background_removed"] = serde_json::json!({
-            "axis": format!("{:?}", bo.axis),
-            "n_objects": n,
-        });
-        out.insert(
-            "scan".into(),
-            Dynamic::from(scan_of(r.sx, r.sy, s.scan.sz.clone(), meta)),
-        );
-        out.insert(
-            "fit".into(),
-            r.fit
-                .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
-        );
-        out.insert("n_objects".into(), (n as i64).into());
-        Ok(out)
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
+    let s2 = spec.clone();
+    r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
+        remove_background(&spec, &s, &t, &m)
+    });
     r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
-        f2(s, t, Map::new())
+        remove_background(&s2, &s, &t, &Map::new())
     });
 
     // quantities
@@ -447,22 +322,8 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2, pixel_um: 0.05}})"), "error: n_obj")
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.41}})"), "error: diameter_calib: pixel_um is required");
     let spec = d.spec();
-    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
-        let who = "diameter_calib";
-        let o = Opts::new(&spec, &m)?;
-        let (px, mo, bm) = pipeline_opts(who, &o)?;
-        let rb = t.0.reference;
-        let c = DiameterCalib::from_template(
-            &t.0,
-            o.req_f64("n_obj")?,
-            o.f64_or("d_bm_nm", rb.d_nm)?,
-            o.f64_or("n_bm", rb.n)?,
-            px,
-            &mo,
-            &bm,
-        )
-        .map_err(|e| err(who, e))?;
-        Ok(to_map(&c))
+    r.bind(d, move |t: TemplateRef, m: Map| {
+        diameter_calib(&spec, &t, &m)
     });
     r.bind(
         Doc::func("fibril_diameter")
@@ -504,20 +365,8 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "true",
         );
     let spec = d.spec();
-    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<Map> {
-        let who = "lin_dens_calib";
-        let o = Opts::new(&spec, &m)?;
-        let (px, mo, bm) = pipeline_opts(who, &o)?;
-        let c = LinDensCalib::from_template(
-            &t.0,
-            o.f64_or("n_obj", PROTEIN_N)?,
-            o.f64_or("density_obj", LIN_DENS_DENSITY_OBJ_G_CM3)?,
-            px,
-            &mo,
-            &bm,
-        )
-        .map_err(|e| err(who, e))?;
-        Ok(to_map(&c))
+    r.bind(d, move |t: TemplateRef, m: Map| {
+        lin_dens_calib(&spec, &t, &m)
     });
     let d = Doc::func("linear_density")
         .arg("sens_corr", "float", "", "orientation-corrected max sensitivity (reference-bead units/µm)")
@@ -526,33 +375,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .summary("microtubule linear density and the protofilament number it implies (eq. mtLinDens, Sec. 6)")
         .example("linear_density(1.0, #{mu_bm_mda_um: 6.0, d_bm_nm: 110.0, density_bm: 1.05, sens_bm: 1.0, n_obj: 1.55, density_obj: 1.35, n_corr: 0.5}).mu_mda_um", "15.428571428571429")
         .example("linear_density(1.0, #{})", "error: calib");
-    r.bind(d, |s: f64, c: Map| -> RResult<Map> {
-        let who = "linear_density";
-        let get = |k: &str| -> RResult<f64> {
-            match c.get(k) {
-                Some(v) => num(who, &format!("calib.{k}"), v),
-                None => fail(format!(
-                    "{who}: calib lacks `{k}`: pass the map lin_dens_calib returns"
-                )),
-            }
-        };
-        let cal = LinDensCalib {
-            mu_bm_mda_um: get("mu_bm_mda_um")?,
-            d_bm_nm: get("d_bm_nm")?,
-            density_bm: get("density_bm")?,
-            sens_bm: get("sens_bm")?,
-            n_obj: get("n_obj")?,
-            density_obj: get("density_obj")?,
-            n_corr: get("n_corr")?,
-        };
-        let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
-        let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
-        let mut m = Map::new();
-        m.insert("mu_mda_um".into(), mu.into());
-        m.insert("protofilaments".into(), (n as i64).into());
-        m.insert("protofilaments_exact".into(), x.into());
-        Ok(m)
-    });
+    r.bind(d, |s: f64, c: Map| linear_density(s, &c));
     let mut pm_keys: Vec<Key> = vec![
         ("sens", "float", "", "its max sensitivity (reference-bead units: scan values × tpl.norm_factor; or a fit weight with fit_weight: true)".into()),
         ("sens_err", "float", "", "optional: 1σ of sens".into()),
@@ -592,48 +415,290 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example("point_mass(#{sens: 1.0})", "error: point_mass: the reference bead's sensitivity is missing")
         .example("point_mass(#{sens: -1.0, fit_weight: true})", "error: sens_obj = -1");
     let spec = d.spec();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let who = "point_mass";
-        let o = Opts::new(&spec, &m)?;
-        let rb = RefBead::default();
-        let tpl = match o.value("tpl") {
-            None => None,
-            Some(v) => match v.read_lock::<TemplateRef>() {
-                Some(t) => Some(t.clone()),
-                None => return fail(format!("{who}: tpl must be a Template, got {}", v.type_name())),
-            },
-        };
-        let fit = o.bool_or("fit_weight", false)?;
-        let given = o.f64("sens_rb")?;
-        let n_ways = usize::from(given.is_some()) + usize::from(tpl.is_some()) + usize::from(fit);
-        if n_ways > 1 {
-            return fail(format!("{who}: give only one of sens_rb, tpl (with the pixel size) and fit_weight: true"));
+    r.bind(d, move |m: Map| point_mass(&spec, &m));
+}
+
+/// `angle_curve(tpl, opts)`: maximum Sx and Sy sensitivity of a long straight bead-model
+/// filament vs its angle, measured on pixels of pixel_um by the data's pipeline and normalised
+/// to Sx at 0° (Sec. 4.2 step 2, Fig. 4d).
+fn angle_curve(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<CurveRef> {
+    let who = "angle_curve";
+    let o = Opts::new(spec, m)?;
+    let d = AngleCurveOptions::default();
+    let co = AngleCurveOptions {
+        n_angles: o
+            .int("n_angles")?
+            .map_or(d.n_angles, |v| v.clamp(0, 100_000) as usize),
+        pixel_um: pixel_of(who, &o)?,
+        d_nm: o.f64("d_nm")?,
+        n: o.f64("n")?,
+        bead_model: BeadModelOptions {
+            spacing_nm: o.f64_or("spacing_nm", d.bead_model.spacing_nm)?,
+        },
+        measure: measure_opts(who, &o, d.measure)?,
+    };
+    let c = AngleCurve::compute(&t.0, &co).map_err(|e| err(who, e))?;
+    Ok(CurveRef(Arc::new(c)))
+}
+
+/// `AngleCurve.at(angle_deg)`: the normalised maximum sensitivities (Sx, Sy) at an angle (°),
+/// interpolated with period 180°.
+fn curve_at(c: &CurveRef, a: f64) -> Map {
+    let (sx, sy) = c.0.eval(a);
+    let mut m = Map::new();
+    m.insert("sx".into(), sx.into());
+    m.insert("sy".into(), sy.into());
+    m
+}
+
+/// `AngleCurve.correction(angle_deg, channel)`: the factor that maps a maximum measured in
+/// `channel` at the angle (°) to the QPD y-axis orientation (Sec. 4.2 step 5).
+fn curve_correction(c: &CurveRef, a: f64, ch: &str) -> RResult<f64> {
+    let channel = match ch {
+        "sx" | "x" => Channel::SxRows,
+        "sy" | "y" => Channel::SyCols,
+        _ => {
+            return fail(format!(
+                "correction: channel = \"{ch}\" is not one of \"sx\", \"sy\""
+            ))
         }
-        let sens_rb = match (given, tpl) {
-            (Some(v), _) => v,
-            (None, Some(t)) => {
-                let px = pixel_of(who, &o)?;
-                let base = crate::analysis::MeasureOptions::default();
-                let st = stencil_of(who, &o, base.stencil)?;
-                let win = pos_f64(who, &o, "window_um", base.window_um, 1e-3, 100.0)?;
-                t.0.pipeline_max_sens(px, st, win).map_err(|e| err(who, e))?
-            }
-            (None, None) if fit => 1.0,
-            (None, None) => {
-                return fail(format!("{who}: the reference bead's sensitivity is missing: give sens_rb (its max sensitivity through the same pipeline, e.g. tpl.max_sens(pixel_um)), or tpl with pixel_um (or scan), or fit_weight: true for a template-fit weight"));
-            }
-        };
-        let p = point_object(
-            o.req_f64("sens")?,
-            o.f64("sens_err")?,
-            sens_rb,
-            o.f64_or("n_obj", rb.n)?,
-            o.f64_or("density", rb.density_g_cm3)?,
-            &rb,
-        )
-        .map_err(|e| err(who, e))?;
-        let mut out = to_map(&p);
-        out.insert("sens_rb".into(), sens_rb.into());
-        Ok(out)
+    };
+    c.0.correction(a, channel).map_err(|e| err("correction", e))
+}
+
+/// `AngleCurve.nodes`: the computed nodes (angles °, Sx, Sy), Sx at 0° and the pixel size (µm).
+fn curve_nodes(c: &CurveRef) -> Map {
+    let c = &c.0;
+    let mut m = Map::new();
+    m.insert("angle_deg".into(), floats(&c.angles_deg).into());
+    m.insert("sx".into(), floats(&c.sx).into());
+    m.insert("sy".into(), floats(&c.sy).into());
+    m.insert("sx0".into(), c.sx0.into());
+    m.insert("pixel_um".into(), c.options.pixel_um.into());
+    m
+}
+
+/// `measure_filament(scan, curve[, opts])`: the filament's angle from its row (or column)
+/// maxima and the orientation-corrected sensitivities along it (Sec. 4.2 steps 4–5).
+fn measure_filament_of(spec: &Spec, s: &ScanRef, c: &CurveRef, m: &Map) -> RResult<FilamentRef> {
+    let o = Opts::new(spec, m)?;
+    let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
+    let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
+        .map_err(|e| err("measure_filament", e))?;
+    Ok(FilamentRef(Arc::new(r)))
+}
+
+/// `FilamentMeasurement.profile(key)`: `sens_corr` or `sens` vs arc length (µm) along the
+/// filament.
+fn filament_profile(m: &FilamentRef, key: &str) -> RResult<ProfileRef> {
+    let pts = &m.0.points;
+    let v: Vec<f64> = match key {
+        "sens_corr" => pts.iter().map(|p| p.sens_corr).collect(),
+        "sens" => pts.iter().map(|p| p.sens).collect(),
+        _ => {
+            return fail(format!(
+                "profile: key = \"{key}\" is not one of \"sens_corr\", \"sens\""
+            ))
+        }
+    };
+    let t: Vec<f64> = pts.iter().map(|p| p.arc_um).collect();
+    let p = crate::data::Profile::try_new(t, v)
+        .map_err(|e| err("profile", e))?
+        .with_t_name("arc length");
+    Ok(ProfileRef(Arc::new(p)))
+}
+
+/// `sbr(m[, opts])`: the signal-to-background ratio of a measured filament both ways the paper
+/// defines it (Sec. 6).
+fn sbr_of(spec: &Spec, m: &FilamentRef, mm: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, mm)?;
+    let d = SbrOptions::default();
+    let so = SbrOptions {
+        skip_um: o.f64_or("skip_um", d.skip_um)?,
+        both_ends: o.bool_or("both_ends", d.both_ends)?,
+        exclusion_um: o.f64_or("exclusion_um", d.exclusion_um)?,
+        nonzero_snr: o.f64_or("nonzero_snr", d.nonzero_snr)?,
+        min_run: count("sbr", &o, "min_run", 1, 100_000)?.unwrap_or(d.min_run),
+    };
+    let r = sbr(&m.0, &so).map_err(|e| err("sbr", e))?;
+    Ok(to_map(&r))
+}
+
+/// `remove_background(scan, tpl[, opts])`: fit the point-like aggregates in the channel the
+/// filament barely shows in and subtract them from both channels (Sec. 6, Fig. 6).
+fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<Map> {
+    let who = "remove_background";
+    let o = Opts::new(spec, m)?;
+    let d = BackgroundOptions::default();
+    let axis = match (o.string("axis")?.as_deref(), o.f64("angle_deg")?) {
+        (Some("y"), _) => FilamentAxis::Y,
+        (Some("x"), _) => FilamentAxis::X,
+        (Some(a), _) => return fail(format!("{who}: axis = \"{a}\" is not one of \"x\", \"y\"")),
+        (None, Some(a)) => FilamentAxis::from_angle(a),
+        (None, None) => d.axis,
+    };
+    let bo = BackgroundOptions {
+        axis,
+        detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
+        max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
+        ..d.clone()
+    };
+    let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
+    let mut out = Map::new();
+    let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
+    let mut meta = s.scan.meta.clone();
+    meta["background_removed"] = serde_json::json!({
+        "axis": format!("{:?}", bo.axis),
+        "n_objects": n,
     });
+    out.insert(
+        "scan".into(),
+        Dynamic::from(scan_of(r.sx, r.sy, s.scan.sz.clone(), meta)),
+    );
+    out.insert(
+        "fit".into(),
+        r.fit
+            .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
+    );
+    out.insert("n_objects".into(), (n as i64).into());
+    Ok(out)
+}
+
+/// `diameter_calib(tpl, opts)`: the constant A (nm) of fibril diameters d = A·√(sens_corr)
+/// from a bead-model cylinder measured by the data's pixel pipeline and n_corr (eqs. colDiam,
+/// OurColD).
+fn diameter_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
+    let who = "diameter_calib";
+    let o = Opts::new(spec, m)?;
+    let (px, mo, bm) = pipeline_opts(who, &o)?;
+    let rb = t.0.reference;
+    let c = DiameterCalib::from_template(
+        &t.0,
+        o.req_f64("n_obj")?,
+        o.f64_or("d_bm_nm", rb.d_nm)?,
+        o.f64_or("n_bm", rb.n)?,
+        px,
+        &mo,
+        &bm,
+    )
+    .map_err(|e| err(who, e))?;
+    Ok(to_map(&c))
+}
+
+/// `lin_dens_calib(tpl, opts)`: the calibration of linear densities (MDa/µm) from the
+/// template's bead model, measured by the data's pixel pipeline (eq. mtLinDens).
+fn lin_dens_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
+    let who = "lin_dens_calib";
+    let o = Opts::new(spec, m)?;
+    let (px, mo, bm) = pipeline_opts(who, &o)?;
+    let c = LinDensCalib::from_template(
+        &t.0,
+        o.f64_or("n_obj", PROTEIN_N)?,
+        o.f64_or("density_obj", LIN_DENS_DENSITY_OBJ_G_CM3)?,
+        px,
+        &mo,
+        &bm,
+    )
+    .map_err(|e| err(who, e))?;
+    Ok(to_map(&c))
+}
+
+/// `linear_density(sens_corr, calib)`: a microtubule's linear density (MDa/µm) and the
+/// protofilament number it implies (13.75 MDa/µm each; eq. mtLinDens, Sec. 6).
+fn linear_density(s: f64, c: &Map) -> RResult<Map> {
+    let who = "linear_density";
+    let get = |k: &str| -> RResult<f64> {
+        match c.get(k) {
+            Some(v) => num(who, &format!("calib.{k}"), v),
+            None => fail(format!(
+                "{who}: calib lacks `{k}`: pass the map lin_dens_calib returns"
+            )),
+        }
+    };
+    let cal = LinDensCalib {
+        mu_bm_mda_um: get("mu_bm_mda_um")?,
+        d_bm_nm: get("d_bm_nm")?,
+        density_bm: get("density_bm")?,
+        sens_bm: get("sens_bm")?,
+        n_obj: get("n_obj")?,
+        density_obj: get("density_obj")?,
+        n_corr: get("n_corr")?,
+    };
+    let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
+    let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
+    let mut m = Map::new();
+    m.insert("mu_mda_um".into(), mu.into());
+    m.insert("protofilaments".into(), (n as i64).into());
+    m.insert("protofilaments_exact".into(), x.into());
+    Ok(m)
+}
+
+/// `point_mass(obj)`: volume (nm³) and mass (kDa) of a point-like object from its maximum
+/// sensitivity, V/V_rb = sens/(n_corr·sens_rb), the reference bead's sensitivity read through
+/// the same pipeline (eqs. after nCor).
+fn point_mass(spec: &Spec, m: &Map) -> RResult<Map> {
+    let who = "point_mass";
+    let o = Opts::new(spec, m)?;
+    let rb = RefBead::default();
+    let tpl = match o.value("tpl") {
+        None => None,
+        Some(v) => match v.read_lock::<TemplateRef>() {
+            Some(t) => Some(t.clone()),
+            None => {
+                return fail(format!(
+                    "{who}: tpl must be a Template, got {}",
+                    v.type_name()
+                ))
+            }
+        },
+    };
+    let fit = o.bool_or("fit_weight", false)?;
+    let given = o.f64("sens_rb")?;
+    let n_ways = usize::from(given.is_some()) + usize::from(tpl.is_some()) + usize::from(fit);
+    if n_ways > 1 {
+        return fail(format!(
+            "{who}: give only one of sens_rb, tpl (with the pixel size) and fit_weight: true"
+        ));
+    }
+    let sens_rb = match (given, tpl) {
+        (Some(v), _) => v,
+        (None, Some(t)) => {
+            let px = pixel_of(who, &o)?;
+            let base = crate::analysis::MeasureOptions::default();
+            let st = stencil_of(who, &o, base.stencil)?;
+            let win = pos_f64(who, &o, "window_um", base.window_um, 1e-3, 100.0)?;
+            t.0.pipeline_max_sens(px, st, win)
+                .map_err(|e| err(who, e))?
+        }
+        (None, None) if fit => 1.0,
+        (None, None) => {
+            return fail(format!("{who}: the reference bead's sensitivity is missing: give sens_rb (its max sensitivity through the same pipeline, e.g. tpl.max_sens(pixel_um)), or tpl with pixel_um (or scan), or fit_weight: true for a template-fit weight"));
+        }
+    };
+    let p = point_object(
+        o.req_f64("sens")?,
+        o.f64("sens_err")?,
+        sens_rb,
+        o.f64_or("n_obj", rb.n)?,
+        o.f64_or("density", rb.density_g_cm3)?,
+        &rb,
+    )
+    .map_err(|e| err(who, e))?;
+    let mut out = to_map(&p);
+    out.insert("sens_rb".into(), sens_rb.into());
+    Ok(out)
+}
+
+/// The float properties of a `FilamentMeasurement`: angle_deg and angle_err_deg (°), factor,
+/// mean_corr and std_corr (reference-bead units/µm) and (any other name) sem_corr.
+fn filament_float(m: &FilamentRef, name: &str) -> f64 {
+    let m = &m.0;
+    match name {
+        "angle_deg" => m.angle_deg,
+        "angle_err_deg" => m.angle_err_deg,
+        "factor" => m.factor,
+        "mean_corr" => m.mean_corr,
+        "std_corr" => m.std_corr,
+        _ => m.sem_corr,
+    }
 }

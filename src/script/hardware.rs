@@ -1,6 +1,7 @@
 //! Binding family `hardware`: raw access to a connected controller for debugging, queries only
 //! (issue 16 item 7). Motion never goes through here: it goes through the engine's checks.
 
+use super::ctx::Ctx;
 use super::registry::{fail, Doc, RResult, Registrar};
 use rhai::{Array, Dynamic};
 
@@ -23,17 +24,21 @@ pub fn register(r: &mut Registrar) {
                 "connect(#{backend: \"mock\"}); gcs_query(\"SAI?\")",
                 "error: gcs_query: mock stage: `SAI?`: this stage has no command language to query",
             ),
-        move |q: &str| -> RResult<Array> {
-            if q.trim().is_empty() {
-                return fail("gcs_query: query is empty; e.g. gcs_query(\"SAI?\")");
-            }
-            c.with_instrument("gcs_query", |i| {
-                let lines = i
-                    .stage
-                    .raw_query(q)
-                    .map_err(|e| format!("gcs_query: {e}"))?;
-                Ok(lines.into_iter().map(Dynamic::from).collect())
-            })
-        },
+        move |q: &str| gcs_query(&c, q),
     );
+}
+
+/// `gcs_query(query)`: the reply lines of the connected controller to one raw GCS query; only
+/// queries (commands ending in `?`) reach the port, motion is refused by the stage.
+fn gcs_query(c: &Ctx, q: &str) -> RResult<Array> {
+    if q.trim().is_empty() {
+        return fail("gcs_query: query is empty; e.g. gcs_query(\"SAI?\")");
+    }
+    c.with_instrument("gcs_query", |i| {
+        let lines = i
+            .stage
+            .raw_query(q)
+            .map_err(|e| format!("gcs_query: {e}"))?;
+        Ok(lines.into_iter().map(Dynamic::from).collect())
+    })
 }

@@ -11,11 +11,12 @@ use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
-use crate::config::{Backend, Config};
+use crate::config::{Backend, Config, MAX_BAUD, MAX_TIMEOUT_MS};
+use crate::instrument::emulator::QpdEmulatorConfig;
 use crate::instrument::mock::{mock_instrument, MockConfig};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
-use crate::instrument::{Instrument, Pos, QpdReading};
+use crate::instrument::{Instrument, Pos, QpdReading, VirtualClock};
 use crate::optics::params::{REF_BEAD_D_NM, REF_BEAD_N};
 use crate::optics::template::TemplateSpec;
 use rhai::{Array, Dynamic, Map, INT};
@@ -184,30 +185,31 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(d, move || status(&c));
 
+    let (mock, emu) = (MockConfig::default(), QpdEmulatorConfig::default());
     let d = Doc::func("connect")
         .map(
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\""),
-                ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)"),
-                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)"),
-                ("qpd_host", "string", "", "optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default 5000)"),
-                ("stage_ports", "map", "", "optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)"),
-                ("baud", "int", "baud", "optional: baud rate of both ports (hardware)"),
-                ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)"),
-                ("qpd_baud", "int", "baud", "optional: QPD baud rate (hardware)"),
-                ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)"),
-                ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)"),
-                ("noise_v", "float", "V", "optional: emulated QPD noise per sample, rms (emulated; default 1e-4, 1 V per signal unit)"),
-                ("qpd", "string", "", "optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)"),
-                ("settle", "float", "s", "optional: settle time per move (default [stage] settle_s; mock 0.001)"),
-                ("pace", "float", "", "optional: wall seconds per simulated second (sim; default 0: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())"),
-                ("rate", "float", "Hz", "optional: QPD sample rate (mock; default 100000)"),
-                ("start", "map", "µm", "optional: initial position #{x, y, z} (mock)"),
-                ("fail_move_after", "int", "", "optional: the stage disconnects on the move after this many (mock fault injection)"),
-                ("fail_read_after", "int", "", "optional: the QPD times out on the read after this many (mock fault injection)"),
-                ("abort_after_reads", "int", "", "optional: raise the Ctrl-C flag after this many reads (mock)"),
+                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
+                ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)".to_string()),
+                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)".to_string()),
+                ("qpd_host", "string", "", format!("optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default {})", crate::instrument::redpitaya::DEFAULT_PORT)),
+                ("stage_ports", "map", "", "optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)".to_string()),
+                ("baud", "int", "baud", "optional: baud rate of both ports (hardware)".to_string()),
+                ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)".to_string()),
+                ("qpd_baud", "int", "baud", "optional: QPD baud rate (hardware)".to_string()),
+                ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)".to_string()),
+                ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)".to_string()),
+                ("noise_v", "float", "V", format!("optional: emulated QPD noise per sample, rms (emulated; default {:e}, {} V per signal unit)", emu.noise_v[0], emu.volts_per_unit[0])),
+                ("qpd", "string", "", "optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)".to_string()),
+                ("settle", "float", "s", format!("optional: settle time per move (default [stage] settle_s; mock {})", mock.settle_s)),
+                ("pace", "float", "", format!("optional: wall seconds per simulated second (sim; default {}: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())", VirtualClock::DEFAULT_PACE)),
+                ("rate", "float", "Hz", format!("optional: QPD sample rate (mock; default {})", mock.rate_hz)),
+                ("start", "map", "µm", "optional: initial position #{x, y, z} (mock)".to_string()),
+                ("fail_move_after", "int", "", "optional: the stage disconnects on the move after this many (mock fault injection)".to_string()),
+                ("fail_read_after", "int", "", "optional: the QPD times out on the read after this many (mock fault injection)".to_string()),
+                ("abort_after_reads", "int", "", "optional: raise the Ctrl-C flag after this many reads (mock)".to_string()),
             ],
         )
         .form("connect() -> string")
@@ -625,7 +627,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                         "connect: pace = {p:?} is out of range: 0 ≤ pace ≤ 100 wall seconds per simulated second"
                     ))
                 }
-                p => p.unwrap_or(0.0),
+                p => p.unwrap_or(VirtualClock::DEFAULT_PACE),
             };
             connect_sim(c, &scene, cfg.stage.settle_s, pace).map_err(Into::into)
         }
@@ -663,17 +665,17 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                     v => Ok(v),
                 }
             };
-            if let Some(b) = positive("baud", 4_000_000)? {
+            if let Some(b) = positive("baud", MAX_BAUD.into())? {
                 cfg.stage.baud = b as u32;
                 cfg.qpd.baud = b as u32;
             }
-            if let Some(b) = positive("stage_baud", 4_000_000)? {
+            if let Some(b) = positive("stage_baud", MAX_BAUD.into())? {
                 cfg.stage.baud = b as u32;
             }
-            if let Some(b) = positive("qpd_baud", 4_000_000)? {
+            if let Some(b) = positive("qpd_baud", MAX_BAUD.into())? {
                 cfg.qpd.baud = b as u32;
             }
-            if let Some(t) = positive("timeout_ms", 3_600_000)? {
+            if let Some(t) = positive("timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.stage.timeout_ms = t as u64;
                 cfg.qpd.timeout_ms = t as u64;
             }
@@ -692,9 +694,9 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 cfg.qpd.port = Some(p);
             }
             if let Some(t) = o.int("timeout_ms")? {
-                if !(1..=3_600_000).contains(&t) {
+                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
                     return fail(format!(
-                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ 3600000"
+                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
                     ));
                 }
                 cfg.stage.timeout_ms = t as u64;
@@ -704,7 +706,9 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
         }
         "emulated" => {
             let scene = scene_for(c, m, reference_bead_scene)?;
-            let noise_v = o.f64("noise_v")?.unwrap_or(1e-4);
+            let noise_v = o
+                .f64("noise_v")?
+                .unwrap_or(QpdEmulatorConfig::default().noise_v[0]);
             if !(0.0..=10.0).contains(&noise_v) {
                 return fail(format!(
                     "connect: noise_v = {noise_v} is out of range: 0 ≤ noise_v ≤ 10 V"

@@ -2,7 +2,8 @@
 //! response of a point scatterer and the paper's calculators (scattered power, trap depth,
 //! index correction, mass, maximum sensitivity; suppl. S1–S3).
 
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar};
+use super::ctx::Ctx;
+use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
@@ -38,7 +39,7 @@ pub fn register(r: &mut Registrar) {
             .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
             .example("optics().wavelength_nm", "1064.0")
             .example("optics().w0_nm", "400.0"),
-        move || -> Map { optics_map(&c.optics()) },
+        move || optics(&c),
     );
     let d = Doc::func("set_optics")
         .map(
@@ -105,42 +106,7 @@ pub fn register(r: &mut Registrar) {
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let mut new = c.optics();
-        for (k, f) in [
-            ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
-            ("n_medium", &mut new.n_medium),
-            ("w0_nm", &mut new.w0_nm),
-            ("na", &mut new.na),
-            ("qpd_na", &mut new.qpd_na),
-            ("power_mw", &mut new.power_mw),
-            ("pupil_filling", &mut new.pupil_filling),
-        ] {
-            if let Some(v) = o.f64(k)? {
-                *f = v;
-            }
-        }
-        if let Some(v) = o.int("n_theta")? {
-            new.n_theta = v.clamp(0, 100_000) as usize;
-        }
-        if let Some(v) = o.int("n_phi")? {
-            new.n_phi = v.clamp(0, 100_000) as usize;
-        }
-        if let Some(b) = o.string("beam")? {
-            new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
-        }
-        new.validate().map_err(|e| err("set_optics", e))?;
-        if let Some(core) = c.sim_core() {
-            let scene = core.renderer().scene.clone();
-            core.set_scene(&new, &scene)
-                .map_err(|e| err("set_optics", e))?;
-        }
-        *c.optics
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = new.clone();
-        Ok(optics_map(&new))
-    });
+    r.bind(d, move |m: Map| set_optics(&c, &spec, &m));
 
     let d = Doc::func("response")
         .map(
@@ -164,30 +130,7 @@ pub fn register(r: &mut Registrar) {
         .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let model = DetectorModel {
-            polarization: o.bool_or("polarization", false)?,
-            misalignment: None,
-        };
-        let s = response(
-            &c.optics(),
-            &model,
-            [
-                o.f64_or("x", 0.0)?,
-                o.f64_or("y", 0.0)?,
-                o.f64_or("z", 0.0)?,
-            ],
-            o.f64_or("d_nm", BEAD_D_NM)?,
-            o.f64_or("n", BEAD_N)?,
-        )
-        .map_err(|e| err("response", e))?;
-        let mut out = Map::new();
-        out.insert("sx".into(), s.sx.into());
-        out.insert("sy".into(), s.sy.into());
-        out.insert("sz".into(), s.sz.into());
-        Ok(out)
-    });
+    r.bind(d, move |m: Map| response_of(&c, &spec, &m));
 
     let c = ctx.clone();
     r.bind(
@@ -201,14 +144,7 @@ pub fn register(r: &mut Registrar) {
             .help("P_scat/P_beam = (16/3)·k⁴·CM²·r⁶/w0² with k = 2π n_s/λ, CM = (m²−1)/(m²+2), m = n/n_s and w0 the 1/e² intensity radius of set_optics (peak intensity 2P/(π w0²)). The supplement (S1) integrates the beam as I0·e^(−r²/w0²), i.e. reads w0 as a 1/e radius, and gets half this value: the paper's convention gives 2.35e-5 for the 110 nm reference bead (its \"≈ 2×10⁻⁵\") where this gives 4.70e-5, and 1 % at 302 nm (paper: \"exceed 300 nm\") where this gives 269 nm. See docs/physics.md §6.")
             .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "4.7e-5")
             .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
-        move |d: Dynamic, n: Dynamic| -> RResult<f64> {
-            p_scat_ratio(
-                &c.optics(),
-                num("p_scat_ratio", "d_nm", &d)?,
-                num("p_scat_ratio", "n", &n)?,
-            )
-            .map_err(|e| err("p_scat_ratio", e))
-        },
+        move |d: Dynamic, n: Dynamic| p_scat(&c, &d, &n),
     );
 
     let d = Doc::func("trap_depth_kt")
@@ -244,27 +180,7 @@ pub fn register(r: &mut Registrar) {
         );
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<f64> {
-        let o = Opts::new(&spec, &m)?;
-        let shape = match o.string("shape")?.as_deref() {
-            Some("sphere") => TrapShape::Sphere,
-            Some("cylinder") => TrapShape::Cylinder,
-            other => {
-                return fail(format!(
-                    "trap_depth_kt: shape = {:?} is not one of \"sphere\", \"cylinder\"",
-                    other.unwrap_or("")
-                ))
-            }
-        };
-        trap_depth_kt(
-            &c.optics(),
-            shape,
-            o.req_f64("d_nm")?,
-            o.req_f64("n")?,
-            o.f64_or("temperature_k", ROOM_T_K)?,
-        )
-        .map_err(|e| err("trap_depth_kt", e))
-    });
+    r.bind(d, move |m: Map| trap_depth(&c, &spec, &m));
 
     let c = ctx.clone();
     r.bind(
@@ -275,14 +191,7 @@ pub fn register(r: &mut Registrar) {
             .summary("refractive-index correction (eq. nCor) in the medium of optics()")
             .example("n_corr(1.572, 1.572)", "1.0")
             .example("round(n_corr(1.414, 1.57) * 1e4) / 1e4", "0.3505"),
-        move |a: Dynamic, b: Dynamic| -> RResult<f64> {
-            n_corr(
-                num("n_corr", "n_obj", &a)?,
-                num("n_corr", "n_ref", &b)?,
-                c.optics().n_medium,
-            )
-            .map_err(|e| err("n_corr", e))
-        },
+        move |a: Dynamic, b: Dynamic| index_correction(&c, &a, &b),
     );
     r.bind(
         Doc::func("sphere_mass_kda")
@@ -296,13 +205,7 @@ pub fn register(r: &mut Registrar) {
             .returns("float", "mass in kDa")
             .summary("mass of a sphere")
             .example("round(sphere_mass_kda(110.0, 1.05) / 1e3)", "441.0"),
-        |d: Dynamic, rho: Dynamic| -> RResult<f64> {
-            sphere_mass_kda(
-                num("sphere_mass_kda", "d_nm", &d)?,
-                num("sphere_mass_kda", "density_g_cm3", &rho)?,
-            )
-            .map_err(|e| err("sphere_mass_kda", e))
-        },
+        |d: Dynamic, rho: Dynamic| sphere_mass(&d, &rho),
     );
 
     let d = Doc::func("max_sensitivity_model")
@@ -321,21 +224,159 @@ pub fn register(r: &mut Registrar) {
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
     let spec = d.spec();
     let c = ctx.clone();
-    r.bind(d, move |m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
-        crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
-        let optics = c.optics();
-        let det = Detection::new(&optics, &DetectorModel::default()).map_err(|e| err("max_sensitivity_model", e))?;
-        let size = match o.string("model")?.as_deref() {
-            None | Some("rayleigh") => None,
-            Some("finite_size") => Some(dn),
-            Some(other) => return fail(format!("max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\"")),
-        };
-        let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
-        let mut out = Map::new();
-        out.insert("sens".into(), (s * alpha_um3(dn, n, optics.n_medium)).into());
-        out.insert("z".into(), z.into());
-        Ok(out)
-    });
+    r.bind(d, move |m: Map| max_sensitivity_model(&c, &spec, &m));
+}
+
+/// `optics()`: the session's optical parameters (nm, mW).
+fn optics(ctx: &Ctx) -> Map {
+    optics_map(&ctx.optics())
+}
+
+/// `set_optics(changes)`: validates the changed optics, re-renders the simulator's scene with
+/// them when a simulator is connected, then stores them in the session.
+fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let mut new = c.optics();
+    for (k, f) in [
+        ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
+        ("n_medium", &mut new.n_medium),
+        ("w0_nm", &mut new.w0_nm),
+        ("na", &mut new.na),
+        ("qpd_na", &mut new.qpd_na),
+        ("power_mw", &mut new.power_mw),
+        ("pupil_filling", &mut new.pupil_filling),
+    ] {
+        if let Some(v) = o.f64(k)? {
+            *f = v;
+        }
+    }
+    if let Some(v) = o.int("n_theta")? {
+        new.n_theta = v.clamp(0, 100_000) as usize;
+    }
+    if let Some(v) = o.int("n_phi")? {
+        new.n_phi = v.clamp(0, 100_000) as usize;
+    }
+    if let Some(b) = o.string("beam")? {
+        new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
+    }
+    new.validate().map_err(|e| err("set_optics", e))?;
+    if let Some(core) = c.sim_core() {
+        let scene = core.renderer().scene.clone();
+        core.set_scene(&new, &scene)
+            .map_err(|e| err("set_optics", e))?;
+    }
+    *c.optics
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner) = new.clone();
+    Ok(optics_map(&new))
+}
+
+/// `response(#{x, y, z, d_nm, n, polarization})`: Rayleigh-dipole QPD signals (Sx, Sy, Sz,
+/// normalised to the beam power) of a sphere displaced (x, y, z) µm from the focus (suppl. S2).
+fn response_of(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let model = DetectorModel {
+        polarization: o.bool_or("polarization", false)?,
+        misalignment: None,
+    };
+    let s = response(
+        &c.optics(),
+        &model,
+        [
+            o.f64_or("x", 0.0)?,
+            o.f64_or("y", 0.0)?,
+            o.f64_or("z", 0.0)?,
+        ],
+        o.f64_or("d_nm", BEAD_D_NM)?,
+        o.f64_or("n", BEAD_N)?,
+    )
+    .map_err(|e| err("response", e))?;
+    let mut out = Map::new();
+    out.insert("sx".into(), s.sx.into());
+    out.insert("sy".into(), s.sy.into());
+    out.insert("sz".into(), s.sz.into());
+    Ok(out)
+}
+
+/// `p_scat_ratio(d_nm, n)`: P_scat/P_beam of a Rayleigh sphere at the focus, w0 read as the
+/// 1/e² intensity radius (suppl. S1, docs/physics.md §6).
+fn p_scat(c: &Ctx, d: &Dynamic, n: &Dynamic) -> RResult<f64> {
+    p_scat_ratio(
+        &c.optics(),
+        num("p_scat_ratio", "d_nm", d)?,
+        num("p_scat_ratio", "n", n)?,
+    )
+    .map_err(|e| err("p_scat_ratio", e))
+}
+
+/// `trap_depth_kt(#{shape, d_nm, n, temperature_k})`: depth of the gradient-force potential of
+/// a sphere or a cylinder in kT at the laser power of the session's optics (suppl. S3).
+fn trap_depth(c: &Ctx, spec: &Spec, m: &Map) -> RResult<f64> {
+    let o = Opts::new(spec, m)?;
+    let shape = match o.string("shape")?.as_deref() {
+        Some("sphere") => TrapShape::Sphere,
+        Some("cylinder") => TrapShape::Cylinder,
+        other => {
+            return fail(format!(
+                "trap_depth_kt: shape = {:?} is not one of \"sphere\", \"cylinder\"",
+                other.unwrap_or("")
+            ))
+        }
+    };
+    trap_depth_kt(
+        &c.optics(),
+        shape,
+        o.req_f64("d_nm")?,
+        o.req_f64("n")?,
+        o.f64_or("temperature_k", ROOM_T_K)?,
+    )
+    .map_err(|e| err("trap_depth_kt", e))
+}
+
+/// `n_corr(n_obj, n_ref)`: sensitivity ratio of two objects of equal volume and indices n_obj,
+/// n_ref in the medium of the session's optics (eq. nCor).
+fn index_correction(c: &Ctx, a: &Dynamic, b: &Dynamic) -> RResult<f64> {
+    n_corr(
+        num("n_corr", "n_obj", a)?,
+        num("n_corr", "n_ref", b)?,
+        c.optics().n_medium,
+    )
+    .map_err(|e| err("n_corr", e))
+}
+
+/// `sphere_mass_kda(d_nm, density_g_cm3)`: mass (kDa) of a sphere of diameter d_nm (nm).
+fn sphere_mass(d: &Dynamic, rho: &Dynamic) -> RResult<f64> {
+    sphere_mass_kda(
+        num("sphere_mass_kda", "d_nm", d)?,
+        num("sphere_mass_kda", "density_g_cm3", rho)?,
+    )
+    .map_err(|e| err("sphere_mass_kda", e))
+}
+
+/// `max_sensitivity_model(#{d_nm, n, model})`: model maximum ∂Sx/∂x (1/µm) of a sphere at its
+/// best focus z (µm), point dipole or finite size (suppl. S6, Fig. 3c).
+fn max_sensitivity_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
+    crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
+    let optics = c.optics();
+    let det = Detection::new(&optics, &DetectorModel::default())
+        .map_err(|e| err("max_sensitivity_model", e))?;
+    let size = match o.string("model")?.as_deref() {
+        None | Some("rayleigh") => None,
+        Some("finite_size") => Some(dn),
+        Some(other) => {
+            return fail(format!(
+            "max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\""
+        ))
+        }
+    };
+    let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
+    let mut out = Map::new();
+    out.insert(
+        "sens".into(),
+        (s * alpha_um3(dn, n, optics.n_medium)).into(),
+    );
+    out.insert("z".into(), z.into());
+    Ok(out)
 }

@@ -3,7 +3,7 @@
 //! [`Plan`]; `acquire::run_plan` executes it natively with every safety rule.
 
 use super::ctx::Ctx;
-use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar};
+use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
 use crate::acquire::raster::{run_raster, RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
@@ -160,51 +160,8 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
     }
     let spec = d.spec();
     let c = r.ctx();
-    let (fk, sk, xk) = (fast.name(), slow.name(), fixed.name());
-    let (nfk, nsk) = (format!("n{fk}"), format!("n{sk}"));
-    r.bind(d, move |m: Map| -> RResult<ScanRef> {
-        let o = Opts::new(&spec, &m)?;
-        let who = spec.name.as_str();
-        let (f0, f1) = o.req_range(fk)?;
-        let (s0, s1) = o.req_range(sk)?;
-        let fsw = Sweep::new(who, fast, f0, f1, o.req_int(&nfk)?, &nfk).map_err(|e| e.0)?;
-        let ssw = Sweep::new(who, slow, s0, s1, o.req_int(&nsk)?, &nsk).map_err(|e| e.0)?;
-        let fixed_v = o.f64(xk)?.map(|v| vec![(fixed, v)]).unwrap_or_default();
-        let raster = match o.string("mode")?.as_deref() {
-            None | Some("points") => {
-                if o.has("samples_per_pixel") {
-                    return fail(format!("{who}: samples_per_pixel is for mode \"raster\""));
-                }
-                None
-            }
-            Some("raster") => {
-                let spp = o.int("samples_per_pixel")?.unwrap_or(DEFAULT_SAMPLES_PER_PIXEL as i64);
-                if !(1..=1_000_000).contains(&spp) {
-                    return fail(format!(
-                        "{who}: samples_per_pixel = {spp} is out of range: 1 ≤ samples_per_pixel ≤ 1000000"
-                    ));
-                }
-                Some(RasterOptions {
-                    samples_per_pixel: spp as usize,
-                })
-            }
-            Some(other) => {
-                return fail(format!(
-                    "{who}: mode = {other:?} is not one of \"points\", \"raster\""
-                ))
-            }
-        };
-        let plan = Plan::grid(
-            who,
-            fsw,
-            ssw,
-            fixed_v,
-            o.f64_or("dwell", DEFAULT_DWELL_S)?,
-            o.bool_or("rel", false)?,
-            o.bool_or("snake", false)?,
-        )
-        .map_err(|e| e.0)?;
-        execute_mode(&c, plan, raster)
+    r.bind(d, move |m: Map| {
+        scan_grid(&c, &spec, [fast, slow, fixed], &m)
     });
 }
 
@@ -230,35 +187,7 @@ pub fn register(r: &mut Registrar) {
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
     let spec = d.spec();
     let c = r.ctx();
-    r.bind(d, move |m: Map| -> RResult<ScanRef> {
-        let o = Opts::new(&spec, &m)?;
-        let axis = match m.get("axis") {
-            Some(a) => axis_arg("scan_line", a, &spec.usage)?,
-            None => {
-                return fail(format!(
-                    "scan_line: missing key `axis`; usage: {}",
-                    spec.usage
-                ))
-            }
-        };
-        let sw = Sweep::new(
-            "scan_line",
-            axis,
-            o.req_f64("from")?,
-            o.req_f64("to")?,
-            o.req_int("n")?,
-            "n",
-        )
-        .map_err(|e| e.0)?;
-        let plan = Plan::line(
-            "scan_line",
-            sw,
-            o.f64_or("dwell", DEFAULT_DWELL_S)?,
-            o.bool_or("rel", false)?,
-        )
-        .map_err(|e| e.0)?;
-        execute(&c, plan)
-    });
+    r.bind(d, move |m: Map| scan_line(&c, &spec, &m));
 
     register_grid(r, Axis::X, Axis::Y, Axis::Z);
     register_grid(r, Axis::X, Axis::Z, Axis::Y);
@@ -295,26 +224,8 @@ pub fn register(r: &mut Registrar) {
         let c = r.ctx();
         r.bind(
             d,
-            move |axis: Dynamic,
-                  from: Dynamic,
-                  to: Dynamic,
-                  n: Dynamic,
-                  dwell: Dynamic|
-                  -> RResult<ScanRef> {
-                let who = spec.name.as_str();
-                let axis = axis_arg(who, &axis, &spec.usage)?;
-                let n = intervals(who, "intervals", &n)?;
-                let sw = Sweep::new(
-                    who,
-                    axis,
-                    num(who, "from", &from)?,
-                    num(who, "to", &to)?,
-                    n,
-                    "points",
-                )
-                .map_err(|e| e.0)?;
-                let plan = Plan::line(who, sw, num(who, "dwell", &dwell)?, rel).map_err(|e| e.0)?;
-                execute(&c, plan)
+            move |axis: Dynamic, from: Dynamic, to: Dynamic, n: Dynamic, dwell: Dynamic| {
+                spec_line(&c, &spec, rel, [&axis, &from, &to], &n, &dwell)
             },
         );
     }
@@ -367,27 +278,8 @@ pub fn register(r: &mut Registrar) {
                   f2: Dynamic,
                   t2: Dynamic,
                   n: Dynamic,
-                  dwell: Dynamic|
-                  -> RResult<ScanRef> {
-                let who = spec.name.as_str();
-                let n = intervals(who, "intervals", &n)?;
-                let sweep = |a: &Dynamic, f: &Dynamic, t: &Dynamic, k: &str| -> RResult<Sweep> {
-                    let axis = axis_arg(who, a, &spec.usage)?;
-                    Sweep::new(
-                        who,
-                        axis,
-                        num(who, &format!("from{k}"), f)?,
-                        num(who, &format!("to{k}"), t)?,
-                        n,
-                        "points",
-                    )
-                    .map_err(|e| e.0.into())
-                };
-                let first = sweep(&a1, &f1, &t1, "1")?;
-                let second = sweep(&a2, &f2, &t2, "2")?;
-                let plan = Plan::line2(who, first, second, num(who, "dwell", &dwell)?, rel)
-                    .map_err(|e| e.0)?;
-                execute(&c, plan)
+                  dwell: Dynamic| {
+                spec_line2(&c, &spec, rel, [&a1, &f1, &t1], [&a2, &f2, &t2], &n, &dwell)
             },
         );
     }
@@ -435,32 +327,15 @@ pub fn register(r: &mut Registrar) {
                   f2: Dynamic,
                   t2: Dynamic,
                   n2: Dynamic,
-                  dwell: Dynamic|
-                  -> RResult<ScanRef> {
-                let who = spec.name.as_str();
-                let a1 = axis_arg(who, &a1, &spec.usage)?;
-                let a2 = axis_arg(who, &a2, &spec.usage)?;
-                let s1 = Sweep::new(
-                    who,
-                    a1,
-                    num(who, "from1", &f1)?,
-                    num(who, "to1", &t1)?,
-                    intervals(who, "intervals1", &n1)?,
-                    "points1",
+                  dwell: Dynamic| {
+                spec_mesh(
+                    &c,
+                    &spec,
+                    rel,
+                    [&a1, &f1, &t1, &n1],
+                    [&a2, &f2, &t2, &n2],
+                    &dwell,
                 )
-                .map_err(|e| e.0)?;
-                let s2 = Sweep::new(
-                    who,
-                    a2,
-                    num(who, "from2", &f2)?,
-                    num(who, "to2", &t2)?,
-                    intervals(who, "intervals2", &n2)?,
-                    "points2",
-                )
-                .map_err(|e| e.0)?;
-                let plan = Plan::grid(who, s1, s2, vec![], num(who, "dwell", &dwell)?, rel, false)
-                    .map_err(|e| e.0)?;
-                execute(&c, plan)
             },
         );
     }
@@ -474,11 +349,7 @@ pub fn register(r: &mut Registrar) {
             .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.npz\"; s.save(p); load_scan(p).cols", "3")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); s.save(s.path)", "error: exists; scans are never overwritten"),
-        move |s: &mut ScanRef, path: &str| -> RResult<String> {
-            let p = resolve(&c, path);
-            crate::acquire::store::save_scan(&p, &s.scan).map_err(|e| format!("scan.save: {}: {e}", p.display()))?;
-            Ok(p.display().to_string())
-        },
+        move |s: &mut ScanRef, path: &str| save_scan(&c, s, path),
     );
     let c = r.ctx();
     r.bind(
@@ -499,16 +370,205 @@ pub fn register(r: &mut Registrar) {
                 "load_scan(\"no/such/file.npz\")",
                 "error: load_scan: no/such/file.npz",
             ),
-        move |path: &str| -> RResult<ScanRef> {
-            let p = resolve(&c, path);
-            let s = crate::acquire::store::load_scan(&p)
-                .map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
-            Ok(ScanRef::new(s, Some(p.display().to_string())))
-        },
+        move |path: &str| load_scan(&c, path),
     );
 }
 
 /// Paths are used as given (relative to the working directory).
 fn resolve(_c: &Ctx, path: &str) -> PathBuf {
     PathBuf::from(path)
+}
+
+/// `scan_xy` / `scan_xz` / `scan_yz(plan)`: a 2-D grid, `axes` = [fast (columns), slow
+/// (rows), fixed]; point by point (mode "points") or as a hardware-timed raster (mode
+/// "raster", `samples_per_pixel` digitiser samples per pixel).
+fn scan_grid(c: &Ctx, spec: &Spec, axes: [Axis; 3], m: &Map) -> RResult<ScanRef> {
+    let [fast, slow, fixed] = axes;
+    let (fk, sk, xk) = (fast.name(), slow.name(), fixed.name());
+    let (nfk, nsk) = (format!("n{fk}"), format!("n{sk}"));
+    let o = Opts::new(spec, m)?;
+    let who = spec.name.as_str();
+    let (f0, f1) = o.req_range(fk)?;
+    let (s0, s1) = o.req_range(sk)?;
+    let fsw = Sweep::new(who, fast, f0, f1, o.req_int(&nfk)?, &nfk).map_err(|e| e.0)?;
+    let ssw = Sweep::new(who, slow, s0, s1, o.req_int(&nsk)?, &nsk).map_err(|e| e.0)?;
+    let fixed_v = o.f64(xk)?.map(|v| vec![(fixed, v)]).unwrap_or_default();
+    let raster = match o.string("mode")?.as_deref() {
+        None | Some("points") => {
+            if o.has("samples_per_pixel") {
+                return fail(format!("{who}: samples_per_pixel is for mode \"raster\""));
+            }
+            None
+        }
+        Some("raster") => {
+            let spp = o
+                .int("samples_per_pixel")?
+                .unwrap_or(DEFAULT_SAMPLES_PER_PIXEL as i64);
+            if !(1..=1_000_000).contains(&spp) {
+                return fail(format!(
+                    "{who}: samples_per_pixel = {spp} is out of range: 1 ≤ samples_per_pixel ≤ 1000000"
+                ));
+            }
+            Some(RasterOptions {
+                samples_per_pixel: spp as usize,
+            })
+        }
+        Some(other) => {
+            return fail(format!(
+                "{who}: mode = {other:?} is not one of \"points\", \"raster\""
+            ))
+        }
+    };
+    let plan = Plan::grid(
+        who,
+        fsw,
+        ssw,
+        fixed_v,
+        o.f64_or("dwell", DEFAULT_DWELL_S)?,
+        o.bool_or("rel", false)?,
+        o.bool_or("snake", false)?,
+    )
+    .map_err(|e| e.0)?;
+    execute_mode(c, plan, raster)
+}
+
+/// `scan_line(plan)`: a line of n points from `from` to `to` (µm) along one axis.
+fn scan_line(c: &Ctx, spec: &Spec, m: &Map) -> RResult<ScanRef> {
+    let o = Opts::new(spec, m)?;
+    let axis = match m.get("axis") {
+        Some(a) => axis_arg("scan_line", a, &spec.usage)?,
+        None => {
+            return fail(format!(
+                "scan_line: missing key `axis`; usage: {}",
+                spec.usage
+            ))
+        }
+    };
+    let sw = Sweep::new(
+        "scan_line",
+        axis,
+        o.req_f64("from")?,
+        o.req_f64("to")?,
+        o.req_int("n")?,
+        "n",
+    )
+    .map_err(|e| e.0)?;
+    let plan = Plan::line(
+        "scan_line",
+        sw,
+        o.f64_or("dwell", DEFAULT_DWELL_S)?,
+        o.bool_or("rel", false)?,
+    )
+    .map_err(|e| e.0)?;
+    execute(c, plan)
+}
+
+/// SPEC's `ascan(axis, from, to, intervals, dwell)` (`rel` false) and `dscan` (`rel` true,
+/// positions relative to the start, returning there): intervals + 1 points.
+fn spec_line(
+    c: &Ctx,
+    spec: &Spec,
+    rel: bool,
+    [axis, from, to]: [&Dynamic; 3],
+    n: &Dynamic,
+    dwell: &Dynamic,
+) -> RResult<ScanRef> {
+    let who = spec.name.as_str();
+    let axis = axis_arg(who, axis, &spec.usage)?;
+    let n = intervals(who, "intervals", n)?;
+    let sw = Sweep::new(
+        who,
+        axis,
+        num(who, "from", from)?,
+        num(who, "to", to)?,
+        n,
+        "points",
+    )
+    .map_err(|e| e.0)?;
+    let plan = Plan::line(who, sw, num(who, "dwell", dwell)?, rel).map_err(|e| e.0)?;
+    execute(c, plan)
+}
+
+/// SPEC's `a2scan(axis1, from1, to1, axis2, from2, to2, intervals, dwell)` (`rel` false) and
+/// `d2scan` (`rel` true): two motors stepping together, intervals + 1 points.
+fn spec_line2(
+    c: &Ctx,
+    spec: &Spec,
+    rel: bool,
+    [a1, f1, t1]: [&Dynamic; 3],
+    [a2, f2, t2]: [&Dynamic; 3],
+    n: &Dynamic,
+    dwell: &Dynamic,
+) -> RResult<ScanRef> {
+    let who = spec.name.as_str();
+    let n = intervals(who, "intervals", n)?;
+    let sweep = |a: &Dynamic, f: &Dynamic, t: &Dynamic, k: &str| -> RResult<Sweep> {
+        let axis = axis_arg(who, a, &spec.usage)?;
+        Sweep::new(
+            who,
+            axis,
+            num(who, &format!("from{k}"), f)?,
+            num(who, &format!("to{k}"), t)?,
+            n,
+            "points",
+        )
+        .map_err(|e| e.0.into())
+    };
+    let first = sweep(a1, f1, t1, "1")?;
+    let second = sweep(a2, f2, t2, "2")?;
+    let plan = Plan::line2(who, first, second, num(who, "dwell", dwell)?, rel).map_err(|e| e.0)?;
+    execute(c, plan)
+}
+
+/// SPEC's `mesh(axis1, from1, to1, intervals1, axis2, from2, to2, intervals2, dwell)` (`rel`
+/// false) and `dmesh` (`rel` true): a 2-D raster, axis1 fast.
+fn spec_mesh(
+    c: &Ctx,
+    spec: &Spec,
+    rel: bool,
+    [a1, f1, t1, n1]: [&Dynamic; 4],
+    [a2, f2, t2, n2]: [&Dynamic; 4],
+    dwell: &Dynamic,
+) -> RResult<ScanRef> {
+    let who = spec.name.as_str();
+    let a1 = axis_arg(who, a1, &spec.usage)?;
+    let a2 = axis_arg(who, a2, &spec.usage)?;
+    let s1 = Sweep::new(
+        who,
+        a1,
+        num(who, "from1", f1)?,
+        num(who, "to1", t1)?,
+        intervals(who, "intervals1", n1)?,
+        "points1",
+    )
+    .map_err(|e| e.0)?;
+    let s2 = Sweep::new(
+        who,
+        a2,
+        num(who, "from2", f2)?,
+        num(who, "to2", t2)?,
+        intervals(who, "intervals2", n2)?,
+        "points2",
+    )
+    .map_err(|e| e.0)?;
+    let plan =
+        Plan::grid(who, s1, s2, vec![], num(who, "dwell", dwell)?, rel, false).map_err(|e| e.0)?;
+    execute(c, plan)
+}
+
+/// `Scan.save(path)`: write the scan to a new file (temporary name + rename, never
+/// overwriting); returns the path.
+fn save_scan(c: &Ctx, s: &ScanRef, path: &str) -> RResult<String> {
+    let p = resolve(c, path);
+    crate::acquire::store::save_scan(&p, &s.scan)
+        .map_err(|e| format!("scan.save: {}: {e}", p.display()))?;
+    Ok(p.display().to_string())
+}
+
+/// `load_scan(path)`: a scan file written by autosave or `Scan.save` (unmeasured pixels NaN).
+fn load_scan(c: &Ctx, path: &str) -> RResult<ScanRef> {
+    let p = resolve(c, path);
+    let s = crate::acquire::store::load_scan(&p)
+        .map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
+    Ok(ScanRef::new(s, Some(p.display().to_string())))
 }

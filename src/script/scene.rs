@@ -41,6 +41,9 @@ pub(crate) const BEAD_N: f64 = 1.572;
 pub(crate) const FILAMENT_D_NM: f64 = 60.0;
 pub(crate) const FILAMENT_N: f64 = 1.414;
 pub(crate) const FILAMENT_SPACING_NM: f64 = 50.0;
+/// Defaults of an `add_filament` α-tip's keys: full diameter, nm, and tip length, µm.
+const ALPHA_TIP_D_NM: f64 = 100.0;
+const ALPHA_TIP_UM: f64 = 3.0;
 /// Defaults of `add_aggregates` (Sec. 6 background): diameter range nm, refractive index,
 /// region [lo, hi] µm on x and y, random seed; and the most aggregates one call adds.
 const AGGREGATE_D_NM: [f64; 2] = [40.0, 90.0];
@@ -114,7 +117,7 @@ pub fn register(r: &mut Registrar) {
                 ("z", "float", "µm", "optional: height (default 0)"),
                 ("d_nm", "float", "nm", format!("optional: constant diameter (default {FILAMENT_D_NM})").as_str()),
                 ("taper", "array", "nm", "optional: [d_start, d_end] linear taper instead of d_nm"),
-                ("alpha_tip", "map", "nm, µm", "optional: #{d_nm, tip_um}: parabola-of-revolution α-tip from the first point (Sec. 5)"),
+                ("alpha_tip", "map", "nm, µm", format!("optional: #{{d_nm, tip_um}}: parabola-of-revolution α-tip from the first point (Sec. 5; default d_nm {ALPHA_TIP_D_NM}, tip_um {ALPHA_TIP_UM})").as_str()),
                 ("n", "float", "", format!("optional: refractive index (default {FILAMENT_N}, hydrated collagen)").as_str()),
                 ("spacing_nm", "float", "nm", format!("optional: bead-model spacing (default {FILAMENT_SPACING_NM})").as_str()),
             ],
@@ -310,8 +313,8 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
                 .transpose()
         };
         DiameterProfile::AlphaTip {
-            d_nm: g("d_nm")?.unwrap_or(100.0),
-            tip_um: g("tip_um")?.unwrap_or(3.0),
+            d_nm: g("d_nm")?.unwrap_or(ALPHA_TIP_D_NM),
+            tip_um: g("tip_um")?.unwrap_or(ALPHA_TIP_UM),
         }
     } else {
         DiameterProfile::Constant {

@@ -1,7 +1,7 @@
 //! Binding family `sensitivity`: derivatives of scans (∂S/∂x, eq. sens), their maxima (eq.
 //! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
 
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::peaks::{col_peaks, point_peak, row_peaks};
@@ -39,68 +39,17 @@ fn register_sensitivity(r: &mut Registrar) {
         .example(&format!("{ONE_BEAD} let s = sensitivity(sc); round(s.max() * t.norm_factor * 10.0) / 10.0"), "1.0")
         .example(&format!("{ONE_BEAD} sensitivity(sc.sx, #{{axis: \"z\"}})"), "error: axis = \"z\"");
     let spec = d.spec();
-    let run = move |v: Dynamic, m: Map| -> RResult<ImageRef> {
-        let o = Opts::new(&spec, &m)?;
-        let ax = o.string("axis")?.unwrap_or_else(|| "x".into());
-        let axis = crate::analysis::Axis::parse(&ax).map_or_else(
-            || {
-                fail(format!(
-                    "sensitivity: axis = \"{ax}\" is not one of \"x\", \"y\""
-                ))
-            },
-            Ok,
-        )?;
-        let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
-        let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
-            match axis {
-                crate::analysis::Axis::X => Arc::new(s.scan.sx.clone()),
-                crate::analysis::Axis::Y => Arc::new(s.scan.sy.clone()),
-            }
-        } else if let Some(i) = v.read_lock::<ImageRef>() {
-            i.0.clone()
-        } else {
-            return fail(format!(
-                "sensitivity: img must be an Image or a Scan, got {}",
-                v.type_name()
-            ));
-        };
-        let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
-        Ok(ImageRef(Arc::new(out)))
-    };
-    let run2 = run.clone();
-    r.bind(d, run);
-    r.overload("sensitivity", move |v: Dynamic| run2(v, Map::new()));
+    let s2 = spec.clone();
+    r.bind(d, move |v: Dynamic, m: Map| sensitivity_of(&spec, v, &m));
+    r.overload("sensitivity", move |v: Dynamic| {
+        sensitivity_of(&s2, v, &Map::new())
+    });
 
-    let keys: &[(&str, &str, &str, &str)] = &[
-        (
-            "window_um",
-            "float",
-            "µm",
-            "optional: parabola window (default 0.4, Sec. 5)",
-        ),
-        (
-            "min_snr",
-            "float",
-            "",
-            "optional: reject maxima below min_snr × line noise (default 0)",
-        ),
-        (
-            "min_value",
-            "float",
-            "",
-            "optional: reject maxima below this value",
-        ),
-        (
-            "sigma",
-            "float",
-            "",
-            "optional: known pixel noise (default: from the fit residuals)",
-        ),
-    ];
+    let keys = peak_keys();
     for (name, rows) in [("row_peaks", true), ("col_peaks", false)] {
         let d = Doc::func(name)
             .arg("img", "Image", "", "usually a sensitivity image")
-            .map("opts", "optional", keys)
+            .map("opts", "optional", &keys)
             .form(&format!("{name}(img) -> array"))
             .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, n_points, truncated} or #{line, coord, ok: false, miss}")
             .summary(if rows {
@@ -115,50 +64,40 @@ fn register_sensitivity(r: &mut Registrar) {
             )
             .example(&format!("{ONE_BEAD} {name}(sc.sx, #{{window_um: -1.0}})"), "error: window_um = -1");
         let spec = d.spec();
-        let f = move |i: ImageRef, m: Map| -> RResult<Array> {
-            let o = Opts::new(&spec, &m)?;
-            let po = peak_opts(name, &o)?;
-            let v = if rows {
-                row_peaks(&i.0, &po)
-            } else {
-                col_peaks(&i.0, &po)
-            }
-            .map_err(|e| err(name, e))?;
-            Ok(line_peaks(&v))
-        };
-        let f2 = f.clone();
-        r.bind(d, f);
-        r.overload(name, move |i: ImageRef| f2(i, Map::new()));
+        let s2 = spec.clone();
+        r.bind(d, move |i: ImageRef, m: Map| {
+            line_maxima(&spec, name, rows, &i, &m)
+        });
+        r.overload(name, move |i: ImageRef| {
+            line_maxima(&s2, name, rows, &i, &Map::new())
+        });
     }
 
     let d = Doc::func("max_sens")
         .arg("img", "Image", "", "a sensitivity image around one point object")
-        .map("opts", "optional", keys)
+        .map("opts", "optional", &keys)
         .form("max_sens(img) -> map")
         .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points} (µm; value in the image's units)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
     let spec = d.spec();
-    let f = move |i: ImageRef, m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let po = peak_opts("max_sens", &o)?;
-        let p = point_peak(&i.0, &po).map_err(|e| err("max_sens", e))?;
-        Ok(to_map(&p))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("max_sens", move |i: ImageRef| f2(i, Map::new()));
+    let s2 = spec.clone();
+    r.bind(d, move |i: ImageRef, m: Map| max_sens(&spec, &i, &m));
+    r.overload("max_sens", move |i: ImageRef| {
+        max_sens(&s2, &i, &Map::new())
+    });
 
+    let fd = FocusOptions::default();
     let d = Doc::func("focus_search")
         .arg("img", "Image | Scan", "", "an XZ (or YZ) scan channel: rows are z (a Scan: its Sx)")
         .map(
             "opts",
             "optional",
             &[
-                ("stencil", "string", "", "optional: derivative stencil (default central2)"),
-                ("window_um", "float", "µm", "optional: lateral parabola window (default 0.4)"),
-                ("z_window_um", "float", "µm", "optional: window of the parabola over z (default 0.6)"),
-                ("level", "float", "", "optional: fraction of the peak that defines the tolerated z range (default 0.98)"),
+                ("stencil", "string", "", format!("optional: derivative stencil (default {})", fd.stencil.name())),
+                ("window_um", "float", "µm", format!("optional: lateral parabola window (default {})", fd.window_um)),
+                ("z_window_um", "float", "µm", format!("optional: window of the parabola over z (default {})", fd.z_window_um)),
+                ("level", "float", "", format!("optional: fraction of the peak that defines the tolerated z range (default {})", fd.level)),
             ],
         )
         .form("focus_search(img) -> map")
@@ -166,45 +105,17 @@ fn register_sensitivity(r: &mut Registrar) {
         .summary("best focus: max sensitivity per z row, parabola over z (suppl. S5)")
         .help("z_lo/z_hi: where the row maxima fall to level × max (paper: within 2 % over ±200 nm); () on a side where the scan ends first.");
     let spec = d.spec();
-    let f = move |v: Dynamic, m: Map| -> RResult<Map> {
-        let o = Opts::new(&spec, &m)?;
-        let d = FocusOptions::default();
-        let fo = FocusOptions {
-            stencil: stencil_of("focus_search", &o, d.stencil)?,
-            window_um: pos_f64("focus_search", &o, "window_um", d.window_um, 1e-3, 100.0)?,
-            z_window_um: pos_f64("focus_search", &o, "z_window_um", d.z_window_um, 1e-3, 1e3)?,
-            level: pos_f64("focus_search", &o, "level", d.level, 0.0, 1.0)?,
-        };
-        let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
-            Arc::new(s.scan.sx.clone())
-        } else if let Some(i) = v.read_lock::<ImageRef>() {
-            i.0.clone()
-        } else {
-            return fail(format!(
-                "focus_search: img must be an Image or a Scan, got {}",
-                v.type_name()
-            ));
-        };
-        let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
-        let mut out = Map::new();
-        out.insert("z_best".into(), res.z_best.into());
-        out.insert("z_err".into(), to_dyn(&res.z_err));
-        out.insert("max_sens".into(), res.max_sens.into());
-        out.insert("max_sens_err".into(), to_dyn(&res.max_sens_err));
-        out.insert("z_lo".into(), to_dyn(&res.z_lo));
-        out.insert("z_hi".into(), to_dyn(&res.z_hi));
-        out.insert("rows".into(), line_peaks(&res.rows).into());
-        Ok(out)
-    };
-    let f2 = f.clone();
+    let s2 = spec.clone();
     r.bind(
         d.example(
             "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.0, d_nm: 110.0, n: 1.572}); let t = template_model(#{h_um: 0.025}); let xs = []; let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 5, ny: 5}); focus_search(sc.sx, #{level: 2.0})",
             "error: level = 2",
         ),
-        f,
+        move |v: Dynamic, m: Map| focus_search_of(&spec, v, &m),
     );
-    r.overload("focus_search", move |v: Dynamic| f2(v, Map::new()));
+    r.overload("focus_search", move |v: Dynamic| {
+        focus_search_of(&s2, v, &Map::new())
+    });
 
     let d = Doc::func("profile_along")
         .arg("img", "Image", "", "any image")
@@ -228,16 +139,118 @@ fn register_sensitivity(r: &mut Registrar) {
             &format!("{ONE_BEAD} profile_along(sc.sx, [[0.0, 0.0]])"),
             "error: ",
         );
-    let f = |i: ImageRef, p: Array, step: f64| -> RResult<ProfileRef> {
-        let pts = super::registry::points("profile_along", &Dynamic::from_array(p))?;
-        let pr = profile_polyline(&i.0, &pts, step, Interp::Cubic)
-            .map_err(|e| err("profile_along", e))?;
-        Ok(ProfileRef(Arc::new(pr)))
-    };
-    r.bind(d, f);
-    r.overload("profile_along", move |i: ImageRef, p: Array| {
-        let h = i.0.dx().abs().min(i.0.dy().abs());
-        let h = if h > 0.0 { h } else { 0.01 };
-        f(i, p, h)
+    r.bind(d, |i: ImageRef, p: Array, step: f64| {
+        profile_along(&i, p, step)
     });
+    r.overload("profile_along", |i: ImageRef, p: Array| {
+        let step = pixel_step(&i);
+        profile_along(&i, p, step)
+    });
+}
+
+/// `sensitivity(img[, opts])`: the derivative ∂S/∂x or ∂S/∂y (signal units per µm) of an image,
+/// or of a scan's Sx (axis x) / Sy (axis y), by the chosen stencil (Sec. 3.2).
+fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
+    let o = Opts::new(spec, m)?;
+    let ax = o.string("axis")?.unwrap_or_else(|| "x".into());
+    let axis = crate::analysis::Axis::parse(&ax).map_or_else(
+        || {
+            fail(format!(
+                "sensitivity: axis = \"{ax}\" is not one of \"x\", \"y\""
+            ))
+        },
+        Ok,
+    )?;
+    let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
+    let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
+        match axis {
+            crate::analysis::Axis::X => Arc::new(s.scan.sx.clone()),
+            crate::analysis::Axis::Y => Arc::new(s.scan.sy.clone()),
+        }
+    } else if let Some(i) = v.read_lock::<ImageRef>() {
+        i.0.clone()
+    } else {
+        return fail(format!(
+            "sensitivity: img must be an Image or a Scan, got {}",
+            v.type_name()
+        ));
+    };
+    let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
+    Ok(ImageRef(Arc::new(out)))
+}
+
+/// `row_peaks(img[, opts])` (`rows` true) / `col_peaks` (false): the sub-pixel maximum of every
+/// row (x position, µm) or column (y position, µm) by a least-squares parabola over the window.
+fn line_maxima(spec: &Spec, name: &str, rows: bool, i: &ImageRef, m: &Map) -> RResult<Array> {
+    let o = Opts::new(spec, m)?;
+    let po = peak_opts(name, &o)?;
+    let v = if rows {
+        row_peaks(&i.0, &po)
+    } else {
+        col_peaks(&i.0, &po)
+    }
+    .map_err(|e| err(name, e))?;
+    Ok(line_peaks(&v))
+}
+
+/// `max_sens(img[, opts])`: the maximum of a point object's sensitivity image, row parabolas
+/// refined across rows (Sec. 5); position in µm, value in the image's units.
+fn max_sens(spec: &Spec, i: &ImageRef, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let po = peak_opts("max_sens", &o)?;
+    let p = point_peak(&i.0, &po).map_err(|e| err("max_sens", e))?;
+    Ok(to_map(&p))
+}
+
+/// `focus_search(img[, opts])`: best focus z (µm) of an XZ/YZ scan: the maximum sensitivity of
+/// each z row, then a parabola over z (suppl. S5).
+fn focus_search_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let d = FocusOptions::default();
+    let fo = FocusOptions {
+        stencil: stencil_of("focus_search", &o, d.stencil)?,
+        window_um: pos_f64("focus_search", &o, "window_um", d.window_um, 1e-3, 100.0)?,
+        z_window_um: pos_f64("focus_search", &o, "z_window_um", d.z_window_um, 1e-3, 1e3)?,
+        level: pos_f64("focus_search", &o, "level", d.level, 0.0, 1.0)?,
+    };
+    let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
+        Arc::new(s.scan.sx.clone())
+    } else if let Some(i) = v.read_lock::<ImageRef>() {
+        i.0.clone()
+    } else {
+        return fail(format!(
+            "focus_search: img must be an Image or a Scan, got {}",
+            v.type_name()
+        ));
+    };
+    let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
+    let mut out = Map::new();
+    out.insert("z_best".into(), res.z_best.into());
+    out.insert("z_err".into(), to_dyn(&res.z_err));
+    out.insert("max_sens".into(), res.max_sens.into());
+    out.insert("max_sens_err".into(), to_dyn(&res.max_sens_err));
+    out.insert("z_lo".into(), to_dyn(&res.z_lo));
+    out.insert("z_hi".into(), to_dyn(&res.z_hi));
+    out.insert("rows".into(), line_peaks(&res.rows).into());
+    Ok(out)
+}
+
+/// `profile_along(img, points[, step_um])`: bicubic profile of an image along a polyline (µm),
+/// sampled every `step_um` of arc length (Fig. 5c).
+fn profile_along(i: &ImageRef, p: Array, step: f64) -> RResult<ProfileRef> {
+    let pts = super::registry::points("profile_along", &Dynamic::from_array(p))?;
+    let pr =
+        profile_polyline(&i.0, &pts, step, Interp::Cubic).map_err(|e| err("profile_along", e))?;
+    Ok(ProfileRef(Arc::new(pr)))
+}
+
+/// The default step of `profile_along`: the smaller pixel size of the image (µm), 0.01 µm for a
+/// degenerate image.
+fn pixel_step(i: &ImageRef) -> f64 {
+    let h = i.0.dx().abs().min(i.0.dy().abs());
+    if h > 0.0 {
+        h
+    } else {
+        0.01
+    }
 }

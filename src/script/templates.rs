@@ -3,12 +3,13 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar};
+use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
-use crate::analysis::template::FromScansOptions;
+use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
 use crate::analysis::{
-    fit_beads, BeadInit, BeadModelOptions, Channels, FitOptions, GrowCriterion, Stencil, Template,
+    fit_beads, BeadInit, BeadModelOptions, Channels, FitOptions, GrowCriterion, MeasureOptions,
+    RefBead, Stencil, Template,
 };
 use crate::data::{Image, Scan};
 use crate::optics::rayleigh::DetectorModel;
@@ -29,6 +30,7 @@ pub fn register(r: &mut Registrar) {
 // ------------------------------------------------------------------ templates
 
 fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    let rb = RefBead::default();
     let d = Doc::func("template_model")
         .map(
             "opts",
@@ -38,37 +40,40 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
                     "h_um",
                     "float",
                     "µm",
-                    "optional: node spacing (default 0.02; 0.001–0.2)",
+                    format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)"),
                 ),
                 (
                     "z_um",
                     "float",
                     "µm",
-                    "optional: axial offset of the bead from the focus (default 0)",
+                    "optional: axial offset of the bead from the focus (default 0)".to_string(),
                 ),
                 (
                     "d_nm",
                     "float",
                     "nm",
-                    "optional: reference bead diameter (default 110)",
+                    format!("optional: reference bead diameter (default {})", rb.d_nm),
                 ),
                 (
                     "n",
                     "float",
                     "",
-                    "optional: reference bead index (default 1.572)",
+                    format!("optional: reference bead index (default {})", rb.n),
                 ),
                 (
                     "density",
                     "float",
                     "g/cm³",
-                    "optional: reference bead density (default 1.05)",
+                    format!(
+                        "optional: reference bead density (default {})",
+                        rb.density_g_cm3
+                    ),
                 ),
                 (
                     "polarization",
                     "bool",
                     "",
-                    "optional: vector dipole field (default false)",
+                    "optional: vector dipole field (default false)".to_string(),
                 ),
             ],
         )
@@ -81,43 +86,27 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
         .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
     let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |m: Map| -> RResult<TemplateRef> {
-        let o = Opts::new(&spec, &m)?;
-        let optics = c.optics.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let rb = ref_bead("template_model", &o, optics.n_medium)?;
-        let det = DetectorModel {
-            polarization: o.bool_or("polarization", false)?,
-            ..Default::default()
-        };
-        let t = Template::from_optics(
-            &optics,
-            &det,
-            rb,
-            o.f64_or("h_um", 0.02)?,
-            o.f64_or("z_um", 0.0)?,
-        )
-        .map_err(|e| err("template_model", e))?;
-        Ok(TemplateRef(Arc::new(t)))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("template_model", move || f2(Map::new()));
+    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
+    r.bind(d, move |m: Map| template_model(&c, &spec, &m));
+    r.overload("template_model", move || {
+        template_model(&c2, &s2, &Map::new())
+    });
 
+    let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
         .arg("scans", "array", "", "XY scans of reference beads [Scan, …]")
         .map(
             "opts",
             "optional",
             &[
-                ("half_width_um", "float", "µm", "optional: half-width of the template (default 1.5)"),
-                ("h_um", "float", "µm", "optional: node spacing (default: the finest pixel)"),
-                ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)"),
-                ("threshold", "float", "", "optional: detection threshold, fraction of the largest peak (default 0.3)"),
-                ("iterations", "int", "", "optional: alignment iterations (default 2)"),
-                ("d_nm", "float", "nm", "optional: reference bead diameter (default 110)"),
-                ("n", "float", "", "optional: reference bead index (default 1.572)"),
-                ("density", "float", "g/cm³", "optional: density (default 1.05)"),
+                ("half_width_um", "float", "µm", format!("optional: half-width of the template (default {})", fs.half_width_um)),
+                ("h_um", "float", "µm", "optional: node spacing (default: the finest pixel)".into()),
+                ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
+                ("threshold", "float", "", format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
+                ("iterations", "int", "", format!("optional: alignment iterations (default {})", fs.iterations)),
+                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {})", rb.d_nm)),
+                ("n", "float", "", format!("optional: reference bead index (default {})", rb.n)),
+                ("density", "float", "g/cm³", format!("optional: density (default {})", rb.density_g_cm3)),
             ],
         )
         .form("template_from_scans(scans) -> Template")
@@ -126,28 +115,13 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{TPL} let a = render_beads(t, #{{beads: [#{{x: 0.03, y: 0.0}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); let b = render_beads(t, #{{beads: [#{{x: -0.02, y: 0.04}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); template_from_scans([a, b]).source.n_beads"), "2")
         .example("template_from_scans([])", "error: no scans");
     let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |a: Array, m: Map| -> RResult<TemplateRef> {
-        let o = Opts::new(&spec, &m)?;
-        let n_medium = c.optics.lock().unwrap_or_else(|e| e.into_inner()).n_medium;
-        let rb = ref_bead("template_from_scans", &o, n_medium)?;
-        let d = FromScansOptions::default();
-        let fo = FromScansOptions {
-            half_width_um: o.f64_or("half_width_um", d.half_width_um)?,
-            h_um: o.f64("h_um")?,
-            beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
-            threshold: o.f64_or("threshold", d.threshold)?,
-            iterations: count("template_from_scans", &o, "iterations", 0, 100)?
-                .unwrap_or(d.iterations),
-        };
-        let scans = scans_arg("template_from_scans", &a)?;
-        let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();
-        let t = Template::from_scans(&refs, rb, &fo).map_err(|e| err("template_from_scans", e))?;
-        Ok(TemplateRef(Arc::new(t)))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
-    r.overload("template_from_scans", move |a: Array| f2(a, Map::new()));
+    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
+    r.bind(d, move |a: Array, m: Map| {
+        template_from_scans(&c, &spec, &a, &m)
+    });
+    r.overload("template_from_scans", move |a: Array| {
+        template_from_scans(&c2, &s2, &a, &Map::new())
+    });
 
     // properties and methods
     r.getter(
@@ -191,38 +165,20 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             )
             .summary("the template's response at a displacement from the bead")
             .example(&format!("{TPL} t.at(0.0, 0.0).sx"), "0.0"),
-        |t: &mut TemplateRef, u: f64, v: f64| -> Map {
-            let s = t.0.eval(u, v);
-            let mut m = Map::new();
-            m.insert("sx".into(), s[0].into());
-            m.insert("sy".into(), s[1].into());
-            m.insert("sz".into(), s[2].into());
-            m
-        },
+        |t: &mut TemplateRef, u: f64, v: f64| template_at(t, u, v),
     );
     r.bind(
         Doc::method("Template", "max_sens")
             .arg("pixel_um", "float", "µm", "pixel size of the scans to be measured")
-            .opt("stencil", "string", "", "derivative stencil (default central2)")
+            .opt("stencil", "string", "", &format!("derivative stencil (default {})", MeasureOptions::default().stencil.name()))
             .returns("float", "max ∂Sx/∂x of the reference bead as the pixel pipeline measures it (≈ 1)")
             .summary("the reference bead's max sensitivity through the measurement pipeline (denominator of masses)")
             .example(&format!("{TPL} let m = t.max_sens(0.05); m > 0.9 && m < 1.0"), "true"),
-        |t: &mut TemplateRef, px: f64| -> RResult<f64> {
-            t.0.pipeline_max_sens(px, Stencil::Central2, 0.4)
-                .map_err(|e| err("max_sens", e))
-        },
+        |t: &mut TemplateRef, px: f64| template_max_sens(t, px, None),
     );
-    r.overload(
-        "max_sens",
-        |t: &mut TemplateRef, px: f64, st: &str| -> RResult<f64> {
-            let s = Stencil::parse(st).map_or_else(
-                || fail(format!("max_sens: stencil = \"{st}\" is not one of \"central2\", \"central5\", \"sg5\", …")),
-                Ok,
-            )?;
-            t.0.pipeline_max_sens(px, s, 0.4)
-                .map_err(|e| err("max_sens", e))
-        },
-    );
+    r.overload("max_sens", |t: &mut TemplateRef, px: f64, st: &str| {
+        template_max_sens(t, px, Some(st))
+    });
     let c = ctx.clone();
     r.bind(
         Doc::method("Template", "save")
@@ -243,13 +199,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 "load_template(\"no/such/template.json\")",
                 "error: load_template: no/such/template.json",
             ),
-        |path: &str| -> RResult<TemplateRef> {
-            let s = std::fs::read_to_string(path)
-                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
-            let t = Template::from_json(&s)
-                .map_err(|e| err("load_template", format!("{path}: {e}")))?;
-            Ok(TemplateRef(Arc::new(t)))
-        },
+        |path: &str| load_template(path),
     );
 
     let d = Doc::func("render_beads")
@@ -258,13 +208,13 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "what",
             "objects and the grid",
             &[
-                ("beads", "array", "", "optional: [#{x, y, weight}] point objects (µm; weight in reference-bead units, default 1)"),
-                ("filaments", "array", "", "optional: [#{points: [[x, y], …], d_nm, n}] bead-model filaments (d_nm: one value or one per vertex)"),
-                ("spacing_nm", "float", "nm", "optional: bead-model spacing (default 50, Sec. 4.2)"),
-                ("x", "array", "µm", "[from, to]"),
-                ("y", "array", "µm", "[from, to]"),
-                ("nx", "int", "", "pixels along x"),
-                ("ny", "int", "", "pixels along y"),
+                ("beads", "array", "", "optional: [#{x, y, weight}] point objects (µm; weight in reference-bead units, default 1)".into()),
+                ("filaments", "array", "", "optional: [#{points: [[x, y], …], d_nm, n}] bead-model filaments (d_nm: one value or one per vertex)".into()),
+                ("spacing_nm", "float", "nm", format!("optional: bead-model spacing (default {}, Sec. 4.2)", BeadModelOptions::default().spacing_nm)),
+                ("x", "array", "µm", "[from, to]".into()),
+                ("y", "array", "µm", "[from, to]".into()),
+                ("nx", "int", "", "pixels along x".into()),
+                ("ny", "int", "", "pixels along y".into()),
             ],
         )
         .returns("Scan", "noise-free scan in the template's instrument units (superposition, eq. ReEEpReEE; × norm_factor gives reference-bead units)")
@@ -273,64 +223,19 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{TPL} render_beads(t, #{{filaments: [#{{points: [[0.0, -1.0], [0.0, 1.0]], d_nm: 50.0, n: 1.41}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}).rows"), "21")
         .example(&format!("{TPL} render_beads(t, #{{filaments: [#{{points: [[0.0, 0.0]], d_nm: 50.0, n: 1.41}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}})"), "error: ");
     let spec = d.spec();
-    r.bind(d, move |t: TemplateRef, m: Map| -> RResult<ScanRef> {
-        let o = Opts::new(&spec, &m)?;
-        let who = "render_beads";
-        let beads = match m.get("beads") {
-            Some(b) => bead_list(who, b)?,
-            None => vec![],
-        };
-        let fils = match m.get("filaments") {
-            Some(f) => match f.read_lock::<Array>() {
-                Some(a) => a
-                    .iter()
-                    .map(|x| filament_arg(who, x))
-                    .collect::<RResult<Vec<_>>>()?,
-                None => {
-                    return fail(format!(
-                        "{who}: filaments must be an array of filament maps"
-                    ))
-                }
-            },
-            None => vec![],
-        };
-        let bm = BeadModelOptions {
-            spacing_nm: o.f64_or("spacing_nm", 50.0)?,
-        };
-        let (x, y) = grid_axes(who, &o)?;
-        let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| err(who, e))?;
-        // reference-bead units → the instrument units of the template's source (what a scan
-        // of these objects records; fits and filament measurements expect those units)
-        let k = 1.0 / t.0.norm_factor;
-        let sc = |i: &Image| i.mul_scalar(k).map_err(|e| err(who, e));
-        let meta =
-            serde_json::json!({ "kind": "render_beads", "units": "instrument (template source)" });
-        Ok(scan_of(sc(&s.sx)?, sc(&s.sy)?, sc(&s.sz)?, meta))
-    });
+    r.bind(d, move |t: TemplateRef, m: Map| render_beads(&spec, &t, &m));
 
     let d = Doc::func("bead_model")
         .arg("tpl", "Template", "", "the point-particle template")
         .arg("filament", "map", "", "#{points: [[x, y], …] (µm), d_nm (one or per vertex), n}")
-        .opt("spacing_nm", "float", "nm", "bead spacing (default 50)")
+        .opt("spacing_nm", "float", "nm", &format!("bead spacing (default {})", BeadModelOptions::default().spacing_nm))
         .returns("array", "[#{x, y, weight}] the beads (weights in reference-bead units: (3/4)·h·d²·n_corr / d_ref³·… , Sec. 4.2)")
         .summary("the beads of a filament's bead model")
         .example(&format!("{TPL} bead_model(t, #{{points: [[0.0, 0.0], [0.0, 1.0]], d_nm: 110.0, n: 1.572}}, 50.0).len()"), "20");
-    let f = |t: TemplateRef, fm: Map, sp: f64| -> RResult<Array> {
-        let fil = filament_arg("bead_model", &Dynamic::from_map(fm))?;
-        let b = filament_beads(&t.0, &fil, &BeadModelOptions { spacing_nm: sp })
-            .map_err(|e| err("bead_model", e))?;
-        Ok(b.iter()
-            .map(|&(x, y, w)| {
-                let mut m = Map::new();
-                m.insert("x".into(), x.into());
-                m.insert("y".into(), y.into());
-                m.insert("weight".into(), w.into());
-                Dynamic::from_map(m)
-            })
-            .collect())
-    };
-    r.bind(d, f);
-    r.overload("bead_model", move |t: TemplateRef, fm: Map| f(t, fm, 50.0));
+    r.bind(d, |t: TemplateRef, fm: Map, sp: f64| bead_model(&t, fm, sp));
+    r.overload("bead_model", |t: TemplateRef, fm: Map| {
+        bead_model(&t, fm, BeadModelOptions::default().spacing_nm)
+    });
 }
 
 // ------------------------------------------------------------------ fit
@@ -371,69 +276,12 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
         .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
     let spec = d.spec();
-    let c = ctx.clone();
-    let f = move |s: ScanRef, t: TemplateRef, m: Map| -> RResult<FitRef> {
-        let who = "fit_beads";
-        let o = Opts::new(&spec, &m)?;
-        // the degeneracy and merge distances scale with the session's beam waist (set_optics)
-        let d = FitOptions {
-            w0_um: c.optics().w0_nm / 1000.0,
-            ..FitOptions::default()
-        };
-        let channels = match o.string("channels")? {
-            None => d.channels,
-            Some(c) => Channels::parse(&c).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: channels = \"{c}\" is not one of \"both\", \"sx\", \"sy\""
-                    ))
-                },
-                Ok,
-            )?,
-        };
-        let init = match m.get("init") {
-            None => None,
-            Some(v) => Some(
-                bead_list(who, v)?
-                    .into_iter()
-                    .map(|(x, y, weight)| BeadInit { x, y, weight })
-                    .collect(),
-            ),
-        };
-        let criterion = match o.string("criterion")?.as_deref() {
-            None | Some("bic") => GrowCriterion::Bic,
-            Some("rel_drop") => GrowCriterion::RelDrop {
-                min_drop: o.f64_or("min_drop", DEFAULT_MIN_DROP)?,
-            },
-            Some(c) => {
-                return fail(format!(
-                    "{who}: criterion = \"{c}\" is not one of \"bic\", \"rel_drop\""
-                ))
-            }
-        };
-        let fo = FitOptions {
-            channels,
-            n_beads: count(who, &o, "n_beads", 1, 10_000)?,
-            init,
-            grow: o.bool_or("grow", d.grow)?,
-            max_beads: count(who, &o, "max_beads", 1, 10_000)?.unwrap_or(d.max_beads),
-            criterion,
-            sigma: o.f64("sigma")?,
-            ftol: o.f64_or("ftol", d.ftol)?,
-            xtol: o.f64_or("xtol", d.xtol)?,
-            gtol: o.f64_or("gtol", d.gtol)?,
-            patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
-            min_separation: o.f64_or("min_separation", d.min_separation)?,
-            merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
-            ..d
-        };
-        let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
-        Ok(FitRef(Arc::new(r)))
-    };
-    let f2 = f.clone();
-    r.bind(d, f);
+    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
+    r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
+        fit_beads_of(&c, &spec, &s, &t, &m)
+    });
     r.overload("fit_beads", move |s: ScanRef, t: TemplateRef| {
-        f2(s, t, Map::new())
+        fit_beads_of(&c2, &s2, &s, &t, &Map::new())
     });
 
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
@@ -472,17 +320,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("float", doc)
                 .summary(doc)
                 .example(&ex, expect),
-            move |f: &mut FitRef| -> f64 {
-                let r = &f.0;
-                match name {
-                    "chi2" => r.chi2,
-                    "rss" => r.rss,
-                    "sigma" => r.sigma,
-                    "bic" => r.bic,
-                    "condition" => r.condition,
-                    _ => r.total_weight(),
-                }
-            },
+            move |f: &mut FitRef| fit_float(f, name),
         );
     }
     for (name, doc) in [
@@ -496,15 +334,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("int", doc)
                 .summary(doc)
                 .example(&format!("{fx} f.{name} > 0"), "true"),
-            move |f: &mut FitRef| -> i64 {
-                let r = &f.0;
-                (match name {
-                    "dof" => r.dof,
-                    "iterations" => r.iterations,
-                    "evaluations" => r.evaluations,
-                    _ => r.beads.len(),
-                }) as i64
-            },
+            move |f: &mut FitRef| fit_count(f, name),
         );
     }
     r.getter(
@@ -552,18 +382,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 .returns("Image", doc)
                 .summary(doc)
                 .example(&format!("{fx} f.{name}.cols"), "41"),
-            move |f: &mut FitRef| -> ImageRef {
-                let r = &f.0;
-                ImageRef(Arc::new(
-                    match name {
-                        "model_sx" => &r.model_sx,
-                        "model_sy" => &r.model_sy,
-                        "residual_sx" => &r.residual_sx,
-                        _ => &r.residual_sy,
-                    }
-                    .clone(),
-                ))
-            },
+            move |f: &mut FitRef| fit_image(f, name),
         );
     }
     r.bind(
@@ -578,28 +397,268 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 &format!("{fx} let c = f.subtract(sc); abs(c.sx.max()) < 1e-3"),
                 "true",
             ),
-        |f: &mut FitRef, s: ScanRef| -> RResult<ScanRef> {
-            let r = &f.0;
-            let sx = s.scan.sx.sub(&r.model_sx).map_err(|e| err("subtract", e))?;
-            let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
-            let mut meta = s.scan.meta.clone();
-            meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
-            Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
-        },
+        |f: &mut FitRef, s: ScanRef| subtract(f, &s),
     );
     r.bind(
         Doc::method("FitResult", "to_map")
             .returns("map", "everything but the images")
             .summary("the fit as a map (for printing and saving)")
             .example(&format!("{fx} f.to_map().status"), "\"converged\""),
-        |f: &mut FitRef| -> Map {
-            let mut v = serde_json::to_value(&*f.0).unwrap_or_default();
-            if let Some(o) = v.as_object_mut() {
-                for k in ["model_sx", "model_sy", "residual_sx", "residual_sy"] {
-                    o.remove(k);
-                }
-            }
-            json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()
-        },
+        |f: &mut FitRef| fit_map(f),
     );
+}
+
+/// `template_model([opts])`: the reference bead's response on nodes every h_um (µm) from the
+/// point-dipole model in the session's optics, normalised so its max ∂Sx/∂x = 1 (Sec. 3.1).
+fn template_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<TemplateRef> {
+    let o = Opts::new(spec, m)?;
+    let optics = c.optics.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let rb = ref_bead("template_model", &o, optics.n_medium)?;
+    let det = DetectorModel {
+        polarization: o.bool_or("polarization", false)?,
+        ..Default::default()
+    };
+    let t = Template::from_optics(
+        &optics,
+        &det,
+        rb,
+        o.f64_or("h_um", DEFAULT_MODEL_H_UM)?,
+        o.f64_or("z_um", 0.0)?,
+    )
+    .map_err(|e| err("template_model", e))?;
+    Ok(TemplateRef(Arc::new(t)))
+}
+
+/// `template_from_scans(scans[, opts])`: locate the isolated reference beads in XY scans, align
+/// them sub-pixel, average and normalise so max ∂Sx/∂x = 1 (suppl. S5).
+fn template_from_scans(c: &Ctx, spec: &Spec, a: &Array, m: &Map) -> RResult<TemplateRef> {
+    let o = Opts::new(spec, m)?;
+    let n_medium = c.optics.lock().unwrap_or_else(|e| e.into_inner()).n_medium;
+    let rb = ref_bead("template_from_scans", &o, n_medium)?;
+    let d = FromScansOptions::default();
+    let fo = FromScansOptions {
+        half_width_um: o.f64_or("half_width_um", d.half_width_um)?,
+        h_um: o.f64("h_um")?,
+        beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
+        threshold: o.f64_or("threshold", d.threshold)?,
+        iterations: count("template_from_scans", &o, "iterations", 0, 100)?.unwrap_or(d.iterations),
+    };
+    let scans = scans_arg("template_from_scans", a)?;
+    let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();
+    let t = Template::from_scans(&refs, rb, &fo).map_err(|e| err("template_from_scans", e))?;
+    Ok(TemplateRef(Arc::new(t)))
+}
+
+/// `Template.at(u, v)`: the template's (Sx, Sy, Sz) in reference-bead units at a displacement
+/// (u, v) µm from the bead (interpolated).
+fn template_at(t: &TemplateRef, u: f64, v: f64) -> Map {
+    let s = t.0.eval(u, v);
+    let mut m = Map::new();
+    m.insert("sx".into(), s[0].into());
+    m.insert("sy".into(), s[1].into());
+    m.insert("sz".into(), s[2].into());
+    m
+}
+
+/// `Template.max_sens(pixel_um[, stencil])`: the reference bead's max ∂Sx/∂x as the pixel
+/// pipeline measures it at pixel size `pixel_um` (µm), with the measurement's default stencil
+/// and parabola window unless a stencil is given.
+fn template_max_sens(t: &TemplateRef, px: f64, stencil: Option<&str>) -> RResult<f64> {
+    let d = MeasureOptions::default();
+    let s = match stencil {
+        None => d.stencil,
+        Some(st) => Stencil::parse(st).map_or_else(
+            || fail(format!("max_sens: stencil = \"{st}\" is not one of \"central2\", \"central5\", \"sg5\", …")),
+            Ok,
+        )?,
+    };
+    t.0.pipeline_max_sens(px, s, d.window_um)
+        .map_err(|e| err("max_sens", e))
+}
+
+/// `load_template(path)`: a template saved by `Template.save` (JSON).
+fn load_template(path: &str) -> RResult<TemplateRef> {
+    let s =
+        std::fs::read_to_string(path).map_err(|e| err("load_template", format!("{path}: {e}")))?;
+    let t = Template::from_json(&s).map_err(|e| err("load_template", format!("{path}: {e}")))?;
+    Ok(TemplateRef(Arc::new(t)))
+}
+
+/// `render_beads(tpl, what)`: the noise-free scan of point beads and bead-model filaments by
+/// superposition of the template (Sec. 4.2), in the instrument units of the template's source.
+fn render_beads(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<ScanRef> {
+    let o = Opts::new(spec, m)?;
+    let who = "render_beads";
+    let beads = match m.get("beads") {
+        Some(b) => bead_list(who, b)?,
+        None => vec![],
+    };
+    let fils = match m.get("filaments") {
+        Some(f) => match f.read_lock::<Array>() {
+            Some(a) => a
+                .iter()
+                .map(|x| filament_arg(who, x))
+                .collect::<RResult<Vec<_>>>()?,
+            None => {
+                return fail(format!(
+                    "{who}: filaments must be an array of filament maps"
+                ))
+            }
+        },
+        None => vec![],
+    };
+    let bm = BeadModelOptions {
+        spacing_nm: o.f64_or("spacing_nm", BeadModelOptions::default().spacing_nm)?,
+    };
+    let (x, y) = grid_axes(who, &o)?;
+    let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| err(who, e))?;
+    // reference-bead units → the instrument units of the template's source (what a scan
+    // of these objects records; fits and filament measurements expect those units)
+    let k = 1.0 / t.0.norm_factor;
+    let sc = |i: &Image| i.mul_scalar(k).map_err(|e| err(who, e));
+    let meta =
+        serde_json::json!({ "kind": "render_beads", "units": "instrument (template source)" });
+    Ok(scan_of(sc(&s.sx)?, sc(&s.sy)?, sc(&s.sz)?, meta))
+}
+
+/// `bead_model(tpl, filament[, spacing_nm])`: the beads (µm, reference-bead weights) that
+/// represent a filament, one every `spacing_nm` nm along it (Sec. 4.2).
+fn bead_model(t: &TemplateRef, fm: Map, sp: f64) -> RResult<Array> {
+    let fil = filament_arg("bead_model", &Dynamic::from_map(fm))?;
+    let b = filament_beads(&t.0, &fil, &BeadModelOptions { spacing_nm: sp })
+        .map_err(|e| err("bead_model", e))?;
+    Ok(b.iter()
+        .map(|&(x, y, w)| {
+            let mut m = Map::new();
+            m.insert("x".into(), x.into());
+            m.insert("y".into(), y.into());
+            m.insert("weight".into(), w.into());
+            Dynamic::from_map(m)
+        })
+        .collect())
+}
+
+/// `fit_beads(scan, tpl[, opts])`: Levenberg–Marquardt fit of template copies (positions µm,
+/// weights in reference-bead units) to a scan's Sx and Sy (eq. multiBeadFit); the degeneracy
+/// and merge distances scale with the session's beam waist.
+fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<FitRef> {
+    let who = "fit_beads";
+    let o = Opts::new(spec, m)?;
+    // the degeneracy and merge distances scale with the session's beam waist (set_optics)
+    let d = FitOptions {
+        w0_um: c.optics().w0_nm / 1000.0,
+        ..FitOptions::default()
+    };
+    let channels = match o.string("channels")? {
+        None => d.channels,
+        Some(c) => Channels::parse(&c).map_or_else(
+            || {
+                fail(format!(
+                    "{who}: channels = \"{c}\" is not one of \"both\", \"sx\", \"sy\""
+                ))
+            },
+            Ok,
+        )?,
+    };
+    let init = match m.get("init") {
+        None => None,
+        Some(v) => Some(
+            bead_list(who, v)?
+                .into_iter()
+                .map(|(x, y, weight)| BeadInit { x, y, weight })
+                .collect(),
+        ),
+    };
+    let criterion = match o.string("criterion")?.as_deref() {
+        None | Some("bic") => GrowCriterion::Bic,
+        Some("rel_drop") => GrowCriterion::RelDrop {
+            min_drop: o.f64_or("min_drop", DEFAULT_MIN_DROP)?,
+        },
+        Some(c) => {
+            return fail(format!(
+                "{who}: criterion = \"{c}\" is not one of \"bic\", \"rel_drop\""
+            ))
+        }
+    };
+    let fo = FitOptions {
+        channels,
+        n_beads: count(who, &o, "n_beads", 1, 10_000)?,
+        init,
+        grow: o.bool_or("grow", d.grow)?,
+        max_beads: count(who, &o, "max_beads", 1, 10_000)?.unwrap_or(d.max_beads),
+        criterion,
+        sigma: o.f64("sigma")?,
+        ftol: o.f64_or("ftol", d.ftol)?,
+        xtol: o.f64_or("xtol", d.xtol)?,
+        gtol: o.f64_or("gtol", d.gtol)?,
+        patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
+        min_separation: o.f64_or("min_separation", d.min_separation)?,
+        merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
+        ..d
+    };
+    let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    Ok(FitRef(Arc::new(r)))
+}
+
+/// `FitResult.subtract(scan)`: the scan minus the fitted model in Sx and Sy (Sz unchanged),
+/// the subtracted beads noted in its metadata.
+fn subtract(f: &FitRef, s: &ScanRef) -> RResult<ScanRef> {
+    let r = &f.0;
+    let sx = s.scan.sx.sub(&r.model_sx).map_err(|e| err("subtract", e))?;
+    let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
+    let mut meta = s.scan.meta.clone();
+    meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
+    Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
+}
+
+/// `FitResult.to_map()`: the fit as a map, without its four images.
+fn fit_map(f: &FitRef) -> Map {
+    let mut v = serde_json::to_value(&*f.0).unwrap_or_default();
+    if let Some(o) = v.as_object_mut() {
+        for k in ["model_sx", "model_sy", "residual_sx", "residual_sy"] {
+            o.remove(k);
+        }
+    }
+    json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()
+}
+
+/// The float properties of a `FitResult`: chi2 = rss/σ², rss, sigma, bic, condition and (any
+/// other name) total_weight in reference-bead units.
+fn fit_float(f: &FitRef, name: &str) -> f64 {
+    let r = &f.0;
+    match name {
+        "chi2" => r.chi2,
+        "rss" => r.rss,
+        "sigma" => r.sigma,
+        "bic" => r.bic,
+        "condition" => r.condition,
+        _ => r.total_weight(),
+    }
+}
+
+/// The integer properties of a `FitResult`: dof, iterations, evaluations and (any other name)
+/// the number of beads.
+fn fit_count(f: &FitRef, name: &str) -> i64 {
+    let r = &f.0;
+    (match name {
+        "dof" => r.dof,
+        "iterations" => r.iterations,
+        "evaluations" => r.evaluations,
+        _ => r.beads.len(),
+    }) as i64
+}
+
+/// The image properties of a `FitResult`: model_sx, model_sy, residual_sx and (any other name)
+/// residual_sy = data − model.
+fn fit_image(f: &FitRef, name: &str) -> ImageRef {
+    let r = &f.0;
+    ImageRef(Arc::new(
+        match name {
+            "model_sx" => &r.model_sx,
+            "model_sy" => &r.model_sy,
+            "residual_sx" => &r.residual_sx,
+            _ => &r.residual_sy,
+        }
+        .clone(),
+    ))
 }
