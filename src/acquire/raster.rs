@@ -11,9 +11,10 @@
 //!    first move; a refused plan moves nothing;
 //! 2. ETA (per line: the move to the line's start, settle, the wave, the reads) and progress
 //!    per line;
-//! 3. per line: move to the wave's first point and settle; configure the line; arm the
-//!    digitiser on the external trigger; start the wave; wait for it; read the digitiser and
-//!    the recorder; bin;
+//! 3. per line: arm the digitiser on the external trigger; move to the wave's first point
+//!    (no settle: the wave's speed-up ramp of `settle` s and its margin of `settle` s at line
+//!    speed pass before the first pixel); configure the line (once, when lines repeat); start
+//!    the wave; wait for it; read the digitiser and the recorder; bin;
 //! 4. Ctrl-C or any fault: the digitiser stopped, the wave generator and the axes stopped
 //!    (PI: `WGO g 0`, `STP`), the completed lines saved (later rows NaN), no further motion
 //!    (not even the return of a relative scan);
@@ -498,7 +499,7 @@ pub fn run_raster(
     let rp = plan_lines(plan, start, &timing, inst.settle_s, &limits).map_err(refuse)?;
     let (rows, cols) = (plan.rows(), plan.cols());
     let move_s = inst.stage.move_time_s();
-    let per_line = move_s + inst.settle_s + rp.line_s + inst.qpd.overhead_s();
+    let per_line = move_s + rp.line_s + inst.qpd.overhead_s();
     let eta = rows as f64 * per_line
         + if plan.return_to_start {
             inst.settle_s
@@ -575,7 +576,9 @@ pub fn run_raster(
         let armed = arm(inst, &l.sweep, opts, plan.dwell_s);
         ph.configure_s += t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
-        let moved = armed.and_then(|()| inst.move_settle(l.start));
+        // no settle here: the wave's speed-up ramp (settle_s) and margin (settle_s at line
+        // speed) come before the first pixel, and the pixels are binned by measured position
+        let moved = armed.and_then(|()| inst.stage.move_to(l.start));
         ph.move_s += t.elapsed().as_secs_f64();
         let result = moved.and_then(|()| measure_line(inst, l, &rp.cols, env, &mut ph));
         match result {
@@ -742,7 +745,7 @@ pub fn run_raster(
             "instrument_s": t1 - t0,
             "eta_s": eta,
             "lines": {
-                "move_settle_ms": ms(ph.move_s),
+                "move_ms": ms(ph.move_s),
                 "configure_arm_ms": ms(ph.configure_s),
                 "wave_ms": ms(ph.wave_s),
                 "qpd_read_ms": ms(ph.qpd_s),

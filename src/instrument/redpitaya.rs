@@ -415,6 +415,8 @@ struct Armed {
     dec: u32,
     m: usize,
     source: &'static str,
+    /// When the acquisition was started: it cannot be filled before `at + m / rate`.
+    at: Instant,
 }
 
 /// A Red Pitaya board as the QPD digitiser.
@@ -576,7 +578,12 @@ impl RedPitaya {
         self.running = true;
         self.command("ACQ:START")?;
         self.command(&format!("ACQ:TRIG {source}"))?;
-        self.armed = Some(Armed { dec, m, source });
+        self.armed = Some(Armed {
+            dec,
+            m,
+            source,
+            at: Instant::now(),
+        });
         Ok(())
     }
 
@@ -634,8 +641,11 @@ impl RedPitaya {
                 });
             }
         }
+        // the buffer fills m / rate after the trigger, and the trigger came after the start:
+        // wait what is left of that time since the start (nothing when the read comes after
+        // a hardware-timed line), then poll the fill flag
         let acq = Duration::from_secs_f64(a.m as f64 / rate_at(a.dec));
-        std::thread::sleep(acq);
+        std::thread::sleep((a.at + acq).saturating_duration_since(Instant::now()));
         let fill_timeout = self.opts.timeout + acq;
         match self.poll("ACQ:TRIG:FILL?", "1", "0", Instant::now() + fill_timeout)? {
             Ok(()) => {}

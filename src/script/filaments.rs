@@ -274,6 +274,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 ("angle_deg", "float", "°", "optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
                 ("detect_snr", "float", "", format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
                 ("max_objects", "int", "", format!("optional: most point objects fitted (default {})", bd.max_objects)),
+                ("min_weight", "float", "", format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight)),
             ],
         )
         .form("remove_background(scan, tpl) -> map")
@@ -541,6 +542,7 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
         axis,
         detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
         max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
+        min_weight: o.f64_or("min_weight", d.min_weight)?,
         ..d.clone()
     };
     let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;

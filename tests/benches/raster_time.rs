@@ -166,7 +166,7 @@ fn main() {
         phases.push(format!(
             "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} |",
             wall / N as f64 * 1e3,
-            f("move_settle_ms"),
+            f("move_ms"),
             f("configure_arm_ms"),
             f("wave_ms"),
             f("qpd_read_ms"),
@@ -188,7 +188,7 @@ fn main() {
     println!();
     println!("Per line, ms (`meta.time.lines`):");
     println!();
-    println!("| stage link | wall per line | move + settle | configure + arm | wave | board read | recorder read (`DRR?`) | samples per pixel | record rate (cycles) |");
+    println!("| stage link | wall per line | move to the line start | configure + arm | wave | board read | recorder read (`DRR?`) | samples per pixel | record rate (cycles) |");
     println!("|---|---|---|---|---|---|---|---|---|");
     for r in &phases {
         println!("{r}");
