@@ -133,8 +133,23 @@ def row_instrument(ctx):
         return ("see the instrument_time block", "settle + dwell", "see below")
 
 
+def row_raster(ctx):
+    # the raster_time bench's table: | link | raster wall | line | target | ratio | points | ... |
+    rows = {}
+    for line in ctx["log"].get("raster_time", "").splitlines():
+        c = [x.strip() for x in line.strip().strip("|").split("|")]
+        if len(c) == 7 and c[4].endswith("×") and c[0] in ("pty full speed", "TCP, 1 ms latency"):
+            rows[c[0]] = c
+    if rows:
+        us = "; ".join(f"{k}: {v[1]}" for k, v in rows.items())
+        pts = rows.get("pty full speed", [""] * 7)[5]
+        ratio = "; ".join(f"{k}: {v[4]} the target" for k, v in rows.items())
+        return (us, f"target 1.2 × (4096 ms + turnarounds) = {next(iter(rows.values()))[3]}; point by point {pts}", ratio)
+
+
 ROWS = [
     ("scan per point on the emulators", row_instrument),
+    ("64 × 64 raster at 1 ms per pixel on the emulators (PI wave generator + Red Pitaya)", row_raster),
     ("render 128 × 128, 10 beads + 10 µm filament", row_render),
     ("one template plane", row_plane),
     ("renderer for a scene (domain check remembered)", row_renderer),
@@ -172,10 +187,12 @@ def main():
     for line in open(os.path.join(a.out_dir, "ran.txt")):
         n, t0, t1, status, peer = line.rstrip("\n").split("\t")
         ran[n] = dict(t0=float(t0), t1=float(t1), status=status, peer=peer)
-    ctx = dict(ran=ran, crit={}, peer={}, stderr={})
+    ctx = dict(ran=ran, crit={}, peer={}, stderr={}, log={})
     for n, r in ran.items():
         ctx["crit"][n] = criterion_results(a.criterion, r["t0"], r["t1"])
         ctx["stderr"][n] = open(os.path.join(a.out_dir, f"{n}.err"), errors="replace").read()
+        logf = os.path.join(a.out_dir, f"{n}.log")
+        ctx["log"][n] = open(logf, errors="replace").read() if os.path.exists(logf) else ""
         p = load(os.path.join(a.out_dir, f"{n}.peer.json"))
         if p is not None:
             ctx["peer"][n] = p
