@@ -534,16 +534,6 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     if let Some(e) = return_error {
         meta["return_error"] = json!(e);
     }
-    if let Some(Value::Object(q)) = inst.qpd.metadata() {
-        for (k, v) in q {
-            meta[k.as_str()] = v;
-        }
-    }
-    if let (Value::Object(m), Value::Object(extra)) = (&mut meta, &env.meta) {
-        for (k, v) in extra {
-            m.insert(k.clone(), v.clone());
-        }
-    }
     let scan = Scan {
         sx: mk(sx),
         sy: mk(sy),
@@ -552,6 +542,30 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         meta,
         raw: Vec::new(),
     };
+    Ok(finish(inst, env, &kind, scan, ended, returned))
+}
+
+/// The end every scan shares (point by point and raster): the QPD's metadata (the simulator's
+/// pipeline) and the script's (`env.meta`) merged into the scan's, the autosave (a failure
+/// logged loudly), the live display told.
+pub(crate) fn finish(
+    inst: &Instrument,
+    env: &ScanEnv,
+    kind: &str,
+    mut scan: Scan,
+    ended: Ended,
+    returned_to_start: bool,
+) -> ScanRun {
+    if let Some(Value::Object(q)) = inst.qpd.metadata() {
+        for (k, v) in q {
+            scan.meta[k.as_str()] = v;
+        }
+    }
+    if let (Value::Object(m), Value::Object(extra)) = (&mut scan.meta, &env.meta) {
+        for (k, v) in extra {
+            m.insert(k.clone(), v.clone());
+        }
+    }
     let saved = (env.save)(&scan);
     if let Err(e) = &saved {
         (env.log)(&format!(
@@ -561,12 +575,12 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     if let Some(o) = env.observer {
         o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
     }
-    Ok(ScanRun {
+    ScanRun {
         scan,
         saved,
         ended,
-        returned_to_start: returned,
-    })
+        returned_to_start,
+    }
 }
 
 /// Wall time of a scan's points by phase (real-time instruments), and what the links carried.

@@ -26,7 +26,7 @@
 //! pixel `i` takes the samples whose measured position lies within `w/2` of its centre
 //! (half-open: `[c − w/2, c + w/2)` in the sweep direction).
 
-use super::engine::{Batcher, Ended, ScanEnv, ScanError, ScanRun, ScanStart};
+use super::engine::{finish, Batcher, Ended, ScanEnv, ScanError, ScanRun, ScanStart};
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
 use crate::data::clock::utc_now;
@@ -34,7 +34,7 @@ use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::line::{LineSweep, LineTiming, SweepRecord};
 use crate::instrument::{BufferedTrace, DeviceError, Instrument, Pos, Trigger};
 use ndarray::Array2;
-use serde_json::{json, Value};
+use serde_json::json;
 use std::sync::atomic::Ordering;
 
 /// Digitiser samples asked per pixel (the digitiser may give more: its rates are steps).
@@ -759,16 +759,6 @@ pub fn run_raster(
     if let Some(e) = return_error {
         meta["return_error"] = json!(e);
     }
-    if let Some(Value::Object(q)) = inst.qpd.metadata() {
-        for (k, v) in q {
-            meta[k.as_str()] = v;
-        }
-    }
-    if let (Value::Object(m), Value::Object(extra)) = (&mut meta, &env.meta) {
-        for (k, v) in extra {
-            m.insert(k.clone(), v.clone());
-        }
-    }
     let mk =
         |d: Array2<f64>| Image::new(d, rp.cols.clone(), rp.rows.clone()).with_axis_names(xn, yn);
     let [sx, sy, mut sz] = img;
@@ -795,21 +785,7 @@ pub fn run_raster(
             .map(|(n, v)| (n.to_string(), padded(v, rows)))
             .collect(),
     };
-    let saved = (env.save)(&scan);
-    if let Err(e) = &saved {
-        (env.log)(&format!(
-            "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
-        ));
-    }
-    if let Some(o) = env.observer {
-        o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
-    }
-    Ok(ScanRun {
-        scan,
-        saved,
-        ended,
-        returned_to_start: returned,
-    })
+    Ok(finish(inst, env, &kind, scan, ended, returned))
 }
 
 #[cfg(test)]
