@@ -733,7 +733,7 @@ pub fn run_raster(
             "position_error_um_rms": (n_err > 0).then(|| (err_ss / n_err as f64).sqrt()),
             "lag_um_mean": (lag_sum.1 > 0).then(|| lag_sum.0 / lag_sum.1 as f64),
             "sz_measured": sz_measured,
-            "binning": "each pixel: the mean of the digitiser samples whose measured stage position (recorder, interpolated) lies within half a pitch of its centre",
+            "binning": "each pixel: the digitiser samples whose measured stage position (recorder, interpolated) lies within half a pitch of its centre; its value is their least-squares line (value against position) at the centre",
         },
         "time": {
             "wall_start": wall_start,
