@@ -184,6 +184,17 @@ pub enum Ended {
     },
 }
 
+impl Ended {
+    /// The status the scan file records.
+    pub fn status(&self) -> ScanStatus {
+        match self {
+            Ended::Complete => ScanStatus::Complete,
+            Ended::Aborted { .. } => ScanStatus::Aborted,
+            Ended::Failed { .. } => ScanStatus::Failed,
+        }
+    }
+}
+
 /// A scan that ran (possibly partially): the data, where it was saved and how it ended.
 #[derive(Debug, Clone)]
 pub struct ScanRun {
@@ -327,22 +338,8 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let mut sx = Array2::from_elem((rows, cols), f64::NAN);
     let mut sy = sx.clone();
     let mut sz = sx.clone();
-    let wall0 = std::time::Instant::now();
-    let wall_start = utc_now();
-    let t0 = inst.clock.now();
-
-    let bar = if env.progress {
-        let b = indicatif::ProgressBar::new(points.len() as u64);
-        if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "{msg} [{bar:40}] {pos}/{len} points, ETA {eta}",
-        ) {
-            b.set_style(style.progress_chars("=> "));
-        }
-        b.set_message(kind.clone());
-        b
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
+    let clock = ScanClock::start(inst);
+    let bar = progress_bar(env, points.len(), "points", &kind);
 
     let mut ended = Ended::Complete;
     let mut measured = 0usize;
@@ -424,7 +421,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
                 }
                 measured += 1;
                 if measured == revise_after {
-                    let per = (wall0.elapsed().as_secs_f64() - paused_wall) / measured as f64;
+                    let per = (clock.wall_s() - paused_wall) / measured as f64;
                     measured_s_per_point = Some(per);
                     if (per - per_point_eta).abs() > 0.1 * per_point_eta {
                         (env.log)(&format!(
@@ -486,12 +483,7 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     // still be moving) or a failed return, the one command the stage still gets is a stop.
     let stop = (stage_fault || return_error.is_some()).then(|| stop_stage(inst, &kind, env));
 
-    let status = match ended {
-        Ended::Complete => ScanStatus::Complete,
-        Ended::Aborted { .. } => ScanStatus::Aborted,
-        Ended::Failed { .. } => ScanStatus::Failed,
-    };
-    let t1 = inst.clock.now();
+    let status = ended.status();
     let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
     let mut meta = json!({
         "plan": plan,
@@ -506,19 +498,10 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         "limits": limits,
         "max_speed_between_points_um_s": speed,
         "instrument": inst.description,
-        "time": {
-            "wall_start": wall_start,
-            "wall_end": utc_now(),
-            "wall_s": wall0.elapsed().as_secs_f64(),
-            "clock": if inst.clock.is_virtual() { "virtual" } else { "wall" },
-            "instrument_start_s": t0,
-            "instrument_end_s": t1,
-            "instrument_s": t1 - t0,
-            "eta_s": eta,
-            "measured_s_per_point_first_row": measured_s_per_point,
-            "paused_wall_s": paused_wall,
-        },
+        "time": clock.json(inst, eta),
     });
+    meta["time"]["measured_s_per_point_first_row"] = json!(measured_s_per_point);
+    meta["time"]["paused_wall_s"] = json!(paused_wall);
     if !pauses.is_empty() {
         meta["pauses"] = Value::Array(pauses);
     }
@@ -543,6 +526,65 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
         raw: Vec::new(),
     };
     Ok(finish(inst, env, &kind, scan, ended, returned))
+}
+
+/// When a scan started, on the wall and on the instrument's clock.
+pub(crate) struct ScanClock {
+    wall0: std::time::Instant,
+    wall_start: String,
+    t0: f64,
+}
+
+impl ScanClock {
+    pub(crate) fn start(inst: &Instrument) -> Self {
+        ScanClock {
+            wall0: std::time::Instant::now(),
+            wall_start: utc_now(),
+            t0: inst.clock.now(),
+        }
+    }
+
+    /// Wall seconds since the start.
+    pub(crate) fn wall_s(&self) -> f64 {
+        self.wall0.elapsed().as_secs_f64()
+    }
+
+    /// The `time` block every scan records (wall and instrument time, the ETA); each engine
+    /// adds its own keys.
+    pub(crate) fn json(&self, inst: &Instrument, eta_s: f64) -> Value {
+        let t1 = inst.clock.now();
+        json!({
+            "wall_start": self.wall_start,
+            "wall_end": utc_now(),
+            "wall_s": self.wall_s(),
+            "clock": if inst.clock.is_virtual() { "virtual" } else { "wall" },
+            "instrument_start_s": self.t0,
+            "instrument_end_s": t1,
+            "instrument_s": t1 - self.t0,
+            "eta_s": eta_s,
+        })
+    }
+}
+
+/// A progress bar over `len` `unit`s when the environment asks for one (a terminal), hidden
+/// otherwise.
+pub(crate) fn progress_bar(
+    env: &ScanEnv,
+    len: usize,
+    unit: &str,
+    kind: &str,
+) -> indicatif::ProgressBar {
+    if !env.progress {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new(len as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(&format!(
+        "{{msg}} [{{bar:40}}] {{pos}}/{{len}} {unit}, ETA {{eta}}"
+    )) {
+        b.set_style(style.progress_chars("=> "));
+    }
+    b.set_message(kind.to_string());
+    b
 }
 
 /// The end every scan shares (point by point and raster): the QPD's metadata (the simulator's

@@ -26,11 +26,12 @@
 //! pixel `i` takes the samples whose measured position lies within `w/2` of its centre
 //! (half-open: `[c − w/2, c + w/2)` in the sweep direction).
 
-use super::engine::{finish, Batcher, Ended, ScanEnv, ScanError, ScanRun, ScanStart};
+use super::engine::{
+    finish, progress_bar, Ended, ScanClock, ScanEnv, ScanError, ScanRun, ScanStart,
+};
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
-use crate::data::clock::utc_now;
-use crate::data::{Image, Scan, ScanStatus};
+use crate::data::{Image, Scan};
 use crate::instrument::line::{LineSweep, LineTiming, SweepRecord};
 use crate::instrument::{BufferedTrace, DeviceError, Instrument, Pos, Trigger};
 use ndarray::Array2;
@@ -535,18 +536,7 @@ pub fn run_raster(
             meta: &env.meta,
         });
     }
-    let bar = if env.progress {
-        let b = indicatif::ProgressBar::new(rows as u64);
-        if let Ok(style) =
-            indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} lines, ETA {eta}")
-        {
-            b.set_style(style.progress_chars("=> "));
-        }
-        b.set_message(kind.clone());
-        b
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
+    let bar = progress_bar(env, rows, "lines", &kind);
     let mut img = [
         Array2::from_elem((rows, cols), f64::NAN),
         Array2::from_elem((rows, cols), f64::NAN),
@@ -559,10 +549,7 @@ pub fn run_raster(
     let mut sample_rate = None;
     let mut sz_measured = true;
     let mut ph = LinePhases::default();
-    let wall0 = std::time::Instant::now();
-    let wall_start = utc_now();
-    let t0 = inst.clock.now();
-    let mut batch = Batcher::new();
+    let clock = ScanClock::start(inst);
     let mut ended = Ended::Complete;
     let mut measured = 0usize;
     let mut stop_note: Option<String> = None;
@@ -614,24 +601,18 @@ pub fn run_raster(
                 raw[4].push(d.record.target_um);
                 raw[5].push(d.record.position_um);
                 if let Some(o) = env.observer {
-                    for i in 0..cols {
-                        batch.push(
-                            o,
-                            (
-                                l.row,
-                                i,
-                                [img[0][[l.row, i]], img[1][[l.row, i]], img[2][[l.row, i]]],
-                            ),
-                        );
-                    }
-                    batch.flush(o);
+                    // one line at a time: a raster line is seconds of work at most
+                    let row: Vec<_> = (0..cols)
+                        .map(|i| (l.row, i, [0, 1, 2].map(|c| img[c][[l.row, i]])))
+                        .collect();
+                    o.points(&row);
                 }
                 measured += cols;
                 ph.lines += 1;
                 bar.inc(1);
                 if !revised && !inst.clock.is_virtual() && rows > 1 {
                     revised = true;
-                    let per = wall0.elapsed().as_secs_f64();
+                    let per = clock.wall_s();
                     if (per - per_line).abs() > 0.1 * per_line {
                         (env.log)(&format!(
                             "{kind}: the first line took {} (the ETA assumed {}): ETA now {} for the remaining {} lines",
@@ -672,9 +653,6 @@ pub fn run_raster(
         }
     }
     bar.finish_and_clear();
-    if let Some(o) = env.observer {
-        batch.flush(o);
-    }
     if let Some(n) = &stop_note {
         (env.log)(&format!("{kind}: {n}; no further motion"));
     }
@@ -692,12 +670,7 @@ pub fn run_raster(
             }
         }
     }
-    let status = match ended {
-        Ended::Complete => ScanStatus::Complete,
-        Ended::Aborted { .. } => ScanStatus::Aborted,
-        Ended::Failed { .. } => ScanStatus::Failed,
-    };
-    let t1 = inst.clock.now();
+    let status = ended.status();
     let n_lines = ph.lines.max(1) as f64;
     let ms = |s: f64| s / n_lines * 1e3;
     let first = &rp.lines[0].sweep;
@@ -735,23 +708,14 @@ pub fn run_raster(
             "sz_measured": sz_measured,
             "binning": "each pixel: the digitiser samples whose measured stage position (recorder, interpolated) lies within half a pitch of its centre; its value is their least-squares line (value against position) at the centre",
         },
-        "time": {
-            "wall_start": wall_start,
-            "wall_end": utc_now(),
-            "wall_s": wall0.elapsed().as_secs_f64(),
-            "clock": if inst.clock.is_virtual() { "virtual" } else { "wall" },
-            "instrument_start_s": t0,
-            "instrument_end_s": t1,
-            "instrument_s": t1 - t0,
-            "eta_s": eta,
-            "lines": {
+        "time": clock.json(inst, eta),
+    });
+    meta["time"]["lines"] = json!({
                 "move_ms": ms(ph.move_s),
                 "configure_arm_ms": ms(ph.configure_s),
                 "wave_ms": ms(ph.wave_s),
                 "qpd_read_ms": ms(ph.qpd_s),
-                "record_read_ms": ms(ph.record_s),
-            },
-        },
+        "record_read_ms": ms(ph.record_s),
     });
     if let Ended::Failed { error, .. } = &ended {
         meta["error"] = json!({ "message": error.to_string(), "stage_fault": true });
