@@ -673,28 +673,22 @@ impl Board {
             "ACQ:TPOS?" => text(self.tpos.to_string()),
             "ACQ:BUF:SIZE?" => text(BUF.to_string()),
             "ACQ:DATA:UNITS" => {
-                match arg.to_ascii_uppercase().as_str() {
-                    "VOLTS" => self.raw = false,
-                    "RAW" => self.raw = true,
-                    _ => self.push_error(-224, "Illegal parameter value"),
+                if let Some(v) = self.choice(arg, "RAW", "VOLTS") {
+                    self.raw = v;
                 }
                 None
             }
             "ACQ:DATA:UNITS?" => text(if self.raw { "RAW" } else { "VOLTS" }.into()),
             "ACQ:DATA:FORMAT" => {
-                match arg.to_ascii_uppercase().as_str() {
-                    "ASCII" => self.binary = false,
-                    "BIN" => self.binary = true,
-                    _ => self.push_error(-224, "Illegal parameter value"),
+                if let Some(v) = self.choice(arg, "BIN", "ASCII") {
+                    self.binary = v;
                 }
                 None
             }
             "ACQ:DATA:FORMAT?" => text(if self.binary { "BIN" } else { "ASCII" }.into()),
             "ACQ:DATA:BYTE:ORDER" => {
-                match arg.to_ascii_uppercase().as_str() {
-                    "LEND" => self.little_endian = true,
-                    "BEND" => self.little_endian = false,
-                    _ => self.push_error(-224, "Illegal parameter value"),
+                if let Some(v) = self.choice(arg, "LEND", "BEND") {
+                    self.little_endian = v;
                 }
                 None
             }
@@ -702,6 +696,20 @@ impl Board {
                 self.push_error(-113, "Undefined header");
                 None
             }
+        }
+    }
+
+    /// A two-valued setting: `Some(true)` for `on`, `Some(false)` for `off` (either case);
+    /// anything else queues error -224 and changes nothing.
+    fn choice(&mut self, arg: &str, on: &str, off: &str) -> Option<bool> {
+        let a = arg.to_ascii_uppercase();
+        if a == on {
+            Some(true)
+        } else if a == off {
+            Some(false)
+        } else {
+            self.push_error(-224, "Illegal parameter value");
+            None
         }
     }
 
