@@ -351,22 +351,31 @@ pub fn connect_emulated(
     cfg.stage.poll_ms = 1;
     cfg.qpd.backend = Backend::Scpi;
     cfg.qpd.port = Some(qpd.path().to_string());
-    let mut connected = connect(&cfg, |_| {
+    let emulators = json!({
+        "stage": stage.path(),
+        "qpd": qpd.path(),
+        "noise_v": noise_v,
+        "signal": "simulator (ideal signal of the scene) at the emulated stage position",
+    });
+    finish_emulated(&cfg, stage, qpd, emulators)
+}
+
+/// Connect through the real drivers to the emulators `cfg` names, and say so in the
+/// instrument's description (`backend: "emulated"`, what each emulator is).
+fn finish_emulated(
+    cfg: &Config,
+    stage: crate::instrument::emulator::Emulator,
+    qpd: crate::instrument::emulator::Emulator,
+    emulators: serde_json::Value,
+) -> Result<Emulated, ConnectError> {
+    let mut connected = connect(cfg, |_| {
         Err(anyhow::anyhow!(
             "a hardware config does not build the simulator"
         ))
     })?;
     if let serde_json::Value::Object(m) = &mut connected.instrument.description {
         m.insert("backend".into(), json!("emulated"));
-        m.insert(
-            "emulators".into(),
-            json!({
-                "stage": stage.path(),
-                "qpd": qpd.path(),
-                "noise_v": noise_v,
-                "signal": "simulator (ideal signal of the scene) at the emulated stage position",
-            }),
-        );
+        m.insert("emulators".into(), emulators);
     }
     Ok(Emulated {
         connected,
@@ -460,28 +469,13 @@ pub fn connect_emulated_redpitaya(
         sz: Some(3),
     };
     cfg.qpd.sample_rate_hz = sim.sample_rate;
-    let mut connected = connect(&cfg, |_| {
-        Err(anyhow::anyhow!(
-            "a hardware config does not build the simulator"
-        ))
-    })?;
-    if let serde_json::Value::Object(m) = &mut connected.instrument.description {
-        m.insert("backend".into(), json!("emulated"));
-        m.insert(
-            "emulators".into(),
-            json!({
-                "stage": stage.path(),
-                "qpd": qpd.path(),
-                "qpd_model": "Red Pitaya STEMlab 125-14 4-input",
-                "trigger": "stage OUT1 → board DIO0_P (EXT trigger)",
-                "noise_v": noise_v,
-                "signal": "simulator (ideal signal of the scene) at the emulated stage position, followed sample by sample during a wave",
-            }),
-        );
-    }
-    Ok(Emulated {
-        connected,
-        stage,
-        qpd,
-    })
+    let emulators = json!({
+        "stage": stage.path(),
+        "qpd": qpd.path(),
+        "qpd_model": "Red Pitaya STEMlab 125-14 4-input",
+        "trigger": "stage OUT1 → board DIO0_P (EXT trigger)",
+        "noise_v": noise_v,
+        "signal": "simulator (ideal signal of the scene) at the emulated stage position, followed sample by sample during a wave",
+    });
+    finish_emulated(&cfg, stage, qpd, emulators)
 }
