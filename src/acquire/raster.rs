@@ -410,11 +410,11 @@ fn measure_line(
     ph.configure_s += t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
     inst.stage.start_line(s)?;
-    if !inst.stage.wait_line(s, env.abort)? {
-        ph.wave_s += t.elapsed().as_secs_f64();
+    let played = inst.stage.wait_line(s, env.abort)?;
+    ph.wave_s += t.elapsed().as_secs_f64();
+    if !played {
         return Ok(None);
     }
-    ph.wave_s += t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
     let timeout = std::time::Duration::from_secs_f64(s.duration_s() + 2.0);
     let trace = inst.qpd.read_buffered(timeout)?;
