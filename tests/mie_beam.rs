@@ -494,7 +494,11 @@ fn mie_template_matches_the_direct_response() {
     use bfpscope::optics::mie_beam::optics_for_reach;
     use bfpscope::optics::mie_template::{MieTemplate, MieTemplateSpec};
     use bfpscope::optics::template::TemplateSpec;
-    let o = Optics::default();
+    // §9's beam (spectral waist w0, no aplanatic factor), as `MieBeamSpec::for_reach` builds
+    let o = Optics {
+        beam: bfpscope::optics::Beam::Paraxial,
+        ..Optics::default()
+    };
     let t = MieTemplate::new(
         &o,
         500.0,

@@ -3,8 +3,17 @@
 
 use bfpscope::instrument::sim::scene::*;
 use bfpscope::instrument::sim::*;
-use bfpscope::optics::params::Optics;
+use bfpscope::optics::params::{Beam, Optics};
 use bfpscope::optics::template::TemplateSpec;
+
+/// The paper's paraxial beam: these tests exercise the render pipeline stage by stage with the
+/// Rayleigh template (the default vector beam has its own tests: tests/vector_scene.rs).
+fn paraxial() -> Optics {
+    Optics {
+        beam: Beam::Paraxial,
+        ..Optics::default()
+    }
+}
 
 fn bead(x: f64, y: f64, d: f64) -> Bead {
     Bead {
@@ -21,7 +30,7 @@ fn axis(lo: f64, hi: f64, n: usize) -> Vec<f64> {
 }
 
 fn renderer(scene: &Scene) -> Renderer {
-    Renderer::checked(&Optics::default(), scene, TemplateSpec::default()).unwrap()
+    Renderer::checked(&paraxial(), scene, TemplateSpec::default()).unwrap()
 }
 
 #[test]
@@ -211,7 +220,7 @@ fn filament_along_y_is_invisible_in_sy_and_shows_in_sx() {
 fn sim_instrument_refuses_moves_beyond_travel_and_counts_virtual_time() {
     let mut s = Scene::default();
     s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
-    let core = SimCore::new(&Optics::default(), &s, SimConfig::default()).unwrap();
+    let core = SimCore::new(&paraxial(), &s, SimConfig::default()).unwrap();
     let mut inst = core.instrument(0.01);
     inst.move_settle([0.05, 0.0, 0.0]).unwrap();
     let r = inst.qpd.read(10_000).unwrap();
@@ -375,7 +384,7 @@ fn mie_render_of_a_small_bead_agrees_with_the_rayleigh_render() {
     let o = Optics {
         w0_nm: 1000.0,
         na: 1.0,
-        ..Optics::default()
+        ..paraxial()
     };
     let mut s = Scene::default();
     s.add_bead(bead(0.1, -0.05, 30.0)).unwrap();
@@ -421,7 +430,7 @@ fn mie_render_of_a_small_bead_agrees_with_the_rayleigh_render() {
 fn mie_render_of_a_500_nm_bead_is_finite_and_matches_the_direct_response() {
     use bfpscope::optics::mie::Complex64;
     use bfpscope::optics::mie_beam::{MieBeam, MieBeamSpec};
-    let o = Optics::default();
+    let o = paraxial();
     let mut s = Scene::default();
     s.add_bead(bead(0.2, 0.1, 500.0)).unwrap();
     let ray = renderer(&s);

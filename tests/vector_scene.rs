@@ -51,7 +51,7 @@ fn vector_scene_renders_point_dipoles_in_the_aplanatic_focus() {
     let st = r.stages();
     let mie = st
         .iter()
-        .find(|s| s.name == "mie")
+        .find(|s| s.name == "vector_beam")
         .expect("vector beam stage");
     assert!(
         mie.detail.contains("aplanatic vector beam"),
@@ -103,7 +103,11 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
         "{}",
         r.notes[0]
     );
-    let mie = r.stages().into_iter().find(|s| s.name == "mie").unwrap();
+    let mie = r
+        .stages()
+        .into_iter()
+        .find(|s| s.name == "vector_beam")
+        .unwrap();
     assert!(
         mie.detail.contains("1 picked by the scene"),
         "{}",
@@ -132,7 +136,7 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
     let mie = pinned
         .stages()
         .into_iter()
-        .find(|s| s.name == "mie")
+        .find(|s| s.name == "vector_beam")
         .unwrap();
     assert!(
         mie.detail.starts_with("aplanatic vector beam"),
@@ -140,4 +144,57 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
         mie.detail
     );
     assert!(mie.detail.contains("0 beads"), "{}", mie.detail);
+}
+
+/// The default instrument is the real one (issue 19 item 2): `Optics::default()` is the
+/// uniformly filled NA 1.2 aplanatic vector beam; a scene without effects builds the
+/// superposition and the vector-beam stage only, each effect adds its own stage after them, and
+/// `cross_terms` (modelled with the paraxial Gaussian only) is refused with a message that
+/// says how to get it, rather than rendered in the wrong beam.
+#[test]
+fn default_optics_are_the_vector_beam_and_each_effect_adds_its_own_stage() {
+    let o = Optics::default();
+    assert_eq!(o.beam, Beam::Vector);
+    assert!(o.pupil_filling.is_infinite() && o.na == 1.2 && o.wavelength_nm == 1064.0);
+    let mut s = Scene::default();
+    s.add_bead(bead(0.0, 0.0, 110.0)).unwrap();
+    let r = Renderer::checked(&o, &s, TemplateSpec::default()).unwrap();
+    assert_eq!(r.stage_names(), vec!["superposition", "vector_beam"]);
+    for name in EFFECT_NAMES.iter() {
+        let mut e = s.clone();
+        e.effects.enable(name).unwrap();
+        if *name == "cross_terms" {
+            let err = Renderer::checked(&o, &e, TemplateSpec::default())
+                .err()
+                .expect("cross_terms refused in the vector beam")
+                .to_string();
+            assert!(
+                err.contains("cross_terms") && err.contains("beam: \"paraxial\""),
+                "{err}"
+            );
+            continue;
+        }
+        let names = Renderer::checked(&o, &e, TemplateSpec::default())
+            .unwrap()
+            .stage_names();
+        // `mie` and `finite_size` pin a tier: the stage is then the named effect's
+        let expected: Vec<String> = match *name {
+            "mie" => vec!["superposition".into(), "mie".into()],
+            "finite_size" => vec![
+                "superposition".into(),
+                "finite_size".into(),
+                "vector_beam".into(),
+            ],
+            _ => vec![
+                "superposition".into(),
+                name.to_string(),
+                "vector_beam".into(),
+            ],
+        };
+        let mut got = names.clone();
+        let mut want = expected.clone();
+        got.sort();
+        want.sort();
+        assert_eq!(got, want, "effect {name}: {names:?}");
+    }
 }

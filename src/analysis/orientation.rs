@@ -359,7 +359,11 @@ fn ransac_line(c: &[Cand], rows: bool, tol: f64) -> Option<LineFit> {
             .wrapping_add(1442695040888963407);
         (state >> 33) as usize
     };
-    let mut best: Option<(usize, f64, f64)> = None;
+    // Score: the number of lines with an inlier, then the summed sensitivity of the inliers. A
+    // focus with side lobes (the vector beam's −13 % overshoot) puts a parallel line of weak
+    // maxima beside the filament in every line; on a tie in count the filament's own maxima
+    // (the larger values) must win.
+    let mut best: Option<(usize, f64, f64, f64)> = None;
     for _ in 0..4000 {
         let (i, j) = (next() % c.len(), next() % c.len());
         let (p, q) = (c[i], c[j]);
@@ -368,12 +372,13 @@ fn ransac_line(c: &[Cand], rows: bool, tol: f64) -> Option<LineFit> {
         }
         let b = (q.2 - p.2) / (q.1 - p.1);
         let a = p.2 - b * p.1;
-        let n = inliers(c, a, b, tol).len();
-        if best.is_none_or(|bb| n > bb.0) {
-            best = Some((n, a, b));
+        let inl = inliers(c, a, b, tol);
+        let (n, sum) = (inl.len(), inl.iter().map(|p| p.3).sum::<f64>());
+        if best.is_none_or(|bb| n > bb.0 || (n == bb.0 && sum > bb.3)) {
+            best = Some((n, a, b, sum));
         }
     }
-    let (_, mut a, mut b) = best?;
+    let (_, mut a, mut b, _) = best?;
     let mut pts = Vec::new();
     for _ in 0..3 {
         pts = inliers(c, a, b, tol);

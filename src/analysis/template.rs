@@ -184,8 +184,21 @@ impl Template {
                 ),
             });
         }
-        let det = crate::optics::rayleigh::Detection::new(optics, detector)?;
-        let mut g = crate::optics::template::plane_grid(&det, z_um, h_um, Interp::Cubic);
+        // the beam the simulator renders point dipoles in (issue 19): the paper's paraxial
+        // Rayleigh plane, or the aplanatic vector focus's dipole plane
+        let mut g = match optics.beam {
+            crate::optics::Beam::Paraxial => {
+                let det = crate::optics::rayleigh::Detection::new(optics, detector)?;
+                crate::optics::template::plane_grid(&det, z_um, h_um, Interp::Cubic)
+            }
+            crate::optics::Beam::Vector => crate::optics::mie_template::dipole_plane(
+                optics,
+                *detector,
+                h_um,
+                Interp::Cubic,
+                z_um,
+            )?,
+        };
         let alpha =
             crate::optics::rayleigh::alpha_um3(reference.d_nm, reference.n, optics.n_medium);
         for n in g.data.iter_mut() {
@@ -193,10 +206,16 @@ impl Template {
                 *c *= alpha;
             }
         }
-        let desc = format!(
-            "Rayleigh model: λ = {} nm, n = {}, w0 = {} nm, NA = {}, z = {z_um} µm, h = {h_um} µm, polarization: {}, misalignment: {:?}",
-            optics.wavelength_nm, optics.n_medium, optics.w0_nm, optics.na, detector.polarization, detector.misalignment
-        );
+        let desc = match optics.beam {
+            crate::optics::Beam::Paraxial => format!(
+                "Rayleigh model, paraxial beam: λ = {} nm, n = {}, w0 = {} nm, NA = {}, z = {z_um} µm, h = {h_um} µm, polarization: {}, misalignment: {:?}",
+                optics.wavelength_nm, optics.n_medium, optics.w0_nm, optics.na, detector.polarization, detector.misalignment
+            ),
+            crate::optics::Beam::Vector => format!(
+                "Rayleigh model, vector beam: λ = {} nm, n = {}, NA = {}, pupil filling {}, z = {z_um} µm, h = {h_um} µm, misalignment: {:?}",
+                optics.wavelength_nm, optics.n_medium, optics.na, optics.pupil_filling, detector.misalignment
+            ),
+        };
         Self::from_model(g, reference, &desc)
     }
 

@@ -164,6 +164,33 @@ impl MieBeamSpec {
     /// incident-grid part of [`grid_reach_um`]): 4·n_phi_in ≥ kρ sinΘ + 12 and
     /// n_theta_in ≥ (kρ sinΘ + k|z|(1 − cosΘ)/2)/2.5 + 4. The detection grid must follow
     /// ([`optics_for_reach`]).
+    /// The default grids in the beam `optics.beam` selects: for `Beam::Vector` the aplanatic
+    /// focus of pupil filling `optics.pupil_filling` (docs/physics.md §10); for
+    /// `Beam::Paraxial` §9's beam (spectral waist w0, no aplanatic factor).
+    pub fn of_beam(optics: &Optics) -> Self {
+        let (waist, apodization) = match optics.beam {
+            super::params::Beam::Paraxial => (Waist::Spectral, Apodization::None),
+            super::params::Beam::Vector => {
+                (Waist::Filling(optics.pupil_filling), Apodization::Aplanatic)
+            }
+        };
+        Self {
+            waist,
+            apodization,
+            ..Self::default()
+        }
+    }
+
+    /// This spec with the waist and apodisation of `optics.beam` ([`Self::of_beam`]).
+    pub fn with_beam_of(self, optics: &Optics) -> Self {
+        let b = Self::of_beam(optics);
+        Self {
+            waist: b.waist,
+            apodization: b.apodization,
+            ..self
+        }
+    }
+
     pub fn for_reach(optics: &Optics, rho_um: f64, z_um: f64) -> Self {
         let k = optics.k_per_um();
         let th = theta_aperture(optics);
@@ -900,7 +927,8 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
     Ok(reference / max_sensitivity_per_alpha(optics, d_nm, n)? - 1.0)
 }
 
-/// M(d, n)/α(d, n): the Mie tier's maximum sensitivity (∂Sx/∂x)max (µm⁻¹, default grid) per
+/// M(d, n)/α(d, n): the Mie tier's maximum sensitivity (∂Sx/∂x)max (µm⁻¹, default grid, in the
+/// beam `optics.beam` selects: [`MieBeamSpec::of_beam`]) per
 /// unit static polarisability α (µm³), the two factors of [`point_dipole_error`] (paper
 /// Fig. 3c, Sec. 3.2); µm⁻⁴. One Mie response, about 0.05–0.1 s in a release build. An error
 /// when n equals the medium's index (α = 0).
@@ -912,10 +940,127 @@ pub fn max_sensitivity_per_alpha(optics: &Optics, d_nm: f64, n: f64) -> Result<f
             optics.n_medium
         )));
     }
-    let m = MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::default())?
+    let m = MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::of_beam(optics))?
         .max_sensitivity_x()
         .0;
     Ok(m / alpha)
+}
+
+/// QPD signals of a point dipole (a sphere of diameter `d_nm`, index `n`, static polarisability
+/// α) displaced `pos_um` (µm) from the focus, in the beam `optics.beam` selects: the paper's
+/// paraxial Rayleigh model (suppl. S2, [`super::rayleigh::response`], `det.polarization`
+/// honoured) or the aplanatic vector focus (docs/physics.md §10; always vectorial, so
+/// `det.polarization` has no effect there). Normalised to the beam power, dimensionless.
+pub fn dipole_response_in_beam(
+    optics: &Optics,
+    det: &DetectorModel,
+    pos_um: [f64; 3],
+    d_nm: f64,
+    n: f64,
+) -> Result<super::rayleigh::Signals, OpticsError> {
+    if optics.beam == super::params::Beam::Paraxial {
+        return super::rayleigh::response(optics, det, pos_um, d_nm, n);
+    }
+    super::rayleigh::check_particle(d_nm, n)?;
+    for (name, v) in [("x", pos_um[0]), ("y", pos_um[1]), ("z", pos_um[2])] {
+        check_range(name, v, -1e4, 1e4)?;
+    }
+    let rho = pos_um[0].hypot(pos_um[1]);
+    let (d0, n0) = (
+        super::mie_template::DIPOLE_D_NM,
+        super::mie_template::DIPOLE_N,
+    );
+    let spec = MieBeamSpec {
+        detector: *det,
+        ..MieBeamSpec::of_beam(optics)
+    };
+    let spec = if rho <= grid_reach_um(optics, &spec, pos_um[2]) {
+        spec
+    } else {
+        MieBeamSpec {
+            detector: *det,
+            ..MieBeamSpec::for_reach(optics, rho, pos_um[2])
+        }
+        .with_beam_of(optics)
+    };
+    let o = optics_for_reach(optics, rho);
+    let s =
+        MieBeam::new(&o, d0, C64::new(n0, 0.0), spec)?.response(pos_um[0], pos_um[1], pos_um[2])?;
+    let a = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium)
+        / super::rayleigh::alpha_um3(d0, n0, optics.n_medium);
+    Ok(super::rayleigh::Signals {
+        sx: a * s[0],
+        sy: a * s[1],
+        sz: a * s[2],
+    })
+}
+
+/// Which scatterer model [`max_sensitivity_in_beam`] evaluates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SphereModel {
+    /// Point dipole of the sphere's static polarisability (paper Sec. 3.2).
+    Dipole,
+    /// Sphere rule of `n_r` radial orders of dipoles over the volume (suppl. S6).
+    FiniteSize { n_r: usize },
+    /// Exact Lorenz–Mie sphere (§9).
+    Mie,
+}
+
+/// Maximum sensitivity (∂Sx/∂x)max (µm⁻¹) of a sphere of diameter `d_nm` (nm) and real index `n`
+/// at its best focus, and that axial displacement z (µm), in the beam `optics.beam` selects
+/// (paper Fig. 3c; the height optimised as in suppl. S5): for `Beam::Paraxial` the paper's
+/// Rayleigh tier (suppl. S3/S6) — the Mie model then in §9's beam —, for `Beam::Vector` the
+/// aplanatic vector focus (docs/physics.md §10), every model in it. Dimensionless signals per
+/// beam power. Errors: invalid optics, a sphere out of range, n equal to the medium's index.
+pub fn max_sensitivity_in_beam(
+    optics: &Optics,
+    d_nm: f64,
+    n: f64,
+    model: SphereModel,
+) -> Result<(f64, f64), OpticsError> {
+    super::rayleigh::check_particle(d_nm, n)?;
+    let alpha = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium);
+    let paraxial = optics.beam == super::params::Beam::Paraxial;
+    match model {
+        SphereModel::Mie => {
+            Ok(
+                MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::of_beam(optics))?
+                    .max_sensitivity_x(),
+            )
+        }
+        SphereModel::Dipole | SphereModel::FiniteSize { .. } if paraxial => {
+            let det = Detection::new(optics, &DetectorModel::default())?;
+            let size = match model {
+                SphereModel::FiniteSize { .. } => Some(d_nm),
+                _ => None,
+            };
+            let n_r = match model {
+                SphereModel::FiniteSize { n_r } => n_r,
+                _ => super::finite_size::DEFAULT_N_R,
+            };
+            let (s, z) = super::finite_size::max_sensitivity_unit(&det, size, n_r);
+            Ok((s * alpha, z))
+        }
+        SphereModel::Dipole | SphereModel::FiniteSize { .. } => {
+            // the vector beam's point dipole: a 1 nm sphere's Mie response per unit α
+            let d0 = super::mie_template::DIPOLE_D_NM;
+            let n0 = super::mie_template::DIPOLE_N;
+            let a0 = super::rayleigh::alpha_um3(d0, n0, optics.n_medium);
+            let dip = MieBeam::new(optics, d0, C64::new(n0, 0.0), MieBeamSpec::of_beam(optics))?;
+            let pts = match model {
+                SphereModel::FiniteSize { n_r } => {
+                    super::finite_size::sphere_points(d_nm * 1e-3, n_r)
+                }
+                _ => vec![([0.0; 3], 1.0)],
+            };
+            let (s, z) = super::finite_size::best_focus(|z| {
+                pts.iter()
+                    .map(|(o, w)| w * dip.eval(o[0], o[1], z + o[2], true).1[0])
+                    .sum()
+            });
+            Ok((s * alpha / a0, z))
+        }
+    }
 }
 
 #[cfg(test)]

@@ -12,4 +12,4 @@ pub mod quad;
 pub mod rayleigh;
 pub mod template;
 
-pub use params::{Optics, OpticsError};
+pub use params::{Beam, Optics, OpticsError};

@@ -87,13 +87,13 @@ fn null_is_inf<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> 
 pub enum Beam {
     /// The paper's paraxial scalar Gaussian of waist w0 (suppl. S2/S3), a named approximation:
     /// the paper's numbers are reproduced through it.
-    #[default]
     Paraxial,
     /// Vectorial focus of an aplanatic objective of NA `na` (Richards & Wolf 1959, Proc. R. Soc.
     /// A 253, 358; Novotny & Hecht §3.6): angular spectrum with the 1/√cosθ apodisation, Gaussian
     /// pupil filling `pupil_filling`, x-polarised; every scatterer (point dipoles, finite-size
     /// spheres, filaments, aggregates, Lorenz–Mie spheres) is rendered in it
-    /// (`optics::mie_beam`, docs/physics.md §10).
+    /// (`optics::mie_beam`, docs/physics.md §10). The default: the real instrument.
+    #[default]
     Vector,
 }
 
@@ -135,7 +135,7 @@ impl Default for Optics {
             // exponentially; (16, 8) is within 3.2e-6 of the peak Sx of the (128, 64) reference.
             n_theta: 16,
             n_phi: 8,
-            beam: Beam::Paraxial,
+            beam: Beam::Vector,
             pupil_filling: f64::INFINITY,
         }
     }
@@ -228,7 +228,7 @@ mod beam_tests {
         assert_eq!(back, o);
         let d: Optics = serde_json::from_str(&serde_json::to_string(&Optics::default()).unwrap())
             .unwrap_or_else(|e| panic!("default optics JSON: {e}"));
-        assert_eq!(d.beam, Beam::Paraxial);
+        assert_eq!(d.beam, Beam::Vector);
         assert!(d.pupil_filling.is_infinite());
     }
 }

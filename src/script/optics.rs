@@ -8,9 +8,10 @@ use super::scene::{BEAD_D_NM, BEAD_N};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
-use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
+use crate::optics::finite_size::DEFAULT_N_R;
+use crate::optics::mie_beam::dipole_response_in_beam;
 use crate::optics::params::{Beam, Optics};
-use crate::optics::rayleigh::{alpha_um3, response, Detection, DetectorModel};
+use crate::optics::rayleigh::DetectorModel;
 use rhai::{Dynamic, Map, INT};
 
 /// `optics()` as a map (the keys `set_optics` takes).
@@ -118,12 +119,12 @@ pub fn register(r: &mut Registrar) {
                 ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
                 ("d_nm", "float", "nm", format!("optional: diameter (default {BEAD_D_NM})").as_str()),
                 ("n", "float", "", format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
-                ("polarization", "bool", "", "optional: vector dipole field (default false)"),
+                ("polarization", "bool", "", "optional: vector dipole field in the paraxial beam (default false; the vector beam is always vectorial)"),
             ],
         )
         .returns("map", "#{sx, sy, sz}: QPD signals normalised to the beam power")
-        .summary("Rayleigh-dipole QPD response of one sphere (suppl. S2)")
-        .help("The paper's model: Gaussian focus, dipole scattering, interference integrated over the detection cone per quadrant. Sx = right − left, Sy = top − bottom (docs/physics.md).")
+        .summary("point-dipole QPD response of one sphere in the session's beam")
+        .help("Dipole scattering of the sphere's static polarisability, interference with the beam integrated over the detection cone per quadrant; Sx = right − left, Sy = top − bottom. In the session's beam: the aplanatic vector focus (default, docs/physics.md §10) or, with set_optics(#{beam: \"paraxial\"}), the paper's Gaussian model (suppl. S2).")
         .example("response(#{x: 0.0}).sx", "0.0")
         .example("response(#{x: 0.2}).sx > 0.0 && response(#{x: -0.2}).sx < 0.0", "true")
         .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
@@ -279,7 +280,7 @@ fn response_of(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
         polarization: o.bool_or("polarization", false)?,
         misalignment: None,
     };
-    let s = response(
+    let s = dipole_response_in_beam(
         &c.optics(),
         &model,
         [
@@ -354,29 +355,27 @@ fn sphere_mass(d: &Dynamic, rho: &Dynamic) -> RResult<f64> {
 }
 
 /// `max_sensitivity_model(#{d_nm, n, model})`: model maximum ∂Sx/∂x (1/µm) of a sphere at its
-/// best focus z (µm), point dipole or finite size (suppl. S6, Fig. 3c).
+/// best focus z (µm) — point dipole, finite size (suppl. S6, Fig. 3c) or Lorenz–Mie — in the
+/// session's beam (`set_optics(#{beam})`).
 fn max_sensitivity_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
+    use crate::optics::mie_beam::{max_sensitivity_in_beam, SphereModel};
     let o = Opts::new(spec, m)?;
     let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
-    crate::optics::rayleigh::check_particle(dn, n).map_err(|e| err("max_sensitivity_model", e))?;
-    let optics = c.optics();
-    let det = Detection::new(&optics, &DetectorModel::default())
-        .map_err(|e| err("max_sensitivity_model", e))?;
-    let size = match o.string("model")?.as_deref() {
-        None | Some("rayleigh") => None,
-        Some("finite_size") => Some(dn),
+    let model = match o.string("model")?.as_deref() {
+        None | Some("rayleigh") => SphereModel::Dipole,
+        Some("finite_size") => SphereModel::FiniteSize { n_r: DEFAULT_N_R },
+        Some("mie") => SphereModel::Mie,
         Some(other) => {
             return fail(format!(
-            "max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\""
-        ))
+                "max_sensitivity_model: model = {other:?} is not one of \"rayleigh\", \"finite_size\", \"mie\""
+            ))
         }
     };
-    let (s, z) = max_sensitivity_unit(&det, size, DEFAULT_N_R);
+    let optics = c.optics();
+    let (s, z) = max_sensitivity_in_beam(&optics, dn, n, model)
+        .map_err(|e| err("max_sensitivity_model", e))?;
     let mut out = Map::new();
-    out.insert(
-        "sens".into(),
-        (s * alpha_um3(dn, n, optics.n_medium)).into(),
-    );
+    out.insert("sens".into(), s.into());
     out.insert("z".into(), z.into());
     Ok(out)
 }

@@ -6,7 +6,7 @@ use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
-use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+use crate::optics::mie_template::{MieTemplate, MieTemplateSpec, DIPOLE_D_NM, DIPOLE_N};
 use crate::optics::params::{Beam, Optics, OpticsError};
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
@@ -39,6 +39,10 @@ pub struct Renderer {
     pub mie: Vec<Arc<MieTemplate>>,
     pub mie_of: Vec<Option<usize>>,
     n_objects: usize,
+    /// Name of the stage that renders through the angular-spectrum templates: "mie" when the
+    /// scene names the effect (or in the paraxial beam), "vector_beam" when the vector beam
+    /// alone sends the scatterers there.
+    mie_stage: &'static str,
     stages: Mutex<Vec<StageInfo>>,
     /// Beads outside the point dipole's domain in a scene without `mie` or `finite_size`: what
     /// the simulator noticed about its own model (recorded in scan metadata, printed by
@@ -49,6 +53,18 @@ pub struct Renderer {
 }
 
 const SUPERPOSITION: &str = "superposition";
+/// The stage that renders a scene without the `mie` effect in the vector beam.
+pub const VECTOR_BEAM: &str = "vector_beam";
+
+/// The point dipole's relative error `e` in words: "+16.6 % off", or "76.898× the value of" when
+/// |e| ≥ 1 (a huge percentage reads badly).
+fn how_far_off(e: f64) -> String {
+    if e.abs() < 1.0 {
+        format!("{:+.1} % off", 100.0 * e)
+    } else {
+        format!("{:.3}× the value of", 1.0 + e)
+    }
+}
 
 /// Notes on beads the point dipole renders more than 1 % off the Mie tier (normalised to the
 /// 110 nm polystyrene reference), from the domain check.
@@ -56,11 +72,7 @@ fn model_notes(domain: &DomainCheck) -> Vec<String> {
     let mut notes = vec![];
     for d in &domain.entries {
         if let Some(e) = domain.outside(d.d_nm, d.n) {
-            let off = if e.abs() < 1.0 {
-                format!("{:+.1} % off", 100.0 * e)
-            } else {
-                format!("{:.3}× the value of", 1.0 + e)
-            };
+            let off = how_far_off(e);
             notes.push(format!(
                 "bead d = {} nm, n = {}: the point dipole's sensitivity is {off} the Mie tier \
                  (relative to a 110 nm polystyrene bead; docs/accuracy.md#model_500); add the `mie` effect if \
@@ -89,20 +101,14 @@ fn auto_mie_beads(scene: &Scene, domain: &DomainCheck) -> (Vec<usize>, Vec<Strin
         .filter_map(|d| {
             domain.outside(d.d_nm, d.n).map(|e| {
                 format!(
-                    "bead d = {} nm, n = {}: outside the point dipole's domain ({:+.1} % off the Mie tier, docs/accuracy.md#model_500): rendered by the Lorenz–Mie tier in the vector beam (name the `mie` or `finite_size` effect to pin a tier)",
-                    d.d_nm, d.n, 100.0 * e
+                    "bead d = {} nm, n = {}: outside the point dipole's domain (its sensitivity would be {} the Mie tier, docs/accuracy.md#model_500): rendered by the Lorenz–Mie tier in the vector beam (name the `mie` or `finite_size` effect to pin a tier)",
+                    d.d_nm, d.n, how_far_off(e)
                 )
             })
         })
         .collect();
     (out, notes)
 }
-
-/// The sphere whose Mie template stands for a point dipole in the angular-spectrum beam (`mie`
-/// effect): 1 nm (x = 0.004 at 1064 nm in water), so its response per unit α equals the dipole
-/// limit to O(x²) ≈ 1e-5; the index only sets α, which the template divides out.
-const DIPOLE_D_NM: f64 = 1.0;
-const DIPOLE_N: f64 = 1.5;
 
 impl Renderer {
     /// Build the pipeline for `scene`, first running the point dipole's domain check (a stage
@@ -142,11 +148,21 @@ impl Renderer {
         // templates (dipole limit), and beads outside the dipole's domain through Mie, unless
         // the scene pins a tier (`mie` / `finite_size`).
         let vector = optics.beam == Beam::Vector;
+        if vector && fx.cross_terms == Some(true) {
+            return Err(OpticsError::Invalid(
+                "effect cross_terms is modelled in the paraxial beam only (|Σ E_scat|² with the paper's Gaussian focus, docs/physics.md §8); the session's beam is \"vector\": set_optics(#{beam: \"paraxial\"}) to use it, or the mie effect's scattered_intensity for one sphere's |E_s|² in the vector beam".into(),
+            ));
+        }
         let pinned = fx.mie.is_some() || fx.finite_size.is_some();
         let (auto_mie, auto_notes) = if vector && !pinned {
             auto_mie_beads(scene, domain)
         } else {
             (vec![], vec![])
+        };
+        let mie_stage = if fx.mie.is_none() && vector {
+            VECTOR_BEAM
+        } else {
+            "mie"
         };
         let mie_fx = fx.mie.or(vector.then_some(MieEffect {
             min_d_nm: f64::INFINITY,
@@ -192,8 +208,12 @@ impl Renderer {
             push(
                 "polarization",
                 t0.elapsed().as_secs_f64(),
-                "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))"
-                    .into(),
+                if vector {
+                    "inherent in the vector beam (its dipole field is always vectorial): nothing added".into()
+                } else {
+                    "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))"
+                        .into()
+                },
             );
         }
         if let Some(m) = model.misalignment {
@@ -285,9 +305,15 @@ impl Renderer {
                     *m = Some(idx);
                 }
             }
-            push(
-                "mie",
-                t.elapsed().as_secs_f64(),
+            let detail = if mie_stage == VECTOR_BEAM {
+                format!(
+                    "aplanatic vector beam, NA {}, pupil filling {}: {n_dip} scatterers as point dipoles; {n_mie} beads outside the point dipole's domain ({} picked by the scene) as Lorenz–Mie spheres ({} sphere templates)",
+                    optics.na,
+                    optics.pupil_filling,
+                    auto_mie.len(),
+                    keys.len()
+                )
+            } else {
                 format!(
                     "{}{n_mie} beads ≥ {} nm{} as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
                     if vector {
@@ -303,8 +329,9 @@ impl Renderer {
                     },
                     keys.len(),
                     if m.scattered_intensity { ", with |E_s|²" } else { "" }
-                ),
-            );
+                )
+            };
+            push(mie_stage, t.elapsed().as_secs_f64(), detail);
         }
         if let Some(t) = fx.thermal_motion {
             push(
@@ -382,6 +409,7 @@ impl Renderer {
             mie,
             mie_of,
             n_objects,
+            mie_stage,
             stages: Mutex::new(stages),
             plane_cache: Mutex::new(None),
         })
@@ -447,7 +475,7 @@ impl Renderer {
     fn mie_planes(&self, i: usize, z: f64) -> Vec<(Arc<Grid2>, f64)> {
         let t = Instant::now();
         let r = self.mie[i].planes_for(z);
-        self.add_time("mie", t.elapsed().as_secs_f64());
+        self.add_time(self.mie_stage, t.elapsed().as_secs_f64());
         match r {
             Ok(p) => p,
             Err(e) => {
@@ -456,7 +484,7 @@ impl Renderer {
                     .lock()
                     .unwrap()
                     .iter_mut()
-                    .find(|s| s.name == "mie")
+                    .find(|s| s.name == self.mie_stage)
                 {
                     let note = format!("; Rayleigh used at z = {z} µm: {e}");
                     if !st.detail.contains(&note) {
