@@ -88,14 +88,30 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
         }
     }
 
+    // what the paper's approximation costs: the paraxial beam is percents off the default vector
+    // beam (measured 5.1 % RMS of the peak on a 64×64 image), far beyond the 3e-5 criterion, and
+    // an order of magnitude cheaper (templates from scratch)
+    let beam = r
+        .knobs
+        .iter()
+        .find(|k| k.knob.id == "beam")
+        .expect("beam knob");
+    let p = &beam.knob.points;
+    assert_eq!(
+        (p[0].setting.as_str(), p[1].setting.as_str()),
+        ("paraxial", "vector")
+    );
+    assert!(p[1].is_default && p[1].error < 1e-15, "{p:?}");
+    assert!(p[0].error > 0.02 && p[0].error < 0.1, "{p:?}");
     // the point dipole's domain for polystyrene: within 1 % of Mie at 170 nm (the paper's largest
-    // bead), beyond it at 350 nm; the 1 % diameter lies between (measured ≈ 252 nm)
+    // bead), beyond it at 350 nm; the 1 % diameter lies between (measured 188 nm in the default
+    // vector beam; 252 nm in §9's wider Gaussian-pupil beam before issue 19)
     let ps = &r.validity[0];
     assert_eq!(ps.n, 1.572);
     assert!(ps.points[0].1.abs() < 0.01, "{:?}", ps.points);
     assert!(ps.points.last().unwrap().1.abs() > 0.03, "{:?}", ps.points);
     let d1 = ps.d_1pct.unwrap();
-    assert!((200.0..350.0).contains(&d1), "{d1}");
+    assert!((170.0..350.0).contains(&d1), "{d1}");
     assert!(md.contains("Where the point dipole holds"));
 
     // trade-off: σ ∝ 1/√t between decades of dwell, and the closed-form law at 0.1 s

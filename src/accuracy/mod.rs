@@ -267,7 +267,7 @@ pub fn knob_bead_spacing(quick: bool) -> Knob {
                 value: sp,
                 error: rms.max(1e-16),
                 seconds: secs,
-                is_default: sp == 50.0,
+                is_default: sp == crate::instrument::sim::scene::FILAMENT_SPACING_NM,
             }
         })
         .collect();
@@ -324,9 +324,65 @@ fn bfpscope_fs_sens(det: &Detection, d_nm: f64, n_r: usize) -> f64 {
     crate::optics::finite_size::response_unit_finite(det, d_nm, n_r, 0.0, 0.0, 0.0).1[0]
 }
 
+/// What the paper's approximation costs (issue 19 item 2): the paraxial scalar Gaussian of
+/// suppl. S3 against the default instrument, the aplanatic vector focus of a uniformly filled
+/// NA 1.2 objective (validated against an independent Richards–Wolf model, docs/physics.md §10).
+/// Error: RMS of an n×n Sx image of a 110 nm polystyrene bead relative to the vector beam's
+/// peak; time: build the renderer (templates from scratch) and render the image.
+pub fn knob_beam(quick: bool) -> Knob {
+    use crate::optics::params::Beam;
+    let n = if quick { 32 } else { 64 };
+    let xs: Vec<f64> = (0..n)
+        .map(|i| -1.2 + 2.4 * i as f64 / (n - 1) as f64)
+        .collect();
+    let mut s = Scene::default();
+    s.add_bead(crate::instrument::sim::scene::Bead {
+        pos: [0.05, -0.03, 0.0],
+        d_nm: crate::optics::params::REF_BEAD_D_NM,
+        n: crate::optics::params::REF_BEAD_N,
+    })
+    .expect("valid bead");
+    let image = |beam: Beam| {
+        let o = Optics {
+            beam,
+            ..Optics::default()
+        };
+        let r = Renderer::checked(&o, &s, TemplateSpec::default()).expect("default optics");
+        render_xy(&r, &xs, &xs, 0.0, 1).sx.data
+    };
+    let reference = image(Beam::Vector);
+    let peak = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let points = [Beam::Paraxial, Beam::Vector]
+        .into_iter()
+        .enumerate()
+        .map(|(i, beam)| {
+            let img = image(beam);
+            let rms = ((&img - &reference).mapv(|v| v * v).sum() / img.len() as f64).sqrt() / peak;
+            Point {
+                setting: beam.name().into(),
+                value: i as f64,
+                error: rms.max(1e-16),
+                seconds: time_median(if quick { 1 } else { 3 }, || image(beam)),
+                is_default: beam == Optics::default().beam,
+            }
+        })
+        .collect();
+    Knob {
+        id: "beam".into(),
+        title: "Beam model: what the paper's paraxial approximation costs".into(),
+        metric: format!(
+            "RMS error of a {n}×{n} Sx image of a 110 nm polystyrene bead relative to the vector beam's peak"
+        ),
+        timed: "build the renderer (templates from scratch) and render the image".into(),
+        reference: "the aplanatic vector beam (docs/physics.md §10)".into(),
+        points,
+    }
+}
+
 /// Every physics knob, in report order.
 pub fn physics_knobs(quick: bool) -> Vec<Knob> {
     vec![
+        knob_beam(quick),
         knob_quadrature(quick),
         knob_quadrature_misaligned(quick),
         knob_template(quick),

@@ -246,6 +246,7 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
         say(name);
         knobs.push(f());
     };
+    step("beam", &|| super::knob_beam(q));
     step("quadrature", &|| super::knob_quadrature(q));
     step("quadrature (misaligned)", &|| {
         super::knob_quadrature_misaligned(q)

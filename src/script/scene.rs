@@ -36,11 +36,11 @@ const SCENE_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.
 /// bead, 110 nm polystyrene (Sec. 3.1). Diameter nm, refractive index.
 pub(crate) const BEAD_D_NM: f64 = 110.0;
 pub(crate) const BEAD_N: f64 = 1.572;
-/// Default filament of `add_filament`: a hydrated collagen fibril, diameter nm and index, and
-/// its bead-model spacing, nm (Sec. 4.2).
+/// Default filament of `add_filament`: a hydrated collagen fibril, diameter nm and index (its
+/// bead-model spacing is the simulator's [`FILAMENT_SPACING_NM`]).
 pub(crate) const FILAMENT_D_NM: f64 = 60.0;
 pub(crate) const FILAMENT_N: f64 = 1.414;
-pub(crate) const FILAMENT_SPACING_NM: f64 = 50.0;
+pub(crate) use crate::instrument::sim::scene::FILAMENT_SPACING_NM;
 /// Defaults of an `add_filament` α-tip's keys: full diameter, nm, and tip length, µm.
 const ALPHA_TIP_D_NM: f64 = 100.0;
 const ALPHA_TIP_UM: f64 = 3.0;
