@@ -1,7 +1,8 @@
 //! Golden traces of protocol runs on the simulator: every stage move, QPD read (4 significant
 //! digits) and protocol decision, stamped with the virtual clock. A change in a protocol's
 //! behaviour shows up as a readable diff against the committed file in `tests/golden/`.
-//! Refresh deliberately with `BFPSCOPE_BLESS=1 cargo test --test golden` and review the diff.
+//! Refresh deliberately with `BFPSCOPE_BLESS="<one line saying why>" cargo test --test golden`
+//! and review the diff: the reason is added to the file's `# ` header (kept, not compared).
 
 use bfpscope::instrument::trace::check_golden;
 use bfpscope::script::{Settings, Workbench};
@@ -20,11 +21,11 @@ fn run(tag: &str, script: &str) -> String {
 
 fn golden(name: &str, script: &str) {
     let text = run(name, script);
-    let bless = std::env::var_os("BFPSCOPE_BLESS").is_some();
+    let bless = std::env::var("BFPSCOPE_BLESS").ok();
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/golden")
         .join(format!("{name}.trace"));
-    if let Err(e) = check_golden(&text, &path, bless) {
+    if let Err(e) = check_golden(&text, &path, bless.as_deref()) {
         panic!("{e}");
     }
 }

@@ -223,28 +223,70 @@ impl super::Instrument {
     }
 }
 
-/// Compare a trace with a golden file: `Ok(())` when equal; when `bless` is set the file is
-/// (re)written; otherwise an error with a unified-style diff of the first differing lines.
-pub fn check_golden(actual: &str, path: &std::path::Path, bless: bool) -> Result<(), String> {
-    if bless {
+/// Why a golden file was (re)written: lines starting with `# ` at its top, one per blessing,
+/// kept from blessing to blessing and ignored by the comparison.
+const WHY: &str = "# ";
+
+/// Compare a trace with a golden file: `Ok(())` when equal (ignoring the file's `# ` header
+/// lines); when `bless` is `Some(why)` the file is (re)written with its old header lines plus
+/// `# why` — a golden file says why each time it was re-blessed (refused if `why` is empty);
+/// otherwise an error with a unified-style diff of the first differing lines.
+pub fn check_golden(
+    actual: &str,
+    path: &std::path::Path,
+    bless: Option<&str>,
+) -> Result<(), String> {
+    let old = std::fs::read_to_string(path).ok();
+    let header: Vec<&str> = old
+        .as_deref()
+        .map(|t| t.lines().take_while(|l| l.starts_with(WHY)).collect())
+        .unwrap_or_default();
+    if let Some(why) = bless {
+        let why = why.trim();
+        if why.is_empty() || why == "1" {
+            return Err(format!(
+                "blessing {} needs a reason: BFPSCOPE_BLESS=\"<one line saying why>\"",
+                path.display()
+            ));
+        }
         if let Some(d) = path.parent() {
             std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
         }
-        std::fs::write(path, actual).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut text = String::new();
+        for l in header
+            .iter()
+            .copied()
+            .chain(std::iter::once(format!("{WHY}{why}").as_str()))
+        {
+            text += l;
+            text.push('\n');
+        }
+        text += actual;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
         return Ok(());
     }
-    let expected = std::fs::read_to_string(path).map_err(|e| {
-        format!(
-            "golden trace {} unreadable ({e}); run with --bless to create it",
+    let Some(full) = old.as_deref() else {
+        return Err(format!(
+            "golden trace {} unreadable; run with BFPSCOPE_BLESS=\"<why>\" to create it",
             path.display()
-        )
-    })?;
+        ));
+    };
+    let expected: String = full
+        .lines()
+        .skip(header.len())
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let expected = if full.ends_with('\n') || expected.is_empty() {
+        expected
+    } else {
+        expected.trim_end_matches('\n').to_string()
+    };
     if expected == actual {
         return Ok(());
     }
     let (e, a): (Vec<&str>, Vec<&str>) = (expected.lines().collect(), actual.lines().collect());
     let mut diff = format!(
-        "trace differs from {} (run with --bless to accept):\n",
+        "trace differs from {} (run with BFPSCOPE_BLESS=\"<why>\" to accept):\n",
         path.display()
     );
     let mut shown = 0;
@@ -305,10 +347,22 @@ mod tests {
         // golden comparison: bless, then equal, then a changed line is reported
         let dir = std::env::temp_dir().join(format!("bfp_golden_{}", std::process::id()));
         let f = dir.join("t.trace");
-        check_golden(&t, &f, true).unwrap();
-        check_golden(&t, &f, false).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        assert!(check_golden(&t, &f, Some("1"))
+            .unwrap_err()
+            .contains("needs a reason"));
+        check_golden(&t, &f, Some("first trace")).unwrap();
+        check_golden(&t, &f, None).unwrap();
+        // a second blessing keeps the first reason and adds its own; the trace still compares
+        check_golden(&t, &f, Some("re-blessed: why")).unwrap();
+        let text = std::fs::read_to_string(&f).unwrap();
+        assert!(
+            text.starts_with("# first trace\n# re-blessed: why\n"),
+            "{text}"
+        );
+        check_golden(&t, &f, None).unwrap();
         let changed = t.replace("note done", "note other");
-        let e = check_golden(&changed, &f, false).unwrap_err();
+        let e = check_golden(&changed, &f, None).unwrap_err();
         assert!(
             e.contains("- ")
                 && e.contains("note done")

@@ -6,7 +6,7 @@ use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
-use crate::optics::mie_template::{MieTemplate, MieTemplateSpec, DIPOLE_D_NM, DIPOLE_N};
+use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
 use crate::optics::params::{Beam, Optics, OpticsError};
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
@@ -290,15 +290,7 @@ impl Renderer {
             // so a scene would mix two instruments.
             let n_dip = scatterers.len() - n_mie;
             if n_dip > 0 {
-                let dip = MieTemplate::new(
-                    optics,
-                    DIPOLE_D_NM,
-                    DIPOLE_N,
-                    MieTemplateSpec {
-                        scattered_intensity: false,
-                        ..spec
-                    },
-                )?;
+                let dip = MieTemplate::point_dipole(optics, spec)?;
                 mie.push(Arc::new(dip));
                 let idx = mie.len() - 1;
                 for m in mie_of.iter_mut().filter(|m| m.is_none()) {
