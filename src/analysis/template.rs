@@ -184,8 +184,12 @@ impl Template {
                 ),
             });
         }
-        let det = crate::optics::rayleigh::Detection::new(optics, detector)?;
-        let mut g = crate::optics::template::plane_grid(&det, z_um, h_um, Interp::Cubic);
+        let mut g = if optics.beam == crate::optics::params::Beam::Vector {
+            vector_plane(optics, detector, h_um, z_um)?
+        } else {
+            let det = crate::optics::rayleigh::Detection::new(optics, detector)?;
+            crate::optics::template::plane_grid(&det, z_um, h_um, Interp::Cubic)
+        };
         let alpha =
             crate::optics::rayleigh::alpha_um3(reference.d_nm, reference.n, optics.n_medium);
         for n in g.data.iter_mut() {
@@ -193,10 +197,17 @@ impl Template {
                 *c *= alpha;
             }
         }
-        let desc = format!(
+        let desc = if optics.beam == crate::optics::params::Beam::Vector {
+            format!(
+                "vector-beam dipole model (aplanatic focus, pupil_filling f0 = {}): λ = {} nm, n = {}, NA = {}, z = {z_um} µm, h = {h_um} µm, misalignment: {:?}",
+                optics.pupil_filling, optics.wavelength_nm, optics.n_medium, optics.na, detector.misalignment
+            )
+        } else {
+            format!(
             "Rayleigh model: λ = {} nm, n = {}, w0 = {} nm, NA = {}, z = {z_um} µm, h = {h_um} µm, polarization: {}, misalignment: {:?}",
             optics.wavelength_nm, optics.n_medium, optics.w0_nm, optics.na, detector.polarization, detector.misalignment
-        );
+        )
+        };
         Self::from_model(g, reference, &desc)
     }
 
@@ -587,6 +598,36 @@ fn max_dsx_du(g: &Grid2) -> ([f64; 2], f64) {
         step /= 4.0;
     }
     ([best.0, best.1], best.2)
+}
+
+/// The per-unit-α response plane of a point dipole in the aplanatic vector focus of `optics`
+/// (`optics::mie_template`, the simulator's own dipole template, issue 19) at axial offset
+/// `z_um`, nodes every `h_um`. The plane index is z/hz with hz ≤ 1 µm chosen so z is a node.
+fn vector_plane(
+    optics: &crate::optics::Optics,
+    detector: &crate::optics::rayleigh::DetectorModel,
+    h_um: f64,
+    z_um: f64,
+) -> Result<Grid2> {
+    use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+    let (hz, iz) = if z_um == 0.0 {
+        (0.05, 0)
+    } else {
+        let n = z_um.abs().ceil().max(1.0);
+        (z_um.abs() / n, n as i64 * z_um.signum() as i64)
+    };
+    let spec = MieTemplateSpec {
+        grid: crate::optics::template::TemplateSpec {
+            h: h_um,
+            hz,
+            interp: Interp::Cubic,
+        },
+        detector: *detector,
+        scattered_intensity: false,
+    };
+    // 1 nm sphere: the dipole limit (as instrument::sim::render's DIPOLE_D_NM)
+    let t = MieTemplate::new(optics, 1.0, 1.5, spec)?;
+    Ok((*t.plane(iz)?).clone())
 }
 
 #[cfg(test)]
