@@ -665,9 +665,9 @@ pub fn fit_beam(
         )));
     }
     for c in 0..3 {
-        if rms[c] > 2.0 * noise[c] && rms[c] > 2e-3 * range[c] {
+        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c] {
             return Err(AnalysisError::Failed(format!(
-                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.2 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
+                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
                 opts.d_nm,
                 opts.n,
                 ["sx", "sy", "sz"][c],
