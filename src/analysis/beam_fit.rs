@@ -424,7 +424,7 @@ pub fn fit_beam(
     }
     let (hx, hy) = (sx.dx().abs(), sx.dy().abs());
     let span = ((nx - 1) as f64 * hx).min((ny - 1) as f64 * hy);
-    if !(hx <= 0.1 && hy <= 0.1) || !(span >= 1.2) {
+    if !(hx <= 0.1 && hy <= 0.1 && span >= 1.2) {
         return Err(AnalysisError::BadInput {
             name: "scan",
             reason: format!(
