@@ -5,6 +5,8 @@
 use super::ctx::Ctx;
 use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
+use super::types::ScanRef;
+use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
@@ -12,7 +14,7 @@ use crate::optics::finite_size::DEFAULT_N_R;
 use crate::optics::mie_beam::dipole_response_in_beam;
 use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::DetectorModel;
-use rhai::{Dynamic, Map, INT};
+use rhai::{Array, Dynamic, Map, INT};
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {
@@ -226,6 +228,105 @@ pub fn register(r: &mut Registrar) {
     let spec = d.spec();
     let c = ctx.clone();
     r.bind(d, move |m: Map| max_sensitivity_model(&c, &spec, &m));
+    register_fit_beam(r, &ctx);
+}
+
+/// `f0` as `set_optics` takes it: finite (the prompt refuses ∞); 1e6 is a uniformly filled
+/// pupil to 1e-12 (spectral waist 2/(k f0 sinΘ) ≈ 4e-8 µm).
+pub const UNIFORM_F0: f64 = 1e6;
+
+fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
+    let d = Doc::func("fit_beam")
+        .arg("scan", "Scan", "", "an xy scan of one reference bead at the focus (Sx, Sy, Sz; pixels ≤ 0.1 µm over ≥ 1.2 µm)")
+        .map(
+            "opts",
+            "optional",
+            &[
+                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
+                ("n", "float", "", format!("optional: reference bead index (default {BEAD_N})")),
+            ],
+        )
+        .form("fit_beam(scan) -> map")
+        .returns(
+            "map",
+            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys)}",
+        )
+        .summary("fit the focused beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to a reference-bead scan (issue 19)")
+        .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
+        .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41}); fit_beam(sc, #{d_nm: 500.0})", "error: d_nm = 500")
+        .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 21, ny: 21}); fit_beam(sc)", "error: the fit needs pixels ≤ 0.1 µm");
+    let spec = d.spec();
+    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
+    r.bind(d, move |s: ScanRef, m: Map| fit_beam_of(&c, &spec, &s, &m));
+    r.overload("fit_beam", move |s: ScanRef| {
+        fit_beam_of(&c2, &s2, &s, &Map::new())
+    });
+}
+
+/// `fit_beam(scan[, opts])`: the beam and QPD fitted to a reference-bead scan (module
+/// `analysis::beam_fit`), as a map with 1σ uncertainties.
+fn fit_beam_of(c: &Ctx, spec: &Spec, s: &ScanRef, m: &Map) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let opts = BeamFitOptions {
+        d_nm: o.f64_or("d_nm", BEAD_D_NM)?,
+        n: o.f64_or("n", BEAD_N)?,
+        ..BeamFitOptions::default()
+    };
+    let sc = &s.scan;
+    let f = fit_beam(&c.optics(), &sc.sx, &sc.sy, &sc.sz, &opts).map_err(|e| err("fit_beam", e))?;
+    Ok(fit_map(&f))
+}
+
+fn fit_map(f: &BeamFit) -> Map {
+    let mut out = Map::new();
+    for (k, v) in [
+        ("pupil_filling", f.pupil_filling),
+        ("inv_f0_sq", f.inv_f0_sq),
+        ("polarization_deg", f.polarization_deg),
+        ("qpd_rotation_deg", f.qpd_rotation_deg),
+        ("offset_x", f.offset_x),
+        ("offset_y", f.offset_y),
+        ("gain_x", f.gain_x),
+        ("gain_y", f.gain_y),
+        ("gain_z", f.gain_z),
+        ("gain_ratio", f.gain_ratio),
+        ("x0", f.x0),
+        ("y0", f.y0),
+    ] {
+        out.insert(k.into(), v.value.into());
+        out.insert(format!("{k}_sd").into(), v.sigma.into());
+    }
+    let arr = |a: [f64; 3]| -> Array { a.iter().map(|&v| Dynamic::from(v)).collect() };
+    out.insert("background".into(), arr(f.background).into());
+    out.insert("residual_rms".into(), arr(f.residual_rms).into());
+    out.insert("noise".into(), arr(f.noise).into());
+    out.insert("chi2_red".into(), f.chi2_red.into());
+    out.insert(
+        "corr_polarization_rotation".into(),
+        f.corr_polarization_rotation.into(),
+    );
+    out.insert("builds".into(), (f.builds as INT).into());
+    out.insert("seconds".into(), f.seconds.into());
+    let mut om = Map::new();
+    om.insert("beam".into(), f.optics.beam.name().into());
+    let f0 = f.optics.pupil_filling;
+    om.insert(
+        "pupil_filling".into(),
+        (if f0.is_finite() {
+            f0.min(UNIFORM_F0)
+        } else {
+            UNIFORM_F0
+        })
+        .into(),
+    );
+    out.insert("optics".into(), om.into());
+    let mut mm = Map::new();
+    mm.insert("offset_x".into(), f.misalignment.offset_x.into());
+    mm.insert("offset_y".into(), f.misalignment.offset_y.into());
+    mm.insert("rotation_deg".into(), f.misalignment.rotation_deg.into());
+    mm.insert("gain_y".into(), f.misalignment.gain_y.into());
+    out.insert("misalignment".into(), mm.into());
+    out
 }
 
 /// `optics()`: the session's optical parameters (nm, mW).

@@ -83,6 +83,7 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             "normalised so the reference bead's max ∂Sx/∂x = 1",
         )
         .summary("reference template from the physics model in the current optics (Sec. 3.1)")
+        .help("In the current optics' beam: with set_optics(#{beam: \"vector\"}) (e.g. set_optics(fit_beam(scan).optics), the beam fitted to your reference bead) the point dipole in the aplanatic vector focus of that pupil filling (always vectorial: polarization is then ignored), else the paper's paraxial model (suppl. S2/S3). angle_curve, diameter_calib, lin_dens_calib and point_mass(#{tpl}) follow the template.")
         .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
         .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
     let spec = d.spec();

@@ -1,0 +1,710 @@
+//! The beam from the measurement (issue 19, item 4): fit the focused beam and the QPD to one
+//! xy scan of a reference bead at the focus (docs/physics.md §10.4).
+//!
+//! **Model.** The reference bead (a point dipole of polarisability α, the tier the simulator
+//! uses for a 110 nm polystyrene bead) at stage position r0 in the aplanatic vector focus of
+//! pupil filling f0 (Novotny & Hecht eq. 3.52; `Optics::pupil_filling`), seen by a QPD whose
+//! cross is rotated by δ from the polarisation axis and offset by (o_x, o_y) cone radii in the
+//! BFP, the beam's polarisation axis at ψ from the stage x axis:
+//!
+//! ```text
+//! Sx(r) = g_x [T_x(r') + δ ∂_δT_x(r')] + g_x o_x ∂_{ox}T_x(r') + b_x
+//! Sy(r) = g_y [T_y(r') + δ ∂_δT_y(r')] + g_y o_y ∂_{oy}T_y(r') + b_y
+//! Sz(r) = g_z T_z(r') + b_z,              r' = R(−ψ)(r − r0)
+//! ```
+//!
+//! T is the ideal-QPD response of the bead (α × the per-unit-α plane of
+//! `optics::mie_template` at z = 0, the simulator's own template), ∂_δT and ∂_oT its changes per
+//! degree of QPD rotation and per cone radius of QPD offset (forward differences over
+//! [`EPS_ROT_DEG`] and [`EPS_OFFSET`], i.e. the misalignment to first order; an offset moves
+//! only its own channel's sign boundary, so one build gives both offset columns). g are the
+//! amplifier gains (the signals' units per simulator unit; 1 in the simulator), b the channel
+//! offsets. The QPD gain ratio is g_y/g_x (the `misalignment` effect's `gain_y`).
+//!
+//! **Parameters and identifiability.** Linear (solved exactly for given non-linear ones,
+//! variable projection): g_x, g_x·o_x, b_x, g_y, g_y·o_y, b_y, g_z, b_z. Non-linear, cheap
+//! (template interpolation only): x0, y0, ψ, δ. Non-linear, expensive (three template-plane
+//! builds per value): v = 1/f0², so the uniformly filled pupil is v = 0 (the model is analytic
+//! in v; v < 0, a pupil brighter at its rim, is not physical and is the search's lower bound).
+//! One xy scan at the focus sees the focal width (→ v) and the elongation of the vector focus
+//! along the polarisation (→ ψ); a QPD rotation δ mixes Sx into Sy and back. δ and ψ are
+//! separable only through the focus's ellipticity (for a round focus a rotation of the whole
+//! response and a rotation of the QPD are the same thing); their correlation is reported.
+//! z0 is not fitted: the scan is taken at the focus (the bead's z enters at second order).
+//! The fitted QPD angle relative to the stage is ψ + δ.
+//!
+//! **Uncertainty.** Weighted least squares with per-channel weights 1/σ_c², σ_c the channel's
+//! noise estimated from second differences of the image (robust, independent of the model);
+//! the covariance is s²(JᵀJ)⁻¹ with J the Jacobian of all 13 parameters at the optimum (v by
+//! a forward difference over two template builds) and s² the weighted residual variance
+//! (residual sum / (N − 13)). The answer is refused when it would not mean anything: no bead
+//! (the gain g_x below 10 σ), or a residual rms above twice the noise (a scan that is not this
+//! bead in this beam: wrong size, wrong kind, out of focus).
+
+use super::{check_range, AnalysisError, Result};
+use crate::data::Image;
+use crate::optics::grid::Grid2;
+use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+use crate::optics::params::{Beam, Optics};
+use crate::optics::rayleigh::{alpha_um3, DetectorModel, Misalignment};
+use crate::optics::template::TemplateSpec;
+use nalgebra::{DMatrix, DVector};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// QPD rotation (degrees) of the forward difference that gives ∂_δT.
+pub const EPS_ROT_DEG: f64 = 2.0;
+/// QPD offset (cone radii) of the forward difference that gives ∂_oT.
+pub const EPS_OFFSET: f64 = 0.05;
+/// Largest v = 1/f0² searched (f0 ≥ 0.5: a pupil filled to half its radius).
+pub const V_MAX: f64 = 4.0;
+/// Smallest and largest reference-bead diameter (nm): inside the point dipole's domain
+/// (docs/physics.md §10), and large enough to be seen.
+pub const D_RANGE_NM: (f64, f64) = (40.0, 200.0);
+
+/// Options of [`fit_beam`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BeamFitOptions {
+    /// Reference bead diameter (nm) and refractive index.
+    pub d_nm: f64,
+    pub n: f64,
+    /// Template grid of the model planes (the simulator's default).
+    pub grid: TemplateSpec,
+}
+
+impl Default for BeamFitOptions {
+    fn default() -> Self {
+        Self {
+            d_nm: 110.0,
+            n: 1.572,
+            grid: TemplateSpec::default(),
+        }
+    }
+}
+
+/// A fitted value and its 1σ uncertainty.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Value {
+    pub value: f64,
+    pub sigma: f64,
+}
+
+/// The result of [`fit_beam`]. Angles in degrees, positions in µm, offsets in cone radii.
+#[derive(Debug, Clone)]
+pub struct BeamFit {
+    /// v = 1/f0² (0: uniformly filled pupil).
+    pub inv_f0_sq: Value,
+    /// f0 = 1/√v (∞ when v = 0) and its σ by propagation (f0³σ_v/2).
+    pub pupil_filling: Value,
+    pub x0: Value,
+    pub y0: Value,
+    /// Polarisation axis ψ from the stage x axis.
+    pub polarization_deg: Value,
+    /// QPD rotation δ relative to the polarisation axis (the QPD's angle to the stage is ψ + δ).
+    pub qpd_rotation_deg: Value,
+    pub offset_x: Value,
+    pub offset_y: Value,
+    pub gain_x: Value,
+    pub gain_y: Value,
+    pub gain_z: Value,
+    /// g_y/g_x (the `misalignment` effect's `gain_y`).
+    pub gain_ratio: Value,
+    /// Channel offsets b (signal units).
+    pub background: [f64; 3],
+    /// Residual rms and noise estimate per channel (Sx, Sy, Sz), signal units.
+    pub residual_rms: [f64; 3],
+    pub noise: [f64; 3],
+    /// Weighted residual variance s² (≈ 1 when the model explains the scan to the noise).
+    pub chi2_red: f64,
+    /// Correlation of ψ and δ.
+    pub corr_polarization_rotation: f64,
+    /// Template-plane builds and wall time of the fit.
+    pub builds: usize,
+    pub seconds: f64,
+    /// The fitted instrument: the optics with `beam: vector` and the fitted pupil filling, and
+    /// the QPD misalignment (offsets, rotation ψ + δ relative to the stage axes… as the
+    /// simulator's effect takes it: relative to the polarisation, δ; gain_y = g_y/g_x).
+    pub optics: Optics,
+    pub misalignment: Misalignment,
+}
+
+/// The three model planes for one v: ideal QPD, rotated QPD, offset QPD (all through the
+/// misaligned-QPD quadrature so that quadrature errors cancel in the differences).
+struct Basis {
+    g0: Arc<Grid2>,
+    grot: Arc<Grid2>,
+    goff: Arc<Grid2>,
+}
+
+fn plane(optics: &Optics, grid: TemplateSpec, m: Misalignment, alpha: f64) -> Result<Arc<Grid2>> {
+    let spec = MieTemplateSpec {
+        grid,
+        detector: DetectorModel {
+            polarization: true,
+            misalignment: Some(m),
+        },
+        scattered_intensity: false,
+    };
+    // the simulator's own point dipole in this beam
+    let t = MieTemplate::point_dipole(optics, spec)?;
+    let mut g = (*t.plane(0)?).clone();
+    for n in g.data.iter_mut() {
+        for c in n.iter_mut() {
+            *c *= alpha;
+        }
+    }
+    Ok(Arc::new(g))
+}
+
+fn optics_for_v(base: &Optics, v: f64) -> Optics {
+    Optics {
+        beam: Beam::Vector,
+        pupil_filling: if v <= 0.0 {
+            f64::INFINITY
+        } else {
+            1.0 / v.sqrt()
+        },
+        ..base.clone()
+    }
+}
+
+fn basis(base: &Optics, grid: TemplateSpec, alpha: f64, v: f64) -> Result<Basis> {
+    let o = optics_for_v(base, v);
+    let zero = Misalignment {
+        offset_x: 0.0,
+        offset_y: 0.0,
+        rotation_deg: 0.0,
+        gain_y: 1.0,
+    };
+    Ok(Basis {
+        g0: plane(&o, grid, zero, alpha)?,
+        grot: plane(
+            &o,
+            grid,
+            Misalignment {
+                rotation_deg: EPS_ROT_DEG,
+                ..zero
+            },
+            alpha,
+        )?,
+        goff: plane(
+            &o,
+            grid,
+            Misalignment {
+                offset_x: EPS_OFFSET,
+                offset_y: EPS_OFFSET,
+                ..zero
+            },
+            alpha,
+        )?,
+    })
+}
+
+/// The scan's pixels (finite only) and the data.
+struct Data {
+    xy: Vec<(f64, f64)>,
+    s: [Vec<f64>; 3],
+    w: [f64; 3],
+}
+
+/// Non-linear parameters θ = (x0, y0, ψ rad, δ deg).
+type Theta = [f64; 4];
+
+/// Columns of each channel's linear model at θ (per pixel).
+fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
+    let (sp, cp) = th[2].sin_cos();
+    let n = d.xy.len();
+    let mut cx = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
+    let mut cy = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
+    let mut cz = vec![vec![0.0; n], vec![1.0; n]];
+    for (i, &(x, y)) in d.xy.iter().enumerate() {
+        let (dx, dy) = (x - th[0], y - th[1]);
+        let (u, v) = (cp * dx + sp * dy, -sp * dx + cp * dy);
+        let t0 = b.g0.eval(u, v);
+        let tr = b.grot.eval(u, v);
+        let to = b.goff.eval(u, v);
+        let f = th[3] / EPS_ROT_DEG;
+        cx[0][i] = t0[0] + f * (tr[0] - t0[0]);
+        cx[1][i] = (to[0] - t0[0]) / EPS_OFFSET;
+        cy[0][i] = t0[1] + f * (tr[1] - t0[1]);
+        cy[1][i] = (to[1] - t0[1]) / EPS_OFFSET;
+        cz[0][i] = t0[2];
+    }
+    [cx, cy, cz]
+}
+
+/// Least squares of one channel on its columns: coefficients.
+fn solve(cols: &[Vec<f64>], s: &[f64]) -> Option<DVector<f64>> {
+    let m = cols.len();
+    let mut a = DMatrix::<f64>::zeros(m, m);
+    let mut r = DVector::<f64>::zeros(m);
+    for i in 0..m {
+        for j in 0..=i {
+            let v: f64 = cols[i].iter().zip(&cols[j]).map(|(p, q)| p * q).sum();
+            a[(i, j)] = v;
+            a[(j, i)] = v;
+        }
+        r[i] = cols[i].iter().zip(s).map(|(p, q)| p * q).sum();
+    }
+    a.cholesky().map(|c| c.solve(&r))
+}
+
+/// Weighted residuals (all channels) at θ with the linear parameters solved; and the
+/// coefficients per channel.
+fn residuals(b: &Basis, d: &Data, th: &Theta) -> Option<(Vec<f64>, [DVector<f64>; 3])> {
+    let cols = columns(b, d, th);
+    let n = d.xy.len();
+    let mut res = Vec::with_capacity(3 * n);
+    let mut coef: Vec<DVector<f64>> = Vec::new();
+    for c in 0..3 {
+        let k = solve(&cols[c], &d.s[c])?;
+        for i in 0..n {
+            let m: f64 = cols[c]
+                .iter()
+                .zip(k.iter())
+                .map(|(col, kk)| col[i] * kk)
+                .sum();
+            res.push((d.s[c][i] - m) * d.w[c]);
+        }
+        coef.push(k);
+    }
+    let [a, bb, cc]: [DVector<f64>; 3] = coef.try_into().ok()?;
+    Some((res, [a, bb, cc]))
+}
+
+fn ss(r: &[f64]) -> f64 {
+    r.iter().map(|v| v * v).sum()
+}
+
+/// Levenberg–Marquardt over θ on the variable-projection residual (numeric Jacobian: each
+/// evaluation costs template interpolation only). Returns (θ, residual sum of squares).
+fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
+    let steps = [1e-4, 1e-4, 1e-3, 0.02];
+    let fail = || {
+        AnalysisError::Failed("fit_beam: the model could not be evaluated (singular linear system: no signal in a channel?)".into())
+    };
+    let (mut r, _) = residuals(b, d, &th).ok_or_else(fail)?;
+    let mut cost = ss(&r);
+    let mut lambda = 1e-3;
+    for _ in 0..40 {
+        let mut jac = Vec::with_capacity(4);
+        for p in 0..4 {
+            let mut tp = th;
+            tp[p] += steps[p];
+            let (rp, _) = residuals(b, d, &tp).ok_or_else(fail)?;
+            jac.push(
+                rp.iter()
+                    .zip(&r)
+                    .map(|(a, c)| (a - c) / steps[p])
+                    .collect::<Vec<_>>(),
+            );
+        }
+        let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+        let mut jtr = nalgebra::Vector4::<f64>::zeros();
+        for i in 0..4 {
+            for j in 0..4 {
+                jtj[(i, j)] = jac[i].iter().zip(&jac[j]).map(|(p, q)| p * q).sum();
+            }
+            jtr[i] = jac[i].iter().zip(&r).map(|(p, q)| p * q).sum();
+        }
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut a = jtj;
+            for i in 0..4 {
+                a[(i, i)] *= 1.0 + lambda;
+            }
+            let Some(step) = a.lu().solve(&(-jtr)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let mut tn = th;
+            for i in 0..4 {
+                tn[i] += step[i];
+            }
+            if let Some((rn, _)) = residuals(b, d, &tn) {
+                let cn = ss(&rn);
+                if cn < cost {
+                    let rel = (cost - cn) / cost.max(1e-300);
+                    th = tn;
+                    r = rn;
+                    cost = cn;
+                    lambda = (lambda / 10.0).max(1e-9);
+                    improved = true;
+                    if rel < 1e-10 {
+                        return Ok((th, cost));
+                    }
+                    break;
+                }
+            }
+            lambda *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    Ok((th, cost))
+}
+
+/// Robust per-channel noise: 1.4826·MAD of the second differences along x, / √6.
+fn noise_of(img: &Image) -> f64 {
+    let (ny, nx) = img.shape();
+    let mut d = Vec::new();
+    for i in 0..ny {
+        for j in 1..nx.saturating_sub(1) {
+            let v = img.data[(i, j - 1)] - 2.0 * img.data[(i, j)] + img.data[(i, j + 1)];
+            if v.is_finite() {
+                d.push(v.abs());
+            }
+        }
+    }
+    if d.is_empty() {
+        return f64::NAN;
+    }
+    d.sort_by(|a, b| a.total_cmp(b));
+    1.4826 * d[d.len() / 2] / 6f64.sqrt()
+}
+
+/// Initial bead position: midpoint between the Sx maximum and minimum (x) and between the Sy
+/// maximum and minimum (y).
+fn initial_position(sx: &Image, sy: &Image) -> (f64, f64) {
+    let arg = |img: &Image, sign: f64| {
+        let mut best = (f64::NEG_INFINITY, 0.0, 0.0);
+        for ((i, j), &v) in img.data.indexed_iter() {
+            if v.is_finite() && sign * v > best.0 {
+                best = (sign * v, img.x[j], img.y[i]);
+            }
+        }
+        (best.1, best.2)
+    };
+    let (a, b) = (arg(sx, 1.0), arg(sx, -1.0));
+    let (c, e) = (arg(sy, 1.0), arg(sy, -1.0));
+    (0.5 * (a.0 + b.0), 0.5 * (c.1 + e.1))
+}
+
+/// Fit the beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to
+/// one xy scan of a reference bead at the focus: (sx, sy, sz) on a common grid, axes in µm.
+/// `optics` gives λ, n_medium, NA (condenser and objective) and the quadrature; its beam and
+/// pupil filling are what is fitted. Module docs for the model, identifiability and the
+/// uncertainty; errors name the argument and the allowed range.
+pub fn fit_beam(
+    optics: &Optics,
+    sx: &Image,
+    sy: &Image,
+    sz: &Image,
+    opts: &BeamFitOptions,
+) -> Result<BeamFit> {
+    let t_start = Instant::now();
+    check_range("d_nm", opts.d_nm, D_RANGE_NM.0, D_RANGE_NM.1)?;
+    check_range("n", opts.n, 1.0, 3.0)?;
+    if (opts.n - optics.n_medium).abs() < 0.02 {
+        return Err(AnalysisError::OutOfRange {
+            name: "n",
+            value: opts.n,
+            allowed: format!(
+                "|n − n_medium| ≥ 0.02 (n_medium = {}): the bead must scatter",
+                optics.n_medium
+            ),
+        });
+    }
+    if sx.x_name != "x" || sx.y_name != "y" {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: format!(
+                "an xy scan at the focus is needed; this one is a {}{} scan",
+                sx.x_name, sx.y_name
+            ),
+        });
+    }
+    let (ny, nx) = sx.shape();
+    if nx < 16 || ny < 16 {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: format!("{nx} × {ny} pixels: at least 16 × 16 are needed"),
+        });
+    }
+    let (hx, hy) = (sx.dx().abs(), sx.dy().abs());
+    let span = ((nx - 1) as f64 * hx).min((ny - 1) as f64 * hy);
+    if !(hx <= 0.1 && hy <= 0.1 && span >= 1.2) {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: format!(
+                "pixels {hx:.3} × {hy:.3} µm over {span:.2} µm: the fit needs pixels ≤ 0.1 µm and a field ≥ 1.2 µm wide around the bead"
+            ),
+        });
+    }
+    for (name, img) in [("sy", sy), ("sz", sz)] {
+        if img.shape() != sx.shape() {
+            return Err(AnalysisError::BadInput {
+                name,
+                reason: format!("shape {:?} differs from sx {:?}", img.shape(), sx.shape()),
+            });
+        }
+    }
+    let alpha = alpha_um3(opts.d_nm, opts.n, optics.n_medium);
+    let noise = [noise_of(sx), noise_of(sy), noise_of(sz)];
+    for (c, &s) in noise.iter().enumerate() {
+        if !(s.is_finite()) {
+            return Err(AnalysisError::BadInput {
+                name: "scan",
+                reason: format!("channel {} has no finite pixels", ["sx", "sy", "sz"][c]),
+            });
+        }
+    }
+    // weights: 1/σ_c (a noiseless scan: 1e-6 of the channel's range as its floor)
+    let mut w = [0.0; 3];
+    let mut range = [0.0; 3];
+    for (c, img) in [sx, sy, sz].iter().enumerate() {
+        let (lo, hi) = (img.min().unwrap_or(0.0), img.max().unwrap_or(0.0));
+        range[c] = (hi - lo).max(1e-300);
+        w[c] = 1.0 / noise[c].max(1e-6 * range[c]);
+    }
+    let mut xy = Vec::new();
+    let mut s: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    for ((i, j), &v) in sx.data.indexed_iter() {
+        let (a, b) = (sy.data[(i, j)], sz.data[(i, j)]);
+        if v.is_finite() && a.is_finite() && b.is_finite() {
+            xy.push((sx.x[j], sx.y[i]));
+            s[0].push(v);
+            s[1].push(a);
+            s[2].push(b);
+        }
+    }
+    let n = xy.len();
+    if n < 200 {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: format!("{n} finite pixels: at least 200 are needed"),
+        });
+    }
+    let data = Data { xy, s, w };
+    let (x0, y0) = initial_position(sx, sy);
+    let mut theta: Theta = [x0, y0, 0.0, 0.0];
+    let mut builds = 0usize;
+    let mut bases: Vec<(f64, Basis)> = Vec::new();
+    let mut profile: Vec<(f64, f64, Theta)> = Vec::new();
+    let mut eval_v = |v: f64,
+                      theta: &mut Theta,
+                      bases: &mut Vec<(f64, Basis)>,
+                      profile: &mut Vec<(f64, f64, Theta)>|
+     -> Result<f64> {
+        let b = basis(optics, opts.grid, alpha, v)?;
+        builds += 3;
+        // warm start from the nearest evaluated v
+        let start = profile
+            .iter()
+            .min_by(|a, b| (a.0 - v).abs().total_cmp(&(b.0 - v).abs()))
+            .map(|p| p.2)
+            .unwrap_or(*theta);
+        let (th, cost) = fit_theta(&b, &data, start)?;
+        *theta = th;
+        bases.push((v, b));
+        profile.push((v, cost, th));
+        Ok(cost)
+    };
+    // coarse profile over v, then parabolic refinement of its minimum
+    for v in [0.0, 0.5, 1.0, 2.0] {
+        eval_v(v, &mut theta, &mut bases, &mut profile)?;
+    }
+    for _ in 0..5 {
+        let mut p = profile.clone();
+        p.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let k = (0..p.len())
+            .min_by(|&a, &b| p[a].1.total_cmp(&p[b].1))
+            .unwrap_or(0);
+        let next = if k == p.len() - 1 && p[k].0 < V_MAX {
+            (2.0 * p[k].0).min(V_MAX)
+        } else if k == 0 {
+            // minimum at the bound v = 0 (uniform pupil) or just above it
+            if p.len() > 1 && p[0].0 == 0.0 {
+                let v1 = p[1].0;
+                if v1 < 0.02 {
+                    break;
+                }
+                0.25 * v1
+            } else {
+                break;
+            }
+        } else {
+            let (a, b, c) = (p[k - 1], p[k], p[k + 1]);
+            let den = (b.0 - a.0) * (b.1 - c.1) - (b.0 - c.0) * (b.1 - a.1);
+            let num = (b.0 - a.0).powi(2) * (b.1 - c.1) - (b.0 - c.0).powi(2) * (b.1 - a.1);
+            let vn = if den.abs() > 0.0 {
+                b.0 - 0.5 * num / den
+            } else {
+                b.0
+            };
+            let vn = vn.clamp(a.0, c.0);
+            let tol = 2e-3 * b.0.max(0.05);
+            if p.iter().any(|q| (q.0 - vn).abs() < tol) {
+                break;
+            }
+            vn
+        };
+        eval_v(next, &mut theta, &mut bases, &mut profile)?;
+    }
+    let (v_hat, _, th_hat) = *profile
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("profile has entries");
+    let bi = bases
+        .iter()
+        .position(|(v, _)| *v == v_hat)
+        .expect("basis of the best v");
+    // Jacobian in v: forward difference (backward at V_MAX) over a new build
+    let hv = 0.05 * v_hat.max(0.2);
+    let v2 = if v_hat + hv <= V_MAX {
+        v_hat + hv
+    } else {
+        v_hat - hv
+    };
+    let b2 = basis(optics, opts.grid, alpha, v2)?;
+    builds += 3;
+    let b = &bases[bi].1;
+    let fail = || AnalysisError::Failed("fit_beam: the model could not be evaluated".into());
+    let (r0, coef) = residuals(b, &data, &th_hat).ok_or_else(fail)?;
+    // full model as a function of all 13 parameters: p = [x0, y0, ψ, δ, v, gx, ax, bx, gy, ay, by, gz, bz]
+    let model = |b: &Basis, th: &Theta, k: &[DVector<f64>; 3]| -> Vec<f64> {
+        let cols = columns(b, &data, th);
+        let mut out = Vec::with_capacity(3 * n);
+        for c in 0..3 {
+            for i in 0..n {
+                let m: f64 = cols[c]
+                    .iter()
+                    .zip(k[c].iter())
+                    .map(|(col, kk)| col[i] * kk)
+                    .sum();
+                out.push(m * data.w[c]);
+            }
+        }
+        out
+    };
+    let m0 = model(b, &th_hat, &coef);
+    let mut jac: Vec<Vec<f64>> = Vec::new();
+    let steps = [1e-4, 1e-4, 1e-3, 0.02];
+    for p in 0..4 {
+        let mut tp = th_hat;
+        let mut tm = th_hat;
+        tp[p] += steps[p];
+        tm[p] -= steps[p];
+        let (a, c) = (model(b, &tp, &coef), model(b, &tm, &coef));
+        jac.push(
+            a.iter()
+                .zip(&c)
+                .map(|(a, c)| (a - c) / (2.0 * steps[p]))
+                .collect(),
+        );
+    }
+    let m2 = model(&b2, &th_hat, &coef);
+    jac.push(
+        m2.iter()
+            .zip(&m0)
+            .map(|(a, c)| (a - c) / (v2 - v_hat))
+            .collect(),
+    );
+    let cols = columns(b, &data, &th_hat);
+    for c in 0..3 {
+        for col in &cols[c] {
+            let mut j = vec![0.0; 3 * n];
+            for i in 0..n {
+                j[c * n + i] = col[i] * data.w[c];
+            }
+            jac.push(j);
+        }
+    }
+    let np = jac.len();
+    let mut jtj = DMatrix::<f64>::zeros(np, np);
+    for i in 0..np {
+        for j in 0..=i {
+            let v: f64 = jac[i].iter().zip(&jac[j]).map(|(p, q)| p * q).sum();
+            jtj[(i, j)] = v;
+            jtj[(j, i)] = v;
+        }
+    }
+    let dof = (3 * n - np) as f64;
+    let s2 = ss(&r0) / dof;
+    let cov = jtj.try_inverse().ok_or_else(|| {
+        AnalysisError::Failed(
+            "fit_beam: the parameters are degenerate on this scan (JᵀJ singular)".into(),
+        )
+    })? * s2;
+    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    let val = |value: f64, sigma: f64| Value { value, sigma };
+    // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by, 11 gz, 12 bz
+    let (gx, ax, gy, ay) = (coef[0][0], coef[0][1], coef[1][0], coef[1][1]);
+    let ratio = gy / gx;
+    let var_ratio = ratio
+        * ratio
+        * (cov[(8, 8)] / (gy * gy) + cov[(5, 5)] / (gx * gx) - 2.0 * cov[(5, 8)] / (gx * gy));
+    let var_ox = (ax / gx).powi(2)
+        * (cov[(6, 6)] / (ax * ax).max(1e-300) + cov[(5, 5)] / (gx * gx)
+            - 2.0 * cov[(5, 6)] / (ax * gx).abs().max(1e-300) * (ax * gx).signum());
+    let var_oy = (ay / gy).powi(2)
+        * (cov[(9, 9)] / (ay * ay).max(1e-300) + cov[(8, 8)] / (gy * gy)
+            - 2.0 * cov[(8, 9)] / (ay * gy).abs().max(1e-300) * (ay * gy).signum());
+    let sv = sd(4);
+    let f0 = if v_hat > 0.0 {
+        1.0 / v_hat.sqrt()
+    } else {
+        f64::INFINITY
+    };
+    let sf0 = if v_hat > 0.0 {
+        0.5 * f0.powi(3) * sv
+    } else {
+        f64::INFINITY
+    };
+    // residual rms per channel (signal units)
+    let mut rms = [0.0; 3];
+    for c in 0..3 {
+        rms[c] = (ss(&r0[c * n..(c + 1) * n]) / n as f64).sqrt() / data.w[c];
+    }
+    // refuse answers that mean nothing
+    if !(gx.abs() > 10.0 * sd(5)) || !(gx > 0.0) {
+        return Err(AnalysisError::Failed(format!(
+            "fit_beam: no bead in the scan: the Sx gain {gx:.3e} ± {:.1e} is not ≥ 10σ above zero (is there a reference bead within the field, at the focus?)",
+            sd(5)
+        )));
+    }
+    for c in 0..3 {
+        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c] {
+            return Err(AnalysisError::Failed(format!(
+                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
+                opts.d_nm,
+                opts.n,
+                ["sx", "sy", "sz"][c],
+                rms[c],
+                rms[c] / noise[c],
+                noise[c]
+            )));
+        }
+    }
+    let psi_deg = th_hat[2].to_degrees();
+    let fitted = optics_for_v(optics, v_hat);
+    Ok(BeamFit {
+        inv_f0_sq: val(v_hat, sv),
+        pupil_filling: val(f0, sf0),
+        x0: val(th_hat[0], sd(0)),
+        y0: val(th_hat[1], sd(1)),
+        polarization_deg: val(psi_deg, sd(2).to_degrees()),
+        qpd_rotation_deg: val(th_hat[3], sd(3)),
+        offset_x: val(ax / gx, var_ox.max(0.0).sqrt()),
+        offset_y: val(ay / gy, var_oy.max(0.0).sqrt()),
+        gain_x: val(gx, sd(5)),
+        gain_y: val(gy, sd(8)),
+        gain_z: val(coef[2][0], sd(11)),
+        gain_ratio: val(ratio, var_ratio.max(0.0).sqrt()),
+        background: [coef[0][2], coef[1][2], coef[2][1]],
+        residual_rms: rms,
+        noise,
+        chi2_red: s2,
+        corr_polarization_rotation: cov[(2, 3)] / (sd(2) * sd(3)).max(1e-300),
+        builds,
+        seconds: t_start.elapsed().as_secs_f64(),
+        misalignment: Misalignment {
+            offset_x: ax / gx,
+            offset_y: ay / gy,
+            rotation_deg: th_hat[3],
+            gain_y: ratio,
+        },
+        optics: fitted,
+    })
+}

@@ -1,0 +1,242 @@
+//! Issue 19 item 4, "Beam fit": recover the pupil filling and the QPD gain ratio from a simulated
+//! 110 nm polystyrene bead scan at the paper's noise (64 × 64, 50 nm pixels, 10 ms dwell), in a
+//! vector beam named explicitly (`Beam::Vector`), and carry the fitted beam into the
+//! model-based calibrations (docs/physics.md §10.4).
+
+mod analysis_support;
+
+use analysis_support::*;
+use bfpscope::analysis::bead_model::BeadModelOptions;
+use bfpscope::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions};
+use bfpscope::analysis::orientation::{AngleCurve, AngleCurveOptions, MeasureOptions};
+use bfpscope::analysis::quantities::{self, DiameterCalib, LinDensCalib};
+use bfpscope::analysis::template::{RefBead, Template};
+use bfpscope::data::Scan;
+use bfpscope::instrument::sim::scene::{Bead as SimBead, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use bfpscope::optics::params::{Beam, Optics};
+use bfpscope::optics::rayleigh::DetectorModel;
+use bfpscope::optics::rayleigh::Misalignment;
+
+/// 10 ms at 100 kHz.
+const SAMPLES_10MS: usize = 1000;
+
+fn vector(f0: f64) -> Optics {
+    Optics {
+        beam: Beam::Vector,
+        pupil_filling: f0,
+        ..Optics::default()
+    }
+}
+
+/// A 110 nm PS bead near the centre of a 64 × 64 scan of 50 nm pixels at the paper's detector
+/// noise, 10 ms dwell; `mis` the QPD misalignment effect.
+fn bead_scan(optics: &Optics, mis: Option<Misalignment>, seed: u64) -> Scan {
+    let mut s = Scene::default();
+    s.add_bead(SimBead {
+        pos: [1.613, 1.561, 0.0],
+        d_nm: 110.0,
+        n: 1.572,
+    })
+    .unwrap();
+    s.effects.misalignment = mis;
+    let s = noisy(s, PAPER_DETECTOR_SIGMA_SAMPLE, seed);
+    simulate(optics, &s, 64, 0.05, SAMPLES_10MS)
+}
+
+fn fit(optics: &Optics, sc: &Scan) -> BeamFit {
+    // the fit is handed the session's optics with some other beam: it fits the beam
+    let o = Optics {
+        beam: Beam::Paraxial,
+        ..optics.clone()
+    };
+    fit_beam(&o, &sc.sx, &sc.sy, &sc.sz, &BeamFitOptions::default()).unwrap()
+}
+
+/// A (diameter calibration, nm), μ per unit sensitivity (MDa/µm) and the angle curve of the
+/// model template in `optics` (ideal QPD, 50 nm pixels as the data).
+fn calibrations(optics: &Optics) -> (f64, f64, AngleCurve) {
+    let rb = RefBead {
+        n_medium: optics.n_medium,
+        ..RefBead::default()
+    };
+    let tpl = Template::from_optics(optics, &DetectorModel::default(), rb, 0.02, 0.0).unwrap();
+    let m = MeasureOptions::default();
+    let bm = BeadModelOptions::default();
+    let a = DiameterCalib::from_template(&tpl, 1.414, 110.0, rb.n, 0.05, &m, &bm)
+        .unwrap()
+        .a_nm;
+    let l = LinDensCalib::from_template(
+        &tpl,
+        quantities::PROTEIN_N,
+        quantities::PROTEIN_DENSITY_G_CM3,
+        0.05,
+        &m,
+        &bm,
+    )
+    .unwrap();
+    let mu = l.linear_density(1.0).unwrap();
+    let curve = AngleCurve::compute(&tpl, &AngleCurveOptions::default()).unwrap();
+    (a, mu, curve)
+}
+
+fn curve_diff(a: &AngleCurve, b: &AngleCurve) -> f64 {
+    a.sx.iter()
+        .zip(&b.sx)
+        .chain(a.sy.iter().zip(&b.sy))
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn fit_recovers_pupil_filling_and_gain_ratio() {
+    let truth = vector(1.0);
+    let mis = Misalignment {
+        offset_x: 0.0,
+        offset_y: 0.0,
+        rotation_deg: 2.0,
+        gain_y: 0.8,
+    };
+    let sc = bead_scan(&truth, Some(mis), 7);
+    let f = fit(&truth, &sc);
+    eprintln!("{f:#?}");
+    // the pupil filling within 3σ, and σ small enough to mean something
+    let (v, sv) = (f.inv_f0_sq.value, f.inv_f0_sq.sigma);
+    assert!((v - 1.0).abs() <= 3.0 * sv, "1/f0² = {v} ± {sv}");
+    let (f0, sf0) = (f.pupil_filling.value, f.pupil_filling.sigma);
+    assert!((f0 - 1.0).abs() <= 3.0 * sf0, "f0 = {f0} ± {sf0}");
+    assert!(sf0 / f0 < 0.05, "σ(f0)/f0 = {}", sf0 / f0);
+    // the QPD gain ratio
+    let (g, sg) = (f.gain_ratio.value, f.gain_ratio.sigma);
+    assert!((g - 0.8).abs() <= 3.0 * sg, "gain ratio {g} ± {sg}");
+    assert!(sg < 0.03, "σ(gain ratio) = {sg}");
+    // the QPD rotation relative to the polarisation and the polarisation axis (correlated)
+    let (d, sd) = (f.qpd_rotation_deg.value, f.qpd_rotation_deg.sigma);
+    assert!((d - 2.0).abs() <= 3.0 * sd && sd < 1.0, "δ = {d} ± {sd}");
+    let (p, sp) = (f.polarization_deg.value, f.polarization_deg.sigma);
+    assert!(p.abs() <= 3.0 * sp && sp < 1.0, "ψ = {p} ± {sp}");
+    // the bead where it was put, the model explains the scan to the noise
+    assert!(
+        (f.x0.value - 1.613).abs() <= 3.0 * f.x0.sigma,
+        "x0 {:?}",
+        f.x0
+    );
+    assert!(
+        (f.y0.value - 1.561).abs() <= 3.0 * f.y0.sigma,
+        "y0 {:?}",
+        f.y0
+    );
+    assert!((f.chi2_red - 1.0).abs() < 0.1, "χ²/dof = {}", f.chi2_red);
+    eprintln!(
+        "fit: {} template-plane builds, {:.2} s",
+        f.builds, f.seconds
+    );
+    // the fitted beam's calibrations match the truth beam's within 2 %
+    let (a_t, mu_t, c_t) = calibrations(&truth);
+    let (a_f, mu_f, c_f) = calibrations(&f.optics);
+    eprintln!(
+        "A {a_f:.3} vs {a_t:.3} nm, μ {mu_f:.4} vs {mu_t:.4} MDa/µm, curve Δ {:.4}",
+        curve_diff(&c_f, &c_t)
+    );
+    assert!((a_f / a_t - 1.0).abs() < 0.02, "A {a_f} vs {a_t}");
+    assert!((mu_f / mu_t - 1.0).abs() < 0.02, "μ {mu_f} vs {mu_t}");
+    assert!(curve_diff(&c_f, &c_t) < 0.02, "angle curve");
+    // … and the 2 % test discriminates: the uniformly filled beam's A or curve is off by more
+    let (a_u, mu_u, c_u) = calibrations(&vector(f64::INFINITY));
+    eprintln!(
+        "uniform: A {a_u:.3} nm, μ {mu_u:.4}, curve Δ {:.4}",
+        curve_diff(&c_u, &c_t)
+    );
+    assert!(
+        (a_u / a_t - 1.0).abs() > 0.02
+            || (mu_u / mu_t - 1.0).abs() > 0.02
+            || curve_diff(&c_u, &c_t) > 0.02,
+        "f0 = 1 and uniform filling are not told apart by the 2 % criterion"
+    );
+}
+
+/// The default (uniformly filled) aperture and an aligned QPD: 1/f0² consistent with 0 (the
+/// uniform pupil), f0 reported as a lower bound; gain ratio 1 and rotation 0 within 3σ.
+#[test]
+fn fit_of_a_uniform_beam_returns_an_infinite_consistent_filling() {
+    let truth = vector(f64::INFINITY);
+    let sc = bead_scan(&truth, None, 11);
+    let f = fit(&truth, &sc);
+    eprintln!("{f:#?}");
+    let (v, sv) = (f.inv_f0_sq.value, f.inv_f0_sq.sigma);
+    assert!(v >= 0.0 && v <= 3.0 * sv, "1/f0² = {v} ± {sv}");
+    assert!(sv < 0.1, "σ(1/f0²) = {sv}: too weak to mean anything");
+    // f0 ≥ 1/√(v + 3σ) > 1.8: beyond anything an underfilled pupil looks like
+    assert!(1.0 / (v + 3.0 * sv).sqrt() > 1.8);
+    let (g, sg) = (f.gain_ratio.value, f.gain_ratio.sigma);
+    assert!(
+        (g - 1.0).abs() <= 3.0 * sg && sg < 0.03,
+        "gain ratio {g} ± {sg}"
+    );
+    let (d, sd) = (f.qpd_rotation_deg.value, f.qpd_rotation_deg.sigma);
+    assert!(d.abs() <= 3.0 * sd, "δ = {d} ± {sd}");
+}
+
+/// Wrong input does not give a believable answer.
+#[test]
+fn fit_refuses_what_is_not_a_reference_bead_scan() {
+    let truth = vector(1.0);
+    let o = BeamFitOptions::default();
+    // no bead: noise only
+    let mut empty = Scene::default();
+    empty.effects.misalignment = None;
+    let sc = simulate(
+        &truth,
+        &noisy(empty, PAPER_DETECTOR_SIGMA_SAMPLE, 3),
+        64,
+        0.05,
+        SAMPLES_10MS,
+    );
+    let e = fit_beam(&truth, &sc.sx, &sc.sy, &sc.sz, &o)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no bead"), "{e}");
+    // a 300 nm bead declared as the 110 nm reference
+    let mut big = Scene::default();
+    big.add_bead(SimBead {
+        pos: [1.6, 1.6, 0.0],
+        d_nm: 300.0,
+        n: 1.572,
+    })
+    .unwrap();
+    let sc = simulate(
+        &truth,
+        &noisy(big, PAPER_DETECTOR_SIGMA_SAMPLE, 4),
+        64,
+        0.05,
+        SAMPLES_10MS,
+    );
+    let e = fit_beam(&truth, &sc.sx, &sc.sy, &sc.sz, &o)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("does not look like a 110 nm bead"), "{e}");
+    // a declared size outside the dipole domain, an xz scan, a coarse scan
+    let sc = bead_scan(&truth, None, 5);
+    let e = fit_beam(
+        &truth,
+        &sc.sx,
+        &sc.sy,
+        &sc.sz,
+        &BeamFitOptions { d_nm: 500.0, ..o },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("d_nm = 500") && e.contains("200"), "{e}");
+    let mut xz = sc.clone();
+    for img in [&mut xz.sx, &mut xz.sy, &mut xz.sz] {
+        img.y_name = "z".into();
+    }
+    let e = fit_beam(&truth, &xz.sx, &xz.sy, &xz.sz, &o)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("an xy scan") && e.contains("xz"), "{e}");
+    let coarse = simulate(&truth, &Scene::default(), 20, 0.2, 1);
+    let e = fit_beam(&truth, &coarse.sx, &coarse.sy, &coarse.sz, &o)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("pixels ≤ 0.1 µm"), "{e}");
+}
