@@ -777,8 +777,9 @@ impl<'a> FitData<'a> {
             })
             .collect();
         let total: usize = shapes.iter().map(|(r, c)| r.len() * c.len()).sum();
-        buf.clear();
+        // Every element is written by `sample_window`: no zero fill of the ~6 MB (40 beads).
         buf.resize(6 * total, 0.0);
+        buf.truncate(6 * total);
         let mut parts: Vec<&mut [f64]> = Vec::with_capacity(nb);
         let mut rest = &mut buf[..];
         for (r, c) in &shapes {
@@ -788,7 +789,7 @@ impl<'a> FitData<'a> {
         }
         parts.par_iter_mut().enumerate().for_each(|(i, s)| {
             let (rows, cols) = shapes[i].clone();
-            self.sample_window(p[3 * i + 1], p[3 * i + 2], rows, cols, s);
+            self.sample_window(p[3 * i + 1], p[3 * i + 2], rows, cols, &self.mask, s);
         });
         let wins: Vec<Window> = parts
             .into_iter()
@@ -847,8 +848,7 @@ impl<'a> FitData<'a> {
                         let base = r * nx + w.cols.start;
                         let e = &res[ch][base..base + nc];
                         let row = |k: usize| &pl[k][rr * nc..(rr + 1) * nc];
-                        let rows3 = [row(0), row(1), row(2)];
-                        let (aa, gg) = dot_block(&rows3, &rows3, Some(e), true);
+                        let (aa, gg) = dot_sym([row(0), row(1), row(2)], e);
                         for x in 0..3 {
                             g[x] += gg[x];
                             for y in 0..3 {
@@ -891,7 +891,7 @@ impl<'a> FitData<'a> {
                         let n = cols.len();
                         let ra = [0, 1, 2].map(|k| &a.plane(3 * ch + k)[oa..oa + n]);
                         let rb = [0, 1, 2].map(|k| &b.plane(3 * ch + k)[ob..ob + n]);
-                        let (bb, _) = dot_block(&ra, &rb, None, false);
+                        let bb = dot_block(ra, rb);
                         for x in 0..3 {
                             for y in 0..3 {
                                 blk[x][y] += bb[x][y];
@@ -936,14 +936,17 @@ impl<'a> FitData<'a> {
 
     /// Samples of the template around a bead at (bx, by) µm over the window `rows` × `cols`
     /// into `out`: six planes of rows.len() × cols.len() (see [`FitData::accumulate`]), zero
-    /// where the channel's datum is invalid or the channel not fitted. Derivatives in
+    /// where `mask` is 0 (the fit's mask: the channel's datum invalid or the channel not
+    /// fitted). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
+    #[allow(clippy::too_many_arguments)]
     fn sample_window(
         &self,
         bx: f64,
         by: f64,
         rows: std::ops::Range<usize>,
         cols: std::ops::Range<usize>,
+        mask: &[Vec<f64>; 2],
         out: &mut [f64],
     ) {
         let grid = &self.tpl.grid;
@@ -971,7 +974,12 @@ impl<'a> FitData<'a> {
                     let sv = grid.grad_stencil_v(self.y[r] - by);
                     let sv = match sv {
                         Some(s) if s.inside && width > 0 => s,
-                        _ => continue, // zero row (out is zero-initialised)
+                        _ => {
+                            for pl in out.chunks_exact_mut(npix) {
+                                pl[rr * nc..(rr + 1) * nc].fill(0.0);
+                            }
+                            continue;
+                        }
                     };
                     for ch in 0..2 {
                         let (uw, ud) = (
@@ -989,19 +997,30 @@ impl<'a> FitData<'a> {
                             }
                         }
                     }
-                    for (cc, s) in su.iter().enumerate() {
-                        if !s.inside {
-                            continue;
-                        }
-                        let k = r * nx + cols.start + cc;
-                        let o = (s.first - lo) as usize;
-                        for ch in 0..2 {
-                            let mk = self.mask[ch][k];
-                            if mk == 0.0 {
+                    let at = rr * nc;
+                    let k0 = r * nx + cols.start;
+                    let mut planes = out.chunks_exact_mut(npix);
+                    let mut next = || {
+                        let pl = planes.next().expect("six planes");
+                        &mut pl[at..at + nc]
+                    };
+                    for ch in 0..2 {
+                        let (ov, odu, odv) = (next(), next(), next());
+                        let mk = &mask[ch][k0..k0 + nc];
+                        let (uw, ud) = (
+                            &uw[ch * width..(ch + 1) * width],
+                            &ud[ch * width..(ch + 1) * width],
+                        );
+                        for (cc, s) in su.iter().enumerate() {
+                            if !s.inside || mk[cc] == 0.0 {
+                                ov[cc] = 0.0;
+                                odu[cc] = 0.0;
+                                odv[cc] = 0.0;
                                 continue;
                             }
-                            let w4 = &uw[ch * width + o..ch * width + o + 4];
-                            let d4 = &ud[ch * width + o..ch * width + o + 4];
+                            let o = (s.first - lo) as usize;
+                            let w4: &[f64; 4] = uw[o..o + 4].try_into().expect("4 taps");
+                            let d4: &[f64; 4] = ud[o..o + 4].try_into().expect("4 taps");
                             let mut v = 0.0;
                             let mut du = 0.0;
                             let mut dv = 0.0;
@@ -1010,10 +1029,9 @@ impl<'a> FitData<'a> {
                                 du += s.d[a] * w4[a];
                                 dv += s.w[a] * d4[a];
                             }
-                            let at = rr * nc + cc;
-                            out[3 * ch * npix + at] = v;
-                            out[(3 * ch + 1) * npix + at] = du * inv_h;
-                            out[(3 * ch + 2) * npix + at] = dv * inv_h;
+                            ov[cc] = v;
+                            odu[cc] = du * inv_h;
+                            odv[cc] = dv * inv_h;
                         }
                     }
                 }
@@ -1026,11 +1044,11 @@ impl<'a> FitData<'a> {
                         let e = grid.eval_grad(self.x[c] - bx, v);
                         let at = rr * nc + cc;
                         for ch in 0..2 {
-                            if self.mask[ch][k] != 0.0 {
-                                out[3 * ch * npix + at] = e.v[ch];
-                                out[(3 * ch + 1) * npix + at] = e.du[ch];
-                                out[(3 * ch + 2) * npix + at] = e.dv[ch];
-                            }
+                            let on = mask[ch][k] != 0.0;
+                            let z = |v: f64| if on { v } else { 0.0 };
+                            out[3 * ch * npix + at] = z(e.v[ch]);
+                            out[(3 * ch + 1) * npix + at] = z(e.du[ch]);
+                            out[(3 * ch + 2) * npix + at] = z(e.dv[ch]);
                         }
                     }
                 }
@@ -1139,13 +1157,51 @@ impl<'a> FitData<'a> {
         (rss, jtj, jtr)
     }
 
-    /// Model images of both channels for beads p.
-    fn model(&self, p: &[f64]) -> [Array2<f64>; 3] {
-        let beads: Vec<(f64, f64, f64)> = p
-            .chunks(3)
-            .map(|b| (b[1], b[2], b[0] * self.inv_f))
+    /// Model images of Sx and Sy (all pixels, whatever was fitted) for beads p, sampled as in
+    /// [`FitData::accumulate`] (the separable stencil; equal to
+    /// [`Template::render`]'s to rounding).
+    fn model(&self, p: &[f64]) -> [Array2<f64>; 2] {
+        use rayon::prelude::*;
+        let (ny, nx) = (self.y.len(), self.nx());
+        if self.planes.is_none() {
+            let [a, b, _] = self.tpl.render(
+                &p.chunks(3)
+                    .map(|b| (b[1], b[2], b[0] * self.inv_f))
+                    .collect::<Vec<_>>(),
+                &self.x,
+                &self.y,
+            );
+            return [a, b];
+        }
+        let ones = [vec![1.0; nx * ny], vec![1.0; nx * ny]];
+        let ((u0, u1), (v0, v1)) = self.tpl.extent();
+        let wins: Vec<(std::ops::Range<usize>, std::ops::Range<usize>, Vec<f64>)> = p
+            .par_chunks(3)
+            .map(|b| {
+                let rows = self.ay.range(b[2] + v0, b[2] + v1);
+                let cols = self.ax.range(b[1] + u0, b[1] + u1);
+                let mut s = vec![0.0; 6 * rows.len() * cols.len()];
+                self.sample_window(b[1], b[2], rows.clone(), cols.clone(), &ones, &mut s);
+                (rows, cols, s)
+            })
             .collect();
-        self.tpl.render(&beads, &self.x, &self.y)
+        let mut out = [Array2::zeros((ny, nx)), Array2::zeros((ny, nx))];
+        for (b, (rows, cols, s)) in p.chunks(3).zip(&wins) {
+            let w = b[0] * self.inv_f;
+            if w == 0.0 {
+                continue;
+            }
+            let (nc, npix) = (cols.len(), s.len() / 6);
+            for (ch, o) in out.iter_mut().enumerate() {
+                let pl = &s[3 * ch * npix..(3 * ch + 1) * npix];
+                for (rr, r) in rows.clone().enumerate() {
+                    for (cc, c) in cols.clone().enumerate() {
+                        o[[r, c]] += w * pl[rr * nc + cc];
+                    }
+                }
+            }
+        }
+        out
     }
 
     /// One LM run from `init`.
@@ -1399,7 +1455,7 @@ impl<'a> FitData<'a> {
                 }
             })
             .collect();
-        let [msx, msy, _] = self.model(p);
+        let [msx, msy] = self.model(p);
         let shape = msx.dim();
         let dsx = Array2::from_shape_vec(shape, self.ch_data[0].clone()).expect("shape");
         let dsy = Array2::from_shape_vec(shape, self.ch_data[1].clone()).expect("shape");
@@ -1490,58 +1546,97 @@ impl TplPlanes {
 
 static ZEROS: [f64; 0] = [];
 
-/// Dot products of three rows `a` with three rows `b` (all of one length), and of `a` with `e`
-/// when given: ([Σ aₓ·b_y], [Σ aₓ·e]). `sym`: a = b, only the upper triangle is summed and then
-/// mirrored. Two accumulators per sum, so the compiler vectorises.
+/// Dot products of three rows `a` with three rows `b` (all of one length): Σ aₓ·b_y. Two
+/// accumulators per sum, so the compiler vectorises.
 #[inline]
-fn dot_block(
-    a: &[&[f64]; 3],
-    b: &[&[f64]; 3],
-    e: Option<&[f64]>,
-    sym: bool,
-) -> ([[f64; 3]; 3], [f64; 3]) {
+fn dot_block(a: [&[f64]; 3], b: [&[f64]; 3]) -> [[f64; 3]; 3] {
     let n = a[0].len();
+    let (a0, a1, a2) = (&a[0][..n], &a[1][..n], &a[2][..n]);
+    let (b0, b1, b2) = (&b[0][..n], &b[1][..n], &b[2][..n]);
     let mut m = [[[0.0f64; 2]; 3]; 3];
-    let mut g = [[0.0f64; 2]; 3];
-    let pairs = n / 2;
-    for q in 0..pairs {
-        let k = 2 * q;
-        let av = [[a[0][k], a[0][k + 1]], [a[1][k], a[1][k + 1]], [a[2][k], a[2][k + 1]]];
-        let bv = [[b[0][k], b[0][k + 1]], [b[1][k], b[1][k + 1]], [b[2][k], b[2][k + 1]]];
+    let it = a0
+        .chunks_exact(2)
+        .zip(a1.chunks_exact(2))
+        .zip(a2.chunks_exact(2))
+        .zip(
+            b0.chunks_exact(2)
+                .zip(b1.chunks_exact(2))
+                .zip(b2.chunks_exact(2)),
+        );
+    for (((x0, x1), x2), ((y0, y1), y2)) in it {
+        let av = [x0, x1, x2];
+        let bv = [y0, y1, y2];
         for x in 0..3 {
-            for y in (if sym { x } else { 0 })..3 {
+            for y in 0..3 {
                 for l in 0..2 {
                     m[x][y][l] += av[x][l] * bv[y][l];
                 }
             }
         }
-        if let Some(e) = e {
-            for x in 0..3 {
-                for l in 0..2 {
-                    g[x][l] += av[x][l] * e[k + l];
-                }
-            }
-        }
     }
     let mut out = [[0.0; 3]; 3];
-    let mut go = [0.0; 3];
     for x in 0..3 {
-        for y in (if sym { x } else { 0 })..3 {
-            let mut s = m[x][y][0] + m[x][y][1];
+        for y in 0..3 {
+            out[x][y] = m[x][y][0] + m[x][y][1];
             if n % 2 == 1 {
-                s += a[x][n - 1] * b[y][n - 1];
+                out[x][y] += a[x][n - 1] * b[y][n - 1];
             }
-            out[x][y] = s;
-            if sym {
-                out[y][x] = s;
-            }
-        }
-        go[x] = g[x][0] + g[x][1];
-        if let (Some(e), true) = (e, n % 2 == 1) {
-            go[x] += a[x][n - 1] * e[n - 1];
         }
     }
-    (out, go)
+    out
+}
+
+/// For one bead's rows a (value, ∂/∂u, ∂/∂v) and the residual row e: (Σ aₓ·a_y, Σ aₓ·e), with
+/// two accumulators per sum.
+#[inline]
+fn dot_sym(a: [&[f64]; 3], e: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
+    let n = a[0].len();
+    let (a0, a1, a2, e) = (&a[0][..n], &a[1][..n], &a[2][..n], &e[..n]);
+    // Upper triangle 00 01 02 11 12 22, then the gradient.
+    let mut m = [[0.0f64; 2]; 6];
+    let mut g = [[0.0f64; 2]; 3];
+    let it = a0
+        .chunks_exact(2)
+        .zip(a1.chunks_exact(2))
+        .zip(a2.chunks_exact(2))
+        .zip(e.chunks_exact(2));
+    for (((x0, x1), x2), ee) in it {
+        for l in 0..2 {
+            m[0][l] += x0[l] * x0[l];
+            m[1][l] += x0[l] * x1[l];
+            m[2][l] += x0[l] * x2[l];
+            m[3][l] += x1[l] * x1[l];
+            m[4][l] += x1[l] * x2[l];
+            m[5][l] += x2[l] * x2[l];
+            g[0][l] += x0[l] * ee[l];
+            g[1][l] += x1[l] * ee[l];
+            g[2][l] += x2[l] * ee[l];
+        }
+    }
+    let mut t = [0.0; 6];
+    let mut go = [0.0; 3];
+    for k in 0..6 {
+        t[k] = m[k][0] + m[k][1];
+    }
+    for k in 0..3 {
+        go[k] = g[k][0] + g[k][1];
+    }
+    if n % 2 == 1 {
+        let l = n - 1;
+        t[0] += a0[l] * a0[l];
+        t[1] += a0[l] * a1[l];
+        t[2] += a0[l] * a2[l];
+        t[3] += a1[l] * a1[l];
+        t[4] += a1[l] * a2[l];
+        t[5] += a2[l] * a2[l];
+        go[0] += a0[l] * e[l];
+        go[1] += a1[l] * e[l];
+        go[2] += a2[l] * e[l];
+    }
+    (
+        [[t[0], t[1], t[2]], [t[1], t[3], t[4]], [t[2], t[4], t[5]]],
+        go,
+    )
 }
 
 /// One bead replacing two: weights summed, position |C|-weighted.
@@ -1853,7 +1948,10 @@ mod tests {
                 assert!(rss > 0.0 && jtj.amax() > 0.0);
                 // The same sums in another order (separable stencil, blocked dot products):
                 // equal to rounding.
-                assert!((rss - rss0).abs() <= 1e-13 * rss0, "{channels:?}: {rss} vs {rss0}");
+                assert!(
+                    (rss - rss0).abs() <= 1e-13 * rss0,
+                    "{channels:?}: {rss} vs {rss0}"
+                );
                 assert!(
                     close(jtj.as_slice(), jtj0.as_slice(), 1e-13, jtj0.amax()),
                     "{channels:?}: JᵀJ differs by {}",
@@ -1886,8 +1984,14 @@ mod tests {
         // The same minimum: weights within 1e-9 relative, positions within 1e-6 nm, RSS within
         // 1e-12 relative, the same uncertainties to 1e-9 and the same degeneracy report.
         for (a, b) in new.beads.iter().zip(&old.beads) {
-            assert!((a.weight - b.weight).abs() <= 1e-9 * b.weight.abs(), "{a:?} vs {b:?}");
-            assert!((a.x - b.x).abs() <= 1e-9 && (a.y - b.y).abs() <= 1e-9, "{a:?} vs {b:?}");
+            assert!(
+                (a.weight - b.weight).abs() <= 1e-9 * b.weight.abs(),
+                "{a:?} vs {b:?}"
+            );
+            assert!(
+                (a.x - b.x).abs() <= 1e-9 && (a.y - b.y).abs() <= 1e-9,
+                "{a:?} vs {b:?}"
+            );
             for (e, f) in [
                 (a.weight_err, b.weight_err),
                 (a.x_err, b.x_err),
