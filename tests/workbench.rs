@@ -37,13 +37,32 @@ fn every_binding_example_runs_and_gives_its_expected_result() {
 fn without_unit(keys: &std::collections::BTreeSet<String>) -> Vec<&String> {
     keys.iter()
         .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
-        .filter(|k| !DIMENSIONLESS.contains(&k.as_str()))
+        .filter(|k| {
+            let base = k.strip_suffix("_sd").unwrap_or(k);
+            !DIMENSIONLESS.contains(&k.as_str()) && !DIMENSIONLESS.contains(&base)
+        })
         .collect()
 }
 
 /// Result keys whose numbers carry no unit: signals normalised to the beam power, counts,
 /// indices, ratios, fit statistics, refractive indices.
 const DIMENSIONLESS: &[&str] = &[
+    // the fitted beam (fit_beam; a key's `_sd` has the key's unit): QPD gains and their ratio,
+    // BFP offsets in cone radii, 1/f0², the fit's χ²/dof, residual and noise (signals
+    // normalised to the beam power), a correlation, a count of plane builds
+    "gain_x",
+    "gain_y",
+    "gain_z",
+    "gain_ratio",
+    "offset_x",
+    "offset_y",
+    "inv_f0_sq",
+    "chi2_red",
+    "corr_polarization_rotation",
+    "residual_rms",
+    "noise",
+    "background",
+    "builds",
     // ratios of signals or sensitivities
     "asymmetry",
     "model_asymmetry",
@@ -83,6 +102,10 @@ fn every_number_in_a_protocol_result_has_its_unit() {
             r#"
             import "calibrate" as calibrate; import "focus" as focus;
             import "aggregates" as aggregates; import "microtubule" as microtubule;
+            // the paper's beam: in the vector beam measure_filament finds the maxima of this thin
+            // noisy filament in only 18 of 81 rows (paraxial: 79) and takes a line of
+            // aggregates — an open defect (issue 19 closing note), not this test's subject
+            set_optics(#{beam: "paraxial"});
             let s = scene();
             s.add_bead(#{x: -3.0, y: 3.0, d_nm: 110.0, n: 1.572});
             s.add_filament(#{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 17.0, n: 1.587});

@@ -952,6 +952,10 @@ impl<'a> FitData<'a> {
         let grid = &self.tpl.grid;
         let nc = cols.len();
         let npix = rows.len() * nc;
+        if npix == 0 {
+            // a bead whose window lies wholly outside the image (a fit can walk one there)
+            return;
+        }
         let nx = self.nx();
         let su: Option<Vec<GradStencil>> = match &self.planes {
             Some(_) => cols

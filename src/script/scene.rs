@@ -234,7 +234,7 @@ pub fn register(r: &mut Registrar) {
         .returns("map | Scan", "simulate(scene): #{stages, scatterers, notes} of the pipeline built (notes: beads the point dipole renders > 1 % off Mie); simulate(scene, grid): the rendered scan (not autosaved)")
         .summary("put a scene under the simulated instrument, or render it straight to an XY scan")
         .help("simulate(scene) connects the simulated instrument (the stage position and virtual clock are kept when one is already connected); scans then image the scene. The pipeline contains only the stages the scene's effects name. simulate(scene, grid) renders an image without moving anything (figures, tests).")
-        .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\"]")
+        .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\", \"vector_beam\"]")
         .example("let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 500.0}); simulate(s).notes.len()", "1")
         .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
         .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0");

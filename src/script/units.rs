@@ -50,16 +50,28 @@ pub const BARE: &[(&str, &str)] = &[
     ("sens_x", "1/µm"),
     ("sens_y", "1/µm"),
     ("sens_x_sd", "1/µm"),
+    ("seconds", "s"),
 ];
 
 /// The unit a value under `key` is printed with, if the key does not already name it: bare
 /// keys of [`BARE`]. `None` for suffixed keys (the key says it) and dimensionless ones.
+/// A standard deviation `k_sd` has the unit of `k` (`x0_sd` in µm, `polarization_deg_sd` in °).
 pub fn printed_unit(key: &str) -> Option<&'static str> {
-    BARE.iter().find(|(k, _)| *k == key).map(|(_, u)| *u)
+    let base = sd_base(key);
+    BARE.iter().find(|(k, _)| *k == base).map(|(_, u)| *u)
 }
 
-/// The unit of a key by the rule above (suffix or bare), `None` when dimensionless.
+/// `k` for a standard deviation's key `k_sd`, else the key itself.
+fn sd_base(key: &str) -> &str {
+    key.strip_suffix("_sd")
+        .filter(|b| !b.is_empty())
+        .unwrap_or(key)
+}
+
+/// The unit of a key by the rule above (suffix or bare; `k_sd` as `k`), `None` when
+/// dimensionless.
 pub fn unit_of_key(key: &str) -> Option<&'static str> {
+    let key = sd_base(key);
     printed_unit(key).or_else(|| {
         SUFFIXES
             .iter()
