@@ -12,7 +12,10 @@
 //! The angular-spectrum columns come for two beams: `w400`, a Gaussian spectrum of waist
 //! parameter 400 nm (`Waist::Spectral`), and `fill`, the uniformly filled NA 1.2 aperture
 //! (`Waist::SpectralNm(0.0)`), the tightest focus the objective makes (mean 1/e² radius 412 nm,
-//! the closest to the paper's measured w0 ≈ 400 nm).
+//! the closest to the paper's measured w0 ≈ 400 nm), both without the aplanatic factor (§9's
+//! beams); and `vector`, the uniformly filled aplanatic focus (`Apodization::Aplanatic`, the
+//! program's default beam since issue 19, docs/physics.md §10). None of the columns depends on
+//! `Optics::default().beam`: each beam is built explicitly.
 //!
 //! Run: `cargo run --release --example fig2b_profiles -- [fig2b.png] > fig2b.csv` — CSV on
 //! stdout, summary lines start with `#` (so the file stays loadable with
@@ -20,7 +23,9 @@
 //! the path given, default `fig2b.png`.
 
 use bfpscope::optics::mie::Complex64 as C64;
-use bfpscope::optics::mie_beam::{optics_for_reach, Amplitudes, MieBeam, MieBeamSpec, Waist};
+use bfpscope::optics::mie_beam::{
+    optics_for_reach, Amplitudes, Apodization, MieBeam, MieBeamSpec, Waist,
+};
 use bfpscope::optics::params::{Optics, REF_BEAD_D_NM, REF_BEAD_N};
 use bfpscope::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
 use bfpscope::plot::{plot_xy, Series, XyOpts};
@@ -91,36 +96,44 @@ fn main() {
     let om = optics_for_reach(&o, 2.0);
     let base = MieBeamSpec::for_reach(&om, 2.0, 0.5);
     let np = C64::new(n, 0.0);
-    let beams: Vec<Beam> = [("w400", Waist::Spectral), ("fill", Waist::SpectralNm(0.0))]
-        .into_iter()
-        .map(|(tag, waist)| {
-            let spec = MieBeamSpec { waist, ..base };
-            Beam {
-                tag,
-                mie: MieBeam::new(&om, d, np, spec).unwrap(),
-                mie_full: MieBeam::new(
-                    &om,
-                    d,
-                    np,
-                    MieBeamSpec {
-                        scattered_intensity: true,
-                        ..spec
-                    },
-                )
-                .unwrap(),
-                dip: MieBeam::new(
-                    &om,
-                    d,
-                    np,
-                    MieBeamSpec {
-                        amplitudes: Amplitudes::Dipole,
-                        ..spec
-                    },
-                )
-                .unwrap(),
-            }
-        })
-        .collect();
+    let beams: Vec<Beam> = [
+        ("w400", Waist::Spectral, Apodization::None),
+        ("fill", Waist::SpectralNm(0.0), Apodization::None),
+        ("vector", Waist::SpectralNm(0.0), Apodization::Aplanatic),
+    ]
+    .into_iter()
+    .map(|(tag, waist, apodization)| {
+        let spec = MieBeamSpec {
+            waist,
+            apodization,
+            ..base
+        };
+        Beam {
+            tag,
+            mie: MieBeam::new(&om, d, np, spec).unwrap(),
+            mie_full: MieBeam::new(
+                &om,
+                d,
+                np,
+                MieBeamSpec {
+                    scattered_intensity: true,
+                    ..spec
+                },
+            )
+            .unwrap(),
+            dip: MieBeam::new(
+                &om,
+                d,
+                np,
+                MieBeamSpec {
+                    amplitudes: Amplitudes::Dipole,
+                    ..spec
+                },
+            )
+            .unwrap(),
+        }
+    })
+    .collect();
     let w0 = o.w0_um();
     let gauss_i =
         |r: f64| 2.0 / (std::f64::consts::PI * w0 * w0) * (-2.0 * r * r / (w0 * w0)).exp();
@@ -133,7 +146,7 @@ fn main() {
         "# Fig. 2b: Sx(x, 0, 0) of a {d} nm bead, n = {n}, default optics (w0 = {} nm, NA {}); Mie tier grids (reach 2 µm): incident n_theta_in = {}, n_phi_in = {}, detection n_theta = {}, n_phi = {}",
         o.w0_nm, o.na, base.n_theta_in, base.n_phi_in, om.n_theta, om.n_phi
     );
-    println!("# beams: w400 = Gaussian spectrum with w0 = 400 nm (Waist::Spectral); fill = uniformly filled NA 1.2 aperture (Waist::SpectralNm(0), the tightest focus)");
+    println!("# beams: w400 = Gaussian spectrum with w0 = 400 nm (Waist::Spectral); fill = uniformly filled NA 1.2 aperture (Waist::SpectralNm(0), the tightest focus); vector = the same aperture with the aplanatic 1/sqrt(cos theta) factor (Apodization::Aplanatic, the default beam)");
     let mut header = String::from("x_um,rayleigh,rayleigh_pol,I_gauss");
     for b in &beams {
         for c in ["as_dipole", "mie", "mie_full", "I_as_x", "I_as_y"] {
@@ -189,6 +202,7 @@ fn main() {
         "mie_w400" => "Mie, Gaussian spectrum w0 = 400 nm",
         "mie_fill" => "Mie, filled NA 1.2 aperture",
         "as_dipole_fill" => "point dipole, filled aperture",
+        "mie_vector" => "Mie, aplanatic vector focus (default beam)",
         _ => "",
     };
     let series: Vec<Series> = cols
