@@ -37,7 +37,7 @@ pub fn register(r: &mut Registrar) {
     let c = ctx.clone();
     r.bind(
         Doc::func("optics")
-            .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi}")
+            .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi, beam, pupil_filling}")
             .summary("the current optical parameters (nm, mW)")
             .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
             .example("optics().wavelength_nm", "1064.0")
