@@ -200,7 +200,17 @@ fn the_board_samples_the_moving_stage_at_the_recorders_positions() {
     }
     // the stage moved during the acquisition: from 10 µm to past 17 µm
     assert!(trace.sx[0] < -0.249 && trace.sx[trace.len() - 1] > 0.1);
-    // a point read afterwards is at the shared (parked) position: x = 20 µm
+    // a point read afterwards is at the shared (parked) position: x = 20 µm, once the lagging
+    // axis has settled there (τ = 0.5 ms; the wall time between the line's end and this read
+    // varies with the machine's load, so wait for the controller to report it, ≤ 1 s)
+    let t0 = std::time::Instant::now();
+    while (Stage::position(&mut s).unwrap()[0] - 20.0).abs() > 1e-5 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(1),
+            "the axis never settled at 20 µm"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
     let r = rp.read(100).unwrap();
     assert!((r.sx - linear([20.0, 10.0, 5.0])[0]).abs() < 1e-4, "{r}");
 }
