@@ -90,7 +90,7 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
 
     // what the paper's approximation costs: the paraxial beam is percents off the default vector
     // beam (measured 5.1 % RMS of the peak on a 64×64 image), far beyond the 3e-5 criterion, and
-    // an order of magnitude cheaper (templates from scratch)
+    // cheaper (templates from scratch: 2.1 ms against 17.4 ms in release)
     let beam = r
         .knobs
         .iter()
