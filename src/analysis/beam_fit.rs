@@ -44,7 +44,7 @@
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
 use crate::optics::grid::Grid2;
-use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+use crate::optics::mie_template::dipole_plane;
 use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::{alpha_um3, DetectorModel, Misalignment};
 use crate::optics::template::TemplateSpec;
@@ -137,17 +137,12 @@ struct Basis {
 }
 
 fn plane(optics: &Optics, grid: TemplateSpec, m: Misalignment, alpha: f64) -> Result<Arc<Grid2>> {
-    let spec = MieTemplateSpec {
-        grid,
-        detector: DetectorModel {
-            polarization: true,
-            misalignment: Some(m),
-        },
-        scattered_intensity: false,
+    let detector = DetectorModel {
+        polarization: true,
+        misalignment: Some(m),
     };
-    // the simulator's own point dipole in this beam
-    let t = MieTemplate::point_dipole(optics, spec)?;
-    let mut g = (*t.plane(0)?).clone();
+    // the simulator's own point dipole in this beam, per unit α
+    let mut g = dipole_plane(optics, detector, grid.h, grid.interp, 0.0)?;
     for n in g.data.iter_mut() {
         for c in n.iter_mut() {
             *c *= alpha;

@@ -159,15 +159,15 @@ pub const DEFAULT_N_PHI_IN: usize = 6;
 pub const MAX_PAIRS: usize = 8_000_000;
 
 impl MieBeamSpec {
-    /// An incident grid that resolves the plane-wave phases out to a lateral distance
-    /// `rho_um` from the focus at axial displacements up to `z_um` (the inverse of the
-    /// incident-grid part of [`grid_reach_um`]): 4·n_phi_in ≥ kρ sinΘ + 12 and
-    /// n_theta_in ≥ (kρ sinΘ + k|z|(1 − cosΘ)/2)/2.5 + 4. The detection grid must follow
-    /// ([`optics_for_reach`]).
     /// The default grids in the beam `optics.beam` selects: for `Beam::Vector` the aplanatic
     /// focus of pupil filling `optics.pupil_filling` (docs/physics.md §10); for
     /// `Beam::Paraxial` §9's beam (spectral waist w0, no aplanatic factor).
     pub fn of_beam(optics: &Optics) -> Self {
+        Self::default().with_beam_of(optics)
+    }
+
+    /// This spec with the waist and apodisation of `optics.beam` ([`Self::of_beam`]).
+    pub fn with_beam_of(self, optics: &Optics) -> Self {
         let (waist, apodization) = match optics.beam {
             super::params::Beam::Paraxial => (Waist::Spectral, Apodization::None),
             super::params::Beam::Vector => {
@@ -177,20 +177,15 @@ impl MieBeamSpec {
         Self {
             waist,
             apodization,
-            ..Self::default()
-        }
-    }
-
-    /// This spec with the waist and apodisation of `optics.beam` ([`Self::of_beam`]).
-    pub fn with_beam_of(self, optics: &Optics) -> Self {
-        let b = Self::of_beam(optics);
-        Self {
-            waist: b.waist,
-            apodization: b.apodization,
             ..self
         }
     }
 
+    /// An incident grid that resolves the plane-wave phases out to a lateral distance
+    /// `rho_um` from the focus at axial displacements up to `z_um` (the inverse of the
+    /// incident-grid part of [`grid_reach_um`]): 4·n_phi_in ≥ kρ sinΘ + 12 and
+    /// n_theta_in ≥ (kρ sinΘ + k|z|(1 − cosΘ)/2)/2.5 + 4. The detection grid must follow
+    /// ([`optics_for_reach`]).
     pub fn for_reach(optics: &Optics, rho_um: f64, z_um: f64) -> Self {
         let k = optics.k_per_um();
         let th = theta_aperture(optics);
@@ -1067,20 +1062,16 @@ pub fn dipole_response_in_beam(
         super::mie_template::DIPOLE_D_NM,
         super::mie_template::DIPOLE_N,
     );
-    let spec = MieBeamSpec {
+    let dipole = |grids: MieBeamSpec| MieBeamSpec {
         detector: *det,
         amplitudes: Amplitudes::Dipole,
-        ..MieBeamSpec::of_beam(optics)
+        ..grids.with_beam_of(optics)
     };
+    let spec = dipole(MieBeamSpec::default());
     let spec = if rho <= grid_reach_um(optics, &spec, pos_um[2]) {
         spec
     } else {
-        MieBeamSpec {
-            detector: *det,
-            amplitudes: Amplitudes::Dipole,
-            ..MieBeamSpec::for_reach(optics, rho, pos_um[2])
-        }
-        .with_beam_of(optics)
+        dipole(MieBeamSpec::for_reach(optics, rho, pos_um[2]))
     };
     let o = optics_for_reach(optics, rho);
     let s =
@@ -1129,13 +1120,9 @@ pub fn max_sensitivity_in_beam(
         }
         SphereModel::Dipole | SphereModel::FiniteSize { .. } if paraxial => {
             let det = Detection::new(optics, &DetectorModel::default())?;
-            let size = match model {
-                SphereModel::FiniteSize { .. } => Some(d_nm),
-                _ => None,
-            };
-            let n_r = match model {
-                SphereModel::FiniteSize { n_r } => n_r,
-                _ => super::finite_size::DEFAULT_N_R,
+            let (size, n_r) = match model {
+                SphereModel::FiniteSize { n_r } => (Some(d_nm), n_r),
+                _ => (None, super::finite_size::DEFAULT_N_R),
             };
             let (s, z) = super::finite_size::max_sensitivity_unit(&det, size, n_r);
             Ok((s * alpha, z))
