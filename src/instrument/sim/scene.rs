@@ -74,8 +74,8 @@ impl DiameterProfile {
 
 /// The simulator's default bead-model spacing of a filament, nm: 25 nm, half the paper's 50 nm
 /// (Sec. 4.2). In the default vector beam 50 nm renders an α-tip 6.9e-5 of its peak off the
-/// 2 nm reference, above the accuracy report's 3e-5 criterion; 25 nm is 6.7e-6 at no
-/// measurable extra render time (docs/accuracy.md#bead_spacing).
+/// 2 nm reference, above the accuracy report's 3e-5 criterion; 25 nm is 6.7e-6, at 1.6× the
+/// render time of that 64×64 image (3.0 ms against 1.85 ms, release; docs/accuracy.md#bead_spacing).
 pub const FILAMENT_SPACING_NM: f64 = 25.0;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
