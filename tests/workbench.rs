@@ -102,10 +102,6 @@ fn every_number_in_a_protocol_result_has_its_unit() {
             r#"
             import "calibrate" as calibrate; import "focus" as focus;
             import "aggregates" as aggregates; import "microtubule" as microtubule;
-            // the paper's beam: in the vector beam measure_filament finds the maxima of this thin
-            // noisy filament in only 18 of 81 rows (paraxial: 79) and takes a line of
-            // aggregates — an open defect (issue 19 closing note), not this test's subject
-            set_optics(#{beam: "paraxial"});
             let s = scene();
             s.add_bead(#{x: -3.0, y: 3.0, d_nm: 110.0, n: 1.572});
             s.add_filament(#{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 17.0, n: 1.587});

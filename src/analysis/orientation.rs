@@ -20,9 +20,12 @@
 //! least 5 apart) picks the line with the most rows (columns) having a candidate within
 //! `max_offset_um`, refined by least squares on the inliers. The maxima along the filament are
 //! then read from each row (column) by a parabola over `window_um` centred where the line crosses
-//! it (re-centred on the vertex), so point objects elsewhere in the row do not replace the
-//! filament's maximum and the noisy discrete maximum does not bias the value upwards. [`measure_filament_along`] does the last step for a given line (e.g. to measure the
-//! same filament before and after background removal).
+//! it, so point objects elsewhere in the row do not replace the filament's maximum and the noisy
+//! discrete maximum does not bias the value upwards. The maxima must form one filament
+//! (`kind::check_filament_maxima`: not a single point object; `kind::check_filament_continuity`:
+//! not point objects in a row with no signal between them); if the preferred channel's line
+//! fails, the other channel's line is tried. [`measure_filament_along`] does the last step for a
+//! given line (e.g. to measure the same filament before and after background removal).
 //!
 //! Angles in degrees, from the +y axis towards +x, in (−90°, 90°].
 
@@ -445,17 +448,42 @@ pub fn measure_filament(
             _ => frac_r >= frac_c,
         },
     };
-    let (line, other, channel) = if use_rows {
-        (lr.unwrap(), lc, Channel::SxRows)
+    // The preferred line first; if its maxima are not one filament (a point object, or point
+    // objects in a row with no filament signal between them), the other channel's line if
+    // it is self-consistent. Both failing: the preferred line's reason.
+    let rows_line = (lr, lc, Channel::SxRows, sxs, ok_r);
+    let cols_line = (lc, lr, Channel::SyCols, sys, ok_c);
+    let order = if use_rows {
+        [rows_line, cols_line]
     } else {
-        (lc.unwrap(), lr, Channel::SyCols)
+        [cols_line, rows_line]
     };
-    let sens = if use_rows { sxs } else { sys };
-    let mut m = measure_sens_along(sens, curve, channel, line, opts)?;
-    m.other_line = other;
-    let pts: Vec<(f64, f64)> = m.points.iter().map(|p| (p.arc_um, p.sens)).collect();
-    super::kind::check_filament_maxima(&pts)?;
-    Ok(m)
+    let mut first_err = None;
+    for (i, (line, other, channel, sens, ok)) in order.into_iter().enumerate() {
+        let Some(line) = line else { continue };
+        if i > 0 && !ok {
+            continue;
+        }
+        let attempt =
+            measure_sens_along(sens, curve, channel, line, opts).and_then(|(m, trace, sigma)| {
+                let pts: Vec<(f64, f64)> = m.points.iter().map(|p| (p.arc_um, p.sens)).collect();
+                super::kind::check_filament_maxima(&pts)?;
+                super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
+                Ok(m)
+            });
+        match attempt {
+            Ok(mut m) => {
+                m.other_line = other;
+                return Ok(m);
+            }
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    Err(first_err.unwrap_or_else(|| {
+        AnalysisError::Failed("no filament found: no line of aligned maxima".into())
+    }))
 }
 
 fn check_pixel(sx: &Image, curve: &AngleCurve) -> Result<()> {
@@ -486,16 +514,21 @@ pub fn measure_filament_along(
         Channel::SxRows => sensitivity(sx, Axis::X, opts.stencil)?,
         Channel::SyCols => sensitivity(sy, Axis::Y, opts.stencil)?,
     };
-    measure_sens_along(sens, curve, channel, line, opts)
+    Ok(measure_sens_along(sens, curve, channel, line, opts)?.0)
 }
 
+/// Every scan line a filament line crosses, in line order: (arc position µm, maximum read there
+/// or NaN), for `kind::check_filament_continuity`.
+type LineTrace = Vec<(f64, f64)>;
+
+/// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas').
 fn measure_sens_along(
     mut sens: Image,
     curve: &AngleCurve,
     channel: Channel,
     line: LineFit,
     opts: &MeasureOptions,
-) -> Result<FilamentMeasurement> {
+) -> Result<(FilamentMeasurement, LineTrace, f64)> {
     // Instrument units → reference-bead units.
     sens.data.mapv_inplace(|v| v * curve.norm_factor);
     let rows = channel == Channel::SxRows;
@@ -510,9 +543,20 @@ fn measure_sens_along(
         (sens.cols(), &sens.y)
     };
     let mut points = Vec::new();
+    // Every line the filament line crosses inside the scan, in line order: (arc µm, maximum,
+    // line index) — the maximum NaN where none was read — for the continuity check.
+    let mut trace: Vec<(f64, f64, usize)> = Vec::new();
+    let (t_lo, t_hi) = (
+        t.first().copied().unwrap_or(0.0),
+        t.last().copied().unwrap_or(0.0),
+    );
     for l in 0..nl {
         let coord = if rows { sens.y[l] } else { sens.x[l] };
         let pred = line.a + line.b * coord;
+        if pred >= t_lo.min(t_hi) && pred <= t_hi.max(t_lo) {
+            let (x, y) = if rows { (pred, coord) } else { (coord, pred) };
+            trace.push((x * dir.0 + y * dir.1, f64::NAN, l));
+        }
         let vv: Vec<f64> = (0..t.len())
             .map(|k| {
                 if rows {
@@ -531,6 +575,9 @@ fn measure_sens_along(
             continue;
         }
         let (x, y) = if rows { (p.pos, coord) } else { (coord, p.pos) };
+        if let Some(tr) = trace.last_mut().filter(|tr| tr.2 == l) {
+            tr.1 = p.value;
+        }
         points.push(FilamentPoint {
             line: l,
             x,
@@ -553,7 +600,11 @@ fn measure_sens_along(
         p.arc_um -= a0;
     }
     let s = summary(&points.iter().map(|p| p.sens_corr).collect::<Vec<_>>())?;
-    Ok(FilamentMeasurement {
+    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits).
+    let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
+    let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
+    let trace: Vec<(f64, f64)> = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
+    let m = FilamentMeasurement {
         channel,
         angle_deg: angle,
         angle_err_deg: line.angle_err_deg,
@@ -565,5 +616,6 @@ fn measure_sens_along(
         std_corr: s.std,
         sem_corr: s.sem,
         sens,
-    })
+    };
+    Ok((m, trace, sigma))
 }
