@@ -430,8 +430,57 @@ pub fn measure_filament(
     check_pixel(sx, curve)?;
     let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
     let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
-    let lr = ransac_line(&candidates(&sxs, true, opts), true, opts.max_offset_um);
-    let lc = ransac_line(&candidates(&sys, false, opts), false, opts.max_offset_um);
+    // A faint filament among strong point objects may clear `detect_snr` in too few lines for
+    // its line to win the search; the maxima checks keep a lower threshold from taking a line
+    // of point objects, so the search is repeated at lower thresholds before giving up.
+    let mut first_err = None;
+    let mut tried = Vec::new();
+    for scale in RETRY_SNR_SCALES {
+        let o = MeasureOptions {
+            detect_snr: opts.detect_snr * scale,
+            ..*opts
+        };
+        if tried.contains(&o.detect_snr) {
+            continue;
+        }
+        tried.push(o.detect_snr);
+        match find_filament(&sxs, &sys, curve, &o) {
+            Ok(m) => return Ok(m),
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    Err(match first_err {
+        Some(AnalysisError::Failed(m)) if tried.len() > 1 => AnalysisError::Failed(format!(
+            "{m} (searched with candidate maxima above {} × the pixel noise)",
+            tried
+                .iter()
+                .map(|t| format!("{t}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+        Some(e) => e,
+        None => AnalysisError::Failed("no filament found".into()),
+    })
+}
+
+/// Fractions of `detect_snr` at which [`measure_filament`] searches for the filament's line,
+/// in order (4σ, 3σ, 2.5σ at the default).
+pub const RETRY_SNR_SCALES: [f64; 3] = [1.0, 0.75, 0.625];
+
+/// One search of [`measure_filament`] at `opts.detect_snr`: the line in each channel, the
+/// preferred one measured first; if its maxima are not one filament (a point object, or point
+/// objects in a row with no filament signal between them), the other channel's line if it is
+/// self-consistent. Both failing: the preferred line's reason.
+fn find_filament(
+    sxs: &Image,
+    sys: &Image,
+    curve: &AngleCurve,
+    opts: &MeasureOptions,
+) -> Result<FilamentMeasurement> {
+    let lr = ransac_line(&candidates(sxs, true, opts), true, opts.max_offset_um);
+    let lc = ransac_line(&candidates(sys, false, opts), false, opts.max_offset_um);
     let frac_r = lr.map(|l| l.n as f64 / sxs.rows() as f64).unwrap_or(0.0);
     let frac_c = lc.map(|l| l.n as f64 / sys.cols() as f64).unwrap_or(0.0);
     let ok_r = lr.is_some_and(|l| l.angle_deg.abs() <= 45.0);
@@ -448,9 +497,6 @@ pub fn measure_filament(
             _ => frac_r >= frac_c,
         },
     };
-    // The preferred line first; if its maxima are not one filament (a point object, or point
-    // objects in a row with no filament signal between them), the other channel's line if
-    // it is self-consistent. Both failing: the preferred line's reason.
     let rows_line = (lr, lc, Channel::SxRows, sxs, ok_r);
     let cols_line = (lc, lr, Channel::SyCols, sys, ok_c);
     let order = if use_rows {
@@ -464,13 +510,14 @@ pub fn measure_filament(
         if i > 0 && !ok {
             continue;
         }
-        let attempt =
-            measure_sens_along(sens, curve, channel, line, opts).and_then(|(m, trace, sigma)| {
+        let attempt = measure_sens_along(sens.clone(), curve, channel, line, opts).and_then(
+            |(m, trace, sigma)| {
                 let pts: Vec<(f64, f64)> = m.points.iter().map(|p| (p.arc_um, p.sens)).collect();
                 super::kind::check_filament_maxima(&pts)?;
                 super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
                 Ok(m)
-            });
+            },
+        );
         match attempt {
             Ok(mut m) => {
                 m.other_line = other;

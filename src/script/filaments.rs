@@ -153,7 +153,7 @@ fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .form("measure_filament(scan, curve) -> FilamentMeasurement")
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
-        .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried).");
+        .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried, then the search is repeated with candidates above 3/4 and 5/8 of detect_snr).");
     let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
     let spec = d.spec();
     let s2 = spec.clone();
