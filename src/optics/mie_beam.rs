@@ -797,7 +797,17 @@ impl MieBeam {
     /// scan, suppl. S5) and the z where it occurs: a 0.05 µm scan of z ∈ [−1, 1] µm, then golden
     /// section to 1e-7 µm (the same search as `finite_size::max_sensitivity_unit`).
     pub fn max_sensitivity_x(&self) -> (f64, f64) {
-        super::finite_size::best_focus(|z| self.eval(0.0, 0.0, z, true).1[0])
+        self.extreme_sensitivity_x(1.0)
+    }
+
+    /// [`Self::max_sensitivity_x`] for a sphere whose polarisability has the sign `sign`: for
+    /// `sign` < 0 (index below the medium's) the central lobe's slope is negative, and its
+    /// extreme is the minimum of ∂Sx/∂x over z (the maximum would be an overshoot lobe) — the
+    /// same signed value the point dipole gives, α × the unit response's maximum.
+    pub fn extreme_sensitivity_x(&self, sign: f64) -> (f64, f64) {
+        let s = if sign < 0.0 { -1.0 } else { 1.0 };
+        let (v, z) = super::finite_size::best_focus(|z| s * self.eval(0.0, 0.0, z, true).1[0]);
+        (s * v, z)
     }
 
     /// Lateral reach (µm) of this response's grids at axial displacement z ([`grid_reach_um`]).
@@ -1022,8 +1032,10 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
 /// M(d, n)/α(d, n): the Mie tier's maximum sensitivity (∂Sx/∂x)max (µm⁻¹, default grid, in the
 /// beam `optics.beam` selects: [`MieBeamSpec::of_beam`]) per
 /// unit static polarisability α (µm³), the two factors of [`point_dipole_error`] (paper
-/// Fig. 3c, Sec. 3.2); µm⁻⁴. One Mie response, about 0.05–0.1 s in a release build. An error
-/// when n equals the medium's index (α = 0).
+/// Fig. 3c, Sec. 3.2); µm⁻⁴. M is signed, the extreme of the central lobe
+/// ([`MieBeam::extreme_sensitivity_x`]): for n below the medium's both M and α are negative,
+/// and M/α is the same positive shape factor as for n above it. One Mie response, about
+/// 0.05–0.1 s in a release build. An error when n equals the medium's index (α = 0).
 pub fn max_sensitivity_per_alpha(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
     let alpha = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium);
     if alpha == 0.0 {
@@ -1033,7 +1045,7 @@ pub fn max_sensitivity_per_alpha(optics: &Optics, d_nm: f64, n: f64) -> Result<f
         )));
     }
     let m = MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::of_beam(optics))?
-        .max_sensitivity_x()
+        .extreme_sensitivity_x(alpha)
         .0;
     Ok(m / alpha)
 }
@@ -1115,7 +1127,7 @@ pub fn max_sensitivity_in_beam(
         SphereModel::Mie => {
             Ok(
                 MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::of_beam(optics))?
-                    .max_sensitivity_x(),
+                    .extreme_sensitivity_x(alpha),
             )
         }
         SphereModel::Dipole | SphereModel::FiniteSize { .. } if paraxial => {
