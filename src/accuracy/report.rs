@@ -475,15 +475,14 @@ fn validity_markdown(v: &[ak::Validity]) -> String {
             None => format!(" beyond {:.0} nm |\n", r.points.last().map_or(0.0, |p| p.0)),
         };
     }
-    s += "\nThe simulator's default stays the paraxial point dipole (the paper's model, suppl. S2) and does not switch \
-          to Mie by itself: the Mie tier is a different beam (its angular-spectrum focus is 1.34× wider and its dipole \
-          limit's maximum sensitivity 1.6× smaller at the paper's optics, docs/physics.md §9), so switching one bead \
-          would change every other object's signal, and the model-based calibrations (`template_model`, \
-          `diameter_calib`, `lin_dens_calib`) are paraxial. A scene that needs Mie asks for it with the `mie` effect, \
-          which since session 3 renders the whole scene in the one angular-spectrum beam; calibrate such scenes with \
-          reference beads in the same scene. Making both tiers one beam (a Rayleigh tier in the angular-spectrum \
-          beam) would let the model follow the bead size automatically; it is an open physics decision, not a knob \
-          setting.\n\n";
+    s += "\nIn the default vector beam the scene picks the tier from this table: a bead more than 1 % off is \
+          rendered by the Lorenz–Mie tier automatically, in the same beam, and `simulate(scene).notes` says so with \
+          the measured error (docs/physics.md §10). Only beads that can be off are checked: d ≥ 150 nm, or d ≥ 20 nm \
+          with an index more than 0.03 from polystyrene's (`instrument::sim::domain::is_suspect`; below 20 nm every \
+          index of the scene's range 1–5 is within 1 %). In the paper's paraxial beam \
+          (`set_optics(#{beam: \"paraxial\"})`) the Mie tier is another beam (§9's angular-spectrum focus, 1.34× \
+          wider), so the simulator does not switch a bead by itself there: it notes the bead, and a scene that \
+          needs Mie asks for the `mie` effect, which renders the whole scene in that one beam.\n\n";
     s
 }
 
