@@ -89,6 +89,54 @@ impl DomainMemo {
         r
     }
 
+    /// Compute the species of `species` not yet remembered (and the reference) in parallel,
+    /// one Mie response each, and remember them: a scene's first check costs the slowest
+    /// response per core, not their sum. Same values as [`Self::error`] one by one.
+    pub fn fill(&mut self, optics: &Optics, species: &[(f64, f64)]) {
+        use rayon::prelude::*;
+        let known = |m: &Self, d: f64, n: f64| {
+            m.entries
+                .iter()
+                .any(|(o, dd, nn, _)| (*dd, *nn) == (d.to_bits(), n.to_bits()) && o == optics)
+        };
+        let mut todo: Vec<(f64, f64)> = vec![];
+        for &(d, n) in species {
+            if !known(self, d, n) && !todo.contains(&(d, n)) {
+                todo.push((d, n));
+            }
+        }
+        let need_ref = !self.refs.iter().any(|(o, _)| o == optics);
+        if todo.is_empty() {
+            return;
+        }
+        let n_species = todo.len();
+        if need_ref {
+            todo.push((REF_BEAD_D_NM, REF_BEAD_N));
+        }
+        let m: Vec<Result<f64, OpticsError>> = todo
+            .par_iter()
+            .map(|&(d, n)| mie_beam::max_sensitivity_per_alpha(optics, d, n))
+            .collect();
+        let mut m = m.into_iter();
+        let per_alpha: Vec<_> = m.by_ref().take(n_species).collect();
+        if need_ref {
+            let r = m.next().expect("the reference was computed");
+            if self.refs.len() == Self::REF_CAPACITY {
+                self.refs.pop_front();
+            }
+            self.refs.push_back((optics.clone(), r));
+        }
+        let reference = self.reference(optics);
+        for ((d, n), pa) in todo.iter().zip(per_alpha) {
+            let e = reference.clone().and_then(|r| Ok(r / pa? - 1.0));
+            if self.entries.len() == Self::CAPACITY {
+                self.entries.pop_front();
+            }
+            self.entries
+                .push_back((optics.clone(), d.to_bits(), n.to_bits(), e));
+        }
+    }
+
     /// Number of remembered results.
     pub fn len(&self) -> usize {
         self.entries.len()
@@ -124,19 +172,23 @@ impl DomainCheck {
     /// renderer then neither notes nor switches models.
     pub fn run(optics: &Optics, scene: &Scene, memo: &mut DomainMemo) -> DomainCheck {
         let t = Instant::now();
-        let mut entries: Vec<DomainEntry> = vec![];
         let pinned = scene.effects.mie.is_some() || scene.effects.finite_size.is_some();
+        let mut species: Vec<(f64, f64)> = vec![];
         for b in scene.beads.iter().filter(|_| !pinned) {
             let (d, n) = (b.d_nm, b.n);
-            if !is_suspect(d, n) || entries.iter().any(|e| (e.d_nm, e.n) == (d, n)) {
-                continue;
+            if is_suspect(d, n) && !species.contains(&(d, n)) {
+                species.push((d, n));
             }
-            entries.push(DomainEntry {
+        }
+        memo.fill(optics, &species);
+        let entries = species
+            .into_iter()
+            .map(|(d, n)| DomainEntry {
                 d_nm: d,
                 n,
                 error: memo.error(optics, d, n).ok(),
-            });
-        }
+            })
+            .collect();
         DomainCheck {
             entries,
             seconds: t.elapsed().as_secs_f64(),
@@ -187,6 +239,22 @@ mod tests {
         assert_eq!(m.error(&o, 250.0, 1.572).unwrap(), want);
         assert_eq!(m.refs.len(), 1);
         assert_eq!(m.error(&o, 250.0, 1.572).unwrap(), want);
+    }
+
+    #[test]
+    fn parallel_fill_remembers_the_same_errors_once_each() {
+        let o = Optics::default();
+        let species = [(250.0, 1.572), (60.0, 1.45), (250.0, 1.572)];
+        let mut a = DomainMemo::default();
+        a.fill(&o, &species);
+        assert_eq!((a.len(), a.refs.len()), (2, 1));
+        let mut b = DomainMemo::default();
+        for (d, n) in species {
+            assert_eq!(a.error(&o, d, n), b.error(&o, d, n));
+        }
+        assert_eq!(a.len(), 2, "nothing computed again");
+        a.fill(&o, &species);
+        assert_eq!(a.len(), 2);
     }
 
     #[test]
