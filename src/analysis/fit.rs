@@ -3,7 +3,7 @@
 //! f(C₁, x₁, y₁, …, Cₙ, xₙ, yₙ) = ( Σᵢ Cᵢ Sx(x − xᵢ, y − yᵢ) , Σᵢ Cᵢ Sy(x − xᵢ, y − yᵢ) )
 //!
 //! fitted by least squares to the Sx and Sy images together (or to one channel, for the
-//! background removal of Sec. 6) with the `levenberg-marquardt` crate. The images are in
+//! background removal of Sec. 6) by Levenberg–Marquardt (our own, on the normal equations). The images are in
 //! instrument units (as measured or simulated); the template converts: its normalised response
 //! divided by `norm_factor` is the reference bead in instrument units, so the weights Cᵢ come out
 //! in reference-bead units (a bead identical to the template's reference has C = 1; C scales with
@@ -14,20 +14,20 @@
 //! ∂r/∂xᵢ = −Cᵢ ∂S/∂u, ∂r/∂yᵢ = −Cᵢ ∂S/∂v (`Grid2::eval_grad`). Each bead only touches the pixels
 //! inside the template's extent around it.
 //!
-//! **Compressed problem (speed).** The residual vector has one entry per valid pixel and
-//! channel (32 768 for a 128×128 two-channel fit). Instead of handing the crate that M×N
-//! Jacobian (whose pivoted QR costs O(M·N²) per iteration), each evaluation accumulates the
-//! Gauss–Newton matrix JᵀJ, the gradient Jᵀr and ‖r‖² bead by bead over each bead's window
-//! (JᵀJ is block-sparse: a pair of beads couples only through the overlap of their windows; see
-//! `FitData::accumulate`, linear in the number of beads), and the crate is given the equivalent (N+1)-row problem
-//! J̃ = [R; 0], r̃ = [R⁻ᵀJᵀr; √(‖r‖² − ‖R⁻ᵀJᵀr‖²)] with RᵀR = JᵀJ (Cholesky, or a symmetric
-//! square root when singular). ‖r̃‖ = ‖r‖, J̃ᵀJ̃ = JᵀJ, J̃ᵀr̃ = Jᵀr and the column norms agree, so
-//! the crate's iterates, trust-region steps and stopping tests are those of the full problem.
+//! **Normal equations (speed).** The residual vector has one entry per valid pixel and
+//! channel (32 768 for a 128×128 two-channel fit). Instead of forming that M×N Jacobian (whose
+//! QR costs O(M·N²) per iteration), each evaluation accumulates the Gauss–Newton matrix JᵀJ, the
+//! gradient Jᵀr and ‖r‖² bead by bead over each bead's window (JᵀJ is block-sparse: a pair of
+//! beads couples only through the overlap of their windows; see `FitData::accumulate`, linear in
+//! the number of beads), and the Levenberg–Marquardt steps solve (JᵀJ + λD²)δ = −Jᵀr by a
+//! Cholesky factorisation that skips the zero blocks left of each row's profile (see
+//! `levenberg_marquardt`: Moré's scaling D, gain-ratio step acceptance, MINPACK's ftol / xtol /
+//! gtol tests). The last accepted evaluation also gives the statistics at the solution.
 //!
 //! **Uncertainties** from the covariance σ²(JᵀJ)⁻¹ at the solution, σ the given pixel noise
 //! or, if absent, √(RSS/(m − 3n)).
 //!
-//! **Degeneracy** (the crate reports `Converged` for a fully degenerate fit — one weight
+//! **Degeneracy** (the optimiser reports `Converged` for a fully degenerate fit — one weight
 //! absorbing the other, the lost bead's position wandering off). After every fit:
 //! beads closer than `min_separation` × w0 (default w0/4) are reported
 //! ([`Degeneracy::CloseBeads`]) and, with `merge_degenerate` (default), merged (weights summed,
@@ -130,8 +130,8 @@ pub struct FitOptions {
     pub criterion: GrowCriterion,
     /// Pixel noise σ (signal units); None: estimated from the residuals.
     pub sigma: Option<f64>,
-    /// Relative tolerances of the crate (ftol on the objective, xtol on the parameters, gtol on
-    /// the gradient–residual cosine).
+    /// Relative tolerances of the optimiser (ftol on the objective, xtol on the parameters, gtol
+    /// on the gradient–residual cosine; MINPACK's meaning).
     pub ftol: f64,
     pub xtol: f64,
     pub gtol: f64,
@@ -328,7 +328,7 @@ pub struct FitResult {
     pub evaluations: usize,
     pub total_evaluations: usize,
     pub status: FitStatus,
-    /// The crate's termination reason, in words.
+    /// The optimiser's termination reason, in words.
     pub reason: String,
     /// Condition number of the column-scaled JᵀJ (capped at 1e300 when singular).
     pub condition: f64,
@@ -937,7 +937,47 @@ impl<'a> FitData<'a> {
     /// fitted). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
     #[allow(clippy::too_many_arguments)]
+    ///
+    /// On x86-64 CPUs with AVX2 the same code runs compiled for AVX2 + FMA (runtime dispatch;
+    /// the binary still runs on any x86-64 and other targets). No multiply–add is contracted
+    /// into an FMA (Rust does not contract without `mul_add`), so both paths round alike.
     fn sample_window(
+        &self,
+        bx: f64,
+        by: f64,
+        rows: std::ops::Range<usize>,
+        cols: std::ops::Range<usize>,
+        mask: &[Vec<f64>; 2],
+        out: &mut [f64],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU supports the features the function is compiled for (checked just
+            // above).
+            unsafe { self.sample_window_avx2(bx, by, rows, cols, mask, out) };
+            return;
+        }
+        self.sample_window_impl(bx, by, rows, cols, mask, out)
+    }
+
+    /// [`FitData::sample_window`] compiled for AVX2 + FMA.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn sample_window_avx2(
+        &self,
+        bx: f64,
+        by: f64,
+        rows: std::ops::Range<usize>,
+        cols: std::ops::Range<usize>,
+        mask: &[Vec<f64>; 2],
+        out: &mut [f64],
+    ) {
+        self.sample_window_impl(bx, by, rows, cols, mask, out)
+    }
+
+    #[inline(always)]
+    fn sample_window_impl(
         &self,
         bx: f64,
         by: f64,
