@@ -3,7 +3,7 @@
 //! f(C₁, x₁, y₁, …, Cₙ, xₙ, yₙ) = ( Σᵢ Cᵢ Sx(x − xᵢ, y − yᵢ) , Σᵢ Cᵢ Sy(x − xᵢ, y − yᵢ) )
 //!
 //! fitted by least squares to the Sx and Sy images together (or to one channel, for the
-//! background removal of Sec. 6) with the `levenberg-marquardt` crate. The images are in
+//! background removal of Sec. 6) by Levenberg–Marquardt (our own, on the normal equations). The images are in
 //! instrument units (as measured or simulated); the template converts: its normalised response
 //! divided by `norm_factor` is the reference bead in instrument units, so the weights Cᵢ come out
 //! in reference-bead units (a bead identical to the template's reference has C = 1; C scales with
@@ -14,20 +14,20 @@
 //! ∂r/∂xᵢ = −Cᵢ ∂S/∂u, ∂r/∂yᵢ = −Cᵢ ∂S/∂v (`Grid2::eval_grad`). Each bead only touches the pixels
 //! inside the template's extent around it.
 //!
-//! **Compressed problem (speed).** The residual vector has one entry per valid pixel and
-//! channel (32 768 for a 128×128 two-channel fit). Instead of handing the crate that M×N
-//! Jacobian (whose pivoted QR costs O(M·N²) per iteration), each evaluation accumulates the
-//! Gauss–Newton matrix JᵀJ, the gradient Jᵀr and ‖r‖² bead by bead over each bead's window
-//! (JᵀJ is block-sparse: a pair of beads couples only through the overlap of their windows; see
-//! `FitData::accumulate`, linear in the number of beads), and the crate is given the equivalent (N+1)-row problem
-//! J̃ = [R; 0], r̃ = [R⁻ᵀJᵀr; √(‖r‖² − ‖R⁻ᵀJᵀr‖²)] with RᵀR = JᵀJ (Cholesky, or a symmetric
-//! square root when singular). ‖r̃‖ = ‖r‖, J̃ᵀJ̃ = JᵀJ, J̃ᵀr̃ = Jᵀr and the column norms agree, so
-//! the crate's iterates, trust-region steps and stopping tests are those of the full problem.
+//! **Normal equations (speed).** The residual vector has one entry per valid pixel and
+//! channel (32 768 for a 128×128 two-channel fit). Instead of forming that M×N Jacobian (whose
+//! QR costs O(M·N²) per iteration), each evaluation accumulates the Gauss–Newton matrix JᵀJ, the
+//! gradient Jᵀr and ‖r‖² bead by bead over each bead's window (JᵀJ is block-sparse: a pair of
+//! beads couples only through the overlap of their windows; see `FitData::accumulate`, linear in
+//! the number of beads), and the Levenberg–Marquardt steps solve (JᵀJ + λD²)δ = −Jᵀr by a
+//! Cholesky factorisation that skips the zero blocks left of each row's profile (see
+//! `levenberg_marquardt`: Moré's scaling D, gain-ratio step acceptance, MINPACK's ftol / xtol /
+//! gtol tests). The last accepted evaluation also gives the statistics at the solution.
 //!
 //! **Uncertainties** from the covariance σ²(JᵀJ)⁻¹ at the solution, σ the given pixel noise
 //! or, if absent, √(RSS/(m − 3n)).
 //!
-//! **Degeneracy** (the crate reports `Converged` for a fully degenerate fit — one weight
+//! **Degeneracy** (the optimiser reports `Converged` for a fully degenerate fit — one weight
 //! absorbing the other, the lost bead's position wandering off). After every fit:
 //! beads closer than `min_separation` × w0 (default w0/4) are reported
 //! ([`Degeneracy::CloseBeads`]) and, with `merge_degenerate` (default), merged (weights summed,
@@ -62,12 +62,9 @@ use super::template::Template;
 use super::{check_above, check_axis, check_range, AnalysisError, AxisMap, Result};
 use crate::data::Image;
 use crate::optics::grid::GradStencil;
-use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt, TerminationReason};
-use nalgebra::storage::Owned;
-use nalgebra::{DMatrix, DVector, Dyn};
+use nalgebra::{DMatrix, DVector};
 use ndarray::Array2;
 use serde::{Deserialize, Serialize};
-use std::cell::{Cell, RefCell};
 
 /// Which channels enter the fit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -133,8 +130,8 @@ pub struct FitOptions {
     pub criterion: GrowCriterion,
     /// Pixel noise σ (signal units); None: estimated from the residuals.
     pub sigma: Option<f64>,
-    /// Relative tolerances of the crate (ftol on the objective, xtol on the parameters, gtol on
-    /// the gradient–residual cosine).
+    /// Relative tolerances of the optimiser (ftol on the objective, xtol on the parameters, gtol
+    /// on the gradient–residual cosine; MINPACK's meaning).
     pub ftol: f64,
     pub xtol: f64,
     pub gtol: f64,
@@ -331,7 +328,7 @@ pub struct FitResult {
     pub evaluations: usize,
     pub total_evaluations: usize,
     pub status: FitStatus,
-    /// The crate's termination reason, in words.
+    /// The optimiser's termination reason, in words.
     pub reason: String,
     /// Condition number of the column-scaled JᵀJ (capped at 1e300 when singular).
     pub condition: f64,
@@ -940,7 +937,47 @@ impl<'a> FitData<'a> {
     /// fitted). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
     #[allow(clippy::too_many_arguments)]
+    ///
+    /// On x86-64 CPUs with AVX2 the same code runs compiled for AVX2 + FMA (runtime dispatch;
+    /// the binary still runs on any x86-64 and other targets). No multiply–add is contracted
+    /// into an FMA (Rust does not contract without `mul_add`), so both paths round alike.
     fn sample_window(
+        &self,
+        bx: f64,
+        by: f64,
+        rows: std::ops::Range<usize>,
+        cols: std::ops::Range<usize>,
+        mask: &[Vec<f64>; 2],
+        out: &mut [f64],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU supports the features the function is compiled for (checked just
+            // above).
+            unsafe { self.sample_window_avx2(bx, by, rows, cols, mask, out) };
+            return;
+        }
+        self.sample_window_impl(bx, by, rows, cols, mask, out)
+    }
+
+    /// [`FitData::sample_window`] compiled for AVX2 + FMA.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn sample_window_avx2(
+        &self,
+        bx: f64,
+        by: f64,
+        rows: std::ops::Range<usize>,
+        cols: std::ops::Range<usize>,
+        mask: &[Vec<f64>; 2],
+        out: &mut [f64],
+    ) {
+        self.sample_window_impl(bx, by, rows, cols, mask, out)
+    }
+
+    #[inline(always)]
+    fn sample_window_impl(
         &self,
         bx: f64,
         by: f64,
@@ -1208,57 +1245,17 @@ impl<'a> FitData<'a> {
         out
     }
 
-    /// One LM run from `init`.
+    /// One LM run from `init` (see [`levenberg_marquardt`]).
     fn run_lm(&self, init: &[BeadInit], opts: &FitOptions) -> Result<RawFit> {
-        let x0 = DVector::from_iterator(
-            init.len() * 3,
-            init.iter().flat_map(|b| [b.weight, b.x, b.y]),
-        );
-        let prob = Reduced {
-            data: self,
-            x: x0,
-            cache: RefCell::new(None),
-            njac: Cell::new(0),
-            nres: Cell::new(0),
-        };
-        let lm = LevenbergMarquardt::new()
-            .with_ftol(opts.ftol)
-            .with_xtol(opts.xtol)
-            .with_gtol(opts.gtol)
-            .with_patience(opts.patience);
-        let (prob, report) = lm.minimize(prob);
-        let (status, reason) = match &report.termination {
-            TerminationReason::Converged { ftol, xtol } => (
-                FitStatus::Converged,
-                format!("converged (ftol: {ftol}, xtol: {xtol})"),
-            ),
-            TerminationReason::Orthogonal => (
-                FitStatus::Converged,
-                "converged (gradient orthogonal to residuals, gtol)".into(),
-            ),
-            TerminationReason::ResidualsZero => (FitStatus::Converged, "residuals are zero".into()),
-            TerminationReason::LostPatience => (
-                FitStatus::MaxEvaluations,
-                format!(
-                    "evaluation budget exhausted ({} evaluations)",
-                    report.number_of_evaluations
-                ),
-            ),
-            other => (FitStatus::Failed, format!("{other:?}")),
-        };
-        let p: Vec<f64> = prob.x.iter().copied().collect();
-        if p.iter().any(|v| !v.is_finite()) {
+        let x0: Vec<f64> = init.iter().flat_map(|b| [b.weight, b.x, b.y]).collect();
+        let raw = levenberg_marquardt(|p| self.accumulate(p), x0, opts);
+        if raw.p.iter().any(|v| !v.is_finite()) {
             return Err(AnalysisError::Failed(format!(
-                "the optimiser returned non-finite parameters ({reason})"
+                "the optimiser returned non-finite parameters ({})",
+                raw.reason
             )));
         }
-        Ok(RawFit {
-            p,
-            status,
-            reason,
-            iterations: prob.njac.get(),
-            evaluations: prob.nres.get().max(report.number_of_evaluations),
-        })
+        Ok(raw)
     }
 
     /// LM fit with all degeneracy checks (see the module docs).
@@ -1414,7 +1411,8 @@ impl<'a> FitData<'a> {
         // Statistics at the solution.
         let p = &raw.p;
         let nb = p.len() / 3;
-        let (rss, jtj, _) = self.accumulate(p);
+        // The optimiser's last accepted evaluation is the one at the solution.
+        let (rss, jtj) = (raw.rss, &raw.jtj);
         let np = p.len();
         let dof = self.m.saturating_sub(np);
         let (sigma, est) = match opts.sigma {
@@ -1431,7 +1429,7 @@ impl<'a> FitData<'a> {
             Some(_) => chi2 + np as f64 * mf.ln(),
             None => mf * (rss.max(1e-300) / mf).ln() + np as f64 * mf.ln(),
         };
-        let condition = scaled_condition(&jtj);
+        let condition = scaled_condition(jtj);
         let ill = !(condition <= opts.cond_limit);
         if ill {
             degeneracies.push(Degeneracy::IllConditioned { condition });
@@ -1668,6 +1666,9 @@ struct RawFit {
     reason: String,
     iterations: usize,
     evaluations: usize,
+    /// RSS and JᵀJ at `p` (the last accepted evaluation).
+    rss: f64,
+    jtj: DMatrix<f64>,
 }
 
 /// Condition number of D⁻¹AD⁻¹ with D = √diag(A) (1e300 when singular).
@@ -1694,94 +1695,276 @@ fn scaled_condition(a: &DMatrix<f64>) -> f64 {
     }
 }
 
-/// The (3n+1)-row problem equivalent to the full pixel problem (see the module docs).
-struct Reduced<'a, 'b> {
-    data: &'b FitData<'a>,
-    x: DVector<f64>,
-    #[allow(clippy::type_complexity)]
-    cache: RefCell<Option<(DVector<f64>, DVector<f64>, DMatrix<f64>)>>,
-    njac: Cell<usize>,
-    nres: Cell<usize>,
-}
-
-impl Reduced<'_, '_> {
-    fn compute(&self) -> Option<(DVector<f64>, DMatrix<f64>)> {
-        if let Some((x, r, j)) = self.cache.borrow().as_ref() {
-            if *x == self.x {
-                return Some((r.clone(), j.clone()));
+/// Levenberg–Marquardt on the normal equations: minimise ‖r(p)‖² given, at any p, the
+/// Gauss–Newton matrix A = JᵀJ, the gradient g = Jᵀr and the RSS ‖r‖² (`eval`; a non-finite
+/// RSS or A means the point is refused). Each step solves
+/// (A + λ·D²) δ = −g by a Cholesky factorisation ([`solve_damped`]), with Moré's scaling
+/// Dⱼ = max over the iterates of √Aⱼⱼ (the column norms of J; 1 for a column that has always been
+/// zero). The step is accepted when its gain ratio ρ = actual / predicted reduction of the RSS is
+/// at least 1e-4; then λ ← λ·max(1/3, 1 − (2ρ − 1)³), else λ ← λ·ν, ν ← 2ν (Nielsen's rule,
+/// λ₀ = 1e-3, i.e. the first step is nearly Gauss–Newton). The stopping tests are MINPACK's
+/// (`lmder`, the ones the `levenberg-marquardt` crate used before):
+/// - gtol: maxⱼ |gⱼ| / (√Aⱼⱼ ‖r‖) ≤ gtol at an accepted point (gradient orthogonal to the
+///   residuals);
+/// - ftol: the relative actual reduction 1 − ‖r₊‖²/‖r‖² and the predicted one
+///   (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² both ≤ ftol (and ρ ≤ 2);
+/// - xtol: ‖Dδ‖ ≤ xtol·‖Dp‖;
+/// - residuals exactly zero;
+/// - the evaluation budget patience × (n + 1);
+/// - the same tests at machine precision when the tolerances are below it: `Failed`, "no
+///   further improvement possible".
+///
+/// One evaluation per trial step; the last accepted one is returned with the result (RSS and A at
+/// the solution, for the statistics). `iterations` counts accepted points (including the
+/// initial one).
+fn levenberg_marquardt(
+    mut eval: impl FnMut(&[f64]) -> (f64, DMatrix<f64>, DVector<f64>),
+    mut p: Vec<f64>,
+    opts: &FitOptions,
+) -> RawFit {
+    let n = p.len();
+    let max_eval = opts.patience.saturating_mul(n + 1);
+    let eps = f64::EPSILON;
+    let finite = |rss: f64, a: &DMatrix<f64>, g: &DVector<f64>| {
+        rss.is_finite() && a.iter().all(|v| v.is_finite()) && g.iter().all(|v| v.is_finite())
+    };
+    let (mut rss, mut a, mut g) = eval(&p);
+    let (mut nres, mut njac) = (1usize, 1usize);
+    let done = |p: Vec<f64>, status, reason: String, njac, nres, rss, jtj| RawFit {
+        p,
+        status,
+        reason,
+        iterations: njac,
+        evaluations: nres,
+        rss,
+        jtj,
+    };
+    if !finite(rss, &a, &g) {
+        return done(
+            p,
+            FitStatus::Failed,
+            "non-finite residuals or Jacobian at the initial parameters".into(),
+            njac,
+            nres,
+            rss,
+            a,
+        );
+    }
+    let mut dscale = vec![0.0f64; n];
+    let mut lambda = 1e-3;
+    let mut nu = 2.0;
+    loop {
+        // Moré's scaling and the gradient test at the accepted point.
+        let fnorm = rss.sqrt();
+        if rss == 0.0 {
+            return done(
+                p,
+                FitStatus::Converged,
+                "residuals are zero".into(),
+                njac,
+                nres,
+                rss,
+                a,
+            );
+        }
+        let mut gnorm = 0.0f64;
+        for j in 0..n {
+            let c = a[(j, j)].max(0.0).sqrt();
+            if c > 0.0 {
+                gnorm = gnorm.max(g[j].abs() / (c * fnorm));
+            }
+            dscale[j] = dscale[j].max(c);
+            if dscale[j] == 0.0 {
+                dscale[j] = 1.0;
             }
         }
-        self.nres.set(self.nres.get() + 1);
-        let p: Vec<f64> = self.x.iter().copied().collect();
-        let (rss, jtj, jtr) = self.data.accumulate(&p);
-        if !rss.is_finite() || jtj.iter().any(|v| !v.is_finite()) {
-            return None;
+        if gnorm <= opts.gtol {
+            return done(
+                p,
+                FitStatus::Converged,
+                "converged (gradient orthogonal to residuals, gtol)".into(),
+                njac,
+                nres,
+                rss,
+                a,
+            );
         }
-        let n = p.len();
-        let (rmat, rt) = match jtj.clone().cholesky() {
-            Some(ch) => {
-                let l = ch.l();
-                let rt = l
-                    .solve_lower_triangular(&jtr)
-                    .filter(|v| v.iter().all(|x| x.is_finite()));
-                match rt {
-                    Some(rt) => (l.transpose(), rt),
-                    None => sym_sqrt(&jtj, &jtr),
+        if gnorm <= eps {
+            return done(
+                p,
+                FitStatus::Failed,
+                "no further improvement possible: gtol is below machine precision".into(),
+                njac,
+                nres,
+                rss,
+                a,
+            );
+        }
+        let d2: Vec<f64> = dscale.iter().map(|d| d * d).collect();
+        let xnorm = p
+            .iter()
+            .zip(&dscale)
+            .map(|(x, d)| (x * d).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        // Trial steps until one is accepted or a test stops.
+        loop {
+            let Some(delta) = solve_damped(&a, lambda, &d2, &g) else {
+                // Not positive definite to rounding: more damping, no evaluation spent.
+                lambda = (lambda * nu).max(1e-12);
+                nu *= 2.0;
+                if !(lambda < 1e300) {
+                    return done(
+                        p,
+                        FitStatus::Failed,
+                        "the damped normal equations could not be factorised".into(),
+                        njac,
+                        nres,
+                        rss,
+                        a,
+                    );
                 }
+                continue;
+            };
+            let pnorm = delta
+                .iter()
+                .zip(&dscale)
+                .map(|(x, d)| (x * d).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let trial: Vec<f64> = p.iter().zip(&delta).map(|(x, d)| x + d).collect();
+            let (rss1, a1, g1) = eval(&trial);
+            nres += 1;
+            let ok = finite(rss1, &a1, &g1);
+            let actred = if ok && 0.1 * rss1.sqrt() < fnorm {
+                1.0 - rss1 / rss
+            } else {
+                -1.0
+            };
+            // Predicted relative reduction: (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² (δ solves the damped system).
+            let mut dad = 0.0;
+            for i in 0..n {
+                let mut s = 0.0;
+                for j in 0..n {
+                    s += a[(i, j)] * delta[j];
+                }
+                dad += delta[i] * s;
             }
-            None => sym_sqrt(&jtj, &jtr),
-        };
-        let extra = (rss - rt.norm_squared()).max(0.0).sqrt();
-        let mut r = DVector::zeros(n + 1);
-        r.rows_mut(0, n).copy_from(&rt);
-        r[n] = extra;
-        let mut j = DMatrix::zeros(n + 1, n);
-        j.view_mut((0, 0), (n, n)).copy_from(&rmat);
-        *self.cache.borrow_mut() = Some((self.x.clone(), r.clone(), j.clone()));
-        Some((r, j))
-    }
-}
-
-/// R = Λ^{1/2}Vᵀ and r̃ = Λ^{-1/2}VᵀJᵀr for a symmetric positive semi-definite JᵀJ = VΛVᵀ
-/// (null directions get zero rows).
-fn sym_sqrt(jtj: &DMatrix<f64>, jtr: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
-    let n = jtj.nrows();
-    let e = jtj.clone().symmetric_eigen();
-    let lmax = e.eigenvalues.iter().copied().fold(0.0, f64::max);
-    let mut r = DMatrix::zeros(n, n);
-    let mut rt = DVector::zeros(n);
-    let vt_g = e.eigenvectors.transpose() * jtr;
-    for k in 0..n {
-        let l = e.eigenvalues[k];
-        if l > 1e-14 * lmax && l > 0.0 {
-            let s = l.sqrt();
-            for c in 0..n {
-                r[(k, c)] = s * e.eigenvectors[(c, k)];
+            let prered = (dad.max(0.0) + 2.0 * lambda * pnorm * pnorm) / rss;
+            let ratio = if prered != 0.0 { actred / prered } else { 0.0 };
+            let accepted = ratio >= 1e-4;
+            if accepted {
+                p = trial;
+                (rss, a, g) = (rss1, a1, g1);
+                njac += 1;
+                lambda *= (1.0 - (2.0 * ratio - 1.0).powi(3)).max(1.0 / 3.0);
+                nu = 2.0;
+            } else {
+                lambda *= nu;
+                nu *= 2.0;
             }
-            rt[k] = vt_g[k] / s;
+            let ftol_met = actred.abs() <= opts.ftol && prered <= opts.ftol && 0.5 * ratio <= 1.0;
+            let xtol_met = pnorm <= opts.xtol * xnorm;
+            if ftol_met || xtol_met {
+                return done(
+                    p,
+                    FitStatus::Converged,
+                    format!("converged (ftol: {ftol_met}, xtol: {xtol_met})"),
+                    njac,
+                    nres,
+                    rss,
+                    a,
+                );
+            }
+            if nres >= max_eval {
+                return done(
+                    p,
+                    FitStatus::MaxEvaluations,
+                    format!("evaluation budget exhausted ({nres} evaluations)"),
+                    njac,
+                    nres,
+                    rss,
+                    a,
+                );
+            }
+            if actred.abs() <= eps && prered <= eps && 0.5 * ratio <= 1.0 {
+                return done(
+                    p,
+                    FitStatus::Failed,
+                    "no further improvement possible: ftol is below machine precision".into(),
+                    njac,
+                    nres,
+                    rss,
+                    a,
+                );
+            }
+            if pnorm <= eps * xnorm {
+                return done(
+                    p,
+                    FitStatus::Failed,
+                    "no further improvement possible: xtol is below machine precision".into(),
+                    njac,
+                    nres,
+                    rss,
+                    a,
+                );
+            }
+            if accepted {
+                break;
+            }
         }
     }
-    (r, rt)
 }
 
-impl LeastSquaresProblem<f64, Dyn, Dyn> for Reduced<'_, '_> {
-    type ResidualStorage = Owned<f64, Dyn>;
-    type JacobianStorage = Owned<f64, Dyn, Dyn>;
-    type ParameterStorage = Owned<f64, Dyn>;
-
-    fn set_params(&mut self, x: &DVector<f64>) {
-        self.x.copy_from(x);
+/// δ solving (A + λ·diag(d2)) δ = −g for a symmetric A, by a Cholesky factorisation that skips
+/// the leading zeros of each row (JᵀJ is block-sparse: a row's profile starts at the first bead
+/// its bead's window overlaps, and the factor keeps that profile). None when the matrix is not
+/// positive definite to rounding or the solution is not finite.
+fn solve_damped(a: &DMatrix<f64>, lambda: f64, d2: &[f64], g: &DVector<f64>) -> Option<Vec<f64>> {
+    let n = a.nrows();
+    // A is symmetric: its column-major storage read row-major is A itself.
+    let s = a.as_slice();
+    let first: Vec<usize> = (0..n)
+        .map(|i| (0..i).find(|&j| s[i * n + j] != 0.0).unwrap_or(i))
+        .collect();
+    let mut l = vec![0.0; n * n];
+    for i in 0..n {
+        let fi = first[i];
+        for j in fi..=i {
+            let lo = fi.max(first[j]);
+            let (ri, rj) = (&l[i * n + lo..i * n + j], &l[j * n + lo..j * n + j]);
+            let dot: f64 = ri.iter().zip(rj).map(|(x, y)| x * y).sum();
+            let mut v = s[i * n + j] - dot;
+            if i == j {
+                v += lambda * d2[i];
+                if !(v > 0.0) {
+                    return None;
+                }
+                l[i * n + i] = v.sqrt();
+            } else {
+                l[i * n + j] = v / l[j * n + j];
+            }
+        }
     }
-    fn params(&self) -> DVector<f64> {
-        self.x.clone()
+    // L y = −g, then Lᵀ δ = y.
+    let mut y = vec![0.0; n];
+    for i in 0..n {
+        let fi = first[i];
+        let dot: f64 = l[i * n + fi..i * n + i]
+            .iter()
+            .zip(&y[fi..i])
+            .map(|(x, y)| x * y)
+            .sum();
+        y[i] = (-g[i] - dot) / l[i * n + i];
     }
-    fn residuals(&self) -> Option<DVector<f64>> {
-        self.compute().map(|c| c.0)
+    for i in (0..n).rev() {
+        y[i] /= l[i * n + i];
+        let yi = y[i];
+        for k in first[i]..i {
+            y[k] -= l[i * n + k] * yi;
+        }
     }
-    fn jacobian(&self) -> Option<DMatrix<f64>> {
-        self.njac.set(self.njac.get() + 1);
-        self.compute().map(|c| c.1)
-    }
+    y.iter().all(|v| v.is_finite()).then_some(y)
 }
 
 /// Full residual vector and Jacobian (one row per valid pixel and channel) — the uncompressed
