@@ -249,6 +249,11 @@ pub fn check_golden(
                 path.display()
             ));
         }
+        // an unchanged trace keeps its file: the reason is for the traces it changes
+        let skip: usize = header.iter().map(|l| l.len() + 1).sum();
+        if old.as_deref().and_then(|t| t.get(skip..)) == Some(actual) {
+            return Ok(());
+        }
         if let Some(d) = path.parent() {
             std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
         }
@@ -346,14 +351,19 @@ mod tests {
             .contains("needs a reason"));
         check_golden(&t, &f, Some("first trace")).unwrap();
         check_golden(&t, &f, None).unwrap();
-        // a second blessing keeps the first reason and adds its own; the trace still compares
-        check_golden(&t, &f, Some("re-blessed: why")).unwrap();
+        // blessing an unchanged trace leaves its file alone (no reason added)
+        check_golden(&t, &f, Some("nothing changed")).unwrap();
+        let text = std::fs::read_to_string(&f).unwrap();
+        assert!(text.starts_with("# first trace\n") && !text.contains("nothing changed"));
+        // a second blessing of a changed trace keeps the first reason and adds its own
+        let t2 = t.replace("note done", "note done again");
+        check_golden(&t2, &f, Some("re-blessed: why")).unwrap();
         let text = std::fs::read_to_string(&f).unwrap();
         assert!(
             text.starts_with("# first trace\n# re-blessed: why\n"),
             "{text}"
         );
-        check_golden(&t, &f, None).unwrap();
+        check_golden(&t2, &f, None).unwrap();
         let changed = t.replace("note done", "note other");
         let e = check_golden(&changed, &f, None).unwrap_err();
         assert!(
