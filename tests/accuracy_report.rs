@@ -25,9 +25,14 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
     let ids: Vec<&str> = r.knobs.iter().map(|k| k.knob.id.as_str()).collect();
     for id in [
         "quadrature",
+        "quadrature_misaligned",
+        "quadrature_paraxial",
+        "quadrature_misaligned_paraxial",
         "template",
+        "template_paraxial",
         "bead_spacing",
         "finite_size",
+        "finite_size_paraxial",
         "mie_grid",
         "mie_terms",
         "model_170",
@@ -72,6 +77,17 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
                 assert!(
                     matches!(v, KneeVerdict::Below { .. }),
                     "{}: {v:?}",
+                    k.knob.id
+                )
+            }
+            // the vector beam's detection grid (16, 8) reaches ρ ≤ 1.51 µm, the knob's points 2.24 µm
+            // (docs/accuracy.md#quadrature; measured 3.6e-4 and 5.1e-4 of the peak); inside its
+            // reach it meets the criterion (unit test in accuracy::tests)
+            ("quadrature" | "quadrature_misaligned", v) => {
+                let e = k.knob.default_point().unwrap().error;
+                assert!(
+                    matches!(v, KneeVerdict::Below { .. }) && (1e-4..1e-3).contains(&e),
+                    "{}: {v:?} {e}",
                     k.knob.id
                 )
             }

@@ -13,11 +13,13 @@ use crate::analysis::template::{RefBead, Template};
 use crate::data::Scan;
 use crate::instrument::sim::scene::{Bead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
 use crate::instrument::sim::{render_xy, Renderer};
-use crate::optics::finite_size::{max_sensitivity_unit, DEFAULT_N_R};
+use crate::optics::finite_size::DEFAULT_N_R;
 use crate::optics::mie::{default_terms, mie_s1s2_terms, Complex64};
-use crate::optics::mie_beam::{MieBeam, MieBeamSpec};
+use crate::optics::mie_beam::{
+    max_sensitivity_in_beam, Amplitudes, MieBeam, MieBeamSpec, SphereModel,
+};
 use crate::optics::params::{Optics, REF_BEAD_N};
-use crate::optics::rayleigh::{alpha_um3, Detection, DetectorModel};
+use crate::optics::rayleigh::{alpha_um3, DetectorModel};
 use crate::optics::template::TemplateSpec;
 
 /// Pixel size of the simulated analysis scans, µm (the paper's scans: 50 nm pixels).
@@ -264,10 +266,22 @@ pub fn knob_fit_patience(quick: bool) -> Knob {
 pub fn knob_stencil(quick: bool) -> Knob {
     let n = 64;
     let c = n as f64 * PIXEL_UM / 2.0;
-    let det = Detection::new(&Optics::default(), &DetectorModel::default()).expect("default");
-    let alpha = alpha_um3(110.0, REF_BEAD_N, Optics::default().n_medium);
-    // ∂Sx/∂x of the bead at zero displacement (the maximum, paper Fig. 2c), signal units per µm.
-    let truth = det.response_unit(0.0, 0.0, 0.0).1[0] * alpha;
+    // ∂Sx/∂x of the bead at zero displacement (the maximum, paper Fig. 2c), signal units per µm,
+    // in the beam the scans are rendered in (the default vector beam: the 110 nm bead is a point
+    // dipole there, `Amplitudes::Dipole`, whose response already carries the bead's α)
+    let o = Optics::default();
+    let truth = MieBeam::new(
+        &o,
+        110.0,
+        Complex64::new(REF_BEAD_N, 0.0),
+        MieBeamSpec {
+            amplitudes: Amplitudes::Dipole,
+            ..MieBeamSpec::of_beam(&o)
+        },
+    )
+    .and_then(|m| m.response_grad(0.0, 0.0, 0.0))
+    .expect("default optics")
+    .1[0];
     let seeds = if quick { 8 } else { 48 };
     let scans: Vec<Scan> = (0..seeds)
         .map(|s| bead_scan(&[(c, c, 110.0)], n, true, 100 + s as u64))
@@ -390,34 +404,38 @@ pub fn knob_mie_terms(quick: bool) -> Knob {
     }
 }
 
-/// Scattering model for a polystyrene bead of diameter `d_nm`: the paper's normalised maximum
-/// sensitivity (∂Sx/∂x)max(d)/(∂Sx/∂x)max(110 nm) (Fig. 3c) from the point dipole (Rayleigh,
-/// the simulator's default), the finite-size sphere rule (suppl. S6) and the focused-beam Mie
-/// tier, against the Mie tier on a finer incident grid. Time: one maximum-sensitivity
-/// evaluation for the bead (focus search included; Mie includes building its pair matrix).
+/// Scattering model for a polystyrene bead of diameter `d_nm` in the default (vector) beam: the
+/// paper's normalised maximum sensitivity (∂Sx/∂x)max(d)/(∂Sx/∂x)max(110 nm) (Fig. 3c) from the
+/// point dipole (Rayleigh, what the simulator renders inside the point dipole's domain), the
+/// finite-size sphere rule (suppl. S6) and the focused-beam Mie tier, each in the vector beam
+/// (`mie_beam::max_sensitivity_in_beam`), against the Mie tier on a finer incident grid. Time:
+/// one maximum-sensitivity evaluation for the bead (focus search included; Mie includes
+/// building its pair matrix).
 pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
     let o = Optics::default();
-    let det = Detection::new(&o, &DetectorModel::default()).expect("default");
-    let n = Complex64::new(REF_BEAD_N, 0.0);
-    let mie = |d: f64, spec: MieBeamSpec| -> f64 {
-        MieBeam::new(&o, d, n, spec)
-            .expect("valid Mie bead")
-            .max_sensitivity_x()
+    let ms = |d: f64, model: SphereModel| -> f64 {
+        max_sensitivity_in_beam(&o, d, REF_BEAD_N, model)
+            .expect("valid bead")
             .0
     };
     let fine = MieBeamSpec {
         n_theta_in: 24,
         n_phi_in: 12,
-        ..MieBeamSpec::default()
+        ..MieBeamSpec::of_beam(&o)
     };
-    let reference = mie(d_nm, fine) / mie(110.0, fine);
+    let mie_fine = |d: f64| -> f64 {
+        let alpha = alpha_um3(d, REF_BEAD_N, o.n_medium);
+        MieBeam::new(&o, d, Complex64::new(REF_BEAD_N, 0.0), fine)
+            .expect("valid Mie bead")
+            .extreme_sensitivity_x(alpha)
+            .0
+    };
+    let reference = mie_fine(d_nm) / mie_fine(110.0);
     let reps = if quick { 1 } else { 3 };
     let cube = (d_nm / 110.0).powi(3);
     let mut points = vec![];
-    let dip = max_sensitivity_unit(&det, None, 1).0;
-    let secs = time_median(reps * 5, || max_sensitivity_unit(&det, None, 1));
     // point dipoles: the normalised sensitivity is the volume ratio exactly
-    let _ = dip;
+    let secs = time_median(reps * 5, || ms(d_nm, SphereModel::Dipole));
     points.push(Point {
         setting: format!("Rayleigh point dipole (ratio {cube:.3}, Mie {reference:.3})"),
         value: 1.0,
@@ -431,9 +449,9 @@ pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
         &[2, DEFAULT_N_R, 6]
     };
     for &nr in orders {
-        let r110 = max_sensitivity_unit(&det, Some(110.0), nr).0;
-        let v = max_sensitivity_unit(&det, Some(d_nm), nr).0 / r110 * cube;
-        let secs = time_median(reps, || max_sensitivity_unit(&det, Some(d_nm), nr));
+        let m = SphereModel::FiniteSize { n_r: nr };
+        let v = ms(d_nm, m) / ms(110.0, m);
+        let secs = time_median(reps, || ms(d_nm, m));
         points.push(Point {
             setting: format!("finite-size sphere rule, n_r = {nr} (ratio {v:.3})"),
             value: (2 * nr * nr * nr) as f64,
@@ -442,9 +460,9 @@ pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
             is_default: false,
         });
     }
-    let spec = MieBeamSpec::default();
-    let v = mie(d_nm, spec) / mie(110.0, spec);
-    let secs = time_median(reps, || mie(d_nm, spec));
+    let spec = MieBeamSpec::of_beam(&o);
+    let v = ms(d_nm, SphereModel::Mie) / ms(110.0, SphereModel::Mie);
+    let secs = time_median(reps, || ms(d_nm, SphereModel::Mie));
     points.push(Point {
         setting: format!(
             "Mie tier, default grid ({}, {}) (ratio {v:.3})",
@@ -457,12 +475,12 @@ pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
     });
     Knob {
         id: format!("model_{d_nm:.0}"),
-        title: format!("Scattering model, {d_nm:.0} nm polystyrene bead"),
+        title: format!("Scattering model, {d_nm:.0} nm polystyrene bead, vector beam"),
         metric: "relative error of (∂Sx/∂x)max(d)/(∂Sx/∂x)max(110 nm) (paper Fig. 3c)".into(),
         timed:
             "one maximum-sensitivity evaluation incl. focus search (Mie: incl. building the tier)"
                 .into(),
-        reference: "focused-beam Mie tier, incident grid (24, 12)".into(),
+        reference: "focused-beam Mie tier in the vector beam, incident grid (24, 12)".into(),
         points,
     }
 }

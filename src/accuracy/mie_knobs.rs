@@ -11,8 +11,11 @@ const KNOB_REGION_UM: f64 = 1.5;
 const KNOB_HEIGHTS_UM: [f64; 3] = [0.0, 0.5, -1.0];
 
 /// Accuracy knob (docs/accuracy.md): the incident plane-wave grid (n_theta_in, n_phi_in),
-/// 500 nm polystyrene bead, default optics (detection grid (16, 8), whose own error is the
-/// `quadrature` knob). Error: the larger of (i) the relative error of (∂Sx/∂x)max (maximised
+/// 500 nm polystyrene bead, default optics in the default (vector) beam
+/// (`MieBeamSpec::of_beam`: the aplanatic focus; detection grid (16, 8), whose own error is the
+/// `quadrature` knob). These are the grids of every direct Mie evaluation
+/// (`MieBeamSpec::of_beam`: the scene's domain check, `max_sensitivity_in_beam`); the
+/// simulator's Mie template planes size theirs by `MieBeamSpec::for_reach` instead. Error: the larger of (i) the relative error of (∂Sx/∂x)max (maximised
 /// over z at x = y = 0) and (ii) the worst |ΔS| of (Sx, Sy, Sz) relative to the peak Sx over
 /// 18 points within ρ ≤ 1.5 µm, |z| ≤ 1 µm (the default detection grid's reach), against a
 /// (32, 16) reference. (i) alone converges to 1e-12 already at (8, 4): on the axis the
@@ -30,7 +33,7 @@ pub fn knob_mie_grid(quick: bool) -> Knob {
             MieBeamSpec {
                 n_theta_in: nt,
                 n_phi_in: np,
-                ..MieBeamSpec::default()
+                ..MieBeamSpec::of_beam(&o)
             },
         )
         .expect("valid default optics")
@@ -98,7 +101,7 @@ pub fn knob_mie_grid(quick: bool) -> Knob {
         .collect();
     Knob {
         id: "mie_grid".into(),
-        title: "Mie tier: incident plane-wave grid, 500 nm bead".into(),
+        title: "Mie tier: incident plane-wave grid, 500 nm bead, vector beam".into(),
         metric: "max of rel. error of (∂Sx/∂x)max and worst |ΔS|/peak within ρ ≤ 1.5 µm".into(),
         timed: "one (Sx, Sy, Sz) evaluation at a point (512 detection nodes)".into(),
         reference: format!("n_theta_in = {rt}, n_phi_in = {rp}"),

@@ -251,9 +251,19 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
     step("quadrature (misaligned)", &|| {
         super::knob_quadrature_misaligned(q)
     });
+    step("quadrature (paraxial)", &|| {
+        super::knob_quadrature_paraxial(q)
+    });
+    step("quadrature (misaligned, paraxial)", &|| {
+        super::knob_quadrature_misaligned_paraxial(q)
+    });
     step("template", &|| super::knob_template(q));
+    step("template (paraxial)", &|| super::knob_template_paraxial(q));
     step("bead spacing", &|| super::knob_bead_spacing(q));
     step("finite size", &|| super::knob_finite_size(q));
+    step("finite size (paraxial)", &|| {
+        super::knob_finite_size_paraxial(q)
+    });
     step("Mie grid", &|| super::mie_knobs::knob_mie_grid(q));
     step("Mie terms", &|| ak::knob_mie_terms(q));
     step("model 170 nm", &|| ak::knob_model(q, 170.0));
@@ -375,7 +385,10 @@ fn markdown(
         seconds
     );
     s += "The **knee** of a sweep is its cheapest setting whose error is at most max(3 × the best error of the sweep, the knob's tolerance). \
-          A default is *at the knee* when it is the knee or meets the same criterion within 1.5× the knee's time (timing noise).\n\n";
+          A default is *at the knee* when it is the knee or meets the same criterion within 1.5× the knee's time (timing noise).\n\n\
+          Every knob measures the default instrument, the aplanatic vector beam (docs/physics.md §10), unless its title says \
+          \"(paraxial)\": those sweep the same keys in the paper's paraxial model (`set_optics(#{beam: \"paraxial\"})`), \
+          whose own numerics still matter to anyone who selects it.\n\n";
     s += "## Defaults\n\n| knob | default | error | time | knee | tolerance | verdict |\n|---|---|---|---|---|---|---|\n";
     for r in results {
         let k = &r.knob;
@@ -489,25 +502,42 @@ fn validity_markdown(v: &[ak::Validity]) -> String {
 /// Remarks attached to knobs whose verdict needs context.
 fn knob_note(id: &str) -> Option<&'static str> {
     Some(match id {
-        "model_170" => "The point dipole is what the simulator uses unless the `finite_size` effect is on. At 170 nm it \
+        "model_170" => "The point dipole is what the simulator uses (in the default vector beam, for a polystyrene bead below \
+                        the 1 % diameter of the table under `model_500`) unless the `finite_size` effect is on. At 170 nm it \
                         agrees with the Mie tier to the criterion while the finite-size sphere rule is a few per cent \
                         low (it errs low at 500 nm too): the rule averages the incident field over the sphere but \
                         keeps the static polarisability, and for this index contrast the two corrections Mie contains \
                         nearly cancel at small sizes (an observation from these numbers, not a derivation).",
-        "mie_grid" => "This sweep is the Mie tier's own (`accuracy::mie_knobs::knob_mie_grid`). A grid counts only if its \
+        "quadrature" | "quadrature_misaligned" => "In the default vector beam `n_theta`/`n_phi` set the detection grid of every \
+                       direct vector-beam evaluation (`MieBeam` with `MieBeamSpec::of_beam`: the scene's domain check, \
+                       `max_sensitivity_in_beam`, the model calibrations) and only the floor of the grid the \
+                       simulator's template planes use (`mie_beam::optics_for_reach` raises it to what each plane's \
+                       radius needs: at least 17 at the focal plane, more off focus), so the rendered images do not depend on \
+                       the default. The default (16, 8) is below the knee on this metric because the paraxial knob's \
+                       test points reach ρ = 2.24 µm while its guaranteed reach in the vector beam is 1.51 µm: inside \
+                       it the error is within the criterion (setting column; unit test), beyond it `MieBeam::response` \
+                       refuses rather than return the aliased value shown. (24, 12) would cover 3 µm at 1.8× the \
+                       time of a direct evaluation, but it is also the paraxial beam's default \
+                       (`quadrature_paraxial`: at the knee with 16) and the floor of every focal-plane template; \
+                       the default is therefore left at (16, 8) — a change would move golden traces and many tests \
+                       for evaluations that already refuse beyond their reach.",
+        "mie_grid" => "This sweep is the Mie tier's own (`accuracy::mie_knobs::knob_mie_grid`), in the default vector beam \
+                       (`MieBeamSpec::of_beam`, the grids of every direct Mie evaluation; the simulator's Mie template \
+                       planes size their incident grid by `MieBeamSpec::for_reach` instead). A grid counts only if its \
                        guaranteed reach (`mie_beam::grid_reach_um`, beyond which `response` refuses rather than \
                        return aliased numbers) covers the error region ρ ≤ 1.5 µm at all three test heights; (10, 5) \
-                       is accurate enough there when evaluated anyway (3.2e-6), but its reach is 1.13 µm, so it \
-                       would refuse part of the region. Until session 3 the sweep ignored the reach, (10, 5) was \
+                       was accurate enough there when evaluated anyway (3.2e-6 in §9's beam), but its reach is \
+                       1.13 µm, so it would refuse part of the region. Until session 3 the sweep ignored the reach, (10, 5) was \
                        called the knee and the verdict flipped between runs on the 1.4–1.6× time difference.",
         "fit_patience" => "A 3-bead fit converges within the smallest budget (patience 1 = 10 residual evaluations), even \
                            from the displaced start, so the budget only matters for fits that do not converge; the \
                            default (100) is a cap that costs nothing when the fit converges.",
-        "model_500" => "At 500 nm neither dipole model is within 1 % of the focused-beam Mie tier: the point dipole \
-                        overestimates the normalised sensitivity (it grows as d³; paper Fig. 3c shows the measurements \
-                        and Mie saturating) and the finite-size sphere rule (dipoles driven by the incident field, S6) \
-                        underestimates it by about as much. Only the Mie tier (the simulator's `mie` effect) meets the \
-                        criterion, at about 100× the time of the point dipole. The paper's objects (110–170 nm \
+        "model_500" => "At 500 nm neither dipole model is within 1 % of the focused-beam Mie tier (all three in the \
+                        default vector beam): the point dipole overestimates the normalised sensitivity by a third (it \
+                        grows as d³; paper Fig. 3c shows the measurements and Mie saturating) and the finite-size \
+                        sphere rule (dipoles driven by the incident field, S6) underestimates it by about a tenth. Only \
+                        the Mie tier meets the criterion, at tens of times the time of the point dipole; in the \
+                        default vector beam the scene renders such a bead with it automatically (table below). The paper's objects (110–170 nm \
                         polystyrene beads, filaments ≤ 150 nm) are inside the point dipole's domain (table below); the \
                         500 nm fiducial beads of the rotation experiment (Sec. 4.2) are outside it, which is harmless \
                         for a position reference.",
@@ -525,7 +555,10 @@ fn knob_note(id: &str) -> Option<&'static str> {
                       parabola window's) cancels and what remains is noise; the uncalibrated bias and RMS are in the \
                       setting column. Savitzky–Golay stencils average over 2m+1 pixels along x: less noise, but the \
                       sensitivity profile widens by about the same number of pixels, which costs lateral resolution \
-                      (closely spaced objects, α-tip profiles) that this metric does not see.",
+                      (closely spaced objects, α-tip profiles) that this metric does not see. The exact value of the \
+                      uncalibrated columns is the default vector beam's point dipole (the beam the scans are rendered \
+                      in); until issue 19's knob review it was the paraxial model's, which put a −8.9 % bias in the \
+                      Central2 row that was the beam difference, not the stencil.",
         _ => return None,
     })
 }
