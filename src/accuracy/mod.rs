@@ -524,26 +524,7 @@ pub fn knob_finite_size(quick: bool) -> Knob {
             .map(|(p, w)| w * dip.response_grad(p[0], p[1], p[2]).expect("within reach").1[0])
             .sum()
     };
-    let reference = at0(14);
-    let orders: &[usize] = if quick {
-        &[1, 2, 4, 6]
-    } else {
-        &[1, 2, 3, 4, 6, 9]
-    };
-    let points = orders
-        .iter()
-        .map(|&n| {
-            let v = at0(n);
-            let secs = time_median(if quick { 3 } else { 7 }, || at0(n));
-            Point {
-                setting: format!("n_r = {n} ({} dipoles)", 2 * n * n * n),
-                value: (2 * n * n * n) as f64,
-                error: ((v - reference) / reference).abs().max(1e-16),
-                seconds: secs,
-                is_default: n == crate::optics::finite_size::DEFAULT_N_R,
-            }
-        })
-        .collect();
+    let points = sphere_rule_points(quick, &at0);
     Knob {
         id: "finite_size".into(),
         title: "Finite-size sphere rule (suppl. S6), 500 nm bead, vector beam".into(),
@@ -556,18 +537,15 @@ pub fn knob_finite_size(quick: bool) -> Knob {
     }
 }
 
-/// [`knob_finite_size`] in the paper's paraxial beam (`Detection::response_unit`).
-pub fn knob_finite_size_paraxial(quick: bool) -> Knob {
-    let det = Detection::new(&Optics::default(), &DetectorModel::default()).unwrap();
-    let d = 500.0;
-    let at0 = |n_r: usize| bfpscope_fs_sens(&det, d, n_r);
+/// The finite-size knobs' sweep: `at0(n_r)` at the radial orders of the sweep against n_r = 14.
+fn sphere_rule_points(quick: bool, at0: &dyn Fn(usize) -> f64) -> Vec<Point> {
     let reference = at0(14);
     let orders: &[usize] = if quick {
         &[1, 2, 4, 6]
     } else {
         &[1, 2, 3, 4, 6, 9]
     };
-    let points = orders
+    orders
         .iter()
         .map(|&n| {
             let v = at0(n);
@@ -580,7 +558,15 @@ pub fn knob_finite_size_paraxial(quick: bool) -> Knob {
                 is_default: n == crate::optics::finite_size::DEFAULT_N_R,
             }
         })
-        .collect();
+        .collect()
+}
+
+/// [`knob_finite_size`] in the paper's paraxial beam (`Detection::response_unit`).
+pub fn knob_finite_size_paraxial(quick: bool) -> Knob {
+    let det = Detection::new(&Optics::default(), &DetectorModel::default()).unwrap();
+    let d = 500.0;
+    let at0 = |n_r: usize| bfpscope_fs_sens(&det, d, n_r);
+    let points = sphere_rule_points(quick, &at0);
     let _ = max_sensitivity_unit; // the full focus search uses the same rule
     Knob {
         id: "finite_size_paraxial".into(),

@@ -936,11 +936,11 @@ impl<'a> FitData<'a> {
     /// where `mask` is 0 (the fit's mask: the channel's datum invalid or the channel not
     /// fitted). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
-    #[allow(clippy::too_many_arguments)]
     ///
     /// On x86-64 CPUs with AVX2 the same code runs compiled for AVX2 + FMA (runtime dispatch;
     /// the binary still runs on any x86-64 and other targets). No multiply–add is contracted
     /// into an FMA (Rust does not contract without `mul_add`), so both paths round alike.
+    #[allow(clippy::too_many_arguments)]
     fn sample_window(
         &self,
         bx: f64,
