@@ -106,6 +106,16 @@ pub struct MieTemplateSpec {
     pub scattered_intensity: bool,
 }
 
+/// Templates shared across renderers (process-wide, bounded): a scene simulated again — the
+/// rotation series re-simulates its scene at every angle, `simulate` at the prompt — reuses the
+/// planes its spheres and point dipoles already built instead of building them again. Keyed by
+/// everything a template's values depend on; oldest dropped first beyond [`SHARED_CAPACITY`].
+type SharedKey = (Optics, u64, u64, MieTemplateSpec, bool);
+static SHARED: Mutex<Vec<(SharedKey, Arc<MieTemplate>)>> = Mutex::new(Vec::new());
+/// Most templates kept by [`MieTemplate::shared`] (each holds the z planes it has built, a few
+/// hundred kB each).
+pub const SHARED_CAPACITY: usize = 16;
+
 /// One sphere's focused-beam Mie response on lazily built, cached z planes.
 pub struct MieTemplate {
     optics: Optics,
@@ -193,6 +203,54 @@ impl MieTemplate {
             dipole: true,
             ..Self::new(optics, DIPOLE_D_NM, DIPOLE_N, spec)?
         })
+    }
+
+    /// [`Self::new`] (`dipole` false) or [`Self::point_dipole`] (true) through the process-wide
+    /// cache: the same `Arc` (and so the planes already built) for the same optics, sphere and
+    /// spec (for the point dipole `d_nm` and `n_particle` are ignored). Values are those of a
+    /// fresh template: a template is a pure function of its key.
+    pub fn shared(
+        optics: &Optics,
+        d_nm: f64,
+        n_particle: f64,
+        spec: MieTemplateSpec,
+        dipole: bool,
+    ) -> Result<Arc<Self>, OpticsError> {
+        // the point dipole does not depend on the sphere's size or index
+        let (d_nm, n_particle) = if dipole {
+            (DIPOLE_D_NM, DIPOLE_N)
+        } else {
+            (d_nm, n_particle)
+        };
+        let key: SharedKey = (
+            optics.clone(),
+            d_nm.to_bits(),
+            n_particle.to_bits(),
+            spec,
+            dipole,
+        );
+        let lock = || {
+            SHARED
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+        };
+        if let Some((_, t)) = lock().iter().find(|(k, _)| *k == key) {
+            return Ok(t.clone());
+        }
+        let t = Arc::new(if dipole {
+            Self::point_dipole(optics, spec)?
+        } else {
+            Self::new(optics, d_nm, n_particle, spec)?
+        });
+        let mut cache = lock();
+        if let Some((_, existing)) = cache.iter().find(|(k, _)| *k == key) {
+            return Ok(existing.clone());
+        }
+        if cache.len() == SHARED_CAPACITY {
+            cache.remove(0);
+        }
+        cache.push((key, t.clone()));
+        Ok(t)
     }
 
     fn beam_spec(&self, optics: &Optics, nt: usize, np: usize) -> MieBeamSpec {
@@ -398,6 +456,46 @@ fn bessel_i0(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shared_templates_are_one_per_key_and_bounded() {
+        let o = Optics::default();
+        let spec = MieTemplateSpec {
+            grid: TemplateSpec::default(),
+            detector: DetectorModel::default(),
+            scattered_intensity: false,
+        };
+        let a = MieTemplate::shared(&o, 200.125, 1.572, spec, false).unwrap();
+        let b = MieTemplate::shared(&o, 200.125, 1.572, spec, false).unwrap();
+        assert!(Arc::ptr_eq(&a, &b), "the same key gives the same template");
+        let c = MieTemplate::shared(&o, 201.0, 1.572, spec, false).unwrap();
+        let d = MieTemplate::shared(&o, 200.125, 1.572, spec, true).unwrap();
+        let e = MieTemplate::shared(
+            &Optics {
+                beam: crate::optics::params::Beam::Paraxial,
+                ..o.clone()
+            },
+            200.0,
+            1.572,
+            spec,
+            false,
+        )
+        .unwrap();
+        for other in [&c, &d, &e] {
+            assert!(!Arc::ptr_eq(&a, other));
+        }
+        assert!(d.dipole && !a.dipole && c.d_nm == 201.0);
+        // templates are cheap until a plane is built: fill the cache past its bound (keys no
+        // other test uses, so tests running alongside cannot re-insert the evicted one)
+        for i in 0..SHARED_CAPACITY + 3 {
+            MieTemplate::shared(&o, 300.0 + i as f64, 1.5, spec, false).unwrap();
+        }
+        let cache = SHARED.lock().unwrap();
+        assert_eq!(cache.len(), SHARED_CAPACITY);
+        assert!(!cache
+            .iter()
+            .any(|(k, _)| k.1 == 200.125f64.to_bits() && !k.4));
+    }
 
     #[test]
     fn i0_matches_reference_values() {

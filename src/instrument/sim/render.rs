@@ -6,7 +6,7 @@ use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
-use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+use crate::optics::mie_template::{MieTemplate, MieTemplateSpec, DIPOLE_D_NM, DIPOLE_N};
 use crate::optics::params::{Beam, Optics, OpticsError};
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
@@ -274,7 +274,7 @@ impl Renderer {
                 let idx = match keys.iter().position(|&(a, b)| a == d && b == n) {
                     Some(i) => i,
                     None => {
-                        mie.push(Arc::new(MieTemplate::new(optics, d, n, spec)?));
+                        mie.push(MieTemplate::shared(optics, d, n, spec, false)?);
                         keys.push((d, n));
                         keys.len() - 1
                     }
@@ -290,8 +290,13 @@ impl Renderer {
             // so a scene would mix two instruments.
             let n_dip = scatterers.len() - n_mie;
             if n_dip > 0 {
-                let dip = MieTemplate::point_dipole(optics, spec)?;
-                mie.push(Arc::new(dip));
+                mie.push(MieTemplate::shared(
+                    optics,
+                    DIPOLE_D_NM,
+                    DIPOLE_N,
+                    spec,
+                    true,
+                )?);
                 let idx = mie.len() - 1;
                 for m in mie_of.iter_mut().filter(|m| m.is_none()) {
                     *m = Some(idx);
