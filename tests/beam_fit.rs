@@ -184,16 +184,20 @@ fn fit_refuses_what_is_not_a_reference_bead_scan() {
     // no bead: noise only
     let mut empty = Scene::default();
     empty.effects.misalignment = None;
-    let sc = simulate(
-        &truth,
-        &noisy(empty, PAPER_DETECTOR_SIGMA_SAMPLE, 3),
-        64,
-        0.05,
-        SAMPLES_10MS,
-    );
-    let e = fit_beam(&truth, &sc.sx, &sc.sy, &sc.sz, &o)
-        .unwrap_err()
-        .to_string();
+    // simulate a noisy 64² scan of `scene` and return the fit's refusal
+    let refusal = |scene: Scene, seed: u64| {
+        let sc = simulate(
+            &truth,
+            &noisy(scene, PAPER_DETECTOR_SIGMA_SAMPLE, seed),
+            64,
+            0.05,
+            SAMPLES_10MS,
+        );
+        fit_beam(&truth, &sc.sx, &sc.sy, &sc.sz, &o)
+            .unwrap_err()
+            .to_string()
+    };
+    let e = refusal(empty, 3);
     assert!(e.contains("no bead"), "{e}");
     // a 300 nm bead declared as the 110 nm reference
     let mut big = Scene::default();
@@ -203,16 +207,7 @@ fn fit_refuses_what_is_not_a_reference_bead_scan() {
         n: 1.572,
     })
     .unwrap();
-    let sc = simulate(
-        &truth,
-        &noisy(big, PAPER_DETECTOR_SIGMA_SAMPLE, 4),
-        64,
-        0.05,
-        SAMPLES_10MS,
-    );
-    let e = fit_beam(&truth, &sc.sx, &sc.sy, &sc.sz, &o)
-        .unwrap_err()
-        .to_string();
+    let e = refusal(big, 4);
     assert!(e.contains("does not look like a 110 nm bead"), "{e}");
     // a declared size outside the dipole domain, an xz scan, a coarse scan
     let sc = bead_scan(&truth, None, 5);

@@ -323,6 +323,37 @@ pub fn knob_template(quick: bool) -> Knob {
             truth.push(direct.response_unchecked(x, y, z)[0] / a0);
         }
     }
+    let points = template_points(quick, &xs, &truth, &|spec| {
+        let mspec = MieTemplateSpec {
+            grid: spec,
+            detector: DetectorModel::default(),
+            scattered_intensity: false,
+        };
+        let t = MieTemplate::point_dipole(&o, mspec).expect("default optics");
+        Box::new(move |x, y| t.eval(x, y, z).expect("inside the planes")[0])
+    });
+    Knob {
+        id: "template".into(),
+        title: "Template grid spacing h and interpolation, vector beam (hz = 50 nm)".into(),
+        metric: format!("RMS error of a {n}×{n} Sx image of the point dipole at z = 0.137 µm, relative to its peak"),
+        timed: "build the vector-beam template planes + evaluate the image".into(),
+        reference: format!("direct vector-beam response at every pixel (grids resolving ρ ≤ {TEMPLATE_REF_REACH_UM} µm)"),
+        points,
+    }
+}
+
+/// An image's Sx at (x, y) from one template.
+type TemplateImage = Box<dyn Fn(f64, f64) -> f64>;
+
+/// The template knobs' sweep: for each interpolation and spacing h (hz = 50 nm), `build(spec)`
+/// makes the template, which is evaluated on `xs` × `xs` (rows y) against `truth`; error = RMS /
+/// peak of `truth`, time = build + evaluation (median).
+fn template_points(
+    quick: bool,
+    xs: &[f64],
+    truth: &[f64],
+    build: &dyn Fn(TemplateSpec) -> TemplateImage,
+) -> Vec<Point> {
     let peak = truth.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let hs: &[f64] = if quick {
         &[0.08, 0.04, 0.02]
@@ -337,19 +368,14 @@ pub fn knob_template(quick: bool) -> Knob {
                 hz: 0.05,
                 interp,
             };
-            let mspec = MieTemplateSpec {
-                grid: spec,
-                detector: DetectorModel::default(),
-                scattered_intensity: false,
-            };
             let mut err = 0.0;
             let secs = time_median(if quick { 1 } else { 3 }, || {
-                let t = MieTemplate::point_dipole(&o, mspec).expect("default optics");
+                let t = build(spec);
                 let mut s2 = 0.0;
                 let mut k = 0;
-                for &y in &xs {
-                    for &x in &xs {
-                        s2 += (t.eval(x, y, z).expect("inside the planes")[0] - truth[k]).powi(2);
+                for &y in xs {
+                    for &x in xs {
+                        s2 += (t(x, y) - truth[k]).powi(2);
                         k += 1;
                     }
                 }
@@ -364,14 +390,7 @@ pub fn knob_template(quick: bool) -> Knob {
             });
         }
     }
-    Knob {
-        id: "template".into(),
-        title: "Template grid spacing h and interpolation, vector beam (hz = 50 nm)".into(),
-        metric: format!("RMS error of a {n}×{n} Sx image of the point dipole at z = 0.137 µm, relative to its peak"),
-        timed: "build the vector-beam template planes + evaluate the image".into(),
-        reference: format!("direct vector-beam response at every pixel (grids resolving ρ ≤ {TEMPLATE_REF_REACH_UM} µm)"),
-        points,
-    }
+    points
 }
 
 /// Reach (µm) of the direct reference of [`knob_template`]: twice the focal plane's support.
@@ -395,42 +414,10 @@ pub fn knob_template_paraxial(quick: bool) -> Knob {
             truth.push(det.response_unit(x, y, z).0[0]);
         }
     }
-    let peak = truth.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let hs: &[f64] = if quick {
-        &[0.08, 0.04, 0.02]
-    } else {
-        &[0.1, 0.08, 0.04, 0.02, 0.01]
-    };
-    let mut points = vec![];
-    for interp in [Interp::Linear, Interp::Cubic] {
-        for &h in hs {
-            let spec = TemplateSpec {
-                h,
-                hz: 0.05,
-                interp,
-            };
-            let mut err = 0.0;
-            let secs = time_median(if quick { 1 } else { 3 }, || {
-                let t = ModelTemplate::new(det.clone(), spec).unwrap();
-                let mut s2 = 0.0;
-                let mut k = 0;
-                for &y in &xs {
-                    for &x in &xs {
-                        s2 += (t.eval(x, y, z)[0] - truth[k]).powi(2);
-                        k += 1;
-                    }
-                }
-                err = (s2 / k as f64).sqrt() / peak;
-            });
-            points.push(Point {
-                setting: format!("{interp:?}, h = {} nm", h * 1e3),
-                value: h * 1e3,
-                error: err.max(1e-16),
-                seconds: secs,
-                is_default: spec == TemplateSpec::default(),
-            });
-        }
-    }
+    let points = template_points(quick, &xs, &truth, &|spec| {
+        let t = ModelTemplate::new(det.clone(), spec).unwrap();
+        Box::new(move |x, y| t.eval(x, y, z)[0])
+    });
     Knob {
         id: "template_paraxial".into(),
         title: "Template grid spacing h and interpolation, paraxial (hz = 50 nm)".into(),

@@ -57,14 +57,10 @@ impl DomainMemo {
     /// The point dipole's error for (d_nm nm, n) under `optics`, computed once per memo entry:
     /// [`mie_beam::point_dipole_error`]'s value, from its two factors.
     pub fn error(&mut self, optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
-        let key = (d_nm.to_bits(), n.to_bits());
-        if let Some(e) = self
-            .entries
-            .iter()
-            .find(|(o, d, nn, _)| (*d, *nn) == key && o == optics)
-        {
-            return e.3.clone();
+        if let Some(e) = self.remembered(optics, d_nm, n) {
+            return e.clone();
         }
+        let key = (d_nm.to_bits(), n.to_bits());
         let e = self
             .reference(optics)
             .and_then(|r| Ok(r / mie_beam::max_sensitivity_per_alpha(optics, d_nm, n)? - 1.0));
@@ -74,6 +70,15 @@ impl DomainMemo {
         self.entries
             .push_back((optics.clone(), key.0, key.1, e.clone()));
         e
+    }
+
+    /// The remembered result for (optics, d_nm, n), if any.
+    fn remembered(&self, optics: &Optics, d_nm: f64, n: f64) -> Option<&Result<f64, OpticsError>> {
+        let key = (d_nm.to_bits(), n.to_bits());
+        self.entries
+            .iter()
+            .find(|(o, d, nn, _)| (*d, *nn) == key && o == optics)
+            .map(|e| &e.3)
     }
 
     /// The reference bead's M/α under `optics` (remembered).
@@ -94,14 +99,9 @@ impl DomainMemo {
     /// response per core, not their sum. Same values as [`Self::error`] one by one.
     pub fn fill(&mut self, optics: &Optics, species: &[(f64, f64)]) {
         use rayon::prelude::*;
-        let known = |m: &Self, d: f64, n: f64| {
-            m.entries
-                .iter()
-                .any(|(o, dd, nn, _)| (*dd, *nn) == (d.to_bits(), n.to_bits()) && o == optics)
-        };
         let mut todo: Vec<(f64, f64)> = vec![];
         for &(d, n) in species {
-            if !known(self, d, n) && !todo.contains(&(d, n)) {
+            if self.remembered(optics, d, n).is_none() && !todo.contains(&(d, n)) {
                 todo.push((d, n));
             }
         }
