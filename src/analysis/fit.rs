@@ -609,9 +609,10 @@ struct FitData<'a> {
     min_sep: f64,
     /// 1/norm_factor: instrument units per reference-bead unit.
     inv_f: f64,
-    /// Buffers reused from one evaluation to the next (the windows' samples, the residual
-    /// images): no page-faulting allocation per evaluation.
-    scratch: std::sync::Mutex<(Vec<f64>, [Vec<f64>; 2])>,
+    /// Tile buffers reused from one evaluation to the next (one per tile in flight): no
+    /// page-faulting allocation per evaluation. Taken from [`SCRATCH_POOL`] and given back on
+    /// drop, so that the next fit does not allocate them again either.
+    scratch: std::sync::Mutex<Vec<Scratch>>,
     /// 1 where the channel is fitted and its datum valid, else 0 (row-major, per channel).
     mask: [Vec<f64>; 2],
     /// The template's node values for the separable stencil (None for a linear or degenerate
@@ -620,6 +621,49 @@ struct FitData<'a> {
     /// Tests only: accumulate with the pixel-major reference.
     #[cfg(test)]
     reference: bool,
+}
+
+/// A tile's reused buffers: the windows' samples and the two residual images of the tile.
+type Scratch = (Vec<f64>, [Vec<f64>; 2]);
+
+/// The tiles of [`FitData::accumulate`]: rows × columns of pixels. A tile's windows (six planes
+/// of ≲ 32 × 32 samples for each bead that reaches it) stay in a core's L2 cache.
+const TILE_ROWS: usize = 32;
+const TILE_COLS: usize = 32;
+
+/// A tile's part of the sums (see [`FitData::tile_sums`]).
+#[derive(Default)]
+struct TileSums {
+    rss: f64,
+    /// (bead, Σ Jₓ·J_y, Σ Jₓ·e), unscaled.
+    own: Vec<(usize, [[f64; 3]; 3], [f64; 3])>,
+    /// (bead i, bead j > i, Σ Jᵢₓ·Jⱼ_y), unscaled.
+    pairs: Vec<(usize, usize, [[f64; 3]; 3])>,
+}
+
+/// The tile buffers of the last fit, for the next one (allocating and zeroing a 40-bead fit's
+/// buffers every fit was ~10 % of it). Kept only while they hold at most [`SCRATCH_KEEP`]
+/// values.
+static SCRATCH_POOL: std::sync::Mutex<Vec<Scratch>> = std::sync::Mutex::new(Vec::new());
+const SCRATCH_KEEP: usize = 1 << 24;
+
+impl Drop for FitData<'_> {
+    fn drop(&mut self) {
+        let s = std::mem::take(
+            self.scratch
+                .get_mut()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+        );
+        let held: usize = s
+            .iter()
+            .map(|(b, r)| b.capacity() + r[0].capacity() + r[1].capacity())
+            .sum();
+        if held <= SCRATCH_KEEP {
+            *SCRATCH_POOL
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner) = s;
+        }
+    }
 }
 
 impl<'a> FitData<'a> {
@@ -697,7 +741,11 @@ impl<'a> FitData<'a> {
             w0: opts.w0_um,
             min_sep: opts.min_separation * opts.w0_um,
             inv_f: 1.0 / tpl.norm_factor,
-            scratch: Default::default(),
+            scratch: std::sync::Mutex::new(std::mem::take(
+                &mut *SCRATCH_POOL
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner),
+            )),
             mask,
             planes,
             #[cfg(test)]
@@ -757,13 +805,6 @@ impl<'a> FitData<'a> {
         let np = p.len();
         let ((u0, u1), (v0, v1)) = self.tpl.extent();
         let nx = self.nx();
-        let npx = nx * self.y.len();
-        let (mut buf, mut res) = std::mem::take(
-            &mut *self
-                .scratch
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner),
-        );
         let shapes: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> = (0..nb)
             .map(|i| {
                 let (bx, by) = (p[3 * i + 1], p[3 * i + 2]);
@@ -773,56 +814,56 @@ impl<'a> FitData<'a> {
                 )
             })
             .collect();
-        let total: usize = shapes.iter().map(|(r, c)| r.len() * c.len()).sum();
-        // Every element is written by `sample_window`: no zero fill of the ~6 MB (40 beads).
-        buf.resize(6 * total, 0.0);
-        buf.truncate(6 * total);
-        let mut parts: Vec<&mut [f64]> = Vec::with_capacity(nb);
-        let mut rest = &mut buf[..];
-        for (r, c) in &shapes {
-            let (a, b) = rest.split_at_mut(6 * r.len() * c.len());
-            parts.push(a);
-            rest = b;
-        }
-        parts.par_iter_mut().enumerate().for_each(|(i, s)| {
-            let (rows, cols) = shapes[i].clone();
-            self.sample_window(p[3 * i + 1], p[3 * i + 2], rows, cols, &self.mask, s);
-        });
-        let wins: Vec<Window> = parts
-            .into_iter()
-            .zip(shapes)
-            .map(|(s, (rows, cols))| Window { rows, cols, s })
+        let ny = self.y.len();
+        let tiles: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> = (0..ny)
+            .step_by(TILE_ROWS)
+            .flat_map(|r0| {
+                (0..nx)
+                    .step_by(TILE_COLS)
+                    .map(move |c0| (r0..(r0 + TILE_ROWS).min(ny), c0..(c0 + TILE_COLS).min(nx)))
+            })
             .collect();
-        // Model (beads in index order at every pixel), then residuals: model − data where the
-        // datum is valid and the channel fitted, 0 elsewhere.
-        for r in res.iter_mut() {
-            r.clear();
-            r.resize(npx, 0.0);
-        }
-        for (i, w) in wins.iter().enumerate() {
-            let wi = p[3 * i] * self.inv_f;
-            let nc = w.cols.len();
-            for &ch in self.chans {
-                let plane = w.plane(3 * ch);
-                for (rr, r) in w.rows.clone().enumerate() {
-                    let base = r * nx + w.cols.start;
-                    let m = &mut res[ch][base..base + nc];
-                    for (m, s) in m.iter_mut().zip(&plane[rr * nc..(rr + 1) * nc]) {
-                        *m += wi * s;
+        let outs: Vec<TileSums> = tiles
+            .par_iter()
+            .map(|(tr, tc)| {
+                let mut sc = self
+                    .scratch
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .pop()
+                    .unwrap_or_default();
+                let out = self.tile_sums(p, &shapes, tr.clone(), tc.clone(), &mut sc);
+                self.scratch
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .push(sc);
+                out
+            })
+            .collect();
+        // Sum the tiles' parts in tile order (the same result for any number of threads).
+        let mut rss = 0.0;
+        let mut own = vec![([[0.0; 3]; 3], [0.0; 3]); nb];
+        let mut pairs: std::collections::BTreeMap<(usize, usize), [[f64; 3]; 3]> =
+            Default::default();
+        for t in &outs {
+            rss += t.rss;
+            for &(i, a, g) in &t.own {
+                let (oa, og) = &mut own[i];
+                for x in 0..3 {
+                    og[x] += g[x];
+                    for y in 0..3 {
+                        oa[x][y] += a[x][y];
                     }
                 }
             }
-        }
-        let mut rss = 0.0;
-        for &ch in self.chans {
-            let (r, d, mk) = (&mut res[ch], &self.ch_data[ch], &self.mask[ch]);
-            let mut acc = [0.0; 4];
-            for (k, ((r, d), mk)) in r.iter_mut().zip(d).zip(mk).enumerate() {
-                let e = if *mk != 0.0 { *r - d } else { 0.0 };
-                *r = e;
-                acc[k & 3] += e * e;
+            for &(i, j, b) in &t.pairs {
+                let o = pairs.entry((i, j)).or_insert([[0.0; 3]; 3]);
+                for x in 0..3 {
+                    for y in 0..3 {
+                        o[x][y] += b[x][y];
+                    }
+                }
             }
-            rss += (acc[0] + acc[1]) + (acc[2] + acc[3]);
         }
         let inv_f = self.inv_f;
         // Scale of bead i's Jacobian columns relative to the planes: ∂r/∂C = S/f, ∂r/∂x = −C/f ∂S/∂u,
@@ -831,104 +872,147 @@ impl<'a> FitData<'a> {
             let w = p[3 * i] * inv_f;
             [inv_f, -w, -w]
         };
-        // Diagonal blocks and Jᵀr.
-        let diag: Vec<([[f64; 3]; 3], [f64; 3])> = wins
-            .par_iter()
-            .enumerate()
-            .map(|(i, w)| {
-                let nc = w.cols.len();
-                let mut a = [[0.0; 3]; 3];
-                let mut g = [0.0; 3];
-                for &ch in self.chans {
-                    let pl = [w.plane(3 * ch), w.plane(3 * ch + 1), w.plane(3 * ch + 2)];
-                    for (rr, r) in w.rows.clone().enumerate() {
-                        let base = r * nx + w.cols.start;
-                        let e = &res[ch][base..base + nc];
-                        let row = |k: usize| &pl[k][rr * nc..(rr + 1) * nc];
-                        let (aa, gg) = dot_sym([row(0), row(1), row(2)], e);
-                        for x in 0..3 {
-                            g[x] += gg[x];
-                            for y in 0..3 {
-                                a[x][y] += aa[x][y];
-                            }
-                        }
-                    }
-                }
-                let f = scale(i);
-                for x in 0..3 {
-                    g[x] *= f[x];
-                    for y in 0..3 {
-                        a[x][y] *= f[x] * f[y];
-                    }
-                }
-                (a, g)
-            })
-            .collect();
-        // Off-diagonal blocks of the pairs whose windows overlap (i < j).
-        let pairs: Vec<(usize, usize)> = (0..nb)
-            .flat_map(|i| (i + 1..nb).map(move |j| (i, j)))
-            .filter(|&(i, j)| {
-                let (a, b) = (&wins[i], &wins[j]);
-                a.rows.start.max(b.rows.start) < a.rows.end.min(b.rows.end)
-                    && a.cols.start.max(b.cols.start) < a.cols.end.min(b.cols.end)
-            })
-            .collect();
-        let off: Vec<[[f64; 3]; 3]> = pairs
-            .par_iter()
-            .map(|&(i, j)| {
-                let (a, b) = (&wins[i], &wins[j]);
-                let rows = a.rows.start.max(b.rows.start)..a.rows.end.min(b.rows.end);
-                let cols = a.cols.start.max(b.cols.start)..a.cols.end.min(b.cols.end);
-                let (nca, ncb) = (a.cols.len(), b.cols.len());
-                let mut blk = [[0.0; 3]; 3];
-                for &ch in self.chans {
-                    for r in rows.clone() {
-                        let oa = (r - a.rows.start) * nca + (cols.start - a.cols.start);
-                        let ob = (r - b.rows.start) * ncb + (cols.start - b.cols.start);
-                        let n = cols.len();
-                        let ra = [0, 1, 2].map(|k| &a.plane(3 * ch + k)[oa..oa + n]);
-                        let rb = [0, 1, 2].map(|k| &b.plane(3 * ch + k)[ob..ob + n]);
-                        let bb = dot_block(ra, rb);
-                        for x in 0..3 {
-                            for y in 0..3 {
-                                blk[x][y] += bb[x][y];
-                            }
-                        }
-                    }
-                }
-                let (fa, fb) = (scale(i), scale(j));
-                for x in 0..3 {
-                    for y in 0..3 {
-                        blk[x][y] *= fa[x] * fb[y];
-                    }
-                }
-                blk
-            })
-            .collect();
         let mut jtj = DMatrix::<f64>::zeros(np, np);
         let mut jtr = DVector::<f64>::zeros(np);
-        for (i, (a, g)) in diag.iter().enumerate() {
+        for (i, (a, g)) in own.iter().enumerate() {
+            let f = scale(i);
             for x in 0..3 {
-                jtr[3 * i + x] = g[x];
+                jtr[3 * i + x] = g[x] * f[x];
                 for y in 0..3 {
-                    jtj[(3 * i + x, 3 * i + y)] = a[x][y];
+                    jtj[(3 * i + x, 3 * i + y)] = a[x][y] * (f[x] * f[y]);
                 }
             }
         }
-        for (&(i, j), blk) in pairs.iter().zip(&off) {
+        for (&(i, j), blk) in &pairs {
+            let (fa, fb) = (scale(i), scale(j));
             for x in 0..3 {
                 for y in 0..3 {
-                    jtj[(3 * i + x, 3 * j + y)] = blk[x][y];
-                    jtj[(3 * j + y, 3 * i + x)] = blk[x][y];
+                    let v = blk[x][y] * (fa[x] * fb[y]);
+                    jtj[(3 * i + x, 3 * j + y)] = v;
+                    jtj[(3 * j + y, 3 * i + x)] = v;
                 }
             }
         }
-        drop(wins);
-        *self
-            .scratch
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = (buf, res);
         (rss, jtj, jtr)
+    }
+
+    /// One tile's part of [`FitData::accumulate`]: the windows of the beads that reach the tile
+    /// (rows `tr` × columns `tc` of the image) sampled over the tile only, the model and the
+    /// residuals there, and the tile's share of the RSS, of each bead's own block and Jᵀr, and
+    /// of each overlapping pair's block (unscaled). Everything a tile touches stays in the
+    /// core's cache.
+    fn tile_sums(
+        &self,
+        p: &[f64],
+        shapes: &[(std::ops::Range<usize>, std::ops::Range<usize>)],
+        tr: std::ops::Range<usize>,
+        tc: std::ops::Range<usize>,
+        sc: &mut Scratch,
+    ) -> TileSums {
+        let nx = self.nx();
+        let (th, tw) = (tr.len(), tc.len());
+        let cut = |a: &std::ops::Range<usize>, b: &std::ops::Range<usize>| {
+            a.start.max(b.start)..a.end.min(b.end).max(a.start.max(b.start))
+        };
+        // The beads that reach the tile, in index order, with their windows cut to the tile.
+        let mut items: Vec<(usize, std::ops::Range<usize>, std::ops::Range<usize>)> = Vec::new();
+        for (i, (rows, cols)) in shapes.iter().enumerate() {
+            let (r, c) = (cut(rows, &tr), cut(cols, &tc));
+            if !r.is_empty() && !c.is_empty() {
+                items.push((i, r, c));
+            }
+        }
+        let mut out = TileSums::default();
+        if items.is_empty() {
+            // No bead: the residual is minus the data.
+            for &ch in self.chans {
+                for r in tr.clone() {
+                    let k0 = r * nx + tc.start;
+                    for (d, mk) in self.ch_data[ch][k0..k0 + tw]
+                        .iter()
+                        .zip(&self.mask[ch][k0..k0 + tw])
+                    {
+                        if *mk != 0.0 {
+                            out.rss += d * d;
+                        }
+                    }
+                }
+            }
+            return out;
+        }
+        let (buf, res) = sc;
+        let total: usize = items.iter().map(|(_, r, c)| r.len() * c.len()).sum();
+        // Every element is written by `sample_window`.
+        buf.resize(6 * total, 0.0);
+        let mut wins: Vec<Window> = Vec::with_capacity(items.len());
+        let mut rest = &mut buf[..6 * total];
+        for (i, rows, cols) in &items {
+            let (s, b) = rest.split_at_mut(6 * rows.len() * cols.len());
+            rest = b;
+            self.sample_window(
+                p[3 * i + 1],
+                p[3 * i + 2],
+                rows.clone(),
+                cols.clone(),
+                &self.mask,
+                s,
+            );
+            wins.push(Window {
+                rows: rows.start - tr.start..rows.end - tr.start,
+                cols: cols.start - tc.start..cols.end - tc.start,
+                s,
+            });
+        }
+        // Model (beads in index order at every pixel), then residuals: model − data where the
+        // datum is valid and the channel fitted, 0 elsewhere.
+        for r in res.iter_mut() {
+            r.clear();
+            r.resize(th * tw, 0.0);
+        }
+        for ((i, _, _), w) in items.iter().zip(&wins) {
+            let wi = p[3 * i] * self.inv_f;
+            let nc = w.cols.len();
+            for &ch in self.chans {
+                let plane = w.plane(3 * ch);
+                for (rr, r) in w.rows.clone().enumerate() {
+                    let base = r * tw + w.cols.start;
+                    let m = &mut res[ch][base..base + nc];
+                    for (m, s) in m.iter_mut().zip(&plane[rr * nc..(rr + 1) * nc]) {
+                        *m += wi * s;
+                    }
+                }
+            }
+        }
+        for &ch in self.chans {
+            let mut acc = [0.0; 4];
+            for r in 0..th {
+                let k0 = (tr.start + r) * nx + tc.start;
+                let e = &mut res[ch][r * tw..(r + 1) * tw];
+                let (d, mk) = (&self.ch_data[ch][k0..k0 + tw], &self.mask[ch][k0..k0 + tw]);
+                for (k, ((e, d), mk)) in e.iter_mut().zip(d).zip(mk).enumerate() {
+                    let v = if *mk != 0.0 { *e - d } else { 0.0 };
+                    *e = v;
+                    acc[k & 3] += v * v;
+                }
+            }
+            out.rss += (acc[0] + acc[1]) + (acc[2] + acc[3]);
+        }
+        for ((i, _, _), w) in items.iter().zip(&wins) {
+            let (a, g) = w.own_sums(res, self.chans, tw);
+            out.own.push((*i, a, g));
+        }
+        for (x, (i, _, _)) in items.iter().enumerate() {
+            for (y, (j, _, _)) in items.iter().enumerate().skip(x + 1) {
+                let (a, b) = (&wins[x], &wins[y]);
+                if a.rows.start.max(b.rows.start) < a.rows.end.min(b.rows.end)
+                    && a.cols.start.max(b.cols.start) < a.cols.end.min(b.cols.end)
+                {
+                    out.pairs
+                        .push((*i, *j, Window::pair_sums(a, b, self.chans)));
+                }
+            }
+        }
+        out
     }
 
     /// Samples of the template around a bead at (bx, by) µm over the window `rows` × `cols`
@@ -958,7 +1042,7 @@ impl<'a> FitData<'a> {
             unsafe { self.sample_window_avx2(bx, by, rows, cols, mask, out) };
             return;
         }
-        self.sample_window_impl(bx, by, rows, cols, mask, out)
+        self.sample_window_impl::<false>(bx, by, rows, cols, mask, out)
     }
 
     /// [`FitData::sample_window`] compiled for AVX2 + FMA.
@@ -973,11 +1057,12 @@ impl<'a> FitData<'a> {
         mask: &[Vec<f64>; 2],
         out: &mut [f64],
     ) {
-        self.sample_window_impl(bx, by, rows, cols, mask, out)
+        self.sample_window_impl::<true>(bx, by, rows, cols, mask, out)
     }
 
+    /// `SIMD`: use the AVX2 kernels (only from [`FitData::sample_window_avx2`]).
     #[inline(always)]
-    fn sample_window_impl(
+    fn sample_window_impl<const SIMD: bool>(
         &self,
         bx: f64,
         by: f64,
@@ -1004,12 +1089,35 @@ impl<'a> FitData<'a> {
         match (&self.planes, su) {
             (Some(tp), Some(su)) => {
                 // Template columns the window reaches (stencil starts ≥ −1).
-                let inside: Vec<&GradStencil> = su.iter().filter(|s| s.inside).collect();
-                let lo = inside.iter().map(|s| s.first).min().unwrap_or(0);
-                let hi = inside.iter().map(|s| s.first + 4).max().unwrap_or(0);
+                let lo = su
+                    .iter()
+                    .filter(|s| s.inside)
+                    .map(|s| s.first)
+                    .min()
+                    .unwrap_or(0);
+                let hi = su
+                    .iter()
+                    .filter(|s| s.inside)
+                    .map(|s| s.first + 4)
+                    .max()
+                    .unwrap_or(0);
                 let width = (hi - lo).max(0) as usize;
-                let mut uw = vec![0.0; 2 * width];
-                let mut ud = vec![0.0; 2 * width];
+                // Per window column: where its four taps start in the row buffer, and the Keys
+                // weights and their derivatives; a column outside the template reads the first
+                // taps with zero weights (its samples are zero, as `eval_grad`'s).
+                let cols_st: Vec<(usize, [f64; 4], [f64; 4])> = su
+                    .iter()
+                    .map(|s| {
+                        if s.inside {
+                            ((s.first - lo) as usize, s.w, s.d)
+                        } else {
+                            (0, [0.0; 4], [0.0; 4])
+                        }
+                    })
+                    .collect();
+                // One window row's v-interpolated template columns, both channels and the
+                // v-derivative together: node k = [Sx, Sy, ∂Sx/∂v·h, ∂Sy/∂v·h].
+                let mut vrow = vec![[0.0f64; 4]; width];
                 let inv_h = 1.0 / grid.h;
                 for (rr, r) in rows.enumerate() {
                     let sv = grid.grad_stencil_v(self.y[r] - by);
@@ -1022,59 +1130,44 @@ impl<'a> FitData<'a> {
                             continue;
                         }
                     };
-                    for ch in 0..2 {
-                        let (uw, ud) = (
-                            &mut uw[ch * width..(ch + 1) * width],
-                            &mut ud[ch * width..(ch + 1) * width],
-                        );
-                        uw.fill(0.0);
-                        ud.fill(0.0);
-                        for b in 0..4 {
-                            let node = tp.row(ch, sv.first + b as isize, lo, width);
-                            let (wb, db) = (sv.w[b], sv.d[b]);
-                            for ((w, d), n) in uw.iter_mut().zip(ud.iter_mut()).zip(node) {
-                                *w += wb * n;
-                                *d += db * n;
-                            }
+                    let taps = [0, 1, 2, 3].map(|b| tp.row(sv.first + b as isize, lo, width));
+                    if taps.iter().any(|t| t.len() != width) {
+                        // Outside the padded grid (cannot happen for `grad_stencil_*`'s stencils).
+                        for pl in out.chunks_exact_mut(npix) {
+                            pl[rr * nc..(rr + 1) * nc].fill(0.0);
                         }
+                        continue;
                     }
+                    #[cfg(target_arch = "x86_64")]
+                    if SIMD {
+                        // SAFETY: SIMD is true only in `sample_window_avx2`, called after the
+                        // CPU was found to support AVX2 and FMA.
+                        unsafe { kernels::v_pass_avx2(&mut vrow, taps, &sv.w, &sv.d) };
+                    } else {
+                        kernels::v_pass(&mut vrow, taps, &sv.w, &sv.d);
+                    }
+                    #[cfg(not(target_arch = "x86_64"))]
+                    kernels::v_pass(&mut vrow, taps, &sv.w, &sv.d);
                     let at = rr * nc;
                     let k0 = r * nx + cols.start;
-                    let mut planes = out.chunks_exact_mut(npix);
-                    let mut next = || {
-                        let pl = planes.next().expect("six planes");
-                        &mut pl[at..at + nc]
-                    };
-                    for ch in 0..2 {
-                        let (ov, odu, odv) = (next(), next(), next());
-                        let mk = &mask[ch][k0..k0 + nc];
-                        let (uw, ud) = (
-                            &uw[ch * width..(ch + 1) * width],
-                            &ud[ch * width..(ch + 1) * width],
-                        );
-                        for (cc, s) in su.iter().enumerate() {
-                            if !s.inside || mk[cc] == 0.0 {
-                                ov[cc] = 0.0;
-                                odu[cc] = 0.0;
-                                odv[cc] = 0.0;
-                                continue;
-                            }
-                            let o = (s.first - lo) as usize;
-                            let w4: &[f64; 4] = uw[o..o + 4].try_into().expect("4 taps");
-                            let d4: &[f64; 4] = ud[o..o + 4].try_into().expect("4 taps");
-                            let mut v = 0.0;
-                            let mut du = 0.0;
-                            let mut dv = 0.0;
-                            for a in 0..4 {
-                                v += s.w[a] * w4[a];
-                                du += s.d[a] * w4[a];
-                                dv += s.w[a] * d4[a];
-                            }
-                            ov[cc] = v;
-                            odu[cc] = du * inv_h;
-                            odv[cc] = dv * inv_h;
-                        }
+                    let (m0, m1) = (&mask[0][k0..k0 + nc], &mask[1][k0..k0 + nc]);
+                    let (o0, rest) = out.split_at_mut(npix);
+                    let (o1, rest) = rest.split_at_mut(npix);
+                    let (o2, rest) = rest.split_at_mut(npix);
+                    let (o3, rest) = rest.split_at_mut(npix);
+                    let (o4, o5) = rest.split_at_mut(npix);
+                    let [o0, o1, o2, o3, o4, o5] =
+                        [o0, o1, o2, o3, o4, o5].map(|pl| &mut pl[at..at + nc]);
+                    let o = [o0, o1, o2, o3, o4, o5];
+                    #[cfg(target_arch = "x86_64")]
+                    if SIMD {
+                        // SAFETY: as for the v pass.
+                        unsafe { kernels::u_pass_avx2(o, &vrow, &cols_st, [m0, m1], inv_h) };
+                    } else {
+                        kernels::u_pass(o, &vrow, &cols_st, [m0, m1], inv_h);
                     }
+                    #[cfg(not(target_arch = "x86_64"))]
+                    kernels::u_pass(o, &vrow, &cols_st, [m0, m1], inv_h);
                 }
             }
             _ => {
@@ -1497,6 +1590,108 @@ struct Window<'s> {
 }
 
 impl Window<'_> {
+    /// Σ over the window of (Jₓ·J_y, Jₓ·e) for the three planes of each fitted channel
+    /// (unscaled; see [`FitData::accumulate`]), e the residual images.
+    fn own_sums(
+        &self,
+        res: &[Vec<f64>; 2],
+        chans: &[usize],
+        nx: usize,
+    ) -> ([[f64; 3]; 3], [f64; 3]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { self.own_sums_avx2(res, chans, nx) };
+        }
+        self.own_sums_impl(res, chans, nx)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn own_sums_avx2(
+        &self,
+        res: &[Vec<f64>; 2],
+        chans: &[usize],
+        nx: usize,
+    ) -> ([[f64; 3]; 3], [f64; 3]) {
+        self.own_sums_impl(res, chans, nx)
+    }
+
+    #[inline(always)]
+    fn own_sums_impl(
+        &self,
+        res: &[Vec<f64>; 2],
+        chans: &[usize],
+        nx: usize,
+    ) -> ([[f64; 3]; 3], [f64; 3]) {
+        let nc = self.cols.len();
+        let mut a = [[0.0; 3]; 3];
+        let mut g = [0.0; 3];
+        for &ch in chans {
+            let pl = [
+                self.plane(3 * ch),
+                self.plane(3 * ch + 1),
+                self.plane(3 * ch + 2),
+            ];
+            for (rr, r) in self.rows.clone().enumerate() {
+                let base = r * nx + self.cols.start;
+                let e = &res[ch][base..base + nc];
+                let row = |k: usize| &pl[k][rr * nc..(rr + 1) * nc];
+                let (aa, gg) = dot_sym([row(0), row(1), row(2)], e);
+                for x in 0..3 {
+                    g[x] += gg[x];
+                    for y in 0..3 {
+                        a[x][y] += aa[x][y];
+                    }
+                }
+            }
+        }
+        (a, g)
+    }
+
+    /// Σ over the overlap of windows a and b of aₓ·b_y for the three planes of each fitted
+    /// channel (unscaled).
+    fn pair_sums(a: &Self, b: &Self, chans: &[usize]) -> [[f64; 3]; 3] {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { Self::pair_sums_avx2(a, b, chans) };
+        }
+        Self::pair_sums_impl(a, b, chans)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn pair_sums_avx2(a: &Self, b: &Self, chans: &[usize]) -> [[f64; 3]; 3] {
+        Self::pair_sums_impl(a, b, chans)
+    }
+
+    #[inline(always)]
+    fn pair_sums_impl(a: &Self, b: &Self, chans: &[usize]) -> [[f64; 3]; 3] {
+        let rows = a.rows.start.max(b.rows.start)..a.rows.end.min(b.rows.end);
+        let cols = a.cols.start.max(b.cols.start)..a.cols.end.min(b.cols.end);
+        let (nca, ncb) = (a.cols.len(), b.cols.len());
+        let mut blk = [[0.0; 3]; 3];
+        for &ch in chans {
+            for r in rows.clone() {
+                let oa = (r - a.rows.start) * nca + (cols.start - a.cols.start);
+                let ob = (r - b.rows.start) * ncb + (cols.start - b.cols.start);
+                let n = cols.len();
+                let ra = [0, 1, 2].map(|k| &a.plane(3 * ch + k)[oa..oa + n]);
+                let rb = [0, 1, 2].map(|k| &b.plane(3 * ch + k)[ob..ob + n]);
+                let bb = dot_block(ra, rb);
+                for x in 0..3 {
+                    for y in 0..3 {
+                        blk[x][y] += bb[x][y];
+                    }
+                }
+            }
+        }
+        blk
+    }
+
     /// Plane k: 3·channel + (0 value, 1 ∂/∂u, 2 ∂/∂v).
     fn plane(&self, k: usize) -> &[f64] {
         let n = self.s.len() / 6;
@@ -1504,14 +1699,142 @@ impl Window<'_> {
     }
 }
 
-/// The template's Sx and Sy node values as two channel-separate row-major planes, padded with
-/// `PAD` zero nodes on every side so that a cubic stencil reaching one node past the grid (as
-/// [`Grid2::grad_stencil_u`](crate::optics::grid::Grid2::grad_stencil_u) allows) reads zeros
-/// without a bounds test.
+/// The two passes of the separable window sampler ([`FitData::sample_window`]), each as portable
+/// scalar code and as AVX2 intrinsics with the same operations in the same order per lane (no
+/// fused multiply–add), so both give the same bits.
+mod kernels {
+    /// One window row's v pass: `vrow[k]` = Σ_b (w_b·T_b[k], d_b·T_b[k]) over the four template
+    /// rows `taps` (nodes [Sx, Sy]), as [Σw·Sx, Σw·Sy, Σd·Sx, Σd·Sy].
+    #[inline(always)]
+    pub(super) fn v_pass(
+        vrow: &mut [[f64; 4]],
+        taps: [&[[f64; 2]]; 4],
+        w: &[f64; 4],
+        d: &[f64; 4],
+    ) {
+        for (k, acc) in vrow.iter_mut().enumerate() {
+            let mut a = [0.0f64; 4];
+            for b in 0..4 {
+                let n = taps[b][k];
+                a[0] += w[b] * n[0];
+                a[1] += w[b] * n[1];
+                a[2] += d[b] * n[0];
+                a[3] += d[b] * n[1];
+            }
+            *acc = a;
+        }
+    }
+
+    /// One window row's u pass: per column, its four taps of `vrow` from `off` weighted by the
+    /// Keys weights w (values, ∂/∂v) and their derivatives d (∂/∂u), scaled by 1/h for the
+    /// derivatives and by the channel's mask (0 or 1), into the six output rows
+    /// [Sx, ∂Sx/∂u, ∂Sx/∂v, Sy, ∂Sy/∂u, ∂Sy/∂v].
+    #[inline(always)]
+    pub(super) fn u_pass(
+        o: [&mut [f64]; 6],
+        vrow: &[[f64; 4]],
+        cols: &[(usize, [f64; 4], [f64; 4])],
+        mask: [&[f64]; 2],
+        inv_h: f64,
+    ) {
+        let [o0, o1, o2, o3, o4, o5] = o;
+        for (cc, &(off, w, d)) in cols.iter().enumerate() {
+            let t: &[[f64; 4]; 4] = vrow[off..off + 4].try_into().expect("4 taps");
+            let mut a = [0.0f64; 4];
+            let mut g = [0.0f64; 4];
+            for b in 0..4 {
+                for l in 0..4 {
+                    a[l] += w[b] * t[b][l];
+                    g[l] += d[b] * t[b][l];
+                }
+            }
+            let (k0, k1) = (mask[0][cc], mask[1][cc]);
+            o0[cc] = a[0] * k0;
+            o1[cc] = g[0] * inv_h * k0;
+            o2[cc] = a[2] * inv_h * k0;
+            o3[cc] = a[1] * k1;
+            o4[cc] = g[1] * inv_h * k1;
+            o5[cc] = a[3] * inv_h * k1;
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    pub(super) unsafe fn v_pass_avx2(
+        vrow: &mut [[f64; 4]],
+        taps: [&[[f64; 2]]; 4],
+        w: &[f64; 4],
+        d: &[f64; 4],
+    ) {
+        use std::arch::x86_64::*;
+        let n = vrow.len();
+        assert!(taps.iter().all(|t| t.len() == n));
+        let wd = [0, 1, 2, 3].map(|b| _mm256_setr_pd(w[b], w[b], d[b], d[b]));
+        for k in 0..n {
+            let mut a = _mm256_setzero_pd();
+            for b in 0..4 {
+                // SAFETY: k < n = taps[b].len(); a node is two f64 (16 bytes).
+                let t = _mm256_broadcast_pd(&*(taps[b].as_ptr().add(k) as *const __m128d));
+                a = _mm256_add_pd(a, _mm256_mul_pd(wd[b], t));
+            }
+            // SAFETY: k < n = vrow.len(); a row element is four f64 (32 bytes).
+            _mm256_storeu_pd(vrow.as_mut_ptr().add(k) as *mut f64, a);
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    pub(super) unsafe fn u_pass_avx2(
+        o: [&mut [f64]; 6],
+        vrow: &[[f64; 4]],
+        cols: &[(usize, [f64; 4], [f64; 4])],
+        mask: [&[f64]; 2],
+        inv_h: f64,
+    ) {
+        use std::arch::x86_64::*;
+        let n = cols.len();
+        assert!(o.iter().all(|r| r.len() == n) && mask.iter().all(|m| m.len() == n));
+        assert!(cols.iter().all(|c| c.0 + 4 <= vrow.len()));
+        let [o0, o1, o2, o3, o4, o5] = o;
+        let sa = _mm256_setr_pd(1.0, 1.0, inv_h, inv_h);
+        let sg = _mm256_set1_pd(inv_h);
+        for (cc, &(off, w, d)) in cols.iter().enumerate() {
+            let mut a = _mm256_setzero_pd();
+            let mut g = _mm256_setzero_pd();
+            for b in 0..4 {
+                // SAFETY: off + 4 ≤ vrow.len() (asserted above).
+                let t = _mm256_loadu_pd(vrow.as_ptr().add(off + b) as *const f64);
+                a = _mm256_add_pd(a, _mm256_mul_pd(_mm256_set1_pd(w[b]), t));
+                g = _mm256_add_pd(g, _mm256_mul_pd(_mm256_set1_pd(d[b]), t));
+            }
+            let (k0, k1) = (mask[0][cc], mask[1][cc]);
+            let k = _mm256_setr_pd(k0, k1, k0, k1);
+            let a = _mm256_mul_pd(_mm256_mul_pd(a, sa), k);
+            let g = _mm256_mul_pd(_mm256_mul_pd(g, sg), k);
+            let mut av = [0.0f64; 4];
+            let mut gv = [0.0f64; 4];
+            _mm256_storeu_pd(av.as_mut_ptr(), a);
+            _mm256_storeu_pd(gv.as_mut_ptr(), g);
+            o0[cc] = av[0];
+            o1[cc] = gv[0];
+            o2[cc] = av[2];
+            o3[cc] = av[1];
+            o4[cc] = gv[1];
+            o5[cc] = av[3];
+        }
+    }
+}
+
+/// The template's Sx and Sy node values, interleaved per node ([Sx, Sy]) in row-major order,
+/// padded with `PAD` zero nodes on every side so that a cubic stencil reaching one node past the
+/// grid (as [`Grid2::grad_stencil_u`](crate::optics::grid::Grid2::grad_stencil_u) allows) reads
+/// zeros without a bounds test.
 struct TplPlanes {
     stride: usize,
     rows: usize,
-    data: [Vec<f64>; 2],
+    data: Vec<[f64; 2]>,
 }
 
 impl TplPlanes {
@@ -1520,57 +1843,54 @@ impl TplPlanes {
     fn new(g: &crate::optics::grid::Grid2) -> Self {
         let stride = g.nu + 2 * Self::PAD;
         let rows = g.nv + 2 * Self::PAD;
-        let mut data = [vec![0.0; stride * rows], vec![0.0; stride * rows]];
+        let mut data = vec![[0.0; 2]; stride * rows];
         for j in 0..g.nv {
             for i in 0..g.nu {
                 let n = g.data[j * g.nu + i];
-                for (ch, d) in data.iter_mut().enumerate() {
-                    d[(j + Self::PAD) * stride + i + Self::PAD] = n[ch];
-                }
+                data[(j + Self::PAD) * stride + i + Self::PAD] = [n[0], n[1]];
             }
         }
         Self { stride, rows, data }
     }
 
-    /// Nodes `first..first + width` of node row `j` of channel `ch` (indices may run up to
-    /// `PAD` past the grid: zeros; beyond that the whole row reads as zeros).
-    fn row(&self, ch: usize, j: isize, first: isize, width: usize) -> &[f64] {
+    /// Nodes `first..first + width` of node row `j` (indices may run up to `PAD` past the grid:
+    /// zeros; beyond that the row is empty and reads as zeros).
+    fn row(&self, j: isize, first: isize, width: usize) -> &[[f64; 2]] {
         let pad = Self::PAD as isize;
         let (jj, ii) = (j + pad, first + pad);
         if jj < 0 || jj as usize >= self.rows || ii < 0 || ii as usize + width > self.stride {
             // Outside the padded grid (cannot happen for the stencils of `grad_stencil_*`).
-            return &ZEROS[..width.min(ZEROS.len())];
+            return &[];
         }
         let at = jj as usize * self.stride + ii as usize;
-        &self.data[ch][at..at + width]
+        &self.data[at..at + width]
     }
 }
 
-static ZEROS: [f64; 0] = [];
-
-/// Dot products of three rows `a` with three rows `b` (all of one length): Σ aₓ·b_y. Two
-/// accumulators per sum, so the compiler vectorises.
-#[inline]
+/// Dot products of three rows `a` with three rows `b` (all of one length): Σ aₓ·b_y. Four
+/// accumulators per sum (one 256-bit vector with AVX2).
+#[inline(always)]
 fn dot_block(a: [&[f64]; 3], b: [&[f64]; 3]) -> [[f64; 3]; 3] {
+    const L: usize = 4;
     let n = a[0].len();
     let (a0, a1, a2) = (&a[0][..n], &a[1][..n], &a[2][..n]);
     let (b0, b1, b2) = (&b[0][..n], &b[1][..n], &b[2][..n]);
-    let mut m = [[[0.0f64; 2]; 3]; 3];
+    let mut m = [[[0.0f64; L]; 3]; 3];
     let it = a0
-        .chunks_exact(2)
-        .zip(a1.chunks_exact(2))
-        .zip(a2.chunks_exact(2))
+        .chunks_exact(L)
+        .zip(a1.chunks_exact(L))
+        .zip(a2.chunks_exact(L))
         .zip(
-            b0.chunks_exact(2)
-                .zip(b1.chunks_exact(2))
-                .zip(b2.chunks_exact(2)),
+            b0.chunks_exact(L)
+                .zip(b1.chunks_exact(L))
+                .zip(b2.chunks_exact(L)),
         );
     for (((x0, x1), x2), ((y0, y1), y2)) in it {
         let av = [x0, x1, x2];
         let bv = [y0, y1, y2];
         for x in 0..3 {
             for y in 0..3 {
-                for l in 0..2 {
+                for l in 0..L {
                     m[x][y][l] += av[x][l] * bv[y][l];
                 }
             }
@@ -1579,9 +1899,10 @@ fn dot_block(a: [&[f64]; 3], b: [&[f64]; 3]) -> [[f64; 3]; 3] {
     let mut out = [[0.0; 3]; 3];
     for x in 0..3 {
         for y in 0..3 {
-            out[x][y] = m[x][y][0] + m[x][y][1];
-            if n % 2 == 1 {
-                out[x][y] += a[x][n - 1] * b[y][n - 1];
+            let s = &m[x][y];
+            out[x][y] = (s[0] + s[1]) + (s[2] + s[3]);
+            for l in n - n % L..n {
+                out[x][y] += a[x][l] * b[y][l];
             }
         }
     }
@@ -1589,21 +1910,22 @@ fn dot_block(a: [&[f64]; 3], b: [&[f64]; 3]) -> [[f64; 3]; 3] {
 }
 
 /// For one bead's rows a (value, ∂/∂u, ∂/∂v) and the residual row e: (Σ aₓ·a_y, Σ aₓ·e), with
-/// two accumulators per sum.
-#[inline]
+/// four accumulators per sum.
+#[inline(always)]
 fn dot_sym(a: [&[f64]; 3], e: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
+    const L: usize = 4;
     let n = a[0].len();
     let (a0, a1, a2, e) = (&a[0][..n], &a[1][..n], &a[2][..n], &e[..n]);
     // Upper triangle 00 01 02 11 12 22, then the gradient.
-    let mut m = [[0.0f64; 2]; 6];
-    let mut g = [[0.0f64; 2]; 3];
+    let mut m = [[0.0f64; L]; 6];
+    let mut g = [[0.0f64; L]; 3];
     let it = a0
-        .chunks_exact(2)
-        .zip(a1.chunks_exact(2))
-        .zip(a2.chunks_exact(2))
-        .zip(e.chunks_exact(2));
+        .chunks_exact(L)
+        .zip(a1.chunks_exact(L))
+        .zip(a2.chunks_exact(L))
+        .zip(e.chunks_exact(L));
     for (((x0, x1), x2), ee) in it {
-        for l in 0..2 {
+        for l in 0..L {
             m[0][l] += x0[l] * x0[l];
             m[1][l] += x0[l] * x1[l];
             m[2][l] += x0[l] * x2[l];
@@ -1615,16 +1937,10 @@ fn dot_sym(a: [&[f64]; 3], e: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
             g[2][l] += x2[l] * ee[l];
         }
     }
-    let mut t = [0.0; 6];
-    let mut go = [0.0; 3];
-    for k in 0..6 {
-        t[k] = m[k][0] + m[k][1];
-    }
-    for k in 0..3 {
-        go[k] = g[k][0] + g[k][1];
-    }
-    if n % 2 == 1 {
-        let l = n - 1;
+    let sum = |s: &[f64; L]| (s[0] + s[1]) + (s[2] + s[3]);
+    let mut t = m.map(|s| sum(&s));
+    let mut go = g.map(|s| sum(&s));
+    for l in n - n % L..n {
         t[0] += a0[l] * a0[l];
         t[1] += a0[l] * a1[l];
         t[2] += a0[l] * a2[l];

@@ -244,13 +244,20 @@ fn exchange_dir() -> PathBuf {
     }
 }
 
+/// `FIT_BENCH_FITS=N`: only the own timing, over N fits per case, and no criterion run (for
+/// A/B comparisons of two builds under `perf stat`, where a fixed amount of work is wanted).
+fn fits_only() -> Option<usize> {
+    std::env::var("FIT_BENCH_FITS").ok()?.trim().parse().ok()
+}
+
 fn bench(cr: &mut Criterion) {
     let dir = exchange_dir();
     for c in cases() {
         // Own timing (median of repeated runs) for the comparison report.
         let r = run(&c);
+        let n = fits_only().unwrap_or(15).max(1);
         let mut t = Vec::new();
-        for _ in 0..15 {
+        for _ in 0..n {
             let s = Instant::now();
             black_box(run(&c));
             t.push(s.elapsed().as_secs_f64() * 1e3);
@@ -259,9 +266,12 @@ fn bench(cr: &mut Criterion) {
         let ms = t[t.len() / 2];
         let (ep, ew) = errors(&c, &r);
         println!(
-            "{}: {:.2} ms (median of 15), {} iterations, {} evaluations, max position error {:.1} nm, max weight error {:.2} %",
+            "{}: {:.2} ms (median of {n}), {} iterations, {} evaluations, max position error {:.1} nm, max weight error {:.2} %",
             c.name, ms, r.iterations, r.evaluations, ep * 1e3, ew * 100.0
         );
+        if fits_only().is_some() {
+            continue;
+        }
         export(&c, &dir, ms, &r);
         cr.bench_function(c.name, |b| b.iter(|| black_box(run(&c))));
     }
