@@ -33,11 +33,14 @@ def fmt_t(ns):
 
 
 def criterion_results(crit_dir, t0, t1):
-    """{full_id: (median_ns, lo_ns, hi_ns)} of the estimates written between t0 and t1."""
+    """{full_id: (median_ns, lo_ns, hi_ns)} of the estimates written between t0 and t1.
+
+    No slack before t0: the previous bench's last estimates are written just before the next
+    bench starts, and a slack of a second listed them under the wrong bench."""
     out = {}
     for est in glob.glob(os.path.join(crit_dir, "**", "new", "estimates.json"), recursive=True):
         mt = os.path.getmtime(est)
-        if not (t0 - 1 <= mt <= t1 + 1):
+        if not (t0 <= mt <= t1 + 1):
             continue
         try:
             bj = json.load(open(os.path.join(os.path.dirname(est), "benchmark.json")))

@@ -629,7 +629,45 @@ type Scratch = (Vec<f64>, [Vec<f64>; 2]);
 /// The tiles of [`FitData::accumulate`]: rows × columns of pixels. A tile's windows (six planes
 /// of ≲ 32 × 32 samples for each bead that reaches it) stay in a core's L2 cache.
 const TILE_ROWS: usize = 32;
-const TILE_COLS: usize = 32;
+const TILE_COLS: usize = 128;
+
+/// A bead that reaches a tile: its index and its window's rows and columns cut to the tile.
+type TileItem = (usize, std::ops::Range<usize>, std::ops::Range<usize>);
+
+/// Pixel ranges of a window.
+type Shape = (std::ops::Range<usize>, std::ops::Range<usize>);
+
+/// The tiles (rows × columns) covering an image of ny × nx pixels, row-major.
+fn tiles(ny: usize, nx: usize) -> Vec<Shape> {
+    (0..ny)
+        .step_by(TILE_ROWS)
+        .flat_map(|r0| {
+            (0..nx)
+                .step_by(TILE_COLS)
+                .map(move |c0| (r0..(r0 + TILE_ROWS).min(ny), c0..(c0 + TILE_COLS).min(nx)))
+        })
+        .collect()
+}
+
+/// The beads whose windows (`shapes`) reach the tile `tr` × `tc`, in index order, with their
+/// windows cut to the tile.
+fn tile_items(
+    shapes: &[Shape],
+    tr: &std::ops::Range<usize>,
+    tc: &std::ops::Range<usize>,
+) -> Vec<TileItem> {
+    let cut = |a: &std::ops::Range<usize>, b: &std::ops::Range<usize>| {
+        a.start.max(b.start)..a.end.min(b.end).max(a.start.max(b.start))
+    };
+    shapes
+        .iter()
+        .enumerate()
+        .filter_map(|(i, (rows, cols))| {
+            let (r, c) = (cut(rows, tr), cut(cols, tc));
+            (!r.is_empty() && !c.is_empty()).then_some((i, r, c))
+        })
+        .collect()
+}
 
 /// A tile's part of the sums (see [`FitData::tile_sums`]).
 #[derive(Default)]
@@ -805,7 +843,7 @@ impl<'a> FitData<'a> {
         let np = p.len();
         let ((u0, u1), (v0, v1)) = self.tpl.extent();
         let nx = self.nx();
-        let shapes: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> = (0..nb)
+        let shapes: Vec<Shape> = (0..nb)
             .map(|i| {
                 let (bx, by) = (p[3 * i + 1], p[3 * i + 2]);
                 (
@@ -815,28 +853,12 @@ impl<'a> FitData<'a> {
             })
             .collect();
         let ny = self.y.len();
-        let tiles: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> = (0..ny)
-            .step_by(TILE_ROWS)
-            .flat_map(|r0| {
-                (0..nx)
-                    .step_by(TILE_COLS)
-                    .map(move |c0| (r0..(r0 + TILE_ROWS).min(ny), c0..(c0 + TILE_COLS).min(nx)))
-            })
-            .collect();
-        let outs: Vec<TileSums> = tiles
+        let outs: Vec<TileSums> = tiles(ny, nx)
             .par_iter()
             .map(|(tr, tc)| {
-                let mut sc = self
-                    .scratch
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .pop()
-                    .unwrap_or_default();
+                let mut sc = self.scratch_take();
                 let out = self.tile_sums(p, &shapes, tr.clone(), tc.clone(), &mut sc);
-                self.scratch
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .push(sc);
+                self.scratch_give(sc);
                 out
             })
             .collect();
@@ -896,6 +918,23 @@ impl<'a> FitData<'a> {
         (rss, jtj, jtr)
     }
 
+    /// A tile buffer from the fit's pool (or a new one).
+    fn scratch_take(&self) -> Scratch {
+        self.scratch
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .pop()
+            .unwrap_or_default()
+    }
+
+    /// Back to the pool.
+    fn scratch_give(&self, sc: Scratch) {
+        self.scratch
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push(sc);
+    }
+
     /// One tile's part of [`FitData::accumulate`]: the windows of the beads that reach the tile
     /// (rows `tr` × columns `tc` of the image) sampled over the tile only, the model and the
     /// residuals there, and the tile's share of the RSS, of each bead's own block and Jᵀr, and
@@ -904,24 +943,14 @@ impl<'a> FitData<'a> {
     fn tile_sums(
         &self,
         p: &[f64],
-        shapes: &[(std::ops::Range<usize>, std::ops::Range<usize>)],
+        shapes: &[Shape],
         tr: std::ops::Range<usize>,
         tc: std::ops::Range<usize>,
         sc: &mut Scratch,
     ) -> TileSums {
         let nx = self.nx();
         let (th, tw) = (tr.len(), tc.len());
-        let cut = |a: &std::ops::Range<usize>, b: &std::ops::Range<usize>| {
-            a.start.max(b.start)..a.end.min(b.end).max(a.start.max(b.start))
-        };
-        // The beads that reach the tile, in index order, with their windows cut to the tile.
-        let mut items: Vec<(usize, std::ops::Range<usize>, std::ops::Range<usize>)> = Vec::new();
-        for (i, (rows, cols)) in shapes.iter().enumerate() {
-            let (r, c) = (cut(rows, &tr), cut(cols, &tc));
-            if !r.is_empty() && !c.is_empty() {
-                items.push((i, r, c));
-            }
-        }
+        let items = tile_items(shapes, &tr, &tc);
         let mut out = TileSums::default();
         if items.is_empty() {
             // No bead: the residual is minus the data.
@@ -941,28 +970,7 @@ impl<'a> FitData<'a> {
             return out;
         }
         let (buf, res) = sc;
-        let total: usize = items.iter().map(|(_, r, c)| r.len() * c.len()).sum();
-        // Every element is written by `sample_window`.
-        buf.resize(6 * total, 0.0);
-        let mut wins: Vec<Window> = Vec::with_capacity(items.len());
-        let mut rest = &mut buf[..6 * total];
-        for (i, rows, cols) in &items {
-            let (s, b) = rest.split_at_mut(6 * rows.len() * cols.len());
-            rest = b;
-            self.sample_window(
-                p[3 * i + 1],
-                p[3 * i + 2],
-                rows.clone(),
-                cols.clone(),
-                &self.mask,
-                s,
-            );
-            wins.push(Window {
-                rows: rows.start - tr.start..rows.end - tr.start,
-                cols: cols.start - tc.start..cols.end - tc.start,
-                s,
-            });
-        }
+        let wins = self.sample_tile(p, &items, &tr, &tc, Some(&self.mask), buf);
         // Model (beads in index order at every pixel), then residuals: model − data where the
         // datum is valid and the channel fitted, 0 elsewhere.
         for r in res.iter_mut() {
@@ -1015,10 +1023,46 @@ impl<'a> FitData<'a> {
         out
     }
 
+    /// The windows of `items` (see [`tile_items`]) sampled into `buf`, with rows and columns
+    /// relative to the tile's first pixel.
+    fn sample_tile<'b>(
+        &self,
+        p: &[f64],
+        items: &[TileItem],
+        tr: &std::ops::Range<usize>,
+        tc: &std::ops::Range<usize>,
+        mask: Option<&[Vec<f64>; 2]>,
+        buf: &'b mut Vec<f64>,
+    ) -> Vec<Window<'b>> {
+        let total: usize = items.iter().map(|(_, r, c)| r.len() * c.len()).sum();
+        // Every element is written by `sample_window`.
+        buf.resize(6 * total, 0.0);
+        let mut wins: Vec<Window> = Vec::with_capacity(items.len());
+        let mut rest = &mut buf[..6 * total];
+        for (i, rows, cols) in items {
+            let (s, b) = rest.split_at_mut(6 * rows.len() * cols.len());
+            rest = b;
+            self.sample_window(
+                p[3 * i + 1],
+                p[3 * i + 2],
+                rows.clone(),
+                cols.clone(),
+                mask,
+                s,
+            );
+            wins.push(Window {
+                rows: rows.start - tr.start..rows.end - tr.start,
+                cols: cols.start - tc.start..cols.end - tc.start,
+                s,
+            });
+        }
+        wins
+    }
+
     /// Samples of the template around a bead at (bx, by) µm over the window `rows` × `cols`
     /// into `out`: six planes of rows.len() × cols.len() (see [`FitData::accumulate`]), zero
     /// where `mask` is 0 (the fit's mask: the channel's datum invalid or the channel not
-    /// fitted). Every element of `out` is written. Derivatives in
+    /// fitted; None: nowhere). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
     ///
     /// On x86-64 CPUs with AVX2 the same code runs compiled for AVX2 + FMA (runtime dispatch;
@@ -1031,7 +1075,7 @@ impl<'a> FitData<'a> {
         by: f64,
         rows: std::ops::Range<usize>,
         cols: std::ops::Range<usize>,
-        mask: &[Vec<f64>; 2],
+        mask: Option<&[Vec<f64>; 2]>,
         out: &mut [f64],
     ) {
         #[cfg(target_arch = "x86_64")]
@@ -1054,7 +1098,7 @@ impl<'a> FitData<'a> {
         by: f64,
         rows: std::ops::Range<usize>,
         cols: std::ops::Range<usize>,
-        mask: &[Vec<f64>; 2],
+        mask: Option<&[Vec<f64>; 2]>,
         out: &mut [f64],
     ) {
         self.sample_window_impl::<true>(bx, by, rows, cols, mask, out)
@@ -1068,7 +1112,7 @@ impl<'a> FitData<'a> {
         by: f64,
         rows: std::ops::Range<usize>,
         cols: std::ops::Range<usize>,
-        mask: &[Vec<f64>; 2],
+        mask: Option<&[Vec<f64>; 2]>,
         out: &mut [f64],
     ) {
         let grid = &self.tpl.grid;
@@ -1118,6 +1162,11 @@ impl<'a> FitData<'a> {
                 // One window row's v-interpolated template columns, both channels and the
                 // v-derivative together: node k = [Sx, Sy, ∂Sx/∂v·h, ∂Sy/∂v·h].
                 let mut vrow = vec![[0.0f64; 4]; width];
+                let ones = if mask.is_none() {
+                    vec![1.0; nc]
+                } else {
+                    Vec::new()
+                };
                 let inv_h = 1.0 / grid.h;
                 for (rr, r) in rows.enumerate() {
                     let sv = grid.grad_stencil_v(self.y[r] - by);
@@ -1150,7 +1199,10 @@ impl<'a> FitData<'a> {
                     kernels::v_pass(&mut vrow, taps, &sv.w, &sv.d);
                     let at = rr * nc;
                     let k0 = r * nx + cols.start;
-                    let (m0, m1) = (&mask[0][k0..k0 + nc], &mask[1][k0..k0 + nc]);
+                    let (m0, m1) = match mask {
+                        Some(m) => (&m[0][k0..k0 + nc], &m[1][k0..k0 + nc]),
+                        None => (&ones[..], &ones[..]),
+                    };
                     let (o0, rest) = out.split_at_mut(npix);
                     let (o1, rest) = rest.split_at_mut(npix);
                     let (o2, rest) = rest.split_at_mut(npix);
@@ -1178,7 +1230,7 @@ impl<'a> FitData<'a> {
                         let e = grid.eval_grad(self.x[c] - bx, v);
                         let at = rr * nc + cc;
                         for ch in 0..2 {
-                            let on = mask[ch][k] != 0.0;
+                            let on = mask.is_none_or(|m| m[ch][k] != 0.0);
                             let z = |v: f64| if on { v } else { 0.0 };
                             out[3 * ch * npix + at] = z(e.v[ch]);
                             out[(3 * ch + 1) * npix + at] = z(e.du[ch]);
@@ -1307,30 +1359,59 @@ impl<'a> FitData<'a> {
             );
             return [a, b];
         }
-        let ones = [vec![1.0; nx * ny], vec![1.0; nx * ny]];
         let ((u0, u1), (v0, v1)) = self.tpl.extent();
-        let wins: Vec<(std::ops::Range<usize>, std::ops::Range<usize>, Vec<f64>)> = p
-            .par_chunks(3)
+        let shapes: Vec<Shape> = p
+            .chunks(3)
             .map(|b| {
-                let rows = self.ay.range(b[2] + v0, b[2] + v1);
-                let cols = self.ax.range(b[1] + u0, b[1] + u1);
-                let mut s = vec![0.0; 6 * rows.len() * cols.len()];
-                self.sample_window(b[1], b[2], rows.clone(), cols.clone(), &ones, &mut s);
-                (rows, cols, s)
+                (
+                    self.ay.range(b[2] + v0, b[2] + v1),
+                    self.ax.range(b[1] + u0, b[1] + u1),
+                )
+            })
+            .collect();
+        // Tile by tile (as `accumulate`), each pixel the sum of the beads in index order.
+        let tiles = tiles(ny, nx);
+        let parts: Vec<[Vec<f64>; 2]> = tiles
+            .par_iter()
+            .map(|(tr, tc)| {
+                let (th, tw) = (tr.len(), tc.len());
+                let mut o = [vec![0.0; th * tw], vec![0.0; th * tw]];
+                let items = tile_items(&shapes, tr, tc);
+                if items.is_empty() {
+                    return o;
+                }
+                let mut sc = self.scratch_take();
+                let wins = self.sample_tile(p, &items, tr, tc, None, &mut sc.0);
+                for ((i, _, _), w) in items.iter().zip(&wins) {
+                    let wi = p[3 * i] * self.inv_f;
+                    if wi == 0.0 {
+                        continue;
+                    }
+                    let nc = w.cols.len();
+                    for (ch, o) in o.iter_mut().enumerate() {
+                        let pl = w.plane(3 * ch);
+                        for (rr, r) in w.rows.clone().enumerate() {
+                            let base = r * tw + w.cols.start;
+                            for (m, s) in o[base..base + nc]
+                                .iter_mut()
+                                .zip(&pl[rr * nc..(rr + 1) * nc])
+                            {
+                                *m += wi * s;
+                            }
+                        }
+                    }
+                }
+                drop(wins);
+                self.scratch_give(sc);
+                o
             })
             .collect();
         let mut out = [Array2::zeros((ny, nx)), Array2::zeros((ny, nx))];
-        for (b, (rows, cols, s)) in p.chunks(3).zip(&wins) {
-            let w = b[0] * self.inv_f;
-            if w == 0.0 {
-                continue;
-            }
-            let (nc, npix) = (cols.len(), s.len() / 6);
+        for ((tr, tc), part) in tiles.iter().zip(&parts) {
             for (ch, o) in out.iter_mut().enumerate() {
-                let pl = &s[3 * ch * npix..(3 * ch + 1) * npix];
-                for (rr, r) in rows.clone().enumerate() {
-                    for (cc, c) in cols.clone().enumerate() {
-                        o[[r, c]] += w * pl[rr * nc + cc];
+                for (rr, r) in tr.clone().enumerate() {
+                    for (cc, c) in tc.clone().enumerate() {
+                        o[[r, c]] = part[ch][rr * tc.len() + cc];
                     }
                 }
             }
@@ -2470,6 +2551,46 @@ mod tests {
                 // Far-apart beads do not couple: beads 4 and 5 (2.35 µm apart in x, windows ±1 µm).
                 assert_eq!(jtj[(12, 15)], 0.0);
             }
+        }
+    }
+
+    #[test]
+    fn tiled_model_images_match_the_template_render() {
+        // 150 × 70 pixels: tiles of 128 × 32 leave partial tiles on both axes; beads straddling
+        // tile borders, one half outside the image, one with zero weight.
+        let tpl = Template::analytic_standin(0.4, 0.02, 1.0).unwrap();
+        let x: Vec<f64> = (0..150).map(|i| 0.1 + i as f64 * 0.05).collect();
+        let y: Vec<f64> = (0..70).map(|i| -0.2 + i as f64 * 0.05).collect();
+        let beads = [
+            (6.5, 1.4, 1.0),
+            (6.47, 1.46, -0.3),
+            (0.2, 0.0, 0.8),
+            (3.3, 3.2, 1.2),
+            (7.6, -0.1, 0.6),
+            (2.0, 2.0, 0.0),
+        ];
+        let [sx, sy, _] = tpl.render(&beads, &x, &y);
+        let (sx, sy) = (
+            Image::new(sx, x.clone(), y.clone()),
+            Image::new(sy, x.clone(), y.clone()),
+        );
+        let d = FitData::new(&sx, &sy, &tpl, &FitOptions::default()).unwrap();
+        let p: Vec<f64> = beads
+            .iter()
+            .flat_map(|&(bx, by, w)| [w * tpl.norm_factor, bx, by])
+            .collect();
+        let [mx, my] = d.model(&p);
+        for (m, r) in [(&mx, &sx.data), (&my, &sy.data)] {
+            let peak = r.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            assert!(peak > 0.1);
+            let worst = m
+                .iter()
+                .zip(r)
+                .fold(0.0f64, |a, (m, r)| a.max((m - r).abs()));
+            assert!(
+                worst <= 1e-12 * peak,
+                "model vs render: {worst:e} of {peak}"
+            );
         }
     }
 
