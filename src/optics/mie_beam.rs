@@ -767,6 +767,87 @@ impl MieBeam {
         self.power
     }
 
+    /// True when the response has the parities of a mirror-symmetric instrument (Sx odd in x
+    /// and even in y, Sy even in x and odd in y, Sz even in both): an ideal QPD (its detection
+    /// rule made of mirror quartets, as [`Detection::mirror_symmetric`]); the beam, polarised
+    /// along x with a radial apodization and a φ rule offset by half a step, always is.
+    pub fn mirror_symmetric(&self) -> bool {
+        self.spec.detector.misalignment.is_none()
+    }
+
+    /// [`Self::response`] at the nodes (xs[i], ys[j]) of a grid in the plane z (row-major, j
+    /// slow), zero where `keep(x, y)` is false. The phases are separable on a grid,
+    /// e^{ik·r} = e^{ik_x x}·e^{i(k_y y + k_z z)}, so they come from tables built once per column
+    /// and once per row — products instead of N + J `sin_cos` per node (the plane's cost) — and
+    /// agree with [`Self::response`]'s to rounding (≲ 1e-15 relative; unit test). Rows in
+    /// parallel.
+    pub fn responses_on_grid(
+        &self,
+        xs: &[f64],
+        ys: &[f64],
+        z: f64,
+        keep: &(dyn Fn(f64, f64) -> bool + Sync),
+    ) -> Result<Vec<[f64; 3]>, OpticsError> {
+        use rayon::prelude::*;
+        for &x in xs {
+            for &y in ys {
+                if keep(x, y) {
+                    self.check_pos(x, y, z)?;
+                }
+            }
+        }
+        let k = self.k;
+        let cis = |a: f64| {
+            let (s, c) = a.sin_cos();
+            C64::new(c, s)
+        };
+        // per column: incident e^{i k_jx x} (J × nx) and detection e^{−ik u_n x} (N × nx)
+        let inc_x: Vec<Vec<C64>> = xs
+            .iter()
+            .map(|&x| self.beam.kin.iter().map(|kj| cis(kj[0] * x)).collect())
+            .collect();
+        let det_x: Vec<Vec<C64>> = xs
+            .iter()
+            .map(|&x| self.rdet.iter().map(|rh| cis(-k * rh[0] * x)).collect())
+            .collect();
+        let rows: Vec<Vec<[f64; 3]>> = ys
+            .par_iter()
+            .map(|&y| {
+                let inc_yz: Vec<C64> = self
+                    .beam
+                    .kin
+                    .iter()
+                    .map(|kj| cis(kj[1] * y + kj[2] * z))
+                    .collect();
+                let det_yz: Vec<C64> = self
+                    .rdet
+                    .iter()
+                    .map(|rh| cis(-k * (rh[1] * y + rh[2] * z)))
+                    .collect();
+                let (mut ar, mut ai, mut det) = (Vec::new(), Vec::new(), Vec::new());
+                xs.iter()
+                    .enumerate()
+                    .map(|(i, &x)| {
+                        if !keep(x, y) {
+                            return [0.0; 3];
+                        }
+                        ar.clear();
+                        ai.clear();
+                        for (a, b) in inc_x[i].iter().zip(&inc_yz) {
+                            let p = a * b;
+                            ar.push(p.re);
+                            ai.push(p.im);
+                        }
+                        det.clear();
+                        det.extend(det_x[i].iter().zip(&det_yz).map(|(a, b)| a * b));
+                        self.eval_phased(&ar, &ai, &det, false).0
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(rows.into_iter().flatten().collect())
+    }
+
     /// (Sx, Sy, Sz) at displacement (x, y, z) µm (sphere − focus), normalised to the beam power
     /// (dimensionless). Errors if a coordinate is non-finite or beyond ±1e4 µm.
     pub fn response(&self, x: f64, y: f64, z: f64) -> Result<[f64; 3], OpticsError> {
@@ -836,9 +917,6 @@ impl MieBeam {
     }
 
     fn eval(&self, x: f64, y: f64, z: f64, grad: bool) -> Grad3 {
-        if let Some(d) = &self.dipole {
-            return self.eval_dipole(d, x, y, z, grad);
-        }
         let nj = self.beam.kin.len();
         let mut ar = Vec::with_capacity(nj);
         let mut ai = Vec::with_capacity(nj);
@@ -847,6 +925,25 @@ impl MieBeam {
             ar.push(c);
             ai.push(s);
         }
+        let k = self.k;
+        let det: Vec<C64> = self
+            .rdet
+            .iter()
+            .map(|rh| {
+                let (ps, pc) = (-k * (rh[0] * x + rh[1] * y + rh[2] * z)).sin_cos();
+                C64::new(pc, ps)
+            })
+            .collect();
+        self.eval_phased(&ar, &ai, &det, grad)
+    }
+
+    /// [`Self::eval`] from the phases at the position: the incident plane waves'
+    /// e^{ik_j·r} = ar + i·ai and the detection directions' e^{−ik r̂_n·r} = `det`.
+    fn eval_phased(&self, ar: &[f64], ai: &[f64], det: &[C64], grad: bool) -> Grad3 {
+        if let Some(d) = &self.dipole {
+            return self.eval_dipole(d, ar, ai, det, grad);
+        }
+        let nj = self.beam.kin.len();
         let (mut bxr, mut bxi, mut byr, mut byi) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         if grad {
             for (j, kj) in self.beam.kin.iter().enumerate() {
@@ -863,18 +960,17 @@ impl MieBeam {
         for (n, (rh, sg)) in self.rdet.iter().zip(&self.sdet).enumerate() {
             let row = n * nj..(n + 1) * nj;
             let (mr, mi) = (&self.m_re[row.clone()], &self.m_im[row.clone()]);
-            let (ps, pc) = (-k * (rh[0] * x + rh[1] * y + rh[2] * z)).sin_cos();
-            let ph = C64::new(pc, ps);
+            let ph = det[n];
             let (val, gx, gy);
             if grad {
                 // ∂/∂x: i (Σ M a k_jx − k u_n Σ M a)
-                let [w, wx, wy] = cdot3(mr, mi, [(&ar, &ai), (&bxr, &bxi), (&byr, &byi)]);
+                let [w, wx, wy] = cdot3(mr, mi, [(ar, ai), (&bxr, &bxi), (&byr, &byi)]);
                 let i = C64::new(0.0, 1.0);
                 val = (ph * w).re;
                 gx = (ph * i * (wx - w * (k * rh[0]))).re;
                 gy = (ph * i * (wy - w * (k * rh[1]))).re;
             } else {
-                val = (ph * cdot(mr, mi, &ar, &ai)).re;
+                val = (ph * cdot(mr, mi, ar, ai)).re;
                 gx = 0.0;
                 gy = 0.0;
             }
@@ -918,11 +1014,18 @@ impl MieBeam {
     /// [`Self::eval`] for the factorised point dipole: the incident field E(r) and, with
     /// `grad`, its x and y derivatives i Σ_j W_j k_jx,y e^{ik_j·r}, then one 3-vector product per
     /// detection node. Same signal and derivative as the pair-matrix path (unit test).
-    fn eval_dipole(&self, d: &DipoleFactors, x: f64, y: f64, z: f64, grad: bool) -> Grad3 {
+    fn eval_dipole(
+        &self,
+        d: &DipoleFactors,
+        ar: &[f64],
+        ai: &[f64],
+        det: &[C64],
+        grad: bool,
+    ) -> Grad3 {
         let zero = C64::new(0.0, 0.0);
         let (mut e, mut ex, mut ey) = ([zero; 3], [zero; 3], [zero; 3]);
         for (j, kj) in self.beam.kin.iter().enumerate() {
-            let (sn, cs) = (kj[0] * x + kj[1] * y + kj[2] * z).sin_cos();
+            let (sn, cs) = (ai[j], ar[j]);
             for c in 0..3 {
                 let t = C64::new(d.w[c][j] * cs, d.w[c][j] * sn);
                 e[c] += t;
@@ -935,9 +1038,7 @@ impl MieBeam {
         let i = C64::new(0.0, 1.0);
         let k = self.k;
         let (mut s, mut dx, mut dy) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-        for ((u, rh), sg) in d.u.iter().zip(&self.rdet).zip(&self.sdet) {
-            let (ps, pc) = (-k * (rh[0] * x + rh[1] * y + rh[2] * z)).sin_cos();
-            let ph = C64::new(pc, ps);
+        for (((u, rh), sg), &ph) in d.u.iter().zip(&self.rdet).zip(&self.sdet).zip(det) {
             let w = u[0] * e[0] + u[1] * e[1] + u[2] * e[2];
             let val = (ph * w).re;
             let (gx, gy) = if grad {
