@@ -129,6 +129,61 @@ def fit_scipy(case, sparse=False):
     return res
 
 
+def keys_kernel(t):
+    """Keys' cubic convolution kernel (a = −1/2), bfpscope's template interpolant."""
+    t = np.abs(t)
+    return np.where(t <= 1, 1.5 * t**3 - 2.5 * t**2 + 1,
+                    np.where(t < 2, -0.5 * t**3 + 2.5 * t**2 - 4 * t + 2, 0.0))
+
+
+def keys_eval(tu, tv, T, du, dv):
+    """The template T (nodes tu × tv, indexed [v, u]) at displacements (du, dv) by Keys' cubic
+    convolution, zero outside the node extent and nodes outside the grid counted as zero —
+    written here independently of bfpscope's Rust code."""
+    h = tu[1] - tu[0]
+    fu, fv = (du - tu[0]) / h, (dv - tv[0]) / h
+    inside = (du >= tu[0]) & (du <= tu[-1]) & (dv >= tv[0]) & (dv <= tv[-1])
+    iu = np.clip(np.floor(fu).astype(int), 0, len(tu) - 2)
+    iv = np.clip(np.floor(fv).astype(int), 0, len(tv) - 2)
+    out = np.zeros_like(du, dtype=float)
+    for b in range(-1, 3):
+        for a in range(-1, 3):
+            ju, jv = iu + a, iv + b
+            ok = (ju >= 0) & (ju < len(tu)) & (jv >= 0) & (jv < len(tv))
+            val = np.where(ok, T[np.clip(jv, 0, len(tv) - 1), np.clip(ju, 0, len(tu) - 1)], 0.0)
+            out += keys_kernel(fu - ju) * keys_kernel(fv - jv) * val
+    return np.where(inside, out, 0.0)
+
+
+def interpolant_check(case, rust_p):
+    """RSS at bfpscope's fitted parameters of (a) the template interpolated by Keys' cubic (an
+    independent numpy version of bfpscope's model) and (b) scipy's bicubic spline, each relative
+    to bfpscope's RSS: (a) ≈ 0 confirms bfpscope's minimum; (b) is how much of scipy's RSS
+    difference comes from its interpolant alone."""
+    d = os.path.join(DIR, case)
+    L = lambda n: np.load(os.path.join(d, n))
+    sx, sy, x, y = L("sx.npy"), L("sy.npy"), L("x.npy"), L("y.npy")
+    tu, tv = L("tpl_u.npy"), L("tpl_v.npy")
+    tpl = (L("tpl_sx.npy"), L("tpl_sy.npy"))
+    rj = json.load(open(os.path.join(d, "rust.json")))
+    inv_f = 1.0 / rj.get("norm_factor", 1.0)
+    tm = TemplateModel(tu, tv, *tpl)
+    xx, yy = np.meshgrid(x, y)
+    out = {}
+    for name in ("keys", "spline"):
+        rss = 0.0
+        for ch, data in enumerate((sx, sy)):
+            m = np.zeros_like(xx)
+            for c, bx, by in rust_p.reshape(-1, 3):
+                if name == "keys":
+                    m += c * inv_f * keys_eval(tu, tv, tpl[ch], xx - bx, yy - by)
+                else:
+                    m += c * inv_f * tm(xx - bx, yy - by)[ch]
+            rss += float(np.sum((m - data) ** 2))
+        out[name] = rss / rj["rss"] - 1.0
+    return out
+
+
 def errors(p, truth):
     beads = p.reshape(-1, 3)
     ep, ew = 0.0, 0.0
@@ -192,6 +247,10 @@ def main():
             print(f"  scipy {kind:<6} {ms:10.1f} ms (median of {n}), nfev {d['nfev']}, ratio {d['ratio']:.0f}x; "
                   f"errors vs truth {d['pos_err_nm']:.2f} nm, {d['weight_err_pct']:.3f} %; "
                   f"RSS/RSS_rust - 1 = {d['rss_rel_diff']:.1e}; max |position difference| {d['max_pos_diff_nm']:.3f} nm")
+        ic = interpolant_check(c, rust_p)
+        row["interpolant_check"] = ic
+        print(f"  at bfpscope's parameters: RSS/RSS_rust - 1 = {ic['keys']:.1e} with Keys' cubic (numpy), "
+              f"{ic['spline']:.1e} with scipy's spline (the interpolants' difference)")
         best = min(("dense", "sparse"), key=lambda k: row["scipy_" + k]["ms"])
         row["best_scipy"] = best
         row["ratio"] = row["scipy_" + best]["ratio"]

@@ -789,11 +789,27 @@ impl MieBeam {
         keep: &(dyn Fn(f64, f64) -> bool + Sync),
     ) -> Result<Vec<[f64; 3]>, OpticsError> {
         use rayon::prelude::*;
+        // the checks of `response`: every coordinate in range, and the farthest node kept
+        // within the grids' reach
+        for &x in xs {
+            check_range("x", x, -1e4, 1e4)?;
+        }
+        for &y in ys {
+            check_range("y", y, -1e4, 1e4)?;
+        }
+        let mut far: Option<(f64, f64, f64)> = None;
         for &x in xs {
             for &y in ys {
-                if keep(x, y) {
-                    self.check_pos(x, y, z)?;
+                let r2 = x * x + y * y;
+                if far.is_none_or(|f| r2 > f.2) && keep(x, y) {
+                    far = Some((x, y, r2));
                 }
+            }
+        }
+        match far {
+            Some((x, y, _)) => self.check_pos(x, y, z)?,
+            None => {
+                check_range("z", z, -1e4, 1e4)?;
             }
         }
         let k = self.k;
@@ -803,11 +819,11 @@ impl MieBeam {
         };
         // per column: incident e^{i k_jx x} (J × nx) and detection e^{−ik u_n x} (N × nx)
         let inc_x: Vec<Vec<C64>> = xs
-            .iter()
+            .par_iter()
             .map(|&x| self.beam.kin.iter().map(|kj| cis(kj[0] * x)).collect())
             .collect();
         let det_x: Vec<Vec<C64>> = xs
-            .iter()
+            .par_iter()
             .map(|&x| self.rdet.iter().map(|rh| cis(-k * rh[0] * x)).collect())
             .collect();
         let rows: Vec<Vec<[f64; 3]>> = ys

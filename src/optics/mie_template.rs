@@ -356,12 +356,12 @@ impl MieTemplate {
         let xc = |i: usize| (i as f64 - m as f64) * hc;
         let inv_a = 1.0 / self.alpha;
         let at = |x: f64, y: f64| -> Result<[f64; 3], OpticsError> {
-            if x.hypot(y) > r {
+            if !within(x, y, r) {
                 return Ok([0.0; 3]);
             }
             mb.response(x, y, z).map(|s| s.map(|v| v * inv_a))
         };
-        let keep = |x: f64, y: f64| x.hypot(y) <= r;
+        let keep = |x: f64, y: f64| within(x, y, r);
         let grid = |xs: &[f64], ys: &[f64]| -> Result<Vec<[f64; 3]>, OpticsError> {
             Ok(mb
                 .responses_on_grid(xs, ys, z, &keep)?
@@ -414,7 +414,7 @@ impl MieTemplate {
             let y = u0 + b as f64 * h;
             for a in 0..nf {
                 let x = u0 + a as f64 * h;
-                if x.hypot(y) > l {
+                if !within(x, y, l) {
                     continue;
                 }
                 let mut acc = [0.0; 3];
@@ -436,6 +436,20 @@ impl MieTemplate {
             data,
             interp,
         })
+    }
+}
+
+/// x.hypot(y) ≤ r, the same decision, with `hypot` (slow: it was 8 % of a plane) only where
+/// x² + y² is within 1e-9 of r² (the two can differ only in the last bits).
+#[inline]
+fn within(x: f64, y: f64, r: f64) -> bool {
+    let (q, r2) = (x * x + y * y, r * r);
+    if q < r2 * (1.0 - 1e-9) {
+        true
+    } else if q > r2 * (1.0 + 1e-9) {
+        false
+    } else {
+        x.hypot(y) <= r
     }
 }
 
@@ -605,7 +619,7 @@ mod tests {
         let mb = MieBeam::new(&om, 200.0, C64::new(1.572, 0.0), spec).unwrap();
         assert!(!mb.mirror_symmetric());
         let at = |x: f64, y: f64| -> Result<[f64; 3], OpticsError> {
-            if x.hypot(y) > r {
+            if !within(x, y, r) {
                 return Ok([0.0; 3]);
             }
             mb.response(x, y, 0.0)
