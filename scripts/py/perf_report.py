@@ -109,7 +109,9 @@ def row_fit(case, label):
         return (f"{r['rust_ms']:.1f} ms; errors {r['rust_pos_err_nm']:.2f} nm, {r['rust_weight_err_pct']:.3f} %",
                 f"scipy `least_squares` trf: dense {d['ms']:.0f} ms, sparse/lsmr {s['ms']:.0f} ms; "
                 f"RSS within {max(abs(d['rss_rel_diff']), abs(s['rss_rel_diff'])):.0e}, positions within "
-                f"{max(d['max_pos_diff_nm'], s['max_pos_diff_nm']):.3f} nm of ours",
+                f"{max(d['max_pos_diff_nm'], s['max_pos_diff_nm']):.3f} nm of ours"
+                + (f" (scipy's spline interpolant alone, at our parameters: {r['interpolant_check']['spline']:+.0e})"
+                   if r.get("interpolant_check") else ""),
                 f"{verdict} than scipy's faster set-up ({r['best_scipy']}); {d['ratio']:.0f}× vs dense{target}")
     return label, f
 
