@@ -119,7 +119,12 @@ impl ScpiDevice {
     }
 
     /// Means and per-sample standard deviations of n samples, volts.
+    ///
+    /// In real time (`cfg.realtime`) the reply comes the acquisition time n / rate after the
+    /// command, as a digitiser's: the emulator's own work (the scene at the stage position, the
+    /// samples' noise) happens within that time, not before it.
     fn measure(&mut self) -> [f64; 6] {
+        let started = std::time::Instant::now();
         let p = *lock(&self.position);
         let s = (self.source)(p);
         let n = self.count.max(1);
@@ -151,7 +156,8 @@ impl ScpiDevice {
         if self.cfg.realtime {
             let t = (n as f64 / self.cfg.sample_rate_hz).min(10.0);
             if t > 0.0 && t.is_finite() {
-                std::thread::sleep(std::time::Duration::from_secs_f64(t));
+                let left = std::time::Duration::from_secs_f64(t).saturating_sub(started.elapsed());
+                std::thread::sleep(left);
             }
         }
         out
