@@ -1603,18 +1603,21 @@ impl<'a> FitData<'a> {
             Some(_) => chi2 + np as f64 * mf.ln(),
             None => mf * (rss.max(1e-300) / mf).ln() + np as f64 * mf.ln(),
         };
-        let condition = scaled_condition(jtj);
+        // The condition number and the covariance are independent O(n³) steps: computed side by
+        // side (the covariance is dropped if the problem is ill-conditioned).
+        let (condition, cov) = rayon::join(
+            || scaled_condition(jtj),
+            || {
+                jtj.clone()
+                    .cholesky()
+                    .map(|c| c.inverse() * (sigma * sigma))
+            },
+        );
         let ill = !(condition <= opts.cond_limit);
         if ill {
             degeneracies.push(Degeneracy::IllConditioned { condition });
         }
-        let cov = if ill {
-            None
-        } else {
-            jtj.clone()
-                .cholesky()
-                .map(|c| c.inverse() * (sigma * sigma))
-        };
+        let cov = if ill { None } else { cov };
         let beads_out: Vec<Bead> = (0..nb)
             .map(|i| {
                 let e = |k: usize| {
