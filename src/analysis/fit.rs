@@ -818,21 +818,67 @@ impl<'a> FitData<'a> {
         !self.ax.range(x + u0, x + u1).is_empty() && !self.ay.range(y + v0, y + v1).is_empty()
     }
 
+    /// Each bead's window at parameters p = [C, x, y]ᵢ: the pixel rows and columns within the
+    /// template's extent around it.
+    fn windows(&self, p: &[f64]) -> Vec<Shape> {
+        let ((u0, u1), (v0, v1)) = self.tpl.extent();
+        p.chunks(3)
+            .map(|b| {
+                (
+                    self.ay.range(b[2] + v0, b[2] + v1),
+                    self.ax.range(b[1] + u0, b[1] + u1),
+                )
+            })
+            .collect()
+    }
+
+    /// Adds the model of a tile's windows (`items`, `wins`; see [`FitData::sample_tile`]) to
+    /// `out`, the tile's images of the channels `chans` (tw columns), beads in index order at
+    /// every pixel; beads of weight zero add nothing.
+    fn add_model(
+        &self,
+        p: &[f64],
+        items: &[TileItem],
+        wins: &[Window],
+        chans: &[usize],
+        tw: usize,
+        out: &mut [Vec<f64>; 2],
+    ) {
+        for ((i, _, _), w) in items.iter().zip(wins) {
+            let wi = p[3 * i] * self.inv_f;
+            if wi == 0.0 {
+                continue;
+            }
+            let nc = w.cols.len();
+            for &ch in chans {
+                let plane = w.plane(3 * ch);
+                for (rr, r) in w.rows.clone().enumerate() {
+                    let base = r * tw + w.cols.start;
+                    let m = &mut out[ch][base..base + nc];
+                    for (m, s) in m.iter_mut().zip(&plane[rr * nc..(rr + 1) * nc]) {
+                        *m += wi * s;
+                    }
+                }
+            }
+        }
+    }
+
     /// Accumulate RSS, JᵀJ and Jᵀr at parameters p = [C, x, y]ᵢ.
     ///
-    /// Bead-major and block-sparse. Each bead's window (the pixels within the template's extent)
-    /// is sampled into six contiguous planes — Sx, ∂Sx/∂u, ∂Sx/∂v, Sy, ∂Sy/∂u, ∂Sy/∂v, each
-    /// zero where that channel's datum is invalid or the channel is not fitted — by a separable
-    /// Keys cubic ([`TplPlanes`]): per window row, the four-tap v-stencil over the template
-    /// columns the window reaches (contiguous, vectorised), then per pixel the four-tap
-    /// u-stencil. The model image is the sum of the windows in bead order; JᵀJ is filled block
-    /// by block: a bead's own 3 × 3 block and its Jᵀr from its window, a pair's off-diagonal
-    /// block only from the overlap of the two windows (beads whose windows do not overlap do not
-    /// couple, their block is zero), all as dot products over contiguous rows with four
-    /// accumulators. The work is O(beads × window pixels + overlaps), spread over the cores
-    /// (rayon) bead by bead and pair by pair. The sums run in another order than the
-    /// pixel-major reference, so the results agree with it to rounding (≲ 1e-13 relative,
-    /// tested), not bit for bit.
+    /// Tile by tile and block-sparse ([`FitData::tile_sums`], tiles of [`TILE_ROWS`] ×
+    /// [`TILE_COLS`] pixels, in parallel). In each tile, the window of every bead that reaches it
+    /// (the pixels within the template's extent, cut to the tile) is sampled into six contiguous
+    /// planes — Sx, ∂Sx/∂u, ∂Sx/∂v, Sy, ∂Sy/∂u, ∂Sy/∂v, each zero where that channel's datum is
+    /// invalid or the channel is not fitted — by a separable Keys cubic ([`TplPlanes`],
+    /// [`kernels`]): per window row the four-tap v-stencil over the template columns the window
+    /// reaches, then per pixel the four-tap u-stencil. The tile's model is the sum of its windows
+    /// in bead order; its share of JᵀJ comes block by block: a bead's own 3 × 3 block and its Jᵀr,
+    /// and a pair's off-diagonal block only where the two windows overlap (beads whose windows
+    /// never overlap do not couple: their block is zero), all as dot products over contiguous
+    /// rows with four accumulators. The tiles' parts are summed in tile order (the same result
+    /// for any number of threads). The work is O(beads × window pixels + overlaps). The sums run
+    /// in another order than the pixel-major reference, so the results agree with it to rounding
+    /// (≲ 1e-13 relative, tested), not bit for bit.
     fn accumulate(&self, p: &[f64]) -> (f64, DMatrix<f64>, DVector<f64>) {
         #[cfg(test)]
         if self.reference {
@@ -841,17 +887,8 @@ impl<'a> FitData<'a> {
         use rayon::prelude::*;
         let nb = p.len() / 3;
         let np = p.len();
-        let ((u0, u1), (v0, v1)) = self.tpl.extent();
         let nx = self.nx();
-        let shapes: Vec<Shape> = (0..nb)
-            .map(|i| {
-                let (bx, by) = (p[3 * i + 1], p[3 * i + 2]);
-                (
-                    self.ay.range(by + v0, by + v1),
-                    self.ax.range(bx + u0, bx + u1),
-                )
-            })
-            .collect();
+        let shapes = self.windows(p);
         let ny = self.y.len();
         let outs: Vec<TileSums> = tiles(ny, nx)
             .par_iter()
@@ -977,20 +1014,7 @@ impl<'a> FitData<'a> {
             r.clear();
             r.resize(th * tw, 0.0);
         }
-        for ((i, _, _), w) in items.iter().zip(&wins) {
-            let wi = p[3 * i] * self.inv_f;
-            let nc = w.cols.len();
-            for &ch in self.chans {
-                let plane = w.plane(3 * ch);
-                for (rr, r) in w.rows.clone().enumerate() {
-                    let base = r * tw + w.cols.start;
-                    let m = &mut res[ch][base..base + nc];
-                    for (m, s) in m.iter_mut().zip(&plane[rr * nc..(rr + 1) * nc]) {
-                        *m += wi * s;
-                    }
-                }
-            }
-        }
+        self.add_model(p, &items, &wins, self.chans, tw, res);
         for &ch in self.chans {
             let mut acc = [0.0; 4];
             for r in 0..th {
@@ -1359,16 +1383,7 @@ impl<'a> FitData<'a> {
             );
             return [a, b];
         }
-        let ((u0, u1), (v0, v1)) = self.tpl.extent();
-        let shapes: Vec<Shape> = p
-            .chunks(3)
-            .map(|b| {
-                (
-                    self.ay.range(b[2] + v0, b[2] + v1),
-                    self.ax.range(b[1] + u0, b[1] + u1),
-                )
-            })
-            .collect();
+        let shapes = self.windows(p);
         // Tile by tile (as `accumulate`), each pixel the sum of the beads in index order.
         let tiles = tiles(ny, nx);
         let parts: Vec<[Vec<f64>; 2]> = tiles
@@ -1382,25 +1397,7 @@ impl<'a> FitData<'a> {
                 }
                 let mut sc = self.scratch_take();
                 let wins = self.sample_tile(p, &items, tr, tc, None, &mut sc.0);
-                for ((i, _, _), w) in items.iter().zip(&wins) {
-                    let wi = p[3 * i] * self.inv_f;
-                    if wi == 0.0 {
-                        continue;
-                    }
-                    let nc = w.cols.len();
-                    for (ch, o) in o.iter_mut().enumerate() {
-                        let pl = w.plane(3 * ch);
-                        for (rr, r) in w.rows.clone().enumerate() {
-                            let base = r * tw + w.cols.start;
-                            for (m, s) in o[base..base + nc]
-                                .iter_mut()
-                                .zip(&pl[rr * nc..(rr + 1) * nc])
-                            {
-                                *m += wi * s;
-                            }
-                        }
-                    }
-                }
+                self.add_model(p, &items, &wins, &[0, 1], tw, &mut o);
                 drop(wins);
                 self.scratch_give(sc);
                 o
