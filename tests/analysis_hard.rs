@@ -408,7 +408,10 @@ fn negative_or_zero_sensitivity_before_a_square_root() {
     assert!(e.to_string().contains("sens_corr = -0.02"), "{e}");
     // each refusal names the argument, its value and the allowed range
     let e = fibril_diameter_nm(f64::NAN, 58.6).unwrap_err().to_string();
-    assert!(e.starts_with("sens_corr = NaN is out of range: sens_corr ≥ 0"), "{e}");
+    assert!(
+        e.starts_with("sens_corr = NaN is out of range: sens_corr ≥ 0"),
+        "{e}"
+    );
     let e = fibril_diameter_nm(1.0, -1.0).unwrap_err().to_string();
     assert_eq!(e, "a_nm = -1 is out of range: a_nm > 0 (finite)");
     // A bead-model sensitivity that is zero or negative cannot calibrate A.

@@ -140,14 +140,39 @@ fn a_misspelled_table_is_refused_never_ignored() {
     // the file, the table, its line and the nearest known name
     let d = tmp("config_typos");
     for (text, word, nearest, line) in [
-        ("[saftey]\nsoft_limits = { x = [-2.0, 2.0] }\n", "saftey", "safety", 1),
-        ("# stage\n[stagee]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n", "stagee", "stage", 2),
-        ("[Stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n", "Stage", "stage", 1),
-        ("[optics]\nwavelenght_nm = 800\n", "optics.wavelenght_nm", "wavelength_nm", 2),
+        (
+            "[saftey]\nsoft_limits = { x = [-2.0, 2.0] }\n",
+            "saftey",
+            "safety",
+            1,
+        ),
+        (
+            "# stage\n[stagee]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n",
+            "stagee",
+            "stage",
+            2,
+        ),
+        (
+            "[Stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n",
+            "Stage",
+            "stage",
+            1,
+        ),
+        (
+            "[optics]\nwavelenght_nm = 800\n",
+            "optics.wavelenght_nm",
+            "wavelength_nm",
+            2,
+        ),
     ] {
         let cfg = d.join("bfpscope.toml");
         std::fs::write(&cfg, text).unwrap();
-        let (code, out, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "status().backend"]);
+        let (code, out, err) = run(&[
+            "--config",
+            cfg.to_str().unwrap(),
+            "eval",
+            "status().backend",
+        ]);
         assert_eq!(code, 2, "{text}: {out}{err}");
         assert!(out.is_empty(), "nothing ran: {out}");
         let unknown = word.rsplit('.').next().unwrap();

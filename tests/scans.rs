@@ -461,7 +461,11 @@ fn autosave_numbering_never_overwrites() {
         e.to_string(),
         format!("{} exists; scans are never overwritten", target.display())
     );
-    assert_eq!(std::fs::read(&target).unwrap(), before, "the file was left as it was");
+    assert_eq!(
+        std::fs::read(&target).unwrap(),
+        before,
+        "the file was left as it was"
+    );
 }
 
 #[test]

@@ -229,7 +229,9 @@ fn repl_lines_keep_functions_and_variables() {
     // an error does not lose earlier definitions
     let e = w.eval_line("sq(").unwrap_err().to_string();
     assert!(
-        e.ends_with("syntax error: Expecting ')' to close the arguments list of this function call 'sq'"),
+        e.ends_with(
+            "syntax error: Expecting ')' to close the arguments list of this function call 'sq'"
+        ),
         "{e}"
     );
     let e = w.eval_line("nope()").unwrap_err().to_string();

@@ -57,6 +57,11 @@
 //! (min_separation·w0)² patch of the scanned area and the fit needs more residuals than
 //! parameters.
 
+mod lm;
+
+pub use lm::FitStatus;
+use lm::{levenberg_marquardt, scaled_condition, RawFit, Tolerances};
+
 use super::sensitivity::{sensitivity, Axis, Stencil};
 use super::template::Template;
 use super::{check_above, check_axis, check_range, AnalysisError, AxisMap, Result};
@@ -242,18 +247,6 @@ pub struct Bead {
     pub x_err: Option<f64>,
     pub y_err: Option<f64>,
     pub weight_err: Option<f64>,
-}
-
-/// How the optimiser stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum FitStatus {
-    /// ftol/xtol/gtol met or residuals zero.
-    Converged,
-    /// Evaluation budget (patience) exhausted.
-    MaxEvaluations,
-    /// Numerical failure or tolerances below machine precision (see `reason`).
-    Failed,
 }
 
 /// A degeneracy found in the fit.
@@ -1419,7 +1412,13 @@ impl<'a> FitData<'a> {
     /// One LM run from `init` (see [`levenberg_marquardt`]).
     fn run_lm(&self, init: &[BeadInit], opts: &FitOptions) -> Result<RawFit> {
         let x0: Vec<f64> = init.iter().flat_map(|b| [b.weight, b.x, b.y]).collect();
-        let raw = levenberg_marquardt(|p| self.accumulate(p), x0, opts);
+        let tol = Tolerances {
+            ftol: opts.ftol,
+            xtol: opts.xtol,
+            gtol: opts.gtol,
+            patience: opts.patience,
+        };
+        let raw = levenberg_marquardt(|p| self.accumulate(p), x0, &tol);
         if raw.p.iter().any(|v| !v.is_finite()) {
             return Err(AnalysisError::Failed(format!(
                 "the optimiser returned non-finite parameters ({})",
@@ -2055,313 +2054,6 @@ fn merge_pair(a: BeadInit, b: BeadInit) -> BeadInit {
             weight: 0.0,
         }
     }
-}
-
-struct RawFit {
-    p: Vec<f64>,
-    status: FitStatus,
-    reason: String,
-    iterations: usize,
-    evaluations: usize,
-    /// RSS and JᵀJ at `p` (the last accepted evaluation).
-    rss: f64,
-    jtj: DMatrix<f64>,
-}
-
-/// Condition number of D⁻¹AD⁻¹ with D = √diag(A) (1e300 when singular).
-fn scaled_condition(a: &DMatrix<f64>) -> f64 {
-    let n = a.nrows();
-    if n == 0 {
-        return 1.0;
-    }
-    let d: Vec<f64> = (0..n).map(|i| a[(i, i)].max(0.0).sqrt()).collect();
-    if d.iter().any(|&v| !(v > 0.0)) {
-        return 1e300;
-    }
-    let s = DMatrix::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
-    let ev = s.symmetric_eigenvalues();
-    let (lo, hi) = ev
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-            (l.min(v), h.max(v))
-        });
-    if !(lo > 0.0) || !hi.is_finite() {
-        1e300
-    } else {
-        (hi / lo).min(1e300)
-    }
-}
-
-/// Levenberg–Marquardt on the normal equations: minimise ‖r(p)‖² given, at any p, the
-/// Gauss–Newton matrix A = JᵀJ, the gradient g = Jᵀr and the RSS ‖r‖² (`eval`; a non-finite
-/// RSS or A means the point is refused). Each step solves
-/// (A + λ·D²) δ = −g by a Cholesky factorisation ([`solve_damped`]), with Moré's scaling
-/// Dⱼ = max over the iterates of √Aⱼⱼ (the column norms of J; 1 for a column that has always been
-/// zero). The step is accepted when its gain ratio ρ = actual / predicted reduction of the RSS is
-/// at least 1e-4; then λ ← λ·max(1/3, 1 − (2ρ − 1)³), else λ ← λ·ν, ν ← 2ν (Nielsen's rule,
-/// λ₀ = 1e-3, i.e. the first step is nearly Gauss–Newton). The stopping tests are MINPACK's
-/// (`lmder`, the ones the `levenberg-marquardt` crate used before):
-/// - gtol: maxⱼ |gⱼ| / (√Aⱼⱼ ‖r‖) ≤ gtol at an accepted point (gradient orthogonal to the
-///   residuals);
-/// - ftol: the relative actual reduction 1 − ‖r₊‖²/‖r‖² and the predicted one
-///   (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² both ≤ ftol (and ρ ≤ 2);
-/// - xtol: ‖Dδ‖ ≤ xtol·‖Dp‖;
-/// - residuals exactly zero;
-/// - the evaluation budget patience × (n + 1);
-/// - the same tests at machine precision when the tolerances are below it: `Failed`, "no
-///   further improvement possible".
-///
-/// One evaluation per trial step; the last accepted one is returned with the result (RSS and A at
-/// the solution, for the statistics). `iterations` counts accepted points (including the
-/// initial one).
-fn levenberg_marquardt(
-    mut eval: impl FnMut(&[f64]) -> (f64, DMatrix<f64>, DVector<f64>),
-    mut p: Vec<f64>,
-    opts: &FitOptions,
-) -> RawFit {
-    let n = p.len();
-    let max_eval = opts.patience.saturating_mul(n + 1);
-    let eps = f64::EPSILON;
-    let finite = |rss: f64, a: &DMatrix<f64>, g: &DVector<f64>| {
-        rss.is_finite() && a.iter().all(|v| v.is_finite()) && g.iter().all(|v| v.is_finite())
-    };
-    let (mut rss, mut a, mut g) = eval(&p);
-    let (mut nres, mut njac) = (1usize, 1usize);
-    let done = |p: Vec<f64>, status, reason: String, njac, nres, rss, jtj| RawFit {
-        p,
-        status,
-        reason,
-        iterations: njac,
-        evaluations: nres,
-        rss,
-        jtj,
-    };
-    if !finite(rss, &a, &g) {
-        return done(
-            p,
-            FitStatus::Failed,
-            "non-finite residuals or Jacobian at the initial parameters".into(),
-            njac,
-            nres,
-            rss,
-            a,
-        );
-    }
-    let mut dscale = vec![0.0f64; n];
-    let mut lambda = 1e-3;
-    let mut nu = 2.0;
-    loop {
-        // Moré's scaling and the gradient test at the accepted point.
-        let fnorm = rss.sqrt();
-        if rss == 0.0 {
-            return done(
-                p,
-                FitStatus::Converged,
-                "residuals are zero".into(),
-                njac,
-                nres,
-                rss,
-                a,
-            );
-        }
-        let mut gnorm = 0.0f64;
-        for j in 0..n {
-            let c = a[(j, j)].max(0.0).sqrt();
-            if c > 0.0 {
-                gnorm = gnorm.max(g[j].abs() / (c * fnorm));
-            }
-            dscale[j] = dscale[j].max(c);
-            if dscale[j] == 0.0 {
-                dscale[j] = 1.0;
-            }
-        }
-        if gnorm <= opts.gtol {
-            return done(
-                p,
-                FitStatus::Converged,
-                "converged (gradient orthogonal to residuals, gtol)".into(),
-                njac,
-                nres,
-                rss,
-                a,
-            );
-        }
-        if gnorm <= eps {
-            return done(
-                p,
-                FitStatus::Failed,
-                "no further improvement possible: gtol is below machine precision".into(),
-                njac,
-                nres,
-                rss,
-                a,
-            );
-        }
-        let d2: Vec<f64> = dscale.iter().map(|d| d * d).collect();
-        let xnorm = p
-            .iter()
-            .zip(&dscale)
-            .map(|(x, d)| (x * d).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        // Trial steps until one is accepted or a test stops.
-        loop {
-            let Some(delta) = solve_damped(&a, lambda, &d2, &g) else {
-                // Not positive definite to rounding: more damping, no evaluation spent.
-                lambda = (lambda * nu).max(1e-12);
-                nu *= 2.0;
-                if !(lambda < 1e300) {
-                    return done(
-                        p,
-                        FitStatus::Failed,
-                        "the damped normal equations could not be factorised".into(),
-                        njac,
-                        nres,
-                        rss,
-                        a,
-                    );
-                }
-                continue;
-            };
-            let pnorm = delta
-                .iter()
-                .zip(&dscale)
-                .map(|(x, d)| (x * d).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            let trial: Vec<f64> = p.iter().zip(&delta).map(|(x, d)| x + d).collect();
-            let (rss1, a1, g1) = eval(&trial);
-            nres += 1;
-            let ok = finite(rss1, &a1, &g1);
-            let actred = if ok && 0.1 * rss1.sqrt() < fnorm {
-                1.0 - rss1 / rss
-            } else {
-                -1.0
-            };
-            // Predicted relative reduction: (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² (δ solves the damped system).
-            let mut dad = 0.0;
-            for i in 0..n {
-                let mut s = 0.0;
-                for j in 0..n {
-                    s += a[(i, j)] * delta[j];
-                }
-                dad += delta[i] * s;
-            }
-            let prered = (dad.max(0.0) + 2.0 * lambda * pnorm * pnorm) / rss;
-            let ratio = if prered != 0.0 { actred / prered } else { 0.0 };
-            let accepted = ratio >= 1e-4;
-            if accepted {
-                p = trial;
-                (rss, a, g) = (rss1, a1, g1);
-                njac += 1;
-                lambda *= (1.0 - (2.0 * ratio - 1.0).powi(3)).max(1.0 / 3.0);
-                nu = 2.0;
-            } else {
-                lambda *= nu;
-                nu *= 2.0;
-            }
-            let ftol_met = actred.abs() <= opts.ftol && prered <= opts.ftol && 0.5 * ratio <= 1.0;
-            let xtol_met = pnorm <= opts.xtol * xnorm;
-            if ftol_met || xtol_met {
-                return done(
-                    p,
-                    FitStatus::Converged,
-                    format!("converged (ftol: {ftol_met}, xtol: {xtol_met})"),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if nres >= max_eval {
-                return done(
-                    p,
-                    FitStatus::MaxEvaluations,
-                    format!("evaluation budget exhausted ({nres} evaluations)"),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if actred.abs() <= eps && prered <= eps && 0.5 * ratio <= 1.0 {
-                return done(
-                    p,
-                    FitStatus::Failed,
-                    "no further improvement possible: ftol is below machine precision".into(),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if pnorm <= eps * xnorm {
-                return done(
-                    p,
-                    FitStatus::Failed,
-                    "no further improvement possible: xtol is below machine precision".into(),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if accepted {
-                break;
-            }
-        }
-    }
-}
-
-/// δ solving (A + λ·diag(d2)) δ = −g for a symmetric A, by a Cholesky factorisation that skips
-/// the leading zeros of each row (JᵀJ is block-sparse: a row's profile starts at the first bead
-/// its bead's window overlaps, and the factor keeps that profile). None when the matrix is not
-/// positive definite to rounding or the solution is not finite.
-fn solve_damped(a: &DMatrix<f64>, lambda: f64, d2: &[f64], g: &DVector<f64>) -> Option<Vec<f64>> {
-    let n = a.nrows();
-    // A is symmetric: its column-major storage read row-major is A itself.
-    let s = a.as_slice();
-    let first: Vec<usize> = (0..n)
-        .map(|i| (0..i).find(|&j| s[i * n + j] != 0.0).unwrap_or(i))
-        .collect();
-    let mut l = vec![0.0; n * n];
-    for i in 0..n {
-        let fi = first[i];
-        for j in fi..=i {
-            let lo = fi.max(first[j]);
-            let (ri, rj) = (&l[i * n + lo..i * n + j], &l[j * n + lo..j * n + j]);
-            let dot: f64 = ri.iter().zip(rj).map(|(x, y)| x * y).sum();
-            let mut v = s[i * n + j] - dot;
-            if i == j {
-                v += lambda * d2[i];
-                if !(v > 0.0) {
-                    return None;
-                }
-                l[i * n + i] = v.sqrt();
-            } else {
-                l[i * n + j] = v / l[j * n + j];
-            }
-        }
-    }
-    // L y = −g, then Lᵀ δ = y.
-    let mut y = vec![0.0; n];
-    for i in 0..n {
-        let fi = first[i];
-        let dot: f64 = l[i * n + fi..i * n + i]
-            .iter()
-            .zip(&y[fi..i])
-            .map(|(x, y)| x * y)
-            .sum();
-        y[i] = (-g[i] - dot) / l[i * n + i];
-    }
-    for i in (0..n).rev() {
-        y[i] /= l[i * n + i];
-        let yi = y[i];
-        for k in first[i]..i {
-            y[k] -= l[i * n + k] * yi;
-        }
-    }
-    y.iter().all(|v| v.is_finite()).then_some(y)
 }
 
 /// Full residual vector and Jacobian (one row per valid pixel and channel) — the uncompressed

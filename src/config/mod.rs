@@ -1125,27 +1125,36 @@ wavelength_nm = 1064.0
     #[test]
     fn misspelled_tables_are_refused_with_the_nearest_name() {
         // a typo in [safety] must not drop the soft limits silently
-        let e = error_of(
-            "[stage]\nbackend = \"sim\"\n\n[saftey]\nsoft_limits = { x = [-5.0, 5.0] }\n",
-        );
+        let e =
+            error_of("[stage]\nbackend = \"sim\"\n\n[saftey]\nsoft_limits = { x = [-5.0, 5.0] }\n");
         assert_eq!((e.key.as_str(), e.line), ("saftey", Some(4)), "{e}");
         assert!(
-            e.message.starts_with("unknown field `saftey`; did you mean `safety`?"),
+            e.message
+                .starts_with("unknown field `saftey`; did you mean `safety`?"),
             "{e}"
         );
         assert!(e.to_string().starts_with("bfpscope.toml: saftey: "), "{e}");
         // a misspelled or capitalised [stage] naming hardware must not start the simulator
         for (text, word, nearest) in [
-            ("[stagee]\nbackend = \"gcs\"\nport = \"/dev/x\"\n", "stagee", "stage"),
-            ("[Stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\n", "Stage", "stage"),
+            (
+                "[stagee]\nbackend = \"gcs\"\nport = \"/dev/x\"\n",
+                "stagee",
+                "stage",
+            ),
+            (
+                "[Stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\n",
+                "Stage",
+                "stage",
+            ),
             ("[qdp]\nbackend = \"scpi\"\n", "qdp", "qpd"),
             ("[optic]\nwavelength_nm = 800\n", "optic", "optics"),
         ] {
             let e = error_of(text);
             assert_eq!((e.key.as_str(), e.line), (word, Some(1)), "{e}");
             assert!(
-                e.message
-                    .starts_with(&format!("unknown field `{word}`; did you mean `{nearest}`?")),
+                e.message.starts_with(&format!(
+                    "unknown field `{word}`; did you mean `{nearest}`?"
+                )),
                 "{e}"
             );
         }
@@ -1160,10 +1169,30 @@ wavelength_nm = 1064.0
     #[test]
     fn unknown_keys_in_every_table_name_the_nearest() {
         for (text, key, nearest, line) in [
-            ("[sandbox]\nmax_operation = 5\n", "sandbox.max_operation", "max_operations", 2),
-            ("[session]\ndata_dri = \"x\"\n", "session.data_dri", "data_dir", 2),
-            ("\n[optics]\nwavelenght_nm = 800\n", "optics.wavelenght_nm", "wavelength_nm", 3),
-            ("[safety]\nmax_step = 2.0\n", "safety.max_step", "max_step_um", 2),
+            (
+                "[sandbox]\nmax_operation = 5\n",
+                "sandbox.max_operation",
+                "max_operations",
+                2,
+            ),
+            (
+                "[session]\ndata_dri = \"x\"\n",
+                "session.data_dri",
+                "data_dir",
+                2,
+            ),
+            (
+                "\n[optics]\nwavelenght_nm = 800\n",
+                "optics.wavelenght_nm",
+                "wavelength_nm",
+                3,
+            ),
+            (
+                "[safety]\nmax_step = 2.0\n",
+                "safety.max_step",
+                "max_step_um",
+                2,
+            ),
         ] {
             let e = error_of(text);
             assert_eq!((e.key.as_str(), e.line), (key, Some(line)), "{e}");
@@ -1179,7 +1208,10 @@ wavelength_nm = 1064.0
         let c = Config::from_toml_str("[optics]\nwavelength_nm = 800\nbeam = \"paraxial\"\n", "t")
             .unwrap();
         let o = c.optics.resolve().unwrap();
-        assert_eq!((o.wavelength_nm, o.beam), (800.0, crate::optics::Beam::Paraxial));
+        assert_eq!(
+            (o.wavelength_nm, o.beam),
+            (800.0, crate::optics::Beam::Paraxial)
+        );
         // the keys left out keep the defaults
         let d = crate::optics::Optics::default();
         assert_eq!((o.na, o.w0_nm, o.n_medium), (d.na, d.w0_nm, d.n_medium));
@@ -1188,9 +1220,17 @@ wavelength_nm = 1064.0
         assert_eq!(e.message, "na = 2.5 is out of range: 0.01 ≤ na ≤ 1.7");
         let e = error_of("[optics]\nbeam = \"gaussian\"\n");
         assert_eq!(e.key, "optics.beam");
-        assert!(e.message.contains("beam = \"gaussian\" is not a beam model"), "{e}");
+        assert!(
+            e.message
+                .contains("beam = \"gaussian\" is not a beam model"),
+            "{e}"
+        );
         let e = error_of("[sandbox]\nmax_operations = 0\n");
-        assert_eq!((e.key.as_str(), e.line), ("sandbox.max_operations", Some(2)), "{e}");
+        assert_eq!(
+            (e.key.as_str(), e.line),
+            ("sandbox.max_operations", Some(2)),
+            "{e}"
+        );
         let e = error_of("[session]\ndata_dir = \" \"\n");
         assert_eq!(e.key, "session.data_dir");
         // [sandbox] and [session] as read
@@ -1200,7 +1240,10 @@ wavelength_nm = 1064.0
         )
         .unwrap();
         assert_eq!(c.sandbox.max_operations, 1000);
-        assert_eq!(c.sandbox.max_call_levels, Sandbox::default().max_call_levels);
+        assert_eq!(
+            c.sandbox.max_call_levels,
+            Sandbox::default().max_call_levels
+        );
         assert_eq!(c.session.data_dir.as_deref(), Some("/tmp/d"));
     }
 
@@ -1365,12 +1408,12 @@ wavelength_nm = 1064.0
             (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
             (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
         );
-        assert_eq!(
-            (&c.sandbox, &c.session),
-            (&d.sandbox, &d.session)
-        );
+        assert_eq!((&c.sandbox, &c.session), (&d.sandbox, &d.session));
         // the example's [optics] names the default wavelength: the optics are the defaults
-        assert_eq!(c.optics.resolve().unwrap(), crate::optics::Optics::default());
+        assert_eq!(
+            c.optics.resolve().unwrap(),
+            crate::optics::Optics::default()
+        );
     }
 
     const HW: &str =
