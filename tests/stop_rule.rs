@@ -170,15 +170,15 @@ impl Stage for Tap {
     }
 }
 
+/// One 110 nm polystyrene bead at (0.1, 0, 0) µm, no effects: a deterministic scene.
 fn core() -> SimCore {
     let mut scene = Scene::default();
-    scene
-        .add_bead(Bead {
-            pos: [0.1, 0.0, 0.0],
-            d_nm: 110.0,
-            n: 1.572,
-        })
-        .unwrap();
+    let bead = Bead {
+        pos: [0.1, 0.0, 0.0],
+        d_nm: 110.0,
+        n: 1.572,
+    };
+    scene.add_bead(bead).unwrap();
     SimCore::new(&Optics::default(), &scene, SimConfig::default()).unwrap()
 }
 
@@ -230,18 +230,28 @@ struct Outcome {
     emu: Option<Emulated>,
 }
 
-/// Run `plan()` in `mode` on `backend`: Ctrl-C during the `ctrl_c` call (answered by
-/// `answer` when given), the `fail` call failing (simulator) or `reject` rejected by the
-/// emulated controller (word, commands served before it, code).
-fn go(
-    tag: &str,
-    mode: Mode,
-    backend: Backend,
+/// What a run injects.
+#[derive(Default, Clone, Copy)]
+struct Inject {
+    /// Ctrl-C during this stage call (name, count).
     ctrl_c: Option<(&'static str, usize)>,
+    /// The pause question's answer (`None`: no question, Ctrl-C aborts).
     answer: Option<bool>,
+    /// This stage call fails (the simulator).
     fail: Option<(&'static str, usize)>,
-    reject: Option<(&str, usize, i64)>,
-) -> Outcome {
+    /// The emulated controller rejects a command: (word, commands of that word served before
+    /// it, error code).
+    reject: Option<(&'static str, usize, i64)>,
+}
+
+/// Run `plan()` in `mode` on `backend` with what `inj` injects.
+fn go(tag: &str, mode: Mode, backend: Backend, inj: Inject) -> Outcome {
+    let Inject {
+        ctrl_c,
+        answer,
+        fail,
+        reject,
+    } = inj;
     let (mut inst, limits, emu) = instrument(backend);
     if let (Some(e), Some((w, n, code))) = (&emu, reject) {
         e.stage.faults().reject = Some((w.into(), n, code));
@@ -325,17 +335,15 @@ fn moves(cmds: &[String]) -> Vec<&String> {
 
 fn pause_then_resume(mode: Mode, backend: Backend) {
     let what = format!("{mode:?} on {backend:?}");
-    let plain = go("plain", mode, backend, None, None, None, None);
+    let plain = go("plain", mode, backend, Inject::default());
     assert_eq!(plain.run.ended, Ended::Complete, "{what}");
-    let o = go(
-        "resume",
-        mode,
-        backend,
-        Some(mode.ctrl_c_at()),
-        Some(true),
-        None,
-        None,
-    );
+    let ctrl_c = Some(mode.ctrl_c_at());
+    let resume = Inject {
+        ctrl_c,
+        answer: Some(true),
+        ..Inject::default()
+    };
+    let o = go("resume", mode, backend, resume);
     assert_eq!(o.run.ended, Ended::Complete, "{what}");
     // one pause, between steps, after the step during which Ctrl-C came
     assert_eq!(o.pauses.len(), 1, "{what}");
@@ -437,15 +445,12 @@ fn pause_then_resume(mode: Mode, backend: Backend) {
 
 fn pause_then_abort(mode: Mode, backend: Backend) {
     let what = format!("{mode:?} on {backend:?}");
-    let o = go(
-        "abort",
-        mode,
-        backend,
-        Some(mode.ctrl_c_at()),
-        Some(false),
-        None,
-        None,
-    );
+    let abort = Inject {
+        ctrl_c: Some(mode.ctrl_c_at()),
+        answer: Some(false),
+        ..Inject::default()
+    };
+    let o = go("abort", mode, backend, abort);
     let measured = mode.measured_at_stop();
     assert_eq!(o.run.ended, Ended::Aborted { measured }, "{what}");
     assert_eq!(o.run.scan.status, ScanStatus::Aborted, "{what}");
@@ -485,7 +490,12 @@ fn stage_fault(mode: Mode, backend: Backend) {
         (Backend::Emulated, Mode::Points) => (None, Some(("MOV", 10, 7))),
         (Backend::Emulated, Mode::Raster) => (None, Some(("DRR?", 2, 77))),
     };
-    let o = go("fault", mode, backend, None, None, fail, reject);
+    let inj = Inject {
+        fail,
+        reject,
+        ..Inject::default()
+    };
+    let o = go("fault", mode, backend, inj);
     let measured = match mode {
         Mode::Points => 10,
         Mode::Raster => 2 * NX,

@@ -117,9 +117,10 @@ impl LineStrategy {
             return Ok(());
         };
         self.ph.configured = None;
-        self.stopped = true;
         let q = inst.qpd.stop_buffered().err();
         let st = inst.stage.stop_line(&s).err();
+        // a stop that failed is sent again at the end of the scan
+        self.stopped = st.is_none();
         match (q, st) {
             (_, Some(e)) => Err(format!(
                 "stopping the wave generator and the axes failed too: {e}"

@@ -1,9 +1,9 @@
 //! Point by point: at every pixel move the stage, wait the settle time, average the QPD over
 //! the dwell. A step is one point; the engine pauses between points.
 //!
-//! Pre-flight beyond the engine's: the speed between consecutive points, distance / (settle
-//! + dwell), against `[safety] max_speed_um_s`. ETA per point: settle + dwell, plus on
-//! hardware the mean move time and the QPD's time beyond its samples measured so far (link
+//! Pre-flight beyond the engine's: the speed between consecutive points, distance divided by
+//! (settle + dwell), against `[safety] max_speed_um_s`. ETA per point: settle and dwell, and
+//! on hardware the mean move time and the QPD's time beyond its samples measured so far (link
 //! included). On a real-time instrument the metadata has `time.phases`: milliseconds per
 //! point spent moving, settling and reading the QPD, and per command what the links carried.
 
