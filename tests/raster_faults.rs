@@ -1,10 +1,11 @@
 //! Hardware-timed rasters through the engine (`acquire::raster::run_raster`) on the emulated
 //! PI stage (GCS over a pseudo-terminal or loopback TCP) and Red Pitaya board (loopback TCP),
 //! OUT1 wired to the board's external trigger: a complete raster images the simulated scene,
-//! and each fault of issue 21 (Ctrl-C mid-line, a silent digitiser, a trigger that never
-//! comes, a data-recorder read that fails) ends with the wave generator off (`WGO 1 0`), the
-//! axes stopped (`STP`), no motion after the stop, the completed lines in the autosaved file
-//! and a message naming the device, the command and the reply.
+//! and each fault of issue 21 (a silent digitiser, a trigger that never comes, a data-recorder
+//! read that fails) ends with the wave generator off (`WGO 1 0`), the axes stopped (`STP`), no
+//! motion after the stop, the completed lines in the autosaved file and a message naming the
+//! device, the command and the reply; Ctrl-C mid-line finishes the line first (the stop rule
+//! of every mode: tests/stop_rule.rs).
 
 use bfpscope::acquire::raster::{run_raster, RasterOptions};
 use bfpscope::acquire::{Axis, Ended, Plan, ScanEnv, ScanError, ScanRun, SoftLimits, Sweep};
@@ -220,8 +221,11 @@ fn failure(r: Result<ScanRun, ScanError>, done_pixels: usize) -> String {
     }
 }
 
+/// Ctrl-C during a line (a script: no pause question, Ctrl-C aborts): the line is finished
+/// and kept, then the board, the generator and the axes are stopped; an absolute raster stays
+/// where it stopped (a relative one returns: tests/stop_rule.rs).
 #[test]
-fn ctrl_c_mid_line_stops_the_generator_and_the_axes_and_keeps_the_lines_done() {
+fn ctrl_c_mid_line_finishes_the_line_then_stops_the_generator_and_the_axes() {
     // 5 ms per pixel: a line of 16 pixels lasts over 80 ms; Ctrl-C during the third
     let (_core, mut e) = setup(EmulatedStageLink::Pty, 0.002);
     let abort = Arc::new(AtomicBool::new(false));
@@ -234,13 +238,18 @@ fn ctrl_c_mid_line_stops_the_generator_and_the_axes_and_keeps_the_lines_done() {
     assert_eq!(
         r.ended,
         Ended::Aborted {
-            measured: 2 * NX as usize
+            measured: 3 * NX as usize
         }
     );
     assert_stopped_after_line(&e.stage, 3);
+    // the third line's recorder read before the stop
+    let log = e.stage.commands();
+    let drr = log.iter().rposition(|c| c.starts_with("DRR? ")).unwrap();
+    let stp = log.iter().rposition(|c| c == "STP").unwrap();
+    assert!(drr < stp, "{:?}", &log[drr..]);
     assert!(e.qpd.commands().iter().any(|c| c == "ACQ:STOP"));
     assert_at_rest(&mut e);
-    assert_file(&path, 2, ScanStatus::Aborted);
+    assert_file(&path, 3, ScanStatus::Aborted);
 }
 
 #[test]

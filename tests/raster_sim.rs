@@ -314,10 +314,11 @@ impl ScanObserver for CtrlCAfter<'_> {
     fn ended(&self, _: &Scan, _: Option<&std::path::Path>) {}
 }
 
-/// Ctrl-C between lines: the completed lines are kept, the rest NaN, status aborted, and a
-/// relative raster does not return to its start (no motion after Ctrl-C).
+/// Ctrl-C between lines (no pause question: a script's Ctrl-C aborts): the completed lines
+/// are kept, the rest NaN, status aborted, and a relative raster returns to its start after
+/// the wave generator was stopped (the stop rule of every mode, tests/stop_rule.rs).
 #[test]
-fn ctrl_c_keeps_the_completed_lines_and_moves_nothing_more() {
+fn ctrl_c_keeps_the_completed_lines_and_returns_a_relative_raster_to_its_start() {
     let sc = scene(false);
     let r = Run::new();
     let obs = CtrlCAfter {
@@ -326,6 +327,7 @@ fn ctrl_c_keeps_the_completed_lines_and_moves_nothing_more() {
         abort: &r.abort,
     };
     let mut inst = instrument(&sc);
+    let start = inst.stage.target().unwrap();
     let run = r
         .go(
             &mut inst,
@@ -336,19 +338,21 @@ fn ctrl_c_keeps_the_completed_lines_and_moves_nothing_more() {
         .unwrap();
     assert_eq!(run.ended, Ended::Aborted { measured: 33 });
     assert_eq!(run.scan.status, ScanStatus::Aborted);
-    assert!(!run.returned_to_start);
     for row in 0..11 {
         let measured = run.scan.sx.data.row(row).iter().all(|v| v.is_finite());
         let empty = run.scan.sx.data.row(row).iter().all(|v| v.is_nan());
         assert!(if row < 3 { measured } else { empty }, "row {row}");
     }
-    // the stage is where the third line's wave ended (row 3: y = −0.5 + 2 · 0.1 µm), beyond
-    // the field's +x edge
-    let at = inst.stage.position().unwrap();
-    assert!(at[0] > 0.5 && (at[1] - (-0.3)).abs() < 1e-12, "{at:?}");
+    // the stop after the third line, then the return
+    assert!(run.returned_to_start);
+    assert_eq!(inst.stage.target().unwrap(), start);
+    assert_eq!(
+        run.scan.meta["stop"],
+        "the wave generator and the axes were stopped after row 3"
+    );
     let msg = run.summary().unwrap_err();
     assert!(
-        msg.contains("aborted (Ctrl-C) after 33 of 121 points"),
+        msg.contains("aborted (Ctrl-C) after 33 of 121 points; returned to start"),
         "{msg}"
     );
 }

@@ -1,21 +1,34 @@
-//! The scan engine: executes a [`Plan`] on an [`Instrument`] with every safety rule in one
-//! place.
+//! The scan engine: one loop executes a [`Plan`] on an [`Instrument`] with every safety rule
+//! in one place, whatever the acquisition mode; an acquisition [`Strategy`] (point by point,
+//! hardware-timed lines, …) only configures, acquires one step and stops.
 //!
-//! 1. Read the start position; pre-flight the whole plan against the soft limits (narrowed to
-//!    the stage's travel range), the step-size rule and the speed limit (distance between
-//!    consecutive points / (settle + dwell), see `limits`). A refused plan moves nothing.
-//! 2. Print the ETA (settle + dwell per point, plus the move and QPD link times measured so
-//!    far on hardware), show a progress bar when stderr is a terminal.
-//! 3. Visit the points; before each one look at the abort flag (Ctrl-C): stop at the next point.
-//! 4. Relative plans return to the start — after completion, after an abort and after a QPD
-//!    error. After a **stage** error the stage is not commanded again (not even to return).
-//! 5. Keep partial data (unmeasured pixels NaN) with status `aborted` / `failed`, attach the
-//!    metadata and autosave — always, also after an abort or a device error. On a real-time
-//!    instrument the metadata has `time.phases`: milliseconds per point spent moving, settling
-//!    and reading the QPD, and per command what the links carried (printed as one line).
+//! 1. Read the start position (the commanded target); pre-flight every pixel against the soft
+//!    limits (narrowed to the stage's travel range) and the step-size rule, then the
+//!    strategy's own checks (points: the speed between points; lines: the whole waveform and
+//!    the line speed). A refused plan moves nothing.
+//! 2. Print the ETA (the strategy's cost per step, plus the return of a relative scan), show a
+//!    progress bar when stderr is a terminal; on a real-time instrument revise the ETA after
+//!    the first row from its measured cost.
+//! 3. Take the steps (a point; a line) in order. Before each one look at the abort flag
+//!    (Ctrl-C). **The stop rule, every mode:**
+//!    - Ctrl-C *pauses* between steps: point by point at the next point; a raster after the
+//!      line being played (it is finished, the digitiser stopped, the wave generator off, the
+//!      stage held where the line ended). The pause question (`ScanEnv::pause`) answers:
+//!      resume (the next step re-arms and continues) or abort. Without a question (scripts,
+//!      tests) Ctrl-C aborts.
+//!    - Abort: a relative scan returns to its start; the partial scan is saved with status
+//!      `aborted`.
+//!    - A device fault: the strategy's stop commands (after a stage fault at least the stage's
+//!      stop); after a **stage** fault nothing else is commanded to the stage (no return, no
+//!      park move); after any other fault a relative scan returns to its start. The partial
+//!      scan is saved with status `failed` and the device's words.
+//! 4. Keep partial data (unmeasured pixels NaN), attach the metadata and autosave — always,
+//!    also after an abort or a device error; tell the live view (`ScanObserver`).
 
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
+pub use super::strategy::samples_per_point;
+use super::strategy::{PointStrategy, StopCause, Strategy};
 use crate::data::clock::utc_now;
 use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::{DeviceError, Instrument, Pos};
@@ -41,9 +54,10 @@ pub struct ScanEnv<'a> {
     /// A live display told of every point (the browser view), if any.
     pub observer: Option<&'a dyn ScanObserver>,
     /// Asked when Ctrl-C comes during the scan, if set (the prompt on a terminal): the scan is
-    /// paused between points — the stage at rest on the last point, nothing commanded — until
-    /// it answers `true` (resume at the next point) or `false` (abort: the partial scan is kept
-    /// and a relative scan returns to its start). Unset (scripts, tests): Ctrl-C aborts.
+    /// paused between steps — point by point at the next point, a raster after the line being
+    /// played (digitiser stopped, wave generator off); the stage at rest, nothing commanded —
+    /// until it answers `true` (resume with the next step) or `false` (abort: the partial scan
+    /// is kept and a relative scan returns to its start). Unset (scripts, tests): Ctrl-C aborts.
     pub pause: Option<&'a dyn Fn(&Paused) -> bool>,
 }
 
@@ -77,8 +91,8 @@ pub struct Paused<'a> {
     /// Points measured so far, and in all.
     pub measured: usize,
     pub total: usize,
-    /// The stage's commanded position (µm) where it waits: the last point measured, or the
-    /// start before the first.
+    /// The stage's commanded position (µm) where it waits: the last point measured (a raster:
+    /// where the last line's wave ended), or the start before the first.
     pub at: Pos,
 }
 
@@ -244,28 +258,19 @@ impl ScanRun {
     }
 }
 
-/// Send the stage its stop command after a fault (PI: `STP`), logging what happened; the error
-/// text when the stop itself failed (e.g. the cable is gone).
-fn stop_stage(inst: &mut Instrument, who: &str, env: &ScanEnv) -> Option<String> {
-    match inst.stage.stop() {
-        Ok(()) => {
-            (env.log)(&format!("{who}: stage stopped ({})", inst.stage.name()));
-            None
-        }
-        Err(e) => {
-            (env.log)(&format!("{who}: the stop command failed too: {e}"));
-            Some(e.to_string())
-        }
-    }
-}
-
-/// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
-pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
-    ((dwell_s * rate_hz).round() as usize).max(1)
-}
-
-/// Run `plan` on `inst`. See the module documentation for the rules.
+/// Run `plan` point by point on `inst` (move, settle, read at every pixel). See the module
+/// documentation for the rules.
 pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<ScanRun, ScanError> {
+    run(inst, plan, &mut PointStrategy::new(), env)
+}
+
+/// Run `plan` on `inst`, acquiring with `strategy`. See the module documentation.
+pub fn run(
+    inst: &mut Instrument,
+    plan: &Plan,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+) -> Result<ScanRun, ScanError> {
     let kind = plan.kind.clone();
     let dev = |error| ScanError::Device {
         kind: kind.clone(),
@@ -281,39 +286,24 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     let points = limits
         .preflight(plan, start)
         .map_err(|e| ScanError::Refused(e.0))?;
-
-    let rate = inst.qpd.sample_rate();
-    let n_samples = samples_per_point(plan.dwell_s, rate);
-    let dwell_s = n_samples as f64 / rate;
-    let speed = limits
-        .check_speed(&kind, &points, inst.settle_s, dwell_s)
-        .map_err(|e| ScanError::Refused(e.0))?;
-    // the move time (the simulator's model, or the mean of the moves measured so far on
-    // hardware, link included) and the QPD's measured time beyond its samples (link, reply)
-    let move_s = inst.stage.move_time_s();
-    let read_extra_s = inst.qpd.overhead_s();
-    let eta = plan.eta_s(inst.settle_s + move_s + read_extra_s, dwell_s);
+    let lay = strategy.prepare(inst, plan, start, &points, &limits)?;
+    let mode = strategy.mode();
+    let return_s = inst.settle_s + inst.stage.move_time_s();
+    let eta = lay.steps as f64 * lay.step_s + if plan.return_to_start { return_s } else { 0.0 };
     let clock_kind = if inst.clock.is_virtual() {
         "simulated"
     } else {
         "real"
     };
     (env.log)(&format!(
-        "{}: {} points, {}settle {} + dwell {}{} per point: ETA {} ({clock_kind} time)",
+        "{}{}: {}: ETA {} ({clock_kind} time)",
         plan.describe(),
-        points.len(),
-        if move_s > 0.0 {
-            format!("move {} + ", fmt_seconds(move_s))
-        } else {
+        if mode == "points" {
             String::new()
-        },
-        fmt_seconds(inst.settle_s),
-        fmt_seconds(n_samples as f64 / rate),
-        if read_extra_s > 0.0 {
-            format!(" + QPD link {}", fmt_seconds(read_extra_s))
         } else {
-            String::new()
+            format!(" {mode}")
         },
+        lay.eta_detail,
         fmt_seconds(eta)
     ));
 
@@ -335,130 +325,123 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             meta: &env.meta,
         });
     }
-    let mut sx = Array2::from_elem((rows, cols), f64::NAN);
-    let mut sy = sx.clone();
-    let mut sz = sx.clone();
+    let mut img = [(); 3].map(|_| Array2::from_elem((rows, cols), f64::NAN));
     let clock = ScanClock::start(inst);
-    let bar = progress_bar(env, points.len(), "points", &kind);
+    let unit = lay.unit;
+    let bar = progress_bar(env, lay.steps, &format!("{unit}s"), &kind);
 
     let mut ended = Ended::Complete;
     let mut measured = 0usize;
+    let mut steps = 0usize;
     let mut batch = Batcher::new();
     // On a real-time instrument the ETA above is a floor (settle + dwell, and the move time
-    // when the device knows it); after the first row the measured cost per point, link and
+    // when the device knows it); after the first row the measured cost per step, link and
     // polling included, gives the real one.
-    let per_point_eta = eta / points.len().max(1) as f64;
     let revise_after = if inst.clock.is_virtual() || rows < 2 {
         usize::MAX
     } else {
-        cols
+        lay.steps_per_row
     };
     let mut measured_s_per_point: Option<f64> = None;
     // pauses (Ctrl-C answered "resume"): where and how long, wall time excluded from the
-    // per-point cost
+    // cost per step
     let mut pauses: Vec<Value> = vec![];
     let mut paused_wall = 0.0;
-    let mut at = start;
-    // per-phase wall time of the points (real-time clocks), and the links' costs from here on
-    let mut phases = Phases::default();
-    let _ = (inst.stage.link_costs(), inst.qpd.link_costs());
     let loop0 = std::time::Instant::now();
-    for p in &points {
+    for i in 0..lay.steps {
         if env.abort.swap(false, Ordering::SeqCst) {
-            let resume = env.pause.is_some_and(|ask| {
-                let t = std::time::Instant::now();
-                let info = Paused {
-                    kind: &kind,
+            let Some(ask) = env.pause else {
+                ended = Ended::Aborted { measured };
+                break;
+            };
+            // a raster: the line is finished; the digitiser and the wave generator go off
+            if let Err(error) = strategy.pause(inst) {
+                ended = Ended::Failed {
                     measured,
-                    total: points.len(),
-                    at,
+                    error,
+                    stage_fault: true,
                 };
-                let r = bar.suspend(|| ask(&info));
-                let dt = t.elapsed().as_secs_f64();
-                paused_wall += dt;
-                pauses.push(
-                    json!({"after_points": measured, "at_um": at, "wall_s": dt, "resumed": r}),
-                );
-                r
-            });
+                break;
+            }
+            let t = std::time::Instant::now();
+            let at = strategy.resting_at().unwrap_or(start);
+            let info = Paused {
+                kind: &kind,
+                measured,
+                total: points.len(),
+                at,
+            };
+            let resume = bar.suspend(|| ask(&info));
+            let dt = t.elapsed().as_secs_f64();
+            paused_wall += dt;
+            pauses.push(json!({
+                "after_points": measured,
+                "after_steps": steps,
+                "at_um": at,
+                "wall_s": dt,
+                "resumed": resume,
+            }));
             // a Ctrl-C pressed while the question was open counts as the answer
             if !resume || env.abort.swap(false, Ordering::SeqCst) {
                 ended = Ended::Aborted { measured };
                 break;
             }
             (env.log)(&format!(
-                "{kind}: resumed at point {} of {}",
-                measured + 1,
-                points.len()
+                "{kind}: resumed at {unit} {} of {}",
+                i + 1,
+                lay.steps
             ));
         }
-        let t = std::time::Instant::now();
-        let moved = inst.stage.move_to(p.target);
-        phases.move_s += t.elapsed().as_secs_f64();
-        if let Err(error) = moved {
-            ended = Ended::Failed {
-                measured,
-                error,
-                stage_fault: true,
-            };
-            break;
-        }
-        let t = std::time::Instant::now();
-        inst.clock.wait(inst.settle_s);
-        phases.settle_s += t.elapsed().as_secs_f64();
-        let t = std::time::Instant::now();
-        // the scan stores the means only: the device may send less (SCPI: `MEAS:QPD?`)
-        let read = inst.qpd.read_means(n_samples);
-        phases.qpd_s += t.elapsed().as_secs_f64();
-        match read {
-            Ok(r) => {
-                sx[[p.row, p.col]] = r.sx;
-                sy[[p.row, p.col]] = r.sy;
-                sz[[p.row, p.col]] = r.sz;
-                at = p.target;
-                if let Some(o) = env.observer {
-                    batch.push(o, (p.row, p.col, [r.sx, r.sy, r.sz]));
-                }
-                measured += 1;
-                if measured == revise_after {
-                    let per = (clock.wall_s() - paused_wall) / measured as f64;
-                    measured_s_per_point = Some(per);
-                    if (per - per_point_eta).abs() > 0.1 * per_point_eta {
-                        (env.log)(&format!(
-                            "{kind}: the first row took {} per point (the ETA assumed {}): ETA now {} for the remaining {} points",
-                            fmt_seconds(per),
-                            fmt_seconds(per_point_eta),
-                            fmt_seconds(per * (points.len() - measured) as f64),
-                            points.len() - measured
-                        ));
-                    }
-                }
-                bar.inc(1);
-            }
-            Err(error) => {
+        let pixels = match strategy.step(inst, i) {
+            Ok(p) => p,
+            Err(f) => {
                 ended = Ended::Failed {
                     measured,
-                    error,
-                    stage_fault: false,
+                    error: f.error,
+                    stage_fault: f.stage_fault,
                 };
                 break;
             }
+        };
+        for &(r, c, v) in &pixels {
+            for (ch, x) in img.iter_mut().zip(v) {
+                ch[[r, c]] = x;
+            }
+        }
+        if let Some(o) = env.observer {
+            if pixels.len() == 1 {
+                batch.push(o, pixels[0]);
+            } else {
+                // a line at a time: a raster line is seconds of work at most
+                batch.flush(o);
+                o.points(&pixels);
+            }
+        }
+        measured += pixels.len();
+        steps += 1;
+        bar.inc(1);
+        if steps == revise_after {
+            let wall = clock.wall_s() - paused_wall;
+            measured_s_per_point = Some(wall / measured.max(1) as f64);
+            let per = wall / steps as f64;
+            if (per - lay.step_s).abs() > 0.1 * lay.step_s {
+                (env.log)(&format!(
+                    "{kind}: the first row took {} per {unit} (the ETA assumed {}): ETA now {} for the remaining {} {unit}s",
+                    fmt_seconds(per),
+                    fmt_seconds(lay.step_s),
+                    fmt_seconds(per * (lay.steps - steps) as f64),
+                    lay.steps - steps
+                ));
+            }
         }
     }
-    phases.loop_s = loop0.elapsed().as_secs_f64() - paused_wall;
-    phases.points = measured;
-    phases.dwell_s = dwell_s;
-    phases.stage_link = inst.stage.link_costs();
-    phases.qpd_link = inst.qpd.link_costs();
+    let loop_s = loop0.elapsed().as_secs_f64() - paused_wall;
     bar.finish_and_clear();
     if let Some(o) = env.observer {
         batch.flush(o);
     }
-    let phases_json = (!inst.clock.is_virtual() && measured > 0).then(|| phases.to_json());
-    if let Some(line) = phases_json.as_ref().and_then(|j| phase_summary(&kind, j)) {
-        (env.log)(&line);
-    }
 
+    // the stop rule
     let stage_fault = matches!(
         ended,
         Ended::Failed {
@@ -466,37 +449,62 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
             ..
         }
     );
+    let mut stop = match &ended {
+        Ended::Complete => None,
+        Ended::Aborted { .. } => strategy.stop(inst, StopCause::Abort),
+        Ended::Failed { stage_fault, .. } => strategy.stop(
+            inst,
+            StopCause::Fault {
+                stage: *stage_fault,
+            },
+        ),
+    };
+    if let Some(r) = &stop {
+        let (Ok(note) | Err(note)) = r;
+        let tail = if stage_fault {
+            "; no further motion"
+        } else {
+            ""
+        };
+        (env.log)(&format!("{kind}: {note}{tail}"));
+    }
+    let stop_failed = matches!(stop, Some(Err(_)));
     let mut returned = false;
     let mut return_error = None;
-    if plan.return_to_start && !stage_fault {
+    if plan.return_to_start && !stage_fault && !stop_failed {
         match inst.move_settle(start) {
             Ok(()) => returned = true,
-            Err(e) => return_error = Some(e.to_string()),
+            Err(e) => {
+                (env.log)(&format!(
+                    "{kind}: could NOT return to the start position: {e}"
+                ));
+                return_error = Some(e.to_string());
+                // the one command the stage still gets is a stop
+                let r = inst
+                    .stage
+                    .stop()
+                    .map(|()| format!("stage stopped ({})", inst.stage.name()))
+                    .map_err(|e| format!("the stop command failed too: {e}"));
+                let (Ok(note) | Err(note)) = &r;
+                (env.log)(&format!("{kind}: {note}"));
+                stop = Some(r);
+            }
         }
     }
-    if let Some(e) = &return_error {
-        (env.log)(&format!(
-            "{kind}: could NOT return to the start position: {e}"
-        ));
-    }
-    // After a stage fault (a controller error mid-move, an on-target timeout: the axis may
-    // still be moving) or a failed return, the one command the stage still gets is a stop.
-    let stop = (stage_fault || return_error.is_some()).then(|| stop_stage(inst, &kind, env));
 
     let status = ended.status();
-    let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
     let mut meta = json!({
         "plan": plan,
+        "mode": mode,
         "status": status,
         "points_total": points.len(),
         "points_measured": measured,
-        "samples_per_point": n_samples,
         "start_position_um": start,
         "returned_to_start": returned,
         "stop_sent": stop.is_some(),
-        "stop_error": stop.clone().flatten(),
+        "stop": stop.as_ref().and_then(|r| r.as_ref().ok()),
+        "stop_error": stop.as_ref().and_then(|r| r.as_ref().err()),
         "limits": limits,
-        "max_speed_between_points_um_s": speed,
         "instrument": inst.description,
         "time": clock.json(inst, eta),
     });
@@ -504,9 +512,6 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     meta["time"]["paused_wall_s"] = json!(paused_wall);
     if !pauses.is_empty() {
         meta["pauses"] = Value::Array(pauses);
-    }
-    if let Some(j) = phases_json {
-        meta["time"]["phases"] = j;
     }
     if let Ended::Failed {
         error, stage_fault, ..
@@ -517,15 +522,60 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     if let Some(e) = return_error {
         meta["return_error"] = json!(e);
     }
-    let scan = Scan {
+    let log_kind = |s: &str| (env.log)(&format!("{kind}: {s}"));
+    if let Value::Object(extra) = strategy.metadata(inst, steps, loop_s, &log_kind) {
+        for (k, v) in extra {
+            match (k.as_str(), v) {
+                ("time", Value::Object(t)) => {
+                    for (tk, tv) in t {
+                        meta["time"][tk.as_str()] = tv;
+                    }
+                }
+                (_, v) => meta[k.as_str()] = v,
+            }
+        }
+    }
+    let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
+    let [sx, sy, mut sz] = img;
+    if !strategy.sz_measured() {
+        sz.fill(f64::NAN);
+    }
+    let mut scan = Scan {
         sx: mk(sx),
         sy: mk(sy),
         sz: mk(sz),
         status,
         meta,
-        raw: Vec::new(),
+        raw: strategy.raw(),
     };
-    Ok(finish(inst, env, &kind, scan, ended, returned))
+
+    // the QPD's metadata (the simulator's pipeline) and the script's (`env.meta`) merged into
+    // the scan's, the autosave (a failure logged loudly), the live display told
+    if let Some(Value::Object(q)) = inst.qpd.metadata() {
+        for (k, v) in q {
+            scan.meta[k.as_str()] = v;
+        }
+    }
+    if let (Value::Object(m), Value::Object(extra)) = (&mut scan.meta, &env.meta) {
+        for (k, v) in extra {
+            m.insert(k.clone(), v.clone());
+        }
+    }
+    let saved = (env.save)(&scan);
+    if let Err(e) = &saved {
+        (env.log)(&format!(
+            "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
+        ));
+    }
+    if let Some(o) = env.observer {
+        o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
+    }
+    Ok(ScanRun {
+        scan,
+        saved,
+        ended,
+        returned_to_start: returned,
+    })
 }
 
 /// When a scan started, on the wall and on the instrument's clock.
@@ -585,141 +635,6 @@ pub(crate) fn progress_bar(
     }
     b.set_message(kind.to_string());
     b
-}
-
-/// The end every scan shares (point by point and raster): the QPD's metadata (the simulator's
-/// pipeline) and the script's (`env.meta`) merged into the scan's, the autosave (a failure
-/// logged loudly), the live display told.
-pub(crate) fn finish(
-    inst: &Instrument,
-    env: &ScanEnv,
-    kind: &str,
-    mut scan: Scan,
-    ended: Ended,
-    returned_to_start: bool,
-) -> ScanRun {
-    if let Some(Value::Object(q)) = inst.qpd.metadata() {
-        for (k, v) in q {
-            scan.meta[k.as_str()] = v;
-        }
-    }
-    if let (Value::Object(m), Value::Object(extra)) = (&mut scan.meta, &env.meta) {
-        for (k, v) in extra {
-            m.insert(k.clone(), v.clone());
-        }
-    }
-    let saved = (env.save)(&scan);
-    if let Err(e) = &saved {
-        (env.log)(&format!(
-            "WARNING: {kind}: autosave failed: {e}; save the scan by hand"
-        ));
-    }
-    if let Some(o) = env.observer {
-        o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
-    }
-    ScanRun {
-        scan,
-        saved,
-        ended,
-        returned_to_start,
-    }
-}
-
-/// Wall time of a scan's points by phase (real-time instruments), and what the links carried.
-#[derive(Default)]
-struct Phases {
-    points: usize,
-    /// The loop over the points, s.
-    loop_s: f64,
-    /// `move_to` (PI: `MOV`, `ERR?`, motion polling until on target), s, summed.
-    move_s: f64,
-    /// The settle wait, s, summed.
-    settle_s: f64,
-    /// QPD reads (command, acquisition, reply), s, summed.
-    qpd_s: f64,
-    /// Acquisition time per read, samples / rate, s.
-    dwell_s: f64,
-    stage_link: crate::instrument::link::LinkCosts,
-    qpd_link: crate::instrument::link::LinkCosts,
-}
-
-impl Phases {
-    /// `meta.time.phases`: milliseconds per point for each phase; per command word the count,
-    /// bytes (both ways), write and reply milliseconds per point.
-    fn to_json(&self) -> Value {
-        let n = self.points.max(1) as f64;
-        let ms = |s: f64| s / n * 1e3;
-        let link = |costs: &crate::instrument::link::LinkCosts| {
-            let mut m = serde_json::Map::new();
-            for (w, c) in costs {
-                m.insert(
-                    w.clone(),
-                    json!({
-                        "per_point": c.n as f64 / n,
-                        "bytes_per_point": (c.bytes_out + c.bytes_in) as f64 / n,
-                        "write_ms": ms(c.write_s),
-                        "reply_ms": ms(c.reply_s),
-                    }),
-                );
-            }
-            Value::Object(m)
-        };
-        let bytes: u64 = self
-            .stage_link
-            .iter()
-            .chain(&self.qpd_link)
-            .map(|(_, c)| c.bytes_out + c.bytes_in)
-            .sum();
-        let per_point = ms(self.loop_s);
-        json!({
-            "points": self.points,
-            "per_point_ms": per_point,
-            "move_ms": ms(self.move_s),
-            "settle_ms": ms(self.settle_s),
-            "qpd_ms": ms(self.qpd_s),
-            "dwell_ms": self.dwell_s * 1e3,
-            "qpd_beyond_dwell_ms": ms(self.qpd_s) - self.dwell_s * 1e3,
-            "other_ms": per_point - ms(self.move_s + self.settle_s + self.qpd_s),
-            "stage_link": link(&self.stage_link),
-            "qpd_link": link(&self.qpd_link),
-            "link_bytes_per_point": bytes as f64 / n,
-        })
-    }
-}
-
-/// One line for the operator from `meta.time.phases`: where the time per point went.
-pub fn phase_summary(kind: &str, p: &Value) -> Option<String> {
-    let f = |k: &str| p[k].as_f64();
-    let cmds = |k: &str| -> String {
-        p[k].as_object()
-            .map(|m| {
-                m.iter()
-                    .map(|(w, c)| {
-                        format!(
-                            "{w} {:.2}× {:.2} ms",
-                            c["per_point"].as_f64().unwrap_or(0.0),
-                            c["write_ms"].as_f64().unwrap_or(0.0)
-                                + c["reply_ms"].as_f64().unwrap_or(0.0)
-                        )
-                    })
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            })
-            .unwrap_or_default()
-    };
-    Some(format!(
-        "{kind}: {} points, {:.2} ms per point = move {:.2} ms [{}] + settle {:.2} ms + QPD {:.2} ms (dwell {:.2} ms) [{}] + other {:.2} ms; links {:.0} bytes per point",
-        p["points"].as_u64()?,
-        f("per_point_ms")?,
-        f("move_ms")?,
-        cmds("stage_link"),
-        f("settle_ms")?,
-        f("qpd_ms")?,
-        f("dwell_ms")?,
-        cmds("qpd_link"),
-        f("other_ms")?,
-        f("link_bytes_per_point")?,
-    ))
 }
 
 /// Move to an absolute target after checking it against the soft limits (narrowed to the

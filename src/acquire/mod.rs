@@ -1,17 +1,19 @@
 //! The scan engine and every safety rule: plans (pure data), pre-flight against soft limits,
-//! ETA, progress, abort, return to start, partial data, autosave.
+//! ETA, progress, pause, abort, return to start, partial data, autosave.
 //!
-//! Scripts describe (`plan`), the engine executes (`engine::run_plan`), drivers only move and
-//! read. No driver re-implements limits or abort.
+//! Scripts describe (`plan`), one engine executes (`engine::run`) with an acquisition
+//! strategy (`strategy`: point by point, hardware-timed lines) that only configures, acquires
+//! one step and stops; drivers only move and read. No driver re-implements limits or abort.
 
 pub mod engine;
 pub mod limits;
 pub mod plan;
 pub mod raster;
 pub mod store;
+pub mod strategy;
 
 pub use engine::{
-    checked_move, run_plan, Batcher, Ended, Paused, ScanEnv, ScanError, ScanObserver, ScanRun,
+    checked_move, run, run_plan, Batcher, Ended, Paused, ScanEnv, ScanError, ScanObserver, ScanRun,
     ScanStart,
 };
 pub use limits::SoftLimits;

@@ -1,16 +1,28 @@
 //! Scan bindings: `scan_line`, `scan_xy`, `scan_xz`, `scan_yz`, SPEC's `ascan`, `dscan`,
 //! `mesh`, `dmesh`, and scan files (`scan.save`, `load_scan`). Bindings only build a
-//! [`Plan`]; `acquire::run_plan` executes it natively with every safety rule.
+//! [`Plan`]; the one scan engine (`acquire::run`) executes it natively with every safety rule,
+//! with the acquisition strategy of its mode (point by point, hardware-timed lines).
 
 use super::ctx::Ctx;
 use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
-use crate::acquire::raster::{run_raster, RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
-use crate::acquire::{run_plan, ScanEnv};
+use crate::acquire::raster::{RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
+use crate::acquire::strategy::{LineStrategy, PointStrategy, Strategy};
+use crate::acquire::{run, ScanEnv};
 use crate::data::Scan;
 use rhai::{Dynamic, Map};
 use std::path::PathBuf;
+
+/// The stop rule of every scan, every mode (the engine's, `acquire::engine`), for the help.
+pub const STOP_RULE: &str = "Stop rule (every mode): Ctrl-C at the prompt pauses the scan — point by point at the next \
+     point; a raster after the line being swept (the line is finished, the digitiser stopped, the wave generator \
+     off, the stage at rest where the line ended) — and asks: Enter resumes (a raster re-arms and continues with \
+     the next row), `a` aborts. Aborted (or Ctrl-C in a script run): a relative scan returns to its start, the \
+     partial scan (unmeasured pixels NaN) is saved with status \"aborted\" and the call fails with a message naming \
+     the file. A device error ends the scan with status \"failed\" and the device's words, the partial scan saved: \
+     after a stage error the stage gets a stop command and nothing else (no return, no further motion); after any \
+     other error (QPD, digitiser) a relative scan returns to its start.";
 
 /// The help text of the `dwell` option, naming the default.
 fn dwell_help() -> String {
@@ -25,7 +37,7 @@ pub fn execute(c: &Ctx, plan: Plan) -> RResult<ScanRef> {
     execute_mode(c, plan, None)
 }
 
-/// As [`execute`]; `raster`: a hardware-timed raster (`acquire::raster::run_raster`) with
+/// As [`execute`]; `raster`: a hardware-timed raster (the engine with the line strategy) with
 /// these options instead of point by point.
 pub fn execute_mode(c: &Ctx, plan: Plan, raster: Option<RasterOptions>) -> RResult<ScanRef> {
     let meta = c.scan_meta();
@@ -50,11 +62,11 @@ pub fn execute_mode(c: &Ctx, plan: Plan, raster: Option<RasterOptions>) -> RResu
                 .as_deref()
                 .map(|q| q as &dyn Fn(&crate::acquire::Paused) -> bool),
         };
-        let run = match &raster {
-            Some(o) => run_raster(inst, &plan, o, &env),
-            None => run_plan(inst, &plan, &env),
-        }
-        .map_err(|e| e.to_string())?;
+        let mut strategy: Box<dyn Strategy> = match raster {
+            Some(o) => Box::new(LineStrategy::new(o)),
+            None => Box::new(PointStrategy::new()),
+        };
+        let run = run(inst, &plan, strategy.as_mut(), &env).map_err(|e| e.to_string())?;
         match run.summary() {
             Ok(msg) => {
                 let t = run.scan.meta["time"]["instrument_s"]
@@ -125,16 +137,12 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         .map("plan", &format!("the {f}{s} raster"), &keys_ref)
         .returns("Scan", "sx, sy, sz images (columns along x-axis name, rows along the other), metadata; autosaved")
         .summary(&format!("2-D scan over {f} (columns) and {s} (rows), {x} fixed"))
-        .help(
+        .help(&format!(
             "The whole plan is checked against the soft limits and the step-size rule before the first \
-             move, and the ETA (settle + dwell per point) is printed. A progress bar shows when stderr is \
-             a terminal. Ctrl-C at the prompt pauses the scan at the next point (the stage at rest, nothing \
-             commanded) and asks: Enter resumes, `a` aborts. Aborted (or Ctrl-C in a script run): a relative \
-             scan returns to its start, the partial scan (unmeasured pixels NaN) is saved with status \
-             \"aborted\" and the call fails with a message naming the file. A device error does the same with status \"failed\" and the device's words; \
-             after a stage error the stage is not commanded again. Every scan is autosaved in the session \
-             folder (`scan.path`).",
-        )
+             move (a raster: also every line's waveform, ramps included, and the line speed), and the ETA is \
+             printed. A progress bar shows when stderr is a terminal. {STOP_RULE} Every scan is autosaved in \
+             the session folder (`scan.path`)."
+        ))
         .example(
             &format!("let s = scan_{f}{s}(#{{{f}: [-1.0, 1.0], {s}: [-0.5, 0.5], {nf}: 21, {ns}: 11, dwell: 0.001}}); [s.cols, s.rows, s.status]"),
             "[21, 11, \"complete\"]",
@@ -181,7 +189,7 @@ pub fn register(r: &mut Registrar) {
         )
         .returns("Scan", "one row (the line) of sx, sy, sz; autosaved")
         .summary("line scan along one axis")
-        .help("Same safety rules as scan_xy (pre-flight, ETA, abort, return to start, autosave). Take the profile with `scan.sx.row(0)`.")
+        .help(&format!("Same safety rules as scan_xy (pre-flight, ETA, autosave). Take the profile with `scan.sx.row(0)`. {STOP_RULE}"))
         .example("let s = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}); [s.rows, s.cols, s.x[20]]", "[1, 41, 0.0]")
         .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
@@ -206,7 +214,7 @@ pub fn register(r: &mut Registrar) {
             .summary(&format!("SPEC {what} line scan: intervals + 1 points from `from` to `to`"))
             .help(&format!(
                 "As in SPEC, the fourth argument counts intervals, so `{name}(\"x\", -1, 1, 20, 0.01)` measures 21 points. {}",
-                if rel { "Positions are relative to where the stage is, and the stage returns there at the end, after Ctrl-C and after a QPD error." } else { "The stage stays at the last point." }
+                if rel { format!("Positions are relative to where the stage is, and the stage returns there at the end. {STOP_RULE}") } else { format!("The stage stays at the last point. {STOP_RULE}") }
             ));
         d = if rel {
             d.example("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")
@@ -246,7 +254,7 @@ pub fn register(r: &mut Registrar) {
                 "Point i is at from1 + i·(to1 − from1)/intervals on axis1 and from2 + i·(to2 − from2)/intervals on \
                  axis2: a line across the sample at any angle. {} Every point is checked against the soft \
                  limits before the first move, like every scan.",
-                if rel { "Positions are relative to where the stage is, and the stage returns there at the end, after Ctrl-C and after a QPD error." } else { "The stage stays at the last point." }
+                if rel { format!("Positions are relative to where the stage is, and the stage returns there at the end. {STOP_RULE}") } else { format!("The stage stays at the last point. {STOP_RULE}") }
             ));
         d = if rel {
             d.example("mv(#{x: 2.0, y: 1.0}); let s = d2scan(\"x\", -0.5, 0.5, \"y\", 0.0, 1.0, 4, 0.001); [s.cols, s.x[4], pos().y]", "[5, 2.5, 1.0]")
@@ -303,13 +311,14 @@ pub fn register(r: &mut Registrar) {
             .returns("Scan", "2-D scan; autosaved")
             .summary(&format!("SPEC {what} 2-D mesh scan (raster, axis1 fast)"));
         d = if rel {
-            d.help("Positions relative to the start; returns to the start at the end and after Ctrl-C.")
+            d.help(&format!("Positions relative to the start; returns to the start at the end. {STOP_RULE}"))
                 .example("let s = dmesh(\"x\", -0.5, 0.5, 4, \"z\", -0.2, 0.2, 2, 0.001); [s.cols, s.rows, s.axes, pos().z]", "[5, 3, [\"x\", \"z\"], 0.0]")
         } else {
-            d.example(
-                "let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]",
-                "[11, 6]",
-            )
+            d.help(&format!("The stage stays at the last point. {STOP_RULE}"))
+                .example(
+                    "let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]",
+                    "[11, 6]",
+                )
         };
         d = d.example(
             &format!("{name}(\"x\", 0, 1, 4, \"x\", 0, 1, 4, 0.001)"),
