@@ -137,7 +137,7 @@ fn a_move_ends_when_ont_says_so_not_when_5_does() {
         "{:?}",
         t0.elapsed()
     );
-    assert_eq!(s.on_target().unwrap()[0], false);
+    assert!(!s.on_target().unwrap()[0]);
 }
 
 /// `ONT?` never turns 1 after `#5` = 0 (settling time 30 s): the scan's move is waited for up

@@ -142,13 +142,12 @@ fn configure_cost(stage: &str) -> (f64, f64) {
     let (mut full, mut two) = (0.0, 0.0);
     let (mut n_full, mut n_two) = (0usize, 0usize);
     for _block in 0..4 {
-        for (k, l) in lines.iter().cycle().take(8).enumerate() {
+        for l in lines.iter().cycle().take(8) {
             s.forget_waves();
             let t0 = std::time::Instant::now();
             s.wave_configure(l).expect("configure");
             full += t0.elapsed().as_secs_f64();
             n_full += 1;
-            let _ = k;
         }
         // load both tables (not timed), then 8 alternating lines
         s.forget_waves();
