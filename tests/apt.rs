@@ -58,7 +58,8 @@ fn connected(k: &Kit, qpd_extra: &str) -> Connected {
 fn connect_sends_the_documented_messages_and_reads_travel() {
     let k = kit(bead);
     let mut c = connected(&k, "");
-    // every cube: read-only identification first, then (after the limits fit) closed loop,
+    // every cube: read-only identification first (the gauge's zero state with the status
+    // update, issue 32), then (after the limits fit) closed loop,
     // demand = position read (10 µm of 20 → 16384 counts of 32767 = 0x4000), channel enable
     let log = k.cubes[0].commands();
     assert_eq!(
@@ -69,6 +70,7 @@ fn connect_sends_the_documented_messages_and_reads_travel() {
             "0x0005 MGMSG_HW_REQ_INFO (00, 00)",
             "0x0211 MGMSG_MOD_REQ_CHANENABLESTATE (01, 00)",
             "0x0641 MGMSG_PZ_REQ_POSCONTROLMODE (01, 00)",
+            "0x0660 MGMSG_PZ_REQ_PZSTATUSUPDATE (01, 00)",
             "0x0650 MGMSG_PZ_REQ_MAXTRAVEL (01, 00)",
             "0x0647 MGMSG_PZ_REQ_OUTPUTPOS (01, 00)",
             "0x0647 MGMSG_PZ_REQ_OUTPUTPOS (01, 00)",

@@ -415,12 +415,13 @@ fn fault_stage_slow_settling_is_an_on_target_timeout() {
 fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     let emu = stage_emu();
     let mut s = open_stage(&emu, 200);
-    // With instant settling the first move is MOV, ERR?, #5 (`#5` is not known to work yet),
-    // later ones MOV, #5, ERR? (the ERR? once the motion has ended), and the first call (to
-    // where the stage already is) sends nothing: unplug right after the 3rd MOV, the 4th
-    // call's; its `#5` finds the line dead.
+    // With instant settling the first move is MOV, ERR?, #5, ONT? 1 (`#5` is not known to
+    // work yet), later ones MOV, #5, ONT? 1, ERR? (the ERR? once the trajectory has ended; the
+    // `ONT?` confirms on target, issue 32), and the first call (to where the stage already
+    // is) sends nothing: unplug right after the 3rd MOV, the 4th call's; its `#5` finds the
+    // line dead.
     emu.faults().settle_s = Some(0.0);
-    emu.faults().unplug_after = Some(7);
+    emu.faults().unplug_after = Some(9);
     let t0 = Instant::now();
     let mut done = 0;
     let err = loop {
@@ -1222,12 +1223,13 @@ fn engine_refuses_an_out_of_limits_plan_before_anything_is_sent() {
 fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     let (se, _qe, mut c, limits) = engine_setup();
     c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
-    // settle at once: each move is exactly MOV, #5, ERR? (`#5` answered the move above; the
-    // ERR? follows the end of the motion). The engine first sends TMN?, TMX? (the start is the
-    // commanded target, known since connect); so the 9th command is the 3rd point's MOV: the
-    // controller rejects it, `#5` finds nothing moving and the ERR? reports the error.
+    // settle at once: each move is exactly MOV, #5, ONT? 1, ERR? (`#5` answered the move
+    // above; `ONT?` confirms on target, issue 32; the ERR? follows the end of the trajectory).
+    // The engine first sends TMN?, TMX? (the start is the commanded target, known since
+    // connect); so the 11th command is the 3rd point's MOV: the controller rejects it, `#5`
+    // finds nothing moving, `ONT?` the axis on its old target, and the ERR? reports the error.
     se.faults().settle_s = Some(0.0);
-    se.faults().error_after = Some((8, -1024));
+    se.faults().error_after = Some((10, -1024));
     let before = se.commands().len();
     let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, true), &limits);
     let r = r.unwrap();
@@ -1263,8 +1265,11 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     assert!(!r.returned_to_start);
     std::thread::sleep(Duration::from_millis(100));
     let sent = se.commands()[before..].to_vec();
-    assert_eq!(sent.len(), 13, "{sent:?}");
-    assert_eq!(&sent[8..], ["MOV 1 0.200000", "#5", "ERR?", "STP", "ERR?"]);
+    assert_eq!(sent.len(), 16, "{sent:?}");
+    assert_eq!(
+        &sent[10..],
+        ["MOV 1 0.200000", "#5", "ONT? 1", "ERR?", "STP", "ERR?"]
+    );
     assert!(r
         .summary()
         .unwrap_err()
@@ -2244,23 +2249,29 @@ fn ctrl_c_during_a_single_move_sends_stp() {
 fn motion_is_polled_with_the_single_byte_5_and_a_garbled_reply_stops_the_scan() {
     let (se, _qe, mut c, limits) = engine_setup();
     c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
-    // every move of the scan: MOV, #5 (until nothing moves), ERR?; no ONT?, no POS?
+    // every move of the scan: MOV, #5 (until the trajectory is over), then `ONT? 1` (the moved
+    // axis, until on target: once here, the emulator settles at once), ERR?; no POS?
     let before = se.commands().len();
     let (r, _) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, false), &limits);
     assert_eq!(r.unwrap().ended, Ended::Complete);
     let sent = se.commands()[before..].to_vec();
-    assert!(
-        sent.iter()
-            .all(|c| !c.starts_with("ONT?") && !c.starts_with("POS?")),
+    assert!(sent.iter().all(|c| !c.starts_with("POS?")), "{sent:?}");
+    assert_eq!(
+        sent.iter().filter(|c| c.starts_with("ONT?")).count(),
+        5,
         "{sent:?}"
     );
+    assert!(sent
+        .iter()
+        .filter(|c| c.starts_with("ONT?"))
+        .all(|c| c == "ONT? 1"));
     assert_eq!(sent.iter().filter(|c| c.starts_with("MOV ")).count(), 5);
     assert_eq!(sent.iter().filter(|c| *c == "ERR?").count(), 5);
     // a garbled `#5` reply mid-scan: a stage fault naming `#5` and the reply, then STP only.
-    // Settling at once, the scan sends TMN?, TMX?, then per point MOV, #5, ERR?: the 7th
-    // command is the 2nd point's #5.
+    // Settling at once, the scan sends TMN?, TMX?, then per point MOV, #5, ONT? 1, ERR?: the
+    // 8th command is the 2nd point's #5.
     se.faults().settle_s = Some(0.0);
-    se.faults().garble_after = Some(6);
+    se.faults().garble_after = Some(7);
     let before = se.commands().len();
     let (r, saved) = run(&mut c.instrument, &line_x(-0.4, 0.4, 5, false), &limits);
     let r = r.unwrap();
@@ -2285,9 +2296,9 @@ fn motion_is_polled_with_the_single_byte_5_and_a_garbled_reply_stops_the_scan() 
     assert_eq!(saved[0].status, ScanStatus::Failed);
     std::thread::sleep(Duration::from_millis(50));
     let sent = se.commands()[before..].to_vec();
-    assert_eq!(sent.len(), 9, "{sent:?}");
+    assert_eq!(sent.len(), 10, "{sent:?}");
     assert_eq!(
-        &sent[5..],
+        &sent[6..],
         ["MOV 1 -0.200000", "#5", "STP", "ERR?"],
         "{sent:?}"
     );
@@ -2338,10 +2349,10 @@ fn a_scan_on_the_emulators_records_where_its_time_went() {
     assert_eq!(stage["MOV"]["per_point"], 1.0);
     assert_eq!(stage["ERR?"]["per_point"], 1.0);
     assert!(stage["#5"]["per_point"].as_f64().unwrap() >= 1.0, "{p}");
-    assert!(
-        stage.get("ONT?").is_none() && stage.get("POS?").is_none(),
-        "{p}"
-    );
+    // one `ONT? 1` per point confirms the end of the move (issue 32): 7 bytes out, "1=1\n" back
+    assert_eq!(stage["ONT?"]["per_point"], 1.0, "{p}");
+    assert_eq!(stage["ONT?"]["bytes_per_point"], 11.0, "{p}");
+    assert!(stage.get("POS?").is_none(), "{p}");
     // the averaging count is set once (with its SYST:ERR?), for the first of the 5 points
     let qpd = &p["qpd_link"];
     // (the means only: `MEAS:QPD?`, though `statistics` is on for `qpd()` readings)

@@ -79,7 +79,56 @@ pub fn connect(
             serde_json::to_value(limits).unwrap_or_default(),
         );
     }
+    record_gauge(&mut instrument);
     Ok(Connected { instrument, limits })
+}
+
+/// Record the strain gauges' zero state (stages with gauges: the KPZ101 cubes) in the
+/// instrument description, which every scan's metadata carries (`instrument.stage.
+/// gauge_zeroed = {x, y, z}`), and a warning per gauge not zeroed (`instrument.warnings`,
+/// shown by `connect()`). Called at connect and after `zero_gauge()`.
+pub fn record_gauge(instrument: &mut Instrument) {
+    let Some(z) = instrument.stage.gauge_zeroed() else {
+        return;
+    };
+    let name = instrument.stage.name();
+    let serde_json::Value::Object(m) = &mut instrument.description else {
+        return;
+    };
+    if let Some(serde_json::Value::Object(st)) = m.get_mut("stage") {
+        st.insert(
+            "gauge_zeroed".into(),
+            json!({ "x": z[0], "y": z[1], "z": z[2] }),
+        );
+    }
+    let not: Vec<&str> = ["x", "y", "z"]
+        .into_iter()
+        .zip(z)
+        .filter(|(_, ok)| !ok)
+        .map(|(a, _)| a)
+        .collect();
+    let mut warnings: Vec<serde_json::Value> = match m.get("warnings") {
+        Some(serde_json::Value::Array(w)) => w
+            .iter()
+            .filter(|w| !w.as_str().is_some_and(|t| t.contains("strain gauge")))
+            .cloned()
+            .collect(),
+        _ => Vec::new(),
+    };
+    if !not.is_empty() {
+        warnings.push(json!(format!(
+            "{name}: the strain gauge of {} is not zeroed (status bit 0x10 of \
+             MGMSG_PZ_GET_PZSTATUSUPDATE clear): closed-loop positions carry the gauge's offset. \
+             Zero it with zero_gauge() (the actuators go to 0 V, their zero, and hold there) or \
+             set [stage] zero_at_connect = true",
+            not.join(", ")
+        )));
+    }
+    if warnings.is_empty() {
+        m.remove("warnings");
+    } else {
+        m.insert("warnings".into(), serde_json::Value::Array(warnings));
+    }
 }
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
@@ -181,6 +230,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
                         "reported_travel_um": a.reported_travel_um(),
                         "enabled_at_connect": a.enabled_at_connect(),
                         "mode_at_connect": a.mode_at_connect(),
+                        "gauge_zeroed_at_connect": a.zeroed_at_connect(),
                     })
                 })
                 .collect();
@@ -348,7 +398,7 @@ pub fn connect_emulated(
     cfg.stage.backend = Backend::Gcs;
     cfg.stage.port = Some(stage.path().to_string());
     cfg.stage.settle_s = base.stage.settle_s;
-    cfg.stage.poll_ms = 1;
+    cfg.stage.poll_ms = Some(1);
     cfg.qpd.backend = Backend::Scpi;
     cfg.qpd.port = Some(qpd.path().to_string());
     let emulators = json!({
@@ -458,7 +508,7 @@ pub fn connect_emulated_redpitaya(
     cfg.stage.backend = Backend::Gcs;
     cfg.stage.port = Some(stage.path().to_string());
     cfg.stage.settle_s = base.stage.settle_s;
-    cfg.stage.poll_ms = 1;
+    cfg.stage.poll_ms = Some(1);
     cfg.stage.trigger_line = Some(1);
     cfg.qpd.backend = Backend::Redpitaya;
     cfg.qpd.host = Some(host);

@@ -174,8 +174,10 @@ pub struct StageConfig {
     pub timeout_ms: u64,
     /// Longest wait for on-target after a move, ms.
     pub on_target_timeout_ms: u64,
-    /// Interval between motion polls (`#5`, or `ONT?`) after a move, ms.
-    pub poll_ms: u64,
+    /// Interval between motion polls after a move, ms (gcs: `#5`, then `ONT?`; kpz101:
+    /// `MGMSG_PZ_REQ_OUTPUTPOS`); unset: the backend's default ([`StageConfig::poll_ms`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub poll_ms: Option<u64>,
     /// Poll the end of a move with PI's single-character `#5` (falls back to `ONT?` on a
     /// controller without it); false: always `ONT?`.
     pub motion_status: bool,
@@ -197,6 +199,11 @@ pub struct StageConfig {
     pub full_scale: u32,
     /// kpz101: on target within this distance, µm.
     pub tolerance_um: f64,
+    /// kpz101: zero each cube's strain gauge at connect (`MGMSG_PZ_SET_ZERO`, then wait for
+    /// the "zeroed" status bit) when it is not zeroed; the actuators go to their zero first.
+    pub zero_at_connect: bool,
+    /// kpz101: longest wait for the "zeroed" status bit after `MGMSG_PZ_SET_ZERO`, ms.
+    pub zero_timeout_ms: u64,
     /// gcs: the controller's digital output (1…3) wired to the digitiser's external trigger
     /// (a Red Pitaya's DIO0_P): pulsed at the first point of every hardware-timed raster line
     /// (`CTO` generator-trigger mode). Unset: no raster with an externally triggered digitiser.
@@ -223,7 +230,7 @@ impl Default for StageConfig {
             baud: 115_200,
             timeout_ms: 1000,
             on_target_timeout_ms: 5000,
-            poll_ms: 5,
+            poll_ms: None,
             motion_status: true,
             axes: AxisMap::default(),
             servo_on_connect: true,
@@ -233,11 +240,35 @@ impl Default for StageConfig {
             travel_um: None,
             full_scale: 32767,
             tolerance_um: 0.05,
+            zero_at_connect: false,
+            zero_timeout_ms: 60_000,
             trigger_line: None,
             servo_cycle_s: None,
             max_wave_points: None,
             max_record_points: None,
         }
+    }
+}
+
+/// Default `stage.poll_ms` for PI GCS controllers: `#5` is one byte each way (0.26 ms of wire
+/// per poll at 115200 baud), so polling every millisecond costs the controller little.
+pub const DEFAULT_POLL_MS_GCS: u64 = 1;
+/// Default `stage.poll_ms` for KPZ101 cubes: each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request
+/// and reply, and a strain-gauge reading taken every millisecond catches the actuator still
+/// on its way, inside the tolerance before it has settled (issue 32).
+pub const DEFAULT_POLL_MS_KPZ101: u64 = 10;
+/// Default `stage.poll_ms` for the other backends (not used by the simulator's stage).
+pub const DEFAULT_POLL_MS_OTHER: u64 = 5;
+
+impl StageConfig {
+    /// The motion polling interval in force, ms: `poll_ms` when set, else the backend's
+    /// default (gcs [`DEFAULT_POLL_MS_GCS`], kpz101 [`DEFAULT_POLL_MS_KPZ101`]).
+    pub fn poll_ms(&self) -> u64 {
+        self.poll_ms.unwrap_or(match self.backend {
+            Backend::Gcs => DEFAULT_POLL_MS_GCS,
+            Backend::Kpz101 => DEFAULT_POLL_MS_KPZ101,
+            _ => DEFAULT_POLL_MS_OTHER,
+        })
     }
 }
 
@@ -609,7 +640,8 @@ impl Config {
         for (key, v) in [
             ("stage.timeout_ms", s.timeout_ms),
             ("stage.on_target_timeout_ms", s.on_target_timeout_ms),
-            ("stage.poll_ms", s.poll_ms),
+            ("stage.poll_ms", s.poll_ms()),
+            ("stage.zero_timeout_ms", s.zero_timeout_ms),
             ("qpd.timeout_ms", q.timeout_ms),
         ] {
             if v == 0 || v > MAX_TIMEOUT_MS {
@@ -851,11 +883,13 @@ impl Config {
         crate::instrument::apt::kpz101::KpzOptions {
             timeout: Duration::from_millis(s.timeout_ms),
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
-            poll_interval: Duration::from_millis(s.poll_ms),
+            poll_interval: Duration::from_millis(s.poll_ms()),
             tolerance_um: s.tolerance_um,
             travel_um: None,
             full_scale: s.full_scale as u16,
             rtscts: true,
+            zero_at_connect: s.zero_at_connect,
+            zero_timeout: Duration::from_millis(s.zero_timeout_ms),
         }
     }
 
@@ -897,11 +931,12 @@ impl Config {
             axes: [0, 1, 2].map(|i| Some(s.axes.get(i).to_string())),
             timeout: Duration::from_millis(s.timeout_ms),
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
-            poll_interval: Duration::from_millis(s.poll_ms),
+            poll_interval: Duration::from_millis(s.poll_ms()),
             servo_on_connect: s.servo_on_connect,
             units_per_um: s.units_per_um,
             one_axis_per_query: s.one_axis_per_query,
             motion_status: s.motion_status,
+            confirm_on_target: true,
             trigger_line: s.trigger_line,
             servo_cycle_s: s.servo_cycle_s,
             max_wave_points: s.max_wave_points,

@@ -26,7 +26,7 @@
 
 #[path = "gcs_wave.rs"]
 mod wave;
-pub use wave::{parse_gcs_array, GcsArray, LineSweep, SweepRecord};
+pub use wave::{parse_gcs_array, GcsArray, LineSweep, SweepRecord, WaveCache};
 
 use super::link::{open_port, LineLink, Transport};
 use super::{DeviceError, Pos, Stage};
@@ -107,6 +107,11 @@ pub struct GcsOptions {
     /// controller without `#5` (it sets error 2 and does not answer) is asked `ONT?` from then
     /// on. False: always `ONT?`.
     pub motion_status: bool,
+    /// After `#5` reports the trajectory over, confirm with `ONT?` (and poll `ONT?` until the
+    /// moved axes are on target). True by default: PI's documents do not say that `#5` covers
+    /// the settling window. False trusts `#5` alone (not in the config file; the benchmarks
+    /// use it to measure what the confirmation costs).
+    pub confirm_on_target: bool,
     /// The digital output (1…3, `CTO`) wired to the digitiser's external trigger, pulsed at
     /// the first point of every hardware-timed line; `None`: not wired (no raster with an
     /// externally triggered digitiser).
@@ -136,6 +141,7 @@ impl Default for GcsOptions {
             units_per_um: 1.0,
             one_axis_per_query: false,
             motion_status: true,
+            confirm_on_target: true,
             trigger_line: None,
             servo_cycle_s: None,
             max_wave_points: None,
@@ -170,10 +176,15 @@ pub struct GcsStage {
     /// A `MOV` was sent without its `ERR?`: the wait for the end of the move reads it (see
     /// [`GcsStage::move_no_wait`]).
     error_check_pending: bool,
+    /// Driven-axis indices named in the last `MOV`: the axes whose on-target state (`ONT?`)
+    /// confirms the end of the move after `#5` reports the trajectory over.
+    moved: Vec<usize>,
     /// Wall time of recent moves (MOV to on target), s: a running mean for the scan ETA.
     move_time: MeanTime,
     /// What the wave generator and the recorder can do, read once ([`Stage::line_timing`]).
     line_timing: Option<super::line::LineTiming>,
+    /// The wave tables and generator settings loaded for hardware-timed lines.
+    waves: WaveCache,
     /// Bytes per second of a serial link (baud / 10, 8N1); `None` over TCP or an unknown
     /// transport. Long replies (`DRR?`) get their wire time added to the reply timeout.
     wire_bytes_per_s: Option<f64>,
@@ -265,8 +276,10 @@ impl GcsStage {
             commanded: None,
             motion_status: None,
             error_check_pending: false,
+            moved: Vec::new(),
             move_time: MeanTime::default(),
             line_timing: None,
+            waves: WaveCache::default(),
             wire_bytes_per_s: None,
         };
         s.check_axes()?;
@@ -646,6 +659,14 @@ impl GcsStage {
 
     /// As [`Self::wait_on_target`]; returns `Ok(false)` as soon as `abort` is raised (Ctrl-C),
     /// without stopping anything: the caller sends the stop.
+    ///
+    /// With `#5` the wait has two phases. `#5` (one byte each way) is polled while the
+    /// trajectory runs; once it reports no axis in motion, the axes the `MOV` named are asked
+    /// `ONT?` (PI: on target = inside the settling window, parameter 0x07000900, for at least
+    /// the settling time, 0x07000901; E-727 manual E727T0005, "On Target" trigger mode), and
+    /// from then on `ONT?` is polled until they are on target: PI's documents do not say that
+    /// `#5` covers the settling window, and PIPython's `waitontarget` asks `ONT?` too. Without
+    /// `#5`, `ONT?` is polled for all driven axes from the start.
     pub fn wait_on_target_or_abort(
         &mut self,
         after: &str,
@@ -653,9 +674,25 @@ impl GcsStage {
     ) -> Result<bool, DeviceError> {
         let t0 = Instant::now();
         let mut polls = 0usize;
+        // `#5` has reported the trajectory over: on-target is now asked with `ONT?`
+        let mut settling = false;
         loop {
-            let (ont, via) = self.poll_motion()?;
-            if ont.iter().all(|&b| b) {
+            let (ont, via) = if settling {
+                let idx = self.moved_or_all();
+                (self.on_target_of(&idx)?, self.ont_query_text(&idx))
+            } else {
+                self.poll_motion()?
+            };
+            let done = ont.iter().all(|&(_, b)| b);
+            if done && via == "#5" && self.opts.confirm_on_target {
+                // the trajectory is over: confirm with `ONT?` at once
+                settling = true;
+                continue;
+            }
+            if done || (settling && self.error_check_pending) {
+                // the `ERR?` owed for a `MOV` sent without it: read once the trajectory is
+                // over, whether or not the axes have settled (a tripped servo, −1024, stops
+                // the axis off target: reported as itself, not after the timeout)
                 if std::mem::take(&mut self.error_check_pending) {
                     let code = self.error_code(after)?;
                     if code != 0 {
@@ -663,7 +700,9 @@ impl GcsStage {
                         return Err(self.controller_error(after, code));
                     }
                 }
-                return Ok(true);
+                if done {
+                    return Ok(true);
+                }
             }
             if abort.is_some_and(|a| a.load(Ordering::SeqCst)) {
                 return Ok(false);
@@ -682,23 +721,20 @@ impl GcsStage {
                 }
             }
             if timed_out {
-                let state: Vec<String> = self
-                    .axes
+                let state: Vec<String> = ont
                     .iter()
-                    .zip(ont)
-                    .map(|((_, a), b)| format!("{a}={}", u8::from(b)))
+                    .map(|&(j, b)| format!("{}={}", self.axes[j].1, u8::from(b)))
                     .collect();
-                let asked = if via == "#5" {
-                    via
-                } else if self.per_axis {
-                    format!("ONT? {}", self.axes[self.axes.len() - 1].1)
+                let trajectory = if settling {
+                    " (`#5` reported the trajectory over: the axes did not settle within the \
+                     controller's settling window)"
                 } else {
-                    format!("ONT? {}", self.axes_list())
+                    ""
                 };
                 return Err(DeviceError::Other {
                     device: self.link.device().to_string(),
                     detail: format!(
-                        "not on target within {} ms after `{after}` (last `{asked}` reply: {})",
+                        "not on target within {} ms after `{after}` (last `{via}` reply: {}){trajectory}",
                         self.opts.on_target_timeout.as_millis(),
                         state.join(" ")
                     ),
@@ -708,15 +744,54 @@ impl GcsStage {
         }
     }
 
-    /// Whether the driven axes are done moving: `#5` where the controller answers it, else
-    /// `ONT?`. Returns one flag per driven axis (true: on target / not in motion) and the
-    /// query used.
-    fn poll_motion(&mut self) -> Result<(Vec<bool>, String), DeviceError> {
+    /// The driven axes the last `MOV` named (all driven axes when none is known).
+    fn moved_or_all(&self) -> Vec<usize> {
+        if self.moved.is_empty() {
+            (0..self.axes.len()).collect()
+        } else {
+            self.moved.clone()
+        }
+    }
+
+    /// How the `ONT?` of driven axes `idx` is sent (the last query when one axis per query).
+    fn ont_query_text(&self, idx: &[usize]) -> String {
+        let ids: Vec<&str> = idx.iter().map(|&j| self.axes[j].1.as_str()).collect();
+        if self.per_axis {
+            format!("ONT? {}", ids.last().copied().unwrap_or(""))
+        } else {
+            format!("ONT? {}", ids.join(" "))
+        }
+    }
+
+    /// `ONT?` for the driven axes `idx` (one query, or one per axis): (index, on target).
+    fn on_target_of(&mut self, idx: &[usize]) -> Result<Vec<(usize, bool)>, DeviceError> {
+        if self.per_axis {
+            let mut out = Vec::with_capacity(idx.len());
+            for &k in idx {
+                out.extend(
+                    self.query_one_axis("ONT?", k, &parse_bool)?
+                        .into_iter()
+                        .map(|b| (k, b)),
+                );
+            }
+            return Ok(out);
+        }
+        let ids: Vec<&str> = idx.iter().map(|&j| self.axes[j].1.as_str()).collect();
+        let cmd = format!("ONT? {}", ids.join(" "));
+        let lines = self.query_lines(&cmd)?;
+        let v = self.parse_axis_lines(&cmd, &lines, idx, &parse_bool)?;
+        Ok(idx.iter().copied().zip(v).collect())
+    }
+
+    /// Whether the driven axes are done moving: `#5` where the controller answers it (the
+    /// trajectory), else `ONT?` of all driven axes. Returns (driven-axis index, not in motion /
+    /// on target) per driven axis and the query used.
+    fn poll_motion(&mut self) -> Result<(Vec<(usize, bool)>, String), DeviceError> {
         if self.opts.motion_status && self.motion_status != Some(false) {
             match self.query_motion_status() {
                 Ok(v) => {
                     self.motion_status = Some(true);
-                    return Ok((v, "#5".into()));
+                    return Ok((v.into_iter().enumerate().collect(), "#5".into()));
                 }
                 // the first `#5` refused as unknown (error 2): a controller without it
                 Err(DeviceError::Controller { code: 2, .. }) if self.motion_status.is_none() => {
@@ -725,7 +800,9 @@ impl GcsStage {
                 Err(e) => return Err(e),
             }
         }
-        Ok((self.query_axes("ONT?", parse_bool)?, "ONT?".into()))
+        let all: Vec<usize> = (0..self.axes.len()).collect();
+        let text = self.ont_query_text(&all);
+        Ok((self.on_target_of(&all)?, text))
     }
 
     /// `#5` (the single byte 0x05, no line end): the controller answers the motion status as a
@@ -846,6 +923,7 @@ impl GcsStage {
             .map(|(j, v)| format!("{} {v}", self.axes[*j].1))
             .collect();
         let cmd = format!("MOV {}", parts.join(" "));
+        self.moved = changed.iter().map(|(j, _)| *j).collect();
         // unknown until the controller has accepted it (an error leaves the old targets)
         self.commanded = None;
         if self.opts.motion_status && self.motion_status == Some(true) {

@@ -8,7 +8,7 @@
 //! | command | use |
 //! |---|---|
 //! | `WAV t X LIN seg amp off n 0 s` | the line: `n` points from `off` to `off + amp` (µm), `s` points of speed-up/down at each end |
-//! | `WSL g t`, `WGC g 1`, `WTR g r 0` | generator `g` (the axis' position in `SAI?`) plays table `t` once, `r` servo cycles per point |
+//! | `WSL g t`, `WGC g 1`, `WTR g r 0` | generator `g` (the axis' position in `SAI?`) plays table `t` once, `r` servo cycles per point; a snake raster keeps its forward and back waves in two tables and switches with `WSL` alone |
 //! | `CTO l 2 axis l 3 4`, `TWC`, `TWS l 1 1 l 2 0` | output `l` in generator-trigger mode: high at wave point 1 only, one pulse per line |
 //! | `DRC 1 axis 1 2 axis 2`, `RTR r` | record tables 1, 2: target and current position every `r` cycles |
 //! | `WGO g 1` | start (the recorder triggers on it, `DRT` default) |
@@ -101,6 +101,18 @@ pub fn parse_gcs_array(lines: &[String]) -> Result<GcsArray, String> {
     Ok(GcsArray { header, columns })
 }
 
+/// What the controller holds for hardware-timed lines, as this driver set it: the waves in
+/// its tables, the table selected and the generator, trigger and recorder settings.
+#[derive(Debug, Clone, Default)]
+pub struct WaveCache {
+    /// (table, the `WAV` arguments after the table number).
+    tables: Vec<(u32, String)>,
+    /// The table `WSL` selected last.
+    selected: Option<u32>,
+    /// The settings of the last full configuration (generator, axis, rates, trigger line).
+    setup: Option<String>,
+}
+
 /// Most rows a GCS array reply may have.
 const MAX_ARRAY_ROWS: usize = 1 << 20;
 
@@ -133,6 +145,13 @@ impl GcsStage {
 
     /// Configure the wave, the generator, the trigger output and the recorder for `s`
     /// (nothing moves).
+    ///
+    /// Two wave tables are kept loaded, `s.table` and `s.table + 1`: a snake raster's forward
+    /// and back waves. A wave already in a table is not sent again, and when the generator,
+    /// trigger and recorder settings are those already set, the line costs one `WSL g t`
+    /// (select the table) instead of the nine commands of a full configuration. A new wave
+    /// goes into the table not selected now. Any error forgets what is loaded (the next line
+    /// configures everything again).
     pub fn wave_configure(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         if !(s.from_um.is_finite() && s.to_um.is_finite())
             || s.points < 2
@@ -140,20 +159,67 @@ impl GcsStage {
             || s.rate == 0
             || s.record_rate == 0
             || !(s.servo_cycle_s.is_finite() && s.servo_cycle_s > 0.0)
+            || s.table == 0
+            || s.table == u32::MAX
         {
             return Err(self.other(format!("refusing to configure the line sweep {s:?}")));
         }
+        let r = self.wave_configure_cached(s);
+        if r.is_err() {
+            self.waves = WaveCache::default();
+        }
+        r
+    }
+
+    fn wave_configure_cached(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         let (id, g) = self.generator_of(s.axis)?;
         let u = self.opts.units_per_um;
-        let t = s.table;
-        self.command(&format!(
-            "WAV {t} X LIN {n} {amp:.6} {off:.6} {n} 0 {sud}",
+        // the wave, without its table number
+        let wave = format!(
+            "X LIN {n} {amp:.6} {off:.6} {n} 0 {sud}",
             n = s.points,
             amp = (s.to_um - s.from_um) * u,
             off = s.from_um * u,
             sud = s.speedupdown
-        ))?;
+        );
+        let tables = [s.table, s.table + 1];
+        let loaded = self
+            .waves
+            .tables
+            .iter()
+            .find(|(t, w)| tables.contains(t) && *w == wave)
+            .map(|(t, _)| *t);
+        let t = match loaded {
+            Some(t) => t,
+            None => {
+                // the table of the pair not selected now (the first when none is)
+                let t = if self.waves.selected == Some(tables[0]) {
+                    tables[1]
+                } else {
+                    tables[0]
+                };
+                self.waves.tables.retain(|(k, _)| *k != t);
+                self.command(&format!("WAV {t} {wave}"))?;
+                self.waves.tables.push((t, wave));
+                t
+            }
+        };
+        let setup = format!(
+            "{g} {id} {} {} {:?} {}",
+            s.rate, s.record_rate, s.trigger_line, tables[0]
+        );
+        if self.waves.setup.as_deref() == Some(setup.as_str()) {
+            if self.waves.selected != Some(t) {
+                self.waves.selected = None;
+                self.command(&format!("WSL {g} {t}"))?;
+                self.waves.selected = Some(t);
+            }
+            return Ok(());
+        }
+        self.waves.setup = None;
+        self.waves.selected = None;
         self.command(&format!("WSL {g} {t}"))?;
+        self.waves.selected = Some(t);
         self.command(&format!("WGC {g} 1"))?;
         self.command(&format!("WTR {g} {} 0", s.rate))?;
         if let Some(l) = s.trigger_line {
@@ -163,7 +229,15 @@ impl GcsStage {
         }
         self.command(&format!("DRC 1 {id} 1 2 {id} 2"))?;
         self.command(&format!("RTR {}", s.record_rate))?;
+        self.waves.setup = Some(setup);
         Ok(())
+    }
+
+    /// Forget the wave tables loaded and the generator settings: the next line configures
+    /// everything again (as every line did before two tables were kept; used to measure the
+    /// difference, docs/performance.md).
+    pub fn forget_waves(&mut self) {
+        self.waves = WaveCache::default();
     }
 
     /// `WGO g 1`: start the line (the recorder starts with it).

@@ -165,6 +165,21 @@ pub trait Stage: Send {
     fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
         Ok(None)
     }
+    /// Whether each axis' strain gauge is zeroed (Thorlabs KPZ101: the "zeroed" status bit,
+    /// read at connect and kept after a zeroing); `None` for stages without a gauge to zero.
+    fn gauge_zeroed(&self) -> Option<[bool; 3]> {
+        None
+    }
+    /// Zero the strain gauges (KPZ101: `MGMSG_PZ_SET_ZERO`, then wait for "zeroed"; the
+    /// actuators go to their zero and hold there). Stages without one refuse.
+    fn zero_gauge(&mut self) -> Result<[bool; 3], DeviceError> {
+        Err(DeviceError::Other {
+            device: self.name(),
+            detail: "this stage has no strain gauge to zero (Thorlabs KPZ101 cubes \
+                     have one; PI controllers calibrate their sensors themselves)"
+                .into(),
+        })
+    }
     /// Send a raw *query* to the controller and return its reply lines, for debugging at the
     /// prompt (`gcs_query("SAI?")`). Only queries: anything that could move is refused by the
     /// driver. Backends without a command language say so.

@@ -44,6 +44,23 @@ pub const DEFAULT_PORT: u16 = 5000;
 /// Largest data reply accepted (bytes): 16384 ASCII numbers of up to 12 characters, with room.
 const MAX_REPLY: usize = 1 << 20;
 
+/// The time of the sample at `ACQ:TPOS?` relative to the trigger, s, for samples `dt` s apart
+/// with averaging on (`ACQ:AVG ON`): `−dt`.
+///
+/// Red Pitaya's FPGA (the scope module `red_pitaya_scope.v`) sums `dec` ADC samples and writes
+/// their mean when the sum is complete; at the trigger it saves the write pointer of the last
+/// sample written (`adc_wp_trig <= adc_wp_cur`), which `ACQ:TPOS?` returns. So the sample at
+/// TPOS is the last one completed before the trigger: its averaging window ends between 0 and
+/// one sample spacing before the trigger (the decimation counter restarts at `ACQ:START`, not
+/// at the trigger), and its middle lies between 1.5·dt and 0.5·dt before it. The driver dates
+/// it at the expected middle, `−dt`; sample `i` after it at `(i − 1)·dt`. The phase is not
+/// readable over SCPI, so each line's samples carry an unknown offset within ±dt/2, the same
+/// for all samples of the line. The SCPI documents say only that averaging is the default and
+/// that TPOS is where the trigger occurred.
+pub fn trigger_sample_time(dt: f64) -> f64 {
+    -dt
+}
+
 /// Sample rate (Hz) at decimation `dec`: 125 MHz / dec.
 pub fn rate_at(dec: u32) -> f64 {
     BASE_RATE_HZ / dec as f64
@@ -414,6 +431,9 @@ impl RpLink {
 struct Armed {
     dec: u32,
     m: usize,
+    /// Samples read before the m returned: 1 for a buffered read (the sample at `ACQ:TPOS?`,
+    /// whose window precedes the trigger, see [`trigger_sample_time`]), 0 for a point read.
+    lead: usize,
     source: &'static str,
     /// When the acquisition was started: it cannot be filled before `at + m / rate`.
     at: Instant,
@@ -453,7 +473,8 @@ impl RedPitaya {
     }
 
     /// Connect over any transport: `*IDN?` (must name REDPITAYA), `*CLS`, `ACQ:RST`, data as
-    /// binary volts, `ACQ:BUF:SIZE?`, and the input range of every mapped input.
+    /// binary volts, averaging on (`ACQ:AVG ON`), `ACQ:BUF:SIZE?`, and the input range of
+    /// every mapped input.
     pub fn connect(
         io: Box<dyn Transport>,
         label: &str,
@@ -488,6 +509,9 @@ impl RedPitaya {
         rp.command("ACQ:RST")?;
         rp.command("ACQ:DATA:FORMAT BIN")?;
         rp.command("ACQ:DATA:UNITS VOLTS")?;
+        // each decimated sample the mean of the ADC samples it spans (the default, set
+        // explicitly: the time base of a buffered read assumes it, see `read_buffered`)
+        rp.command("ACQ:AVG ON")?;
         let b = rp.query("ACQ:BUF:SIZE?")?;
         rp.buffer = match b.trim().parse::<usize>() {
             Ok(v) if (2..=1 << 20).contains(&v) => v,
@@ -562,13 +586,20 @@ impl RedPitaya {
         let _ = self.command("ACQ:STOP");
     }
 
-    fn arm(&mut self, dec: u32, m: usize, source: &'static str) -> Result<(), DeviceError> {
+    fn arm(
+        &mut self,
+        dec: u32,
+        m: usize,
+        lead: usize,
+        source: &'static str,
+    ) -> Result<(), DeviceError> {
         if self.dec != Some(dec) {
             self.dec = None;
             self.command(&format!("ACQ:DEC {dec}"))?;
             self.dec = Some(dec);
         }
-        // record m samples after the trigger: the delay counts from the half buffer
+        // record m samples after the trigger (written after the one at TPOS, the last before
+        // it): the delay counts from the half buffer
         let delay = m as i64 - (self.buffer / 2) as i64;
         if self.delay != Some(delay) {
             self.delay = None;
@@ -581,6 +612,7 @@ impl RedPitaya {
         self.armed = Some(Armed {
             dec,
             m,
+            lead,
             source,
             at: Instant::now(),
         });
@@ -669,7 +701,7 @@ impl RedPitaya {
         let timeout = self.opts.timeout + Duration::from_millis(a.m as u64 / 100);
         for (i, c) in self.opts.channels.inputs().into_iter().enumerate() {
             let Some(c) = c else { continue };
-            let cmd = format!("ACQ:SOUR{c}:DATA:STA:N? {tpos},{}", a.m);
+            let cmd = format!("ACQ:SOUR{c}:DATA:STA:N? {tpos},{}", a.m + a.lead);
             self.link.discard_input();
             self.link.send(&cmd)?;
             let block = match self.link.read_block(&cmd, timeout) {
@@ -682,19 +714,21 @@ impl RedPitaya {
                 }
                 Err(e) => return Err(e),
             };
-            if block.len() != 4 * a.m {
+            let want = a.m + a.lead;
+            if block.len() != 4 * want {
                 return Err(self.link.garbled(
                     &cmd,
                     format!(
                         "{} bytes of data, expected {} ({} float32 samples)",
                         block.len(),
-                        4 * a.m,
-                        a.m
+                        4 * want,
+                        want
                     ),
                 ));
             }
             let v: Vec<f64> = block
                 .chunks_exact(4)
+                .skip(a.lead)
                 .map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]) as f64)
                 .collect();
             if let Some(k) = v.iter().position(|x| !x.is_finite()) {
@@ -751,7 +785,7 @@ impl Qpd for RedPitaya {
             self.err_other(format!("read({n}) at {} Hz: {e}", self.opts.sample_rate_hz))
         })?;
         let r = self
-            .arm(dec, m, "NOW")
+            .arm(dec, m, 0, "NOW")
             .and_then(|()| self.collect(self.opts.timeout));
         let v = match r {
             Ok(v) => v,
@@ -796,14 +830,14 @@ impl Qpd for RedPitaya {
         sample_rate: f64,
         trigger: Trigger,
     ) -> Result<BufferedArm, DeviceError> {
-        let (dec, m) = buffered_plan(n_samples, sample_rate, self.buffer)
+        let (dec, m) = buffered_plan(n_samples, sample_rate, self.buffer - 1)
             .map_err(|e| self.err_other(format!("arm_buffered: {e}")))?;
         let source = match trigger {
             Trigger::Now => "NOW",
             Trigger::ExternalRising => "EXT_PE",
             Trigger::ExternalFalling => "EXT_NE",
         };
-        if let Err(e) = self.arm(dec, m, source) {
+        if let Err(e) = self.arm(dec, m, 1, source) {
             self.stop_quietly();
             return Err(e);
         }
@@ -829,7 +863,8 @@ impl Qpd for RedPitaya {
         };
         let n = v[0].as_ref().map_or(0, Vec::len);
         Ok(BufferedTrace {
-            t0_s: 0.0,
+            // the sample after the one at TPOS (read, then dropped): expected at 0
+            t0_s: trigger_sample_time(dt) + dt,
             dt_s: dt,
             sx: conv(self, 0, &v[0], n),
             sy: conv(self, 1, &v[1], n),

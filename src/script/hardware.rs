@@ -26,6 +26,46 @@ pub fn register(r: &mut Registrar) {
             ),
         move |q: &str| gcs_query(&c, q),
     );
+    let c = r.ctx();
+    r.bind(
+        Doc::func("zero_gauge")
+            .returns("map", "#{x, y, z}: true for each axis whose strain gauge is now zeroed")
+            .summary("zero the strain gauges of the stage's piezo cubes (Thorlabs KPZ101)")
+            .help(
+                "A KPZ101 measures its closed-loop position with the actuator's strain gauge, whose \
+                 reading carries an offset until the gauge is zeroed: positions read back are then \
+                 not the positions. zero_gauge() sends MGMSG_PZ_SET_ZERO to each cube in turn (x, \
+                 y, z) and waits for its \"zeroed\" status bit, at most [stage] zero_timeout_ms \
+                 (default 60 s) per cube. Zeroing drives the actuator to 0 V, its zero, a move of \
+                 up to the whole travel: nothing must touch the sample. The cube then holds there. \
+                 Whether each gauge was zeroed is in status().instrument.stage.gauge_zeroed and in \
+                 every scan's metadata (meta.instrument.stage.gauge_zeroed); connect() warns about a \
+                 gauge that is not zeroed, and [stage] zero_at_connect = true zeroes at connect. A \
+                 cube that does not report \"zeroed\" in time is told to hold where it is and the \
+                 error names it. Stages without a strain gauge to zero (PI controllers, the \
+                 simulator, the mock) refuse.",
+            )
+            .example(
+                "connect(#{backend: \"mock\"}); zero_gauge()",
+                "error: zero_gauge: mock stage: this stage has no strain gauge to zero (Thorlabs KPZ101 cubes have one; PI controllers calibrate their sensors themselves)",
+            ),
+        move || zero_gauge(&c),
+    );
+}
+
+/// `zero_gauge()`: zero every KPZ101 cube's strain gauge, record the state in the instrument
+/// description (scan metadata) and return it per axis.
+fn zero_gauge(c: &Ctx) -> RResult<rhai::Map> {
+    c.with_instrument("zero_gauge", |i| {
+        let r = i.stage.zero_gauge();
+        crate::config::connect::record_gauge(i);
+        let z = r.map_err(|e| format!("zero_gauge: {e}"))?;
+        let mut m = rhai::Map::new();
+        for (k, v) in ["x", "y", "z"].into_iter().zip(z) {
+            m.insert(k.into(), Dynamic::from(v));
+        }
+        Ok(m)
+    })
 }
 
 /// `gcs_query(query)`: the reply lines of the connected controller to one raw GCS query; only

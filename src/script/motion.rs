@@ -458,12 +458,20 @@ fn base_config(ctx: &Ctx) -> RResult<Config> {
 }
 
 /// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
+/// Warnings of the connect (a strain gauge not zeroed) follow, one per line.
 fn connected_line(backend: &str, inst: &Instrument) -> String {
-    format!(
+    let mut s = format!(
         "connected {backend}: {}, {}",
         inst.stage.name(),
         inst.qpd.name()
-    )
+    );
+    if let Some(w) = inst.description["warnings"].as_array() {
+        for w in w.iter().filter_map(|w| w.as_str()) {
+            s.push_str("\nWARNING: ");
+            s.push_str(w);
+        }
+    }
+    s
 }
 
 /// The scene for the simulator (`fallback` when no scene was given and none simulated yet).

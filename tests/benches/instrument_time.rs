@@ -3,8 +3,11 @@
 //! 115200-baud link with 1 ms reply latency and at the pseudo-terminal's full speed; "before"
 //! is the protocol of the drivers before issue 20 reproduced by their options (`ONT?` polled
 //! every 5 ms, `MEAS:QPD:STAT?` and `SYST:ERR?` after every measurement), "after" the new
-//! defaults with a 1 ms polling interval (`stage.poll_ms = 1`; the default stays 5 ms) (`#5`, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
+//! defaults with a 1 ms polling interval (`stage.poll_ms = 1`, since issue 32 the GCS default) (`#5`, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
 //! scan stores, no `SYST:ERR?` after a well-formed reading).
+//! Issue 32 splits "after" in two, interleaved in the same run: "#5 alone" (the move ends when
+//! `#5` answers 0) and "#5 + ONT?" (then one `ONT?` of the moved axis confirms on target): the
+//! per-point cost of the confirmation.
 //! Prints a Markdown table (ms per point against settle + dwell, and the per-phase split from
 //! `meta.time.phases`) for docs/performance.md.
 //!
@@ -75,9 +78,15 @@ struct Row {
     phases: serde_json::Value,
 }
 
-fn scan(stage: &str, qpd: &str, dwell_s: f64, before: bool) -> serde_json::Value {
+/// The drivers' protocol: "before" issue 20, "#5 alone" (issue 20 until issue 32: the move
+/// ends when `#5` answers 0), "#5 + ONT?" (issue 32: then `ONT?` of the moved axis).
+const VERSIONS: [&str; 3] = ["before", "#5 alone", "#5 + ONT?"];
+
+fn scan(stage: &str, qpd: &str, dwell_s: f64, version: &str) -> serde_json::Value {
+    let before = version == "before";
     let gcs = GcsOptions {
         motion_status: !before,
+        confirm_on_target: version != "#5 alone",
         poll_interval: Duration::from_millis(if before { 5 } else { 1 }),
         ..GcsOptions::default()
     };
@@ -135,10 +144,9 @@ fn main() {
     for (name, flags) in links {
         let (mut child, stage, qpd) = emulate(&flags);
         for dwell_s in [0.010, 0.001] {
-            for before in [true, false] {
-                let version = if before { "before" } else { "after" };
+            for version in VERSIONS {
                 eprintln!("{name}, dwell {} ms, {version}:", dwell_s * 1e3);
-                let phases = scan(&stage, &qpd, dwell_s, before);
+                let phases = scan(&stage, &qpd, dwell_s, version);
                 rows.push(Row {
                     link: name,
                     dwell_ms: dwell_s * 1e3,
@@ -172,6 +180,30 @@ fn main() {
             f("other_ms"),
             bytes,
             bytes * 10.0 / 115_200.0 * 1e3
+        );
+    }
+    println!();
+    println!("The on-target confirmation (issue 32): `#5 + ONT?` against `#5 alone`, same link, same dwell, same run:");
+    println!();
+    println!("| link | dwell | ms per point, #5 alone | ms per point, #5 + ONT? | difference | ratio | `ONT?` per point (count, bytes, ms) |");
+    println!("|---|---|---|---|---|---|---|");
+    for pair in rows.chunks(VERSIONS.len()) {
+        let (a, b) = (&pair[1], &pair[2]);
+        let pa = a.phases["per_point_ms"].as_f64().unwrap_or(f64::NAN);
+        let pb = b.phases["per_point_ms"].as_f64().unwrap_or(f64::NAN);
+        let o = &b.phases["stage_link"]["ONT?"];
+        let g = |k: &str| o[k].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "| {} | {} ms | {:.2} | {:.2} | {:+.2} ms | {:.3}× | {:.2}, {:.0} B, {:.2} ms |",
+            a.link,
+            a.dwell_ms,
+            pa,
+            pb,
+            pb - pa,
+            pb / pa,
+            g("per_point"),
+            g("bytes_per_point"),
+            g("write_ms") + g("reply_ms")
         );
     }
     println!();

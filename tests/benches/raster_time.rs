@@ -12,9 +12,9 @@
 
 use bfpscope::acquire::raster::{run_raster, RasterOptions};
 use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
-use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
+use bfpscope::instrument::gcs::{GcsOptions, GcsStage, LineSweep};
 use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
-use bfpscope::instrument::{Instrument, WallClock};
+use bfpscope::instrument::{Instrument, Stage, WallClock};
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::sync::atomic::AtomicBool;
@@ -111,6 +111,58 @@ fn scan(inst: &mut Instrument, raster: bool) -> serde_json::Value {
     run.scan.meta
 }
 
+/// Snake rasters (issue 32): the wall time of configuring one line whose direction alternates,
+/// every line configured in full (`forget_waves` first: the driver before issue 32) against
+/// two wave tables switched with `WSL`, in alternating blocks of 8 lines on one connection.
+/// Returns (ms per line before, ms per line with two tables).
+fn configure_cost(stage: &str) -> (f64, f64) {
+    let gcs = GcsOptions {
+        poll_interval: Duration::from_millis(1),
+        trigger_line: Some(1),
+        ..GcsOptions::default()
+    };
+    let mut s = GcsStage::open(stage, 115_200, gcs).expect("stage");
+    let t = Stage::line_timing(&mut s)
+        .expect("line timing")
+        .expect("a wave generator");
+    // a 64-pixel line at 1 ms: 64 ms of wave at 50 µs, ramps of 100 points
+    let sweep = |from: f64, to: f64| LineSweep {
+        axis: 0,
+        from_um: from,
+        to_um: to,
+        points: 1480,
+        speedupdown: 100,
+        rate: 1,
+        record_rate: 5,
+        trigger_line: Some(1),
+        table: 1,
+        servo_cycle_s: t.servo_cycle_s,
+    };
+    let lines = [sweep(-0.55, 0.55), sweep(0.55, -0.55)];
+    let (mut full, mut two) = (0.0, 0.0);
+    let (mut n_full, mut n_two) = (0usize, 0usize);
+    for _block in 0..4 {
+        for l in lines.iter().cycle().take(8) {
+            s.forget_waves();
+            let t0 = std::time::Instant::now();
+            s.wave_configure(l).expect("configure");
+            full += t0.elapsed().as_secs_f64();
+            n_full += 1;
+        }
+        // load both tables (not timed), then 8 alternating lines
+        s.forget_waves();
+        s.wave_configure(&lines[0]).expect("configure");
+        s.wave_configure(&lines[1]).expect("configure");
+        for l in lines.iter().cycle().take(8) {
+            let t0 = std::time::Instant::now();
+            s.wave_configure(l).expect("configure");
+            two += t0.elapsed().as_secs_f64();
+            n_two += 1;
+        }
+    }
+    (full / n_full as f64 * 1e3, two / n_two as f64 * 1e3)
+}
+
 fn main() {
     // `cargo test --benches` runs benches with --bench absent: skip the slow work there
     if !std::env::args().any(|a| a == "--bench") {
@@ -133,6 +185,28 @@ fn main() {
             false,
         ),
     ];
+    // snake rasters' line configuration first (printed at once: the rasters below take minutes)
+    let mut snake = Vec::new();
+    for (name, flags, _) in links {
+        let (mut child, stage, _) = emulate(flags);
+        eprintln!("{name}: configure, snake lines");
+        let (full, two) = configure_cost(&stage);
+        snake.push(format!(
+            "| {name} | {full:.2} ms | {two:.2} ms | {:.2} ms | {:.1}× |",
+            full - two,
+            full / two
+        ));
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    println!("Snake rasters, configuring a line whose direction alternates (issue 32; 32 lines per column, alternating blocks of 8 on one connection):");
+    println!();
+    println!("| stage link | every line configured (WAV, WSL, WGC, WTR, CTO, TWC, TWS, DRC, RTR + ERR? each) | two wave tables, `WSL` + `ERR?` | saving per line | ratio |");
+    println!("|---|---|---|---|---|");
+    for r in &snake {
+        println!("{r}");
+    }
+    println!();
     let mut table = Vec::new();
     let mut phases = Vec::new();
     for (name, flags, points_too) in links {

@@ -13,6 +13,12 @@
 //! the position demand to the position just read (so closing the loop moves nothing), enables
 //! the channel (`MGMSG_MOD_SET_CHANENABLESTATE` 1) and reads both states back.
 //!
+//! **Strain gauge.** Closed-loop positions are the strain gauge's readings, which carry an
+//! offset until the gauge is zeroed (`MGMSG_PZ_SET_ZERO`; status bits 0x20 "zeroing", then
+//! 0x10 "zeroed" in `MGMSG_PZ_GET_PZSTATUSUPDATE`). The bit is read at connect
+//! ([`Kpz101::zeroed_at_connect`]); `zero_at_connect` zeroes before the loop is closed, and
+//! [`Stage::zero_gauge`] on request. Zeroing drives the actuator to 0 V, its zero.
+//!
 //! **Stop.** A piezo cube has no motion to cancel: it drives the actuator to the demand within
 //! milliseconds. `stop` asks each cube for its position and makes that the demand
 //! (`MGMSG_PZ_SET_OUTPUTPOS` with the position read; the last commanded target when the cube
@@ -36,6 +42,10 @@ pub const CHAN_ENABLED: u8 = 1;
 pub const CHAN_DISABLED: u8 = 2;
 /// Counts for 100 % of the travel per Thorlabs' document (the default of `full_scale`).
 pub const FULL_SCALE_DOC: u16 = 32767;
+/// `MGMSG_PZ_GET_PZSTATUSUPDATE` status bits (Thorlabs' APT document): the strain gauge has
+/// been zeroed, is being zeroed.
+pub const STATUS_ZEROED: u32 = 0x0000_0010;
+pub const STATUS_ZEROING: u32 = 0x0000_0020;
 
 /// Driver settings for one cube (`[stage]` with `backend = "kpz101"`).
 #[derive(Debug, Clone, PartialEq)]
@@ -51,6 +61,11 @@ pub struct KpzOptions {
     /// Position counts for 100 % of the travel (document: 32767; some firmware 65535).
     pub full_scale: u16,
     pub rtscts: bool,
+    /// Zero the strain gauge at connect (`MGMSG_PZ_SET_ZERO`, before the loop is closed)
+    /// when its status says it is not zeroed.
+    pub zero_at_connect: bool,
+    /// Longest wait for the "zeroed" status bit after `MGMSG_PZ_SET_ZERO`.
+    pub zero_timeout: Duration,
 }
 
 impl Default for KpzOptions {
@@ -63,6 +78,8 @@ impl Default for KpzOptions {
             travel_um: None,
             full_scale: FULL_SCALE_DOC,
             rtscts: true,
+            zero_at_connect: false,
+            zero_timeout: Duration::from_millis(60_000),
         }
     }
 }
@@ -84,6 +101,9 @@ pub struct Kpz101 {
     reported_travel_um: f64,
     enabled_at_connect: bool,
     mode_at_connect: u8,
+    /// The gauge's "zeroed" status bit at connect, and now (after a zeroing).
+    zeroed_at_connect: bool,
+    zeroed: bool,
     target_um: f64,
     port: String,
 }
@@ -137,11 +157,15 @@ impl Kpz101 {
             reported_travel_um: 0.0,
             enabled_at_connect: false,
             mode_at_connect: 0,
+            zeroed_at_connect: false,
+            zeroed: false,
             target_um: 0.0,
             port: port.to_string(),
         };
         a.enabled_at_connect = a.chan_enabled()?;
         a.mode_at_connect = a.control_mode()?;
+        a.zeroed_at_connect = a.status_bits()? & STATUS_ZEROED != 0;
+        a.zeroed = a.zeroed_at_connect;
         let req = Message::short(id::PZ_REQ_MAXTRAVEL, CHAN1, 0);
         let r = a.link.request(&req, id::PZ_GET_MAXTRAVEL)?;
         let t = a.chan_value(&req, &r)?;
@@ -194,6 +218,79 @@ impl Kpz101 {
         Ok(r.param2)
     }
 
+    /// The status bits of `MGMSG_PZ_REQ_PZSTATUSUPDATE` (reply: channel u16, output voltage
+    /// i16, position i16, status u32).
+    pub fn status_bits(&mut self) -> Result<u32, DeviceError> {
+        let req = Message::short(id::PZ_REQ_PZSTATUSUPDATE, CHAN1, 0);
+        let r = self.link.request(&req, id::PZ_GET_PZSTATUSUPDATE)?;
+        let d = r.bytes();
+        if d.len() < 10 || u16::from_le_bytes([d[0], d[1]]) != CHAN1 as u16 {
+            return Err(DeviceError::Garbled {
+                device: self.name(),
+                command: req.describe(),
+                reply: format!(
+                    "{} (expected channel 1, voltage, position and 32 status bits)",
+                    r.describe()
+                ),
+            });
+        }
+        Ok(u32::from_le_bytes([d[6], d[7], d[8], d[9]]))
+    }
+
+    /// Zero the strain gauge: `MGMSG_PZ_SET_ZERO` (Thorlabs: 0 V to the actuator, then the
+    /// position read there is the zero of all later readings), then the status polled every
+    /// `poll_interval` until "zeroed" (0x10) is set and "zeroing" (0x20) clear, at most
+    /// `timeout`. The actuator ends at its zero; the demand is set to the position read
+    /// there, so it holds. A timeout holds the actuator where it is and names the last status.
+    pub fn zero(&mut self, timeout: Duration) -> Result<(), DeviceError> {
+        let m = Message::short(id::PZ_SET_ZERO, CHAN1, 0);
+        self.link.send(&m)?;
+        self.zeroed = false;
+        let t0 = Instant::now();
+        loop {
+            let bits = self.status_bits().map_err(|e| {
+                e.during(&format!(
+                    "MGMSG_PZ_REQ_PZSTATUSUPDATE (after `{}`)",
+                    m.describe()
+                ))
+            })?;
+            if bits & STATUS_ZEROED != 0 && bits & STATUS_ZEROING == 0 {
+                break;
+            }
+            if t0.elapsed() >= timeout {
+                let _ = self.hold();
+                return Err(DeviceError::Other {
+                    device: self.name(),
+                    detail: format!(
+                        "strain gauge not zeroed within {} ms after `{}`: last status bits 0x{bits:08x} \
+                         (zeroing {}, zeroed {}); the actuator was told to hold where it is",
+                        timeout.as_millis(),
+                        m.describe(),
+                        u8::from(bits & STATUS_ZEROING != 0),
+                        u8::from(bits & STATUS_ZEROED != 0)
+                    ),
+                });
+            }
+            std::thread::sleep(self.opts.poll_interval);
+        }
+        self.zeroed = true;
+        self.target_um = self.position_um()?;
+        if self.control_mode()? % 2 == 0 && self.chan_enabled()? {
+            self.set_target(self.target_um)?;
+        }
+        Ok(())
+    }
+
+    /// The gauge's "zeroed" bit at connect.
+    pub fn zeroed_at_connect(&self) -> bool {
+        self.zeroed_at_connect
+    }
+
+    /// Whether the gauge is zeroed (at connect, or by [`Self::zero`] since).
+    pub fn zeroed(&self) -> bool {
+        self.zeroed
+    }
+
     /// The position (µm from the actuator's zero), `MGMSG_PZ_REQ_OUTPUTPOS`.
     pub fn position_um(&mut self) -> Result<f64, DeviceError> {
         let req = Message::short(id::PZ_REQ_OUTPUTPOS, CHAN1, 0);
@@ -226,8 +323,12 @@ impl Kpz101 {
         Ok(m)
     }
 
-    /// Closed loop, demand = the position now, channel enabled; both read back.
+    /// Closed loop, demand = the position now, channel enabled; both read back. With
+    /// `zero_at_connect`, a gauge not zeroed is zeroed first ([`Self::zero`]).
     pub fn enable(&mut self) -> Result<(), DeviceError> {
+        if self.opts.zero_at_connect && !self.zeroed {
+            self.zero(self.opts.zero_timeout)?;
+        }
         let here = self.position_um()?;
         self.link.send(&Message::short(
             id::PZ_SET_POSCONTROLMODE,
@@ -418,6 +519,23 @@ impl Stage for Kpz101Stage {
 
     fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
         Ok([0, 1, 2].map(|i| (0.0, self.axes[i].travel_um)))
+    }
+
+    fn gauge_zeroed(&self) -> Option<[bool; 3]> {
+        Some([0, 1, 2].map(|i| self.axes[i].zeroed))
+    }
+
+    /// Zero every cube's gauge in turn (x, y, z). A failure stops there: every cube is told
+    /// to hold where it is, and the error names the cube.
+    fn zero_gauge(&mut self) -> Result<[bool; 3], DeviceError> {
+        for i in 0..3 {
+            let t = self.opts.zero_timeout;
+            if let Err(e) = self.axes[i].zero(t) {
+                let _ = self.stop();
+                return Err(e);
+            }
+        }
+        Ok([0, 1, 2].map(|i| self.axes[i].zeroed))
     }
 
     /// Every cube holds where it is, also when one of them fails (the first error is returned).

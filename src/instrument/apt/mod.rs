@@ -63,6 +63,7 @@ pub mod id {
     pub const PZ_GET_OUTPUTPOS: u16 = 0x0648;
     pub const PZ_REQ_MAXTRAVEL: u16 = 0x0650;
     pub const PZ_GET_MAXTRAVEL: u16 = 0x0651;
+    pub const PZ_SET_ZERO: u16 = 0x0658;
     pub const PZ_REQ_PZSTATUSUPDATE: u16 = 0x0660;
     pub const PZ_GET_PZSTATUSUPDATE: u16 = 0x0661;
     pub const QUAD_SET_PARAMS: u16 = 0x0870;
@@ -97,6 +98,7 @@ pub mod id {
             PZ_GET_OUTPUTPOS => "MGMSG_PZ_GET_OUTPUTPOS",
             PZ_REQ_MAXTRAVEL => "MGMSG_PZ_REQ_MAXTRAVEL",
             PZ_GET_MAXTRAVEL => "MGMSG_PZ_GET_MAXTRAVEL",
+            PZ_SET_ZERO => "MGMSG_PZ_SET_ZERO",
             PZ_REQ_PZSTATUSUPDATE => "MGMSG_PZ_REQ_PZSTATUSUPDATE",
             PZ_GET_PZSTATUSUPDATE => "MGMSG_PZ_GET_PZSTATUSUPDATE",
             QUAD_SET_PARAMS => "MGMSG_QUAD_SET_PARAMS",

@@ -132,9 +132,21 @@ pub struct KpzEmulatorConfig {
     pub full_scale: u16,
     /// Time to reach a new demand, s (linear ramp).
     pub settle_s: f64,
+    /// The strain gauge is zeroed at power-on (status bit 0x10, "zeroed").
+    pub zeroed_at_power_on: bool,
+    /// Offset of the strain-gauge reading until it is zeroed, µm: the position read back
+    /// (`MGMSG_PZ_GET_OUTPUTPOS`) is the actuator's position plus this, and the closed loop
+    /// holds the *reading* on the demand, so the actuator sits this much short of it.
+    pub gauge_offset_um: f64,
+    /// Time `MGMSG_PZ_SET_ZERO` takes, s: the output goes to 0 V (the actuator ramps to its
+    /// zero), status bit 0x20 "zeroing" is set meanwhile, then 0x10 "zeroed" and the offset is
+    /// gone. Thorlabs' document gives no duration.
+    pub zero_s: f64,
 }
 
 impl Default for KpzEmulatorConfig {
+    /// A cube as powered on: gauge not zeroed (no offset: set `gauge_offset_um` to model one),
+    /// zeroing in 20 ms.
     fn default() -> Self {
         Self {
             serial: 29_000_001,
@@ -142,8 +154,23 @@ impl Default for KpzEmulatorConfig {
             travel_um: 20.0,
             full_scale: 32767,
             settle_s: 0.002,
+            zeroed_at_power_on: false,
+            gauge_offset_um: 0.0,
+            zero_s: 0.02,
         }
     }
+}
+
+/// `MGMSG_PZ_GET_PZSTATUSUPDATE` status bits (Thorlabs' APT document; the same in
+/// `thorlabs_apt_protocol`'s parser): actuator connected, zeroed, zeroing, strain gauge
+/// connected, closed loop, channel enabled.
+pub mod pz_status {
+    pub const CONNECTED: u32 = 0x0000_0001;
+    pub const ZEROED: u32 = 0x0000_0010;
+    pub const ZEROING: u32 = 0x0000_0020;
+    pub const GAUGE_CONNECTED: u32 = 0x0000_0100;
+    pub const CLOSED_LOOP: u32 = 0x0000_0400;
+    pub const ENABLED: u32 = 0x8000_0000;
 }
 
 struct Kpz {
@@ -153,10 +180,23 @@ struct Kpz {
     position: SharedPosition,
     /// Ramp: from, to (µm), start, duration.
     ramp: Option<(f64, f64, Instant, f64)>,
+    zeroed: bool,
+    /// Zeroing under way since this instant.
+    zeroing: Option<Instant>,
+    /// The gauge's offset now, µm (0 once zeroed).
+    offset_um: f64,
 }
 
 impl Kpz {
+    /// The actuator's position, µm (what the QPD sees); ends a zeroing that is complete.
     fn now_um(&mut self) -> f64 {
+        if let Some(t0) = self.zeroing {
+            if t0.elapsed().as_secs_f64() >= self.cfg.zero_s {
+                self.zeroing = None;
+                self.zeroed = true;
+                self.offset_um = 0.0;
+            }
+        }
         if let Some((from, to, t0, dur)) = self.ramp {
             let f = if dur <= 0.0 {
                 1.0
@@ -170,6 +210,11 @@ impl Kpz {
             }
         }
         lock(&self.position)[self.cfg.axis]
+    }
+
+    /// What the strain gauge reads for the actuator at `um`, µm.
+    fn reading_um(&self, um: f64) -> f64 {
+        um + self.offset_um
     }
 
     fn counts(&self, um: f64) -> u16 {
@@ -213,28 +258,50 @@ impl AptDevice for Kpz {
             id::PZ_SET_OUTPUTPOS => {
                 let d = m.bytes();
                 // the document: the position is set in closed-loop mode only
-                if d.len() == 4 && self.enabled && self.mode.is_multiple_of(2) {
+                // (and not while zeroing: the output is held at 0 V)
+                if d.len() == 4
+                    && self.enabled
+                    && self.mode.is_multiple_of(2)
+                    && self.zeroing.is_none()
+                {
                     let c = u16::from_le_bytes([d[2], d[3]]).min(self.cfg.full_scale);
-                    let to = c as f64 / self.cfg.full_scale as f64 * self.cfg.travel_um;
+                    let demand = c as f64 / self.cfg.full_scale as f64 * self.cfg.travel_um;
+                    // the loop holds the gauge's reading on the demand
+                    let to = (demand - self.offset_um).clamp(0.0, self.cfg.travel_um);
                     let dur = faults.settle_s.unwrap_or(self.cfg.settle_s);
                     self.ramp = Some((here, to, Instant::now(), dur));
                 }
                 vec![]
             }
+            // the document: 0 V to the actuator, then the reading there becomes the zero
+            id::PZ_SET_ZERO if m.param1 == CHAN1 => {
+                self.zeroing = Some(Instant::now());
+                self.zeroed = false;
+                self.ramp = Some((here, 0.0, Instant::now(), self.cfg.zero_s));
+                vec![]
+            }
             id::PZ_REQ_OUTPUTPOS => {
-                vec![Message::long(id::PZ_GET_OUTPUTPOS, chan_word(self.counts(here))).reply()]
+                let r = self.reading_um(here);
+                vec![Message::long(id::PZ_GET_OUTPUTPOS, chan_word(self.counts(r))).reply()]
             }
             id::PZ_REQ_PZSTATUSUPDATE => {
                 let mut d = (CHAN1 as u16).to_le_bytes().to_vec();
                 let volts = (here / self.cfg.travel_um * 32767.0).round() as i16;
                 d.extend_from_slice(&volts.to_le_bytes());
-                d.extend_from_slice(&(self.counts(here) as i16).to_le_bytes());
-                let mut bits: u32 = 0x01; // actuator connected
+                let r = self.reading_um(here);
+                d.extend_from_slice(&(self.counts(r) as i16).to_le_bytes());
+                let mut bits: u32 = pz_status::CONNECTED | pz_status::GAUGE_CONNECTED;
                 if self.mode.is_multiple_of(2) {
-                    bits |= 0x400; // closed loop
+                    bits |= pz_status::CLOSED_LOOP;
                 }
                 if self.enabled {
-                    bits |= 0x8000_0000;
+                    bits |= pz_status::ENABLED;
+                }
+                if self.zeroed {
+                    bits |= pz_status::ZEROED;
+                }
+                if self.zeroing.is_some() {
+                    bits |= pz_status::ZEROING;
                 }
                 d.extend_from_slice(&bits.to_le_bytes());
                 vec![Message::long(id::PZ_GET_PZSTATUSUPDATE, d).reply()]
@@ -272,11 +339,18 @@ pub fn start_kpz101_emulator(
     spawn_apt(
         "kpz101",
         Kpz {
-            cfg,
             mode: MODE_OPEN_LOOP,
             enabled: false,
             position: position.clone(),
             ramp: None,
+            zeroed: cfg.zeroed_at_power_on,
+            zeroing: None,
+            offset_um: if cfg.zeroed_at_power_on {
+                0.0
+            } else {
+                cfg.gauge_offset_um
+            },
+            cfg,
         },
         position,
     )

@@ -12,8 +12,13 @@
 //!   `AWG_PE/NE` (accepted, never fires: no generator is emulated); when the trigger fires the
 //!   source reads back `DISABLED`, and `ACQ:TRIG:STAT?` answers `TD` exactly when the source is
 //!   `DISABLED` (so before any `ACQ:TRIG`, too), `WAIT` otherwise;
-//! - `ACQ:TRIG:DLY d`: `8192 + d` samples are written after the trigger (clamped to 0…16384),
+//! - `ACQ:TRIG:DLY d`: `8192 + d` samples are written after the trigger (clamped to 0…16383),
 //!   then writing stops and `ACQ:TRIG:FILL?` answers 1; all in wall-clock time;
+//! - the time of a sample as the FPGA scope (`red_pitaya_scope.v`) makes it: the decimator's
+//!   windows of `dec` ADC samples start at `ACQ:START`, a sample is written at the end of its
+//!   window (the mean of the window with `ACQ:AVG ON`, its last ADC sample with `OFF`), and
+//!   `ACQ:TPOS?` is the last sample written before the trigger; a sample carries the signal at
+//!   the middle of its window (see `Board::fire`);
 //! - `ACQ:WPOS?`, `ACQ:TPOS?`, `ACQ:BUF:SIZE?`, `ACQ:SOUR<n>:GAIN LV|HV` (inputs clip at ±1 V /
 //!   ±20 V; RAW counts are 14-bit, ±8192 at full scale);
 //! - data: `ACQ:SOUR<n>:DATA?` (the whole buffer from the oldest sample), `:DATA:STA:N? s,n`,
@@ -27,13 +32,14 @@
 //!
 //! The signal: each input carries the volts of the [`SignalSource`] at the stage position
 //! (`volts = volts_per_unit · signal + offset`, Sx → IN1, Sy → IN2, Sz → IN3 by default), plus
-//! an optional test generator (volts per input as a function of the time since the trigger)
-//! and white noise. The position: with a [`StagePath`] shared with the GCS stage emulator
-//! (`RedPitayaEmulatorConfig::path`) and a wave running, post-trigger sample j carries the
-//! signal at the path's position at `trigger + j · dt` (the trigger dated by the external
-//! pulse's edge, [`ExtTrigger::last_edge`]): the board follows the moving stage during a
-//! hardware-timed line. Otherwise (and for pre-trigger samples) the shared position at the
-//! trigger.
+//! an optional test generator (volts per input as a function of the sample's time since the
+//! trigger) and white noise. The position: with a [`StagePath`] shared with the GCS stage
+//! emulator (`RedPitayaEmulatorConfig::path`) and a wave running, sample j (j = 0 at TPOS)
+//! carries the signal at the path's position at the middle of its averaging window,
+//! `trigger + (j − ½)·dt − phase` (the trigger dated by the external pulse's edge,
+//! [`ExtTrigger::last_edge`]; `phase` < dt from the decimator's count since `ACQ:START`): the
+//! board follows the moving stage during a hardware-timed line. Otherwise (and for earlier
+//! samples) the shared position at the trigger.
 //!
 //! Faults ([`Faults`]): `silent` (reads commands, never answers), `garble_replies` (text replies
 //! garbled, binary blocks lose their `#`), `no_trigger` (no trigger source ever fires, `NOW`
@@ -222,8 +228,10 @@ struct Board {
     acq: Acq,
     /// Write pointer when writing started (the acquisition begins where the last one ended).
     wpos0: usize,
-    /// Write pointer at the trigger, and where writing stopped.
+    /// The last sample written before the trigger (`ACQ:TPOS?`), and where writing stopped.
     tpos: usize,
+    /// How long before the trigger the window of the sample at TPOS ended, s (< dt).
+    phase_s: f64,
     wstop: usize,
     /// Volts per input and sample.
     data: Vec<Vec<f32>>,
@@ -339,8 +347,9 @@ impl Board {
             .collect()
     }
 
+    /// Samples written after the trigger: `8192 + ACQ:TRIG:DLY`, after the sample at TPOS.
     fn post_samples(&self) -> usize {
-        (BUF as i64 / 2 + self.delay).clamp(0, BUF as i64) as usize
+        (BUF as i64 / 2 + self.delay).clamp(0, BUF as i64 - 1) as usize
     }
 
     fn elapsed_samples(&self, since: Instant, now: Instant) -> usize {
@@ -348,6 +357,12 @@ impl Board {
     }
 
     /// The trigger fired at `now` (at the external pulse's edge for `EXT_*`).
+    ///
+    /// As Red Pitaya's FPGA scope does: the decimator restarts its count at `ACQ:START` and
+    /// writes a sample each time `dec` ADC samples are summed, at the end of their window;
+    /// the trigger saves the write pointer of the last sample written before it (`TPOS`). So
+    /// with the windows `[since + k·dt, since + (k+1)·dt)`, the sample at TPOS is the last
+    /// window complete at the trigger, which ends `phase` s before it (0 ≤ phase < dt).
     fn fire(&mut self, now: Instant) {
         let Acq::Running { since, .. } = self.acq else {
             return;
@@ -356,8 +371,11 @@ impl Board {
             Src::ExtPe | Src::ExtNe => self.ext.last_edge().map_or(now, |e| e.clamp(since, now)),
             _ => now,
         };
-        let written = self.elapsed_samples(since, now);
-        self.tpos = (self.wpos0 + written) % BUF;
+        let dt = self.dt();
+        let e = (now - since).as_secs_f64();
+        let written = (e / dt) as usize;
+        self.phase_s = (e - written as f64 * dt).clamp(0.0, dt);
+        self.tpos = (self.wpos0 + written + BUF - 1) % BUF;
         self.src = Src::Disabled;
         self.acq = Acq::Triggered {
             at: now,
@@ -366,30 +384,43 @@ impl Board {
         self.record(now);
     }
 
-    /// Fill the ring buffer for the trigger at `tpos` (instant `at`): samples before it are
-    /// pre-trigger (negative times), from it on post-trigger. Without a stage path every
-    /// sample carries the signal at the position at the trigger; with one, post-trigger sample
-    /// j carries the signal at the path's position at `at + j · dt`.
+    /// The time of sample j (j = 0 at TPOS) relative to the trigger, s: the middle of its
+    /// averaging window with `ACQ:AVG ON` (`(j − ½)·dt − phase`), the window's last ADC sample
+    /// without (`j·dt − phase`: decimation keeps one sample of each window).
+    fn sample_time(&self, j: isize) -> f64 {
+        let dt = self.dt();
+        let mid = if self.avg { 0.5 * dt } else { 0.0 };
+        j as f64 * dt - mid - self.phase_s
+    }
+
+    /// Fill the ring buffer for the trigger at `tpos` (instant `at`): samples up to TPOS were
+    /// written before it, `post` more after it. Without a stage path every sample carries the
+    /// signal at the position at the trigger; with one, sample j ≥ 0 (j = 0 at TPOS) carries
+    /// the signal at the path's position at its time ([`Self::sample_time`]; the mean over a
+    /// window of a signal varying linearly is its middle's value, and across a window of
+    /// `v·dt` ≈ 2 nm the scene's curvature changes it by about 1e-6 of its peak).
     fn record(&mut self, at: Instant) {
         let base = self.input_volts();
         let path = self.cfg.path.as_ref().and_then(StagePath::get);
         let post_n = self.post_samples();
-        let dt_s = self.dt();
-        // the volts per post-trigger sample at the path's position at its time
+        // the volts per sample from TPOS on at the path's position at its time
         let moving: Option<Vec<[f64; 4]>> = path.map(|p| {
-            let positions: Vec<crate::instrument::Pos> = (0..post_n.max(1))
+            let positions: Vec<crate::instrument::Pos> = (0..=post_n)
                 .map(|j| {
-                    let t = at + Duration::from_secs_f64(j as f64 * dt_s);
-                    if t < p.start {
-                        p.base
+                    let s = self.sample_time(j as isize);
+                    let t = if s >= 0.0 {
+                        at.checked_add(Duration::from_secs_f64(s))
                     } else {
-                        p.at_cycle(((t - p.start).as_secs_f64() / p.dt) as usize)
+                        at.checked_sub(Duration::from_secs_f64(-s))
+                    };
+                    match t {
+                        Some(t) if t >= p.start => p.at_time((t - p.start).as_secs_f64()),
+                        _ => p.base,
                     }
                 })
                 .collect();
             self.volts_along(&positions)
         });
-        let dt = self.dt();
         let post = self.post_samples();
         let sigma = if self.avg {
             self.cfg.noise_v / (self.dec as f64).sqrt()
@@ -400,12 +431,12 @@ impl Board {
         for ch in 0..self.cfg.inputs {
             let fs = if self.hv[ch] { 20.0 } else { 1.0 };
             for k in 0..BUF {
-                // index k holds sample j = k − tpos after the trigger (wrapped into −pre..post)
+                // index k holds sample j = k − tpos (wrapped into −pre..=post)
                 let mut j = (k + BUF - self.tpos) % BUF;
-                if j >= post.max(1) {
+                if j > post {
                     j = j.wrapping_sub(BUF);
                 }
-                let t = j as isize as f64 * dt;
+                let t = self.sample_time(j as isize);
                 let mut v = match &moving {
                     Some(m) if (j as isize) >= 0 && j < m.len() => m[j][ch],
                     _ => base[ch],
@@ -449,7 +480,7 @@ impl Board {
         }
         if let Acq::Triggered { at, post } = self.acq {
             if self.elapsed_samples(at, now) >= post {
-                self.wstop = (self.tpos + post) % BUF;
+                self.wstop = (self.tpos + post + 1) % BUF;
                 self.wpos0 = self.wstop;
                 self.acq = Acq::Idle;
                 // stays "filled" until the next start
@@ -463,7 +494,7 @@ impl Board {
         match self.acq {
             Acq::Idle => self.wstop,
             Acq::Running { since, .. } => (self.wpos0 + self.elapsed_samples(since, now)) % BUF,
-            Acq::Triggered { at, .. } => (self.tpos + self.elapsed_samples(at, now)) % BUF,
+            Acq::Triggered { at, .. } => (self.tpos + 1 + self.elapsed_samples(at, now)) % BUF,
         }
     }
 
@@ -823,6 +854,7 @@ pub fn start_redpitaya_emulator(
         acq: Acq::Idle,
         wpos0: 0,
         tpos: 0,
+        phase_s: 0.0,
         wstop: 0,
         data: vec![vec![0.0; BUF]; inputs],
         last_level: [None; 4],
@@ -975,6 +1007,7 @@ mod tests {
             acq: Acq::Idle,
             wpos0: 0,
             tpos: 0,
+            phase_s: 0.0,
             wstop: 0,
             data: vec![vec![0.0; BUF]; inputs],
             last_level: [None; 4],

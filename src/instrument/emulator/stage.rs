@@ -1,7 +1,13 @@
 //! A PI GCS 2.0 piezo controller emulator: three closed-loop axes with a travel range, servo
-//! state, settle dynamics (the position ramps linearly from where it was to the target over
-//! the settle time; `ONT?` reports 0 until it is within the settling window of the target) and GCS's single error register
-//! (`ERR?` returns the last error and clears it).
+//! state, settle dynamics and GCS's single error register (`ERR?` returns the last error and
+//! clears it).
+//!
+//! Motion as PI's documents describe it: the trajectory ramps linearly from where the axis was
+//! to the target over the settle time, and `#5` (motion status) reports the axis in motion
+//! while the trajectory runs; `ONT?` (on target) is the E-727 manual's rule: the position has
+//! been inside the settling window (parameter 0x07000900, "On Target Tolerance") for at least
+//! the settling time (0x07000901), so `ONT?` can still answer 0 when `#5` already answers 0.
+//! `SPA`/`SPA?` read and set both parameters per axis.
 //!
 //! Commands: `#5` (motion status), `#7` (ready), `#24` (stop) as single characters, `*IDN?`, `ERR?`, `SAI?`, `SAI? ALL`, `SVO`, `SVO?`, `MOV`, `MOV?`, `POS?`,
 //! `ONT?`, `TMN?`, `TMX?`, `VEL`, `VEL?`, `STP`, `HLT`. Queries take an optional axis list (all
@@ -44,9 +50,12 @@ pub struct StageEmulatorConfig {
     pub start: Pos,
     /// Time to settle on a new target, s (linear ramp).
     pub settle_s: f64,
-    /// `ONT?` reports 1 once the position is within this distance of the target, µm (the
-    /// controller's settling window).
+    /// Settling window, µm: `ONT?` reports 1 once the position has been within this distance
+    /// of the target for `settling_time_s` (E-727 parameter 0x07000900).
     pub on_target_window_um: f64,
+    /// Settling time, s (E-727 parameter 0x07000901): how long the position must stay inside
+    /// the settling window before `ONT?` reports 1.
+    pub settling_time_s: f64,
     /// Servo state at power-on.
     pub servo_on: bool,
     /// `*IDN?` reply.
@@ -75,6 +84,7 @@ impl Default for StageEmulatorConfig {
             start: [0.0; 3],
             settle_s: 0.002,
             on_target_window_um: 0.001,
+            settling_time_s: 0.0,
             servo_on: false,
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-727, 0000000000, 1.0.0 (bfpscope emulator)"
                 .into(),
@@ -125,6 +135,9 @@ struct GcsDevice {
     velocity: [f64; 3],
     /// Wave generator, recorder, trigger outputs.
     wave: wave::Wave,
+    /// Settling window (µm) and settling time (s) per axis (`SPA` 0x07000900, 0x07000901).
+    window_um: [f64; 3],
+    settling_s: [f64; 3],
 }
 
 impl GcsDevice {
@@ -146,27 +159,57 @@ impl GcsDevice {
             .max(0.0)
     }
 
-    /// Position and on-target flag of axis `i` now.
+    /// Position and on-target flag of axis `i` now: on target once the position has been
+    /// inside the settling window for the settling time (E-727: `ONT?`).
     fn axis_now(&self, i: usize, now: Instant) -> (f64, bool) {
         let a = &self.axes[i];
+        let window = self.window_um[i];
         if a.tripped {
             return (a.from, false);
         }
         if let Some(x) = a.lag {
-            let on = !self.wave.running(i) && (x - a.target).abs() <= self.cfg.on_target_window_um;
+            let on = !self.wave.running(i) && (x - a.target).abs() <= window;
             return (x, on);
         }
+        let since = now.duration_since(a.t0).as_secs_f64();
         let f = if a.settle > 0.0 {
-            now.duration_since(a.t0).as_secs_f64() / a.settle
+            since / a.settle
         } else {
             1.0
         };
-        if f >= 1.0 {
-            (a.target, true)
+        let p = if f >= 1.0 {
+            a.target
         } else {
-            let p = a.from + (a.target - a.from) * f;
-            (p, (p - a.target).abs() <= self.cfg.on_target_window_um)
+            a.from + (a.target - a.from) * f
+        };
+        // the instant (s after the MOV) the linear trajectory entered the window, for good
+        let d = (a.target - a.from).abs();
+        let entered = if a.settle > 0.0 && d > window {
+            a.settle * (1.0 - window / d)
+        } else {
+            0.0
+        };
+        let settling = lock(&self.faults)
+            .settling_time_s
+            .unwrap_or(self.settling_s[i])
+            .max(0.0);
+        (
+            p,
+            since >= entered + settling && (p - a.target).abs() <= window,
+        )
+    }
+
+    /// Axis `i`'s trajectory runs (`#5`: "axis in motion"): the ramp to the target has not
+    /// ended, or the wave generator drives it.
+    fn in_motion(&self, i: usize, now: Instant) -> bool {
+        let a = &self.axes[i];
+        if a.tripped {
+            return false;
         }
+        if a.lag.is_some() {
+            return self.wave.running(i);
+        }
+        a.settle > 0.0 && now.duration_since(a.t0).as_secs_f64() < a.settle
     }
 
     fn positions(&self) -> ([f64; 3], [bool; 3]) {
@@ -297,12 +340,12 @@ impl Device for GcsDevice {
                 None
             }
             // #5, motion status: a hexadecimal bit mask of the axes in motion, bit 0 the first
-            // axis of `SAI?` (PI: "1 = first axis in motion, 2 = second, 4 = third"); a
-            // closed-loop axis is in motion until it is on target; a tripped axis has stopped.
+            // axis of `SAI?` (PI: "1 = first axis in motion, 2 = second, 4 = third"): the
+            // trajectory, not the settling window (that is `ONT?`); a tripped axis has stopped.
             "#5" => {
-                let (_, ont) = self.positions();
+                let now = Instant::now();
                 let mask = (0..3)
-                    .filter(|&i| !ont[i] && !self.axes[i].tripped)
+                    .filter(|&i| self.in_motion(i, now))
                     .fold(0u32, |m, i| m | (1 << i));
                 Some(format!("{mask:X}"))
             }
@@ -494,6 +537,7 @@ fn device(
         .map_err(|_| std::io::Error::other("three axes"))?;
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
     let cfg_wave = cfg.wave.clone();
+    let (cfg_window, cfg_settling) = (cfg.on_target_window_um, cfg.settling_time_s.max(0.0));
     let dev = GcsDevice {
         cfg,
         axes,
@@ -503,6 +547,8 @@ fn device(
         noise_state: std::cell::Cell::new(0x5eed),
         velocity: [10_000.0; 3],
         wave: wave::Wave::new(cfg_wave, now),
+        window_um: [cfg_window; 3],
+        settling_s: [cfg_settling; 3],
     };
     dev.publish();
     Ok((dev, faults))

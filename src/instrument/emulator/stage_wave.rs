@@ -38,7 +38,8 @@
 //!
 //! - parameters (`SPA? <item> <id>`, E-727 parameter list; PIPython's `getservotime` and
 //!   `getmaxnumvalues` read them): 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder
-//!   Max Points (all tables), 0x16000300 Data Recorder Chan Number; `WMS? [<table> …]`: points
+//!   Max Points (all tables), 0x16000300 Data Recorder Chan Number, 0x07000900 settling window
+//!   (µm) and 0x07000901 settling time (s), both also set with `SPA`; `WMS? [<table> …]`: points
 //!   per wave table (PI's "maximum size of the wave storage");
 //! - the path of a running wave is published at `WGO` on [`WaveConfig::path`] (see
 //!   [`StagePath`]), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
@@ -420,7 +421,7 @@ impl GcsDevice {
                 let a = &self.axes[self.wave.lines[li].axis];
                 !self.wave.gens[self.wave.lines[li].axis].running
                     && (x[self.wave.lines[li].axis] - a.target).abs()
-                        <= self.cfg.on_target_window_um
+                        <= self.window_um[self.wave.lines[li].axis]
             };
             let gen_point = {
                 let ax = self.wave.lines[li].axis;
@@ -551,6 +552,7 @@ impl GcsDevice {
             "RTR?" if args.is_empty() => Ok(Some(self.wave.rtr.to_string())),
             "DRR?" => self.drr(args).map(Some),
             "SPA?" => self.spa_q(args).map(Some),
+            "SPA" => self.spa(args).map(|_| None),
             "WMS?" => {
                 let ids: Result<Vec<usize>, i64> = if args.is_empty() {
                     Ok((1..=self.wave.tables.len()).collect())
@@ -628,11 +630,50 @@ impl GcsDevice {
                     (self.wave.cfg.record_points * self.wave.cfg.record_tables).to_string()
                 }
                 0x1600_0300 => self.wave.cfg.record_tables.to_string(),
+                0x0700_0900 => format!("{:.6}", self.window_um[axis_index(&self.cfg.axes, c[0])]),
+                0x0700_0901 => format!("{:.6}", self.settling_s[axis_index(&self.cfg.axes, c[0])]),
                 _ => return Err(54),
             };
             out.push(format!("{} {}={v}", c[0], c[1]));
         }
         Ok(out.join(" \n"))
+    }
+
+    /// `SPA {<item> <parameter id> <value>}`: the settling window (0x07000900, µm) and the
+    /// settling time (0x07000901, s) of an axis, which decide `ONT?` (E-727 manual). Error 15
+    /// for an unknown axis, 54 for a parameter not emulated, 17 for a negative or non-finite
+    /// value; nothing is changed unless every triple is valid.
+    fn spa(&mut self, args: &[&str]) -> Result<(), i64> {
+        if args.is_empty() || !args.len().is_multiple_of(3) {
+            return Err(1);
+        }
+        let mut set = Vec::new();
+        for c in args.chunks(3) {
+            if !self.cfg.axes.iter().any(|a| a == c[0]) {
+                return Err(15);
+            }
+            let id = match c[1].strip_prefix("0x").or_else(|| c[1].strip_prefix("0X")) {
+                Some(h) => u32::from_str_radix(h, 16).ok(),
+                None => c[1].parse::<u32>().ok(),
+            }
+            .ok_or(1i64)?;
+            let v: f64 = c[2].parse().map_err(|_| 1i64)?;
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(17);
+            }
+            if !matches!(id, 0x0700_0900 | 0x0700_0901) {
+                return Err(54);
+            }
+            set.push((axis_index(&self.cfg.axes, c[0]), id, v));
+        }
+        for (i, id, v) in set {
+            if id == 0x0700_0900 {
+                self.window_um[i] = v;
+            } else {
+                self.settling_s[i] = v;
+            }
+        }
+        Ok(())
     }
 
     fn gen_id(&self, s: &str) -> Result<usize, i64> {
@@ -1144,4 +1185,9 @@ impl GcsDevice {
         }
         Ok(out)
     }
+}
+
+/// The index of axis identifier `id` among `axes` (0 when absent: callers check first).
+fn axis_index(axes: &[String; 3], id: &str) -> usize {
+    axes.iter().position(|a| a == id).unwrap_or(0)
 }
