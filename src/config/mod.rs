@@ -35,12 +35,15 @@
 //! ignored silently); errors name the key path (`stage.baud`) and the line. The legacy
 //! `[limits]` table and `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
 
+pub mod bench;
 pub mod connect;
+
+pub use bench::{QpdChannels, RasterConfig};
 
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
 use crate::instrument::link::TCP_PREFIX;
-use crate::instrument::redpitaya::{ChannelMap, InputGain, RedPitayaOptions};
+use crate::instrument::redpitaya::{InputGain, RedPitayaOptions};
 use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -88,6 +91,10 @@ pub enum Backend {
     Kpz101,
     /// Red Pitaya STEMlab board over its SCPI server (qpd).
     Redpitaya,
+    /// Mad City Labs Nano-Drive through the vendor's library Madlib (stage).
+    Madlib,
+    /// NI DAQ board through NI-DAQmx (qpd; `[raster]`).
+    Nidaqmx,
 }
 
 impl Backend {
@@ -99,6 +106,8 @@ impl Backend {
             Backend::Kpa101 => "kpa101",
             Backend::Kpz101 => "kpz101",
             Backend::Redpitaya => "redpitaya",
+            Backend::Madlib => "madlib",
+            Backend::Nidaqmx => "nidaqmx",
         }
     }
 }
@@ -107,8 +116,11 @@ impl Backend {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AxisMap {
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub x: String,
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub y: String,
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub z: String,
 }
 
@@ -208,6 +220,12 @@ pub struct StageConfig {
     /// `SPA? <axis> 0x16000200` / `0x16000300`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_record_points: Option<usize>,
+    /// madlib: the library's path (default: the usual names and paths).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub library: Option<std::path::PathBuf>,
+    /// madlib: the Nano-Drive's serial number (default: the only one attached).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub serial: Option<i32>,
 }
 
 impl Default for StageConfig {
@@ -233,6 +251,8 @@ impl Default for StageConfig {
             servo_cycle_s: None,
             max_wave_points: None,
             max_record_points: None,
+            library: None,
+            serial: None,
         }
     }
 }
@@ -249,8 +269,9 @@ pub struct QpdConfig {
     /// redpitaya: host name or IP address of the board.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,
-    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz.
-    pub channels: ChannelMap,
+    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz; nidaqmx: the
+    /// input names (`sx`, `sy`, `sum` or `q1`…`q4` = `"ai0"`…).
+    pub channels: QpdChannels,
     /// redpitaya: nominal QPD sample rate, Hz (a read of n samples covers n / rate seconds).
     pub sample_rate_hz: f64,
     /// redpitaya: input range, "LV" (±1 V) or "HV" (±20 V), as the jumpers are set.
@@ -268,6 +289,21 @@ pub struct QpdConfig {
     pub x_sign: f64,
     /// kpa101: the Sum word is a signed 16-bit number.
     pub signed: bool,
+    /// nidaqmx: the library's path (default: the usual names and paths).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub library: Option<std::path::PathBuf>,
+    /// nidaqmx: the board's name in NI MAX (`"Dev1"`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub device: Option<String>,
+    /// nidaqmx: input range ±V (default 10).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub range_v: Option<f64>,
+    /// nidaqmx: terminal configuration, "diff" (default), "rse", "nrse", "pseudodiff", "default".
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal: Option<String>,
+    /// nidaqmx: sample rate per channel, Hz (default 800000, the PCI-6120's maximum).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rate_hz: Option<f64>,
 }
 
 impl Default for QpdConfig {
@@ -276,7 +312,7 @@ impl Default for QpdConfig {
             backend: Backend::Sim,
             port: None,
             host: None,
-            channels: ChannelMap::default(),
+            channels: QpdChannels::default(),
             sample_rate_hz: 100_000.0,
             input_gain: InputGain::LV,
             baud: 115_200,
@@ -286,6 +322,11 @@ impl Default for QpdConfig {
             sum_scale: 10.0 / 65535.0,
             x_sign: 1.0,
             signed: false,
+            library: None,
+            device: None,
+            range_v: None,
+            terminal: None,
+            rate_hz: None,
         }
     }
 }
@@ -300,6 +341,9 @@ pub struct Config {
     /// `[safety]`: soft limits, step and speed limits (`acquire::limits`).
     #[serde(default)]
     pub safety: SafetyConfig,
+    /// `[raster]`: the NI board's hardware-timed raster (`config/bench.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raster: Option<RasterConfig>,
     /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
     #[serde(flatten)]
     pub other: toml::Table,
@@ -452,24 +496,24 @@ impl Config {
         let s = &self.stage;
         let q = &self.qpd;
         match s.backend {
-            Backend::Sim | Backend::Gcs | Backend::Kpz101 => {}
-            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya) => {
+            Backend::Sim | Backend::Gcs | Backend::Kpz101 | Backend::Madlib => {}
+            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx) => {
                 return Err(err(
                     "stage.backend",
                     format!(
-                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\"",
+                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\", \"madlib\"",
                     b.as_str()
                 ),
                 ))
             }
         }
         match q.backend {
-            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya => {}
-            b @ (Backend::Gcs | Backend::Kpz101) => {
+            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx => {}
+            b @ (Backend::Gcs | Backend::Kpz101 | Backend::Madlib) => {
                 return Err(err(
                     "qpd.backend",
                     format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\"",
+                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\", \"nidaqmx\"",
                     b.as_str()
                 ),
                 ))
@@ -626,6 +670,7 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
+        self.validate_bench()?;
         if let Some(old) = self.other.get("limits") {
             return Err(err("limits", legacy_limits_message(old)));
         }
@@ -882,7 +927,14 @@ impl Config {
             ));
         }
         self.redpitaya_port()?;
+        if let QpdChannels::Names(_) = q.channels {
+            return Err(err(
+                "qpd.channels",
+                "input names (\"ai0\"…) are for backend = \"nidaqmx\"; a Red Pitaya's inputs are numbers: { sx = 1, sy = 2, sz = 3 }",
+            ));
+        }
         q.channels
+            .inputs()
             .check()
             .map_err(|(k, m)| err(&format!("qpd.channels.{k}"), m))?;
         let r = q.sample_rate_hz;
@@ -914,7 +966,7 @@ impl Config {
         RedPitayaOptions {
             timeout: Duration::from_millis(self.qpd.timeout_ms),
             calibration: self.qpd.calibration,
-            channels: self.qpd.channels,
+            channels: self.qpd.channels.inputs(),
             sample_rate_hz: self.qpd.sample_rate_hz,
             gain: self.qpd.input_gain,
             ..RedPitayaOptions::default()
