@@ -67,8 +67,11 @@ pub unsafe extern "C" fn fakebench_set_faults(spec: *const c_char) -> c_int {
                 crate::daqmx::sync(b, t);
                 b.stage.apply_stuck(&f.stage_stuck, t);
                 b.cfg.faults = f;
+                // new switches: the counters restart, an unplugged device is back
                 b.mcl.calls = 0;
+                b.mcl.unplugged = false;
                 b.daq.reads = 0;
+                b.daq.removed = false;
                 b.log(format!("fakebench_set_faults(\"{s}\")"));
                 0
             }),

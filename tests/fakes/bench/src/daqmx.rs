@@ -594,11 +594,15 @@ fn ai_clock(b: &Bench, task: &Task) -> Option<(f64, f64, Option<u64>, f64)> {
 /// Samples per channel that exist at time `t` (acquired so far).
 fn acquired(clock: (f64, f64, Option<u64>, f64), t: f64) -> u64 {
     let (t0, dt, finite, end) = clock;
-    let tt = t.min(end - dt * 1e-9);
-    if tt < t0 {
+    if t < t0 {
         return 0;
     }
-    let mut n = ((tt - t0) / dt + 1e-9).floor() as u64 + 1;
+    // edges k with t0 + k·dt ≤ t, and with t0 + k·dt < end (the clock's end)
+    let mut n = ((t - t0) / dt + 1e-9).floor() as u64 + 1;
+    if end.is_finite() {
+        let edges = ((end - t0) / dt - 1e-9).ceil().max(0.0) as u64;
+        n = n.min(edges);
+    }
     if let Some(f) = finite {
         n = n.min(f);
     }
@@ -700,6 +704,15 @@ fn start_task(b: &mut Bench, id: usize, implicit: bool) -> R<()> {
             }
         }
     }
+    let t = if kind == Kind::Ai && task.chans.iter().any(|c| {
+        matches!(b.cfg.ai[c.phys], AiSource::Sx | AiSource::Sy | AiSource::Sum)
+    }) {
+        // the scene's renderer is built here, before the acquisition starts, not in its first read
+        let _ = b.qpd.renderer();
+        now()
+    } else {
+        t
+    };
     let task = b.daq.tasks.get_mut(&id).expect("checked");
     task.running = true;
     task.t_start = t;

@@ -16,7 +16,8 @@
 use crate::config::Config;
 use bfpscope::instrument::sim::{Renderer, Scene};
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// Node spacing, µm.
 pub const NODE_UM: f64 = 0.005;
@@ -27,7 +28,7 @@ type Tile = Arc<[Vec<f64>; 3]>;
 
 /// The QPD's signal source.
 pub struct Qpd {
-    scene_path: Option<std::path::PathBuf>,
+    scene_path: Option<PathBuf>,
     origin: [f64; 3],
     renderer: Option<Result<Arc<Renderer>, String>>,
     tiles: HashMap<(i64, i64, i64), Tile>,
@@ -43,10 +44,25 @@ impl Qpd {
         }
     }
 
-    /// The renderer of the configured scene (built on first use), or why it cannot be built.
+    /// The renderer of the configured scene (built on first use, and kept for the process:
+    /// a bench reset does not build it again), or why it cannot be built (printed once).
     pub fn renderer(&mut self) -> Result<Arc<Renderer>, String> {
+        type Cache = Mutex<HashMap<Option<PathBuf>, Result<Arc<Renderer>, String>>>;
+        static BUILT: OnceLock<Cache> = OnceLock::new();
         if self.renderer.is_none() {
-            self.renderer = Some(build_renderer(self.scene_path.as_deref()));
+            let cache = BUILT.get_or_init(Default::default);
+            let mut g = cache.lock().unwrap_or_else(|e| e.into_inner());
+            let r = g
+                .entry(self.scene_path.clone())
+                .or_insert_with(|| {
+                    let r = build_renderer(self.scene_path.as_deref());
+                    if let Err(e) = &r {
+                        eprintln!("fakebench: {e}; the QPD inputs read 0 V signal");
+                    }
+                    r
+                })
+                .clone();
+            self.renderer = Some(r);
         }
         self.renderer.clone().expect("set above")
     }

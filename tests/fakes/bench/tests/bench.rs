@@ -40,12 +40,15 @@ const DAQMX_VAL_RSE: i32 = 10083;
 const DAQMX_VAL_CFG_DEFAULT: i32 = -1;
 
 fn lib_path() -> std::path::PathBuf {
-    // tests/fakes/bench/tests → target/<profile>/libfakebench.so next to this test's deps/
+    // the test runs from target/<profile>/deps/; `cargo build` puts the library in
+    // target/<profile>/, a test build (the library built as a dependency) in deps/: the newer
     let exe = std::env::current_exe().unwrap();
-    let dir = exe.parent().unwrap().parent().unwrap();
-    let so = dir.join("libfakebench.so");
-    assert!(so.exists(), "{} missing: build the workspace (cargo build)", so.display());
-    so
+    let deps = exe.parent().unwrap();
+    let newest = [deps.join("libfakebench.so"), deps.parent().unwrap().join("libfakebench.so")]
+        .into_iter()
+        .filter_map(|p| Some((std::fs::metadata(&p).ok()?.modified().ok()?, p)))
+        .max();
+    newest.expect("libfakebench.so missing next to the test: build the workspace (cargo build)").1
 }
 
 struct Fake {
@@ -324,11 +327,12 @@ fn stage_faults() {
     assert_eq!(unsafe { attached(1, h) }, 0);
     f.release(h);
     f.faults("stage_stuck=x");
+    let stuck_at = f.position(1);
     let h = f.init_handle();
     assert_eq!(f.write(20.0, 1, h), MCL_SUCCESS);
     assert_eq!(f.write(20.0, 2, h), MCL_SUCCESS);
     std::thread::sleep(std::time::Duration::from_millis(30));
-    assert!(f.position(1).abs() < 1e-9, "stuck x at {}", f.position(1));
+    assert_eq!(f.position(1), stuck_at, "x stays where it stuck");
     assert!((f.position(2) - 20.0).abs() < 1e-3);
 }
 
@@ -488,6 +492,7 @@ fn argument_errors_have_nis_codes_and_texts() {
     let t = f.create_task();
     assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -10.0, 10.0), 0);
     assert_eq!(f.timing(t, "", 1e3, DAQMX_VAL_FINITE_SAMPS, 1000), 0);
+    assert_eq!(f.start(t), 0);
     let mut buf = vec![0.0; 1000];
     let t0 = std::time::Instant::now();
     let (s, n) = f.read_f64(t, 1000, 0.05, 0, &mut buf);
@@ -518,7 +523,7 @@ fn continuous_stream_overflows_when_not_read() {
     let mut buf = vec![0.0; 500];
     // read in time: fine
     for _ in 0..4 {
-        assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf), (0, 500));
+        assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf), (0, 500), "{}", f.log());
     }
     // 2000 samples are 20 ms at 100 kS/s: wait 50 ms
     std::thread::sleep(std::time::Duration::from_millis(50));
