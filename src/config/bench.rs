@@ -432,7 +432,9 @@ pub(super) fn connect_bench(
     use crate::instrument::nidaqmx::NiQpd;
     use crate::instrument::{Qpd, Stage, WallClock};
     use serde_json::json;
-    let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
+    let raster = cfg.ni_raster_options()?;
+    let mut madlib: Option<MadlibStage> = None;
+    let (stage, stage_desc): (Option<Box<dyn Stage>>, serde_json::Value) = match cfg.stage.backend {
         Backend::Madlib => {
             let o = cfg.madlib_options()?;
             let s = MadlibStage::open(o.clone())?;
@@ -455,7 +457,8 @@ pub(super) fn connect_bench(
                 "tolerance_um": o.tolerance_um,
                 "on_target_timeout_ms": cfg.stage.on_target_timeout_ms,
             });
-            (Box::new(s), d)
+            madlib = Some(s);
+            (None, d)
         }
         Backend::Gcs => {
             let s = crate::instrument::gcs_split::GcsSplitStage::open_checked(
@@ -463,7 +466,7 @@ pub(super) fn connect_bench(
                 cfg.stage.baud,
             )?;
             let d = json!({ "backend": "gcs", "name": s.name() });
-            (Box::new(s), d)
+            (Some(Box::new(s)), d)
         }
         b => {
             return Err(err(
@@ -476,10 +479,28 @@ pub(super) fn connect_bench(
             .into())
         }
     };
+    let mut stage = stage;
+    let mut stage_desc = stage_desc;
     let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
         Backend::Nidaqmx => {
             let o = cfg.ni_qpd_options()?;
-            let q = NiQpd::open(o.clone())?;
+            let mut q = NiQpd::open(o.clone())?;
+            if let (Some(r), Some(m)) = (raster.clone(), madlib.take()) {
+                use crate::instrument::nidaqmx::{line_stage, raster::NiRaster};
+                let slot: line_stage::LineSlot = Default::default();
+                q.set_line_slot(slot.clone());
+                stage_desc["raster"] = json!({
+                    "backend": "nidaqmx",
+                    "ao": r.ao,
+                    "volts_per_um": r.volts_per_um,
+                    "position": r.position,
+                    "position_volts_per_um": r.position_volts_per_um,
+                    "clock": format!("/{}/ao/SampleClock", o.device),
+                    "start_trigger": format!("/{}/ao/StartTrigger", o.device),
+                });
+                let nr = NiRaster::new(q.lib(), r, q.name());
+                stage = Some(Box::new(line_stage::NiLineStage::new(m, nr, slot)));
+            }
             let (product, serial) = q.identity();
             let d = json!({
                 "backend": "nidaqmx",
@@ -514,6 +535,17 @@ pub(super) fn connect_bench(
             .into())
         }
     };
+    let stage: Box<dyn Stage> = match (stage, madlib) {
+        (Some(s), _) => s,
+        (None, Some(m)) => Box::new(m),
+        (None, None) => {
+            return Err(crate::instrument::DeviceError::Other {
+                device: "bench".into(),
+                detail: "no stage was connected".into(),
+            }
+            .into())
+        }
+    };
     Ok(crate::instrument::Instrument {
         stage,
         qpd,
@@ -541,11 +573,12 @@ pub fn fake_bench_library() -> Option<std::path::PathBuf> {
     };
     let exe = std::env::current_exe().ok()?;
     let dir = exe.parent()?;
-    [Some(dir), dir.parent()]
+    let found = [Some(dir.to_path_buf()), Some(dir.join("deps")), dir.parent().map(|p| p.to_path_buf())]
         .into_iter()
         .flatten()
         .map(|d| d.join(name))
-        .find(|p| p.is_file())
+        .find(|p: &std::path::PathBuf| p.is_file());
+    found
 }
 
 /// A `bfpscope.toml` for the fake bench library at `lib` (`bfpscope emulate nidaq`).
