@@ -4,7 +4,8 @@
 //! device traits with the simulated and serial backends, `acquire` the scan engine and every
 //! safety rule, `data` scans/images/files, `analysis` the quantitative steps of the paper,
 //! `config` the one parse of `bfpscope.toml` and connecting what it names, `plot` figures,
-//! `script` the Rhai engine and binding registry, `repl` the interactive prompt.
+//! `accuracy` the accuracy-vs-time knobs and their report, `view` the live web page, `script`
+//! the Rhai engine and binding registry, `repl` the interactive prompt.
 
 // Index loops over small fixed channel arrays read more clearly than iterator chains in numeric code.
 #![allow(clippy::needless_range_loop)]

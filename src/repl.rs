@@ -317,6 +317,7 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
     }
     if tty {
         println!("bfpscope {} — help() lists the bindings, help(\"name\") explains one; Tab completes; Ctrl-C interrupts, Ctrl-D exits.", env!("CARGO_PKG_VERSION"));
+        println!("{}", connected_banner(&wb.ctx));
     }
     let parser = Engine::new_raw();
     let mut buffer = String::new();
@@ -388,6 +389,24 @@ fn ask_paused(p: &crate::script::ctx::Paused) -> bool {
             },
             Err(_) => return false,
         }
+    }
+}
+
+/// The banner's second line: what is connected and from which config, so the operator sees at
+/// once whether the prompt drives the simulator or the hardware the config names.
+fn connected_banner(ctx: &crate::script::Ctx) -> String {
+    let what = ctx
+        .with_instrument("banner", |i| {
+            Ok(format!("{}, {}", i.stage.name(), i.qpd.name()))
+        })
+        .ok();
+    let from = match &ctx.settings.config_path {
+        Some(p) => format!("config {}", p.display()),
+        None => "no config file: the simulated instrument".to_string(),
+    };
+    match (ctx.backend(), what) {
+        (Some(b), Some(w)) => format!("connected {b}: {w} ({from})"),
+        _ => format!("nothing connected ({from}); connect() connects what the config names"),
     }
 }
 

@@ -184,13 +184,17 @@ fn peak_at_the_window_edge() {
     assert!(p.truncated);
     assert!((p.pos - 0.06).abs() < 1e-9 && (p.value - 2.0).abs() < 1e-9);
     assert!(p.n_points < 9);
-    // A peak whose vertex would fall outside the window (a shoulder, not a maximum).
+    // A shoulder: a steep rise, then a line still rising slowly to the end of the line. The
+    // largest sample is the last one, so the peak may lie beyond the line: AtEdge, at that
+    // sample, never a vertex extrapolated past the data.
     let v: Vec<f64> = t
         .iter()
         .map(|&t| if t < 0.5 { t } else { 0.5 + 1e-3 * (t - 0.5) })
         .collect();
-    let r = peak_1d(&t, &v, &PeakOptions::default());
-    assert!(r.is_err() || r.unwrap().pos.is_finite());
+    match peak_1d(&t, &v, &PeakOptions::default()) {
+        Err(PeakMiss::AtEdge { pos }) => assert_eq!(pos, t[29]),
+        other => panic!("a line rising to its end has no peak inside it: {other:?}"),
+    }
 }
 
 #[test]
@@ -402,12 +406,27 @@ fn negative_or_zero_sensitivity_before_a_square_root() {
     assert_eq!(cal.diameter_nm(0.0).unwrap(), 0.0);
     let e = cal.diameter_nm(-0.02).unwrap_err();
     assert!(e.to_string().contains("sens_corr = -0.02"), "{e}");
-    assert!(fibril_diameter_nm(f64::NAN, 58.6).is_err());
-    assert!(fibril_diameter_nm(1.0, -1.0).is_err());
+    // each refusal names the argument, its value and the allowed range
+    let e = fibril_diameter_nm(f64::NAN, 58.6).unwrap_err().to_string();
+    assert!(
+        e.starts_with("sens_corr = NaN is out of range: sens_corr ≥ 0"),
+        "{e}"
+    );
+    let e = fibril_diameter_nm(1.0, -1.0).unwrap_err().to_string();
+    assert_eq!(e, "a_nm = -1 is out of range: a_nm > 0 (finite)");
     // A bead-model sensitivity that is zero or negative cannot calibrate A.
-    assert!(DiameterCalib::from_sens_bm(0.0, 110.0, 1.572, 1.414, 1.333).is_err());
+    let e = DiameterCalib::from_sens_bm(0.0, 110.0, 1.572, 1.414, 1.333)
+        .unwrap_err()
+        .to_string();
+    assert_eq!(e, "sens_bm = 0 is out of range: sens_bm > 0 (finite)");
     // An object index below the medium's: the contrast is negative, no diameter from √.
-    assert!(DiameterCalib::from_sens_bm(9.5, 110.0, 1.572, 1.30, 1.333).is_err());
+    let e = DiameterCalib::from_sens_bm(9.5, 110.0, 1.572, 1.30, 1.333)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("n_obj = 1.3 is out of range: n_obj > n_medium = 1.333"),
+        "{e}"
+    );
 }
 
 #[test]

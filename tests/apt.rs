@@ -470,7 +470,13 @@ fn emulate_thorlabs_prints_a_snippet_that_connects() {
     drop(c);
     stop.store(true, Ordering::SeqCst);
     h.join().unwrap().unwrap();
-    assert!(run_emulator_cli_with("kpz999", standin_bead, &mut Vec::new(), stop).is_err());
+    let e = run_emulator_cli_with("kpz999", standin_bead, &mut Vec::new(), stop)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("emulate: unknown device `kpz999` (expected `stage` (alias `gcs`), `qpd`,"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -134,6 +134,82 @@ fn config_limits_apply_to_scripts() {
 }
 
 #[test]
+fn a_misspelled_table_is_refused_never_ignored() {
+    // a typo in [safety] would drop the soft limits; a [stagee] or [Stage] naming a PI
+    // controller would start the simulator in its place: both stop the start (exit 2), naming
+    // the file, the table, its line and the nearest known name
+    let d = tmp("config_typos");
+    for (text, word, nearest, line) in [
+        (
+            "[saftey]\nsoft_limits = { x = [-2.0, 2.0] }\n",
+            "saftey",
+            "safety",
+            1,
+        ),
+        (
+            "# stage\n[stagee]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n",
+            "stagee",
+            "stage",
+            2,
+        ),
+        (
+            "[Stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n",
+            "Stage",
+            "stage",
+            1,
+        ),
+        (
+            "[optics]\nwavelenght_nm = 800\n",
+            "optics.wavelenght_nm",
+            "wavelength_nm",
+            2,
+        ),
+    ] {
+        let cfg = d.join("bfpscope.toml");
+        std::fs::write(&cfg, text).unwrap();
+        let (code, out, err) = run(&[
+            "--config",
+            cfg.to_str().unwrap(),
+            "eval",
+            "status().backend",
+        ]);
+        assert_eq!(code, 2, "{text}: {out}{err}");
+        assert!(out.is_empty(), "nothing ran: {out}");
+        let unknown = word.rsplit('.').next().unwrap();
+        assert!(
+            err.contains(&format!(
+                "{}: {word}: unknown field `{unknown}`; did you mean `{nearest}`?",
+                cfg.display()
+            )) && err.contains(&format!("(line {line})")),
+            "{text}: {err}"
+        );
+    }
+}
+
+#[test]
+fn the_optics_table_sets_the_session_optics() {
+    let d = tmp("config_optics");
+    let cfg = d.join("bfpscope.toml");
+    std::fs::write(&cfg, "[optics]\nwavelength_nm = 800\nbeam = \"paraxial\"\n").unwrap();
+    let (code, out, err) = run(&[
+        "--config",
+        cfg.to_str().unwrap(),
+        "eval",
+        "let o = optics(); `${o.wavelength_nm} ${o.beam} ${o.na}`",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "800.0 paraxial 1.2");
+    // out of set_optics' range: refused at start-up with the key, the value and the range
+    std::fs::write(&cfg, "[optics]\nwavelength_nm = 50\n").unwrap();
+    let (code, _, err) = run(&["--config", cfg.to_str().unwrap(), "eval", "1"]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("optics.wavelength_nm: wavelength_nm = 50 is out of range: 100 ≤ wavelength_nm ≤ 20000 (line 2)"),
+        "{err}"
+    );
+}
+
+#[test]
 fn docs_check_passes() {
     let (code, out, err) = run(&["docs", "--check"]);
     assert_eq!(code, 0, "{out}{err}");

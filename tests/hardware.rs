@@ -1122,7 +1122,13 @@ fn emulate_cli_prints_paths_that_work() {
     );
     stop.store(true, Ordering::SeqCst);
     h.join().unwrap().unwrap();
-    assert!(run_emulator_cli_with("laser", standin_bead, &mut Vec::new(), stop).is_err());
+    let e = run_emulator_cli_with("laser", standin_bead, &mut Vec::new(), stop)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("emulate: unknown device `laser` (expected `stage` (alias `gcs`), `qpd`,"),
+        "{e}"
+    );
 }
 
 // ---------------------------------------------------------------------------------------------

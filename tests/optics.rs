@@ -275,14 +275,21 @@ fn misaligned_rule_with_zero_misalignment_equals_ideal_rule() {
         offset_y: 0.5,
         ..zero
     };
-    assert!(Detection::new(
+    // |offset| = 1.03 of the cone radius: the cross is outside the beam, refused by name
+    let e = Detection::new(
         &o,
         &DetectorModel {
             polarization: false,
-            misalignment: Some(bad)
-        }
+            misalignment: Some(bad),
+        },
     )
-    .is_err());
+    .err()
+    .expect("an offset outside the beam is refused")
+    .to_string();
+    assert!(
+        e.starts_with("misalignment offset (0.9, 0.5) puts the QPD cross outside the beam: |offset| must be < 0.95"),
+        "{e}"
+    );
 }
 
 /// Issue 20: the plane builder with separable phase tables and one Gaussian per node agrees

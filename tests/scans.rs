@@ -453,9 +453,18 @@ fn autosave_numbering_never_overwrites() {
         .filter(|n| n != "notes.txt" && bfpscope::data::session::scan_number(n).is_none())
         .count();
     assert_eq!(tmp_left, 0);
-    assert!(
-        bfpscope::acquire::store::save_scan(&dir.join("scan_0004.npz"), &scan).is_err(),
-        "save_scan must refuse to overwrite"
+    let target = dir.join("scan_0004.npz");
+    let before = std::fs::read(&target).unwrap();
+    let e = bfpscope::acquire::store::save_scan(&target, &scan).unwrap_err();
+    assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists);
+    assert_eq!(
+        e.to_string(),
+        format!("{} exists; scans are never overwritten", target.display())
+    );
+    assert_eq!(
+        std::fs::read(&target).unwrap(),
+        before,
+        "the file was left as it was"
     );
 }
 

@@ -262,15 +262,19 @@ fn zero_length_and_one_bead_filaments_are_finite() {
     let xs = axis(-1.0, 1.0, 11);
     let img = render_xy(&renderer(&s), &xs, &xs, 0.0, 1);
     assert!(img.sx.data.iter().all(|v| v.is_finite()));
-    assert!(Scene::default()
+    let e = Scene::default()
         .add_filament(Filament {
             points: vec![],
             z: 0.0,
             profile: DiameterProfile::Constant { d_nm: 50.0 },
             n: 1.414,
-            spacing_nm: 50.0
+            spacing_nm: 50.0,
         })
-        .is_err());
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "add_filament: points is empty; give at least one [x, y] vertex"
+    );
 }
 
 /// The `mie` effect: exactly its own stage; beads become Mie spheres (one template per distinct

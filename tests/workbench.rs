@@ -227,8 +227,15 @@ fn repl_lines_keep_functions_and_variables() {
     let _ = w.eval_line("let a = 5;").unwrap();
     assert_eq!(w.eval_line("a + sq(2)").unwrap().as_int().unwrap(), 9);
     // an error does not lose earlier definitions
-    assert!(w.eval_line("sq(").is_err());
-    assert!(w.eval_line("nope()").is_err());
+    let e = w.eval_line("sq(").unwrap_err().to_string();
+    assert!(
+        e.ends_with(
+            "syntax error: Expecting ')' to close the arguments list of this function call 'sq'"
+        ),
+        "{e}"
+    );
+    let e = w.eval_line("nope()").unwrap_err().to_string();
+    assert!(e.contains("function not found: nope ()"), "{e}");
     assert_eq!(w.eval_line("sq(a)").unwrap().as_int().unwrap(), 25);
     // redefinition wins
     let _ = w.eval_line("fn sq(x) { x * x * 2 }").unwrap();
@@ -238,7 +245,11 @@ fn repl_lines_keep_functions_and_variables() {
     let _ = w.eval_line(r#"import "focus" as focus;"#).unwrap();
     let h = w.eval_line("focus::help()").unwrap().into_string().unwrap();
     assert!(h.starts_with("focus::search"), "{h}");
-    assert!(w.eval_line(r#"import "no_such_module" as nope;"#).is_err());
+    let e = w
+        .eval_line(r#"import "no_such_module" as nope;"#)
+        .unwrap_err()
+        .to_string();
+    assert!(e.ends_with("Module not found: no_such_module"), "{e}");
 }
 
 #[test]

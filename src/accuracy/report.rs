@@ -557,7 +557,7 @@ fn knob_note(id: &str) -> Option<&'static str> {
                       sensitivity profile widens by about the same number of pixels, which costs lateral resolution \
                       (closely spaced objects, α-tip profiles) that this metric does not see. The exact value of the \
                       uncalibrated columns is the default vector beam's point dipole (the beam the scans are rendered \
-                      in); until issue 19's knob review it was the paraxial model's, which put a −8.9 % bias in the \
+                      in); until the knob review that made the vector beam the default it was the paraxial model's, which put a −8.9 % bias in the \
                       Central2 row that was the beam difference, not the stencil.",
         _ => return None,
     })

@@ -485,7 +485,11 @@ pub(super) fn connect_bench(
         Backend::Nidaqmx => {
             let o = cfg.ni_qpd_options()?;
             let mut q = NiQpd::open(o.clone())?;
-            if let (Some(r), Some(m)) = (raster.clone(), madlib.take()) {
+            let pair = match (&raster, madlib.is_some()) {
+                (Some(r), true) => madlib.take().map(|m| (r.clone(), m)),
+                _ => None,
+            };
+            if let Some((r, m)) = pair {
                 use crate::instrument::nidaqmx::{line_stage, raster::NiRaster};
                 let slot: line_stage::LineSlot = Default::default();
                 q.set_line_slot(slot.clone());
@@ -573,11 +577,15 @@ pub fn fake_bench_library() -> Option<std::path::PathBuf> {
     };
     let exe = std::env::current_exe().ok()?;
     let dir = exe.parent()?;
-    let found = [Some(dir.to_path_buf()), Some(dir.join("deps")), dir.parent().map(|p| p.to_path_buf())]
-        .into_iter()
-        .flatten()
-        .map(|d| d.join(name))
-        .find(|p: &std::path::PathBuf| p.is_file());
+    let found = [
+        Some(dir.to_path_buf()),
+        Some(dir.join("deps")),
+        dir.parent().map(|p| p.to_path_buf()),
+    ]
+    .into_iter()
+    .flatten()
+    .map(|d| d.join(name))
+    .find(|p: &std::path::PathBuf| p.is_file());
     found
 }
 

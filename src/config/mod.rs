@@ -29,14 +29,18 @@
 //! max_speed_um_s = 500.0        # fastest a scan may move the stage, µm/s
 //! ```
 //!
-//! With no file, everything is simulated. Other top-level sections (`[optics]`, …) belong to
-//! other parts of the workbench and are kept in [`Config::other`] untouched. Inside `[stage]`,
-//! `[qpd]` and `[safety]` an unknown key is an error (a typo in a safety setting must not be
-//! ignored silently); errors name the key path (`stage.baud`) and the line. The legacy
-//! `[limits]` table and `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
+//! With no file, everything is simulated. This module owns the whole file: besides the
+//! tables above, `[sandbox]`, `[session]` and `[optics]` ([`tables`]). An unknown table or key,
+//! anywhere, is an error naming the file, the key path (`stage.baud`), the line and the nearest
+//! known name: a misspelled `[saftey]` must not drop the soft limits silently, nor a `[Stage]`
+//! start the simulator in place of the hardware it names. The legacy `[limits]` table and
+//! `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
 
 pub mod bench;
 pub mod connect;
+pub mod tables;
+
+pub use tables::{OpticsConfig, Sandbox, SessionConfig};
 
 pub use bench::{QpdChannels, RasterConfig};
 
@@ -331,8 +335,9 @@ impl Default for QpdConfig {
     }
 }
 
-/// The whole `bfpscope.toml` as far as the instrument is concerned.
+/// The whole `bfpscope.toml`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Config {
     #[serde(default)]
     pub stage: StageConfig,
@@ -344,10 +349,21 @@ pub struct Config {
     /// `[raster]`: the NI board's hardware-timed raster (`config/bench.rs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub raster: Option<RasterConfig>,
-    /// Other top-level sections (`[optics]`, `[session]`, …), owned elsewhere.
-    #[serde(flatten)]
-    pub other: toml::Table,
+    /// `[sandbox]`: the script's limits.
+    #[serde(default)]
+    pub sandbox: Sandbox,
+    /// `[session]`: where scans go.
+    #[serde(default)]
+    pub session: SessionConfig,
+    /// `[optics]`: the optics the session starts with.
+    #[serde(default, skip_serializing_if = "OpticsConfig::is_empty")]
+    pub optics: OpticsConfig,
 }
+
+/// The top-level tables of `bfpscope.toml`.
+pub const TABLES: [&str; 7] = [
+    "stage", "qpd", "safety", "sandbox", "session", "optics", "raster",
+];
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 
@@ -429,11 +445,62 @@ fn err(key: &str, message: impl Into<String>) -> ConfigError {
     }
 }
 
+/// serde's `unknown field `saftey`, expected one of `stage`, …` with the nearest known name
+/// first: `unknown field `saftey`; did you mean `safety`? (known: `stage`, …)`. Nearest: within
+/// two edits (a third of the word's length for long words), or a known name the word begins
+/// (`max_step` → `max_step_um`); words under three letters get no guess. Without a guess, and
+/// for other messages, serde's text is returned unchanged.
+fn with_nearest(message: &str) -> String {
+    let Some(rest) = message.strip_prefix("unknown field `") else {
+        return message.to_string();
+    };
+    let Some((word, tail)) = rest.split_once('`') else {
+        return message.to_string();
+    };
+    let known: Vec<&str> = tail.split('`').skip(1).step_by(2).collect();
+    let w = word.to_lowercase();
+    let limit = (w.chars().count() / 3).max(2);
+    let nearest = known
+        .iter()
+        .filter_map(|k| {
+            let kl = k.to_lowercase();
+            let d = strsim::damerau_levenshtein(&w, &kl);
+            if d <= limit {
+                Some((d, *k))
+            } else if kl.starts_with(&w) {
+                Some((limit + 1, *k))
+            } else {
+                None
+            }
+        })
+        .min()
+        .filter(|_| w.chars().count() >= 3);
+    match nearest {
+        Some((_, k)) => {
+            let list = known
+                .iter()
+                .map(|k| format!("`{k}`"))
+                .collect::<Vec<_>>()
+                .join(", ");
+            format!("unknown field `{word}`; did you mean `{k}`? (known: {list})")
+        }
+        None => message.to_string(),
+    }
+}
+
 impl Config {
     /// Parse and validate TOML text. `origin` names the text in messages (a file path).
     pub fn from_toml_str(text: &str, origin: &str) -> Result<Config, ConfigError> {
         // `[stage] max_speed_um_s` moved to `[safety]`: say so rather than "unknown field".
         if let Ok(raw) = toml::from_str::<toml::Table>(text) {
+            if let Some(old) = raw.get("limits") {
+                return Err(ConfigError {
+                    origin: origin.into(),
+                    key: "limits".into(),
+                    line: find_table_line(text, "limits").or_else(|| find_key_line(text, "limits")),
+                    message: legacy_limits_message(old),
+                });
+            }
             if let Some(v) = raw.get("stage").and_then(|s| s.get("max_speed_um_s")) {
                 return Err(ConfigError {
                     origin: origin.into(),
@@ -458,7 +525,7 @@ impl Config {
                 origin: origin.into(),
                 key,
                 line,
-                message: e.message().trim().to_string(),
+                message: with_nearest(e.message().trim()),
             }
         })?;
         cfg.validate().map_err(|mut e| {
@@ -671,10 +738,17 @@ impl Config {
             }
         }
         self.validate_bench()?;
-        if let Some(old) = self.other.get("limits") {
-            return Err(err("limits", legacy_limits_message(old)));
-        }
         self.safety.validate().map_err(|(k, m)| err(&k, m))?;
+        self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
+        self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
+        if let Some(d) = &self.session.data_dir {
+            if d.trim().is_empty() {
+                return Err(err(
+                    "session.data_dir",
+                    "\"\": must name a folder (or leave the key out for ./bfpscope_data/YYYY-MM-DD/)",
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -1093,13 +1167,138 @@ wavelength_nm = 1064.0
         assert_eq!(l.range[0], (10.0, 90.0));
         assert_eq!(l.range[1], (f64::NEG_INFINITY, f64::INFINITY));
         assert_eq!((l.max_step_um, l.max_speed_um_s), (5.0, Some(200.0)));
-        assert_eq!(c.other["optics"]["wavelength_nm"].as_float(), Some(1064.0));
+        assert_eq!(c.optics.wavelength_nm, Some(1064.0));
         let again = Config::from_toml_str(&c.to_toml(), "t2").unwrap();
         assert_eq!(again, c);
     }
 
     fn error_of(text: &str) -> ConfigError {
         Config::from_toml_str(text, "bfpscope.toml").unwrap_err()
+    }
+
+    #[test]
+    fn misspelled_tables_are_refused_with_the_nearest_name() {
+        // a typo in [safety] must not drop the soft limits silently
+        let e =
+            error_of("[stage]\nbackend = \"sim\"\n\n[saftey]\nsoft_limits = { x = [-5.0, 5.0] }\n");
+        assert_eq!((e.key.as_str(), e.line), ("saftey", Some(4)), "{e}");
+        assert!(
+            e.message
+                .starts_with("unknown field `saftey`; did you mean `safety`?"),
+            "{e}"
+        );
+        assert!(e.to_string().starts_with("bfpscope.toml: saftey: "), "{e}");
+        // a misspelled or capitalised [stage] naming hardware must not start the simulator
+        for (text, word, nearest) in [
+            (
+                "[stagee]\nbackend = \"gcs\"\nport = \"/dev/x\"\n",
+                "stagee",
+                "stage",
+            ),
+            (
+                "[Stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\n",
+                "Stage",
+                "stage",
+            ),
+            ("[qdp]\nbackend = \"scpi\"\n", "qdp", "qpd"),
+            ("[optic]\nwavelength_nm = 800\n", "optic", "optics"),
+        ] {
+            let e = error_of(text);
+            assert_eq!((e.key.as_str(), e.line), (word, Some(1)), "{e}");
+            assert!(
+                e.message.starts_with(&format!(
+                    "unknown field `{word}`; did you mean `{nearest}`?"
+                )),
+                "{e}"
+            );
+        }
+        // a name far from every table: no guess, the list
+        let e = error_of("[frobnicate]\nx = 1\n");
+        assert_eq!(
+            e.message,
+            "unknown field `frobnicate`, expected one of `stage`, `qpd`, `safety`, `sandbox`, `session`, `optics`"
+        );
+    }
+
+    #[test]
+    fn unknown_keys_in_every_table_name_the_nearest() {
+        for (text, key, nearest, line) in [
+            (
+                "[sandbox]\nmax_operation = 5\n",
+                "sandbox.max_operation",
+                "max_operations",
+                2,
+            ),
+            (
+                "[session]\ndata_dri = \"x\"\n",
+                "session.data_dri",
+                "data_dir",
+                2,
+            ),
+            (
+                "\n[optics]\nwavelenght_nm = 800\n",
+                "optics.wavelenght_nm",
+                "wavelength_nm",
+                3,
+            ),
+            (
+                "[safety]\nmax_step = 2.0\n",
+                "safety.max_step",
+                "max_step_um",
+                2,
+            ),
+        ] {
+            let e = error_of(text);
+            assert_eq!((e.key.as_str(), e.line), (key, Some(line)), "{e}");
+            assert!(
+                e.message.contains(&format!("; did you mean `{nearest}`?")),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn optics_table_is_read_and_checked() {
+        let c = Config::from_toml_str("[optics]\nwavelength_nm = 800\nbeam = \"paraxial\"\n", "t")
+            .unwrap();
+        let o = c.optics.resolve().unwrap();
+        assert_eq!(
+            (o.wavelength_nm, o.beam),
+            (800.0, crate::optics::Beam::Paraxial)
+        );
+        // the keys left out keep the defaults
+        let d = crate::optics::Optics::default();
+        assert_eq!((o.na, o.w0_nm, o.n_medium), (d.na, d.w0_nm, d.n_medium));
+        let e = error_of("[optics]\nna = 2.5\n");
+        assert_eq!((e.key.as_str(), e.line), ("optics.na", Some(2)), "{e}");
+        assert_eq!(e.message, "na = 2.5 is out of range: 0.01 ≤ na ≤ 1.7");
+        let e = error_of("[optics]\nbeam = \"gaussian\"\n");
+        assert_eq!(e.key, "optics.beam");
+        assert!(
+            e.message
+                .contains("beam = \"gaussian\" is not a beam model"),
+            "{e}"
+        );
+        let e = error_of("[sandbox]\nmax_operations = 0\n");
+        assert_eq!(
+            (e.key.as_str(), e.line),
+            ("sandbox.max_operations", Some(2)),
+            "{e}"
+        );
+        let e = error_of("[session]\ndata_dir = \" \"\n");
+        assert_eq!(e.key, "session.data_dir");
+        // [sandbox] and [session] as read
+        let c = Config::from_toml_str(
+            "[sandbox]\nmax_operations = 1000\n[session]\ndata_dir = \"/tmp/d\"\n",
+            "t",
+        )
+        .unwrap();
+        assert_eq!(c.sandbox.max_operations, 1000);
+        assert_eq!(
+            c.sandbox.max_call_levels,
+            Sandbox::default().max_call_levels
+        );
+        assert_eq!(c.session.data_dir.as_deref(), Some("/tmp/d"));
     }
 
     #[test]
@@ -1121,8 +1320,8 @@ wavelength_nm = 1064.0
         assert_eq!(e.key, "safety.max_step");
         assert_eq!(
             e.to_string(),
-            "bfpscope.toml: safety.max_step: unknown field `max_step`, expected one of `soft_limits`, \
-             `max_step_um`, `max_speed_um_s` (line 3)"
+            "bfpscope.toml: safety.max_step: unknown field `max_step`; did you mean `max_step_um`? \
+             (known: `soft_limits`, `max_step_um`, `max_speed_um_s`) (line 3)"
         );
         let e = error_of("[safety]\nsoft_limits = { w = [0.0, 1.0] }\n");
         assert_eq!((e.key.as_str(), e.line), ("safety.soft_limits", Some(2)));
@@ -1263,7 +1462,12 @@ wavelength_nm = 1064.0
             (c.qpd.timeout_ms, c.qpd.statistics, c.qpd.calibration),
             (d.qpd.timeout_ms, d.qpd.statistics, d.qpd.calibration)
         );
-        assert!(c.other.is_empty());
+        assert_eq!((&c.sandbox, &c.session), (&d.sandbox, &d.session));
+        // the example's [optics] names the default wavelength: the optics are the defaults
+        assert_eq!(
+            c.optics.resolve().unwrap(),
+            crate::optics::Optics::default()
+        );
     }
 
     const HW: &str =

@@ -15,62 +15,8 @@ use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 /// Where text goes (stdout/stderr in the binary, a buffer in tests).
 pub type Printer = Arc<dyn Fn(&str) + Send + Sync>;
 
-/// Rhai sandbox limits (config `[sandbox]`). Generous defaults: a runaway loop stops after
-/// about ten seconds of pure computation.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Sandbox {
-    pub max_operations: u64,
-    pub max_call_levels: usize,
-    pub max_expr_depth: usize,
-    pub max_string_size: usize,
-    pub max_array_size: usize,
-    pub max_map_size: usize,
-}
-
-impl Default for Sandbox {
-    fn default() -> Self {
-        Self {
-            max_operations: 500_000_000,
-            max_call_levels: 128,
-            max_expr_depth: 256,
-            max_string_size: 64 << 20,
-            max_array_size: 50_000_000,
-            max_map_size: 1_000_000,
-        }
-    }
-}
-
-impl Sandbox {
-    /// Read `[sandbox]` from a parsed config (missing keys keep their defaults).
-    pub fn from_toml(config: &toml::Value) -> Result<Sandbox, String> {
-        let mut s = Sandbox::default();
-        let Some(t) = config.get("sandbox") else {
-            return Ok(s);
-        };
-        let t = t.as_table().ok_or("config: [sandbox] must be a table")?;
-        for (k, v) in t {
-            let n = v
-                .as_integer()
-                .filter(|n| *n > 0)
-                .ok_or_else(|| format!("config: sandbox.{k} = {v} must be a positive integer"))?;
-            match k.as_str() {
-                "max_operations" => s.max_operations = n as u64,
-                "max_call_levels" => s.max_call_levels = n as usize,
-                "max_expr_depth" => s.max_expr_depth = n as usize,
-                "max_string_size" => s.max_string_size = n as usize,
-                "max_array_size" => s.max_array_size = n as usize,
-                "max_map_size" => s.max_map_size = n as usize,
-                _ => {
-                    return Err(format!(
-                    "config: unknown key sandbox.{k} (allowed: max_operations, max_call_levels, \
-                         max_expr_depth, max_string_size, max_array_size, max_map_size)"
-                ))
-                }
-            }
-        }
-        Ok(s)
-    }
-}
+/// Rhai sandbox limits (config `[sandbox]`, parsed by `config/`).
+pub use crate::config::Sandbox;
 
 /// How a workbench is set up (from the CLI and the config).
 #[derive(Clone)]
@@ -130,20 +76,17 @@ impl Settings {
         (s, buf)
     }
 
-    /// Apply the parsed config: `[safety]` (soft limits, step and speed limits), `[sandbox]`,
-    /// `[session] data_dir`.
+    /// Apply the parsed config (validated by `config/`, its one owner): `[safety]` (soft
+    /// limits, step and speed limits), `[sandbox]`, `[session] data_dir`; `[optics]` is read
+    /// by [`Ctx::new`].
     pub fn apply_config(
         &mut self,
         config: crate::config::Config,
         path: Option<PathBuf>,
     ) -> Result<(), String> {
         self.limits = config.soft_limits();
-        let rest = toml::Value::Table(config.other.clone());
-        self.sandbox = Sandbox::from_toml(&rest)?;
-        if let Some(d) = rest.get("session").and_then(|s| s.get("data_dir")) {
-            let d = d
-                .as_str()
-                .ok_or("config: session.data_dir must be a string")?;
+        self.sandbox = config.sandbox;
+        if let Some(d) = &config.session.data_dir {
             self.data_dir = PathBuf::from(d);
         }
         self.config = Some(config);
@@ -245,6 +188,12 @@ impl Ctx {
     }
 
     pub fn new(settings: Settings) -> Ctx {
+        // `[optics]` of the config (validated when the file was read)
+        let optics = settings
+            .config
+            .as_ref()
+            .and_then(|c| c.optics.resolve().ok())
+            .unwrap_or_default();
         Ctx {
             store: SessionStore::new(settings.data_dir.clone()),
             settings,
@@ -254,7 +203,7 @@ impl Ctx {
             sim: Mutex::new(None),
             keepalive: Mutex::new(None),
             script: Mutex::new(ScriptInfo::default()),
-            optics: Mutex::new(Optics::default()),
+            optics: Mutex::new(optics),
             scene: Mutex::new(None),
             answers: Mutex::new(Default::default()),
             notes: Mutex::new(vec![]),

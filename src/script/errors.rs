@@ -74,7 +74,7 @@ fn innermost(e: &EvalAltResult) -> (&EvalAltResult, Position, Option<String>, Ve
 /// The text of an error without its position (bindings' own messages come out verbatim);
 /// `docs` turn "function not found" into the binding's usage.
 pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
-    let (cur, _, _, chain) = innermost(e);
+    let (cur, _, _, _) = innermost(e);
     let msg = match cur {
         EvalAltResult::ErrorRuntime(d, _) => {
             if d.is_string() {
@@ -118,7 +118,6 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
             console::property_hint(&t, docs)
         }
     };
-    let _ = chain;
     console::user_words(&msg)
 }
 

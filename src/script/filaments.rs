@@ -2,7 +2,6 @@
 //! measurement, SBR and aggregate removal with the Sy channel, fibril diameters, microtubule
 //! linear density, masses.
 
-use super::ctx::Ctx;
 use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
@@ -22,8 +21,7 @@ use super::analysis_values::*;
 use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef};
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
-    register_filaments(r, &ctx);
+    register_filaments(r);
 }
 
 /// `lin_dens_calib`'s default density of the filament, g/cm³ (protein; kept as it was: the
@@ -32,8 +30,7 @@ const LIN_DENS_DENSITY_OBJ_G_CM3: f64 = 1.35;
 
 // ------------------------------------------------------------------ filaments
 
-fn register_filaments(r: &mut Registrar, ctx: &Arc<Ctx>) {
-    let _ = ctx;
+fn register_filaments(r: &mut Registrar) {
     let meas_keys = measure_keys();
     let c = AngleCurveOptions::default();
     let mut curve_keys: Vec<Key> = vec![

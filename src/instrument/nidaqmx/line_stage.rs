@@ -37,6 +37,7 @@ pub struct NiLineStage {
     raster: NiRaster,
     slot: LineSlot,
     targets: Vec<f64>,
+    x_volts: Vec<f64>,
     record: Option<SweepRecord>,
 }
 
@@ -47,6 +48,7 @@ impl NiLineStage {
             raster,
             slot,
             targets: Vec::new(),
+            x_volts: Vec::new(),
             record: None,
         }
     }
@@ -61,7 +63,11 @@ impl NiLineStage {
 
     fn err(&self, detail: String) -> DeviceError {
         DeviceError::Other {
-            device: format!("{} + NI {}", self.stage.name(), self.raster.options().qpd.device),
+            device: format!(
+                "{} + NI {}",
+                self.stage.name(),
+                self.raster.options().qpd.device
+            ),
             detail,
         }
     }
@@ -126,21 +132,31 @@ impl Stage for NiLineStage {
         self.record = None;
         let targets = s.targets_per_cycle();
         let o = self.raster.options().clone();
-        let x = waveform_volts(&targets, o.volts_per_um[0], "raster x").map_err(|m| self.err(m))?;
-        let mut volts = vec![x];
-        if !o.ao[1].is_empty() {
-            let y = self.stage.target()?[1];
-            let yv = waveform_volts(&[y], o.volts_per_um[1], "raster y").map_err(|m| self.err(m))?[0];
-            volts.push(vec![yv; targets.len()]);
-        }
+        // pre-flight: the whole waveform within the external input's range
+        self.x_volts =
+            waveform_volts(&targets, o.volts_per_um[0], "raster x").map_err(|m| self.err(m))?;
         self.targets = targets;
-        self.raster.configure(&volts)
+        Ok(())
     }
 
+    /// The tasks are made for every line (the engine configures a repeated line once, and
+    /// the slow axis's voltage is the line's own): AO x the waveform, AO y the row's position.
     fn start_line(&mut self, _s: &LineSweep) -> Result<(), DeviceError> {
         if let Ok(mut g) = self.slot.lock() {
             *g = None;
         }
+        if self.x_volts.is_empty() {
+            return Err(self.err("start_line: no line configured".into()));
+        }
+        let o = self.raster.options().clone();
+        let mut volts = vec![self.x_volts.clone()];
+        if !o.ao[1].is_empty() {
+            let y = self.stage.target()?[1];
+            let yv =
+                waveform_volts(&[y], o.volts_per_um[1], "raster y").map_err(|m| self.err(m))?[0];
+            volts.push(vec![yv; self.x_volts.len()]);
+        }
+        self.raster.configure(&volts)?;
         self.raster.start()
     }
 
@@ -170,7 +186,11 @@ impl Stage for NiLineStage {
         let m = pos_v.len();
         // the QPD's samples, volts → signals as a point read does
         let flat: Vec<f64> = inputs.iter().flatten().copied().collect();
-        let (mut sx, mut sy, mut sz) = (Vec::with_capacity(m), Vec::with_capacity(m), Vec::with_capacity(m));
+        let (mut sx, mut sy, mut sz) = (
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+        );
         for i in 0..m {
             let v = o.qpd.inputs.signals(&flat, m, i);
             let r = o.qpd.calibration.apply(v, [0.0; 3], 1);

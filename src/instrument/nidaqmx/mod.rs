@@ -728,7 +728,10 @@ impl Qpd for NiQpd {
         }
     }
 
-    fn read_buffered(&mut self, _timeout: Duration) -> Result<crate::instrument::BufferedTrace, DeviceError> {
+    fn read_buffered(
+        &mut self,
+        _timeout: Duration,
+    ) -> Result<crate::instrument::BufferedTrace, DeviceError> {
         let t = self
             .line_slot
             .as_ref()

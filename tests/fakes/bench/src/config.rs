@@ -73,7 +73,9 @@ impl Faults {
             };
             let n = |v: Option<&str>| -> Result<u64, String> {
                 v.and_then(|v| v.parse::<u64>().ok()).ok_or_else(|| {
-                    format!("fault `{item}`: `{k}` needs a count, e.g. `{k}=3` (a whole number ≥ 0)")
+                    format!(
+                        "fault `{item}`: `{k}` needs a count, e.g. `{k}=3` (a whole number ≥ 0)"
+                    )
                 })
             };
             match k {
@@ -151,7 +153,12 @@ impl Default for Config {
             ext_sum: false,
             daq_device: "Dev1".into(),
             daq_serial: 0x01A2_B3C4,
-            ai: [AiSource::Sx, AiSource::Sy, AiSource::Sum, AiSource::Monitor(0)],
+            ai: [
+                AiSource::Sx,
+                AiSource::Sy,
+                AiSource::Sum,
+                AiSource::Monitor(0),
+            ],
             ao: [Some(0), Some(1)],
             qpd_gain_v: 1.0,
             sum_v: 5.0,
@@ -364,14 +371,18 @@ mod tests {
 
     #[test]
     fn faults_parse_and_refuse() {
-        let f = Faults::parse("no_stage, stage_unplug_after=3,stage_stuck=y,overflow_after_reads=2")
-            .unwrap();
+        let f =
+            Faults::parse("no_stage, stage_unplug_after=3,stage_stuck=y,overflow_after_reads=2")
+                .unwrap();
         assert!(f.no_stage);
         assert_eq!(f.stage_unplug_after, Some(3));
         assert_eq!(f.stage_stuck, [false, true, false]);
         assert_eq!(f.overflow_after_reads, Some(2));
         let e = Faults::parse("stage_unplug_after=x").unwrap_err();
-        assert!(e.contains("stage_unplug_after=x") && e.contains("whole number"), "{e}");
+        assert!(
+            e.contains("stage_unplug_after=x") && e.contains("whole number"),
+            "{e}"
+        );
         assert!(Faults::parse("explode").unwrap_err().contains("unknown"));
         assert_eq!(Faults::parse("none").unwrap(), Faults::default());
     }
@@ -385,7 +396,10 @@ mod tests {
         let e = c.set("wiring", "ai4=sx").unwrap_err();
         assert!(e.contains("ai4=sx"), "{e}");
         let e = c.set("tau_ms", "-1").unwrap_err();
-        assert!(e.contains("tau_ms") && e.contains("-1") && e.contains("0–1000"), "{e}");
+        assert!(
+            e.contains("tau_ms") && e.contains("-1") && e.contains("0–1000"),
+            "{e}"
+        );
         c.set("range_um", "100, 100, 20").unwrap();
         assert_eq!(c.origin(), [50.0, 50.0, 10.0]);
     }

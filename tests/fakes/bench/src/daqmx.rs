@@ -345,7 +345,11 @@ fn parse_phys(b: &Bench, list: &str, want: Kind) -> R<Vec<usize>> {
                 ),
             );
         };
-        let n = if kind == Kind::Ai { AI_CHANNELS } else { AO_CHANNELS };
+        let n = if kind == Kind::Ai {
+            AI_CHANNELS
+        } else {
+            AO_CHANNELS
+        };
         let bad = || {
             Fail(
                 PHYSICAL_CHAN_DOES_NOT_EXIST,
@@ -399,17 +403,32 @@ fn add_chans(
 ) -> R<()> {
     task_mut(b, h)?;
     let idx = parse_phys(b, phys, kind)?;
-    let prop = |p: &str| if kind == Kind::Ai { format!("DAQmx_AI_{p}") } else { format!("DAQmx_AO_{p}") };
+    let prop = |p: &str| {
+        if kind == Kind::Ai {
+            format!("DAQmx_AI_{p}")
+        } else {
+            format!("DAQmx_AO_{p}")
+        }
+    };
     if !(min.is_finite() && max.is_finite()) || min >= max {
         return fail(
             MIN_NOT_LESS_THAN_MAX,
-            format!("Property: {}\nRequested Value: {}\nProperty: {}\nRequested Value: {}", prop("Min"), fmt_v(min), prop("Max"), fmt_v(max)),
+            format!(
+                "Property: {}\nRequested Value: {}\nProperty: {}\nRequested Value: {}",
+                prop("Min"),
+                fmt_v(min),
+                prop("Max"),
+                fmt_v(max)
+            ),
         );
     }
     if units != VAL_VOLTS {
         return fail(
             INVALID_ATTRIBUTE_VALUE,
-            format!("Property: {}\nRequested Value: {units}\nYou Can Select: DAQmx_Val_Volts", prop("Voltage_Units")),
+            format!(
+                "Property: {}\nRequested Value: {units}\nYou Can Select: DAQmx_Val_Volts",
+                prop("Voltage_Units")
+            ),
         );
     }
     let range = match kind {
@@ -429,7 +448,11 @@ fn add_chans(
             match AI_RANGES.iter().find(|&&r| r >= need) {
                 Some(&r) => r,
                 None => {
-                    let (p, v) = if max.abs() >= min.abs() { ("Max", max) } else { ("Min", min) };
+                    let (p, v) = if max.abs() >= min.abs() {
+                        ("Max", max)
+                    } else {
+                        ("Min", min)
+                    };
                     return fail(
                         INVALID_ATTRIBUTE_VALUE,
                         format!(
@@ -444,7 +467,11 @@ fn add_chans(
         }
         Kind::Ao => {
             if max > AO_RANGE || min < -AO_RANGE {
-                let (p, v) = if max > AO_RANGE { ("Max", max) } else { ("Min", min) };
+                let (p, v) = if max > AO_RANGE {
+                    ("Max", max)
+                } else {
+                    ("Min", min)
+                };
                 return fail(
                     INVALID_ATTRIBUTE_VALUE,
                     format!(
@@ -479,10 +506,7 @@ fn add_chans(
             _ => format!("{dev}/{prefix}{p}"),
         };
         if t.chans.iter().any(|c| c.name == cname) {
-            return fail(
-                DUPLICATE_CHANNEL,
-                format!("Virtual Channel Name: {cname}"),
-            );
+            return fail(DUPLICATE_CHANNEL, format!("Virtual Channel Name: {cname}"));
         }
         t.chans.push(Chan {
             phys: p,
@@ -621,7 +645,15 @@ fn ai_volts(b: &mut Bench, src: AiSource, sig: [f64; 3], t: f64) -> f64 {
 }
 
 /// Fill `out` with samples `from..from+n` of the task `id` (layout as DAQmx's fillMode).
-fn produce(b: &mut Bench, id: usize, clock: (f64, f64, Option<u64>, f64), from: u64, n: u64, by_scan: bool, out: &mut [f64]) {
+fn produce(
+    b: &mut Bench,
+    id: usize,
+    clock: (f64, f64, Option<u64>, f64),
+    from: u64,
+    n: u64,
+    by_scan: bool,
+    out: &mut [f64],
+) {
     let chans: Vec<(usize, f64)> = b.daq.tasks[&id]
         .chans
         .iter()
@@ -630,9 +662,9 @@ fn produce(b: &mut Bench, id: usize, clock: (f64, f64, Option<u64>, f64), from: 
     let nch = chans.len();
     let sigma = b.cfg.detector_noise_v;
     let noise = Normal::new(0.0, sigma.max(1e-300)).expect("finite σ");
-    let needs_qpd = chans.iter().any(|&(p, _)| {
-        matches!(b.cfg.ai[p], AiSource::Sx | AiSource::Sy | AiSource::Sum)
-    });
+    let needs_qpd = chans
+        .iter()
+        .any(|&(p, _)| matches!(b.cfg.ai[p], AiSource::Sx | AiSource::Sy | AiSource::Sum));
     for k in 0..n {
         let t = clock.0 + (from + k) as f64 * clock.1;
         let sig = if needs_qpd {
@@ -674,20 +706,19 @@ fn start_task(b: &mut Bench, id: usize, implicit: bool) -> R<()> {
     let kind = task.kind.ok_or(Fail(NO_CHANS_IN_TASK, String::new()))?;
     let timed = task.timing;
     // one task per subsystem at a time (the board has one AI and one AO timing engine)
-    let busy = b
-        .daq
-        .tasks
-        .iter()
-        .any(|(&k, o)| k != id && o.running && o.kind == Some(kind) && (o.timing.is_some() || timed.is_some()));
+    let busy = b.daq.tasks.iter().any(|(&k, o)| {
+        k != id && o.running && o.kind == Some(kind) && (o.timing.is_some() || timed.is_some())
+    });
     if busy {
-        return fail(
-            RESOURCE_RESERVED,
-            format!("Device: {}", b.daq.device),
-        );
+        return fail(RESOURCE_RESERVED, format!("Device: {}", b.daq.device));
     }
     if kind == Kind::Ao {
         if let Some(tm) = timed {
-            let max = if task.chans.len() > 1 { AO_MAX_RATE_2 } else { AO_MAX_RATE_1 };
+            let max = if task.chans.len() > 1 {
+                AO_MAX_RATE_2
+            } else {
+                AO_MAX_RATE_1
+            };
             if tm.rate > max {
                 return fail(
                     INVALID_ATTRIBUTE_VALUE,
@@ -704,9 +735,13 @@ fn start_task(b: &mut Bench, id: usize, implicit: bool) -> R<()> {
             }
         }
     }
-    let t = if kind == Kind::Ai && task.chans.iter().any(|c| {
-        matches!(b.cfg.ai[c.phys], AiSource::Sx | AiSource::Sy | AiSource::Sum)
-    }) {
+    let t = if kind == Kind::Ai
+        && task.chans.iter().any(|c| {
+            matches!(
+                b.cfg.ai[c.phys],
+                AiSource::Sx | AiSource::Sy | AiSource::Sum
+            )
+        }) {
         // the scene's renderer is built here, before the acquisition starts, not in its first read
         let _ = b.qpd.renderer();
         now()
@@ -768,7 +803,10 @@ fn stop_task(b: &mut Bench, id: usize) {
 /// # Safety
 /// `task_name` is NULL or a C string; `task_handle` points to a `TaskHandle`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxCreateTask(task_name: *const c_char, task_handle: *mut TaskHandle) -> int32 {
+pub unsafe extern "C" fn DAQmxCreateTask(
+    task_name: *const c_char,
+    task_handle: *mut TaskHandle,
+) -> int32 {
     guard(-1, || {
         let name = cstr(task_name);
         with_bench(|b| {
@@ -792,8 +830,17 @@ pub unsafe extern "C" fn DAQmxCreateTask(task_name: *const c_char, task_handle: 
                 *task_handle = handle_of(id);
                 Ok(())
             })();
-            let h = if task_handle.is_null() { 0 } else { *task_handle as usize };
-            finish(b, format!("DAQmxCreateTask(taskName=\"{name}\") [handle {h:#x}]"), None, r)
+            let h = if task_handle.is_null() {
+                0
+            } else {
+                *task_handle as usize
+            };
+            finish(
+                b,
+                format!("DAQmxCreateTask(taskName=\"{name}\") [handle {h:#x}]"),
+                None,
+                r,
+            )
         })
     })
 }
@@ -809,7 +856,16 @@ pub extern "C" fn DAQmxClearTask(task_handle: TaskHandle) -> int32 {
                 stop_task(b, id);
                 b.daq.tasks.remove(&id);
             }
-            finish(b, format!("DAQmxClearTask({})", name.clone().unwrap_or(format!("{:#x}", task_handle as usize))), name.as_deref(), r)
+            finish(
+                b,
+                format!(
+                    "DAQmxClearTask({})",
+                    name.clone()
+                        .unwrap_or(format!("{:#x}", task_handle as usize))
+                ),
+                name.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -819,8 +875,15 @@ pub extern "C" fn DAQmxStartTask(task_handle: TaskHandle) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let name = task_name(b, task_handle);
-            let r = task_mut(b, task_handle).map(|_| ()).and_then(|_| start_task(b, id_of(task_handle), false));
-            finish(b, format!("DAQmxStartTask({})", name.clone().unwrap_or_default()), name.as_deref(), r)
+            let r = task_mut(b, task_handle)
+                .map(|_| ())
+                .and_then(|_| start_task(b, id_of(task_handle), false));
+            finish(
+                b,
+                format!("DAQmxStartTask({})", name.clone().unwrap_or_default()),
+                name.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -834,7 +897,12 @@ pub extern "C" fn DAQmxStopTask(task_handle: TaskHandle) -> int32 {
             if r.is_ok() {
                 stop_task(b, id_of(task_handle));
             }
-            finish(b, format!("DAQmxStopTask({})", name.clone().unwrap_or_default()), name.as_deref(), r)
+            finish(
+                b,
+                format!("DAQmxStopTask({})", name.clone().unwrap_or_default()),
+                name.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -859,7 +927,15 @@ pub extern "C" fn DAQmxTaskControl(task_handle: TaskHandle, action: int32) -> in
                     ),
                 }
             });
-            finish(b, format!("DAQmxTaskControl({}, action={action})", name.clone().unwrap_or_default()), name.as_deref(), r)
+            finish(
+                b,
+                format!(
+                    "DAQmxTaskControl({}, action={action})",
+                    name.clone().unwrap_or_default()
+                ),
+                name.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -867,7 +943,10 @@ pub extern "C" fn DAQmxTaskControl(task_handle: TaskHandle, action: int32) -> in
 /// # Safety
 /// `is_task_done` points to a `bool32`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxIsTaskDone(task_handle: TaskHandle, is_task_done: *mut bool32) -> int32 {
+pub unsafe extern "C" fn DAQmxIsTaskDone(
+    task_handle: TaskHandle,
+    is_task_done: *mut bool32,
+) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let t = now();
@@ -880,7 +959,12 @@ pub unsafe extern "C" fn DAQmxIsTaskDone(task_handle: TaskHandle, is_task_done: 
                 *is_task_done = u32::from(d);
                 Ok(())
             });
-            finish(b, format!("DAQmxIsTaskDone({})", name.clone().unwrap_or_default()), name.as_deref(), r)
+            finish(
+                b,
+                format!("DAQmxIsTaskDone({})", name.clone().unwrap_or_default()),
+                name.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -907,18 +991,41 @@ fn done(b: &mut Bench, h: TaskHandle, t: f64) -> R<bool> {
 #[no_mangle]
 pub extern "C" fn DAQmxWaitUntilTaskDone(task_handle: TaskHandle, time_to_wait: float64) -> int32 {
     guard(-1, || {
-        let deadline = if time_to_wait < 0.0 { f64::INFINITY } else { now() + time_to_wait };
+        let deadline = if time_to_wait < 0.0 {
+            f64::INFINITY
+        } else {
+            now() + time_to_wait
+        };
         loop {
             let r = with_bench(|b| {
                 let t = now();
                 sync(b, t);
                 let name = task_name(b, task_handle);
                 match done(b, task_handle, t) {
-                    Err(e) => Some(finish(b, format!("DAQmxWaitUntilTaskDone({})", name.clone().unwrap_or_default()), name.as_deref(), Err(e))),
-                    Ok(true) => Some(finish(b, format!("DAQmxWaitUntilTaskDone({}, timeToWait={time_to_wait})", name.clone().unwrap_or_default()), name.as_deref(), Ok(()))),
+                    Err(e) => Some(finish(
+                        b,
+                        format!(
+                            "DAQmxWaitUntilTaskDone({})",
+                            name.clone().unwrap_or_default()
+                        ),
+                        name.as_deref(),
+                        Err(e),
+                    )),
+                    Ok(true) => Some(finish(
+                        b,
+                        format!(
+                            "DAQmxWaitUntilTaskDone({}, timeToWait={time_to_wait})",
+                            name.clone().unwrap_or_default()
+                        ),
+                        name.as_deref(),
+                        Ok(()),
+                    )),
                     Ok(false) if t >= deadline => Some(finish(
                         b,
-                        format!("DAQmxWaitUntilTaskDone({}, timeToWait={time_to_wait})", name.clone().unwrap_or_default()),
+                        format!(
+                            "DAQmxWaitUntilTaskDone({}, timeToWait={time_to_wait})",
+                            name.clone().unwrap_or_default()
+                        ),
                         name.as_deref(),
                         fail(WAIT_UNTIL_DONE_NOT_DONE, ""),
                     )),
@@ -955,7 +1062,17 @@ pub unsafe extern "C" fn DAQmxCreateAIVoltageChan(
         let _ = cstr(custom_scale_name);
         with_bench(|b| {
             let tn = task_name(b, task_handle);
-            let r = add_chans(b, task_handle, &phys, &name, Kind::Ai, terminal_config, min_val, max_val, units);
+            let r = add_chans(
+                b,
+                task_handle,
+                &phys,
+                &name,
+                Kind::Ai,
+                terminal_config,
+                min_val,
+                max_val,
+                units,
+            );
             finish(
                 b,
                 format!("DAQmxCreateAIVoltageChan({}, physicalChannel=\"{phys}\", terminalConfig={terminal_config}, minVal={min_val}, maxVal={max_val}, units={units})", tn.clone().unwrap_or_default()),
@@ -984,7 +1101,17 @@ pub unsafe extern "C" fn DAQmxCreateAOVoltageChan(
         let _ = cstr(custom_scale_name);
         with_bench(|b| {
             let tn = task_name(b, task_handle);
-            let r = add_chans(b, task_handle, &phys, &name, Kind::Ao, VAL_CFG_DEFAULT, min_val, max_val, units);
+            let r = add_chans(
+                b,
+                task_handle,
+                &phys,
+                &name,
+                Kind::Ao,
+                VAL_CFG_DEFAULT,
+                min_val,
+                max_val,
+                units,
+            );
             finish(
                 b,
                 format!("DAQmxCreateAOVoltageChan({}, physicalChannel=\"{phys}\", minVal={min_val}, maxVal={max_val}, units={units})", tn.clone().unwrap_or_default()),
@@ -1042,7 +1169,11 @@ pub unsafe extern "C" fn DAQmxCfgSampClkTiming(
                         )
                     }
                 };
-                let max = if kind == Some(Kind::Ao) { AO_MAX_RATE_1 } else { AI_MAX_RATE };
+                let max = if kind == Some(Kind::Ao) {
+                    AO_MAX_RATE_1
+                } else {
+                    AI_MAX_RATE
+                };
                 if !(rate.is_finite() && rate > 0.0 && rate <= max) {
                     return fail(
                         INVALID_ATTRIBUTE_VALUE,
@@ -1154,29 +1285,57 @@ pub extern "C" fn DAQmxDisableStartTrig(task_handle: TaskHandle) -> int32 {
         with_bench(|b| {
             let tn = task_name(b, task_handle);
             let r = task_mut(b, task_handle).map(|t| t.trigger = None);
-            finish(b, format!("DAQmxDisableStartTrig({})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            finish(
+                b,
+                format!("DAQmxDisableStartTrig({})", tn.clone().unwrap_or_default()),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
 
 #[no_mangle]
-pub extern "C" fn DAQmxCfgInputBuffer(task_handle: TaskHandle, num_samps_per_chan: uInt32) -> int32 {
+pub extern "C" fn DAQmxCfgInputBuffer(
+    task_handle: TaskHandle,
+    num_samps_per_chan: uInt32,
+) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let tn = task_name(b, task_handle);
-            let r = task_mut(b, task_handle).map(|t| t.input_buf = Some(u64::from(num_samps_per_chan)));
-            finish(b, format!("DAQmxCfgInputBuffer({}, numSampsPerChan={num_samps_per_chan})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            let r =
+                task_mut(b, task_handle).map(|t| t.input_buf = Some(u64::from(num_samps_per_chan)));
+            finish(
+                b,
+                format!(
+                    "DAQmxCfgInputBuffer({}, numSampsPerChan={num_samps_per_chan})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
 
 #[no_mangle]
-pub extern "C" fn DAQmxCfgOutputBuffer(task_handle: TaskHandle, num_samps_per_chan: uInt32) -> int32 {
+pub extern "C" fn DAQmxCfgOutputBuffer(
+    task_handle: TaskHandle,
+    num_samps_per_chan: uInt32,
+) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let tn = task_name(b, task_handle);
             let r = task_mut(b, task_handle).map(|_| ());
-            finish(b, format!("DAQmxCfgOutputBuffer({}, numSampsPerChan={num_samps_per_chan})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            finish(
+                b,
+                format!(
+                    "DAQmxCfgOutputBuffer({}, numSampsPerChan={num_samps_per_chan})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -1200,7 +1359,15 @@ pub extern "C" fn DAQmxSetWriteRegenMode(task_handle: TaskHandle, data: int32) -
                     format!("Property: DAQmx_Write_RegenMode\nRequested Value: {data}\nYou Can Select: DAQmx_Val_AllowRegen, DAQmx_Val_DoNotAllowRegen"),
                 ),
             });
-            finish(b, format!("DAQmxSetWriteRegenMode({}, data={data})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            finish(
+                b,
+                format!(
+                    "DAQmxSetWriteRegenMode({}, data={data})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -1220,7 +1387,12 @@ pub unsafe extern "C" fn DAQmxGetSampClkRate(task_handle: TaskHandle, data: *mut
                 }
                 (None, false) => fail(ATTRIBUTE_NOT_SUPPORTED, "Property: DAQmx_SampClk_Rate"),
             });
-            finish(b, format!("DAQmxGetSampClkRate({})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            finish(
+                b,
+                format!("DAQmxGetSampClkRate({})", tn.clone().unwrap_or_default()),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -1246,7 +1418,14 @@ pub unsafe extern "C" fn DAQmxReadAnalogF64(
         if !samps_per_chan_read.is_null() {
             *samps_per_chan_read = 0;
         }
-        let (code, n) = read(task_handle, num_samps_per_chan, timeout, fill_mode, read_array, array_size_in_samps as usize);
+        let (code, n) = read(
+            task_handle,
+            num_samps_per_chan,
+            timeout,
+            fill_mode,
+            read_array,
+            array_size_in_samps as usize,
+        );
         if !samps_per_chan_read.is_null() {
             *samps_per_chan_read = n as i32;
         }
@@ -1265,10 +1444,24 @@ pub unsafe extern "C" fn DAQmxReadAnalogScalarF64(
 ) -> int32 {
     guard(-1, || {
         if value.is_null() {
-            return with_bench(|b| finish(b, "DAQmxReadAnalogScalarF64()".into(), None, fail(NULL_PTR, "")));
+            return with_bench(|b| {
+                finish(
+                    b,
+                    "DAQmxReadAnalogScalarF64()".into(),
+                    None,
+                    fail(NULL_PTR, ""),
+                )
+            });
         }
         let mut one = [0.0f64; 8];
-        let (code, _) = read(task_handle, 1, timeout, VAL_GROUP_BY_SCAN_NUMBER, one.as_mut_ptr(), 8);
+        let (code, _) = read(
+            task_handle,
+            1,
+            timeout,
+            VAL_GROUP_BY_SCAN_NUMBER,
+            one.as_mut_ptr(),
+            8,
+        );
         if code == 0 {
             *value = one[0];
         }
@@ -1282,9 +1475,20 @@ enum Step {
 }
 
 /// The read: returns the status code and the samples per channel read.
-unsafe fn read(h: TaskHandle, num: i32, timeout: f64, fill: u32, out: *mut f64, size: usize) -> (i32, u64) {
+unsafe fn read(
+    h: TaskHandle,
+    num: i32,
+    timeout: f64,
+    fill: u32,
+    out: *mut f64,
+    size: usize,
+) -> (i32, u64) {
     let t_call = now();
-    let deadline = if timeout < 0.0 { f64::INFINITY } else { t_call + timeout };
+    let deadline = if timeout < 0.0 {
+        f64::INFINITY
+    } else {
+        t_call + timeout
+    };
     let mut first = true;
     loop {
         let step = with_bench(|b| read_step(b, h, num, deadline, fill, out, size, &mut first));
@@ -1309,7 +1513,10 @@ unsafe fn read_step(
     let t = now();
     sync(b, t);
     let tn = task_name(b, h);
-    let call = format!("DAQmxReadAnalogF64({}, numSampsPerChan={num})", tn.clone().unwrap_or_default());
+    let call = format!(
+        "DAQmxReadAnalogF64({}, numSampsPerChan={num})",
+        tn.clone().unwrap_or_default()
+    );
     let is_first = std::mem::replace(first, false);
     macro_rules! bail {
         ($code:expr, $detail:expr) => {
@@ -1339,7 +1546,10 @@ unsafe fn read_step(
         Some(Kind::Ai) => {}
     }
     if fill != VAL_GROUP_BY_CHANNEL && fill != VAL_GROUP_BY_SCAN_NUMBER {
-        bail!(INVALID_ATTRIBUTE_VALUE, format!("Property: fillMode\nRequested Value: {fill}"));
+        bail!(
+            INVALID_ATTRIBUTE_VALUE,
+            format!("Property: fillMode\nRequested Value: {fill}")
+        );
     }
     if out.is_null() {
         bail!(NULL_PTR, "");
@@ -1355,7 +1565,10 @@ unsafe fn read_step(
         }
         let nch = task.chans.len();
         if size < nch {
-            bail!(READ_BUFFER_TOO_SMALL, format!("Buffer Size: {size}\nRequired: {nch}"));
+            bail!(
+                READ_BUFFER_TOO_SMALL,
+                format!("Buffer Size: {size}\nRequired: {nch}")
+            );
         }
         let clock = (t, 1.0, None, f64::INFINITY);
         let dst = std::slice::from_raw_parts_mut(out, nch);
@@ -1397,7 +1610,12 @@ unsafe fn read_step(
             None => unread,
         }
     } else if num < 0 {
-        bail!(INVALID_ATTRIBUTE_VALUE, format!("Property: numSampsPerChan\nRequested Value: {num}\nValid Values Begin with: -1"));
+        bail!(
+            INVALID_ATTRIBUTE_VALUE,
+            format!(
+                "Property: numSampsPerChan\nRequested Value: {num}\nValid Values Begin with: -1"
+            )
+        );
     } else {
         num as u64
     };
@@ -1408,12 +1626,26 @@ unsafe fn read_step(
     }
     let nch = task.chans.len();
     if (want as usize).saturating_mul(nch) > size {
-        bail!(READ_BUFFER_TOO_SMALL, format!("Buffer Size: {size}\nRequired Buffer Size: {}", want as usize * nch));
+        bail!(
+            READ_BUFFER_TOO_SMALL,
+            format!(
+                "Buffer Size: {size}\nRequired Buffer Size: {}",
+                want as usize * nch
+            )
+        );
     }
     if unread >= want {
         let clock = clock.expect("samples exist");
         let mut buf = vec![0.0; want as usize * nch];
-        produce(b, id, clock, task.read_pos, want, fill == VAL_GROUP_BY_SCAN_NUMBER, &mut buf);
+        produce(
+            b,
+            id,
+            clock,
+            task.read_pos,
+            want,
+            fill == VAL_GROUP_BY_SCAN_NUMBER,
+            &mut buf,
+        );
         std::ptr::copy_nonoverlapping(buf.as_ptr(), out, buf.len());
         b.daq.tasks.get_mut(&id).expect("exists").read_pos += want;
         b.log(format!("{call} -> 0 [{want} samples per channel]"));
@@ -1425,7 +1657,15 @@ unsafe fn read_step(
         if got > 0 {
             let clock = clock.expect("samples exist");
             let mut buf = vec![0.0; got as usize * nch];
-            produce(b, id, clock, task.read_pos, got, fill == VAL_GROUP_BY_SCAN_NUMBER, &mut buf);
+            produce(
+                b,
+                id,
+                clock,
+                task.read_pos,
+                got,
+                fill == VAL_GROUP_BY_SCAN_NUMBER,
+                &mut buf,
+            );
             // GroupByChannel with fewer samples: channel blocks of `got` each
             std::ptr::copy_nonoverlapping(buf.as_ptr(), out, buf.len());
             b.daq.tasks.get_mut(&id).expect("exists").read_pos += got;
@@ -1448,7 +1688,14 @@ unsafe fn read_step(
 
 // ---------------------------------------------------------------- exports: write
 
-fn write(b: &mut Bench, h: TaskHandle, n: i32, auto_start: bool, by_scan: bool, data: &[f64]) -> R<i32> {
+fn write(
+    b: &mut Bench,
+    h: TaskHandle,
+    n: i32,
+    auto_start: bool,
+    by_scan: bool,
+    data: &[f64],
+) -> R<i32> {
     let t = now();
     sync(b, t);
     let task = task_mut(b, h)?.clone();
@@ -1462,7 +1709,10 @@ fn write(b: &mut Bench, h: TaskHandle, n: i32, auto_start: bool, by_scan: bool, 
         Some(Kind::Ao) => {}
     }
     if n < 0 {
-        return fail(NEGATIVE_WRITE_SAMPLE_NUMBER, format!("Samples Per Channel: {n}"));
+        return fail(
+            NEGATIVE_WRITE_SAMPLE_NUMBER,
+            format!("Samples Per Channel: {n}"),
+        );
     }
     if n == 0 {
         return Ok(0);
@@ -1473,16 +1723,29 @@ fn write(b: &mut Bench, h: TaskHandle, n: i32, auto_start: bool, by_scan: bool, 
     let mut per: Vec<Vec<f64>> = vec![Vec::with_capacity(n); nch];
     for k in 0..n {
         for (c, p) in per.iter_mut().enumerate() {
-            let v = if by_scan { data[k * nch + c] } else { data[c * n + k] };
+            let v = if by_scan {
+                data[k * nch + c]
+            } else {
+                data[c * n + k]
+            };
             p.push(v);
         }
     }
     for (c, p) in per.iter().enumerate() {
         let ch = &task.chans[c];
-        if let Some(v) = p.iter().find(|v| !(v.is_finite() && (ch.min..=ch.max).contains(*v))) {
+        if let Some(v) = p
+            .iter()
+            .find(|v| !(v.is_finite() && (ch.min..=ch.max).contains(*v)))
+        {
             return fail(
                 INVALID_AO_DATA_WRITE,
-                format!("Channel Name: {}\nValue Requested: {}\nMinimum: {}\nMaximum: {}", ch.name, fmt_v(*v), fmt_v(ch.min), fmt_v(ch.max)),
+                format!(
+                    "Channel Name: {}\nValue Requested: {}\nMinimum: {}\nMaximum: {}",
+                    ch.name,
+                    fmt_v(*v),
+                    fmt_v(ch.min),
+                    fmt_v(ch.max)
+                ),
             );
         }
     }
@@ -1541,22 +1804,37 @@ pub unsafe extern "C" fn DAQmxWriteAnalogF64(
     guard(-1, || {
         with_bench(|b| {
             let tn = task_name(b, task_handle);
-            let nch = b.daq.tasks.get(&id_of(task_handle)).map_or(0, |t| t.chans.len());
+            let nch = b
+                .daq
+                .tasks
+                .get(&id_of(task_handle))
+                .map_or(0, |t| t.chans.len());
             let r = (|| {
                 if write_array.is_null() {
                     return fail(NULL_PTR, "");
                 }
                 if data_layout != VAL_GROUP_BY_CHANNEL && data_layout != VAL_GROUP_BY_SCAN_NUMBER {
-                    return fail(INVALID_ATTRIBUTE_VALUE, format!("Property: dataLayout\nRequested Value: {data_layout}"));
+                    return fail(
+                        INVALID_ATTRIBUTE_VALUE,
+                        format!("Property: dataLayout\nRequested Value: {data_layout}"),
+                    );
                 }
                 let len = (num_samps_per_chan.max(0) as usize) * nch;
                 let data = std::slice::from_raw_parts(write_array, len);
-                write(b, task_handle, num_samps_per_chan, auto_start != 0, data_layout == VAL_GROUP_BY_SCAN_NUMBER, data)
+                write(
+                    b,
+                    task_handle,
+                    num_samps_per_chan,
+                    auto_start != 0,
+                    data_layout == VAL_GROUP_BY_SCAN_NUMBER,
+                    data,
+                )
             })();
             if !samps_per_chan_written.is_null() {
                 *samps_per_chan_written = *r.as_ref().unwrap_or(&0);
             }
-            let first: Vec<String> = if write_array.is_null() || nch == 0 || num_samps_per_chan < 1 {
+            let first: Vec<String> = if write_array.is_null() || nch == 0 || num_samps_per_chan < 1
+            {
                 Vec::new()
             } else {
                 std::slice::from_raw_parts(write_array, nch.min(num_samps_per_chan as usize * nch))
@@ -1614,7 +1892,11 @@ pub extern "C" fn DAQmxWriteAnalogScalarF64(
 /// # Safety
 /// `error_string` is NULL or points to `buffer_size` bytes.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetErrorString(error_code: int32, error_string: *mut c_char, buffer_size: uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetErrorString(
+    error_code: int32,
+    error_string: *mut c_char,
+    buffer_size: uInt32,
+) -> int32 {
     guard(-1, || {
         let text = daqmx_text(error_code);
         let need = put_cstr(text, error_string, buffer_size as usize);
@@ -1629,9 +1911,18 @@ pub unsafe extern "C" fn DAQmxGetErrorString(error_code: int32, error_string: *m
 /// # Safety
 /// `error_string` is NULL or points to `buffer_size` bytes.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetExtendedErrorInfo(error_string: *mut c_char, buffer_size: uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetExtendedErrorInfo(
+    error_string: *mut c_char,
+    buffer_size: uInt32,
+) -> int32 {
     guard(-1, || {
-        let text = with_bench(|b| b.daq.last_error.as_ref().map(|e| e.1.clone()).unwrap_or_default());
+        let text = with_bench(|b| {
+            b.daq
+                .last_error
+                .as_ref()
+                .map(|e| e.1.clone())
+                .unwrap_or_default()
+        });
         let need = put_cstr(&text, error_string, buffer_size as usize);
         if buffer_size == 0 || error_string.is_null() {
             need as i32
@@ -1668,7 +1959,13 @@ pub unsafe extern "C" fn DAQmxResetDevice(device_name: *const c_char) -> int32 {
     })
 }
 
-unsafe fn dev_string(name: &str, device: *const c_char, out: *mut c_char, size: uInt32, f: impl FnOnce(&Bench) -> String) -> int32 {
+unsafe fn dev_string(
+    name: &str,
+    device: *const c_char,
+    out: *mut c_char,
+    size: uInt32,
+    f: impl FnOnce(&Bench) -> String,
+) -> int32 {
     let dev = cstr(device);
     with_bench(|b| {
         let r = device_ok(b, &dev);
@@ -1689,7 +1986,13 @@ unsafe fn dev_string(name: &str, device: *const c_char, out: *mut c_char, size: 
 unsafe fn dev_value<T: Copy>(name: &str, device: *const c_char, out: *mut T, v: T) -> int32 {
     let dev = cstr(device);
     with_bench(|b| {
-        let r = device_ok(b, &dev).and_then(|_| if out.is_null() { fail(NULL_PTR, "") } else { Ok(()) });
+        let r = device_ok(b, &dev).and_then(|_| {
+            if out.is_null() {
+                fail(NULL_PTR, "")
+            } else {
+                Ok(())
+            }
+        });
         let code = finish(b, format!("{name}(\"{dev}\")"), None, r);
         if code == 0 {
             *out = v;
@@ -1698,7 +2001,13 @@ unsafe fn dev_value<T: Copy>(name: &str, device: *const c_char, out: *mut T, v: 
     })
 }
 
-unsafe fn dev_array(name: &str, device: *const c_char, out: *mut f64, size: uInt32, v: &[f64]) -> int32 {
+unsafe fn dev_array(
+    name: &str,
+    device: *const c_char,
+    out: *mut f64,
+    size: uInt32,
+    v: &[f64],
+) -> int32 {
     let dev = cstr(device);
     with_bench(|b| {
         let r = device_ok(b, &dev);
@@ -1718,8 +2027,16 @@ unsafe fn dev_array(name: &str, device: *const c_char, out: *mut f64, size: uInt
 /// # Safety
 /// `device` is a C string; `data` is NULL or points to `buffer_size` bytes.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevProductType(device: *const c_char, data: *mut c_char, buffer_size: uInt32) -> int32 {
-    guard(-1, || dev_string("DAQmxGetDevProductType", device, data, buffer_size, |_| PRODUCT_TYPE.into()))
+pub unsafe extern "C" fn DAQmxGetDevProductType(
+    device: *const c_char,
+    data: *mut c_char,
+    buffer_size: uInt32,
+) -> int32 {
+    guard(-1, || {
+        dev_string("DAQmxGetDevProductType", device, data, buffer_size, |_| {
+            PRODUCT_TYPE.into()
+        })
+    })
 }
 
 /// # Safety
@@ -1738,7 +2055,11 @@ pub unsafe extern "C" fn DAQmxGetDevSerialNum(device: *const c_char, data: *mut 
 pub unsafe extern "C" fn DAQmxGetSysDevNames(data: *mut c_char, buffer_size: uInt32) -> int32 {
     guard(-1, || {
         with_bench(|b| {
-            let names = if b.cfg.faults.daq_missing || b.daq.removed { String::new() } else { b.daq.device.clone() };
+            let names = if b.cfg.faults.daq_missing || b.daq.removed {
+                String::new()
+            } else {
+                b.daq.device.clone()
+            };
             b.log(format!("DAQmxGetSysDevNames() -> \"{names}\""));
             let need = put_cstr(&names, data, buffer_size as usize);
             if buffer_size == 0 || data.is_null() {
@@ -1753,29 +2074,51 @@ pub unsafe extern "C" fn DAQmxGetSysDevNames(data: *mut c_char, buffer_size: uIn
 /// # Safety
 /// `device` is a C string; `data` points to a `float64`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAIMaxSingleChanRate(device: *const c_char, data: *mut float64) -> int32 {
-    guard(-1, || dev_value("DAQmxGetDevAIMaxSingleChanRate", device, data, AI_MAX_RATE))
+pub unsafe extern "C" fn DAQmxGetDevAIMaxSingleChanRate(
+    device: *const c_char,
+    data: *mut float64,
+) -> int32 {
+    guard(-1, || {
+        dev_value("DAQmxGetDevAIMaxSingleChanRate", device, data, AI_MAX_RATE)
+    })
 }
 
 /// # Safety
 /// `device` is a C string; `data` points to a `float64`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAIMaxMultiChanRate(device: *const c_char, data: *mut float64) -> int32 {
-    guard(-1, || dev_value("DAQmxGetDevAIMaxMultiChanRate", device, data, AI_MAX_RATE))
+pub unsafe extern "C" fn DAQmxGetDevAIMaxMultiChanRate(
+    device: *const c_char,
+    data: *mut float64,
+) -> int32 {
+    guard(-1, || {
+        dev_value("DAQmxGetDevAIMaxMultiChanRate", device, data, AI_MAX_RATE)
+    })
 }
 
 /// # Safety
 /// `device` is a C string; `data` points to a `float64`.
 #[no_mangle]
 pub unsafe extern "C" fn DAQmxGetDevAOMaxRate(device: *const c_char, data: *mut float64) -> int32 {
-    guard(-1, || dev_value("DAQmxGetDevAOMaxRate", device, data, AO_MAX_RATE_1))
+    guard(-1, || {
+        dev_value("DAQmxGetDevAOMaxRate", device, data, AO_MAX_RATE_1)
+    })
 }
 
 /// # Safety
 /// `device` is a C string; `data` points to a `bool32`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAISimultaneousSamplingSupported(device: *const c_char, data: *mut bool32) -> int32 {
-    guard(-1, || dev_value("DAQmxGetDevAISimultaneousSamplingSupported", device, data, 1))
+pub unsafe extern "C" fn DAQmxGetDevAISimultaneousSamplingSupported(
+    device: *const c_char,
+    data: *mut bool32,
+) -> int32 {
+    guard(-1, || {
+        dev_value(
+            "DAQmxGetDevAISimultaneousSamplingSupported",
+            device,
+            data,
+            1,
+        )
+    })
 }
 
 /// # Safety
@@ -1788,61 +2131,126 @@ pub unsafe extern "C" fn DAQmxGetDevIsSimulated(device: *const c_char, data: *mu
 /// # Safety
 /// `device` is a C string; `data` is NULL or points to `array_size_in_elements` doubles.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAIVoltageRngs(device: *const c_char, data: *mut float64, array_size_in_elements: uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetDevAIVoltageRngs(
+    device: *const c_char,
+    data: *mut float64,
+    array_size_in_elements: uInt32,
+) -> int32 {
     guard(-1, || {
         let v: Vec<f64> = AI_RANGES.iter().flat_map(|&r| [-r, r]).collect();
-        dev_array("DAQmxGetDevAIVoltageRngs", device, data, array_size_in_elements, &v)
+        dev_array(
+            "DAQmxGetDevAIVoltageRngs",
+            device,
+            data,
+            array_size_in_elements,
+            &v,
+        )
     })
 }
 
 /// # Safety
 /// `device` is a C string; `data` is NULL or points to `array_size_in_elements` doubles.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAOVoltageRngs(device: *const c_char, data: *mut float64, array_size_in_elements: uInt32) -> int32 {
-    guard(-1, || dev_array("DAQmxGetDevAOVoltageRngs", device, data, array_size_in_elements, &[-AO_RANGE, AO_RANGE]))
-}
-
-/// # Safety
-/// `device` is a C string; `data` is NULL or points to `buffer_size` bytes.
-#[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAIPhysicalChans(device: *const c_char, data: *mut c_char, buffer_size: uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetDevAOVoltageRngs(
+    device: *const c_char,
+    data: *mut float64,
+    array_size_in_elements: uInt32,
+) -> int32 {
     guard(-1, || {
-        dev_string("DAQmxGetDevAIPhysicalChans", device, data, buffer_size, |b| {
-            (0..AI_CHANNELS).map(|i| format!("{}/ai{i}", b.daq.device)).collect::<Vec<_>>().join(", ")
-        })
+        dev_array(
+            "DAQmxGetDevAOVoltageRngs",
+            device,
+            data,
+            array_size_in_elements,
+            &[-AO_RANGE, AO_RANGE],
+        )
     })
 }
 
 /// # Safety
 /// `device` is a C string; `data` is NULL or points to `buffer_size` bytes.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetDevAOPhysicalChans(device: *const c_char, data: *mut c_char, buffer_size: uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetDevAIPhysicalChans(
+    device: *const c_char,
+    data: *mut c_char,
+    buffer_size: uInt32,
+) -> int32 {
     guard(-1, || {
-        dev_string("DAQmxGetDevAOPhysicalChans", device, data, buffer_size, |b| {
-            (0..AO_CHANNELS).map(|i| format!("{}/ao{i}", b.daq.device)).collect::<Vec<_>>().join(", ")
-        })
+        dev_string(
+            "DAQmxGetDevAIPhysicalChans",
+            device,
+            data,
+            buffer_size,
+            |b| {
+                (0..AI_CHANNELS)
+                    .map(|i| format!("{}/ai{i}", b.daq.device))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            },
+        )
+    })
+}
+
+/// # Safety
+/// `device` is a C string; `data` is NULL or points to `buffer_size` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn DAQmxGetDevAOPhysicalChans(
+    device: *const c_char,
+    data: *mut c_char,
+    buffer_size: uInt32,
+) -> int32 {
+    guard(-1, || {
+        dev_string(
+            "DAQmxGetDevAOPhysicalChans",
+            device,
+            data,
+            buffer_size,
+            |b| {
+                (0..AO_CHANNELS)
+                    .map(|i| format!("{}/ao{i}", b.daq.device))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            },
+        )
     })
 }
 
 /// # Safety
 /// `data` points to a `uInt32`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetReadAvailSampPerChan(task_handle: TaskHandle, data: *mut uInt32) -> int32 {
+pub unsafe extern "C" fn DAQmxGetReadAvailSampPerChan(
+    task_handle: TaskHandle,
+    data: *mut uInt32,
+) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let t = now();
             sync(b, t);
             let tn = task_name(b, task_handle);
-            let r = task_mut(b, task_handle).map(|t| t.clone()).and_then(|task| {
-                if data.is_null() {
-                    return fail(NULL_PTR, "");
-                }
-                let have = ai_clock(b, &task).map_or(0, |c| acquired(c, t));
-                let unread = have.saturating_sub(task.read_pos);
-                *data = unread.min(if task.timing.is_some() { task.buffer_size() } else { 0 }) as u32;
-                Ok(())
-            });
-            finish(b, format!("DAQmxGetReadAvailSampPerChan({})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            let r = task_mut(b, task_handle)
+                .map(|t| t.clone())
+                .and_then(|task| {
+                    if data.is_null() {
+                        return fail(NULL_PTR, "");
+                    }
+                    let have = ai_clock(b, &task).map_or(0, |c| acquired(c, t));
+                    let unread = have.saturating_sub(task.read_pos);
+                    *data = unread.min(if task.timing.is_some() {
+                        task.buffer_size()
+                    } else {
+                        0
+                    }) as u32;
+                    Ok(())
+                });
+            finish(
+                b,
+                format!(
+                    "DAQmxGetReadAvailSampPerChan({})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }
@@ -1850,20 +2258,33 @@ pub unsafe extern "C" fn DAQmxGetReadAvailSampPerChan(task_handle: TaskHandle, d
 /// # Safety
 /// `data` points to a `uInt64`.
 #[no_mangle]
-pub unsafe extern "C" fn DAQmxGetReadTotalSampPerChanAcquired(task_handle: TaskHandle, data: *mut uInt64) -> int32 {
+pub unsafe extern "C" fn DAQmxGetReadTotalSampPerChanAcquired(
+    task_handle: TaskHandle,
+    data: *mut uInt64,
+) -> int32 {
     guard(-1, || {
         with_bench(|b| {
             let t = now();
             sync(b, t);
             let tn = task_name(b, task_handle);
-            let r = task_mut(b, task_handle).map(|t| t.clone()).and_then(|task| {
-                if data.is_null() {
-                    return fail(NULL_PTR, "");
-                }
-                *data = ai_clock(b, &task).map_or(0, |c| acquired(c, t));
-                Ok(())
-            });
-            finish(b, format!("DAQmxGetReadTotalSampPerChanAcquired({})", tn.clone().unwrap_or_default()), tn.as_deref(), r)
+            let r = task_mut(b, task_handle)
+                .map(|t| t.clone())
+                .and_then(|task| {
+                    if data.is_null() {
+                        return fail(NULL_PTR, "");
+                    }
+                    *data = ai_clock(b, &task).map_or(0, |c| acquired(c, t));
+                    Ok(())
+                });
+            finish(
+                b,
+                format!(
+                    "DAQmxGetReadTotalSampPerChanAcquired({})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
         })
     })
 }

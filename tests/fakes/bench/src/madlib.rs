@@ -116,7 +116,9 @@ fn logged<R: std::fmt::Debug>(b: &mut Bench, call: String, r: R) -> R {
 
 #[no_mangle]
 pub extern "C" fn MCL_InitLibrary() -> c_uchar {
-    guard(0, || with_bench(|b| logged(b, "MCL_InitLibrary()".into(), 1)))
+    guard(0, || {
+        with_bench(|b| logged(b, "MCL_InitLibrary()".into(), 1))
+    })
 }
 
 #[no_mangle]
@@ -146,7 +148,9 @@ pub unsafe extern "C" fn MCL_DLLVersion(version: *mut c_short, revision: *mut c_
 
 #[no_mangle]
 pub extern "C" fn MCL_CorrectDriverVersion() -> c_uchar {
-    guard(0, || with_bench(|b| logged(b, "MCL_CorrectDriverVersion()".into(), 1)))
+    guard(0, || {
+        with_bench(|b| logged(b, "MCL_CorrectDriverVersion()".into(), 1))
+    })
 }
 
 #[no_mangle]
@@ -198,7 +202,11 @@ pub extern "C" fn MCL_GrabHandleOrGetExisting(device: c_short) -> c_int {
                     _ => grab(b),
                 }
             };
-            logged(b, format!("MCL_GrabHandleOrGetExisting(device={device:#06x})"), h)
+            logged(
+                b,
+                format!("MCL_GrabHandleOrGetExisting(device={device:#06x})"),
+                h,
+            )
         })
     })
 }
@@ -332,7 +340,11 @@ pub extern "C" fn MCL_SingleReadN(axis: c_uint, handle: c_int) -> c_double {
     guard(MCL_GENERAL_ERROR as f64, || {
         with_bench(|b| {
             let r = read_n(b, axis, handle);
-            logged(b, format!("MCL_SingleReadN(axis={axis}, handle={handle})"), r)
+            logged(
+                b,
+                format!("MCL_SingleReadN(axis={axis}, handle={handle})"),
+                r,
+            )
         })
     })
 }
@@ -342,7 +354,11 @@ pub extern "C" fn MCL_SingleWriteZ(position: c_double, handle: c_int) -> c_int {
     guard(MCL_GENERAL_ERROR, || {
         with_bench(|b| {
             let r = write_n(b, position, 3, handle);
-            logged(b, format!("MCL_SingleWriteZ(position={position}, handle={handle})"), r)
+            logged(
+                b,
+                format!("MCL_SingleWriteZ(position={position}, handle={handle})"),
+                r,
+            )
         })
     })
 }
@@ -392,7 +408,11 @@ pub extern "C" fn MCL_GetCalibration(axis: c_uint, handle: c_int) -> c_double {
                 Ok(i) => b.stage.axes[i].range,
                 Err(c) => c as f64,
             };
-            logged(b, format!("MCL_GetCalibration(axis={axis}, handle={handle})"), r)
+            logged(
+                b,
+                format!("MCL_GetCalibration(axis={axis}, handle={handle})"),
+                r,
+            )
         })
     })
 }
@@ -582,7 +602,10 @@ unsafe fn setup_load(
     }
     let data = std::slice::from_raw_parts(wave, points as usize).to_vec();
     let range = b.stage.axes[i].range;
-    if data.iter().any(|p| !(p.is_finite() && (0.0..=range).contains(p))) {
+    if data
+        .iter()
+        .any(|p| !(p.is_finite() && (0.0..=range).contains(p)))
+    {
         return MCL_ARGUMENT_ERROR;
     }
     b.mcl.waves[i].load = Some((data, ms));
@@ -743,7 +766,11 @@ pub extern "C" fn MCL_Trigger_LoadWaveFormN(axis: c_uint, handle: c_int) -> c_in
             })()
             .err()
             .unwrap_or(MCL_SUCCESS);
-            logged(b, format!("MCL_Trigger_LoadWaveFormN(axis={axis}, handle={handle})"), r)
+            logged(
+                b,
+                format!("MCL_Trigger_LoadWaveFormN(axis={axis}, handle={handle})"),
+                r,
+            )
         })
     })
 }

@@ -44,11 +44,16 @@ fn lib_path() -> std::path::PathBuf {
     // target/<profile>/, a test build (the library built as a dependency) in deps/: the newer
     let exe = std::env::current_exe().unwrap();
     let deps = exe.parent().unwrap();
-    let newest = [deps.join("libfakebench.so"), deps.parent().unwrap().join("libfakebench.so")]
-        .into_iter()
-        .filter_map(|p| Some((std::fs::metadata(&p).ok()?.modified().ok()?, p)))
-        .max();
-    newest.expect("libfakebench.so missing next to the test: build the workspace (cargo build)").1
+    let newest = [
+        deps.join("libfakebench.so"),
+        deps.parent().unwrap().join("libfakebench.so"),
+    ]
+    .into_iter()
+    .filter_map(|p| Some((std::fs::metadata(&p).ok()?.modified().ok()?, p)))
+    .max();
+    newest
+        .expect("libfakebench.so missing next to the test: build the workspace (cargo build)")
+        .1
 }
 
 struct Fake {
@@ -78,28 +83,52 @@ macro_rules! sym {
 
 impl Fake {
     fn set(&self, key: &str, value: &str) {
-        let f = sym!(self, "fakebench_set", unsafe extern "C" fn(*const c_char, *const c_char) -> c_int);
+        let f = sym!(
+            self,
+            "fakebench_set",
+            unsafe extern "C" fn(*const c_char, *const c_char) -> c_int
+        );
         let (k, v) = (CString::new(key).unwrap(), CString::new(value).unwrap());
-        assert_eq!(unsafe { f(k.as_ptr(), v.as_ptr()) }, 0, "fakebench_set {key}={value}");
+        assert_eq!(
+            unsafe { f(k.as_ptr(), v.as_ptr()) },
+            0,
+            "fakebench_set {key}={value}"
+        );
     }
     fn faults(&self, spec: &str) {
-        let f = sym!(self, "fakebench_set_faults", unsafe extern "C" fn(*const c_char) -> c_int);
+        let f = sym!(
+            self,
+            "fakebench_set_faults",
+            unsafe extern "C" fn(*const c_char) -> c_int
+        );
         let s = CString::new(spec).unwrap();
         assert_eq!(unsafe { f(s.as_ptr()) }, 0);
     }
     fn log(&self) -> String {
-        let f = sym!(self, "fakebench_log", unsafe extern "C" fn(*mut c_char, usize) -> usize);
+        let f = sym!(
+            self,
+            "fakebench_log",
+            unsafe extern "C" fn(*mut c_char, usize) -> usize
+        );
         let n = unsafe { f(std::ptr::null_mut(), 0) };
         let mut buf = vec![0u8; n];
         unsafe { f(buf.as_mut_ptr() as *mut c_char, n) };
         String::from_utf8_lossy(&buf[..n - 1]).into_owned()
     }
     fn position(&self, axis: c_int) -> f64 {
-        let f = sym!(self, "fakebench_stage_position", unsafe extern "C" fn(c_int) -> c_double);
+        let f = sym!(
+            self,
+            "fakebench_stage_position",
+            unsafe extern "C" fn(c_int) -> c_double
+        );
         unsafe { f(axis) }
     }
     fn ao_voltage(&self, ch: c_int) -> f64 {
-        let f = sym!(self, "fakebench_ao_voltage", unsafe extern "C" fn(c_int) -> c_double);
+        let f = sym!(
+            self,
+            "fakebench_ao_voltage",
+            unsafe extern "C" fn(c_int) -> c_double
+        );
         unsafe { f(ch) }
     }
 
@@ -117,25 +146,45 @@ impl Fake {
         unsafe { f(h) }
     }
     fn by_serial(&self, s: c_short) -> c_int {
-        let f = sym!(self, "MCL_GetHandleBySerial", unsafe extern "C" fn(c_short) -> c_int);
+        let f = sym!(
+            self,
+            "MCL_GetHandleBySerial",
+            unsafe extern "C" fn(c_short) -> c_int
+        );
         unsafe { f(s) }
     }
     fn write(&self, pos: f64, axis: c_uint, h: c_int) -> c_int {
-        let f = sym!(self, "MCL_SingleWriteN", unsafe extern "C" fn(c_double, c_uint, c_int) -> c_int);
+        let f = sym!(
+            self,
+            "MCL_SingleWriteN",
+            unsafe extern "C" fn(c_double, c_uint, c_int) -> c_int
+        );
         unsafe { f(pos, axis, h) }
     }
     fn read(&self, axis: c_uint, h: c_int) -> f64 {
-        let f = sym!(self, "MCL_SingleReadN", unsafe extern "C" fn(c_uint, c_int) -> c_double);
+        let f = sym!(
+            self,
+            "MCL_SingleReadN",
+            unsafe extern "C" fn(c_uint, c_int) -> c_double
+        );
         unsafe { f(axis, h) }
     }
     fn calibration(&self, axis: c_uint, h: c_int) -> f64 {
-        let f = sym!(self, "MCL_GetCalibration", unsafe extern "C" fn(c_uint, c_int) -> c_double);
+        let f = sym!(
+            self,
+            "MCL_GetCalibration",
+            unsafe extern "C" fn(c_uint, c_int) -> c_double
+        );
         unsafe { f(axis, h) }
     }
 
     // NI-DAQmx
     fn create_task(&self) -> TaskHandle {
-        let f = sym!(self, "DAQmxCreateTask", unsafe extern "C" fn(*const c_char, *mut TaskHandle) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxCreateTask",
+            unsafe extern "C" fn(*const c_char, *mut TaskHandle) -> i32
+        );
         let mut h: TaskHandle = std::ptr::null_mut();
         let name = CString::new("").unwrap();
         assert_eq!(unsafe { f(name.as_ptr(), &mut h) }, 0);
@@ -145,79 +194,199 @@ impl Fake {
         let f = sym!(
             self,
             "DAQmxCreateAIVoltageChan",
-            unsafe extern "C" fn(TaskHandle, *const c_char, *const c_char, i32, f64, f64, i32, *const c_char) -> i32
+            unsafe extern "C" fn(
+                TaskHandle,
+                *const c_char,
+                *const c_char,
+                i32,
+                f64,
+                f64,
+                i32,
+                *const c_char,
+            ) -> i32
         );
         let p = CString::new(phys).unwrap();
         let e = CString::new("").unwrap();
-        unsafe { f(t, p.as_ptr(), e.as_ptr(), term, min, max, DAQMX_VAL_VOLTS, std::ptr::null()) }
+        unsafe {
+            f(
+                t,
+                p.as_ptr(),
+                e.as_ptr(),
+                term,
+                min,
+                max,
+                DAQMX_VAL_VOLTS,
+                std::ptr::null(),
+            )
+        }
     }
     fn ao_chan(&self, t: TaskHandle, phys: &str) -> i32 {
         let f = sym!(
             self,
             "DAQmxCreateAOVoltageChan",
-            unsafe extern "C" fn(TaskHandle, *const c_char, *const c_char, f64, f64, i32, *const c_char) -> i32
+            unsafe extern "C" fn(
+                TaskHandle,
+                *const c_char,
+                *const c_char,
+                f64,
+                f64,
+                i32,
+                *const c_char,
+            ) -> i32
         );
         let p = CString::new(phys).unwrap();
         let e = CString::new("").unwrap();
-        unsafe { f(t, p.as_ptr(), e.as_ptr(), -10.0, 10.0, DAQMX_VAL_VOLTS, std::ptr::null()) }
+        unsafe {
+            f(
+                t,
+                p.as_ptr(),
+                e.as_ptr(),
+                -10.0,
+                10.0,
+                DAQMX_VAL_VOLTS,
+                std::ptr::null(),
+            )
+        }
     }
     fn timing(&self, t: TaskHandle, src: &str, rate: f64, mode: i32, n: u64) -> i32 {
-        let f = sym!(self, "DAQmxCfgSampClkTiming", unsafe extern "C" fn(TaskHandle, *const c_char, f64, i32, i32, u64) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxCfgSampClkTiming",
+            unsafe extern "C" fn(TaskHandle, *const c_char, f64, i32, i32, u64) -> i32
+        );
         let s = CString::new(src).unwrap();
         unsafe { f(t, s.as_ptr(), rate, DAQMX_VAL_RISING, mode, n) }
     }
     fn start_trigger(&self, t: TaskHandle, src: &str) -> i32 {
-        let f = sym!(self, "DAQmxCfgDigEdgeStartTrig", unsafe extern "C" fn(TaskHandle, *const c_char, i32) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxCfgDigEdgeStartTrig",
+            unsafe extern "C" fn(TaskHandle, *const c_char, i32) -> i32
+        );
         let s = CString::new(src).unwrap();
         unsafe { f(t, s.as_ptr(), DAQMX_VAL_RISING) }
     }
     fn start(&self, t: TaskHandle) -> i32 {
-        let f = sym!(self, "DAQmxStartTask", unsafe extern "C" fn(TaskHandle) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxStartTask",
+            unsafe extern "C" fn(TaskHandle) -> i32
+        );
         unsafe { f(t) }
     }
     fn stop(&self, t: TaskHandle) -> i32 {
-        let f = sym!(self, "DAQmxStopTask", unsafe extern "C" fn(TaskHandle) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxStopTask",
+            unsafe extern "C" fn(TaskHandle) -> i32
+        );
         unsafe { f(t) }
     }
     fn clear(&self, t: TaskHandle) -> i32 {
-        let f = sym!(self, "DAQmxClearTask", unsafe extern "C" fn(TaskHandle) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxClearTask",
+            unsafe extern "C" fn(TaskHandle) -> i32
+        );
         unsafe { f(t) }
     }
     /// (status, samples per channel read)
-    fn read_f64(&self, t: TaskHandle, n: i32, timeout: f64, fill: u32, out: &mut [f64]) -> (i32, i32) {
+    fn read_f64(
+        &self,
+        t: TaskHandle,
+        n: i32,
+        timeout: f64,
+        fill: u32,
+        out: &mut [f64],
+    ) -> (i32, i32) {
         let f = sym!(
             self,
             "DAQmxReadAnalogF64",
-            unsafe extern "C" fn(TaskHandle, i32, f64, u32, *mut f64, u32, *mut i32, *mut u32) -> i32
+            unsafe extern "C" fn(
+                TaskHandle,
+                i32,
+                f64,
+                u32,
+                *mut f64,
+                u32,
+                *mut i32,
+                *mut u32,
+            ) -> i32
         );
         let mut read = -1;
-        let s = unsafe { f(t, n, timeout, fill, out.as_mut_ptr(), out.len() as u32, &mut read, std::ptr::null_mut()) };
+        let s = unsafe {
+            f(
+                t,
+                n,
+                timeout,
+                fill,
+                out.as_mut_ptr(),
+                out.len() as u32,
+                &mut read,
+                std::ptr::null_mut(),
+            )
+        };
         (s, read)
     }
     fn write_f64(&self, t: TaskHandle, n: i32, auto: bool, data: &[f64]) -> (i32, i32) {
         let f = sym!(
             self,
             "DAQmxWriteAnalogF64",
-            unsafe extern "C" fn(TaskHandle, i32, u32, f64, u32, *const f64, *mut i32, *mut u32) -> i32
+            unsafe extern "C" fn(
+                TaskHandle,
+                i32,
+                u32,
+                f64,
+                u32,
+                *const f64,
+                *mut i32,
+                *mut u32,
+            ) -> i32
         );
         let mut w = -1;
-        let s = unsafe { f(t, n, auto as u32, 10.0, DAQMX_VAL_GROUP_BY_CHANNEL, data.as_ptr(), &mut w, std::ptr::null_mut()) };
+        let s = unsafe {
+            f(
+                t,
+                n,
+                auto as u32,
+                10.0,
+                DAQMX_VAL_GROUP_BY_CHANNEL,
+                data.as_ptr(),
+                &mut w,
+                std::ptr::null_mut(),
+            )
+        };
         (s, w)
     }
     fn write_scalar(&self, t: TaskHandle, v: f64) -> i32 {
-        let f = sym!(self, "DAQmxWriteAnalogScalarF64", unsafe extern "C" fn(TaskHandle, u32, f64, f64, *mut u32) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxWriteAnalogScalarF64",
+            unsafe extern "C" fn(TaskHandle, u32, f64, f64, *mut u32) -> i32
+        );
         unsafe { f(t, 1, 1.0, v, std::ptr::null_mut()) }
     }
     fn error_string(&self, code: i32) -> String {
-        let f = sym!(self, "DAQmxGetErrorString", unsafe extern "C" fn(i32, *mut c_char, u32) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxGetErrorString",
+            unsafe extern "C" fn(i32, *mut c_char, u32) -> i32
+        );
         let n = unsafe { f(code, std::ptr::null_mut(), 0) };
         assert!(n > 0);
         let mut buf = vec![0u8; n as usize];
-        assert_eq!(unsafe { f(code, buf.as_mut_ptr() as *mut c_char, n as u32) }, 0);
+        assert_eq!(
+            unsafe { f(code, buf.as_mut_ptr() as *mut c_char, n as u32) },
+            0
+        );
         String::from_utf8_lossy(&buf[..n as usize - 1]).into_owned()
     }
     fn extended(&self) -> String {
-        let f = sym!(self, "DAQmxGetExtendedErrorInfo", unsafe extern "C" fn(*mut c_char, u32) -> i32);
+        let f = sym!(
+            self,
+            "DAQmxGetExtendedErrorInfo",
+            unsafe extern "C" fn(*mut c_char, u32) -> i32
+        );
         let mut buf = vec![0u8; 4096];
         assert_eq!(unsafe { f(buf.as_mut_ptr() as *mut c_char, 4096) }, 0);
         let end = buf.iter().position(|&c| c == 0).unwrap();
@@ -244,7 +413,10 @@ fn move_and_read_back_converge_with_the_lag() {
     // p(t) = 30 (1 − exp(−t/τ)), read within its 16-bit step (75 µm / 65535)
     let want1 = 30.0 * (1.0 - (-dt1 / 0.02).exp());
     let want_lo = 30.0 * (1.0 - (-0.020f64 / 0.02).exp());
-    assert!(p1 >= want_lo - 0.002 && p1 <= want1 + 0.002, "p1 {p1}, between {want_lo} and {want1}");
+    assert!(
+        p1 >= want_lo - 0.002 && p1 <= want1 + 0.002,
+        "p1 {p1}, between {want_lo} and {want1}"
+    );
     std::thread::sleep(std::time::Duration::from_millis(200));
     let p2 = f.read(1, h);
     assert!((p2 - 30.0).abs() < 75.0 / 65535.0, "settled at {p2}");
@@ -261,13 +433,21 @@ fn calibration_product_info_and_serial() {
     assert_eq!(f.calibration(2, h), 75.0);
     assert_eq!(f.calibration(3, h), 50.0);
     assert_eq!(f.calibration(4, h), MCL_INVALID_AXIS as f64);
-    let pinfo = sym!(f, "MCL_GetProductInfo", unsafe extern "C" fn(*mut ProductInformation, c_int) -> c_int);
+    let pinfo = sym!(
+        f,
+        "MCL_GetProductInfo",
+        unsafe extern "C" fn(*mut ProductInformation, c_int) -> c_int
+    );
     let mut p = ProductInformation::default();
     assert_eq!(std::mem::size_of::<ProductInformation>(), 11);
     assert_eq!(unsafe { pinfo(&mut p, h) }, MCL_SUCCESS);
     let (bitmap, id, adc) = (p.axis_bitmap, p.product_id, p.adc_resolution);
     assert_eq!((bitmap, id, adc), (0x07, 0x2003, 16));
-    let serial = sym!(f, "MCL_GetSerialNumber", unsafe extern "C" fn(c_int) -> c_int);
+    let serial = sym!(
+        f,
+        "MCL_GetSerialNumber",
+        unsafe extern "C" fn(c_int) -> c_int
+    );
     assert_eq!(unsafe { serial(h) }, 2847);
     f.release(h);
     f.set("serial", "3011");
@@ -286,9 +466,17 @@ fn handle_lifecycle() {
     assert!(h > 0);
     assert_eq!(f.by_serial(2848), 0);
     assert_eq!(f.init_handle(), 0, "the only Nano-Drive is held");
-    let count = sym!(f, "MCL_NumberOfCurrentHandles", unsafe extern "C" fn() -> c_int);
+    let count = sym!(
+        f,
+        "MCL_NumberOfCurrentHandles",
+        unsafe extern "C" fn() -> c_int
+    );
     assert_eq!(unsafe { count() }, 1);
-    let all = sym!(f, "MCL_GetAllHandles", unsafe extern "C" fn(*mut c_int, c_int) -> c_int);
+    let all = sym!(
+        f,
+        "MCL_GetAllHandles",
+        unsafe extern "C" fn(*mut c_int, c_int) -> c_int
+    );
     let mut hs = [0; 4];
     assert_eq!(unsafe { all(hs.as_mut_ptr(), 4) }, 1);
     assert_eq!(hs[0], h);
@@ -307,7 +495,10 @@ fn handle_lifecycle() {
     assert_eq!(f.write(50.0, 3, h2), MCL_SUCCESS);
     assert_eq!(f.write(50.5, 3, h2), MCL_ARGUMENT_ERROR, "z range is 50 µm");
     let log = f.log();
-    assert!(log.contains("MCL_ReleaseHandle(handle=") && log.contains("[released]"), "{log}");
+    assert!(
+        log.contains("MCL_ReleaseHandle(handle=") && log.contains("[released]"),
+        "{log}"
+    );
 }
 
 #[test]
@@ -323,7 +514,11 @@ fn stage_faults() {
     assert!(f.read(1, h) >= 0.0);
     assert_eq!(f.write(2.0, 1, h), MCL_DEV_NOT_ATTACHED);
     assert_eq!(f.read(1, h), MCL_DEV_NOT_ATTACHED as f64);
-    let attached = sym!(f, "MCL_DeviceAttached", unsafe extern "C" fn(c_int, c_int) -> c_uchar);
+    let attached = sym!(
+        f,
+        "MCL_DeviceAttached",
+        unsafe extern "C" fn(c_int, c_int) -> c_uchar
+    );
     assert_eq!(unsafe { attached(1, h) }, 0);
     f.release(h);
     f.faults("stage_stuck=x");
@@ -353,25 +548,40 @@ fn finite_ai_sees_the_bead_at_the_stage_position() {
         assert_eq!(f.write(x, 1, h), MCL_SUCCESS);
         std::thread::sleep(std::time::Duration::from_millis(10));
         let t = f.create_task();
-        assert_eq!(f.ai_chan(t, "Dev1/ai0:3", DAQMX_VAL_CFG_DEFAULT, -10.0, 10.0), 0);
+        assert_eq!(
+            f.ai_chan(t, "Dev1/ai0:3", DAQMX_VAL_CFG_DEFAULT, -10.0, 10.0),
+            0
+        );
         assert_eq!(f.timing(t, "", 100e3, DAQMX_VAL_FINITE_SAMPS, 1000), 0);
         assert_eq!(f.start(t), 0);
         let mut buf = vec![0.0; 4000];
         let t0 = std::time::Instant::now();
         let (s, n) = f.read_f64(t, 1000, 5.0, DAQMX_VAL_GROUP_BY_CHANNEL, &mut buf);
         assert_eq!((s, n), (0, 1000));
-        assert!(t0.elapsed().as_secs_f64() >= 0.0095, "1000 samples at 100 kS/s take 10 ms");
+        assert!(
+            t0.elapsed().as_secs_f64() >= 0.0095,
+            "1000 samples at 100 kS/s take 10 ms"
+        );
         sx.push(mean(&buf[0..1000]));
         sum.push(mean(&buf[2000..3000]));
         // ai3: the x sensor monitor, 0–10 V over 75 µm
         let mon = mean(&buf[3000..4000]);
-        assert!((mon - x / 75.0 * 10.0).abs() < 2e-3, "monitor {mon} V at x = {x}");
+        assert!(
+            (mon - x / 75.0 * 10.0).abs() < 2e-3,
+            "monitor {mon} V at x = {x}"
+        );
         assert_eq!(f.clear(t), 0);
     }
     // Sx is odd in x about the bead: opposite signs, equal magnitudes (noise 1 mV / √1000)
     assert!(sx[0] * sx[2] < 0.0, "Sx {sx:?}");
-    assert!((sx[0] + sx[2]).abs() < 0.1 * sx[0].abs() + 2e-4, "Sx {sx:?}");
-    assert!(sx[1].abs() < 0.1 * sx[0].abs() + 2e-4, "Sx at the bead {sx:?}");
+    assert!(
+        (sx[0] + sx[2]).abs() < 0.1 * sx[0].abs() + 2e-4,
+        "Sx {sx:?}"
+    );
+    assert!(
+        sx[1].abs() < 0.1 * sx[0].abs() + 2e-4,
+        "Sx at the bead {sx:?}"
+    );
     // the sum is near 5 V
     assert!(sum.iter().all(|s| (s - 5.0).abs() < 0.5), "sum {sum:?}");
     // against the simulator directly (an independent call path: the renderer at the scene point)
@@ -382,7 +592,12 @@ fn finite_ai_sees_the_bead_at_the_stage_position() {
     )
     .unwrap();
     let g = r.render_grid_ideal(&[-0.1], &[0.0], 0.0);
-    assert!((sx[0] - g[0][0]).abs() < 0.02 * g[0][0].abs() + 2e-4, "Sx {} vs simulator {}", sx[0], g[0][0]);
+    assert!(
+        (sx[0] - g[0][0]).abs() < 0.02 * g[0][0].abs() + 2e-4,
+        "Sx {} vs simulator {}",
+        sx[0],
+        g[0][0]
+    );
 }
 
 #[test]
@@ -402,7 +617,16 @@ fn ai_on_the_ao_clock_follows_the_ramp_with_the_lag() {
     // AI: on the AO sample clock, started by the AO start trigger
     let ai = f.create_task();
     assert_eq!(f.ai_chan(ai, "Dev1/ai3", DAQMX_VAL_DIFF, -10.0, 10.0), 0);
-    assert_eq!(f.timing(ai, "/Dev1/ao/SampleClock", rate, DAQMX_VAL_CONT_SAMPS, n as u64), 0);
+    assert_eq!(
+        f.timing(
+            ai,
+            "/Dev1/ao/SampleClock",
+            rate,
+            DAQMX_VAL_CONT_SAMPS,
+            n as u64
+        ),
+        0
+    );
     assert_eq!(f.start_trigger(ai, "/Dev1/ao/StartTrigger"), 0);
     assert_eq!(f.start(ai), 0);
     assert_eq!(f.start(ao), 0);
@@ -422,14 +646,21 @@ fn ai_on_the_ao_clock_follows_the_ramp_with_the_lag() {
     let mut p = 0.0; // the stage starts at 0
     for (k, &v) in got.iter().enumerate() {
         let want_v = p / 75.0 * 10.0;
-        assert!((v - want_v).abs() < 2.0 * 20.0 / 65536.0 + 1e-9, "sample {k}: {v} V, want {want_v}");
+        assert!(
+            (v - want_v).abs() < 2.0 * 20.0 / 65536.0 + 1e-9,
+            "sample {k}: {v} V, want {want_v}"
+        );
         let target = ramp[k] / 10.0 * 75.0;
         p = target + (p - target) * a;
     }
     // the lag: at the end the sensor trails the ramp by about slope·τ
     let slope = 4.0 / ((n - 1) as f64 * dt); // V/s
     let trail = ramp[n - 1] - got[n - 1];
-    assert!((trail - slope * 1e-3).abs() < 0.1 * slope * 1e-3 + 0.01, "trail {trail} V, slope·τ {}", slope * 1e-3);
+    assert!(
+        (trail - slope * 1e-3).abs() < 0.1 * slope * 1e-3 + 0.01,
+        "trail {trail} V, slope·τ {}",
+        slope * 1e-3
+    );
     // AO holds its last value after the generation; clearing keeps it
     assert_eq!(f.clear(ai), 0);
     assert_eq!(f.clear(ao), 0);
@@ -449,10 +680,22 @@ fn ao_dc_hold_moves_the_stage_and_the_log_shows_it() {
     assert_eq!(f.clear(ao), 0);
     assert_eq!(f.ao_voltage(1), 5.0);
     let log = f.log();
-    assert!(log.contains("DAQmxWriteAnalogScalarF64(_unnamedTask<0>, autoStart=1, timeout=1, value=5) -> 0"), "{log}");
-    assert!(log.contains("DAQmxClearTask(_unnamedTask<0>) -> 0"), "{log}");
+    assert!(
+        log.contains(
+            "DAQmxWriteAnalogScalarF64(_unnamedTask<0>, autoStart=1, timeout=1, value=5) -> 0"
+        ),
+        "{log}"
+    );
+    assert!(
+        log.contains("DAQmxClearTask(_unnamedTask<0>) -> 0"),
+        "{log}"
+    );
     // a device reset drives both AO terminals to 0 V: the stage follows
-    let reset = sym!(f, "DAQmxResetDevice", unsafe extern "C" fn(*const c_char) -> i32);
+    let reset = sym!(
+        f,
+        "DAQmxResetDevice",
+        unsafe extern "C" fn(*const c_char) -> i32
+    );
     let dev = CString::new("Dev1").unwrap();
     assert_eq!(unsafe { reset(dev.as_ptr()) }, 0);
     assert_eq!(f.ao_voltage(1), 0.0);
@@ -463,31 +706,80 @@ fn ao_dc_hold_moves_the_stage_and_the_log_shows_it() {
 fn argument_errors_have_nis_codes_and_texts() {
     let (_g, f) = fake();
     let t = f.create_task();
-    assert_eq!(f.ai_chan(t, "Dev9/ai0", DAQMX_VAL_DIFF, -10.0, 10.0), -200220);
-    assert!(f.extended().contains("Device identifier is invalid."), "{}", f.extended());
-    assert_eq!(f.ai_chan(t, "Dev1/ai4", DAQMX_VAL_DIFF, -10.0, 10.0), -200170);
-    assert!(f.extended().starts_with("Physical channel specified does not exist on this device."));
-    assert_eq!(f.ai_chan(t, "Dev1/ao0", DAQMX_VAL_DIFF, -10.0, 10.0), -200430);
-    assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_RSE, -10.0, 10.0), -200077);
-    assert!(f.extended().contains("DAQmx_AI_TermCfg"), "{}", f.extended());
-    assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -50.0, 50.0), -200077, "no ±50 V range");
+    assert_eq!(
+        f.ai_chan(t, "Dev9/ai0", DAQMX_VAL_DIFF, -10.0, 10.0),
+        -200220
+    );
+    assert!(
+        f.extended().contains("Device identifier is invalid."),
+        "{}",
+        f.extended()
+    );
+    assert_eq!(
+        f.ai_chan(t, "Dev1/ai4", DAQMX_VAL_DIFF, -10.0, 10.0),
+        -200170
+    );
+    assert!(f
+        .extended()
+        .starts_with("Physical channel specified does not exist on this device."));
+    assert_eq!(
+        f.ai_chan(t, "Dev1/ao0", DAQMX_VAL_DIFF, -10.0, 10.0),
+        -200430
+    );
+    assert_eq!(
+        f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_RSE, -10.0, 10.0),
+        -200077
+    );
+    assert!(
+        f.extended().contains("DAQmx_AI_TermCfg"),
+        "{}",
+        f.extended()
+    );
+    assert_eq!(
+        f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -50.0, 50.0),
+        -200077,
+        "no ±50 V range"
+    );
     assert!(f.extended().contains("DAQmx_AI_"), "{}", f.extended());
     assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, 1.0, -1.0), -200082);
     assert_eq!(f.ai_chan(t, "Dev1/ai0:1", DAQMX_VAL_DIFF, -1.0, 1.0), 0);
-    assert_eq!(f.timing(t, "", 1e6, DAQMX_VAL_FINITE_SAMPS, 100), -200077, "above 800 kS/s");
+    assert_eq!(
+        f.timing(t, "", 1e6, DAQMX_VAL_FINITE_SAMPS, 100),
+        -200077,
+        "above 800 kS/s"
+    );
     let ext = f.extended();
-    assert!(ext.contains("DAQmx_SampClk_Rate") && ext.contains("Requested Value: 1e6") && ext.contains("Status Code: -200077"), "{ext}");
-    assert_eq!(f.timing(t, "", 800e3, DAQMX_VAL_FINITE_SAMPS, 1), -200077, "finite needs ≥ 2 samples");
-    assert_eq!(f.timing(t, "/Dev1/PFI42", 1e3, DAQMX_VAL_FINITE_SAMPS, 10), -89120);
+    assert!(
+        ext.contains("DAQmx_SampClk_Rate")
+            && ext.contains("Requested Value: 1e6")
+            && ext.contains("Status Code: -200077"),
+        "{ext}"
+    );
+    assert_eq!(
+        f.timing(t, "", 800e3, DAQMX_VAL_FINITE_SAMPS, 1),
+        -200077,
+        "finite needs ≥ 2 samples"
+    );
+    assert_eq!(
+        f.timing(t, "/Dev1/PFI42", 1e3, DAQMX_VAL_FINITE_SAMPS, 10),
+        -89120
+    );
     assert_eq!(f.timing(t, "", 800e3, DAQMX_VAL_FINITE_SAMPS, 10), 0);
     // a read on a cleared task
     assert_eq!(f.clear(t), 0);
     let mut buf = vec![0.0; 20];
     assert_eq!(f.read_f64(t, 10, 1.0, 0, &mut buf).0, -200088);
     assert_eq!(f.clear(t), -200088);
-    assert_eq!(f.error_string(-200088), "Task specified is invalid or does not exist.");
-    assert!(f.error_string(-200284).starts_with("Some or all of the samples requested have not yet been acquired."));
-    assert!(f.error_string(-200279).starts_with("The application is not able to keep up with the hardware acquisition."));
+    assert_eq!(
+        f.error_string(-200088),
+        "Task specified is invalid or does not exist."
+    );
+    assert!(f
+        .error_string(-200284)
+        .starts_with("Some or all of the samples requested have not yet been acquired."));
+    assert!(f
+        .error_string(-200279)
+        .starts_with("The application is not able to keep up with the hardware acquisition."));
     // a timeout: 1000 samples at 1 kS/s (1 s) with a 50 ms timeout
     let t = f.create_task();
     assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -10.0, 10.0), 0);
@@ -498,7 +790,10 @@ fn argument_errors_have_nis_codes_and_texts() {
     let (s, n) = f.read_f64(t, 1000, 0.05, 0, &mut buf);
     let el = t0.elapsed().as_secs_f64();
     assert_eq!(s, -200284);
-    assert!((40..=60).contains(&n), "read {n} samples in {el} s before the timeout");
+    assert!(
+        (40..=60).contains(&n),
+        "read {n} samples in {el} s before the timeout"
+    );
     assert!((0.045..0.2).contains(&el), "{el}");
     // a read beyond the finite end
     assert_eq!(f.read_f64(t, 1000, 0.01, 0, &mut buf).0, -200278);
@@ -517,19 +812,32 @@ fn continuous_stream_overflows_when_not_read() {
     let t = f.create_task();
     assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -10.0, 10.0), 0);
     assert_eq!(f.timing(t, "", 100e3, DAQMX_VAL_CONT_SAMPS, 1000), 0);
-    let cfg = sym!(f, "DAQmxCfgInputBuffer", unsafe extern "C" fn(TaskHandle, u32) -> i32);
+    let cfg = sym!(
+        f,
+        "DAQmxCfgInputBuffer",
+        unsafe extern "C" fn(TaskHandle, u32) -> i32
+    );
     assert_eq!(unsafe { cfg(t, 2000) }, 0);
     assert_eq!(f.start(t), 0);
     let mut buf = vec![0.0; 500];
     // read in time: fine
     for _ in 0..4 {
-        assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf), (0, 500), "{}", f.log());
+        assert_eq!(
+            f.read_f64(t, 500, 1.0, 0, &mut buf),
+            (0, 500),
+            "{}",
+            f.log()
+        );
     }
     // 2000 samples are 20 ms at 100 kS/s: wait 50 ms
     std::thread::sleep(std::time::Duration::from_millis(50));
     assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf).0, -200279);
     assert!(f.extended().contains("Status Code: -200279"));
-    assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf).0, -200279, "stays overwritten");
+    assert_eq!(
+        f.read_f64(t, 500, 1.0, 0, &mut buf).0,
+        -200279,
+        "stays overwritten"
+    );
     // a restart reads again
     assert_eq!(f.stop(t), 0);
     assert_eq!(f.start(t), 0);
@@ -542,7 +850,10 @@ fn daq_faults() {
     let (_g, f) = fake();
     f.faults("daq_missing");
     let t = f.create_task();
-    assert_eq!(f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -10.0, 10.0), -200220);
+    assert_eq!(
+        f.ai_chan(t, "Dev1/ai0", DAQMX_VAL_DIFF, -10.0, 10.0),
+        -200220
+    );
     assert_eq!(f.clear(t), 0);
     f.faults("daq_removed_after_reads=2");
     let t = f.create_task();
