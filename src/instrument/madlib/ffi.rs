@@ -57,7 +57,7 @@ pub fn code_name(code: c_int) -> Option<(&'static str, &'static str)> {
 /// error codes above as a double. A negative whole number −1…−11 is read as the code (a
 /// calibrated position never reads a whole micrometre below the range's 0).
 pub fn double_code(v: c_double) -> Option<c_int> {
-    (v.is_finite() && v <= -1.0 && v >= -11.0 && v == v.trunc()).then_some(v as c_int)
+    (v.is_finite() && (-11.0..=-1.0).contains(&v) && v == v.trunc()).then_some(v as c_int)
 }
 
 /// `struct ProductInformation` of `Madlib.h`, declared inside `#pragma pack(push, 1)`.
