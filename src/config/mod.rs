@@ -1216,7 +1216,7 @@ wavelength_nm = 1064.0
         let e = error_of("[frobnicate]\nx = 1\n");
         assert_eq!(
             e.message,
-            "unknown field `frobnicate`, expected one of `stage`, `qpd`, `safety`, `sandbox`, `session`, `optics`"
+            "unknown field `frobnicate`, expected one of `stage`, `qpd`, `safety`, `raster`, `sandbox`, `session`, `optics`"
         );
     }
 
