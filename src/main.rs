@@ -64,7 +64,8 @@ enum Cmd {
     Emulate {
         /// `stage` (alias `gcs`: PI GCS 2.0), `qpd` (SCPI digitiser), `pair` (both, sharing the stage position),
         /// `kpz101` (three Thorlabs piezo cubes), `kpa101` (Thorlabs position aligner), `thorlabs` (both)
-        /// or `redpitaya` (a GCS stage and a Red Pitaya STEMlab on a loopback TCP port)
+        /// `redpitaya` (a GCS stage and a Red Pitaya STEMlab on a loopback TCP port) or `nidaq`
+        /// (alias `bench`: prints the fake Madlib + NI-DAQmx library's path and a config)
         device: String,
         /// Scene the QPD images, as JSON (a scan's `meta.scene`); default: a 110 nm polystyrene bead at the origin
         #[arg(long, value_name = "FILE")]
@@ -175,6 +176,24 @@ fn emulate(
     opts: &bfpscope::instrument::emulator::EmulateOptions,
 ) -> ExitCode {
     use bfpscope::instrument::sim::{scene::Scene, Renderer, SimConfig};
+    if device == "nidaq" || device == "bench" {
+        // the paper's bench is a fake vendor library, not a served port: print where it is
+        return match bfpscope::config::bench::fake_bench_library() {
+            Some(lib) => {
+                out_line(&format!(
+                    "fake Madlib + NI-DAQmx library (a Nano-Drive and a PCI-6120 imaging a 110 nm bead): {}",
+                    lib.display()
+                ));
+                out_line("bfpscope.toml:");
+                out_line(&bfpscope::config::bench::fake_bench_config(&lib));
+                ExitCode::SUCCESS
+            }
+            None => usage_error(
+                "emulate nidaq: the fake bench library (libfakebench.so) is not beside the binary: build it with \
+                 `cargo build --workspace` (the same profile as bfpscope)",
+            ),
+        };
+    }
     if ![
         "stage",
         "gcs",
@@ -190,7 +209,7 @@ fn emulate(
     {
         return usage_error(&format!(
             "emulate: unknown device `{device}` (expected `stage` (alias `gcs`), `qpd`, `pair`, `kpa101`, \
-             `kpz101`, `thorlabs` or `redpitaya`)"
+             `kpz101`, `thorlabs`, `redpitaya` or `nidaq`)"
         ));
     }
     let scene = match scene {

@@ -132,6 +132,9 @@ pub fn record_gauge(instrument: &mut Instrument) {
 }
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
+    if cfg.stage.backend == Backend::Madlib || cfg.qpd.backend == Backend::Nidaqmx {
+        return super::bench::connect_bench(cfg);
+    }
     if cfg.stage.backend == Backend::Kpz101 || cfg.qpd.backend == Backend::Kpa101 {
         return connect_apt(cfg);
     }
@@ -290,7 +293,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
 }
 
 /// Connect the Red Pitaya `[qpd]` names, and describe it for the scan metadata.
-fn open_redpitaya(
+pub(super) fn open_redpitaya(
     cfg: &Config,
 ) -> Result<(Box<dyn crate::instrument::Qpd>, serde_json::Value), ConnectError> {
     use crate::instrument::redpitaya::RedPitaya;
@@ -513,11 +516,11 @@ pub fn connect_emulated_redpitaya(
     cfg.qpd.backend = Backend::Redpitaya;
     cfg.qpd.host = Some(host);
     cfg.qpd.port = Some(port);
-    cfg.qpd.channels = crate::instrument::redpitaya::ChannelMap {
+    cfg.qpd.channels = super::QpdChannels::Inputs(crate::instrument::redpitaya::ChannelMap {
         sx: 1,
         sy: 2,
         sz: Some(3),
-    };
+    });
     cfg.qpd.sample_rate_hz = sim.sample_rate;
     let emulators = json!({
         "stage": stage.path(),

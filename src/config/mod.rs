@@ -36,15 +36,18 @@
 //! start the simulator in place of the hardware it names. The legacy `[limits]` table and
 //! `stage.max_speed_um_s` are refused with their `[safety]` equivalent.
 
+pub mod bench;
 pub mod connect;
 pub mod tables;
 
 pub use tables::{OpticsConfig, Sandbox, SessionConfig};
 
+pub use bench::{QpdChannels, RasterConfig};
+
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
 use crate::instrument::link::TCP_PREFIX;
-use crate::instrument::redpitaya::{ChannelMap, InputGain, RedPitayaOptions};
+use crate::instrument::redpitaya::{InputGain, RedPitayaOptions};
 use crate::instrument::scpi::{Calibration, ScpiOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -92,6 +95,10 @@ pub enum Backend {
     Kpz101,
     /// Red Pitaya STEMlab board over its SCPI server (qpd).
     Redpitaya,
+    /// Mad City Labs Nano-Drive through the vendor's library Madlib (stage).
+    Madlib,
+    /// NI DAQ board through NI-DAQmx (qpd; `[raster]`).
+    Nidaqmx,
 }
 
 impl Backend {
@@ -103,6 +110,8 @@ impl Backend {
             Backend::Kpa101 => "kpa101",
             Backend::Kpz101 => "kpz101",
             Backend::Redpitaya => "redpitaya",
+            Backend::Madlib => "madlib",
+            Backend::Nidaqmx => "nidaqmx",
         }
     }
 }
@@ -111,8 +120,11 @@ impl Backend {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AxisMap {
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub x: String,
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub y: String,
+    #[serde(deserialize_with = "bench::string_or_int")]
     pub z: String,
 }
 
@@ -219,6 +231,12 @@ pub struct StageConfig {
     /// `SPA? <axis> 0x16000200` / `0x16000300`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_record_points: Option<usize>,
+    /// madlib: the library's path (default: the usual names and paths).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub library: Option<std::path::PathBuf>,
+    /// madlib: the Nano-Drive's serial number (default: the only one attached).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub serial: Option<i32>,
 }
 
 impl Default for StageConfig {
@@ -246,6 +264,8 @@ impl Default for StageConfig {
             servo_cycle_s: None,
             max_wave_points: None,
             max_record_points: None,
+            library: None,
+            serial: None,
         }
     }
 }
@@ -284,8 +304,9 @@ pub struct QpdConfig {
     /// redpitaya: host name or IP address of the board.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,
-    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz.
-    pub channels: ChannelMap,
+    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz; nidaqmx: the
+    /// input names (`sx`, `sy`, `sum` or `q1`…`q4` = `"ai0"`…).
+    pub channels: QpdChannels,
     /// redpitaya: nominal QPD sample rate, Hz (a read of n samples covers n / rate seconds).
     pub sample_rate_hz: f64,
     /// redpitaya: input range, "LV" (±1 V) or "HV" (±20 V), as the jumpers are set.
@@ -303,6 +324,21 @@ pub struct QpdConfig {
     pub x_sign: f64,
     /// kpa101: the Sum word is a signed 16-bit number.
     pub signed: bool,
+    /// nidaqmx: the library's path (default: the usual names and paths).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub library: Option<std::path::PathBuf>,
+    /// nidaqmx: the board's name in NI MAX (`"Dev1"`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub device: Option<String>,
+    /// nidaqmx: input range ±V (default 10).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub range_v: Option<f64>,
+    /// nidaqmx: terminal configuration, "diff" (default), "rse", "nrse", "pseudodiff", "default".
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal: Option<String>,
+    /// nidaqmx: sample rate per channel, Hz (default 800000, the PCI-6120's maximum).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rate_hz: Option<f64>,
 }
 
 impl Default for QpdConfig {
@@ -311,7 +347,7 @@ impl Default for QpdConfig {
             backend: Backend::Sim,
             port: None,
             host: None,
-            channels: ChannelMap::default(),
+            channels: QpdChannels::default(),
             sample_rate_hz: 100_000.0,
             input_gain: InputGain::LV,
             baud: 115_200,
@@ -321,6 +357,11 @@ impl Default for QpdConfig {
             sum_scale: 10.0 / 65535.0,
             x_sign: 1.0,
             signed: false,
+            library: None,
+            device: None,
+            range_v: None,
+            terminal: None,
+            rate_hz: None,
         }
     }
 }
@@ -336,6 +377,9 @@ pub struct Config {
     /// `[safety]`: soft limits, step and speed limits (`acquire::limits`).
     #[serde(default)]
     pub safety: SafetyConfig,
+    /// `[raster]`: the NI board's hardware-timed raster (`config/bench.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raster: Option<RasterConfig>,
     /// `[sandbox]`: the script's limits.
     #[serde(default)]
     pub sandbox: Sandbox,
@@ -348,7 +392,9 @@ pub struct Config {
 }
 
 /// The top-level tables of `bfpscope.toml`.
-pub const TABLES: [&str; 6] = ["stage", "qpd", "safety", "sandbox", "session", "optics"];
+pub const TABLES: [&str; 7] = [
+    "stage", "qpd", "safety", "sandbox", "session", "optics", "raster",
+];
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
 
@@ -548,24 +594,24 @@ impl Config {
         let s = &self.stage;
         let q = &self.qpd;
         match s.backend {
-            Backend::Sim | Backend::Gcs | Backend::Kpz101 => {}
-            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya) => {
+            Backend::Sim | Backend::Gcs | Backend::Kpz101 | Backend::Madlib => {}
+            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx) => {
                 return Err(err(
                     "stage.backend",
                     format!(
-                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\"",
+                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\", \"madlib\"",
                     b.as_str()
                 ),
                 ))
             }
         }
         match q.backend {
-            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya => {}
-            b @ (Backend::Gcs | Backend::Kpz101) => {
+            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx => {}
+            b @ (Backend::Gcs | Backend::Kpz101 | Backend::Madlib) => {
                 return Err(err(
                     "qpd.backend",
                     format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\"",
+                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\", \"nidaqmx\"",
                     b.as_str()
                 ),
                 ))
@@ -723,6 +769,7 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
+        self.validate_bench()?;
         self.safety.validate().map_err(|(k, m)| err(&k, m))?;
         self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
         self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
@@ -989,7 +1036,14 @@ impl Config {
             ));
         }
         self.redpitaya_port()?;
+        if let QpdChannels::Names(_) = q.channels {
+            return Err(err(
+                "qpd.channels",
+                "input names (\"ai0\"…) are for backend = \"nidaqmx\"; a Red Pitaya's inputs are numbers: { sx = 1, sy = 2, sz = 3 }",
+            ));
+        }
         q.channels
+            .inputs()
             .check()
             .map_err(|(k, m)| err(&format!("qpd.channels.{k}"), m))?;
         let r = q.sample_rate_hz;
@@ -1021,7 +1075,7 @@ impl Config {
         RedPitayaOptions {
             timeout: Duration::from_millis(self.qpd.timeout_ms),
             calibration: self.qpd.calibration,
-            channels: self.qpd.channels,
+            channels: self.qpd.channels.inputs(),
             sample_rate_hz: self.qpd.sample_rate_hz,
             gain: self.qpd.input_gain,
             ..RedPitayaOptions::default()
@@ -1197,7 +1251,7 @@ wavelength_nm = 1064.0
         let e = error_of("[frobnicate]\nx = 1\n");
         assert_eq!(
             e.message,
-            "unknown field `frobnicate`, expected one of `stage`, `qpd`, `safety`, `sandbox`, `session`, `optics`"
+            "unknown field `frobnicate`, expected one of `stage`, `qpd`, `safety`, `raster`, `sandbox`, `session`, `optics`"
         );
     }
 

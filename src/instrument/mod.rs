@@ -15,8 +15,11 @@ pub mod gcs;
 pub mod gcs_split;
 pub mod line;
 pub mod link;
+pub mod madlib;
+pub mod nidaqmx;
 pub mod redpitaya;
 pub mod scpi;
+pub mod vendor;
 
 use std::fmt;
 

@@ -1,0 +1,544 @@
+//! Mad City Labs Nano-Drive (the paper's Nano-PDQ375 stage) through Madlib, the vendor's C
+//! library, loaded at run time (`ffi.rs`, declared from `Madlib.h`).
+//!
+//! **Connect.** `MCL_GrabAllHandles` takes every Nano-Drive attached, `MCL_GetAllHandles`
+//! lists them and `MCL_GetSerialNumber` tells them apart: the one with `stage.serial` is kept
+//! (with no serial: the only one attached; two or more are refused, listing their serials).
+//! The others are released at once (`MCL_ReleaseHandle`) so another program can take them. The
+//! axes used must be in the product's axis bitmap (`MCL_GetProductInfo`); each axis's calibrated
+//! range (`MCL_GetCalibration`, µm) is its travel, 0 … range.
+//!
+//! **Move.** `MCL_SingleWriteN` per axis. A Nano-Drive has no on-target flag: the position is
+//! read back (`MCL_SingleReadN`) every `poll_ms` until every axis stays within `tolerance_um`
+//! of its target for two reads in a row, or `on_target_timeout_ms` passes (a stuck stage).
+//!
+//! **Stop.** Each axis is held at its present reading (`MCL_SingleWriteN` of what
+//! `MCL_SingleReadN` just returned). It never writes 0 µm: that is a jump across the whole range.
+//! An axis that cannot be read is not written at all.
+//!
+//! **Release.** The handle is released (`MCL_ReleaseHandle`) when the stage is dropped (exit,
+//! reconnect) and after a fault (a negative return code, an on-target timeout): the stage is
+//! held first, and every later call is refused with the fault's message until `connect()`.
+
+pub mod ffi;
+
+use crate::instrument::{DeviceError, Pos, Stage};
+use ffi::Madlib;
+use std::os::raw::c_int;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Driver settings (`[stage]` with `backend = "madlib"`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MadlibOptions {
+    /// The library (`stage.library`); `None`: the usual names and paths.
+    pub library: Option<PathBuf>,
+    /// The Nano-Drive's serial number (`stage.serial`); `None`: the only one attached.
+    pub serial: Option<i32>,
+    /// Madlib axis numbers for x, y, z (1 = X, 2 = Y, 3 = Z, 4 = A).
+    pub axes: [u32; 3],
+    /// On target when every axis reads within this distance of its target, µm.
+    pub tolerance_um: f64,
+    /// Longest wait for the readings to reach the target after a move.
+    pub on_target_timeout: Duration,
+    /// Interval between read-backs.
+    pub poll_interval: Duration,
+}
+
+impl Default for MadlibOptions {
+    fn default() -> Self {
+        Self {
+            library: None,
+            serial: None,
+            axes: [1, 2, 3],
+            tolerance_um: 0.05,
+            on_target_timeout: Duration::from_millis(5000),
+            poll_interval: Duration::from_millis(5),
+        }
+    }
+}
+
+/// A Madlib return code as a device error: the device, the call with its arguments, the code
+/// and its name from `Madlib.h`.
+pub fn madlib_error(device: &str, call: &str, code: c_int) -> DeviceError {
+    let message = match ffi::code_name(code) {
+        Some((name, what)) => format!("{name}: {what}"),
+        None => "a code Madlib.h does not define".to_string(),
+    };
+    DeviceError::Controller {
+        device: device.to_string(),
+        command: call.to_string(),
+        code: code as i64,
+        message,
+    }
+}
+
+/// What connect found, for the scan metadata.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct NanoDriveInfo {
+    pub library: String,
+    pub handle: i32,
+    pub serial: i32,
+    pub product_id: i16,
+    pub axis_bitmap: u8,
+    pub adc_bits: i16,
+    pub dac_bits: i16,
+    pub firmware_version: i16,
+    pub firmware_profile: i16,
+    /// Calibrated range of the x, y, z axes, µm (`MCL_GetCalibration`).
+    pub calibration_um: [f64; 3],
+    pub axes: [u32; 3],
+}
+
+/// A Nano-Drive as the three-axis stage.
+pub struct MadlibStage {
+    lib: Arc<Madlib>,
+    /// 0 once released.
+    handle: c_int,
+    opts: MadlibOptions,
+    info: NanoDriveInfo,
+    target: Pos,
+    /// Set by a fault: the handle was released and this is why.
+    fault: Option<DeviceError>,
+    move_time_sum: f64,
+    moves: u32,
+}
+
+impl MadlibStage {
+    /// Load Madlib and take the Nano-Drive `opts` names.
+    pub fn open(opts: MadlibOptions) -> Result<MadlibStage, DeviceError> {
+        let lib = Arc::new(Madlib::load(
+            opts.library.as_deref(),
+            "Mad City Labs Nano-Drive",
+        )?);
+        Self::connect(lib, opts)
+    }
+
+    /// Take the Nano-Drive `opts` names from an already loaded library.
+    pub fn connect(lib: Arc<Madlib>, opts: MadlibOptions) -> Result<MadlibStage, DeviceError> {
+        let dev = "Mad City Labs Nano-Drive";
+        if let Some(init) = lib.init_library {
+            // SAFETY: `bool MCL_InitLibrary()` of Madlib.h, no arguments.
+            unsafe { init() };
+        }
+        // SAFETY: `int MCL_GrabAllHandles()`.
+        let n = unsafe { (lib.grab_all_handles)() };
+        if n < 0 {
+            return Err(madlib_error(dev, "MCL_GrabAllHandles()", n));
+        }
+        if n == 0 {
+            return Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!(
+                    "MCL_GrabAllHandles() returned 0: no Nano-Drive attached (library {}). Check the USB \
+                     cable and that the controller is switched on; another program (Micro-Manager, the \
+                     vendor's utility, a second bfpscope) may hold it",
+                    lib.path.display()
+                ),
+            });
+        }
+        let mut handles = vec![0 as c_int; n as usize];
+        // SAFETY: `int MCL_GetAllHandles(int *handles, int size)`; the buffer has `size` ints.
+        let got = unsafe { (lib.get_all_handles)(handles.as_mut_ptr(), n) };
+        if got < 0 {
+            return Err(madlib_error(
+                dev,
+                &format!("MCL_GetAllHandles(handles, size={n})"),
+                got,
+            ));
+        }
+        handles.truncate(got.clamp(0, n) as usize);
+        // SAFETY: `int MCL_GetSerialNumber(int handle)` on handles the library gave.
+        let serials: Vec<c_int> = handles
+            .iter()
+            .map(|&h| unsafe { (lib.get_serial_number)(h) })
+            .collect();
+        let release_all_but = |keep: Option<c_int>| {
+            for &h in &handles {
+                if Some(h) != keep {
+                    // SAFETY: `void MCL_ReleaseHandle(int handle)`.
+                    unsafe { (lib.release_handle)(h) };
+                }
+            }
+        };
+        let list = serials
+            .iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join(", ");
+        let pick = match opts.serial {
+            Some(want) => serials.iter().position(|&s| s == want).ok_or_else(|| {
+                DeviceError::Other {
+                    device: dev.into(),
+                    detail: format!(
+                        "stage.serial = {want}: no Nano-Drive with that serial number is attached (attached: {})",
+                        if list.is_empty() { "none".to_string() } else { list.clone() }
+                    ),
+                }
+            }),
+            None if handles.len() == 1 => Ok(0),
+            None if handles.is_empty() => Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!("MCL_GetAllHandles(handles, size={n}) listed no handle"),
+            }),
+            None => Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!(
+                    "{} Nano-Drives are attached (serial numbers {list}): name one with `serial = …` in [stage]",
+                    handles.len()
+                ),
+            }),
+        };
+        let i = match pick {
+            Ok(i) => i,
+            Err(e) => {
+                release_all_but(None);
+                return Err(e);
+            }
+        };
+        let handle = handles[i];
+        release_all_but(Some(handle));
+        let serial = serials[i];
+        let name = format!("Mad City Labs Nano-Drive #{serial}");
+        // From here on, an error releases `handle` (the stage's Drop).
+        let mut stage = MadlibStage {
+            lib: lib.clone(),
+            handle,
+            info: NanoDriveInfo {
+                library: lib.path.display().to_string(),
+                handle,
+                serial,
+                product_id: 0,
+                axis_bitmap: 0,
+                adc_bits: 0,
+                dac_bits: 0,
+                firmware_version: 0,
+                firmware_profile: 0,
+                calibration_um: [0.0; 3],
+                axes: opts.axes,
+            },
+            opts,
+            target: [0.0; 3],
+            fault: None,
+            move_time_sum: 0.0,
+            moves: 0,
+        };
+        if serial < 0 {
+            return Err(madlib_error(
+                &name,
+                &format!("MCL_GetSerialNumber(handle={handle})"),
+                serial,
+            ));
+        }
+        let mut pi = ffi::ProductInformation::default();
+        // SAFETY: `int MCL_GetProductInfo(struct ProductInformation *pi, int handle)`.
+        let r = unsafe { (lib.get_product_info)(&mut pi, handle) };
+        if r != ffi::MCL_SUCCESS {
+            return Err(madlib_error(
+                &name,
+                &format!("MCL_GetProductInfo(pi, handle={handle})"),
+                r,
+            ));
+        }
+        let bitmap = pi.axis_bitmap;
+        stage.info.product_id = pi.product_id;
+        stage.info.axis_bitmap = bitmap;
+        stage.info.adc_bits = pi.adc_resolution;
+        stage.info.dac_bits = pi.dac_resolution;
+        stage.info.firmware_version = pi.firmware_version;
+        stage.info.firmware_profile = pi.firmware_profile;
+        for (k, &a) in stage.opts.axes.clone().iter().enumerate() {
+            if !(1..=8).contains(&a) || bitmap & (1u8 << (a - 1)) == 0 {
+                return Err(DeviceError::Other {
+                    device: name,
+                    detail: format!(
+                        "stage.axes.{} = {a}: this Nano-Drive has axes {} (MCL_GetProductInfo axis bitmap {bitmap:#04x}; 1 = X, 2 = Y, 3 = Z, 4 = A)",
+                        crate::instrument::AXES[k],
+                        axes_in(bitmap)
+                    ),
+                });
+            }
+            // SAFETY: `double MCL_GetCalibration(unsigned int axis, int handle)`.
+            let c = unsafe { (lib.get_calibration)(a, handle) };
+            let call = format!("MCL_GetCalibration(axis={a}, handle={handle})");
+            if let Some(code) = ffi::double_code(c) {
+                return Err(madlib_error(&name, &call, code));
+            }
+            if !(c.is_finite() && c > 0.0) {
+                return Err(DeviceError::Garbled {
+                    device: name,
+                    command: call,
+                    reply: format!("{c} (a calibrated range in µm must be positive)"),
+                });
+            }
+            stage.info.calibration_um[k] = c;
+        }
+        // The target starts where the stage is: a relative move starts from there.
+        stage.target = stage.read_all()?;
+        Ok(stage)
+    }
+
+    /// What connect found (serial, product, calibration), for the scan metadata.
+    pub fn info(&self) -> &NanoDriveInfo {
+        &self.info
+    }
+
+    /// The handle in use; 0 after it was released.
+    pub fn handle(&self) -> i32 {
+        self.handle
+    }
+
+    fn checked(&self) -> Result<(), DeviceError> {
+        if let Some(f) = &self.fault {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!(
+                    "the handle was released after a fault ({f}); connect() again to use the stage"
+                ),
+            });
+        }
+        if self.handle == 0 {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: "the handle was released; connect() again to use the stage".into(),
+            });
+        }
+        Ok(())
+    }
+
+    /// One axis's reading, µm.
+    fn read_axis(&self, k: usize) -> Result<f64, DeviceError> {
+        let a = self.opts.axes[k];
+        // SAFETY: `double MCL_SingleReadN(unsigned int axis, int handle)`.
+        let v = unsafe { (self.lib.single_read_n)(a, self.handle) };
+        let call = || format!("MCL_SingleReadN(axis={a}, handle={})", self.handle);
+        if let Some(code) = ffi::double_code(v) {
+            return Err(madlib_error(&self.name(), &call(), code));
+        }
+        if !v.is_finite() {
+            return Err(DeviceError::Garbled {
+                device: self.name(),
+                command: call(),
+                reply: format!("{v}"),
+            });
+        }
+        Ok(v)
+    }
+
+    fn read_all(&self) -> Result<Pos, DeviceError> {
+        Ok([self.read_axis(0)?, self.read_axis(1)?, self.read_axis(2)?])
+    }
+
+    fn write_axis(&self, k: usize, um: f64) -> Result<(), DeviceError> {
+        let a = self.opts.axes[k];
+        // SAFETY: `int MCL_SingleWriteN(double position, unsigned int axis, int handle)`.
+        let r = unsafe { (self.lib.single_write_n)(um, a, self.handle) };
+        if r != ffi::MCL_SUCCESS {
+            return Err(madlib_error(
+                &self.name(),
+                &format!(
+                    "MCL_SingleWriteN(position={um:.4}, axis={a}, handle={})",
+                    self.handle
+                ),
+                r,
+            ));
+        }
+        Ok(())
+    }
+
+    /// Hold every axis it can read at its reading; returns the first error.
+    fn hold(&self) -> Result<(), DeviceError> {
+        let mut first = None;
+        for k in 0..3 {
+            match self.read_axis(k).and_then(|p| self.write_axis(k, p)) {
+                Ok(()) => {}
+                Err(e) => {
+                    first.get_or_insert(e);
+                }
+            }
+        }
+        first.map_or(Ok(()), Err)
+    }
+
+    /// After a fault: hold what can be held, release the handle, remember why.
+    fn fault(&mut self, e: DeviceError) -> DeviceError {
+        if self.handle != 0 {
+            let _ = self.hold();
+            self.release();
+        }
+        self.fault = Some(e.clone());
+        e
+    }
+
+    /// Release the handle (`MCL_ReleaseHandle`), once.
+    pub fn release(&mut self) {
+        if self.handle != 0 {
+            // SAFETY: `void MCL_ReleaseHandle(int handle)` on the handle we hold.
+            unsafe { (self.lib.release_handle)(self.handle) };
+            self.handle = 0;
+        }
+    }
+
+    fn do_move(&mut self, target: Pos, abort: Option<&AtomicBool>) -> Result<bool, DeviceError> {
+        self.checked()?;
+        for (k, &t) in target.iter().enumerate() {
+            let cal = self.info.calibration_um[k];
+            if !(t.is_finite() && (0.0..=cal).contains(&t)) {
+                return Err(DeviceError::Other {
+                    device: self.name(),
+                    detail: format!(
+                        "{} = {t} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
+                        crate::instrument::AXES[k]
+                    ),
+                });
+            }
+        }
+        let t0 = Instant::now();
+        for (k, &t) in target.iter().enumerate() {
+            if let Err(e) = self.write_axis(k, t) {
+                return Err(self.fault(e));
+            }
+        }
+        self.target = target;
+        let mut within_before = false;
+        let mut last;
+        loop {
+            last = match self.read_all() {
+                Ok(p) => p,
+                Err(e) => return Err(self.fault(e)),
+            };
+            let within = (0..3).all(|k| (last[k] - target[k]).abs() <= self.opts.tolerance_um);
+            if within && within_before {
+                break;
+            }
+            within_before = within;
+            if abort.is_some_and(|a| a.load(Ordering::SeqCst)) {
+                return Ok(false);
+            }
+            if t0.elapsed() > self.opts.on_target_timeout {
+                let (k, d) = (0..3)
+                    .map(|k| (k, (last[k] - target[k]).abs()))
+                    .fold((0, 0.0), |m, x| if x.1 > m.1 { x } else { m });
+                let e = DeviceError::Other {
+                    device: self.name(),
+                    detail: format!(
+                        "MCL_SingleReadN(axis={}, handle={}): {} reads {:.4} µm, {:.4} µm from its target {:.4} µm \
+                         after {} ms (tolerance {} µm, stage.on_target_timeout_ms): the stage is stuck or \
+                         the tolerance is below its noise; the axes were held where they are and the handle released",
+                        self.opts.axes[k],
+                        self.handle,
+                        crate::instrument::AXES[k],
+                        last[k],
+                        d,
+                        target[k],
+                        self.opts.on_target_timeout.as_millis(),
+                        self.opts.tolerance_um
+                    ),
+                };
+                return Err(self.fault(e));
+            }
+            std::thread::sleep(self.opts.poll_interval);
+        }
+        self.move_time_sum += t0.elapsed().as_secs_f64();
+        self.moves += 1;
+        Ok(true)
+    }
+}
+
+/// The axis numbers set in a product's axis bitmap (`"1, 2, 3"`).
+fn axes_in(bitmap: u8) -> String {
+    let v: Vec<String> = (1..=8)
+        .filter(|a| bitmap & (1u8 << (a - 1)) != 0)
+        .map(|a: u32| a.to_string())
+        .collect();
+    if v.is_empty() {
+        "none".into()
+    } else {
+        v.join(", ")
+    }
+}
+
+impl Drop for MadlibStage {
+    fn drop(&mut self) {
+        self.release();
+    }
+}
+
+impl Stage for MadlibStage {
+    fn name(&self) -> String {
+        format!("Mad City Labs Nano-Drive #{}", self.info.serial)
+    }
+
+    fn position(&mut self) -> Result<Pos, DeviceError> {
+        self.checked()?;
+        self.read_all().map_err(|e| self.fault(e))
+    }
+
+    fn target(&mut self) -> Result<Pos, DeviceError> {
+        self.checked()?;
+        Ok(self.target)
+    }
+
+    fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
+        self.do_move(target, None).map(|_| ())
+    }
+
+    fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError> {
+        self.do_move(target, Some(abort))
+    }
+
+    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
+        Ok(self.info.calibration_um.map(|c| (0.0, c)))
+    }
+
+    /// Hold every axis at its present reading (never 0 µm). After a fault the handle is
+    /// already released and there is nothing to command: Ok.
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        if self.handle == 0 {
+            return Ok(());
+        }
+        let r = self.hold();
+        if let Ok(p) = self.read_all() {
+            self.target = p;
+        }
+        r.map_err(|e| self.fault(e))
+    }
+
+    fn move_time_s(&self) -> f64 {
+        if self.moves == 0 {
+            0.0
+        } else {
+            self.move_time_sum / self.moves as f64
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_name_device_call_code_and_name() {
+        let e = madlib_error(
+            "Mad City Labs Nano-Drive #2847",
+            "MCL_SingleWriteN(position=12.0000, axis=1, handle=3)",
+            -3,
+        );
+        assert_eq!(
+            e.to_string(),
+            "Mad City Labs Nano-Drive #2847: controller error -3 after `MCL_SingleWriteN(position=12.0000, \
+             axis=1, handle=3)`: MCL_DEV_NOT_ATTACHED: the Nano-Drive is not attached (USB unplugged or the \
+             controller switched off)"
+        );
+        assert!(madlib_error("d", "f()", -99).to_string().contains("-99"));
+    }
+
+    #[test]
+    fn axis_bitmaps_list_their_axes() {
+        assert_eq!(axes_in(0b0111), "1, 2, 3");
+        assert_eq!(axes_in(0b1000), "4");
+        assert_eq!(axes_in(0), "none");
+    }
+}

@@ -1,0 +1,487 @@
+//! The paper's bench drivers (Mad City Labs Nano-Drive through Madlib, NI PCI-6120 through
+//! NI-DAQmx) against the fake vendor library `libfakebench.so` (tests/fakes/bench, written
+//! from the vendors' headers independently of the drivers): the real loading code, the real
+//! declarations, the real connect.
+//!
+//! The fake's bench: a Nano-PDQ375-like stage (75 × 75 × 50 µm, first-order lag τ = 2 ms,
+//! serial 2847) whose position moves a 110 nm bead under the focus; the QPD amplifier puts
+//! Sx, Sy (1 V per signal unit) on ai0, ai1 and the sum (5 V · (1 + Sz)) on ai2. One bench
+//! per process: the tests take a lock and reset it.
+
+#[path = "support/fakebench.rs"]
+mod fakebench;
+
+use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanRun, SoftLimits, Sweep};
+use bfpscope::config::connect::{connect, Connected};
+use bfpscope::config::Config;
+use bfpscope::data::{Scan, ScanStatus};
+use bfpscope::instrument::{DeviceError, Instrument};
+use std::ffi::CString;
+use std::os::raw::{c_char, c_double, c_int};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Mutex, MutexGuard};
+use std::time::Instant;
+
+static BENCH: Mutex<()> = Mutex::new(());
+
+/// The fake's control API (`fakebench_*`), from the same file the drivers load.
+struct Control {
+    _lib: libloading::Library,
+    reset: unsafe extern "C" fn() -> c_int,
+    set_faults: unsafe extern "C" fn(*const c_char) -> c_int,
+    log: unsafe extern "C" fn(*mut c_char, usize) -> usize,
+    clear_log: unsafe extern "C" fn(),
+    stage_position: unsafe extern "C" fn(c_int) -> c_double,
+}
+
+impl Control {
+    fn faults(&self, spec: &str) {
+        let s = CString::new(spec).unwrap();
+        assert_eq!(unsafe { (self.set_faults)(s.as_ptr()) }, 0, "faults {spec}");
+    }
+    fn log(&self) -> String {
+        let n = unsafe { (self.log)(std::ptr::null_mut(), 0) };
+        let mut buf = vec![0u8; n + 1];
+        unsafe { (self.log)(buf.as_mut_ptr() as *mut c_char, buf.len()) };
+        String::from_utf8_lossy(&buf)
+            .trim_end_matches('\0')
+            .to_string()
+    }
+    fn position(&self, axis: c_int) -> f64 {
+        unsafe { (self.stage_position)(axis) }
+    }
+}
+
+/// Take the bench: a lock (one fake per process), a fresh bench, an empty log.
+fn bench() -> (MutexGuard<'static, ()>, Control) {
+    let g = BENCH.lock().unwrap_or_else(|e| e.into_inner());
+    let lib = unsafe { libloading::Library::new(fakebench::library()) }.unwrap();
+    unsafe {
+        let c = Control {
+            reset: *lib.get(b"fakebench_reset\0").unwrap(),
+            set_faults: *lib.get(b"fakebench_set_faults\0").unwrap(),
+            log: *lib.get(b"fakebench_log\0").unwrap(),
+            clear_log: *lib.get(b"fakebench_clear_log\0").unwrap(),
+            stage_position: *lib.get(b"fakebench_stage_position\0").unwrap(),
+            _lib: lib,
+        };
+        assert_eq!((c.reset)(), 0);
+        (c.clear_log)();
+        (g, c)
+    }
+}
+
+/// The bead sits under the focus with the stage at the middle of its range (the fake's
+/// default scene origin).
+const BEAD: [f64; 3] = [37.5, 37.5, 25.0];
+
+fn config_text(extra_qpd: &str) -> String {
+    let lib = fakebench::library().display().to_string();
+    format!(
+        r#"
+[stage]
+backend = "madlib"
+library = "{lib}"
+axes = {{ x = 1, y = 2, z = 3 }}
+tolerance_um = 0.005
+on_target_timeout_ms = 400
+poll_ms = 1
+settle_s = 0.0
+
+[qpd]
+backend = "nidaqmx"
+library = "{lib}"
+device = "Dev1"
+channels = {{ sx = "ai0", sy = "ai1", sum = "ai2" }}
+range_v = 10.0
+terminal = "diff"
+rate_hz = 800000.0
+timeout_ms = 200
+calibration = {{ gain = [1.0, 1.0, 0.2], offset_v = [0.0, 0.0, 5.0] }}
+{extra_qpd}
+
+[safety]
+soft_limits = {{ x = [1.0, 74.0], y = [1.0, 74.0], z = [1.0, 49.0] }}
+max_step_um = 2.0
+"#
+    )
+}
+
+fn no_sim(_: &Config) -> anyhow::Result<Instrument> {
+    anyhow::bail!("not simulated")
+}
+
+fn connect_bench() -> Connected {
+    let cfg = Config::from_toml_str(&config_text(""), "bench.toml").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    // the fake's stage starts at 0 µm, outside the soft limits: to the bead
+    c.instrument.stage.move_to(BEAD).unwrap();
+    c
+}
+
+fn run(
+    inst: &mut Instrument,
+    plan: &Plan,
+    limits: &SoftLimits,
+    abort: &AtomicBool,
+) -> (ScanRun, Vec<Scan>) {
+    let saved = Mutex::new(Vec::new());
+    let log = |_: &str| {};
+    let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
+        saved.lock().unwrap().push(s.clone());
+        Ok(std::path::PathBuf::from("memory"))
+    };
+    let env = ScanEnv::plain(limits, abort, &log, &save);
+    let r = run_plan(inst, plan, &env).unwrap_or_else(|e| panic!("{e}"));
+    (r, saved.into_inner().unwrap())
+}
+
+/// A point-by-point scan_xy of n × n pixels over ±half µm around the bead, dwell 100 µs
+/// (80 samples per channel at 800 kS/s).
+fn grid(n: i64, half: f64) -> Plan {
+    Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, BEAD[0] - half, BEAD[0] + half, n, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, BEAD[1] - half, BEAD[1] + half, n, "ny").unwrap(),
+        vec![(Axis::Z, BEAD[2])],
+        1e-4,
+        false,
+        false,
+    )
+    .unwrap()
+}
+
+#[test]
+fn connect_takes_the_nano_drive_and_the_board_and_records_them() {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    let d = &c.instrument.description;
+    assert_eq!(d["stage"]["backend"], "madlib");
+    assert_eq!(d["stage"]["serial"], 2847);
+    assert_eq!(
+        d["stage"]["calibration_um"],
+        serde_json::json!([75.0, 75.0, 50.0])
+    );
+    assert_eq!(d["qpd"]["backend"], "nidaqmx");
+    assert_eq!(d["qpd"]["device"], "Dev1");
+    // the calibrated range is the travel and narrows the soft limits
+    assert_eq!(
+        c.instrument.stage.travel_range().unwrap(),
+        [(0.0, 75.0), (0.0, 75.0), (0.0, 50.0)]
+    );
+    drop(c);
+    let log = fake.log();
+    // the handle is released and the AI task cleared when the instrument goes
+    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
+    assert!(log.contains("DAQmxClearTask("), "{log}");
+    // and a second connection can take the stage again
+    let c2 = connect_bench();
+    drop(c2);
+}
+
+#[test]
+fn a_point_read_sees_the_bead_move_with_the_stage() {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    let inst = &mut c.instrument;
+    let d = 0.15;
+    inst.stage.move_to([BEAD[0] - d, BEAD[1], BEAD[2]]).unwrap();
+    assert!((fake.position(1) - (BEAD[0] - d)).abs() < 0.03);
+    let left = inst.qpd.read(800).unwrap();
+    inst.stage.move_to([BEAD[0] + d, BEAD[1], BEAD[2]]).unwrap();
+    let right = inst.qpd.read(800).unwrap();
+    inst.stage.move_to(BEAD).unwrap();
+    let mid = inst.qpd.read(800).unwrap();
+    assert_eq!(left.n, 800);
+    // Sx is odd across the bead, Sy stays near 0 on the x axis, Sz is even
+    let noise = left.sx_std / (800f64).sqrt() * 5.0;
+    assert!(left.sx.abs() > 20.0 * noise, "{left} {right}");
+    assert!(left.sx.signum() != right.sx.signum(), "{left} {right}");
+    assert!(
+        (left.sx + right.sx).abs() < 0.1 * left.sx.abs(),
+        "{left} {right}"
+    );
+    assert!(mid.sx.abs() < 0.1 * left.sx.abs(), "{mid}");
+    assert!(left.sy.abs() < 0.1 * left.sx.abs(), "{left}");
+    assert!(
+        (left.sz - right.sz).abs() < 0.1 * (mid.sz - left.sz).abs().max(1e-4),
+        "{left} {right} {mid}"
+    );
+    // per-sample noise of the fake: 0.5 mV on Sx (gain 1)
+    assert!(left.sx_std > 2e-4 && left.sx_std < 1e-3, "{left}");
+}
+
+#[test]
+fn a_point_by_point_scan_of_a_110_nm_bead() {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let n = 9;
+    let (r, saved) = run(&mut c.instrument, &grid(n, 0.4), &limits, &abort);
+    assert_eq!(r.ended, Ended::Complete);
+    assert_eq!(saved.len(), 1);
+    let s = &r.scan;
+    assert_eq!(s.meta["instrument"]["stage"]["serial"], 2847);
+    let mid = (n / 2) as usize;
+    // the centre row: Sx odd about the bead, largest near it
+    let row: Vec<f64> = (0..n as usize).map(|i| s.sx.data[[mid, i]]).collect();
+    // the fake's detector noise: 0.5 mV rms per sample on Sx (gain 1), 80 samples per pixel;
+    // a + b of two pixels has √2 of a pixel's noise: allow 4 of it, and 15 % for the stage's
+    // position within tolerance_um (5 nm) on the bead's slope
+    let noise = 0.5e-3 / 80f64.sqrt();
+    for i in 0..mid {
+        let (a, b) = (row[i], row[n as usize - 1 - i]);
+        assert!(a.signum() != b.signum(), "{row:?}");
+        let bound = 4.0 * 2f64.sqrt() * noise + 0.15 * a.abs().max(b.abs());
+        assert!((a + b).abs() < bound, "{i}: {row:?}");
+    }
+    // Sy odd along y in the centre column
+    let col: Vec<f64> = (0..n as usize).map(|j| s.sy.data[[j, mid]]).collect();
+    assert!(col[1].signum() != col[n as usize - 2].signum(), "{col:?}");
+    // the stage was never commanded to 0 µm
+    assert!(
+        !fake.log().contains("MCL_SingleWriteN(position=0,"),
+        "zero written"
+    );
+    let _ = fake;
+}
+
+#[test]
+fn fault_no_nano_drive_attached() {
+    let (_g, fake) = bench();
+    fake.faults("no_stage");
+    let cfg = Config::from_toml_str(&config_text(""), "bench.toml").unwrap();
+    let t0 = Instant::now();
+    let e = connect(&cfg, no_sim).map(|_| ()).unwrap_err().to_string();
+    assert!(t0.elapsed().as_secs_f64() < 2.0);
+    assert!(e.contains("Mad City Labs Nano-Drive"), "{e}");
+    assert!(
+        e.contains("MCL_GrabAllHandles() returned 0: no Nano-Drive attached"),
+        "{e}"
+    );
+}
+
+#[test]
+fn fault_missing_library_says_which_where_and_how() {
+    let (_g, _fake) = bench();
+    let text = config_text("").replacen(
+        &format!("library = \"{}\"", fakebench::library().display()),
+        "library = \"/nonexistent/libmadlib.so\"",
+        1,
+    );
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    let e = connect(&cfg, no_sim).map(|_| ()).unwrap_err().to_string();
+    assert!(e.contains("Mad City Labs Madlib library not loaded"), "{e}");
+    assert!(e.contains("/nonexistent/libmadlib.so"), "{e}");
+    assert!(e.contains("stage.library"), "{e}");
+}
+
+#[test]
+fn fault_daq_device_missing_releases_the_stage() {
+    let (_g, fake) = bench();
+    fake.faults("daq_missing");
+    let cfg = Config::from_toml_str(&config_text(""), "bench.toml").unwrap();
+    let e = connect(&cfg, no_sim).map(|_| ()).unwrap_err();
+    let m = e.to_string();
+    assert!(
+        m.contains("-200220") && m.contains("DAQmxErrorInvalidDeviceID"),
+        "{m}"
+    );
+    assert!(
+        m.contains("DAQmxCreateAIVoltageChan(task \"bfpscope-qpd\", \"Dev1/ai0\""),
+        "{m}"
+    );
+    // the extended error text follows the name
+    let text = m.split("DAQmxErrorInvalidDeviceID: ").nth(1).unwrap_or("");
+    assert!(text.len() > 10, "{m}");
+    let log = fake.log();
+    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
+    assert!(log.contains("DAQmxClearTask("), "{log}");
+}
+
+/// A fault mid-scan: the partial scan is saved as failed with the device's words; the stage
+/// is not commanded after the fault; the handle is released.
+fn scan_with_fault(spec: &str) -> (ScanRun, Vec<Scan>, String) {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    let limits = c.limits;
+    fake.faults(spec);
+    let abort = AtomicBool::new(false);
+    let (r, saved) = run(&mut c.instrument, &grid(9, 0.4), &limits, &abort);
+    drop(c);
+    let log = fake.log();
+    (r, saved, log)
+}
+
+fn failed_error(r: &ScanRun) -> DeviceError {
+    match &r.ended {
+        Ended::Failed { error, .. } => error.clone(),
+        other => panic!("expected a failed scan, got {other:?}"),
+    }
+}
+
+#[test]
+fn fault_stage_unplugged_mid_scan() {
+    let (r, saved, log) = scan_with_fault("stage_unplug_after=60");
+    let e = failed_error(&r).to_string();
+    assert!(
+        e.contains("-3") && e.contains("MCL_DEV_NOT_ATTACHED"),
+        "{e}"
+    );
+    assert!(e.contains("Mad City Labs Nano-Drive #2847"), "{e}");
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert!(
+        r.scan.sx.data.iter().any(|v| v.is_finite()),
+        "partial data kept"
+    );
+    assert!(r.scan.sx.data.iter().any(|v| v.is_nan()), "not complete");
+    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
+    assert!(
+        !log.contains("MCL_SingleWriteN(position=0,"),
+        "zero written"
+    );
+}
+
+#[test]
+fn fault_stage_stuck_holds_and_releases() {
+    let t0 = Instant::now();
+    let (r, saved, log) = scan_with_fault("stage_stuck=x");
+    assert!(t0.elapsed().as_secs_f64() < 10.0);
+    let e = failed_error(&r).to_string();
+    assert!(
+        e.contains("stuck") && e.contains("MCL_SingleReadN(axis=1"),
+        "{e}"
+    );
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
+    assert!(
+        !log.contains("MCL_SingleWriteN(position=0,"),
+        "zero written"
+    );
+}
+
+#[test]
+fn fault_daq_removed_mid_scan() {
+    let (r, saved, log) = scan_with_fault("daq_removed_after_reads=20");
+    let e = failed_error(&r).to_string();
+    assert!(
+        e.contains("-201003") && e.contains("DAQmxErrorDevCannotBeAccessed"),
+        "{e}"
+    );
+    assert!(
+        e.contains("DAQmxReadAnalogF64(task \"bfpscope-qpd\", 80,"),
+        "{e}"
+    );
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert!(log.contains("DAQmxClearTask("), "{log}");
+    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
+}
+
+#[test]
+fn fault_read_timeout_is_bounded_and_named() {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    fake.faults("read_timeout");
+    let t0 = Instant::now();
+    let e = c.instrument.qpd.read(800).unwrap_err().to_string();
+    let dt = t0.elapsed().as_secs_f64();
+    // timeout = 800 / 800 kS/s + 200 ms margin
+    assert!((0.19..1.5).contains(&dt), "{dt} s");
+    assert!(
+        e.contains("-200284") && e.contains("DAQmxErrorSamplesNotYetAvailable"),
+        "{e}"
+    );
+    assert!(
+        e.contains("DAQmxReadAnalogF64(task \"bfpscope-qpd\", 800, 0.201"),
+        "{e}"
+    );
+    fake.faults("none");
+    // the task was stopped: the next read works
+    c.instrument.qpd.read(80).unwrap();
+}
+
+#[test]
+fn ctrl_c_mid_scan_aborts_and_keeps_the_partial_scan() {
+    let (_g, fake) = bench();
+    let mut c = connect_bench();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let r = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(std::time::Duration::from_millis(150));
+            abort.store(true, Ordering::SeqCst);
+        });
+        run(&mut c.instrument, &grid(15, 0.7), &limits, &abort)
+    });
+    let (r, saved) = r;
+    assert!(matches!(r.ended, Ended::Aborted { .. }), "{:?}", r.ended);
+    assert_eq!(saved[0].status, ScanStatus::Aborted);
+    // the stage rests where the scan stopped, inside the scan's area, never at 0
+    let x = fake.position(1);
+    assert!((x - BEAD[0]).abs() < 1.0, "{x}");
+    assert!(
+        !fake.log().contains("MCL_SingleWriteN(position=0,"),
+        "zero written"
+    );
+}
+
+/// The NI raster through the raster engine: AO drives the Nano-Drive's x and y external inputs,
+/// AI on the AO clock records the QPD and the sensor monitor, pixels binned by measured
+/// position. The image matches the point-by-point scan of the same grid.
+#[test]
+fn a_raster_of_a_110_nm_bead_matches_the_point_scan() {
+    use bfpscope::acquire::raster::{run_raster, RasterOptions};
+    let (_g, fake) = bench();
+    let raster = r#"
+[raster]
+backend = "nidaqmx"
+ao = { x = "ao0", y = "ao1" }
+volts_per_um = { x = 0.13333333333333333, y = 0.13333333333333333 }
+position = { x = "ai3" }
+position_volts_per_um = { x = 0.13333333333333333 }
+"#;
+    let text = config_text("") + raster;
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    c.instrument.settle_s = 0.01; // ramps of 10 ms: 5 τ of the fake's lag
+    c.instrument.stage.move_to(BEAD).unwrap();
+    let limits = c.limits;
+    let n = 9;
+    let plan = grid(n, 0.4);
+    let abort = AtomicBool::new(false);
+    let saved = Mutex::new(Vec::new());
+    let log = |_: &str| {};
+    let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
+        saved.lock().unwrap().push(s.clone());
+        Ok(std::path::PathBuf::from("memory"))
+    };
+    let env = ScanEnv::plain(&limits, &abort, &log, &save);
+    let r = run_raster(&mut c.instrument, &plan, &RasterOptions::default(), &env)
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(r.ended, Ended::Complete, "{:?}", r.scan.meta["error"]);
+    let ras = r.scan.clone();
+    assert!(
+        ras.meta["raster"]["samples_per_pixel_min"]
+            .as_u64()
+            .unwrap()
+            >= 8
+    );
+    // the outputs are left at the present position, not 0 V
+    let log_text = fake.log();
+    assert!(log_text.contains("bfpscope-raster-hold"), "no hold task");
+    // the same grid point by point
+    let (p, _) = run(&mut c.instrument, &plan, &limits, &abort);
+    assert_eq!(p.ended, Ended::Complete);
+    let amp = p.scan.sx.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for j in 0..n as usize {
+        for i in 0..n as usize {
+            let (a, b) = (ras.sx.data[[j, i]], p.scan.sx.data[[j, i]]);
+            assert!(
+                (a - b).abs() < 0.1 * amp,
+                "({j}, {i}): raster {a} vs points {b} (amp {amp})"
+            );
+        }
+    }
+}
