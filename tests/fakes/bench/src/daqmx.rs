@@ -537,10 +537,11 @@ pub fn sync(b: &mut Bench, t: f64) {
             if task.running && task.kind == Some(Kind::Ao) {
                 let timing = task.timing.expect("timed AO");
                 let len = task.ao_buf.first().map_or(0, Vec::len) as u64;
-                while len > 0 {
+                // one sample per pass until the clock, the finite count or the buffer ends
+                while len > 0 && task.ao_next < timing.finite.unwrap_or(u64::MAX) {
                     let k = task.ao_next;
                     let tk = clk.t0 + k as f64 * clk.dt;
-                    if tk > t || tk >= clk.end || timing.finite.is_some_and(|n| k >= n) {
+                    if tk > t || tk >= clk.end {
                         break;
                     }
                     if !task.regen && timing.finite.is_none() && k >= len {
