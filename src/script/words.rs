@@ -123,7 +123,48 @@ pub fn user_words(msg: &str) -> String {
     }
     out.push_str(rest);
     s = out;
-    s
+    for (from, to) in [
+        ("RangeInclusive<i64>", "range"),
+        ("Range<i64>", "range"),
+        ("Vec<Dynamic>", "array"),
+    ] {
+        s = s.replace(from, to);
+    }
+    replace_words(
+        &s,
+        &[
+            ("f64", "float"),
+            ("f32", "float"),
+            ("i64", "int"),
+            ("i32", "int"),
+            ("INT", "int"),
+            ("FLOAT", "float"),
+            ("Dynamic", "value"),
+        ],
+    )
+}
+
+/// Replace whole words (runs of letters, digits and `_`) found in `pairs`.
+fn replace_words(s: &str, pairs: &[(&str, &str)]) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut word = String::new();
+    let flush = |word: &mut String, out: &mut String| {
+        match pairs.iter().find(|(f, _)| *f == word.as_str()) {
+            Some((_, t)) => out.push_str(t),
+            None => out.push_str(word),
+        }
+        word.clear();
+    };
+    for c in s.chars() {
+        if c.is_alphanumeric() || c == '_' {
+            word.push(c);
+        } else {
+            flush(&mut word, &mut out);
+            out.push(c);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
 }
 
 /// A number for messages: up to 6 significant digits, no trailing zeros.

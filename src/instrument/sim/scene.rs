@@ -351,6 +351,12 @@ impl Scene {
             check_range(name, v, -1e4, 1e4)?;
         }
         check_range("d_nm", b.d_nm, 0.0, 20000.0)?;
+        if b.d_nm <= 0.0 {
+            return Err(OpticsError::Invalid(format!(
+                "d_nm = {} nm: a bead needs a positive diameter (0 < d_nm ≤ 20000 nm)",
+                b.d_nm
+            )));
+        }
         check_range("n", b.n, 1.0, 5.0)?;
         self.beads.push(b);
         Ok(())
@@ -359,8 +365,14 @@ impl Scene {
     pub fn add_filament(&mut self, f: Filament) -> Result<(), OpticsError> {
         if f.points.is_empty() {
             return Err(OpticsError::Invalid(
-                "add_filament: points is empty; give at least one [x, y] vertex".into(),
+                "add_filament: points is empty; give at least two [x, y] vertices".into(),
             ));
+        }
+        if f.points.len() < 2 {
+            return Err(OpticsError::Invalid(format!(
+                "add_filament: points has {} vertex; a filament needs at least two [x, y] vertices (a point object is add_bead)",
+                f.points.len()
+            )));
         }
         for p in &f.points {
             check_range("points[..][0] (x)", p[0], -1e4, 1e4)?;
