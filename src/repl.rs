@@ -599,7 +599,7 @@ fn bind_partial(wb: &mut Workbench, entry: &str) -> Option<String> {
     if let Some(v) = &var {
         wb.set_var(v, rhai::Dynamic::from(scan));
     }
-    let what = if status == crate::data::ScanStatus::Complete {
+    let what = if status.to_string() == "complete" {
         "the scan".to_string()
     } else {
         format!("the partial scan ({status}, {measured} of {total} points)")

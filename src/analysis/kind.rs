@@ -80,7 +80,7 @@ pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64) -> Result<()> {
         .collect();
     let max = smooth.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let read = lines.iter().filter(|l| l.1.is_finite()).count();
-    if read == 0 || !(max > 0.0) {
+    if read == 0 || max <= 0.0 || max.is_nan() {
         return Err(AnalysisError::Failed(
             "no filament found: no positive maximum along the line".into(),
         ));

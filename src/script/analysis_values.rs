@@ -326,22 +326,6 @@ pub(crate) fn bead_map(b: &FitBead) -> Dynamic {
     m.into()
 }
 
-/// The words for a bead that was not found (weight not significantly positive), for the
-/// prompt and for errors.
-pub(crate) fn not_found_words(i: usize, b: &FitBead) -> String {
-    let err = b
-        .weight_err
-        .map(|e| format!(" ± {e:.3}"))
-        .unwrap_or_default();
-    format!(
-        "bead {i} NOT FOUND: weight {:.3}{err} (reference-bead units) is not significantly positive (weight − {}σ ≤ 0); its position ({:.3}, {:.3}) µm means nothing",
-        b.weight,
-        crate::analysis::fit::FOUND_SIGMA,
-        b.x,
-        b.y
-    )
-}
-
 /// `[#{x, y, weight}]` → (x, y, weight) triples.
 pub(crate) fn bead_list(who: &str, v: &Dynamic) -> RResult<Vec<(f64, f64, f64)>> {
     let Some(a) = v.read_lock::<Array>() else {

@@ -97,7 +97,7 @@ impl<'a> Registrar<'a> {
             let conv: Vec<usize> = floats
                 .iter()
                 .enumerate()
-                .filter(|(k, _)| mask >> k & 1 == 1)
+                .filter(|(k, _)| (mask >> k) & 1 == 1)
                 .map(|(_, &i)| i)
                 .collect();
             let mut ts = types.to_vec();

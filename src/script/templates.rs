@@ -616,10 +616,7 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
     };
     let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
     for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
-        c.log(&format!(
-            "{who}: {}",
-            super::analysis_values::not_found_words(i, b)
-        ));
+        c.log(&format!("{who}: {}", super::words::not_found_words(i, b)));
     }
     Ok(FitRef(Arc::new(r)))
 }

@@ -910,7 +910,7 @@ impl std::fmt::Display for FitRef {
             }
         )?;
         for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
-            write!(f, "\n  {}", super::analysis_values::not_found_words(i, b))?;
+            write!(f, "\n  {}", super::words::not_found_words(i, b))?;
         }
         Ok(())
     }

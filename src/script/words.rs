@@ -187,3 +187,19 @@ pub fn fmt_num(x: f64) -> String {
         s
     }
 }
+
+/// The words for a bead that was not found (weight not significantly positive), for the
+/// prompt and for errors.
+pub(crate) fn not_found_words(i: usize, b: &crate::analysis::fit::Bead) -> String {
+    let err = b
+        .weight_err
+        .map(|e| format!(" ± {e:.3}"))
+        .unwrap_or_default();
+    format!(
+        "bead {i} NOT FOUND: weight {:.3}{err} (reference-bead units) is not significantly positive (weight − {}σ ≤ 0); its position ({:.3}, {:.3}) µm means nothing",
+        b.weight,
+        crate::analysis::fit::FOUND_SIGMA,
+        b.x,
+        b.y
+    )
+}
