@@ -365,14 +365,8 @@ impl Scene {
     pub fn add_filament(&mut self, f: Filament) -> Result<(), OpticsError> {
         if f.points.is_empty() {
             return Err(OpticsError::Invalid(
-                "add_filament: points is empty; give at least two [x, y] vertices".into(),
+                "add_filament: points is empty; give at least one [x, y] vertex".into(),
             ));
-        }
-        if f.points.len() < 2 {
-            return Err(OpticsError::Invalid(format!(
-                "add_filament: points has {} vertex; a filament needs at least two [x, y] vertices (a point object is add_bead)",
-                f.points.len()
-            )));
         }
         for p in &f.points {
             check_range("points[..][0] (x)", p[0], -1e4, 1e4)?;
