@@ -320,6 +320,21 @@ fn main() -> ExitCode {
         return emulate(device, scene.as_deref(), &opts);
     }
     install_ctrlc(settings.abort.clone());
+    // Scans are autosaved in the session folder: a folder they cannot be saved in is refused
+    // before anything runs (the prompt and script runs; `eval` only warns).
+    if let Some(cmd) = &cli.cmd {
+        let strict = matches!(cmd, Cmd::Repl { .. } | Cmd::Run { .. });
+        if matches!(cmd, Cmd::Repl { .. } | Cmd::Run { .. } | Cmd::Eval { .. }) {
+            if let Err(e) = bfpscope::data::session::Session::check_writable(&settings.data_dir) {
+                if strict {
+                    return usage_error(&format!("{e} (give another with --data DIR)"));
+                }
+                err_line(&format!("warning: {e} (give another with --data DIR)"));
+            }
+        }
+    } else if let Err(e) = bfpscope::data::session::Session::check_writable(&settings.data_dir) {
+        return usage_error(&format!("{e} (give another with --data DIR)"));
+    }
 
     let default_cmd = Cmd::Repl {
         view: false,
@@ -383,6 +398,17 @@ fn main() -> ExitCode {
             let dir = dir.unwrap_or_else(|| PathBuf::from("tests/scripts"));
             if !dir.is_dir() {
                 return usage_error(&format!("test: {}: no such folder", dir.display()));
+            }
+            // a folder without any test is an error, as a missing folder is
+            match script::testing::test_files(&dir) {
+                Ok(f) if f.is_empty() => {
+                    return usage_error(&format!(
+                        "test: {}: no test in the folder (no *.rhai file)",
+                        dir.display()
+                    ))
+                }
+                Err(e) => return usage_error(&format!("test: {}: {e}", dir.display())),
+                Ok(_) => {}
             }
             let mut out = std::io::stdout();
             match script::testing::run_dir(&dir, &settings, &mut out) {

@@ -524,14 +524,20 @@ fn log_session(wb: &Workbench, entry: &str, out: &str) {
         }
         if !out.is_empty() {
             s.push_str(out);
-            s.push('\n');
+            if !out.ends_with('\n') {
+                s.push('\n');
+            }
         }
         let _ = f.write_all(s.as_bytes());
     }
 }
 
 fn evaluate(wb: &mut Workbench, entry: &str) {
-    let out = match wb.eval_line(&subst_last(entry)) {
+    // everything printed while the entry runs goes to the session log too
+    wb.ctx.start_transcript();
+    let result = wb.eval_line(&subst_last(entry));
+    let printed = wb.ctx.take_transcript();
+    let out = match result {
         Ok(v) => {
             let text = if v.is_unit() { String::new() } else { show(&v) };
             if !v.is_unit() {
@@ -557,7 +563,7 @@ fn evaluate(wb: &mut Workbench, entry: &str) {
             m
         }
     };
-    log_session(wb, entry, &out);
+    log_session(wb, entry, &format!("{printed}{out}"));
 }
 
 /// The scan bindings whose result a partial scan stands in for.
@@ -606,15 +612,29 @@ fn bind_partial(wb: &mut Workbench, entry: &str) -> Option<String> {
     let status = scan.scan.status;
     let measured = scan.scan.meta["points_measured"].as_u64().unwrap_or(0);
     let total = scan.scan.meta["points_total"].as_u64().unwrap_or(0);
+    let unsaved = scan.path.is_none();
     wb.set_var("_last", rhai::Dynamic::from(scan.clone()));
     let var = assigned_scan_variable(entry);
     if let Some(v) = &var {
         wb.set_var(v, rhai::Dynamic::from(scan));
     }
-    Some(format!(
-        "the partial scan ({status}, {measured} of {total} points) is in {}_",
+    let what = if status.to_string() == "complete" {
+        "the scan".to_string()
+    } else {
+        format!("the partial scan ({status}, {measured} of {total} points)")
+    };
+    let name = var.clone().unwrap_or_else(|| "_".into());
+    let target = if unsaved { ", NOT on disk" } else { "" };
+    let mut note = format!(
+        "{what} is in {}_{target}",
         var.map(|v| format!("`{v}` and ")).unwrap_or_default()
-    ))
+    );
+    if unsaved {
+        note.push_str(&format!(
+            "; save it elsewhere: {name}.save(\"/a/writable/folder/scan.npz\")"
+        ));
+    }
+    Some(note)
 }
 
 #[cfg(test)]

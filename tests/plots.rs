@@ -603,3 +603,46 @@ fn degenerate_but_valid_inputs_still_plot() {
         assert!(Png::read(&dir.join(f)).distinct() > 10, "{f}");
     }
 }
+
+/// Issue 33: a raster from a 2-input digitiser has no Sz (all NaN); its plot shows Sx and Sy
+/// and says Sz was left out (it failed with "Sz has no data"). No data at all is still an error.
+#[test]
+fn a_scan_without_sz_plots_the_channels_with_data() {
+    let dir = out_dir("nosz");
+    let mut scan = scan_xy(48);
+    scan.sz.data.fill(f64::NAN);
+    assert_eq!(bfpscope::plot::empty_channels(&scan, true), vec!["Sz"]);
+    let path = dir.join("no_sz.png");
+    plot_scan(&path, &scan, &ScanPlotOpts::default()).unwrap();
+    let png = Png::read(&path);
+    let two = dir.join("two.png");
+    plot_scan(
+        &two,
+        &scan_xy(48),
+        &ScanPlotOpts {
+            include_sz: false,
+            ..ScanPlotOpts::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        png.w,
+        Png::read(&two).w,
+        "two panels, as with include_sz off"
+    );
+    assert!(
+        png.dark_in_rows(0, 40) > 100,
+        "the title says what was left out"
+    );
+    let viridis = png.count(|p| close(p, (0x44, 0x01, 0x54), 12));
+    assert!(viridis < 20, "no Sz panel: {viridis} viridis pixels");
+    scan.sx.data.fill(f64::NAN);
+    scan.sy.data.fill(f64::NAN);
+    let e = plot_scan(dir.join("none.png"), &scan, &ScanPlotOpts::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("the scan has no data: all 2304 pixels of Sx, Sy, Sz are NaN"),
+        "{e}"
+    );
+}

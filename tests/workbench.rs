@@ -459,3 +459,53 @@ fn variable_types_for_completion_use_the_script_names() {
     assert_eq!(keys, ["angle_deg", "n"]);
     assert_eq!(t["a"].0, "array");
 }
+
+/// Issue 33: in a script, a complete scan whose autosave fails is an error (the run exits
+/// non-zero), naming the failure and the session folder; it was a warning and `s.path` empty.
+#[test]
+fn a_failed_autosave_is_a_script_error() {
+    let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-nosave", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("a_file");
+    std::fs::write(&file, "x").unwrap();
+    let (s, _buf) = Settings::captured(&file);
+    let mut w = Workbench::new(s);
+    let _ = w
+        .eval_source("setup", "connect(#{backend: \"mock\"})")
+        .unwrap();
+    let e = w
+        .eval_source(
+            "t",
+            "let s = scan_line(#{axis: \"x\", from: 0.0, to: 1.0, n: 3, dwell: 0.001}); s.path",
+        )
+        .unwrap_err();
+    assert!(
+        e.message
+            .contains("scan_line complete but NOT SAVED — AUTOSAVE FAILED"),
+        "{e}"
+    );
+    assert!(
+        e.message
+            .contains(&format!("(session folder {})", file.display())),
+        "{e}"
+    );
+}
+
+/// Issue 33: `help("beads")` showed only the `FitResult.beads` property; a name that is both a
+/// binding and a protocol module shows both.
+#[test]
+fn help_of_a_name_that_is_both_shows_both() {
+    let (mut w, buf) = wb("help-both");
+    let _ = w.eval_source("t", "help(\"beads\")").unwrap();
+    let text = buf.lock().unwrap().clone();
+    assert!(
+        text.contains("names a binding and a stdlib protocol module"),
+        "{text}"
+    );
+    assert!(text.contains("fitresult.beads"), "the property: {text}");
+    assert!(
+        text.contains("beads::multi") && text.contains("beads::sizes"),
+        "the protocols: {text}"
+    );
+}

@@ -39,41 +39,86 @@ pub fn require_plane(who: &str, img: &Image, allowed: &[&str]) -> Result<()> {
 
 /// Fraction of the largest maximum that counts as "on the filament".
 pub const STRONG_FRACTION: f64 = 0.25;
-/// Shortest stretch of strong maxima (µm) accepted as a filament when they cover less than
-/// half of the scan's lines: a point object (bead, aggregate) in focus gives ≈ 0.8 µm.
+/// Shortest stretch of strong maxima (µm of arc) accepted as a filament. A point object's
+/// maxima along any line through it are strong (≥ `STRONG_FRACTION` of its peak) only within
+/// the focus: for a Gaussian focal spot of 1/e² radius w, over 2·w·√(ln 4 / 2) = 1.67 w, i.e.
+/// ≈ 0.67 µm for the 0.4 µm focal radius of the paper's beam (≈ 0.8 µm measured on the vector
+/// beam in focus; 1.2 µm is reached only ≈ 1 µm out of focus, where w has grown to 0.72 µm). A
+/// filament's maxima are strong along its whole length in the scan. So the strong maxima must
+/// span at least this much — whatever the scan's size: a scan crossing less of the line than
+/// this cannot tell a filament from a point object, and is refused.
 pub const MIN_FILAMENT_SPAN_UM: f64 = 1.2;
+/// A maximum counts as strong only when it also stands this many of its 1σ above zero: noise
+/// alone then makes a strong maximum with probability 0.13 % (one-sided Gaussian), and three of
+/// five neighbouring lines (see [`check_filament_maxima`]) with probability ≈ 2·10⁻⁸.
+pub const STRONG_SIGMA: f64 = 3.0;
 
-/// Check that maxima `(arc position µm, value)` along a fitted line form a filament, not one
-/// point object: the maxima of at least `STRONG_FRACTION` of the largest must cover half of the
-/// lines or span at least `MIN_FILAMENT_SPAN_UM`. A bead's row maxima line up perfectly but
-/// are strong only over its own width.
-pub fn check_filament_maxima(points: &[(f64, f64)]) -> Result<()> {
-    let max = points
+/// Check that the maxima along a fitted line form a filament, not one point object (a bead or
+/// an aggregate, in noise or not). `lines`: every scan line the fitted line crosses, in line
+/// order, as (arc position µm, maximum read there — NaN where none was), as for
+/// [`check_filament_continuity`]; `sigma`: one maximum's 1σ (0 or NaN for noise-free data).
+/// Each line's maximum is replaced by the median of the five lines around it (0 where none was
+/// read), so the ridge must be there line after line: a maximum that noise put on the line, or
+/// a few noisy lines that happen to line up with the point object, do not count. The smoothed
+/// maxima of at least `STRONG_FRACTION` of the largest and `STRONG_SIGMA`·σ are strong, and the
+/// strong lines must span at least [`MIN_FILAMENT_SPAN_UM`] along the line (the focus's extent:
+/// see there). The check does not depend on the scan's size, position or pixel size (a point
+/// object's strong maxima span the same length in µm in any scan), nor on the fraction of the
+/// lines it covers.
+pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64) -> Result<()> {
+    let v: Vec<f64> = lines
         .iter()
-        .map(|p| p.1)
-        .filter(|v| v.is_finite())
-        .fold(f64::NEG_INFINITY, f64::max);
-    if points.is_empty() || max <= 0.0 {
+        .map(|l| if l.1.is_finite() { l.1 } else { 0.0 })
+        .collect();
+    let smooth: Vec<f64> = (0..v.len())
+        .map(|i| {
+            let mut w: Vec<f64> = v[i.saturating_sub(2)..(i + 3).min(v.len())].to_vec();
+            w.sort_by(f64::total_cmp);
+            // an even window (at an end of the line): the lower middle
+            w[(w.len() - 1) / 2]
+        })
+        .collect();
+    let max = smooth.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let read = lines.iter().filter(|l| l.1.is_finite()).count();
+    if read == 0 || max <= 0.0 || max.is_nan() {
         return Err(AnalysisError::Failed(
             "no filament found: no positive maximum along the line".into(),
         ));
     }
-    let strong: Vec<f64> = points
+    let sigma = if sigma.is_finite() {
+        sigma.max(0.0)
+    } else {
+        0.0
+    };
+    let thr = (STRONG_FRACTION * max).max(STRONG_SIGMA * sigma);
+    let strong: Vec<f64> = lines
         .iter()
-        .filter(|p| p.1 >= STRONG_FRACTION * max)
-        .map(|p| p.0)
+        .zip(&smooth)
+        .filter(|(_, m)| **m >= thr)
+        .map(|(l, _)| l.0)
         .collect();
-    let frac = strong.len() as f64 / points.len() as f64;
     let span = strong.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
         - strong.iter().cloned().fold(f64::INFINITY, f64::min);
-    if frac >= 0.5 || span >= MIN_FILAMENT_SPAN_UM {
+    let span = if span.is_finite() { span } else { 0.0 };
+    if span >= MIN_FILAMENT_SPAN_UM {
         return Ok(());
     }
+    let crossed = (lines[lines.len() - 1].0 - lines[0].0).abs();
+    let level = if STRONG_SIGMA * sigma > STRONG_FRACTION * max {
+        format!("{STRONG_SIGMA}σ of the noise")
+    } else {
+        format!("{:.0} % of the largest", STRONG_FRACTION * 100.0)
+    };
+    let tail = if crossed < MIN_FILAMENT_SPAN_UM {
+        format!(
+            " — the line crosses only {crossed:.2} µm of the scan ({} lines): a scan must cross at least {MIN_FILAMENT_SPAN_UM} µm of a filament to tell it from a point object",
+            lines.len()
+        )
+    } else {
+        " — this looks like a single point object (bead or aggregate); a filament measurement needs a filament crossing the scan".to_string()
+    };
     Err(AnalysisError::Failed(format!(
-        "the maxima do not form a filament: those above {:.0} % of the largest cover {span:.2} µm ({:.0} % of the {} lines) — this looks like a single point object (bead or aggregate); a filament measurement needs a filament crossing the scan",
-        STRONG_FRACTION * 100.0,
-        frac * 100.0,
-        points.len()
+        "the maxima do not form a filament: those above {level} span {span:.2} µm along the line, less than the {MIN_FILAMENT_SPAN_UM} µm a point object's focus cannot fill{tail}"
     )))
 }
 
@@ -201,17 +246,50 @@ mod tests {
                 (a, (-4.0 * 2f64.ln() * a * a / 0.25).exp())
             })
             .collect();
-        let e = check_filament_maxima(&bead).unwrap_err().to_string();
+        let e = check_filament_maxima(&bead, 0.0).unwrap_err().to_string();
         assert!(e.contains("point object"), "{e}");
         // a flat filament with one aggregate twice as strong: accepted
         let mut fil: Vec<(f64, f64)> = (0..61).map(|i| (0.05 * i as f64, 0.4)).collect();
         fil[30].1 = 0.8;
-        assert!(check_filament_maxima(&fil).is_ok());
+        assert!(check_filament_maxima(&fil, 0.0).is_ok());
         // a filament ending half-way through: strong over 1.5 µm of 3 µm
         let tip: Vec<(f64, f64)> = (0..61)
             .map(|i| (0.05 * i as f64, if i < 30 { 0.4 } else { 0.001 }))
             .collect();
-        assert!(check_filament_maxima(&tip).is_ok());
+        assert!(check_filament_maxima(&tip, 0.0).is_ok());
+        // the same bead in a scan crossing only 1.6 µm of the line, with the noise-free maxima
+        // beyond it dropped (off the line) as noise drops them: strong over 0.70 µm, refused
+        // (that it is strong on most of the lines read does not matter)
+        let small: Vec<(f64, f64)> = bead
+            .iter()
+            .copied()
+            .filter(|p| p.0.abs() <= 0.8 && p.1 > 0.05)
+            .collect();
+        let e = check_filament_maxima(&small, 0.0).unwrap_err().to_string();
+        assert!(e.contains("span 0.70 µm along the line"), "{e}");
+        // one noise spike far from the bead (as strong as the bead) does not stretch its span,
+        // nor do two lines side by side
+        let mut spiked = bead.clone();
+        spiked[5].1 = 1.0;
+        spiked[6].1 = 1.0;
+        assert!(check_filament_maxima(&spiked, 0.0).is_err());
+        // lines without a maximum (NaN) count as no signal: a bead with a strong noise maximum
+        // on the line every third line far away is still a bead
+        let mut sparse = bead.clone();
+        for (i, l) in sparse.iter_mut().enumerate() {
+            if l.0.abs() > 0.5 {
+                l.1 = if i % 3 == 0 { 0.5 } else { f64::NAN };
+            }
+        }
+        assert!(check_filament_maxima(&sparse, 0.0).is_err());
+        // a flat filament at 5σ is strong everywhere; at 2σ nothing stands above 3σ
+        assert!(check_filament_maxima(&fil, 0.08).is_ok());
+        let e = check_filament_maxima(&tip, 0.2).unwrap_err().to_string();
+        assert!(e.contains("above 3σ of the noise span 0.00 µm"), "{e}");
+        // a filament crossing a 1 µm scan: too short to tell
+        let short: Vec<(f64, f64)> = (0..21).map(|i| (0.05 * i as f64, 0.4)).collect();
+        let e = check_filament_maxima(&short, 0.0).unwrap_err().to_string();
+        assert!(e.contains("crosses only 1.00 µm"), "{e}");
     }
 
     /// Lines every 0.05 µm over 4 µm, values from `f(arc)`.

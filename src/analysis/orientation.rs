@@ -22,7 +22,7 @@
 //! then read from each row (column) by a parabola over `window_um` centred where the line crosses
 //! it, so point objects elsewhere in the row do not replace the filament's maximum and the noisy
 //! discrete maximum does not bias the value upwards. The maxima must form one filament
-//! (`kind::check_filament_maxima`: not a single point object; `kind::check_filament_continuity`:
+//! (`kind::check_filament_maxima`: not a single point object, whatever the scan's size and noise; `kind::check_filament_continuity`:
 //! not point objects in a row with no signal between them); if the preferred channel's line
 //! fails, the other channel's line is tried. [`measure_filament_along`] does the last step for a
 //! given line (e.g. to measure the same filament before and after background removal).
@@ -512,8 +512,7 @@ fn find_filament(
         }
         let attempt = measure_sens_along(sens.clone(), curve, channel, line, opts).and_then(
             |(m, trace, sigma)| {
-                let pts: Vec<(f64, f64)> = m.points.iter().map(|p| (p.arc_um, p.sens)).collect();
-                super::kind::check_filament_maxima(&pts)?;
+                super::kind::check_filament_maxima(&trace, sigma)?;
                 super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
                 Ok(m)
             },

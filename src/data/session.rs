@@ -48,6 +48,59 @@ impl Session {
         Ok(Session { dir })
     }
 
+    /// Check, without creating anything that stays, that scans can be saved in `dir`: it is a
+    /// folder (or can be created: its nearest existing ancestor is a folder) and a file can be
+    /// created in it (a probe file, removed at once). The error says what is wrong in words.
+    pub fn check_writable(dir: &Path) -> Result<(), String> {
+        if dir.as_os_str().is_empty() {
+            return Err("the session folder is \"\": give a folder path".into());
+        }
+        let mut probe_dir = dir.to_path_buf();
+        while !probe_dir.exists() {
+            match probe_dir.parent() {
+                Some(p) if !p.as_os_str().is_empty() => probe_dir = p.to_path_buf(),
+                _ => {
+                    probe_dir = PathBuf::from(".");
+                    break;
+                }
+            }
+        }
+        if !probe_dir.is_dir() {
+            return Err(if probe_dir == dir {
+                format!(
+                    "the session folder {} exists and is not a folder: scans could not be saved",
+                    dir.display()
+                )
+            } else {
+                format!(
+                    "the session folder {} cannot be created: {} is not a folder",
+                    dir.display(),
+                    probe_dir.display()
+                )
+            });
+        }
+        let probe = probe_dir.join(format!(".bfpscope-write-check-{}", std::process::id()));
+        match OpenOptions::new().write(true).create_new(true).open(&probe) {
+            Ok(_) => {
+                let _ = std::fs::remove_file(&probe);
+                Ok(())
+            }
+            Err(e) if e.kind() == ErrorKind::AlreadyExists => Ok(()),
+            Err(e) => Err(if probe_dir == dir {
+                format!(
+                    "the session folder {} is not writable ({e}): scans could not be saved",
+                    dir.display()
+                )
+            } else {
+                format!(
+                    "the session folder {} cannot be created in {} ({e}): scans could not be saved",
+                    dir.display(),
+                    probe_dir.display()
+                )
+            }),
+        }
+    }
+
     /// The session for `--data DIR` if given, else today's folder under `./bfpscope_data/`.
     pub fn open_or_default(data_dir: Option<&Path>) -> Result<Session, DataError> {
         match data_dir {

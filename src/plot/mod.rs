@@ -641,7 +641,21 @@ pub fn plot_scan(
     if opts.include_sz {
         channels.push((&scan.sz, PlotOpts::for_channel("sz")));
     }
-    if opts.shared_xy_scale {
+    // A channel without any finite pixel (a 2-input digitiser gives no Sz) is left out, and the
+    // title says so; no channel with data is an error.
+    let left_out = empty_channels(scan, opts.include_sz);
+    if left_out.len() == channels.len() {
+        return Err(plot_error(
+            path,
+            format!(
+                "the scan has no data: all {} pixels of {} are NaN",
+                scan.sx.data.len(),
+                left_out.join(", ")
+            ),
+        ));
+    }
+    channels.retain(|(img, _)| img.data.iter().any(|v| v.is_finite()));
+    if opts.shared_xy_scale && channels.len() >= 2 && !left_out.iter().any(|c| *c != "Sz") {
         let m = [&scan.sx, &scan.sy]
             .iter()
             .filter_map(|i| i.abs_max().ok())
@@ -672,8 +686,29 @@ pub fn plot_scan(
         ScanStatus::Complete => String::new(),
         s => format!("scan {s}"),
     };
-    let title = join_nonempty(&[&opts.title, &status, &nan_note(&scan.sx)], " — ");
+    let skipped = if left_out.is_empty() {
+        String::new()
+    } else {
+        format!("{} left out: no data", left_out.join(", "))
+    };
+    let title = join_nonempty(
+        &[&opts.title, &status, &nan_note(&scan.sx), &skipped],
+        " — ",
+    );
     render(path, &HeatFigure { title, panels })
+}
+
+/// The channels of a scan (`Sx`, `Sy`, and `Sz` when `include_sz`) without any finite pixel:
+/// what [`plot_scan`] leaves out.
+pub fn empty_channels(scan: &Scan, include_sz: bool) -> Vec<&'static str> {
+    let mut v = vec![("Sx", &scan.sx), ("Sy", &scan.sy)];
+    if include_sz {
+        v.push(("Sz", &scan.sz));
+    }
+    v.into_iter()
+        .filter(|(_, img)| !img.data.iter().any(|x| x.is_finite()))
+        .map(|(n, _)| n)
+        .collect()
 }
 
 fn plot_error(path: &Path, msg: String) -> DataError {

@@ -321,7 +321,9 @@ pub(crate) fn line_peaks(v: &[LinePeak]) -> Array {
 }
 
 pub(crate) fn bead_map(b: &FitBead) -> Dynamic {
-    to_dyn(b)
+    let mut m = to_map(b);
+    m.insert("found".into(), b.found().into());
+    m.into()
 }
 
 /// `[#{x, y, weight}]` → (x, y, weight) triples.

@@ -940,19 +940,7 @@ mod protocol_tests {
 /// `stem_0002.ext`, `stem_0003.ext`, … is used instead (as scans are numbered); parent folders
 /// are created. Returns the path to write.
 pub fn output_path(session: &Path, who: &str, path: &str, overwrite: bool) -> RResult<PathBuf> {
-    if path.trim().is_empty() {
-        return fail(format!("{who}: path is empty"));
-    }
-    let p = Path::new(path);
-    let p = if p.is_absolute() || p.starts_with(session) {
-        p.to_path_buf()
-    } else {
-        session.join(p)
-    };
-    if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
-    }
+    let p = output_location(session, who, path)?;
     if overwrite || !p.exists() {
         return Ok(p);
     }
@@ -973,6 +961,40 @@ pub fn output_path(session: &Path, who: &str, path: &str, overwrite: bool) -> RR
         }
     }
     fail(format!("{who}: no free numbered name for {}", p.display()))
+}
+
+/// Where a file a script writes goes — the one rule of every save (figures, CSV, TIFF,
+/// templates, `scan.save`): a relative path resolves inside the session folder, whose missing
+/// subfolders are created; a path outside the session folder must name an existing folder
+/// (nothing is created outside the session folder). Numbering is the caller's
+/// ([`output_path`]; `scan.save` refuses an existing file instead).
+pub fn output_location(session: &Path, who: &str, path: &str) -> RResult<PathBuf> {
+    if path.trim().is_empty() {
+        return fail(format!("{who}: path is empty"));
+    }
+    let p = Path::new(path);
+    let p = if p.is_absolute() || p.starts_with(session) {
+        p.to_path_buf()
+    } else {
+        session.join(p)
+    };
+    if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+        if !dir.is_dir() {
+            if dir.exists() {
+                return fail(format!("{who}: {} is not a folder", dir.display()));
+            }
+            if !p.starts_with(session) {
+                return fail(format!(
+                    "{who}: folder {} does not exist; outside the session folder ({}) no folder is created: create it first, or give a path relative to the session folder",
+                    dir.display(),
+                    session.display()
+                ));
+            }
+            std::fs::create_dir_all(dir)
+                .map_err(|e| format!("{who}: cannot create folder {}: {e}", dir.display()))?;
+        }
+    }
+    Ok(p)
 }
 
 #[cfg(test)]

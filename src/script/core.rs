@@ -221,12 +221,23 @@ fn help_one(ctx: &Ctx, name: &str) -> RResult<()> {
             super::console::suggestion(name, names)
         ));
     }
-    let text: Vec<String> =
+    let mut text: Vec<String> =
         if hits.iter().all(|d| d.family.eq_ignore_ascii_case(name)) && hits.len() > 1 {
             hits.iter().map(|d| format!("  {}", d.one_line())).collect()
         } else {
             hits.iter().map(|d| d.long_help()).collect()
         };
+    // a name that is both a binding (`fitresult.beads`) and a stdlib protocol module
+    // (`beads`): both pages, each introduced
+    if let Some(page) = super::console::protocol_help(name) {
+        text.insert(
+            0,
+            format!("`{name}` names a binding and a stdlib protocol module; the binding:"),
+        );
+        text.push(format!(
+            "\nthe protocol module (import \"{name}\" as {name};):\n{page}"
+        ));
+    }
     ctx.page(&text.join("\n"));
     Ok(())
 }

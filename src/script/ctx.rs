@@ -164,6 +164,9 @@ pub struct Ctx {
     /// Shows long text a screen at a time (the prompt on a terminal sets it); unset, `page`
     /// prints.
     pager: Mutex<Option<Pager>>,
+    /// Everything printed (results aside) while the prompt records an entry for the session
+    /// log: `print`, operator messages (ETA, saved paths, warnings), pages of help.
+    transcript: Mutex<Option<String>>,
 }
 
 /// Shows a long text a page at a time (see [`Ctx::page`]).
@@ -215,6 +218,27 @@ impl Ctx {
             partial: Mutex::new(None),
             pause_question: Mutex::new(None),
             pager: Mutex::new(None),
+            transcript: Mutex::new(None),
+        }
+    }
+
+    /// Start recording everything printed (for the session log); a recording running is
+    /// replaced.
+    pub fn start_transcript(&self) {
+        *lock(&self.transcript) = Some(String::new());
+    }
+
+    /// Stop recording and return what was printed since [`Ctx::start_transcript`].
+    pub fn take_transcript(&self) -> String {
+        lock(&self.transcript).take().unwrap_or_default()
+    }
+
+    fn record(&self, s: &str) {
+        if let Some(t) = lock(&self.transcript).as_mut() {
+            t.push_str(s);
+            if !s.ends_with('\n') {
+                t.push('\n');
+            }
         }
     }
 
@@ -227,7 +251,10 @@ impl Ctx {
     pub fn page(&self, text: &str) {
         let pager = lock(&self.pager).clone();
         match pager {
-            Some(p) => p(text),
+            Some(p) => {
+                self.record(text);
+                p(text)
+            }
             None => self.print(text),
         }
     }
@@ -317,9 +344,11 @@ impl Ctx {
     }
 
     pub fn print(&self, s: &str) {
+        self.record(s);
         (self.settings.print)(s)
     }
     pub fn log(&self, s: &str) {
+        self.record(s);
         (self.settings.log)(s)
     }
 

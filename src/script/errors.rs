@@ -106,7 +106,21 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
         }
         EvalAltResult::ErrorVariableNotFound(name, _) => match docs.iter().find(|d| d.name == *name) {
             Some(d) => format!("{name} is a function; usage: {}", d.usage()),
-            None => format!("variable not found: {name}{}", console::suggestion(name, docs.iter().map(|d| d.name.as_str()))),
+            // only functions a user could have meant (properties like `x` are no variables), and
+            // only for names long enough to be misspelt (`s` is not a misspelt `x`)
+            None => format!(
+                "variable not found: {name}{}",
+                if name.chars().count() >= 3 {
+                    console::suggestion(
+                        name,
+                        docs.iter()
+                            .filter(|d| matches!(d.kind, super::doc::Kind::Function))
+                            .map(|d| d.name.as_str()),
+                    )
+                } else {
+                    String::new()
+                }
+            ),
         },
         other => {
             let text = other.to_string();
@@ -114,6 +128,12 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
             let t = match text.strip_suffix(&suffix) {
                 Some(t) if !other.position().is_none() => t.to_string(),
                 _ => text,
+            };
+            let t = if t.contains("Range<") || t.contains("RangeInclusive<") {
+                // `a[0..4]`: Rhai indexes arrays by one int only
+                format!("{t} — an array is indexed by one int (a[2]); a part of it is a.extract(0..4)")
+            } else {
+                t
             };
             console::property_hint(&t, docs)
         }

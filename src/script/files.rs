@@ -326,6 +326,15 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
                 shared_xy_scale: o.bool_or("shared_xy_scale", false)?,
             };
             plot_scan(path, &s.scan, &so).map_err(|e| ferr(who, path, e))?;
+            let left_out = crate::plot::empty_channels(&s.scan, so.include_sz);
+            if !left_out.is_empty() {
+                c.log(&format!(
+                    "{who}: {} left out of {path}: no data (all {} pixels NaN; a digitiser with fewer inputs records no {})",
+                    left_out.join(", "),
+                    s.scan.sx.data.len(),
+                    left_out.join(", ")
+                ));
+            }
         }
     } else if let Some(i) = v.read_lock::<ImageRef>() {
         let p = image_opts(&o, "")?;

@@ -33,7 +33,8 @@
 use super::ctx::Ctx;
 use crate::acquire::plan::linspace;
 use rhai::{Array, Dynamic, Engine, EvalAltResult, Map, RhaiNativeFunc};
-use std::any::Any;
+use std::any::{Any, TypeId};
+use std::collections::HashSet;
 use std::sync::Arc;
 
 pub use super::doc::{fail, Doc, Example, Kind, Param, RResult, Spec};
@@ -46,7 +47,27 @@ pub struct Registrar<'a> {
     /// The family being registered: its name in `FAMILIES`, which is its file
     /// `src/script/<family>.rs`. Every declaration gets it.
     family: &'static str,
+    /// (name, parameter types) of every form registered by `bind`/`overload`: an explicit form
+    /// is never replaced by an integer form (see [`Registrar::int_forms`]).
+    explicit: HashSet<(String, Vec<TypeId>)>,
 }
+
+/// The parameter types of a native function (the value's type first for a method).
+fn param_types_of<
+    A: 'static,
+    const N: usize,
+    const X: bool,
+    R: 'static,
+    const F: bool,
+    G: RhaiNativeFunc<A, N, X, R, F>,
+>(
+    _: &G,
+) -> [TypeId; N] {
+    G::param_types()
+}
+
+/// Most float parameters of one form that get integer forms (2^k − 1 of them).
+const MAX_INT_FORMS_FLOATS: usize = 5;
 
 impl<'a> Registrar<'a> {
     pub fn new(engine: &'a mut Engine, docs: &'a mut Vec<Doc>, ctx: Arc<Ctx>) -> Self {
@@ -55,6 +76,55 @@ impl<'a> Registrar<'a> {
             docs,
             ctx,
             family: "",
+            explicit: HashSet::new(),
+        }
+    }
+
+    /// Integers are accepted wherever a binding takes a float: for a form `name(…, f64, …)`,
+    /// the forms with an `i64` in any of its float places are registered too (unless declared
+    /// explicitly); they convert the integers and call the float form. So `fibril_diameter(0.55,
+    /// 80)` is `fibril_diameter(0.55, 80.0)`, and no "wrong arguments (f64, i64)" reaches the
+    /// user. `method`: the first argument is the value a method is called on.
+    fn int_forms(&mut self, name: &str, method: bool, types: &[TypeId]) {
+        self.explicit.insert((name.to_string(), types.to_vec()));
+        let floats: Vec<usize> = (0..types.len())
+            .filter(|&i| types[i] == TypeId::of::<f64>())
+            .collect();
+        if floats.is_empty() || floats.len() > MAX_INT_FORMS_FLOATS {
+            return;
+        }
+        for mask in 1u32..(1 << floats.len()) {
+            let conv: Vec<usize> = floats
+                .iter()
+                .enumerate()
+                .filter(|(k, _)| (mask >> k) & 1 == 1)
+                .map(|(_, &i)| i)
+                .collect();
+            let mut ts = types.to_vec();
+            for &i in &conv {
+                ts[i] = TypeId::of::<i64>();
+            }
+            if self.explicit.contains(&(name.to_string(), ts.clone())) {
+                continue;
+            }
+            let n = name.to_string();
+            self.engine
+                .register_raw_fn(name, ts, move |ctx, args| -> RResult<Dynamic> {
+                    let mut as_float: Vec<Dynamic> = conv
+                        .iter()
+                        .map(|&i| Dynamic::from_float(args[i].as_int().unwrap_or_default() as f64))
+                        .collect();
+                    let mut next = as_float.iter_mut();
+                    let mut refs: Vec<&mut Dynamic> = Vec::with_capacity(args.len());
+                    for (i, a) in args.iter_mut().enumerate() {
+                        if conv.contains(&i) {
+                            refs.extend(next.next());
+                        } else {
+                            refs.push(&mut **a);
+                        }
+                    }
+                    ctx.call_native_fn_raw(&n, method, &mut refs)
+                });
         }
     }
     /// Declarations from now on belong to `family` (the `FAMILIES` loop calls this).
@@ -106,8 +176,12 @@ impl<'a> Registrar<'a> {
             "{}: the closure takes {N} arguments, the declaration {required} to {all}",
             doc.name
         );
+        let types = param_types_of(&f);
+        let method = this == 1;
         self.engine.register_fn(doc.name.as_str(), f);
+        let name = doc.name.clone();
         self.push(doc);
+        self.int_forms(&name, method, &types);
     }
 
     /// Register another form (arity or argument types) of an already declared binding.
@@ -126,7 +200,13 @@ impl<'a> Registrar<'a> {
             self.docs.iter().any(|d| d.name == name),
             "overload of undeclared {name}"
         );
+        let types = param_types_of(&f);
+        let method = self
+            .docs
+            .iter()
+            .any(|d| d.name == name && matches!(d.kind, Kind::Method { .. }));
         self.engine.register_fn(name, f);
+        self.int_forms(name, method, &types);
     }
 
     /// Declare and register a property getter `value.name`.

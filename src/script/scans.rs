@@ -68,6 +68,16 @@ pub fn execute_mode(c: &Ctx, plan: Plan, raster: Option<RasterOptions>) -> RResu
         };
         let run = run(inst, &plan, strategy.as_mut(), &env).map_err(|e| e.to_string())?;
         match run.summary() {
+            // A complete scan that could not be saved is not a success: a script stops here
+            // (non-zero exit); at the prompt the scan is kept in memory (bound to the entry's
+            // variable and `_`, see repl) with the way to save it elsewhere.
+            Ok(msg) if run.saved.is_err() => {
+                c.set_partial(Some(ScanRef::new(run.scan, None)));
+                fail(format!(
+                    "{kind} complete but NOT SAVED — {msg} (session folder {}); the scan is only in memory",
+                    c.store.dir().display()
+                ))
+            }
             Ok(msg) => {
                 let t = run.scan.meta["time"]["instrument_s"]
                     .as_f64()
@@ -353,7 +363,7 @@ pub fn register(r: &mut Registrar) {
     let c = r.ctx();
     r.bind(
         Doc::method("Scan", "save")
-            .arg("path", "string", "", "file to write (never overwritten)")
+            .arg("path", "string", "", "file to write (never overwritten); relative: in the session folder, as every save")
             .returns("string", "the path written")
             .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.npz\"; s.save(p); load_scan(p).cols", "3")
@@ -384,8 +394,17 @@ pub fn register(r: &mut Registrar) {
 }
 
 /// Paths are used as given (relative to the working directory).
-fn resolve(_c: &Ctx, path: &str) -> PathBuf {
-    PathBuf::from(path)
+/// A file to read: a relative path is looked up in the session folder first (where every
+/// save puts it), then as given (the working directory).
+fn resolve(c: &Ctx, path: &str) -> PathBuf {
+    let p = PathBuf::from(path);
+    if p.is_relative() && !p.starts_with(c.store.dir()) {
+        let q = c.store.dir().join(&p);
+        if q.exists() {
+            return q;
+        }
+    }
+    p
 }
 
 /// `scan_xy` / `scan_xz` / `scan_yz(plan)`: a 2-D grid, `axes` = [fast (columns), slow
@@ -568,7 +587,8 @@ fn spec_mesh(
 /// `Scan.save(path)`: write the scan to a new file (temporary name + rename, never
 /// overwriting); returns the path.
 fn save_scan(c: &Ctx, s: &ScanRef, path: &str) -> RResult<String> {
-    let p = resolve(c, path);
+    // the one rule of every save: relative paths in the session folder (docs/files.md)
+    let p = super::console::output_location(c.store.dir(), "scan.save", path)?;
     crate::acquire::store::save_scan(&p, &s.scan)
         .map_err(|e| format!("scan.save: {}: {e}", p.display()))?;
     Ok(p.display().to_string())
@@ -577,7 +597,15 @@ fn save_scan(c: &Ctx, s: &ScanRef, path: &str) -> RResult<String> {
 /// `load_scan(path)`: a scan file written by autosave or `Scan.save` (unmeasured pixels NaN).
 fn load_scan(c: &Ctx, path: &str) -> RResult<ScanRef> {
     let p = resolve(c, path);
-    let s = crate::acquire::store::load_scan(&p)
-        .map_err(|e| format!("load_scan: {}: {e}", p.display()))?;
+    let s = crate::acquire::store::load_scan(&p).map_err(|e| {
+        // the library's message names the file already: say it once
+        let e = e.to_string();
+        let shown = p.display().to_string();
+        if e.contains(&shown) {
+            format!("load_scan: {e}")
+        } else {
+            format!("load_scan: {shown}: {e}")
+        }
+    })?;
     Ok(ScanRef::new(s, Some(p.display().to_string())))
 }

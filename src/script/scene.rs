@@ -298,6 +298,12 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
         Some(v) => points("add_filament", v)?,
         None => return fail("add_filament: missing key `points` ([[x, y], ...] µm)"),
     };
+    // at the prompt a one-point "filament" is a mistake (the simulator's own tests use one)
+    if pts.len() == 1 {
+        return fail(
+            "add_filament: points has 1 vertex; a filament needs at least two [x, y] vertices (a point object is add_bead)",
+        );
+    }
     let profile = if let Some(t) = m.get("taper") {
         let [a, b] = pair("add_filament", "taper", t)?;
         DiameterProfile::Linear { d0_nm: a, d1_nm: b }

@@ -288,7 +288,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
     r.getter(
         Doc::property("FitResult", "beads")
-            .returns("array", "[#{x, y, weight, x_err, y_err, weight_err}] (µm, reference-bead units; errors 1σ or () when ill-conditioned)")
+            .returns("array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)")
             .summary("the fitted beads")
             .example(&format!("{fx} round(f.beads[0].weight * 1000.0)"), "1000.0"),
         |f: &mut FitRef| -> Array { f.0.beads.iter().map(bead_map).collect() },
@@ -324,6 +324,13 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
             move |f: &mut FitRef| fit_float(f, name),
         );
     }
+    r.getter(
+        Doc::property("FitResult", "n_found")
+            .returns("int", "beads whose weight is significantly positive (weight − 3σ > 0)")
+            .summary("how many of the fitted beads were found (the others are noise: see beads[i].found)")
+            .example(&format!("{fx} f.n_found"), "1"),
+        |f: &mut FitRef| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
+    );
     for (name, doc) in [
         ("dof", "residuals minus parameters"),
         ("iterations", "Jacobian evaluations of the final fit"),
@@ -479,8 +486,18 @@ fn template_max_sens(t: &TemplateRef, px: f64, stencil: Option<&str>) -> RResult
 
 /// `load_template(path)`: a template saved by `Template.save` (JSON).
 fn load_template(path: &str) -> RResult<TemplateRef> {
-    let s =
-        std::fs::read_to_string(path).map_err(|e| err("load_template", format!("{path}: {e}")))?;
+    let bytes = std::fs::read(path).map_err(|e| err("load_template", format!("{path}: {e}")))?;
+    // a scan file (npz is a zip archive: "PK") or another binary file is named as what it is
+    if bytes.starts_with(b"PK") {
+        return fail(format!(
+            "load_template: {path} is a scan file (npz), not a template: load it with load_scan(path); a template is the JSON file written by template.save or calibrate"
+        ));
+    }
+    let Ok(s) = String::from_utf8(bytes) else {
+        return fail(format!(
+            "load_template: {path} is not a template (a binary file; a template is the JSON file written by template.save or calibrate)"
+        ));
+    };
     let t = Template::from_json(&s).map_err(|e| err("load_template", format!("{path}: {e}")))?;
     Ok(TemplateRef(Arc::new(t)))
 }
@@ -598,6 +615,9 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         ..d
     };
     let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
+        c.log(&format!("{who}: {}", super::words::not_found_words(i, b)));
+    }
     Ok(FitRef(Arc::new(r)))
 }
 
@@ -619,6 +639,15 @@ fn fit_map(f: &FitRef) -> Map {
         for k in ["model_sx", "model_sy", "residual_sx", "residual_sy"] {
             o.remove(k);
         }
+        if let Some(serde_json::Value::Array(bs)) = o.get_mut("beads") {
+            for (b, fb) in bs.iter_mut().zip(&f.0.beads) {
+                b["found"] = fb.found().into();
+            }
+        }
+        o.insert(
+            "n_found".into(),
+            (f.0.beads.len() - f.0.not_found().len()).into(),
+        );
     }
     json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()
 }

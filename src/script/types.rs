@@ -882,7 +882,12 @@ impl std::fmt::Display for TemplateRef {
         write!(
             f,
             "Template({src}; {}×{} nodes every {} µm; reference {} nm, n = {}; norm_factor {:.4e})",
-            t.grid.nu, t.grid.nv, t.grid.h, t.reference.d_nm, t.reference.n, t.norm_factor
+            t.grid.nu,
+            t.grid.nv,
+            super::words::fmt_num(t.grid.h),
+            super::words::fmt_num(t.reference.d_nm),
+            super::words::fmt_num(t.reference.n),
+            t.norm_factor
         )
     }
 }
@@ -903,7 +908,11 @@ impl std::fmt::Display for FitRef {
             } else {
                 String::new()
             }
-        )
+        )?;
+        for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
+            write!(f, "\n  {}", super::words::not_found_words(i, b))?;
+        }
+        Ok(())
     }
 }
 

@@ -123,7 +123,48 @@ pub fn user_words(msg: &str) -> String {
     }
     out.push_str(rest);
     s = out;
-    s
+    for (from, to) in [
+        ("RangeInclusive<i64>", "range"),
+        ("Range<i64>", "range"),
+        ("Vec<Dynamic>", "array"),
+    ] {
+        s = s.replace(from, to);
+    }
+    replace_words(
+        &s,
+        &[
+            ("f64", "float"),
+            ("f32", "float"),
+            ("i64", "int"),
+            ("i32", "int"),
+            ("INT", "int"),
+            ("FLOAT", "float"),
+            ("Dynamic", "value"),
+        ],
+    )
+}
+
+/// Replace whole words (runs of letters, digits and `_`) found in `pairs`.
+fn replace_words(s: &str, pairs: &[(&str, &str)]) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut word = String::new();
+    let flush = |word: &mut String, out: &mut String| {
+        match pairs.iter().find(|(f, _)| *f == word.as_str()) {
+            Some((_, t)) => out.push_str(t),
+            None => out.push_str(word),
+        }
+        word.clear();
+    };
+    for c in s.chars() {
+        if c.is_alphanumeric() || c == '_' {
+            word.push(c);
+        } else {
+            flush(&mut word, &mut out);
+            out.push(c);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
 }
 
 /// A number for messages: up to 6 significant digits, no trailing zeros.
@@ -145,4 +186,20 @@ pub fn fmt_num(x: f64) -> String {
     } else {
         s
     }
+}
+
+/// The words for a bead that was not found (weight not significantly positive), for the
+/// prompt and for errors.
+pub(crate) fn not_found_words(i: usize, b: &crate::analysis::fit::Bead) -> String {
+    let err = b
+        .weight_err
+        .map(|e| format!(" ± {e:.3}"))
+        .unwrap_or_default();
+    format!(
+        "bead {i} NOT FOUND: weight {:.3}{err} (reference-bead units) is not significantly positive (weight − {}σ ≤ 0); its position ({:.3}, {:.3}) µm means nothing",
+        b.weight,
+        crate::analysis::fit::FOUND_SIGMA,
+        b.x,
+        b.y
+    )
 }

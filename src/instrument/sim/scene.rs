@@ -351,6 +351,12 @@ impl Scene {
             check_range(name, v, -1e4, 1e4)?;
         }
         check_range("d_nm", b.d_nm, 0.0, 20000.0)?;
+        if b.d_nm <= 0.0 {
+            return Err(OpticsError::Invalid(format!(
+                "d_nm = {} nm: a bead needs a positive diameter (0 < d_nm ≤ 20000 nm)",
+                b.d_nm
+            )));
+        }
         check_range("n", b.n, 1.0, 5.0)?;
         self.beads.push(b);
         Ok(())
