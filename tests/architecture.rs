@@ -214,15 +214,28 @@ fn inner_graph(dir: &str) -> Graph {
     let mut files = BTreeSet::new();
     for e in std::fs::read_dir(&root).unwrap() {
         let p = e.unwrap().path();
-        assert!(
-            !p.is_dir(),
-            "{dir}/ has a sub-directory: extend inner_graph"
-        );
+        if p.is_dir() {
+            // a sub-folder is a module of its own, checked by its own inner_graph (its files
+            // reach this folder only through `super::super::`, which is not counted here)
+            let name = p.file_name().unwrap().to_string_lossy().to_string();
+            assert!(
+                SUB_FOLDERS.contains(&format!("{dir}/{name}").as_str()),
+                "{dir}/{name}/ is a sub-folder the cycle test does not check: add it to SUB_FOLDERS"
+            );
+            continue;
+        }
         if p.extension().is_some_and(|x| x == "rs") {
             files.insert(p.file_stem().unwrap().to_string_lossy().to_string());
         }
     }
-    let mod_code = code_only(&std::fs::read_to_string(root.join("mod.rs")).unwrap());
+    // the folder's module file: `dir/mod.rs`, or `dir.rs` beside the folder
+    let mod_path = if root.join("mod.rs").exists() {
+        root.join("mod.rs")
+    } else {
+        files.insert("mod".into());
+        root.with_extension("rs")
+    };
+    let mod_code = code_only(&std::fs::read_to_string(&mod_path).unwrap());
     let (reexported, mod_rest) = reexports(&mod_code, &files);
     let resolve = |name: &str| -> Option<String> {
         if name == "self" || name == "super" || name == "crate" || name.is_empty() {
@@ -240,7 +253,7 @@ fn inner_graph(dir: &str) -> Graph {
         } else {
             code_only(&std::fs::read_to_string(root.join(format!("{f}.rs"))).unwrap())
         };
-        let mut prefixes = vec![format!("crate::{dir}::")];
+        let mut prefixes = vec![format!("crate::{}::", dir.replace('/', "::"))];
         if f == "mod" {
             prefixes.push("self::".into());
         } else {
@@ -340,9 +353,12 @@ fn cycle_finder_finds_cycles() {
     );
 }
 
+/// The sub-folders of the checked folders, each checked in turn.
+const SUB_FOLDERS: [&str; 1] = ["analysis/fit"];
+
 #[test]
 fn files_inside_analysis_and_script_import_no_cycle() {
-    for dir in ["analysis", "script"] {
+    for dir in ["analysis", "script"].into_iter().chain(SUB_FOLDERS) {
         let g = inner_graph(dir);
         if let Some(c) = find_cycle(&g) {
             let table: Vec<String> = g

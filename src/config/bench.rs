@@ -270,7 +270,7 @@ impl Config {
             axes,
             tolerance_um: s.tolerance_um,
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
-            poll_interval: Duration::from_millis(s.poll_ms),
+            poll_interval: Duration::from_millis(s.poll_ms()),
         })
     }
 
