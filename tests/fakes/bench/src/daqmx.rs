@@ -390,6 +390,8 @@ fn fmt_v(x: f64) -> String {
     format!("{x:e}")
 }
 
+// The channel-creation functions' own argument list (NIDAQmx.h), plus the bench and the kind.
+#[allow(clippy::too_many_arguments)]
 fn add_chans(
     b: &mut Bench,
     h: TaskHandle,

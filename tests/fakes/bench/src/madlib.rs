@@ -559,9 +559,9 @@ const WAVE_MAX_MS: f64 = 5.0;
 
 fn wave_args(axis: c_uint, points: c_uint, ms: f64) -> Result<usize, i32> {
     let i = axis_index(axis)?;
-    if !(1..=WAVE_MAX_POINTS).contains(&points)
-        || !(ms.is_finite() && (WAVE_MIN_MS - 1e-12..=WAVE_MAX_MS).contains(&ms))
-    {
+    let points_ok = (1..=WAVE_MAX_POINTS).contains(&points);
+    let ms_ok = ms.is_finite() && (WAVE_MIN_MS - 1e-12..=WAVE_MAX_MS).contains(&ms);
+    if !(points_ok && ms_ok) {
         return Err(MCL_ARGUMENT_ERROR);
     }
     Ok(i)

@@ -207,9 +207,11 @@ mod tests {
     use super::*;
 
     fn drive(tau_ms: f64) -> NanoDrive {
-        let mut c = Config::default();
-        c.tau_s = tau_ms / 1e3;
-        c.sensor_noise_um = 0.0;
+        let c = Config {
+            tau_s: tau_ms / 1e3,
+            sensor_noise_um: 0.0,
+            ..Config::default()
+        };
         NanoDrive::new(&c, 0.0)
     }
 
