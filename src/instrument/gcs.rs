@@ -24,7 +24,6 @@
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
-#[path = "gcs_wave.rs"]
 mod wave;
 pub use wave::{parse_gcs_array, GcsArray, LineSweep, SweepRecord, WaveCache};
 

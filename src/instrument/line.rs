@@ -1,6 +1,6 @@
 //! Hardware-timed lines, device-neutral: what the raster engine (`acquire::raster`) asks a
 //! stage with a wave generator and a data recorder to do, and what it gets back. A PI GCS
-//! controller does it with `WAV`/`WGO`/`DRR?` (`gcs_wave.rs`); the simulator with its stage
+//! controller does it with `WAV`/`WGO`/`DRR?` (`gcs/wave.rs`); the simulator with its stage
 //! model (`sim/`). Units: µm and s.
 
 /// What a stage's hardware-timed lines can do ([`Stage::line_timing`](super::Stage::line_timing)).

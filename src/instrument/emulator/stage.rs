@@ -17,7 +17,7 @@
 //! The wave generator (`WAV` `LIN`/`RAMP`/`PNT`, `WAV?`, `WSL`, `WGC`, `WTR`, `WGO`, their
 //! queries and `#9`), the trigger outputs (`CTO`, `CTO?`, `TWS`, `TWC`) and the data recorder
 //! (`DRC`, `DRC?`, `DRT`, `DRT?`, `RTR`, `RTR?`, `DRL?`, `DRR?`) run under the controller's
-//! servo clock: see [`WaveConfig`] and the `stage_wave` module. `STP`, `HLT` and `#24` stop
+//! servo clock: see [`WaveConfig`] and the `wave` module (stage/wave.rs). `STP`, `HLT` and `#24` stop
 //! the generators too; `MOV`/`SVO` on an axis whose generator runs are refused (error 73).
 //!
 //! `SAI?` as PI documents it: the identifiers of the configured (active) axes, one per line
@@ -26,7 +26,6 @@
 //! answers a query naming several axes for the first one only.
 
 use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, LinkModel, SharedPosition};
-#[path = "stage_wave.rs"]
 mod wave;
 use crate::instrument::Pos;
 use std::sync::{Arc, Mutex};
