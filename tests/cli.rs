@@ -873,11 +873,23 @@ fn a_scan_that_cannot_be_saved_at_the_prompt_stays_in_memory_with_a_way_out() {
         }
         assert!(t0.elapsed() < Duration::from_secs(60));
     }
-    // the folder becomes a regular file: the autosave must fail
-    if sess.is_dir() {
-        std::fs::remove_dir_all(&sess).unwrap();
+    // the folder becomes a regular file: the autosave must fail. The session log of the entry
+    // just answered may (re)create the folder between our remove and write: retry until the
+    // file stands (after that the log cannot create it again).
+    let mut tries = 0;
+    loop {
+        if sess.is_dir() {
+            let _ = std::fs::remove_dir_all(&sess);
+        }
+        match std::fs::write(&sess, "x") {
+            Ok(()) => break,
+            Err(e) => {
+                tries += 1;
+                assert!(tries < 200, "cannot replace the session folder by a file: {e}");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
     }
-    std::fs::write(&sess, "x").unwrap();
     let elsewhere = d.join("rescued.npz");
     let session = format!(
         "connect(#{{backend: \"mock\"}});\n\
