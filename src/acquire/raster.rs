@@ -19,7 +19,7 @@
 use super::engine::{run, ScanEnv, ScanError, ScanRun};
 use super::limits::SoftLimits;
 use super::plan::Plan;
-use super::strategy::LineStrategy;
+use super::strategy::for_raster;
 use crate::instrument::line::{LineSweep, LineTiming};
 use crate::instrument::{Instrument, Pos};
 
@@ -340,14 +340,16 @@ impl Default for RasterOptions {
 }
 
 /// Run `plan` as a hardware-timed raster on `inst`: the engine's loop
-/// ([`super::engine::run`]) with the line strategy ([`LineStrategy`]).
+/// ([`super::engine::run`]) with the raster strategy the stage calls for
+/// ([`super::strategy::for_raster`]: hardware-timed lines, or a streamed frame).
 pub fn run_raster(
     inst: &mut Instrument,
     plan: &Plan,
     opts: &RasterOptions,
     env: &ScanEnv,
 ) -> Result<ScanRun, ScanError> {
-    run(inst, plan, &mut LineStrategy::new(*opts), env)
+    let mut s = for_raster(inst, *opts);
+    run(inst, plan, s.as_mut(), env)
 }
 
 #[cfg(test)]

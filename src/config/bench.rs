@@ -484,15 +484,13 @@ pub(super) fn connect_bench(
     let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
         Backend::Nidaqmx => {
             let o = cfg.ni_qpd_options()?;
-            let mut q = NiQpd::open(o.clone())?;
+            let q = NiQpd::open(o.clone())?;
             let pair = match (&raster, madlib.is_some()) {
                 (Some(r), true) => madlib.take().map(|m| (r.clone(), m)),
                 _ => None,
             };
             if let Some((r, m)) = pair {
-                use crate::instrument::nidaqmx::{line_stage, raster::NiRaster};
-                let slot: line_stage::LineSlot = Default::default();
-                q.set_line_slot(slot.clone());
+                use crate::instrument::nidaqmx::{raster::NiRaster, stream_stage::NiStreamStage};
                 stage_desc["raster"] = json!({
                     "backend": "nidaqmx",
                     "ao": r.ao,
@@ -503,7 +501,7 @@ pub(super) fn connect_bench(
                     "start_trigger": format!("/{}/ao/StartTrigger", o.device),
                 });
                 let nr = NiRaster::new(q.lib(), r, q.name());
-                stage = Some(Box::new(line_stage::NiLineStage::new(m, nr, slot)));
+                stage = Some(Box::new(NiStreamStage::new(m, nr)));
             }
             let (product, serial) = q.identity();
             let d = json!({

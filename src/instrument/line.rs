@@ -77,28 +77,29 @@ impl LineSweep {
     /// speed is constant between the ramps, and the ramps cover `v·s/2` each, `v` the distance
     /// per point on the constant part, `s` the ramp points).
     pub fn wave(&self) -> Vec<f64> {
+        (0..self.points).map(|i| self.wave_at(i)).collect()
+    }
+
+    /// Point `i` of [`wave`](Self::wave), µm.
+    pub fn wave_at(&self, i: usize) -> f64 {
         let n = self.points;
         if n < 2 {
-            return vec![self.from_um; n];
+            return self.from_um;
         }
         let amp = self.to_um - self.from_um;
         let t = (n - 1) as f64;
         let s = self.speedupdown as f64;
         let v = amp / (t - s);
-        (0..n)
-            .map(|i| {
-                let i = i as f64;
-                let d = if s > 0.0 && i < s {
-                    v * i * i / (2.0 * s)
-                } else if s > 0.0 && i > t - s {
-                    let r = t - i;
-                    amp - v * r * r / (2.0 * s)
-                } else {
-                    v * (i - s / 2.0)
-                };
-                self.from_um + d
-            })
-            .collect()
+        let i = i as f64;
+        let d = if s > 0.0 && i < s {
+            v * i * i / (2.0 * s)
+        } else if s > 0.0 && i > t - s {
+            let r = t - i;
+            amp - v * r * r / (2.0 * s)
+        } else {
+            v * (i - s / 2.0)
+        };
+        self.from_um + d
     }
 
     /// The target (the generator's output) at every servo cycle of the wave: point

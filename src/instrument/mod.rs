@@ -19,6 +19,7 @@ pub mod madlib;
 pub mod nidaqmx;
 pub mod redpitaya;
 pub mod scpi;
+pub mod stream;
 pub mod vendor;
 
 use std::fmt;
@@ -203,6 +204,12 @@ pub trait Stage: Send {
     /// command link.
     fn link_costs(&mut self) -> link::LinkCosts {
         Vec::new()
+    }
+    /// The frame stream of a stage driven by a board's analog outputs on the board's clock
+    /// (`[raster] backend = "nidaqmx"`); `None` (the default) for every other stage. A raster
+    /// on a stage that has one is streamed (`acquire::strategy::stream`).
+    fn frame_stream(&mut self) -> Option<&mut dyn stream::FrameStream> {
+        None
     }
     /// What hardware-timed lines (a wave generator and a data recorder) this stage has: `None`
     /// (the default) when it has none, and the raster engine refuses `mode: "raster"`.

@@ -8,7 +8,7 @@ use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
 use crate::acquire::raster::{RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
-use crate::acquire::strategy::{LineStrategy, PointStrategy, Strategy};
+use crate::acquire::strategy::{PointStrategy, Strategy};
 use crate::acquire::{run, ScanEnv};
 use crate::data::Scan;
 use rhai::{Dynamic, Map};
@@ -63,7 +63,7 @@ pub fn execute_mode(c: &Ctx, plan: Plan, raster: Option<RasterOptions>) -> RResu
                 .map(|q| q as &dyn Fn(&crate::acquire::Paused) -> bool),
         };
         let mut strategy: Box<dyn Strategy> = match raster {
-            Some(o) => Box::new(LineStrategy::new(o)),
+            Some(o) => crate::acquire::strategy::for_raster(inst, o),
             None => Box::new(PointStrategy::new()),
         };
         let run = run(inst, &plan, strategy.as_mut(), &env).map_err(|e| e.to_string())?;

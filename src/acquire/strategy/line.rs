@@ -19,7 +19,7 @@
 //! stage's; a digitiser that fails (arm, trigger, read) or a line that cannot be binned is
 //! not, and a relative scan then returns to its start.
 
-use super::{Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{padded, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
 use crate::acquire::engine::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
@@ -45,35 +45,6 @@ struct LinePhases {
     record_s: f64,
 }
 
-/// What the binned lines add up to, for `meta.raster`.
-struct Stats {
-    err_max: f64,
-    err_ss: f64,
-    n_err: usize,
-    spp_min: usize,
-    spp_sum: usize,
-    lag_sum: f64,
-    lag_n: usize,
-    sample_rate: Option<f64>,
-    sz_measured: bool,
-}
-
-impl Default for Stats {
-    fn default() -> Self {
-        Stats {
-            err_max: 0.0,
-            err_ss: 0.0,
-            n_err: 0,
-            spp_min: usize::MAX,
-            spp_sum: 0,
-            lag_sum: 0.0,
-            lag_n: 0,
-            sample_rate: None,
-            sz_measured: true,
-        }
-    }
-}
-
 /// Hardware-timed lines. See the module documentation.
 pub struct LineStrategy {
     opts: RasterOptions,
@@ -81,7 +52,7 @@ pub struct LineStrategy {
     rp: Option<RasterPlan>,
     timing: Option<LineTiming>,
     ph: LinePhases,
-    stats: Stats,
+    stats: BinStats,
     /// Raw samples per measured line: sx, sy, sz, position, recorder target, recorder position.
     raw: [Vec<Vec<f64>>; 6],
     /// The line being played or last played.
@@ -99,7 +70,7 @@ impl LineStrategy {
             rp: None,
             timing: None,
             ph: LinePhases::default(),
-            stats: Stats::default(),
+            stats: BinStats::default(),
             raw: Default::default(),
             current: None,
             stopped: false,
@@ -321,8 +292,7 @@ impl Strategy for LineStrategy {
         let n_lines = ph.lines.max(1) as f64;
         let ms = |s: f64| s / n_lines * 1e3;
         let first = &rp.lines[0].sweep;
-        let n = st.n_err;
-        json!({
+        let mut m = json!({
             "lines_measured": ph.lines,
             "raster": {
                 "line_speed_um_s": rp.speed_um_s,
@@ -336,14 +306,7 @@ impl Strategy for LineStrategy {
                 "record_rate": first.record_rate,
                 "record_sample_s": f64::from(first.record_rate) * timing.servo_cycle_s,
                 "trigger_line": timing.trigger_line,
-                "sample_rate_hz": st.sample_rate,
                 "samples_per_pixel_asked": self.opts.samples_per_pixel,
-                "samples_per_pixel_min": (st.spp_min != usize::MAX).then_some(st.spp_min),
-                "samples_per_pixel_mean": (n > 0).then(|| st.spp_sum as f64 / n as f64),
-                "position_error_um_max": (n > 0).then_some(st.err_max),
-                "position_error_um_rms": (n > 0).then(|| (st.err_ss / n as f64).sqrt()),
-                "lag_um_mean": (st.lag_n > 0).then(|| st.lag_sum / st.lag_n as f64),
-                "sz_measured": st.sz_measured,
                 "binning": "each pixel: the digitiser samples whose measured stage position (recorder, interpolated) lies within half a pitch of its centre; its value is their least-squares line (value against position) at the centre",
             },
             "time": {
@@ -355,7 +318,9 @@ impl Strategy for LineStrategy {
                     "record_read_ms": ms(ph.record_s),
                 }
             },
-        })
+        });
+        st.merge_into(&mut m["raster"]);
+        m
     }
 
     fn raw(&mut self) -> Vec<(String, Array2<f64>)> {
@@ -405,23 +370,8 @@ impl LineStrategy {
         self.at = Some(end);
         let cols = rp.cols.len();
         let st = &mut self.stats;
-        for (c, (&p, &n)) in d.bins[0].position.iter().zip(&d.bins[0].count).enumerate() {
-            let e = p - rp.cols[c];
-            st.err_max = st.err_max.max(e.abs());
-            st.err_ss += e * e;
-            st.n_err += 1;
-            st.spp_min = st.spp_min.min(n);
-            st.spp_sum += n;
-        }
-        // the lag: target − measured over the line's pixels
-        let lo = rp.cols[0].min(rp.cols[cols - 1]);
-        let hi = rp.cols[0].max(rp.cols[cols - 1]);
-        for (t, x) in d.record.target_um.iter().zip(&d.record.position_um) {
-            if *x >= lo && *x <= hi {
-                st.lag_sum += (t - x).abs();
-                st.lag_n += 1;
-            }
-        }
+        st.add_line(&d.bins[0], &rp.cols);
+        st.add_lag(&d.record.target_um, &d.record.position_um, &rp.cols);
         st.sample_rate = Some(1.0 / d.trace.dt_s);
         st.sz_measured &= d.trace.sz_measured;
         let k = d.positions.len();
@@ -451,16 +401,4 @@ fn arm(
     inst.qpd
         .arm_buffered(n, rate, Trigger::ExternalRising)
         .map(|_| ())
-}
-
-/// Rows × longest of `rows`, NaN-padded.
-fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
-    let w = rows.iter().map(Vec::len).max().unwrap_or(0);
-    let mut a = Array2::from_elem((n_rows, w), f64::NAN);
-    for (r, v) in rows.iter().enumerate() {
-        for (k, &x) in v.iter().enumerate() {
-            a[[r, k]] = x;
-        }
-    }
-    a
 }

@@ -9,24 +9,28 @@
 //!   recorder, a digitiser started by the controller's trigger); a step is a line, binned by
 //!   the measured position (`raster::bin_line`).
 //!
-//! A continuously streaming acquisition (a DAQ board whose analog output drives the stage and
-//! whose inputs record the QPD and the stage's position monitor on the same clock) is a third
-//! strategy of the same shape: `prepare` configures its tasks and checks its waveform, `step`
-//! plays one row's output and bins that row's input by the measured position, `pause` and
-//! `stop` stop the tasks. The stop rule is the engine's and needs nothing from it.
+//! [`stream::StreamStrategy`]: a frame streamed on one clock (a DAQ board whose analog
+//!   outputs drive the stage and whose inputs record the QPD and the stage's position monitor
+//!   on the same clock); a step is a line, binned as soon as its samples are in while the
+//!   stream goes on.
+//!
+//! [`for_raster`] picks the raster strategy a stage calls for; the stop rule is the engine's.
 
 pub mod line;
 pub mod point;
+pub mod stream;
 
 use super::engine::ScanError;
 use super::limits::SoftLimits;
 use super::plan::{Plan, Point};
+use super::raster::{LineBins, RasterOptions};
 use crate::instrument::{DeviceError, Instrument, Pos};
 use ndarray::Array2;
-use serde_json::Value;
+use serde_json::{json, Value};
 
 pub use line::LineStrategy;
 pub use point::PointStrategy;
+pub use stream::StreamStrategy;
 
 /// A measured pixel: (row, column, [Sx, Sy, Sz]).
 pub type Pixel = (usize, usize, [f64; 3]);
@@ -130,4 +134,100 @@ pub trait Strategy {
 /// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
 pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
     ((dwell_s * rate_hz).round() as usize).max(1)
+}
+
+/// The strategy of `mode: "raster"` on `inst`: the frame stream when the stage has one
+/// (`Stage::frame_stream`), hardware-timed lines otherwise.
+pub fn for_raster(inst: &mut Instrument, opts: RasterOptions) -> Box<dyn Strategy> {
+    if inst.stage.frame_stream().is_some() {
+        Box::new(StreamStrategy::new(opts))
+    } else {
+        Box::new(LineStrategy::new(opts))
+    }
+}
+
+/// What the binned lines of a raster add up to, for `meta.raster`.
+#[derive(Debug, Clone)]
+pub struct BinStats {
+    err_max: f64,
+    err_ss: f64,
+    n_err: usize,
+    spp_min: usize,
+    spp_sum: usize,
+    lag_sum: f64,
+    lag_n: usize,
+    /// The digitiser's sample rate, Hz (the last line's).
+    pub sample_rate: Option<f64>,
+    /// Every line measured Sz.
+    pub sz_measured: bool,
+}
+
+impl Default for BinStats {
+    fn default() -> Self {
+        BinStats {
+            err_max: 0.0,
+            err_ss: 0.0,
+            n_err: 0,
+            spp_min: usize::MAX,
+            spp_sum: 0,
+            lag_sum: 0.0,
+            lag_n: 0,
+            sample_rate: None,
+            sz_measured: true,
+        }
+    }
+}
+
+impl BinStats {
+    /// A line binned onto pixel centres `cols` (µm): samples per pixel and the distance of the
+    /// samples' mean position from each centre.
+    pub fn add_line(&mut self, bins: &LineBins, cols: &[f64]) {
+        for (c, (&p, &n)) in bins.position.iter().zip(&bins.count).enumerate() {
+            let e = p - cols[c];
+            self.err_max = self.err_max.max(e.abs());
+            self.err_ss += e * e;
+            self.n_err += 1;
+            self.spp_min = self.spp_min.min(n);
+            self.spp_sum += n;
+        }
+    }
+
+    /// The lag of a line: |target − measured| (µm) over the samples whose measured position
+    /// lies among the pixels `cols`.
+    pub fn add_lag(&mut self, target: &[f64], measured: &[f64], cols: &[f64]) {
+        let (a, b) = (cols[0], cols[cols.len() - 1]);
+        let (lo, hi) = (a.min(b), a.max(b));
+        for (t, x) in target.iter().zip(measured) {
+            if *x >= lo && *x <= hi {
+                self.lag_sum += (t - x).abs();
+                self.lag_n += 1;
+            }
+        }
+    }
+
+    /// Samples per pixel (min, mean), position error (max, rms, µm) and mean lag (µm) into
+    /// the object `raster`.
+    pub fn merge_into(&self, raster: &mut Value) {
+        let n = self.n_err;
+        raster["sample_rate_hz"] = json!(self.sample_rate);
+        raster["samples_per_pixel_min"] =
+            json!((self.spp_min != usize::MAX).then_some(self.spp_min));
+        raster["samples_per_pixel_mean"] = json!((n > 0).then(|| self.spp_sum as f64 / n as f64));
+        raster["position_error_um_max"] = json!((n > 0).then_some(self.err_max));
+        raster["position_error_um_rms"] = json!((n > 0).then(|| (self.err_ss / n as f64).sqrt()));
+        raster["lag_um_mean"] = json!((self.lag_n > 0).then(|| self.lag_sum / self.lag_n as f64));
+        raster["sz_measured"] = json!(self.sz_measured);
+    }
+}
+
+/// Rows × longest of `rows`, NaN-padded.
+pub fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
+    let w = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let mut a = Array2::from_elem((n_rows, w), f64::NAN);
+    for (r, v) in rows.iter().enumerate() {
+        for (k, &x) in v.iter().enumerate() {
+            a[[r, k]] = x;
+        }
+    }
+    a
 }

@@ -23,8 +23,8 @@
 //! Positive returns are warnings and are not errors.
 
 pub mod ffi;
-pub mod line_stage;
 pub mod raster;
+pub mod stream_stage;
 
 use crate::instrument::scpi::Calibration;
 use crate::instrument::{DeviceError, Qpd, QpdReading};
@@ -547,8 +547,6 @@ pub struct NiQpd {
     serial: Option<u32>,
     overhead_sum: f64,
     reads: u32,
-    /// With `[raster]`: where the line stage leaves each line's samples.
-    line_slot: Option<line_stage::LineSlot>,
 }
 
 impl NiQpd {
@@ -585,7 +583,6 @@ impl NiQpd {
             serial,
             overhead_sum: 0.0,
             reads: 0,
-            line_slot: None,
         };
         // Time it once now, so a rate the board refuses fails at connect, not at the first read.
         q.time_for(2)?;
@@ -601,11 +598,6 @@ impl NiQpd {
     /// The loaded library (the raster's tasks use the same one).
     pub fn lib(&self) -> Arc<NiDaqmx> {
         self.lib.clone()
-    }
-
-    /// Take each raster line's samples from `slot` (filled by the line stage).
-    pub fn set_line_slot(&mut self, slot: line_stage::LineSlot) {
-        self.line_slot = Some(slot);
     }
 
     pub fn library(&self) -> String {
@@ -701,45 +693,6 @@ impl Qpd for NiQpd {
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let (mean, std) = self.read_volts(n)?;
         Ok(self.opts.calibration.apply(mean, std, n))
-    }
-
-    /// With `[raster]`: the line's samples are recorded by the line stage's AI task on the AO
-    /// clock (one sample per tick at `rate_hz`, whatever rate is asked); nothing to arm here.
-    fn arm_buffered(
-        &mut self,
-        n_samples: usize,
-        _sample_rate: f64,
-        _trigger: crate::instrument::Trigger,
-    ) -> Result<crate::instrument::BufferedArm, DeviceError> {
-        match &self.line_slot {
-            Some(slot) => {
-                if let Ok(mut g) = slot.lock() {
-                    *g = None;
-                }
-                Ok(crate::instrument::BufferedArm {
-                    n_samples,
-                    sample_rate: self.opts.rate_hz,
-                })
-            }
-            None => Err(DeviceError::Other {
-                device: self.name(),
-                detail: "arm_buffered: a raster on the NI board needs a [raster] table with backend = \"nidaqmx\"".into(),
-            }),
-        }
-    }
-
-    fn read_buffered(
-        &mut self,
-        _timeout: Duration,
-    ) -> Result<crate::instrument::BufferedTrace, DeviceError> {
-        let t = self
-            .line_slot
-            .as_ref()
-            .and_then(|s| s.lock().ok().and_then(|mut g| g.take()));
-        t.ok_or_else(|| DeviceError::Other {
-            device: self.name(),
-            detail: "read_buffered: no raster line was recorded".into(),
-        })
     }
 
     fn overhead_s(&self) -> f64 {

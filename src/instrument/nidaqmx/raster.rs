@@ -1,14 +1,14 @@
-//! The NI board's hardware-timed raster, device level: an AO task plays the fast axis's
-//! waveform into the Nano-Drive's external input on the board's clock, and an AI task on the
-//! AO task's sample clock (`/DevN/ao/SampleClock`, started by `/DevN/ao/StartTrigger`) records,
-//! sample for sample, the QPD inputs and the fast axis's sensor-monitor voltage. The AI task is
-//! continuous and read in chunks while the stage sweeps (no buffer grows with the line); the AO
-//! task is finite (one line). Binning by measured position is the scan engine's
-//! (`acquire::raster::bin_line`), as for every raster.
+//! The NI board's hardware-timed raster, device level: an AO task plays the frame's waveform
+//! (fast and slow axis) into the Nano-Drive's external inputs on the board's clock, written
+//! ahead of the clock in blocks (regeneration off), and an AI task on the AO task's sample
+//! clock (`/DevN/ao/SampleClock`, started by `/DevN/ao/StartTrigger`) records, sample for
+//! sample, the QPD inputs and the fast axis's sensor-monitor voltage, read in chunks while the
+//! stage sweeps. Both tasks are continuous: no buffer grows with the frame. Binning by
+//! measured position is the scan engine's (`acquire::raster::bin_line`), as for every raster.
 //!
-//! At the end of a line, on a fault and on Ctrl-C both tasks are stopped and cleared and the
-//! outputs are held at the voltage of the present position ([`NiRaster::hold`]: a static AO
-//! task writing one value per output), never 0 V.
+//! At the end of the frame, on a fault and on Ctrl-C both tasks are stopped and cleared and
+//! the outputs are held at the voltage of the present position ([`NiRaster::hold`]: a static
+//! AO task writing one value per output), never 0 V.
 //!
 //! Units: positions in µm, voltages in V, times in s.
 
@@ -66,7 +66,7 @@ pub fn waveform_volts(targets_um: &[f64], v_per_um: f64, who: &str) -> Result<Ve
     Ok(out)
 }
 
-/// One chunk of a line: QPD inputs (V, acquisition order) and the sensor monitor (V).
+/// One chunk of the stream: QPD inputs (V, acquisition order) and the sensor monitor (V).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Chunk {
     /// `inputs[c][k]`: input `c` of the QPD, sample `k`.
@@ -81,10 +81,8 @@ pub struct NiRaster {
     name: String,
     ao: Option<Task>,
     ai: Option<Task>,
-    /// Samples per channel of the line configured.
-    n: usize,
-    /// Samples per channel read so far.
-    read: usize,
+    /// Samples per channel the AI buffer holds.
+    buffer: usize,
     buf: Vec<f64>,
 }
 
@@ -96,8 +94,7 @@ impl NiRaster {
             name,
             ao: None,
             ai: None,
-            n: 0,
-            read: 0,
+            buffer: 0,
             buf: Vec::new(),
         }
     }
@@ -110,10 +107,19 @@ impl NiRaster {
         &self.opts.qpd.device
     }
 
-    /// Configure a line: `volts[c]` per AO output (x, then y when wired), all the same length
-    /// n, played at the QPD rate; the AI task (QPD inputs + sensor monitor) on the AO sample
-    /// clock, continuous, started by the AO start trigger. Nothing plays until [`start`].
-    pub fn configure(&mut self, volts: &[Vec<f64>]) -> Result<(), DeviceError> {
+    /// The AI buffer for a stream at `rate`: two seconds of samples (at least [`CHUNK`] × 4),
+    /// so that the reader may fall behind by a line's binning and an engine's autosave.
+    pub fn buffer_for(rate: f64) -> usize {
+        ((2.0 * rate) as usize).max(4 * CHUNK)
+    }
+
+    /// Configure and start the stream: an AO task on the board's clock, continuous, with
+    /// regeneration off (`DAQmxSetWriteRegenMode(DAQmx_Val_DoNotAllowRegen)`: the outputs
+    /// play each sample written once, and the waveform is written ahead of the clock in
+    /// blocks), `volts[c]` per output (x, then y when wired) as its first block; an AI task
+    /// (QPD inputs + sensor monitor) on the AO sample clock, continuous, started by the AO
+    /// start trigger; AI started (it waits for the trigger), then AO.
+    pub fn start_stream(&mut self, volts: &[Vec<f64>]) -> Result<(), DeviceError> {
         self.clear();
         let outs = self.opts.outputs();
         let n = volts.first().map_or(0, Vec::len);
@@ -121,7 +127,7 @@ impl NiRaster {
             return Err(DeviceError::Other {
                 device: self.name.clone(),
                 detail: format!(
-                    "a raster line needs one waveform of ≥ 2 points per output ({} outputs, got {} waveforms)",
+                    "a raster stream needs one block of ≥ 2 samples per output ({} outputs, got {} blocks)",
                     outs.len(),
                     volts.len()
                 ),
@@ -129,20 +135,35 @@ impl NiRaster {
         }
         let rate = self.opts.qpd.rate_hz;
         let dev = self.dev().to_string();
+        let Some(regen) = self.lib.set_write_regen_mode else {
+            return Err(DeviceError::Other {
+                device: self.name.clone(),
+                detail: format!(
+                    "{} has no DAQmxSetWriteRegenMode: the raster stream writes its waveform ahead of the clock and needs it",
+                    self.lib.path.display()
+                ),
+            });
+        };
         let ao = Task::create(self.lib.clone(), &self.name, "bfpscope-raster-ao")?;
         for (ch, _) in &outs {
             ao.add_ao(&format!("{dev}/{ch}"), AO_MIN_V, AO_MAX_V)?;
         }
-        ao.timing("", rate, false, n as u64)?;
-        let data: Vec<f64> = volts.iter().flatten().copied().collect();
-        let wrote = ao.write(n, false, 10.0, &data)?;
-        if wrote != n {
-            return Err(DeviceError::Garbled {
-                device: self.name.clone(),
-                command: "DAQmxWriteAnalogF64".into(),
-                reply: format!("{wrote} samples per channel written, {n} given"),
-            });
-        }
+        // continuous: sampsPerChan is a buffer hint; the first write sizes the buffer
+        ao.timing("", rate, true, n as u64)?;
+        // SAFETY: `int32 DAQmxSetWriteRegenMode(TaskHandle taskHandle, int32 data)`.
+        let r = unsafe { regen(ao.handle(), super::ffi::DAQMX_VAL_DO_NOT_ALLOW_REGEN) };
+        super::check(
+            ao.lib(),
+            &self.name,
+            || {
+                format!(
+                    "DAQmxSetWriteRegenMode(task \"{}\", DAQmx_Val_DoNotAllowRegen)",
+                    ao.name
+                )
+            },
+            r,
+        )?;
+        Self::write_block(&ao, &self.name, volts)?;
         let ai = Task::create(self.lib.clone(), &self.name, "bfpscope-raster-ai")?;
         for ch in self.opts.qpd.inputs.names() {
             ai.add_ai(
@@ -156,59 +177,67 @@ impl NiRaster {
             self.opts.qpd.terminal,
             self.opts.qpd.range_v,
         )?;
-        // the buffer: a second of samples or the line, whichever is longer (continuous mode
-        // sizes its buffer from sampsPerChan)
-        let buffer = (n.max(rate as usize)).max(4 * CHUNK) as u64;
-        ai.timing(&format!("/{dev}/ao/SampleClock"), rate, true, buffer)?;
+        // continuous mode sizes its buffer from sampsPerChan
+        let buffer = Self::buffer_for(rate);
+        ai.timing(&format!("/{dev}/ao/SampleClock"), rate, true, buffer as u64)?;
         ai.start_trigger(&format!("/{dev}/ao/StartTrigger"))?;
-        self.ao = Some(ao);
-        self.ai = Some(ai);
-        self.n = n;
-        self.read = 0;
-        Ok(())
-    }
-
-    /// Start the AI task (it waits for the AO start trigger), then the AO task.
-    pub fn start(&mut self) -> Result<(), DeviceError> {
-        let (Some(ai), Some(ao)) = (&self.ai, &self.ao) else {
-            return Err(DeviceError::Other {
-                device: self.name.clone(),
-                detail: "start: no raster line configured".into(),
-            });
-        };
         ai.start()?;
         ao.start()?;
-        self.read = 0;
+        self.ao = Some(ao);
+        self.ai = Some(ai);
+        self.buffer = buffer;
         Ok(())
     }
 
-    /// Samples per channel of the configured line, and read so far.
-    pub fn progress(&self) -> (usize, usize) {
-        (self.n, self.read)
+    fn write_block(ao: &Task, name: &str, volts: &[Vec<f64>]) -> Result<(), DeviceError> {
+        let n = volts.first().map_or(0, Vec::len);
+        let data: Vec<f64> = volts.iter().flatten().copied().collect();
+        let wrote = ao.write(n, false, 10.0, &data)?;
+        if wrote != n {
+            return Err(DeviceError::Garbled {
+                device: name.to_string(),
+                command: "DAQmxWriteAnalogF64".into(),
+                reply: format!("{wrote} samples per channel written, {n} given"),
+            });
+        }
+        Ok(())
     }
 
-    /// Read the next chunk (at most [`CHUNK`] samples per channel, fewer at the line's end),
-    /// waiting at most `timeout_s` for it. An empty chunk when the line was read completely.
-    pub fn read_chunk(&mut self, timeout_s: f64) -> Result<Chunk, DeviceError> {
+    /// Append a block to the running AO stream (`volts[c]` per output, equal lengths).
+    pub fn write(&mut self, volts: &[Vec<f64>]) -> Result<(), DeviceError> {
+        let Some(ao) = &self.ao else {
+            return Err(DeviceError::Other {
+                device: self.name.clone(),
+                detail: "write: no raster stream running".into(),
+            });
+        };
+        Self::write_block(ao, &self.name, volts)
+    }
+
+    /// Samples per channel the AI buffer holds.
+    pub fn buffer_samples(&self) -> usize {
+        self.buffer
+    }
+
+    /// Read the next `n` samples per channel, waiting at most `timeout_s` for them.
+    pub fn read(&mut self, n: usize, timeout_s: f64) -> Result<Chunk, DeviceError> {
         let Some(ai) = &self.ai else {
             return Err(DeviceError::Other {
                 device: self.name.clone(),
-                detail: "read: no raster line configured".into(),
+                detail: "read: no raster stream running".into(),
             });
         };
-        let want = (self.n - self.read).min(CHUNK);
-        if want == 0 {
+        if n == 0 {
             return Ok(Chunk::default());
         }
         let chans = self.opts.qpd.inputs.names().len() + 1;
-        self.buf.resize(chans * want, 0.0);
-        let got = ai.read(want, timeout_s, &mut self.buf)?;
-        self.read += got;
+        self.buf.resize(chans * n, 0.0);
+        let got = ai.read(n, timeout_s, &mut self.buf)?;
         let mut c = Chunk::default();
         for k in 0..chans - 1 {
-            c.inputs.push(self.buf[k * want..k * want + got].to_vec());
+            c.inputs.push(self.buf[k * n..k * n + got].to_vec());
         }
-        c.position_v = self.buf[(chans - 1) * want..(chans - 1) * want + got].to_vec();
+        c.position_v = self.buf[(chans - 1) * n..(chans - 1) * n + got].to_vec();
         Ok(c)
     }
 

@@ -1,0 +1,847 @@
+//! A raster frame streamed on one clock (`mode: "raster"` on a stage with a
+//! [`FrameStream`]: an NI board whose outputs drive a Nano-Drive's external inputs and whose
+//! inputs record the QPD and the fast axis's position monitor on the outputs' clock).
+//!
+//! - `prepare`: the lines of `raster::plan_lines` (each at constant speed `pitch / dwell` over
+//!   its pixels plus a margin of `speed · settle_s` at each end, with speed ramps of
+//!   `settle_s`), joined into one frame by turnarounds: both axes move from a line's end to
+//!   the next line's start on a half-cosine of duration `max(settle_s, π/2 · distance /
+//!   max_speed_um_s)` (at rest at both ends; its peak speed is `π/2 · distance / duration`).
+//!   Every sample of the frame, converted to µm, is checked against the soft limits, the
+//!   speed limit (between consecutive samples) and the outputs' range before anything moves.
+//! - `step` (a line): the first step (and the first after a pause) starts the stream from
+//!   where the stage stands, with a turnaround to the line's start; the outputs are written
+//!   ahead of the clock in blocks (at most [`AHEAD_S`] ahead), the inputs read in chunks of
+//!   [`CHUNK_S`]; the line is binned by the measured position (`raster::bin_line`) as soon as
+//!   its samples are in, and the stream goes on meanwhile. After the last line the outputs
+//!   are held where the stage stands.
+//! - `pause`, `stop`: the tasks stopped and cleared, the outputs held at the present position
+//!   (never 0 V), the stage held at its reading (Madlib); a Ctrl-C takes effect after the line.
+//!
+//! Every device fault of the stream is the stage's (the outputs drive it): no further motion.
+//! A line that cannot be binned is not.
+
+use super::{padded, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
+use crate::acquire::engine::ScanError;
+use crate::acquire::limits::SoftLimits;
+use crate::acquire::plan::{fmt_seconds, Plan, Point};
+use crate::acquire::raster::{bin_line, plan_lines, RasterOptions, RasterPlan};
+use crate::instrument::line::LineTiming;
+use crate::instrument::stream::{FrameStream, StreamChunk};
+use crate::instrument::{DeviceError, Instrument, Pos, AXES};
+use ndarray::Array2;
+use serde_json::{json, Value};
+use std::time::Instant;
+
+/// How far ahead of the clock the outputs are written, s.
+pub const AHEAD_S: f64 = 0.5;
+/// Inputs read at a time, s.
+pub const CHUNK_S: f64 = 0.01;
+/// After the last sample of the frame the outputs hold it for this long (s), so that the
+/// generation never runs out of samples before the stream is stopped.
+pub const PAD_S: f64 = 0.5;
+/// Frames of at most this many samples keep their raw samples in the scan file.
+pub const RAW_MAX_SAMPLES: usize = 2_000_000;
+
+/// A piece of the frame's waveform.
+#[derive(Debug, Clone, PartialEq)]
+enum Seg {
+    /// One sample at the present position (the frame's first).
+    First([f64; 2]),
+    /// A half-cosine from `a` to `b` (µm, fast and slow) over `n` samples: samples 1…n−1
+    /// (sample 0 is the last of the piece before, sample n the first of the next).
+    Turn { a: [f64; 2], b: [f64; 2], n: usize },
+    /// Line `line` of the raster plan (its wave per sample), the slow axis at `slow`.
+    Line { line: usize, slow: f64 },
+}
+
+/// The waveform of a frame from line `first` on, in samples of the outputs' clock.
+#[derive(Debug, Clone)]
+struct Frame {
+    segs: Vec<(usize, Seg)>,
+    /// (plan line, first sample, end sample) of each line in the frame.
+    lines: Vec<(usize, usize, usize)>,
+    len: usize,
+    /// The last sample (µm), held after the frame.
+    last: [f64; 2],
+}
+
+impl Frame {
+    fn seg_len(s: &Seg, rp: &RasterPlan) -> usize {
+        match s {
+            Seg::First(_) => 1,
+            Seg::Turn { n, .. } => n - 1,
+            Seg::Line { line, .. } => {
+                let w = &rp.lines[*line].sweep;
+                w.points * w.rate.max(1) as usize
+            }
+        }
+    }
+
+    /// The frame from `at` (the present fast, slow position) through lines `first…`.
+    fn new(rp: &RasterPlan, geo: &Geometry, first: usize, at: [f64; 2]) -> Frame {
+        let mut segs = Vec::new();
+        let mut lines = Vec::new();
+        let mut len = 0;
+        let push = |s: Seg, segs: &mut Vec<(usize, Seg)>, len: &mut usize| {
+            let l = Self::seg_len(&s, rp);
+            segs.push((*len, s));
+            *len += l;
+        };
+        push(Seg::First(at), &mut segs, &mut len);
+        let mut here = at;
+        for (k, l) in rp.lines.iter().enumerate().skip(first) {
+            let start = [l.sweep.from_um, l.start[geo.slow]];
+            let n = geo.turn_samples(here, start);
+            push(
+                Seg::Turn {
+                    a: here,
+                    b: start,
+                    n,
+                },
+                &mut segs,
+                &mut len,
+            );
+            let s0 = len;
+            push(
+                Seg::Line {
+                    line: k,
+                    slow: start[1],
+                },
+                &mut segs,
+                &mut len,
+            );
+            lines.push((k, s0, len));
+            here = [l.sweep.to_um, start[1]];
+        }
+        Frame {
+            segs,
+            lines,
+            len,
+            last: here,
+        }
+    }
+
+    /// Samples `from…from+n` (clipped to the frame) appended to `fast`, `slow`.
+    fn fill(
+        &self,
+        rp: &RasterPlan,
+        from: usize,
+        n: usize,
+        fast: &mut Vec<f64>,
+        slow: &mut Vec<f64>,
+    ) {
+        let end = (from + n).min(self.len);
+        let mut i = self.segs.partition_point(|(s0, _)| *s0 <= from).max(1) - 1;
+        let mut k = from;
+        while k < end {
+            let (s0, seg) = &self.segs[i];
+            let seg_end = self
+                .segs
+                .get(i + 1)
+                .map_or(self.len, |(s1, _)| *s1)
+                .min(end);
+            match seg {
+                Seg::First(p) => {
+                    fast.push(p[0]);
+                    slow.push(p[1]);
+                }
+                Seg::Turn { a, b, n } => {
+                    for j in (k - s0 + 1)..(seg_end - s0 + 1) {
+                        let u = 0.5 * (1.0 - (std::f64::consts::PI * j as f64 / *n as f64).cos());
+                        fast.push(a[0] + (b[0] - a[0]) * u);
+                        slow.push(a[1] + (b[1] - a[1]) * u);
+                    }
+                }
+                Seg::Line { line, slow: y } => {
+                    let w = &rp.lines[*line].sweep;
+                    let r = w.rate.max(1) as usize;
+                    for j in (k - s0)..(seg_end - s0) {
+                        fast.push(w.wave_at(j / r));
+                        slow.push(*y);
+                    }
+                }
+            }
+            k = seg_end;
+            i += 1;
+        }
+    }
+}
+
+/// What the frame's turnarounds need: the rate, the settle time, the speed limit, the axes.
+#[derive(Debug, Clone, Copy)]
+struct Geometry {
+    rate: f64,
+    settle_s: f64,
+    max_speed: Option<f64>,
+    fast: usize,
+    slow: usize,
+}
+
+impl Geometry {
+    /// Samples of a turnaround from `a` to `b`: `max(settle_s, π/2 · |b − a| / max_speed)`
+    /// at the rate, at least 4.
+    fn turn_samples(&self, a: [f64; 2], b: [f64; 2]) -> usize {
+        let d = (b[0] - a[0]).hypot(b[1] - a[1]);
+        let t = match self.max_speed {
+            Some(v) if v > 0.0 => self.settle_s.max(std::f64::consts::FRAC_PI_2 * d / v),
+            _ => self.settle_s,
+        };
+        // sampled, the half-cosine's steps stay below its peak speed
+        ((t * self.rate - 1e-9).ceil() as usize).max(4)
+    }
+}
+
+/// The stream while it runs.
+struct Running {
+    frame: Frame,
+    /// Samples written to the outputs, read from the inputs.
+    written: usize,
+    read: usize,
+    padded: bool,
+    /// Samples read and not yet binned, from sample `base` on.
+    buf: StreamChunk,
+    base: usize,
+    /// The next line of `frame.lines` to bin.
+    next: usize,
+    t0: Instant,
+}
+
+/// Where the time went, s (summed over the scan).
+#[derive(Default, Debug, Clone)]
+struct Phases {
+    lines: usize,
+    starts: usize,
+    start_s: f64,
+    write_s: f64,
+    writes: usize,
+    read_s: f64,
+    reads: usize,
+    convert_s: f64,
+    bin_s: f64,
+    hold_s: f64,
+    /// The most samples the inputs were behind the clock when a read returned (an estimate
+    /// from the stream's start time: the buffer holds `buffer_samples`).
+    max_behind: usize,
+    buffer_samples: usize,
+    frame_samples: usize,
+    stream_s: f64,
+}
+
+/// The frame stream. See the module documentation.
+pub struct StreamStrategy {
+    opts: RasterOptions,
+    dwell_s: f64,
+    rp: Option<RasterPlan>,
+    geo: Option<Geometry>,
+    run: Option<Running>,
+    stats: BinStats,
+    ph: Phases,
+    keep_raw: bool,
+    raw: [Vec<Vec<f64>>; 5],
+    at: Option<Pos>,
+    /// The position the scan's other axes keep (the plan's base), µm.
+    base: Pos,
+    /// The stream was stopped at a pause.
+    held: bool,
+    /// Something was started (a stop is owed at the end of an interrupted scan).
+    started: bool,
+}
+
+/// The stage's frame stream, or an error naming the stage.
+fn stream_of(inst: &mut Instrument) -> Result<&mut dyn FrameStream, DeviceError> {
+    let name = inst.stage.name();
+    inst.stage.frame_stream().ok_or(DeviceError::Other {
+        device: name,
+        detail: "this stage has no frame stream".into(),
+    })
+}
+
+impl StreamStrategy {
+    pub fn new(opts: RasterOptions) -> StreamStrategy {
+        StreamStrategy {
+            opts,
+            dwell_s: 0.0,
+            rp: None,
+            geo: None,
+            run: None,
+            stats: BinStats::default(),
+            ph: Phases::default(),
+            keep_raw: false,
+            raw: Default::default(),
+            at: None,
+            base: [0.0; 3],
+            held: false,
+            started: false,
+        }
+    }
+
+    /// Stop the stream and hold the outputs where the stage stands.
+    fn hold(&mut self, inst: &mut Instrument) -> Result<Pos, DeviceError> {
+        self.run = None;
+        let t = Instant::now();
+        let r = stream_of(inst).and_then(|s| s.hold());
+        self.ph.hold_s += t.elapsed().as_secs_f64();
+        if let Ok(p) = r {
+            self.at = Some(p);
+        }
+        r
+    }
+
+    /// Start the frame at line `i` from where the stage stands.
+    fn start(&mut self, inst: &mut Instrument, rp: &RasterPlan, i: usize) -> Result<(), StepFault> {
+        let geo = self.geo.expect("prepared");
+        let t = Instant::now();
+        let here = inst.stage.target().map_err(StepFault::stage)?;
+        let frame = Frame::new(rp, &geo, i, [here[geo.fast], here[geo.slow]]);
+        let first = ((AHEAD_S * geo.rate) as usize).max(2).min(frame.len.max(2));
+        let (mut f, mut s) = (Vec::with_capacity(first), Vec::with_capacity(first));
+        frame.fill(rp, 0, first, &mut f, &mut s);
+        while f.len() < 2 {
+            f.push(frame.last[0]);
+            s.push(frame.last[1]);
+        }
+        let stream = stream_of(inst).map_err(StepFault::stage)?;
+        self.started = true;
+        self.held = false;
+        stream.start(&f, &s).map_err(StepFault::stage)?;
+        self.ph.starts += 1;
+        self.ph.frame_samples += frame.len;
+        self.ph.buffer_samples = stream.buffer_samples();
+        self.ph.start_s += t.elapsed().as_secs_f64();
+        self.run = Some(Running {
+            written: f.len().min(frame.len),
+            padded: f.len() > frame.len,
+            frame,
+            read: 0,
+            buf: StreamChunk::default(),
+            base: 0,
+            next: 0,
+            t0: Instant::now(),
+        });
+        Ok(())
+    }
+
+    /// Keep the outputs written ahead of the inputs, then read one chunk.
+    fn pump(
+        &mut self,
+        inst: &mut Instrument,
+        rp: &RasterPlan,
+        until: usize,
+    ) -> Result<(), StepFault> {
+        let geo = self.geo.expect("prepared");
+        let ahead = (AHEAD_S * geo.rate) as usize;
+        let chunk = ((CHUNK_S * geo.rate) as usize).max(1);
+        let ph = &mut self.ph;
+        let run = self.run.as_mut().expect("running");
+        let stream = stream_of(inst).map_err(StepFault::stage)?;
+        while run.read < until {
+            if run.written < run.frame.len && run.written < run.read + ahead {
+                let t = Instant::now();
+                let n = (run.read + ahead - run.written).min(run.frame.len - run.written);
+                let (mut f, mut s) = (Vec::with_capacity(n), Vec::with_capacity(n));
+                run.frame.fill(rp, run.written, n, &mut f, &mut s);
+                stream.write(&f, &s).map_err(StepFault::stage)?;
+                run.written += n;
+                ph.write_s += t.elapsed().as_secs_f64();
+                ph.writes += 1;
+            }
+            if run.written >= run.frame.len && !run.padded {
+                let t = Instant::now();
+                let n = ((PAD_S * geo.rate) as usize).max(2);
+                stream
+                    .write(&vec![run.frame.last[0]; n], &vec![run.frame.last[1]; n])
+                    .map_err(StepFault::stage)?;
+                run.padded = true;
+                ph.write_s += t.elapsed().as_secs_f64();
+                ph.writes += 1;
+            }
+            let n = chunk.min(until - run.read);
+            let timeout = n as f64 / geo.rate + 2.0;
+            let t = Instant::now();
+            let c = stream.read(n, timeout).map_err(StepFault::stage)?;
+            ph.read_s += t.elapsed().as_secs_f64();
+            ph.convert_s += c.convert_s;
+            ph.reads += 1;
+            if c.is_empty() {
+                return Err(StepFault::stage(DeviceError::Other {
+                    device: stream.stream_name(),
+                    detail: format!(
+                        "the inputs returned no sample after {} of {}",
+                        run.read, until
+                    ),
+                }));
+            }
+            run.read += c.len();
+            let due = (run.t0.elapsed().as_secs_f64() * geo.rate) as usize;
+            ph.max_behind = ph.max_behind.max(due.saturating_sub(run.read));
+            run.buf.sx.extend(c.sx);
+            run.buf.sy.extend(c.sy);
+            run.buf.sz.extend(c.sz);
+            run.buf.fast_um.extend(c.fast_um);
+        }
+        Ok(())
+    }
+
+    fn line_step(
+        &mut self,
+        inst: &mut Instrument,
+        rp: &RasterPlan,
+        i: usize,
+    ) -> Result<Vec<Pixel>, StepFault> {
+        let expected = self
+            .run
+            .as_ref()
+            .and_then(|r| r.frame.lines.get(r.next))
+            .map(|l| l.0);
+        if expected != Some(i) {
+            if self.run.is_some() {
+                self.hold(inst).map_err(StepFault::stage)?;
+            }
+            self.start(inst, rp, i)?;
+        }
+        let (line, s0, s1) = {
+            let r = self.run.as_ref().expect("started");
+            r.frame.lines[r.next]
+        };
+        self.pump(inst, rp, s1)?;
+        let t = Instant::now();
+        let run = self.run.as_mut().expect("running");
+        let (a, b) = (s0 - run.base, s1 - run.base);
+        let cols = &rp.cols;
+        let device = inst.stage.name();
+        let bad = |detail: String| {
+            StepFault::other(DeviceError::Other {
+                device: device.clone(),
+                detail: format!("row {}: {detail}", line + 1),
+            })
+        };
+        let x = &run.buf.fast_um[a..b];
+        let (c0, c1) = (cols[0], cols[cols.len() - 1]);
+        let bin = |v: &[f64]| bin_line(x, &v[a..b], c0, c1, cols.len()).map_err(bad);
+        let bins = [bin(&run.buf.sx)?, bin(&run.buf.sy)?, bin(&run.buf.sz)?];
+        self.stats.add_line(&bins[0], cols);
+        // the targets of the line's samples, for the lag
+        let (mut tf, mut ts) = (Vec::with_capacity(b - a), Vec::with_capacity(b - a));
+        run.frame.fill(rp, s0, s1 - s0, &mut tf, &mut ts);
+        self.stats.add_lag(&tf, x, cols);
+        if self.keep_raw {
+            self.raw[0].push(run.buf.sx[a..b].to_vec());
+            self.raw[1].push(run.buf.sy[a..b].to_vec());
+            self.raw[2].push(run.buf.sz[a..b].to_vec());
+            self.raw[3].push(x.to_vec());
+            self.raw[4].push(tf);
+        }
+        // what is binned is dropped
+        for v in [
+            &mut run.buf.sx,
+            &mut run.buf.sy,
+            &mut run.buf.sz,
+            &mut run.buf.fast_um,
+        ] {
+            v.drain(..b);
+        }
+        run.base = s1;
+        run.next += 1;
+        let done = run.next == run.frame.lines.len();
+        let stream_s = run.t0.elapsed().as_secs_f64();
+        self.ph.bin_s += t.elapsed().as_secs_f64();
+        self.ph.lines += 1;
+        let geo = self.geo.expect("prepared");
+        let mut end = self.base;
+        end[geo.fast] = rp.lines[line].sweep.to_um;
+        end[geo.slow] = rp.lines[line].start[geo.slow];
+        self.at = Some(end);
+        if done {
+            self.ph.stream_s += stream_s;
+            self.hold(inst).map_err(StepFault::stage)?;
+        }
+        Ok((0..cols.len())
+            .map(|c| (rp.lines[line].row, c, [0, 1, 2].map(|ch| bins[ch].mean[c])))
+            .collect())
+    }
+}
+
+impl Strategy for StreamStrategy {
+    fn mode(&self) -> &'static str {
+        "raster"
+    }
+
+    fn prepare(
+        &mut self,
+        inst: &mut Instrument,
+        plan: &Plan,
+        start: Pos,
+        _points: &[Point],
+        limits: &SoftLimits,
+    ) -> Result<Layout, ScanError> {
+        let kind = &plan.kind;
+        let who = format!("{kind} (raster)");
+        let settle_s = inst.settle_s;
+        let stream = inst
+            .stage
+            .frame_stream()
+            .ok_or_else(|| ScanError::Refused(format!("{who}: this stage has no frame stream")))?;
+        let name = stream.stream_name();
+        let rate = stream.rate_hz();
+        let (fast, slow) = stream.axes();
+        let range = stream.output_range_um();
+        let plan_fast = plan.fast.axis.index();
+        let plan_slow = plan.slow.map(|s| s.axis.index());
+        let Some(slow) = slow else {
+            return Err(ScanError::Refused(format!(
+                "{who}: {name} drives only {} (raster.ao has no y): a streamed frame steps its rows with the y output",
+                AXES[fast]
+            )));
+        };
+        if plan_fast != fast || plan_slow != Some(slow) {
+            return Err(ScanError::Refused(format!(
+                "{who}: {name} streams {} lines stepped in {} (scan_xy); this scan sweeps {}{}",
+                AXES[fast],
+                AXES[slow],
+                AXES[plan_fast],
+                plan_slow.map_or(String::new(), |s| format!(" stepped in {}", AXES[s]))
+            )));
+        }
+        let spp = plan.dwell_s * rate;
+        if spp < 1.0 {
+            return Err(ScanError::Refused(format!(
+                "{who}: dwell = {} s is shorter than one sample of the board at {rate} S/s: use a dwell ≥ {:.3e} s",
+                plan.dwell_s,
+                1.0 / rate
+            )));
+        }
+        let timing = LineTiming {
+            servo_cycle_s: 1.0 / rate,
+            max_wave_points: usize::MAX / 4,
+            max_record_points: usize::MAX / 4,
+            trigger_line: None,
+        };
+        let rp = plan_lines(plan, start, &timing, settle_s, limits).map_err(ScanError::Refused)?;
+        let geo = Geometry {
+            rate,
+            settle_s,
+            max_speed: limits.max_speed_um_s,
+            fast,
+            slow,
+        };
+        // pre-flight: every sample of the frame (from where the stage stands), in µm
+        let here = [start[fast], start[slow]];
+        let frame = Frame::new(&rp, &geo, 0, here);
+        let base = plan.base(start);
+        let block = 1 << 16;
+        let (mut f, mut s) = (Vec::with_capacity(block), Vec::with_capacity(block));
+        let mut prev: Option<[f64; 2]> = None;
+        let mut k0 = 0;
+        while k0 < frame.len {
+            f.clear();
+            s.clear();
+            frame.fill(&rp, k0, block, &mut f, &mut s);
+            for (j, (&x, &y)) in f.iter().zip(&s).enumerate() {
+                let k = k0 + j;
+                let mut p = base;
+                p[fast] = x;
+                p[slow] = y;
+                let at = |k: usize| format!("sample {k} of the frame ({:.6} s)", k as f64 / rate);
+                limits.check(p).map_err(|e| {
+                    ScanError::Refused(format!(
+                        "{who}: the waveform leaves the soft limits at {}: {}",
+                        at(k),
+                        e.0
+                    ))
+                })?;
+                for (i, v) in [x, y].into_iter().enumerate() {
+                    let (lo, hi) = range[i];
+                    if !(v >= lo - 1e-9 && v <= hi + 1e-9) {
+                        return Err(ScanError::Refused(format!(
+                            "{who}: the waveform's {} = {v:.4} µm at {} is outside what the output commands ({lo:.4}…{hi:.4} µm, 0–10 V)",
+                            AXES[[fast, slow][i]],
+                            at(k)
+                        )));
+                    }
+                }
+                if let (Some(q), Some(max)) = (prev, limits.max_speed_um_s) {
+                    let v = (x - q[0]).hypot(y - q[1]) * rate;
+                    if v > max * (1.0 + 1e-6) {
+                        return Err(ScanError::Refused(format!(
+                            "{who}: the waveform moves at {v:.4} µm/s at {}, above max_speed_um_s = {max} µm/s",
+                            at(k)
+                        )));
+                    }
+                }
+                prev = Some([x, y]);
+            }
+            k0 += block;
+        }
+        let n_lines = rp.lines.len();
+        let per_line = frame.len as f64 / rate / n_lines as f64;
+        let turn_s = (frame.len - frame.lines.iter().map(|l| l.2 - l.1).sum::<usize>()) as f64
+            / rate
+            / n_lines as f64;
+        let eta_detail = format!(
+            "one frame streamed at {rate} S/s: {n_lines} lines of {} pixels at {:.4} µm/s ({} per pixel, {:.1} samples), line {} incl. ramps and margins {}, turnaround {}",
+            rp.cols.len(),
+            rp.speed_um_s,
+            fmt_seconds(plan.dwell_s),
+            spp,
+            fmt_seconds(rp.line_s),
+            fmt_seconds(rp.turnaround_s),
+            fmt_seconds(turn_s),
+        );
+        self.keep_raw = frame.len <= RAW_MAX_SAMPLES;
+        self.dwell_s = plan.dwell_s;
+        self.base = base;
+        self.geo = Some(geo);
+        self.rp = Some(rp);
+        self.stats.sample_rate = Some(rate);
+        Ok(Layout {
+            steps: n_lines,
+            steps_per_row: 1,
+            unit: "line",
+            step_s: per_line,
+            eta_detail,
+        })
+    }
+
+    fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
+        let Some(rp) = self.rp.take() else {
+            return Err(StepFault::other(DeviceError::Other {
+                device: inst.stage.name(),
+                detail: "a raster line was asked before the raster was planned".into(),
+            }));
+        };
+        let r = self.line_step(inst, &rp, i);
+        self.rp = Some(rp);
+        r
+    }
+
+    fn resting_at(&self) -> Option<Pos> {
+        self.at
+    }
+
+    fn pause(&mut self, inst: &mut Instrument) -> Result<(), DeviceError> {
+        if let Some(r) = &self.run {
+            self.ph.stream_s += r.t0.elapsed().as_secs_f64();
+        }
+        self.hold(inst).map(|_| self.held = true)
+    }
+
+    fn stop(&mut self, inst: &mut Instrument, _cause: StopCause) -> Option<Result<String, String>> {
+        if !self.started {
+            return None;
+        }
+        let row = self.ph.lines;
+        if self.held && self.run.is_none() {
+            return Some(Ok(format!(
+                "the stream was stopped and the outputs held at the pause after line {row}"
+            )));
+        }
+        if let Some(r) = &self.run {
+            self.ph.stream_s += r.t0.elapsed().as_secs_f64();
+        }
+        let name = inst.stage.name();
+        // the outputs drive the stage: holding them is its stop; the Nano-Drive's own stop
+        // (hold at its reading) only when they could not be held
+        Some(match self.hold(inst) {
+            Ok(p) => Ok(format!(
+                "the stream was stopped after line {row} and the outputs hold {name} at x = {:.4}, y = {:.4} µm",
+                p[0], p[1]
+            )),
+            Err(e) => match inst.stage.stop() {
+                Ok(()) => Err(format!(
+                    "stopping the stream and holding the outputs failed ({e}); {name} was held at its reading"
+                )),
+                Err(e2) => Err(format!(
+                    "stopping the stream failed: {e}; holding {name} failed too: {e2}"
+                )),
+            },
+        })
+    }
+
+    fn metadata(
+        &mut self,
+        _inst: &mut Instrument,
+        _steps: usize,
+        loop_s: f64,
+        log: &dyn Fn(&str),
+    ) -> Value {
+        let (Some(rp), Some(geo)) = (self.rp.as_ref(), self.geo) else {
+            return json!({});
+        };
+        let ph = &self.ph;
+        let n_lines = ph.lines.max(1) as f64;
+        let ms = |s: f64| s / n_lines * 1e3;
+        let cpu = ph.convert_s + ph.bin_s;
+        let share = if ph.stream_s > 0.0 {
+            cpu / ph.stream_s
+        } else {
+            0.0
+        };
+        let mut m = json!({
+            "lines_measured": ph.lines,
+            "raster": {
+                "path": "frame stream",
+                "line_speed_um_s": rp.speed_um_s,
+                "dwell_s": self.dwell_s,
+                "line_s": rp.line_s,
+                "turnaround_s": rp.turnaround_s,
+                "samples_per_pixel_asked": self.opts.samples_per_pixel,
+                "samples_per_pixel_board": self.dwell_s * geo.rate,
+                "raw_kept": self.keep_raw,
+                "binning": "each pixel: the board's samples whose measured fast-axis position (the sensor monitor, sampled on the same clock) lies within half a pitch of its centre; its value is their least-squares line (value against position) at the centre",
+                "stream": {
+                    "frames_started": ph.starts,
+                    "frame_samples": ph.frame_samples,
+                    "frame_s": ph.frame_samples as f64 / geo.rate,
+                    "buffer_samples": ph.buffer_samples,
+                    "max_behind_samples": ph.max_behind,
+                    "writes": ph.writes,
+                    "reads": ph.reads,
+                    "stream_s": ph.stream_s,
+                    "binning_cpu_s": cpu,
+                    "binning_cpu_share": share,
+                },
+            },
+            "time": {
+                "lines": {
+                    "start_ms": ms(ph.start_s),
+                    "write_ms": ms(ph.write_s),
+                    "read_ms": ms(ph.read_s),
+                    "convert_ms": ms(ph.convert_s),
+                    "bin_ms": ms(ph.bin_s),
+                    "hold_ms": ms(ph.hold_s),
+                }
+            },
+        });
+        self.stats.merge_into(&mut m["raster"]);
+        if ph.lines > 0 {
+            log(&format!(
+                "streamed {} samples in {} (loop {}); converting and binning took {:.1} % of one core",
+                ph.frame_samples,
+                fmt_seconds(ph.stream_s),
+                fmt_seconds(loop_s),
+                100.0 * share
+            ));
+        }
+        m
+    }
+
+    fn raw(&mut self) -> Vec<(String, Array2<f64>)> {
+        if !self.keep_raw {
+            return Vec::new();
+        }
+        let rows = self.rp.as_ref().map_or(0, |rp| rp.lines.len());
+        ["sx", "sy", "sz", "position_um", "target_um"]
+            .iter()
+            .zip(&self.raw)
+            .map(|(n, v)| (n.to_string(), padded(v, rows)))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::acquire::raster::RasterLine;
+    use crate::instrument::line::LineSweep;
+
+    fn plan2(n_lines: usize) -> RasterPlan {
+        let sweep = |from: f64, to: f64| LineSweep {
+            axis: 0,
+            from_um: from,
+            to_um: to,
+            points: 11,
+            speedupdown: 2,
+            rate: 1,
+            record_rate: 1,
+            trigger_line: None,
+            table: 1,
+            servo_cycle_s: 1e-3,
+        };
+        RasterPlan {
+            lines: (0..n_lines)
+                .map(|r| RasterLine {
+                    row: r,
+                    start: [1.0, 2.0 + r as f64, 5.0],
+                    sweep: sweep(1.0, 3.0),
+                })
+                .collect(),
+            cols: vec![1.5, 2.0, 2.5],
+            rows: (0..n_lines).map(|r| 2.0 + r as f64).collect(),
+            speed_um_s: 250.0,
+            line_s: 0.011,
+            turnaround_s: 0.008,
+        }
+    }
+
+    /// The frame is continuous: each line's wave where the plan puts it, turnarounds that
+    /// start and end on the neighbouring samples with zero speed, the slow axis constant
+    /// along a line; filling in any blocks gives the same samples.
+    #[test]
+    fn a_frame_joins_the_lines_with_turnarounds_at_rest_at_both_ends() {
+        let rp = plan2(3);
+        let geo = Geometry {
+            rate: 1000.0,
+            settle_s: 0.005,
+            max_speed: Some(100.0),
+            fast: 0,
+            slow: 1,
+        };
+        let fr = Frame::new(&rp, &geo, 0, [0.0, 0.0]);
+        let (mut f, mut s) = (vec![], vec![]);
+        fr.fill(&rp, 0, fr.len, &mut f, &mut s);
+        assert_eq!(f.len(), fr.len);
+        assert_eq!((f[0], s[0]), (0.0, 0.0));
+        for &(line, a, b) in &fr.lines {
+            let w = rp.lines[line].sweep.wave();
+            assert_eq!(&f[a..b], &w[..], "line {line}");
+            assert!(s[a..b].iter().all(|&y| y == 2.0 + line as f64));
+        }
+        // the first turnaround: distance hypot(1, 2) at ≤ 100 µm/s: π/2·√5/100 s = 35.1 ms
+        let n0 = fr.lines[0].1;
+        assert_eq!(
+            n0,
+            (std::f64::consts::FRAC_PI_2 * 5f64.sqrt() / 100.0 * 1000.0).ceil() as usize
+        );
+        // no step between samples faster than the limit anywhere
+        for k in 1..f.len() {
+            let v = (f[k] - f[k - 1]).hypot(s[k] - s[k - 1]) * geo.rate;
+            assert!(
+                v <= 100.0 + 1e-9 || (f[k] - f[k - 1]).abs() * geo.rate <= 250.0 + 1e-9,
+                "{k}: {v}"
+            );
+        }
+        // blocks of 7 give the same samples
+        let (mut f7, mut s7) = (vec![], vec![]);
+        let mut k = 0;
+        while k < fr.len {
+            fr.fill(&rp, k, 7, &mut f7, &mut s7);
+            k += 7;
+        }
+        assert_eq!(f7, f);
+        assert_eq!(s7, s);
+        assert_eq!(fr.last, [3.0, 4.0]);
+    }
+
+    /// A turnaround's peak speed is π/2 · distance / duration: at the limit when the distance
+    /// decides, and the settle time when it is short.
+    #[test]
+    fn turnaround_length_follows_the_speed_limit_or_the_settle_time() {
+        let geo = Geometry {
+            rate: 1e5,
+            settle_s: 0.002,
+            max_speed: Some(1000.0),
+            fast: 0,
+            slow: 1,
+        };
+        // 10 µm at ≤ 1000 µm/s: 15.708 ms
+        assert_eq!(geo.turn_samples([0.0, 0.0], [10.0, 0.0]), 1571);
+        // 0.1 µm: the settle time, 2 ms
+        assert_eq!(geo.turn_samples([0.0, 0.0], [0.0, 0.1]), 200);
+        let free = Geometry {
+            max_speed: None,
+            ..geo
+        };
+        assert_eq!(free.turn_samples([0.0, 0.0], [10.0, 0.0]), 200);
+    }
+}
