@@ -5,6 +5,9 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+#[path = "support/fakebench.rs"]
+mod fakebench;
+
 fn bin() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_bfpscope"));
     c.current_dir(env!("CARGO_MANIFEST_DIR"));
@@ -992,5 +995,50 @@ fn the_session_log_holds_everything_printed() {
     assert!(
         log.contains("bfp> print(\"hello log\");\nhello log\n"),
         "{log}"
+    );
+}
+
+/// At the prompt, `connect(#{backend: "madlib"})` takes the paper's bench (a Nano-Drive through
+/// Madlib, an NI board through NI-DAQmx) with the libraries found where the vendor search
+/// looks (here `BFPSCOPE_MADLIB` / `BFPSCOPE_NIDAQMX`: the fake bench); without them it says
+/// which library, where it looked and how to point at it.
+#[test]
+fn connect_madlib_at_the_prompt_takes_the_bench_or_says_where_the_library_was_looked_for() {
+    let lib = fakebench::library();
+    let d = tmp("madlib");
+    let o = bin()
+        .args(["--data", d.to_str().unwrap(), "eval"])
+        .arg(r#"connect(#{backend: "madlib"}); let s = status(); print(`stage ${s.stage}`); print(`qpd ${s.qpd}`); wa()"#)
+        .env("BFPSCOPE_MADLIB", &lib)
+        .env("BFPSCOPE_NIDAQMX", &lib)
+        .env_remove("BFPSCOPE_CONFIG")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    assert!(out.contains("Nano-Drive #2847"), "{out}\n{err}");
+    assert!(out.contains("NI-DAQmx Dev1"), "{out}\n{err}");
+    // no library: the message names it, the places searched and the way to point at it
+    let o = bin()
+        .args(["--data", d.to_str().unwrap(), "eval"])
+        .arg(r#"connect(#{backend: "madlib"})"#)
+        .env("BFPSCOPE_MADLIB", d.join("nowhere/libmadlib.so"))
+        .env_remove("BFPSCOPE_CONFIG")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_ne!(o.status.code(), Some(0));
+    assert!(
+        err.contains("Madlib library not loaded") && err.contains("nowhere/libmadlib.so"),
+        "{err}"
+    );
+    assert!(
+        err.contains("stage.library") || err.contains("BFPSCOPE_MADLIB"),
+        "{err}"
     );
 }

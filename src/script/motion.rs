@@ -191,7 +191,7 @@ pub fn register(r: &mut Registrar) {
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
+                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster]), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
                 ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)".to_string()),
                 ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)".to_string()),
                 ("qpd_host", "string", "", format!("optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default {})", crate::instrument::redpitaya::DEFAULT_PORT)),
@@ -568,7 +568,7 @@ const BACKEND_KEYS: &[(&str, &[&str])] = &[
     ("baud", &["hardware"]),
     ("stage_baud", &["hardware"]),
     ("qpd_baud", &["hardware"]),
-    ("timeout_ms", &["hardware", "thorlabs"]),
+    ("timeout_ms", &["hardware", "thorlabs", "bench"]),
     ("scene", &["sim", "emulated"]),
     ("pace", &["sim"]),
     ("noise_v", &["emulated"]),
@@ -585,11 +585,12 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     let kind = match backend.as_str() {
         "gcs" | "scpi" | "hardware" | "redpitaya" => "hardware",
         "thorlabs" | "kpz101" | "kpa101" => "thorlabs",
+        "madlib" | "nidaqmx" | "bench" => "bench",
         "config" | "sim" | "emulated" | "mock" => backend.as_str(),
         other => {
             return fail(format!(
                 "connect: backend = {other:?} is not available; available: \"config\", \"sim\", \"hardware\" \
-                 (\"gcs\", \"scpi\"), \"redpitaya\", \"thorlabs\" (\"kpz101\", \"kpa101\"), \"emulated\", \"mock\""
+                 (\"gcs\", \"scpi\"), \"redpitaya\", \"thorlabs\" (\"kpz101\", \"kpa101\"), \"madlib\" (\"nidaqmx\", \"bench\"), \"emulated\", \"mock\""
             ))
         }
     };
@@ -598,6 +599,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     let effective = match kind {
         "config" if cfg.is_simulated() => "sim",
         "config" if cfg.stage.backend == Backend::Kpz101 => "thorlabs",
+        "config" if cfg.stage.backend == Backend::Madlib => "bench",
         "config" => "hardware",
         k => k,
     };
@@ -685,6 +687,23 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             }
             if let Some(t) = positive("timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.stage.timeout_ms = t as u64;
+                cfg.qpd.timeout_ms = t as u64;
+            }
+            connect_hardware(c, &cfg, &backend).map_err(Into::into)
+        }
+        "bench" => {
+            // the paper's bench: a Nano-Drive (Madlib) and an NI board (NI-DAQmx) with the
+            // rest of their settings (libraries, device, channels, [raster]) from the config
+            if !from_config {
+                cfg.stage.backend = Backend::Madlib;
+                cfg.qpd.backend = Backend::Nidaqmx;
+            }
+            if let Some(t) = o.int("timeout_ms")? {
+                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
+                    return fail(format!(
+                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
+                    ));
+                }
                 cfg.qpd.timeout_ms = t as u64;
             }
             connect_hardware(c, &cfg, &backend).map_err(Into::into)

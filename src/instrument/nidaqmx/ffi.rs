@@ -2,7 +2,10 @@
 //! declarations the `ni-daqmx-sys` crate's Linux bindings copy), loaded at run time. Only the
 //! functions bfpscope calls are declared, each with the header's argument order and C types:
 //! `int32` = `i32`, `uInt32` = `u32`, `uInt64` = `u64`, `float64` = `f64`, `bool32` = `uInt32`,
-//! `TaskHandle` = `void*`. The header declares them `__CFUNC`: `__stdcall` on Windows, nothing
+//! `TaskHandle` = `void*`. (The header's `int32` is `signed int` under GCC on x86-64 and
+//! `signed long` elsewhere, 32 bits on every platform NI-DAQmx runs on: 64-bit Linux, whose
+//! `long` is 64 bits, takes the first branch. Older headers, e.g. NI-DAQmx Base's, declared
+//! `signed long` unconditionally; PyDAQmx maps it to `c_int`.) The header declares them `__CFUNC`: `__stdcall` on Windows, nothing
 //! (the C convention) on Linux and macOS, which is Rust's `extern "system"`.
 //!
 //! The constants below carry the header's values (`#define DAQmx_Val_…`, `#define

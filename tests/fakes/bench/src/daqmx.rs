@@ -27,6 +27,11 @@
 //! exceed `B`, the oldest were overwritten: the read returns −200279 (and so does every
 //! later read until the task is restarted). A finite task's buffer holds all its samples.
 //!
+//! A continuous AO task with regeneration off (`DAQmxSetWriteRegenMode`) plays each sample
+//! written once; a clock edge that finds no sample written stops the generation and its sample
+//! clock (AI on that clock takes no more samples), and the task's next write returns −200290
+//! until it is restarted.
+//!
 //! An AO channel holds the last value it generated when its task stops or is cleared;
 //! `DAQmxResetDevice` sets both AO channels to 0 V (and aborts the device's tasks).
 
@@ -147,6 +152,9 @@ pub struct Task {
     /// AO: the buffer (per channel) and pending on-demand values.
     pub ao_buf: Vec<Vec<f64>>,
     pub ao_pending: Option<Vec<f64>>,
+    /// AO continuous without regeneration: a clock edge came with no sample written (the
+    /// generation stopped, −200290 from then on until the task is restarted).
+    pub underflow: bool,
     /// AO timed: the first clock edge, the samples applied so far.
     pub ao_t0: f64,
     pub ao_next: u64,
@@ -168,6 +176,7 @@ impl Task {
             t_start: 0.0,
             read_pos: 0,
             overflowed: false,
+            underflow: false,
             ao_buf: Vec::new(),
             ao_pending: None,
             ao_t0: 0.0,
@@ -534,6 +543,7 @@ pub fn sync(b: &mut Bench, t: f64) {
     }
     let mut evs: Vec<(f64, Ev)> = Vec::new();
     // timed AO
+    let mut underflow_at = None;
     if let Some((_, id)) = b.daq.ao_start {
         if let (Some(task), Some(clk)) = (b.daq.tasks.get_mut(&id), b.daq.ao_clock) {
             if task.running && task.kind == Some(Kind::Ao) {
@@ -547,6 +557,10 @@ pub fn sync(b: &mut Bench, t: f64) {
                         break;
                     }
                     if !task.regen && timing.finite.is_none() && k >= len {
+                        // the clock edge came and no sample was written: the board stops
+                        // the generation (and its sample clock) rather than play old data
+                        task.underflow = true;
+                        underflow_at = Some(tk);
                         break;
                     }
                     for (c, ch) in task.chans.iter().enumerate() {
@@ -556,6 +570,9 @@ pub fn sync(b: &mut Bench, t: f64) {
                 }
             }
         }
+    }
+    if let (Some(t_end), Some(c)) = (underflow_at, b.daq.ao_clock.as_mut()) {
+        c.end = c.end.min(t_end);
     }
     // Madlib load waveforms
     for w in b.mcl.playing.iter_mut() {
@@ -756,6 +773,7 @@ fn start_task(b: &mut Bench, id: usize, implicit: bool) -> R<()> {
     task.t_start = t;
     task.read_pos = 0;
     task.overflowed = false;
+    task.underflow = false;
     task.implicit_start = implicit;
     if kind == Kind::Ao {
         match timed {
@@ -1710,6 +1728,9 @@ fn write(
         None => return fail(NO_CHANS_IN_TASK, ""),
         Some(Kind::Ai) => return fail(WRITE_CHAN_TYPE_MISMATCH, ""),
         Some(Kind::Ao) => {}
+    }
+    if task.underflow {
+        return fail(GEN_STOPPED_TO_PREVENT_REGEN_OF_OLD_SAMPLES, "");
     }
     if n < 0 {
         return fail(
