@@ -301,10 +301,29 @@ pub fn bin_line(
         }
     }
     if let Some(i) = count.iter().position(|&c| c == 0) {
-        return Err(format!(
-            "pixel {i} (centre {:.4} µm) got no sample: the line is too fast for the digitiser's rate",
-            from + i as f64 * w
-        ));
+        let c = from + i as f64 * w;
+        // what the samples did there: consecutive samples on either side of the pixel (the
+        // line too fast for the digitiser), or none valid there at all
+        let lo = c - 0.5 * w.abs();
+        let hi = c + 0.5 * w.abs();
+        let jump = positions
+            .windows(2)
+            .enumerate()
+            .find(|(_, p)| (p[0] < lo && p[1] >= hi) || (p[1] < lo && p[0] >= hi));
+        let why = match jump {
+            Some((k, p)) => format!(
+                "the measured position jumps from {:.4} to {:.4} µm between samples {k} and {} (a pixel is {:.4} µm): the line is too fast for the digitiser's rate",
+                p[0],
+                p[1],
+                k + 1,
+                w.abs()
+            ),
+            None if positions.iter().any(|&x| x >= lo && x < hi) => {
+                "its samples there are not finite (the digitiser returned NaN or infinity)".into()
+            }
+            None => "no sample's measured position reaches it (the stage did not cover the line)".into(),
+        };
+        return Err(format!("pixel {i} (centre {c:.4} µm) got no sample: {why}"));
     }
     let mean = (0..n)
         .map(|i| {
@@ -440,9 +459,24 @@ mod tests {
         let x = [0.0, 0.1, 0.9, 1.0];
         let e = bin_line(&x, &[1.0; 4], 0.0, 1.0, 3).unwrap_err();
         assert!(
-            e.starts_with("pixel 1 (centre 0.5000 µm) got no sample"),
+            e == "pixel 1 (centre 0.5000 µm) got no sample: the measured position jumps from 0.1000 to 0.9000 µm between samples 1 and 2 (a pixel is 0.5000 µm): the line is too fast for the digitiser's rate",
             "{e}"
         );
         assert!(bin_line(&x, &[1.0; 3], 0.0, 1.0, 3).is_err());
+        // samples there, but not finite; no sample there at all
+        let e = bin_line(&[0.0, 0.5, 1.0], &[1.0, f64::NAN, 1.0], 0.0, 1.0, 3).unwrap_err();
+        assert!(
+            e.ends_with(
+                "its samples there are not finite (the digitiser returned NaN or infinity)"
+            ),
+            "{e}"
+        );
+        let e = bin_line(&[0.0, 0.1, 0.2], &[1.0; 3], 0.0, 1.0, 3).unwrap_err();
+        assert!(
+            e.ends_with(
+                "no sample's measured position reaches it (the stage did not cover the line)"
+            ),
+            "{e}"
+        );
     }
 }

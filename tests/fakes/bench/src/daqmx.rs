@@ -155,6 +155,9 @@ pub struct Task {
     /// AO continuous without regeneration: a clock edge came with no sample written (the
     /// generation stopped, −200290 from then on until the task is restarted).
     pub underflow: bool,
+    /// AO without regeneration: the samples before this one were played and dropped from
+    /// `ao_buf` (a stream's buffer does not grow with the stream).
+    pub ao_base: u64,
     /// AO timed: the first clock edge, the samples applied so far.
     pub ao_t0: f64,
     pub ao_next: u64,
@@ -177,6 +180,7 @@ impl Task {
             read_pos: 0,
             overflowed: false,
             underflow: false,
+            ao_base: 0,
             ao_buf: Vec::new(),
             ao_pending: None,
             ao_t0: 0.0,
@@ -548,7 +552,9 @@ pub fn sync(b: &mut Bench, t: f64) {
         if let (Some(task), Some(clk)) = (b.daq.tasks.get_mut(&id), b.daq.ao_clock) {
             if task.running && task.kind == Some(Kind::Ao) {
                 let timing = task.timing.expect("timed AO");
-                let len = task.ao_buf.first().map_or(0, Vec::len) as u64;
+                let stream = !task.regen && timing.finite.is_none();
+                let base = if stream { task.ao_base } else { 0 };
+                let len = base + task.ao_buf.first().map_or(0, Vec::len) as u64;
                 // one sample per pass until the clock, the finite count or the buffer ends
                 while len > 0 && task.ao_next < timing.finite.unwrap_or(u64::MAX) {
                     let k = task.ao_next;
@@ -563,10 +569,18 @@ pub fn sync(b: &mut Bench, t: f64) {
                         underflow_at = Some(tk);
                         break;
                     }
+                    let i = if stream { k - base } else { k % len } as usize;
                     for (c, ch) in task.chans.iter().enumerate() {
-                        evs.push((tk, Ev::Ao(ch.phys, task.ao_buf[c][(k % len) as usize])));
+                        evs.push((tk, Ev::Ao(ch.phys, task.ao_buf[c][i])));
                     }
                     task.ao_next += 1;
+                }
+                if stream && task.ao_next - task.ao_base >= 1 << 16 {
+                    let played = (task.ao_next - task.ao_base) as usize;
+                    for buf in task.ao_buf.iter_mut() {
+                        buf.drain(..played.min(buf.len()));
+                    }
+                    task.ao_base = task.ao_next;
                 }
             }
         }
@@ -780,6 +794,7 @@ fn start_task(b: &mut Bench, id: usize, implicit: bool) -> R<()> {
             Some(tm) => {
                 task.ao_t0 = t;
                 task.ao_next = 0;
+                task.ao_base = 0;
                 let end = match tm.finite {
                     Some(n) => t + n as f64 / tm.rate,
                     None => f64::INFINITY,

@@ -32,6 +32,9 @@ pub struct Qpd {
     origin: [f64; 3],
     renderer: Option<Result<Arc<Renderer>, String>>,
     tiles: HashMap<(i64, i64, i64), Tile>,
+    /// The tile of the last node looked up: a stream's consecutive samples are nodes of one
+    /// tile (a hash lookup per node cost most of a sample's time).
+    last: Option<((i64, i64, i64), Tile)>,
 }
 
 impl Qpd {
@@ -41,6 +44,7 @@ impl Qpd {
             origin: cfg.origin(),
             renderer: None,
             tiles: HashMap::new(),
+            last: None,
         }
     }
 
@@ -96,9 +100,17 @@ impl Qpd {
 
     fn node(&mut self, ix: i64, iy: i64, iz: i64) -> [f64; 3] {
         let t = TILE as i64;
-        let tile = self.tile((ix.div_euclid(t), iy.div_euclid(t), iz));
+        let key = (ix.div_euclid(t), iy.div_euclid(t), iz);
         let k = (iy.rem_euclid(t) * t + ix.rem_euclid(t)) as usize;
-        [tile[0][k], tile[1][k], tile[2][k]]
+        if let Some((lk, tile)) = &self.last {
+            if *lk == key {
+                return [tile[0][k], tile[1][k], tile[2][k]];
+            }
+        }
+        let tile = self.tile(key);
+        let v = [tile[0][k], tile[1][k], tile[2][k]];
+        self.last = Some((key, tile));
+        v
     }
 
     /// (Sx, Sy, Sz) in signal units with the stage at `stage` (µm).

@@ -37,6 +37,8 @@ pub struct Axis {
     pub ext: Option<f64>,
     /// Stuck (fault): the sensor holds this position whatever the target.
     pub stuck_at: Option<f64>,
+    /// Where the last search ended ([`Self::index_after`]).
+    hint: std::cell::Cell<usize>,
 }
 
 impl Axis {
@@ -52,6 +54,7 @@ impl Axis {
             usb: 0.0,
             ext: None,
             stuck_at: None,
+            hint: std::cell::Cell::new(0),
         }
     }
 
@@ -81,11 +84,26 @@ impl Axis {
         if e[n - 1].t <= t {
             return n;
         }
-        let tail = n.saturating_sub(1 << 14);
-        if e[tail].t <= t {
-            return tail + e[tail..].partition_point(|x| x.t <= t);
+        // the stream's samples come in time order, a change or two apart: step on from the
+        // last answer
+        let mut h = self.hint.get().min(n);
+        if h > 0 && e[h - 1].t <= t {
+            for _ in 0..16 {
+                if h == n || e[h].t > t {
+                    self.hint.set(h);
+                    return h;
+                }
+                h += 1;
+            }
         }
-        e.partition_point(|x| x.t <= t)
+        let tail = n.saturating_sub(1 << 14);
+        let k = if e[tail].t <= t {
+            tail + e[tail..].partition_point(|x| x.t <= t)
+        } else {
+            e.partition_point(|x| x.t <= t)
+        };
+        self.hint.set(k);
+        k
     }
 
     /// The target becomes `target` (clamped to the range) at `t` (not before the last change).
@@ -200,9 +218,8 @@ impl NanoDrive {
 
     fn noise(&mut self) -> f64 {
         if self.noise_um > 0.0 {
-            Normal::new(0.0, self.noise_um)
-                .map(|n| n.sample(&mut self.rng))
-                .unwrap_or(0.0)
+            let z: f64 = rand_distr::StandardNormal.sample(&mut self.rng);
+            z * self.noise_um
         } else {
             0.0
         }
