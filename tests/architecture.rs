@@ -261,11 +261,14 @@ fn inner_graph(dir: &str) -> Graph {
         }
         let mut deps = BTreeSet::new();
         for p in &prefixes {
-            let mut rest = code.as_str();
-            while let Some(i) = rest.find(p.as_str()) {
-                let before = rest[..i].chars().last();
-                rest = &rest[i + p.len()..];
-                if p == "super::" && before == Some(':') {
+            let mut at = 0;
+            while let Some(i) = code[at..].find(p.as_str()) {
+                // the character before the match, in the whole file (`super::super::…`: the
+                // second `super::` follows the first's `:`)
+                let before = code[..at + i].chars().last();
+                at += i + p.len();
+                let rest = &code[at..];
+                if p == "super::" && (before == Some(':') || rest.starts_with("super::")) {
                     continue; // `super::super::…` leaves the directory
                 }
                 deps.extend(path_heads(rest).iter().filter_map(|h| resolve(h)));

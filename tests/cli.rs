@@ -999,18 +999,98 @@ fn the_session_log_holds_everything_printed() {
 }
 
 /// At the prompt, `connect(#{backend: "madlib"})` takes the paper's bench (a Nano-Drive through
-/// Madlib, an NI board through NI-DAQmx) with the libraries found where the vendor search
-/// looks (here `BFPSCOPE_MADLIB` / `BFPSCOPE_NIDAQMX`: the fake bench); without them it says
-/// which library, where it looked and how to point at it.
+/// Madlib, an NI board through NI-DAQmx) with the rest of its settings from the config, also
+/// after another backend; a library that is not where the config says is named with the places
+/// searched; without a config naming the board, the missing key is named.
 #[test]
-fn connect_madlib_at_the_prompt_takes_the_bench_or_says_where_the_library_was_looked_for() {
+fn connect_madlib_at_the_prompt_takes_the_bench_or_says_what_is_missing() {
     let lib = fakebench::library();
     let d = tmp("madlib");
+    let cfg = d.join("bench.toml");
+    std::fs::write(&cfg, bfpscope::config::bench::fake_bench_config(&lib)).unwrap();
+    let eval = |config: Option<&std::path::Path>, script: &str| {
+        let mut c = bin();
+        if let Some(p) = config {
+            c.args(["--config", p.to_str().unwrap()]);
+        }
+        let o = c
+            .args(["--data", d.to_str().unwrap(), "eval", script])
+            .env_remove("BFPSCOPE_CONFIG")
+            .env_remove("BFPSCOPE_MADLIB")
+            .env_remove("BFPSCOPE_NIDAQMX")
+            .current_dir(&d)
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stdout).to_string(),
+            String::from_utf8_lossy(&o.stderr).to_string(),
+        )
+    };
+    let (code, out, err) = eval(
+        Some(&cfg),
+        r#"connect(#{backend: "sim"}); print(status().instrument.stage); connect(#{backend: "madlib"}); let s = status().instrument; print(`stage ${s.stage.name}`); print(`qpd ${s.qpd.name} ${s.qpd.product_type}`)"#,
+    );
+    assert_eq!(code, Some(0), "{out}\n{err}");
+    assert!(
+        out.contains("stage Mad City Labs Nano-Drive #2847"),
+        "{out}\n{err}"
+    );
+    assert!(
+        out.contains("qpd NI PCI-6120 Dev1 PCI-6120"),
+        "{out}\n{err}"
+    );
+    // the library is not where the config says: which, where, how
+    let moved = d.join("moved.toml");
+    let text = bfpscope::config::bench::fake_bench_config(&lib);
+    let nowhere = d.join("nowhere/libmadlib.so");
+    let text = text.replacen(
+        &format!("library = \"{}\"", lib.display()),
+        &format!("library = \"{}\"", nowhere.display()),
+        1,
+    );
+    std::fs::write(&moved, text).unwrap();
+    let (code, out, err) = eval(Some(&moved), r#"connect(#{backend: "madlib"})"#);
+    assert_ne!(code, Some(0), "{out}");
+    assert!(
+        err.contains("Madlib library not loaded") && err.contains("nowhere/libmadlib.so"),
+        "{err}"
+    );
+    assert!(err.contains("stage.library"), "{err}");
+    // no config: the board's name is the first thing missing
+    let (code, _, err) = eval(None, r#"connect(#{backend: "madlib"})"#);
+    assert_ne!(code, Some(0));
+    assert!(
+        err.contains("qpd.device: required when backend = \"nidaqmx\""),
+        "{err}"
+    );
+}
+
+/// From the prompt, the paper's bench as `bfpscope emulate nidaq` configures it: a raster of the
+/// fake's 110 nm bead streamed on the NI board's clock, and the bead fitted where the fake puts
+/// it (the stage at the middle of its range, 37.5 µm).
+#[test]
+fn a_raster_on_the_emulated_nidaq_bench_from_the_prompt_finds_the_bead() {
+    let lib = fakebench::library();
+    let d = tmp("nidaqraster");
+    let cfg = d.join("bench.toml");
+    std::fs::write(&cfg, bfpscope::config::bench::fake_bench_config(&lib)).unwrap();
+    let script = r#"umv(#{x: 37.5, y: 37.5, z: 25.0});
+let s = scan_xy(#{x: [37.0, 38.0], y: [37.0, 38.0], nx: 21, ny: 21, dwell: 0.0001, mode: "raster"});
+let f = fit_beads(s, template_model(#{h_um: 0.02}), #{n_beads: 1});
+let b = f.beads[0];
+print(`raster ${s.meta.status} ${s.meta.raster.path} ${s.meta.instrument.stage.backend}`);
+print(`bead ${(b.x - 37.5) * 1000.0} ${(b.y - 37.5) * 1000.0} ${b.weight}`);"#;
     let o = bin()
-        .args(["--data", d.to_str().unwrap(), "eval"])
-        .arg(r#"connect(#{backend: "madlib"}); let s = status(); print(`stage ${s.stage}`); print(`qpd ${s.qpd}`); wa()"#)
-        .env("BFPSCOPE_MADLIB", &lib)
-        .env("BFPSCOPE_NIDAQMX", &lib)
+        .args([
+            "--config",
+            cfg.to_str().unwrap(),
+            "--data",
+            d.to_str().unwrap(),
+            "eval",
+            script,
+        ])
         .env_remove("BFPSCOPE_CONFIG")
         .stdin(Stdio::null())
         .output()
@@ -1020,25 +1100,17 @@ fn connect_madlib_at_the_prompt_takes_the_bench_or_says_where_the_library_was_lo
         String::from_utf8_lossy(&o.stderr),
     );
     assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
-    assert!(out.contains("Nano-Drive #2847"), "{out}\n{err}");
-    assert!(out.contains("NI-DAQmx Dev1"), "{out}\n{err}");
-    // no library: the message names it, the places searched and the way to point at it
-    let o = bin()
-        .args(["--data", d.to_str().unwrap(), "eval"])
-        .arg(r#"connect(#{backend: "madlib"})"#)
-        .env("BFPSCOPE_MADLIB", d.join("nowhere/libmadlib.so"))
-        .env_remove("BFPSCOPE_CONFIG")
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_ne!(o.status.code(), Some(0));
     assert!(
-        err.contains("Madlib library not loaded") && err.contains("nowhere/libmadlib.so"),
-        "{err}"
+        out.contains("raster complete frame stream madlib"),
+        "{out}\n{err}"
     );
-    assert!(
-        err.contains("stage.library") || err.contains("BFPSCOPE_MADLIB"),
-        "{err}"
-    );
+    let l = out
+        .lines()
+        .find(|l| l.starts_with("bead "))
+        .expect("bead line");
+    let v: Vec<f64> = l[5..].split(' ').map(|x| x.parse().unwrap()).collect();
+    // the fake's bead at the stage's 37.5 µm; the template from the same optics: within 5 nm,
+    // weight 1 within 3 %
+    assert!(v[0].abs() < 5.0 && v[1].abs() < 5.0, "{l}");
+    assert!((v[2] - 1.0).abs() < 0.03, "{l}");
 }

@@ -610,9 +610,9 @@ rate_hz = 800000.0
 [raster]
 backend = "nidaqmx"
 ao = {{ x = "ao0", y = "ao1" }}
-volts_per_um = {{ x = 0.1333, y = 0.1333 }}
+volts_per_um = {{ x = 0.13333333333333333, y = 0.13333333333333333 }}   # 10 V over 75 µm, exactly
 position = {{ x = "ai3" }}
-position_volts_per_um = {{ x = 0.1333 }}
+position_volts_per_um = {{ x = 0.13333333333333333 }}
 "#
     )
 }
