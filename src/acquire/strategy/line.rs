@@ -19,7 +19,7 @@
 //! stage's; a digitiser that fails (arm, trigger, read) or a line that cannot be binned is
 //! not, and a relative scan then returns to its start.
 
-use super::{padded, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
 use crate::acquire::engine::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
@@ -31,6 +31,7 @@ use crate::instrument::{BufferedTrace, DeviceError, Instrument, Pos, Trigger};
 use ndarray::Array2;
 use serde_json::{json, Value};
 use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
 /// Wall time per line by phase (real-time instruments), s summed; and the line the
 /// controller holds.
@@ -49,7 +50,7 @@ struct LinePhases {
 pub struct LineStrategy {
     opts: RasterOptions,
     dwell_s: f64,
-    rp: Option<RasterPlan>,
+    rp: Option<Arc<RasterPlan>>,
     timing: Option<LineTiming>,
     ph: LinePhases,
     stats: BinStats,
@@ -231,7 +232,7 @@ impl Strategy for LineStrategy {
         self.dwell_s = plan.dwell_s;
         self.timing = Some(timing);
         let steps = rp.lines.len();
-        self.rp = Some(rp);
+        self.rp = Some(Arc::new(rp));
         Ok(Layout {
             steps,
             steps_per_row: 1,
@@ -242,15 +243,8 @@ impl Strategy for LineStrategy {
     }
 
     fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
-        let Some(rp) = self.rp.take() else {
-            return Err(StepFault::other(DeviceError::Other {
-                device: inst.stage.name(),
-                detail: "a raster line was asked before the raster was planned".into(),
-            }));
-        };
-        let r = self.line_step(inst, &rp, i);
-        self.rp = Some(rp);
-        r
+        let rp = planned(&self.rp, inst)?;
+        self.line_step(inst, &rp, i)
     }
 
     fn resting_at(&self) -> Option<Pos> {

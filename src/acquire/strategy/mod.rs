@@ -231,3 +231,16 @@ pub fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
     }
     a
 }
+
+/// The raster's plan, for a step: `prepare` made it (a step asked before is refused).
+pub fn planned(
+    rp: &Option<std::sync::Arc<super::raster::RasterPlan>>,
+    inst: &mut Instrument,
+) -> Result<std::sync::Arc<super::raster::RasterPlan>, StepFault> {
+    rp.clone().ok_or_else(|| {
+        StepFault::other(DeviceError::Other {
+            device: inst.stage.name(),
+            detail: "a raster line was asked before the raster was planned".into(),
+        })
+    })
+}

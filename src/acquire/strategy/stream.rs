@@ -21,7 +21,7 @@
 //! Every device fault of the stream is the stage's (the outputs drive it): no further motion.
 //! A line that cannot be binned is not.
 
-use super::{padded, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
 use crate::acquire::engine::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
@@ -31,6 +31,7 @@ use crate::instrument::stream::{FrameStream, StreamChunk};
 use crate::instrument::{DeviceError, Instrument, Pos, AXES};
 use ndarray::Array2;
 use serde_json::{json, Value};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// How far ahead of the clock the outputs are written, s.
@@ -232,7 +233,7 @@ struct Phases {
 pub struct StreamStrategy {
     opts: RasterOptions,
     dwell_s: f64,
-    rp: Option<RasterPlan>,
+    rp: Option<Arc<RasterPlan>>,
     geo: Option<Geometry>,
     run: Option<Running>,
     stats: BinStats,
@@ -622,7 +623,7 @@ impl Strategy for StreamStrategy {
         self.dwell_s = plan.dwell_s;
         self.base = base;
         self.geo = Some(geo);
-        self.rp = Some(rp);
+        self.rp = Some(Arc::new(rp));
         self.stats.sample_rate = Some(rate);
         Ok(Layout {
             steps: n_lines,
@@ -634,15 +635,8 @@ impl Strategy for StreamStrategy {
     }
 
     fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
-        let Some(rp) = self.rp.take() else {
-            return Err(StepFault::other(DeviceError::Other {
-                device: inst.stage.name(),
-                detail: "a raster line was asked before the raster was planned".into(),
-            }));
-        };
-        let r = self.line_step(inst, &rp, i);
-        self.rp = Some(rp);
-        r
+        let rp = planned(&self.rp, inst)?;
+        self.line_step(inst, &rp, i)
     }
 
     fn resting_at(&self) -> Option<Pos> {

@@ -11,7 +11,7 @@
 use crate::config::Config;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
+use rand_distr::Distribution;
 
 /// One target change: at bench time `t` (s) the target became `target` (µm) with the sensor
 /// at `pos` (µm).
