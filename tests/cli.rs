@@ -885,7 +885,10 @@ fn a_scan_that_cannot_be_saved_at_the_prompt_stays_in_memory_with_a_way_out() {
             Ok(()) => break,
             Err(e) => {
                 tries += 1;
-                assert!(tries < 200, "cannot replace the session folder by a file: {e}");
+                assert!(
+                    tries < 200,
+                    "cannot replace the session folder by a file: {e}"
+                );
                 std::thread::sleep(Duration::from_millis(10));
             }
         }
