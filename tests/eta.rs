@@ -1,0 +1,101 @@
+//! ETAs on the real-time backends (issue 33): the FIRST scan after connecting, before the
+//! drivers have measured anything, must promise within 20 % of what it takes, on the emulators
+//! with their modelled links (`bfpscope emulate`'s default: 115200 baud, 1 ms latency). The
+//! ETA comes from the device-side cost models (link bytes at the baud rate, the latency measured
+//! on the connect's replies, the turnarounds of each step), and each model is checked against
+//! the scan's own `meta.time.phases`, so a good total cannot hide two compensating errors.
+
+use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, ScanRun, SoftLimits, Sweep};
+use bfpscope::config::connect::connect;
+use bfpscope::config::Config;
+use bfpscope::data::Scan;
+use bfpscope::instrument::emulator::{
+    standin_bead, start_pair, LinkModel, QpdEmulatorConfig, StageEmulatorConfig,
+};
+use bfpscope::instrument::Instrument;
+use std::sync::atomic::AtomicBool;
+
+fn run(inst: &mut Instrument, plan: &Plan, limits: &SoftLimits) -> ScanRun {
+    let abort = AtomicBool::new(false);
+    let log = |s: &str| eprintln!("{s}");
+    let save = |_: &Scan| -> Result<std::path::PathBuf, String> { Ok("memory".into()) };
+    let env = ScanEnv::plain(limits, &abort, &log, &save);
+    run_plan(inst, plan, &env).expect("the scan runs")
+}
+
+fn grid(n: i64, dwell_s: f64) -> Plan {
+    Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, -0.5, 0.5, n, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, -0.5, 0.5, n, "ny").unwrap(),
+        vec![],
+        dwell_s,
+        false,
+        false,
+    )
+    .unwrap()
+}
+
+/// |a/b − 1| ≤ tol, with the numbers in the message.
+fn within(a: f64, b: f64, tol: f64, what: &str) {
+    assert!(
+        (a / b - 1.0).abs() <= tol,
+        "{what}: predicted {a:.4} vs measured {b:.4} ({:+.0} %)",
+        100.0 * (a / b - 1.0)
+    );
+}
+
+/// PI GCS stage + SCPI QPD (`bfpscope emulate pair`), point by point.
+#[test]
+fn the_first_point_scan_on_the_gcs_scpi_pair_keeps_its_eta() {
+    let link = LinkModel::USB_SERIAL_115200;
+    let stage = StageEmulatorConfig {
+        travel: [(-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0)],
+        link,
+        ..Default::default()
+    };
+    let qpd = QpdEmulatorConfig {
+        link,
+        ..Default::default()
+    };
+    let (se, qe) = start_pair(stage, qpd, standin_bead).unwrap();
+    let text = format!(
+        "[stage]\nbackend = \"gcs\"\nport = \"{}\"\nsettle_s = 0.005\n[qpd]\nbackend = \"scpi\"\nport = \"{}\"\n",
+        se.path(),
+        qe.path()
+    );
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let mut c = connect(&cfg, |_| panic!("no simulator")).unwrap();
+    let limits = c.limits;
+    // the drivers' models before anything was measured
+    let move_prior = c.instrument.stage.move_time_s();
+    let qpd_prior = c.instrument.qpd.overhead_s();
+    assert!(
+        move_prior > 0.0 && qpd_prior > 0.0,
+        "{move_prior} {qpd_prior}"
+    );
+    // 12 × 12 points, ~3 s
+    let r = run(&mut c.instrument, &grid(12, 1e-3), &limits);
+    let t = &r.scan.meta["time"];
+    let (eta, wall) = (t["eta_s"].as_f64().unwrap(), t["wall_s"].as_f64().unwrap());
+    let p = &t["phases"];
+    eprintln!(
+        "ETA {eta:.3} s, measured {wall:.3} s; move prior {:.2} ms, QPD prior {:.2} ms; phases {p}",
+        1e3 * move_prior,
+        1e3 * qpd_prior
+    );
+    // where the time went, model by model (the machine is loaded: 30 % per phase)
+    within(
+        1e3 * move_prior,
+        p["move_ms"].as_f64().unwrap(),
+        0.3,
+        "move per point, ms",
+    );
+    within(
+        1e3 * qpd_prior,
+        p["qpd_beyond_dwell_ms"].as_f64().unwrap(),
+        0.3,
+        "QPD read beyond the dwell, ms",
+    );
+    within(eta, wall, 0.2, "the first scan's ETA, s");
+}
