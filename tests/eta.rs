@@ -10,7 +10,8 @@ use bfpscope::config::connect::connect;
 use bfpscope::config::Config;
 use bfpscope::data::Scan;
 use bfpscope::instrument::emulator::{
-    standin_bead, start_pair, LinkModel, QpdEmulatorConfig, StageEmulatorConfig,
+    shared_position, standin_bead, start_kpa101_emulator, start_kpz101_stage_on, start_pair,
+    KpaEmulatorConfig, LinkModel, QpdEmulatorConfig, StageEmulatorConfig,
 };
 use bfpscope::instrument::Instrument;
 use std::sync::atomic::AtomicBool;
@@ -23,11 +24,11 @@ fn run(inst: &mut Instrument, plan: &Plan, limits: &SoftLimits) -> ScanRun {
     run_plan(inst, plan, &env).expect("the scan runs")
 }
 
-fn grid(n: i64, dwell_s: f64) -> Plan {
+fn grid(c: f64, n: i64, dwell_s: f64) -> Plan {
     Plan::grid(
         "scan_xy",
-        Sweep::new("scan_xy", Axis::X, -0.5, 0.5, n, "nx").unwrap(),
-        Sweep::new("scan_xy", Axis::Y, -0.5, 0.5, n, "ny").unwrap(),
+        Sweep::new("scan_xy", Axis::X, c - 0.5, c + 0.5, n, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, c - 0.5, c + 0.5, n, "ny").unwrap(),
         vec![],
         dwell_s,
         false,
@@ -75,7 +76,7 @@ fn the_first_point_scan_on_the_gcs_scpi_pair_keeps_its_eta() {
         "{move_prior} {qpd_prior}"
     );
     // 12 × 12 points, ~3 s
-    let r = run(&mut c.instrument, &grid(12, 1e-3), &limits);
+    let r = run(&mut c.instrument, &grid(0.0, 12, 1e-3), &limits);
     let t = &r.scan.meta["time"];
     let (eta, wall) = (t["eta_s"].as_f64().unwrap(), t["wall_s"].as_f64().unwrap());
     let p = &t["phases"];
@@ -96,6 +97,77 @@ fn the_first_point_scan_on_the_gcs_scpi_pair_keeps_its_eta() {
         p["qpd_beyond_dwell_ms"].as_f64().unwrap(),
         0.3,
         "QPD read beyond the dwell, ms",
+    );
+    within(eta, wall, 0.2, "the first scan's ETA, s");
+}
+
+/// Three Thorlabs KPZ101 cubes + a KPA101 position aligner (`bfpscope emulate thorlabs`: USB
+/// serial at APT's 115200 baud, 1 ms latency), point by point, at the backends' default poll
+/// interval (10 ms for the cubes).
+#[test]
+fn the_first_point_scan_on_the_thorlabs_cubes_keeps_its_eta_and_shows_its_links() {
+    let pos = shared_position([10.0, 10.0, 10.0]);
+    let link = LinkModel::USB_SERIAL_115200;
+    let cubes = start_kpz101_stage_on([20.0; 3], pos.clone(), link).unwrap();
+    let kpa = start_kpa101_emulator(
+        KpaEmulatorConfig {
+            link,
+            ..Default::default()
+        },
+        pos,
+        standin_bead,
+    )
+    .unwrap();
+    let text = format!(
+        "[stage]\nbackend = \"kpz101\"\nports = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\nsettle_s = 0.005\n\
+         [qpd]\nbackend = \"kpa101\"\nport = \"{}\"\n",
+        cubes[0].path(),
+        cubes[1].path(),
+        cubes[2].path(),
+        kpa.path()
+    );
+    let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
+    let mut c = connect(&cfg, |_| panic!("no simulator")).unwrap();
+    let limits = c.limits;
+    let move_prior = c.instrument.stage.move_time_s();
+    assert!(move_prior > 0.0, "{move_prior}");
+    // 10 × 10 points around the middle of the travel, ~2 s
+    let r = run(&mut c.instrument, &grid(10.0, 10, 1e-3), &limits);
+    let t = &r.scan.meta["time"];
+    let (eta, wall) = (t["eta_s"].as_f64().unwrap(), t["wall_s"].as_f64().unwrap());
+    let p = &t["phases"];
+    eprintln!(
+        "ETA {eta:.3} s, measured {wall:.3} s; move prior {:.2} ms; phases {p}",
+        1e3 * move_prior
+    );
+    // the timing line's breakdowns: every message the cubes and the aligner exchanged
+    let stage = p["stage_link"].as_object().unwrap();
+    assert!(
+        stage.contains_key("MGMSG_PZ_SET_OUTPUTPOS")
+            && stage.contains_key("MGMSG_PZ_REQ_OUTPUTPOS"),
+        "{p}"
+    );
+    assert_eq!(
+        stage["MGMSG_PZ_REQ_OUTPUTPOS"]["bytes_per_point"]
+            .as_f64()
+            .unwrap()
+            / stage["MGMSG_PZ_REQ_OUTPUTPOS"]["per_point"]
+                .as_f64()
+                .unwrap(),
+        16.0,
+        "6 bytes out, 10 back"
+    );
+    let qpd = p["qpd_link"].as_object().unwrap();
+    assert_eq!(
+        qpd["MGMSG_QUAD_REQ_PARAMS"]["bytes_per_point"], 24.0,
+        "6 out, 6 + 12 back"
+    );
+    assert!(p["link_bytes_per_point"].as_f64().unwrap() > 24.0, "{p}");
+    within(
+        1e3 * move_prior,
+        p["move_ms"].as_f64().unwrap(),
+        0.3,
+        "move per point, ms",
     );
     within(eta, wall, 0.2, "the first scan's ETA, s");
 }

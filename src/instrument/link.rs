@@ -295,6 +295,38 @@ pub struct Turnarounds {
 impl Turnarounds {
     /// Replies kept (the connect's queries and the first steps of a scan are enough).
     pub const KEEP: usize = 256;
+
+    /// Add one reply (the first [`Turnarounds::KEEP`] are kept); `true` if it was kept.
+    pub fn add(&mut self, reply_s: f64, bytes: u64) -> bool {
+        let keep = self.replies.len() < Self::KEEP;
+        if keep {
+            self.replies.push((reply_s, bytes));
+        }
+        keep
+    }
+
+    /// The reply latency, s: the time from a command's end to its reply's end beyond the
+    /// bytes' time on the wire (`bytes_per_s`: the serial rate, 10 bits per byte; `None`: TCP,
+    /// no wire time), the median over the replies (at least the connect's identification and
+    /// configuration queries; the median, because a few of those make the device work —
+    /// switching servos on — and are not the link's). `None` before the first reply.
+    pub fn latency_s(&self, bytes_per_s: Option<f64>) -> Option<f64> {
+        let mut l: Vec<f64> = self
+            .replies
+            .iter()
+            .map(|&(s, b)| (s - bytes_per_s.map_or(0.0, |r| b as f64 / r)).max(0.0))
+            .collect();
+        if l.is_empty() {
+            return None;
+        }
+        l.sort_by(f64::total_cmp);
+        let m = l.len() / 2;
+        Some(if l.len() % 2 == 1 {
+            l[m]
+        } else {
+            0.5 * (l[m - 1] + l[m])
+        })
+    }
 }
 
 /// A line-terminated (LF, optional CR before it) ASCII command link.
@@ -331,29 +363,9 @@ impl LineLink {
         &self.turnarounds
     }
 
-    /// The link's reply latency, s: the time from a command's end to its reply's end beyond
-    /// the bytes' time on the wire (`bytes_per_s`: the serial rate, 10 bits per byte; `None`:
-    /// TCP, no wire time), the median over the replies so far (at least the connect's
-    /// identification and configuration queries; the median, because a few of those make the
-    /// device work — switching servos on — and are not the link's). `None` before the first
-    /// reply.
+    /// The link's reply latency, s ([`Turnarounds::latency_s`] over the replies so far).
     pub fn latency_s(&self, bytes_per_s: Option<f64>) -> Option<f64> {
-        let mut l: Vec<f64> = self
-            .turnarounds
-            .replies
-            .iter()
-            .map(|&(s, b)| (s - bytes_per_s.map_or(0.0, |r| b as f64 / r)).max(0.0))
-            .collect();
-        if l.is_empty() {
-            return None;
-        }
-        l.sort_by(f64::total_cmp);
-        let m = l.len() / 2;
-        Some(if l.len() % 2 == 1 {
-            l[m]
-        } else {
-            0.5 * (l[m - 1] + l[m])
-        })
+        self.turnarounds.latency_s(bytes_per_s)
     }
 
     /// The costs per command word since the last call (and start counting anew).
@@ -441,13 +453,8 @@ impl LineLink {
         // a command's turnaround: from its write to the end of its reply, every line of a
         // multi-line reply (`TMN?` answers one line per axis) with its bytes
         if r.is_ok() {
-            let keep = self.turnarounds.replies.len() < Turnarounds::KEEP;
             match self.pending_out.take() {
-                Some(out) if keep => {
-                    self.turnarounds.replies.push((dt, out + n as u64));
-                    self.reply_open = true;
-                }
-                Some(_) => self.reply_open = false,
+                Some(out) => self.reply_open = self.turnarounds.add(dt, out + n as u64),
                 None if self.reply_open => {
                     if let Some(last) = self.turnarounds.replies.last_mut() {
                         last.0 += dt;

@@ -176,7 +176,7 @@ pub fn serve_emulators(
                 "emulate: --tcp serves the GCS stage; Thorlabs cubes are serial (USB) devices"
             );
         }
-        return serve_apt(kind, source, out, stop);
+        return serve_apt(kind, source, out, stop, opts.link);
     }
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
     // TCP has no baud rate: the stage's link keeps only the latency there
@@ -381,8 +381,9 @@ fn serve_apt(
     source: impl SignalSource,
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
+    link: LinkModel,
 ) -> anyhow::Result<()> {
-    use super::{start_kpa101_emulator, start_kpz101_stage, KpaEmulatorConfig};
+    use super::{start_kpa101_emulator, start_kpz101_stage_on, KpaEmulatorConfig};
     let pos = shared_position(APT_CENTRE);
     let shifted = move |p: [f64; 3]| {
         source([
@@ -394,11 +395,14 @@ fn serve_apt(
     let mut cubes: Vec<Emulator> = Vec::new();
     let mut kpa: Option<Emulator> = None;
     if kind != "kpa101" {
-        cubes.extend(start_kpz101_stage([20.0; 3], pos.clone())?);
+        cubes.extend(start_kpz101_stage_on([20.0; 3], pos.clone(), link)?);
     }
     if kind != "kpz101" {
         kpa = Some(start_kpa101_emulator(
-            KpaEmulatorConfig::default(),
+            KpaEmulatorConfig {
+                link,
+                ..KpaEmulatorConfig::default()
+            },
             pos,
             shifted,
         )?);
@@ -406,14 +410,16 @@ fn serve_apt(
     for (e, ax) in cubes.iter().zip(["x", "y", "z"]) {
         writeln!(
             out,
-            "kpz101 {ax}: Thorlabs KPZ101 piezo cube (travel 0–20 µm, open loop, channel disabled) on {}",
+            "kpz101 {ax}: Thorlabs KPZ101 piezo cube (travel 0–20 µm, open loop, channel disabled, {}) on {}",
+            link.describe(),
             e.path()
         )?;
     }
     if let Some(q) = &kpa {
         writeln!(
             out,
-            "kpa101: Thorlabs KPA101 position aligner (Sum 5 V with no sample; scene origin at {APT_CENTRE:?} µm) on {}",
+            "kpa101: Thorlabs KPA101 position aligner (Sum 5 V with no sample; scene origin at {APT_CENTRE:?} µm; {}) on {}",
+            link.describe(),
             q.path()
         )?;
     }

@@ -21,8 +21,8 @@ mod redpitaya;
 mod stage;
 
 pub use apt::{
-    start_kpa101_emulator, start_kpz101_emulator, start_kpz101_stage, KpaEmulatorConfig,
-    KpzEmulatorConfig, UNKNOWN_ID,
+    start_kpa101_emulator, start_kpz101_emulator, start_kpz101_stage, start_kpz101_stage_on,
+    KpaEmulatorConfig, KpzEmulatorConfig, UNKNOWN_ID,
 };
 pub use cli::{
     parse_link, run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators,
