@@ -1094,6 +1094,30 @@ impl Stage for GcsStage {
         }
     }
 
+    /// A line's exchange beyond the wave, from the link model (the connect's latency, the
+    /// configured baud): `WGO g 1` and its `ERR?`; the `#9` poll that sees the generator
+    /// stopped, one poll interval late at most; `DRL? 1 2` (two lines back); `DRR? 1 n 1 2`
+    /// answered by a GCS array: a header of ~200 bytes (`# KEY = VALUE` lines: VERSION, TYPE,
+    /// SEPARATOR, DIM, SAMPLE_TIME, NDATA, a NAME per table, END_HEADER) and a row per recorded
+    /// sample of two positions with six decimals, a space and the line end (~20 bytes), for
+    /// the line's `n` samples. ([`read_record`](GcsStage::read_record)'s timeout allows 300 and
+    /// 24, generously.) On a serial link the readout dominates: 20 bytes a sample at 115200
+    /// baud is 1.7 ms per recorded sample.
+    fn line_overhead_s(&self, s: &super::line::LineSweep) -> f64 {
+        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
+            return 0.0;
+        };
+        let wire = |bytes: f64| self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
+        let reply = |out: f64, back: f64| lat + wire(out + back);
+        let n = s.samples() as f64;
+        wire(8.0)
+            + reply(5.0, 2.0)
+            + reply(1.0, 2.0)
+            + self.opts.poll_interval.as_secs_f64()
+            + reply(10.0, 16.0)
+            + reply(16.0, 200.0 + 20.0 * n)
+    }
+
     /// The running mean of the moves measured; before the first, the link model's
     /// [`GcsStage::move_time_prior_s`].
     fn move_time_s(&self) -> f64 {
