@@ -34,6 +34,25 @@ pub struct EmulateOptions {
     /// The serial link both emulators model (`--baud`, `--latency-ms`; the command line's
     /// default is [`LinkModel::USB_SERIAL_115200`], this struct's the pty's full speed).
     pub link: LinkModel,
+    /// `redpitaya`: the signal at a path's nodes in one call (the simulator's), see
+    /// [`RedPitayaEmulatorConfig::along`](super::RedPitayaEmulatorConfig::along).
+    pub along: Option<Along>,
+}
+
+/// A [`PathSource`](super::PathSource) in [`EmulateOptions`] (equal when it is the same one).
+#[derive(Clone)]
+pub struct Along(pub super::PathSource);
+
+impl std::fmt::Debug for Along {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Along(…)")
+    }
+}
+
+impl PartialEq for Along {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
 }
 
 /// `--baud` and `--latency-ms` of `bfpscope emulate` → a [`LinkModel`]: `baud` a rate in
@@ -117,10 +136,13 @@ pub fn run_emulator_cli_sim(
         kind,
         StageEmulatorConfig::like_sim(sim),
         qpd,
-        sim_signal_source(renderer),
+        sim_signal_source(renderer.clone()),
         &mut std::io::stdout(),
         stop,
-        opts,
+        &EmulateOptions {
+            along: Some(Along(super::sim_signal_along(renderer))),
+            ..opts.clone()
+        },
     )
 }
 
@@ -315,6 +337,7 @@ fn serve_redpitaya(
     let path = super::StagePath::new();
     let rp_cfg = RedPitayaEmulatorConfig {
         path: Some(path.clone()),
+        along: opts.along.as_ref().map(|a| a.0.clone()),
         ..rp_cfg
     };
     let addr = format!("127.0.0.1:{}", opts.port.unwrap_or(0));
