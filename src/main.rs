@@ -316,6 +316,7 @@ fn main() -> ExitCode {
             port: *port,
             inputs: inputs.unwrap_or(0),
             link,
+            along: None,
         };
         return emulate(device, scene.as_deref(), &opts);
     }

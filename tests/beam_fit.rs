@@ -126,6 +126,18 @@ fn fit_recovers_pupil_filling_and_gain_ratio() {
         f.y0
     );
     assert!((f.chi2_red - 1.0).abs() < 0.1, "χ²/dof = {}", f.chi2_red);
+    // a bead at the focus gives no Sz signal (suppl. S3): the Sz gain is not determined and
+    // is not reported as a number (it came out 6.8e12 ± 9.1e12 when it was fitted)
+    assert!(
+        f.gain_z.is_none(),
+        "gain_z {:?} from a scan at the focus",
+        f.gain_z
+    );
+    let note = f.gain_z_note.as_deref().unwrap_or("");
+    assert!(
+        note.contains("not determined") && note.contains("focus"),
+        "{note}"
+    );
     eprintln!(
         "fit: {} template-plane builds, {:.2} s",
         f.builds, f.seconds

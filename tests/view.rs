@@ -376,3 +376,207 @@ fn after_a_rotation_series_the_page_lists_every_scan() {
     );
     b.screenshot(&shots().join("view_rotation.png"));
 }
+
+/// The line of text under the progress bar.
+fn progress_text(b: &Browser) -> String {
+    b.js(
+        "return document.getElementById('progress-text').textContent",
+        json!([]),
+    )
+    .as_str()
+    .unwrap()
+    .to_string()
+}
+
+/// The seconds of "… · 2.3 s elapsed …" (or "1 min 4 s elapsed").
+fn elapsed_shown(text: &str) -> f64 {
+    let head = text
+        .split(" elapsed")
+        .next()
+        .and_then(|t| t.rsplit(" · ").next())
+        .unwrap_or_else(|| panic!("no elapsed time in {text:?}"));
+    let w: Vec<&str> = head.split(' ').collect();
+    match w.as_slice() {
+        [s, "s"] => s.parse().unwrap(),
+        [m, "min", s, "s"] => 60.0 * m.parse::<f64>().unwrap() + s.parse::<f64>().unwrap(),
+        _ => panic!("elapsed time {head:?} in {text:?}"),
+    }
+}
+
+#[test]
+fn a_paused_scan_shows_paused_with_its_eta_standing_still_then_running_again() {
+    let (mut wb, url, _dir) = bench("pause");
+    let _ = wb
+        .eval_source(
+            "t",
+            &format!("{BEAD} connect(#{{backend: \"sim\", scene: s, pace: 1.0, settle: 0.001}});"),
+        )
+        .unwrap();
+    // the prompt's question, answered by this test: "paused" goes out, "resume" comes in
+    let (to_test, paused) = std::sync::mpsc::channel::<()>();
+    let (resume, from_test) = std::sync::mpsc::channel::<()>();
+    let (to_test, from_test) = (
+        std::sync::Mutex::new(to_test),
+        std::sync::Mutex::new(from_test),
+    );
+    wb.ctx.set_pause_question(Some(std::sync::Arc::new(
+        move |_p: &bfpscope::acquire::Paused| {
+            let _ = to_test.lock().unwrap().send(());
+            from_test
+                .lock()
+                .unwrap()
+                .recv_timeout(Duration::from_secs(60))
+                .is_ok()
+        },
+    )));
+    let b = open(&url);
+    let abort = wb.ctx.settings.abort.clone();
+    let scan = std::thread::spawn(move || {
+        let r = wb.eval_source(
+            "t",
+            "scan_xy(#{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 40, ny: 40, dwell: 0.001})",
+        );
+        (wb, r.map(|_| ()).map_err(|e| e.to_string()))
+    });
+    b.wait_for(
+        "return document.getElementById('progress').value > 0.1 && \
+         document.getElementById('progress-text').textContent.includes('ETA')",
+        Duration::from_secs(60),
+        "the scan under way with its ETA",
+    );
+    abort.store(true, Ordering::SeqCst);
+    paused
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the engine pauses");
+    b.wait_for(
+        "return document.getElementById('progress-text').textContent.includes(' · paused')",
+        Duration::from_secs(10),
+        "\"paused\" on the page",
+    );
+    let a = progress_text(&b);
+    std::thread::sleep(Duration::from_millis(1600));
+    let c = progress_text(&b);
+    assert!(
+        !a.contains("running") && !a.contains("ETA"),
+        "while paused: {a:?}"
+    );
+    assert_eq!(a, c, "nothing ticks while the scan is paused");
+    resume.send(()).unwrap();
+    b.wait_for(
+        "const t = document.getElementById('progress-text').textContent; \
+         return t.includes(' · running') && t.includes('ETA') && t.includes('paused)')",
+        Duration::from_secs(10),
+        "\"running\" and an ETA again after the resume",
+    );
+    let r = progress_text(&b);
+    // the pause (≥ 1.6 s) is shown and left out of the ETA's cost per point
+    let shown_pause: f64 = r
+        .split(" (")
+        .nth(1)
+        .and_then(|t| t.split(" s paused)").next())
+        .and_then(|t| t.parse().ok())
+        .unwrap_or_else(|| panic!("no pause time in {r:?}"));
+    assert!(shown_pause >= 1.6, "{r}");
+    let (_wb, res) = scan.join().unwrap();
+    res.expect("the resumed scan completes");
+    b.wait_for(
+        "return document.getElementById('progress-text').textContent.includes('1600 / 1600 points · complete')",
+        Duration::from_secs(30),
+        "the scan's end",
+    );
+}
+
+#[test]
+fn a_tab_opened_after_a_scan_shows_the_scans_own_duration() {
+    let (mut wb, url, dir) = bench("duration");
+    let _ = wb
+        .eval_source(
+            "t",
+            &format!(
+                "{BEAD} connect(#{{backend: \"sim\", scene: s, pace: 1.0, settle: 0.001}}); \
+                 scan_xy(#{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 24, ny: 24, dwell: 0.001}});"
+            ),
+        )
+        .unwrap();
+    let saved = bfpscope::data::npz::load_scan(dir.join("scan_0001.npz")).unwrap();
+    let wall = saved.meta["time"]["wall_s"].as_f64().unwrap();
+    assert!(wall > 0.5, "a scan of {wall} s");
+    // the tab opens well after the scan ended
+    std::thread::sleep(Duration::from_secs(4));
+    let b = open(&url);
+    b.wait_for(
+        "return document.getElementById('progress-text').textContent.includes('576 / 576 points · complete')",
+        Duration::from_secs(20),
+        "the ended scan on the page",
+    );
+    let t = progress_text(&b);
+    let shown = elapsed_shown(&t);
+    // the page rounds to 0.1 s; the view's start and end bracket the engine's clock by the
+    // saving of the file (milliseconds)
+    assert!(
+        (shown - wall).abs() <= 0.15,
+        "{t:?}: the scan took {wall:.2} s (its metadata)"
+    );
+    assert!(!t.contains("ETA"), "{t}");
+    std::thread::sleep(Duration::from_millis(1100));
+    assert_eq!(progress_text(&b), t, "an ended scan's time stands still");
+}
+
+#[test]
+fn the_page_never_scrolls_sideways_from_360_px_up() {
+    let (mut wb, url, _dir) = bench("width");
+    let _ = wb
+        .eval_source(
+            "t",
+            &format!(
+                "{BEAD} note(\"a long note without spaces: bead_110nm_polystyrene_in_water_reference_for_the_calibration_of_today\"); \
+                 let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); \
+                 plot(sc, \"bead_fig.png\", #{{title: \"110 nm bead\"}}); \
+                 connect(#{{backend: \"sim\", scene: s}}); \
+                 scan_xy(#{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21, dwell: 0.001}});"
+            ),
+        )
+        .unwrap();
+    let b = open(&url);
+    b.wait_for(
+        "return document.getElementById('progress-text').textContent.includes('complete') && \
+         document.querySelectorAll('#figures figure').length === 1 && \
+         document.querySelectorAll('#scans tbody tr').length === 1",
+        Duration::from_secs(20),
+        "the scan, its row and the figure",
+    );
+    for width in [1280u32, 1024, 1012, 1000, 800, 360] {
+        let inner = b.set_window(width, 900);
+        assert_eq!(inner, width as i64, "the window is {width} px wide");
+        // let the layout settle
+        std::thread::sleep(Duration::from_millis(200));
+        let w = b.js(
+            "const e = document.documentElement; \
+             const wide = [...document.querySelectorAll('body *')].filter(x => x.getBoundingClientRect().right > e.clientWidth + 0.5).map(x => x.tagName + '#' + x.id + '.' + x.className); \
+             return [e.scrollWidth, e.clientWidth, wide.slice(0, 6)]",
+            json!([]),
+        );
+        assert!(
+            w[0].as_i64() <= w[1].as_i64(),
+            "at {width} px the page is {} px wide (viewport {}): {}",
+            w[0],
+            w[1],
+            w[2]
+        );
+        // the map is drawn whole, scaled to the column when the window is narrow
+        let cw = b
+            .js(
+                "return document.getElementById('map').getBoundingClientRect().width",
+                json!([]),
+            )
+            .as_f64()
+            .unwrap();
+        assert!(cw > 0.5 * (width.min(636) as f64), "map {cw} px at {width}");
+        if width == 1012 {
+            b.screenshot(&shots().join("view_1012.png"));
+        }
+        if width == 360 {
+            b.screenshot(&shots().join("view_360.png"));
+        }
+    }
+}

@@ -38,7 +38,10 @@ fn without_unit(keys: &std::collections::BTreeSet<String>) -> Vec<&String> {
     keys.iter()
         .filter(|k| bfpscope::script::units::unit_of_key(k).is_none())
         .filter(|k| {
-            let base = k.strip_suffix("_sd").unwrap_or(k);
+            let base = k
+                .strip_suffix("_sd")
+                .or_else(|| k.strip_suffix("_err"))
+                .unwrap_or(k);
             !DIMENSIONLESS.contains(&k.as_str()) && !DIMENSIONLESS.contains(&base)
         })
         .collect()

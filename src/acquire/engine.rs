@@ -107,6 +107,8 @@ pub trait ScanObserver: Send + Sync {
     fn points(&self, pts: &[(usize, usize, [f64; 3])]);
     /// The scan ended (complete, aborted or failed) and was saved to `saved` (if it was).
     fn ended(&self, scan: &Scan, saved: Option<&std::path::Path>);
+    /// Ctrl-C paused the scan (`true`, the pause question is open) or it resumes (`false`).
+    fn paused(&self, _paused: bool) {}
 }
 
 /// Hands measured points to an observer in batches: one point per call while points come
@@ -371,7 +373,14 @@ pub fn run(
                 total: points.len(),
                 at,
             };
+            if let Some(o) = env.observer {
+                batch.flush(o);
+                o.paused(true);
+            }
             let resume = bar.suspend(|| ask(&info));
+            if let Some(o) = env.observer {
+                o.paused(false);
+            }
             let dt = t.elapsed().as_secs_f64();
             paused_wall += dt;
             pauses.push(json!({

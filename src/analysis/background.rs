@@ -16,7 +16,9 @@
 //! then the multi-bead fit with bead adding (BIC) up to `max_objects`. Objects whose fitted weight is not positive are kept in the fit
 //! (they describe the data) but reported.
 
-use super::fit::{clean, detection_map, fit_beads, BeadInit, Channels, FitOptions, FitResult};
+use super::fit::{
+    clean, clean_peaks, detection_map, fit_beads, BeadInit, Channels, FitOptions, FitResult,
+};
 use super::stats::robust_std;
 use super::template::Template;
 use super::{check_range, Result};
@@ -49,6 +51,34 @@ impl FilamentAxis {
 /// below the 40 nm protein aggregates of Sec. 6 (≈ 0.024: (40/110)³ × the Clausius–Mossotti
 /// ratio of n = 1.45 to 1.572 in water, 0.50).
 pub const DEFAULT_MIN_WEIGHT: f64 = 0.01;
+
+/// After the removal, a point-like feature still standing this many times above the detection
+/// map's robust noise is reported ([`BackgroundResult::remaining`]). Why 5: the largest of N
+/// independent normal values reaches √(2 ln N) σ, 5.0σ for a 512 × 512 map (and the
+/// Savitzky–Golay map has fewer independent pixels), so noise alone gives a 5σ feature in
+/// fewer than 1 in 10 such maps (N·P(Z > 5) = 262144 × 2.9e-7 = 0.075), while an object the
+/// fit left behind (below `detect_snr` = 6 by default, below `min_weight`, or beyond
+/// `max_objects`) at SNR 5–6 and up is reported, not silently kept.
+pub const REMAINING_SNR: f64 = 5.0;
+
+/// Rows and columns at each edge left out of the search for remaining features (the half-width
+/// of the 5-point derivative stencil).
+const EDGE: usize = 2;
+
+/// Most remaining features listed (however few objects the fit was allowed).
+const MAX_REMAINING: usize = 1000;
+
+/// A point-like feature left in the fitted channel after the removal (see [`REMAINING_SNR`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Remaining {
+    /// Position (µm) and weight (reference-bead units) as the detection estimates them.
+    pub x: f64,
+    pub y: f64,
+    pub weight: f64,
+    /// Its peak in the detection map over the map's robust noise (before the removal); `None`
+    /// on noise-free data.
+    pub snr: Option<f64>,
+}
 
 /// Options of [`remove_point_background`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -87,6 +117,9 @@ pub struct BackgroundResult {
     pub sy: Image,
     /// The fit of the point objects in the other channel (None when nothing was detected).
     pub fit: Option<FitResult>,
+    /// Point-like features still in the fitted channel after the removal, at
+    /// [`REMAINING_SNR`] or more (strongest first; none on a clean removal).
+    pub remaining: Vec<Remaining>,
 }
 
 /// Remove point-like objects from a filament scan (Sec. 6). Errors from the fit (shapes,
@@ -115,11 +148,42 @@ pub fn remove_point_background(
         opts.detect_snr * noise,
         opts.min_weight,
     );
+    // what the same detection still finds after the removal, down to REMAINING_SNR (and, on
+    // noise-free data, never below the default smallest object: the filament's faint residue
+    // in this channel is not an object)
+    let remaining = |sx: &Image, sy: &Image| -> Result<Vec<Remaining>> {
+        let mut d = detection_map(sx, sy, ch, opts.fit.detect_stencil)?;
+        // the two outermost rows and columns are left out: there the 5-point derivative is
+        // one-sided and its noise larger than the map's (noise alone crossed 5σ there)
+        let (rows, cols) = d.data.dim();
+        for ((r, c), v) in d.data.indexed_iter_mut() {
+            if r < EDGE || c < EDGE || r + EDGE >= rows || c + EDGE >= cols {
+                *v = f64::NAN;
+            }
+        }
+        Ok(clean_peaks(
+            &d,
+            tpl,
+            ch,
+            MAX_REMAINING,
+            REMAINING_SNR * noise,
+            opts.min_weight.min(DEFAULT_MIN_WEIGHT),
+        )
+        .into_iter()
+        .map(|(b, v)| Remaining {
+            x: b.x,
+            y: b.y,
+            weight: b.weight,
+            snr: (noise > 0.0).then(|| v / noise),
+        })
+        .collect())
+    };
     if init.is_empty() {
         return Ok(BackgroundResult {
             sx: sx.clone(),
             sy: sy.clone(),
             fit: None,
+            remaining: remaining(sx, sy)?,
         });
     }
     let fo = FitOptions {
@@ -136,9 +200,12 @@ pub fn remove_point_background(
         out.data = &img.data - &m.data;
         out
     };
+    let (csx, csy) = (sub(sx, &fit.model_sx), sub(sy, &fit.model_sy));
+    let remaining = remaining(&csx, &csy)?;
     Ok(BackgroundResult {
-        sx: sub(sx, &fit.model_sx),
-        sy: sub(sy, &fit.model_sy),
+        sx: csx,
+        sy: csy,
         fit: Some(fit),
+        remaining,
     })
 }

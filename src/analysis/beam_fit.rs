@@ -40,6 +40,17 @@
 //! (residual sum / (N − 13)). The answer is refused when it would not mean anything: no bead
 //! (the gain g_x below 10 σ), or a residual rms above twice the noise (a scan that is not this
 //! bead in this beam: wrong size, wrong kind, out of focus).
+//!
+//! **The Sz gain is not measurable here.** A non-absorbing point scatterer at the focus (z = 0)
+//! scatters a wave in quadrature with the focused field (the Gouy phase), so the total power on
+//! the QPD, Sz (suppl. S3, the sum of the four quadrants' δI), does not change to first order
+//! in α: Sz is odd in z and zero in the focal plane (axial detection, Pralle et al. 1999, the
+//! paper's ref. PralleEL99; the paper itself uses only Sx and Sy). The model plane's Sz at
+//! z = 0 is rounding noise (≲ 1e-12 of its Sx), and a free g_z fitted to it came out at
+//! ~7e12 ± 9e12: not a gain, a degenerate parameter. So when the model's Sz is below
+//! [`SZ_NIL`] × its Sx the Sz bead column is left out (only the offset b_z is fitted, 12
+//! parameters) and `gain_z` is `None`, with the reason; when it is present, g_z is reported
+//! only when it stands [`GAIN_Z_MIN_SIGMA`] σ clear of zero.
 
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
@@ -58,6 +69,12 @@ pub const EPS_ROT_DEG: f64 = 2.0;
 pub const EPS_OFFSET: f64 = 0.05;
 /// Largest v = 1/f0² searched (f0 ≥ 0.5: a pupil filled to half its radius).
 pub const V_MAX: f64 = 4.0;
+/// The model's Sz counts as absent when its largest value is below this fraction of the largest
+/// Sx (at the focus it is rounding noise, ~1e-13 of Sx; any real axial signal is percents).
+pub const SZ_NIL: f64 = 1e-6;
+/// A fitted Sz gain is reported only this many σ away from zero (below, the data do not
+/// determine it: a chance 5σ excursion of noise happens once in 1.7 million fits).
+pub const GAIN_Z_MIN_SIGMA: f64 = 5.0;
 /// Smallest and largest reference-bead diameter (nm): inside the point dipole's domain
 /// (docs/physics.md §10), and large enough to be seen.
 pub const D_RANGE_NM: (f64, f64) = (40.0, 200.0);
@@ -106,7 +123,11 @@ pub struct BeamFit {
     pub offset_y: Value,
     pub gain_x: Value,
     pub gain_y: Value,
-    pub gain_z: Value,
+    /// The Sz gain, when the scan determines it; `None` for a bead at the focus, where Sz
+    /// carries no bead signal ([`BeamFit::gain_z_note`] says why).
+    pub gain_z: Option<Value>,
+    /// Why `gain_z` is `None`.
+    pub gain_z_note: Option<String>,
     /// g_y/g_x (the `misalignment` effect's `gain_y`).
     pub gain_ratio: Value,
     /// Channel offsets b (signal units).
@@ -134,6 +155,14 @@ struct Basis {
     g0: Arc<Grid2>,
     grot: Arc<Grid2>,
     goff: Arc<Grid2>,
+    /// max |Sz| / max |Sx| of the ideal plane: below [`SZ_NIL`] the Sz bead column is left out.
+    sz_ratio: f64,
+}
+
+impl Basis {
+    fn sz_signal(&self) -> bool {
+        self.sz_ratio >= SZ_NIL
+    }
 }
 
 fn plane(optics: &Optics, grid: TemplateSpec, m: Misalignment, alpha: f64) -> Result<Arc<Grid2>> {
@@ -171,8 +200,12 @@ fn basis(base: &Optics, grid: TemplateSpec, alpha: f64, v: f64) -> Result<Basis>
         rotation_deg: 0.0,
         gain_y: 1.0,
     };
+    let g0 = plane(&o, grid, zero, alpha)?;
+    let peak = |c: usize| g0.data.iter().fold(0.0f64, |m, v| m.max(v[c].abs()));
+    let sz_ratio = peak(2) / peak(0).max(f64::MIN_POSITIVE);
     Ok(Basis {
-        g0: plane(&o, grid, zero, alpha)?,
+        sz_ratio,
+        g0,
         grot: plane(
             &o,
             grid,
@@ -211,7 +244,12 @@ fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
     let n = d.xy.len();
     let mut cx = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
     let mut cy = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
-    let mut cz = vec![vec![0.0; n], vec![1.0; n]];
+    let sz = b.sz_signal();
+    let mut cz = if sz {
+        vec![vec![0.0; n], vec![1.0; n]]
+    } else {
+        vec![vec![1.0; n]]
+    };
     for (i, &(x, y)) in d.xy.iter().enumerate() {
         let (dx, dy) = (x - th[0], y - th[1]);
         let (u, v) = (cp * dx + sp * dy, -sp * dx + cp * dy);
@@ -223,7 +261,9 @@ fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
         cx[1][i] = (to[0] - t0[0]) / EPS_OFFSET;
         cy[0][i] = t0[1] + f * (tr[1] - t0[1]);
         cy[1][i] = (to[1] - t0[1]) / EPS_OFFSET;
-        cz[0][i] = t0[2];
+        if sz {
+            cz[0][i] = t0[2];
+        }
     }
     [cx, cy, cz]
 }
@@ -552,7 +592,9 @@ pub fn fit_beam(
     } else {
         v_hat - hv
     };
-    let b2 = basis(optics, opts.grid, alpha, v2)?;
+    let mut b2 = basis(optics, opts.grid, alpha, v2)?;
+    // the same columns as at the optimum (the Sz bead column in or out)
+    b2.sz_ratio = bases[bi].1.sz_ratio;
     builds += 3;
     let b = &bases[bi].1;
     let fail = || AnalysisError::Failed("fit_beam: the model could not be evaluated".into());
@@ -624,7 +666,8 @@ pub fn fit_beam(
     })? * s2;
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let val = |value: f64, sigma: f64| Value { value, sigma };
-    // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by, 11 gz, 12 bz
+    // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by,
+    // 11 gz, 12 bz (without the Sz bead column: 11 bz)
     let (gx, ax, gy, ay) = (coef[0][0], coef[0][1], coef[1][0], coef[1][1]);
     let ratio = gy / gx;
     let var_ratio = ratio
@@ -673,6 +716,26 @@ pub fn fit_beam(
         }
     }
     let psi_deg = th_hat[2].to_degrees();
+    let (gain_z, gain_z_note) = if !b.sz_signal() {
+        (
+            None,
+            Some(format!(
+                "not determined: a bead at the focus changes the total power Sz by nothing (the model's Sz is {:.0e} of its Sx; suppl. S3: the scattered wave is in quadrature with the focus at z = 0); the Sz gain needs a scan off the focus",
+                b.sz_ratio
+            )),
+        )
+    } else if coef[2][0].abs() < GAIN_Z_MIN_SIGMA * sd(11) {
+        (
+            None,
+            Some(format!(
+                "not determined: the fitted Sz gain {:.3e} ± {:.1e} is within {GAIN_Z_MIN_SIGMA}σ of zero",
+                coef[2][0],
+                sd(11)
+            )),
+        )
+    } else {
+        (Some(val(coef[2][0], sd(11))), None)
+    };
     let fitted = optics_for_v(optics, v_hat);
     Ok(BeamFit {
         inv_f0_sq: val(v_hat, sv),
@@ -685,9 +748,10 @@ pub fn fit_beam(
         offset_y: val(ay / gy, var_oy.max(0.0).sqrt()),
         gain_x: val(gx, sd(5)),
         gain_y: val(gy, sd(8)),
-        gain_z: val(coef[2][0], sd(11)),
+        gain_z,
+        gain_z_note,
         gain_ratio: val(ratio, var_ratio.max(0.0).sqrt()),
-        background: [coef[0][2], coef[1][2], coef[2][1]],
+        background: [coef[0][2], coef[1][2], coef[2][coef[2].len() - 1]],
         residual_rms: rms,
         noise,
         chi2_red: s2,

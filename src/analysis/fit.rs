@@ -64,7 +64,7 @@ mod simd;
 mod types;
 
 pub use detect::detect_beads;
-pub(crate) use detect::{clean, detection_map};
+pub(crate) use detect::{clean, clean_peaks, detection_map};
 pub use lm::FitStatus;
 use problem::*;
 pub use types::*;

@@ -485,6 +485,9 @@ pub fn connect_emulated_redpitaya(
         RedPitayaEmulatorConfig {
             noise_v,
             path: Some(path.clone()),
+            along: Some(crate::instrument::emulator::sim_signal_along(
+                renderer.clone(),
+            )),
             ..RedPitayaEmulatorConfig::four_inputs()
         },
         pos.clone(),

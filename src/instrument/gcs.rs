@@ -207,6 +207,10 @@ impl MeanTime {
     pub fn get(&self) -> f64 {
         self.0.unwrap_or(0.0)
     }
+    /// The mean, s, once there is one.
+    pub fn value(&self) -> Option<f64> {
+        self.0
+    }
 }
 
 /// `ONT?` polls between two `ERR?` while waiting for a move to end.
@@ -852,6 +856,36 @@ impl GcsStage {
         self.move_time.get()
     }
 
+    /// What a point scan's move (one axis, a step of the grid) costs on this link before any
+    /// move was measured, s (the first scan after connecting): the exchange
+    /// [`move_to`](Stage::move_to) makes — `MOV 1 -0.400000` (16 bytes) written; `#5` (1 byte,
+    /// reply `0`+LF) twice, the first seeing the trajectory still running (a piezo step takes
+    /// milliseconds, longer than one turnaround), one poll interval between them; `ONT? 1` (7
+    /// bytes, `1=1`+LF back) to confirm the settling window; the `ERR?` owed for the `MOV` (5
+    /// bytes, `0`+LF) — each reply costing the link's latency measured on every reply so far
+    /// (the connect's identification and configuration queries) plus its bytes at the
+    /// configured baud rate (10 bits per byte; none over TCP). Longer settling shows after the
+    /// first row, when the engine revises the ETA from the measured cost. 0 before any reply.
+    pub fn move_time_prior_s(&self) -> f64 {
+        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
+            return 0.0;
+        };
+        let wire = |bytes: f64| self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
+        let reply = |out: f64, back: f64| lat + wire(out + back);
+        let ont = reply(7.0, 4.0);
+        let polls = if self.opts.motion_status && self.motion_status != Some(false) {
+            2.0 * reply(1.0, 2.0)
+                + if self.opts.confirm_on_target {
+                    ont
+                } else {
+                    0.0
+                }
+        } else {
+            2.0 * ont
+        };
+        wire(16.0) + polls + self.opts.poll_interval.as_secs_f64() + reply(5.0, 2.0)
+    }
+
     /// The link's per-command costs since the last call.
     pub fn take_link_costs(&mut self) -> super::link::LinkCosts {
         self.link.take_costs()
@@ -1060,8 +1094,36 @@ impl Stage for GcsStage {
         }
     }
 
+    /// A line's exchange beyond the wave, from the link model (the connect's latency, the
+    /// configured baud): `WGO g 1` and its `ERR?`; the `#9` poll that sees the generator
+    /// stopped, one poll interval late at most; `DRL? 1 2` (two lines back); `DRR? 1 n 1 2`
+    /// answered by a GCS array: a header of ~200 bytes (`# KEY = VALUE` lines: VERSION, TYPE,
+    /// SEPARATOR, DIM, SAMPLE_TIME, NDATA, a NAME per table, END_HEADER) and a row per recorded
+    /// sample of two positions with six decimals, a space and the line end (~20 bytes), for
+    /// the line's `n` samples. ([`read_record`](GcsStage::read_record)'s timeout allows 300 and
+    /// 24, generously.) On a serial link the readout dominates: 20 bytes a sample at 115200
+    /// baud is 1.7 ms per recorded sample.
+    fn line_overhead_s(&self, s: &super::line::LineSweep) -> f64 {
+        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
+            return 0.0;
+        };
+        let wire = |bytes: f64| self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
+        let reply = |out: f64, back: f64| lat + wire(out + back);
+        let n = s.samples() as f64;
+        wire(8.0)
+            + reply(5.0, 2.0)
+            + reply(1.0, 2.0)
+            + self.opts.poll_interval.as_secs_f64()
+            + reply(10.0, 16.0)
+            + reply(16.0, 200.0 + 20.0 * n)
+    }
+
+    /// The running mean of the moves measured; before the first, the link model's
+    /// [`GcsStage::move_time_prior_s`].
     fn move_time_s(&self) -> f64 {
-        self.mean_move_s()
+        self.move_time
+            .value()
+            .unwrap_or_else(|| self.move_time_prior_s())
     }
 
     fn link_costs(&mut self) -> super::link::LinkCosts {

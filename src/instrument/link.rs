@@ -281,6 +281,54 @@ pub struct CommandCost {
 /// Per-command costs of a link since the last [`LineLink::take_costs`], in first-use order.
 pub type LinkCosts = Vec<(String, CommandCost)>;
 
+/// The replies on a link since it was opened (never reset): the device-side cost models
+/// derive the link's reply latency from them before anything was measured for a scan
+/// ([`LineLink::latency_s`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Turnarounds {
+    /// Per reply (the first line after a command; the first [`Turnarounds::KEEP`]): seconds
+    /// from the end of the command's write to the reply's line end, and the bytes of the
+    /// command and the reply.
+    pub replies: Vec<(f64, u64)>,
+}
+
+impl Turnarounds {
+    /// Replies kept (the connect's queries and the first steps of a scan are enough).
+    pub const KEEP: usize = 256;
+
+    /// Add one reply (the first [`Turnarounds::KEEP`] are kept); `true` if it was kept.
+    pub fn add(&mut self, reply_s: f64, bytes: u64) -> bool {
+        let keep = self.replies.len() < Self::KEEP;
+        if keep {
+            self.replies.push((reply_s, bytes));
+        }
+        keep
+    }
+
+    /// The reply latency, s: the time from a command's end to its reply's end beyond the
+    /// bytes' time on the wire (`bytes_per_s`: the serial rate, 10 bits per byte; `None`: TCP,
+    /// no wire time), the median over the replies (at least the connect's identification and
+    /// configuration queries; the median, because a few of those make the device work —
+    /// switching servos on — and are not the link's). `None` before the first reply.
+    pub fn latency_s(&self, bytes_per_s: Option<f64>) -> Option<f64> {
+        let mut l: Vec<f64> = self
+            .replies
+            .iter()
+            .map(|&(s, b)| (s - bytes_per_s.map_or(0.0, |r| b as f64 / r)).max(0.0))
+            .collect();
+        if l.is_empty() {
+            return None;
+        }
+        l.sort_by(f64::total_cmp);
+        let m = l.len() / 2;
+        Some(if l.len() % 2 == 1 {
+            l[m]
+        } else {
+            0.5 * (l[m - 1] + l[m])
+        })
+    }
+}
+
 /// A line-terminated (LF, optional CR before it) ASCII command link.
 pub struct LineLink {
     io: Box<dyn Transport>,
@@ -289,6 +337,11 @@ pub struct LineLink {
     /// Default reply timeout.
     pub timeout: Duration,
     costs: LinkCosts,
+    turnarounds: Turnarounds,
+    /// Bytes of the last command sent, until its reply is read.
+    pending_out: Option<u64>,
+    /// The last reply's lines are still being added to its turnaround.
+    reply_open: bool,
 }
 
 impl LineLink {
@@ -299,7 +352,20 @@ impl LineLink {
             buf: Vec::new(),
             timeout,
             costs: Vec::new(),
+            turnarounds: Turnarounds::default(),
+            pending_out: None,
+            reply_open: false,
         }
+    }
+
+    /// The replies so far (see [`Turnarounds`]).
+    pub fn turnarounds(&self) -> &Turnarounds {
+        &self.turnarounds
+    }
+
+    /// The link's reply latency, s ([`Turnarounds::latency_s`] over the replies so far).
+    pub fn latency_s(&self, bytes_per_s: Option<f64>) -> Option<f64> {
+        self.turnarounds.latency_s(bytes_per_s)
     }
 
     /// The costs per command word since the last call (and start counting anew).
@@ -350,6 +416,8 @@ impl LineLink {
         c.n += 1;
         c.bytes_out += line.len() as u64;
         c.write_s += t0.elapsed().as_secs_f64();
+        self.pending_out = Some(line.len() as u64);
+        self.reply_open = false;
         r
     }
 
@@ -367,6 +435,8 @@ impl LineLink {
         c.n += 1;
         c.bytes_out += bytes.len() as u64;
         c.write_s += t0.elapsed().as_secs_f64();
+        self.pending_out = Some(bytes.len() as u64);
+        self.reply_open = false;
         r
     }
 
@@ -376,9 +446,24 @@ impl LineLink {
         let t0 = Instant::now();
         let r = self.read_line_inner(command, timeout);
         let n = r.as_ref().map_or(0, |l| l.len() + 1);
+        let dt = t0.elapsed().as_secs_f64();
         let c = self.cost(command);
         c.bytes_in += n as u64;
-        c.reply_s += t0.elapsed().as_secs_f64();
+        c.reply_s += dt;
+        // a command's turnaround: from its write to the end of its reply, every line of a
+        // multi-line reply (`TMN?` answers one line per axis) with its bytes
+        if r.is_ok() {
+            match self.pending_out.take() {
+                Some(out) => self.reply_open = self.turnarounds.add(dt, out + n as u64),
+                None if self.reply_open => {
+                    if let Some(last) = self.turnarounds.replies.last_mut() {
+                        last.0 += dt;
+                        last.1 += n as u64;
+                    }
+                }
+                None => {}
+            }
+        }
         r
     }
 

@@ -216,6 +216,13 @@ pub trait Stage: Send {
     fn line_timing(&mut self) -> Result<Option<line::LineTiming>, DeviceError> {
         Ok(None)
     }
+    /// Wall time a hardware-timed line `s` costs beyond its wave's own duration, s, for the
+    /// raster ETA: starting it, seeing it end, reading the recorder back over the link. 0 when
+    /// unknown (the default).
+    fn line_overhead_s(&self, s: &line::LineSweep) -> f64 {
+        let _ = s;
+        0.0
+    }
     /// Load the line `s` into the controller (wave, generator, trigger output, recorder).
     /// Nothing moves. The stage sits at the wave's first point (the engine moved it there).
     fn configure_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {

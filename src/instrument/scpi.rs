@@ -111,6 +111,8 @@ pub struct ScpiQpd {
     count: Option<usize>,
     /// Wall time per read beyond the samples' own n / rate, s: a running mean for the ETA.
     overhead: super::gcs::MeanTime,
+    /// The serial line's bytes per second (baud / 10), for the link model before any read.
+    wire_bytes_per_s: Option<f64>,
 }
 
 impl ScpiQpd {
@@ -118,7 +120,9 @@ impl ScpiQpd {
     pub fn open(port: &str, baud: u32, opts: ScpiOptions) -> Result<Self, DeviceError> {
         let device = format!("SCPI QPD on {port}");
         let io = open_serial(&device, port, baud, opts.timeout)?;
-        Self::connect(io, port, opts)
+        let mut q = Self::connect(io, port, opts)?;
+        q.wire_bytes_per_s = (baud > 0).then(|| f64::from(baud) / 10.0);
+        Ok(q)
     }
 
     /// Connect over any transport: `*IDN?`, `*CLS`, `CONF:RATE?`.
@@ -135,6 +139,7 @@ impl ScpiQpd {
             rate: 0.0,
             count: None,
             overhead: Default::default(),
+            wire_bytes_per_s: None,
         };
         q.idn = q.query("*IDN?")?.trim().to_string();
         if let Some(model) = q
@@ -273,8 +278,27 @@ impl Qpd for ScpiQpd {
         Ok(self.opts.calibration.apply(v, s, n))
     }
 
+    /// The running mean of the reads measured; before the first (the first scan after
+    /// connecting), the link model: `MEAS:QPD?` (10 bytes) and its reply, three numbers at full
+    /// double precision (~15 characters) with their separators and the line end (48 bytes), at
+    /// the configured baud rate (10 bits per byte), plus the link's latency measured on every
+    /// reply so far (the connect's `*IDN?` and `CONF:RATE?`), and the same again for the
+    /// `SYST:ERR?` after each read when `check_error_each_read` (reply `0,"No error"`, ~13
+    /// bytes).
     fn overhead_s(&self) -> f64 {
-        self.overhead.get()
+        if let Some(m) = self.overhead.value() {
+            return m;
+        }
+        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
+            return 0.0;
+        };
+        let reply = |bytes: f64| lat + self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
+        reply(10.0 + 48.0)
+            + if self.opts.check_error_each_read {
+                reply(10.0 + 13.0)
+            } else {
+                0.0
+            }
     }
 
     fn link_costs(&mut self) -> super::link::LinkCosts {

@@ -275,7 +275,7 @@ fn register_filaments(r: &mut Registrar) {
             ],
         )
         .form("remove_background(scan, tpl) -> map")
-        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects}")
+        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none}")
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
@@ -560,7 +560,54 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
             .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
     );
     out.insert("n_objects".into(), (n as i64).into());
+    let remaining: Array = r
+        .remaining
+        .iter()
+        .map(|f| {
+            let mut m = Map::new();
+            m.insert("x".into(), f.x.into());
+            m.insert("y".into(), f.y.into());
+            m.insert("weight".into(), f.weight.into());
+            m.insert("snr".into(), f.snr.map_or(Dynamic::UNIT, Dynamic::from));
+            Dynamic::from(m)
+        })
+        .collect();
+    let warning = remaining_warning(&r.remaining);
+    out.insert("remaining".into(), remaining.into());
+    out.insert(
+        "warning".into(),
+        warning.map_or(Dynamic::UNIT, |w| w.into()),
+    );
     Ok(out)
+}
+
+/// The warning for point-like features left after a removal (`None` when there are none).
+pub fn remaining_warning(rem: &[crate::analysis::background::Remaining]) -> Option<String> {
+    use crate::analysis::background::REMAINING_SNR;
+    if rem.is_empty() {
+        return None;
+    }
+    let list: Vec<String> = rem
+        .iter()
+        .take(5)
+        .map(|f| {
+            let snr = f
+                .snr
+                .map_or("noise-free data".to_string(), |s| format!("SNR {s:.1}"));
+            format!(
+                "({:.3}, {:.3}) µm, {:.3} reference beads, {snr}",
+                f.x, f.y, f.weight
+            )
+        })
+        .collect();
+    Some(format!(
+        "{} point-like feature{} still in the scan after the removal (at ≥ {REMAINING_SNR} × the detection map's noise): {}{}; lower detect_snr or min_weight to remove {}",
+        rem.len(),
+        if rem.len() == 1 { "" } else { "s" },
+        list.join("; "),
+        if rem.len() > 5 { "; …" } else { "" },
+        if rem.len() == 1 { "it" } else { "them" }
+    ))
 }
 
 /// `diameter_calib(tpl, opts)`: the constant A (nm) of fibril diameters d = A·√(sens_corr)

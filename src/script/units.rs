@@ -55,15 +55,17 @@ pub const BARE: &[(&str, &str)] = &[
 
 /// The unit a value under `key` is printed with, if the key does not already name it: bare
 /// keys of [`BARE`]. `None` for suffixed keys (the key says it) and dimensionless ones.
-/// A standard deviation `k_sd` has the unit of `k` (`x0_sd` in µm, `polarization_deg_sd` in °).
+/// A standard deviation `k_sd` and an uncertainty `k_err` have the unit of `k` (`x0_sd` and
+/// `x_err` in µm, `polarization_deg_sd` in °).
 pub fn printed_unit(key: &str) -> Option<&'static str> {
     let base = sd_base(key);
     BARE.iter().find(|(k, _)| *k == base).map(|(_, u)| *u)
 }
 
-/// `k` for a standard deviation's key `k_sd`, else the key itself.
+/// `k` for a standard deviation's key `k_sd` or an uncertainty's `k_err`, else the key itself.
 fn sd_base(key: &str) -> &str {
     key.strip_suffix("_sd")
+        .or_else(|| key.strip_suffix("_err"))
         .filter(|b| !b.is_empty())
         .unwrap_or(key)
 }
@@ -97,6 +99,17 @@ mod tests {
         assert_eq!(unit_of_key("n_beads"), None);
         // a suffix alone is not a key with a unit
         assert_eq!(unit_of_key("_s"), None);
+        // an uncertainty has its value's unit (fit_beads: x_err, y_err in µm)
+        assert_eq!(printed_unit("x_err"), Some("µm"));
+        assert_eq!(printed_unit("y_err"), Some("µm"));
+        assert_eq!(printed_unit("max_sens_err"), Some("1/µm"));
+        assert_eq!(
+            printed_unit("weight_err"),
+            None,
+            "reference-bead units: a ratio"
+        );
+        assert_eq!(unit_of_key("mu_err_mda_um"), Some("MDa/µm"));
+        assert_eq!(printed_unit("_err"), None);
         // longest suffix wins
         assert_eq!(unit_of_key("max_speed_um_s"), Some("µm/s"));
     }

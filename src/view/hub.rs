@@ -27,11 +27,39 @@ struct Live {
     id: u64,
     header: Value,
     started: Instant,
+    /// When the scan ended: an ended scan's elapsed time is its own duration, however late a
+    /// browser asks.
+    ended: Option<Instant>,
+    /// Wall time spent paused (Ctrl-C, the question open) before the current pause, and the
+    /// start of the current pause: the page's ETA counts only the time spent measuring.
+    paused_before: Duration,
+    paused_since: Option<Instant>,
     points: Vec<(u32, u32, [f32; 3])>,
-    /// `running`, then `complete` / `aborted` / `failed`.
+    /// `running` (`paused` while Ctrl-C's question is open), then `complete` / `aborted` /
+    /// `failed`.
     status: String,
     /// The scan's number in the session folder once saved, and the error of a failed scan.
     end: Value,
+}
+
+impl Live {
+    /// Seconds from the start to now, or to the end of an ended scan.
+    fn elapsed_s(&self) -> f64 {
+        self.ended
+            .unwrap_or_else(Instant::now)
+            .saturating_duration_since(self.started)
+            .as_secs_f64()
+    }
+
+    /// Seconds spent paused so far (the current pause included).
+    fn paused_s(&self) -> f64 {
+        let now = self.ended.unwrap_or_else(Instant::now);
+        (self.paused_before
+            + self
+                .paused_since
+                .map_or(Duration::ZERO, |t| now.saturating_duration_since(t)))
+        .as_secs_f64()
+    }
 }
 
 /// One scan of the session list.
@@ -173,10 +201,7 @@ impl Hub {
 
     /// True while a scan is being measured.
     pub fn scanning(&self) -> bool {
-        self.lock()
-            .live
-            .as_ref()
-            .is_some_and(|l| l.status == "running")
+        self.lock().live.as_ref().is_some_and(|l| l.ended.is_none())
     }
 
     /// Bytes held by the view's state (points of the current scan, list rows, figure rows), for
@@ -201,6 +226,8 @@ impl Hub {
             h["status"] = json!(l.status);
             h["end"] = l.end.clone();
             h["measured"] = json!(l.points.len());
+            h["elapsed_s"] = json!(l.elapsed_s());
+            h["paused_s"] = json!(l.paused_s());
             h
         });
         json!({
@@ -222,7 +249,7 @@ impl Hub {
         let mut s = self.lock();
         let deadline = Instant::now() + timeout;
         while cur.started && s.version == cur.version && !s.closed {
-            let running = s.live.as_ref().is_some_and(|l| l.status == "running");
+            let running = s.live.as_ref().is_some_and(|l| l.ended.is_none());
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 break;
@@ -251,8 +278,9 @@ impl Hub {
                 event("scan", out);
                 let _ = write!(
                     out,
-                    "{{\"elapsed_s\":{},\"header\":{}}}\n\n",
-                    l.started.elapsed().as_secs_f64(),
+                    "{{\"elapsed_s\":{},\"paused_s\":{},\"header\":{}}}\n\n",
+                    l.elapsed_s(),
+                    l.paused_s(),
                     l.header
                 );
                 cur.live_id = l.id;
@@ -274,11 +302,12 @@ impl Hub {
                 event("status", out);
                 let _ = write!(
                     out,
-                    "{{\"id\":{},\"status\":\"{}\",\"end\":{},\"elapsed_s\":{}}}\n\n",
+                    "{{\"id\":{},\"status\":\"{}\",\"end\":{},\"elapsed_s\":{},\"paused_s\":{}}}\n\n",
                     l.id,
                     l.status,
                     l.end,
-                    l.started.elapsed().as_secs_f64()
+                    l.elapsed_s(),
+                    l.paused_s()
                 );
                 cur.status_sent.clear();
                 cur.status_sent.push_str(&l.status);
@@ -389,6 +418,9 @@ impl ScanObserver for Hub {
             id,
             header,
             started: Instant::now(),
+            ended: None,
+            paused_before: Duration::ZERO,
+            paused_since: None,
             points,
             status: "running".into(),
             end: Value::Null,
@@ -417,6 +449,11 @@ impl ScanObserver for Hub {
         let row = scan_row(scan, saved);
         let mut s = self.lock();
         if let Some(l) = s.live.as_mut() {
+            let now = Instant::now();
+            if let Some(t) = l.paused_since.take() {
+                l.paused_before += now.saturating_duration_since(t);
+            }
+            l.ended = Some(now);
             l.status = row["status"].as_str().unwrap_or("failed").to_string();
             l.end = json!({ "number": row["number"], "error": row["error"], "file": row["file"] });
         }
@@ -429,6 +466,27 @@ impl ScanObserver for Hub {
             path: saved.map(Path::to_path_buf),
             row,
         });
+        self.touch(&mut s);
+    }
+
+    fn paused(&self, paused: bool) {
+        let mut s = self.lock();
+        let Some(l) = s.live.as_mut() else {
+            return;
+        };
+        if l.ended.is_some() {
+            return;
+        }
+        let now = Instant::now();
+        if paused {
+            l.paused_since.get_or_insert(now);
+            l.status = "paused".into();
+        } else {
+            if let Some(t) = l.paused_since.take() {
+                l.paused_before += now.saturating_duration_since(t);
+            }
+            l.status = "running".into();
+        }
         self.touch(&mut s);
     }
 }

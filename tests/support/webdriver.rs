@@ -204,6 +204,18 @@ impl Browser {
         );
     }
 
+    /// Resize the window (CSS pixels); returns the viewport's width the page then sees.
+    pub fn set_window(&self, width: u32, height: u32) -> i64 {
+        self.cmd(
+            "POST",
+            "/window/rect",
+            json!({ "width": width, "height": height }),
+        );
+        self.js("return window.innerWidth", json!([]))
+            .as_i64()
+            .unwrap_or(-1)
+    }
+
     /// Save a PNG screenshot of the window.
     pub fn screenshot(&self, path: &Path) {
         let v = self.cmd("GET", "/screenshot", Value::Null);

@@ -219,15 +219,26 @@ impl Strategy for LineStrategy {
         }
         let rp =
             plan_lines(plan, start, &timing, inst.settle_s, limits).map_err(ScanError::Refused)?;
-        let step_s = inst.stage.move_time_s() + rp.line_s + inst.qpd.overhead_s();
+        // per line: the move to its start, the wave, and what the devices cost around it (the
+        // controller's start, end and recorder readout; the digitiser's arming and read-out)
+        let line_extra_s = rp
+            .lines
+            .first()
+            .map_or(0.0, |l| inst.stage.line_overhead_s(&l.sweep));
+        let move_s = inst.stage.move_time_s();
+        let read_s = inst.qpd.overhead_s();
+        let step_s = move_s + rp.line_s + line_extra_s + read_s;
         let eta_detail = format!(
-            "{} lines of {} pixels at {:.4} µm/s ({} per pixel, line {} incl. turnaround {})",
+            "{} lines of {} pixels at {:.4} µm/s ({} per pixel, line {} incl. turnaround {}; per line also move {} + controller link {} + digitiser {})",
             rp.lines.len(),
             rp.cols.len(),
             rp.speed_um_s,
             fmt_seconds(plan.dwell_s),
             fmt_seconds(rp.line_s),
             fmt_seconds(rp.turnaround_s),
+            fmt_seconds(move_s),
+            fmt_seconds(line_extra_s),
+            fmt_seconds(read_s),
         );
         self.dwell_s = plan.dwell_s;
         self.timing = Some(timing);

@@ -91,6 +91,22 @@ pub(crate) fn clean(
     min_peak: f64,
     min_weight: f64,
 ) -> Vec<BeadInit> {
+    clean_peaks(d, tpl, ch, n, min_peak, min_weight)
+        .into_iter()
+        .map(|(b, _)| b)
+        .collect()
+}
+
+/// As [`clean`], each bead with the height of its maximum in the detection map (the map's
+/// units) when it was taken.
+pub(crate) fn clean_peaks(
+    d: &Image,
+    tpl: &Template,
+    ch: Channels,
+    n: usize,
+    min_peak: f64,
+    min_weight: f64,
+) -> Vec<(BeadInit, f64)> {
     let (pu, pv, d0) = template_dmap_peak(tpl, ch);
     if !(d0 > 0.0) {
         return vec![];
@@ -156,7 +172,7 @@ pub(crate) fn clean(
             weight: v * tpl.norm_factor / d0,
         };
         sub(&mut work, &b);
-        out.push(b);
+        out.push((b, v));
     }
     out
 }

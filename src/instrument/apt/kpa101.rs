@@ -302,6 +302,10 @@ impl Qpd for Kpa101 {
         })
     }
 
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
+        self.link.take_costs()
+    }
+
     fn metadata(&self) -> Option<serde_json::Value> {
         Some(serde_json::json!({
             "device": self.info,

@@ -385,6 +385,16 @@ impl Kpz101 {
         &self.port
     }
 
+    /// What each message cost on this cube's link since the last call.
+    pub fn take_link_costs(&mut self) -> crate::instrument::link::LinkCosts {
+        self.link.take_costs()
+    }
+
+    /// The link's reply latency beyond the bytes' wire time, s (see [`AptLink::latency_s`]).
+    pub fn latency_s(&self) -> Option<f64> {
+        self.link.latency_s()
+    }
+
     pub fn enabled_at_connect(&self) -> bool {
         self.enabled_at_connect
     }
@@ -398,6 +408,8 @@ impl Kpz101 {
 pub struct Kpz101Stage {
     axes: [Kpz101; 3],
     opts: KpzOptions,
+    /// Wall time of a move (targets sent to on target), running mean, for the ETA.
+    move_time: crate::instrument::gcs::MeanTime,
 }
 
 const XYZ: [&str; 3] = ["x", "y", "z"];
@@ -421,7 +433,26 @@ impl Kpz101Stage {
         Ok(Self {
             axes: [x, y, z],
             opts,
+            move_time: Default::default(),
         })
+    }
+
+    /// What a point scan's step (one axis) costs before any move was measured, s (the first
+    /// scan after connecting): `MGMSG_PZ_SET_OUTPUTPOS` written (10 bytes, never acknowledged),
+    /// then `MGMSG_PZ_REQ_OUTPUTPOS` (6 bytes) answered by `MGMSG_PZ_GET_OUTPUTPOS` (10 bytes)
+    /// twice — the first poll sees the actuator still on its way (the closed loop takes
+    /// milliseconds), the second on target — with one poll interval between them; each reply
+    /// costing the link's latency (the median over the connect's requests on the cubes) plus
+    /// its bytes at APT's 115200 baud (10 bits per byte). Longer settling shows after the first
+    /// row, when the engine revises the ETA from the measured cost. 0 before any reply.
+    pub fn move_time_prior_s(&self) -> f64 {
+        let lat: Vec<f64> = self.axes.iter().filter_map(|a| a.latency_s()).collect();
+        if lat.is_empty() {
+            return 0.0;
+        }
+        let lat = lat.iter().sum::<f64>() / lat.len() as f64;
+        let wire = |bytes: f64| bytes / super::APT_BYTES_PER_S;
+        wire(10.0) + 2.0 * (lat + wire(6.0 + 10.0)) + self.opts.poll_interval.as_secs_f64()
     }
 
     pub fn axes(&self) -> &[Kpz101; 3] {
@@ -465,6 +496,7 @@ impl Kpz101Stage {
     }
 
     fn do_move(&mut self, target: Pos, abort: Option<&AtomicBool>) -> Result<bool, DeviceError> {
+        let t0 = Instant::now();
         let mut moved = Vec::new();
         for i in 0..3 {
             if target[i] != self.axes[i].target_um {
@@ -472,7 +504,11 @@ impl Kpz101Stage {
                 moved.push((i, m.describe()));
             }
         }
-        self.wait_on_target(&moved, abort)
+        let r = self.wait_on_target(&moved, abort);
+        if matches!(r, Ok(true)) && !moved.is_empty() {
+            self.move_time.add(t0.elapsed().as_secs_f64());
+        }
+        r
     }
 }
 
@@ -508,6 +544,34 @@ impl Stage for Kpz101Stage {
 
     fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError> {
         self.do_move(target, Some(abort))
+    }
+
+    /// The running mean of the moves measured; before the first, the link model's
+    /// [`Kpz101Stage::move_time_prior_s`].
+    fn move_time_s(&self) -> f64 {
+        self.move_time
+            .value()
+            .unwrap_or_else(|| self.move_time_prior_s())
+    }
+
+    /// The three cubes' links, message by message (summed over the cubes).
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
+        let mut out: crate::instrument::link::LinkCosts = Vec::new();
+        for a in &mut self.axes {
+            for (name, c) in a.take_link_costs() {
+                match out.iter_mut().find(|(n, _)| *n == name) {
+                    Some((_, o)) => {
+                        o.n += c.n;
+                        o.bytes_out += c.bytes_out;
+                        o.bytes_in += c.bytes_in;
+                        o.write_s += c.write_s;
+                        o.reply_s += c.reply_s;
+                    }
+                    None => out.push((name, c)),
+                }
+            }
+        }
+        out
     }
 
     fn enable(&mut self) -> Result<(), DeviceError> {

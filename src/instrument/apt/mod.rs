@@ -21,7 +21,7 @@
 pub mod kpa101;
 pub mod kpz101;
 
-use super::link::Transport;
+use super::link::{CommandCost, LinkCosts, Transport, Turnarounds};
 use super::DeviceError;
 use std::io;
 use std::time::{Duration, Instant};
@@ -354,7 +354,14 @@ pub struct AptLink {
     /// Messages received while waiting for another id (unsolicited status updates, replies
     /// to nothing), counted and skipped.
     pub skipped: usize,
+    /// What each message (by name) cost since the last [`AptLink::take_costs`].
+    costs: LinkCosts,
+    /// Every request's turnaround since the link was opened (the link model's latency).
+    turnarounds: Turnarounds,
 }
+
+/// APT's fixed line: 115200 baud, 8N1 (10 bits per byte), bytes per second.
+pub const APT_BYTES_PER_S: f64 = 115_200.0 / 10.0;
 
 impl AptLink {
     pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
@@ -364,7 +371,32 @@ impl AptLink {
             buf: Vec::new(),
             timeout,
             skipped: 0,
+            costs: Vec::new(),
+            turnarounds: Turnarounds::default(),
         }
+    }
+
+    /// The costs per message since the last call (and start counting anew).
+    pub fn take_costs(&mut self) -> LinkCosts {
+        std::mem::take(&mut self.costs)
+    }
+
+    /// The link's reply latency beyond the bytes at 115200 baud, s (the median over every
+    /// request so far, see [`Turnarounds::latency_s`]); `None` before the first.
+    pub fn latency_s(&self) -> Option<f64> {
+        self.turnarounds.latency_s(Some(APT_BYTES_PER_S))
+    }
+
+    fn cost(&mut self, id: u16) -> &mut CommandCost {
+        let word = id::name(id);
+        let i = match self.costs.iter().position(|(w, _)| w == word) {
+            Some(i) => i,
+            None => {
+                self.costs.push((word.to_string(), CommandCost::default()));
+                self.costs.len() - 1
+            }
+        };
+        &mut self.costs[i].1
     }
 
     pub fn device(&self) -> &str {
@@ -412,10 +444,17 @@ impl AptLink {
     /// Send one message (no reply expected: `SET_…` messages are never acknowledged).
     pub fn send(&mut self, m: &Message) -> Result<(), DeviceError> {
         let bytes = m.encode();
-        self.io
+        let t0 = Instant::now();
+        let r = self
+            .io
             .write_all(&bytes)
             .and_then(|_| self.io.flush())
-            .map_err(|e| self.io_error(&m.describe(), &e))
+            .map_err(|e| self.io_error(&m.describe(), &e));
+        let c = self.cost(m.id);
+        c.n += 1;
+        c.bytes_out += bytes.len() as u64;
+        c.write_s += t0.elapsed().as_secs_f64();
+        r
     }
 
     /// Send `m` and wait for a message with id `reply` (other messages are skipped), at most
@@ -425,7 +464,17 @@ impl AptLink {
         let _ = self.io.discard_input();
         self.send(m)?;
         let timeout = self.timeout;
-        self.wait_for(&m.describe(), reply, timeout)
+        let t0 = Instant::now();
+        let r = self.wait_for(&m.describe(), reply, timeout);
+        let dt = t0.elapsed().as_secs_f64();
+        let back = r.as_ref().map_or(0, |msg| msg.encode().len() as u64);
+        let c = self.cost(m.id);
+        c.bytes_in += back;
+        c.reply_s += dt;
+        if r.is_ok() {
+            self.turnarounds.add(dt, m.encode().len() as u64 + back);
+        }
+        r
     }
 
     /// Wait for a message with id `reply`.

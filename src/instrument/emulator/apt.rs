@@ -10,7 +10,9 @@
 //! messages, then go silent) and `apt_unsolicited` (send a message with an unknown id, 0x0999,
 //! before each of the next n replies).
 
-use super::{lock, Emulator, Faults, Line, SharedPosition, SignalSource, LOG_CAP};
+use super::{
+    lock, sleep_s, Emulator, Faults, Line, LinkModel, SharedPosition, SignalSource, LOG_CAP,
+};
 use crate::instrument::apt::kpa101::{RawReading, MODE_CLOSED_LOOP, SUB_OPER_MODE, SUB_READINGS};
 use crate::instrument::apt::kpz101::{chan_word, CHAN_DISABLED, CHAN_ENABLED, MODE_OPEN_LOOP};
 use crate::instrument::apt::{id, parse, HwInfo, Message, Parsed, CHAN1, USB_UNIT};
@@ -45,6 +47,9 @@ pub struct KpaEmulatorConfig {
     pub sum_v: f64,
     /// Operating mode at power-on (the driver must set monitor mode, 1).
     pub mode_at_power_on: u16,
+    /// The USB-serial link modelled (APT: 115200 baud); default the pty's full speed
+    /// (`bfpscope emulate` models the real one).
+    pub link: LinkModel,
 }
 
 impl Default for KpaEmulatorConfig {
@@ -53,6 +58,7 @@ impl Default for KpaEmulatorConfig {
             serial: 69_000_001,
             sum_v: 5.0,
             mode_at_power_on: MODE_CLOSED_LOOP,
+            link: LinkModel::FULL_SPEED,
         }
     }
 }
@@ -142,6 +148,9 @@ pub struct KpzEmulatorConfig {
     /// zero), status bit 0x20 "zeroing" is set meanwhile, then 0x10 "zeroed" and the offset is
     /// gone. Thorlabs' document gives no duration.
     pub zero_s: f64,
+    /// The USB-serial link modelled (APT: 115200 baud); default the pty's full speed
+    /// (`bfpscope emulate` models the real one).
+    pub link: LinkModel,
 }
 
 impl Default for KpzEmulatorConfig {
@@ -157,6 +166,7 @@ impl Default for KpzEmulatorConfig {
             zeroed_at_power_on: false,
             gauge_offset_um: 0.0,
             zero_s: 0.02,
+            link: LinkModel::FULL_SPEED,
         }
     }
 }
@@ -318,6 +328,7 @@ pub fn start_kpa101_emulator(
     source: impl SignalSource,
 ) -> std::io::Result<Emulator> {
     let mode = cfg.mode_at_power_on;
+    let link = cfg.link;
     spawn_apt(
         "kpa101",
         Kpa {
@@ -327,6 +338,7 @@ pub fn start_kpa101_emulator(
             source,
         },
         position,
+        link,
     )
 }
 
@@ -336,6 +348,7 @@ pub fn start_kpz101_emulator(
     cfg: KpzEmulatorConfig,
     position: SharedPosition,
 ) -> std::io::Result<Emulator> {
+    let link = cfg.link;
     spawn_apt(
         "kpz101",
         Kpz {
@@ -353,6 +366,7 @@ pub fn start_kpz101_emulator(
             cfg,
         },
         position,
+        link,
     )
 }
 
@@ -361,12 +375,22 @@ pub fn start_kpz101_stage(
     travel_um: [f64; 3],
     position: SharedPosition,
 ) -> std::io::Result<[Emulator; 3]> {
+    start_kpz101_stage_on(travel_um, position, LinkModel::FULL_SPEED)
+}
+
+/// As [`start_kpz101_stage`], each cube's USB-serial link modelled by `link`.
+pub fn start_kpz101_stage_on(
+    travel_um: [f64; 3],
+    position: SharedPosition,
+    link: LinkModel,
+) -> std::io::Result<[Emulator; 3]> {
     let one = |axis: usize| {
         start_kpz101_emulator(
             KpzEmulatorConfig {
                 serial: 29_000_001 + axis as u32,
                 axis,
                 travel_um: travel_um[axis],
+                link,
                 ..KpzEmulatorConfig::default()
             },
             position.clone(),
@@ -379,6 +403,7 @@ fn spawn_apt(
     kind: &'static str,
     device: impl AptDevice,
     position: SharedPosition,
+    link: LinkModel,
 ) -> std::io::Result<Emulator> {
     let (line, path) = super::pty_line()?;
     let faults = Arc::new(Mutex::new(Faults::default()));
@@ -387,6 +412,7 @@ fn spawn_apt(
         AptServe {
             line,
             device,
+            link,
             faults: f,
             log: h.log,
             stop: h.stop,
@@ -399,6 +425,7 @@ fn spawn_apt(
 struct AptServe<D: AptDevice> {
     line: Line,
     device: D,
+    link: LinkModel,
     faults: Arc<Mutex<Faults>>,
     log: Arc<Mutex<VecDeque<String>>>,
     stop: Arc<AtomicBool>,
@@ -441,6 +468,8 @@ impl<D: AptDevice> AptServe<D> {
 
     /// Serve one message; false when the emulator unplugs itself.
     fn serve(&mut self, m: &Message) -> bool {
+        // the message's bytes on the modelled wire
+        sleep_s(self.link.wire_s(m.encode().len()));
         {
             let mut log = lock(&self.log);
             if log.len() >= LOG_CAP {
@@ -497,6 +526,8 @@ impl<D: AptDevice> AptServe<D> {
                 }
             }
             out.extend(b);
+            // the unit's reply latency and the reply's bytes on the wire
+            sleep_s(self.link.latency.as_secs_f64() + self.link.wire_s(out.len()));
             let _ = self.line.write_all(&out);
         }
         !last

@@ -34,6 +34,25 @@ pub struct EmulateOptions {
     /// The serial link both emulators model (`--baud`, `--latency-ms`; the command line's
     /// default is [`LinkModel::USB_SERIAL_115200`], this struct's the pty's full speed).
     pub link: LinkModel,
+    /// `redpitaya`: the signal at a path's nodes in one call (the simulator's), see
+    /// [`RedPitayaEmulatorConfig::along`](super::RedPitayaEmulatorConfig::along).
+    pub along: Option<Along>,
+}
+
+/// A [`PathSource`](super::PathSource) in [`EmulateOptions`] (equal when it is the same one).
+#[derive(Clone)]
+pub struct Along(pub super::PathSource);
+
+impl std::fmt::Debug for Along {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Along(…)")
+    }
+}
+
+impl PartialEq for Along {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
 }
 
 /// `--baud` and `--latency-ms` of `bfpscope emulate` → a [`LinkModel`]: `baud` a rate in
@@ -117,10 +136,13 @@ pub fn run_emulator_cli_sim(
         kind,
         StageEmulatorConfig::like_sim(sim),
         qpd,
-        sim_signal_source(renderer),
+        sim_signal_source(renderer.clone()),
         &mut std::io::stdout(),
         stop,
-        opts,
+        &EmulateOptions {
+            along: Some(Along(super::sim_signal_along(renderer))),
+            ..opts.clone()
+        },
     )
 }
 
@@ -176,7 +198,7 @@ pub fn serve_emulators(
                 "emulate: --tcp serves the GCS stage; Thorlabs cubes are serial (USB) devices"
             );
         }
-        return serve_apt(kind, source, out, stop);
+        return serve_apt(kind, source, out, stop, opts.link);
     }
     stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
     // TCP has no baud rate: the stage's link keeps only the latency there
@@ -315,6 +337,7 @@ fn serve_redpitaya(
     let path = super::StagePath::new();
     let rp_cfg = RedPitayaEmulatorConfig {
         path: Some(path.clone()),
+        along: opts.along.as_ref().map(|a| a.0.clone()),
         ..rp_cfg
     };
     let addr = format!("127.0.0.1:{}", opts.port.unwrap_or(0));
@@ -381,8 +404,9 @@ fn serve_apt(
     source: impl SignalSource,
     out: &mut dyn Write,
     stop: Arc<AtomicBool>,
+    link: LinkModel,
 ) -> anyhow::Result<()> {
-    use super::{start_kpa101_emulator, start_kpz101_stage, KpaEmulatorConfig};
+    use super::{start_kpa101_emulator, start_kpz101_stage_on, KpaEmulatorConfig};
     let pos = shared_position(APT_CENTRE);
     let shifted = move |p: [f64; 3]| {
         source([
@@ -394,11 +418,14 @@ fn serve_apt(
     let mut cubes: Vec<Emulator> = Vec::new();
     let mut kpa: Option<Emulator> = None;
     if kind != "kpa101" {
-        cubes.extend(start_kpz101_stage([20.0; 3], pos.clone())?);
+        cubes.extend(start_kpz101_stage_on([20.0; 3], pos.clone(), link)?);
     }
     if kind != "kpz101" {
         kpa = Some(start_kpa101_emulator(
-            KpaEmulatorConfig::default(),
+            KpaEmulatorConfig {
+                link,
+                ..KpaEmulatorConfig::default()
+            },
             pos,
             shifted,
         )?);
@@ -406,14 +433,16 @@ fn serve_apt(
     for (e, ax) in cubes.iter().zip(["x", "y", "z"]) {
         writeln!(
             out,
-            "kpz101 {ax}: Thorlabs KPZ101 piezo cube (travel 0–20 µm, open loop, channel disabled) on {}",
+            "kpz101 {ax}: Thorlabs KPZ101 piezo cube (travel 0–20 µm, open loop, channel disabled, {}) on {}",
+            link.describe(),
             e.path()
         )?;
     }
     if let Some(q) = &kpa {
         writeln!(
             out,
-            "kpa101: Thorlabs KPA101 position aligner (Sum 5 V with no sample; scene origin at {APT_CENTRE:?} µm) on {}",
+            "kpa101: Thorlabs KPA101 position aligner (Sum 5 V with no sample; scene origin at {APT_CENTRE:?} µm; {}) on {}",
+            link.describe(),
             q.path()
         )?;
     }

@@ -21,15 +21,17 @@ mod redpitaya;
 mod stage;
 
 pub use apt::{
-    start_kpa101_emulator, start_kpz101_emulator, start_kpz101_stage, KpaEmulatorConfig,
-    KpzEmulatorConfig, UNKNOWN_ID,
+    start_kpa101_emulator, start_kpz101_emulator, start_kpz101_stage, start_kpz101_stage_on,
+    KpaEmulatorConfig, KpzEmulatorConfig, UNKNOWN_ID,
 };
 pub use cli::{
     parse_link, run_emulator_cli, run_emulator_cli_sim, run_emulator_cli_with, serve_emulators,
     EmulateOptions,
 };
 pub use qpd::{start_qpd_emulator, QpdEmulatorConfig};
-pub use redpitaya::{start_redpitaya_emulator, ExtTrigger, Generator, RedPitayaEmulatorConfig};
+pub use redpitaya::{
+    start_redpitaya_emulator, ExtTrigger, Generator, PathSource, RedPitayaEmulatorConfig,
+};
 pub use stage::{start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig, WaveConfig};
 
 use super::Pos;
@@ -168,6 +170,36 @@ pub fn sim_signal_source(
         let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
         [g[0][0], g[1][0], g[2][0]]
     }
+}
+
+/// As [`sim_signal_source`] at many positions in one call: positions along x (y and z fixed)
+/// or along y (x and z fixed) are rendered as one row or column of `render_grid_ideal`,
+/// anything else position by position. The same values as the one-position source.
+pub fn sim_signal_along(renderer: std::sync::Arc<crate::instrument::sim::Renderer>) -> PathSource {
+    std::sync::Arc::new(move |ps: &[Pos]| {
+        let Some(&[x0, y0, z0]) = ps.first() else {
+            return Vec::new();
+        };
+        let row = |g: [Vec<f64>; 3]| -> Vec<[f64; 3]> {
+            (0..g[0].len())
+                .map(|i| [g[0][i], g[1][i], g[2][i]])
+                .collect()
+        };
+        if ps.iter().all(|p| p[1] == y0 && p[2] == z0) {
+            let xs: Vec<f64> = ps.iter().map(|p| p[0]).collect();
+            row(renderer.render_grid_ideal(&xs, &[y0], z0))
+        } else if ps.iter().all(|p| p[0] == x0 && p[2] == z0) {
+            let ys: Vec<f64> = ps.iter().map(|p| p[1]).collect();
+            row(renderer.render_grid_ideal(&[x0], &ys, z0))
+        } else {
+            ps.iter()
+                .map(|p| {
+                    let g = renderer.render_grid_ideal(&[p[0]], &[p[1]], p[2]);
+                    [g[0][0], g[1][0], g[2][0]]
+                })
+                .collect()
+        }
+    })
 }
 
 /// Fault-injection switches. Change them at run time with [`Emulator::faults`].

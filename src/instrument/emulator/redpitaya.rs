@@ -70,6 +70,11 @@ const PATH_NODE_UM: f64 = 0.005;
 /// wired to the inputs in a bench test.
 pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 
+/// The signal source at many stage positions in one call (the simulator renders a row of
+/// positions in one pass: [`sim_signal_along`](super::sim_signal_along)), for the nodes of a
+/// path.
+pub type PathSource = Arc<dyn Fn(&[crate::instrument::Pos]) -> Vec<[f64; 3]> + Send + Sync>;
+
 /// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
 /// is one rising and one falling edge. Clone it into whatever emulates the controller's
 /// trigger output.
@@ -134,6 +139,10 @@ pub struct RedPitayaEmulatorConfig {
     /// carries the signal at the stage position at its own time. `None`: the position is
     /// taken once, at the trigger.
     pub path: Option<StagePath>,
+    /// The source at a path's nodes in one call; `None`: one call of the source per node.
+    /// Only the board's cost changes (a simulated scene rendered node by node took ~0.4 s a
+    /// line in a debug build, inside the trigger's handling, where a real board takes none).
+    pub along: Option<PathSource>,
     /// Initial fault switches.
     pub faults: Faults,
 }
@@ -150,6 +159,7 @@ impl Default for RedPitayaEmulatorConfig {
             seed: 1,
             generator: None,
             path: None,
+            along: None,
             faults: Faults::default(),
         }
     }
@@ -284,7 +294,11 @@ impl Board {
 
     /// Volts on the inputs from the signal source at stage position `p`.
     fn volts_at(&self, p: crate::instrument::Pos) -> [f64; 4] {
-        let s = (self.source)(p);
+        self.volts_of((self.source)(p))
+    }
+
+    /// The inputs' volts for signals `s` (Sx, Sy, Sz).
+    fn volts_of(&self, s: [f64; 3]) -> [f64; 4] {
         let mut v = self.cfg.offset_v;
         for (i, &w) in self.cfg.wiring.iter().enumerate() {
             if (1..=self.cfg.inputs).contains(&w) {
@@ -315,13 +329,17 @@ impl Board {
                 });
             let n = (((hi - lo) / PATH_NODE_UM).ceil() as usize).clamp(1, 4096);
             let h = (hi - lo) / n as f64;
-            let nodes: Vec<[f64; 4]> = (0..=n)
+            let qs: Vec<crate::instrument::Pos> = (0..=n)
                 .map(|i| {
                     let mut q = first;
                     q[a] = if i == n { hi } else { lo + i as f64 * h };
-                    self.volts_at(q)
+                    q
                 })
                 .collect();
+            let nodes: Vec<[f64; 4]> = match &self.cfg.along {
+                Some(f) => f(&qs).into_iter().map(|s| self.volts_of(s)).collect(),
+                None => qs.iter().map(|&q| self.volts_at(q)).collect(),
+            };
             return positions
                 .iter()
                 .map(|p| {
