@@ -4,11 +4,15 @@
 //! not asserted: a test is no benchmark), and the trade-off's physics (the 1/√t law and its
 //! closed-form prediction, the microtubule's linear density).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::accuracy::report::{run, KneeVerdict, ReportOptions};
 
 #[test]
 fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
     let dir = std::env::temp_dir().join(format!("bfpscope-accuracy-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let r = run(&ReportOptions {
         quick: true,

@@ -2,6 +2,9 @@
 //! stage) driven through their drivers against emulators on pseudo-terminals: bytes on the
 //! wire, decoded numbers, faults, and a scan through the engine.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, Connected};
 use bfpscope::config::Config;
@@ -486,6 +489,7 @@ fn connect_thorlabs_at_the_prompt_names_the_cubes_and_the_aligner() {
     use bfpscope::script::{Settings, Workbench};
     let k = kit(bead);
     let dir = std::env::temp_dir().join(format!("bfpscope-apt-wb-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let (s, _) = Settings::captured(&dir);
     let mut wb = Workbench::new(s);
     let line = wb

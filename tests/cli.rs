@@ -1,5 +1,8 @@
 //! The `bfpscope` binary: commands, exit codes, the scripted tests, the REPL through a pipe.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
@@ -16,6 +19,7 @@ fn bin() -> Command {
 
 fn tmp(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("bfpscope-cli-{}-{tag}", std::process::id()));
+    cleanup::at_exit(&d);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

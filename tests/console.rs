@@ -1,6 +1,9 @@
 //! The prompt as an instrument console, driven through a pseudo-terminal as a person types:
 //! Ctrl-C during a scan pauses it and asks; the answer resumes or aborts.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 #[path = "support/pty.rs"]
 mod pty;
 
@@ -10,7 +13,9 @@ use std::time::Duration;
 const T: Duration = Duration::from_secs(60);
 
 fn dir(tag: &str) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("bfpscope-console-{}-{tag}", std::process::id()))
+    cleanup::at_exit(
+        &std::env::temp_dir().join(format!("bfpscope-console-{}-{tag}", std::process::id())),
+    )
 }
 
 /// A paced simulator (real-instrument speed) and a relative 10 × 10 scan at 10 ms dwell that

@@ -1,6 +1,9 @@
 //! Images and profiles (statistics, slicing, arithmetic), scan files (.npz, also read back with
 //! numpy when it is installed), the session store, TIFF and CSV round trips.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::data::{
     load_csv_profile, load_csv_table, load_scan, load_tiff, save_csv_profile, save_csv_table,
     save_scan, save_tiff, DataError, Image, Profile, Scan, ScanStatus, Session,
@@ -43,6 +46,7 @@ impl Drop for TestDir {
 
 fn test_dir(name: &str) -> TestDir {
     let d = std::env::temp_dir().join(format!("bfpscope-data-{}-{name}", std::process::id()));
+    cleanup::at_exit(&d);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     TestDir(d)

@@ -4,12 +4,16 @@
 //! Refresh deliberately with `BFPSCOPE_BLESS="<one line saying why>" cargo test --test golden`
 //! and review the diff: the reason is added to the file's `# ` header (kept, not compared).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::instrument::trace::check_golden;
 use bfpscope::script::{Settings, Workbench};
 use std::path::Path;
 
 fn run(tag: &str, script: &str) -> String {
     let dir = std::env::temp_dir().join(format!("bfpscope-golden-{}-{tag}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let (s, _buf) = Settings::captured(dir);
     let mut wb = Workbench::new(s);

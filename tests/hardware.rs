@@ -4,6 +4,9 @@
 //! fault tests use 200 ms reply timeouts and check that every failure is bounded in time and
 //! names the device, the command and what came back.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, ConnectError};
 use bfpscope::config::{Backend, Config};
@@ -1456,6 +1459,7 @@ fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
     use bfpscope::script::{Settings, Workbench};
     let (se, qe) = pair(0.0);
     let dir = std::env::temp_dir().join(format!("bfpscope-hw-wb-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
     let call = connect_call(&se, &qe);
@@ -1686,6 +1690,7 @@ fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
         "max_step_um = 2.0\nmax_speed_um_s = 250.0",
     );
     let dir = std::env::temp_dir().join(format!("bfpscope-hw-vel-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
     let (mut settings, _buf) = Settings::captured(&dir);
@@ -1709,6 +1714,7 @@ fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
 fn workbench_on(se: &Emulator, qe: &Emulator, tag: &str) -> bfpscope::script::Workbench {
     use bfpscope::script::{Settings, Workbench};
     let dir = std::env::temp_dir().join(format!("bfpscope-hw-{tag}-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
     let _ = wb.eval_source("t", &connect_call(se, qe)).unwrap();

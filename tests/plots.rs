@@ -2,6 +2,9 @@
 //! pixels where the title is, the colour bar, the expected colours of the heat map, grey NaN
 //! pixels. Set `BFPSCOPE_PLOT_OUT=/some/dir` to keep the figures for looking at them.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::analysis::stats::histogram;
 use bfpscope::data::{DataError, Image, Profile, Scan, ScanStatus};
 use bfpscope::plot::{
@@ -38,7 +41,9 @@ fn out_dir(name: &str) -> OutDir {
     let (dir, keep) = match std::env::var_os("BFPSCOPE_PLOT_OUT") {
         Some(d) => (PathBuf::from(d), true),
         None => (
-            std::env::temp_dir().join(format!("bfpscope-plots-{}-{name}", std::process::id())),
+            cleanup::at_exit(
+                &std::env::temp_dir().join(format!("bfpscope-plots-{}-{name}", std::process::id())),
+            ),
             false,
         ),
     };
@@ -475,7 +480,9 @@ fn svg_output_when_asked() {
 fn bad_input_gives_clear_errors_and_no_files() {
     // always a fresh private folder: the test checks that nothing was written into it
     let dir = OutDir {
-        dir: std::env::temp_dir().join(format!("bfpscope-plots-{}-errors", std::process::id())),
+        dir: cleanup::at_exit(
+            &std::env::temp_dir().join(format!("bfpscope-plots-{}-errors", std::process::id())),
+        ),
         keep: false,
     };
     let _ = std::fs::remove_dir_all(&*dir);

@@ -2,12 +2,16 @@
 //! the git revision when available: scans (metadata), templates (JSON), figures (PNG text chunk)
 //! and CSV tables (trailing `#` line).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::data::provenance::{png_text, PNG_KEYWORD};
 use bfpscope::script::{Settings, Workbench};
 
 #[test]
 fn protocol_files_carry_their_provenance() {
     let dir = std::env::temp_dir().join(format!("bfpscope-prov-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let script = dir.join("calib.rhai");

@@ -7,6 +7,9 @@
 //! device, the command and the reply; Ctrl-C mid-line finishes the line first (the stop rule
 //! of every mode: tests/stop_rule.rs).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::acquire::raster::{run_raster, RasterOptions};
 use bfpscope::acquire::{Axis, Ended, Plan, ScanEnv, ScanError, ScanRun, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect_emulated_redpitaya, Emulated, EmulatedStageLink};
@@ -66,6 +69,7 @@ fn run(
     tag: &str,
 ) -> (Result<ScanRun, ScanError>, PathBuf) {
     let dir = std::env::temp_dir().join(format!("bfpscope-rasterhw-{tag}-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("scan_0001.npz");
     let _ = std::fs::remove_file(&path);
@@ -320,6 +324,7 @@ fn a_failed_recorder_read_stops_everything_and_names_the_controller_error() {
 fn scan_xy_in_raster_mode_at_the_prompt_runs_through_the_emulated_red_pitaya() {
     use bfpscope::script::{Settings, Workbench};
     let dir = std::env::temp_dir().join(format!("bfpscope-rasterhw-wb-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
     let r = wb

@@ -2,6 +2,9 @@
 //! (the REPL sees a terminal, as a person at the instrument); every output line the README shows
 //! must appear, in order.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 #[path = "support/pty.rs"]
 mod pty;
 
@@ -35,6 +38,7 @@ fn readme_tour_runs_at_the_prompt() {
     let (inputs, expected) = tour();
     assert!(inputs.len() > 10 && expected.len() > 10);
     let dir = std::env::temp_dir().join(format!("bfpscope-tour-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let mut p = Prompt::start(&dir, &[]);
     for line in inputs.iter().take_while(|l| *l != "quit") {
         p.enter_line(line, Duration::from_secs(60));

@@ -5,6 +5,9 @@
 //! reports is what the emulated inputs carried: known signals at known stage positions, known
 //! ramps on a known time base, and every fault named with device, command and reply.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::config::connect::{connect, ConnectError};
 use bfpscope::config::Config;
 use bfpscope::instrument::emulator::{
@@ -572,6 +575,7 @@ calibration = {{ gain = [{}, {}, {}], offset_v = [{}, {}, {}] }}
     );
     let cfg = Config::from_toml_str(&text, "test.toml").unwrap();
     let dir = std::env::temp_dir().join(format!("bfpscope-rp-scan-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let (mut settings, _buf) = Settings::captured(&dir);
     settings.apply_config(cfg, None).unwrap();
@@ -638,6 +642,7 @@ fn connect_at_the_prompt_names_the_board_and_reconnects_to_the_same_address() {
         start_redpitaya_emulator(emu_cfg(false, 0.0), pos, standin_bead, "127.0.0.1:0").unwrap();
     let (h, p) = host_port(&rp);
     let dir = std::env::temp_dir().join(format!("bfpscope-rp-wb-{}", std::process::id()));
+    cleanup::at_exit(&dir);
     let (settings, _buf) = Settings::captured(&dir);
     let mut wb = Workbench::new(settings);
     let call = format!(

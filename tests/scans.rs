@@ -1,6 +1,9 @@
 //! Safety behaviours of the scan engine, one test each, on the mock instrument (the mock
 //! stage records every command it is sent).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::acquire::store::{load_scan, SessionStore};
 use bfpscope::acquire::{
     run_plan, Axis, Ended, Paused, Plan, ScanEnv, ScanError, SoftLimits, Sweep,
@@ -14,6 +17,7 @@ use std::sync::{Arc, Mutex};
 
 fn tmp(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("bfpscope-scans-{}-{tag}", std::process::id()));
+    cleanup::at_exit(&d);
     let _ = std::fs::remove_dir_all(&d);
     d
 }

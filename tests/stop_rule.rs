@@ -17,6 +17,9 @@
 //! or fails the n-th call); the emulators' stage faults are the emulated controller's own
 //! (a rejected `MOV`, a rejected `DRR?`), so the message is the driver's.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::acquire::raster::RasterOptions;
 use bfpscope::acquire::store::{load_scan, SessionStore};
 use bfpscope::acquire::strategy::{LineStrategy, PointStrategy, Strategy};
@@ -270,6 +273,7 @@ fn go(tag: &str, mode: Mode, backend: Backend, inj: Inject) -> Outcome {
         "bfpscope-stoprule-{}-{tag}-{mode:?}-{backend:?}",
         std::process::id()
     ));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let store = SessionStore::new(dir);
     let save = move |s: &bfpscope::data::Scan| store.autosave(s).map_err(|e| e.to_string());

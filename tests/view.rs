@@ -5,6 +5,9 @@
 //! Screenshots go to `$CARGO_TARGET_TMPDIR/view-screenshots/` (the guide's are copied from
 //! there: docs/figures/view_*.png).
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 mod support;
 
 use bfpscope::script::view::start_view;
@@ -19,6 +22,7 @@ const BEAD: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n
 
 fn bench(tag: &str) -> (Workbench, String, PathBuf) {
     let dir = std::env::temp_dir().join(format!("bfpscope-view-{}-{tag}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let (s, _out) = Settings::captured(&dir);
     let wb = Workbench::new(s);

@@ -1,6 +1,9 @@
 //! The scripting workbench in-process: every binding example, the generated API reference,
 //! help, REPL semantics, error positions, the sandbox and Ctrl-C.
 
+#[path = "support/cleanup.rs"]
+mod cleanup;
+
 use bfpscope::script::registry::{api_markdown, help_index, Kind};
 use bfpscope::script::{all_docs, Settings, Workbench};
 use std::sync::atomic::Ordering;
@@ -8,6 +11,7 @@ use std::time::{Duration, Instant};
 
 fn wb(tag: &str) -> (Workbench, std::sync::Arc<std::sync::Mutex<String>>) {
     let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-{tag}", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     let (s, buf) = Settings::captured(dir);
     (Workbench::new(s), buf)
@@ -290,6 +294,7 @@ fn errors_are_one_line_with_position() {
 #[test]
 fn runaway_loop_is_stopped_with_a_clear_message() {
     let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-runaway", std::process::id()));
+    cleanup::at_exit(&dir);
     let (mut s, _) = Settings::captured(dir);
     s.sandbox.max_operations = 200_000;
     let mut w = Workbench::new(s);
@@ -388,6 +393,7 @@ fn values_print_readably() {
 #[test]
 fn scans_record_the_script_path_and_hash() {
     let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-prov", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let script = dir.join("prov.rhai");
@@ -414,6 +420,7 @@ fn scans_record_the_script_path_and_hash() {
 #[test]
 fn scripted_test_runner_counts_passes_and_failures() {
     let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-runner", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("a.rhai"), "fn test_ok() { assert(true, \"\") }\nfn test_bad() { assert_close(1.0, 1.5, 0.01) }\nfn helper() {}").unwrap();
@@ -468,6 +475,7 @@ fn variable_types_for_completion_use_the_script_names() {
 #[test]
 fn a_failed_autosave_is_a_script_error() {
     let dir = std::env::temp_dir().join(format!("bfpscope-wb-{}-nosave", std::process::id()));
+    cleanup::at_exit(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("a_file");
