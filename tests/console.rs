@@ -53,7 +53,8 @@ fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
     let from = p.out.len();
     p.wait_for_from(0, "scan_xy paused after ", T);
     assert!(
-        p.out.contains("the stage waits at x = ") && p.out.contains("Enter or r: resume"),
+        p.out.contains(" of 100 pixels; the stage waits at x = ")
+            && p.out.contains("Enter or r: resume"),
         "{}",
         p.out
     );
@@ -64,7 +65,7 @@ fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
     assert!(said.contains("scan_xy: complete in"), "{said}");
     let o = p.enter("[s.status, s.meta.pauses.len(), s.meta.points_measured]", T);
     assert!(o.contains("[\"complete\", 1, 100]"), "{o}");
-    // paused after k points: k measured before, 100 − k after, each pixel once
+    // paused after k pixels: k measured before, 100 − k after, each pixel once
     let o = p.enter(
         "let k = s.meta.pauses[0].after_points; [k > 0, k < 100, s.sx.min() == s.sx.min()]",
         T,
