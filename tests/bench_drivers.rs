@@ -130,6 +130,18 @@ fn run(
     limits: &SoftLimits,
     abort: &AtomicBool,
 ) -> (ScanRun, Vec<Scan>) {
+    scan_with(inst, plan, limits, abort, false)
+}
+
+/// Run `plan` point by point, or as a raster (`raster`), keeping what the engine saves.
+fn scan_with(
+    inst: &mut Instrument,
+    plan: &Plan,
+    limits: &SoftLimits,
+    abort: &AtomicBool,
+    raster: bool,
+) -> (ScanRun, Vec<Scan>) {
+    use bfpscope::acquire::raster::{run_raster, RasterOptions};
     let saved = Mutex::new(Vec::new());
     let log = |_: &str| {};
     let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
@@ -137,8 +149,15 @@ fn run(
         Ok(std::path::PathBuf::from("memory"))
     };
     let env = ScanEnv::plain(limits, abort, &log, &save);
-    let r = run_plan(inst, plan, &env).unwrap_or_else(|e| panic!("{e}"));
-    (r, saved.into_inner().unwrap())
+    let r = if raster {
+        run_raster(inst, plan, &RasterOptions::default(), &env)
+    } else {
+        run_plan(inst, plan, &env)
+    };
+    (
+        r.unwrap_or_else(|e| panic!("{e}")),
+        saved.into_inner().unwrap(),
+    )
 }
 
 /// A point-by-point scan_xy of n × n pixels over ±half µm around the bead, dwell 100 µs
@@ -460,17 +479,7 @@ fn run_raster_scan(
     limits: &SoftLimits,
     abort: &AtomicBool,
 ) -> (ScanRun, Vec<Scan>) {
-    use bfpscope::acquire::raster::{run_raster, RasterOptions};
-    let saved = Mutex::new(Vec::new());
-    let log = |_: &str| {};
-    let save = |s: &Scan| -> Result<std::path::PathBuf, String> {
-        saved.lock().unwrap().push(s.clone());
-        Ok(std::path::PathBuf::from("memory"))
-    };
-    let env = ScanEnv::plain(limits, abort, &log, &save);
-    let r =
-        run_raster(inst, plan, &RasterOptions::default(), &env).unwrap_or_else(|e| panic!("{e}"));
-    (r, saved.into_inner().unwrap())
+    scan_with(inst, plan, limits, abort, true)
 }
 
 /// The outputs rest at the voltage of the stage's position (never 0 V), within the sensor's

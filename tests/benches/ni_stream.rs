@@ -27,41 +27,6 @@ use std::time::Instant;
 
 const CENTRE: [f64; 3] = [37.5, 37.5, 25.0];
 
-fn config(lib: &str) -> String {
-    format!(
-        r#"
-[stage]
-backend = "madlib"
-library = "{lib}"
-axes = {{ x = 1, y = 2, z = 3 }}
-tolerance_um = 0.005
-on_target_timeout_ms = 400
-poll_ms = 1
-
-[qpd]
-backend = "nidaqmx"
-library = "{lib}"
-device = "Dev1"
-channels = {{ sx = "ai0", sy = "ai1", sum = "ai2" }}
-range_v = 10.0
-terminal = "diff"
-rate_hz = 800000.0
-calibration = {{ gain = [1.0, 1.0, 0.2], offset_v = [0.0, 0.0, 5.0] }}
-
-[raster]
-backend = "nidaqmx"
-ao = {{ x = "ao0", y = "ao1" }}
-volts_per_um = {{ x = 0.13333333333333333, y = 0.13333333333333333 }}
-position = {{ x = "ai3" }}
-position_volts_per_um = {{ x = 0.13333333333333333 }}
-
-[safety]
-soft_limits = {{ x = [1.0, 74.0], y = [1.0, 74.0], z = [1.0, 49.0] }}
-max_step_um = 2.0
-"#
-    )
-}
-
 struct Case {
     what: &'static str,
     tau_ms: &'static str,
@@ -76,7 +41,9 @@ fn main() {
     let l = unsafe { libloading::Library::new(&lib) }.expect("load the fake");
     let set: libloading::Symbol<unsafe extern "C" fn(*const c_char, *const c_char) -> c_int> =
         unsafe { l.get(b"fakebench_set\0") }.expect("fakebench_set");
-    let cfg = Config::from_toml_str(&config(&lib.display().to_string()), "bench.toml").unwrap();
+    // the config `bfpscope emulate nidaq` prints for the fake
+    let text = bfpscope::config::bench::fake_bench_config(&lib);
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
     let cases = [
         Case {
             what: "256 × 256 at 10 µs per pixel, stage lag τ = 2 ms (settle 10 ms)",

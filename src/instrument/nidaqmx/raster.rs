@@ -69,8 +69,9 @@ pub fn waveform_volts(targets_um: &[f64], v_per_um: f64, who: &str) -> Result<Ve
 /// One chunk of the stream: QPD inputs (V, acquisition order) and the sensor monitor (V).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Chunk {
-    /// `inputs[c][k]`: input `c` of the QPD, sample `k`.
-    pub inputs: Vec<Vec<f64>>,
+    /// The QPD inputs grouped by channel (`NiInputs::signals`' layout): input `c`'s samples
+    /// at `c·n … c·n + n`, `n` = `position_v.len()`.
+    pub inputs: Vec<f64>,
     pub position_v: Vec<f64>,
 }
 
@@ -233,12 +234,11 @@ impl NiRaster {
         let chans = self.opts.qpd.inputs.names().len() + 1;
         self.buf.resize(chans * n, 0.0);
         let got = ai.read(n, timeout_s, &mut self.buf)?;
-        let mut c = Chunk::default();
-        for k in 0..chans - 1 {
-            c.inputs.push(self.buf[k * n..k * n + got].to_vec());
-        }
-        c.position_v = self.buf[(chans - 1) * n..(chans - 1) * n + got].to_vec();
-        Ok(c)
+        let block = |k: usize| &self.buf[k * n..k * n + got];
+        Ok(Chunk {
+            inputs: (0..chans - 1).flat_map(block).copied().collect(),
+            position_v: block(chans - 1).to_vec(),
+        })
     }
 
     /// Stop and clear both tasks (each is cleared even if stopping failed).

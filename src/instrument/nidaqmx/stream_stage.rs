@@ -136,9 +136,8 @@ impl FrameStream for NiStreamStage {
             convert_s: 0.0,
         };
         // the QPD's samples, volts → signals as a point read does
-        let flat: Vec<f64> = c.inputs.iter().flatten().copied().collect();
         for i in 0..m {
-            let v = o.qpd.inputs.signals(&flat, m, i);
+            let v = o.qpd.inputs.signals(&c.inputs, m, i);
             let r = o.qpd.calibration.apply(v, [0.0; 3], 1);
             out.sx.push(r.sx);
             out.sy.push(r.sy);
