@@ -344,12 +344,43 @@ fn demo_script_runs() {
         .expect("a text block after \"It prints\"");
     let lines: Vec<&str> = block.lines().filter(|l| !l.trim().is_empty()).collect();
     assert!(lines.len() >= 3, "{block}");
-    for l in lines {
+    for l in &lines {
         assert!(
             out.lines().any(|o| o.trim_end() == l.trim_end()),
             "README demo line not printed by the demo: {l:?}\n--- demo output:\n{out}"
         );
     }
+    // and every number in them agrees with the demo's scene (scripts/demo.rhai): the bead at
+    // (−2.0, 0.5) µm, a 110 nm polystyrene bead (one reference bead), the fibril at 20°, 60 nm,
+    // each within 3σ of its own stated uncertainty
+    let nums = |l: &str| -> Vec<f64> {
+        l.split(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-'))
+            .filter_map(|w| w.trim_end_matches('.').parse::<f64>().ok())
+            .collect()
+    };
+    let line = |prefix: &str| {
+        lines
+            .iter()
+            .find(|l| l.starts_with(prefix))
+            .unwrap_or_else(|| panic!("no README demo line starts with {prefix:?}"))
+    };
+    let within = |what: &str, v: f64, truth: f64, sigma: f64| {
+        assert!(
+            sigma > 0.0 && (v - truth).abs() < 3.0 * sigma,
+            "README demo: {what} = {v} ± {sigma}, the scene's truth {truth}"
+        );
+    };
+    // "bead: at (x, y) µm ± e nm; weight w ± we reference beads; …"
+    let b = nums(line("bead: at"));
+    within("bead x (µm)", b[0], -2.0, b[2] / 1000.0);
+    within("bead y (µm)", b[1], 0.5, b[2] / 1000.0);
+    within("bead weight", b[3], 1.0, b[4]);
+    // "fibril: angle a° ± e° (truth 20°), n maxima (…)"
+    let f = nums(line("fibril: angle"));
+    within("fibril angle (°)", f[0], 20.0, f[1]);
+    // "fibril: corrected sensitivity s ± e; A = a nm → d = d ± e nm (truth 60 nm)"
+    let d = nums(line("fibril: corrected"));
+    within("fibril diameter (nm)", d[3], 60.0, d[4]);
 }
 
 /// Lines of a child's stdout, read on a thread (so waiting for one can time out).

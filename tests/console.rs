@@ -199,3 +199,300 @@ fn a_session_calibration_focus_rotation_aggregates() {
     std::fs::write(&path, &out).unwrap();
     eprintln!("transcript: {}", path.display());
 }
+
+/// A device emulator in a process of its own (`bfpscope emulate DEVICE ARGS…`), as a person
+/// starts it in a second terminal: its `bfpscope.toml` snippet, and Ctrl-C (SIGINT) when dropped.
+struct Emulator {
+    child: std::process::Child,
+    toml: String,
+}
+
+impl Emulator {
+    fn start(device: &str, args: &[&str]) -> Emulator {
+        use std::io::{BufRead, BufReader};
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_bfpscope"))
+            .arg("emulate")
+            .arg(device)
+            .args(args)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = child.stdout.take().unwrap();
+        std::thread::spawn(move || {
+            for l in BufReader::new(out).lines() {
+                let Ok(l) = l else { break };
+                if tx.send(l).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut text = String::new();
+        while !text.contains("Serving until Ctrl-C") {
+            match rx.recv_timeout(T) {
+                Ok(l) => {
+                    text.push_str(&l);
+                    text.push('\n');
+                }
+                Err(_) => {
+                    let _ = child.kill();
+                    panic!("`bfpscope emulate {device}` did not serve within {T:?}:\n{text}");
+                }
+            }
+        }
+        let toml = text
+            .split("# bfpscope.toml for these emulators:\n")
+            .nth(1)
+            .and_then(|t| t.split("Serving until").next())
+            .unwrap_or_else(|| panic!("no config snippet:\n{text}"))
+            .to_string();
+        Emulator { child, toml }
+    }
+}
+
+impl Drop for Emulator {
+    fn drop(&mut self) {
+        unsafe {
+            libc::kill(self.child.id() as i32, libc::SIGINT);
+        }
+        let t0 = std::time::Instant::now();
+        while t0.elapsed() < Duration::from_secs(5) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Type `expr` (a boolean check) and assert that the prompt answers `true`; `what` says what
+/// the check means, for the failure message.
+fn holds(p: &mut Prompt, expr: &str, what: &str) {
+    let o = p.enter(expr, T);
+    let answer = o
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty() && !l.starts_with("bfp>"));
+    assert!(
+        answer.is_some_and(|l| l.trim() == "true"),
+        "{what}: `{expr}` is not true:\n{o}\n--- the session:\n{}",
+        p.out
+    );
+}
+
+/// A night at the prompt (issue 33's transcript), every number checked against its scene's
+/// truth. The emulators run as a person runs them, in processes of their own, and the prompt
+/// reads the config they print.
+/// 1. `bfpscope emulate pair` (PI GCS stage + SCPI QPD at the pseudo-terminal's full speed; the
+///    emulator's scene: one 110 nm polystyrene bead at the origin, z = 0): the reference-bead
+///    calibration and a focus search on that bead.
+/// 2. The simulator with a scene built at the prompt: a 19-angle rotation series of a collagen
+///    fibril, aggregates removed beside a microtubule, its linear density, an α-tip's profile.
+/// 3. `bfpscope emulate redpitaya` (a second prompt on its config, as the prompt reads one config
+///    per session): a hardware-timed raster of the emulator's bead, paused with Ctrl-C between
+///    lines and resumed, and the bead found where it is.
+///
+/// The transcript is written to `$CARGO_TARGET_TMPDIR/console-night.txt`.
+#[test]
+fn a_night_at_the_prompt() {
+    let long = Duration::from_secs(300);
+    let etc = dir("night-etc");
+    std::fs::create_dir_all(&etc).unwrap();
+    // 1. the PI + SCPI pair
+    let pair = Emulator::start("pair", &["--baud", "max"]);
+    let cfg = etc.join("pair.toml");
+    // the emulated stage is on target 2 ms after a step: 1 ms of settling after `ONT?` says so
+    let toml = pair
+        .toml
+        .replace("[stage]\n", "[stage]\nsettle_s = 0.001\n");
+    std::fs::write(&cfg, &toml).unwrap();
+    let mut p = Prompt::start(&dir("night"), &["--config", cfg.to_str().unwrap()]);
+    let o = p.enter("status().instrument.backend", T);
+    assert!(o.contains("hardware"), "{o}");
+    p.enter("import \"calibrate\" as calibrate;", T);
+    let o = p.enter(
+        "let c = calibrate::reference_beads(#{beads: [[0.0, 0.0]], box_um: 2.2, n: 45, dwell: 0.001, fit_beam: false});",
+        long,
+    );
+    assert!(o.contains("saved ") && o.contains("template.json"), "{o}");
+    p.enter("c", T);
+    // the emulated QPD's three gains are 1.0: Sy/Sx as the model of an ideal QPD
+    holds(
+        &mut p,
+        "abs(c.implied_gain_y - 1.0) < 3.0 * c.implied_gain_y_err",
+        "the emulated QPD's y gain (1.0)",
+    );
+    p.enter("import \"focus\" as focus;", T);
+    p.enter("mv(#{x: 0.0, y: 0.0, z: 0.3}); wa()", T);
+    let o = p.enter("let f = focus::search(#{n: 21, nz: 15}); f", long);
+    assert!(o.contains("z_best: "), "{o}");
+    holds(
+        &mut p,
+        "abs(f.z_best) < 3.0 * f.z_err",
+        "the bead's height (0)",
+    );
+    p.enter("wa()", T);
+    // 2. the simulator, a scene built tonight
+    let o = p.enter("connect(#{backend: \"sim\"})", T);
+    assert!(o.contains("connected sim"), "{o}");
+    let o = p.enter("status().instrument.backend", T);
+    assert!(o.contains("sim"), "{o}");
+    for line in [
+        "let s = scene();",
+        "s.add_bead(#{x: -4.0, y: 3.0, d_nm: 110.0, n: 1.572});   // the fiducial",
+        "s.add_filament(#{points: [[0.0, 4.5], [0.0, 8.5]], d_nm: 80.0, n: 1.41});   // a collagen fibril",
+        "s.effects([\"detector_noise\"]);",
+    ] {
+        p.enter(line, T);
+    }
+    p.enter("import \"rotation\" as rotation;", T);
+    let o = p.enter(
+        "let r = rotation::series(#{scene: s, fiducial: [-4.0, 3.0], filament: [0.0, 6.5], template: c.template, n: 41, dwell: 0.002});",
+        long,
+    );
+    assert!(!o.contains("rror"), "{o}");
+    p.enter("[r.angles_deg, r.sx, r.rms_dev_sx, r.rms_dev_sy]", T);
+    p.enter("r.offsets_um", T);
+    holds(
+        &mut p,
+        "r.angles_deg.len() == 19 && r.angles_deg[18] == 180.0",
+        "19 angles over 180°",
+    );
+    // the scene handed in is imaged from the first angle: Sx normalised to its first angle
+    // follows the bead model within the noise (a stale scene at 0° gave 1.0, 5.38, 5.34, …)
+    holds(&mut p, "r.rms_dev_sx < 0.1", "Sx against the bead model");
+    // the simulator rotates about the origin, so the fiducial is where it was predicted
+    holds(
+        &mut p,
+        "r.offsets_um.all(|o| abs(o[0]) < 0.005 && abs(o[1]) < 0.005)",
+        "fiducial offsets (0)",
+    );
+    // aggregates beside a microtubule, its linear density, and a collagen fibril's α-tip
+    for line in [
+        "let s2 = scene();",
+        "let d_mt = sqrt(4.0 * 13.0 * 13.75e3 / (1.35 * 602.214076) / PI());   // 13 protofilaments as a protein cylinder, nm",
+        "s2.add_filament(#{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: d_mt, n: 1.587});",
+        "s2.add_aggregates(#{count: 30, d_nm: [70.0, 120.0], x: [-2.5, 2.5], y: [-3.0, 3.0], seed: 4});",
+        "s2.add_filament(#{points: [[6.0, -2.0], [6.0, 4.0]], alpha_tip: #{d_nm: 100.0, tip_um: 3.0}, n: 1.41});   // tip at y = -2",
+        "s2.effects([\"detector_noise\"]);",
+        "simulate(s2);",
+    ] {
+        p.enter(line, T);
+    }
+    p.enter("import \"aggregates\" as aggregates;", T);
+    let o = p.enter(
+        "let m = scan_xy(#{x: [-2.5, 2.5], y: [-2.5, 2.5], nx: 81, ny: 81, dwell: 0.01, snake: true});",
+        long,
+    );
+    assert!(o.contains("complete in"), "{o}");
+    let o = p.enter("let a = aggregates::remove(m, c.template); a", long);
+    assert!(o.contains("n_objects: "), "{o}");
+    // the microtubule runs along y (0°), not a line of aggregates
+    holds(
+        &mut p,
+        "a.n_objects >= 10 && a.improvement > 1.3 && abs(a.angle_deg) < 3.0",
+        "aggregates removed beside the microtubule (along y)",
+    );
+    p.enter("import \"microtubule\" as microtubule;", T);
+    let o = p.enter(
+        "let mt = microtubule::density(a.scan, c.template); mt",
+        long,
+    );
+    assert!(o.contains("mu_mda_um: "), "{o}");
+    holds(
+        &mut p,
+        "abs(mt.mu_mda_um - 13.0 * 13.75) < 3.0 * mt.mu_err_mda_um",
+        "the microtubule's linear density (13 × 13.75 MDa/µm)",
+    );
+    holds(
+        &mut p,
+        "abs(mt.protofilaments_exact - 13.0) < 3.0 * 13.0 * mt.mu_err_mda_um / mt.mu_mda_um",
+        "the microtubule's 13 protofilaments",
+    );
+    p.enter("import \"tips\" as tips;", T);
+    let o = p.enter(
+        "let ts = scan_xy(#{x: [5.0, 7.0], y: [-2.5, 1.5], nx: 41, ny: 81, dwell: 0.01});",
+        long,
+    );
+    assert!(o.contains("complete in"), "{o}");
+    let o = p.enter("let tp = tips::profile(ts, c.template, #{n_obj: 1.41}); [tp.angle_deg, tp.n_points, tp.n_skipped, tp.a_nm]", long);
+    assert!(!o.contains("rror"), "{o}");
+    // the α-tip's truth: d = 100 nm · √((y + 2 µm) / 3 µm) from its tip at y = −2 µm
+    p.enter("let dev = []; for i in 0..tp.d_nm.len() { let y = tp.y_um[i]; if y >= -1.5 { dev.push(tp.d_nm[i] - 100.0 * sqrt((y + 2.0) / 3.0)); } }", T);
+    p.enter("[dev.len(), sqrt(dev.reduce(|s, v| s + v * v, 0.0) / dev.len()), dev.reduce(|s, v| max(s, abs(v)), 0.0)]", T);
+    // one point's diameter error from its sensitivity's: d = A·√s, so σ_d = d·σ_s/(2s); the
+    // profile's maxima are each one parabola's, so the rms is the typical σ_d
+    holds(
+        &mut p,
+        "dev.len() >= 50 && sqrt(dev.reduce(|s, v| s + v * v, 0.0) / dev.len()) < 4.0",
+        "the α-tip's diameter profile (100 nm · √((y + 2) / 3))",
+    );
+    let mut out = p.quit();
+    drop(pair);
+    // 3. the Red Pitaya raster: a second prompt on the config `bfpscope emulate redpitaya`
+    // prints (its stage: a GCS controller whose OUT1 triggers the board)
+    let rp = Emulator::start("redpitaya", &["--baud", "max"]);
+    let cfg = etc.join("redpitaya.toml");
+    std::fs::write(&cfg, &rp.toml).unwrap();
+    let mut p = Prompt::start(&dir("night-raster"), &["--config", cfg.to_str().unwrap()]);
+    assert!(p.out.contains("connected hardware: PI E-727"), "{}", p.out);
+    let from = p.out.len();
+    p.type_line(
+        "let s = scan_xy(#{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41, dwell: 0.001, mode: \"raster\"})",
+    );
+    p.wait_for_from(from, "ETA", T);
+    std::thread::sleep(Duration::from_millis(1500));
+    p.send(b"\x03");
+    p.wait_for_from(from, "paused> ", T);
+    assert!(
+        p.out[from..].contains("scan_xy paused after "),
+        "{}",
+        &p.out[from..]
+    );
+    p.type_line("");
+    p.wait_for_from(from, "bfp> ", long);
+    let said = p.out[from..].to_string();
+    assert!(
+        said.contains("resumed") && said.contains("complete in"),
+        "{said}"
+    );
+    holds(
+        &mut p,
+        "s.status == \"complete\" && s.meta.pauses.len() == 1 && s.meta.pauses[0].resumed",
+        "the raster paused once and completed",
+    );
+    // paused between lines: whole lines before, the rest after, every pixel measured
+    p.enter(
+        "let k = s.meta.pauses[0].after_points; [k, k % 41, s.sx.min() == s.sx.min()]",
+        T,
+    );
+    holds(
+        &mut p,
+        "k > 0 && k < 41 * 41 && k % 41 == 0",
+        "the pause fell between lines",
+    );
+    // the emulator's bead: 110 nm polystyrene at the origin
+    let o = p.enter(
+        "let b = fit_beads(s, template_model(#{h_um: 0.02}), #{n_beads: 1}).beads[0]; b",
+        long,
+    );
+    assert!(o.contains("weight"), "{o}");
+    // within 3σ of the fit plus the 0.2 nm to which a raster's pixels are dated (the bound
+    // tests/device_truth.rs holds both sweep directions of the same board to); the weight within
+    // 1 %: a raster pixel averages the signal over its 50 nm of travel, which lowers a focus of
+    // 1/e² radius w = 0.4 µm by ≈ p²/(6w²) = 0.3 % against the template's point samples
+    holds(
+        &mut p,
+        "b.found && abs(b.x) < 3.0 * b.x_err + 2e-4 && abs(b.y) < 3.0 * b.y_err + 2e-4 && abs(b.weight - 1.0) < 0.01",
+        "the emulator's bead at the origin, one reference bead",
+    );
+    out.push_str(&p.quit());
+    drop(rp);
+    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("console-night.txt");
+    std::fs::write(&path, &out).unwrap();
+    eprintln!("transcript: {}", path.display());
+}

@@ -53,29 +53,48 @@ pub const MIN_FILAMENT_SPAN_UM: f64 = 1.2;
 /// five neighbouring lines (see [`check_filament_maxima`]) with probability ≈ 2·10⁻⁸.
 pub const STRONG_SIGMA: f64 = 3.0;
 
+/// A maximum below this fraction of the largest value of the whole sensitivity image is never
+/// strong: it may be the tail or side lobe of a point object elsewhere in the scan (a point
+/// object's tail falls below 2 % of its peak within ≈ 1.4 focal radii; see [`GAP_FLOOR`]). It
+/// matters for noise-free data, where no noise threshold hides those tails: a bead at the
+/// corner of a scan, outside the line, had the maxima of its side lobe (1.7 % of its peak) read
+/// as a filament at 40°.
+pub const TAIL_FRACTION: f64 = 0.02;
+
 /// Check that the maxima along a fitted line form a filament, not one point object (a bead or
 /// an aggregate, in noise or not). `lines`: every scan line the fitted line crosses, in line
 /// order, as (arc position µm, maximum read there — NaN where none was), as for
-/// [`check_filament_continuity`]; `sigma`: one maximum's 1σ (0 or NaN for noise-free data).
+/// [`check_filament_continuity`]; `sigma`: one maximum's 1σ (0 or NaN for noise-free data);
+/// `image_max`: the largest value of the sensitivity image (same units; 0 or NaN: none).
 /// Each line's maximum is replaced by the median of the five lines around it (0 where none was
 /// read), so the ridge must be there line after line: a maximum that noise put on the line, or
 /// a few noisy lines that happen to line up with the point object, do not count. The smoothed
 /// maxima of at least `STRONG_FRACTION` of the largest and `STRONG_SIGMA`·σ are strong, and the
 /// strong lines must span at least [`MIN_FILAMENT_SPAN_UM`] along the line (the focus's extent:
-/// see there). The check does not depend on the scan's size, position or pixel size (a point
+/// see there); no maximum below [`TAIL_FRACTION`] of `image_max` is strong. The check does not depend on the scan's size, position or pixel size (a point
 /// object's strong maxima span the same length in µm in any scan), nor on the fraction of the
 /// lines it covers.
-pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64) -> Result<()> {
+pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64, image_max: f64) -> Result<()> {
     let v: Vec<f64> = lines
         .iter()
         .map(|l| if l.1.is_finite() { l.1 } else { 0.0 })
         .collect();
-    let smooth: Vec<f64> = (0..v.len())
+    // Five lines around each, the lines beyond the scan's edge counted as 0 (no maximum read
+    // there): at an end of the line, as in its middle, three of five lines must carry the ridge.
+    // (A window cut short at the edge let two noisy maxima of the last three lines pass as
+    // strong, so a lone bead plus edge noise spanned 2.3 µm at 0.1 µm pixels.)
+    let at = |i: isize| -> f64 {
+        if i < 0 || i as usize >= v.len() {
+            0.0
+        } else {
+            v[i as usize]
+        }
+    };
+    let smooth: Vec<f64> = (0..v.len() as isize)
         .map(|i| {
-            let mut w: Vec<f64> = v[i.saturating_sub(2)..(i + 3).min(v.len())].to_vec();
+            let mut w = [at(i - 2), at(i - 1), at(i), at(i + 1), at(i + 2)];
             w.sort_by(f64::total_cmp);
-            // an even window (at an end of the line): the lower middle
-            w[(w.len() - 1) / 2]
+            w[2]
         })
         .collect();
     let max = smooth.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
@@ -90,7 +109,12 @@ pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64) -> Result<()> {
     } else {
         0.0
     };
-    let thr = (STRONG_FRACTION * max).max(STRONG_SIGMA * sigma);
+    let floor = if image_max.is_finite() {
+        TAIL_FRACTION * image_max.max(0.0)
+    } else {
+        0.0
+    };
+    let thr = (STRONG_FRACTION * max).max(STRONG_SIGMA * sigma).max(floor);
     let strong: Vec<f64> = lines
         .iter()
         .zip(&smooth)
@@ -104,7 +128,12 @@ pub fn check_filament_maxima(lines: &[(f64, f64)], sigma: f64) -> Result<()> {
         return Ok(());
     }
     let crossed = (lines[lines.len() - 1].0 - lines[0].0).abs();
-    let level = if STRONG_SIGMA * sigma > STRONG_FRACTION * max {
+    let level = if floor >= thr {
+        format!(
+            "{:.0} % of the scan's largest maximum (a point object's tail)",
+            TAIL_FRACTION * 100.0
+        )
+    } else if STRONG_SIGMA * sigma > STRONG_FRACTION * max {
         format!("{STRONG_SIGMA}σ of the noise")
     } else {
         format!("{:.0} % of the largest", STRONG_FRACTION * 100.0)
@@ -139,8 +168,9 @@ pub const GAP_FLOOR: f64 = 0.02;
 /// objects in a row are not read as a filament. `lines`: every scan line the fitted line
 /// crosses, in line order, as (arc position µm, maximum read there — NaN where none was);
 /// `sigma`: one maximum's 1σ. Over the lines between the first and the last maximum of at
-/// least `STRONG_FRACTION` of the largest, the running median of 5 maxima (0 where none was
-/// read) must not stay below the threshold (see `GAP_SIGMA`) for more than `MAX_GAP_UM`.
+/// least `STRONG_FRACTION` of the largest, the lines that are not filament signal — read, with
+/// the median of the 5 nearest lines read below the threshold (see `GAP_SIGMA`), or not read
+/// at all — must not run on for more than `MAX_GAP_UM`.
 /// `angle_deg` names the line in the message.
 pub fn check_filament_continuity(lines: &[(f64, f64)], sigma: f64, angle_deg: f64) -> Result<()> {
     let max = lines
@@ -159,19 +189,27 @@ pub fn check_filament_continuity(lines: &[(f64, f64)], sigma: f64, angle_deg: f6
         return Ok(());
     }
     let span = &lines[lo..=hi];
-    let v: Vec<f64> = span
-        .iter()
-        .map(|l| if l.1.is_finite() { l.1 } else { 0.0 })
-        .collect();
     let sigma = if sigma.is_finite() { sigma } else { 0.0 };
     let thr = (GAP_SIGMA * sigma).max(GAP_FLOOR * max);
     let step = (span[span.len() - 1].0 - span[0].0).abs() / (span.len() - 1) as f64;
-    // longest run of lines whose running median is below the threshold: (start, length)
-    let (mut best, mut run) = ((0, 0), (0, 0));
-    for i in 0..v.len() {
-        let mut w: Vec<f64> = v[i.saturating_sub(2)..(i + 3).min(v.len())].to_vec();
+    // A line where no maximum was read says nothing (at coarse pixels a parabola on the flat
+    // top of a broad ridge comes out convex in noise); a line read is filament signal where the
+    // median of the five nearest lines read (itself, two before, two after) reaches the
+    // threshold. A gap is a run of lines that are not signal: read below it, or not read.
+    let read: Vec<usize> = (0..span.len()).filter(|&i| span[i].1.is_finite()).collect();
+    let mut signal = vec![false; span.len()];
+    for (j, &i) in read.iter().enumerate() {
+        let mut w: Vec<f64> = read[j.saturating_sub(2)..(j + 3).min(read.len())]
+            .iter()
+            .map(|&k| span[k].1)
+            .collect();
         w.sort_by(f64::total_cmp);
-        if w[w.len() / 2] < thr {
+        signal[i] = w[w.len() / 2] >= thr;
+    }
+    // longest run of lines that are not signal: (start, length)
+    let (mut best, mut run) = ((0, 0), (0, 0));
+    for (i, s) in signal.iter().enumerate() {
+        if !s {
             run = (if run.1 == 0 { i } else { run.0 }, run.1 + 1);
             if run.1 > best.1 {
                 best = run;
@@ -246,17 +284,19 @@ mod tests {
                 (a, (-4.0 * 2f64.ln() * a * a / 0.25).exp())
             })
             .collect();
-        let e = check_filament_maxima(&bead, 0.0).unwrap_err().to_string();
+        let e = check_filament_maxima(&bead, 0.0, 0.0)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("point object"), "{e}");
         // a flat filament with one aggregate twice as strong: accepted
         let mut fil: Vec<(f64, f64)> = (0..61).map(|i| (0.05 * i as f64, 0.4)).collect();
         fil[30].1 = 0.8;
-        assert!(check_filament_maxima(&fil, 0.0).is_ok());
+        assert!(check_filament_maxima(&fil, 0.0, 0.0).is_ok());
         // a filament ending half-way through: strong over 1.5 µm of 3 µm
         let tip: Vec<(f64, f64)> = (0..61)
             .map(|i| (0.05 * i as f64, if i < 30 { 0.4 } else { 0.001 }))
             .collect();
-        assert!(check_filament_maxima(&tip, 0.0).is_ok());
+        assert!(check_filament_maxima(&tip, 0.0, 0.0).is_ok());
         // the same bead in a scan crossing only 1.6 µm of the line, with the noise-free maxima
         // beyond it dropped (off the line) as noise drops them: strong over 0.70 µm, refused
         // (that it is strong on most of the lines read does not matter)
@@ -265,14 +305,16 @@ mod tests {
             .copied()
             .filter(|p| p.0.abs() <= 0.8 && p.1 > 0.05)
             .collect();
-        let e = check_filament_maxima(&small, 0.0).unwrap_err().to_string();
+        let e = check_filament_maxima(&small, 0.0, 0.0)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("span 0.70 µm along the line"), "{e}");
         // one noise spike far from the bead (as strong as the bead) does not stretch its span,
         // nor do two lines side by side
         let mut spiked = bead.clone();
         spiked[5].1 = 1.0;
         spiked[6].1 = 1.0;
-        assert!(check_filament_maxima(&spiked, 0.0).is_err());
+        assert!(check_filament_maxima(&spiked, 0.0, 0.0).is_err());
         // lines without a maximum (NaN) count as no signal: a bead with a strong noise maximum
         // on the line every third line far away is still a bead
         let mut sparse = bead.clone();
@@ -281,14 +323,18 @@ mod tests {
                 l.1 = if i % 3 == 0 { 0.5 } else { f64::NAN };
             }
         }
-        assert!(check_filament_maxima(&sparse, 0.0).is_err());
+        assert!(check_filament_maxima(&sparse, 0.0, 0.0).is_err());
         // a flat filament at 5σ is strong everywhere; at 2σ nothing stands above 3σ
-        assert!(check_filament_maxima(&fil, 0.08).is_ok());
-        let e = check_filament_maxima(&tip, 0.2).unwrap_err().to_string();
+        assert!(check_filament_maxima(&fil, 0.08, 0.0).is_ok());
+        let e = check_filament_maxima(&tip, 0.2, 0.0)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("above 3σ of the noise span 0.00 µm"), "{e}");
         // a filament crossing a 1 µm scan: too short to tell
         let short: Vec<(f64, f64)> = (0..21).map(|i| (0.05 * i as f64, 0.4)).collect();
-        let e = check_filament_maxima(&short, 0.0).unwrap_err().to_string();
+        let e = check_filament_maxima(&short, 0.0, 0.0)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("crosses only 1.00 µm"), "{e}");
     }
 

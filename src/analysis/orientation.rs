@@ -264,31 +264,52 @@ pub struct FilamentMeasurement {
 /// A candidate maximum: (line index, line coordinate, position along the line, value).
 type Cand = (usize, f64, f64, f64);
 
+/// Pixel noise of a sensitivity image from first differences along its lines (robust to the
+/// objects' extended signal): 1.4826·MAD/√2, in the image's units.
+fn pixel_noise(sens: &Image, rows: bool) -> f64 {
+    let mut diffs = Vec::with_capacity(sens.data.len());
+    let lines: Box<dyn Iterator<Item = ndarray::ArrayView1<f64>>> = if rows {
+        Box::new(sens.data.rows().into_iter())
+    } else {
+        Box::new(sens.data.columns().into_iter())
+    };
+    for r in lines {
+        diffs.extend(
+            r.windows(2)
+                .into_iter()
+                .map(|w| w[1] - w[0])
+                .filter(|d| d.is_finite()),
+        );
+    }
+    robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2
+}
+
+/// 1σ of a parabola's value at the centre of a window of ±`half` over samples every `step`, per
+/// unit of sample noise: √((XᵀX)⁻¹₀₀) of the least-squares quadratic, = S4/(n·S4 − S2²) under
+/// the root for the symmetric abscissae k (n samples, S2 = Σk², S4 = Σk⁴).
+fn parabola_value_noise(half: f64, step: f64) -> f64 {
+    if !(step > 0.0 && half >= step) {
+        return f64::NAN;
+    }
+    let m = (half / step + 1e-9).floor() as i64;
+    let (mut n, mut s2, mut s4) = (0.0, 0.0, 0.0);
+    for i in -m..=m {
+        let k = i as f64 * step / half;
+        n += 1.0;
+        s2 += k * k;
+        s4 += k.powi(4);
+    }
+    let det = n * s4 - s2 * s2;
+    if det > 0.0 {
+        (s4 / det).sqrt()
+    } else {
+        f64::NAN
+    }
+}
+
 /// Candidate maxima of the lines of `sens`.
 fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<Cand> {
-    // Pixel noise of the sensitivity image from first differences along the lines (robust to
-    // the objects' extended signal): 1.4826·MAD/√2.
-    let mut diffs = Vec::with_capacity(sens.data.len());
-    if rows {
-        for r in sens.data.rows() {
-            diffs.extend(
-                r.windows(2)
-                    .into_iter()
-                    .map(|w| w[1] - w[0])
-                    .filter(|d| d.is_finite()),
-            );
-        }
-    } else {
-        for c in sens.data.columns() {
-            diffs.extend(
-                c.windows(2)
-                    .into_iter()
-                    .map(|w| w[1] - w[0])
-                    .filter(|d| d.is_finite()),
-            );
-        }
-    }
-    let noise = robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2;
+    let noise = pixel_noise(sens, rows);
     let thr = (opts.detect_snr * noise).max(0.0);
     let (nl, t): (usize, &[f64]) = if rows {
         (sens.rows(), &sens.x)
@@ -512,7 +533,14 @@ fn find_filament(
         }
         let attempt = measure_sens_along(sens.clone(), curve, channel, line, opts).and_then(
             |(m, trace, sigma)| {
-                super::kind::check_filament_maxima(&trace, sigma)?;
+                let image_max = m
+                    .sens
+                    .data
+                    .iter()
+                    .cloned()
+                    .filter(|v| v.is_finite())
+                    .fold(0.0, f64::max);
+                super::kind::check_filament_maxima(&trace, sigma, image_max)?;
                 super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
                 Ok(m)
             },
@@ -564,7 +592,7 @@ pub fn measure_filament_along(
 }
 
 /// Every scan line a filament line crosses, in line order: (arc position µm, maximum read there
-/// or NaN), for `kind::check_filament_continuity`.
+/// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
 
 /// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas').
@@ -590,7 +618,7 @@ fn measure_sens_along(
     };
     let mut points = Vec::new();
     // Every line the filament line crosses inside the scan, in line order: (arc µm, maximum,
-    // line index) — the maximum NaN where none was read — for the continuity check.
+    // line index) — the maximum NaN where none was read — for the checks of `kind`.
     let mut trace: Vec<(f64, f64, usize)> = Vec::new();
     let (t_lo, t_hi) = (
         t.first().copied().unwrap_or(0.0),
@@ -646,10 +674,23 @@ fn measure_sens_along(
         p.arc_um -= a0;
     }
     let s = summary(&points.iter().map(|p| p.sens_corr).collect::<Vec<_>>())?;
-    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits).
+    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits),
+    // and at least what the image's pixel noise gives a parabola over the window. At coarse
+    // pixels the parabolas' own (from 2 degrees of freedom, and of the fits that succeeded)
+    // came out 2–3× low: a lone bead's noisy tails then counted as 4σ maxima of a filament.
     let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
-    let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
-    let trace: Vec<(f64, f64)> = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
+    let step = if t.len() > 1 {
+        ((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64).abs()
+    } else {
+        0.0
+    };
+    let from_pixels = pixel_noise(&sens, rows) * parabola_value_noise(0.5 * po.window_um, step);
+    let sigma = match super::stats::median(&errs) {
+        Some(m) if from_pixels.is_finite() => m.max(from_pixels),
+        Some(m) => m,
+        None => from_pixels,
+    };
+    let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {
         channel,
         angle_deg: angle,
