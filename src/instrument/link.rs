@@ -5,8 +5,9 @@
 //! Every way a device can misbehave on the wire becomes a [`DeviceError`] naming the device,
 //! the command and what came back:
 //! - nothing within the timeout → `Timeout`;
-//! - bytes without a line terminator within the timeout, an over-long line, non-UTF-8 or
-//!   control characters → `Garbled` with the text received (lossy);
+//! - bytes without a line terminator (or a binary block cut short) within the timeout, an
+//!   over-long line, non-UTF-8 or control characters → `Garbled` with the text received
+//!   (lossy, the first 200 bytes);
 //! - end of file, hang-up, broken pipe, I/O error → `Disconnected`.
 //!
 //! Nothing here panics on device input.
@@ -243,7 +244,7 @@ pub fn open_port(
 }
 
 /// Classify an I/O error: timeouts are timeouts, everything else means the link is gone.
-fn io_error(device: &str, command: &str, timeout: Duration, e: &io::Error) -> DeviceError {
+pub fn io_error(device: &str, command: &str, timeout: Duration, e: &io::Error) -> DeviceError {
     match e.kind() {
         io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
             device: device.to_string(),
@@ -255,6 +256,52 @@ fn io_error(device: &str, command: &str, timeout: Duration, e: &io::Error) -> De
             command: command.to_string(),
             detail: e.to_string(),
         },
+    }
+}
+
+/// The one deadline-bounded read of every device link (lines, binary blocks, APT messages):
+/// read what `io` has into `buf`, waiting at most until `deadline`. `Ok(true)`: bytes arrived;
+/// `Ok(false)`: the deadline passed with nothing new (the caller tells a silence from a partial
+/// reply by what `buf` holds). End of file is `Disconnected`, any other I/O error too (a
+/// timeout reported as an error is only the read's own, retried until the deadline).
+pub fn fill(
+    io: &mut dyn Transport,
+    buf: &mut Vec<u8>,
+    device: &str,
+    command: &str,
+    deadline: Instant,
+    timeout: Duration,
+) -> Result<bool, DeviceError> {
+    let mut chunk = [0u8; 16384];
+    loop {
+        let now = Instant::now();
+        if now >= deadline {
+            return Ok(false);
+        }
+        let remaining = (deadline - now).max(Duration::from_millis(1));
+        if let Err(e) = io.set_read_timeout(remaining) {
+            return Err(io_error(device, command, timeout, &e));
+        }
+        match io.read(&mut chunk) {
+            Ok(0) => {
+                return Err(DeviceError::Disconnected {
+                    device: device.to_string(),
+                    command: command.to_string(),
+                    detail: "end of file on the link (the device closed it)".into(),
+                })
+            }
+            Ok(n) => {
+                buf.extend_from_slice(&chunk[..n]);
+                return Ok(true);
+            }
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) => {}
+            Err(e) => return Err(io_error(device, command, timeout, &e)),
+        }
     }
 }
 
@@ -329,11 +376,16 @@ impl Turnarounds {
     }
 }
 
-/// A line-terminated (LF, optional CR before it) ASCII command link.
+/// A line-terminated (LF, optional CR before it) ASCII command link, which also reads IEEE
+/// 488.2 definite-length binary blocks (`#<k><len><bytes>`).
 pub struct LineLink {
     io: Box<dyn Transport>,
     device: String,
     buf: Vec<u8>,
+    /// Appended to every command sent (LF; a Red Pitaya's SCPI server: CR LF).
+    terminator: &'static [u8],
+    /// Longest reply line or block accepted, bytes (anything longer is garbage).
+    max_reply: usize,
     /// Default reply timeout.
     pub timeout: Duration,
     costs: LinkCosts,
@@ -350,12 +402,22 @@ impl LineLink {
             io,
             device: device.into(),
             buf: Vec::new(),
+            terminator: b"\n",
+            max_reply: MAX_LINE,
             timeout,
             costs: Vec::new(),
             turnarounds: Turnarounds::default(),
             pending_out: None,
             reply_open: false,
         }
+    }
+
+    /// Commands end with `terminator` instead of LF; replies (lines, blocks) up to `max_reply`
+    /// bytes are accepted.
+    pub fn with_framing(mut self, terminator: &'static [u8], max_reply: usize) -> Self {
+        self.terminator = terminator;
+        self.max_reply = max_reply;
+        self
     }
 
     /// The replies so far (see [`Turnarounds`]).
@@ -400,11 +462,11 @@ impl LineLink {
         let _ = self.io.discard_input();
     }
 
-    /// Send one command line (LF appended).
+    /// Send one command line (the terminator appended).
     pub fn send(&mut self, command: &str) -> Result<(), DeviceError> {
-        let mut line = Vec::with_capacity(command.len() + 1);
+        let mut line = Vec::with_capacity(command.len() + 2);
         line.extend_from_slice(command.as_bytes());
-        line.push(b'\n');
+        line.extend_from_slice(self.terminator);
         let timeout = self.timeout;
         let t0 = Instant::now();
         let r = self
@@ -478,44 +540,98 @@ impl LineLink {
                 }
                 return self.check_text(command, line);
             }
-            if self.buf.len() > MAX_LINE {
-                let reply = lossy(&self.buf);
+            if self.buf.len() > self.max_reply {
+                let reply = lossy(&self.buf[..200.min(self.buf.len())]);
                 self.buf.clear();
                 return Err(self.garbled(
                     command,
-                    format!("{reply} [no line end after {MAX_LINE} bytes]"),
+                    format!("{reply} [no line end after {} bytes]", self.max_reply),
                 ));
             }
-            let now = Instant::now();
-            if now >= deadline {
+            if !self.fill(command, deadline, timeout)? {
                 return Err(self.timed_out(command, timeout));
             }
-            let remaining = (deadline - now).max(Duration::from_millis(1));
-            if let Err(e) = self.io.set_read_timeout(remaining) {
-                return Err(io_error(&self.device, command, timeout, &e));
+        }
+    }
+
+    /// [`fill`] on this link's port and buffer.
+    fn fill(
+        &mut self,
+        command: &str,
+        deadline: Instant,
+        timeout: Duration,
+    ) -> Result<bool, DeviceError> {
+        fill(
+            self.io.as_mut(),
+            &mut self.buf,
+            &self.device,
+            command,
+            deadline,
+            timeout,
+        )
+    }
+
+    /// Read a definite-length block `#<k><len digits><len bytes>` (IEEE 488.2) and the line end
+    /// after it, waiting at most `timeout` in total; a bad header or a block cut short is
+    /// `Garbled`, showing what came.
+    pub fn read_block(&mut self, command: &str, timeout: Duration) -> Result<Vec<u8>, DeviceError> {
+        let t0 = Instant::now();
+        let deadline = t0 + timeout;
+        let need = |s: &mut Self, n: usize| -> Result<(), DeviceError> {
+            while s.buf.len() < n {
+                if !s.fill(command, deadline, timeout)? {
+                    return Err(s.timed_out(command, timeout));
+                }
             }
-            let mut chunk = [0u8; 512];
-            match self.io.read(&mut chunk) {
-                Ok(0) => {
-                    return Err(DeviceError::Disconnected {
-                        device: self.device.clone(),
-                        command: command.to_string(),
-                        detail: "end of file on the port (device closed the line)".into(),
-                    })
-                }
-                Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                    ) =>
-                {
-                    continue; // the deadline check above decides
-                }
-                Err(e) => return Err(io_error(&self.device, command, timeout, &e)),
+            Ok(())
+        };
+        let bad = |s: &mut Self, why: &str| {
+            let shown = lossy(&s.buf[..80.min(s.buf.len())]);
+            s.buf.clear();
+            s.garbled(command, format!("{shown} [{why}]"))
+        };
+        need(self, 2)?;
+        if self.buf[0] != b'#' {
+            return Err(bad(self, "expected a binary block starting with `#`"));
+        }
+        let k = match (self.buf[1] as char).to_digit(10) {
+            Some(k @ 1..=9) => k as usize,
+            _ => return Err(bad(self, "bad block header: digit count")),
+        };
+        need(self, 2 + k)?;
+        let len: usize = match std::str::from_utf8(&self.buf[2..2 + k])
+            .ok()
+            .and_then(|t| t.parse().ok())
+        {
+            Some(l) if l <= self.max_reply => l,
+            _ => return Err(bad(self, "bad block header: length")),
+        };
+        let start = 2 + k;
+        need(self, start + len)?;
+        let data: Vec<u8> = self.buf[start..start + len].to_vec();
+        self.buf.drain(..start + len);
+        // the line end after the block (may still be on its way)
+        let short = Instant::now() + Duration::from_millis(50).min(timeout);
+        while self.buf.len() < 2 && !self.buf.starts_with(b"\n") {
+            if !matches!(self.fill(command, short, timeout), Ok(true)) {
+                break;
             }
         }
+        if self.buf.starts_with(b"\r\n") {
+            self.buf.drain(..2);
+        } else if self.buf.starts_with(b"\n") {
+            self.buf.drain(..1);
+        }
+        let n = data.len() + start;
+        let c = self.cost(command);
+        c.bytes_in += n as u64;
+        c.reply_s += t0.elapsed().as_secs_f64();
+        if let Some(out) = self.pending_out.take() {
+            self.reply_open = self
+                .turnarounds
+                .add(t0.elapsed().as_secs_f64(), out + n as u64);
+        }
+        Ok(data)
     }
 
     /// Send `command` and read one reply line.
@@ -543,11 +659,15 @@ impl LineLink {
                 timeout_ms: timeout.as_millis() as u64,
             }
         } else {
-            let reply = lossy(&self.buf);
+            let reply = lossy(&self.buf[..200.min(self.buf.len())]);
+            let n = self.buf.len();
             self.buf.clear();
             self.garbled(
                 command,
-                format!("{reply} [no line end within {} ms]", timeout.as_millis()),
+                format!(
+                    "{reply} [{n} bytes, incomplete within {} ms]",
+                    timeout.as_millis()
+                ),
             )
         }
     }

@@ -19,6 +19,7 @@ pub mod madlib;
 pub mod nidaqmx;
 pub mod redpitaya;
 pub mod scpi;
+pub mod scpi_session;
 pub mod stream;
 pub mod vendor;
 

@@ -27,10 +27,10 @@
 //! (`ACQ:STOP`). A query the server rejects gets no reply: the error queue (`SYST:ERR?`) is
 //! read to say why.
 
-use super::link::{lossy, open_tcp, Transport};
-use super::scpi::{parse_scpi_error, Calibration};
+use super::link::{open_tcp, LineLink, Transport};
+use super::scpi::Calibration;
+use super::scpi_session::ScpiSession;
 use super::{BufferedArm, BufferedTrace, DeviceError, Qpd, QpdReading, Trigger};
-use std::io;
 use std::time::{Duration, Instant};
 
 /// ADC sample rate at decimation 1, Hz (STEMlab 125-14).
@@ -243,189 +243,6 @@ impl Default for RedPitayaOptions {
     }
 }
 
-/// CR LF line link with IEEE 488.2 binary blocks.
-struct RpLink {
-    io: Box<dyn Transport>,
-    device: String,
-    buf: Vec<u8>,
-}
-
-impl RpLink {
-    fn send(&mut self, command: &str) -> Result<(), DeviceError> {
-        let mut line = Vec::with_capacity(command.len() + 2);
-        line.extend_from_slice(command.as_bytes());
-        line.extend_from_slice(b"\r\n");
-        self.io
-            .write_all(&line)
-            .and_then(|_| self.io.flush())
-            .map_err(|e| self.io_error(command, Duration::ZERO, &e))
-    }
-
-    fn io_error(&self, command: &str, timeout: Duration, e: &io::Error) -> DeviceError {
-        match e.kind() {
-            io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
-                device: self.device.clone(),
-                command: command.into(),
-                timeout_ms: timeout.as_millis() as u64,
-            },
-            _ => DeviceError::Disconnected {
-                device: self.device.clone(),
-                command: command.into(),
-                detail: e.to_string(),
-            },
-        }
-    }
-
-    fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
-        DeviceError::Garbled {
-            device: self.device.clone(),
-            command: command.into(),
-            reply: reply.into(),
-        }
-    }
-
-    /// Read more bytes before `deadline`; a timeout with nothing received is `Timeout`, with
-    /// a partial reply `Garbled` showing it.
-    fn fill(
-        &mut self,
-        command: &str,
-        deadline: Instant,
-        timeout: Duration,
-    ) -> Result<(), DeviceError> {
-        loop {
-            let now = Instant::now();
-            if now >= deadline {
-                if self.buf.is_empty() {
-                    return Err(DeviceError::Timeout {
-                        device: self.device.clone(),
-                        command: command.into(),
-                        timeout_ms: timeout.as_millis() as u64,
-                    });
-                }
-                let shown: Vec<u8> = self.buf.iter().take(200).copied().collect();
-                self.buf.clear();
-                return Err(self.garbled(
-                    command,
-                    format!(
-                        "{} [incomplete within {} ms]",
-                        lossy(&shown),
-                        timeout.as_millis()
-                    ),
-                ));
-            }
-            let remaining = (deadline - now).max(Duration::from_millis(1));
-            if let Err(e) = self.io.set_read_timeout(remaining) {
-                return Err(self.io_error(command, timeout, &e));
-            }
-            let mut chunk = [0u8; 65536];
-            match self.io.read(&mut chunk) {
-                Ok(0) => {
-                    return Err(DeviceError::Disconnected {
-                        device: self.device.clone(),
-                        command: command.into(),
-                        detail: "the board closed the connection".into(),
-                    })
-                }
-                Ok(n) => {
-                    self.buf.extend_from_slice(&chunk[..n]);
-                    return Ok(());
-                }
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                    ) => {}
-                Err(e) => return Err(self.io_error(command, timeout, &e)),
-            }
-        }
-    }
-
-    /// One text reply line (CR LF or LF removed), printable ASCII only.
-    fn read_line(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
-        let deadline = Instant::now() + timeout;
-        loop {
-            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
-                let mut line: Vec<u8> = self.buf.drain(..=i).collect();
-                line.pop();
-                if line.last() == Some(&b'\r') {
-                    line.pop();
-                }
-                return match String::from_utf8(line) {
-                    Ok(s) if s.is_ascii() && !s.chars().any(|c| c.is_control() && c != '\t') => {
-                        Ok(s)
-                    }
-                    Ok(s) => Err(self.garbled(command, s)),
-                    Err(e) => Err(self.garbled(command, lossy(e.as_bytes()))),
-                };
-            }
-            if self.buf.len() > MAX_REPLY {
-                let shown: Vec<u8> = self.buf.iter().take(200).copied().collect();
-                self.buf.clear();
-                return Err(self.garbled(
-                    command,
-                    format!("{} [no line end after {MAX_REPLY} bytes]", lossy(&shown)),
-                ));
-            }
-            self.fill(command, deadline, timeout)?;
-        }
-    }
-
-    /// A definite-length block `#<k><len digits><len bytes>` followed by CR LF.
-    fn read_block(&mut self, command: &str, timeout: Duration) -> Result<Vec<u8>, DeviceError> {
-        let deadline = Instant::now() + timeout;
-        while self.buf.len() < 2 {
-            self.fill(command, deadline, timeout)?;
-        }
-        let bad = |s: &mut Self, why: &str| {
-            let shown: Vec<u8> = s.buf.iter().take(80).copied().collect();
-            s.buf.clear();
-            s.garbled(command, format!("{} [{why}]", lossy(&shown)))
-        };
-        if self.buf[0] != b'#' {
-            return Err(bad(self, "expected a binary block starting with `#`"));
-        }
-        let k = match (self.buf[1] as char).to_digit(10) {
-            Some(k @ 1..=9) => k as usize,
-            _ => return Err(bad(self, "bad block header: digit count")),
-        };
-        while self.buf.len() < 2 + k {
-            self.fill(command, deadline, timeout)?;
-        }
-        let len: usize = match std::str::from_utf8(&self.buf[2..2 + k])
-            .ok()
-            .and_then(|t| t.parse().ok())
-        {
-            Some(l) if l <= MAX_REPLY => l,
-            _ => return Err(bad(self, "bad block header: length")),
-        };
-        let start = 2 + k;
-        while self.buf.len() < start + len {
-            self.fill(command, deadline, timeout)?;
-        }
-        let data: Vec<u8> = self.buf[start..start + len].to_vec();
-        self.buf.drain(..start + len);
-        // the CR LF after the block (may still be on its way)
-        let short = Instant::now() + Duration::from_millis(50).min(timeout);
-        while self.buf.len() < 2 && Instant::now() < short {
-            if self.fill(command, short, timeout).is_err() {
-                break;
-            }
-        }
-        if self.buf.starts_with(b"\r\n") {
-            self.buf.drain(..2);
-        } else if self.buf.starts_with(b"\n") {
-            self.buf.drain(..1);
-        }
-        Ok(data)
-    }
-
-    fn discard_input(&mut self) {
-        self.buf.clear();
-        let _ = self.io.discard_input();
-    }
-}
-
 /// What the current acquisition records.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Armed {
@@ -441,7 +258,7 @@ struct Armed {
 
 /// A Red Pitaya board as the QPD digitiser.
 pub struct RedPitaya {
-    link: RpLink,
+    link: LineLink,
     opts: RedPitayaOptions,
     idn: String,
     buffer: usize,
@@ -481,11 +298,9 @@ impl RedPitaya {
         opts: RedPitayaOptions,
     ) -> Result<Self, DeviceError> {
         let mut rp = Self {
-            link: RpLink {
-                io,
-                device: format!("Red Pitaya on {label}"),
-                buf: Vec::new(),
-            },
+            // CR LF line ends, as the board's SCPI server expects; binary blocks up to MAX_REPLY
+            link: LineLink::new(io, format!("Red Pitaya on {label}"), opts.timeout)
+                .with_framing(b"\r\n", MAX_REPLY),
             opts,
             idn: String::new(),
             buffer: BUFFER_SAMPLES,
@@ -498,7 +313,7 @@ impl RedPitaya {
         let idn = rp.query("*IDN?")?;
         if !idn.trim().to_ascii_uppercase().starts_with("REDPITAYA") {
             return Err(DeviceError::Other {
-                device: rp.link.device.clone(),
+                device: rp.link.device().to_string(),
                 detail: format!(
                     "`*IDN?` answered {idn:?}: not a Red Pitaya SCPI server (expected REDPITAYA,…)"
                 ),
@@ -536,46 +351,20 @@ impl RedPitaya {
         self.buffer
     }
 
-    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after`.
+    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after` ([`ScpiSession`]).
     pub fn check_error(&mut self, after: &str) -> Result<(), DeviceError> {
-        let label = format!("SYST:ERR? (after `{after}`)");
-        self.link.send("SYST:ERR?").map_err(|e| e.during(&label))?;
-        let line = self
-            .link
-            .read_line(&label, self.opts.timeout)
-            .map_err(|e| e.during(&label))?;
-        match parse_scpi_error(&line) {
-            Some((0, _)) => Ok(()),
-            Some((code, message)) => Err(DeviceError::Controller {
-                device: self.link.device.clone(),
-                command: after.to_string(),
-                code,
-                message,
-            }),
-            None => Err(self.link.garbled(&label, line)),
-        }
+        self.link.check_error(after, self.opts.timeout)
     }
 
-    /// Send a command without reply, then check the error queue.
+    /// Send a command without reply, then check the error queue ([`ScpiSession`]).
     pub fn command(&mut self, command: &str) -> Result<(), DeviceError> {
-        self.link.discard_input();
-        self.link.send(command)?;
-        self.check_error(command)
+        self.link.scpi_command(command, self.opts.timeout)
     }
 
-    /// Send a query and read its reply line. On a timeout the error queue is asked once: a
-    /// rejected query gets no reply, and the queue says why.
+    /// Send a query and read its reply line ([`ScpiSession`]: a silent query asks the error
+    /// queue once).
     pub fn query(&mut self, command: &str) -> Result<String, DeviceError> {
-        self.link.discard_input();
-        self.link.send(command)?;
-        match self.link.read_line(command, self.opts.timeout) {
-            Ok(l) => Ok(l),
-            Err(e @ DeviceError::Timeout { .. }) => match self.check_error(command) {
-                Err(c @ DeviceError::Controller { .. }) => Err(c),
-                _ => Err(e),
-            },
-            Err(e) => Err(e),
-        }
+        self.link.scpi_query(command, self.opts.timeout)
     }
 
     /// Stop the acquisition after a fault, confirmed by the error query when the board still
@@ -649,7 +438,7 @@ impl RedPitaya {
     fn collect(&mut self, trigger_timeout: Duration) -> Result<[Option<Vec<f64>>; 3], DeviceError> {
         let Some(a) = self.armed else {
             return Err(DeviceError::Other {
-                device: self.link.device.clone(),
+                device: self.link.device().to_string(),
                 detail: "read_buffered: nothing armed (call arm_buffered first)".into(),
             });
         };
@@ -658,7 +447,7 @@ impl RedPitaya {
             Ok(()) => {}
             Err(last) => {
                 return Err(DeviceError::Other {
-                    device: self.link.device.clone(),
+                    device: self.link.device().to_string(),
                     detail: format!(
                         "no trigger within {} ms: `ACQ:TRIG:STAT?` still answers {last:?} (source {}; \
                          acquisition stopped with ACQ:STOP){}",
@@ -683,7 +472,7 @@ impl RedPitaya {
             Ok(()) => {}
             Err(last) => {
                 return Err(DeviceError::Other {
-                    device: self.link.device.clone(),
+                    device: self.link.device().to_string(),
                     detail: format!(
                         "buffer not filled {} ms after the trigger: `ACQ:TRIG:FILL?` still answers {last:?} \
                          (acquisition stopped with ACQ:STOP)",
@@ -753,7 +542,7 @@ impl RedPitaya {
 
     fn err_other(&self, detail: String) -> DeviceError {
         DeviceError::Other {
-            device: self.link.device.clone(),
+            device: self.link.device().to_string(),
             detail,
         }
     }
@@ -772,7 +561,7 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
 
 impl Qpd for RedPitaya {
     fn name(&self) -> String {
-        self.link.device.clone()
+        self.link.device().to_string()
     }
 
     fn sample_rate(&self) -> f64 {

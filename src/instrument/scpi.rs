@@ -83,14 +83,8 @@ impl Default for ScpiOptions {
     }
 }
 
-/// Parse a `SYST:ERR?` reply: `<code>,"<message>"`.
-pub fn parse_scpi_error(reply: &str) -> Option<(i64, String)> {
-    let (code, msg) = reply.split_once(',')?;
-    let code = code.trim().parse::<i64>().ok()?;
-    let msg = msg.trim();
-    let msg = msg.strip_prefix('"')?.strip_suffix('"')?;
-    Some((code, msg.to_string()))
-}
+pub use super::scpi_session::parse_scpi_error;
+use super::scpi_session::ScpiSession;
 
 /// Parse `k` comma-separated finite numbers.
 pub fn parse_numbers(reply: &str, k: usize) -> Option<Vec<f64>> {
@@ -168,47 +162,24 @@ impl ScpiQpd {
         &self.opts
     }
 
-    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after`.
+    /// `SYST:ERR?`; a nonzero code is a `Controller` error naming `after` ([`ScpiSession`]).
     pub fn check_error(&mut self, after: &str) -> Result<(), DeviceError> {
-        let label = format!("SYST:ERR? (after `{after}`)");
-        let line = self
-            .link
-            .query_with_timeout("SYST:ERR?", self.opts.timeout)
-            .map_err(|e| e.during(&label))?;
-        match parse_scpi_error(&line) {
-            Some((0, _)) => Ok(()),
-            Some((code, message)) => Err(DeviceError::Controller {
-                device: self.link.device().to_string(),
-                command: after.to_string(),
-                code,
-                message,
-            }),
-            None => Err(self.link.garbled(&label, line)),
-        }
+        self.link.check_error(after, self.opts.timeout)
     }
 
-    /// Send a command without reply, then check the error queue.
+    /// Send a command without reply, then check the error queue ([`ScpiSession`]).
     pub fn command(&mut self, command: &str) -> Result<(), DeviceError> {
-        self.link.discard_input();
-        self.link.send(command)?;
-        self.check_error(command)
+        self.link.scpi_command(command, self.opts.timeout)
     }
 
-    /// Send a query and return its reply line. On a timeout the error queue is asked once:
-    /// an error there explains the silence (a rejected query gets no reply).
+    /// Send a query and return its reply line ([`ScpiSession`]: a silent query asks the error
+    /// queue once).
     pub fn query(&mut self, command: &str) -> Result<String, DeviceError> {
         self.query_timeout(command, self.opts.timeout)
     }
 
     fn query_timeout(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
-        match self.link.query_with_timeout(command, timeout) {
-            Ok(l) => Ok(l),
-            Err(e @ DeviceError::Timeout { .. }) => match self.check_error(command) {
-                Err(c @ DeviceError::Controller { .. }) => Err(c),
-                _ => Err(e),
-            },
-            Err(e) => Err(e),
-        }
+        self.link.scpi_query(command, timeout)
     }
 
     /// Set the number of samples averaged per measurement (only sent when it changes).

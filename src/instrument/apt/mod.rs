@@ -510,8 +510,14 @@ impl AptLink {
                 }
                 Parsed::Incomplete => {}
             }
-            let now = Instant::now();
-            if now >= deadline {
+            if !super::link::fill(
+                self.io.as_mut(),
+                &mut self.buf,
+                &self.device,
+                command,
+                deadline,
+                timeout,
+            )? {
                 return Err(if self.buf.is_empty() {
                     DeviceError::Timeout {
                         device: self.device.clone(),
@@ -531,28 +537,6 @@ impl AptLink {
                         ),
                     }
                 });
-            }
-            let remaining = (deadline - now).max(Duration::from_millis(1));
-            if let Err(e) = self.io.set_read_timeout(remaining) {
-                return Err(self.io_error(command, &e));
-            }
-            let mut chunk = [0u8; 256];
-            match self.io.read(&mut chunk) {
-                Ok(0) => {
-                    return Err(DeviceError::Disconnected {
-                        device: self.device.clone(),
-                        command: command.to_string(),
-                        detail: "end of file on the port (device closed the line)".into(),
-                    })
-                }
-                Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                    ) => {}
-                Err(e) => return Err(self.io_error(command, &e)),
             }
         }
     }
