@@ -193,6 +193,26 @@ fn longer_dwell_decimates_further_and_too_long_is_refused() {
     assert_eq!(e.commands().len(), before);
 }
 
+/// A point's dwell is the board's acquisition window itself (`Qpd::read_for`): 33 µs at the
+/// nominal 100 kHz would be 3 samples = 30 µs through a sample count; the board records
+/// round(33e-6 · 125e6) = 4125 samples at decimation 1 (33.0 µs), the window asked for.
+#[test]
+fn a_dwell_is_read_as_its_own_window_with_no_round_trip_through_samples() {
+    use bfpscope::instrument::Qpd;
+    let (e, _) = start(emu_cfg(false, 0.0), [0.0; 3]);
+    let mut rp = open(&e, false, 2000);
+    let r = rp.read_for(33e-6).unwrap();
+    assert_eq!(r.n, 4125);
+    let r = rp
+        .read(bfpscope::instrument::samples_per_point(33e-6, 100e3))
+        .unwrap();
+    assert_eq!(r.n, 3750);
+    // 0.2 s as a window is the same acquisition as read(20 000) at 100 kHz (see below)
+    let r = rp.read_for(0.2).unwrap();
+    assert_eq!(r.n, 12207);
+    assert!(e.commands().iter().any(|c| c == "ACQ:DEC 2048"));
+}
+
 #[test]
 fn buffered_read_recovers_a_ramp_on_its_time_base() {
     // a function generator on the inputs: IN1 ramps 400 V/s, IN2 −200 V/s from the trigger

@@ -269,6 +269,11 @@ fn no_lines(device: String, call: &str) -> DeviceError {
     }
 }
 
+/// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
+pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
+    ((dwell_s * rate_hz).round() as usize).max(1)
+}
+
 /// A quadrant-photodiode digitiser.
 pub trait Qpd: Send {
     fn name(&self) -> String;
@@ -283,6 +288,14 @@ pub trait Qpd: Send {
     /// result may be 0.
     fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         self.read(n)
+    }
+    /// The signal averaged over `duration_s` seconds (a point's dwell), for a caller that uses
+    /// the means only, as [`read_means`](Self::read_means). By default `read_means` of
+    /// [`samples_per_point`]`(duration_s, sample_rate)` samples; a digitiser whose acquisition
+    /// is set by a time window (the Red Pitaya: decimation and sample count from the window)
+    /// reads the window itself, with no round trip through a nominal sample count.
+    fn read_for(&mut self, duration_s: f64) -> Result<QpdReading, DeviceError> {
+        self.read_means(samples_per_point(duration_s, self.sample_rate()))
     }
     /// What produced the signal, for scan metadata: the simulator reports its render pipeline
     /// (stages built and the wall time spent in each); hardware reports nothing extra.

@@ -540,6 +540,36 @@ impl RedPitaya {
         c.gain[i] * (v - c.offset_v[i])
     }
 
+    /// One acquisition of `window` seconds started at once (`ACQ:TRIG NOW`): the means and
+    /// standard deviations of the mapped inputs; `what` names the request in errors.
+    fn read_window(&mut self, window: f64, what: &str) -> Result<QpdReading, DeviceError> {
+        let (dec, m) =
+            point_plan(window, self.buffer).map_err(|e| self.err_other(format!("{what}: {e}")))?;
+        let r = self
+            .arm(dec, m, 0, "NOW")
+            .and_then(|()| self.collect(self.opts.timeout));
+        let v = match r {
+            Ok(v) => v,
+            Err(e) => {
+                self.stop_quietly();
+                return Err(e);
+            }
+        };
+        let mut mean = [0.0; 3];
+        let mut std = [0.0; 3];
+        for (i, ch) in v.iter().enumerate() {
+            if let Some(s) = ch {
+                let (m_v, s_v) = mean_std(s);
+                mean[i] = m_v;
+                std[i] = s_v;
+            } else {
+                // not digitised: 0 signal, whatever the calibration offset
+                mean[i] = self.opts.calibration.offset_v[i];
+            }
+        }
+        Ok(self.opts.calibration.apply(mean, std, m))
+    }
+
     fn err_other(&self, detail: String) -> DeviceError {
         DeviceError::Other {
             device: self.link.device().to_string(),
@@ -570,32 +600,15 @@ impl Qpd for RedPitaya {
 
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let window = n as f64 / self.opts.sample_rate_hz;
-        let (dec, m) = point_plan(window, self.buffer).map_err(|e| {
-            self.err_other(format!("read({n}) at {} Hz: {e}", self.opts.sample_rate_hz))
-        })?;
-        let r = self
-            .arm(dec, m, 0, "NOW")
-            .and_then(|()| self.collect(self.opts.timeout));
-        let v = match r {
-            Ok(v) => v,
-            Err(e) => {
-                self.stop_quietly();
-                return Err(e);
-            }
-        };
-        let mut mean = [0.0; 3];
-        let mut std = [0.0; 3];
-        for (i, ch) in v.iter().enumerate() {
-            if let Some(s) = ch {
-                let (m_v, s_v) = mean_std(s);
-                mean[i] = m_v;
-                std[i] = s_v;
-            } else {
-                // not digitised: 0 signal, whatever the calibration offset
-                mean[i] = self.opts.calibration.offset_v[i];
-            }
-        }
-        Ok(self.opts.calibration.apply(mean, std, m))
+        self.read_window(
+            window,
+            &format!("read({n}) at {} Hz", self.opts.sample_rate_hz),
+        )
+    }
+
+    /// The dwell is the acquisition window itself (decimation and samples from it).
+    fn read_for(&mut self, duration_s: f64) -> Result<QpdReading, DeviceError> {
+        self.read_window(duration_s, &format!("read_for({duration_s} s)"))
     }
 
     fn metadata(&self) -> Option<serde_json::Value> {

@@ -331,7 +331,7 @@ fn ct(c: &Ctx, t: &Dynamic) -> RResult<Map> {
     }
     c.with_instrument("ct", |i| {
         let rate = i.qpd.sample_rate();
-        let n = crate::acquire::engine::samples_per_point(t, rate);
+        let n = crate::instrument::samples_per_point(t, rate);
         let mut m = reading_map(&i.qpd.read(n).map_err(|e| format!("ct: {e}"))?);
         m.insert("seconds".into(), (n as f64 / rate).into());
         Ok(m)

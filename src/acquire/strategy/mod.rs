@@ -131,10 +131,7 @@ pub trait Strategy {
     }
 }
 
-/// QPD samples per point for a dwell time: round(dwell · rate), at least 1.
-pub fn samples_per_point(dwell_s: f64, rate_hz: f64) -> usize {
-    ((dwell_s * rate_hz).round() as usize).max(1)
-}
+pub use crate::instrument::samples_per_point;
 
 /// The strategy of `mode: "raster"` on `inst`: the frame stream when the stage has one
 /// (`Stage::frame_stream`), hardware-timed lines otherwise.

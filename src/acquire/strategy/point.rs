@@ -94,7 +94,7 @@ impl Strategy for PointStrategy {
         self.phases.settle_s += t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
         // the scan stores the means only: the device may send less (SCPI: `MEAS:QPD?`)
-        let read = inst.qpd.read_means(self.n_samples);
+        let read = inst.qpd.read_for(self.dwell_s);
         self.phases.qpd_s += t.elapsed().as_secs_f64();
         let r = read.map_err(StepFault::other)?;
         self.at = Some(p.target);
