@@ -463,9 +463,6 @@ fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
             core
         }
     };
-    *ctx.scene
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner) = serde_json::to_value(scene).ok();
     let r = core.renderer();
     let mut m = Map::new();
     m.insert(
