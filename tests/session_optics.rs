@@ -15,6 +15,13 @@ fn wb(tag: &str) -> Workbench {
     Workbench::new(s)
 }
 
+/// Run `code` for its effect; panics with the script's error.
+fn run(wb: &mut Workbench, code: &str) {
+    if let Err(e) = wb.eval_line(code) {
+        panic!("{code}: {e}");
+    }
+}
+
 fn f(wb: &mut Workbench, expr: &str) -> f64 {
     let v = wb.eval_line(expr).unwrap_or_else(|e| panic!("{expr}: {e}"));
     v.as_float()
@@ -29,19 +36,19 @@ const GRID: &str = "#{x: [-0.6, 0.6], y: [-0.3, 0.3], nx: 13, ny: 3}";
 #[test]
 fn set_optics_and_a_new_scene_reach_the_connected_simulator() {
     let mut w = wb("owner");
-    w.eval_line(DIFF).unwrap();
-    w.eval_line(
+    run(&mut w, DIFF);
+    run(
+        &mut w,
         "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); simulate(s);",
-    )
-    .unwrap();
-    let scan = format!("scan_xy(#{{x: [-0.6, 0.6], y: [-0.3, 0.3], nx: 13, ny: 3, dwell: 0.001}})");
-    w.eval_line(&format!("let a = {scan};")).unwrap();
+    );
+    let scan = "scan_xy(#{x: [-0.6, 0.6], y: [-0.3, 0.3], nx: 13, ny: 3, dwell: 0.001})";
+    run(&mut w, &format!("let a = {scan};"));
     // the scan is what a renderer built afresh from the session's optics and scene gives
     let fresh = f(&mut w, &format!("diff(simulate(s, {GRID}), a)"));
     assert!(fresh < 1e-9, "before set_optics: {fresh:e}");
 
-    w.eval_line("set_optics(#{wavelength_nm: 800.0});").unwrap();
-    w.eval_line(&format!("let b = {scan};")).unwrap();
+    run(&mut w, "set_optics(#{wavelength_nm: 800.0});");
+    run(&mut w, &format!("let b = {scan};"));
     assert_eq!(f(&mut w, "b.meta.optics.wavelength_nm"), 800.0);
     // the new wavelength changed the image (by far more than the agreement checked next) …
     let moved = f(&mut w, "diff(a, b)");
@@ -55,11 +62,11 @@ fn set_optics_and_a_new_scene_reach_the_connected_simulator() {
     assert!(after < 1e-9, "after set_optics: {after:e}");
 
     // a new scene under the same simulator: imaged, and recorded in the scan's metadata
-    w.eval_line(
+    run(
+        &mut w,
         "let s2 = scene(); s2.add_bead(#{x: 0.25, y: 0.0, d_nm: 110.0, n: 1.572}); simulate(s2);",
-    )
-    .unwrap();
-    w.eval_line(&format!("let c = {scan};")).unwrap();
+    );
+    run(&mut w, &format!("let c = {scan};"));
     assert_eq!(f(&mut w, "c.meta.scene.beads[0].pos[0]"), 0.25);
     assert_eq!(f(&mut w, "c.meta.optics.wavelength_nm"), 800.0);
     let scene_moved = f(&mut w, "diff(b, c)");
@@ -73,7 +80,7 @@ fn set_optics_and_a_new_scene_reach_the_connected_simulator() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("na = 2") && e.contains("0.01 ≤ na ≤ 1.7"), "{e}");
-    w.eval_line(&format!("let d = {scan};")).unwrap();
+    run(&mut w, &format!("let d = {scan};"));
     assert_eq!(f(&mut w, "d.meta.optics.wavelength_nm"), 800.0);
     assert_eq!(f(&mut w, "optics().wavelength_nm"), 800.0);
     let same = f(&mut w, "diff(c, d)");
@@ -86,13 +93,15 @@ fn set_optics_and_a_new_scene_reach_the_connected_simulator() {
 #[test]
 fn the_scene_is_the_connected_instruments() {
     let mut w = wb("mock");
-    w.eval_line("let s = scene(); s.add_bead(#{x: 0.0, y: 0.0}); simulate(s);")
-        .unwrap();
+    run(
+        &mut w,
+        "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0}); simulate(s);",
+    );
     let sim_meta = w
         .eval_line("scan_line(#{axis: \"x\", from: -0.2, to: 0.2, n: 3, dwell: 0.001}).meta.scene.beads.len()")
         .unwrap();
     assert_eq!(sim_meta.as_int().unwrap(), 1);
-    w.eval_line("connect(#{backend: \"mock\"});").unwrap();
+    run(&mut w, "connect(#{backend: \"mock\"});");
     let mock_meta = w
         .eval_line("scan_line(#{axis: \"x\", from: -0.2, to: 0.2, n: 3, dwell: 0.001}).meta.scene")
         .unwrap();
@@ -100,7 +109,7 @@ fn the_scene_is_the_connected_instruments() {
         mock_meta.is_unit(),
         "the mock's scan records a scene: {mock_meta}"
     );
-    w.eval_line("connect(#{backend: \"emulated\"});").unwrap();
+    run(&mut w, "connect(#{backend: \"emulated\"});");
     let e = w
         .eval_line("set_optics(#{wavelength_nm: 800.0})")
         .unwrap_err()
