@@ -435,7 +435,6 @@ fn cycle_finder_finds_cycles() {
 /// `instrument/sim`): its children import each other without a cycle. (The modules of `src/`
 /// itself: [`import_graph_has_no_cycle`].)
 #[test]
-#[ignore = "one cycle left, reported to the lead (issue 31 item 3): src/instrument/emulator/stage.rs <-> stage/wave.rs (wave.rs is an `impl GcsDevice` split off stage.rs, which holds a `wave::Wave`)"]
 fn files_inside_every_folder_import_no_cycle() {
     let folders = module_folders();
     for must in [
