@@ -4,7 +4,7 @@
 use super::doc::{fail, Doc, RResult};
 use crate::acquire::{SessionStore, SoftLimits};
 use crate::instrument::mock::MockHandle;
-use crate::instrument::sim::{Renderer, Scene, SimCore};
+use crate::instrument::sim::{Renderer, Scene, SimConfig, SimCore};
 use crate::instrument::Instrument;
 use crate::optics::{OpticsError, ValidOptics};
 use serde_json::{json, Value};
@@ -206,6 +206,21 @@ impl Ctx {
         }
         *optics = new;
         Ok(())
+    }
+
+    /// Put `scene` under the simulator in the session's optics: the connected simulator is
+    /// re-scened (position and clock kept), or else a new simulated instrument imaging it is
+    /// connected. The optics are held while the renderer is built, so a `set_optics` cannot
+    /// come between.
+    pub fn simulate_scene(&self, scene: &Scene) -> Result<SimCore, OpticsError> {
+        let optics = lock(&self.optics);
+        if let Some(core) = self.sim_core() {
+            core.set_scene(&optics, scene)?;
+            return Ok(core);
+        }
+        let core = SimCore::new(&*optics, scene, SimConfig::default())?;
+        self.attach_sim(core.clone(), 0.01);
+        Ok(core)
     }
 
     /// The scene the connected instrument images: the simulator's, or the emulated
