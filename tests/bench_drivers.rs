@@ -141,7 +141,8 @@ fn scan_with(
     abort: &AtomicBool,
     raster: bool,
 ) -> (ScanRun, Vec<Scan>) {
-    use bfpscope::acquire::raster::{run_raster, RasterOptions};
+    use bfpscope::acquire::raster::RasterOptions;
+    use bfpscope::acquire::run_raster;
     let saved = Mutex::new(Vec::new());
     let log = |_: &str| {};
     let save = |s: &Scan| -> Result<std::path::PathBuf, String> {

@@ -13,7 +13,8 @@
 //! 4. A snake raster on PI's wave generator loads its two waves once and switches tables
 //!    with `WSL`.
 
-use bfpscope::acquire::raster::{run_raster, RasterOptions};
+use bfpscope::acquire::raster::RasterOptions;
+use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{
     run_plan, Axis, Ended, Plan, ScanEnv, ScanError, ScanRun, SoftLimits, Sweep,
 };

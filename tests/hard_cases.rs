@@ -295,7 +295,7 @@ fn large_1024_by_1024_scan_through_the_analysis() {
     use bfpscope::optics::mie::Complex64;
     use bfpscope::optics::mie_beam::{MieBeam, MieBeamSpec};
     use bfpscope::optics::mie_template::{DIPOLE_D_NM, DIPOLE_N};
-    let o = Optics::default();
+    let o = bfpscope::optics::ValidOptics::default();
     let dip = MieBeam::new(
         &o,
         DIPOLE_D_NM,

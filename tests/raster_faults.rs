@@ -1,4 +1,4 @@
-//! Hardware-timed rasters through the engine (`acquire::raster::run_raster`) on the emulated
+//! Hardware-timed rasters through the engine (`acquire::run_raster`) on the emulated
 //! PI stage (GCS over a pseudo-terminal or loopback TCP) and Red Pitaya board (loopback TCP),
 //! OUT1 wired to the board's external trigger: a complete raster images the simulated scene,
 //! and each fault of issue 21 (a silent digitiser, a trigger that never comes, a data-recorder
@@ -10,7 +10,8 @@
 #[path = "support/cleanup.rs"]
 mod cleanup;
 
-use bfpscope::acquire::raster::{run_raster, RasterOptions};
+use bfpscope::acquire::raster::RasterOptions;
+use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{Axis, Ended, Plan, ScanEnv, ScanError, ScanRun, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect_emulated_redpitaya, Emulated, EmulatedStageLink};
 use bfpscope::config::Config;

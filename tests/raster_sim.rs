@@ -2,7 +2,8 @@
 //! its wave, the digitiser's samples are binned by the recorder's measured position, and the
 //! image equals the point-by-point image of the same scene within the detector noise.
 
-use bfpscope::acquire::raster::{bin_line, positions_at_samples, run_raster, RasterOptions};
+use bfpscope::acquire::raster::{bin_line, positions_at_samples, RasterOptions};
+use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{
     run_plan, Axis, Ended, Plan, ScanEnv, ScanError, ScanObserver, ScanRun, ScanStart, SoftLimits,
     Sweep,

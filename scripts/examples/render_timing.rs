@@ -10,6 +10,7 @@ use bfpscope::optics::grid::Interp;
 use bfpscope::optics::params::{Beam, Optics};
 use bfpscope::optics::rayleigh::{Detection, DetectorModel};
 use bfpscope::optics::template::{plane_grid, plane_grid_reference, TemplateSpec, SUPPORT_W};
+use bfpscope::optics::ValidOptics;
 use ndarray::Array2;
 use std::time::Instant;
 
@@ -49,10 +50,11 @@ fn best<T>(n: usize, mut f: impl FnMut() -> T) -> f64 {
 fn main() {
     // pinned to the paraxial beam the numbers in docs/performance.md were measured in (the
     // default beam is the vector focus since issue 19)
-    let optics = Optics {
+    let optics = ValidOptics::new(Optics {
         beam: Beam::Paraxial,
         ..Optics::default()
-    };
+    })
+    .unwrap();
     let sc = scene();
     println!("renderer for the scene, by stage (best of 5, ms):");
     let t_det = best(5, || {

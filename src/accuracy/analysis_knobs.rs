@@ -21,6 +21,7 @@ use crate::optics::mie_beam::{
 use crate::optics::params::{Optics, REF_BEAD_N};
 use crate::optics::rayleigh::{alpha_um3, DetectorModel};
 use crate::optics::template::TemplateSpec;
+use crate::optics::ValidOptics;
 
 /// Pixel size of the simulated analysis scans, µm (the paper's scans: 50 nm pixels).
 pub const PIXEL_UM: f64 = 0.05;
@@ -269,7 +270,7 @@ pub fn knob_stencil(quick: bool) -> Knob {
     // ∂Sx/∂x of the bead at zero displacement (the maximum, paper Fig. 2c), signal units per µm,
     // in the beam the scans are rendered in (the default vector beam: the 110 nm bead is a point
     // dipole there, `Amplitudes::Dipole`, whose response already carries the bead's α)
-    let o = Optics::default();
+    let o = ValidOptics::default();
     let truth = MieBeam::new(
         &o,
         110.0,
@@ -412,7 +413,7 @@ pub fn knob_mie_terms(quick: bool) -> Knob {
 /// one maximum-sensitivity evaluation for the bead (focus search included; Mie includes
 /// building its pair matrix).
 pub fn knob_model(quick: bool, d_nm: f64) -> Knob {
-    let o = Optics::default();
+    let o = ValidOptics::default();
     let ms = |d: f64, model: SphereModel| -> f64 {
         max_sensitivity_in_beam(&o, d, REF_BEAD_N, model)
             .expect("valid bead")

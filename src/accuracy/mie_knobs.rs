@@ -4,7 +4,8 @@
 use super::{time_median, Knob, Point};
 use crate::optics::mie::Complex64 as C64;
 use crate::optics::mie_beam::{MieBeam, MieBeamSpec, DEFAULT_N_PHI_IN, DEFAULT_N_THETA_IN};
-use crate::optics::params::{Optics, REF_BEAD_N};
+use crate::optics::params::REF_BEAD_N;
+use crate::optics::ValidOptics;
 
 /// Lateral radius (µm) of the region the `mie_grid` knob's error covers, and its test heights.
 const KNOB_REGION_UM: f64 = 1.5;
@@ -22,7 +23,7 @@ const KNOB_HEIGHTS_UM: [f64; 3] = [0.0, 0.5, -1.0];
 /// integrands are smooth; off the axis the phases k_j·x need the finer grid, hence (ii).
 /// Time: one (Sx, Sy, Sz) evaluation at a point (median), the pair matrix already built.
 pub fn knob_mie_grid(quick: bool) -> Knob {
-    let o = Optics::default();
+    let o = ValidOptics::default();
     let n = C64::new(REF_BEAD_N, 0.0);
     let d = 500.0;
     let build = |nt: usize, np: usize| {

@@ -20,6 +20,7 @@ use crate::optics::params::Optics;
 use crate::optics::rayleigh::alpha_um3;
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
+use crate::optics::ValidOptics;
 use serde::Serialize;
 use std::sync::Arc;
 use std::time::Instant;
@@ -146,12 +147,13 @@ pub fn vector_dipole(
     reach_um: f64,
     z_um: f64,
 ) -> (MieBeam, f64) {
-    let o = Optics {
+    let o = ValidOptics::new(Optics {
         n_theta,
         n_phi,
         beam: Beam::Vector,
         ..o.clone()
-    };
+    })
+    .expect("valid optics");
     let spec = MieBeamSpec {
         amplitudes: Amplitudes::Dipole,
         detector: model,
@@ -498,7 +500,7 @@ pub fn knob_bead_spacing(quick: bool) -> Knob {
 /// rule's dipoles, each the vector beam's point dipole: `MieBeam` with `Amplitudes::Dipole`,
 /// default grids), relative error against n_r = 14; time of one sensitivity evaluation.
 pub fn knob_finite_size(quick: bool) -> Knob {
-    let o = Optics::default();
+    let o = ValidOptics::default();
     let spec = MieBeamSpec {
         amplitudes: Amplitudes::Dipole,
         ..MieBeamSpec::of_beam(&o)

@@ -25,10 +25,12 @@
 //! 4. Keep partial data (unmeasured pixels NaN), attach the metadata and autosave — always,
 //!    also after an abort or a device error; tell the live view (`ScanObserver`).
 
+use super::error::ScanError;
 use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
+use super::raster::RasterOptions;
 pub use super::strategy::samples_per_point;
-use super::strategy::{PointStrategy, StopCause, Strategy};
+use super::strategy::{for_raster, PointStrategy, StopCause, Strategy};
 use crate::data::clock::utc_now;
 use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::{DeviceError, Instrument, Pos};
@@ -218,15 +220,6 @@ pub struct ScanRun {
     pub saved: Result<PathBuf, String>,
     pub ended: Ended,
     pub returned_to_start: bool,
-}
-
-/// Nothing was measured: the plan was refused, or the start position could not be read.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum ScanError {
-    #[error("{0}")]
-    Refused(String),
-    #[error("{kind}: {error} (nothing was moved)")]
-    Device { kind: String, error: DeviceError },
 }
 
 impl ScanRun {
@@ -683,4 +676,17 @@ pub fn checked_move(
         // the axis may still be moving: stop it, and say whether that worked
         Err(e) => Err(format!("{who}: {e}; {}", stop(inst))),
     }
+}
+
+/// Run `plan` as a hardware-timed raster on `inst`: the engine's loop
+/// ([`run`]) with the raster strategy the stage calls for
+/// ([`super::strategy::for_raster`]: hardware-timed lines, or a streamed frame).
+pub fn run_raster(
+    inst: &mut Instrument,
+    plan: &Plan,
+    opts: &RasterOptions,
+    env: &ScanEnv,
+) -> Result<ScanRun, ScanError> {
+    let mut s = for_raster(inst, *opts);
+    run(inst, plan, s.as_mut(), env)
 }

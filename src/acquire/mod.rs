@@ -6,6 +6,7 @@
 //! one step and stops; drivers only move and read. No driver re-implements limits or abort.
 
 pub mod engine;
+pub mod error;
 pub mod limits;
 pub mod plan;
 pub mod raster;
@@ -13,9 +14,10 @@ pub mod store;
 pub mod strategy;
 
 pub use engine::{
-    checked_move, run, run_plan, Batcher, Ended, Paused, ScanEnv, ScanError, ScanObserver, ScanRun,
-    ScanStart,
+    checked_move, run, run_plan, run_raster, Batcher, Ended, Paused, ScanEnv, ScanObserver,
+    ScanRun, ScanStart,
 };
+pub use error::ScanError;
 pub use limits::SoftLimits;
 pub use plan::{Axis, Plan, Sweep};
 pub use store::SessionStore;

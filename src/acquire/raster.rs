@@ -16,12 +16,10 @@
 //! pixel `i` takes the samples whose measured position lies within `w/2` of its centre
 //! (half-open: `[c − w/2, c + w/2)` in the sweep direction).
 
-use super::engine::{run, ScanEnv, ScanError, ScanRun};
 use super::limits::SoftLimits;
 use super::plan::Plan;
-use super::strategy::for_raster;
 use crate::instrument::line::{LineSweep, LineTiming};
-use crate::instrument::{Instrument, Pos};
+use crate::instrument::Pos;
 
 /// Digitiser samples asked per pixel (the digitiser may give more: its rates are steps).
 pub const DEFAULT_SAMPLES_PER_PIXEL: usize = 20;
@@ -356,19 +354,6 @@ impl Default for RasterOptions {
             samples_per_pixel: DEFAULT_SAMPLES_PER_PIXEL,
         }
     }
-}
-
-/// Run `plan` as a hardware-timed raster on `inst`: the engine's loop
-/// ([`super::engine::run`]) with the raster strategy the stage calls for
-/// ([`super::strategy::for_raster`]: hardware-timed lines, or a streamed frame).
-pub fn run_raster(
-    inst: &mut Instrument,
-    plan: &Plan,
-    opts: &RasterOptions,
-    env: &ScanEnv,
-) -> Result<ScanRun, ScanError> {
-    let mut s = for_raster(inst, *opts);
-    run(inst, plan, s.as_mut(), env)
 }
 
 #[cfg(test)]

@@ -59,6 +59,7 @@ use crate::optics::mie_template::dipole_plane;
 use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::{alpha_um3, DetectorModel, Misalignment};
 use crate::optics::template::TemplateSpec;
+use crate::optics::ValidOptics;
 use nalgebra::{DMatrix, DVector};
 use std::sync::Arc;
 use std::time::Instant;
@@ -165,7 +166,12 @@ impl Basis {
     }
 }
 
-fn plane(optics: &Optics, grid: TemplateSpec, m: Misalignment, alpha: f64) -> Result<Arc<Grid2>> {
+fn plane(
+    optics: &ValidOptics,
+    grid: TemplateSpec,
+    m: Misalignment,
+    alpha: f64,
+) -> Result<Arc<Grid2>> {
     let detector = DetectorModel {
         polarization: true,
         misalignment: Some(m),
@@ -193,7 +199,7 @@ fn optics_for_v(base: &Optics, v: f64) -> Optics {
 }
 
 fn basis(base: &Optics, grid: TemplateSpec, alpha: f64, v: f64) -> Result<Basis> {
-    let o = optics_for_v(base, v);
+    let o = ValidOptics::new(optics_for_v(base, v))?;
     let zero = Misalignment {
         offset_x: 0.0,
         offset_y: 0.0,

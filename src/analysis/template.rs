@@ -167,12 +167,13 @@ impl Template {
     /// (the simulator's units), normalised so max ∂Sx/∂x = 1. `detector` selects polarization and
     /// misalignment. Errors: invalid optics, a reference whose medium differs from the optics'.
     pub fn from_optics(
-        optics: &crate::optics::Optics,
+        optics: &impl crate::optics::OpticsArg,
         detector: &crate::optics::rayleigh::DetectorModel,
         reference: RefBead,
         h_um: f64,
         z_um: f64,
     ) -> Result<Template> {
+        let optics = optics.valid()?;
         super::check_range("h_um", h_um, 1e-3, 0.2)?;
         super::check_range("z_um", z_um, -100.0, 100.0)?;
         if (reference.n_medium - optics.n_medium).abs() > 1e-9 {
@@ -184,21 +185,14 @@ impl Template {
                 ),
             });
         }
-        // the beam the simulator renders point dipoles in (issue 19): the paper's paraxial
-        // Rayleigh plane, or the aplanatic vector focus's dipole plane
-        let mut g = match optics.beam {
-            crate::optics::Beam::Paraxial => {
-                let det = crate::optics::rayleigh::Detection::new(optics, detector)?;
-                crate::optics::template::plane_grid(&det, z_um, h_um, Interp::Cubic)
-            }
-            crate::optics::Beam::Vector => crate::optics::mie_template::dipole_plane(
-                optics,
-                *detector,
-                h_um,
-                Interp::Cubic,
-                z_um,
-            )?,
-        };
+        // the beam the simulator renders point dipoles in (issue 19)
+        let (mut g, model) = crate::optics::mie_template::point_dipole_plane(
+            &optics,
+            *detector,
+            h_um,
+            Interp::Cubic,
+            z_um,
+        )?;
         let alpha =
             crate::optics::rayleigh::alpha_um3(reference.d_nm, reference.n, optics.n_medium);
         for n in g.data.iter_mut() {
@@ -206,16 +200,7 @@ impl Template {
                 *c *= alpha;
             }
         }
-        let desc = match optics.beam {
-            crate::optics::Beam::Paraxial => format!(
-                "Rayleigh model, paraxial beam: λ = {} nm, n = {}, w0 = {} nm, NA = {}, z = {z_um} µm, h = {h_um} µm, polarization: {}, misalignment: {:?}",
-                optics.wavelength_nm, optics.n_medium, optics.w0_nm, optics.na, detector.polarization, detector.misalignment
-            ),
-            crate::optics::Beam::Vector => format!(
-                "Rayleigh model, vector beam: λ = {} nm, n = {}, NA = {}, pupil filling {}, z = {z_um} µm, h = {h_um} µm, misalignment: {:?}",
-                optics.wavelength_nm, optics.n_medium, optics.na, optics.pupil_filling, detector.misalignment
-            ),
-        };
+        let desc = format!("Rayleigh model, {model}");
         Self::from_model(g, reference, &desc)
     }
 

@@ -2,7 +2,7 @@
 //! serial ports. Also computes the limits in force (`[safety]` soft limits ∩ the travel range
 //! the stage reports, with the step and speed limits), which `acquire/` enforces.
 
-use super::{Backend, Config, ConfigError};
+use super::{err, Backend, Config, ConfigError};
 use crate::acquire::SoftLimits;
 use crate::instrument::gcs::GcsStage;
 use crate::instrument::gcs_split::GcsSplitStage;
@@ -133,7 +133,7 @@ pub fn record_gauge(instrument: &mut Instrument) {
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
     if cfg.stage.backend == Backend::Madlib || cfg.qpd.backend == Backend::Nidaqmx {
-        return super::bench::connect_bench(cfg);
+        return connect_bench(cfg);
     }
     if cfg.stage.backend == Backend::Kpz101 || cfg.qpd.backend == Backend::Kpa101 {
         return connect_apt(cfg);
@@ -534,4 +534,142 @@ pub fn connect_emulated_redpitaya(
         "signal": "simulator (ideal signal of the scene) at the emulated stage position, followed sample by sample during a wave",
     });
     finish_emulated(&cfg, stage, qpd, emulators)
+}
+
+/// Connect a config with a Nano-Drive and/or an NI board (from `connect::connect_hardware`):
+/// the stage (`madlib`, or a PI GCS controller), the QPD (`nidaqmx`, or a Red Pitaya or SCPI
+/// digitiser). A failure after the stage was taken drops it, which releases its handle.
+fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectError> {
+    use crate::instrument::madlib::MadlibStage;
+    use crate::instrument::nidaqmx::NiQpd;
+    use crate::instrument::{Qpd, Stage, WallClock};
+    use serde_json::json;
+    let raster = cfg.ni_raster_options()?;
+    let mut madlib: Option<MadlibStage> = None;
+    let (stage, stage_desc): (Option<Box<dyn Stage>>, serde_json::Value) = match cfg.stage.backend {
+        Backend::Madlib => {
+            let o = cfg.madlib_options()?;
+            let s = MadlibStage::open(o.clone())?;
+            let i = s.info();
+            let d = json!({
+                "backend": "madlib",
+                "name": s.name(),
+                "library": i.library,
+                "serial": i.serial,
+                "product_info": {
+                    "product_id": i.product_id,
+                    "axis_bitmap": i.axis_bitmap,
+                    "adc_resolution_bits": i.adc_bits,
+                    "dac_resolution_bits": i.dac_bits,
+                    "firmware_version": i.firmware_version,
+                    "firmware_profile": i.firmware_profile,
+                },
+                "calibration_um": i.calibration_um,
+                "axes": { "x": o.axes[0], "y": o.axes[1], "z": o.axes[2] },
+                "tolerance_um": o.tolerance_um,
+                "on_target_timeout_ms": cfg.stage.on_target_timeout_ms,
+            });
+            madlib = Some(s);
+            (None, d)
+        }
+        Backend::Gcs => {
+            let s = crate::instrument::gcs_split::GcsSplitStage::open_checked(
+                &cfg.gcs_controllers(),
+                cfg.stage.baud,
+            )?;
+            let d = json!({ "backend": "gcs", "name": s.name() });
+            (Some(Box::new(s)), d)
+        }
+        b => {
+            return Err(err(
+                "stage.backend",
+                format!(
+                    "\"{}\" with [qpd] backend = \"nidaqmx\": allowed stages with an NI board are \"madlib\" and \"gcs\"",
+                    b.as_str()
+                ),
+            )
+            .into())
+        }
+    };
+    let mut stage = stage;
+    let mut stage_desc = stage_desc;
+    let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
+        Backend::Nidaqmx => {
+            let o = cfg.ni_qpd_options()?;
+            let q = NiQpd::open(o.clone())?;
+            let pair = match (&raster, madlib.is_some()) {
+                (Some(r), true) => madlib.take().map(|m| (r.clone(), m)),
+                _ => None,
+            };
+            if let Some((r, m)) = pair {
+                use crate::instrument::nidaqmx::{raster::NiRaster, stream_stage::NiStreamStage};
+                stage_desc["raster"] = json!({
+                    "backend": "nidaqmx",
+                    "ao": r.ao,
+                    "volts_per_um": r.volts_per_um,
+                    "position": r.position,
+                    "position_volts_per_um": r.position_volts_per_um,
+                    "clock": format!("/{}/ao/SampleClock", o.device),
+                    "start_trigger": format!("/{}/ao/StartTrigger", o.device),
+                });
+                let nr = NiRaster::new(q.lib(), r, q.name());
+                stage = Some(Box::new(NiStreamStage::new(m, nr)));
+            }
+            let (product, serial) = q.identity();
+            let d = json!({
+                "backend": "nidaqmx",
+                "name": q.name(),
+                "library": q.library(),
+                "device": o.device,
+                "product_type": product,
+                "serial": serial,
+                "channels": cfg.qpd.channels,
+                "range_v": o.range_v,
+                "terminal": o.terminal.name(),
+                "sample_rate_hz": o.rate_hz,
+                "calibration": cfg.qpd.calibration,
+            });
+            (Box::new(q), d)
+        }
+        Backend::Redpitaya => open_redpitaya(cfg)?,
+        Backend::Scpi => {
+            let port = cfg.qpd.port.clone().unwrap_or_default();
+            let q = crate::instrument::scpi::ScpiQpd::open(&port, cfg.qpd.baud, cfg.scpi_options())?;
+            let d = json!({ "backend": "scpi", "name": q.name(), "port": port, "idn": q.idn() });
+            (Box::new(q), d)
+        }
+        b => {
+            return Err(err(
+                "qpd.backend",
+                format!(
+                    "\"{}\" with [stage] backend = \"madlib\": allowed digitisers are \"nidaqmx\", \"redpitaya\" and \"scpi\"",
+                    b.as_str()
+                ),
+            )
+            .into())
+        }
+    };
+    let stage: Box<dyn Stage> = match (stage, madlib) {
+        (Some(s), _) => s,
+        (None, Some(m)) => Box::new(m),
+        (None, None) => {
+            return Err(crate::instrument::DeviceError::Other {
+                device: "bench".into(),
+                detail: "no stage was connected".into(),
+            }
+            .into())
+        }
+    };
+    Ok(crate::instrument::Instrument {
+        stage,
+        qpd,
+        clock: std::sync::Arc::new(WallClock::default()),
+        settle_s: cfg.stage.settle_s,
+        description: json!({
+            "backend": "hardware",
+            "stage": stage_desc,
+            "qpd": qpd_desc,
+            "settle_s": cfg.stage.settle_s,
+        }),
+    })
 }

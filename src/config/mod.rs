@@ -38,11 +38,12 @@
 
 pub mod bench;
 pub mod connect;
+pub mod kinds;
 pub mod tables;
 
 pub use tables::{OpticsConfig, Sandbox, SessionConfig};
 
-pub use bench::{QpdChannels, RasterConfig};
+pub use kinds::{Backend, QpdChannels, RasterConfig};
 
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
 use crate::instrument::gcs::GcsOptions;
@@ -78,53 +79,15 @@ pub struct ConfigError {
     pub message: String,
 }
 
-/// Device backends.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Backend {
-    /// The simulated instrument (scene + optics).
-    #[default]
-    Sim,
-    /// PI GCS 2.0 piezo controller (stage).
-    Gcs,
-    /// SCPI QPD digitiser (qpd).
-    Scpi,
-    /// Thorlabs KPA101/TPA101 position aligner over APT (qpd).
-    Kpa101,
-    /// Three Thorlabs KPZ101 piezo cubes over APT, one per axis (stage).
-    Kpz101,
-    /// Red Pitaya STEMlab board over its SCPI server (qpd).
-    Redpitaya,
-    /// Mad City Labs Nano-Drive through the vendor's library Madlib (stage).
-    Madlib,
-    /// NI DAQ board through NI-DAQmx (qpd; `[raster]`).
-    Nidaqmx,
-}
-
-impl Backend {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Backend::Sim => "sim",
-            Backend::Gcs => "gcs",
-            Backend::Scpi => "scpi",
-            Backend::Kpa101 => "kpa101",
-            Backend::Kpz101 => "kpz101",
-            Backend::Redpitaya => "redpitaya",
-            Backend::Madlib => "madlib",
-            Backend::Nidaqmx => "nidaqmx",
-        }
-    }
-}
-
 /// Controller axis identifiers for x, y, z.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AxisMap {
-    #[serde(deserialize_with = "bench::string_or_int")]
+    #[serde(deserialize_with = "kinds::string_or_int")]
     pub x: String,
-    #[serde(deserialize_with = "bench::string_or_int")]
+    #[serde(deserialize_with = "kinds::string_or_int")]
     pub y: String,
-    #[serde(deserialize_with = "bench::string_or_int")]
+    #[serde(deserialize_with = "kinds::string_or_int")]
     pub z: String,
 }
 

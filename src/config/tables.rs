@@ -16,7 +16,7 @@
 //! beam = "vector"
 //! ```
 
-use crate::optics::{Beam, Optics};
+use crate::optics::{Beam, Optics, ValidOptics};
 use serde::{Deserialize, Serialize};
 
 /// Rhai sandbox limits (`[sandbox]`). Generous defaults: a runaway loop stops after about ten
@@ -112,7 +112,7 @@ impl OpticsConfig {
 
     /// The optics these keys give over the defaults, validated as `set_optics` validates.
     /// `Err((key, message))`: the message names the key, its value and the allowed range.
-    pub fn resolve(&self) -> Result<Optics, (String, String)> {
+    pub fn resolve(&self) -> Result<ValidOptics, (String, String)> {
         let mut o = Optics::default();
         for (v, f) in [
             (self.wavelength_nm, &mut o.wavelength_nm as &mut f64),
@@ -136,7 +136,7 @@ impl OpticsConfig {
         if let Some(b) = &self.beam {
             o.beam = Beam::parse(b).map_err(|e| ("optics.beam".to_string(), e.to_string()))?;
         }
-        o.validate().map_err(|e| {
+        ValidOptics::new(o).map_err(|e| {
             let text = e.to_string();
             // the message starts with the field's name (`na = 2 is …`): point at that key
             let key = text
@@ -145,7 +145,6 @@ impl OpticsConfig {
                 .filter(|k| !k.is_empty())
                 .map_or_else(|| "optics".to_string(), |k| format!("optics.{k}"));
             (key, text)
-        })?;
-        Ok(o)
+        })
     }
 }

@@ -344,7 +344,7 @@ fn example_file_parses() {
     // the example's [optics] names the default wavelength: the optics are the defaults
     assert_eq!(
         c.optics.resolve().unwrap(),
-        crate::optics::Optics::default()
+        crate::optics::ValidOptics::default()
     );
 }
 

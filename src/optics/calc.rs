@@ -1,7 +1,8 @@
 //! Calculators from the supplement: scattered power (S1), trap depth (S3), the index
 //! correction (main text eq. nCor) and bead mass.
 
-use super::params::{check_above, check_range, Optics, OpticsError};
+use super::beam::OpticsArg;
+use super::params::{check_above, check_range, OpticsError};
 use super::rayleigh::clausius_mossotti;
 use std::f64::consts::PI;
 
@@ -23,15 +24,15 @@ pub const ROOM_T_K: f64 = 295.15;
 /// P_beam as") integrates I0·e^{−(x²+y²)/w0²}, i.e. takes w0 as a 1/e intensity radius, and gets
 /// half this value: see [`p_scat_ratio_paper`] (2.35e-5 for the 110 nm reference bead, its
 /// "≈ 2×10⁻⁵"; 4.70e-5 here).
-pub fn p_scat_ratio(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+pub fn p_scat_ratio(optics: &impl OpticsArg, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
     Ok(2.0 * p_scat_ratio_paper(optics, d_nm, n)?)
 }
 
 /// The supplement's S1 value in its own convention (w0 read as the 1/e intensity radius, P_beam
 /// = I0 π w0²): P_scat/P_beam = (8/3) k⁴ CM² r⁶ / w0², half of [`p_scat_ratio`]. Kept to
 /// reproduce the paper's "≈ 2×10⁻⁵" and "exceed 300 nm before … 1 %".
-pub fn p_scat_ratio_paper(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
-    optics.validate()?;
+pub fn p_scat_ratio_paper(optics: &impl OpticsArg, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+    let optics = optics.valid()?;
     check_range("d_nm", d_nm, 0.0, 20000.0)?;
     check_range("n", n, 1.0, 5.0)?;
     let k = optics.k_per_um();
@@ -65,13 +66,13 @@ pub enum TrapShape {
 /// 2P/(π w0²), as everywhere in this crate (docs/physics.md §6, "Where the trap formula keeps the
 /// paper's factors").
 pub fn trap_depth_kt(
-    optics: &Optics,
+    optics: &impl OpticsArg,
     shape: TrapShape,
     d_nm: f64,
     n: f64,
     temperature_k: f64,
 ) -> Result<f64, OpticsError> {
-    optics.validate()?;
+    let optics = optics.valid()?;
     check_range("d_nm", d_nm, 0.0, 20000.0)?;
     check_range("n", n, 1.0, 5.0)?;
     check_above("temperature_k", temperature_k, 0.0)?;
@@ -117,7 +118,7 @@ mod tests {
 
     #[test]
     fn paper_numbers() {
-        let o = Optics::default();
+        let o = super::super::params::Optics::default();
         // S1: "≈ 2×10⁻⁵" for the 110 nm polystyrene reference bead, in the paper's 1/e convention
         let r = p_scat_ratio_paper(&o, 110.0, 1.572).unwrap();
         assert!((r - 2.35e-5).abs() < 0.01e-5, "{r:e}");

@@ -41,6 +41,8 @@
 //! 5 µm), so positions beyond the reach are refused with an error.
 //! [`MieBeamSpec::for_reach`] and [`optics_for_reach`] give grids for a larger reach.
 
+pub use super::beam::{filling_to_spectral_um, Apodization};
+use super::beam::{theta_aperture, OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
 use super::mie::{mie_s1s2_terms, Complex64 as C64, MieError};
 use super::params::{check_above, check_range, Optics, OpticsError};
 use super::quad::gauss_legendre;
@@ -89,49 +91,6 @@ pub struct MieBeamSpec {
     pub apodization: Apodization,
 }
 
-/// How the objective maps the pupil field onto the plane-wave spectrum.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-pub enum Apodization {
-    /// Plane-wave amplitude per dk_x dk_y = f_w(θ) (no aplanatic factor; the Mie tier's beam
-    /// until issue 19: its far field is ∝ cosθ f_w(θ)).
-    #[default]
-    None,
-    /// Aplanatic (sine-condition) objective: far-field amplitude ∝ f_w(θ) √cosθ (energy
-    /// conservation across the reference sphere, Richards & Wolf 1959, Proc. R. Soc. A 253,
-    /// 358, eq. 2.22; Novotny & Hecht eq. 3.47), i.e. plane-wave amplitude per dk_x dk_y
-    /// = f_w(θ)/√cosθ.
-    Aplanatic,
-}
-
-impl Apodization {
-    /// Factor g(cosθ) multiplying the Gaussian filling f_w in the amplitude per dk_x dk_y.
-    #[inline]
-    pub fn factor(self, cos_theta: f64) -> f64 {
-        match self {
-            Apodization::None => 1.0,
-            Apodization::Aplanatic => 1.0 / cos_theta.max(1e-300).sqrt(),
-        }
-    }
-}
-
-/// Spectral waist (µm) of the Gaussian pupil filling with filling factor `f0` (Novotny & Hecht
-/// eq. 3.52: f_w(θ) = exp(−sin²θ / (f0² sin²θ_max)), f0 = w_pupil / (f sinθ_max), the pupil's
-/// 1/e field radius over the aperture radius). Since f_w = exp(−k² w_s² sin²θ / 4),
-/// w_s = 2 / (k f0 sinθ_max). f0 = ∞ gives 0 (uniformly filled aperture). Errors for f0 ≤ 0.
-pub fn filling_to_spectral_um(optics: &Optics, f0: f64) -> Result<f64, OpticsError> {
-    if f0.is_nan() || f0 <= 0.0 {
-        return Err(OpticsError::OutOfRange {
-            name: "pupil_filling",
-            value: f0,
-            allowed: "pupil_filling > 0 (inf: uniformly filled aperture)".into(),
-        });
-    }
-    if f0.is_infinite() {
-        return Ok(0.0);
-    }
-    Ok(2.0 / (optics.k_per_um() * f0 * theta_aperture(optics).sin()))
-}
-
 impl Default for MieBeamSpec {
     /// Default grid: the knee of `accuracy::mie_knobs::knob_mie_grid` (docs/physics.md §9).
     fn default() -> Self {
@@ -159,24 +118,21 @@ pub const DEFAULT_N_PHI_IN: usize = 6;
 pub const MAX_PAIRS: usize = 8_000_000;
 
 impl MieBeamSpec {
-    /// The default grids in the beam `optics.beam` selects: for `Beam::Vector` the aplanatic
-    /// focus of pupil filling `optics.pupil_filling` (docs/physics.md §10); for
-    /// `Beam::Paraxial` §9's beam (spectral waist w0, no aplanatic factor).
-    pub fn of_beam(optics: &Optics) -> Self {
+    /// The default grids in the beam of `optics` ([`ResolvedBeam`](super::beam::ResolvedBeam)):
+    /// in the vector beam the aplanatic focus of pupil filling `optics.pupil_filling`
+    /// (docs/physics.md §10); in the paraxial beam §9's beam (spectral waist w0, no aplanatic
+    /// factor).
+    pub fn of_beam(optics: &ValidOptics) -> Self {
         Self::default().with_beam_of(optics)
     }
 
-    /// This spec with the waist and apodisation of `optics.beam` ([`Self::of_beam`]).
-    pub fn with_beam_of(self, optics: &Optics) -> Self {
-        let (waist, apodization) = match optics.beam {
-            super::params::Beam::Paraxial => (Waist::Spectral, Apodization::None),
-            super::params::Beam::Vector => {
-                (Waist::Filling(optics.pupil_filling), Apodization::Aplanatic)
-            }
-        };
+    /// This spec with the spectral waist and apodisation of the beam of `optics`
+    /// ([`Self::of_beam`]).
+    pub fn with_beam_of(self, optics: &ValidOptics) -> Self {
+        let beam = optics.beam();
         Self {
-            waist,
-            apodization,
+            waist: Waist::SpectralUm(beam.spectral_waist_um()),
+            apodization: beam.apodization(),
             ..self
         }
     }
@@ -203,13 +159,26 @@ impl MieBeamSpec {
 /// scattered far field out to a lateral distance `rho_um`: min(n_theta, 2 n_phi) ≥
 /// 0.75 kρ sinΘ_det + 8 (the detection part of [`grid_reach_um`]).
 pub fn optics_for_reach(optics: &Optics, rho_um: f64) -> Optics {
-    let ks = optics.k_per_um() * optics.theta_max().sin();
-    let nt = ((0.75 * ks * rho_um.max(0.0) + 8.0).ceil() as usize).min(256);
+    let (nt, np) = reach_quadrature(optics, rho_um);
     Optics {
         n_theta: optics.n_theta.max(nt),
-        n_phi: optics.n_phi.max(nt.div_ceil(2)),
+        n_phi: optics.n_phi.max(np),
         ..optics.clone()
     }
+}
+
+/// [`optics_for_reach`] for validated optics (the quadrature stays in the validated range).
+pub fn valid_optics_for_reach(optics: &ValidOptics, rho_um: f64) -> ValidOptics {
+    let (nt, np) = reach_quadrature(optics, rho_um);
+    optics.with_min_quadrature(nt, np)
+}
+
+/// The detection quadrature (n_theta, n_phi) that resolves the scattered far field out to
+/// `rho_um` ([`optics_for_reach`]): n_theta = ⌈0.75 kρ sinΘ_det + 8⌉ ≤ 256, n_phi = ⌈n_theta/2⌉.
+fn reach_quadrature(optics: &Optics, rho_um: f64) -> (usize, usize) {
+    let ks = optics.k_per_um() * optics.theta_max().sin();
+    let nt = ((0.75 * ks * rho_um.max(0.0) + 8.0).ceil() as usize).min(256);
+    (nt, nt.div_ceil(2))
 }
 
 /// Lateral reach (µm) of the plane-wave grids at axial displacement `z_um`: the largest
@@ -231,11 +200,6 @@ pub fn grid_reach_um(optics: &Optics, spec: &MieBeamSpec, z_um: f64) -> f64 {
         (2.5 * (spec.n_theta_in as f64 - 4.0) - 0.5 * k * z_um.abs() * (1.0 - th.cos())) / ks_in;
     let r_det = ((optics.n_theta.min(2 * optics.n_phi)) as f64 - 8.0) / (0.75 * ks_det);
     r_phi.min(r_th).min(r_det).max(0.0)
-}
-
-/// The objective's aperture half-angle in the medium, asin(min(NA, n)/n).
-fn theta_aperture(optics: &Optics) -> f64 {
-    (optics.na.min(optics.n_medium) / optics.n_medium).asin()
 }
 
 /// Polarisation of the x-polarised pupil at direction (u, v, c): cosφ ê_θ − sinφ ê_φ.
@@ -307,6 +271,8 @@ pub enum Waist {
     /// Gaussian pupil filling factor f0 ([`filling_to_spectral_um`], Novotny & Hecht eq. 3.52);
     /// f64::INFINITY = uniformly filled. Ignores `Optics::w0_nm`.
     Filling(f64),
+    /// An explicit spectral waist in µm: the resolved beam's ([`MieBeamSpec::of_beam`]).
+    SpectralUm(f64),
 }
 
 /// The focused beam as a discrete angular spectrum (module docs): plane waves on a
@@ -471,16 +437,17 @@ impl AngularSpectrum {
 /// focal field from a (32, 16) incident grid (converged to < 1e-9 within 1.5 µm).
 /// Errors if w0 is below the tightest focus the aperture allows (uniform filling), naming
 /// `w0_nm`, its value and that minimum.
-pub fn spectral_waist_nm(optics: &Optics) -> Result<f64, OpticsError> {
+pub fn spectral_waist_nm(optics: &impl OpticsArg) -> Result<f64, OpticsError> {
     spectral_waist_nm_with(optics, Apodization::None)
 }
 
 /// [`spectral_waist_nm`] for a beam with pupil apodisation `apodization`.
 pub fn spectral_waist_nm_with(
-    optics: &Optics,
+    optics: &impl OpticsArg,
     apodization: Apodization,
 ) -> Result<f64, OpticsError> {
-    optics.validate()?;
+    let optics = optics.valid()?;
+    let optics: &Optics = &optics;
     let mean_r = |ws: f64| -> Result<f64, OpticsError> {
         let b = AngularSpectrum::with_apodization(optics, ws, 32, 16, apodization)?;
         let (rx, ry) = b.focal_radii();
@@ -546,7 +513,7 @@ pub struct MieBeam {
     m_rel: C64,
     d_nm: f64,
     spec: MieBeamSpec,
-    optics: Optics,
+    optics: ValidOptics,
 }
 
 /// See [`MieBeam::dipole`]: U per detection node, W per field component (row-major c, j).
@@ -568,24 +535,23 @@ impl MieBeam {
     ///
     /// Errors name the argument, its value and the allowed range.
     pub fn new(
-        optics: &Optics,
+        optics: &impl OpticsArg,
         d_nm: f64,
         n_particle: C64,
         spec: MieBeamSpec,
     ) -> Result<Self, OpticsError> {
-        Self::build(optics, d_nm, n_particle, spec, true)
+        Self::build(&*optics.valid()?, d_nm, n_particle, spec, true)
     }
 
     /// [`Self::new`]; `factorise` = false keeps the pair matrix for the point dipole too (the
     /// unit test that checks the factorisation against it).
     fn build(
-        optics: &Optics,
+        optics: &ValidOptics,
         d_nm: f64,
         n_particle: C64,
         spec: MieBeamSpec,
         factorise: bool,
     ) -> Result<Self, OpticsError> {
-        optics.validate()?;
         check_above("d_nm", d_nm, 0.0)?;
         check_range("d_nm", d_nm, 0.0, 20000.0)?;
         check_range("n_particle (real part)", n_particle.re, 1e-3, 5.0)?;
@@ -614,6 +580,7 @@ impl MieBeam {
             Waist::Focal => spectral_waist_nm_with(optics, spec.apodization)? * 1e-3,
             Waist::SpectralNm(w) => check_range("waist (spectral, nm)", w, 0.0, 1e6)? * 1e-3,
             Waist::Filling(f0) => filling_to_spectral_um(optics, f0)?,
+            Waist::SpectralUm(w) => check_range("waist (spectral, µm)", w, 0.0, 1e3)?,
         };
         let beam = AngularSpectrum::with_apodization(
             optics,
@@ -1137,7 +1104,9 @@ fn cdot3(mr: &[f64], mi: &[f64], v: [(&[f64], &[f64]); 3]) -> [C64; 3] {
 /// point dipole's normalised sensitivity is α(d, n)/α(110, PS) exactly, Mie's is the M ratio.
 /// Dimensionless; about 0.2 s in a release build (two Mie responses). Pure: the simulator's
 /// domain check (`instrument::sim::domain`) remembers results in a bounded memo it owns.
-pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+pub fn point_dipole_error(optics: &impl OpticsArg, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+    let optics = optics.valid()?;
+    let optics: &ValidOptics = &optics;
     let reference = max_sensitivity_per_alpha(
         optics,
         super::params::REF_BEAD_D_NM,
@@ -1147,13 +1116,19 @@ pub fn point_dipole_error(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, Opt
 }
 
 /// M(d, n)/α(d, n): the Mie tier's maximum sensitivity (∂Sx/∂x)max (µm⁻¹, default grid, in the
-/// beam `optics.beam` selects: [`MieBeamSpec::of_beam`]) per
+/// beam of `optics`: [`MieBeamSpec::of_beam`]) per
 /// unit static polarisability α (µm³), the two factors of [`point_dipole_error`] (paper
 /// Fig. 3c, Sec. 3.2); µm⁻⁴. M is signed, the extreme of the central lobe
 /// ([`MieBeam::extreme_sensitivity_x`]): for n below the medium's both M and α are negative,
 /// and M/α is the same positive shape factor as for n above it. One Mie response, about
 /// 0.05–0.1 s in a release build. An error when n equals the medium's index (α = 0).
-pub fn max_sensitivity_per_alpha(optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+pub fn max_sensitivity_per_alpha(
+    optics: &impl OpticsArg,
+    d_nm: f64,
+    n: f64,
+) -> Result<f64, OpticsError> {
+    let optics = optics.valid()?;
+    let optics: &ValidOptics = &optics;
     let alpha = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium);
     if alpha == 0.0 {
         return Err(OpticsError::Invalid(format!(
@@ -1168,18 +1143,20 @@ pub fn max_sensitivity_per_alpha(optics: &Optics, d_nm: f64, n: f64) -> Result<f
 }
 
 /// QPD signals of a point dipole (a sphere of diameter `d_nm`, index `n`, static polarisability
-/// α) displaced `pos_um` (µm) from the focus, in the beam `optics.beam` selects: the paper's
+/// α) displaced `pos_um` (µm) from the focus, in the beam of `optics`: the paper's
 /// paraxial Rayleigh model (suppl. S2, [`super::rayleigh::response`], `det.polarization`
 /// honoured) or the aplanatic vector focus (docs/physics.md §10; always vectorial, so
 /// `det.polarization` has no effect there). Normalised to the beam power, dimensionless.
 pub fn dipole_response_in_beam(
-    optics: &Optics,
+    optics: &impl OpticsArg,
     det: &DetectorModel,
     pos_um: [f64; 3],
     d_nm: f64,
     n: f64,
 ) -> Result<super::rayleigh::Signals, OpticsError> {
-    if optics.beam == super::params::Beam::Paraxial {
+    let optics = optics.valid()?;
+    let optics: &ValidOptics = &optics;
+    if optics.beam().paraxial_dipoles() {
         return super::rayleigh::response(optics, det, pos_um, d_nm, n);
     }
     super::rayleigh::check_particle(d_nm, n)?;
@@ -1187,10 +1164,7 @@ pub fn dipole_response_in_beam(
         check_range(name, v, -1e4, 1e4)?;
     }
     let rho = pos_um[0].hypot(pos_um[1]);
-    let (d0, n0) = (
-        super::mie_template::DIPOLE_D_NM,
-        super::mie_template::DIPOLE_N,
-    );
+    let (d0, n0) = (DIPOLE_D_NM, DIPOLE_N);
     let dipole = |grids: MieBeamSpec| MieBeamSpec {
         detector: *det,
         amplitudes: Amplitudes::Dipole,
@@ -1202,7 +1176,7 @@ pub fn dipole_response_in_beam(
     } else {
         dipole(MieBeamSpec::for_reach(optics, rho, pos_um[2]))
     };
-    let o = optics_for_reach(optics, rho);
+    let o = valid_optics_for_reach(optics, rho);
     let s =
         MieBeam::new(&o, d0, C64::new(n0, 0.0), spec)?.response(pos_um[0], pos_um[1], pos_um[2])?;
     let a = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium)
@@ -1226,20 +1200,22 @@ pub enum SphereModel {
 }
 
 /// Maximum sensitivity (∂Sx/∂x)max (µm⁻¹) of a sphere of diameter `d_nm` (nm) and real index `n`
-/// at its best focus, and that axial displacement z (µm), in the beam `optics.beam` selects
+/// at its best focus, and that axial displacement z (µm), in the beam of `optics`
 /// (paper Fig. 3c; the height optimised as in suppl. S5): for `Beam::Paraxial` the paper's
 /// Rayleigh tier (suppl. S3/S6) — the Mie model then in §9's beam —, for `Beam::Vector` the
 /// aplanatic vector focus (docs/physics.md §10), every model in it. Dimensionless signals per
 /// beam power. Errors: invalid optics, a sphere out of range, n equal to the medium's index.
 pub fn max_sensitivity_in_beam(
-    optics: &Optics,
+    optics: &impl OpticsArg,
     d_nm: f64,
     n: f64,
     model: SphereModel,
 ) -> Result<(f64, f64), OpticsError> {
     super::rayleigh::check_particle(d_nm, n)?;
+    let optics = optics.valid()?;
+    let optics: &ValidOptics = &optics;
     let alpha = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium);
-    let paraxial = optics.beam == super::params::Beam::Paraxial;
+    let paraxial = optics.beam().paraxial_dipoles();
     match model {
         SphereModel::Mie => {
             Ok(
@@ -1258,8 +1234,7 @@ pub fn max_sensitivity_in_beam(
         }
         SphereModel::Dipole | SphereModel::FiniteSize { .. } => {
             // the vector beam's point dipole: a 1 nm sphere's Mie response per unit α
-            let d0 = super::mie_template::DIPOLE_D_NM;
-            let n0 = super::mie_template::DIPOLE_N;
+            let (d0, n0) = (DIPOLE_D_NM, DIPOLE_N);
             let a0 = super::rayleigh::alpha_um3(d0, n0, optics.n_medium);
             let spec = MieBeamSpec {
                 amplitudes: Amplitudes::Dipole,
@@ -1299,10 +1274,11 @@ mod tests {
             ),
             (super::super::params::Beam::Paraxial, None),
         ] {
-            let o = Optics {
+            let o = ValidOptics::new(Optics {
                 beam,
                 ..Optics::default()
-            };
+            })
+            .unwrap();
             let spec = MieBeamSpec {
                 amplitudes: Amplitudes::Dipole,
                 detector: DetectorModel {

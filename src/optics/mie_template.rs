@@ -23,45 +23,25 @@
 //! than evaluating every template node. Coarse nodes beyond L + H are taken as zero (the
 //! response there is below the truncation level of the support).
 
+use super::beam::{OpticsArg, ValidOptics};
+pub use super::beam::{DIPOLE_D_NM, DIPOLE_N};
 use super::grid::Grid2;
 use super::mie::Complex64 as C64;
-use super::mie_beam::{
-    filling_to_spectral_um, optics_for_reach, AngularSpectrum, Apodization, MieBeam, MieBeamSpec,
-};
-use super::params::{check_range, Beam, Optics, OpticsError};
-
-/// (spectral waist µm, apodisation) of the angular-spectrum beam the Mie templates use for
-/// `optics.beam` (see [`MieTemplate::new`]).
-fn beam_of(optics: &Optics) -> Result<(f64, Apodization), OpticsError> {
-    Ok(match optics.beam {
-        Beam::Paraxial => (optics.w0_um(), Apodization::None),
-        Beam::Vector => (
-            filling_to_spectral_um(optics, optics.pupil_filling)?,
-            Apodization::Aplanatic,
-        ),
-    })
-}
+use super::mie_beam::{valid_optics_for_reach, AngularSpectrum, MieBeam, MieBeamSpec};
+use super::params::{check_range, OpticsError};
 use super::rayleigh::{alpha_um3, DetectorModel};
 use super::template::{z_stencil, TemplateSpec, SUPPORT_W};
 use std::collections::HashMap;
 use std::f64::consts::PI;
 use std::sync::{Arc, Mutex};
 
-/// The sphere whose template stands for a point dipole in the angular-spectrum beam (the vector
-/// beam's Rayleigh tier, and the `mie` effect's small scatterers): 1 nm. Its scattering
-/// amplitudes are taken in their dipole limit exactly ([`MieTemplate::point_dipole`]); the
-/// size and index only set α, which the template divides out.
-pub const DIPOLE_D_NM: f64 = 1.0;
-/// Index of the [`DIPOLE_D_NM`] sphere.
-pub const DIPOLE_N: f64 = 1.5;
-
 /// The point dipole's response per unit polarisability α (µm³) in the angular-spectrum beam of
-/// `optics.beam` — for `Beam::Vector` the aplanatic vector focus (docs/physics.md §10) — at
+/// `optics` — in the vector beam the aplanatic vector focus (docs/physics.md §10) — at
 /// axial displacement `z_um`, on nodes every `h_um`: the same plane the simulator renders point
 /// dipoles with (one [`DIPOLE_D_NM`] sphere's [`MieTemplate`] plane), channels [Sx, Sy, Sz]
 /// (δP/P per µm³). ~0.2 s on one core at the paper's optics.
 pub fn dipole_plane(
-    optics: &Optics,
+    optics: &ValidOptics,
     detector: DetectorModel,
     h_um: f64,
     interp: super::grid::Interp,
@@ -77,6 +57,39 @@ pub fn dipole_plane(
         scattered_intensity: false,
     };
     MieTemplate::point_dipole(optics, spec)?.build_plane(z_um)
+}
+
+/// The point dipole's response per unit polarisability α (µm³) at axial displacement `z_um`,
+/// on nodes every `h_um`, in the beam of `optics` as the simulator renders point dipoles: in
+/// the paraxial beam the paper's Rayleigh plane (suppl. S2, [`super::template::plane_grid`];
+/// `detector.polarization` honoured), in the vector beam [`dipole_plane`] (always vectorial).
+/// Channels [Sx, Sy, Sz] (δP/P per µm³), and the model in words (beam, optics, z, h, detector).
+pub fn point_dipole_plane(
+    optics: &ValidOptics,
+    detector: DetectorModel,
+    h_um: f64,
+    interp: super::grid::Interp,
+    z_um: f64,
+) -> Result<(Grid2, String), OpticsError> {
+    let o = optics;
+    Ok(if o.beam().paraxial_dipoles() {
+        let det = super::rayleigh::Detection::new(optics, &detector)?;
+        (
+            super::template::plane_grid(&det, z_um, h_um, interp),
+            format!(
+                "paraxial beam: λ = {} nm, n = {}, w0 = {} nm, NA = {}, z = {z_um} µm, h = {h_um} µm, polarization: {}, misalignment: {:?}",
+                o.wavelength_nm, o.n_medium, o.w0_nm, o.na, detector.polarization, detector.misalignment
+            ),
+        )
+    } else {
+        (
+            dipole_plane(optics, detector, h_um, interp, z_um)?,
+            format!(
+                "vector beam: λ = {} nm, n = {}, NA = {}, pupil filling {}, z = {z_um} µm, h = {h_um} µm, misalignment: {:?}",
+                o.wavelength_nm, o.n_medium, o.na, o.pupil_filling, detector.misalignment
+            ),
+        )
+    })
 }
 
 /// Oversampling of the coarse grid relative to the Nyquist spacing π/K.
@@ -109,7 +122,7 @@ pub struct MieTemplateSpec {
 /// rotation series re-simulates its scene at every angle, `simulate` at the prompt — reuses the
 /// planes its spheres and point dipoles already built instead of building them again. Keyed by
 /// everything a template's values depend on; oldest dropped first beyond [`SHARED_CAPACITY`].
-type SharedKey = (Optics, u64, u64, MieTemplateSpec, bool);
+type SharedKey = (ValidOptics, u64, u64, MieTemplateSpec, bool);
 static SHARED: Mutex<Vec<(SharedKey, Arc<MieTemplate>)>> = Mutex::new(Vec::new());
 /// Most templates kept by [`MieTemplate::shared`] (each holds the z planes it has built, a few
 /// hundred kB each).
@@ -117,7 +130,7 @@ pub const SHARED_CAPACITY: usize = 16;
 
 /// One sphere's focused-beam Mie response on lazily built, cached z planes.
 pub struct MieTemplate {
-    optics: Optics,
+    optics: ValidOptics,
     /// Diameter (nm) and real refractive index of the sphere.
     pub d_nm: f64,
     pub n_particle: f64,
@@ -149,12 +162,20 @@ impl MieTemplate {
     /// `n_particle` (> 0, ≠ n_medium is allowed to be anything in 0.001 … 5) in `optics`.
     /// Cheap: planes are built on first use.
     pub fn new(
-        optics: &Optics,
+        optics: &impl OpticsArg,
         d_nm: f64,
         n_particle: f64,
         spec: MieTemplateSpec,
     ) -> Result<Self, OpticsError> {
-        optics.validate()?;
+        Self::in_optics(&*optics.valid()?, d_nm, n_particle, spec)
+    }
+
+    fn in_optics(
+        optics: &ValidOptics,
+        d_nm: f64,
+        n_particle: f64,
+        spec: MieTemplateSpec,
+    ) -> Result<Self, OpticsError> {
         check_range("template h (µm)", spec.grid.h, 1e-4, 0.2)?;
         check_range("template hz (µm)", spec.grid.hz, 1e-4, 1.0)?;
         check_range("d_nm", d_nm, 1e-3, 5000.0)?;
@@ -174,8 +195,15 @@ impl MieTemplate {
             Self::beam_spec_of(optics, &spec, 2, 1),
         )?;
         // focal radius of the angular-spectrum beam MieBeam uses
-        let (ws, apod) = beam_of(optics)?;
-        let (rx, ry) = AngularSpectrum::with_apodization(optics, ws, 16, 8, apod)?.focal_radii();
+        let beam = optics.beam();
+        let (rx, ry) = AngularSpectrum::with_apodization(
+            optics,
+            beam.spectral_waist_um(),
+            16,
+            8,
+            beam.apodization(),
+        )?
+        .focal_radii();
         let widen = (rx.max(ry) / optics.w0_um()).max(1.0);
         Ok(Self {
             optics: optics.clone(),
@@ -193,14 +221,17 @@ impl MieTemplate {
     /// and the `mie` effect's small scatterers): the dipole limit of the [`DIPOLE_D_NM`]
     /// sphere's amplitudes, exact (`Amplitudes::Dipole`), per unit α, evaluated through the
     /// factorised incident field (N + J operations per coarse node instead of N·J).
-    pub fn point_dipole(optics: &Optics, spec: MieTemplateSpec) -> Result<Self, OpticsError> {
+    pub fn point_dipole(
+        optics: &impl OpticsArg,
+        spec: MieTemplateSpec,
+    ) -> Result<Self, OpticsError> {
         let spec = MieTemplateSpec {
             scattered_intensity: false,
             ..spec
         };
         Ok(Self {
             dipole: true,
-            ..Self::new(optics, DIPOLE_D_NM, DIPOLE_N, spec)?
+            ..Self::in_optics(&*optics.valid()?, DIPOLE_D_NM, DIPOLE_N, spec)?
         })
     }
 
@@ -209,7 +240,7 @@ impl MieTemplate {
     /// spec (for the point dipole `d_nm` and `n_particle` are ignored). Values are those of a
     /// fresh template: a template is a pure function of its key.
     pub fn shared(
-        optics: &Optics,
+        optics: &ValidOptics,
         d_nm: f64,
         n_particle: f64,
         spec: MieTemplateSpec,
@@ -252,7 +283,7 @@ impl MieTemplate {
         Ok(t)
     }
 
-    fn beam_spec(&self, optics: &Optics, nt: usize, np: usize) -> MieBeamSpec {
+    fn beam_spec(&self, optics: &ValidOptics, nt: usize, np: usize) -> MieBeamSpec {
         let spec = &self.spec;
         let amplitudes = if self.dipole {
             super::mie_beam::Amplitudes::Dipole
@@ -265,9 +296,12 @@ impl MieTemplate {
         }
     }
 
-    fn beam_spec_of(optics: &Optics, spec: &MieTemplateSpec, nt: usize, np: usize) -> MieBeamSpec {
-        // Beam::Paraxial: the Mie tier's pre-issue-19 beam (spectral waist w0, no aplanatic
-        // factor)
+    fn beam_spec_of(
+        optics: &ValidOptics,
+        spec: &MieTemplateSpec,
+        nt: usize,
+        np: usize,
+    ) -> MieBeamSpec {
         MieBeamSpec {
             n_theta_in: nt,
             n_phi_in: np,
@@ -346,7 +380,7 @@ impl MieTemplate {
         let k_band = o.k_per_um() * (probe_theta_in.sin() + o.theta_max().sin());
         let hc = PI / (OVERSAMPLING * k_band);
         let r = l + hc;
-        let om = optics_for_reach(o, r);
+        let om = valid_optics_for_reach(o, r);
         let reach_spec = MieBeamSpec::for_reach(o, r, z);
         let spec = self.beam_spec(o, reach_spec.n_theta_in, reach_spec.n_phi_in);
         let mb = MieBeam::new(&om, self.d_nm, C64::new(self.n_particle, 0.0), spec)?;
@@ -553,7 +587,7 @@ mod tests {
     #[test]
     fn mirrored_coarse_grid_equals_the_direct_one() {
         use super::super::mie_beam::{optics_for_reach, Amplitudes};
-        use super::super::params::Beam;
+        use super::super::params::{Beam, Optics};
         use super::super::rayleigh::Misalignment;
         let (m, r) = (10usize, 1.0);
         let hc = r / m as f64;
@@ -648,7 +682,8 @@ mod tests {
 
     #[test]
     fn shared_templates_are_one_per_key_and_bounded() {
-        let o = Optics::default();
+        use super::super::params::{Beam, Optics};
+        let o = ValidOptics::default();
         let spec = MieTemplateSpec {
             grid: TemplateSpec::default(),
             detector: DetectorModel::default(),
@@ -660,10 +695,11 @@ mod tests {
         let c = MieTemplate::shared(&o, 201.0, 1.572, spec, false).unwrap();
         let d = MieTemplate::shared(&o, 200.125, 1.572, spec, true).unwrap();
         let e = MieTemplate::shared(
-            &Optics {
-                beam: crate::optics::params::Beam::Paraxial,
-                ..o.clone()
-            },
+            &ValidOptics::new(Optics {
+                beam: Beam::Paraxial,
+                ..Optics::default()
+            })
+            .unwrap(),
             200.0,
             1.572,
             spec,

@@ -1,6 +1,7 @@
 //! The physics of BFP detection (pure functions, no I/O, no Rhai). Each formula cites the
 //! section or equation of the paper (`docs/physics.md` lists the conventions).
 
+pub mod beam;
 pub mod calc;
 pub mod finite_size;
 pub mod grid;
@@ -12,4 +13,5 @@ pub mod quad;
 pub mod rayleigh;
 pub mod template;
 
+pub use beam::{OpticsArg, ResolvedBeam, ValidOptics};
 pub use params::{Beam, Optics, OpticsError};

@@ -20,7 +20,8 @@
 //!   Ψ = k z (1 − cos θ) + k ρ² / 2R − φ_G − k sinθ (x cos φ + y sin φ).
 //! (P is the polarization factor 1 − cos²φ (1 − cos θ) when the vector dipole field is on, else 1.)
 
-use super::params::{check_range, Optics, OpticsError};
+use super::beam::{OpticsArg, ValidOptics};
+use super::params::{check_range, OpticsError};
 use super::quad::gauss_legendre;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -121,8 +122,8 @@ impl Detection {
     /// edge of the detection disk along each φ'), with the measure sinθ dθ dφ = du dv / cosθ
     /// (u, v = sinθ cosφ, sinθ sinφ), so the shifted and rotated boundaries are again rule
     /// boundaries.
-    pub fn new(optics: &Optics, det: &DetectorModel) -> Result<Self, OpticsError> {
-        optics.validate()?;
+    pub fn new(optics: &impl OpticsArg, det: &DetectorModel) -> Result<Self, OpticsError> {
+        let optics = optics.valid()?;
         let k = optics.k_per_um();
         let w0 = optics.w0_um();
         let theta_max = optics.theta_max();
@@ -290,7 +291,7 @@ pub struct Signals {
 /// QPD response (Sx, Sy, Sz), normalised to the beam power, of a sphere of diameter `d_nm` and
 /// index `n` at displacement (x, y, z) µm from the focus (suppl. S2).
 pub fn response(
-    optics: &Optics,
+    optics: &impl OpticsArg,
     det: &DetectorModel,
     pos_um: [f64; 3],
     d_nm: f64,
@@ -300,6 +301,8 @@ pub fn response(
     for (name, v) in [("x", pos_um[0]), ("y", pos_um[1]), ("z", pos_um[2])] {
         check_range(name, v, -1e4, 1e4)?;
     }
+    let optics = optics.valid()?;
+    let optics: &ValidOptics = &optics;
     let d = Detection::new(optics, det)?;
     let a = alpha_um3(d_nm, n, optics.n_medium);
     let (s, _, _) = d.response_unit(pos_um[0], pos_um[1], pos_um[2]);

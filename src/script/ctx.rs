@@ -4,9 +4,9 @@
 use super::doc::{fail, Doc, RResult};
 use crate::acquire::{SessionStore, SoftLimits};
 use crate::instrument::mock::MockHandle;
-use crate::instrument::sim::SimCore;
+use crate::instrument::sim::{Renderer, Scene, SimConfig, SimCore};
 use crate::instrument::Instrument;
-use crate::optics::Optics;
+use crate::optics::{OpticsError, ValidOptics};
 use serde_json::{json, Value};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -123,6 +123,8 @@ pub struct Attached {
     pub mock: Option<MockHandle>,
     /// The simulator's core (sim backend): `simulate(scene)` re-scenes it.
     pub sim: Option<SimCore>,
+    /// The renderer an emulated instrument images (its optics and scene).
+    pub renderer: Option<Arc<Renderer>>,
     /// Whatever must live exactly as long as the connection (the in-process emulators of the
     /// `emulated` backend); dropped after the instrument on disconnect.
     pub keepalive: Option<Box<dyn std::any::Any + Send>>,
@@ -136,13 +138,14 @@ pub struct Ctx {
     backend: Mutex<Option<String>>,
     pub(crate) mock: Mutex<Option<MockHandle>>,
     sim: Mutex<Option<SimCore>>,
+    renderer: Mutex<Option<Arc<Renderer>>>,
     keepalive: Mutex<Option<Box<dyn std::any::Any + Send>>>,
     pub store: SessionStore,
     pub(crate) script: Mutex<ScriptInfo>,
-    /// Optics of the set-up (the physics bindings may change it).
-    pub optics: Mutex<Optics>,
-    /// The scene of the simulated instrument, recorded in scan metadata.
-    pub scene: Mutex<Option<Value>>,
+    /// Optics of the set-up, validated, their beam resolved: the one copy, changed only by
+    /// [`Ctx::set_optics`] (which rebuilds the simulator's renderer from them). The scene has
+    /// no copy here: it is the one the connected simulator images ([`Ctx::scene`]).
+    optics: Mutex<ValidOptics>,
     /// Protocols running (innermost last): #{name, args}, set by protocol_begin/protocol_end.
     pub protocols: Mutex<Vec<Value>>,
     /// The trace being recorded by `trace_start()` (golden traces of protocol runs).
@@ -183,11 +186,50 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 impl Ctx {
     /// The session's optics (`set_optics`), recovering from a poisoned lock.
-    pub fn optics(&self) -> Optics {
-        self.optics
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .clone()
+    pub fn optics(&self) -> ValidOptics {
+        lock(&self.optics).clone()
+    }
+
+    /// Make `new` the session's optics. A connected simulator renders its scene in them from
+    /// now on (its renderer is rebuilt first: on an error nothing changes). The emulated
+    /// instrument keeps the optics it was connected with (its emulators render them), so it
+    /// refuses new ones.
+    pub fn set_optics(&self, new: ValidOptics) -> Result<(), OpticsError> {
+        let mut optics = lock(&self.optics);
+        if lock(&self.renderer).is_some() {
+            return Err(OpticsError::Invalid(
+                "the emulated instrument renders the optics it was connected with: connect(#{backend: \"sim\"}) or connect(#{backend: \"mock\"}), set_optics, then connect(#{backend: \"emulated\"}) again".into(),
+            ));
+        }
+        if let Some(core) = self.sim_core() {
+            core.set_scene(&new, &core.renderer().scene)?;
+        }
+        *optics = new;
+        Ok(())
+    }
+
+    /// Put `scene` under the simulator in the session's optics: the connected simulator is
+    /// re-scened (position and clock kept), or else a new simulated instrument imaging it is
+    /// connected. The optics are held while the renderer is built, so a `set_optics` cannot
+    /// come between.
+    pub fn simulate_scene(&self, scene: &Scene) -> Result<SimCore, OpticsError> {
+        let optics = lock(&self.optics);
+        if let Some(core) = self.sim_core() {
+            core.set_scene(&optics, scene)?;
+            return Ok(core);
+        }
+        let core = SimCore::new(&*optics, scene, SimConfig::default())?;
+        self.attach_sim(core.clone(), 0.01);
+        Ok(core)
+    }
+
+    /// The scene the connected instrument images: the simulator's, or the emulated
+    /// instrument's; `None` for the mock and for hardware.
+    pub fn scene(&self) -> Option<Scene> {
+        if let Some(core) = self.sim_core() {
+            return Some(core.renderer().scene.clone());
+        }
+        lock(&self.renderer).as_ref().map(|r| r.scene.clone())
     }
 
     pub fn new(settings: Settings) -> Ctx {
@@ -204,10 +246,10 @@ impl Ctx {
             backend: Mutex::new(None),
             mock: Mutex::new(None),
             sim: Mutex::new(None),
+            renderer: Mutex::new(None),
             keepalive: Mutex::new(None),
             script: Mutex::new(ScriptInfo::default()),
             optics: Mutex::new(optics),
-            scene: Mutex::new(None),
             answers: Mutex::new(Default::default()),
             notes: Mutex::new(vec![]),
             trace: Mutex::new(None),
@@ -381,6 +423,7 @@ impl Ctx {
         *lock(&self.backend) = Some(backend.to_string());
         *lock(&self.mock) = extra.mock;
         *lock(&self.sim) = extra.sim;
+        *lock(&self.renderer) = extra.renderer;
         *lock(&self.keepalive) = extra.keepalive;
     }
 
@@ -404,6 +447,7 @@ impl Ctx {
         drop(old);
         *lock(&self.mock) = None;
         *lock(&self.sim) = None;
+        *lock(&self.renderer) = None;
         let keep = lock(&self.keepalive).take();
         drop(keep);
         lock(&self.backend).take()
@@ -501,8 +545,8 @@ impl Ctx {
     pub fn scan_meta(&self) -> Value {
         let script = self.script();
         json!({
-            "optics": *lock(&self.optics),
-            "scene": *lock(&self.scene),
+            "optics": self.optics(),
+            "scene": self.scene(),
             "script": {
                 "path": script.path.map(|p| p.display().to_string()),
                 "sha256": script.sha256,

@@ -474,7 +474,8 @@ fn connected_line(backend: &str, inst: &Instrument) -> String {
     s
 }
 
-/// The scene for the simulator (`fallback` when no scene was given and none simulated yet).
+/// The scene for the simulator (`fallback` when no scene was given and the connected
+/// instrument images none).
 fn scene_for(ctx: &Ctx, m: &Map, fallback: impl FnOnce() -> Scene) -> RResult<Scene> {
     if let Some(v) = m.get("scene") {
         return match v.clone().try_cast::<SceneRef>() {
@@ -485,10 +486,7 @@ fn scene_for(ctx: &Ctx, m: &Map, fallback: impl FnOnce() -> Scene) -> RResult<Sc
             )),
         };
     }
-    let last = ctx.scene.lock().map(|g| g.clone()).unwrap_or(None);
-    Ok(last
-        .and_then(|j| serde_json::from_value::<Scene>(j).ok())
-        .unwrap_or_else(fallback))
+    Ok(ctx.scene().unwrap_or_else(fallback))
 }
 
 /// The scene `bfpscope emulate` and the emulated backend image by default: the paper's
@@ -747,9 +745,9 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                     .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
             );
             let e = match o.string("qpd")?.as_deref() {
-                None | Some("scpi") => connect_emulated(renderer, &sim, &cfg, noise_v),
+                None | Some("scpi") => connect_emulated(renderer.clone(), &sim, &cfg, noise_v),
                 Some("redpitaya") => connect_emulated_redpitaya(
-                    renderer,
+                    renderer.clone(),
                     &sim,
                     &cfg,
                     noise_v,
@@ -773,10 +771,10 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 e.connected.instrument,
                 Attached {
                     keepalive: Some(Box::new((e.stage, e.qpd))),
+                    renderer: Some(renderer),
                     ..Attached::default()
                 },
             );
-            *c.scene.lock().unwrap_or_else(|e| e.into_inner()) = serde_json::to_value(&scene).ok();
             Ok(line)
         }
         "mock" => {

@@ -14,6 +14,7 @@ use crate::optics::finite_size::DEFAULT_N_R;
 use crate::optics::mie_beam::dipole_response_in_beam;
 use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::DetectorModel;
+use crate::optics::ValidOptics;
 use rhai::{Array, Dynamic, Map, INT};
 
 /// `optics()` as a map (the keys `set_optics` takes).
@@ -352,7 +353,7 @@ fn optics(ctx: &Ctx) -> Map {
 /// them when a simulator is connected, then stores them in the session.
 fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
-    let mut new = c.optics();
+    let mut new = c.optics().into_optics();
     for (k, f) in [
         ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
         ("n_medium", &mut new.n_medium),
@@ -375,15 +376,9 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     if let Some(b) = o.string("beam")? {
         new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
     }
-    new.validate().map_err(|e| err("set_optics", e))?;
-    if let Some(core) = c.sim_core() {
-        let scene = core.renderer().scene.clone();
-        core.set_scene(&new, &scene)
-            .map_err(|e| err("set_optics", e))?;
-    }
-    *c.optics
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner) = new.clone();
+    let new = ValidOptics::new(new).map_err(|e| err("set_optics", e))?;
+    c.set_optics(new.clone())
+        .map_err(|e| err("set_optics", e))?;
     Ok(optics_map(&new))
 }
 

@@ -4,10 +4,10 @@
 use super::ctx::Ctx;
 use super::registry::{err, fail, num, points, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ScanRef};
+use crate::instrument::sim::render_xy;
 use crate::instrument::sim::scene::{
     Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
 };
-use crate::instrument::sim::{render_xy, SimConfig, SimCore};
 use rhai::{Array, Dynamic, Map, INT};
 
 /// A scene in scripts (cloned by value like every Rhai value; small).
@@ -449,23 +449,7 @@ fn pipeline(ctx: &Ctx) -> RResult<Array> {
 /// its scene is replaced (position and clock kept); otherwise (nothing, the mock, hardware) a
 /// new simulated instrument replaces the connected one.
 fn install(ctx: &Ctx, scene: &Scene) -> RResult<Map> {
-    let optics = ctx.optics();
-    let core = match ctx.sim_core() {
-        Some(core) => {
-            core.set_scene(&optics, scene)
-                .map_err(|e| err("simulate", e))?;
-            core
-        }
-        None => {
-            let core = SimCore::new(&optics, scene, SimConfig::default())
-                .map_err(|e| err("simulate", e))?;
-            ctx.attach_sim(core.clone(), 0.01);
-            core
-        }
-    };
-    *ctx.scene
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner) = serde_json::to_value(scene).ok();
+    let core = ctx.simulate_scene(scene).map_err(|e| err("simulate", e))?;
     let r = core.renderer();
     let mut m = Map::new();
     m.insert(

@@ -420,7 +420,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
 /// point-dipole model in the session's optics, normalised so its max ∂Sx/∂x = 1 (Sec. 3.1).
 fn template_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<TemplateRef> {
     let o = Opts::new(spec, m)?;
-    let optics = c.optics.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let optics = c.optics();
     let rb = ref_bead("template_model", &o, optics.n_medium)?;
     let det = DetectorModel {
         polarization: o.bool_or("polarization", false)?,
@@ -441,7 +441,7 @@ fn template_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<TemplateRef> {
 /// them sub-pixel, average and normalise so max ∂Sx/∂x = 1 (suppl. S5).
 fn template_from_scans(c: &Ctx, spec: &Spec, a: &Array, m: &Map) -> RResult<TemplateRef> {
     let o = Opts::new(spec, m)?;
-    let n_medium = c.optics.lock().unwrap_or_else(|e| e.into_inner()).n_medium;
+    let n_medium = c.optics().n_medium;
     let rb = ref_bead("template_from_scans", &o, n_medium)?;
     let d = FromScansOptions::default();
     let fo = FromScansOptions {

@@ -15,7 +15,8 @@
 #[path = "../support/fakebench.rs"]
 mod fakebench;
 
-use bfpscope::acquire::raster::{run_raster, RasterOptions};
+use bfpscope::acquire::raster::RasterOptions;
+use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{Axis, Plan, ScanEnv, Sweep};
 use bfpscope::config::connect::connect;
 use bfpscope::config::Config;

@@ -10,7 +10,8 @@
 //!
 //! `cargo bench --bench raster_time`
 
-use bfpscope::acquire::raster::{run_raster, RasterOptions};
+use bfpscope::acquire::raster::RasterOptions;
+use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage, LineSweep};
 use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};

@@ -21,9 +21,9 @@ use bfpscope::instrument::sim::render_xy;
 use bfpscope::instrument::sim::scene::*;
 use bfpscope::instrument::sim::Renderer;
 use bfpscope::optics::grid::Interp;
-use bfpscope::optics::params::Optics;
 use bfpscope::optics::rayleigh::{Detection, DetectorModel};
 use bfpscope::optics::template::{plane_grid, plane_grid_reference, TemplateSpec};
+use bfpscope::optics::ValidOptics;
 use criterion::{criterion_group, criterion_main, Criterion};
 
 fn scene() -> Scene {
@@ -49,7 +49,7 @@ fn scene() -> Scene {
 }
 
 fn bench(c: &mut Criterion) {
-    let optics = Optics::default();
+    let optics = ValidOptics::default();
     let r = Renderer::checked(&optics, &scene(), TemplateSpec::default()).unwrap();
     let xs: Vec<f64> = (0..128).map(|i| -6.0 + 12.0 * i as f64 / 127.0).collect();
     let _ = render_xy(&r, &xs, &xs, 0.0, 1); // build the template plane once

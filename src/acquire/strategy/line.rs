@@ -20,7 +20,7 @@
 //! not, and a relative scan then returns to its start.
 
 use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
-use crate::acquire::engine::ScanError;
+use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
 use crate::acquire::raster::{

@@ -20,7 +20,7 @@ pub mod line;
 pub mod point;
 pub mod stream;
 
-use super::engine::ScanError;
+use super::error::ScanError;
 use super::limits::SoftLimits;
 use super::plan::{Plan, Point};
 use super::raster::{LineBins, RasterOptions};

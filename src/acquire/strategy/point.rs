@@ -8,7 +8,7 @@
 //! point spent moving, settling and reading the QPD, and per command what the links carried.
 
 use super::{samples_per_point, Layout, Pixel, StepFault, StopCause, Strategy};
-use crate::acquire::engine::ScanError;
+use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
 use crate::instrument::link::LinkCosts;

@@ -22,7 +22,7 @@
 //! A line that cannot be binned is not.
 
 use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
-use crate::acquire::engine::ScanError;
+use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
 use crate::acquire::raster::{bin_line, plan_lines, RasterOptions, RasterPlan};

@@ -27,10 +27,11 @@
 
 use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, LinkModel, SharedPosition};
 mod wave;
+mod wave_state;
 use crate::instrument::Pos;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
-pub use wave::WaveConfig;
+pub use wave_state::WaveConfig;
 
 /// Stage emulator settings.
 #[derive(Debug, Clone, PartialEq)]
@@ -133,7 +134,7 @@ struct GcsDevice {
     /// emulated motion keeps its settle-time ramp.
     velocity: [f64; 3],
     /// Wave generator, recorder, trigger outputs.
-    wave: wave::Wave,
+    wave: wave_state::Wave,
     /// Settling window (µm) and settling time (s) per axis (`SPA` 0x07000900, 0x07000901).
     window_um: [f64; 3],
     settling_s: [f64; 3],
@@ -545,7 +546,7 @@ fn device(
         position,
         noise_state: std::cell::Cell::new(0x5eed),
         velocity: [10_000.0; 3],
-        wave: wave::Wave::new(cfg_wave, now),
+        wave: wave_state::Wave::new(cfg_wave, now),
         window_um: [cfg_window; 3],
         settling_s: [cfg_settling; 3],
     };

@@ -8,7 +8,8 @@
 //! (the simulator keeps one per session), bounded to [`DomainMemo::CAPACITY`] entries.
 
 use crate::optics::mie_beam;
-use crate::optics::params::{Optics, OpticsError, REF_BEAD_D_NM, REF_BEAD_N};
+use crate::optics::params::{OpticsError, REF_BEAD_D_NM, REF_BEAD_N};
+use crate::optics::ValidOptics;
 use std::collections::VecDeque;
 use std::time::Instant;
 
@@ -36,9 +37,9 @@ pub fn is_suspect(d_nm: f64, n: f64) -> bool {
 /// remembered per optics apart, so a new species costs one Mie response, not two.
 #[derive(Debug, Default)]
 pub struct DomainMemo {
-    entries: VecDeque<(Optics, u64, u64, Result<f64, OpticsError>)>,
+    entries: VecDeque<(ValidOptics, u64, u64, Result<f64, OpticsError>)>,
     /// (optics, the 110 nm polystyrene bead's M/α), the most recent [`Self::REF_CAPACITY`]
-    refs: VecDeque<(Optics, Result<f64, OpticsError>)>,
+    refs: VecDeque<(ValidOptics, Result<f64, OpticsError>)>,
 }
 
 /// The memo [`DomainCheck::run_shared`] uses: one per process, so that scenes rendered again
@@ -56,7 +57,7 @@ impl DomainMemo {
 
     /// The point dipole's error for (d_nm nm, n) under `optics`, computed once per memo entry:
     /// [`mie_beam::point_dipole_error`]'s value, from its two factors.
-    pub fn error(&mut self, optics: &Optics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
+    pub fn error(&mut self, optics: &ValidOptics, d_nm: f64, n: f64) -> Result<f64, OpticsError> {
         if let Some(e) = self.remembered(optics, d_nm, n) {
             return e.clone();
         }
@@ -73,7 +74,12 @@ impl DomainMemo {
     }
 
     /// The remembered result for (optics, d_nm, n), if any.
-    fn remembered(&self, optics: &Optics, d_nm: f64, n: f64) -> Option<&Result<f64, OpticsError>> {
+    fn remembered(
+        &self,
+        optics: &ValidOptics,
+        d_nm: f64,
+        n: f64,
+    ) -> Option<&Result<f64, OpticsError>> {
         let key = (d_nm.to_bits(), n.to_bits());
         self.entries
             .iter()
@@ -82,7 +88,7 @@ impl DomainMemo {
     }
 
     /// The reference bead's M/α under `optics` (remembered).
-    fn reference(&mut self, optics: &Optics) -> Result<f64, OpticsError> {
+    fn reference(&mut self, optics: &ValidOptics) -> Result<f64, OpticsError> {
         if let Some((_, r)) = self.refs.iter().find(|(o, _)| o == optics) {
             return r.clone();
         }
@@ -97,7 +103,7 @@ impl DomainMemo {
     /// Compute the species of `species` not yet remembered (and the reference) in parallel,
     /// one Mie response each, and remember them: a scene's first check costs the slowest
     /// response per core, not their sum. Same values as [`Self::error`] one by one.
-    pub fn fill(&mut self, optics: &Optics, species: &[(f64, f64)]) {
+    pub fn fill(&mut self, optics: &ValidOptics, species: &[(f64, f64)]) {
         use rayon::prelude::*;
         let mut todo: Vec<(f64, f64)> = vec![];
         for &(d, n) in species {
@@ -170,7 +176,7 @@ impl DomainCheck {
     /// Check every suspect bead species of `scene` (see [`is_suspect`]), through `memo`.
     /// Nothing to check when the scene pins a tier by naming `mie` or `finite_size`: the
     /// renderer then neither notes nor switches models.
-    pub fn run(optics: &Optics, scene: &Scene, memo: &mut DomainMemo) -> DomainCheck {
+    pub fn run(optics: &ValidOptics, scene: &Scene, memo: &mut DomainMemo) -> DomainCheck {
         let t = Instant::now();
         let pinned = scene.effects.mie.is_some() || scene.effects.finite_size.is_some();
         let mut species: Vec<(f64, f64)> = vec![];
@@ -197,7 +203,7 @@ impl DomainCheck {
 
     /// [`DomainCheck::run`] through the process-wide memo (bounded like any memo): what
     /// [`super::Renderer::checked`] and so `simulate` use.
-    pub fn run_shared(optics: &Optics, scene: &Scene) -> DomainCheck {
+    pub fn run_shared(optics: &ValidOptics, scene: &Scene) -> DomainCheck {
         let mut memo = SHARED
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -220,7 +226,7 @@ mod tests {
 
     #[test]
     fn memo_is_bounded_and_remembers() {
-        let o = Optics::default();
+        let o = ValidOptics::default();
         let mut m = DomainMemo::default();
         // n = medium index: the check errors fast (α = 0), which is enough to fill the memo.
         for i in 0..(DomainMemo::CAPACITY + 5) {
@@ -232,7 +238,7 @@ mod tests {
     /// The memo's error, from the two remembered factors, is exactly the optics function's.
     #[test]
     fn memo_error_equals_point_dipole_error() {
-        let o = Optics::default();
+        let o = ValidOptics::default();
         let mut m = DomainMemo::default();
         let want = mie_beam::point_dipole_error(&o, 250.0, 1.572).unwrap();
         assert!(want.abs() > 1e-3, "{want}");
@@ -243,7 +249,7 @@ mod tests {
 
     #[test]
     fn parallel_fill_remembers_the_same_errors_once_each() {
-        let o = Optics::default();
+        let o = ValidOptics::default();
         let species = [(250.0, 1.572), (60.0, 1.45), (250.0, 1.572)];
         let mut a = DomainMemo::default();
         a.fill(&o, &species);
@@ -272,7 +278,7 @@ mod tests {
         // just inside the gates, where the point dipole's error is largest for beads left
         // unchecked (it grows with d, and with |n − n_medium|, over these ranges): polystyrene-like
         // indices up to 149 nm, any index of the scene's range (1–5) below 20 nm
-        let o = Optics::default();
+        let o = ValidOptics::default();
         for (d, n) in [
             (149.0, REF_BEAD_N - 0.0299),
             (149.0, REF_BEAD_N),

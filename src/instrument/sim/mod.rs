@@ -7,8 +7,9 @@ pub mod scene;
 
 use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
 use crate::data::{Image, Scan, ScanStatus};
-use crate::optics::params::{Optics, OpticsError};
+use crate::optics::params::OpticsError;
 use crate::optics::template::TemplateSpec;
+use crate::optics::{OpticsArg, ValidOptics};
 use domain::{DomainCheck, DomainMemo};
 use ndarray::Array2;
 use rand::SeedableRng;
@@ -109,9 +110,14 @@ pub struct SimCore {
 }
 
 impl SimCore {
-    pub fn new(optics: &Optics, scene: &Scene, cfg: SimConfig) -> Result<Self, OpticsError> {
+    pub fn new(
+        optics: &impl OpticsArg,
+        scene: &Scene,
+        cfg: SimConfig,
+    ) -> Result<Self, OpticsError> {
         let mut memo = DomainMemo::default();
-        optics.validate()?;
+        let optics = optics.valid()?;
+        let optics: &ValidOptics = &optics;
         let domain = DomainCheck::run(optics, scene, &mut memo);
         let renderer = Arc::new(Renderer::new(
             optics,
@@ -151,8 +157,7 @@ impl SimCore {
     }
 
     /// Replace the scene (keeps position and clock).
-    pub fn set_scene(&self, optics: &Optics, scene: &Scene) -> Result<(), OpticsError> {
-        optics.validate()?;
+    pub fn set_scene(&self, optics: &ValidOptics, scene: &Scene) -> Result<(), OpticsError> {
         let domain = DomainCheck::run(optics, scene, &mut lock(&self.domain));
         let r = Arc::new(Renderer::new(
             optics,

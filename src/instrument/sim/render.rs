@@ -4,10 +4,11 @@
 
 use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
+use crate::optics::beam::{OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
-use crate::optics::mie_template::{MieTemplate, MieTemplateSpec, DIPOLE_D_NM, DIPOLE_N};
-use crate::optics::params::{Beam, Optics, OpticsError};
+use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
+use crate::optics::params::OpticsError;
 use crate::optics::rayleigh::{Detection, DetectorModel};
 use crate::optics::template::{ModelTemplate, TemplateSpec};
 use rand::Rng;
@@ -28,7 +29,7 @@ pub struct StageInfo {
 type ScattererPlanes = Arc<Vec<Vec<(Arc<Grid2>, f64)>>>;
 
 pub struct Renderer {
-    pub optics: Optics,
+    pub optics: ValidOptics,
     pub scene: Scene,
     pub det: Arc<Detection>,
     pub template: Arc<ModelTemplate>,
@@ -116,23 +117,24 @@ impl Renderer {
     /// ([`DomainCheck::run_shared`]), so a scene built again costs no Mie response. The
     /// simulator runs the check through its session memo and calls [`Renderer::new`].
     pub fn checked(
-        optics: &Optics,
+        optics: &impl OpticsArg,
         scene: &Scene,
         spec: TemplateSpec,
     ) -> Result<Self, OpticsError> {
-        optics.validate()?;
-        let domain = DomainCheck::run_shared(optics, scene);
-        Self::new(optics, scene, spec, &domain)
+        let optics = optics.valid()?;
+        let domain = DomainCheck::run_shared(&optics, scene);
+        Self::new(&*optics, scene, spec, &domain)
     }
 
     /// Build the pipeline for `scene` with the result of its domain check.
     pub fn new(
-        optics: &Optics,
+        optics: &impl OpticsArg,
         scene: &Scene,
         spec: TemplateSpec,
         domain: &DomainCheck,
     ) -> Result<Self, OpticsError> {
-        optics.validate()?;
+        let optics = optics.valid()?;
+        let optics: &ValidOptics = &optics;
         let t0 = Instant::now();
         let fx = &scene.effects;
         let model = DetectorModel {
@@ -147,7 +149,7 @@ impl Renderer {
         // Issue 19: with the vector beam every scatterer goes through the angular-spectrum
         // templates (dipole limit), and beads outside the dipole's domain through Mie, unless
         // the scene pins a tier (`mie` / `finite_size`).
-        let vector = optics.beam == Beam::Vector;
+        let vector = !optics.beam().paraxial_dipoles();
         if vector && fx.cross_terms == Some(true) {
             return Err(OpticsError::Invalid(
                 "effect cross_terms is modelled in the paraxial beam only (|Σ E_scat|² with the paper's Gaussian focus, docs/physics.md §8); the session's beam is \"vector\": set_optics(#{beam: \"paraxial\"}) to use it, or the mie effect's scattered_intensity for one sphere's |E_s|² in the vector beam".into(),

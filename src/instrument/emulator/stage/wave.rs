@@ -10,7 +10,7 @@
 //! `# END_HEADER` line, data rows separated by `SEPARATOR`, every line but the last ending in
 //! a space).
 //!
-//! Model (all times in servo cycles of [`WaveConfig::servo_cycle_s`]):
+//! Model (all times in servo cycles of [`WaveConfig::servo_cycle_s`](super::wave_state::WaveConfig::servo_cycle_s)):
 //! - wave tables hold absolute positions (µm): PI's sample `wavegenerator_pnt.py` moves the
 //!   axis to the first wave point before `WGO`, and the E-727 manual gives "generator output =
 //!   current wave value (+ `WOS` offset)"; `WOS` is not emulated (offset 0);
@@ -19,7 +19,7 @@
 //!   interpolation is accepted and not applied) for `WGC` cycles (0 = until `WGO n 0`), then
 //!   holds its last value;
 //! - an axis driven by a generator follows its target with a first-order lag of time constant
-//!   τ = [`WaveConfig::lag_s`]: per cycle `x += α·(target − x)`, `α = 1 − exp(−dt/τ)`, the
+//!   τ = [`WaveConfig::lag_s`](super::wave_state::WaveConfig::lag_s): per cycle `x += α·(target − x)`, `α = 1 − exp(−dt/τ)`, the
 //!   discrete form of a closed-loop piezo with bandwidth `1/(2πτ)`. On a ramp of speed `v`
 //!   the recorded position trails the target by `v·dt/(exp(dt/τ) − 1)` ≈ `v·(τ − dt/2)`. The
 //!   axis keeps the lag model until the next `MOV` or `STP`;
@@ -34,16 +34,16 @@
 //!   StopThreshold only from start to stop, in that direction), 2 on target, 3 min/max band,
 //!   4 generator trigger (the line level set per wave point with `TWS <line> <point> <switch>`,
 //!   switch 0 = low, 1 = high; point 1 = the first point of the axis' generator). Each rising
-//!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`] wired to it.
+//!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`](super::super::ExtTrigger) wired to it.
 //!
 //! - parameters (`SPA? <item> <id>`, E-727 parameter list; PIPython's `getservotime` and
 //!   `getmaxnumvalues` read them): 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder
 //!   Max Points (all tables), 0x16000300 Data Recorder Chan Number, 0x07000900 settling window
 //!   (µm) and 0x07000901 settling time (s), both also set with `SPA`; `WMS? [<table> …]`: points
 //!   per wave table (PI's "maximum size of the wave storage");
-//! - the path of a running wave is published at `WGO` on [`WaveConfig::path`] (see
-//!   [`StagePath`]), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
-//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`]).
+//! - the path of a running wave is published at `WGO` on [`WaveConfig::path`](super::wave_state::WaveConfig::path) (see
+//!   [`StagePath`](super::super::StagePath)), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
+//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`](super::super::ExtTrigger::pulse_at)).
 //!
 //! Errors (GCS codes): 1 syntax, 5 servo off, 7 wave outside the travel range, 15 unknown axis,
 //! 17 an id or value out of range, 54 a parameter not emulated, 57 no such record table, 58 no
@@ -51,232 +51,10 @@
 //! change while a generator runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet
 //! recorded.
 
-use super::super::{ExtTrigger, PathData, StagePath};
+use super::super::PathData;
+use super::wave_state::{Rec, TrigLine, Wave};
 use super::GcsDevice;
-use std::collections::BTreeMap;
 use std::time::Instant;
-
-/// Wave generator, data recorder and trigger-output settings of the stage emulator.
-#[derive(Debug, Clone, PartialEq)]
-pub struct WaveConfig {
-    /// Servo cycle of the controller, s (the clock of the generator and the recorder).
-    pub servo_cycle_s: f64,
-    /// Time constant τ of the axis' first-order lag under the wave generator, s (0: none).
-    pub lag_s: f64,
-    /// Number of wave tables (ids 1…n).
-    pub tables: usize,
-    /// Most points a wave table holds.
-    pub table_points: usize,
-    /// Number of data recorder tables (ids 1…n).
-    pub record_tables: usize,
-    /// Most points a record table holds.
-    pub record_points: usize,
-    /// What the digital outputs OUT1…OUT3 are wired to (a digitiser's external trigger).
-    pub trigger_out: [Option<ExtTrigger>; 3],
-    /// Where the path of a running wave is published for a digitiser that samples the stage
-    /// during a whole acquisition (see [`StagePath`]).
-    pub path: Option<StagePath>,
-}
-
-impl Default for WaveConfig {
-    /// 50 µs servo cycle, τ = 0.5 ms, 8 wave tables of 65 536 points, 8 record tables of
-    /// 65 536 points, outputs not wired.
-    fn default() -> Self {
-        Self {
-            servo_cycle_s: 50e-6,
-            lag_s: 0.5e-3,
-            tables: 8,
-            table_points: 65_536,
-            record_tables: 8,
-            record_points: 65_536,
-            trigger_out: [None, None, None],
-            path: None,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Default)]
-struct Gen {
-    table: usize,
-    cycles: u32,
-    rate: u32,
-    interp: u32,
-    mode: u32,
-    running: bool,
-    start: u64,
-    /// Point index output in the last cycle.
-    point: usize,
-}
-
-#[derive(Debug, Clone)]
-struct Rec {
-    axis: usize,
-    option: u32,
-    data: Vec<f64>,
-}
-
-#[derive(Debug, Clone, Default)]
-struct TrigLine {
-    axis: usize,
-    mode: Option<u32>,
-    step: f64,
-    min: f64,
-    max: f64,
-    polarity: u32,
-    start: f64,
-    stop: f64,
-    /// Active level in the last cycle.
-    level: bool,
-    /// Position distance: the position of the next pulse.
-    next: Option<f64>,
-    /// Last position seen (for threshold crossings).
-    last_x: Option<f64>,
-    /// Generator trigger: level per wave point (1-based).
-    tws: BTreeMap<usize, bool>,
-}
-
-/// The state of the wave generator, recorder and trigger outputs.
-pub(super) struct Wave {
-    cfg: WaveConfig,
-    tables: Vec<Vec<f64>>,
-    gens: [Gen; 3],
-    rec: Vec<Rec>,
-    rtr: u32,
-    drt: u32,
-    /// Recording: the cycle of the first sample.
-    rec_start: Option<u64>,
-    lines: [TrigLine; 3],
-    clock0: Instant,
-    /// Last servo cycle computed.
-    cycle: u64,
-    alpha: f64,
-}
-
-impl Wave {
-    pub(super) fn new(cfg: WaveConfig, now: Instant) -> Self {
-        let dt = cfg.servo_cycle_s.max(1e-7);
-        let alpha = if cfg.lag_s > 0.0 {
-            1.0 - (-dt / cfg.lag_s).exp()
-        } else {
-            1.0
-        };
-        let gen = Gen {
-            rate: 1,
-            cycles: 1,
-            ..Gen::default()
-        };
-        let line = TrigLine {
-            polarity: 1,
-            ..TrigLine::default()
-        };
-        Self {
-            tables: vec![Vec::new(); cfg.tables],
-            rec: (0..cfg.record_tables)
-                .map(|i| Rec {
-                    axis: i % 3,
-                    option: 0,
-                    data: Vec::new(),
-                })
-                .collect(),
-            gens: [gen.clone(), gen.clone(), gen],
-            rtr: 1,
-            drt: 0,
-            rec_start: None,
-            lines: [
-                TrigLine {
-                    axis: 0,
-                    ..line.clone()
-                },
-                TrigLine {
-                    axis: 1,
-                    ..line.clone()
-                },
-                TrigLine { axis: 2, ..line },
-            ],
-            clock0: now,
-            cycle: 0,
-            alpha,
-            cfg,
-        }
-    }
-
-    fn dt(&self) -> f64 {
-        self.cfg.servo_cycle_s.max(1e-7)
-    }
-
-    /// The servo cycle at `now`.
-    pub(super) fn cycle_at(&self, now: Instant) -> u64 {
-        (now.duration_since(self.clock0).as_secs_f64() / self.dt()) as u64
-    }
-
-    /// The instant of servo cycle `k`.
-    pub(super) fn instant_of(&self, k: u64) -> Instant {
-        self.clock0 + std::time::Duration::from_secs_f64(k as f64 * self.dt())
-    }
-
-    /// True if generator `i` is running.
-    pub(super) fn running(&self, i: usize) -> bool {
-        self.gens[i].running
-    }
-
-    /// Stop every generator (`STP`, `HLT`, `#24`); they hold their last output.
-    pub(super) fn stop_all(&mut self) {
-        if self.gens.iter().any(|g| g.running) {
-            self.truncate_path();
-        }
-        for g in &mut self.gens {
-            g.running = false;
-        }
-    }
-
-    /// The published path ends at the current servo cycle.
-    fn truncate_path(&mut self) {
-        if let Some(p) = &self.cfg.path {
-            if let Some(d) = p.get() {
-                let k0 = self.cycle_of(d.start);
-                p.truncate(self.cycle.saturating_sub(k0) as usize);
-            }
-        }
-    }
-
-    /// The servo cycle whose instant is `t` (the inverse of [`instant_of`](Self::instant_of)).
-    fn cycle_of(&self, t: Instant) -> u64 {
-        (t.saturating_duration_since(self.clock0).as_secs_f64() / self.dt()).round() as u64
-    }
-
-    /// A `MOV` took the axes over: no wave path any more.
-    pub(super) fn clear_path(&mut self) {
-        if let Some(p) = &self.cfg.path {
-            p.clear();
-        }
-    }
-
-    /// A position-changing command (`MOV`) was accepted: `DRT 1` starts recording.
-    pub(super) fn position_command(&mut self) {
-        if self.drt == 1 {
-            self.trigger_recording();
-        }
-    }
-
-    fn trigger_recording(&mut self) {
-        for r in &mut self.rec {
-            r.data.clear();
-        }
-        self.rec_start = Some(self.cycle + 1);
-    }
-
-    /// True while anything needs the servo clock stepped.
-    fn busy(&self, dev_lagging: bool) -> bool {
-        dev_lagging
-            || self.gens.iter().any(|g| g.running)
-            || self.rec_start.is_some()
-            || self
-                .lines
-                .iter()
-                .enumerate()
-                .any(|(i, l)| l.mode.is_some() && self.cfg.trigger_out[i].is_some())
-    }
-}
 
 fn parse_u(s: &str) -> Option<u64> {
     s.parse::<u64>().ok()
