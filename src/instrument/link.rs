@@ -746,6 +746,13 @@ pub(crate) mod mock {
         }
     }
 
+    /// A link named "dev" (20 ms timeout) whose device answers each command with the next of
+    /// `replies`.
+    pub fn link(replies: Vec<&[u8]>) -> LineLink {
+        let s = Scripted::new(replies.into_iter().map(|r| r.to_vec()).collect());
+        LineLink::new(Box::new(s), "dev", Duration::from_millis(20))
+    }
+
     impl Transport for Scripted {
         fn set_read_timeout(&mut self, _timeout: Duration) -> io::Result<()> {
             Ok(())
@@ -758,13 +765,8 @@ pub(crate) mod mock {
 
 #[cfg(test)]
 mod tests {
-    use super::mock::Scripted;
+    use super::mock::link;
     use super::*;
-
-    fn link(replies: Vec<&[u8]>) -> LineLink {
-        let s = Scripted::new(replies.into_iter().map(|r| r.to_vec()).collect());
-        LineLink::new(Box::new(s), "dev", Duration::from_millis(20))
-    }
 
     #[test]
     fn reads_lines_and_strips_cr() {

@@ -67,12 +67,7 @@ impl ScpiSession for LineLink {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::instrument::link::mock::Scripted;
-
-    fn link(replies: Vec<&[u8]>) -> LineLink {
-        let s = Scripted::new(replies.into_iter().map(|r| r.to_vec()).collect());
-        LineLink::new(Box::new(s), "dev", Duration::from_millis(20))
-    }
+    use crate::instrument::link::mock::link;
 
     #[test]
     fn a_command_reads_the_error_queue_and_names_what_it_rejected() {

@@ -14,6 +14,7 @@ pub mod hardware;
 pub mod mie;
 pub mod motion;
 pub mod optics;
+pub mod protocols;
 pub mod registry;
 pub mod scans;
 pub mod scene;
