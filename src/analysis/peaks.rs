@@ -204,6 +204,20 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<
         }
     }
     p.index = imax;
+    finish_peak(p, t, v, n, centre, half, opts)
+}
+
+/// The end of every peak read: mark a window cut by the line's ends (`truncated`), then apply
+/// `opts.min_value` and `opts.min_snr` (× the line's noise) to the vertex value.
+fn finish_peak(
+    mut p: Peak,
+    t: &[f64],
+    v: &[f64],
+    n: usize,
+    centre: f64,
+    half: f64,
+    opts: &PeakOptions,
+) -> std::result::Result<Peak, PeakMiss> {
     let (lo, hi) = (t[0].min(t[n - 1]), t[0].max(t[n - 1]));
     p.truncated = centre - half < lo || centre + half > hi;
     let noise = if opts.min_snr > 0.0 {
@@ -283,22 +297,7 @@ fn peak_near_impl(
     p.index = (0..n)
         .min_by(|&a, &b| (t[a] - p.pos).abs().total_cmp(&(t[b] - p.pos).abs()))
         .unwrap_or(0);
-    let (lo, hi) = (t[0].min(t[n - 1]), t[0].max(t[n - 1]));
-    p.truncated = c - half < lo || c + half > hi;
-    let noise = if opts.min_snr > 0.0 {
-        line_noise(&v[..n])
-    } else {
-        0.0
-    };
-    if opts.min_value.is_some_and(|m| p.value <= m)
-        || (opts.min_snr > 0.0 && !(p.value > opts.min_snr * noise))
-    {
-        return Err(PeakMiss::BelowThreshold {
-            value: p.value,
-            noise,
-        });
-    }
-    Ok(p)
+    finish_peak(p, t, v, n, c, half, opts)
 }
 
 /// In [`peak_1d`] (window on the largest sample of the line) the vertex value's second-order

@@ -376,6 +376,18 @@ impl Turnarounds {
     }
 }
 
+/// The running cost entry of command `word` in `costs` (a new one at the end if none yet).
+pub fn cost_of<'a>(costs: &'a mut LinkCosts, word: &str) -> &'a mut CommandCost {
+    let i = match costs.iter().position(|(w, _)| w == word) {
+        Some(i) => i,
+        None => {
+            costs.push((word.to_string(), CommandCost::default()));
+            costs.len() - 1
+        }
+    };
+    &mut costs[i].1
+}
+
 /// A line-terminated (LF, optional CR before it) ASCII command link, which also reads IEEE
 /// 488.2 definite-length binary blocks (`#<k><len><bytes>`).
 pub struct LineLink {
@@ -436,15 +448,10 @@ impl LineLink {
     }
 
     fn cost(&mut self, command: &str) -> &mut CommandCost {
-        let word = command.split_whitespace().next().unwrap_or("");
-        let i = match self.costs.iter().position(|(w, _)| w == word) {
-            Some(i) => i,
-            None => {
-                self.costs.push((word.to_string(), CommandCost::default()));
-                self.costs.len() - 1
-            }
-        };
-        &mut self.costs[i].1
+        cost_of(
+            &mut self.costs,
+            command.split_whitespace().next().unwrap_or(""),
+        )
     }
 
     pub fn device(&self) -> &str {

@@ -388,15 +388,7 @@ impl AptLink {
     }
 
     fn cost(&mut self, id: u16) -> &mut CommandCost {
-        let word = id::name(id);
-        let i = match self.costs.iter().position(|(w, _)| w == word) {
-            Some(i) => i,
-            None => {
-                self.costs.push((word.to_string(), CommandCost::default()));
-                self.costs.len() - 1
-            }
-        };
-        &mut self.costs[i].1
+        super::link::cost_of(&mut self.costs, id::name(id))
     }
 
     pub fn device(&self) -> &str {

@@ -272,6 +272,44 @@ enum Reply {
 }
 
 impl Board {
+    /// A board just reset (`ACQ:RST`'s state): decimation 1, averaging on, no trigger, text
+    /// data, empty buffers of every input.
+    fn new(
+        cfg: RedPitayaEmulatorConfig,
+        position: SharedPosition,
+        source: Box<dyn SignalSource>,
+        ext: ExtTrigger,
+        faults: Arc<Mutex<Faults>>,
+    ) -> Board {
+        let inputs = cfg.inputs;
+        Board {
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+            errors: VecDeque::new(),
+            position,
+            source,
+            ext,
+            faults,
+            dec: 1,
+            avg: true,
+            src: Src::Disabled,
+            level_v: 0.0,
+            delay: 0,
+            raw: false,
+            binary: false,
+            little_endian: false,
+            hv: [false; 4],
+            acq: Acq::Idle,
+            wpos0: 0,
+            tpos: 0,
+            phase_s: 0.0,
+            wstop: 0,
+            data: vec![vec![0.0; BUF]; inputs],
+            last_level: [None; 4],
+            filled: false,
+        }
+    }
+
     fn push_error(&mut self, code: i64, info: &str) {
         if self.errors.len() >= QUEUE {
             if let Some(last) = self.errors.back_mut() {
@@ -851,33 +889,13 @@ pub fn start_redpitaya_emulator(
     let path = format!("tcp://{}", listener.local_addr()?);
     let faults = Arc::new(Mutex::new(cfg.faults.clone()));
     let ext = ExtTrigger::new();
-    let inputs = cfg.inputs;
-    let board = Board {
-        rng: rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed),
+    let board = Board::new(
         cfg,
-        errors: VecDeque::new(),
-        position: position.clone(),
-        source: Box::new(source),
-        ext: ext.clone(),
-        faults: faults.clone(),
-        dec: 1,
-        avg: true,
-        src: Src::Disabled,
-        level_v: 0.0,
-        delay: 0,
-        raw: false,
-        binary: false,
-        little_endian: false,
-        hv: [false; 4],
-        acq: Acq::Idle,
-        wpos0: 0,
-        tpos: 0,
-        phase_s: 0.0,
-        wstop: 0,
-        data: vec![vec![0.0; BUF]; inputs],
-        last_level: [None; 4],
-        filled: false,
-    };
+        position.clone(),
+        Box::new(source),
+        ext.clone(),
+        faults.clone(),
+    );
     let f = faults.clone();
     let emu = launch("redpitaya", faults, position, path, move |h| {
         serve(listener, board, f, h)
@@ -1004,33 +1022,13 @@ mod tests {
     use super::*;
 
     fn board(cfg: RedPitayaEmulatorConfig) -> Board {
-        let inputs = cfg.inputs;
-        Board {
-            rng: rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed),
+        Board::new(
             cfg,
-            errors: VecDeque::new(),
-            position: super::super::shared_position([0.1, 0.0, 0.0]),
-            source: Box::new(super::super::standin_bead),
-            ext: ExtTrigger::new(),
-            faults: Arc::new(Mutex::new(Faults::default())),
-            dec: 1,
-            avg: true,
-            src: Src::Disabled,
-            level_v: 0.0,
-            delay: 0,
-            raw: false,
-            binary: false,
-            little_endian: false,
-            hv: [false; 4],
-            acq: Acq::Idle,
-            wpos0: 0,
-            tpos: 0,
-            phase_s: 0.0,
-            wstop: 0,
-            data: vec![vec![0.0; BUF]; inputs],
-            last_level: [None; 4],
-            filled: false,
-        }
+            super::super::shared_position([0.1, 0.0, 0.0]),
+            Box::new(super::super::standin_bead),
+            ExtTrigger::new(),
+            Arc::new(Mutex::new(Faults::default())),
+        )
     }
 
     fn text(r: Option<Reply>) -> String {
