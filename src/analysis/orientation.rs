@@ -307,9 +307,30 @@ fn parabola_value_noise(half: f64, step: f64) -> f64 {
     }
 }
 
-/// Candidate maxima of the lines of `sens`.
-fn candidates(sens: &Image, rows: bool, opts: &MeasureOptions) -> Vec<Cand> {
-    let noise = pixel_noise(sens, rows);
+/// What the filament checks need of a sensitivity image, computed once per scan: its pixel
+/// noise along its lines ([`pixel_noise`]) and its largest value (instrument units).
+#[derive(Clone, Copy)]
+struct Levels {
+    noise: f64,
+    max: f64,
+}
+
+impl Levels {
+    fn of(sens: &Image, rows: bool) -> Levels {
+        Levels {
+            noise: pixel_noise(sens, rows),
+            max: sens
+                .data
+                .iter()
+                .cloned()
+                .filter(|v| v.is_finite())
+                .fold(0.0, f64::max),
+        }
+    }
+}
+
+/// Candidate maxima of the lines of `sens` (`noise`: its pixel noise).
+fn candidates(sens: &Image, rows: bool, noise: f64, opts: &MeasureOptions) -> Vec<Cand> {
     let thr = (opts.detect_snr * noise).max(0.0);
     let (nl, t): (usize, &[f64]) = if rows {
         (sens.rows(), &sens.x)
@@ -451,6 +472,7 @@ pub fn measure_filament(
     check_pixel(sx, curve)?;
     let sxs = sensitivity(sx, Axis::X, opts.stencil)?;
     let sys = sensitivity(sy, Axis::Y, opts.stencil)?;
+    let levels = [Levels::of(&sxs, true), Levels::of(&sys, false)];
     // A faint filament among strong point objects may clear `detect_snr` in too few lines for
     // its line to win the search; the maxima checks keep a lower threshold from taking a line
     // of point objects, so the search is repeated at lower thresholds before giving up.
@@ -465,7 +487,7 @@ pub fn measure_filament(
             continue;
         }
         tried.push(o.detect_snr);
-        match find_filament(&sxs, &sys, curve, &o) {
+        match find_filament(&sxs, &sys, levels, curve, &o) {
             Ok(m) => return Ok(m),
             Err(e) => {
                 first_err.get_or_insert(e);
@@ -497,11 +519,20 @@ pub const RETRY_SNR_SCALES: [f64; 3] = [1.0, 0.75, 0.625];
 fn find_filament(
     sxs: &Image,
     sys: &Image,
+    levels: [Levels; 2],
     curve: &AngleCurve,
     opts: &MeasureOptions,
 ) -> Result<FilamentMeasurement> {
-    let lr = ransac_line(&candidates(sxs, true, opts), true, opts.max_offset_um);
-    let lc = ransac_line(&candidates(sys, false, opts), false, opts.max_offset_um);
+    let lr = ransac_line(
+        &candidates(sxs, true, levels[0].noise, opts),
+        true,
+        opts.max_offset_um,
+    );
+    let lc = ransac_line(
+        &candidates(sys, false, levels[1].noise, opts),
+        false,
+        opts.max_offset_um,
+    );
     let frac_r = lr.map(|l| l.n as f64 / sxs.rows() as f64).unwrap_or(0.0);
     let frac_c = lc.map(|l| l.n as f64 / sys.cols() as f64).unwrap_or(0.0);
     let ok_r = lr.is_some_and(|l| l.angle_deg.abs() <= 45.0);
@@ -518,28 +549,43 @@ fn find_filament(
             _ => frac_r >= frac_c,
         },
     };
-    let rows_line = (lr, lc, Channel::SxRows, sxs, ok_r);
-    let cols_line = (lc, lr, Channel::SyCols, sys, ok_c);
+    let rows_line = (lr, lc, Channel::SxRows, sxs, levels[0], ok_r);
+    let cols_line = (lc, lr, Channel::SyCols, sys, levels[1], ok_c);
     let order = if use_rows {
         [rows_line, cols_line]
     } else {
         [cols_line, rows_line]
     };
     let mut first_err = None;
-    for (i, (line, other, channel, sens, ok)) in order.into_iter().enumerate() {
+    for (i, (line, other, channel, sens, lv, ok)) in order.into_iter().enumerate() {
         let Some(line) = line else { continue };
         if i > 0 && !ok {
             continue;
         }
         let attempt = measure_sens_along(sens.clone(), curve, channel, line, opts).and_then(
             |(m, trace, sigma)| {
-                let image_max = m
-                    .sens
-                    .data
-                    .iter()
-                    .cloned()
-                    .filter(|v| v.is_finite())
-                    .fold(0.0, f64::max);
+                // one maximum's 1σ: the parabolas' own, and at least what the image's pixel
+                // noise gives a parabola over the window. At coarse pixels the parabolas' own
+                // (from 2 degrees of freedom, and of the fits that succeeded) came out 2–3×
+                // low: a lone bead's noisy tails then counted as 4σ maxima of a filament.
+                let t = if channel == Channel::SxRows {
+                    &sens.x
+                } else {
+                    &sens.y
+                };
+                let step = if t.len() > 1 {
+                    ((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64).abs()
+                } else {
+                    0.0
+                };
+                let from_pixels =
+                    lv.noise * curve.norm_factor * parabola_value_noise(0.5 * opts.window_um, step);
+                let sigma = match (sigma.is_finite(), from_pixels.is_finite()) {
+                    (true, true) => sigma.max(from_pixels),
+                    (true, false) => sigma,
+                    _ => from_pixels,
+                };
+                let image_max = lv.max * curve.norm_factor;
                 super::kind::check_filament_maxima(&trace, sigma, image_max)?;
                 super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
                 Ok(m)
@@ -595,7 +641,8 @@ pub fn measure_filament_along(
 /// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
 
-/// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas').
+/// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas';
+/// NaN when none has one).
 fn measure_sens_along(
     mut sens: Image,
     curve: &AngleCurve,
@@ -674,22 +721,9 @@ fn measure_sens_along(
         p.arc_um -= a0;
     }
     let s = summary(&points.iter().map(|p| p.sens_corr).collect::<Vec<_>>())?;
-    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits),
-    // and at least what the image's pixel noise gives a parabola over the window. At coarse
-    // pixels the parabolas' own (from 2 degrees of freedom, and of the fits that succeeded)
-    // came out 2–3× low: a lone bead's noisy tails then counted as 4σ maxima of a filament.
+    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits)
     let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
-    let step = if t.len() > 1 {
-        ((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64).abs()
-    } else {
-        0.0
-    };
-    let from_pixels = pixel_noise(&sens, rows) * parabola_value_noise(0.5 * po.window_um, step);
-    let sigma = match super::stats::median(&errs) {
-        Some(m) if from_pixels.is_finite() => m.max(from_pixels),
-        Some(m) => m,
-        None => from_pixels,
-    };
+    let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
     let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {
         channel,

@@ -7,7 +7,7 @@ use crate::acquire::SoftLimits;
 use crate::instrument::gcs::GcsStage;
 use crate::instrument::gcs_split::GcsSplitStage;
 use crate::instrument::scpi::ScpiQpd;
-use crate::instrument::{DeviceError, Instrument, WallClock};
+use crate::instrument::{DeviceError, Instrument, Qpd, Stage, WallClock};
 use serde_json::json;
 use std::sync::Arc;
 
@@ -178,28 +178,48 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         Some(p) => json!({ "x": p.x, "y": p.y, "z": p.z }),
         None => json!(cfg.stage.port.clone().unwrap_or_default()),
     };
-    let description = json!({
-        "backend": "hardware",
-        "stage": {
-            "backend": "gcs",
-            "name": stage.name(),
-            "port": port,
-            "baud": cfg.stage.baud,
-            "idn": parts.iter().map(|p| p["idn"].as_str().unwrap_or_default()).collect::<Vec<_>>().join(" + "),
-            "axes": { "x": cfg.stage.axes.x, "y": cfg.stage.axes.y, "z": cfg.stage.axes.z },
-            "units_per_um": cfg.stage.units_per_um,
-            "controllers": parts,
-        },
-        "qpd": qpd_desc,
-        "settle_s": cfg.stage.settle_s,
+    let stage_desc = json!({
+        "backend": "gcs",
+        "name": stage.name(),
+        "port": port,
+        "baud": cfg.stage.baud,
+        "idn": parts.iter().map(|p| p["idn"].as_str().unwrap_or_default()).collect::<Vec<_>>().join(" + "),
+        "axes": { "x": cfg.stage.axes.x, "y": cfg.stage.axes.y, "z": cfg.stage.axes.z },
+        "units_per_um": cfg.stage.units_per_um,
+        "controllers": parts,
     });
-    Ok(Instrument {
+    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
+}
+
+/// A connected hardware stage and QPD as the session's instrument: the wall clock, the
+/// configured settle time, and the description scans record.
+fn hardware_instrument(
+    cfg: &Config,
+    stage: Box<dyn Stage>,
+    qpd: Box<dyn Qpd>,
+    stage_desc: serde_json::Value,
+    qpd_desc: serde_json::Value,
+) -> Instrument {
+    Instrument {
         stage,
         qpd,
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
-        description,
-    })
+        description: json!({
+            "backend": "hardware",
+            "stage": stage_desc,
+            "qpd": qpd_desc,
+            "settle_s": cfg.stage.settle_s,
+        }),
+    }
+}
+
+/// The SCPI QPD digitiser on the config's port, with its description.
+fn open_scpi(cfg: &Config) -> Result<(Box<dyn Qpd>, serde_json::Value), ConnectError> {
+    let port = cfg.qpd.port.clone().unwrap_or_default();
+    let q = ScpiQpd::open(&port, cfg.qpd.baud, cfg.scpi_options())?;
+    let d = json!({ "backend": "scpi", "name": q.name(), "port": port, "idn": q.idn() });
+    Ok((Box::new(q), d))
 }
 
 /// Thorlabs APT devices (and, for a mixed set-up, a GCS stage or a SCPI QPD): KPZ101 cubes as
@@ -272,24 +292,9 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
             (Box::new(q), d)
         }
         Backend::Redpitaya => open_redpitaya(cfg)?,
-        _ => {
-            let q = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
-            let d = json!({ "backend": "scpi", "name": q.name(), "port": qport, "idn": q.idn() });
-            (Box::new(q), d)
-        }
+        _ => open_scpi(cfg)?,
     };
-    Ok(Instrument {
-        stage,
-        qpd,
-        clock: Arc::new(WallClock::default()),
-        settle_s: cfg.stage.settle_s,
-        description: json!({
-            "backend": "hardware",
-            "stage": stage_desc,
-            "qpd": qpd_desc,
-            "settle_s": cfg.stage.settle_s,
-        }),
-    })
+    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
 }
 
 /// Connect the Red Pitaya `[qpd]` names, and describe it for the scan metadata.
@@ -542,7 +547,6 @@ pub fn connect_emulated_redpitaya(
 fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectError> {
     use crate::instrument::madlib::MadlibStage;
     use crate::instrument::nidaqmx::NiQpd;
-    use crate::instrument::{Qpd, Stage, WallClock};
     use serde_json::json;
     let raster = cfg.ni_raster_options()?;
     let mut madlib: Option<MadlibStage> = None;
@@ -632,12 +636,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             (Box::new(q), d)
         }
         Backend::Redpitaya => open_redpitaya(cfg)?,
-        Backend::Scpi => {
-            let port = cfg.qpd.port.clone().unwrap_or_default();
-            let q = crate::instrument::scpi::ScpiQpd::open(&port, cfg.qpd.baud, cfg.scpi_options())?;
-            let d = json!({ "backend": "scpi", "name": q.name(), "port": port, "idn": q.idn() });
-            (Box::new(q), d)
-        }
+        Backend::Scpi => open_scpi(cfg)?,
         b => {
             return Err(err(
                 "qpd.backend",
@@ -660,16 +659,5 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             .into())
         }
     };
-    Ok(crate::instrument::Instrument {
-        stage,
-        qpd,
-        clock: std::sync::Arc::new(WallClock::default()),
-        settle_s: cfg.stage.settle_s,
-        description: json!({
-            "backend": "hardware",
-            "stage": stage_desc,
-            "qpd": qpd_desc,
-            "settle_s": cfg.stage.settle_s,
-        }),
-    })
+    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
 }

@@ -514,26 +514,31 @@ impl LineLink {
     pub fn read_line(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
         let t0 = Instant::now();
         let r = self.read_line_inner(command, timeout);
-        let n = r.as_ref().map_or(0, |l| l.len() + 1);
+        self.account(command, t0, r.as_ref().ok().map(|l| l.len() + 1));
+        r
+    }
+
+    /// Count a reply to `command` that was read from `t0` on: its bytes (`None`: it failed) and
+    /// time in the command's cost, and in the command's turnaround — from its write to the end
+    /// of its reply, every line of a multi-line reply (`TMN?` answers one line per axis).
+    fn account(&mut self, command: &str, t0: Instant, bytes: Option<usize>) {
         let dt = t0.elapsed().as_secs_f64();
+        let n = bytes.unwrap_or(0) as u64;
         let c = self.cost(command);
-        c.bytes_in += n as u64;
+        c.bytes_in += n;
         c.reply_s += dt;
-        // a command's turnaround: from its write to the end of its reply, every line of a
-        // multi-line reply (`TMN?` answers one line per axis) with its bytes
-        if r.is_ok() {
+        if bytes.is_some() {
             match self.pending_out.take() {
-                Some(out) => self.reply_open = self.turnarounds.add(dt, out + n as u64),
+                Some(out) => self.reply_open = self.turnarounds.add(dt, out + n),
                 None if self.reply_open => {
                     if let Some(last) = self.turnarounds.replies.last_mut() {
                         last.0 += dt;
-                        last.1 += n as u64;
+                        last.1 += n;
                     }
                 }
                 None => {}
             }
         }
-        r
     }
 
     fn read_line_inner(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
@@ -583,7 +588,17 @@ impl LineLink {
     /// `Garbled`, showing what came.
     pub fn read_block(&mut self, command: &str, timeout: Duration) -> Result<Vec<u8>, DeviceError> {
         let t0 = Instant::now();
-        let deadline = t0 + timeout;
+        let r = self.read_block_inner(command, t0 + timeout, timeout);
+        self.account(command, t0, r.as_ref().ok().map(|(_, n)| *n));
+        r.map(|(data, _)| data)
+    }
+
+    fn read_block_inner(
+        &mut self,
+        command: &str,
+        deadline: Instant,
+        timeout: Duration,
+    ) -> Result<(Vec<u8>, usize), DeviceError> {
         let need = |s: &mut Self, n: usize| -> Result<(), DeviceError> {
             while s.buf.len() < n {
                 if !s.fill(command, deadline, timeout)? {
@@ -629,16 +644,9 @@ impl LineLink {
         } else if self.buf.starts_with(b"\n") {
             self.buf.drain(..1);
         }
-        let n = data.len() + start;
-        let c = self.cost(command);
-        c.bytes_in += n as u64;
-        c.reply_s += t0.elapsed().as_secs_f64();
-        if let Some(out) = self.pending_out.take() {
-            self.reply_open = self
-                .turnarounds
-                .add(t0.elapsed().as_secs_f64(), out + n as u64);
-        }
-        Ok(data)
+        // the header `#<k><len>` and the data: the block's bytes on the wire
+        let n = start + data.len();
+        Ok((data, n))
     }
 
     /// Send `command` and read one reply line.
