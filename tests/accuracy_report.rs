@@ -4,8 +4,7 @@
 //! not asserted: a test is no benchmark), and the trade-off's physics (the 1/√t law and its
 //! closed-form prediction, the microtubule's linear density).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::accuracy::report::{run, KneeVerdict, ReportOptions};
 

@@ -4,7 +4,7 @@
 //! tests marked "vector beam" repeat a recovery in the default aplanatic vector focus, whose
 //! values differ (docs/paper-figures.md, "Vector beam").
 
-mod analysis_support;
+use crate::analysis_support;
 
 use analysis_support::*;
 use bfpscope::analysis::bead_model::{filament_beads, BeadModelOptions, Filament};

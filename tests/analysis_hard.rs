@@ -1,7 +1,7 @@
 //! Hard cases that must stay numerically stable (issue 4): each ends in a documented, finite
 //! answer or a clear error naming the argument — never a panic, never a silent NaN.
 
-mod analysis_support;
+use crate::analysis_support;
 
 use analysis_support::*;
 use bfpscope::analysis::bead_model::Filament;

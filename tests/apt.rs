@@ -2,8 +2,7 @@
 //! stage) driven through their drivers against emulators on pseudo-terminals: bytes on the
 //! wire, decoded numbers, faults, and a scan through the engine.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, Connected};

@@ -3,7 +3,7 @@
 //! vector beam named explicitly (`Beam::Vector`), and carry the fitted beam into the
 //! model-based calibrations (docs/physics.md §10.4).
 
-mod analysis_support;
+use crate::analysis_support;
 
 use analysis_support::*;
 use bfpscope::analysis::bead_model::BeadModelOptions;

@@ -8,8 +8,7 @@
 //! Sx, Sy (1 V per signal unit) on ai0, ai1 and the sum (5 V · (1 + Sz)) on ai2. One bench
 //! per process: the tests take a lock and reset it.
 
-#[path = "support/fakebench.rs"]
-mod fakebench;
+use crate::support::fakebench;
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanRun, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, Connected};

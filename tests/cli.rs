@@ -1,15 +1,13 @@
 //! The `bfpscope` binary: commands, exit codes, the scripted tests, the REPL through a pipe.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-#[path = "support/fakebench.rs"]
-mod fakebench;
+use crate::support::fakebench;
 
 fn bin() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_bfpscope"));

@@ -1,11 +1,9 @@
 //! The prompt as an instrument console, driven through a pseudo-terminal as a person types:
 //! Ctrl-C during a scan pauses it and asks; the answer resumes or aborts.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
-#[path = "support/pty.rs"]
-mod pty;
+use crate::support::pty;
 
 use pty::Prompt;
 use std::time::Duration;

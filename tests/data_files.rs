@@ -1,8 +1,7 @@
 //! Images and profiles (statistics, slicing, arithmetic), scan files (.npz, also read back with
 //! numpy when it is installed), the session store, TIFF and CSV round trips.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::data::{
     load_csv_profile, load_csv_table, load_scan, load_tiff, save_csv_profile, save_csv_table,

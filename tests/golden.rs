@@ -1,11 +1,10 @@
 //! Golden traces of protocol runs on the simulator: every stage move, QPD read (4 significant
 //! digits) and protocol decision, stamped with the virtual clock. A change in a protocol's
 //! behaviour shows up as a readable diff against the committed file in `tests/golden/`.
-//! Refresh deliberately with `BFPSCOPE_BLESS="<one line saying why>" cargo test --test golden`
+//! Refresh deliberately with `BFPSCOPE_BLESS="<one line saying why>" cargo test --test program golden::`
 //! and review the diff: the reason is added to the file's `# ` header (kept, not compared).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::instrument::trace::check_golden;
 use bfpscope::script::{Settings, Workbench};

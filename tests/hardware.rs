@@ -4,8 +4,7 @@
 //! fault tests use 200 ms reply timeouts and check that every failure is bounded in time and
 //! names the device, the command and what came back.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, ConnectError};

@@ -2,8 +2,7 @@
 //! pixels where the title is, the colour bar, the expected colours of the heat map, grey NaN
 //! pixels. Set `BFPSCOPE_PLOT_OUT=/some/dir` to keep the figures for looking at them.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::analysis::stats::histogram;
 use bfpscope::data::{DataError, Image, Profile, Scan, ScanStatus};

@@ -8,7 +8,7 @@
 //! whose per-line maximum of ∂Sx/∂x equals the bead's peak ∂Sx/∂x ("the same contrast",
 //! checked in `the_filament_has_the_beads_contrast`).
 
-mod analysis_support;
+use crate::analysis_support;
 
 use analysis_support::model_template;
 use bfpscope::analysis::orientation::{
@@ -214,7 +214,7 @@ fn a_filament_with_lines_not_read_at_coarse_pixels_is_measured() {
 
 proptest! {
     // A fixed seed: CI draws the same cases every run. To explore, draw fresh ones:
-    // `PO_RANDOM=1 PO_CASES=2000 cargo test --test point_objects` (3,500 random cases of both
+    // `PO_RANDOM=1 PO_CASES=2000 cargo test --test physics point_objects::` (3,500 random cases of both
     // properties after the coarse-pixel fixes, 2026-11-27: no counterexample).
     #![proptest_config(ProptestConfig {
         cases: std::env::var("PO_CASES").ok().and_then(|c| c.parse().ok()).unwrap_or(24),

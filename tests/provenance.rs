@@ -2,8 +2,7 @@
 //! the git revision when available: scans (metadata), templates (JSON), figures (PNG text chunk)
 //! and CSV tables (trailing `#` line).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::data::provenance::{png_text, PNG_KEYWORD};
 use bfpscope::script::{Settings, Workbench};

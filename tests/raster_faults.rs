@@ -7,8 +7,7 @@
 //! device, the command and the reply; Ctrl-C mid-line finishes the line first (the stop rule
 //! of every mode: tests/stop_rule.rs).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::acquire::raster::RasterOptions;
 use bfpscope::acquire::run_raster;

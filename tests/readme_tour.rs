@@ -2,11 +2,9 @@
 //! (the REPL sees a terminal, as a person at the instrument); every output line the README shows
 //! must appear, in order.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
-#[path = "support/pty.rs"]
-mod pty;
+use crate::support::pty;
 
 use pty::Prompt;
 use std::time::Duration;

@@ -5,8 +5,7 @@
 //! reports is what the emulated inputs carried: known signals at known stage positions, known
 //! ramps on a known time base, and every fault named with device, command and reply.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::config::connect::{connect, ConnectError};
 use bfpscope::config::Config;

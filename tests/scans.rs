@@ -1,8 +1,7 @@
 //! Safety behaviours of the scan engine, one test each, on the mock instrument (the mock
 //! stage records every command it is sent).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::acquire::store::{load_scan, SessionStore};
 use bfpscope::acquire::{

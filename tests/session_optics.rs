@@ -2,8 +2,7 @@
 //! new scene, the connected simulator images exactly what the session says, and the scan's
 //! metadata records it.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::script::{Settings, Workbench};
 

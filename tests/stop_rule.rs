@@ -17,8 +17,7 @@
 //! or fails the n-th call); the emulators' stage faults are the emulated controller's own
 //! (a rejected `MOV`, a rejected `DRR?`), so the message is the driver's.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::acquire::raster::RasterOptions;
 use bfpscope::acquire::store::{load_scan, SessionStore};

@@ -5,10 +5,9 @@
 //! Screenshots go to `$CARGO_TARGET_TMPDIR/view-screenshots/` (the guide's are copied from
 //! there: docs/figures/view_*.png).
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
-mod support;
+use crate::support;
 
 use bfpscope::script::view::start_view;
 use bfpscope::script::{Settings, Workbench};

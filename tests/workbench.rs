@@ -1,8 +1,7 @@
 //! The scripting workbench in-process: every binding example, the generated API reference,
 //! help, REPL semantics, error positions, the sandbox and Ctrl-C.
 
-#[path = "support/cleanup.rs"]
-mod cleanup;
+use crate::support::cleanup;
 
 use bfpscope::script::registry::{api_markdown, help_index, Kind};
 use bfpscope::script::{all_docs, Settings, Workbench};

@@ -244,10 +244,15 @@ fn render<F: Figure>(path: &Path, fig: &F) -> Result<(), DataError> {
         let run = || -> Result<(), String> {
             match format {
                 Format::Png => {
-                    let root = BitMapBackend::new(tmp, fig.size()).into_drawing_area();
-                    root.fill(&WHITE).map_err(perr)?;
-                    fig.draw(&root)?;
-                    root.present().map_err(perr)
+                    let (w, h) = fig.size();
+                    let mut rgb = vec![0u8; w as usize * h as usize * 3];
+                    {
+                        let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
+                        root.fill(&WHITE).map_err(perr)?;
+                        fig.draw(&root)?;
+                        root.present().map_err(perr)?;
+                    }
+                    write_png(tmp, w, h, &rgb)
                 }
                 Format::Svg => {
                     let root = SVGBackend::new(tmp, fig.size()).into_drawing_area();
@@ -262,6 +267,18 @@ fn render<F: Figure>(path: &Path, fig: &F) -> Result<(), DataError> {
             Err(_) => Err(plot_err("internal error in the plotting library".into())),
         }
     })
+}
+
+/// Encode an 8-bit RGB raster (rows top to bottom) as a PNG file (the `png` crate: plotters'
+/// own encoder would pull in the whole `image` crate for this one call).
+fn write_png(path: &Path, w: u32, h: u32, rgb: &[u8]) -> Result<(), String> {
+    let file = std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut writer = enc.write_header().map_err(perr)?;
+    writer.write_image_data(rgb).map_err(perr)?;
+    writer.finish().map_err(perr)
 }
 
 // ---------------------------------------------------------------- styles

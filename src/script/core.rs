@@ -156,7 +156,7 @@ pub fn register(r: &mut Registrar) {
     let d = Doc::func("trace_start")
         .returns("()", "")
         .summary("record every move, read and protocol decision of the connected instrument, with its clock's time (golden traces)")
-        .help("Protocols call trace_note at their decisions. tests/golden.rs compares traces of protocol runs on the simulator with the committed files in tests/golden/; BFPSCOPE_BLESS=\"<one line saying why>\" cargo test --test golden rewrites them deliberately, adding the reason to the file's # header.")
+        .help("Protocols call trace_note at their decisions. tests/golden.rs compares traces of protocol runs on the simulator with the committed files in tests/golden/; BFPSCOPE_BLESS=\"<one line saying why>\" cargo test --test program golden:: rewrites them deliberately, adding the reason to the file's # header.")
         .example("trace_start(); mv(#{x: 0.5}); trace_text().contains(\"move\")", "true");
     let c = r.ctx();
     r.bind(d, move || c.trace_start());

@@ -1,1 +1,6 @@
+//! Helpers shared by the test suites (`crate::support::…` from any test file).
+
+pub mod cleanup;
+pub mod fakebench;
+pub mod pty;
 pub mod webdriver;
