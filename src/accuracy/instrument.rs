@@ -99,6 +99,26 @@ pub struct TradeRow {
     pub found: usize,
 }
 
+impl TradeRow {
+    /// The row of one dwell (s) over the seeds: the estimates `values` (NaN where the object was
+    /// not found) and the fits' own 1σ `errors`; a scan of `npix` pixels that took `clock_s`
+    /// on the virtual clock. The beads-only columns are NaN.
+    fn measured(dwell_s: f64, npix: f64, clock_s: f64, values: &[f64], errors: &[f64]) -> Self {
+        let (mean, sigma_scatter) = mean_std(values);
+        Self {
+            dwell_s,
+            scan_s: dwell_s * npix,
+            clock_s,
+            sigma_fit: mean_std(errors).0,
+            sigma_scatter,
+            mean,
+            sigma_protein_kda: f64::NAN,
+            sigma_fit_sx_only: f64::NAN,
+            found: values.iter().filter(|v| v.is_finite()).count(),
+        }
+    }
+}
+
 /// The bead and microtubule trade-offs and the calibration numbers derived from them.
 #[derive(Debug, Clone, Serialize)]
 pub struct Tradeoff {
@@ -271,17 +291,10 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
                 }
             }
         }
-        let (mean, scatter) = mean_std(&m);
         bead.push(TradeRow {
-            dwell_s: dwell,
-            scan_s: dwell * npix,
-            clock_s: clock,
-            sigma_fit: mean_std(&e).0,
-            sigma_scatter: scatter,
-            mean,
             sigma_protein_kda: mean_std(&e_p).0,
             sigma_fit_sx_only: mean_std(&e_sx).0,
-            found: m.len(),
+            ..TradeRow::measured(dwell, npix, clock, &m, &e)
         });
     }
 
@@ -396,18 +409,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
                 }
             }
         }
-        let (mean, scatter) = mean_std(&mu);
-        microtubule.push(TradeRow {
-            dwell_s: dwell,
-            scan_s: dwell * npix,
-            clock_s: clock,
-            sigma_fit: mean_std(&e).0,
-            sigma_scatter: scatter,
-            mean,
-            sigma_protein_kda: f64::NAN,
-            sigma_fit_sx_only: f64::NAN,
-            found: mu.iter().filter(|v| v.is_finite()).count(),
-        });
+        microtubule.push(TradeRow::measured(dwell, npix, clock, &mu, &e));
     }
     Ok(Tradeoff {
         bead_k_kda_sqrt_s: sqrt_law(&bead, |r| r.sigma_fit),

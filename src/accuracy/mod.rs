@@ -210,8 +210,10 @@ fn vector_quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &
             let secs = time_median(if quick { 5 } else { 21 }, || {
                 d.response_unchecked(0.31, -0.12, 0.05)
             });
-            Point {
-                setting: format!(
+            quadrature_point(
+                &base,
+                nt,
+                format!(
                     "n_theta = {nt}, n_phi = {} (reach ρ ≤ {det_reach:.2} µm; {n_in} of {} points inside{})",
                     nt / 2,
                     pts.len(),
@@ -221,11 +223,9 @@ fn vector_quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &
                         String::new()
                     }
                 ),
-                value: (4 * nt * (nt / 2)) as f64,
-                error: worst.max(1e-16),
-                seconds: secs,
-                is_default: nt == base.n_theta && nt / 2 == base.n_phi,
-            }
+                worst,
+                secs,
+            )
         })
         .collect();
     Knob {
@@ -235,6 +235,18 @@ fn vector_quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &
         timed: "one point response (Sx, Sy, Sz), incident grid fixed".into(),
         reference: format!("Gauss–Legendre ({rt}, {rp})"),
         points,
+    }
+}
+
+/// One point of a quadrature sweep: n_theta = `nt`, n_phi = nt/2 (4·nt·(nt/2) nodes), its
+/// worst error (floored at 1e-16 for the log axis) and time (s).
+fn quadrature_point(base: &Optics, nt: usize, setting: String, worst: f64, secs: f64) -> Point {
+    Point {
+        setting,
+        value: (4 * nt * (nt / 2)) as f64,
+        error: worst.max(1e-16),
+        seconds: secs,
+        is_default: nt == base.n_theta && nt / 2 == base.n_phi,
     }
 }
 
@@ -278,13 +290,13 @@ fn quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &str) ->
             let secs = time_median(if quick { 5 } else { 21 }, || {
                 d.response_unit(0.31, -0.12, 0.05)
             });
-            Point {
-                setting: format!("n_theta = {nt}, n_phi = {}", nt / 2),
-                value: (4 * nt * (nt / 2)) as f64,
-                error: worst.max(1e-16),
-                seconds: secs,
-                is_default: nt == base.n_theta && nt / 2 == base.n_phi,
-            }
+            quadrature_point(
+                &base,
+                nt,
+                format!("n_theta = {nt}, n_phi = {}", nt / 2),
+                worst,
+                secs,
+            )
         })
         .collect();
     Knob {

@@ -2,7 +2,7 @@
 //! and the benchmark summary in one run; writes `DIR/accuracy.md` and one Pareto plot per knob
 //! (`DIR/accuracy/<id>.png`, error vs time on log axes, default and knee marked).
 
-use super::instrument::{self, Tradeoff};
+use super::instrument::{self, TradeRow, Tradeoff};
 use super::{analysis_knobs as ak, fmt_secs, knee, machine_line, markdown_table, today, Knob};
 use crate::plot::{plot_xy, Series, SeriesStyle, XyOpts};
 use std::path::{Path, PathBuf};
@@ -313,31 +313,27 @@ pub fn run(opts: &ReportOptions) -> Result<Report, String> {
 fn tradeoff_png(path: &Path, t: &Tradeoff) -> Result<(), String> {
     let x: Vec<f64> = t.bead.iter().map(|r| r.scan_s).collect();
     let xm: Vec<f64> = t.microtubule.iter().map(|r| r.scan_s).collect();
+    let measured = |label: &str, x: &[f64], y: Vec<f64>| {
+        Series::line(label, x.to_vec(), y).with_style(SeriesStyle::LinePoints)
+    };
+    let bead = |f: fn(&TradeRow) -> f64| t.bead.iter().map(f).collect::<Vec<f64>>();
     let series = vec![
-        Series::line(
+        measured(
             "110 nm PS bead: 1σ mass (kDa), fit Sx+Sy",
-            x.clone(),
-            t.bead.iter().map(|r| r.sigma_fit).collect(),
-        )
-        .with_style(SeriesStyle::LinePoints),
-        Series::line(
-            "same, fit Sx only",
-            x.clone(),
-            t.bead.iter().map(|r| r.sigma_fit_sx_only).collect(),
-        )
-        .with_style(SeriesStyle::LinePoints),
-        Series::line(
+            &x,
+            bead(|r| r.sigma_fit),
+        ),
+        measured("same, fit Sx only", &x, bead(|r| r.sigma_fit_sx_only)),
+        measured(
             "same, protein equivalent (kDa)",
-            x.clone(),
-            t.bead.iter().map(|r| r.sigma_protein_kda).collect(),
-        )
-        .with_style(SeriesStyle::LinePoints),
-        Series::line(
+            &x,
+            bead(|r| r.sigma_protein_kda),
+        ),
+        measured(
             "13-pf microtubule: 1σ mass per µm (kDa)",
-            xm,
+            &xm,
             t.microtubule.iter().map(|r| r.sigma_fit * 1e3).collect(),
-        )
-        .with_style(SeriesStyle::LinePoints),
+        ),
         Series::line(
             "paper: 950 kDa (PS)",
             vec![x[0], x[x.len() - 1]],

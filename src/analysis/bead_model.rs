@@ -265,39 +265,49 @@ pub fn straight_filament_max_sens(
             measure.stencil,
         )?;
         let (sn, cs) = angle_deg.to_radians().sin_cos();
-        for lp in row_peaks(&sens, &popts)? {
-            // Centred where the filament crosses the row, as `measure_filament` reads data.
-            let row: Vec<f64> = sens.data.row(lp.line).to_vec();
-            let near = (cs.abs() > 0.2)
-                .then(|| peak_near(&full, &row, off + (lp.coord - off) * sn / cs, &popts).ok())
-                .flatten();
-            if let Some(v) = near
-                .map(|p| p.value)
-                .or_else(|| line_value(&lp, &sens, true))
-            {
-                sx_acc += v;
-                nsx += 1;
+        // The maxima of every row (Sx) or column (Sy), each centred where the filament crosses
+        // its line, as `measure_filament` reads data; a line the filament crosses at a grazing
+        // angle keeps its own maximum.
+        let lane_maxima = |sens: &Image, rows: bool| -> Result<(f64, usize)> {
+            let (along, across) = if rows { (cs, sn) } else { (sn, cs) };
+            let peaks = if rows {
+                row_peaks(sens, &popts)?
+            } else {
+                col_peaks(sens, &popts)?
+            };
+            let (mut acc, mut n) = (0.0, 0usize);
+            for lp in peaks {
+                let lane: Vec<f64> = if rows {
+                    sens.data.row(lp.line).to_vec()
+                } else {
+                    sens.data.column(lp.line).to_vec()
+                };
+                let at = off + (lp.coord - off) * across / along;
+                let near = (along.abs() > 0.2)
+                    .then(|| peak_near(&full, &lane, at, &popts).ok())
+                    .flatten();
+                if let Some(v) = near
+                    .map(|p| p.value)
+                    .or_else(|| line_value(&lp, sens, rows))
+                {
+                    acc += v;
+                    n += 1;
+                }
             }
-        }
+            Ok((acc, n))
+        };
+        let (a, n) = lane_maxima(&sens, true)?;
+        sx_acc += a;
+        nsx += n;
         let [_, sy, _] = tpl.render(&beads, &band, &full);
         let sens = sensitivity(
             &Image::new(sy, band.clone(), full.clone()),
             Axis::Y,
             measure.stencil,
         )?;
-        for lp in col_peaks(&sens, &popts)? {
-            let col: Vec<f64> = sens.data.column(lp.line).to_vec();
-            let near = (sn.abs() > 0.2)
-                .then(|| peak_near(&full, &col, off + (lp.coord - off) * cs / sn, &popts).ok())
-                .flatten();
-            if let Some(v) = near
-                .map(|p| p.value)
-                .or_else(|| line_value(&lp, &sens, false))
-            {
-                sy_acc += v;
-                nsy += 1;
-            }
-        }
+        let (a, n) = lane_maxima(&sens, false)?;
+        sy_acc += a;
+        nsy += n;
     }
     if nsx == 0 || nsy == 0 {
         return Err(AnalysisError::Failed(

@@ -413,31 +413,32 @@ fn fit_parabola(
 
 /// Maximum of every row along x (for ∂Sx/∂x images). Errors only for bad options.
 pub fn row_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
-    opts.validate()?;
-    Ok((0..img.rows())
-        .map(|r| {
-            let v: Vec<f64> = img.data.row(r).to_vec();
-            LinePeak {
-                line: r,
-                coord: img.y[r],
-                result: peak_1d(&img.x, &v, opts),
-            }
-        })
-        .collect())
+    line_peaks(img, ndarray::Axis(0), opts)
 }
 
 /// Maximum of every column along y (for ∂Sy/∂y images, and z-profiles). Errors only for bad
 /// options.
 pub fn col_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
+    line_peaks(img, ndarray::Axis(1), opts)
+}
+
+/// The maximum along every lane of `img` on `lines`: Axis(0) every row (along x), Axis(1)
+/// every column (along y).
+fn line_peaks(img: &Image, lines: ndarray::Axis, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
     opts.validate()?;
-    Ok((0..img.cols())
-        .map(|c| {
-            let v: Vec<f64> = img.data.column(c).to_vec();
-            LinePeak {
-                line: c,
-                coord: img.x[c],
-                result: peak_1d(&img.y, &v, opts),
-            }
+    let (coords, along) = if lines.index() == 0 {
+        (&img.y, &img.x)
+    } else {
+        (&img.x, &img.y)
+    };
+    Ok(img
+        .data
+        .axis_iter(lines)
+        .enumerate()
+        .map(|(i, lane)| LinePeak {
+            line: i,
+            coord: coords[i],
+            result: peak_1d(along, &lane.to_vec(), opts),
         })
         .collect())
 }

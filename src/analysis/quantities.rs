@@ -140,6 +140,30 @@ pub struct DiameterCalib {
     pub n_corr: f64,
 }
 
+/// The checks shared by the calibrations from a bead-model sensitivity `sens_bm` (of a
+/// filament of `d_bm_nm`, index `n_bm`): both positive, and an object of index `n_obj` with
+/// positive contrast in the medium (`why` ends that refusal). Returns n_corr (eq. nCor).
+fn bead_model_contrast(
+    sens_bm: f64,
+    d_bm_nm: f64,
+    n_bm: f64,
+    n_obj: f64,
+    n_medium: f64,
+    why: &str,
+) -> Result<f64> {
+    check_above("sens_bm", sens_bm, 0.0)?;
+    check_above("d_bm_nm", d_bm_nm, 0.0)?;
+    let nc = n_corr(n_obj, n_bm, n_medium)?;
+    if !(nc > 0.0) {
+        return Err(AnalysisError::OutOfRange {
+            name: "n_obj",
+            value: n_obj,
+            allowed: format!("n_obj > n_medium = {n_medium}{why}"),
+        });
+    }
+    Ok(nc)
+}
+
 impl DiameterCalib {
     /// A from a measured or modelled bead-model sensitivity: A = d_bm/√(sens_bm·n_corr).
     pub fn from_sens_bm(
@@ -149,16 +173,8 @@ impl DiameterCalib {
         n_obj: f64,
         n_medium: f64,
     ) -> Result<Self> {
-        check_above("sens_bm", sens_bm, 0.0)?;
-        check_above("d_bm_nm", d_bm_nm, 0.0)?;
-        let nc = n_corr(n_obj, n_bm, n_medium)?;
-        if !(nc > 0.0) {
-            return Err(AnalysisError::OutOfRange {
-                name: "n_obj",
-                value: n_obj,
-                allowed: format!("n_obj > n_medium = {n_medium} (a diameter from √sensitivity needs positive contrast)"),
-            });
-        }
+        let why = " (a diameter from √sensitivity needs positive contrast)";
+        let nc = bead_model_contrast(sens_bm, d_bm_nm, n_bm, n_obj, n_medium, why)?;
         Ok(Self {
             a_nm: d_bm_nm / (sens_bm * nc).sqrt(),
             d_bm_nm,
@@ -231,18 +247,9 @@ impl LinDensCalib {
         density_obj: f64,
         n_medium: f64,
     ) -> Result<Self> {
-        check_above("sens_bm", sens_bm, 0.0)?;
-        check_above("d_bm_nm", d_bm_nm, 0.0)?;
         check_above("density_bm", density_bm, 0.0)?;
         check_above("density_obj", density_obj, 0.0)?;
-        let nc = n_corr(n_obj, n_bm, n_medium)?;
-        if !(nc > 0.0) {
-            return Err(AnalysisError::OutOfRange {
-                name: "n_obj",
-                value: n_obj,
-                allowed: format!("n_obj > n_medium = {n_medium}"),
-            });
-        }
+        let nc = bead_model_contrast(sens_bm, d_bm_nm, n_bm, n_obj, n_medium, "")?;
         let area = std::f64::consts::PI / 4.0 * d_bm_nm * d_bm_nm;
         let mu_bm = mass_kda(area * 1000.0, density_bm) / 1000.0;
         Ok(Self {

@@ -210,14 +210,7 @@ impl Template {
         check_above("w_um", w_um, 0.0)?;
         check_above("h_um", h_um, 0.0)?;
         check_above("half_um", half_um, h_um)?;
-        let n = (2.0 * half_um / h_um).round() as usize + 1;
-        if n > 4001 {
-            return Err(AnalysisError::OutOfRange {
-                name: "h_um",
-                value: h_um,
-                allowed: format!("h_um ≥ {}", 2.0 * half_um / 4000.0),
-            });
-        }
+        let n = grid_nodes("h_um", h_um, half_um)?;
         let u0 = -0.5 * (n - 1) as f64 * h_um;
         let grid = Grid2::from_fn(u0, u0, h_um, n, n, Interp::Cubic, |u, v| {
             let g = (-(u * u + v * v) / (w_um * w_um)).exp();
@@ -483,14 +476,7 @@ impl Template {
         check_above("pixel_um", pixel_um, 0.0)?;
         check_above("window_um", window_um, 0.0)?;
         let half = 1.2f64.max(2.0 * window_um);
-        let n = (2.0 * half / pixel_um).round() as usize + 1;
-        if n > 4001 {
-            return Err(AnalysisError::OutOfRange {
-                name: "pixel_um",
-                value: pixel_um,
-                allowed: format!("pixel_um ≥ {}", 2.0 * half / 4000.0),
-            });
-        }
+        let n = grid_nodes("pixel_um", pixel_um, half)?;
         let axis: Vec<f64> = (0..n).map(|i| -half + i as f64 * pixel_um).collect();
         let opts = PeakOptions {
             window_um,
@@ -562,35 +548,24 @@ fn max_dsx_du_smooth(g: &Grid2) -> ([f64; 2], f64) {
     ([cu + x * r, cv + y * r], val)
 }
 
+/// Nodes of a square grid from −`half` to `half` (µm) at spacing `step` (µm, the argument
+/// `name`): at most 4001 per side, so a spacing that asks for more is refused.
+fn grid_nodes(name: &'static str, step: f64, half: f64) -> Result<usize> {
+    let n = (2.0 * half / step).round() as usize + 1;
+    if n > 4001 {
+        return Err(AnalysisError::OutOfRange {
+            name,
+            value: step,
+            allowed: format!("{name} ≥ {}", 2.0 * half / 4000.0),
+        });
+    }
+    Ok(n)
+}
+
 /// Location and value of the maximum of ∂Sx/∂u of a grid: best node, then a fine local search.
 fn max_dsx_du(g: &Grid2) -> ([f64; 2], f64) {
-    let mut best = (0.0, 0.0, f64::NEG_INFINITY);
-    for j in 1..g.nv.saturating_sub(1) {
-        for i in 1..g.nu.saturating_sub(1) {
-            let (u, v) = (g.u0 + i as f64 * g.h, g.v0 + j as f64 * g.h);
-            let d = g.eval_grad(u, v).du[0];
-            if d > best.2 {
-                best = (u, v, d);
-            }
-        }
-    }
-    // Three rounds of a 9×9 local search, the step shrinking 4× each round (h/4, h/16, h/64:
-    // the last one resolves the peak to h/128).
-    let mut step = g.h / 4.0;
-    for _ in 0..3 {
-        let (cu, cv) = (best.0, best.1);
-        for b in -4..=4 {
-            for a in -4..=4 {
-                let (u, v) = (cu + a as f64 * step, cv + b as f64 * step);
-                let d = g.eval_grad(u, v).du[0];
-                if d > best.2 {
-                    best = (u, v, d);
-                }
-            }
-        }
-        step /= 4.0;
-    }
-    ([best.0, best.1], best.2)
+    let (u, v, d) = g.max_of(|u, v| g.eval_grad(u, v).du[0]);
+    ([u, v], d)
 }
 
 #[cfg(test)]

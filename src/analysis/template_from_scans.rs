@@ -227,15 +227,7 @@ fn average_beads(
         }
     }
     let min_cov = cnt.iter().copied().min().unwrap_or(0) as f64 / beads.len().max(1) as f64;
-    let grid = Grid2 {
-        u0,
-        v0: u0,
-        h,
-        nu: nn,
-        nv: nn,
-        data,
-        interp: Interp::Cubic,
-    };
+    let grid = Grid2::square(u0, h, nn, data, Interp::Cubic);
     let t = Template::normalised_with(
         grid,
         reference,

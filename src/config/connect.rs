@@ -359,6 +359,19 @@ pub struct Emulated {
     pub qpd: crate::instrument::emulator::Emulator,
 }
 
+/// An emulator's detector noise (V rms): a finite number ≥ 0.
+fn check_noise_v(noise_v: f64) -> Result<(), ConnectError> {
+    if noise_v.is_finite() && noise_v >= 0.0 {
+        return Ok(());
+    }
+    Err(ConnectError::Config(ConfigError {
+        origin: "connect".into(),
+        key: "noise_v".into(),
+        line: None,
+        message: format!("{noise_v} V: must be a finite number ≥ 0"),
+    }))
+}
+
 /// Start a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process and
 /// connect the real drivers to them: the hardware path without hardware.
 ///
@@ -377,14 +390,7 @@ pub fn connect_emulated(
     use crate::instrument::emulator::{
         sim_signal_source, start_pair, QpdEmulatorConfig, StageEmulatorConfig,
     };
-    if !(noise_v.is_finite() && noise_v >= 0.0) {
-        return Err(ConnectError::Config(ConfigError {
-            origin: "connect".into(),
-            key: "noise_v".into(),
-            line: None,
-            message: format!("{noise_v} V: must be a finite number ≥ 0"),
-        }));
-    }
+    check_noise_v(noise_v)?;
     let qcfg = QpdEmulatorConfig {
         sample_rate_hz: sim.sample_rate,
         noise_v: [noise_v; 3],
@@ -399,14 +405,7 @@ pub fn connect_emulated(
         device: "emulator".into(),
         detail: format!("cannot start the emulators on pseudo-terminals: {e}"),
     })?;
-    let mut cfg = Config {
-        safety: base.safety,
-        ..Config::default()
-    };
-    cfg.stage.backend = Backend::Gcs;
-    cfg.stage.port = Some(stage.path().to_string());
-    cfg.stage.settle_s = base.stage.settle_s;
-    cfg.stage.poll_ms = Some(1);
+    let mut cfg = emulated_stage_config(base, stage.path());
     cfg.qpd.backend = Backend::Scpi;
     cfg.qpd.port = Some(qpd.path().to_string());
     let emulators = json!({
@@ -416,6 +415,20 @@ pub fn connect_emulated(
         "signal": "simulator (ideal signal of the scene) at the emulated stage position",
     });
     finish_emulated(&cfg, stage, qpd, emulators)
+}
+
+/// The config of an emulated GCS stage at `path`: `base`'s `[safety]` and settle time, the
+/// emulator polled every millisecond (its replies are local).
+fn emulated_stage_config(base: &Config, path: &str) -> Config {
+    let mut cfg = Config {
+        safety: base.safety,
+        ..Config::default()
+    };
+    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.port = Some(path.to_string());
+    cfg.stage.settle_s = base.stage.settle_s;
+    cfg.stage.poll_ms = Some(1);
+    cfg
 }
 
 /// Connect through the real drivers to the emulators `cfg` names, and say so in the
@@ -471,14 +484,7 @@ pub fn connect_emulated_redpitaya(
         shared_position, sim_signal_source, start_redpitaya_emulator, start_stage_emulator,
         start_stage_emulator_tcp, RedPitayaEmulatorConfig, StageEmulatorConfig, StagePath,
     };
-    if !(noise_v.is_finite() && noise_v >= 0.0) {
-        return Err(ConnectError::Config(ConfigError {
-            origin: "connect".into(),
-            key: "noise_v".into(),
-            line: None,
-            message: format!("{noise_v} V: must be a finite number ≥ 0"),
-        }));
-    }
+    check_noise_v(noise_v)?;
     let emu_err = |what: &str, e: std::io::Error| DeviceError::Other {
         device: "emulator".into(),
         detail: format!("cannot start the {what} emulator: {e}"),
@@ -512,14 +518,7 @@ pub fn connect_emulated_redpitaya(
         .rsplit_once(':')
         .map(|(h, p)| (h.to_string(), p.to_string()))
         .unwrap_or((hostport.clone(), "5000".into()));
-    let mut cfg = Config {
-        safety: base.safety,
-        ..Config::default()
-    };
-    cfg.stage.backend = Backend::Gcs;
-    cfg.stage.port = Some(stage.path().to_string());
-    cfg.stage.settle_s = base.stage.settle_s;
-    cfg.stage.poll_ms = Some(1);
+    let mut cfg = emulated_stage_config(base, stage.path());
     cfg.stage.trigger_line = Some(1);
     cfg.qpd.backend = Backend::Redpitaya;
     cfg.qpd.host = Some(host);

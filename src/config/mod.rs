@@ -79,6 +79,15 @@ pub struct ConfigError {
     pub message: String,
 }
 
+/// The name of axis `i` (0 x, 1 y, else z) of an x/y/z table.
+fn xyz(i: usize, [x, y, z]: [&str; 3]) -> &str {
+    match i {
+        0 => x,
+        1 => y,
+        _ => z,
+    }
+}
+
 /// Controller axis identifiers for x, y, z.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -104,11 +113,7 @@ impl Default for AxisMap {
 
 impl AxisMap {
     pub fn get(&self, i: usize) -> &str {
-        match i {
-            0 => &self.x,
-            1 => &self.y,
-            _ => &self.z,
-        }
+        xyz(i, [&self.x, &self.y, &self.z])
     }
 }
 
@@ -124,11 +129,7 @@ pub struct AxisPorts {
 
 impl AxisPorts {
     pub fn get(&self, i: usize) -> &str {
-        match i {
-            0 => &self.x,
-            1 => &self.y,
-            _ => &self.z,
-        }
+        xyz(i, [&self.x, &self.y, &self.z])
     }
 }
 

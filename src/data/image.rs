@@ -28,6 +28,38 @@ pub struct Image {
     pub y_name: String,
 }
 
+/// The statistics methods of [`Image`] and [`Profile`] (each type's `stats(what)` over its
+/// values; `what` names the operation in errors, e.g. "image mean").
+macro_rules! summary_methods {
+    ($noun:literal, $value:literal) => {
+        #[doc = concat!("min, max, mean, std and count of the non-NaN ", $value, "s in one pass.")]
+        pub fn summary(&self) -> Result<Stats, DataError> {
+            self.stats(concat!($noun, " summary"))
+        }
+        #[doc = concat!("Smallest ", $value, ", NaN skipped.")]
+        pub fn min(&self) -> Result<f64, DataError> {
+            Ok(self.stats(concat!($noun, " min"))?.min)
+        }
+        #[doc = concat!("Largest ", $value, ", NaN skipped.")]
+        pub fn max(&self) -> Result<f64, DataError> {
+            Ok(self.stats(concat!($noun, " max"))?.max)
+        }
+        #[doc = concat!("Largest absolute ", $value, ", NaN skipped.")]
+        pub fn abs_max(&self) -> Result<f64, DataError> {
+            let s = self.stats(concat!($noun, " abs_max"))?;
+            Ok(s.min.abs().max(s.max.abs()))
+        }
+        #[doc = concat!("Mean of the non-NaN ", $value, "s.")]
+        pub fn mean(&self) -> Result<f64, DataError> {
+            Ok(self.stats(concat!($noun, " mean"))?.mean)
+        }
+        #[doc = concat!("Population standard deviation (ddof = 0) of the non-NaN ", $value, "s.")]
+        pub fn std(&self) -> Result<f64, DataError> {
+            Ok(self.stats(concat!($noun, " std"))?.std)
+        }
+    };
+}
+
 impl Image {
     /// Build an image; panics only on a programming error (axis lengths not matching the data),
     /// never on user input (callers validate first, or use [`Image::try_new`]).
@@ -114,32 +146,7 @@ impl Image {
         Stats::of(self.data.iter().copied(), what)
     }
 
-    /// min, max, mean, std and count of the non-NaN pixels in one pass.
-    pub fn summary(&self) -> Result<Stats, DataError> {
-        self.stats("image summary")
-    }
-
-    /// Smallest pixel value, NaN pixels skipped.
-    pub fn min(&self) -> Result<f64, DataError> {
-        Ok(self.stats("image min")?.min)
-    }
-    /// Largest pixel value, NaN pixels skipped.
-    pub fn max(&self) -> Result<f64, DataError> {
-        Ok(self.stats("image max")?.max)
-    }
-    /// Largest absolute pixel value, NaN pixels skipped.
-    pub fn abs_max(&self) -> Result<f64, DataError> {
-        let s = self.stats("image abs_max")?;
-        Ok(s.min.abs().max(s.max.abs()))
-    }
-    /// Mean of the non-NaN pixels.
-    pub fn mean(&self) -> Result<f64, DataError> {
-        Ok(self.stats("image mean")?.mean)
-    }
-    /// Population standard deviation (ddof = 0) of the non-NaN pixels.
-    pub fn std(&self) -> Result<f64, DataError> {
-        Ok(self.stats("image std")?.std)
-    }
+    summary_methods!("image", "pixel");
 
     /// Row `i` as a profile along the horizontal axis (`t` = x values, named after `x_name`).
     pub fn row(&self, i: i64) -> Result<Profile, DataError> {
@@ -319,32 +326,8 @@ impl Profile {
     fn stats(&self, what: &str) -> Result<Stats, DataError> {
         Stats::of(self.v.iter().copied(), what)
     }
-    /// min, max, mean, std and count of the non-NaN values in one pass.
-    pub fn summary(&self) -> Result<Stats, DataError> {
-        self.stats("profile summary")
-    }
 
-    /// Smallest value, NaN skipped.
-    pub fn min(&self) -> Result<f64, DataError> {
-        Ok(self.stats("profile min")?.min)
-    }
-    /// Largest value, NaN skipped.
-    pub fn max(&self) -> Result<f64, DataError> {
-        Ok(self.stats("profile max")?.max)
-    }
-    /// Largest absolute value, NaN skipped.
-    pub fn abs_max(&self) -> Result<f64, DataError> {
-        let s = self.stats("profile abs_max")?;
-        Ok(s.min.abs().max(s.max.abs()))
-    }
-    /// Mean of the non-NaN values.
-    pub fn mean(&self) -> Result<f64, DataError> {
-        Ok(self.stats("profile mean")?.mean)
-    }
-    /// Population standard deviation (ddof = 0) of the non-NaN values.
-    pub fn std(&self) -> Result<f64, DataError> {
-        Ok(self.stats("profile std")?.std)
-    }
+    summary_methods!("profile", "value");
 }
 
 impl fmt::Display for Profile {

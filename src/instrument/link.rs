@@ -474,24 +474,11 @@ impl LineLink {
         let mut line = Vec::with_capacity(command.len() + 2);
         line.extend_from_slice(command.as_bytes());
         line.extend_from_slice(self.terminator);
-        let timeout = self.timeout;
-        let t0 = Instant::now();
-        let r = self
-            .io
-            .write_all(&line)
-            .and_then(|_| self.io.flush())
-            .map_err(|e| io_error(&self.device, command, timeout, &e));
-        let c = self.cost(command);
-        c.n += 1;
-        c.bytes_out += line.len() as u64;
-        c.write_s += t0.elapsed().as_secs_f64();
-        self.pending_out = Some(line.len() as u64);
-        self.reply_open = false;
-        r
+        self.send_raw(&line, command)
     }
 
-    /// Send raw bytes without a line end (PI's single-character commands such as `#5`,
-    /// 0x05); `label` names them in errors.
+    /// Send raw bytes as they are (a command line with its terminator, or PI's single-character
+    /// commands such as `#5`, 0x05, with none); `label` names them in errors and costs.
     pub fn send_raw(&mut self, bytes: &[u8], label: &str) -> Result<(), DeviceError> {
         let timeout = self.timeout;
         let t0 = Instant::now();

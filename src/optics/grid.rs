@@ -79,6 +79,21 @@ pub struct Grid2 {
 }
 
 impl Grid2 {
+    /// A square grid of n × n nodes from (u0, u0), spacing `h` (µm), with its node values
+    /// (`data`, row-major in v, n² entries).
+    pub fn square(u0: f64, h: f64, n: usize, data: Vec<[f64; 3]>, interp: Interp) -> Self {
+        debug_assert_eq!(data.len(), n * n);
+        Self {
+            u0,
+            v0: u0,
+            h,
+            nu: n,
+            nv: n,
+            data,
+            interp,
+        }
+    }
+
     /// Build a grid by evaluating `f(u, v)` at every node.
     pub fn from_fn(
         u0: f64,
@@ -215,6 +230,38 @@ impl Grid2 {
             out[2] += wvb * acc[2];
         }
         out
+    }
+
+    /// Location (u, v) and value of the maximum of `f` over the grid's extent: the best inner
+    /// node, then three rounds of a 9×9 local search whose step shrinks 4× each round (h/4,
+    /// h/16, h/64: the last resolves the peak to h/128). Used for a template's maximum
+    /// sensitivity and its detection response's peak.
+    pub fn max_of(&self, f: impl Fn(f64, f64) -> f64) -> (f64, f64, f64) {
+        let mut best = (0.0, 0.0, f64::NEG_INFINITY);
+        for j in 1..self.nv.saturating_sub(1) {
+            for i in 1..self.nu.saturating_sub(1) {
+                let (u, v) = (self.u0 + i as f64 * self.h, self.v0 + j as f64 * self.h);
+                let d = f(u, v);
+                if d > best.2 {
+                    best = (u, v, d);
+                }
+            }
+        }
+        let mut step = self.h / 4.0;
+        for _ in 0..3 {
+            let (cu, cv) = (best.0, best.1);
+            for b in -4..=4 {
+                for a in -4..=4 {
+                    let (u, v) = (cu + a as f64 * step, cv + b as f64 * step);
+                    let d = f(u, v);
+                    if d > best.2 {
+                        best = (u, v, d);
+                    }
+                }
+            }
+            step /= 4.0;
+        }
+        best
     }
 
     /// Values and derivatives at (u, v).

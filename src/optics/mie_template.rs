@@ -461,15 +461,7 @@ impl MieTemplate {
                 data[b * nf + a] = acc;
             }
         }
-        Ok(Grid2 {
-            u0,
-            v0: u0,
-            h,
-            nu: nf,
-            nv: nf,
-            data,
-            interp,
-        })
+        Ok(Grid2::square(u0, h, nf, data, interp))
     }
 }
 

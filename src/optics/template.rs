@@ -260,15 +260,7 @@ pub fn plane_grid(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
             }
         }
     }
-    Grid2 {
-        u0,
-        v0: u0,
-        h,
-        nu: n,
-        nv: n,
-        data,
-        interp,
-    }
+    Grid2::square(u0, h, n, data, interp)
 }
 
 /// e^{−iθm} for m = 0 ..= half as (cos θm, −sin θm), from a two-level table: e^{−iθr}
@@ -373,15 +365,7 @@ fn plane_grid_mirrored(det: &Detection, z: f64, h: f64, interp: Interp) -> Optio
             }
         }
     }
-    Some(Grid2 {
-        u0,
-        v0: u0,
-        h,
-        nu: n,
-        nv: n,
-        data,
-        interp,
-    })
+    Some(Grid2::square(u0, h, n, data, interp))
 }
 
 /// The reference implementation of [`plane_grid`] (before issue 20): a Gaussian `exp` and two
@@ -431,13 +415,5 @@ pub fn plane_grid_reference(det: &Detection, z: f64, h: f64, interp: Interp) -> 
             }
         }
     }
-    Grid2 {
-        u0,
-        v0: u0,
-        h,
-        nu: n,
-        nv: n,
-        data,
-        interp,
-    }
+    Grid2::square(u0, h, n, data, interp)
 }

@@ -53,31 +53,7 @@ pub(super) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64
             Channels::Sy => s.dv[1],
         }
     };
-    let mut best = (0.0, 0.0, f64::NEG_INFINITY);
-    for j in 1..g.nv - 1 {
-        for i in 1..g.nu - 1 {
-            let (u, v) = (g.u0 + i as f64 * g.h, g.v0 + j as f64 * g.h);
-            let d = f(u, v);
-            if d > best.2 {
-                best = (u, v, d);
-            }
-        }
-    }
-    let mut step = g.h / 4.0;
-    for _ in 0..3 {
-        let (cu, cv) = (best.0, best.1);
-        for b in -4..=4 {
-            for a in -4..=4 {
-                let (u, v) = (cu + a as f64 * step, cv + b as f64 * step);
-                let d = f(u, v);
-                if d > best.2 {
-                    best = (u, v, d);
-                }
-            }
-        }
-        step /= 4.0;
-    }
-    best
+    g.max_of(f)
 }
 
 /// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is

@@ -200,16 +200,7 @@ pub fn serve_emulators(
         }
         return serve_apt(kind, source, out, stop, opts.link);
     }
-    stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
-    // TCP has no baud rate: the stage's link keeps only the latency there
-    stage_cfg.link = if opts.tcp.is_some() {
-        LinkModel {
-            baud: None,
-            ..opts.link
-        }
-    } else {
-        opts.link
-    };
+    stage_link_options(&mut stage_cfg, opts);
     let mut qpd_cfg = qpd_cfg;
     qpd_cfg.link = opts.link;
     let stage_desc = format!(
@@ -300,6 +291,20 @@ pub fn serve_emulators(
     Ok(())
 }
 
+/// The GCS stage's link as the options model it: its serial link (TCP has no baud rate: only
+/// the latency stays), and `--one-axis-per-query`.
+fn stage_link_options(stage_cfg: &mut StageEmulatorConfig, opts: &EmulateOptions) {
+    stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
+    stage_cfg.link = if opts.tcp.is_some() {
+        LinkModel {
+            baud: None,
+            ..opts.link
+        }
+    } else {
+        opts.link
+    };
+}
+
 /// `redpitaya`: a GCS stage (pseudo-terminal, or TCP with `--tcp`) and a Red Pitaya board on
 /// a loopback TCP port sharing the stage position, the board's inputs carrying `source`
 /// (Sx → IN1, Sy → IN2, Sz → IN3 on the 4-input model), 1 V per signal unit, 1 mV rms noise.
@@ -319,17 +324,8 @@ fn serve_redpitaya(
         ),
     };
     let four = rp_cfg.inputs == 4;
-    stage_cfg.one_axis_per_query |= opts.one_axis_per_query;
-    // the stage's serial link as modelled (TCP has no baud rate: only the latency stays); the
-    // board is on TCP at full speed
-    stage_cfg.link = if opts.tcp.is_some() {
-        LinkModel {
-            baud: None,
-            ..opts.link
-        }
-    } else {
-        opts.link
-    };
+    // the board is on TCP at full speed
+    stage_link_options(&mut stage_cfg, opts);
     let axes = stage_cfg.axes.clone();
     let link_desc = stage_cfg.link.describe();
     let pos = shared_position(stage_cfg.start);

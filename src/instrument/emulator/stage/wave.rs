@@ -383,6 +383,19 @@ impl GcsDevice {
         Ok(Some(lines.join(" \n")))
     }
 
+    /// The parameter id of an `SPA`/`SPA?` item (decimal or `0x` hex) on one of the emulated
+    /// axes: error 15 for an unknown axis, 1 for an id that is not a number.
+    fn axis_param(&self, axis: &str, id: &str) -> Result<u32, i64> {
+        if !self.cfg.axes.iter().any(|a| a == axis) {
+            return Err(15);
+        }
+        match id.strip_prefix("0x").or_else(|| id.strip_prefix("0X")) {
+            Some(h) => u32::from_str_radix(h, 16).ok(),
+            None => id.parse::<u32>().ok(),
+        }
+        .ok_or(1)
+    }
+
     /// `SPA? {<item> <parameter id>}`: the wave generator's and recorder's parameters
     /// (E-727 parameter list; PIPython's `getservotime`/`getmaxnumvalues` read the same ids):
     /// 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder Max Points (all tables
@@ -394,14 +407,7 @@ impl GcsDevice {
         }
         let mut out = Vec::new();
         for c in args.chunks(2) {
-            if !self.cfg.axes.iter().any(|a| a == c[0]) {
-                return Err(15);
-            }
-            let id = match c[1].strip_prefix("0x").or_else(|| c[1].strip_prefix("0X")) {
-                Some(h) => u32::from_str_radix(h, 16).ok(),
-                None => c[1].parse::<u32>().ok(),
-            }
-            .ok_or(1i64)?;
+            let id = self.axis_param(c[0], c[1])?;
             let v = match id {
                 0x0E00_0200 => format!("{:e}", self.wave.cfg.servo_cycle_s),
                 0x1600_0200 => {
@@ -427,14 +433,7 @@ impl GcsDevice {
         }
         let mut set = Vec::new();
         for c in args.chunks(3) {
-            if !self.cfg.axes.iter().any(|a| a == c[0]) {
-                return Err(15);
-            }
-            let id = match c[1].strip_prefix("0x").or_else(|| c[1].strip_prefix("0X")) {
-                Some(h) => u32::from_str_radix(h, 16).ok(),
-                None => c[1].parse::<u32>().ok(),
-            }
-            .ok_or(1i64)?;
+            let id = self.axis_param(c[0], c[1])?;
             let v: f64 = c[2].parse().map_err(|_| 1i64)?;
             if !(v.is_finite() && v >= 0.0) {
                 return Err(17);

@@ -817,7 +817,9 @@ fn continuous_stream_overflows_when_not_read() {
         "DAQmxCfgInputBuffer",
         unsafe extern "C" fn(TaskHandle, u32) -> i32
     );
-    assert_eq!(unsafe { cfg(t, 2000) }, 0);
+    // a buffer of 20000 samples (200 ms at 100 kS/s): reads in time tolerate a loaded machine's
+    // scheduling delays of well over 100 ms (a 2000-sample buffer overflowed under load)
+    assert_eq!(unsafe { cfg(t, 20000) }, 0);
     assert_eq!(f.start(t), 0);
     let mut buf = vec![0.0; 500];
     // read in time: fine
@@ -829,8 +831,8 @@ fn continuous_stream_overflows_when_not_read() {
             f.log()
         );
     }
-    // 2000 samples are 20 ms at 100 kS/s: wait 50 ms
-    std::thread::sleep(std::time::Duration::from_millis(50));
+    // 20000 samples are 200 ms at 100 kS/s: wait 400 ms
+    std::thread::sleep(std::time::Duration::from_millis(400));
     assert_eq!(f.read_f64(t, 500, 1.0, 0, &mut buf).0, -200279);
     assert!(f.extended().contains("Status Code: -200279"));
     assert_eq!(
