@@ -1,6 +1,7 @@
 //! The `bfpscope` binary: commands, exit codes, the scripted tests, the REPL through a pipe.
 
 use crate::support::cleanup;
+use crate::support::emulate::Emulator;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
@@ -402,33 +403,19 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
     use bfpscope::instrument::sim::Renderer;
     use bfpscope::instrument::{Qpd, Stage};
 
-    let mut child = bin()
-        .args(["emulate", "pair"])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let rx = line_reader(child.stdout.take().unwrap());
-    let mut text = String::new();
-    let t0 = Instant::now();
-    while !text.contains("Serving until Ctrl-C") {
-        if t0.elapsed() > Duration::from_secs(60) {
-            let _ = child.kill();
-            panic!("no `Serving until` within 60 s:\n{text}");
-        }
-        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
-            text.push_str(&l);
-            text.push('\n');
-        }
-    }
+    let emulator = Emulator::start(&["pair"]);
+    let text = emulator.text.clone();
     assert!(
         text.starts_with("scene: 1 bead(s), 0 filament(s)"),
         "{text}"
     );
     let path_of = |kind: &str| {
-        let line = text.lines().find(|l| l.starts_with(kind)).unwrap();
-        line.rsplit(" on ").next().unwrap().to_string()
+        emulator
+            .line(kind)
+            .rsplit(" on ")
+            .next()
+            .unwrap()
+            .to_string()
     };
     let (sp, qp) = (path_of("stage:"), path_of("qpd:"));
     assert!(
@@ -440,11 +427,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
         "{text}"
     );
     // the printed bfpscope.toml snippet points at the emulators
-    let snippet = text
-        .split("# bfpscope.toml for these emulators:")
-        .nth(1)
-        .unwrap();
-    let snippet = snippet.split("Serving until").next().unwrap();
+    let snippet = emulator.toml();
     let cfg = bfpscope::config::Config::from_toml_str(snippet, "snippet").unwrap();
     assert_eq!(cfg.qpd.port.as_deref(), Some(qp.as_str()));
 
@@ -482,23 +465,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
     drop((stage, qpd));
 
     // Ctrl-C (SIGINT) stops it cleanly
-    let ok = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(ok.success());
-    let t0 = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if t0.elapsed() > Duration::from_secs(10) {
-            let _ = child.kill();
-            panic!("emulate did not stop on SIGINT");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert_eq!(status.code(), Some(0));
+    assert_eq!(emulator.interrupt(), Some(0));
 }
 
 #[test]
@@ -508,46 +475,16 @@ fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() 
     use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
     use bfpscope::instrument::{DeviceError, Stage};
 
-    let mut child = bin()
-        .args([
-            "emulate",
-            "gcs",
-            "--tcp",
-            "127.0.0.1:0",
-            "--one-axis-per-query",
-        ])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let rx = line_reader(child.stdout.take().unwrap());
-    let mut text = String::new();
-    let t0 = Instant::now();
-    while !text.contains("Serving until Ctrl-C") {
-        if t0.elapsed() > Duration::from_secs(60) {
-            let _ = child.kill();
-            panic!("no `Serving until` within 60 s:\n{text}");
-        }
-        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
-            text.push_str(&l);
-            text.push('\n');
-        }
-    }
-    let line = text.lines().find(|l| l.starts_with("stage:")).unwrap();
+    let emulator = Emulator::start(&["gcs", "--tcp", "127.0.0.1:0", "--one-axis-per-query"]);
+    let text = emulator.text.clone();
+    let line = emulator.line("stage:");
     assert!(
         line.starts_with("stage: PI GCS 2.0 stage (axes 1 2 3, travel -37.5–37.5 × -37.5–37.5 × -25–25 µm, servo off, one axis per query, no baud limit, 1 ms latency) on tcp://127.0.0.1:"),
         "{text}"
     );
     let url = line.rsplit(" on ").next().unwrap().to_string();
     // the printed snippet names the TCP port
-    let snippet = text
-        .split("# bfpscope.toml for these emulators:")
-        .nth(1)
-        .unwrap()
-        .split("Serving until")
-        .next()
-        .unwrap();
+    let snippet = emulator.toml();
     assert!(
         snippet.contains(&format!(
             "[stage]\nbackend = \"gcs\"\nport = \"{url}\"\naxes = {{ x = \"1\", y = \"2\", z = \"3\" }}\n"
@@ -571,23 +508,7 @@ fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() 
     assert_eq!(s.position().unwrap(), [1.5, -2.0, 0.5]);
     drop(s);
 
-    let ok = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(ok.success());
-    let t0 = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if t0.elapsed() > Duration::from_secs(10) {
-            let _ = child.kill();
-            panic!("emulate did not stop on SIGINT");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert_eq!(status.code(), Some(0));
+    assert_eq!(emulator.interrupt(), Some(0));
     // the port is closed
     let e = GcsStage::open(&url, 115_200, GcsOptions::default())
         .err()
@@ -602,27 +523,9 @@ fn emulate_redpitaya_serves_the_board_on_a_loopback_port_until_ctrl_c() {
     use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
     use bfpscope::instrument::Qpd;
 
-    let mut child = bin()
-        .args(["emulate", "redpitaya", "--inputs", "4"])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let rx = line_reader(child.stdout.take().unwrap());
-    let mut text = String::new();
-    let t0 = Instant::now();
-    while !text.contains("Serving until Ctrl-C") {
-        if t0.elapsed() > Duration::from_secs(60) {
-            let _ = child.kill();
-            panic!("no `Serving until` within 60 s:\n{text}");
-        }
-        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
-            text.push_str(&l);
-            text.push('\n');
-        }
-    }
-    let line = text.lines().find(|l| l.starts_with("redpitaya:")).unwrap();
+    let emulator = Emulator::start(&["redpitaya", "--inputs", "4"]);
+    let text = emulator.text.clone();
+    let line = emulator.line("redpitaya:");
     assert!(line.contains("STEMlab 125-14 4-input"), "{text}");
     // the stage's OUT1 drives the board's external trigger, and the config says so
     assert!(line.contains("DIO0_P wired to the stage's OUT1"), "{text}");
@@ -651,23 +554,7 @@ fn emulate_redpitaya_serves_the_board_on_a_loopback_port_until_ctrl_c() {
     assert_eq!(r.n, 15625);
     assert!(r.sz.is_finite() && r.sx_std > 0.0, "{r}");
     drop(rp);
-    let ok = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(ok.success());
-    let t0 = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if t0.elapsed() > Duration::from_secs(10) {
-            let _ = child.kill();
-            panic!("emulate did not stop on SIGINT");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert_eq!(status.code(), Some(0));
+    assert_eq!(emulator.interrupt(), Some(0));
 }
 
 #[test]

@@ -3,6 +3,7 @@
 
 use crate::support::cleanup;
 
+use crate::support::emulate::Emulator;
 use crate::support::pty;
 
 use pty::Prompt;
@@ -198,75 +199,6 @@ fn a_session_calibration_focus_rotation_aggregates() {
     eprintln!("transcript: {}", path.display());
 }
 
-/// A device emulator in a process of its own (`bfpscope emulate DEVICE ARGS…`), as a person
-/// starts it in a second terminal: its `bfpscope.toml` snippet, and Ctrl-C (SIGINT) when dropped.
-struct Emulator {
-    child: std::process::Child,
-    toml: String,
-}
-
-impl Emulator {
-    fn start(device: &str, args: &[&str]) -> Emulator {
-        use std::io::{BufRead, BufReader};
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_bfpscope"))
-            .arg("emulate")
-            .arg(device)
-            .args(args)
-            .stdin(std::process::Stdio::null())
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::inherit())
-            .spawn()
-            .unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        let out = child.stdout.take().unwrap();
-        std::thread::spawn(move || {
-            for l in BufReader::new(out).lines() {
-                let Ok(l) = l else { break };
-                if tx.send(l).is_err() {
-                    break;
-                }
-            }
-        });
-        let mut text = String::new();
-        while !text.contains("Serving until Ctrl-C") {
-            match rx.recv_timeout(T) {
-                Ok(l) => {
-                    text.push_str(&l);
-                    text.push('\n');
-                }
-                Err(_) => {
-                    let _ = child.kill();
-                    panic!("`bfpscope emulate {device}` did not serve within {T:?}:\n{text}");
-                }
-            }
-        }
-        let toml = text
-            .split("# bfpscope.toml for these emulators:\n")
-            .nth(1)
-            .and_then(|t| t.split("Serving until").next())
-            .unwrap_or_else(|| panic!("no config snippet:\n{text}"))
-            .to_string();
-        Emulator { child, toml }
-    }
-}
-
-impl Drop for Emulator {
-    fn drop(&mut self) {
-        unsafe {
-            libc::kill(self.child.id() as i32, libc::SIGINT);
-        }
-        let t0 = std::time::Instant::now();
-        while t0.elapsed() < Duration::from_secs(5) {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 /// Type `expr` (a boolean check) and assert that the prompt answers `true`; `what` says what
 /// the check means, for the failure message.
 fn holds(p: &mut Prompt, expr: &str, what: &str) {
@@ -301,11 +233,11 @@ fn a_night_at_the_prompt() {
     let etc = dir("night-etc");
     std::fs::create_dir_all(&etc).unwrap();
     // 1. the PI + SCPI pair
-    let pair = Emulator::start("pair", &["--baud", "max"]);
+    let pair = Emulator::start(&["pair", "--baud", "max"]);
     let cfg = etc.join("pair.toml");
     // the emulated stage is on target 2 ms after a step: 1 ms of settling after `ONT?` says so
     let toml = pair
-        .toml
+        .toml()
         .replace("[stage]\n", "[stage]\nsettle_s = 0.001\n");
     std::fs::write(&cfg, &toml).unwrap();
     let mut p = Prompt::start(&dir("night"), &["--config", cfg.to_str().unwrap()]);
@@ -433,9 +365,9 @@ fn a_night_at_the_prompt() {
     drop(pair);
     // 3. the Red Pitaya raster: a second prompt on the config `bfpscope emulate redpitaya`
     // prints (its stage: a GCS controller whose OUT1 triggers the board)
-    let rp = Emulator::start("redpitaya", &["--baud", "max"]);
+    let rp = Emulator::start(&["redpitaya", "--baud", "max"]);
     let cfg = etc.join("redpitaya.toml");
-    std::fs::write(&cfg, &rp.toml).unwrap();
+    std::fs::write(&cfg, rp.toml()).unwrap();
     let mut p = Prompt::start(&dir("night-raster"), &["--config", cfg.to_str().unwrap()]);
     assert!(p.out.contains("connected hardware: PI E-727"), "{}", p.out);
     let from = p.out.len();
