@@ -39,6 +39,33 @@ use std::sync::Arc;
 
 pub use super::doc::{fail, Doc, Example, Kind, Param, RResult, Spec};
 
+/// Declares and registers the property getters of one script type, one row a property:
+///
+/// ```ignore
+/// properties!(r, "Image", ImageRef, IMG, [
+///     rows: "int", ""; "number of rows"; "img.rows" => "21"; |i| i.0.rows() as INT,
+/// ]);
+/// ```
+/// reads `name: return type, what it returns (units); summary; example => expected; accessor`.
+/// Each example is the setup line (`IMG`, which makes the value) and the row's code after a
+/// space; the accessor gets `&mut` the Rust type (`ImageRef`). A row is one
+/// [`Registrar::getter`] of `Doc::property(type, name)`; a property with a help text or more
+/// than one example is declared with `getter` itself.
+macro_rules! properties {
+    ($r:expr, $ty:literal, $rust:ty, $setup:expr, [$(
+        $name:ident: $rty:literal, $rdoc:expr; $summary:expr; $code:expr => $expect:expr; $get:expr,
+    )*]) => {$(
+        $r.getter::<$rust, _>(
+            $crate::script::registry::Doc::property($ty, stringify!($name))
+                .returns($rty, $rdoc)
+                .summary($summary)
+                .example(&format!("{} {}", $setup, $code), $expect),
+            $get,
+        );
+    )*};
+}
+pub(crate) use properties;
+
 /// Hands a family file the engine, the context and the list of declarations.
 pub struct Registrar<'a> {
     engine: &'a mut Engine,

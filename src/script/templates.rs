@@ -3,7 +3,7 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, properties, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
@@ -125,37 +125,12 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     // properties and methods
-    r.getter(
-        Doc::property("Template", "norm_factor")
-            .returns("float", "factor applied to the source data so that max ∂Sx/∂x = 1 (reference-bead units per scan unit)")
-            .summary("normalisation of the template")
-            .example(&format!("{TPL} t.norm_factor > 1.0"), "true"),
-        |t: &mut TemplateRef| t.0.norm_factor,
-    );
-    r.getter(
-        Doc::property("Template", "reference")
-            .returns("map", "#{d_nm, n, n_medium, density_g_cm3}")
-            .summary("the reference bead the template represents")
-            .example(&format!("{TPL} t.reference.d_nm"), "110.0"),
-        |t: &mut TemplateRef| to_map(&t.0.reference),
-    );
-    r.getter(
-        Doc::property("Template", "source")
-            .returns(
-                "map",
-                "#{kind: \"model\" | \"scans\" | \"analytic\", …} (beads used, misfit)",
-            )
-            .summary("where the template came from")
-            .example(&format!("{TPL} t.source.kind"), "\"model\""),
-        |t: &mut TemplateRef| to_map(&t.0.source),
-    );
-    r.getter(
-        Doc::property("Template", "h_um")
-            .returns("float", "node spacing, µm")
-            .summary("grid spacing of the template")
-            .example(&format!("{TPL} t.h_um"), "0.025"),
-        |t: &mut TemplateRef| t.0.grid.h,
-    );
+    properties!(r, "Template", TemplateRef, TPL, [
+        norm_factor: "float", "factor applied to the source data so that max ∂Sx/∂x = 1 (reference-bead units per scan unit)"; "normalisation of the template"; "t.norm_factor > 1.0" => "true"; |t| t.0.norm_factor,
+        reference: "map", "#{d_nm, n, n_medium, density_g_cm3}"; "the reference bead the template represents"; "t.reference.d_nm" => "110.0"; |t| to_map(&t.0.reference),
+        source: "map", "#{kind: \"model\" | \"scans\" | \"analytic\", …} (beads used, misfit)"; "where the template came from"; "t.source.kind" => "\"model\""; |t| to_map(&t.0.source),
+        h_um: "float", "node spacing, µm"; "grid spacing of the template"; "t.h_um" => "0.025"; |t| t.0.grid.h,
+    ]);
     r.bind(
         Doc::method("Template", "at")
             .arg("u", "float", "µm", "x − x_bead")
@@ -286,13 +261,9 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
-    r.getter(
-        Doc::property("FitResult", "beads")
-            .returns("array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)")
-            .summary("the fitted beads")
-            .example(&format!("{fx} round(f.beads[0].weight * 1000.0)"), "1000.0"),
-        |f: &mut FitRef| -> Array { f.0.beads.iter().map(bead_map).collect() },
-    );
+    properties!(r, "FitResult", FitRef, fx, [
+        beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
+    ]);
     for (name, doc) in [
         ("chi2", "rss / σ²"),
         ("rss", "Σ (data − model)² over the fitted pixels"),
@@ -324,13 +295,9 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
             move |f: &mut FitRef| fit_float(f, name),
         );
     }
-    r.getter(
-        Doc::property("FitResult", "n_found")
-            .returns("int", "beads whose weight is significantly positive (weight − 3σ > 0)")
-            .summary("how many of the fitted beads were found (the others are noise: see beads[i].found)")
-            .example(&format!("{fx} f.n_found"), "1"),
-        |f: &mut FitRef| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
-    );
+    properties!(r, "FitResult", FitRef, fx, [
+        n_found: "int", "beads whose weight is significantly positive (weight − 3σ > 0)"; "how many of the fitted beads were found (the others are noise: see beads[i].found)"; "f.n_found" => "1"; |f| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
+    ]);
     for (name, doc) in [
         ("dof", "residuals minus parameters"),
         ("iterations", "Jacobian evaluations of the final fit"),
@@ -345,40 +312,14 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
             move |f: &mut FitRef| fit_count(f, name),
         );
     }
-    r.getter(
-        Doc::property("FitResult", "status")
-            .returns("string", "\"converged\", \"max_evaluations\" or \"failed\"")
-            .summary("how the optimiser stopped (see .reason)")
-            .example(&format!("{fx} f.status"), "\"converged\""),
-        |f: &mut FitRef| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
-    );
-    r.getter(
-        Doc::property("FitResult", "reason")
-            .returns("string", "the optimiser's termination reason in words")
-            .summary("why the fit stopped")
-            .example(&format!("{fx} type_of(f.reason)"), "\"string\""),
-        |f: &mut FitRef| -> String { f.0.reason.clone() },
-    );
-    r.getter(
-        Doc::property("FitResult", "degeneracies")
-            .returns("array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]")
-            .summary("what the fit could not resolve (empty when well-posed)")
-            .example(&format!("{fx} f.degeneracies.len()"), "0"),
-        |f: &mut FitRef| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
-    );
-    r.getter(
-        Doc::property("FitResult", "history")
-            .returns(
-                "array",
-                "[#{n_beads, rss, bic, accepted}] of the bead-adding steps",
-            )
-            .summary("bead-adding history (empty unless growing)")
-            .example(
-                &format!("{ONE_BEAD} fit_beads(sc, t).history.len() >= 2"),
-                "true",
-            ),
-        |f: &mut FitRef| -> Array { f.0.history.iter().map(to_dyn).collect() },
-    );
+    properties!(r, "FitResult", FitRef, fx, [
+        status: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.status" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
+        reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
+        degeneracies: "array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]"; "what the fit could not resolve (empty when well-posed)"; "f.degeneracies.len()" => "0"; |f| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
+    ]);
+    properties!(r, "FitResult", FitRef, ONE_BEAD, [
+        history: "array", "[#{n_beads, rss, bic, accepted}] of the bead-adding steps"; "bead-adding history (empty unless growing)"; "fit_beads(sc, t).history.len() >= 2" => "true"; |f| -> Array { f.0.history.iter().map(to_dyn).collect() },
+    ]);
     for (name, doc) in [
         ("model_sx", "model Sx image"),
         ("model_sy", "model Sy image"),
