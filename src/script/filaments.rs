@@ -155,7 +155,7 @@ fn register_filaments(r: &mut Registrar) {
     r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
         measure_filament_of(&s2, &s, &c, &Map::new())
     });
-    for (name, doc) in [
+    let float_rows = [
         (
             "angle_deg",
             "filament angle from the QPD y-axis towards +x, degrees",
@@ -171,15 +171,15 @@ fn register_filaments(r: &mut Registrar) {
         ),
         ("std_corr", "std of the corrected maxima"),
         ("sem_corr", "standard error of mean_corr"),
-    ] {
-        r.getter(
-            Doc::property("FilamentMeasurement", name)
-                .returns("float", doc)
-                .summary(doc)
-                .example(&format!("{fil_ex} type_of(m.{name})"), "\"f64\""),
-            move |m: &mut FilamentRef| filament_float(m, name),
-        );
-    }
+    ];
+    let ex = |name: &str| (format!("{fil_ex} type_of(m.{name})"), "\"f64\"");
+    r.named_getters(
+        "FilamentMeasurement",
+        "float",
+        &float_rows,
+        ex,
+        filament_float,
+    );
     properties!(r, "FilamentMeasurement", FilamentRef, fil_ex, [
         channel: "string", "\"sx_rows\" or \"sy_cols\""; "which maxima were used"; "m.channel" => "\"sx_rows\""; |m| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
         points: "array", "[#{line, x, y, arc_um, sens, sens_err, sens_corr}] along the filament"; "the maxima along the filament"; "m.points.len() > 40" => "true"; |m| -> Array { m.0.points.iter().map(to_dyn).collect() },

@@ -109,8 +109,7 @@ pub fn register(r: &mut Registrar) {
         .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| set_optics(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| set_optics(&c, &spec, &m));
 
     let d = Doc::func("response")
         .map(
@@ -133,8 +132,7 @@ pub fn register(r: &mut Registrar) {
         .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
         .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| response_of(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| response_of(&c, &spec, &m));
 
     let c = ctx.clone();
     r.bind(
@@ -183,8 +181,7 @@ pub fn register(r: &mut Registrar) {
             "error: shape = \"cube\"",
         );
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| trap_depth(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| trap_depth(&c, &spec, &m));
 
     let c = ctx.clone();
     r.bind(
@@ -227,8 +224,7 @@ pub fn register(r: &mut Registrar) {
         .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| max_sensitivity_model(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| max_sensitivity_model(&c, &spec, &m));
     register_fit_beam(r, &ctx);
 }
 

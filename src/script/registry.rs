@@ -211,6 +211,24 @@ impl<'a> Registrar<'a> {
         self.int_forms(&name, method, &types);
     }
 
+    /// Declare and register a binding whose closure needs the session context: `make` gets the
+    /// context and returns the closure, e.g. `r.bind_ctx(d, |c| move || pwd(&c))`.
+    pub fn bind_ctx<
+        A: 'static,
+        const N: usize,
+        const X: bool,
+        R: Any + Clone + Send + Sync,
+        const F: bool,
+        G: RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
+    >(
+        &mut self,
+        doc: Doc,
+        make: impl FnOnce(Arc<Ctx>) -> G,
+    ) {
+        let f = make(self.ctx());
+        self.bind(doc, f);
+    }
+
     /// Register another form (arity or argument types) of an already declared binding.
     pub fn overload<
         A: 'static,
@@ -244,6 +262,27 @@ impl<'a> Registrar<'a> {
     ) {
         self.engine.register_get(doc.name.as_str(), f);
         self.push(doc);
+    }
+
+    /// Declare and register property getters of the type `ty` that share one accessor and whose
+    /// summary is what they return (`returns`): one row `(name, what)` a property;
+    /// `example(name)` gives a row's example and its expected value, `get(value, name)` its value.
+    pub fn named_getters<T: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+        &mut self,
+        ty: &str,
+        returns: &str,
+        rows: &[(&'static str, &str)],
+        example: impl Fn(&str) -> (String, &'static str),
+        get: fn(&T, &str) -> R,
+    ) {
+        for &(name, what) in rows {
+            let (code, expect) = example(name);
+            let d = Doc::property(ty, name)
+                .returns(returns, what)
+                .summary(what)
+                .example(&code, expect);
+            self.getter(d, move |v: &mut T| get(v, name));
+        }
     }
 
     /// Declare something registered by hand through [`Registrar::engine`] (operators).

@@ -177,9 +177,8 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
             .example("scan_xy(#{x: [0, 1], y: [0, 1], nx: 2, ny: 2, speed: 3})", "error: unknown key `speed`");
     }
     let spec = d.spec();
-    let c = r.ctx();
-    r.bind(d, move |m: Map| {
-        scan_grid(&c, &spec, [fast, slow, fixed], &m)
+    r.bind_ctx(d, |c| {
+        move |m: Map| scan_grid(&c, &spec, [fast, slow, fixed], &m)
     });
 }
 
@@ -204,8 +203,7 @@ pub fn register(r: &mut Registrar) {
         .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
     let spec = d.spec();
-    let c = r.ctx();
-    r.bind(d, move |m: Map| scan_line(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| scan_line(&c, &spec, &m));
 
     register_grid(r, Axis::X, Axis::Y, Axis::Z);
     register_grid(r, Axis::X, Axis::Z, Axis::Y);
@@ -561,24 +559,20 @@ fn spec_mesh(
     let who = spec.name.as_str();
     let a1 = axis_arg(who, a1, &spec.usage)?;
     let a2 = axis_arg(who, a2, &spec.usage)?;
-    let s1 = Sweep::new(
-        who,
-        a1,
-        num(who, "from1", f1)?,
-        num(who, "to1", t1)?,
-        intervals(who, "intervals1", n1)?,
-        "points1",
-    )
-    .map_err(|e| e.0)?;
-    let s2 = Sweep::new(
-        who,
-        a2,
-        num(who, "from2", f2)?,
-        num(who, "to2", t2)?,
-        intervals(who, "intervals2", n2)?,
-        "points2",
-    )
-    .map_err(|e| e.0)?;
+    // sweep k (1 fast, 2 slow): its arguments are named from{k}, to{k}, intervals{k}, points{k}
+    let sweep = |axis, [f, t, n]: [&Dynamic; 3], k: &str| -> RResult<Sweep> {
+        Sweep::new(
+            who,
+            axis,
+            num(who, &format!("from{k}"), f)?,
+            num(who, &format!("to{k}"), t)?,
+            intervals(who, &format!("intervals{k}"), n)?,
+            &format!("points{k}"),
+        )
+        .map_err(|e| e.0.into())
+    };
+    let s1 = sweep(a1, [f1, t1, n1], "1")?;
+    let s2 = sweep(a2, [f2, t2, n2], "2")?;
     let plan =
         Plan::grid(who, s1, s2, vec![], num(who, "dwell", dwell)?, rel, false).map_err(|e| e.0)?;
     execute(c, plan)

@@ -264,19 +264,23 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     properties!(r, "FitResult", FitRef, fx, [
         beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
     ]);
-    for (name, doc) in [
+    // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
+    // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
+    // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
+    let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
+    let float_rows = [
         ("chi2", "rss / σ²"),
         ("rss", "Σ (data − model)² over the fitted pixels"),
         ("sigma", "pixel noise used (given or estimated)"),
         ("bic", "Bayesian information criterion"),
         ("condition", "condition number of the column-scaled JᵀJ"),
         ("total_weight", "Σ weights (reference-bead units)"),
-    ] {
-        // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
-        // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
-        // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
-        let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
-        let (ex, expect) = match name {
+    ];
+    r.named_getters(
+        "FitResult",
+        "float",
+        &float_rows,
+        |name| match name {
             "total_weight" => (format!("{fx} round(f.total_weight * 1000.0)"), "1000.0"),
             "chi2" => (format!("{fx} f.chi2"), "3359.0"),
             "rss" => (format!("{fx} f.rss < 1e-20"), "true"),
@@ -286,32 +290,20 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 "true",
             ),
             _ => (format!("{fx} round(f.condition * 1000.0) / 1000.0"), "1.0"),
-        };
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("float", doc)
-                .summary(doc)
-                .example(&ex, expect),
-            move |f: &mut FitRef| fit_float(f, name),
-        );
-    }
+        },
+        fit_float,
+    );
     properties!(r, "FitResult", FitRef, fx, [
         n_found: "int", "beads whose weight is significantly positive (weight − 3σ > 0)"; "how many of the fitted beads were found (the others are noise: see beads[i].found)"; "f.n_found" => "1"; |f| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
     ]);
-    for (name, doc) in [
+    let count_rows = [
         ("dof", "residuals minus parameters"),
         ("iterations", "Jacobian evaluations of the final fit"),
         ("evaluations", "residual evaluations of the final fit"),
         ("n_beads", "number of beads"),
-    ] {
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("int", doc)
-                .summary(doc)
-                .example(&format!("{fx} f.{name} > 0"), "true"),
-            move |f: &mut FitRef| fit_count(f, name),
-        );
-    }
+    ];
+    let ex = |name: &str| (format!("{fx} f.{name} > 0"), "true");
+    r.named_getters("FitResult", "int", &count_rows, ex, fit_count);
     properties!(r, "FitResult", FitRef, fx, [
         status: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.status" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
         reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
@@ -320,20 +312,14 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     properties!(r, "FitResult", FitRef, ONE_BEAD, [
         history: "array", "[#{n_beads, rss, bic, accepted}] of the bead-adding steps"; "bead-adding history (empty unless growing)"; "fit_beads(sc, t).history.len() >= 2" => "true"; |f| -> Array { f.0.history.iter().map(to_dyn).collect() },
     ]);
-    for (name, doc) in [
+    let image_rows = [
         ("model_sx", "model Sx image"),
         ("model_sy", "model Sy image"),
         ("residual_sx", "data − model, Sx"),
         ("residual_sy", "data − model, Sy"),
-    ] {
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("Image", doc)
-                .summary(doc)
-                .example(&format!("{fx} f.{name}.cols"), "41"),
-            move |f: &mut FitRef| fit_image(f, name),
-        );
-    }
+    ];
+    let ex = |name: &str| (format!("{fx} f.{name}.cols"), "41");
+    r.named_getters("FitResult", "Image", &image_rows, ex, fit_image);
     r.bind(
         Doc::method("FitResult", "subtract")
             .arg("scan", "Scan", "", "the scan that was fitted")

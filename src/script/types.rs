@@ -2,6 +2,7 @@
 //! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
 
 use super::registry::{fail, int, num, properties, Doc, RResult, Registrar};
+use super::values::register_printable;
 pub use super::values::{
     register_types, show_custom, CurveRef, FilamentRef, FitRef, ImageRef, ProfileRef, ScanRef,
     TemplateRef,
@@ -328,18 +329,9 @@ const SCAN_EX: &str = "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.25, 0.25], nx: 1
 
 pub fn register(r: &mut Registrar) {
     register_types(r.engine());
-    {
-        let e = r.engine();
-        e.register_type_with_name::<ScanRef>("Scan")
-            .register_type_with_name::<ImageRef>("Image")
-            .register_type_with_name::<ProfileRef>("Profile");
-        e.register_fn("to_string", |s: &mut ScanRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ScanRef| s.to_string())
-            .register_fn("to_string", |s: &mut ImageRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ImageRef| s.to_string())
-            .register_fn("to_string", |s: &mut ProfileRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ProfileRef| s.to_string());
-    }
+    register_printable::<ScanRef>(r.engine(), "Scan");
+    register_printable::<ImageRef>(r.engine(), "Image");
+    register_printable::<ProfileRef>(r.engine(), "Profile");
     register_scan(r);
     register_image(r);
     register_profile(r);
@@ -431,20 +423,14 @@ fn register_image(r: &mut Registrar) {
             "0.1709",
         ),
     ];
-    for (name, what, f, ex_val) in stat_list {
-        let ex_code = format!("{IMG} round(img.{name}() * 1e4) / 1e4");
-        let d = Doc::method("Image", name)
+    let doc = |name: &str, what: &str, ex_val: &str| {
+        Doc::method("Image", name)
             .returns("float", "signal units")
             .summary(&format!("{what} (NaN pixels skipped)"))
             .help("Unmeasured (NaN) pixels of a partial scan are skipped; an image without any finite pixel is an error.")
-            .example(&ex_code, ex_val);
-        let who = format!("img.{name}()");
-        r.bind(d, move |i: &mut ImageRef| image_stat(&who, i, f));
-        // the same as a property (`img.max`)
-        let who = format!("img.{name}");
-        r.engine()
-            .register_get(name, move |i: &mut ImageRef| image_stat(&who, i, f));
-    }
+            .example(&format!("{IMG} round(img.{name}() * 1e4) / 1e4"), ex_val)
+    };
+    register_stats(r, stat_list, doc, "img", image_stat);
     r.bind(
         Doc::method("Image", "sum")
             .returns("float", "")
@@ -578,19 +564,15 @@ fn register_profile(r: &mut Registrar) {
         ),
         ("abs_max", "largest absolute value", |s| s.abs_max, "0.1709"),
     ];
-    for (name, what, f, ex) in stat_list {
-        let d = Doc::method("Profile", name)
+    let doc = |name: &str, what: &str, ex: &str| {
+        Doc::method("Profile", name)
             .returns("float", "")
             .summary(&format!(
                 "{what} (NaN samples skipped); also a property: profile.{name}"
             ))
-            .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex);
-        let who = format!("profile.{name}()");
-        r.bind(d, move |p: &mut ProfileRef| profile_stat(&who, p, f));
-        let who = format!("profile.{name}");
-        r.engine()
-            .register_get(name, move |p: &mut ProfileRef| profile_stat(&who, p, f));
-    }
+            .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex)
+    };
+    register_stats(r, stat_list, doc, "profile", profile_stat);
     r.bind(
         Doc::method("Profile", "argmax")
             .returns("float", "µm")
@@ -615,6 +597,27 @@ fn register_profile(r: &mut Registrar) {
 
 /// The statistics (max, min, mean, std, abs_max) of a binding, as a function of [`Stats`].
 type StatFn = fn(&Stats) -> f64;
+
+/// The statistics of a script type `T` (Image, Profile) as methods `value.name()` declared by
+/// `doc(name, what, expected example value)` and, undeclared, as the same properties
+/// `value.name`: one row `(name, what, statistic, expected)` each. `stat(who, value, f)`
+/// computes one; `who` (`receiver.name()` or `receiver.name`) names the call in its errors.
+fn register_stats<T: std::any::Any + Clone + Send + Sync>(
+    r: &mut Registrar,
+    rows: [(&'static str, &str, StatFn, &str); 5],
+    doc: impl Fn(&str, &str, &str) -> Doc,
+    receiver: &str,
+    stat: fn(&str, &T, StatFn) -> RResult<f64>,
+) {
+    for (name, what, f, expected) in rows {
+        let who = format!("{receiver}.{name}()");
+        r.bind(doc(name, what, expected), move |v: &mut T| stat(&who, v, f));
+        // the same as a property (`img.max`)
+        let who = format!("{receiver}.{name}");
+        r.engine()
+            .register_get(name, move |v: &mut T| stat(&who, v, f));
+    }
+}
 
 /// `scan.sx` / `scan.sy` / `scan.sz`: one channel as an Image.
 fn scan_channel(s: &ScanRef, ch: &str) -> ImageRef {
