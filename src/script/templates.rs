@@ -155,14 +155,13 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.overload("max_sens", |t: &mut TemplateRef, px: f64, st: &str| {
         template_max_sens(t, px, Some(st))
     });
-    let c = ctx.clone();
-    r.bind(
+    r.bind_ctx(
         Doc::method("Template", "save")
             .arg("path", "string", "", "file (JSON; relative: in the session folder; an existing file is kept and a numbered name used)")
             .returns("string", "the path written")
             .summary("save the template (JSON with grid, reference bead, source and the script's provenance)")
             .example(&format!("{TPL} let p = status().data_dir + \"/tpl_example.json\"; t.save(p); load_template(p).h_um"), "0.025"),
-        move |t: &mut TemplateRef, path: &str| -> RResult<String> {
+        |c| move |t: &mut TemplateRef, path: &str| -> RResult<String> {
             super::console::save_template(&c, t, path, false)
         },
     );
