@@ -294,26 +294,36 @@ impl<'a> Registrar<'a> {
 /// The numbers of an array argument (`who: name[i] must be a number` otherwise). Non-finite
 /// values pass through: reductions skip them, checks that need finite values make their own.
 pub fn numbers(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
+    array_of(who, name, "numbers", v, |i, x| {
+        to_f64(x).map_or_else(
+            || {
+                fail(format!(
+                    "{who}: {name}[{i}] must be a number, got {} {x}",
+                    x.type_name()
+                ))
+            },
+            Ok,
+        )
+    })
+}
+
+/// Every element of an array argument through `item(index, element)`; not an array:
+/// `who: name must be an array of <what>, got <type>`.
+pub fn array_of<T>(
+    who: &str,
+    name: &str,
+    what: &str,
+    v: &Dynamic,
+    item: impl FnMut(usize, &Dynamic) -> RResult<T>,
+) -> RResult<Vec<T>> {
     let Some(a) = v.read_lock::<rhai::Array>() else {
         return fail(format!(
-            "{who}: {name} must be an array of numbers, got {}",
+            "{who}: {name} must be an array of {what}, got {}",
             v.type_name()
         ));
     };
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            to_f64(x).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: {name}[{i}] must be a number, got {} {x}",
-                        x.type_name()
-                    ))
-                },
-                Ok,
-            )
-        })
-        .collect()
+    let mut item = item;
+    a.iter().enumerate().map(|(i, x)| item(i, x)).collect()
 }
 
 /// A script error `who: e` from any displayable error of the library.
