@@ -413,6 +413,17 @@ fn status(c: &Ctx) -> RResult<Map> {
 }
 
 /// `connect(#{...})`: check the keys, then connect the backend ([`connect_binding`]).
+/// A `connect` option that counts something (baud, milliseconds): an integer 1 ≤ k ≤ max, or
+/// absent.
+fn connect_count(o: &Opts, k: &str, max: i64) -> RResult<Option<i64>> {
+    match o.int(k)? {
+        Some(v) if !(1..=max).contains(&v) => fail(format!(
+            "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
+        )),
+        v => Ok(v),
+    }
+}
+
 fn connect(c: &Ctx, spec: &Spec, m: &Map) -> RResult<String> {
     let o = Opts::new(spec, m)?;
     connect_binding(c, &o, m)
@@ -653,14 +664,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            let positive = |k: &str, max: i64| -> RResult<Option<i64>> {
-                match o.int(k)? {
-                    Some(v) if !(1..=max).contains(&v) => fail(format!(
-                        "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
-                    )),
-                    v => Ok(v),
-                }
-            };
+            let positive = |k: &str, max: i64| connect_count(&o, k, max);
             if let Some(b) = positive("baud", MAX_BAUD.into())? {
                 cfg.stage.baud = b as u32;
                 cfg.qpd.baud = b as u32;
@@ -684,12 +688,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 cfg.stage.backend = Backend::Madlib;
                 cfg.qpd.backend = Backend::Nidaqmx;
             }
-            if let Some(t) = o.int("timeout_ms")? {
-                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
-                    return fail(format!(
-                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
-                    ));
-                }
+            if let Some(t) = connect_count(&o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.qpd.timeout_ms = t as u64;
             }
             connect_hardware(c, &cfg, &backend).map_err(Into::into)
@@ -706,12 +705,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            if let Some(t) = o.int("timeout_ms")? {
-                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
-                    return fail(format!(
-                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
-                    ));
-                }
+            if let Some(t) = connect_count(&o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.stage.timeout_ms = t as u64;
                 cfg.qpd.timeout_ms = t as u64;
             }
