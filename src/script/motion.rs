@@ -664,7 +664,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            let positive = |k: &str, max: i64| connect_count(&o, k, max);
+            let positive = |k: &str, max: i64| connect_count(o, k, max);
             if let Some(b) = positive("baud", MAX_BAUD.into())? {
                 cfg.stage.baud = b as u32;
                 cfg.qpd.baud = b as u32;
@@ -688,7 +688,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 cfg.stage.backend = Backend::Madlib;
                 cfg.qpd.backend = Backend::Nidaqmx;
             }
-            if let Some(t) = connect_count(&o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
+            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.qpd.timeout_ms = t as u64;
             }
             connect_hardware(c, &cfg, &backend).map_err(Into::into)
@@ -705,7 +705,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            if let Some(t) = connect_count(&o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
+            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.stage.timeout_ms = t as u64;
                 cfg.qpd.timeout_ms = t as u64;
             }
