@@ -6,7 +6,7 @@
 //! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
 //! after a template's normalisation (the reference bead's max ∂Sx/∂x = 1).
 
-use super::registry::{err, fail, num, numbers, Opts, RResult};
+use super::registry::{array_of, err, fail, num, numbers, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
 use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
@@ -328,30 +328,22 @@ pub(crate) fn bead_map(b: &FitBead) -> Dynamic {
 
 /// `[#{x, y, weight}]` → (x, y, weight) triples.
 pub(crate) fn bead_list(who: &str, v: &Dynamic) -> RResult<Vec<(f64, f64, f64)>> {
-    let Some(a) = v.read_lock::<Array>() else {
-        return fail(format!(
-            "{who}: beads must be an array of #{{x, y, weight}} maps (µm, reference-bead units), got {}",
-            v.type_name()
-        ));
-    };
-    a.iter()
-        .enumerate()
-        .map(|(i, b)| {
-            let Some(m) = b.read_lock::<Map>() else {
-                return fail(format!(
-                    "{who}: beads[{i}] must be #{{x, y, weight}}, got {b}"
-                ));
-            };
-            let g = |k: &str, d: Option<f64>| -> RResult<f64> {
-                match (m.get(k), d) {
-                    (Some(v), _) => num(who, &format!("beads[{i}].{k}"), v),
-                    (None, Some(d)) => Ok(d),
-                    (None, None) => fail(format!("{who}: beads[{i}] lacks `{k}` (µm)")),
-                }
-            };
-            Ok((g("x", None)?, g("y", None)?, g("weight", Some(1.0))?))
-        })
-        .collect()
+    let what = "#{x, y, weight} maps (µm, reference-bead units)";
+    array_of(who, "beads", what, v, |i, b| {
+        let Some(m) = b.read_lock::<Map>() else {
+            return fail(format!(
+                "{who}: beads[{i}] must be #{{x, y, weight}}, got {b}"
+            ));
+        };
+        let g = |k: &str, d: Option<f64>| -> RResult<f64> {
+            match (m.get(k), d) {
+                (Some(v), _) => num(who, &format!("beads[{i}].{k}"), v),
+                (None, Some(d)) => Ok(d),
+                (None, None) => fail(format!("{who}: beads[{i}] lacks `{k}` (µm)")),
+            }
+        };
+        Ok((g("x", None)?, g("y", None)?, g("weight", Some(1.0))?))
+    })
 }
 
 /// `#{points: [[x, y], …], d_nm: 50.0 | [..], n: 1.41}` → a bead-model filament.

@@ -106,15 +106,13 @@ pub fn register(r: &mut Registrar) {
         .returns("string", "the session folder")
         .summary("the session folder: where scans, figures, templates and the session log go")
         .example("pwd() == status().data_dir", "true");
-    let c = r.ctx();
-    r.bind(d, move || pwd(&c));
+    r.bind_ctx(d, |c| move || pwd(&c));
 
     let d = Doc::func("ls")
         .returns("array", "file names in the session folder, sorted")
         .summary("list the session folder")
         .example("ls().len() >= 0", "true");
-    let c = r.ctx();
-    r.bind(d, move || ls(&c));
+    r.bind_ctx(d, |c| move || ls(&c));
 
     let d = Doc::func("note")
         .arg("text", "string", "", "a note (sample, condition, what you are doing)")
@@ -122,8 +120,7 @@ pub fn register(r: &mut Registrar) {
         .summary("add a note to the metadata of every later scan (meta.notes); note() with \"\" clears them")
         .example("note(\"sample 3, 110 nm PS\"); note(\"after refocus\").len()", "2")
         .example("note(\"a\"); note(\"\").len()", "0");
-    let c = r.ctx();
-    r.bind(d, move |text: &str| note(&c, text));
+    r.bind_ctx(d, |c| move |text: &str| note(&c, text));
 
     let d = Doc::func("scans")
         .map("filter", "optional", &[
@@ -136,8 +133,7 @@ pub fn register(r: &mut Registrar) {
         .summary("list and search the session's scans by kind, time, protocol and notes")
         .example("connect(#{backend: \"mock\"}); note(\"test\"); scan_xz(#{x: [-0.5, 0.5], z: [-0.5, 0.5], nx: 5, nz: 5, dwell: 0.0001}); let l = scans(#{kind: \"XZ\"}); [l.len(), l[0].notes[0]]", "[1, \"test\"]")
         .example("scans(#{knd: \"XY\"})", "error: did you mean `kind`?");
-    let c = r.ctx();
-    r.bind(d, move |filter: Map| scans(&c, &filter));
+    r.bind_ctx(d, |c| move |filter: Map| scans(&c, &filter));
     let c = r.ctx();
     r.overload("scans", move || scans_all(&c));
 

@@ -26,8 +26,7 @@ pub fn register(r: &mut Registrar) {
             "help(\"scan_lne\")",
             "error: help: no binding called \"scan_lne\"; did you mean `scan_line`?",
         );
-    let c = r.ctx();
-    r.bind(d, move || help_all(&c));
+    r.bind_ctx(d, |c| move || help_all(&c));
     let c = r.ctx();
     r.overload("help", move |name: &str| help_one(&c, name));
 
@@ -64,9 +63,8 @@ pub fn register(r: &mut Registrar) {
         .example("assert_err(|| mv(#{x: 1000.0}))", "\"mv refused, nothing was moved: x = 1000 µm is above the soft limit x ≤ 50 µm\"")
         .example("assert_err(|| 1 + 1)", "error: assert_err: expected an error, but the closure returned 2")
         .example("assert_err(|| qpd(0), \"out of range\").len() > 0", "true");
-    let c = r.ctx();
-    r.bind(d, move |ctx: NativeCallContext, f: FnPtr| {
-        expect_err(&ctx, &f, None, &c.docs())
+    r.bind_ctx(d, |c| {
+        move |ctx: NativeCallContext, f: FnPtr| expect_err(&ctx, &f, None, &c.docs())
     });
     let c = r.ctx();
     r.overload(
@@ -109,8 +107,7 @@ pub fn register(r: &mut Registrar) {
         .summary("ask the operator and wait for the answer (hardware protocols: \"rotate the sample, then press Enter\")")
         .help("Prints the question and reads one line from the terminal. Answers queued with answer([...]) are used first, so scripted tests can answer prompts. End of input (no terminal, no queued answer) is an error, so an unattended script never waits forever.")
         .example("answer([\"yes\"]); ask(\"rotated?\")", "\"yes\"");
-    let c = r.ctx();
-    r.bind(d, move |q: &str| ask(&c, q));
+    r.bind_ctx(d, |c| move |q: &str| ask(&c, q));
 
     let d = Doc::func("answer")
         .arg(
@@ -122,8 +119,7 @@ pub fn register(r: &mut Registrar) {
         .returns("int", "answers now queued")
         .summary("queue answers for ask() (scripted tests and unattended runs)")
         .example("answer([\"y\", \"y\"])", "2");
-    let c = r.ctx();
-    r.bind(d, move |a: Array| answer(&c, &a));
+    r.bind_ctx(d, |c| move |a: Array| answer(&c, &a));
 
     let d = Doc::func("protocol_begin")
         .arg("name", "string", "", "the protocol (stdlib module and function)")
@@ -131,9 +127,8 @@ pub fn register(r: &mut Registrar) {
         .returns("()", "")
         .summary("mark the start of a protocol: every scan, template, figure and CSV written until protocol_end() records it with its arguments")
         .example("protocol_begin(\"focus::search\", #{axis: \"x\"}); provenance().protocol.name", "\"focus::search\"");
-    let c = r.ctx();
-    r.bind(d, move |name: &str, args: Map| {
-        protocol_begin(&c, name, args)
+    r.bind_ctx(d, |c| {
+        move |name: &str, args: Map| protocol_begin(&c, name, args)
     });
 
     let d = Doc::func("protocol_end")
@@ -143,23 +138,20 @@ pub fn register(r: &mut Registrar) {
             "protocol_begin(\"x\", #{}); protocol_end(); provenance().protocol",
             "()",
         );
-    let c = r.ctx();
-    r.bind(d, move || protocol_end(&c));
+    r.bind_ctx(d, |c| move || protocol_end(&c));
 
     let d = Doc::func("provenance")
         .returns("map", "#{program, script: #{path, sha256, repl_line}, git_revision, protocol: #{name, args} or (), written}")
         .summary("what every file written from a script carries (scan metadata, template JSON, PNG text chunk, CSV trailer)")
         .example("provenance().program.starts_with(\"bfpscope\")", "true");
-    let c = r.ctx();
-    r.bind(d, move || provenance(&c));
+    r.bind_ctx(d, |c| move || provenance(&c));
 
     let d = Doc::func("trace_start")
         .returns("()", "")
         .summary("record every move, read and protocol decision of the connected instrument, with its clock's time (golden traces)")
         .help("Protocols call trace_note at their decisions. tests/golden.rs compares traces of protocol runs on the simulator with the committed files in tests/golden/; BFPSCOPE_BLESS=\"<one line saying why>\" cargo test --test program golden:: rewrites them deliberately, adding the reason to the file's # header.")
         .example("trace_start(); mv(#{x: 0.5}); trace_text().contains(\"move\")", "true");
-    let c = r.ctx();
-    r.bind(d, move || c.trace_start());
+    r.bind_ctx(d, |c| move || c.trace_start());
 
     let d = Doc::func("trace_note")
         .arg(
@@ -174,8 +166,7 @@ pub fn register(r: &mut Registrar) {
             "trace_start(); trace_note(\"chose z\"); trace_text().contains(\"chose z\")",
             "true",
         );
-    let c = r.ctx();
-    r.bind(d, move |t: &str| c.trace_note(t));
+    r.bind_ctx(d, |c| move |t: &str| c.trace_note(t));
 
     let d = Doc::func("trace_text")
         .returns(
@@ -184,8 +175,7 @@ pub fn register(r: &mut Registrar) {
         )
         .summary("the trace recorded since trace_start()")
         .example("trace_text()", "error: trace_text: not tracing");
-    let c = r.ctx();
-    r.bind(d, move || trace_text(&c));
+    r.bind_ctx(d, |c| move || trace_text(&c));
 
     let d = Doc::func("version")
         .returns("string", "")

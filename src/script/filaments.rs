@@ -2,7 +2,7 @@
 //! measurement, SBR and aggregate removal with the Sy channel, fibril diameters, microtubule
 //! linear density, masses.
 
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, num, properties, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
 use crate::analysis::quantities::{
@@ -132,16 +132,9 @@ fn register_filaments(r: &mut Registrar) {
             ),
         |c: &mut CurveRef, a: f64, ch: &str| curve_correction(c, a, ch),
     );
-    r.getter(
-        Doc::property("AngleCurve", "nodes")
-            .returns(
-                "map",
-                "#{angle_deg: [..], sx: [..], sy: [..], sx0, pixel_um}",
-            )
-            .summary("the computed nodes of the curve (for plots and tables)")
-            .example(&format!("{CURVE} c.nodes.angle_deg.len()"), "6"),
-        |c: &mut CurveRef| curve_nodes(c),
-    );
+    properties!(r, "AngleCurve", CurveRef, CURVE, [
+        nodes: "map", "#{angle_deg: [..], sx: [..], sy: [..], sx0, pixel_um}"; "the computed nodes of the curve (for plots and tables)"; "c.nodes.angle_deg.len()" => "6"; |c| curve_nodes(c),
+    ]);
 
     let d = Doc::func("measure_filament")
         .arg("scan", "Scan", "", "XY scan of a filament")
@@ -162,7 +155,7 @@ fn register_filaments(r: &mut Registrar) {
     r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
         measure_filament_of(&s2, &s, &c, &Map::new())
     });
-    for (name, doc) in [
+    let float_rows = [
         (
             "angle_deg",
             "filament angle from the QPD y-axis towards +x, degrees",
@@ -178,42 +171,20 @@ fn register_filaments(r: &mut Registrar) {
         ),
         ("std_corr", "std of the corrected maxima"),
         ("sem_corr", "standard error of mean_corr"),
-    ] {
-        r.getter(
-            Doc::property("FilamentMeasurement", name)
-                .returns("float", doc)
-                .summary(doc)
-                .example(&format!("{fil_ex} type_of(m.{name})"), "\"f64\""),
-            move |m: &mut FilamentRef| filament_float(m, name),
-        );
-    }
-    r.getter(
-        Doc::property("FilamentMeasurement", "channel")
-            .returns("string", "\"sx_rows\" or \"sy_cols\"")
-            .summary("which maxima were used")
-            .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
-        |m: &mut FilamentRef| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
+    ];
+    let ex = |name: &str| (format!("{fil_ex} type_of(m.{name})"), "\"f64\"");
+    r.named_getters(
+        "FilamentMeasurement",
+        "float",
+        &float_rows,
+        ex,
+        filament_float,
     );
-    r.getter(
-        Doc::property("FilamentMeasurement", "points")
-            .returns(
-                "array",
-                "[#{line, x, y, arc_um, sens, sens_err, sens_corr}] along the filament",
-            )
-            .summary("the maxima along the filament")
-            .example(&format!("{fil_ex} m.points.len() > 40"), "true"),
-        |m: &mut FilamentRef| -> Array { m.0.points.iter().map(to_dyn).collect() },
-    );
-    r.getter(
-        Doc::property("FilamentMeasurement", "sens")
-            .returns(
-                "Image",
-                "the sensitivity image used (reference-bead units/µm)",
-            )
-            .summary("sensitivity image of the chosen channel")
-            .example(&format!("{fil_ex} m.sens.cols"), "61"),
-        |m: &mut FilamentRef| -> ImageRef { ImageRef(Arc::new(m.0.sens.clone())) },
-    );
+    properties!(r, "FilamentMeasurement", FilamentRef, fil_ex, [
+        channel: "string", "\"sx_rows\" or \"sy_cols\""; "which maxima were used"; "m.channel" => "\"sx_rows\""; |m| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
+        points: "array", "[#{line, x, y, arc_um, sens, sens_err, sens_corr}] along the filament"; "the maxima along the filament"; "m.points.len() > 40" => "true"; |m| -> Array { m.0.points.iter().map(to_dyn).collect() },
+        sens: "Image", "the sensitivity image used (reference-bead units/µm)"; "sensitivity image of the chosen channel"; "m.sens.cols" => "61"; |m| -> ImageRef { ImageRef(Arc::new(m.0.sens.clone())) },
+    ]);
     r.bind(
         Doc::method("FilamentMeasurement", "profile")
             .arg(

@@ -188,8 +188,9 @@ pub fn register(r: &mut Registrar) {
             &format!("{SCENE} let p = dir + \"/ex.tif\"; save_tiff(sc.sx, p); load_tiff(p).cols"),
             "21",
         );
-    let c = ctx.clone();
-    r.bind(d, move |i: ImageRef, path: &str| save_tiff(&c, &i, path));
+    r.bind_ctx(d, |c| {
+        move |i: ImageRef, path: &str| save_tiff(&c, &i, path)
+    });
 
     let d = Doc::func("load_tiff")
         .arg("path", "string", "", "a TIFF written by save_tiff")
@@ -209,8 +210,7 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} let p = dir + \"/ex.csv\"; save_csv(sc.sx.row(10), p) == p"), "true")
         .example("let p = status().data_dir + \"/ex_t.csv\"; save_csv(#{d_nm: [50.0, 60.0], sens: [0.1, 0.2]}, p) == p", "true")
         .example("save_csv(#{a: [1.0], b: [1.0, 2.0]}, status().data_dir + \"/ex_bad.csv\")", "error: ");
-    let c = ctx.clone();
-    r.bind(d, move |v: Dynamic, path: &str| save_csv(&c, &v, path));
+    r.bind_ctx(d, |c| move |v: Dynamic, path: &str| save_csv(&c, &v, path));
 }
 
 /// Bind a figure binding `name(what, path[, opts])` and its form without `opts`: both call `f`

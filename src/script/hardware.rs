@@ -6,8 +6,7 @@ use super::registry::{fail, Doc, RResult, Registrar};
 use rhai::{Array, Dynamic};
 
 pub fn register(r: &mut Registrar) {
-    let c = r.ctx();
-    r.bind(
+    r.bind_ctx(
         Doc::func("gcs_query")
             .arg("query", "string", "", "a GCS query: a command ending in `?`, e.g. \"SAI?\", \"POS? 1\", \"VEL?\", \"*IDN?\"")
             .returns("array", "the reply lines")
@@ -24,10 +23,9 @@ pub fn register(r: &mut Registrar) {
                 "connect(#{backend: \"mock\"}); gcs_query(\"SAI?\")",
                 "error: gcs_query: mock stage: `SAI?`: this stage has no command language to query",
             ),
-        move |q: &str| gcs_query(&c, q),
+        |c| move |q: &str| gcs_query(&c, q),
     );
-    let c = r.ctx();
-    r.bind(
+    r.bind_ctx(
         Doc::func("zero_gauge")
             .returns("map", "#{x, y, z}: true for each axis whose strain gauge is now zeroed")
             .summary("zero the strain gauges of the stage's piezo cubes (Thorlabs KPZ101)")
@@ -49,7 +47,7 @@ pub fn register(r: &mut Registrar) {
                 "connect(#{backend: \"mock\"}); zero_gauge()",
                 "error: zero_gauge: mock stage: this stage has no strain gauge to zero (Thorlabs KPZ101 cubes have one; PI controllers calibrate their sensors themselves)",
             ),
-        move || zero_gauge(&c),
+        |c| move || zero_gauge(&c),
     );
 }
 

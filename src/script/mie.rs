@@ -5,7 +5,6 @@ use super::registry::{err, Doc, Opts, RResult, Registrar, Spec};
 use rhai::{Map, INT};
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
     let d = Doc::func("mie_q")
         .map(
             "sphere",
@@ -44,8 +43,7 @@ pub fn register(r: &mut Registrar) {
         .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
         .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| mie(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| mie(&c, &spec, &m));
 }
 
 /// `mie_q(#{x, m_re, m_im})`: Lorenz–Mie efficiencies of a sphere of size parameter x and

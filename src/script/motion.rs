@@ -94,15 +94,13 @@ pub fn register(r: &mut Registrar) {
         .summary("current stage position")
         .example("pos()", "#{x: 0.0, y: 0.0, z: 0.0}")
         .example("mv(#{x: 1.5}); pos().x", "1.5");
-    let c = ctx.clone();
-    r.bind(d, move || pos(&c));
+    r.bind_ctx(d, |c| move || pos(&c));
 
     let d = Doc::func("wa")
         .summary("where all: print the position of every axis")
         .help("SPEC's `wa`. Prints `x = … µm  y = … µm  z = … µm`; use pos() to get the values.")
         .example("wa()", "()");
-    let c = ctx.clone();
-    r.bind(d, move || wa(&c));
+    r.bind_ctx(d, |c| move || wa(&c));
 
     let d = Doc::func("mv")
         .map("target", "absolute target, any subset of the axes", AXES_KEYS)
@@ -114,15 +112,13 @@ pub fn register(r: &mut Registrar) {
         .example("mv(#{x: 1.0, z: -0.5}); pos()", "#{x: 1.0, y: 0.0, z: -0.5}")
         .example("mv(#{x: 80.0})", "error: x = 80 µm is above the soft limit x ≤ 50 µm")
         .example("mv(#{w: 1.0})", "error: unknown axis `w`");
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| do_move(&c, "mv", &m, false));
+    r.bind_ctx(d, |c| move |m: Map| do_move(&c, "mv", &m, false));
 
     let d = Doc::func("mvr")
         .map("step", "relative move, any subset of the axes", AXES_KEYS)
         .summary("move the stage relative to where it is")
         .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25");
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| do_move(&c, "mvr", &m, true));
+    r.bind_ctx(d, |c| move |m: Map| do_move(&c, "mvr", &m, true));
 
     let d = Doc::func("qpd")
         .arg("n", "int", "samples", &format!("number of samples to average, 1 ≤ n ≤ {QPD_MAX_SAMPLES}"))
@@ -130,8 +126,7 @@ pub fn register(r: &mut Registrar) {
         .summary("read the QPD: the mean of n samples of Sx, Sy, Sz")
         .example("mv(#{x: 0.2}); round(qpd(100).sx * 1e4) / 1e4", "0.1558")
         .example("qpd(0)", "error: qpd: n = 0 is out of range: 1 ≤ n ≤ 10000000");
-    let c = ctx.clone();
-    r.bind(d, move |n: Dynamic| qpd(&c, &n));
+    r.bind_ctx(d, |c| move |n: Dynamic| qpd(&c, &n));
 
     let d = Doc::func("ct")
         .arg(
@@ -152,15 +147,13 @@ pub fn register(r: &mut Registrar) {
             "ct(-1)",
             "error: ct: seconds = -1 is out of range: 0 < seconds ≤ 3600",
         );
-    let c = ctx.clone();
-    r.bind(d, move |t: Dynamic| ct(&c, &t));
+    r.bind_ctx(d, |c| move |t: Dynamic| ct(&c, &t));
 
     let d = Doc::func("clock")
         .returns("float", "s")
         .summary("instrument time: simulated seconds on a virtual clock, wall seconds on hardware")
         .example("let t0 = clock(); ct(0.5); clock() - t0", "0.5");
-    let c = ctx.clone();
-    r.bind(d, move || clock(&c));
+    r.bind_ctx(d, |c| move || clock(&c));
 
     let d = Doc::func("limits")
         .returns(
@@ -171,8 +164,7 @@ pub fn register(r: &mut Registrar) {
         .example("limits().x", "[-50.0, 50.0]")
         .example("limits().max_step_um", "10.0")
         .example("limits().max_speed_um_s", "()");
-    let c = ctx.clone();
-    r.bind(d, move || limits(&c));
+    r.bind_ctx(d, |c| move || limits(&c));
 
     let d = Doc::func("status")
         .returns("map", "#{connected, backend, instrument, position, clock_s, virtual_clock, limits, data_dir, last_scan}")
@@ -182,8 +174,7 @@ pub fn register(r: &mut Registrar) {
         .example("status().backend", "\"mock\"")
         .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
         .example("status().position.x", "0.0");
-    let c = ctx.clone();
-    r.bind(d, move || status(&c));
+    r.bind_ctx(d, |c| move || status(&c));
 
     let (mock, emu) = (MockConfig::default(), QpdEmulatorConfig::default());
     let d = Doc::func("connect")
@@ -250,8 +241,7 @@ pub fn register(r: &mut Registrar) {
         .example("connect(#{backend: \"sim\", stage_port: \"/dev/ttyUSB0\"})", "error: connect: stage_port applies to backend \"hardware\"")
         .example("connect(#{backend: \"hexapod\"})", "error: backend = \"hexapod\" is not available");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| connect(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| connect(&c, &spec, &m));
     let c = ctx.clone();
     r.overload("connect", move || connect_default(&c));
 
@@ -262,8 +252,7 @@ pub fn register(r: &mut Registrar) {
         .example("disconnect(); status().connected", "false")
         .example("disconnect()", "\"disconnected mock\"")
         .example("disconnect(); pos()", "error: pos: no instrument connected");
-    let c = ctx.clone();
-    r.bind(d, move || disconnect(&c));
+    r.bind_ctx(d, |c| move || disconnect(&c));
 
     let d = Doc::func("mock_commands")
         .returns(
@@ -275,8 +264,7 @@ pub fn register(r: &mut Registrar) {
             "mv(#{x: 1}); mock_commands().filter(|c| c.starts_with(\"move\"))",
             "[\"move 1 0 0\"]",
         );
-    let c = ctx.clone();
-    r.bind(d, move || mock_commands(&c));
+    r.bind_ctx(d, |c| move || mock_commands(&c));
 }
 
 /// The largest sample count `qpd(n)` reads.
@@ -425,6 +413,17 @@ fn status(c: &Ctx) -> RResult<Map> {
 }
 
 /// `connect(#{...})`: check the keys, then connect the backend ([`connect_binding`]).
+/// A `connect` option that counts something (baud, milliseconds): an integer 1 ≤ k ≤ max, or
+/// absent.
+fn connect_count(o: &Opts, k: &str, max: i64) -> RResult<Option<i64>> {
+    match o.int(k)? {
+        Some(v) if !(1..=max).contains(&v) => fail(format!(
+            "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
+        )),
+        v => Ok(v),
+    }
+}
+
 fn connect(c: &Ctx, spec: &Spec, m: &Map) -> RResult<String> {
     let o = Opts::new(spec, m)?;
     connect_binding(c, &o, m)
@@ -665,14 +664,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            let positive = |k: &str, max: i64| -> RResult<Option<i64>> {
-                match o.int(k)? {
-                    Some(v) if !(1..=max).contains(&v) => fail(format!(
-                        "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
-                    )),
-                    v => Ok(v),
-                }
-            };
+            let positive = |k: &str, max: i64| connect_count(o, k, max);
             if let Some(b) = positive("baud", MAX_BAUD.into())? {
                 cfg.stage.baud = b as u32;
                 cfg.qpd.baud = b as u32;
@@ -696,12 +688,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 cfg.stage.backend = Backend::Madlib;
                 cfg.qpd.backend = Backend::Nidaqmx;
             }
-            if let Some(t) = o.int("timeout_ms")? {
-                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
-                    return fail(format!(
-                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
-                    ));
-                }
+            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.qpd.timeout_ms = t as u64;
             }
             connect_hardware(c, &cfg, &backend).map_err(Into::into)
@@ -718,12 +705,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             if let Some(p) = o.string("qpd_port")? {
                 cfg.qpd.port = Some(p);
             }
-            if let Some(t) = o.int("timeout_ms")? {
-                if !(1..=MAX_TIMEOUT_MS as i64).contains(&t) {
-                    return fail(format!(
-                        "connect: timeout_ms = {t} is out of range: 1 ≤ timeout_ms ≤ {MAX_TIMEOUT_MS}"
-                    ));
-                }
+            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
                 cfg.stage.timeout_ms = t as u64;
                 cfg.qpd.timeout_ms = t as u64;
             }

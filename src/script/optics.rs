@@ -35,15 +35,14 @@ fn optics_map(o: &Optics) -> Map {
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
-    let c = ctx.clone();
-    r.bind(
+    r.bind_ctx(
         Doc::func("optics")
             .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi, beam, pupil_filling}")
             .summary("the current optical parameters (nm, mW)")
             .help("Defaults are the paper's: λ = 1064 nm, water n = 1.333, w0 = 400 nm (1/e² radius), detection NA 1.2, 0.13 mW at the focus; n_theta × n_phi is the cone quadrature (accuracy knob, docs/accuracy.md).")
             .example("optics().wavelength_nm", "1064.0")
             .example("optics().w0_nm", "400.0"),
-        move || optics(&c),
+        |c| move || optics(&c),
     );
     let d = Doc::func("set_optics")
         .map(
@@ -109,8 +108,7 @@ pub fn register(r: &mut Registrar) {
         .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| set_optics(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| set_optics(&c, &spec, &m));
 
     let d = Doc::func("response")
         .map(
@@ -133,11 +131,9 @@ pub fn register(r: &mut Registrar) {
         .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
         .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| response_of(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| response_of(&c, &spec, &m));
 
-    let c = ctx.clone();
-    r.bind(
+    r.bind_ctx(
         Doc::func("p_scat_ratio")
             .arg("d_nm", "float", "nm", "sphere diameter")
             .arg("n", "float", "", "refractive index of the sphere")
@@ -148,7 +144,7 @@ pub fn register(r: &mut Registrar) {
             .help("P_scat/P_beam = (16/3)·k⁴·CM²·r⁶/w0² with k = 2π n_s/λ, CM = (m²−1)/(m²+2), m = n/n_s and w0 the 1/e² intensity radius of set_optics (peak intensity 2P/(π w0²)). The supplement (S1) integrates the beam as I0·e^(−r²/w0²), i.e. reads w0 as a 1/e radius, and gets half this value: the paper's convention gives 2.35e-5 for the 110 nm reference bead (its \"≈ 2×10⁻⁵\") where this gives 4.70e-5, and 1 % at 302 nm (paper: \"exceed 300 nm\") where this gives 269 nm. See docs/physics.md §6.")
             .example("round(p_scat_ratio(110.0, 1.572) * 1e7) / 1e7", "4.7e-5")
             .example("p_scat_ratio(110.0, 0.5)", "error: n = 0.5 is out of range"),
-        move |d: Dynamic, n: Dynamic| p_scat(&c, &d, &n),
+        |c| move |d: Dynamic, n: Dynamic| p_scat(&c, &d, &n),
     );
 
     let d = Doc::func("trap_depth_kt")
@@ -183,11 +179,9 @@ pub fn register(r: &mut Registrar) {
             "error: shape = \"cube\"",
         );
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| trap_depth(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| trap_depth(&c, &spec, &m));
 
-    let c = ctx.clone();
-    r.bind(
+    r.bind_ctx(
         Doc::func("n_corr")
             .arg("n_obj", "float", "", "index of the measured object")
             .arg("n_ref", "float", "", "index of the reference bead")
@@ -195,7 +189,7 @@ pub fn register(r: &mut Registrar) {
             .summary("refractive-index correction (eq. nCor) in the medium of optics()")
             .example("n_corr(1.572, 1.572)", "1.0")
             .example("round(n_corr(1.414, 1.57) * 1e4) / 1e4", "0.3505"),
-        move |a: Dynamic, b: Dynamic| index_correction(&c, &a, &b),
+        |c| move |a: Dynamic, b: Dynamic| index_correction(&c, &a, &b),
     );
     r.bind(
         Doc::func("sphere_mass_kda")
@@ -227,8 +221,7 @@ pub fn register(r: &mut Registrar) {
         .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
     let spec = d.spec();
-    let c = ctx.clone();
-    r.bind(d, move |m: Map| max_sensitivity_model(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| max_sensitivity_model(&c, &spec, &m));
     register_fit_beam(r, &ctx);
 }
 

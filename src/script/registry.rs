@@ -39,6 +39,33 @@ use std::sync::Arc;
 
 pub use super::doc::{fail, Doc, Example, Kind, Param, RResult, Spec};
 
+/// Declares and registers the property getters of one script type, one row a property:
+///
+/// ```ignore
+/// properties!(r, "Image", ImageRef, IMG, [
+///     rows: "int", ""; "number of rows"; "img.rows" => "21"; |i| i.0.rows() as INT,
+/// ]);
+/// ```
+/// reads `name: return type, what it returns (units); summary; example => expected; accessor`.
+/// Each example is the setup line (`IMG`, which makes the value) and the row's code after a
+/// space; the accessor gets `&mut` the Rust type (`ImageRef`). A row is one
+/// [`Registrar::getter`] of `Doc::property(type, name)`; a property with a help text or more
+/// than one example is declared with `getter` itself.
+macro_rules! properties {
+    ($r:expr, $ty:literal, $rust:ty, $setup:expr, [$(
+        $name:ident: $rty:literal, $rdoc:expr; $summary:expr; $code:expr => $expect:expr; $get:expr,
+    )*]) => {$(
+        $r.getter::<$rust, _>(
+            $crate::script::registry::Doc::property($ty, stringify!($name))
+                .returns($rty, $rdoc)
+                .summary($summary)
+                .example(&format!("{} {}", $setup, $code), $expect),
+            $get,
+        );
+    )*};
+}
+pub(crate) use properties;
+
 /// Hands a family file the engine, the context and the list of declarations.
 pub struct Registrar<'a> {
     engine: &'a mut Engine,
@@ -184,6 +211,24 @@ impl<'a> Registrar<'a> {
         self.int_forms(&name, method, &types);
     }
 
+    /// Declare and register a binding whose closure needs the session context: `make` gets the
+    /// context and returns the closure, e.g. `r.bind_ctx(d, |c| move || pwd(&c))`.
+    pub fn bind_ctx<
+        A: 'static,
+        const N: usize,
+        const X: bool,
+        R: Any + Clone + Send + Sync,
+        const F: bool,
+        G: RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
+    >(
+        &mut self,
+        doc: Doc,
+        make: impl FnOnce(Arc<Ctx>) -> G,
+    ) {
+        let f = make(self.ctx());
+        self.bind(doc, f);
+    }
+
     /// Register another form (arity or argument types) of an already declared binding.
     pub fn overload<
         A: 'static,
@@ -219,6 +264,27 @@ impl<'a> Registrar<'a> {
         self.push(doc);
     }
 
+    /// Declare and register property getters of the type `ty` that share one accessor and whose
+    /// summary is what they return (`returns`): one row `(name, what)` a property;
+    /// `example(name)` gives a row's example and its expected value, `get(value, name)` its value.
+    pub fn named_getters<T: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+        &mut self,
+        ty: &str,
+        returns: &str,
+        rows: &[(&'static str, &str)],
+        example: impl Fn(&str) -> (String, &'static str),
+        get: fn(&T, &str) -> R,
+    ) {
+        for &(name, what) in rows {
+            let (code, expect) = example(name);
+            let d = Doc::property(ty, name)
+                .returns(returns, what)
+                .summary(what)
+                .example(&code, expect);
+            self.getter(d, move |v: &mut T| get(v, name));
+        }
+    }
+
     /// Declare something registered by hand through [`Registrar::engine`] (operators).
     pub fn declare(&mut self, doc: Doc) {
         self.push(doc);
@@ -228,26 +294,36 @@ impl<'a> Registrar<'a> {
 /// The numbers of an array argument (`who: name[i] must be a number` otherwise). Non-finite
 /// values pass through: reductions skip them, checks that need finite values make their own.
 pub fn numbers(who: &str, name: &str, v: &Dynamic) -> RResult<Vec<f64>> {
+    array_of(who, name, "numbers", v, |i, x| {
+        to_f64(x).map_or_else(
+            || {
+                fail(format!(
+                    "{who}: {name}[{i}] must be a number, got {} {x}",
+                    x.type_name()
+                ))
+            },
+            Ok,
+        )
+    })
+}
+
+/// Every element of an array argument through `item(index, element)`; not an array:
+/// `who: name must be an array of <what>, got <type>`.
+pub fn array_of<T>(
+    who: &str,
+    name: &str,
+    what: &str,
+    v: &Dynamic,
+    item: impl FnMut(usize, &Dynamic) -> RResult<T>,
+) -> RResult<Vec<T>> {
     let Some(a) = v.read_lock::<rhai::Array>() else {
         return fail(format!(
-            "{who}: {name} must be an array of numbers, got {}",
+            "{who}: {name} must be an array of {what}, got {}",
             v.type_name()
         ));
     };
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            to_f64(x).map_or_else(
-                || {
-                    fail(format!(
-                        "{who}: {name}[{i}] must be a number, got {} {x}",
-                        x.type_name()
-                    ))
-                },
-                Ok,
-            )
-        })
-        .collect()
+    let mut item = item;
+    a.iter().enumerate().map(|(i, x)| item(i, x)).collect()
 }
 
 /// A script error `who: e` from any displayable error of the library.

@@ -24,6 +24,16 @@ pub const STOP_RULE: &str = "Stop rule (every mode): Ctrl-C at the prompt pauses
      after a stage error the stage gets a stop command and nothing else (no return, no further motion); after any \
      other error (QPD, digitiser) a relative scan returns to its start.";
 
+/// Where the stage is after a SPEC scan (help text): back at the start for a relative scan
+/// (`rel`), at the last point for an absolute one; then [`STOP_RULE`].
+fn where_the_stage_ends(rel: bool) -> String {
+    if rel {
+        format!("Positions are relative to where the stage is, and the stage returns there at the end. {STOP_RULE}")
+    } else {
+        format!("The stage stays at the last point. {STOP_RULE}")
+    }
+}
+
 /// The help text of the `dwell` option, naming the default.
 fn dwell_help() -> String {
     format!(
@@ -177,9 +187,8 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
             .example("scan_xy(#{x: [0, 1], y: [0, 1], nx: 2, ny: 2, speed: 3})", "error: unknown key `speed`");
     }
     let spec = d.spec();
-    let c = r.ctx();
-    r.bind(d, move |m: Map| {
-        scan_grid(&c, &spec, [fast, slow, fixed], &m)
+    r.bind_ctx(d, |c| {
+        move |m: Map| scan_grid(&c, &spec, [fast, slow, fixed], &m)
     });
 }
 
@@ -204,8 +213,7 @@ pub fn register(r: &mut Registrar) {
         .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
     let spec = d.spec();
-    let c = r.ctx();
-    r.bind(d, move |m: Map| scan_line(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| scan_line(&c, &spec, &m));
 
     register_grid(r, Axis::X, Axis::Y, Axis::Z);
     register_grid(r, Axis::X, Axis::Z, Axis::Y);
@@ -224,7 +232,7 @@ pub fn register(r: &mut Registrar) {
             .summary(&format!("SPEC {what} line scan: intervals + 1 points from `from` to `to`"))
             .help(&format!(
                 "As in SPEC, the fourth argument counts intervals, so `{name}(\"x\", -1, 1, 20, 0.01)` measures 21 points. {}",
-                if rel { format!("Positions are relative to where the stage is, and the stage returns there at the end. {STOP_RULE}") } else { format!("The stage stays at the last point. {STOP_RULE}") }
+                where_the_stage_ends(rel)
             ));
         d = if rel {
             d.example("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")
@@ -239,13 +247,11 @@ pub fn register(r: &mut Registrar) {
             &format!("error: usage: {name}(axis, from, to, intervals, dwell)"),
         );
         let spec = d.spec();
-        let c = r.ctx();
-        r.bind(
-            d,
+        r.bind_ctx(d, |c| {
             move |axis: Dynamic, from: Dynamic, to: Dynamic, n: Dynamic, dwell: Dynamic| {
                 spec_line(&c, &spec, rel, [&axis, &from, &to], &n, &dwell)
-            },
-        );
+            }
+        });
     }
     for (name, rel) in [("a2scan", false), ("d2scan", true)] {
         let what = if rel { "relative" } else { "absolute" };
@@ -264,7 +270,7 @@ pub fn register(r: &mut Registrar) {
                 "Point i is at from1 + i·(to1 − from1)/intervals on axis1 and from2 + i·(to2 − from2)/intervals on \
                  axis2: a line across the sample at any angle. {} Every point is checked against the soft \
                  limits before the first move, like every scan.",
-                if rel { format!("Positions are relative to where the stage is, and the stage returns there at the end. {STOP_RULE}") } else { format!("The stage stays at the last point. {STOP_RULE}") }
+                where_the_stage_ends(rel)
             ));
         d = if rel {
             d.example("mv(#{x: 2.0, y: 1.0}); let s = d2scan(\"x\", -0.5, 0.5, \"y\", 0.0, 1.0, 4, 0.001); [s.cols, s.x[4], pos().y]", "[5, 2.5, 1.0]")
@@ -286,9 +292,7 @@ pub fn register(r: &mut Registrar) {
                 ),
             );
         let spec = d.spec();
-        let c = r.ctx();
-        r.bind(
-            d,
+        r.bind_ctx(d, |c| {
             move |a1: Dynamic,
                   f1: Dynamic,
                   t1: Dynamic,
@@ -298,8 +302,8 @@ pub fn register(r: &mut Registrar) {
                   n: Dynamic,
                   dwell: Dynamic| {
                 spec_line2(&c, &spec, rel, [&a1, &f1, &t1], [&a2, &f2, &t2], &n, &dwell)
-            },
-        );
+            }
+        });
     }
     for (name, rel) in [("mesh", false), ("dmesh", true)] {
         let what = if rel { "relative" } else { "absolute" };
@@ -324,20 +328,17 @@ pub fn register(r: &mut Registrar) {
             d.help(&format!("Positions relative to the start; returns to the start at the end. {STOP_RULE}"))
                 .example("let s = dmesh(\"x\", -0.5, 0.5, 4, \"z\", -0.2, 0.2, 2, 0.001); [s.cols, s.rows, s.axes, pos().z]", "[5, 3, [\"x\", \"z\"], 0.0]")
         } else {
-            d.help(&format!("The stage stays at the last point. {STOP_RULE}"))
-                .example(
-                    "let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]",
-                    "[11, 6]",
-                )
+            d.help(&where_the_stage_ends(false)).example(
+                "let s = mesh(\"x\", -1, 1, 10, \"y\", -1, 1, 5, 0.001); [s.cols, s.rows]",
+                "[11, 6]",
+            )
         };
         d = d.example(
             &format!("{name}(\"x\", 0, 1, 4, \"x\", 0, 1, 4, 0.001)"),
             "error: both scan axes are x",
         );
         let spec = d.spec();
-        let c = r.ctx();
-        r.bind(
-            d,
+        r.bind_ctx(d, |c| {
             move |a1: Dynamic,
                   f1: Dynamic,
                   t1: Dynamic,
@@ -355,23 +356,21 @@ pub fn register(r: &mut Registrar) {
                     [&a2, &f2, &t2, &n2],
                     &dwell,
                 )
-            },
-        );
+            }
+        });
     }
 
     // files (.npz through data::npz)
-    let c = r.ctx();
-    r.bind(
+    r.bind_ctx(
         Doc::method("Scan", "save")
             .arg("path", "string", "", "file to write (never overwritten); relative: in the session folder, as every save")
             .returns("string", "the path written")
             .summary("save the scan to a file (temporary name + rename; refuses to overwrite)")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); let p = s.path + \".copy.npz\"; s.save(p); load_scan(p).cols", "3")
             .example("let s = scan_line(#{axis: \"x\", from: 0, to: 1, n: 3}); s.save(s.path)", "error: exists; scans are never overwritten"),
-        move |s: &mut ScanRef, path: &str| save_scan(&c, s, path),
+        |c| move |s: &mut ScanRef, path: &str| save_scan(&c, s, path),
     );
-    let c = r.ctx();
-    r.bind(
+    r.bind_ctx(
         Doc::func("load_scan")
             .arg(
                 "path",
@@ -389,7 +388,7 @@ pub fn register(r: &mut Registrar) {
                 "load_scan(\"no/such/file.npz\")",
                 "error: load_scan: no/such/file.npz",
             ),
-        move |path: &str| load_scan(&c, path),
+        |c| move |path: &str| load_scan(&c, path),
     );
 }
 
@@ -561,24 +560,20 @@ fn spec_mesh(
     let who = spec.name.as_str();
     let a1 = axis_arg(who, a1, &spec.usage)?;
     let a2 = axis_arg(who, a2, &spec.usage)?;
-    let s1 = Sweep::new(
-        who,
-        a1,
-        num(who, "from1", f1)?,
-        num(who, "to1", t1)?,
-        intervals(who, "intervals1", n1)?,
-        "points1",
-    )
-    .map_err(|e| e.0)?;
-    let s2 = Sweep::new(
-        who,
-        a2,
-        num(who, "from2", f2)?,
-        num(who, "to2", t2)?,
-        intervals(who, "intervals2", n2)?,
-        "points2",
-    )
-    .map_err(|e| e.0)?;
+    // sweep k (1 fast, 2 slow): its arguments are named from{k}, to{k}, intervals{k}, points{k}
+    let sweep = |axis, [f, t, n]: [&Dynamic; 3], k: &str| -> RResult<Sweep> {
+        Sweep::new(
+            who,
+            axis,
+            num(who, &format!("from{k}"), f)?,
+            num(who, &format!("to{k}"), t)?,
+            intervals(who, &format!("intervals{k}"), n)?,
+            &format!("points{k}"),
+        )
+        .map_err(|e| e.0.into())
+    };
+    let s1 = sweep(a1, [f1, t1, n1], "1")?;
+    let s2 = sweep(a2, [f2, t2, n2], "2")?;
     let plan =
         Plan::grid(who, s1, s2, vec![], num(who, "dwell", dwell)?, rel, false).map_err(|e| e.0)?;
     execute(c, plan)

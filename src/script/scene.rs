@@ -238,8 +238,7 @@ pub fn register(r: &mut Registrar) {
         .example("let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 500.0}); simulate(s).notes.len()", "1")
         .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
         .example(&format!("{SCENE_EX} simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 0, ny: 21}})"), "error: nx = 0");
-    let c = ctx.clone();
-    r.bind(d, move |s: SceneRef| install(&c, &s.0));
+    r.bind_ctx(d, |c| move |s: SceneRef| install(&c, &s.0));
     let spec = Doc::func("simulate").map("grid", "", grid_keys).spec();
     let c = ctx.clone();
     r.overload("simulate", move |s: SceneRef, m: Map| {
@@ -256,8 +255,7 @@ pub fn register(r: &mut Registrar) {
             &format!("{SCENE_EX} simulate(s); pipeline()[0].name"),
             "\"superposition\"",
         );
-    let c = ctx.clone();
-    r.bind(d, move || pipeline(&c));
+    r.bind_ctx(d, |c| move || pipeline(&c));
 }
 
 /// `scene.n_objects`: beads + filaments + aggregates (each aggregate counted).

@@ -148,6 +148,23 @@ fn register_sensitivity(r: &mut Registrar) {
     });
 }
 
+/// The `img` argument of `who`: an Image, or a Scan's Sx (`axis` x) or Sy (`axis` y) channel.
+fn image_or_scan(who: &str, v: &Dynamic, axis: crate::analysis::Axis) -> RResult<Arc<Image>> {
+    if let Some(s) = v.read_lock::<ScanRef>() {
+        Ok(Arc::new(match axis {
+            crate::analysis::Axis::X => s.scan.sx.clone(),
+            crate::analysis::Axis::Y => s.scan.sy.clone(),
+        }))
+    } else if let Some(i) = v.read_lock::<ImageRef>() {
+        Ok(i.0.clone())
+    } else {
+        fail(format!(
+            "{who}: img must be an Image or a Scan, got {}",
+            v.type_name()
+        ))
+    }
+}
+
 /// `sensitivity(img[, opts])`: the derivative ∂S/∂x or ∂S/∂y (signal units per µm) of an image,
 /// or of a scan's Sx (axis x) / Sy (axis y), by the chosen stencil (Sec. 3.2).
 fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
@@ -162,19 +179,7 @@ fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
         Ok,
     )?;
     let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
-    let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
-        match axis {
-            crate::analysis::Axis::X => Arc::new(s.scan.sx.clone()),
-            crate::analysis::Axis::Y => Arc::new(s.scan.sy.clone()),
-        }
-    } else if let Some(i) = v.read_lock::<ImageRef>() {
-        i.0.clone()
-    } else {
-        return fail(format!(
-            "sensitivity: img must be an Image or a Scan, got {}",
-            v.type_name()
-        ));
-    };
+    let im = image_or_scan("sensitivity", &v, axis)?;
     let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
     Ok(ImageRef(Arc::new(out)))
 }
@@ -213,16 +218,7 @@ fn focus_search_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
         z_window_um: pos_f64("focus_search", &o, "z_window_um", d.z_window_um, 1e-3, 1e3)?,
         level: pos_f64("focus_search", &o, "level", d.level, 0.0, 1.0)?,
     };
-    let im: Arc<Image> = if let Some(s) = v.read_lock::<ScanRef>() {
-        Arc::new(s.scan.sx.clone())
-    } else if let Some(i) = v.read_lock::<ImageRef>() {
-        i.0.clone()
-    } else {
-        return fail(format!(
-            "focus_search: img must be an Image or a Scan, got {}",
-            v.type_name()
-        ));
-    };
+    let im = image_or_scan("focus_search", &v, crate::analysis::Axis::X)?;
     let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
     let mut out = Map::new();
     out.insert("z_best".into(), res.z_best.into());

@@ -3,7 +3,7 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, properties, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
@@ -125,37 +125,12 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     // properties and methods
-    r.getter(
-        Doc::property("Template", "norm_factor")
-            .returns("float", "factor applied to the source data so that max ∂Sx/∂x = 1 (reference-bead units per scan unit)")
-            .summary("normalisation of the template")
-            .example(&format!("{TPL} t.norm_factor > 1.0"), "true"),
-        |t: &mut TemplateRef| t.0.norm_factor,
-    );
-    r.getter(
-        Doc::property("Template", "reference")
-            .returns("map", "#{d_nm, n, n_medium, density_g_cm3}")
-            .summary("the reference bead the template represents")
-            .example(&format!("{TPL} t.reference.d_nm"), "110.0"),
-        |t: &mut TemplateRef| to_map(&t.0.reference),
-    );
-    r.getter(
-        Doc::property("Template", "source")
-            .returns(
-                "map",
-                "#{kind: \"model\" | \"scans\" | \"analytic\", …} (beads used, misfit)",
-            )
-            .summary("where the template came from")
-            .example(&format!("{TPL} t.source.kind"), "\"model\""),
-        |t: &mut TemplateRef| to_map(&t.0.source),
-    );
-    r.getter(
-        Doc::property("Template", "h_um")
-            .returns("float", "node spacing, µm")
-            .summary("grid spacing of the template")
-            .example(&format!("{TPL} t.h_um"), "0.025"),
-        |t: &mut TemplateRef| t.0.grid.h,
-    );
+    properties!(r, "Template", TemplateRef, TPL, [
+        norm_factor: "float", "factor applied to the source data so that max ∂Sx/∂x = 1 (reference-bead units per scan unit)"; "normalisation of the template"; "t.norm_factor > 1.0" => "true"; |t| t.0.norm_factor,
+        reference: "map", "#{d_nm, n, n_medium, density_g_cm3}"; "the reference bead the template represents"; "t.reference.d_nm" => "110.0"; |t| to_map(&t.0.reference),
+        source: "map", "#{kind: \"model\" | \"scans\" | \"analytic\", …} (beads used, misfit)"; "where the template came from"; "t.source.kind" => "\"model\""; |t| to_map(&t.0.source),
+        h_um: "float", "node spacing, µm"; "grid spacing of the template"; "t.h_um" => "0.025"; |t| t.0.grid.h,
+    ]);
     r.bind(
         Doc::method("Template", "at")
             .arg("u", "float", "µm", "x − x_bead")
@@ -180,14 +155,13 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.overload("max_sens", |t: &mut TemplateRef, px: f64, st: &str| {
         template_max_sens(t, px, Some(st))
     });
-    let c = ctx.clone();
-    r.bind(
+    r.bind_ctx(
         Doc::method("Template", "save")
             .arg("path", "string", "", "file (JSON; relative: in the session folder; an existing file is kept and a numbered name used)")
             .returns("string", "the path written")
             .summary("save the template (JSON with grid, reference bead, source and the script's provenance)")
             .example(&format!("{TPL} let p = status().data_dir + \"/tpl_example.json\"; t.save(p); load_template(p).h_um"), "0.025"),
-        move |t: &mut TemplateRef, path: &str| -> RResult<String> {
+        |c| move |t: &mut TemplateRef, path: &str| -> RResult<String> {
             super::console::save_template(&c, t, path, false)
         },
     );
@@ -286,26 +260,26 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     });
 
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
-    r.getter(
-        Doc::property("FitResult", "beads")
-            .returns("array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)")
-            .summary("the fitted beads")
-            .example(&format!("{fx} round(f.beads[0].weight * 1000.0)"), "1000.0"),
-        |f: &mut FitRef| -> Array { f.0.beads.iter().map(bead_map).collect() },
-    );
-    for (name, doc) in [
+    properties!(r, "FitResult", FitRef, fx, [
+        beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
+    ]);
+    // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
+    // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
+    // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
+    let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
+    let float_rows = [
         ("chi2", "rss / σ²"),
         ("rss", "Σ (data − model)² over the fitted pixels"),
         ("sigma", "pixel noise used (given or estimated)"),
         ("bic", "Bayesian information criterion"),
         ("condition", "condition number of the column-scaled JᵀJ"),
         ("total_weight", "Σ weights (reference-bead units)"),
-    ] {
-        // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
-        // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled
-        // columns of JᵀJ are orthogonal by symmetry, so the condition number is 1.
-        let sig = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1, sigma: 0.001}});");
-        let (ex, expect) = match name {
+    ];
+    r.named_getters(
+        "FitResult",
+        "float",
+        &float_rows,
+        |name| match name {
             "total_weight" => (format!("{fx} round(f.total_weight * 1000.0)"), "1000.0"),
             "chi2" => (format!("{fx} f.chi2"), "3359.0"),
             "rss" => (format!("{fx} f.rss < 1e-20"), "true"),
@@ -315,84 +289,36 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
                 "true",
             ),
             _ => (format!("{fx} round(f.condition * 1000.0) / 1000.0"), "1.0"),
-        };
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("float", doc)
-                .summary(doc)
-                .example(&ex, expect),
-            move |f: &mut FitRef| fit_float(f, name),
-        );
-    }
-    r.getter(
-        Doc::property("FitResult", "n_found")
-            .returns("int", "beads whose weight is significantly positive (weight − 3σ > 0)")
-            .summary("how many of the fitted beads were found (the others are noise: see beads[i].found)")
-            .example(&format!("{fx} f.n_found"), "1"),
-        |f: &mut FitRef| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
+        },
+        fit_float,
     );
-    for (name, doc) in [
+    properties!(r, "FitResult", FitRef, fx, [
+        n_found: "int", "beads whose weight is significantly positive (weight − 3σ > 0)"; "how many of the fitted beads were found (the others are noise: see beads[i].found)"; "f.n_found" => "1"; |f| -> i64 { (f.0.beads.len() - f.0.not_found().len()) as i64 },
+    ]);
+    let count_rows = [
         ("dof", "residuals minus parameters"),
         ("iterations", "Jacobian evaluations of the final fit"),
         ("evaluations", "residual evaluations of the final fit"),
         ("n_beads", "number of beads"),
-    ] {
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("int", doc)
-                .summary(doc)
-                .example(&format!("{fx} f.{name} > 0"), "true"),
-            move |f: &mut FitRef| fit_count(f, name),
-        );
-    }
-    r.getter(
-        Doc::property("FitResult", "status")
-            .returns("string", "\"converged\", \"max_evaluations\" or \"failed\"")
-            .summary("how the optimiser stopped (see .reason)")
-            .example(&format!("{fx} f.status"), "\"converged\""),
-        |f: &mut FitRef| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
-    );
-    r.getter(
-        Doc::property("FitResult", "reason")
-            .returns("string", "the optimiser's termination reason in words")
-            .summary("why the fit stopped")
-            .example(&format!("{fx} type_of(f.reason)"), "\"string\""),
-        |f: &mut FitRef| -> String { f.0.reason.clone() },
-    );
-    r.getter(
-        Doc::property("FitResult", "degeneracies")
-            .returns("array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]")
-            .summary("what the fit could not resolve (empty when well-posed)")
-            .example(&format!("{fx} f.degeneracies.len()"), "0"),
-        |f: &mut FitRef| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
-    );
-    r.getter(
-        Doc::property("FitResult", "history")
-            .returns(
-                "array",
-                "[#{n_beads, rss, bic, accepted}] of the bead-adding steps",
-            )
-            .summary("bead-adding history (empty unless growing)")
-            .example(
-                &format!("{ONE_BEAD} fit_beads(sc, t).history.len() >= 2"),
-                "true",
-            ),
-        |f: &mut FitRef| -> Array { f.0.history.iter().map(to_dyn).collect() },
-    );
-    for (name, doc) in [
+    ];
+    let ex = |name: &str| (format!("{fx} f.{name} > 0"), "true");
+    r.named_getters("FitResult", "int", &count_rows, ex, fit_count);
+    properties!(r, "FitResult", FitRef, fx, [
+        status: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.status" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
+        reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
+        degeneracies: "array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]"; "what the fit could not resolve (empty when well-posed)"; "f.degeneracies.len()" => "0"; |f| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
+    ]);
+    properties!(r, "FitResult", FitRef, ONE_BEAD, [
+        history: "array", "[#{n_beads, rss, bic, accepted}] of the bead-adding steps"; "bead-adding history (empty unless growing)"; "fit_beads(sc, t).history.len() >= 2" => "true"; |f| -> Array { f.0.history.iter().map(to_dyn).collect() },
+    ]);
+    let image_rows = [
         ("model_sx", "model Sx image"),
         ("model_sy", "model Sy image"),
         ("residual_sx", "data − model, Sx"),
         ("residual_sy", "data − model, Sy"),
-    ] {
-        r.getter(
-            Doc::property("FitResult", name)
-                .returns("Image", doc)
-                .summary(doc)
-                .example(&format!("{fx} f.{name}.cols"), "41"),
-            move |f: &mut FitRef| fit_image(f, name),
-        );
-    }
+    ];
+    let ex = |name: &str| (format!("{fx} f.{name}.cols"), "41");
+    r.named_getters("FitResult", "Image", &image_rows, ex, fit_image);
     r.bind(
         Doc::method("FitResult", "subtract")
             .arg("scan", "Scan", "", "the scan that was fitted")

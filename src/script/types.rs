@@ -1,7 +1,8 @@
 //! Rhai types `Scan`, `Image`, `Profile`: property access, statistics, arithmetic, readable
 //! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
 
-use super::registry::{fail, int, num, Doc, RResult, Registrar};
+use super::registry::{fail, int, num, properties, Doc, RResult, Registrar};
+use super::values::register_printable;
 pub use super::values::{
     register_types, show_custom, CurveRef, FilamentRef, FitRef, ImageRef, ProfileRef, ScanRef,
     TemplateRef,
@@ -328,18 +329,9 @@ const SCAN_EX: &str = "let s = scan_xy(#{x: [-0.5, 0.5], y: [-0.25, 0.25], nx: 1
 
 pub fn register(r: &mut Registrar) {
     register_types(r.engine());
-    {
-        let e = r.engine();
-        e.register_type_with_name::<ScanRef>("Scan")
-            .register_type_with_name::<ImageRef>("Image")
-            .register_type_with_name::<ProfileRef>("Profile");
-        e.register_fn("to_string", |s: &mut ScanRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ScanRef| s.to_string())
-            .register_fn("to_string", |s: &mut ImageRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ImageRef| s.to_string())
-            .register_fn("to_string", |s: &mut ProfileRef| s.to_string())
-            .register_fn("to_debug", |s: &mut ProfileRef| s.to_string());
-    }
+    register_printable::<ScanRef>(r.engine(), "Scan");
+    register_printable::<ImageRef>(r.engine(), "Image");
+    register_printable::<ProfileRef>(r.engine(), "Profile");
     register_scan(r);
     register_image(r);
     register_profile(r);
@@ -371,34 +363,12 @@ fn register_scan(r: &mut Registrar) {
             .example(&format!("{SCAN_EX} s.x[0]"), "-0.5"),
         |s: &mut ScanRef| floats(&s.scan.sx.x),
     );
-    r.getter(
-        Doc::property("Scan", "y")
-            .returns("array", "µm, one value per row (absolute stage positions)")
-            .summary("vertical (row) axis of the scan, µm (z for XZ/YZ scans)")
-            .example(&format!("{SCAN_EX} s.y[4]"), "0.25"),
-        |s: &mut ScanRef| floats(&s.scan.sx.y),
-    );
-    r.getter(
-        Doc::property("Scan", "axes")
-            .returns("array", "[column axis, row axis], e.g. [\"x\", \"z\"]")
-            .summary("names of the column and row axes")
-            .example(&format!("{SCAN_EX} s.axes"), "[\"x\", \"y\"]"),
-        |s: &mut ScanRef| scan_axes(s),
-    );
-    r.getter(
-        Doc::property("Scan", "rows")
-            .returns("int", "")
-            .summary("number of rows")
-            .example(&format!("{SCAN_EX} s.rows"), "5"),
-        |s: &mut ScanRef| s.scan.sx.rows() as INT,
-    );
-    r.getter(
-        Doc::property("Scan", "cols")
-            .returns("int", "")
-            .summary("number of columns")
-            .example(&format!("{SCAN_EX} s.cols"), "11"),
-        |s: &mut ScanRef| s.scan.sx.cols() as INT,
-    );
+    properties!(r, "Scan", ScanRef, SCAN_EX, [
+        y: "array", "µm, one value per row (absolute stage positions)"; "vertical (row) axis of the scan, µm (z for XZ/YZ scans)"; "s.y[4]" => "0.25"; |s| floats(&s.scan.sx.y),
+        axes: "array", "[column axis, row axis], e.g. [\"x\", \"z\"]"; "names of the column and row axes"; "s.axes" => "[\"x\", \"y\"]"; |s| scan_axes(s),
+        rows: "int", ""; "number of rows"; "s.rows" => "5"; |s| s.scan.sx.rows() as INT,
+        cols: "int", ""; "number of columns"; "s.cols" => "11"; |s| s.scan.sx.cols() as INT,
+    ]);
     r.getter(
         Doc::property("Scan", "meta")
             .returns("map", "plan, optics, instrument, scene, script path and sha256, git revision, time (wall and instrument), status")
@@ -407,23 +377,10 @@ fn register_scan(r: &mut Registrar) {
             .example(&format!("{SCAN_EX} s.meta.plan.kind"), "\"scan_xy\""),
         |s: &mut ScanRef| json_to_dynamic(&s.scan.meta),
     );
-    r.getter(
-        Doc::property("Scan", "status")
-            .returns(
-                "string",
-                "\"complete\", \"aborted\" (Ctrl-C) or \"failed\" (device error)",
-            )
-            .summary("whether the scan ran to its end")
-            .example(&format!("{SCAN_EX} s.status"), "\"complete\""),
-        |s: &mut ScanRef| status_name(s.scan.status).to_string(),
-    );
-    r.getter(
-        Doc::property("Scan", "path")
-            .returns("string", "file path, or () if not saved")
-            .summary("where the scan was (auto)saved")
-            .example(&format!("{SCAN_EX} s.path.ends_with(\".npz\")"), "true"),
-        |s: &mut ScanRef| scan_path(s),
-    );
+    properties!(r, "Scan", ScanRef, SCAN_EX, [
+        status: "string", "\"complete\", \"aborted\" (Ctrl-C) or \"failed\" (device error)"; "whether the scan ran to its end"; "s.status" => "\"complete\""; |s| status_name(s.scan.status).to_string(),
+        path: "string", "file path, or () if not saved"; "where the scan was (auto)saved"; "s.path.ends_with(\".npz\")" => "true"; |s| scan_path(s),
+    ]);
     r.bind(
         Doc::method("Scan", "channel")
             .arg("name", "string", "", "\"sx\", \"sy\" or \"sz\"")
@@ -440,48 +397,14 @@ fn register_scan(r: &mut Registrar) {
 
 fn register_image(r: &mut Registrar) {
     const IMG: &str = "let img = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 21, ny: 21}).sx;";
-    r.getter(
-        Doc::property("Image", "rows")
-            .returns("int", "")
-            .summary("number of rows")
-            .example(&format!("{IMG} img.rows"), "21"),
-        |i: &mut ImageRef| i.0.rows() as INT,
-    );
-    r.getter(
-        Doc::property("Image", "cols")
-            .returns("int", "")
-            .summary("number of columns")
-            .example(&format!("{IMG} img.cols"), "21"),
-        |i: &mut ImageRef| i.0.cols() as INT,
-    );
-    r.getter(
-        Doc::property("Image", "x")
-            .returns("array", "µm")
-            .summary("column axis (pixel centres), µm")
-            .example(&format!("{IMG} img.x[20]"), "0.5"),
-        |i: &mut ImageRef| floats(&i.0.x),
-    );
-    r.getter(
-        Doc::property("Image", "y")
-            .returns("array", "µm")
-            .summary("row axis (pixel centres), µm")
-            .example(&format!("{IMG} img.y[0]"), "-0.5"),
-        |i: &mut ImageRef| floats(&i.0.y),
-    );
-    r.getter(
-        Doc::property("Image", "dx")
-            .returns("float", "µm")
-            .summary("pixel spacing along the columns, µm")
-            .example(&format!("{IMG} img.dx"), "0.05"),
-        |i: &mut ImageRef| i.0.dx(),
-    );
-    r.getter(
-        Doc::property("Image", "dy")
-            .returns("float", "µm")
-            .summary("pixel spacing along the rows, µm")
-            .example(&format!("{IMG} img.dy"), "0.05"),
-        |i: &mut ImageRef| i.0.dy(),
-    );
+    properties!(r, "Image", ImageRef, IMG, [
+        rows: "int", ""; "number of rows"; "img.rows" => "21"; |i| i.0.rows() as INT,
+        cols: "int", ""; "number of columns"; "img.cols" => "21"; |i| i.0.cols() as INT,
+        x: "array", "µm"; "column axis (pixel centres), µm"; "img.x[20]" => "0.5"; |i| floats(&i.0.x),
+        y: "array", "µm"; "row axis (pixel centres), µm"; "img.y[0]" => "-0.5"; |i| floats(&i.0.y),
+        dx: "float", "µm"; "pixel spacing along the columns, µm"; "img.dx" => "0.05"; |i| i.0.dx(),
+        dy: "float", "µm"; "pixel spacing along the rows, µm"; "img.dy" => "0.05"; |i| i.0.dy(),
+    ]);
     // expected values checked independently with numpy (mock signal on a 21×21 grid)
     let stat_list: [(&str, &str, StatFn, &str); 5] = [
         ("max", "largest pixel value", |s| s.max, "0.1709"),
@@ -500,20 +423,14 @@ fn register_image(r: &mut Registrar) {
             "0.1709",
         ),
     ];
-    for (name, what, f, ex_val) in stat_list {
-        let ex_code = format!("{IMG} round(img.{name}() * 1e4) / 1e4");
-        let d = Doc::method("Image", name)
+    let doc = |name: &str, what: &str, ex_val: &str| {
+        Doc::method("Image", name)
             .returns("float", "signal units")
             .summary(&format!("{what} (NaN pixels skipped)"))
             .help("Unmeasured (NaN) pixels of a partial scan are skipped; an image without any finite pixel is an error.")
-            .example(&ex_code, ex_val);
-        let who = format!("img.{name}()");
-        r.bind(d, move |i: &mut ImageRef| image_stat(&who, i, f));
-        // the same as a property (`img.max`)
-        let who = format!("img.{name}");
-        r.engine()
-            .register_get(name, move |i: &mut ImageRef| image_stat(&who, i, f));
-    }
+            .example(&format!("{IMG} round(img.{name}() * 1e4) / 1e4"), ex_val)
+    };
+    register_stats(r, stat_list, doc, "img", image_stat);
     r.bind(
         Doc::method("Image", "sum")
             .returns("float", "")
@@ -630,27 +547,11 @@ fn register_image(r: &mut Registrar) {
 
 fn register_profile(r: &mut Registrar) {
     const P: &str = "let p = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}).sx.row(0);";
-    r.getter(
-        Doc::property("Profile", "t")
-            .returns("array", "µm (or as named by the profile)")
-            .summary("positions of the samples")
-            .example(&format!("{P} p.t[40]"), "1.0"),
-        |p: &mut ProfileRef| floats(&p.0.t),
-    );
-    r.getter(
-        Doc::property("Profile", "v")
-            .returns("array", "signal units")
-            .summary("values of the samples")
-            .example(&format!("{P} p.v.len"), "41"),
-        |p: &mut ProfileRef| floats(&p.0.v),
-    );
-    r.getter(
-        Doc::property("Profile", "len")
-            .returns("int", "")
-            .summary("number of samples")
-            .example(&format!("{P} p.len"), "41"),
-        |p: &mut ProfileRef| p.0.v.len() as INT,
-    );
+    properties!(r, "Profile", ProfileRef, P, [
+        t: "array", "µm (or as named by the profile)"; "positions of the samples"; "p.t[40]" => "1.0"; |p| floats(&p.0.t),
+        v: "array", "signal units"; "values of the samples"; "p.v.len" => "41"; |p| floats(&p.0.v),
+        len: "int", ""; "number of samples"; "p.len" => "41"; |p| p.0.v.len() as INT,
+    ]);
     let stat_list: [(&str, &str, StatFn, &str); 5] = [
         ("max", "largest value", |s| s.max, "0.1709"),
         ("min", "smallest value", |s| s.min, "-0.1709"),
@@ -663,19 +564,15 @@ fn register_profile(r: &mut Registrar) {
         ),
         ("abs_max", "largest absolute value", |s| s.abs_max, "0.1709"),
     ];
-    for (name, what, f, ex) in stat_list {
-        let d = Doc::method("Profile", name)
+    let doc = |name: &str, what: &str, ex: &str| {
+        Doc::method("Profile", name)
             .returns("float", "")
             .summary(&format!(
                 "{what} (NaN samples skipped); also a property: profile.{name}"
             ))
-            .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex);
-        let who = format!("profile.{name}()");
-        r.bind(d, move |p: &mut ProfileRef| profile_stat(&who, p, f));
-        let who = format!("profile.{name}");
-        r.engine()
-            .register_get(name, move |p: &mut ProfileRef| profile_stat(&who, p, f));
-    }
+            .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex)
+    };
+    register_stats(r, stat_list, doc, "profile", profile_stat);
     r.bind(
         Doc::method("Profile", "argmax")
             .returns("float", "µm")
@@ -700,6 +597,27 @@ fn register_profile(r: &mut Registrar) {
 
 /// The statistics (max, min, mean, std, abs_max) of a binding, as a function of [`Stats`].
 type StatFn = fn(&Stats) -> f64;
+
+/// The statistics of a script type `T` (Image, Profile) as methods `value.name()` declared by
+/// `doc(name, what, expected example value)` and, undeclared, as the same properties
+/// `value.name`: one row `(name, what, statistic, expected)` each. `stat(who, value, f)`
+/// computes one; `who` (`receiver.name()` or `receiver.name`) names the call in its errors.
+fn register_stats<T: std::any::Any + Clone + Send + Sync>(
+    r: &mut Registrar,
+    rows: [(&'static str, &str, StatFn, &str); 5],
+    doc: impl Fn(&str, &str, &str) -> Doc,
+    receiver: &str,
+    stat: fn(&str, &T, StatFn) -> RResult<f64>,
+) {
+    for (name, what, f, expected) in rows {
+        let who = format!("{receiver}.{name}()");
+        r.bind(doc(name, what, expected), move |v: &mut T| stat(&who, v, f));
+        // the same as a property (`img.max`)
+        let who = format!("{receiver}.{name}");
+        r.engine()
+            .register_get(name, move |v: &mut T| stat(&who, v, f));
+    }
+}
 
 /// `scan.sx` / `scan.sy` / `scan.sz`: one channel as an Image.
 fn scan_channel(s: &ScanRef, ch: &str) -> ImageRef {

@@ -142,16 +142,19 @@ pub fn show_custom(v: &Dynamic) -> Option<String> {
 
 /// Register the analysis types' names and printing with the engine (part of the `types` family).
 pub fn register_types(e: &mut rhai::Engine) {
-    e.register_type_with_name::<TemplateRef>("Template")
-        .register_type_with_name::<FitRef>("FitResult")
-        .register_type_with_name::<CurveRef>("AngleCurve")
-        .register_type_with_name::<FilamentRef>("FilamentMeasurement");
-    e.register_fn("to_string", |s: &mut TemplateRef| s.to_string())
-        .register_fn("to_debug", |s: &mut TemplateRef| s.to_string())
-        .register_fn("to_string", |s: &mut FitRef| s.to_string())
-        .register_fn("to_debug", |s: &mut FitRef| s.to_string())
-        .register_fn("to_string", |s: &mut CurveRef| s.to_string())
-        .register_fn("to_debug", |s: &mut CurveRef| s.to_string())
-        .register_fn("to_string", |s: &mut FilamentRef| s.to_string())
-        .register_fn("to_debug", |s: &mut FilamentRef| s.to_string());
+    register_printable::<TemplateRef>(e, "Template");
+    register_printable::<FitRef>(e, "FitResult");
+    register_printable::<CurveRef>(e, "AngleCurve");
+    register_printable::<FilamentRef>(e, "FilamentMeasurement");
+}
+
+/// Register the script type `T` under `name`, printed (`print`, `to_string`, `to_debug`) by its
+/// `Display`.
+pub fn register_printable<T: std::fmt::Display + Clone + Send + Sync + 'static>(
+    e: &mut rhai::Engine,
+    name: &str,
+) {
+    e.register_type_with_name::<T>(name)
+        .register_fn("to_string", |s: &mut T| s.to_string())
+        .register_fn("to_debug", |s: &mut T| s.to_string());
 }

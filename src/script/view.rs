@@ -87,8 +87,7 @@ pub fn register(r: &mut Registrar) {
         .example("view(#{port: 70000})", "error: view: port = 70000 is out of range")
         .example("view(); view(#{host: \"0.0.0.0\"})", "error: view: host = \"0.0.0.0\" is not a loopback address");
     let spec = d.spec();
-    let c = r.ctx();
-    r.bind(d, move |m: Map| view(&c, &spec, &m));
+    r.bind_ctx(d, |c| move |m: Map| view(&c, &spec, &m));
     let c = r.ctx();
     r.overload("view", move || open_view(&c, DEFAULT_HOST, 0));
 }
