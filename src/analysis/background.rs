@@ -17,7 +17,7 @@
 //! (they describe the data) but reported.
 
 use super::fit::{
-    clean, clean_peaks, detection_map, fit_beads, BeadInit, Channels, FitOptions, FitResult,
+    clean_peaks, detection_map, fit_beads, BeadInit, Channels, FitOptions, FitResult,
 };
 use super::stats::robust_std;
 use super::template::Template;
@@ -140,14 +140,17 @@ pub fn remove_point_background(
     };
     let d = detection_map(sx, sy, ch, opts.fit.detect_stencil)?;
     let noise = robust_std(&d.data.iter().copied().collect::<Vec<_>>()).unwrap_or(0.0);
-    let init: Vec<BeadInit> = clean(
+    let init: Vec<BeadInit> = clean_peaks(
         &d,
         tpl,
         ch,
         opts.max_objects,
         opts.detect_snr * noise,
         opts.min_weight,
-    );
+    )
+    .into_iter()
+    .map(|(b, _)| b)
+    .collect();
     // what the same detection still finds after the removal, down to REMAINING_SNR (and, on
     // noise-free data, never below the default smallest object: the filament's faint residue
     // in this channel is not an object)

@@ -87,7 +87,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             let n = if grow { 1 } else { opts.n_beads.unwrap_or(1) };
             data.check_count(n)?;
             let d = detection_map(sx, sy, opts.channels, opts.detect_stencil)?;
-            let found = clean(&d, tpl, opts.channels, n, 0.0, 0.0);
+            let found = clean(&d, tpl, opts.channels, n);
             if found.is_empty() {
                 return Err(AnalysisError::Failed(
                     "no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum"
@@ -133,7 +133,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
                     weight: b.weight,
                 })
                 .collect();
-            let new = clean(&d, tpl, opts.channels, 1, 0.0, 0.0);
+            let new = clean(&d, tpl, opts.channels, 1);
             let Some(nb) = new.first().copied() else {
                 break;
             };

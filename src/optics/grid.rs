@@ -418,18 +418,24 @@ impl Grid2 {
     }
 }
 
-/// Keys (1981) cubic-convolution weights (a = −1/2) for nodes −1, 0, 1, 2 at fraction t,
-/// and their derivatives with respect to t.
+/// Keys (1981) cubic-convolution weights (a = −1/2) for nodes −1, 0, 1, 2 at fraction t.
 #[inline]
-fn keys(t: f64) -> ([f64; 4], [f64; 4]) {
+pub(crate) fn keys_weights(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
-    let w = [
+    [
         0.5 * (-t3 + 2.0 * t2 - t),
         0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
         0.5 * (-3.0 * t3 + 4.0 * t2 + t),
         0.5 * (t3 - t2),
-    ];
+    ]
+}
+
+/// [`keys_weights`] and their derivatives with respect to t.
+#[inline]
+fn keys(t: f64) -> ([f64; 4], [f64; 4]) {
+    let t2 = t * t;
+    let w = keys_weights(t);
     let d = [
         0.5 * (-3.0 * t2 + 4.0 * t - 1.0),
         0.5 * (9.0 * t2 - 10.0 * t),

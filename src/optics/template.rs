@@ -168,14 +168,7 @@ pub fn z_stencil(z: f64, hz: f64, interp: Interp) -> Vec<(i64, f64)> {
     match interp {
         Interp::Linear => vec![(i0, 1.0 - t), (i0 + 1, t)],
         Interp::Cubic => {
-            let t2 = t * t;
-            let t3 = t2 * t;
-            let w = [
-                0.5 * (-t3 + 2.0 * t2 - t),
-                0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-                0.5 * (-3.0 * t3 + 4.0 * t2 + t),
-                0.5 * (t3 - t2),
-            ];
+            let w = crate::optics::grid::keys_weights(t);
             (0..4).map(|j| (i0 - 1 + j as i64, w[j])).collect()
         }
     }

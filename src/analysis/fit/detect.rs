@@ -21,7 +21,7 @@ pub fn detect_beads(
 ) -> Result<Vec<BeadInit>> {
     check_range("n", n as f64, 1.0, 10_000.0)?;
     let d = detection_map(sx, sy, channels, stencil)?;
-    Ok(clean(&d, tpl, channels, n, 0.0, 0.0))
+    Ok(clean(&d, tpl, channels, n))
 }
 
 /// The detection map: ∂Sx/∂x + ∂Sy/∂y (or the fitted channel's sensitivity).
@@ -56,25 +56,19 @@ pub(super) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64
     g.max_of(f)
 }
 
-/// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
-/// not above `min_peak` (instrument units of the map) or its bead would weigh no more than
-/// `min_weight` (reference-bead units).
-pub(crate) fn clean(
-    d: &Image,
-    tpl: &Template,
-    ch: Channels,
-    n: usize,
-    min_peak: f64,
-    min_weight: f64,
-) -> Vec<BeadInit> {
-    clean_peaks(d, tpl, ch, n, min_peak, min_weight)
+/// CLEAN: up to `n` beads from the detection map, every positive maximum taken (no
+/// threshold; [`clean_peaks`] with thresholds and the peaks' heights).
+pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize) -> Vec<BeadInit> {
+    clean_peaks(d, tpl, ch, n, 0.0, 0.0)
         .into_iter()
         .map(|(b, _)| b)
         .collect()
 }
 
-/// As [`clean`], each bead with the height of its maximum in the detection map (the map's
-/// units) when it was taken.
+/// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
+/// not above `min_peak` (instrument units of the map) or its bead would weigh no more than
+/// `min_weight` (reference-bead units); each bead with the height of its maximum in the
+/// detection map (the map's units) when it was taken.
 pub(crate) fn clean_peaks(
     d: &Image,
     tpl: &Template,
