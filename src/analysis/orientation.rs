@@ -37,6 +37,7 @@ use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
+use crate::optics::grid::keys_weights;
 use serde::{Deserialize, Serialize};
 
 /// Options of [`AngleCurve::compute`].
@@ -155,7 +156,7 @@ impl AngleCurve {
         let t = (angle_deg + 90.0).rem_euclid(180.0) / step;
         let i = t.floor() as isize;
         let f = t - i as f64;
-        let w = keys(f);
+        let w = keys_weights(f);
         let idx = |j: isize| (j.rem_euclid(k as isize)) as usize;
         let (mut a, mut b) = (0.0, 0.0);
         for (m, wm) in w.iter().enumerate() {
@@ -188,17 +189,6 @@ impl AngleCurve {
         }
         Ok(s0 / v)
     }
-}
-
-fn keys(t: f64) -> [f64; 4] {
-    let t2 = t * t;
-    let t3 = t2 * t;
-    [
-        0.5 * (-t3 + 2.0 * t2 - t),
-        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
-        0.5 * (t3 - t2),
-    ]
 }
 
 /// Which maxima a filament measurement uses.

@@ -174,6 +174,15 @@ pub fn z_stencil(z: f64, hz: f64, interp: Interp) -> Vec<(i64, f64)> {
     }
 }
 
+/// A plane's beam at axial displacement z (µm) and its grid: (w µm, 1/R 1/µm, Gouy phase rad)
+/// of `Detection::beam_at`, then half, n = 2·half + 1 nodes per side every h µm over
+/// ±SUPPORT_W·w, from u0 = −half·h (µm).
+fn plane_extent(det: &Detection, z: f64, h: f64) -> (f64, f64, f64, usize, usize, f64) {
+    let (w, inv_r, gouy) = det.beam_at(z);
+    let half = ((SUPPORT_W * w) / h).ceil() as usize;
+    (w, inv_r, gouy, half, 2 * half + 1, -(half as f64) * h)
+}
+
 /// One plane of the per-unit-α response at axial displacement z (µm), nodes every `h` µm over
 /// ±SUPPORT_W·w(z) in x and y; dimensionless signals per unit α (µm⁻³), suppl. S2 (the
 /// summed form in `optics::rayleigh`'s module doc, the paper's Sec. 2.1).
@@ -194,10 +203,7 @@ pub fn plane_grid(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
             return g;
         }
     }
-    let (w, inv_r, gouy) = det.beam_at(z);
-    let half = ((SUPPORT_W * w) / h).ceil() as usize;
-    let n = 2 * half + 1;
-    let u0 = -(half as f64) * h;
+    let (w, inv_r, gouy, half, n, u0) = plane_extent(det, z, h);
     let k = det.k;
     let kn = det.nodes.len();
     // per x node: e^{−x²/w²} e^{i k x² inv_r/2}
@@ -285,10 +291,7 @@ fn tilt(theta: f64, half: usize, out: &mut Vec<(f64, f64)>) {
 /// S_c = −Im[g(x) g(y) e^{ik(x² + y²)/2R} T_c(x, y)] as in the module doc (suppl. S2).
 /// `None` when the rule is not made of quartets (then the general path runs).
 fn plane_grid_mirrored(det: &Detection, z: f64, h: f64, interp: Interp) -> Option<Grid2> {
-    let (w, inv_r, gouy) = det.beam_at(z);
-    let half = ((SUPPORT_W * w) / h).ceil() as usize;
-    let n = 2 * half + 1;
-    let u0 = -(half as f64) * h;
+    let (w, inv_r, gouy, half, n, u0) = plane_extent(det, z, h);
     let k = det.k;
     let quarter: Vec<_> = det
         .nodes
@@ -365,10 +368,7 @@ fn plane_grid_mirrored(det: &Detection, z: f64, h: f64, interp: Interp) -> Optio
 /// `sin_cos` per (x node, cone node). Kept for the test that holds [`plane_grid`] to it
 /// (`tests/optics.rs`) and for the render bench's "before" numbers. Same units and equations.
 pub fn plane_grid_reference(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {
-    let (w, inv_r, gouy) = det.beam_at(z);
-    let half = ((SUPPORT_W * w) / h).ceil() as usize;
-    let n = 2 * half + 1;
-    let u0 = -(half as f64) * h;
+    let (w, inv_r, gouy, _, n, u0) = plane_extent(det, z, h);
     let k = det.k;
     let kn = det.nodes.len();
     let coords: Vec<f64> = (0..n).map(|i| u0 + i as f64 * h).collect();
