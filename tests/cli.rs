@@ -409,15 +409,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
         text.starts_with("scene: 1 bead(s), 0 filament(s)"),
         "{text}"
     );
-    let path_of = |kind: &str| {
-        emulator
-            .line(kind)
-            .rsplit(" on ")
-            .next()
-            .unwrap()
-            .to_string()
-    };
-    let (sp, qp) = (path_of("stage:"), path_of("qpd:"));
+    let (sp, qp) = (emulator.path_of("stage:"), emulator.path_of("qpd:"));
     assert!(
         sp.starts_with("/dev/") && qp.starts_with("/dev/") && sp != qp,
         "{text}"

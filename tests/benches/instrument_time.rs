@@ -13,12 +13,14 @@
 //!
 //! `cargo bench --bench instrument_time`
 
+#[path = "../support/emulate.rs"]
+mod emulate;
+
 use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
 use bfpscope::instrument::scpi::{ScpiOptions, ScpiQpd};
 use bfpscope::instrument::{DeviceError, Instrument, Qpd, QpdReading, WallClock};
-use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
+use emulate::Emulator;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
@@ -26,31 +28,12 @@ use std::time::Duration;
 const SETTLE_S: f64 = 0.005;
 const N: i64 = 20;
 
-/// Start `bfpscope emulate pair` with these link flags; returns the child and the stage and
-/// QPD paths it printed.
-fn emulate(link: &[&str]) -> (std::process::Child, String, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_bfpscope"))
-        .args(["emulate", "pair"])
-        .args(link)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start bfpscope emulate pair");
-    let out = BufReader::new(child.stdout.take().expect("stdout"));
-    let (mut stage, mut qpd) = (String::new(), String::new());
-    for line in out.lines() {
-        let line = line.expect("emulator output");
-        let path = || line.rsplit(" on ").next().unwrap_or("").to_string();
-        if line.starts_with("stage:") {
-            stage = path();
-        } else if line.starts_with("qpd:") {
-            qpd = path();
-        } else if line.starts_with("Serving until") {
-            break;
-        }
-    }
-    (child, stage, qpd)
+/// Start `bfpscope emulate pair` with these link flags; returns the emulator (stopped with
+/// Ctrl-C when dropped) and the stage and QPD paths it printed.
+fn emulate(link: &[&str]) -> (Emulator, String, String) {
+    let e = Emulator::start(&[&["pair"], link].concat());
+    let (stage, qpd) = (e.path_of("stage:"), e.path_of("qpd:"));
+    (e, stage, qpd)
 }
 
 /// The QPD as the engine read it before issue 20: the full `read` (`MEAS:QPD:STAT?`) per point.
@@ -142,7 +125,7 @@ fn main() {
     ];
     let mut rows = Vec::new();
     for (name, flags) in links {
-        let (mut child, stage, qpd) = emulate(&flags);
+        let (emulator, stage, qpd) = emulate(&flags);
         for dwell_s in [0.010, 0.001] {
             for version in VERSIONS {
                 eprintln!("{name}, dwell {} ms, {version}:", dwell_s * 1e3);
@@ -155,8 +138,7 @@ fn main() {
                 });
             }
         }
-        let _ = child.kill();
-        let _ = child.wait();
+        drop(emulator);
     }
     println!("| link | dwell | drivers | ms per point | settle + dwell | ratio | move | settle | QPD (dwell) | other | link bytes per point | their wire time at 115200 baud |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");

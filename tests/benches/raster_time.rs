@@ -10,14 +10,16 @@
 //!
 //! `cargo bench --bench raster_time`
 
+#[path = "../support/emulate.rs"]
+mod emulate;
+
 use bfpscope::acquire::raster::RasterOptions;
 use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage, LineSweep};
 use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
 use bfpscope::instrument::{Instrument, Stage, WallClock};
-use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
+use emulate::Emulator;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
@@ -26,31 +28,16 @@ const SETTLE_S: f64 = 0.005;
 const N: i64 = 64;
 const DWELL_S: f64 = 1e-3;
 
-/// Start `bfpscope emulate redpitaya --inputs 4` with these flags; the child, the stage path
-/// and the board's `host:port`.
-fn emulate(flags: &[&str]) -> (std::process::Child, String, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_bfpscope"))
-        .args(["emulate", "redpitaya", "--inputs", "4"])
-        .args(flags)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start bfpscope emulate redpitaya");
-    let out = BufReader::new(child.stdout.take().expect("stdout"));
-    let (mut stage, mut board) = (String::new(), String::new());
-    for line in out.lines() {
-        let line = line.expect("emulator output");
-        let path = || line.rsplit(" on ").next().unwrap_or("").to_string();
-        if line.starts_with("stage:") {
-            stage = path();
-        } else if line.starts_with("redpitaya:") {
-            board = path().trim_start_matches("tcp://").to_string();
-        } else if line.starts_with("Serving until") {
-            break;
-        }
-    }
-    (child, stage, board)
+/// Start `bfpscope emulate redpitaya --inputs 4` with these flags; the emulator (stopped with
+/// Ctrl-C when dropped), the stage path and the board's `host:port`.
+fn emulate(flags: &[&str]) -> (Emulator, String, String) {
+    let e = Emulator::start(&[&["redpitaya", "--inputs", "4"], flags].concat());
+    let stage = e.path_of("stage:");
+    let board = e
+        .path_of("redpitaya:")
+        .trim_start_matches("tcp://")
+        .to_string();
+    (e, stage, board)
 }
 
 fn instrument(stage: &str, board: &str) -> Instrument {
@@ -189,7 +176,7 @@ fn main() {
     // snake rasters' line configuration first (printed at once: the rasters below take minutes)
     let mut snake = Vec::new();
     for (name, flags, _) in links {
-        let (mut child, stage, _) = emulate(flags);
+        let (emulator, stage, _) = emulate(flags);
         eprintln!("{name}: configure, snake lines");
         let (full, two) = configure_cost(&stage);
         snake.push(format!(
@@ -197,8 +184,7 @@ fn main() {
             full - two,
             full / two
         ));
-        let _ = child.kill();
-        let _ = child.wait();
+        drop(emulator);
     }
     println!("Snake rasters, configuring a line whose direction alternates (issue 32; 32 lines per column, alternating blocks of 8 on one connection):");
     println!();
@@ -211,7 +197,7 @@ fn main() {
     let mut table = Vec::new();
     let mut phases = Vec::new();
     for (name, flags, points_too) in links {
-        let (mut child, stage, board) = emulate(flags);
+        let (emulator, stage, board) = emulate(flags);
         let mut inst = instrument(&stage, &board);
         eprintln!("{name}: raster");
         let m = scan(&mut inst, true);
@@ -252,8 +238,7 @@ fn main() {
             r["record_rate"],
         ));
         drop(inst);
-        let _ = child.kill();
-        let _ = child.wait();
+        drop(emulator);
     }
     println!("| stage link | raster wall time | line (64 px + turnaround) | target 1.2 × 64 lines | raster / target | point by point (settle 5 ms) | points / raster |");
     println!("|---|---|---|---|---|---|---|");

@@ -1,6 +1,6 @@
 //! `bfpscope emulate …` as a separate process, as a user starts it in a second terminal: started,
 //! read until it serves, and stopped with Ctrl-C (SIGINT). Shared by the command-line and
-//! prompt tests.
+//! prompt tests and the link benches (`#[path = "../support/emulate.rs"]`).
 
 #![allow(dead_code)]
 
@@ -75,6 +75,13 @@ impl Emulator {
             .lines()
             .find(|l| l.starts_with(prefix))
             .unwrap_or_else(|| panic!("no line starting with {prefix:?}:\n{}", self.text))
+    }
+
+    /// Where the device of the line starting with `prefix` is served: what follows the line's
+    /// last " on " (a pseudo-terminal path or `tcp://HOST:PORT`).
+    pub fn path_of(&self, prefix: &str) -> String {
+        let line = self.line(prefix);
+        line.rsplit(" on ").next().unwrap_or(line).to_string()
     }
 
     /// Ctrl-C (SIGINT); its exit code once it has stopped (10 s at most).

@@ -36,8 +36,14 @@ fn sources_modified() -> Option<SystemTime> {
     Some(newest)
 }
 
-/// Path of the built fake library; panics with what to do when it is missing or stale.
+/// Path of the built fake library; panics with what to do when it is missing or stale. Found
+/// and checked once per test process.
 pub fn library() -> PathBuf {
+    static FOUND: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    FOUND.get_or_init(find).clone()
+}
+
+fn find() -> PathBuf {
     let exe = std::env::current_exe().expect("the test executable's path");
     let deps = exe.parent().expect("the test executable's folder");
     let candidates = [
