@@ -5,7 +5,7 @@
 #   scripts/bench.sh fit mie      a subset (names as in Cargo.toml); other sections of
 #                                 docs/performance.md keep their previous numbers
 #
-# Each bench runs as `cargo bench --bench NAME`; criterion's estimates are read from
+# Each bench runs as `cargo bench --features bench --bench NAME`; criterion's estimates are read from
 # $CARGO_TARGET_DIR/criterion/**/new/estimates.json (those written during that bench's run) and
 # anything the bench prints as a Markdown table is kept. A bench with a peer (a Python script
 # timing the tool a user would pick instead, in the same run) lists it in PEERS below: one line.
@@ -47,10 +47,10 @@ PY
 machine start > "$OUT/machine.start.json"
 : > "$OUT/ran.txt"
 for n in $RUN; do
-  echo "== cargo bench --bench $n" >&2
+  echo "== cargo bench --features bench --bench $n" >&2
   t0=$(date +%s.%N)
   status=ok
-  cargo bench --bench "$n" > "$OUT/$n.log" 2> "$OUT/$n.err" || status="failed (exit $?, see $OUT/$n.err)"
+  cargo bench --features bench --bench "$n" > "$OUT/$n.log" 2> "$OUT/$n.err" || status="failed (exit $?, see $OUT/$n.err)"
   t1=$(date +%s.%N)
   peer=none
   rm -f "$OUT/$n.peer.json" "$OUT/$n.peer.log"

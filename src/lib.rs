@@ -26,7 +26,7 @@ pub mod view;
 /// free (up to 32 MiB), after which every scan's large temporaries (render grids, arrays) come
 /// from the main heap, where the small long-lived allocations of each scan (list rows,
 /// metadata) pin them and the heap grows with the number of scans. A fixed 64 KiB threshold
-/// returns large temporaries to the system at once. Measured by `cargo bench --bench view`
+/// returns large temporaries to the system at once. Measured by `cargo bench --features bench --bench view`
 /// (process RSS after 100 and 300 scans). No-op off glibc.
 pub fn tune_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]

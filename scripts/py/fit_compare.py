@@ -2,7 +2,7 @@
 """Compare bfpscope's multi-bead template fit (Rust, levenberg-marquardt crate) with
 scipy.optimize.least_squares on the same data (issue 4, "Speed").
 
-The Rust benchmark (`cargo bench --bench fit`) writes, per case, the Sx/Sy images, the template
+The Rust benchmark (`cargo bench --features bench --bench fit`) writes, per case, the Sx/Sy images, the template
 grid, the initial guesses, the ground truth and its own timing to target/fit_bench/<case>/.
 This script fits the same model (eq. multiBeadFit: weighted sum of shifted templates, Sx and Sy
 together) with scipy.optimize.least_squares (method 'trf', analytic Jacobian from bicubic
@@ -214,7 +214,7 @@ def max_pos_diff(p, q):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run-bench", action="store_true", help="run `cargo bench --bench fit` first")
+    ap.add_argument("--run-bench", action="store_true", help="run `cargo bench --features bench --bench fit` first")
     ap.add_argument("--repeats", type=int, default=3, help="scipy repetitions (median time)")
     ap.add_argument("--cases", default="", help="comma-separated case names (default: all found)")
     ap.add_argument("--json", default="", help="also write the report to this file")
@@ -225,7 +225,7 @@ def main():
     if a.cases:
         cases = [c for c in cases if c in a.cases.split(",")]
     if not cases:
-        sys.exit(f"no benchmark data in {DIR}: run `cargo bench --bench fit` first (or pass --run-bench)")
+        sys.exit(f"no benchmark data in {DIR}: run `cargo bench --features bench --bench fit` first (or pass --run-bench)")
     report = []
     for c in cases:
         rj = json.load(open(os.path.join(DIR, c, "rust.json")))

@@ -7,7 +7,7 @@ Usage (from the repository root):
     python3 scripts/py/mie_compare.py compare      # needs miepython (+ numpy)
     python3 scripts/py/mie_compare.py reference X M_RE M_IM [EXTRA]   # needs mpmath
 
-`compare` builds and runs `MIE_COMPARE_JSON=1 cargo bench --bench mie` (the Rust timings and
+`compare` builds and runs `MIE_COMPARE_JSON=1 cargo bench --features bench --bench mie` (the Rust timings and
 values on the grid x = 0.1 ... 1000, and its time per sphere on array sweeps of 1000 spheres
 over x ≤ 10 and x ≤ 1000), then, in the same run, times miepython's
 `efficiencies_mx` on the same grid, once with its default pure-Python/numpy backend and once

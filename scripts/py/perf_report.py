@@ -262,7 +262,7 @@ def main():
     text = set_block(text, "machine", mach, after_intro)
     text = set_block(text, "summary", summary, lambda t, b: t.replace("<!-- /bench:machine -->\n", "<!-- /bench:machine -->\n\n" + b, 1))
     for n, r in ran.items():
-        body = [f"`cargo bench --bench {n}` — {start['when']}, load {' '.join(start['load'])} → {' '.join(end['load'])}; "
+        body = [f"`cargo bench --features bench --bench {n}` — {start['when']}, load {' '.join(start['load'])} → {' '.join(end['load'])}; "
                 f"bench: {r['status']}; peer: {r['peer']}.", ""]
         c = ctx["crit"][n]
         if c:

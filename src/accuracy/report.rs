@@ -741,7 +741,7 @@ pub fn bench_markdown(dir: Option<&Path>) -> String {
     let mut s = String::from("## Benchmarks (criterion)\n\n");
     let rows = dir.map(read_criterion).unwrap_or_default();
     if rows.is_empty() {
-        s += "No criterion results were found. Run `cat /proc/loadavg > target/criterion/load.txt; cargo bench; \
+        s += "No criterion results were found. Run `cat /proc/loadavg > target/criterion/load.txt; cargo bench --features bench; \
               cat /proc/loadavg >> target/criterion/load.txt` and then `bfpscope accuracy --criterion target/criterion`.\n";
         return s;
     }
@@ -755,8 +755,8 @@ pub fn bench_markdown(dir: Option<&Path>) -> String {
         })
         .unwrap_or_else(|| "not recorded".into());
     s += &format!(
-        "From `cargo bench` (criterion, release profile) on this machine; load average (1 min) at the start and end of \
-         each `cargo bench` invocation: {load} (2 cores; an idle machine would be faster in absolute terms — compare ratios). Median of criterion's samples; ratio = time / fastest benchmark in the same group. \
+        "From `cargo bench --features bench` (criterion, release profile) on this machine; load average (1 min) at the start and end of \
+         each `cargo bench --features bench` invocation: {load} (2 cores; an idle machine would be faster in absolute terms — compare ratios). Median of criterion's samples; ratio = time / fastest benchmark in the same group. \
          Benches: `tests/benches/{{render,engine,mie,fit,mie_beam}}.rs`.\n\n"
     );
     if let Some(notes) = dir.and_then(|d| std::fs::read_to_string(d.join("notes.txt")).ok()) {

@@ -33,7 +33,7 @@
 //! J + N complex exponentials and one N×J complex mat-vec (three for the gradient), i.e.
 //! ≈ 8·N·J flops for (Sx, Sy, Sz), ≈ 24·N·J with the gradient; N = 4·n_theta·n_phi detection
 //! nodes, J = 4·n_theta_in·n_phi_in incident plane waves. Measured numbers: docs/physics.md §9
-//! and `cargo bench --bench mie_beam`.
+//! and `cargo bench --features bench --bench mie_beam`.
 //!
 //! **Reach.** A discrete plane-wave sum represents the response only where both grids resolve
 //! the phases k_j·x and k r̂_n·x ([`grid_reach_um`]): with the default grids ρ ≤ 1.5 µm

@@ -5,7 +5,7 @@
 //!   pre-flight, metadata and the autosave (target ≤ 100 ms wall), reporting the instrument
 //!   time the same scan would take.
 //!
-//! `cargo bench --bench engine`
+//! `cargo bench --features bench --bench engine`
 
 use bfpscope::script::{Settings, Workbench};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};

@@ -6,7 +6,7 @@
 //! `scripts/py/fit_compare.py` can run the same fits with scipy.optimize.least_squares and
 //! report the speed ratio and accuracies.
 //!
-//! Run: `cargo bench --bench fit` then `python3 scripts/py/fit_compare.py`
+//! Run: `cargo bench --features bench --bench fit` then `python3 scripts/py/fit_compare.py`
 //! (or `python3 scripts/py/fit_compare.py --run-bench` to do both).
 
 use bfpscope::analysis::fit::{detect_beads, fit_beads, BeadInit, Channels, FitOptions, FitResult};

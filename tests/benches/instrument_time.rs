@@ -11,7 +11,7 @@
 //! Prints a Markdown table (ms per point against settle + dwell, and the per-phase split from
 //! `meta.time.phases`) for docs/performance.md.
 //!
-//! `cargo bench --bench instrument_time`
+//! `cargo bench --features bench --bench instrument_time`
 
 #[path = "../support/emulate.rs"]
 mod emulate;

@@ -1,11 +1,11 @@
 //! Speed of the Mie tier (issue 8, part 5): efficiencies vs size parameter, vs term count, and
 //! amplitude functions vs number of angles.
 //!
-//! `cargo bench --bench mie` runs the criterion benchmarks.
-//! `MIE_COMPARE_JSON=1 cargo bench --bench mie` instead prints one JSON object per line
+//! `cargo bench --features bench --bench mie` runs the criterion benchmarks.
+//! `MIE_COMPARE_JSON=1 cargo bench --features bench --bench mie` instead prints one JSON object per line
 //! (values and ns per call on the comparison grid) for `scripts/py/mie_compare.py`, which
 //! times miepython on the same grid in the same run and reports ratios and agreement.
-//! `MIE_TERMS_TABLE=1 cargo bench --bench mie` prints the accuracy-vs-term-count table used in
+//! `MIE_TERMS_TABLE=1 cargo bench --features bench --bench mie` prints the accuracy-vs-term-count table used in
 //! `docs/mie.md` (error against N + 400 terms, and time per call).
 
 use bfpscope::optics::mie::{

@@ -1,7 +1,7 @@
 //! Focused-beam Mie response (issue 8): cost of one (Sx, Sy, Sz) point, with and without the
 //! analytic gradient and the |E_s|² term, vs the incident plane-wave grid; and the per-sphere
 //! pair-matrix build. 500 nm polystyrene bead, default optics (512 detection nodes).
-//! Run: `cargo bench --bench mie_beam`.
+//! Run: `cargo bench --features bench --bench mie_beam`.
 
 use bfpscope::optics::mie::Complex64 as C64;
 use bfpscope::optics::mie_beam::{MieBeam, MieBeamSpec};

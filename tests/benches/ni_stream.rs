@@ -10,7 +10,7 @@
 //!   overflow, how far the reader fell behind the clock against the buffer, and the share of one
 //!   core that converting and binning the samples took.
 //!
-//! `cargo bench --bench ni_stream` prints a Markdown table for docs/performance.md.
+//! `cargo bench --features bench --bench ni_stream` prints a Markdown table for docs/performance.md.
 
 #[path = "../support/fakebench.rs"]
 mod fakebench;

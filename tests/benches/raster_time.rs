@@ -8,7 +8,7 @@
 //! The target: raster wall time ≤ 1.2 × (4096 × 1 ms + turnarounds) = 1.2 × 64 × line
 //! duration. Prints a Markdown table and the per-line phases for docs/performance.md.
 //!
-//! `cargo bench --bench raster_time`
+//! `cargo bench --features bench --bench raster_time`
 
 #[path = "../support/emulate.rs"]
 mod emulate;

@@ -1,7 +1,7 @@
 //! Render benchmarks (issue 2, issue 20): a 128×128 XY scan of 10 beads + a 10 µm filament,
 //! and the template precompute, each next to the kept reference implementation (the code before
 //! issue 20) so one run gives before and after on the same machine. Run:
-//! `cargo bench --bench render`; numbers and the floor estimate in docs/performance.md
+//! `cargo bench --features bench --bench render`; numbers and the floor estimate in docs/performance.md
 //! ("Rendering"). `cargo run --release --example render_timing` breaks the times down.
 //!
 //! Measured 2026-11-25 on the 2-core AMD EPYC build machine (shared, load ≈ 5, so rayon's

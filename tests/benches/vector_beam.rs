@@ -2,7 +2,7 @@
 //! template grid, from which the renderer takes the x/y derivatives by its stencil), and the
 //! 128×128 render of 10 beads + a 10 µm filament in the vector beam vs the paraxial beam (the
 //! `render` bench's scene), once the templates exist.
-//! Run: `RAYON_NUM_THREADS=1 cargo bench --bench vector_beam` (one core).
+//! Run: `RAYON_NUM_THREADS=1 cargo bench --features bench --bench vector_beam` (one core).
 
 use bfpscope::instrument::sim::render_xy;
 use bfpscope::instrument::sim::scene::*;

@@ -2,7 +2,7 @@
 //! holds in memory after 100 scans. Prints a table; not a criterion bench because the peer (the
 //! same scan without a view) must be measured in the same run, interleaved, on a noisy machine.
 //!
-//! `cargo bench --bench view`
+//! `cargo bench --features bench --bench view`
 //!
 //! - `none`: a 128 × 128 scan on the simulator, no view;
 //! - `view, no reader`: the view open, no page connected (what the engine's hand-over costs);
