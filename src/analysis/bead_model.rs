@@ -17,7 +17,7 @@ use super::scaling::n_corr;
 use super::sensitivity::{sensitivity, Axis};
 use super::template::Template;
 use super::{check_range, AnalysisError, Result};
-use crate::data::{Image, Scan};
+use crate::data::{segment_lengths, Image, Scan};
 use serde::{Deserialize, Serialize};
 
 /// A filament: polyline (µm), diameter per vertex (nm; one value = uniform), refractive index.
@@ -79,10 +79,7 @@ impl Filament {
 
     /// Total length, µm.
     pub fn length(&self) -> f64 {
-        self.points
-            .windows(2)
-            .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
-            .sum()
+        segment_lengths(&self.points).iter().sum()
     }
 }
 
@@ -116,11 +113,7 @@ pub fn filament_beads(
 ) -> Result<Vec<(f64, f64, f64)>> {
     fil.validate()?;
     check_range("spacing_nm", opts.spacing_nm, 1.0, 1000.0)?;
-    let seg: Vec<f64> = fil
-        .points
-        .windows(2)
-        .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
-        .collect();
+    let seg = segment_lengths(&fil.points);
     let total: f64 = seg.iter().sum();
     if !(total > 0.0) {
         return Err(AnalysisError::BadInput {
@@ -257,18 +250,24 @@ pub fn straight_filament_max_sens(
         let off = k as f64 * pixel_um / 4.0;
         let fil = Filament::straight([off, off], angle_deg, length, d_nm, n);
         let beads = filament_beads(tpl, &fil, bm)?;
-        // Row strip for Sx, column strip for Sy.
-        let [sx, _, _] = tpl.render(&beads, &full, &band);
-        let sens = sensitivity(
-            &Image::new(sx, full.clone(), band.clone()),
-            Axis::X,
-            measure.stencil,
-        )?;
         let (sn, cs) = angle_deg.to_radians().sin_cos();
-        // The maxima of every row (Sx) or column (Sy), each centred where the filament crosses
-        // its line, as `measure_filament` reads data; a line the filament crosses at a grazing
-        // angle keeps its own maximum.
-        let lane_maxima = |sens: &Image, rows: bool| -> Result<(f64, usize)> {
+        // The row strip's Sx sensitivity (rows = true) or the column strip's Sy, and the maxima
+        // of every row or column, each centred where the filament crosses its line, as
+        // `measure_filament` reads data; a line the filament crosses at a grazing angle keeps
+        // its own maximum.
+        let lane_maxima = |rows: bool| -> Result<(f64, usize)> {
+            let (xs, ys, axis) = if rows {
+                (&full, &band, Axis::X)
+            } else {
+                (&band, &full, Axis::Y)
+            };
+            let [sx, sy, _] = tpl.render(&beads, xs, ys);
+            let channel = if rows { sx } else { sy };
+            let sens = &sensitivity(
+                &Image::new(channel, xs.clone(), ys.clone()),
+                axis,
+                measure.stencil,
+            )?;
             let (along, across) = if rows { (cs, sn) } else { (sn, cs) };
             let peaks = if rows {
                 row_peaks(sens, &popts)?
@@ -296,16 +295,10 @@ pub fn straight_filament_max_sens(
             }
             Ok((acc, n))
         };
-        let (a, n) = lane_maxima(&sens, true)?;
+        let (a, n) = lane_maxima(true)?;
         sx_acc += a;
         nsx += n;
-        let [_, sy, _] = tpl.render(&beads, &band, &full);
-        let sens = sensitivity(
-            &Image::new(sy, band.clone(), full.clone()),
-            Axis::Y,
-            measure.stencil,
-        )?;
-        let (a, n) = lane_maxima(&sens, false)?;
+        let (a, n) = lane_maxima(false)?;
         sy_acc += a;
         nsy += n;
     }

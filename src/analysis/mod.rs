@@ -114,30 +114,14 @@ impl From<crate::optics::OpticsError> for AnalysisError {
 /// Result alias of the analysis module.
 pub type Result<T> = std::result::Result<T, AnalysisError>;
 
-/// Check `lo <= value <= hi` (finite).
+/// Check `lo <= value <= hi` (finite); the optics' check, as an analysis error.
 pub(crate) fn check_range(name: &'static str, value: f64, lo: f64, hi: f64) -> Result<f64> {
-    if value.is_finite() && value >= lo && value <= hi {
-        Ok(value)
-    } else {
-        Err(AnalysisError::OutOfRange {
-            name,
-            value,
-            allowed: format!("{lo} ≤ {name} ≤ {hi}"),
-        })
-    }
+    Ok(crate::optics::params::check_range(name, value, lo, hi)?)
 }
 
-/// Check `value > lo` (finite).
+/// Check `value > lo` (finite); the optics' check, as an analysis error.
 pub(crate) fn check_above(name: &'static str, value: f64, lo: f64) -> Result<f64> {
-    if value.is_finite() && value > lo {
-        Ok(value)
-    } else {
-        Err(AnalysisError::OutOfRange {
-            name,
-            value,
-            allowed: format!("{name} > {lo} (finite)"),
-        })
-    }
+    Ok(crate::optics::params::check_above(name, value, lo)?)
 }
 
 /// Validate an axis: at least `min_len` values, finite, strictly monotonic and (nearly) uniform

@@ -2,7 +2,7 @@
 //! fibril centre of Fig. 5c, the line profiles across filaments of Fig. 4c).
 
 use super::{check_above, check_axis, AnalysisError, AxisMap, Result};
-use crate::data::{Image, Profile};
+use crate::data::{segment_lengths, Image, Profile};
 use crate::optics::grid::Interp;
 
 /// Value of `img` at (x, y) µm by bilinear or Keys cubic-convolution interpolation (a = −1/2).
@@ -114,10 +114,7 @@ pub fn profile_polyline(
             reason: "vertices must be finite".into(),
         });
     }
-    let seg: Vec<f64> = points
-        .windows(2)
-        .map(|w| ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2)).sqrt())
-        .collect();
+    let seg = segment_lengths(points);
     let total: f64 = seg.iter().sum();
     if !(total > 0.0) {
         return Err(AnalysisError::BadInput {

@@ -277,6 +277,14 @@ pub fn axis_step(a: &[f64]) -> f64 {
     }
 }
 
+/// Lengths of the segments of a polyline through `points` (in the vertices' unit, µm).
+pub fn segment_lengths(points: &[[f64; 2]]) -> Vec<f64> {
+    points
+        .windows(2)
+        .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
+        .collect()
+}
+
 /// A 1-D curve: values `v` sampled at positions `t` (µm unless stated).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Profile {

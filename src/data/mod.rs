@@ -14,7 +14,7 @@ pub mod session;
 pub mod tiff;
 
 pub use self::csv::{load_csv_profile, load_csv_table, save_csv_profile, save_csv_table};
-pub use self::image::{Image, Profile, Stats};
+pub use self::image::{segment_lengths, Image, Profile, Stats};
 pub use self::npz::{load_scan, save_scan};
 pub use self::scan::{Scan, ScanStatus};
 pub use self::session::Session;

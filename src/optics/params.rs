@@ -17,26 +17,32 @@ pub enum OpticsError {
 
 /// Check `lo <= value <= hi` and finiteness.
 pub fn check_range(name: &'static str, value: f64, lo: f64, hi: f64) -> Result<f64, OpticsError> {
-    if value.is_finite() && value >= lo && value <= hi {
-        Ok(value)
-    } else {
-        Err(OpticsError::OutOfRange {
-            name,
-            value,
-            allowed: format!("{lo} ≤ {name} ≤ {hi}"),
-        })
-    }
+    checked(name, value, value >= lo && value <= hi, || {
+        format!("{lo} ≤ {name} ≤ {hi}")
+    })
 }
 
 /// Check `value > lo` (exclusive) and finiteness.
 pub fn check_above(name: &'static str, value: f64, lo: f64) -> Result<f64, OpticsError> {
-    if value.is_finite() && value > lo {
+    checked(name, value, value > lo, || {
+        format!("{name} > {lo} (finite)")
+    })
+}
+
+/// `value` if it is finite and `ok`, else the out-of-range error stating what is `allowed`.
+fn checked(
+    name: &'static str,
+    value: f64,
+    ok: bool,
+    allowed: impl FnOnce() -> String,
+) -> Result<f64, OpticsError> {
+    if value.is_finite() && ok {
         Ok(value)
     } else {
         Err(OpticsError::OutOfRange {
             name,
             value,
-            allowed: format!("{name} > {lo} (finite)"),
+            allowed: allowed(),
         })
     }
 }

@@ -26,6 +26,13 @@ pub fn gauss_legendre(n: usize, a: f64, b: f64) -> (Vec<f64>, Vec<f64>) {
     (x, w)
 }
 
+/// The n-point Gauss–Legendre rule on each quadrant [q·π/2, (q+1)·π/2] of the azimuth, q = 0…3:
+/// (nodes, weights) per quadrant, so that no node straddles a QPD quadrant boundary.
+pub fn quadrant_gauss(n: usize) -> [(Vec<f64>, Vec<f64>); 4] {
+    let quarter = std::f64::consts::FRAC_PI_2;
+    std::array::from_fn(|q| gauss_legendre(n, q as f64 * quarter, (q + 1) as f64 * quarter))
+}
+
 /// Sizes of the remembered rules (the oldest is dropped beyond that).
 const RULES_KEPT: usize = 64;
 

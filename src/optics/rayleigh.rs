@@ -22,7 +22,7 @@
 
 use super::beam::{OpticsArg, ValidOptics};
 use super::params::{check_range, OpticsError};
-use super::quad::gauss_legendre;
+use super::quad::{gauss_legendre, quadrant_gauss};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -153,12 +153,7 @@ impl Detection {
         match det.misalignment {
             None => {
                 let (th, wth) = gauss_legendre(optics.n_theta, 0.0, theta_max);
-                for q in 0..4 {
-                    let (ph, wph) = gauss_legendre(
-                        optics.n_phi,
-                        q as f64 * PI / 2.0,
-                        (q + 1) as f64 * PI / 2.0,
-                    );
+                for (ph, wph) in quadrant_gauss(optics.n_phi) {
                     for (&t, &wt) in th.iter().zip(&wth) {
                         let (st, ct) = t.sin_cos();
                         for (&p, &wp) in ph.iter().zip(&wph) {
@@ -186,12 +181,7 @@ impl Detection {
                 let (rs, rc) = m.rotation_deg.to_radians().sin_cos();
                 // disk centre in detector coordinates (d = R·n − o with n the normalised BFP point)
                 let (cx, cy) = (-ox, -oy);
-                for q in 0..4 {
-                    let (ph, wph) = gauss_legendre(
-                        optics.n_phi,
-                        q as f64 * PI / 2.0,
-                        (q + 1) as f64 * PI / 2.0,
-                    );
+                for (ph, wph) in quadrant_gauss(optics.n_phi) {
                     for (&p, &wp) in ph.iter().zip(&wph) {
                         let (sp_d, cp_d) = p.sin_cos();
                         let ec = cp_d * cx + sp_d * cy;

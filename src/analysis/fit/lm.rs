@@ -187,12 +187,7 @@ pub fn levenberg_marquardt(
             );
         }
         let d2: Vec<f64> = dscale.iter().map(|d| d * d).collect();
-        let xnorm = p
-            .iter()
-            .zip(&dscale)
-            .map(|(x, d)| (x * d).powi(2))
-            .sum::<f64>()
-            .sqrt();
+        let xnorm = scaled_norm(&p, &dscale);
         // Trial steps until one is accepted or a test stops.
         loop {
             let Some(delta) = solve_damped(&a, lambda, &d2, &g) else {
@@ -212,12 +207,7 @@ pub fn levenberg_marquardt(
                 }
                 continue;
             };
-            let pnorm = delta
-                .iter()
-                .zip(&dscale)
-                .map(|(x, d)| (x * d).powi(2))
-                .sum::<f64>()
-                .sqrt();
+            let pnorm = scaled_norm(&delta, &dscale);
             let trial: Vec<f64> = p.iter().zip(&delta).map(|(x, d)| x + d).collect();
             let (rss1, a1, g1) = eval(&trial);
             nres += 1;
@@ -356,6 +346,15 @@ pub fn solve_damped(
         }
     }
     y.iter().all(|v| v.is_finite()).then_some(y)
+}
+
+/// ‖D·v‖₂, the scaled norm of MINPACK's `lmder` (D = diag(`dscale`)).
+fn scaled_norm(v: &[f64], dscale: &[f64]) -> f64 {
+    v.iter()
+        .zip(dscale)
+        .map(|(x, d)| (x * d).powi(2))
+        .sum::<f64>()
+        .sqrt()
 }
 
 #[cfg(test)]

@@ -460,25 +460,24 @@ impl Scene {
         for f in &self.filaments {
             let cm = clausius_mossotti(f.n, n_medium);
             let h = f.spacing_nm * 1e-3;
-            let seg_len: Vec<f64> = f
-                .points
-                .windows(2)
-                .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
-                .collect();
+            let seg_len = crate::data::segment_lengths(&f.points);
             let length: f64 = seg_len.iter().sum();
+            // one bead-model section of length `dl` centred at arc length `s`, at `p`
+            let section = move |p: [f64; 2], s: f64, dl: f64| {
+                let r = 0.5e-3 * f.profile.at(s, length);
+                Scatterer {
+                    pos: [p[0], p[1], f.z],
+                    alpha: 0.75 * dl * r * r * cm,
+                    object: obj,
+                    d_nm: None,
+                }
+            };
             let nb = (length / h).round() as usize;
             if nb == 0 {
                 // a zero-length filament (or shorter than one spacing) is a single bead-model
                 // section of length `length` at its start: nothing if the length is zero.
                 if length > 0.0 {
-                    let r = 0.5e-3 * f.profile.at(0.0, length);
-                    let p = f.points[0];
-                    out.push(Scatterer {
-                        pos: [p[0], p[1], f.z],
-                        alpha: 0.75 * length * r * r * cm,
-                        object: obj,
-                        d_nm: None,
-                    });
+                    out.push(section(f.points[0], 0.0, length));
                 }
                 obj += 1;
                 continue;
@@ -501,13 +500,7 @@ impl Scene {
                     }
                     acc += l;
                 }
-                let r = 0.5e-3 * f.profile.at(s, length);
-                out.push(Scatterer {
-                    pos: [p[0], p[1], f.z],
-                    alpha: 0.75 * hh * r * r * cm,
-                    object: obj,
-                    d_nm: None,
-                });
+                out.push(section(p, s, hh));
             }
             obj += 1;
         }
