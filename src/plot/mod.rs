@@ -295,22 +295,10 @@ fn rgb((r, g, b): (u8, u8, u8)) -> RGBColor {
     RGBColor(r, g, b)
 }
 
-/// Tableau-10 colours for series.
-const PALETTE: [(u8, u8, u8); 10] = [
-    (0x1f, 0x77, 0xb4),
-    (0xff, 0x7f, 0x0e),
-    (0x2c, 0xa0, 0x2c),
-    (0xd6, 0x27, 0x28),
-    (0x94, 0x67, 0xbd),
-    (0x8c, 0x56, 0x4b),
-    (0xe3, 0x77, 0xc2),
-    (0x7f, 0x7f, 0x7f),
-    (0xbc, 0xbd, 0x22),
-    (0x17, 0xbe, 0xcf),
-];
-
+/// Series colours: d3's Category10, matplotlib's "tab10" (the `colorous` crate's table).
 fn series_color(k: usize) -> RGBColor {
-    rgb(PALETTE[k % PALETTE.len()])
+    let c = colorous::CATEGORY10[k % colorous::CATEGORY10.len()];
+    RGBColor(c.r, c.g, c.b)
 }
 
 /// Draw centred text in a strip (used for titles).
