@@ -42,48 +42,50 @@ fn positive_or_err(key: &str, v: Option<f64>, what: &str) -> Result<f64, ConfigE
     }
 }
 
+/// Refuse the first of `keys` (key, whether it is set) that is set although it applies only to
+/// `backend`; `is` says what the device's backend is instead.
+fn only_for<const N: usize>(
+    backend: &str,
+    is: &str,
+    keys: [(&str, bool); N],
+) -> Result<(), ConfigError> {
+    match keys.into_iter().find(|(_, set)| *set) {
+        Some((key, _)) => Err(err(key, format!("only for backend = \"{backend}\" ({is})"))),
+        None => Ok(()),
+    }
+}
+
 impl Config {
     /// The checks of the bench's keys (called by `validate`).
     pub(super) fn validate_bench(&self) -> Result<(), ConfigError> {
         let s = &self.stage;
         let q = &self.qpd;
-        if s.backend != Backend::Madlib {
-            for (key, set) in [
-                ("stage.library", s.library.is_some()),
-                ("stage.serial", s.serial.is_some()),
-            ] {
-                if set {
-                    return Err(err(
-                        key,
-                        format!(
-                            "only for backend = \"madlib\" (the stage is \"{}\")",
-                            s.backend.as_str()
-                        ),
-                    ));
-                }
-            }
-        }
         if s.backend == Backend::Madlib {
             self.madlib_options()?;
+        } else {
+            only_for(
+                "madlib",
+                &format!("the stage is \"{}\"", s.backend.as_str()),
+                [
+                    ("stage.library", s.library.is_some()),
+                    ("stage.serial", s.serial.is_some()),
+                ],
+            )?;
         }
-        if q.backend != Backend::Nidaqmx {
-            for (key, set) in [
-                ("qpd.library", q.library.is_some()),
-                ("qpd.device", q.device.is_some()),
-                ("qpd.range_v", q.range_v.is_some()),
-                ("qpd.terminal", q.terminal.is_some()),
-                ("qpd.rate_hz", q.rate_hz.is_some()),
-            ] {
-                if set {
-                    return Err(err(
-                        key,
-                        format!(
-                            "only for backend = \"nidaqmx\" (the QPD is \"{}\")",
-                            q.backend.as_str()
-                        ),
-                    ));
-                }
-            }
+        if q.backend == Backend::Nidaqmx {
+            self.ni_qpd_options()?;
+        } else {
+            only_for(
+                "nidaqmx",
+                &format!("the QPD is \"{}\"", q.backend.as_str()),
+                [
+                    ("qpd.library", q.library.is_some()),
+                    ("qpd.device", q.device.is_some()),
+                    ("qpd.range_v", q.range_v.is_some()),
+                    ("qpd.terminal", q.terminal.is_some()),
+                    ("qpd.rate_hz", q.rate_hz.is_some()),
+                ],
+            )?;
             if let super::QpdChannels::Names(_) = q.channels {
                 return Err(err(
                     "qpd.channels",
@@ -93,9 +95,6 @@ impl Config {
                     ),
                 ));
             }
-        }
-        if q.backend == Backend::Nidaqmx {
-            self.ni_qpd_options()?;
         }
         if let Some(r) = &self.raster {
             if r.backend != Backend::Nidaqmx {
