@@ -223,9 +223,13 @@ impl GcsStage {
     /// `tcp://HOST:50000`) and connect: identify, check the axes against `SAI?`, read `SVO?`
     /// and `MOV?`, then switch the servos on ([`GcsStage::enable`]).
     pub fn open(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
-        let mut s = Self::open_checked(port, baud, opts)?;
-        s.enable()?;
-        Ok(s)
+        Self::open_checked(port, baud, opts)?.enabled()
+    }
+
+    /// The stage with its servos switched on ([`GcsStage::enable`]).
+    fn enabled(mut self) -> Result<Self, DeviceError> {
+        self.enable()?;
+        Ok(self)
     }
 
     /// As [`GcsStage::open`] without switching anything on: the caller checks the travel range
@@ -247,9 +251,7 @@ impl GcsStage {
         port: &str,
         opts: GcsOptions,
     ) -> Result<Self, DeviceError> {
-        let mut s = Self::connect_checked(io, port, opts)?;
-        s.enable()?;
-        Ok(s)
+        Self::connect_checked(io, port, opts)?.enabled()
     }
 
     /// Connect as PI's own software does, reading only: identify (`*IDN?`), clear a pending

@@ -165,22 +165,7 @@ impl Stage for GcsSplitStage {
 
     /// Every controller's costs, summed per command word.
     fn link_costs(&mut self) -> super::link::LinkCosts {
-        let mut out: super::link::LinkCosts = Vec::new();
-        for p in &mut self.parts {
-            for (w, c) in p.take_link_costs() {
-                match out.iter_mut().find(|(k, _)| *k == w) {
-                    Some((_, t)) => {
-                        t.n += c.n;
-                        t.bytes_out += c.bytes_out;
-                        t.bytes_in += c.bytes_in;
-                        t.write_s += c.write_s;
-                        t.reply_s += c.reply_s;
-                    }
-                    None => out.push((w, c)),
-                }
-            }
-        }
-        out
+        super::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
     }
 
     /// The query to every controller; each reply line is prefixed with the controller's name.

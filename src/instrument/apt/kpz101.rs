@@ -556,22 +556,7 @@ impl Stage for Kpz101Stage {
 
     /// The three cubes' links, message by message (summed over the cubes).
     fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
-        let mut out: crate::instrument::link::LinkCosts = Vec::new();
-        for a in &mut self.axes {
-            for (name, c) in a.take_link_costs() {
-                match out.iter_mut().find(|(n, _)| *n == name) {
-                    Some((_, o)) => {
-                        o.n += c.n;
-                        o.bytes_out += c.bytes_out;
-                        o.bytes_in += c.bytes_in;
-                        o.write_s += c.write_s;
-                        o.reply_s += c.reply_s;
-                    }
-                    None => out.push((name, c)),
-                }
-            }
-        }
-        out
+        crate::instrument::link::summed_costs(self.axes.iter_mut().map(|a| a.take_link_costs()))
     }
 
     fn enable(&mut self) -> Result<(), DeviceError> {
