@@ -6,6 +6,7 @@
 //! each to report on target. `stop` sends `STP` to every controller, also when one of them
 //! fails to answer: a fault on one puts the state of all in doubt.
 
+use super::device::all_then_first_error;
 use super::gcs::{GcsOptions, GcsStage, PerAxis};
 use super::{DeviceError, Pos, Stage};
 use std::sync::atomic::AtomicBool;
@@ -134,13 +135,7 @@ impl Stage for GcsSplitStage {
 
     /// `STP` to every controller, even when one fails; the first failure is reported.
     fn stop(&mut self) -> Result<(), DeviceError> {
-        let mut first = None;
-        for p in &mut self.parts {
-            if let Err(e) = p.send_stop() {
-                first.get_or_insert(e);
-            }
-        }
-        first.map_or(Ok(()), Err)
+        all_then_first_error(&mut self.parts, |p| p.send_stop())
     }
 
     fn enable(&mut self) -> Result<(), DeviceError> {

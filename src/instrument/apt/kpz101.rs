@@ -27,6 +27,7 @@
 //! travel.
 
 use super::{id, open_apt_serial, AptLink, HwInfo, Message, CHAN1};
+use crate::instrument::device::all_then_first_error;
 use crate::instrument::link::Transport;
 use crate::instrument::{DeviceError, Pos, Stage};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -589,13 +590,7 @@ impl Stage for Kpz101Stage {
 
     /// Every cube holds where it is, also when one of them fails (the first error is returned).
     fn stop(&mut self) -> Result<(), DeviceError> {
-        let mut first = None;
-        for a in &mut self.axes {
-            if let Err(e) = a.hold() {
-                first.get_or_insert(e);
-            }
-        }
-        first.map_or(Ok(()), Err)
+        all_then_first_error(&mut self.axes, |a| a.hold())
     }
 }
 
