@@ -499,6 +499,13 @@ position_volts_per_um = { x = 0.1333 }
             r#"ao = { x = "ao0", y = "ao0" }"#,
         );
         assert_eq!(e.key, "raster.ao.y");
+        let e = refused(r#"ao = { x = "ao0", y = "ao1" }"#, "ao = 5");
+        assert_eq!(e.key, "raster.ao");
+        assert!(
+            e.message
+                .contains("expected a table of per-axis values { x = …, y = … }"),
+            "{e}"
+        );
         let e = refused(r#"device = "Dev1""#, r#"device = "Dev1/ai0""#);
         assert_eq!(e.key, "qpd.device");
         let e = refused(r#"sx = "ai0", "#, r#"sx = 1, "#);
@@ -511,6 +518,17 @@ position_volts_per_um = { x = 0.1333 }
         let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\nserial = 3\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\n";
         let e = Config::from_toml_str(t, "t").unwrap_err();
         assert_eq!(e.key, "stage.serial");
+        assert_eq!(
+            e.message,
+            "only for backend = \"madlib\" (the stage is \"gcs\")"
+        );
+        let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\nrate_hz = 5.0\n";
+        let e = Config::from_toml_str(t, "t").unwrap_err();
+        assert_eq!(e.key, "qpd.rate_hz");
+        assert_eq!(
+            e.message,
+            "only for backend = \"nidaqmx\" (the QPD is \"scpi\")"
+        );
         let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\nchannels = { sx = \"ai0\", sy = \"ai1\", sum = \"ai2\" }\n";
         let e = Config::from_toml_str(t, "t").unwrap_err();
         assert_eq!(e.key, "qpd.channels");
