@@ -351,6 +351,18 @@ mod tests {
     use super::*;
     use crate::acquire::plan::Sweep;
 
+    /// `ascan axis from to` with `n` points and no dwell (absolute).
+    fn ascan(axis: Axis, from: f64, to: f64, n: i64) -> Plan {
+        let sweep = Sweep::new("ascan", axis, from, to, n, "n").unwrap();
+        Plan::line("ascan", sweep, 0.0, false).unwrap()
+    }
+
+    /// The pre-flight of `plan` from the origin is refused, saying `says`.
+    fn assert_refused(l: &SoftLimits, plan: &Plan, says: &str) {
+        let e = l.preflight(plan, [0.0; 3]).unwrap_err();
+        assert!(e.0.contains(says), "{e}");
+    }
+
     #[test]
     fn config_limits_parse_and_refuse_with_axis_value_and_limit() {
         let mut l = SoftLimits::default();
@@ -359,29 +371,17 @@ mod tests {
         l.max_step_um = 0.5;
         let e = l.check([6.0, 0.0, 0.0]).unwrap_err();
         assert_eq!(e.0, "x = 6 µm is above the soft limit x ≤ 5 µm");
-        let plan = Plan::line(
-            "ascan",
-            Sweep::new("ascan", Axis::Z, 0.0, 1.5, 4, "n").unwrap(),
-            0.0,
-            false,
-        )
-        .unwrap();
-        let e = l.preflight(&plan, [0.0; 3]).unwrap_err();
-        assert!(
-            e.0.contains("point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm"),
-            "{e}"
+        let too_far = ascan(Axis::Z, 0.0, 1.5, 4);
+        assert_refused(
+            &l,
+            &too_far,
+            "point 4 of 4: z = 1.5 µm is above the soft limit z ≤ 1 µm",
         );
-        let coarse = Plan::line(
-            "ascan",
-            Sweep::new("ascan", Axis::X, 0.0, 4.0, 3, "n").unwrap(),
-            0.0,
-            false,
-        )
-        .unwrap();
-        let e = l.preflight(&coarse, [0.0; 3]).unwrap_err();
-        assert!(
-            e.0.contains("step along x = 2 µm exceeds max_step_um = 0.5 µm"),
-            "{e}"
+        let coarse = ascan(Axis::X, 0.0, 4.0, 3);
+        assert_refused(
+            &l,
+            &coarse,
+            "step along x = 2 µm exceeds max_step_um = 0.5 µm",
         );
     }
 
@@ -419,13 +419,7 @@ mod tests {
             max_speed_um_s: Some(50.0),
             ..SoftLimits::default()
         };
-        let plan = Plan::line(
-            "ascan",
-            Sweep::new("ascan", Axis::Z, 0.0, 0.3, 4, "n").unwrap(),
-            0.0,
-            false,
-        )
-        .unwrap();
+        let plan = ascan(Axis::Z, 0.0, 0.3, 4);
         let pts = plan.points([0.0; 3]);
         // 0.1 µm per point in 1 ms + 1 ms: 50 µm/s, at the limit
         let v = l.check_speed("ascan", &pts, 0.001, 0.001).unwrap();

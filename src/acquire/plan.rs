@@ -167,6 +167,16 @@ pub fn check_dwell(who: &str, dwell: f64) -> Result<f64, PlanError> {
     }
 }
 
+/// Refuse a plan whose two swept axes (`what`: "scan axes", "motors") are one and the same.
+fn two_axes(kind: &str, what: &str, a: Axis, b: Axis) -> Result<(), PlanError> {
+    if a == b {
+        return Err(PlanError(format!(
+            "{kind}: both {what} are {a}: pick two different axes"
+        )));
+    }
+    Ok(())
+}
+
 impl Plan {
     /// A line scan along one axis.
     pub fn line(kind: &str, sweep: Sweep, dwell_s: f64, rel: bool) -> Result<Plan, PlanError> {
@@ -193,12 +203,7 @@ impl Plan {
         rel: bool,
         snake: bool,
     ) -> Result<Plan, PlanError> {
-        if fast.axis == slow.axis {
-            return Err(PlanError(format!(
-                "{kind}: both scan axes are {}: pick two different axes",
-                fast.axis
-            )));
-        }
+        two_axes(kind, "scan axes", fast.axis, slow.axis)?;
         for (a, v) in &fixed {
             if *a == fast.axis || *a == slow.axis {
                 return Err(PlanError(format!(
@@ -233,12 +238,7 @@ impl Plan {
         dwell_s: f64,
         rel: bool,
     ) -> Result<Plan, PlanError> {
-        if first.axis == second.axis {
-            return Err(PlanError(format!(
-                "{kind}: both motors are {}: pick two different axes",
-                first.axis
-            )));
-        }
+        two_axes(kind, "motors", first.axis, second.axis)?;
         if first.n != second.n {
             return Err(PlanError(format!(
                 "{kind}: the two sweeps have {} and {} points: they must match",

@@ -42,48 +42,50 @@ fn positive_or_err(key: &str, v: Option<f64>, what: &str) -> Result<f64, ConfigE
     }
 }
 
+/// Refuse the first of `keys` (key, whether it is set) that is set although it applies only to
+/// `backend`; `is` says what the device's backend is instead.
+fn only_for<const N: usize>(
+    backend: &str,
+    is: &str,
+    keys: [(&str, bool); N],
+) -> Result<(), ConfigError> {
+    match keys.into_iter().find(|(_, set)| *set) {
+        Some((key, _)) => Err(err(key, format!("only for backend = \"{backend}\" ({is})"))),
+        None => Ok(()),
+    }
+}
+
 impl Config {
     /// The checks of the bench's keys (called by `validate`).
     pub(super) fn validate_bench(&self) -> Result<(), ConfigError> {
         let s = &self.stage;
         let q = &self.qpd;
-        if s.backend != Backend::Madlib {
-            for (key, set) in [
-                ("stage.library", s.library.is_some()),
-                ("stage.serial", s.serial.is_some()),
-            ] {
-                if set {
-                    return Err(err(
-                        key,
-                        format!(
-                            "only for backend = \"madlib\" (the stage is \"{}\")",
-                            s.backend.as_str()
-                        ),
-                    ));
-                }
-            }
-        }
         if s.backend == Backend::Madlib {
             self.madlib_options()?;
+        } else {
+            only_for(
+                "madlib",
+                &format!("the stage is \"{}\"", s.backend.as_str()),
+                [
+                    ("stage.library", s.library.is_some()),
+                    ("stage.serial", s.serial.is_some()),
+                ],
+            )?;
         }
-        if q.backend != Backend::Nidaqmx {
-            for (key, set) in [
-                ("qpd.library", q.library.is_some()),
-                ("qpd.device", q.device.is_some()),
-                ("qpd.range_v", q.range_v.is_some()),
-                ("qpd.terminal", q.terminal.is_some()),
-                ("qpd.rate_hz", q.rate_hz.is_some()),
-            ] {
-                if set {
-                    return Err(err(
-                        key,
-                        format!(
-                            "only for backend = \"nidaqmx\" (the QPD is \"{}\")",
-                            q.backend.as_str()
-                        ),
-                    ));
-                }
-            }
+        if q.backend == Backend::Nidaqmx {
+            self.ni_qpd_options()?;
+        } else {
+            only_for(
+                "nidaqmx",
+                &format!("the QPD is \"{}\"", q.backend.as_str()),
+                [
+                    ("qpd.library", q.library.is_some()),
+                    ("qpd.device", q.device.is_some()),
+                    ("qpd.range_v", q.range_v.is_some()),
+                    ("qpd.terminal", q.terminal.is_some()),
+                    ("qpd.rate_hz", q.rate_hz.is_some()),
+                ],
+            )?;
             if let super::QpdChannels::Names(_) = q.channels {
                 return Err(err(
                     "qpd.channels",
@@ -93,9 +95,6 @@ impl Config {
                     ),
                 ));
             }
-        }
-        if q.backend == Backend::Nidaqmx {
-            self.ni_qpd_options()?;
         }
         if let Some(r) = &self.raster {
             if r.backend != Backend::Nidaqmx {
@@ -500,6 +499,13 @@ position_volts_per_um = { x = 0.1333 }
             r#"ao = { x = "ao0", y = "ao0" }"#,
         );
         assert_eq!(e.key, "raster.ao.y");
+        let e = refused(r#"ao = { x = "ao0", y = "ao1" }"#, "ao = 5");
+        assert_eq!(e.key, "raster.ao");
+        assert!(
+            e.message
+                .contains("expected a table of per-axis values { x = …, y = … }"),
+            "{e}"
+        );
         let e = refused(r#"device = "Dev1""#, r#"device = "Dev1/ai0""#);
         assert_eq!(e.key, "qpd.device");
         let e = refused(r#"sx = "ai0", "#, r#"sx = 1, "#);
@@ -512,6 +518,17 @@ position_volts_per_um = { x = 0.1333 }
         let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\nserial = 3\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\n";
         let e = Config::from_toml_str(t, "t").unwrap_err();
         assert_eq!(e.key, "stage.serial");
+        assert_eq!(
+            e.message,
+            "only for backend = \"madlib\" (the stage is \"gcs\")"
+        );
+        let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\nrate_hz = 5.0\n";
+        let e = Config::from_toml_str(t, "t").unwrap_err();
+        assert_eq!(e.key, "qpd.rate_hz");
+        assert_eq!(
+            e.message,
+            "only for backend = \"nidaqmx\" (the QPD is \"scpi\")"
+        );
         let t = "[stage]\nbackend = \"gcs\"\nport = \"/dev/ttyUSB0\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB1\"\nchannels = { sx = \"ai0\", sy = \"ai1\", sum = \"ai2\" }\n";
         let e = Config::from_toml_str(t, "t").unwrap_err();
         assert_eq!(e.key, "qpd.channels");

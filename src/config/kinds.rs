@@ -120,22 +120,21 @@ pub(super) fn string_or_int<'de, D: serde::Deserializer<'de>>(d: D) -> Result<St
 
 /// Per-axis values of `[raster]` (x and y; the fast and slow axes of `scan_xy`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct XyNames {
+#[serde(
+    deny_unknown_fields,
+    expecting = "a table of per-axis values { x = …, y = … }"
+)]
+pub struct Xy<T> {
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub x: Option<String>,
+    pub x: Option<T>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub y: Option<String>,
+    pub y: Option<T>,
 }
 
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct XyNumbers {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub x: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub y: Option<f64>,
-}
+/// Per-axis NI channel names (`ao`, `position`).
+pub type XyNames = Xy<String>;
+/// Per-axis numbers (`volts_per_um`, `position_volts_per_um`).
+pub type XyNumbers = Xy<f64>;
 
 /// `[raster]`: the NI board's hardware-timed raster.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

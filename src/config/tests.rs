@@ -350,6 +350,11 @@ fn example_file_parses() {
 
 const HW: &str = "[qpd]\nbackend = \"scpi\"\nport = \"/dev/ttyUSB9\"\n[stage]\nbackend = \"gcs\"\n";
 
+/// The error of a GCS stage and SCPI QPD configuration ([`HW`]) with `stage` added to `[stage]`.
+fn hw_error(stage: &str) -> ConfigError {
+    error_of(&format!("{HW}{stage}"))
+}
+
 #[test]
 fn default_axes_are_an_e727s() {
     let c = Config::default();
@@ -403,9 +408,7 @@ fn stage_split_across_controllers_groups_axes_by_port() {
     assert_eq!(ctl[1].0, "tcp://10.0.0.2:50000");
     assert_eq!(ctl[1].1.axes, [None, None, Some("1".to_string())]);
     // the same identifier twice on one controller is an error
-    let e = error_of(&format!(
-        "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }}\naxes = {{ x = \"1\", y = \"1\", z = \"1\" }}\n"
-    ));
+    let e = hw_error("ports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }\naxes = { x = \"1\", y = \"1\", z = \"1\" }\n");
     assert_eq!(e.key, "stage.axes");
     assert!(
         e.message
@@ -413,28 +416,22 @@ fn stage_split_across_controllers_groups_axes_by_port() {
         "{e}"
     );
     // port and ports together
-    let e = error_of(&format!(
-        "{HW}port = \"/dev/a\"\nports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }}\n"
-    ));
+    let e =
+        hw_error("port = \"/dev/a\"\nports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" }\n");
     assert_eq!(e.key, "stage.ports");
     assert!(e.message.starts_with("both stage.port = \"/dev/a\" and stage.ports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\" } are set"), "{e}");
     // an axis left out, an unknown axis, the QPD on a stage port
-    let e = error_of(&format!(
-        "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\" }}\n"
-    ));
+    let e = hw_error("ports = { x = \"/dev/a\", y = \"/dev/a\" }\n");
     assert_eq!(e.key, "stage.ports");
     assert!(e.message.contains("missing field `z`"), "{e}");
-    let e = error_of(&format!(
-        "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\", w = \"/dev/c\" }}\n"
-    ));
+    let e =
+        hw_error("ports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/b\", w = \"/dev/c\" }\n");
     assert!(
         e.message
             .contains("unknown field `w`, expected one of `x`, `y`, `z`"),
         "{e}"
     );
-    let e = error_of(&format!(
-        "{HW}ports = {{ x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/ttyUSB9\" }}\n"
-    ));
+    let e = hw_error("ports = { x = \"/dev/a\", y = \"/dev/a\", z = \"/dev/ttyUSB9\" }\n");
     assert_eq!(e.key, "qpd.port");
     assert_eq!(
         e.message,

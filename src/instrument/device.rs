@@ -40,6 +40,21 @@ pub enum DeviceError {
     Other { device: String, detail: String },
 }
 
+/// `f` on every one of `items`, also after one fails (a stop or a hold must reach every axis and
+/// every controller); the first error, if any (what the calls return otherwise is dropped).
+pub fn all_then_first_error<T, R>(
+    items: impl IntoIterator<Item = T>,
+    f: impl FnMut(T) -> Result<R, DeviceError>,
+) -> Result<(), DeviceError> {
+    let mut first = None;
+    for r in items.into_iter().map(f) {
+        if let Err(e) = r {
+            first.get_or_insert(e);
+        }
+    }
+    first.map_or(Ok(()), Err)
+}
+
 impl DeviceError {
     /// The same error, naming `command` as the one it happened in (e.g. the `ERR?` that
     /// followed a `MOV`: `ERR? (after `MOV A 1.000000`)`). Errors that carry no command are
@@ -65,5 +80,30 @@ impl DeviceError {
             },
             other => other,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn all_then_first_error_calls_every_item_and_returns_the_first_error() {
+        let fail = |i: usize| DeviceError::Other {
+            device: format!("controller {i}"),
+            detail: "no reply".into(),
+        };
+        let mut called = Vec::new();
+        let r = all_then_first_error(0..4, |i| {
+            called.push(i);
+            if i == 1 || i == 2 {
+                Err(fail(i))
+            } else {
+                Ok(())
+            }
+        });
+        assert_eq!(called, [0, 1, 2, 3]);
+        assert_eq!(r.unwrap_err().to_string(), fail(1).to_string());
+        assert!(all_then_first_error(0..3, |_| Ok(())).is_ok());
     }
 }

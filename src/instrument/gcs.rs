@@ -223,9 +223,13 @@ impl GcsStage {
     /// `tcp://HOST:50000`) and connect: identify, check the axes against `SAI?`, read `SVO?`
     /// and `MOV?`, then switch the servos on ([`GcsStage::enable`]).
     pub fn open(port: &str, baud: u32, opts: GcsOptions) -> Result<Self, DeviceError> {
-        let mut s = Self::open_checked(port, baud, opts)?;
-        s.enable()?;
-        Ok(s)
+        Self::open_checked(port, baud, opts)?.enabled()
+    }
+
+    /// The stage with its servos switched on ([`GcsStage::enable`]).
+    fn enabled(mut self) -> Result<Self, DeviceError> {
+        self.enable()?;
+        Ok(self)
     }
 
     /// As [`GcsStage::open`] without switching anything on: the caller checks the travel range
@@ -247,9 +251,7 @@ impl GcsStage {
         port: &str,
         opts: GcsOptions,
     ) -> Result<Self, DeviceError> {
-        let mut s = Self::connect_checked(io, port, opts)?;
-        s.enable()?;
-        Ok(s)
+        Self::connect_checked(io, port, opts)?.enabled()
     }
 
     /// Connect as PI's own software does, reading only: identify (`*IDN?`), clear a pending
@@ -495,11 +497,25 @@ impl GcsStage {
     /// timeout the driver asks `ERR?` once: a nonzero code turns the timeout into a
     /// `Controller` error naming the query.
     pub fn query_lines(&mut self, command: &str) -> Result<Vec<String>, DeviceError> {
+        self.query_lines_within(command, self.opts.timeout, MAX_REPLY_LINES, |lines| {
+            lines.join("\\n")
+        })
+    }
+
+    /// [`query_lines`](Self::query_lines) waiting at most `timeout` for each line: a reply
+    /// still going on after `max_lines` lines is `Garbled`, with what `too_many` makes of them.
+    fn query_lines_within(
+        &mut self,
+        command: &str,
+        timeout: Duration,
+        max_lines: usize,
+        too_many: impl FnOnce(&[String]) -> String,
+    ) -> Result<Vec<String>, DeviceError> {
         self.link.discard_input();
         self.link.send(command)?;
         let mut lines = Vec::new();
         loop {
-            let line = match self.link.read_line(command, self.opts.timeout) {
+            let line = match self.link.read_line(command, timeout) {
                 Ok(l) => l,
                 Err(e @ DeviceError::Timeout { .. }) if lines.is_empty() => {
                     return Err(match self.error_code(command) {
@@ -514,8 +530,8 @@ impl GcsStage {
             if !more {
                 return Ok(lines);
             }
-            if lines.len() >= MAX_REPLY_LINES {
-                return Err(self.link.garbled(command, lines.join("\\n")));
+            if lines.len() >= max_lines {
+                return Err(self.link.garbled(command, too_many(&lines)));
             }
         }
     }

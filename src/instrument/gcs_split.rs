@@ -6,6 +6,7 @@
 //! each to report on target. `stop` sends `STP` to every controller, also when one of them
 //! fails to answer: a fault on one puts the state of all in doubt.
 
+use super::device::all_then_first_error;
 use super::gcs::{GcsOptions, GcsStage, PerAxis};
 use super::{DeviceError, Pos, Stage};
 use std::sync::atomic::AtomicBool;
@@ -134,13 +135,7 @@ impl Stage for GcsSplitStage {
 
     /// `STP` to every controller, even when one fails; the first failure is reported.
     fn stop(&mut self) -> Result<(), DeviceError> {
-        let mut first = None;
-        for p in &mut self.parts {
-            if let Err(e) = p.send_stop() {
-                first.get_or_insert(e);
-            }
-        }
-        first.map_or(Ok(()), Err)
+        all_then_first_error(&mut self.parts, |p| p.send_stop())
     }
 
     fn enable(&mut self) -> Result<(), DeviceError> {
@@ -165,22 +160,7 @@ impl Stage for GcsSplitStage {
 
     /// Every controller's costs, summed per command word.
     fn link_costs(&mut self) -> super::link::LinkCosts {
-        let mut out: super::link::LinkCosts = Vec::new();
-        for p in &mut self.parts {
-            for (w, c) in p.take_link_costs() {
-                match out.iter_mut().find(|(k, _)| *k == w) {
-                    Some((_, t)) => {
-                        t.n += c.n;
-                        t.bytes_out += c.bytes_out;
-                        t.bytes_in += c.bytes_in;
-                        t.write_s += c.write_s;
-                        t.reply_s += c.reply_s;
-                    }
-                    None => out.push((w, c)),
-                }
-            }
-        }
-        out
+        super::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
     }
 
     /// The query to every controller; each reply line is prefixed with the controller's name.

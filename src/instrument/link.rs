@@ -328,6 +328,25 @@ pub struct CommandCost {
 /// Per-command costs of a link since the last [`LineLink::take_costs`], in first-use order.
 pub type LinkCosts = Vec<(String, CommandCost)>;
 
+/// The costs of several links as one (a stage's controllers, a KPZ101's cubes): each command's
+/// costs summed over the links, in first-use order.
+pub fn summed_costs(links: impl IntoIterator<Item = LinkCosts>) -> LinkCosts {
+    let mut out: LinkCosts = Vec::new();
+    for (name, c) in links.into_iter().flatten() {
+        match out.iter_mut().find(|(n, _)| *n == name) {
+            Some((_, o)) => {
+                o.n += c.n;
+                o.bytes_out += c.bytes_out;
+                o.bytes_in += c.bytes_in;
+                o.write_s += c.write_s;
+                o.reply_s += c.reply_s;
+            }
+            None => out.push((name, c)),
+        }
+    }
+    out
+}
+
 /// The replies on a link since it was opened (never reset): the device-side cost models
 /// derive the link's reply latency from them before anything was measured for a scan
 /// ([`LineLink::latency_s`]).
@@ -769,6 +788,33 @@ pub(crate) mod mock {
 mod tests {
     use super::mock::link;
     use super::*;
+
+    #[test]
+    fn summed_costs_add_each_command_over_links_in_first_use_order() {
+        let cost = |n, bytes_out, bytes_in, write_s, reply_s| CommandCost {
+            n,
+            bytes_out,
+            bytes_in,
+            write_s,
+            reply_s,
+        };
+        let a = vec![
+            ("MOV".to_string(), cost(2, 20, 0, 0.5, 0.0)),
+            ("ERR?".to_string(), cost(1, 5, 2, 0.25, 1.0)),
+        ];
+        let b = vec![
+            ("POS?".to_string(), cost(3, 15, 30, 0.125, 2.0)),
+            ("MOV".to_string(), cost(1, 10, 0, 0.25, 0.0)),
+        ];
+        assert_eq!(
+            summed_costs([a, b]),
+            vec![
+                ("MOV".to_string(), cost(3, 30, 0, 0.75, 0.0)),
+                ("ERR?".to_string(), cost(1, 5, 2, 0.25, 1.0)),
+                ("POS?".to_string(), cost(3, 15, 30, 0.125, 2.0)),
+            ]
+        );
+    }
 
     #[test]
     fn reads_lines_and_strips_cr() {

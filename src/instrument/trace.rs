@@ -94,36 +94,25 @@ fn pos_str(p: &Pos) -> String {
     format!("x={:.4} y={:.4} z={:.4}", p[0], p[1], p[2])
 }
 
-/// A stage that records what it is told to do.
-pub struct TracedStage {
-    pub inner: Box<dyn Stage>,
+/// A stage or QPD that records what it is told to do: each move (and stop) of a stage, each
+/// read of a QPD.
+pub struct Traced<D: ?Sized> {
+    pub inner: Box<D>,
     pub trace: Trace,
 }
 
-impl Stage for TracedStage {
-    fn move_time_s(&self) -> f64 {
-        self.inner.move_time_s()
-    }
-    fn link_costs(&mut self) -> super::link::LinkCosts {
-        self.inner.link_costs()
-    }
-    fn name(&self) -> String {
-        self.inner.name()
-    }
-    fn position(&mut self) -> Result<Pos, DeviceError> {
-        self.inner.position()
-    }
-    fn target(&mut self) -> Result<Pos, DeviceError> {
-        self.inner.target()
-    }
-    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
-        self.inner.raw_query(query)
-    }
-    fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError> {
-        self.inner.set_velocity(um_s)
-    }
-    fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
-        self.inner.velocity()
+impl Stage for Traced<dyn Stage> {
+    forward! { inner;
+        fn move_time_s(&self) -> f64;
+        fn link_costs(&mut self) -> super::link::LinkCosts;
+        fn name(&self) -> String;
+        fn position(&mut self) -> Result<Pos, DeviceError>;
+        fn target(&mut self) -> Result<Pos, DeviceError>;
+        fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError>;
+        fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError>;
+        fn velocity(&mut self) -> Result<Option<Pos>, DeviceError>;
+        fn enable(&mut self) -> Result<(), DeviceError>;
+        fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
     }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         let r = self.inner.move_to(target);
@@ -152,42 +141,22 @@ impl Stage for TracedStage {
         }
         r
     }
-    fn enable(&mut self) -> Result<(), DeviceError> {
-        self.inner.enable()
-    }
-    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
-        self.inner.travel_range()
-    }
     fn stop(&mut self) -> Result<(), DeviceError> {
         self.trace.record("stop");
         self.inner.stop()
     }
 }
 
-/// A QPD that records each read.
-pub struct TracedQpd {
-    pub inner: Box<dyn Qpd>,
-    pub trace: Trace,
-}
-
-impl Qpd for TracedQpd {
-    fn name(&self) -> String {
-        self.inner.name()
-    }
-    fn sample_rate(&self) -> f64 {
-        self.inner.sample_rate()
-    }
-    fn metadata(&self) -> Option<serde_json::Value> {
-        self.inner.metadata()
-    }
-    fn overhead_s(&self) -> f64 {
-        self.inner.overhead_s()
+impl Qpd for Traced<dyn Qpd> {
+    forward! { inner;
+        fn name(&self) -> String;
+        fn sample_rate(&self) -> f64;
+        fn metadata(&self) -> Option<serde_json::Value>;
+        fn overhead_s(&self) -> f64;
+        fn link_costs(&mut self) -> super::link::LinkCosts;
     }
     fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         self.read(n)
-    }
-    fn link_costs(&mut self) -> super::link::LinkCosts {
-        self.inner.link_costs()
     }
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         let r = self.inner.read(n);
@@ -209,11 +178,11 @@ impl super::Instrument {
     pub fn traced(self) -> (Self, Trace) {
         let trace = Trace::new(self.clock.clone());
         let inst = Self {
-            stage: Box::new(TracedStage {
+            stage: Box::new(Traced {
                 inner: self.stage,
                 trace: trace.clone(),
             }),
-            qpd: Box::new(TracedQpd {
+            qpd: Box::new(Traced {
                 inner: self.qpd,
                 trace: trace.clone(),
             }),

@@ -27,6 +27,7 @@
 //! travel.
 
 use super::{id, open_apt_serial, AptLink, HwInfo, Message, CHAN1};
+use crate::instrument::device::all_then_first_error;
 use crate::instrument::link::Transport;
 use crate::instrument::{DeviceError, Pos, Stage};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -556,22 +557,7 @@ impl Stage for Kpz101Stage {
 
     /// The three cubes' links, message by message (summed over the cubes).
     fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
-        let mut out: crate::instrument::link::LinkCosts = Vec::new();
-        for a in &mut self.axes {
-            for (name, c) in a.take_link_costs() {
-                match out.iter_mut().find(|(n, _)| *n == name) {
-                    Some((_, o)) => {
-                        o.n += c.n;
-                        o.bytes_out += c.bytes_out;
-                        o.bytes_in += c.bytes_in;
-                        o.write_s += c.write_s;
-                        o.reply_s += c.reply_s;
-                    }
-                    None => out.push((name, c)),
-                }
-            }
-        }
-        out
+        crate::instrument::link::summed_costs(self.axes.iter_mut().map(|a| a.take_link_costs()))
     }
 
     fn enable(&mut self) -> Result<(), DeviceError> {
@@ -604,13 +590,7 @@ impl Stage for Kpz101Stage {
 
     /// Every cube holds where it is, also when one of them fails (the first error is returned).
     fn stop(&mut self) -> Result<(), DeviceError> {
-        let mut first = None;
-        for a in &mut self.axes {
-            if let Err(e) = a.hold() {
-                first.get_or_insert(e);
-            }
-        }
-        first.map_or(Ok(()), Err)
+        all_then_first_error(&mut self.axes, |a| a.hold())
     }
 }
 

@@ -540,45 +540,28 @@ fn pty_line() -> std::io::Result<(Line, String)> {
     ))
 }
 
-/// Open a PTY pair, and serve `device` on the master side on a new thread.
+/// A TCP listener on `addr` (e.g. `127.0.0.1:0` for a free port) serving one client at a time,
+/// and its path `tcp://IP:PORT`.
+fn tcp_line(addr: &str) -> std::io::Result<(Line, String)> {
+    let listener = std::net::TcpListener::bind(addr)?;
+    listener.set_nonblocking(true)?;
+    let path = format!("tcp://{}", listener.local_addr()?);
+    Ok((
+        Line::Tcp {
+            listener,
+            client: None,
+        },
+        path,
+    ))
+}
+
+/// Serve `device` on `line` ([`pty_line`], [`tcp_line`]) on a new thread; clients open `path`.
 fn spawn(
     kind: &'static str,
     device: impl Device,
     faults: Arc<Mutex<Faults>>,
     position: SharedPosition,
-    link: LinkModel,
-) -> std::io::Result<Emulator> {
-    let (line, path) = pty_line()?;
-    spawn_on(kind, device, faults, position, line, path, link)
-}
-
-/// Listen on `addr` (e.g. `127.0.0.1:0` for a free port) and serve `device` to one TCP client
-/// at a time on a new thread; the emulator's path is `tcp://IP:PORT`.
-fn spawn_tcp(
-    kind: &'static str,
-    device: impl Device,
-    faults: Arc<Mutex<Faults>>,
-    position: SharedPosition,
-    addr: &str,
-    link: LinkModel,
-) -> std::io::Result<Emulator> {
-    let listener = std::net::TcpListener::bind(addr)?;
-    listener.set_nonblocking(true)?;
-    let path = format!("tcp://{}", listener.local_addr()?);
-    let line = Line::Tcp {
-        listener,
-        client: None,
-    };
-    spawn_on(kind, device, faults, position, line, path, link)
-}
-
-fn spawn_on(
-    kind: &'static str,
-    device: impl Device,
-    faults: Arc<Mutex<Faults>>,
-    position: SharedPosition,
-    line: Line,
-    path: String,
+    (line, path): (Line, String),
     link: LinkModel,
 ) -> std::io::Result<Emulator> {
     let f = faults.clone();

@@ -9,7 +9,9 @@
 //! Headers take SCPI short or long forms, any case (`SENS:AVER:COUN`,
 //! `sense:average:count`). Errors go to a FIFO queue of 16 read with `SYST:ERR?`.
 
-use super::{lock, spawn, Device, Emulator, Faults, LinkModel, SharedPosition, SignalSource};
+use super::{
+    lock, pty_line, spawn, Device, Emulator, Faults, LinkModel, SharedPosition, SignalSource,
+};
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
@@ -258,7 +260,7 @@ pub fn start_qpd_emulator(
         source: Box::new(source),
         rng,
     };
-    spawn("qpd", dev, faults, position, link)
+    spawn("qpd", dev, faults, position, pty_line()?, link)
 }
 
 #[cfg(test)]

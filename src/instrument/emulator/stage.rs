@@ -25,7 +25,7 @@
 //! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
 //! answers a query naming several axes for the first one only.
 
-use super::{lock, spawn, spawn_tcp, Device, Emulator, Faults, LinkModel, SharedPosition};
+use super::{lock, pty_line, spawn, tcp_line, Device, Emulator, Faults, LinkModel, SharedPosition};
 mod wave;
 mod wave_state;
 use crate::instrument::Pos;
@@ -250,12 +250,12 @@ impl GcsDevice {
 
     /// `AXIS value AXIS value …` pairs. Error 1 for a malformed list, 15 for an unknown axis.
     fn pairs(&mut self, args: &[&str]) -> Option<Vec<(usize, f64)>> {
-        if args.is_empty() || !args.len().is_multiple_of(2) {
+        let Ok(groups) = groups::<2>(args) else {
             self.set_error(1);
             return None;
-        }
+        };
         let mut v = Vec::new();
-        for c in args.chunks(2) {
+        for c in groups {
             let Some(i) = self.cfg.axes.iter().position(|n| n == c[0]) else {
                 self.set_error(15);
                 return None;
@@ -497,7 +497,7 @@ pub fn start_stage_emulator(
 ) -> std::io::Result<Emulator> {
     let link = cfg.link;
     let (dev, faults) = device(cfg, position.clone())?;
-    spawn("stage", dev, faults, position, link)
+    spawn("stage", dev, faults, position, pty_line()?, link)
 }
 
 /// As [`start_stage_emulator`], served on a TCP port as a PI controller's GCS port is: `addr`
@@ -510,7 +510,17 @@ pub fn start_stage_emulator_tcp(
 ) -> std::io::Result<Emulator> {
     let link = cfg.link;
     let (dev, faults) = device(cfg, position.clone())?;
-    spawn_tcp("stage", dev, faults, position, addr, link)
+    spawn("stage", dev, faults, position, tcp_line(addr)?, link)
+}
+
+/// The `{<axis> <value>}` (`MOV`), `{<item> <id> <value>}` (`SPA`) … groups of `N` arguments a
+/// GCS command takes: GCS error 1 (parameter syntax) unless there is at least one group and
+/// nothing is left over.
+fn groups<'a, 'b, const N: usize>(args: &'a [&'b str]) -> Result<&'a [[&'b str; N]], i64> {
+    match args.as_chunks::<N>() {
+        (g, []) if !g.is_empty() => Ok(g),
+        _ => Err(1),
+    }
 }
 
 fn device(

@@ -355,31 +355,10 @@ impl GcsStage {
         cmd: &str,
         timeout: Duration,
     ) -> Result<GcsArray, DeviceError> {
-        self.link.discard_input();
-        self.link.send(cmd)?;
-        let mut lines = Vec::new();
-        loop {
-            let line = match self.link.read_line(cmd, timeout) {
-                Ok(l) => l,
-                Err(e @ DeviceError::Timeout { .. }) if lines.is_empty() => {
-                    return Err(match self.error_code(cmd) {
-                        Ok(code) if code != 0 => self.controller_error(cmd, code),
-                        _ => e,
-                    });
-                }
-                Err(e) => return Err(e),
-            };
-            let more = line.ends_with(' ');
-            lines.push(line.trim_end().to_string());
-            if !more {
-                break;
-            }
-            if lines.len() > MAX_ARRAY_ROWS {
-                return Err(self
-                    .link
-                    .garbled(cmd, format!("more than {MAX_ARRAY_ROWS} lines")));
-            }
-        }
+        // more than MAX_ARRAY_ROWS lines is too many
+        let lines = self.query_lines_within(cmd, timeout, MAX_ARRAY_ROWS + 1, |_| {
+            format!("more than {MAX_ARRAY_ROWS} lines")
+        })?;
         let a = parse_gcs_array(&lines).map_err(|why| {
             let head: Vec<&str> = lines.iter().take(12).map(String::as_str).collect();
             self.link

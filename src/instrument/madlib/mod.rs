@@ -22,6 +22,7 @@
 
 pub mod ffi;
 
+use crate::instrument::device::all_then_first_error;
 use crate::instrument::{DeviceError, Pos, Stage};
 use ffi::Madlib;
 use std::os::raw::c_int;
@@ -350,16 +351,9 @@ impl MadlibStage {
 
     /// Hold every axis it can read at its reading; returns the first error.
     fn hold(&self) -> Result<(), DeviceError> {
-        let mut first = None;
-        for k in 0..3 {
-            match self.read_axis(k).and_then(|p| self.write_axis(k, p)) {
-                Ok(()) => {}
-                Err(e) => {
-                    first.get_or_insert(e);
-                }
-            }
-        }
-        first.map_or(Ok(()), Err)
+        all_then_first_error(0..3, |k| {
+            self.read_axis(k).and_then(|p| self.write_axis(k, p))
+        })
     }
 
     /// After a fault: hold what can be held, release the handle, remember why.

@@ -50,29 +50,15 @@ impl NiStreamStage {
 }
 
 impl Stage for NiStreamStage {
-    fn name(&self) -> String {
-        self.stage.name()
-    }
-    fn position(&mut self) -> Result<Pos, DeviceError> {
-        self.stage.position()
-    }
-    fn target(&mut self) -> Result<Pos, DeviceError> {
-        self.stage.target()
-    }
-    fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
-        self.stage.move_to(target)
-    }
-    fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError> {
-        self.stage.move_to_or_abort(target, abort)
-    }
-    fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError> {
-        self.stage.travel_range()
-    }
-    fn stop(&mut self) -> Result<(), DeviceError> {
-        self.stage.stop()
-    }
-    fn move_time_s(&self) -> f64 {
-        self.stage.move_time_s()
+    forward! { stage;
+        fn name(&self) -> String;
+        fn position(&mut self) -> Result<Pos, DeviceError>;
+        fn target(&mut self) -> Result<Pos, DeviceError>;
+        fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
+        fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError>;
+        fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+        fn stop(&mut self) -> Result<(), DeviceError>;
+        fn move_time_s(&self) -> f64;
     }
     fn frame_stream(&mut self) -> Option<&mut dyn FrameStream> {
         Some(self)

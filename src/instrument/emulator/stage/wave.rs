@@ -53,7 +53,7 @@
 
 use super::super::PathData;
 use super::wave_state::{Rec, TrigLine, Wave};
-use super::GcsDevice;
+use super::{groups, GcsDevice};
 use std::time::Instant;
 
 fn parse_u(s: &str) -> Option<u64> {
@@ -402,11 +402,8 @@ impl GcsDevice {
     /// together), 0x16000300 Data Recorder Chan Number (tables). Lines `item id=value`, the id
     /// as given. Error 15 for an unknown item, 54 for a parameter not emulated.
     fn spa_q(&mut self, args: &[&str]) -> Result<String, i64> {
-        if args.is_empty() || !args.len().is_multiple_of(2) {
-            return Err(1);
-        }
         let mut out = Vec::new();
-        for c in args.chunks(2) {
+        for c in groups::<2>(args)? {
             let id = self.axis_param(c[0], c[1])?;
             let v = match id {
                 0x0E00_0200 => format!("{:e}", self.wave.cfg.servo_cycle_s),
@@ -428,11 +425,8 @@ impl GcsDevice {
     /// for an unknown axis, 54 for a parameter not emulated, 17 for a negative or non-finite
     /// value; nothing is changed unless every triple is valid.
     fn spa(&mut self, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(3) {
-            return Err(1);
-        }
         let mut set = Vec::new();
-        for c in args.chunks(3) {
+        for c in groups::<3>(args)? {
             let id = self.axis_param(c[0], c[1])?;
             let v: f64 = c[2].parse().map_err(|_| 1i64)?;
             if !(v.is_finite() && v >= 0.0) {
@@ -573,11 +567,8 @@ impl GcsDevice {
 
     /// `WAV? <table> <param>` pairs; param 1 = the table's length in points.
     fn wav_q(&mut self, args: &[&str]) -> Result<String, i64> {
-        if args.is_empty() || !args.len().is_multiple_of(2) {
-            return Err(1);
-        }
         let mut lines = Vec::new();
-        for c in args.chunks(2) {
+        for c in groups::<2>(args)? {
             let t = self.table_id(c[0])?;
             if parse_u(c[1]) != Some(1) {
                 return Err(17);
@@ -588,11 +579,8 @@ impl GcsDevice {
     }
 
     fn gen_pairs(&mut self, cmd: &str, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(2) {
-            return Err(1);
-        }
         let mut pairs = Vec::new();
-        for c in args.chunks(2) {
+        for c in groups::<2>(args)? {
             let g = self.gen_id(c[0])?;
             let v = parse_u(c[1]).ok_or(1i64)?;
             pairs.push((g, v));
@@ -703,11 +691,8 @@ impl GcsDevice {
 
     /// `WTR <gen> <rate> <interpolation>` triplets; gen 0 = all generators.
     fn wtr(&mut self, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(3) {
-            return Err(1);
-        }
         let mut set = Vec::new();
-        for c in args.chunks(3) {
+        for c in groups::<3>(args)? {
             let g = parse_u(c[0]).ok_or(1i64)?;
             let rate = parse_u(c[1]).ok_or(1i64)?;
             let interp = parse_u(c[2]).ok_or(1i64)?;
@@ -743,11 +728,8 @@ impl GcsDevice {
 
     /// `CTO {<line> <param> <value>}`.
     fn cto(&mut self, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(3) {
-            return Err(1);
-        }
         let mut lines = self.wave.lines.clone();
-        for c in args.chunks(3) {
+        for c in groups::<3>(args)? {
             let li = Self::line_id(c[0])?;
             let p = parse_u(c[1]).ok_or(1i64)?;
             let l = &mut lines[li];
@@ -786,11 +768,8 @@ impl GcsDevice {
                 .flat_map(|l| [1, 2, 3, 5, 6, 7, 8, 9].map(|p| (l, p)))
                 .collect()
         } else {
-            if !args.len().is_multiple_of(2) {
-                return Err(1);
-            }
             let mut v = Vec::new();
-            for c in args.chunks(2) {
+            for c in groups::<2>(args)? {
                 v.push((Self::line_id(c[0])?, parse_u(c[1]).ok_or(1i64)?));
             }
             v
@@ -816,11 +795,8 @@ impl GcsDevice {
 
     /// `TWS {<line> <point> <switch>}`: the level of a trigger line at a wave point.
     fn tws(&mut self, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(3) {
-            return Err(1);
-        }
         let mut set = Vec::new();
-        for c in args.chunks(3) {
+        for c in groups::<3>(args)? {
             let li = Self::line_id(c[0])?;
             let point = parse_u(c[1]).ok_or(1i64)?;
             let sw = parse_u(c[2]).ok_or(1i64)?;
@@ -837,11 +813,8 @@ impl GcsDevice {
 
     /// `DRC {<table> <source> <option>}`.
     fn drc(&mut self, args: &[&str]) -> Result<(), i64> {
-        if args.is_empty() || !args.len().is_multiple_of(3) {
-            return Err(1);
-        }
         let mut set = Vec::new();
-        for c in args.chunks(3) {
+        for c in groups::<3>(args)? {
             let t = match parse_u(c[0]) {
                 Some(t) if t >= 1 && (t as usize) <= self.wave.rec.len() => t as usize - 1,
                 Some(_) => return Err(57),
