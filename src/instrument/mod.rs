@@ -5,24 +5,6 @@
 //! abort and return-to-start live in `acquire/`; the config file and connecting what it names
 //! in `config/`. Nothing here imports either (tests/architecture.rs).
 
-/// Trait methods that only pass the call on to `self.$to` (the stage or QPD a wrapper holds),
-/// each written as its signature: `forward! { inner; fn name(&self) -> String; … }`.
-macro_rules! forward {
-    ($to:ident;) => {};
-    ($to:ident; fn $name:ident(&self $(, $a:ident: $t:ty)*) -> $r:ty; $($rest:tt)*) => {
-        fn $name(&self $(, $a: $t)*) -> $r {
-            self.$to.$name($($a),*)
-        }
-        forward! { $to; $($rest)* }
-    };
-    ($to:ident; fn $name:ident(&mut self $(, $a:ident: $t:ty)*) -> $r:ty; $($rest:tt)*) => {
-        fn $name(&mut self $(, $a: $t)*) -> $r {
-            self.$to.$name($($a),*)
-        }
-        forward! { $to; $($rest)* }
-    };
-}
-
 pub mod mock;
 pub mod sim;
 pub mod trace;

@@ -7,6 +7,7 @@
 //! digits, time to 0.1 ms) so that harmless floating-point noise does not break a trace.
 
 use super::{Clock, DeviceError, Pos, Qpd, QpdReading, Stage};
+use delegate::delegate;
 use std::sync::{Arc, Mutex};
 
 /// Shared, append-only event log.
@@ -102,17 +103,19 @@ pub struct Traced<D: ?Sized> {
 }
 
 impl Stage for Traced<dyn Stage> {
-    forward! { inner;
-        fn move_time_s(&self) -> f64;
-        fn link_costs(&mut self) -> super::link::LinkCosts;
-        fn name(&self) -> String;
-        fn position(&mut self) -> Result<Pos, DeviceError>;
-        fn target(&mut self) -> Result<Pos, DeviceError>;
-        fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError>;
-        fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError>;
-        fn velocity(&mut self) -> Result<Option<Pos>, DeviceError>;
-        fn enable(&mut self) -> Result<(), DeviceError>;
-        fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+    delegate! {
+        to self.inner {
+            fn move_time_s(&self) -> f64;
+            fn link_costs(&mut self) -> super::link::LinkCosts;
+            fn name(&self) -> String;
+            fn position(&mut self) -> Result<Pos, DeviceError>;
+            fn target(&mut self) -> Result<Pos, DeviceError>;
+            fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError>;
+            fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError>;
+            fn velocity(&mut self) -> Result<Option<Pos>, DeviceError>;
+            fn enable(&mut self) -> Result<(), DeviceError>;
+            fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+        }
     }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         let r = self.inner.move_to(target);
@@ -148,12 +151,14 @@ impl Stage for Traced<dyn Stage> {
 }
 
 impl Qpd for Traced<dyn Qpd> {
-    forward! { inner;
-        fn name(&self) -> String;
-        fn sample_rate(&self) -> f64;
-        fn metadata(&self) -> Option<serde_json::Value>;
-        fn overhead_s(&self) -> f64;
-        fn link_costs(&mut self) -> super::link::LinkCosts;
+    delegate! {
+        to self.inner {
+            fn name(&self) -> String;
+            fn sample_rate(&self) -> f64;
+            fn metadata(&self) -> Option<serde_json::Value>;
+            fn overhead_s(&self) -> f64;
+            fn link_costs(&mut self) -> super::link::LinkCosts;
+        }
     }
     fn read_means(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
         self.read(n)

@@ -13,6 +13,7 @@ use super::raster::{waveform_volts, NiRaster};
 use crate::instrument::madlib::MadlibStage;
 use crate::instrument::stream::{FrameStream, StreamChunk};
 use crate::instrument::{DeviceError, Pos, Stage};
+use delegate::delegate;
 use std::sync::atomic::AtomicBool;
 
 /// A Nano-Drive with NI-driven external inputs.
@@ -50,15 +51,17 @@ impl NiStreamStage {
 }
 
 impl Stage for NiStreamStage {
-    forward! { stage;
-        fn name(&self) -> String;
-        fn position(&mut self) -> Result<Pos, DeviceError>;
-        fn target(&mut self) -> Result<Pos, DeviceError>;
-        fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
-        fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError>;
-        fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
-        fn stop(&mut self) -> Result<(), DeviceError>;
-        fn move_time_s(&self) -> f64;
+    delegate! {
+        to self.stage {
+            fn name(&self) -> String;
+            fn position(&mut self) -> Result<Pos, DeviceError>;
+            fn target(&mut self) -> Result<Pos, DeviceError>;
+            fn move_to(&mut self, target: Pos) -> Result<(), DeviceError>;
+            fn move_to_or_abort(&mut self, target: Pos, abort: &AtomicBool) -> Result<bool, DeviceError>;
+            fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+            fn stop(&mut self) -> Result<(), DeviceError>;
+            fn move_time_s(&self) -> f64;
+        }
     }
     fn frame_stream(&mut self) -> Option<&mut dyn FrameStream> {
         Some(self)
