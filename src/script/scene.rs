@@ -69,11 +69,20 @@ pub fn register(r: &mut Registrar) {
     r.bind(d, SceneRef::default);
     r.engine()
         .register_get("n_objects", |s: &mut SceneRef| n_objects(s));
+    r.getter(
+        Doc::property("Scene", "seed")
+            .returns("int", "")
+            .summary("the seed of the scene's noise effects (settable: s.seed = k, k ≥ 0)")
+            .help("simulate draws every noise effect from this seed, so the same scene and seed give the same noise; set another seed for another draw (e.g. repeated scans of one scene).")
+            .example("let s = scene(); s.seed = 7; s.seed", "7")
+            .example("let s = scene(); s.seed = -1", "error: seed = -1"),
+        |s: &mut SceneRef| s.0.seed as INT,
+    );
     r.engine()
-        .register_get("seed", |s: &mut SceneRef| s.0.seed as INT);
-    r.engine().register_set("seed", |s: &mut SceneRef, v: INT| {
-        s.0.seed = v.max(0) as u64
-    });
+        .register_set("seed", |s: &mut SceneRef, v: INT| -> RResult<()> {
+            s.0.seed = seed("Scene.seed", v)?;
+            Ok(())
+        });
     r.engine()
         .register_get("effect_names", |s: &mut SceneRef| effect_names(s));
 
@@ -175,6 +184,10 @@ pub fn register(r: &mut Registrar) {
         .example(
             "let s = scene(); s.add_aggregates(#{count: 12, seed: 3}); s.n_objects",
             "12",
+        )
+        .example(
+            "let s = scene(); s.add_aggregates(#{count: 2, seed: -3})",
+            "error: add_aggregates: seed = -3",
         );
     let spec = d.spec();
     r.bind(d, move |s: &mut SceneRef, m: Map| {
@@ -233,7 +246,7 @@ pub fn register(r: &mut Registrar) {
         .form("simulate(scene, grid) -> Scan")
         .returns("map | Scan", "simulate(scene): #{stages, scatterers, notes} of the pipeline built (notes: beads the point dipole renders > 1 % off Mie); simulate(scene, grid): the rendered scan (not autosaved)")
         .summary("put a scene under the simulated instrument, or render it straight to an XY scan")
-        .help("simulate(scene) connects the simulated instrument (the stage position and virtual clock are kept when one is already connected); scans then image the scene. The pipeline contains only the stages the scene's effects name. simulate(scene, grid) renders an image without moving anything (figures, tests).")
+        .help("simulate(scene) connects the simulated instrument (the stage position and virtual clock are kept when one is already connected); scans then image the scene. The pipeline contains only the stages the scene's effects name. simulate(scene, grid) renders an image without moving anything (figures, tests). Noise effects draw from the scene's seed (s.seed): the same scene and seed give the same noise, another seed another draw.")
         .example(&format!("{SCENE_EX} simulate(s).stages"), "[\"superposition\", \"vector_beam\"]")
         .example("let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 500.0}); simulate(s).notes.len()", "1")
         .example(&format!("{SCENE_EX} let sc = simulate(s, #{{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); sc.sx.cols"), "21")
@@ -335,6 +348,11 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     .map_err(|e| err("add_filament", e))
 }
 
+/// A random seed from a script: a non-negative integer (a negative one is refused, not clamped).
+fn seed(who: &str, v: INT) -> RResult<u64> {
+    u64::try_from(v).or_else(|_| fail(format!("{who}: seed = {v} is out of range: seed ≥ 0")))
+}
+
 /// `scene.add_aggregates(#{count, d_nm, n, x, y, z, seed})`: `count` point-like aggregates with
 /// diameters uniform in d_nm and positions uniform in the x × y region (µm), from `seed`.
 fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
@@ -360,7 +378,7 @@ fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
             get_pair("y", AGGREGATE_REGION_UM)?,
         ],
         z: o.f64_or("z", 0.0)?,
-        seed: o.int("seed")?.unwrap_or(AGGREGATE_SEED).max(0) as u64,
+        seed: seed("add_aggregates", o.int("seed")?.unwrap_or(AGGREGATE_SEED))?,
     })
     .map_err(|e| err("add_aggregates", e))
 }
