@@ -12,7 +12,7 @@
 //! sections of height L/N centred in their sub-segments).
 
 use super::measure::MeasureOptions;
-use super::peaks::{col_peaks, peak_near, row_peaks, LinePeak, PeakOptions};
+use super::peaks::{line_peaks, peak_near, LinePeak, PeakOptions};
 use super::scaling::n_corr;
 use super::sensitivity::{sensitivity, Axis};
 use super::template::Template;
@@ -193,17 +193,16 @@ pub fn render_scene(
 }
 
 /// Value of one line for averaging: the parabola peak, or (when the line has no proper peak,
-/// e.g. a filament parallel to the line) the largest finite sample of the line.
-pub(crate) fn line_value(lp: &LinePeak, img: &Image, along_x: bool) -> Option<f64> {
+/// e.g. a filament parallel to the line) the largest finite sample of the line (`lanes`:
+/// Axis(0) rows, Axis(1) columns).
+fn line_value(lp: &LinePeak, img: &Image, lanes: ndarray::Axis) -> Option<f64> {
     if let Some(p) = lp.peak() {
         return Some(p.value);
     }
-    let it: Box<dyn Iterator<Item = &f64>> = if along_x {
-        Box::new(img.data.row(lp.line).into_iter())
-    } else {
-        Box::new(img.data.column(lp.line).into_iter())
-    };
-    let m = it
+    let m = img
+        .data
+        .index_axis(lanes, lp.line)
+        .iter()
         .copied()
         .filter(|v| v.is_finite())
         .fold(f64::NEG_INFINITY, f64::max);
@@ -269,25 +268,17 @@ pub fn straight_filament_max_sens(
                 measure.stencil,
             )?;
             let (along, across) = if rows { (cs, sn) } else { (sn, cs) };
-            let peaks = if rows {
-                row_peaks(sens, &popts)?
-            } else {
-                col_peaks(sens, &popts)?
-            };
+            let lanes = ndarray::Axis(if rows { 0 } else { 1 });
             let (mut acc, mut n) = (0.0, 0usize);
-            for lp in peaks {
-                let lane: Vec<f64> = if rows {
-                    sens.data.row(lp.line).to_vec()
-                } else {
-                    sens.data.column(lp.line).to_vec()
-                };
+            for lp in line_peaks(sens, lanes, &popts)? {
+                let lane = sens.data.index_axis(lanes, lp.line).to_vec();
                 let at = off + (lp.coord - off) * across / along;
                 let near = (along.abs() > 0.2)
                     .then(|| peak_near(&full, &lane, at, &popts).ok())
                     .flatten();
                 if let Some(v) = near
                     .map(|p| p.value)
-                    .or_else(|| line_value(&lp, sens, rows))
+                    .or_else(|| line_value(&lp, sens, lanes))
                 {
                     acc += v;
                     n += 1;

@@ -424,7 +424,11 @@ pub fn col_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
 
 /// The maximum along every lane of `img` on `lines`: Axis(0) every row (along x), Axis(1)
 /// every column (along y).
-fn line_peaks(img: &Image, lines: ndarray::Axis, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
+pub(crate) fn line_peaks(
+    img: &Image,
+    lines: ndarray::Axis,
+    opts: &PeakOptions,
+) -> Result<Vec<LinePeak>> {
     opts.validate()?;
     let (coords, along) = if lines.index() == 0 {
         (&img.y, &img.x)

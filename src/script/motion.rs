@@ -7,7 +7,7 @@
 //! talking to in-process emulators on pseudo-terminals whose QPD images the simulator's scene).
 
 use super::ctx::{Attached, Ctx};
-use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{fail, int, non_negative, num, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
@@ -782,12 +782,9 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
                 }
             }
             let count = |k: &str| -> RResult<Option<usize>> {
-                match o.int(k)? {
-                    Some(v) if v < 0 => {
-                        fail(format!("connect: {k} = {v} is out of range: {k} ≥ 0"))
-                    }
-                    v => Ok(v.map(|v| v as usize)),
-                }
+                o.int(k)?
+                    .map(|v| non_negative("connect", k, v).map(|n| n as usize))
+                    .transpose()
             };
             cfg.fail_move_after = count("fail_move_after")?;
             cfg.fail_read_after = count("fail_read_after")?;

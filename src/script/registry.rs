@@ -357,6 +357,11 @@ pub fn int(who: &str, name: &str, v: &Dynamic) -> RResult<i64> {
     }
 }
 
+/// A count or seed from a script: `v` if it is ≥ 0, else an error naming `who`, `name` and `v`.
+pub fn non_negative(who: &str, name: &str, v: i64) -> RResult<u64> {
+    u64::try_from(v).or_else(|_| fail(format!("{who}: {name} = {v} is out of range: {name} ≥ 0")))
+}
+
 pub fn to_f64(v: &Dynamic) -> Option<f64> {
     v.as_float()
         .ok()

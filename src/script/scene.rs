@@ -2,7 +2,7 @@
 //! aggregates, effects), `simulate` and the render `pipeline`.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, points, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, non_negative, num, points, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::instrument::sim::render_xy;
 use crate::instrument::sim::scene::{
@@ -80,7 +80,7 @@ pub fn register(r: &mut Registrar) {
     );
     r.engine()
         .register_set("seed", |s: &mut SceneRef, v: INT| -> RResult<()> {
-            s.0.seed = seed("Scene.seed", v)?;
+            s.0.seed = non_negative("Scene.seed", "seed", v)?;
             Ok(())
         });
     r.engine()
@@ -348,11 +348,6 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     .map_err(|e| err("add_filament", e))
 }
 
-/// A random seed from a script: a non-negative integer (a negative one is refused, not clamped).
-fn seed(who: &str, v: INT) -> RResult<u64> {
-    u64::try_from(v).or_else(|_| fail(format!("{who}: seed = {v} is out of range: seed ≥ 0")))
-}
-
 /// `scene.add_aggregates(#{count, d_nm, n, x, y, z, seed})`: `count` point-like aggregates with
 /// diameters uniform in d_nm and positions uniform in the x × y region (µm), from `seed`.
 fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
@@ -378,7 +373,11 @@ fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
             get_pair("y", AGGREGATE_REGION_UM)?,
         ],
         z: o.f64_or("z", 0.0)?,
-        seed: seed("add_aggregates", o.int("seed")?.unwrap_or(AGGREGATE_SEED))?,
+        seed: non_negative(
+            "add_aggregates",
+            "seed",
+            o.int("seed")?.unwrap_or(AGGREGATE_SEED),
+        )?,
     })
     .map_err(|e| err("add_aggregates", e))
 }
