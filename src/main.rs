@@ -105,6 +105,19 @@ enum Cmd {
         #[arg(long, value_name = "DIR")]
         criterion: Option<PathBuf>,
     },
+    /// The truth sweep: random scenes on the simulator, every estimator against the truth;
+    /// prints per estimator its cases, coverage of 1σ/2σ, flags and unflagged outliers
+    Sweep {
+        /// Scenes per estimator family
+        #[arg(long, default_value_t = 200)]
+        n: usize,
+        /// Seed of the scene draw (any seed must pass)
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print one JSON object instead of the table
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn usage_error(msg: &str) -> ExitCode {
@@ -441,6 +454,7 @@ fn main() -> ExitCode {
                 }
             }
         }
+        Cmd::Sweep { n, seed, json } => bfpscope::accuracy::sweep::cli(n, seed, json),
         Cmd::Docs { out, check } => {
             let text = script::registry::api_markdown(&script::all_docs());
             if check {

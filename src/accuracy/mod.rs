@@ -7,6 +7,7 @@ pub mod analysis_knobs;
 pub mod instrument;
 pub mod mie_knobs;
 pub mod report;
+pub mod sweep;
 
 use crate::instrument::sim::scene::{DiameterProfile, Filament, Scene};
 use crate::instrument::sim::{render_xy, Renderer};

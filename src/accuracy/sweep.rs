@@ -1,0 +1,446 @@
+//! The truth sweep (`bfpscope sweep`): random scenes far past the comfortable middle, rendered by
+//! the simulator (an independent path from the analysis), every estimator run on them and its
+//! answer compared with the scene's truth. It proves each estimator's error bar (the coverage of
+//! its 1σ and 2σ intervals where the answer says it is inside its domain) or its flag (no answer
+//! outside the domain without a warning: an *unflagged outlier* is an answer with status "ok"
+//! whose error exceeds 4σ, or 5 % of the truth for a diameter or an object count).
+//!
+//! Scene space (each case draws independently, from the sweep's seed):
+//! - **beads** (`fit_beads.x`, `.y`, `.weight`, `.count`): 0–5 polystyrene beads of 40–500 nm
+//!   (log-uniform), at least 0.2 µm apart, anywhere in a 2.4 µm field and up to 0.2 µm beyond
+//!   its edge; the paper's detector noise × 0–10; pixels of 10–100 nm; in the focal plane.
+//! - **fibrils** (`measure_filament.diameter`): collagen-like (n = 1.41) straight fibrils
+//!   0.3–15 µm long and 10–150 nm thick, at any angle and position (ends inside or outside the
+//!   3 µm field); detector noise × 0–10; pixels of 20, 30, 50, 75 or 100 nm (the orientation
+//!   curve is computed once per pixel size).
+//!
+//! Not yet in the space (stated in docs/accuracy.md): focus offsets, clipping, microtubules with
+//! aggregates, the focus search, max_sens, SBR and the beam fit.
+
+use crate::analysis::fit::{fit_beads, FitOptions};
+use crate::analysis::orientation::{measure_filament, AngleCurve, AngleCurveOptions};
+use crate::analysis::quantities::DiameterCalib;
+use crate::analysis::template::{RefBead, Template};
+use crate::instrument::sim::scene::{
+    Bead, DetectorNoise, DiameterProfile, Filament, Scene, FILAMENT_SPACING_NM,
+    PAPER_DETECTOR_SIGMA_SAMPLE,
+};
+use crate::instrument::sim::{render_xy, Renderer};
+use crate::optics::params::{Optics, REF_BEAD_N};
+use crate::optics::rayleigh::DetectorModel;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Samples per simulated pixel read (the simulator's default for `simulate`).
+const N_SAMPLES: usize = 100;
+
+/// One estimator's tally.
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+pub struct Tally {
+    /// Scenes the estimator was run on.
+    pub cases: usize,
+    /// Answers with status "ok" (and a finite σ where the estimator gives one).
+    pub in_domain: usize,
+    /// Fraction of the in-domain answers within 1σ and 2σ of the truth (NaN without σ).
+    pub coverage_1s: f64,
+    pub coverage_2s: f64,
+    /// Fraction of the cases flagged (warnings) or refused (an error).
+    pub flagged: f64,
+    /// In-domain answers whose error exceeds 4σ (or 5 % of the truth for diameters and counts).
+    pub unflagged_outliers: usize,
+    #[serde(skip)]
+    within: [usize; 2],
+    #[serde(skip)]
+    with_sigma: usize,
+    #[serde(skip)]
+    not_ok: usize,
+    /// The first few unflagged outliers, in words (for the developer chasing them).
+    pub examples: Vec<String>,
+}
+
+impl Tally {
+    fn refused(&mut self) {
+        self.cases += 1;
+        self.not_ok += 1;
+    }
+    fn flagged(&mut self) {
+        self.refused();
+    }
+    /// An in-domain answer: `value` against `truth` with 1σ `sigma` (None: no σ, counted only
+    /// for outliers by `rel_limit`); an outlier beyond 4σ, or beyond `rel_limit` × |truth|.
+    fn answer(&mut self, value: f64, truth: f64, sigma: Option<f64>, rel_limit: Option<f64>, what: impl Fn() -> String) {
+        self.cases += 1;
+        self.in_domain += 1;
+        let e = (value - truth).abs();
+        let mut outlier = rel_limit.is_some_and(|r| e > r * truth.abs());
+        if let Some(s) = sigma.filter(|s| s.is_finite() && *s > 0.0) {
+            self.with_sigma += 1;
+            self.within[0] += (e <= s) as usize;
+            self.within[1] += (e <= 2.0 * s) as usize;
+            outlier |= e > 4.0 * s;
+        }
+        if outlier || !value.is_finite() {
+            self.unflagged_outliers += 1;
+            if self.examples.len() < 5 {
+                self.examples.push(what());
+            }
+        }
+    }
+    fn finish(&mut self) {
+        let f = |k: usize| {
+            if self.with_sigma > 0 {
+                k as f64 / self.with_sigma as f64
+            } else {
+                f64::NAN
+            }
+        };
+        self.coverage_1s = f(self.within[0]);
+        self.coverage_2s = f(self.within[1]);
+        self.flagged = if self.cases > 0 {
+            self.not_ok as f64 / self.cases as f64
+        } else {
+            0.0
+        };
+    }
+}
+
+/// What to sweep.
+#[derive(Debug, Clone)]
+pub struct SweepOptions {
+    /// Scenes per estimator family (beads, fibrils).
+    pub n: usize,
+    pub seed: u64,
+}
+
+/// The bead family: one scene, fitted, every bead matched to its truth.
+fn bead_case(rng: &mut ChaCha8Rng, tpl: &Template, optics: &Optics, t: &mut BTreeMap<String, Tally>) {
+    let half = 1.2;
+    let n_beads = [0, 1, 1, 1, 2, 3, 4, 5][rng.random_range(0..8)];
+    let mut beads: Vec<(f64, f64, f64)> = vec![];
+    let mut tries = 0;
+    while beads.len() < n_beads && tries < 200 {
+        tries += 1;
+        let x = rng.random_range(-half - 0.2..half + 0.2);
+        let y = rng.random_range(-half - 0.2..half + 0.2);
+        if beads.iter().all(|b| (b.0 - x).hypot(b.1 - y) >= 0.2) {
+            let d = (40f64.ln() + rng.random::<f64>() * (500f64 / 40.0).ln()).exp();
+            beads.push((x, y, d));
+        }
+    }
+    let noise = rng.random_range(0.0..10.0);
+    let pixel = rng.random_range(0.01..0.1);
+    let seed = rng.random::<u64>();
+    let mut sc = Scene::default();
+    for &(x, y, d) in &beads {
+        let _ = sc.add_bead(Bead {
+            pos: [x, y, 0.0],
+            d_nm: d,
+            n: REF_BEAD_N,
+        });
+    }
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: noise * PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    sc.seed = seed;
+    let describe = || {
+        format!(
+            "beads {:?} (x, y µm, d nm), noise ×{noise:.2}, pixel {:.0} nm, seed {seed}",
+            beads
+                .iter()
+                .map(|b| (round3(b.0), round3(b.1), b.2.round()))
+                .collect::<Vec<_>>(),
+            pixel * 1000.0
+        )
+    };
+    let n = (2.0 * half / pixel).round() as usize + 1;
+    let axis: Vec<f64> = (0..n)
+        .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
+        .collect();
+    let Ok(r) = Renderer::checked(optics, &sc, Default::default()) else {
+        return;
+    };
+    let scan = render_xy(&r, &axis, &axis, 0.0, N_SAMPLES);
+    let fo = FitOptions {
+        w0_um: optics.w0_nm / 1000.0,
+        wavelength_nm: optics.wavelength_nm,
+        ..FitOptions::default()
+    };
+    let keys = ["fit_beads.x", "fit_beads.y", "fit_beads.weight", "fit_beads.count"];
+    let fit = match fit_beads(&scan.sx, &scan.sy, tpl, &fo) {
+        Ok(f) if f.warnings.is_empty() => f,
+        _ => {
+            for k in keys {
+                t.entry(k.into()).or_default().flagged();
+            }
+            return;
+        }
+    };
+    // the count: every bead the data could show (weight ≥ 10 σ of the fitted weights) found,
+    // none found that is not there
+    let sw = crate::analysis::stats::median(
+        &fit.beads
+            .iter()
+            .filter_map(|b| b.weight_err)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap_or(0.0);
+    let inside = |b: &(f64, f64, f64)| b.0.abs() <= half && b.1.abs() <= half;
+    let visible = beads
+        .iter()
+        .filter(|b| inside(b) && (b.2 / 110.0).powi(3) >= 10.0 * sw)
+        .count();
+    let found = fit.beads.iter().filter(|b| b.found()).count();
+    let count = t.entry("fit_beads.count".into()).or_default();
+    let ok_count = found <= beads.len() && found >= visible;
+    count.answer(
+        if ok_count { visible as f64 } else { found as f64 },
+        visible as f64,
+        None,
+        Some(0.05),
+        || format!("found {found} beads where {visible} are visible: {}", describe()),
+    );
+    // each found bead against the nearest true bead
+    for b in fit.beads.iter().filter(|b| b.found()) {
+        let Some(tb) = beads
+            .iter()
+            .min_by(|p, q| (p.0 - b.x).hypot(p.1 - b.y).total_cmp(&(q.0 - b.x).hypot(q.1 - b.y)))
+        else {
+            continue;
+        };
+        let wt = (tb.2 / 110.0).powi(3);
+        let msg = |what: &str, v: f64, tr: f64, s: Option<f64>| {
+            format!(
+                "{what} {v:.5} ± {:.5} vs truth {tr:.5}: {}",
+                s.unwrap_or(f64::NAN),
+                describe()
+            )
+        };
+        t.entry("fit_beads.x".into()).or_default().answer(b.x, tb.0, b.x_err, None, || {
+            msg("x", b.x, tb.0, b.x_err)
+        });
+        t.entry("fit_beads.y".into()).or_default().answer(b.y, tb.1, b.y_err, None, || {
+            msg("y", b.y, tb.1, b.y_err)
+        });
+        t.entry("fit_beads.weight".into())
+            .or_default()
+            .answer(b.weight, wt, b.weight_err, None, || {
+                msg("weight", b.weight, wt, b.weight_err)
+            });
+    }
+}
+
+fn round3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// The orientation curve and diameter calibration of one pixel size.
+struct FibrilCal {
+    curve: AngleCurve,
+    a_nm: f64,
+}
+
+/// The fibril family: one straight collagen-like fibril, measured, its diameter against truth.
+fn fibril_case(
+    rng: &mut ChaCha8Rng,
+    tpl: &Template,
+    optics: &Optics,
+    cals: &mut BTreeMap<u32, FibrilCal>,
+    t: &mut BTreeMap<String, Tally>,
+) {
+    let half = 1.5;
+    let len = (0.3f64.ln() + rng.random::<f64>() * (15.0f64 / 0.3).ln()).exp();
+    let d = rng.random_range(10.0..150.0);
+    let angle = rng.random_range(-90.0f64..90.0).to_radians();
+    let c = [rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5)];
+    let noise = rng.random_range(0.0..10.0);
+    let pixel_nm = [20u32, 30, 50, 75, 100][rng.random_range(0..5)];
+    let seed = rng.random::<u64>();
+    let dir = [angle.sin(), angle.cos()];
+    let p0 = [c[0] - 0.5 * len * dir[0], c[1] - 0.5 * len * dir[1]];
+    let p1 = [c[0] + 0.5 * len * dir[0], c[1] + 0.5 * len * dir[1]];
+    let describe = || {
+        format!(
+            "fibril {:.2} µm long, d {d:.1} nm, at {:.1}°, centre ({:.2}, {:.2}) µm, noise ×{noise:.2}, pixel {pixel_nm} nm, seed {seed}",
+            len,
+            angle.to_degrees(),
+            c[0],
+            c[1]
+        )
+    };
+    let tally = t.entry("measure_filament.diameter".into()).or_default();
+    let pixel = pixel_nm as f64 / 1000.0;
+    if !cals.contains_key(&pixel_nm) {
+        let opts = AngleCurveOptions {
+            pixel_um: pixel,
+            ..AngleCurveOptions::default()
+        };
+        let (Ok(curve), Ok(cal)) = (
+            AngleCurve::compute(tpl, &opts),
+            DiameterCalib::from_template(
+                tpl,
+                1.41,
+                tpl.reference.d_nm,
+                tpl.reference.n,
+                pixel,
+                &opts.measure,
+                &opts.bead_model,
+            ),
+        ) else {
+            tally.refused();
+            return;
+        };
+        cals.insert(pixel_nm, FibrilCal { curve, a_nm: cal.a_nm });
+    }
+    let cal = &cals[&pixel_nm];
+    let mut sc = Scene::default();
+    if sc
+        .add_filament(Filament {
+            points: vec![p0, p1],
+            z: 0.0,
+            profile: DiameterProfile::Constant { d_nm: d },
+            n: 1.41,
+            spacing_nm: FILAMENT_SPACING_NM,
+        })
+        .is_err()
+    {
+        return;
+    }
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: noise * PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    sc.seed = seed;
+    let n = (2.0 * half / pixel).round() as usize + 1;
+    let axis: Vec<f64> = (0..n)
+        .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
+        .collect();
+    let Ok(r) = Renderer::checked(optics, &sc, Default::default()) else {
+        return;
+    };
+    let scan = render_xy(&r, &axis, &axis, 0.0, N_SAMPLES);
+    match measure_filament(&scan.sx, &scan.sy, &cal.curve, &cal.curve.options.measure) {
+        Ok(m) if m.warnings.is_empty() && m.mean_corr > 0.0 => {
+            let dm = cal.a_nm * m.mean_corr.sqrt();
+            let s = 0.5 * dm * m.sem_corr / m.mean_corr;
+            tally.answer(dm, d, Some(s), Some(0.05), || {
+                format!("d {dm:.2} ± {s:.2} nm vs truth {d:.1} nm: {}", describe())
+            });
+        }
+        _ => tally.flagged(),
+    }
+}
+
+/// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
+/// each. Returns one tally per estimator quantity.
+pub fn run(opts: &SweepOptions, progress: &dyn Fn(usize, usize)) -> Result<BTreeMap<String, Tally>, String> {
+    let optics = Optics::default();
+    let tpl = Template::from_optics(&optics, &DetectorModel::default(), RefBead::default(), 0.02, 0.0)
+        .map_err(|e| e.to_string())?;
+    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    let mut t = BTreeMap::new();
+    let mut cals = BTreeMap::new();
+    let total = 2 * opts.n;
+    for i in 0..opts.n {
+        bead_case(&mut rng, &tpl, &optics, &mut t);
+        progress(2 * i + 1, total);
+        fibril_case(&mut rng, &tpl, &optics, &mut cals, &mut t);
+        progress(2 * i + 2, total);
+    }
+    for v in t.values_mut() {
+        v.finish();
+    }
+    Ok(t)
+}
+
+/// `bfpscope sweep --n N --seed S [--json]`: the sweep with a progress bar (not with `--json`),
+/// then the table or one JSON object. Exit 1 when any estimator has an unflagged outlier.
+pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
+    let bar = if json {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new((2 * n) as u64)
+    };
+    let t0 = std::time::Instant::now();
+    let r = run(&SweepOptions { n, seed }, &|done, _| bar.set_position(done as u64));
+    bar.finish_and_clear();
+    match r {
+        Ok(t) => {
+            if json {
+                println!("{}", serde_json::to_string_pretty(&t).unwrap_or_default());
+            } else {
+                println!(
+                    "truth sweep: {n} bead scenes + {n} fibril scenes, seed {seed}, {:.0} s\n",
+                    t0.elapsed().as_secs_f64()
+                );
+                print!("{}", table(&t));
+                for (k, v) in &t {
+                    for e in &v.examples {
+                        println!("{k}: unflagged outlier: {e}");
+                    }
+                }
+            }
+            if t.values().any(|v| v.unflagged_outliers > 0) {
+                std::process::ExitCode::from(1)
+            } else {
+                std::process::ExitCode::SUCCESS
+            }
+        }
+        Err(e) => {
+            eprintln!("error: sweep: {e}");
+            std::process::ExitCode::from(1)
+        }
+    }
+}
+
+/// The tallies as a table (markdown).
+pub fn table(t: &BTreeMap<String, Tally>) -> String {
+    let mut s = String::from(
+        "| estimator | cases | in domain | 1σ coverage | 2σ coverage | flagged or refused | unflagged outliers |\n|---|---|---|---|---|---|---|\n",
+    );
+    for (k, v) in t {
+        s.push_str(&format!(
+            "| {k} | {} | {} | {} | {} | {:.1} % | {} |\n",
+            v.cases,
+            v.in_domain,
+            pct(v.coverage_1s),
+            pct(v.coverage_2s),
+            100.0 * v.flagged,
+            v.unflagged_outliers
+        ));
+    }
+    s
+}
+
+fn pct(v: f64) -> String {
+    if v.is_finite() {
+        format!("{:.3}", v)
+    } else {
+        "—".into()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tally_counts_coverage_and_outliers_from_known_errors() {
+        let mut t = Tally::default();
+        // errors of 0.5σ, 1.5σ, 3σ and 5σ: 1 of 4 within 1σ, 2 within 2σ, one outlier
+        for e in [0.5, 1.5, 3.0, 5.0] {
+            t.answer(10.0 + e, 10.0, Some(1.0), None, || "x".into());
+        }
+        t.flagged();
+        t.finish();
+        assert_eq!((t.cases, t.in_domain, t.unflagged_outliers), (5, 4, 1));
+        assert_eq!((t.coverage_1s, t.coverage_2s), (0.25, 0.5));
+        assert_eq!(t.flagged, 0.2);
+        // a relative limit counts without σ
+        let mut c = Tally::default();
+        c.answer(3.0, 2.0, None, Some(0.05), || "count".into());
+        c.finish();
+        assert_eq!(c.unflagged_outliers, 1);
+        assert!(c.coverage_1s.is_nan());
+    }
+}
