@@ -308,6 +308,9 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
         degeneracies: "array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]"; "what the fit could not resolve (empty when well-posed)"; "f.degeneracies.len()" => "0"; |f| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
     ]);
+    properties!(r, "FitResult", FitRef, fx, [
+        warnings: "array", "[string]: where the answer leaves its domain (clipped or dark pixels among those fitted, …); empty when positions, weights and σ hold"; "what the answer cannot vouch for"; "f.warnings.len()" => "0"; |f| -> Array { f.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },
+    ]);
     properties!(r, "FitResult", FitRef, ONE_BEAD, [
         history: "array", "[#{n_beads, rss, bic, accepted}] of the bead-adding steps"; "bead-adding history (empty unless growing)"; "fit_beads(sc, t).history.len() >= 2" => "true"; |f| -> Array { f.0.history.iter().map(to_dyn).collect() },
     ]);
@@ -540,7 +543,18 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
         ..d
     };
-    let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    // clipped or dark pixels among those fitted: said, and attached to the answer
+    let used: &[&str] = match fo.channels {
+        Channels::Both => &["sx", "sy"],
+        Channels::Sx => &["sx"],
+        Channels::Sy => &["sy"],
+    };
+    let check = crate::data::clip::input_check(&s.scan, used, None);
+    for w in &check.warnings {
+        c.log(&format!("{who}: WARNING: {w}"));
+    }
+    r.warnings.extend(check.warnings);
     for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
         c.log(&format!("{who}: {}", super::words::not_found_words(i, b)));
     }

@@ -281,6 +281,10 @@ pub struct FitResult {
     pub degeneracies: Vec<Degeneracy>,
     /// Bead-adding history (empty when not growing).
     pub history: Vec<GrowStep>,
+    /// Where the answer leaves its domain, in words (`analysis::domain`); empty when the beads'
+    /// positions, weights and σ hold.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 impl FitResult {
