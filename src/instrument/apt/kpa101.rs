@@ -241,7 +241,7 @@ impl Kpa101 {
     /// the Sum's top count, 65535, or 32767 when read signed).
     pub fn clipped(&self, r: &RawReading) -> [bool; 3] {
         let top = if self.opts.signed {
-            r.sum as i16 >= i16::MAX
+            r.sum as i16 == i16::MAX
         } else {
             r.sum == u16::MAX
         };

@@ -571,6 +571,9 @@ pub fn stats(inputs: &NiInputs, buf: &[f64], n: usize) -> ([f64; 3], [f64; 3]) {
     (mean, std)
 }
 
+/// A point read: means and standard deviations of Sx, Sy, sum (V), and their samples at the rail.
+type VoltRead = ([f64; 3], [f64; 3], [usize; 3]);
+
 /// The NI board as the QPD (point reads).
 pub struct NiQpd {
     lib: Arc<NiDaqmx>,
@@ -656,7 +659,7 @@ impl NiQpd {
         Ok(())
     }
 
-    fn read_volts(&mut self, n: usize) -> Result<([f64; 3], [f64; 3], [usize; 3]), DeviceError> {
+    fn read_volts(&mut self, n: usize) -> Result<VoltRead, DeviceError> {
         if n == 0 {
             return Err(DeviceError::Other {
                 device: self.name(),
