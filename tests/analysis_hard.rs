@@ -359,6 +359,7 @@ fn one_pixel_wide_scan() {
         status: ScanStatus::Complete,
         meta: serde_json::Value::Null,
         raw: Vec::new(),
+        flags: Default::default(),
     };
     // ∂/∂x of a single column: clear error naming the axis and the reason.
     let e = sensitivity(&scan.sx, Axis::X, Stencil::Central2).unwrap_err();

@@ -39,6 +39,16 @@ impl Control {
         let s = CString::new(spec).unwrap();
         assert_eq!(unsafe { (self.set_faults)(s.as_ptr()) }, 0, "faults {spec}");
     }
+    fn set(&self, key: &str, value: &str) {
+        let set: libloading::Symbol<unsafe extern "C" fn(*const c_char, *const c_char) -> c_int> =
+            unsafe { self._lib.get(b"fakebench_set\0").unwrap() };
+        let (k, v) = (CString::new(key).unwrap(), CString::new(value).unwrap());
+        assert_eq!(
+            unsafe { set(k.as_ptr(), v.as_ptr()) },
+            0,
+            "fakebench_set {key}"
+        );
+    }
     fn log(&self) -> String {
         let n = unsafe { (self.log)(std::ptr::null_mut(), 0) };
         let mut buf = vec![0u8; n + 1];
@@ -668,5 +678,183 @@ fn ctrl_c_mid_line_in_a_raster() {
     assert!(
         !log.contains("MCL_SingleWriteN(position=0,"),
         "zero written"
+    );
+}
+
+/// The bench with the QPD's inputs at ±`range_v` and the amplifier's difference gain raised to
+/// `qpd_gain_v` volts per signal unit (the Sx peak of the 110 nm bead is 2.6 mV at gain 1).
+fn connect_with_range(
+    fake: &Control,
+    range_v: &str,
+    gain: &str,
+    raster: bool,
+    at: [f64; 3],
+) -> Connected {
+    fake.set("qpd_gain_v", gain);
+    fake.set("scene_origin_um", &format!("{},{},{}", at[0], at[1], at[2]));
+    let text = config_text("").replace("range_v = 10.0", &format!("range_v = {range_v}"))
+        + if raster { RASTER } else { "" };
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    // short ramps: the raster's margins stay inside the soft limits at x = 10 µm
+    c.instrument.settle_s = 0.002;
+    c.instrument.stage.move_to(at).unwrap();
+    c
+}
+
+/// Clipped pixels of a scan on the fake bench: Sx (peak ≈ 0.43 V at gain 165) clips at the
+/// ±0.2 V range near the bead, and the sum (5 V) sits at the rail on every pixel — as a real
+/// board clips. Counted per pixel, in the metadata, in the file (numpy reads it), said to the
+/// operator and by the check every analysis uses.
+///
+/// The raster reads the stage's position monitor (0.133 V/µm) on the same board with the same
+/// range, so it scans a bead at x = 10 µm (monitor 1.3 V) with the inputs at ±2 V and the gain
+/// at the fake's most, 1000 (Sx peak ≈ 2.6 V).
+fn clipped_scan_is_flagged(raster: bool) {
+    let (_g, fake) = bench();
+    let (range, gain, range_text, at) = if raster {
+        ("2.0", "1000", "±2 V input range", [10.0, 10.0, 25.0])
+    } else {
+        ("0.2", "165", "±0.2 V input range", BEAD)
+    };
+    let mut c = connect_with_range(&fake, range, gain, raster, at);
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let n = 9usize;
+    let logged = Mutex::new(Vec::<String>::new());
+    let log = |m: &str| logged.lock().unwrap().push(m.to_string());
+    let save = |_: &Scan| -> Result<std::path::PathBuf, String> { Ok("memory".into()) };
+    let env = ScanEnv::plain(&limits, &abort, &log, &save);
+    let plan = Plan::grid(
+        "scan_xy",
+        Sweep::new("scan_xy", Axis::X, at[0] - 0.4, at[0] + 0.4, n as i64, "nx").unwrap(),
+        Sweep::new("scan_xy", Axis::Y, at[1] - 0.4, at[1] + 0.4, n as i64, "ny").unwrap(),
+        vec![(Axis::Z, at[2])],
+        1e-4,
+        false,
+        false,
+    )
+    .unwrap();
+    let r = if raster {
+        bfpscope::acquire::run_raster(
+            &mut c.instrument,
+            &plan,
+            &bfpscope::acquire::raster::RasterOptions::default(),
+            &env,
+        )
+    } else {
+        run_plan(&mut c.instrument, &plan, &env)
+    }
+    .unwrap();
+    assert_eq!(r.ended, Ended::Complete, "{:?}", r.scan.meta["error"]);
+    let s = &r.scan;
+    let m = &s.meta["clipped"];
+    assert_eq!(m["range"], range_text, "{m}");
+    // the sum (5 V): every pixel, every sample
+    assert_eq!(m["sz"]["pixels"], (n * n) as u64, "{m}");
+    let sz = s.flags.clipped[2].as_ref().expect("sz clip counts");
+    let spp = if raster {
+        s.meta["raster"]["samples_per_pixel_min"].as_u64().unwrap() as u32
+    } else {
+        80
+    };
+    assert!(sz.iter().all(|&k| k >= spp), "{spp}: {sz}");
+    // Sx: the pixels beside the bead (the peak, 0.43 V, is over twice the range), not the
+    // corners (0.57 µm away)
+    let sx = s.flags.clipped[0].as_ref().expect("sx clip counts");
+    let px = m["sx"]["pixels"].as_u64().unwrap() as usize;
+    assert!(px >= 2 && px < n * n / 2, "{sx}");
+    assert_eq!(sx.iter().filter(|&&k| k > 0).count(), px);
+    assert_eq!(sx[[0, 0]], 0);
+    let rail: f64 = range.parse().unwrap();
+    let peak = s.sx.data.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    assert!(
+        peak <= rail + 1e-9,
+        "a clipped Sx reads the rail at most: {peak}"
+    );
+    // said when the scan ended
+    let said = logged.lock().unwrap().join("\n");
+    assert!(
+        said.contains(&format!("WARNING: scan_xy: {px} of Sx pixels")) && said.contains(range_text),
+        "{said}"
+    );
+    assert!(said.contains(&format!("{} of Sz pixels", n * n)), "{said}");
+    // what fit_beads attaches to its answer (Sx and Sy fitted)
+    let check = bfpscope::data::clip::input_check(s, &["sx", "sy"], None);
+    assert_eq!(
+        check.warnings[0],
+        format!("{px} pixels of Sx are clipped (at the {range_text})")
+    );
+    // the file: arrays and metadata, back through the loader and through numpy
+    let dir = std::env::temp_dir().join(format!("bfpscope-clip-{}-{}", std::process::id(), raster));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("clipped.npz");
+    bfpscope::data::save_scan(&path, s).unwrap();
+    let back = bfpscope::data::load_scan(&path).unwrap();
+    assert_eq!(back.flags, s.flags);
+    assert_eq!(back.meta["clipped"], s.meta["clipped"]);
+    let script = r#"
+import json, sys
+import numpy as np
+f = np.load(sys.argv[1])
+m = json.loads(f["meta"].tobytes())
+m = m.get("user_meta", m)
+sx = f["clipped_sx"]
+sz = f["clipped_sz"] if "clipped_sz" in f.files else None
+assert sx.dtype == np.uint32 and sx.shape == f["sx"].shape, (sx.dtype, sx.shape)
+assert int((sx > 0).sum()) == m["clipped"]["sx"]["pixels"], m["clipped"]
+assert "clipped_sz" not in f.files or int(sz.sum()) == m["clipped"]["sz"]["samples"]
+assert "dark" not in f.files
+print("numpy clipped ok", int((sx > 0).sum()))
+"#;
+    let out = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "numpy: {}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_point_scan_clipped_at_the_input_range_is_flagged() {
+    clipped_scan_is_flagged(false);
+}
+
+#[test]
+fn a_raster_clipped_at_the_input_range_is_flagged() {
+    clipped_scan_is_flagged(true);
+}
+
+/// Laser off: the sum (1 mV) below the floor (1 % of the ±10 V range) on every pixel.
+#[test]
+fn a_dark_scan_is_flagged() {
+    let (_g, fake) = bench();
+    fake.set("sum_v", "0.001");
+    let mut c = connect_bench();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let logged = Mutex::new(Vec::<String>::new());
+    let log = |m: &str| logged.lock().unwrap().push(m.to_string());
+    let save = |_: &Scan| -> Result<std::path::PathBuf, String> { Ok("memory".into()) };
+    let env = ScanEnv::plain(&limits, &abort, &log, &save);
+    let r = run_plan(&mut c.instrument, &grid(5, 0.4), &env).unwrap();
+    let s = &r.scan;
+    assert_eq!(s.meta["dark"]["pixels"], 25, "{}", s.meta["dark"]);
+    assert_eq!(s.meta["dark"]["floor"], "0.1 V on the sum input");
+    assert_eq!(s.meta["clipped"]["sx"]["pixels"], 0);
+    assert!(s.flags.clipped.iter().all(Option::is_none));
+    let said = logged.lock().unwrap().join("\n");
+    assert!(said.contains("25 dark pixels"), "{said}");
+    let w = bfpscope::data::clip::input_check(s, &["sx"], None).warnings;
+    assert_eq!(
+        w,
+        vec!["25 pixels are dark (the QPD sum below 0.1 V on the sum input: laser off or beam blocked?)"]
     );
 }

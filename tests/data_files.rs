@@ -278,6 +278,7 @@ fn aborted_scan() -> Scan {
             "note": "µm ünïcode ✓"
         }),
         raw: Vec::new(),
+        flags: Default::default(),
     }
 }
 

@@ -158,6 +158,7 @@ fn scan_xy(n: usize) -> Scan {
         status: ScanStatus::Complete,
         meta: serde_json::json!({}),
         raw: Vec::new(),
+        flags: Default::default(),
     }
 }
 

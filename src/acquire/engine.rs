@@ -321,6 +321,7 @@ pub fn run(
         });
     }
     let mut img = [(); 3].map(|_| Array2::from_elem((rows, cols), f64::NAN));
+    let mut clip = super::clip::ClipTally::new(rows, cols, inst.qpd.input_range());
     let clock = ScanClock::start(inst);
     let unit = lay.unit;
     let bar = progress_bar(env, lay.steps, &format!("{unit}s"), &kind);
@@ -410,6 +411,7 @@ pub fn run(
                 ch[[r, c]] = x;
             }
         }
+        clip.add(&strategy.take_clipped());
         if let Some(o) = env.observer {
             if pixels.len() == 1 {
                 batch.push(o, pixels[0]);
@@ -549,6 +551,7 @@ pub fn run(
         status,
         meta,
         raw: strategy.raw(),
+        flags: Default::default(),
     };
 
     // the QPD's metadata (the simulator's pipeline) and the script's (`env.meta`) merged into
@@ -563,6 +566,8 @@ pub fn run(
             m.insert(k.clone(), v.clone());
         }
     }
+    // clipped and dark pixels: in the scan, its metadata, and said to the operator
+    clip.finish(&mut scan, &kind, env.log);
     let saved = (env.save)(&scan);
     if let Err(e) = &saved {
         (env.log)(&format!(

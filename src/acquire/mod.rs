@@ -5,6 +5,7 @@
 //! strategy (`strategy`: point by point, hardware-timed lines) that only configures, acquires
 //! one step and stops; drivers only move and read. No driver re-implements limits or abort.
 
+pub mod clip;
 pub mod engine;
 pub mod error;
 pub mod limits;

@@ -459,6 +459,7 @@ impl Template {
             status: crate::data::ScanStatus::Complete,
             meta: serde_json::Value::Null,
             raw: Vec::new(),
+            flags: Default::default(),
         }
     }
 

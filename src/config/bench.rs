@@ -81,7 +81,11 @@ impl Config {
                 [
                     ("qpd.library", q.library.is_some()),
                     ("qpd.device", q.device.is_some()),
-                    ("qpd.range_v", q.range_v.is_some()),
+                    // the SCPI digitiser's range comes from the config too
+                    (
+                        "qpd.range_v",
+                        q.range_v.is_some() && q.backend != super::Backend::Scpi,
+                    ),
                     ("qpd.terminal", q.terminal.is_some()),
                     ("qpd.rate_hz", q.rate_hz.is_some()),
                 ],
@@ -241,6 +245,7 @@ impl Config {
             rate_hz,
             timeout_margin: Duration::from_millis(q.timeout_ms),
             calibration: q.calibration,
+            sum_floor_v: q.sum_floor,
         })
     }
 

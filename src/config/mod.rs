@@ -294,9 +294,14 @@ pub struct QpdConfig {
     /// nidaqmx: the board's name in NI MAX (`"Dev1"`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub device: Option<String>,
-    /// nidaqmx: input range ±V (default 10).
+    /// nidaqmx: input range ±V (default 10); scpi: the digitiser's input range ±V (no
+    /// default: without it clipping is not counted).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub range_v: Option<f64>,
+    /// The sum input (V, before the calibration) below which a pixel is dark (laser off, beam
+    /// blocked); default 1 % of the input range; 0 switches the check off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sum_floor: Option<f64>,
     /// nidaqmx: terminal configuration, "diff" (default), "rse", "nrse", "pseudodiff", "default".
     #[serde(skip_serializing_if = "Option::is_none")]
     pub terminal: Option<String>,
@@ -324,6 +329,7 @@ impl Default for QpdConfig {
             library: None,
             device: None,
             range_v: None,
+            sum_floor: None,
             terminal: None,
             rate_hz: None,
         }
@@ -733,6 +739,30 @@ impl Config {
                 return Err(err("qpd.calibration.offset_v", "must be finite"));
             }
         }
+        if let Some(f) = q.sum_floor {
+            if q.backend == Backend::Sim {
+                return Err(err(
+                    "qpd.sum_floor",
+                    format!("{f}: the simulated QPD has no sum input to check; a scene's `detector_range` effect sets the simulator's floor (`sum_floor`)"),
+                ));
+            }
+            if !(f.is_finite() && f >= 0.0) {
+                return Err(err(
+                    "qpd.sum_floor",
+                    format!("{f}: the sum input's floor in V, 0 (no check) or above"),
+                ));
+            }
+        }
+        if q.backend == Backend::Scpi {
+            if let Some(r) = q.range_v {
+                if !(r.is_finite() && r > 0.0) {
+                    return Err(err(
+                        "qpd.range_v",
+                        format!("{r}: the digitiser's input range ±V, above 0"),
+                    ));
+                }
+            }
+        }
         self.validate_bench()?;
         self.safety.validate().map_err(|(k, m)| err(&k, m))?;
         self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
@@ -914,6 +944,7 @@ impl Config {
             x_sign: q.x_sign,
             signed: q.signed,
             rtscts: true,
+            sum_floor_v: q.sum_floor,
         }
     }
 
@@ -1042,6 +1073,7 @@ impl Config {
             channels: self.qpd.channels.inputs(),
             sample_rate_hz: self.qpd.sample_rate_hz,
             gain: self.qpd.input_gain,
+            sum_floor_v: self.qpd.sum_floor,
             ..RedPitayaOptions::default()
         }
     }
@@ -1051,6 +1083,8 @@ impl Config {
             timeout: Duration::from_millis(self.qpd.timeout_ms),
             calibration: self.qpd.calibration,
             statistics: self.qpd.statistics,
+            range_v: self.qpd.range_v,
+            sum_floor_v: self.qpd.sum_floor,
             ..ScpiOptions::default()
         }
     }

@@ -4,6 +4,7 @@
 //! to a temporary file in the destination directory and renames it into place, so a crash or a
 //! full disk never leaves a half-written file under the final name (nothing measured is lost).
 
+pub mod clip;
 pub mod clock;
 pub mod csv;
 pub mod image;

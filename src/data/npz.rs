@@ -11,6 +11,8 @@
 //! | `y`    | `<f8`     | (rows,)      | vertical axis (y, or z for XZ/YZ), µm     |
 //! | `meta` | `\|u1`    | (n,)         | UTF-8 JSON text of the metadata           |
 //! | `raw_*` | `<f8`    | (rows, n)    | raster scans only: raw samples per line (see below) |
+//! | `clipped_s*` | `<u4` | (rows, cols) | only when clipped: samples at the input's rail per pixel |
+//! | `dark`  | `\|u1`   | (rows, cols) | only when dark: 1 where the sum was below the floor |
 //!
 //! Python: `m = json.loads(f["meta"].tobytes())`. The JSON object holds the reserved keys
 //! `format` (`"bfpscope-scan"`), `format_version` (1), `status` (`"complete"`, `"aborted"`,
@@ -18,6 +20,13 @@
 //! instrument, scene, script, time, ...). If the scan's metadata is not a JSON object, or uses a
 //! reserved key itself, it is stored whole under `user_meta` instead, so loading always gives
 //! back exactly what was saved. Unmeasured pixels (aborted scans) are NaN.
+//!
+//! A scan with clipped or dark pixels keeps their flags (see `data::clip`): `clipped_sx`,
+//! `clipped_sy`, `clipped_sz` (`<u4`, rows × cols: the digitiser samples of that pixel at or
+//! beyond the input's rail), each written only when that channel has a clipped sample, and
+//! `dark` (`|u1`, rows × cols, 1 where the sum was below the floor), written only when a pixel
+//! is dark. `meta.clipped` and `meta.dark` summarise them (and are there, with zeros, whenever
+//! the QPD knew its range).
 //!
 //! A hardware-timed raster scan keeps what it binned, one row per line, NaN after a line's
 //! last sample: `raw_sx`, `raw_sy`, `raw_sz` (the digitiser's samples), `raw_position_um`
@@ -101,6 +110,14 @@ pub(crate) fn write_scan_npz(path: &Path, scan: &Scan) -> Result<(), DataError> 
     npz.add_array("meta", &meta).map_err(werr)?;
     for (name, a) in &scan.raw {
         npz.add_array(format!("raw_{name}"), a).map_err(werr)?;
+    }
+    for (name, a) in super::clip::CLIPPED_ARRAYS.iter().zip(&scan.flags.clipped) {
+        if let Some(a) = a {
+            npz.add_array(*name, a).map_err(werr)?;
+        }
+    }
+    if let Some(d) = &scan.flags.dark {
+        npz.add_array("dark", d).map_err(werr)?;
     }
     let buf = npz.finish().map_err(werr)?;
     buf.into_inner()
@@ -193,6 +210,36 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
             raw.push((name.to_string(), a));
         }
     }
+    let mut flags = super::clip::InputFlags::default();
+    let shape_ok = |name: &str, dim: (usize, usize)| {
+        if dim == sx.dim() {
+            Ok(())
+        } else {
+            Err(DataError::format(
+                path,
+                format!(
+                    "array `{name}` has shape {dim:?} but `sx` has {:?}",
+                    sx.dim()
+                ),
+            ))
+        }
+    };
+    for (k, name) in super::clip::CLIPPED_ARRAYS.iter().enumerate() {
+        if has(name) {
+            let a: Array2<u32> = npz
+                .by_name(name)
+                .map_err(|e| DataError::format(path, format!("array `{name}`: {e}")))?;
+            shape_ok(name, a.dim())?;
+            flags.clipped[k] = Some(a);
+        }
+    }
+    if has("dark") {
+        let a: Array2<u8> = npz
+            .by_name("dark")
+            .map_err(|e| DataError::format(path, format!("array `dark`: {e}")))?;
+        shape_ok("dark", a.dim())?;
+        flags.dark = Some(a);
+    }
     let (x, y) = (x.to_vec(), y.to_vec());
     let mk = |data| Image::new(data, x.clone(), y.clone()).with_axis_names(&x_name, &y_name);
     Ok(Scan {
@@ -202,6 +249,7 @@ pub fn load_scan(path: impl AsRef<Path>) -> Result<Scan, DataError> {
         status,
         meta,
         raw,
+        flags,
     })
 }
 
@@ -276,6 +324,7 @@ mod tests {
             status: ScanStatus::Complete,
             meta,
             raw: Vec::new(),
+            flags: Default::default(),
         }
     }
 

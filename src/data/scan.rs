@@ -29,6 +29,10 @@ pub struct Scan {
     /// (NaN-padded). Saved as `.npz` members `raw_<name>`; empty for point-by-point scans.
     #[serde(skip)]
     pub raw: Vec<(String, ndarray::Array2<f64>)>,
+    /// Clipped samples and dark pixels per pixel ([`super::clip`]); saved as `.npz` members
+    /// `clipped_sx`, `clipped_sy`, `clipped_sz`, `dark` when there are any.
+    #[serde(skip)]
+    pub flags: super::clip::InputFlags,
 }
 
 impl ScanStatus {

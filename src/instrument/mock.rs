@@ -182,6 +182,7 @@ impl Qpd for MockQpd {
             sy_std: 0.0,
             sz_std: 0.0,
             n,
+            clipped: [0; 3],
         })
     }
 }

@@ -17,6 +17,7 @@ pub mod line;
 pub mod link;
 pub mod madlib;
 pub mod nidaqmx;
+pub mod range;
 pub mod redpitaya;
 pub mod scpi;
 pub mod scpi_session;
@@ -39,6 +40,10 @@ pub struct QpdReading {
     pub sy_std: f64,
     pub sz_std: f64,
     pub n: usize,
+    /// Samples of Sx, Sy, Sz at or beyond the input's rail among the `n` (see
+    /// [`range`]); zeros when none, or when the digitiser does not know its range.
+    #[serde(default)]
+    pub clipped: [usize; 3],
 }
 
 impl fmt::Display for QpdReading {
@@ -238,6 +243,11 @@ pub trait Qpd: Send {
     fn metadata(&self) -> Option<serde_json::Value> {
         None
     }
+    /// The inputs' range and the sum floor ([`range::InputRange`]): what a clipped sample
+    /// and a dark pixel are. `None` (the default): unknown, nothing is counted.
+    fn input_range(&self) -> Option<range::InputRange> {
+        None
+    }
     /// Arm a triggered, hardware-timed buffered acquisition of `n_samples` samples at (at
     /// least) `sample_rate` Hz, started by `trigger`: the fast path of a raster line, where the
     /// stage sweeps under its controller's clock and the controller's trigger output starts the
@@ -322,6 +332,9 @@ pub struct BufferedTrace {
     pub sz: Vec<f64>,
     /// False when Sz was not digitised (a 2-input board with Sx and Sy wired).
     pub sz_measured: bool,
+    /// Per sample, which signals' inputs were at or beyond the rail ([`range::clip_bits`]);
+    /// empty when no sample was (or the range is unknown).
+    pub clipped: Vec<u8>,
 }
 
 impl BufferedTrace {

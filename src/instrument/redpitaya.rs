@@ -228,6 +228,9 @@ pub struct RedPitayaOptions {
     pub gain: InputGain,
     /// Interval between trigger/fill state polls.
     pub poll: Duration,
+    /// The sum input below which a pixel is dark, V (`[qpd] sum_floor`; `None`: 1 % of the
+    /// input range; 0: not checked).
+    pub sum_floor_v: Option<f64>,
 }
 
 impl Default for RedPitayaOptions {
@@ -239,6 +242,7 @@ impl Default for RedPitayaOptions {
             sample_rate_hz: 100_000.0,
             gain: InputGain::LV,
             poll: Duration::from_millis(1),
+            sum_floor_v: None,
         }
     }
 }
@@ -557,8 +561,11 @@ impl RedPitaya {
         };
         let mut mean = [0.0; 3];
         let mut std = [0.0; 3];
+        let mut clipped = [0usize; 3];
+        let fs = self.opts.gain.full_scale_v();
         for (i, ch) in v.iter().enumerate() {
             if let Some(s) = ch {
+                clipped[i] = s.iter().filter(|x| super::range::at_rail(**x, fs)).count();
                 let (m_v, s_v) = mean_std(s);
                 mean[i] = m_v;
                 std[i] = s_v;
@@ -567,7 +574,10 @@ impl RedPitaya {
                 mean[i] = self.opts.calibration.offset_v[i];
             }
         }
-        Ok(self.opts.calibration.apply(mean, std, m))
+        Ok(QpdReading {
+            clipped,
+            ..self.opts.calibration.apply(mean, std, m)
+        })
     }
 
     fn err_other(&self, detail: String) -> DeviceError {
@@ -626,6 +636,19 @@ impl Qpd for RedPitaya {
         }))
     }
 
+    /// ±1 V (LV) or ±20 V (HV), as `input_gain` says the jumpers are set; the sum floor
+    /// (default 1 % of that) when Sz is digitised.
+    fn input_range(&self) -> Option<super::range::InputRange> {
+        let fs = self.opts.gain.full_scale_v();
+        let c = &self.opts.calibration;
+        let floor = self.opts.sum_floor_v.unwrap_or(0.01 * fs);
+        Some(super::range::InputRange::new(fs, "V").with_sum(
+            (self.opts.channels.inputs()[2].is_some() && floor > 0.0).then_some(floor),
+            c.gain[2],
+            c.offset_v[2],
+        ))
+    }
+
     fn arm_buffered(
         &mut self,
         n_samples: usize,
@@ -664,6 +687,19 @@ impl Qpd for RedPitaya {
             None => vec![0.0; n],
         };
         let n = v[0].as_ref().map_or(0, Vec::len);
+        let fs = self.opts.gain.full_scale_v();
+        let rail = |ch: &Option<Vec<f64>>, k: usize| {
+            ch.as_ref()
+                .is_some_and(|s| s.get(k).is_some_and(|x| super::range::at_rail(*x, fs)))
+        };
+        let mut clipped = Vec::new();
+        for k in 0..n {
+            let hit = [rail(&v[0], k), rail(&v[1], k), rail(&v[2], k)];
+            if hit.iter().any(|h| *h) {
+                clipped.resize(n, 0);
+                clipped[k] = super::range::clip_bits(hit);
+            }
+        }
         Ok(BufferedTrace {
             // the sample after the one at TPOS (read, then dropped): expected at 0
             t0_s: trigger_sample_time(dt) + dt,
@@ -672,6 +708,7 @@ impl Qpd for RedPitaya {
             sy: conv(self, 1, &v[1], n),
             sz: conv(self, 2, &v[2], n),
             sz_measured: v[2].is_some(),
+            clipped,
         })
     }
 

@@ -51,6 +51,7 @@ impl Calibration {
             sy_std: d(1),
             sz_std: d(2),
             n,
+            clipped: [0; 3],
         }
     }
 }
@@ -70,6 +71,12 @@ pub struct ScpiOptions {
     /// the check is skipped by default (one round trip per point less); a timeout still asks
     /// `SYST:ERR?`. True: the behaviour before issue 20 (the bench compares both).
     pub check_error_each_read: bool,
+    /// The digitiser's input range ±V (`[qpd] range_v`); `None`: unknown, clipping not
+    /// counted. The dialect sends means only: a pixel counts as clipped (all its samples) when
+    /// its mean is at the rail; partial clipping within a dwell is not seen.
+    pub range_v: Option<f64>,
+    /// The sum input below which a pixel is dark, V (`None`: 1 % of `range_v`; 0: no check).
+    pub sum_floor_v: Option<f64>,
 }
 
 impl Default for ScpiOptions {
@@ -79,6 +86,8 @@ impl Default for ScpiOptions {
             calibration: Calibration::default(),
             statistics: true,
             check_error_each_read: false,
+            range_v: None,
+            sum_floor_v: None,
         }
     }
 }
@@ -222,6 +231,21 @@ impl ScpiQpd {
     }
 }
 
+impl ScpiQpd {
+    /// A reading of `n` samples with means `v` (V): every sample counted clipped on a channel
+    /// whose mean is at the rail (the dialect sends no samples).
+    fn reading(&self, v: [f64; 3], s: [f64; 3], n: usize) -> QpdReading {
+        let clipped = match self.opts.range_v {
+            Some(r) => v.map(|x| if super::range::at_rail(x, r) { n } else { 0 }),
+            None => [0; 3],
+        };
+        QpdReading {
+            clipped,
+            ..self.opts.calibration.apply(v, s, n)
+        }
+    }
+}
+
 impl Qpd for ScpiQpd {
     fn name(&self) -> String {
         self.link.device().to_string()
@@ -236,7 +260,7 @@ impl Qpd for ScpiQpd {
         let (v, s) = self.measure_volts(n)?;
         self.overhead
             .add(t0.elapsed().as_secs_f64() - n as f64 / self.rate);
-        Ok(self.opts.calibration.apply(v, s, n))
+        Ok(self.reading(v, s, n))
     }
 
     /// `MEAS:QPD?`: three numbers (about 50 bytes) instead of `MEAS:QPD:STAT?`'s six (about
@@ -246,7 +270,7 @@ impl Qpd for ScpiQpd {
         let (v, s) = self.measure(n, false)?;
         self.overhead
             .add(t0.elapsed().as_secs_f64() - n as f64 / self.rate);
-        Ok(self.opts.calibration.apply(v, s, n))
+        Ok(self.reading(v, s, n))
     }
 
     /// The running mean of the reads measured; before the first (the first scan after
@@ -275,6 +299,17 @@ impl Qpd for ScpiQpd {
     fn link_costs(&mut self) -> super::link::LinkCosts {
         self.link.take_costs()
     }
+
+    /// ±`range_v` when configured; the sum floor (default 1 % of the range).
+    fn input_range(&self) -> Option<super::range::InputRange> {
+        let r = self.opts.range_v?;
+        let c = &self.opts.calibration;
+        Some(super::range::InputRange::new(r, "V").with_sum(
+            Some(self.opts.sum_floor_v.unwrap_or(0.01 * r)).filter(|f| *f > 0.0),
+            c.gain[2],
+            c.offset_v[2],
+        ))
+    }
 }
 
 #[cfg(test)]
@@ -299,6 +334,7 @@ mod tests {
             },
             statistics: true,
             check_error_each_read: true,
+            ..ScpiOptions::default()
         };
         ScpiQpd::connect(Box::new(Scripted::new(all)), "mock", opts).unwrap()
     }

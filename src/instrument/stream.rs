@@ -19,6 +19,9 @@ pub struct StreamChunk {
     pub sz: Vec<f64>,
     /// The fast axis's measured position (the position monitor), µm.
     pub fast_um: Vec<f64>,
+    /// Per sample, which signals' inputs were at or beyond the rail
+    /// ([`super::range::clip_bits`]); empty when none was.
+    pub clipped: Vec<u8>,
     /// Wall time spent turning the chunk's volts into signals and positions, s (CPU-bound:
     /// the host's share of the stream's cost).
     pub convert_s: f64,

@@ -156,6 +156,7 @@ impl Qpd for Traced<dyn Qpd> {
             fn name(&self) -> String;
             fn sample_rate(&self) -> f64;
             fn metadata(&self) -> Option<serde_json::Value>;
+            fn input_range(&self) -> Option<super::range::InputRange>;
             fn overhead_s(&self) -> f64;
             fn link_costs(&mut self) -> super::link::LinkCosts;
         }

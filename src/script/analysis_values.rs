@@ -434,6 +434,7 @@ pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) 
             status: ScanStatus::Complete,
             meta,
             raw: Vec::new(),
+            flags: Default::default(),
         },
         None,
     )

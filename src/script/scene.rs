@@ -206,9 +206,10 @@ pub fn register(r: &mut Registrar) {
         .arg("name", "string", "", "effect name")
         .arg("params", "map", "", "parameters, e.g. #{sigma_sample: 1e-3} for detector_noise (see help)")
         .summary("enable one effect with parameters")
-        .help("detector_noise #{sigma_sample}; laser_power_noise #{sigma_rel_sample}; pointing_noise #{sigma_nm_sample}; drift #{velocity_nm_s: [vx, vy, vz], random_walk_nm_sqrt_s}; misalignment #{offset_x, offset_y, rotation_deg, gain_y}; finite_size #{n_r, min_d_nm}; thermal_motion #{sigma_nm, samples}; mie #{min_d_nm, scattered_intensity} (beads as Lorenz–Mie spheres, docs/physics.md §9); stage_bandwidth #{hz} (the stage lags its target under the wave generator of raster scans, τ = 1/(2π hz)); polarization and cross_terms take #{}.")
+        .help("detector_noise #{sigma_sample}; laser_power_noise #{sigma_rel_sample}; pointing_noise #{sigma_nm_sample}; drift #{velocity_nm_s: [vx, vy, vz], random_walk_nm_sqrt_s}; misalignment #{offset_x, offset_y, rotation_deg, gain_y}; finite_size #{n_r, min_d_nm}; thermal_motion #{sigma_nm, samples}; mie #{min_d_nm, scattered_intensity} (beads as Lorenz–Mie spheres, docs/physics.md §9); stage_bandwidth #{hz} (the stage lags its target under the wave generator of raster scans, τ = 1/(2π hz)); detector_range #{range, sum_scale, sum_floor, power} (inputs ±range in signal units, clipped beyond; the sum input is sum_scale·power·(1 + Sz); a pixel whose sum is below sum_floor is dark; power 0–1 of the beam reaching the detector; defaults 1, 0.5, 0.01, 1: scans count clipped and dark pixels, docs/hardware.md); polarization and cross_terms take #{}.")
         .example("let s = scene(); s.effect(\"detector_noise\", #{sigma_sample: 1e-3}); s.effect_names", "[\"detector_noise\"]")
-        .example("let s = scene(); s.effect(\"drift\", #{speed: 1.0})", "error: drift");
+        .example("let s = scene(); s.effect(\"drift\", #{speed: 1.0})", "error: drift")
+        .example("let s = scene(); s.effect(\"detector_range\", #{range: 0.0})", "error: effect: detector_range: range = 0: must be finite and > 0");
     r.bind(d, |s: &mut SceneRef, name: &str, params: Map| {
         effect(s, name, params)
     });

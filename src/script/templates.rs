@@ -306,7 +306,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.named_getters("FitResult", "int", &count_rows, ex, fit_count);
     properties!(r, "FitResult", FitRef, fx, [
         status: "string", "\"ok\" when `warnings` is empty, else \"flagged\""; "whether the answer is inside its domain (docs/analysis.md, Domains)"; "f.status" => "\"ok\""; |f| -> String { crate::analysis::domain::status(&f.0.warnings).to_string() },
-        warnings: "array", "[string]: where the answer leaves its domain (a bead not found, outside the template's size domain, near the scan's edge, a model that does not describe the data, degeneracies); empty when positions, weights and σ hold"; "what the answer cannot vouch for"; "f.warnings.len()" => "0"; |f| -> Array { f.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },
+        warnings: "array", "[string]: where the answer leaves its domain (a bead not found, outside the template's size domain, near the scan's edge, a model that does not describe the data, degeneracies, clipped or dark pixels among those fitted); empty when positions, weights and σ hold"; "what the answer cannot vouch for"; "f.warnings.len()" => "0"; |f| -> Array { f.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },
         optimizer: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.optimizer" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
         reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
         degeneracies: "array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]"; "what the fit could not resolve (empty when well-posed)"; "f.degeneracies.len()" => "0"; |f| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
@@ -549,7 +549,15 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         },
         ..d
     };
-    let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    // clipped or dark pixels among those fitted (`data::clip`): attached to the answer
+    let used: &[&str] = match fo.channels {
+        Channels::Both => &["sx", "sy"],
+        Channels::Sx => &["sx"],
+        Channels::Sy => &["sy"],
+    };
+    r.warnings
+        .extend(crate::data::clip::input_check(&s.scan, used, None).warnings);
     c.warn_all(who, &r.warnings);
     Ok(FitRef(Arc::new(r)))
 }

@@ -384,6 +384,8 @@ fn scan_row(scan: &Scan, path: Option<&Path>) -> Value {
         "points_measured": m["points_measured"],
         "points_total": m["points_total"],
         "error": m["error"]["message"],
+        // clipped and dark pixels, in words (empty when none)
+        "input": crate::data::clip::input_check(scan, &["sx", "sy", "sz"], None).warnings,
         "rows": scan.sx.data.nrows(),
         "cols": scan.sx.data.ncols(),
     })
@@ -455,7 +457,7 @@ impl ScanObserver for Hub {
             }
             l.ended = Some(now);
             l.status = row["status"].as_str().unwrap_or("failed").to_string();
-            l.end = json!({ "number": row["number"], "error": row["error"], "file": row["file"] });
+            l.end = json!({ "number": row["number"], "error": row["error"], "file": row["file"], "input": row["input"] });
         }
         if let Some(e) = row["error"].as_str() {
             s.instrument["last_error"] = json!(e);

@@ -61,6 +61,8 @@ pub struct LineStrategy {
     /// The stop commands went out after it (a pause).
     stopped: bool,
     at: Option<Pos>,
+    /// The last line's pixels with samples at the rail, until the engine takes them.
+    clipped: Vec<crate::acquire::clip::ClippedPixel>,
 }
 
 impl LineStrategy {
@@ -76,6 +78,7 @@ impl LineStrategy {
             current: None,
             stopped: false,
             at: None,
+            clipped: Vec::new(),
         }
     }
 
@@ -262,6 +265,10 @@ impl Strategy for LineStrategy {
         self.at
     }
 
+    fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
+        std::mem::take(&mut self.clipped)
+    }
+
     fn pause(&mut self, inst: &mut Instrument) -> Result<(), DeviceError> {
         self.stop_all(inst).map_err(|detail| DeviceError::Other {
             device: inst.stage.name(),
@@ -380,6 +387,12 @@ impl LineStrategy {
         st.sample_rate = Some(1.0 / d.trace.dt_s);
         st.sz_measured &= d.trace.sz_measured;
         let k = d.positions.len();
+        if !d.trace.clipped.is_empty() {
+            let (c0, c1) = (rp.cols[0], rp.cols[cols - 1]);
+            let flags = &d.trace.clipped[..k.min(d.trace.clipped.len())];
+            let counts = crate::acquire::clip::line_counts(&d.positions, flags, c0, c1, cols);
+            self.clipped = crate::acquire::clip::line_pixels(l.row, &counts);
+        }
         self.raw[0].push(d.trace.sx[..k].to_vec());
         self.raw[1].push(d.trace.sy[..k].to_vec());
         self.raw[2].push(d.trace.sz[..k].to_vec());

@@ -125,6 +125,11 @@ pub trait Strategy {
     fn raw(&mut self) -> Vec<(String, Array2<f64>)> {
         Vec::new()
     }
+    /// The pixels of the steps taken since the last call that had samples at or beyond the
+    /// input's rail (`acquire::clip`); the engine asks after every step.
+    fn take_clipped(&mut self) -> Vec<super::clip::ClippedPixel> {
+        Vec::new()
+    }
     /// Sz when the digitiser measured it: `false` blanks Sz to NaN.
     fn sz_measured(&self) -> bool {
         true

@@ -24,6 +24,8 @@ pub struct PointStrategy {
     speed_um_s: f64,
     at: Option<Pos>,
     phases: Phases,
+    /// The last point's samples at the rail, until the engine takes them.
+    clipped: Vec<crate::acquire::clip::ClippedPixel>,
 }
 
 impl PointStrategy {
@@ -110,7 +112,15 @@ impl Strategy for PointStrategy {
         let r = read.map_err(StepFault::other)?;
         self.at = Some(p.target);
         self.phases.points += 1;
+        if r.clipped.iter().any(|&k| k > 0) {
+            let k = r.clipped.map(|k| u32::try_from(k).unwrap_or(u32::MAX));
+            self.clipped.push((p.row, p.col, k));
+        }
         Ok(vec![(p.row, p.col, [r.sx, r.sy, r.sz])])
+    }
+
+    fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
+        std::mem::take(&mut self.clipped)
     }
 
     fn resting_at(&self) -> Option<Pos> {

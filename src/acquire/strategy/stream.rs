@@ -249,6 +249,8 @@ pub struct StreamStrategy {
     held: bool,
     /// Something was started (a stop is owed at the end of an interrupted scan).
     started: bool,
+    /// The last line's pixels with samples at the rail, until the engine takes them.
+    clipped: Vec<crate::acquire::clip::ClippedPixel>,
 }
 
 /// The stage's frame stream, or an error naming the stage.
@@ -277,6 +279,7 @@ impl StreamStrategy {
             smooth: 1,
             held: false,
             started: false,
+            clipped: Vec::new(),
         }
     }
 
@@ -386,6 +389,12 @@ impl StreamStrategy {
             run.buf.sy.extend(c.sy);
             run.buf.sz.extend(c.sz);
             run.buf.fast_um.extend(c.fast_um);
+            // clip flags: a prefix of the samples (the rest 0), padded when a chunk has some
+            if !c.clipped.is_empty() {
+                let before = run.buf.fast_um.len() - c.clipped.len();
+                run.buf.clipped.resize(before, 0);
+                run.buf.clipped.extend(c.clipped);
+            }
         }
         Ok(())
     }
@@ -434,6 +443,11 @@ impl StreamStrategy {
         let bin = |v: &[f64]| bin_line(x, &v[a..b], c0, c1, cols.len()).map_err(bad);
         let bins = [bin(&run.buf.sx)?, bin(&run.buf.sy)?, bin(&run.buf.sz)?];
         self.stats.add_line(&bins[0], cols);
+        if run.buf.clipped.len() > a {
+            let flags = &run.buf.clipped[a..b.min(run.buf.clipped.len())];
+            let counts = crate::acquire::clip::line_counts(x, flags, c0, c1, cols.len());
+            self.clipped = crate::acquire::clip::line_pixels(rp.lines[line].row, &counts);
+        }
         // the targets of the line's samples, for the lag
         let (mut tf, mut ts) = (Vec::with_capacity(b - a), Vec::with_capacity(b - a));
         run.frame.fill(rp, s0, s1 - s0, &mut tf, &mut ts);
@@ -454,6 +468,8 @@ impl StreamStrategy {
         ] {
             v.drain(..b);
         }
+        let k = b.min(run.buf.clipped.len());
+        run.buf.clipped.drain(..k);
         run.base = s1;
         run.next += 1;
         let done = run.next == run.frame.lines.len();
@@ -641,6 +657,10 @@ impl Strategy for StreamStrategy {
 
     fn resting_at(&self) -> Option<Pos> {
         self.at
+    }
+
+    fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
+        std::mem::take(&mut self.clipped)
     }
 
     fn pause(&mut self, inst: &mut Instrument) -> Result<(), DeviceError> {

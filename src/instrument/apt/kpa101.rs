@@ -54,6 +54,9 @@ pub struct KpaOptions {
     pub signed: bool,
     /// RTS/CTS flow control on the port (Thorlabs' FTDI bridge: yes).
     pub rtscts: bool,
+    /// The Sum (V) below which a pixel is dark (`[qpd] sum_floor`; `None`: 0.1 V, 1 % of the
+    /// Sum's 10 V; 0: not checked).
+    pub sum_floor_v: Option<f64>,
 }
 
 impl Default for KpaOptions {
@@ -65,6 +68,7 @@ impl Default for KpaOptions {
             x_sign: 1.0,
             signed: false,
             rtscts: true,
+            sum_floor_v: None,
         }
     }
 }
@@ -233,6 +237,21 @@ impl Kpa101 {
         ]
     }
 
+    /// Which of XDiff, YDiff, Sum are at the ADC's end (±32767 counts for the differences;
+    /// the Sum's top count, 65535, or 32767 when read signed).
+    pub fn clipped(&self, r: &RawReading) -> [bool; 3] {
+        let top = if self.opts.signed {
+            r.sum as i16 == i16::MAX
+        } else {
+            r.sum == u16::MAX
+        };
+        [
+            r.xdiff.unsigned_abs() >= 32767,
+            r.ydiff.unsigned_abs() >= 32767,
+            top,
+        ]
+    }
+
     pub fn info(&self) -> &HwInfo {
         &self.info
     }
@@ -265,8 +284,12 @@ impl Qpd for Kpa101 {
             Vec::with_capacity(n),
             Vec::with_capacity(n),
         ];
+        let mut clipped = [0usize; 3];
         for _ in 0..n {
             let raw = self.read_raw()?;
+            for (c, hit) in clipped.iter_mut().zip(self.clipped(&raw)) {
+                *c += hit as usize;
+            }
             let [xd, yd, sum] = self.volts(&raw);
             if sum.is_nan() || sum <= 0.0 {
                 return Err(DeviceError::Other {
@@ -299,7 +322,20 @@ impl Qpd for Kpa101 {
             sy_std: std(&s[1]),
             sz_std: std(&s[2]),
             n,
+            clipped,
         })
+    }
+
+    /// ±10 V (the differences' ADC; the Sum spans 0–10 V), the Sum's floor (default 0.1 V).
+    fn input_range(&self) -> Option<crate::instrument::range::InputRange> {
+        let c = &self.opts.calibration;
+        Some(
+            crate::instrument::range::InputRange::new(10.0, "V").with_sum(
+                Some(self.opts.sum_floor_v.unwrap_or(0.1)).filter(|f| *f > 0.0),
+                c.gain[2],
+                c.offset_v[2],
+            ),
+        )
     }
 
     fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {

@@ -190,6 +190,38 @@ impl NiInputs {
             }
         }
     }
+
+    /// Which of Sx, Sy, sum of sample `i` come from an input at or beyond ±`range_v`: each
+    /// signal's own input; with quadrant inputs a quadrant at the rail spoils all three.
+    pub fn clipped(&self, buf: &[f64], n: usize, i: usize, range_v: f64) -> [bool; 3] {
+        let rail = |k: usize| crate::instrument::range::at_rail(buf[k * n + i], range_v);
+        match self {
+            NiInputs::Signals { .. } => [rail(0), rail(1), rail(2)],
+            NiInputs::Quadrants(_) => [(0..4).any(rail); 3],
+        }
+    }
+}
+
+/// Samples per signal (Sx, Sy, sum) of a `GroupByChannel` buffer of `n` samples per channel
+/// whose inputs are at or beyond ±`range_v`.
+pub fn clip_counts(inputs: &NiInputs, buf: &[f64], n: usize, range_v: f64) -> [usize; 3] {
+    let mut c = [0usize; 3];
+    for i in 0..n {
+        for (k, hit) in inputs.clipped(buf, n, i, range_v).into_iter().enumerate() {
+            c[k] += hit as usize;
+        }
+    }
+    c
+}
+
+/// The input range of an NI board's QPD inputs: ±`range_v`, the sum floor (default 1 % of the
+/// range) on the sum (or the four quadrants' total), and the sum's calibration.
+pub fn ni_input_range(o: &NiQpdOptions) -> crate::instrument::range::InputRange {
+    crate::instrument::range::InputRange::new(o.range_v, "V").with_sum(
+        Some(o.sum_floor_v.unwrap_or(0.01 * o.range_v)).filter(|f| *f > 0.0),
+        o.calibration.gain[2],
+        o.calibration.offset_v[2],
+    )
 }
 
 /// Driver settings (`[qpd]` with `backend = "nidaqmx"`).
@@ -207,6 +239,9 @@ pub struct NiQpdOptions {
     /// Added to n / rate as the read's timeout.
     pub timeout_margin: Duration,
     pub calibration: Calibration,
+    /// The sum input below which a pixel is dark, V (`[qpd] sum_floor`; `None`: 1 % of
+    /// `range_v`; 0: not checked).
+    pub sum_floor_v: Option<f64>,
 }
 
 impl Default for NiQpdOptions {
@@ -224,6 +259,7 @@ impl Default for NiQpdOptions {
             rate_hz: 800_000.0,
             timeout_margin: Duration::from_millis(1000),
             calibration: Calibration::default(),
+            sum_floor_v: None,
         }
     }
 }
@@ -535,6 +571,9 @@ pub fn stats(inputs: &NiInputs, buf: &[f64], n: usize) -> ([f64; 3], [f64; 3]) {
     (mean, std)
 }
 
+/// A point read: means and standard deviations of Sx, Sy, sum (V), and their samples at the rail.
+type VoltRead = ([f64; 3], [f64; 3], [usize; 3]);
+
 /// The NI board as the QPD (point reads).
 pub struct NiQpd {
     lib: Arc<NiDaqmx>,
@@ -620,7 +659,7 @@ impl NiQpd {
         Ok(())
     }
 
-    fn read_volts(&mut self, n: usize) -> Result<([f64; 3], [f64; 3]), DeviceError> {
+    fn read_volts(&mut self, n: usize) -> Result<VoltRead, DeviceError> {
         if n == 0 {
             return Err(DeviceError::Other {
                 device: self.name(),
@@ -648,7 +687,9 @@ impl NiQpd {
         let wall = t0.elapsed().as_secs_f64();
         self.overhead_sum += (wall - n as f64 / self.opts.rate_hz).max(0.0);
         self.reads += 1;
-        Ok(stats(&self.opts.inputs, &self.buf, n))
+        let (mean, std) = stats(&self.opts.inputs, &self.buf, n);
+        let clipped = clip_counts(&self.opts.inputs, &self.buf, n, self.opts.range_v);
+        Ok((mean, std, clipped))
     }
 }
 
@@ -691,8 +732,15 @@ impl Qpd for NiQpd {
     }
 
     fn read(&mut self, n: usize) -> Result<QpdReading, DeviceError> {
-        let (mean, std) = self.read_volts(n)?;
-        Ok(self.opts.calibration.apply(mean, std, n))
+        let (mean, std, clipped) = self.read_volts(n)?;
+        Ok(QpdReading {
+            clipped,
+            ..self.opts.calibration.apply(mean, std, n)
+        })
+    }
+
+    fn input_range(&self) -> Option<crate::instrument::range::InputRange> {
+        Some(ni_input_range(&self.opts))
     }
 
     fn overhead_s(&self) -> f64 {

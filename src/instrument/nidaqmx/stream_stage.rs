@@ -123,9 +123,17 @@ impl FrameStream for NiStreamStage {
                 .map(|v| v / o.position_volts_per_um)
                 .collect(),
             convert_s: 0.0,
+            clipped: Vec::new(),
         };
-        // the QPD's samples, volts → signals as a point read does
+        // the QPD's samples, volts → signals as a point read does; inputs at the rail flagged
         for i in 0..m {
+            let hit = o.qpd.inputs.clipped(&c.inputs, m, i, o.qpd.range_v);
+            if hit.iter().any(|h| *h) && out.clipped.is_empty() {
+                out.clipped = vec![0; m];
+            }
+            if let Some(b) = out.clipped.get_mut(i) {
+                *b = crate::instrument::range::clip_bits(hit);
+            }
             let v = o.qpd.inputs.signals(&c.inputs, m, i);
             let r = o.qpd.calibration.apply(v, [0.0; 3], 1);
             out.sx.push(r.sx);

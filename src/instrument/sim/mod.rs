@@ -1,6 +1,7 @@
 //! The simulated instrument: a stage and a QPD that image a `Scene` through the render pipeline,
 //! on a virtual clock (settle and dwell advance simulated time, not wall time).
 
+pub mod detector;
 pub mod domain;
 pub mod render;
 pub mod scene;
@@ -387,6 +388,16 @@ impl Qpd for SimQpd {
     fn sample_rate(&self) -> f64 {
         self.0.cfg.sample_rate
     }
+    /// With the scene's `detector_range` effect: its range and sum floor (signal units).
+    fn input_range(&self) -> Option<crate::instrument::range::InputRange> {
+        lock(&self.0.state)
+            .renderer
+            .scene
+            .effects
+            .detector_range
+            .as_ref()
+            .map(detector::input_range)
+    }
     fn metadata(&self) -> Option<serde_json::Value> {
         let st = self
             .0
@@ -417,6 +428,7 @@ impl Qpd for SimQpd {
         let r = st.renderer.clone();
         let (v, sd) = r.render_point(pos, n, &mut st.rng);
         drop(st);
+        let (v, clipped) = r.detect(v, sd, n);
         self.0.clock.wait(dur);
         Ok(QpdReading {
             sx: v[0],
@@ -426,6 +438,7 @@ impl Qpd for SimQpd {
             sy_std: sd[1],
             sz_std: sd[2],
             n,
+            clipped,
         })
     }
     /// The simulated digitiser decimates as a Red Pitaya does: each buffered sample is the
@@ -486,6 +499,7 @@ impl Qpd for SimQpd {
             sy: Vec::with_capacity(n),
             sz: Vec::with_capacity(n),
             sz_measured: true,
+            clipped: Vec::new(),
         };
         let commanded = st.commanded;
         for i in 0..n {
@@ -497,7 +511,13 @@ impl Qpd for SimQpd {
             for c in 0..3 {
                 p[c] += drifted[c] - commanded[c];
             }
-            let (v, _) = r.render_point(p, k, &mut st.rng);
+            let (v, sd) = r.render_point(p, k, &mut st.rng);
+            // a digitiser sample whose detector samples touched the rail is flagged
+            let (v, hit) = r.detect(v, sd, k);
+            if hit.iter().any(|&h| h > 0) {
+                tr.clipped.resize(n, 0);
+                tr.clipped[i] = crate::instrument::range::clip_bits(hit.map(|h| h > 0));
+            }
             tr.sx.push(v[0]);
             tr.sy.push(v[1]);
             tr.sz.push(v[2]);
@@ -516,13 +536,16 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
         || fx.pointing_noise.is_some()
         || fx.cross_terms == Some(true)
         || fx.laser_power_noise.is_some()
-        || fx.detector_noise.is_some();
+        || fx.detector_noise.is_some()
+        || fx.detector_range.is_some();
     let (nx, ny) = (xs.len(), ys.len());
     let mut ch = [
         Array2::<f64>::zeros((ny, nx)),
         Array2::<f64>::zeros((ny, nx)),
         Array2::<f64>::zeros((ny, nx)),
     ];
+    let range = fx.detector_range.as_ref().map(detector::input_range);
+    let mut clip = crate::data::clip::ClipTally::new(ys.len(), xs.len(), range);
     if per_pixel {
         let mut rng = ChaCha8Rng::seed_from_u64(renderer.scene.seed);
         let dt = n_samples as f64 / SimConfig::default().sample_rate;
@@ -535,7 +558,12 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
                         p[c] += d.velocity_nm_s[c] * 1e-3 * t;
                     }
                 }
-                let (v, _) = renderer.render_point(p, n_samples, &mut rng);
+                let (v, sd) = renderer.render_point(p, n_samples, &mut rng);
+                let (v, hit) = renderer.detect(v, sd, n_samples);
+                if hit.iter().any(|&h| h > 0) {
+                    let k = hit.map(|h| u32::try_from(h).unwrap_or(u32::MAX));
+                    clip.add(&[(iy, ix, k)]);
+                }
                 for c in 0..3 {
                     ch[c][[iy, ix]] = v[c];
                 }
@@ -549,7 +577,7 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
     }
     let [sx, sy, sz] = ch;
     let img = |a| Image::new(a, xs.to_vec(), ys.to_vec());
-    Scan {
+    let mut scan = Scan {
         sx: img(sx),
         sy: img(sy),
         sz: img(sz),
@@ -563,5 +591,9 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
             "pipeline": renderer.stages(),
         }),
         raw: Vec::new(),
-    }
+        flags: Default::default(),
+    };
+    // the detector's clipped and dark pixels (the `detector_range` effect), said by the caller
+    clip.finish(&mut scan, "simulate", &|_| {});
+    scan
 }

@@ -391,6 +391,9 @@ impl Renderer {
                 format!("white noise σ = {:e} per sample", d.sigma_sample),
             );
         }
+        if let Some(d) = fx.detector_range {
+            push("detector_range", 0.0, super::detector::describe(&d));
+        }
         let notes = if vector {
             auto_notes
         } else if fx.mie.is_none() && fx.finite_size.is_none() {
@@ -424,6 +427,20 @@ impl Renderer {
 
     pub fn stage_names(&self) -> Vec<String> {
         self.stages().into_iter().map(|s| s.name).collect()
+    }
+
+    /// The digitiser's view of a reading of `n` samples (the `detector_range` effect, when
+    /// the scene has it): the means as read and the clipped samples per channel.
+    pub fn detect(&self, v: [f64; 3], sd: [f64; 3], n: usize) -> ([f64; 3], [usize; 3]) {
+        match &self.scene.effects.detector_range {
+            Some(d) => {
+                let t = Instant::now();
+                let r = super::detector::apply(d, v, sd, n);
+                self.add_time("detector_range", t.elapsed().as_secs_f64());
+                r
+            }
+            None => (v, [0; 3]),
+        }
     }
 
     fn add_time(&self, name: &str, secs: f64) {

@@ -117,6 +117,33 @@ pub struct Effects {
     pub thermal_motion: Option<ThermalMotion>,
     pub mie: Option<MieEffect>,
     pub stage_bandwidth: Option<StageBandwidth>,
+    pub detector_range: Option<DetectorRange>,
+}
+
+/// A detector and digitiser of finite range (`sim::detector`): every input spans ±`range`
+/// (signal units) and reads the rail beyond; the inputs see `power · Sx`, `power · Sy` and the
+/// sum `sum_scale · power · (1 + Sz)`; a pixel whose sum input is below `sum_floor` is dark.
+/// `power`: the fraction of the beam reaching the detector (0: laser off or beam blocked).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DetectorRange {
+    pub range: f64,
+    pub sum_scale: f64,
+    pub sum_floor: f64,
+    pub power: f64,
+}
+
+impl Default for DetectorRange {
+    /// ±1 (no normalised difference reaches it), the sum at half the range, the floor at 1 %
+    /// of the range, the full beam.
+    fn default() -> Self {
+        DetectorRange {
+            range: 1.0,
+            sum_scale: 0.5,
+            sum_floor: 0.01,
+            power: 1.0,
+        }
+    }
 }
 
 /// White detector noise (suppl. S8): standard deviation of one sample, in units of the beam
@@ -189,7 +216,7 @@ pub struct ThermalMotion {
 pub const PAPER_DETECTOR_SIGMA_SAMPLE: f64 = 2e-3;
 
 /// All effect names, in pipeline order.
-pub const EFFECT_NAMES: [&str; 11] = [
+pub const EFFECT_NAMES: [&str; 12] = [
     "polarization",
     "misalignment",
     "finite_size",
@@ -201,6 +228,7 @@ pub const EFFECT_NAMES: [&str; 11] = [
     "cross_terms",
     "laser_power_noise",
     "detector_noise",
+    "detector_range",
 ];
 
 impl Effects {
@@ -230,6 +258,7 @@ impl Effects {
             }
             // 318 Hz: τ = 0.5 ms, the GCS emulator's default lag (a loaded closed-loop piezo)
             "stage_bandwidth" => self.stage_bandwidth = Some(StageBandwidth { hz: 318.0 }),
+            "detector_range" => self.detector_range = Some(DetectorRange::default()),
             "misalignment" => self.misalignment = Some(Default::default()),
             "polarization" => self.polarization = Some(true),
             "finite_size" => {
@@ -293,6 +322,21 @@ impl Effects {
                 )));
             }
         }
+        if let Some(d) = self.detector_range {
+            for (k, v, lo) in [
+                ("range", d.range, "> 0"),
+                ("sum_scale", d.sum_scale, "> 0"),
+                ("sum_floor", d.sum_floor, "≥ 0"),
+                ("power", d.power, "≥ 0"),
+            ] {
+                let ok = v.is_finite() && if lo == "> 0" { v > 0.0 } else { v >= 0.0 };
+                if !ok {
+                    return Err(OpticsError::Invalid(format!(
+                        "detector_range: {k} = {v}: must be finite and {lo}"
+                    )));
+                }
+            }
+        }
         if let Some(b) = self.stage_bandwidth {
             if !(b.hz.is_finite() && b.hz > 0.0) {
                 return Err(OpticsError::Invalid(format!(
@@ -318,6 +362,7 @@ impl Effects {
             ("cross_terms", self.cross_terms == Some(true)),
             ("laser_power_noise", self.laser_power_noise.is_some()),
             ("detector_noise", self.detector_noise.is_some()),
+            ("detector_range", self.detector_range.is_some()),
         ];
         on.iter().filter(|(_, b)| *b).map(|(n, _)| *n).collect()
     }
