@@ -25,12 +25,13 @@
 //! volts_per_um = { x = 0.1333, y = 0.1333 }
 //! position = { x = "ai3" }
 //! position_volts_per_um = { x = 0.1333 }
+//! external_input = "sum"                    # or "replace"; docs/hardware.md §12 says how to check
 //! ```
 
 use super::kinds::{PCI6120_MAX_RANGE_V, PCI6120_MAX_RATE_HZ};
 use super::{err, Backend, Config, ConfigError};
 use crate::instrument::madlib::MadlibOptions;
-use crate::instrument::nidaqmx::raster::NiRasterOptions;
+use crate::instrument::nidaqmx::raster::{ExternalInput, NiRasterOptions};
 use crate::instrument::nidaqmx::{parse_channel, NiInputs, NiQpdOptions, Terminal};
 use std::time::Duration;
 
@@ -297,8 +298,20 @@ impl Config {
             r.position_volts_per_um.x,
             "the sensor monitor's scale",
         )?;
+        let external_input = match r.external_input.as_deref() {
+            None => ExternalInput::Sum,
+            Some(v) => ExternalInput::parse(v).ok_or_else(|| {
+                err(
+                    "raster.external_input",
+                    format!(
+                        "\"{v}\": allowed are \"sum\" (the Nano-Drive adds its external input to the USB command, as MCL documents it; the default) and \"replace\" (it follows the external input alone)"
+                    ),
+                )
+            })?,
+        };
         Ok(Some(NiRasterOptions {
             qpd: qo,
+            external_input,
             ao: [ao_x, ao_y.unwrap_or_default()],
             volts_per_um: [vx, vy.unwrap_or(0.0)],
             position: px,

@@ -366,6 +366,39 @@ impl MadlibStage {
         e
     }
 
+    /// Command axis `k` (0 = x, 1 = y, 2 = z) to `um` over USB (`MCL_SingleWriteN`) and
+    /// return at once, without waiting for the readings: a step of a hand-over between the
+    /// USB command and the external inputs (`NiStreamStage`), where the position does not
+    /// change. Refused outside the calibrated range. A failed write releases the handle
+    /// without the usual hold at the readings (the external inputs add to what it would
+    /// write).
+    pub fn command_now(&mut self, k: usize, um: f64) -> Result<(), DeviceError> {
+        self.checked()?;
+        let cal = self.info.calibration_um[k];
+        if !(um.is_finite() && (0.0..=cal).contains(&um)) {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!(
+                    "{} = {um} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
+                    crate::instrument::AXES[k]
+                ),
+            });
+        }
+        if let Err(e) = self.write_axis(k, um) {
+            self.release();
+            self.fault = Some(e.clone());
+            return Err(e);
+        }
+        self.target[k] = um;
+        Ok(())
+    }
+
+    /// One axis's reading (µm), for [`Self::command_now`]'s callers.
+    pub fn read_now(&mut self, k: usize) -> Result<f64, DeviceError> {
+        self.checked()?;
+        self.read_axis(k)
+    }
+
     /// Release the handle (`MCL_ReleaseHandle`), once.
     pub fn release(&mut self) {
         if self.handle != 0 {
