@@ -468,6 +468,38 @@ position_volts_per_um = { x = 0.1333 }
         Config::from_toml_str(&t, "t").unwrap_err()
     }
 
+    /// `external_input` defaults to MCL's documented "sum", takes "replace", and refuses any
+    /// other value naming the key, the value and both choices.
+    #[test]
+    fn external_input_defaults_to_sum_and_refuses_other_words() {
+        let c = Config::from_toml_str(BENCH, "t").unwrap();
+        assert_eq!(
+            c.ni_raster_options().unwrap().unwrap().external_input,
+            ExternalInput::Sum
+        );
+        let t = BENCH.replace(
+            "position_volts_per_um = { x = 0.1333 }",
+            "position_volts_per_um = { x = 0.1333 }\nexternal_input = \"replace\"",
+        );
+        let c = Config::from_toml_str(&t, "t").unwrap();
+        assert_eq!(
+            c.ni_raster_options().unwrap().unwrap().external_input,
+            ExternalInput::Replace
+        );
+        let again = Config::from_toml_str(&c.to_toml(), "again").unwrap();
+        assert_eq!(again.raster, c.raster);
+        let e = refused(
+            "position_volts_per_um = { x = 0.1333 }",
+            "position_volts_per_um = { x = 0.1333 }\nexternal_input = \"add\"",
+        );
+        assert_eq!(e.key, "raster.external_input");
+        assert!(
+            e.message.starts_with("\"add\": allowed are \"sum\"")
+                && e.message.contains("\"replace\""),
+            "{e}"
+        );
+    }
+
     #[test]
     fn bad_values_name_the_key_the_value_and_what_is_allowed() {
         let e = refused(r#"sy = "ai1""#, r#"sy = "ai0""#);

@@ -801,7 +801,7 @@ impl Strategy for StreamStrategy {
         self.stats.merge_into(&mut m["raster"]);
         if ph.lines > 0 {
             log(&format!(
-                "streamed {} samples in {} (loop {}); converting and binning took {:.1} % of one core",
+                "streamed {} samples per channel (each output and each input) in {} (loop {}); converting and binning took {:.1} % of one core",
                 ph.frame_samples,
                 fmt_seconds(ph.stream_s),
                 fmt_seconds(loop_s),
