@@ -25,6 +25,17 @@ pub(crate) fn to_map<T: Serialize>(v: &T) -> Map {
     to_dyn(v).try_cast::<Map>().unwrap_or_default()
 }
 
+/// An answer map's domain: `warnings` (array of strings, empty inside the domain) and `status`
+/// ("ok" when there is none, else "flagged"), said to the operator by `ctx` as `who: warning: …`.
+pub(crate) fn with_warnings(ctx: &super::ctx::Ctx, who: &str, m: &mut Map, w: Vec<String>) {
+    ctx.warn_all(who, &w);
+    m.insert("status".into(), crate::analysis::domain::status(&w).into());
+    m.insert(
+        "warnings".into(),
+        w.into_iter().map(Dynamic::from).collect::<Array>().into(),
+    );
+}
+
 pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
     match o.string("stencil")? {
         None => Ok(default),
@@ -123,6 +134,7 @@ pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult
         min_snr: pos_f64(who, o, "min_snr", base.min_snr, 0.0, 1e6)?,
         max_offset_um: pos_f64(who, o, "max_offset_um", base.max_offset_um, 0.0, 100.0)?,
         detect_snr: pos_f64(who, o, "detect_snr", base.detect_snr, 0.0, 1e6)?,
+        end_margin_um: pos_f64(who, o, "end_margin_um", base.end_margin_um, 0.0, 100.0)?,
     })
 }
 
@@ -175,6 +187,15 @@ pub(crate) fn measure_keys() -> Vec<Key> {
             format!(
                 "optional: candidate maxima above detect_snr × pixel noise (default {})",
                 d.detect_snr
+            ),
+        ),
+        (
+            "end_margin_um",
+            "float",
+            "µm",
+            format!(
+                "optional: maxima closer than this to a filament end inside the scan are left out of the mean (the end lowers them) (default {})",
+                d.end_margin_um
             ),
         ),
     ]
