@@ -965,3 +965,31 @@ fn raster_writes_never_wait_for_room_in_the_output_buffer() {
     let worst = st["max_write_ms"].as_f64().unwrap_or(f64::NAN);
     assert!(worst < 200.0, "a write took {worst} ms: {st}");
 }
+
+/// A Madlib point scan with the default polling (readings back to back): the stage's link
+/// costs fill the per-point timing's breakdown (`MCL_SingleWriteN`, `MCL_SingleReadN` per
+/// point), and only the axes that move are written: x at every point, y once per row, the
+/// fixed z never (it was rewritten at every point).
+#[test]
+fn madlib_point_scans_write_only_moving_axes_and_report_each_call() {
+    let (_g, _fake) = bench();
+    let text = config_text("").replace("poll_ms = 1\n", "");
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    assert_eq!(cfg.stage.poll_ms(), 0, "Madlib's default: back to back");
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    c.instrument.stage.move_to(BEAD).unwrap();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let n = 8;
+    let (r, _) = run(&mut c.instrument, &grid(n, 0.4), &limits, &abort);
+    assert_eq!(r.ended, Ended::Complete);
+    let ph = &r.scan.meta["time"]["phases"];
+    let link = &ph["stage_link"];
+    let per = |w: &str| link[w]["per_point"].as_f64().unwrap_or(0.0);
+    assert!(per("MCL_SingleReadN") >= 6.0, "{link}");
+    assert!(
+        per("MCL_SingleWriteN") > 0.0 && per("MCL_SingleWriteN") <= 1.2,
+        "{link}"
+    );
+    eprintln!("phases {ph}");
+}

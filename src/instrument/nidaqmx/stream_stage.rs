@@ -287,6 +287,7 @@ impl Stage for NiStreamStage {
             fn position(&mut self) -> Result<Pos, DeviceError>;
             fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
             fn move_time_s(&self) -> f64;
+            fn link_costs(&mut self) -> crate::instrument::link::LinkCosts;
         }
     }
     /// The USB command plus what the outputs command (sum mode).
