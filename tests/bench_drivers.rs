@@ -32,6 +32,8 @@ struct Control {
     clear_log: unsafe extern "C" fn(),
     stage_position: unsafe extern "C" fn(c_int) -> c_double,
     ao_voltage: unsafe extern "C" fn(c_int) -> c_double,
+    set: unsafe extern "C" fn(*const c_char, *const c_char) -> c_int,
+    state: unsafe extern "C" fn(*mut c_char, usize) -> usize,
 }
 
 impl Control {
@@ -63,6 +65,26 @@ impl Control {
     fn ao(&self, channel: c_int) -> f64 {
         unsafe { (self.ao_voltage)(channel) }
     }
+    /// One of the fake's settings (`ext_mode`, …); the bench is rebuilt with it.
+    fn set(&self, key: &str, value: &str) {
+        let (k, v) = (CString::new(key).unwrap(), CString::new(value).unwrap());
+        assert_eq!(
+            unsafe { (self.set)(k.as_ptr(), v.as_ptr()) },
+            0,
+            "{key} = {value}"
+        );
+    }
+    /// The fake's state (`fakebench_state`).
+    fn state(&self) -> serde_json::Value {
+        let n = unsafe { (self.state)(std::ptr::null_mut(), 0) };
+        // room to spare: the state's numbers may have grown meanwhile
+        let mut buf = vec![0u8; n + 4096];
+        unsafe { (self.state)(buf.as_mut_ptr() as *mut c_char, buf.len()) };
+        let text = String::from_utf8_lossy(&buf)
+            .trim_end_matches('\0')
+            .to_string();
+        serde_json::from_str(&text).unwrap()
+    }
 }
 
 /// Take the bench: a lock (one fake per process), a fresh bench, an empty log.
@@ -77,6 +99,8 @@ fn bench() -> (MutexGuard<'static, ()>, Control) {
             clear_log: *lib.get(b"fakebench_clear_log\0").unwrap(),
             stage_position: *lib.get(b"fakebench_stage_position\0").unwrap(),
             ao_voltage: *lib.get(b"fakebench_ao_voltage\0").unwrap(),
+            set: *lib.get(b"fakebench_set\0").unwrap(),
+            state: *lib.get(b"fakebench_state\0").unwrap(),
             _lib: lib,
         };
         assert_eq!((c.reset)(), 0);
@@ -492,15 +516,69 @@ fn run_raster_scan(
     scan_with(inst, plan, limits, abort, true)
 }
 
-/// The outputs rest at the voltage of the stage's position (never 0 V), within the sensor's
-/// noise and the lag's last nanometres.
+/// The outputs (and the USB command) mean "here": for x and y the controller's target —
+/// USB command + external input on a summing Nano-Drive, the last changed on a replacing one
+/// — is the stage's position, within the sensor's noise and the lag's last nanometres; the
+/// stage stays there (30 ms later it has not moved) and no output is at a voltage that means
+/// the end of travel.
 fn assert_ao_holds_the_position(fake: &Control) {
-    for (ch, axis) in [(0, 1), (1, 2)] {
-        let v = fake.ao(ch);
-        let want = fake.position(axis) * 0.13333333333333333;
+    assert_held(fake, true)
+}
+
+/// As [`assert_ao_holds_the_position`]; `inside`: and not at the end of travel.
+fn assert_held(fake: &Control, inside: bool) {
+    let axes = |st: &serde_json::Value| -> Vec<(f64, f64)> {
+        (0..2)
+            .map(|i| {
+                let a = &st["stage"]["axes"][i];
+                (
+                    a["position_um"].as_f64().unwrap(),
+                    a["target_um"].as_f64().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let before = axes(&fake.state());
+    std::thread::sleep(std::time::Duration::from_millis(30));
+    let after = axes(&fake.state());
+    for i in 0..2 {
+        let (p, t) = after[i];
         assert!(
-            v > 1.0 && (v - want).abs() < 0.002,
-            "ao{ch} at {v} V, stage at {want} V"
+            (t - p).abs() < 0.01,
+            "axis {i}: target {t} µm, position {p} µm"
+        );
+        assert!(
+            (p - before[i].0).abs() < 0.01,
+            "axis {i} moved from {} to {p} µm while held",
+            before[i].0
+        );
+        assert!(
+            !inside || (p > 1.0 && p < 74.0),
+            "axis {i} at {p} µm: the end of travel"
+        );
+        let v = fake.ao(i as c_int);
+        assert!(v < 9.9, "ao{i} at {v} V: the end of travel");
+    }
+}
+
+/// The USB command was handed back: on a summing Nano-Drive the outputs rest at 0 V (they add
+/// nothing) and the USB command is the position, so `mv` works as before.
+fn assert_handed_back_to_usb(fake: &Control) {
+    let st = fake.state();
+    for i in 0..2 {
+        let a = &st["stage"]["axes"][i];
+        let (p, u) = (
+            a["position_um"].as_f64().unwrap(),
+            a["usb_command_um"].as_f64().unwrap(),
+        );
+        assert!(
+            (u - p).abs() < 0.01,
+            "axis {i}: USB command {u} µm, position {p} µm"
+        );
+        assert!(
+            fake.ao(i as c_int).abs() < 1e-9,
+            "ao{i} at {} V",
+            fake.ao(i as c_int)
         );
     }
 }
@@ -605,7 +683,8 @@ fn fault_buffer_overflow_in_a_raster() {
     let (_g, fake) = bench();
     let mut c = connect_raster();
     let limits = c.limits;
-    fake.faults("overflow_after_reads=20");
+    // past the guard's first 20 ms (read in 1 ms chunks): mid-frame
+    fake.faults("overflow_after_reads=40");
     let abort = AtomicBool::new(false);
     let (r, saved) = run_raster_scan(&mut c.instrument, &grid(9, 0.4), &limits, &abort);
     let e = failed_error(&r).to_string();
@@ -639,10 +718,7 @@ fn fault_buffer_overflow_in_a_raster() {
     assert!(log.contains("DAQmxClearTask(bfpscope-raster-ai"), "{log}");
     assert!(log.contains("DAQmxClearTask(bfpscope-raster-ao"), "{log}");
     assert!(log.contains("MCL_ReleaseHandle("), "{log}");
-    assert!(
-        !log.contains("MCL_SingleWriteN(position=0,"),
-        "zero written"
-    );
+    assert_handed_back_to_usb(&fake);
 }
 
 /// Ctrl-C while a line streams: the line is finished and kept, the stream stopped, the
@@ -675,9 +751,138 @@ fn ctrl_c_mid_line_in_a_raster() {
     assert_ao_holds_the_position(&fake);
     let log = fake.log();
     assert!(log.contains("bfpscope-raster-hold"), "{log}");
+    assert_handed_back_to_usb(&fake);
+}
+
+/// The bench with `[raster]` plus `extra` (e.g. `external_input = "replace"`), the stage on
+/// the bead, `settle_s` = 10 ms.
+fn connect_raster_with(extra: &str) -> Connected {
+    let text = config_text("") + RASTER + extra + "\n";
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    c.instrument.settle_s = 0.01;
+    c.instrument.stage.move_to(BEAD).unwrap();
+    c
+}
+
+/// How far a raster's sweep goes beyond the scan's half-width `half` (µm) on a grid of `n`
+/// pixels at dwell 100 µs with `settle_s` = 10 ms: half a pitch, the margin speed·settle_s and
+/// the ramp's ½·speed·settle_s.
+fn sweep_reach(n: i64, half: f64) -> f64 {
+    let pitch = 2.0 * half / (n - 1) as f64;
+    let speed = pitch / 1e-4;
+    half + pitch / 2.0 + 1.5 * speed * 0.01
+}
+
+/// Watch the stage's true x and y (every ~0.2 ms) while `f` runs: their (min, max).
+fn watching<R>(fake: &Control, f: impl FnOnce() -> R) -> (R, [(f64, f64); 2]) {
+    let stop = AtomicBool::new(false);
+    let mut seen = [(f64::INFINITY, f64::NEG_INFINITY); 2];
+    let r = std::thread::scope(|s| {
+        let h = s.spawn(|| {
+            let mut m = [(f64::INFINITY, f64::NEG_INFINITY); 2];
+            while !stop.load(Ordering::SeqCst) {
+                for (i, mm) in m.iter_mut().enumerate() {
+                    let p = fake.position(i as c_int + 1);
+                    *mm = (mm.0.min(p), mm.1.max(p));
+                }
+                std::thread::sleep(std::time::Duration::from_micros(200));
+            }
+            m
+        });
+        let r = f();
+        stop.store(true, Ordering::SeqCst);
+        seen = h.join().unwrap();
+        r
+    });
+    (r, seen)
+}
+
+/// A summing Nano-Drive (MCL's documented behaviour, the fake's default and the config's):
+/// after `mv` to the middle of the range, a 64 × 64 raster at 100 µs per pixel hands the USB
+/// command over to the outputs without moving the stage, images the bead where it is (the
+/// fit within 50 nm), never leaves the scan's box plus the plan's margins, and ends
+/// with the USB command handed back (outputs 0 V, USB at the position). Without the
+/// hand-over, 37.5 µm over USB plus 37.5 µm on the outputs sent the stage to the end of its
+/// travel.
+#[test]
+fn a_summing_nano_drive_rasters_the_bead_in_place_and_hands_usb_back() {
+    use bfpscope::analysis::fit::{fit_beads, FitOptions};
+    use bfpscope::analysis::template::{RefBead, Template};
+    use bfpscope::optics::rayleigh::DetectorModel;
+    use bfpscope::optics::Optics;
+    let (_g, fake) = bench();
+    let mut c = connect_raster();
+    let limits = c.limits;
+    let plan = grid(64, 0.6);
+    let abort = AtomicBool::new(false);
+    let ((r, _), seen) = watching(&fake, || {
+        run_raster_scan(&mut c.instrument, &plan, &limits, &abort)
+    });
+    assert_eq!(r.ended, Ended::Complete, "{:?}", r.scan.meta["error"]);
+    // x sweeps its margins, y stays on its rows; 50 nm for the lag's and the sensor's last
+    // nanometres
+    let reach = [sweep_reach(64, 0.6), 0.6];
+    for (i, (lo, hi)) in seen.iter().enumerate() {
+        assert!(
+            *lo > BEAD[i] - reach[i] - 0.05 && *hi < BEAD[i] + reach[i] + 0.05,
+            "axis {i} went {lo}…{hi} µm (allowed ±{} µm)",
+            reach[i]
+        );
+    }
+    let tpl = Template::from_optics(
+        &Optics::default(),
+        &DetectorModel::default(),
+        RefBead::default(),
+        0.02,
+        0.0,
+    )
+    .unwrap();
+    let fit = fit_beads(&r.scan.sx, &r.scan.sy, &tpl, &FitOptions::default()).unwrap();
+    assert_eq!(fit.beads.len(), 1);
+    let e = (fit.beads[0].x - BEAD[0]).hypot(fit.beads[0].y - BEAD[1]) * 1e3;
+    assert!(e < 50.0, "the bead fitted {e} nm from where it is");
+    assert_ao_holds_the_position(&fake);
+    assert_handed_back_to_usb(&fake);
+    // and USB moves the stage as before
+    c.instrument.stage.move_to([30.0, 40.0, 25.0]).unwrap();
+    assert!((fake.position(1) - 30.0).abs() < 0.01 && (fake.position(2) - 40.0).abs() < 0.01);
+}
+
+/// A replacing Nano-Drive configured as such (`external_input = "replace"`): the raster
+/// works as before (outputs play the target, hold the position afterwards, the USB command
+/// untouched).
+#[test]
+fn a_replacing_nano_drive_configured_as_replace_rasters_as_before() {
+    let (_g, fake) = bench();
+    fake.set("ext_mode", "replace");
+    let mut c = connect_raster_with("external_input = \"replace\"");
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let ((r, _), seen) = watching(&fake, || {
+        run_raster_scan(&mut c.instrument, &grid(9, 0.4), &limits, &abort)
+    });
+    assert_eq!(r.ended, Ended::Complete, "{:?}", r.scan.meta["error"]);
+    let reach = [sweep_reach(9, 0.4), 0.4];
+    for (i, (lo, hi)) in seen.iter().enumerate() {
+        assert!(
+            *lo > BEAD[i] - reach[i] - 0.05 && *hi < BEAD[i] + reach[i] + 0.05,
+            "axis {i} went {lo}…{hi} µm (allowed ±{} µm)",
+            reach[i]
+        );
+    }
+    assert_ao_holds_the_position(&fake);
+    for ch in 0..2 {
+        let want = fake.position(ch + 1) * 0.13333333333333333;
+        assert!(
+            (fake.ao(ch) - want).abs() < 0.002,
+            "ao{ch} {} V vs {want} V",
+            fake.ao(ch)
+        );
+    }
     assert!(
-        !log.contains("MCL_SingleWriteN(position=0,"),
-        "zero written"
+        !fake.log().contains("MCL_SingleWriteN(position=0,"),
+        "USB command changed"
     );
 }
 
@@ -857,4 +1062,122 @@ fn a_dark_scan_is_flagged() {
         w,
         vec!["25 pixels are dark (the QPD sum below 0.1 V on the sum input: laser off or beam blocked?)"]
     );
+}
+
+/// The ms figure in "… {x} ms into the stream" / "({x} ms in)" of a guard's message.
+fn ms_in(e: &str) -> f64 {
+    let i = e.find(" ms").unwrap_or_else(|| panic!("{e}"));
+    let head = &e[..i];
+    let j = head
+        .rfind(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap()
+        + 1;
+    head[j..].parse().unwrap()
+}
+
+/// A summing Nano-Drive configured as `"replace"`: the outputs' absolute positions add to
+/// the USB command and the stage runs away; the guard (the sensor monitor against the plan
+/// in the stream's first milliseconds) stops it within a few ms, names `external_input`,
+/// and holds the stage the summing way (outputs + USB = where it stopped: the outputs at 0 V
+/// after the hand-back, never an end-of-travel voltage).
+#[test]
+fn a_summing_nano_drive_configured_as_replace_is_stopped_by_the_guard() {
+    let (_g, fake) = bench();
+    let mut c = connect_raster_with("external_input = \"replace\"");
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let (r, saved) = run_raster_scan(&mut c.instrument, &grid(9, 0.4), &limits, &abort);
+    let e = failed_error(&r).to_string();
+    assert!(
+        e.contains("ran away") && e.contains("external_input = \"replace\""),
+        "{e}"
+    );
+    let ms = ms_in(&e);
+    assert!(ms < 3.0, "caught {ms} ms into the stream: {e}");
+    eprintln!("{e}\nstate {}", fake.state()["stage"]);
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    // held where it stopped (how far it got is the host's time from the sample to the hold:
+    // the message says it)
+    assert_held(&fake, false);
+}
+
+/// A replacing Nano-Drive configured as `"sum"` (the default): the first step of handing the
+/// USB command over to the outputs sends the stage towards the outputs' few hundred nm; the
+/// hand-over's check stops it at that first step, names `external_input`, and holds it the
+/// replacing way (outputs and USB both at where it stopped).
+#[test]
+fn a_replacing_nano_drive_configured_as_sum_is_stopped_by_the_guard() {
+    let (_g, fake) = bench();
+    fake.set("ext_mode", "replace");
+    let mut c = connect_raster();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let (r, saved) = run_raster_scan(&mut c.instrument, &grid(9, 0.4), &limits, &abort);
+    let e = failed_error(&r).to_string();
+    assert!(
+        e.contains("ran away") && e.contains("external_input = \"sum\""),
+        "{e}"
+    );
+    // stopped at the hand-over's first step, whose readings moved (how far the stage got is
+    // the host's time per step: the message gives it)
+    assert!(e.contains("(step 1 of "), "{e}");
+    eprintln!("{e} ({} ms)", ms_in(&e));
+    assert_eq!(saved[0].status, ScanStatus::Failed);
+    assert_held(&fake, false);
+}
+
+/// The outputs are written only as far as their buffer has room (`DAQmxGetWriteSpaceAvail`):
+/// no write waits for the generation, so the reader is never held up; the frame's end (the
+/// last position held 0.5 s) used to be one 0.5 s block written into a full buffer, which
+/// NI-DAQmx (and the fake) hold until the room frees, ≈ 0.49 s.
+#[test]
+fn raster_writes_never_wait_for_room_in_the_output_buffer() {
+    let (_g, fake) = bench();
+    let mut c = connect_raster();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let (r, _) = run_raster_scan(&mut c.instrument, &grid(15, 0.4), &limits, &abort);
+    assert_eq!(r.ended, Ended::Complete, "{:?}", r.scan.meta["error"]);
+    let log = fake.log();
+    let writes: Vec<&str> = log
+        .lines()
+        .filter(|l| l.starts_with("DAQmxWriteAnalogF64(bfpscope-raster-ao"))
+        .collect();
+    assert!(writes.len() > 10, "{} writes", writes.len());
+    let waited: Vec<&&str> = writes.iter().filter(|l| l.contains("for room")).collect();
+    assert!(waited.is_empty(), "writes that waited: {waited:?}");
+    assert!(log.contains("DAQmxGetWriteSpaceAvail(bfpscope-raster-ao)"));
+    // the longest write (CPU only: the fake copies and checks the block, and a busy host may
+    // preempt it) is far from the 0.49 s a write into a full buffer waited
+    let st = &r.scan.meta["raster"]["stream"];
+    let worst = st["max_write_ms"].as_f64().unwrap_or(f64::NAN);
+    assert!(worst < 200.0, "a write took {worst} ms: {st}");
+}
+
+/// A Madlib point scan with the default polling (readings back to back): the stage's link
+/// costs fill the per-point timing's breakdown (`MCL_SingleWriteN`, `MCL_SingleReadN` per
+/// point), and only the axes that move are written: x at every point, y once per row, the
+/// fixed z never (it was rewritten at every point).
+#[test]
+fn madlib_point_scans_write_only_moving_axes_and_report_each_call() {
+    let (_g, _fake) = bench();
+    let text = config_text("").replace("poll_ms = 1\n", "");
+    let cfg = Config::from_toml_str(&text, "bench.toml").unwrap();
+    assert_eq!(cfg.stage.poll_ms(), 0, "Madlib's default: back to back");
+    let mut c = connect(&cfg, no_sim).unwrap_or_else(|e| panic!("{e}"));
+    c.instrument.stage.move_to(BEAD).unwrap();
+    let limits = c.limits;
+    let abort = AtomicBool::new(false);
+    let n = 8;
+    let (r, _) = run(&mut c.instrument, &grid(n, 0.4), &limits, &abort);
+    assert_eq!(r.ended, Ended::Complete);
+    let ph = &r.scan.meta["time"]["phases"];
+    let link = &ph["stage_link"];
+    let per = |w: &str| link[w]["per_point"].as_f64().unwrap_or(0.0);
+    assert!(per("MCL_SingleReadN") >= 6.0, "{link}");
+    assert!(
+        per("MCL_SingleWriteN") > 0.0 && per("MCL_SingleWriteN") <= 1.2,
+        "{link}"
+    );
+    eprintln!("phases {ph}");
 }

@@ -25,12 +25,13 @@
 //! volts_per_um = { x = 0.1333, y = 0.1333 }
 //! position = { x = "ai3" }
 //! position_volts_per_um = { x = 0.1333 }
+//! external_input = "sum"                    # or "replace"; docs/hardware.md §12 says how to check
 //! ```
 
 use super::kinds::{PCI6120_MAX_RANGE_V, PCI6120_MAX_RATE_HZ};
 use super::{err, Backend, Config, ConfigError};
 use crate::instrument::madlib::MadlibOptions;
-use crate::instrument::nidaqmx::raster::NiRasterOptions;
+use crate::instrument::nidaqmx::raster::{ExternalInput, NiRasterOptions};
 use crate::instrument::nidaqmx::{parse_channel, NiInputs, NiQpdOptions, Terminal};
 use std::time::Duration;
 
@@ -302,8 +303,20 @@ impl Config {
             r.position_volts_per_um.x,
             "the sensor monitor's scale",
         )?;
+        let external_input = match r.external_input.as_deref() {
+            None => ExternalInput::Sum,
+            Some(v) => ExternalInput::parse(v).ok_or_else(|| {
+                err(
+                    "raster.external_input",
+                    format!(
+                        "\"{v}\": allowed are \"sum\" (the Nano-Drive adds its external input to the USB command, as MCL documents it; the default) and \"replace\" (it follows the external input alone)"
+                    ),
+                )
+            })?,
+        };
         Ok(Some(NiRasterOptions {
             qpd: qo,
+            external_input,
             ao: [ao_x, ao_y.unwrap_or_default()],
             volts_per_um: [vx, vy.unwrap_or(0.0)],
             position: px,
@@ -458,6 +471,38 @@ position_volts_per_um = { x = 0.1333 }
         let t = BENCH.replace(from, to);
         assert_ne!(t, BENCH, "{from:?} not in the config");
         Config::from_toml_str(&t, "t").unwrap_err()
+    }
+
+    /// `external_input` defaults to MCL's documented "sum", takes "replace", and refuses any
+    /// other value naming the key, the value and both choices.
+    #[test]
+    fn external_input_defaults_to_sum_and_refuses_other_words() {
+        let c = Config::from_toml_str(BENCH, "t").unwrap();
+        assert_eq!(
+            c.ni_raster_options().unwrap().unwrap().external_input,
+            ExternalInput::Sum
+        );
+        let t = BENCH.replace(
+            "position_volts_per_um = { x = 0.1333 }",
+            "position_volts_per_um = { x = 0.1333 }\nexternal_input = \"replace\"",
+        );
+        let c = Config::from_toml_str(&t, "t").unwrap();
+        assert_eq!(
+            c.ni_raster_options().unwrap().unwrap().external_input,
+            ExternalInput::Replace
+        );
+        let again = Config::from_toml_str(&c.to_toml(), "again").unwrap();
+        assert_eq!(again.raster, c.raster);
+        let e = refused(
+            "position_volts_per_um = { x = 0.1333 }",
+            "position_volts_per_um = { x = 0.1333 }\nexternal_input = \"add\"",
+        );
+        assert_eq!(e.key, "raster.external_input");
+        assert!(
+            e.message.starts_with("\"add\": allowed are \"sum\"")
+                && e.message.contains("\"replace\""),
+            "{e}"
+        );
     }
 
     #[test]

@@ -153,4 +153,9 @@ pub struct RasterConfig {
     /// Volts per µm of each sensor-monitor output.
     #[serde(default)]
     pub position_volts_per_um: XyNumbers,
+    /// How the Nano-Drive combines its external inputs with the USB command: `"sum"` (added,
+    /// as MCL documents it; the default) or `"replace"` (the controller follows the external
+    /// input alone while it is driven).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub external_input: Option<String>,
 }

@@ -241,6 +241,10 @@ pub const DEFAULT_POLL_MS_GCS: u64 = 1;
 /// and reply, and a strain-gauge reading taken every millisecond catches the actuator still
 /// on its way, inside the tolerance before it has settled (issue 32).
 pub const DEFAULT_POLL_MS_KPZ101: u64 = 10;
+/// Default `stage.poll_ms` for Mad City Labs Nano-Drives: 0, the readings back to back — each
+/// `MCL_SingleReadN` is a USB round trip of its own (≈ 0.2 ms), so the link sets the pace and
+/// a move ends as soon as the readings are on target (a 5 ms poll cost a 31 nm step 7 ms).
+pub const DEFAULT_POLL_MS_MADLIB: u64 = 0;
 /// Default `stage.poll_ms` for the other backends (not used by the simulator's stage).
 pub const DEFAULT_POLL_MS_OTHER: u64 = 5;
 
@@ -251,6 +255,7 @@ impl StageConfig {
         self.poll_ms.unwrap_or(match self.backend {
             Backend::Gcs => DEFAULT_POLL_MS_GCS,
             Backend::Kpz101 => DEFAULT_POLL_MS_KPZ101,
+            Backend::Madlib => DEFAULT_POLL_MS_MADLIB,
             _ => DEFAULT_POLL_MS_OTHER,
         })
     }
@@ -656,7 +661,8 @@ impl Config {
         for (key, v) in [
             ("stage.timeout_ms", s.timeout_ms),
             ("stage.on_target_timeout_ms", s.on_target_timeout_ms),
-            ("stage.poll_ms", s.poll_ms()),
+            // a value given must be ≥ 1 ms; a backend's default may be 0 (Madlib: back to back)
+            ("stage.poll_ms", s.poll_ms.unwrap_or(1)),
             ("stage.zero_timeout_ms", s.zero_timeout_ms),
             ("qpd.timeout_ms", q.timeout_ms),
         ] {

@@ -62,4 +62,16 @@ pub trait FrameStream {
     /// reads now (never 0 V unless it stands at 0 µm); returns that position. Also after a
     /// fault: the tasks are cleared whatever the hold does.
     fn hold(&mut self) -> Result<Pos, DeviceError>;
+    /// Samples per output the outputs' buffer can take now (a write of at most this many
+    /// never waits); `None`: unknown (the caller keeps its own budget).
+    fn write_space(&mut self) -> Result<Option<usize>, DeviceError> {
+        Ok(None)
+    }
+    /// The measured position left the plan in the stream's first milliseconds (a stage
+    /// that runs away): stop the stream and hold the stage at once, the way that undoes it
+    /// (and so every later [`hold`](Self::hold)). Returns what to tell the user: where the
+    /// stage was held and the likely cause (a configuration key to check).
+    fn ran_away(&mut self) -> String {
+        String::new()
+    }
 }

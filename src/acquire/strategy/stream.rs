@@ -11,8 +11,10 @@
 //!   speed limit (between consecutive samples) and the outputs' range before anything moves.
 //! - `step` (a line): the first step (and the first after a pause) starts the stream from
 //!   where the stage stands, with a turnaround to the line's start; the outputs are written
-//!   ahead of the clock in blocks (at most [`AHEAD_S`] ahead), the inputs read in chunks of
-//!   [`CHUNK_S`]; the line is binned by the measured position (`raster::bin_line`) as soon as
+//!   ahead of the clock in blocks (at most [`AHEAD_S`] ahead, and only what the outputs'
+//!   buffer has room for: no write waits, so none holds up the reader), the inputs read in
+//!   chunks of [`CHUNK_S`] ([`GUARD_CHUNK_S`] in the first [`GUARD_S`], where every sample of
+//!   the measured position is compared with the plan: a stage that runs away is stopped); the line is binned by the measured position (`raster::bin_line`) as soon as
 //!   its samples are in, and the stream goes on meanwhile. After the last line the outputs
 //!   are held where the stage stands.
 //! - `pause`, `stop`: the tasks stopped and cleared, the outputs held at the present position
@@ -39,8 +41,18 @@ pub const AHEAD_S: f64 = 0.5;
 /// Inputs read at a time, s.
 pub const CHUNK_S: f64 = 0.01;
 /// After the last sample of the frame the outputs hold it for this long (s), so that the
-/// generation never runs out of samples before the stream is stopped.
+/// generation never runs out of samples before the stream is stopped. Written like the
+/// frame: only as much as the outputs' buffer takes, never ahead of the [`AHEAD_S`] budget.
 pub const PAD_S: f64 = 0.5;
+/// The stream's first this many seconds are read in [`GUARD_CHUNK_S`] chunks and each
+/// sample of the sensor monitor compared with the plan (a stage that runs away is stopped
+/// within a few ms).
+pub const GUARD_S: f64 = 0.02;
+/// Inputs read at a time while the guard watches, s.
+pub const GUARD_CHUNK_S: f64 = 0.001;
+/// The guard's margin: a measured position farther than this outside the range of the
+/// targets played so far is a stage that runs away, µm (a lagging stage stays inside it).
+pub const GUARD_UM: f64 = 1.0;
 /// Frames of at most this many samples keep their raw samples in the scan file.
 pub const RAW_MAX_SAMPLES: usize = 2_000_000;
 
@@ -196,10 +208,14 @@ impl Geometry {
 /// The stream while it runs.
 struct Running {
     frame: Frame,
-    /// Samples written to the outputs, read from the inputs.
+    /// Samples written to the outputs (the frame, then its last sample held: `total`), read
+    /// from the inputs.
     written: usize,
+    total: usize,
     read: usize,
-    padded: bool,
+    /// The range of the fast axis's targets played so far (for the guard), µm.
+    plan_lo: f64,
+    plan_hi: f64,
     /// Samples read and not yet binned, from sample `base` on.
     buf: StreamChunk,
     base: usize,
@@ -216,6 +232,8 @@ struct Phases {
     start_s: f64,
     write_s: f64,
     writes: usize,
+    /// The longest single write, s (the reader waits that long).
+    max_write_s: f64,
     read_s: f64,
     reads: usize,
     convert_s: f64,
@@ -301,10 +319,11 @@ impl StreamStrategy {
         let t = Instant::now();
         let here = inst.stage.target().map_err(StepFault::stage)?;
         let frame = Frame::new(rp, &geo, i, [here[geo.fast], here[geo.slow]]);
-        let first = ((AHEAD_S * geo.rate) as usize).max(2).min(frame.len.max(2));
+        let total = frame.len + ((PAD_S * geo.rate) as usize).max(2);
+        let first = ((AHEAD_S * geo.rate) as usize).max(2).min(total);
         let (mut f, mut s) = (Vec::with_capacity(first), Vec::with_capacity(first));
         frame.fill(rp, 0, first, &mut f, &mut s);
-        while f.len() < 2 {
+        while f.len() < first {
             f.push(frame.last[0]);
             s.push(frame.last[1]);
         }
@@ -316,9 +335,12 @@ impl StreamStrategy {
         self.ph.frame_samples += frame.len;
         self.ph.buffer_samples = stream.buffer_samples();
         self.ph.start_s += t.elapsed().as_secs_f64();
+        let x0 = f[0];
         self.run = Some(Running {
-            written: f.len().min(frame.len),
-            padded: f.len() > frame.len,
+            written: f.len(),
+            total,
+            plan_lo: x0,
+            plan_hi: x0,
             frame,
             read: 0,
             buf: StreamChunk::default(),
@@ -342,31 +364,36 @@ impl StreamStrategy {
         let ph = &mut self.ph;
         let run = self.run.as_mut().expect("running");
         let stream = stream_of(inst).map_err(StepFault::stage)?;
+        let guard_n = (GUARD_S * geo.rate) as usize;
+        let guard_chunk = ((GUARD_CHUNK_S * geo.rate) as usize).max(1);
         while run.read < until {
             // the outputs are kept `ahead` of the clock (the samples it has played by now,
-            // estimated from the stream's start), whatever the inputs' reader lags
+            // estimated from the stream's start), whatever the inputs' reader lags; a write
+            // brings only what the buffer takes now, so that it never waits for room
             let played = ((run.t0.elapsed().as_secs_f64() * geo.rate) as usize).max(run.read);
-            if run.written < run.frame.len && run.written < played + ahead {
-                let t = Instant::now();
-                let n = (played + ahead - run.written).min(run.frame.len - run.written);
-                let (mut f, mut s) = (Vec::with_capacity(n), Vec::with_capacity(n));
-                run.frame.fill(rp, run.written, n, &mut f, &mut s);
-                stream.write(&f, &s).map_err(StepFault::stage)?;
-                run.written += n;
-                ph.write_s += t.elapsed().as_secs_f64();
-                ph.writes += 1;
+            if run.written < run.total && run.written < played + ahead {
+                let mut n = (played + ahead - run.written).min(run.total - run.written);
+                if let Some(space) = stream.write_space().map_err(StepFault::stage)? {
+                    n = n.min(space);
+                }
+                // not a trickle of tiny writes: a chunk at least (or what is left)
+                if n >= chunk.min(run.total - run.written) {
+                    let t = Instant::now();
+                    let (mut f, mut s) = (Vec::with_capacity(n), Vec::with_capacity(n));
+                    let in_frame = run.frame.len.saturating_sub(run.written).min(n);
+                    run.frame.fill(rp, run.written, in_frame, &mut f, &mut s);
+                    f.resize(n, run.frame.last[0]);
+                    s.resize(n, run.frame.last[1]);
+                    stream.write(&f, &s).map_err(StepFault::stage)?;
+                    run.written += n;
+                    let dt = t.elapsed().as_secs_f64();
+                    ph.write_s += dt;
+                    ph.max_write_s = ph.max_write_s.max(dt);
+                    ph.writes += 1;
+                }
             }
-            if run.written >= run.frame.len && !run.padded {
-                let t = Instant::now();
-                let n = ((PAD_S * geo.rate) as usize).max(2);
-                stream
-                    .write(&vec![run.frame.last[0]; n], &vec![run.frame.last[1]; n])
-                    .map_err(StepFault::stage)?;
-                run.padded = true;
-                ph.write_s += t.elapsed().as_secs_f64();
-                ph.writes += 1;
-            }
-            let n = chunk.min(until - run.read);
+            let guarding = run.read < guard_n;
+            let n = if guarding { guard_chunk } else { chunk }.min(until - run.read);
             let timeout = n as f64 / geo.rate + 2.0;
             let t = Instant::now();
             let c = stream.read(n, timeout).map_err(StepFault::stage)?;
@@ -381,6 +408,38 @@ impl StreamStrategy {
                         run.read, until
                     ),
                 }));
+            }
+            if guarding {
+                // a lagging stage stays within the targets played so far: a measured
+                // position outside them (with a margin) is a stage that runs away
+                let (mut f, mut s) = (Vec::with_capacity(c.len()), Vec::with_capacity(c.len()));
+                run.frame.fill(rp, run.read, c.len(), &mut f, &mut s);
+                for (j, &m) in c.fast_um.iter().enumerate() {
+                    if let Some(&x) = f.get(j) {
+                        run.plan_lo = run.plan_lo.min(x);
+                        run.plan_hi = run.plan_hi.max(x);
+                    }
+                    if m < run.plan_lo - GUARD_UM || m > run.plan_hi + GUARD_UM {
+                        let k = run.read + j;
+                        let wall_ms = run.t0.elapsed().as_secs_f64() * 1e3;
+                        let advice = stream.ran_away();
+                        let advice = if advice.is_empty() {
+                            String::new()
+                        } else {
+                            format!("; {advice}")
+                        };
+                        return Err(StepFault::stage(DeviceError::Other {
+                            device: stream.stream_name(),
+                            detail: format!(
+                                "the stage ran away: the sensor monitor reads x = {m:.3} µm {:.2} ms into the stream, \
+                                 where the plan had played {:.3}…{:.3} µm; the stream was stopped (seen {wall_ms:.1} ms after the outputs started){advice}",
+                                k as f64 / geo.rate * 1e3,
+                                run.plan_lo,
+                                run.plan_hi
+                            ),
+                        }));
+                    }
+                }
             }
             run.read += c.len();
             let due = (run.t0.elapsed().as_secs_f64() * geo.rate) as usize;
@@ -741,6 +800,7 @@ impl Strategy for StreamStrategy {
                     "buffer_samples": ph.buffer_samples,
                     "max_behind_samples": ph.max_behind,
                     "writes": ph.writes,
+                    "max_write_ms": ph.max_write_s * 1e3,
                     "reads": ph.reads,
                     "stream_s": ph.stream_s,
                     "binning_cpu_s": cpu,
@@ -761,7 +821,7 @@ impl Strategy for StreamStrategy {
         self.stats.merge_into(&mut m["raster"]);
         if ph.lines > 0 {
             log(&format!(
-                "streamed {} samples in {} (loop {}); converting and binning took {:.1} % of one core",
+                "streamed {} samples per channel (each output and each input) in {} (loop {}); converting and binning took {:.1} % of one core",
                 ph.frame_samples,
                 fmt_seconds(ph.stream_s),
                 fmt_seconds(loop_s),

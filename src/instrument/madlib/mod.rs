@@ -8,8 +8,10 @@
 //! axes used must be in the product's axis bitmap (`MCL_GetProductInfo`); each axis's calibrated
 //! range (`MCL_GetCalibration`, µm) is its travel, 0 … range.
 //!
-//! **Move.** `MCL_SingleWriteN` per axis. A Nano-Drive has no on-target flag: the position is
-//! read back (`MCL_SingleReadN`) every `poll_ms` until every axis stays within `tolerance_um`
+//! **Move.** `MCL_SingleWriteN` per axis, only to the axes whose target changes (a scan's z
+//! is not rewritten at every point). A Nano-Drive has no on-target flag: the position is
+//! read back (`MCL_SingleReadN`; by default back to back, each read being a USB round trip)
+//! until every axis stays within `tolerance_um`
 //! of its target for two reads in a row, or `on_target_timeout_ms` passes (a stuck stage).
 //!
 //! **Stop.** Each axis is held at its present reading (`MCL_SingleWriteN` of what
@@ -44,7 +46,7 @@ pub struct MadlibOptions {
     pub tolerance_um: f64,
     /// Longest wait for the readings to reach the target after a move.
     pub on_target_timeout: Duration,
-    /// Interval between read-backs.
+    /// Interval between read-backs (zero: back to back, at the link's pace).
     pub poll_interval: Duration,
 }
 
@@ -56,7 +58,7 @@ impl Default for MadlibOptions {
             axes: [1, 2, 3],
             tolerance_um: 0.05,
             on_target_timeout: Duration::from_millis(5000),
-            poll_interval: Duration::from_millis(5),
+            poll_interval: Duration::ZERO,
         }
     }
 }
@@ -105,9 +107,19 @@ pub struct MadlibStage {
     fault: Option<DeviceError>,
     move_time_sum: f64,
     moves: u32,
+    /// What each Madlib call cost since the last [`Stage::link_costs`] (count, time).
+    costs: std::sync::Mutex<crate::instrument::link::LinkCosts>,
 }
 
 impl MadlibStage {
+    /// Count one call of `word` that took `since.elapsed()`.
+    fn cost(&self, word: &str, since: Instant) {
+        let mut c = self.costs.lock().unwrap_or_else(|e| e.into_inner());
+        let e = crate::instrument::link::cost_of(&mut c, word);
+        e.n += 1;
+        e.reply_s += since.elapsed().as_secs_f64();
+    }
+
     /// Load Madlib and take the Nano-Drive `opts` names.
     pub fn open(opts: MadlibOptions) -> Result<MadlibStage, DeviceError> {
         let lib = Arc::new(Madlib::load(
@@ -225,6 +237,7 @@ impl MadlibStage {
             fault: None,
             move_time_sum: 0.0,
             moves: 0,
+            costs: Default::default(),
         };
         if serial < 0 {
             return Err(madlib_error(
@@ -312,8 +325,10 @@ impl MadlibStage {
     /// One axis's reading, µm.
     fn read_axis(&self, k: usize) -> Result<f64, DeviceError> {
         let a = self.opts.axes[k];
+        let t = Instant::now();
         // SAFETY: `double MCL_SingleReadN(unsigned int axis, int handle)`.
         let v = unsafe { (self.lib.single_read_n)(a, self.handle) };
+        self.cost("MCL_SingleReadN", t);
         let call = || format!("MCL_SingleReadN(axis={a}, handle={})", self.handle);
         if let Some(code) = ffi::double_code(v) {
             return Err(madlib_error(&self.name(), &call(), code));
@@ -334,8 +349,10 @@ impl MadlibStage {
 
     fn write_axis(&self, k: usize, um: f64) -> Result<(), DeviceError> {
         let a = self.opts.axes[k];
+        let t = Instant::now();
         // SAFETY: `int MCL_SingleWriteN(double position, unsigned int axis, int handle)`.
         let r = unsafe { (self.lib.single_write_n)(um, a, self.handle) };
+        self.cost("MCL_SingleWriteN", t);
         if r != ffi::MCL_SUCCESS {
             return Err(madlib_error(
                 &self.name(),
@@ -366,6 +383,39 @@ impl MadlibStage {
         e
     }
 
+    /// Command axis `k` (0 = x, 1 = y, 2 = z) to `um` over USB (`MCL_SingleWriteN`) and
+    /// return at once, without waiting for the readings: a step of a hand-over between the
+    /// USB command and the external inputs (`NiStreamStage`), where the position does not
+    /// change. Refused outside the calibrated range. A failed write releases the handle
+    /// without the usual hold at the readings (the external inputs add to what it would
+    /// write).
+    pub fn command_now(&mut self, k: usize, um: f64) -> Result<(), DeviceError> {
+        self.checked()?;
+        let cal = self.info.calibration_um[k];
+        if !(um.is_finite() && (0.0..=cal).contains(&um)) {
+            return Err(DeviceError::Other {
+                device: self.name(),
+                detail: format!(
+                    "{} = {um} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
+                    crate::instrument::AXES[k]
+                ),
+            });
+        }
+        if let Err(e) = self.write_axis(k, um) {
+            self.release();
+            self.fault = Some(e.clone());
+            return Err(e);
+        }
+        self.target[k] = um;
+        Ok(())
+    }
+
+    /// One axis's reading (µm), for [`Self::command_now`]'s callers.
+    pub fn read_now(&mut self, k: usize) -> Result<f64, DeviceError> {
+        self.checked()?;
+        self.read_axis(k)
+    }
+
     /// Release the handle (`MCL_ReleaseHandle`), once.
     pub fn release(&mut self) {
         if self.handle != 0 {
@@ -391,6 +441,10 @@ impl MadlibStage {
         }
         let t0 = Instant::now();
         for (k, &t) in target.iter().enumerate() {
+            // only the axes that move (a scan's fixed z is not rewritten at every point)
+            if t == self.target[k] {
+                continue;
+            }
             if let Err(e) = self.write_axis(k, t) {
                 return Err(self.fault(e));
             }
@@ -433,7 +487,9 @@ impl MadlibStage {
                 };
                 return Err(self.fault(e));
             }
-            std::thread::sleep(self.opts.poll_interval);
+            if !self.opts.poll_interval.is_zero() {
+                std::thread::sleep(self.opts.poll_interval);
+            }
         }
         self.move_time_sum += t0.elapsed().as_secs_f64();
         self.moves += 1;
@@ -498,6 +554,10 @@ impl Stage for MadlibStage {
             self.target = p;
         }
         r.map_err(|e| self.fault(e))
+    }
+
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
+        std::mem::take(&mut *self.costs.lock().unwrap_or_else(|e| e.into_inner()))
     }
 
     fn move_time_s(&self) -> f64 {

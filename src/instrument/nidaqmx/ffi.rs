@@ -185,6 +185,9 @@ pub type GetDevProductType =
     unsafe extern "system" fn(device: *const c_char, data: *mut c_char, buffer_size: u32) -> i32;
 pub type GetDevSerialNum = unsafe extern "system" fn(device: *const c_char, data: *mut u32) -> i32;
 pub type SetWriteRegenMode = unsafe extern "system" fn(task_handle: TaskHandle, data: i32) -> i32;
+/// `int32 DAQmxGetWriteSpaceAvail(TaskHandle taskHandle, uInt32 *data);`
+pub type GetWriteSpaceAvail =
+    unsafe extern "system" fn(task_handle: TaskHandle, data: *mut u32) -> i32;
 
 /// Where NI-DAQmx is looked for.
 pub const SPEC: LibrarySpec = LibrarySpec {
@@ -227,6 +230,7 @@ pub struct NiDaqmx {
     pub get_dev_product_type: Option<GetDevProductType>,
     pub get_dev_serial_num: Option<GetDevSerialNum>,
     pub set_write_regen_mode: Option<SetWriteRegenMode>,
+    pub get_write_space_avail: Option<GetWriteSpaceAvail>,
 }
 
 impl NiDaqmx {
@@ -279,6 +283,7 @@ impl NiDaqmx {
                 get_dev_product_type: vendor::optional_symbol(&lib, "DAQmxGetDevProductType"),
                 get_dev_serial_num: vendor::optional_symbol(&lib, "DAQmxGetDevSerialNum"),
                 set_write_regen_mode: vendor::optional_symbol(&lib, "DAQmxSetWriteRegenMode"),
+                get_write_space_avail: vendor::optional_symbol(&lib, "DAQmxGetWriteSpaceAvail"),
                 _lib: lib,
                 path,
             })

@@ -24,9 +24,39 @@ pub const AO_MAX_V: f64 = 10.0;
 /// Samples per channel read at a time while a line plays (≈ 10 ms at 800 kS/s).
 pub const CHUNK: usize = 8192;
 
+/// How a Nano-Drive combines an external input with the position commanded over USB
+/// (`[raster] external_input`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExternalInput {
+    /// The external input's position is added to the USB command (MCL's documented
+    /// behaviour; the default): the outputs play target − USB command.
+    Sum,
+    /// The controller follows the external input alone while it is driven: the outputs play
+    /// the target.
+    Replace,
+}
+
+impl ExternalInput {
+    pub fn parse(s: &str) -> Option<ExternalInput> {
+        match s {
+            "sum" => Some(ExternalInput::Sum),
+            "replace" => Some(ExternalInput::Replace),
+            _ => None,
+        }
+    }
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ExternalInput::Sum => "sum",
+            ExternalInput::Replace => "replace",
+        }
+    }
+}
+
 /// The raster's settings (`[raster]` with the `[qpd]` it records).
 #[derive(Debug, Clone, PartialEq)]
 pub struct NiRasterOptions {
+    /// How the controller combines the outputs with its USB command.
+    pub external_input: ExternalInput,
     /// The board, its QPD inputs, range, terminal configuration and rate (the AO clock's rate).
     pub qpd: NiQpdOptions,
     /// The outputs wired to the x and y external inputs (y: empty when not wired).
@@ -247,21 +277,46 @@ impl NiRaster {
         self.ao = None;
     }
 
-    /// Stop and clear the line's tasks, then hold each output at `um` (x, y) through a static
-    /// AO task, cleared again (the board keeps the last value written). Never 0 V unless the
-    /// position is 0 µm.
+    /// Stop and clear the line's tasks, then hold each output at `um` (x, y) × its scale
+    /// (see [`Self::hold_volts`]). Never 0 V unless the position is 0 µm.
     pub fn hold(&mut self, um: [f64; 2]) -> Result<(), DeviceError> {
+        let s = self.opts.volts_per_um;
+        self.hold_volts([um[0] * s[0], um[1] * s[1]])
+    }
+
+    /// Stop and clear the line's tasks, then hold each output at `volts` (x, y; clamped to
+    /// 0–10 V) through a static AO task, cleared again (the board keeps the last value
+    /// written).
+    pub fn hold_volts(&mut self, volts: [f64; 2]) -> Result<(), DeviceError> {
         self.clear();
         let outs = self.opts.outputs();
         let dev = self.dev().to_string();
         let t = Task::create(self.lib.clone(), &self.name, "bfpscope-raster-hold")?;
         let mut values = Vec::new();
-        for (i, (ch, s)) in outs.iter().enumerate() {
+        for (i, (ch, _)) in outs.iter().enumerate() {
             t.add_ao(&format!("{dev}/{ch}"), AO_MIN_V, AO_MAX_V)?;
-            values.push((um[i] * s).clamp(AO_MIN_V, AO_MAX_V));
+            values.push(volts[i].clamp(AO_MIN_V, AO_MAX_V));
         }
         t.write(1, true, 1.0, &values)?;
         Ok(())
+    }
+
+    /// Samples per channel the running stream's output buffer can take now
+    /// (`DAQmxGetWriteSpaceAvail`); `None` when the library lacks it or no stream runs.
+    pub fn space_avail(&self) -> Result<Option<usize>, DeviceError> {
+        let (Some(ao), Some(f)) = (&self.ao, self.lib.get_write_space_avail) else {
+            return Ok(None);
+        };
+        let mut v: u32 = 0;
+        // SAFETY: `int32 DAQmxGetWriteSpaceAvail(TaskHandle taskHandle, uInt32 *data)`.
+        let r = unsafe { f(ao.handle(), &mut v) };
+        super::check(
+            ao.lib(),
+            &self.name,
+            || format!("DAQmxGetWriteSpaceAvail(task \"{}\", &space)", ao.name),
+            r,
+        )?;
+        Ok(Some(v as usize))
     }
 }
 

@@ -7,7 +7,7 @@
 //! | `range_um` | `75,75,50` | calibrated range per axis, µm (`MCL_GetCalibration`) |
 //! | `tau_ms` | 2 | the stage's first-order lag (sensor follows target), ms |
 //! | `sensor_noise_um` | 0.001 | rms noise of a sensor reading (`MCL_SingleReadN`, monitor), µm |
-//! | `ext_mode` | `override` | how the external input and the USB command combine: `override` (the latest change wins) or `sum` |
+//! | `ext_mode` | `sum` | how the external input and the USB command combine: `sum` (the external input's position added to the USB command, as MCL documents the Nano-Drive's external input) or `replace` (whichever changed last wins; alias `override`) |
 //! | `daq_device` | `Dev1` | the PCI-6120's device name |
 //! | `daq_serial` | 0x01A2B3C4 | its serial number (`DAQmxGetDevSerialNum`) |
 //! | `wiring` | `ai0=sx,ai1=sy,ai2=sum,ai3=x_monitor,ao0=x,ao1=y` | what each AI sees and which axis' external input each AO drives |
@@ -150,7 +150,7 @@ impl Default for Config {
             range_um: [75.0, 75.0, 50.0],
             tau_s: 0.002,
             sensor_noise_um: 0.001,
-            ext_sum: false,
+            ext_sum: true,
             daq_device: "Dev1".into(),
             daq_serial: 0x01A2_B3C4,
             ai: [
@@ -256,9 +256,13 @@ impl Config {
             "sensor_noise_um" => self.sensor_noise_um = num(key, v, 0.0, 10.0, "µm")?,
             "ext_mode" => {
                 self.ext_sum = match v.trim() {
-                    "override" => false,
+                    "replace" | "override" => false,
                     "sum" => true,
-                    _ => return Err(format!("ext_mode = `{v}`: allowed are `override` and `sum`")),
+                    _ => {
+                        return Err(format!(
+                            "ext_mode = `{v}`: allowed are `sum` and `replace` (alias `override`)"
+                        ))
+                    }
                 }
             }
             "daq_device" => {

@@ -30,7 +30,11 @@
 //! A continuous AO task with regeneration off (`DAQmxSetWriteRegenMode`) plays each sample
 //! written once; a clock edge that finds no sample written stops the generation and its sample
 //! clock (AI on that clock takes no more samples), and the task's next write returns −200290
-//! until it is restarted.
+//! until it is restarted. Its buffer holds `DAQmxCfgOutputBuffer`'s samples per channel, or as
+//! many as were written before the start: a write that finds less space than it brings
+//! waits (the caller's thread blocked) until the generation has played enough, up to its
+//! timeout, then fails with −200292 and writes nothing; `DAQmxGetWriteSpaceAvail` tells the
+//! space free now.
 //!
 //! An AO channel holds the last value it generated when its task stops or is cleared;
 //! `DAQmxResetDevice` sets both AO channels to 0 V (and aborts the device's tasks).
@@ -152,6 +156,9 @@ pub struct Task {
     /// AO: the buffer (per channel) and pending on-demand values.
     pub ao_buf: Vec<Vec<f64>>,
     pub ao_pending: Option<Vec<f64>>,
+    /// AO timed: the buffer's size per channel (`DAQmxCfgOutputBuffer`, or the first write
+    /// before the start).
+    pub ao_cap: Option<u64>,
     /// AO continuous without regeneration: a clock edge came with no sample written (the
     /// generation stopped, −200290 from then on until the task is restarted).
     pub underflow: bool,
@@ -183,6 +190,7 @@ impl Task {
             ao_base: 0,
             ao_buf: Vec::new(),
             ao_pending: None,
+            ao_cap: None,
             ao_t0: 0.0,
             ao_next: 0,
             implicit_start: false,
@@ -1362,7 +1370,7 @@ pub extern "C" fn DAQmxCfgOutputBuffer(
     guard(-1, || {
         with_bench(|b| {
             let tn = task_name(b, task_handle);
-            let r = task_mut(b, task_handle).map(|_| ());
+            let r = task_mut(b, task_handle).map(|t| t.ao_cap = Some(num_samps_per_chan as u64));
             finish(
                 b,
                 format!(
@@ -1734,7 +1742,14 @@ fn write(
 ) -> R<i32> {
     let t = now();
     sync(b, t);
-    let task = task_mut(b, h)?.clone();
+    // the task's settings (not its sample buffer: a stream's holds up to its whole block)
+    let task = {
+        let tk = task_mut(b, h)?;
+        let buf = std::mem::take(&mut tk.ao_buf);
+        let copy = tk.clone();
+        tk.ao_buf = buf;
+        copy
+    };
     if b.daq.removed {
         let dev = b.daq.device.clone();
         return fail(DEV_CANNOT_BE_ACCESSED, format!("Device: {dev}"));
@@ -1816,6 +1831,9 @@ fn write(
                 }
             } else {
                 tk.ao_buf = per;
+                if tk.ao_cap.is_none_or(|c| c < n as u64) {
+                    tk.ao_cap = Some(n as u64);
+                }
             }
             if auto_start && !tk.running {
                 start_task(b, id, false)?;
@@ -1841,6 +1859,34 @@ pub unsafe extern "C" fn DAQmxWriteAnalogF64(
     _reserved: *mut bool32,
 ) -> int32 {
     guard(-1, || {
+        // a stream's buffer full: wait (outside the bench's lock) for the space, up to the
+        // timeout
+        let t_call = now();
+        let deadline = if timeout < 0.0 {
+            f64::INFINITY
+        } else {
+            t_call + timeout
+        };
+        let mut timed_out = false;
+        let mut waited = false;
+        loop {
+            let wait = with_bench(|b| {
+                let t = now();
+                sync(b, t);
+                space_wait(b, task_handle, num_samps_per_chan.max(0) as u64)
+            });
+            match wait {
+                None => break,
+                Some(_) if now() >= deadline => {
+                    timed_out = true;
+                    break;
+                }
+                Some(until) => {
+                    waited = true;
+                    sleep_until(until.min(deadline).min(now() + 0.005))
+                }
+            }
+        }
         with_bench(|b| {
             let tn = task_name(b, task_handle);
             let nch = b
@@ -1849,6 +1895,13 @@ pub unsafe extern "C" fn DAQmxWriteAnalogF64(
                 .get(&id_of(task_handle))
                 .map_or(0, |t| t.chans.len());
             let r = (|| {
+                if timed_out {
+                    let free = space_avail(b, task_handle).unwrap_or(0);
+                    return fail(
+                        SAMPLES_CAN_NOT_YET_BE_WRITTEN,
+                        format!("Space Available in Buffer: {free}\nSamples Requested: {num_samps_per_chan}\nWaited: {:.6} s", now() - t_call),
+                    );
+                }
                 if write_array.is_null() {
                     return fail(NULL_PTR, "");
                 }
@@ -1884,9 +1937,96 @@ pub unsafe extern "C" fn DAQmxWriteAnalogF64(
             finish(
                 b,
                 format!(
-                    "DAQmxWriteAnalogF64({}, numSampsPerChan={num_samps_per_chan}, autoStart={auto_start}, timeout={timeout}, dataLayout={data_layout}, first=[{}])",
+                    "DAQmxWriteAnalogF64({}, numSampsPerChan={num_samps_per_chan}, autoStart={auto_start}, timeout={timeout}, dataLayout={data_layout}, first=[{}]){}",
                     tn.clone().unwrap_or_default(),
-                    first.join(", ")
+                    first.join(", "),
+                    if waited { format!(" waited {:.6} s for room", now() - t_call) } else { String::new() }
+                ),
+                tn.as_deref(),
+                r.map(|_| ()),
+            )
+        })
+    })
+}
+
+/// The samples per channel a write can put in task `h`'s buffer now: the buffer's size less
+/// what was written and not yet played (a running stream), or less what is buffered (before
+/// the start). `None`: not a timed AO task.
+fn space_avail(b: &Bench, h: TaskHandle) -> Option<u64> {
+    let t = b.daq.tasks.get(&id_of(h))?;
+    if t.kind != Some(Kind::Ao) || t.timing.is_none() {
+        return None;
+    }
+    let buffered = t.ao_buf.first().map_or(0, Vec::len) as u64;
+    let cap = t.ao_cap.unwrap_or(0);
+    let stream = !t.regen && t.timing.is_some_and(|tm| tm.finite.is_none());
+    let pending = if t.running && stream {
+        (t.ao_base + buffered).saturating_sub(t.ao_next)
+    } else {
+        buffered
+    };
+    Some(cap.saturating_sub(pending))
+}
+
+/// When a write of `n` samples per channel to a running stream (regeneration off) must wait
+/// for space: the bench time at which the generation will have played enough. `None`: it
+/// need not wait (not a running stream, room enough, or the generation has stopped).
+fn space_wait(b: &Bench, h: TaskHandle, n: u64) -> Option<f64> {
+    let t = b.daq.tasks.get(&id_of(h))?;
+    let stream = t.kind == Some(Kind::Ao)
+        && !t.regen
+        && t.running
+        && !t.underflow
+        && t.timing.is_some_and(|tm| tm.finite.is_none());
+    if !stream {
+        return None;
+    }
+    let free = space_avail(b, h)?;
+    if free >= n || n > t.ao_cap.unwrap_or(0) {
+        // a block larger than the whole buffer never fits: not waited for here (NI's
+        // driver splits it; the bench's writes never are)
+        return None;
+    }
+    let clk = b.daq.ao_clock?;
+    let edge = t.ao_next + (n - free);
+    let at = clk.t0 + edge as f64 * clk.dt;
+    (at < clk.end).then_some(at)
+}
+
+/// `int32 DAQmxGetWriteSpaceAvail(TaskHandle taskHandle, uInt32 *data)`: the samples per
+/// channel a write can put in the buffer now.
+///
+/// # Safety
+/// `data` is NULL or points to a `uInt32`.
+#[no_mangle]
+pub unsafe extern "C" fn DAQmxGetWriteSpaceAvail(
+    task_handle: TaskHandle,
+    data: *mut uInt32,
+) -> int32 {
+    guard(-1, || {
+        with_bench(|b| {
+            let t = now();
+            sync(b, t);
+            let tn = task_name(b, task_handle);
+            let r = (|| {
+                task_mut(b, task_handle)?;
+                if data.is_null() {
+                    return fail(NULL_PTR, "");
+                }
+                match space_avail(b, task_handle) {
+                    Some(v) => {
+                        *data = v.min(u32::MAX as u64) as u32;
+                        Ok(v)
+                    }
+                    None => fail(ATTRIBUTE_NOT_SUPPORTED, "Property: DAQmx_Write_SpaceAvail"),
+                }
+            })();
+            let v = r.as_ref().map_or(String::new(), |v| format!(" = {v}"));
+            finish(
+                b,
+                format!(
+                    "DAQmxGetWriteSpaceAvail({}){v}",
+                    tn.clone().unwrap_or_default()
                 ),
                 tn.as_deref(),
                 r.map(|_| ()),

@@ -47,6 +47,7 @@ pub const DUPLICATE_CHANNEL: i32 = -200489;
 pub const NEGATIVE_WRITE_SAMPLE_NUMBER: i32 = -200287;
 pub const ATTRIBUTE_NOT_SUPPORTED: i32 = -200452;
 pub const GEN_STOPPED_TO_PREVENT_REGEN_OF_OLD_SAMPLES: i32 = -200290;
+pub const SAMPLES_CAN_NOT_YET_BE_WRITTEN: i32 = -200292;
 
 /// NI's text for a DAQmx status code (`DAQmxGetErrorString`).
 pub fn daqmx_text(code: i32) -> &'static str {
@@ -78,6 +79,7 @@ pub fn daqmx_text(code: i32) -> &'static str {
         INVALID_TASK => "Task specified is invalid or does not exist.",
         // written from memory of NI's text (no public copy found to check against)
         GEN_STOPPED_TO_PREVENT_REGEN_OF_OLD_SAMPLES => "The generation has stopped to prevent the regeneration of old samples. Your application was unable to write samples to the background buffer fast enough to prevent old samples from being regenerated.\nTo avoid this error, you can do any of the following:\n1. Increase the size of the background buffer by configuring the buffer.\n2. Increase the number of samples you write each time you invoke a write operation.\n3. Write samples more often.\n4. Reduce the sample rate.",
+        SAMPLES_CAN_NOT_YET_BE_WRITTEN => "Some or all of the samples to write could not be written to the buffer yet. More space will free up as samples currently in the buffer are generated.\nTo wait for more space to become available, use a longer write timeout. To make the space available sooner, increase the sample rate.",
         RESOURCE_RESERVED => "The specified resource is reserved. The operation could not be completed as specified.",
         // written from memory of NI's texts (no public copy found to check against)
         DEV_CANNOT_BE_ACCESSED => "Device cannot be accessed.\nPossible causes:\nDevice is no longer present in the system.\nDevice is not powered.\nDevice is powered, but was temporarily without power.\nDevice is damaged.\nEnsure the device is properly connected and powered. Turn the computer off and on again. If you suspect that the device is damaged, contact National Instruments at ni.com/support.",

@@ -3,6 +3,11 @@
 //! follows the target with a first-order lag, and an external analog input per axis
 //! (0–10 V over the calibrated range, driven by the PCI-6120's AO channels).
 //!
+//! How the external input and the USB command combine (setting `ext_mode`): by default, as
+//! MCL describes the Nano-Drive's external analog input, its position is *added* to the
+//! position commanded over USB (`sum`: target = USB + external, clamped to the range); a
+//! `replace` controller follows whichever of the two changed last.
+//!
 //! Each axis keeps the history of its target changes, each with the position at that instant,
 //! so that the position at any past instant is exact: `p(t) = T + (p_k − T)·exp(−(t − t_k)/τ)`
 //! after the last change k (target T, position p_k) before t. The DAQ's samples of a stream
@@ -268,7 +273,13 @@ mod tests {
 
     #[test]
     fn clamps_external_and_override() {
-        let mut d = drive(0.0);
+        let c = Config {
+            tau_s: 0.0,
+            sensor_noise_um: 0.0,
+            ext_sum: false,
+            ..Config::default()
+        };
+        let mut d = NanoDrive::new(&c, 0.0);
         d.command(0, 0.0, 200.0);
         assert_eq!(d.axes[0].position_at(0.1), 75.0);
         d.external(0, 0.2, 4.0);
@@ -277,6 +288,23 @@ mod tests {
         assert_eq!(d.axes[0].position_at(0.5), 0.0);
         d.command(0, 0.6, 12.0);
         assert_eq!(d.axes[0].position_at(0.7), 12.0);
+    }
+
+    /// The default controller sums: 37 µm over USB plus 37 µm on the external input is the
+    /// end of the 75 µm travel (clamped), and the external input at 0 V gives the USB command.
+    #[test]
+    fn the_default_controller_adds_the_external_input_to_the_usb_command() {
+        let mut d = drive(0.0);
+        d.command(0, 0.0, 37.0);
+        assert_eq!(d.axes[0].position_at(0.1), 37.0);
+        d.external(0, 0.2, 37.0 / 75.0 * 10.0);
+        assert_eq!(d.axes[0].position_at(0.3), 74.0);
+        d.external(0, 0.4, 6.0);
+        assert_eq!(d.axes[0].position_at(0.5), 75.0);
+        d.command(0, 0.6, 0.0);
+        assert_eq!(d.axes[0].position_at(0.7), 45.0);
+        d.external(0, 0.8, 0.0);
+        assert_eq!(d.axes[0].position_at(0.9), 0.0);
     }
 
     #[test]

@@ -883,3 +883,83 @@ fn daq_faults() {
     assert_eq!(f.read_f64(t, 100, 1.0, 0, &mut buf).0, -200279);
     assert_eq!(f.clear(t), 0);
 }
+
+/// A continuous AO stream with regeneration off (NI-DAQmx's behaviour): its buffer holds what
+/// was written before the start; `DAQmxGetWriteSpaceAvail` tells the room freed by the samples
+/// played; a write that brings more than the room waits until the generation has played
+/// enough (here 100 of 1000 samples at 10 kS/s: ≈ 10 ms; 800: ≈ 80 ms), and one that cannot
+/// get its room before its timeout fails with −200292 having written nothing.
+#[test]
+fn a_stream_write_into_a_full_buffer_waits_for_room_and_the_space_is_told() {
+    let (_g, f) = fake();
+    let rate = 10e3;
+    let ao = f.create_task();
+    assert_eq!(f.ao_chan(ao, "Dev1/ao0"), 0);
+    assert_eq!(f.timing(ao, "", rate, DAQMX_VAL_CONT_SAMPS, 1000), 0);
+    let regen = sym!(
+        f,
+        "DAQmxSetWriteRegenMode",
+        unsafe extern "C" fn(TaskHandle, i32) -> i32
+    );
+    assert_eq!(unsafe { regen(ao, 10158) }, 0); // DAQmx_Val_DoNotAllowRegen
+    let space = sym!(
+        f,
+        "DAQmxGetWriteSpaceAvail",
+        unsafe extern "C" fn(TaskHandle, *mut u32) -> i32
+    );
+    let free = || {
+        let mut v = u32::MAX;
+        assert_eq!(unsafe { space(ao, &mut v) }, 0);
+        v
+    };
+    let block = vec![1.0; 1000];
+    assert_eq!(f.write_f64(ao, 1000, false, &block), (0, 1000));
+    assert_eq!(free(), 0, "the first write sizes the buffer and fills it");
+    assert_eq!(f.start(ao), 0);
+    let t = std::time::Instant::now();
+    assert_eq!(f.write_f64(ao, 100, false, &block[..100]), (0, 100));
+    let waited = t.elapsed().as_secs_f64();
+    assert!(
+        (0.008..0.05).contains(&waited),
+        "waited {waited} s for 100 samples"
+    );
+    std::thread::sleep(std::time::Duration::from_millis(30));
+    // ≈ 30 ms more played: ≈ 300 samples of room (the clock runs on meanwhile)
+    let room = free();
+    assert!((250..=450).contains(&room), "room {room}");
+    // a write of the room never waits
+    let t = std::time::Instant::now();
+    let n = room as usize;
+    assert_eq!(f.write_f64(ao, n as i32, false, &block[..n]), (0, n as i32));
+    assert!(t.elapsed().as_secs_f64() < 0.005, "{:?}", t.elapsed());
+    // 800 samples with a 10 ms timeout: not enough room in time
+    let w = sym!(
+        f,
+        "DAQmxWriteAnalogF64",
+        unsafe extern "C" fn(TaskHandle, i32, u32, f64, u32, *const f64, *mut i32, *mut u32) -> i32
+    );
+    let mut wrote = -1;
+    let t = std::time::Instant::now();
+    let s = unsafe {
+        w(
+            ao,
+            800,
+            0,
+            0.01,
+            DAQMX_VAL_GROUP_BY_CHANNEL,
+            block.as_ptr(),
+            &mut wrote,
+            std::ptr::null_mut(),
+        )
+    };
+    assert_eq!((s, wrote), (-200292, 0));
+    let waited = t.elapsed().as_secs_f64();
+    assert!((0.009..0.05).contains(&waited), "waited {waited} s");
+    assert!(
+        f.extended()
+            .contains("could not be written to the buffer yet"),
+        "{}",
+        f.extended()
+    );
+    assert_eq!(f.clear(ao), 0);
+}
