@@ -477,7 +477,13 @@ mod tests {
         assert_eq!(parse_set("dwell=0.5").unwrap().1.as_float().unwrap(), 0.5);
         assert!(parse_set("snake=true").unwrap().1.as_bool().unwrap());
         assert_eq!(parse_set("label=bead 1").unwrap().1.to_string(), "bead 1");
-        assert!(parse_set("1x=3").is_err());
-        assert!(parse_set("novalue").is_err());
+        assert_eq!(
+            parse_set("1x=3").unwrap_err(),
+            "--set 1x=3: `1x` is not a valid variable name"
+        );
+        assert_eq!(
+            parse_set("novalue").unwrap_err(),
+            "--set novalue: expected KEY=VALUE"
+        );
     }
 }

@@ -469,7 +469,7 @@ fn variable_types_for_completion_use_the_script_names() {
     assert_eq!(t["a"].0, "array");
 }
 
-/// Issue 33: in a script, a complete scan whose autosave fails is an error (the run exits
+/// In a script, a complete scan whose autosave fails is an error (the run exits
 /// non-zero), naming the failure and the session folder; it was a warning and `s.path` empty.
 #[test]
 fn a_failed_autosave_is_a_script_error() {
@@ -502,7 +502,7 @@ fn a_failed_autosave_is_a_script_error() {
     );
 }
 
-/// Issue 33: `help("beads")` showed only the `FitResult.beads` property; a name that is both a
+/// `help("beads")` showed only the `FitResult.beads` property; a name that is both a
 /// binding and a protocol module shows both.
 #[test]
 fn help_of_a_name_that_is_both_shows_both() {

@@ -1,4 +1,4 @@
-//! The instrument's optics, validated and resolved once (issue 31 item 2): [`ValidOptics`]
+//! The instrument's optics, validated and resolved once: [`ValidOptics`]
 //! cannot exist invalid, and it carries the [`ResolvedBeam`], the angular-spectrum beam
 //! (spectral waist, pupil apodisation) that `Optics::beam` selects. Every physics function
 //! reads the beam from here; the mapping beam → (waist, apodisation) is written once, in
@@ -20,7 +20,7 @@ pub const DIPOLE_N: f64 = 1.5;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 pub enum Apodization {
     /// Plane-wave amplitude per dk_x dk_y = f_w(θ) (no aplanatic factor; the Mie tier's beam
-    /// until issue 19: its far field is ∝ cosθ f_w(θ)).
+    /// until the one-beam work: its far field is ∝ cosθ f_w(θ)).
     #[default]
     None,
     /// Aplanatic (sine-condition) objective: far-field amplitude ∝ f_w(θ) √cosθ (energy
@@ -110,7 +110,7 @@ impl ResolvedBeam {
     /// True in the paper's paraxial beam: point dipoles are rendered by the paraxial Rayleigh
     /// template (suppl. S2/S3), and only spheres the scene sends to the Mie tier go through the
     /// angular spectrum. False in the vector beam: every scatterer is rendered in the angular
-    /// spectrum (issue 19).
+    /// spectrum.
     pub fn paraxial_dipoles(&self) -> bool {
         self.kind == Beam::Paraxial
     }

@@ -1,4 +1,4 @@
-//! Focused-beam Lorenz–Mie QPD response (issue 8, parts 3–4; paper Sec. 3.1, Fig. 2b and 3c).
+//! Focused-beam Lorenz–Mie QPD response (paper Sec. 3.1, Fig. 2b and 3c).
 //!
 //! Method (docs/physics.md §9): angular-spectrum (plane-wave) representation of the focused
 //! beam, exact vector Mie scattering of every plane wave by the sphere, and interference of the
@@ -10,7 +10,7 @@
 //!   Θ_in = Θ_obj = asin(min(NA, n)/n) (the objective aperture), or smaller where the Gaussian
 //!   spectrum is below e^{−36}; c_j = Ã(θ_j) k² cosθ_j sinθ_j Δθ_j Δφ_j (dk_x dk_y),
 //!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0; × 1/√cosθ with
-//!   [`Apodization::Aplanatic`], the aplanatic objective of issue 19, docs/physics.md §10), and
+//!   [`Apodization::Aplanatic`], the aplanatic objective, docs/physics.md §10), and
 //!   ê_j = cosφ ê_θ − sinφ ê_φ (x-polarised pupil, Richards–Wolf), written without a
 //!   singularity as ê = (1 − u²/(1+c), −uv/(1+c), −u), (u, v, c) = k̂.
 //! * **Beam far field** (stationary phase of the angular spectrum, Mandel & Wolf §3.3):
@@ -87,7 +87,7 @@ pub struct MieBeamSpec {
     pub waist: Waist,
     /// Pupil apodisation of the objective ([`Apodization`]). `Aplanatic` is the vectorial focus
     /// of an aplanatic objective (Richards & Wolf 1959; Novotny & Hecht, *Principles of
-    /// Nano-Optics*, 2nd ed., eq. 3.66); `None` is the beam this tier had before issue 19.
+    /// Nano-Optics*, 2nd ed., eq. 3.66); `None` is the beam this tier had before the one-beam work.
     pub apodization: Apodization,
 }
 

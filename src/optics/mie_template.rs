@@ -1,7 +1,7 @@
 //! Mie templates: the focused-beam Lorenz–Mie response of one sphere (`optics::mie_beam`) on
 //! the same lateral grids and z planes as the Rayleigh templates (`optics::template`), so that
 //! the simulator's `mie` effect renders beads by the same superposition Σ αᵢ·T(s − pᵢ)
-//! (paper Sec. 4.1) with a per-sphere template T (issue 8; docs/physics.md §9).
+//! (paper Sec. 4.1) with a per-sphere template T (docs/physics.md §9).
 //!
 //! **Planes.** The plane at axial displacement z is stored per unit Rayleigh polarisability
 //! α = r³ CM (µm³), like the Rayleigh template, so the renderer multiplies by the same α and

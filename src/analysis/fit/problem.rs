@@ -690,7 +690,7 @@ impl<'a> FitData<'a> {
         }
     }
 
-    /// The pixel-major accumulation used before issue 20 (one `eval_grad` per bead and pixel,
+    /// The pixel-major accumulation used before the speed work (one `eval_grad` per bead and pixel,
     /// JᵀJ filled pixel by pixel), kept as the reference that [`FitData::accumulate`] must
     /// reproduce bit for bit.
     #[cfg(test)]
