@@ -53,7 +53,7 @@ fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
     p.wait_for_from(0, "scan_xy paused after ", T);
     assert!(
         p.out.contains(" of 100 pixels; the stage waits at x = ")
-            && p.out.contains("Enter or r: resume"),
+            && p.out.contains(bfpscope::acquire::stop_rule::PAUSE_ANSWERS),
         "{}",
         p.out
     );

@@ -160,6 +160,23 @@ fn api_reference_is_up_to_date() {
     );
 }
 
+/// The stop rule's prose has one source (`acquire::stop_rule`): every copy in the README, the
+/// guide and the hardware notes is generated from it (`bfpscope docs`), and none is missing.
+#[test]
+fn stop_rule_copies_in_the_docs_are_up_to_date() {
+    use bfpscope::acquire::stop_rule::{with_stop_rule, STOP_RULE_DOCS};
+    for (path, want) in STOP_RULE_DOCS {
+        let full = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(path);
+        let have = std::fs::read_to_string(&full).unwrap();
+        let (new, n) = with_stop_rule(&have).unwrap();
+        assert_eq!(n, want, "{path}: copies of the stop rule");
+        assert!(
+            new == have,
+            "{path}: the stop rule is stale: run `cargo run -- docs` and commit it"
+        );
+    }
+}
+
 #[test]
 fn help_lists_every_binding_by_family_with_units() {
     let docs = all_docs();

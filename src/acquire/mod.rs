@@ -10,6 +10,7 @@ pub mod error;
 pub mod limits;
 pub mod plan;
 pub mod raster;
+pub mod stop_rule;
 pub mod store;
 pub mod strategy;
 
