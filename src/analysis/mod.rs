@@ -39,6 +39,7 @@
 pub mod background;
 pub mod bead_model;
 pub mod beam_fit;
+pub mod domain;
 pub mod fit;
 pub mod focus;
 pub mod kind;

@@ -1091,6 +1091,7 @@ impl<'a> FitData<'a> {
             condition,
             degeneracies,
             history: vec![],
+            warnings: vec![],
         })
     }
 }
