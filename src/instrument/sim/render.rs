@@ -4,7 +4,7 @@
 
 use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
-use crate::optics::beam::{OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
+use crate::optics::beam::{DipoleTier, OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
 use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
@@ -149,7 +149,7 @@ impl Renderer {
         // With the vector beam every scatterer goes through the angular-spectrum
         // templates (dipole limit), and beads outside the dipole's domain through Mie, unless
         // the scene pins a tier (`mie` / `finite_size`).
-        let vector = !optics.beam().paraxial_dipoles();
+        let vector = optics.beam().dipoles() == DipoleTier::AngularSpectrum;
         if vector && fx.cross_terms == Some(true) {
             return Err(OpticsError::Invalid(
                 "effect cross_terms is modelled in the paraxial beam only (|Σ E_scat|² with the paper's Gaussian focus, docs/physics.md §8); the session's beam is \"vector\": set_optics(#{beam: \"paraxial\"}) to use it, or the mie effect's scattered_intensity for one sphere's |E_s|² in the vector beam".into(),
