@@ -120,6 +120,37 @@ enum Cmd {
     },
 }
 
+/// `bfpscope docs`: rewrite the stop rule's copies in the docs from `acquire::stop_rule`
+/// (`check`: only say which are stale, exit 1). Paths are relative to the working directory
+/// (the repository root).
+fn stop_rule_docs(check: bool) -> Result<(), ExitCode> {
+    use bfpscope::acquire::stop_rule::{with_stop_rule, STOP_RULE_DOCS};
+    let mut stale = false;
+    for (path, want) in STOP_RULE_DOCS {
+        let cur = std::fs::read_to_string(path)
+            .map_err(|e| usage_error(&format!("docs: {path}: {e}")))?;
+        let (new, n) =
+            with_stop_rule(&cur).map_err(|e| usage_error(&format!("docs: {path}: {e}")))?;
+        if n != want {
+            eprintln!("{path}: {n} copies of the stop rule, {want} expected (`<!-- stop-rule:full -->` … `<!-- /stop-rule -->`)");
+            stale = true;
+        } else if new != cur {
+            if check {
+                eprintln!("{path}: the stop rule is stale: run `bfpscope docs`");
+                stale = true;
+            } else {
+                std::fs::write(path, new)
+                    .map_err(|e| usage_error(&format!("docs: {path}: {e}")))?;
+                println!("wrote the stop rule into {path}");
+            }
+        }
+    }
+    if stale {
+        return Err(ExitCode::from(1));
+    }
+    Ok(())
+}
+
 fn usage_error(msg: &str) -> ExitCode {
     err_line(&format!("error: {msg}"));
     ExitCode::from(2)
@@ -457,6 +488,9 @@ fn main() -> ExitCode {
         Cmd::Sweep { n, seed, json } => bfpscope::accuracy::sweep::cli(n, seed, json),
         Cmd::Docs { out, check } => {
             let text = script::registry::api_markdown(&script::all_docs());
+            if let Err(code) = stop_rule_docs(check) {
+                return code;
+            }
             if check {
                 let cur = std::fs::read_to_string(&out).unwrap_or_default();
                 if cur == text {
@@ -491,7 +525,13 @@ mod tests {
         assert_eq!(parse_set("dwell=0.5").unwrap().1.as_float().unwrap(), 0.5);
         assert!(parse_set("snake=true").unwrap().1.as_bool().unwrap());
         assert_eq!(parse_set("label=bead 1").unwrap().1.to_string(), "bead 1");
-        assert!(parse_set("1x=3").is_err());
-        assert!(parse_set("novalue").is_err());
+        assert_eq!(
+            parse_set("1x=3").unwrap_err(),
+            "--set 1x=3: `1x` is not a valid variable name"
+        );
+        assert_eq!(
+            parse_set("novalue").unwrap_err(),
+            "--set novalue: expected KEY=VALUE"
+        );
     }
 }

@@ -369,13 +369,20 @@ pub fn run(mut wb: Workbench, history: Option<PathBuf>) -> i32 {
 }
 
 /// Ctrl-C during a scan at the terminal: the scan waits between points or raster lines (the
-/// stage at rest, nothing commanded) and asks; the count is of pixels, in either mode. Enter or `r` resumes; `a` (or Ctrl-C, Ctrl-D) aborts, keeping the
-/// partial scan, and a relative scan returns to its start. Scripts run without a terminal
-/// keep Ctrl-C = abort.
+/// stage at rest, nothing commanded) and asks, with the answers of the stop rule
+/// (`acquire::stop_rule`); the count is of pixels, in either mode. Scripts run without a
+/// terminal keep Ctrl-C = abort.
 fn ask_paused(p: &crate::script::ctx::Paused) -> bool {
     eprintln!(
-        "{} paused after {} of {} pixels; the stage waits at x = {:.3}, y = {:.3}, z = {:.3} µm.\n  Enter or r: resume · a: abort (the partial scan is kept; a relative scan returns to its start)",
-        p.kind, p.measured, p.total, p.at[0], p.at[1], p.at[2]
+        "{} paused after {} of {} pixels; the stage waits at x = {:.3}, y = {:.3}, z = {:.3} µm.\n  {}; aborted, {}.",
+        p.kind,
+        p.measured,
+        p.total,
+        p.at[0],
+        p.at[1],
+        p.at[2],
+        crate::acquire::stop_rule::PAUSE_ANSWERS,
+        crate::acquire::stop_rule::ON_ABORT
     );
     let Ok(mut ed) = rustyline::DefaultEditor::new() else {
         return false;

@@ -1,4 +1,4 @@
-//! CI runs the quick accuracy report (issue 7): every knob sweep, the instrument-time trade-off
+//! CI runs the quick accuracy report: every knob sweep, the instrument-time trade-off
 //! and the plots, in-process into a temporary folder. Asserts that the files are written, that
 //! each default meets its knee's error criterion (errors are deterministic; times are reported,
 //! not asserted: a test is no benchmark), and the trade-off's physics (the 1/√t law and its
@@ -99,7 +99,7 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
             // also the cheapest such setting is a timing question: on a loaded 2-core machine
             // in the dev profile the measured ratio reached 1.8× (fit_patience, CI clone while
             // other builds ran), so it is reported, not asserted; docs/accuracy.md measures it
-            // in release with repeats (issue 15: was "up to 4× slower").
+            // in release with repeats (once reported as "up to 4× slower").
             (_, KneeVerdict::Above { time_ratio }) => {
                 eprintln!("{}: default above the knee by {time_ratio:.2}×", k.knob.id)
             }

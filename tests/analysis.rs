@@ -653,7 +653,7 @@ fn single_channel_fit_recovers_beads() {
 
 // ------------------------------------------------------------------------------------------
 // With the physics model (optics::template via Template::from_optics) and the simulator
-// (instrument::sim): the accuracy targets of issue 4 on simulated scenes.
+// (instrument::sim): the analysis library's accuracy targets on simulated scenes.
 // ------------------------------------------------------------------------------------------
 
 use bfpscope::instrument::sim::scene::{
@@ -1275,7 +1275,7 @@ fn focus_range_is_bracketing_and_stable_with_noisy_rows() {
 
 #[test]
 fn mie_rendered_beads_recovered_by_a_template_from_mie_reference_scans() {
-    // Recovery from an independent path (issue 15): every scene is rendered by the focused-beam
+    // Recovery from an independent path: every scene is rendered by the focused-beam
     // Lorenz–Mie tier (`mie` effect), not by optics::rayleigh, and the template is made as in the
     // paper (suppl. S5) from scans of the 110 nm reference bead, here Mie-rendered too. Three
     // separated polystyrene beads of 110, 150 and 200 nm, noise-free, 50 nm pixels. The Mie
@@ -1283,7 +1283,7 @@ fn mie_rendered_beads_recovered_by_a_template_from_mie_reference_scans() {
     // 0.9943 at 240 nm in loglog_slope_of_bead_sensitivities), so each fitted weight gives
     // d = 110 nm · w^(1/3) within 0.4 % (1 %/3 with margin), and the position within 2 nm.
     // (The paraxial point-dipole template against these scenes is 2 % low in diameter: the two
-    // beams differ, the subject of issue 19.)
+    // beams differ, the subject of the one-beam work.)
     let o = paper_optics();
     let mie_scan = |beads: &[(f64, f64, f64)]| {
         let mut sc = Scene::default();

@@ -1,4 +1,4 @@
-//! Hard cases that must stay numerically stable (issue 4): each ends in a documented, finite
+//! Hard cases that must stay numerically stable: each ends in a documented, finite
 //! answer or a clear error naming the argument — never a panic, never a silent NaN.
 
 use crate::analysis_support;
@@ -385,16 +385,17 @@ fn one_pixel_wide_scan() {
     assert!(all_finite(&r));
     assert!((r.beads[0].y - 1.5).abs() < 0.01, "{:?}", r.beads);
     // Auto-detection needs ∂Sx/∂x: clear error.
-    assert!(fit_beads(
+    let e = fit_beads(
         &scan.sx,
         &scan.sy,
         &tpl,
         &FitOptions {
             n_beads: Some(1),
             ..Default::default()
-        }
+        },
     )
-    .is_err());
+    .unwrap_err();
+    assert!(e.to_string().contains("1-pixel-wide"), "{e}");
     // Template from a 1-pixel-wide scan: clear error.
     let e = Template::from_scans(&[&scan], RefBead::default(), &FromScansOptions::default())
         .unwrap_err();

@@ -61,7 +61,7 @@ fn connect_sends_the_documented_messages_and_reads_travel() {
     let k = kit(bead);
     let mut c = connected(&k, "");
     // every cube: read-only identification first (the gauge's zero state with the status
-    // update, issue 32), then (after the limits fit) closed loop,
+    // update), then (after the limits fit) closed loop,
     // demand = position read (10 µm of 20 → 16384 counts of 32767 = 0x4000), channel enable
     let log = k.cubes[0].commands();
     assert_eq!(

@@ -1,4 +1,4 @@
-//! The import graph of `src/` (issue 15): what each top-level module imports from the others,
+//! The import graph of `src/`: what each top-level module imports from the others,
 //! read from the code (`crate::<module>` outside `#[cfg(test)]`), must equal the table in
 //! docs/guide.md's architecture section and keep the layering rules.
 

@@ -1,4 +1,4 @@
-//! Issue 19 item 4, "Beam fit": recover the pupil filling and the QPD gain ratio from a simulated
+//! Beam fit: recover the pupil filling and the QPD gain ratio from a simulated
 //! 110 nm polystyrene bead scan at the paper's noise (64 × 64, 50 nm pixels, 10 ms dwell), in a
 //! vector beam named explicitly (`Beam::Vector`), and carry the fitted beam into the
 //! model-based calibrations (docs/physics.md §10.4).

@@ -328,7 +328,7 @@ fn demo_script_runs() {
         std::fs::read_dir(&data).unwrap().count() >= 1,
         "the demo saves a scan"
     );
-    // Issue 33: the README's demo output was stale (A = 71.14 nm there, 79.64 printed). Every
+    // The README's demo output was stale (A = 71.14 nm there, 79.64 printed). Every
     // line of the README's block after "It prints" is printed by the demo, as shown (the demo's
     // scene is seeded, so its numbers are the same on every run).
     let readme =
@@ -462,7 +462,7 @@ fn emulate_pair_serves_a_simulated_bead_through_the_drivers_until_ctrl_c() {
 
 #[test]
 fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() {
-    // Issue 16, item 6: PI controllers speak GCS on TCP port 50000; the emulator serves the
+    // PI controllers speak GCS on TCP port 50000; the emulator serves the
     // same on a loopback port and prints where.
     use bfpscope::instrument::gcs::{GcsOptions, GcsStage};
     use bfpscope::instrument::{DeviceError, Stage};
@@ -510,7 +510,7 @@ fn emulate_gcs_over_tcp_prints_its_address_and_serves_the_driver_until_ctrl_c() 
 
 #[test]
 fn emulate_redpitaya_serves_the_board_on_a_loopback_port_until_ctrl_c() {
-    // Issue 21: `bfpscope emulate redpitaya --inputs 4` serves a GCS stage and a Red Pitaya
+    // `bfpscope emulate redpitaya --inputs 4` serves a GCS stage and a Red Pitaya
     // SCPI server sharing the stage position, and prints a config for both.
     use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
     use bfpscope::instrument::Qpd;
@@ -657,7 +657,7 @@ fn repl_console_words_last_result_notes_session_log_and_quit() {
 
 #[test]
 fn bfpscope_config_variable_is_honoured_with_its_safety_table() {
-    // Issue 16: bfpscope.example.toml says "point $BFPSCOPE_CONFIG at it"; a config loaded that
+    // bfpscope.example.toml says "point $BFPSCOPE_CONFIG at it"; a config loaded that
     // way must bring its [safety] table, and a bad one must stop the start, not be dropped.
     let dir = tmp("envcfg");
     // `limits().x` with $BFPSCOPE_CONFIG naming a file holding `safety`
@@ -720,7 +720,7 @@ fn repl_binds_a_partial_scan_to_the_variable_being_assigned() {
     assert!(out.contains("aborted 7 21\naborted\n"), "{out}\n{err}");
 }
 
-/// Issue 33: a session folder scans cannot be saved in is refused at start-up, before any
+/// A session folder scans cannot be saved in is refused at start-up, before any
 /// motion; a scan whose autosave fails in a script makes the run fail (non-zero exit).
 #[test]
 fn a_session_folder_that_cannot_hold_scans_is_refused_at_start_up() {
@@ -761,7 +761,7 @@ fn a_session_folder_that_cannot_hold_scans_is_refused_at_start_up() {
     );
 }
 
-/// Issue 33: at the prompt, a scan whose autosave fails (the session folder replaced by a file
+/// At the prompt, a scan whose autosave fails (the session folder replaced by a file
 /// after start-up) is an error that keeps the scan in memory, in the entry's variable, with a
 /// one-line way to save it elsewhere; saving it there works.
 #[test]
@@ -839,7 +839,7 @@ fn a_scan_that_cannot_be_saved_at_the_prompt_stays_in_memory_with_a_way_out() {
     assert!(out.contains("reloaded 5\n"), "{out}\n{err}");
 }
 
-/// Issue 33: `bfpscope test` on a folder without any test printed "0 passed, 0 failed" and
+/// `bfpscope test` on a folder without any test printed "0 passed, 0 failed" and
 /// exited 0; it is an error, as a missing folder is.
 #[test]
 fn test_on_a_folder_without_tests_is_an_error() {
@@ -857,7 +857,7 @@ fn test_on_a_folder_without_tests_is_an_error() {
     assert!(!out.contains("0 passed"), "{out}");
 }
 
-/// Issue 33: session.log lacked the "saved to …npz" lines, the positions `wa()`/`umv()` print and
+/// session.log lacked the "saved to …npz" lines, the positions `wa()`/`umv()` print and
 /// the "saved" lines of figures: everything printed is logged with its entry.
 #[test]
 fn the_session_log_holds_everything_printed() {

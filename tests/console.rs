@@ -53,7 +53,7 @@ fn ctrl_c_pauses_a_scan_and_enter_resumes_it() {
     p.wait_for_from(0, "scan_xy paused after ", T);
     assert!(
         p.out.contains(" of 100 pixels; the stage waits at x = ")
-            && p.out.contains("Enter or r: resume"),
+            && p.out.contains(bfpscope::acquire::stop_rule::PAUSE_ANSWERS),
         "{}",
         p.out
     );
@@ -214,7 +214,7 @@ fn holds(p: &mut Prompt, expr: &str, what: &str) {
     );
 }
 
-/// A night at the prompt (issue 33's transcript), every number checked against its scene's
+/// A night at the prompt (a newcomer's transcript), every number checked against its scene's
 /// truth. The emulators run as a person runs them, in processes of their own, and the prompt
 /// reads the config they print.
 /// 1. `bfpscope emulate pair` (PI GCS stage + SCPI QPD at the pseudo-terminal's full speed; the

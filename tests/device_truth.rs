@@ -1,4 +1,4 @@
-//! Issue 32, "device truth": where our device models and the vendors' documents could
+//! Device truth: where our device models and the vendors' documents could
 //! disagree, the drivers and the emulators follow the documents (docs/hardware.md, "Device
 //! truth"), and these tests hold them to it on the project's emulators:
 //!
@@ -127,7 +127,7 @@ fn a_move_ends_when_ont_says_so_not_when_5_does() {
     );
     assert_eq!(sent.iter().filter(|c| c.starts_with("MOV")).count(), 1);
 
-    // the rule before issue 32: `#5` = 0 ends the wait, the axis not yet on target
+    // the rule before the device-truth work: `#5` = 0 ends the wait, the axis not yet on target
     let (emu, _q) = pi_pair(0.03);
     let mut s = GcsStage::open(emu.path(), 115_200, pi_opts(2000, false)).unwrap();
     s.move_to([0.5, 0.0, 0.0]).unwrap();
@@ -388,7 +388,7 @@ fn zero_crossing(sx: &[f64], xs: &[f64]) -> Option<f64> {
 /// A snake raster of a 110 nm bead at 50 µm/s (25 nm pixels, 0.5 ms dwell, 40 samples per
 /// pixel: the board at decimation 1024, 8.2 µs per sample) through the real drivers and the
 /// emulators: the bead's x from the forward rows and from the backward rows agree to 0.2 nm.
-/// Dating each sample at the start of its window (the driver before issue 32) would shift the
+/// Dating each sample at the start of its window (the driver before the device-truth work) would shift the
 /// two directions apart by 2·v·dt = 0.8 nm. And the snake loads its two waves once: every
 /// later line is one `WSL` switching tables.
 #[test]

@@ -1,4 +1,4 @@
-//! ETAs on the real-time backends (issue 33): the FIRST scan after connecting, before the
+//! ETAs on the real-time backends: the FIRST scan after connecting, before the
 //! drivers have measured anything, must promise within 20 % of what it takes, on the emulators
 //! with their modelled links (`bfpscope emulate`'s default: 115200 baud, 1 ms latency). The
 //! ETA comes from the device-side cost models (link bytes at the baud rate, the latency measured

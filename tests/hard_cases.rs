@@ -1,4 +1,4 @@
-//! Hard cases that must stay numerically stable (issue 7 item 4, physics part). Each test is
+//! Hard cases that must stay numerically stable (physics part). Each test is
 //! named after what makes it hard and asserts a finite, bounded, correct result or a clear error.
 
 use bfpscope::instrument::sim::render_xy;

@@ -419,7 +419,7 @@ fn fault_stage_unplugged_mid_sequence_is_disconnected() {
     let mut s = open_stage(&emu, 200);
     // With instant settling the first move is MOV, ERR?, #5, ONT? 1 (`#5` is not known to
     // work yet), later ones MOV, #5, ONT? 1, ERR? (the ERR? once the trajectory has ended; the
-    // `ONT?` confirms on target, issue 32), and the first call (to where the stage already
+    // `ONT?` confirms on target), and the first call (to where the stage already
     // is) sends nothing: unplug right after the 3rd MOV, the 4th call's; its `#5` finds the
     // line dead.
     emu.faults().settle_s = Some(0.0);
@@ -1226,7 +1226,7 @@ fn engine_stage_error_mid_scan_saves_partial_and_stops_commanding_the_stage() {
     let (se, _qe, mut c, limits) = engine_setup();
     c.instrument.stage.move_to([0.2, 0.1, 0.0]).unwrap();
     // settle at once: each move is exactly MOV, #5, ONT? 1, ERR? (`#5` answered the move
-    // above; `ONT?` confirms on target, issue 32; the ERR? follows the end of the trajectory).
+    // above; `ONT?` confirms on target; the ERR? follows the end of the trajectory).
     // The engine first sends TMN?, TMX? (the start is the commanded target, known since
     // connect); so the 11th command is the 3rd point's MOV: the controller rejects it, `#5`
     // finds nothing moving, `ONT?` the axis on its old target, and the ERR? reports the error.
@@ -1500,7 +1500,7 @@ fn workbench_connects_to_hardware_ports_and_reconnects_to_the_same_ports() {
 
 #[test]
 fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the_target() {
-    // Issue 16, item 1. A closed-loop piezo reads its sensor with nanometre noise around the
+    // A closed-loop piezo reads its sensor with nanometre noise around the
     // target (the emulator's POS? here carries ±2 nm). Moves must name only the axes asked
     // for, and relative moves must add to the last commanded target (PI's MVR), not to a fresh
     // POS?: before the fix, `mvr(#{x: 0.5, y: -0.25})` re-commanded z from POS? and 50 relative
@@ -1554,7 +1554,7 @@ fn untouched_axes_keep_their_targets_bit_identical_and_relative_moves_add_to_the
 
 #[test]
 fn engine_on_target_timeout_mid_scan_sends_stp_and_saves_the_partial_scan() {
-    // Issue 16, item 2: when the on-target wait times out the axis may still be moving; the one
+    // When the on-target wait times out the axis may still be moving; the one
     // command the stage then gets is STP (PI's stop: all axes, error 10 afterwards), the partial
     // scan is saved as failed, and nothing moves it back to the start.
     let (se, qe) = pair(0.0);
@@ -1599,7 +1599,7 @@ fn engine_on_target_timeout_mid_scan_sends_stp_and_saves_the_partial_scan() {
 
 #[test]
 fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
-    // Issue 16, item 3: a servo trip (−1024) is an asynchronous error: the MOV was accepted,
+    // A servo trip (−1024) is an asynchronous error: the MOV was accepted,
     // then the axis stops, servo off, never on target. Polling ERR? with ONT? reports it as
     // itself within ERR_POLL_EVERY polls, not as an on-target timeout seconds later (the
     // on-target timeout here is 2 s), and the engine then sends the stop.
@@ -1649,7 +1649,7 @@ fn servo_trip_mid_move_is_reported_as_minus_1024_with_its_text_then_stopped() {
 
 #[test]
 fn gcs_query_sends_queries_only() {
-    // Issue 16, item 7: raw access for debugging, queries only; a motion command is refused
+    // Raw access for debugging, queries only; a motion command is refused
     // before anything reaches the port.
     let (se, qe) = pair(0.0);
     let mut wb = workbench_on(&se, &qe, "gq");
@@ -1680,7 +1680,7 @@ fn gcs_query_sends_queries_only() {
 
 #[test]
 fn safety_speed_limit_is_sent_as_vel_at_connect_and_read_back_in_status() {
-    // Issue 16, item 5: positioning moves respect the [safety] speed limit too: connect sends
+    // Positioning moves respect the [safety] speed limit too: connect sends
     // it as VEL (µm/s × units_per_um), and status() reports the controller's VEL?.
     use bfpscope::script::{Settings, Workbench};
     let (se, qe) = pair(0.0);
@@ -1730,7 +1730,7 @@ fn connect_call(se: &Emulator, qe: &Emulator) -> String {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Issue 16, item 4: connect like PI's own software (SAI?, SVO?, TMN?/TMX? before SVO), one
+// Connect like PI's own software (SAI?, SVO?, TMN?/TMX? before SVO), one
 // axis per query, stages split across controllers
 
 #[test]
@@ -2084,7 +2084,7 @@ fn stage_split_ports_that_do_not_open_close_the_ones_opened() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Issue 16, item 6: GCS over TCP (PI controllers' port 50000), here on loopback
+// GCS over TCP (PI controllers' port 50000), here on loopback
 
 fn tcp_stage_emu() -> Emulator {
     let cfg = StageEmulatorConfig {
@@ -2248,7 +2248,7 @@ fn ctrl_c_during_a_single_move_sends_stp() {
     assert_eq!(se.position(), p);
 }
 
-// ---- issue 20: motion polled with `#5`, per-phase timing, the link model ----
+// ---- motion polled with `#5`, per-phase timing, the link model ----
 
 #[test]
 fn motion_is_polled_with_the_single_byte_5_and_a_garbled_reply_stops_the_scan() {
@@ -2354,7 +2354,7 @@ fn a_scan_on_the_emulators_records_where_its_time_went() {
     assert_eq!(stage["MOV"]["per_point"], 1.0);
     assert_eq!(stage["ERR?"]["per_point"], 1.0);
     assert!(stage["#5"]["per_point"].as_f64().unwrap() >= 1.0, "{p}");
-    // one `ONT? 1` per point confirms the end of the move (issue 32): 7 bytes out, "1=1\n" back
+    // one `ONT? 1` per point confirms the end of the move: 7 bytes out, "1=1\n" back
     assert_eq!(stage["ONT?"]["per_point"], 1.0, "{p}");
     assert_eq!(stage["ONT?"]["bytes_per_point"], 11.0, "{p}");
     assert!(stage.get("POS?").is_none(), "{p}");

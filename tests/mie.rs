@@ -1,4 +1,4 @@
-//! Validation of the Lorenz–Mie tier (issue 8, part 2). Every test names its source.
+//! Validation of the Lorenz–Mie tier. Every test names its source.
 //!
 //! Index convention: ours is Bohren–Huffman, m = n + iκ (κ ≥ 0 absorbs). Wiscombe's MIEV0 and
 //! Du (2004) write the same spheres as n − iκ, so their "m = 1.5 − 1i" is our 1.5 + 1i, and their
@@ -468,7 +468,7 @@ fn extinction_is_scattering_plus_absorption() {
     }
 }
 
-/// Issue 8: x from 1e-4 to 1e4 (log-spaced), real and strongly absorbing: finite everywhere,
+/// x from 1e-4 to 1e4 (log-spaced), real and strongly absorbing: finite everywhere,
 /// no negative efficiency, Q_abs ≥ −tiny, |g| ≤ 1, large-sphere extinction paradox Q_ext → 2.
 #[test]
 fn sweep_1e_minus4_to_1e4_is_finite_and_physical() {

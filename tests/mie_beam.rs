@@ -1,4 +1,4 @@
-//! Focused-beam Mie QPD response (issue 8 part 3): limits, identities, symmetries, errors.
+//! Focused-beam Mie QPD response: limits, identities, symmetries, errors.
 //! Model and numbers: docs/physics.md §9.
 
 use bfpscope::optics::mie::{mie_q, Complex64 as C64};

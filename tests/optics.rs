@@ -1,4 +1,4 @@
-//! Physics core against independent truth: closed forms, symmetries, limits (issue 2).
+//! Physics core against independent truth: closed forms, symmetries, limits.
 
 use bfpscope::optics::params::Optics;
 use bfpscope::optics::rayleigh::*;
@@ -292,7 +292,7 @@ fn misaligned_rule_with_zero_misalignment_equals_ideal_rule() {
     );
 }
 
-/// Issue 20: the plane builder with separable phase tables and one Gaussian per node agrees
+/// The plane builder with separable phase tables and one Gaussian per node agrees
 /// with the kept reference builder (two `sin_cos` and an `exp` per node pair) to 1e-12 of the plane's
 /// peak signal, at focus and off focus (curvature and Gouy phase), for the ideal, the
 /// polarised and the misaligned detector.

@@ -611,7 +611,7 @@ fn degenerate_but_valid_inputs_still_plot() {
     }
 }
 
-/// Issue 33: a raster from a 2-input digitiser has no Sz (all NaN); its plot shows Sx and Sy
+/// A raster from a 2-input digitiser has no Sz (all NaN); its plot shows Sx and Sy
 /// and says Sz was left out (it failed with "Sz has no data"). No data at all is still an error.
 #[test]
 fn a_scan_without_sz_plots_the_channels_with_data() {

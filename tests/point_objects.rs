@@ -1,4 +1,4 @@
-//! Issue 33, item 2: a lone point object is never measured as a filament, in noise or not, at
+//! A lone point object is never measured as a filament, in noise or not, at
 //! any scan size, position or pixel size; a filament of the same contrast still is.
 //!
 //! The scans come from the simulator (instrument::sim: the vector beam, the bead rendered by
@@ -105,6 +105,23 @@ fn measure(
         .map_err(|e| e.to_string())
 }
 
+/// The refusals that say "this is not a filament" (no line of maxima; maxima too short for a
+/// filament; point objects in a row; too few maxima on the line; an object too short to measure
+/// once its ends are left out) — not a bad input, a template or a calibration failure. A point
+/// object must be refused with one of these.
+const NOT_A_FILAMENT: [&str; 5] = [
+    "no filament found",
+    "do not form a filament",
+    "do not form one filament",
+    "maxima lie on the filament line",
+    "the filament is too short to measure",
+];
+
+/// `r` is a refusal saying the scan holds no filament (see [`NOT_A_FILAMENT`]).
+fn refused_as_no_filament<T>(r: &Result<T, String>) -> bool {
+    matches!(r, Err(e) if NOT_A_FILAMENT.iter().any(|k| e.contains(k)))
+}
+
 fn max_sens_x(s: &Scan) -> f64 {
     let d = sensitivity(&s.sx, Axis::X, Stencil::Central2).unwrap();
     d.data.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
@@ -129,11 +146,11 @@ fn the_filament_has_the_beads_contrast() {
     assert!((sf / sb - 1.0).abs() < 0.1, "bead {sb}, filament {sf}");
 }
 
-/// The case of the issue: a 110 nm bead in the middle of a ±1 µm scan, 41 × 41, 1 ms, with
-/// detector noise, measured as a fibril at −89.94° from 28 maxima. Refused at every seed, and
-/// the message says why.
+/// The case a newcomer met: a 110 nm bead in the middle of a ±1 µm scan, 41 × 41, 1 ms, with
+/// detector noise, once measured as a fibril at −89.94° from 28 maxima. Refused at every seed,
+/// and the message says why.
 #[test]
-fn the_issues_lone_noisy_bead_is_refused() {
+fn a_lone_noisy_bead_in_the_middle_of_the_scan_is_refused() {
     for seed in 0..6 {
         let mut sc = Scene::default();
         sc.add_bead(bead(0.0, 0.0)).unwrap();
@@ -178,8 +195,8 @@ fn counterexamples_of_the_sweep_are_refused() {
         let s = scan(sc, half, px, samples, seed);
         let r = measure(&s, px);
         assert!(
-            r.is_err(),
-            "bead at ({:.2}, {:.2}) in ±{half:.2} µm, {px} µm pixels, {samples} samples: measured as a filament: {:?}",
+            refused_as_no_filament(&r),
+            "bead at ({:.2}, {:.2}) in ±{half:.2} µm, {px} µm pixels, {samples} samples: not refused as no filament: {:?}",
             fx * half,
             fy * half,
             r.map(|m| (m.angle_deg, m.points.len()))
@@ -239,7 +256,7 @@ proptest! {
         sc.add_bead(bead(fx * half, fy * half)).unwrap();
         let s = scan(sc, half, px, SAMPLES[ins], seed);
         let r = measure(&s, px);
-        prop_assert!(r.is_err(), "bead at ({:.2}, {:.2}) in ±{half:.2} µm, {px} µm pixels, {} samples: measured as a filament: {:?}",
+        prop_assert!(refused_as_no_filament(&r), "bead at ({:.2}, {:.2}) in ±{half:.2} µm, {px} µm pixels, {} samples: not refused as no filament: {:?}",
             fx * half, fy * half, SAMPLES[ins], r.as_ref().map(|m| (m.angle_deg, m.points.len())));
     }
 

@@ -1,4 +1,4 @@
-//! Hardware-timed raster lines (issue 21, the PI part): the GCS stage emulator's wave
+//! Hardware-timed raster lines (the PI part): the GCS stage emulator's wave
 //! generator, trigger outputs and data recorder, spoken to over loopback TCP in raw GCS, then
 //! the driver's line sweep.
 

@@ -1,7 +1,7 @@
 //! Hardware-timed rasters through the engine (`acquire::run_raster`) on the emulated
 //! PI stage (GCS over a pseudo-terminal or loopback TCP) and Red Pitaya board (loopback TCP),
 //! OUT1 wired to the board's external trigger: a complete raster images the simulated scene,
-//! and each fault of issue 21 (a silent digitiser, a trigger that never comes, a data-recorder
+//! and each fault a hardware-timed raster can meet (a silent digitiser, a trigger that never comes, a data-recorder
 //! read that fails) ends with the wave generator off (`WGO 1 0`), the axes stopped (`STP`), no
 //! motion after the stop, the completed lines in the autosaved file and a message naming the
 //! device, the command and the reply; Ctrl-C mid-line finishes the line first (the stop rule

@@ -1,4 +1,4 @@
-//! Hardware-timed raster lines on the emulated hardware (issue 21): a PI GCS stage emulator
+//! Hardware-timed raster lines on the emulated hardware: a PI GCS stage emulator
 //! whose trigger output OUT1 is wired to a Red Pitaya emulator's external trigger, spoken to by
 //! the real drivers (GCS over a pseudo-terminal, the board over loopback TCP).
 //!
@@ -182,7 +182,7 @@ fn the_board_samples_the_moving_stage_at_the_recorders_positions() {
     // sample i is dated t_i after the trigger (= the generator's first servo cycle, the
     // recorder's sample 0) at the expected middle of its averaging window; its true time is
     // t_i + δ, one δ for the line with |δ| ≤ dt/2 (the decimator counts its windows from
-    // `ACQ:START`, issue 32). At that time the stage was where the recorder has it (linear
+    // `ACQ:START`). At that time the stage was where the recorder has it (linear
     // between servo cycles): find δ, then every sample agrees
     let x_at = |t: f64| {
         let u = (t / DT).max(0.0);

@@ -1,4 +1,4 @@
-//! Hardware-timed raster scans on the simulator (issue 21): a stage of finite bandwidth lags
+//! Hardware-timed raster scans on the simulator: a stage of finite bandwidth lags
 //! its wave, the digitiser's samples are binned by the recorder's measured position, and the
 //! image equals the point-by-point image of the same scene within the detector noise.
 

@@ -518,7 +518,7 @@ fn simulated_scan_metadata_reports_the_render_pipeline() {
         .as_array()
         .expect("pipeline in meta");
     let names: Vec<&str> = stages.iter().map(|s| s["name"].as_str().unwrap()).collect();
-    // the default instrument: the aplanatic vector beam renders the bead (issue 19)
+    // the default instrument: the aplanatic vector beam renders the bead
     assert_eq!(names, ["superposition", "vector_beam", "detector_noise"]);
     // 16 reads went through the superposition stage: it has spent some time
     assert!(stages[0]["seconds"].as_f64().unwrap() > 0.0, "{stages:?}");

@@ -1,4 +1,4 @@
-//! One owner for the session's optics and scene (issue 31 item 2): after `set_optics` or a
+//! One owner for the session's optics and scene: after `set_optics` or a
 //! new scene, the connected simulator images exactly what the session says, and the scan's
 //! metadata records it.
 

@@ -1,5 +1,5 @@
 //! The simulated instrument: pipeline built from the scene's effects only, additivity,
-//! reproducible randomness, virtual clock (issue 2 items 4, 5, 8).
+//! reproducible randomness, virtual clock.
 
 use bfpscope::instrument::sim::scene::*;
 use bfpscope::instrument::sim::*;
@@ -522,7 +522,7 @@ fn simulator_notes_beads_outside_the_point_dipoles_domain() {
     assert!(renderer(&s).notes.is_empty());
 }
 
-/// Issue 20: the parallel, stencil-precomputing render path gives exactly (bit for bit) the
+/// The parallel, stencil-precomputing render path gives exactly (bit for bit) the
 /// image of the kept reference path (serial, scatterer-major, `Grid2::eval` per pixel), for a
 /// scene with beads, a filament, an object off the focal plane (z-interpolated planes), pixels
 /// at the template's edges and a descending axis; and the image is not trivially zero.

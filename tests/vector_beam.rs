@@ -1,4 +1,4 @@
-//! Issue 19: the vectorial focus of an aplanatic objective (Richards & Wolf 1959; Novotny &
+//! The vectorial focus of an aplanatic objective (Richards & Wolf 1959; Novotny &
 //! Hecht, *Principles of Nano-Optics*, 2nd ed., §3.6, eq. 3.66), validated against an
 //! INDEPENDENT vectorial dipole model written here, which shares no code with the renderer:
 //!
@@ -254,7 +254,7 @@ fn rel(a: f64, b: f64) -> f64 {
     (a / b - 1.0).abs()
 }
 
-/// Done-means of issue 19: a 110 nm PS bead in the real beam agrees with the independent
+/// The vector beam's acceptance test: a 110 nm PS bead in the real beam agrees with the independent
 /// vectorial dipole model within 2 % on every figure of merit.
 #[test]
 fn vector_beam_matches_independent_dipole_model_for_110_nm_ps() {

@@ -1,4 +1,4 @@
-//! Issue 19 in the simulator: with `Optics { beam: Beam::Vector, .. }` every scatterer is
+//! With `Optics { beam: Beam::Vector, .. }` every scatterer is
 //! rendered in the aplanatic vector focus, and the scene picks the Mie tier for beads outside
 //! the point dipole's domain (unless it pins a tier by naming `mie` / `finite_size`).
 
@@ -146,7 +146,7 @@ fn the_scene_picks_mie_for_a_500_nm_bead_and_the_user_can_pin_a_tier() {
     assert!(mie.detail.contains("0 beads"), "{}", mie.detail);
 }
 
-/// The default instrument is the real one (issue 19 item 2): `Optics::default()` is the
+/// The default instrument is the real one: `Optics::default()` is the
 /// uniformly filled NA 1.2 aplanatic vector beam; a scene without effects builds the
 /// superposition and the vector-beam stage only, each effect adds its own stage after them, and
 /// `cross_terms` (modelled with the paraxial Gaussian only) is refused with a message that

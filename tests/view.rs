@@ -1,4 +1,4 @@
-//! The live view (issue 18) in a real browser: Debian's headless Chromium, driven through
+//! The live view in a real browser: Debian's headless Chromium, driven through
 //! chromedriver (W3C WebDriver), against a workbench running in this process on the simulator.
 //! The browser is required: without it these tests fail with the command that installs it.
 //!

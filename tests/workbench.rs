@@ -160,6 +160,23 @@ fn api_reference_is_up_to_date() {
     );
 }
 
+/// The stop rule's prose has one source (`acquire::stop_rule`): every copy in the README, the
+/// guide and the hardware notes is generated from it (`bfpscope docs`), and none is missing.
+#[test]
+fn stop_rule_copies_in_the_docs_are_up_to_date() {
+    use bfpscope::acquire::stop_rule::{with_stop_rule, STOP_RULE_DOCS};
+    for (path, want) in STOP_RULE_DOCS {
+        let full = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(path);
+        let have = std::fs::read_to_string(&full).unwrap();
+        let (new, n) = with_stop_rule(&have).unwrap();
+        assert_eq!(n, want, "{path}: copies of the stop rule");
+        assert!(
+            new == have,
+            "{path}: the stop rule is stale: run `cargo run -- docs` and commit it"
+        );
+    }
+}
+
 #[test]
 fn help_lists_every_binding_by_family_with_units() {
     let docs = all_docs();
@@ -469,7 +486,7 @@ fn variable_types_for_completion_use_the_script_names() {
     assert_eq!(t["a"].0, "array");
 }
 
-/// Issue 33: in a script, a complete scan whose autosave fails is an error (the run exits
+/// In a script, a complete scan whose autosave fails is an error (the run exits
 /// non-zero), naming the failure and the session folder; it was a warning and `s.path` empty.
 #[test]
 fn a_failed_autosave_is_a_script_error() {
@@ -502,7 +519,7 @@ fn a_failed_autosave_is_a_script_error() {
     );
 }
 
-/// Issue 33: `help("beads")` showed only the `FitResult.beads` property; a name that is both a
+/// `help("beads")` showed only the `FitResult.beads` property; a name that is both a
 /// binding and a protocol module shows both.
 #[test]
 fn help_of_a_name_that_is_both_shows_both() {

@@ -14,7 +14,7 @@
 //! (`Waist::SpectralNm(0.0)`), the tightest focus the objective makes (mean 1/e² radius 412 nm,
 //! the closest to the paper's measured w0 ≈ 400 nm), both without the aplanatic factor (§9's
 //! beams); and `vector`, the uniformly filled aplanatic focus (`Apodization::Aplanatic`, the
-//! program's default beam since issue 19, docs/physics.md §10). None of the columns depends on
+//! program's default beam since the one-beam work, docs/physics.md §10). None of the columns depends on
 //! `Optics::default().beam`: each beam is built explicitly.
 //!
 //! Run: `cargo run --release --example fig2b_profiles -- [fig2b.png] > fig2b.csv` — CSV on

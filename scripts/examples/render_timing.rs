@@ -1,4 +1,4 @@
-//! Where the renderer's time goes (issue 20): times the stages of building a renderer for the
+//! Where the renderer's time goes: times the stages of building a renderer for the
 //! render bench's scene (10 beads + a 10 µm filament, paraxial beam), the parts of one template
 //! plane, and the 128 × 128 render. Run: `cargo run --release --example render_timing`.
 
@@ -49,7 +49,7 @@ fn best<T>(n: usize, mut f: impl FnMut() -> T) -> f64 {
 
 fn main() {
     // pinned to the paraxial beam the numbers in docs/performance.md were measured in (the
-    // default beam is the vector focus since issue 19)
+    // default beam is the vector focus since the one-beam work)
     let optics = ValidOptics::new(Optics {
         beam: Beam::Paraxial,
         ..Optics::default()

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Compare bfpscope's multi-bead template fit (Rust, levenberg-marquardt crate) with
-scipy.optimize.least_squares on the same data (issue 4, "Speed").
+scipy.optimize.least_squares on the same data (the fit's speed target).
 
 The Rust benchmark (`cargo bench --features bench --bench fit`) writes, per case, the Sx/Sy images, the template
 grid, the initial guesses, the ground truth and its own timing to target/fit_bench/<case>/.

@@ -4,7 +4,7 @@
 Generated text lives between `<!-- bench:NAME -->` and `<!-- /bench:NAME -->` markers; everything
 outside them (the narrative: reasoning, floors, history) is kept as written. Blocks:
   machine   the machine of the last run (CPU, cores, load average at start and end, rustc, date)
-  summary   issue 20's table, bfpscope against its floor or its peer, ratios from the same run
+  summary   the speed table, bfpscope against its floor or its peer, ratios from the same run
   NAME      one per bench of Cargo.toml: criterion's medians, the tables the bench printed and
             its peer's results. A block whose bench did not run this time keeps its old text
             (its own date line says when it was measured); a new bench gets a new block at the

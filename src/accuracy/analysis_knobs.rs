@@ -1,4 +1,4 @@
-//! Accuracy knobs of the analysis and of the physics-model choice (issue 7, item 1): fit
+//! Accuracy knobs of the analysis and of the physics-model choice: fit
 //! tolerance and evaluation budget, derivative stencil, Mie term count, and the scattering model
 //! (point dipole vs finite-size sphere rule vs focused-beam Mie) for a given bead size.
 //!

@@ -1,4 +1,4 @@
-//! Instrument-time trade-off (issue 7, item 3): mass and linear-density uncertainty against the
+//! Instrument-time trade-off: mass and linear-density uncertainty against the
 //! total scan time on the simulated instrument (virtual clock) with the `detector_noise` effect
 //! at the project's paper-noise level (docs/physics.md §7).
 //!

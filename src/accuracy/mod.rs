@@ -1,4 +1,4 @@
-//! What accuracy costs in time (issue 7): for each approximation knob, sweep its values and
+//! What accuracy costs in time: for each approximation knob, sweep its values and
 //! measure, in one run on this machine, the error against a high-accuracy reference computed in
 //! the same run and the time spent (median of repeats). `bfpscope accuracy` writes the tables and
 //! Pareto plots to docs/accuracy.md.
@@ -584,7 +584,7 @@ fn bfpscope_fs_sens(det: &Detection, d_nm: f64, n_r: usize) -> f64 {
     crate::optics::finite_size::response_unit_finite(det, d_nm, n_r, 0.0, 0.0, 0.0).1[0]
 }
 
-/// What the paper's approximation costs (issue 19 item 2): the paraxial scalar Gaussian of
+/// What the paper's approximation costs: the paraxial scalar Gaussian of
 /// suppl. S3 against the default instrument, the aplanatic vector focus of a uniformly filled
 /// NA 1.2 objective (validated against an independent Richards–Wolf model, docs/physics.md §10).
 /// Error: RMS of an n×n Sx image of a 110 nm polystyrene bead relative to the vector beam's

@@ -30,7 +30,7 @@ use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
 use super::raster::RasterOptions;
 pub use super::strategy::samples_per_point;
-use super::strategy::{for_raster, PointStrategy, StopCause, Strategy};
+use super::strategy::{for_raster, Layout, Pixel, PointStrategy, StopCause, Strategy};
 use crate::data::clock::utc_now;
 use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::{DeviceError, Instrument, Pos};
@@ -259,14 +259,54 @@ pub fn run_plan(inst: &mut Instrument, plan: &Plan, env: &ScanEnv) -> Result<Sca
     run(inst, plan, &mut PointStrategy::new(), env)
 }
 
-/// Run `plan` on `inst`, acquiring with `strategy`. See the module documentation.
+/// Run `plan` on `inst`, acquiring with `strategy`. See the module documentation: the phases
+/// below are its promises, in order — pre-flight, the steps (with the pause between them),
+/// the stop, the return to the start, and the save.
 pub fn run(
     inst: &mut Instrument,
     plan: &Plan,
     strategy: &mut dyn Strategy,
     env: &ScanEnv,
 ) -> Result<ScanRun, ScanError> {
-    let kind = plan.kind.clone();
+    let pre = preflight(inst, plan, strategy, env)?;
+    let steps = take_steps(inst, plan, strategy, env, &pre);
+    let stop = stop(inst, strategy, env, &plan.kind, &steps.ended);
+    let halt = return_to_start(inst, plan, env, pre.start, &steps.ended, stop);
+    let ended = steps.ended.clone();
+    let scan = record(inst, plan, strategy, env, pre, steps, &halt);
+    Ok(save(env, &plan.kind, scan, ended, halt.returned))
+}
+
+/// What pre-flight established before anything moved: where the scan starts, the limits it
+/// was checked against, the strategy's layout, the ETA and the image grid.
+struct Preflight {
+    /// The commanded target when the scan started: a relative scan returns exactly there.
+    start: Pos,
+    limits: SoftLimits,
+    points_total: usize,
+    lay: Layout,
+    mode: &'static str,
+    /// The ETA printed, s (steps, plus the return of a relative scan).
+    eta: f64,
+    rows: usize,
+    cols: usize,
+    /// Column and row positions, µm, and the axes they lie along.
+    colv: Vec<f64>,
+    rowv: Vec<f64>,
+    xn: &'static str,
+    yn: &'static str,
+}
+
+/// Pre-flight: read the start (the commanded target), check every pixel against the soft
+/// limits narrowed to the travel range, let the strategy check and prepare its own part, and
+/// print the ETA. A refused plan moves nothing.
+fn preflight(
+    inst: &mut Instrument,
+    plan: &Plan,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+) -> Result<Preflight, ScanError> {
+    let kind = &plan.kind;
     let dev = |error| ScanError::Device {
         kind: kind.clone(),
         error,
@@ -301,159 +341,237 @@ pub fn run(
         lay.eta_detail,
         fmt_seconds(eta)
     ));
+    Ok(Preflight {
+        start,
+        limits,
+        points_total: points.len(),
+        lay,
+        mode,
+        eta,
+        rows: plan.rows(),
+        cols: plan.cols(),
+        colv: plan.col_positions(start),
+        rowv: plan.row_positions(start),
+        xn: plan.fast.axis.name(),
+        yn: plan.row_axis().name(),
+    })
+}
 
-    let (rows, cols) = (plan.rows(), plan.cols());
-    let colv = plan.col_positions(start);
-    let rowv = plan.row_positions(start);
-    let (xn, yn) = (plan.fast.axis.name(), plan.row_axis().name());
+/// What the steps produced: the images (unmeasured pixels NaN), how the scan ended, and the
+/// counts and times the metadata records.
+struct Steps {
+    img: [Array2<f64>; 3],
+    ended: Ended,
+    measured: usize,
+    steps: usize,
+    batch: Batcher,
+    clock: ScanClock,
+    /// On a real-time instrument: the measured cost per point over the first row, s.
+    measured_s_per_point: Option<f64>,
+    /// Pauses (Ctrl-C answered "resume"): where and how long.
+    pauses: Vec<Value>,
+    /// Wall time spent paused, excluded from the cost per step.
+    paused_wall: f64,
+    /// Wall time of the steps, pauses excluded.
+    loop_s: f64,
+    /// Clipped and dark samples per pixel.
+    clip: super::clip::ClipTally,
+}
+
+impl Steps {
+    /// Store a step's pixels and hand them to the live display.
+    fn keep(&mut self, pixels: &[Pixel], observer: Option<&dyn ScanObserver>) {
+        for &(r, c, v) in pixels {
+            for (ch, x) in self.img.iter_mut().zip(v) {
+                ch[[r, c]] = x;
+            }
+        }
+        if let Some(o) = observer {
+            if pixels.len() == 1 {
+                self.batch.push(o, pixels[0]);
+            } else {
+                // a line at a time: a raster line is seconds of work at most
+                self.batch.flush(o);
+                o.points(pixels);
+            }
+        }
+        self.measured += pixels.len();
+        self.steps += 1;
+    }
+}
+
+/// The steps: take them in order (a point; a line), looking at the abort flag (Ctrl-C) before
+/// each one; tell the live display; revise the ETA after the first row on a real-time
+/// instrument. Ends at the last step, at an abort or at a device fault (`Steps::ended`).
+fn take_steps(
+    inst: &mut Instrument,
+    plan: &Plan,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+    pre: &Preflight,
+) -> Steps {
+    let kind = &plan.kind;
     if let Some(o) = env.observer {
         o.started(&ScanStart {
-            kind: &kind,
-            rows,
-            cols,
-            x: &colv,
-            y: &rowv,
-            x_name: xn,
-            y_name: yn,
-            points_total: points.len(),
-            eta_s: eta,
+            kind,
+            rows: pre.rows,
+            cols: pre.cols,
+            x: &pre.colv,
+            y: &pre.rowv,
+            x_name: pre.xn,
+            y_name: pre.yn,
+            points_total: pre.points_total,
+            eta_s: pre.eta,
             meta: &env.meta,
         });
     }
-    let mut img = [(); 3].map(|_| Array2::from_elem((rows, cols), f64::NAN));
-    let mut clip = super::clip::ClipTally::new(rows, cols, inst.qpd.input_range());
-    let clock = ScanClock::start(inst);
-    let unit = lay.unit;
-    let bar = progress_bar(env, lay.steps, &format!("{unit}s"), &kind);
-
-    let mut ended = Ended::Complete;
-    let mut measured = 0usize;
-    let mut steps = 0usize;
-    let mut batch = Batcher::new();
+    let mut s = Steps {
+        img: [(); 3].map(|_| Array2::from_elem((pre.rows, pre.cols), f64::NAN)),
+        ended: Ended::Complete,
+        measured: 0,
+        steps: 0,
+        batch: Batcher::new(),
+        clock: ScanClock::start(inst),
+        measured_s_per_point: None,
+        pauses: vec![],
+        paused_wall: 0.0,
+        loop_s: 0.0,
+        clip: super::clip::ClipTally::new(pre.rows, pre.cols, inst.qpd.input_range()),
+    };
+    let lay = &pre.lay;
+    let bar = progress_bar(env, lay.steps, &format!("{}s", lay.unit), kind);
     // On a real-time instrument the ETA above is a floor (settle + dwell, and the move time
     // when the device knows it); after the first row the measured cost per step, link and
     // polling included, gives the real one.
-    let revise_after = if inst.clock.is_virtual() || rows < 2 {
+    let revise_after = if inst.clock.is_virtual() || pre.rows < 2 {
         usize::MAX
     } else {
         lay.steps_per_row
     };
-    let mut measured_s_per_point: Option<f64> = None;
-    // pauses (Ctrl-C answered "resume"): where and how long, wall time excluded from the
-    // cost per step
-    let mut pauses: Vec<Value> = vec![];
-    let mut paused_wall = 0.0;
     let loop0 = std::time::Instant::now();
     for i in 0..lay.steps {
         if env.abort.swap(false, Ordering::SeqCst) {
-            let Some(ask) = env.pause else {
-                ended = Ended::Aborted { measured };
-                break;
-            };
-            // a raster: the line is finished; the digitiser and the wave generator go off
-            if let Err(error) = strategy.pause(inst) {
-                ended = Ended::Failed {
-                    measured,
-                    error,
-                    stage_fault: true,
-                };
+            if let Some(ended) = pause(inst, kind, strategy, env, pre, &mut s, &bar, i) {
+                s.ended = ended;
                 break;
             }
-            let t = std::time::Instant::now();
-            let at = strategy.resting_at().unwrap_or(start);
-            let info = Paused {
-                kind: &kind,
-                measured,
-                total: points.len(),
-                at,
-            };
-            if let Some(o) = env.observer {
-                batch.flush(o);
-                o.paused(true);
-            }
-            let resume = bar.suspend(|| ask(&info));
-            if let Some(o) = env.observer {
-                o.paused(false);
-            }
-            let dt = t.elapsed().as_secs_f64();
-            paused_wall += dt;
-            pauses.push(json!({
-                "after_points": measured,
-                "after_steps": steps,
-                "at_um": at,
-                "wall_s": dt,
-                "resumed": resume,
-            }));
-            // a Ctrl-C pressed while the question was open counts as the answer
-            if !resume || env.abort.swap(false, Ordering::SeqCst) {
-                ended = Ended::Aborted { measured };
-                break;
-            }
-            (env.log)(&format!(
-                "{kind}: resumed at {unit} {} of {}",
-                i + 1,
-                lay.steps
-            ));
         }
         let pixels = match strategy.step(inst, i) {
             Ok(p) => p,
             Err(f) => {
-                ended = Ended::Failed {
-                    measured,
+                s.ended = Ended::Failed {
+                    measured: s.measured,
                     error: f.error,
                     stage_fault: f.stage_fault,
                 };
                 break;
             }
         };
-        for &(r, c, v) in &pixels {
-            for (ch, x) in img.iter_mut().zip(v) {
-                ch[[r, c]] = x;
-            }
-        }
-        clip.add(&strategy.take_clipped());
-        if let Some(o) = env.observer {
-            if pixels.len() == 1 {
-                batch.push(o, pixels[0]);
-            } else {
-                // a line at a time: a raster line is seconds of work at most
-                batch.flush(o);
-                o.points(&pixels);
-            }
-        }
-        measured += pixels.len();
-        steps += 1;
+        s.keep(&pixels, env.observer);
+        s.clip.add(&strategy.take_clipped());
         bar.inc(1);
-        if steps == revise_after {
-            let wall = clock.wall_s() - paused_wall;
-            measured_s_per_point = Some(wall / measured.max(1) as f64);
-            let per = wall / steps as f64;
+        if s.steps == revise_after {
+            let wall = s.clock.wall_s() - s.paused_wall;
+            s.measured_s_per_point = Some(wall / s.measured.max(1) as f64);
+            let per = wall / s.steps as f64;
             if (per - lay.step_s).abs() > 0.1 * lay.step_s {
                 (env.log)(&format!(
-                    "{kind}: the first row took {} per {unit} (the ETA assumed {}): ETA now {} for the remaining {} {unit}s",
+                    "{kind}: the first row took {} per {} (the ETA assumed {}): ETA now {} for the remaining {} {}s",
                     fmt_seconds(per),
+                    lay.unit,
                     fmt_seconds(lay.step_s),
-                    fmt_seconds(per * (lay.steps - steps) as f64),
-                    lay.steps - steps
+                    fmt_seconds(per * (lay.steps - s.steps) as f64),
+                    lay.steps - s.steps,
+                    lay.unit
                 ));
             }
         }
     }
-    let loop_s = loop0.elapsed().as_secs_f64() - paused_wall;
+    s.loop_s = loop0.elapsed().as_secs_f64() - s.paused_wall;
     bar.finish_and_clear();
     if let Some(o) = env.observer {
-        batch.flush(o);
+        s.batch.flush(o);
     }
+    s
+}
 
-    // the stop rule
-    let stage_fault = matches!(
-        ended,
-        Ended::Failed {
+/// The pause: Ctrl-C came before step `i`. Without a pause question the scan aborts; with one
+/// the strategy pauses (a raster: the line is finished, digitiser and wave generator off), the
+/// question is asked with the stage at rest, and the answer resumes (`None`) or ends the scan
+/// (`Some`: aborted; failed when the pause itself failed). A Ctrl-C pressed while the question
+/// was open counts as the answer "abort".
+#[allow(clippy::too_many_arguments)]
+fn pause(
+    inst: &mut Instrument,
+    kind: &str,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+    pre: &Preflight,
+    s: &mut Steps,
+    bar: &indicatif::ProgressBar,
+    i: usize,
+) -> Option<Ended> {
+    let measured = s.measured;
+    let Some(ask) = env.pause else {
+        return Some(Ended::Aborted { measured });
+    };
+    // a raster: the line is finished; the digitiser and the wave generator go off
+    if let Err(error) = strategy.pause(inst) {
+        return Some(Ended::Failed {
+            measured,
+            error,
             stage_fault: true,
-            ..
-        }
-    );
-    let mut stop = match &ended {
+        });
+    }
+    let t = std::time::Instant::now();
+    let at = strategy.resting_at().unwrap_or(pre.start);
+    let info = Paused {
+        kind,
+        measured,
+        total: pre.points_total,
+        at,
+    };
+    if let Some(o) = env.observer {
+        s.batch.flush(o);
+        o.paused(true);
+    }
+    let resume = bar.suspend(|| ask(&info));
+    if let Some(o) = env.observer {
+        o.paused(false);
+    }
+    let dt = t.elapsed().as_secs_f64();
+    s.paused_wall += dt;
+    s.pauses.push(json!({
+        "after_points": measured,
+        "after_steps": s.steps,
+        "at_um": at,
+        "wall_s": dt,
+        "resumed": resume,
+    }));
+    // a Ctrl-C pressed while the question was open counts as the answer
+    if !resume || env.abort.swap(false, Ordering::SeqCst) {
+        return Some(Ended::Aborted { measured });
+    }
+    (env.log)(&format!(
+        "{kind}: resumed at {} {} of {}",
+        pre.lay.unit,
+        i + 1,
+        pre.lay.steps
+    ));
+    None
+}
+
+/// The stop: after an abort or a fault the strategy's stop commands (after a stage fault at
+/// least the stage's stop), logged with what they did. `None` after a complete scan (nothing
+/// sent); `Some(Err)` when a stop command failed.
+fn stop(
+    inst: &mut Instrument,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+    kind: &str,
+    ended: &Ended,
+) -> Option<Result<String, String>> {
+    let stop = match ended {
         Ended::Complete => None,
         Ended::Aborted { .. } => strategy.stop(inst, StopCause::Abort),
         Ended::Failed { stage_fault, .. } => strategy.stop(
@@ -465,69 +583,122 @@ pub fn run(
     };
     if let Some(r) = &stop {
         let (Ok(note) | Err(note)) = r;
-        let tail = if stage_fault {
+        let tail = if is_stage_fault(ended) {
             "; no further motion"
         } else {
             ""
         };
         (env.log)(&format!("{kind}: {note}{tail}"));
     }
-    let stop_failed = matches!(stop, Some(Err(_)));
-    let mut returned = false;
-    let mut return_error = None;
-    if plan.return_to_start && !stage_fault && !stop_failed {
-        match inst.move_settle(start) {
-            Ok(()) => returned = true,
-            Err(e) => {
-                (env.log)(&format!(
-                    "{kind}: could NOT return to the start position: {e}"
-                ));
-                return_error = Some(e.to_string());
-                // the one command the stage still gets is a stop
-                let r = inst
-                    .stage
-                    .stop()
-                    .map(|()| format!("stage stopped ({})", inst.stage.name()))
-                    .map_err(|e| format!("the stop command failed too: {e}"));
-                let (Ok(note) | Err(note)) = &r;
-                (env.log)(&format!("{kind}: {note}"));
-                stop = Some(r);
-            }
+    stop
+}
+
+/// A stage fault: after it nothing but a stop is commanded to the stage.
+fn is_stage_fault(ended: &Ended) -> bool {
+    matches!(
+        ended,
+        Ended::Failed {
+            stage_fault: true,
+            ..
+        }
+    )
+}
+
+/// How the scan was brought to rest: the stop sent (if any; the stage's own stop when the
+/// return failed) and the return to the start.
+struct Halt {
+    stop: Option<Result<String, String>>,
+    returned: bool,
+    return_error: Option<String>,
+}
+
+/// The return: a relative scan goes back to its start — unless the stage faulted or a stop
+/// command failed. If the return itself fails, the one command the stage still gets is a stop.
+fn return_to_start(
+    inst: &mut Instrument,
+    plan: &Plan,
+    env: &ScanEnv,
+    start: Pos,
+    ended: &Ended,
+    stop: Option<Result<String, String>>,
+) -> Halt {
+    let kind = &plan.kind;
+    let mut halt = Halt {
+        stop,
+        returned: false,
+        return_error: None,
+    };
+    let stop_failed = matches!(halt.stop, Some(Err(_)));
+    if !plan.return_to_start || is_stage_fault(ended) || stop_failed {
+        return halt;
+    }
+    match inst.move_settle(start) {
+        Ok(()) => halt.returned = true,
+        Err(e) => {
+            (env.log)(&format!(
+                "{kind}: could NOT return to the start position: {e}"
+            ));
+            halt.return_error = Some(e.to_string());
+            // the one command the stage still gets is a stop
+            let r = inst
+                .stage
+                .stop()
+                .map(|()| format!("stage stopped ({})", inst.stage.name()))
+                .map_err(|e| format!("the stop command failed too: {e}"));
+            let (Ok(note) | Err(note)) = &r;
+            (env.log)(&format!("{kind}: {note}"));
+            halt.stop = Some(r);
         }
     }
+    halt
+}
 
-    let status = ended.status();
+/// The scan as it will be saved: the partial data (unmeasured pixels NaN), the engine's
+/// metadata (plan, status, counts, stop and return, limits, instrument, times), the strategy's,
+/// the QPD's (the simulator's pipeline) and the script's (`env.meta`) merged in that order.
+fn record(
+    inst: &mut Instrument,
+    plan: &Plan,
+    strategy: &mut dyn Strategy,
+    env: &ScanEnv,
+    pre: Preflight,
+    s: Steps,
+    halt: &Halt,
+) -> Scan {
+    let kind = &plan.kind;
+    let status = s.ended.status();
+    let stop = &halt.stop;
     let mut meta = json!({
         "plan": plan,
-        "mode": mode,
+        "mode": pre.mode,
         "status": status,
-        "points_total": points.len(),
-        "points_measured": measured,
-        "start_position_um": start,
-        "returned_to_start": returned,
+        "points_total": pre.points_total,
+        "points_measured": s.measured,
+        "start_position_um": pre.start,
+        "returned_to_start": halt.returned,
         "stop_sent": stop.is_some(),
         "stop": stop.as_ref().and_then(|r| r.as_ref().ok()),
         "stop_error": stop.as_ref().and_then(|r| r.as_ref().err()),
-        "limits": limits,
+        "limits": pre.limits,
         "instrument": inst.description,
-        "time": clock.json(inst, eta),
+        "time": s.clock.json(inst, pre.eta),
     });
-    meta["time"]["measured_s_per_point_first_row"] = json!(measured_s_per_point);
-    meta["time"]["paused_wall_s"] = json!(paused_wall);
-    if !pauses.is_empty() {
-        meta["pauses"] = Value::Array(pauses);
+    meta["time"]["measured_s_per_point_first_row"] = json!(s.measured_s_per_point);
+    meta["time"]["paused_wall_s"] = json!(s.paused_wall);
+    if !s.pauses.is_empty() {
+        meta["pauses"] = Value::Array(s.pauses);
     }
     if let Ended::Failed {
         error, stage_fault, ..
-    } = &ended
+    } = &s.ended
     {
         meta["error"] = json!({ "message": error.to_string(), "stage_fault": stage_fault });
     }
-    if let Some(e) = return_error {
+    if let Some(e) = &halt.return_error {
         meta["return_error"] = json!(e);
     }
-    let log_kind = |s: &str| (env.log)(&format!("{kind}: {s}"));
-    if let Value::Object(extra) = strategy.metadata(inst, steps, loop_s, &log_kind) {
+    let log_kind = |m: &str| (env.log)(&format!("{kind}: {m}"));
+    if let Value::Object(extra) = strategy.metadata(inst, s.steps, s.loop_s, &log_kind) {
         for (k, v) in extra {
             match (k.as_str(), v) {
                 ("time", Value::Object(t)) => {
@@ -539,8 +710,11 @@ pub fn run(
             }
         }
     }
-    let mk = |d: Array2<f64>| Image::new(d, colv.clone(), rowv.clone()).with_axis_names(xn, yn);
-    let [sx, sy, mut sz] = img;
+    let mk = |d: Array2<f64>| {
+        Image::new(d, pre.colv.clone(), pre.rowv.clone()).with_axis_names(pre.xn, pre.yn)
+    };
+    let s_clip = s.clip;
+    let [sx, sy, mut sz] = s.img;
     if !strategy.sz_measured() {
         sz.fill(f64::NAN);
     }
@@ -553,9 +727,6 @@ pub fn run(
         raw: strategy.raw(),
         flags: Default::default(),
     };
-
-    // the QPD's metadata (the simulator's pipeline) and the script's (`env.meta`) merged into
-    // the scan's, the autosave (a failure logged loudly), the live display told
     if let Some(Value::Object(q)) = inst.qpd.metadata() {
         for (k, v) in q {
             scan.meta[k.as_str()] = v;
@@ -567,7 +738,13 @@ pub fn run(
         }
     }
     // clipped and dark pixels: in the scan, its metadata, and said to the operator
-    clip.finish(&mut scan, &kind, env.log);
+    s_clip.finish(&mut scan, kind, env.log);
+    scan
+}
+
+/// The save: always, also after an abort or a device error (a failure logged loudly); then the
+/// live display is told.
+fn save(env: &ScanEnv, kind: &str, scan: Scan, ended: Ended, returned: bool) -> ScanRun {
     let saved = (env.save)(&scan);
     if let Err(e) = &saved {
         (env.log)(&format!(
@@ -577,12 +754,12 @@ pub fn run(
     if let Some(o) = env.observer {
         o.ended(&scan, saved.as_ref().ok().map(|p| p.as_path()));
     }
-    Ok(ScanRun {
+    ScanRun {
         scan,
         saved,
         ended,
         returned_to_start: returned,
-    })
+    }
 }
 
 /// When a scan started, on the wall and on the instrument's clock.

@@ -410,7 +410,14 @@ mod tests {
             "y"
         );
         let nan = [(0.0, f64::NAN), (0.0, 1.0), (0.0, 1.0)];
-        assert!(SoftLimits::default().within_travel(nan).is_err());
+        let e = SoftLimits::default().within_travel(nan).unwrap_err();
+        assert_eq!(e.axis, "x");
+        assert!(
+            e.message
+                .contains("[0, NaN] µm for x, which is not a range"),
+            "{}",
+            e.message
+        );
     }
 
     #[test]

@@ -11,6 +11,7 @@ pub mod error;
 pub mod limits;
 pub mod plan;
 pub mod raster;
+pub mod stop_rule;
 pub mod store;
 pub mod strategy;
 

@@ -447,7 +447,8 @@ mod tests {
             e == "pixel 1 (centre 0.5000 µm) got no sample: the measured position jumps from 0.1000 to 0.9000 µm between samples 1 and 2 (a pixel is 0.5000 µm): the line is too fast for the digitiser's rate",
             "{e}"
         );
-        assert!(bin_line(&x, &[1.0; 3], 0.0, 1.0, 3).is_err());
+        let e = bin_line(&x, &[1.0; 3], 0.0, 1.0, 3).unwrap_err();
+        assert_eq!(e, "4 positions for 3 samples");
         // samples there, but not finite; no sample there at all
         let e = bin_line(&[0.0, 0.5, 1.0], &[1.0, f64::NAN, 1.0], 0.0, 1.0, 3).unwrap_err();
         assert!(

@@ -332,15 +332,17 @@ mod tests {
         let tb = filament_beads(&tpl, &taper, &BeadModelOptions::default()).unwrap();
         let ratio = tb[15].2 / tb[5].2;
         assert!((ratio - (15.5f64 / 5.5).powi(2)).abs() < 1e-9);
-        assert!(filament_beads(
+        let e = filament_beads(
             &tpl,
             &Filament {
                 points: vec![[0.0, 0.0]],
                 d_nm: vec![1.0],
-                n: 1.5
+                n: 1.5,
             },
-            &BeadModelOptions::default()
+            &BeadModelOptions::default(),
         )
-        .is_err());
+        .unwrap_err()
+        .to_string();
+        assert_eq!(e, "points: 1 vertices; a filament needs at least 2");
     }
 }

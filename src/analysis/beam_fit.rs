@@ -1,4 +1,4 @@
-//! The beam from the measurement (issue 19, item 4): fit the focused beam and the QPD to one
+//! The beam from the measurement: fit the focused beam and the QPD to one
 //! xy scan of a reference bead at the focus (docs/physics.md §10.4).
 //!
 //! **Model.** The reference bead (a point dipole of polarisability α, the tier the simulator

@@ -57,8 +57,10 @@
 //! (min_separation·w0)² patch of the scanned area and the fit needs more residuals than
 //! parameters.
 
+mod degeneracy;
 mod detect;
 mod lm;
+mod normal;
 mod problem;
 mod simd;
 mod types;

@@ -284,10 +284,10 @@ mod tests {
                 (a, (-4.0 * 2f64.ln() * a * a / 0.25).exp())
             })
             .collect();
-        let e = check_filament_maxima(&bead, 0.0, 0.0)
+        let e_bead = check_filament_maxima(&bead, 0.0, 0.0)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("point object"), "{e}");
+        assert!(e_bead.contains("point object"), "{e_bead}");
         // a flat filament with one aggregate twice as strong: accepted
         let mut fil: Vec<(f64, f64)> = (0..61).map(|i| (0.05 * i as f64, 0.4)).collect();
         fil[30].1 = 0.8;
@@ -314,7 +314,10 @@ mod tests {
         let mut spiked = bead.clone();
         spiked[5].1 = 1.0;
         spiked[6].1 = 1.0;
-        assert!(check_filament_maxima(&spiked, 0.0, 0.0).is_err());
+        let e_spiked = check_filament_maxima(&spiked, 0.0, 0.0)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e_spiked, e_bead, "the spike stretched the bead's span");
         // lines without a maximum (NaN) count as no signal: a bead with a strong noise maximum
         // on the line every third line far away is still a bead
         let mut sparse = bead.clone();
@@ -323,7 +326,10 @@ mod tests {
                 l.1 = if i % 3 == 0 { 0.5 } else { f64::NAN };
             }
         }
-        assert!(check_filament_maxima(&sparse, 0.0, 0.0).is_err());
+        let e_sparse = check_filament_maxima(&sparse, 0.0, 0.0)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e_sparse, e_bead, "the far maxima stretched the bead's span");
         // a flat filament at 5σ is strong everywhere; at 2σ nothing stands above 3σ
         assert!(check_filament_maxima(&fil, 0.08, 0.0).is_ok());
         let e = check_filament_maxima(&tip, 0.2, 0.0)

@@ -222,8 +222,12 @@ mod tests {
             n: 11,
         };
         assert_eq!(down.range(0.25, 0.55), 5..8);
-        assert!(check_axis("x", &[0.0, 0.1, 0.3], 2).is_err());
-        assert!(check_axis("x", &[0.0], 2).is_err());
+        let e = check_axis("x", &[0.0, 0.1, 0.3], 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("x: axis is not regular: step 0.1"), "{e}");
+        let e = check_axis("x", &[0.0], 2).unwrap_err().to_string();
+        assert_eq!(e, "x: axis has 1 values; at least 2 are needed");
         assert!((check_axis("x", &[1.0, 0.9, 0.8], 2).unwrap() + 0.1).abs() < 1e-12);
     }
 }

@@ -207,7 +207,13 @@ mod tests {
         assert!((p.t[7] - 0.7).abs() < 1e-12);
         // Along the second leg x = 0.4, y = t − 0.3.
         assert!((p.v[5] - (0.8 - 3.0 * 0.2 + 1.0)).abs() < 1e-9);
-        assert!(profile_polyline(&img, &[[0.1, 0.0]], 0.1, Interp::Cubic).is_err());
-        assert!(profile_polyline(&img, &[[0.1, 0.0], [0.2, 0.0]], 0.0, Interp::Cubic).is_err());
+        let e = profile_polyline(&img, &[[0.1, 0.0]], 0.1, Interp::Cubic)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e, "points: 1 vertices; a polyline needs at least 2");
+        let e = profile_polyline(&img, &[[0.1, 0.0], [0.2, 0.0]], 0.0, Interp::Cubic)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("step_um = 0 is out of range"), "{e}");
     }
 }

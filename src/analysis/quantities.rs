@@ -317,7 +317,11 @@ mod tests {
         assert!((n_corr(1.572, 1.572, 1.333).unwrap() - 1.0).abs() < 1e-15);
         assert_eq!(n_corr(1.333, 1.572, 1.333).unwrap(), 0.0);
         assert!(n_corr(1.30, 1.572, 1.333).unwrap() < 0.0);
-        assert!(n_corr(1.5, 1.3, 1.333).is_err());
+        let e = n_corr(1.5, 1.3, 1.333).unwrap_err().to_string();
+        assert!(
+            e.starts_with("n_ref = 1.3 is out of range: n_ref > n_medium = 1.333"),
+            "{e}"
+        );
         // Small-contrast limit: CM ≈ 2Δn/(3 n_s)·… so the ratio → Δn_obj/Δn_ref.
         let r = n_corr(1.3331, 1.3332, 1.333).unwrap();
         assert!((r - 0.5).abs() < 1e-3);
@@ -353,8 +357,20 @@ mod tests {
         // Doubling the density doubles the mass.
         let p2 = point_object(s, None, 1.0, rb.n, 2.0 * rb.density_g_cm3, &rb).unwrap();
         assert!((p2.mass_kda / p.mass_kda - 2.0).abs() < 1e-12);
-        assert!(point_object(-1.0, None, 1.0, rb.n, 1.0, &rb).is_err());
-        assert!(point_object(1.0, None, 1.0, 1.333, 1.0, &rb).is_err());
+        let e = point_object(-1.0, None, 1.0, rb.n, 1.0, &rb)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("sens_obj = -1 is out of range: same sign as the contrast factor"),
+            "{e}"
+        );
+        let e = point_object(1.0, None, 1.0, 1.333, 1.0, &rb)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("n_obj = 1.333 is out of range: n_obj ≠ n_medium"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -363,8 +379,15 @@ mod tests {
         let c = DiameterCalib::from_sens_bm(10.0, 110.0, 1.57, 1.414, 1.333).unwrap();
         assert!((c.diameter_nm(10.0 * c.n_corr).unwrap() - 110.0).abs() < 1e-9);
         assert_eq!(c.diameter_nm(0.0).unwrap(), 0.0);
-        assert!(c.diameter_nm(-0.1).is_err());
-        assert!(c.diameter_nm(f64::NAN).is_err());
+        for (bad, shown) in [(-0.1, "-0.1"), (f64::NAN, "NaN")] {
+            let e = c.diameter_nm(bad).unwrap_err().to_string();
+            assert!(
+                e.starts_with(&format!(
+                    "sens_corr = {shown} is out of range: sens_corr ≥ 0"
+                )),
+                "{e}"
+            );
+        }
         // With the paper's A = 58.6 nm the implied bead-model sensitivity is ≈ 10.
         let implied = (110.0f64 / 58.6).powi(2) / c.n_corr;
         assert!(implied > 9.0 && implied < 11.0, "{implied}");

@@ -111,7 +111,12 @@ mod tests {
             "{s:?}"
         );
         assert!((s.com - 0.3).abs() < 1e-3, "{s:?}");
-        assert!(line_stats(&t, &vec![1.0; t.len()]).is_err());
-        assert!(line_stats(&t[..2], &v[..2]).is_err());
+        let e = line_stats(&t, &vec![1.0; t.len()]).unwrap_err().to_string();
+        assert_eq!(e, "the channel is flat along the line: no peak");
+        let e = line_stats(&t[..2], &v[..2]).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "scan: 2 measured points; peak/cen/com/fwhm need at least 3"
+        );
     }
 }

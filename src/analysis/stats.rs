@@ -312,7 +312,8 @@ mod tests {
         assert!((s.mean - 2.5).abs() < 1e-15);
         assert!((s.std - (5.0f64 / 3.0).sqrt()).abs() < 1e-15);
         assert!((s.sem - s.std / 2.0).abs() < 1e-15);
-        assert!(summary(&[f64::NAN]).is_err());
+        let e = summary(&[f64::NAN]).unwrap_err().to_string();
+        assert_eq!(e, "values: no finite values");
     }
 
     #[test]
@@ -327,7 +328,8 @@ mod tests {
         assert_eq!(h.n_outside, 1);
         assert_eq!(h.n_skipped, 1);
         assert_eq!(h.centres(), vec![0.25, 0.75]);
-        assert!(histogram(&[1.0], 0, None).is_err());
+        let e = histogram(&[1.0], 0, None).unwrap_err().to_string();
+        assert!(e.starts_with("bins = 0 is out of range: 1 ≤ bins ≤"), "{e}");
         let h1 = histogram(&[3.0, 3.0], 4, None).unwrap();
         assert!(h1.all_equal);
         assert_eq!(
@@ -340,7 +342,16 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("values[1] = -inf"), "{e}");
-        assert!(histogram(&[1.0], MAX_BINS + 1, None).is_err());
+        let e = histogram(&[1.0], MAX_BINS + 1, None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!(
+                "bins = {} is out of range: 1 ≤ bins ≤ {MAX_BINS}",
+                MAX_BINS + 1
+            )
+        );
     }
 
     #[test]
@@ -354,8 +365,12 @@ mod tests {
         let s = vec![0.1; 10];
         let fw = linfit(&x, &y, Some(&s)).unwrap();
         assert!((fw.slope_err - 0.1 / 82.5f64.sqrt()).abs() < 1e-12);
-        assert!(linfit(&[1.0, 1.0], &[1.0, 2.0], None).is_err());
-        assert!(linfit(&[1.0], &[1.0], None).is_err());
+        let e = linfit(&[1.0, 1.0], &[1.0, 2.0], None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e, "x: all x values are equal: the slope is undetermined");
+        let e = linfit(&[1.0], &[1.0], None).unwrap_err().to_string();
+        assert_eq!(e, "x: 1 usable points; a line needs at least 2");
     }
 
     #[test]
@@ -367,6 +382,12 @@ mod tests {
             .collect();
         let f = loglog_fit(&d, &s, None).unwrap();
         assert!((f.slope - 3.02).abs() < 1e-12);
-        assert!(loglog_fit(&[1.0, -1.0], &[1.0, 1.0], None).is_err());
+        let e = loglog_fit(&[1.0, -1.0], &[1.0, 1.0], None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            "x, y: point 1 = (-1, 1): a log-log fit needs x > 0 and y > 0"
+        );
     }
 }

@@ -185,7 +185,7 @@ impl Template {
                 ),
             });
         }
-        // the beam the simulator renders point dipoles in (issue 19)
+        // the beam the simulator renders point dipoles in
         let (mut g, model) = crate::optics::mie_template::point_dipole_plane(
             &optics,
             *detector,
@@ -586,7 +586,8 @@ mod tests {
         let j = t.to_json();
         let back = Template::from_json(&j).unwrap();
         assert!(back.approx_eq(&t, 1e-14));
-        assert!(Template::from_json("{}").is_err());
+        let e = Template::from_json("{}").unwrap_err().to_string();
+        assert!(e.starts_with("json: missing field `"), "{e}");
     }
 
     #[test]

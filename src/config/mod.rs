@@ -239,7 +239,7 @@ impl Default for StageConfig {
 pub const DEFAULT_POLL_MS_GCS: u64 = 1;
 /// Default `stage.poll_ms` for KPZ101 cubes: each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request
 /// and reply, and a strain-gauge reading taken every millisecond catches the actuator still
-/// on its way, inside the tolerance before it has settled (issue 32).
+/// on its way, inside the tolerance before it has settled.
 pub const DEFAULT_POLL_MS_KPZ101: u64 = 10;
 /// Default `stage.poll_ms` for Mad City Labs Nano-Drives: 0, the readings back to back — each
 /// `MCL_SingleReadN` is a USB round trip of its own (≈ 0.2 ms), so the link sets the pace and

@@ -736,7 +736,8 @@ mod tests {
         let e = point_plan(9.0, 16384).unwrap_err();
         assert!(e.contains("9 s") && e.contains("8.590 s"), "{e}");
         assert!(point_plan(0.0, 16384).unwrap_err().contains("0 s"));
-        assert!(point_plan(f64::NAN, 16384).is_err());
+        let e = point_plan(f64::NAN, 16384).unwrap_err();
+        assert_eq!(e, "read window NaN s: must be a positive time");
         // a very short window still reads one sample
         assert_eq!(point_plan(1e-12, 16384), Ok((1, 1)));
     }
@@ -759,7 +760,8 @@ mod tests {
         assert!(buffered_plan(10, 2e8, 16384)
             .unwrap_err()
             .contains("sample_rate"));
-        assert!(buffered_plan(10, -1.0, 16384).is_err());
+        let e = buffered_plan(10, -1.0, 16384).unwrap_err();
+        assert!(e.starts_with("sample_rate -1 Hz: must be between"), "{e}");
     }
 
     #[test]

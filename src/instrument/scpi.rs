@@ -69,7 +69,7 @@ pub struct ScpiOptions {
     /// Ask `SYST:ERR?` after every measurement too. A rejected query is never answered (the
     /// dialect's rule), so a well-formed reply already shows the measurement was accepted and
     /// the check is skipped by default (one round trip per point less); a timeout still asks
-    /// `SYST:ERR?`. True: the behaviour before issue 20 (the bench compares both).
+    /// `SYST:ERR?`. True: the behaviour before the speed work (the bench compares both).
     pub check_error_each_read: bool,
     /// The digitiser's input range ±V (`[qpd] range_v`); `None`: unknown, clipping not
     /// counted. The dialect sends means only: a pixel counts as clipped (all its samples) when

@@ -1,4 +1,4 @@
-//! Golden traces (issue 5 item 4): wrappers around any `Stage` and `Qpd` that record every move
+//! Golden traces: wrappers around any `Stage` and `Qpd` that record every move
 //! and read with the instrument's time, plus the decisions a protocol notes, as readable text
 //! lines. Tests compare a protocol's trace with a committed file, so a change in behaviour shows
 //! up as a line diff; `bfpscope test --bless` rewrites the files deliberately.
@@ -302,7 +302,12 @@ mod tests {
         inst.move_settle([0.1, 0.0, 0.0]).unwrap();
         inst.qpd.read(1000).unwrap();
         trace.note("done");
-        assert!(inst.stage.move_to([0.0, 0.0, 99.0]).is_err());
+        let e = inst
+            .stage
+            .move_to([0.0, 0.0, 99.0])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("Position out of limits"), "{e}");
         let t = trace.text();
         let lines: Vec<&str> = t.lines().collect();
         assert_eq!(lines.len(), 4, "{t}");

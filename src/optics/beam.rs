@@ -1,4 +1,4 @@
-//! The instrument's optics, validated and resolved once (issue 31 item 2): [`ValidOptics`]
+//! The instrument's optics, validated and resolved once: [`ValidOptics`]
 //! cannot exist invalid, and it carries the [`ResolvedBeam`], the angular-spectrum beam
 //! (spectral waist, pupil apodisation) that `Optics::beam` selects. Every physics function
 //! reads the beam from here; the mapping beam → (waist, apodisation) is written once, in
@@ -20,7 +20,7 @@ pub const DIPOLE_N: f64 = 1.5;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 pub enum Apodization {
     /// Plane-wave amplitude per dk_x dk_y = f_w(θ) (no aplanatic factor; the Mie tier's beam
-    /// until issue 19: its far field is ∝ cosθ f_w(θ)).
+    /// until the one-beam work: its far field is ∝ cosθ f_w(θ)).
     #[default]
     None,
     /// Aplanatic (sine-condition) objective: far-field amplitude ∝ f_w(θ) √cosθ (energy
@@ -64,34 +64,55 @@ pub fn filling_to_spectral_um(optics: &Optics, f0: f64) -> Result<f64, OpticsErr
     Ok(2.0 / (optics.k_per_um() * f0 * theta_aperture(optics).sin()))
 }
 
+/// How a beam renders point dipoles (and the finite-size rule's dipoles): decided once, with
+/// the rest of the beam, in [`ResolvedBeam::of`]; every physics function that renders a dipole
+/// matches on it instead of asking which beam it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DipoleTier {
+    /// The paper's paraxial Rayleigh model (suppl. S2/S3): its template planes and closed-form
+    /// response; only spheres the scene sends to the Mie tier go through the angular spectrum.
+    ParaxialRayleigh,
+    /// Every scatterer in the angular spectrum: a point dipole is a [`DIPOLE_D_NM`] sphere's
+    /// dipole-limit Lorenz–Mie response per unit polarisability (always vectorial).
+    AngularSpectrum,
+}
+
 /// The focused beam `Optics::beam` selects, as the angular spectrum every tier renders in
 /// (docs/physics.md §9–10): the Gaussian spectrum's waist parameter and the pupil apodisation,
-/// and which beam it is (the point dipoles of the paraxial beam are rendered by the paper's
-/// Rayleigh template, suppl. S2/S3).
+/// which beam it is, and how it renders point dipoles ([`DipoleTier`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ResolvedBeam {
     kind: Beam,
     spectral_waist_um: f64,
     apodization: Apodization,
+    dipoles: DipoleTier,
 }
 
 impl ResolvedBeam {
-    /// The one mapping beam → (spectral waist, apodisation):
-    /// `Beam::Paraxial`: §9's beam, spectral waist w0, no aplanatic factor;
+    /// The one mapping beam → (spectral waist, apodisation, dipole tier):
+    /// `Beam::Paraxial`: §9's beam, spectral waist w0, no aplanatic factor, point dipoles by
+    /// the paper's Rayleigh model;
     /// `Beam::Vector`: the aplanatic focus (Richards & Wolf 1959) of Gaussian pupil filling
-    /// `pupil_filling` ([`filling_to_spectral_um`]; ∞: uniformly filled, waist 0).
+    /// `pupil_filling` ([`filling_to_spectral_um`]; ∞: uniformly filled, waist 0), every
+    /// scatterer in the angular spectrum.
     fn of(optics: &Optics) -> Result<Self, OpticsError> {
-        let (spectral_waist_um, apodization) = match optics.beam {
-            Beam::Paraxial => (optics.w0_um(), Apodization::None),
+        let (spectral_waist_um, apodization, dipoles) = match optics.beam {
+            Beam::Paraxial => (
+                optics.w0_um(),
+                Apodization::None,
+                DipoleTier::ParaxialRayleigh,
+            ),
             Beam::Vector => (
                 filling_to_spectral_um(optics, optics.pupil_filling)?,
                 Apodization::Aplanatic,
+                DipoleTier::AngularSpectrum,
             ),
         };
         Ok(Self {
             kind: optics.beam,
             spectral_waist_um,
             apodization,
+            dipoles,
         })
     }
 
@@ -107,12 +128,9 @@ impl ResolvedBeam {
     pub fn apodization(&self) -> Apodization {
         self.apodization
     }
-    /// True in the paper's paraxial beam: point dipoles are rendered by the paraxial Rayleigh
-    /// template (suppl. S2/S3), and only spheres the scene sends to the Mie tier go through the
-    /// angular spectrum. False in the vector beam: every scatterer is rendered in the angular
-    /// spectrum (issue 19).
-    pub fn paraxial_dipoles(&self) -> bool {
-        self.kind == Beam::Paraxial
+    /// How this beam renders point dipoles ([`DipoleTier`]).
+    pub fn dipoles(&self) -> DipoleTier {
+        self.dipoles
     }
 }
 
@@ -168,6 +186,7 @@ impl Default for ValidOptics {
                 kind: Beam::Vector,
                 spectral_waist_um: 0.0,
                 apodization: Apodization::Aplanatic,
+                dipoles: DipoleTier::AngularSpectrum,
             },
         }
     }
@@ -236,7 +255,7 @@ mod tests {
         .unwrap();
         assert_eq!(p.beam().spectral_waist_um(), 0.5);
         assert_eq!(p.beam().apodization(), Apodization::None);
-        assert!(p.beam().paraxial_dipoles());
+        assert_eq!(p.beam().dipoles(), DipoleTier::ParaxialRayleigh);
         let v = ValidOptics::new(Optics {
             pupil_filling: 2.0,
             ..Optics::default()
@@ -247,7 +266,7 @@ mod tests {
         let want = 2.0 / (k * 2.0 * (1.2 / 1.333));
         assert!((v.beam().spectral_waist_um() - want).abs() < 1e-15 * want);
         assert_eq!(v.beam().apodization(), Apodization::Aplanatic);
-        assert!(!v.beam().paraxial_dipoles());
+        assert_eq!(v.beam().dipoles(), DipoleTier::AngularSpectrum);
         let e = ValidOptics::new(Optics {
             na: 2.0,
             ..Optics::default()

@@ -156,7 +156,8 @@ mod tests {
         assert_eq!(n_corr(1.572, 1.572, 1.333).unwrap(), 1.0);
         assert_eq!(n_corr(1.333, 1.572, 1.333).unwrap(), 0.0);
         assert!(n_corr(1.414, 1.57, 1.333).unwrap() < 0.4);
-        assert!(n_corr(1.5, 1.333, 1.333).is_err());
+        let e = n_corr(1.5, 1.333, 1.333).unwrap_err().to_string();
+        assert!(e.contains("without contrast"), "{e}");
         let e = n_corr(f64::NAN, 1.57, 1.333).unwrap_err().to_string();
         assert!(e.contains("n_obj"), "{e}");
     }

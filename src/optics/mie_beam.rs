@@ -1,4 +1,4 @@
-//! Focused-beam Lorenz–Mie QPD response (issue 8, parts 3–4; paper Sec. 3.1, Fig. 2b and 3c).
+//! Focused-beam Lorenz–Mie QPD response (paper Sec. 3.1, Fig. 2b and 3c).
 //!
 //! Method (docs/physics.md §9): angular-spectrum (plane-wave) representation of the focused
 //! beam, exact vector Mie scattering of every plane wave by the sphere, and interference of the
@@ -10,7 +10,7 @@
 //!   Θ_in = Θ_obj = asin(min(NA, n)/n) (the objective aperture), or smaller where the Gaussian
 //!   spectrum is below e^{−36}; c_j = Ã(θ_j) k² cosθ_j sinθ_j Δθ_j Δφ_j (dk_x dk_y),
 //!   Ã = e^{−k² w0² sin²θ/4} (the plane-wave spectrum of a Gaussian waist w0; × 1/√cosθ with
-//!   [`Apodization::Aplanatic`], the aplanatic objective of issue 19, docs/physics.md §10), and
+//!   [`Apodization::Aplanatic`], the aplanatic objective, docs/physics.md §10), and
 //!   ê_j = cosφ ê_θ − sinφ ê_φ (x-polarised pupil, Richards–Wolf), written without a
 //!   singularity as ê = (1 − u²/(1+c), −uv/(1+c), −u), (u, v, c) = k̂.
 //! * **Beam far field** (stationary phase of the angular spectrum, Mandel & Wolf §3.3):
@@ -42,7 +42,7 @@
 //! [`MieBeamSpec::for_reach`] and [`optics_for_reach`] give grids for a larger reach.
 
 pub use super::beam::{filling_to_spectral_um, Apodization};
-use super::beam::{theta_aperture, OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
+use super::beam::{theta_aperture, DipoleTier, OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
 use super::mie::{mie_s1s2_terms, Complex64 as C64, MieError};
 use super::params::{check_above, check_range, Optics, OpticsError};
 use super::quad::gauss_legendre;
@@ -87,7 +87,7 @@ pub struct MieBeamSpec {
     pub waist: Waist,
     /// Pupil apodisation of the objective ([`Apodization`]). `Aplanatic` is the vectorial focus
     /// of an aplanatic objective (Richards & Wolf 1959; Novotny & Hecht, *Principles of
-    /// Nano-Optics*, 2nd ed., eq. 3.66); `None` is the beam this tier had before issue 19.
+    /// Nano-Optics*, 2nd ed., eq. 3.66); `None` is the beam this tier had before the one-beam work.
     pub apodization: Apodization,
 }
 
@@ -1156,7 +1156,7 @@ pub fn dipole_response_in_beam(
 ) -> Result<super::rayleigh::Signals, OpticsError> {
     let optics = optics.valid()?;
     let optics: &ValidOptics = &optics;
-    if optics.beam().paraxial_dipoles() {
+    if let DipoleTier::ParaxialRayleigh = optics.beam().dipoles() {
         return super::rayleigh::response(optics, det, pos_um, d_nm, n);
     }
     super::rayleigh::check_particle(d_nm, n)?;
@@ -1215,15 +1215,14 @@ pub fn max_sensitivity_in_beam(
     let optics = optics.valid()?;
     let optics: &ValidOptics = &optics;
     let alpha = super::rayleigh::alpha_um3(d_nm, n, optics.n_medium);
-    let paraxial = optics.beam().paraxial_dipoles();
-    match model {
-        SphereModel::Mie => {
+    match (model, optics.beam().dipoles()) {
+        (SphereModel::Mie, _) => {
             Ok(
                 MieBeam::new(optics, d_nm, C64::new(n, 0.0), MieBeamSpec::of_beam(optics))?
                     .extreme_sensitivity_x(alpha),
             )
         }
-        SphereModel::Dipole | SphereModel::FiniteSize { .. } if paraxial => {
+        (SphereModel::Dipole | SphereModel::FiniteSize { .. }, DipoleTier::ParaxialRayleigh) => {
             let det = Detection::new(optics, &DetectorModel::default())?;
             let (size, n_r) = match model {
                 SphereModel::FiniteSize { n_r } => (Some(d_nm), n_r),
@@ -1232,7 +1231,7 @@ pub fn max_sensitivity_in_beam(
             let (s, z) = super::finite_size::max_sensitivity_unit(&det, size, n_r);
             Ok((s * alpha, z))
         }
-        SphereModel::Dipole | SphereModel::FiniteSize { .. } => {
+        (SphereModel::Dipole | SphereModel::FiniteSize { .. }, DipoleTier::AngularSpectrum) => {
             // the vector beam's point dipole: a 1 nm sphere's Mie response per unit α
             let (d0, n0) = (DIPOLE_D_NM, DIPOLE_N);
             let a0 = super::rayleigh::alpha_um3(d0, n0, optics.n_medium);

@@ -1,7 +1,7 @@
 //! Mie templates: the focused-beam Lorenz–Mie response of one sphere (`optics::mie_beam`) on
 //! the same lateral grids and z planes as the Rayleigh templates (`optics::template`), so that
 //! the simulator's `mie` effect renders beads by the same superposition Σ αᵢ·T(s − pᵢ)
-//! (paper Sec. 4.1) with a per-sphere template T (issue 8; docs/physics.md §9).
+//! (paper Sec. 4.1) with a per-sphere template T (docs/physics.md §9).
 //!
 //! **Planes.** The plane at axial displacement z is stored per unit Rayleigh polarisability
 //! α = r³ CM (µm³), like the Rayleigh template, so the renderer multiplies by the same α and
@@ -23,7 +23,7 @@
 //! than evaluating every template node. Coarse nodes beyond L + H are taken as zero (the
 //! response there is below the truncation level of the support).
 
-use super::beam::{OpticsArg, ValidOptics};
+use super::beam::{DipoleTier, OpticsArg, ValidOptics};
 pub use super::beam::{DIPOLE_D_NM, DIPOLE_N};
 use super::grid::Grid2;
 use super::mie::Complex64 as C64;
@@ -72,7 +72,8 @@ pub fn point_dipole_plane(
     z_um: f64,
 ) -> Result<(Grid2, String), OpticsError> {
     let o = optics;
-    Ok(if o.beam().paraxial_dipoles() {
+    Ok(match o.beam().dipoles() {
+        DipoleTier::ParaxialRayleigh => {
         let det = super::rayleigh::Detection::new(optics, &detector)?;
         (
             super::template::plane_grid(&det, z_um, h_um, interp),
@@ -81,14 +82,14 @@ pub fn point_dipole_plane(
                 o.wavelength_nm, o.n_medium, o.w0_nm, o.na, detector.polarization, detector.misalignment
             ),
         )
-    } else {
-        (
+    }
+        DipoleTier::AngularSpectrum => (
             dipole_plane(optics, detector, h_um, interp, z_um)?,
             format!(
                 "vector beam: λ = {} nm, n = {}, NA = {}, pupil filling {}, z = {z_um} µm, h = {h_um} µm, misalignment: {:?}",
                 o.wavelength_nm, o.n_medium, o.na, o.pupil_filling, detector.misalignment
             ),
-        )
+        ),
     })
 }
 

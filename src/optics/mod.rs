@@ -13,5 +13,5 @@ pub mod quad;
 pub mod rayleigh;
 pub mod template;
 
-pub use beam::{OpticsArg, ResolvedBeam, ValidOptics};
+pub use beam::{DipoleTier, OpticsArg, ResolvedBeam, ValidOptics};
 pub use params::{Beam, Optics, OpticsError};

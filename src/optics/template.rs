@@ -364,7 +364,7 @@ fn plane_grid_mirrored(det: &Detection, z: f64, h: f64, interp: Interp) -> Optio
     Some(Grid2::square(u0, h, n, data, interp))
 }
 
-/// The reference implementation of [`plane_grid`] (before issue 20): a Gaussian `exp` and two
+/// The reference implementation of [`plane_grid`] (before the speed work): a Gaussian `exp` and two
 /// `sin_cos` per (x node, cone node). Kept for the test that holds [`plane_grid`] to it
 /// (`tests/optics.rs`) and for the render bench's "before" numbers. Same units and equations.
 pub fn plane_grid_reference(det: &Detection, z: f64, h: f64, interp: Interp) -> Grid2 {

@@ -111,7 +111,7 @@ pub fn register(r: &mut Registrar) {
     let d = Doc::func("ls")
         .returns("array", "file names in the session folder, sorted")
         .summary("list the session folder")
-        .example("ls().len() >= 0", "true");
+        .example("scan_line(#{axis: \"x\", from: -0.5, to: 0.5, n: 3, dwell: 0.0001}); ls().filter(|f| f.starts_with(\"scan_\"))", "[\"scan_0001.npz\"]");
     r.bind_ctx(d, |c| move || ls(&c));
 
     let d = Doc::func("note")

@@ -1,5 +1,5 @@
-//! Binding family `hardware`: raw access to a connected controller for debugging, queries only
-//! (issue 16 item 7). Motion never goes through here: it goes through the engine's checks.
+//! Binding family `hardware`: raw access to a connected controller for debugging, queries only.
+//! Motion never goes through here: it goes through the engine's checks.
 
 use super::ctx::Ctx;
 use super::registry::{fail, Doc, RResult, Registrar};

@@ -14,15 +14,8 @@ use crate::data::Scan;
 use rhai::{Dynamic, Map};
 use std::path::PathBuf;
 
-/// The stop rule of every scan, every mode (the engine's, `acquire::engine`), for the help.
-pub const STOP_RULE: &str = "Stop rule (every mode): Ctrl-C at the prompt pauses the scan — point by point at the next \
-     point; a raster after the line being swept (the line is finished, the digitiser stopped, the wave generator \
-     off, the stage at rest where the line ended) — and asks: Enter resumes (a raster re-arms and continues with \
-     the next row), `a` aborts. Aborted (or Ctrl-C in a script run): a relative scan returns to its start, the \
-     partial scan (unmeasured pixels NaN) is saved with status \"aborted\" and the call fails with a message naming \
-     the file. A device error ends the scan with status \"failed\" and the device's words, the partial scan saved: \
-     after a stage error the stage gets a stop command and nothing else (no return, no further motion); after any \
-     other error (QPD, digitiser) a relative scan returns to its start.";
+/// The stop rule of every scan, every mode, for the help (one source: `acquire::stop_rule`).
+use crate::acquire::stop_rule::STOP_RULE;
 
 /// Where the stage is after a SPEC scan (help text): back at the start for a relative scan
 /// (`rel`), at the last point for an absolute one; then [`STOP_RULE`].

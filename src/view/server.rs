@@ -289,7 +289,11 @@ mod tests {
             e.contains("host = \"0.0.0.0\" is not a loopback address"),
             "{e}"
         );
-        assert!(loopback("192.168.1.10").is_err());
+        let e = loopback("192.168.1.10").unwrap_err();
+        assert!(
+            e.contains("host = \"192.168.1.10\" is not a loopback address"),
+            "{e}"
+        );
         assert!(loopback("example.org")
             .unwrap_err()
             .contains("not an IP address"));

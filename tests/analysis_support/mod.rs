@@ -100,7 +100,7 @@ use bfpscope::optics::template::TemplateSpec;
 use bfpscope::optics::Optics;
 
 /// The paper's optics in the paper's beam: the paraxial scalar Gaussian of suppl. S3 (a named
-/// approximation since issue 19; the default beam is the aplanatic vector focus). The tests
+/// approximation since the one-beam work; the default beam is the aplanatic vector focus). The tests
 /// that reproduce the paper's numbers use it.
 pub fn paper_optics() -> Optics {
     Optics {

@@ -1,4 +1,4 @@
-//! Multi-bead template fit benchmarks (issue 4): a 3-bead fit on 64×64 pixels and an 11-bead fit
+//! Multi-bead template fit benchmarks: a 3-bead fit on 64×64 pixels and an 11-bead fit
 //! on 128×128 (50 nm pixels, 170 nm polystyrene beads simulated with the Rayleigh model by
 //! `instrument::sim`, the paper's detector noise σ = 2e-5 per pixel, docs/physics.md §7), fitted
 //! with the model template of the 110 nm reference bead (`Template::from_optics`, 20 nm grid). Besides criterion's statistics, the bench writes the scenes, the template and

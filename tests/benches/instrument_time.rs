@@ -1,11 +1,11 @@
-//! Instrument time per point on `bfpscope emulate pair` (issue 20, item 1): a 20 × 20 scan
+//! Instrument time per point on `bfpscope emulate pair`: a 20 × 20 scan
 //! through the real GCS and SCPI drivers, dwell 10 ms and 1 ms, settle 5 ms, on a modelled
 //! 115200-baud link with 1 ms reply latency and at the pseudo-terminal's full speed; "before"
-//! is the protocol of the drivers before issue 20 reproduced by their options (`ONT?` polled
+//! is the protocol of the drivers before the speed work reproduced by their options (`ONT?` polled
 //! every 5 ms, `MEAS:QPD:STAT?` and `SYST:ERR?` after every measurement), "after" the new
-//! defaults with a 1 ms polling interval (`stage.poll_ms = 1`, since issue 32 the GCS default) (`#5`, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
+//! defaults with a 1 ms polling interval (`stage.poll_ms = 1`, the GCS default since the device-truth work) (`#5`, its `ERR?` once the motion has ended, `MEAS:QPD?` for the means the
 //! scan stores, no `SYST:ERR?` after a well-formed reading).
-//! Issue 32 splits "after" in two, interleaved in the same run: "#5 alone" (the move ends when
+//! The device-truth work split "after" in two, interleaved in the same run: "#5 alone" (the move ends when
 //! `#5` answers 0) and "#5 + ONT?" (then one `ONT?` of the moved axis confirms on target): the
 //! per-point cost of the confirmation.
 //! Prints a Markdown table (ms per point against settle + dwell, and the per-phase split from
@@ -36,7 +36,7 @@ fn emulate(link: &[&str]) -> (Emulator, String, String) {
     (e, stage, qpd)
 }
 
-/// The QPD as the engine read it before issue 20: the full `read` (`MEAS:QPD:STAT?`) per point.
+/// The QPD as the engine read it before the speed work: the full `read` (`MEAS:QPD:STAT?`) per point.
 struct Legacy(ScpiQpd);
 
 impl Qpd for Legacy {
@@ -61,8 +61,8 @@ struct Row {
     phases: serde_json::Value,
 }
 
-/// The drivers' protocol: "before" issue 20, "#5 alone" (issue 20 until issue 32: the move
-/// ends when `#5` answers 0), "#5 + ONT?" (issue 32: then `ONT?` of the moved axis).
+/// The drivers' protocol: "before" the speed work, "#5 alone" (from the speed work until the device-truth work: the move
+/// ends when `#5` answers 0), "#5 + ONT?" (since the device-truth work: then `ONT?` of the moved axis).
 const VERSIONS: [&str; 3] = ["before", "#5 alone", "#5 + ONT?"];
 
 fn scan(stage: &str, qpd: &str, dwell_s: f64, version: &str) -> serde_json::Value {
@@ -165,7 +165,7 @@ fn main() {
         );
     }
     println!();
-    println!("The on-target confirmation (issue 32): `#5 + ONT?` against `#5 alone`, same link, same dwell, same run:");
+    println!("The on-target confirmation: `#5 + ONT?` against `#5 alone`, same link, same dwell, same run:");
     println!();
     println!("| link | dwell | ms per point, #5 alone | ms per point, #5 + ONT? | difference | ratio | `ONT?` per point (count, bytes, ms) |");
     println!("|---|---|---|---|---|---|---|");

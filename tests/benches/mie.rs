@@ -1,4 +1,4 @@
-//! Speed of the Mie tier (issue 8, part 5): efficiencies vs size parameter, vs term count, and
+//! Speed of the Mie tier: efficiencies vs size parameter, vs term count, and
 //! amplitude functions vs number of angles.
 //!
 //! `cargo bench --features bench --bench mie` runs the criterion benchmarks.
@@ -15,7 +15,7 @@ use criterion::{BenchmarkId, Criterion};
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
-/// Size parameters of the comparison grid (issue 8: x = 0.1 … 1000).
+/// Size parameters of the comparison grid (the Mie tier's target range: x = 0.1 … 1000).
 const XS: [f64; 5] = [0.1, 1.0, 10.0, 100.0, 1000.0];
 
 fn indices() -> [(&'static str, Complex64); 3] {

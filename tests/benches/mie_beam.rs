@@ -1,4 +1,4 @@
-//! Focused-beam Mie response (issue 8): cost of one (Sx, Sy, Sz) point, with and without the
+//! Focused-beam Mie response: cost of one (Sx, Sy, Sz) point, with and without the
 //! analytic gradient and the |E_s|² term, vs the incident plane-wave grid; and the per-sphere
 //! pair-matrix build. 500 nm polystyrene bead, default optics (512 detection nodes).
 //! Run: `cargo bench --features bench --bench mie_beam`.

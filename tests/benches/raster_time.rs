@@ -1,4 +1,4 @@
-//! Hardware-timed raster against point-by-point (issue 21, "Done means"): a 64 × 64 image at
+//! Hardware-timed raster against point-by-point: a 64 × 64 image at
 //! 1 ms per pixel on `bfpscope emulate redpitaya` (a PI GCS stage whose trigger output OUT1 is
 //! wired to a Red Pitaya 4-input board, loopback TCP), through the real drivers and the
 //! engines: `run_raster` (wave generator, triggered buffer, recorder) and `run_plan` (move,
@@ -99,8 +99,8 @@ fn scan(inst: &mut Instrument, raster: bool) -> serde_json::Value {
     run.scan.meta
 }
 
-/// Snake rasters (issue 32): the wall time of configuring one line whose direction alternates,
-/// every line configured in full (`forget_waves` first: the driver before issue 32) against
+/// Snake rasters: the wall time of configuring one line whose direction alternates,
+/// every line configured in full (`forget_waves` first: the driver before the device-truth work) against
 /// two wave tables switched with `WSL`, in alternating blocks of 8 lines on one connection.
 /// Returns (ms per line before, ms per line with two tables).
 fn configure_cost(stage: &str) -> (f64, f64) {
@@ -186,7 +186,7 @@ fn main() {
         ));
         drop(emulator);
     }
-    println!("Snake rasters, configuring a line whose direction alternates (issue 32; 32 lines per column, alternating blocks of 8 on one connection):");
+    println!("Snake rasters, configuring a line whose direction alternates (32 lines per column, alternating blocks of 8 on one connection):");
     println!();
     println!("| stage link | every line configured (WAV, WSL, WGC, WTR, CTO, TWC, TWS, DRC, RTR + ERR? each) | two wave tables, `WSL` + `ERR?` | saving per line | ratio |");
     println!("|---|---|---|---|---|");

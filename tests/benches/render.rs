@@ -1,6 +1,6 @@
-//! Render benchmarks (issue 2, issue 20): a 128×128 XY scan of 10 beads + a 10 µm filament,
+//! Render benchmarks: a 128×128 XY scan of 10 beads + a 10 µm filament,
 //! and the template precompute, each next to the kept reference implementation (the code before
-//! issue 20) so one run gives before and after on the same machine. Run:
+//! the speed work) so one run gives before and after on the same machine. Run:
 //! `cargo bench --features bench --bench render`; numbers and the floor estimate in docs/performance.md
 //! ("Rendering"). `cargo run --release --example render_timing` breaks the times down.
 //!
@@ -65,18 +65,20 @@ fn bench(c: &mut Criterion) {
     c.bench_function("render 128x128, 10 beads + 10 µm filament (ideal)", |b| {
         b.iter(|| render_xy(&r, &xs, &xs, 0.0, 1))
     });
-    c.bench_function("render 128x128, reference path (before issue 20)", |b| {
-        b.iter(|| r.render_grid_reference(&xs, &xs, 0.0))
-    });
+    c.bench_function(
+        "render 128x128, reference path (before the speed work)",
+        |b| b.iter(|| r.render_grid_reference(&xs, &xs, 0.0)),
+    );
     let det = Detection::new(&optics, &DetectorModel::default()).unwrap();
     let mut g = c.benchmark_group("template precompute");
     g.sample_size(10);
     g.bench_function("one plane at z = 0 (h = 20 nm, cubic)", |b| {
         b.iter(|| plane_grid(&det, 0.0, 0.02, Interp::Cubic))
     });
-    g.bench_function("one plane at z = 0, reference (before issue 20)", |b| {
-        b.iter(|| plane_grid_reference(&det, 0.0, 0.02, Interp::Cubic))
-    });
+    g.bench_function(
+        "one plane at z = 0, reference (before the speed work)",
+        |b| b.iter(|| plane_grid_reference(&det, 0.0, 0.02, Interp::Cubic)),
+    );
     // `checked` runs the domain check through the process-wide memo: warm after the first
     // build, as for every `simulate` of a scene seen before
     g.bench_function("renderer for the scene (planes for z = 0)", |b| {

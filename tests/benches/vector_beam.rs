@@ -1,4 +1,4 @@
-//! Issue 19 speed targets: building one vector-beam template plane (all three signals on the
+//! The vector beam's speed targets: building one vector-beam template plane (all three signals on the
 //! template grid, from which the renderer takes the x/y derivatives by its stencil), and the
 //! 128×128 render of 10 beads + a 10 µm filament in the vector beam vs the paraxial beam (the
 //! `render` bench's scene), once the templates exist.

@@ -1,4 +1,4 @@
-//! What the live view costs a scan (issue 18: within 2 % of the timing without it) and what it
+//! What the live view costs a scan (the target: within 2 % of the timing without it) and what it
 //! holds in memory after 100 scans. Prints a table; not a criterion bench because the peer (the
 //! same scan without a view) must be measured in the same run, interleaved, on a noisy machine.
 //!

@@ -119,3 +119,52 @@ pub(super) unsafe fn u_pass_avx2(
         o5[cc] = av[3];
     }
 }
+
+/// The AVX2 + FMA entry points of the sampler and the window sums: the same code as the
+/// portable path (`*_impl`), compiled for AVX2 + FMA and chosen at run time by the dispatchers
+/// in `normal.rs`.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::super::normal::Window;
+    use super::super::problem::FitData;
+
+    impl FitData<'_> {
+        /// [`FitData::sample_window`] compiled for AVX2 + FMA.
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2,fma")]
+        pub(in crate::analysis::fit) fn sample_window_avx2(
+            &self,
+            bx: f64,
+            by: f64,
+            rows: std::ops::Range<usize>,
+            cols: std::ops::Range<usize>,
+            mask: Option<&[Vec<f64>; 2]>,
+            out: &mut [f64],
+        ) {
+            self.sample_window_impl::<true>(bx, by, rows, cols, mask, out)
+        }
+    }
+
+    impl Window<'_> {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2,fma")]
+        pub(in crate::analysis::fit) fn own_sums_avx2(
+            &self,
+            res: &[Vec<f64>; 2],
+            chans: &[usize],
+            nx: usize,
+        ) -> ([[f64; 3]; 3], [f64; 3]) {
+            self.own_sums_impl(res, chans, nx)
+        }
+
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2,fma")]
+        pub(in crate::analysis::fit) fn pair_sums_avx2(
+            a: &Self,
+            b: &Self,
+            chans: &[usize],
+        ) -> [[f64; 3]; 3] {
+            Self::pair_sums_impl(a, b, chans)
+        }
+    }
+}

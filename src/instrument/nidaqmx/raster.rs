@@ -341,7 +341,16 @@ mod tests {
             e.starts_with("x: waveform point 1 at 76.0000 µm is 10.1308 V"),
             "{e}"
         );
-        assert!(waveform_volts(&[-0.5], 0.1333, "x").is_err());
-        assert!(waveform_volts(&[f64::NAN], 0.1333, "x").is_err());
+        let e = waveform_volts(&[-0.5], 0.1333, "x").unwrap_err();
+        assert!(
+            e.starts_with("x: waveform point 0 at -0.5000 µm is -0.06")
+                && e.contains("outside the external input's 0–10 V"),
+            "{e}"
+        );
+        let e = waveform_volts(&[f64::NAN], 0.1333, "x").unwrap_err();
+        assert!(
+            e.starts_with("x: waveform point 0 at NaN µm is NaN V"),
+            "{e}"
+        );
     }
 }

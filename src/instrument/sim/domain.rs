@@ -4,7 +4,7 @@
 //! tier how far the point dipole's normalised sensitivity is off
 //! ([`mie_beam::point_dipole_error`], about 0.1 s per new (optics, d, n) in a release build).
 //! The renderer reads the result: model notes in the paraxial beam, automatic Mie spheres in
-//! the vector beam (issue 19). Results are remembered in a [`DomainMemo`] the caller owns
+//! the vector beam. Results are remembered in a [`DomainMemo`] the caller owns
 //! (the simulator keeps one per session), bounded to [`DomainMemo::CAPACITY`] entries.
 
 use crate::optics::mie_beam;

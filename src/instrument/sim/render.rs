@@ -4,7 +4,7 @@
 
 use super::domain::DomainCheck;
 use super::scene::{MieEffect, Scatterer, Scene};
-use crate::optics::beam::{OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
+use crate::optics::beam::{DipoleTier, OpticsArg, ValidOptics, DIPOLE_D_NM, DIPOLE_N};
 use crate::optics::finite_size::sphere_points;
 use crate::optics::grid::Grid2;
 use crate::optics::mie_template::{MieTemplate, MieTemplateSpec};
@@ -85,7 +85,7 @@ fn model_notes(domain: &DomainCheck) -> Vec<String> {
     notes
 }
 
-/// Issue 19, the scene picks the tier (vector beam only): the beads (object indices) outside the
+/// The scene picks the tier (vector beam only): the beads (object indices) outside the
 /// point dipole's measured domain (the domain check) with one note per species. They are
 /// rendered as Lorenz–Mie spheres in the vector beam automatically unless the scene pins a tier
 /// by naming `mie` or `finite_size`.
@@ -146,10 +146,10 @@ impl Renderer {
         let mut scatterers = scene.scatterers(optics.n_medium);
         // beads come first in `scatterers` (objects 0 … n_beads − 1)
         let n_beads = scene.beads.len();
-        // Issue 19: with the vector beam every scatterer goes through the angular-spectrum
+        // With the vector beam every scatterer goes through the angular-spectrum
         // templates (dipole limit), and beads outside the dipole's domain through Mie, unless
         // the scene pins a tier (`mie` / `finite_size`).
-        let vector = !optics.beam().paraxial_dipoles();
+        let vector = optics.beam().dipoles() == DipoleTier::AngularSpectrum;
         if vector && fx.cross_terms == Some(true) {
             return Err(OpticsError::Invalid(
                 "effect cross_terms is modelled in the paraxial beam only (|Σ E_scat|² with the paper's Gaussian focus, docs/physics.md §8); the session's beam is \"vector\": set_optics(#{beam: \"paraxial\"}) to use it, or the mie effect's scattered_intensity for one sphere's |E_s|² in the vector beam".into(),
@@ -722,7 +722,7 @@ impl Renderer {
         out
     }
 
-    /// The reference implementation of [`Renderer::render_grid_ideal`] (before issue 20):
+    /// The reference implementation of [`Renderer::render_grid_ideal`] (before the speed work):
     /// serial, scatterer-major, [`Grid2::eval`] per scatterer and pixel. Kept for the test that
     /// holds the fast path to it (`tests/sim.rs`) and for the render bench's "before" numbers.
     pub fn render_grid_reference(&self, xs: &[f64], ys: &[f64], z: f64) -> [Vec<f64>; 3] {

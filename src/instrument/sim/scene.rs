@@ -175,7 +175,7 @@ pub struct FiniteSize {
     pub n_r: usize,
     pub min_d_nm: f64,
 }
-/// Lorenz–Mie beads (issue 8, docs/physics.md §9): every scene bead of diameter ≥ `min_d_nm`
+/// Lorenz–Mie beads (docs/physics.md §9): every scene bead of diameter ≥ `min_d_nm`
 /// is rendered with the focused-beam Mie response of its sphere (angular-spectrum beam, one
 /// template per distinct (d, n)) instead of a Rayleigh point dipole. Every other scatterer
 /// (filaments, aggregates, smaller beads) becomes a point dipole in the same angular-spectrum
@@ -187,7 +187,7 @@ pub struct MieEffect {
     pub scattered_intensity: bool,
 }
 
-/// A stage of finite bandwidth (hardware-timed raster lines, issue 21): under the wave
+/// A stage of finite bandwidth (hardware-timed raster lines): under the wave
 /// generator the stage follows its target with a first-order lag of time constant
 /// τ = 1/(2π·`hz`) (a closed-loop piezo of −3 dB bandwidth `hz`), so its measured position
 /// trails the command by ≈ v·τ on a line of speed v. Point-by-point scans settle after each
