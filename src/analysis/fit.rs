@@ -62,12 +62,14 @@ mod lm;
 mod problem;
 mod simd;
 mod types;
+mod warnings;
 
 pub use detect::detect_beads;
 pub(crate) use detect::{clean, clean_peaks, detection_map};
 pub use lm::FitStatus;
 use problem::*;
 pub use types::*;
+pub use warnings::{implied_diameter_nm, MISFIT_FLOOR, MISFIT_RATIO};
 
 use super::template::Template;
 use super::{AnalysisError, Result};
@@ -137,6 +139,15 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             let Some(nb) = new.first().copied() else {
                 break;
             };
+            // Next to a bead larger than the template describes, the residual is the template's
+            // misfit of that bead, not another bead: one large bead stays one bead.
+            let large = warnings::large_beads(&best, tpl, opts);
+            if large.iter().any(|&(i, d)| {
+                let b = &best.beads[i];
+                (nb.x - b.x).hypot(nb.y - b.y) < opts.w0_um + d / 2000.0
+            }) {
+                break;
+            }
             let mut init = existing.clone();
             init.push(nb);
             let cand = data.fit_with_degeneracy(init, opts)?;
@@ -165,6 +176,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
         best.history = history;
     }
     attach_crlb(&mut best, sx, sy, tpl);
+    best.warnings = warnings::warnings(&best, sx, sy, tpl, opts);
     Ok(best)
 }
 

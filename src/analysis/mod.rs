@@ -42,6 +42,7 @@ pub mod background;
 pub mod bead_model;
 pub mod beam_fit;
 pub mod crlb;
+pub mod domain;
 pub mod filament_fit;
 pub mod fit;
 pub mod focus;

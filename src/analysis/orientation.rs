@@ -222,6 +222,14 @@ pub struct FilamentPoint {
     pub sens_err: Option<f64>,
     /// Corrected to the QPD y-axis orientation (step 5).
     pub sens_corr: f64,
+    /// At least `end_margin_um` from every end of the filament inside the scan: only these
+    /// maxima enter the mean (an end lowers the maxima near it).
+    #[serde(default = "yes")]
+    pub interior: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// A straight-line fit through maxima positions.
@@ -251,6 +259,13 @@ pub struct FilamentMeasurement {
     pub mean_corr: f64,
     pub std_corr: f64,
     pub sem_corr: f64,
+    /// Arc positions (µm, on the points' arc axis) of the filament's ends inside the scan, where
+    /// its maxima fall to half their plateau; None where it runs out of the scan.
+    #[serde(default)]
+    pub ends_um: [Option<f64>; 2],
+    /// Where the answer leaves its domain, in words; empty when the mean and its σ hold.
+    #[serde(default)]
+    pub warnings: Vec<String>,
     /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y) in reference-bead
     /// units/µm, for SBR and plots.
     pub sens: Image,
@@ -713,6 +728,61 @@ pub fn measure_filament_along(
     Ok(measure_sens_along(sens, curve, channel, line, opts)?.0)
 }
 
+/// The arc positions (µm) of a filament's ends inside the scan from its line trace (every line
+/// the filament line crosses, in order, with the maximum read there or NaN): where the
+/// three-line median of the maxima (no maximum counting as 0) first reaches half the plateau
+/// (the 90th percentile of the medians), walking in from each end of the trace, interpolated
+/// between lines. None at a side where the first line already carries the filament (it runs out
+/// of the scan there).
+fn filament_ends(trace: &[(f64, f64, usize)]) -> [Option<f64>; 2] {
+    let n = trace.len();
+    if n < 3 {
+        return [None, None];
+    }
+    let v = |i: usize| {
+        let x = trace[i].1;
+        if x.is_finite() {
+            x
+        } else {
+            0.0
+        }
+    };
+    let med: Vec<f64> = (0..n)
+        .map(|i| {
+            let mut w = [v(i.saturating_sub(1)), v(i), v((i + 1).min(n - 1))];
+            w.sort_by(f64::total_cmp);
+            w[1]
+        })
+        .collect();
+    let mut sorted = med.clone();
+    sorted.sort_by(f64::total_cmp);
+    let plateau = sorted[((n - 1) as f64 * 0.9).round() as usize];
+    if !(plateau > 0.0) {
+        return [None, None];
+    }
+    let half = 0.5 * plateau;
+    let end = |idx: &mut dyn Iterator<Item = usize>| -> Option<f64> {
+        let mut prev: Option<usize> = None;
+        for i in idx {
+            if med[i] >= half {
+                let p = prev?;
+                let f = (half - med[p]) / (med[i] - med[p]);
+                return Some(trace[p].0 + f * (trace[i].0 - trace[p].0));
+            }
+            prev = Some(i);
+        }
+        None
+    };
+    let a = end(&mut (0..n));
+    let b = end(&mut (0..n).rev());
+    // the trace runs in line order; the arc may run either way along it
+    match (a, b) {
+        (Some(a), Some(b)) if a > b => [Some(b), Some(a)],
+        (a, b) if trace[0].0 > trace[n - 1].0 => [b, a],
+        (a, b) => [a, b],
+    }
+}
+
 /// Every scan line a filament line crosses, in line order: (arc position µm, maximum read there
 /// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
@@ -783,6 +853,7 @@ fn measure_sens_along(
             sens: p.value,
             sens_err: p.value_err,
             sens_corr: p.value * factor,
+            interior: true,
         });
     }
     if points.len() < 3 {
@@ -792,11 +863,32 @@ fn measure_sens_along(
         )));
     }
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
+    let ends = filament_ends(&trace);
     let a0 = points[0].arc_um;
     for p in points.iter_mut() {
+        p.interior = ends[0].is_none_or(|e| p.arc_um >= e + opts.end_margin_um)
+            && ends[1].is_none_or(|e| p.arc_um <= e - opts.end_margin_um);
         p.arc_um -= a0;
     }
-    let s = summary(&points.iter().map(|p| p.sens_corr).collect::<Vec<_>>())?;
+    let ends_um = ends.map(|e| e.map(|e| e - a0));
+    let interior: Vec<f64> = points
+        .iter()
+        .filter(|p| p.interior)
+        .map(|p| p.sens_corr)
+        .collect();
+    if interior.len() < 3 {
+        let len = match ends {
+            [Some(a), Some(b)] => format!("{:.2} µm long", b - a),
+            _ => "cut by an end".to_string(),
+        };
+        return Err(AnalysisError::Failed(format!(
+            "the filament is too short to measure: it is {len} inside the scan, and its maxima within end_margin_um = {} µm of an end are lowered by the end (to 50 % at the end), which leaves {} of {} maxima (at least 3 are needed); scan a longer stretch, or lower end_margin_um knowing the bias",
+            opts.end_margin_um,
+            interior.len(),
+            points.len()
+        )));
+    }
+    let s = summary(&interior)?;
     // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits)
     let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
     let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
@@ -812,6 +904,8 @@ fn measure_sens_along(
         mean_corr: s.mean,
         std_corr: s.std,
         sem_corr: s.sem,
+        ends_um,
+        warnings: vec![],
         sens,
         crlb: None,
     };

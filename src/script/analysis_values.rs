@@ -123,6 +123,7 @@ pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult
         min_snr: pos_f64(who, o, "min_snr", base.min_snr, 0.0, 1e6)?,
         max_offset_um: pos_f64(who, o, "max_offset_um", base.max_offset_um, 0.0, 100.0)?,
         detect_snr: pos_f64(who, o, "detect_snr", base.detect_snr, 0.0, 1e6)?,
+        end_margin_um: pos_f64(who, o, "end_margin_um", base.end_margin_um, 0.0, 100.0)?,
     })
 }
 
@@ -175,6 +176,15 @@ pub(crate) fn measure_keys() -> Vec<Key> {
             format!(
                 "optional: candidate maxima above detect_snr × pixel noise (default {})",
                 d.detect_snr
+            ),
+        ),
+        (
+            "end_margin_um",
+            "float",
+            "µm",
+            format!(
+                "optional: maxima closer than this to a filament end inside the scan are left out of the mean (the end lowers them) (default {})",
+                d.end_margin_um
             ),
         ),
     ]

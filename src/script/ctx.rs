@@ -394,6 +394,14 @@ impl Ctx {
         (self.settings.log)(s)
     }
 
+    /// Say every warning of an answer of `who` to the operator (stderr and the session log):
+    /// `who: warning: …`, one line each.
+    pub fn warn_all(&self, who: &str, warnings: &[String]) {
+        for w in warnings {
+            self.log(&format!("{who}: warning: {w}"));
+        }
+    }
+
     /// Install an instrument (replacing the previous one). The backend name is `mock` with a
     /// mock handle, else the description's `backend` (`sim`, …), else `hardware`.
     pub fn connect(&self, inst: Instrument, mock: Option<MockHandle>) {

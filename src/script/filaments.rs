@@ -2,6 +2,7 @@
 //! measurement, SBR and aggregate removal with the Sy channel, fibril diameters, microtubule
 //! linear density, masses.
 
+use super::ctx::Ctx;
 use super::registry::{err, fail, num, properties, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
@@ -147,13 +148,14 @@ fn register_filaments(r: &mut Registrar) {
     let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
     let spec = d.spec();
     let s2 = spec.clone();
+    let (ctx, ctx2) = (r.ctx(), r.ctx());
     r.bind(
         d.example(&format!("{fil_ex} round(m.angle_deg)"), "14.0")
             .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
-        move |s: ScanRef, c: CurveRef, m: Map| measure_filament_of(&spec, &s, &c, &m),
+        move |s: ScanRef, c: CurveRef, m: Map| measure_filament_of(&ctx, &spec, &s, &c, &m),
     );
     r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
-        measure_filament_of(&s2, &s, &c, &Map::new())
+        measure_filament_of(&ctx2, &s2, &s, &c, &Map::new())
     });
     let float_rows = [
         (
@@ -182,7 +184,11 @@ fn register_filaments(r: &mut Registrar) {
     );
     properties!(r, "FilamentMeasurement", FilamentRef, fil_ex, [
         channel: "string", "\"sx_rows\" or \"sy_cols\""; "which maxima were used"; "m.channel" => "\"sx_rows\""; |m| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
-        points: "array", "[#{line, x, y, arc_um, sens, sens_err, sens_corr}] along the filament"; "the maxima along the filament"; "m.points.len() > 40" => "true"; |m| -> Array { m.0.points.iter().map(to_dyn).collect() },
+        points: "array", "[#{line, x, y, arc_um, sens, sens_err, sens_corr, interior}] along the filament (interior: at least end_margin_um from every end inside the scan; only these enter mean_corr)"; "the maxima along the filament"; "m.points.len() > 40" => "true"; |m| -> Array { m.0.points.iter().map(to_dyn).collect() },
+        ends_um: "array", "[lo, hi]: arc positions (µm, the points' arc axis) of the filament's ends inside the scan, where its maxima fall to half their plateau; () where it runs out of the scan"; "where the filament ends"; "m.ends_um" => "[(), ()]"; |m| -> Array { m.0.ends_um.iter().map(to_dyn).collect() },
+        n_interior: "int", "maxima at least end_margin_um from every end"; "how many maxima the mean is over"; "m.n_interior > 40" => "true"; |m| -> i64 { m.0.points.iter().filter(|p| p.interior).count() as i64 },
+        warnings: "array", "[string]: where the answer leaves its domain; empty when the mean and its σ hold"; "what the answer cannot vouch for"; "m.warnings.len()" => "0"; |m| -> Array { m.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },
+        status: "string", "\"ok\" when `warnings` is empty, else \"flagged\""; "whether the answer is inside its domain (docs/analysis.md, Domains)"; "m.status" => "\"ok\""; |m| -> String { crate::analysis::domain::status(&m.0.warnings).to_string() },
         sens: "Image", "the sensitivity image used (reference-bead units/µm)"; "sensitivity image of the chosen channel"; "m.sens.cols" => "61"; |m| -> ImageRef { ImageRef(Arc::new(m.0.sens.clone())) },
     ]);
     // a noisy scan (1 ms per pixel): the per-row method's sem sits above the bound
@@ -454,11 +460,18 @@ fn curve_nodes(c: &CurveRef) -> Map {
 
 /// `measure_filament(scan, curve[, opts])`: the filament's angle from its row (or column)
 /// maxima and the orientation-corrected sensitivities along it (Sec. 4.2 steps 4–5).
-fn measure_filament_of(spec: &Spec, s: &ScanRef, c: &CurveRef, m: &Map) -> RResult<FilamentRef> {
+fn measure_filament_of(
+    c0: &Ctx,
+    spec: &Spec,
+    s: &ScanRef,
+    c: &CurveRef,
+    m: &Map,
+) -> RResult<FilamentRef> {
     let o = Opts::new(spec, m)?;
     let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
     let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
         .map_err(|e| err("measure_filament", e))?;
+    c0.warn_all("measure_filament", &r.warnings);
     Ok(FilamentRef(Arc::new(r)))
 }
 

@@ -236,6 +236,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         ("patience", "int", "", format!("optional: residual evaluations allowed = patience × (3n + 1) (default {})", fd.patience)),
         ("min_separation", "float", "", format!("optional: beads closer than this × w0 (set_optics) are degenerate (default {})", fd.min_separation)),
         ("merge_degenerate", "bool", "", format!("optional: merge degenerate pairs and refit (default {})", fd.merge_degenerate)),
+        ("n", "float", "", "optional: refractive index of the beads, for the diameter a weight implies in the size-domain check (default: the template reference's)".into()),
     ];
     let keys_ref: Vec<(&str, &str, &str, &str)> = keys
         .iter()
@@ -304,7 +305,9 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     let ex = |name: &str| (format!("{fx} f.{name} > 0"), "true");
     r.named_getters("FitResult", "int", &count_rows, ex, fit_count);
     properties!(r, "FitResult", FitRef, fx, [
-        status: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.status" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
+        status: "string", "\"ok\" when `warnings` is empty, else \"flagged\""; "whether the answer is inside its domain (docs/analysis.md, Domains)"; "f.status" => "\"ok\""; |f| -> String { crate::analysis::domain::status(&f.0.warnings).to_string() },
+        warnings: "array", "[string]: where the answer leaves its domain (a bead not found, outside the template's size domain, near the scan's edge, a model that does not describe the data, degeneracies); empty when positions, weights and σ hold"; "what the answer cannot vouch for"; "f.warnings.len()" => "0"; |f| -> Array { f.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },
+        optimizer: "string", "\"converged\", \"max_evaluations\" or \"failed\""; "how the optimiser stopped (see .reason)"; "f.optimizer" => "\"converged\""; |f| -> String { to_dyn(&f.0.status).into_string().unwrap_or_default() },
         reason: "string", "the optimiser's termination reason in words"; "why the fit stopped"; "type_of(f.reason)" => "\"string\""; |f| -> String { f.0.reason.clone() },
         degeneracies: "array", "[#{kind: \"close_beads\" | \"unresolved\" | \"insignificant\" | \"bead_outside\" | \"ill_conditioned\", …}]"; "what the fit could not resolve (empty when well-posed)"; "f.degeneracies.len()" => "0"; |f| -> Array { f.0.degeneracies.iter().map(to_dyn).collect() },
     ]);
@@ -337,7 +340,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
         Doc::method("FitResult", "to_map")
             .returns("map", "everything but the images")
             .summary("the fit as a map (for printing and saving)")
-            .example(&format!("{fx} f.to_map().status"), "\"converged\""),
+            .example(&format!("{fx} f.to_map().optimizer"), "\"converged\""),
         |f: &mut FitRef| fit_map(f),
     );
 }
@@ -489,8 +492,10 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
     let who = "fit_beads";
     let o = Opts::new(spec, m)?;
     // the degeneracy and merge distances scale with the session's beam waist (set_optics)
+    let optics = c.optics();
     let d = FitOptions {
-        w0_um: c.optics().w0_nm / 1000.0,
+        w0_um: optics.w0_nm / 1000.0,
+        wavelength_nm: optics.wavelength_nm,
         ..FitOptions::default()
     };
     let channels = match o.string("channels")? {
@@ -538,12 +543,14 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
         min_separation: o.f64_or("min_separation", d.min_separation)?,
         merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
+        bead_n: match o.f64("n")? {
+            Some(n) => Some(pos_f64(who, &o, "n", n, 1.0, 4.0)?),
+            None => None,
+        },
         ..d
     };
     let r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
-    for (i, b) in r.beads.iter().enumerate().filter(|(_, b)| !b.found()) {
-        c.log(&format!("{who}: {}", super::words::not_found_words(i, b)));
-    }
+    c.warn_all(who, &r.warnings);
     Ok(FitRef(Arc::new(r)))
 }
 
@@ -573,6 +580,11 @@ fn fit_map(f: &FitRef) -> Map {
         o.insert(
             "n_found".into(),
             (f.0.beads.len() - f.0.not_found().len()).into(),
+        );
+        o.insert("optimizer".into(), o["status"].clone());
+        o.insert(
+            "status".into(),
+            crate::analysis::domain::status(&f.0.warnings).into(),
         );
     }
     json_to_dynamic(&v).try_cast::<Map>().unwrap_or_default()

@@ -1094,6 +1094,7 @@ impl<'a> FitData<'a> {
             condition,
             degeneracies,
             history: vec![],
+            warnings: vec![],
         })
     }
 }

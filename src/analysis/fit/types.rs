@@ -95,6 +95,12 @@ pub struct FitOptions {
     pub max_truncation: f64,
     /// Derivative used for the detection map.
     pub detect_stencil: Stencil,
+    /// Vacuum wavelength, nm, for the template's size domain (`analysis::domain`); the
+    /// `fit_beads` binding takes it from the session's optics.
+    pub wavelength_nm: f64,
+    /// Refractive index of the beads, for the diameter their weight implies (default: the
+    /// template reference's).
+    pub bead_n: Option<f64>,
 }
 
 impl Default for FitOptions {
@@ -118,6 +124,8 @@ impl Default for FitOptions {
             cond_limit: 1e10,
             max_truncation: 0.05,
             detect_stencil: Stencil::SavitzkyGolay { half_width: 2 },
+            wavelength_nm: crate::optics::params::Optics::default().wavelength_nm,
+            bead_n: None,
         }
     }
 }
@@ -136,6 +144,10 @@ impl FitOptions {
         check_range("max_beads", self.max_beads as f64, 1.0, 10_000.0)?;
         if let Some(s) = self.sigma {
             check_above("sigma", s, 0.0)?;
+        }
+        check_range("wavelength_nm", self.wavelength_nm, 100.0, 10_000.0)?;
+        if let Some(n) = self.bead_n {
+            check_range("bead_n", n, 1.0, 4.0)?;
         }
         if let GrowCriterion::RelDrop { min_drop } = self.criterion {
             check_range("min_drop", min_drop, 0.0, 1.0)?;
@@ -293,6 +305,10 @@ pub struct FitResult {
     pub degeneracies: Vec<Degeneracy>,
     /// Bead-adding history (empty when not growing).
     pub history: Vec<GrowStep>,
+    /// Where the answer leaves its domain, in words (`analysis::domain`); empty when the beads'
+    /// positions, weights and σ hold.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 impl FitResult {
