@@ -298,6 +298,315 @@ pub fn lambda_of_diameter(tpl: &Template, d_nm: f64, n_obj: f64) -> Result<f64> 
     super::bead_model::section_weight(tpl, d_nm, 1000.0, n_obj)
 }
 
+/// Options of [`fit_line_filament`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LineFitOptions {
+    /// Pixel noise σ (instrument units); None: estimated from the residuals.
+    pub sigma: Option<f64>,
+    /// Section spacing of the model, µm (paper: 0.05).
+    pub spacing_um: f64,
+    /// Angle step of the initial search, degrees.
+    pub search_step_deg: f64,
+    /// MINPACK tolerances and evaluation budget of the solver (`fit::lm`).
+    pub tol: f64,
+    pub patience: usize,
+}
+
+impl Default for LineFitOptions {
+    fn default() -> Self {
+        Self {
+            sigma: None,
+            spacing_um: 0.05,
+            search_step_deg: 2.5,
+            tol: 1e-10,
+            patience: 100,
+        }
+    }
+}
+
+/// Result of [`fit_line_filament`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LineFitResult {
+    /// The fitted filament (reference point: the scan's centre).
+    pub filament: LineFilament,
+    /// 1σ from the covariance σ²(JᵀJ)⁻¹ at the solution (offset µm, angle °, λ, backgrounds).
+    pub err: LineBound,
+    /// The Cramér–Rao bounds of the scan's pixels at the fitted parameters with the fit's σ.
+    pub crlb: LineBound,
+    pub sigma: f64,
+    pub sigma_estimated: bool,
+    pub rss: f64,
+    pub n_residuals: usize,
+    /// The initial guess of the search (angle °, offset µm, λ).
+    pub start: [f64; 3],
+    pub status: crate::analysis::fit::FitStatus,
+    pub reason: String,
+    pub iterations: usize,
+}
+
+/// The line spread of a unit-λ filament at `angle_deg`: P(d) = h·Σ_k T(d·n̂ + k·h·ê)/f for the
+/// perpendicular distances d = d0 + i·step (Sx, Sy).
+fn line_profile(
+    tpl: &Template,
+    angle_deg: f64,
+    h: f64,
+    d0: f64,
+    step: f64,
+    n: usize,
+) -> [Vec<f64>; 2] {
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    let (e, nn) = ([s, c], [c, -s]);
+    let ((u0, u1), (v0, v1)) = tpl.extent();
+    let reach = u1.max(-u0).max(v1).max(-v0) * std::f64::consts::SQRT_2;
+    let kmax = (reach / h).ceil() as i64;
+    let mut out = [vec![0.0; n], vec![0.0; n]];
+    for i in 0..n {
+        let d = d0 + i as f64 * step;
+        for k in -kmax..=kmax {
+            let t = k as f64 * h;
+            let v = tpl.eval(d * nn[0] + t * e[0], d * nn[1] + t * e[1]);
+            out[0][i] += v[0];
+            out[1][i] += v[1];
+        }
+        out[0][i] *= h / tpl.norm_factor;
+        out[1][i] *= h / tpl.norm_factor;
+    }
+    out
+}
+
+/// Initial guess (angle °, offset µm, λ) for a filament crossing the scan: for every angle on a
+/// grid over 180° and every offset on a grid of half a pixel, the least-squares λ and constant
+/// backgrounds of the unit-λ line model (its line spread shifted to the offset) and the RSS they
+/// remove, (Σ⟨m̃, d̃⟩)²/Σ⟨m̃, m̃⟩ (m̃, d̃ mean-subtracted per channel); the largest with λ > 0
+/// wins (a matched filter of the whole image).
+fn search(
+    tpl: &Template,
+    sx: &crate::data::Image,
+    sy: &crate::data::Image,
+    centre: [f64; 2],
+    opts: &LineFitOptions,
+) -> Option<[f64; 3]> {
+    let (x, y) = (&sx.x, &sx.y);
+    let px = (x[1] - x[0]).abs().min((y[1] - y[0]).abs());
+    let half = 0.5 * ((x[x.len() - 1] - x[0]).powi(2) + (y[y.len() - 1] - y[0]).powi(2)).sqrt();
+    let ((u0, u1), _) = tpl.extent();
+    let step = 0.01;
+    let dmax = half + u1.max(-u0);
+    let nd = (2.0 * dmax / step).ceil() as usize + 1;
+    let offs_step = 0.5 * px;
+    let n_off = (2.0 * half / offs_step).floor() as i64;
+    let data = [&sx.data, &sy.data];
+    let means: Vec<f64> = data
+        .iter()
+        .map(|d| {
+            let v: Vec<f64> = d.iter().copied().filter(|v| v.is_finite()).collect();
+            v.iter().sum::<f64>() / v.len().max(1) as f64
+        })
+        .collect();
+    let n_ang = (180.0 / opts.search_step_deg).round().max(4.0) as usize;
+    let mut best: Option<(f64, [f64; 3])> = None;
+    for ia in 0..n_ang {
+        let ang = -90.0 + (ia as f64 + 0.5) * 180.0 / n_ang as f64;
+        let prof = line_profile(tpl, ang, opts.spacing_um, -dmax, step, nd);
+        let (s, c) = ang.to_radians().sin_cos();
+        for io in -n_off / 2..=n_off / 2 {
+            let off = io as f64 * offs_step;
+            let (mut md, mut mm) = (0.0, 0.0);
+            for ch in 0..2 {
+                let (mut sm, mut sd, mut smm, mut smd, mut n) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for (r, &yr) in y.iter().enumerate() {
+                    for (ci, &xc) in x.iter().enumerate() {
+                        let dv = data[ch][[r, ci]];
+                        if !dv.is_finite() {
+                            continue;
+                        }
+                        let d = (xc - centre[0]) * c - (yr - centre[1]) * s - off;
+                        let f = (d + dmax) / step;
+                        let i0 = f.floor();
+                        let m = if i0 < 0.0 || i0 as usize + 1 >= nd {
+                            0.0
+                        } else {
+                            let i = i0 as usize;
+                            let w = f - i0;
+                            prof[ch][i] * (1.0 - w) + prof[ch][i + 1] * w
+                        };
+                        let dd = dv - means[ch];
+                        sm += m;
+                        sd += dd;
+                        smm += m * m;
+                        smd += m * dd;
+                        n += 1.0;
+                    }
+                }
+                if n > 0.0 {
+                    mm += smm - sm * sm / n;
+                    md += smd - sm * sd / n;
+                }
+            }
+            if mm > 0.0 && md > 0.0 {
+                let score = md * md / mm;
+                if best.is_none_or(|(b, _)| score > b) {
+                    best = Some((score, [ang, off, md / mm]));
+                }
+            }
+        }
+    }
+    best.map(|(_, p)| p)
+}
+
+/// Fit the straight bead-model filament (offset, angle, weight per length λ, a background per
+/// channel) to the whole Sx and Sy images of an XY scan by least squares with the project's
+/// Levenberg–Marquardt (`fit::lm`), from a matched-filter search over angle and offset (or
+/// from `init`). Beside the paper's per-row maxima (`orientation::measure_filament`), not
+/// instead of them. Domain: one straight filament of uniform λ whose ends lie outside the
+/// template's reach of the scan; white pixel noise. Errors: images of different shapes or
+/// irregular axes, a scan smaller than 4×4, no finite pixel, no filament-like signal (the search
+/// finds no positive λ), a fit that ends without a finite covariance.
+pub fn fit_line_filament(
+    sx: &crate::data::Image,
+    sy: &crate::data::Image,
+    tpl: &Template,
+    init: Option<&LineFilament>,
+    opts: &LineFitOptions,
+) -> Result<LineFitResult> {
+    use crate::analysis::fit::{levenberg_marquardt, Tolerances};
+    check_range("spacing_um", opts.spacing_um, 1e-3, 0.5)?;
+    check_range("search_step_deg", opts.search_step_deg, 0.1, 45.0)?;
+    check_range("tol", opts.tol, 0.0, 1.0)?;
+    if let Some(s) = opts.sigma {
+        check_above("sigma", s, 0.0)?;
+    }
+    if sx.data.dim() != sy.data.dim() || sx.x != sy.x || sx.y != sy.y {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: "Sx and Sy images differ in shape or axes".into(),
+        });
+    }
+    super::check_axis("x", &sx.x, 4)?;
+    super::check_axis("y", &sx.y, 4)?;
+    let (x, y) = (&sx.x, &sx.y);
+    let nx = x.len();
+    let centre = [0.5 * (x[0] + x[nx - 1]), 0.5 * (y[0] + y[y.len() - 1])];
+    let data = [&sx.data, &sy.data];
+    let m = data
+        .iter()
+        .map(|d| d.iter().filter(|v| v.is_finite()).count())
+        .sum::<usize>();
+    if m <= 5 {
+        return Err(AnalysisError::BadInput {
+            name: "scan",
+            reason: format!("{m} finite pixels; the fit needs more than 5"),
+        });
+    }
+    let (start, fil0) = match init {
+        Some(f) => {
+            f.validate()?;
+            ([f.angle_deg, f.offset_um, f.lambda], *f)
+        }
+        None => {
+            let s = search(tpl, sx, sy, centre, opts).ok_or_else(|| {
+                AnalysisError::Failed(
+                    "no filament found: no line through the scan correlates positively with the data"
+                        .into(),
+                )
+            })?;
+            let f = LineFilament {
+                centre,
+                offset_um: s[1],
+                angle_deg: s[0],
+                lambda: s[2],
+                background: [0.0, 0.0],
+                spacing_um: opts.spacing_um,
+            };
+            (s, f)
+        }
+    };
+    let eval_err = std::cell::Cell::new(None);
+    let eval = |p: &[f64]| {
+        let f = fil0.with_params(p);
+        let mut a = nalgebra::DMatrix::zeros(5, 5);
+        let mut g = nalgebra::DVector::zeros(5);
+        let mut rss = 0.0;
+        match line_eval(tpl, &f, x, y) {
+            Ok(ev) => {
+                for ch in 0..2 {
+                    for (i, o) in ev[ch].iter().enumerate() {
+                        let d = data[ch][[i / nx, i % nx]];
+                        if !d.is_finite() {
+                            continue;
+                        }
+                        let r = o[0] - d;
+                        let mut j = [o[1], o[2], o[3], 0.0, 0.0];
+                        j[3 + ch] = 1.0;
+                        rss += r * r;
+                        for u in 0..5 {
+                            g[u] += j[u] * r;
+                            for v in 0..5 {
+                                a[(u, v)] += j[u] * j[v];
+                            }
+                        }
+                    }
+                }
+            }
+            Err(e) => {
+                eval_err.set(Some(e));
+                rss = f64::NAN;
+            }
+        }
+        (rss, a, g)
+    };
+    let raw = levenberg_marquardt(
+        eval,
+        fil0.params().to_vec(),
+        &Tolerances {
+            ftol: opts.tol,
+            xtol: opts.tol,
+            gtol: opts.tol,
+            patience: opts.patience,
+        },
+    );
+    if let Some(e) = eval_err.take() {
+        return Err(e);
+    }
+    let mut fil = fil0.with_params(&raw.p);
+    // one orientation: angle in (−90°, 90°]
+    if fil.angle_deg > 90.0 || fil.angle_deg <= -90.0 {
+        let a = (fil.angle_deg + 90.0).rem_euclid(180.0) - 90.0;
+        let a = if a == -90.0 { 90.0 } else { a };
+        let flips = ((fil.angle_deg - a) / 180.0).round() as i64;
+        if flips % 2 != 0 {
+            fil.offset_um = -fil.offset_um;
+        }
+        fil.angle_deg = a;
+    }
+    let dof = m.saturating_sub(5).max(1);
+    let (sigma, est) = match opts.sigma {
+        Some(s) => (s, false),
+        None => ((raw.rss / dof as f64).sqrt(), true),
+    };
+    let info = Fisher {
+        info: raw.jtj.clone() / (sigma * sigma),
+        n_samples: m,
+    };
+    let err = line_bound(&info, &fil, &[0, 1])?;
+    let valid = |ch: usize, r: usize, c: usize| data[ch][[r, c]].is_finite().then_some(sigma);
+    let crlb = line_crlb(tpl, &fil, x, y, &[0, 1], &valid)?;
+    Ok(LineFitResult {
+        filament: fil,
+        err,
+        crlb,
+        sigma,
+        sigma_estimated: est,
+        rss: raw.rss,
+        n_residuals: m,
+        start,
+        status: raw.status,
+        reason: raw.reason,
+        iterations: raw.iterations,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

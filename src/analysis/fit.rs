@@ -67,6 +67,7 @@ mod warnings;
 pub use detect::detect_beads;
 pub(crate) use detect::{clean, clean_peaks, detection_map};
 pub use lm::FitStatus;
+pub(crate) use lm::{levenberg_marquardt, Tolerances};
 use problem::*;
 pub use types::*;
 pub use warnings::{implied_diameter_nm, MISFIT_FLOOR, MISFIT_RATIO};
