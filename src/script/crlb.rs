@@ -65,7 +65,7 @@ fn crlb_of(c: &Ctx, spec: &Spec, m: &Map, s: &SceneRef) -> RResult<Map> {
     };
     let rate = crate::instrument::sim::SimConfig::default().sample_rate;
     let sigma = pixel_sigma(noise.sigma_sample, dwell, rate).map_err(|e| err(who, e))?;
-    if !(sigma > 0.0) {
+    if sigma == 0.0 {
         return fail(format!(
             "{who}: detector_noise sigma_sample = 0: noise-free data have no bound"
         ));
