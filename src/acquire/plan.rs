@@ -91,6 +91,16 @@ impl Sweep {
                 "{who}: {n_name} = {n} is out of range: 1 ≤ {n_name} ≤ {MAX_POINTS_PER_AXIS}"
             )));
         }
+        if n == 1 && from != to {
+            return Err(PlanError(format!(
+                "{who}: {n_name} = 1 scans a single point, but the {axis} range [{from}, {to}] µm has two ends: give {n_name} ≥ 2 to scan the range, or the same position twice for one point"
+            )));
+        }
+        if n > 1 && from == to {
+            return Err(PlanError(format!(
+                "{who}: the {axis} range [{from}, {to}] µm has no extent: its {n} points ({n_name} = {n}) would all be at {from} µm; give two different ends, or {n_name} = 1 for one point"
+            )));
+        }
         Ok(Sweep {
             axis,
             from,
@@ -473,6 +483,23 @@ mod tests {
     fn bad_arguments_name_the_argument_value_and_range() {
         let e = Sweep::new("scan_xy", Axis::X, 0.0, 1.0, 0, "nx").unwrap_err();
         assert_eq!(e.0, "scan_xy: nx = 0 is out of range: 1 ≤ nx ≤ 4096");
+        // one point over a range, many points over no range: refused, each in its words
+        let e = Sweep::new("scan_xy", Axis::X, 0.0, 1.0, 1, "nx").unwrap_err();
+        assert!(
+            e.0.starts_with(
+                "scan_xy: nx = 1 scans a single point, but the x range [0, 1] µm has two ends"
+            ),
+            "{}",
+            e.0
+        );
+        let e = Sweep::new("scan_xy", Axis::X, 0.0, 0.0, 8, "nx").unwrap_err();
+        assert!(e.0.starts_with("scan_xy: the x range [0, 0] µm has no extent: its 8 points (nx = 8) would all be at 0 µm"), "{}", e.0);
+        assert_eq!(
+            Sweep::new("scan_xy", Axis::X, 0.5, 0.5, 1, "nx")
+                .unwrap()
+                .values(),
+            vec![0.5]
+        );
         let e = check_dwell("ascan", -1.0).unwrap_err();
         assert!(e.0.contains("dwell = -1"), "{e}");
     }

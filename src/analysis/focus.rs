@@ -8,7 +8,7 @@
 
 use super::peaks::{peak_1d, row_peaks, LinePeak, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
-use super::{check_range, AnalysisError, Result};
+use super::{check_range, domain, AnalysisError, Result};
 use crate::data::Image;
 use serde::{Deserialize, Serialize};
 
@@ -53,6 +53,9 @@ pub struct FocusResult {
     pub z_hi: Option<f64>,
     /// Per-row maxima (rows are z).
     pub rows: Vec<LinePeak>,
+    /// Where the answer leaves its domain, in words; empty when z_best and its σ hold.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// Best focus from an XZ/YZ scan channel (see the module docs). Errors: fewer than 3 rows with a
@@ -89,6 +92,22 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
         },
     )
     .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
+    // Something to focus on: the best row's maximum must stand clear of the pixel noise of the
+    // sensitivity image (a field with no object in range has only noise maxima, whose parabola
+    // over z is a believable but meaningless z).
+    let noise = domain::pixel_noise(&sens, true);
+    let best = v
+        .iter()
+        .cloned()
+        .filter(|x| x.is_finite())
+        .fold(f64::NEG_INFINITY, f64::max);
+    if !(best > domain::DETECT_SNR * noise) {
+        return Err(AnalysisError::Failed(format!(
+            "no object in range: the largest row maximum of the sensitivity, {best:.3e}, is {:.1}× the pixel noise {noise:.3e} (an object needs ≥ {}×): bring an object into the scan or widen its z range",
+            best / noise.max(f64::MIN_POSITIVE),
+            domain::DETECT_SNR
+        )));
+    }
     let thr = opts.level * p.value;
     // Walk outwards from the best row to the first crossings.
     let ib = p.index;
@@ -131,6 +150,7 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     } else {
         (z_lo, z_hi)
     };
+    let warnings = warnings(&z, &p, lateral_edge(&sens, &rows));
     Ok(FocusResult {
         z_best: p.pos,
         z_err: p.pos_err,
@@ -139,5 +159,46 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
         z_lo,
         z_hi,
         rows,
+        warnings,
+    })
+}
+
+/// The warnings of a focus search: the best z within a quarter of the z window of the scan's
+/// end (the parabola then leans on one side only), the lateral maximum of the best rows at the
+/// scan's edge.
+fn warnings(z: &[f64], p: &super::peaks::Peak, edge: Option<String>) -> Vec<String> {
+    let mut w = vec![];
+    let (zmin, zmax) = (z[0].min(z[z.len() - 1]), z[0].max(z[z.len() - 1]));
+    let step = if z.len() > 1 {
+        (zmax - zmin) / (z.len() - 1) as f64
+    } else {
+        0.0
+    };
+    if p.pos - zmin < 2.0 * step || zmax - p.pos < 2.0 * step {
+        w.push(format!(
+            "the best z = {:.3} µm is within two rows of the scan's z range [{zmin:.3}, {zmax:.3}] µm: the maximum may lie beyond it; widen the z range",
+            p.pos
+        ));
+    }
+    w.extend(edge);
+    w
+}
+
+/// A warning when the rows' maxima sit within half a parabola window of the lateral edge.
+fn lateral_edge(sens: &Image, rows: &[LinePeak]) -> Option<String> {
+    let (x0, x1) = (
+        sens.x[0].min(sens.x[sens.x.len() - 1]),
+        sens.x[0].max(sens.x[sens.x.len() - 1]),
+    );
+    let best = rows
+        .iter()
+        .filter_map(|r| r.peak())
+        .max_by(|a, b| a.value.total_cmp(&b.value))?;
+    let step = (x1 - x0) / (sens.x.len().max(2) - 1) as f64;
+    (best.pos - x0 < 2.0 * step || x1 - best.pos < 2.0 * step).then(|| {
+        format!(
+            "the object's maximum at x = {:.3} µm is at the scan's lateral edge [{x0:.3}, {x1:.3}] µm: centre the object in the scan",
+            best.pos
+        )
     })
 }

@@ -654,7 +654,7 @@ fn find_filament(
             continue;
         }
         let attempt = measure_sens_along(sens.clone(), curve, channel, line, opts).and_then(
-            |(m, trace, sigma)| {
+            |(m, trace, sigma, short)| {
                 // one maximum's 1σ: the parabolas' own, and at least what the image's pixel
                 // noise gives a parabola over the window. At coarse pixels the parabolas' own
                 // (from 2 degrees of freedom, and of the fits that succeeded) came out 2–3×
@@ -679,7 +679,10 @@ fn find_filament(
                 let image_max = lv.max * curve.norm_factor;
                 super::kind::check_filament_maxima(&trace, sigma, image_max)?;
                 super::kind::check_filament_continuity(&trace, sigma, line.angle_deg)?;
-                Ok(m)
+                match short {
+                    Some(e) => Err(e),
+                    None => Ok(m),
+                }
             },
         );
         match attempt {
@@ -725,7 +728,11 @@ pub fn measure_filament_along(
         Channel::SxRows => sensitivity(sx, Axis::X, opts.stencil)?,
         Channel::SyCols => sensitivity(sy, Axis::Y, opts.stencil)?,
     };
-    Ok(measure_sens_along(sens, curve, channel, line, opts)?.0)
+    let (m, _, _, short) = measure_sens_along(sens, curve, channel, line, opts)?;
+    match short {
+        Some(e) => Err(e),
+        None => Ok(m),
+    }
 }
 
 /// The arc positions (µm) of a filament's ends inside the scan from its line trace (every line
@@ -795,7 +802,7 @@ fn measure_sens_along(
     channel: Channel,
     line: LineFit,
     opts: &MeasureOptions,
-) -> Result<(FilamentMeasurement, LineTrace, f64)> {
+) -> Result<(FilamentMeasurement, LineTrace, f64, Option<AnalysisError>)> {
     // Instrument units → reference-bead units.
     sens.data.mapv_inplace(|v| v * curve.norm_factor);
     let rows = channel == Channel::SxRows;
@@ -876,18 +883,25 @@ fn measure_sens_along(
         .filter(|p| p.interior)
         .map(|p| p.sens_corr)
         .collect();
-    if interior.len() < 3 {
+    // Too short to measure: refused by the callers once the kind checks have spoken (a lone
+    // bead is "not a filament" before it is "too short").
+    let short = (interior.len() < 3).then(|| {
         let len = match ends {
             [Some(a), Some(b)] => format!("{:.2} µm long", b - a),
             _ => "cut by an end".to_string(),
         };
-        return Err(AnalysisError::Failed(format!(
+        AnalysisError::Failed(format!(
             "the filament is too short to measure: it is {len} inside the scan, and its maxima within end_margin_um = {} µm of an end are lowered by the end (to 50 % at the end), which leaves {} of {} maxima (at least 3 are needed); scan a longer stretch, or lower end_margin_um knowing the bias",
             opts.end_margin_um,
             interior.len(),
             points.len()
-        )));
-    }
+        ))
+    });
+    let interior = if short.is_some() {
+        points.iter().map(|p| p.sens_corr).collect()
+    } else {
+        interior
+    };
     let s = summary(&interior)?;
     // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits)
     let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
@@ -909,5 +923,5 @@ fn measure_sens_along(
         sens,
         crlb: None,
     };
-    Ok((m, trace, sigma))
+    Ok((m, trace, sigma, short))
 }

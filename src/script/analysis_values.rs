@@ -25,6 +25,17 @@ pub(crate) fn to_map<T: Serialize>(v: &T) -> Map {
     to_dyn(v).try_cast::<Map>().unwrap_or_default()
 }
 
+/// An answer map's domain: `warnings` (array of strings, empty inside the domain) and `status`
+/// ("ok" when there is none, else "flagged"), said to the operator by `ctx` as `who: warning: …`.
+pub(crate) fn with_warnings(ctx: &super::ctx::Ctx, who: &str, m: &mut Map, w: Vec<String>) {
+    ctx.warn_all(who, &w);
+    m.insert("status".into(), crate::analysis::domain::status(&w).into());
+    m.insert(
+        "warnings".into(),
+        w.into_iter().map(Dynamic::from).collect::<Array>().into(),
+    );
+}
+
 pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
     match o.string("stencil")? {
         None => Ok(default),

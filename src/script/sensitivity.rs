@@ -1,10 +1,11 @@
 //! Binding family `sensitivity`: derivatives of scans (∂S/∂x, eq. sens), their maxima (eq.
 //! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
 
+use super::ctx::Ctx;
 use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
-use crate::analysis::peaks::{col_peaks, point_peak, row_peaks};
+use crate::analysis::peaks::{col_peaks, point_peak_checked, row_peaks};
 use crate::analysis::profile::profile_polyline;
 use crate::analysis::{sensitivity, Stencil};
 use crate::data::Image;
@@ -77,14 +78,15 @@ fn register_sensitivity(r: &mut Registrar) {
         .arg("img", "Image", "", "a sensitivity image around one point object")
         .map("opts", "optional", &keys)
         .form("max_sens(img) -> map")
-        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points} (µm; value in the image's units)")
+        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; refused when the maximum is below 5× the pixel noise: no object)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
     let spec = d.spec();
     let s2 = spec.clone();
-    r.bind(d, move |i: ImageRef, m: Map| max_sens(&spec, &i, &m));
+    let (c, c2) = (r.ctx(), r.ctx());
+    r.bind(d, move |i: ImageRef, m: Map| max_sens(&c, &spec, &i, &m));
     r.overload("max_sens", move |i: ImageRef| {
-        max_sens(&s2, &i, &Map::new())
+        max_sens(&c2, &s2, &i, &Map::new())
     });
 
     let fd = FocusOptions::default();
@@ -101,20 +103,21 @@ fn register_sensitivity(r: &mut Registrar) {
             ],
         )
         .form("focus_search(img) -> map")
-        .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows} (µm; rows: per-z maxima)")
+        .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows, warnings, status} (µm; rows: per-z maxima; refused when no object is in range)")
         .summary("best focus: max sensitivity per z row, parabola over z (suppl. S5)")
         .help("z_lo/z_hi: where the row maxima fall to level × max (paper: within 2 % over ±200 nm); () on a side where the scan ends first.");
     let spec = d.spec();
     let s2 = spec.clone();
+    let (c, c2) = (r.ctx(), r.ctx());
     r.bind(
         d.example(
             "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.0, d_nm: 110.0, n: 1.572}); let t = template_model(#{h_um: 0.025}); let xs = []; let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 5, ny: 5}); focus_search(sc.sx, #{level: 2.0})",
             "error: level = 2",
         ),
-        move |v: Dynamic, m: Map| focus_search_of(&spec, v, &m),
+        move |v: Dynamic, m: Map| focus_search_of(&c, &spec, v, &m),
     );
     r.overload("focus_search", move |v: Dynamic| {
-        focus_search_of(&s2, v, &Map::new())
+        focus_search_of(&c2, &s2, v, &Map::new())
     });
 
     let d = Doc::func("profile_along")
@@ -200,16 +203,18 @@ fn line_maxima(spec: &Spec, name: &str, rows: bool, i: &ImageRef, m: &Map) -> RR
 
 /// `max_sens(img[, opts])`: the maximum of a point object's sensitivity image, row parabolas
 /// refined across rows (Sec. 5); position in µm, value in the image's units.
-fn max_sens(spec: &Spec, i: &ImageRef, m: &Map) -> RResult<Map> {
+fn max_sens(c: &Ctx, spec: &Spec, i: &ImageRef, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let po = peak_opts("max_sens", &o)?;
-    let p = point_peak(&i.0, &po).map_err(|e| err("max_sens", e))?;
-    Ok(to_map(&p))
+    let (p, w) = point_peak_checked(&i.0, &po).map_err(|e| err("max_sens", e))?;
+    let mut out = to_map(&p);
+    with_warnings(c, "max_sens", &mut out, w);
+    Ok(out)
 }
 
 /// `focus_search(img[, opts])`: best focus z (µm) of an XZ/YZ scan: the maximum sensitivity of
 /// each z row, then a parabola over z (suppl. S5).
-fn focus_search_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
+fn focus_search_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let d = FocusOptions::default();
     let fo = FocusOptions {
@@ -228,6 +233,7 @@ fn focus_search_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
     out.insert("z_lo".into(), to_dyn(&res.z_lo));
     out.insert("z_hi".into(), to_dyn(&res.z_hi));
     out.insert("rows".into(), line_peaks(&res.rows).into());
+    with_warnings(c, "focus_search", &mut out, res.warnings);
     Ok(out)
 }
 

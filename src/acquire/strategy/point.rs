@@ -65,7 +65,18 @@ impl Strategy for PointStrategy {
                 String::new()
             },
             fmt_seconds(inst.settle_s),
-            fmt_seconds(self.dwell_s),
+            if self.dwell_s > plan.dwell_s * (1.0 + 1e-6) + 1e-12 {
+                // the asked dwell is shorter than the QPD's read: say what will happen
+                format!(
+                    "{} (asked {}: a read is whole samples, {} at {} S/s)",
+                    fmt_seconds(self.dwell_s),
+                    fmt_seconds(plan.dwell_s),
+                    self.n_samples,
+                    rate
+                )
+            } else {
+                fmt_seconds(self.dwell_s)
+            },
             if read_extra_s > 0.0 {
                 format!(" + QPD link {}", fmt_seconds(read_extra_s))
             } else {
