@@ -11,6 +11,7 @@ mod accuracy_report;
 mod analysis;
 mod analysis_hard;
 mod beam_fit;
+mod filament_fit;
 mod fit_oracle;
 mod hard_cases;
 mod mie;

@@ -69,6 +69,7 @@ mod warnings;
 pub use detect::detect_beads;
 pub(crate) use detect::{clean, clean_peaks, detection_map};
 pub use lm::FitStatus;
+pub(crate) use lm::{levenberg_marquardt, Tolerances};
 use problem::*;
 pub use types::*;
 pub use warnings::{implied_diameter_nm, MISFIT_FLOOR, MISFIT_RATIO};
@@ -177,8 +178,39 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
         }
         best.history = history;
     }
+    attach_crlb(&mut best, sx, sy, tpl);
     best.warnings = warnings::warnings(&best, sx, sy, tpl, opts);
     Ok(best)
+}
+
+/// The Cramér–Rao bounds of the fitted beads (`Bead::x_crlb` …): the Fisher information of the
+/// scan's valid Sx and Sy pixels at the fitted parameters, with the fit's σ for every pixel
+/// (the data actually taken: both channels, whichever the fit used).
+fn attach_crlb(r: &mut FitResult, sx: &Image, sy: &Image, tpl: &Template) {
+    if r.beads.is_empty() || !(r.sigma > 0.0 && r.sigma.is_finite()) {
+        return;
+    }
+    let beads: Vec<BeadInit> = r
+        .beads
+        .iter()
+        .map(|b| BeadInit {
+            x: b.x,
+            y: b.y,
+            weight: b.weight,
+        })
+        .collect();
+    let sigma = r.sigma;
+    let valid = |ch: usize, row: usize, col: usize| {
+        let img = if ch == 0 { sx } else { sy };
+        img.data[[row, col]].is_finite().then_some(sigma)
+    };
+    if let Ok(b) = super::crlb::beads_crlb(tpl, &beads, &sx.x, &sx.y, &[0, 1], &valid) {
+        for (bead, bound) in r.beads.iter_mut().zip(b) {
+            bead.x_crlb = Some(bound.x);
+            bead.y_crlb = Some(bound.y);
+            bead.weight_crlb = Some(bound.weight);
+        }
+    }
 }
 
 /// Full residual vector and Jacobian (one row per valid pixel and channel) — the uncompressed
@@ -232,6 +264,50 @@ pub fn full_jacobian(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each fitted bead carries its Cramér–Rao bounds from both channels: with σ given and both
+    /// channels fitted they are the fit's own 1σ; an Sx-only fit of the round stand-in (Σ Tx² =
+    /// Σ Ty² by symmetry, cross terms zero) has a weight 1σ exactly √2 above the bound.
+    #[test]
+    fn fitted_beads_carry_their_cramer_rao_bounds() {
+        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
+        let x: Vec<f64> = (0..41).map(|i| i as f64 * 0.05).collect();
+        let [sx, sy, _] = tpl.render_instrument(&[(1.0, 1.0, 1.5)], &x, &x);
+        let sx = Image::new(sx, x.clone(), x.clone());
+        let sy = Image::new(sy, x.clone(), x.clone());
+        let fit = |channels| {
+            fit_beads(
+                &sx,
+                &sy,
+                &tpl,
+                &FitOptions {
+                    init: Some(vec![BeadInit {
+                        x: 1.02,
+                        y: 0.99,
+                        weight: 1.3,
+                    }]),
+                    sigma: Some(1e-3),
+                    channels,
+                    ..Default::default()
+                },
+            )
+            .unwrap()
+            .beads[0]
+        };
+        let b = fit(Channels::Both);
+        for (err, crlb) in [
+            (b.weight_err, b.weight_crlb),
+            (b.x_err, b.x_crlb),
+            (b.y_err, b.y_crlb),
+        ] {
+            let (e, c) = (err.unwrap(), crlb.unwrap());
+            assert!((e / c - 1.0).abs() < 1e-6, "err {e} vs crlb {c}");
+        }
+        let bx = fit(Channels::Sx);
+        let ratio = bx.weight_err.unwrap() / bx.weight_crlb.unwrap();
+        assert!((ratio - 2f64.sqrt()).abs() < 1e-3, "ratio {ratio}");
+        assert!((bx.weight_crlb.unwrap() / b.weight_crlb.unwrap() - 1.0).abs() < 1e-6);
+    }
 
     #[test]
     fn compressed_problem_matches_full_normal_equations() {

@@ -13,6 +13,8 @@
 //! | sub-pixel maxima per row / column, 2-D peaks | [`peaks`] | Sec. 5 (parabola over 0.4 µm) |
 //! | reference template (from scans or the model) | [`template`], [`template_from_scans`] | Sec. 3.1, Fig. 2 |
 //! | multi-bead template fit | [`fit`] | eq. multiBeadFit, suppl. S7 |
+//! | Cramér–Rao bounds of the data taken | [`crlb`] | suppl. S8 (noise) |
+//! | whole-image straight-filament model, bounds and fit | [`filament_fit`] | Sec. 4.2 |
 //! | filament bead model | [`bead_model`] | Sec. 4.2 |
 //! | orientation calibration and correction | [`orientation`] | Sec. 4.2 steps 1–5, Fig. 4d |
 //! | n_corr, mass of a volume | [`scaling`] | eq. nCor, Sec. 3.2 |
@@ -39,7 +41,9 @@
 pub mod background;
 pub mod bead_model;
 pub mod beam_fit;
+pub mod crlb;
 pub mod domain;
+pub mod filament_fit;
 pub mod fit;
 pub mod focus;
 pub mod kind;

@@ -86,6 +86,10 @@ pub struct AngleCurve {
     #[serde(default = "one")]
     pub norm_factor: f64,
     pub options: AngleCurveOptions,
+    /// The template the curve was computed from (not saved with the curve): the forward model
+    /// of the Cramér–Rao bounds `measure_filament` attaches (`FilamentMeasurement::crlb`).
+    #[serde(skip)]
+    pub template: Option<std::sync::Arc<Template>>,
 }
 
 fn one() -> f64 {
@@ -137,6 +141,7 @@ impl AngleCurve {
             sx0: 1.0,
             norm_factor: tpl.norm_factor,
             options: *opts,
+            template: Some(std::sync::Arc::new(tpl.clone())),
         };
         let s0 = c.eval_raw(0.0).0;
         if !(s0 > 0.0) {
@@ -264,6 +269,29 @@ pub struct FilamentMeasurement {
     /// The sensitivity image of the chosen channel (∂Sx/∂x or ∂Sy/∂y) in reference-bead
     /// units/µm, for SBR and plots.
     pub sens: Image,
+    /// Cramér–Rao bounds of the straight bead-model filament at the measured line and
+    /// sensitivity (see [`FilamentCrlb`]); None when the curve carries no template (a curve
+    /// loaded from a file) or the bound does not exist (no noise, no signal).
+    #[serde(default)]
+    pub crlb: Option<FilamentCrlb>,
+}
+
+/// The information limit of a filament measurement: the Cramér–Rao bounds (1σ floors) of the
+/// whole-image straight bead-model filament (`analysis::filament_fit`) at the measured angle,
+/// line and sensitivity, from the scan's Sx and Sy pixels with their robust pixel noise.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FilamentCrlb {
+    pub angle_deg: f64,
+    /// Perpendicular position of the line, µm.
+    pub offset_um: f64,
+    /// Of `mean_corr`, reference-bead units/µm.
+    pub mean_corr: f64,
+    /// Relative bound of the linear density (= of mean_corr) and of the diameter.
+    pub lin_dens_rel: f64,
+    pub diameter_rel: f64,
+    /// Pixel noise used (Sx, Sy; instrument units): 1.4826·MAD/√2 of the first differences
+    /// along the image axis closer to the filament's (robust to the objects' signal).
+    pub sigma: [f64; 2],
 }
 
 /// A candidate maximum: (line index, line coordinate, position along the line, value).
@@ -493,7 +521,10 @@ pub fn measure_filament(
         }
         tried.push(o.detect_snr);
         match find_filament(&sxs, &sys, levels, curve, &o) {
-            Ok(m) => return Ok(m),
+            Ok(mut m) => {
+                m.crlb = measurement_crlb(sx, sy, curve, &m).ok();
+                return Ok(m);
+            }
             Err(e) => {
                 first_err.get_or_insert(e);
             }
@@ -510,6 +541,61 @@ pub fn measure_filament(
         )),
         Some(e) => e,
         None => AnalysisError::Failed("no filament found".into()),
+    })
+}
+
+/// The Cramér–Rao bounds of a measured filament (see [`FilamentCrlb`]): the line through the
+/// scan's centre row (column) as measured, λ = mean_corr·λ_curve/sx0 (the curve's filament has
+/// weight per length λ_curve and the maximum sensitivity sx0 at 0°, and the corrected
+/// sensitivity is proportional to λ), both channels with their robust pixel noise.
+fn measurement_crlb(
+    sx: &Image,
+    sy: &Image,
+    curve: &AngleCurve,
+    m: &FilamentMeasurement,
+) -> Result<FilamentCrlb> {
+    use super::filament_fit::{lambda_of_diameter, line_crlb, LineFilament};
+    let tpl = curve.template.as_ref().ok_or_else(|| {
+        AnalysisError::Failed("the curve carries no template (loaded from a file)".into())
+    })?;
+    let d = curve.options.d_nm.unwrap_or(tpl.reference.d_nm);
+    let n = curve.options.n.unwrap_or(tpl.reference.n);
+    let lambda = m.mean_corr * lambda_of_diameter(tpl, d, n)? / curve.sx0;
+    let mid = |a: &[f64]| 0.5 * (a[0] + a[a.len() - 1]);
+    let centre = match m.channel {
+        Channel::SxRows => {
+            let y = mid(&sx.y);
+            [m.line.a + m.line.b * y, y]
+        }
+        Channel::SyCols => {
+            let x = mid(&sx.x);
+            [x, m.line.a + m.line.b * x]
+        }
+    };
+    // first differences along the image axis closer to the filament's: the filament's own
+    // signal varies least that way
+    let along_rows = m.angle_deg.abs() > 45.0;
+    let sigma = [pixel_noise(sx, along_rows), pixel_noise(sy, along_rows)];
+    let fil = LineFilament {
+        centre,
+        offset_um: 0.0,
+        angle_deg: m.angle_deg,
+        lambda,
+        background: [0.0, 0.0],
+        spacing_um: curve.options.bead_model.spacing_nm * 1e-3,
+    };
+    let valid = |ch: usize, r: usize, c: usize| {
+        let img = if ch == 0 { sx } else { sy };
+        img.data[[r, c]].is_finite().then_some(sigma[ch])
+    };
+    let b = line_crlb(tpl, &fil, &sx.x, &sx.y, &[0, 1], &valid)?;
+    Ok(FilamentCrlb {
+        angle_deg: b.angle_deg,
+        offset_um: b.offset_um,
+        mean_corr: b.lambda_rel * m.mean_corr.abs(),
+        lin_dens_rel: b.lambda_rel,
+        diameter_rel: b.diameter_rel,
+        sigma,
     })
 }
 
@@ -835,6 +921,7 @@ fn measure_sens_along(
         ends_um,
         warnings: vec![],
         sens,
+        crlb: None,
     };
     Ok((m, trace, sigma, short))
 }

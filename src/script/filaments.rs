@@ -191,6 +191,11 @@ fn register_filaments(r: &mut Registrar) {
         status: "string", "\"ok\" when `warnings` is empty, else \"flagged\""; "whether the answer is inside its domain (docs/analysis.md, Domains)"; "m.status" => "\"ok\""; |m| -> String { crate::analysis::domain::status(&m.0.warnings).to_string() },
         sens: "Image", "the sensitivity image used (reference-bead units/µm)"; "sensitivity image of the chosen channel"; "m.sens.cols" => "61"; |m| -> ImageRef { ImageRef(Arc::new(m.0.sens.clone())) },
     ]);
+    // a noisy scan (1 ms per pixel): the per-row method's sem sits above the bound
+    let noisy_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let s = scene(); s.add_filament(#{points: [[-0.5, -3.0], [0.5, 3.0]], d_nm: 110.0, n: 1.572}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61, n_samples: 100}); let m = measure_filament(sc, c);";
+    properties!(r, "FilamentMeasurement", FilamentRef, noisy_ex, [
+        crlb: "map", "#{angle_deg, offset_um, mean_corr, lin_dens_rel, diameter_rel, sigma: [sx, sy]} or () (noise-free data, a curve loaded from a file)"; "Cramér–Rao bounds (1σ floors) of the whole-image bead-model filament at the measured line and sensitivity, from the scan's Sx and Sy pixels with their robust pixel noise: compare angle_err_deg and sem_corr with them"; "m.crlb.lin_dens_rel < m.sem_corr / m.mean_corr" => "true"; |m| -> Dynamic { m.0.crlb.as_ref().map_or(Dynamic::UNIT, |c| to_map(c).into()) },
+    ]);
     r.bind(
         Doc::method("FilamentMeasurement", "profile")
             .arg(

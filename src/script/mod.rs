@@ -5,6 +5,7 @@
 pub mod analysis_values;
 pub mod console;
 pub mod core;
+pub mod crlb;
 pub mod ctx;
 pub mod doc;
 pub mod errors;
@@ -54,6 +55,7 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("sensitivity", sensitivity::register),
     ("templates", templates::register),
     ("filaments", filaments::register),
+    ("crlb", crlb::register),
     ("stats", stats::register),
     ("files", files::register),
     ("console", console::register),

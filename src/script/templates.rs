@@ -262,7 +262,7 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
 
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
     properties!(r, "FitResult", FitRef, fx, [
-        beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
+        beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, x_crlb, y_crlb, weight_crlb, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; *_crlb: the Cramér–Rao bound of the scan's Sx and Sy pixels at the fit with its σ, or (); found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
     ]);
     // Noise-free one-bead fixture: σ estimated from the residuals gives χ² = N − p exactly
     // (N = 2·41² residuals, p = 3); with σ given, BIC = χ² + p·ln N with χ² ≈ 0; the scaled

@@ -45,6 +45,8 @@ pub const BARE: &[(&str, &str)] = &[
     ("sens", "1/µm"),
     ("max_sens", "1/µm"),
     ("max_sens_err", "1/µm"),
+    ("x_crlb", "µm"),
+    ("y_crlb", "µm"),
     ("sens_bm", "1/µm"),
     ("sens_corr", "1/µm"),
     ("sens_x", "1/µm"),

@@ -233,6 +233,9 @@ impl FitData<'_> {
                     weight_err: e(0),
                     x_err: e(1),
                     y_err: e(2),
+                    x_crlb: None,
+                    y_crlb: None,
+                    weight_crlb: None,
                 }
             })
             .collect();

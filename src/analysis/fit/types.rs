@@ -195,6 +195,18 @@ pub struct Bead {
     pub x_err: Option<f64>,
     pub y_err: Option<f64>,
     pub weight_err: Option<f64>,
+    /// Cramér–Rao bounds (1σ floors) of x, y (µm) and weight from the scan's Sx and Sy pixels
+    /// at the fitted parameters with the fit's σ (`analysis::crlb::beads_crlb`): with σ given
+    /// and both channels fitted they equal the fit's own 1σ (least squares is efficient here);
+    /// a one-channel fit's 1σ is larger, by how much the other channel would have told. None
+    /// when the bound does not exist (a weight of 0, a singular information matrix) or was not
+    /// computed.
+    #[serde(default)]
+    pub x_crlb: Option<f64>,
+    #[serde(default)]
+    pub y_crlb: Option<f64>,
+    #[serde(default)]
+    pub weight_crlb: Option<f64>,
 }
 
 /// A bead is found when its weight is significantly positive: C − `FOUND_SIGMA`·σ_C > 0. Three
