@@ -381,8 +381,8 @@ fn ask_paused(p: &crate::script::ctx::Paused) -> bool {
         p.at[0],
         p.at[1],
         p.at[2],
-        crate::acquire::stop_rule::PAUSE_ANSWERS,
-        crate::acquire::stop_rule::ON_ABORT
+        crate::script::stop_rule::PAUSE_ANSWERS,
+        crate::script::stop_rule::ON_ABORT
     );
     let Ok(mut ed) = rustyline::DefaultEditor::new() else {
         return false;

@@ -41,16 +41,6 @@ impl Control {
         let s = CString::new(spec).unwrap();
         assert_eq!(unsafe { (self.set_faults)(s.as_ptr()) }, 0, "faults {spec}");
     }
-    fn set(&self, key: &str, value: &str) {
-        let set: libloading::Symbol<unsafe extern "C" fn(*const c_char, *const c_char) -> c_int> =
-            unsafe { self._lib.get(b"fakebench_set\0").unwrap() };
-        let (k, v) = (CString::new(key).unwrap(), CString::new(value).unwrap());
-        assert_eq!(
-            unsafe { set(k.as_ptr(), v.as_ptr()) },
-            0,
-            "fakebench_set {key}"
-        );
-    }
     fn log(&self) -> String {
         let n = unsafe { (self.log)(std::ptr::null_mut(), 0) };
         let mut buf = vec![0u8; n + 1];

@@ -70,7 +70,14 @@ impl Tally {
     }
     /// An in-domain answer: `value` against `truth` with 1σ `sigma` (None: no σ, counted only
     /// for outliers by `rel_limit`); an outlier beyond 4σ, or beyond `rel_limit` × |truth|.
-    fn answer(&mut self, value: f64, truth: f64, sigma: Option<f64>, rel_limit: Option<f64>, what: impl Fn() -> String) {
+    fn answer(
+        &mut self,
+        value: f64,
+        truth: f64,
+        sigma: Option<f64>,
+        rel_limit: Option<f64>,
+        what: impl Fn() -> String,
+    ) {
         self.cases += 1;
         self.in_domain += 1;
         let e = (value - truth).abs();
@@ -115,7 +122,12 @@ pub struct SweepOptions {
 }
 
 /// The bead family: one scene, fitted, every bead matched to its truth.
-fn bead_case(rng: &mut ChaCha8Rng, tpl: &Template, optics: &Optics, t: &mut BTreeMap<String, Tally>) {
+fn bead_case(
+    rng: &mut ChaCha8Rng,
+    tpl: &Template,
+    optics: &Optics,
+    t: &mut BTreeMap<String, Tally>,
+) {
     let half = 1.2;
     let n_beads = [0, 1, 1, 1, 2, 3, 4, 5][rng.random_range(0..8)];
     let mut beads: Vec<(f64, f64, f64)> = vec![];
@@ -167,7 +179,12 @@ fn bead_case(rng: &mut ChaCha8Rng, tpl: &Template, optics: &Optics, t: &mut BTre
         wavelength_nm: optics.wavelength_nm,
         ..FitOptions::default()
     };
-    let keys = ["fit_beads.x", "fit_beads.y", "fit_beads.weight", "fit_beads.count"];
+    let keys = [
+        "fit_beads.x",
+        "fit_beads.y",
+        "fit_beads.weight",
+        "fit_beads.count",
+    ];
     let fit = match fit_beads(&scan.sx, &scan.sy, tpl, &fo) {
         Ok(f) if f.warnings.is_empty() => f,
         _ => {
@@ -195,18 +212,28 @@ fn bead_case(rng: &mut ChaCha8Rng, tpl: &Template, optics: &Optics, t: &mut BTre
     let count = t.entry("fit_beads.count".into()).or_default();
     let ok_count = found <= beads.len() && found >= visible;
     count.answer(
-        if ok_count { visible as f64 } else { found as f64 },
+        if ok_count {
+            visible as f64
+        } else {
+            found as f64
+        },
         visible as f64,
         None,
         Some(0.05),
-        || format!("found {found} beads where {visible} are visible: {}", describe()),
+        || {
+            format!(
+                "found {found} beads where {visible} are visible: {}",
+                describe()
+            )
+        },
     );
     // each found bead against the nearest true bead
     for b in fit.beads.iter().filter(|b| b.found()) {
-        let Some(tb) = beads
-            .iter()
-            .min_by(|p, q| (p.0 - b.x).hypot(p.1 - b.y).total_cmp(&(q.0 - b.x).hypot(q.1 - b.y)))
-        else {
+        let Some(tb) = beads.iter().min_by(|p, q| {
+            (p.0 - b.x)
+                .hypot(p.1 - b.y)
+                .total_cmp(&(q.0 - b.x).hypot(q.1 - b.y))
+        }) else {
             continue;
         };
         let wt = (tb.2 / 110.0).powi(3);
@@ -217,17 +244,19 @@ fn bead_case(rng: &mut ChaCha8Rng, tpl: &Template, optics: &Optics, t: &mut BTre
                 describe()
             )
         };
-        t.entry("fit_beads.x".into()).or_default().answer(b.x, tb.0, b.x_err, None, || {
-            msg("x", b.x, tb.0, b.x_err)
-        });
-        t.entry("fit_beads.y".into()).or_default().answer(b.y, tb.1, b.y_err, None, || {
-            msg("y", b.y, tb.1, b.y_err)
-        });
-        t.entry("fit_beads.weight".into())
+        t.entry("fit_beads.x".into())
             .or_default()
-            .answer(b.weight, wt, b.weight_err, None, || {
-                msg("weight", b.weight, wt, b.weight_err)
-            });
+            .answer(b.x, tb.0, b.x_err, None, || msg("x", b.x, tb.0, b.x_err));
+        t.entry("fit_beads.y".into())
+            .or_default()
+            .answer(b.y, tb.1, b.y_err, None, || msg("y", b.y, tb.1, b.y_err));
+        t.entry("fit_beads.weight".into()).or_default().answer(
+            b.weight,
+            wt,
+            b.weight_err,
+            None,
+            || msg("weight", b.weight, wt, b.weight_err),
+        );
     }
 }
 
@@ -291,7 +320,13 @@ fn fibril_case(
             tally.refused();
             return;
         };
-        cals.insert(pixel_nm, FibrilCal { curve, a_nm: cal.a_nm });
+        cals.insert(
+            pixel_nm,
+            FibrilCal {
+                curve,
+                a_nm: cal.a_nm,
+            },
+        );
     }
     let cal = &cals[&pixel_nm];
     let mut sc = Scene::default();
@@ -333,10 +368,19 @@ fn fibril_case(
 
 /// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
 /// each. Returns one tally per estimator quantity.
-pub fn run(opts: &SweepOptions, progress: &dyn Fn(usize, usize)) -> Result<BTreeMap<String, Tally>, String> {
+pub fn run(
+    opts: &SweepOptions,
+    progress: &dyn Fn(usize, usize),
+) -> Result<BTreeMap<String, Tally>, String> {
     let optics = Optics::default();
-    let tpl = Template::from_optics(&optics, &DetectorModel::default(), RefBead::default(), 0.02, 0.0)
-        .map_err(|e| e.to_string())?;
+    let tpl = Template::from_optics(
+        &optics,
+        &DetectorModel::default(),
+        RefBead::default(),
+        0.02,
+        0.0,
+    )
+    .map_err(|e| e.to_string())?;
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
     let mut t = BTreeMap::new();
     let mut cals = BTreeMap::new();
@@ -362,7 +406,9 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
         indicatif::ProgressBar::new((2 * n) as u64)
     };
     let t0 = std::time::Instant::now();
-    let r = run(&SweepOptions { n, seed }, &|done, _| bar.set_position(done as u64));
+    let r = run(&SweepOptions { n, seed }, &|done, _| {
+        bar.set_position(done as u64)
+    });
     bar.finish_and_clear();
     match r {
         Ok(t) => {

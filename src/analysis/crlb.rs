@@ -18,7 +18,7 @@
 //! provides μ and ∂μ/∂θ). Units: whatever the model's parameters are in (µm, radians,
 //! reference-bead units); σ in the data's (instrument) units. No I/O.
 
-use super::fit::BeadInit;
+use super::template::BeadInit;
 use super::template::Template;
 use super::{check_above, AnalysisError, Result};
 use nalgebra::DMatrix;
@@ -37,7 +37,9 @@ pub fn pixel_sigma(sigma_sample: f64, dwell_s: f64, rate_hz: f64) -> Result<f64>
     }
     check_above("dwell_s", dwell_s, 0.0)?;
     check_above("rate_hz", rate_hz, 0.0)?;
-    let n = crate::instrument::samples_per_point(dwell_s, rate_hz) as f64;
+    // whole samples, at least one: the count of `instrument::samples_per_point` (analysis does
+    // not import the instrument)
+    let n = ((dwell_s * rate_hz).round()).max(1.0);
     Ok(sigma_sample / n.sqrt())
 }
 

@@ -8,16 +8,10 @@
 //! - the point-dipole template's size domain ([`dipole_d_max_nm`]), from the focused-beam Mie
 //!   tier's comparison with the point dipole (`optics::mie_beam::point_dipole_error`, the
 //!   simulator's domain check `instrument::sim::domain`);
-//! - detection: a maximum counts as an object when it stands [`DETECT_SNR`] times above the
-//!   pixel noise ([`pixel_noise`]);
+//! - the pixel noise of an image measured from the data themselves ([`pixel_noise`]);
 //! - the object whole inside the scan ([`margin_warning`]).
 
 use crate::data::Image;
-
-/// A maximum of a sensitivity image is an object, not noise, when it is at least this many
-/// times the image's pixel noise ([`pixel_noise`]). The largest of N independent Gaussian
-/// pixels exceeds 5σ with probability N·2.9e-7: 0.5 % for a 128 × 128 image.
-pub const DETECT_SNR: f64 = 5.0;
 
 /// `"ok"` when there is no warning, else `"flagged"`.
 pub fn status(warnings: &[String]) -> &'static str {

@@ -65,6 +65,7 @@ mod problem;
 mod simd;
 mod types;
 mod warnings;
+mod window;
 
 pub use detect::detect_beads;
 pub(crate) use detect::{clean, clean_peaks, detection_map};

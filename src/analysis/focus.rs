@@ -8,7 +8,7 @@
 
 use super::peaks::{peak_1d, row_peaks, LinePeak, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
-use super::{check_range, domain, AnalysisError, Result};
+use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
 use serde::{Deserialize, Serialize};
 
@@ -92,22 +92,6 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
         },
     )
     .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
-    // Something to focus on: the best row's maximum must stand clear of the pixel noise of the
-    // sensitivity image (a field with no object in range has only noise maxima, whose parabola
-    // over z is a believable but meaningless z).
-    let noise = domain::pixel_noise(&sens, true);
-    let best = v
-        .iter()
-        .cloned()
-        .filter(|x| x.is_finite())
-        .fold(f64::NEG_INFINITY, f64::max);
-    if !(best > domain::DETECT_SNR * noise) {
-        return Err(AnalysisError::Failed(format!(
-            "no object in range: the largest row maximum of the sensitivity, {best:.3e}, is {:.1}× the pixel noise {noise:.3e} (an object needs ≥ {}×): bring an object into the scan or widen its z range",
-            best / noise.max(f64::MIN_POSITIVE),
-            domain::DETECT_SNR
-        )));
-    }
     let thr = opts.level * p.value;
     // Walk outwards from the best row to the first crossings.
     let ib = p.index;
@@ -163,7 +147,7 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     })
 }
 
-/// The warnings of a focus search: the best z within a quarter of the z window of the scan's
+/// The warnings of a focus search: the best z within one and a half rows of the scan's
 /// end (the parabola then leans on one side only), the lateral maximum of the best rows at the
 /// scan's edge.
 fn warnings(z: &[f64], p: &super::peaks::Peak, edge: Option<String>) -> Vec<String> {
@@ -174,9 +158,9 @@ fn warnings(z: &[f64], p: &super::peaks::Peak, edge: Option<String>) -> Vec<Stri
     } else {
         0.0
     };
-    if p.pos - zmin < 2.0 * step || zmax - p.pos < 2.0 * step {
+    if p.pos - zmin < 1.5 * step || zmax - p.pos < 1.5 * step {
         w.push(format!(
-            "the best z = {:.3} µm is within two rows of the scan's z range [{zmin:.3}, {zmax:.3}] µm: the maximum may lie beyond it; widen the z range",
+            "the best z = {:.3} µm is within one and a half rows of the end of the scan's z range [{zmin:.3}, {zmax:.3}] µm: the maximum may lie beyond it; widen the z range",
             p.pos
         ));
     }
@@ -195,7 +179,7 @@ fn lateral_edge(sens: &Image, rows: &[LinePeak]) -> Option<String> {
         .filter_map(|r| r.peak())
         .max_by(|a, b| a.value.total_cmp(&b.value))?;
     let step = (x1 - x0) / (sens.x.len().max(2) - 1) as f64;
-    (best.pos - x0 < 2.0 * step || x1 - best.pos < 2.0 * step).then(|| {
+    (best.pos - x0 < 1.5 * step || x1 - best.pos < 1.5 * step).then(|| {
         format!(
             "the object's maximum at x = {:.3} µm is at the scan's lateral edge [{x0:.3}, {x1:.3}] µm: centre the object in the scan",
             best.pos

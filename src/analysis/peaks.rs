@@ -485,23 +485,11 @@ pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
     })
 }
 
-/// [`point_peak`] with its domain checked: refused when the maximum does not stand
-/// [`super::domain::DETECT_SNR`] times above the image's pixel noise (no object: the value
-/// would be a noise maximum); warnings when it lies within half a parabola window of the
-/// image's edge (the object is not whole inside the scan) or its window was cut by the edge.
+/// [`point_peak`] with its domain checked: warnings when the maximum lies within half a
+/// parabola window of the image's edge (the object is not whole inside the scan).
 pub fn point_peak_checked(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Vec<String>)> {
-    use super::domain;
     let p = point_peak(sens, opts)?;
-    let noise = domain::pixel_noise(sens, true);
-    if !(p.value > domain::DETECT_SNR * noise) {
-        return Err(AnalysisError::Failed(format!(
-            "no object: the largest maximum, {:.3e}, is {:.1}× the image's pixel noise {noise:.3e} (an object needs ≥ {}×)",
-            p.value,
-            p.value / noise.max(f64::MIN_POSITIVE),
-            domain::DETECT_SNR
-        )));
-    }
-    let w = domain::margin_warning("the maximum", sens, p.x, p.y, 0.5 * opts.window_um)
+    let w = super::domain::margin_warning("the maximum", sens, p.x, p.y, 0.5 * opts.window_um)
         .into_iter()
         .collect();
     Ok((p, w))

@@ -81,6 +81,15 @@ impl RefBead {
     }
 }
 
+/// A bead as the template renders it and the fit starts from: position (µm) and weight
+/// (reference-bead units).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BeadInit {
+    pub x: f64,
+    pub y: f64,
+    pub weight: f64,
+}
+
 /// Where a template came from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]

@@ -7,26 +7,10 @@
 //! the arrays `clipped_sx`, `clipped_sy`, `clipped_sz` and `dark`, written only when a pixel is
 //! clipped (resp. dark), and summarise them in `meta.clipped` and `meta.dark` (docs/files.md).
 
+pub use super::scan::InputFlags;
 use super::Scan;
 use ndarray::Array2;
 use serde_json::json;
-
-/// Per-pixel flags of a scan's inputs (empty: nothing clipped, nothing dark, or not counted).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct InputFlags {
-    /// Samples at or beyond the rail per pixel, for Sx, Sy, Sz; `None` when no sample of that
-    /// channel was.
-    pub clipped: [Option<Array2<u32>>; 3],
-    /// 1 where the pixel's sum was below the floor; `None` when no pixel was.
-    pub dark: Option<Array2<u8>>,
-}
-
-impl InputFlags {
-    /// No pixel clipped or dark.
-    pub fn is_empty(&self) -> bool {
-        self.clipped.iter().all(Option::is_none) && self.dark.is_none()
-    }
-}
 
 /// A digitiser's input range and sum floor, in its own units (volts for hardware, signal units
 /// for the simulator).

@@ -32,7 +32,7 @@ pub struct Scan {
     /// Clipped samples and dark pixels per pixel ([`super::clip`]); saved as `.npz` members
     /// `clipped_sx`, `clipped_sy`, `clipped_sz`, `dark` when there are any.
     #[serde(skip)]
-    pub flags: super::clip::InputFlags,
+    pub flags: InputFlags,
 }
 
 impl ScanStatus {
@@ -153,5 +153,22 @@ impl fmt::Display for Scan {
             write!(f, ", {nan} unmeasured pixels")?;
         }
         Ok(())
+    }
+}
+
+/// Per-pixel flags of a scan's inputs (empty: nothing clipped, nothing dark, or not counted).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct InputFlags {
+    /// Samples at or beyond the rail per pixel, for Sx, Sy, Sz; `None` when no sample of that
+    /// channel was.
+    pub clipped: [Option<ndarray::Array2<u32>>; 3],
+    /// 1 where the pixel's sum was below the floor; `None` when no pixel was.
+    pub dark: Option<ndarray::Array2<u8>>,
+}
+
+impl InputFlags {
+    /// No pixel clipped or dark.
+    pub fn is_empty(&self) -> bool {
+        self.clipped.iter().all(Option::is_none) && self.dark.is_none()
     }
 }

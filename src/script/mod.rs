@@ -2,6 +2,8 @@
 //! declared once in [`FAMILIES`]. `Workbench` is one scripting session: engine, variables and
 //! functions that persist across REPL lines, and the shared [`Ctx`].
 
+/// The stop rule's words (the prompt prints them; `acquire` owns the rule).
+pub use crate::acquire::stop_rule;
 pub mod analysis_values;
 pub mod console;
 pub mod core;

@@ -78,7 +78,7 @@ fn register_sensitivity(r: &mut Registrar) {
         .arg("img", "Image", "", "a sensitivity image around one point object")
         .map("opts", "optional", &keys)
         .form("max_sens(img) -> map")
-        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; refused when the maximum is below 5× the pixel noise: no object)")
+        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum at the image's edge)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
     let spec = d.spec();
@@ -103,7 +103,7 @@ fn register_sensitivity(r: &mut Registrar) {
             ],
         )
         .form("focus_search(img) -> map")
-        .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows, warnings, status} (µm; rows: per-z maxima; refused when no object is in range)")
+        .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows, warnings, status} (µm; rows: per-z maxima; warnings: best z at the end of the z range, object at the lateral edge)")
         .summary("best focus: max sensitivity per z row, parabola over z (suppl. S5)")
         .help("z_lo/z_hi: where the row maxima fall to level × max (paper: within 2 % over ±200 nm); () on a side where the scan ends first.");
     let spec = d.spec();

@@ -5,8 +5,8 @@
 
 use super::super::template::Template;
 use super::super::{check_axis, AnalysisError, AxisMap, Result};
-use super::normal::{TplPlanes, Window};
 use super::types::*;
+use super::window::{TplPlanes, Window};
 use crate::data::Image;
 use ndarray::Array2;
 

@@ -125,8 +125,8 @@ pub(super) unsafe fn u_pass_avx2(
 /// in `normal.rs`.
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::super::normal::Window;
     use super::super::problem::FitData;
+    use super::super::window::Window;
 
     impl FitData<'_> {
         /// [`FitData::sample_window`] compiled for AVX2 + FMA.

@@ -36,13 +36,10 @@ impl Channels {
     }
 }
 
-/// An initial guess: position (µm) and weight (reference-bead units).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct BeadInit {
-    pub x: f64,
-    pub y: f64,
-    pub weight: f64,
-}
+/// An initial guess: position (µm) and weight (reference-bead units). Declared beside the
+/// template (which renders such beads) so that the Cramér–Rao bounds, which the fit reports,
+/// need not import the fit.
+pub use crate::analysis::template::BeadInit;
 
 /// Stopping rule when adding beads one at a time.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
