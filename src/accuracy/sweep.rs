@@ -300,7 +300,7 @@ fn fibril_case(
     };
     let tally = t.entry("measure_filament.diameter".into()).or_default();
     let pixel = pixel_nm as f64 / 1000.0;
-    if !cals.contains_key(&pixel_nm) {
+    if let std::collections::btree_map::Entry::Vacant(slot) = cals.entry(pixel_nm) {
         let opts = AngleCurveOptions {
             pixel_um: pixel,
             ..AngleCurveOptions::default()
@@ -320,13 +320,10 @@ fn fibril_case(
             tally.refused();
             return;
         };
-        cals.insert(
-            pixel_nm,
-            FibrilCal {
-                curve,
-                a_nm: cal.a_nm,
-            },
-        );
+        slot.insert(FibrilCal {
+            curve,
+            a_nm: cal.a_nm,
+        });
     }
     let cal = &cals[&pixel_nm];
     let mut sc = Scene::default();
