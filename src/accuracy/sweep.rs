@@ -152,10 +152,6 @@ fn bead_case(
             n: REF_BEAD_N,
         });
     }
-    sc.effects.detector_noise = Some(DetectorNoise {
-        sigma_sample: noise * PAPER_DETECTOR_SIGMA_SAMPLE,
-    });
-    sc.seed = seed;
     let describe = || {
         format!(
             "beads {:?} (x, y µm, d nm), noise ×{noise:.2}, pixel {:.0} nm, seed {seed}",
@@ -166,14 +162,9 @@ fn bead_case(
             pixel * 1000.0
         )
     };
-    let n = (2.0 * half / pixel).round() as usize + 1;
-    let axis: Vec<f64> = (0..n)
-        .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
-        .collect();
-    let Ok(r) = Renderer::checked(optics, &sc, Default::default()) else {
+    let Some(scan) = render_field(optics, sc, half, pixel, noise, seed) else {
         return;
     };
-    let scan = render_xy(&r, &axis, &axis, 0.0, N_SAMPLES);
     let fo = FitOptions {
         w0_um: optics.w0_nm / 1000.0,
         wavelength_nm: optics.wavelength_nm,
@@ -260,6 +251,28 @@ fn bead_case(
     }
 }
 
+/// The scene with the paper's detector noise × `noise` drawn from `seed`, rendered on a square
+/// field of ±`half` µm in pixels of `pixel` µm (None when the renderer refuses the scene).
+fn render_field(
+    optics: &Optics,
+    mut sc: Scene,
+    half: f64,
+    pixel: f64,
+    noise: f64,
+    seed: u64,
+) -> Option<crate::data::Scan> {
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: noise * PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    sc.seed = seed;
+    let n = (2.0 * half / pixel).round() as usize + 1;
+    let axis: Vec<f64> = (0..n)
+        .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
+        .collect();
+    let r = Renderer::checked(optics, &sc, Default::default()).ok()?;
+    Some(render_xy(&r, &axis, &axis, 0.0, N_SAMPLES))
+}
+
 fn round3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
@@ -339,18 +352,9 @@ fn fibril_case(
     {
         return;
     }
-    sc.effects.detector_noise = Some(DetectorNoise {
-        sigma_sample: noise * PAPER_DETECTOR_SIGMA_SAMPLE,
-    });
-    sc.seed = seed;
-    let n = (2.0 * half / pixel).round() as usize + 1;
-    let axis: Vec<f64> = (0..n)
-        .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
-        .collect();
-    let Ok(r) = Renderer::checked(optics, &sc, Default::default()) else {
+    let Some(scan) = render_field(optics, sc, half, pixel, noise, seed) else {
         return;
     };
-    let scan = render_xy(&r, &axis, &axis, 0.0, N_SAMPLES);
     match measure_filament(&scan.sx, &scan.sy, &cal.curve, &cal.curve.options.measure) {
         Ok(m) if m.warnings.is_empty() && m.mean_corr > 0.0 => {
             let dm = cal.a_nm * m.mean_corr.sqrt();

@@ -130,15 +130,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             ) else {
                 break;
             };
-            let existing: Vec<BeadInit> = best
-                .beads
-                .iter()
-                .map(|b| BeadInit {
-                    x: b.x,
-                    y: b.y,
-                    weight: b.weight,
-                })
-                .collect();
+            let existing: Vec<BeadInit> = best.beads.iter().map(Bead::init).collect();
             let new = clean(&d, tpl, opts.channels, 1);
             let Some(nb) = new.first().copied() else {
                 break;
@@ -191,15 +183,7 @@ fn attach_crlb(r: &mut FitResult, sx: &Image, sy: &Image, tpl: &Template) {
     if r.beads.is_empty() || !(r.sigma > 0.0 && r.sigma.is_finite()) {
         return;
     }
-    let beads: Vec<BeadInit> = r
-        .beads
-        .iter()
-        .map(|b| BeadInit {
-            x: b.x,
-            y: b.y,
-            weight: b.weight,
-        })
-        .collect();
+    let beads: Vec<BeadInit> = r.beads.iter().map(Bead::init).collect();
     let sigma = r.sigma;
     let valid = |ch: usize, row: usize, col: usize| {
         let img = if ch == 0 { sx } else { sy };

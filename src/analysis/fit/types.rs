@@ -213,6 +213,14 @@ pub struct Bead {
 pub const FOUND_SIGMA: f64 = 3.0;
 
 impl Bead {
+    /// The bead as a start or a model bead: position and weight.
+    pub fn init(&self) -> BeadInit {
+        BeadInit {
+            x: self.x,
+            y: self.y,
+            weight: self.weight,
+        }
+    }
     /// Whether the weight is significantly positive (see [`FOUND_SIGMA`]). Without an
     /// uncertainty (an ill-conditioned fit, reported in `degeneracies`) a positive weight counts.
     pub fn found(&self) -> bool {
