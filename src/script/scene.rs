@@ -52,7 +52,7 @@ const AGGREGATE_REGION_UM: [f64; 2] = [-3.0, 3.0];
 const AGGREGATE_SEED: i64 = 1;
 const AGGREGATES_MAX: i64 = 100_000;
 /// Samples averaged per pixel by `simulate(scene, grid)` unless `n_samples` says otherwise.
-const SIMULATE_N_SAMPLES: i64 = 10_000;
+const SIMULATE_N_SAMPLES: i64 = crate::instrument::sim::scene::PAPER_SAMPLES_PER_PIXEL as i64;
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();

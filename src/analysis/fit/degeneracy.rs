@@ -266,6 +266,7 @@ impl FitData<'_> {
             degeneracies,
             history: vec![],
             warnings: vec![],
+            bead_warnings: vec![],
         })
     }
 }
