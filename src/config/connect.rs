@@ -4,8 +4,8 @@
 
 use super::{err, Backend, Config, ConfigError};
 use crate::acquire::SoftLimits;
+use crate::instrument::gcs::split::GcsSplitStage;
 use crate::instrument::gcs::GcsStage;
-use crate::instrument::gcs_split::GcsSplitStage;
 use crate::instrument::scpi::ScpiQpd;
 use crate::instrument::{DeviceError, Instrument, Qpd, Stage, WallClock};
 use serde_json::json;
@@ -225,8 +225,8 @@ fn open_scpi(cfg: &Config) -> Result<(Box<dyn Qpd>, serde_json::Value), ConnectE
 /// Thorlabs APT devices (and, for a mixed set-up, a GCS stage or a SCPI QPD): KPZ101 cubes as
 /// the stage and/or a KPA101 as the QPD.
 fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
-    use crate::instrument::apt::kpa101::Kpa101;
-    use crate::instrument::apt::kpz101::Kpz101Stage;
+    use crate::instrument::thorlabs::kpa101::Kpa101;
+    use crate::instrument::thorlabs::kpz101::Kpz101Stage;
     use crate::instrument::{Qpd, Stage};
     let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
         Backend::Kpz101 => {
@@ -576,7 +576,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             (None, d)
         }
         Backend::Gcs => {
-            let s = crate::instrument::gcs_split::GcsSplitStage::open_checked(
+            let s = crate::instrument::gcs::split::GcsSplitStage::open_checked(
                 &cfg.gcs_controllers(),
                 cfg.stage.baud,
             )?;

@@ -925,9 +925,9 @@ impl Config {
     }
 
     /// Driver settings for the KPZ101 cubes.
-    pub fn kpz_options(&self) -> crate::instrument::apt::kpz101::KpzOptions {
+    pub fn kpz_options(&self) -> crate::instrument::thorlabs::kpz101::KpzOptions {
         let s = &self.stage;
-        crate::instrument::apt::kpz101::KpzOptions {
+        crate::instrument::thorlabs::kpz101::KpzOptions {
             timeout: Duration::from_millis(s.timeout_ms),
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
             poll_interval: Duration::from_millis(s.poll_ms()),
@@ -941,9 +941,9 @@ impl Config {
     }
 
     /// Driver settings for the KPA101.
-    pub fn kpa_options(&self) -> crate::instrument::apt::kpa101::KpaOptions {
+    pub fn kpa_options(&self) -> crate::instrument::thorlabs::kpa101::KpaOptions {
         let q = &self.qpd;
-        crate::instrument::apt::kpa101::KpaOptions {
+        crate::instrument::thorlabs::kpa101::KpaOptions {
             timeout: Duration::from_millis(q.timeout_ms),
             calibration: q.calibration,
             sum_scale: q.sum_scale,

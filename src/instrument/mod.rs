@@ -9,10 +9,9 @@ pub mod mock;
 pub mod sim;
 pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
-pub mod apt;
+pub mod emulation;
 pub mod emulator;
 pub mod gcs;
-pub mod gcs_split;
 pub mod line;
 pub mod link;
 pub mod madlib;
@@ -22,6 +21,7 @@ pub mod redpitaya;
 pub mod scpi;
 pub mod scpi_session;
 pub mod stream;
+pub mod thorlabs;
 pub mod vendor;
 
 pub mod device;

@@ -7,7 +7,9 @@
 //! sent, so tests can assert what was (not) commanded, and both devices can be told to fail
 //! or to raise the abort flag after a given number of operations.
 
-use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use crate::instrument::{
+    Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock,
+};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 

@@ -25,7 +25,9 @@
 //! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
 //! answers a query naming several axes for the first one only.
 
-use super::{lock, pty_line, spawn, tcp_line, Device, Emulator, Faults, LinkModel, SharedPosition};
+use crate::instrument::emulation::{
+    lock, pty_line, spawn, tcp_line, Device, Emulator, Faults, LinkModel, SharedPosition,
+};
 mod wave;
 mod wave_state;
 use crate::instrument::Pos;

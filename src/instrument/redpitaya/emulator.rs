@@ -50,7 +50,7 @@
 //! stage stopped during an acquisition after the trigger (the samples are computed at the
 //! trigger from the path as published then).
 
-use super::{
+use crate::instrument::emulation::{
     garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
 };
 use rand::{Rng, SeedableRng};
@@ -71,7 +71,7 @@ const PATH_NODE_UM: f64 = 0.005;
 pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 
 /// The signal source at many stage positions in one call (the simulator renders a row of
-/// positions in one pass: [`sim_signal_along`](super::sim_signal_along)), for the nodes of a
+/// positions in one pass: [`sim_signal_along`](crate::instrument::emulator::sim_signal_along)), for the nodes of a
 /// path.
 pub type PathSource = Arc<dyn Fn(&[crate::instrument::Pos]) -> Vec<[f64; 3]> + Send + Sync>;
 
@@ -135,7 +135,7 @@ pub struct RedPitayaEmulatorConfig {
     /// Extra volts per input vs time since the trigger (tests: a known ramp).
     pub generator: Option<Generator>,
     /// The path of the stage under a running wave generator (shared with the GCS stage
-    /// emulator, [`WaveConfig::path`](super::WaveConfig::path)): each sample after the trigger
+    /// emulator, [`WaveConfig::path`](crate::instrument::gcs::emulator::WaveConfig::path)): each sample after the trigger
     /// carries the signal at the stage position at its own time. `None`: the position is
     /// taken once, at the trigger.
     pub path: Option<StagePath>,
@@ -907,7 +907,7 @@ fn serve(
     listener: std::net::TcpListener,
     mut board: Board,
     faults: Arc<Mutex<Faults>>,
-    h: super::Served,
+    h: crate::instrument::emulation::Served,
 ) {
     let mut client: Option<std::net::TcpStream> = None;
     let mut buf: Vec<u8> = Vec::new();
@@ -1024,8 +1024,8 @@ mod tests {
     fn board(cfg: RedPitayaEmulatorConfig) -> Board {
         Board::new(
             cfg,
-            super::super::shared_position([0.1, 0.0, 0.0]),
-            Box::new(super::super::standin_bead),
+            crate::instrument::emulation::shared_position([0.1, 0.0, 0.0]),
+            Box::new(crate::instrument::emulation::standin_bead),
             ExtTrigger::new(),
             Arc::new(Mutex::new(Faults::default())),
         )

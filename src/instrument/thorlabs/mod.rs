@@ -18,6 +18,7 @@
 //! come as `MGMSG_HW_RESPONSE` / `MGMSG_HW_RICHRESPONSE` (a code and, for the rich form, a
 //! text). Serial settings: 115200 baud, 8N1, RTS/CTS flow control.
 
+pub mod emulator;
 pub mod kpa101;
 pub mod kpz101;
 
