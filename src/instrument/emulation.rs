@@ -20,10 +20,10 @@ use super::Pos;
 use serialport::TTYPort;
 use std::collections::VecDeque;
 use std::io::{Read, Write};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// The emulated stage position (µm) shared by the stage and QPD emulators.
 pub type SharedPosition = Arc<Mutex<Pos>>;
@@ -125,6 +125,47 @@ impl StagePath {
             return Some(p.base);
         }
         Some(p.at_time((t - p.start).as_secs_f64()))
+    }
+}
+
+/// A digitiser's external trigger input (the Red Pitaya's DIO0_P on extension connector E1),
+/// wired to a stage controller's trigger output (the GCS emulator's `CTO` lines): each [`pulse`](Self::pulse)
+/// is one rising and one falling edge. Clone it into whatever emulates the controller's
+/// trigger output.
+///
+/// A pulse carries the instant its rising edge happened (the controller emulator computes its
+/// servo loop lazily, so it may register the pulse a few ms after its edge): the board dates
+/// its trigger by that instant.
+#[derive(Debug, Clone, Default)]
+pub struct ExtTrigger(Arc<(AtomicU64, Mutex<Option<Instant>>)>);
+
+/// Two handles are equal when they are the same wire.
+impl PartialEq for ExtTrigger {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl ExtTrigger {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// One trigger pulse, now.
+    pub fn pulse(&self) {
+        self.pulse_at(Instant::now());
+    }
+    /// One trigger pulse whose rising edge was at `at`.
+    pub fn pulse_at(&self, at: Instant) {
+        *lock(&self.0 .1) = Some(at);
+        self.0 .0.fetch_add(1, Ordering::SeqCst);
+    }
+    /// Pulses so far.
+    pub fn count(&self) -> u64 {
+        self.0 .0.load(Ordering::SeqCst)
+    }
+    /// The instant of the last pulse's rising edge.
+    pub fn last_edge(&self) -> Option<Instant> {
+        *lock(&self.0 .1)
     }
 }
 

@@ -11,6 +11,7 @@ pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
 pub mod emulation;
 pub mod emulator;
+pub mod family;
 pub mod gcs;
 pub mod line;
 pub mod link;
@@ -18,6 +19,7 @@ pub mod madlib;
 pub mod nidaqmx;
 pub mod range;
 pub mod redpitaya;
+pub mod registry;
 pub mod scpi;
 pub mod scpi_session;
 pub mod stream;

@@ -11,7 +11,7 @@ pub use super::gcs::emulator::{
     start_stage_emulator, start_stage_emulator_tcp, StageEmulatorConfig, WaveConfig,
 };
 pub use super::redpitaya::emulator::{
-    start_redpitaya_emulator, ExtTrigger, Generator, PathSource, RedPitayaEmulatorConfig,
+    start_redpitaya_emulator, Generator, PathSource, RedPitayaEmulatorConfig,
 };
 pub use super::scpi::emulator::{start_qpd_emulator, QpdEmulatorConfig};
 pub use super::thorlabs::emulator::{
@@ -80,3 +80,14 @@ pub fn start_pair(
     let q = start_qpd_emulator(qpd, pos, source)?;
     Ok((s, q))
 }
+
+/// The family emulators started together, connected through the real drivers. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "emulator",
+    backend: "emulated",
+    aliases: &[],
+    stages: &[],
+    qpds: &[],
+    keys: &["scene", "noise_v", "qpd"],
+    open: crate::instrument::family::Open::Emulated,
+};

@@ -1407,3 +1407,17 @@ mod tests {
         }
     }
 }
+
+/// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "gcs",
+    backend: "hardware",
+    aliases: &[],
+    stages: &["gcs"],
+    qpds: &[],
+    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "scpi",
+    },
+};

@@ -51,12 +51,13 @@
 //! trigger from the path as published then).
 
 use crate::instrument::emulation::{
-    garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
+    garble, launch, lock, Emulator, ExtTrigger, Faults, SharedPosition, SignalSource, StagePath,
+    LOG_CAP,
 };
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::io::{Read, Write};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -74,46 +75,6 @@ pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 /// positions in one pass: [`sim_signal_along`](crate::instrument::emulator::sim_signal_along)), for the nodes of a
 /// path.
 pub type PathSource = Arc<dyn Fn(&[crate::instrument::Pos]) -> Vec<[f64; 3]> + Send + Sync>;
-
-/// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
-/// is one rising and one falling edge. Clone it into whatever emulates the controller's
-/// trigger output.
-///
-/// A pulse carries the instant its rising edge happened (the controller emulator computes its
-/// servo loop lazily, so it may register the pulse a few ms after its edge): the board dates
-/// its trigger by that instant.
-#[derive(Debug, Clone, Default)]
-pub struct ExtTrigger(Arc<(AtomicU64, Mutex<Option<Instant>>)>);
-
-/// Two handles are equal when they are the same wire.
-impl PartialEq for ExtTrigger {
-    fn eq(&self, other: &Self) -> bool {
-        Arc::ptr_eq(&self.0, &other.0)
-    }
-}
-
-impl ExtTrigger {
-    pub fn new() -> Self {
-        Self::default()
-    }
-    /// One trigger pulse, now.
-    pub fn pulse(&self) {
-        self.pulse_at(Instant::now());
-    }
-    /// One trigger pulse whose rising edge was at `at`.
-    pub fn pulse_at(&self, at: Instant) {
-        *lock(&self.0 .1) = Some(at);
-        self.0 .0.fetch_add(1, Ordering::SeqCst);
-    }
-    /// Pulses so far.
-    pub fn count(&self) -> u64 {
-        self.0 .0.load(Ordering::SeqCst)
-    }
-    /// The instant of the last pulse's rising edge.
-    pub fn last_edge(&self) -> Option<Instant> {
-        *lock(&self.0 .1)
-    }
-}
 
 /// Red Pitaya emulator settings.
 #[derive(Clone)]

@@ -3,8 +3,7 @@
 //! built from. The commands that change it (`WAV`, `WGO`, `DRC`, `CTO`, …) are `GcsDevice`'s,
 //! in `wave.rs`; `stage.rs` holds one [`Wave`]. A leaf of `stage/`: it names neither.
 
-use crate::instrument::emulation::StagePath;
-use crate::instrument::redpitaya::emulator::ExtTrigger;
+use crate::instrument::emulation::{ExtTrigger, StagePath};
 use std::collections::BTreeMap;
 use std::time::Instant;
 
