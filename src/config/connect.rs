@@ -88,7 +88,12 @@ pub fn connect(
 /// gauge_zeroed = {x, y, z}`), and a warning per gauge not zeroed (`instrument.warnings`,
 /// shown by `connect()`). Called at connect and after `zero_gauge()`.
 pub fn record_gauge(instrument: &mut Instrument) {
-    let Some(z) = instrument.stage.gauge_zeroed() else {
+    let Some(z) = instrument
+        .stage
+        .capabilities()
+        .gauge
+        .map(|g| g.gauge_zeroed())
+    else {
         return;
     };
     let name = instrument.stage.name();
@@ -206,7 +211,7 @@ fn hardware_instrument(
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description: json!({
-            "backend": "hardware",
+            "backend": crate::instrument::family::HARDWARE,
             "stage": stage_desc,
             "qpd": qpd_desc,
             "settle_s": cfg.stage.settle_s,
@@ -445,7 +450,10 @@ fn finish_emulated(
         ))
     })?;
     if let serde_json::Value::Object(m) = &mut connected.instrument.description {
-        m.insert("backend".into(), json!("emulated"));
+        m.insert(
+            "backend".into(),
+            json!(crate::instrument::emulator::FAMILY.backend),
+        );
         m.insert("emulators".into(), emulators);
     }
     Ok(Emulated {
@@ -652,7 +660,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
         (None, Some(m)) => Box::new(m),
         (None, None) => {
             return Err(crate::instrument::DeviceError::Other {
-                device: "bench".into(),
+                device: crate::instrument::madlib::FAMILY.backend.into(),
                 detail: "no stage was connected".into(),
             }
             .into())

@@ -566,31 +566,59 @@ impl Config {
 
     /// Check values and combinations. Errors name the key path.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let s = &self.stage;
-        let q = &self.qpd;
-        match s.backend {
-            Backend::Sim | Backend::Gcs | Backend::Kpz101 | Backend::Madlib => {}
-            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx) => {
+        self.validate_backends()?;
+        self.validate_devices()?;
+        self.validate_links()?;
+        self.validate_axes()?;
+        self.validate_stage_numbers()?;
+        self.validate_qpd_numbers()?;
+        self.validate_bench()?;
+        self.safety.validate().map_err(|(k, m)| err(&k, m))?;
+        self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
+        self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
+        if let Some(d) = &self.session.data_dir {
+            if d.trim().is_empty() {
                 return Err(err(
-                    "stage.backend",
-                    format!(
-                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\", \"madlib\"",
-                    b.as_str()
-                ),
-                ))
+                    "session.data_dir",
+                    "\"\": must name a folder (or leave the key out for ./bfpscope_data/YYYY-MM-DD/)",
+                ));
             }
         }
-        match q.backend {
-            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx => {}
-            b @ (Backend::Gcs | Backend::Kpz101 | Backend::Madlib) => {
-                return Err(err(
-                    "qpd.backend",
-                    format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\", \"nidaqmx\"",
-                    b.as_str()
+        Ok(())
+    }
+
+    /// The `[stage]` and `[qpd]` backends: each the kind its family provides, both simulated or both hardware.
+    fn validate_backends(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
+        // which backend is a stage's and which a QPD's: the device families say
+        let stages = crate::instrument::registry::config_backends(false);
+        let qpds = crate::instrument::registry::config_backends(true);
+        let listed = |v: &[&str]| {
+            v.iter()
+                .map(|b| format!("{b:?}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        if !stages.contains(&s.backend.as_str()) {
+            return Err(err(
+                "stage.backend",
+                format!(
+                    "\"{}\" is a QPD backend; allowed for a stage: {}",
+                    s.backend.as_str(),
+                    listed(&stages)
                 ),
-                ))
-            }
+            ));
+        }
+        if !qpds.contains(&q.backend.as_str()) {
+            return Err(err(
+                "qpd.backend",
+                format!(
+                    "\"{}\" is a stage backend; allowed for a QPD: {}",
+                    q.backend.as_str(),
+                    listed(&qpds)
+                ),
+            ));
         }
         if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
             return Err(err(
@@ -603,6 +631,13 @@ impl Config {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// The rules of each backend: ports, the KPZ101 and KPA101 settings, the Red Pitaya's.
+    fn validate_devices(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
         if s.backend == Backend::Gcs {
             self.validate_stage_ports()?;
         }
@@ -653,6 +688,13 @@ impl Config {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Baud rates and timeouts.
+    fn validate_links(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
         for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
             if v == 0 {
                 return Err(err(key, "must be a positive baud rate (e.g. 115200)"));
@@ -673,6 +715,12 @@ impl Config {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// `stage.axes`: controller axis identifiers, different on one controller.
+    fn validate_axes(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
         let axes = [&s.axes.x, &s.axes.y, &s.axes.z];
         for (i, a) in axes.iter().enumerate() {
             if a.is_empty() || a.contains(char::is_whitespace) || a.contains('=') {
@@ -701,6 +749,12 @@ impl Config {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// The stage's numbers: units, settle time, trigger line, servo cycle, table sizes.
+    fn validate_stage_numbers(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
         if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
             return Err(err("stage.units_per_um", "must be a positive number"));
         }
@@ -733,6 +787,12 @@ impl Config {
                 return Err(err(key, "0: must be a positive number of points"));
             }
         }
+        Ok(())
+    }
+
+    /// The QPD's numbers: calibration, sum floor, input range.
+    fn validate_qpd_numbers(&self) -> Result<(), ConfigError> {
+        let q = &self.qpd;
         for i in 0..3 {
             let g = q.calibration.gain[i];
             if !(g.is_finite() && g != 0.0) {
@@ -767,18 +827,6 @@ impl Config {
                         format!("{r}: the digitiser's input range ±V, above 0"),
                     ));
                 }
-            }
-        }
-        self.validate_bench()?;
-        self.safety.validate().map_err(|(k, m)| err(&k, m))?;
-        self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
-        self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
-        if let Some(d) = &self.session.data_dir {
-            if d.trim().is_empty() {
-                return Err(err(
-                    "session.data_dir",
-                    "\"\": must name a folder (or leave the key out for ./bfpscope_data/YYYY-MM-DD/)",
-                ));
             }
         }
         Ok(())

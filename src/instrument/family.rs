@@ -3,6 +3,10 @@
 
 use super::Instrument;
 
+/// The backend an instrument opened through `bfpscope.toml`'s tables reports (`status().backend`,
+/// the scan metadata's `instrument.backend`), whichever families its stage and QPD are from.
+pub const HARDWARE: &str = "hardware";
+
 /// How `connect` opens a family.
 #[derive(Clone, Copy)]
 pub enum Open {
