@@ -88,7 +88,13 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
 }
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
+    bind_moves(r);
+    bind_reads(r);
+    bind_connect(r);
+}
+
+/// Where the stage is and moving it: `pos`, `wa`, `mv`, `mvr`.
+fn bind_moves(r: &mut Registrar) {
     let d = Doc::func("pos")
         .returns("map", "#{x, y, z} in µm")
         .summary("current stage position")
@@ -119,7 +125,10 @@ pub fn register(r: &mut Registrar) {
         .summary("move the stage relative to where it is")
         .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25");
     r.bind_ctx(d, |c| move |m: Map| do_move(&c, "mvr", &m, true));
+}
 
+/// Reading the instrument: `qpd`, `ct`, `clock`, `limits`, `status`.
+fn bind_reads(r: &mut Registrar) {
     let d = Doc::func("qpd")
         .arg("n", "int", "samples", &format!("number of samples to average, 1 ≤ n ≤ {QPD_MAX_SAMPLES}"))
         .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n}: means and standard deviations (QPD signal units)")
@@ -175,7 +184,11 @@ pub fn register(r: &mut Registrar) {
         .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
         .example("status().position.x", "0.0");
     r.bind_ctx(d, |c| move || status(&c));
+}
 
+/// `connect`, `disconnect`, `mock_commands`.
+fn bind_connect(r: &mut Registrar) {
+    let ctx = r.ctx();
     let (mock, emu) = (MockConfig::default(), QpdEmulatorConfig::default());
     let d = Doc::func("connect")
         .map(
