@@ -592,33 +592,23 @@ impl Config {
         let s = &self.stage;
         let q = &self.qpd;
         // which backend is a stage's and which a QPD's: the device families say
-        let stages = crate::instrument::registry::config_backends(false);
-        let qpds = crate::instrument::registry::config_backends(true);
-        let listed = |v: &[&str]| {
-            v.iter()
-                .map(|b| format!("{b:?}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
-        if !stages.contains(&s.backend.as_str()) {
-            return Err(err(
-                "stage.backend",
-                format!(
-                    "\"{}\" is a QPD backend; allowed for a stage: {}",
-                    s.backend.as_str(),
-                    listed(&stages)
-                ),
-            ));
-        }
-        if !qpds.contains(&q.backend.as_str()) {
-            return Err(err(
-                "qpd.backend",
-                format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: {}",
-                    q.backend.as_str(),
-                    listed(&qpds)
-                ),
-            ));
+        for (key, b, qpd, other) in [
+            ("stage.backend", s.backend, false, "QPD"),
+            ("qpd.backend", q.backend, true, "stage"),
+        ] {
+            let allowed = crate::instrument::registry::config_backends(qpd);
+            if !allowed.contains(&b.as_str()) {
+                let listed: Vec<String> = allowed.iter().map(|b| format!("{b:?}")).collect();
+                return Err(err(
+                    key,
+                    format!(
+                        "\"{}\" is a {other} backend; allowed for a {}: {}",
+                        b.as_str(),
+                        if qpd { "QPD" } else { "stage" },
+                        listed.join(", ")
+                    ),
+                ));
+            }
         }
         if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
             return Err(err(

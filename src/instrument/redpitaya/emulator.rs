@@ -577,6 +577,35 @@ impl Board {
         self.acq = Acq::Idle;
     }
 
+    /// `ACQ:SOUR<n>:…`: a command of input n (1-based), or error −113 for an input the
+    /// board does not have.
+    fn source_command(&mut self, rest: &str, arg: &str) -> Option<Reply> {
+        let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+        let tail = &rest[digits.len()..];
+        let ch = match digits.parse::<usize>() {
+            Ok(n) if (1..=self.cfg.inputs).contains(&n) => n - 1,
+            _ => {
+                self.push_error(-113, "Undefined header");
+                return None;
+            }
+        };
+        self.channel_command(ch, tail, arg)
+    }
+
+    /// `ACQ:TRIG:LEV <v>[V|mV]`: the trigger level.
+    fn set_trigger_level(&mut self, arg: &str) {
+        let up = arg.to_ascii_uppercase();
+        let (num, scale) = match up.strip_suffix("MV") {
+            Some(n) => (n.trim(), 1e-3),
+            None => (up.strip_suffix('V').unwrap_or(&up).trim(), 1.0),
+        };
+        match num.parse::<f64>() {
+            Ok(v) if v.is_finite() => self.level_v = v * scale,
+            _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
+            _ => self.push_error(-224, "Illegal parameter value"),
+        }
+    }
+
     /// Handle one command line.
     fn handle(&mut self, line: &str) -> Option<Reply> {
         self.update();
@@ -597,16 +626,7 @@ impl Board {
         };
         // channel commands: ACQ:SOUR<n>:...
         if let Some(rest) = h.strip_prefix("ACQ:SOUR") {
-            let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
-            let tail = &rest[digits.len()..];
-            let ch = match digits.parse::<usize>() {
-                Ok(n) if (1..=self.cfg.inputs).contains(&n) => n - 1,
-                _ => {
-                    self.push_error(-113, "Undefined header");
-                    return None;
-                }
-            };
-            return self.channel_command(ch, tail, arg);
+            return self.source_command(rest, arg);
         }
         match h.as_str() {
             "*IDN?" => need_no_arg(self).then(|| Reply::Text(self.cfg.idn.clone())),
@@ -704,16 +724,7 @@ impl Board {
             }
             "ACQ:TRIG:DLY?" => text(self.delay.to_string()),
             "ACQ:TRIG:LEV" => {
-                let up = arg.to_ascii_uppercase();
-                let (num, scale) = match up.strip_suffix("MV") {
-                    Some(n) => (n.trim(), 1e-3),
-                    None => (up.strip_suffix('V').unwrap_or(&up).trim(), 1.0),
-                };
-                match num.parse::<f64>() {
-                    Ok(v) if v.is_finite() => self.level_v = v * scale,
-                    _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
-                    _ => self.push_error(-224, "Illegal parameter value"),
-                }
+                self.set_trigger_level(arg);
                 None
             }
             "ACQ:TRIG:LEV?" => text(format!("{:.6}", self.level_v)),
