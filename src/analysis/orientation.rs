@@ -463,13 +463,15 @@ fn ransac_line(c: &[Cand], rows: bool, tol: f64) -> Option<LineFit> {
             .wrapping_add(1442695040888963407);
         (state >> 33) as usize
     };
-    // Score: the number of lines with an inlier times the inliers' median sensitivity, then
-    // their summed sensitivity. The focus's side lobes (the vector beam's −13 % overshoot, the
-    // derivative's) put a parallel line of weak maxima beside the filament in every line; near
-    // 45° that line can cross more of the scan's lines than the filament itself (a 85 nm fibril
-    // at −43° was measured on its 11 % side lobe, 60 lines against 42): the filament's own
-    // maxima, ten times larger, must win. A line through one bead and noise has a noise median.
-    let mut best: Option<(f64, f64, f64, f64)> = None;
+    // Score: the number of lines with an inlier, then the summed sensitivity of the inliers (a
+    // faint filament among strong point objects must beat a line through a few of them). The
+    // focus's side lobes (the vector beam's overshoot, the derivative's) put a parallel line of
+    // weak maxima 0.7–0.8 µm beside a filament; near 45° that line can cross more of the scan's
+    // lines than the filament itself (an 85 nm fibril at −43° was measured on its 11 % lobe, 60
+    // lines against 42). So the line of most lines × median maximum is also kept, and it wins
+    // when it runs parallel to the first within the lobe's distance: then the first is its lobe.
+    let mut best: Option<(usize, f64, f64, f64)> = None;
+    let mut best_m: Option<(f64, f64, f64)> = None;
     for _ in 0..4000 {
         let (i, j) = (next() % c.len(), next() % c.len());
         let (p, q) = (c[i], c[j]);
@@ -479,14 +481,25 @@ fn ransac_line(c: &[Cand], rows: bool, tol: f64) -> Option<LineFit> {
         let b = (q.2 - p.2) / (q.1 - p.1);
         let a = p.2 - b * p.1;
         let inl = inliers(c, a, b, tol);
-        let sum = inl.iter().map(|p| p.3).sum::<f64>();
+        let (n, sum) = (inl.len(), inl.iter().map(|p| p.3).sum::<f64>());
+        if best.is_none_or(|bb| n > bb.0 || (n == bb.0 && sum > bb.3)) {
+            best = Some((n, a, b, sum));
+        }
         let vals: Vec<f64> = inl.iter().map(|p| p.3).collect();
-        let score = inl.len() as f64 * super::stats::median(&vals).unwrap_or(0.0).max(0.0);
-        if best.is_none_or(|bb| score > bb.0 || (score == bb.0 && sum > bb.3)) {
-            best = Some((score, a, b, sum));
+        let score = n as f64 * super::stats::median(&vals).unwrap_or(0.0).max(0.0);
+        if best_m.is_none_or(|bb| score > bb.0) {
+            best_m = Some((score, a, b));
         }
     }
     let (_, mut a, mut b, _) = best?;
+    if let Some((_, am, bm)) = best_m {
+        let mid = c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64;
+        let offset = dist(a, b, mid, am + bm * mid);
+        let parallel = (b.atan() - bm.atan()).abs().to_degrees() < 3.0;
+        if parallel && offset >= LOBE_SEARCH_UM.0 && offset <= LOBE_SEARCH_UM.1 {
+            (a, b) = (am, bm);
+        }
+    }
     let mut pts = Vec::new();
     for _ in 0..3 {
         pts = inliers(c, a, b, tol);
