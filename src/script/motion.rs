@@ -457,20 +457,35 @@ fn base_config(ctx: &Ctx) -> RResult<Config> {
 }
 
 /// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
-/// Warnings of the connect (a strain gauge not zeroed) follow, one per line.
-fn connected_line(backend: &str, inst: &Instrument) -> String {
-    let mut s = format!(
+/// The connect's warnings (a strain gauge not zeroed) are said to the operator at once
+/// ([`say_connect_warnings`]: stderr and the session log), at the prompt as in `run`/`eval`.
+fn connected_line(ctx: &Ctx, backend: &str, inst: &Instrument) -> String {
+    say_connect_warnings(ctx, &inst.description);
+    format!(
         "connected {backend}: {}, {}",
         inst.stage.name(),
         inst.qpd.name()
-    );
-    if let Some(w) = inst.description["warnings"].as_array() {
-        for w in w.iter().filter_map(|w| w.as_str()) {
-            s.push_str("\nWARNING: ");
-            s.push_str(w);
-        }
+    )
+}
+
+/// Say every warning a connect recorded (`instrument.warnings`: a KPZ101 strain gauge not
+/// zeroed, …) to the operator, one line each, `WARNING: connect: …`, on stderr and in the
+/// session log: the same words whether the connect was `connect()` at the prompt or the
+/// config's connect at the start of `bfpscope repl|run|eval`. Returns the lines said.
+pub fn say_connect_warnings(ctx: &Ctx, description: &serde_json::Value) -> Vec<String> {
+    let lines: Vec<String> = description["warnings"]
+        .as_array()
+        .map(|w| {
+            w.iter()
+                .filter_map(|w| w.as_str())
+                .map(|w| format!("WARNING: connect: {w}"))
+                .collect()
+        })
+        .unwrap_or_default();
+    for l in &lines {
+        ctx.log_lasting(l);
     }
-    s
+    lines
 }
 
 /// The scene for the simulator (`fallback` when no scene was given and the connected
@@ -505,7 +520,7 @@ fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64, pace: f64) -> Result<Str
     let core = SimCore::new(&ctx.optics(), scene, SimConfig::default())
         .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
     core.clock.set_pace(pace);
-    let line = connected_line("sim", &core.instrument(settle_s));
+    let line = connected_line(ctx, "sim", &core.instrument(settle_s));
     ctx.attach_sim(core, settle_s);
     Ok(line)
 }
@@ -551,7 +566,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
         ))
     })
     .map_err(|e| format!("connect: backend = {name:?}: {e}"))?;
-    let line = connected_line("hardware", &c.instrument);
+    let line = connected_line(ctx, "hardware", &c.instrument);
     ctx.attach("hardware", c.instrument, Attached::default());
     Ok(line)
 }
@@ -744,7 +759,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
             let line = format!(
                 "{} (emulators on {} and {})",
-                connected_line("emulated", &e.connected.instrument),
+                connected_line(c, "emulated", &e.connected.instrument),
                 e.stage.path(),
                 e.qpd.path()
             );
@@ -791,7 +806,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             cfg.abort_after_reads =
                 count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
             let (inst, h) = mock_instrument(cfg);
-            let line = connected_line("mock", &inst);
+            let line = connected_line(c, "mock", &inst);
             c.attach(
                 "mock",
                 inst,
@@ -803,5 +818,43 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
             Ok(line)
         }
         _ => unreachable!("backend names are checked above"),
+    }
+}
+
+#[cfg(test)]
+mod connect_warning_tests {
+    use super::*;
+    use crate::script::ctx::Settings;
+
+    /// A connect's warnings reach the operator the same way at the prompt (inside an entry:
+    /// stderr and the entry's transcript, which the prompt writes to the session log) and in
+    /// `run`/`eval` (outside one: stderr and `session.log` directly).
+    #[test]
+    fn connect_warnings_are_said_on_stderr_and_kept_in_the_session_log() {
+        let dir =
+            std::env::temp_dir().join(format!("bfpscope-connect-warn-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let (s, said) = Settings::captured(&dir);
+        let ctx = Ctx::new(s);
+        let w = "Thorlabs KPZ101 #29000001: the strain gauge of x is not zeroed";
+        let d = serde_json::json!({ "warnings": [w] });
+        // at the prompt: an entry is running
+        ctx.start_transcript();
+        let lines = say_connect_warnings(&ctx, &d);
+        let want = format!("WARNING: connect: {w}");
+        assert_eq!(lines, vec![want.clone()]);
+        assert_eq!(ctx.take_transcript(), format!("{want}\n"));
+        assert!(said.lock().unwrap().contains(&want));
+        let log = ctx.store.dir().join("session.log");
+        assert!(
+            !log.exists(),
+            "the prompt writes the entry's transcript itself"
+        );
+        // `run` / `eval`: no entry, the line goes to the session log at once
+        say_connect_warnings(&ctx, &d);
+        assert_eq!(std::fs::read_to_string(&log).unwrap(), format!("{want}\n"));
+        // no warning, nothing said
+        assert!(say_connect_warnings(&ctx, &serde_json::json!({})).is_empty());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
