@@ -403,7 +403,7 @@ impl Ctx {
         if !in_entry {
             use std::io::Write;
             let dir = self.store.dir();
-            let _ = std::fs::create_dir_all(&dir);
+            let _ = std::fs::create_dir_all(dir);
             if let Ok(mut f) = std::fs::OpenOptions::new()
                 .create(true)
                 .append(true)
