@@ -144,6 +144,23 @@ fn kpa101_readings_decode_to_normalised_signals() {
     );
 }
 
+/// A difference beyond the aligner's ±10 V: its ADC reads the end count (32767), and the
+/// driver counts each such reading as clipped on that channel only.
+#[test]
+fn kpa101_readings_at_the_adc_end_are_counted_as_clipped() {
+    // Sum = 5 V; XDiff = 3.0 · 5 V = 15 V (beyond 10 V); YDiff = −0.5 V; the sum within 0–10 V
+    let k = kit(|_| [3.0, -0.1, 0.0]);
+    let mut c = connected(&k, "");
+    let r = c.instrument.qpd.read(6).unwrap();
+    assert_eq!(r.clipped, [6, 0, 0], "{r}");
+    // the reading is the rail's: 10 V / 5 V
+    assert!((r.sx - 2.0).abs() < 1e-3, "{r}");
+    // within the range: none
+    let k = kit(|_| [0.1, -0.1, 0.0]);
+    let mut c = connected(&k, "");
+    assert_eq!(c.instrument.qpd.read(6).unwrap().clipped, [0, 0, 0]);
+}
+
 #[test]
 fn kpa101_disputed_conventions_are_settable() {
     let k = kit(|_| [0.1, -0.05, 0.2]);

@@ -1026,3 +1026,106 @@ print(`bead ${(b.x - 37.5) * 1000.0} ${(b.y - 37.5) * 1000.0} ${b.weight}`);"#;
     assert!(v[0].abs() < 5.0 && v[1].abs() < 5.0, "{l}");
     assert!((v[2] - 1.0).abs() < 0.03, "{l}");
 }
+
+/// A KPZ101 whose strain gauge is not zeroed: the connect at the start of `eval` and of `run`
+/// says so on stderr (the cube and the remedy) and writes it to the session log; the value
+/// or the script's output is unchanged on stdout.
+#[test]
+fn a_kpz101_gauge_not_zeroed_is_said_by_eval_and_run() {
+    use bfpscope::instrument::emulator::{
+        shared_position, standin_bead, start_kpa101_emulator, start_kpz101_emulator,
+        KpaEmulatorConfig, KpzEmulatorConfig,
+    };
+    for (k, cmd) in ["eval", "run"].iter().enumerate() {
+        // a fresh set of cubes per process (a pseudo-terminal serves one connection)
+        let pos = shared_position([10.0, 10.0, 10.0]);
+        let cubes: Vec<_> = (0..3)
+            .map(|axis| {
+                start_kpz101_emulator(
+                    KpzEmulatorConfig {
+                        serial: 29_000_001 + axis as u32,
+                        axis,
+                        travel_um: 20.0,
+                        gauge_offset_um: 0.5,
+                        ..KpzEmulatorConfig::default()
+                    },
+                    pos.clone(),
+                )
+                .unwrap()
+            })
+            .collect();
+        let kpa =
+            start_kpa101_emulator(KpaEmulatorConfig::default(), pos.clone(), |p: [f64; 3]| {
+                standin_bead([p[0] - 10.0, p[1] - 10.0, p[2] - 10.0])
+            })
+            .unwrap();
+        let d = tmp(&format!("kpz-gauge-{k}"));
+        let cfg = d.join("bfpscope.toml");
+        std::fs::write(
+            &cfg,
+            format!(
+                "[stage]\nbackend = \"kpz101\"\nports = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\ntimeout_ms = 300\n\
+                 settle_s = 0.0\n\n[qpd]\nbackend = \"kpa101\"\nport = \"{}\"\ntimeout_ms = 300\n\n[safety]\nmax_step_um = 2.0\n",
+                cubes[0].path(),
+                cubes[1].path(),
+                cubes[2].path(),
+                kpa.path()
+            ),
+        )
+        .unwrap();
+        let data = d.join("data");
+        let script = d.join("where.rhai");
+        std::fs::write(&script, "print(`x = ${pos().x}`);\n").unwrap();
+        let (cfg_s, data_s) = (cfg.to_str().unwrap(), data.to_str().unwrap());
+        let (code, out, err) = if *cmd == "eval" {
+            run(&["--config", cfg_s, "--data", data_s, "eval", "pos().x"])
+        } else {
+            run(&[
+                "--config",
+                cfg_s,
+                "--data",
+                data_s,
+                "run",
+                script.to_str().unwrap(),
+            ])
+        };
+        assert_eq!(code, 0, "{cmd}: {out}\n{err}");
+        let warning = err
+            .lines()
+            .find(|l| l.starts_with("WARNING: connect: "))
+            .unwrap_or_else(|| panic!("{cmd}: no connect warning on stderr: {err}"));
+        assert!(
+            warning.contains("Thorlabs KPZ101")
+                && warning.contains("the strain gauge of x, y, z is not zeroed")
+                && warning.contains("zero_gauge()"),
+            "{cmd}: {warning}"
+        );
+        assert!(!out.contains("WARNING"), "{cmd}: stdout {out}");
+        // the session log keeps it
+        let logs: Vec<String> = walk_files(&data)
+            .into_iter()
+            .filter(|p| p.file_name().is_some_and(|n| n == "session.log"))
+            .map(|p| std::fs::read_to_string(p).unwrap())
+            .collect();
+        assert!(
+            logs.iter().any(|l| l.contains(warning)),
+            "{cmd}: session logs {logs:?}"
+        );
+    }
+}
+
+/// Every file under `dir`.
+fn walk_files(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(rd) = std::fs::read_dir(dir) {
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                out.extend(walk_files(&p));
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
+}

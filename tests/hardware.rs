@@ -576,6 +576,43 @@ fn qpd_connect_identify_and_read_calibrated_signal() {
     assert_eq!(&log[..4], ["*IDN?", "*CLS", "SYST:ERR?", "CONF:RATE?"]);
 }
 
+/// A signal beyond the digitiser's input range: the emulated converter reads the rail, and
+/// the driver (told `range_v`) counts every sample of that channel as clipped; the channels
+/// within the range count none. Without `range_v` nothing is counted (the range unknown).
+#[test]
+fn qpd_samples_at_the_input_range_are_counted_as_clipped() {
+    // Sx 2.0 units × 2 V + 0.1 V = 4.1 V against ±1 V; Sy 0.1 × 2 − 0.1 = 0.1 V; Sz 0.05 V
+    let cfg = QpdEmulatorConfig {
+        range_v: Some(1.0),
+        ..qpd_cfg(0.0)
+    };
+    let emu = start_qpd_emulator(cfg, shared_position([0.0; 3]), |_: Pos| [2.0, 0.1, 0.0]).unwrap();
+    let o = ScpiOptions {
+        range_v: Some(1.0),
+        ..scpi_opts(1000)
+    };
+    let mut q = ScpiQpd::open(emu.path(), BAUD, o).unwrap();
+    let r = q.read(40).unwrap();
+    assert_eq!(r.clipped, [40, 0, 0], "{r}");
+    // the railed mean: (1 V − 0.1 V) / 2 V per unit, not the scene's 2.0
+    assert!((r.sx - 0.45).abs() < 1e-9, "{r}");
+    assert!((r.sy - 0.1).abs() < 1e-9, "{r}");
+    let range = q.input_range().expect("the range is known");
+    assert_eq!(range.full_scale, 1.0);
+    drop(q);
+    let emu = start_qpd_emulator(
+        QpdEmulatorConfig {
+            range_v: Some(1.0),
+            ..qpd_cfg(0.0)
+        },
+        shared_position([0.0; 3]),
+        |_: Pos| [2.0, 0.1, 0.0],
+    )
+    .unwrap();
+    let mut q = ScpiQpd::open(emu.path(), BAUD, scpi_opts(1000)).unwrap();
+    assert_eq!(q.read(40).unwrap().clipped, [0, 0, 0]);
+}
+
 #[test]
 fn qpd_noise_statistics_in_signal_units() {
     let emu = qpd_emu(0.02, [0.0; 3]);

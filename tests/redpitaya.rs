@@ -109,6 +109,26 @@ fn connect_identifies_the_board_and_sets_binary_volts() {
     assert!(!cmds.iter().any(|x| x.starts_with("ACQ:SOUR3")), "{cmds:?}");
 }
 
+/// An input beyond the board's ±1 V (LV jumpers): the emulated ADC saturates at the rail and
+/// the driver counts every sample of that input as clipped; the other input counts none.
+#[test]
+fn samples_at_the_lv_rail_are_counted_as_clipped() {
+    // Sx 0.8 units × 2 V + 0.1 V = 1.7 V against ±1 V; Sy 0.1 × 2 − 0.1 = 0.1 V
+    let (e, _) = start_redpitaya_emulator(
+        emu_cfg(false, 0.0),
+        shared_position([0.0; 3]),
+        |_: [f64; 3]| [0.8, 0.1, 0.0],
+        "127.0.0.1:0",
+    )
+    .unwrap();
+    let mut rp = open(&e, false, 1000);
+    let r = rp.read(100).unwrap();
+    assert_eq!(r.clipped, [r.n, 0, 0], "{r}");
+    // the rail's reading: (1 V − 0.1 V) / 2 V per unit
+    assert!((r.sx - 0.45).abs() < 1e-3, "{r}");
+    assert_eq!(rp.input_range().expect("known").full_scale, 1.0);
+}
+
 /// The standin bead's (Sx, Sy, Sz) at `p` (µm).
 fn exact(p: [f64; 3]) -> [f64; 3] {
     standin_bead(p)

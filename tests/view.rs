@@ -583,3 +583,40 @@ fn the_page_never_scrolls_sideways_from_360_px_up() {
         }
     }
 }
+
+/// A scan whose Sx clipped at the detector's range (the simulator's `detector_range` effect)
+/// says so on the page when it ends: `WARNING:` with the number of clipped Sx pixels the scan
+/// recorded, and the range.
+#[test]
+fn a_clipped_scan_shows_its_warning_on_the_page() {
+    let (mut wb, url, _dir) = bench("clipped");
+    let v = wb
+        .eval_source(
+            "t",
+            &format!(
+                "{BEAD} s.effect(\"detector_range\", #{{range: 1e-3, sum_scale: 5e-4}}); \
+                 connect(#{{backend: \"sim\", scene: s, settle: 0.001}}); \
+                 let sc = scan_xy(#{{x: [-0.6, 0.6], y: [-0.6, 0.6], nx: 13, ny: 13, dwell: 0.001}}); \
+                 sc.meta.clipped.sx.pixels"
+            ),
+        )
+        .unwrap();
+    let px = v.as_int().expect("clipped Sx pixels");
+    assert!(px > 0, "the scene clips Sx");
+    let b = open(&url);
+    let want = format!("{px} pixels of Sx");
+    b.wait_for(
+        &format!(
+            "return document.getElementById('progress-text').textContent.includes('WARNING:') && \
+             document.getElementById('progress-text').textContent.includes({want:?})"
+        ),
+        Duration::from_secs(20),
+        "the clip warning on the page",
+    );
+    let t = progress_text(&b);
+    assert!(
+        t.contains("clipped") && t.contains("±0.001 input range"),
+        "{t}"
+    );
+    b.screenshot(&shots().join("view_clipped.png"));
+}

@@ -323,7 +323,10 @@ fn preflight(
         .map_err(|e| ScanError::Refused(e.0))?;
     let lay = strategy.prepare(inst, plan, start, &points, &limits)?;
     let mode = strategy.mode();
-    let return_s = inst.settle_s + inst.stage.move_time_s();
+    let return_s = inst.settle_s
+        + points
+            .last()
+            .map_or(0.0, |p| inst.stage.move_time_for_s(p.target, start));
     let eta = lay.steps as f64 * lay.step_s + if plan.return_to_start { return_s } else { 0.0 };
     let clock_kind = if inst.clock.is_virtual() {
         "simulated"

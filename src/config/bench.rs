@@ -439,6 +439,20 @@ position_volts_per_um = { x = 0.1333 }
         assert_eq!(again, c);
     }
 
+    /// A Nano-Drive settles on its readings: no fixed settle by default (other stages keep
+    /// 5 ms); a settle the file gives is kept.
+    #[test]
+    fn a_nano_drive_has_no_fixed_settle_unless_the_file_gives_one() {
+        let c = Config::from_toml_str(BENCH, "t").unwrap();
+        assert_eq!(c.stage.settle_s, 0.0);
+        let t = BENCH.replace(
+            "axes = { x = 1, y = 2, z = 3 }",
+            "axes = { x = 1, y = 2, z = 3 }\nsettle_s = 0.01",
+        );
+        assert_eq!(Config::from_toml_str(&t, "t").unwrap().stage.settle_s, 0.01);
+        assert_eq!(Config::default().stage.settle_s, 0.005);
+    }
+
     #[test]
     fn the_emulated_bench_config_is_valid() {
         let c = Config::from_toml_str(

@@ -162,7 +162,9 @@ pub struct StageConfig {
     pub servo_on_connect: bool,
     /// Controller position units per µm (1 for PI piezo controllers).
     pub units_per_um: f64,
-    /// Extra settle time after each move, s (after on-target for hardware).
+    /// Extra settle time after each move, s (after on-target for hardware). Default 5 ms;
+    /// madlib: 0 ([`DEFAULT_SETTLE_S_MADLIB`]: a move ends when the readings stay within
+    /// `tolerance_um`).
     pub settle_s: f64,
     /// Ask the controller one axis per query (`POS? 1`, `POS? 2`, …); detected at connect
     /// anyway when a controller answers a several-axis query for the first axis only.
@@ -234,6 +236,8 @@ impl Default for StageConfig {
     }
 }
 
+/// Default `stage.settle_s` for a Nano-Drive (`madlib`): none after the readings settle.
+pub const DEFAULT_SETTLE_S_MADLIB: f64 = 0.0;
 /// Default `stage.poll_ms` for PI GCS controllers: `#5` is one byte each way (0.26 ms of wire
 /// per poll at 115200 baud), so polling every millisecond costs the controller little.
 pub const DEFAULT_POLL_MS_GCS: u64 = 1;
@@ -519,7 +523,7 @@ impl Config {
                 });
             }
         }
-        let cfg: Config = toml::from_str(text).map_err(|e| {
+        let mut cfg: Config = toml::from_str(text).map_err(|e| {
             let (key, line) = match e.span() {
                 Some(span) => {
                     let (k, l) = key_path_at(text, span.start);
@@ -534,6 +538,14 @@ impl Config {
                 message: with_nearest(e.message().trim()),
             }
         })?;
+        // A Nano-Drive is settled on its readings (`tolerance_um`, two in a row): no fixed
+        // settle after them unless the file asks for one.
+        let settle_given = toml::from_str::<toml::Table>(text)
+            .ok()
+            .is_some_and(|r| r.get("stage").and_then(|s| s.get("settle_s")).is_some());
+        if cfg.stage.backend == Backend::Madlib && !settle_given {
+            cfg.stage.settle_s = DEFAULT_SETTLE_S_MADLIB;
+        }
         cfg.validate().map_err(|mut e| {
             e.origin = origin.into();
             e.line = find_key_line(text, &e.key).or_else(|| find_table_line(text, &e.key));

@@ -150,6 +150,13 @@ pub trait Stage: Send {
     fn move_time_s(&self) -> f64 {
         0.0
     }
+    /// Time a move from `from` to `to` (µm) takes before it returns, for the scan ETA: a
+    /// model of the device where it has one (Madlib: its calls at their measured cost and the
+    /// stage's measured settling for that step), else [`move_time_s`](Self::move_time_s).
+    fn move_time_for_s(&self, from: Pos, to: Pos) -> f64 {
+        let _ = (from, to);
+        self.move_time_s()
+    }
     /// What each kind of command cost on the device's link since the last call (count, bytes,
     /// write and reply time), for the scan's per-phase timing; empty for backends without a
     /// command link.

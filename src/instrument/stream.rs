@@ -67,6 +67,25 @@ pub trait FrameStream {
     fn write_space(&mut self) -> Result<Option<usize>, DeviceError> {
         Ok(None)
     }
+    /// Stage axis `axis`'s position read now (µm), for the guard in the stream's first
+    /// milliseconds, where the stage can read it apart from the inputs (a Nano-Drive over
+    /// USB); `None`: not readable that way.
+    fn guard_position_um(&mut self, _axis: usize) -> Result<Option<f64>, DeviceError> {
+        Ok(None)
+    }
+    /// The guard watches the stage's own readings ([`guard_position_um`](Self::guard_position_um))
+    /// while the inputs' next chunk comes in.
+    fn guards_by_reading(&self) -> bool {
+        false
+    }
+    /// The stage's lag (s): how long its measured position trails the target at constant
+    /// speed, as last measured (a raster's lines, or the settling of point moves); `None`
+    /// before anything was measured. Sets a frame's margins.
+    fn lag_s(&self) -> Option<f64> {
+        None
+    }
+    /// The lag (s) a frame measured, for the next frame's margins.
+    fn record_lag_s(&mut self, _lag_s: f64) {}
     /// The measured position left the plan in the stream's first milliseconds (a stage
     /// that runs away): stop the stream and hold the stage at once, the way that undoes it
     /// (and so every later [`hold`](Self::hold)). Returns what to tell the user: where the

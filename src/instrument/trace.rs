@@ -106,6 +106,7 @@ impl Stage for Traced<dyn Stage> {
     delegate! {
         to self.inner {
             fn move_time_s(&self) -> f64;
+            fn move_time_for_s(&self, from: Pos, to: Pos) -> f64;
             fn link_costs(&mut self) -> super::link::LinkCosts;
             fn name(&self) -> String;
             fn position(&mut self) -> Result<Pos, DeviceError>;

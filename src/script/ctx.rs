@@ -394,6 +394,26 @@ impl Ctx {
         (self.settings.log)(s)
     }
 
+    /// An operator message that must last (a connect's warning): stderr, and the session log
+    /// (`session.log` in the session folder) also outside a prompt entry (`run`, `eval`, the
+    /// connect at start-up); inside one the entry's transcript carries it there.
+    pub fn log_lasting(&self, s: &str) {
+        let in_entry = lock(&self.transcript).is_some();
+        self.log(s);
+        if !in_entry {
+            use std::io::Write;
+            let dir = self.store.dir();
+            let _ = std::fs::create_dir_all(dir);
+            if let Ok(mut f) = std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(dir.join("session.log"))
+            {
+                let _ = writeln!(f, "{s}");
+            }
+        }
+    }
+
     /// Say every warning of an answer of `who` to the operator (stderr and the session log):
     /// `who: warning: …`, one line each.
     pub fn warn_all(&self, who: &str, warnings: &[String]) {

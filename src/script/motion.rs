@@ -478,20 +478,35 @@ fn description_backend(inst: &Instrument) -> String {
 }
 
 /// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
-/// Warnings of the connect (a strain gauge not zeroed) follow, one per line.
-fn connected_line(backend: &str, inst: &Instrument) -> String {
-    let mut s = format!(
+/// The connect's warnings (a strain gauge not zeroed) are said to the operator at once
+/// ([`say_connect_warnings`]: stderr and the session log), at the prompt as in `run`/`eval`.
+fn connected_line(ctx: &Ctx, backend: &str, inst: &Instrument) -> String {
+    say_connect_warnings(ctx, &inst.description);
+    format!(
         "connected {backend}: {}, {}",
         inst.stage.name(),
         inst.qpd.name()
-    );
-    if let Some(w) = inst.description["warnings"].as_array() {
-        for w in w.iter().filter_map(|w| w.as_str()) {
-            s.push_str("\nWARNING: ");
-            s.push_str(w);
-        }
+    )
+}
+
+/// Say every warning a connect recorded (`instrument.warnings`: a KPZ101 strain gauge not
+/// zeroed, …) to the operator, one line each, `WARNING: connect: …`, on stderr and in the
+/// session log: the same words whether the connect was `connect()` at the prompt or the
+/// config's connect at the start of `bfpscope repl|run|eval`. Returns the lines said.
+pub fn say_connect_warnings(ctx: &Ctx, description: &serde_json::Value) -> Vec<String> {
+    let lines: Vec<String> = description["warnings"]
+        .as_array()
+        .map(|w| {
+            w.iter()
+                .filter_map(|w| w.as_str())
+                .map(|w| format!("WARNING: connect: {w}"))
+                .collect()
+        })
+        .unwrap_or_default();
+    for l in &lines {
+        ctx.log_lasting(l);
     }
-    s
+    lines
 }
 
 /// The scene for the simulator (`fallback` when no scene was given and the connected
@@ -527,6 +542,7 @@ fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64, pace: f64) -> Result<Str
         .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
     core.clock.set_pace(pace);
     let line = connected_line(
+        ctx,
         crate::instrument::sim::FAMILY.backend,
         &core.instrument(settle_s),
     );
@@ -576,7 +592,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     })
     .map_err(|e| format!("connect: backend = {name:?}: {e}"))?;
     let backend = description_backend(&c.instrument);
-    let line = connected_line(&backend, &c.instrument);
+    let line = connected_line(ctx, &backend, &c.instrument);
     ctx.attach(&backend, c.instrument, Attached::default());
     Ok(line)
 }
@@ -750,7 +766,7 @@ fn open_emulated(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
     let backend = description_backend(&e.connected.instrument);
     let line = format!(
         "{} (emulators on {} and {})",
-        connected_line(&backend, &e.connected.instrument),
+        connected_line(c, &backend, &e.connected.instrument),
         e.stage.path(),
         e.qpd.path()
     );
@@ -800,7 +816,7 @@ fn open_mock(c: &Ctx, o: &Opts, m: &Map, settle: Option<f64>) -> RResult<String>
     cfg.abort_after_reads = count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
     let (inst, h) = mock_instrument(cfg);
     let backend = MOCK_FAMILY.backend;
-    let line = connected_line(backend, &inst);
+    let line = connected_line(c, backend, &inst);
     c.attach(
         backend,
         inst,
@@ -823,7 +839,7 @@ fn open_built(c: &Ctx, family: &Family, build: BuildFn, m: &Map, settle_s: f64) 
     }
     let inst = build(&options, settle_s)
         .map_err(|e| format!("connect: backend = {:?}: {e}", family.backend))?;
-    let line = connected_line(family.backend, &inst);
+    let line = connected_line(c, family.backend, &inst);
     c.attach(family.backend, inst, Attached::default());
     Ok(line)
 }

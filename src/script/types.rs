@@ -256,8 +256,9 @@ fn show_inner(v: &Dynamic, top: bool) -> String {
         let items: Vec<String> = m
             .iter()
             .map(|(k, x)| match super::units::printed_unit(k) {
-                // a number under a bare key with a unit (`x`, `z_best`, `sens`): value and unit
-                Some(u) if super::registry::to_f64(x).is_some() => {
+                // a float under a bare key with a unit (`x`, `z_best`, `sens`): value and unit;
+                // an integer there is a number, not a length (a Madlib axis number `x: 1`)
+                Some(u) if x.is_float() => {
                     format!("{k}: {} {u}", show_inner(x, false))
                 }
                 _ => format!("{k}: {}", show_inner(x, false)),
@@ -773,4 +774,23 @@ fn profile(t: &Array, v: &Array) -> RResult<ProfileRef> {
         ));
     }
     Ok(ProfileRef(Arc::new(Profile::new(t, v))))
+}
+
+#[cfg(test)]
+mod show_tests {
+    use super::*;
+
+    /// A float under a bare position key prints with µm; an integer there (a Madlib axis
+    /// number in `status().instrument.stage.axes`) prints bare: `x: 1`, not `x: 1 µm`.
+    #[test]
+    fn integers_under_position_keys_print_without_a_unit() {
+        let mut axes = Map::new();
+        axes.insert("x".into(), Dynamic::from(1 as INT));
+        axes.insert("y".into(), Dynamic::from(2 as INT));
+        let mut pos = Map::new();
+        pos.insert("x".into(), Dynamic::from(1.5f64));
+        pos.insert("z".into(), Dynamic::from(-2.0f64));
+        assert_eq!(show(&axes.into()), "#{x: 1, y: 2}");
+        assert_eq!(show(&pos.into()), "#{x: 1.5 µm, z: -2.0 µm}");
+    }
 }

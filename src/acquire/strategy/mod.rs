@@ -207,6 +207,11 @@ impl BinStats {
         }
     }
 
+    /// The mean lag of the lines so far, µm (`None` before any sample among the pixels).
+    pub fn lag_um_mean(&self) -> Option<f64> {
+        (self.lag_n > 0).then(|| self.lag_sum / self.lag_n as f64)
+    }
+
     /// Samples per pixel (min, mean), position error (max, rms, µm) and mean lag (µm) into
     /// the object `raster`.
     pub fn merge_into(&self, raster: &mut Value) {

@@ -43,7 +43,7 @@ impl Strategy for PointStrategy {
         &mut self,
         inst: &mut Instrument,
         plan: &Plan,
-        _start: Pos,
+        start: Pos,
         points: &[Point],
         limits: &SoftLimits,
     ) -> Result<Layout, ScanError> {
@@ -54,9 +54,21 @@ impl Strategy for PointStrategy {
             .check_speed(&plan.kind, points, inst.settle_s, self.dwell_s)
             .map_err(|e| ScanError::Refused(e.0))?;
         self.points = points.to_vec();
-        // the move time (the simulator's model, or the mean of the moves measured so far on
-        // hardware, link included) and the QPD's measured time beyond its samples
-        let move_s = inst.stage.move_time_s();
+        // the move time per point (the simulator's model; on hardware the device's model of
+        // each step where it has one — Madlib: its calls at their measured cost and the
+        // stage's measured settling — else the mean of the moves measured so far, link
+        // included) and the QPD's measured time beyond its samples
+        let move_s = if points.is_empty() {
+            0.0
+        } else {
+            let mut from = start;
+            let mut sum = 0.0;
+            for p in points {
+                sum += inst.stage.move_time_for_s(from, p.target);
+                from = p.target;
+            }
+            sum / points.len() as f64
+        };
         let read_extra_s = inst.qpd.overhead_s();
         let eta_detail = format!(
             "{} points, {}settle {} + dwell {}{} per point",

@@ -48,11 +48,42 @@ pub const PAD_S: f64 = 0.5;
 /// sample of the sensor monitor compared with the plan (a stage that runs away is stopped
 /// within a few ms).
 pub const GUARD_S: f64 = 0.02;
-/// Inputs read at a time while the guard watches, s.
-pub const GUARD_CHUNK_S: f64 = 0.001;
+/// Inputs read at a time while the guard watches, s: a quarter of a millisecond, so that the
+/// first comparison comes that soon after the outputs start (a stage that runs away does so
+/// with the stream's first sample).
+pub const GUARD_CHUNK_S: f64 = 0.00025;
 /// The guard's margin: a measured position farther than this outside the range of the
 /// targets played so far is a stage that runs away, µm (a lagging stage stays inside it).
 pub const GUARD_UM: f64 = 1.0;
+/// A frame's speed ramps, margins and shortest turnarounds last this many of the stage's
+/// measured lags (the time its measured position trails the target at constant speed): the
+/// target runs two lags past the last pixel, so that the lagging stage crosses it at full
+/// speed. Bins use the measured position, so nothing longer is needed.
+pub const MARGIN_LAGS: f64 = 2.0;
+/// Ramps and margins before any lag was measured (no move, no raster yet), s.
+pub const DEFAULT_RAMP_S: f64 = 0.005;
+
+/// The frame's ramp and margin time, s: [`MARGIN_LAGS`] × the stage's measured lag, or the
+/// configured `settle_s` when that is longer; [`DEFAULT_RAMP_S`] before a lag was measured.
+pub fn ramp_time(settle_s: f64, lag_s: Option<f64>) -> f64 {
+    let lag = lag_s
+        .filter(|l| l.is_finite() && *l >= 0.0)
+        .map_or(DEFAULT_RAMP_S, |l| MARGIN_LAGS * l);
+    settle_s.max(lag)
+}
+
+/// What set [`ramp_time`]: `"settle_s"`, `"measured lag"` or `"default"`.
+fn ramp_source(settle_s: f64, lag_s: Option<f64>) -> &'static str {
+    let t = ramp_time(settle_s, lag_s);
+    if t == settle_s && settle_s > 0.0 {
+        "settle_s"
+    } else if lag_s.is_some() {
+        "measured lag"
+    } else {
+        "default"
+    }
+}
+
 /// Frames of at most this many samples keep their raw samples in the scan file.
 pub const RAW_MAX_SAMPLES: usize = 2_000_000;
 
@@ -216,6 +247,11 @@ struct Running {
     /// The range of the fast axis's targets played so far (for the guard), µm.
     plan_lo: f64,
     plan_hi: f64,
+    /// The range of the fast and slow axes' targets up to sample `now_upto` (for the guard's
+    /// readings of the stage taken now, not on the clock), µm.
+    now_lo: [f64; 2],
+    now_hi: [f64; 2],
+    now_upto: usize,
     /// Samples read and not yet binned, from sample `base` on.
     buf: StreamChunk,
     base: usize,
@@ -269,6 +305,8 @@ pub struct StreamStrategy {
     started: bool,
     /// The last line's pixels with samples at the rail, until the engine takes them.
     clipped: Vec<crate::acquire::clip::ClippedPixel>,
+    /// The frame's ramp and margin time (s) and what set it ([`ramp_time`]).
+    ramp: (f64, &'static str),
 }
 
 /// The stage's frame stream, or an error naming the stage.
@@ -298,6 +336,7 @@ impl StreamStrategy {
             held: false,
             started: false,
             clipped: Vec::new(),
+            ramp: (0.0, "default"),
         }
     }
 
@@ -335,12 +374,15 @@ impl StreamStrategy {
         self.ph.frame_samples += frame.len;
         self.ph.buffer_samples = stream.buffer_samples();
         self.ph.start_s += t.elapsed().as_secs_f64();
-        let x0 = f[0];
+        let (x0, y0) = (f[0], s[0]);
         self.run = Some(Running {
             written: f.len(),
             total,
             plan_lo: x0,
             plan_hi: x0,
+            now_lo: [x0, y0],
+            now_hi: [x0, y0],
+            now_upto: 1,
             frame,
             read: 0,
             buf: StreamChunk::default(),
@@ -394,6 +436,64 @@ impl StreamStrategy {
             }
             let guarding = run.read < guard_n;
             let n = if guarding { guard_chunk } else { chunk }.min(until - run.read);
+            if guarding {
+                // Until the inputs have the next chunk, the stage's own readings (Madlib: a
+                // USB round trip each, back to back) against the targets played by now: no
+                // sleep in a blocking read, whose wake-up a loaded host delays by
+                // milliseconds, stands between a run-away and its stop.
+                loop {
+                    let elapsed = run.t0.elapsed().as_secs_f64();
+                    let played = (elapsed * geo.rate) as usize;
+                    // the targets up to a millisecond ahead of the estimate (the outputs
+                    // started a little before it)
+                    let upto = (played + guard_chunk + (1e-3 * geo.rate) as usize).min(run.written);
+                    if upto > run.now_upto {
+                        let (mut f, mut s) = (Vec::new(), Vec::new());
+                        run.frame
+                            .fill(rp, run.now_upto, upto - run.now_upto, &mut f, &mut s);
+                        for (k, v) in [f, s].iter().enumerate() {
+                            for &x in v {
+                                run.now_lo[k] = run.now_lo[k].min(x);
+                                run.now_hi[k] = run.now_hi[k].max(x);
+                            }
+                        }
+                        run.now_upto = upto;
+                    }
+                    let mut away = None;
+                    for (k, axis) in [geo.fast, geo.slow].into_iter().enumerate() {
+                        let Some(m) = stream.guard_position_um(axis).map_err(StepFault::stage)?
+                        else {
+                            continue;
+                        };
+                        let (lo, hi) = (run.now_lo[k], run.now_hi[k]);
+                        if m < lo - GUARD_UM || m > hi + GUARD_UM {
+                            away = Some((axis, m, lo, hi));
+                            break;
+                        }
+                    }
+                    if let Some((axis, m, lo, hi)) = away {
+                        let wall_ms = elapsed * 1e3;
+                        let advice = stream.ran_away();
+                        let advice = if advice.is_empty() {
+                            String::new()
+                        } else {
+                            format!("; {advice}")
+                        };
+                        return Err(StepFault::stage(DeviceError::Other {
+                            device: stream.stream_name(),
+                            detail: format!(
+                                "the stage ran away: it reads {} = {m:.3} µm {wall_ms:.2} ms into the stream, where the plan \
+                                 had played {lo:.3}…{hi:.3} µm; the stream was stopped{advice}",
+                                AXES[axis]
+                            ),
+                        }));
+                    }
+                    // no reading of its own (nothing to watch but the inputs), or the chunk is in
+                    if !stream.guards_by_reading() || played >= run.read + n {
+                        break;
+                    }
+                }
+            }
             let timeout = n as f64 / geo.rate + 2.0;
             let t = Instant::now();
             let c = stream.read(n, timeout).map_err(StepFault::stage)?;
@@ -414,31 +514,40 @@ impl StreamStrategy {
                 // position outside them (with a margin) is a stage that runs away
                 let (mut f, mut s) = (Vec::with_capacity(c.len()), Vec::with_capacity(c.len()));
                 run.frame.fill(rp, run.read, c.len(), &mut f, &mut s);
+                let mut away = None;
                 for (j, &m) in c.fast_um.iter().enumerate() {
                     if let Some(&x) = f.get(j) {
                         run.plan_lo = run.plan_lo.min(x);
                         run.plan_hi = run.plan_hi.max(x);
                     }
                     if m < run.plan_lo - GUARD_UM || m > run.plan_hi + GUARD_UM {
-                        let k = run.read + j;
-                        let wall_ms = run.t0.elapsed().as_secs_f64() * 1e3;
-                        let advice = stream.ran_away();
-                        let advice = if advice.is_empty() {
-                            String::new()
-                        } else {
-                            format!("; {advice}")
-                        };
-                        return Err(StepFault::stage(DeviceError::Other {
-                            device: stream.stream_name(),
-                            detail: format!(
-                                "the stage ran away: the sensor monitor reads x = {m:.3} µm {:.2} ms into the stream, \
-                                 where the plan had played {:.3}…{:.3} µm; the stream was stopped (seen {wall_ms:.1} ms after the outputs started){advice}",
-                                k as f64 / geo.rate * 1e3,
-                                run.plan_lo,
-                                run.plan_hi
+                        away = Some((
+                            AXES[geo.fast],
+                            m,
+                            format!(
+                                "{:.2} ms into the stream (the sensor monitor)",
+                                (run.read + j) as f64 / geo.rate * 1e3
                             ),
-                        }));
+                            (run.plan_lo, run.plan_hi),
+                        ));
+                        break;
                     }
+                }
+                if let Some((axis, m, when, (lo, hi))) = away {
+                    let wall_ms = run.t0.elapsed().as_secs_f64() * 1e3;
+                    let advice = stream.ran_away();
+                    let advice = if advice.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {advice}")
+                    };
+                    return Err(StepFault::stage(DeviceError::Other {
+                        device: stream.stream_name(),
+                        detail: format!(
+                            "the stage ran away: {axis} reads {m:.3} µm {when}, where the plan had played \
+                             {lo:.3}…{hi:.3} µm; the stream was stopped (seen {wall_ms:.1} ms after the outputs started){advice}"
+                        ),
+                    }));
                 }
             }
             run.read += c.len();
@@ -541,6 +650,12 @@ impl StreamStrategy {
         end[geo.slow] = rp.lines[line].start[geo.slow];
         self.at = Some(end);
         if done {
+            // the lag measured on this frame sets the next frame's margins
+            if let (Some(l), true) = (self.stats.lag_um_mean(), rp.speed_um_s > 0.0) {
+                if let Ok(st) = stream_of(inst) {
+                    st.record_lag_s(l / rp.speed_um_s);
+                }
+            }
             self.ph.stream_s += stream_s;
             self.hold(inst).map_err(StepFault::stage)?;
         }
@@ -565,11 +680,15 @@ impl Strategy for StreamStrategy {
     ) -> Result<Layout, ScanError> {
         let kind = &plan.kind;
         let who = format!("{kind} (raster)");
-        let settle_s = inst.settle_s;
+        let settle_cfg = inst.settle_s;
         let stream = inst
             .stage
             .frame_stream()
             .ok_or_else(|| ScanError::Refused(format!("{who}: this stage has no frame stream")))?;
+        // the ramps, margins and shortest turnarounds: as long as the stage's measured lag
+        let lag = stream.lag_s();
+        let settle_s = ramp_time(settle_cfg, lag);
+        self.ramp = (settle_s, ramp_source(settle_cfg, lag));
         let name = stream.stream_name();
         let rate = stream.rate_hz();
         let (fast, slow) = stream.axes();
@@ -791,6 +910,10 @@ impl Strategy for StreamStrategy {
                 "samples_per_pixel_asked": self.opts.samples_per_pixel,
                 "samples_per_pixel_board": self.dwell_s * geo.rate,
                 "position_smoothing_samples": self.smooth,
+                "ramp_s": self.ramp.0,
+                "ramp_from": self.ramp.1,
+                "lag_s_measured": self.stats.lag_um_mean().filter(|_| rp.speed_um_s > 0.0).map(|l| l / rp.speed_um_s),
+                "duty_cycle": (ph.stream_s > 0.0).then(|| ph.lines as f64 * rp.cols.len() as f64 * self.dwell_s / ph.stream_s),
                 "raw_kept": self.keep_raw,
                 "binning": "each pixel: the board's samples whose measured fast-axis position (the sensor monitor, sampled on the same clock) lies within half a pitch of its centre; its value is their least-squares line (value against position) at the centre",
                 "stream": {

@@ -109,15 +109,44 @@ pub struct MadlibStage {
     moves: u32,
     /// What each Madlib call cost since the last [`Stage::link_costs`] (count, time).
     costs: std::sync::Mutex<crate::instrument::link::LinkCosts>,
+    /// Every call's time since connect: (sum s, count), for the move-time model.
+    calls: std::sync::Mutex<(f64, u64)>,
+    /// The stage's time constant measured on the moves so far: (sum of estimates s, count).
+    tau: (f64, u32),
 }
+
+/// A move's settling gives a time-constant estimate when its step is at least this many
+/// tolerances and its approach was read over a fall of at least this ratio (the log of the
+/// ratio, the estimate's divisor, at least ln 10).
+const TAU_MIN_RATIO: f64 = 10.0;
 
 impl MadlibStage {
     /// Count one call of `word` that took `since.elapsed()`.
     fn cost(&self, word: &str, since: Instant) {
         let mut c = self.costs.lock().unwrap_or_else(|e| e.into_inner());
         let e = crate::instrument::link::cost_of(&mut c, word);
+        let dt = since.elapsed().as_secs_f64();
         e.n += 1;
-        e.reply_s += since.elapsed().as_secs_f64();
+        e.reply_s += dt;
+        let mut a = self.calls.lock().unwrap_or_else(|e| e.into_inner());
+        a.0 += dt;
+        a.1 += 1;
+    }
+
+    /// The mean time of one Madlib call so far (a USB round trip), s; 0 before any.
+    pub fn call_s(&self) -> f64 {
+        let a = self.calls.lock().unwrap_or_else(|e| e.into_inner());
+        if a.1 == 0 {
+            0.0
+        } else {
+            a.0 / a.1 as f64
+        }
+    }
+
+    /// The stage's first-order time constant measured on the moves so far (the time the
+    /// readings took to come within `tolerance_um` of a step d: τ · ln(d / tolerance)), s.
+    pub fn tau_s(&self) -> Option<f64> {
+        (self.tau.1 > 0).then(|| self.tau.0 / self.tau.1 as f64)
     }
 
     /// Load Madlib and take the Nano-Drive `opts` names.
@@ -238,6 +267,8 @@ impl MadlibStage {
             move_time_sum: 0.0,
             moves: 0,
             costs: Default::default(),
+            calls: Default::default(),
+            tau: (0.0, 0),
         };
         if serial < 0 {
             return Err(madlib_error(
@@ -440,24 +471,56 @@ impl MadlibStage {
             }
         }
         let t0 = Instant::now();
-        for (k, &t) in target.iter().enumerate() {
-            // only the axes that move (a scan's fixed z is not rewritten at every point)
-            if t == self.target[k] {
-                continue;
-            }
-            if let Err(e) = self.write_axis(k, t) {
+        // only the axes that move are written and watched (a scan's fixed z is neither
+        // rewritten nor read back at every point)
+        let before = self.target;
+        let moved: Vec<usize> = (0..3).filter(|&k| target[k] != self.target[k]).collect();
+        let step = moved
+            .iter()
+            .map(|&k| (target[k] - self.target[k]).abs())
+            .fold(0.0, f64::max);
+        for &k in &moved {
+            if let Err(e) = self.write_axis(k, target[k]) {
                 return Err(self.fault(e));
             }
         }
         self.target = target;
+        let watch: Vec<usize> = if moved.is_empty() {
+            vec![0, 1, 2]
+        } else {
+            moved
+        };
+        // the axis with the largest step: its approach (time, distance to go) for the time
+        // constant, while it is still well outside the tolerance
+        let big = watch
+            .iter()
+            .copied()
+            .max_by(|&a, &b| {
+                let d = |k: usize| (target[k] - before[k]).abs();
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap_or(0);
+        let mut approach: Vec<(f64, f64)> = Vec::new();
         let mut within_before = false;
-        let mut last;
+        let mut last = target;
         loop {
-            last = match self.read_all() {
-                Ok(p) => p,
-                Err(e) => return Err(self.fault(e)),
-            };
-            let within = (0..3).all(|k| (last[k] - target[k]).abs() <= self.opts.tolerance_um);
+            for &k in &watch {
+                let t_call = t0.elapsed().as_secs_f64();
+                last[k] = match self.read_axis(k) {
+                    Ok(p) => p,
+                    Err(e) => return Err(self.fault(e)),
+                };
+                if k == big {
+                    let e = (last[k] - target[k]).abs();
+                    if e > 4.0 * self.opts.tolerance_um {
+                        let t_mid = 0.5 * (t_call + t0.elapsed().as_secs_f64());
+                        approach.push((t_mid, e));
+                    }
+                }
+            }
+            let within = watch
+                .iter()
+                .all(|&k| (last[k] - target[k]).abs() <= self.opts.tolerance_um);
             if within && within_before {
                 break;
             }
@@ -493,6 +556,16 @@ impl MadlibStage {
         }
         self.move_time_sum += t0.elapsed().as_secs_f64();
         self.moves += 1;
+        // the settling measured: a first-order lag's distance to go falls as exp(−t/τ), so
+        // two readings of the approach give τ = (t₂ − t₁) / ln(e₁ / e₂), whatever the time
+        // the write and the first read took (readings far enough apart: e₁/e₂ ≥ 10)
+        if let (Some(&(t1, e1)), Some(&(t2, e2))) = (approach.first(), approach.last()) {
+            if step / self.opts.tolerance_um >= TAU_MIN_RATIO && e1 / e2 >= TAU_MIN_RATIO && t2 > t1
+            {
+                self.tau.0 += (t2 - t1) / (e1 / e2).ln();
+                self.tau.1 += 1;
+            }
+        }
         Ok(true)
     }
 }
@@ -566,6 +639,33 @@ impl Stage for MadlibStage {
         } else {
             self.move_time_sum / self.moves as f64
         }
+    }
+
+    /// The calls of a move at their measured cost and the stage's measured settling: one
+    /// `MCL_SingleWriteN` per moving axis, then rounds of one `MCL_SingleReadN` per moving
+    /// axis (and the poll interval) until the readings are within `tolerance_um` (after
+    /// τ · ln(step / tolerance), at least one round) and one more round to confirm. Before
+    /// the time constant is measured: the calls alone.
+    fn move_time_for_s(&self, from: Pos, to: Pos) -> f64 {
+        let moved = (0..3).filter(|&k| to[k] != from[k]).count();
+        if moved == 0 {
+            return 0.0;
+        }
+        let call = self.call_s();
+        let step = (0..3).map(|k| (to[k] - from[k]).abs()).fold(0.0, f64::max);
+        let settle = match self.tau_s() {
+            Some(tau) if step > self.opts.tolerance_um => {
+                tau * (step / self.opts.tolerance_um).ln()
+            }
+            _ => 0.0,
+        };
+        let round = moved as f64 * call + self.opts.poll_interval.as_secs_f64();
+        let rounds = if round > 0.0 {
+            (settle / round).ceil().max(1.0) * round
+        } else {
+            settle
+        };
+        moved as f64 * call + rounds + round
     }
 }
 

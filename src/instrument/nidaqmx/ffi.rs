@@ -33,6 +33,8 @@ pub const DAQMX_VAL_GROUP_BY_CHANNEL: Bool32 = 0;
 pub const DAQMX_VAL_GROUP_BY_SCAN_NUMBER: Bool32 = 1;
 /// Terminal configurations of `DAQmxCreateAIVoltageChan`.
 pub const DAQMX_VAL_CFG_DEFAULT: i32 = -1;
+/// `DAQmx_Val_Poll` (Read.WaitMode): a read checks for its samples as fast as it can.
+pub const DAQMX_VAL_POLL: i32 = 12524;
 pub const DAQMX_VAL_RSE: i32 = 10083;
 pub const DAQMX_VAL_NRSE: i32 = 10078;
 pub const DAQMX_VAL_DIFF: i32 = 10106;
@@ -185,6 +187,8 @@ pub type GetDevProductType =
     unsafe extern "system" fn(device: *const c_char, data: *mut c_char, buffer_size: u32) -> i32;
 pub type GetDevSerialNum = unsafe extern "system" fn(device: *const c_char, data: *mut u32) -> i32;
 pub type SetWriteRegenMode = unsafe extern "system" fn(task_handle: TaskHandle, data: i32) -> i32;
+/// `int32 DAQmxSetReadWaitMode(TaskHandle taskHandle, int32 data);`
+pub type SetReadWaitMode = unsafe extern "system" fn(task_handle: TaskHandle, data: i32) -> i32;
 /// `int32 DAQmxGetWriteSpaceAvail(TaskHandle taskHandle, uInt32 *data);`
 pub type GetWriteSpaceAvail =
     unsafe extern "system" fn(task_handle: TaskHandle, data: *mut u32) -> i32;
@@ -231,6 +235,7 @@ pub struct NiDaqmx {
     pub get_dev_serial_num: Option<GetDevSerialNum>,
     pub set_write_regen_mode: Option<SetWriteRegenMode>,
     pub get_write_space_avail: Option<GetWriteSpaceAvail>,
+    pub set_read_wait_mode: Option<SetReadWaitMode>,
 }
 
 impl NiDaqmx {
@@ -284,6 +289,7 @@ impl NiDaqmx {
                 get_dev_serial_num: vendor::optional_symbol(&lib, "DAQmxGetDevSerialNum"),
                 set_write_regen_mode: vendor::optional_symbol(&lib, "DAQmxSetWriteRegenMode"),
                 get_write_space_avail: vendor::optional_symbol(&lib, "DAQmxGetWriteSpaceAvail"),
+                set_read_wait_mode: vendor::optional_symbol(&lib, "DAQmxSetReadWaitMode"),
                 _lib: lib,
                 path,
             })

@@ -598,13 +598,26 @@ impl NiQpd {
 
     pub fn connect(lib: Arc<NiDaqmx>, opts: NiQpdOptions) -> Result<NiQpd, DeviceError> {
         let dev = format!("NI-DAQmx {}", opts.device);
-        let (product, serial) = device_identity(&lib, &opts.device);
+        let (product, serial) = device_identity(&lib, &opts.device)?;
         let name = if product.is_empty() {
             dev.clone()
         } else {
             format!("NI {product} {}", opts.device)
         };
         let task = Task::create(lib.clone(), &name, "bfpscope-qpd")?;
+        // A point read waits a dwell (≈ 0.1 ms) for its samples: polling for them, not
+        // sleeping, keeps a busy host's wake-up latency (≈ 1 ms) out of every point
+        // (`DAQmxSetReadWaitMode`, when the library has it).
+        if let Some(wait) = lib.set_read_wait_mode {
+            // SAFETY: `int32 DAQmxSetReadWaitMode(TaskHandle taskHandle, int32 data)`.
+            let r = unsafe { wait(task.handle(), ffi::DAQMX_VAL_POLL) };
+            check(
+                &lib,
+                &name,
+                || format!("DAQmxSetReadWaitMode({}, DAQmx_Val_Poll)", task.name),
+                r,
+            )?;
+        }
         for ch in opts.inputs.names() {
             task.add_ai(
                 &format!("{}/{ch}", opts.device),
@@ -623,8 +636,15 @@ impl NiQpd {
             overhead_sum: 0.0,
             reads: 0,
         };
-        // Time it once now, so a rate the board refuses fails at connect, not at the first read.
+        // Time it once now, so a rate the board refuses fails at connect, not at the first read;
+        // and read, so that the first scan's ETA knows what a read costs beyond its samples
+        // (task start, transfer, stop: [`Qpd::overhead_s`]).
         q.time_for(2)?;
+        // the first read also verifies and commits the task: only the second is timed
+        q.read_volts(2)?;
+        q.overhead_sum = 0.0;
+        q.reads = 0;
+        q.read_volts(2)?;
         Ok(q)
     }
 
@@ -694,28 +714,42 @@ impl NiQpd {
 }
 
 /// `DAQmxGetDevProductType` and `DAQmxGetDevSerialNum` of `device`, when the library has them
-/// and they answer (empty / None otherwise: they are for the metadata only).
-pub fn device_identity(lib: &NiDaqmx, device: &str) -> (String, Option<u32>) {
-    let Ok(d) = CString::new(device) else {
-        return (String::new(), None);
-    };
+/// (empty / None otherwise: they are for the metadata). The first call made on the board: a
+/// negative code (no such device, the board removed) is an error naming the function, the
+/// device and the code, and nothing else is asked of the board (no task is created).
+pub fn device_identity(lib: &NiDaqmx, device: &str) -> Result<(String, Option<u32>), DeviceError> {
+    let dev = format!("NI-DAQmx {device}");
+    let d = CString::new(device).map_err(|_| DeviceError::Other {
+        device: dev.clone(),
+        detail: format!("qpd.device = {device:?}: a device name has no NUL byte"),
+    })?;
     let mut product = String::new();
     if let Some(f) = lib.get_dev_product_type {
         let mut buf = vec![0 as std::os::raw::c_char; 256];
         // SAFETY: `int32 DAQmxGetDevProductType(const char device[], char *data, uInt32 bufferSize)`.
-        if unsafe { f(d.as_ptr(), buf.as_mut_ptr(), buf.len() as u32) } >= 0 {
-            product = ffi::c_buf_to_string(&buf);
-        }
+        let r = unsafe { f(d.as_ptr(), buf.as_mut_ptr(), buf.len() as u32) };
+        check(
+            lib,
+            &dev,
+            || format!("DAQmxGetDevProductType(\"{device}\", data, 256)"),
+            r,
+        )?;
+        product = ffi::c_buf_to_string(&buf);
     }
     let mut serial = None;
     if let Some(f) = lib.get_dev_serial_num {
         let mut s: u32 = 0;
         // SAFETY: `int32 DAQmxGetDevSerialNum(const char device[], uInt32 *data)`.
-        if unsafe { f(d.as_ptr(), &mut s) } >= 0 {
-            serial = Some(s);
-        }
+        let r = unsafe { f(d.as_ptr(), &mut s) };
+        check(
+            lib,
+            &dev,
+            || format!("DAQmxGetDevSerialNum(\"{device}\", &data)"),
+            r,
+        )?;
+        serial = Some(s);
     }
-    (product, serial)
+    Ok((product, serial))
 }
 
 impl Qpd for NiQpd {

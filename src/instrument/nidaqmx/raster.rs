@@ -21,6 +21,10 @@ use std::sync::Arc;
 pub const AO_MIN_V: f64 = 0.0;
 pub const AO_MAX_V: f64 = 10.0;
 
+/// The input range of the sensor-monitor input, ±V: the Nano-Drive's monitor swings 0–10 V
+/// over the calibrated range (the PCI-6120's ±10 V range), whatever range the QPD's inputs use.
+pub const MONITOR_RANGE_V: f64 = 10.0;
+
 /// Samples per channel read at a time while a line plays (≈ 10 ms at 800 kS/s).
 pub const CHUNK: usize = 8192;
 
@@ -203,10 +207,12 @@ impl NiRaster {
                 self.opts.qpd.range_v,
             )?;
         }
+        // the sensor monitor swings 0–10 V whatever the QPD's range: its own range, so that
+        // a QPD range chosen for small signals does not clip the measured position
         ai.add_ai(
             &format!("{dev}/{}", self.opts.position),
             self.opts.qpd.terminal,
-            self.opts.qpd.range_v,
+            MONITOR_RANGE_V,
         )?;
         // continuous mode sizes its buffer from sampsPerChan
         let buffer = Self::buffer_for(rate);

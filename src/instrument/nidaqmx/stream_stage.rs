@@ -51,6 +51,8 @@ pub struct NiStreamStage {
     ext: [f64; 2],
     /// The stage behaved the other way than configured (a guard fired): holds undo it.
     swapped: bool,
+    /// The lag the last frame measured (s).
+    lag: Option<f64>,
 }
 
 impl NiStreamStage {
@@ -60,6 +62,7 @@ impl NiStreamStage {
             raster,
             ext: [0.0; 2],
             swapped: false,
+            lag: None,
         }
     }
 
@@ -287,6 +290,7 @@ impl Stage for NiStreamStage {
             fn position(&mut self) -> Result<Pos, DeviceError>;
             fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
             fn move_time_s(&self) -> f64;
+            fn move_time_for_s(&self, from: Pos, to: Pos) -> f64;
             fn link_costs(&mut self) -> crate::instrument::link::LinkCosts;
         }
     }
@@ -409,8 +413,49 @@ impl FrameStream for NiStreamStage {
         self.raster.space_avail()
     }
 
+    /// x, and y when its output is wired: `MCL_SingleReadN`.
+    fn guard_position_um(&mut self, axis: usize) -> Result<Option<f64>, DeviceError> {
+        if axis > 1 || (axis == 1 && self.raster.options().ao[1].is_empty()) {
+            return Ok(None);
+        }
+        self.stage.read_now(axis).map(Some)
+    }
+
+    fn guards_by_reading(&self) -> bool {
+        true
+    }
+
+    /// The last frame's measured lag, else the time constant measured on the point moves
+    /// (a first-order stage trails a constant-speed target by τ).
+    fn lag_s(&self) -> Option<f64> {
+        self.lag.or_else(|| self.stage.tau_s())
+    }
+
+    fn record_lag_s(&mut self, lag_s: f64) {
+        if lag_s.is_finite() && lag_s >= 0.0 {
+            self.lag = Some(lag_s);
+        }
+    }
+
     fn ran_away(&mut self) -> String {
         self.swapped = true;
+        // At once, by the fastest means: configured as "replace", the outputs play absolute
+        // targets, and a controller that sums adds them to the USB command. One
+        // `MCL_SingleWriteN` of 0 µm per driven axis makes the USB command add nothing: the
+        // stage heads back to the outputs' target (the plan) at once, before the tasks are
+        // stopped and the hold below is written.
+        if self.raster.options().external_input == ExternalInput::Replace {
+            let axes = if self.raster.options().ao[1].is_empty() {
+                1
+            } else {
+                2
+            };
+            for k in 0..axes {
+                if let Err(e) = self.stage.command_now(k, 0.0) {
+                    return format!("stopping it failed: {e}; {}", self.runaway_advice());
+                }
+            }
+        }
         // at once: a runaway crosses the travel in a few time constants
         let held = match self.hold_here() {
             Ok(p) => format!("the stage was held at x = {:.4}, y = {:.4} µm", p[0], p[1]),

@@ -39,6 +39,9 @@ pub struct QpdEmulatorConfig {
     pub faults: Faults,
     /// The serial link modelled (baud rate, reply latency); default the pty's full speed.
     pub link: LinkModel,
+    /// The digitiser's input range, ±V: every sample beyond it reads the rail, as a
+    /// converter's does; `None`: unlimited.
+    pub range_v: Option<f64>,
 }
 
 impl Default for QpdEmulatorConfig {
@@ -54,6 +57,7 @@ impl Default for QpdEmulatorConfig {
             max_count: 1_000_000,
             faults: Faults::default(),
             link: LinkModel::FULL_SPEED,
+            range_v: None,
         }
     }
 }
@@ -133,15 +137,17 @@ impl ScpiDevice {
         let mut out = [0.0; 6];
         for c in 0..3 {
             let v = self.cfg.volts_per_unit[c] * s[c] + self.cfg.offset_v[c];
+            let rail = self.cfg.range_v.map_or(f64::INFINITY, f64::abs);
             let sigma = self.cfg.noise_v[c].abs();
             if sigma == 0.0 || !sigma.is_finite() {
-                out[c] = v;
+                out[c] = v.clamp(-rail, rail);
                 continue;
             }
             let normal = rand_distr::Normal::new(0.0, sigma).expect("finite sigma");
+            // deviations of the (railed) samples from v
             let (mut sum, mut sum2) = (0.0, 0.0);
             for _ in 0..n {
-                let e: f64 = self.rng.sample(normal);
+                let e: f64 = (v + self.rng.sample(normal)).clamp(-rail, rail) - v;
                 sum += e;
                 sum2 += e * e;
             }

@@ -6,6 +6,7 @@
 //! | `serial` | 2847 | the Nano-Drive's serial number |
 //! | `range_um` | `75,75,50` | calibrated range per axis, µm (`MCL_GetCalibration`) |
 //! | `tau_ms` | 2 | the stage's first-order lag (sensor follows target), ms |
+//! | `usb_ms` | 0 | the USB round trip of one `MCL_SingleReadN` / `MCL_SingleWriteN` (a Nano-Drive: ≈ 0.2), ms |
 //! | `sensor_noise_um` | 0.001 | rms noise of a sensor reading (`MCL_SingleReadN`, monitor), µm |
 //! | `ext_mode` | `sum` | how the external input and the USB command combine: `sum` (the external input's position added to the USB command, as MCL documents the Nano-Drive's external input) or `replace` (whichever changed last wins; alias `override`) |
 //! | `daq_device` | `Dev1` | the PCI-6120's device name |
@@ -122,6 +123,9 @@ pub struct Config {
     pub serial: i32,
     pub range_um: [f64; 3],
     pub tau_s: f64,
+    /// The USB round trip of one `MCL_SingleReadN` / `MCL_SingleWriteN`, s (`usb_ms`;
+    /// default 0; MCL's Nano-Drives: about 0.2 ms).
+    pub usb_s: f64,
     pub sensor_noise_um: f64,
     pub ext_sum: bool,
     pub daq_device: String,
@@ -149,6 +153,7 @@ impl Default for Config {
             serial: 2847,
             range_um: [75.0, 75.0, 50.0],
             tau_s: 0.002,
+            usb_s: 0.0,
             sensor_noise_um: 0.001,
             ext_sum: true,
             daq_device: "Dev1".into(),
@@ -174,10 +179,11 @@ impl Default for Config {
 }
 
 /// Every key `set` accepts.
-pub const KEYS: [&str; 17] = [
+pub const KEYS: [&str; 18] = [
     "serial",
     "range_um",
     "tau_ms",
+    "usb_ms",
     "sensor_noise_um",
     "ext_mode",
     "daq_device",
@@ -253,6 +259,7 @@ impl Config {
                 self.range_um = r;
             }
             "tau_ms" => self.tau_s = num(key, v, 0.0, 1000.0, "ms")? / 1e3,
+            "usb_ms" => self.usb_s = num(key, v, 0.0, 100.0, "ms")? / 1e3,
             "sensor_noise_um" => self.sensor_noise_um = num(key, v, 0.0, 10.0, "µm")?,
             "ext_mode" => {
                 self.ext_sum = match v.trim() {
@@ -308,7 +315,7 @@ impl Config {
             _ => {
                 return Err(format!(
                     "unknown setting `{key}`; allowed are {}",
-                    KEYS[..16].join(", ")
+                    KEYS[..17].join(", ")
                 ))
             }
         }

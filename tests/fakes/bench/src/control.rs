@@ -194,3 +194,39 @@ pub extern "C" fn fakebench_ao_voltage(channel: c_int) -> c_double {
         })
     })
 }
+
+/// Most target changes `fakebench_history` returns (the latest).
+const HISTORY_CAP: usize = 200_000;
+
+/// The target changes of axis 1–3 at or after bench time `since_s`, as JSON
+/// `[[t_s, target_um, position_um], …]` (the position at the change; between changes the
+/// position follows the first-order lag towards the target), the latest
+/// [`HISTORY_CAP`] at most; with `"now_s"`. Tests time what the stage did on the bench's
+/// clock: when a target left the plan, when the hold brought it back, how far it went.
+///
+/// # Safety
+/// `buf` is NULL or points to `size` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn fakebench_history(
+    axis: c_int,
+    since_s: c_double,
+    buf: *mut c_char,
+    size: usize,
+) -> usize {
+    guard(0, || {
+        let text = if (1..=3).contains(&axis) {
+            with_bench(|b| {
+                let t = now();
+                crate::daqmx::sync(b, t);
+                let ev = &b.stage.axes[axis as usize - 1].events;
+                let k = ev.partition_point(|e| e.t < since_s);
+                let k = k.max(ev.len().saturating_sub(HISTORY_CAP));
+                let list: Vec<[f64; 3]> = ev[k..].iter().map(|e| [e.t, e.target, e.pos]).collect();
+                serde_json::json!({ "now_s": t, "tau_s": b.cfg.tau_s, "events": list }).to_string()
+            })
+        } else {
+            "{}".to_string()
+        };
+        put_cstr(&text, buf, size)
+    })
+}

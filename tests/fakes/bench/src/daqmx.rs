@@ -79,6 +79,11 @@ pub const VAL_AUTO: i32 = -1;
 pub const VAL_WAIT_INFINITELY: f64 = -1.0;
 pub const VAL_ALLOW_REGEN: i32 = 10097;
 pub const VAL_DO_NOT_ALLOW_REGEN: i32 = 10158;
+/// Read.WaitMode values (`DAQmx_Val_WaitForInterrupt`, `_Poll`, `_Yield`, `_Sleep`).
+pub const VAL_WAIT_FOR_INTERRUPT: i32 = 12523;
+pub const VAL_POLL: i32 = 12524;
+pub const VAL_YIELD: i32 = 12525;
+pub const VAL_SLEEP: i32 = 12547;
 pub const VAL_TASK_START: i32 = 0;
 pub const VAL_TASK_STOP: i32 = 1;
 pub const VAL_TASK_VERIFY: i32 = 2;
@@ -146,6 +151,9 @@ pub struct Task {
     pub trigger: Option<Trigger>,
     pub input_buf: Option<u64>,
     pub regen: bool,
+    /// Read.WaitMode (`DAQmxSetReadWaitMode`): [`VAL_POLL`] checks for the samples as fast
+    /// as it can (here: a busy wait); the others sleep between checks.
+    pub wait_mode: i32,
     pub running: bool,
     /// Bench time of the start (AI: when armed).
     pub t_start: f64,
@@ -182,6 +190,7 @@ impl Task {
             trigger: None,
             input_buf: None,
             regen: true,
+            wait_mode: VAL_YIELD,
             running: false,
             t_start: 0.0,
             read_pos: 0,
@@ -1416,6 +1425,35 @@ pub extern "C" fn DAQmxSetWriteRegenMode(task_handle: TaskHandle, data: int32) -
     })
 }
 
+/// `int32 DAQmxSetReadWaitMode(TaskHandle taskHandle, int32 data)`.
+#[no_mangle]
+pub extern "C" fn DAQmxSetReadWaitMode(task_handle: TaskHandle, data: int32) -> int32 {
+    guard(-1, || {
+        with_bench(|b| {
+            let tn = task_name(b, task_handle);
+            let r = task_mut(b, task_handle).and_then(|t| match data {
+                VAL_WAIT_FOR_INTERRUPT | VAL_POLL | VAL_YIELD | VAL_SLEEP => {
+                    t.wait_mode = data;
+                    Ok(())
+                }
+                _ => fail(
+                    INVALID_ATTRIBUTE_VALUE,
+                    format!("Property: DAQmx_Read_WaitMode\nRequested Value: {data}\nYou Can Select: DAQmx_Val_WaitForInterrupt, DAQmx_Val_Poll, DAQmx_Val_Yield, DAQmx_Val_Sleep"),
+                ),
+            });
+            finish(
+                b,
+                format!(
+                    "DAQmxSetReadWaitMode({}, data={data})",
+                    tn.clone().unwrap_or_default()
+                ),
+                tn.as_deref(),
+                r,
+            )
+        })
+    })
+}
+
 /// # Safety
 /// `data` points to a `float64`.
 #[no_mangle]
@@ -1535,10 +1573,29 @@ unsafe fn read(
     };
     let mut first = true;
     loop {
-        let step = with_bench(|b| read_step(b, h, num, deadline, fill, out, size, &mut first));
+        let (step, poll) = with_bench(|b| {
+            let poll = b
+                .daq
+                .tasks
+                .get(&id_of(h))
+                .is_some_and(|t| t.wait_mode == VAL_POLL);
+            (
+                read_step(b, h, num, deadline, fill, out, size, &mut first),
+                poll,
+            )
+        });
         match step {
             Step::Done(code, n) => return (code, n),
-            Step::Wait(until) => sleep_until(until.min(deadline).min(now() + 0.005)),
+            Step::Wait(until) => {
+                let until = until.min(deadline).min(now() + 0.005);
+                if poll {
+                    while now() < until {
+                        std::hint::spin_loop();
+                    }
+                } else {
+                    sleep_until(until)
+                }
+            }
         }
     }
 }

@@ -321,31 +321,48 @@ fn read_n(b: &mut Bench, axis: c_uint, handle: c_int) -> f64 {
     }
 }
 
+/// The USB round trip of a single read or write (setting `usb_ms`): the call returns that
+/// long after it was made (busy-waiting, as a driver waiting on the bus does; a sleep's wake-up
+/// on a busy host would add milliseconds a USB transfer does not have).
+fn usb_round_trip(t0: f64, usb_s: f64) {
+    while usb_s > 0.0 && now() < t0 + usb_s {
+        std::hint::spin_loop();
+    }
+}
+
 #[no_mangle]
 pub extern "C" fn MCL_SingleWriteN(position: c_double, axis: c_uint, handle: c_int) -> c_int {
     guard(MCL_GENERAL_ERROR, || {
-        with_bench(|b| {
+        let t0 = now();
+        let (r, usb_s) = with_bench(|b| {
             let r = write_n(b, position, axis, handle);
-            logged(
+            let r = logged(
                 b,
                 format!("MCL_SingleWriteN(position={position}, axis={axis}, handle={handle})"),
                 r,
-            )
-        })
+            );
+            (r, b.cfg.usb_s)
+        });
+        usb_round_trip(t0, usb_s);
+        r
     })
 }
 
 #[no_mangle]
 pub extern "C" fn MCL_SingleReadN(axis: c_uint, handle: c_int) -> c_double {
     guard(MCL_GENERAL_ERROR as f64, || {
-        with_bench(|b| {
+        let t0 = now();
+        let (r, usb_s) = with_bench(|b| {
             let r = read_n(b, axis, handle);
-            logged(
+            let r = logged(
                 b,
                 format!("MCL_SingleReadN(axis={axis}, handle={handle})"),
                 r,
-            )
-        })
+            );
+            (r, b.cfg.usb_s)
+        });
+        usb_round_trip(t0, usb_s);
+        r
     })
 }
 
