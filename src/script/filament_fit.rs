@@ -90,7 +90,7 @@ fn fit_filament_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) 
     };
     let r =
         fit_line_filament(&s.scan.sx, &s.scan.sy, &t.0, None, &opts).map_err(|e| err(who, e))?;
-    if !(r.filament.lambda > 0.0) {
+    if r.filament.lambda.is_nan() || r.filament.lambda <= 0.0 {
         return fail(format!(
             "{who}: no filament: the fitted weight per length λ = {} is not positive",
             r.filament.lambda

@@ -135,7 +135,7 @@ fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
             } else {
                 a.max(b)
             };
-            if !(s > 0.0) {
+            if s.is_nan() || s <= 0.0 {
                 return fail(format!(
                     "{who}: the image has no pixel noise (noise-free data have no bound); give sigma"
                 ));

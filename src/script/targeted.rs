@@ -145,7 +145,7 @@ fn fit_bead_points_of(spec: &Spec, pts: &Array, t: &TemplateRef, m: &Map) -> RRe
         ..RefBead::default()
     };
     let n = o.f64_or("n", rb.n)?;
-    if !(n >= 1.0 && n <= 4.0) || (n - rb.n_medium).abs() < 1e-9 {
+    if !(1.0..=4.0).contains(&n) || (n - rb.n_medium).abs() < 1e-9 {
         return fail(format!(
             "{who}: n = {n} is out of range: 1 ≤ n ≤ 4, n ≠ the medium's {}",
             rb.n_medium
@@ -157,7 +157,7 @@ fn fit_bead_points_of(spec: &Spec, pts: &Array, t: &TemplateRef, m: &Map) -> RRe
     if f.status != crate::analysis::fit::FitStatus::Converged {
         warnings.push(format!("the fit did not converge: {}", f.reason));
     }
-    if !(f.weight > 3.0 * f.err[2]) {
+    if f.weight.is_nan() || f.weight <= 3.0 * f.err[2] {
         warnings.push(format!(
             "no bead: the weight {:.4} is not 3σ ({:.4}) above zero",
             f.weight, f.err[2]
