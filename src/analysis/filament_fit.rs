@@ -360,6 +360,14 @@ pub struct LineFitResult {
 /// Residual RMS above this multiple of the data's own pixel noise flags a model that does not
 /// describe the image.
 pub const MISFIT_RATIO: f64 = 1.2;
+/// The misfit ratio's limit for `n` residuals: [`MISFIT_RATIO`], or 5 standard errors of the
+/// ratio of white noise when that is larger (small images: the RMS of n residuals has a relative
+/// error of 1/√(2n), the MAD of their ~n first differences √(1.36/n) — the MAD's efficiency of
+/// 37 % — so a 25×10 strip's ratio scatters by 6 %).
+pub fn misfit_limit(n: usize) -> f64 {
+    let n = n.max(1) as f64;
+    MISFIT_RATIO.max(1.0 + 5.0 * (1.0 / (2.0 * n) + 1.36 / n).sqrt())
+}
 /// ... and above this fraction of the line's signal RMS (noise-free data: the template's
 /// interpolation leaves residuals of ~0.5 % of the signal).
 pub const MISFIT_SIGNAL_FRACTION: f64 = 0.02;
@@ -369,7 +377,7 @@ pub const DETECT_SIGMAS: f64 = 5.0;
 /// The domain checks of the whole-image fit, in words (empty: inside the domain):
 /// - the optimiser converged;
 /// - λ is at least [`DETECT_SIGMAS`] of its 1σ above zero (else the line may be noise);
-/// - the residual RMS is within [`MISFIT_RATIO`] of the residuals' pixel noise from their
+/// - the residual RMS is within [`misfit_limit`] of the residuals' pixel noise from their
 ///   first differences (else the image holds more than one straight uniform filament: other objects, a
 ///   bend, an end inside the scan, a diameter that changes — and λ's σ does not hold), unless
 ///   they are under [`MISFIT_SIGNAL_FRACTION`] of the signal's RMS (noise-free data).
@@ -395,9 +403,10 @@ pub fn line_fit_warnings(r: &LineFitResult) -> Vec<String> {
     } else {
         f64::INFINITY
     };
-    if k > MISFIT_RATIO && rms > MISFIT_SIGNAL_FRACTION * r.signal_rms {
+    let limit = misfit_limit(r.n_residuals);
+    if k > limit && rms > MISFIT_SIGNAL_FRACTION * r.signal_rms {
         w.push(format!(
-            "misfit: the residuals are {k:.2}× the pixel noise (over {MISFIT_RATIO}×) and {:.1} % of the signal: the image holds more than one straight uniform filament (other objects, a bend, an end inside the scan); λ's σ does not hold",
+            "misfit: the residuals are {k:.2}× the pixel noise (over {limit:.2}×) and {:.1} % of the signal: the image holds more than one straight uniform filament (other objects, a bend, an end inside the scan); λ's σ does not hold",
             100.0 * rms / r.signal_rms
         ));
     }
@@ -849,6 +858,16 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("no information about offset"), "{e}");
+    }
+
+    /// The misfit limit is the fixed ratio for a full raster and grows for small images, where
+    /// the ratio of white noise scatters more (5 standard errors).
+    #[test]
+    fn misfit_limit_widens_for_small_images() {
+        assert_eq!(misfit_limit(2 * 64 * 64), MISFIT_RATIO);
+        let strip = misfit_limit(2 * 25 * 10);
+        let want = 1.0 + 5.0 * (1.0 / 1000.0 + 1.36 / 500.0f64).sqrt();
+        assert!((strip - want).abs() < 1e-12 && strip > 1.3, "{strip}");
     }
 
     #[test]
