@@ -296,16 +296,10 @@ fn emulate(
     }
 }
 
-fn main() -> ExitCode {
-    bfpscope::tune_allocator();
-    let cli = match Cli::try_parse() {
-        Ok(c) => c,
-        Err(e) => {
-            let code = if e.use_stderr() { 2 } else { 0 };
-            let _ = e.print();
-            return ExitCode::from(code);
-        }
-    };
+/// The session's settings from the command line: the config (`--config`, else
+/// `$BFPSCOPE_CONFIG`, else `./bfpscope.toml`) and the data folder (`--data`, else the
+/// config's, else today's folder); a config that does not load is a usage error.
+fn settings_from(cli: &Cli) -> Result<Settings, ExitCode> {
     let mut settings = Settings {
         progress: std::io::stderr().is_terminal(),
         ..Settings::default()
@@ -323,10 +317,10 @@ fn main() -> ExitCode {
     if let Some(p) = config_path {
         let c = match bfpscope::config::Config::load(&p) {
             Ok(c) => c,
-            Err(e) => return usage_error(&e.to_string()),
+            Err(e) => return Err(usage_error(&e.to_string())),
         };
         if let Err(e) = settings.apply_config(c, Some(p.clone())) {
-            return usage_error(&format!("{}: {e}", p.display()));
+            return Err(usage_error(&format!("{}: {e}", p.display())));
         }
     }
     if let Some(d) = &cli.data {
@@ -338,6 +332,97 @@ fn main() -> ExitCode {
             std::time::SystemTime::now(),
         );
     }
+    Ok(settings)
+}
+
+/// `bfpscope test [DIR]`: the scripted tests of a folder (default `tests/scripts`).
+fn test_cmd(dir: Option<PathBuf>, settings: &Settings) -> ExitCode {
+    let dir = dir.unwrap_or_else(|| PathBuf::from("tests/scripts"));
+    if !dir.is_dir() {
+        return usage_error(&format!("test: {}: no such folder", dir.display()));
+    }
+    // a folder without any test is an error, as a missing folder is
+    match script::testing::test_files(&dir) {
+        Ok(f) if f.is_empty() => {
+            return usage_error(&format!(
+                "test: {}: no test in the folder (no *.rhai file)",
+                dir.display()
+            ))
+        }
+        Err(e) => return usage_error(&format!("test: {}: {e}", dir.display())),
+        Ok(_) => {}
+    }
+    let mut out = std::io::stdout();
+    match script::testing::run_dir(&dir, settings, &mut out) {
+        Ok(results) if results.iter().all(|r| r.passed) => ExitCode::SUCCESS,
+        Ok(_) => ExitCode::from(1),
+        Err(e) => usage_error(&format!("test: {}: {e}", dir.display())),
+    }
+}
+
+/// `bfpscope accuracy`: the accuracy-vs-time report.
+fn accuracy_cmd(quick: bool, out: PathBuf, criterion: Option<PathBuf>) -> ExitCode {
+    let opts = bfpscope::accuracy::report::ReportOptions {
+        quick,
+        out,
+        criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
+        verbose: true,
+    };
+    match bfpscope::accuracy::report::run(&opts) {
+        Ok(r) => {
+            println!("wrote {} ({:.0} s)", r.markdown.display(), r.seconds);
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            err_line(&format!("error: accuracy: {e}"));
+            ExitCode::from(1)
+        }
+    }
+}
+
+/// `bfpscope docs [--check]`: write docs/api.md (and the stop rule's prose), or check them.
+fn docs_cmd(out: PathBuf, check: bool) -> ExitCode {
+    let text = script::registry::api_markdown(&script::all_docs());
+    if let Err(code) = stop_rule_docs(check) {
+        return code;
+    }
+    if check {
+        let cur = std::fs::read_to_string(&out).unwrap_or_default();
+        if cur == text {
+            println!("{} is up to date", out.display());
+            ExitCode::SUCCESS
+        } else {
+            eprintln!("{} is stale: run `bfpscope docs`", out.display());
+            ExitCode::from(1)
+        }
+    } else {
+        if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+            let _ = std::fs::create_dir_all(d);
+        }
+        match std::fs::write(&out, text) {
+            Ok(()) => {
+                println!("wrote {}", out.display());
+                ExitCode::SUCCESS
+            }
+            Err(e) => usage_error(&format!("docs: {}: {e}", out.display())),
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    bfpscope::tune_allocator();
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
+    let settings = match settings_from(&cli) {
+        Ok(s) => s,
+        Err(code) => return code,
+    };
     if let Some(Cmd::Emulate {
         device,
         scene,
@@ -439,80 +524,15 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Test { dir } => {
-            let dir = dir.unwrap_or_else(|| PathBuf::from("tests/scripts"));
-            if !dir.is_dir() {
-                return usage_error(&format!("test: {}: no such folder", dir.display()));
-            }
-            // a folder without any test is an error, as a missing folder is
-            match script::testing::test_files(&dir) {
-                Ok(f) if f.is_empty() => {
-                    return usage_error(&format!(
-                        "test: {}: no test in the folder (no *.rhai file)",
-                        dir.display()
-                    ))
-                }
-                Err(e) => return usage_error(&format!("test: {}: {e}", dir.display())),
-                Ok(_) => {}
-            }
-            let mut out = std::io::stdout();
-            match script::testing::run_dir(&dir, &settings, &mut out) {
-                Ok(results) if results.iter().all(|r| r.passed) => ExitCode::SUCCESS,
-                Ok(_) => ExitCode::from(1),
-                Err(e) => usage_error(&format!("test: {}: {e}", dir.display())),
-            }
-        }
+        Cmd::Test { dir } => test_cmd(dir, &settings),
         Cmd::Emulate { .. } => unreachable!("handled before the Ctrl-C handler is installed"),
         Cmd::Accuracy {
             quick,
             out,
             criterion,
-        } => {
-            let opts = bfpscope::accuracy::report::ReportOptions {
-                quick,
-                out,
-                criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
-                verbose: true,
-            };
-            match bfpscope::accuracy::report::run(&opts) {
-                Ok(r) => {
-                    println!("wrote {} ({:.0} s)", r.markdown.display(), r.seconds);
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    err_line(&format!("error: accuracy: {e}"));
-                    ExitCode::from(1)
-                }
-            }
-        }
+        } => accuracy_cmd(quick, out, criterion),
         Cmd::Sweep { n, seed, json } => bfpscope::accuracy::sweep::cli(n, seed, json),
-        Cmd::Docs { out, check } => {
-            let text = script::registry::api_markdown(&script::all_docs());
-            if let Err(code) = stop_rule_docs(check) {
-                return code;
-            }
-            if check {
-                let cur = std::fs::read_to_string(&out).unwrap_or_default();
-                if cur == text {
-                    println!("{} is up to date", out.display());
-                    ExitCode::SUCCESS
-                } else {
-                    eprintln!("{} is stale: run `bfpscope docs`", out.display());
-                    ExitCode::from(1)
-                }
-            } else {
-                if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-                    let _ = std::fs::create_dir_all(d);
-                }
-                match std::fs::write(&out, text) {
-                    Ok(()) => {
-                        println!("wrote {}", out.display());
-                        ExitCode::SUCCESS
-                    }
-                    Err(e) => usage_error(&format!("docs: {}: {e}", out.display())),
-                }
-            }
-        }
+        Cmd::Docs { out, check } => docs_cmd(out, check),
     }
 }
 

@@ -8,11 +8,11 @@ use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLim
 use bfpscope::config::connect::{connect, Connected};
 use bfpscope::config::Config;
 use bfpscope::data::{Scan, ScanStatus};
-use bfpscope::instrument::apt::{id, AptLink, Message};
 use bfpscope::instrument::emulator::{
     shared_position, standin_bead, start_kpa101_emulator, start_kpz101_stage, Emulator,
     KpaEmulatorConfig, SignalSource, UNKNOWN_ID,
 };
+use bfpscope::instrument::thorlabs::{id, AptLink, Message};
 use bfpscope::instrument::{DeviceError, Instrument};
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;

@@ -501,3 +501,260 @@ fn inner_graph_reads_sub_folders() {
     assert!(o.contains_key("mie") && !o.contains_key("bessel"), "{o:?}");
     assert!(o["mie_beam"].contains("beam"), "{o:?}");
 }
+
+/// The device families `src/instrument/registry.rs` lists (`&super::NAME::FAMILY`).
+fn registered_families() -> BTreeSet<String> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("src/instrument/registry.rs")).unwrap();
+    let list = text
+        .split("pub const FAMILIES")
+        .nth(1)
+        .and_then(|t| t.split("];").next())
+        .expect("registry.rs has `pub const FAMILIES: … = &[…];`");
+    list.lines()
+        .filter_map(|l| {
+            l.trim()
+                .strip_prefix("&super::")
+                .and_then(|r| r.strip_suffix("::FAMILY,"))
+                .map(String::from)
+        })
+        .collect()
+}
+
+#[test]
+fn every_instrument_folder_is_a_registered_family() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/instrument");
+    let folders: BTreeSet<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.is_dir())
+        .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+        .collect();
+    let listed = registered_families();
+    assert_eq!(
+        folders, listed,
+        "folders of src/instrument (left) and the families of registry.rs (right) differ: a family \
+         is one folder and one line of the registry"
+    );
+    for f in &listed {
+        let code = std::fs::read_to_string(dir.join(f).join("mod.rs")).unwrap();
+        assert!(
+            code.contains(&format!("name: \"{f}\"")),
+            "src/instrument/{f}/mod.rs declares its FAMILY with name: \"{f}\""
+        );
+    }
+}
+
+#[test]
+fn no_family_name_outside_the_instrument_folders() {
+    // the names `connect` used to keep in string lists: the config and `connect` learn them
+    // from the registry now (help text may name them, escaped inside a string)
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = vec![];
+    rs_files(&root.join("config"), &mut files);
+    files.push(root.join("script/motion.rs"));
+    files.push(root.join("script/ctx.rs"));
+    let mut hits = vec![];
+    for f in files {
+        let code = code_only(&std::fs::read_to_string(&f).unwrap());
+        for (i, line) in code.lines().enumerate() {
+            for name in ["thorlabs", "hardware", "bench", "emulated"] {
+                let lit = format!("\"{name}\"");
+                if line.contains(&lit) && !line.contains(&format!("\\{lit}")) {
+                    hits.push(format!("{}:{}: {}", f.display(), i + 1, line.trim()));
+                }
+            }
+        }
+    }
+    assert!(
+        hits.is_empty(),
+        "family names written outside src/instrument:\n{}",
+        hits.join("\n")
+    );
+}
+
+/// `text` with comments, string and character literals blanked (newlines kept), so braces
+/// and `fn` are only the code's.
+fn blank_literals(text: &str) -> String {
+    let b = text.as_bytes();
+    let mut out = b.to_vec();
+    let blank = |out: &mut Vec<u8>, from: usize, to: usize| {
+        for c in &mut out[from..to.min(b.len())] {
+            if *c != b'\n' {
+                *c = b' ';
+            }
+        }
+    };
+    let mut i = 0;
+    while i < b.len() {
+        let ident_before = i > 0 && (b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'_');
+        if b[i..].starts_with(b"//") {
+            let j = text[i..].find('\n').map_or(b.len(), |j| i + j);
+            blank(&mut out, i, j);
+            i = j;
+        } else if b[i..].starts_with(b"/*") {
+            let j = text[i..].find("*/").map_or(b.len(), |j| i + j + 2);
+            blank(&mut out, i, j);
+            i = j;
+        } else if !ident_before && (b[i] == b'r' || b[i..].starts_with(b"br")) && {
+            let k = i + if b[i] == b'b' { 2 } else { 1 };
+            let hashes = b[k..].iter().take_while(|c| **c == b'#').count();
+            b.get(k + hashes) == Some(&b'"')
+        } {
+            let k = i + if b[i] == b'b' { 2 } else { 1 };
+            let hashes = b[k..].iter().take_while(|c| **c == b'#').count();
+            let end = format!("\"{}", "#".repeat(hashes));
+            let start = k + hashes + 1;
+            let j = text[start..]
+                .find(&end)
+                .map_or(b.len(), |j| start + j + end.len());
+            blank(&mut out, i, j);
+            i = j;
+        } else if b[i] == b'"' {
+            let mut j = i + 1;
+            while j < b.len() && b[j] != b'"' {
+                j += if b[j] == b'\\' { 2 } else { 1 };
+            }
+            blank(&mut out, i, j + 1);
+            i = j + 1;
+        } else if b[i] == b'\'' {
+            // a character literal ('{', '\n', '\u{7f}'), not a lifetime ('a)
+            let rest = &text[i + 1..];
+            let len = if rest.starts_with('\\') {
+                rest.find('\'').map(|j| j + 2)
+            } else {
+                rest.chars()
+                    .next()
+                    .filter(|c| rest[c.len_utf8()..].starts_with('\''))
+                    .map(|c| c.len_utf8() + 2)
+            };
+            match len {
+                Some(l) => {
+                    blank(&mut out, i, i + l);
+                    i += l;
+                }
+                None => i += 1,
+            }
+        } else {
+            i += 1;
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// Index of the brace closing the one at `open`.
+fn closing_brace(code: &[u8], open: usize) -> usize {
+    let mut depth = 0;
+    for (k, c) in code.iter().enumerate().skip(open) {
+        match c {
+            b'{' => depth += 1,
+            b'}' => {
+                depth -= 1;
+                if depth == 0 {
+                    return k;
+                }
+            }
+            _ => {}
+        }
+    }
+    code.len()
+}
+
+/// Every function of `src/` outside test modules and test files: (lines from `fn` to its
+/// closing brace, `file:line name`).
+fn function_lengths() -> Vec<(usize, String)> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut files = vec![];
+    rs_files(&root.join("src"), &mut files);
+    let mut out = vec![];
+    for f in files.iter().filter(|f| !f.ends_with("tests.rs")) {
+        let code = blank_literals(&std::fs::read_to_string(f).unwrap());
+        let b = code.as_bytes();
+        let line_of = |at: usize| code[..at].matches('\n').count() + 1;
+        // test modules: `#[cfg(test)]` then `mod name {`
+        let mut tests: Vec<(usize, usize)> = vec![];
+        for (at, _) in code.match_indices("#[cfg(test)]") {
+            let rest = code[at + 12..].trim_start();
+            if rest.starts_with("mod ") || rest.starts_with("pub mod ") {
+                if let Some(open) = code[at..].find('{').map(|o| at + o) {
+                    tests.push((at, closing_brace(b, open)));
+                }
+            }
+        }
+        let mut from = 0;
+        while let Some(k) = code[from..].find("fn ").map(|k| from + k) {
+            from = k + 3;
+            let word_start = k == 0 || !(b[k - 1].is_ascii_alphanumeric() || b[k - 1] == b'_');
+            if !word_start || tests.iter().any(|(a, z)| (*a..=*z).contains(&k)) {
+                continue;
+            }
+            let name: String = code[k + 3..]
+                .chars()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect();
+            // the body: the first `{` before any `;` (a declaration without a body)
+            let Some(open) = code[k..].find(['{', ';']).map(|o| k + o) else {
+                continue;
+            };
+            if b[open] == b';' || name.is_empty() {
+                continue;
+            }
+            let close = closing_brace(b, open);
+            let rel = f.strip_prefix(root).unwrap().display();
+            out.push((
+                line_of(close) - line_of(k) + 1,
+                format!("{rel}:{} {name}", line_of(k)),
+            ));
+        }
+    }
+    out
+}
+
+/// Longest a production function of `src/` may be, lines.
+const MAX_FN_LINES: usize = 150;
+
+/// Functions still over [`MAX_FN_LINES`], to be split (`file name`): the list may only shrink.
+const STILL_LONG: &[&str] = &[
+    "src/instrument/madlib/mod.rs connect",
+    "src/acquire/strategy/stream.rs prepare",
+];
+
+#[test]
+fn no_production_function_is_over_150_lines() {
+    let long: Vec<(usize, String)> = function_lengths()
+        .into_iter()
+        .filter(|(n, _)| *n > MAX_FN_LINES)
+        .collect();
+    let key = |s: &str| {
+        let (place, name) = s.split_once(' ').unwrap();
+        format!("{} {name}", place.split(':').next().unwrap())
+    };
+    let new: Vec<String> = long
+        .iter()
+        .filter(|(_, s)| !STILL_LONG.contains(&key(s).as_str()))
+        .map(|(n, s)| format!("{s}: {n} lines"))
+        .collect();
+    assert!(
+        new.is_empty(),
+        "functions over {MAX_FN_LINES} lines (split them into steps named after what they do):\n{}",
+        new.join("\n")
+    );
+    let done: Vec<&&str> = STILL_LONG
+        .iter()
+        .filter(|s| !long.iter().any(|(_, l)| key(l) == **s))
+        .collect();
+    assert!(
+        done.is_empty(),
+        "no longer over {MAX_FN_LINES} lines: take them off STILL_LONG: {done:?}"
+    );
+}
+
+#[test]
+fn function_lengths_count_from_fn_to_its_closing_brace() {
+    let code = blank_literals("fn a() {\n    let s = \"}{\";\n    let c = '{';\n}\n// fn b() {\n");
+    assert_eq!(code.matches('{').count(), 1, "{code}");
+    assert_eq!(
+        closing_brace(code.as_bytes(), code.find('{').unwrap()),
+        code.rfind('}').unwrap()
+    );
+}

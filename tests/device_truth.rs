@@ -290,7 +290,14 @@ fn a_kpz101_gauge_not_zeroed_is_reported_and_zeroing_removes_its_offset() {
     );
 
     // zeroing: MGMSG_PZ_SET_ZERO to each cube, the status polled until "zeroed"
-    let z = c.instrument.stage.zero_gauge().unwrap();
+    let z = c
+        .instrument
+        .stage
+        .capabilities()
+        .gauge
+        .expect("KPZ101 cubes offer a gauge zero")
+        .zero_gauge()
+        .unwrap();
     bfpscope::config::connect::record_gauge(&mut c.instrument);
     assert_eq!(z, [true; 3]);
     for cube in &k.cubes {

@@ -10,6 +10,7 @@ mod apt;
 mod bench_drivers;
 mod device_truth;
 mod eta;
+mod family_toy;
 mod hardware;
 mod raster;
 mod raster_faults;

@@ -235,32 +235,24 @@ fn noisy_bead_scene(xy: [f64; 2], d_nm: f64, seed: u64) -> Result<Scene, String>
     Ok(sc)
 }
 
-/// Run both trade-offs: dwell sweeps of 64×64-pixel scans (50 nm) of a 110 nm polystyrene bead
-/// (fit: one bead, both channels and Sx only, σ from the residuals) and of a 13-protofilament
-/// microtubule along y (protein cylinder, n = 1.587, in buffer n_s = 1.335; linear density from
-/// the per-row maximum sensitivities, Sec. 5), `seeds` noise realisations per dwell.
-pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
-    let dwells: &[f64] = if quick {
-        &[1e-4, 1e-3, 1e-2, 1e-1]
-    } else {
-        &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
-    };
-    let seeds = if quick { 2 } else { 16 };
-    let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
+/// The bead's rows of the trade-off: per dwell, `seeds` noisy scans of the bead centred near
+/// `c`, fitted with both channels and Sx only.
+fn bead_rows(
+    optics: &Optics,
+    tpl: &Template,
+    rb: RefBead,
+    dwells: &[f64],
+    seeds: usize,
+    c: f64,
+) -> Result<Vec<TradeRow>, String> {
     let es = |e: crate::analysis::AnalysisError| e.to_string();
-
-    // --- bead
-    let optics = Optics::default();
-    let rb = RefBead::default();
-    let tpl =
-        Template::from_optics(&optics, &DetectorModel::default(), rb, 0.02, 0.0).map_err(es)?;
-    let c = SCAN_PIXELS as f64 * PIXEL_UM / 2.0;
+    let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
     let mut bead = vec![];
     for (i, &dwell) in dwells.iter().enumerate() {
         let (mut m, mut e, mut e_sx, mut e_p, mut clock) = (vec![], vec![], vec![], vec![], 0.0);
         for s in 0..seeds {
             let sc = noisy_bead_scene([c, c + 0.013], rb.d_nm, 10_000 + 100 * i as u64 + s as u64)?;
-            let (scan, dt) = engine_scan(&optics, &sc, dwell)?;
+            let (scan, dt) = engine_scan(optics, &sc, dwell)?;
             clock += dt / seeds as f64;
             let init = Some(vec![BeadInit {
                 x: c,
@@ -271,7 +263,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
                 let r = fit_beads(
                     &scan.sx,
                     &scan.sy,
-                    &tpl,
+                    tpl,
                     &FitOptions {
                         channels: ch,
                         init: init.clone(),
@@ -298,14 +290,28 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         });
     }
 
-    // --- averaging: k scans of dwell d averaged vs one scan of dwell k·d
-    let (k_avg, d_avg) = (4usize, 0.025);
+    Ok(bead)
+}
+
+/// Averaging: `k_avg` scans of dwell `d_avg` averaged, fitted as one (against one scan of
+/// dwell k·d in the bead rows).
+fn averaged_row(
+    optics: &Optics,
+    tpl: &Template,
+    rb: RefBead,
+    k_avg: usize,
+    d_avg: f64,
+    seeds: usize,
+    c: f64,
+) -> Result<TradeRow, String> {
+    let es = |e: crate::analysis::AnalysisError| e.to_string();
+    let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
     let (mut m, mut e, mut clock) = (vec![], vec![], 0.0);
     for s in 0..seeds {
         let mut sum: Option<Scan> = None;
         for rep in 0..k_avg {
             let sc = noisy_bead_scene([c, c + 0.013], rb.d_nm, 30_000 + (s * k_avg + rep) as u64)?;
-            let (scan, dt) = engine_scan(&optics, &sc, d_avg)?;
+            let (scan, dt) = engine_scan(optics, &sc, d_avg)?;
             clock += dt / seeds as f64;
             sum = Some(match sum {
                 None => scan,
@@ -322,7 +328,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         let r = fit_beads(
             &a.sx,
             &a.sy,
-            &tpl,
+            tpl,
             &FitOptions {
                 init: Some(vec![BeadInit {
                     x: c,
@@ -339,7 +345,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         m.push(b.weight * rb.mass_kda());
     }
     let (mean, scatter) = mean_std(&m);
-    let averaged = TradeRow {
+    Ok(TradeRow {
         dwell_s: d_avg,
         scan_s: k_avg as f64 * d_avg * npix,
         clock_s: clock,
@@ -349,9 +355,14 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         sigma_protein_kda: f64::NAN,
         sigma_fit_sx_only: f64::NAN,
         found: m.len(),
-    };
+    })
+}
 
-    // --- microtubule
+/// The microtubule's rows: per dwell, `seeds` noisy scans of a 13-protofilament microtubule
+/// along y through `c`, its linear density measured; with the true linear density, MDa/µm.
+fn microtubule_rows(dwells: &[f64], seeds: usize, c: f64) -> Result<(Vec<TradeRow>, f64), String> {
+    let es = |e: crate::analysis::AnalysisError| e.to_string();
+    let npix = (SCAN_PIXELS * SCAN_PIXELS) as f64;
     let o_mt = Optics {
         n_medium: 1.335,
         ..Optics::default()
@@ -411,6 +422,32 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
         }
         microtubule.push(TradeRow::measured(dwell, npix, clock, &mu, &e));
     }
+    Ok((microtubule, mt_true_mu))
+}
+
+/// Run both trade-offs: dwell sweeps of 64×64-pixel scans (50 nm) of a 110 nm polystyrene bead
+/// (fit: one bead, both channels and Sx only, σ from the residuals) and of a 13-protofilament
+/// microtubule along y (protein cylinder, n = 1.587, in buffer n_s = 1.335; linear density from
+/// the per-row maximum sensitivities, Sec. 5), `seeds` noise realisations per dwell.
+pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
+    let dwells: &[f64] = if quick {
+        &[1e-4, 1e-3, 1e-2, 1e-1]
+    } else {
+        &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
+    };
+    let seeds = if quick { 2 } else { 16 };
+    let es = |e: crate::analysis::AnalysisError| e.to_string();
+
+    // --- bead
+    let optics = Optics::default();
+    let rb = RefBead::default();
+    let tpl =
+        Template::from_optics(&optics, &DetectorModel::default(), rb, 0.02, 0.0).map_err(es)?;
+    let c = SCAN_PIXELS as f64 * PIXEL_UM / 2.0;
+    let bead = bead_rows(&optics, &tpl, rb, dwells, seeds, c)?;
+    let (k_avg, d_avg) = (4usize, 0.025);
+    let averaged = averaged_row(&optics, &tpl, rb, k_avg, d_avg, seeds, c)?;
+    let (microtubule, mt_true_mu) = microtubule_rows(dwells, seeds, c)?;
     Ok(Tradeoff {
         bead_k_kda_sqrt_s: sqrt_law(&bead, |r| r.sigma_fit),
         bead_k_sx_only: sqrt_law(&bead, |r| r.sigma_fit_sx_only),

@@ -23,7 +23,7 @@ use crate::analysis::quantities::DiameterCalib;
 use crate::analysis::template::{RefBead, Template};
 use crate::instrument::sim::scene::{
     Bead, DetectorNoise, DiameterProfile, Filament, Scene, FILAMENT_SPACING_NM,
-    PAPER_DETECTOR_SIGMA_SAMPLE,
+    PAPER_DETECTOR_SIGMA_SAMPLE, PAPER_SAMPLES_PER_PIXEL,
 };
 use crate::instrument::sim::{render_xy, Renderer};
 use crate::optics::params::{Optics, REF_BEAD_N};
@@ -33,8 +33,9 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
-/// Samples per simulated pixel read (the simulator's default for `simulate`).
-const N_SAMPLES: usize = 100;
+/// Samples per simulated pixel read: the paper's (and `simulate`'s default), so that noise × 1
+/// is the paper's per-pixel noise.
+const N_SAMPLES: usize = PAPER_SAMPLES_PER_PIXEL;
 
 /// One estimator's tally.
 #[derive(Debug, Clone, Default, Serialize, PartialEq)]
@@ -58,6 +59,8 @@ pub struct Tally {
     not_ok: usize,
     /// The first few unflagged outliers, in words (for the developer chasing them).
     pub examples: Vec<String>,
+    /// Why answers were flagged or refused: each warning or refusal, its numbers masked, counted.
+    pub reasons: BTreeMap<String, usize>,
 }
 
 impl Tally {
@@ -65,8 +68,12 @@ impl Tally {
         self.cases += 1;
         self.not_ok += 1;
     }
-    fn flagged(&mut self) {
+    /// A flagged answer or a refusal, for the reasons `why` (warnings or the error).
+    fn flagged(&mut self, why: &[String]) {
         self.refused();
+        for w in why {
+            *self.reasons.entry(reason_key(w)).or_default() += 1;
+        }
     }
     /// An in-domain answer: `value` against `truth` with 1σ `sigma` (None: no σ, counted only
     /// for outliers by `rel_limit`); an outlier beyond 4σ, or beyond `rel_limit` × |truth|.
@@ -88,6 +95,7 @@ impl Tally {
             self.within[1] += (e <= 2.0 * s) as usize;
             outlier |= e > 4.0 * s;
         }
+        dump(value, truth, sigma, &what);
         if outlier || !value.is_finite() {
             self.unflagged_outliers += 1;
             if self.examples.len() < 5 {
@@ -152,12 +160,13 @@ fn bead_case(
             n: REF_BEAD_N,
         });
     }
+    let n_px = (2.0 * half / pixel).round() as usize + 1;
     let describe = || {
         format!(
-            "beads {:?} (x, y µm, d nm), noise ×{noise:.2}, pixel {:.0} nm, seed {seed}",
+            "beads {:?} (x, y µm, d nm), noise ×{noise:.4}, pixel {:.1} nm ({n_px}² on ±{half} µm), seed {seed}",
             beads
                 .iter()
-                .map(|b| (round3(b.0), round3(b.1), b.2.round()))
+                .map(|b| (round4(b.0), round4(b.1), round4(b.2)))
                 .collect::<Vec<_>>(),
             pixel * 1000.0
         )
@@ -176,14 +185,15 @@ fn bead_case(
         "fit_beads.weight",
         "fit_beads.count",
     ];
-    let fit = match fit_beads(&scan.sx, &scan.sy, tpl, &fo) {
-        Ok(f) if f.warnings.is_empty() => f,
-        _ => {
-            for k in keys {
-                t.entry(k.into()).or_default().flagged();
-            }
-            return;
+    let flag_all = |t: &mut BTreeMap<String, Tally>, why: &[String]| {
+        for k in keys {
+            t.entry(k.into()).or_default().flagged(why);
         }
+    };
+    let fit = match fit_beads(&scan.sx, &scan.sy, tpl, &fo) {
+        Ok(f) if f.whole_fit_warnings().is_empty() => f,
+        Ok(f) => return flag_all(t, f.whole_fit_warnings()),
+        Err(e) => return flag_all(t, &[e.to_string()]),
     };
     // the count: every bead the data could show (weight ≥ 10 σ of the fitted weights) found,
     // none found that is not there
@@ -201,25 +211,40 @@ fn bead_case(
         .count();
     let found = fit.beads.iter().filter(|b| b.found()).count();
     let count = t.entry("fit_beads.count".into()).or_default();
-    let ok_count = found <= beads.len() && found >= visible;
-    count.answer(
-        if ok_count {
-            visible as f64
-        } else {
-            found as f64
-        },
-        visible as f64,
-        None,
-        Some(0.05),
-        || {
-            format!(
-                "found {found} beads where {visible} are visible: {}",
-                describe()
-            )
-        },
-    );
-    // each found bead against the nearest true bead
-    for b in fit.beads.iter().filter(|b| b.found()) {
+    if !fit.warnings.is_empty() {
+        count.flagged(&fit.warnings);
+    } else {
+        let ok_count = found <= beads.len() && found >= visible;
+        count.answer(
+            if ok_count {
+                visible as f64
+            } else {
+                found as f64
+            },
+            visible as f64,
+            None,
+            Some(0.05),
+            || {
+                format!(
+                    "found {found} beads where {visible} are visible: {}",
+                    describe()
+                )
+            },
+        );
+    }
+    // each found bead against the nearest true bead, flagged by its own warnings
+    for (b, own) in fit
+        .beads
+        .iter()
+        .zip(&fit.bead_warnings)
+        .filter(|(b, _)| b.found())
+    {
+        if !own.is_empty() {
+            for k in &keys[..3] {
+                t.entry((*k).into()).or_default().flagged(own);
+            }
+            continue;
+        }
         let Some(tb) = beads.iter().min_by(|p, q| {
             (p.0 - b.x)
                 .hypot(p.1 - b.y)
@@ -273,8 +298,44 @@ fn render_field(
     Some(render_xy(&r, &axis, &axis, 0.0, N_SAMPLES))
 }
 
-fn round3(v: f64) -> f64 {
-    (v * 1000.0).round() / 1000.0
+/// Developers: with `BFPSCOPE_SWEEP_DUMP=<file>`, every in-domain answer is appended to the file
+/// as one JSON line (value, truth, σ, the case in words), for studying an error bar's calibration.
+fn dump(value: f64, truth: f64, sigma: Option<f64>, what: &dyn Fn() -> String) {
+    use std::io::Write;
+    static FILE: std::sync::OnceLock<Option<std::sync::Mutex<std::fs::File>>> =
+        std::sync::OnceLock::new();
+    let f = FILE.get_or_init(|| {
+        let p = std::env::var_os("BFPSCOPE_SWEEP_DUMP")?;
+        std::fs::File::create(p).ok().map(std::sync::Mutex::new)
+    });
+    if let Some(Ok(mut f)) = f.as_ref().map(|m| m.lock()) {
+        let line =
+            serde_json::json!({"value": value, "truth": truth, "sigma": sigma, "case": what()});
+        let _ = writeln!(f, "{line}");
+    }
+}
+
+/// A warning with its numbers masked (`#`) and cut at its first colon: the reason, without the case.
+fn reason_key(w: &str) -> String {
+    let head = w;
+    let mut out = String::new();
+    let mut in_num = false;
+    for ch in head.chars() {
+        let num = ch.is_ascii_digit() || (in_num && (ch == '.' || ch == 'e'));
+        if num {
+            if !in_num {
+                out.push('#');
+            }
+        } else {
+            out.push(ch);
+        }
+        in_num = num;
+    }
+    out.replace("-#", "#").chars().take(70).collect()
+}
+
+fn round4(v: f64) -> f64 {
+    (v * 1e4).round() / 1e4
 }
 
 /// The orientation curve and diameter calibration of one pixel size.
@@ -304,7 +365,7 @@ fn fibril_case(
     let p1 = [c[0] + 0.5 * len * dir[0], c[1] + 0.5 * len * dir[1]];
     let describe = || {
         format!(
-            "fibril {:.2} µm long, d {d:.1} nm, at {:.1}°, centre ({:.2}, {:.2}) µm, noise ×{noise:.2}, pixel {pixel_nm} nm, seed {seed}",
+            "fibril {:.2} µm long, d {d:.1} nm, at {:.1}°, centre ({:.2}, {:.2}) µm, noise ×{noise:.4}, pixel {pixel_nm} nm, seed {seed}",
             len,
             angle.to_degrees(),
             c[0],
@@ -363,7 +424,9 @@ fn fibril_case(
                 format!("d {dm:.2} ± {s:.2} nm vs truth {d:.1} nm: {}", describe())
             });
         }
-        _ => tally.flagged(),
+        Ok(m) if m.warnings.is_empty() => tally.flagged(&["mean corrected sensitivity ≤ 0".into()]),
+        Ok(m) => tally.flagged(&m.warnings),
+        Err(e) => tally.flagged(&[e.to_string()]),
     }
 }
 
@@ -426,6 +489,13 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
                         println!("{k}: unflagged outlier: {e}");
                     }
                 }
+                if std::env::var_os("BFPSCOPE_SWEEP_REASONS").is_some() {
+                    for (k, v) in &t {
+                        for (r, c) in &v.reasons {
+                            println!("{k}: {c} × {r}");
+                        }
+                    }
+                }
             }
             if t.values().any(|v| v.unflagged_outliers > 0) {
                 std::process::ExitCode::from(1)
@@ -478,8 +548,9 @@ mod tests {
         for e in [0.5, 1.5, 3.0, 5.0] {
             t.answer(10.0 + e, 10.0, Some(1.0), None, || "x".into());
         }
-        t.flagged();
+        t.flagged(&["bead 3 at (0.1, 2) µm: outside".into()]);
         t.finish();
+        assert_eq!(t.reasons["bead # at (#, #) µm: outside"], 1);
         assert_eq!((t.cases, t.in_domain, t.unflagged_outliers), (5, 4, 1));
         assert_eq!((t.coverage_1s, t.coverage_2s), (0.25, 0.5));
         assert_eq!(t.flagged, 0.2);

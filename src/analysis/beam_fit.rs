@@ -422,19 +422,15 @@ fn initial_position(sx: &Image, sy: &Image) -> (f64, f64) {
     (0.5 * (a.0 + b.0), 0.5 * (c.1 + e.1))
 }
 
-/// Fit the beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to
-/// one xy scan of a reference bead at the focus: (sx, sy, sz) on a common grid, axes in µm.
-/// `optics` gives λ, n_medium, NA (condenser and objective) and the quadrature; its beam and
-/// pupil filling are what is fitted. Module docs for the model, identifiability and the
-/// uncertainty; errors name the argument and the allowed range.
-pub fn fit_beam(
+/// Refuse a bead, a scan or images `fit_beam` cannot fit, naming the argument and the
+/// allowed range.
+fn check_beam_inputs(
     optics: &Optics,
     sx: &Image,
     sy: &Image,
     sz: &Image,
     opts: &BeamFitOptions,
-) -> Result<BeamFit> {
-    let t_start = Instant::now();
+) -> Result<()> {
     check_range("d_nm", opts.d_nm, D_RANGE_NM.0, D_RANGE_NM.1)?;
     check_range("n", opts.n, 1.0, 3.0)?;
     if (opts.n - optics.n_medium).abs() < 0.02 {
@@ -481,7 +477,12 @@ pub fn fit_beam(
             });
         }
     }
-    let alpha = alpha_um3(opts.d_nm, opts.n, optics.n_medium);
+    Ok(())
+}
+
+/// The finite pixels of the three channels, each weighted by 1/σ of its noise (a
+/// noiseless scan: 1e-6 of its range as the floor), with the noise and the range per channel.
+fn weighted_pixels(sx: &Image, sy: &Image, sz: &Image) -> Result<(Data, [f64; 3], [f64; 3])> {
     let noise = [noise_of(sx), noise_of(sy), noise_of(sz)];
     for (c, &s) in noise.iter().enumerate() {
         if !(s.is_finite()) {
@@ -517,10 +518,24 @@ pub fn fit_beam(
             reason: format!("{n} finite pixels: at least 200 are needed"),
         });
     }
-    let data = Data { xy, s, w };
+    Ok((Data { xy, s, w }, noise, range))
+}
+
+/// The fit's cost profile over the pupil's v = 1/f0²: θ fitted at a coarse set of v, then
+/// the minimum refined by parabolas (each v warm-started from the nearest one done). The
+/// bases built and the profile (v, cost, θ) are returned; `builds` counts the templates.
+#[allow(clippy::type_complexity)]
+fn profile_over_v(
+    optics: &Optics,
+    opts: &BeamFitOptions,
+    alpha: f64,
+    sx: &Image,
+    sy: &Image,
+    data: &Data,
+    builds: &mut usize,
+) -> Result<(Vec<(f64, Basis)>, Vec<(f64, f64, Theta)>)> {
     let (x0, y0) = initial_position(sx, sy);
     let mut theta: Theta = [x0, y0, 0.0, 0.0];
-    let mut builds = 0usize;
     let mut bases: Vec<(f64, Basis)> = Vec::new();
     let mut profile: Vec<(f64, f64, Theta)> = Vec::new();
     let mut eval_v = |v: f64,
@@ -529,14 +544,14 @@ pub fn fit_beam(
                       profile: &mut Vec<(f64, f64, Theta)>|
      -> Result<f64> {
         let b = basis(optics, opts.grid, alpha, v)?;
-        builds += 3;
+        *builds += 3;
         // warm start from the nearest evaluated v
         let start = profile
             .iter()
             .min_by(|a, b| (a.0 - v).abs().total_cmp(&(b.0 - v).abs()))
             .map(|p| p.2)
             .unwrap_or(*theta);
-        let (th, cost) = fit_theta(&b, &data, start)?;
+        let (th, cost) = fit_theta(&b, data, start)?;
         *theta = th;
         bases.push((v, b));
         profile.push((v, cost, th));
@@ -583,31 +598,26 @@ pub fn fit_beam(
         };
         eval_v(next, &mut theta, &mut bases, &mut profile)?;
     }
-    let (v_hat, _, th_hat) = *profile
-        .iter()
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .expect("profile has entries");
-    let bi = bases
-        .iter()
-        .position(|(v, _)| *v == v_hat)
-        .expect("basis of the best v");
-    // Jacobian in v: forward difference (backward at V_MAX) over a new build
-    let hv = 0.05 * v_hat.max(0.2);
-    let v2 = if v_hat + hv <= V_MAX {
-        v_hat + hv
-    } else {
-        v_hat - hv
-    };
-    let mut b2 = basis(optics, opts.grid, alpha, v2)?;
-    // the same columns as at the optimum (the Sz bead column in or out)
-    b2.sz_ratio = bases[bi].1.sz_ratio;
-    builds += 3;
-    let b = &bases[bi].1;
+    Ok((bases, profile))
+}
+
+/// The covariance of all 13 parameters from the Jacobian at the optimum (central
+/// differences in θ, a forward one in v over `b2`, built `dv` away; the linear columns as they
+/// are), scaled by the reduced χ²; with the residuals, the linear coefficients and χ².
+#[allow(clippy::type_complexity)]
+fn covariance(
+    b: &Basis,
+    b2: &Basis,
+    dv: f64,
+    data: &Data,
+    th_hat: &Theta,
+) -> Result<(DMatrix<f64>, Vec<f64>, [DVector<f64>; 3], f64)> {
+    let n = data.xy.len();
     let fail = || AnalysisError::Failed("fit_beam: the model could not be evaluated".into());
-    let (r0, coef) = residuals(b, &data, &th_hat).ok_or_else(fail)?;
+    let (r0, coef) = residuals(b, data, th_hat).ok_or_else(fail)?;
     // full model as a function of all 13 parameters: p = [x0, y0, ψ, δ, v, gx, ax, bx, gy, ay, by, gz, bz]
     let model = |b: &Basis, th: &Theta, k: &[DVector<f64>; 3]| -> Vec<f64> {
-        let cols = columns(b, &data, th);
+        let cols = columns(b, data, th);
         let mut out = Vec::with_capacity(3 * n);
         for c in 0..3 {
             for i in 0..n {
@@ -621,12 +631,12 @@ pub fn fit_beam(
         }
         out
     };
-    let m0 = model(b, &th_hat, &coef);
+    let m0 = model(b, th_hat, &coef);
     let mut jac: Vec<Vec<f64>> = Vec::new();
     let steps = [1e-4, 1e-4, 1e-3, 0.02];
     for p in 0..4 {
-        let mut tp = th_hat;
-        let mut tm = th_hat;
+        let mut tp = *th_hat;
+        let mut tm = *th_hat;
         tp[p] += steps[p];
         tm[p] -= steps[p];
         let (a, c) = (model(b, &tp, &coef), model(b, &tm, &coef));
@@ -637,14 +647,9 @@ pub fn fit_beam(
                 .collect(),
         );
     }
-    let m2 = model(&b2, &th_hat, &coef);
-    jac.push(
-        m2.iter()
-            .zip(&m0)
-            .map(|(a, c)| (a - c) / (v2 - v_hat))
-            .collect(),
-    );
-    let cols = columns(b, &data, &th_hat);
+    let m2 = model(b2, th_hat, &coef);
+    jac.push(m2.iter().zip(&m0).map(|(a, c)| (a - c) / dv).collect());
+    let cols = columns(b, data, th_hat);
     for c in 0..3 {
         for col in &cols[c] {
             let mut j = vec![0.0; 3 * n];
@@ -670,6 +675,106 @@ pub fn fit_beam(
             "fit_beam: the parameters are degenerate on this scan (JᵀJ singular)".into(),
         )
     })? * s2;
+    Ok((cov, r0, coef, s2))
+}
+
+/// Refuse an answer that means nothing: no bead (the Sx gain within 10σ of zero), or a
+/// channel whose residual is well above its noise (not this bead in this beam).
+fn refuse_meaningless(
+    gx: f64,
+    sd_gx: f64,
+    rms: &[f64; 3],
+    noise: &[f64; 3],
+    range: &[f64; 3],
+    opts: &BeamFitOptions,
+) -> Result<()> {
+    if !(gx.abs() > 10.0 * sd_gx) || !(gx > 0.0) {
+        return Err(AnalysisError::Failed(format!(
+            "fit_beam: no bead in the scan: the Sx gain {gx:.3e} ± {:.1e} is not ≥ 10σ above zero (is there a reference bead within the field, at the focus?)",
+            sd_gx
+        )));
+    }
+    for c in 0..3 {
+        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c] {
+            return Err(AnalysisError::Failed(format!(
+                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
+                opts.d_nm,
+                opts.n,
+                ["sx", "sy", "sz"][c],
+                rms[c],
+                rms[c] / noise[c],
+                noise[c]
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The Sz gain when the scan determines it, else why not (`sd_gz`: its σ).
+fn gain_z(b: &Basis, coef: &[DVector<f64>; 3], sd_gz: f64) -> (Option<Value>, Option<String>) {
+    let val = |value: f64, sigma: f64| Value { value, sigma };
+    if !b.sz_signal() {
+        (
+            None,
+            Some(format!(
+                "not determined: a bead at the focus changes the total power Sz by nothing (the model's Sz is {:.0e} of its Sx; suppl. S3: the scattered wave is in quadrature with the focus at z = 0); the Sz gain needs a scan off the focus",
+                b.sz_ratio
+            )),
+        )
+    } else if coef[2][0].abs() < GAIN_Z_MIN_SIGMA * sd_gz {
+        (
+            None,
+            Some(format!(
+                "not determined: the fitted Sz gain {:.3e} ± {:.1e} is within {GAIN_Z_MIN_SIGMA}σ of zero",
+                coef[2][0],
+                sd_gz
+            )),
+        )
+    } else {
+        (Some(val(coef[2][0], sd_gz)), None)
+    }
+}
+
+/// Fit the beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to
+/// one xy scan of a reference bead at the focus: (sx, sy, sz) on a common grid, axes in µm.
+/// `optics` gives λ, n_medium, NA (condenser and objective) and the quadrature; its beam and
+/// pupil filling are what is fitted. Module docs for the model, identifiability and the
+/// uncertainty; errors name the argument and the allowed range.
+pub fn fit_beam(
+    optics: &Optics,
+    sx: &Image,
+    sy: &Image,
+    sz: &Image,
+    opts: &BeamFitOptions,
+) -> Result<BeamFit> {
+    let t_start = Instant::now();
+    check_beam_inputs(optics, sx, sy, sz, opts)?;
+    let alpha = alpha_um3(opts.d_nm, opts.n, optics.n_medium);
+    let (data, noise, range) = weighted_pixels(sx, sy, sz)?;
+    let n = data.xy.len();
+    let mut builds = 0usize;
+    let (bases, profile) = profile_over_v(optics, opts, alpha, sx, sy, &data, &mut builds)?;
+    let (v_hat, _, th_hat) = *profile
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("profile has entries");
+    let bi = bases
+        .iter()
+        .position(|(v, _)| *v == v_hat)
+        .expect("basis of the best v");
+    // Jacobian in v: forward difference (backward at V_MAX) over a new build
+    let hv = 0.05 * v_hat.max(0.2);
+    let v2 = if v_hat + hv <= V_MAX {
+        v_hat + hv
+    } else {
+        v_hat - hv
+    };
+    let mut b2 = basis(optics, opts.grid, alpha, v2)?;
+    // the same columns as at the optimum (the Sz bead column in or out)
+    b2.sz_ratio = bases[bi].1.sz_ratio;
+    builds += 3;
+    let b = &bases[bi].1;
+    let (cov, r0, coef, s2) = covariance(b, &b2, v2 - v_hat, &data, &th_hat)?;
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let val = |value: f64, sigma: f64| Value { value, sigma };
     // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by,
@@ -701,47 +806,9 @@ pub fn fit_beam(
     for c in 0..3 {
         rms[c] = (ss(&r0[c * n..(c + 1) * n]) / n as f64).sqrt() / data.w[c];
     }
-    // refuse answers that mean nothing
-    if !(gx.abs() > 10.0 * sd(5)) || !(gx > 0.0) {
-        return Err(AnalysisError::Failed(format!(
-            "fit_beam: no bead in the scan: the Sx gain {gx:.3e} ± {:.1e} is not ≥ 10σ above zero (is there a reference bead within the field, at the focus?)",
-            sd(5)
-        )));
-    }
-    for c in 0..3 {
-        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c] {
-            return Err(AnalysisError::Failed(format!(
-                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
-                opts.d_nm,
-                opts.n,
-                ["sx", "sy", "sz"][c],
-                rms[c],
-                rms[c] / noise[c],
-                noise[c]
-            )));
-        }
-    }
+    refuse_meaningless(gx, sd(5), &rms, &noise, &range, opts)?;
     let psi_deg = th_hat[2].to_degrees();
-    let (gain_z, gain_z_note) = if !b.sz_signal() {
-        (
-            None,
-            Some(format!(
-                "not determined: a bead at the focus changes the total power Sz by nothing (the model's Sz is {:.0e} of its Sx; suppl. S3: the scattered wave is in quadrature with the focus at z = 0); the Sz gain needs a scan off the focus",
-                b.sz_ratio
-            )),
-        )
-    } else if coef[2][0].abs() < GAIN_Z_MIN_SIGMA * sd(11) {
-        (
-            None,
-            Some(format!(
-                "not determined: the fitted Sz gain {:.3e} ± {:.1e} is within {GAIN_Z_MIN_SIGMA}σ of zero",
-                coef[2][0],
-                sd(11)
-            )),
-        )
-    } else {
-        (Some(val(coef[2][0], sd(11))), None)
-    };
+    let (gain_z, gain_z_note) = gain_z(b, &coef, sd(11));
     let fitted = optics_for_v(optics, v_hat);
     Ok(BeamFit {
         inv_f0_sq: val(v_hat, sv),

@@ -172,7 +172,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
         best.history = history;
     }
     attach_crlb(&mut best, sx, sy, tpl);
-    best.warnings = warnings::warnings(&best, sx, sy, tpl, opts);
+    warnings::attach(&mut best, sx, sy, tpl, opts);
     Ok(best)
 }
 

@@ -4,8 +4,8 @@
 
 use super::{err, Backend, Config, ConfigError};
 use crate::acquire::SoftLimits;
+use crate::instrument::gcs::split::GcsSplitStage;
 use crate::instrument::gcs::GcsStage;
-use crate::instrument::gcs_split::GcsSplitStage;
 use crate::instrument::scpi::ScpiQpd;
 use crate::instrument::{DeviceError, Instrument, Qpd, Stage, WallClock};
 use serde_json::json;
@@ -88,7 +88,12 @@ pub fn connect(
 /// gauge_zeroed = {x, y, z}`), and a warning per gauge not zeroed (`instrument.warnings`,
 /// shown by `connect()`). Called at connect and after `zero_gauge()`.
 pub fn record_gauge(instrument: &mut Instrument) {
-    let Some(z) = instrument.stage.gauge_zeroed() else {
+    let Some(z) = instrument
+        .stage
+        .capabilities()
+        .gauge
+        .map(|g| g.gauge_zeroed())
+    else {
         return;
     };
     let name = instrument.stage.name();
@@ -206,7 +211,7 @@ fn hardware_instrument(
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description: json!({
-            "backend": "hardware",
+            "backend": crate::instrument::family::HARDWARE,
             "stage": stage_desc,
             "qpd": qpd_desc,
             "settle_s": cfg.stage.settle_s,
@@ -225,8 +230,8 @@ fn open_scpi(cfg: &Config) -> Result<(Box<dyn Qpd>, serde_json::Value), ConnectE
 /// Thorlabs APT devices (and, for a mixed set-up, a GCS stage or a SCPI QPD): KPZ101 cubes as
 /// the stage and/or a KPA101 as the QPD.
 fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
-    use crate::instrument::apt::kpa101::Kpa101;
-    use crate::instrument::apt::kpz101::Kpz101Stage;
+    use crate::instrument::thorlabs::kpa101::Kpa101;
+    use crate::instrument::thorlabs::kpz101::Kpz101Stage;
     use crate::instrument::{Qpd, Stage};
     let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
         Backend::Kpz101 => {
@@ -445,7 +450,10 @@ fn finish_emulated(
         ))
     })?;
     if let serde_json::Value::Object(m) = &mut connected.instrument.description {
-        m.insert("backend".into(), json!("emulated"));
+        m.insert(
+            "backend".into(),
+            json!(crate::instrument::emulator::FAMILY.backend),
+        );
         m.insert("emulators".into(), emulators);
     }
     Ok(Emulated {
@@ -576,7 +584,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             (None, d)
         }
         Backend::Gcs => {
-            let s = crate::instrument::gcs_split::GcsSplitStage::open_checked(
+            let s = crate::instrument::gcs::split::GcsSplitStage::open_checked(
                 &cfg.gcs_controllers(),
                 cfg.stage.baud,
             )?;
@@ -652,7 +660,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
         (None, Some(m)) => Box::new(m),
         (None, None) => {
             return Err(crate::instrument::DeviceError::Other {
-                device: "bench".into(),
+                device: crate::instrument::madlib::FAMILY.backend.into(),
                 detail: "no stage was connected".into(),
             }
             .into())

@@ -30,6 +30,23 @@ pub enum Backend {
 }
 
 impl Backend {
+    /// Every backend.
+    pub const ALL: [Backend; 8] = [
+        Backend::Sim,
+        Backend::Gcs,
+        Backend::Scpi,
+        Backend::Kpa101,
+        Backend::Kpz101,
+        Backend::Redpitaya,
+        Backend::Madlib,
+        Backend::Nidaqmx,
+    ];
+
+    /// The backend named `name` in `bfpscope.toml`.
+    pub fn from_name(name: &str) -> Option<Backend> {
+        Backend::ALL.into_iter().find(|b| b.as_str() == name)
+    }
+
     pub fn as_str(self) -> &'static str {
         match self {
             Backend::Sim => "sim",

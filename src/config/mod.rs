@@ -566,30 +566,48 @@ impl Config {
 
     /// Check values and combinations. Errors name the key path.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let s = &self.stage;
-        let q = &self.qpd;
-        match s.backend {
-            Backend::Sim | Backend::Gcs | Backend::Kpz101 | Backend::Madlib => {}
-            b @ (Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx) => {
+        self.validate_backends()?;
+        self.validate_devices()?;
+        self.validate_links()?;
+        self.validate_axes()?;
+        self.validate_stage_numbers()?;
+        self.validate_qpd_numbers()?;
+        self.validate_bench()?;
+        self.safety.validate().map_err(|(k, m)| err(&k, m))?;
+        self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
+        self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
+        if let Some(d) = &self.session.data_dir {
+            if d.trim().is_empty() {
                 return Err(err(
-                    "stage.backend",
-                    format!(
-                    "\"{}\" is a QPD backend; allowed for a stage: \"sim\", \"gcs\", \"kpz101\", \"madlib\"",
-                    b.as_str()
-                ),
-                ))
+                    "session.data_dir",
+                    "\"\": must name a folder (or leave the key out for ./bfpscope_data/YYYY-MM-DD/)",
+                ));
             }
         }
-        match q.backend {
-            Backend::Sim | Backend::Scpi | Backend::Kpa101 | Backend::Redpitaya | Backend::Nidaqmx => {}
-            b @ (Backend::Gcs | Backend::Kpz101 | Backend::Madlib) => {
+        Ok(())
+    }
+
+    /// The `[stage]` and `[qpd]` backends: each the kind its family provides, both simulated or both hardware.
+    fn validate_backends(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
+        // which backend is a stage's and which a QPD's: the device families say
+        for (key, b, qpd, other) in [
+            ("stage.backend", s.backend, false, "QPD"),
+            ("qpd.backend", q.backend, true, "stage"),
+        ] {
+            let allowed = crate::instrument::registry::config_backends(qpd);
+            if !allowed.contains(&b.as_str()) {
+                let listed: Vec<String> = allowed.iter().map(|b| format!("{b:?}")).collect();
                 return Err(err(
-                    "qpd.backend",
+                    key,
                     format!(
-                    "\"{}\" is a stage backend; allowed for a QPD: \"sim\", \"scpi\", \"kpa101\", \"redpitaya\", \"nidaqmx\"",
-                    b.as_str()
-                ),
-                ))
+                        "\"{}\" is a {other} backend; allowed for a {}: {}",
+                        b.as_str(),
+                        if qpd { "QPD" } else { "stage" },
+                        listed.join(", ")
+                    ),
+                ));
             }
         }
         if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
@@ -603,6 +621,13 @@ impl Config {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// The rules of each backend: ports, the KPZ101 and KPA101 settings, the Red Pitaya's.
+    fn validate_devices(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
         if s.backend == Backend::Gcs {
             self.validate_stage_ports()?;
         }
@@ -653,6 +678,13 @@ impl Config {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Baud rates and timeouts.
+    fn validate_links(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
+        let q = &self.qpd;
         for (key, v) in [("stage.baud", s.baud), ("qpd.baud", q.baud)] {
             if v == 0 {
                 return Err(err(key, "must be a positive baud rate (e.g. 115200)"));
@@ -673,6 +705,12 @@ impl Config {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// `stage.axes`: controller axis identifiers, different on one controller.
+    fn validate_axes(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
         let axes = [&s.axes.x, &s.axes.y, &s.axes.z];
         for (i, a) in axes.iter().enumerate() {
             if a.is_empty() || a.contains(char::is_whitespace) || a.contains('=') {
@@ -701,6 +739,12 @@ impl Config {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// The stage's numbers: units, settle time, trigger line, servo cycle, table sizes.
+    fn validate_stage_numbers(&self) -> Result<(), ConfigError> {
+        let s = &self.stage;
         if !(s.units_per_um.is_finite() && s.units_per_um > 0.0) {
             return Err(err("stage.units_per_um", "must be a positive number"));
         }
@@ -733,6 +777,12 @@ impl Config {
                 return Err(err(key, "0: must be a positive number of points"));
             }
         }
+        Ok(())
+    }
+
+    /// The QPD's numbers: calibration, sum floor, input range.
+    fn validate_qpd_numbers(&self) -> Result<(), ConfigError> {
+        let q = &self.qpd;
         for i in 0..3 {
             let g = q.calibration.gain[i];
             if !(g.is_finite() && g != 0.0) {
@@ -767,18 +817,6 @@ impl Config {
                         format!("{r}: the digitiser's input range ±V, above 0"),
                     ));
                 }
-            }
-        }
-        self.validate_bench()?;
-        self.safety.validate().map_err(|(k, m)| err(&k, m))?;
-        self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
-        self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
-        if let Some(d) = &self.session.data_dir {
-            if d.trim().is_empty() {
-                return Err(err(
-                    "session.data_dir",
-                    "\"\": must name a folder (or leave the key out for ./bfpscope_data/YYYY-MM-DD/)",
-                ));
             }
         }
         Ok(())
@@ -925,9 +963,9 @@ impl Config {
     }
 
     /// Driver settings for the KPZ101 cubes.
-    pub fn kpz_options(&self) -> crate::instrument::apt::kpz101::KpzOptions {
+    pub fn kpz_options(&self) -> crate::instrument::thorlabs::kpz101::KpzOptions {
         let s = &self.stage;
-        crate::instrument::apt::kpz101::KpzOptions {
+        crate::instrument::thorlabs::kpz101::KpzOptions {
             timeout: Duration::from_millis(s.timeout_ms),
             on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
             poll_interval: Duration::from_millis(s.poll_ms()),
@@ -941,9 +979,9 @@ impl Config {
     }
 
     /// Driver settings for the KPA101.
-    pub fn kpa_options(&self) -> crate::instrument::apt::kpa101::KpaOptions {
+    pub fn kpa_options(&self) -> crate::instrument::thorlabs::kpa101::KpaOptions {
         let q = &self.qpd;
-        crate::instrument::apt::kpa101::KpaOptions {
+        crate::instrument::thorlabs::kpa101::KpaOptions {
             timeout: Duration::from_millis(q.timeout_ms),
             calibration: q.calibration,
             sum_scale: q.sum_scale,

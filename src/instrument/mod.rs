@@ -9,19 +9,21 @@ pub mod mock;
 pub mod sim;
 pub mod trace;
 // Hardware: serial drivers, emulators, config, connect.
-pub mod apt;
+pub mod emulation;
 pub mod emulator;
+pub mod family;
 pub mod gcs;
-pub mod gcs_split;
 pub mod line;
 pub mod link;
 pub mod madlib;
 pub mod nidaqmx;
 pub mod range;
 pub mod redpitaya;
+pub mod registry;
 pub mod scpi;
 pub mod scpi_session;
 pub mod stream;
+pub mod thorlabs;
 pub mod vendor;
 
 pub mod device;
@@ -65,6 +67,23 @@ pub trait Clock: Send + Sync {
     fn wait(&self, seconds: f64);
     /// True when time is simulated.
     fn is_virtual(&self) -> bool;
+}
+
+/// Strain gauges the user zeroes (Thorlabs KPZ101: the "zeroed" status bit, read at connect
+/// and kept after a zeroing): a capability of the Thorlabs family.
+pub trait GaugeZero {
+    /// Whether each axis' gauge is zeroed.
+    fn gauge_zeroed(&self) -> [bool; 3];
+    /// Zero the gauges (KPZ101: `MGMSG_PZ_SET_ZERO`, then wait for "zeroed"; the actuators go
+    /// to their zero and hold there).
+    fn zero_gauge(&mut self) -> Result<[bool; 3], DeviceError>;
+}
+
+/// What a stage offers beyond the [`Stage`] methods every stage has: each a vendor operation
+/// its family implements ([`Stage::capabilities`]); `None` where the stage has none.
+#[derive(Default)]
+pub struct Capabilities<'a> {
+    pub gauge: Option<&'a mut dyn GaugeZero>,
 }
 
 /// A three-axis positioning stage. Positions in µm.
@@ -111,20 +130,10 @@ pub trait Stage: Send {
     fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
         Ok(None)
     }
-    /// Whether each axis' strain gauge is zeroed (Thorlabs KPZ101: the "zeroed" status bit,
-    /// read at connect and kept after a zeroing); `None` for stages without a gauge to zero.
-    fn gauge_zeroed(&self) -> Option<[bool; 3]> {
-        None
-    }
-    /// Zero the strain gauges (KPZ101: `MGMSG_PZ_SET_ZERO`, then wait for "zeroed"; the
-    /// actuators go to their zero and hold there). Stages without one refuse.
-    fn zero_gauge(&mut self) -> Result<[bool; 3], DeviceError> {
-        Err(DeviceError::Other {
-            device: self.name(),
-            detail: "this stage has no strain gauge to zero (Thorlabs KPZ101 cubes \
-                     have one; PI controllers calibrate their sensors themselves)"
-                .into(),
-        })
+    /// The vendor operations this stage's family offers beyond moving and reading (the
+    /// KPZ101's strain-gauge zero); none by default.
+    fn capabilities(&mut self) -> Capabilities<'_> {
+        Capabilities::default()
     }
     /// Send a raw *query* to the controller and return its reply lines, for debugging at the
     /// prompt (`gcs_query("SAI?")`). Only queries: anything that could move is refused by the

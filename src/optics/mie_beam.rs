@@ -543,15 +543,8 @@ impl MieBeam {
         Self::build(&*optics.valid()?, d_nm, n_particle, spec, true)
     }
 
-    /// [`Self::new`]; `factorise` = false keeps the pair matrix for the point dipole too (the
-    /// unit test that checks the factorisation against it).
-    fn build(
-        optics: &ValidOptics,
-        d_nm: f64,
-        n_particle: C64,
-        spec: MieBeamSpec,
-        factorise: bool,
-    ) -> Result<Self, OpticsError> {
+    /// The sphere and the incident grid `build` accepts: errors name the argument and range.
+    fn check_inputs(d_nm: f64, n_particle: C64, spec: &MieBeamSpec) -> Result<(), OpticsError> {
         check_above("d_nm", d_nm, 0.0)?;
         check_range("d_nm", d_nm, 0.0, 20000.0)?;
         check_range("n_particle (real part)", n_particle.re, 1e-3, 5.0)?;
@@ -561,6 +554,19 @@ impl MieBeam {
         if let Some(nt) = spec.n_terms {
             check_range("n_terms", nt as f64, 1.0, 10000.0)?;
         }
+        Ok(())
+    }
+
+    /// [`Self::new`]; `factorise` = false keeps the pair matrix for the point dipole too (the
+    /// unit test that checks the factorisation against it).
+    fn build(
+        optics: &ValidOptics,
+        d_nm: f64,
+        n_particle: C64,
+        spec: MieBeamSpec,
+        factorise: bool,
+    ) -> Result<Self, OpticsError> {
+        Self::check_inputs(d_nm, n_particle, &spec)?;
         let det = Detection::new(optics, &spec.detector)?;
         let n_det = det.nodes.len();
         let n_inc = 4 * spec.n_theta_in * spec.n_phi_in;

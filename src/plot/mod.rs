@@ -966,19 +966,7 @@ impl Figure for XyFigure<'_> {
                 }
             };
             if matches!(s.style, SeriesStyle::Line | SeriesStyle::LinePoints) {
-                let mut run: Vec<(f64, f64)> = Vec::new();
-                let mut runs = Vec::new();
-                for i in 0..s.x.len() {
-                    if s.x[i].is_finite() && s.y[i].is_finite() {
-                        run.push((s.x[i], s.y[i]));
-                    } else if !run.is_empty() {
-                        runs.push(std::mem::take(&mut run));
-                    }
-                }
-                if !run.is_empty() {
-                    runs.push(run);
-                }
-                for r in runs {
+                for r in finite_runs(&s.x, &s.y) {
                     let anno = chart
                         .draw_series(LineSeries::new(r, color.stroke_width(2)))
                         .map_err(perr)?;
@@ -1033,6 +1021,24 @@ impl Figure for XyFigure<'_> {
         }
         Ok(())
     }
+}
+
+/// The runs of consecutive points where both x and y are finite (a line is drawn through
+/// each run, not across the gaps).
+fn finite_runs(x: &[f64], y: &[f64]) -> Vec<Vec<(f64, f64)>> {
+    let mut run: Vec<(f64, f64)> = Vec::new();
+    let mut runs = Vec::new();
+    for (&x, &y) in x.iter().zip(y) {
+        if x.is_finite() && y.is_finite() {
+            run.push((x, y));
+        } else if !run.is_empty() {
+            runs.push(std::mem::take(&mut run));
+        }
+    }
+    if !run.is_empty() {
+        runs.push(run);
+    }
+    runs
 }
 
 /// Curves `y(x)` with a legend; optional error bars and log axes (for d³ scaling and

@@ -11,6 +11,14 @@ pub fn close(a: f64, b: f64, rel: f64) -> bool {
 }
 
 pub fn register(r: &mut Registrar) {
+    bind_help_and_asserts(r);
+    bind_numbers(r);
+    bind_protocol(r);
+    bind_trace(r);
+}
+
+/// `help` and the assertions of scripted tests.
+fn bind_help_and_asserts(r: &mut Registrar) {
     let d = Doc::func("help")
         .opt(
             "name",
@@ -73,7 +81,10 @@ pub fn register(r: &mut Registrar) {
             expect_err(&ctx, &f, Some(contains), &c.docs())
         },
     );
+}
 
+/// `linspace` and `fmt`.
+fn bind_numbers(r: &mut Registrar) {
     let d = Doc::func("linspace")
         .arg("from", "float", "", "first value")
         .arg("to", "float", "", "last value")
@@ -100,7 +111,10 @@ pub fn register(r: &mut Registrar) {
         .example("fmt(0.000012345, 2)", "\"1.2e-5\"")
         .example("fmt(1.0, 0)", "error: digits = 0");
     r.bind(d, |x: Dynamic, digits: Dynamic| fmt(&x, &digits));
+}
 
+/// A protocol's dialogue and record: `ask`, `answer`, `protocol_begin`, `protocol_end`, `provenance`.
+fn bind_protocol(r: &mut Registrar) {
     let d = Doc::func("ask")
         .arg("question", "string", "", "what the operator must do or answer")
         .returns("string", "the answer line (without the newline)")
@@ -145,7 +159,10 @@ pub fn register(r: &mut Registrar) {
         .summary("what every file written from a script carries (scan metadata, template JSON, PNG text chunk, CSV trailer)")
         .example("provenance().program.starts_with(\"bfpscope\")", "true");
     r.bind_ctx(d, |c| move || provenance(&c));
+}
 
+/// The command trace and the version: `trace_*`, `version`.
+fn bind_trace(r: &mut Registrar) {
     let d = Doc::func("trace_start")
         .returns("()", "")
         .summary("record every move, read and protocol decision of the connected instrument, with its clock's time (golden traces)")

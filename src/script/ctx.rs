@@ -410,7 +410,7 @@ impl Ctx {
         } else {
             inst.description["backend"]
                 .as_str()
-                .unwrap_or("hardware")
+                .unwrap_or(crate::instrument::family::HARDWARE)
                 .to_string()
         };
         self.attach(

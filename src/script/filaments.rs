@@ -31,7 +31,18 @@ const LIN_DENS_DENSITY_OBJ_G_CM3: f64 = 1.35;
 
 // ------------------------------------------------------------------ filaments
 
+/// A filament measured from a scan, for the examples.
+const FIL_EX: &str = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
+
 fn register_filaments(r: &mut Registrar) {
+    bind_angle_curve(r);
+    bind_measure_filament(r);
+    bind_background(r);
+    bind_quantities(r);
+}
+
+/// `angle_curve` and the `AngleCurve` it returns (Sec. 4.2 step 2, Fig. 4d).
+fn bind_angle_curve(r: &mut Registrar) {
     let meas_keys = measure_keys();
     let c = AngleCurveOptions::default();
     let mut curve_keys: Vec<Key> = vec![
@@ -136,7 +147,11 @@ fn register_filaments(r: &mut Registrar) {
     properties!(r, "AngleCurve", CurveRef, CURVE, [
         nodes: "map", "#{angle_deg: [..], sx: [..], sy: [..], sx0, pixel_um}"; "the computed nodes of the curve (for plots and tables)"; "c.nodes.angle_deg.len()" => "6"; |c| curve_nodes(c),
     ]);
+}
 
+/// `measure_filament` and the `FilamentMeasurement` it returns.
+fn bind_measure_filament(r: &mut Registrar) {
+    let meas_keys = measure_keys();
     let d = Doc::func("measure_filament")
         .arg("scan", "Scan", "", "XY scan of a filament")
         .arg("curve", "AngleCurve", "", "orientation calibration for the scan's pixel size")
@@ -145,13 +160,12 @@ fn register_filaments(r: &mut Registrar) {
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried, then the search is repeated with candidates above 3/4 and 5/8 of detect_snr).");
-    let fil_ex = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
     let spec = d.spec();
     let s2 = spec.clone();
     let (ctx, ctx2) = (r.ctx(), r.ctx());
     r.bind(
-        d.example(&format!("{fil_ex} round(m.angle_deg)"), "14.0")
-            .example(&format!("{fil_ex} m.channel"), "\"sx_rows\""),
+        d.example(&format!("{FIL_EX} round(m.angle_deg)"), "14.0")
+            .example(&format!("{FIL_EX} m.channel"), "\"sx_rows\""),
         move |s: ScanRef, c: CurveRef, m: Map| measure_filament_of(&ctx, &spec, &s, &c, &m),
     );
     r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
@@ -174,7 +188,7 @@ fn register_filaments(r: &mut Registrar) {
         ("std_corr", "std of the corrected maxima"),
         ("sem_corr", "standard error of mean_corr"),
     ];
-    let ex = |name: &str| (format!("{fil_ex} type_of(m.{name})"), "\"f64\"");
+    let ex = |name: &str| (format!("{FIL_EX} type_of(m.{name})"), "\"f64\"");
     r.named_getters(
         "FilamentMeasurement",
         "float",
@@ -182,7 +196,7 @@ fn register_filaments(r: &mut Registrar) {
         ex,
         filament_float,
     );
-    properties!(r, "FilamentMeasurement", FilamentRef, fil_ex, [
+    properties!(r, "FilamentMeasurement", FilamentRef, FIL_EX, [
         channel: "string", "\"sx_rows\" or \"sy_cols\""; "which maxima were used"; "m.channel" => "\"sx_rows\""; |m| -> String { to_dyn(&m.0.channel).into_string().unwrap_or_default() },
         points: "array", "[#{line, x, y, arc_um, sens, sens_err, sens_corr, interior}] along the filament (interior: at least end_margin_um from every end inside the scan; only these enter mean_corr)"; "the maxima along the filament"; "m.points.len() > 40" => "true"; |m| -> Array { m.0.points.iter().map(to_dyn).collect() },
         ends_um: "array", "[lo, hi]: arc positions (µm, the points' arc axis) of the filament's ends inside the scan, where its maxima fall to half their plateau; () where it runs out of the scan"; "where the filament ends"; "m.ends_um" => "[(), ()]"; |m| -> Array { m.0.ends_um.iter().map(to_dyn).collect() },
@@ -207,16 +221,19 @@ fn register_filaments(r: &mut Registrar) {
             .returns("Profile", "the value vs arc length along the filament (µm)")
             .summary("a quantity along the filament as a Profile (for plot_profile and CSV)")
             .example(
-                &format!("{fil_ex} m.profile(\"sens_corr\").len > 40"),
+                &format!("{FIL_EX} m.profile(\"sens_corr\").len > 40"),
                 "true",
             )
             .example(
-                &format!("{fil_ex} m.profile(\"mass\")"),
+                &format!("{FIL_EX} m.profile(\"mass\")"),
                 "error: key = \"mass\"",
             ),
         |m: &mut FilamentRef, key: &str| filament_profile(m, key),
     );
+}
 
+/// `sbr` and `remove_background`: the signal over the background of a filament.
+fn bind_background(r: &mut Registrar) {
     let sd = SbrOptions::default();
     let d = Doc::func("sbr")
         .arg("m", "FilamentMeasurement", "", "a measured filament")
@@ -234,8 +251,8 @@ fn register_filaments(r: &mut Registrar) {
         .form("sbr(m) -> map")
         .returns("map", "#{sbr_background, sbr_uniformity, mean_sens, mean_corr, std_sens, background_std, arc_start, arc_end, n_points, n_background}")
         .summary("signal-to-background ratio both ways the paper defines (Sec. 6)")
-        .example(&format!("{fil_ex} sbr(m, #{{skip_um: 0.2}}).n_points > 10"), "true")
-        .example(&format!("{fil_ex} sbr(m, #{{skip_um: -1.0}})"), "error: skip_um = -1");
+        .example(&format!("{FIL_EX} sbr(m, #{{skip_um: 0.2}}).n_points > 10"), "true")
+        .example(&format!("{FIL_EX} sbr(m, #{{skip_um: -1.0}})"), "error: skip_um = -1");
     let spec = d.spec();
     let s2 = spec.clone();
     r.bind(d, move |m: FilamentRef, mm: Map| sbr_of(&spec, &m, &mm));
@@ -269,7 +286,10 @@ fn register_filaments(r: &mut Registrar) {
     r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
         remove_background(&s2, &s, &t, &Map::new())
     });
+}
 
+/// The quantities: `diameter_calib`, `lin_dens_calib`, `linear_density`, `point_mass` and what follows.
+fn bind_quantities(r: &mut Registrar) {
     // quantities
     let mut calib_keys: Vec<Key> = vec![
         (

@@ -55,7 +55,16 @@ pub fn register(r: &mut Registrar) {
 /// description (scan metadata) and return it per axis.
 fn zero_gauge(c: &Ctx) -> RResult<rhai::Map> {
     c.with_instrument("zero_gauge", |i| {
-        let r = i.stage.zero_gauge();
+        let name = i.stage.name();
+        let r = match i.stage.capabilities().gauge {
+            Some(g) => g.zero_gauge(),
+            None => Err(crate::instrument::DeviceError::Other {
+                device: name,
+                detail: "this stage has no strain gauge to zero (Thorlabs KPZ101 cubes \
+                         have one; PI controllers calibrate their sensors themselves)"
+                    .into(),
+            }),
+        };
         crate::config::connect::record_gauge(i);
         let z = r.map_err(|e| format!("zero_gauge: {e}"))?;
         let mut m = rhai::Map::new();

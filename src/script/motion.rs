@@ -2,9 +2,8 @@
 //! `disconnect`, `clock`, `limits`, and the mock instrument's `mock_commands`. Every move goes
 //! through `acquire::checked_move` (soft limits first).
 //!
-//! Backends of `connect`: `mock`, `sim` (the simulated instrument), `hardware` (PI GCS stage +
-//! SCPI QPD on serial ports, from the config and/or the map) and `emulated` (the same drivers
-//! talking to in-process emulators on pseudo-terminals whose QPD images the simulator's scene).
+//! Backends of `connect`: the device families of `instrument::registry` (their names, the keys
+//! each takes, how each opens); this file checks the keys and opens what the family says.
 
 use super::ctx::{Attached, Ctx};
 use super::registry::{fail, int, non_negative, num, Doc, Opts, RResult, Registrar, Spec};
@@ -13,7 +12,8 @@ use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
 use crate::config::{Backend, Config, MAX_BAUD, MAX_TIMEOUT_MS};
 use crate::instrument::emulator::QpdEmulatorConfig;
-use crate::instrument::mock::{mock_instrument, MockConfig};
+use crate::instrument::mock::{mock_instrument, MockConfig, FAMILY as MOCK_FAMILY};
+use crate::instrument::registry::{self, BuildFn, Family, Open};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
 use crate::instrument::{Instrument, Pos, QpdReading, VirtualClock};
@@ -88,7 +88,13 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
 }
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
+    bind_moves(r);
+    bind_reads(r);
+    bind_connect(r);
+}
+
+/// Where the stage is and moving it: `pos`, `wa`, `mv`, `mvr`.
+fn bind_moves(r: &mut Registrar) {
     let d = Doc::func("pos")
         .returns("map", "#{x, y, z} in µm")
         .summary("current stage position")
@@ -119,7 +125,10 @@ pub fn register(r: &mut Registrar) {
         .summary("move the stage relative to where it is")
         .example("mv(#{y: 1.0}); mvr(#{y: 0.25}); pos().y", "1.25");
     r.bind_ctx(d, |c| move |m: Map| do_move(&c, "mvr", &m, true));
+}
 
+/// Reading the instrument: `qpd`, `ct`, `clock`, `limits`, `status`.
+fn bind_reads(r: &mut Registrar) {
     let d = Doc::func("qpd")
         .arg("n", "int", "samples", &format!("number of samples to average, 1 ≤ n ≤ {QPD_MAX_SAMPLES}"))
         .returns("map", "#{sx, sy, sz, sx_std, sy_std, sz_std, n}: means and standard deviations (QPD signal units)")
@@ -175,7 +184,11 @@ pub fn register(r: &mut Registrar) {
         .example("status().limits", "\"x [-50, 50] µm, y [-50, 50] µm, z [-10, 10] µm; max step 10 µm; no speed limit\"")
         .example("status().position.x", "0.0");
     r.bind_ctx(d, |c| move || status(&c));
+}
 
+/// `connect`, `disconnect`, `mock_commands`.
+fn bind_connect(r: &mut Registrar) {
+    let ctx = r.ctx();
     let (mock, emu) = (MockConfig::default(), QpdEmulatorConfig::default());
     let d = Doc::func("connect")
         .map(
@@ -456,6 +469,14 @@ fn base_config(ctx: &Ctx) -> RResult<Config> {
     Ok(ctx.settings.config.clone().unwrap_or_default())
 }
 
+/// The backend an instrument's description names (`"hardware"`, `"emulated"`).
+fn description_backend(inst: &Instrument) -> String {
+    inst.description["backend"]
+        .as_str()
+        .unwrap_or_default()
+        .to_string()
+}
+
 /// One line naming what is connected: `hardware: PI E-727 on /dev/ttyUSB0, QPD … on …`.
 /// Warnings of the connect (a strain gauge not zeroed) follow, one per line.
 fn connected_line(backend: &str, inst: &Instrument) -> String {
@@ -505,7 +526,10 @@ fn connect_sim(ctx: &Ctx, scene: &Scene, settle_s: f64, pace: f64) -> Result<Str
     let core = SimCore::new(&ctx.optics(), scene, SimConfig::default())
         .map_err(|e| format!("connect: backend = \"sim\": {e}"))?;
     core.clock.set_pace(pace);
-    let line = connected_line("sim", &core.instrument(settle_s));
+    let line = connected_line(
+        crate::instrument::sim::FAMILY.backend,
+        &core.instrument(settle_s),
+    );
     ctx.attach_sim(core, settle_s);
     Ok(line)
 }
@@ -551,69 +575,32 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
         ))
     })
     .map_err(|e| format!("connect: backend = {name:?}: {e}"))?;
-    let line = connected_line("hardware", &c.instrument);
-    ctx.attach("hardware", c.instrument, Attached::default());
+    let backend = description_backend(&c.instrument);
+    let line = connected_line(&backend, &c.instrument);
+    ctx.attach(&backend, c.instrument, Attached::default());
     Ok(line)
 }
 
-/// Keys of `connect`'s map and the backends they apply to.
-const BACKEND_KEYS: &[(&str, &[&str])] = &[
-    ("stage_port", &["hardware"]),
-    ("qpd_port", &["hardware", "thorlabs"]),
-    ("qpd_host", &["hardware"]),
-    ("stage_ports", &["thorlabs"]),
-    ("baud", &["hardware"]),
-    ("stage_baud", &["hardware"]),
-    ("qpd_baud", &["hardware"]),
-    ("timeout_ms", &["hardware", "thorlabs", "bench"]),
-    ("scene", &["sim", "emulated"]),
-    ("pace", &["sim"]),
-    ("noise_v", &["emulated"]),
-    ("qpd", &["emulated"]),
-    ("rate", &["mock"]),
-    ("start", &["mock"]),
-    ("fail_move_after", &["mock"]),
-    ("fail_read_after", &["mock"]),
-    ("abort_after_reads", &["mock"]),
-];
-
+/// `connect(#{backend, …})`: the family the backend names (`instrument::registry`), its keys
+/// checked, then opened as the family says ([`Open`]).
 fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     let backend = o.string("backend")?.unwrap_or_else(|| "config".into());
-    let kind = match backend.as_str() {
-        "gcs" | "scpi" | "hardware" | "redpitaya" => "hardware",
-        "thorlabs" | "kpz101" | "kpa101" => "thorlabs",
-        "madlib" | "nidaqmx" | "bench" => "bench",
-        "config" | "sim" | "emulated" | "mock" => backend.as_str(),
-        other => {
-            return fail(format!(
-                "connect: backend = {other:?} is not available; available: \"config\", \"sim\", \"hardware\" \
-                 (\"gcs\", \"scpi\"), \"redpitaya\", \"thorlabs\" (\"kpz101\", \"kpa101\"), \"madlib\" (\"nidaqmx\", \"bench\"), \"emulated\", \"mock\""
-            ))
-        }
-    };
     let mut cfg = base_config(c)?;
-    // "config" means the config's own backend: check the keys against that
-    let effective = match kind {
-        "config" if cfg.is_simulated() => "sim",
-        "config" if cfg.stage.backend == Backend::Kpz101 => "thorlabs",
-        "config" if cfg.stage.backend == Backend::Madlib => "bench",
-        "config" => "hardware",
-        k => k,
+    // "config" keeps the config's own backends (a GCS stage may read a KPA101, say) and
+    // checks the keys against the family of the config's stage
+    let from_config = backend == "config";
+    let family = if from_config {
+        registry::by_stage(cfg.stage.backend.as_str())
+    } else {
+        registry::by_backend(&backend)
     };
-    // "config" keeps the config's own backends (a GCS stage may read a KPA101, say)
-    let from_config = kind == "config";
-    for (k, applies) in BACKEND_KEYS {
-        if m.contains_key(*k) && !applies.contains(&effective) {
-            return fail(format!(
-                "connect: {k} applies to backend {} only, not {backend:?}",
-                applies
-                    .iter()
-                    .map(|b| format!("\"{b}\""))
-                    .collect::<Vec<_>>()
-                    .join(" / ")
-            ));
-        }
-    }
+    let Some(family) = family else {
+        return fail(format!(
+            "connect: backend = {backend:?} is not available; available: {}",
+            registry::available()
+        ));
+    };
+    check_family_keys(&family, &backend, m)?;
     let settle = match o.f64("settle")? {
         Some(s) if !(0.0..=10.0).contains(&s) => {
             return fail(format!(
@@ -625,183 +612,218 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
     if let Some(s) = settle {
         cfg.stage.settle_s = s;
     }
-    match effective {
-        "sim" => {
-            let scene = scene_for(c, m, Scene::default)?;
-            let pace = match o.f64("pace")? {
-                Some(p) if !(0.0..=100.0).contains(&p) => {
-                    return fail(format!(
-                        "connect: pace = {p:?} is out of range: 0 ≤ pace ≤ 100 wall seconds per simulated second"
-                    ))
-                }
-                p => p.unwrap_or(VirtualClock::DEFAULT_PACE),
-            };
-            connect_sim(c, &scene, cfg.stage.settle_s, pace).map_err(Into::into)
-        }
-        "hardware" => {
+    match family.open {
+        Open::Sim => open_sim(c, o, m, &cfg),
+        Open::Config { stage, qpd } => {
             if !from_config {
-                cfg.stage.backend = Backend::Gcs;
-                cfg.qpd.backend = if backend == "redpitaya" {
-                    Backend::Redpitaya
-                } else {
-                    Backend::Scpi
-                };
+                cfg.stage.backend = config_backend(stage)?;
+                cfg.qpd.backend = config_backend(qpd)?;
             }
-            if let Some(h) = o.string("qpd_host")? {
-                if cfg.qpd.backend != Backend::Redpitaya {
-                    return fail(format!(
-                        "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not {:?}",
-                        cfg.qpd.backend.as_str()
-                    ));
-                }
-                cfg.qpd.host = Some(h);
-            }
-            if let Some(p) = o.string("stage_port")? {
-                // one controller on this port, in place of the config's port(s)
-                cfg.stage.port = Some(p);
-                cfg.stage.ports = None;
-            }
-            if let Some(p) = o.string("qpd_port")? {
-                cfg.qpd.port = Some(p);
-            }
-            let positive = |k: &str, max: i64| connect_count(o, k, max);
-            if let Some(b) = positive("baud", MAX_BAUD.into())? {
-                cfg.stage.baud = b as u32;
-                cfg.qpd.baud = b as u32;
-            }
-            if let Some(b) = positive("stage_baud", MAX_BAUD.into())? {
-                cfg.stage.baud = b as u32;
-            }
-            if let Some(b) = positive("qpd_baud", MAX_BAUD.into())? {
-                cfg.qpd.baud = b as u32;
-            }
-            if let Some(t) = positive("timeout_ms", MAX_TIMEOUT_MS as i64)? {
-                cfg.stage.timeout_ms = t as u64;
-                cfg.qpd.timeout_ms = t as u64;
-            }
+            apply_port_keys(o, &mut cfg)?;
             connect_hardware(c, &cfg, &backend).map_err(Into::into)
         }
-        "bench" => {
-            // the paper's bench: a Nano-Drive (Madlib) and an NI board (NI-DAQmx) with the
-            // rest of their settings (libraries, device, channels, [raster]) from the config
-            if !from_config {
-                cfg.stage.backend = Backend::Madlib;
-                cfg.qpd.backend = Backend::Nidaqmx;
-            }
-            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
-                cfg.qpd.timeout_ms = t as u64;
-            }
-            connect_hardware(c, &cfg, &backend).map_err(Into::into)
-        }
-        "thorlabs" => {
-            if !from_config {
-                cfg.stage.backend = Backend::Kpz101;
-                cfg.qpd.backend = Backend::Kpa101;
-            }
-            if let Some([x, y, z]) = o.axis_strings("stage_ports")? {
-                cfg.stage.port = None;
-                cfg.stage.ports = Some(crate::config::AxisPorts { x, y, z });
-            }
-            if let Some(p) = o.string("qpd_port")? {
-                cfg.qpd.port = Some(p);
-            }
-            if let Some(t) = connect_count(o, "timeout_ms", MAX_TIMEOUT_MS as i64)? {
-                cfg.stage.timeout_ms = t as u64;
-                cfg.qpd.timeout_ms = t as u64;
-            }
-            connect_hardware(c, &cfg, &backend).map_err(Into::into)
-        }
-        "emulated" => {
-            let scene = scene_for(c, m, reference_bead_scene)?;
-            let noise_v = o
-                .f64("noise_v")?
-                .unwrap_or(QpdEmulatorConfig::default().noise_v[0]);
-            if !(0.0..=10.0).contains(&noise_v) {
-                return fail(format!(
-                    "connect: noise_v = {noise_v} is out of range: 0 ≤ noise_v ≤ 10 V"
-                ));
-            }
-            let sim = SimConfig::default();
-            let renderer = Arc::new(
-                Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
-                    .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
-            );
-            let e = match o.string("qpd")?.as_deref() {
-                None | Some("scpi") => connect_emulated(renderer.clone(), &sim, &cfg, noise_v),
-                Some("redpitaya") => connect_emulated_redpitaya(
-                    renderer.clone(),
-                    &sim,
-                    &cfg,
-                    noise_v,
-                    EmulatedStageLink::Pty,
-                ),
-                Some(other) => {
-                    return fail(format!(
-                        "connect: qpd = {other:?} is not an emulated digitiser; allowed: \"scpi\" (default), \"redpitaya\""
-                    ))
-                }
-            }
-            .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
-            let line = format!(
-                "{} (emulators on {} and {})",
-                connected_line("emulated", &e.connected.instrument),
-                e.stage.path(),
-                e.qpd.path()
-            );
-            c.attach(
-                "emulated",
-                e.connected.instrument,
-                Attached {
-                    keepalive: Some(Box::new((e.stage, e.qpd))),
-                    renderer: Some(renderer),
-                    ..Attached::default()
-                },
-            );
-            Ok(line)
-        }
-        "mock" => {
-            let mut cfg = MockConfig::default();
-            if let Some(s) = settle {
-                cfg.settle_s = s;
-            }
-            if let Some(r) = o.f64("rate")? {
-                if !(1.0..=1e9).contains(&r) {
-                    return fail(format!(
-                        "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
-                    ));
-                }
-                cfg.rate_hz = r;
-            }
-            if let Some(s) = m.get("start") {
-                let Some(sm) = s.read_lock::<Map>() else {
-                    return fail("connect: start must be a map #{x, y, z} (µm)");
-                };
-                let t = axes_map("connect start", &sm)?;
-                for (st, v) in cfg.start.iter_mut().zip(t) {
-                    *st = v.unwrap_or(0.0);
-                }
-            }
-            let count = |k: &str| -> RResult<Option<usize>> {
-                o.int(k)?
-                    .map(|v| non_negative("connect", k, v).map(|n| n as usize))
-                    .transpose()
-            };
-            cfg.fail_move_after = count("fail_move_after")?;
-            cfg.fail_read_after = count("fail_read_after")?;
-            cfg.abort_after_reads =
-                count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
-            let (inst, h) = mock_instrument(cfg);
-            let line = connected_line("mock", &inst);
-            c.attach(
-                "mock",
-                inst,
-                Attached {
-                    mock: Some(h),
-                    ..Attached::default()
-                },
-            );
-            Ok(line)
-        }
-        _ => unreachable!("backend names are checked above"),
+        Open::Emulated => open_emulated(c, o, m, &cfg),
+        Open::Mock => open_mock(c, o, m, settle),
+        Open::Build(build) => open_built(c, &family, build, m, cfg.stage.settle_s),
     }
+}
+
+/// Refuse a key none of the families answering to `family.backend` takes, naming the
+/// backends it applies to.
+fn check_family_keys(family: &Family, backend: &str, m: &Map) -> RResult<()> {
+    let takes = |k: &str| {
+        registry::families()
+            .iter()
+            .any(|f| f.backend == family.backend && f.keys.contains(&k))
+    };
+    for k in registry::all_keys() {
+        if m.contains_key(k) && !takes(k) {
+            return fail(format!(
+                "connect: {k} applies to backend {} only, not {backend:?}",
+                registry::backends_taking(k)
+                    .iter()
+                    .map(|b| format!("\"{b}\""))
+                    .collect::<Vec<_>>()
+                    .join(" / ")
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A `[stage]`/`[qpd]` backend a family names, as the config's.
+fn config_backend(name: &str) -> RResult<Backend> {
+    Backend::from_name(name).map_or_else(
+        || fail(format!("connect: the config has no backend {name:?}")),
+        Ok,
+    )
+}
+
+/// The port, host, baud and timeout keys of `connect`'s map over the config's (only the
+/// keys the family's backend takes get here).
+fn apply_port_keys(o: &Opts, cfg: &mut Config) -> RResult<()> {
+    if let Some(h) = o.string("qpd_host")? {
+        if cfg.qpd.backend != Backend::Redpitaya {
+            return fail(format!(
+                "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not {:?}",
+                cfg.qpd.backend.as_str()
+            ));
+        }
+        cfg.qpd.host = Some(h);
+    }
+    if let Some(p) = o.string("stage_port")? {
+        // one controller on this port, in place of the config's port(s)
+        cfg.stage.port = Some(p);
+        cfg.stage.ports = None;
+    }
+    if let Some([x, y, z]) = o.axis_strings("stage_ports")? {
+        cfg.stage.port = None;
+        cfg.stage.ports = Some(crate::config::AxisPorts { x, y, z });
+    }
+    if let Some(p) = o.string("qpd_port")? {
+        cfg.qpd.port = Some(p);
+    }
+    let positive = |k: &str, max: i64| connect_count(o, k, max);
+    if let Some(b) = positive("baud", MAX_BAUD.into())? {
+        cfg.stage.baud = b as u32;
+        cfg.qpd.baud = b as u32;
+    }
+    if let Some(b) = positive("stage_baud", MAX_BAUD.into())? {
+        cfg.stage.baud = b as u32;
+    }
+    if let Some(b) = positive("qpd_baud", MAX_BAUD.into())? {
+        cfg.qpd.baud = b as u32;
+    }
+    if let Some(t) = positive("timeout_ms", MAX_TIMEOUT_MS as i64)? {
+        cfg.stage.timeout_ms = t as u64;
+        cfg.qpd.timeout_ms = t as u64;
+    }
+    Ok(())
+}
+
+/// `connect(#{backend: "sim", scene, pace})`.
+fn open_sim(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
+    let scene = scene_for(c, m, Scene::default)?;
+    let pace = match o.f64("pace")? {
+        Some(p) if !(0.0..=100.0).contains(&p) => {
+            return fail(format!(
+                "connect: pace = {p:?} is out of range: 0 ≤ pace ≤ 100 wall seconds per simulated second"
+            ))
+        }
+        p => p.unwrap_or(VirtualClock::DEFAULT_PACE),
+    };
+    connect_sim(c, &scene, cfg.stage.settle_s, pace).map_err(Into::into)
+}
+
+/// `connect(#{backend: "emulated", scene, noise_v, qpd})`.
+fn open_emulated(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
+    let scene = scene_for(c, m, reference_bead_scene)?;
+    let noise_v = o
+        .f64("noise_v")?
+        .unwrap_or(QpdEmulatorConfig::default().noise_v[0]);
+    if !(0.0..=10.0).contains(&noise_v) {
+        return fail(format!(
+            "connect: noise_v = {noise_v} is out of range: 0 ≤ noise_v ≤ 10 V"
+        ));
+    }
+    let sim = SimConfig::default();
+    let renderer = Arc::new(
+        Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
+            .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
+    );
+    let e = match o.string("qpd")?.as_deref() {
+        None | Some("scpi") => connect_emulated(renderer.clone(), &sim, cfg, noise_v),
+        Some("redpitaya") => connect_emulated_redpitaya(
+            renderer.clone(),
+            &sim,
+            cfg,
+            noise_v,
+            EmulatedStageLink::Pty,
+        ),
+        Some(other) => {
+            return fail(format!(
+                "connect: qpd = {other:?} is not an emulated digitiser; allowed: \"scpi\" (default), \"redpitaya\""
+            ))
+        }
+    }
+    .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?;
+    let backend = description_backend(&e.connected.instrument);
+    let line = format!(
+        "{} (emulators on {} and {})",
+        connected_line(&backend, &e.connected.instrument),
+        e.stage.path(),
+        e.qpd.path()
+    );
+    c.attach(
+        &backend,
+        e.connected.instrument,
+        Attached {
+            keepalive: Some(Box::new((e.stage, e.qpd))),
+            renderer: Some(renderer),
+            ..Attached::default()
+        },
+    );
+    Ok(line)
+}
+
+/// `connect(#{backend: "mock", rate, start, fail_move_after, fail_read_after,
+/// abort_after_reads})`.
+fn open_mock(c: &Ctx, o: &Opts, m: &Map, settle: Option<f64>) -> RResult<String> {
+    let mut cfg = MockConfig::default();
+    if let Some(s) = settle {
+        cfg.settle_s = s;
+    }
+    if let Some(r) = o.f64("rate")? {
+        if !(1.0..=1e9).contains(&r) {
+            return fail(format!(
+                "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
+            ));
+        }
+        cfg.rate_hz = r;
+    }
+    if let Some(s) = m.get("start") {
+        let Some(sm) = s.read_lock::<Map>() else {
+            return fail("connect: start must be a map #{x, y, z} (µm)");
+        };
+        let t = axes_map("connect start", &sm)?;
+        for (st, v) in cfg.start.iter_mut().zip(t) {
+            *st = v.unwrap_or(0.0);
+        }
+    }
+    let count = |k: &str| -> RResult<Option<usize>> {
+        o.int(k)?
+            .map(|v| non_negative("connect", k, v).map(|n| n as usize))
+            .transpose()
+    };
+    cfg.fail_move_after = count("fail_move_after")?;
+    cfg.fail_read_after = count("fail_read_after")?;
+    cfg.abort_after_reads = count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
+    let (inst, h) = mock_instrument(cfg);
+    let backend = MOCK_FAMILY.backend;
+    let line = connected_line(backend, &inst);
+    c.attach(
+        backend,
+        inst,
+        Attached {
+            mock: Some(h),
+            ..Attached::default()
+        },
+    );
+    Ok(line)
+}
+
+/// A family that builds its own instrument from `connect`'s options ([`Open::Build`]).
+fn open_built(c: &Ctx, family: &Family, build: BuildFn, m: &Map, settle_s: f64) -> RResult<String> {
+    let mut options = serde_json::Map::new();
+    for (k, v) in m
+        .iter()
+        .filter(|(k, _)| !["backend", "settle"].contains(&k.as_str()))
+    {
+        options.insert(k.to_string(), super::types::dynamic_to_json(v));
+    }
+    let inst = build(&options, settle_s)
+        .map_err(|e| format!("connect: backend = {:?}: {e}", family.backend))?;
+    let line = connected_line(family.backend, &inst);
+    c.attach(family.backend, inst, Attached::default());
+    Ok(line)
 }

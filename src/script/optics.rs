@@ -34,7 +34,6 @@ fn optics_map(o: &Optics) -> Map {
 }
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
     r.bind_ctx(
         Doc::func("optics")
             .returns("map", "#{wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, n_theta, n_phi, beam, pupil_filling}")
@@ -44,6 +43,13 @@ pub fn register(r: &mut Registrar) {
             .example("optics().w0_nm", "400.0"),
         |c| move || optics(&c),
     );
+    bind_set_optics(r);
+    bind_response(r);
+    bind_model_sensitivity(r);
+}
+
+/// `set_optics`: the session optics.
+fn bind_set_optics(r: &mut Registrar) {
     let d = Doc::func("set_optics")
         .map(
             "changes",
@@ -109,7 +115,10 @@ pub fn register(r: &mut Registrar) {
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
     let spec = d.spec();
     r.bind_ctx(d, |c| move |m: Map| set_optics(&c, &spec, &m));
+}
 
+/// `response` and the trap depth: what a particle gives in this beam.
+fn bind_response(r: &mut Registrar) {
     let d = Doc::func("response")
         .map(
             "at",
@@ -191,6 +200,11 @@ pub fn register(r: &mut Registrar) {
             .example("round(n_corr(1.414, 1.57) * 1e4) / 1e4", "0.3505"),
         |c| move |a: Dynamic, b: Dynamic| index_correction(&c, &a, &b),
     );
+}
+
+/// `max_sensitivity_model` and `fit_beam`.
+fn bind_model_sensitivity(r: &mut Registrar) {
+    let ctx = r.ctx();
     r.bind(
         Doc::func("sphere_mass_kda")
             .arg("d_nm", "float", "nm", "diameter")

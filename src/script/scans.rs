@@ -186,6 +186,14 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
 }
 
 pub fn register(r: &mut Registrar) {
+    bind_scan_planes(r);
+    bind_spec_scans(r);
+    bind_mesh(r);
+    bind_scan_files(r);
+}
+
+/// `scan_line` and the plane scans `scan_xy`, `scan_xz`, `scan_yz`.
+fn bind_scan_planes(r: &mut Registrar) {
     let d = Doc::func("scan_line")
         .map(
             "plan",
@@ -213,6 +221,10 @@ pub fn register(r: &mut Registrar) {
     register_grid(r, Axis::Y, Axis::Z, Axis::X);
 
     // SPEC vocabulary
+}
+
+/// SPEC's line scans: `ascan`, `dscan`, `a2scan`, `d2scan`.
+fn bind_spec_scans(r: &mut Registrar) {
     for (name, rel) in [("ascan", false), ("dscan", true)] {
         let what = if rel { "relative" } else { "absolute" };
         let mut d = Doc::func(name)
@@ -298,6 +310,10 @@ pub fn register(r: &mut Registrar) {
             }
         });
     }
+}
+
+/// SPEC's `mesh` and `dmesh`.
+fn bind_mesh(r: &mut Registrar) {
     for (name, rel) in [("mesh", false), ("dmesh", true)] {
         let what = if rel { "relative" } else { "absolute" };
         let mut d = Doc::func(name)
@@ -354,6 +370,10 @@ pub fn register(r: &mut Registrar) {
     }
 
     // files (.npz through data::npz)
+}
+
+/// A scan on disk: `Scan.save` and `load_scan`.
+fn bind_scan_files(r: &mut Registrar) {
     r.bind_ctx(
         Doc::method("Scan", "save")
             .arg("path", "string", "", "file to write (never overwritten); relative: in the session folder, as every save")

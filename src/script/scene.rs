@@ -52,15 +52,22 @@ const AGGREGATE_REGION_UM: [f64; 2] = [-3.0, 3.0];
 const AGGREGATE_SEED: i64 = 1;
 const AGGREGATES_MAX: i64 = 100_000;
 /// Samples averaged per pixel by `simulate(scene, grid)` unless `n_samples` says otherwise.
-const SIMULATE_N_SAMPLES: i64 = 10_000;
+const SIMULATE_N_SAMPLES: i64 = crate::instrument::sim::scene::PAPER_SAMPLES_PER_PIXEL as i64;
 
 pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
     r.engine()
         .register_type_with_name::<SceneRef>("Scene")
         .register_fn("to_string", |s: &mut SceneRef| scene_summary(&s.0))
         .register_fn("to_debug", |s: &mut SceneRef| scene_summary(&s.0));
 
+    bind_scene(r);
+    bind_scene_objects(r);
+    bind_scene_effects(r);
+    bind_simulate(r);
+}
+
+/// `scene()` and what a Scene shows of itself.
+fn bind_scene(r: &mut Registrar) {
     let d = Doc::func("scene")
         .returns("Scene", "an empty scene")
         .summary("start a scene for the simulated instrument")
@@ -85,7 +92,10 @@ pub fn register(r: &mut Registrar) {
         });
     r.engine()
         .register_get("effect_names", |s: &mut SceneRef| effect_names(s));
+}
 
+/// The objects a Scene holds: `add_bead`, `add_filament`, `add_aggregates`.
+fn bind_scene_objects(r: &mut Registrar) {
     let d = Doc::method("Scene", "add_bead")
         .map(
             "bead",
@@ -193,7 +203,10 @@ pub fn register(r: &mut Registrar) {
     r.bind(d, move |s: &mut SceneRef, m: Map| {
         add_aggregates(&spec, s, &m)
     });
+}
 
+/// What a Scene renders with: `effects`, `effect`, `rotate`.
+fn bind_scene_effects(r: &mut Registrar) {
     let d = Doc::method("Scene", "effects")
         .arg("names", "array", "", &format!("effect names: {}", EFFECT_NAMES.join(", ")))
         .summary("choose the effects to simulate (each adds exactly one pipeline stage; none = ideal superposition)")
@@ -229,6 +242,11 @@ pub fn register(r: &mut Registrar) {
     r.bind(d, |s: &mut SceneRef, a: Dynamic| rotate(s, &a));
 
     // ---------------- simulate ----------------
+}
+
+/// `simulate` and `pipeline`: the simulator imaging a Scene.
+fn bind_simulate(r: &mut Registrar) {
+    let ctx = r.ctx();
     let n_samples_doc = format!(
         "optional: samples averaged per pixel (noise effects; default {SIMULATE_N_SAMPLES})"
     );

@@ -23,13 +23,21 @@ use super::types::{FitRef, TemplateRef};
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
-    register_templates(r, &ctx);
+    register_templates(r);
     register_fit(r, &ctx);
 }
 
 // ------------------------------------------------------------------ templates
 
-fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
+fn register_templates(r: &mut Registrar) {
+    bind_template_model(r);
+    bind_template_from_scans(r);
+    bind_render_beads(r);
+}
+
+/// `template_model`: the point-particle template from the model.
+fn bind_template_model(r: &mut Registrar) {
+    let ctx = r.ctx();
     let rb = RefBead::default();
     let d = Doc::func("template_model")
         .map(
@@ -92,7 +100,12 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.overload("template_model", move || {
         template_model(&c2, &s2, &Map::new())
     });
+}
 
+/// `template_from_scans` and what a Template shows of itself.
+fn bind_template_from_scans(r: &mut Registrar) {
+    let ctx = r.ctx();
+    let rb = RefBead::default();
     let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
         .arg("scans", "array", "", "XY scans of reference beads [Scan, …]")
@@ -176,7 +189,10 @@ fn register_templates(r: &mut Registrar, ctx: &Arc<Ctx>) {
             ),
         |path: &str| load_template(path),
     );
+}
 
+/// `render_beads` and `bead_model`: scans and bead models made from a template.
+fn bind_render_beads(r: &mut Registrar) {
     let d = Doc::func("render_beads")
         .arg("tpl", "Template", "", "the point-particle template")
         .map(

@@ -114,6 +114,20 @@ impl FitData<'_> {
         Ok(res)
     }
 
+    /// The closest pair of beads below the separation limit: their indices and distance (µm).
+    fn closest_pair(&self, cur: &[BeadInit]) -> Option<(usize, usize, f64)> {
+        let mut pair: Option<(usize, usize, f64)> = None;
+        for i in 0..cur.len() {
+            for j in i + 1..cur.len() {
+                let d = (cur[i].x - cur[j].x).hypot(cur[i].y - cur[j].y);
+                if d < self.min_sep && pair.is_none_or(|p| d < p.2) {
+                    pair = Some((i, j, d));
+                }
+            }
+        }
+        pair
+    }
+
     /// LM fit with merging of pairs closer than min_separation·w0 and dropping of beads out of
     /// reach, then the statistics.
     pub(super) fn fit_merge_close(
@@ -151,17 +165,7 @@ impl FitData<'_> {
                 beads = keep;
                 continue;
             }
-            // Closest pair below the separation limit.
-            let mut pair: Option<(usize, usize, f64)> = None;
-            for i in 0..cur.len() {
-                for j in i + 1..cur.len() {
-                    let d = (cur[i].x - cur[j].x).hypot(cur[i].y - cur[j].y);
-                    if d < self.min_sep && pair.is_none_or(|p| d < p.2) {
-                        pair = Some((i, j, d));
-                    }
-                }
-            }
-            if let Some((i, j, d)) = pair {
+            if let Some((i, j, d)) = self.closest_pair(&cur) {
                 let (a, b) = (cur[i], cur[j]);
                 degeneracies.push(Degeneracy::CloseBeads {
                     a: [a.x, a.y, a.weight],
@@ -266,6 +270,7 @@ impl FitData<'_> {
             degeneracies,
             history: vec![],
             warnings: vec![],
+            bead_warnings: vec![],
         })
     }
 }

@@ -110,7 +110,6 @@ pub fn levenberg_marquardt(
 ) -> RawFit {
     let n = p.len();
     let max_eval = opts.patience.saturating_mul(n + 1);
-    let eps = f64::EPSILON;
     let finite = |rss: f64, a: &DMatrix<f64>, g: &DVector<f64>| {
         rss.is_finite() && a.iter().all(|v| v.is_finite()) && g.iter().all(|v| v.is_finite())
     };
@@ -164,27 +163,8 @@ pub fn levenberg_marquardt(
                 dscale[j] = 1.0;
             }
         }
-        if gnorm <= opts.gtol {
-            return done(
-                p,
-                FitStatus::Converged,
-                "converged (gradient orthogonal to residuals, gtol)".into(),
-                njac,
-                nres,
-                rss,
-                a,
-            );
-        }
-        if gnorm <= eps {
-            return done(
-                p,
-                FitStatus::Failed,
-                "no further improvement possible: gtol is below machine precision".into(),
-                njac,
-                nres,
-                rss,
-                a,
-            );
+        if let Some((status, reason)) = gradient_stop(gnorm, opts) {
+            return done(p, status, reason, njac, nres, rss, a);
         }
         let d2: Vec<f64> = dscale.iter().map(|d| d * d).collect();
         let xnorm = scaled_norm(&p, &dscale);
@@ -217,16 +197,7 @@ pub fn levenberg_marquardt(
             } else {
                 -1.0
             };
-            // Predicted relative reduction: (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² (δ solves the damped system).
-            let mut dad = 0.0;
-            for i in 0..n {
-                let mut s = 0.0;
-                for j in 0..n {
-                    s += a[(i, j)] * delta[j];
-                }
-                dad += delta[i] * s;
-            }
-            let prered = (dad.max(0.0) + 2.0 * lambda * pnorm * pnorm) / rss;
+            let prered = predicted_reduction(&a, &delta, lambda, pnorm, rss);
             let ratio = if prered != 0.0 { actred / prered } else { 0.0 };
             let accepted = ratio >= 1e-4;
             if accepted {
@@ -239,56 +210,107 @@ pub fn levenberg_marquardt(
                 lambda *= nu;
                 nu *= 2.0;
             }
-            let ftol_met = actred.abs() <= opts.ftol && prered <= opts.ftol && 0.5 * ratio <= 1.0;
-            let xtol_met = pnorm <= opts.xtol * xnorm;
-            if ftol_met || xtol_met {
-                return done(
-                    p,
-                    FitStatus::Converged,
-                    format!("converged (ftol: {ftol_met}, xtol: {xtol_met})"),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if nres >= max_eval {
-                return done(
-                    p,
-                    FitStatus::MaxEvaluations,
-                    format!("evaluation budget exhausted ({nres} evaluations)"),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if actred.abs() <= eps && prered <= eps && 0.5 * ratio <= 1.0 {
-                return done(
-                    p,
-                    FitStatus::Failed,
-                    "no further improvement possible: ftol is below machine precision".into(),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
-            }
-            if pnorm <= eps * xnorm {
-                return done(
-                    p,
-                    FitStatus::Failed,
-                    "no further improvement possible: xtol is below machine precision".into(),
-                    njac,
-                    nres,
-                    rss,
-                    a,
-                );
+            let trial = Trial {
+                actred,
+                prered,
+                ratio,
+                pnorm,
+                xnorm,
+                nres,
+                max_eval,
+            };
+            if let Some((status, reason)) = trial.stop(opts) {
+                return done(p, status, reason, njac, nres, rss, a);
             }
             if accepted {
                 break;
             }
         }
+    }
+}
+
+/// The gradient test at an accepted point: converged when the gradient is orthogonal to the
+/// residuals within `gtol`, failed when that tolerance is below machine precision.
+fn gradient_stop(gnorm: f64, opts: &Tolerances) -> Option<(FitStatus, String)> {
+    if gnorm <= opts.gtol {
+        return Some((
+            FitStatus::Converged,
+            "converged (gradient orthogonal to residuals, gtol)".into(),
+        ));
+    }
+    if gnorm <= f64::EPSILON {
+        return Some((
+            FitStatus::Failed,
+            "no further improvement possible: gtol is below machine precision".into(),
+        ));
+    }
+    None
+}
+
+/// Predicted relative reduction of a step δ that solves the damped system:
+/// (δᵀAδ + 2λ‖Dδ‖²)/‖r‖² (`pnorm` = ‖Dδ‖, `rss` = ‖r‖²).
+fn predicted_reduction(a: &DMatrix<f64>, delta: &[f64], lambda: f64, pnorm: f64, rss: f64) -> f64 {
+    let n = delta.len();
+    let mut dad = 0.0;
+    for i in 0..n {
+        let mut s = 0.0;
+        for j in 0..n {
+            s += a[(i, j)] * delta[j];
+        }
+        dad += delta[i] * s;
+    }
+    (dad.max(0.0) + 2.0 * lambda * pnorm * pnorm) / rss
+}
+
+/// One trial step's numbers, for the stopping tests.
+#[derive(Clone, Copy)]
+struct Trial {
+    /// Actual and predicted relative reduction of ‖r‖², and their ratio.
+    actred: f64,
+    prered: f64,
+    ratio: f64,
+    /// Scaled step and parameter norms.
+    pnorm: f64,
+    xnorm: f64,
+    /// Evaluations so far and the budget.
+    nres: usize,
+    max_eval: usize,
+}
+
+impl Trial {
+    /// MINPACK's tests after a trial step, in its order: ftol/xtol met (converged), the
+    /// evaluation budget spent, then either tolerance below machine precision (failed).
+    fn stop(&self, opts: &Tolerances) -> Option<(FitStatus, String)> {
+        let eps = f64::EPSILON;
+        let (actred, prered, ratio) = (self.actred, self.prered, self.ratio);
+        let (pnorm, xnorm, nres) = (self.pnorm, self.xnorm, self.nres);
+        let ftol_met = actred.abs() <= opts.ftol && prered <= opts.ftol && 0.5 * ratio <= 1.0;
+        let xtol_met = pnorm <= opts.xtol * xnorm;
+        if ftol_met || xtol_met {
+            return Some((
+                FitStatus::Converged,
+                format!("converged (ftol: {ftol_met}, xtol: {xtol_met})"),
+            ));
+        }
+        if nres >= self.max_eval {
+            return Some((
+                FitStatus::MaxEvaluations,
+                format!("evaluation budget exhausted ({nres} evaluations)"),
+            ));
+        }
+        if actred.abs() <= eps && prered <= eps && 0.5 * ratio <= 1.0 {
+            return Some((
+                FitStatus::Failed,
+                "no further improvement possible: ftol is below machine precision".into(),
+            ));
+        }
+        if pnorm <= eps * xnorm {
+            return Some((
+                FitStatus::Failed,
+                "no further improvement possible: xtol is below machine precision".into(),
+            ));
+        }
+        None
     }
 }
 

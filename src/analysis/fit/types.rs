@@ -314,9 +314,20 @@ pub struct FitResult {
     /// positions, weights and σ hold.
     #[serde(default)]
     pub warnings: Vec<String>,
+    /// Each bead's own warnings (not found, outside the template's size domain, not whole inside
+    /// the scan), by bead index; `warnings` holds these and those about the whole fit. A bead's
+    /// values hold when its own list and the whole fit's warnings are empty.
+    #[serde(default)]
+    pub bead_warnings: Vec<Vec<String>>,
 }
 
 impl FitResult {
+    /// The warnings about the whole fit (not converged, no bead found, degeneracies, misfit):
+    /// `warnings` without the beads' own.
+    pub fn whole_fit_warnings(&self) -> &[String] {
+        let own: usize = self.bead_warnings.iter().map(Vec::len).sum();
+        &self.warnings[..self.warnings.len().saturating_sub(own)]
+    }
     pub fn is_degenerate(&self) -> bool {
         !self.degeneracies.is_empty()
     }

@@ -597,3 +597,14 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
     clip.finish(&mut scan, "simulate", &|_| {});
     scan
 }
+
+/// The simulated instrument: a scene rendered in the focused beam, on a virtual clock. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "sim",
+    backend: "sim",
+    aliases: &[],
+    stages: &["sim"],
+    qpds: &["sim"],
+    keys: &["scene", "pace"],
+    open: crate::instrument::family::Open::Sim,
+};

@@ -111,6 +111,219 @@ fn auto_mie_beads(scene: &Scene, domain: &DomainCheck) -> (Vec<usize>, Vec<Strin
     (out, notes)
 }
 
+/// The scatterers with every bead of at least `min_d_nm` (not rendered as a Mie sphere)
+/// replaced by the dipoles of a sphere rule of order `n_r` (the `finite_size` effect, S6).
+fn sphere_dipoles(
+    scatterers: &[Scatterer],
+    min_d_nm: f64,
+    n_r: usize,
+    is_mie: &dyn Fn(&Scatterer) -> bool,
+) -> Vec<Scatterer> {
+    let mut out = Vec::with_capacity(scatterers.len());
+    for s in scatterers {
+        match s.d_nm {
+            // Mie beads are whole spheres already
+            Some(d) if d >= min_d_nm && d > 0.0 && !is_mie(s) => {
+                for (o, w) in sphere_points(d * 1e-3, n_r) {
+                    out.push(Scatterer {
+                        pos: [s.pos[0] + o[0], s.pos[1] + o[1], s.pos[2] + o[2]],
+                        alpha: s.alpha * w,
+                        ..*s
+                    });
+                }
+            }
+            _ => out.push(*s),
+        }
+    }
+    out
+}
+
+/// The Mie tier's templates: one per bead species rendered as a Lorenz–Mie sphere, and one
+/// point dipole in the same beam for every other scatterer; `mie_of[i]` is scatterer i's
+/// template. Returns the species (d, n), the count of Mie beads and of point dipoles.
+#[allow(clippy::type_complexity)]
+fn mie_templates(
+    optics: &ValidOptics,
+    scene: &Scene,
+    scatterers: &[Scatterer],
+    spec: MieTemplateSpec,
+    is_mie: &dyn Fn(&Scatterer) -> bool,
+    mie: &mut Vec<Arc<MieTemplate>>,
+    mie_of: &mut [Option<usize>],
+) -> Result<(Vec<(f64, f64)>, usize, usize), OpticsError> {
+    let mut keys: Vec<(f64, f64)> = Vec::new();
+    let mut n_mie = 0;
+    for (i, s) in scatterers.iter().enumerate() {
+        if !is_mie(s) {
+            continue;
+        }
+        let (d, n) = (s.d_nm.unwrap_or(0.0), scene.beads[s.object].n);
+        let idx = match keys.iter().position(|&(a, b)| a == d && b == n) {
+            Some(i) => i,
+            None => {
+                mie.push(MieTemplate::shared(optics, d, n, spec, false)?);
+                keys.push((d, n));
+                keys.len() - 1
+            }
+        };
+        mie_of[i] = Some(idx);
+        n_mie += 1;
+    }
+    // Every other scatterer (filament beads, aggregates, beads below min_d_nm, finite-size
+    // dipoles) renders as a point dipole in the same angular-spectrum beam: the Mie
+    // tier's own small-sphere limit. The paraxial Rayleigh template would put them in a
+    // different beam (at the paper's optics its focus is 1.34× narrower and its maximum
+    // sensitivity 1.4–1.6× larger than the Mie tier's dipole limit, docs/physics.md §9),
+    // so a scene would mix two instruments.
+    let n_dip = scatterers.len() - n_mie;
+    if n_dip > 0 {
+        mie.push(MieTemplate::shared(
+            optics,
+            DIPOLE_D_NM,
+            DIPOLE_N,
+            spec,
+            true,
+        )?);
+        let idx = mie.len() - 1;
+        for m in mie_of.iter_mut().filter(|m| m.is_none()) {
+            *m = Some(idx);
+        }
+    }
+    Ok((keys, n_mie, n_dip))
+}
+
+/// The pipeline stages the scene's other effects add, applied per read (their cost is in the
+/// read): name and what each does.
+fn effect_stages(fx: &super::scene::Effects) -> Vec<(&'static str, String)> {
+    let mut out = Vec::new();
+    if let Some(t) = fx.thermal_motion {
+        out.push((
+            "thermal_motion",
+            format!(
+                "rigid jitter σ = {} nm per object, {} configurations per read",
+                t.sigma_nm, t.samples
+            ),
+        ));
+    }
+    if let Some(d) = fx.drift {
+        out.push((
+            "drift",
+            format!(
+                "{:?} nm/s + random walk {} nm/√s",
+                d.velocity_nm_s, d.random_walk_nm_sqrt_s
+            ),
+        ));
+    }
+    if let Some(b) = fx.stage_bandwidth {
+        out.push((
+            "stage_bandwidth",
+            format!(
+                "stage lag τ = {:.3} ms ({} Hz) under the wave generator (raster lines)",
+                b.tau_s() * 1e3,
+                b.hz
+            ),
+        ));
+    }
+    if let Some(p) = fx.pointing_noise {
+        out.push((
+            "pointing_noise",
+            format!("beam jitter σ = {} nm per sample", p.sigma_nm_sample),
+        ));
+    }
+    if fx.cross_terms == Some(true) {
+        out.push((
+            "cross_terms",
+            "|Σ E_scat|² over the cone (all scatterers, per pixel)".into(),
+        ));
+    }
+    if let Some(l) = fx.laser_power_noise {
+        out.push((
+            "laser_power_noise",
+            format!("relative power noise σ = {} per sample", l.sigma_rel_sample),
+        ));
+    }
+    if let Some(d) = fx.detector_noise {
+        out.push((
+            "detector_noise",
+            format!("white noise σ = {:e} per sample", d.sigma_sample),
+        ));
+    }
+    if let Some(d) = fx.detector_range {
+        out.push(("detector_range", super::detector::describe(&d)));
+    }
+    out
+}
+
+/// What the Mie stage renders, for the pipeline's stage list: `[Mie beads, point dipoles,
+/// beads the scene sent to the Mie tier, sphere templates]`.
+fn mie_stage_detail(
+    optics: &ValidOptics,
+    vector: bool,
+    mie_stage: &str,
+    m: &MieEffect,
+    [n_mie, n_dip, n_auto, n_keys]: [usize; 4],
+) -> String {
+    if mie_stage == VECTOR_BEAM {
+        format!(
+            "aplanatic vector beam, NA {}, pupil filling {}: {n_dip} scatterers as point dipoles; {n_mie} beads outside the point dipole's domain ({} picked by the scene) as Lorenz–Mie spheres ({} sphere templates)",
+            optics.na,
+            optics.pupil_filling,
+            n_auto,
+            n_keys
+        )
+    } else {
+        format!(
+            "{}{n_mie} beads ≥ {} nm{} as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
+            if vector {
+                format!("aplanatic vector beam, NA {}, pupil filling {}: ", optics.na, optics.pupil_filling)
+            } else {
+                String::new()
+            },
+            m.min_d_nm,
+            if n_auto == 0 {
+                String::new()
+            } else {
+                format!(" or outside the point dipole's domain ({} picked by the scene)", n_auto)
+            },
+            n_keys,
+            if m.scattered_intensity { ", with |E_s|²" } else { "" }
+        )
+    }
+}
+
+/// The detector's stages: the vector dipole field (`polarization`) and the QPD's
+/// misalignment, with the time since `t0` for the first.
+fn detector_stages(
+    model: &DetectorModel,
+    vector: bool,
+    t0: Instant,
+) -> Vec<(&'static str, f64, String)> {
+    let mut out = Vec::new();
+    if model.polarization {
+        out.push((
+            "polarization",
+            t0.elapsed().as_secs_f64(),
+            if vector {
+                "inherent in the vector beam (its dipole field is always vectorial): nothing added"
+                    .into()
+            } else {
+                "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))".into()
+            },
+        ));
+    }
+    if let Some(m) = model.misalignment {
+        out.push((
+            "misalignment",
+            0.0,
+            format!(
+                "QPD offset ({}, {}) of the cone radius, rotation {}°, Sy gain {}",
+                m.offset_x, m.offset_y, m.rotation_deg, m.gain_y
+            ),
+        ));
+    }
+    out
+}
+
 impl Renderer {
     /// Build the pipeline for `scene`, first running the point dipole's domain check (a stage
     /// of its own, `domain check`) through the process-wide memo
@@ -206,48 +419,13 @@ impl Renderer {
                 ),
             );
         }
-        if model.polarization {
-            push(
-                "polarization",
-                t0.elapsed().as_secs_f64(),
-                if vector {
-                    "inherent in the vector beam (its dipole field is always vectorial): nothing added".into()
-                } else {
-                    "vector dipole field, x-polarised beam: cone weights × (1 − cos²φ(1 − cosθ))"
-                        .into()
-                },
-            );
-        }
-        if let Some(m) = model.misalignment {
-            push(
-                "misalignment",
-                0.0,
-                format!(
-                    "QPD offset ({}, {}) of the cone radius, rotation {}°, Sy gain {}",
-                    m.offset_x, m.offset_y, m.rotation_deg, m.gain_y
-                ),
-            );
+        for (name, secs, detail) in detector_stages(&model, vector, t0) {
+            push(name, secs, detail);
         }
         if let Some(fs) = fx.finite_size {
             let t = Instant::now();
-            let mut out = Vec::with_capacity(scatterers.len());
-            for s in &scatterers {
-                match s.d_nm {
-                    // Mie beads are whole spheres already
-                    Some(d) if d >= fs.min_d_nm && d > 0.0 && !is_mie(s) => {
-                        for (o, w) in sphere_points(d * 1e-3, fs.n_r) {
-                            out.push(Scatterer {
-                                pos: [s.pos[0] + o[0], s.pos[1] + o[1], s.pos[2] + o[2]],
-                                alpha: s.alpha * w,
-                                ..*s
-                            });
-                        }
-                    }
-                    _ => out.push(*s),
-                }
-            }
-            let n = out.len();
-            scatterers = out;
+            scatterers = sphere_dipoles(&scatterers, fs.min_d_nm, fs.n_r, &is_mie);
+            let n = scatterers.len();
             push(
                 "finite_size",
                 t.elapsed().as_secs_f64(),
@@ -266,133 +444,26 @@ impl Renderer {
                 detector: model,
                 scattered_intensity: m.scattered_intensity,
             };
-            let mut keys: Vec<(f64, f64)> = Vec::new();
-            let mut n_mie = 0;
-            for (i, s) in scatterers.iter().enumerate() {
-                if !is_mie(s) {
-                    continue;
-                }
-                let (d, n) = (s.d_nm.unwrap_or(0.0), scene.beads[s.object].n);
-                let idx = match keys.iter().position(|&(a, b)| a == d && b == n) {
-                    Some(i) => i,
-                    None => {
-                        mie.push(MieTemplate::shared(optics, d, n, spec, false)?);
-                        keys.push((d, n));
-                        keys.len() - 1
-                    }
-                };
-                mie_of[i] = Some(idx);
-                n_mie += 1;
-            }
-            // Every other scatterer (filament beads, aggregates, beads below min_d_nm, finite-size
-            // dipoles) renders as a point dipole in the same angular-spectrum beam: the Mie
-            // tier's own small-sphere limit. The paraxial Rayleigh template would put them in a
-            // different beam (at the paper's optics its focus is 1.34× narrower and its maximum
-            // sensitivity 1.4–1.6× larger than the Mie tier's dipole limit, docs/physics.md §9),
-            // so a scene would mix two instruments.
-            let n_dip = scatterers.len() - n_mie;
-            if n_dip > 0 {
-                mie.push(MieTemplate::shared(
-                    optics,
-                    DIPOLE_D_NM,
-                    DIPOLE_N,
-                    spec,
-                    true,
-                )?);
-                let idx = mie.len() - 1;
-                for m in mie_of.iter_mut().filter(|m| m.is_none()) {
-                    *m = Some(idx);
-                }
-            }
-            let detail = if mie_stage == VECTOR_BEAM {
-                format!(
-                    "aplanatic vector beam, NA {}, pupil filling {}: {n_dip} scatterers as point dipoles; {n_mie} beads outside the point dipole's domain ({} picked by the scene) as Lorenz–Mie spheres ({} sphere templates)",
-                    optics.na,
-                    optics.pupil_filling,
-                    auto_mie.len(),
-                    keys.len()
-                )
-            } else {
-                format!(
-                    "{}{n_mie} beads ≥ {} nm{} as Lorenz–Mie spheres in the angular-spectrum beam ({} sphere templates{}); {n_dip} other scatterers (filaments, aggregates, smaller beads) as point dipoles in the same beam",
-                    if vector {
-                        format!("aplanatic vector beam, NA {}, pupil filling {}: ", optics.na, optics.pupil_filling)
-                    } else {
-                        String::new()
-                    },
-                    m.min_d_nm,
-                    if auto_mie.is_empty() {
-                        String::new()
-                    } else {
-                        format!(" or outside the point dipole's domain ({} picked by the scene)", auto_mie.len())
-                    },
-                    keys.len(),
-                    if m.scattered_intensity { ", with |E_s|²" } else { "" }
-                )
-            };
+            let (keys, n_mie, n_dip) = mie_templates(
+                optics,
+                scene,
+                &scatterers,
+                spec,
+                &is_mie,
+                &mut mie,
+                &mut mie_of,
+            )?;
+            let detail = mie_stage_detail(
+                optics,
+                vector,
+                mie_stage,
+                &m,
+                [n_mie, n_dip, auto_mie.len(), keys.len()],
+            );
             push(mie_stage, t.elapsed().as_secs_f64(), detail);
         }
-        if let Some(t) = fx.thermal_motion {
-            push(
-                "thermal_motion",
-                0.0,
-                format!(
-                    "rigid jitter σ = {} nm per object, {} configurations per read",
-                    t.sigma_nm, t.samples
-                ),
-            );
-        }
-        if let Some(d) = fx.drift {
-            push(
-                "drift",
-                0.0,
-                format!(
-                    "{:?} nm/s + random walk {} nm/√s",
-                    d.velocity_nm_s, d.random_walk_nm_sqrt_s
-                ),
-            );
-        }
-        if let Some(b) = fx.stage_bandwidth {
-            push(
-                "stage_bandwidth",
-                0.0,
-                format!(
-                    "stage lag τ = {:.3} ms ({} Hz) under the wave generator (raster lines)",
-                    b.tau_s() * 1e3,
-                    b.hz
-                ),
-            );
-        }
-        if let Some(p) = fx.pointing_noise {
-            push(
-                "pointing_noise",
-                0.0,
-                format!("beam jitter σ = {} nm per sample", p.sigma_nm_sample),
-            );
-        }
-        if fx.cross_terms == Some(true) {
-            push(
-                "cross_terms",
-                0.0,
-                "|Σ E_scat|² over the cone (all scatterers, per pixel)".into(),
-            );
-        }
-        if let Some(l) = fx.laser_power_noise {
-            push(
-                "laser_power_noise",
-                0.0,
-                format!("relative power noise σ = {} per sample", l.sigma_rel_sample),
-            );
-        }
-        if let Some(d) = fx.detector_noise {
-            push(
-                "detector_noise",
-                0.0,
-                format!("white noise σ = {:e} per sample", d.sigma_sample),
-            );
-        }
-        if let Some(d) = fx.detector_range {
-            push("detector_range", 0.0, super::detector::describe(&d));
+        for (name, detail) in effect_stages(fx) {
+            push(name, 0.0, detail);
         }
         let notes = if vector {
             auto_notes

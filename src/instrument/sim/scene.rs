@@ -215,6 +215,10 @@ pub struct ThermalMotion {
 /// The paper's noise level for a 0.1 s dwell at 100 kHz (10⁴ samples): see docs/physics.md.
 pub const PAPER_DETECTOR_SIGMA_SAMPLE: f64 = 2e-3;
 
+/// Samples averaged per pixel at the paper's dwell (0.1 s at 100 kHz): with
+/// [`PAPER_DETECTOR_SIGMA_SAMPLE`], the paper's per-pixel noise.
+pub const PAPER_SAMPLES_PER_PIXEL: usize = 10_000;
+
 /// All effect names, in pipeline order.
 pub const EFFECT_NAMES: [&str; 12] = [
     "polarization",

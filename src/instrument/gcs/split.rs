@@ -6,9 +6,9 @@
 //! each to report on target. `stop` sends `STP` to every controller, also when one of them
 //! fails to answer: a fault on one puts the state of all in doubt.
 
-use super::device::all_then_first_error;
-use super::gcs::{GcsOptions, GcsStage, PerAxis};
-use super::{DeviceError, Pos, Stage};
+use super::{GcsOptions, GcsStage, PerAxis};
+use crate::instrument::device::all_then_first_error;
+use crate::instrument::{DeviceError, Pos, Stage};
 use std::sync::atomic::AtomicBool;
 
 const XYZ: [&str; 3] = ["x", "y", "z"];
@@ -159,8 +159,8 @@ impl Stage for GcsSplitStage {
     }
 
     /// Every controller's costs, summed per command word.
-    fn link_costs(&mut self) -> super::link::LinkCosts {
-        super::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
+        crate::instrument::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
     }
 
     /// The query to every controller; each reply line is prefixed with the controller's name.

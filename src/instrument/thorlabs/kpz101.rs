@@ -17,7 +17,7 @@
 //! offset until the gauge is zeroed (`MGMSG_PZ_SET_ZERO`; status bits 0x20 "zeroing", then
 //! 0x10 "zeroed" in `MGMSG_PZ_GET_PZSTATUSUPDATE`). The bit is read at connect
 //! ([`Kpz101::zeroed_at_connect`]); `zero_at_connect` zeroes before the loop is closed, and
-//! [`Stage::zero_gauge`] on request. Zeroing drives the actuator to 0 V, its zero.
+//! [`GaugeZero::zero_gauge`](crate::instrument::GaugeZero::zero_gauge) on request. Zeroing drives the actuator to 0 V, its zero.
 //!
 //! **Stop.** A piezo cube has no motion to cancel: it drives the actuator to the demand within
 //! milliseconds. `stop` asks each cube for its position and makes that the demand
@@ -571,8 +571,20 @@ impl Stage for Kpz101Stage {
         Ok([0, 1, 2].map(|i| (0.0, self.axes[i].travel_um)))
     }
 
-    fn gauge_zeroed(&self) -> Option<[bool; 3]> {
-        Some([0, 1, 2].map(|i| self.axes[i].zeroed))
+    fn capabilities(&mut self) -> crate::instrument::Capabilities<'_> {
+        crate::instrument::Capabilities { gauge: Some(self) }
+    }
+
+    /// Every cube holds where it is, also when one of them fails (the first error is returned).
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        all_then_first_error(&mut self.axes, |a| a.hold())
+    }
+}
+
+/// The cubes' strain gauges, zeroed on request (the Thorlabs family's capability).
+impl crate::instrument::GaugeZero for Kpz101Stage {
+    fn gauge_zeroed(&self) -> [bool; 3] {
+        [0, 1, 2].map(|i| self.axes[i].zeroed)
     }
 
     /// Zero every cube's gauge in turn (x, y, z). A failure stops there: every cube is told
@@ -581,16 +593,11 @@ impl Stage for Kpz101Stage {
         for i in 0..3 {
             let t = self.opts.zero_timeout;
             if let Err(e) = self.axes[i].zero(t) {
-                let _ = self.stop();
+                let _ = Stage::stop(self);
                 return Err(e);
             }
         }
         Ok([0, 1, 2].map(|i| self.axes[i].zeroed))
-    }
-
-    /// Every cube holds where it is, also when one of them fails (the first error is returned).
-    fn stop(&mut self) -> Result<(), DeviceError> {
-        all_then_first_error(&mut self.axes, |a| a.hold())
     }
 }
 

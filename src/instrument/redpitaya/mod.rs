@@ -27,10 +27,12 @@
 //! (`ACQ:STOP`). A query the server rejects gets no reply: the error queue (`SYST:ERR?`) is
 //! read to say why.
 
-use super::link::{open_tcp, LineLink, Transport};
-use super::scpi::Calibration;
-use super::scpi_session::ScpiSession;
-use super::{BufferedArm, BufferedTrace, DeviceError, Qpd, QpdReading, Trigger};
+pub mod emulator;
+
+use crate::instrument::link::{open_tcp, LineLink, Transport};
+use crate::instrument::scpi::Calibration;
+use crate::instrument::scpi_session::ScpiSession;
+use crate::instrument::{BufferedArm, BufferedTrace, DeviceError, Qpd, QpdReading, Trigger};
 use std::time::{Duration, Instant};
 
 /// ADC sample rate at decimation 1, Hz (STEMlab 125-14).
@@ -565,7 +567,10 @@ impl RedPitaya {
         let fs = self.opts.gain.full_scale_v();
         for (i, ch) in v.iter().enumerate() {
             if let Some(s) = ch {
-                clipped[i] = s.iter().filter(|x| super::range::at_rail(**x, fs)).count();
+                clipped[i] = s
+                    .iter()
+                    .filter(|x| crate::instrument::range::at_rail(**x, fs))
+                    .count();
                 let (m_v, s_v) = mean_std(s);
                 mean[i] = m_v;
                 std[i] = s_v;
@@ -638,11 +643,11 @@ impl Qpd for RedPitaya {
 
     /// ±1 V (LV) or ±20 V (HV), as `input_gain` says the jumpers are set; the sum floor
     /// (default 1 % of that) when Sz is digitised.
-    fn input_range(&self) -> Option<super::range::InputRange> {
+    fn input_range(&self) -> Option<crate::instrument::range::InputRange> {
         let fs = self.opts.gain.full_scale_v();
         let c = &self.opts.calibration;
         let floor = self.opts.sum_floor_v.unwrap_or(0.01 * fs);
-        Some(super::range::InputRange::new(fs, "V").with_sum(
+        Some(crate::instrument::range::InputRange::new(fs, "V").with_sum(
             (self.opts.channels.inputs()[2].is_some() && floor > 0.0).then_some(floor),
             c.gain[2],
             c.offset_v[2],
@@ -689,15 +694,17 @@ impl Qpd for RedPitaya {
         let n = v[0].as_ref().map_or(0, Vec::len);
         let fs = self.opts.gain.full_scale_v();
         let rail = |ch: &Option<Vec<f64>>, k: usize| {
-            ch.as_ref()
-                .is_some_and(|s| s.get(k).is_some_and(|x| super::range::at_rail(*x, fs)))
+            ch.as_ref().is_some_and(|s| {
+                s.get(k)
+                    .is_some_and(|x| crate::instrument::range::at_rail(*x, fs))
+            })
         };
         let mut clipped = Vec::new();
         for k in 0..n {
             let hit = [rail(&v[0], k), rail(&v[1], k), rail(&v[2], k)];
             if hit.iter().any(|h| *h) {
                 clipped.resize(n, 0);
-                clipped[k] = super::range::clip_bits(hit);
+                clipped[k] = crate::instrument::range::clip_bits(hit);
             }
         }
         Ok(BufferedTrace {
@@ -789,3 +796,17 @@ mod tests {
         assert_eq!(mean_std(&[5.0]), (5.0, 0.0));
     }
 }
+
+/// A Red Pitaya STEMlab board over its SCPI server (the QPD), beside a PI stage. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "redpitaya",
+    backend: "hardware",
+    aliases: &[],
+    stages: &[],
+    qpds: &["redpitaya"],
+    keys: &["qpd_host", "qpd_port", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "redpitaya",
+    },
+};

@@ -9,7 +9,7 @@
 //! Headers take SCPI short or long forms, any case (`SENS:AVER:COUN`,
 //! `sense:average:count`). Errors go to a FIFO queue of 16 read with `SYST:ERR?`.
 
-use super::{
+use crate::instrument::emulation::{
     lock, pty_line, spawn, Device, Emulator, Faults, LinkModel, SharedPosition, SignalSource,
 };
 use rand::{Rng, SeedableRng};
@@ -288,8 +288,8 @@ mod tests {
             cfg,
             count: 1,
             errors: VecDeque::new(),
-            position: super::super::shared_position([0.1, 0.0, 0.0]),
-            source: Box::new(super::super::standin_bead),
+            position: crate::instrument::emulation::shared_position([0.1, 0.0, 0.0]),
+            source: Box::new(crate::instrument::emulation::standin_bead),
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(3),
         }
     }

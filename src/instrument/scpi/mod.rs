@@ -15,8 +15,10 @@
 //! Every command is followed by `SYST:ERR?`. Volts become workbench signal units through the
 //! configured [`Calibration`]: `signal = gain · (volts − offset_v)` per channel.
 
-use super::link::{open_serial, LineLink, Transport};
-use super::{DeviceError, Qpd, QpdReading};
+pub mod emulator;
+
+use crate::instrument::link::{open_serial, LineLink, Transport};
+use crate::instrument::{DeviceError, Qpd, QpdReading};
 use std::time::Duration;
 
 /// Volts → signal units, per channel (Sx, Sy, Sz): `signal = gain · (volts − offset_v)`.
@@ -92,8 +94,8 @@ impl Default for ScpiOptions {
     }
 }
 
-pub use super::scpi_session::parse_scpi_error;
-use super::scpi_session::ScpiSession;
+pub use crate::instrument::scpi_session::parse_scpi_error;
+use crate::instrument::scpi_session::ScpiSession;
 
 /// Parse `k` comma-separated finite numbers.
 pub fn parse_numbers(reply: &str, k: usize) -> Option<Vec<f64>> {
@@ -113,7 +115,7 @@ pub struct ScpiQpd {
     /// Averaging count last set on the device (so it is only sent when it changes).
     count: Option<usize>,
     /// Wall time per read beyond the samples' own n / rate, s: a running mean for the ETA.
-    overhead: super::gcs::MeanTime,
+    overhead: crate::instrument::gcs::MeanTime,
     /// The serial line's bytes per second (baud / 10), for the link model before any read.
     wire_bytes_per_s: Option<f64>,
 }
@@ -236,7 +238,13 @@ impl ScpiQpd {
     /// whose mean is at the rail (the dialect sends no samples).
     fn reading(&self, v: [f64; 3], s: [f64; 3], n: usize) -> QpdReading {
         let clipped = match self.opts.range_v {
-            Some(r) => v.map(|x| if super::range::at_rail(x, r) { n } else { 0 }),
+            Some(r) => v.map(|x| {
+                if crate::instrument::range::at_rail(x, r) {
+                    n
+                } else {
+                    0
+                }
+            }),
             None => [0; 3],
         };
         QpdReading {
@@ -296,15 +304,15 @@ impl Qpd for ScpiQpd {
             }
     }
 
-    fn link_costs(&mut self) -> super::link::LinkCosts {
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
         self.link.take_costs()
     }
 
     /// ±`range_v` when configured; the sum floor (default 1 % of the range).
-    fn input_range(&self) -> Option<super::range::InputRange> {
+    fn input_range(&self) -> Option<crate::instrument::range::InputRange> {
         let r = self.opts.range_v?;
         let c = &self.opts.calibration;
-        Some(super::range::InputRange::new(r, "V").with_sum(
+        Some(crate::instrument::range::InputRange::new(r, "V").with_sum(
             Some(self.opts.sum_floor_v.unwrap_or(0.01 * r)).filter(|f| *f > 0.0),
             c.gain[2],
             c.offset_v[2],
@@ -314,8 +322,8 @@ impl Qpd for ScpiQpd {
 
 #[cfg(test)]
 mod tests {
-    use super::super::link::mock::Scripted;
     use super::*;
+    use crate::instrument::link::mock::Scripted;
     use proptest::prelude::*;
 
     fn qpd(replies: Vec<&[u8]>) -> ScpiQpd {
@@ -396,3 +404,17 @@ mod tests {
         }
     }
 }
+
+/// The SCPI QPD digitiser (the QPD), read beside a PI stage. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "scpi",
+    backend: "hardware",
+    aliases: &[],
+    stages: &[],
+    qpds: &["scpi"],
+    keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "scpi",
+    },
+};

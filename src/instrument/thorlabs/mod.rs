@@ -18,6 +18,7 @@
 //! come as `MGMSG_HW_RESPONSE` / `MGMSG_HW_RICHRESPONSE` (a code and, for the rich form, a
 //! text). Serial settings: 115200 baud, 8N1, RTS/CTS flow control.
 
+pub mod emulator;
 pub mod kpa101;
 pub mod kpz101;
 
@@ -617,3 +618,17 @@ mod tests {
         assert!(HwInfo::decode(&d[..83]).is_none());
     }
 }
+
+/// Thorlabs APT devices: three KPZ101 piezo cubes (the stage) and a KPA101 position aligner (the QPD). (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "thorlabs",
+    backend: "thorlabs",
+    aliases: &["kpz101", "kpa101"],
+    stages: &["kpz101"],
+    qpds: &["kpa101"],
+    keys: &["qpd_port", "stage_ports", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "kpz101",
+        qpd: "kpa101",
+    },
+};

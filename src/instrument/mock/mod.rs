@@ -7,7 +7,9 @@
 //! sent, so tests can assert what was (not) commanded, and both devices can be told to fail
 //! or to raise the abort flag after a given number of operations.
 
-use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use crate::instrument::{
+    Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock,
+};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -225,3 +227,20 @@ pub fn mock_instrument(cfg: MockConfig) -> (Instrument, MockHandle) {
     };
     (inst, h)
 }
+
+/// The mock instrument of the tests and examples. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "mock",
+    backend: "mock",
+    aliases: &[],
+    stages: &[],
+    qpds: &[],
+    keys: &[
+        "rate",
+        "start",
+        "fail_move_after",
+        "fail_read_after",
+        "abort_after_reads",
+    ],
+    open: crate::instrument::family::Open::Mock,
+};

@@ -50,13 +50,14 @@
 //! stage stopped during an acquisition after the trigger (the samples are computed at the
 //! trigger from the path as published then).
 
-use super::{
-    garble, launch, lock, Emulator, Faults, SharedPosition, SignalSource, StagePath, LOG_CAP,
+use crate::instrument::emulation::{
+    garble, launch, lock, Emulator, ExtTrigger, Faults, SharedPosition, SignalSource, StagePath,
+    LOG_CAP,
 };
 use rand::{Rng, SeedableRng};
 use std::collections::VecDeque;
 use std::io::{Read, Write};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -71,49 +72,9 @@ const PATH_NODE_UM: f64 = 0.005;
 pub type Generator = Arc<dyn Fn(f64) -> [f64; 4] + Send + Sync>;
 
 /// The signal source at many stage positions in one call (the simulator renders a row of
-/// positions in one pass: [`sim_signal_along`](super::sim_signal_along)), for the nodes of a
+/// positions in one pass: [`sim_signal_along`](crate::instrument::emulator::sim_signal_along)), for the nodes of a
 /// path.
 pub type PathSource = Arc<dyn Fn(&[crate::instrument::Pos]) -> Vec<[f64; 3]> + Send + Sync>;
-
-/// The external trigger input (DIO0_P on extension connector E1): each [`pulse`](Self::pulse)
-/// is one rising and one falling edge. Clone it into whatever emulates the controller's
-/// trigger output.
-///
-/// A pulse carries the instant its rising edge happened (the controller emulator computes its
-/// servo loop lazily, so it may register the pulse a few ms after its edge): the board dates
-/// its trigger by that instant.
-#[derive(Debug, Clone, Default)]
-pub struct ExtTrigger(Arc<(AtomicU64, Mutex<Option<Instant>>)>);
-
-/// Two handles are equal when they are the same wire.
-impl PartialEq for ExtTrigger {
-    fn eq(&self, other: &Self) -> bool {
-        Arc::ptr_eq(&self.0, &other.0)
-    }
-}
-
-impl ExtTrigger {
-    pub fn new() -> Self {
-        Self::default()
-    }
-    /// One trigger pulse, now.
-    pub fn pulse(&self) {
-        self.pulse_at(Instant::now());
-    }
-    /// One trigger pulse whose rising edge was at `at`.
-    pub fn pulse_at(&self, at: Instant) {
-        *lock(&self.0 .1) = Some(at);
-        self.0 .0.fetch_add(1, Ordering::SeqCst);
-    }
-    /// Pulses so far.
-    pub fn count(&self) -> u64 {
-        self.0 .0.load(Ordering::SeqCst)
-    }
-    /// The instant of the last pulse's rising edge.
-    pub fn last_edge(&self) -> Option<Instant> {
-        *lock(&self.0 .1)
-    }
-}
 
 /// Red Pitaya emulator settings.
 #[derive(Clone)]
@@ -135,7 +96,7 @@ pub struct RedPitayaEmulatorConfig {
     /// Extra volts per input vs time since the trigger (tests: a known ramp).
     pub generator: Option<Generator>,
     /// The path of the stage under a running wave generator (shared with the GCS stage
-    /// emulator, [`WaveConfig::path`](super::WaveConfig::path)): each sample after the trigger
+    /// emulator, [`WaveConfig::path`](crate::instrument::gcs::emulator::WaveConfig::path)): each sample after the trigger
     /// carries the signal at the stage position at its own time. `None`: the position is
     /// taken once, at the trigger.
     pub path: Option<StagePath>,
@@ -616,6 +577,35 @@ impl Board {
         self.acq = Acq::Idle;
     }
 
+    /// `ACQ:SOUR<n>:…`: a command of input n (1-based), or error −113 for an input the
+    /// board does not have.
+    fn source_command(&mut self, rest: &str, arg: &str) -> Option<Reply> {
+        let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+        let tail = &rest[digits.len()..];
+        let ch = match digits.parse::<usize>() {
+            Ok(n) if (1..=self.cfg.inputs).contains(&n) => n - 1,
+            _ => {
+                self.push_error(-113, "Undefined header");
+                return None;
+            }
+        };
+        self.channel_command(ch, tail, arg)
+    }
+
+    /// `ACQ:TRIG:LEV <v>[V|mV]`: the trigger level.
+    fn set_trigger_level(&mut self, arg: &str) {
+        let up = arg.to_ascii_uppercase();
+        let (num, scale) = match up.strip_suffix("MV") {
+            Some(n) => (n.trim(), 1e-3),
+            None => (up.strip_suffix('V').unwrap_or(&up).trim(), 1.0),
+        };
+        match num.parse::<f64>() {
+            Ok(v) if v.is_finite() => self.level_v = v * scale,
+            _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
+            _ => self.push_error(-224, "Illegal parameter value"),
+        }
+    }
+
     /// Handle one command line.
     fn handle(&mut self, line: &str) -> Option<Reply> {
         self.update();
@@ -636,16 +626,7 @@ impl Board {
         };
         // channel commands: ACQ:SOUR<n>:...
         if let Some(rest) = h.strip_prefix("ACQ:SOUR") {
-            let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
-            let tail = &rest[digits.len()..];
-            let ch = match digits.parse::<usize>() {
-                Ok(n) if (1..=self.cfg.inputs).contains(&n) => n - 1,
-                _ => {
-                    self.push_error(-113, "Undefined header");
-                    return None;
-                }
-            };
-            return self.channel_command(ch, tail, arg);
+            return self.source_command(rest, arg);
         }
         match h.as_str() {
             "*IDN?" => need_no_arg(self).then(|| Reply::Text(self.cfg.idn.clone())),
@@ -743,16 +724,7 @@ impl Board {
             }
             "ACQ:TRIG:DLY?" => text(self.delay.to_string()),
             "ACQ:TRIG:LEV" => {
-                let up = arg.to_ascii_uppercase();
-                let (num, scale) = match up.strip_suffix("MV") {
-                    Some(n) => (n.trim(), 1e-3),
-                    None => (up.strip_suffix('V').unwrap_or(&up).trim(), 1.0),
-                };
-                match num.parse::<f64>() {
-                    Ok(v) if v.is_finite() => self.level_v = v * scale,
-                    _ if arg.is_empty() => self.push_error(-109, "Missing first parameter."),
-                    _ => self.push_error(-224, "Illegal parameter value"),
-                }
+                self.set_trigger_level(arg);
                 None
             }
             "ACQ:TRIG:LEV?" => text(format!("{:.6}", self.level_v)),
@@ -907,7 +879,7 @@ fn serve(
     listener: std::net::TcpListener,
     mut board: Board,
     faults: Arc<Mutex<Faults>>,
-    h: super::Served,
+    h: crate::instrument::emulation::Served,
 ) {
     let mut client: Option<std::net::TcpStream> = None;
     let mut buf: Vec<u8> = Vec::new();
@@ -1024,8 +996,8 @@ mod tests {
     fn board(cfg: RedPitayaEmulatorConfig) -> Board {
         Board::new(
             cfg,
-            super::super::shared_position([0.1, 0.0, 0.0]),
-            Box::new(super::super::standin_bead),
+            crate::instrument::emulation::shared_position([0.1, 0.0, 0.0]),
+            Box::new(crate::instrument::emulation::standin_bead),
             ExtTrigger::new(),
             Arc::new(Mutex::new(Faults::default())),
         )

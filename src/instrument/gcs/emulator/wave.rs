@@ -34,7 +34,7 @@
 //!   StopThreshold only from start to stop, in that direction), 2 on target, 3 min/max band,
 //!   4 generator trigger (the line level set per wave point with `TWS <line> <point> <switch>`,
 //!   switch 0 = low, 1 = high; point 1 = the first point of the axis' generator). Each rising
-//!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`](super::super::ExtTrigger) wired to it.
+//!   edge of the (polarity-corrected) line is one pulse on the [`ExtTrigger`](crate::instrument::emulation::ExtTrigger) wired to it.
 //!
 //! - parameters (`SPA? <item> <id>`, E-727 parameter list; PIPython's `getservotime` and
 //!   `getmaxnumvalues` read them): 0x0E000200 Servo Update Time (s), 0x16000200 Data Recorder
@@ -42,8 +42,8 @@
 //!   (µm) and 0x07000901 settling time (s), both also set with `SPA`; `WMS? [<table> …]`: points
 //!   per wave table (PI's "maximum size of the wave storage");
 //! - the path of a running wave is published at `WGO` on [`WaveConfig::path`](super::wave_state::WaveConfig::path) (see
-//!   [`StagePath`](super::super::StagePath)), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
-//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`](super::super::ExtTrigger::pulse_at)).
+//!   [`StagePath`](crate::instrument::emulation::StagePath)), truncated at `WGO g 0`, `STP`, `HLT`, `#24`, cleared by `MOV`; trigger
+//!   pulses carry the instant of their servo cycle ([`ExtTrigger::pulse_at`](crate::instrument::emulation::ExtTrigger::pulse_at)).
 //!
 //! Errors (GCS codes): 1 syntax, 5 servo off, 7 wave outside the travel range, 15 unknown axis,
 //! 17 an id or value out of range, 54 a parameter not emulated, 57 no such record table, 58 no
@@ -51,9 +51,9 @@
 //! change while a generator runs, 75 `WGO` without a wave table, 77 `DRR?` of points not yet
 //! recorded.
 
-use super::super::PathData;
 use super::wave_state::{Rec, TrigLine, Wave};
 use super::{groups, GcsDevice};
+use crate::instrument::emulation::PathData;
 use std::time::Instant;
 
 fn parse_u(s: &str) -> Option<u64> {

@@ -3,7 +3,7 @@
 //! built from. The commands that change it (`WAV`, `WGO`, `DRC`, `CTO`, …) are `GcsDevice`'s,
 //! in `wave.rs`; `stage.rs` holds one [`Wave`]. A leaf of `stage/`: it names neither.
 
-use super::super::{ExtTrigger, StagePath};
+use crate::instrument::emulation::{ExtTrigger, StagePath};
 use std::collections::BTreeMap;
 use std::time::Instant;
 

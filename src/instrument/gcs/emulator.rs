@@ -25,7 +25,9 @@
 //! With [`StageEmulatorConfig::one_axis_per_query`] the emulator behaves like a controller that
 //! answers a query naming several axes for the first one only.
 
-use super::{lock, pty_line, spawn, tcp_line, Device, Emulator, Faults, LinkModel, SharedPosition};
+use crate::instrument::emulation::{
+    lock, pty_line, spawn, tcp_line, Device, Emulator, Faults, LinkModel, SharedPosition,
+};
 mod wave;
 mod wave_state;
 use crate::instrument::Pos;
@@ -301,6 +303,33 @@ impl GcsDevice {
     }
 }
 
+impl GcsDevice {
+    /// `SAI?` (`SAI? ALL`: with the inactive axes), or error 1 for other arguments.
+    fn sai(&mut self, args: &[&str]) -> Option<String> {
+        let mut ids = self.cfg.axes.to_vec();
+        match args {
+            [] => {}
+            [all] if all.eq_ignore_ascii_case("ALL") => {
+                ids.extend(self.cfg.inactive_axes.iter().cloned())
+            }
+            _ => {
+                self.set_error(1);
+                return None;
+            }
+        }
+        Some(ids.join(" \n"))
+    }
+
+    /// `#5`'s answer: the hexadecimal bit mask of the axes in motion.
+    fn motion_mask(&self) -> String {
+        let now = Instant::now();
+        let mask = (0..3)
+            .filter(|&i| self.in_motion(i, now))
+            .fold(0u32, |m, i| m | (1 << i));
+        format!("{mask:X}")
+    }
+}
+
 impl Device for GcsDevice {
     fn tick(&mut self) {
         self.advance(Instant::now());
@@ -342,13 +371,7 @@ impl Device for GcsDevice {
             // #5, motion status: a hexadecimal bit mask of the axes in motion, bit 0 the first
             // axis of `SAI?` (PI: "1 = first axis in motion, 2 = second, 4 = third"): the
             // trajectory, not the settling window (that is `ONT?`); a tripped axis has stopped.
-            "#5" => {
-                let now = Instant::now();
-                let mask = (0..3)
-                    .filter(|&i| self.in_motion(i, now))
-                    .fold(0u32, |m, i| m | (1 << i));
-                Some(format!("{mask:X}"))
-            }
+            "#5" => Some(self.motion_mask()),
             // #7, controller ready: 0xB1 ("±" in ISO 8859-1) ready, 0xB0 not ready; a piezo
             // controller is ready for the next command at once
             "#7" => Some("\u{b1}".to_string()),
@@ -357,20 +380,7 @@ impl Device for GcsDevice {
                 None
             }
             "*IDN?" => Some(self.cfg.idn.clone()),
-            "SAI?" => {
-                let mut ids = self.cfg.axes.to_vec();
-                match args.as_slice() {
-                    [] => {}
-                    [all] if all.eq_ignore_ascii_case("ALL") => {
-                        ids.extend(self.cfg.inactive_axes.iter().cloned())
-                    }
-                    _ => {
-                        self.set_error(1);
-                        return None;
-                    }
-                }
-                Some(ids.join(" \n"))
-            }
+            "SAI?" => self.sai(&args),
             "ERR?" => {
                 let e = self.error;
                 self.error = 0;

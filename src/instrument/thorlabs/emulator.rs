@@ -10,12 +10,14 @@
 //! messages, then go silent) and `apt_unsolicited` (send a message with an unknown id, 0x0999,
 //! before each of the next n replies).
 
-use super::{
+use crate::instrument::emulation::{
     lock, sleep_s, Emulator, Faults, Line, LinkModel, SharedPosition, SignalSource, LOG_CAP,
 };
-use crate::instrument::apt::kpa101::{RawReading, MODE_CLOSED_LOOP, SUB_OPER_MODE, SUB_READINGS};
-use crate::instrument::apt::kpz101::{chan_word, CHAN_DISABLED, CHAN_ENABLED, MODE_OPEN_LOOP};
-use crate::instrument::apt::{id, parse, HwInfo, Message, Parsed, CHAN1, USB_UNIT};
+use crate::instrument::thorlabs::kpa101::{
+    RawReading, MODE_CLOSED_LOOP, SUB_OPER_MODE, SUB_READINGS,
+};
+use crate::instrument::thorlabs::kpz101::{chan_word, CHAN_DISABLED, CHAN_ENABLED, MODE_OPEN_LOOP};
+use crate::instrument::thorlabs::{id, parse, HwInfo, Message, Parsed, CHAN1, USB_UNIT};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -405,10 +407,10 @@ fn spawn_apt(
     position: SharedPosition,
     link: LinkModel,
 ) -> std::io::Result<Emulator> {
-    let (line, path) = super::pty_line()?;
+    let (line, path) = crate::instrument::emulation::pty_line()?;
     let faults = Arc::new(Mutex::new(Faults::default()));
     let f = faults.clone();
-    super::launch(kind, faults, position, path, move |h| {
+    crate::instrument::emulation::launch(kind, faults, position, path, move |h| {
         AptServe {
             line,
             device,

@@ -24,11 +24,13 @@
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
+pub mod emulator;
+pub mod split;
 mod wave;
 pub use wave::{parse_gcs_array, GcsArray, LineSweep, SweepRecord, WaveCache};
 
-use super::link::{open_port, LineLink, Transport};
-use super::{DeviceError, Pos, Stage};
+use crate::instrument::link::{open_port, LineLink, Transport};
+use crate::instrument::{DeviceError, Pos, Stage};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -181,7 +183,7 @@ pub struct GcsStage {
     /// Wall time of recent moves (MOV to on target), s: a running mean for the scan ETA.
     move_time: MeanTime,
     /// What the wave generator and the recorder can do, read once ([`Stage::line_timing`]).
-    line_timing: Option<super::line::LineTiming>,
+    line_timing: Option<crate::instrument::line::LineTiming>,
     /// The wave tables and generator settings loaded for hardware-timed lines.
     waves: WaveCache,
     /// Bytes per second of a serial link (baud / 10, 8N1); `None` over TCP or an unknown
@@ -903,7 +905,7 @@ impl GcsStage {
     }
 
     /// The link's per-command costs since the last call.
-    pub fn take_link_costs(&mut self) -> super::link::LinkCosts {
+    pub fn take_link_costs(&mut self) -> crate::instrument::link::LinkCosts {
         self.link.take_costs()
     }
 
@@ -1119,7 +1121,7 @@ impl Stage for GcsStage {
     /// the line's `n` samples. ([`read_record`](GcsStage::read_record)'s timeout allows 300 and
     /// 24, generously.) On a serial link the readout dominates: 20 bytes a sample at 115200
     /// baud is 1.7 ms per recorded sample.
-    fn line_overhead_s(&self, s: &super::line::LineSweep) -> f64 {
+    fn line_overhead_s(&self, s: &crate::instrument::line::LineSweep) -> f64 {
         let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
             return 0.0;
         };
@@ -1142,7 +1144,7 @@ impl Stage for GcsStage {
             .unwrap_or_else(|| self.move_time_prior_s())
     }
 
-    fn link_costs(&mut self) -> super::link::LinkCosts {
+    fn link_costs(&mut self) -> crate::instrument::link::LinkCosts {
         self.link.take_costs()
     }
 
@@ -1159,7 +1161,7 @@ impl Stage for GcsStage {
 
     /// The line timing, refused without a configured trigger output: a raster needs the
     /// controller to start the digitiser (`[stage] trigger_line`, wired to its external trigger).
-    fn line_timing(&mut self) -> Result<Option<super::line::LineTiming>, DeviceError> {
+    fn line_timing(&mut self) -> Result<Option<crate::instrument::line::LineTiming>, DeviceError> {
         if self.opts.trigger_line.is_none() {
             return Err(DeviceError::Other {
                 device: self.link.device().to_string(),
@@ -1194,8 +1196,8 @@ impl Stage for GcsStage {
 
 #[cfg(test)]
 mod tests {
-    use super::super::link::mock::Scripted;
     use super::*;
+    use crate::instrument::link::mock::Scripted;
     use proptest::prelude::*;
 
     fn opts() -> GcsOptions {
@@ -1405,3 +1407,17 @@ mod tests {
         }
     }
 }
+
+/// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "gcs",
+    backend: "hardware",
+    aliases: &[],
+    stages: &["gcs"],
+    qpds: &[],
+    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "scpi",
+    },
+};
