@@ -686,11 +686,41 @@ pub fn fit_line_filament(
     let err = line_bound(&info, &fil, &[0, 1])?;
     let valid = |ch: usize, r: usize, c: usize| data[ch][[r, c]].is_finite().then_some(sigma);
     let crlb = line_crlb(tpl, &fil, x, y, &[0, 1], &valid)?;
-    // the residuals' own pixel noise: first differences along rows, robust spread / √2 (a
-    // misfit's residual is smooth and localised: it raises the RMS, not the differences' MAD)
-    let ev = line_eval(tpl, &fil, x, y)?;
+    let (noise, ss) = residual_noise_and_signal(tpl, &fil, x, y, &data)?;
+    let mut out = LineFitResult {
+        filament: fil,
+        err,
+        crlb,
+        sigma,
+        sigma_estimated: est,
+        rss: raw.rss,
+        n_residuals: m,
+        start,
+        status: raw.status,
+        reason: raw.reason,
+        iterations: raw.iterations,
+        pixel_noise: noise,
+        signal_rms: (ss / m as f64).sqrt(),
+        warnings: vec![],
+    };
+    out.warnings = line_fit_warnings(&out);
+    Ok(out)
+}
+
+/// The residuals' own pixel noise — 1.4826·MAD of their first differences along rows, / √2 (a
+/// misfit's residual is smooth and localised: it raises the RMS, not the differences' MAD) —
+/// and Σ(model − background)² over the finite pixels.
+fn residual_noise_and_signal(
+    tpl: &Template,
+    fil: &LineFilament,
+    x: &[f64],
+    y: &[f64],
+    data: &[&ndarray::Array2<f64>; 2],
+) -> Result<(f64, f64)> {
+    let nx = x.len();
+    let ev = line_eval(tpl, fil, x, y)?;
     let mut ss = 0.0;
-    let mut diffs = Vec::with_capacity(m);
+    let mut diffs = Vec::new();
     for ch in 0..2 {
         let mut prev: Option<(usize, f64)> = None;
         for (i, o) in ev[ch].iter().enumerate() {
@@ -710,24 +740,7 @@ pub fn fit_line_filament(
         }
     }
     let noise = super::stats::robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2;
-    let mut out = LineFitResult {
-        filament: fil,
-        err,
-        crlb,
-        sigma,
-        sigma_estimated: est,
-        rss: raw.rss,
-        n_residuals: m,
-        start,
-        status: raw.status,
-        reason: raw.reason,
-        iterations: raw.iterations,
-        pixel_noise: noise,
-        signal_rms: (ss / m as f64).sqrt(),
-        warnings: vec![],
-    };
-    out.warnings = line_fit_warnings(&out);
-    Ok(out)
+    Ok((noise, ss))
 }
 
 #[cfg(test)]
