@@ -97,21 +97,18 @@ fn sd(v: &[f64]) -> (f64, f64) {
     (m, s)
 }
 
-/// The whole-image fit of the bead-model filament recovers a simulated microtubule at 10 ms per
-/// pixel (the accuracy report's default dwell): over 20 noise seeds the mean λ and angle are
-/// within 0.5σ of the truth and the fit's own σ agrees with the bound. Measured scatter/CRLB:
-/// angle 1.10, λ 1.33 (the statistical error of a standard deviation over 20 seeds is 16 %):
-/// the angle meets the 1.2× target, λ is asserted below 1.5× until the gap is understood.
-#[test]
-fn whole_image_fit_reaches_the_bound_without_bias() {
-    use bfpscope::analysis::filament_fit::{fit_line_filament, lambda_of_diameter, LineFitOptions};
+/// Scatter over `n_seeds` noise draws of the whole-image fit (each from its own matched-filter
+/// search) of the microtubule at `samples` per pixel: (mean λ, sd λ, mean CRLB λ, mean angle,
+/// sd angle, mean CRLB angle).
+fn seed_study(samples: usize, n_seeds: u64, seed0: u64) -> (f64, f64, f64, f64, f64, f64) {
+    use bfpscope::analysis::filament_fit::{fit_line_filament, LineFitOptions};
     let o = mt_optics();
     let tpl = model_template(&o, &DetectorModel::default());
-    let truth = lambda_of_diameter(&tpl, mt_d_nm(), quantities::PROTEIN_N).unwrap();
     let (mut lam, mut ang, mut crlb_l, mut crlb_a) = (vec![], vec![], vec![], vec![]);
-    for seed in 0..20 {
-        let s = microtubule_scan(&o, 1000, 100 + seed);
+    for seed in 0..n_seeds {
+        let s = microtubule_scan(&o, samples, seed0 + seed);
         let r = fit_line_filament(&s.sx, &s.sy, &tpl, None, &LineFitOptions::default()).unwrap();
+        assert!(r.warnings.is_empty(), "seed {seed}: {:?}", r.warnings);
         lam.push(r.filament.lambda);
         ang.push(r.filament.angle_deg);
         crlb_l.push(r.crlb.lambda);
@@ -124,16 +121,39 @@ fn whole_image_fit_reaches_the_bound_without_bias() {
     }
     let (ml, sl) = sd(&lam);
     let (ma, sa) = sd(&ang);
-    let bl = crlb_l.iter().sum::<f64>() / 20.0;
-    let ba = crlb_a.iter().sum::<f64>() / 20.0;
+    let n = n_seeds as f64;
+    (
+        ml,
+        sl,
+        crlb_l.iter().sum::<f64>() / n,
+        ma,
+        sa,
+        crlb_a.iter().sum::<f64>() / n,
+    )
+}
+
+/// The whole-image fit of the bead-model filament reaches the Cramér–Rao bound without bias on
+/// simulated microtubules at 10 ms per pixel (the accuracy report's default dwell): over 60
+/// noise seeds the scatter of λ and of the angle is within 1.2× of the bound and the means are
+/// within 0.5σ of the truth. (The standard deviation over N seeds has a statistical error of
+/// 1/√(2(N−1)): 9 % at 60 seeds; 20 seeds, 16 %, once gave 1.33 for λ. Over 200 seeds:
+/// scatter/CRLB 1.01 for λ, bias 0.06σ — `whole_image_fit_seed_study`.)
+#[test]
+fn whole_image_fit_reaches_the_bound_without_bias() {
+    use bfpscope::analysis::filament_fit::lambda_of_diameter;
+    let o = mt_optics();
+    let tpl = model_template(&o, &DetectorModel::default());
+    let truth = lambda_of_diameter(&tpl, mt_d_nm(), quantities::PROTEIN_N).unwrap();
+    let (ml, sl, bl, ma, sa, ba) = seed_study(1000, 60, 100);
     println!(
-        "whole-image fit, 10 ms: λ {ml:.4} (true {truth:.4}) scatter {sl:.5} CRLB {bl:.5} (×{:.2}; bias {:.2}σ); angle {ma:.3}° scatter {sa:.4}° CRLB {ba:.4}° (×{:.2}; bias {:.2}σ)",
+        "whole-image fit, 10 ms, 60 seeds: λ {ml:.4} (true {truth:.4}) scatter {sl:.5} CRLB {bl:.5} (×{:.2}; bias {:.2}σ); angle {ma:.3}° scatter {sa:.4}° CRLB {ba:.4}° (×{:.2}; bias {:.2}σ)",
         sl / bl,
         (ml - truth) / sl,
         sa / ba,
         (ma - 2.0) / sa
     );
-    assert!(sl / bl < 1.5, "λ scatter {sl} vs CRLB {bl}");
+    assert!(sl / bl < 1.2, "λ scatter {sl} vs CRLB {bl}");
+    assert!(sl / bl > 0.8, "λ scatter {sl} below the bound {bl}");
     assert!(sa / ba < 1.2, "angle scatter {sa} vs CRLB {ba}");
     assert!(
         ((ml - truth) / sl).abs() < 0.5,
@@ -145,6 +165,32 @@ fn whole_image_fit_reaches_the_bound_without_bias() {
         "angle bias {} σ",
         (ma - 2.0) / sa
     );
+}
+
+/// At 3 ms per pixel, where the per-row maxima are biased by −1.5 % (docs/accuracy.md), the
+/// whole-image fit's mean λ over 30 seeds is within 0.5σ of the truth (a relative bias under
+/// 0.6 %) and its scatter within 1.2× of the bound... with the 13 % statistical error of 30
+/// seeds, asserted below 1.35×.
+#[test]
+fn whole_image_fit_is_unbiased_where_the_row_maxima_are_biased() {
+    use bfpscope::analysis::filament_fit::lambda_of_diameter;
+    let o = mt_optics();
+    let tpl = model_template(&o, &DetectorModel::default());
+    let truth = lambda_of_diameter(&tpl, mt_d_nm(), quantities::PROTEIN_N).unwrap();
+    let (ml, sl, bl, ..) = seed_study(300, 30, 500);
+    println!(
+        "whole-image fit, 3 ms, 30 seeds: λ {ml:.4} (true {truth:.4}, {:+.2} %) scatter {sl:.5} CRLB {bl:.5} (×{:.2}; bias {:.2}σ)",
+        100.0 * (ml / truth - 1.0),
+        sl / bl,
+        (ml - truth) / sl
+    );
+    assert!(
+        ((ml - truth) / sl).abs() < 0.5,
+        "λ bias {} σ",
+        (ml - truth) / sl
+    );
+    assert!((ml / truth - 1.0).abs() < 0.006);
+    assert!(sl / bl < 1.35, "λ scatter {sl} vs CRLB {bl}");
 }
 
 /// At 1 ms per pixel the per-row maxima do not find the microtubule (docs/accuracy.md: not found
@@ -174,5 +220,83 @@ fn whole_image_fit_finds_the_filament_where_row_maxima_give_up() {
     assert!(
         per_row_failed >= 3,
         "per-row failed in {per_row_failed} of 4"
+    );
+}
+
+/// The seed study behind the numbers in docs (not run by default; SEEDS, SAMPLES, SEARCH in the
+/// environment): the whole-image fit over many seeds started at the noise-free fit, its noise
+/// estimate against the simulator's, and the fit to the noise-free scan (model mismatch: none).
+/// `SEEDS=200 cargo test --test physics whole_image_fit_seed_study -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn whole_image_fit_seed_study() {
+    use bfpscope::analysis::filament_fit::{fit_line_filament, lambda_of_diameter, LineFitOptions};
+    let o = mt_optics();
+    let tpl = model_template(&o, &DetectorModel::default());
+    let truth = lambda_of_diameter(&tpl, mt_d_nm(), quantities::PROTEIN_N).unwrap();
+    let n_seeds: u64 = std::env::var("SEEDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20);
+    let samples: usize = std::env::var("SAMPLES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1000);
+    let sig = PAPER_DETECTOR_SIGMA_SAMPLE / (samples as f64).sqrt();
+    // noise-free
+    let mut sc = Scene::default();
+    sc.add_filament(sim_straight(
+        [1.6, 1.6],
+        2.0,
+        8.0,
+        mt_d_nm(),
+        quantities::PROTEIN_N,
+    ))
+    .unwrap();
+    let clean = simulate(&o, &sc, 64, H, samples);
+    let opts = LineFitOptions {
+        sigma: Some(sig),
+        ..LineFitOptions::default()
+    };
+    let r0 = fit_line_filament(&clean.sx, &clean.sy, &tpl, None, &opts).unwrap();
+    println!(
+        "noise-free: λ {:.5} (true {truth:.5}) angle {:.4} offset {:.5} bg {:?} rms resid/σ {:.3} crlb λ {:.5}",
+        r0.filament.lambda, r0.filament.angle_deg, r0.filament.offset_um, r0.filament.background,
+        (r0.rss / r0.n_residuals as f64).sqrt() / sig, r0.crlb.lambda
+    );
+    let t = std::time::Instant::now();
+    let (mut lam, mut ang, mut sest, mut cl) = (vec![], vec![], vec![], vec![]);
+    for seed in 0..n_seeds {
+        let s = microtubule_scan(&o, samples, 100 + seed);
+        let r = fit_line_filament(
+            &s.sx,
+            &s.sy,
+            &tpl,
+            Some(&r0.filament),
+            &LineFitOptions::default(),
+        )
+        .unwrap();
+        if std::env::var("SEARCH").is_ok() {
+            let q =
+                fit_line_filament(&s.sx, &s.sy, &tpl, None, &LineFitOptions::default()).unwrap();
+            println!(
+                "seed {seed}: from truth λ {:.5} angle {:.4} rss {:.6e} | from search λ {:.5} angle {:.4} rss {:.6e} start {:?} {:?} {}",
+                r.filament.lambda, r.filament.angle_deg, r.rss, q.filament.lambda, q.filament.angle_deg, q.rss, q.start, q.status, q.iterations
+            );
+        }
+        lam.push(r.filament.lambda);
+        ang.push(r.filament.angle_deg);
+        sest.push(r.sigma / sig);
+        cl.push(r.crlb.lambda * sig / r.sigma);
+    }
+    let (ml, sl) = sd(&lam);
+    let (ma, sa) = sd(&ang);
+    let (ms, _) = sd(&sest);
+    let bl = cl.iter().sum::<f64>() / cl.len() as f64;
+    println!(
+        "{n_seeds} seeds, {samples} samples ({:.1} s): λ mean {ml:.5} sd {sl:.5} CRLB(true σ) {bl:.5} ratio {:.3} bias {:.2}σ; angle {ma:.3} sd {sa:.4}; σ_est/σ {ms:.4}",
+        t.elapsed().as_secs_f64(),
+        sl / bl,
+        (ml - truth) / sl
     );
 }

@@ -15,6 +15,7 @@
 //! | multi-bead template fit | [`fit`] | eq. multiBeadFit, suppl. S7 |
 //! | Cramér–Rao bounds of the data taken | [`crlb`] | suppl. S8 (noise) |
 //! | whole-image straight-filament model, bounds and fit | [`filament_fit`] | Sec. 4.2 |
+//! | one bead fitted to readings at arbitrary points, the informative pattern | [`point_fit`] | eq. multiBeadFit |
 //! | filament bead model | [`bead_model`] | Sec. 4.2 |
 //! | orientation calibration and correction | [`orientation`] | Sec. 4.2 steps 1–5, Fig. 4d |
 //! | n_corr, mass of a volume | [`scaling`] | eq. nCor, Sec. 3.2 |
@@ -23,6 +24,7 @@
 //! | point-object background removal | [`background`] | Sec. 6 |
 //! | signal-to-background ratio | [`sbr`] | Sec. 6 |
 //! | focus search | [`focus`] | suppl. S5 |
+//! | Cramér–Rao bound of the best focus | [`focus_crlb`] | suppl. S5, S8 |
 //! | histograms, summaries, linear fits | [`stats`] | Fig. 3c, Fig. 6d |
 //! | image sampling, polyline profiles | [`profile`] | Fig. 5c |
 //!
@@ -46,10 +48,12 @@ pub mod domain;
 pub mod filament_fit;
 pub mod fit;
 pub mod focus;
+pub mod focus_crlb;
 pub mod kind;
 pub mod measure;
 pub mod orientation;
 pub mod peaks;
+pub mod point_fit;
 pub mod profile;
 pub mod quantities;
 pub mod sbr;

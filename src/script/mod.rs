@@ -11,8 +11,10 @@ pub mod crlb;
 pub mod ctx;
 pub mod doc;
 pub mod errors;
+pub mod filament_fit;
 pub mod filaments;
 pub mod files;
+pub mod focus_crlb;
 pub mod hardware;
 pub mod mie;
 pub mod motion;
@@ -23,6 +25,7 @@ pub mod scans;
 pub mod scene;
 pub mod sensitivity;
 pub mod stats;
+pub mod targeted;
 pub mod templates;
 pub mod testing;
 pub mod types;
@@ -58,6 +61,9 @@ pub const FAMILIES: &[(&str, RegisterFn)] = &[
     ("templates", templates::register),
     ("filaments", filaments::register),
     ("crlb", crlb::register),
+    ("filament_fit", filament_fit::register),
+    ("focus_crlb", focus_crlb::register),
+    ("targeted", targeted::register),
     ("stats", stats::register),
     ("files", files::register),
     ("console", console::register),

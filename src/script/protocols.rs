@@ -463,6 +463,7 @@ mod protocol_tests {
             "tips",
             "microtubule",
             "beads",
+            "targeted",
         ] {
             let d = module_protocols(m).unwrap_or_else(|| panic!("{m}: no protocols()"));
             assert!(!d.is_empty(), "{m}");
