@@ -890,6 +890,50 @@ fn filament_ends(trace: &[(f64, f64, usize)]) -> [Option<f64>; 2] {
 /// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
 
+/// The line refitted on the interior maxima alone where an end cut some off: an end's maxima
+/// bend and fade, and near 45° a degree of angle moves the correction by percents (a 2.3 µm
+/// fibril at −42° was read at −49.7° from all its maxima, its diameter 16 % low).
+fn refit_on_interior(points: &[FilamentPoint], line: LineFit, rows: bool) -> LineFit {
+    let n_in = points.iter().filter(|p| p.interior).count();
+    if n_in < 3 || n_in == points.len() {
+        return line;
+    }
+    let (c, q): (Vec<f64>, Vec<f64>) = points
+        .iter()
+        .filter(|p| p.interior)
+        .map(|p| if rows { (p.y, p.x) } else { (p.x, p.y) })
+        .unzip();
+    match linfit(&c, &q, None) {
+        Ok(f) => LineFit {
+            angle_deg: line_angle(f.slope, rows),
+            angle_err_deg: (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees(),
+            a: f.intercept,
+            b: f.slope,
+            n: n_in,
+        },
+        Err(_) => line,
+    }
+}
+
+/// The orientation correction at `line`'s angle applied to every maximum (`sens_corr`), and its
+/// relative 1σ from the angle's (the correction's slope × the angle's σ).
+fn apply_correction(
+    points: &mut [FilamentPoint],
+    curve: &AngleCurve,
+    channel: Channel,
+    line: &LineFit,
+) -> Result<(f64, f64)> {
+    let angle = line.angle_deg;
+    let factor = curve.correction(angle, channel)?;
+    for p in points.iter_mut() {
+        p.sens_corr = p.sens * factor;
+    }
+    let h = 0.5;
+    let d =
+        (curve.correction(angle + h, channel)? - curve.correction(angle - h, channel)?) / (2.0 * h);
+    Ok((factor, (d * line.angle_err_deg / factor).abs()))
+}
+
 /// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas';
 /// NaN when none has one).
 fn measure_sens_along(
@@ -973,39 +1017,9 @@ fn measure_sens_along(
         p.arc_um -= a0;
     }
     let ends_um = ends.map(|e| e.map(|e| e - a0));
-    // The angle from the interior maxima alone where an end cut some off: an end's maxima bend
-    // and fade, and near 45° a degree of angle moves the correction by percents (a 2.3 µm fibril
-    // at −42° was read at −49.7° from all its maxima, its diameter 16 % low).
-    let mut line = line;
-    let n_in = points.iter().filter(|p| p.interior).count();
-    if n_in >= 3 && n_in < points.len() {
-        let (c, q): (Vec<f64>, Vec<f64>) = points
-            .iter()
-            .filter(|p| p.interior)
-            .map(|p| if rows { (p.y, p.x) } else { (p.x, p.y) })
-            .unzip();
-        if let Ok(f) = linfit(&c, &q, None) {
-            line = LineFit {
-                angle_deg: line_angle(f.slope, rows),
-                angle_err_deg: (f.slope_err / (1.0 + f.slope * f.slope)).to_degrees(),
-                a: f.intercept,
-                b: f.slope,
-                n: n_in,
-            };
-        }
-    }
+    let line = refit_on_interior(&points, line, rows);
     let angle = line.angle_deg;
-    let factor = curve.correction(angle, channel)?;
-    for p in points.iter_mut() {
-        p.sens_corr = p.sens * factor;
-    }
-    // the correction's 1σ from the angle's (relative), added to the mean's
-    let rel_factor_err = {
-        let h = 0.5;
-        let d = (curve.correction(angle + h, channel)? - curve.correction(angle - h, channel)?)
-            / (2.0 * h);
-        (d * line.angle_err_deg / factor).abs()
-    };
+    let (factor, rel_factor_err) = apply_correction(&mut points, curve, channel, &line)?;
     let interior: Vec<f64> = points
         .iter()
         .filter(|p| p.interior)

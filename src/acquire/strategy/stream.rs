@@ -409,90 +409,11 @@ impl StreamStrategy {
         let guard_n = (GUARD_S * geo.rate) as usize;
         let guard_chunk = ((GUARD_CHUNK_S * geo.rate) as usize).max(1);
         while run.read < until {
-            // the outputs are kept `ahead` of the clock (the samples it has played by now,
-            // estimated from the stream's start), whatever the inputs' reader lags; a write
-            // brings only what the buffer takes now, so that it never waits for room
-            let played = ((run.t0.elapsed().as_secs_f64() * geo.rate) as usize).max(run.read);
-            if run.written < run.total && run.written < played + ahead {
-                let mut n = (played + ahead - run.written).min(run.total - run.written);
-                if let Some(space) = stream.write_space().map_err(StepFault::stage)? {
-                    n = n.min(space);
-                }
-                // not a trickle of tiny writes: a chunk at least (or what is left)
-                if n >= chunk.min(run.total - run.written) {
-                    let t = Instant::now();
-                    let (mut f, mut s) = (Vec::with_capacity(n), Vec::with_capacity(n));
-                    let in_frame = run.frame.len.saturating_sub(run.written).min(n);
-                    run.frame.fill(rp, run.written, in_frame, &mut f, &mut s);
-                    f.resize(n, run.frame.last[0]);
-                    s.resize(n, run.frame.last[1]);
-                    stream.write(&f, &s).map_err(StepFault::stage)?;
-                    run.written += n;
-                    let dt = t.elapsed().as_secs_f64();
-                    ph.write_s += dt;
-                    ph.max_write_s = ph.max_write_s.max(dt);
-                    ph.writes += 1;
-                }
-            }
+            write_ahead(run, ph, stream, rp, &geo, ahead, chunk)?;
             let guarding = run.read < guard_n;
             let n = if guarding { guard_chunk } else { chunk }.min(until - run.read);
             if guarding {
-                // Until the inputs have the next chunk, the stage's own readings (Madlib: a
-                // USB round trip each, back to back) against the targets played by now: no
-                // sleep in a blocking read, whose wake-up a loaded host delays by
-                // milliseconds, stands between a run-away and its stop.
-                loop {
-                    let elapsed = run.t0.elapsed().as_secs_f64();
-                    let played = (elapsed * geo.rate) as usize;
-                    // the targets up to a millisecond ahead of the estimate (the outputs
-                    // started a little before it)
-                    let upto = (played + guard_chunk + (1e-3 * geo.rate) as usize).min(run.written);
-                    if upto > run.now_upto {
-                        let (mut f, mut s) = (Vec::new(), Vec::new());
-                        run.frame
-                            .fill(rp, run.now_upto, upto - run.now_upto, &mut f, &mut s);
-                        for (k, v) in [f, s].iter().enumerate() {
-                            for &x in v {
-                                run.now_lo[k] = run.now_lo[k].min(x);
-                                run.now_hi[k] = run.now_hi[k].max(x);
-                            }
-                        }
-                        run.now_upto = upto;
-                    }
-                    let mut away = None;
-                    for (k, axis) in [geo.fast, geo.slow].into_iter().enumerate() {
-                        let Some(m) = stream.guard_position_um(axis).map_err(StepFault::stage)?
-                        else {
-                            continue;
-                        };
-                        let (lo, hi) = (run.now_lo[k], run.now_hi[k]);
-                        if m < lo - GUARD_UM || m > hi + GUARD_UM {
-                            away = Some((axis, m, lo, hi));
-                            break;
-                        }
-                    }
-                    if let Some((axis, m, lo, hi)) = away {
-                        let wall_ms = elapsed * 1e3;
-                        let advice = stream.ran_away();
-                        let advice = if advice.is_empty() {
-                            String::new()
-                        } else {
-                            format!("; {advice}")
-                        };
-                        return Err(StepFault::stage(DeviceError::Other {
-                            device: stream.stream_name(),
-                            detail: format!(
-                                "the stage ran away: it reads {} = {m:.3} µm {wall_ms:.2} ms into the stream, where the plan \
-                                 had played {lo:.3}…{hi:.3} µm; the stream was stopped{advice}",
-                                AXES[axis]
-                            ),
-                        }));
-                    }
-                    // no reading of its own (nothing to watch but the inputs), or the chunk is in
-                    if !stream.guards_by_reading() || played >= run.read + n {
-                        break;
-                    }
-                }
+                guard_by_readings(run, stream, rp, &geo, guard_chunk, n)?;
             }
             let timeout = n as f64 / geo.rate + 2.0;
             let t = Instant::now();
@@ -993,6 +914,112 @@ pub fn moving_average(x: &[f64], w: usize) -> Vec<f64> {
             (cum[i + r + 1] - cum[i - r]) / (2 * r + 1) as f64
         })
         .collect()
+}
+
+/// Keep the outputs `ahead` samples ahead of the clock (see `StreamStrategy::pump`).
+fn write_ahead(
+    run: &mut Running,
+    ph: &mut Phases,
+    stream: &mut dyn FrameStream,
+    rp: &RasterPlan,
+    geo: &Geometry,
+    ahead: usize,
+    chunk: usize,
+) -> Result<(), StepFault> {
+    // the outputs are kept `ahead` of the clock (the samples it has played by now,
+    // estimated from the stream's start), whatever the inputs' reader lags; a write
+    // brings only what the buffer takes now, so that it never waits for room
+    let played = ((run.t0.elapsed().as_secs_f64() * geo.rate) as usize).max(run.read);
+    if run.written < run.total && run.written < played + ahead {
+        let mut n = (played + ahead - run.written).min(run.total - run.written);
+        if let Some(space) = stream.write_space().map_err(StepFault::stage)? {
+            n = n.min(space);
+        }
+        // not a trickle of tiny writes: a chunk at least (or what is left)
+        if n >= chunk.min(run.total - run.written) {
+            let t = Instant::now();
+            let (mut f, mut s) = (Vec::with_capacity(n), Vec::with_capacity(n));
+            let in_frame = run.frame.len.saturating_sub(run.written).min(n);
+            run.frame.fill(rp, run.written, in_frame, &mut f, &mut s);
+            f.resize(n, run.frame.last[0]);
+            s.resize(n, run.frame.last[1]);
+            stream.write(&f, &s).map_err(StepFault::stage)?;
+            run.written += n;
+            let dt = t.elapsed().as_secs_f64();
+            ph.write_s += dt;
+            ph.max_write_s = ph.max_write_s.max(dt);
+            ph.writes += 1;
+        }
+    }
+    Ok(())
+}
+
+/// In the stream's first milliseconds, until the inputs hold the next `n` samples: the stage's
+/// own readings against the targets played by now (a run-away is an error naming the cause).
+fn guard_by_readings(
+    run: &mut Running,
+    stream: &mut dyn FrameStream,
+    rp: &RasterPlan,
+    geo: &Geometry,
+    guard_chunk: usize,
+    n: usize,
+) -> Result<(), StepFault> {
+    // Until the inputs have the next chunk, the stage's own readings (Madlib: a
+    // USB round trip each, back to back) against the targets played by now: no
+    // sleep in a blocking read, whose wake-up a loaded host delays by
+    // milliseconds, stands between a run-away and its stop.
+    loop {
+        let elapsed = run.t0.elapsed().as_secs_f64();
+        let played = (elapsed * geo.rate) as usize;
+        // the targets up to a millisecond ahead of the estimate (the outputs
+        // started a little before it)
+        let upto = (played + guard_chunk + (1e-3 * geo.rate) as usize).min(run.written);
+        if upto > run.now_upto {
+            let (mut f, mut s) = (Vec::new(), Vec::new());
+            run.frame
+                .fill(rp, run.now_upto, upto - run.now_upto, &mut f, &mut s);
+            for (k, v) in [f, s].iter().enumerate() {
+                for &x in v {
+                    run.now_lo[k] = run.now_lo[k].min(x);
+                    run.now_hi[k] = run.now_hi[k].max(x);
+                }
+            }
+            run.now_upto = upto;
+        }
+        let mut away = None;
+        for (k, axis) in [geo.fast, geo.slow].into_iter().enumerate() {
+            let Some(m) = stream.guard_position_um(axis).map_err(StepFault::stage)? else {
+                continue;
+            };
+            let (lo, hi) = (run.now_lo[k], run.now_hi[k]);
+            if m < lo - GUARD_UM || m > hi + GUARD_UM {
+                away = Some((axis, m, lo, hi));
+                break;
+            }
+        }
+        if let Some((axis, m, lo, hi)) = away {
+            let wall_ms = elapsed * 1e3;
+            let advice = stream.ran_away();
+            let advice = if advice.is_empty() {
+                String::new()
+            } else {
+                format!("; {advice}")
+            };
+            return Err(StepFault::stage(DeviceError::Other {
+                device: stream.stream_name(),
+                detail: format!(
+                    "the stage ran away: it reads {} = {m:.3} µm {wall_ms:.2} ms into the stream, where the plan \
+                     had played {lo:.3}…{hi:.3} µm; the stream was stopped{advice}",
+                    AXES[axis]
+                ),
+            }));
+        }
+        // no reading of its own (nothing to watch but the inputs), or the chunk is in
+        if !stream.guards_by_reading() || played >= run.read + n {
+            break;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

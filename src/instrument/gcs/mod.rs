@@ -1194,6 +1194,20 @@ impl Stage for GcsStage {
     }
 }
 
+/// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "gcs",
+    backend: "hardware",
+    aliases: &[],
+    stages: &["gcs"],
+    qpds: &[],
+    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "scpi",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1407,17 +1421,3 @@ mod tests {
         }
     }
 }
-
-/// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "gcs",
-    backend: "hardware",
-    aliases: &[],
-    stages: &["gcs"],
-    qpds: &[],
-    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-};

@@ -669,6 +669,20 @@ impl Stage for MadlibStage {
     }
 }
 
+/// A Mad City Labs Nano-Drive through Madlib (the stage), the paper's bench with an NI board. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "madlib",
+    backend: "bench",
+    aliases: &[],
+    stages: &["madlib"],
+    qpds: &[],
+    keys: &["timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "madlib",
+        qpd: "nidaqmx",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -696,17 +710,3 @@ mod tests {
         assert_eq!(axes_in(0), "none");
     }
 }
-
-/// A Mad City Labs Nano-Drive through Madlib (the stage), the paper's bench with an NI board. (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "madlib",
-    backend: "bench",
-    aliases: &[],
-    stages: &["madlib"],
-    qpds: &[],
-    keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
-};

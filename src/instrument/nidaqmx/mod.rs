@@ -786,6 +786,20 @@ impl Qpd for NiQpd {
     }
 }
 
+/// An NI DAQ board through NI-DAQmx (the QPD, and the hardware-timed raster of `[raster]`). (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "nidaqmx",
+    backend: "bench",
+    aliases: &[],
+    stages: &[],
+    qpds: &["nidaqmx"],
+    keys: &["timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "madlib",
+        qpd: "nidaqmx",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -852,17 +866,3 @@ mod tests {
         assert_eq!(d.signals(&buf[..6], 2, 1), [2.0, 4.0, 6.0]);
     }
 }
-
-/// An NI DAQ board through NI-DAQmx (the QPD, and the hardware-timed raster of `[raster]`). (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "nidaqmx",
-    backend: "bench",
-    aliases: &[],
-    stages: &[],
-    qpds: &["nidaqmx"],
-    keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
-};

@@ -726,6 +726,20 @@ impl Qpd for RedPitaya {
     }
 }
 
+/// A Red Pitaya STEMlab board over its SCPI server (the QPD), beside a PI stage. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "redpitaya",
+    backend: "hardware",
+    aliases: &[],
+    stages: &[],
+    qpds: &["redpitaya"],
+    keys: &["qpd_host", "qpd_port", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "redpitaya",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -796,17 +810,3 @@ mod tests {
         assert_eq!(mean_std(&[5.0]), (5.0, 0.0));
     }
 }
-
-/// A Red Pitaya STEMlab board over its SCPI server (the QPD), beside a PI stage. (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "redpitaya",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
-    qpds: &["redpitaya"],
-    keys: &["qpd_host", "qpd_port", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "redpitaya",
-    },
-};

@@ -320,6 +320,20 @@ impl Qpd for ScpiQpd {
     }
 }
 
+/// The SCPI QPD digitiser (the QPD), read beside a PI stage. (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "scpi",
+    backend: "hardware",
+    aliases: &[],
+    stages: &[],
+    qpds: &["scpi"],
+    keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "gcs",
+        qpd: "scpi",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -404,17 +418,3 @@ mod tests {
         }
     }
 }
-
-/// The SCPI QPD digitiser (the QPD), read beside a PI stage. (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "scpi",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
-    qpds: &["scpi"],
-    keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-};

@@ -561,6 +561,20 @@ impl AptLink {
     }
 }
 
+/// Thorlabs APT devices: three KPZ101 piezo cubes (the stage) and a KPA101 position aligner (the QPD). (listed in `instrument::registry`).
+pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+    name: "thorlabs",
+    backend: "thorlabs",
+    aliases: &["kpz101", "kpa101"],
+    stages: &["kpz101"],
+    qpds: &["kpa101"],
+    keys: &["qpd_port", "stage_ports", "timeout_ms"],
+    open: crate::instrument::family::Open::Config {
+        stage: "kpz101",
+        qpd: "kpa101",
+    },
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -618,17 +632,3 @@ mod tests {
         assert!(HwInfo::decode(&d[..83]).is_none());
     }
 }
-
-/// Thorlabs APT devices: three KPZ101 piezo cubes (the stage) and a KPA101 position aligner (the QPD). (listed in `instrument::registry`).
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "thorlabs",
-    backend: "thorlabs",
-    aliases: &["kpz101", "kpa101"],
-    stages: &["kpz101"],
-    qpds: &["kpa101"],
-    keys: &["qpd_port", "stage_ports", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "kpz101",
-        qpd: "kpa101",
-    },
-};
