@@ -1452,18 +1452,29 @@ fn raster_margins_follow_the_measured_lag() {
         let ramp = m["ramp_s"].as_f64().unwrap();
         let lag = m["lag_s_measured"].as_f64().unwrap();
         let duty = m["duty_cycle"].as_f64().unwrap();
-        assert_eq!(m["ramp_from"], "measured lag", "{m}");
         match last_lag {
-            // the first: 2 τ from the move's settling
-            None => assert!(
-                (ramp / (2.0 * tau) - 1.0).abs() < 0.25,
+            // the first: 2 τ from the move's settling, when the move's readings measured τ
+            // (two readings of the approach ≥ 10× apart in distance to go: a slow host may
+            // read the first only when the stage is nearly there); else the default ramp
+            None if m["ramp_from"] == "default" => assert!(
+                (ramp - bfpscope::acquire::strategy::stream::DEFAULT_RAMP_S).abs() < 1e-12,
                 "ramp {ramp} s: {m}"
             ),
+            None => {
+                assert_eq!(m["ramp_from"], "measured lag", "{m}");
+                assert!(
+                    (ramp / (2.0 * tau) - 1.0).abs() < 0.25,
+                    "ramp {ramp} s: {m}"
+                )
+            }
             // later: 2 × the lag the frame before measured
-            Some(l) => assert!(
-                (ramp - 2.0 * l).abs() < 1e-12,
-                "ramp {ramp} s after a lag of {l} s"
-            ),
+            Some(l) => {
+                assert_eq!(m["ramp_from"], "measured lag", "{m}");
+                assert!(
+                    (ramp - 2.0 * l).abs() < 1e-12,
+                    "ramp {ramp} s after a lag of {l} s"
+                )
+            }
         }
         // the monitor trails the target by about τ at constant speed (0.64 ms measured with
         // τ = 0.5 ms)
