@@ -456,12 +456,7 @@ impl StreamStrategy {
                 }
                 if let Some((axis, m, when, (lo, hi))) = away {
                     let wall_ms = run.t0.elapsed().as_secs_f64() * 1e3;
-                    let advice = stream.ran_away();
-                    let advice = if advice.is_empty() {
-                        String::new()
-                    } else {
-                        format!("; {advice}")
-                    };
+                    let advice = ran_away_advice(stream);
                     return Err(StepFault::stage(DeviceError::Other {
                         device: stream.stream_name(),
                         detail: format!(
@@ -999,12 +994,7 @@ fn guard_by_readings(
         }
         if let Some((axis, m, lo, hi)) = away {
             let wall_ms = elapsed * 1e3;
-            let advice = stream.ran_away();
-            let advice = if advice.is_empty() {
-                String::new()
-            } else {
-                format!("; {advice}")
-            };
+            let advice = ran_away_advice(stream);
             return Err(StepFault::stage(DeviceError::Other {
                 device: stream.stream_name(),
                 detail: format!(
@@ -1020,6 +1010,17 @@ fn guard_by_readings(
         }
     }
     Ok(())
+}
+
+/// The stream's stop on a run-away (`FrameStream::ran_away`), and its advice as the tail of the
+/// fault's message ("; …", empty without advice).
+fn ran_away_advice(stream: &mut dyn FrameStream) -> String {
+    let advice = stream.ran_away();
+    if advice.is_empty() {
+        String::new()
+    } else {
+        format!("; {advice}")
+    }
 }
 
 #[cfg(test)]
