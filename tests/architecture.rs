@@ -713,39 +713,20 @@ fn function_lengths() -> Vec<(usize, String)> {
 /// Longest a production function of `src/` may be, lines.
 const MAX_FN_LINES: usize = 150;
 
-/// Functions still over [`MAX_FN_LINES`], to be split (`file name`): the list may only shrink.
-const STILL_LONG: &[&str] = &[
-    "src/instrument/madlib/mod.rs connect",
-    "src/acquire/strategy/stream.rs prepare",
-];
-
 #[test]
 fn no_production_function_is_over_150_lines() {
     let long: Vec<(usize, String)> = function_lengths()
         .into_iter()
         .filter(|(n, _)| *n > MAX_FN_LINES)
         .collect();
-    let key = |s: &str| {
-        let (place, name) = s.split_once(' ').unwrap();
-        format!("{} {name}", place.split(':').next().unwrap())
-    };
     let new: Vec<String> = long
         .iter()
-        .filter(|(_, s)| !STILL_LONG.contains(&key(s).as_str()))
         .map(|(n, s)| format!("{s}: {n} lines"))
         .collect();
     assert!(
         new.is_empty(),
         "functions over {MAX_FN_LINES} lines (split them into steps named after what they do):\n{}",
         new.join("\n")
-    );
-    let done: Vec<&&str> = STILL_LONG
-        .iter()
-        .filter(|s| !long.iter().any(|(_, l)| key(l) == **s))
-        .collect();
-    assert!(
-        done.is_empty(),
-        "no longer over {MAX_FN_LINES} lines: take them off STILL_LONG: {done:?}"
     );
 }
 
