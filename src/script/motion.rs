@@ -10,9 +10,10 @@ use super::registry::{fail, int, non_negative, num, Doc, Opts, RResult, Registra
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
-use crate::config::{Backend, Config, MAX_BAUD, MAX_TIMEOUT_MS};
+use crate::config::{Config, MAX_BAUD, MAX_TIMEOUT_MS};
 use crate::instrument::emulator::QpdEmulatorConfig;
 use crate::instrument::mock::{mock_instrument, MockConfig, FAMILY as MOCK_FAMILY};
+use crate::instrument::redpitaya::REDPITAYA;
 use crate::instrument::registry::{self, BuildFn, Family, Open};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
@@ -564,7 +565,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     // close that connection first. Otherwise the current instrument stays until the new one
     // is up, so a failed connect leaves it alone.
     // (a Red Pitaya by its address: its SCPI server serves one client at a time)
-    let rp_address = (cfg.qpd.backend == Backend::Redpitaya)
+    let rp_address = (cfg.qpd.backend == REDPITAYA)
         .then(|| {
             let port = cfg.redpitaya_port().ok()?;
             Some(format!("{}:{port}", cfg.qpd.host.as_deref()?))
@@ -632,8 +633,8 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
         Open::Sim => open_sim(c, o, m, &cfg),
         Open::Config { stage, qpd } => {
             if !from_config {
-                cfg.stage.backend = config_backend(stage)?;
-                cfg.qpd.backend = config_backend(qpd)?;
+                cfg.stage.backend = stage;
+                cfg.qpd.backend = qpd;
             }
             apply_port_keys(o, &mut cfg)?;
             connect_hardware(c, &cfg, &backend).map_err(Into::into)
@@ -667,19 +668,11 @@ fn check_family_keys(family: &Family, backend: &str, m: &Map) -> RResult<()> {
     Ok(())
 }
 
-/// A `[stage]`/`[qpd]` backend a family names, as the config's.
-fn config_backend(name: &str) -> RResult<Backend> {
-    Backend::from_name(name).map_or_else(
-        || fail(format!("connect: the config has no backend {name:?}")),
-        Ok,
-    )
-}
-
 /// The port, host, baud and timeout keys of `connect`'s map over the config's (only the
 /// keys the family's backend takes get here).
 fn apply_port_keys(o: &Opts, cfg: &mut Config) -> RResult<()> {
     if let Some(h) = o.string("qpd_host")? {
-        if cfg.qpd.backend != Backend::Redpitaya {
+        if cfg.qpd.backend != REDPITAYA {
             return fail(format!(
                 "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not {:?}",
                 cfg.qpd.backend.as_str()

@@ -696,16 +696,27 @@ impl Stage for MadlibStage {
 }
 
 /// A Mad City Labs Nano-Drive through Madlib (the stage), the paper's bench with an NI board. (listed in `instrument::registry`).
+/// Mad City Labs Nano-Drive through the vendor's library Madlib: a `[stage]` backend.
+pub const MADLIB: crate::instrument::family::Backend = crate::instrument::family::Backend("madlib");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "madlib",
     backend: "bench",
     aliases: &[],
-    stages: &["madlib"],
+    stages: &[MADLIB.0],
     qpds: &[],
     keys: &["timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
+        stage: crate::instrument::madlib::MADLIB,
+        qpd: crate::instrument::nidaqmx::NIDAQMX,
+    },
+    stage_defaults: crate::instrument::family::StageDefaults {
+        // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own
+        // (≈ 0.2 ms), so the link sets the pace and a move ends as soon as the readings are on
+        // target (a 5 ms poll cost a 31 nm step 7 ms)
+        poll_ms: 0,
+        // settled on its readings (`tolerance_um`, two in a row): no fixed settle after them
+        settle_s: Some(0.0),
     },
 };
 
