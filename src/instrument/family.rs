@@ -39,7 +39,10 @@ pub enum Open {
     Emulated,
     /// Through `bfpscope.toml`'s `[stage]` and `[qpd]` tables with these backends (unless
     /// `connect()` keeps the config's own): the serial, TCP and vendor-library drivers.
-    Config { stage: Backend, qpd: Backend },
+    Config {
+        stage: &'static str,
+        qpd: &'static str,
+    },
     /// A function building the instrument from `connect`'s options (JSON) and the settle time.
     Build(BuildFn),
 }

@@ -1206,8 +1206,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[],
     keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::gcs::GCS,
-        qpd: crate::instrument::scpi::SCPI,
+        stage: "gcs",
+        qpd: "scpi",
     },
     stage_defaults: crate::instrument::family::StageDefaults {
         // `#5` is one byte each way (0.26 ms of wire per poll at 115200 baud): polling every

@@ -707,8 +707,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[],
     keys: &["timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::madlib::MADLIB,
-        qpd: crate::instrument::nidaqmx::NIDAQMX,
+        stage: "madlib",
+        qpd: "nidaqmx",
     },
     stage_defaults: crate::instrument::family::StageDefaults {
         // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own

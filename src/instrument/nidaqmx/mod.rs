@@ -799,8 +799,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[NIDAQMX.0],
     keys: &["timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::madlib::MADLIB,
-        qpd: crate::instrument::nidaqmx::NIDAQMX,
+        stage: "madlib",
+        qpd: "nidaqmx",
     },
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

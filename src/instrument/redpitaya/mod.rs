@@ -739,8 +739,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[REDPITAYA.0],
     keys: &["qpd_host", "qpd_port", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::gcs::GCS,
-        qpd: crate::instrument::redpitaya::REDPITAYA,
+        stage: "gcs",
+        qpd: "redpitaya",
     },
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

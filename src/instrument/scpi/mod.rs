@@ -332,8 +332,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[SCPI.0],
     keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::gcs::GCS,
-        qpd: crate::instrument::scpi::SCPI,
+        stage: "gcs",
+        qpd: "scpi",
     },
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

@@ -576,8 +576,8 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[KPA101.0],
     keys: &["qpd_port", "stage_ports", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
-        stage: crate::instrument::thorlabs::KPZ101,
-        qpd: crate::instrument::thorlabs::KPA101,
+        stage: "kpz101",
+        qpd: "kpa101",
     },
     stage_defaults: crate::instrument::family::StageDefaults {
         // each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request and reply, and a strain-gauge
