@@ -3,7 +3,7 @@
 //! index correction, mass, maximum sensitivity; suppl. S1–S3).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
 use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM};
@@ -16,6 +16,20 @@ use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::DetectorModel;
 use crate::optics::ValidOptics;
 use rhai::{Array, Dynamic, Map, INT};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const BEAM: Opt = Opt::new("beam", "string", "");
+const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+const MODEL: Opt = Opt::new("model", "string", "");
+const N: Opt = Opt::new("n", "float", "");
+const N_PHI: Opt = Opt::new("n_phi", "int", "");
+const N_THETA: Opt = Opt::new("n_theta", "int", "");
+const POLARIZATION: Opt = Opt::new("polarization", "bool", "");
+const SHAPE: Opt = Opt::new("shape", "string", "");
+const TEMPERATURE_K: Opt = Opt::new("temperature_k", "float", "K");
+const X: Opt = Opt::new("x", "float", "µm");
+const Y: Opt = Opt::new("y", "float", "µm");
+const Z: Opt = Opt::new("z", "float", "µm");
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {
@@ -86,19 +100,9 @@ fn bind_set_optics(r: &mut Registrar) {
                     "mW",
                     "optional: laser power at the focus",
                 ),
-                ("n_theta", "int", "", "optional: cone quadrature nodes in θ"),
-                (
-                    "n_phi",
-                    "int",
-                    "",
-                    "optional: cone quadrature nodes in φ per quadrant",
-                ),
-                (
-                    "beam",
-                    "string",
-                    "",
-                    "optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)",
-                ),
+                N_THETA.doc("optional: cone quadrature nodes in θ"),
+                N_PHI.doc("optional: cone quadrature nodes in φ per quadrant"),
+                BEAM.doc("optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)"),
                 (
                     "pupil_filling",
                     "float",
@@ -124,12 +128,12 @@ fn bind_response(r: &mut Registrar) {
             "at",
             "particle displacement from the focus and the particle",
             &[
-                ("x", "float", "µm", "optional: displacement (default 0)"),
-                ("y", "float", "µm", "optional: displacement (default 0)"),
-                ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
-                ("d_nm", "float", "nm", format!("optional: diameter (default {BEAD_D_NM})").as_str()),
-                ("n", "float", "", format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
-                ("polarization", "bool", "", "optional: vector dipole field in the paraxial beam (default false; the vector beam is always vectorial)"),
+                X.doc("optional: displacement (default 0)"),
+                Y.doc("optional: displacement (default 0)"),
+                Z.doc("optional: displacement, + downstream (default 0)"),
+                D_NM.doc(format!("optional: diameter (default {BEAD_D_NM})").as_str()),
+                N.doc(format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
+                POLARIZATION.doc("optional: vector dipole field in the paraxial beam (default false; the vector beam is always vectorial)"),
             ],
         )
         .returns("map", "#{sx, sy, sz}: QPD signals normalised to the beam power")
@@ -161,20 +165,10 @@ fn bind_response(r: &mut Registrar) {
             "object",
             "the trapped object",
             &[
-                (
-                    "shape",
-                    "string",
-                    "",
-                    "\"sphere\" or \"cylinder\" (a fibril in the focal plane)",
-                ),
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "refractive index"),
-                (
-                    "temperature_k",
-                    "float",
-                    "K",
-                    "optional: temperature (default 295.15)",
-                ),
+                SHAPE.doc("\"sphere\" or \"cylinder\" (a fibril in the focal plane)"),
+                D_NM.doc("diameter"),
+                N.doc("refractive index"),
+                TEMPERATURE_K.doc("optional: temperature (default 295.15)"),
             ],
         )
         .returns("float", "depth of the gradient-force potential in kT")
@@ -225,9 +219,9 @@ fn bind_model_sensitivity(r: &mut Registrar) {
             "bead",
             "the sphere and the model tier",
             &[
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", format!("optional: index (default {BEAD_N})").as_str()),
-                ("model", "string", "", "optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
+                D_NM.doc("diameter"),
+                N.doc(format!("optional: index (default {BEAD_N})").as_str()),
+                MODEL.doc("optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
             ],
         )
         .returns("map", "#{sens: (∂Sx/∂x)max in 1/µm, z: best focus in µm}")
@@ -250,8 +244,8 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
             "opts",
             "optional",
             &[
-                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
-                ("n", "float", "", format!("optional: reference bead index (default {BEAD_N})")),
+                D_NM.doc(format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
+                N.doc(format!("optional: reference bead index (default {BEAD_N})")),
             ],
         )
         .form("fit_beam(scan) -> map")
@@ -276,8 +270,8 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
 fn fit_beam_of(c: &Ctx, spec: &Spec, s: &ScanRef, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let opts = BeamFitOptions {
-        d_nm: o.f64_or("d_nm", BEAD_D_NM)?,
-        n: o.f64_or("n", BEAD_N)?,
+        d_nm: o.f64_or(D_NM, BEAD_D_NM)?,
+        n: o.f64_or(N, BEAD_N)?,
         ..BeamFitOptions::default()
     };
     let sc = &s.scan;
@@ -374,13 +368,13 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
             *f = v;
         }
     }
-    if let Some(v) = o.int("n_theta")? {
+    if let Some(v) = o.int(N_THETA)? {
         new.n_theta = v.clamp(0, 100_000) as usize;
     }
-    if let Some(v) = o.int("n_phi")? {
+    if let Some(v) = o.int(N_PHI)? {
         new.n_phi = v.clamp(0, 100_000) as usize;
     }
-    if let Some(b) = o.string("beam")? {
+    if let Some(b) = o.string(BEAM)? {
         new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
     }
     let new = ValidOptics::new(new).map_err(|e| err("set_optics", e))?;
@@ -394,19 +388,15 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
 fn response_of(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let model = DetectorModel {
-        polarization: o.bool_or("polarization", false)?,
+        polarization: o.bool_or(POLARIZATION, false)?,
         misalignment: None,
     };
     let s = dipole_response_in_beam(
         &c.optics(),
         &model,
-        [
-            o.f64_or("x", 0.0)?,
-            o.f64_or("y", 0.0)?,
-            o.f64_or("z", 0.0)?,
-        ],
-        o.f64_or("d_nm", BEAD_D_NM)?,
-        o.f64_or("n", BEAD_N)?,
+        [o.f64_or(X, 0.0)?, o.f64_or(Y, 0.0)?, o.f64_or(Z, 0.0)?],
+        o.f64_or(D_NM, BEAD_D_NM)?,
+        o.f64_or(N, BEAD_N)?,
     )
     .map_err(|e| err("response", e))?;
     let mut out = Map::new();
@@ -431,7 +421,7 @@ fn p_scat(c: &Ctx, d: &Dynamic, n: &Dynamic) -> RResult<f64> {
 /// a sphere or a cylinder in kT at the laser power of the session's optics (suppl. S3).
 fn trap_depth(c: &Ctx, spec: &Spec, m: &Map) -> RResult<f64> {
     let o = Opts::new(spec, m)?;
-    let shape = match o.string("shape")?.as_deref() {
+    let shape = match o.string(SHAPE)?.as_deref() {
         Some("sphere") => TrapShape::Sphere,
         Some("cylinder") => TrapShape::Cylinder,
         other => {
@@ -444,9 +434,9 @@ fn trap_depth(c: &Ctx, spec: &Spec, m: &Map) -> RResult<f64> {
     trap_depth_kt(
         &c.optics(),
         shape,
-        o.req_f64("d_nm")?,
-        o.req_f64("n")?,
-        o.f64_or("temperature_k", ROOM_T_K)?,
+        o.req_f64(D_NM)?,
+        o.req_f64(N)?,
+        o.f64_or(TEMPERATURE_K, ROOM_T_K)?,
     )
     .map_err(|e| err("trap_depth_kt", e))
 }
@@ -477,8 +467,8 @@ fn sphere_mass(d: &Dynamic, rho: &Dynamic) -> RResult<f64> {
 fn max_sensitivity_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     use crate::optics::mie_beam::{max_sensitivity_in_beam, SphereModel};
     let o = Opts::new(spec, m)?;
-    let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
-    let model = match o.string("model")?.as_deref() {
+    let (dn, n) = (o.req_f64(D_NM)?, o.f64_or(N, BEAD_N)?);
+    let model = match o.string(MODEL)?.as_deref() {
         None | Some("rayleigh") => SphereModel::Dipole,
         Some("finite_size") => SphereModel::FiniteSize { n_r: DEFAULT_N_R },
         Some("mie") => SphereModel::Mie,

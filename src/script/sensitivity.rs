@@ -2,7 +2,7 @@
 //! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::peaks::{col_peaks, point_peak_checked, row_peaks};
@@ -15,6 +15,10 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const AXIS: Opt = Opt::new("axis", "string", "");
+const STENCIL: Opt = Opt::new("stencil", "string", "");
 
 pub fn register(r: &mut Registrar) {
     register_sensitivity(r);
@@ -29,8 +33,8 @@ fn register_sensitivity(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("axis", "string", "", "\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
-                ("stencil", "string", "", "\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
+                AXIS.doc("\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
+                STENCIL.doc("\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
             ],
         )
         .returns("Image", "the derivative, signal units per µm")
@@ -96,7 +100,7 @@ fn register_sensitivity(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("stencil", "string", "", format!("optional: derivative stencil (default {})", fd.stencil.name())),
+                STENCIL.doc(format!("optional: derivative stencil (default {})", fd.stencil.name())),
                 ("window_um", "float", "µm", format!("optional: lateral parabola window (default {})", fd.window_um)),
                 ("z_window_um", "float", "µm", format!("optional: window of the parabola over z (default {})", fd.z_window_um)),
                 ("level", "float", "", format!("optional: fraction of the peak that defines the tolerated z range (default {})", fd.level)),
@@ -172,7 +176,7 @@ fn image_or_scan(who: &str, v: &Dynamic, axis: crate::analysis::Axis) -> RResult
 /// or of a scan's Sx (axis x) / Sy (axis y), by the chosen stencil (Sec. 3.2).
 fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
     let o = Opts::new(spec, m)?;
-    let ax = o.string("axis")?.unwrap_or_else(|| "x".into());
+    let ax = o.string(AXIS)?.unwrap_or_else(|| "x".into());
     let axis = crate::analysis::Axis::parse(&ax).map_or_else(
         || {
             fail(format!(
