@@ -26,6 +26,11 @@ pub struct Image {
     /// Names of the horizontal and vertical axes (`"x"`, `"y"`, `"z"`).
     pub x_name: String,
     pub y_name: String,
+    /// Clipped and dark pixels, when the image came from a scan channel that has them
+    /// (`data::clip::PixelFlags`); carried through derivatives, arithmetic and crops so that
+    /// analyses of the image flag them. Not saved with the image.
+    #[serde(skip)]
+    pub flags: Option<std::sync::Arc<super::clip::PixelFlags>>,
 }
 
 /// The statistics methods of [`Image`] and [`Profile`] (each type's `stats(what)` over its
@@ -80,6 +85,7 @@ impl Image {
             y,
             x_name: "x".into(),
             y_name: "y".into(),
+            flags: None,
         }
     }
 
@@ -174,12 +180,22 @@ impl Image {
         let cols = select_range(&self.x, x_range, &self.x_name)?;
         let rows = select_range(&self.y, y_range, &self.y_name)?;
         let data = self.data.select(Axis(0), &rows).select(Axis(1), &cols);
+        let flags = self.flags.as_ref().and_then(|f| {
+            let mask = f.mask.select(Axis(0), &rows).select(Axis(1), &cols);
+            (mask.iter().any(|&m| m != 0) || f.unlocated != [0, 0]).then(|| {
+                std::sync::Arc::new(super::clip::PixelFlags {
+                    mask,
+                    ..(**f).clone()
+                })
+            })
+        });
         Ok(Image {
             data,
             x: cols.iter().map(|&j| self.x[j]).collect(),
             y: rows.iter().map(|&i| self.y[i]).collect(),
             x_name: self.x_name.clone(),
             y_name: self.y_name.clone(),
+            flags,
         })
     }
 
