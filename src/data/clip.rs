@@ -350,8 +350,8 @@ impl PixelFlags {
         out.derived = out.derived.or_else(|| other.derived.clone());
         out.range = out.range.or_else(|| other.range.clone());
         out.floor = out.floor.or_else(|| other.floor.clone());
-        for k in 0..2 {
-            out.unlocated[k] = out.unlocated[k].max(other.unlocated[k]);
+        for (a, b) in out.unlocated.iter_mut().zip(other.unlocated) {
+            *a = (*a).max(b);
         }
         out
     }

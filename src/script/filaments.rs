@@ -506,11 +506,7 @@ fn filament_input_check(
     r: &crate::analysis::orientation::FilamentMeasurement,
     mo: &crate::analysis::MeasureOptions,
 ) -> crate::data::clip::InputCheck {
-    let reach = match mo.stencil {
-        crate::analysis::Stencil::Central2 => 1,
-        crate::analysis::Stencil::Central5 => 2,
-        crate::analysis::Stencil::SavitzkyGolay { half_width } => half_width,
-    } as f64;
+    let reach = mo.stencil.reach() as f64;
     let img = &scan.sx;
     let step = |v: &[f64]| {
         if v.len() > 1 {

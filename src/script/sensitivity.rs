@@ -198,11 +198,7 @@ fn derived_flags(
     axis: crate::analysis::Axis,
     st: Stencil,
 ) -> Option<Arc<crate::data::clip::PixelFlags>> {
-    let reach = match st {
-        Stencil::Central2 => 1,
-        Stencil::Central5 => 2,
-        Stencil::SavitzkyGolay { half_width } => half_width,
-    };
+    let reach = st.reach();
     let (rx, ry) = match axis {
         crate::analysis::Axis::X => (reach, 0),
         crate::analysis::Axis::Y => (0, reach),
