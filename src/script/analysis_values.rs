@@ -49,6 +49,12 @@ pub(crate) fn with_warnings(ctx: &super::ctx::Ctx, who: &str, m: &mut Map, w: Ve
     );
 }
 
+/// The warnings an input check (`data::clip`: clipped and dark pixels among those used) adds
+/// to `who`'s answer, or `who`'s refusal when no answer can be read from those pixels.
+pub(crate) fn input_gate(who: &str, check: crate::data::clip::InputCheck) -> RResult<Vec<String>> {
+    check.gate(who).or_else(fail)
+}
+
 pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
     match o.string(STENCIL)? {
         None => Ok(default),
@@ -386,6 +392,18 @@ pub(crate) fn scans_arg(who: &str, v: &Array) -> RResult<Vec<Arc<Scan>>> {
 }
 
 pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) -> ScanRef {
+    scan_flagged(sx, sy, sz, meta, Default::default())
+}
+
+/// A scan computed pixel by pixel from another (a fit subtracted, aggregates removed): it keeps
+/// the other's clipped and dark pixels (`flags`), so that analyses of it still flag them.
+pub(crate) fn scan_flagged(
+    sx: Image,
+    sy: Image,
+    sz: Image,
+    meta: serde_json::Value,
+    flags: crate::data::clip::InputFlags,
+) -> ScanRef {
     ScanRef::new(
         Scan {
             sx,
@@ -394,7 +412,7 @@ pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) 
             status: ScanStatus::Complete,
             meta,
             raw: Vec::new(),
-            flags: Default::default(),
+            flags,
         },
         None,
     )

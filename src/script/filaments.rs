@@ -279,17 +279,18 @@ fn bind_background(r: &mut Registrar) {
             ],
         )
         .form("remove_background(scan, tpl) -> map")
-        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none}")
+        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none, warnings: [string] (that text and clipped or dark pixels of Sx, Sy), status: \"ok\" when warnings is empty}")
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
     let spec = d.spec();
     let s2 = spec.clone();
+    let (c, c2) = (r.ctx(), r.ctx());
     r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
-        remove_background(&spec, &s, &t, &m)
+        remove_background(&c, &spec, &s, &t, &m)
     });
     r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
-        remove_background(&s2, &s, &t, &Map::new())
+        remove_background(&c2, &s2, &s, &t, &Map::new())
     });
 }
 
@@ -306,15 +307,16 @@ fn bind_quantities(r: &mut Registrar) {
     let d = Doc::func("diameter_calib")
         .arg("tpl", "Template", "", "the point-particle template")
         .map("opts", "", &calib_keys)
-        .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr}: d = A·√(sens_corr) (eqs. colDiam, OurColD)")
+        .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr, d_max_nm}: d = A·√(sens_corr) (eqs. colDiam, OurColD), which holds up to d_max_nm (nm: the point-dipole sections' domain at n_obj in the session's optics)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")
         .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline of the data (pixel_um or scan: required; stencil, window), so A belongs to that pixel size (default optics: 71.1 nm at 0.05 µm, 73.3 nm at 0.1 µm, 70.4 nm as the pixel → 0; docs/physics.md); not hard-coded (the paper's 58.6 nm is for its own optics).")
         .example(&format!("{TPL} let a = diameter_calib(t, #{{n_obj: 1.41, pixel_um: 0.05}}).a_nm; a > 40.0 && a < 90.0"), "true")
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2, pixel_um: 0.05}})"), "error: n_obj")
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.41}})"), "error: diameter_calib: pixel_um is required");
     let spec = d.spec();
+    let c = r.ctx();
     r.bind(d, move |t: TemplateRef, m: Map| {
-        diameter_calib(&spec, &t, &m)
+        diameter_calib(&c, &spec, &t, &m)
     });
     r.bind(
         Doc::func("fibril_diameter")
@@ -484,10 +486,51 @@ fn measure_filament_of(
 ) -> RResult<FilamentRef> {
     let o = Opts::new(spec, m)?;
     let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
-    let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
+    let mut r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
         .map_err(|e| err("measure_filament", e))?;
+    let check = filament_input_check(&s.scan, &r, &mo);
+    r.warnings.extend(input_gate("measure_filament", check)?);
     c0.warn_all("measure_filament", &r.warnings);
     Ok(FilamentRef(Arc::new(r)))
+}
+
+/// The clipped and dark pixels (`data::clip`) among those a filament measurement reads: in the
+/// channel it used, the parabola window around each line's maximum, widened by the stencil.
+fn filament_input_check(
+    scan: &crate::data::Scan,
+    r: &crate::analysis::orientation::FilamentMeasurement,
+    mo: &crate::analysis::MeasureOptions,
+) -> crate::data::clip::InputCheck {
+    let reach = mo.stencil.reach() as f64;
+    let img = &scan.sx;
+    let step = |v: &[f64]| {
+        if v.len() > 1 {
+            (v[v.len() - 1] - v[0]).abs() / (v.len() - 1) as f64
+        } else {
+            0.0
+        }
+    };
+    let rows = r.channel == Channel::SxRows;
+    let (ch, half) = if rows {
+        ("sx", 0.5 * mo.window_um + reach * step(&img.x))
+    } else {
+        ("sy", 0.5 * mo.window_um + reach * step(&img.y))
+    };
+    let mut centre = vec![None; if rows { img.y.len() } else { img.x.len() }];
+    for p in &r.points {
+        if let Some(v) = centre.get_mut(p.line) {
+            *v = Some(if rows { p.x } else { p.y });
+        }
+    }
+    let half = half * (1.0 + 1e-9);
+    crate::data::clip::input_check_where(scan, &[ch], |row, col| {
+        let (line, at) = if rows {
+            (row, img.x[col])
+        } else {
+            (col, img.y[row])
+        };
+        centre[line].is_some_and(|c| (at - c).abs() <= half)
+    })
 }
 
 /// `FilamentMeasurement.profile(key)`: `sens_corr` or `sens` vs arc length (µm) along the
@@ -528,7 +571,7 @@ fn sbr_of(spec: &Spec, m: &FilamentRef, mm: &Map) -> RResult<Map> {
 
 /// `remove_background(scan, tpl[, opts])`: fit the point-like aggregates in the channel the
 /// filament barely shows in and subtract them from both channels (Sec. 6, Fig. 6).
-fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<Map> {
+fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<Map> {
     let who = "remove_background";
     let o = Opts::new(spec, m)?;
     let d = BackgroundOptions::default();
@@ -546,6 +589,11 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
         min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
         ..d.clone()
     };
+    // both channels are read: the objects are fitted in one and subtracted from the other
+    let mut warnings = input_gate(
+        who,
+        crate::data::clip::input_check(&s.scan, &["sx", "sy"], None),
+    )?;
     let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
     let mut out = Map::new();
     let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
@@ -556,7 +604,13 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
     });
     out.insert(
         "scan".into(),
-        Dynamic::from(scan_of(r.sx, r.sy, s.scan.sz.clone(), meta)),
+        Dynamic::from(scan_flagged(
+            r.sx,
+            r.sy,
+            s.scan.sz.clone(),
+            meta,
+            s.scan.flags.clone(),
+        )),
     );
     out.insert(
         "fit".into(),
@@ -580,8 +634,10 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
     out.insert("remaining".into(), remaining.into());
     out.insert(
         "warning".into(),
-        warning.map_or(Dynamic::UNIT, |w| w.into()),
+        warning.clone().map_or(Dynamic::UNIT, |w| w.into()),
     );
+    warnings.extend(warning);
+    with_warnings(c, who, &mut out, warnings);
     Ok(out)
 }
 
@@ -617,7 +673,7 @@ pub fn remaining_warning(rem: &[crate::analysis::background::Remaining]) -> Opti
 /// `diameter_calib(tpl, opts)`: the constant A (nm) of fibril diameters d = A·√(sens_corr)
 /// from a bead-model cylinder measured by the data's pixel pipeline and n_corr (eqs. colDiam,
 /// OurColD).
-fn diameter_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
+fn diameter_calib(ctx: &Ctx, spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
     let who = "diameter_calib";
     let o = Opts::new(spec, m)?;
     let (px, mo, bm) = pipeline_opts(who, &o)?;
@@ -632,7 +688,12 @@ fn diameter_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
         &bm,
     )
     .map_err(|e| err(who, e))?;
-    Ok(to_map(&c))
+    let mut out = to_map(&c);
+    // the largest diameter d = A·√(sens_corr) holds for: the point-dipole sections' domain
+    let o = ctx.optics();
+    let d_max = crate::analysis::domain::dipole_d_max_nm(c.n_obj, o.wavelength_nm, o.n_medium);
+    out.insert("d_max_nm".into(), d_max.into());
+    Ok(out)
 }
 
 /// `lin_dens_calib(tpl, opts)`: the calibration of linear densities (MDa/µm) from the

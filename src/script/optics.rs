@@ -6,7 +6,7 @@ use super::ctx::Ctx;
 use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
-use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM};
+use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM, V_MAX};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
@@ -251,7 +251,7 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
         .form("fit_beam(scan) -> map")
         .returns(
             "map",
-            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys)}",
+            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys), warnings: [string] (clipped or dark pixels, the bead near the scan's edge, v at the search's bound), status: \"ok\" when warnings is empty}",
         )
         .summary("fit the focused beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to a reference-bead scan")
         .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
@@ -275,9 +275,31 @@ fn fit_beam_of(c: &Ctx, spec: &Spec, s: &ScanRef, m: &Map) -> RResult<Map> {
         ..BeamFitOptions::default()
     };
     let sc = &s.scan;
+    // its domain (docs/analysis.md, Domains): no clipped or dark pixel among the three
+    // channels it fits, the bead whole inside the 1.2 µm field it needs, v not at the search's
+    // upper bound
+    let check = crate::data::clip::input_check(sc, &["sx", "sy", "sz"], None);
+    let mut warnings = super::analysis_values::input_gate("fit_beam", check)?;
     let f = fit_beam(&c.optics(), &sc.sx, &sc.sy, &sc.sz, &opts).map_err(|e| err("fit_beam", e))?;
-    Ok(fit_map(&f))
+    warnings.extend(crate::analysis::domain::margin_warning(
+        "the bead",
+        &sc.sx,
+        f.x0.value,
+        f.y0.value,
+        BEAD_FIELD_HALF_UM,
+    ));
+    if f.inv_f0_sq.value >= V_MAX * (1.0 - 1e-9) {
+        warnings.push(format!(
+            "the pupil filling is at the search's bound v = 1/f0² = {V_MAX} (a beam much narrower than the pupil): its value and σ do not hold; check the bead's size and index and the optics"
+        ));
+    }
+    let mut out = fit_map(&f);
+    super::analysis_values::with_warnings(c, "fit_beam", &mut out, warnings);
+    Ok(out)
 }
+
+/// Half the field the beam fit needs around the bead, µm (`analysis::beam_fit`: ≥ 1.2 µm).
+const BEAD_FIELD_HALF_UM: f64 = 0.6;
 
 fn fit_map(f: &BeamFit) -> Map {
     let mut out = Map::new();

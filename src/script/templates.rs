@@ -570,15 +570,16 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         },
         ..d
     };
-    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
-    // clipped or dark pixels among those fitted (`data::clip`): attached to the answer
+    // clipped or dark pixels among those fitted (`data::clip`): attached to the answer, or
+    // a refusal when every pixel of a fitted channel is at the rail (or dark)
     let used: &[&str] = match fo.channels {
         Channels::Both => &["sx", "sy"],
         Channels::Sx => &["sx"],
         Channels::Sy => &["sy"],
     };
-    r.warnings
-        .extend(crate::data::clip::input_check(&s.scan, used, None).warnings);
+    let inputs = input_gate(who, crate::data::clip::input_check(&s.scan, used, None))?;
+    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    r.warnings.extend(inputs);
     c.warn_all(who, &r.warnings);
     Ok(FitRef(Arc::new(r)))
 }
@@ -591,7 +592,13 @@ fn subtract(f: &FitRef, s: &ScanRef) -> RResult<ScanRef> {
     let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
     let mut meta = s.scan.meta.clone();
     meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
-    Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
+    Ok(scan_flagged(
+        sx,
+        sy,
+        s.scan.sz.clone(),
+        meta,
+        s.scan.flags.clone(),
+    ))
 }
 
 /// `FitResult.to_map()`: the fit as a map, without its four images.
