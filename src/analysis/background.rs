@@ -197,6 +197,7 @@ pub fn remove_point_background(
         n_beads: None,
         grow: true,
         max_beads: opts.max_objects,
+        detect_smooth_um: 0.0,
         ..opts.fit.clone()
     };
     let fit = fit_beads(sx, sy, tpl, &fo)?;

@@ -96,7 +96,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             let n = if grow { 1 } else { opts.n_beads.unwrap_or(1) };
             data.check_count(n)?;
             let d = detection_map(sx, sy, opts.channels, opts.detect_stencil)?;
-            let found = clean(&d, tpl, opts.channels, n);
+            let found = clean(&d, tpl, opts.channels, n, opts.detect_smooth_um);
             if found.is_empty() {
                 return Err(AnalysisError::Failed(
                     "no bead found: the detection map ∂Sx/∂x + ∂Sy/∂y has no positive maximum"
@@ -146,7 +146,7 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             // truth sweep missed 43–67 nm beads beside 136–180 nm ones by stopping there).
             let large = warnings::large_beads(&best, tpl, opts);
             let mut accepted = None;
-            for nb in clean(&d, tpl, opts.channels, GROW_CANDIDATES) {
+            for nb in clean(&d, tpl, opts.channels, GROW_CANDIDATES, opts.detect_smooth_um) {
                 // Next to a bead larger than the template describes, the residual is the
                 // template's misfit of that bead, not another bead: one large bead stays one.
                 if large.iter().any(|&(i, d)| {

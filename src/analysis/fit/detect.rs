@@ -21,7 +21,7 @@ pub fn detect_beads(
 ) -> Result<Vec<BeadInit>> {
     check_range("n", n as f64, 1.0, 10_000.0)?;
     let d = detection_map(sx, sy, channels, stencil)?;
-    Ok(clean(&d, tpl, channels, n))
+    Ok(clean(&d, tpl, channels, n, DETECT_SMOOTH_UM))
 }
 
 /// The detection map: ∂Sx/∂x + ∂Sy/∂y (or the fitted channel's sensitivity).
@@ -58,8 +58,14 @@ pub(super) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64
 
 /// CLEAN: up to `n` beads from the detection map, every positive maximum taken (no
 /// threshold; [`clean_peaks`] with thresholds and the peaks' heights).
-pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize) -> Vec<BeadInit> {
-    clean_peaks(d, tpl, ch, n, 0.0, 0.0, DETECT_SMOOTH_UM)
+pub(crate) fn clean(
+    d: &Image,
+    tpl: &Template,
+    ch: Channels,
+    n: usize,
+    smooth_um: f64,
+) -> Vec<BeadInit> {
+    clean_peaks(d, tpl, ch, n, 0.0, 0.0, smooth_um)
         .into_iter()
         .map(|(b, _)| b)
         .collect()

@@ -92,6 +92,10 @@ pub struct FitOptions {
     pub max_truncation: f64,
     /// Derivative used for the detection map.
     pub detect_stencil: Stencil,
+    /// σ (µm) of the Gaussian the detection map is smoothed with before its maxima are taken
+    /// ([`super::detect::DETECT_SMOOTH_UM`]); 0: not smoothed (background removal, whose
+    /// objects sit on a filament that smoothing along its line would favour).
+    pub detect_smooth_um: f64,
     /// Vacuum wavelength, nm, for the template's size domain (`analysis::domain`); the
     /// `fit_beads` binding takes it from the session's optics.
     pub wavelength_nm: f64,
@@ -121,6 +125,7 @@ impl Default for FitOptions {
             cond_limit: 1e10,
             max_truncation: 0.05,
             detect_stencil: Stencil::SavitzkyGolay { half_width: 2 },
+            detect_smooth_um: super::detect::DETECT_SMOOTH_UM,
             wavelength_nm: crate::optics::params::Optics::default().wavelength_nm,
             bead_n: None,
         }
@@ -130,6 +135,7 @@ impl Default for FitOptions {
 impl FitOptions {
     pub(super) fn validate(&self) -> Result<()> {
         check_range("ftol", self.ftol, 0.0, 1.0)?;
+        check_range("detect_smooth_um", self.detect_smooth_um, 0.0, 1.0)?;
         check_range("xtol", self.xtol, 0.0, 1.0)?;
         check_range("gtol", self.gtol, 0.0, 1.0)?;
         check_range("patience", self.patience as f64, 1.0, 1e6)?;
