@@ -146,7 +146,13 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             // truth sweep missed 43–67 nm beads beside 136–180 nm ones by stopping there).
             let large = warnings::large_beads(&best, tpl, opts);
             let mut accepted = None;
-            for nb in clean(&d, tpl, opts.channels, GROW_CANDIDATES, opts.detect_smooth_um) {
+            for nb in clean(
+                &d,
+                tpl,
+                opts.channels,
+                GROW_CANDIDATES,
+                opts.detect_smooth_um,
+            ) {
                 // Next to a bead larger than the template describes, the residual is the
                 // template's misfit of that bead, not another bead: one large bead stays one.
                 if large.iter().any(|&(i, d)| {

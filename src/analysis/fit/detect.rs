@@ -164,11 +164,6 @@ pub(crate) fn clean_peaks(
     out
 }
 
-/// The σ of the Gaussian the detection map is smoothed with before its maximum is taken, µm:
-/// small beside the map's peak (≈ 0.15 µm wide in the paper's beam: the peak drops by ≈ 4 %),
-/// large beside the smallest pixels (10 nm), so the maximum's noise no longer grows as 1/pixel.
-pub(crate) const DETECT_SMOOTH_UM: f64 = 0.04;
-
 /// `a` smoothed by a separable Gaussian of σ `sigma_um` (pixels `hx`, `hy` µm), NaN pixels left
 /// out of the weighted mean (and NaN where no finite pixel is within reach).
 fn gaussian_smooth(a: &Array2<f64>, hx: f64, hy: f64, sigma_um: f64) -> Array2<f64> {

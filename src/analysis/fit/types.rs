@@ -93,7 +93,7 @@ pub struct FitOptions {
     /// Derivative used for the detection map.
     pub detect_stencil: Stencil,
     /// σ (µm) of the Gaussian the detection map is smoothed with before its maxima are taken
-    /// ([`super::detect::DETECT_SMOOTH_UM`]); 0: not smoothed (background removal, whose
+    /// ([`DETECT_SMOOTH_UM`]); 0: not smoothed (background removal, whose
     /// objects sit on a filament that smoothing along its line would favour).
     pub detect_smooth_um: f64,
     /// Vacuum wavelength, nm, for the template's size domain (`analysis::domain`); the
@@ -103,6 +103,11 @@ pub struct FitOptions {
     /// template reference's).
     pub bead_n: Option<f64>,
 }
+
+/// The σ of the Gaussian the detection map is smoothed with before its maximum is taken, µm:
+/// small beside the map's peak (≈ 0.15 µm wide in the paper's beam: the peak drops by ≈ 4 %),
+/// large beside the smallest pixels (10 nm), so the maximum's noise no longer grows as 1/pixel.
+pub(crate) const DETECT_SMOOTH_UM: f64 = 0.04;
 
 impl Default for FitOptions {
     fn default() -> Self {
@@ -125,7 +130,7 @@ impl Default for FitOptions {
             cond_limit: 1e10,
             max_truncation: 0.05,
             detect_stencil: Stencil::SavitzkyGolay { half_width: 2 },
-            detect_smooth_um: super::detect::DETECT_SMOOTH_UM,
+            detect_smooth_um: DETECT_SMOOTH_UM,
             wavelength_nm: crate::optics::params::Optics::default().wavelength_nm,
             bead_n: None,
         }
