@@ -1605,14 +1605,16 @@ fn targeted_bead_measures_the_bench_bead_through_the_scan_engine() {
     }
 }
 
-/// A fault mid-protocol on the bench (the Nano-Drive unplugged during targeted::bead): the
-/// script stops with the device's words (device, function, code), the arm in progress is saved
-/// with its partial data, the stage is released and nothing is commanded after the error.
+/// A fault mid-protocol on the bench (the PCI-6120 gone during targeted::bead): the script
+/// stops with the device's words (board, function, code), the arm in progress is saved with its
+/// partial data and returned to its start (the engine's rule for a QPD error: the stage is
+/// fine), and nothing is commanded after that: no further reading, pass or move.
 #[test]
 fn targeted_bead_stops_on_a_bench_fault_with_the_device_words_and_the_partial_arm() {
     let (_g, fake) = bench();
     let (mut wb, dir) = workbench_on_bench("targeted-fault");
-    fake.faults("stage_unplug_after=5");
+    // the board gone at the 6th read: the second pass's x arm (4 reads per pass)
+    fake.faults("daq_removed_after_reads=5");
     let e = wb
         .eval_source(
             "t",
@@ -1624,18 +1626,32 @@ fn targeted_bead_stops_on_a_bench_fault_with_the_device_words_and_the_partial_ar
         .unwrap_err();
     let msg = e.to_string();
     assert!(
-        msg.contains("MCL_DEV_NOT_ATTACHED") && msg.contains("Mad City Labs Nano-Drive #2847"),
+        msg.contains("NI PCI-6120 Dev1: controller error -201003 after `DAQmxReadAnalogF64(")
+            && msg.contains("DAQmxErrorDevCannotBeAccessed")
+            && msg.contains("scan_line failed after 1 of 2 points"),
         "{msg}"
     );
     let saved = saved_in(&dir);
-    let last = saved.last().expect("the arm in progress is saved");
+    assert_eq!(
+        saved.len(),
+        3,
+        "two arms of the first pass and the failed one"
+    );
+    let last = &saved[2];
     assert_eq!(last.status, ScanStatus::Failed, "{msg}");
     assert_eq!(last.meta["protocol"]["name"], "targeted::bead pattern");
+    assert_eq!(last.meta["protocol"]["args"]["pass"], 1);
+    let v: Vec<f64> = last.sx.data.iter().copied().collect();
+    assert!(v[0].is_finite() && v[1].is_nan(), "{v:?}");
+    // after the failing read: the stop of the task, one move (back to the arm's start), nothing else
     let log = fake.log();
-    assert!(log.contains("MCL_ReleaseHandle("), "{log}");
-    let after = log.split("MCL_DEV_NOT_ATTACHED").last().unwrap_or("");
+    let (_, after) = log
+        .split_once("-> -201003")
+        .unwrap_or_else(|| panic!("no read returned -201003: {log}"));
+    assert_eq!(after.matches("MCL_SingleWriteN(").count(), 1, "{after}");
+    assert!(!after.contains("DAQmxReadAnalogF64("), "{after}");
     assert!(
-        !after.contains("MCL_SingleWriteN("),
-        "the stage was commanded after the fault: {after}"
+        log.contains("DAQmxClearTask(") || after.contains("DAQmxStopTask("),
+        "{log}"
     );
 }
