@@ -2,7 +2,11 @@
 //! and the plots, in-process into a temporary folder. Asserts that the files are written, that
 //! each default meets its knee's error criterion (errors are deterministic; times are reported,
 //! not asserted: a test is no benchmark), and the trade-off's physics (the 1/√t law and its
-//! closed-form prediction, the microtubule's linear density).
+//! closed-form prediction, the microtubule's linear density), the Cramér–Rao bound beside every
+//! row (against the scaling law's closed form), the whole-image filament fit beside the per-row
+//! maxima, the targeted protocols' seed study (2 bead seeds, 1 filament seed over 1 µm: the full
+//! study is `bfpscope accuracy` or `bfpscope run scripts/targeted_study.rhai`), and both Pareto
+//! figures.
 
 use crate::support::cleanup;
 
