@@ -497,6 +497,27 @@ fn protein_cylinder_d_nm(mu_mda_um: f64) -> f64 {
     (4.0 * area_nm2 / std::f64::consts::PI).sqrt()
 }
 
+/// An 8 µm protein cylinder of diameter `d_nm` through (c, c) at `tilt_deg` from the y axis,
+/// with `detector_noise` at the paper-noise level and the given seed.
+fn microtubule_scene(c: f64, tilt_deg: f64, d_nm: f64, seed: u64) -> Result<Scene, String> {
+    let mut sc = Scene::default();
+    let t = tilt_deg.to_radians();
+    let (dx, dy) = (4.0 * t.sin(), 4.0 * t.cos());
+    sc.add_filament(Filament {
+        points: vec![[c - dx, c - dy], [c + dx, c + dy]],
+        z: 0.0,
+        profile: DiameterProfile::Constant { d_nm },
+        n: PROTEIN_N,
+        spacing_nm: 50.0,
+    })
+    .map_err(|e| e.to_string())?;
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    sc.seed = seed;
+    Ok(sc)
+}
+
 /// The microtubule's rows by both methods: per dwell, `seeds` noisy scans of a
 /// 13-protofilament microtubule along y through `c`, measured by the paper's per-row maxima
 /// (`measure_filament`, Sec. 5) and by the whole-image bead-model fit (`fit_line_filament`) of
@@ -555,21 +576,7 @@ fn microtubule_rows(
         let (mut ang, mut ang_e, mut corr, mut corr_e) = (vec![], vec![], vec![], vec![]);
         let (mut w_mu, mut w_mu_e, mut w_ang, mut w_ang_e) = (vec![], vec![], vec![], vec![]);
         for s in 0..seeds {
-            let mut sc = Scene::default();
-            let t = tilt_deg.to_radians();
-            let (dx, dy) = (4.0 * t.sin(), 4.0 * t.cos());
-            sc.add_filament(Filament {
-                points: vec![[c - dx, c - dy], [c + dx, c + dy]],
-                z: 0.0,
-                profile: DiameterProfile::Constant { d_nm: d_true },
-                n: PROTEIN_N,
-                spacing_nm: 50.0,
-            })
-            .map_err(|e| e.to_string())?;
-            sc.effects.detector_noise = Some(DetectorNoise {
-                sigma_sample: PAPER_DETECTOR_SIGMA_SAMPLE,
-            });
-            sc.seed = 20_000 + 100 * i as u64 + s as u64;
+            let sc = microtubule_scene(c, tilt_deg, d_true, 20_000 + 100 * i as u64 + s as u64)?;
             let (scan, dt) = engine_scan(&o_mt, &sc, dwell)?;
             clock += dt / seeds as f64;
             match measure_filament(&scan.sx, &scan.sy, &curve, &mo) {
