@@ -117,6 +117,9 @@ enum Cmd {
         /// Print one JSON object instead of the table
         #[arg(long)]
         json: bool,
+        /// Rerun one scene of a BFPSCOPE_SWEEP_DUMP line (its `scene` JSON) and tell it in words
+        #[arg(long, value_name = "SCENE_JSON")]
+        replay: Option<String>,
     },
 }
 
@@ -532,7 +535,20 @@ fn main() -> ExitCode {
             out,
             criterion,
         } => accuracy_cmd(quick, out, criterion),
-        Cmd::Sweep { n, seed, json } => bfpscope::accuracy::sweep::cli(n, seed, json),
+        Cmd::Sweep {
+            replay: Some(scene),
+            ..
+        } => match bfpscope::accuracy::sweep::replay(&scene) {
+            Ok(s) => {
+                print!("{s}");
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("error: sweep: {e}");
+                ExitCode::from(2)
+            }
+        },
+        Cmd::Sweep { n, seed, json, .. } => bfpscope::accuracy::sweep::cli(n, seed, json),
         Cmd::Docs { out, check } => docs_cmd(out, check),
     }
 }

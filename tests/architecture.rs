@@ -713,39 +713,20 @@ fn function_lengths() -> Vec<(usize, String)> {
 /// Longest a production function of `src/` may be, lines.
 const MAX_FN_LINES: usize = 150;
 
-/// Functions still over [`MAX_FN_LINES`], to be split (`file name`): the list may only shrink.
-const STILL_LONG: &[&str] = &[
-    "src/instrument/madlib/mod.rs connect",
-    "src/acquire/strategy/stream.rs prepare",
-];
-
 #[test]
 fn no_production_function_is_over_150_lines() {
     let long: Vec<(usize, String)> = function_lengths()
         .into_iter()
         .filter(|(n, _)| *n > MAX_FN_LINES)
         .collect();
-    let key = |s: &str| {
-        let (place, name) = s.split_once(' ').unwrap();
-        format!("{} {name}", place.split(':').next().unwrap())
-    };
     let new: Vec<String> = long
         .iter()
-        .filter(|(_, s)| !STILL_LONG.contains(&key(s).as_str()))
         .map(|(n, s)| format!("{s}: {n} lines"))
         .collect();
     assert!(
         new.is_empty(),
         "functions over {MAX_FN_LINES} lines (split them into steps named after what they do):\n{}",
         new.join("\n")
-    );
-    let done: Vec<&&str> = STILL_LONG
-        .iter()
-        .filter(|s| !long.iter().any(|(_, l)| key(l) == **s))
-        .collect();
-    assert!(
-        done.is_empty(),
-        "no longer over {MAX_FN_LINES} lines: take them off STILL_LONG: {done:?}"
     );
 }
 
@@ -756,5 +737,100 @@ fn function_lengths_count_from_fn_to_its_closing_brace() {
     assert_eq!(
         closing_brace(code.as_bytes(), code.find('{').unwrap()),
         code.rfind('}').unwrap()
+    );
+}
+
+/// The option keys a binding family file writes as string literals where a key is declared
+/// (`("key", "type", "unit", help)` in a `Doc::map`, `Opt::new("key", …)`) or read
+/// (`o.f64_or("key", …)`, `m.get("key")`), each with its count.
+fn option_key_literals(code: &str) -> BTreeMap<String, usize> {
+    let mut n: BTreeMap<String, usize> = BTreeMap::new();
+    let key_at = |rest: &str| -> Option<String> {
+        let rest = rest.strip_prefix('"')?;
+        let end = rest.find('"')?;
+        let k = &rest[..end];
+        (!k.is_empty()
+            && k.bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_'))
+        .then(|| k.to_string())
+    };
+    for line in code.lines() {
+        let t = line.trim_start();
+        // a declaration tuple on a line of its own: ("key", "type", "unit", help) (not a
+        // property's ("name", "what it is"))
+        if let Some(rest) = t.strip_prefix('(') {
+            if let Some(k) = key_at(rest) {
+                let after = &rest[k.len() + 2..];
+                let strings = after.split(',').take(3).collect::<Vec<_>>();
+                let quoted = |s: &str| s.trim().starts_with('"') && s.trim().ends_with('"');
+                if strings.len() == 3 && quoted(strings[1]) && quoted(strings[2]) {
+                    *n.entry(k).or_default() += 1;
+                }
+            }
+        }
+        let reads = [
+            "Opt::new(",
+            ".f64(",
+            ".f64_or(",
+            ".req_f64(",
+            ".int(",
+            ".req_int(",
+            ".bool_or(",
+            ".string(",
+            ".axis_strings(",
+            ".range(",
+            ".req_range(",
+            ".value(",
+            ".has(",
+            ".get(",
+            ".contains_key(",
+        ];
+        for r in reads {
+            let mut from = 0;
+            while let Some(i) = line[from..].find(r) {
+                let at = from + i + r.len();
+                if let Some(k) = key_at(&line[at..]) {
+                    *n.entry(k).or_default() += 1;
+                }
+                from = at;
+            }
+        }
+    }
+    n
+}
+
+#[test]
+fn option_key_literals_are_counted_where_declared_and_read() {
+    let code = "    (\"dwell\", \"float\", \"s\", \"optional\"),\n let d = o.f64_or(\"dwell\", 1.0)?;\nconst N: Opt = Opt::new(\"n_avg\", \"int\", \"\");\n        (\"sigma\", \"pixel noise used\"),\n";
+    let n = option_key_literals(code);
+    assert_eq!(n.get("dwell"), Some(&2));
+    assert_eq!(n.get("sigma"), None, "a property's name and description");
+    assert_eq!(n.get("n_avg"), Some(&1));
+    assert_eq!(n.get("float"), None);
+}
+
+#[test]
+fn no_binding_option_key_is_written_twice() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/script");
+    let mut twice = vec![];
+    let mut files = vec![];
+    rs_files(&dir, &mut files);
+    for f in files {
+        let name = f.file_name().unwrap().to_string_lossy().to_string();
+        let text = std::fs::read_to_string(&f).unwrap();
+        let code = text.split("#[cfg(test)]").next().unwrap_or_default();
+        let keys: Vec<String> = option_key_literals(code)
+            .into_iter()
+            .filter(|(_, c)| *c > 1)
+            .map(|(k, c)| format!("{k} ×{c}"))
+            .collect();
+        if !keys.is_empty() {
+            twice.push(format!("src/script/{name}: {}", keys.join(", ")));
+        }
+    }
+    assert!(
+        twice.is_empty(),
+        "option keys written more than once (declare a `const K: Opt = Opt::new(\"key\", …)` and use K where the key is declared and read):\n{}",
+        twice.join("\n")
     );
 }

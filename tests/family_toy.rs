@@ -101,10 +101,14 @@ const TOY: Family = Family {
     name: "toy",
     backend: "toy",
     aliases: &[],
-    stages: &[],
-    qpds: &[],
+    stages: &["toy"],
+    qpds: &["toy"],
     keys: &[],
     open: Open::Build(open_toy),
+    stage_defaults: registry::StageDefaults {
+        poll_ms: 7,
+        settle_s: Some(0.002),
+    },
 };
 
 fn workbench() -> Workbench {
@@ -169,6 +173,36 @@ fn a_registered_family_is_listed_and_refuses_keys_it_does_not_take() {
     assert!(
         e.contains(
             "connect: qpd_port applies to backend \"hardware\" / \"thorlabs\" only, not \"toy\""
+        ),
+        "{e}"
+    );
+}
+
+#[test]
+fn the_config_reads_a_registered_familys_backends_and_stage_defaults() {
+    registry::register_family(TOY).expect("the toy family's names are new");
+    let toml = "[stage]\nbackend = \"toy\"\n[qpd]\nbackend = \"toy\"\n";
+    let cfg =
+        bfpscope::config::Config::from_toml_str(toml, "toy.toml").unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(cfg.stage.backend.as_str(), "toy");
+    assert_eq!(cfg.qpd.backend.as_str(), "toy");
+    // the family's defaults, not the config's (5 ms poll, 5 ms settle)
+    assert_eq!(cfg.stage.poll_ms(), 7);
+    assert_eq!(cfg.stage.settle_s, 0.002);
+    // a settle time the file gives is kept
+    let cfg = bfpscope::config::Config::from_toml_str(
+        "[stage]\nbackend = \"toy\"\nsettle_s = 0.01\npoll_ms = 3\n[qpd]\nbackend = \"toy\"\n",
+        "toy.toml",
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((cfg.stage.settle_s, cfg.stage.poll_ms()), (0.01, 3));
+    // a name no family provides is refused with the list of those that are
+    let e = bfpscope::config::Config::from_toml_str("[stage]\nbackend = \"hexapod\"\n", "toy.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(
+            "unknown variant `hexapod`, expected one of `sim`, `gcs`, `kpz101`, `madlib`, `toy`"
         ),
         "{e}"
     );

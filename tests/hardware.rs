@@ -5,10 +5,11 @@
 //! names the device, the command and what came back.
 
 use crate::support::cleanup;
+use bfpscope::instrument::{gcs::GCS, scpi::SCPI};
 
 use bfpscope::acquire::{run_plan, Axis, Ended, Plan, ScanEnv, ScanError, SoftLimits, Sweep};
 use bfpscope::config::connect::{connect, ConnectError};
-use bfpscope::config::{Backend, Config};
+use bfpscope::config::Config;
 use bfpscope::data::{Scan, ScanStatus};
 use bfpscope::instrument::emulator::{
     garble, run_emulator_cli_with, shared_position, sim_signal_source, standin_bead, start_pair,
@@ -856,9 +857,9 @@ fn connect_soft_limits_outside_travel_is_a_config_error() {
 #[test]
 fn connect_missing_port_names_device_and_port() {
     let mut cfg = Config::default();
-    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.backend = GCS;
     cfg.stage.port = Some("/dev/bfpscope-no-such-port".into());
-    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.backend = SCPI;
     cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
     let e = connect(&cfg, no_sim).err().expect("must fail");
     let msg = e.to_string();
@@ -878,9 +879,9 @@ fn connect_missing_port_names_device_and_port() {
 fn connect_qpd_failure_closes_the_stage_port() {
     let se = stage_emu();
     let mut cfg = Config::default();
-    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.backend = GCS;
     cfg.stage.port = Some(se.path().into());
-    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.backend = SCPI;
     cfg.qpd.port = Some("/dev/bfpscope-no-such-qpd".into());
     let e = connect(&cfg, no_sim).err().expect("must fail");
     assert!(
@@ -2221,9 +2222,9 @@ fn tcp_port_in_the_config_connects_and_a_dead_port_is_named() {
     let se = tcp_stage_emu();
     let qe = qpd_emu(0.0, [0.0; 3]);
     let mut cfg = Config::default();
-    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.backend = GCS;
     cfg.stage.port = Some(se.path().into());
-    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.backend = SCPI;
     cfg.qpd.port = Some(qe.path().into());
     let mut c = connect(&cfg, no_sim).unwrap();
     assert_eq!(c.instrument.description["stage"]["port"], se.path());

@@ -61,6 +61,12 @@ pub struct Tally {
     pub examples: Vec<String>,
     /// Why answers were flagged or refused: each warning or refusal, its numbers masked, counted.
     pub reasons: BTreeMap<String, usize>,
+    /// Wall time of the scenes this estimator ran on (render and analysis), s: in all, and the
+    /// slowest scene with its time (for a developer chasing a fit that takes minutes).
+    pub seconds: f64,
+    pub scenes: usize,
+    pub slowest_s: f64,
+    pub slowest: String,
 }
 
 impl Tally {
@@ -129,29 +135,71 @@ pub struct SweepOptions {
     pub seed: u64,
 }
 
-/// The bead family: one scene, fitted, every bead matched to its truth.
+/// One bead scene of the sweep: beads `[x, y, d]` (µm, µm, nm), the paper's noise × `noise`,
+/// square pixels of `pixel_um` on ±1.2 µm, the noise's `seed`. Serialised exactly (JSON) in the
+/// dump, so `bfpscope sweep --replay` reruns it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct BeadCase {
+    pub beads: Vec<[f64; 3]>,
+    pub noise: f64,
+    pub pixel_um: f64,
+    pub seed: u64,
+}
+
+/// Half the side of the bead scenes' field, µm.
+const BEAD_HALF_UM: f64 = 1.2;
+
+impl BeadCase {
+    /// 0–5 beads of 40–500 nm (log-uniform), ≥ 0.2 µm apart, up to 0.2 µm beyond the field.
+    fn draw(rng: &mut ChaCha8Rng) -> BeadCase {
+        let half = BEAD_HALF_UM;
+        let n_beads = [0, 1, 1, 1, 2, 3, 4, 5][rng.random_range(0..8)];
+        let mut beads: Vec<[f64; 3]> = vec![];
+        let mut tries = 0;
+        while beads.len() < n_beads && tries < 200 {
+            tries += 1;
+            let x = rng.random_range(-half - 0.2..half + 0.2);
+            let y = rng.random_range(-half - 0.2..half + 0.2);
+            if beads.iter().all(|b| (b[0] - x).hypot(b[1] - y) >= 0.2) {
+                let d = (40f64.ln() + rng.random::<f64>() * (500f64 / 40.0).ln()).exp();
+                beads.push([x, y, d]);
+            }
+        }
+        let noise = rng.random_range(0.0..10.0);
+        let pixel_um = rng.random_range(0.01..0.1);
+        let seed = rng.random::<u64>();
+        BeadCase {
+            beads,
+            noise,
+            pixel_um,
+            seed,
+        }
+    }
+    fn describe(&self) -> String {
+        let n_px = (2.0 * BEAD_HALF_UM / self.pixel_um).round() as usize + 1;
+        format!(
+            "beads {:?} (x, y µm, d nm), noise ×{:.4}, pixel {:.1} nm ({n_px}² on ±{BEAD_HALF_UM} µm), seed {}",
+            self.beads
+                .iter()
+                .map(|b| (round4(b[0]), round4(b[1]), round4(b[2])))
+                .collect::<Vec<_>>(),
+            self.noise,
+            self.pixel_um * 1000.0,
+            self.seed
+        )
+    }
+}
+
+/// The bead family: one scene, fitted, every bead matched to its truth. Returns the fit (for
+/// `--replay`), None when the scene was not rendered or the fit refused.
 fn bead_case(
-    rng: &mut ChaCha8Rng,
+    case: &BeadCase,
     tpl: &Template,
     optics: &Optics,
     t: &mut BTreeMap<String, Tally>,
-) {
-    let half = 1.2;
-    let n_beads = [0, 1, 1, 1, 2, 3, 4, 5][rng.random_range(0..8)];
-    let mut beads: Vec<(f64, f64, f64)> = vec![];
-    let mut tries = 0;
-    while beads.len() < n_beads && tries < 200 {
-        tries += 1;
-        let x = rng.random_range(-half - 0.2..half + 0.2);
-        let y = rng.random_range(-half - 0.2..half + 0.2);
-        if beads.iter().all(|b| (b.0 - x).hypot(b.1 - y) >= 0.2) {
-            let d = (40f64.ln() + rng.random::<f64>() * (500f64 / 40.0).ln()).exp();
-            beads.push((x, y, d));
-        }
-    }
-    let noise = rng.random_range(0.0..10.0);
-    let pixel = rng.random_range(0.01..0.1);
-    let seed = rng.random::<u64>();
+) -> Option<crate::analysis::fit::FitResult> {
+    let half = BEAD_HALF_UM;
+    let beads: Vec<(f64, f64, f64)> = case.beads.iter().map(|b| (b[0], b[1], b[2])).collect();
     let mut sc = Scene::default();
     for &(x, y, d) in &beads {
         let _ = sc.add_bead(Bead {
@@ -160,20 +208,8 @@ fn bead_case(
             n: REF_BEAD_N,
         });
     }
-    let n_px = (2.0 * half / pixel).round() as usize + 1;
-    let describe = || {
-        format!(
-            "beads {:?} (x, y µm, d nm), noise ×{noise:.4}, pixel {:.1} nm ({n_px}² on ±{half} µm), seed {seed}",
-            beads
-                .iter()
-                .map(|b| (round4(b.0), round4(b.1), round4(b.2)))
-                .collect::<Vec<_>>(),
-            pixel * 1000.0
-        )
-    };
-    let Some(scan) = render_field(optics, sc, half, pixel, noise, seed) else {
-        return;
-    };
+    let describe = || case.describe();
+    let scan = render_field(optics, sc, half, case.pixel_um, case.noise, case.seed)?;
     let fo = FitOptions {
         w0_um: optics.w0_nm / 1000.0,
         wavelength_nm: optics.wavelength_nm,
@@ -192,8 +228,14 @@ fn bead_case(
     };
     let fit = match fit_beads(&scan.sx, &scan.sy, tpl, &fo) {
         Ok(f) if f.whole_fit_warnings().is_empty() => f,
-        Ok(f) => return flag_all(t, f.whole_fit_warnings()),
-        Err(e) => return flag_all(t, &[e.to_string()]),
+        Ok(f) => {
+            flag_all(t, f.whole_fit_warnings());
+            return Some(f);
+        }
+        Err(e) => {
+            flag_all(t, &[e.to_string()]);
+            return None;
+        }
     };
     // the count: every bead the data could show (weight ≥ 10 σ of the fitted weights) found,
     // none found that is not there
@@ -274,6 +316,7 @@ fn bead_case(
             || msg("weight", b.weight, wt, b.weight_err),
         );
     }
+    Some(fit)
 }
 
 /// The scene with the paper's detector noise × `noise` drawn from `seed`, rendered on a square
@@ -309,8 +352,9 @@ fn dump(value: f64, truth: f64, sigma: Option<f64>, what: &dyn Fn() -> String) {
         std::fs::File::create(p).ok().map(std::sync::Mutex::new)
     });
     if let Some(Ok(mut f)) = f.as_ref().map(|m| m.lock()) {
-        let line =
-            serde_json::json!({"value": value, "truth": truth, "sigma": sigma, "case": what()});
+        let scene: serde_json::Value =
+            CURRENT.with(|s| serde_json::from_str(&s.borrow()).unwrap_or_default());
+        let line = serde_json::json!({"value": value, "truth": truth, "sigma": sigma, "case": what(), "scene": scene});
         let _ = writeln!(f, "{line}");
     }
 }
@@ -344,34 +388,78 @@ struct FibrilCal {
     a_nm: f64,
 }
 
+/// One fibril scene of the sweep: a straight collagen-like fibril (n = 1.41) `len_um` long and
+/// `d_nm` thick at `angle_deg` from y, centred at `centre` (µm) in a ±1.5 µm field; the paper's
+/// noise × `noise`; pixels of `pixel_nm`; the noise's `seed`.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct FibrilCase {
+    pub len_um: f64,
+    pub d_nm: f64,
+    pub angle_deg: f64,
+    pub centre: [f64; 2],
+    pub noise: f64,
+    pub pixel_nm: u32,
+    pub seed: u64,
+}
+
+impl FibrilCase {
+    /// 0.3–15 µm long (log-uniform), 10–150 nm thick, any angle and position in the field.
+    fn draw(rng: &mut ChaCha8Rng) -> FibrilCase {
+        let len_um = (0.3f64.ln() + rng.random::<f64>() * (15.0f64 / 0.3).ln()).exp();
+        let d_nm = rng.random_range(10.0..150.0);
+        let angle_deg = rng.random_range(-90.0f64..90.0);
+        let centre = [rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5)];
+        let noise = rng.random_range(0.0..10.0);
+        let pixel_nm = [20u32, 30, 50, 75, 100][rng.random_range(0..5)];
+        let seed = rng.random::<u64>();
+        FibrilCase {
+            len_um,
+            d_nm,
+            angle_deg,
+            centre,
+            noise,
+            pixel_nm,
+            seed,
+        }
+    }
+    fn describe(&self) -> String {
+        format!(
+            "fibril {:.2} µm long, d {:.1} nm, at {:.1}°, centre ({:.2}, {:.2}) µm, noise ×{:.4}, pixel {} nm, seed {}",
+            self.len_um,
+            self.d_nm,
+            self.angle_deg,
+            self.centre[0],
+            self.centre[1],
+            self.noise,
+            self.pixel_nm,
+            self.seed
+        )
+    }
+}
+
 /// The fibril family: one straight collagen-like fibril, measured, its diameter against truth.
+/// Returns the measurement's warnings or refusal in words (for `--replay`).
 fn fibril_case(
-    rng: &mut ChaCha8Rng,
+    case: &FibrilCase,
     tpl: &Template,
     optics: &Optics,
     cals: &mut BTreeMap<u32, FibrilCal>,
     t: &mut BTreeMap<String, Tally>,
-) {
+) -> Option<crate::analysis::orientation::FilamentMeasurement> {
     let half = 1.5;
-    let len = (0.3f64.ln() + rng.random::<f64>() * (15.0f64 / 0.3).ln()).exp();
-    let d = rng.random_range(10.0..150.0);
-    let angle = rng.random_range(-90.0f64..90.0).to_radians();
-    let c = [rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5)];
-    let noise = rng.random_range(0.0..10.0);
-    let pixel_nm = [20u32, 30, 50, 75, 100][rng.random_range(0..5)];
-    let seed = rng.random::<u64>();
+    let (len, d, c, noise, pixel_nm, seed) = (
+        case.len_um,
+        case.d_nm,
+        case.centre,
+        case.noise,
+        case.pixel_nm,
+        case.seed,
+    );
+    let angle = case.angle_deg.to_radians();
     let dir = [angle.sin(), angle.cos()];
     let p0 = [c[0] - 0.5 * len * dir[0], c[1] - 0.5 * len * dir[1]];
     let p1 = [c[0] + 0.5 * len * dir[0], c[1] + 0.5 * len * dir[1]];
-    let describe = || {
-        format!(
-            "fibril {:.2} µm long, d {d:.1} nm, at {:.1}°, centre ({:.2}, {:.2}) µm, noise ×{noise:.4}, pixel {pixel_nm} nm, seed {seed}",
-            len,
-            angle.to_degrees(),
-            c[0],
-            c[1]
-        )
-    };
+    let describe = || case.describe();
     let tally = t.entry("measure_filament.diameter".into()).or_default();
     let pixel = pixel_nm as f64 / 1000.0;
     if let std::collections::btree_map::Entry::Vacant(slot) = cals.entry(pixel_nm) {
@@ -392,7 +480,7 @@ fn fibril_case(
             ),
         ) else {
             tally.refused();
-            return;
+            return None;
         };
         slot.insert(FibrilCal {
             curve,
@@ -411,12 +499,11 @@ fn fibril_case(
         })
         .is_err()
     {
-        return;
+        return None;
     }
-    let Some(scan) = render_field(optics, sc, half, pixel, noise, seed) else {
-        return;
-    };
-    match measure_filament(&scan.sx, &scan.sy, &cal.curve, &cal.curve.options.measure) {
+    let scan = render_field(optics, sc, half, pixel, noise, seed)?;
+    let r = measure_filament(&scan.sx, &scan.sy, &cal.curve, &cal.curve.options.measure);
+    match &r {
         Ok(m) if m.warnings.is_empty() && m.mean_corr > 0.0 => {
             let dm = cal.a_nm * m.mean_corr.sqrt();
             let s = 0.5 * dm * m.sem_corr / m.mean_corr;
@@ -428,6 +515,7 @@ fn fibril_case(
         Ok(m) => tally.flagged(&m.warnings),
         Err(e) => tally.flagged(&[e.to_string()]),
     }
+    r.ok()
 }
 
 /// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
@@ -450,15 +538,150 @@ pub fn run(
     let mut cals = BTreeMap::new();
     let total = 2 * opts.n;
     for i in 0..opts.n {
-        bead_case(&mut rng, &tpl, &optics, &mut t);
+        let bc = BeadCase::draw(&mut rng);
+        set_current(&Case::Beads(bc.clone()));
+        let t0 = std::time::Instant::now();
+        bead_case(&bc, &tpl, &optics, &mut t);
+        timed(
+            &mut t,
+            "fit_beads.",
+            t0.elapsed().as_secs_f64(),
+            &bc.describe(),
+        );
         progress(2 * i + 1, total);
-        fibril_case(&mut rng, &tpl, &optics, &mut cals, &mut t);
+        let fc = FibrilCase::draw(&mut rng);
+        set_current(&Case::Fibril(fc.clone()));
+        let t0 = std::time::Instant::now();
+        fibril_case(&fc, &tpl, &optics, &mut cals, &mut t);
+        timed(
+            &mut t,
+            "measure_filament.",
+            t0.elapsed().as_secs_f64(),
+            &fc.describe(),
+        );
         progress(2 * i + 2, total);
     }
     for v in t.values_mut() {
         v.finish();
     }
     Ok(t)
+}
+
+/// A scene of either family, as the dump writes it and `--replay` reads it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+#[serde(tag = "family", rename_all = "lowercase")]
+pub enum Case {
+    Beads(BeadCase),
+    Fibril(FibrilCase),
+}
+
+thread_local! {
+    /// The scene being evaluated, as JSON (for the dump's lines).
+    static CURRENT: std::cell::RefCell<String> = const { std::cell::RefCell::new(String::new()) };
+}
+
+fn set_current(c: &Case) {
+    let j = serde_json::to_string(c).unwrap_or_default();
+    CURRENT.with(|s| *s.borrow_mut() = j);
+}
+
+/// `bfpscope sweep --replay '<scene JSON>'`: one scene of the dump (its `scene` field), rerun
+/// and told in words: the tallies, and the fit's beads with their warnings, or the filament's
+/// measurement.
+pub fn replay(json: &str) -> Result<String, String> {
+    let case: Case = serde_json::from_str(json).map_err(|e| {
+        format!("--replay: not a sweep scene ({e}); give the `scene` field of a BFPSCOPE_SWEEP_DUMP line")
+    })?;
+    let optics = Optics::default();
+    let tpl = Template::from_optics(
+        &optics,
+        &DetectorModel::default(),
+        RefBead::default(),
+        0.02,
+        0.0,
+    )
+    .map_err(|e| e.to_string())?;
+    let mut t = BTreeMap::new();
+    set_current(&case);
+    let mut out = String::new();
+    match &case {
+        Case::Beads(bc) => {
+            out.push_str(&format!("{}\n", bc.describe()));
+            if let Some(f) = bead_case(bc, &tpl, &optics, &mut t) {
+                for w in f.whole_fit_warnings() {
+                    out.push_str(&format!("  whole fit: {w}\n"));
+                }
+                for g in &f.history {
+                    out.push_str(&format!(
+                        "  grow: {} beads, BIC {:.1}, accepted {}\n",
+                        g.n_beads, g.bic, g.accepted
+                    ));
+                }
+                for d in &f.degeneracies {
+                    out.push_str(&format!("  degeneracy: {d:?}\n"));
+                }
+                for (b, w) in f.beads.iter().zip(&f.bead_warnings) {
+                    out.push_str(&format!(
+                        "  bead ({:.5}, {:.5}) ± ({:.5}, {:.5}) µm, weight {:.5} ± {:.5}, found {}: {}\n",
+                        b.x,
+                        b.y,
+                        b.x_err.unwrap_or(f64::NAN),
+                        b.y_err.unwrap_or(f64::NAN),
+                        b.weight,
+                        b.weight_err.unwrap_or(f64::NAN),
+                        b.found(),
+                        if w.is_empty() { "ok".to_string() } else { w.join("; ") }
+                    ));
+                }
+            }
+        }
+        Case::Fibril(fc) => {
+            out.push_str(&format!("{}\n", fc.describe()));
+            let mut cals = BTreeMap::new();
+            if let Some(m) = fibril_case(fc, &tpl, &optics, &mut cals, &mut t) {
+                out.push_str(&format!(
+                    "  angle {:.2} ± {:.2}°, corrected mean {:.5} ± {:.5} (std {:.5}), {} maxima ({} interior): {}\n",
+                    m.angle_deg,
+                    m.angle_err_deg,
+                    m.mean_corr,
+                    m.sem_corr,
+                    m.std_corr,
+                    m.points.len(),
+                    m.points.iter().filter(|p| p.interior).count(),
+                    if m.warnings.is_empty() { "ok".to_string() } else { m.warnings.join("; ") }
+                ));
+            }
+        }
+    }
+    for v in t.values_mut() {
+        v.finish();
+    }
+    out.push_str(&table(&t));
+    for (k, v) in &t {
+        for e in &v.examples {
+            out.push_str(&format!("{k}: unflagged outlier: {e}\n"));
+        }
+        for (r, c) in &v.reasons {
+            out.push_str(&format!("{k}: {c} × {r}\n"));
+        }
+    }
+    Ok(out)
+}
+
+/// Adds one scene's wall time `s` to every tally whose estimator starts with `family`.
+fn timed(t: &mut BTreeMap<String, Tally>, family: &str, s: f64, case: &str) {
+    for v in t
+        .iter_mut()
+        .filter(|(k, _)| k.starts_with(family))
+        .map(|(_, v)| v)
+    {
+        v.seconds += s;
+        v.scenes += 1;
+        if s > v.slowest_s {
+            v.slowest_s = s;
+            v.slowest = case.to_string();
+        }
+    }
 }
 
 /// `bfpscope sweep --n N --seed S [--json]`: the sweep with a progress bar (not with `--json`),
@@ -489,6 +712,10 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
                         println!("{k}: unflagged outlier: {e}");
                     }
                 }
+                let mut shown = std::collections::BTreeSet::new();
+                for v in t.values().filter(|v| shown.insert(v.slowest.clone())) {
+                    println!("slowest scene: {:.1} s: {}", v.slowest_s, v.slowest);
+                }
                 if std::env::var_os("BFPSCOPE_SWEEP_REASONS").is_some() {
                     for (k, v) in &t {
                         for (r, c) in &v.reasons {
@@ -513,17 +740,19 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
 /// The tallies as a table (markdown).
 pub fn table(t: &BTreeMap<String, Tally>) -> String {
     let mut s = String::from(
-        "| estimator | cases | in domain | 1σ coverage | 2σ coverage | flagged or refused | unflagged outliers |\n|---|---|---|---|---|---|---|\n",
+        "| estimator | cases | in domain | 1σ coverage | 2σ coverage | flagged or refused | unflagged outliers | s per scene (mean, max) |\n|---|---|---|---|---|---|---|---|\n",
     );
     for (k, v) in t {
         s.push_str(&format!(
-            "| {k} | {} | {} | {} | {} | {:.1} % | {} |\n",
+            "| {k} | {} | {} | {} | {} | {:.1} % | {} | {:.2}, {:.1} |\n",
             v.cases,
             v.in_domain,
             pct(v.coverage_1s),
             pct(v.coverage_2s),
             100.0 * v.flagged,
-            v.unflagged_outliers
+            v.unflagged_outliers,
+            v.seconds / v.scenes.max(1) as f64,
+            v.slowest_s
         ));
     }
     s

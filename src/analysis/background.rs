@@ -147,6 +147,7 @@ pub fn remove_point_background(
         opts.max_objects,
         opts.detect_snr * noise,
         opts.min_weight,
+        0.0,
     )
     .into_iter()
     .map(|(b, _)| b)
@@ -171,6 +172,7 @@ pub fn remove_point_background(
             MAX_REMAINING,
             REMAINING_SNR * noise,
             opts.min_weight.min(DEFAULT_MIN_WEIGHT),
+            0.0,
         )
         .into_iter()
         .map(|(b, v)| Remaining {

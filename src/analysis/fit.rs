@@ -124,7 +124,14 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             bic: best.bic,
             accepted: true,
         }];
-        while best.beads.len() < opts.max_beads && data.check_count(best.beads.len() + 1).is_ok() {
+        // Each accepted step lowers the criterion; a replacement keeps the count, so the steps
+        // are also bounded.
+        let mut steps = 0;
+        while best.beads.len() < opts.max_beads
+            && data.check_count(best.beads.len() + 1).is_ok()
+            && steps < 2 * opts.max_beads
+        {
+            steps += 1;
             let Ok(d) = detection_map(
                 &best.residual_sx,
                 &best.residual_sy,
@@ -150,8 +157,30 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
                 }
                 let mut init = existing.clone();
                 init.push(nb);
-                let cand = data.fit_with_degeneracy(init, opts)?;
-                let improves = cand.beads.len() > best.beads.len()
+                let mut cand = data.fit_with_degeneracy(init, opts)?;
+                // The added bead can make an earlier one insignificant: that one was a noise
+                // maximum standing in for the bead now found (the truth sweep's lone 59 nm bead
+                // was missed for a spurious one 0.9 µm away). The candidate is then the
+                // replacement: refitted without the earlier insignificant beads.
+                let stale: Vec<usize> = (0..existing.len().min(cand.beads.len()))
+                    .filter(|&i| cand.beads[i].insignificant())
+                    .collect();
+                let added_holds = cand
+                    .beads
+                    .get(existing.len())
+                    .is_some_and(|b| !b.insignificant());
+                if !stale.is_empty() && added_holds {
+                    let keep: Vec<BeadInit> = cand
+                        .beads
+                        .iter()
+                        .enumerate()
+                        .filter(|(i, _)| !stale.contains(i))
+                        .map(|(_, b)| b.init())
+                        .collect();
+                    cand = data.fit_with_degeneracy(keep, opts)?;
+                }
+                let improves = (cand.beads.len() > best.beads.len()
+                    || (!stale.is_empty() && cand.beads.len() == best.beads.len()))
                     && !cand.degeneracies.iter().any(|d| {
                         matches!(
                             d,

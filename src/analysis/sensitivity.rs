@@ -75,6 +75,17 @@ impl Stencil {
         }
     }
 
+    /// How many pixels away a derivative pixel may read, at most: 1 (central2), 2 (central5),
+    /// 2m for Savitzky–Golay (m inside; a pixel within m of the edge reads the window shifted
+    /// inside, up to 2m away). The fallbacks at edges and NaN pixels reach no farther.
+    pub fn reach(&self) -> usize {
+        match *self {
+            Stencil::Central2 => 1,
+            Stencil::Central5 => 2,
+            Stencil::SavitzkyGolay { half_width } => 2 * half_width,
+        }
+    }
+
     /// The name [`Stencil::parse`] reads: `"central2"`, `"central5"`, `"sg<2m+1>"`.
     pub fn name(&self) -> String {
         match *self {

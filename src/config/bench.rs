@@ -29,10 +29,11 @@
 //! ```
 
 use super::kinds::{PCI6120_MAX_RANGE_V, PCI6120_MAX_RATE_HZ};
-use super::{err, Backend, Config, ConfigError};
+use super::{err, Config, ConfigError};
 use crate::instrument::madlib::MadlibOptions;
 use crate::instrument::nidaqmx::raster::{ExternalInput, NiRasterOptions};
 use crate::instrument::nidaqmx::{parse_channel, NiInputs, NiQpdOptions, Terminal};
+use crate::instrument::{madlib::MADLIB, nidaqmx::NIDAQMX, scpi::SCPI};
 use std::time::Duration;
 
 fn positive_or_err(key: &str, v: Option<f64>, what: &str) -> Result<f64, ConfigError> {
@@ -61,7 +62,7 @@ impl Config {
     pub(super) fn validate_bench(&self) -> Result<(), ConfigError> {
         let s = &self.stage;
         let q = &self.qpd;
-        if s.backend == Backend::Madlib {
+        if s.backend == MADLIB {
             self.madlib_options()?;
         } else {
             only_for(
@@ -73,7 +74,7 @@ impl Config {
                 ],
             )?;
         }
-        if q.backend == Backend::Nidaqmx {
+        if q.backend == NIDAQMX {
             self.ni_qpd_options()?;
         } else {
             only_for(
@@ -83,10 +84,7 @@ impl Config {
                     ("qpd.library", q.library.is_some()),
                     ("qpd.device", q.device.is_some()),
                     // the SCPI digitiser's range comes from the config too
-                    (
-                        "qpd.range_v",
-                        q.range_v.is_some() && q.backend != super::Backend::Scpi,
-                    ),
+                    ("qpd.range_v", q.range_v.is_some() && q.backend != SCPI),
                     ("qpd.terminal", q.terminal.is_some()),
                     ("qpd.rate_hz", q.rate_hz.is_some()),
                 ],
@@ -102,7 +100,7 @@ impl Config {
             }
         }
         if let Some(r) = &self.raster {
-            if r.backend != Backend::Nidaqmx {
+            if r.backend != NIDAQMX {
                 return Err(err(
                     "raster.backend",
                     format!(
@@ -111,10 +109,10 @@ impl Config {
                     ),
                 ));
             }
-            if q.backend != Backend::Nidaqmx {
+            if q.backend != NIDAQMX {
                 return Err(err("raster.backend", format!("\"nidaqmx\" needs [qpd] backend = \"nidaqmx\" (the raster records the QPD on the NI board); the QPD is \"{}\"", q.backend.as_str())));
             }
-            if s.backend != Backend::Madlib {
+            if s.backend != MADLIB {
                 return Err(err("raster.backend", format!("\"nidaqmx\" drives a Nano-Drive's external inputs: needs [stage] backend = \"madlib\" (the stage is \"{}\")", s.backend.as_str())));
             }
             self.ni_raster_options()?;

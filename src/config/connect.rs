@@ -2,11 +2,15 @@
 //! serial ports. Also computes the limits in force (`[safety]` soft limits ∩ the travel range
 //! the stage reports, with the step and speed limits), which `acquire/` enforces.
 
-use super::{err, Backend, Config, ConfigError};
+use super::{err, Config, ConfigError};
 use crate::acquire::SoftLimits;
 use crate::instrument::gcs::split::GcsSplitStage;
 use crate::instrument::gcs::GcsStage;
 use crate::instrument::scpi::ScpiQpd;
+use crate::instrument::{
+    gcs::GCS, madlib::MADLIB, nidaqmx::NIDAQMX, redpitaya::REDPITAYA, scpi::SCPI, sim::SIM,
+    thorlabs::KPA101, thorlabs::KPZ101,
+};
 use crate::instrument::{DeviceError, Instrument, Qpd, Stage, WallClock};
 use serde_json::json;
 use std::sync::Arc;
@@ -54,7 +58,7 @@ pub fn connect(
         e
     })?;
     let mut instrument = match (cfg.stage.backend, cfg.qpd.backend) {
-        (Backend::Sim, Backend::Sim) => make_sim(cfg).map_err(ConnectError::Sim)?,
+        (SIM, SIM) => make_sim(cfg).map_err(ConnectError::Sim)?,
         _ => connect_hardware(cfg)?,
     };
     let travel = instrument.stage.travel_range()?;
@@ -137,10 +141,10 @@ pub fn record_gauge(instrument: &mut Instrument) {
 }
 
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
-    if cfg.stage.backend == Backend::Madlib || cfg.qpd.backend == Backend::Nidaqmx {
+    if cfg.stage.backend == MADLIB || cfg.qpd.backend == NIDAQMX {
         return connect_bench(cfg);
     }
-    if cfg.stage.backend == Backend::Kpz101 || cfg.qpd.backend == Backend::Kpa101 {
+    if cfg.stage.backend == KPZ101 || cfg.qpd.backend == KPA101 {
         return connect_apt(cfg);
     }
     let qport = cfg.qpd.port.clone().unwrap_or_default();
@@ -164,7 +168,7 @@ fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
         };
     // If the QPD fails, `stage` is dropped here and its ports closed.
     let (qpd, qpd_desc): (Box<dyn crate::instrument::Qpd>, serde_json::Value) =
-        if cfg.qpd.backend == Backend::Redpitaya {
+        if cfg.qpd.backend == REDPITAYA {
             open_redpitaya(cfg)?
         } else {
             let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
@@ -234,7 +238,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
     use crate::instrument::thorlabs::kpz101::Kpz101Stage;
     use crate::instrument::{Qpd, Stage};
     let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
-        Backend::Kpz101 => {
+        KPZ101 => {
             let ps = cfg.stage.ports.clone().unwrap_or_else(|| super::AxisPorts {
                 x: String::new(),
                 y: String::new(),
@@ -281,7 +285,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
     };
     let qport = cfg.qpd.port.clone().unwrap_or_default();
     let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
-        Backend::Kpa101 => {
+        KPA101 => {
             let q = Kpa101::open(&qport, cfg.kpa_options())?;
             let d = json!({
                 "backend": "kpa101",
@@ -296,7 +300,7 @@ fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
             });
             (Box::new(q), d)
         }
-        Backend::Redpitaya => open_redpitaya(cfg)?,
+        REDPITAYA => open_redpitaya(cfg)?,
         _ => open_scpi(cfg)?,
     };
     Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
@@ -411,7 +415,7 @@ pub fn connect_emulated(
         detail: format!("cannot start the emulators on pseudo-terminals: {e}"),
     })?;
     let mut cfg = emulated_stage_config(base, stage.path());
-    cfg.qpd.backend = Backend::Scpi;
+    cfg.qpd.backend = SCPI;
     cfg.qpd.port = Some(qpd.path().to_string());
     let emulators = json!({
         "stage": stage.path(),
@@ -429,7 +433,7 @@ fn emulated_stage_config(base: &Config, path: &str) -> Config {
         safety: base.safety,
         ..Config::default()
     };
-    cfg.stage.backend = Backend::Gcs;
+    cfg.stage.backend = GCS;
     cfg.stage.port = Some(path.to_string());
     cfg.stage.settle_s = base.stage.settle_s;
     cfg.stage.poll_ms = Some(1);
@@ -528,7 +532,7 @@ pub fn connect_emulated_redpitaya(
         .unwrap_or((hostport.clone(), "5000".into()));
     let mut cfg = emulated_stage_config(base, stage.path());
     cfg.stage.trigger_line = Some(1);
-    cfg.qpd.backend = Backend::Redpitaya;
+    cfg.qpd.backend = REDPITAYA;
     cfg.qpd.host = Some(host);
     cfg.qpd.port = Some(port);
     cfg.qpd.channels = super::QpdChannels::Inputs(crate::instrument::redpitaya::ChannelMap {
@@ -558,7 +562,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
     let raster = cfg.ni_raster_options()?;
     let mut madlib: Option<MadlibStage> = None;
     let (stage, stage_desc): (Option<Box<dyn Stage>>, serde_json::Value) = match cfg.stage.backend {
-        Backend::Madlib => {
+        MADLIB => {
             let o = cfg.madlib_options()?;
             let s = MadlibStage::open(o.clone())?;
             let i = s.info();
@@ -583,7 +587,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             madlib = Some(s);
             (None, d)
         }
-        Backend::Gcs => {
+        GCS => {
             let s = crate::instrument::gcs::split::GcsSplitStage::open_checked(
                 &cfg.gcs_controllers(),
                 cfg.stage.baud,
@@ -605,7 +609,7 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
     let mut stage = stage;
     let mut stage_desc = stage_desc;
     let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
-        Backend::Nidaqmx => {
+        NIDAQMX => {
             let o = cfg.ni_qpd_options()?;
             let q = NiQpd::open(o.clone())?;
             let pair = match (&raster, madlib.is_some()) {
@@ -642,8 +646,8 @@ fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectE
             });
             (Box::new(q), d)
         }
-        Backend::Redpitaya => open_redpitaya(cfg)?,
-        Backend::Scpi => open_scpi(cfg)?,
+        REDPITAYA => open_redpitaya(cfg)?,
+        SCPI => open_scpi(cfg)?,
         b => {
             return Err(err(
                 "qpd.backend",

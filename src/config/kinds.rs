@@ -1,4 +1,5 @@
-//! The small types the config's tables are made of, with no rule in them: the device backends,
+//! The small types the config's tables are made of, with no rule in them: the device backend
+//! (a family's name, read through the registry),
 //! the bench's `qpd.channels` and `[raster]` tables (their checks: `bench.rs`; connecting what
 //! they name: `connect.rs`). A leaf: `mod.rs`, `bench.rs` and `connect.rs` use it.
 
@@ -6,60 +7,9 @@ use crate::instrument::redpitaya::ChannelMap;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-/// Device backends.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Backend {
-    /// The simulated instrument (scene + optics).
-    #[default]
-    Sim,
-    /// PI GCS 2.0 piezo controller (stage).
-    Gcs,
-    /// SCPI QPD digitiser (qpd).
-    Scpi,
-    /// Thorlabs KPA101/TPA101 position aligner over APT (qpd).
-    Kpa101,
-    /// Three Thorlabs KPZ101 piezo cubes over APT, one per axis (stage).
-    Kpz101,
-    /// Red Pitaya STEMlab board over its SCPI server (qpd).
-    Redpitaya,
-    /// Mad City Labs Nano-Drive through the vendor's library Madlib (stage).
-    Madlib,
-    /// NI DAQ board through NI-DAQmx (qpd; `[raster]`).
-    Nidaqmx,
-}
-
-impl Backend {
-    /// Every backend.
-    pub const ALL: [Backend; 8] = [
-        Backend::Sim,
-        Backend::Gcs,
-        Backend::Scpi,
-        Backend::Kpa101,
-        Backend::Kpz101,
-        Backend::Redpitaya,
-        Backend::Madlib,
-        Backend::Nidaqmx,
-    ];
-
-    /// The backend named `name` in `bfpscope.toml`.
-    pub fn from_name(name: &str) -> Option<Backend> {
-        Backend::ALL.into_iter().find(|b| b.as_str() == name)
-    }
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Backend::Sim => "sim",
-            Backend::Gcs => "gcs",
-            Backend::Scpi => "scpi",
-            Backend::Kpa101 => "kpa101",
-            Backend::Kpz101 => "kpz101",
-            Backend::Redpitaya => "redpitaya",
-            Backend::Madlib => "madlib",
-            Backend::Nidaqmx => "nidaqmx",
-        }
-    }
-}
+/// A device backend: the name of a `[stage]`/`[qpd]` backend some device family provides
+/// (`instrument::registry`).
+pub use crate::instrument::family::Backend;
 
 /// PCI-6120: the highest sample rate per channel, Hz.
 pub const PCI6120_MAX_RATE_HZ: f64 = 800_000.0;

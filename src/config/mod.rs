@@ -50,6 +50,9 @@ use crate::instrument::gcs::GcsOptions;
 use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::redpitaya::{InputGain, RedPitayaOptions};
 use crate::instrument::scpi::{Calibration, ScpiOptions};
+use crate::instrument::{
+    gcs::GCS, redpitaya::REDPITAYA, scpi::SCPI, sim::SIM, thorlabs::KPA101, thorlabs::KPZ101,
+};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Duration;
@@ -163,7 +166,7 @@ pub struct StageConfig {
     /// Controller position units per µm (1 for PI piezo controllers).
     pub units_per_um: f64,
     /// Extra settle time after each move, s (after on-target for hardware). Default 5 ms;
-    /// madlib: 0 ([`DEFAULT_SETTLE_S_MADLIB`]: a move ends when the readings stay within
+    /// madlib: 0 (its family's `stage_defaults`: a move ends when the readings stay within
     /// `tolerance_um`).
     pub settle_s: f64,
     /// Ask the controller one axis per query (`POS? 1`, `POS? 2`, …); detected at connect
@@ -208,7 +211,7 @@ pub struct StageConfig {
 impl Default for StageConfig {
     fn default() -> Self {
         Self {
-            backend: Backend::Sim,
+            backend: SIM,
             port: None,
             ports: None,
             baud: 115_200,
@@ -236,32 +239,19 @@ impl Default for StageConfig {
     }
 }
 
-/// Default `stage.settle_s` for a Nano-Drive (`madlib`): none after the readings settle.
-pub const DEFAULT_SETTLE_S_MADLIB: f64 = 0.0;
-/// Default `stage.poll_ms` for PI GCS controllers: `#5` is one byte each way (0.26 ms of wire
-/// per poll at 115200 baud), so polling every millisecond costs the controller little.
-pub const DEFAULT_POLL_MS_GCS: u64 = 1;
-/// Default `stage.poll_ms` for KPZ101 cubes: each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request
-/// and reply, and a strain-gauge reading taken every millisecond catches the actuator still
-/// on its way, inside the tolerance before it has settled.
-pub const DEFAULT_POLL_MS_KPZ101: u64 = 10;
-/// Default `stage.poll_ms` for Mad City Labs Nano-Drives: 0, the readings back to back — each
-/// `MCL_SingleReadN` is a USB round trip of its own (≈ 0.2 ms), so the link sets the pace and
-/// a move ends as soon as the readings are on target (a 5 ms poll cost a 31 nm step 7 ms).
-pub const DEFAULT_POLL_MS_MADLIB: u64 = 0;
-/// Default `stage.poll_ms` for the other backends (not used by the simulator's stage).
-pub const DEFAULT_POLL_MS_OTHER: u64 = 5;
-
 impl StageConfig {
-    /// The motion polling interval in force, ms: `poll_ms` when set, else the backend's
-    /// default (gcs [`DEFAULT_POLL_MS_GCS`], kpz101 [`DEFAULT_POLL_MS_KPZ101`]).
+    /// The defaults of the family providing this stage (`instrument::registry`).
+    pub fn family_defaults(&self) -> crate::instrument::registry::StageDefaults {
+        crate::instrument::registry::by_stage(self.backend.as_str())
+            .map_or(crate::instrument::registry::STAGE_DEFAULTS, |f| {
+                f.stage_defaults
+            })
+    }
+
+    /// The motion polling interval in force, ms: `poll_ms` when set, else the default of
+    /// the stage's family (`Family::stage_defaults`: gcs 1, kpz101 10, madlib 0, else 5).
     pub fn poll_ms(&self) -> u64 {
-        self.poll_ms.unwrap_or(match self.backend {
-            Backend::Gcs => DEFAULT_POLL_MS_GCS,
-            Backend::Kpz101 => DEFAULT_POLL_MS_KPZ101,
-            Backend::Madlib => DEFAULT_POLL_MS_MADLIB,
-            _ => DEFAULT_POLL_MS_OTHER,
-        })
+        self.poll_ms.unwrap_or(self.family_defaults().poll_ms)
     }
 }
 
@@ -322,7 +312,7 @@ pub struct QpdConfig {
 impl Default for QpdConfig {
     fn default() -> Self {
         Self {
-            backend: Backend::Sim,
+            backend: SIM,
             port: None,
             host: None,
             channels: QpdChannels::default(),
@@ -538,13 +528,13 @@ impl Config {
                 message: with_nearest(e.message().trim()),
             }
         })?;
-        // A Nano-Drive is settled on its readings (`tolerance_um`, two in a row): no fixed
-        // settle after them unless the file asks for one.
+        // A family's own settle time (a Nano-Drive is settled on its readings: none after
+        // them) unless the file asks for one.
         let settle_given = toml::from_str::<toml::Table>(text)
             .ok()
             .is_some_and(|r| r.get("stage").and_then(|s| s.get("settle_s")).is_some());
-        if cfg.stage.backend == Backend::Madlib && !settle_given {
-            cfg.stage.settle_s = DEFAULT_SETTLE_S_MADLIB;
+        if let (Some(s), false) = (cfg.stage.family_defaults().settle_s, settle_given) {
+            cfg.stage.settle_s = s;
         }
         cfg.validate().map_err(|mut e| {
             e.origin = origin.into();
@@ -573,7 +563,7 @@ impl Config {
 
     /// True when both devices are simulated.
     pub fn is_simulated(&self) -> bool {
-        self.stage.backend == Backend::Sim && self.qpd.backend == Backend::Sim
+        self.stage.backend == SIM && self.qpd.backend == SIM
     }
 
     /// Check values and combinations. Errors name the key path.
@@ -622,7 +612,7 @@ impl Config {
                 ));
             }
         }
-        if (s.backend == Backend::Sim) != (q.backend == Backend::Sim) {
+        if (s.backend == SIM) != (q.backend == SIM) {
             return Err(err(
                 "qpd.backend",
                 format!(
@@ -640,13 +630,13 @@ impl Config {
     fn validate_devices(&self) -> Result<(), ConfigError> {
         let s = &self.stage;
         let q = &self.qpd;
-        if s.backend == Backend::Gcs {
+        if s.backend == GCS {
             self.validate_stage_ports()?;
         }
-        if s.backend == Backend::Kpz101 {
+        if s.backend == KPZ101 {
             self.validate_kpz101()?;
         }
-        if matches!(q.backend, Backend::Scpi | Backend::Kpa101)
+        if matches!(q.backend, SCPI | KPA101)
             && q.port.as_deref().is_none_or(|p| p.trim().is_empty())
         {
             return Err(err(
@@ -657,10 +647,10 @@ impl Config {
                 ),
             ));
         }
-        if q.backend == Backend::Redpitaya {
+        if q.backend == REDPITAYA {
             self.validate_redpitaya()?;
         }
-        if q.backend == Backend::Kpa101 {
+        if q.backend == KPA101 {
             if !(q.x_sign == 1.0 || q.x_sign == -1.0) {
                 return Err(err(
                     "qpd.x_sign",
@@ -680,7 +670,7 @@ impl Config {
                 ));
             }
         }
-        if matches!(s.backend, Backend::Gcs | Backend::Kpz101) && q.backend != Backend::Redpitaya {
+        if matches!(s.backend, GCS | KPZ101) && q.backend != REDPITAYA {
             if let Some(qp) = &q.port {
                 if self.stage_ports().iter().any(|p| p == qp) {
                     return Err(err(
@@ -808,7 +798,7 @@ impl Config {
             }
         }
         if let Some(f) = q.sum_floor {
-            if q.backend == Backend::Sim {
+            if q.backend == SIM {
                 return Err(err(
                     "qpd.sum_floor",
                     format!("{f}: the simulated QPD has no sum input to check; a scene's `detector_range` effect sets the simulator's floor (`sum_floor`)"),
@@ -821,7 +811,7 @@ impl Config {
                 ));
             }
         }
-        if q.backend == Backend::Scpi {
+        if q.backend == SCPI {
             if let Some(r) = q.range_v {
                 if !(r.is_finite() && r > 0.0) {
                     return Err(err(

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::acquire::limits::DEFAULT_MAX_STEP_UM;
+use crate::instrument::{gcs::GCS, scpi::SCPI};
 
 #[test]
 fn empty_file_is_simulated() {
@@ -34,7 +35,7 @@ max_speed_um_s = 200
 wavelength_nm = 1064.0
 "#;
     let c = Config::from_toml_str(text, "t").unwrap();
-    assert_eq!(c.stage.backend, Backend::Gcs);
+    assert_eq!(c.stage.backend, GCS);
     assert_eq!(c.stage.baud, 57600);
     assert_eq!(
         c.gcs_options().axes,
@@ -297,10 +298,7 @@ fn example_file_parses() {
         "bfpscope.example.toml",
     )
     .unwrap();
-    assert_eq!(
-        (c.stage.backend, c.qpd.backend),
-        (Backend::Gcs, Backend::Scpi)
-    );
+    assert_eq!((c.stage.backend, c.qpd.backend), (GCS, SCPI));
     assert_eq!(c.stage.port.as_deref(), Some("/dev/ttyUSB0"));
     assert_eq!(c.safety.soft_limits.z, Some([1.0, 19.0]));
     assert_eq!(c.soft_limits().max_step_um, DEFAULT_MAX_STEP_UM);

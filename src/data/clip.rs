@@ -7,6 +7,7 @@
 //! the arrays `clipped_sx`, `clipped_sy`, `clipped_sz` and `dark`, written only when a pixel is
 //! clipped (resp. dark), and summarise them in `meta.clipped` and `meta.dark` (docs/files.md).
 
+pub use super::image::{PixelFlags, CLIPPED, DARK};
 pub use super::scan::InputFlags;
 use super::Scan;
 use ndarray::Array2;
@@ -128,12 +129,43 @@ pub struct InputCheck {
     pub dark_pixels: usize,
     /// One plain-language sentence per problem: empty when the pixels are sound.
     pub warnings: Vec<String>,
+    /// Set when every pixel used is clipped in a channel used, or dark: no number can be read
+    /// from such pixels, and the analysis refuses (the sentence says why).
+    pub refusal: Option<String>,
 }
 
 impl InputCheck {
     pub fn is_clean(&self) -> bool {
         self.warnings.is_empty()
     }
+
+    /// The warnings for the answer, or the refusal of `who` (`"who: every pixel …"`) when the
+    /// pixels cannot carry an answer.
+    pub fn gate(self, who: &str) -> Result<Vec<String>, String> {
+        match self.refusal {
+            Some(r) => Err(format!("{who}: {r}")),
+            None => Ok(self.warnings),
+        }
+    }
+}
+
+/// The refusal when all `used` pixels are clipped (`what`: `"of Sx"`) or dark.
+fn all_bad(n: usize, used: usize, what: &str, why: &str) -> Option<String> {
+    (used > 0 && n == used).then(|| {
+        let what = if what.is_empty() {
+            format!("{used}")
+        } else {
+            format!("{used} {what}")
+        };
+        format!(
+            "every pixel it uses ({what}) is {why}: the answer would be meaningless; {}",
+            if why.starts_with("dark") {
+                "check the laser and the beam path"
+            } else {
+                "lower the signal or raise the QPD's input range"
+            }
+        )
+    })
 }
 
 /// The clipped and dark pixels of `scan` among the `channels` an analysis uses (`"sx"`,
@@ -143,11 +175,27 @@ impl InputCheck {
 /// A scan loaded without the per-pixel arrays but whose `meta.clipped` counts pixels (a file
 /// written by hand, or trimmed) is judged by those counts, for the whole scan.
 pub fn input_check(scan: &Scan, channels: &[&str], region: Option<Region>) -> InputCheck {
-    let mut out = InputCheck::default();
     let in_region = |r: usize, c: usize| {
         region
             .is_none_or(|g| (g.rows.0..g.rows.1).contains(&r) && (g.cols.0..g.cols.1).contains(&c))
     };
+    input_check_where(scan, channels, in_region)
+}
+
+/// [`input_check`] over the pixels (row, column) for which `used` is true: the pixels an
+/// analysis actually reads (e.g. the parabola windows around a filament's row maxima).
+pub fn input_check_where(
+    scan: &Scan,
+    channels: &[&str],
+    used: impl Fn(usize, usize) -> bool,
+) -> InputCheck {
+    let mut out = InputCheck::default();
+    let in_region = |r: usize, c: usize| used(r, c);
+    let (rows, cols) = scan.sx.data.dim();
+    let n_used = (0..rows)
+        .flat_map(|r| (0..cols).map(move |c| (r, c)))
+        .filter(|&(r, c)| in_region(r, c))
+        .count();
     let range = scan.meta["clipped"]["range"]
         .as_str()
         .map(|r| format!(" (at the {r})"))
@@ -172,6 +220,14 @@ pub fn input_check(scan: &Scan, channels: &[&str], region: Option<Region>) -> In
             };
             out.warnings
                 .push(format!("{n} {noun} of {} {verb} clipped{range}", LABELS[k]));
+            if out.refusal.is_none() {
+                out.refusal = all_bad(
+                    n,
+                    n_used,
+                    &format!("of {}", LABELS[k]),
+                    &format!("clipped{range}"),
+                );
+            }
         }
     }
     let dark = match &scan.flags.dark {
@@ -195,8 +251,120 @@ pub fn input_check(scan: &Scan, channels: &[&str], region: Option<Region>) -> In
         out.warnings.push(format!(
             "{dark} {noun} {verb} dark (the QPD sum{floor}: laser off or beam blocked?)"
         ));
+        if out.refusal.is_none() {
+            out.refusal = all_bad(dark, n_used, "", &format!("dark (the QPD sum{floor})"));
+        }
     }
     out
+}
+
+impl PixelFlags {
+    /// The flags of channel `name` (`"sx"`, `"sy"`, `"sz"`) of `scan` and its dark pixels;
+    /// `None` when no pixel is clipped or dark.
+    pub fn of_channel(scan: &Scan, name: &str) -> Option<PixelFlags> {
+        let k = ["sx", "sy", "sz"].iter().position(|c| *c == name)?;
+        let dim = scan.sx.data.dim();
+        let mut mask = Array2::<u8>::zeros(dim);
+        let mut unlocated = [0usize; 2];
+        match &scan.flags.clipped[k] {
+            Some(a) if a.dim() == dim => {
+                mask.zip_mut_with(a, |m, &n| *m |= if n > 0 { CLIPPED } else { 0 })
+            }
+            _ => unlocated[0] = scan.meta["clipped"][name]["pixels"].as_u64().unwrap_or(0) as usize,
+        }
+        match &scan.flags.dark {
+            Some(a) if a.dim() == dim => {
+                mask.zip_mut_with(a, |m, &d| *m |= if d > 0 { DARK } else { 0 })
+            }
+            _ => unlocated[1] = scan.meta["dark"]["pixels"].as_u64().unwrap_or(0) as usize,
+        }
+        if mask.iter().all(|&m| m == 0) && unlocated == [0, 0] {
+            return None;
+        }
+        Some(PixelFlags {
+            mask,
+            channel: LABELS[k].to_string(),
+            derived: None,
+            range: scan.meta["clipped"]["range"].as_str().map(str::to_string),
+            floor: scan.meta["dark"]["floor"].as_str().map(str::to_string),
+            unlocated,
+        })
+    }
+}
+
+/// [`input_check_where`] for an image: its clipped and dark pixels (carried from the scan
+/// channel it came from, [`PixelFlags`]) among those `used`. An image with no flags is clean.
+pub fn image_check(img: &crate::data::Image, used: impl Fn(usize, usize) -> bool) -> InputCheck {
+    flags_check(img.flags.as_deref(), used)
+}
+
+/// [`image_check`] on the flags themselves (e.g. those of a derivative an analysis computes
+/// inside, [`PixelFlags::derived`]).
+pub fn flags_check(f: Option<&PixelFlags>, used: impl Fn(usize, usize) -> bool) -> InputCheck {
+    let mut out = InputCheck::default();
+    let Some(f) = f else {
+        return out;
+    };
+    let (mut n_used, mut clipped, mut dark) = (0, 0, 0);
+    for ((r, c), &m) in f.mask.indexed_iter() {
+        if !used(r, c) {
+            continue;
+        }
+        n_used += 1;
+        clipped += usize::from(m & CLIPPED != 0);
+        dark += usize::from(m & DARK != 0);
+    }
+    clipped += f.unlocated[0];
+    dark += f.unlocated[1];
+    let range = f
+        .range
+        .as_ref()
+        .map(|r| format!(" (at the {r})"))
+        .unwrap_or_default();
+    let floor = f
+        .floor
+        .as_ref()
+        .map(|r| format!(" below {r}"))
+        .unwrap_or_default();
+    let ch = &f.channel;
+    if clipped > 0 {
+        let (noun, verb) = noun_verb(clipped);
+        out.warnings.push(match &f.derived {
+            None => format!("{clipped} {noun} of {ch} {verb} clipped{range}"),
+            Some(d) => {
+                format!("{clipped} {noun} of {d} {verb} computed from clipped {ch} pixels{range}")
+            }
+        });
+        out.refusal = all_bad(
+            clipped,
+            n_used,
+            &format!("of {ch}"),
+            &format!("clipped{range}"),
+        );
+        if let Some(k) = LABELS.iter().position(|l| l == ch) {
+            out.clipped_pixels[k] = clipped;
+        }
+    }
+    if dark > 0 {
+        let (noun, verb) = noun_verb(dark);
+        out.warnings.push(match &f.derived {
+            None => format!("{dark} {noun} {verb} dark (the QPD sum{floor}: laser off or beam blocked?)"),
+            Some(d) => format!("{dark} {noun} of {d} {verb} computed from dark pixels (the QPD sum{floor}: laser off or beam blocked?)"),
+        });
+        out.dark_pixels = dark;
+        if out.refusal.is_none() {
+            out.refusal = all_bad(dark, n_used, "", &format!("dark (the QPD sum{floor})"));
+        }
+    }
+    out
+}
+
+fn noun_verb(n: usize) -> (&'static str, &'static str) {
+    if n == 1 {
+        ("pixel", "is")
+    } else {
+        ("pixels", "are")
+    }
 }
 
 /// Samples at or beyond the rail of one pixel: (row, column, [Sx, Sy, Sz] sample counts).
@@ -349,6 +517,109 @@ mod tests {
                 "6 pixels are dark (the QPD sum below 0.1 V on the sum input: laser off or beam blocked?)"
             ]
         );
+    }
+
+    #[test]
+    fn every_pixel_used_clipped_or_dark_is_a_refusal_naming_the_condition() {
+        let mut a = Array2::<u32>::zeros((2, 3));
+        a[[1, 0]] = 3;
+        a[[1, 1]] = 3;
+        a[[1, 2]] = 3;
+        let flags = InputFlags {
+            clipped: [Some(a), None, None],
+            dark: None,
+        };
+        let s = scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}));
+        // the whole scan: half clipped, a warning
+        let c = input_check(&s, &["sx"], None);
+        assert_eq!(c.refusal, None);
+        assert_eq!(c.clone().gate("fit").unwrap(), c.warnings);
+        // the clipped row only: every pixel used at the rail
+        let r = Region {
+            rows: (1, 2),
+            cols: (0, 3),
+        };
+        assert_eq!(
+            input_check(&s, &["sx"], Some(r)).gate("fit").unwrap_err(),
+            "fit: every pixel it uses (3 of Sx) is clipped (at the ±0.2 V input range): the answer would be meaningless; lower the signal or raise the QPD's input range"
+        );
+        let dark = scan(
+            InputFlags {
+                clipped: [None, None, None],
+                dark: Some(Array2::ones((2, 3))),
+            },
+            json!({"dark": {"floor": "0.1 V on the sum input", "pixels": 6}}),
+        );
+        assert_eq!(
+            input_check(&dark, &["sx"], None).refusal.unwrap(),
+            "every pixel it uses (6) is dark (the QPD sum below 0.1 V on the sum input): the answer would be meaningless; check the laser and the beam path"
+        );
+    }
+
+    #[test]
+    fn an_image_carries_its_channels_flags_through_a_derivative_and_arithmetic() {
+        let mut a = Array2::<u32>::zeros((3, 5));
+        a[[1, 2]] = 7;
+        let s = scan3x5(InputFlags {
+            clipped: [Some(a), None, None],
+            dark: None,
+        });
+        let f = PixelFlags::of_channel(&s, "sx").unwrap();
+        assert!(PixelFlags::of_channel(&s, "sy").is_none(), "Sy is clean");
+        let mut img = s.sx.clone();
+        img.flags = Some(std::sync::Arc::new(f.clone()));
+        assert_eq!(
+            image_check(&img, |_, _| true).warnings,
+            vec!["1 pixel of Sx is clipped (at the ±1 input range (signal units))"]
+        );
+        // a central difference along x reaches one column either side: three pixels
+        let d = f.derived("the sensitivity ∂/∂x", 1, 0);
+        let flagged: Vec<(usize, usize)> = d
+            .mask
+            .indexed_iter()
+            .filter(|(_, &m)| m != 0)
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(flagged, vec![(1, 1), (1, 2), (1, 3)]);
+        let c = flags_check(Some(&d), |r, _| r == 1);
+        assert_eq!(
+            c.warnings,
+            vec!["3 pixels of the sensitivity ∂/∂x are computed from clipped Sx pixels (at the ±1 input range (signal units))"]
+        );
+        assert!(c.refusal.is_none(), "3 of the 5 pixels of row 1");
+        // pixels away from it are clean; a window of the three flagged ones is refused
+        assert!(flags_check(Some(&d), |r, _| r != 1).is_clean());
+        assert!(flags_check(Some(&d), |r, c| r == 1 && (1..4).contains(&c))
+            .refusal
+            .is_some());
+        // a crop keeps the flags it holds, and none when it holds none
+        assert_eq!(f.crop((1, 2), (2, 4)).unwrap().mask.sum(), CLIPPED);
+        assert!(f.crop((0, 0), (0, 4)).is_none());
+        // Sx + a dark Sy image: both conditions, both channels named
+        let mut g = f.clone();
+        g.channel = "Sy".into();
+        g.mask.fill(0);
+        g.mask[[0, 0]] = DARK;
+        let u = f.union(&g);
+        assert_eq!(u.channel, "Sx, Sy");
+        assert_eq!((u.mask[[1, 2]], u.mask[[0, 0]]), (CLIPPED, DARK));
+    }
+
+    fn scan3x5(flags: InputFlags) -> Scan {
+        let img = Image::new(
+            Array2::zeros((3, 5)),
+            vec![0.0, 0.1, 0.2, 0.3, 0.4],
+            vec![0.0, 0.1, 0.2],
+        );
+        Scan {
+            sx: img.clone(),
+            sy: img.clone(),
+            sz: img,
+            status: ScanStatus::Complete,
+            meta: json!({"clipped": {"range": "±1 input range (signal units)"}}),
+            raw: vec![],
+            flags,
+        }
     }
 
     #[test]

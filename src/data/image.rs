@@ -26,6 +26,11 @@ pub struct Image {
     /// Names of the horizontal and vertical axes (`"x"`, `"y"`, `"z"`).
     pub x_name: String,
     pub y_name: String,
+    /// Clipped and dark pixels, when the image came from a scan channel that has them
+    /// ([`PixelFlags`], made by `data::clip`); carried through derivatives, arithmetic and crops so that
+    /// analyses of the image flag them. Not saved with the image.
+    #[serde(skip)]
+    pub flags: Option<std::sync::Arc<PixelFlags>>,
 }
 
 /// The statistics methods of [`Image`] and [`Profile`] (each type's `stats(what)` over its
@@ -80,6 +85,7 @@ impl Image {
             y,
             x_name: "x".into(),
             y_name: "y".into(),
+            flags: None,
         }
     }
 
@@ -174,12 +180,22 @@ impl Image {
         let cols = select_range(&self.x, x_range, &self.x_name)?;
         let rows = select_range(&self.y, y_range, &self.y_name)?;
         let data = self.data.select(Axis(0), &rows).select(Axis(1), &cols);
+        let flags = self.flags.as_ref().and_then(|f| {
+            let mask = f.mask.select(Axis(0), &rows).select(Axis(1), &cols);
+            (mask.iter().any(|&m| m != 0) || f.unlocated != [0, 0]).then(|| {
+                std::sync::Arc::new(PixelFlags {
+                    mask,
+                    ..(**f).clone()
+                })
+            })
+        });
         Ok(Image {
             data,
             x: cols.iter().map(|&j| self.x[j]).collect(),
             y: rows.iter().map(|&i| self.y[i]).collect(),
             x_name: self.x_name.clone(),
             y_name: self.y_name.clone(),
+            flags,
         })
     }
 
@@ -523,6 +539,84 @@ pub fn fmt_sig(v: f64, sig: usize) -> String {
         } else {
             s
         }
+    }
+}
+
+/// Bit of [`PixelFlags::mask`]: the pixel is clipped (or computed from clipped pixels).
+pub const CLIPPED: u8 = 1;
+/// Bit of [`PixelFlags::mask`]: the pixel is dark (or computed from dark pixels).
+pub const DARK: u8 = 2;
+
+/// The clipped and dark pixels of an image taken from a scan channel (`scan.sx` at the
+/// prompt), carried by the image through derivatives, arithmetic and crops, so that an
+/// analysis of an image (`max_sens(sensitivity(scan.sx))`, `focus_search(scan.sx)`) sees them.
+/// `data::clip` makes them from a scan and checks an analysis's pixels against them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PixelFlags {
+    /// Per pixel: [`CLIPPED`] and/or [`DARK`] bits.
+    pub mask: Array2<u8>,
+    /// The channel(s) whose samples were clipped (`"Sx"`; `"Sx, Sy"` after arithmetic).
+    pub channel: String,
+    /// What the image is when its pixels are computed from the channel's (`"the derivative"`),
+    /// `None` for the channel itself.
+    pub derived: Option<String>,
+    /// `"±0.2 V input range"`, when the scan says.
+    pub range: Option<String>,
+    /// `"0.02 V on the sum input"`, when the scan says.
+    pub floor: Option<String>,
+    /// Clipped and dark pixels known only from the metadata (a file without the per-pixel
+    /// arrays): reported whatever the pixels used.
+    pub unlocated: [usize; 2],
+}
+
+impl PixelFlags {
+    /// The flags of an image computed from this one by a stencil reaching `rx` columns and `ry`
+    /// rows either side (a derivative): a pixel is flagged when any pixel it uses is.
+    pub fn derived(&self, what: &str, rx: usize, ry: usize) -> PixelFlags {
+        let (rows, cols) = self.mask.dim();
+        let mut mask = Array2::<u8>::zeros((rows, cols));
+        for ((r, c), &m) in self.mask.indexed_iter() {
+            if m == 0 {
+                continue;
+            }
+            for rr in r.saturating_sub(ry)..(r + ry + 1).min(rows) {
+                for cc in c.saturating_sub(rx)..(c + rx + 1).min(cols) {
+                    mask[[rr, cc]] |= m;
+                }
+            }
+        }
+        PixelFlags {
+            mask,
+            derived: Some(what.to_string()),
+            ..self.clone()
+        }
+    }
+
+    /// The flags of a pixel-wise combination of two images of the same shape.
+    pub fn union(&self, other: &PixelFlags) -> PixelFlags {
+        let mut out = self.clone();
+        if out.mask.dim() == other.mask.dim() {
+            out.mask.zip_mut_with(&other.mask, |a, &b| *a |= b);
+        }
+        if !out.channel.split(", ").any(|c| c == other.channel) {
+            out.channel = format!("{}, {}", out.channel, other.channel);
+        }
+        out.derived = out.derived.or_else(|| other.derived.clone());
+        out.range = out.range.or_else(|| other.range.clone());
+        out.floor = out.floor.or_else(|| other.floor.clone());
+        for (a, b) in out.unlocated.iter_mut().zip(other.unlocated) {
+            *a = (*a).max(b);
+        }
+        out
+    }
+
+    /// The flags of rows `r0..=r1` and columns `c0..=c1`; `None` when none is left there.
+    pub fn crop(&self, (r0, r1): (usize, usize), (c0, c1): (usize, usize)) -> Option<PixelFlags> {
+        let mask = self.mask.slice(ndarray::s![r0..=r1, c0..=c1]).to_owned();
+        (mask.iter().any(|&m| m != 0) || self.unlocated != [0, 0]).then(|| PixelFlags {
+            mask,
+            ..self.clone()
+        })
     }
 }
 

@@ -7,6 +7,26 @@ use super::Instrument;
 /// the scan metadata's `instrument.backend`), whichever families its stage and QPD are from.
 pub const HARDWARE: &str = "hardware";
 
+/// A `[stage]` or `[qpd]` backend of `bfpscope.toml`: a name some family provides
+/// ([`Family::stages`], [`Family::qpds`]); each family's folder names its own (`gcs::GCS`).
+/// Read from the file through the registry (`registry::config_backend`): a name no family
+/// provides is refused, listing those that are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Backend(pub &'static str);
+
+impl Backend {
+    /// The name written in `bfpscope.toml`.
+    pub fn as_str(self) -> &'static str {
+        self.0
+    }
+}
+
+impl serde::Serialize for Backend {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.0)
+    }
+}
+
 /// How `connect` opens a family.
 #[derive(Clone, Copy)]
 pub enum Open {
@@ -50,4 +70,23 @@ pub struct Family {
     pub keys: &'static [&'static str],
     /// How `connect` opens it.
     pub open: Open,
+    /// What its `[stage]` takes when the file leaves a key out.
+    pub stage_defaults: StageDefaults,
 }
+
+/// A family's defaults for `[stage]` keys whose best value depends on the controller.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StageDefaults {
+    /// `stage.poll_ms`: the interval between motion polls after a move, ms.
+    pub poll_ms: u64,
+    /// `stage.settle_s`, when the family's differs from the config's (5 ms): the extra
+    /// settle time after each move, s.
+    pub settle_s: Option<f64>,
+}
+
+/// The defaults of a family with nothing of its own to say: polls every 5 ms, the config's
+/// settle time.
+pub const STAGE_DEFAULTS: StageDefaults = StageDefaults {
+    poll_ms: 5,
+    settle_s: None,
+};

@@ -6,7 +6,7 @@
 //! errors) and the REPL read this list. A family known only at run time (a test's, a user's
 //! build) joins with [`register_family`].
 
-pub use super::family::{BuildFn, Family, Open};
+pub use super::family::{Backend, BuildFn, Family, Open, StageDefaults, STAGE_DEFAULTS};
 use std::sync::{Mutex, OnceLock};
 
 /// The families built in, one line each (the folder's `FAMILY`).
@@ -94,6 +94,34 @@ pub fn config_backends(qpd: bool) -> Vec<&'static str> {
         }
     }
     out
+}
+
+/// The `[stage]` or `[qpd]` backend named `name`: one some family provides.
+pub fn config_backend(name: &str) -> Option<Backend> {
+    config_backends(false)
+        .into_iter()
+        .chain(config_backends(true))
+        .find(|b| *b == name)
+        .map(Backend)
+}
+
+impl<'de> serde::Deserialize<'de> for Backend {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        config_backend(&name).ok_or_else(|| {
+            let mut all = config_backends(false);
+            for b in config_backends(true) {
+                if !all.contains(&b) {
+                    all.push(b);
+                }
+            }
+            let all: Vec<String> = all.iter().map(|b| format!("`{b}`")).collect();
+            serde::de::Error::custom(format!(
+                "unknown variant `{name}`, expected one of {}",
+                all.join(", ")
+            ))
+        })
+    }
 }
 
 /// The backends a `connect` key applies to (by [`Family::backend`], each once).
@@ -187,6 +215,7 @@ mod tests {
             qpds: &[],
             keys: &[],
             open: Open::Mock,
+            stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
         };
         let e = register_family(f).unwrap_err();
         assert!(

@@ -6,7 +6,7 @@
 //! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
 //! after a template's normalisation (the reference bead's max ∂Sx/∂x = 1).
 
-use super::registry::{array_of, err, fail, num, numbers, Opts, RResult};
+use super::registry::{array_of, err, fail, num, numbers, Opt, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
 use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
@@ -14,6 +14,19 @@ use crate::data::{Image, Scan, ScanStatus};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
 use std::sync::Arc;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const DETECT_SNR: Opt = Opt::new("detect_snr", "float", "");
+const END_MARGIN_UM: Opt = Opt::new("end_margin_um", "float", "µm");
+const MAX_OFFSET_UM: Opt = Opt::new("max_offset_um", "float", "µm");
+const MIN_SNR: Opt = Opt::new("min_snr", "float", "");
+const MIN_VALUE: Opt = Opt::new("min_value", "float", "");
+const PIXEL_UM: Opt = Opt::new("pixel_um", "float", "µm");
+const SCAN: Opt = Opt::new("scan", "Scan | Image", "");
+const SIGMA: Opt = Opt::new("sigma", "float", "");
+const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
+const STENCIL: Opt = Opt::new("stencil", "string", "");
+const WINDOW_UM: Opt = Opt::new("window_um", "float", "µm");
 
 /// A reference template in a script (`Template`).
 /// Any serialisable value as a Rhai map/array.
@@ -36,8 +49,14 @@ pub(crate) fn with_warnings(ctx: &super::ctx::Ctx, who: &str, m: &mut Map, w: Ve
     );
 }
 
+/// The warnings an input check (`data::clip`: clipped and dark pixels among those used) adds
+/// to `who`'s answer, or `who`'s refusal when no answer can be read from those pixels.
+pub(crate) fn input_gate(who: &str, check: crate::data::clip::InputCheck) -> RResult<Vec<String>> {
+    check.gate(who).or_else(fail)
+}
+
 pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stencil> {
-    match o.string("stencil")? {
+    match o.string(STENCIL)? {
         None => Ok(default),
         Some(s) => Stencil::parse(&s).map_or_else(
             || {
@@ -53,11 +72,12 @@ pub(crate) fn stencil_of(who: &str, o: &Opts, default: Stencil) -> RResult<Stenc
 pub(crate) fn pos_f64(
     who: &str,
     o: &Opts,
-    key: &str,
+    key: impl super::doc::Key,
     default: f64,
     lo: f64,
     hi: f64,
 ) -> RResult<f64> {
+    let key = key.key();
     let v = o.f64_or(key, default)?;
     if !(v >= lo && v <= hi) {
         return fail(format!(
@@ -67,7 +87,14 @@ pub(crate) fn pos_f64(
     Ok(v)
 }
 
-pub(crate) fn count(who: &str, o: &Opts, key: &str, lo: i64, hi: i64) -> RResult<Option<usize>> {
+pub(crate) fn count(
+    who: &str,
+    o: &Opts,
+    key: impl super::doc::Key,
+    lo: i64,
+    hi: i64,
+) -> RResult<Option<usize>> {
+    let key = key.key();
     match o.int(key)? {
         None => Ok(None),
         Some(v) if (lo..=hi).contains(&v) => Ok(Some(v as usize)),
@@ -82,10 +109,10 @@ pub(crate) fn count(who: &str, o: &Opts, key: &str, lo: i64, hi: i64) -> RResult
 pub(crate) fn peak_opts(who: &str, o: &Opts) -> RResult<PeakOptions> {
     let d = PeakOptions::default();
     Ok(PeakOptions {
-        window_um: pos_f64(who, o, "window_um", d.window_um, 1e-3, 100.0)?,
-        min_value: o.f64("min_value")?,
-        min_snr: pos_f64(who, o, "min_snr", d.min_snr, 0.0, 1e6)?,
-        sigma: o.f64("sigma")?,
+        window_um: pos_f64(who, o, WINDOW_UM, d.window_um, 1e-3, 100.0)?,
+        min_value: o.f64(MIN_VALUE)?,
+        min_snr: pos_f64(who, o, MIN_SNR, d.min_snr, 0.0, 1e6)?,
+        sigma: o.f64(SIGMA)?,
     })
 }
 
@@ -94,47 +121,27 @@ pub(crate) fn peak_opts(who: &str, o: &Opts) -> RResult<PeakOptions> {
 pub(crate) fn peak_keys() -> Vec<Key> {
     let d = PeakOptions::default();
     vec![
-        (
-            "window_um",
-            "float",
-            "µm",
-            format!(
-                "optional: parabola window (default {}, Sec. 5)",
-                d.window_um
-            ),
-        ),
-        (
-            "min_snr",
-            "float",
-            "",
-            format!(
-                "optional: reject maxima below min_snr × line noise (default {})",
-                d.min_snr
-            ),
-        ),
-        (
-            "min_value",
-            "float",
-            "",
-            "optional: reject maxima below this value".into(),
-        ),
-        (
-            "sigma",
-            "float",
-            "",
-            "optional: known pixel noise (default: from the fit residuals)".into(),
-        ),
+        WINDOW_UM.doc(format!(
+            "optional: parabola window (default {}, Sec. 5)",
+            d.window_um
+        )),
+        MIN_SNR.doc(format!(
+            "optional: reject maxima below min_snr × line noise (default {})",
+            d.min_snr
+        )),
+        MIN_VALUE.doc("optional: reject maxima below this value".into()),
+        SIGMA.doc("optional: known pixel noise (default: from the fit residuals)".into()),
     ]
 }
 
 pub(crate) fn measure_opts(who: &str, o: &Opts, base: MeasureOptions) -> RResult<MeasureOptions> {
     Ok(MeasureOptions {
         stencil: stencil_of(who, o, base.stencil)?,
-        window_um: pos_f64(who, o, "window_um", base.window_um, 1e-3, 100.0)?,
-        min_snr: pos_f64(who, o, "min_snr", base.min_snr, 0.0, 1e6)?,
-        max_offset_um: pos_f64(who, o, "max_offset_um", base.max_offset_um, 0.0, 100.0)?,
-        detect_snr: pos_f64(who, o, "detect_snr", base.detect_snr, 0.0, 1e6)?,
-        end_margin_um: pos_f64(who, o, "end_margin_um", base.end_margin_um, 0.0, 100.0)?,
+        window_um: pos_f64(who, o, WINDOW_UM, base.window_um, 1e-3, 100.0)?,
+        min_snr: pos_f64(who, o, MIN_SNR, base.min_snr, 0.0, 1e6)?,
+        max_offset_um: pos_f64(who, o, MAX_OFFSET_UM, base.max_offset_um, 0.0, 100.0)?,
+        detect_snr: pos_f64(who, o, DETECT_SNR, base.detect_snr, 0.0, 1e6)?,
+        end_margin_um: pos_f64(who, o, END_MARGIN_UM, base.end_margin_um, 0.0, 100.0)?,
     })
 }
 
@@ -147,57 +154,27 @@ pub(crate) type Key = (&'static str, &'static str, &'static str, String);
 pub(crate) fn measure_keys() -> Vec<Key> {
     let d = MeasureOptions::default();
     vec![
-        (
-            "stencil",
-            "string",
-            "",
-            format!(
+        STENCIL.doc(format!(
                 "optional: derivative stencil (default {})",
                 d.stencil.name()
-            ),
-        ),
-        (
-            "window_um",
-            "float",
-            "µm",
-            format!("optional: parabola window (default {})", d.window_um),
-        ),
-        (
-            "min_snr",
-            "float",
-            "",
-            format!(
+            )),
+        WINDOW_UM.doc(format!("optional: parabola window (default {})", d.window_um)),
+        MIN_SNR.doc(format!(
                 "optional: ignore line maxima below min_snr × line noise (default {})",
                 d.min_snr
-            ),
-        ),
-        (
-            "max_offset_um",
-            "float",
-            "µm",
-            format!(
+            )),
+        MAX_OFFSET_UM.doc(format!(
                 "optional: ignore maxima farther than this from the fitted line (default {})",
                 d.max_offset_um
-            ),
-        ),
-        (
-            "detect_snr",
-            "float",
-            "",
-            format!(
+            )),
+        DETECT_SNR.doc(format!(
                 "optional: candidate maxima above detect_snr × pixel noise (default {})",
                 d.detect_snr
-            ),
-        ),
-        (
-            "end_margin_um",
-            "float",
-            "µm",
-            format!(
+            )),
+        END_MARGIN_UM.doc(format!(
                 "optional: maxima closer than this to a filament end inside the scan are left out of the mean (the end lowers them) (default {})",
                 d.end_margin_um
-            ),
-        ),
+            )),
     ]
 }
 
@@ -207,16 +184,10 @@ pub(crate) fn measure_keys() -> Vec<Key> {
 /// "Calibrations and the measurement pipeline").
 pub(crate) fn pixel_keys() -> Vec<Key> {
     vec![
-        (
-            "pixel_um",
-            "float",
-            "µm",
+        PIXEL_UM.doc(
             "pixel size of the scans it will be applied to (required unless scan is given)".into(),
         ),
-        (
-            "scan",
-            "Scan | Image",
-            "",
+        SCAN.doc(
             "optional: the scan (or image) it will be applied to; its pixel size |dx| is used"
                 .into(),
         ),
@@ -226,7 +197,7 @@ pub(crate) fn pixel_keys() -> Vec<Key> {
 /// The pixel size (µm) of the data a calibration is for: `scan`'s |dx| or `pixel_um` (one is
 /// required; both must agree within 1 %). Range 1 nm – 10 µm.
 pub(crate) fn pixel_of(who: &str, o: &Opts) -> RResult<f64> {
-    let from_scan = match o.value("scan") {
+    let from_scan = match o.value(SCAN) {
         None => None,
         Some(v) => {
             let dx = if let Some(s) = v.read_lock::<ScanRef>() {
@@ -242,7 +213,7 @@ pub(crate) fn pixel_of(who: &str, o: &Opts) -> RResult<f64> {
             Some(dx.abs())
         }
     };
-    let given = o.f64("pixel_um")?;
+    let given = o.f64(PIXEL_UM)?;
     let px = match (from_scan, given) {
         (Some(a), Some(b)) if ((a - b) / a).abs() > 0.01 => {
             return fail(format!(
@@ -272,30 +243,18 @@ pub(crate) fn pipeline_keys() -> Vec<Key> {
     let m = MeasureOptions::default();
     let mut v = pixel_keys();
     v.extend([
-        (
-            "spacing_nm",
-            "float",
-            "nm",
-            format!(
-                "optional: bead-model spacing (default {})",
-                BeadModelOptions::default().spacing_nm
-            ),
-        ),
-        (
-            "stencil",
-            "string",
-            "",
-            format!(
-                "optional: derivative stencil (default {})",
-                m.stencil.name()
-            ),
-        ),
-        (
-            "window_um",
-            "float",
-            "µm",
-            format!("optional: parabola window (default {})", m.window_um),
-        ),
+        SPACING_NM.doc(format!(
+            "optional: bead-model spacing (default {})",
+            BeadModelOptions::default().spacing_nm
+        )),
+        STENCIL.doc(format!(
+            "optional: derivative stencil (default {})",
+            m.stencil.name()
+        )),
+        WINDOW_UM.doc(format!(
+            "optional: parabola window (default {})",
+            m.window_um
+        )),
     ]);
     v
 }
@@ -309,11 +268,11 @@ pub(crate) fn pipeline_opts(
     let base = MeasureOptions::default();
     let mo = MeasureOptions {
         stencil: stencil_of(who, o, base.stencil)?,
-        window_um: pos_f64(who, o, "window_um", base.window_um, 1e-3, 100.0)?,
+        window_um: pos_f64(who, o, WINDOW_UM, base.window_um, 1e-3, 100.0)?,
         ..base
     };
     let bm = BeadModelOptions {
-        spacing_nm: o.f64_or("spacing_nm", BeadModelOptions::default().spacing_nm)?,
+        spacing_nm: o.f64_or(SPACING_NM, BeadModelOptions::default().spacing_nm)?,
     };
     Ok((pixel_of(who, o)?, mo, bm))
 }
@@ -368,6 +327,13 @@ pub(crate) fn bead_list(who: &str, v: &Dynamic) -> RResult<Vec<(f64, f64, f64)>>
 }
 
 /// `#{points: [[x, y], …], d_nm: 50.0 | [..], n: 1.41}` → a bead-model filament.
+/// The diameter key of a filament's map and of the reference bead's options.
+/// The vertices key of a filament's map.
+pub(crate) const POINTS: Opt = Opt::new("points", "array", "µm");
+pub(crate) const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+/// The refractive-index key of a filament's map and of the reference bead's options.
+pub(crate) const N: Opt = Opt::new("n", "float", "");
+
 pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::Filament> {
     let Some(m) = v.read_lock::<Map>() else {
         return fail(format!(
@@ -376,24 +342,24 @@ pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::F
         ));
     };
     for k in m.keys() {
-        if !["points", "d_nm", "n"].contains(&k.as_str()) {
+        if ![POINTS.name, D_NM.name, N.name].contains(&k.as_str()) {
             return fail(format!(
                 "{who}: unknown filament key `{k}`; allowed keys: points, d_nm, n"
             ));
         }
     }
-    let points = match m.get("points") {
+    let points = match m.get(POINTS.name) {
         Some(p) => super::registry::points(who, p)?,
         None => return fail(format!("{who}: filament lacks `points` ([[x, y], …] µm)")),
     };
-    let d_nm = match m.get("d_nm") {
+    let d_nm = match m.get(D_NM.name) {
         None => return fail(format!("{who}: filament lacks `d_nm` (nm)")),
-        Some(d) if d.is_array() => numbers(who, "d_nm", d)?,
-        Some(d) => vec![num(who, "d_nm", d)?],
+        Some(d) if d.is_array() => numbers(who, D_NM.name, d)?,
+        Some(d) => vec![num(who, D_NM.name, d)?],
     };
-    let n = match m.get("n") {
+    let n = match m.get(N.name) {
         None => return fail(format!("{who}: filament lacks `n` (refractive index)")),
-        Some(v) => num(who, "n", v)?,
+        Some(v) => num(who, N.name, v)?,
     };
     let f = crate::analysis::Filament { points, d_nm, n };
     f.validate().map_err(|e| err(who, e))?;
@@ -403,8 +369,8 @@ pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::F
 pub(crate) fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
     let d = RefBead::default();
     let r = RefBead {
-        d_nm: o.f64_or("d_nm", d.d_nm)?,
-        n: o.f64_or("n", d.n)?,
+        d_nm: o.f64_or(D_NM, d.d_nm)?,
+        n: o.f64_or(N, d.n)?,
         n_medium,
         density_g_cm3: o.f64_or("density", d.density_g_cm3)?,
     };
@@ -426,6 +392,18 @@ pub(crate) fn scans_arg(who: &str, v: &Array) -> RResult<Vec<Arc<Scan>>> {
 }
 
 pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) -> ScanRef {
+    scan_flagged(sx, sy, sz, meta, Default::default())
+}
+
+/// A scan computed pixel by pixel from another (a fit subtracted, aggregates removed): it keeps
+/// the other's clipped and dark pixels (`flags`), so that analyses of it still flag them.
+pub(crate) fn scan_flagged(
+    sx: Image,
+    sy: Image,
+    sz: Image,
+    meta: serde_json::Value,
+    flags: crate::data::clip::InputFlags,
+) -> ScanRef {
     ScanRef::new(
         Scan {
             sx,
@@ -434,7 +412,7 @@ pub(crate) fn scan_of(sx: Image, sy: Image, sz: Image, meta: serde_json::Value) 
             status: ScanStatus::Complete,
             meta,
             raw: Vec::new(),
-            flags: Default::default(),
+            flags,
         },
         None,
     )

@@ -2,7 +2,7 @@
 //! bounds of a planned XY raster of a scene (`analysis::crlb`, `analysis::filament_fit`).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::analysis::crlb::{beads_crlb, pixel_sigma};
 use crate::analysis::filament_fit::{lambda_of_diameter, line_crlb, volume_per_um, LineFilament};
@@ -14,18 +14,16 @@ use crate::instrument::sim::scene::DiameterProfile;
 use crate::optics::rayleigh::{alpha_um3, DetectorModel};
 use rhai::{Array, Dynamic, Map};
 
+/// The options of this family's bindings, each key written once (`Opt`).
+const DWELL: Opt = Opt::new("dwell", "float", "s");
+
 pub fn register(r: &mut Registrar) {
     let keys: &[(&str, &str, &str, &str)] = &[
         ("x", "array", "µm", "[from, to] (stage = scene coordinates)"),
         ("y", "array", "µm", "[from, to]"),
         ("nx", "int", "", "pixels along x"),
         ("ny", "int", "", "pixels along y"),
-        (
-            "dwell",
-            "float",
-            "s",
-            "optional: dwell per pixel (default 0.01, as scan_xy)",
-        ),
+        DWELL.doc("optional: dwell per pixel (default 0.01, as scan_xy)"),
     ];
     const SC: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0}); s.effects([\"detector_noise\"]);";
     const PLAN: &str = "#{x: [-1.6, 1.55], y: [-1.6, 1.55], nx: 64, ny: 64, dwell: 0.01}";
@@ -52,7 +50,7 @@ fn crlb_of(c: &Ctx, spec: &Spec, m: &Map, s: &SceneRef) -> RResult<Map> {
     let who = "crlb";
     let o = Opts::new(spec, m)?;
     let (xs, ys) = super::registry::grid_axes(who, &o)?;
-    let dwell = o.f64_or("dwell", crate::acquire::plan::DEFAULT_DWELL_S)?;
+    let dwell = o.f64_or(DWELL, crate::acquire::plan::DEFAULT_DWELL_S)?;
     if !(dwell.is_finite() && dwell > 0.0 && dwell <= crate::acquire::plan::MAX_DWELL_S) {
         return fail(format!(
             "{who}: dwell = {dwell} is out of range: 0 < dwell ≤ {} s",

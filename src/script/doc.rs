@@ -14,6 +14,67 @@ pub fn fail<T>(msg: impl Into<String>) -> RResult<T> {
     Err(msg.into().into())
 }
 
+/// One key of a binding's map argument, declared once: a `const` of the family file names the
+/// key, its type and unit (`const DWELL: Opt = Opt::new("dwell", "float", "s");`). The
+/// declaration (`Doc::map(…, &[DWELL.doc("optional: …")])`) and every read
+/// (`o.f64_or(DWELL, …)`) use that constant, so the key's string is written once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Opt {
+    pub name: &'static str,
+    pub ty: &'static str,
+    pub unit: &'static str,
+}
+
+impl Opt {
+    pub const fn new(name: &'static str, ty: &'static str, unit: &'static str) -> Opt {
+        Opt { name, ty, unit }
+    }
+    /// The same key as another binding of the family takes it, with another type or unit
+    /// (`x` a position here, an `[x0, x1]` region there).
+    pub const fn typed(self, ty: &'static str, unit: &'static str) -> Opt {
+        Opt {
+            name: self.name,
+            ty,
+            unit,
+        }
+    }
+    /// The key as [`Doc::map`] declares it, with its help (a help starting with `"optional"`
+    /// or containing `"default"` marks the key optional).
+    pub const fn doc<D>(self, help: D) -> (&'static str, &'static str, &'static str, D) {
+        (self.name, self.ty, self.unit, help)
+    }
+}
+
+/// A map key as [`Opts`](super::registry::Opts) reads it: a declared [`Opt`] (or, for a key
+/// built at run time, its name).
+pub trait Key {
+    fn key(&self) -> &str;
+}
+
+impl Key for Opt {
+    fn key(&self) -> &str {
+        self.name
+    }
+}
+
+impl Key for str {
+    fn key(&self) -> &str {
+        self
+    }
+}
+
+impl Key for String {
+    fn key(&self) -> &str {
+        self
+    }
+}
+
+impl<K: Key + ?Sized> Key for &K {
+    fn key(&self) -> &str {
+        (**self).key()
+    }
+}
+
 /// One argument (or one key of a map argument).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Param {

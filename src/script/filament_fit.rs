@@ -3,7 +3,7 @@
 
 use super::analysis_values::{count, pos_f64, Key};
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ScanRef, TemplateRef};
 use crate::analysis::domain::{dipole_d_max_nm, status};
 use crate::analysis::filament_fit::{
@@ -14,19 +14,28 @@ use crate::analysis::scaling::mass_kda;
 use crate::analysis::template::Template;
 use rhai::{Array, Dynamic, Map};
 
+/// The options of this family's bindings, each key written once (`Opt`).
+const DENSITY_G_CM3: Opt = Opt::new("density_g_cm3", "float", "g/cm³");
+const N: Opt = Opt::new("n", "float", "");
+const PATIENCE: Opt = Opt::new("patience", "int", "");
+const SEARCH_STEP_DEG: Opt = Opt::new("search_step_deg", "float", "°");
+const SIGMA: Opt = Opt::new("sigma", "float", "");
+const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
+const TOL: Opt = Opt::new("tol", "float", "");
+
 /// A noisy microtubule-like filament (110 nm polystyrene-like rod, n = 1.572) at 10 ms per pixel.
 const FIL_EX: &str = "let t = template_model(#{h_um: 0.025}); let s = scene(); s.add_filament(#{points: [[-0.5, -3.0], [0.5, 3.0]], d_nm: 110.0, n: 1.572}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 41, ny: 41, n_samples: 1000}); let f = fit_filament(sc, t, #{n: 1.572});";
 
 fn keys() -> Vec<Key> {
     let d = LineFitOptions::default();
     vec![
-        ("n", "float", "", format!("optional: the filament's refractive index, for μ and the diameter (default {PROTEIN_N}, protein)")),
-        ("density_g_cm3", "float", "g/cm³", format!("optional: its density, for μ (default {:.3}, protein 1/0.745)", PROTEIN_DENSITY_G_CM3)),
-        ("sigma", "float", "", "optional: pixel noise σ in the scan's units (default: estimated from the residuals)".into()),
-        ("spacing_nm", "float", "nm", format!("optional: bead-model section spacing (default {}, the paper's)", d.spacing_um * 1000.0)),
-        ("search_step_deg", "float", "°", format!("optional: angle step of the start search (default {})", d.search_step_deg)),
-        ("tol", "float", "", format!("optional: solver tolerance on the cost, step and gradient (default {:e})", d.tol)),
-        ("patience", "int", "", format!("optional: solver evaluation budget (default {})", d.patience)),
+        N.doc(format!("optional: the filament's refractive index, for μ and the diameter (default {PROTEIN_N}, protein)")),
+        DENSITY_G_CM3.doc(format!("optional: its density, for μ (default {:.3}, protein 1/0.745)", PROTEIN_DENSITY_G_CM3)),
+        SIGMA.doc("optional: pixel noise σ in the scan's units (default: estimated from the residuals)".into()),
+        SPACING_NM.doc(format!("optional: bead-model section spacing (default {}, the paper's)", d.spacing_um * 1000.0)),
+        SEARCH_STEP_DEG.doc(format!("optional: angle step of the start search (default {})", d.search_step_deg)),
+        TOL.doc(format!("optional: solver tolerance on the cost, step and gradient (default {:e})", d.tol)),
+        PATIENCE.doc(format!("optional: solver evaluation budget (default {})", d.patience)),
     ]
 }
 
@@ -63,19 +72,19 @@ fn fit_filament_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) 
     let o = Opts::new(spec, m)?;
     let d = LineFitOptions::default();
     let n_medium = t.0.reference.n_medium;
-    let n = o.f64_or("n", PROTEIN_N)?;
+    let n = o.f64_or(N, PROTEIN_N)?;
     if !(n > n_medium && n <= 4.0) {
         return fail(format!(
             "{who}: n = {n} is out of range: the medium's {n_medium} < n ≤ 4 (a filament without contrast has no linear density)"
         ));
     }
-    let rho = pos_f64(who, &o, "density_g_cm3", PROTEIN_DENSITY_G_CM3, 0.1, 25.0)?;
-    let sigma = match o.f64("sigma")? {
+    let rho = pos_f64(who, &o, DENSITY_G_CM3, PROTEIN_DENSITY_G_CM3, 0.1, 25.0)?;
+    let sigma = match o.f64(SIGMA)? {
         None => None,
         Some(v) if v > 0.0 && v.is_finite() => Some(v),
         Some(v) => return fail(format!("{who}: sigma = {v} is out of range: σ > 0")),
     };
-    let spacing_nm = o.f64_or("spacing_nm", d.spacing_um * 1000.0)?;
+    let spacing_nm = o.f64_or(SPACING_NM, d.spacing_um * 1000.0)?;
     if !(1.0..=500.0).contains(&spacing_nm) {
         return fail(format!(
             "{who}: spacing_nm = {spacing_nm} is out of range: 1 ≤ spacing_nm ≤ 500"
@@ -84,9 +93,9 @@ fn fit_filament_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) 
     let opts = LineFitOptions {
         sigma,
         spacing_um: spacing_nm / 1000.0,
-        search_step_deg: pos_f64(who, &o, "search_step_deg", d.search_step_deg, 0.1, 45.0)?,
-        tol: pos_f64(who, &o, "tol", d.tol, 0.0, 1e-2)?,
-        patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
+        search_step_deg: pos_f64(who, &o, SEARCH_STEP_DEG, d.search_step_deg, 0.1, 45.0)?,
+        tol: pos_f64(who, &o, TOL, d.tol, 0.0, 1e-2)?,
+        patience: count(who, &o, PATIENCE, 1, 1_000_000)?.unwrap_or(d.patience),
     };
     let r =
         fit_line_filament(&s.scan.sx, &s.scan.sy, &t.0, None, &opts).map_err(|e| err(who, e))?;

@@ -3,7 +3,7 @@
 //! linear density, masses.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, properties, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
 use crate::analysis::quantities::{
@@ -20,6 +20,31 @@ use std::sync::Arc;
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
 use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
+const AXIS: Opt = Opt::new("axis", "string", "");
+const BOTH_ENDS: Opt = Opt::new("both_ends", "bool", "");
+const D_BM_NM: Opt = Opt::new("d_bm_nm", "float", "nm");
+const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+const DENSITY: Opt = Opt::new("density", "float", "g/cm³");
+const DENSITY_OBJ: Opt = Opt::new("density_obj", "float", "g/cm³");
+const DETECT_SNR: Opt = Opt::new("detect_snr", "float", "");
+const EXCLUSION_UM: Opt = Opt::new("exclusion_um", "float", "µm");
+const FIT_WEIGHT: Opt = Opt::new("fit_weight", "bool", "");
+const MAX_OBJECTS: Opt = Opt::new("max_objects", "int", "");
+const MIN_WEIGHT: Opt = Opt::new("min_weight", "float", "");
+const N: Opt = Opt::new("n", "float", "");
+const N_ANGLES: Opt = Opt::new("n_angles", "int", "");
+const N_BM: Opt = Opt::new("n_bm", "float", "");
+const N_OBJ: Opt = Opt::new("n_obj", "float", "");
+const NONZERO_SNR: Opt = Opt::new("nonzero_snr", "float", "");
+const SENS: Opt = Opt::new("sens", "float", "");
+const SENS_ERR: Opt = Opt::new("sens_err", "float", "");
+const SENS_RB: Opt = Opt::new("sens_rb", "float", "");
+const SKIP_UM: Opt = Opt::new("skip_um", "float", "µm");
+const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
+const TPL_KEY: Opt = Opt::new("tpl", "Template", "");
 
 pub fn register(r: &mut Registrar) {
     register_filaments(r);
@@ -46,36 +71,16 @@ fn bind_angle_curve(r: &mut Registrar) {
     let meas_keys = measure_keys();
     let c = AngleCurveOptions::default();
     let mut curve_keys: Vec<Key> = vec![
-        (
-            "n_angles",
-            "int",
-            "",
-            format!(
-                "optional: angles spanning 180° (default {}, Fig. 4d)",
-                c.n_angles
-            ),
-        ),
-        (
-            "d_nm",
-            "float",
-            "nm",
-            "optional: bead-model filament diameter (default: the reference bead's)".into(),
-        ),
-        (
-            "n",
-            "float",
-            "",
-            "optional: its index (default: the reference bead's)".into(),
-        ),
-        (
-            "spacing_nm",
-            "float",
-            "nm",
-            format!(
-                "optional: bead-model spacing (default {})",
-                c.bead_model.spacing_nm
-            ),
-        ),
+        N_ANGLES.doc(format!(
+            "optional: angles spanning 180° (default {}, Fig. 4d)",
+            c.n_angles
+        )),
+        D_NM.doc("optional: bead-model filament diameter (default: the reference bead's)".into()),
+        N.doc("optional: its index (default: the reference bead's)".into()),
+        SPACING_NM.doc(format!(
+            "optional: bead-model spacing (default {})",
+            c.bead_model.spacing_nm
+        )),
     ];
     curve_keys.extend(pixel_keys());
     curve_keys.extend(meas_keys.iter().cloned());
@@ -241,10 +246,10 @@ fn bind_background(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("skip_um", "float", "µm", format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", sd.skip_um)),
-                ("both_ends", "bool", "", format!("optional: also skip at the far end (default {})", sd.both_ends)),
-                ("exclusion_um", "float", "µm", format!("optional: background pixels farther than this from the line (default {:?})", sd.exclusion_um)),
-                ("nonzero_snr", "float", "", format!("optional: a maximum is non-zero above this × background std (default {})", sd.nonzero_snr)),
+                SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", sd.skip_um)),
+                BOTH_ENDS.doc(format!("optional: also skip at the far end (default {})", sd.both_ends)),
+                EXCLUSION_UM.doc(format!("optional: background pixels farther than this from the line (default {:?})", sd.exclusion_um)),
+                NONZERO_SNR.doc(format!("optional: a maximum is non-zero above this × background std (default {})", sd.nonzero_snr)),
                 ("min_run", "int", "", format!("optional: consecutive lines that start the filament (default {})", sd.min_run)),
             ],
         )
@@ -266,25 +271,26 @@ fn bind_background(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("axis", "string", "", "optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
-                ("angle_deg", "float", "°", "optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
-                ("detect_snr", "float", "", format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
-                ("max_objects", "int", "", format!("optional: most point objects fitted (default {})", bd.max_objects)),
-                ("min_weight", "float", "", format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight)),
+                AXIS.doc("optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
+                ANGLE_DEG.doc("optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
+                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
+                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", bd.max_objects)),
+                MIN_WEIGHT.doc(format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight)),
             ],
         )
         .form("remove_background(scan, tpl) -> map")
-        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none}")
+        .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none, warnings: [string] (that text and clipped or dark pixels of Sx, Sy), status: \"ok\" when warnings is empty}")
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
     let spec = d.spec();
     let s2 = spec.clone();
+    let (c, c2) = (r.ctx(), r.ctx());
     r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
-        remove_background(&spec, &s, &t, &m)
+        remove_background(&c, &spec, &s, &t, &m)
     });
     r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
-        remove_background(&s2, &s, &t, &Map::new())
+        remove_background(&c2, &s2, &s, &t, &Map::new())
     });
 }
 
@@ -292,38 +298,25 @@ fn bind_background(r: &mut Registrar) {
 fn bind_quantities(r: &mut Registrar) {
     // quantities
     let mut calib_keys: Vec<Key> = vec![
-        (
-            "n_obj",
-            "float",
-            "",
-            "refractive index of the filament (collagen 1.41 in the paper)".into(),
-        ),
-        (
-            "d_bm_nm",
-            "float",
-            "nm",
-            "optional: bead-model cylinder diameter (default: the reference bead's)".into(),
-        ),
-        (
-            "n_bm",
-            "float",
-            "",
-            "optional: bead-model index (default: the reference bead's)".into(),
-        ),
+        N_OBJ.doc("refractive index of the filament (collagen 1.41 in the paper)".into()),
+        D_BM_NM
+            .doc("optional: bead-model cylinder diameter (default: the reference bead's)".into()),
+        N_BM.doc("optional: bead-model index (default: the reference bead's)".into()),
     ];
     calib_keys.extend(pipeline_keys());
     let d = Doc::func("diameter_calib")
         .arg("tpl", "Template", "", "the point-particle template")
         .map("opts", "", &calib_keys)
-        .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr}: d = A·√(sens_corr) (eqs. colDiam, OurColD)")
+        .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr, d_max_nm}: d = A·√(sens_corr) (eqs. colDiam, OurColD), which holds up to d_max_nm (nm: the point-dipole sections' domain at n_obj in the session's optics)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")
         .help("A = d_bm / √(sens_bm · n_corr): sens_bm is the max sensitivity of a bead-model cylinder along the QPD y-axis measured by the pixel pipeline of the data (pixel_um or scan: required; stencil, window), so A belongs to that pixel size (default optics: 71.1 nm at 0.05 µm, 73.3 nm at 0.1 µm, 70.4 nm as the pixel → 0; docs/physics.md); not hard-coded (the paper's 58.6 nm is for its own optics).")
         .example(&format!("{TPL} let a = diameter_calib(t, #{{n_obj: 1.41, pixel_um: 0.05}}).a_nm; a > 40.0 && a < 90.0"), "true")
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.2, pixel_um: 0.05}})"), "error: n_obj")
         .example(&format!("{TPL} diameter_calib(t, #{{n_obj: 1.41}})"), "error: diameter_calib: pixel_um is required");
     let spec = d.spec();
+    let c = r.ctx();
     r.bind(d, move |t: TemplateRef, m: Map| {
-        diameter_calib(&spec, &t, &m)
+        diameter_calib(&c, &spec, &t, &m)
     });
     r.bind(
         Doc::func("fibril_diameter")
@@ -343,8 +336,12 @@ fn bind_quantities(r: &mut Registrar) {
         },
     );
     let mut lin_keys: Vec<Key> = vec![
-        ("n_obj", "float", "", format!("optional: index of the filament (default {PROTEIN_N}, dry globular protein as Sec. 6)")),
-        ("density_obj", "float", "g/cm³", format!("optional: its density (default {LIN_DENS_DENSITY_OBJ_G_CM3}, protein)")),
+        N_OBJ.doc(format!(
+            "optional: index of the filament (default {PROTEIN_N}, dry globular protein as Sec. 6)"
+        )),
+        DENSITY_OBJ.doc(format!(
+            "optional: its density (default {LIN_DENS_DENSITY_OBJ_G_CM3}, protein)"
+        )),
     ];
     lin_keys.extend(pipeline_keys());
     let d = Doc::func("lin_dens_calib")
@@ -377,13 +374,13 @@ fn bind_quantities(r: &mut Registrar) {
         .example("linear_density(1.0, #{})", "error: calib");
     r.bind(d, |s: f64, c: Map| linear_density(s, &c));
     let mut pm_keys: Vec<Key> = vec![
-        ("sens", "float", "", "its max sensitivity (reference-bead units: scan values × tpl.norm_factor; or a fit weight with fit_weight: true)".into()),
-        ("sens_err", "float", "", "optional: 1σ of sens".into()),
-        ("sens_rb", "float", "", "the reference bead's max sensitivity through the same pipeline (e.g. tpl.max_sens(pixel_um)); or give tpl and the pixel size, or fit_weight: true".into()),
-        ("tpl", "Template", "", "the template: sens_rb = its reference bead read through the pipeline of the data (pixel_um or scan required; stencil, window_um)".into()),
-        ("fit_weight", "bool", "", "optional: sens is a template-fit weight (reference-bead units by construction: sens_rb = 1)".into()),
-        ("n_obj", "float", "", "optional: index of the object (default: the reference bead's)".into()),
-        ("density", "float", "g/cm³", "optional: density of the object (default: the reference bead's)".into()),
+        SENS.doc("its max sensitivity (reference-bead units: scan values × tpl.norm_factor; or a fit weight with fit_weight: true)".into()),
+        SENS_ERR.doc("optional: 1σ of sens".into()),
+        SENS_RB.doc("the reference bead's max sensitivity through the same pipeline (e.g. tpl.max_sens(pixel_um)); or give tpl and the pixel size, or fit_weight: true".into()),
+        TPL_KEY.doc("the template: sens_rb = its reference bead read through the pipeline of the data (pixel_um or scan required; stencil, window_um)".into()),
+        FIT_WEIGHT.doc("optional: sens is a template-fit weight (reference-bead units by construction: sens_rb = 1)".into()),
+        N_OBJ.doc("optional: index of the object (default: the reference bead's)".into()),
+        DENSITY.doc("optional: density of the object (default: the reference bead's)".into()),
     ];
     pm_keys.extend(pixel_keys());
     let m_def = crate::analysis::MeasureOptions::default();
@@ -427,13 +424,13 @@ fn angle_curve(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<CurveRef> {
     let d = AngleCurveOptions::default();
     let co = AngleCurveOptions {
         n_angles: o
-            .int("n_angles")?
+            .int(N_ANGLES)?
             .map_or(d.n_angles, |v| v.clamp(0, 100_000) as usize),
         pixel_um: pixel_of(who, &o)?,
-        d_nm: o.f64("d_nm")?,
-        n: o.f64("n")?,
+        d_nm: o.f64(D_NM)?,
+        n: o.f64(N)?,
         bead_model: BeadModelOptions {
-            spacing_nm: o.f64_or("spacing_nm", d.bead_model.spacing_nm)?,
+            spacing_nm: o.f64_or(SPACING_NM, d.bead_model.spacing_nm)?,
         },
         measure: measure_opts(who, &o, d.measure)?,
     };
@@ -489,10 +486,51 @@ fn measure_filament_of(
 ) -> RResult<FilamentRef> {
     let o = Opts::new(spec, m)?;
     let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
-    let r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
+    let mut r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
         .map_err(|e| err("measure_filament", e))?;
+    let check = filament_input_check(&s.scan, &r, &mo);
+    r.warnings.extend(input_gate("measure_filament", check)?);
     c0.warn_all("measure_filament", &r.warnings);
     Ok(FilamentRef(Arc::new(r)))
+}
+
+/// The clipped and dark pixels (`data::clip`) among those a filament measurement reads: in the
+/// channel it used, the parabola window around each line's maximum, widened by the stencil.
+fn filament_input_check(
+    scan: &crate::data::Scan,
+    r: &crate::analysis::orientation::FilamentMeasurement,
+    mo: &crate::analysis::MeasureOptions,
+) -> crate::data::clip::InputCheck {
+    let reach = mo.stencil.reach() as f64;
+    let img = &scan.sx;
+    let step = |v: &[f64]| {
+        if v.len() > 1 {
+            (v[v.len() - 1] - v[0]).abs() / (v.len() - 1) as f64
+        } else {
+            0.0
+        }
+    };
+    let rows = r.channel == Channel::SxRows;
+    let (ch, half) = if rows {
+        ("sx", 0.5 * mo.window_um + reach * step(&img.x))
+    } else {
+        ("sy", 0.5 * mo.window_um + reach * step(&img.y))
+    };
+    let mut centre = vec![None; if rows { img.y.len() } else { img.x.len() }];
+    for p in &r.points {
+        if let Some(v) = centre.get_mut(p.line) {
+            *v = Some(if rows { p.x } else { p.y });
+        }
+    }
+    let half = half * (1.0 + 1e-9);
+    crate::data::clip::input_check_where(scan, &[ch], |row, col| {
+        let (line, at) = if rows {
+            (row, img.x[col])
+        } else {
+            (col, img.y[row])
+        };
+        centre[line].is_some_and(|c| (at - c).abs() <= half)
+    })
 }
 
 /// `FilamentMeasurement.profile(key)`: `sens_corr` or `sens` vs arc length (µm) along the
@@ -521,10 +559,10 @@ fn sbr_of(spec: &Spec, m: &FilamentRef, mm: &Map) -> RResult<Map> {
     let o = Opts::new(spec, mm)?;
     let d = SbrOptions::default();
     let so = SbrOptions {
-        skip_um: o.f64_or("skip_um", d.skip_um)?,
-        both_ends: o.bool_or("both_ends", d.both_ends)?,
-        exclusion_um: o.f64_or("exclusion_um", d.exclusion_um)?,
-        nonzero_snr: o.f64_or("nonzero_snr", d.nonzero_snr)?,
+        skip_um: o.f64_or(SKIP_UM, d.skip_um)?,
+        both_ends: o.bool_or(BOTH_ENDS, d.both_ends)?,
+        exclusion_um: o.f64_or(EXCLUSION_UM, d.exclusion_um)?,
+        nonzero_snr: o.f64_or(NONZERO_SNR, d.nonzero_snr)?,
         min_run: count("sbr", &o, "min_run", 1, 100_000)?.unwrap_or(d.min_run),
     };
     let r = sbr(&m.0, &so).map_err(|e| err("sbr", e))?;
@@ -533,11 +571,11 @@ fn sbr_of(spec: &Spec, m: &FilamentRef, mm: &Map) -> RResult<Map> {
 
 /// `remove_background(scan, tpl[, opts])`: fit the point-like aggregates in the channel the
 /// filament barely shows in and subtract them from both channels (Sec. 6, Fig. 6).
-fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<Map> {
+fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RResult<Map> {
     let who = "remove_background";
     let o = Opts::new(spec, m)?;
     let d = BackgroundOptions::default();
-    let axis = match (o.string("axis")?.as_deref(), o.f64("angle_deg")?) {
+    let axis = match (o.string(AXIS)?.as_deref(), o.f64(ANGLE_DEG)?) {
         (Some("y"), _) => FilamentAxis::Y,
         (Some("x"), _) => FilamentAxis::X,
         (Some(a), _) => return fail(format!("{who}: axis = \"{a}\" is not one of \"x\", \"y\"")),
@@ -546,11 +584,16 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
     };
     let bo = BackgroundOptions {
         axis,
-        detect_snr: o.f64_or("detect_snr", d.detect_snr)?,
-        max_objects: count(who, &o, "max_objects", 1, 10_000)?.unwrap_or(d.max_objects),
-        min_weight: o.f64_or("min_weight", d.min_weight)?,
+        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
+        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
+        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
         ..d.clone()
     };
+    // both channels are read: the objects are fitted in one and subtracted from the other
+    let mut warnings = input_gate(
+        who,
+        crate::data::clip::input_check(&s.scan, &["sx", "sy"], None),
+    )?;
     let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
     let mut out = Map::new();
     let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
@@ -561,7 +604,13 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
     });
     out.insert(
         "scan".into(),
-        Dynamic::from(scan_of(r.sx, r.sy, s.scan.sz.clone(), meta)),
+        Dynamic::from(scan_flagged(
+            r.sx,
+            r.sy,
+            s.scan.sz.clone(),
+            meta,
+            s.scan.flags.clone(),
+        )),
     );
     out.insert(
         "fit".into(),
@@ -585,8 +634,10 @@ fn remove_background(spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> RRes
     out.insert("remaining".into(), remaining.into());
     out.insert(
         "warning".into(),
-        warning.map_or(Dynamic::UNIT, |w| w.into()),
+        warning.clone().map_or(Dynamic::UNIT, |w| w.into()),
     );
+    warnings.extend(warning);
+    with_warnings(c, who, &mut out, warnings);
     Ok(out)
 }
 
@@ -622,22 +673,27 @@ pub fn remaining_warning(rem: &[crate::analysis::background::Remaining]) -> Opti
 /// `diameter_calib(tpl, opts)`: the constant A (nm) of fibril diameters d = A·√(sens_corr)
 /// from a bead-model cylinder measured by the data's pixel pipeline and n_corr (eqs. colDiam,
 /// OurColD).
-fn diameter_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
+fn diameter_calib(ctx: &Ctx, spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
     let who = "diameter_calib";
     let o = Opts::new(spec, m)?;
     let (px, mo, bm) = pipeline_opts(who, &o)?;
     let rb = t.0.reference;
     let c = DiameterCalib::from_template(
         &t.0,
-        o.req_f64("n_obj")?,
-        o.f64_or("d_bm_nm", rb.d_nm)?,
-        o.f64_or("n_bm", rb.n)?,
+        o.req_f64(N_OBJ)?,
+        o.f64_or(D_BM_NM, rb.d_nm)?,
+        o.f64_or(N_BM, rb.n)?,
         px,
         &mo,
         &bm,
     )
     .map_err(|e| err(who, e))?;
-    Ok(to_map(&c))
+    let mut out = to_map(&c);
+    // the largest diameter d = A·√(sens_corr) holds for: the point-dipole sections' domain
+    let o = ctx.optics();
+    let d_max = crate::analysis::domain::dipole_d_max_nm(c.n_obj, o.wavelength_nm, o.n_medium);
+    out.insert("d_max_nm".into(), d_max.into());
+    Ok(out)
 }
 
 /// `lin_dens_calib(tpl, opts)`: the calibration of linear densities (MDa/µm) from the
@@ -648,8 +704,8 @@ fn lin_dens_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
     let (px, mo, bm) = pipeline_opts(who, &o)?;
     let c = LinDensCalib::from_template(
         &t.0,
-        o.f64_or("n_obj", PROTEIN_N)?,
-        o.f64_or("density_obj", LIN_DENS_DENSITY_OBJ_G_CM3)?,
+        o.f64_or(N_OBJ, PROTEIN_N)?,
+        o.f64_or(DENSITY_OBJ, LIN_DENS_DENSITY_OBJ_G_CM3)?,
         px,
         &mo,
         &bm,
@@ -695,7 +751,7 @@ fn point_mass(spec: &Spec, m: &Map) -> RResult<Map> {
     let who = "point_mass";
     let o = Opts::new(spec, m)?;
     let rb = RefBead::default();
-    let tpl = match o.value("tpl") {
+    let tpl = match o.value(TPL_KEY) {
         None => None,
         Some(v) => match v.read_lock::<TemplateRef>() {
             Some(t) => Some(t.clone()),
@@ -707,8 +763,8 @@ fn point_mass(spec: &Spec, m: &Map) -> RResult<Map> {
             }
         },
     };
-    let fit = o.bool_or("fit_weight", false)?;
-    let given = o.f64("sens_rb")?;
+    let fit = o.bool_or(FIT_WEIGHT, false)?;
+    let given = o.f64(SENS_RB)?;
     let n_ways = usize::from(given.is_some()) + usize::from(tpl.is_some()) + usize::from(fit);
     if n_ways > 1 {
         return fail(format!(
@@ -731,11 +787,11 @@ fn point_mass(spec: &Spec, m: &Map) -> RResult<Map> {
         }
     };
     let p = point_object(
-        o.req_f64("sens")?,
-        o.f64("sens_err")?,
+        o.req_f64(SENS)?,
+        o.f64(SENS_ERR)?,
         sens_rb,
-        o.f64_or("n_obj", rb.n)?,
-        o.f64_or("density", rb.density_g_cm3)?,
+        o.f64_or(N_OBJ, rb.n)?,
+        o.f64_or(DENSITY, rb.density_g_cm3)?,
         &rb,
     )
     .map_err(|e| err(who, e))?;

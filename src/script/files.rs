@@ -6,7 +6,7 @@
 //! where it went.
 
 use super::ctx::Ctx;
-use super::registry::{fail, numbers, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{fail, numbers, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::stats::MAX_BINS;
 use crate::plot::{
@@ -15,6 +15,21 @@ use crate::plot::{
 use rhai::{Array, Dynamic, Map};
 use std::path::Path;
 use std::sync::Arc;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const BINS: Opt = Opt::new("bins", "int", "");
+const CHANNEL: Opt = Opt::new("channel", "string", "");
+const COLORMAP: Opt = Opt::new("colormap", "string", "");
+const INCLUDE_SZ: Opt = Opt::new("include_sz", "bool", "");
+const LABEL: Opt = Opt::new("label", "string", "");
+const LOG_X: Opt = Opt::new("log_x", "bool", "");
+const LOG_Y: Opt = Opt::new("log_y", "bool", "");
+const OVERWRITE: Opt = Opt::new("overwrite", "bool", "");
+const RANGE: Opt = Opt::new("range", "array", "");
+const SHARED_XY_SCALE: Opt = Opt::new("shared_xy_scale", "bool", "");
+const TITLE: Opt = Opt::new("title", "string", "");
+const XLABEL: Opt = Opt::new("xlabel", "string", "");
+const YLABEL: Opt = Opt::new("ylabel", "string", "");
 
 /// The path to write (see [`super::console::output_path`]: relative paths in the session folder,
 /// existing files never replaced unless `overwrite`).
@@ -73,24 +88,21 @@ fn ferr(who: &str, path: &str, e: impl std::fmt::Display) -> Box<rhai::EvalAltRe
 
 fn xy_opts(o: &Opts) -> RResult<XyOpts> {
     Ok(XyOpts {
-        title: o.string("title")?.unwrap_or_default(),
-        xlabel: o.string("xlabel")?.unwrap_or_default(),
-        ylabel: o.string("ylabel")?.unwrap_or_default(),
-        log_x: o.bool_or("log_x", false)?,
-        log_y: o.bool_or("log_y", false)?,
+        title: o.string(TITLE)?.unwrap_or_default(),
+        xlabel: o.string(XLABEL)?.unwrap_or_default(),
+        ylabel: o.string(YLABEL)?.unwrap_or_default(),
+        log_x: o.bool_or(LOG_X, false)?,
+        log_y: o.bool_or(LOG_Y, false)?,
     })
 }
 
 const XY_KEYS: &[(&str, &str, &str, &str)] = &[
-    ("title", "string", "", "optional: figure title"),
-    ("xlabel", "string", "", "optional: x-axis label"),
-    ("ylabel", "string", "", "optional: y-axis label"),
-    ("log_x", "bool", "", "optional: logarithmic x axis"),
-    ("log_y", "bool", "", "optional: logarithmic y axis"),
-    (
-        "overwrite",
-        "bool",
-        "",
+    TITLE.doc("optional: figure title"),
+    XLABEL.doc("optional: x-axis label"),
+    YLABEL.doc("optional: y-axis label"),
+    LOG_X.doc("optional: logarithmic x axis"),
+    LOG_Y.doc("optional: logarithmic y axis"),
+    OVERWRITE.doc(
         "optional: replace an existing file (default false: a numbered name, never overwriting)",
     ),
 ];
@@ -109,14 +121,14 @@ pub fn register(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("title", "string", "", "optional: figure title"),
-                ("overwrite", "bool", "", "optional: replace an existing file (default false: a numbered name, never overwriting)"),
-                ("channel", "string", "", "optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
-                ("include_sz", "bool", "", "optional (scans): draw the Sz panel (default true)"),
-                ("shared_xy_scale", "bool", "", "optional (scans): Sx and Sy on one colour range"),
-                ("label", "string", "", "optional (images): colour-bar label"),
-                ("colormap", "string", "", "optional (images): \"diverging\" (symmetric about 0) or \"sequential\" (default)"),
-                ("range", "array", "", "optional (images): fixed colour range [lo, hi]"),
+                TITLE.doc("optional: figure title"),
+                OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
+                CHANNEL.doc("optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
+                INCLUDE_SZ.doc("optional (scans): draw the Sz panel (default true)"),
+                SHARED_XY_SCALE.doc("optional (scans): Sx and Sy on one colour range"),
+                LABEL.doc("optional (images): colour-bar label"),
+                COLORMAP.doc("optional (images): \"diverging\" (symmetric about 0) or \"sequential\" (default)"),
+                RANGE.doc("optional (images): fixed colour range [lo, hi]"),
             ],
         )
         .form("plot(what, path) -> string")
@@ -157,11 +169,11 @@ pub fn register(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("bins", "int", "", format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
-                ("title", "string", "", "optional: figure title"),
-                ("overwrite", "bool", "", "optional: replace an existing file (default false: a numbered name, never overwriting)"),
-                ("xlabel", "string", "", "optional: x-axis label"),
-                ("ylabel", "string", "", "optional: y-axis label (default \"count\")"),
+                BINS.doc(format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
+                TITLE.doc("optional: figure title"),
+                OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
+                XLABEL.doc("optional: x-axis label"),
+                YLABEL.doc("optional: y-axis label (default \"count\")"),
             ],
         )
         .form("plot_hist(values, path) -> string")
@@ -273,10 +285,10 @@ fn save_csv(c: &Ctx, v: &Dynamic, path: &str) -> RResult<String> {
 fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
     let who = "plot";
     let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
-    let title = o.string("title")?.unwrap_or_default();
+    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
+    let title = o.string(TITLE)?.unwrap_or_default();
     let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
-        let mut p = match o.string("colormap")?.as_deref() {
+        let mut p = match o.string(COLORMAP)?.as_deref() {
             None | Some("sequential") => PlotOpts {
                 label: default_label.into(),
                 ..PlotOpts::default()
@@ -288,10 +300,10 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
                 ))
             }
         };
-        if let Some(l) = o.string("label")? {
+        if let Some(l) = o.string(LABEL)? {
             p.label = l;
         }
-        if let Some((a, b)) = o.range("range")? {
+        if let Some((a, b)) = o.range(RANGE)? {
             if a.partial_cmp(&b) != Some(std::cmp::Ordering::Less) {
                 return fail(format!("{who}: range = [{a}, {b}] must have lo < hi"));
             }
@@ -300,7 +312,7 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
         Ok(p.with_title(&title))
     };
     if let Some(s) = v.read_lock::<ScanRef>() {
-        if let Some(ch) = o.string("channel")? {
+        if let Some(ch) = o.string(CHANNEL)? {
             let img = match ch.as_str() {
                 "sx" => &s.scan.sx,
                 "sy" => &s.scan.sy,
@@ -312,18 +324,18 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
                 }
             };
             let mut p = PlotOpts::for_channel(&ch).with_title(&title);
-            if let Some(l) = o.string("label")? {
+            if let Some(l) = o.string(LABEL)? {
                 p.label = l;
             }
-            if let Some((a, b)) = o.range("range")? {
+            if let Some((a, b)) = o.range(RANGE)? {
                 p.range = Some((a, b));
             }
             plot_image(path, img, &p).map_err(|e| ferr(who, path, e))?;
         } else {
             let so = ScanPlotOpts {
                 title,
-                include_sz: o.bool_or("include_sz", true)?,
-                shared_xy_scale: o.bool_or("shared_xy_scale", false)?,
+                include_sz: o.bool_or(INCLUDE_SZ, true)?,
+                shared_xy_scale: o.bool_or(SHARED_XY_SCALE, false)?,
             };
             plot_scan(path, &s.scan, &so).map_err(|e| ferr(who, path, e))?;
             let left_out = crate::plot::empty_channels(&s.scan, so.include_sz);
@@ -353,7 +365,7 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
 fn plot_profile(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
     let who = "plot_profile";
     let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
     let bad = |x: &Dynamic| -> RResult<()> {
         fail(format!(
@@ -390,7 +402,7 @@ fn plot_profile(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResul
 fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
     let who = "plot_xy";
     let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let mut series = vec![];
     for (i, s) in a.iter().enumerate() {
         let Some(sm) = s.read_lock::<Map>() else {
@@ -400,7 +412,7 @@ fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<Strin
             ));
         };
         for k in sm.keys() {
-            if !["x", "y", "label", "style", "yerr"].contains(&k.as_str()) {
+            if !["x", "y", LABEL.name, "style", "yerr"].contains(&k.as_str()) {
                 return fail(format!(
                     "{who}: series[{i}]: unknown key `{k}`; allowed keys: x, y, label, style, yerr"
                 ));
@@ -420,7 +432,10 @@ fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<Strin
                 y.len()
             ));
         }
-        let label = sm.get("label").map(|v| v.to_string()).unwrap_or_default();
+        let label = sm
+            .get(LABEL.name)
+            .map(|v| v.to_string())
+            .unwrap_or_default();
         let style = match sm.get("style").map(|v| v.to_string()).as_deref() {
             None | Some("line") => SeriesStyle::Line,
             Some("points") => SeriesStyle::Points,
@@ -457,18 +472,18 @@ fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<Strin
 fn plot_hist(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
     let who = "plot_hist";
     let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or("overwrite", false)?)?;
+    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let v = numbers(who, "values", &Dynamic::from_array(a))?;
-    let bins = o.int("bins")?.unwrap_or(PLOT_HIST_BINS);
+    let bins = o.int(BINS)?.unwrap_or(PLOT_HIST_BINS);
     if !(1..=MAX_BINS as i64).contains(&bins) {
         return fail(format!(
             "{who}: bins = {bins} is out of range: 1 ≤ bins ≤ {MAX_BINS}"
         ));
     }
     let xo = XyOpts {
-        title: o.string("title")?.unwrap_or_default(),
-        xlabel: o.string("xlabel")?.unwrap_or_default(),
-        ylabel: o.string("ylabel")?.unwrap_or_default(),
+        title: o.string(TITLE)?.unwrap_or_default(),
+        xlabel: o.string(XLABEL)?.unwrap_or_default(),
+        ylabel: o.string(YLABEL)?.unwrap_or_default(),
         ..XyOpts::default()
     };
     figure::plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;

@@ -3,7 +3,7 @@
 //! session's beam.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::focus_crlb::{focus_crlb, focus_weight};
@@ -14,14 +14,20 @@ use crate::instrument::sim::scene::{Bead, Scene};
 use crate::optics::template::TemplateSpec;
 use rhai::{Dynamic, Map};
 
+/// The options of this family's bindings, each key written once (`Opt`).
+const SIGMA: Opt = Opt::new("sigma", "float", "");
+const U0: Opt = Opt::new("u0", "float", "µm");
+const WEIGHT: Opt = Opt::new("weight", "float", "");
+const Z_BEST: Opt = Opt::new("z_best", "float", "µm");
+
 const FOCUS_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.1, d_nm: 110.0, n: 1.572}); s.effects([\"detector_noise\"]); simulate(s); let sc = scan_xz(#{x: [-1.0, 1.0], z: [-1.0, 1.0], nx: 41, nz: 41, dwell: 0.001}); let b = focus_crlb(sc);";
 
 pub fn register(r: &mut Registrar) {
     let keys: &[(&str, &str, &str, &str)] = &[
-        ("z_best", "float", "µm", "optional: the object's height (default: focus_search's z_best of the image)"),
-        ("u0", "float", "µm", "optional: its lateral position (default: the sensitivity maximum of the row nearest z_best)"),
-        ("weight", "float", "", "optional: its weight in reference-bead units (default: least squares of the model at u0, z_best)"),
-        ("sigma", "float", "", "optional: pixel noise in the image's units (default: the image's robust pixel noise)"),
+        Z_BEST.doc("optional: the object's height (default: focus_search's z_best of the image)"),
+        U0.doc("optional: its lateral position (default: the sensitivity maximum of the row nearest z_best)"),
+        WEIGHT.doc("optional: its weight in reference-bead units (default: least squares of the model at u0, z_best)"),
+        SIGMA.doc("optional: pixel noise in the image's units (default: the image's robust pixel noise)"),
     ];
     let d = Doc::func("focus_crlb")
         .arg("img", "Scan | Image", "", "an XZ scan (its Sx), or the Sx of an XZ / Sy of a YZ scan")
@@ -68,7 +74,7 @@ fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
     crate::analysis::kind::require_plane(who, &img, &["XZ", "YZ"]).map_err(|e| err(who, e))?;
     let lateral_y = img.x_name == "y";
     let (us, zs) = (img.x.clone(), img.y.clone());
-    let z_best = match o.f64("z_best")? {
+    let z_best = match o.f64(Z_BEST)? {
         Some(z) => z,
         None => {
             focus_search(&img, &FocusOptions::default())
@@ -76,7 +82,7 @@ fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
                 .z_best
         }
     };
-    let u0 = match o.f64("u0")? {
+    let u0 = match o.f64(U0)? {
         Some(u) => u,
         None => {
             // the sensitivity maximum of the row nearest z_best
@@ -116,7 +122,7 @@ fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
         };
         Ok(out[ch].clone())
     };
-    let weight = match o.f64("weight")? {
+    let weight = match o.f64(WEIGHT)? {
         Some(w) => w,
         None => {
             focus_weight(&us, &zs, &img.data, u0, z_best, &row)
@@ -124,7 +130,7 @@ fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
                 .0
         }
     };
-    let sigma = match o.f64("sigma")? {
+    let sigma = match o.f64(SIGMA)? {
         Some(s) if s > 0.0 && s.is_finite() => s,
         Some(s) => return fail(format!("{who}: sigma = {s} is out of range: σ > 0")),
         None => {

@@ -1,8 +1,16 @@
 //! Binding family `mie`: Lorenz–Mie efficiencies and the focused-beam Mie response of a sphere.
 
 use super::ctx::Ctx;
-use super::registry::{err, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, Doc, Opt, Opts, RResult, Registrar, Spec};
 use rhai::{Map, INT};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+const M_IM: Opt = Opt::new("m_im", "float", "");
+const M_RE: Opt = Opt::new("m_re", "float", "");
+const N: Opt = Opt::new("n", "float", "");
+const N_IM: Opt = Opt::new("n_im", "float", "");
+const X: Opt = Opt::new("x", "float", "");
 
 pub fn register(r: &mut Registrar) {
     let d = Doc::func("mie_q")
@@ -10,9 +18,9 @@ pub fn register(r: &mut Registrar) {
             "sphere",
             "size parameter and relative index",
             &[
-                ("x", "float", "", "size parameter π d n_medium / λ"),
-                ("m_re", "float", "", "real part of the relative index"),
-                ("m_im", "float", "", "optional: absorption, ≥ 0 (default 0)"),
+                X.doc("size parameter π d n_medium / λ"),
+                M_RE.doc("real part of the relative index"),
+                M_IM.doc("optional: absorption, ≥ 0 (default 0)"),
             ],
         )
         .returns("map", "#{qext, qsca, qabs, qback, g, n_terms}")
@@ -29,14 +37,9 @@ pub fn register(r: &mut Registrar) {
             "sphere",
             "a sphere in the medium and wavelength of optics()",
             &[
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "refractive index"),
-                (
-                    "n_im",
-                    "float",
-                    "",
-                    "optional: absorption part of the index, ≥ 0",
-                ),
+                D_NM.doc("diameter"),
+                N.doc("refractive index"),
+                N_IM.doc("optional: absorption part of the index, ≥ 0"),
             ],
         )
         .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
@@ -51,8 +54,8 @@ pub fn register(r: &mut Registrar) {
 fn mie_q(spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let q = crate::optics::mie::mie_q(
-        o.req_f64("x")?,
-        num_complex::Complex64::new(o.req_f64("m_re")?, o.f64_or("m_im", 0.0)?),
+        o.req_f64(X)?,
+        num_complex::Complex64::new(o.req_f64(M_RE)?, o.f64_or(M_IM, 0.0)?),
     )
     .map_err(|e| err("mie_q", e))?;
     Ok(mie_map(&q))
@@ -63,10 +66,10 @@ fn mie_q(spec: &Spec, m: &Map) -> RResult<Map> {
 fn mie(ctx: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let op = ctx.optics();
-    let dn = o.req_f64("d_nm")?;
+    let dn = o.req_f64(D_NM)?;
     let q = crate::optics::mie::sphere(
         dn,
-        num_complex::Complex64::new(o.req_f64("n")?, o.f64_or("n_im", 0.0)?),
+        num_complex::Complex64::new(o.req_f64(N)?, o.f64_or(N_IM, 0.0)?),
         op.n_medium,
         op.wavelength_nm,
     )

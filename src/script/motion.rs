@@ -6,13 +6,14 @@
 //! each takes, how each opens); this file checks the keys and opens what the family says.
 
 use super::ctx::{Attached, Ctx};
-use super::registry::{fail, int, non_negative, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{fail, int, non_negative, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
-use crate::config::{Backend, Config, MAX_BAUD, MAX_TIMEOUT_MS};
+use crate::config::{Config, MAX_BAUD, MAX_TIMEOUT_MS};
 use crate::instrument::emulator::QpdEmulatorConfig;
 use crate::instrument::mock::{mock_instrument, MockConfig, FAMILY as MOCK_FAMILY};
+use crate::instrument::redpitaya::REDPITAYA;
 use crate::instrument::registry::{self, BuildFn, Family, Open};
 use crate::instrument::sim::scene::{Bead, Scene};
 use crate::instrument::sim::{Renderer, SimConfig, SimCore};
@@ -21,6 +22,27 @@ use crate::optics::params::{REF_BEAD_D_NM, REF_BEAD_N};
 use crate::optics::template::TemplateSpec;
 use rhai::{Array, Dynamic, Map, INT};
 use std::sync::Arc;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const ABORT_AFTER_READS: Opt = Opt::new("abort_after_reads", "int", "");
+const BACKEND: Opt = Opt::new("backend", "string", "");
+const BAUD: Opt = Opt::new("baud", "int", "baud");
+const FAIL_MOVE_AFTER: Opt = Opt::new("fail_move_after", "int", "");
+const FAIL_READ_AFTER: Opt = Opt::new("fail_read_after", "int", "");
+const NOISE_V: Opt = Opt::new("noise_v", "float", "V");
+const PACE: Opt = Opt::new("pace", "float", "");
+const QPD_KEY: Opt = Opt::new("qpd", "string", "");
+const QPD_BAUD: Opt = Opt::new("qpd_baud", "int", "baud");
+const QPD_HOST: Opt = Opt::new("qpd_host", "string", "");
+const QPD_PORT: Opt = Opt::new("qpd_port", "string", "");
+const RATE: Opt = Opt::new("rate", "float", "Hz");
+const SETTLE: Opt = Opt::new("settle", "float", "s");
+const STAGE_BAUD: Opt = Opt::new("stage_baud", "int", "baud");
+const STAGE_PORT: Opt = Opt::new("stage_port", "string", "");
+const STAGE_PORTS: Opt = Opt::new("stage_ports", "map", "");
+const TIMEOUT_MS: Opt = Opt::new("timeout_ms", "int", "ms");
+const SCENE: Opt = Opt::new("scene", "Scene", "");
+const START: Opt = Opt::new("start", "map", "µm");
 
 /// `#{x, y, z}` in µm.
 pub fn pos_map(p: Pos) -> Map {
@@ -195,25 +217,25 @@ fn bind_connect(r: &mut Registrar) {
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                ("backend", "string", "", "optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster]), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
-                ("stage_port", "string", "", "optional: stage serial port, overrides [stage] port (hardware)".to_string()),
-                ("qpd_port", "string", "", "optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)".to_string()),
-                ("qpd_host", "string", "", format!("optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default {})", crate::instrument::redpitaya::DEFAULT_PORT)),
-                ("stage_ports", "map", "", "optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)".to_string()),
-                ("baud", "int", "baud", "optional: baud rate of both ports (hardware)".to_string()),
-                ("stage_baud", "int", "baud", "optional: stage baud rate (hardware)".to_string()),
-                ("qpd_baud", "int", "baud", "optional: QPD baud rate (hardware)".to_string()),
-                ("timeout_ms", "int", "ms", "optional: reply timeout of both devices (hardware)".to_string()),
-                ("scene", "Scene", "", "optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)".to_string()),
-                ("noise_v", "float", "V", format!("optional: emulated QPD noise per sample, rms (emulated; default {:e}, {} V per signal unit)", emu.noise_v[0], emu.volts_per_unit[0])),
-                ("qpd", "string", "", "optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)".to_string()),
-                ("settle", "float", "s", format!("optional: settle time per move (default [stage] settle_s; mock {})", mock.settle_s)),
-                ("pace", "float", "", format!("optional: wall seconds per simulated second (sim; default {}: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())", VirtualClock::DEFAULT_PACE)),
-                ("rate", "float", "Hz", format!("optional: QPD sample rate (mock; default {})", mock.rate_hz)),
-                ("start", "map", "µm", "optional: initial position #{x, y, z} (mock)".to_string()),
-                ("fail_move_after", "int", "", "optional: the stage disconnects on the move after this many (mock fault injection)".to_string()),
-                ("fail_read_after", "int", "", "optional: the QPD times out on the read after this many (mock fault injection)".to_string()),
-                ("abort_after_reads", "int", "", "optional: raise the Ctrl-C flag after this many reads (mock)".to_string()),
+                BACKEND.doc("optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster]), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
+                STAGE_PORT.doc("optional: stage serial port, overrides [stage] port (hardware)".to_string()),
+                QPD_PORT.doc("optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)".to_string()),
+                QPD_HOST.doc(format!("optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default {})", crate::instrument::redpitaya::DEFAULT_PORT)),
+                STAGE_PORTS.doc("optional: #{x, y, z} serial ports of the three KPZ101 cubes, overrides [stage] ports (thorlabs)".to_string()),
+                BAUD.doc("optional: baud rate of both ports (hardware)".to_string()),
+                STAGE_BAUD.doc("optional: stage baud rate (hardware)".to_string()),
+                QPD_BAUD.doc("optional: QPD baud rate (hardware)".to_string()),
+                TIMEOUT_MS.doc("optional: reply timeout of both devices (hardware)".to_string()),
+                SCENE.doc("optional: what the simulator or the emulated QPD images (sim, emulated; default: the last simulate(scene), else empty for sim and a 110 nm polystyrene bead at the origin for emulated)".to_string()),
+                NOISE_V.doc(format!("optional: emulated QPD noise per sample, rms (emulated; default {:e}, {} V per signal unit)", emu.noise_v[0], emu.volts_per_unit[0])),
+                QPD_KEY.doc("optional: the emulated digitiser (emulated): \"scpi\" (default) or \"redpitaya\" (a Red Pitaya 4-input board over loopback TCP, its external trigger wired to the stage's OUT1, `[stage] trigger_line = 1`: scan_xy(#{..., mode: \"raster\"}) runs hardware-timed lines)".to_string()),
+                SETTLE.doc(format!("optional: settle time per move (default [stage] settle_s; mock {})", mock.settle_s)),
+                PACE.doc(format!("optional: wall seconds per simulated second (sim; default {}: as fast as it computes; 1: a real instrument's speed, to watch a scan build up in view())", VirtualClock::DEFAULT_PACE)),
+                RATE.doc(format!("optional: QPD sample rate (mock; default {})", mock.rate_hz)),
+                START.doc("optional: initial position #{x, y, z} (mock)".to_string()),
+                FAIL_MOVE_AFTER.doc("optional: the stage disconnects on the move after this many (mock fault injection)".to_string()),
+                FAIL_READ_AFTER.doc("optional: the QPD times out on the read after this many (mock fault injection)".to_string()),
+                ABORT_AFTER_READS.doc("optional: raise the Ctrl-C flag after this many reads (mock)".to_string()),
             ],
         )
         .form("connect() -> string")
@@ -428,7 +450,8 @@ fn status(c: &Ctx) -> RResult<Map> {
 /// `connect(#{...})`: check the keys, then connect the backend ([`connect_binding`]).
 /// A `connect` option that counts something (baud, milliseconds): an integer 1 ≤ k ≤ max, or
 /// absent.
-fn connect_count(o: &Opts, k: &str, max: i64) -> RResult<Option<i64>> {
+fn connect_count(o: &Opts, k: Opt, max: i64) -> RResult<Option<i64>> {
+    let k = k.name;
     match o.int(k)? {
         Some(v) if !(1..=max).contains(&v) => fail(format!(
             "connect: {k} = {v} is out of range: 1 ≤ {k} ≤ {max}"
@@ -512,7 +535,7 @@ pub fn say_connect_warnings(ctx: &Ctx, description: &serde_json::Value) -> Vec<S
 /// The scene for the simulator (`fallback` when no scene was given and the connected
 /// instrument images none).
 fn scene_for(ctx: &Ctx, m: &Map, fallback: impl FnOnce() -> Scene) -> RResult<Scene> {
-    if let Some(v) = m.get("scene") {
+    if let Some(v) = m.get(SCENE.name) {
         return match v.clone().try_cast::<SceneRef>() {
             Some(s) => Ok(s.0),
             None => fail(format!(
@@ -564,7 +587,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     // close that connection first. Otherwise the current instrument stays until the new one
     // is up, so a failed connect leaves it alone.
     // (a Red Pitaya by its address: its SCPI server serves one client at a time)
-    let rp_address = (cfg.qpd.backend == Backend::Redpitaya)
+    let rp_address = (cfg.qpd.backend == REDPITAYA)
         .then(|| {
             let port = cfg.redpitaya_port().ok()?;
             Some(format!("{}:{port}", cfg.qpd.host.as_deref()?))
@@ -600,7 +623,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
 /// `connect(#{backend, …})`: the family the backend names (`instrument::registry`), its keys
 /// checked, then opened as the family says ([`Open`]).
 fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
-    let backend = o.string("backend")?.unwrap_or_else(|| "config".into());
+    let backend = o.string(BACKEND)?.unwrap_or_else(|| "config".into());
     let mut cfg = base_config(c)?;
     // "config" keeps the config's own backends (a GCS stage may read a KPA101, say) and
     // checks the keys against the family of the config's stage
@@ -617,7 +640,7 @@ fn connect_binding(c: &Ctx, o: &Opts, m: &Map) -> RResult<String> {
         ));
     };
     check_family_keys(&family, &backend, m)?;
-    let settle = match o.f64("settle")? {
+    let settle = match o.f64(SETTLE)? {
         Some(s) if !(0.0..=10.0).contains(&s) => {
             return fail(format!(
                 "connect: settle = {s} is out of range: 0 ≤ settle ≤ 10 s"
@@ -668,8 +691,8 @@ fn check_family_keys(family: &Family, backend: &str, m: &Map) -> RResult<()> {
 }
 
 /// A `[stage]`/`[qpd]` backend a family names, as the config's.
-fn config_backend(name: &str) -> RResult<Backend> {
-    Backend::from_name(name).map_or_else(
+fn config_backend(name: &str) -> RResult<crate::config::Backend> {
+    registry::config_backend(name).map_or_else(
         || fail(format!("connect: the config has no backend {name:?}")),
         Ok,
     )
@@ -678,8 +701,8 @@ fn config_backend(name: &str) -> RResult<Backend> {
 /// The port, host, baud and timeout keys of `connect`'s map over the config's (only the
 /// keys the family's backend takes get here).
 fn apply_port_keys(o: &Opts, cfg: &mut Config) -> RResult<()> {
-    if let Some(h) = o.string("qpd_host")? {
-        if cfg.qpd.backend != Backend::Redpitaya {
+    if let Some(h) = o.string(QPD_HOST)? {
+        if cfg.qpd.backend != REDPITAYA {
             return fail(format!(
                 "connect: qpd_host applies to a Red Pitaya QPD (backend \"redpitaya\"), not {:?}",
                 cfg.qpd.backend.as_str()
@@ -687,30 +710,30 @@ fn apply_port_keys(o: &Opts, cfg: &mut Config) -> RResult<()> {
         }
         cfg.qpd.host = Some(h);
     }
-    if let Some(p) = o.string("stage_port")? {
+    if let Some(p) = o.string(STAGE_PORT)? {
         // one controller on this port, in place of the config's port(s)
         cfg.stage.port = Some(p);
         cfg.stage.ports = None;
     }
-    if let Some([x, y, z]) = o.axis_strings("stage_ports")? {
+    if let Some([x, y, z]) = o.axis_strings(STAGE_PORTS)? {
         cfg.stage.port = None;
         cfg.stage.ports = Some(crate::config::AxisPorts { x, y, z });
     }
-    if let Some(p) = o.string("qpd_port")? {
+    if let Some(p) = o.string(QPD_PORT)? {
         cfg.qpd.port = Some(p);
     }
-    let positive = |k: &str, max: i64| connect_count(o, k, max);
-    if let Some(b) = positive("baud", MAX_BAUD.into())? {
+    let positive = |k: Opt, max: i64| connect_count(o, k, max);
+    if let Some(b) = positive(BAUD, MAX_BAUD.into())? {
         cfg.stage.baud = b as u32;
         cfg.qpd.baud = b as u32;
     }
-    if let Some(b) = positive("stage_baud", MAX_BAUD.into())? {
+    if let Some(b) = positive(STAGE_BAUD, MAX_BAUD.into())? {
         cfg.stage.baud = b as u32;
     }
-    if let Some(b) = positive("qpd_baud", MAX_BAUD.into())? {
+    if let Some(b) = positive(QPD_BAUD, MAX_BAUD.into())? {
         cfg.qpd.baud = b as u32;
     }
-    if let Some(t) = positive("timeout_ms", MAX_TIMEOUT_MS as i64)? {
+    if let Some(t) = positive(TIMEOUT_MS, MAX_TIMEOUT_MS as i64)? {
         cfg.stage.timeout_ms = t as u64;
         cfg.qpd.timeout_ms = t as u64;
     }
@@ -720,7 +743,7 @@ fn apply_port_keys(o: &Opts, cfg: &mut Config) -> RResult<()> {
 /// `connect(#{backend: "sim", scene, pace})`.
 fn open_sim(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
     let scene = scene_for(c, m, Scene::default)?;
-    let pace = match o.f64("pace")? {
+    let pace = match o.f64(PACE)? {
         Some(p) if !(0.0..=100.0).contains(&p) => {
             return fail(format!(
                 "connect: pace = {p:?} is out of range: 0 ≤ pace ≤ 100 wall seconds per simulated second"
@@ -735,7 +758,7 @@ fn open_sim(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
 fn open_emulated(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
     let scene = scene_for(c, m, reference_bead_scene)?;
     let noise_v = o
-        .f64("noise_v")?
+        .f64(NOISE_V)?
         .unwrap_or(QpdEmulatorConfig::default().noise_v[0]);
     if !(0.0..=10.0).contains(&noise_v) {
         return fail(format!(
@@ -747,7 +770,7 @@ fn open_emulated(c: &Ctx, o: &Opts, m: &Map, cfg: &Config) -> RResult<String> {
         Renderer::checked(&c.optics(), &scene, TemplateSpec::default())
             .map_err(|e| format!("connect: backend = \"emulated\": {e}"))?,
     );
-    let e = match o.string("qpd")?.as_deref() {
+    let e = match o.string(QPD_KEY)?.as_deref() {
         None | Some("scpi") => connect_emulated(renderer.clone(), &sim, cfg, noise_v),
         Some("redpitaya") => connect_emulated_redpitaya(
             renderer.clone(),
@@ -789,7 +812,7 @@ fn open_mock(c: &Ctx, o: &Opts, m: &Map, settle: Option<f64>) -> RResult<String>
     if let Some(s) = settle {
         cfg.settle_s = s;
     }
-    if let Some(r) = o.f64("rate")? {
+    if let Some(r) = o.f64(RATE)? {
         if !(1.0..=1e9).contains(&r) {
             return fail(format!(
                 "connect: rate = {r} is out of range: 1 ≤ rate ≤ 1e9 Hz"
@@ -797,7 +820,7 @@ fn open_mock(c: &Ctx, o: &Opts, m: &Map, settle: Option<f64>) -> RResult<String>
         }
         cfg.rate_hz = r;
     }
-    if let Some(s) = m.get("start") {
+    if let Some(s) = m.get(START.name) {
         let Some(sm) = s.read_lock::<Map>() else {
             return fail("connect: start must be a map #{x, y, z} (µm)");
         };
@@ -806,14 +829,14 @@ fn open_mock(c: &Ctx, o: &Opts, m: &Map, settle: Option<f64>) -> RResult<String>
             *st = v.unwrap_or(0.0);
         }
     }
-    let count = |k: &str| -> RResult<Option<usize>> {
+    let count = |k: Opt| -> RResult<Option<usize>> {
         o.int(k)?
-            .map(|v| non_negative("connect", k, v).map(|n| n as usize))
+            .map(|v| non_negative("connect", k.name, v).map(|n| n as usize))
             .transpose()
     };
-    cfg.fail_move_after = count("fail_move_after")?;
-    cfg.fail_read_after = count("fail_read_after")?;
-    cfg.abort_after_reads = count("abort_after_reads")?.map(|k| (k, c.settings.abort.clone()));
+    cfg.fail_move_after = count(FAIL_MOVE_AFTER)?;
+    cfg.fail_read_after = count(FAIL_READ_AFTER)?;
+    cfg.abort_after_reads = count(ABORT_AFTER_READS)?.map(|k| (k, c.settings.abort.clone()));
     let (inst, h) = mock_instrument(cfg);
     let backend = MOCK_FAMILY.backend;
     let line = connected_line(c, backend, &inst);

@@ -3,10 +3,10 @@
 //! index correction, mass, maximum sensitivity; suppl. S1–S3).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
-use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM};
+use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM, V_MAX};
 use crate::optics::calc::{
     n_corr, p_scat_ratio, sphere_mass_kda, trap_depth_kt, TrapShape, ROOM_T_K,
 };
@@ -16,6 +16,20 @@ use crate::optics::params::{Beam, Optics};
 use crate::optics::rayleigh::DetectorModel;
 use crate::optics::ValidOptics;
 use rhai::{Array, Dynamic, Map, INT};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const BEAM: Opt = Opt::new("beam", "string", "");
+const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+const MODEL: Opt = Opt::new("model", "string", "");
+const N: Opt = Opt::new("n", "float", "");
+const N_PHI: Opt = Opt::new("n_phi", "int", "");
+const N_THETA: Opt = Opt::new("n_theta", "int", "");
+const POLARIZATION: Opt = Opt::new("polarization", "bool", "");
+const SHAPE: Opt = Opt::new("shape", "string", "");
+const TEMPERATURE_K: Opt = Opt::new("temperature_k", "float", "K");
+const X: Opt = Opt::new("x", "float", "µm");
+const Y: Opt = Opt::new("y", "float", "µm");
+const Z: Opt = Opt::new("z", "float", "µm");
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {
@@ -86,19 +100,9 @@ fn bind_set_optics(r: &mut Registrar) {
                     "mW",
                     "optional: laser power at the focus",
                 ),
-                ("n_theta", "int", "", "optional: cone quadrature nodes in θ"),
-                (
-                    "n_phi",
-                    "int",
-                    "",
-                    "optional: cone quadrature nodes in φ per quadrant",
-                ),
-                (
-                    "beam",
-                    "string",
-                    "",
-                    "optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)",
-                ),
+                N_THETA.doc("optional: cone quadrature nodes in θ"),
+                N_PHI.doc("optional: cone quadrature nodes in φ per quadrant"),
+                BEAM.doc("optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)"),
                 (
                     "pupil_filling",
                     "float",
@@ -124,12 +128,12 @@ fn bind_response(r: &mut Registrar) {
             "at",
             "particle displacement from the focus and the particle",
             &[
-                ("x", "float", "µm", "optional: displacement (default 0)"),
-                ("y", "float", "µm", "optional: displacement (default 0)"),
-                ("z", "float", "µm", "optional: displacement, + downstream (default 0)"),
-                ("d_nm", "float", "nm", format!("optional: diameter (default {BEAD_D_NM})").as_str()),
-                ("n", "float", "", format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
-                ("polarization", "bool", "", "optional: vector dipole field in the paraxial beam (default false; the vector beam is always vectorial)"),
+                X.doc("optional: displacement (default 0)"),
+                Y.doc("optional: displacement (default 0)"),
+                Z.doc("optional: displacement, + downstream (default 0)"),
+                D_NM.doc(format!("optional: diameter (default {BEAD_D_NM})").as_str()),
+                N.doc(format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str()),
+                POLARIZATION.doc("optional: vector dipole field in the paraxial beam (default false; the vector beam is always vectorial)"),
             ],
         )
         .returns("map", "#{sx, sy, sz}: QPD signals normalised to the beam power")
@@ -161,20 +165,10 @@ fn bind_response(r: &mut Registrar) {
             "object",
             "the trapped object",
             &[
-                (
-                    "shape",
-                    "string",
-                    "",
-                    "\"sphere\" or \"cylinder\" (a fibril in the focal plane)",
-                ),
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", "refractive index"),
-                (
-                    "temperature_k",
-                    "float",
-                    "K",
-                    "optional: temperature (default 295.15)",
-                ),
+                SHAPE.doc("\"sphere\" or \"cylinder\" (a fibril in the focal plane)"),
+                D_NM.doc("diameter"),
+                N.doc("refractive index"),
+                TEMPERATURE_K.doc("optional: temperature (default 295.15)"),
             ],
         )
         .returns("float", "depth of the gradient-force potential in kT")
@@ -225,9 +219,9 @@ fn bind_model_sensitivity(r: &mut Registrar) {
             "bead",
             "the sphere and the model tier",
             &[
-                ("d_nm", "float", "nm", "diameter"),
-                ("n", "float", "", format!("optional: index (default {BEAD_N})").as_str()),
-                ("model", "string", "", "optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
+                D_NM.doc("diameter"),
+                N.doc(format!("optional: index (default {BEAD_N})").as_str()),
+                MODEL.doc("optional: \"rayleigh\" (point dipole, default) or \"finite_size\" (suppl. S6)"),
             ],
         )
         .returns("map", "#{sens: (∂Sx/∂x)max in 1/µm, z: best focus in µm}")
@@ -250,14 +244,14 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
             "opts",
             "optional",
             &[
-                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
-                ("n", "float", "", format!("optional: reference bead index (default {BEAD_N})")),
+                D_NM.doc(format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
+                N.doc(format!("optional: reference bead index (default {BEAD_N})")),
             ],
         )
         .form("fit_beam(scan) -> map")
         .returns(
             "map",
-            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys)}",
+            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys), warnings: [string] (clipped or dark pixels, the bead near the scan's edge, v at the search's bound), status: \"ok\" when warnings is empty}",
         )
         .summary("fit the focused beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to a reference-bead scan")
         .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
@@ -276,14 +270,36 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
 fn fit_beam_of(c: &Ctx, spec: &Spec, s: &ScanRef, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let opts = BeamFitOptions {
-        d_nm: o.f64_or("d_nm", BEAD_D_NM)?,
-        n: o.f64_or("n", BEAD_N)?,
+        d_nm: o.f64_or(D_NM, BEAD_D_NM)?,
+        n: o.f64_or(N, BEAD_N)?,
         ..BeamFitOptions::default()
     };
     let sc = &s.scan;
+    // its domain (docs/analysis.md, Domains): no clipped or dark pixel among the three
+    // channels it fits, the bead whole inside the 1.2 µm field it needs, v not at the search's
+    // upper bound
+    let check = crate::data::clip::input_check(sc, &["sx", "sy", "sz"], None);
+    let mut warnings = super::analysis_values::input_gate("fit_beam", check)?;
     let f = fit_beam(&c.optics(), &sc.sx, &sc.sy, &sc.sz, &opts).map_err(|e| err("fit_beam", e))?;
-    Ok(fit_map(&f))
+    warnings.extend(crate::analysis::domain::margin_warning(
+        "the bead",
+        &sc.sx,
+        f.x0.value,
+        f.y0.value,
+        BEAD_FIELD_HALF_UM,
+    ));
+    if f.inv_f0_sq.value >= V_MAX * (1.0 - 1e-9) {
+        warnings.push(format!(
+            "the pupil filling is at the search's bound v = 1/f0² = {V_MAX} (a beam much narrower than the pupil): its value and σ do not hold; check the bead's size and index and the optics"
+        ));
+    }
+    let mut out = fit_map(&f);
+    super::analysis_values::with_warnings(c, "fit_beam", &mut out, warnings);
+    Ok(out)
 }
+
+/// Half the field the beam fit needs around the bead, µm (`analysis::beam_fit`: ≥ 1.2 µm).
+const BEAD_FIELD_HALF_UM: f64 = 0.6;
 
 fn fit_map(f: &BeamFit) -> Map {
     let mut out = Map::new();
@@ -374,13 +390,13 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
             *f = v;
         }
     }
-    if let Some(v) = o.int("n_theta")? {
+    if let Some(v) = o.int(N_THETA)? {
         new.n_theta = v.clamp(0, 100_000) as usize;
     }
-    if let Some(v) = o.int("n_phi")? {
+    if let Some(v) = o.int(N_PHI)? {
         new.n_phi = v.clamp(0, 100_000) as usize;
     }
-    if let Some(b) = o.string("beam")? {
+    if let Some(b) = o.string(BEAM)? {
         new.beam = Beam::parse(&b).map_err(|e| err("set_optics", e))?;
     }
     let new = ValidOptics::new(new).map_err(|e| err("set_optics", e))?;
@@ -394,19 +410,15 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
 fn response_of(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let model = DetectorModel {
-        polarization: o.bool_or("polarization", false)?,
+        polarization: o.bool_or(POLARIZATION, false)?,
         misalignment: None,
     };
     let s = dipole_response_in_beam(
         &c.optics(),
         &model,
-        [
-            o.f64_or("x", 0.0)?,
-            o.f64_or("y", 0.0)?,
-            o.f64_or("z", 0.0)?,
-        ],
-        o.f64_or("d_nm", BEAD_D_NM)?,
-        o.f64_or("n", BEAD_N)?,
+        [o.f64_or(X, 0.0)?, o.f64_or(Y, 0.0)?, o.f64_or(Z, 0.0)?],
+        o.f64_or(D_NM, BEAD_D_NM)?,
+        o.f64_or(N, BEAD_N)?,
     )
     .map_err(|e| err("response", e))?;
     let mut out = Map::new();
@@ -431,7 +443,7 @@ fn p_scat(c: &Ctx, d: &Dynamic, n: &Dynamic) -> RResult<f64> {
 /// a sphere or a cylinder in kT at the laser power of the session's optics (suppl. S3).
 fn trap_depth(c: &Ctx, spec: &Spec, m: &Map) -> RResult<f64> {
     let o = Opts::new(spec, m)?;
-    let shape = match o.string("shape")?.as_deref() {
+    let shape = match o.string(SHAPE)?.as_deref() {
         Some("sphere") => TrapShape::Sphere,
         Some("cylinder") => TrapShape::Cylinder,
         other => {
@@ -444,9 +456,9 @@ fn trap_depth(c: &Ctx, spec: &Spec, m: &Map) -> RResult<f64> {
     trap_depth_kt(
         &c.optics(),
         shape,
-        o.req_f64("d_nm")?,
-        o.req_f64("n")?,
-        o.f64_or("temperature_k", ROOM_T_K)?,
+        o.req_f64(D_NM)?,
+        o.req_f64(N)?,
+        o.f64_or(TEMPERATURE_K, ROOM_T_K)?,
     )
     .map_err(|e| err("trap_depth_kt", e))
 }
@@ -477,8 +489,8 @@ fn sphere_mass(d: &Dynamic, rho: &Dynamic) -> RResult<f64> {
 fn max_sensitivity_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     use crate::optics::mie_beam::{max_sensitivity_in_beam, SphereModel};
     let o = Opts::new(spec, m)?;
-    let (dn, n) = (o.req_f64("d_nm")?, o.f64_or("n", BEAD_N)?);
-    let model = match o.string("model")?.as_deref() {
+    let (dn, n) = (o.req_f64(D_NM)?, o.f64_or(N, BEAD_N)?);
+    let model = match o.string(MODEL)?.as_deref() {
         None | Some("rayleigh") => SphereModel::Dipole,
         Some("finite_size") => SphereModel::FiniteSize { n_r: DEFAULT_N_R },
         Some("mie") => SphereModel::Mie,

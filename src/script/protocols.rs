@@ -18,6 +18,13 @@ use super::words::{fmt_num, suggestion, user_type, user_type_name};
 use rhai::{Array, Dynamic, Engine, Map};
 use std::path::{Path, PathBuf};
 
+/// The keys of a protocol option's declaration map (`#{min, max, default, required, one_of}`).
+const DECL_MIN: &str = "min";
+const DECL_MAX: &str = "max";
+const DECL_DEFAULT: &str = "default";
+const DECL_REQUIRED: &str = "required";
+const DECL_ONE_OF: &str = "one_of";
+
 fn get_str(m: &Map, k: &str) -> String {
     m.get(k).map(|v| v.to_string()).unwrap_or_default()
 }
@@ -161,8 +168,8 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
         }
     };
     if let Some(x) = to_f64(&out).filter(|_| !out.is_string()) {
-        let min = a.get("min").and_then(to_f64);
-        let max = a.get("max").and_then(to_f64);
+        let min = a.get(DECL_MIN).and_then(to_f64);
+        let max = a.get(DECL_MAX).and_then(to_f64);
         if min.is_some_and(|m| x < m) || max.is_some_and(|m| x > m) {
             let range = match (min, max) {
                 (Some(lo), Some(hi)) => format!("[{}, {}]", fmt_num(lo), fmt_num(hi)),
@@ -178,7 +185,7 @@ fn check_value(who: &str, a: &Map, v: &Dynamic) -> RResult<Dynamic> {
         }
     }
     if let Some(choices) = a
-        .get("one_of")
+        .get(DECL_ONE_OF)
         .and_then(|c| c.read_lock::<Array>().map(|c| c.clone()))
     {
         if !choices.iter().any(|c| c.to_string() == out.to_string()) {
@@ -231,13 +238,13 @@ pub fn protocol_options(decl: &Map, opts: &Dynamic) -> RResult<Map> {
                 out.insert(key.as_str().into(), check_value(&who, a, v)?);
             }
             _ => {
-                if a.get("required").and_then(|r| r.as_bool().ok()) == Some(true) {
+                if a.get(DECL_REQUIRED).and_then(|r| r.as_bool().ok()) == Some(true) {
                     return fail(format!(
                         "{who}: option `{key}` is required ({}); see help(\"{who}\")",
                         get_str(a, "doc")
                     ));
                 }
-                if let Some(d) = a.get("default") {
+                if let Some(d) = a.get(DECL_DEFAULT) {
                     out.insert(key.as_str().into(), d.clone());
                 }
             }
@@ -292,14 +299,17 @@ pub fn protocol_page(decl: &Map) -> RResult<String> {
                 format!(" [{unit}]")
             };
             let mut extra = vec![];
-            if a.get("required").and_then(|r| r.as_bool().ok()) == Some(true) {
-                extra.push("required".to_string());
-            } else if let Some(d) = a.get("default") {
+            if a.get(DECL_REQUIRED).and_then(|r| r.as_bool().ok()) == Some(true) {
+                extra.push(DECL_REQUIRED.to_string());
+            } else if let Some(d) = a.get(DECL_DEFAULT) {
                 extra.push(format!("default {}", with_unit(&show_default(d), &unit)));
             } else {
                 extra.push("optional".to_string());
             }
-            let (lo, hi) = (a.get("min").and_then(to_f64), a.get("max").and_then(to_f64));
+            let (lo, hi) = (
+                a.get(DECL_MIN).and_then(to_f64),
+                a.get(DECL_MAX).and_then(to_f64),
+            );
             match (lo, hi) {
                 (Some(l), Some(h)) => extra.push(format!("{}…{}", fmt_num(l), fmt_num(h))),
                 (Some(l), None) => extra.push(format!("≥ {}", fmt_num(l))),
@@ -307,7 +317,7 @@ pub fn protocol_page(decl: &Map) -> RResult<String> {
                 _ => {}
             }
             if let Some(c) = a
-                .get("one_of")
+                .get(DECL_ONE_OF)
                 .and_then(|c| c.read_lock::<Array>().map(|c| c.clone()))
             {
                 extra.push(format!(

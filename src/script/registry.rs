@@ -37,7 +37,7 @@ use std::any::{Any, TypeId};
 use std::collections::HashSet;
 use std::sync::Arc;
 
-pub use super::doc::{fail, Doc, Example, Kind, Param, RResult, Spec};
+pub use super::doc::{fail, Doc, Example, Key, Kind, Opt, Param, RResult, Spec};
 
 /// Declares and registers the property getters of one script type, one row a property:
 ///
@@ -393,7 +393,8 @@ impl<'a> Opts<'a> {
     /// The value of a declared key. A binding that reads a key it did not declare (a typo in
     /// the code, which would silently fall back to the default) panics in debug builds, so the
     /// example tests catch it.
-    fn get(&self, key: &str) -> Option<&'a rhai::Dynamic> {
+    fn get(&self, key: impl Key) -> Option<&'a rhai::Dynamic> {
+        let key = key.key();
         debug_assert!(
             self.spec.keys.iter().any(|d| d == key),
             "{}: the code reads option `{key}`, which its declaration does not have (declared: {})",
@@ -403,10 +404,12 @@ impl<'a> Opts<'a> {
         self.map.get(key)
     }
     /// The raw value of a declared key (for keys whose type is a script object, e.g. a Scan).
-    pub fn value(&self, key: &str) -> Option<&'a rhai::Dynamic> {
+    pub fn value(&self, key: impl Key) -> Option<&'a rhai::Dynamic> {
+        let key = key.key();
         self.get(key)
     }
-    pub fn has(&self, key: &str) -> bool {
+    pub fn has(&self, key: impl Key) -> bool {
+        let key = key.key();
         self.get(key).is_some()
     }
     fn missing<T>(&self, key: &str) -> RResult<T> {
@@ -415,32 +418,38 @@ impl<'a> Opts<'a> {
             self.spec.name, self.spec.usage
         ))
     }
-    pub fn f64(&self, key: &str) -> RResult<Option<f64>> {
+    pub fn f64(&self, key: impl Key) -> RResult<Option<f64>> {
+        let key = key.key();
         self.get(key)
             .map(|v| num(&self.spec.name, key, v))
             .transpose()
     }
-    pub fn f64_or(&self, key: &str, default: f64) -> RResult<f64> {
+    pub fn f64_or(&self, key: impl Key, default: f64) -> RResult<f64> {
+        let key = key.key();
         Ok(self.f64(key)?.unwrap_or(default))
     }
-    pub fn req_f64(&self, key: &str) -> RResult<f64> {
+    pub fn req_f64(&self, key: impl Key) -> RResult<f64> {
+        let key = key.key();
         match self.f64(key)? {
             Some(v) => Ok(v),
             None => self.missing(key),
         }
     }
-    pub fn int(&self, key: &str) -> RResult<Option<i64>> {
+    pub fn int(&self, key: impl Key) -> RResult<Option<i64>> {
+        let key = key.key();
         self.get(key)
             .map(|v| int(&self.spec.name, key, v))
             .transpose()
     }
-    pub fn req_int(&self, key: &str) -> RResult<i64> {
+    pub fn req_int(&self, key: impl Key) -> RResult<i64> {
+        let key = key.key();
         match self.int(key)? {
             Some(v) => Ok(v),
             None => self.missing(key),
         }
     }
-    pub fn bool_or(&self, key: &str, default: bool) -> RResult<bool> {
+    pub fn bool_or(&self, key: impl Key, default: bool) -> RResult<bool> {
+        let key = key.key();
         match self.get(key) {
             None => Ok(default),
             Some(v) => v.as_bool().or_else(|_| {
@@ -452,7 +461,8 @@ impl<'a> Opts<'a> {
             }),
         }
     }
-    pub fn string(&self, key: &str) -> RResult<Option<String>> {
+    pub fn string(&self, key: impl Key) -> RResult<Option<String>> {
+        let key = key.key();
         match self.get(key) {
             None => Ok(None),
             Some(v) if v.is_string() => Ok(Some(v.to_string())),
@@ -464,7 +474,8 @@ impl<'a> Opts<'a> {
         }
     }
     /// `#{x: "…", y: "…", z: "…"}`: one string per axis (all three required).
-    pub fn axis_strings(&self, key: &str) -> RResult<Option<[String; 3]>> {
+    pub fn axis_strings(&self, key: impl Key) -> RResult<Option<[String; 3]>> {
+        let key = key.key();
         let Some(v) = self.get(key) else {
             return Ok(None);
         };
@@ -491,7 +502,8 @@ impl<'a> Opts<'a> {
         Ok(Some(out))
     }
     /// `[from, to]` (µm).
-    pub fn range(&self, key: &str) -> RResult<Option<(f64, f64)>> {
+    pub fn range(&self, key: impl Key) -> RResult<Option<(f64, f64)>> {
+        let key = key.key();
         let Some(v) = self.get(key) else {
             return Ok(None);
         };
@@ -513,7 +525,8 @@ impl<'a> Opts<'a> {
             num(who, &format!("{key}[1]"), &a[1])?,
         )))
     }
-    pub fn req_range(&self, key: &str) -> RResult<(f64, f64)> {
+    pub fn req_range(&self, key: impl Key) -> RResult<(f64, f64)> {
+        let key = key.key();
         match self.range(key)? {
             Some(v) => Ok(v),
             None => self.missing(key),

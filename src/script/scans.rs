@@ -4,7 +4,7 @@
 //! with the acquisition strategy of its mode (point by point, hardware-timed lines).
 
 use super::ctx::Ctx;
-use super::registry::{fail, int, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{fail, int, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
 use crate::acquire::raster::{RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
@@ -16,6 +16,17 @@ use std::path::PathBuf;
 
 /// The stop rule of every scan, every mode, for the help (one source: `acquire::stop_rule`).
 use crate::acquire::stop_rule::STOP_RULE;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const DWELL: Opt = Opt::new("dwell", "float", "s");
+const FROM: Opt = Opt::new("from", "float", "µm");
+const N: Opt = Opt::new("n", "int", "");
+const REL: Opt = Opt::new("rel", "bool", "");
+const SNAKE: Opt = Opt::new("snake", "bool", "");
+const MODE: Opt = Opt::new("mode", "string", "");
+const TO: Opt = Opt::new("to", "float", "µm");
+const AXIS: Opt = Opt::new("axis", "string", "");
+const SAMPLES_PER_PIXEL: Opt = Opt::new("samples_per_pixel", "int", "");
 
 /// Where the stage is after a SPEC scan (help text): back at the start for a relative scan
 /// (`rel`), at the last point for an absolute one; then [`STOP_RULE`].
@@ -136,11 +147,11 @@ fn grid_doc(name: &str, fast: Axis, slow: Axis, fixed: Axis) -> Doc {
         (nf.clone(), "int", "", format!("points along {f}, 1 ≤ {nf} ≤ {MAX_POINTS_PER_AXIS}")),
         (ns.clone(), "int", "", format!("points along {s}, 1 ≤ {ns} ≤ {MAX_POINTS_PER_AXIS}")),
         (x.into(), "float", "µm", format!("optional: {x} held during the scan (default: where it is)")),
-        ("dwell".into(), "float", "s", dwell_help()),
-        ("rel".into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
-        ("snake".into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
-        ("mode".into(), "string", "", format!("\"points\" (default: move, settle, read at every pixel) or \"raster\": hardware-timed lines, the {f} axis sweeping each row at pitch/dwell under the controller's clock, the digitiser's samples binned by the stage's measured position (needs a wave generator and a triggered digitiser: the simulator, PI GCS + Red Pitaya)")),
-        ("samples_per_pixel".into(), "int", "", format!("raster: digitiser samples asked per pixel, ≥ 1; default {DEFAULT_SAMPLES_PER_PIXEL}")),
+        (DWELL.name.into(), "float", "s", dwell_help()),
+        (REL.name.into(), "bool", "", "positions relative to the start, return to start at the end; default false".into()),
+        (SNAKE.name.into(), "bool", "", "alternate the direction of every other row (pixels stored in image order); default false".into()),
+        (MODE.name.into(), "string", "", format!("\"points\" (default: move, settle, read at every pixel) or \"raster\": hardware-timed lines, the {f} axis sweeping each row at pitch/dwell under the controller's clock, the digitiser's samples binned by the stage's measured position (needs a wave generator and a triggered digitiser: the simulator, PI GCS + Red Pitaya)")),
+        (SAMPLES_PER_PIXEL.name.into(), "int", "", format!("raster: digitiser samples asked per pixel, ≥ 1; default {DEFAULT_SAMPLES_PER_PIXEL}")),
     ];
     let keys_ref: Vec<(&str, &str, &str, &str)> = keys
         .iter()
@@ -199,12 +210,12 @@ fn bind_scan_planes(r: &mut Registrar) {
             "plan",
             "the line",
             &[
-                ("axis", "string", "", "\"x\", \"y\" or \"z\""),
-                ("from", "float", "µm", "first position"),
-                ("to", "float", "µm", "last position"),
-                ("n", "int", "", &format!("number of points, 1 ≤ n ≤ {MAX_POINTS_PER_AXIS}")),
-                ("dwell", "float", "s", &dwell_help()),
-                ("rel", "bool", "", "from/to relative to the start, return to start at the end; default false"),
+                AXIS.doc("\"x\", \"y\" or \"z\""),
+                FROM.doc("first position"),
+                TO.doc("last position"),
+                N.doc(&format!("number of points, 1 ≤ n ≤ {MAX_POINTS_PER_AXIS}")),
+                DWELL.doc(&dwell_help()),
+                REL.doc("from/to relative to the start, return to start at the end; default false"),
             ],
         )
         .returns("Scan", "one row (the line) of sx, sy, sz; autosaved")
@@ -433,16 +444,16 @@ fn scan_grid(c: &Ctx, spec: &Spec, axes: [Axis; 3], m: &Map) -> RResult<ScanRef>
     let fsw = Sweep::new(who, fast, f0, f1, o.req_int(&nfk)?, &nfk).map_err(|e| e.0)?;
     let ssw = Sweep::new(who, slow, s0, s1, o.req_int(&nsk)?, &nsk).map_err(|e| e.0)?;
     let fixed_v = o.f64(xk)?.map(|v| vec![(fixed, v)]).unwrap_or_default();
-    let raster = match o.string("mode")?.as_deref() {
+    let raster = match o.string(MODE)?.as_deref() {
         None | Some("points") => {
-            if o.has("samples_per_pixel") {
+            if o.has(SAMPLES_PER_PIXEL) {
                 return fail(format!("{who}: samples_per_pixel is for mode \"raster\""));
             }
             None
         }
         Some("raster") => {
             let spp = o
-                .int("samples_per_pixel")?
+                .int(SAMPLES_PER_PIXEL)?
                 .unwrap_or(DEFAULT_SAMPLES_PER_PIXEL as i64);
             if !(1..=1_000_000).contains(&spp) {
                 return fail(format!(
@@ -464,9 +475,9 @@ fn scan_grid(c: &Ctx, spec: &Spec, axes: [Axis; 3], m: &Map) -> RResult<ScanRef>
         fsw,
         ssw,
         fixed_v,
-        o.f64_or("dwell", DEFAULT_DWELL_S)?,
-        o.bool_or("rel", false)?,
-        o.bool_or("snake", false)?,
+        o.f64_or(DWELL, DEFAULT_DWELL_S)?,
+        o.bool_or(REL, false)?,
+        o.bool_or(SNAKE, false)?,
     )
     .map_err(|e| e.0)?;
     execute_mode(c, plan, raster)
@@ -475,7 +486,7 @@ fn scan_grid(c: &Ctx, spec: &Spec, axes: [Axis; 3], m: &Map) -> RResult<ScanRef>
 /// `scan_line(plan)`: a line of n points from `from` to `to` (µm) along one axis.
 fn scan_line(c: &Ctx, spec: &Spec, m: &Map) -> RResult<ScanRef> {
     let o = Opts::new(spec, m)?;
-    let axis = match m.get("axis") {
+    let axis = match m.get(AXIS.name) {
         Some(a) => axis_arg("scan_line", a, &spec.usage)?,
         None => {
             return fail(format!(
@@ -487,17 +498,17 @@ fn scan_line(c: &Ctx, spec: &Spec, m: &Map) -> RResult<ScanRef> {
     let sw = Sweep::new(
         "scan_line",
         axis,
-        o.req_f64("from")?,
-        o.req_f64("to")?,
-        o.req_int("n")?,
+        o.req_f64(FROM)?,
+        o.req_f64(TO)?,
+        o.req_int(N)?,
         "n",
     )
     .map_err(|e| e.0)?;
     let plan = Plan::line(
         "scan_line",
         sw,
-        o.f64_or("dwell", DEFAULT_DWELL_S)?,
-        o.bool_or("rel", false)?,
+        o.f64_or(DWELL, DEFAULT_DWELL_S)?,
+        o.bool_or(REL, false)?,
     )
     .map_err(|e| e.0)?;
     execute(c, plan)

@@ -2,13 +2,29 @@
 //! aggregates, effects), `simulate` and the render `pipeline`.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, non_negative, num, points, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{
+    err, fail, non_negative, num, points, Doc, Opt, Opts, RResult, Registrar, Spec,
+};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::instrument::sim::render_xy;
 use crate::instrument::sim::scene::{
     Aggregates, Bead, DiameterProfile, Filament, Scene, EFFECT_NAMES,
 };
 use rhai::{Array, Dynamic, Map, INT};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const COUNT: Opt = Opt::new("count", "int", "");
+const D_NM: Opt = Opt::new("d_nm", "float", "nm");
+const N: Opt = Opt::new("n", "float", "");
+const N_SAMPLES: Opt = Opt::new("n_samples", "int", "");
+const SEED: Opt = Opt::new("seed", "int", "");
+const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
+const X: Opt = Opt::new("x", "float", "µm");
+const Y: Opt = Opt::new("y", "float", "µm");
+const Z: Opt = Opt::new("z", "float", "µm");
+const POINTS: Opt = Opt::new("points", "array", "µm");
+const TAPER: Opt = Opt::new("taper", "array", "nm");
+const ALPHA_TIP: Opt = Opt::new("alpha_tip", "map", "nm, µm");
 
 /// A scene in scripts (cloned by value like every Rhai value; small).
 #[derive(Debug, Clone, Default)]
@@ -101,19 +117,11 @@ fn bind_scene_objects(r: &mut Registrar) {
             "bead",
             "a sphere",
             &[
-                ("x", "float", "µm", "optional: position (default 0)"),
-                ("y", "float", "µm", "optional: position (default 0)"),
-                ("z", "float", "µm", "optional: height (default 0)"),
-                (
-                    "d_nm",
-                    "float",
-                    "nm",
-                    format!("optional: diameter (default {BEAD_D_NM})").as_str(),
-                ),
-                (
-                    "n",
-                    "float",
-                    "",
+                X.doc("optional: position (default 0)"),
+                Y.doc("optional: position (default 0)"),
+                Z.doc("optional: height (default 0)"),
+                D_NM.doc(format!("optional: diameter (default {BEAD_D_NM})").as_str()),
+                N.doc(
                     format!("optional: refractive index (default {BEAD_N}, polystyrene)").as_str(),
                 ),
             ],
@@ -132,13 +140,13 @@ fn bind_scene_objects(r: &mut Registrar) {
             "filament",
             "a polyline filament (bead model, Sec. 4.2)",
             &[
-                ("points", "array", "µm", "vertices [[x, y], ...]"),
-                ("z", "float", "µm", "optional: height (default 0)"),
-                ("d_nm", "float", "nm", format!("optional: constant diameter (default {FILAMENT_D_NM})").as_str()),
-                ("taper", "array", "nm", "optional: [d_start, d_end] linear taper instead of d_nm"),
-                ("alpha_tip", "map", "nm, µm", format!("optional: #{{d_nm, tip_um}}: parabola-of-revolution α-tip from the first point (Sec. 5; default d_nm {ALPHA_TIP_D_NM}, tip_um {ALPHA_TIP_UM})").as_str()),
-                ("n", "float", "", format!("optional: refractive index (default {FILAMENT_N}, hydrated collagen)").as_str()),
-                ("spacing_nm", "float", "nm", format!("optional: bead-model spacing (default {FILAMENT_SPACING_NM})").as_str()),
+                POINTS.doc("vertices [[x, y], ...]"),
+                Z.doc("optional: height (default 0)"),
+                D_NM.doc(format!("optional: constant diameter (default {FILAMENT_D_NM})").as_str()),
+                TAPER.doc("optional: [d_start, d_end] linear taper instead of d_nm"),
+                ALPHA_TIP.doc(format!("optional: #{{d_nm, tip_um}}: parabola-of-revolution α-tip from the first point (Sec. 5; default d_nm {ALPHA_TIP_D_NM}, tip_um {ALPHA_TIP_UM})").as_str()),
+                N.doc(format!("optional: refractive index (default {FILAMENT_N}, hydrated collagen)").as_str()),
+                SPACING_NM.doc(format!("optional: bead-model spacing (default {FILAMENT_SPACING_NM})").as_str()),
             ],
         )
         .summary("add a filament (bead model: spheres every spacing_nm, volume factor 3h/4r)")
@@ -156,38 +164,21 @@ fn bind_scene_objects(r: &mut Registrar) {
             "aggregates",
             "point-like aggregates at random positions (Sec. 6 background)",
             &[
-                ("count", "int", "", "how many"),
-                (
-                    "d_nm",
-                    "array",
-                    "nm",
-                    &format!("optional: [lo, hi] diameter range (default [{d_lo}, {d_hi}])"),
-                ),
-                (
-                    "n",
-                    "float",
-                    "",
-                    &format!("optional: refractive index (default {AGGREGATE_N})"),
-                ),
-                (
-                    "x",
-                    "array",
-                    "µm",
-                    &format!("optional: [x0, x1] region (default [{r_lo}, {r_hi}])"),
-                ),
-                (
-                    "y",
-                    "array",
-                    "µm",
-                    &format!("optional: [y0, y1] region (default [{r_lo}, {r_hi}])"),
-                ),
-                ("z", "float", "µm", "optional: height (default 0)"),
-                (
-                    "seed",
-                    "int",
-                    "",
-                    &format!("optional: random seed (default {AGGREGATE_SEED})"),
-                ),
+                COUNT.doc("how many"),
+                D_NM.typed("array", "nm").doc(&format!(
+                    "optional: [lo, hi] diameter range (default [{d_lo}, {d_hi}])"
+                )),
+                N.doc(&format!(
+                    "optional: refractive index (default {AGGREGATE_N})"
+                )),
+                X.typed("array", "µm").doc(&format!(
+                    "optional: [x0, x1] region (default [{r_lo}, {r_hi}])"
+                )),
+                Y.typed("array", "µm").doc(&format!(
+                    "optional: [y0, y1] region (default [{r_lo}, {r_hi}])"
+                )),
+                Z.doc("optional: height (default 0)"),
+                SEED.doc(&format!("optional: random seed (default {AGGREGATE_SEED})")),
             ],
         )
         .summary("add point-like aggregates (random sizes and positions from a seed)")
@@ -251,12 +242,12 @@ fn bind_simulate(r: &mut Registrar) {
         "optional: samples averaged per pixel (noise effects; default {SIMULATE_N_SAMPLES})"
     );
     let grid_keys: &[(&str, &str, &str, &str)] = &[
-        ("x", "array", "µm", "[from, to]"),
-        ("y", "array", "µm", "[from, to]"),
+        X.typed("array", "µm").doc("[from, to]"),
+        Y.typed("array", "µm").doc("[from, to]"),
         ("nx", "int", "", "pixels along x"),
         ("ny", "int", "", "pixels along y"),
-        ("z", "float", "µm", "optional: stage height (default 0)"),
-        ("n_samples", "int", "", &n_samples_doc),
+        Z.doc("optional: stage height (default 0)"),
+        N_SAMPLES.doc(&n_samples_doc),
     ];
     let d = Doc::func("simulate")
         .arg("scene", "Scene", "", "what the simulated instrument sees")
@@ -309,13 +300,9 @@ fn effect_names(s: &SceneRef) -> Array {
 fn add_bead(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     let o = Opts::new(spec, m)?;
     s.0.add_bead(Bead {
-        pos: [
-            o.f64_or("x", 0.0)?,
-            o.f64_or("y", 0.0)?,
-            o.f64_or("z", 0.0)?,
-        ],
-        d_nm: o.f64_or("d_nm", BEAD_D_NM)?,
-        n: o.f64_or("n", BEAD_N)?,
+        pos: [o.f64_or(X, 0.0)?, o.f64_or(Y, 0.0)?, o.f64_or(Z, 0.0)?],
+        d_nm: o.f64_or(D_NM, BEAD_D_NM)?,
+        n: o.f64_or(N, BEAD_N)?,
     })
     .map_err(|e| err("add_bead", e))
 }
@@ -324,7 +311,7 @@ fn add_bead(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
 /// filament with a constant, linear or α-tip diameter profile (bead model, Sec. 4.2).
 fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     let o = Opts::new(spec, m)?;
-    let pts = match m.get("points") {
+    let pts = match m.get(POINTS.name) {
         Some(v) => points("add_filament", v)?,
         None => return fail("add_filament: missing key `points` ([[x, y], ...] µm)"),
     };
@@ -334,10 +321,10 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
             "add_filament: points has 1 vertex; a filament needs at least two [x, y] vertices (a point object is add_bead)",
         );
     }
-    let profile = if let Some(t) = m.get("taper") {
-        let [a, b] = pair("add_filament", "taper", t)?;
+    let profile = if let Some(t) = m.get(TAPER.name) {
+        let [a, b] = pair("add_filament", TAPER.name, t)?;
         DiameterProfile::Linear { d0_nm: a, d1_nm: b }
-    } else if let Some(t) = m.get("alpha_tip") {
+    } else if let Some(t) = m.get(ALPHA_TIP.name) {
         let Some(tm) = t.read_lock::<Map>() else {
             return fail(format!(
                 "add_filament: alpha_tip must be #{{d_nm, tip_um}}, got {t}"
@@ -354,15 +341,15 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
         }
     } else {
         DiameterProfile::Constant {
-            d_nm: o.f64_or("d_nm", FILAMENT_D_NM)?,
+            d_nm: o.f64_or(D_NM, FILAMENT_D_NM)?,
         }
     };
     s.0.add_filament(Filament {
         points: pts,
-        z: o.f64_or("z", 0.0)?,
+        z: o.f64_or(Z, 0.0)?,
         profile,
-        n: o.f64_or("n", FILAMENT_N)?,
-        spacing_nm: o.f64_or("spacing_nm", FILAMENT_SPACING_NM)?,
+        n: o.f64_or(N, FILAMENT_N)?,
+        spacing_nm: o.f64_or(SPACING_NM, FILAMENT_SPACING_NM)?,
     })
     .map_err(|e| err("add_filament", e))
 }
@@ -371,7 +358,7 @@ fn add_filament(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
 /// diameters uniform in d_nm and positions uniform in the x × y region (µm), from `seed`.
 fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     let o = Opts::new(spec, m)?;
-    let count = o.req_int("count")?;
+    let count = o.req_int(COUNT)?;
     if !(0..=AGGREGATES_MAX).contains(&count) {
         return fail(format!(
             "add_aggregates: count = {count} is out of range: 0 ≤ count ≤ {AGGREGATES_MAX}"
@@ -386,16 +373,16 @@ fn add_aggregates(spec: &Spec, s: &mut SceneRef, m: &Map) -> RResult<()> {
     s.0.add_aggregates(Aggregates {
         count: count as usize,
         d_nm: get_pair("d_nm", AGGREGATE_D_NM)?,
-        n: o.f64_or("n", AGGREGATE_N)?,
+        n: o.f64_or(N, AGGREGATE_N)?,
         region: [
             get_pair("x", AGGREGATE_REGION_UM)?,
             get_pair("y", AGGREGATE_REGION_UM)?,
         ],
-        z: o.f64_or("z", 0.0)?,
+        z: o.f64_or(Z, 0.0)?,
         seed: non_negative(
             "add_aggregates",
             "seed",
-            o.int("seed")?.unwrap_or(AGGREGATE_SEED),
+            o.int(SEED)?.unwrap_or(AGGREGATE_SEED),
         )?,
     })
     .map_err(|e| err("add_aggregates", e))
@@ -451,7 +438,7 @@ fn rotate(s: &mut SceneRef, a: &Dynamic) -> RResult<()> {
 fn simulate_grid(ctx: &Ctx, spec: &Spec, s: &SceneRef, m: &Map) -> RResult<ScanRef> {
     let o = Opts::new(spec, m)?;
     let (xs, ys) = super::registry::grid_axes("simulate", &o)?;
-    let ns = o.int("n_samples")?.unwrap_or(SIMULATE_N_SAMPLES);
+    let ns = o.int(N_SAMPLES)?.unwrap_or(SIMULATE_N_SAMPLES);
     if !(1..=100_000_000).contains(&ns) {
         return fail(format!(
             "simulate: n_samples = {ns} is out of range: 1 ≤ n_samples ≤ 100000000"
@@ -462,7 +449,7 @@ fn simulate_grid(ctx: &Ctx, spec: &Spec, s: &SceneRef, m: &Map) -> RResult<ScanR
     for n in &r.notes {
         ctx.log(&format!("simulate: note: {n}"));
     }
-    let scan = render_xy(&r, &xs, &ys, o.f64_or("z", 0.0)?, ns as usize);
+    let scan = render_xy(&r, &xs, &ys, o.f64_or(Z, 0.0)?, ns as usize);
     Ok(ScanRef::new(scan, None))
 }
 

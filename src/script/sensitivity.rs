@@ -2,7 +2,7 @@
 //! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::peaks::{col_peaks, point_peak_checked, row_peaks};
@@ -15,6 +15,10 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const AXIS: Opt = Opt::new("axis", "string", "");
+const STENCIL: Opt = Opt::new("stencil", "string", "");
 
 pub fn register(r: &mut Registrar) {
     register_sensitivity(r);
@@ -29,8 +33,8 @@ fn register_sensitivity(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("axis", "string", "", "\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
-                ("stencil", "string", "", "\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
+                AXIS.doc("\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
+                STENCIL.doc("\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
             ],
         )
         .returns("Image", "the derivative, signal units per µm")
@@ -96,7 +100,7 @@ fn register_sensitivity(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("stencil", "string", "", format!("optional: derivative stencil (default {})", fd.stencil.name())),
+                STENCIL.doc(format!("optional: derivative stencil (default {})", fd.stencil.name())),
                 ("window_um", "float", "µm", format!("optional: lateral parabola window (default {})", fd.window_um)),
                 ("z_window_um", "float", "µm", format!("optional: window of the parabola over z (default {})", fd.z_window_um)),
                 ("level", "float", "", format!("optional: fraction of the peak that defines the tolerated z range (default {})", fd.level)),
@@ -154,10 +158,13 @@ fn register_sensitivity(r: &mut Registrar) {
 /// The `img` argument of `who`: an Image, or a Scan's Sx (`axis` x) or Sy (`axis` y) channel.
 fn image_or_scan(who: &str, v: &Dynamic, axis: crate::analysis::Axis) -> RResult<Arc<Image>> {
     if let Some(s) = v.read_lock::<ScanRef>() {
-        Ok(Arc::new(match axis {
-            crate::analysis::Axis::X => s.scan.sx.clone(),
-            crate::analysis::Axis::Y => s.scan.sy.clone(),
-        }))
+        let ch = match axis {
+            crate::analysis::Axis::X => "sx",
+            crate::analysis::Axis::Y => "sy",
+        };
+        Ok(Arc::new(
+            super::types::flagged_channel(&s.scan, ch).unwrap_or_else(|| s.scan.sx.clone()),
+        ))
     } else if let Some(i) = v.read_lock::<ImageRef>() {
         Ok(i.0.clone())
     } else {
@@ -172,7 +179,7 @@ fn image_or_scan(who: &str, v: &Dynamic, axis: crate::analysis::Axis) -> RResult
 /// or of a scan's Sx (axis x) / Sy (axis y), by the chosen stencil (Sec. 3.2).
 fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
     let o = Opts::new(spec, m)?;
-    let ax = o.string("axis")?.unwrap_or_else(|| "x".into());
+    let ax = o.string(AXIS)?.unwrap_or_else(|| "x".into());
     let axis = crate::analysis::Axis::parse(&ax).map_or_else(
         || {
             fail(format!(
@@ -183,8 +190,35 @@ fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
     )?;
     let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
     let im = image_or_scan("sensitivity", &v, axis)?;
-    let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
+    let mut out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
+    out.flags = derived_flags(&im, axis, st);
     Ok(ImageRef(Arc::new(out)))
+}
+
+/// The clipped and dark pixels of the derivative of `im` along `axis` by stencil `st`: every
+/// pixel whose stencil reaches a flagged pixel of `im`.
+fn derived_flags(
+    im: &Image,
+    axis: crate::analysis::Axis,
+    st: Stencil,
+) -> Option<Arc<crate::data::clip::PixelFlags>> {
+    let reach = st.reach();
+    let (rx, ry) = match axis {
+        crate::analysis::Axis::X => (reach, 0),
+        crate::analysis::Axis::Y => (0, reach),
+    };
+    let what = match axis {
+        crate::analysis::Axis::X => "the sensitivity ∂/∂x",
+        crate::analysis::Axis::Y => "the sensitivity ∂/∂y",
+    };
+    im.flags.as_ref().map(|f| Arc::new(f.derived(what, rx, ry)))
+}
+
+/// The pixels (row, column) of `img` within `half` µm of (x, y) in both directions: the
+/// window a 2-D parabola fit reads.
+fn window_mask(img: &Image, x: f64, y: f64, half: f64) -> impl Fn(usize, usize) -> bool + '_ {
+    let h = half * (1.0 + 1e-9);
+    move |r, c| (img.y[r] - y).abs() <= h && (img.x[c] - x).abs() <= h
 }
 
 /// `row_peaks(img[, opts])` (`rows` true) / `col_peaks` (false): the sub-pixel maximum of every
@@ -206,7 +240,13 @@ fn line_maxima(spec: &Spec, name: &str, rows: bool, i: &ImageRef, m: &Map) -> RR
 fn max_sens(c: &Ctx, spec: &Spec, i: &ImageRef, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let po = peak_opts("max_sens", &o)?;
-    let (p, w) = point_peak_checked(&i.0, &po).map_err(|e| err("max_sens", e))?;
+    let (p, mut w) = point_peak_checked(&i.0, &po).map_err(|e| err("max_sens", e))?;
+    // clipped or dark pixels in the window the maximum is read from (`data::clip`)
+    let used = window_mask(&i.0, p.x, p.y, 0.5 * po.window_um);
+    w.extend(input_gate(
+        "max_sens",
+        crate::data::clip::image_check(&i.0, used),
+    )?);
     let mut out = to_map(&p);
     with_warnings(c, "max_sens", &mut out, w);
     Ok(out)
@@ -224,7 +264,21 @@ fn focus_search_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
         level: pos_f64("focus_search", &o, "level", d.level, 0.0, 1.0)?,
     };
     let im = image_or_scan("focus_search", &v, crate::analysis::Axis::X)?;
-    let res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
+    let mut res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
+    // clipped or dark pixels among those the row maxima are read from: the parabola window
+    // around each row's maximum, widened by the stencil (`data::clip`)
+    let sflags = derived_flags(&im, crate::analysis::Axis::X, fo.stencil);
+    let half = 0.5 * fo.window_um * (1.0 + 1e-9);
+    let centres: Vec<Option<f64>> = res.rows.iter().map(|r| r.peak().map(|p| p.pos)).collect();
+    let used = |r: usize, c: usize| {
+        centres
+            .get(r)
+            .copied()
+            .flatten()
+            .is_some_and(|x| (im.x[c] - x).abs() <= half)
+    };
+    let check = crate::data::clip::flags_check(sflags.as_deref(), used);
+    res.warnings.extend(input_gate("focus_search", check)?);
     let mut out = Map::new();
     out.insert("z_best".into(), res.z_best.into());
     out.insert("z_err".into(), to_dyn(&res.z_err));

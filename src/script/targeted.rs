@@ -3,12 +3,21 @@
 //! reading carries the most information about it (`analysis::point_fit`).
 
 use super::analysis_values::pos_f64;
-use super::registry::{err, fail, num, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::TemplateRef;
 use crate::analysis::point_fit::{design_points, fit_bead_points, PointReading};
 use crate::analysis::quantities::{mass_resolution_kda, point_object};
 use crate::analysis::template::RefBead;
 use rhai::{Array, Dynamic, Map};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const BACKGROUND: Opt = Opt::new("background", "bool", "");
+const DENSITY_G_CM3: Opt = Opt::new("density_g_cm3", "float", "g/cm³");
+const N: Opt = Opt::new("n", "float", "");
+const SIGMA: Opt = Opt::new("sigma", "float", "");
+const WEIGHT: Opt = Opt::new("weight", "float", "");
+const X: Opt = Opt::new("x", "float", "µm");
+const Y: Opt = Opt::new("y", "float", "µm");
 
 const PTS_EX: &str = "let t = template_model(#{h_um: 0.025}); let k = 1.2 / t.norm_factor; let pts = []; for p in bead_design(t, #{x: 0.0, y: 0.0}) { for d in [[0.0, 0.0], [0.05, -0.05]] { let r = t.at(p[0] + d[0] - 0.02, p[1] + d[1] + 0.01); pts.push(#{x: p[0] + d[0], y: p[1] + d[1], sx: k * r.sx, sy: k * r.sy}); } }";
 
@@ -19,8 +28,8 @@ pub fn register(r: &mut Registrar) {
             "at",
             "where the bead is",
             &[
-                ("x", "float", "µm", "the bead's x (stage)"),
-                ("y", "float", "µm", "the bead's y (stage)"),
+                X.doc("the bead's x (stage)"),
+                Y.doc("the bead's y (stage)"),
             ],
         )
         .form("bead_design(tpl, #{x, y}) -> array")
@@ -36,38 +45,14 @@ pub fn register(r: &mut Registrar) {
     });
 
     let keys: &[(&str, &str, &str, &str)] = &[
-        ("x", "float", "µm", "start: the bead's x"),
-        ("y", "float", "µm", "start: the bead's y"),
-        (
-            "weight",
-            "float",
-            "",
-            "optional start weight, reference-bead units (default 1)",
-        ),
-        (
-            "sigma",
-            "float",
-            "",
-            "optional: the readings' noise in the scan's units (default: from the residuals)",
-        ),
-        (
-            "background",
-            "bool",
-            "",
-            "optional: fit a constant per channel (default true)",
-        ),
-        (
-            "n",
-            "float",
-            "",
-            "optional: the bead's refractive index, for the mass (default 1.572, polystyrene)",
-        ),
-        (
-            "density_g_cm3",
-            "float",
-            "g/cm³",
-            "optional: its density, for the mass (default 1.05)",
-        ),
+        X.doc("start: the bead's x"),
+        Y.doc("start: the bead's y"),
+        WEIGHT.doc("optional start weight, reference-bead units (default 1)"),
+        SIGMA
+            .doc("optional: the readings' noise in the scan's units (default: from the residuals)"),
+        BACKGROUND.doc("optional: fit a constant per channel (default true)"),
+        N.doc("optional: the bead's refractive index, for the mass (default 1.572, polystyrene)"),
+        DENSITY_G_CM3.doc("optional: its density, for the mass (default 1.05)"),
     ];
     let d = Doc::func("fit_bead_points")
         .arg("points", "array", "", "readings: [#{x, y, sx, sy}] — stage position (µm) and the Sx, Sy read there")
@@ -91,7 +76,7 @@ pub fn register(r: &mut Registrar) {
 fn bead_design_of(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Array> {
     let who = "bead_design";
     let o = Opts::new(spec, m)?;
-    let (x, y) = (o.req_f64("x")?, o.req_f64("y")?);
+    let (x, y) = (o.req_f64(X)?, o.req_f64(Y)?);
     let pts = design_points(&t.0, x, y).map_err(|e| err(who, e))?;
     Ok(pts
         .into_iter()
@@ -133,25 +118,25 @@ fn fit_bead_points_of(spec: &Spec, pts: &Array, t: &TemplateRef, m: &Map) -> RRe
     let who = "fit_bead_points";
     let o = Opts::new(spec, m)?;
     let rd = readings(who, pts)?;
-    let start = [o.req_f64("x")?, o.req_f64("y")?, o.f64_or("weight", 1.0)?];
-    let sigma = match o.f64("sigma")? {
+    let start = [o.req_f64(X)?, o.req_f64(Y)?, o.f64_or(WEIGHT, 1.0)?];
+    let sigma = match o.f64(SIGMA)? {
         None => None,
         Some(s) if s > 0.0 && s.is_finite() => Some(s),
         Some(s) => return fail(format!("{who}: sigma = {s} is out of range: σ > 0")),
     };
-    let background = o.bool_or("background", true)?;
+    let background = o.bool_or(BACKGROUND, true)?;
     let rb = RefBead {
         n_medium: t.0.reference.n_medium,
         ..RefBead::default()
     };
-    let n = o.f64_or("n", rb.n)?;
+    let n = o.f64_or(N, rb.n)?;
     if !(1.0..=4.0).contains(&n) || (n - rb.n_medium).abs() < 1e-9 {
         return fail(format!(
             "{who}: n = {n} is out of range: 1 ≤ n ≤ 4, n ≠ the medium's {}",
             rb.n_medium
         ));
     }
-    let rho = pos_f64(who, &o, "density_g_cm3", rb.density_g_cm3, 0.1, 25.0)?;
+    let rho = pos_f64(who, &o, DENSITY_G_CM3, rb.density_g_cm3, 0.1, 25.0)?;
     let f = fit_bead_points(&t.0, &rd, start, sigma, background).map_err(|e| err(who, e))?;
     let mut warnings: Vec<String> = vec![];
     if f.status != crate::analysis::fit::FitStatus::Converged {

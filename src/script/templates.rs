@@ -3,7 +3,7 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, properties, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
@@ -20,6 +20,31 @@ use std::sync::Arc;
 use super::analysis_values::*;
 use super::registry::grid_axes;
 use super::types::{FitRef, TemplateRef};
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const CHANNELS: Opt = Opt::new("channels", "string", "");
+const CRITERION: Opt = Opt::new("criterion", "string", "");
+const FTOL: Opt = Opt::new("ftol", "float", "");
+const GROW: Opt = Opt::new("grow", "bool", "");
+const GTOL: Opt = Opt::new("gtol", "float", "");
+const H_UM: Opt = Opt::new("h_um", "float", "µm");
+const HALF_WIDTH_UM: Opt = Opt::new("half_width_um", "float", "µm");
+const MAX_BEADS: Opt = Opt::new("max_beads", "int", "");
+const MERGE_DEGENERATE: Opt = Opt::new("merge_degenerate", "bool", "");
+const MIN_DROP: Opt = Opt::new("min_drop", "float", "");
+const MIN_SEPARATION: Opt = Opt::new("min_separation", "float", "");
+const N_KEY: Opt = Opt::new("n", "float", "");
+const N_BEADS: Opt = Opt::new("n_beads", "int", "");
+const PATIENCE: Opt = Opt::new("patience", "int", "");
+const POLARIZATION: Opt = Opt::new("polarization", "bool", "");
+const SIGMA: Opt = Opt::new("sigma", "float", "");
+const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
+const THRESHOLD: Opt = Opt::new("threshold", "float", "");
+const XTOL: Opt = Opt::new("xtol", "float", "");
+const Z_UM: Opt = Opt::new("z_um", "float", "µm");
+const BEADS: Opt = Opt::new("beads", "array", "");
+const FILAMENTS: Opt = Opt::new("filaments", "array", "");
+const INIT: Opt = Opt::new("init", "array", "");
 
 pub fn register(r: &mut Registrar) {
     let ctx = r.ctx();
@@ -44,30 +69,15 @@ fn bind_template_model(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                (
-                    "h_um",
-                    "float",
-                    "µm",
-                    format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)"),
-                ),
-                (
-                    "z_um",
-                    "float",
-                    "µm",
-                    "optional: axial offset of the bead from the focus (default 0)".to_string(),
-                ),
+                H_UM.doc(format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)")),
+                Z_UM.doc("optional: axial offset of the bead from the focus (default 0)".to_string()),
                 (
                     "d_nm",
                     "float",
                     "nm",
                     format!("optional: reference bead diameter (default {})", rb.d_nm),
                 ),
-                (
-                    "n",
-                    "float",
-                    "",
-                    format!("optional: reference bead index (default {})", rb.n),
-                ),
+                N_KEY.doc(format!("optional: reference bead index (default {})", rb.n)),
                 (
                     "density",
                     "float",
@@ -77,12 +87,7 @@ fn bind_template_model(r: &mut Registrar) {
                         rb.density_g_cm3
                     ),
                 ),
-                (
-                    "polarization",
-                    "bool",
-                    "",
-                    "optional: vector dipole field (default false)".to_string(),
-                ),
+                POLARIZATION.doc("optional: vector dipole field (default false)".to_string()),
             ],
         )
         .form("template_model() -> Template")
@@ -113,13 +118,13 @@ fn bind_template_from_scans(r: &mut Registrar) {
             "opts",
             "optional",
             &[
-                ("half_width_um", "float", "µm", format!("optional: half-width of the template (default {})", fs.half_width_um)),
-                ("h_um", "float", "µm", "optional: node spacing (default: the finest pixel)".into()),
+                HALF_WIDTH_UM.doc(format!("optional: half-width of the template (default {})", fs.half_width_um)),
+                H_UM.doc("optional: node spacing (default: the finest pixel)".into()),
                 ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
-                ("threshold", "float", "", format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
+                THRESHOLD.doc(format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
                 ("iterations", "int", "", format!("optional: alignment iterations (default {})", fs.iterations)),
                 ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {})", rb.d_nm)),
-                ("n", "float", "", format!("optional: reference bead index (default {})", rb.n)),
+                N_KEY.doc(format!("optional: reference bead index (default {})", rb.n)),
                 ("density", "float", "g/cm³", format!("optional: density (default {})", rb.density_g_cm3)),
             ],
         )
@@ -199,9 +204,9 @@ fn bind_render_beads(r: &mut Registrar) {
             "what",
             "objects and the grid",
             &[
-                ("beads", "array", "", "optional: [#{x, y, weight}] point objects (µm; weight in reference-bead units, default 1)".into()),
-                ("filaments", "array", "", "optional: [#{points: [[x, y], …], d_nm, n}] bead-model filaments (d_nm: one value or one per vertex)".into()),
-                ("spacing_nm", "float", "nm", format!("optional: bead-model spacing (default {}, Sec. 4.2)", BeadModelOptions::default().spacing_nm)),
+                BEADS.doc("optional: [#{x, y, weight}] point objects (µm; weight in reference-bead units, default 1)".into()),
+                FILAMENTS.doc("optional: [#{points: [[x, y], …], d_nm, n}] bead-model filaments (d_nm: one value or one per vertex)".into()),
+                SPACING_NM.doc(format!("optional: bead-model spacing (default {}, Sec. 4.2)", BeadModelOptions::default().spacing_nm)),
                 ("x", "array", "µm", "[from, to]".into()),
                 ("y", "array", "µm", "[from, to]".into()),
                 ("nx", "int", "", "pixels along x".into()),
@@ -238,21 +243,21 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     // the defaults in the help come from FitOptions::default(), never repeated here
     let fd = FitOptions::default();
     let keys: Vec<(&str, &str, &str, String)> = vec![
-        ("channels", "string", "", "optional: \"both\" (default, eq. multiBeadFit), \"sx\", \"sy\"".into()),
-        ("n_beads", "int", "", "optional: number of beads for automatic initial guesses from peaks".into()),
-        ("init", "array", "", "optional: initial guesses [#{x, y, weight}]".into()),
-        ("grow", "bool", "", "optional: add beads one at a time at the largest residual while the criterion improves (default when neither n_beads nor init)".into()),
-        ("max_beads", "int", "", format!("optional: limit when growing (default {})", fd.max_beads)),
-        ("criterion", "string", "", "optional: \"bic\" (default) or \"rel_drop\"".into()),
-        ("min_drop", "float", "", format!("optional: RSS drop needed with criterion rel_drop (default {DEFAULT_MIN_DROP})")),
-        ("sigma", "float", "", "optional: pixel noise (default: from the residuals)".into()),
-        ("ftol", "float", "", format!("optional: relative tolerance on the objective (default {:e})", fd.ftol)),
-        ("xtol", "float", "", format!("optional: relative tolerance on the parameters (default {:e})", fd.xtol)),
-        ("gtol", "float", "", format!("optional: gradient tolerance (default {:e})", fd.gtol)),
-        ("patience", "int", "", format!("optional: residual evaluations allowed = patience × (3n + 1) (default {})", fd.patience)),
-        ("min_separation", "float", "", format!("optional: beads closer than this × w0 (set_optics) are degenerate (default {})", fd.min_separation)),
-        ("merge_degenerate", "bool", "", format!("optional: merge degenerate pairs and refit (default {})", fd.merge_degenerate)),
-        ("n", "float", "", "optional: refractive index of the beads, for the diameter a weight implies in the size-domain check (default: the template reference's)".into()),
+        CHANNELS.doc("optional: \"both\" (default, eq. multiBeadFit), \"sx\", \"sy\"".into()),
+        N_BEADS.doc("optional: number of beads for automatic initial guesses from peaks".into()),
+        INIT.doc("optional: initial guesses [#{x, y, weight}]".into()),
+        GROW.doc("optional: add beads one at a time at the largest residual while the criterion improves (default when neither n_beads nor init)".into()),
+        MAX_BEADS.doc(format!("optional: limit when growing (default {})", fd.max_beads)),
+        CRITERION.doc("optional: \"bic\" (default) or \"rel_drop\"".into()),
+        MIN_DROP.doc(format!("optional: RSS drop needed with criterion rel_drop (default {DEFAULT_MIN_DROP})")),
+        SIGMA.doc("optional: pixel noise (default: from the residuals)".into()),
+        FTOL.doc(format!("optional: relative tolerance on the objective (default {:e})", fd.ftol)),
+        XTOL.doc(format!("optional: relative tolerance on the parameters (default {:e})", fd.xtol)),
+        GTOL.doc(format!("optional: gradient tolerance (default {:e})", fd.gtol)),
+        PATIENCE.doc(format!("optional: residual evaluations allowed = patience × (3n + 1) (default {})", fd.patience)),
+        MIN_SEPARATION.doc(format!("optional: beads closer than this × w0 (set_optics) are degenerate (default {})", fd.min_separation)),
+        MERGE_DEGENERATE.doc(format!("optional: merge degenerate pairs and refit (default {})", fd.merge_degenerate)),
+        N_KEY.doc("optional: refractive index of the beads, for the diameter a weight implies in the size-domain check (default: the template reference's)".into()),
     ];
     let keys_ref: Vec<(&str, &str, &str, &str)> = keys
         .iter()
@@ -368,15 +373,15 @@ fn template_model(c: &Ctx, spec: &Spec, m: &Map) -> RResult<TemplateRef> {
     let optics = c.optics();
     let rb = ref_bead("template_model", &o, optics.n_medium)?;
     let det = DetectorModel {
-        polarization: o.bool_or("polarization", false)?,
+        polarization: o.bool_or(POLARIZATION, false)?,
         ..Default::default()
     };
     let t = Template::from_optics(
         &optics,
         &det,
         rb,
-        o.f64_or("h_um", DEFAULT_MODEL_H_UM)?,
-        o.f64_or("z_um", 0.0)?,
+        o.f64_or(H_UM, DEFAULT_MODEL_H_UM)?,
+        o.f64_or(Z_UM, 0.0)?,
     )
     .map_err(|e| err("template_model", e))?;
     Ok(TemplateRef(Arc::new(t)))
@@ -390,10 +395,10 @@ fn template_from_scans(c: &Ctx, spec: &Spec, a: &Array, m: &Map) -> RResult<Temp
     let rb = ref_bead("template_from_scans", &o, n_medium)?;
     let d = FromScansOptions::default();
     let fo = FromScansOptions {
-        half_width_um: o.f64_or("half_width_um", d.half_width_um)?,
-        h_um: o.f64("h_um")?,
+        half_width_um: o.f64_or(HALF_WIDTH_UM, d.half_width_um)?,
+        h_um: o.f64(H_UM)?,
         beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
-        threshold: o.f64_or("threshold", d.threshold)?,
+        threshold: o.f64_or(THRESHOLD, d.threshold)?,
         iterations: count("template_from_scans", &o, "iterations", 0, 100)?.unwrap_or(d.iterations),
     };
     let scans = scans_arg("template_from_scans", a)?;
@@ -452,11 +457,11 @@ fn load_template(path: &str) -> RResult<TemplateRef> {
 fn render_beads(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<ScanRef> {
     let o = Opts::new(spec, m)?;
     let who = "render_beads";
-    let beads = match m.get("beads") {
+    let beads = match m.get(BEADS.name) {
         Some(b) => bead_list(who, b)?,
         None => vec![],
     };
-    let fils = match m.get("filaments") {
+    let fils = match m.get(FILAMENTS.name) {
         Some(f) => match f.read_lock::<Array>() {
             Some(a) => a
                 .iter()
@@ -471,7 +476,7 @@ fn render_beads(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<ScanRef> {
         None => vec![],
     };
     let bm = BeadModelOptions {
-        spacing_nm: o.f64_or("spacing_nm", BeadModelOptions::default().spacing_nm)?,
+        spacing_nm: o.f64_or(SPACING_NM, BeadModelOptions::default().spacing_nm)?,
     };
     let (x, y) = grid_axes(who, &o)?;
     let s = render_scene(&t.0, &beads, &fils, &bm, &x, &y).map_err(|e| err(who, e))?;
@@ -514,7 +519,7 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         wavelength_nm: optics.wavelength_nm,
         ..FitOptions::default()
     };
-    let channels = match o.string("channels")? {
+    let channels = match o.string(CHANNELS)? {
         None => d.channels,
         Some(c) => Channels::parse(&c).map_or_else(
             || {
@@ -525,7 +530,7 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
             Ok,
         )?,
     };
-    let init = match m.get("init") {
+    let init = match m.get(INIT.name) {
         None => None,
         Some(v) => Some(
             bead_list(who, v)?
@@ -534,10 +539,10 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
                 .collect(),
         ),
     };
-    let criterion = match o.string("criterion")?.as_deref() {
+    let criterion = match o.string(CRITERION)?.as_deref() {
         None | Some("bic") => GrowCriterion::Bic,
         Some("rel_drop") => GrowCriterion::RelDrop {
-            min_drop: o.f64_or("min_drop", DEFAULT_MIN_DROP)?,
+            min_drop: o.f64_or(MIN_DROP, DEFAULT_MIN_DROP)?,
         },
         Some(c) => {
             return fail(format!(
@@ -547,33 +552,34 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
     };
     let fo = FitOptions {
         channels,
-        n_beads: count(who, &o, "n_beads", 1, 10_000)?,
+        n_beads: count(who, &o, N_BEADS, 1, 10_000)?,
         init,
-        grow: o.bool_or("grow", d.grow)?,
-        max_beads: count(who, &o, "max_beads", 1, 10_000)?.unwrap_or(d.max_beads),
+        grow: o.bool_or(GROW, d.grow)?,
+        max_beads: count(who, &o, MAX_BEADS, 1, 10_000)?.unwrap_or(d.max_beads),
         criterion,
-        sigma: o.f64("sigma")?,
-        ftol: o.f64_or("ftol", d.ftol)?,
-        xtol: o.f64_or("xtol", d.xtol)?,
-        gtol: o.f64_or("gtol", d.gtol)?,
-        patience: count(who, &o, "patience", 1, 1_000_000)?.unwrap_or(d.patience),
-        min_separation: o.f64_or("min_separation", d.min_separation)?,
-        merge_degenerate: o.bool_or("merge_degenerate", d.merge_degenerate)?,
-        bead_n: match o.f64("n")? {
-            Some(n) => Some(pos_f64(who, &o, "n", n, 1.0, 4.0)?),
+        sigma: o.f64(SIGMA)?,
+        ftol: o.f64_or(FTOL, d.ftol)?,
+        xtol: o.f64_or(XTOL, d.xtol)?,
+        gtol: o.f64_or(GTOL, d.gtol)?,
+        patience: count(who, &o, PATIENCE, 1, 1_000_000)?.unwrap_or(d.patience),
+        min_separation: o.f64_or(MIN_SEPARATION, d.min_separation)?,
+        merge_degenerate: o.bool_or(MERGE_DEGENERATE, d.merge_degenerate)?,
+        bead_n: match o.f64(N_KEY)? {
+            Some(n) => Some(pos_f64(who, &o, N_KEY, n, 1.0, 4.0)?),
             None => None,
         },
         ..d
     };
-    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
-    // clipped or dark pixels among those fitted (`data::clip`): attached to the answer
+    // clipped or dark pixels among those fitted (`data::clip`): attached to the answer, or
+    // a refusal when every pixel of a fitted channel is at the rail (or dark)
     let used: &[&str] = match fo.channels {
         Channels::Both => &["sx", "sy"],
         Channels::Sx => &["sx"],
         Channels::Sy => &["sy"],
     };
-    r.warnings
-        .extend(crate::data::clip::input_check(&s.scan, used, None).warnings);
+    let inputs = input_gate(who, crate::data::clip::input_check(&s.scan, used, None))?;
+    let mut r = fit_beads(&s.scan.sx, &s.scan.sy, &t.0, &fo).map_err(|e| err(who, e))?;
+    r.warnings.extend(inputs);
     c.warn_all(who, &r.warnings);
     Ok(FitRef(Arc::new(r)))
 }
@@ -586,7 +592,13 @@ fn subtract(f: &FitRef, s: &ScanRef) -> RResult<ScanRef> {
     let sy = s.scan.sy.sub(&r.model_sy).map_err(|e| err("subtract", e))?;
     let mut meta = s.scan.meta.clone();
     meta["subtracted_beads"] = serde_json::to_value(&r.beads).unwrap_or_default();
-    Ok(scan_of(sx, sy, s.scan.sz.clone(), meta))
+    Ok(scan_flagged(
+        sx,
+        sy,
+        s.scan.sz.clone(),
+        meta,
+        s.scan.flags.clone(),
+    ))
 }
 
 /// `FitResult.to_map()`: the fit as a map, without its four images.

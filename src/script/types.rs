@@ -299,7 +299,35 @@ fn image_from(like: &Image, data: Array2<f64>) -> ImageRef {
         y: like.y.clone(),
         x_name: like.x_name.clone(),
         y_name: like.y_name.clone(),
+        flags: like.flags.clone(),
     }))
+}
+
+/// `img op img2`: the result with the clipped and dark pixels of both.
+fn image_from2(a: &Image, b: &Image, data: Array2<f64>) -> ImageRef {
+    let mut out = image_from(a, data);
+    if let Some(fb) = &b.flags {
+        let f = match &a.flags {
+            Some(fa) => fa.union(fb),
+            None => (**fb).clone(),
+        };
+        Arc::make_mut(&mut out.0).flags = Some(Arc::new(f));
+    }
+    out
+}
+
+/// A scan's channel as a script image, carrying its clipped and dark pixels
+/// (`data::clip::PixelFlags`) so that analyses of the image flag them.
+pub(crate) fn flagged_channel(scan: &crate::data::Scan, name: &str) -> Option<Image> {
+    let mut im = scan.channel(name)?.clone();
+    let key = match name {
+        "x" => "sx",
+        "y" => "sy",
+        "z" => "sz",
+        n => n,
+    };
+    im.flags = crate::data::clip::PixelFlags::of_channel(scan, key).map(Arc::new);
+    Some(im)
 }
 
 fn same_shape(op: &str, a: &Image, b: &Image) -> RResult<()> {
@@ -533,7 +561,7 @@ fn register_image(r: &mut Registrar) {
             let e = r.engine();
             e.register_fn(stringify!($op), |a: ImageRef, b: ImageRef| -> RResult<ImageRef> {
                 same_shape(stringify!($op), &a.0, &b.0)?;
-                Ok(image_from(&a.0, &a.0.data $op &b.0.data))
+                Ok(image_from2(&a.0, &b.0, &a.0.data $op &b.0.data))
             });
             e.register_fn(stringify!($op), |a: ImageRef, b: f64| image_from(&a.0, a.0.data.mapv(|v| v $op b)));
             e.register_fn(stringify!($op), |a: ImageRef, b: INT| image_from(&a.0, a.0.data.mapv(|v| v $op b as f64)));
@@ -623,10 +651,7 @@ fn register_stats<T: std::any::Any + Clone + Send + Sync>(
 /// `scan.sx` / `scan.sy` / `scan.sz`: one channel as an Image.
 fn scan_channel(s: &ScanRef, ch: &str) -> ImageRef {
     ImageRef(Arc::new(
-        s.scan
-            .channel(ch)
-            .cloned()
-            .unwrap_or_else(|| s.scan.sx.clone()),
+        flagged_channel(&s.scan, ch).unwrap_or_else(|| s.scan.sx.clone()),
     ))
 }
 
@@ -648,8 +673,8 @@ fn scan_path(s: &ScanRef) -> Dynamic {
 
 /// `scan.channel(name)`: one channel by name ("sx", "sy", "sz").
 fn scan_channel_named(s: &ScanRef, name: &str) -> RResult<ImageRef> {
-    match s.scan.channel(name) {
-        Some(i) => Ok(ImageRef(Arc::new(i.clone()))),
+    match flagged_channel(&s.scan, name) {
+        Some(i) => Ok(ImageRef(Arc::new(i))),
         None => fail(format!(
             "scan.channel: channel = {name:?} is not one of \"sx\", \"sy\", \"sz\""
         )),
@@ -722,10 +747,13 @@ fn image_crop(im: &ImageRef, [r0, r1, c0, c1]: [&Dynamic; 4]) -> RResult<ImageRe
         ));
     }
     let data = im.0.data.slice(ndarray::s![r0..=r1, c0..=c1]).to_owned();
-    Ok(ImageRef(Arc::new(
-        Image::new(data, im.0.x[c0..=c1].to_vec(), im.0.y[r0..=r1].to_vec())
-            .with_axis_names(&im.0.x_name, &im.0.y_name),
-    )))
+    let mut out = Image::new(data, im.0.x[c0..=c1].to_vec(), im.0.y[r0..=r1].to_vec())
+        .with_axis_names(&im.0.x_name, &im.0.y_name);
+    out.flags =
+        im.0.flags
+            .as_ref()
+            .and_then(|f| f.crop((r0, r1), (c0, c1)).map(Arc::new));
+    Ok(ImageRef(Arc::new(out)))
 }
 
 /// `img.to_array()`: the pixel values as an array of rows.

@@ -2,10 +2,14 @@
 //! starts too. The view only reads; see `src/view/`.
 
 use super::ctx::Ctx;
-use super::registry::{fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use rhai::Map;
 use std::sync::{Arc, Weak};
 use std::time::Duration;
+
+/// The options of this family's bindings, each key written once (`Opt`).
+const HOST: Opt = Opt::new("host", "string", "");
+const PORT: Opt = Opt::new("port", "int", "");
 
 /// The address the view listens on unless `host` says otherwise.
 const DEFAULT_HOST: &str = "127.0.0.1";
@@ -65,8 +69,8 @@ pub fn register(r: &mut Registrar) {
             "options",
             "where to serve (all optional)",
             &[
-                ("port", "int", "", "optional: TCP port (default 0: a free one)"),
-                ("host", "string", "", format!("optional: loopback address, {DEFAULT_HOST:?} (default), \"::1\" or \"localhost\"; any other is refused").as_str()),
+                PORT.doc("optional: TCP port (default 0: a free one)"),
+                HOST.doc(format!("optional: loopback address, {DEFAULT_HOST:?} (default), \"::1\" or \"localhost\"; any other is refused").as_str()),
             ],
         )
         .form("view() -> string")
@@ -95,7 +99,7 @@ pub fn register(r: &mut Registrar) {
 /// `view(#{port, host})`: check the options, then [`open_view`].
 fn view(ctx: &Arc<Ctx>, spec: &Spec, m: &Map) -> RResult<String> {
     let o = Opts::new(spec, m)?;
-    let port = match o.int("port")? {
+    let port = match o.int(PORT)? {
         Some(p) if !(0..=65535).contains(&p) => {
             return fail(format!(
                 "view: port = {p} is out of range: 0 ≤ port ≤ 65535 (0: a free port)"
@@ -103,7 +107,7 @@ fn view(ctx: &Arc<Ctx>, spec: &Spec, m: &Map) -> RResult<String> {
         }
         p => p.unwrap_or(0) as u16,
     };
-    let host = o.string("host")?.unwrap_or_else(|| DEFAULT_HOST.into());
+    let host = o.string(HOST)?.unwrap_or_else(|| DEFAULT_HOST.into());
     open_view(ctx, &host, port)
 }
 

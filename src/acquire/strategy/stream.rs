@@ -581,6 +581,84 @@ impl StreamStrategy {
     }
 }
 
+/// The pre-flight of a streamed frame: every sample of the waveform inside the soft limits
+/// (a block whose two extreme corners are inside is inside: the limits are a box), inside
+/// what the outputs command (`range`, µm per axis, 0–10 V), and no faster than
+/// `max_speed_um_s` — else the refusal names the sample and its time.
+fn check_frame(
+    who: &str,
+    rp: &RasterPlan,
+    geo: &Geometry,
+    frame: &Frame,
+    base: Pos,
+    range: [(f64, f64); 2],
+    limits: &SoftLimits,
+) -> Result<(), ScanError> {
+    let (rate, fast, slow) = (geo.rate, geo.fast, geo.slow);
+    let block = 1 << 16;
+    let (mut f, mut s) = (Vec::with_capacity(block), Vec::with_capacity(block));
+    let mut prev: Option<[f64; 2]> = None;
+    let mut k0 = 0;
+    while k0 < frame.len {
+        f.clear();
+        s.clear();
+        frame.fill(rp, k0, block, &mut f, &mut s);
+        // the soft limits are a box: the block's two extreme corners inside, all inside
+        let lo_hi = |v: &[f64]| {
+            v.iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                    (a.min(x), b.max(x))
+                })
+        };
+        let ((x0, x1), (y0, y1)) = (lo_hi(&f), lo_hi(&s));
+        let corner = |x: f64, y: f64| {
+            let mut p = base;
+            p[fast] = x;
+            p[slow] = y;
+            limits.check(p).is_ok()
+        };
+        let block_inside = corner(x0, y0) && corner(x1, y1);
+        for (j, (&x, &y)) in f.iter().zip(&s).enumerate() {
+            let k = k0 + j;
+            let at = |k: usize| format!("sample {k} of the frame ({:.6} s)", k as f64 / rate);
+            if !block_inside {
+                let mut p = base;
+                p[fast] = x;
+                p[slow] = y;
+                limits.check(p).map_err(|e| {
+                    ScanError::Refused(format!(
+                        "{who}: the waveform leaves the soft limits at {}: {}",
+                        at(k),
+                        e.0
+                    ))
+                })?;
+            }
+            for (i, v) in [x, y].into_iter().enumerate() {
+                let (lo, hi) = range[i];
+                if !(v >= lo - 1e-9 && v <= hi + 1e-9) {
+                    return Err(ScanError::Refused(format!(
+                        "{who}: the waveform's {} = {v:.4} µm at {} is outside what the output commands ({lo:.4}…{hi:.4} µm, 0–10 V)",
+                        AXES[[fast, slow][i]],
+                        at(k)
+                    )));
+                }
+            }
+            if let (Some(q), Some(max)) = (prev, limits.max_speed_um_s) {
+                let v = (x - q[0]).hypot(y - q[1]) * rate;
+                if v > max * (1.0 + 1e-6) {
+                    return Err(ScanError::Refused(format!(
+                        "{who}: the waveform moves at {v:.4} µm/s at {}, above max_speed_um_s = {max} µm/s",
+                        at(k)
+                    )));
+                }
+            }
+            prev = Some([x, y]);
+        }
+        k0 += block;
+    }
+    Ok(())
+}
+
 impl Strategy for StreamStrategy {
     fn mode(&self) -> &'static str {
         "raster"
@@ -652,67 +730,7 @@ impl Strategy for StreamStrategy {
         let here = [start[fast], start[slow]];
         let frame = Frame::new(&rp, &geo, 0, here);
         let base = plan.base(start);
-        let block = 1 << 16;
-        let (mut f, mut s) = (Vec::with_capacity(block), Vec::with_capacity(block));
-        let mut prev: Option<[f64; 2]> = None;
-        let mut k0 = 0;
-        while k0 < frame.len {
-            f.clear();
-            s.clear();
-            frame.fill(&rp, k0, block, &mut f, &mut s);
-            // the soft limits are a box: the block's two extreme corners inside, all inside
-            let lo_hi = |v: &[f64]| {
-                v.iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-                        (a.min(x), b.max(x))
-                    })
-            };
-            let ((x0, x1), (y0, y1)) = (lo_hi(&f), lo_hi(&s));
-            let corner = |x: f64, y: f64| {
-                let mut p = base;
-                p[fast] = x;
-                p[slow] = y;
-                limits.check(p).is_ok()
-            };
-            let block_inside = corner(x0, y0) && corner(x1, y1);
-            for (j, (&x, &y)) in f.iter().zip(&s).enumerate() {
-                let k = k0 + j;
-                let at = |k: usize| format!("sample {k} of the frame ({:.6} s)", k as f64 / rate);
-                if !block_inside {
-                    let mut p = base;
-                    p[fast] = x;
-                    p[slow] = y;
-                    limits.check(p).map_err(|e| {
-                        ScanError::Refused(format!(
-                            "{who}: the waveform leaves the soft limits at {}: {}",
-                            at(k),
-                            e.0
-                        ))
-                    })?;
-                }
-                for (i, v) in [x, y].into_iter().enumerate() {
-                    let (lo, hi) = range[i];
-                    if !(v >= lo - 1e-9 && v <= hi + 1e-9) {
-                        return Err(ScanError::Refused(format!(
-                            "{who}: the waveform's {} = {v:.4} µm at {} is outside what the output commands ({lo:.4}…{hi:.4} µm, 0–10 V)",
-                            AXES[[fast, slow][i]],
-                            at(k)
-                        )));
-                    }
-                }
-                if let (Some(q), Some(max)) = (prev, limits.max_speed_um_s) {
-                    let v = (x - q[0]).hypot(y - q[1]) * rate;
-                    if v > max * (1.0 + 1e-6) {
-                        return Err(ScanError::Refused(format!(
-                            "{who}: the waveform moves at {v:.4} µm/s at {}, above max_speed_um_s = {max} µm/s",
-                            at(k)
-                        )));
-                    }
-                }
-                prev = Some([x, y]);
-            }
-            k0 += block;
-        }
+        check_frame(&who, &rp, &geo, &frame, base, range, limits)?;
         let n_lines = rp.lines.len();
         let per_line = frame.len as f64 / rate / n_lines as f64;
         let turn_s = (frame.len - frame.lines.iter().map(|l| l.2 - l.1).sum::<usize>()) as f64

@@ -76,10 +76,7 @@ impl FitData<'_> {
                 ));
                 let mut deg = res.degeneracies.clone();
                 let alt0 = self.fit_merge_close(init, opts, Vec::new())?;
-                let insignificant = |x: &Bead| {
-                    x.weight.abs() < 1e-9 || x.weight_err.is_some_and(|e| x.weight.abs() < 2.0 * e)
-                };
-                if alt0.bic <= res.bic || insignificant(&a) || insignificant(&c) {
+                if alt0.bic <= res.bic || a.insignificant() || c.insignificant() {
                     deg.push(Degeneracy::Unresolved {
                         a: [a.x, a.y, a.weight],
                         b: [c.x, c.y, c.weight],
@@ -100,9 +97,7 @@ impl FitData<'_> {
         let extra: Vec<Degeneracy> = res
             .beads
             .iter()
-            .filter(|b| {
-                b.weight.abs() < 1e-9 || b.weight_err.is_some_and(|e| b.weight.abs() < 2.0 * e)
-            })
+            .filter(|b| b.insignificant())
             .map(|b| Degeneracy::Insignificant {
                 x: b.x,
                 y: b.y,

@@ -59,7 +59,7 @@ pub(super) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64
 /// CLEAN: up to `n` beads from the detection map, every positive maximum taken (no
 /// threshold; [`clean_peaks`] with thresholds and the peaks' heights).
 pub(crate) fn clean(d: &Image, tpl: &Template, ch: Channels, n: usize) -> Vec<BeadInit> {
-    clean_peaks(d, tpl, ch, n, 0.0, 0.0)
+    clean_peaks(d, tpl, ch, n, 0.0, 0.0, DETECT_SMOOTH_UM)
         .into_iter()
         .map(|(b, _)| b)
         .collect()
@@ -76,6 +76,7 @@ pub(crate) fn clean_peaks(
     n: usize,
     min_peak: f64,
     min_weight: f64,
+    smooth_um: f64,
 ) -> Vec<(BeadInit, f64)> {
     let (pu, pv, d0) = template_dmap_peak(tpl, ch);
     if !(d0 > 0.0) {
@@ -99,8 +100,18 @@ pub(crate) fn clean_peaks(
     };
     let mut out = Vec::new();
     for _ in 0..n {
+        // The maximum is looked for on the map smoothed at a physical scale: the finite
+        // difference's noise grows as 1/pixel, and at 19 nm pixels its largest spike beat a
+        // 59 nm bead 170σ above the noise (a bead 0.9 µm away was "found" in its place).
+        let smoothed;
+        let look = if smooth_um > 0.0 {
+            smoothed = gaussian_smooth(&work, ax.h, ay.h, smooth_um);
+            &smoothed
+        } else {
+            &work
+        };
         let mut best: Option<(usize, usize, f64)> = None;
-        for ((r, c), &v) in work.indexed_iter() {
+        for ((r, c), &v) in look.indexed_iter() {
             if v.is_finite() && best.is_none_or(|b| v > b.2) {
                 best = Some((r, c, v));
             }
@@ -122,16 +133,16 @@ pub(crate) fn clean_peaks(
                 _ => 0.0,
             }
         };
-        let (rows, cols) = work.dim();
+        let (rows, cols) = look.dim();
         let fx = para(
-            (c > 0).then(|| work[[r, c - 1]]),
+            (c > 0).then(|| look[[r, c - 1]]),
             v,
-            (c + 1 < cols).then(|| work[[r, c + 1]]),
+            (c + 1 < cols).then(|| look[[r, c + 1]]),
         );
         let fy = para(
-            (r > 0).then(|| work[[r - 1, c]]),
+            (r > 0).then(|| look[[r - 1, c]]),
             v,
-            (r + 1 < rows).then(|| work[[r + 1, c]]),
+            (r + 1 < rows).then(|| look[[r + 1, c]]),
         );
         let x = d.x[c] + fx * ax.h - pu;
         let y = d.y[r] + fy * ay.h - pv;
@@ -145,4 +156,51 @@ pub(crate) fn clean_peaks(
         out.push((b, v));
     }
     out
+}
+
+/// The σ of the Gaussian the detection map is smoothed with before its maximum is taken, µm:
+/// small beside the map's peak (≈ 0.15 µm wide in the paper's beam: the peak drops by ≈ 4 %),
+/// large beside the smallest pixels (10 nm), so the maximum's noise no longer grows as 1/pixel.
+pub(crate) const DETECT_SMOOTH_UM: f64 = 0.04;
+
+/// `a` smoothed by a separable Gaussian of σ `sigma_um` (pixels `hx`, `hy` µm), NaN pixels left
+/// out of the weighted mean (and NaN where no finite pixel is within reach).
+fn gaussian_smooth(a: &Array2<f64>, hx: f64, hy: f64, sigma_um: f64) -> Array2<f64> {
+    let kernel = |h: f64| -> Vec<f64> {
+        let s = sigma_um / h.abs().max(1e-12);
+        let r = (3.0 * s).ceil() as i64;
+        (-r..=r)
+            .map(|k| (-0.5 * (k as f64 / s).powi(2)).exp())
+            .collect()
+    };
+    let pass = |src: &Array2<f64>, k: &[f64], along_cols: bool| -> Array2<f64> {
+        let (rows, cols) = src.dim();
+        let r = (k.len() / 2) as i64;
+        Array2::from_shape_fn((rows, cols), |(i, j)| {
+            let (mut num, mut den) = (0.0, 0.0);
+            for (m, w) in k.iter().enumerate() {
+                let o = m as i64 - r;
+                let (ii, jj) = if along_cols {
+                    (i as i64, j as i64 + o)
+                } else {
+                    (i as i64 + o, j as i64)
+                };
+                if ii < 0 || jj < 0 || ii >= rows as i64 || jj >= cols as i64 {
+                    continue;
+                }
+                let v = src[[ii as usize, jj as usize]];
+                if v.is_finite() {
+                    num += w * v;
+                    den += w;
+                }
+            }
+            if den > 0.0 {
+                num / den
+            } else {
+                f64::NAN
+            }
+        })
+    };
+    let t = pass(a, &kernel(hx), true);
+    pass(&t, &kernel(hy), false)
 }

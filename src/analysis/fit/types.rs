@@ -229,6 +229,10 @@ impl Bead {
             _ => self.weight.is_finite() && self.weight > 0.0,
         }
     }
+    /// Whether the weight is within 2σ of zero (reported as [`Degeneracy::Insignificant`]).
+    pub fn insignificant(&self) -> bool {
+        self.weight.abs() < 1e-9 || self.weight_err.is_some_and(|e| self.weight.abs() < 2.0 * e)
+    }
 }
 
 /// A degeneracy found in the fit.

@@ -90,4 +90,5 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     qpds: &[],
     keys: &["scene", "noise_v", "qpd"],
     open: crate::instrument::family::Open::Emulated,
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

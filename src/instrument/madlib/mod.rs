@@ -158,91 +158,12 @@ impl MadlibStage {
         Self::connect(lib, opts)
     }
 
-    /// Take the Nano-Drive `opts` names from an already loaded library.
+    /// Take the Nano-Drive `opts` names from an already loaded library: every attached
+    /// handle ([`grab_handles`]), the one `opts.serial` names kept and the others released
+    /// ([`pick_handle`]), then its product information and calibration read
+    /// ([`MadlibStage::read_product`]).
     pub fn connect(lib: Arc<Madlib>, opts: MadlibOptions) -> Result<MadlibStage, DeviceError> {
-        let dev = "Mad City Labs Nano-Drive";
-        if let Some(init) = lib.init_library {
-            // SAFETY: `bool MCL_InitLibrary()` of Madlib.h, no arguments.
-            unsafe { init() };
-        }
-        // SAFETY: `int MCL_GrabAllHandles()`.
-        let n = unsafe { (lib.grab_all_handles)() };
-        if n < 0 {
-            return Err(madlib_error(dev, "MCL_GrabAllHandles()", n));
-        }
-        if n == 0 {
-            return Err(DeviceError::Other {
-                device: dev.into(),
-                detail: format!(
-                    "MCL_GrabAllHandles() returned 0: no Nano-Drive attached (library {}). Check the USB \
-                     cable and that the controller is switched on; another program (Micro-Manager, the \
-                     vendor's utility, a second bfpscope) may hold it",
-                    lib.path.display()
-                ),
-            });
-        }
-        let mut handles = vec![0 as c_int; n as usize];
-        // SAFETY: `int MCL_GetAllHandles(int *handles, int size)`; the buffer has `size` ints.
-        let got = unsafe { (lib.get_all_handles)(handles.as_mut_ptr(), n) };
-        if got < 0 {
-            return Err(madlib_error(
-                dev,
-                &format!("MCL_GetAllHandles(handles, size={n})"),
-                got,
-            ));
-        }
-        handles.truncate(got.clamp(0, n) as usize);
-        // SAFETY: `int MCL_GetSerialNumber(int handle)` on handles the library gave.
-        let serials: Vec<c_int> = handles
-            .iter()
-            .map(|&h| unsafe { (lib.get_serial_number)(h) })
-            .collect();
-        let release_all_but = |keep: Option<c_int>| {
-            for &h in &handles {
-                if Some(h) != keep {
-                    // SAFETY: `void MCL_ReleaseHandle(int handle)`.
-                    unsafe { (lib.release_handle)(h) };
-                }
-            }
-        };
-        let list = serials
-            .iter()
-            .map(|s| s.to_string())
-            .collect::<Vec<_>>()
-            .join(", ");
-        let pick = match opts.serial {
-            Some(want) => serials.iter().position(|&s| s == want).ok_or_else(|| {
-                DeviceError::Other {
-                    device: dev.into(),
-                    detail: format!(
-                        "stage.serial = {want}: no Nano-Drive with that serial number is attached (attached: {})",
-                        if list.is_empty() { "none".to_string() } else { list.clone() }
-                    ),
-                }
-            }),
-            None if handles.len() == 1 => Ok(0),
-            None if handles.is_empty() => Err(DeviceError::Other {
-                device: dev.into(),
-                detail: format!("MCL_GetAllHandles(handles, size={n}) listed no handle"),
-            }),
-            None => Err(DeviceError::Other {
-                device: dev.into(),
-                detail: format!(
-                    "{} Nano-Drives are attached (serial numbers {list}): name one with `serial = …` in [stage]",
-                    handles.len()
-                ),
-            }),
-        };
-        let i = match pick {
-            Ok(i) => i,
-            Err(e) => {
-                release_all_but(None);
-                return Err(e);
-            }
-        };
-        let handle = handles[i];
-        release_all_but(Some(handle));
-        let serial = serials[i];
+        let (handle, serial) = pick_handle(&lib, opts.serial)?;
         let name = format!("Mad City Labs Nano-Drive #{serial}");
         // From here on, an error releases `handle` (the stage's Drop).
         let mut stage = MadlibStage {
@@ -277,27 +198,37 @@ impl MadlibStage {
                 serial,
             ));
         }
+        stage.read_product(&name)?;
+        // The target starts where the stage is: a relative move starts from there.
+        stage.target = stage.read_all()?;
+        Ok(stage)
+    }
+
+    /// `MCL_GetProductInfo` and, for each configured axis (which the axis bitmap must
+    /// list), `MCL_GetCalibration` into [`NanoDriveInfo`].
+    fn read_product(&mut self, name: &str) -> Result<(), DeviceError> {
+        let (lib, handle) = (self.lib.clone(), self.handle);
         let mut pi = ffi::ProductInformation::default();
         // SAFETY: `int MCL_GetProductInfo(struct ProductInformation *pi, int handle)`.
         let r = unsafe { (lib.get_product_info)(&mut pi, handle) };
         if r != ffi::MCL_SUCCESS {
             return Err(madlib_error(
-                &name,
+                name,
                 &format!("MCL_GetProductInfo(pi, handle={handle})"),
                 r,
             ));
         }
         let bitmap = pi.axis_bitmap;
-        stage.info.product_id = pi.product_id;
-        stage.info.axis_bitmap = bitmap;
-        stage.info.adc_bits = pi.adc_resolution;
-        stage.info.dac_bits = pi.dac_resolution;
-        stage.info.firmware_version = pi.firmware_version;
-        stage.info.firmware_profile = pi.firmware_profile;
-        for (k, &a) in stage.opts.axes.clone().iter().enumerate() {
+        self.info.product_id = pi.product_id;
+        self.info.axis_bitmap = bitmap;
+        self.info.adc_bits = pi.adc_resolution;
+        self.info.dac_bits = pi.dac_resolution;
+        self.info.firmware_version = pi.firmware_version;
+        self.info.firmware_profile = pi.firmware_profile;
+        for (k, &a) in self.opts.axes.clone().iter().enumerate() {
             if !(1..=8).contains(&a) || bitmap & (1u8 << (a - 1)) == 0 {
                 return Err(DeviceError::Other {
-                    device: name,
+                    device: name.into(),
                     detail: format!(
                         "stage.axes.{} = {a}: this Nano-Drive has axes {} (MCL_GetProductInfo axis bitmap {bitmap:#04x}; 1 = X, 2 = Y, 3 = Z, 4 = A)",
                         crate::instrument::AXES[k],
@@ -309,20 +240,18 @@ impl MadlibStage {
             let c = unsafe { (lib.get_calibration)(a, handle) };
             let call = format!("MCL_GetCalibration(axis={a}, handle={handle})");
             if let Some(code) = ffi::double_code(c) {
-                return Err(madlib_error(&name, &call, code));
+                return Err(madlib_error(name, &call, code));
             }
             if !(c.is_finite() && c > 0.0) {
                 return Err(DeviceError::Garbled {
-                    device: name,
+                    device: name.into(),
                     command: call,
                     reply: format!("{c} (a calibrated range in µm must be positive)"),
                 });
             }
-            stage.info.calibration_um[k] = c;
+            self.info.calibration_um[k] = c;
         }
-        // The target starts where the stage is: a relative move starts from there.
-        stage.target = stage.read_all()?;
-        Ok(stage)
+        Ok(())
     }
 
     /// What connect found (serial, product, calibration), for the scan metadata.
@@ -570,6 +499,103 @@ impl MadlibStage {
     }
 }
 
+/// Every Nano-Drive handle the library grants (`MCL_InitLibrary`, `MCL_GrabAllHandles`,
+/// `MCL_GetAllHandles`) with its serial number (`MCL_GetSerialNumber`), after the count
+/// `MCL_GrabAllHandles` returned.
+fn grab_handles(lib: &Madlib) -> Result<(c_int, Vec<c_int>, Vec<c_int>), DeviceError> {
+    let dev = "Mad City Labs Nano-Drive";
+    if let Some(init) = lib.init_library {
+        // SAFETY: `bool MCL_InitLibrary()` of Madlib.h, no arguments.
+        unsafe { init() };
+    }
+    // SAFETY: `int MCL_GrabAllHandles()`.
+    let n = unsafe { (lib.grab_all_handles)() };
+    if n < 0 {
+        return Err(madlib_error(dev, "MCL_GrabAllHandles()", n));
+    }
+    if n == 0 {
+        return Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!(
+                    "MCL_GrabAllHandles() returned 0: no Nano-Drive attached (library {}). Check the USB \
+                     cable and that the controller is switched on; another program (Micro-Manager, the \
+                     vendor's utility, a second bfpscope) may hold it",
+                    lib.path.display()
+                ),
+            });
+    }
+    let mut handles = vec![0 as c_int; n as usize];
+    // SAFETY: `int MCL_GetAllHandles(int *handles, int size)`; the buffer has `size` ints.
+    let got = unsafe { (lib.get_all_handles)(handles.as_mut_ptr(), n) };
+    if got < 0 {
+        return Err(madlib_error(
+            dev,
+            &format!("MCL_GetAllHandles(handles, size={n})"),
+            got,
+        ));
+    }
+    handles.truncate(got.clamp(0, n) as usize);
+    // SAFETY: `int MCL_GetSerialNumber(int handle)` on handles the library gave.
+    let serials: Vec<c_int> = handles
+        .iter()
+        .map(|&h| unsafe { (lib.get_serial_number)(h) })
+        .collect();
+    Ok((n, handles, serials))
+}
+
+/// The handle of the Nano-Drive `serial` names (the only one attached when unset) with its
+/// serial number; every other handle is released, and all of them when none fits.
+fn pick_handle(lib: &Madlib, serial: Option<i32>) -> Result<(c_int, c_int), DeviceError> {
+    let dev = "Mad City Labs Nano-Drive";
+    let (n, handles, serials) = grab_handles(lib)?;
+    let release_all_but = |keep: Option<c_int>| {
+        for &h in &handles {
+            if Some(h) != keep {
+                // SAFETY: `void MCL_ReleaseHandle(int handle)`.
+                unsafe { (lib.release_handle)(h) };
+            }
+        }
+    };
+    let list = serials
+        .iter()
+        .map(|s| s.to_string())
+        .collect::<Vec<_>>()
+        .join(", ");
+    let pick = match serial {
+            Some(want) => serials.iter().position(|&s| s == want).ok_or_else(|| {
+                DeviceError::Other {
+                    device: dev.into(),
+                    detail: format!(
+                        "stage.serial = {want}: no Nano-Drive with that serial number is attached (attached: {})",
+                        if list.is_empty() { "none".to_string() } else { list.clone() }
+                    ),
+                }
+            }),
+            None if handles.len() == 1 => Ok(0),
+            None if handles.is_empty() => Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!("MCL_GetAllHandles(handles, size={n}) listed no handle"),
+            }),
+            None => Err(DeviceError::Other {
+                device: dev.into(),
+                detail: format!(
+                    "{} Nano-Drives are attached (serial numbers {list}): name one with `serial = …` in [stage]",
+                    handles.len()
+                ),
+            }),
+        };
+    let i = match pick {
+        Ok(i) => i,
+        Err(e) => {
+            release_all_but(None);
+            return Err(e);
+        }
+    };
+    let handle = handles[i];
+    release_all_but(Some(handle));
+    Ok((handle, serials[i]))
+}
+
 /// The axis numbers set in a product's axis bitmap (`"1, 2, 3"`).
 fn axes_in(bitmap: u8) -> String {
     let v: Vec<String> = (1..=8)
@@ -670,16 +696,27 @@ impl Stage for MadlibStage {
 }
 
 /// A Mad City Labs Nano-Drive through Madlib (the stage), the paper's bench with an NI board. (listed in `instrument::registry`).
+/// Mad City Labs Nano-Drive through the vendor's library Madlib: a `[stage]` backend.
+pub const MADLIB: crate::instrument::family::Backend = crate::instrument::family::Backend("madlib");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "madlib",
     backend: "bench",
     aliases: &[],
-    stages: &["madlib"],
+    stages: &[MADLIB.0],
     qpds: &[],
     keys: &["timeout_ms"],
     open: crate::instrument::family::Open::Config {
         stage: "madlib",
         qpd: "nidaqmx",
+    },
+    stage_defaults: crate::instrument::family::StageDefaults {
+        // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own
+        // (≈ 0.2 ms), so the link sets the pace and a move ends as soon as the readings are on
+        // target (a 5 ms poll cost a 31 nm step 7 ms)
+        poll_ms: 0,
+        // settled on its readings (`tolerance_um`, two in a row): no fixed settle after them
+        settle_s: Some(0.0),
     },
 };
 

@@ -243,4 +243,5 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
         "abort_after_reads",
     ],
     open: crate::instrument::family::Open::Mock,
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

@@ -787,17 +787,22 @@ impl Qpd for NiQpd {
 }
 
 /// An NI DAQ board through NI-DAQmx (the QPD, and the hardware-timed raster of `[raster]`). (listed in `instrument::registry`).
+/// NI DAQ board through NI-DAQmx: a `[qpd]` backend (and `[raster]`).
+pub const NIDAQMX: crate::instrument::family::Backend =
+    crate::instrument::family::Backend("nidaqmx");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "nidaqmx",
     backend: "bench",
     aliases: &[],
     stages: &[],
-    qpds: &["nidaqmx"],
+    qpds: &[NIDAQMX.0],
     keys: &["timeout_ms"],
     open: crate::instrument::family::Open::Config {
         stage: "madlib",
         qpd: "nidaqmx",
     },
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };
 
 #[cfg(test)]

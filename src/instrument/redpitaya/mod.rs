@@ -727,17 +727,22 @@ impl Qpd for RedPitaya {
 }
 
 /// A Red Pitaya STEMlab board over its SCPI server (the QPD), beside a PI stage. (listed in `instrument::registry`).
+/// Red Pitaya STEMlab board over its SCPI server: a `[qpd]` backend.
+pub const REDPITAYA: crate::instrument::family::Backend =
+    crate::instrument::family::Backend("redpitaya");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "redpitaya",
     backend: "hardware",
     aliases: &[],
     stages: &[],
-    qpds: &["redpitaya"],
+    qpds: &[REDPITAYA.0],
     keys: &["qpd_host", "qpd_port", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
         stage: "gcs",
         qpd: "redpitaya",
     },
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };
 
 #[cfg(test)]

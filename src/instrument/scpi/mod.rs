@@ -321,17 +321,21 @@ impl Qpd for ScpiQpd {
 }
 
 /// The SCPI QPD digitiser (the QPD), read beside a PI stage. (listed in `instrument::registry`).
+/// SCPI QPD digitiser: a `[qpd]` backend.
+pub const SCPI: crate::instrument::family::Backend = crate::instrument::family::Backend("scpi");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "scpi",
     backend: "hardware",
     aliases: &[],
     stages: &[],
-    qpds: &["scpi"],
+    qpds: &[SCPI.0],
     keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
         stage: "gcs",
         qpd: "scpi",
     },
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };
 
 #[cfg(test)]

@@ -599,12 +599,16 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
 }
 
 /// The simulated instrument: a scene rendered in the focused beam, on a virtual clock. (listed in `instrument::registry`).
+/// The simulated instrument (scene + optics): `[stage]` and `[qpd]` backend.
+pub const SIM: crate::instrument::family::Backend = crate::instrument::family::Backend("sim");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "sim",
     backend: "sim",
     aliases: &[],
-    stages: &["sim"],
-    qpds: &["sim"],
+    stages: &[SIM.0],
+    qpds: &[SIM.0],
     keys: &["scene", "pace"],
     open: crate::instrument::family::Open::Sim,
+    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
 };

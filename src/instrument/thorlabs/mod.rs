@@ -562,16 +562,29 @@ impl AptLink {
 }
 
 /// Thorlabs APT devices: three KPZ101 piezo cubes (the stage) and a KPA101 position aligner (the QPD). (listed in `instrument::registry`).
+/// Three Thorlabs KPZ101 piezo cubes over APT, one per axis: a `[stage]` backend.
+pub const KPZ101: crate::instrument::family::Backend = crate::instrument::family::Backend("kpz101");
+
+/// Thorlabs KPA101/TPA101 position aligner over APT: a `[qpd]` backend.
+pub const KPA101: crate::instrument::family::Backend = crate::instrument::family::Backend("kpa101");
+
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
     name: "thorlabs",
     backend: "thorlabs",
     aliases: &["kpz101", "kpa101"],
-    stages: &["kpz101"],
-    qpds: &["kpa101"],
+    stages: &[KPZ101.0],
+    qpds: &[KPA101.0],
     keys: &["qpd_port", "stage_ports", "timeout_ms"],
     open: crate::instrument::family::Open::Config {
         stage: "kpz101",
         qpd: "kpa101",
+    },
+    stage_defaults: crate::instrument::family::StageDefaults {
+        // each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request and reply, and a strain-gauge
+        // reading taken every millisecond catches the actuator still on its way, inside the
+        // tolerance before it has settled
+        poll_ms: 10,
+        settle_s: None,
     },
 };
 
