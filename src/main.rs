@@ -370,6 +370,7 @@ fn accuracy_cmd(quick: bool, out: PathBuf, criterion: Option<PathBuf>) -> ExitCo
         out,
         criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
         verbose: true,
+        targeted: Some(bfpscope::script::targeted_study),
     };
     match bfpscope::accuracy::report::run(&opts) {
         Ok(r) => {

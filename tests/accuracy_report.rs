@@ -2,7 +2,11 @@
 //! and the plots, in-process into a temporary folder. Asserts that the files are written, that
 //! each default meets its knee's error criterion (errors are deterministic; times are reported,
 //! not asserted: a test is no benchmark), and the trade-off's physics (the 1/√t law and its
-//! closed-form prediction, the microtubule's linear density).
+//! closed-form prediction, the microtubule's linear density), the Cramér–Rao bound beside every
+//! row (against the scaling law's closed form), the whole-image filament fit beside the per-row
+//! maxima, the targeted protocols' seed study (2 bead seeds, 1 filament seed over 1 µm: the full
+//! study is `bfpscope accuracy` or `bfpscope run scripts/targeted_study.rhai`), and both Pareto
+//! figures.
 
 use crate::support::cleanup;
 
@@ -18,6 +22,7 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
         out: dir.clone(),
         criterion: None,
         verbose: false,
+        targeted: Some(bfpscope::script::targeted_study),
     })
     .unwrap();
 
@@ -71,6 +76,7 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
         );
     }
     assert!(dir.join("accuracy/tradeoff.png").is_file());
+    assert!(dir.join("accuracy/tradeoff_filament.png").is_file());
 
     // defaults at the knee; the two documented exceptions must stay what the report says
     for k in &r.knobs {
@@ -174,5 +180,104 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
         .unwrap();
     assert_eq!(mt.found, t.seeds);
     assert!((mt.mean / t.mt_true_mu - 1.0).abs() < 0.05, "{}", mt.mean);
+
+    // the information limit beside every row: the bead's bound (the Fisher information of the
+    // 64×64 pixels, analysis::crlb) against the closed form σ_s·h·m/√(f·t·I) of the scaling law
+    // (the template's integral on a 20 nm grid: an independent path), and the fit at it
+    for r in &t.bead {
+        let pred = t.predicted_sigma_kda(r.dwell_s, 0.05);
+        assert!(
+            (r.crlb / pred - 1.0).abs() < 0.02,
+            "CRLB {} vs closed form {pred}",
+            r.crlb
+        );
+        let mass = r
+            .estimators
+            .iter()
+            .find(|e| e.estimator == "bead mass (weight)")
+            .unwrap();
+        assert!((mass.fit_sigma / mass.crlb - 1.0).abs() < 0.1, "{mass:?}");
+        let ex = &r.estimators[0];
+        assert_eq!(ex.estimator, "bead x");
+        assert!((ex.fit_sigma / ex.crlb - 1.0).abs() < 0.1, "{ex:?}");
+        assert!(r.efficiency().is_finite() && r.efficiency() > 0.0);
+    }
+    // the bound scales as 1/√t exactly (integer samples per pixel)
+    let (a, b) = (&t.bead[0], &t.bead[t.bead.len() - 1]);
+    assert!(((a.crlb / b.crlb) / (b.dwell_s / a.dwell_s).sqrt() - 1.0).abs() < 1e-9);
+    // the microtubule: the whole-image fit's own 1σ sits at the bound, the per-row maxima's above
+    // it; at 1 ms the whole-image fit finds the filament where the per-row maxima do not
+    let fit = t
+        .microtubule_fit
+        .iter()
+        .find(|r| (r.dwell_s - 0.1).abs() < 1e-12)
+        .unwrap();
+    assert_eq!(fit.found, t.seeds);
+    assert!((fit.mean / t.mt_true_mu - 1.0).abs() < 0.05, "{}", fit.mean);
+    assert!(
+        (fit.sigma_fit / fit.crlb - 1.0).abs() < 0.1,
+        "{} vs {}",
+        fit.sigma_fit,
+        fit.crlb
+    );
+    assert!(
+        mt.sigma_fit > 1.5 * mt.crlb,
+        "per-row {} vs bound {}",
+        mt.sigma_fit,
+        mt.crlb
+    );
+    let at_1ms = |rows: &[bfpscope::accuracy::instrument::TradeRow]| {
+        rows.iter()
+            .find(|r| (r.dwell_s - 1e-3).abs() < 1e-12)
+            .unwrap()
+            .found
+    };
+    assert_eq!(at_1ms(&t.microtubule_fit), t.seeds);
+    assert_eq!(at_1ms(&t.microtubule), 0);
+    assert!(md.contains("| CRLB | efficiency |"));
+    assert!(md.contains("whole-image bead-model fit"));
+    assert!(md.contains("### Efficiency of every estimator"));
+
+    // the targeted protocols (one quick seed study): the bead at 950 kDa within a tenth of the
+    // raster's 26.9 s, its σ at its bound; the filament over 1 µm
+    let tb = r
+        .targeted
+        .iter()
+        .find(|x| x.protocol == "targeted::bead")
+        .unwrap();
+    assert_eq!(tb.seeds, 2);
+    assert!(tb.time_max_s <= 2.7, "{tb:?}");
+    assert!(
+        tb.sigma_mean <= 950.0 && (tb.sigma_mean / tb.crlb_mean - 1.0).abs() < 0.3,
+        "{tb:?}"
+    );
+    assert!((tb.mean - tb.truth).abs() < 4.0 * tb.sigma_mean, "{tb:?}");
+    let tf = r
+        .targeted
+        .iter()
+        .find(|x| x.protocol == "targeted::filament")
+        .unwrap();
+    assert_eq!((tf.seeds, tf.length_um), (1, 1.0));
+    assert!((tf.mean - tf.truth).abs() < 4.0 * tf.sigma_mean, "{tf:?}");
+    assert!(
+        tf.crlb_mean > 0.0 && tf.crlb_mean <= tf.sigma_mean * 1.1,
+        "{tf:?}"
+    );
+    assert!(
+        md.contains("### Targeted protocols")
+            && md.contains("`targeted::bead` (110 nm PS bead, mass) | 2 |")
+    );
+    // the Pareto figures: both written and shown
+    for p in &r.pareto {
+        let bytes = std::fs::read(p).unwrap();
+        assert!(
+            bytes.starts_with(b"\x89PNG") && bytes.len() > 10_000,
+            "{}",
+            p.display()
+        );
+    }
+    assert!(
+        md.contains("(accuracy/tradeoff.png)") && md.contains("(accuracy/tradeoff_filament.png)")
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

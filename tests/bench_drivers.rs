@@ -1580,3 +1580,161 @@ fn raster_margins_follow_the_measured_lag() {
         rows.join("\n")
     );
 }
+
+/// A workbench on the bench (the stage on the bead, the config's limits), its scans autosaved
+/// to a fresh session folder.
+fn workbench_on_bench(tag: &str) -> (bfpscope::script::Workbench, std::path::PathBuf) {
+    use bfpscope::script::{Settings, Workbench};
+    let c = connect_bench();
+    let dir = std::env::temp_dir().join(format!("bfpscope-bench-{tag}-{}", std::process::id()));
+    crate::support::cleanup::at_exit(&dir);
+    let _ = std::fs::remove_dir_all(&dir);
+    let (mut settings, _buf) = Settings::captured(&dir);
+    settings.limits = c.limits;
+    let wb = Workbench::new(settings);
+    wb.ctx.connect(c.instrument, None);
+    (wb, dir)
+}
+
+/// The scans autosaved in `dir`, in their numbers' order.
+fn saved_in(dir: &std::path::Path) -> Vec<Scan> {
+    let mut paths: Vec<_> = std::fs::read_dir(dir)
+        .map(|rd| rd.flatten().map(|e| e.path()).collect())
+        .unwrap_or_default();
+    paths.retain(|p: &std::path::PathBuf| {
+        p.file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with("scan_") && n.ends_with(".npz"))
+    });
+    paths.sort();
+    paths
+        .iter()
+        .map(|p| bfpscope::data::npz::load_scan(p).unwrap_or_else(|e| panic!("{e}")))
+        .collect()
+}
+
+/// targeted::bead on the paper's bench (Nano-Drive through Madlib, PCI-6120 through NI-DAQmx,
+/// both the fake libraries): the bench's 110 nm bead (the simulator's reference bead under the
+/// focus) measured from a start 30 nm off, through the one scan engine — every arm of every
+/// pass a line scan autosaved with the pattern and why it was chosen in its metadata — and the
+/// stage back where it started.
+#[test]
+fn targeted_bead_measures_the_bench_bead_through_the_scan_engine() {
+    let (_g, fake) = bench();
+    let (mut wb, dir) = workbench_on_bench("targeted");
+    let r = wb
+        .eval_source(
+            "t",
+            &format!(
+                "import \"targeted\" as targeted; targeted::bead(#{{x: {}, y: {}, dwell: 0.01}})",
+                BEAD[0] + 0.03,
+                BEAD[1] - 0.02
+            ),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+    let m = r.read_lock::<rhai::Map>().unwrap().clone();
+    let f = |k: &str| m[k].as_float().unwrap_or_else(|_| panic!("{k}: {}", m[k]));
+    let passes = m["passes"].as_int().unwrap();
+    println!(
+        "bench: x {:.4} y {:.4} weight {:.4} ± {:.4} (CRLB {:.4}), {} passes, {:.2} s, {}",
+        f("x"),
+        f("y"),
+        f("weight"),
+        f("weight_err"),
+        f("weight_crlb"),
+        passes,
+        f("instrument_s"),
+        m["warnings"]
+    );
+    assert_eq!(
+        m["status"].clone().into_string().unwrap(),
+        "ok",
+        "{}",
+        m["warnings"]
+    );
+    // the bead is the reference bead at the origin of the fake's scene (weight 1 by definition)
+    assert!((f("x") - BEAD[0]).abs() < 0.005, "x {}", f("x"));
+    assert!((f("y") - BEAD[1]).abs() < 0.005, "y {}", f("y"));
+    assert!((f("weight") - 1.0).abs() < 0.02, "weight {}", f("weight"));
+    assert_eq!(m["n_points"].as_int().unwrap(), 4 * passes);
+    // back where it started (the stage's own reading, not the driver's)
+    assert!(
+        (fake.position(1) - BEAD[0]).abs() < 0.01,
+        "{}",
+        fake.position(1)
+    );
+    assert!(
+        (fake.position(2) - BEAD[1]).abs() < 0.01,
+        "{}",
+        fake.position(2)
+    );
+    // every arm autosaved, complete, with the pattern and why
+    let saved = saved_in(&dir);
+    assert_eq!(saved.len() as i64, 2 * passes, "one scan per arm per pass");
+    for s in &saved {
+        assert_eq!(s.status, ScanStatus::Complete);
+        let p = &s.meta["protocol"];
+        assert_eq!(p["name"], "targeted::bead pattern", "{p}");
+        assert!(
+            p["args"]["why"].as_str().unwrap().contains("bead_design"),
+            "{p}"
+        );
+        assert_eq!(p["args"]["points"].as_array().unwrap().len(), 4, "{p}");
+        assert_eq!(
+            s.meta["instrument"]["backend"], "hardware",
+            "{}",
+            s.meta["instrument"]
+        );
+    }
+}
+
+/// A fault mid-protocol on the bench (the PCI-6120 gone during targeted::bead): the script
+/// stops with the device's words (board, function, code), the arm in progress is saved with its
+/// partial data and returned to its start (the engine's rule for a QPD error: the stage is
+/// fine), and nothing is commanded after that: no further reading, pass or move.
+#[test]
+fn targeted_bead_stops_on_a_bench_fault_with_the_device_words_and_the_partial_arm() {
+    let (_g, fake) = bench();
+    let (mut wb, dir) = workbench_on_bench("targeted-fault");
+    // the board gone at the 6th read: the second pass's x arm (4 reads per pass)
+    fake.faults("daq_removed_after_reads=5");
+    let e = wb
+        .eval_source(
+            "t",
+            &format!(
+                "import \"targeted\" as targeted; targeted::bead(#{{x: {}, y: {}, dwell: 0.01}})",
+                BEAD[0], BEAD[1]
+            ),
+        )
+        .unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("NI PCI-6120 Dev1: controller error -201003 after `DAQmxReadAnalogF64(")
+            && msg.contains("DAQmxErrorDevCannotBeAccessed")
+            && msg.contains("scan_line failed after 1 of 2 points"),
+        "{msg}"
+    );
+    let saved = saved_in(&dir);
+    assert_eq!(
+        saved.len(),
+        3,
+        "two arms of the first pass and the failed one"
+    );
+    let last = &saved[2];
+    assert_eq!(last.status, ScanStatus::Failed, "{msg}");
+    assert_eq!(last.meta["protocol"]["name"], "targeted::bead pattern");
+    assert_eq!(last.meta["protocol"]["args"]["pass"], 1);
+    let v: Vec<f64> = last.sx.data.iter().copied().collect();
+    assert!(v[0].is_finite() && v[1].is_nan(), "{v:?}");
+    // after the failing read: the stop of the task, one move (back to the arm's start), nothing else
+    let log = fake.log();
+    let (_, after) = log
+        .split_once("-> -201003")
+        .unwrap_or_else(|| panic!("no read returned -201003: {log}"));
+    assert_eq!(after.matches("MCL_SingleWriteN(").count(), 1, "{after}");
+    assert!(!after.contains("DAQmxReadAnalogF64("), "{after}");
+    assert!(
+        log.contains("DAQmxClearTask(") || after.contains("DAQmxStopTask("),
+        "{log}"
+    );
+}

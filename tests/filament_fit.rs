@@ -167,7 +167,8 @@ fn whole_image_fit_reaches_the_bound_without_bias() {
     );
 }
 
-/// At 3 ms per pixel, where the per-row maxima are biased by −1.5 % (docs/accuracy.md), the
+/// At 3 ms per pixel, where the per-row maxima lose the filament in some seeds and are biased
+/// (docs/accuracy.md: −1.5 % in its report of 2026-11-26), the
 /// whole-image fit's mean λ over 30 seeds is within 0.5σ of the truth (a relative bias under
 /// 0.6 %) and its scatter within 1.2× of the bound... with the 13 % statistical error of 30
 /// seeds, asserted below 1.35×.

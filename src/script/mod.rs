@@ -305,6 +305,34 @@ impl Workbench {
     }
 }
 
+/// The seed study of the targeted protocols, `scripts/targeted_study.rhai` (embedded), run as
+/// `bfpscope run` would (the default instrument connected first) in a throw-away session on the
+/// simulator whose scans are autosaved to a temporary folder (removed afterwards): the numbers `bfpscope accuracy` reports (`accuracy::report::ReportOptions::targeted`).
+/// `quick` (CI): targeted::bead over 2 seeds and targeted::filament over 1 seed of a 1 µm
+/// stretch; else 20 seeds of each, 3 µm. Returns the script's map as JSON
+/// (`{bead: {...}, filament: {...}}`).
+pub fn targeted_study(quick: bool) -> Result<serde_json::Value, String> {
+    let dir = std::env::temp_dir().join(format!("bfpscope-targeted-study-{}", std::process::id()));
+    let (settings, _printed) = Settings::captured(&dir);
+    let mut wb = Workbench::new(settings);
+    // the default instrument first, as `bfpscope run` and `bfpscope test` connect it: the study's
+    // simulate(scene) then keeps its settle time (a sim attached by simulate() alone settles
+    // 10 ms per move)
+    motion::connect_config(&wb.ctx, &crate::config::Config::default())
+        .map_err(|e| format!("scripts/targeted_study.rhai: {e}"))?;
+    let (n, nf, len) = if quick { (2, 1, 1.0) } else { (20, 20, 3.0) };
+    wb.set_var("n_seeds", Dynamic::from(n as i64));
+    wb.set_var("fil_seeds", Dynamic::from(nf as i64));
+    wb.set_var("fil_len_um", Dynamic::from(len));
+    let r = wb.eval_source(
+        "scripts/targeted_study.rhai",
+        include_str!("../../scripts/targeted_study.rhai"),
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    let v = r.map_err(|e| format!("scripts/targeted_study.rhai: {e}"))?;
+    Ok(types::dynamic_to_json(&v))
+}
+
 /// `(path, alias)` of every `import "path" as alias` statement in a REPL entry (a plain scan:
 /// string literals and comments elsewhere on the line are not imports Rhai would accept either,
 /// and a failed resolve is ignored).
