@@ -518,12 +518,9 @@ fn fibril_case(
     r.ok()
 }
 
-/// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
-/// each. Returns one tally per estimator quantity.
-pub fn run(
-    opts: &SweepOptions,
-    progress: &dyn Fn(usize, usize),
-) -> Result<BTreeMap<String, Tally>, String> {
+/// The paper's optics and the 110 nm reference template (20 nm grid) every sweep scene is
+/// rendered and analysed with.
+fn sweep_optics() -> Result<(Optics, Template), String> {
     let optics = Optics::default();
     let tpl = Template::from_optics(
         &optics,
@@ -533,6 +530,16 @@ pub fn run(
         0.0,
     )
     .map_err(|e| e.to_string())?;
+    Ok((optics, tpl))
+}
+
+/// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
+/// each. Returns one tally per estimator quantity.
+pub fn run(
+    opts: &SweepOptions,
+    progress: &dyn Fn(usize, usize),
+) -> Result<BTreeMap<String, Tally>, String> {
+    let (optics, tpl) = sweep_optics()?;
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
     let mut t = BTreeMap::new();
     let mut cals = BTreeMap::new();
@@ -592,15 +599,7 @@ pub fn replay(json: &str) -> Result<String, String> {
     let case: Case = serde_json::from_str(json).map_err(|e| {
         format!("--replay: not a sweep scene ({e}); give the `scene` field of a BFPSCOPE_SWEEP_DUMP line")
     })?;
-    let optics = Optics::default();
-    let tpl = Template::from_optics(
-        &optics,
-        &DetectorModel::default(),
-        RefBead::default(),
-        0.02,
-        0.0,
-    )
-    .map_err(|e| e.to_string())?;
+    let (optics, tpl) = sweep_optics()?;
     let mut t = BTreeMap::new();
     set_current(&case);
     let mut out = String::new();
