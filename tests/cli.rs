@@ -1129,3 +1129,63 @@ fn walk_files(dir: &std::path::Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// The answers of a sweep dump: (value, σ, scene) per line.
+fn dump_lines(path: &std::path::Path) -> Vec<(f64, Option<f64>, serde_json::Value)> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            (
+                v["value"].as_f64().unwrap(),
+                v["sigma"].as_f64(),
+                v["scene"].clone(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn a_sweep_prints_its_tallies_as_json_and_replays_a_dumped_scene_to_the_same_answer() {
+    let d = tmp("sweep");
+    let dump = d.join("dump.jsonl");
+    let o = bin()
+        .args(["sweep", "--n", "3", "--seed", "7", "--json"])
+        .env("BFPSCOPE_SWEEP_DUMP", &dump)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    let j: serde_json::Value = serde_json::from_str(&out).expect("one JSON object");
+    for k in ["fit_beads.x", "measure_filament.diameter"] {
+        let t = &j[k];
+        let cases = t["cases"].as_u64().unwrap_or_else(|| panic!("{k}: {t}"));
+        let in_domain = t["in_domain"].as_u64().unwrap();
+        let flagged = t["flagged"].as_f64().unwrap();
+        // every case is either inside the domain or flagged/refused
+        assert!(
+            (in_domain as f64 + flagged * cases as f64 - cases as f64).abs() < 1e-9,
+            "{k}: {t}"
+        );
+        assert!(t["unflagged_outliers"].is_u64(), "{k}: {t}");
+    }
+    // the first dumped answer, replayed from its scene alone, is the same answer
+    let lines = dump_lines(&dump);
+    let (value, sigma, scene) = lines
+        .first()
+        .expect("an in-domain answer in 3 + 3 scenes")
+        .clone();
+    let dump2 = d.join("replay.jsonl");
+    let o = bin()
+        .args(["sweep", "--replay", &scene.to_string()])
+        .env("BFPSCOPE_SWEEP_DUMP", &dump2)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let again = dump_lines(&dump2);
+    assert_eq!(again.first().map(|a| (a.0, a.1)), Some((value, sigma)));
+    // a scene that is not one is refused in words
+    let (code, _, err) = run(&["sweep", "--replay", "{\"family\": \"stars\"}"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("not a sweep scene"), "{err}");
+}
