@@ -345,6 +345,32 @@ fn log_line(label: &str, f: impl Fn(f64) -> f64, t0: f64, t1: f64) -> Series {
 }
 
 /// A line of slope −½ on log–log axes, k/√t: the bound of one design scales as 1/√t.
+/// A targeted protocol's point (its scatter over `seeds`, or its mean 1σ from one seed) at its
+/// mean time, and the √time line through its mean bound; `[seeds, scatter, σ mean, bound
+/// mean, time mean s]`, the line over `t` (s).
+fn targeted_series(name: &str, design: &str, r: [f64; 5], t: [f64; 2]) -> [Series; 2] {
+    let [seeds, scatter, sigma_mean, crlb_mean, time_s] = r;
+    let several = seeds >= 2.0;
+    let label = format!(
+        "{name}: {} over {seeds} seed{}",
+        if several { "scatter" } else { "1σ" },
+        if seeds == 1.0 { "" } else { "s" }
+    );
+    [
+        Series::points(
+            &label,
+            vec![time_s],
+            vec![if several { scatter } else { sigma_mean }],
+        ),
+        sqrt_line(
+            &format!("{name}: Cramér–Rao bound of {design}"),
+            crlb_mean * time_s.sqrt(),
+            t[0],
+            t[1],
+        ),
+    ]
+}
+
 fn sqrt_line(label: &str, k: f64, t0: f64, t1: f64) -> Series {
     log_line(label, |t| k / t.sqrt(), t0, t1)
 }
@@ -385,26 +411,17 @@ fn tradeoff_png(path: &Path, t: &Tradeoff, targeted: &[TargetedRow]) -> Result<(
         .with_style(SeriesStyle::LinePoints),
     ];
     if let Some(r) = tb {
-        let sigma = if r.seeds >= 2 {
-            r.scatter
-        } else {
-            r.sigma_mean
-        };
-        series.push(Series::points(
-            &format!(
-                "targeted::bead: {} over {} seed{}",
-                if r.seeds >= 2 { "scatter" } else { "1σ" },
-                r.seeds,
-                if r.seeds == 1 { "" } else { "s" }
-            ),
-            vec![r.time_mean_s],
-            vec![sigma],
-        ));
-        series.push(sqrt_line(
-            "targeted::bead: Cramér–Rao bound of its pattern",
-            r.crlb_mean * r.time_mean_s.sqrt(),
-            t_lo,
-            t_hi,
+        series.extend(targeted_series(
+            "targeted::bead",
+            "its pattern",
+            [
+                r.seeds as f64,
+                r.scatter,
+                r.sigma_mean,
+                r.crlb_mean,
+                r.time_mean_s,
+            ],
+            [t_lo, t_hi],
         ));
     }
     // two points: the legend goes where no measured point or sloped line is, even across it
@@ -465,27 +482,17 @@ fn tradeoff_filament_png(
         ),
     ];
     if let Some(r) = tf {
-        let sigma = if r.seeds >= 2 {
-            r.scatter
-        } else {
-            r.sigma_mean
-        };
-        series.push(Series::points(
-            &format!(
-                "targeted::filament ({:.0} µm): {} over {} seed{}",
-                r.length_um,
-                if r.seeds >= 2 { "scatter" } else { "1σ" },
-                r.seeds,
-                if r.seeds == 1 { "" } else { "s" }
-            ),
-            vec![r.time_mean_s],
-            vec![sigma],
-        ));
-        series.push(sqrt_line(
-            "targeted::filament: Cramér–Rao bound of its strips",
-            r.crlb_mean * r.time_mean_s.sqrt(),
-            t_lo,
-            t_hi,
+        series.extend(targeted_series(
+            &format!("targeted::filament ({:.0} µm)", r.length_um),
+            "its strips",
+            [
+                r.seeds as f64,
+                r.scatter,
+                r.sigma_mean,
+                r.crlb_mean,
+                r.time_mean_s,
+            ],
+            [t_lo, t_hi],
         ));
     }
     series.push(Series::line(
