@@ -247,9 +247,8 @@ fn targeted_bead_on_the_red_pitaya_recovers_the_emulated_bead() {
 
 /// The board rejects the 6th acquisition (the second pass's second reading) with an error code:
 /// the script stops with the board's words (device, command, code), the arm in progress is
-/// saved failed with its partial data (the reading before), the board's acquisition is stopped, and
-/// after the fault the stage only returns the arm to its start: no further reading, pass or
-/// move.
+/// saved failed with its partial data (the reading before), the board's acquisition is stopped,
+/// no acquisition follows, and the stage ends at the arm's start (the pattern's centre).
 #[test]
 fn targeted_bead_stops_on_a_red_pitaya_error_with_the_board_words_and_the_partial_arm() {
     let mut b = rp_bench("rp-fault", &bead_scene(), 0.01, None);
