@@ -137,7 +137,9 @@ fn seed_study(samples: usize, n_seeds: u64, seed0: u64) -> (f64, f64, f64, f64, 
 /// noise seeds the scatter of λ and of the angle is within 1.2× of the bound and the means are
 /// within 0.5σ of the truth. (The standard deviation over N seeds has a statistical error of
 /// 1/√(2(N−1)): 9 % at 60 seeds; 20 seeds, 16 %, once gave 1.33 for λ. Over 200 seeds:
-/// scatter/CRLB 1.01 for λ, bias 0.06σ — `whole_image_fit_seed_study`.)
+/// scatter/CRLB 1.01 for λ, bias 0.06σ — `whole_image_fit_seed_study`. The angle over 400 seeds
+/// per dwell through the scan engine, each fit from its own search: 0.96 ± 0.03 at 1 ms,
+/// 1.07 ± 0.04 at 10 ms, 1.05 ± 0.04 at 30 ms, 1.00 ± 0.04 at 300 ms; 1.02 ± 0.02 pooled.)
 #[test]
 fn whole_image_fit_reaches_the_bound_without_bias() {
     use bfpscope::analysis::filament_fit::lambda_of_diameter;
