@@ -371,8 +371,9 @@ fn targeted_series(name: &str, design: &str, r: [f64; 5], t: [f64; 2]) -> [Serie
     ]
 }
 
+/// A Cramér–Rao bound k/√t, dashed (drawn over the fit that reaches it, both stay visible).
 fn sqrt_line(label: &str, k: f64, t0: f64, t1: f64) -> Series {
-    log_line(label, |t| k / t.sqrt(), t0, t1)
+    log_line(label, |t| k / t.sqrt(), t0, t1).with_style(SeriesStyle::Dashed)
 }
 
 /// The bead's Pareto figure: 1σ mass against time for the raster (template fit, both
@@ -384,20 +385,20 @@ fn tradeoff_png(path: &Path, t: &Tradeoff, targeted: &[TargetedRow]) -> Result<(
     let tb = targeted.iter().find(|r| r.protocol == "targeted::bead");
     let t_lo = tb.map_or(x[0], |r| r.time_mean_s.min(x[0]) * 0.7);
     let t_hi = x[x.len() - 1];
-    // the bound first: the fit that reaches it is drawn on top
+    // the fit, then its bound dashed over it: where the fit reaches the bound both show
     let mut series = vec![
-        sqrt_line(
-            "raster: Cramér–Rao bound (Sx+Sy)",
-            t.bead_crlb_k,
-            t_lo,
-            t_hi,
-        ),
         Series::line(
             "raster + template fit (Sx+Sy): 1σ",
             x.clone(),
             bead(|r| r.sigma_fit),
         )
         .with_style(SeriesStyle::LinePoints),
+        sqrt_line(
+            "raster: Cramér–Rao bound (Sx+Sy)",
+            t.bead_crlb_k,
+            t_lo,
+            t_hi,
+        ),
         Series::points(
             "raster + template fit: scatter over seeds",
             x.clone(),

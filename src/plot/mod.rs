@@ -129,6 +129,8 @@ pub enum SeriesStyle {
     Line,
     Points,
     LinePoints,
+    /// A dashed line (a bound drawn over the curve that reaches it stays visible).
+    Dashed,
 }
 
 /// One curve of an x–y plot. NaN points are skipped (lines break there).
@@ -972,6 +974,21 @@ impl Figure for XyFigure<'_> {
                         .map_err(perr)?;
                     if !labelled {
                         label_it(anno, false);
+                        labelled = true;
+                    }
+                }
+            }
+            if s.style == SeriesStyle::Dashed {
+                for r in finite_runs(&s.x, &s.y) {
+                    let anno = chart
+                        .draw_series(DashedLineSeries::new(r, 9, 6, color.stroke_width(2)))
+                        .map_err(perr)?;
+                    if !labelled && !s.label.is_empty() {
+                        anno.label(s.label.clone()).legend(move |(x, y)| {
+                            EmptyElement::at((x, y))
+                                + PathElement::new(vec![(0, 0), (8, 0)], color.stroke_width(2))
+                                + PathElement::new(vec![(12, 0), (20, 0)], color.stroke_width(2))
+                        });
                         labelled = true;
                     }
                 }
