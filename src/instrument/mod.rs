@@ -23,6 +23,7 @@ pub mod registry;
 pub mod scpi;
 pub mod scpi_session;
 pub mod stream;
+pub mod tables;
 pub mod thorlabs;
 pub mod vendor;
 

@@ -24,6 +24,8 @@
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
+pub mod config;
+pub use config::FAMILY;
 pub mod emulator;
 pub mod split;
 mod wave;
@@ -1197,25 +1199,6 @@ impl Stage for GcsStage {
 /// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
 /// PI GCS 2.0 piezo controller(s): a `[stage]` backend.
 pub const GCS: crate::instrument::family::Backend = crate::instrument::family::Backend("gcs");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "gcs",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[GCS.0],
-    qpds: &[],
-    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-    stage_defaults: crate::instrument::family::StageDefaults {
-        // `#5` is one byte each way (0.26 ms of wire per poll at 115200 baud): polling every
-        // millisecond costs the controller little
-        poll_ms: 1,
-        settle_s: None,
-    },
-};
 
 #[cfg(test)]
 mod tests {

@@ -611,4 +611,9 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     keys: &["scene", "pace"],
     open: crate::instrument::family::Open::Sim,
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
+    section: crate::instrument::family::NO_SECTION,
+    help: crate::instrument::family::ConnectHelp {
+        backend: "\"sim\"",
+        about: "\"sim\": the simulated instrument.",
+    },
 };
