@@ -109,6 +109,31 @@ impl Tally {
             }
         }
     }
+    /// Adds another tally of the same estimator (scenes run apart): counts, reasons, times, and
+    /// the first few outliers in order.
+    fn merge(&mut self, o: Tally) {
+        self.cases += o.cases;
+        self.in_domain += o.in_domain;
+        self.unflagged_outliers += o.unflagged_outliers;
+        self.within[0] += o.within[0];
+        self.within[1] += o.within[1];
+        self.with_sigma += o.with_sigma;
+        self.not_ok += o.not_ok;
+        for e in o.examples {
+            if self.examples.len() < 5 {
+                self.examples.push(e);
+            }
+        }
+        for (r, c) in o.reasons {
+            *self.reasons.entry(r).or_default() += c;
+        }
+        self.seconds += o.seconds;
+        self.scenes += o.scenes;
+        if o.slowest_s > self.slowest_s {
+            self.slowest_s = o.slowest_s;
+            self.slowest = o.slowest;
+        }
+    }
     fn finish(&mut self) {
         let f = |k: usize| {
             if self.with_sigma > 0 {
@@ -388,6 +413,41 @@ struct FibrilCal {
     a_nm: f64,
 }
 
+/// The fibril calibrations by pixel size (nm), each computed once, shared by the scenes run in
+/// parallel (None: it could not be computed, and the scenes at that pixel size are refusals).
+#[derive(Default)]
+struct Cals(std::sync::Mutex<BTreeMap<u32, Option<std::sync::Arc<FibrilCal>>>>);
+
+impl Cals {
+    fn get(&self, pixel_nm: u32, tpl: &Template) -> Option<std::sync::Arc<FibrilCal>> {
+        let mut m = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        m.entry(pixel_nm)
+            .or_insert_with(|| {
+                let pixel = pixel_nm as f64 / 1000.0;
+                let opts = AngleCurveOptions {
+                    pixel_um: pixel,
+                    ..AngleCurveOptions::default()
+                };
+                let curve = AngleCurve::compute(tpl, &opts).ok()?;
+                let cal = DiameterCalib::from_template(
+                    tpl,
+                    1.41,
+                    tpl.reference.d_nm,
+                    tpl.reference.n,
+                    pixel,
+                    &opts.measure,
+                    &opts.bead_model,
+                )
+                .ok()?;
+                Some(std::sync::Arc::new(FibrilCal {
+                    curve,
+                    a_nm: cal.a_nm,
+                }))
+            })
+            .clone()
+    }
+}
+
 /// One fibril scene of the sweep: a straight collagen-like fibril (n = 1.41) `len_um` long and
 /// `d_nm` thick at `angle_deg` from y, centred at `centre` (µm) in a ±1.5 µm field; the paper's
 /// noise × `noise`; pixels of `pixel_nm`; the noise's `seed`.
@@ -443,7 +503,7 @@ fn fibril_case(
     case: &FibrilCase,
     tpl: &Template,
     optics: &Optics,
-    cals: &mut BTreeMap<u32, FibrilCal>,
+    cals: &Cals,
     t: &mut BTreeMap<String, Tally>,
 ) -> Option<crate::analysis::orientation::FilamentMeasurement> {
     let half = 1.5;
@@ -462,32 +522,10 @@ fn fibril_case(
     let describe = || case.describe();
     let tally = t.entry("measure_filament.diameter".into()).or_default();
     let pixel = pixel_nm as f64 / 1000.0;
-    if let std::collections::btree_map::Entry::Vacant(slot) = cals.entry(pixel_nm) {
-        let opts = AngleCurveOptions {
-            pixel_um: pixel,
-            ..AngleCurveOptions::default()
-        };
-        let (Ok(curve), Ok(cal)) = (
-            AngleCurve::compute(tpl, &opts),
-            DiameterCalib::from_template(
-                tpl,
-                1.41,
-                tpl.reference.d_nm,
-                tpl.reference.n,
-                pixel,
-                &opts.measure,
-                &opts.bead_model,
-            ),
-        ) else {
-            tally.refused();
-            return None;
-        };
-        slot.insert(FibrilCal {
-            curve,
-            a_nm: cal.a_nm,
-        });
-    }
-    let cal = &cals[&pixel_nm];
+    let Some(cal) = cals.get(pixel_nm, tpl) else {
+        tally.refused();
+        return None;
+    };
     let mut sc = Scene::default();
     if sc
         .add_filament(Filament {
@@ -537,36 +575,53 @@ fn sweep_optics() -> Result<(Optics, Template), String> {
 /// each. Returns one tally per estimator quantity.
 pub fn run(
     opts: &SweepOptions,
-    progress: &dyn Fn(usize, usize),
+    progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<BTreeMap<String, Tally>, String> {
+    use rayon::prelude::*;
     let (optics, tpl) = sweep_optics()?;
+    // the scenes drawn in one sequence (a seed gives the same scenes however many threads run
+    // them), then run in parallel, their tallies merged in the order drawn
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
-    let mut t = BTreeMap::new();
-    let mut cals = BTreeMap::new();
-    let total = 2 * opts.n;
-    for i in 0..opts.n {
-        let bc = BeadCase::draw(&mut rng);
-        set_current(&Case::Beads(bc.clone()));
-        let t0 = std::time::Instant::now();
-        bead_case(&bc, &tpl, &optics, &mut t);
-        timed(
-            &mut t,
-            "fit_beads.",
-            t0.elapsed().as_secs_f64(),
-            &bc.describe(),
-        );
-        progress(2 * i + 1, total);
-        let fc = FibrilCase::draw(&mut rng);
-        set_current(&Case::Fibril(fc.clone()));
-        let t0 = std::time::Instant::now();
-        fibril_case(&fc, &tpl, &optics, &mut cals, &mut t);
-        timed(
-            &mut t,
-            "measure_filament.",
-            t0.elapsed().as_secs_f64(),
-            &fc.describe(),
-        );
-        progress(2 * i + 2, total);
+    let cases: Vec<Case> = (0..opts.n)
+        .flat_map(|_| {
+            let b = Case::Beads(BeadCase::draw(&mut rng));
+            [b, Case::Fibril(FibrilCase::draw(&mut rng))]
+        })
+        .collect();
+    let cals = Cals::default();
+    let total = cases.len();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let tallies: Vec<BTreeMap<String, Tally>> = cases
+        .par_iter()
+        .map(|case| {
+            let mut t = BTreeMap::new();
+            set_current(case);
+            let t0 = std::time::Instant::now();
+            let family = match case {
+                Case::Beads(bc) => {
+                    bead_case(bc, &tpl, &optics, &mut t);
+                    "fit_beads."
+                }
+                Case::Fibril(fc) => {
+                    fibril_case(fc, &tpl, &optics, &cals, &mut t);
+                    "measure_filament."
+                }
+            };
+            let what = match case {
+                Case::Beads(bc) => bc.describe(),
+                Case::Fibril(fc) => fc.describe(),
+            };
+            timed(&mut t, family, t0.elapsed().as_secs_f64(), &what);
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress(k, total);
+            t
+        })
+        .collect();
+    let mut t: BTreeMap<String, Tally> = BTreeMap::new();
+    for one in tallies {
+        for (k, v) in one {
+            t.entry(k).or_default().merge(v);
+        }
     }
     for v in t.values_mut() {
         v.finish();
@@ -636,8 +691,7 @@ pub fn replay(json: &str) -> Result<String, String> {
         }
         Case::Fibril(fc) => {
             out.push_str(&format!("{}\n", fc.describe()));
-            let mut cals = BTreeMap::new();
-            if let Some(m) = fibril_case(fc, &tpl, &optics, &mut cals, &mut t) {
+            if let Some(m) = fibril_case(fc, &tpl, &optics, &Cals::default(), &mut t) {
                 out.push_str(&format!(
                     "  angle {:.2} ± {:.2}°, corrected mean {:.5} ± {:.5} (std {:.5}), {} maxima ({} interior): {}\n",
                     m.angle_deg,

@@ -837,10 +837,16 @@ pub fn measure_filament_along(
 /// (the 90th percentile of the medians), walking in from each end of the trace, interpolated
 /// between lines. None at a side where the first line already carries the filament (it runs out
 /// of the scan there).
-fn filament_ends(trace: &[(f64, f64, usize)]) -> [Option<f64>; 2] {
+///
+/// Beside them, the scan's edge where an end may lie just beyond it (`near_edge`): the first
+/// line already carries the filament but below its plateau by more than 5 % (and 3 `sigma`, one
+/// maximum's noise), as the maxima within ~0.8 µm of an end are (50 % at the end itself). A
+/// 2.6 µm fibril whose end lay 0.02 µm inside the edge was read 3.8 % thin and 1.9° off, its
+/// lowered maxima counted as interior. None where the first line is on the plateau.
+fn filament_ends(trace: &[(f64, f64, usize)], sigma: f64) -> FilamentEnds {
     let n = trace.len();
     if n < 3 {
-        return [None, None];
+        return FilamentEnds::default();
     }
     let v = |i: usize| {
         let x = trace[i].1;
@@ -861,7 +867,7 @@ fn filament_ends(trace: &[(f64, f64, usize)]) -> [Option<f64>; 2] {
     sorted.sort_by(f64::total_cmp);
     let plateau = sorted[((n - 1) as f64 * 0.9).round() as usize];
     if !(plateau > 0.0) {
-        return [None, None];
+        return FilamentEnds::default();
     }
     let half = 0.5 * plateau;
     let end = |idx: &mut dyn Iterator<Item = usize>| -> Option<f64> {
@@ -878,12 +884,40 @@ fn filament_ends(trace: &[(f64, f64, usize)]) -> [Option<f64>; 2] {
     };
     let a = end(&mut (0..n));
     let b = end(&mut (0..n).rev());
+    let low = plateau - (3.0 * sigma).max(EDGE_LOWERED_REL * plateau);
+    let edge = |found: Option<f64>, i: usize| {
+        (found.is_none() && med[i] >= half && med[i] < low).then_some(trace[i].0)
+    };
+    let (ea, eb) = (edge(a, 0), edge(b, n - 1));
     // the trace runs in line order; the arc may run either way along it
-    match (a, b) {
-        (Some(a), Some(b)) if a > b => [Some(b), Some(a)],
-        (a, b) if trace[0].0 > trace[n - 1].0 => [b, a],
-        (a, b) => [a, b],
+    let swap = match (a, b) {
+        (Some(a), Some(b)) => a > b,
+        _ => trace[0].0 > trace[n - 1].0,
+    };
+    if swap {
+        FilamentEnds {
+            ends: [b, a],
+            near_edge: [eb, ea],
+        }
+    } else {
+        FilamentEnds {
+            ends: [a, b],
+            near_edge: [ea, eb],
+        }
     }
+}
+
+/// How far below its plateau (relative) the maximum on the scan's edge line must lie for
+/// [`filament_ends`] to take an end just beyond the edge: the maxima fall to 50 % at an end and
+/// are within 5 % of the plateau from ≈ 0.5 µm in (the paper's focus).
+const EDGE_LOWERED_REL: f64 = 0.05;
+
+/// A filament's ends inside the scan, and the scan's edge where an end may lie just beyond it
+/// (arc positions, µm; see [`filament_ends`]).
+#[derive(Debug, Clone, Copy, Default)]
+struct FilamentEnds {
+    ends: [Option<f64>; 2],
+    near_edge: [Option<f64>; 2],
 }
 
 /// Every scan line a filament line crosses, in line order: (arc position µm, maximum read there
@@ -1009,11 +1043,20 @@ fn measure_sens_along(
         )));
     }
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
-    let ends = filament_ends(&trace);
+    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits)
+    let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
+    let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
+    let found = filament_ends(&trace, if sigma.is_finite() { sigma } else { 0.0 });
+    let ends = found.ends;
+    // an end found inside the scan, else the edge where an end may lie just beyond it
+    let bound = [
+        ends[0].or(found.near_edge[0]),
+        ends[1].or(found.near_edge[1]),
+    ];
     let a0 = points[0].arc_um;
     for p in points.iter_mut() {
-        p.interior = ends[0].is_none_or(|e| p.arc_um >= e + opts.end_margin_um)
-            && ends[1].is_none_or(|e| p.arc_um <= e - opts.end_margin_um);
+        p.interior = bound[0].is_none_or(|e| p.arc_um >= e + opts.end_margin_um)
+            && bound[1].is_none_or(|e| p.arc_um <= e - opts.end_margin_um);
         p.arc_um -= a0;
     }
     let ends_um = ends.map(|e| e.map(|e| e - a0));
@@ -1028,9 +1071,10 @@ fn measure_sens_along(
     // Too short to measure: refused by the callers once the kind checks have spoken (a lone
     // bead is "not a filament" before it is "too short").
     let short = (interior.len() < 3).then(|| {
-        let len = match ends {
-            [Some(a), Some(b)] => format!("{:.2} µm long", b - a),
-            _ => "cut by an end".to_string(),
+        let len = match (ends, found.near_edge) {
+            ([Some(a), Some(b)], _) => format!("{:.2} µm long", b - a),
+            (_, [None, None]) => "cut by an end".to_string(),
+            _ => "cut by an end, with an end just beyond the scan's edge".to_string(),
         };
         AnalysisError::Failed(format!(
             "the filament is too short to measure: it is {len} inside the scan, and its maxima within end_margin_um = {} µm of an end are lowered by the end (to 50 % at the end), which leaves {} of {} maxima (at least 3 are needed); scan a longer stretch, or lower end_margin_um knowing the bias",
@@ -1049,9 +1093,6 @@ fn measure_sens_along(
         s.sem = s.sem.hypot(s.mean * rel_factor_err);
     }
     s.sem = s.sem.hypot(s.mean * CORRECTION_SYS_REL);
-    // 1σ of one line's maximum: the median of the parabolas' own (robust to a few poor fits)
-    let errs: Vec<f64> = points.iter().filter_map(|p| p.sens_err).collect();
-    let sigma = super::stats::median(&errs).unwrap_or(f64::NAN);
     let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {
         channel,
