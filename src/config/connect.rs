@@ -88,12 +88,7 @@ pub fn connect(
 /// gauge_zeroed = {x, y, z}`), and a warning per gauge not zeroed (`instrument.warnings`,
 /// shown by `connect()`). Called at connect and after `zero_gauge()`.
 pub fn record_gauge(instrument: &mut Instrument) {
-    let Some(z) = instrument
-        .stage
-        .capabilities()
-        .gauge
-        .map(|g| g.gauge_zeroed())
-    else {
+    let Some(z) = instrument.stage.gauge().map(|g| g.gauge_zeroed()) else {
         return;
     };
     let name = instrument.stage.name();

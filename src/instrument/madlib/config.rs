@@ -67,12 +67,14 @@ pub fn options(s: &StageConfig) -> Result<MadlibOptions, SectionError> {
         let v = s.axes.get(i);
         *a = match v.trim().parse::<u32>() {
             Ok(n) if (1..=4).contains(&n) => n,
-            _ => return Err(bad(
-                &format!("stage.axes.{}", AXIS_NAMES[i]),
-                format!(
+            _ => {
+                return Err(bad(
+                    &format!("stage.axes.{}", AXIS_NAMES[i]),
+                    format!(
                     "{v:?} is not a Nano-Drive axis: allowed are 1–4 (1 = X, 2 = Y, 3 = Z, 4 = A)"
                 ),
-            )),
+                ))
+            }
         };
     }
     if let Some(n) = s.serial {
