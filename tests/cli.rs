@@ -1189,3 +1189,32 @@ fn a_sweep_prints_its_tallies_as_json_and_replays_a_dumped_scene_to_the_same_ans
     assert_eq!(code, 2);
     assert!(err.contains("not a sweep scene"), "{err}");
 }
+
+/// A disk that refuses the autosave's bytes (a file size limit, as a full disk does: the
+/// writes fail with EFBIG where a full disk gives ENOSPC) ends the scan with the autosave's
+/// failure in words, naming the file and the system's reason, and nothing else on stderr: the
+/// zip writer's own "ZipWriter drop failed: Io(…)" (printed raw from its `Drop` when the archive
+/// could not be finished) was printed before it.
+#[test]
+fn a_refused_autosave_is_said_in_words_and_nothing_raw() {
+    let d = tmp("refused-autosave");
+    let script =
+        "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); simulate(s); \
+                  scan_xy(#{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 64, ny: 64, dwell: 0.001}).status";
+    let o = Command::new("sh")
+        .arg("-c")
+        // the signal a write beyond the limit raises is ignored (across exec), so the write fails
+        .arg("trap '' XFSZ; ulimit -f 16; exec \"$0\" eval \"$1\"")
+        .arg(env!("CARGO_BIN_EXE_bfpscope"))
+        .arg(script)
+        .current_dir(&d)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("AUTOSAVE FAILED"), "{err}");
+    assert!(err.contains("File too large (os error 27)"), "{err}");
+    assert!(!err.contains("ZipWriter"), "{err}");
+    assert!(!err.contains("Io("), "{err}");
+}

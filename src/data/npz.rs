@@ -100,29 +100,117 @@ pub(crate) fn write_scan_npz(path: &Path, scan: &Scan) -> Result<(), DataError> 
     let x = Array1::from_vec(scan.sx.x.clone());
     let y = Array1::from_vec(scan.sx.y.clone());
     let file = File::create(path).map_err(|e| DataError::io(path, e))?;
+    let latch = Latch::new(file);
+    let failed = latch.failed.clone();
     let werr = |e: ndarray_npy::WriteNpzError| DataError::format(path, format!("writing npz: {e}"));
-    let mut npz = NpzWriter::new_compressed(BufWriter::new(file));
-    npz.add_array("sx", &scan.sx.data).map_err(werr)?;
-    npz.add_array("sy", &scan.sy.data).map_err(werr)?;
-    npz.add_array("sz", &scan.sz.data).map_err(werr)?;
-    npz.add_array("x", &x).map_err(werr)?;
-    npz.add_array("y", &y).map_err(werr)?;
-    npz.add_array("meta", &meta).map_err(werr)?;
+    // the file's first write error (a full disk) ends the writing; the zip writer then closes on
+    // a writer that takes everything, so nothing prints "ZipWriter drop failed" on stderr
+    let io_err = || failed.borrow_mut().take().map(|e| DataError::io(path, e));
+    let mut npz = NpzWriter::new_compressed(BufWriter::new(latch));
+    // each array, then the file's first write error if there was one
+    let mut add =
+        |name: String, a: &dyn Fn(&mut Npz, String) -> Result<(), ndarray_npy::WriteNpzError>| {
+            a(&mut npz, name).map_err(werr)?;
+            io_err().map_or(Ok(()), Err)
+        };
+    add("sx".into(), &|n, name| n.add_array(name, &scan.sx.data))?;
+    add("sy".into(), &|n, name| n.add_array(name, &scan.sy.data))?;
+    add("sz".into(), &|n, name| n.add_array(name, &scan.sz.data))?;
+    add("x".into(), &|n, name| n.add_array(name, &x))?;
+    add("y".into(), &|n, name| n.add_array(name, &y))?;
+    add("meta".into(), &|n, name| n.add_array(name, &meta))?;
     for (name, a) in &scan.raw {
-        npz.add_array(format!("raw_{name}"), a).map_err(werr)?;
+        add(format!("raw_{name}"), &|n, name| n.add_array(name, a))?;
     }
     for (name, a) in super::clip::CLIPPED_ARRAYS.iter().zip(&scan.flags.clipped) {
         if let Some(a) = a {
-            npz.add_array(*name, a).map_err(werr)?;
+            add(name.to_string(), &|n, name| n.add_array(name, a))?;
         }
     }
     if let Some(d) = &scan.flags.dark {
-        npz.add_array("dark", d).map_err(werr)?;
+        add("dark".into(), &|n, name| n.add_array(name, d))?;
     }
     let buf = npz.finish().map_err(werr)?;
     buf.into_inner()
         .map_err(|e| DataError::io(path, e.into_error()))?;
-    Ok(())
+    io_err().map_or(Ok(()), Err)
+}
+
+/// The zip writer of a scan file.
+type Npz = NpzWriter<BufWriter<Latch>>;
+
+/// A file that keeps its first write error and from then on takes every write and seek without
+/// doing it (keeping the position a file would have): a full disk ends the writing with that
+/// error in words, and the zip writer closing on it (its `Drop` finishes the archive, printing
+/// any error raw on stderr) finds nothing to complain about.
+struct Latch {
+    file: File,
+    failed: std::rc::Rc<std::cell::RefCell<Option<std::io::Error>>>,
+    /// The position and the length the file has (or would have had), bytes.
+    pos: u64,
+    len: u64,
+}
+
+impl Latch {
+    fn new(file: File) -> Latch {
+        Latch {
+            file,
+            failed: Default::default(),
+            pos: 0,
+            len: 0,
+        }
+    }
+    fn is_failed(&self) -> bool {
+        self.failed.borrow().is_some()
+    }
+    fn fail(&mut self, e: std::io::Error) {
+        self.failed.borrow_mut().get_or_insert(e);
+    }
+}
+
+impl std::io::Write for Latch {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if !self.is_failed() {
+            if let Err(e) = self.file.write_all(buf) {
+                self.fail(e);
+            }
+        }
+        self.pos += buf.len() as u64;
+        self.len = self.len.max(self.pos);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        if !self.is_failed() {
+            if let Err(e) = self.file.flush() {
+                self.fail(e);
+            }
+        }
+        Ok(())
+    }
+}
+
+impl std::io::Seek for Latch {
+    fn seek(&mut self, to: std::io::SeekFrom) -> std::io::Result<u64> {
+        use std::io::SeekFrom;
+        let p = match to {
+            SeekFrom::Start(n) => Some(n),
+            SeekFrom::Current(d) => self.pos.checked_add_signed(d),
+            SeekFrom::End(d) => self.len.checked_add_signed(d),
+        };
+        let Some(p) = p else {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "seek before the start of the file",
+            ));
+        };
+        if !self.is_failed() {
+            if let Err(e) = self.file.seek(SeekFrom::Start(p)) {
+                self.fail(e);
+            }
+        }
+        self.pos = p;
+        Ok(p)
+    }
 }
 
 /// Load a scan written by [`save_scan`] (or any `.npz` with float arrays `sx`, `sy`, `sz`, `x`,
