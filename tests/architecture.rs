@@ -735,6 +735,28 @@ fn no_production_function_is_over_150_lines() {
     );
 }
 
+/// Longest a binding family's registration function may be: a screen. A family's `register`
+/// lists its commands; each command (its declaration and its closure) is a unit of its own.
+const MAX_REGISTER_LINES: usize = 60;
+
+#[test]
+fn binding_registration_functions_fit_on_a_screen() {
+    let long: Vec<String> = function_lengths()
+        .into_iter()
+        .filter(|(n, s)| {
+            let name = s.rsplit(' ').next().unwrap_or("");
+            s.starts_with("src/script/") && name.starts_with("register") && *n > MAX_REGISTER_LINES
+        })
+        .map(|(n, s)| format!("{s}: {n} lines"))
+        .collect();
+    assert!(
+        long.is_empty(),
+        "registration functions over {MAX_REGISTER_LINES} lines (one function per command, the \
+         family's `register` listing them):\n{}",
+        long.join("\n")
+    );
+}
+
 #[test]
 fn function_lengths_count_from_fn_to_its_closing_brace() {
     let code = blank_literals("fn a() {\n    let s = \"}{\";\n    let c = '{';\n}\n// fn b() {\n");
