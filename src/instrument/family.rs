@@ -71,6 +71,13 @@ pub struct ConnectHelp {
     pub about: &'static str,
 }
 
+impl ConnectHelp {
+    /// An entry in the backend list and no sentences of its own.
+    pub const fn entry(backend: &'static str) -> ConnectHelp {
+        ConnectHelp { backend, about: "" }
+    }
+}
+
 /// A device opened from the tables, and its description (the scan metadata's
 /// `instrument.stage` / `instrument.qpd`).
 pub struct Opened<T> {

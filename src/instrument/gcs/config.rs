@@ -4,45 +4,44 @@
 
 use super::split::GcsSplitStage;
 use super::{GcsOptions, GcsStage, GCS};
-use crate::instrument::family::{OpenError, Opened, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+};
 use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::tables::{bad, SectionError, StageConfig, Tables, AXIS_NAMES};
 use crate::instrument::Stage;
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "gcs",
     backend: "hardware",
     aliases: &[],
     stages: &[GCS.0],
     qpds: &[],
     keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "gcs",
         qpd: "scpi",
     },
-    stage_defaults: crate::instrument::family::StageDefaults {
+    stage_defaults: StageDefaults {
         // `#5` is one byte each way (0.26 ms of wire per poll at 115200 baud): polling every
         // millisecond costs the controller little
         poll_ms: 1,
         settle_s: None,
     },
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
+    section: Section {
+        validate: Some(validate),
+        open_stage: Some(open_stage),
+        ..NO_SECTION
+    },
+    help: ConnectHelp {
         backend: "\"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports)",
         about: "\"hardware\": the PI GCS 2.0 stage and SCPI QPD drivers on the config's ports (stage_port, qpd_port, baud, … \
              override them); connecting identifies both devices, switches the servos on and reads the travel range.",
     },
-};
-
-/// The GCS family's section: its port checks and its stage.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: Some(open_stage),
-    open_qpd: None,
-    open_pair: None,
 };
 
 /// `stage.port` and `stage.ports` of a GCS stage: one of the two, each port `tcp://HOST:PORT`

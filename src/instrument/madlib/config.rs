@@ -3,25 +3,28 @@
 //! stage's opening with the description scans record.
 
 use super::{MadlibOptions, MadlibStage, MADLIB};
-use crate::instrument::family::{OpenError, Opened, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+};
 use crate::instrument::tables::{bad, only_for, SectionError, StageConfig, Tables, AXIS_NAMES};
 use crate::instrument::Stage;
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "madlib",
     backend: "bench",
     aliases: &[],
     stages: &[MADLIB.0],
     qpds: &[],
     keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "madlib",
         qpd: "nidaqmx",
     },
-    stage_defaults: crate::instrument::family::StageDefaults {
+    stage_defaults: StageDefaults {
         // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own
         // (≈ 0.2 ms), so the link sets the pace and a move ends as soon as the readings are on
         // target (a 5 ms poll cost a 31 nm step 7 ms)
@@ -29,19 +32,12 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
         // settled on its readings (`tolerance_um`, two in a row): no fixed settle after them
         settle_s: Some(0.0),
     },
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
-        backend: "\"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster])",
-        about: "",
+    section: Section {
+        validate: Some(validate),
+        open_stage: Some(open_stage),
+        ..NO_SECTION
     },
-};
-
-/// The Madlib family's section: its checks and its stage.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: Some(open_stage),
-    open_qpd: None,
-    open_pair: None,
+    help: ConnectHelp::entry("\"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster])"),
 };
 
 /// A Nano-Drive's keys are valid; its keys (library, serial) are refused for another stage.

@@ -9,7 +9,9 @@ use super::{
     parse_channel, NiInputs, NiQpd, NiQpdOptions, Terminal, NIDAQMX, PCI6120_MAX_RANGE_V,
     PCI6120_MAX_RATE_HZ,
 };
-use crate::instrument::family::{OpenError, Opened, OpenedPair, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, OpenedPair, Section, NO_SECTION, STAGE_DEFAULTS,
+};
 use crate::instrument::madlib::MADLIB;
 use crate::instrument::tables::{
     bad, only_for, QpdChannels, QpdConfig, RasterConfig, SectionError, Tables,
@@ -18,32 +20,27 @@ use crate::instrument::Qpd;
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "nidaqmx",
     backend: "bench",
     aliases: &[],
     stages: &[],
     qpds: &[NIDAQMX.0],
     keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "madlib",
         qpd: "nidaqmx",
     },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
-        backend: "",
-        about: "",
+    stage_defaults: STAGE_DEFAULTS,
+    section: Section {
+        validate: Some(validate),
+        open_qpd: Some(open_qpd),
+        open_pair: Some(open_pair),
+        ..NO_SECTION
     },
-};
-
-/// The NI family's section: its checks, its QPD, and the raster's stage and QPD together.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: None,
-    open_qpd: Some(open_qpd),
-    open_pair: Some(open_pair),
+    help: ConnectHelp::entry(""),
 };
 
 /// The board's keys are valid (and refused for another QPD); `[raster]` names the board, with

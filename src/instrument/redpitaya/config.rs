@@ -3,38 +3,34 @@
 //! description scans record.
 
 use super::{RedPitaya, RedPitayaOptions, BASE_RATE_HZ, DEFAULT_PORT, REDPITAYA};
-use crate::instrument::family::{OpenError, Opened, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, Section, NO_SECTION, STAGE_DEFAULTS,
+};
 use crate::instrument::tables::{bad, QpdChannels, QpdConfig, SectionError, Tables};
 use crate::instrument::Qpd;
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "redpitaya",
     backend: "hardware",
     aliases: &[],
     stages: &[],
     qpds: &[REDPITAYA.0],
     keys: &["qpd_host", "qpd_port", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "gcs",
         qpd: "redpitaya",
     },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
-        backend: "\"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP)",
-        about: "",
+    stage_defaults: STAGE_DEFAULTS,
+    section: Section {
+        validate: Some(validate),
+        open_qpd: Some(open_qpd),
+        ..NO_SECTION
     },
-};
-
-/// The Red Pitaya family's section: its checks and its QPD.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: None,
-    open_qpd: Some(open_qpd),
-    open_pair: None,
+    help: ConnectHelp::entry("\"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP)"),
 };
 
 /// `[qpd]` for a Red Pitaya: `host` required (a name or address, without a port), `port`

@@ -2,38 +2,34 @@
 //! driver settings and its opening with the description scans record.
 
 use super::{ScpiOptions, ScpiQpd, SCPI};
-use crate::instrument::family::{OpenError, Opened, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, Section, NO_SECTION, STAGE_DEFAULTS,
+};
 use crate::instrument::tables::{bad, QpdConfig, SectionError, Tables};
 use crate::instrument::Qpd;
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "scpi",
     backend: "hardware",
     aliases: &[],
     stages: &[],
     qpds: &[SCPI.0],
     keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "gcs",
         qpd: "scpi",
     },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
-        backend: "",
-        about: "",
+    stage_defaults: STAGE_DEFAULTS,
+    section: Section {
+        validate: Some(validate),
+        open_qpd: Some(open_qpd),
+        ..NO_SECTION
     },
-};
-
-/// The SCPI family's section: its checks and its QPD.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: None,
-    open_qpd: Some(open_qpd),
-    open_pair: None,
+    help: ConnectHelp::entry(""),
 };
 
 /// A SCPI QPD needs its serial port; its input range, when given, is above 0.

@@ -6,7 +6,9 @@
 use super::kpa101::{Kpa101, KpaOptions};
 use super::kpz101::{Kpz101Stage, KpzOptions};
 use super::{KPA101, KPZ101};
-use crate::instrument::family::{OpenError, Opened, Section};
+use crate::instrument::family::{
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+};
 use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::tables::{
     bad, AxisPorts, QpdConfig, SectionError, StageConfig, Tables, AXIS_NAMES,
@@ -15,38 +17,33 @@ use crate::instrument::{Qpd, Stage};
 use serde_json::json;
 use std::time::Duration;
 
-/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults, section and help.
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
+/// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
+/// section and help.
+pub const FAMILY: Family = Family {
     name: "thorlabs",
     backend: "thorlabs",
     aliases: &["kpz101", "kpa101"],
     stages: &[KPZ101.0],
     qpds: &[KPA101.0],
     keys: &["qpd_port", "stage_ports", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
+    open: Open::Config {
         stage: "kpz101",
         qpd: "kpa101",
     },
-    stage_defaults: crate::instrument::family::StageDefaults {
+    stage_defaults: StageDefaults {
         // each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request and reply, and a strain-gauge
         // reading taken every millisecond catches the actuator still on its way, inside the
         // tolerance before it has settled
         poll_ms: 10,
         settle_s: None,
     },
-    section: SECTION,
-    help: crate::instrument::family::ConnectHelp {
-        backend: "\"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner)",
-        about: "",
+    section: Section {
+        validate: Some(validate),
+        open_stage: Some(open_stage),
+        open_qpd: Some(open_qpd),
+        ..NO_SECTION
     },
-};
-
-/// The Thorlabs family's section: the cubes' checks, the KPZ101 stage and the KPA101 QPD.
-pub const SECTION: Section = Section {
-    validate: Some(validate),
-    open_stage: Some(open_stage),
-    open_qpd: Some(open_qpd),
-    open_pair: None,
+    help: ConnectHelp::entry("\"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner)"),
 };
 
 fn validate(t: &Tables) -> Result<(), SectionError> {
