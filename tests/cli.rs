@@ -1218,3 +1218,20 @@ fn a_refused_autosave_is_said_in_words_and_nothing_raw() {
     assert!(!err.contains("ZipWriter"), "{err}");
     assert!(!err.contains("Io("), "{err}");
 }
+
+/// A key read from a map that does not have it is an error naming the map, the key, the
+/// closest key and all its keys (it returned () and the script went on with nothing).
+#[test]
+fn a_misspelt_map_key_says_which_keys_the_map_has() {
+    let (code, _, err) = run(&[
+        "eval",
+        "let m = #{a: 1, dwell: 2}; let s = #{meta: m}; s.meta.dwel",
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains(
+            "eval:1:55: `s.meta` has no key `dwel`; did you mean `dwell`? Its keys: a, dwell"
+        ),
+        "{err}"
+    );
+}

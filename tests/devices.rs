@@ -1,6 +1,6 @@
 //! The devices suite: the drivers against emulators and fake vendor libraries written from the
 //! vendors' documents (PI GCS, Thorlabs APT, Red Pitaya, the Mad City Labs + NI bench), the
-//! scan engine's rasters, ETAs, faults and stop rule.
+//! targeted protocols on them, the scan engine's rasters, ETAs, faults and stop rule.
 //!
 //! Each module is one file of `tests/`; run one with `cargo test --test devices <module>::`.
 
@@ -18,3 +18,4 @@ mod raster_hw;
 mod raster_sim;
 mod redpitaya;
 mod stop_rule;
+mod targeted_hw;

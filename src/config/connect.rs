@@ -315,8 +315,9 @@ pub enum EmulatedStageLink {
 /// SCPI QPD: the instrument of a hardware-timed raster. The stage's trigger output OUT1 is
 /// wired to the board's external trigger (`[stage] trigger_line = 1`), the stage publishes the
 /// path of a running wave and the board samples it (each sample carries the scene's signal at
-/// the stage position at its own time). Sx, Sy, Sz → IN1, IN2, IN3, 1 V per signal unit,
-/// `noise_v` volts rms per ADC sample (125 MS/s; a decimated sample averages `dec` of them).
+/// the stage position at its own time). Sx, Sy, Sz → IN1, IN2, IN3, 1 V per signal unit (IN3
+/// 0.5 V + Sz: the total, so that the board sees light; the calibration's offset takes the
+/// 0.5 V off), `noise_v` volts rms per ADC sample (125 MS/s; a decimated sample averages `dec` of them).
 /// The stage is served on a pseudo-terminal or a loopback TCP port (`link`), the board on a
 /// loopback TCP port. The description's `backend` is `"emulated"`.
 pub fn connect_emulated_redpitaya(
@@ -341,6 +342,10 @@ pub fn connect_emulated_redpitaya(
     let (qpd, ext) = start_redpitaya_emulator(
         RedPitayaEmulatorConfig {
             noise_v,
+            // the sum input carries the detector's total, 0.5 V with no sample (Sz = 0; mid-range
+            // of the ±1 V inputs): a board reading 0 V there sees no light (a dark pixel); the
+            // calibration's offset takes it off
+            offset_v: [0.0, 0.0, 0.5, 0.0],
             path: Some(path.clone()),
             along: Some(crate::instrument::emulator::sim_signal_along(
                 renderer.clone(),
@@ -375,6 +380,7 @@ pub fn connect_emulated_redpitaya(
         sz: Some(3),
     });
     cfg.qpd.sample_rate_hz = sim.sample_rate;
+    cfg.qpd.calibration.offset_v = [0.0, 0.0, 0.5];
     let emulators = json!({
         "stage": stage.path(),
         "qpd": qpd.path(),

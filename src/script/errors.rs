@@ -7,6 +7,10 @@ use super::doc::Doc;
 use super::types::show;
 use rhai::{EvalAltResult, ParseError, Position};
 
+/// How the error of a key read from a map that does not have it begins (`Workbench` adds the
+/// map's keys where it can).
+pub const NO_KEY: &str = "the map has no key ";
+
 /// A script error as the user sees it: one line, with the position.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ScriptError {
@@ -103,6 +107,9 @@ pub fn error_message(e: &EvalAltResult, docs: &[Doc]) -> String {
                     format!("function not found: {}{}", console::user_words(sig), console::suggestion(name, names))
                 }
             }
+        }
+        EvalAltResult::ErrorPropertyNotFound(name, _) => {
+            format!("{NO_KEY}`{name}` (a map's keys: m.keys())")
         }
         EvalAltResult::ErrorVariableNotFound(name, _) => match docs.iter().find(|d| d.name == *name) {
             Some(d) => format!("{name} is a function; usage: {}", d.usage()),

@@ -84,7 +84,10 @@ pub fn build_engine(ctx: Arc<Ctx>) -> (Engine, Arc<Vec<Doc>>) {
         .set_max_expr_depths(sb.max_expr_depth, sb.max_expr_depth)
         .set_max_string_size(sb.max_string_size)
         .set_max_array_size(sb.max_array_size)
-        .set_max_map_size(sb.max_map_size);
+        .set_max_map_size(sb.max_map_size)
+        // reading a key a map does not have is an error (`s.meta.dwell_s` returned () and the
+        // script went on); writing a new key still adds it
+        .set_fail_on_invalid_map_property(true);
     let abort = ctx.settings.abort.clone();
     engine.on_progress(move |_| {
         if abort.load(Ordering::Relaxed) {
@@ -144,6 +147,8 @@ pub struct Workbench {
     lib: AST,
     pub ctx: Arc<Ctx>,
     pub docs: Arc<Vec<Doc>>,
+    /// The text last compiled and its source name (for the "did you mean" of a map key).
+    text: (String, String),
 }
 
 impl Workbench {
@@ -156,7 +161,60 @@ impl Workbench {
             lib: AST::empty(),
             ctx,
             docs,
+            text: Default::default(),
         }
+    }
+
+    /// A key read from a map that does not have it (`s.meta.dwel`): when the map is a chain of
+    /// names in the script's scope (`s.meta`), the keys it has, with the closest; otherwise the
+    /// message as it was.
+    fn map_key_hint(&mut self, e: &mut ScriptError) {
+        let Some(key) = e.message.strip_prefix(errors::NO_KEY).map(|r| {
+            r.split(|c: char| !(c.is_alphanumeric() || c == '_'))
+                .find(|w| !w.is_empty())
+                .unwrap_or_default()
+                .to_string()
+        }) else {
+            return;
+        };
+        let (Some(line), Some(col), true) = (e.line, e.column, e.source == self.text.0) else {
+            return;
+        };
+        let Some(l) = self.text.1.lines().nth(line.saturating_sub(1)) else {
+            return;
+        };
+        let chars: Vec<char> = l.chars().collect();
+        // the property's name starts at `col` (1-based), after a `.`
+        let dot = col.saturating_sub(2);
+        if chars.get(dot) != Some(&'.') {
+            return;
+        }
+        let start = (0..dot)
+            .rev()
+            .take_while(|&i| chars[i].is_alphanumeric() || chars[i] == '_' || chars[i] == '.')
+            .last()
+            .unwrap_or(dot);
+        let chain: String = chars[start..dot].iter().collect();
+        let first = chain.chars().next();
+        if chain.is_empty() || first.is_some_and(|c| c.is_ascii_digit() || c == '.') {
+            return;
+        }
+        let Ok(v) = self
+            .engine
+            .eval_expression_with_scope::<Dynamic>(&mut self.scope, &chain)
+        else {
+            return;
+        };
+        let Some(m) = v.read_lock::<rhai::Map>() else {
+            return;
+        };
+        let keys: Vec<&str> = m.keys().map(|k| k.as_str()).collect();
+        let hint = words::suggestion(&key, keys.iter().copied());
+        let stop = if hint.is_empty() { "." } else { "" };
+        e.message = format!(
+            "`{chain}` has no key `{key}`{hint}{stop} Its keys: {}",
+            keys.join(", ")
+        );
     }
 
     /// Set a script variable (`run --set key=value`).
@@ -193,12 +251,13 @@ impl Workbench {
             .collect()
     }
 
-    fn compile(&self, source: &str, text: &str) -> Result<AST, ScriptError> {
+    fn compile(&mut self, source: &str, text: &str) -> Result<AST, ScriptError> {
         let mut ast = self
             .engine
             .compile_with_scope(&self.scope, text)
             .map_err(|e| ScriptError::from_parse(&e, source))?;
         ast.set_source(source);
+        self.text = (source.to_string(), text.to_string());
         Ok(ast)
     }
 
@@ -214,7 +273,10 @@ impl Workbench {
         let r = self
             .engine
             .eval_ast_with_scope::<Dynamic>(&mut self.scope, ast);
-        let r = r.map_err(|e| ScriptError::from_eval(&e, source, &self.docs));
+        let mut r = r.map_err(|e| ScriptError::from_eval(&e, source, &self.docs));
+        if let Err(e) = &mut r {
+            self.map_key_hint(e);
+        }
         if let Err(e) = &r {
             self.ctx.view_error(&e.to_string());
         }

@@ -30,6 +30,11 @@ pub const LOCAL_MISFIT_Z: f64 = 5.0;
 /// away by 25 nm, 30σ, in the truth sweep).
 pub const NEIGHBOUR_REACH_W0: f64 = 3.0;
 
+/// A found bead fainter than this fraction of a bead outside its domain (anywhere in the scan)
+/// may be the residue of that bead's misfit: a few % of a misfitted bead's signal, in side lobes
+/// of a few % of its peak, leaves residuals of order 0.1 % of its weight across the field.
+pub const FAINT_BESIDE_MISFIT: f64 = 0.01;
+
 /// Below this fraction of the signal's peak the residual RMS never counts as a misfit (a noise-free
 /// image fitted by an interpolated template leaves ~1e-4 of the peak).
 pub const MISFIT_FLOOR: f64 = 2e-3;
@@ -148,6 +153,27 @@ fn warnings(
         {
             own[i].push(format!(
                 "bead {i} is {d:.2} µm from bead {j}, which is outside its domain: bead {j}'s misfit reaches {reach:.2} µm and may bias bead {i}'s values beyond σ"
+            ));
+        }
+    }
+    // Beyond the reach, a misfitted bright bead still leaves its far side lobes' misfit across
+    // the field: a bead fainter than FAINT_BESIDE_MISFIT of it may be that residue (a 274 nm
+    // bead beyond the scan's edge, weight ≈ 7, left a "found" bead of weight 0.007 ± 0.001 at
+    // 1.35 µm, where there was none).
+    for (i, b) in r.beads.iter().enumerate() {
+        if !b.found() || !own[i].is_empty() {
+            continue;
+        }
+        if let Some(&j) = outside
+            .iter()
+            .filter(|&&j| j != i && b.weight.abs() < FAINT_BESIDE_MISFIT * r.beads[j].weight)
+            .max_by(|&&a, &&c| r.beads[a].weight.total_cmp(&r.beads[c].weight))
+        {
+            own[i].push(format!(
+                "bead {i} (weight {:.4}) is fainter than {:.0} % of bead {j} (weight {:.3}), which is outside its domain: it may be the residue of bead {j}'s misfit, whose side lobes reach across the scan, not a bead",
+                b.weight,
+                100.0 * FAINT_BESIDE_MISFIT,
+                r.beads[j].weight
             ));
         }
     }

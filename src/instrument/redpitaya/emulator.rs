@@ -43,7 +43,8 @@
 //!
 //! Faults ([`Faults`]): `silent` (reads commands, never answers), `garble_replies` (text replies
 //! garbled, binary blocks lose their `#`), `no_trigger` (no trigger source ever fires, `NOW`
-//! included), `error_next`, `unplug_after` (closes the connection and stops).
+//! included), `error_next`, `reject` (the n+1-th command with a given first word, e.g. the 6th
+//! `ACQ:START`, fails with a code), `unplug_after` (closes the connection and stops).
 //!
 //! Not modelled: deep-memory (DMA) acquisition, split triggers, `ACQ:TRIG:DLY:NS`, hysteresis,
 //! the generator outputs (`SOUR<n>:…`), calibration offsets, the pre-trigger fill condition, a
@@ -945,7 +946,19 @@ fn serve(
                     None => false,
                 };
                 let is_err_q = line.to_ascii_uppercase().starts_with("SYST");
-                let inject = if !is_err_q { f.error_next.take() } else { None };
+                let mut inject = if !is_err_q { f.error_next.take() } else { None };
+                // `reject`: the (n+1)-th command with this first word fails with its code
+                let first = line.split_whitespace().next().unwrap_or("");
+                if let Some((word, n, code)) = f.reject.clone() {
+                    if inject.is_none() && first.eq_ignore_ascii_case(&word) {
+                        if n == 0 {
+                            f.reject = None;
+                            inject = Some(code);
+                        } else {
+                            f.reject = Some((word, n - 1, code));
+                        }
+                    }
+                }
                 let g = f.garble_replies > 0;
                 (f.silent, inject, g, last)
             };

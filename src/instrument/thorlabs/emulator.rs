@@ -52,6 +52,12 @@ pub struct KpaEmulatorConfig {
     /// The USB-serial link modelled (APT: 115200 baud); default the pty's full speed
     /// (`bfpscope emulate` models the real one).
     pub link: LinkModel,
+    /// White noise of the detector's outputs, V rms per reading, on XDiff, YDiff and Sum each
+    /// before the ADC (0: none; the ADC's count of 0.3 mV then quantises a noiseless signal,
+    /// and averaging readings cannot resolve below it).
+    pub noise_v: f64,
+    /// Seed of the noise.
+    pub seed: u64,
 }
 
 impl Default for KpaEmulatorConfig {
@@ -61,6 +67,8 @@ impl Default for KpaEmulatorConfig {
             sum_v: 5.0,
             mode_at_power_on: MODE_CLOSED_LOOP,
             link: LinkModel::FULL_SPEED,
+            noise_v: 0.0,
+            seed: 1,
         }
     }
 }
@@ -70,20 +78,31 @@ struct Kpa<S: SignalSource> {
     mode: u16,
     position: SharedPosition,
     source: S,
+    rng: rand_chacha::ChaCha8Rng,
 }
 
 impl<S: SignalSource> Kpa<S> {
     /// The document's scaling: XDiff, YDiff ±10 V over ±32767, Sum 0–10 V over 0–65535.
-    /// Signal → volts: Sum = sum_v·(1 + Sz), XDiff = Sx·Sum, YDiff = Sy·Sum.
-    fn reading(&self) -> RawReading {
+    /// Signal → volts: Sum = sum_v·(1 + Sz), XDiff = Sx·Sum, YDiff = Sy·Sum, each plus the
+    /// detector's noise (`noise_v`).
+    fn reading(&mut self) -> RawReading {
+        use rand::Rng;
         let p = *lock(&self.position);
         let [sx, sy, sz] = (self.source)(p);
         let sum = self.cfg.sum_v * (1.0 + sz);
+        let mut noise = [0.0; 3];
+        if self.cfg.noise_v > 0.0 {
+            for v in noise.iter_mut() {
+                *v = self.cfg.noise_v * self.rng.sample::<f64, _>(rand_distr::StandardNormal);
+            }
+        }
         let diff = |v: f64| (v / 10.0 * 32767.0).round().clamp(-32768.0, 32767.0) as i16;
         RawReading {
-            xdiff: diff(sx * sum),
-            ydiff: diff(sy * sum),
-            sum: (sum / 10.0 * 65535.0).round().clamp(0.0, 65535.0) as u16,
+            xdiff: diff(sx * sum + noise[0]),
+            ydiff: diff(sy * sum + noise[1]),
+            sum: ((sum + noise[2]) / 10.0 * 65535.0)
+                .round()
+                .clamp(0.0, 65535.0) as u16,
             xpos: 0,
             ypos: 0,
         }
@@ -329,8 +348,10 @@ pub fn start_kpa101_emulator(
     position: SharedPosition,
     source: impl SignalSource,
 ) -> std::io::Result<Emulator> {
+    use rand::SeedableRng;
     let mode = cfg.mode_at_power_on;
     let link = cfg.link;
+    let rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed);
     spawn_apt(
         "kpa101",
         Kpa {
@@ -338,6 +359,7 @@ pub fn start_kpa101_emulator(
             mode,
             position: position.clone(),
             source,
+            rng,
         },
         position,
         link,
