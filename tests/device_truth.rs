@@ -293,8 +293,7 @@ fn a_kpz101_gauge_not_zeroed_is_reported_and_zeroing_removes_its_offset() {
     let z = c
         .instrument
         .stage
-        .capabilities()
-        .gauge
+        .gauge()
         .expect("KPZ101 cubes offer a gauge zero")
         .zero_gauge()
         .unwrap();

@@ -109,6 +109,11 @@ const TOY: Family = Family {
         poll_ms: 7,
         settle_s: Some(0.002),
     },
+    section: registry::NO_SECTION,
+    help: registry::ConnectHelp {
+        backend: "\"toy\" (a test's own family)",
+        about: "",
+    },
 };
 
 fn workbench() -> Workbench {

@@ -19,7 +19,9 @@ use bfpscope::instrument::gcs::{axes_xyz, GcsOptions, GcsStage};
 use bfpscope::instrument::scpi::{Calibration, ScpiOptions, ScpiQpd};
 use bfpscope::instrument::sim::scene::{Bead, Scene};
 use bfpscope::instrument::sim::{SimConfig, SimCore};
-use bfpscope::instrument::{DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
+use bfpscope::instrument::{
+    DeviceError, Instrument, Pos, Qpd, QpdReading, RawQuery, Stage, VirtualClock,
+};
 use bfpscope::optics::params::Optics;
 use std::io::{Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -14,7 +14,7 @@ use bfpscope::instrument::emulator::{
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage, LineSweep};
 use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
 use bfpscope::instrument::scpi::Calibration;
-use bfpscope::instrument::{Qpd, Stage, Trigger};
+use bfpscope::instrument::{LineScan, Qpd, Stage, Trigger};
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
@@ -55,7 +55,7 @@ fn line_timing_is_what_the_controller_reports() {
         },
         gcs_opts(),
     );
-    let t = Stage::line_timing(&mut s).unwrap().unwrap();
+    let t = LineScan::line_timing(&mut s).unwrap().unwrap();
     assert_eq!(t.servo_cycle_s, 40e-6);
     assert_eq!(t.max_wave_points, 8192);
     // 0x16000200 answers 4 · 2048 points for all tables, 0x16000300 four tables
@@ -72,7 +72,7 @@ fn line_timing_is_what_the_controller_reports() {
     }
     // read once per connection
     let n = e.commands().len();
-    assert_eq!(Stage::line_timing(&mut s).unwrap().unwrap(), t);
+    assert_eq!(LineScan::line_timing(&mut s).unwrap().unwrap(), t);
     assert_eq!(e.commands().len(), n);
 }
 
@@ -81,7 +81,7 @@ fn a_controller_without_the_servo_parameter_uses_the_config_or_names_the_key() {
     // the controller rejects `SPA? 1 0x0E000200` with error 54 (unknown parameter)
     let (e, mut s) = stage(WaveConfig::default(), gcs_opts());
     e.faults().error_next = Some(54);
-    let err = Stage::line_timing(&mut s).unwrap_err().to_string();
+    let err = LineScan::line_timing(&mut s).unwrap_err().to_string();
     assert!(
         err.contains("SPA? 1 0x0E000200")
             && err.contains("54")
@@ -96,7 +96,7 @@ fn a_controller_without_the_servo_parameter_uses_the_config_or_names_the_key() {
         },
     );
     e.faults().error_next = Some(54);
-    let t = Stage::line_timing(&mut s).unwrap().unwrap();
+    let t = LineScan::line_timing(&mut s).unwrap().unwrap();
     assert_eq!(t.servo_cycle_s, 100e-6);
     assert_eq!(t.max_wave_points, 65_536);
 }
@@ -168,14 +168,14 @@ fn the_board_samples_the_moving_stage_at_the_recorders_positions() {
         servo_cycle_s: DT,
     };
     Stage::move_to(&mut s, [10.0, 10.0, 5.0]).unwrap();
-    Stage::configure_line(&mut s, &l).unwrap();
+    LineScan::configure_line(&mut s, &l).unwrap();
     // 16 ms of the 20 ms line at ≥ 100 kHz: decimation 1024 (122 kHz), 1954 samples
     let arm = rp.arm_buffered(1600, 1e5, Trigger::ExternalRising).unwrap();
     assert_eq!(arm.n_samples, 1954);
-    Stage::start_line(&mut s, &l).unwrap();
-    assert!(Stage::wait_line(&mut s, &l, &AtomicBool::new(false)).unwrap());
+    LineScan::start_line(&mut s, &l).unwrap();
+    assert!(LineScan::wait_line(&mut s, &l, &AtomicBool::new(false)).unwrap());
     let trace = rp.read_buffered(Duration::from_secs(2)).unwrap();
-    let rec = Stage::read_line_record(&mut s, &l).unwrap();
+    let rec = LineScan::read_line_record(&mut s, &l).unwrap();
     assert_eq!(ext.count(), 1);
     assert_eq!(rec.position_um.len(), 400);
     assert_eq!(trace.len(), 1954);

@@ -521,8 +521,11 @@ fn config_errors_name_the_key_and_value() {
         "test.toml",
     )
     .unwrap();
-    assert_eq!(c.redpitaya_port().unwrap(), 5001);
-    let o = c.redpitaya_options();
+    assert_eq!(
+        bfpscope::instrument::redpitaya::config::port(&c.qpd).unwrap(),
+        5001
+    );
+    let o = bfpscope::instrument::redpitaya::config::options(&c.qpd);
     assert_eq!(
         o.channels,
         ChannelMap {

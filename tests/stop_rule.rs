@@ -30,7 +30,9 @@ use bfpscope::instrument::line::{LineSweep, LineTiming, SweepRecord};
 use bfpscope::instrument::link::LinkCosts;
 use bfpscope::instrument::sim::scene::{Bead, Scene};
 use bfpscope::instrument::sim::{SimConfig, SimCore};
-use bfpscope::instrument::{DeviceError, Instrument, Pos, Stage};
+use bfpscope::instrument::{
+    Capability, CapabilityKind, DeviceError, Instrument, LineScan, Pos, Stage,
+};
 use bfpscope::optics::Optics;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -148,23 +150,35 @@ impl Stage for Tap {
     fn link_costs(&mut self) -> LinkCosts {
         self.inner.link_costs()
     }
+    fn capabilities(&mut self, kind: CapabilityKind) -> Option<Capability<'_>> {
+        match kind {
+            CapabilityKind::Lines => Some(Capability::Lines(self)),
+            _ => None,
+        }
+    }
+}
+
+/// The inner stage's lines, each call counted (and failed when told to).
+impl LineScan for Tap {
     fn line_timing(&mut self) -> Result<Option<LineTiming>, DeviceError> {
         self.inner.line_timing()
     }
     fn configure_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.call("configure_line")?;
-        self.inner.configure_line(s)
+        self.inner.lines_for("configure_line")?.configure_line(s)
     }
     fn start_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.call("start_line")?;
-        self.inner.start_line(s)
+        self.inner.lines_for("start_line")?.start_line(s)
     }
     fn wait_line(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
-        self.inner.wait_line(s, abort)
+        self.inner.lines_for("wait_line")?.wait_line(s, abort)
     }
     fn read_line_record(&mut self, s: &LineSweep) -> Result<SweepRecord, DeviceError> {
         self.call("read_line_record")?;
-        self.inner.read_line_record(s)
+        self.inner
+            .lines_for("read_line_record")?
+            .read_line_record(s)
     }
     fn stop_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.call("stop_line")?;

@@ -1,16 +1,12 @@
-//! Build an [`Instrument`] from the config: simulated, or a GCS stage and a SCPI QPD on
-//! serial ports. Also computes the limits in force (`[safety]` soft limits ∩ the travel range
+//! Build an [`Instrument`] from the config: simulated, or the stage and the QPD its tables
+//! name, each opened by its device family (`instrument::registry`, the family's `config.rs`). Also computes the limits in force (`[safety]` soft limits ∩ the travel range
 //! the stage reports, with the step and speed limits), which `acquire/` enforces.
 
 use super::{err, Config, ConfigError};
 use crate::acquire::SoftLimits;
-use crate::instrument::gcs::split::GcsSplitStage;
-use crate::instrument::gcs::GcsStage;
-use crate::instrument::scpi::ScpiQpd;
-use crate::instrument::{
-    gcs::GCS, madlib::MADLIB, nidaqmx::NIDAQMX, redpitaya::REDPITAYA, scpi::SCPI, sim::SIM,
-    thorlabs::KPA101, thorlabs::KPZ101,
-};
+use crate::instrument::family::{OpenError, Opened};
+use crate::instrument::registry;
+use crate::instrument::{gcs::GCS, redpitaya::REDPITAYA, scpi::SCPI, sim::SIM};
 use crate::instrument::{DeviceError, Instrument, Qpd, Stage, WallClock};
 use serde_json::json;
 use std::sync::Arc;
@@ -92,12 +88,7 @@ pub fn connect(
 /// gauge_zeroed = {x, y, z}`), and a warning per gauge not zeroed (`instrument.warnings`,
 /// shown by `connect()`). Called at connect and after `zero_gauge()`.
 pub fn record_gauge(instrument: &mut Instrument) {
-    let Some(z) = instrument
-        .stage
-        .capabilities()
-        .gauge
-        .map(|g| g.gauge_zeroed())
-    else {
+    let Some(z) = instrument.stage.gauge().map(|g| g.gauge_zeroed()) else {
         return;
     };
     let name = instrument.stage.name();
@@ -140,224 +131,67 @@ pub fn record_gauge(instrument: &mut Instrument) {
     }
 }
 
+/// Open what the config's `[stage]` and `[qpd]` name, each through its family's section
+/// (`instrument::registry`): a family that ties the two (the NI raster) opens both; else the
+/// stage, then the QPD (if the QPD fails, the stage is dropped and its ports closed).
 fn connect_hardware(cfg: &Config) -> Result<Instrument, ConnectError> {
-    if cfg.stage.backend == MADLIB || cfg.qpd.backend == NIDAQMX {
-        return connect_bench(cfg);
+    let tables = cfg.tables();
+    let stage_family = registry::by_stage(cfg.stage.backend.as_str());
+    let qpd_family = registry::by_qpd(cfg.qpd.backend.as_str());
+    for f in [stage_family, qpd_family].into_iter().flatten() {
+        if let Some(pair) = f.section.open_pair {
+            if let Some((stage, qpd)) = pair(&tables).map_err(open_error)? {
+                return Ok(hardware_instrument(cfg, stage, qpd));
+            }
+        }
     }
-    if cfg.stage.backend == KPZ101 || cfg.qpd.backend == KPA101 {
-        return connect_apt(cfg);
+    let stage = stage_family
+        .and_then(|f| f.section.open_stage)
+        .ok_or_else(|| not_from_config("stage.backend", cfg.stage.backend.as_str()))?;
+    let stage = stage(&tables).map_err(open_error)?;
+    let qpd = qpd_family
+        .and_then(|f| f.section.open_qpd)
+        .ok_or_else(|| not_from_config("qpd.backend", cfg.qpd.backend.as_str()))?;
+    let qpd = qpd(&tables).map_err(open_error)?;
+    Ok(hardware_instrument(cfg, stage, qpd))
+}
+
+/// A backend whose family does not open that device from the config's tables.
+fn not_from_config(key: &str, backend: &str) -> ConnectError {
+    err(
+        key,
+        format!("\"{backend}\": its family does not open this device from bfpscope.toml"),
+    )
+    .into()
+}
+
+/// A family's opening error as `connect`'s.
+fn open_error(e: OpenError) -> ConnectError {
+    match e {
+        OpenError::Table(e) => err(&e.key, e.message).into(),
+        OpenError::Device(e) => e.into(),
     }
-    let qport = cfg.qpd.port.clone().unwrap_or_default();
-    let controllers = cfg.gcs_controllers();
-    // Opened read-only: nothing is switched on before `connect` has checked the limits.
-    let (stage, parts): (Box<dyn crate::instrument::Stage>, Vec<serde_json::Value>) =
-        if controllers.len() == 1 {
-            let (port, o) = &controllers[0];
-            let s = GcsStage::open_checked(port, cfg.stage.baud, o.clone())?;
-            let d = controller_json(&s, port);
-            (Box::new(s), vec![d])
-        } else {
-            let s = GcsSplitStage::open_checked(&controllers, cfg.stage.baud)?;
-            let d = s
-                .controllers()
-                .iter()
-                .zip(&controllers)
-                .map(|(c, (port, _))| controller_json(c, port))
-                .collect();
-            (Box::new(s), d)
-        };
-    // If the QPD fails, `stage` is dropped here and its ports closed.
-    let (qpd, qpd_desc): (Box<dyn crate::instrument::Qpd>, serde_json::Value) =
-        if cfg.qpd.backend == REDPITAYA {
-            open_redpitaya(cfg)?
-        } else {
-            let qpd = ScpiQpd::open(&qport, cfg.qpd.baud, cfg.scpi_options())?;
-            let d = json!({
-                "backend": "scpi",
-                "name": crate::instrument::Qpd::name(&qpd),
-                "port": qport,
-                "baud": cfg.qpd.baud,
-                "idn": qpd.idn(),
-                "sample_rate_hz": crate::instrument::Qpd::sample_rate(&qpd),
-                "calibration": cfg.qpd.calibration,
-            });
-            (Box::new(qpd), d)
-        };
-    let port = match &cfg.stage.ports {
-        Some(p) => json!({ "x": p.x, "y": p.y, "z": p.z }),
-        None => json!(cfg.stage.port.clone().unwrap_or_default()),
-    };
-    let stage_desc = json!({
-        "backend": "gcs",
-        "name": stage.name(),
-        "port": port,
-        "baud": cfg.stage.baud,
-        "idn": parts.iter().map(|p| p["idn"].as_str().unwrap_or_default()).collect::<Vec<_>>().join(" + "),
-        "axes": { "x": cfg.stage.axes.x, "y": cfg.stage.axes.y, "z": cfg.stage.axes.z },
-        "units_per_um": cfg.stage.units_per_um,
-        "controllers": parts,
-    });
-    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
 }
 
 /// A connected hardware stage and QPD as the session's instrument: the wall clock, the
 /// configured settle time, and the description scans record.
 fn hardware_instrument(
     cfg: &Config,
-    stage: Box<dyn Stage>,
-    qpd: Box<dyn Qpd>,
-    stage_desc: serde_json::Value,
-    qpd_desc: serde_json::Value,
+    stage: Opened<Box<dyn Stage>>,
+    qpd: Opened<Box<dyn Qpd>>,
 ) -> Instrument {
     Instrument {
-        stage,
-        qpd,
+        stage: stage.device,
+        qpd: qpd.device,
         clock: Arc::new(WallClock::default()),
         settle_s: cfg.stage.settle_s,
         description: json!({
             "backend": crate::instrument::family::HARDWARE,
-            "stage": stage_desc,
-            "qpd": qpd_desc,
+            "stage": stage.description,
+            "qpd": qpd.description,
             "settle_s": cfg.stage.settle_s,
         }),
     }
-}
-
-/// The SCPI QPD digitiser on the config's port, with its description.
-fn open_scpi(cfg: &Config) -> Result<(Box<dyn Qpd>, serde_json::Value), ConnectError> {
-    let port = cfg.qpd.port.clone().unwrap_or_default();
-    let q = ScpiQpd::open(&port, cfg.qpd.baud, cfg.scpi_options())?;
-    let d = json!({ "backend": "scpi", "name": q.name(), "port": port, "idn": q.idn() });
-    Ok((Box::new(q), d))
-}
-
-/// Thorlabs APT devices (and, for a mixed set-up, a GCS stage or a SCPI QPD): KPZ101 cubes as
-/// the stage and/or a KPA101 as the QPD.
-fn connect_apt(cfg: &Config) -> Result<Instrument, ConnectError> {
-    use crate::instrument::thorlabs::kpa101::Kpa101;
-    use crate::instrument::thorlabs::kpz101::Kpz101Stage;
-    use crate::instrument::{Qpd, Stage};
-    let (stage, stage_desc): (Box<dyn Stage>, serde_json::Value) = match cfg.stage.backend {
-        KPZ101 => {
-            let ps = cfg.stage.ports.clone().unwrap_or_else(|| super::AxisPorts {
-                x: String::new(),
-                y: String::new(),
-                z: String::new(),
-            });
-            let s = Kpz101Stage::open(
-                [&ps.x, &ps.y, &ps.z],
-                cfg.kpz_options(),
-                cfg.stage.travel_um,
-            )?;
-            let cubes: Vec<serde_json::Value> = s
-                .axes()
-                .iter()
-                .zip(["x", "y", "z"])
-                .map(|(a, ax)| {
-                    json!({
-                        "axis": ax,
-                        "port": a.port(),
-                        "device": a.info(),
-                        "travel_um": a.travel_um(),
-                        "reported_travel_um": a.reported_travel_um(),
-                        "enabled_at_connect": a.enabled_at_connect(),
-                        "mode_at_connect": a.mode_at_connect(),
-                        "gauge_zeroed_at_connect": a.zeroed_at_connect(),
-                    })
-                })
-                .collect();
-            let d = json!({
-                "backend": "kpz101",
-                "name": s.name(),
-                "port": { "x": ps.x, "y": ps.y, "z": ps.z },
-                "full_scale": cfg.stage.full_scale,
-                "tolerance_um": cfg.stage.tolerance_um,
-                "cubes": cubes,
-            });
-            (Box::new(s), d)
-        }
-        _ => {
-            let controllers = cfg.gcs_controllers();
-            let s = GcsSplitStage::open_checked(&controllers, cfg.stage.baud)?;
-            let d = json!({ "backend": "gcs", "name": s.name() });
-            (Box::new(s), d)
-        }
-    };
-    let qport = cfg.qpd.port.clone().unwrap_or_default();
-    let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
-        KPA101 => {
-            let q = Kpa101::open(&qport, cfg.kpa_options())?;
-            let d = json!({
-                "backend": "kpa101",
-                "name": q.name(),
-                "port": qport,
-                "device": q.info(),
-                "sample_rate_hz": q.sample_rate(),
-                "calibration": cfg.qpd.calibration,
-                "sum_scale": cfg.qpd.sum_scale,
-                "x_sign": cfg.qpd.x_sign,
-                "signed": cfg.qpd.signed,
-            });
-            (Box::new(q), d)
-        }
-        REDPITAYA => open_redpitaya(cfg)?,
-        _ => open_scpi(cfg)?,
-    };
-    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
-}
-
-/// Connect the Red Pitaya `[qpd]` names, and describe it for the scan metadata.
-pub(super) fn open_redpitaya(
-    cfg: &Config,
-) -> Result<(Box<dyn crate::instrument::Qpd>, serde_json::Value), ConnectError> {
-    use crate::instrument::redpitaya::RedPitaya;
-    use crate::instrument::Qpd;
-    let host = cfg.qpd.host.clone().unwrap_or_default();
-    let port = cfg.redpitaya_port()?;
-    let q = RedPitaya::open(&host, port, cfg.redpitaya_options())?;
-    let d = json!({
-        "backend": "redpitaya",
-        "name": q.name(),
-        "host": host,
-        "port": port,
-        "address": format!("{host}:{port}"),
-        "idn": q.idn(),
-        "buffer_samples": q.buffer_size(),
-        "channels": cfg.qpd.channels,
-        "input_gain": cfg.qpd.input_gain,
-        "sample_rate_hz": q.sample_rate(),
-        "calibration": cfg.qpd.calibration,
-    });
-    Ok((Box::new(q), d))
-}
-
-/// One controller as found at connect: name, port, `*IDN?`, `SAI?`, the axes it drives and
-/// their servo state before anything was switched on.
-fn controller_json(s: &GcsStage, port: &str) -> serde_json::Value {
-    let xyz = ["x", "y", "z"];
-    let mut axes = serde_json::Map::new();
-    let mut servo = serde_json::Map::new();
-    for (i, (id, on)) in s
-        .options()
-        .axes
-        .iter()
-        .zip(s.servo_at_connect())
-        .enumerate()
-    {
-        if let (Some(id), Some(on)) = (id, on) {
-            axes.insert(xyz[i].into(), json!(id));
-            servo.insert(xyz[i].into(), json!(on));
-        }
-    }
-    json!({
-        "name": crate::instrument::Stage::name(s),
-        "port": port,
-        "idn": s.idn(),
-        "sai": s.sai(),
-        "axes": axes,
-        "servo_at_connect": servo,
-        "one_axis_per_query": s.one_axis_per_query(),
-    })
 }
 
 /// An emulated instrument connected through the real drivers (`connect_emulated`): the
@@ -556,125 +390,4 @@ pub fn connect_emulated_redpitaya(
         "signal": "simulator (ideal signal of the scene) at the emulated stage position, followed sample by sample during a wave",
     });
     finish_emulated(&cfg, stage, qpd, emulators)
-}
-
-/// Connect a config with a Nano-Drive and/or an NI board (from `connect::connect_hardware`):
-/// the stage (`madlib`, or a PI GCS controller), the QPD (`nidaqmx`, or a Red Pitaya or SCPI
-/// digitiser). A failure after the stage was taken drops it, which releases its handle.
-fn connect_bench(cfg: &Config) -> Result<crate::instrument::Instrument, ConnectError> {
-    use crate::instrument::madlib::MadlibStage;
-    use crate::instrument::nidaqmx::NiQpd;
-    use serde_json::json;
-    let raster = cfg.ni_raster_options()?;
-    let mut madlib: Option<MadlibStage> = None;
-    let (stage, stage_desc): (Option<Box<dyn Stage>>, serde_json::Value) = match cfg.stage.backend {
-        MADLIB => {
-            let o = cfg.madlib_options()?;
-            let s = MadlibStage::open(o.clone())?;
-            let i = s.info();
-            let d = json!({
-                "backend": "madlib",
-                "name": s.name(),
-                "library": i.library,
-                "serial": i.serial,
-                "product_info": {
-                    "product_id": i.product_id,
-                    "axis_bitmap": i.axis_bitmap,
-                    "adc_resolution_bits": i.adc_bits,
-                    "dac_resolution_bits": i.dac_bits,
-                    "firmware_version": i.firmware_version,
-                    "firmware_profile": i.firmware_profile,
-                },
-                "calibration_um": i.calibration_um,
-                "axes": { "x": o.axes[0], "y": o.axes[1], "z": o.axes[2] },
-                "tolerance_um": o.tolerance_um,
-                "on_target_timeout_ms": cfg.stage.on_target_timeout_ms,
-            });
-            madlib = Some(s);
-            (None, d)
-        }
-        GCS => {
-            let s = crate::instrument::gcs::split::GcsSplitStage::open_checked(
-                &cfg.gcs_controllers(),
-                cfg.stage.baud,
-            )?;
-            let d = json!({ "backend": "gcs", "name": s.name() });
-            (Some(Box::new(s)), d)
-        }
-        b => {
-            return Err(err(
-                "stage.backend",
-                format!(
-                    "\"{}\" with [qpd] backend = \"nidaqmx\": allowed stages with an NI board are \"madlib\" and \"gcs\"",
-                    b.as_str()
-                ),
-            )
-            .into())
-        }
-    };
-    let mut stage = stage;
-    let mut stage_desc = stage_desc;
-    let (qpd, qpd_desc): (Box<dyn Qpd>, serde_json::Value) = match cfg.qpd.backend {
-        NIDAQMX => {
-            let o = cfg.ni_qpd_options()?;
-            let q = NiQpd::open(o.clone())?;
-            let pair = match (&raster, madlib.is_some()) {
-                (Some(r), true) => madlib.take().map(|m| (r.clone(), m)),
-                _ => None,
-            };
-            if let Some((r, m)) = pair {
-                use crate::instrument::nidaqmx::{raster::NiRaster, stream_stage::NiStreamStage};
-                stage_desc["raster"] = json!({
-                    "backend": "nidaqmx",
-                    "ao": r.ao,
-                    "volts_per_um": r.volts_per_um,
-                    "position": r.position,
-                    "position_volts_per_um": r.position_volts_per_um,
-                    "clock": format!("/{}/ao/SampleClock", o.device),
-                    "start_trigger": format!("/{}/ao/StartTrigger", o.device),
-                });
-                let nr = NiRaster::new(q.lib(), r, q.name());
-                stage = Some(Box::new(NiStreamStage::new(m, nr)));
-            }
-            let (product, serial) = q.identity();
-            let d = json!({
-                "backend": "nidaqmx",
-                "name": q.name(),
-                "library": q.library(),
-                "device": o.device,
-                "product_type": product,
-                "serial": serial,
-                "channels": cfg.qpd.channels,
-                "range_v": o.range_v,
-                "terminal": o.terminal.name(),
-                "sample_rate_hz": o.rate_hz,
-                "calibration": cfg.qpd.calibration,
-            });
-            (Box::new(q), d)
-        }
-        REDPITAYA => open_redpitaya(cfg)?,
-        SCPI => open_scpi(cfg)?,
-        b => {
-            return Err(err(
-                "qpd.backend",
-                format!(
-                    "\"{}\" with [stage] backend = \"madlib\": allowed digitisers are \"nidaqmx\", \"redpitaya\" and \"scpi\"",
-                    b.as_str()
-                ),
-            )
-            .into())
-        }
-    };
-    let stage: Box<dyn Stage> = match (stage, madlib) {
-        (Some(s), _) => s,
-        (None, Some(m)) => Box::new(m),
-        (None, None) => {
-            return Err(crate::instrument::DeviceError::Other {
-                device: crate::instrument::madlib::FAMILY.backend.into(),
-                detail: "no stage was connected".into(),
-            }
-            .into())
-        }
-    };
-    Ok(hardware_instrument(cfg, stage, qpd, stage_desc, qpd_desc))
 }

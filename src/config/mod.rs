@@ -38,24 +38,19 @@
 
 pub mod bench;
 pub mod connect;
-pub mod kinds;
 pub mod tables;
 
 pub use tables::{OpticsConfig, Sandbox, SessionConfig};
 
-pub use kinds::{Backend, QpdChannels, RasterConfig};
+pub use crate::instrument::tables::{
+    AxisMap, AxisPorts, Backend, QpdChannels, QpdConfig, RasterConfig, StageConfig, Xy, AXIS_NAMES,
+};
 
 use crate::acquire::limits::{SafetyConfig, SoftLimits};
-use crate::instrument::gcs::GcsOptions;
-use crate::instrument::link::TCP_PREFIX;
-use crate::instrument::redpitaya::{InputGain, RedPitayaOptions};
-use crate::instrument::scpi::{Calibration, ScpiOptions};
-use crate::instrument::{
-    gcs::GCS, redpitaya::REDPITAYA, scpi::SCPI, sim::SIM, thorlabs::KPA101, thorlabs::KPZ101,
-};
+use crate::instrument::sim::SIM;
+use crate::instrument::tables::{SectionError, Tables};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use std::time::Duration;
 
 /// The config file looked for in the working directory.
 pub const DEFAULT_FILE: &str = "bfpscope.toml";
@@ -82,163 +77,6 @@ pub struct ConfigError {
     pub message: String,
 }
 
-/// The name of axis `i` (0 x, 1 y, else z) of an x/y/z table.
-fn xyz(i: usize, [x, y, z]: [&str; 3]) -> &str {
-    match i {
-        0 => x,
-        1 => y,
-        _ => z,
-    }
-}
-
-/// Controller axis identifiers for x, y, z.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct AxisMap {
-    #[serde(deserialize_with = "kinds::string_or_int")]
-    pub x: String,
-    #[serde(deserialize_with = "kinds::string_or_int")]
-    pub y: String,
-    #[serde(deserialize_with = "kinds::string_or_int")]
-    pub z: String,
-}
-
-impl Default for AxisMap {
-    /// An E-727's axes (`SAI?` answers `1 2 3`).
-    fn default() -> Self {
-        Self {
-            x: "1".into(),
-            y: "2".into(),
-            z: "3".into(),
-        }
-    }
-}
-
-impl AxisMap {
-    pub fn get(&self, i: usize) -> &str {
-        xyz(i, [&self.x, &self.y, &self.z])
-    }
-}
-
-/// `stage.ports`: the port of the controller driving each axis, for a stage split across
-/// controllers (XY on an E-727, Z on an E-709; or one single-axis controller per axis).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct AxisPorts {
-    pub x: String,
-    pub y: String,
-    pub z: String,
-}
-
-impl AxisPorts {
-    pub fn get(&self, i: usize) -> &str {
-        xyz(i, [&self.x, &self.y, &self.z])
-    }
-}
-
-/// `[stage]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct StageConfig {
-    pub backend: Backend,
-    /// Serial port (`/dev/ttyUSB0`, `/dev/serial/by-id/…`, `COM3`) or `tcp://HOST:50000`, of
-    /// the one controller driving x, y, z; for `gcs`, this or `ports`.
-    pub port: Option<String>,
-    /// Ports per axis for a stage split across controllers (axes on one port are one
-    /// controller); for `gcs`, this or `port`.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub ports: Option<AxisPorts>,
-    pub baud: u32,
-    /// Reply timeout per command, ms.
-    pub timeout_ms: u64,
-    /// Longest wait for on-target after a move, ms.
-    pub on_target_timeout_ms: u64,
-    /// Interval between motion polls after a move, ms (gcs: `#5`, then `ONT?`; kpz101:
-    /// `MGMSG_PZ_REQ_OUTPUTPOS`); unset: the backend's default ([`StageConfig::poll_ms`]).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub poll_ms: Option<u64>,
-    /// Poll the end of a move with PI's single-character `#5` (falls back to `ONT?` on a
-    /// controller without it); false: always `ONT?`.
-    pub motion_status: bool,
-    pub axes: AxisMap,
-    /// Switch the closed-loop servos on at connect.
-    pub servo_on_connect: bool,
-    /// Controller position units per µm (1 for PI piezo controllers).
-    pub units_per_um: f64,
-    /// Extra settle time after each move, s (after on-target for hardware). Default 5 ms;
-    /// madlib: 0 (its family's `stage_defaults`: a move ends when the readings stay within
-    /// `tolerance_um`).
-    pub settle_s: f64,
-    /// Ask the controller one axis per query (`POS? 1`, `POS? 2`, …); detected at connect
-    /// anyway when a controller answers a several-axis query for the first axis only.
-    pub one_axis_per_query: bool,
-    /// kpz101: travel of the x, y, z actuators in µm, instead of what each cube reports
-    /// (`MGMSG_PZ_REQ_MAXTRAVEL`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub travel_um: Option<[f64; 3]>,
-    /// kpz101: position counts for 100 % of the travel (32767 per Thorlabs' document; 65535).
-    pub full_scale: u32,
-    /// kpz101: on target within this distance, µm.
-    pub tolerance_um: f64,
-    /// kpz101: zero each cube's strain gauge at connect (`MGMSG_PZ_SET_ZERO`, then wait for
-    /// the "zeroed" status bit) when it is not zeroed; the actuators go to their zero first.
-    pub zero_at_connect: bool,
-    /// kpz101: longest wait for the "zeroed" status bit after `MGMSG_PZ_SET_ZERO`, ms.
-    pub zero_timeout_ms: u64,
-    /// gcs: the controller's digital output (1…3) wired to the digitiser's external trigger
-    /// (a Red Pitaya's DIO0_P): pulsed at the first point of every hardware-timed raster line
-    /// (`CTO` generator-trigger mode). Unset: no raster with an externally triggered digitiser.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub trigger_line: Option<u8>,
-    /// gcs: servo cycle in s, for a controller that does not answer `SPA? <axis> 0x0E000200`.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub servo_cycle_s: Option<f64>,
-    /// gcs: points per wave table, for a controller that does not answer `WMS?`.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub max_wave_points: Option<usize>,
-    /// gcs: points per data-recorder table, for a controller that does not answer
-    /// `SPA? <axis> 0x16000200` / `0x16000300`.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub max_record_points: Option<usize>,
-    /// madlib: the library's path (default: the usual names and paths).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub library: Option<std::path::PathBuf>,
-    /// madlib: the Nano-Drive's serial number (default: the only one attached).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub serial: Option<i32>,
-}
-
-impl Default for StageConfig {
-    fn default() -> Self {
-        Self {
-            backend: SIM,
-            port: None,
-            ports: None,
-            baud: 115_200,
-            timeout_ms: 1000,
-            on_target_timeout_ms: 5000,
-            poll_ms: None,
-            motion_status: true,
-            axes: AxisMap::default(),
-            servo_on_connect: true,
-            units_per_um: 1.0,
-            settle_s: 0.005,
-            one_axis_per_query: false,
-            travel_um: None,
-            full_scale: 32767,
-            tolerance_um: 0.05,
-            zero_at_connect: false,
-            zero_timeout_ms: 60_000,
-            trigger_line: None,
-            servo_cycle_s: None,
-            max_wave_points: None,
-            max_record_points: None,
-            library: None,
-            serial: None,
-        }
-    }
-}
-
 impl StageConfig {
     /// The defaults of the family providing this stage (`instrument::registry`).
     pub fn family_defaults(&self) -> crate::instrument::registry::StageDefaults {
@@ -255,86 +93,6 @@ impl StageConfig {
     }
 }
 
-/// `[qpd]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct QpdConfig {
-    pub backend: Backend,
-    /// Serial port; required for `scpi` and `kpa101`. For `redpitaya` the TCP port of the
-    /// SCPI server (a number, default 5000).
-    #[serde(deserialize_with = "string_or_number", default)]
-    pub port: Option<String>,
-    /// redpitaya: host name or IP address of the board.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub host: Option<String>,
-    /// redpitaya: the input (1–4) digitising Sx, Sy and (4-input model) Sz; nidaqmx: the
-    /// input names (`sx`, `sy`, `sum` or `q1`…`q4` = `"ai0"`…).
-    pub channels: QpdChannels,
-    /// redpitaya: nominal QPD sample rate, Hz (a read of n samples covers n / rate seconds).
-    pub sample_rate_hz: f64,
-    /// redpitaya: input range, "LV" (±1 V) or "HV" (±20 V), as the jumpers are set.
-    pub input_gain: InputGain,
-    pub baud: u32,
-    /// Reply timeout per command, ms (a measurement adds n / sample rate).
-    pub timeout_ms: u64,
-    /// Ask for standard deviations too (`MEAS:QPD:STAT?`).
-    pub statistics: bool,
-    /// Volts → signal units.
-    pub calibration: Calibration,
-    /// kpa101: volts per count of the Sum reading (document: 10/65535).
-    pub sum_scale: f64,
-    /// kpa101: sign applied to the X difference, 1 or -1.
-    pub x_sign: f64,
-    /// kpa101: the Sum word is a signed 16-bit number.
-    pub signed: bool,
-    /// nidaqmx: the library's path (default: the usual names and paths).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub library: Option<std::path::PathBuf>,
-    /// nidaqmx: the board's name in NI MAX (`"Dev1"`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub device: Option<String>,
-    /// nidaqmx: input range ±V (default 10); scpi: the digitiser's input range ±V (no
-    /// default: without it clipping is not counted).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub range_v: Option<f64>,
-    /// The sum input (V, before the calibration) below which a pixel is dark (laser off, beam
-    /// blocked); default 1 % of the input range; 0 switches the check off.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub sum_floor: Option<f64>,
-    /// nidaqmx: terminal configuration, "diff" (default), "rse", "nrse", "pseudodiff", "default".
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub terminal: Option<String>,
-    /// nidaqmx: sample rate per channel, Hz (default 800000, the PCI-6120's maximum).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub rate_hz: Option<f64>,
-}
-
-impl Default for QpdConfig {
-    fn default() -> Self {
-        Self {
-            backend: SIM,
-            port: None,
-            host: None,
-            channels: QpdChannels::default(),
-            sample_rate_hz: 100_000.0,
-            input_gain: InputGain::LV,
-            baud: 115_200,
-            timeout_ms: 1000,
-            statistics: true,
-            calibration: Calibration::default(),
-            sum_scale: 10.0 / 65535.0,
-            x_sign: 1.0,
-            signed: false,
-            library: None,
-            device: None,
-            range_v: None,
-            sum_floor: None,
-            terminal: None,
-            rate_hz: None,
-        }
-    }
-}
-
 /// The whole `bfpscope.toml`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -346,7 +104,7 @@ pub struct Config {
     /// `[safety]`: soft limits, step and speed limits (`acquire::limits`).
     #[serde(default)]
     pub safety: SafetyConfig,
-    /// `[raster]`: the NI board's hardware-timed raster (`config/bench.rs`).
+    /// `[raster]`: the NI board's hardware-timed raster (`instrument/nidaqmx/config.rs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub raster: Option<RasterConfig>,
     /// `[sandbox]`: the script's limits.
@@ -364,22 +122,6 @@ pub struct Config {
 pub const TABLES: [&str; 7] = [
     "stage", "qpd", "safety", "sandbox", "session", "optics", "raster",
 ];
-
-const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
-
-/// `qpd.port`: a serial port path (string) or, for a TCP device, a port number.
-fn string_or_number<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum V {
-        S(String),
-        N(i64),
-    }
-    Ok(Option::<V>::deserialize(d)?.map(|v| match v {
-        V::S(s) => s,
-        V::N(n) => n.to_string(),
-    }))
-}
 
 /// The key path and 1-based line at byte `offset` of a TOML text, by tracking `[table]`
 /// headers and `key =` lines (good enough for error messages).
@@ -434,6 +176,11 @@ fn table_header(line: &str) -> Option<String> {
             .collect::<Vec<_>>()
             .join(".")
     })
+}
+
+/// A family's complaint about its section, as the config's (the file and line come later).
+fn section_error(e: SectionError) -> ConfigError {
+    err(&e.key, e.message)
 }
 
 fn err(key: &str, message: impl Into<String>) -> ConfigError {
@@ -574,7 +321,6 @@ impl Config {
         self.validate_axes()?;
         self.validate_stage_numbers()?;
         self.validate_qpd_numbers()?;
-        self.validate_bench()?;
         self.safety.validate().map_err(|(k, m)| err(&k, m))?;
         self.sandbox.validate().map_err(|(k, m)| err(&k, m))?;
         self.optics.resolve().map_err(|(k, m)| err(&k, m))?;
@@ -626,53 +372,32 @@ impl Config {
         Ok(())
     }
 
-    /// The rules of each backend: ports, the KPZ101 and KPA101 settings, the Red Pitaya's.
+    /// The rules of each device family (`instrument::registry`: its `Section`), the stage's
+    /// family first, then the QPD's, then the others (which refuse their keys given for
+    /// another family's device); then one port per device.
     fn validate_devices(&self) -> Result<(), ConfigError> {
-        let s = &self.stage;
+        let tables = self.tables();
+        let mut families = crate::instrument::registry::families();
+        let rank = |f: &crate::instrument::registry::Family| {
+            if f.stages.contains(&self.stage.backend.as_str()) {
+                0
+            } else if f.qpds.contains(&self.qpd.backend.as_str()) {
+                1
+            } else {
+                2
+            }
+        };
+        families.sort_by_key(rank);
+        for f in families {
+            if let Some(check) = f.section.validate {
+                check(&tables).map_err(section_error)?;
+            }
+        }
         let q = &self.qpd;
-        if s.backend == GCS {
-            self.validate_stage_ports()?;
-        }
-        if s.backend == KPZ101 {
-            self.validate_kpz101()?;
-        }
-        if matches!(q.backend, SCPI | KPA101)
-            && q.port.as_deref().is_none_or(|p| p.trim().is_empty())
-        {
-            return Err(err(
-                "qpd.port",
-                format!(
-                    "required when backend = \"{}\" (e.g. \"/dev/ttyUSB1\")",
-                    q.backend.as_str()
-                ),
-            ));
-        }
-        if q.backend == REDPITAYA {
-            self.validate_redpitaya()?;
-        }
-        if q.backend == KPA101 {
-            if !(q.x_sign == 1.0 || q.x_sign == -1.0) {
-                return Err(err(
-                    "qpd.x_sign",
-                    format!("{}: allowed values are 1 and -1", q.x_sign),
-                ));
-            }
-            if !(q.sum_scale.is_finite() && q.sum_scale > 0.0) {
-                return Err(err(
-                    "qpd.sum_scale",
-                    format!(
-                        "{}: must be a positive number of volts per count (document: 10/65535 = {:e}; \
-                         pylablib: 20/32767 = {:e})",
-                        q.sum_scale,
-                        10.0 / 65535.0,
-                        20.0 / 32767.0
-                    ),
-                ));
-            }
-        }
-        if matches!(s.backend, GCS | KPZ101) && q.backend != REDPITAYA {
+        // a QPD on a network host has a TCP port number there, not a device path
+        if q.backend != SIM && q.host.is_none() {
             if let Some(qp) = &q.port {
-                if self.stage_ports().iter().any(|p| p == qp) {
+                if self.stage.distinct_ports().iter().any(|p| p == qp) {
                     return Err(err(
                         "qpd.port",
                         format!("{qp:?}: the stage and the QPD cannot share one port"),
@@ -681,6 +406,15 @@ impl Config {
             }
         }
         Ok(())
+    }
+
+    /// The `[stage]`, `[qpd]` and `[raster]` tables, as the device families read them.
+    pub fn tables(&self) -> Tables<'_> {
+        Tables {
+            stage: &self.stage,
+            qpd: &self.qpd,
+            raster: self.raster.as_ref(),
+        }
     }
 
     /// Baud rates and timeouts.
@@ -811,328 +545,12 @@ impl Config {
                 ));
             }
         }
-        if q.backend == SCPI {
-            if let Some(r) = q.range_v {
-                if !(r.is_finite() && r > 0.0) {
-                    return Err(err(
-                        "qpd.range_v",
-                        format!("{r}: the digitiser's input range ±V, above 0"),
-                    ));
-                }
-            }
-        }
         Ok(())
     }
 
     /// The safety rules in force before narrowing to a stage's travel range.
     pub fn soft_limits(&self) -> SoftLimits {
         self.safety.limits()
-    }
-
-    /// `stage.port` and `stage.ports`: one of the two, each port `tcp://HOST:PORT` or a
-    /// serial path.
-    fn validate_stage_ports(&self) -> Result<(), ConfigError> {
-        let s = &self.stage;
-        match (&s.port, &s.ports) {
-            (Some(p), Some(ps)) => {
-                return Err(err(
-                    "stage.ports",
-                    format!(
-                        "both stage.port = {p:?} and stage.ports = {{ x = {:?}, y = {:?}, z = {:?} }} are set: \
-                         give stage.port (one controller for x, y and z) or stage.ports (the controller of \
-                         each axis), not both",
-                        ps.x, ps.y, ps.z
-                    ),
-                ))
-            }
-            (None, None) => {
-                return Err(err(
-                    "stage.port",
-                    "required when backend = \"gcs\" (e.g. \"/dev/ttyUSB0\" or \"tcp://192.168.0.10:50000\"; \
-                     or stage.ports = { x = …, y = …, z = … } for a stage split across controllers)",
-                ))
-            }
-            _ => {}
-        }
-        let keyed: Vec<(String, &str)> = match (&s.port, &s.ports) {
-            (Some(p), _) => vec![("stage.port".into(), p.as_str())],
-            (_, Some(ps)) => (0..3)
-                .map(|i| (format!("stage.ports.{}", AXIS_NAMES[i]), ps.get(i)))
-                .collect(),
-            _ => vec![],
-        };
-        for (key, p) in keyed {
-            if p.trim().is_empty() {
-                return Err(err(
-                    &key,
-                    "empty: a serial port (e.g. \"/dev/ttyUSB0\") or \"tcp://HOST:PORT\" (e.g. \
-                     \"tcp://192.168.0.10:50000\")",
-                ));
-            }
-            if let Some(addr) = p.strip_prefix(TCP_PREFIX) {
-                let ok = addr.rsplit_once(':').is_some_and(|(host, port)| {
-                    !host.is_empty() && port.parse::<u16>().is_ok_and(|n| n > 0)
-                });
-                if !ok {
-                    return Err(err(
-                        &key,
-                        format!(
-                            "{p:?} is not tcp://HOST:PORT: allowed are a serial port (e.g. \"/dev/ttyUSB0\") or \
-                             tcp:// with a host and a port 1–65535 (PI controllers: \"tcp://192.168.0.10:50000\")"
-                        ),
-                    ));
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// `kpz101`: one cube per axis, so `stage.ports` with three different serial ports.
-    fn validate_kpz101(&self) -> Result<(), ConfigError> {
-        let s = &self.stage;
-        let Some(ps) = &s.ports else {
-            return Err(err(
-                "stage.ports",
-                match &s.port {
-                    Some(p) => format!(
-                        "required when backend = \"kpz101\" (one cube per axis); stage.port = {p:?} names one: \
-                         write stage.ports = {{ x = \"/dev/ttyUSB0\", y = \"/dev/ttyUSB1\", z = \"/dev/ttyUSB2\" }}"
-                    ),
-                    None => "required when backend = \"kpz101\" (one cube per axis): e.g. stage.ports = \
-                             { x = \"/dev/ttyUSB0\", y = \"/dev/ttyUSB1\", z = \"/dev/ttyUSB2\" }"
-                        .to_string(),
-                },
-            ));
-        };
-        if let Some(p) = &s.port {
-            return Err(err(
-                "stage.port",
-                format!(
-                    "{p:?}: with backend = \"kpz101\" give stage.ports only (one cube per axis)"
-                ),
-            ));
-        }
-        for i in 0..3 {
-            let p = ps.get(i);
-            let key = format!("stage.ports.{}", AXIS_NAMES[i]);
-            if p.trim().is_empty() || p.starts_with(TCP_PREFIX) {
-                return Err(err(
-                    &key,
-                    format!("{p:?}: a KPZ101 is a USB-serial device: allowed is a serial port (e.g. \"/dev/ttyUSB0\")"),
-                ));
-            }
-            for j in 0..i {
-                if ps.get(j) == p {
-                    return Err(err(
-                        &key,
-                        format!(
-                            "{p:?} is also stage.ports.{}: a KPZ101 drives one axis, each axis needs its own cube",
-                            AXIS_NAMES[j]
-                        ),
-                    ));
-                }
-            }
-        }
-        if !(s.full_scale == 32767 || s.full_scale == 65535) {
-            return Err(err(
-                "stage.full_scale",
-                format!(
-                    "{}: allowed values are 32767 (Thorlabs' document) and 65535",
-                    s.full_scale
-                ),
-            ));
-        }
-        if !(s.tolerance_um.is_finite() && s.tolerance_um > 0.0) {
-            return Err(err(
-                "stage.tolerance_um",
-                format!("{}: must be a positive distance in µm", s.tolerance_um),
-            ));
-        }
-        if let Some(t) = s.travel_um {
-            for i in 0..3 {
-                if !(t[i].is_finite() && t[i] > 0.0 && t[i] <= 6553.5) {
-                    return Err(err(
-                        "stage.travel_um",
-                        format!(
-                            "{}: {} µm must be a positive travel up to 6553.5 µm",
-                            AXIS_NAMES[i], t[i]
-                        ),
-                    ));
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// Driver settings for the KPZ101 cubes.
-    pub fn kpz_options(&self) -> crate::instrument::thorlabs::kpz101::KpzOptions {
-        let s = &self.stage;
-        crate::instrument::thorlabs::kpz101::KpzOptions {
-            timeout: Duration::from_millis(s.timeout_ms),
-            on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
-            poll_interval: Duration::from_millis(s.poll_ms()),
-            tolerance_um: s.tolerance_um,
-            travel_um: None,
-            full_scale: s.full_scale as u16,
-            rtscts: true,
-            zero_at_connect: s.zero_at_connect,
-            zero_timeout: Duration::from_millis(s.zero_timeout_ms),
-        }
-    }
-
-    /// Driver settings for the KPA101.
-    pub fn kpa_options(&self) -> crate::instrument::thorlabs::kpa101::KpaOptions {
-        let q = &self.qpd;
-        crate::instrument::thorlabs::kpa101::KpaOptions {
-            timeout: Duration::from_millis(q.timeout_ms),
-            calibration: q.calibration,
-            sum_scale: q.sum_scale,
-            x_sign: q.x_sign,
-            signed: q.signed,
-            rtscts: true,
-            sum_floor_v: q.sum_floor,
-        }
-    }
-
-    /// The distinct stage ports, in x, y, z order of first use (empty unless `gcs`).
-    pub fn stage_ports(&self) -> Vec<String> {
-        let s = &self.stage;
-        let mut out: Vec<String> = Vec::new();
-        match (&s.port, &s.ports) {
-            (Some(p), _) => out.push(p.clone()),
-            (None, Some(ps)) => {
-                for i in 0..3 {
-                    if !out.iter().any(|p| p == ps.get(i)) {
-                        out.push(ps.get(i).to_string());
-                    }
-                }
-            }
-            _ => {}
-        }
-        out
-    }
-
-    /// Driver settings for the GCS stage on one controller (all three axes).
-    pub fn gcs_options(&self) -> GcsOptions {
-        let s = &self.stage;
-        GcsOptions {
-            axes: [0, 1, 2].map(|i| Some(s.axes.get(i).to_string())),
-            timeout: Duration::from_millis(s.timeout_ms),
-            on_target_timeout: Duration::from_millis(s.on_target_timeout_ms),
-            poll_interval: Duration::from_millis(s.poll_ms()),
-            servo_on_connect: s.servo_on_connect,
-            units_per_um: s.units_per_um,
-            one_axis_per_query: s.one_axis_per_query,
-            motion_status: s.motion_status,
-            confirm_on_target: true,
-            trigger_line: s.trigger_line,
-            servo_cycle_s: s.servo_cycle_s,
-            max_wave_points: s.max_wave_points,
-            max_record_points: s.max_record_points,
-        }
-    }
-
-    /// The GCS controllers of the stage: (port, driver settings naming the axes on that port),
-    /// one per distinct port in x, y, z order; a single entry for `stage.port`.
-    pub fn gcs_controllers(&self) -> Vec<(String, GcsOptions)> {
-        let base = self.gcs_options();
-        match &self.stage.ports {
-            None => vec![(self.stage.port.clone().unwrap_or_default(), base)],
-            Some(ps) => self
-                .stage_ports()
-                .into_iter()
-                .map(|port| {
-                    let mut o = base.clone();
-                    for i in 0..3 {
-                        if ps.get(i) != port {
-                            o.axes[i] = None;
-                        }
-                    }
-                    (port, o)
-                })
-                .collect(),
-        }
-    }
-
-    /// Driver settings for the SCPI QPD.
-    /// `[qpd]` for a Red Pitaya: `host` required (a name or address, without a port), `port`
-    /// a TCP port number, the channel map inputs 1–4 and different, a positive sample rate up
-    /// to the board's 125 MHz.
-    fn validate_redpitaya(&self) -> Result<(), ConfigError> {
-        let q = &self.qpd;
-        let host = q.host.as_deref().unwrap_or("").trim();
-        if host.is_empty() {
-            return Err(err(
-                "qpd.host",
-                "required when backend = \"redpitaya\" (the board's name or address, e.g. \"rp-f0a1b2.local\" or \"192.168.1.100\")",
-            ));
-        }
-        if host.contains("://")
-            || host.contains(char::is_whitespace)
-            || host.matches(':').count() == 1
-        {
-            return Err(err(
-                "qpd.host",
-                format!("{host:?} is not a host name or address (give the port separately: port = 5000)"),
-            ));
-        }
-        self.redpitaya_port()?;
-        if let QpdChannels::Names(_) = q.channels {
-            return Err(err(
-                "qpd.channels",
-                "input names (\"ai0\"…) are for backend = \"nidaqmx\"; a Red Pitaya's inputs are numbers: { sx = 1, sy = 2, sz = 3 }",
-            ));
-        }
-        q.channels
-            .inputs()
-            .check()
-            .map_err(|(k, m)| err(&format!("qpd.channels.{k}"), m))?;
-        let r = q.sample_rate_hz;
-        if !(r.is_finite() && r > 0.0 && r <= crate::instrument::redpitaya::BASE_RATE_HZ) {
-            return Err(err(
-                "qpd.sample_rate_hz",
-                format!("{r} Hz: must be above 0 and at most 125e6 Hz (the board's ADC rate)"),
-            ));
-        }
-        Ok(())
-    }
-
-    /// The Red Pitaya's TCP port: `qpd.port` as a number (default 5000).
-    pub fn redpitaya_port(&self) -> Result<u16, ConfigError> {
-        match self.qpd.port.as_deref() {
-            None => Ok(crate::instrument::redpitaya::DEFAULT_PORT),
-            Some(p) => match p.trim().parse::<u16>() {
-                Ok(n) if n > 0 => Ok(n),
-                _ => Err(err(
-                    "qpd.port",
-                    format!("{p:?}: the SCPI server's TCP port, a number from 1 to 65535 (Red Pitaya: 5000)"),
-                )),
-            },
-        }
-    }
-
-    /// Red Pitaya driver settings from `[qpd]`.
-    pub fn redpitaya_options(&self) -> RedPitayaOptions {
-        RedPitayaOptions {
-            timeout: Duration::from_millis(self.qpd.timeout_ms),
-            calibration: self.qpd.calibration,
-            channels: self.qpd.channels.inputs(),
-            sample_rate_hz: self.qpd.sample_rate_hz,
-            gain: self.qpd.input_gain,
-            sum_floor_v: self.qpd.sum_floor,
-            ..RedPitayaOptions::default()
-        }
-    }
-
-    pub fn scpi_options(&self) -> ScpiOptions {
-        ScpiOptions {
-            timeout: Duration::from_millis(self.qpd.timeout_ms),
-            calibration: self.qpd.calibration,
-            statistics: self.qpd.statistics,
-            range_v: self.qpd.range_v,
-            sum_floor_v: self.qpd.sum_floor,
-            ..ScpiOptions::default()
-        }
     }
 }
 

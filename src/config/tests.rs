@@ -38,7 +38,7 @@ wavelength_nm = 1064.0
     assert_eq!(c.stage.backend, GCS);
     assert_eq!(c.stage.baud, 57600);
     assert_eq!(
-        c.gcs_options().axes,
+        crate::instrument::gcs::config::options(&c.stage).axes,
         crate::instrument::gcs::axes_xyz(["1", "2", "3"])
     );
     assert_eq!(c.qpd.calibration.gain, [2.0, 2.0, 0.5]);
@@ -286,7 +286,7 @@ fn raster_keys_are_checked_and_reach_the_driver() {
     assert_eq!(e.key, "stage.max_record_points");
     let c =
         Config::from_toml_str("[stage]\ntrigger_line = 2\nservo_cycle_s = 4e-5\n", "t").unwrap();
-    let o = c.gcs_options();
+    let o = crate::instrument::gcs::config::options(&c.stage);
     assert_eq!((o.trigger_line, o.servo_cycle_s), (Some(2), Some(4e-5)));
     assert_eq!((o.max_wave_points, o.max_record_points), (None, None));
 }
@@ -366,7 +366,7 @@ fn default_axes_are_an_e727s() {
 fn tcp_ports_are_checked_naming_key_value_and_allowed_form() {
     let c =
         Config::from_toml_str(&format!("{HW}port = \"tcp://192.168.0.10:50000\"\n"), "t").unwrap();
-    assert_eq!(c.stage_ports(), ["tcp://192.168.0.10:50000"]);
+    assert_eq!(c.stage.distinct_ports(), ["tcp://192.168.0.10:50000"]);
     for bad in [
         "tcp://192.168.0.10",
         "tcp://:50000",
@@ -396,7 +396,7 @@ fn stage_split_across_controllers_groups_axes_by_port() {
         "t",
     )
     .unwrap();
-    let ctl = c.gcs_controllers();
+    let ctl = crate::instrument::gcs::config::controllers(&c.stage);
     assert_eq!(ctl.len(), 2);
     assert_eq!(ctl[0].0, "/dev/ttyUSB0");
     assert_eq!(

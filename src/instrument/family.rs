@@ -1,31 +1,14 @@
 //! What a device family declares (the type; the list of families is `registry.rs`). A leaf:
 //! every family's folder names its `FAMILY` with it, and the registry lists them.
 
-use super::Instrument;
+use super::tables::{SectionError, Tables};
+use super::{DeviceError, Instrument, Qpd, Stage};
 
 /// The backend an instrument opened through `bfpscope.toml`'s tables reports (`status().backend`,
 /// the scan metadata's `instrument.backend`), whichever families its stage and QPD are from.
 pub const HARDWARE: &str = "hardware";
 
-/// A `[stage]` or `[qpd]` backend of `bfpscope.toml`: a name some family provides
-/// ([`Family::stages`], [`Family::qpds`]); each family's folder names its own (`gcs::GCS`).
-/// Read from the file through the registry (`registry::config_backend`): a name no family
-/// provides is refused, listing those that are.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct Backend(pub &'static str);
-
-impl Backend {
-    /// The name written in `bfpscope.toml`.
-    pub fn as_str(self) -> &'static str {
-        self.0
-    }
-}
-
-impl serde::Serialize for Backend {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(self.0)
-    }
-}
+pub use super::tables::Backend;
 
 /// How `connect` opens a family.
 #[derive(Clone, Copy)]
@@ -72,7 +55,85 @@ pub struct Family {
     pub open: Open,
     /// What its `[stage]` takes when the file leaves a key out.
     pub stage_defaults: StageDefaults,
+    /// Its part of `bfpscope.toml`: the checks of its keys and how its devices open from
+    /// the tables ([`NO_SECTION`] for a family the file cannot name).
+    pub section: Section,
+    /// Its part of `connect`'s help.
+    pub help: ConnectHelp,
 }
+
+/// A family's words in `help("connect")`.
+#[derive(Clone, Copy)]
+pub struct ConnectHelp {
+    /// Its entry in the list of backends (`"sim"`: what it is), empty for none.
+    pub backend: &'static str,
+    /// Its sentences in the help's text, empty for none.
+    pub about: &'static str,
+}
+
+impl ConnectHelp {
+    /// An entry in the backend list and no sentences of its own.
+    pub const fn entry(backend: &'static str) -> ConnectHelp {
+        ConnectHelp { backend, about: "" }
+    }
+}
+
+/// A device opened from the tables, and its description (the scan metadata's
+/// `instrument.stage` / `instrument.qpd`).
+pub struct Opened<T> {
+    pub device: T,
+    pub description: serde_json::Value,
+}
+
+/// Why a family could not open a device from the tables: a value of the tables, or the
+/// device.
+#[derive(Debug)]
+pub enum OpenError {
+    Table(SectionError),
+    Device(DeviceError),
+}
+
+impl From<SectionError> for OpenError {
+    fn from(e: SectionError) -> Self {
+        OpenError::Table(e)
+    }
+}
+
+impl From<DeviceError> for OpenError {
+    fn from(e: DeviceError) -> Self {
+        OpenError::Device(e)
+    }
+}
+
+/// The checks of a family's keys (called for every file, whichever backends it names: a key
+/// of this family given for another's device is refused here too).
+pub type ValidateFn = fn(&Tables) -> Result<(), SectionError>;
+/// Open the `[stage]` the tables name (read-only: `connect` switches it on once the limits fit).
+pub type OpenStageFn = fn(&Tables) -> Result<Opened<Box<dyn Stage>>, OpenError>;
+/// Open the `[qpd]` the tables name.
+pub type OpenQpdFn = fn(&Tables) -> Result<Opened<Box<dyn Qpd>>, OpenError>;
+/// Open the stage and the QPD together when the family ties them (the NI board driving the
+/// Nano-Drive's external inputs); `None` when the tables do not ask for it.
+pub type OpenPairFn = fn(&Tables) -> Result<Option<OpenedPair>, OpenError>;
+/// A stage and a QPD opened together.
+pub type OpenedPair = (Opened<Box<dyn Stage>>, Opened<Box<dyn Qpd>>);
+
+/// A family's part of `bfpscope.toml`.
+#[derive(Clone, Copy)]
+pub struct Section {
+    pub validate: Option<ValidateFn>,
+    pub open_stage: Option<OpenStageFn>,
+    pub open_qpd: Option<OpenQpdFn>,
+    pub open_pair: Option<OpenPairFn>,
+}
+
+/// The section of a family the file cannot name (`sim`, `mock`, a test's).
+pub const NO_SECTION: Section = Section {
+    validate: None,
+    open_stage: None,
+    open_qpd: None,
+    open_pair: None,
+};
 
 /// A family's defaults for `[stage]` keys whose best value depends on the controller.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -3,7 +3,7 @@
 //! controller does it with `WAV`/`WGO`/`DRR?` (`gcs/wave.rs`); the simulator with its stage
 //! model (`sim/`). Units: µm and s.
 
-/// What a stage's hardware-timed lines can do ([`Stage::line_timing`](super::Stage::line_timing)).
+/// What a stage's hardware-timed lines can do ([`LineScan::line_timing`](super::LineScan::line_timing)).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LineTiming {
     /// The controller's servo cycle, s: the clock of the wave and the recorder.

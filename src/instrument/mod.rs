@@ -23,6 +23,7 @@ pub mod registry;
 pub mod scpi;
 pub mod scpi_session;
 pub mod stream;
+pub mod tables;
 pub mod thorlabs;
 pub mod vendor;
 
@@ -79,11 +80,70 @@ pub trait GaugeZero {
     fn zero_gauge(&mut self) -> Result<[bool; 3], DeviceError>;
 }
 
-/// What a stage offers beyond the [`Stage`] methods every stage has: each a vendor operation
-/// its family implements ([`Stage::capabilities`]); `None` where the stage has none.
-#[derive(Default)]
-pub struct Capabilities<'a> {
-    pub gauge: Option<&'a mut dyn GaugeZero>,
+/// Hardware-timed lines: a wave generator playing the fast axis under the controller's clock,
+/// its trigger output starting the digitiser, a data recorder measuring the positions (PI GCS
+/// `WAV`/`WGO`/`DRR?`; the simulator's model of them): a capability of the families that have
+/// them. The raster engine (`acquire::strategy::line`) drives it.
+pub trait LineScan {
+    /// What the wave generator and the recorder can do; `None` when they cannot serve a raster.
+    fn line_timing(&mut self) -> Result<Option<line::LineTiming>, DeviceError>;
+    /// Wall time a hardware-timed line `s` costs beyond its wave's own duration, s, for the
+    /// raster ETA: starting it, seeing it end, reading the recorder back over the link. 0 when
+    /// unknown (the default).
+    fn line_overhead_s(&self, s: &line::LineSweep) -> f64 {
+        let _ = s;
+        0.0
+    }
+    /// Load the line `s` into the controller (wave, generator, trigger output, recorder).
+    /// Nothing moves. The stage sits at the wave's first point (the engine moved it there).
+    fn configure_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError>;
+    /// Start the configured line (PI: `WGO g 1`): the digitiser's trigger and the recorder
+    /// start with it.
+    fn start_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError>;
+    /// Wait until the line has been played. `Ok(false)`: `abort` was raised, the generator
+    /// and the axes were stopped. A line still running well past its duration is a fault.
+    fn wait_line(
+        &mut self,
+        s: &line::LineSweep,
+        abort: &std::sync::atomic::AtomicBool,
+    ) -> Result<bool, DeviceError>;
+    /// The recorder's target and measured position of every sample of the line just played.
+    fn read_line_record(&mut self, s: &line::LineSweep) -> Result<line::SweepRecord, DeviceError>;
+    /// Stop a line (PI: `WGO g 0`, then `STP`): the generator off, every axis stopped. Sent
+    /// after Ctrl-C and after any fault during a raster; both commands go out even if the
+    /// first fails.
+    fn stop_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError>;
+}
+
+/// Raw queries in the controller's command language, for debugging at the prompt
+/// (`gcs_query("SAI?")`): a capability of the PI GCS family. Only queries: anything that
+/// could move is refused by the driver.
+pub trait RawQuery {
+    /// The controller's reply lines to `query`.
+    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError>;
+}
+
+/// The vendor operations a stage may offer beyond the [`Stage`] methods every stage has, by
+/// name: what [`Stage::capabilities`] is asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CapabilityKind {
+    GaugeZero,
+    Lines,
+    RawQuery,
+    FrameStream,
+}
+
+/// A vendor operation a stage offers ([`Stage::capabilities`]): the stage seen through the
+/// capability's trait.
+pub enum Capability<'a> {
+    /// Strain gauges to zero (Thorlabs KPZ101).
+    GaugeZero(&'a mut dyn GaugeZero),
+    /// Hardware-timed lines (PI GCS wave generator and recorder; the simulator).
+    Lines(&'a mut dyn LineScan),
+    /// Raw queries in the controller's language (PI GCS).
+    RawQuery(&'a mut dyn RawQuery),
+    /// Frames streamed on a board's clock (the NI board driving a Nano-Drive).
+    FrameStream(&'a mut dyn stream::FrameStream),
 }
 
 /// A three-axis positioning stage. Positions in µm.
@@ -130,19 +190,12 @@ pub trait Stage: Send {
     fn velocity(&mut self) -> Result<Option<Pos>, DeviceError> {
         Ok(None)
     }
-    /// The vendor operations this stage's family offers beyond moving and reading (the
-    /// KPZ101's strain-gauge zero); none by default.
-    fn capabilities(&mut self) -> Capabilities<'_> {
-        Capabilities::default()
-    }
-    /// Send a raw *query* to the controller and return its reply lines, for debugging at the
-    /// prompt (`gcs_query("SAI?")`). Only queries: anything that could move is refused by the
-    /// driver. Backends without a command language say so.
-    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
-        Err(DeviceError::Other {
-            device: self.name(),
-            detail: format!("`{query}`: this stage has no command language to query"),
-        })
+    /// The vendor operation `kind` when this stage offers it (its family implements the
+    /// capability's trait), else `None` (the default). Asked through the helpers on
+    /// `dyn Stage`: `gauge`, `lines`, `raw_query`, `frame_stream`.
+    fn capabilities(&mut self, kind: CapabilityKind) -> Option<Capability<'_>> {
+        let _ = kind;
+        None
     }
     /// Time a move takes before it returns, for the scan ETA: the simulated stage's model, or
     /// the running mean of the moves measured so far (PI GCS: `MOV` to on target, link
@@ -163,57 +216,64 @@ pub trait Stage: Send {
     fn link_costs(&mut self) -> link::LinkCosts {
         Vec::new()
     }
+}
+
+/// The capabilities of a stage, asked by name ([`Stage::capabilities`]).
+impl<'s> dyn Stage + 's {
+    /// The strain gauges this stage lets the user zero ([`CapabilityKind::GaugeZero`]).
+    pub fn gauge(&mut self) -> Option<&mut dyn GaugeZero> {
+        match self.capabilities(CapabilityKind::GaugeZero) {
+            Some(Capability::GaugeZero(g)) => Some(g),
+            _ => None,
+        }
+    }
+    /// This stage's hardware-timed lines ([`CapabilityKind::Lines`]).
+    pub fn lines(&mut self) -> Option<&mut dyn LineScan> {
+        match self.capabilities(CapabilityKind::Lines) {
+            Some(Capability::Lines(l)) => Some(l),
+            _ => None,
+        }
+    }
+    /// This stage's hardware-timed lines for `call`, or the error saying it has none.
+    pub fn lines_for(&mut self, call: &str) -> Result<&mut dyn LineScan, DeviceError> {
+        let name = self.name();
+        self.lines().ok_or_else(|| no_lines(name, call))
+    }
+    /// What the stage's hardware-timed lines can do: `None` for a stage without them (the
+    /// raster engine then refuses `mode: "raster"`).
+    pub fn line_timing(&mut self) -> Result<Option<line::LineTiming>, DeviceError> {
+        match self.lines() {
+            Some(l) => l.line_timing(),
+            None => Ok(None),
+        }
+    }
+    /// Stop a line: the lines' own stop, or (a stage without lines) the stage's.
+    pub fn stop_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
+        match self.lines() {
+            Some(l) => l.stop_line(s),
+            None => self.stop(),
+        }
+    }
+    /// The controller's reply lines to a raw query ([`CapabilityKind::RawQuery`]), or the
+    /// error saying this stage has no command language to query.
+    pub fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        let name = self.name();
+        match self.capabilities(CapabilityKind::RawQuery) {
+            Some(Capability::RawQuery(q)) => q.raw_query(query),
+            _ => Err(DeviceError::Other {
+                device: name,
+                detail: format!("`{query}`: this stage has no command language to query"),
+            }),
+        }
+    }
     /// The frame stream of a stage driven by a board's analog outputs on the board's clock
-    /// (`[raster] backend = "nidaqmx"`); `None` (the default) for every other stage. A raster
-    /// on a stage that has one is streamed (`acquire::strategy::stream`).
-    fn frame_stream(&mut self) -> Option<&mut dyn stream::FrameStream> {
-        None
-    }
-    /// What hardware-timed lines (a wave generator and a data recorder) this stage has: `None`
-    /// (the default) when it has none, and the raster engine refuses `mode: "raster"`.
-    fn line_timing(&mut self) -> Result<Option<line::LineTiming>, DeviceError> {
-        Ok(None)
-    }
-    /// Wall time a hardware-timed line `s` costs beyond its wave's own duration, s, for the
-    /// raster ETA: starting it, seeing it end, reading the recorder back over the link. 0 when
-    /// unknown (the default).
-    fn line_overhead_s(&self, s: &line::LineSweep) -> f64 {
-        let _ = s;
-        0.0
-    }
-    /// Load the line `s` into the controller (wave, generator, trigger output, recorder).
-    /// Nothing moves. The stage sits at the wave's first point (the engine moved it there).
-    fn configure_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
-        let _ = s;
-        Err(no_lines(self.name(), "configure_line"))
-    }
-    /// Start the configured line (PI: `WGO g 1`): the digitiser's trigger and the recorder
-    /// start with it.
-    fn start_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
-        let _ = s;
-        Err(no_lines(self.name(), "start_line"))
-    }
-    /// Wait until the line has been played. `Ok(false)`: `abort` was raised, the generator
-    /// and the axes were stopped. A line still running well past its duration is a fault.
-    fn wait_line(
-        &mut self,
-        s: &line::LineSweep,
-        abort: &std::sync::atomic::AtomicBool,
-    ) -> Result<bool, DeviceError> {
-        let _ = (s, abort);
-        Err(no_lines(self.name(), "wait_line"))
-    }
-    /// The recorder's target and measured position of every sample of the line just played.
-    fn read_line_record(&mut self, s: &line::LineSweep) -> Result<line::SweepRecord, DeviceError> {
-        let _ = s;
-        Err(no_lines(self.name(), "read_line_record"))
-    }
-    /// Stop a line (PI: `WGO g 0`, then `STP`): the generator off, every axis stopped. Sent
-    /// after Ctrl-C and after any fault during a raster; both commands go out even if the
-    /// first fails.
-    fn stop_line(&mut self, s: &line::LineSweep) -> Result<(), DeviceError> {
-        let _ = s;
-        self.stop()
+    /// (`[raster] backend = "nidaqmx"`; [`CapabilityKind::FrameStream`]); `None` for every
+    /// other stage. A raster on a stage that has one is streamed (`acquire::strategy::stream`).
+    pub fn frame_stream(&mut self) -> Option<&mut dyn stream::FrameStream> {
+        match self.capabilities(CapabilityKind::FrameStream) {
+            Some(Capability::FrameStream(f)) => Some(f),
+            _ => None,
+        }
     }
 }
 

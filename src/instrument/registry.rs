@@ -6,7 +6,9 @@
 //! errors) and the REPL read this list. A family known only at run time (a test's, a user's
 //! build) joins with [`register_family`].
 
-pub use super::family::{Backend, BuildFn, Family, Open, StageDefaults, STAGE_DEFAULTS};
+pub use super::family::{
+    Backend, BuildFn, ConnectHelp, Family, Open, Section, StageDefaults, NO_SECTION, STAGE_DEFAULTS,
+};
 use std::sync::{Mutex, OnceLock};
 
 /// The families built in, one line each (the folder's `FAMILY`).
@@ -80,6 +82,11 @@ pub fn by_backend(name: &str) -> Option<Family> {
 /// The family providing the `[stage] backend` `name`.
 pub fn by_stage(name: &str) -> Option<Family> {
     families().into_iter().find(|f| f.stages.contains(&name))
+}
+
+/// The family providing the `[qpd] backend` `name`.
+pub fn by_qpd(name: &str) -> Option<Family> {
+    families().into_iter().find(|f| f.qpds.contains(&name))
 }
 
 /// Every `[stage] backend` value (`qpd: false`) or `[qpd] backend` value (`qpd: true`), in
@@ -216,6 +223,11 @@ mod tests {
             keys: &[],
             open: Open::Mock,
             stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
+            section: NO_SECTION,
+            help: ConnectHelp {
+                backend: "",
+                about: "",
+            },
         };
         let e = register_family(f).unwrap_err();
         assert!(

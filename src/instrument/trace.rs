@@ -111,11 +111,18 @@ impl Stage for Traced<dyn Stage> {
             fn name(&self) -> String;
             fn position(&mut self) -> Result<Pos, DeviceError>;
             fn target(&mut self) -> Result<Pos, DeviceError>;
-            fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError>;
             fn set_velocity(&mut self, um_s: f64) -> Result<(), DeviceError>;
             fn velocity(&mut self) -> Result<Option<Pos>, DeviceError>;
             fn enable(&mut self) -> Result<(), DeviceError>;
             fn travel_range(&mut self) -> Result<[(f64, f64); 3], DeviceError>;
+        }
+    }
+    /// The inner stage's raw queries (they move nothing); its other capabilities are not
+    /// offered through the trace, whose record is of moves.
+    fn capabilities(&mut self, kind: super::CapabilityKind) -> Option<super::Capability<'_>> {
+        match kind {
+            super::CapabilityKind::RawQuery => self.inner.capabilities(kind),
+            _ => None,
         }
     }
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {

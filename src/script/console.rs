@@ -102,6 +102,16 @@ fn line_channel(
 }
 
 pub fn register(r: &mut Registrar) {
+    bind_session_files(r);
+    bind_spec_moves(r);
+    bind_lup(r);
+    bind_line_statistics(r);
+    bind_scan_kind(r);
+    bind_protocol_pages(r);
+}
+
+/// `pwd`, `ls`, `note`, `scans`: the session folder and what is in it.
+fn bind_session_files(r: &mut Registrar) {
     let d = Doc::func("pwd")
         .returns("string", "the session folder")
         .summary("the session folder: where scans, figures, templates and the session log go")
@@ -138,6 +148,10 @@ pub fn register(r: &mut Registrar) {
     r.overload("scans", move || scans_all(&c));
 
     // SPEC words
+}
+
+/// SPEC's `wm`, `umv`, `umvr`: where the motors are, moves that print as they go.
+fn bind_spec_moves(r: &mut Registrar) {
     let d = Doc::func("wm")
         .summary("SPEC's `wm` (where motor): print the position of every axis (as wa)")
         .example("wm()", "()");
@@ -161,6 +175,10 @@ pub fn register(r: &mut Registrar) {
             move_and_show(&ctx, base, m)
         });
     }
+}
+
+/// SPEC's `lup`: a relative line scan that returns to its start.
+fn bind_lup(r: &mut Registrar) {
     let d = Doc::func("lup")
         .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
         .arg(
@@ -192,6 +210,10 @@ pub fn register(r: &mut Registrar) {
             lup(&ctx, a, f, t, n, d)
         },
     );
+}
+
+/// SPEC's `peak`, `cen`, `com`, `fwhm` of a line scan.
+fn bind_line_statistics(r: &mut Registrar) {
     for (name, what) in [
         (
             "peak",
@@ -216,6 +238,10 @@ pub fn register(r: &mut Registrar) {
             line_statistic(name, &sc, LINE_CHANNEL)
         });
     }
+}
+
+/// `Scan.kind`: what kind of scan this is.
+fn bind_scan_kind(r: &mut Registrar) {
     let d = Doc::property("Scan", "kind")
         .returns("string", "\"XY\", \"XZ\", \"YZ\" or \"line\"")
         .summary("what kind of scan this is (from its axes); analyses refuse the wrong kind, naming it")
@@ -229,7 +255,10 @@ pub fn register(r: &mut Registrar) {
             save_template_with(&c, t, path, &m)
         },
     );
+}
 
+/// `protocol_options`, `protocol_page`: a protocol's declared options and its help page.
+fn bind_protocol_pages(r: &mut Registrar) {
     let d = Doc::func("protocol_options")
         .arg("decl", "map", "", "the protocol's declaration #{name, summary, usage, args: [#{key, ty, unit, default, min, max, one_of, required, doc}], returns, saves, example}")
         .arg("opts", "map", "", "the options the user passed")

@@ -113,6 +113,15 @@ const PLOT_HIST_BINS: i64 = 20;
 const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
 
 pub fn register(r: &mut Registrar) {
+    bind_plot(r);
+    bind_line_plots(r);
+    bind_plot_hist(r);
+    bind_tiff(r);
+    bind_save_csv(r);
+}
+
+/// `plot`: an image or a scan channel as a heat map.
+fn bind_plot(r: &mut Registrar) {
     let ctx = r.ctx();
     let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
@@ -139,7 +148,11 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.jpg\")"), "error: figure files end in .png or .svg")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.png\", #{{channel: \"sq\"}})"), "error: channel = \"sq\"");
     bind_figure(r, d, &ctx, plot);
+}
 
+/// `plot_profile`, `plot_xy`: line figures.
+fn bind_line_plots(r: &mut Registrar) {
+    let ctx = r.ctx();
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
         .arg("path", "string", "", "figure file, .png or .svg")
@@ -161,7 +174,11 @@ pub fn register(r: &mut Registrar) {
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
         .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
     bind_figure(r, d, &ctx, plot_xy);
+}
 
+/// `plot_hist`: a histogram figure.
+fn bind_plot_hist(r: &mut Registrar) {
+    let ctx = r.ctx();
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
         .arg("path", "string", "", "figure file, .png or .svg")
@@ -184,6 +201,10 @@ pub fn register(r: &mut Registrar) {
     bind_figure(r, d, &ctx, plot_hist);
 
     // ---------------------------------------------------------------- TIFF and CSV
+}
+
+/// `save_tiff`, `load_tiff`: float32 TIFF for Fiji/ImageJ.
+fn bind_tiff(r: &mut Registrar) {
     let d = Doc::func("save_tiff")
         .arg(
             "img",
@@ -213,7 +234,10 @@ pub fn register(r: &mut Registrar) {
             "error: load_tiff: no/such.tif",
         );
     r.bind(d, |path: &str| load_tiff(path));
+}
 
+/// `save_csv`: profiles and tables as CSV.
+fn bind_save_csv(r: &mut Registrar) {
     let d = Doc::func("save_csv")
         .arg("data", "Profile | map", "", "a Profile (two columns) or a table #{column: [numbers], …} (columns of equal length, in key order)")
         .arg("path", "string", "", ".csv file (overwritten)")

@@ -56,7 +56,7 @@ pub fn register(r: &mut Registrar) {
 fn zero_gauge(c: &Ctx) -> RResult<rhai::Map> {
     c.with_instrument("zero_gauge", |i| {
         let name = i.stage.name();
-        let r = match i.stage.capabilities().gauge {
+        let r = match i.stage.gauge() {
             Some(g) => g.zero_gauge(),
             None => Err(crate::instrument::DeviceError::Other {
                 device: name,

@@ -208,6 +208,17 @@ fn bind_reads(r: &mut Registrar) {
     r.bind_ctx(d, |c| move || status(&c));
 }
 
+/// The families' parts of `connect`'s help (their backend entries or their sentences),
+/// joined in the registry's order.
+fn help_of(part: fn(&registry::ConnectHelp) -> &'static str, sep: &str) -> String {
+    registry::families()
+        .iter()
+        .map(|f| part(&f.help))
+        .filter(|s| !s.is_empty())
+        .collect::<Vec<_>>()
+        .join(sep)
+}
+
 /// `connect`, `disconnect`, `mock_commands`.
 fn bind_connect(r: &mut Registrar) {
     let ctx = r.ctx();
@@ -217,7 +228,7 @@ fn bind_connect(r: &mut Registrar) {
             "config",
             "which backend and its options (all optional: connect() connects what the config names)",
             &[
-                BACKEND.doc("optional: \"config\" (default: what bfpscope.toml names, the simulator without one), \"sim\", \"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports), \"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner), \"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster]), \"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP), \"emulated\" (the serial drivers talking to in-process emulators), \"mock\"".to_string()),
+                BACKEND.doc(format!("optional: \"config\" (default: what bfpscope.toml names, the simulator without one), {}", help_of(|h| h.backend, ", "))),
                 STAGE_PORT.doc("optional: stage serial port, overrides [stage] port (hardware)".to_string()),
                 QPD_PORT.doc("optional: QPD serial port, overrides [qpd] port (hardware, thorlabs)".to_string()),
                 QPD_HOST.doc(format!("optional: the Red Pitaya's host name or address, overrides [qpd] host (redpitaya; TCP port from [qpd] port, default {})", crate::instrument::redpitaya::DEFAULT_PORT)),
@@ -241,22 +252,12 @@ fn bind_connect(r: &mut Registrar) {
         .form("connect() -> string")
         .returns("string", "what was connected")
         .summary("connect an instrument backend (replaces and closes the current one)")
-        .help(
+        .help(&format!(
             "connect() connects what bfpscope.toml names ([stage]/[qpd] backends and ports; the simulator without \
-             a config), as `bfpscope repl|run|eval` do at start. \"sim\": the simulated instrument. \"hardware\": \
-             the PI GCS 2.0 stage and SCPI QPD drivers on the config's ports (stage_port, qpd_port, baud, … \
-             override them); connecting identifies both devices, switches the servos on and reads the travel range. \
-             \"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
-             and connects the real drivers to them; the QPD answers with the simulator's signal of the scene at the \
-             emulated stage position, so scans go through the whole hardware path without hardware (real time); \
-             with qpd: \"redpitaya\" the QPD is a Red Pitaya board emulator over loopback TCP whose external \
-             trigger is wired to the stage's trigger output OUT1, for hardware-timed rasters (mode: \"raster\"). \
-             The mock backend is for tests and examples: a noiseless analytic signal \
-             sx = x·exp(-(x²+y²)/0.16)·exp(-z²/0.5), sy = 0.7·y·(same), sz = 1 - 0.1·(same), on a \
-             virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
-             abort flag, to test the safety rules from scripts. The [safety] rules apply to every backend. \
+             a config), as `bfpscope repl|run|eval` do at start. {} The [safety] rules apply to every backend. \
              Errors name the backend and the device or port (docs/hardware.md).",
-        )
+            help_of(|h| h.about, " ")
+        ))
         .example("connect(#{backend: \"mock\", start: #{x: 2.0}}); pos().x", "2.0")
         .example("connect(#{backend: \"sim\"}); status().backend", "\"sim\"")
         .example("connect(#{backend: \"sim\", pace: -1.0})", "error: connect: pace = -1.0 is out of range")
@@ -589,7 +590,7 @@ fn connect_hardware(ctx: &Ctx, cfg: &Config, name: &str) -> Result<String, Strin
     // (a Red Pitaya by its address: its SCPI server serves one client at a time)
     let rp_address = (cfg.qpd.backend == REDPITAYA)
         .then(|| {
-            let port = cfg.redpitaya_port().ok()?;
+            let port = crate::instrument::redpitaya::config::port(&cfg.qpd).ok()?;
             Some(format!("{}:{port}", cfg.qpd.host.as_deref()?))
         })
         .flatten();

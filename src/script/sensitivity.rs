@@ -27,6 +27,15 @@ pub fn register(r: &mut Registrar) {
 // ------------------------------------------------------------------ sensitivity
 
 fn register_sensitivity(r: &mut Registrar) {
+    bind_sensitivity(r);
+    bind_peaks(r);
+    bind_max_sens(r);
+    bind_focus_search(r);
+    bind_profile_along(r);
+}
+
+/// `sensitivity(img | scan, [opts])`: the sensitivity image (eq. sensitivity).
+fn bind_sensitivity(r: &mut Registrar) {
     let d = Doc::func("sensitivity")
         .arg("img", "Image | Scan", "", "an image (or a scan: Sx for axis x, Sy for axis y)")
         .map(
@@ -49,7 +58,10 @@ fn register_sensitivity(r: &mut Registrar) {
     r.overload("sensitivity", move |v: Dynamic| {
         sensitivity_of(&s2, v, &Map::new())
     });
+}
 
+/// `row_peaks`, `col_peaks`: peaks along rows or columns.
+fn bind_peaks(r: &mut Registrar) {
     let keys = peak_keys();
     for (name, rows) in [("row_peaks", true), ("col_peaks", false)] {
         let d = Doc::func(name)
@@ -77,7 +89,11 @@ fn register_sensitivity(r: &mut Registrar) {
             line_maxima(&s2, name, rows, &i, &Map::new())
         });
     }
+}
 
+/// `max_sens`: the largest sensitivity around one point object.
+fn bind_max_sens(r: &mut Registrar) {
+    let keys = peak_keys();
     let d = Doc::func("max_sens")
         .arg("img", "Image", "", "a sensitivity image around one point object")
         .map("opts", "optional", &keys)
@@ -92,7 +108,10 @@ fn register_sensitivity(r: &mut Registrar) {
     r.overload("max_sens", move |i: ImageRef| {
         max_sens(&c2, &s2, &i, &Map::new())
     });
+}
 
+/// `focus_search`: the focus from a z series.
+fn bind_focus_search(r: &mut Registrar) {
     let fd = FocusOptions::default();
     let d = Doc::func("focus_search")
         .arg("img", "Image | Scan", "", "an XZ (or YZ) scan channel: rows are z (a Scan: its Sx)")
@@ -123,7 +142,10 @@ fn register_sensitivity(r: &mut Registrar) {
     r.overload("focus_search", move |v: Dynamic| {
         focus_search_of(&c2, &s2, v, &Map::new())
     });
+}
 
+/// `profile_along`: an image sampled along a polyline.
+fn bind_profile_along(r: &mut Registrar) {
     let d = Doc::func("profile_along")
         .arg("img", "Image", "", "any image")
         .arg("points", "array", "µm", "polyline [[x, y], …]")

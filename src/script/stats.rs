@@ -7,6 +7,13 @@ use crate::analysis::stats::{histogram, linfit, loglog_fit, summary, MAX_BINS};
 use rhai::{Array, Dynamic, Map};
 
 pub fn register(r: &mut Registrar) {
+    bind_summary(r);
+    bind_histogram(r);
+    bind_line_fits(r);
+}
+
+/// `summary(values)`.
+fn bind_summary(r: &mut Registrar) {
     let d = Doc::func("summary")
         .arg(
             "values",
@@ -19,7 +26,10 @@ pub fn register(r: &mut Registrar) {
         .example("summary([1.0, 2.0, 3.0]).std", "1.0")
         .example("summary([])", "error: ");
     r.bind(d, |a: Array| summary_of(a));
+}
 
+/// `histogram(values, bins, [range])`.
+fn bind_histogram(r: &mut Registrar) {
     let d = Doc::func("histogram")
         .arg("values", "array", "", "numbers")
         .arg(
@@ -45,7 +55,10 @@ pub fn register(r: &mut Registrar) {
     r.overload("histogram", |a: Array, bins: i64, range: Array| {
         histogram_of(a, bins, Some(range))
     });
+}
 
+/// `linfit`, `loglog_fit`: straight lines with uncertainties.
+fn bind_line_fits(r: &mut Registrar) {
     for (name, log) in [("linfit", false), ("loglog_fit", true)] {
         let d = Doc::func(name)
             .arg("x", "array", "", "abscissae")

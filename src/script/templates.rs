@@ -240,6 +240,13 @@ fn bind_render_beads(r: &mut Registrar) {
 const DEFAULT_MIN_DROP: f64 = 0.02;
 
 fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
+    bind_fit_beads(r, ctx);
+    bind_fit_numbers(r);
+    bind_fit_verdict(r);
+}
+
+/// `fit_beads(scan, tpl, [opts])`: its options, declared once with their defaults.
+fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
     // the defaults in the help come from FitOptions::default(), never repeated here
     let fd = FitOptions::default();
     let keys: Vec<(&str, &str, &str, String)> = vec![
@@ -280,7 +287,10 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     r.overload("fit_beads", move |s: ScanRef, t: TemplateRef| {
         fit_beads_of(&c2, &s2, &s, &t, &Map::new())
     });
+}
 
+/// The fit's beads and numbers: `FitResult`'s beads, χ², RSS, σ, BIC, condition, counts.
+fn bind_fit_numbers(r: &mut Registrar) {
     let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
     properties!(r, "FitResult", FitRef, fx, [
         beads: "array", "[#{x, y, weight, x_err, y_err, weight_err, x_crlb, y_crlb, weight_crlb, found}] (µm, reference-bead units; errors 1σ or () when ill-conditioned; *_crlb: the Cramér–Rao bound of the scan's Sx and Sy pixels at the fit with its σ, or (); found: the weight is significantly positive, weight − 3σ > 0 — a bead not found is noise and its position means nothing)"; "the fitted beads"; "round(f.beads[0].weight * 1000.0)" => "1000.0"; |f| -> Array { f.0.beads.iter().map(bead_map).collect() },
@@ -325,6 +335,12 @@ fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
     ];
     let ex = |name: &str| (format!("{fx} f.{name} > 0"), "true");
     r.named_getters("FitResult", "int", &count_rows, ex, fit_count);
+}
+
+/// The fit's verdict and images: `FitResult`'s status, warnings, optimiser, history, model
+/// and residual images, `subtract`, `to_map`.
+fn bind_fit_verdict(r: &mut Registrar) {
+    let fx = format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}});");
     properties!(r, "FitResult", FitRef, fx, [
         status: "string", "\"ok\" when `warnings` is empty, else \"flagged\""; "whether the answer is inside its domain (docs/analysis.md, Domains)"; "f.status" => "\"ok\""; |f| -> String { crate::analysis::domain::status(&f.0.warnings).to_string() },
         warnings: "array", "[string]: where the answer leaves its domain (a bead not found, outside the template's size domain, near the scan's edge, a model that does not describe the data, degeneracies, clipped or dark pixels among those fitted); empty when positions, weights and σ hold"; "what the answer cannot vouch for"; "f.warnings.len()" => "0"; |f| -> Array { f.0.warnings.iter().map(|w| Dynamic::from(w.clone())).collect() },

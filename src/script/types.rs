@@ -424,8 +424,19 @@ fn register_scan(r: &mut Registrar) {
     );
 }
 
+/// The image the `Image` examples read: the mock signal on a 21×21 grid.
+const IMG: &str = "let img = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 21, ny: 21}).sx;";
+
 fn register_image(r: &mut Registrar) {
-    const IMG: &str = "let img = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 21, ny: 21}).sx;";
+    bind_image_properties(r);
+    bind_image_sums(r);
+    bind_image_pixels(r);
+    bind_image_crop(r);
+    bind_image_arithmetic(r);
+}
+
+/// `Image`'s shape and axes, and its statistics (`max`, `min`, …).
+fn bind_image_properties(r: &mut Registrar) {
     properties!(r, "Image", ImageRef, IMG, [
         rows: "int", ""; "number of rows"; "img.rows" => "21"; |i| i.0.rows() as INT,
         cols: "int", ""; "number of columns"; "img.cols" => "21"; |i| i.0.cols() as INT,
@@ -460,6 +471,10 @@ fn register_image(r: &mut Registrar) {
             .example(&format!("{IMG} round(img.{name}() * 1e4) / 1e4"), ex_val)
     };
     register_stats(r, stat_list, doc, "img", image_stat);
+}
+
+/// `Image.sum`, `abs`, `argmax`.
+fn bind_image_sums(r: &mut Registrar) {
     r.bind(
         Doc::method("Image", "sum")
             .returns("float", "")
@@ -490,6 +505,10 @@ fn register_image(r: &mut Registrar) {
             ),
         |i: &mut ImageRef| image_argmax(i),
     );
+}
+
+/// `Image.at`, `row`, `col`: pixels and lines.
+fn bind_image_pixels(r: &mut Registrar) {
     r.bind(
         Doc::method("Image", "at")
             .arg("i", "int", "", "row index, 0 ≤ i < rows")
@@ -523,6 +542,10 @@ fn register_image(r: &mut Registrar) {
             .example(&format!("{IMG} img.col(3).t[0]"), "-0.5"),
         |im: &mut ImageRef, j: Dynamic| image_col(im, &j),
     );
+}
+
+/// `Image.crop`, `to_array`.
+fn bind_image_crop(r: &mut Registrar) {
     r.bind(
         Doc::method("Image", "crop")
             .arg("r0", "int", "", "first row")
@@ -546,7 +569,10 @@ fn register_image(r: &mut Registrar) {
             .example(&format!("{IMG} img.crop(0, 1, 0, 2).to_array().len"), "2"),
         |im: &mut ImageRef| image_to_array(im),
     );
+}
 
+/// `Image` arithmetic: `+ - * /` with images and numbers.
+fn bind_image_arithmetic(r: &mut Registrar) {
     r.declare(
         Doc::operator("Image", "arithmetic")
             .form("img + img2, img - img2, img * img2, img / img2, img * 2.0, 2.0 * img, img + 1, img / 4, -img")

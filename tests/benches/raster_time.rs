@@ -18,7 +18,7 @@ use bfpscope::acquire::run_raster;
 use bfpscope::acquire::{run_plan, Axis, Plan, ScanEnv, SoftLimits, Sweep};
 use bfpscope::instrument::gcs::{GcsOptions, GcsStage, LineSweep};
 use bfpscope::instrument::redpitaya::{ChannelMap, RedPitaya, RedPitayaOptions};
-use bfpscope::instrument::{Instrument, Stage, WallClock};
+use bfpscope::instrument::{Instrument, LineScan, Stage, WallClock};
 use emulate::Emulator;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -110,7 +110,7 @@ fn configure_cost(stage: &str) -> (f64, f64) {
         ..GcsOptions::default()
     };
     let mut s = GcsStage::open(stage, 115_200, gcs).expect("stage");
-    let t = Stage::line_timing(&mut s)
+    let t = LineScan::line_timing(&mut s)
         .expect("line timing")
         .expect("a wave generator");
     // a 64-pixel line at 1 ms: 64 ms of wave at 50 µs, ramps of 100 points

@@ -122,16 +122,23 @@ impl LineStrategy {
         // generator
         if ph.configured.as_ref() != Some(s) {
             ph.configured = None;
-            inst.stage.configure_line(s).map_err(StepFault::stage)?;
+            inst.stage
+                .lines_for("configure_line")
+                .and_then(|l| l.configure_line(s))
+                .map_err(StepFault::stage)?;
             ph.configured = Some(s.clone());
         }
         ph.configure_s += t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
-        inst.stage.start_line(s).map_err(StepFault::stage)?;
+        inst.stage
+            .lines_for("start_line")
+            .and_then(|l| l.start_line(s))
+            .map_err(StepFault::stage)?;
         // the line is played to its end: Ctrl-C takes effect between lines
         let played = inst
             .stage
-            .wait_line(s, &AtomicBool::new(false))
+            .lines_for("wait_line")
+            .and_then(|l| l.wait_line(s, &AtomicBool::new(false)))
             .map_err(StepFault::stage)?;
         ph.wave_s += t.elapsed().as_secs_f64();
         if !played {
@@ -145,7 +152,11 @@ impl LineStrategy {
         let trace = inst.qpd.read_buffered(timeout).map_err(StepFault::other)?;
         ph.qpd_s += t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
-        let record = inst.stage.read_line_record(s).map_err(StepFault::stage)?;
+        let record = inst
+            .stage
+            .lines_for("read_line_record")
+            .and_then(|l| l.read_line_record(s))
+            .map_err(StepFault::stage)?;
         ph.record_s += t.elapsed().as_secs_f64();
         let device = format!("{} + {}", inst.qpd.name(), inst.stage.name());
         let bad = |detail: String| {
@@ -227,7 +238,8 @@ impl Strategy for LineStrategy {
         let line_extra_s = rp
             .lines
             .first()
-            .map_or(0.0, |l| inst.stage.line_overhead_s(&l.sweep));
+            .zip(inst.stage.lines())
+            .map_or(0.0, |(l, scan)| scan.line_overhead_s(&l.sweep));
         let move_s = inst.stage.move_time_s();
         let read_s = inst.qpd.overhead_s();
         let step_s = move_s + rp.line_s + line_extra_s + read_s;

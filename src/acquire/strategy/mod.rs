@@ -139,7 +139,7 @@ pub trait Strategy {
 pub use crate::instrument::samples_per_point;
 
 /// The strategy of `mode: "raster"` on `inst`: the frame stream when the stage has one
-/// (`Stage::frame_stream`), hardware-timed lines otherwise.
+/// (the stage's `FrameStream` capability), hardware-timed lines otherwise.
 pub fn for_raster(inst: &mut Instrument, opts: RasterOptions) -> Box<dyn Strategy> {
     if inst.stage.frame_stream().is_some() {
         Box::new(StreamStrategy::new(opts))

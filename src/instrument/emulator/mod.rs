@@ -91,4 +91,13 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     keys: &["scene", "noise_v", "qpd"],
     open: crate::instrument::family::Open::Emulated,
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
+    section: crate::instrument::family::NO_SECTION,
+    help: crate::instrument::family::ConnectHelp {
+        backend: "\"emulated\" (the serial drivers talking to in-process emulators)",
+        about: "\"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
+             and connects the real drivers to them; the QPD answers with the simulator's signal of the scene at the \
+             emulated stage position, so scans go through the whole hardware path without hardware (real time); \
+             with qpd: \"redpitaya\" the QPD is a Red Pitaya board emulator over loopback TCP whose external \
+             trigger is wired to the stage's trigger output OUT1, for hardware-timed rasters (mode: \"raster\").",
+    },
 };

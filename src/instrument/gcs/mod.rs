@@ -24,6 +24,8 @@
 //! pre-flight), and a target outside the controller's travel comes back as the controller's
 //! own error 7, "Position out of limits".
 
+pub mod config;
+pub use config::FAMILY;
 pub mod emulator;
 pub mod split;
 mod wave;
@@ -182,7 +184,7 @@ pub struct GcsStage {
     moved: Vec<usize>,
     /// Wall time of recent moves (MOV to on target), s: a running mean for the scan ETA.
     move_time: MeanTime,
-    /// What the wave generator and the recorder can do, read once ([`Stage::line_timing`]).
+    /// What the wave generator and the recorder can do, read once ([`LineScan::line_timing`](crate::instrument::LineScan::line_timing)).
     line_timing: Option<crate::instrument::line::LineTiming>,
     /// The wave tables and generator settings loaded for hardware-timed lines.
     waves: WaveCache,
@@ -1087,10 +1089,6 @@ impl Stage for GcsStage {
         self.full(v, "VEL?").map(Some)
     }
 
-    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
-        self.query_only(query)
-    }
-
     fn move_to(&mut self, target: Pos) -> Result<(), DeviceError> {
         self.require_all("MOV")?;
         let t0 = Instant::now();
@@ -1110,30 +1108,6 @@ impl Stage for GcsStage {
             Some(cmd) => self.wait_on_target_or_abort(&cmd, Some(abort)),
             None => Ok(true),
         }
-    }
-
-    /// A line's exchange beyond the wave, from the link model (the connect's latency, the
-    /// configured baud): `WGO g 1` and its `ERR?`; the `#9` poll that sees the generator
-    /// stopped, one poll interval late at most; `DRL? 1 2` (two lines back); `DRR? 1 n 1 2`
-    /// answered by a GCS array: a header of ~200 bytes (`# KEY = VALUE` lines: VERSION, TYPE,
-    /// SEPARATOR, DIM, SAMPLE_TIME, NDATA, a NAME per table, END_HEADER) and a row per recorded
-    /// sample of two positions with six decimals, a space and the line end (~20 bytes), for
-    /// the line's `n` samples. ([`read_record`](GcsStage::read_record)'s timeout allows 300 and
-    /// 24, generously.) On a serial link the readout dominates: 20 bytes a sample at 115200
-    /// baud is 1.7 ms per recorded sample.
-    fn line_overhead_s(&self, s: &crate::instrument::line::LineSweep) -> f64 {
-        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
-            return 0.0;
-        };
-        let wire = |bytes: f64| self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
-        let reply = |out: f64, back: f64| lat + wire(out + back);
-        let n = s.samples() as f64;
-        wire(8.0)
-            + reply(5.0, 2.0)
-            + reply(1.0, 2.0)
-            + self.opts.poll_interval.as_secs_f64()
-            + reply(10.0, 16.0)
-            + reply(16.0, 200.0 + 20.0 * n)
     }
 
     /// The running mean of the moves measured; before the first, the link model's
@@ -1159,6 +1133,21 @@ impl Stage for GcsStage {
         self.send_stop()
     }
 
+    fn capabilities(
+        &mut self,
+        kind: crate::instrument::CapabilityKind,
+    ) -> Option<crate::instrument::Capability<'_>> {
+        use crate::instrument::{Capability, CapabilityKind};
+        match kind {
+            CapabilityKind::Lines => Some(Capability::Lines(self)),
+            CapabilityKind::RawQuery => Some(Capability::RawQuery(self)),
+            _ => None,
+        }
+    }
+}
+
+/// The wave generator and the data recorder: hardware-timed raster lines.
+impl crate::instrument::LineScan for GcsStage {
     /// The line timing, refused without a configured trigger output: a raster needs the
     /// controller to start the digitiser (`[stage] trigger_line`, wired to its external trigger).
     fn line_timing(&mut self) -> Result<Option<crate::instrument::line::LineTiming>, DeviceError> {
@@ -1172,50 +1161,56 @@ impl Stage for GcsStage {
         }
         self.read_line_timing().map(Some)
     }
-
+    /// A line's exchange beyond the wave, from the link model (the connect's latency, the
+    /// configured baud): `WGO g 1` and its `ERR?`; the `#9` poll that sees the generator
+    /// stopped, one poll interval late at most; `DRL? 1 2` (two lines back); `DRR? 1 n 1 2`
+    /// answered by a GCS array: a header of ~200 bytes (`# KEY = VALUE` lines: VERSION, TYPE,
+    /// SEPARATOR, DIM, SAMPLE_TIME, NDATA, a NAME per table, END_HEADER) and a row per recorded
+    /// sample of two positions with six decimals, a space and the line end (~20 bytes), for
+    /// the line's `n` samples. ([`read_record`](GcsStage::read_record)'s timeout allows 300 and
+    /// 24, generously.) On a serial link the readout dominates: 20 bytes a sample at 115200
+    /// baud is 1.7 ms per recorded sample.
+    fn line_overhead_s(&self, s: &crate::instrument::line::LineSweep) -> f64 {
+        let Some(lat) = self.link.latency_s(self.wire_bytes_per_s) else {
+            return 0.0;
+        };
+        let wire = |bytes: f64| self.wire_bytes_per_s.map_or(0.0, |r| bytes / r);
+        let reply = |out: f64, back: f64| lat + wire(out + back);
+        let n = s.samples() as f64;
+        wire(8.0)
+            + reply(5.0, 2.0)
+            + reply(1.0, 2.0)
+            + self.opts.poll_interval.as_secs_f64()
+            + reply(10.0, 16.0)
+            + reply(16.0, 200.0 + 20.0 * n)
+    }
     fn configure_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.wave_configure(s)
     }
-
     fn start_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.wave_start(s)
     }
-
     fn wait_line(&mut self, s: &LineSweep, abort: &AtomicBool) -> Result<bool, DeviceError> {
         self.wave_wait(s, abort)
     }
-
     fn read_line_record(&mut self, s: &LineSweep) -> Result<SweepRecord, DeviceError> {
         self.read_record(s.samples())
     }
-
     fn stop_line(&mut self, s: &LineSweep) -> Result<(), DeviceError> {
         self.wave_stop(s)
+    }
+}
+
+/// Raw GCS queries at the prompt (`gcs_query`).
+impl crate::instrument::RawQuery for GcsStage {
+    fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
+        self.query_only(query)
     }
 }
 
 /// PI GCS 2.0 piezo controllers (the stage), with a SCPI digitiser unless another is named. (listed in `instrument::registry`).
 /// PI GCS 2.0 piezo controller(s): a `[stage]` backend.
 pub const GCS: crate::instrument::family::Backend = crate::instrument::family::Backend("gcs");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "gcs",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[GCS.0],
-    qpds: &[],
-    keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-    stage_defaults: crate::instrument::family::StageDefaults {
-        // `#5` is one byte each way (0.26 ms of wire per poll at 115200 baud): polling every
-        // millisecond costs the controller little
-        poll_ms: 1,
-        settle_s: None,
-    },
-};
 
 #[cfg(test)]
 mod tests {

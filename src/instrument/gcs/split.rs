@@ -163,6 +163,21 @@ impl Stage for GcsSplitStage {
         crate::instrument::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
     }
 
+    fn capabilities(
+        &mut self,
+        kind: crate::instrument::CapabilityKind,
+    ) -> Option<crate::instrument::Capability<'_>> {
+        match kind {
+            crate::instrument::CapabilityKind::RawQuery => {
+                Some(crate::instrument::Capability::RawQuery(self))
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Raw GCS queries at the prompt (`gcs_query`), to every controller.
+impl crate::instrument::RawQuery for GcsSplitStage {
     /// The query to every controller; each reply line is prefixed with the controller's name.
     fn raw_query(&mut self, query: &str) -> Result<Vec<String>, DeviceError> {
         let mut out = Vec::new();

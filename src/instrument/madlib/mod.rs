@@ -22,6 +22,8 @@
 //! reconnect) and after a fault (a negative return code, an on-target timeout): the stage is
 //! held first, and every later call is refused with the fault's message until `connect()`.
 
+pub mod config;
+pub use config::FAMILY;
 pub mod ffi;
 
 use crate::instrument::device::all_then_first_error;
@@ -698,27 +700,6 @@ impl Stage for MadlibStage {
 /// A Mad City Labs Nano-Drive through Madlib (the stage), the paper's bench with an NI board. (listed in `instrument::registry`).
 /// Mad City Labs Nano-Drive through the vendor's library Madlib: a `[stage]` backend.
 pub const MADLIB: crate::instrument::family::Backend = crate::instrument::family::Backend("madlib");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "madlib",
-    backend: "bench",
-    aliases: &[],
-    stages: &[MADLIB.0],
-    qpds: &[],
-    keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
-    stage_defaults: crate::instrument::family::StageDefaults {
-        // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own
-        // (≈ 0.2 ms), so the link sets the pace and a move ends as soon as the readings are on
-        // target (a 5 ms poll cost a 31 nm step 7 ms)
-        poll_ms: 0,
-        // settled on its readings (`tolerance_um`, two in a row): no fixed settle after them
-        settle_s: Some(0.0),
-    },
-};
 
 #[cfg(test)]
 mod tests {

@@ -244,4 +244,12 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     ],
     open: crate::instrument::family::Open::Mock,
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
+    section: crate::instrument::family::NO_SECTION,
+    help: crate::instrument::family::ConnectHelp {
+        backend: "\"mock\"",
+        about: "The mock backend is for tests and examples: a noiseless analytic signal \
+             sx = x·exp(-(x²+y²)/0.16)·exp(-z²/0.5), sy = 0.7·y·(same), sz = 1 - 0.1·(same), on a \
+             virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
+             abort flag, to test the safety rules from scripts.",
+    },
 };

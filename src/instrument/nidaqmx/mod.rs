@@ -22,6 +22,8 @@
 //! arguments, the code with its `NIDAQmx.h` name and the text of `DAQmxGetExtendedErrorInfo`.
 //! Positive returns are warnings and are not errors.
 
+pub mod config;
+pub use config::FAMILY;
 pub mod ffi;
 pub mod raster;
 pub mod stream_stage;
@@ -786,24 +788,15 @@ impl Qpd for NiQpd {
     }
 }
 
+/// PCI-6120: the highest sample rate per channel, Hz.
+pub const PCI6120_MAX_RATE_HZ: f64 = 800_000.0;
+/// PCI-6120: the widest input range, ±V.
+pub const PCI6120_MAX_RANGE_V: f64 = 42.0;
+
 /// An NI DAQ board through NI-DAQmx (the QPD, and the hardware-timed raster of `[raster]`). (listed in `instrument::registry`).
 /// NI DAQ board through NI-DAQmx: a `[qpd]` backend (and `[raster]`).
 pub const NIDAQMX: crate::instrument::family::Backend =
     crate::instrument::family::Backend("nidaqmx");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "nidaqmx",
-    backend: "bench",
-    aliases: &[],
-    stages: &[],
-    qpds: &[NIDAQMX.0],
-    keys: &["timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-};
 
 #[cfg(test)]
 mod tests {

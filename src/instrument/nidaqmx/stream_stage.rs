@@ -317,8 +317,16 @@ impl Stage for NiStreamStage {
         }
         self.stage.stop()
     }
-    fn frame_stream(&mut self) -> Option<&mut dyn FrameStream> {
-        Some(self)
+    fn capabilities(
+        &mut self,
+        kind: crate::instrument::CapabilityKind,
+    ) -> Option<crate::instrument::Capability<'_>> {
+        match kind {
+            crate::instrument::CapabilityKind::FrameStream => {
+                Some(crate::instrument::Capability::FrameStream(self))
+            }
+            _ => None,
+        }
     }
 }
 

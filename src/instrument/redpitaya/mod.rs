@@ -27,6 +27,8 @@
 //! (`ACQ:STOP`). A query the server rejects gets no reply: the error queue (`SYST:ERR?`) is
 //! read to say why.
 
+pub mod config;
+pub use config::FAMILY;
 pub mod emulator;
 
 use crate::instrument::link::{open_tcp, LineLink, Transport};
@@ -130,91 +132,7 @@ pub fn buffered_plan(n: usize, rate: f64, buffer: usize) -> Result<(u32, usize),
     Ok((d, m))
 }
 
-/// Input range jumper setting (`ACQ:SOUR<n>:GAIN`): LV ±1 V, HV ±20 V.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
-pub enum InputGain {
-    #[default]
-    LV,
-    HV,
-}
-
-impl InputGain {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            InputGain::LV => "LV",
-            InputGain::HV => "HV",
-        }
-    }
-    /// Full scale, volts.
-    pub fn full_scale_v(self) -> f64 {
-        match self {
-            InputGain::LV => 1.0,
-            InputGain::HV => 20.0,
-        }
-    }
-}
-
-/// Which fast analog input (1–4) digitises each signal. Sz is optional: a 2-input board has
-/// Sx and Sy only, and Sz then reads 0.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ChannelMap {
-    pub sx: u8,
-    pub sy: u8,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sz: Option<u8>,
-}
-
-impl Default for ChannelMap {
-    fn default() -> Self {
-        Self {
-            sx: 1,
-            sy: 2,
-            sz: None,
-        }
-    }
-}
-
-impl ChannelMap {
-    /// The inputs in the order Sx, Sy, Sz.
-    pub fn inputs(&self) -> [Option<u8>; 3] {
-        [Some(self.sx), Some(self.sy), self.sz]
-    }
-
-    /// Inputs are 1 to 4 and all different. Err: (signal name, message).
-    pub fn check(&self) -> Result<(), (&'static str, String)> {
-        let names = ["sx", "sy", "sz"];
-        let ins = self.inputs();
-        for (i, c) in ins.iter().enumerate() {
-            if let Some(c) = c {
-                if !(1..=4).contains(c) {
-                    return Err((
-                        names[i],
-                        format!(
-                            "input {c}: allowed inputs are 1 and 2 (STEMlab 125-14) or 1 to 4 (its 4-input model)"
-                        ),
-                    ));
-                }
-            }
-        }
-        for i in 0..3 {
-            for j in i + 1..3 {
-                if let (Some(a), Some(b)) = (ins[i], ins[j]) {
-                    if a == b {
-                        return Err((
-                            names[j],
-                            format!(
-                                "input {b} is already {}: each signal needs its own input",
-                                names[i]
-                            ),
-                        ));
-                    }
-                }
-            }
-        }
-        Ok(())
-    }
-}
+pub use super::tables::{ChannelMap, InputGain};
 
 /// Driver settings (see `[qpd]` with `backend = "redpitaya"` in `bfpscope.toml`).
 #[derive(Debug, Clone, PartialEq)]
@@ -730,20 +648,6 @@ impl Qpd for RedPitaya {
 /// Red Pitaya STEMlab board over its SCPI server: a `[qpd]` backend.
 pub const REDPITAYA: crate::instrument::family::Backend =
     crate::instrument::family::Backend("redpitaya");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "redpitaya",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
-    qpds: &[REDPITAYA.0],
-    keys: &["qpd_host", "qpd_port", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "redpitaya",
-    },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-};
 
 #[cfg(test)]
 mod tests {

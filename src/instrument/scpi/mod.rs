@@ -15,48 +15,15 @@
 //! Every command is followed by `SYST:ERR?`. Volts become workbench signal units through the
 //! configured [`Calibration`]: `signal = gain · (volts − offset_v)` per channel.
 
+pub mod config;
+pub use config::FAMILY;
 pub mod emulator;
 
 use crate::instrument::link::{open_serial, LineLink, Transport};
 use crate::instrument::{DeviceError, Qpd, QpdReading};
 use std::time::Duration;
 
-/// Volts → signal units, per channel (Sx, Sy, Sz): `signal = gain · (volts − offset_v)`.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Calibration {
-    /// Signal units per volt.
-    pub gain: [f64; 3],
-    /// Volts read with the beam centred and no sample (dark/centred offset).
-    pub offset_v: [f64; 3],
-}
-
-impl Default for Calibration {
-    fn default() -> Self {
-        Self {
-            gain: [1.0; 3],
-            offset_v: [0.0; 3],
-        }
-    }
-}
-
-impl Calibration {
-    /// Convert a volt reading (means and per-sample standard deviations) into a `QpdReading`.
-    pub fn apply(&self, volts: [f64; 3], std_v: [f64; 3], n: usize) -> QpdReading {
-        let s = |i: usize| self.gain[i] * (volts[i] - self.offset_v[i]);
-        let d = |i: usize| self.gain[i].abs() * std_v[i];
-        QpdReading {
-            sx: s(0),
-            sy: s(1),
-            sz: s(2),
-            sx_std: d(0),
-            sy_std: d(1),
-            sz_std: d(2),
-            n,
-            clipped: [0; 3],
-        }
-    }
-}
+pub use super::tables::Calibration;
 
 /// Driver settings (see `[qpd]` in `bfpscope.toml`).
 #[derive(Debug, Clone, PartialEq)]
@@ -323,20 +290,6 @@ impl Qpd for ScpiQpd {
 /// The SCPI QPD digitiser (the QPD), read beside a PI stage. (listed in `instrument::registry`).
 /// SCPI QPD digitiser: a `[qpd]` backend.
 pub const SCPI: crate::instrument::family::Backend = crate::instrument::family::Backend("scpi");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "scpi",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
-    qpds: &[SCPI.0],
-    keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-};
 
 #[cfg(test)]
 mod tests {

@@ -259,6 +259,17 @@ impl Stage for SimStage {
     fn move_time_s(&self) -> f64 {
         self.0.cfg.move_time_s
     }
+
+    fn capabilities(&mut self, kind: super::CapabilityKind) -> Option<super::Capability<'_>> {
+        match kind {
+            super::CapabilityKind::Lines => Some(super::Capability::Lines(self)),
+            _ => None,
+        }
+    }
+}
+
+/// The simulated wave generator and recorder: hardware-timed lines on the virtual clock.
+impl super::LineScan for SimStage {
     fn line_timing(&mut self) -> Result<Option<super::line::LineTiming>, DeviceError> {
         Ok(Some(super::line::LineTiming {
             servo_cycle_s: self.0.cfg.servo_cycle_s,
@@ -611,4 +622,9 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
     keys: &["scene", "pace"],
     open: crate::instrument::family::Open::Sim,
     stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
+    section: crate::instrument::family::NO_SECTION,
+    help: crate::instrument::family::ConnectHelp {
+        backend: "\"sim\"",
+        about: "\"sim\": the simulated instrument.",
+    },
 };

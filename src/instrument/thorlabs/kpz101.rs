@@ -571,8 +571,16 @@ impl Stage for Kpz101Stage {
         Ok([0, 1, 2].map(|i| (0.0, self.axes[i].travel_um)))
     }
 
-    fn capabilities(&mut self) -> crate::instrument::Capabilities<'_> {
-        crate::instrument::Capabilities { gauge: Some(self) }
+    fn capabilities(
+        &mut self,
+        kind: crate::instrument::CapabilityKind,
+    ) -> Option<crate::instrument::Capability<'_>> {
+        match kind {
+            crate::instrument::CapabilityKind::GaugeZero => {
+                Some(crate::instrument::Capability::GaugeZero(self))
+            }
+            _ => None,
+        }
     }
 
     /// Every cube holds where it is, also when one of them fails (the first error is returned).

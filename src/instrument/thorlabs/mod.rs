@@ -18,6 +18,8 @@
 //! come as `MGMSG_HW_RESPONSE` / `MGMSG_HW_RICHRESPONSE` (a code and, for the rich form, a
 //! text). Serial settings: 115200 baud, 8N1, RTS/CTS flow control.
 
+pub mod config;
+pub use config::FAMILY;
 pub mod emulator;
 pub mod kpa101;
 pub mod kpz101;
@@ -567,26 +569,6 @@ pub const KPZ101: crate::instrument::family::Backend = crate::instrument::family
 
 /// Thorlabs KPA101/TPA101 position aligner over APT: a `[qpd]` backend.
 pub const KPA101: crate::instrument::family::Backend = crate::instrument::family::Backend("kpa101");
-
-pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "thorlabs",
-    backend: "thorlabs",
-    aliases: &["kpz101", "kpa101"],
-    stages: &[KPZ101.0],
-    qpds: &[KPA101.0],
-    keys: &["qpd_port", "stage_ports", "timeout_ms"],
-    open: crate::instrument::family::Open::Config {
-        stage: "kpz101",
-        qpd: "kpa101",
-    },
-    stage_defaults: crate::instrument::family::StageDefaults {
-        // each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request and reply, and a strain-gauge
-        // reading taken every millisecond catches the actuator still on its way, inside the
-        // tolerance before it has settled
-        poll_ms: 10,
-        settle_s: None,
-    },
-};
 
 #[cfg(test)]
 mod tests {
