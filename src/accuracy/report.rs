@@ -608,7 +608,8 @@ fn efficiency_markdown(t: &Tradeoff) -> String {
          relative bound is that of the sensitivity and the linear density, halved for the diameter): no unbiased \
          estimator of the parameter from those pixels has a smaller standard deviation. Efficiency = scatter over {} \
          seeds ÷ bound (1 is the limit; the scatter of {} seeds has a statistical error of about {:.0} %). Each cell: \
-         scatter / bound (efficiency). The report has no focus row: the focus search's bound is `focus_crlb` \
+         scatter / bound (efficiency); the last row pools each column's efficiency over the dwells (it does not \
+         depend on the dwell), ± its statistical error. The report has no focus row: the focus search's bound is `focus_crlb` \
          (docs/analysis.md).\n\n",
         t.seeds,
         t.seeds,
@@ -648,7 +649,27 @@ fn efficiency_markdown(t: &Tradeoff) -> String {
             }
             s += "\n";
         }
-        s += "\n";
+        // the efficiency does not depend on the dwell: pooled over the rows (the mean of
+        // (scatter/bound)², weighted by seeds), its statistical error that of all their seeds
+        s += "| **pooled over dwells** |";
+        for k in 0..first.estimators.len() {
+            let (mut w, mut sum, mut dof) = (0.0, 0.0, 0.0);
+            for e in rows.iter().filter_map(|r| r.estimators.get(k)) {
+                let eff = e.efficiency();
+                if e.n >= 2 && eff.is_finite() {
+                    w += e.n as f64;
+                    sum += e.n as f64 * eff * eff;
+                    dof += (e.n - 1) as f64;
+                }
+            }
+            if w > 0.0 {
+                let p = (sum / w).sqrt();
+                s += &format!(" {} ± {} |", fmt_eff(p), fmt_eff(p / (2.0 * dof).sqrt()));
+            } else {
+                s += " — |";
+            }
+        }
+        s += "\n\n";
     }
     s
 }
