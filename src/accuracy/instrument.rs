@@ -683,7 +683,7 @@ pub fn tradeoff(quick: bool) -> Result<Tradeoff, String> {
     } else {
         &[1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
     };
-    let seeds = if quick { 2 } else { 16 };
+    let seeds = if quick { 2 } else { 64 };
     let es = |e: crate::analysis::AnalysisError| e.to_string();
 
     // --- bead

@@ -967,28 +967,16 @@ impl Figure for XyFigure<'_> {
                     }
                 }
             };
-            if matches!(s.style, SeriesStyle::Line | SeriesStyle::LinePoints) {
+            if s.style != SeriesStyle::Points {
                 for r in finite_runs(&s.x, &s.y) {
-                    let anno = chart
-                        .draw_series(LineSeries::new(r, color.stroke_width(2)))
-                        .map_err(perr)?;
+                    let anno = if s.style == SeriesStyle::Dashed {
+                        chart.draw_series(DashedLineSeries::new(r, 9, 6, color.stroke_width(2)))
+                    } else {
+                        chart.draw_series(LineSeries::new(r, color.stroke_width(2)))
+                    }
+                    .map_err(perr)?;
                     if !labelled {
                         label_it(anno, false);
-                        labelled = true;
-                    }
-                }
-            }
-            if s.style == SeriesStyle::Dashed {
-                for r in finite_runs(&s.x, &s.y) {
-                    let anno = chart
-                        .draw_series(DashedLineSeries::new(r, 9, 6, color.stroke_width(2)))
-                        .map_err(perr)?;
-                    if !labelled && !s.label.is_empty() {
-                        anno.label(s.label.clone()).legend(move |(x, y)| {
-                            EmptyElement::at((x, y))
-                                + PathElement::new(vec![(0, 0), (8, 0)], color.stroke_width(2))
-                                + PathElement::new(vec![(12, 0), (20, 0)], color.stroke_width(2))
-                        });
                         labelled = true;
                     }
                 }
