@@ -1349,10 +1349,15 @@ fn madlib_point_scans_write_only_moving_axes_and_report_each_call() {
     eprintln!("phases {ph}");
 }
 
-/// The most `MCL_SingleReadN` calls per point a settle-on-the-reading driver needs (mean over
-/// the plan): per move, rounds of one read per moving axis until τ · ln(step / tolerance) has
-/// passed at `read_s` a read, the round that finds the stage within, and one round to confirm.
-fn point_reads_max(plan: &Plan, start: [f64; 3], tau: f64, read_s: f64, tol: f64) -> f64 {
+/// The mean over a plan's points of `cost(moving axes, settling s)` for each move: a first-order
+/// stage of time constant `tau` takes τ · ln(step / tolerance) to come within `tol` of a step.
+fn per_point_mean(
+    plan: &Plan,
+    start: [f64; 3],
+    tau: f64,
+    tol: f64,
+    cost: impl Fn(f64, f64) -> f64,
+) -> f64 {
     let pts = plan.points(start);
     let mut from = start;
     let mut sum = 0.0;
@@ -1366,11 +1371,20 @@ fn point_reads_max(plan: &Plan, start: [f64; 3], tau: f64, read_s: f64, tol: f64
             0.0
         };
         if moved > 0.0 {
-            sum += moved * ((settle / (moved * read_s)).ceil() + 2.0);
+            sum += cost(moved, settle);
         }
         from = to;
     }
     sum / pts.len() as f64
+}
+
+/// The most `MCL_SingleReadN` calls per point a settle-on-the-reading driver needs (mean over
+/// the plan): per move, rounds of one read per moving axis until τ · ln(step / tolerance) has
+/// passed at `read_s` a read, the round that finds the stage within, and one round to confirm.
+fn point_reads_max(plan: &Plan, start: [f64; 3], tau: f64, read_s: f64, tol: f64) -> f64 {
+    per_point_mean(plan, start, tau, tol, |moved, settle| {
+        moved * ((settle / (moved * read_s)).ceil() + 2.0)
+    })
 }
 
 /// A point scan's physical floor per point (s): per move, one `MCL_SingleWriteN` per moving
@@ -1378,24 +1392,9 @@ fn point_reads_max(plan: &Plan, start: [f64; 3], tau: f64, read_s: f64, tol: f64
 /// the write, at least one round of reads) and one round more to confirm, each call costing
 /// `usb_s`; then the dwell.
 fn point_floor_s(plan: &Plan, start: [f64; 3], tau: f64, usb_s: f64, tol: f64, dwell: f64) -> f64 {
-    let pts = plan.points(start);
-    let mut from = start;
-    let mut sum = 0.0;
-    for p in &pts {
-        let to = p.target;
-        let moved = (0..3).filter(|&k| to[k] != from[k]).count() as f64;
-        let step = (0..3).map(|k| (to[k] - from[k]).abs()).fold(0.0, f64::max);
-        let settle = if step > tol {
-            tau * (step / tol).ln()
-        } else {
-            0.0
-        };
-        if moved > 0.0 {
-            sum += moved * usb_s + settle.max(moved * usb_s) + moved * usb_s;
-        }
-        from = to;
-    }
-    sum / pts.len() as f64 + dwell
+    per_point_mean(plan, start, tau, tol, |moved, settle| {
+        moved * usb_s + settle.max(moved * usb_s) + moved * usb_s
+    }) + dwell
 }
 
 /// Madlib point scans at the stage's own speed, with the default config (`settle_s` unset: no

@@ -344,34 +344,33 @@ fn log_line(label: &str, f: impl Fn(f64) -> f64, t0: f64, t1: f64) -> Series {
     Series::line(label, t, y)
 }
 
-/// A line of slope −½ on log–log axes, k/√t: the bound of one design scales as 1/√t.
-/// A targeted protocol's point (its scatter over `seeds`, or its mean 1σ from one seed) at its
-/// mean time, and the √time line through its mean bound; `[seeds, scatter, σ mean, bound
-/// mean, time mean s]`, the line over `t` (s).
-fn targeted_series(name: &str, design: &str, r: [f64; 5], t: [f64; 2]) -> [Series; 2] {
-    let [seeds, scatter, sigma_mean, crlb_mean, time_s] = r;
-    let several = seeds >= 2.0;
+/// A targeted protocol's row as a point (its scatter over its seeds, or its mean 1σ from one
+/// seed) at its mean time, and the √time line through its mean bound over `t` (s).
+fn targeted_series(name: &str, design: &str, r: &TargetedRow, t: [f64; 2]) -> [Series; 2] {
+    let several = r.seeds >= 2;
     let label = format!(
-        "{name}: {} over {seeds} seed{}",
+        "{name}: {} over {} seed{}",
         if several { "scatter" } else { "1σ" },
-        if seeds == 1.0 { "" } else { "s" }
+        r.seeds,
+        if r.seeds == 1 { "" } else { "s" }
     );
     [
         Series::points(
             &label,
-            vec![time_s],
-            vec![if several { scatter } else { sigma_mean }],
+            vec![r.time_mean_s],
+            vec![if several { r.scatter } else { r.sigma_mean }],
         ),
         sqrt_line(
             &format!("{name}: Cramér–Rao bound of {design}"),
-            crlb_mean * time_s.sqrt(),
+            r.crlb_mean * r.time_mean_s.sqrt(),
             t[0],
             t[1],
         ),
     ]
 }
 
-/// A Cramér–Rao bound k/√t, dashed (drawn over the fit that reaches it, both stay visible).
+/// A Cramér–Rao bound k/√t, a line of slope −½ on log–log axes (the bound of one design scales
+/// as 1/√t), dashed (drawn over the fit that reaches it, both stay visible).
 fn sqrt_line(label: &str, k: f64, t0: f64, t1: f64) -> Series {
     log_line(label, |t| k / t.sqrt(), t0, t1).with_style(SeriesStyle::Dashed)
 }
@@ -415,13 +414,7 @@ fn tradeoff_png(path: &Path, t: &Tradeoff, targeted: &[TargetedRow]) -> Result<(
         series.extend(targeted_series(
             "targeted::bead",
             "its pattern",
-            [
-                r.seeds as f64,
-                r.scatter,
-                r.sigma_mean,
-                r.crlb_mean,
-                r.time_mean_s,
-            ],
+            r,
             [t_lo, t_hi],
         ));
     }
@@ -487,13 +480,7 @@ fn tradeoff_filament_png(
         series.extend(targeted_series(
             &format!("targeted::filament ({:.0} µm)", r.length_um),
             "its strips",
-            [
-                r.seeds as f64,
-                r.scatter,
-                r.sigma_mean,
-                r.crlb_mean,
-                r.time_mean_s,
-            ],
+            r,
             [t_lo, t_hi],
         ));
     }
