@@ -14,8 +14,16 @@
 //!   3 µm field); detector noise × 0–10; pixels of 20, 30, 50, 75 or 100 nm (the orientation
 //!   curve is computed once per pixel size).
 //!
-//! Not yet in the space (stated in docs/accuracy.md): focus offsets, clipping, microtubules with
-//! aggregates, the focus search, max_sens, SBR and the beam fit.
+//! - **focus** (`focus_search.z_best`, `.max_sens`, `.detection`): an XZ scan (±1.5 µm × ±2 µm)
+//!   through one 40–200 nm bead at up to ±3 µm from the scan's focus, or an empty field (one in
+//!   eight); detector noise × 0–10; lateral pixels of 20–100 nm, z rows every 25, 50 or 100 nm
+//!   ([`focus`]).
+//!
+//! Not yet in the space (stated in docs/accuracy.md): focus offsets of the bead and fibril
+//! scenes, clipping, microtubules with aggregates, SBR and the beam fit.
+
+mod focus;
+pub use focus::FocusCase;
 
 use crate::analysis::fit::{fit_beads, FitOptions};
 use crate::analysis::orientation::{measure_filament, AngleCurve, AngleCurveOptions};
@@ -155,7 +163,7 @@ impl Tally {
 /// What to sweep.
 #[derive(Debug, Clone)]
 pub struct SweepOptions {
-    /// Scenes per estimator family (beads, fibrils).
+    /// Scenes per estimator family (beads, fibrils, focus).
     pub n: usize,
     pub seed: u64,
 }
@@ -571,7 +579,7 @@ fn sweep_optics() -> Result<(Optics, Template), String> {
     Ok((optics, tpl))
 }
 
-/// Run the sweep: `opts.n` bead scenes and `opts.n` fibril scenes; `progress(done, total)` after
+/// Run the sweep: `opts.n` scenes of each family (beads, fibrils, focus); `progress(done, total)` after
 /// each. Returns one tally per estimator quantity.
 pub fn run(
     opts: &SweepOptions,
@@ -585,10 +593,12 @@ pub fn run(
     let cases: Vec<Case> = (0..opts.n)
         .flat_map(|_| {
             let b = Case::Beads(BeadCase::draw(&mut rng));
-            [b, Case::Fibril(FibrilCase::draw(&mut rng))]
+            let f = Case::Fibril(FibrilCase::draw(&mut rng));
+            [b, f, Case::Focus(FocusCase::draw(&mut rng))]
         })
         .collect();
     let cals = Cals::default();
+    let focus_truth = focus::FocusTruth::compute(&optics, &tpl)?;
     let total = cases.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let tallies: Vec<BTreeMap<String, Tally>> = cases
@@ -606,11 +616,12 @@ pub fn run(
                     fibril_case(fc, &tpl, &optics, &cals, &mut t);
                     "measure_filament."
                 }
+                Case::Focus(fc) => {
+                    focus::focus_case(fc, &optics, &focus_truth, &mut t);
+                    "focus_search."
+                }
             };
-            let what = match case {
-                Case::Beads(bc) => bc.describe(),
-                Case::Fibril(fc) => fc.describe(),
-            };
+            let what = case.describe();
             timed(&mut t, family, t0.elapsed().as_secs_f64(), &what);
             let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress(k, total);
@@ -635,6 +646,17 @@ pub fn run(
 pub enum Case {
     Beads(BeadCase),
     Fibril(FibrilCase),
+    Focus(FocusCase),
+}
+
+impl Case {
+    fn describe(&self) -> String {
+        match self {
+            Case::Beads(c) => c.describe(),
+            Case::Fibril(c) => c.describe(),
+            Case::Focus(c) => c.describe(),
+        }
+    }
 }
 
 thread_local! {
@@ -687,6 +709,24 @@ pub fn replay(json: &str) -> Result<String, String> {
                         if w.is_empty() { "ok".to_string() } else { w.join("; ") }
                     ));
                 }
+            }
+        }
+        Case::Focus(fc) => {
+            out.push_str(&format!("{}\n", fc.describe()));
+            let truth = focus::FocusTruth::compute(&optics, &tpl)?;
+            if let Some(f) = focus::focus_case(fc, &optics, &truth, &mut t) {
+                out.push_str(&format!(
+                    "  z_best {:.4} ± {:.4} µm, max_sens {:.5} ± {:.5} µm⁻¹: {}\n",
+                    f.z_best,
+                    f.z_err.unwrap_or(f64::NAN),
+                    f.max_sens,
+                    f.max_sens_err.unwrap_or(f64::NAN),
+                    if f.warnings.is_empty() {
+                        "ok".to_string()
+                    } else {
+                        f.warnings.join("; ")
+                    }
+                ));
             }
         }
         Case::Fibril(fc) => {
@@ -743,7 +783,7 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
     let bar = if json {
         indicatif::ProgressBar::hidden()
     } else {
-        indicatif::ProgressBar::new((2 * n) as u64)
+        indicatif::ProgressBar::new((3 * n) as u64)
     };
     let t0 = std::time::Instant::now();
     let r = run(&SweepOptions { n, seed }, &|done, _| {
@@ -756,7 +796,7 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
                 println!("{}", serde_json::to_string_pretty(&t).unwrap_or_default());
             } else {
                 println!(
-                    "truth sweep: {n} bead scenes + {n} fibril scenes, seed {seed}, {:.0} s\n",
+                    "truth sweep: {n} bead, {n} fibril and {n} focus scenes, seed {seed}, {:.0} s\n",
                     t0.elapsed().as_secs_f64()
                 );
                 print!("{}", table(&t));

@@ -75,6 +75,32 @@ impl Stencil {
         }
     }
 
+    /// The correlation of the derivative's noise at lags of 1–4 pixels, for independent pixel
+    /// noise: Σᵢ wᵢ·wᵢ₊ₗ / Σᵢ wᵢ² over the stencil's weights w (central difference: 0, −½;
+    /// five-point: −16, −64, 16, −1 over 130; Savitzky–Golay, weights ∝ k for |k| ≤ m: its
+    /// lags up to 4, the longer ones of m > 2 dropped). Pixels near the edge, where the
+    /// Savitzky–Golay window is shifted, are taken as interior ones.
+    pub fn noise_acf(&self) -> [f64; 4] {
+        let w: Vec<f64> = match *self {
+            Stencil::Central2 => vec![-1.0, 0.0, 1.0],
+            Stencil::Central5 => vec![1.0, -8.0, 0.0, 8.0, -1.0],
+            Stencil::SavitzkyGolay { half_width: m } => {
+                let m = m.max(1) as i64;
+                (-m..=m).map(|k| k as f64).collect()
+            }
+        };
+        let norm: f64 = w.iter().map(|x| x * x).sum();
+        let mut out = [0.0; 4];
+        for (l, o) in out.iter_mut().enumerate() {
+            let lag = l + 1;
+            *o = (0..w.len().saturating_sub(lag))
+                .map(|i| w[i] * w[i + lag])
+                .sum::<f64>()
+                / norm;
+        }
+        out
+    }
+
     /// How many pixels away a derivative pixel may read, at most: 1 (central2), 2 (central5),
     /// 2m for Savitzky–Golay (m inside; a pixel within m of the edge reads the window shifted
     /// inside, up to 2m away). The fallbacks at edges and NaN pixels reach no farther.

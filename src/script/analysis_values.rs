@@ -113,6 +113,7 @@ pub(crate) fn peak_opts(who: &str, o: &Opts) -> RResult<PeakOptions> {
         min_value: o.f64(MIN_VALUE)?,
         min_snr: pos_f64(who, o, MIN_SNR, d.min_snr, 0.0, 1e6)?,
         sigma: o.f64(SIGMA)?,
+        acf: [0.0; 4],
     })
 }
 

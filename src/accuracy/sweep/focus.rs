@@ -1,0 +1,267 @@
+//! The focus family of the truth sweep (`focus_search.z_best`, `focus_search.max_sens`,
+//! `focus_search.detection`): an XZ scan through one polystyrene bead at a random focus offset
+//! (or an empty field), searched for the best focus as `focus_search` does (suppl. S5).
+//!
+//! Truth, by a path apart from the analysis: the noise-free renderer's largest lateral slope
+//! ∂Sx/∂x near the bead (central differences on a 1 nm grid), over z in 2 nm steps; its
+//! maximum gives the best focus relative to the bead (`z_peak`, µm) and the reference bead's
+//! maximum sensitivity (`s_peak`, µm⁻¹). A bead of diameter d scales the slope by its weight
+//! (d / 110 nm)³ (point dipoles, eq. alpha; the scene has no finite-size effect).
+//!
+//! A maximum sensitivity read off pixels depends on the pixel size, the stencil and the
+//! parabola window (Sec. 3.2; the central difference and the parabola read a peak low, by 1 %
+//! at 30 nm pixels and 7 % at 100 nm): what `max_sens` estimates is that pipeline's reading,
+//! which masses divide by the reference bead's read the same way
+//! ([`Template::pipeline_max_sens`]). Its truth is the peak above times that reading of a bead
+//! of peak 1, at the scene's pixel size.
+
+use super::{Tally, N_SAMPLES};
+use crate::analysis::focus::{focus_search, FocusOptions};
+use crate::analysis::template::Template;
+use crate::data::Image;
+use crate::instrument::sim::scene::{Bead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use crate::instrument::sim::Renderer;
+use crate::optics::params::{Optics, REF_BEAD_N};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Half the lateral extent (µm) and half the z range (µm) of the focus scenes' XZ scan.
+const X_HALF: f64 = 1.5;
+const Z_HALF: f64 = 2.0;
+
+/// The diameter of the reference bead, nm (the weight unit).
+const REF_D_NM: f64 = 110.0;
+
+/// One focus scene: the bead `[x µm, z µm, d nm]` (None: an empty field), the paper's noise ×
+/// `noise`, lateral pixels of `pixel_nm`, z rows every `z_step_nm`, the noise's `seed`.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct FocusCase {
+    pub bead: Option<[f64; 3]>,
+    pub noise: f64,
+    pub pixel_nm: u32,
+    pub z_step_nm: u32,
+    pub seed: u64,
+}
+
+impl FocusCase {
+    /// One field in eight empty; otherwise a 40–200 nm bead (log-uniform) within ±0.8 µm of
+    /// the scan's middle and ±3 µm of its focus (the scan reaches ±2 µm).
+    pub(super) fn draw(rng: &mut ChaCha8Rng) -> FocusCase {
+        let empty = rng.random_range(0..8) == 0;
+        let x = rng.random_range(-0.8..0.8);
+        let z = rng.random_range(-3.0..3.0);
+        let d = (40f64.ln() + rng.random::<f64>() * (200f64 / 40.0).ln()).exp();
+        let noise = rng.random_range(0.0..10.0);
+        let pixel_nm = PIXELS_NM[rng.random_range(0..5)];
+        let z_step_nm = [25u32, 50, 100][rng.random_range(0..3)];
+        let seed = rng.random::<u64>();
+        FocusCase {
+            bead: (!empty).then_some([x, z, d]),
+            noise,
+            pixel_nm,
+            z_step_nm,
+            seed,
+        }
+    }
+
+    pub(super) fn describe(&self) -> String {
+        format!(
+            "focus: {}, noise ×{:.4}, pixel {} nm, z step {} nm on ±{X_HALF} × ±{Z_HALF} µm, seed {}",
+            match self.bead {
+                Some([x, z, d]) => format!("bead d {d:.1} nm at x {x:.3} µm, z {z:.3} µm"),
+                None => "empty field".into(),
+            },
+            self.noise,
+            self.pixel_nm,
+            self.z_step_nm,
+            self.seed
+        )
+    }
+}
+
+/// The best focus of the reference bead relative to it (µm) and its maximum sensitivity
+/// (µm⁻¹), from the noise-free renderer (see the module docs).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct FocusTruth {
+    z_peak: f64,
+    s_peak: f64,
+    /// The pipeline's reading of a bead of peak sensitivity 1, by lateral pixel size (nm).
+    pipeline: [(u32, f64); 5],
+}
+
+/// The focus scenes' lateral pixel sizes, nm.
+const PIXELS_NM: [u32; 5] = [20, 30, 50, 75, 100];
+
+impl FocusTruth {
+    pub(super) fn compute(optics: &Optics, tpl: &Template) -> Result<FocusTruth, String> {
+        let opts = FocusOptions::default();
+        let mut pipeline = [(0, 0.0); 5];
+        for (p, &nm) in pipeline.iter_mut().zip(&PIXELS_NM) {
+            let f = tpl
+                .pipeline_max_sens(nm as f64 / 1000.0, opts.stencil, opts.window_um)
+                .map_err(|e| e.to_string())?;
+            *p = (nm, f);
+        }
+        let mut sc = Scene::default();
+        sc.add_bead(Bead {
+            pos: [0.0, 0.0, 0.0],
+            d_nm: REF_D_NM,
+            n: REF_BEAD_N,
+        })
+        .map_err(|e| e.to_string())?;
+        let r = Renderer::checked(optics, &sc, Default::default()).map_err(|e| e.to_string())?;
+        // the largest slope along x at each z: central differences of Sx every 1 nm over
+        // ±0.15 µm, the maximum refined by the parabola through its neighbours (the lateral
+        // maximum need not sit on the bead's centre)
+        let h = 1e-3;
+        let xs: Vec<f64> = (0..=300).map(|i| -0.15 + h * i as f64).collect();
+        let slope = |z: f64| {
+            let s = r.render_grid_ideal(&xs, &[0.0], z);
+            let d: Vec<f64> = (1..xs.len() - 1)
+                .map(|i| (s[0][i + 1] - s[0][i - 1]) / (2.0 * h))
+                .collect();
+            let i = (1..d.len() - 1)
+                .max_by(|&a, &b| d[a].total_cmp(&d[b]))
+                .unwrap_or(1);
+            let (a, b, c) = (d[i - 1], d[i], d[i + 1]);
+            let den = a - 2.0 * b + c;
+            if den < 0.0 {
+                let t = 0.5 * (a - c) / den;
+                b - 0.25 * (a - c) * t
+            } else {
+                b
+            }
+        };
+        // the maximum on a 2 nm grid over ±0.5 µm, then the vertex of the parabola through it
+        // and its two neighbours
+        let zs: Vec<f64> = (0..=500).map(|i| -0.5 + 0.002 * i as f64).collect();
+        let v: Vec<f64> = zs.iter().map(|&z| slope(z)).collect();
+        let i = (1..v.len() - 1)
+            .max_by(|&a, &b| v[a].total_cmp(&v[b]))
+            .ok_or("no focus maximum")?;
+        let (a, b, c) = (v[i - 1], v[i], v[i + 1]);
+        let den = a - 2.0 * b + c;
+        if !(den < 0.0) {
+            return Err("the reference bead's focus curve has no maximum within ±0.5 µm".into());
+        }
+        let t = 0.5 * (a - c) / den;
+        Ok(FocusTruth {
+            z_peak: zs[i] + t * 0.002,
+            s_peak: b - 0.25 * (a - c) * t,
+            pipeline,
+        })
+    }
+}
+
+/// The XZ scan of the scene: rows are z (the focus's height), columns x; Sx through the
+/// simulator's reading of each point (the detector noise effect of the paper × `noise`).
+fn render_xz(optics: &Optics, case: &FocusCase) -> Option<Image> {
+    let mut sc = Scene::default();
+    if let Some([x, z, d]) = case.bead {
+        sc.add_bead(Bead {
+            pos: [x, 0.0, z],
+            d_nm: d,
+            n: REF_BEAD_N,
+        })
+        .ok()?;
+    }
+    sc.effects.detector_noise = Some(DetectorNoise {
+        sigma_sample: case.noise * PAPER_DETECTOR_SIGMA_SAMPLE,
+    });
+    let r = Renderer::checked(optics, &sc, Default::default()).ok()?;
+    let axis = |half: f64, step_nm: u32| -> Vec<f64> {
+        let n = (2.0 * half / (step_nm as f64 / 1000.0)).round() as usize + 1;
+        (0..n)
+            .map(|i| -half + 2.0 * half * i as f64 / (n - 1) as f64)
+            .collect()
+    };
+    let xs = axis(X_HALF, case.pixel_nm);
+    let zs = axis(Z_HALF, case.z_step_nm);
+    let mut rng = ChaCha8Rng::seed_from_u64(case.seed);
+    let data = ndarray::Array2::from_shape_fn((zs.len(), xs.len()), |(iz, ix)| {
+        let (v, _) = r.render_point([xs[ix], 0.0, zs[iz]], N_SAMPLES, &mut rng);
+        v[0]
+    });
+    Some(Image::new(data, xs, zs).with_axis_names("x", "z"))
+}
+
+/// The focus family: one XZ scene searched for the best focus; z_best and max_sens against
+/// the truth, an empty field against "no object". Returns the search's answer (for `--replay`).
+pub(super) fn focus_case(
+    case: &FocusCase,
+    optics: &Optics,
+    truth: &FocusTruth,
+    t: &mut BTreeMap<String, Tally>,
+) -> Option<crate::analysis::focus::FocusResult> {
+    let keys = [
+        "focus_search.z_best",
+        "focus_search.max_sens",
+        "focus_search.detection",
+    ];
+    let Some(img) = render_xz(optics, case) else {
+        for k in keys {
+            t.entry(k.into()).or_default().refused();
+        }
+        return None;
+    };
+    let r = focus_search(&img, &FocusOptions::default());
+    let describe = || case.describe();
+    let why: Vec<String> = match &r {
+        Ok(f) => f.warnings.clone(),
+        Err(e) => vec![e.to_string()],
+    };
+    let Some([_, z0, d]) = case.bead else {
+        // an empty field: any answer without a warning is an object found where there is none
+        let tally = t.entry(keys[2].into()).or_default();
+        match (&r, why.is_empty()) {
+            (Ok(f), true) => tally.answer(1.0, 0.0, None, Some(0.05), || {
+                format!(
+                    "an object found at z {:.3} µm in an empty field: {}",
+                    f.z_best,
+                    describe()
+                )
+            }),
+            _ => tally.flagged(&why),
+        }
+        return r.ok();
+    };
+    let f = match &r {
+        Ok(f) if why.is_empty() => f,
+        _ => {
+            for k in &keys[..2] {
+                t.entry((*k).into()).or_default().flagged(&why);
+            }
+            return r.ok();
+        }
+    };
+    let zt = z0 + truth.z_peak;
+    t.entry(keys[0].into())
+        .or_default()
+        .answer(f.z_best, zt, f.z_err, None, || {
+            format!(
+                "z_best {:.4} ± {:.4} µm vs truth {zt:.4}: {}",
+                f.z_best,
+                f.z_err.unwrap_or(f64::NAN),
+                describe()
+            )
+        });
+    let read = truth
+        .pipeline
+        .iter()
+        .find(|p| p.0 == case.pixel_nm)
+        .map(|p| p.1)?;
+    let st = truth.s_peak * read * (d / REF_D_NM).powi(3);
+    t.entry(keys[1].into())
+        .or_default()
+        .answer(f.max_sens, st, f.max_sens_err, None, || {
+            format!(
+                "max_sens {:.5} ± {:.5} µm⁻¹ vs truth {st:.5}: {}",
+                f.max_sens,
+                f.max_sens_err.unwrap_or(f64::NAN),
+                describe()
+            )
+        });
+    r.ok()
+}
