@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
-use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef};
+use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
@@ -87,8 +87,8 @@ fn bind_angle_curve(r: &mut Registrar) {
     const CURVE: &str =
         "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05});";
     let d = Doc::func("angle_curve")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "optional", &curve_keys)
+        .arg_of(TEMPLATE_ARG)
+        .opts(&curve_keys)
         .form("angle_curve(tpl, #{pixel_um}) -> AngleCurve")
         .returns("AngleCurve", "max Sx and Sy sensitivity vs filament angle, normalised to Sx at 0° (interpolated, period 180°)")
         .summary("orientation calibration curve from the bead model (Sec. 4.2 step 2, Fig. 4d)")
@@ -242,10 +242,7 @@ fn bind_background(r: &mut Registrar) {
     let sd = SbrOptions::default();
     let d = Doc::func("sbr")
         .arg("m", "FilamentMeasurement", "", "a measured filament")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", sd.skip_um)),
                 BOTH_ENDS.doc(format!("optional: also skip at the far end (default {})", sd.both_ends)),
                 EXCLUSION_UM.doc(format!("optional: background pixels farther than this from the line (default {:?})", sd.exclusion_um)),
@@ -266,11 +263,8 @@ fn bind_background(r: &mut Registrar) {
     let bd = BackgroundOptions::default();
     let d = Doc::func("remove_background")
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .arg_of(TEMPLATE_ARG)
+        .opts(&[
                 AXIS.doc("optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
                 ANGLE_DEG.doc("optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
                 DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
@@ -305,7 +299,7 @@ fn bind_quantities(r: &mut Registrar) {
     ];
     calib_keys.extend(pipeline_keys());
     let d = Doc::func("diameter_calib")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map("opts", "", &calib_keys)
         .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr, d_max_nm}: d = A·√(sens_corr) (eqs. colDiam, OurColD), which holds up to d_max_nm (nm: the point-dipole sections' domain at n_obj in the session's optics)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")

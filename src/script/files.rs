@@ -126,10 +126,7 @@ fn bind_plot(r: &mut Registrar) {
     let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
         .arg("path", "string", "", "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
                 CHANNEL.doc("optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
@@ -156,7 +153,7 @@ fn bind_line_plots(r: &mut Registrar) {
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map("opts", "optional", XY_KEYS)
+        .opts(XY_KEYS)
         .form("plot_profile(profiles, path) -> string")
         .returns("string", "the path written")
         .summary("line plot of one or more profiles with a legend")
@@ -167,7 +164,7 @@ fn bind_line_plots(r: &mut Registrar) {
     let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map("opts", "optional", XY_KEYS)
+        .opts(XY_KEYS)
         .form("plot_xy(series, path) -> string")
         .returns("string", "the path written")
         .summary("x–y plot of curves and points with error bars, optionally log–log")
@@ -182,10 +179,7 @@ fn bind_plot_hist(r: &mut Registrar) {
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 BINS.doc(format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),

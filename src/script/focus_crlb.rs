@@ -31,7 +31,7 @@ pub fn register(r: &mut Registrar) {
     ];
     let d = Doc::func("focus_crlb")
         .arg("img", "Scan | Image", "", "an XZ scan (its Sx), or the Sx of an XZ / Sy of a YZ scan")
-        .map("opts", "optional", keys)
+        .opts(keys)
         .form("focus_crlb(img) -> map")
         .returns("map", "#{z_crlb, u_crlb, weight_crlb, z_best, u0, weight, sigma, channel} — z_crlb: the Cramér–Rao bound (1σ floor, µm) of the object's height, i.e. of the best focus; u_crlb its lateral position's (µm); weight in reference-bead units")
         .summary("the best 1σ an XZ/YZ focus scan can give for the best focus z: the Cramér–Rao bound of the object's height")

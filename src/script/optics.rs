@@ -240,10 +240,7 @@ pub const UNIFORM_F0: f64 = 1e6;
 fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
     let d = Doc::func("fit_beam")
         .arg("scan", "Scan", "", "an xy scan of one reference bead at the focus (Sx, Sy, Sz; pixels ≤ 0.1 µm over ≥ 1.2 µm)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 D_NM.doc(format!("optional: reference bead diameter (default {BEAD_D_NM}; {}–{})", D_RANGE_NM.0, D_RANGE_NM.1)),
                 N.doc(format!("optional: reference bead index (default {BEAD_N})")),
             ],

@@ -38,10 +38,7 @@ fn register_sensitivity(r: &mut Registrar) {
 fn bind_sensitivity(r: &mut Registrar) {
     let d = Doc::func("sensitivity")
         .arg("img", "Image | Scan", "", "an image (or a scan: Sx for axis x, Sy for axis y)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 AXIS.doc("\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
                 STENCIL.doc("\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
             ],
@@ -66,7 +63,7 @@ fn bind_peaks(r: &mut Registrar) {
     for (name, rows) in [("row_peaks", true), ("col_peaks", false)] {
         let d = Doc::func(name)
             .arg("img", "Image", "", "usually a sensitivity image")
-            .map("opts", "optional", &keys)
+            .opts(&keys)
             .form(&format!("{name}(img) -> array"))
             .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, n_points, truncated} or #{line, coord, ok: false, miss}")
             .summary(if rows {
@@ -96,7 +93,7 @@ fn bind_max_sens(r: &mut Registrar) {
     let keys = peak_keys();
     let d = Doc::func("max_sens")
         .arg("img", "Image", "", "a sensitivity image around one point object")
-        .map("opts", "optional", &keys)
+        .opts(&keys)
         .form("max_sens(img) -> map")
         .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum at the image's edge)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
@@ -115,10 +112,7 @@ fn bind_focus_search(r: &mut Registrar) {
     let fd = FocusOptions::default();
     let d = Doc::func("focus_search")
         .arg("img", "Image | Scan", "", "an XZ (or YZ) scan channel: rows are z (a Scan: its Sx)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 STENCIL.doc(format!("optional: derivative stencil (default {})", fd.stencil.name())),
                 ("window_um", "float", "µm", format!("optional: lateral parabola window (default {})", fd.window_um)),
                 ("z_window_um", "float", "µm", format!("optional: window of the parabola over z (default {})", fd.z_window_um)),

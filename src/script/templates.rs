@@ -19,7 +19,7 @@ use std::sync::Arc;
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
 use super::registry::grid_axes;
-use super::types::{FitRef, TemplateRef};
+use super::types::{FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const CHANNELS: Opt = Opt::new("channels", "string", "");
@@ -65,10 +65,7 @@ fn bind_template_model(r: &mut Registrar) {
     let ctx = r.ctx();
     let rb = RefBead::default();
     let d = Doc::func("template_model")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 H_UM.doc(format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)")),
                 Z_UM.doc("optional: axial offset of the bead from the focus (default 0)".to_string()),
                 (
@@ -114,10 +111,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
     let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
         .arg("scans", "array", "", "XY scans of reference beads [Scan, …]")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 HALF_WIDTH_UM.doc(format!("optional: half-width of the template (default {})", fs.half_width_um)),
                 H_UM.doc("optional: node spacing (default: the finest pixel)".into()),
                 ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
@@ -199,7 +193,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
 /// `render_beads` and `bead_model`: scans and bead models made from a template.
 fn bind_render_beads(r: &mut Registrar) {
     let d = Doc::func("render_beads")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map(
             "what",
             "objects and the grid",
@@ -222,7 +216,7 @@ fn bind_render_beads(r: &mut Registrar) {
     r.bind(d, move |t: TemplateRef, m: Map| render_beads(&spec, &t, &m));
 
     let d = Doc::func("bead_model")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .arg("filament", "map", "", "#{points: [[x, y], …] (µm), d_nm (one or per vertex), n}")
         .opt("spacing_nm", "float", "nm", &format!("bead spacing (default {})", BeadModelOptions::default().spacing_nm))
         .returns("array", "[#{x, y, weight}] the beads (weights in reference-bead units: (3/4)·h·d²·n_corr / d_ref³·… , Sec. 4.2)")
@@ -272,8 +266,8 @@ fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .collect();
     let d = Doc::func("fit_beads")
         .arg("scan", "Scan", "", "XY scan (Sx and Sy)")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "optional", &keys_ref)
+        .arg_of(TEMPLATE_ARG)
+        .opts(&keys_ref)
         .form("fit_beads(scan, tpl) -> FitResult")
         .returns("FitResult", "beads with uncertainties, residual images, χ², status and reason, degeneracies")
         .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
