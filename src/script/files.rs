@@ -383,7 +383,7 @@ fn plot(c: &Ctx, o: &Opts, v: Dynamic, path: &str) -> RResult<()> {
             }
         }
     } else if let Some(i) = v.read_lock::<ImageRef>() {
-        let p = image_opts(&o, "")?;
+        let p = image_opts(o, "")?;
         plot_image(path, &i.0, &p).map_err(|e| ferr(who, path, e))?;
     } else {
         return fail(format!(
@@ -426,7 +426,7 @@ fn plot_profile(_c: &Ctx, o: &Opts, v: Dynamic, path: &str) -> RResult<()> {
     }
     let refs: Vec<(&str, &crate::data::Profile)> =
         list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
-    figure::plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+    figure::plot_profile(path, &refs, &xy_opts(o)?).map_err(|e| ferr(who, path, e))?;
     Ok(())
 }
 
@@ -493,7 +493,7 @@ fn plot_xy(_c: &Ctx, o: &Opts, a: Array, path: &str) -> RResult<()> {
     if series.is_empty() {
         return fail(format!("{who}: series is empty"));
     }
-    figure::plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
+    figure::plot_xy(path, &series, &xy_opts(o)?).map_err(|e| ferr(who, path, e))?;
     Ok(())
 }
 
