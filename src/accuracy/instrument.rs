@@ -748,15 +748,14 @@ pub fn knob_dwell(t: &Tradeoff) -> Knob {
 }
 
 pub fn fmt_dwell(s: f64) -> String {
-    if s < 1e-3 {
-        format!("{:.0} µs", s * 1e6)
-    } else if s < 1e-2 {
-        format!("{:.1} ms", s * 1e3)
-    } else if s < 1.0 {
-        format!("{:.0} ms", s * 1e3)
-    } else {
-        format!("{s:.2} s")
-    }
+    super::fmt_scaled(
+        s,
+        &[
+            (1e-3, 1e6, 0, "µs"),
+            (1e-2, 1e3, 1, "ms"),
+            (1.0, 1e3, 0, "ms"),
+        ],
+    )
 }
 
 /// One targeted protocol's seed study (`scripts/targeted_study.rhai`, run by

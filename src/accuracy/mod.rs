@@ -688,14 +688,22 @@ pub fn markdown_table(k: &Knob) -> String {
 }
 
 pub fn fmt_secs(s: f64) -> String {
-    if s < 1e-6 {
-        format!("{:.0} ns", s * 1e9)
-    } else if s < 1e-3 {
-        format!("{:.1} µs", s * 1e6)
-    } else if s < 1.0 {
-        format!("{:.1} ms", s * 1e3)
-    } else {
-        format!("{s:.2} s")
+    fmt_scaled(
+        s,
+        &[
+            (1e-6, 1e9, 0, "ns"),
+            (1e-3, 1e6, 1, "µs"),
+            (1.0, 1e3, 1, "ms"),
+        ],
+    )
+}
+
+/// A time `s` (s) in the unit of the first row `(below, per second, decimals, unit)` whose
+/// bound it is below, else in s with two decimals.
+fn fmt_scaled(s: f64, rows: &[(f64, f64, usize, &str)]) -> String {
+    match rows.iter().find(|r| s < r.0) {
+        Some(&(_, per_s, decimals, unit)) => format!("{:.decimals$} {unit}", s * per_s),
+        None => format!("{s:.2} s"),
     }
 }
 
@@ -731,6 +739,16 @@ pub fn machine_line() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn times_are_written_in_the_unit_of_their_range() {
+        let secs: Vec<String> = [4.2e-7, 3.14e-5, 0.0123, 2.5, f64::NAN]
+            .map(fmt_secs)
+            .into();
+        assert_eq!(secs, ["420 ns", "31.4 µs", "12.3 ms", "2.50 s", "NaN s"]);
+        let dwells: Vec<String> = [2e-4, 5e-3, 0.02, 1.5].map(instrument::fmt_dwell).into();
+        assert_eq!(dwells, ["200 µs", "5.0 ms", "20 ms", "1.50 s"]);
+    }
 
     #[test]
     fn quadrature_error_falls_with_order_and_default_is_accurate() {

@@ -450,32 +450,40 @@ fn tradeoff_filament_png(
     let tf = targeted.iter().find(|r| r.protocol == "targeted::filament");
     let t_lo = tf.map_or(x[0], |r| r.time_mean_s.min(x[0]) * 0.7);
     let t_hi = x[x.len() - 1];
-    let mut series = vec![
-        Series::line(
-            "raster + per-row maxima (the paper): 1σ",
-            x.clone(),
-            found(&t.microtubule, |r| r.sigma_fit),
-        )
-        .with_style(SeriesStyle::LinePoints),
-        Series::points(
-            "raster + per-row maxima: scatter over seeds",
-            x.clone(),
-            found(&t.microtubule, |r| r.sigma_scatter),
+    // each read-out: its 1σ (a line through the points) and its scatter over the seeds
+    let readouts = [
+        (
+            &t.microtubule,
+            "per-row maxima (the paper)",
+            "per-row maxima",
         ),
-        Series::line(
-            "raster + whole-image fit: 1σ",
-            x.clone(),
-            found(&t.microtubule_fit, |r| r.sigma_fit),
-        )
-        .with_style(SeriesStyle::LinePoints),
-        Series::points(
-            "raster + whole-image fit: scatter over seeds",
-            x.clone(),
-            found(&t.microtubule_fit, |r| r.sigma_scatter),
-        ),
-        // the bound dashed over the whole-image fit that reaches it
-        sqrt_line("raster: Cramér–Rao bound", t.mt_crlb_k, t_lo, t_hi),
+        (&t.microtubule_fit, "whole-image fit", "whole-image fit"),
     ];
+    let mut series: Vec<Series> = readouts
+        .into_iter()
+        .flat_map(|(rows, what, short)| {
+            [
+                Series::line(
+                    &format!("raster + {what}: 1σ"),
+                    x.clone(),
+                    found(rows, |r| r.sigma_fit),
+                )
+                .with_style(SeriesStyle::LinePoints),
+                Series::points(
+                    &format!("raster + {short}: scatter over seeds"),
+                    x.clone(),
+                    found(rows, |r| r.sigma_scatter),
+                ),
+            ]
+        })
+        .collect();
+    // the bound dashed over the whole-image fit that reaches it
+    series.push(sqrt_line(
+        "raster: Cramér–Rao bound",
+        t.mt_crlb_k,
+        t_lo,
+        t_hi,
+    ));
     if let Some(r) = tf {
         series.extend(targeted_series(
             &format!("targeted::filament ({:.0} µm)", r.length_um),

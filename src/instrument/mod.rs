@@ -146,6 +146,27 @@ pub enum Capability<'a> {
     FrameStream(&'a mut dyn stream::FrameStream),
 }
 
+/// A stage's [`Stage::capabilities`]: the vendor operations it offers, named as
+/// [`CapabilityKind`] and [`Capability`] name them (the stage implements each one's trait).
+/// Written inside its `impl Stage`: `stage_capabilities!(Lines, RawQuery);`.
+macro_rules! stage_capabilities {
+    ($($cap:ident),+ $(,)?) => {
+        fn capabilities(
+            &mut self,
+            kind: $crate::instrument::CapabilityKind,
+        ) -> Option<$crate::instrument::Capability<'_>> {
+            match kind {
+                $($crate::instrument::CapabilityKind::$cap => {
+                    Some($crate::instrument::Capability::$cap(self))
+                })+
+                #[allow(unreachable_patterns)]
+                _ => None,
+            }
+        }
+    };
+}
+pub(crate) use stage_capabilities;
+
 /// A three-axis positioning stage. Positions in µm.
 pub trait Stage: Send {
     /// Human-readable device name for messages (`"sim stage"`, `"PI E-727 on /dev/ttyUSB0"`).

@@ -144,6 +144,70 @@ pub unsafe fn optional_symbol<T: Copy>(lib: &libloading::Library, name: &str) ->
     unsafe { lib.get::<T>(&z) }.ok().map(|s| *s)
 }
 
+/// Declares a vendor library's function table and its loader, one row a C function:
+/// `field: Type = "Symbol",`, under `required` the functions the library must export (a missing
+/// one is an error naming it, as [`symbol`] says), under `optional` the ones it may lack
+/// (`Option<Type>`, `None` when it does not export them). The struct keeps the library open
+/// (`_lib`) as long as the pointers live, and the `path` it was loaded from; `load` looks for
+/// the library as `$spec` says (see [`open`]).
+///
+/// ```ignore
+/// vendor_library! {
+///     /// The loaded library and its functions.
+///     pub struct Madlib from SPEC {
+///         required {
+///             release_handle: ReleaseHandle = "MCL_ReleaseHandle",
+///         }
+///         optional {
+///             init_library: InitLibrary = "MCL_InitLibrary",
+///         }
+///     }
+/// }
+/// ```
+macro_rules! vendor_library {
+    (
+        $(#[$meta:meta])*
+        pub struct $name:ident from $spec:ident {
+            required {
+                $($req:ident: $rty:ty = $rsym:literal,)*
+            }
+            optional {
+                $($opt:ident: $oty:ty = $osym:literal,)*
+            }
+        }
+    ) => {
+        $(#[$meta])*
+        pub struct $name {
+            _lib: libloading::Library,
+            pub path: std::path::PathBuf,
+            $(pub $req: $rty,)*
+            $(pub $opt: Option<$oty>,)*
+        }
+
+        impl $name {
+            /// Load the library from `configured` or the usual places (see `vendor`) and look
+            /// up its functions, the required ones first, in the order declared.
+            pub fn load(
+                configured: Option<&std::path::Path>,
+                device: &str,
+            ) -> Result<$name, $crate::instrument::DeviceError> {
+                use $crate::instrument::vendor::{open, optional_symbol, symbol};
+                let (lib, path) = open(&$spec, configured, device)?;
+                // SAFETY: each row's type is the vendor header's declaration of its symbol.
+                unsafe {
+                    Ok($name {
+                        $($req: symbol(&lib, &path, $rsym, device)?,)*
+                        $($opt: optional_symbol(&lib, $osym),)*
+                        _lib: lib,
+                        path,
+                    })
+                }
+            }
+        }
+    };
+}
+pub(crate) use vendor_library;
+
 /// A NUL-terminated copy of `s` for a C `const char[]` argument; an interior NUL is an error
 /// naming the argument.
 pub fn c_string(device: &str, what: &str, s: &str) -> Result<std::ffi::CString, DeviceError> {

@@ -30,16 +30,32 @@ impl Interp {
     }
 }
 
-/// Values and first derivatives of the three channels at one point.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Sample {
-    /// (Sx, Sy, Sz)
-    pub v: [f64; 3],
-    /// ∂/∂u of (Sx, Sy, Sz) along the grid's first (horizontal) coordinate.
-    pub du: [f64; 3],
+/// Values and first derivatives of the first `N` channels (Sx, Sy, Sz) at one point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Samples<const N: usize> {
+    /// (Sx, Sy, Sz), the first `N` of them.
+    pub v: [f64; N],
+    /// ∂/∂u of the values along the grid's first (horizontal) coordinate.
+    pub du: [f64; N],
     /// ∂/∂v along the second (vertical) coordinate.
-    pub dv: [f64; 3],
+    pub dv: [f64; N],
 }
+
+impl<const N: usize> Default for Samples<N> {
+    fn default() -> Self {
+        Self {
+            v: [0.0; N],
+            du: [0.0; N],
+            dv: [0.0; N],
+        }
+    }
+}
+
+/// Values and first derivatives of the three channels at one point.
+pub type Sample = Samples<3>;
+
+/// Values and first derivatives of Sx and Sy (channels 0 and 1 of [`Sample`]).
+pub type Sample2 = Samples<2>;
 
 /// Precomputed stencil of one axis for [`Grid2::eval_grad2_stencil`] (see
 /// [`Grid2::grad_stencil_u`]).
@@ -54,14 +70,6 @@ pub struct GradStencil {
     pub d: [f64; 4],
     /// All four nodes lie inside the grid (no bounds checks needed).
     pub full: bool,
-}
-
-/// Values and first derivatives of Sx and Sy (channels 0 and 1 of [`Sample`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Sample2 {
-    pub v: [f64; 2],
-    pub du: [f64; 2],
-    pub dv: [f64; 2],
 }
 
 /// Regular grid: node (i, j) sits at (u0 + i·h, v0 + j·h); values stored interleaved
@@ -158,21 +166,7 @@ impl Grid2 {
                 let (iu, iv) = (fu as usize, fv as usize);
                 let (wu, _) = keys(fu - iu as f64);
                 let (wv, _) = keys(fv - iv as f64);
-                let mut out = [0.0; 3];
-                for (b, &wvb) in wv.iter().enumerate() {
-                    let base = (iv - 1 + b) * self.nu + iu - 1;
-                    let row = &self.data[base..base + 4];
-                    let mut acc = [0.0; 3];
-                    for (n, &wua) in row.iter().zip(&wu) {
-                        acc[0] += wua * n[0];
-                        acc[1] += wua * n[1];
-                        acc[2] += wua * n[2];
-                    }
-                    out[0] += wvb * acc[0];
-                    out[1] += wvb * acc[1];
-                    out[2] += wvb * acc[2];
-                }
-                return out;
+                return self.eval_stencil((iu - 1, &wu), (iv - 1, &wv));
             }
         }
         self.sample(u, v, false).v
@@ -209,8 +203,8 @@ impl Grid2 {
     }
 
     /// Cubic interpolation from precomputed stencils ([`Grid2::stencil_u`],
-    /// [`Grid2::stencil_v`]): the same arithmetic, in the same order, as [`Grid2::eval`]'s
-    /// fast path, so the result is bit-identical to `eval(u, v)`.
+    /// [`Grid2::stencil_v`]): [`Grid2::eval`]'s fast path itself, so the result is
+    /// bit-identical to `eval(u, v)`.
     #[inline]
     pub fn eval_stencil(&self, su: (usize, &[f64; 4]), sv: (usize, &[f64; 4])) -> [f64; 3] {
         let (iu, wu) = su;

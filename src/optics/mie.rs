@@ -312,6 +312,34 @@ fn coefficient_real(dd: f64, psi_n: f64, psi_nm1: f64, chi_n: f64, chi_nm1: f64)
     }
 }
 
+/// The order loop of the general-size coefficients, n = 1 … `n_terms`: runs the upward
+/// recurrence of χ_n(x) (χ_0 = cos x, χ_1 = cos x / x + sin x, χ_{n+1} = (2n + 1)/x·χ_n −
+/// χ_{n−1}) and hands `sink` what `order(n, n/x, χ_n, χ_{n−1})` makes of each order: zeros
+/// from the first |χ_n| > CHI_MAX on.
+fn stream_orders(
+    x: f64,
+    n_terms: usize,
+    mut sink: impl FnMut(C64, C64, f64),
+    mut order: impl FnMut(usize, f64, f64, f64) -> (C64, C64, f64),
+) {
+    let xinv = 1.0 / x;
+    let (sx, cx) = x.sin_cos();
+    let mut chi_nm1 = cx; // χ_0
+    let mut chi_n = cx * xinv + sx; // χ_1
+    let zero = C64::new(0.0, 0.0);
+    for n in 1..=n_terms {
+        if chi_n.abs() > CHI_MAX {
+            sink(zero, zero, 0.0);
+            continue;
+        }
+        let (an, bn, third) = order(n, n as f64 * xinv, chi_n, chi_nm1);
+        sink(an, bn, third);
+        let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
+        chi_nm1 = chi_n;
+        chi_n = chi_np1;
+    }
+}
+
 /// Streams the general-size coefficients for a real relative index, in real arithmetic (same
 /// equations as [`stream_complex`]; about three times cheaper): calls `sink(a_n, b_n, 0)` for
 /// n = 1 … `n_terms` in order (zeros once |χ_n| > CHI_MAX).
@@ -319,7 +347,7 @@ fn stream_real(
     x: f64,
     m: f64,
     n_terms: usize,
-    mut sink: impl FnMut(C64, C64, f64),
+    sink: impl FnMut(C64, C64, f64),
 ) -> Result<(), MieError> {
     let z = m * x;
     let nc = |e: bessel::CfNoConvergence, zz: f64| MieError::NoConvergence {
@@ -333,25 +361,12 @@ fn stream_real(
         bessel::log_derivatives_real_into(z, n_terms, d).map_err(|e| nc(e, z))?;
         bessel::riccati_psi_into(x, n_terms, psi, ratios).map_err(|e| nc(e, x))?;
         let minv = 1.0 / m;
-        let xinv = 1.0 / x;
-        let (sx, cx) = x.sin_cos();
-        let mut chi_nm1 = cx; // χ_0
-        let mut chi_n = cx * xinv + sx; // χ_1
-        let zero = C64::new(0.0, 0.0);
-        for n in 1..=n_terms {
-            if chi_n.abs() > CHI_MAX {
-                sink(zero, zero, 0.0);
-                continue;
-            }
-            let nx = n as f64 * xinv;
+        stream_orders(x, n_terms, sink, |n, nx, chi_n, chi_nm1| {
             let dn = d[n - 1];
             let an = coefficient_real(dn * minv + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
             let bn = coefficient_real(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1);
-            sink(an, bn, 0.0);
-            let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
-            chi_nm1 = chi_n;
-            chi_n = chi_np1;
-        }
+            (an, bn, 0.0)
+        });
         Ok(())
     })
 }
@@ -362,7 +377,7 @@ fn stream_complex(
     x: f64,
     m: C64,
     n_terms: usize,
-    mut sink: impl FnMut(C64, C64, f64),
+    sink: impl FnMut(C64, C64, f64),
 ) -> Result<(), MieError> {
     if m.im == 0.0 {
         return stream_real(x, m.re, n_terms, sink);
@@ -379,18 +394,8 @@ fn stream_complex(
         bessel::log_derivatives_into(z, n_terms, d).map_err(|e| nc(e, z))?;
         bessel::riccati_psi_into(x, n_terms, psi, ratios).map_err(|e| nc(e, C64::new(x, 0.0)))?;
         let minv = crecip(m);
-        let xinv = 1.0 / x;
         let absorbing = m.im != 0.0;
-        let (sx, cx) = x.sin_cos();
-        let mut chi_nm1 = cx; // χ_0
-        let mut chi_n = cx * xinv + sx; // χ_1
-        let zero = C64::new(0.0, 0.0);
-        for n in 1..=n_terms {
-            if chi_n.abs() > CHI_MAX {
-                sink(zero, zero, 0.0);
-                continue;
-            }
-            let nx = n as f64 * xinv;
+        stream_orders(x, n_terms, sink, |n, nx, chi_n, chi_nm1| {
             let dn = d[n - 1];
             let (an, abs_a) = coefficient(
                 dn * minv + nx,
@@ -402,11 +407,8 @@ fn stream_complex(
             );
             let (bn, abs_b) =
                 coefficient(dn * m + nx, psi[n], psi[n - 1], chi_n, chi_nm1, absorbing);
-            sink(an, bn, abs_a + abs_b);
-            let chi_np1 = (2 * n + 1) as f64 * xinv * chi_n - chi_nm1;
-            chi_nm1 = chi_n;
-            chi_n = chi_np1;
-        }
+            (an, bn, abs_a + abs_b)
+        });
         Ok(())
     })
 }

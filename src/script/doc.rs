@@ -185,6 +185,11 @@ impl Doc {
         });
         self
     }
+    /// A required argument declared once for the bindings that share it, as
+    /// `(name, type, unit, doc)` (`TEMPLATE_ARG`).
+    pub fn arg_of(self, (name, ty, unit, doc): (&str, &str, &str, &str)) -> Doc {
+        self.arg(name, ty, unit, doc)
+    }
     /// An optional argument (an overload without it exists).
     pub fn opt(mut self, name: &str, ty: &str, unit: &str, doc: &str) -> Doc {
         self.params.push(Param {
@@ -226,6 +231,11 @@ impl Doc {
             keys,
         });
         self
+    }
+    /// The optional options map `opts`, the last argument (a form without it exists), with
+    /// its keys as [`Doc::map`] takes them.
+    pub fn opts<D: AsRef<str>>(self, keys: &[(&str, &str, &str, D)]) -> Doc {
+        self.map("opts", "optional", keys)
     }
     pub fn returns(mut self, ty: &str, doc: &str) -> Doc {
         self.returns = (ty.into(), doc.into());

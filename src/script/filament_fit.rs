@@ -4,7 +4,7 @@
 use super::analysis_values::{count, pos_f64, Key};
 use super::ctx::Ctx;
 use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
-use super::types::{ScanRef, TemplateRef};
+use super::types::{ScanRef, TemplateRef, TEMPLATE_ARG};
 use crate::analysis::domain::{dipole_d_max_nm, status};
 use crate::analysis::filament_fit::{
     fit_line_filament, volume_per_um, LineFitOptions, LineFitResult,
@@ -43,8 +43,8 @@ pub fn register(r: &mut Registrar) {
     let keys = keys();
     let d = Doc::func("fit_filament")
         .arg("scan", "Scan", "", "XY scan of one straight filament crossing it (Sx and Sy)")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "optional", &keys)
+        .arg_of(TEMPLATE_ARG)
+        .opts(&keys)
         .form("fit_filament(scan, tpl) -> map")
         .returns("map", "#{angle_deg, angle_err_deg, angle_crlb_deg, offset_um, offset_err_um, offset_crlb_um, foot: [x, y], lambda_per_um, lambda_err_per_um, lambda_crlb_per_um, mu_mda_um, mu_err_mda_um, mu_crlb_mda_um, diameter_nm, diameter_err_nm, diameter_crlb_nm, background: [sx, sy], sigma, sigma_estimated, pixel_noise, chi2, n_residuals, iterations, optimizer, reason, warnings, status} — angles in degrees from the QPD +y axis towards +x, offset and foot in µm (the axis passes through foot, offset from the scan's centre along (cos θ, −sin θ)), λ in reference-bead units per µm, μ in MDa/µm, diameter in nm; *_err: 1σ from the fit's covariance; *_crlb: the Cramér–Rao bound of the scan's pixels at the fit with its σ")
         .summary("whole-image fit of a straight bead-model filament: angle, offset, linear density and diameter with σ and their Cramér–Rao bounds")
@@ -56,13 +56,9 @@ pub fn register(r: &mut Registrar) {
         .example("let t = template_model(#{h_um: 0.025}); let s = scene(); s.add_filament(#{points: [[-0.5, -3.0], [0.5, 3.0]], d_nm: 110.0, n: 1.572}); s.add_bead(#{x: 0.8, y: -0.6, d_nm: 110.0}); let sc = simulate(s, #{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 41, ny: 41}); let f = fit_filament(sc, t); f.warnings[0].starts_with(\"misfit\")", "true")
         .example(&format!("{FIL_EX} fit_filament(sc, t, #{{spacing_nm: 0.0}})"), "error: fit_filament: spacing_nm = 0")
         .example(&format!("{FIL_EX} fit_filament(sc, t, #{{n: 1.2}})"), "error: fit_filament: n = 1.2");
-    let spec = d.spec();
-    let (c, c2, s2) = (r.ctx(), r.ctx(), spec.clone());
-    r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
-        fit_filament_of(&c, &spec, &s, &t, &m)
-    });
-    r.overload("fit_filament", move |s: ScanRef, t: TemplateRef| {
-        fit_filament_of(&c2, &s2, &s, &t, &Map::new())
+    let c = r.ctx();
+    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
+        fit_filament_of(&c, spec, &s, &t, m)
     });
 }
 

@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
-use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef};
+use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
@@ -87,8 +87,8 @@ fn bind_angle_curve(r: &mut Registrar) {
     const CURVE: &str =
         "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05});";
     let d = Doc::func("angle_curve")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "optional", &curve_keys)
+        .arg_of(TEMPLATE_ARG)
+        .opts(&curve_keys)
         .form("angle_curve(tpl, #{pixel_um}) -> AngleCurve")
         .returns("AngleCurve", "max Sx and Sy sensitivity vs filament angle, normalised to Sx at 0° (interpolated, period 180°)")
         .summary("orientation calibration curve from the bead model (Sec. 4.2 step 2, Fig. 4d)")
@@ -97,12 +97,7 @@ fn bind_angle_curve(r: &mut Registrar) {
         .example(&format!("{CURVE} c.at(90.0).sy > 0.5"), "true")
         .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 2, pixel_um: 0.05})", "error: n_angles = 2")
         .example("let t = template_model(#{h_um: 0.025}); angle_curve(t, #{n_angles: 7})", "error: angle_curve: pixel_um is required");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    r.bind(d, move |t: TemplateRef, m: Map| angle_curve(&spec, &t, &m));
-    r.overload("angle_curve", move |t: TemplateRef| {
-        angle_curve(&s2, &t, &Map::new())
-    });
+    r.bind_opts(d, |spec, t: TemplateRef, m| angle_curve(spec, &t, m));
 
     r.bind(
         Doc::method("AngleCurve", "at")
@@ -165,17 +160,12 @@ fn bind_measure_filament(r: &mut Registrar) {
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried, then the search is repeated with candidates above 3/4 and 5/8 of detect_snr).");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    let (ctx, ctx2) = (r.ctx(), r.ctx());
-    r.bind(
+    let ctx = r.ctx();
+    r.bind_opts2(
         d.example(&format!("{FIL_EX} round(m.angle_deg)"), "14.0")
             .example(&format!("{FIL_EX} m.channel"), "\"sx_rows\""),
-        move |s: ScanRef, c: CurveRef, m: Map| measure_filament_of(&ctx, &spec, &s, &c, &m),
+        move |spec, s: ScanRef, c: CurveRef, m| measure_filament_of(&ctx, spec, &s, &c, m),
     );
-    r.overload("measure_filament", move |s: ScanRef, c: CurveRef| {
-        measure_filament_of(&ctx2, &s2, &s, &c, &Map::new())
-    });
     let float_rows = [
         (
             "angle_deg",
@@ -242,10 +232,7 @@ fn bind_background(r: &mut Registrar) {
     let sd = SbrOptions::default();
     let d = Doc::func("sbr")
         .arg("m", "FilamentMeasurement", "", "a measured filament")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", sd.skip_um)),
                 BOTH_ENDS.doc(format!("optional: also skip at the far end (default {})", sd.both_ends)),
                 EXCLUSION_UM.doc(format!("optional: background pixels farther than this from the line (default {:?})", sd.exclusion_um)),
@@ -258,19 +245,13 @@ fn bind_background(r: &mut Registrar) {
         .summary("signal-to-background ratio both ways the paper defines (Sec. 6)")
         .example(&format!("{FIL_EX} sbr(m, #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{FIL_EX} sbr(m, #{{skip_um: -1.0}})"), "error: skip_um = -1");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    r.bind(d, move |m: FilamentRef, mm: Map| sbr_of(&spec, &m, &mm));
-    r.overload("sbr", move |m: FilamentRef| sbr_of(&s2, &m, &Map::new()));
+    r.bind_opts(d, |spec, m: FilamentRef, mm| sbr_of(spec, &m, mm));
 
     let bd = BackgroundOptions::default();
     let d = Doc::func("remove_background")
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .arg_of(TEMPLATE_ARG)
+        .opts(&[
                 AXIS.doc("optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
                 ANGLE_DEG.doc("optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
                 DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
@@ -283,14 +264,9 @@ fn bind_background(r: &mut Registrar) {
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    let (c, c2) = (r.ctx(), r.ctx());
-    r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
-        remove_background(&c, &spec, &s, &t, &m)
-    });
-    r.overload("remove_background", move |s: ScanRef, t: TemplateRef| {
-        remove_background(&c2, &s2, &s, &t, &Map::new())
+    let c = r.ctx();
+    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
+        remove_background(&c, spec, &s, &t, m)
     });
 }
 
@@ -305,7 +281,7 @@ fn bind_quantities(r: &mut Registrar) {
     ];
     calib_keys.extend(pipeline_keys());
     let d = Doc::func("diameter_calib")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map("opts", "", &calib_keys)
         .returns("map", "#{a_nm, d_bm_nm, n_bm, sens_bm, n_obj, n_corr, d_max_nm}: d = A·√(sens_corr) (eqs. colDiam, OurColD), which holds up to d_max_nm (nm: the point-dipole sections' domain at n_obj in the session's optics)")
         .summary("the constant A of fibril diameters, derived from the bead model and n_corr for the current optics")

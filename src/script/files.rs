@@ -126,10 +126,7 @@ fn bind_plot(r: &mut Registrar) {
     let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
         .arg("path", "string", "", "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
                 CHANNEL.doc("optional (scans): plot only \"sx\", \"sy\" or \"sz\""),
@@ -156,7 +153,7 @@ fn bind_line_plots(r: &mut Registrar) {
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map("opts", "optional", XY_KEYS)
+        .opts(XY_KEYS)
         .form("plot_profile(profiles, path) -> string")
         .returns("string", "the path written")
         .summary("line plot of one or more profiles with a legend")
@@ -167,7 +164,7 @@ fn bind_line_plots(r: &mut Registrar) {
     let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map("opts", "optional", XY_KEYS)
+        .opts(XY_KEYS)
         .form("plot_xy(series, path) -> string")
         .returns("string", "the path written")
         .summary("x–y plot of curves and points with error bars, optionally log–log")
@@ -182,10 +179,7 @@ fn bind_plot_hist(r: &mut Registrar) {
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
         .arg("path", "string", "", "figure file, .png or .svg")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 BINS.doc(format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
@@ -249,22 +243,40 @@ fn bind_save_csv(r: &mut Registrar) {
     r.bind_ctx(d, |c| move |v: Dynamic, path: &str| save_csv(&c, &v, path));
 }
 
-/// Bind a figure binding `name(what, path[, opts])` and its form without `opts`: both call `f`
-/// (without `opts`: an empty map, so every option takes its default).
+/// Bind a figure binding `name(what, path[, opts])` and its form without `opts`: both read the
+/// options (without `opts`: every option takes its default), prepare the path (`overwrite`),
+/// `draw(ctx, opts, what, path)` and stamp the figure with its provenance; they return the path.
 fn bind_figure<T: std::any::Any + Clone + Send + Sync>(
     r: &mut Registrar,
     d: Doc,
     ctx: &Arc<Ctx>,
-    f: fn(&Ctx, &Spec, T, &str, &Map) -> RResult<String>,
+    draw: fn(&Ctx, &Opts, T, &str) -> RResult<()>,
 ) {
     let name = d.name.clone();
     let spec = Arc::new(d.spec());
     let (c, s) = (ctx.clone(), spec.clone());
-    r.bind(d, move |v: T, path: &str, m: Map| f(&c, &s, v, path, &m));
+    r.bind(d, move |v: T, path: &str, m: Map| {
+        figure(&c, &s, draw, v, path, &m)
+    });
     let c = ctx.clone();
     r.overload(&name, move |v: T, path: &str| {
-        f(&c, &spec, v, path, &Map::new())
+        figure(&c, &spec, draw, v, path, &Map::new())
     });
+}
+
+/// A figure binding's call: its options, the path prepared, the drawing, the provenance stamp.
+fn figure<T>(
+    c: &Ctx,
+    spec: &Spec,
+    draw: fn(&Ctx, &Opts, T, &str) -> RResult<()>,
+    v: T,
+    path: &str,
+    m: &Map,
+) -> RResult<String> {
+    let o = Opts::new(spec, m)?;
+    let path = &prepare(c, &spec.name, path, o.bool_or(OVERWRITE, false)?)?;
+    draw(c, &o, v, path)?;
+    stamp(c, path)
 }
 
 /// `save_tiff(img, path)`: a 32-bit float grayscale TIFF (pixel size in µm in the tags).
@@ -306,10 +318,8 @@ fn save_csv(c: &Ctx, v: &Dynamic, path: &str) -> RResult<String> {
 
 /// `plot(what, path[, opts])`: a heat map with colour bar and µm axes of a scan (Sx, Sy, Sz
 /// panels, or one `channel`) or of one image.
-fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
+fn plot(c: &Ctx, o: &Opts, v: Dynamic, path: &str) -> RResult<()> {
     let who = "plot";
-    let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let title = o.string(TITLE)?.unwrap_or_default();
     let image_opts = |o: &Opts, default_label: &str| -> RResult<PlotOpts> {
         let mut p = match o.string(COLORMAP)?.as_deref() {
@@ -373,7 +383,7 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
             }
         }
     } else if let Some(i) = v.read_lock::<ImageRef>() {
-        let p = image_opts(&o, "")?;
+        let p = image_opts(o, "")?;
         plot_image(path, &i.0, &p).map_err(|e| ferr(who, path, e))?;
     } else {
         return fail(format!(
@@ -381,15 +391,13 @@ fn plot(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String
             v.type_name()
         ));
     }
-    stamp(c, path)
+    Ok(())
 }
 
 /// `plot_profile(profiles, path[, opts])`: one or more profiles as lines with a legend (labels:
 /// the map's keys, or 1, 2, … for an array).
-fn plot_profile(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResult<String> {
+fn plot_profile(_c: &Ctx, o: &Opts, v: Dynamic, path: &str) -> RResult<()> {
     let who = "plot_profile";
-    let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let mut list: Vec<(String, Arc<crate::data::Profile>)> = vec![];
     let bad = |x: &Dynamic| -> RResult<()> {
         fail(format!(
@@ -418,15 +426,13 @@ fn plot_profile(c: &Ctx, spec: &Spec, v: Dynamic, path: &str, m: &Map) -> RResul
     }
     let refs: Vec<(&str, &crate::data::Profile)> =
         list.iter().map(|(l, p)| (l.as_str(), p.as_ref())).collect();
-    figure::plot_profile(path, &refs, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-    stamp(c, path)
+    figure::plot_profile(path, &refs, &xy_opts(o)?).map_err(|e| ferr(who, path, e))?;
+    Ok(())
 }
 
 /// `plot_xy(series, path[, opts])`: x–y curves and points, with error bars `yerr`.
-fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
+fn plot_xy(_c: &Ctx, o: &Opts, a: Array, path: &str) -> RResult<()> {
     let who = "plot_xy";
-    let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let mut series = vec![];
     for (i, s) in a.iter().enumerate() {
         let Some(sm) = s.read_lock::<Map>() else {
@@ -487,16 +493,14 @@ fn plot_xy(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<Strin
     if series.is_empty() {
         return fail(format!("{who}: series is empty"));
     }
-    figure::plot_xy(path, &series, &xy_opts(&o)?).map_err(|e| ferr(who, path, e))?;
-    stamp(c, path)
+    figure::plot_xy(path, &series, &xy_opts(o)?).map_err(|e| ferr(who, path, e))?;
+    Ok(())
 }
 
 /// `plot_hist(values, path[, opts])`: a histogram figure of the values in `bins` equal bins
 /// (default [`PLOT_HIST_BINS`]).
-fn plot_hist(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<String> {
+fn plot_hist(_c: &Ctx, o: &Opts, a: Array, path: &str) -> RResult<()> {
     let who = "plot_hist";
-    let o = Opts::new(spec, m)?;
-    let path = &prepare(c, who, path, o.bool_or(OVERWRITE, false)?)?;
     let v = numbers(who, "values", &Dynamic::from_array(a))?;
     let bins = o.int(BINS)?.unwrap_or(PLOT_HIST_BINS);
     if !(1..=MAX_BINS as i64).contains(&bins) {
@@ -511,5 +515,5 @@ fn plot_hist(c: &Ctx, spec: &Spec, a: Array, path: &str, m: &Map) -> RResult<Str
         ..XyOpts::default()
     };
     figure::plot_hist(path, &v, bins as usize, &xo).map_err(|e| ferr(who, path, e))?;
-    stamp(c, path)
+    Ok(())
 }

@@ -31,7 +31,7 @@ pub fn register(r: &mut Registrar) {
     ];
     let d = Doc::func("focus_crlb")
         .arg("img", "Scan | Image", "", "an XZ scan (its Sx), or the Sx of an XZ / Sy of a YZ scan")
-        .map("opts", "optional", keys)
+        .opts(keys)
         .form("focus_crlb(img) -> map")
         .returns("map", "#{z_crlb, u_crlb, weight_crlb, z_best, u0, weight, sigma, channel} — z_crlb: the Cramér–Rao bound (1σ floor, µm) of the object's height, i.e. of the best focus; u_crlb its lateral position's (µm); weight in reference-bead units")
         .summary("the best 1σ an XZ/YZ focus scan can give for the best focus z: the Cramér–Rao bound of the object's height")
@@ -40,12 +40,8 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{FOCUS_EX} round(b.weight * 10.0)"), "10.0")
         .example(&format!("{FOCUS_EX} let b2 = focus_crlb(sc, #{{sigma: b.sigma * 2.0}}); round(b2.z_crlb / b.z_crlb * 100.0)"), "200.0")
         .example(&format!("{FOCUS_EX} focus_crlb(sc, #{{sigma: -1.0}})"), "error: focus_crlb: sigma = -1");
-    let spec = d.spec();
-    let (c, c2, s2) = (r.ctx(), r.ctx(), spec.clone());
-    r.bind(d, move |v: Dynamic, m: Map| focus_crlb_of(&c, &spec, v, &m));
-    r.overload("focus_crlb", move |v: Dynamic| {
-        focus_crlb_of(&c2, &s2, v, &Map::new())
-    });
+    let c = r.ctx();
+    r.bind_opts(d, move |spec, v: Dynamic, m| focus_crlb_of(&c, spec, v, m));
 }
 
 /// The channel image of an XZ (Sx) or YZ (Sy) scan, or the image itself.

@@ -229,6 +229,48 @@ impl<'a> Registrar<'a> {
         self.bind(doc, f);
     }
 
+    /// Declare and register a binding whose last argument is its optional options map
+    /// ([`Doc::opts`]) after one argument `a`: the form with the map and the form without it
+    /// (an empty map) both call `f(spec, a, opts)`, `spec` the declaration's keys and usage.
+    pub fn bind_opts<A: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+        &mut self,
+        doc: Doc,
+        f: impl Fn(&Spec, A, &Map) -> RResult<R> + Send + Sync + 'static,
+    ) {
+        let (name, spec, f) = (doc.name.clone(), doc.spec(), Arc::new(f));
+        let (s2, f2) = (spec.clone(), f.clone());
+        self.bind(doc, move |a: A, m: Map| f(&spec, a, &m));
+        self.overload(&name, move |a: A| f2(&s2, a, &Map::new()));
+    }
+
+    /// As [`Registrar::bind_opts`], for a binding with no argument before its options map.
+    pub fn bind_opts0<R: Any + Clone + Send + Sync>(
+        &mut self,
+        doc: Doc,
+        f: impl Fn(&Spec, &Map) -> RResult<R> + Send + Sync + 'static,
+    ) {
+        let (name, spec, f) = (doc.name.clone(), doc.spec(), Arc::new(f));
+        let (s2, f2) = (spec.clone(), f.clone());
+        self.bind(doc, move |m: Map| f(&spec, &m));
+        self.overload(&name, move || f2(&s2, &Map::new()));
+    }
+
+    /// As [`Registrar::bind_opts`], for a binding with two arguments before its options map.
+    pub fn bind_opts2<
+        A: Any + Clone + Send + Sync,
+        B: Any + Clone + Send + Sync,
+        R: Any + Clone + Send + Sync,
+    >(
+        &mut self,
+        doc: Doc,
+        f: impl Fn(&Spec, A, B, &Map) -> RResult<R> + Send + Sync + 'static,
+    ) {
+        let (name, spec, f) = (doc.name.clone(), doc.spec(), Arc::new(f));
+        let (s2, f2) = (spec.clone(), f.clone());
+        self.bind(doc, move |a: A, b: B, m: Map| f(&spec, a, b, &m));
+        self.overload(&name, move |a: A, b: B| f2(&s2, a, b, &Map::new()));
+    }
+
     /// Register another form (arity or argument types) of an already declared binding.
     pub fn overload<
         A: 'static,

@@ -38,10 +38,7 @@ fn register_sensitivity(r: &mut Registrar) {
 fn bind_sensitivity(r: &mut Registrar) {
     let d = Doc::func("sensitivity")
         .arg("img", "Image | Scan", "", "an image (or a scan: Sx for axis x, Sy for axis y)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 AXIS.doc("\"x\" (∂/∂x, default) or \"y\" (∂/∂y)"),
                 STENCIL.doc("\"central2\" (default), \"central5\", \"sg5\", \"sg7\", … (Savitzky–Golay)"),
             ],
@@ -52,12 +49,7 @@ fn bind_sensitivity(r: &mut Registrar) {
         .form("sensitivity(img) -> Image")
         .example(&format!("{ONE_BEAD} let s = sensitivity(sc); round(s.max() * t.norm_factor * 10.0) / 10.0"), "1.0")
         .example(&format!("{ONE_BEAD} sensitivity(sc.sx, #{{axis: \"z\"}})"), "error: axis = \"z\"");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    r.bind(d, move |v: Dynamic, m: Map| sensitivity_of(&spec, v, &m));
-    r.overload("sensitivity", move |v: Dynamic| {
-        sensitivity_of(&s2, v, &Map::new())
-    });
+    r.bind_opts(d, |spec, v: Dynamic, m| sensitivity_of(spec, v, m));
 }
 
 /// `row_peaks`, `col_peaks`: peaks along rows or columns.
@@ -66,7 +58,7 @@ fn bind_peaks(r: &mut Registrar) {
     for (name, rows) in [("row_peaks", true), ("col_peaks", false)] {
         let d = Doc::func(name)
             .arg("img", "Image", "", "usually a sensitivity image")
-            .map("opts", "optional", &keys)
+            .opts(&keys)
             .form(&format!("{name}(img) -> array"))
             .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, n_points, truncated} or #{line, coord, ok: false, miss}")
             .summary(if rows {
@@ -80,13 +72,8 @@ fn bind_peaks(r: &mut Registrar) {
                 "41",
             )
             .example(&format!("{ONE_BEAD} {name}(sc.sx, #{{window_um: -1.0}})"), "error: window_um = -1");
-        let spec = d.spec();
-        let s2 = spec.clone();
-        r.bind(d, move |i: ImageRef, m: Map| {
-            line_maxima(&spec, name, rows, &i, &m)
-        });
-        r.overload(name, move |i: ImageRef| {
-            line_maxima(&s2, name, rows, &i, &Map::new())
+        r.bind_opts(d, move |spec, i: ImageRef, m| {
+            line_maxima(spec, name, rows, &i, m)
         });
     }
 }
@@ -96,18 +83,13 @@ fn bind_max_sens(r: &mut Registrar) {
     let keys = peak_keys();
     let d = Doc::func("max_sens")
         .arg("img", "Image", "", "a sensitivity image around one point object")
-        .map("opts", "optional", &keys)
+        .opts(&keys)
         .form("max_sens(img) -> map")
         .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum at the image's edge)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    let (c, c2) = (r.ctx(), r.ctx());
-    r.bind(d, move |i: ImageRef, m: Map| max_sens(&c, &spec, &i, &m));
-    r.overload("max_sens", move |i: ImageRef| {
-        max_sens(&c2, &s2, &i, &Map::new())
-    });
+    let c = r.ctx();
+    r.bind_opts(d, move |spec, i: ImageRef, m| max_sens(&c, spec, &i, m));
 }
 
 /// `focus_search`: the focus from a z series.
@@ -115,10 +97,7 @@ fn bind_focus_search(r: &mut Registrar) {
     let fd = FocusOptions::default();
     let d = Doc::func("focus_search")
         .arg("img", "Image | Scan", "", "an XZ (or YZ) scan channel: rows are z (a Scan: its Sx)")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 STENCIL.doc(format!("optional: derivative stencil (default {})", fd.stencil.name())),
                 ("window_um", "float", "µm", format!("optional: lateral parabola window (default {})", fd.window_um)),
                 ("z_window_um", "float", "µm", format!("optional: window of the parabola over z (default {})", fd.z_window_um)),
@@ -129,19 +108,14 @@ fn bind_focus_search(r: &mut Registrar) {
         .returns("map", "#{z_best, z_err, max_sens, max_sens_err, z_lo, z_hi, rows, warnings, status} (µm; rows: per-z maxima; warnings: best z at the end of the z range, object at the lateral edge)")
         .summary("best focus: max sensitivity per z row, parabola over z (suppl. S5)")
         .help("z_lo/z_hi: where the row maxima fall to level × max (paper: within 2 % over ±200 nm); () on a side where the scan ends first.");
-    let spec = d.spec();
-    let s2 = spec.clone();
-    let (c, c2) = (r.ctx(), r.ctx());
-    r.bind(
+    let c = r.ctx();
+    r.bind_opts(
         d.example(
             "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.0, d_nm: 110.0, n: 1.572}); let t = template_model(#{h_um: 0.025}); let xs = []; let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 5, ny: 5}); focus_search(sc.sx, #{level: 2.0})",
             "error: level = 2",
         ),
-        move |v: Dynamic, m: Map| focus_search_of(&c, &spec, v, &m),
+        move |spec, v: Dynamic, m| focus_search_of(&c, spec, v, m),
     );
-    r.overload("focus_search", move |v: Dynamic| {
-        focus_search_of(&c2, &s2, v, &Map::new())
-    });
 }
 
 /// `profile_along`: an image sampled along a polyline.

@@ -4,7 +4,7 @@
 
 use super::analysis_values::pos_f64;
 use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
-use super::types::TemplateRef;
+use super::types::{TemplateRef, TEMPLATE_ARG};
 use crate::analysis::point_fit::{design_points, fit_bead_points, PointReading};
 use crate::analysis::quantities::{mass_resolution_kda, point_object};
 use crate::analysis::template::RefBead;
@@ -23,7 +23,7 @@ const PTS_EX: &str = "let t = template_model(#{h_um: 0.025}); let k = 1.2 / t.no
 
 pub fn register(r: &mut Registrar) {
     let d = Doc::func("bead_design")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map(
             "at",
             "where the bead is",
@@ -56,7 +56,7 @@ pub fn register(r: &mut Registrar) {
     ];
     let d = Doc::func("fit_bead_points")
         .arg("points", "array", "", "readings: [#{x, y, sx, sy}] — stage position (µm) and the Sx, Sy read there")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map("opts", "start and options", keys)
         .form("fit_bead_points(points, tpl, #{x, y}) -> map")
         .returns("map", "#{x, y, weight, x_err, y_err, weight_err, x_crlb, y_crlb, weight_crlb, mass_kda, mass_err_kda, mass_crlb_kda, background: [sx, sy], sigma, sigma_estimated, n_points, optimizer, warnings, status} — µm, reference-bead units, kDa; *_crlb: the Cramér–Rao bound of these readings at the fit with σ")

@@ -19,7 +19,7 @@ use std::sync::Arc;
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
 use super::registry::grid_axes;
-use super::types::{FitRef, TemplateRef};
+use super::types::{FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const CHANNELS: Opt = Opt::new("channels", "string", "");
@@ -65,10 +65,7 @@ fn bind_template_model(r: &mut Registrar) {
     let ctx = r.ctx();
     let rb = RefBead::default();
     let d = Doc::func("template_model")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 H_UM.doc(format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)")),
                 Z_UM.doc("optional: axial offset of the bead from the focus (default 0)".to_string()),
                 (
@@ -99,12 +96,8 @@ fn bind_template_model(r: &mut Registrar) {
         .help("In the current optics' beam: with set_optics(#{beam: \"vector\"}) (e.g. set_optics(fit_beam(scan).optics), the beam fitted to your reference bead) the point dipole in the aplanatic vector focus of that pupil filling (always vectorial: polarization is then ignored), else the paper's paraxial model (suppl. S2/S3). angle_curve, diameter_calib, lin_dens_calib and point_mass(#{tpl}) follow the template.")
         .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
         .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
-    let spec = d.spec();
-    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
-    r.bind(d, move |m: Map| template_model(&c, &spec, &m));
-    r.overload("template_model", move || {
-        template_model(&c2, &s2, &Map::new())
-    });
+    let c = ctx.clone();
+    r.bind_opts0(d, move |spec, m| template_model(&c, spec, m));
 }
 
 /// `template_from_scans` and what a Template shows of itself.
@@ -114,10 +107,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
     let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
         .arg("scans", "array", "", "XY scans of reference beads [Scan, …]")
-        .map(
-            "opts",
-            "optional",
-            &[
+        .opts(&[
                 HALF_WIDTH_UM.doc(format!("optional: half-width of the template (default {})", fs.half_width_um)),
                 H_UM.doc("optional: node spacing (default: the finest pixel)".into()),
                 ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
@@ -133,13 +123,9 @@ fn bind_template_from_scans(r: &mut Registrar) {
         .summary("reference template from measured scans of several reference beads: locate, align sub-pixel, average, normalise")
         .example(&format!("{TPL} let a = render_beads(t, #{{beads: [#{{x: 0.03, y: 0.0}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); let b = render_beads(t, #{{beads: [#{{x: -0.02, y: 0.04}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); template_from_scans([a, b]).source.n_beads"), "2")
         .example("template_from_scans([])", "error: no scans");
-    let spec = d.spec();
-    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
-    r.bind(d, move |a: Array, m: Map| {
-        template_from_scans(&c, &spec, &a, &m)
-    });
-    r.overload("template_from_scans", move |a: Array| {
-        template_from_scans(&c2, &s2, &a, &Map::new())
+    let c = ctx.clone();
+    r.bind_opts(d, move |spec, a: Array, m| {
+        template_from_scans(&c, spec, &a, m)
     });
 
     // properties and methods
@@ -199,7 +185,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
 /// `render_beads` and `bead_model`: scans and bead models made from a template.
 fn bind_render_beads(r: &mut Registrar) {
     let d = Doc::func("render_beads")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .map(
             "what",
             "objects and the grid",
@@ -222,7 +208,7 @@ fn bind_render_beads(r: &mut Registrar) {
     r.bind(d, move |t: TemplateRef, m: Map| render_beads(&spec, &t, &m));
 
     let d = Doc::func("bead_model")
-        .arg("tpl", "Template", "", "the point-particle template")
+        .arg_of(TEMPLATE_ARG)
         .arg("filament", "map", "", "#{points: [[x, y], …] (µm), d_nm (one or per vertex), n}")
         .opt("spacing_nm", "float", "nm", &format!("bead spacing (default {})", BeadModelOptions::default().spacing_nm))
         .returns("array", "[#{x, y, weight}] the beads (weights in reference-bead units: (3/4)·h·d²·n_corr / d_ref³·… , Sec. 4.2)")
@@ -272,20 +258,16 @@ fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .collect();
     let d = Doc::func("fit_beads")
         .arg("scan", "Scan", "", "XY scan (Sx and Sy)")
-        .arg("tpl", "Template", "", "the point-particle template")
-        .map("opts", "optional", &keys_ref)
+        .arg_of(TEMPLATE_ARG)
+        .opts(&keys_ref)
         .form("fit_beads(scan, tpl) -> FitResult")
         .returns("FitResult", "beads with uncertainties, residual images, χ², status and reason, degeneracies")
         .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
         .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
         .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
-    let spec = d.spec();
-    let (c, c2, s2) = (ctx.clone(), ctx.clone(), spec.clone());
-    r.bind(d, move |s: ScanRef, t: TemplateRef, m: Map| {
-        fit_beads_of(&c, &spec, &s, &t, &m)
-    });
-    r.overload("fit_beads", move |s: ScanRef, t: TemplateRef| {
-        fit_beads_of(&c2, &s2, &s, &t, &Map::new())
+    let c = ctx.clone();
+    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
+        fit_beads_of(&c, spec, &s, &t, m)
     });
 }
 

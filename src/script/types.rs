@@ -5,7 +5,7 @@ use super::registry::{fail, int, num, properties, Doc, RResult, Registrar};
 use super::values::register_printable;
 pub use super::values::{
     register_types, show_custom, CurveRef, FilamentRef, FitRef, ImageRef, ProfileRef, ScanRef,
-    TemplateRef,
+    TemplateRef, TEMPLATE_ARG,
 };
 use crate::data::{Image, Profile, ScanStatus};
 use ndarray::Array2;

@@ -37,6 +37,9 @@ impl ScanRef {
 
 #[derive(Debug, Clone)]
 pub struct TemplateRef(pub Arc<Template>);
+/// The `tpl` argument of the bindings that model with a template (for [`Doc::arg_of`](super::registry::Doc::arg_of)).
+pub const TEMPLATE_ARG: (&str, &str, &str, &str) =
+    ("tpl", "Template", "", "the point-particle template");
 /// A multi-bead fit in a script (`FitResult`).
 #[derive(Debug, Clone)]
 pub struct FitRef(pub Arc<FitResult>);

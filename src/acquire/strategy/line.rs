@@ -19,7 +19,9 @@
 //! stage's; a digitiser that fails (arm, trigger, read) or a line that cannot be binned is
 //! not, and a relative scan then returns to its start.
 
-use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{
+    line_by_line_steps, padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy,
+};
 use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
@@ -268,18 +270,7 @@ impl Strategy for LineStrategy {
         })
     }
 
-    fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
-        let rp = planned(&self.rp, inst)?;
-        self.line_step(inst, &rp, i)
-    }
-
-    fn resting_at(&self) -> Option<Pos> {
-        self.at
-    }
-
-    fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
-        std::mem::take(&mut self.clipped)
-    }
+    line_by_line_steps!();
 
     fn pause(&mut self, inst: &mut Instrument) -> Result<(), DeviceError> {
         self.stop_all(inst).map_err(|detail| DeviceError::Other {

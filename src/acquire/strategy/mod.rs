@@ -239,6 +239,28 @@ pub fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
     a
 }
 
+/// The [`Strategy`] methods of the strategies that measure a raster line by line (`line`,
+/// `stream`): a step is line `i` of the prepared plan (`self.rp`, measured by their
+/// `line_step`), the stage rests where `self.at` says, and the clipped pixels wait in
+/// `self.clipped`. Expanded inside their `impl Strategy`.
+macro_rules! line_by_line_steps {
+    () => {
+        fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
+            let rp = planned(&self.rp, inst)?;
+            self.line_step(inst, &rp, i)
+        }
+
+        fn resting_at(&self) -> Option<Pos> {
+            self.at
+        }
+
+        fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
+            std::mem::take(&mut self.clipped)
+        }
+    };
+}
+pub(super) use line_by_line_steps;
+
 /// The raster's plan, for a step: `prepare` made it (a step asked before is refused).
 pub fn planned(
     rp: &Option<std::sync::Arc<super::raster::RasterPlan>>,

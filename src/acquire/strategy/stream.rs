@@ -23,7 +23,9 @@
 //! Every device fault of the stream is the stage's (the outputs drive it): no further motion.
 //! A line that cannot be binned is not.
 
-use super::{padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{
+    line_by_line_steps, padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy,
+};
 use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
 use crate::acquire::plan::{fmt_seconds, Plan, Point};
@@ -762,18 +764,7 @@ impl Strategy for StreamStrategy {
         })
     }
 
-    fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
-        let rp = planned(&self.rp, inst)?;
-        self.line_step(inst, &rp, i)
-    }
-
-    fn resting_at(&self) -> Option<Pos> {
-        self.at
-    }
-
-    fn take_clipped(&mut self) -> Vec<crate::acquire::clip::ClippedPixel> {
-        std::mem::take(&mut self.clipped)
-    }
+    line_by_line_steps!();
 
     fn pause(&mut self, inst: &mut Instrument) -> Result<(), DeviceError> {
         if let Some(r) = &self.run {

@@ -197,14 +197,13 @@ impl FitData<'_> {
         for (i, rows, cols) in items {
             let (s, b) = rest.split_at_mut(6 * rows.len() * cols.len());
             rest = b;
-            self.sample_window(
-                p[3 * i + 1],
-                p[3 * i + 2],
-                rows.clone(),
-                cols.clone(),
-                mask,
-                s,
-            );
+            let at = WindowAt {
+                bx: p[3 * i + 1],
+                by: p[3 * i + 2],
+                rows: rows.clone(),
+                cols: cols.clone(),
+            };
+            self.sample_window(at, mask, s);
             wins.push(Window {
                 rows: rows.start - tr.start..rows.end - tr.start,
                 cols: cols.start - tc.start..cols.end - tc.start,
@@ -214,22 +213,18 @@ impl FitData<'_> {
         wins
     }
 
-    /// Samples of the template around a bead at (bx, by) µm over the window `rows` × `cols`
-    /// into `out`: six planes of rows.len() × cols.len() (see [`FitData::accumulate`]), zero
-    /// where `mask` is 0 (the fit's mask: the channel's datum invalid or the channel not
+    /// Samples of the template around a bead over its window `at` (the bead at (bx, by) µm,
+    /// pixel rows × cols) into `out`: six planes of rows.len() × cols.len() (see
+    /// [`FitData::accumulate`]), zero where `mask` is 0 (the fit's mask: the channel's datum invalid or the channel not
     /// fitted; None: nowhere). Every element of `out` is written. Derivatives in
     /// instrument units per µm, as [`Grid2::eval_grad`](crate::optics::grid::Grid2::eval_grad).
     ///
     /// On x86-64 CPUs with AVX2 the same code runs compiled for AVX2 + FMA (runtime dispatch;
     /// the binary still runs on any x86-64 and other targets). No multiply–add is contracted
     /// into an FMA (Rust does not contract without `mul_add`), so both paths round alike.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn sample_window(
         &self,
-        bx: f64,
-        by: f64,
-        rows: std::ops::Range<usize>,
-        cols: std::ops::Range<usize>,
+        at: WindowAt,
         mask: Option<&[Vec<f64>; 2]>,
         out: &mut [f64],
     ) {
@@ -238,23 +233,21 @@ impl FitData<'_> {
         {
             // SAFETY: the CPU supports the features the function is compiled for (checked just
             // above).
-            unsafe { self.sample_window_avx2(bx, by, rows, cols, mask, out) };
+            unsafe { self.sample_window_avx2(at, mask, out) };
             return;
         }
-        self.sample_window_impl::<false>(bx, by, rows, cols, mask, out)
+        self.sample_window_impl::<false>(at, mask, out)
     }
 
     /// `SIMD`: use the AVX2 kernels (only from [`FitData::sample_window_avx2`]).
     #[inline(always)]
     pub(super) fn sample_window_impl<const SIMD: bool>(
         &self,
-        bx: f64,
-        by: f64,
-        rows: std::ops::Range<usize>,
-        cols: std::ops::Range<usize>,
+        at: WindowAt,
         mask: Option<&[Vec<f64>; 2]>,
         out: &mut [f64],
     ) {
+        let WindowAt { bx, by, rows, cols } = at;
         let grid = &self.tpl.grid;
         let nc = cols.len();
         let npix = rows.len() * nc;

@@ -126,7 +126,7 @@ pub(super) unsafe fn u_pass_avx2(
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::super::problem::FitData;
-    use super::super::window::Window;
+    use super::super::window::{Window, WindowAt};
 
     impl FitData<'_> {
         /// [`FitData::sample_window`] compiled for AVX2 + FMA.
@@ -134,14 +134,11 @@ mod avx2 {
         #[target_feature(enable = "avx2,fma")]
         pub(in crate::analysis::fit) fn sample_window_avx2(
             &self,
-            bx: f64,
-            by: f64,
-            rows: std::ops::Range<usize>,
-            cols: std::ops::Range<usize>,
+            at: WindowAt,
             mask: Option<&[Vec<f64>; 2]>,
             out: &mut [f64],
         ) {
-            self.sample_window_impl::<true>(bx, by, rows, cols, mask, out)
+            self.sample_window_impl::<true>(at, mask, out)
         }
     }
 

@@ -2,6 +2,15 @@
 //! sampler's data), with the dot products of their rows: shared by the problem (`problem.rs`)
 //! and the normal equations (`normal.rs`), importing neither.
 
+/// Where a bead's window is sampled: the bead at (`bx`, `by`) µm, over the image's pixel
+/// `rows` × `cols` (see [`FitData::sample_window`]).
+pub(super) struct WindowAt {
+    pub(super) bx: f64,
+    pub(super) by: f64,
+    pub(super) rows: std::ops::Range<usize>,
+    pub(super) cols: std::ops::Range<usize>,
+}
+
 /// One bead's window (pixel rows and columns within the template's extent around it) and its
 /// template samples there, row-major.
 pub(super) struct Window<'s> {

@@ -1133,17 +1133,7 @@ impl Stage for GcsStage {
         self.send_stop()
     }
 
-    fn capabilities(
-        &mut self,
-        kind: crate::instrument::CapabilityKind,
-    ) -> Option<crate::instrument::Capability<'_>> {
-        use crate::instrument::{Capability, CapabilityKind};
-        match kind {
-            CapabilityKind::Lines => Some(Capability::Lines(self)),
-            CapabilityKind::RawQuery => Some(Capability::RawQuery(self)),
-            _ => None,
-        }
-    }
+    crate::instrument::stage_capabilities!(Lines, RawQuery);
 }
 
 /// The wave generator and the data recorder: hardware-timed raster lines.

@@ -163,17 +163,7 @@ impl Stage for GcsSplitStage {
         crate::instrument::link::summed_costs(self.parts.iter_mut().map(|p| p.take_link_costs()))
     }
 
-    fn capabilities(
-        &mut self,
-        kind: crate::instrument::CapabilityKind,
-    ) -> Option<crate::instrument::Capability<'_>> {
-        match kind {
-            crate::instrument::CapabilityKind::RawQuery => {
-                Some(crate::instrument::Capability::RawQuery(self))
-            }
-            _ => None,
-        }
-    }
+    crate::instrument::stage_capabilities!(RawQuery);
 }
 
 /// Raw GCS queries at the prompt (`gcs_query`), to every controller.

@@ -8,10 +8,8 @@
 //! the library labs use (`MCL_InitHandle`: `int MCL_InitHandle();`, "0 when no device could be
 //! grabbed"); they are loaded when present and never required.
 
-use super::super::vendor::{self, LibrarySpec};
-use crate::instrument::DeviceError;
+use super::super::vendor::{vendor_library, LibrarySpec};
 use std::os::raw::{c_double, c_int, c_uint};
-use std::path::{Path, PathBuf};
 
 /// `#define MCL_SUCCESS 0` and the error codes of `Madlib.h`, with their names.
 pub const MCL_SUCCESS: c_int = 0;
@@ -106,45 +104,23 @@ pub const SPEC: LibrarySpec = LibrarySpec {
     ],
 };
 
-/// The loaded library and its functions. The pointers stay valid while `_lib` lives.
-pub struct Madlib {
-    _lib: libloading::Library,
-    pub path: PathBuf,
-    pub grab_all_handles: GrabAllHandles,
-    pub get_all_handles: GetAllHandles,
-    pub release_handle: ReleaseHandle,
-    pub single_read_n: SingleReadN,
-    pub single_write_n: SingleWriteN,
-    pub get_calibration: GetCalibration,
-    pub get_serial_number: GetSerialNumber,
-    pub get_product_info: GetProductInfo,
-    pub device_attached: Option<DeviceAttached>,
-    pub init_handle: Option<InitHandle>,
-    pub init_library: Option<InitLibrary>,
-}
-
-impl Madlib {
-    /// Load Madlib from `configured` or the usual places (see `vendor`).
-    pub fn load(configured: Option<&Path>, device: &str) -> Result<Madlib, DeviceError> {
-        let (lib, path) = vendor::open(&SPEC, configured, device)?;
-        // SAFETY: each type is the declaration of `Madlib.h` for that name.
-        unsafe {
-            let m = Madlib {
-                grab_all_handles: vendor::symbol(&lib, &path, "MCL_GrabAllHandles", device)?,
-                get_all_handles: vendor::symbol(&lib, &path, "MCL_GetAllHandles", device)?,
-                release_handle: vendor::symbol(&lib, &path, "MCL_ReleaseHandle", device)?,
-                single_read_n: vendor::symbol(&lib, &path, "MCL_SingleReadN", device)?,
-                single_write_n: vendor::symbol(&lib, &path, "MCL_SingleWriteN", device)?,
-                get_calibration: vendor::symbol(&lib, &path, "MCL_GetCalibration", device)?,
-                get_serial_number: vendor::symbol(&lib, &path, "MCL_GetSerialNumber", device)?,
-                get_product_info: vendor::symbol(&lib, &path, "MCL_GetProductInfo", device)?,
-                device_attached: vendor::optional_symbol(&lib, "MCL_DeviceAttached"),
-                init_handle: vendor::optional_symbol(&lib, "MCL_InitHandle"),
-                init_library: vendor::optional_symbol(&lib, "MCL_InitLibrary"),
-                _lib: lib,
-                path,
-            };
-            Ok(m)
+vendor_library! {
+    /// The loaded library and its functions. The pointers stay valid while `_lib` lives.
+    pub struct Madlib from SPEC {
+        required {
+            grab_all_handles: GrabAllHandles = "MCL_GrabAllHandles",
+            get_all_handles: GetAllHandles = "MCL_GetAllHandles",
+            release_handle: ReleaseHandle = "MCL_ReleaseHandle",
+            single_read_n: SingleReadN = "MCL_SingleReadN",
+            single_write_n: SingleWriteN = "MCL_SingleWriteN",
+            get_calibration: GetCalibration = "MCL_GetCalibration",
+            get_serial_number: GetSerialNumber = "MCL_GetSerialNumber",
+            get_product_info: GetProductInfo = "MCL_GetProductInfo",
+        }
+        optional {
+            device_attached: DeviceAttached = "MCL_DeviceAttached",
+            init_handle: InitHandle = "MCL_InitHandle",
+            init_library: InitLibrary = "MCL_InitLibrary",
         }
     }
 }

@@ -353,16 +353,7 @@ impl MadlibStage {
     /// write).
     pub fn command_now(&mut self, k: usize, um: f64) -> Result<(), DeviceError> {
         self.checked()?;
-        let cal = self.info.calibration_um[k];
-        if !(um.is_finite() && (0.0..=cal).contains(&um)) {
-            return Err(DeviceError::Other {
-                device: self.name(),
-                detail: format!(
-                    "{} = {um} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
-                    crate::instrument::AXES[k]
-                ),
-            });
-        }
+        self.within_calibration(k, um)?;
         if let Err(e) = self.write_axis(k, um) {
             self.release();
             self.fault = Some(e.clone());
@@ -370,6 +361,21 @@ impl MadlibStage {
         }
         self.target[k] = um;
         Ok(())
+    }
+
+    /// Refuses `um` on axis `k` outside the axis's calibrated range 0…`MCL_GetCalibration`.
+    fn within_calibration(&self, k: usize, um: f64) -> Result<(), DeviceError> {
+        let cal = self.info.calibration_um[k];
+        if um.is_finite() && (0.0..=cal).contains(&um) {
+            return Ok(());
+        }
+        Err(DeviceError::Other {
+            device: self.name(),
+            detail: format!(
+                "{} = {um} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
+                crate::instrument::AXES[k]
+            ),
+        })
     }
 
     /// One axis's reading (µm), for [`Self::command_now`]'s callers.
@@ -390,16 +396,7 @@ impl MadlibStage {
     fn do_move(&mut self, target: Pos, abort: Option<&AtomicBool>) -> Result<bool, DeviceError> {
         self.checked()?;
         for (k, &t) in target.iter().enumerate() {
-            let cal = self.info.calibration_um[k];
-            if !(t.is_finite() && (0.0..=cal).contains(&t)) {
-                return Err(DeviceError::Other {
-                    device: self.name(),
-                    detail: format!(
-                        "{} = {t} µm is outside the axis's calibrated range 0–{cal} µm (MCL_GetCalibration)",
-                        crate::instrument::AXES[k]
-                    ),
-                });
-            }
+            self.within_calibration(k, t)?;
         }
         let t0 = Instant::now();
         // only the axes that move are written and watched (a scan's fixed z is neither

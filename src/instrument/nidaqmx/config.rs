@@ -198,21 +198,41 @@ fn positive_or_err(key: &str, v: Option<f64>, what: &str) -> Result<f64, Section
     }
 }
 
+/// The NI channel `v` of `kind` (`"ao"`, `"ai"`) on `dev` that the key `key` names, parsed;
+/// `None` when the key is left out.
+fn channel_at(
+    key: &str,
+    kind: &str,
+    v: Option<&str>,
+    dev: &str,
+) -> Result<Option<String>, SectionError> {
+    v.map(|a| parse_channel(kind, a, dev).map_err(|m| bad(key, m)))
+        .transpose()
+}
+
+/// As [`channel_at`], for a key that is required: `what` says what is wired there.
+fn required_channel(
+    key: &str,
+    kind: &str,
+    v: Option<&str>,
+    dev: &str,
+    what: &str,
+) -> Result<String, SectionError> {
+    channel_at(key, kind, v, dev)?.ok_or_else(|| bad(key, format!("required: {what}")))
+}
+
 /// The NI raster's settings from `[raster]` and the board's `[qpd]`.
 pub fn raster_options(q: &QpdConfig, r: &RasterConfig) -> Result<NiRasterOptions, SectionError> {
     let qo = qpd_options(q)?;
     let dev = qo.device.clone();
-    let ao_x = r.ao.x.as_deref().ok_or_else(|| {
-        bad(
-            "raster.ao.x",
-            "required: the NI output driving the fast axis's external input (e.g. \"ao0\")",
-        )
-    })?;
-    let ao_x = parse_channel("ao", ao_x, &dev).map_err(|m| bad("raster.ao.x", m))?;
-    let ao_y = match r.ao.y.as_deref() {
-        Some(a) => Some(parse_channel("ao", a, &dev).map_err(|m| bad("raster.ao.y", m))?),
-        None => None,
-    };
+    let ao_x = required_channel(
+        "raster.ao.x",
+        "ao",
+        r.ao.x.as_deref(),
+        &dev,
+        "the NI output driving the fast axis's external input (e.g. \"ao0\")",
+    )?;
+    let ao_y = channel_at("raster.ao.y", "ao", r.ao.y.as_deref(), &dev)?;
     if ao_y.as_deref() == Some(ao_x.as_str()) {
         return Err(bad(
             "raster.ao.y",
@@ -238,13 +258,13 @@ pub fn raster_options(q: &QpdConfig, r: &RasterConfig) -> Result<NiRasterOptions
             "only the fast axis's sensor monitor (position.x) is recorded",
         ));
     }
-    let px = r.position.x.as_deref().ok_or_else(|| {
-        bad(
-            "raster.position.x",
-            "required: the NI input wired to the fast axis's sensor-monitor output (e.g. \"ai3\")",
-        )
-    })?;
-    let px = parse_channel("ai", px, &dev).map_err(|m| bad("raster.position.x", m))?;
+    let px = required_channel(
+        "raster.position.x",
+        "ai",
+        r.position.x.as_deref(),
+        &dev,
+        "the NI input wired to the fast axis's sensor-monitor output (e.g. \"ai3\")",
+    )?;
     if qo.inputs.names().contains(&px) {
         return Err(bad("raster.position.x", format!("{px:?} is already a QPD input (qpd.channels): the sensor monitor needs its own input")));
     }

@@ -11,10 +11,8 @@
 //! The constants below carry the header's values (`#define DAQmx_Val_…`, `#define
 //! DAQmxError…`), checked against its text.
 
-use super::super::vendor::{self, LibrarySpec};
-use crate::instrument::DeviceError;
+use super::super::vendor::{vendor_library, LibrarySpec};
 use std::os::raw::{c_char, c_void};
-use std::path::{Path, PathBuf};
 
 pub type TaskHandle = *mut c_void;
 pub type Bool32 = u32;
@@ -213,89 +211,36 @@ pub const SPEC: LibrarySpec = LibrarySpec {
     ],
 };
 
-/// The loaded library and its functions. The pointers stay valid while `_lib` lives.
-pub struct NiDaqmx {
-    _lib: libloading::Library,
-    pub path: PathBuf,
-    pub create_task: CreateTask,
-    pub start_task: TaskFn,
-    pub stop_task: TaskFn,
-    pub clear_task: TaskFn,
-    pub create_ai_voltage_chan: CreateAiVoltageChan,
-    pub create_ao_voltage_chan: CreateAoVoltageChan,
-    pub cfg_samp_clk_timing: CfgSampClkTiming,
-    pub cfg_dig_edge_start_trig: CfgDigEdgeStartTrig,
-    pub read_analog_f64: ReadAnalogF64,
-    pub write_analog_f64: WriteAnalogF64,
-    pub write_analog_scalar_f64: WriteAnalogScalarF64,
-    pub get_extended_error_info: GetExtendedErrorInfo,
-    pub get_error_string: Option<GetErrorString>,
-    pub cfg_input_buffer: Option<CfgInputBuffer>,
-    pub get_dev_product_type: Option<GetDevProductType>,
-    pub get_dev_serial_num: Option<GetDevSerialNum>,
-    pub set_write_regen_mode: Option<SetWriteRegenMode>,
-    pub get_write_space_avail: Option<GetWriteSpaceAvail>,
-    pub set_read_wait_mode: Option<SetReadWaitMode>,
+vendor_library! {
+    /// The loaded library and its functions. The pointers stay valid while `_lib` lives.
+    pub struct NiDaqmx from SPEC {
+        required {
+            create_task: CreateTask = "DAQmxCreateTask",
+            start_task: TaskFn = "DAQmxStartTask",
+            stop_task: TaskFn = "DAQmxStopTask",
+            clear_task: TaskFn = "DAQmxClearTask",
+            create_ai_voltage_chan: CreateAiVoltageChan = "DAQmxCreateAIVoltageChan",
+            create_ao_voltage_chan: CreateAoVoltageChan = "DAQmxCreateAOVoltageChan",
+            cfg_samp_clk_timing: CfgSampClkTiming = "DAQmxCfgSampClkTiming",
+            cfg_dig_edge_start_trig: CfgDigEdgeStartTrig = "DAQmxCfgDigEdgeStartTrig",
+            read_analog_f64: ReadAnalogF64 = "DAQmxReadAnalogF64",
+            write_analog_f64: WriteAnalogF64 = "DAQmxWriteAnalogF64",
+            write_analog_scalar_f64: WriteAnalogScalarF64 = "DAQmxWriteAnalogScalarF64",
+            get_extended_error_info: GetExtendedErrorInfo = "DAQmxGetExtendedErrorInfo",
+        }
+        optional {
+            get_error_string: GetErrorString = "DAQmxGetErrorString",
+            cfg_input_buffer: CfgInputBuffer = "DAQmxCfgInputBuffer",
+            get_dev_product_type: GetDevProductType = "DAQmxGetDevProductType",
+            get_dev_serial_num: GetDevSerialNum = "DAQmxGetDevSerialNum",
+            set_write_regen_mode: SetWriteRegenMode = "DAQmxSetWriteRegenMode",
+            get_write_space_avail: GetWriteSpaceAvail = "DAQmxGetWriteSpaceAvail",
+            set_read_wait_mode: SetReadWaitMode = "DAQmxSetReadWaitMode",
+        }
+    }
 }
 
 impl NiDaqmx {
-    /// Load NI-DAQmx from `configured` or the usual places (see `vendor`).
-    pub fn load(configured: Option<&Path>, device: &str) -> Result<NiDaqmx, DeviceError> {
-        let (lib, path) = vendor::open(&SPEC, configured, device)?;
-        let p = path.clone();
-        // SAFETY: each type is the declaration of `NIDAQmx.h` for that name.
-        unsafe {
-            Ok(NiDaqmx {
-                create_task: vendor::symbol(&lib, &p, "DAQmxCreateTask", device)?,
-                start_task: vendor::symbol(&lib, &p, "DAQmxStartTask", device)?,
-                stop_task: vendor::symbol(&lib, &p, "DAQmxStopTask", device)?,
-                clear_task: vendor::symbol(&lib, &p, "DAQmxClearTask", device)?,
-                create_ai_voltage_chan: vendor::symbol(
-                    &lib,
-                    &p,
-                    "DAQmxCreateAIVoltageChan",
-                    device,
-                )?,
-                create_ao_voltage_chan: vendor::symbol(
-                    &lib,
-                    &p,
-                    "DAQmxCreateAOVoltageChan",
-                    device,
-                )?,
-                cfg_samp_clk_timing: vendor::symbol(&lib, &p, "DAQmxCfgSampClkTiming", device)?,
-                cfg_dig_edge_start_trig: vendor::symbol(
-                    &lib,
-                    &p,
-                    "DAQmxCfgDigEdgeStartTrig",
-                    device,
-                )?,
-                read_analog_f64: vendor::symbol(&lib, &p, "DAQmxReadAnalogF64", device)?,
-                write_analog_f64: vendor::symbol(&lib, &p, "DAQmxWriteAnalogF64", device)?,
-                write_analog_scalar_f64: vendor::symbol(
-                    &lib,
-                    &p,
-                    "DAQmxWriteAnalogScalarF64",
-                    device,
-                )?,
-                get_extended_error_info: vendor::symbol(
-                    &lib,
-                    &p,
-                    "DAQmxGetExtendedErrorInfo",
-                    device,
-                )?,
-                get_error_string: vendor::optional_symbol(&lib, "DAQmxGetErrorString"),
-                cfg_input_buffer: vendor::optional_symbol(&lib, "DAQmxCfgInputBuffer"),
-                get_dev_product_type: vendor::optional_symbol(&lib, "DAQmxGetDevProductType"),
-                get_dev_serial_num: vendor::optional_symbol(&lib, "DAQmxGetDevSerialNum"),
-                set_write_regen_mode: vendor::optional_symbol(&lib, "DAQmxSetWriteRegenMode"),
-                get_write_space_avail: vendor::optional_symbol(&lib, "DAQmxGetWriteSpaceAvail"),
-                set_read_wait_mode: vendor::optional_symbol(&lib, "DAQmxSetReadWaitMode"),
-                _lib: lib,
-                path,
-            })
-        }
-    }
-
     /// `DAQmxGetExtendedErrorInfo`: the library's text for the last error of this thread.
     pub fn extended_error_info(&self) -> String {
         let mut buf = vec![0 as c_char; 4096];

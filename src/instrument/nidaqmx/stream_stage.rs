@@ -317,17 +317,7 @@ impl Stage for NiStreamStage {
         }
         self.stage.stop()
     }
-    fn capabilities(
-        &mut self,
-        kind: crate::instrument::CapabilityKind,
-    ) -> Option<crate::instrument::Capability<'_>> {
-        match kind {
-            crate::instrument::CapabilityKind::FrameStream => {
-                Some(crate::instrument::Capability::FrameStream(self))
-            }
-            _ => None,
-        }
-    }
+    crate::instrument::stage_capabilities!(FrameStream);
 }
 
 impl FrameStream for NiStreamStage {

@@ -260,12 +260,7 @@ impl Stage for SimStage {
         self.0.cfg.move_time_s
     }
 
-    fn capabilities(&mut self, kind: super::CapabilityKind) -> Option<super::Capability<'_>> {
-        match kind {
-            super::CapabilityKind::Lines => Some(super::Capability::Lines(self)),
-            _ => None,
-        }
-    }
+    super::stage_capabilities!(Lines);
 }
 
 /// The simulated wave generator and recorder: hardware-timed lines on the virtual clock.

@@ -571,17 +571,7 @@ impl Stage for Kpz101Stage {
         Ok([0, 1, 2].map(|i| (0.0, self.axes[i].travel_um)))
     }
 
-    fn capabilities(
-        &mut self,
-        kind: crate::instrument::CapabilityKind,
-    ) -> Option<crate::instrument::Capability<'_>> {
-        match kind {
-            crate::instrument::CapabilityKind::GaugeZero => {
-                Some(crate::instrument::Capability::GaugeZero(self))
-            }
-            _ => None,
-        }
-    }
+    crate::instrument::stage_capabilities!(GaugeZero);
 
     /// Every cube holds where it is, also when one of them fails (the first error is returned).
     fn stop(&mut self) -> Result<(), DeviceError> {
