@@ -19,5 +19,6 @@ mod mie_beam;
 mod optics;
 mod point_objects;
 mod sim;
+mod truth_sweep;
 mod vector_beam;
 mod vector_scene;
