@@ -104,6 +104,10 @@ enum Cmd {
         /// Criterion results to summarise (default target/criterion when present)
         #[arg(long, value_name = "DIR")]
         criterion: Option<PathBuf>,
+        /// The truth sweep's section to include (`bfpscope sweep --markdown FILE`; default
+        /// target/sweep.md when present)
+        #[arg(long, value_name = "FILE")]
+        sweep: Option<PathBuf>,
     },
     /// The truth sweep: random scenes on the simulator, every estimator against the truth;
     /// prints per estimator its cases, coverage of 1σ/2σ, flags and unflagged outliers
@@ -120,6 +124,10 @@ enum Cmd {
         /// Rerun one scene of a BFPSCOPE_SWEEP_DUMP line (its `scene` JSON) and tell it in words
         #[arg(long, value_name = "SCENE_JSON")]
         replay: Option<String>,
+        /// Also write the sweep's section of docs/accuracy.md (the command, the table, the
+        /// outliers) to this file; `bfpscope accuracy --sweep FILE` includes it
+        #[arg(long, value_name = "FILE")]
+        markdown: Option<PathBuf>,
     },
 }
 
@@ -364,11 +372,17 @@ fn test_cmd(dir: Option<PathBuf>, settings: &Settings) -> ExitCode {
 }
 
 /// `bfpscope accuracy`: the accuracy-vs-time report.
-fn accuracy_cmd(quick: bool, out: PathBuf, criterion: Option<PathBuf>) -> ExitCode {
+fn accuracy_cmd(
+    quick: bool,
+    out: PathBuf,
+    criterion: Option<PathBuf>,
+    sweep: Option<PathBuf>,
+) -> ExitCode {
     let opts = bfpscope::accuracy::report::ReportOptions {
         quick,
         out,
         criterion: criterion.or_else(|| Some(PathBuf::from("target/criterion"))),
+        sweep: sweep.or_else(|| Some(PathBuf::from("target/sweep.md"))),
         verbose: true,
         targeted: Some(bfpscope::script::targeted_study),
     };
@@ -534,7 +548,8 @@ fn main() -> ExitCode {
             quick,
             out,
             criterion,
-        } => accuracy_cmd(quick, out, criterion),
+            sweep,
+        } => accuracy_cmd(quick, out, criterion, sweep),
         Cmd::Sweep {
             replay: Some(scene),
             ..
@@ -548,7 +563,13 @@ fn main() -> ExitCode {
                 ExitCode::from(2)
             }
         },
-        Cmd::Sweep { n, seed, json, .. } => bfpscope::accuracy::sweep::cli(n, seed, json),
+        Cmd::Sweep {
+            n,
+            seed,
+            json,
+            markdown,
+            ..
+        } => bfpscope::accuracy::sweep::cli(n, seed, json, markdown.as_deref()),
         Cmd::Docs { out, check } => docs_cmd(out, check),
     }
 }

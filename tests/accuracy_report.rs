@@ -21,6 +21,7 @@ fn quick_report_writes_files_and_defaults_meet_the_knee_criterion() {
         quick: true,
         out: dir.clone(),
         criterion: None,
+        sweep: None,
         verbose: false,
         targeted: Some(bfpscope::script::targeted_study),
     })

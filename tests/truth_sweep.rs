@@ -42,7 +42,9 @@ fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_focus_searches_w
         "focus_search.max_sens",
         "focus_search.detection",
     ] {
-        let v = t.get(k).unwrap_or_else(|| panic!("{k} is not in the sweep"));
+        let v = t
+            .get(k)
+            .unwrap_or_else(|| panic!("{k} is not in the sweep"));
         assert!(v.cases > 0, "{k}: no case");
         if k.starts_with("focus_search.") {
             assert_eq!(

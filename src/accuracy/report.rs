@@ -17,6 +17,9 @@ pub struct ReportOptions {
     /// Criterion's output folder (`target/criterion`) for the benchmark summary; `None` or a
     /// missing folder: the section says how to produce it.
     pub criterion: Option<PathBuf>,
+    /// The truth sweep's section (`bfpscope sweep --markdown FILE`), included as it is; `None`
+    /// or a missing file: the section says how to produce it.
+    pub sweep: Option<PathBuf>,
     /// Progress messages (stderr).
     pub verbose: bool,
     /// Runs the targeted protocols' seed study (`bfpscope::script::targeted_study`: the
@@ -864,8 +867,20 @@ fn markdown(
         }
     }
     s += &tradeoff_markdown(t, targeted);
+    s += &sweep_markdown(opts.sweep.as_deref());
     s += &bench_markdown(opts.criterion.as_deref());
     s
+}
+
+/// The truth sweep's section, from the file `bfpscope sweep --markdown FILE` wrote (the sweep
+/// takes minutes of its own and runs apart from the report).
+pub fn sweep_markdown(file: Option<&Path>) -> String {
+    match file.and_then(|f| std::fs::read_to_string(f).ok()) {
+        Some(md) => format!("{}\n\n", md.trim_end()),
+        None => "## Truth sweep\n\nNo truth sweep was included. Run `bfpscope sweep --n 2000 --seed 2026 --markdown target/sweep.md` \
+                 (release, about 10 minutes on 2 cores) and then `bfpscope accuracy --sweep target/sweep.md`.\n\n"
+            .into(),
+    }
 }
 
 /// The point dipole's domain: its error per bead index and diameter, and the 1 % diameter.

@@ -617,7 +617,7 @@ pub fn run(
                     "measure_filament."
                 }
                 Case::Focus(fc) => {
-                    focus::focus_case(fc, &optics, &focus_truth, &mut t);
+                    tally_outcomes(&mut t, focus::focus_case(fc, &optics, &focus_truth).0);
                     "focus_search."
                 }
             };
@@ -714,7 +714,9 @@ pub fn replay(json: &str) -> Result<String, String> {
         Case::Focus(fc) => {
             out.push_str(&format!("{}\n", fc.describe()));
             let truth = focus::FocusTruth::compute(&optics, &tpl)?;
-            if let Some(f) = focus::focus_case(fc, &optics, &truth, &mut t) {
+            let (outcomes, r) = focus::focus_case(fc, &optics, &truth);
+            tally_outcomes(&mut t, outcomes);
+            if let Some(f) = r {
                 out.push_str(&format!(
                     "  z_best {:.4} ± {:.4} µm, max_sens {:.5} ± {:.5} µm⁻¹: {}\n",
                     f.z_best,
@@ -761,6 +763,24 @@ pub fn replay(json: &str) -> Result<String, String> {
     Ok(out)
 }
 
+/// Each estimator's outcome on one scene into its tally.
+fn tally_outcomes(t: &mut BTreeMap<String, Tally>, outcomes: Vec<(&'static str, focus::Outcome)>) {
+    for (k, o) in outcomes {
+        let tally = t.entry(k.into()).or_default();
+        match o {
+            focus::Outcome::Refused => tally.refused(),
+            focus::Outcome::Flagged(why) => tally.flagged(&why),
+            focus::Outcome::Answer {
+                value,
+                truth,
+                sigma,
+                rel_limit,
+                what,
+            } => tally.answer(value, truth, sigma, rel_limit, || what.clone()),
+        }
+    }
+}
+
 /// Adds one scene's wall time `s` to every tally whose estimator starts with `family`.
 fn timed(t: &mut BTreeMap<String, Tally>, family: &str, s: f64, case: &str) {
     for v in t
@@ -777,9 +797,40 @@ fn timed(t: &mut BTreeMap<String, Tally>, family: &str, s: f64, case: &str) {
     }
 }
 
-/// `bfpscope sweep --n N --seed S [--json]`: the sweep with a progress bar (not with `--json`),
-/// then the table or one JSON object. Exit 1 when any estimator has an unflagged outlier.
-pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
+/// The sweep's section of docs/accuracy.md: the command that reproduces it, when and how long
+/// it ran, the table, and every unflagged outlier's scene in words.
+pub fn markdown(t: &BTreeMap<String, Tally>, n: usize, seed: u64, seconds: f64) -> String {
+    let mut s = format!(
+        "## Truth sweep\n\nFrom `bfpscope sweep --n {n} --seed {seed} --markdown FILE` (release) on {}, {seconds:.0} s on this machine: \
+         {n} random scenes of each family (the scene space is in `src/accuracy/sweep.rs` and docs/analysis.md, \"Domains\"), \
+         every answer compared with the scene's truth. Required: no unflagged outlier (an answer without a warning beyond 4σ, \
+         or 5 % of a diameter or a count), 1σ coverage 0.60–0.76 and 2σ coverage 0.91–0.98 inside the domain.\n\n",
+        crate::data::clock::today()
+    );
+    s += &table(t);
+    let outliers: Vec<String> = t
+        .iter()
+        .flat_map(|(k, v)| v.examples.iter().map(move |e| format!("- {k}: {e}")))
+        .collect();
+    if outliers.is_empty() {
+        s += "\nNo unflagged outlier.\n";
+    } else {
+        s += "\nUnflagged outliers (the first five of each estimator; rerun one with `bfpscope sweep --replay` on its `BFPSCOPE_SWEEP_DUMP` line):\n\n";
+        s += &outliers.join("\n");
+        s += "\n";
+    }
+    s
+}
+
+/// `bfpscope sweep --n N --seed S [--json] [--markdown FILE]`: the sweep with a progress bar
+/// (not with `--json`), then the table or one JSON object; with `markdown`, also the section of
+/// docs/accuracy.md written to that file. Exit 1 when any estimator has an unflagged outlier.
+pub fn cli(
+    n: usize,
+    seed: u64,
+    json: bool,
+    markdown_to: Option<&std::path::Path>,
+) -> std::process::ExitCode {
     let bar = if json {
         indicatif::ProgressBar::hidden()
     } else {
@@ -792,6 +843,13 @@ pub fn cli(n: usize, seed: u64, json: bool) -> std::process::ExitCode {
     bar.finish_and_clear();
     match r {
         Ok(t) => {
+            if let Some(path) = markdown_to {
+                let md = markdown(&t, n, seed, t0.elapsed().as_secs_f64());
+                if let Err(e) = std::fs::write(path, md) {
+                    eprintln!("error: sweep: --markdown {}: {e}", path.display());
+                    return std::process::ExitCode::from(2);
+                }
+            }
             if json {
                 println!("{}", serde_json::to_string_pretty(&t).unwrap_or_default());
             } else {

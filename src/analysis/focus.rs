@@ -65,47 +65,19 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     check_range("level", opts.level, 0.0, 1.0)?;
     super::kind::require_plane("focus_search", img, &["XZ", "YZ"])?;
     let sens = sensitivity(img, Axis::X, opts.stencil)?;
-    // The noise of one sensitivity pixel, from the whole image (thousands of first
-    // differences): the rows' parabolas and the parabola over z take their σ from it, not from
-    // their own few residuals (a parabola over 7 rows has 4 degrees of freedom: its residual σ
-    // is Student-t distributed and put one answer in 30 beyond "4σ" in the truth sweep).
-    let sens_sigma = sens_pixel_noise(img, opts.stencil);
-    let rows = row_peaks(
-        &sens,
-        &PeakOptions {
-            window_um: opts.window_um,
-            sigma: sens_sigma,
-            acf: opts.stencil.noise_acf(),
-            ..Default::default()
-        },
-    )?;
-    let z: Vec<f64> = rows.iter().map(|r| r.coord).collect();
-    let v: Vec<f64> = rows
-        .iter()
-        .map(|r| r.peak().map(|p| p.value).unwrap_or(f64::NAN))
-        .collect();
-    let n_ok = v.iter().filter(|x| x.is_finite()).count();
-    if n_ok < 3 {
-        return Err(AnalysisError::Failed(format!(
-            "only {n_ok} z rows show a sensitivity maximum; at least 3 are needed"
-        )));
+    // The noise of one sensitivity pixel, from the whole image (thousands of differences):
+    // the rows' parabolas and the parabola over z take their σ from it, not from their own few
+    // residuals (a parabola over 7 rows has 4 degrees of freedom: its residual σ is Student-t
+    // distributed and put one answer in 30 beyond "4σ" in the truth sweep). Where the rows'
+    // maxima lie far closer to their parabola than that noise allows (a noise-free or a small,
+    // coarse scan, whose differences are the object's own curvature, not noise), the
+    // residuals' σ is used as before.
+    let mut c = focus_curve(&sens, opts, sens_pixel_noise(img, opts.stencil))?;
+    if c.quieter_than_noise {
+        c = focus_curve(&sens, opts, None)?;
     }
-    // the rows' maxima carry the σ of their parabolas (all alike: one noise, one window)
-    let row_sigma = sens_sigma.and_then(|_| {
-        let e: Vec<f64> = rows
-            .iter()
-            .filter_map(|r| r.peak().and_then(|p| p.value_err))
-            .collect();
-        (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
-    });
-    let z_opts = PeakOptions {
-        window_um: opts.z_window_um,
-        sigma: row_sigma,
-        ..Default::default()
-    };
-    let p = peak_1d(&z, &v, &z_opts)
-        .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
-    let mut p = with_misfit(p, &z, &v, &z_opts);
+    let FocusCurve { rows, z, v, p, .. } = c;
+    let mut p = p;
     // the method's own systematic, in quadrature (noise-free, its σ would claim exactness)
     p.pos_err = p.pos_err.map(|e| e.hypot(Z_BEST_SYS_UM));
     p.value_err = p
@@ -178,7 +150,7 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
 }
 
 /// The warnings of a focus search: the best z within one and a half rows, or half the z
-/// window, of the scan's end, or its parabola's window cut by the end (the parabola then leans on one side only: a 53 nm bead 0.3 µm
+/// window, of the scan's end (the parabola then leans on one side only: a 53 nm bead 0.3 µm
 /// beyond the end of the z range was put 0.16 µm inside it, 1.6 rows from the end, in the truth
 /// sweep), the lateral maximum of the best rows at the scan's edge.
 fn warnings(
@@ -194,8 +166,9 @@ fn warnings(
     } else {
         0.0
     };
-    let margin = (1.5 * step).max(0.5 * z_window_um);
-    if p.pos - zmin < margin || zmax - p.pos < margin || p.truncated {
+    // (less a rounding's worth: a window that just reaches the end is not cut)
+    let margin = (1.5 * step).max(0.5 * z_window_um) * (1.0 - 1e-6);
+    if p.pos - zmin < margin || zmax - p.pos < margin {
         w.push(format!(
             "the best z = {:.3} µm is within {margin:.3} µm (one and a half rows, or half the z window) of the end of the scan's z range [{zmin:.3}, {zmax:.3}] µm: the maximum may lie beyond it; widen the z range",
             p.pos
@@ -203,6 +176,65 @@ fn warnings(
     }
     w.extend(edge);
     w
+}
+
+/// The rows' maxima and the parabola over z through them.
+struct FocusCurve {
+    rows: Vec<LinePeak>,
+    z: Vec<f64>,
+    v: Vec<f64>,
+    p: super::peaks::Peak,
+    /// χ² of the rows about the parabola below its 1 % point for the noise `sens_sigma`: that
+    /// noise is not what scatters the rows.
+    quieter_than_noise: bool,
+}
+
+/// The focus curve of a sensitivity image with the noise of one sensitivity pixel `sens_sigma`
+/// (None: each parabola's σ from its residuals).
+fn focus_curve(sens: &Image, opts: &FocusOptions, sens_sigma: Option<f64>) -> Result<FocusCurve> {
+    let rows = row_peaks(
+        sens,
+        &PeakOptions {
+            window_um: opts.window_um,
+            sigma: sens_sigma,
+            acf: opts.stencil.noise_acf(),
+            ..Default::default()
+        },
+    )?;
+    let z: Vec<f64> = rows.iter().map(|r| r.coord).collect();
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|r| r.peak().map(|p| p.value).unwrap_or(f64::NAN))
+        .collect();
+    let n_ok = v.iter().filter(|x| x.is_finite()).count();
+    if n_ok < 3 {
+        return Err(AnalysisError::Failed(format!(
+            "only {n_ok} z rows show a sensitivity maximum; at least 3 are needed"
+        )));
+    }
+    // the rows' maxima carry the σ of their parabolas (all alike: one noise, one window)
+    let row_sigma = sens_sigma.and_then(|_| {
+        let e: Vec<f64> = rows
+            .iter()
+            .filter_map(|r| r.peak().and_then(|p| p.value_err))
+            .collect();
+        (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
+    });
+    let z_opts = PeakOptions {
+        window_um: opts.z_window_um,
+        sigma: row_sigma,
+        ..Default::default()
+    };
+    let p = peak_1d(&z, &v, &z_opts)
+        .map_err(|m| AnalysisError::Failed(format!("no maximum of the sensitivity over z: {m}")))?;
+    let (p, quieter_than_noise) = with_misfit(p, &z, &v, &z_opts);
+    Ok(FocusCurve {
+        rows,
+        z,
+        v,
+        p,
+        quieter_than_noise,
+    })
 }
 
 /// The noise of one sensitivity pixel (1σ): the image's robust pixel noise
@@ -214,16 +246,23 @@ fn sens_pixel_noise(img: &Image, stencil: Stencil) -> Option<f64> {
         return None;
     }
     let h = (img.x[n - 1] - img.x[0]).abs() / (n - 1) as f64;
-    let s = stencil.noise_gain() * pixel_noise_d2(img) / h;
-    (s > 0.0 && s.is_finite()).then_some(s)
+    let (noise, count) = pixel_noise_d2(img);
+    let s = stencil.noise_gain() * noise / h;
+    (count >= MIN_NOISE_DIFFERENCES && s > 0.0 && s.is_finite()).then_some(s)
 }
+
+/// The fewest second differences the image's noise is read from: below it (a 9 × 9 scan has 63)
+/// the object's own curvature fills them, the estimate is the signal's, and the parabolas take
+/// their σ from their residuals instead. The truth sweep's XZ scans hold 1 200–24 000.
+pub const MIN_NOISE_DIFFERENCES: usize = 1000;
 
 /// Robust pixel noise from second differences along the rows, 1.4826·MAD/√6: an XZ scan's
 /// defocused rows spread the object's smooth signal over most pixels, and its first
 /// differences (`domain::pixel_noise`) then read the signal's slope as noise at low noise (the
 /// truth sweep's z_best σ came out 1.7× its scatter at 300× the detection SNR); the second
 /// differences cancel the slope and leave the curvature, a power of the pixel size smaller.
-fn pixel_noise_d2(img: &Image) -> f64 {
+/// Also returns how many differences it read.
+fn pixel_noise_d2(img: &Image) -> (f64, usize) {
     let mut d = Vec::with_capacity(img.data.len());
     for row in img.data.rows() {
         d.extend(
@@ -233,7 +272,10 @@ fn pixel_noise_d2(img: &Image) -> f64 {
                 .filter(|v| v.is_finite()),
         );
     }
-    super::stats::robust_std(&d).unwrap_or(0.0) / 6f64.sqrt()
+    (
+        super::stats::robust_std(&d).unwrap_or(0.0) / 6f64.sqrt(),
+        d.len(),
+    )
 }
 
 /// The parabola over z with its σ from the rows' known noise; the peak value's σ widened by
@@ -250,9 +292,9 @@ fn with_misfit(
     z: &[f64],
     v: &[f64],
     o: &PeakOptions,
-) -> super::peaks::Peak {
+) -> (super::peaks::Peak, bool) {
     let Some(s) = o.sigma else {
-        return p;
+        return (p, false);
     };
     let half = 0.5 * o.window_um;
     let r: Vec<f64> = z
@@ -267,13 +309,14 @@ fn with_misfit(
         // made 1σ intervals hold 81 % of the sweep's answers
         let nu = (r.len() - 3) as f64;
         let chi2 = r.iter().map(|x| (x / s).powi(2)).sum::<f64>();
-        let q99 = nu * (1.0 - 2.0 / (9.0 * nu) + 2.326 * (2.0 / (9.0 * nu)).sqrt()).powi(3);
-        if chi2 > q99 {
+        let wh = |z: f64| nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3);
+        if chi2 > wh(2.326) {
             let k = (chi2 / nu).sqrt();
             p.value_err = p.value_err.map(|e| e * k);
         }
+        return (p, chi2 < wh(-2.326).max(0.0));
     }
-    p
+    (p, false)
 }
 
 /// The focus search's systematic error of z_best (µm, 1σ): the parabola over the z window

@@ -15,17 +15,17 @@
 //! ([`Template::pipeline_max_sens`]). Its truth is the peak above times that reading of a bead
 //! of peak 1, at the scene's pixel size.
 
-use super::{Tally, N_SAMPLES};
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::template::Template;
 use crate::data::Image;
-use crate::instrument::sim::scene::{Bead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE};
+use crate::instrument::sim::scene::{
+    Bead, DetectorNoise, Scene, PAPER_DETECTOR_SIGMA_SAMPLE, PAPER_SAMPLES_PER_PIXEL,
+};
 use crate::instrument::sim::Renderer;
 use crate::optics::params::{Optics, REF_BEAD_N};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use std::collections::BTreeMap;
 
 /// Half the lateral extent (µm) and half the z range (µm) of the focus scenes' XZ scan.
 const X_HALF: f64 = 1.5;
@@ -143,7 +143,7 @@ impl FocusTruth {
             .ok_or("no focus maximum")?;
         let (a, b, c) = (v[i - 1], v[i], v[i + 1]);
         let den = a - 2.0 * b + c;
-        if !(den < 0.0) {
+        if den.is_nan() || den >= 0.0 {
             return Err("the reference bead's focus curve has no maximum within ±0.5 µm".into());
         }
         let t = 0.5 * (a - c) / den;
@@ -181,87 +181,117 @@ fn render_xz(optics: &Optics, case: &FocusCase) -> Option<Image> {
     let zs = axis(Z_HALF, case.z_step_nm);
     let mut rng = ChaCha8Rng::seed_from_u64(case.seed);
     let data = ndarray::Array2::from_shape_fn((zs.len(), xs.len()), |(iz, ix)| {
-        let (v, _) = r.render_point([xs[ix], 0.0, zs[iz]], N_SAMPLES, &mut rng);
+        let (v, _) = r.render_point([xs[ix], 0.0, zs[iz]], PAPER_SAMPLES_PER_PIXEL, &mut rng);
         v[0]
     });
     Some(Image::new(data, xs, zs).with_axis_names("x", "z"))
 }
 
+/// One estimator's outcome on one scene, as the sweep tallies it.
+#[derive(Debug, Clone)]
+pub enum Outcome {
+    /// The scene could not be rendered.
+    Refused,
+    /// A warning or a refusal, in words.
+    Flagged(Vec<String>),
+    /// An answer inside its domain: `value` against `truth`, its 1σ, the relative error beyond
+    /// which it is an outlier whatever its σ (counts), and the case in words.
+    Answer {
+        value: f64,
+        truth: f64,
+        sigma: Option<f64>,
+        rel_limit: Option<f64>,
+        what: String,
+    },
+}
+
 /// The focus family: one XZ scene searched for the best focus; z_best and max_sens against
-/// the truth, an empty field against "no object". Returns the search's answer (for `--replay`).
+/// the truth, an empty field against "no object". Returns each estimator's outcome and the
+/// search's answer (for `--replay`).
 pub(super) fn focus_case(
     case: &FocusCase,
     optics: &Optics,
     truth: &FocusTruth,
-    t: &mut BTreeMap<String, Tally>,
-) -> Option<crate::analysis::focus::FocusResult> {
+) -> (
+    Vec<(&'static str, Outcome)>,
+    Option<crate::analysis::focus::FocusResult>,
+) {
     let keys = [
         "focus_search.z_best",
         "focus_search.max_sens",
         "focus_search.detection",
     ];
     let Some(img) = render_xz(optics, case) else {
-        for k in keys {
-            t.entry(k.into()).or_default().refused();
-        }
-        return None;
+        return (keys.map(|k| (k, Outcome::Refused)).to_vec(), None);
     };
     let r = focus_search(&img, &FocusOptions::default());
-    let describe = || case.describe();
     let why: Vec<String> = match &r {
         Ok(f) => f.warnings.clone(),
         Err(e) => vec![e.to_string()],
     };
     let Some([_, z0, d]) = case.bead else {
         // an empty field: any answer without a warning is an object found where there is none
-        let tally = t.entry(keys[2].into()).or_default();
-        match (&r, why.is_empty()) {
-            (Ok(f), true) => tally.answer(1.0, 0.0, None, Some(0.05), || {
-                format!(
+        let o = match (&r, why.is_empty()) {
+            (Ok(f), true) => Outcome::Answer {
+                value: 1.0,
+                truth: 0.0,
+                sigma: None,
+                rel_limit: Some(0.05),
+                what: format!(
                     "an object found at z {:.3} µm in an empty field: {}",
                     f.z_best,
-                    describe()
-                )
-            }),
-            _ => tally.flagged(&why),
-        }
-        return r.ok();
+                    case.describe()
+                ),
+            },
+            _ => Outcome::Flagged(why),
+        };
+        return (vec![(keys[2], o)], r.ok());
     };
     let f = match &r {
         Ok(f) if why.is_empty() => f,
         _ => {
-            for k in &keys[..2] {
-                t.entry((*k).into()).or_default().flagged(&why);
-            }
-            return r.ok();
+            let o = keys[..2]
+                .iter()
+                .map(|&k| (k, Outcome::Flagged(why.clone())))
+                .collect();
+            return (o, r.ok());
         }
     };
-    let zt = z0 + truth.z_peak;
-    t.entry(keys[0].into())
-        .or_default()
-        .answer(f.z_best, zt, f.z_err, None, || {
-            format!(
-                "z_best {:.4} ± {:.4} µm vs truth {zt:.4}: {}",
-                f.z_best,
-                f.z_err.unwrap_or(f64::NAN),
-                describe()
-            )
-        });
     let read = truth
         .pipeline
         .iter()
         .find(|p| p.0 == case.pixel_nm)
-        .map(|p| p.1)?;
-    let st = truth.s_peak * read * (d / REF_D_NM).powi(3);
-    t.entry(keys[1].into())
-        .or_default()
-        .answer(f.max_sens, st, f.max_sens_err, None, || {
-            format!(
-                "max_sens {:.5} ± {:.5} µm⁻¹ vs truth {st:.5}: {}",
-                f.max_sens,
-                f.max_sens_err.unwrap_or(f64::NAN),
-                describe()
+        .map_or(f64::NAN, |p| p.1);
+    let answers = [
+        ("z_best", "µm", f.z_best, z0 + truth.z_peak, f.z_err),
+        (
+            "max_sens",
+            "µm⁻¹",
+            f.max_sens,
+            truth.s_peak * read * (d / REF_D_NM).powi(3),
+            f.max_sens_err,
+        ),
+    ];
+    let o = keys
+        .iter()
+        .zip(answers)
+        .map(|(&k, (name, unit, value, truth, sigma))| {
+            let what = format!(
+                "{name} {value:.5} ± {:.5} {unit} vs truth {truth:.5}: {}",
+                sigma.unwrap_or(f64::NAN),
+                case.describe()
+            );
+            (
+                k,
+                Outcome::Answer {
+                    value,
+                    truth,
+                    sigma,
+                    rel_limit: None,
+                    what,
+                },
             )
-        });
-    r.ok()
+        })
+        .collect();
+    (o, r.ok())
 }
