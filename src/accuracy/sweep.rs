@@ -19,7 +19,7 @@
 //!   eight); detector noise × 0–10; lateral pixels of 20–100 nm, z rows every 25, 50 or 100 nm
 //!   ([`focus`]).
 //!
-//! Not yet in the space (stated in docs/accuracy.md): focus offsets of the bead and fibril
+//! Not yet in the space (stated in docs/analysis.md, "Still open"): focus offsets of the bead and fibril
 //! scenes, clipping, microtubules with aggregates, SBR and the beam fit.
 
 mod focus;
