@@ -122,36 +122,34 @@ impl FocusTruth {
             let d: Vec<f64> = (1..xs.len() - 1)
                 .map(|i| (s[0][i + 1] - s[0][i - 1]) / (2.0 * h))
                 .collect();
-            let i = (1..d.len() - 1)
-                .max_by(|&a, &b| d[a].total_cmp(&d[b]))
-                .unwrap_or(1);
-            let (a, b, c) = (d[i - 1], d[i], d[i + 1]);
-            let den = a - 2.0 * b + c;
-            if den < 0.0 {
-                let t = 0.5 * (a - c) / den;
-                b - 0.25 * (a - c) * t
-            } else {
-                b
-            }
+            sampled_max(&d).map_or(f64::NAN, |(_, _, v)| v)
         };
-        // the maximum on a 2 nm grid over ±0.5 µm, then the vertex of the parabola through it
-        // and its two neighbours
+        // the maximum on a 2 nm grid over ±0.5 µm, refined the same way
         let zs: Vec<f64> = (0..=500).map(|i| -0.5 + 0.002 * i as f64).collect();
         let v: Vec<f64> = zs.iter().map(|&z| slope(z)).collect();
-        let i = (1..v.len() - 1)
-            .max_by(|&a, &b| v[a].total_cmp(&v[b]))
-            .ok_or("no focus maximum")?;
-        let (a, b, c) = (v[i - 1], v[i], v[i + 1]);
-        let den = a - 2.0 * b + c;
-        if den.is_nan() || den >= 0.0 {
+        let Some((i, t, s_peak)) = sampled_max(&v).filter(|m| m.1.is_finite()) else {
             return Err("the reference bead's focus curve has no maximum within ±0.5 µm".into());
-        }
-        let t = 0.5 * (a - c) / den;
+        };
         Ok(FocusTruth {
             z_peak: zs[i] + t * 0.002,
-            s_peak: b - 0.25 * (a - c) * t,
+            s_peak,
             pipeline,
         })
+    }
+}
+
+/// The largest interior sample of `v`, refined by the parabola through it and its two
+/// neighbours: (index, vertex offset in samples, vertex value). The offset is NaN (and the value
+/// the sample's) where the three are not concave; None for fewer than three samples.
+fn sampled_max(v: &[f64]) -> Option<(usize, f64, f64)> {
+    let i = (1..v.len().checked_sub(1)?).max_by(|&a, &b| v[a].total_cmp(&v[b]))?;
+    let (a, b, c) = (v[i - 1], v[i], v[i + 1]);
+    let den = a - 2.0 * b + c;
+    if den < 0.0 {
+        let t = 0.5 * (a - c) / den;
+        Some((i, t, b - 0.25 * (a - c) * t))
+    } else {
+        Some((i, f64::NAN, b))
     }
 }
 
