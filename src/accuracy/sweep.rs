@@ -733,6 +733,27 @@ fn set_current(c: &Case) {
 /// and told in words: the tallies, and the fit's beads with their warnings, or the filament's
 /// measurement.
 pub fn replay(json: &str) -> Result<String, String> {
+    let (mut out, t) = replay_scene(json)?;
+    out.push_str(&table(&t));
+    for (k, v) in &t {
+        for e in &v.examples {
+            out.push_str(&format!("{k}: unflagged outlier: {e}\n"));
+        }
+        for (r, c) in &v.reasons {
+            out.push_str(&format!("{k}: {c} × {r}\n"));
+        }
+    }
+    Ok(out)
+}
+
+/// One scene of the dump rerun: each estimator's tally (for tests that keep a scene that was
+/// once an unflagged outlier found or flagged).
+pub fn replay_tallies(json: &str) -> Result<BTreeMap<String, Tally>, String> {
+    replay_scene(json).map(|(_, t)| t)
+}
+
+/// One scene rerun: the fit or measurement in words, and the finished tallies.
+fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String> {
     let case: Case = serde_json::from_str(json).map_err(|e| {
         format!("--replay: not a sweep scene ({e}); give the `scene` field of a BFPSCOPE_SWEEP_DUMP line")
     })?;
@@ -811,16 +832,7 @@ pub fn replay(json: &str) -> Result<String, String> {
     for v in t.values_mut() {
         v.finish();
     }
-    out.push_str(&table(&t));
-    for (k, v) in &t {
-        for e in &v.examples {
-            out.push_str(&format!("{k}: unflagged outlier: {e}\n"));
-        }
-        for (r, c) in &v.reasons {
-            out.push_str(&format!("{k}: {c} × {r}\n"));
-        }
-    }
-    Ok(out)
+    Ok((out, t))
 }
 
 /// Each estimator's outcome on one scene into its tally.

@@ -250,16 +250,7 @@ fn split_words(
     dmax: f64,
 ) -> Vec<(usize, String)> {
     let mut out = vec![];
-    for group in close_groups(r, opts.w0_um) {
-        let loose = group.iter().any(|&i| {
-            let b = &r.beads[i];
-            b.weight_err
-                .is_none_or(|e| e > SPLIT_WEIGHT_REL * b.weight.abs())
-        });
-        let total: f64 = group.iter().map(|&i| r.beads[i].weight).sum();
-        let Some(d) = implied_diameter_nm(total, n, tpl).filter(|&d| d > dmax && loose) else {
-            continue;
-        };
+    for (group, total, d) in split_groups(r, tpl, opts.w0_um, n, dmax) {
         let names = group
             .iter()
             .map(|i| i.to_string())
@@ -271,6 +262,48 @@ fn split_words(
                 opts.w0_um
             )));
         }
+    }
+    out
+}
+
+/// The groups of [`split_words`]: members, total weight, implied diameter (nm).
+fn split_groups(
+    r: &FitResult,
+    tpl: &Template,
+    w0_um: f64,
+    n: f64,
+    dmax: f64,
+) -> Vec<(Vec<usize>, f64, f64)> {
+    close_groups(r, w0_um)
+        .into_iter()
+        .filter_map(|group| {
+            let loose = group.iter().any(|&i| {
+                let b = &r.beads[i];
+                b.weight_err
+                    .is_none_or(|e| e > SPLIT_WEIGHT_REL * b.weight.abs())
+            });
+            let total: f64 = group.iter().map(|&i| r.beads[i].weight).sum();
+            let d = implied_diameter_nm(total, n, tpl).filter(|&d| d > dmax && loose)?;
+            Some((group, total, d))
+        })
+        .collect()
+}
+
+/// The beads whose neighbourhood the grow step leaves alone, with the diameter (nm) of the
+/// object they are part of: those outside the template's domain ([`large_beads`]) and the
+/// members of a group that may be one large object the fit split ([`split_words`]). Beside
+/// them the residual is the template's misfit of a large object, and each bead added there
+/// splits it further (a 293 nm bead came out as five beads and a fit of 13 that took 50 s).
+pub(super) fn grow_exclusions(
+    r: &FitResult,
+    tpl: &Template,
+    opts: &FitOptions,
+) -> Vec<(usize, f64)> {
+    let n = opts.bead_n.unwrap_or(tpl.reference.n);
+    let dmax = d_max_nm(n, tpl, opts);
+    let mut out = large_beads(r, tpl, opts);
+    for (group, _, d) in split_groups(r, tpl, opts.w0_um, n, dmax) {
+        out.extend(group.into_iter().map(|i| (i, d)));
     }
     out
 }
