@@ -460,16 +460,10 @@ impl Template {
     /// Render beads into a [`Scan`] (status complete, empty metadata) on the given axes, in
     /// reference-bead units.
     pub fn render_scan(&self, beads: &[(f64, f64, f64)], x: &[f64], y: &[f64]) -> Scan {
-        let [sx, sy, sz] = self.render(beads, x, y);
-        Scan {
-            sx: Image::new(sx, x.to_vec(), y.to_vec()),
-            sy: Image::new(sy, x.to_vec(), y.to_vec()),
-            sz: Image::new(sz, x.to_vec(), y.to_vec()),
-            status: crate::data::ScanStatus::Complete,
-            meta: serde_json::Value::Null,
-            raw: Vec::new(),
-            flags: Default::default(),
-        }
+        let channels = self
+            .render(beads, x, y)
+            .map(|c| Image::new(c, x.to_vec(), y.to_vec()));
+        Scan::complete(channels, serde_json::Value::Null)
     }
 
     /// Maximum ∂Sx/∂x of the reference bead as measured by the pixel pipeline: the bead is

@@ -454,19 +454,14 @@ fn plural(n: usize) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{Image, ScanStatus};
+    use crate::data::Image;
     use serde_json::json;
 
     fn scan(flags: InputFlags, meta: serde_json::Value) -> Scan {
         let img = Image::new(Array2::zeros((2, 3)), vec![0.0, 1.0, 2.0], vec![0.0, 1.0]);
         Scan {
-            sx: img.clone(),
-            sy: img.clone(),
-            sz: img,
-            status: ScanStatus::Complete,
-            meta,
-            raw: vec![],
             flags,
+            ..Scan::complete([img.clone(), img.clone(), img], meta)
         }
     }
 
@@ -611,14 +606,10 @@ mod tests {
             vec![0.0, 0.1, 0.2, 0.3, 0.4],
             vec![0.0, 0.1, 0.2],
         );
+        let meta = json!({"clipped": {"range": "±1 input range (signal units)"}});
         Scan {
-            sx: img.clone(),
-            sy: img.clone(),
-            sz: img,
-            status: ScanStatus::Complete,
-            meta: json!({"clipped": {"range": "±1 input range (signal units)"}}),
-            raw: vec![],
             flags,
+            ..Scan::complete([img.clone(), img.clone(), img], meta)
         }
     }
 

@@ -10,7 +10,7 @@ use super::registry::{array_of, err, fail, num, numbers, Opt, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
 use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
-use crate::data::{Image, Scan, ScanStatus};
+use crate::data::{Image, Scan};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
 use std::sync::Arc;
@@ -407,13 +407,8 @@ pub(crate) fn scan_flagged(
 ) -> ScanRef {
     ScanRef::new(
         Scan {
-            sx,
-            sy,
-            sz,
-            status: ScanStatus::Complete,
-            meta,
-            raw: Vec::new(),
             flags,
+            ..Scan::complete([sx, sy, sz], meta)
         },
         None,
     )
