@@ -13,7 +13,7 @@
 //! asymptotically (at high SNR), which the Monte-Carlo test measures.
 //!
 //! Models here: the template bead model of the fit (eq. multiBeadFit; parameters weight, x, y
-//! per bead, [`beads_fisher`]) and the straight bead-model filament of Sec. 4.2 (offset, angle,
+//! per bead, [`beads_crlb`]) and the straight bead-model filament of Sec. 4.2 (offset, angle,
 //! weight per length, a background per channel; [`crate::analysis::filament_fit::LineFilament`]
 //! provides μ and ∂μ/∂θ). Units: whatever the model's parameters are in (µm, radians,
 //! reference-bead units); σ in the data's (instrument) units. No I/O.
@@ -143,20 +143,29 @@ pub struct BeadBound {
     pub y: f64,
 }
 
-/// Fisher information of the multi-bead template model (eq. multiBeadFit) at the beads
-/// `beads` (parameters (weight, x, y) per bead, in that order, as the fit's), for an image
-/// sampled at columns `x` and rows `y` (µm) in the channels `channels` (0 = Sx, 1 = Sy).
-/// `sigma(ch, row, col)` gives each pixel's noise in instrument units, or None for a pixel not
-/// taken (missing, NaN). The model is the template divided by its `norm_factor` (instrument
-/// units), as the fit's: ∂μ/∂C = T/f, ∂μ/∂x = −C·∂T/∂u/f, ∂μ/∂y = −C·∂T/∂v/f.
-pub fn beads_fisher(
+/// The Cramér–Rao bounds of the beads' weights and positions under the multi-bead template
+/// model (eq. multiBeadFit) at the beads `beads` (parameters (weight, x, y) per bead, in that
+/// order, as the fit's), for an image sampled at columns `x` and rows `y` (µm) in the channels
+/// `channels` (0 = Sx, 1 = Sy). `sigma(ch, row, col)` gives each pixel's noise in instrument
+/// units, or None for a pixel not taken (missing, NaN). The model is the template divided by
+/// its `norm_factor` (instrument units), as the fit's: ∂μ/∂C = T/f, ∂μ/∂x = −C·∂T/∂u/f,
+/// ∂μ/∂y = −C·∂T/∂v/f. Errors: no beads, a parameter the data carry no information about (a
+/// bead out of the template's reach of every pixel, or a weight of 0 for its position), a
+/// singular information matrix.
+pub fn beads_crlb(
     tpl: &Template,
     beads: &[BeadInit],
     x: &[f64],
     y: &[f64],
     channels: &[usize],
     sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
-) -> Fisher {
+) -> Result<Vec<BeadBound>> {
+    if beads.is_empty() {
+        return Err(AnalysisError::BadInput {
+            name: "beads",
+            reason: "no beads: the bound needs at least one".into(),
+        });
+    }
     let np = 3 * beads.len();
     let mut f = Fisher::new(np);
     let inv_f = 1.0 / tpl.norm_factor;
@@ -189,26 +198,6 @@ pub fn beads_fisher(
             }
         }
     }
-    f
-}
-
-/// The Cramér–Rao bounds of the beads' weights and positions (see [`beads_fisher`]). Errors: no
-/// beads, a parameter the data carry no information about (a bead out of the template's reach
-/// of every pixel, or a weight of 0 for its position), a singular information matrix.
-pub fn beads_crlb(
-    tpl: &Template,
-    beads: &[BeadInit],
-    x: &[f64],
-    y: &[f64],
-    channels: &[usize],
-    sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
-) -> Result<Vec<BeadBound>> {
-    if beads.is_empty() {
-        return Err(AnalysisError::BadInput {
-            name: "beads",
-            reason: "no beads: the bound needs at least one".into(),
-        });
-    }
     let names: Vec<String> = (0..beads.len())
         .flat_map(|i| {
             [
@@ -219,7 +208,7 @@ pub fn beads_crlb(
         })
         .collect();
     let names: Vec<&str> = names.iter().map(|s| s.as_str()).collect();
-    let b = beads_fisher(tpl, beads, x, y, channels, sigma).bounds(&names)?;
+    let b = f.bounds(&names)?;
     Ok((0..beads.len())
         .map(|i| BeadBound {
             weight: b[3 * i],
