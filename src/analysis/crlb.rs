@@ -20,7 +20,7 @@
 
 use super::template::BeadInit;
 use super::template::Template;
-use super::{check_above, AnalysisError, Result};
+use super::{check_positive, AnalysisError, Result};
 use nalgebra::DMatrix;
 
 /// Per-pixel noise σ of a read averaging the samples of `dwell_s` at `rate_hz`, each of noise
@@ -35,8 +35,7 @@ pub fn pixel_sigma(sigma_sample: f64, dwell_s: f64, rate_hz: f64) -> Result<f64>
             allowed: "finite and ≥ 0".into(),
         });
     }
-    check_above("dwell_s", dwell_s, 0.0)?;
-    check_above("rate_hz", rate_hz, 0.0)?;
+    check_positive(&[("dwell_s", dwell_s), ("rate_hz", rate_hz)])?;
     // whole samples, at least one: the count of `instrument::samples_per_point` (analysis does
     // not import the instrument)
     let n = ((dwell_s * rate_hz).round()).max(1.0);
