@@ -465,16 +465,21 @@ mod tests {
         }
     }
 
+    /// A scan whose Sx has the clipped samples `a` per pixel, read at a ±0.2 V input range.
+    fn sx_clipped(a: Array2<u32>) -> Scan {
+        let flags = InputFlags {
+            clipped: [Some(a), None, None],
+            dark: None,
+        };
+        scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}))
+    }
+
     #[test]
     fn counts_the_channels_and_the_region_asked_about() {
         let mut a = Array2::<u32>::zeros((2, 3));
         a[[0, 0]] = 5;
         a[[1, 2]] = 1;
-        let flags = InputFlags {
-            clipped: [Some(a), None, None],
-            dark: None,
-        };
-        let s = scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}));
+        let s = sx_clipped(a);
         let c = input_check(&s, &["sx", "sy"], None);
         assert_eq!(c.clipped_pixels, [2, 0, 0]);
         assert_eq!(
@@ -520,11 +525,7 @@ mod tests {
         a[[1, 0]] = 3;
         a[[1, 1]] = 3;
         a[[1, 2]] = 3;
-        let flags = InputFlags {
-            clipped: [Some(a), None, None],
-            dark: None,
-        };
-        let s = scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}));
+        let s = sx_clipped(a);
         // the whole scan: half clipped, a warning
         let c = input_check(&s, &["sx"], None);
         assert_eq!(c.refusal, None);

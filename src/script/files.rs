@@ -121,12 +121,9 @@ binding_list! {
 /// `plot`: an image or a scan channel as a heat map.
 fn bind_plot(r: &mut Registrar) {
     let ctx = r.ctx();
-    let what = [
-        "what",
-        "Scan | Image",
-        "a scan (Sx, Sy, Sz panels) or one image",
-    ];
-    let d = figure_doc("plot", what, "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
+    let d = Doc::func("plot")
+        .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
+        .figure_file("figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
         .opts(&[
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
@@ -149,20 +146,18 @@ fn bind_plot(r: &mut Registrar) {
 /// `plot_profile`, `plot_xy`: line figures.
 fn bind_line_plots(r: &mut Registrar) {
     let ctx = r.ctx();
-    let what = [
-        "profiles",
-        "Profile | array | map",
-        "one Profile, [Profile, …], or #{label: Profile, …}",
-    ];
-    let d = figure_doc("plot_profile", what, FIGURE_FILE)
+    let d = Doc::func("plot_profile")
+        .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
+        .figure_file(FIGURE_FILE)
         .opts(XY_KEYS)
         .summary("line plot of one or more profiles with a legend")
         .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
         .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
     bind_figure(r, d, &ctx, plot_profile);
 
-    let what = ["series", "array", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]"];
-    let d = figure_doc("plot_xy", what, FIGURE_FILE)
+    let d = Doc::func("plot_xy")
+        .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
+        .figure_file(FIGURE_FILE)
         .opts(XY_KEYS)
         .summary("x–y plot of curves and points with error bars, optionally log–log")
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
@@ -173,8 +168,9 @@ fn bind_line_plots(r: &mut Registrar) {
 /// `plot_hist`: a histogram figure.
 fn bind_plot_hist(r: &mut Registrar) {
     let ctx = r.ctx();
-    let what = ["values", "array", "numbers (NaN skipped and noted)"];
-    let d = figure_doc("plot_hist", what, FIGURE_FILE)
+    let d = Doc::func("plot_hist")
+        .arg("values", "array", "", "numbers (NaN skipped and noted)")
+        .figure_file(FIGURE_FILE)
         .opts(&[
                 BINS.doc(format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
                 TITLE.doc("optional: figure title"),
@@ -243,14 +239,20 @@ fn bind_save_csv(r: &mut Registrar) {
 /// The path argument of a figure binding.
 const FIGURE_FILE: &str = "figure file, .png or .svg";
 
-/// A figure binding's declaration: `name(what, path) -> string`, `what` = [name, type, help],
-/// `path` the figure file's help; it returns the path written.
-fn figure_doc(name: &str, [what, ty, help]: [&str; 3], path: &str) -> Doc {
-    Doc::func(name)
-        .arg(what, ty, "", help)
-        .arg("path", "string", "", path)
-        .form(&format!("{name}({what}, path) -> string"))
-        .returns("string", "the path written")
+/// The declaration of a figure binding after its subject (its one argument, `what`): the path
+/// of the figure file (`path`: its help), the form `name(what, path) -> string`, the path
+/// written returned.
+trait FigureDoc {
+    fn figure_file(self, path: &str) -> Doc;
+}
+
+impl FigureDoc for Doc {
+    fn figure_file(self, path: &str) -> Doc {
+        let form = format!("{}({}, path) -> string", self.name, self.params[0].name);
+        self.arg("path", "string", "", path)
+            .form(&form)
+            .returns("string", "the path written")
+    }
 }
 
 fn bind_figure<T: super::registry::Value>(
