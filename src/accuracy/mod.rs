@@ -176,14 +176,18 @@ fn vector_quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &
     let (rt, rp) = VECTOR_QUAD_REF;
     let (r, a0) = vector_dipole(&base, rt, rp, model, reach, zmax);
     let peak = r.response_unchecked(0.25, 0.0, 0.0)[0].abs() / a0;
-    let orders: &[usize] = if quick {
-        &[8, 16, 24, 48]
-    } else {
-        &[6, 8, 12, 16, 24, 32, 48, 64]
-    };
-    let points = orders
-        .iter()
-        .map(|&nt| {
+    let text = [
+        id,
+        title,
+        "worst |ΔS| of the vector beam's point dipole over 7 points out to (2, 1, 1.5) µm, relative to peak Sx",
+        "one point response (Sx, Sy, Sz), incident grid fixed",
+    ];
+    quadrature_knob(
+        quick,
+        &base,
+        text,
+        format!("Gauss–Legendre ({rt}, {rp})"),
+        |nt| {
             let (d, _) = vector_dipole(&base, nt, nt / 2, model, reach, zmax);
             let o = Optics {
                 n_theta: nt,
@@ -211,43 +215,57 @@ fn vector_quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &
             let secs = time_median(if quick { 5 } else { 21 }, || {
                 d.response_unchecked(0.31, -0.12, 0.05)
             });
-            quadrature_point(
-                &base,
-                nt,
-                format!(
-                    "n_theta = {nt}, n_phi = {} (reach ρ ≤ {det_reach:.2} µm; {n_in} of {} points inside{})",
-                    nt / 2,
-                    pts.len(),
-                    if n_in > 0 {
-                        format!(", worst there {worst_in:.1e}")
-                    } else {
-                        String::new()
-                    }
-                ),
-                worst,
-                secs,
-            )
+            let setting = format!(
+                "n_theta = {nt}, n_phi = {} (reach ρ ≤ {det_reach:.2} µm; {n_in} of {} points inside{})",
+                nt / 2,
+                pts.len(),
+                if n_in > 0 {
+                    format!(", worst there {worst_in:.1e}")
+                } else {
+                    String::new()
+                }
+            );
+            (setting, worst, secs)
+        },
+    )
+}
+
+/// A quadrature sweep's knob (`text`: id, title, metric, what is timed): each detection order
+/// n_theta = nt, n_phi = nt/2 (4·nt·(nt/2) nodes) of the sweep (fewer when `quick`), measured
+/// by `at(nt)` → (setting, worst error, time in s); the error is floored at 1e-16 for the log
+/// axis.
+fn quadrature_knob(
+    quick: bool,
+    base: &Optics,
+    [id, title, metric, timed]: [&str; 4],
+    reference: String,
+    mut at: impl FnMut(usize) -> (String, f64, f64),
+) -> Knob {
+    let orders: &[usize] = if quick {
+        &[8, 16, 24, 48]
+    } else {
+        &[6, 8, 12, 16, 24, 32, 48, 64]
+    };
+    let points = orders
+        .iter()
+        .map(|&nt| {
+            let (setting, worst, secs) = at(nt);
+            Point {
+                setting,
+                value: (4 * nt * (nt / 2)) as f64,
+                error: worst.max(1e-16),
+                seconds: secs,
+                is_default: nt == base.n_theta && nt / 2 == base.n_phi,
+            }
         })
         .collect();
     Knob {
         id: id.into(),
         title: title.into(),
-        metric: "worst |ΔS| of the vector beam's point dipole over 7 points out to (2, 1, 1.5) µm, relative to peak Sx".into(),
-        timed: "one point response (Sx, Sy, Sz), incident grid fixed".into(),
-        reference: format!("Gauss–Legendre ({rt}, {rp})"),
+        metric: metric.into(),
+        timed: timed.into(),
+        reference,
         points,
-    }
-}
-
-/// One point of a quadrature sweep: n_theta = `nt`, n_phi = nt/2 (4·nt·(nt/2) nodes), its
-/// worst error (floored at 1e-16 for the log axis) and time (s).
-fn quadrature_point(base: &Optics, nt: usize, setting: String, worst: f64, secs: f64) -> Point {
-    Point {
-        setting,
-        value: (4 * nt * (nt / 2)) as f64,
-        error: worst.max(1e-16),
-        seconds: secs,
-        is_default: nt == base.n_theta && nt / 2 == base.n_phi,
     }
 }
 
@@ -266,48 +284,33 @@ fn quadrature_sweep(quick: bool, model: DetectorModel, id: &str, title: &str) ->
     )
     .unwrap();
     let peak = r.response_unit(0.25, 0.0, 0.0).0[0].abs();
-    let orders: &[usize] = if quick {
-        &[8, 16, 24, 48]
-    } else {
-        &[6, 8, 12, 16, 24, 32, 48, 64]
-    };
     let pts = test_points();
-    let points = orders
-        .iter()
-        .map(|&nt| {
-            let o = Optics {
-                n_theta: nt,
-                n_phi: nt / 2,
-                ..base.clone()
-            };
-            let d = Detection::new(&o, &model).unwrap();
-            let mut worst: f64 = 0.0;
-            for &(x, y, z) in &pts {
-                let (a, b) = (d.response_unit(x, y, z).0, r.response_unit(x, y, z).0);
-                for c in 0..3 {
-                    worst = worst.max((a[c] - b[c]).abs() / peak);
-                }
+    let text = [
+        id,
+        title,
+        "worst |ΔS| over 7 points out to (2, 1, 1.5) µm, relative to peak Sx",
+        "one point response (Sx, Sy, Sz and x/y derivatives)",
+    ];
+    let reference = "Gauss–Legendre (128, 64)".to_string();
+    quadrature_knob(quick, &base, text, reference, |nt| {
+        let o = Optics {
+            n_theta: nt,
+            n_phi: nt / 2,
+            ..base.clone()
+        };
+        let d = Detection::new(&o, &model).unwrap();
+        let mut worst: f64 = 0.0;
+        for &(x, y, z) in &pts {
+            let (a, b) = (d.response_unit(x, y, z).0, r.response_unit(x, y, z).0);
+            for c in 0..3 {
+                worst = worst.max((a[c] - b[c]).abs() / peak);
             }
-            let secs = time_median(if quick { 5 } else { 21 }, || {
-                d.response_unit(0.31, -0.12, 0.05)
-            });
-            quadrature_point(
-                &base,
-                nt,
-                format!("n_theta = {nt}, n_phi = {}", nt / 2),
-                worst,
-                secs,
-            )
-        })
-        .collect();
-    Knob {
-        id: id.into(),
-        title: title.into(),
-        metric: "worst |ΔS| over 7 points out to (2, 1, 1.5) µm, relative to peak Sx".into(),
-        timed: "one point response (Sx, Sy, Sz and x/y derivatives)".into(),
-        reference: "Gauss–Legendre (128, 64)".into(),
-        points,
-    }
+        }
+        let secs = time_median(if quick { 5 } else { 21 }, || {
+            d.response_unit(0.31, -0.12, 0.05)
+        });
+        (format!("n_theta = {nt}, n_phi = {}", nt / 2), worst, secs)
+    })
 }
 
 /// Template grid spacing and interpolation of the default (vector) beam: the simulator's

@@ -30,7 +30,7 @@ use super::limits::SoftLimits;
 use super::plan::{fmt_seconds, Plan};
 use super::raster::RasterOptions;
 pub use super::strategy::samples_per_point;
-use super::strategy::{for_raster, Layout, Pixel, PointStrategy, StopCause, Strategy};
+use super::strategy::{for_raster, Checked, Layout, Pixel, PointStrategy, StopCause, Strategy};
 use crate::data::clock::utc_now;
 use crate::data::{Image, Scan, ScanStatus};
 use crate::instrument::{DeviceError, Instrument, Pos};
@@ -321,7 +321,13 @@ fn preflight(
     let points = limits
         .preflight(plan, start)
         .map_err(|e| ScanError::Refused(e.0))?;
-    let lay = strategy.prepare(inst, plan, start, &points, &limits)?;
+    let checked = Checked {
+        plan,
+        start,
+        points: &points,
+        limits: &limits,
+    };
+    let lay = strategy.prepare(inst, &checked)?;
     let mode = strategy.mode();
     let return_s = inst.settle_s
         + points

@@ -13,14 +13,14 @@
 //! asymptotically (at high SNR), which the Monte-Carlo test measures.
 //!
 //! Models here: the template bead model of the fit (eq. multiBeadFit; parameters weight, x, y
-//! per bead, [`beads_fisher`]) and the straight bead-model filament of Sec. 4.2 (offset, angle,
+//! per bead, [`beads_crlb`]) and the straight bead-model filament of Sec. 4.2 (offset, angle,
 //! weight per length, a background per channel; [`crate::analysis::filament_fit::LineFilament`]
 //! provides μ and ∂μ/∂θ). Units: whatever the model's parameters are in (µm, radians,
 //! reference-bead units); σ in the data's (instrument) units. No I/O.
 
 use super::template::BeadInit;
 use super::template::Template;
-use super::{check_above, AnalysisError, Result};
+use super::{check_positive, AnalysisError, Result};
 use nalgebra::DMatrix;
 
 /// Per-pixel noise σ of a read averaging the samples of `dwell_s` at `rate_hz`, each of noise
@@ -35,8 +35,7 @@ pub fn pixel_sigma(sigma_sample: f64, dwell_s: f64, rate_hz: f64) -> Result<f64>
             allowed: "finite and ≥ 0".into(),
         });
     }
-    check_above("dwell_s", dwell_s, 0.0)?;
-    check_above("rate_hz", rate_hz, 0.0)?;
+    check_positive(&[("dwell_s", dwell_s), ("rate_hz", rate_hz)])?;
     // whole samples, at least one: the count of `instrument::samples_per_point` (analysis does
     // not import the instrument)
     let n = ((dwell_s * rate_hz).round()).max(1.0);
@@ -143,20 +142,29 @@ pub struct BeadBound {
     pub y: f64,
 }
 
-/// Fisher information of the multi-bead template model (eq. multiBeadFit) at the beads
-/// `beads` (parameters (weight, x, y) per bead, in that order, as the fit's), for an image
-/// sampled at columns `x` and rows `y` (µm) in the channels `channels` (0 = Sx, 1 = Sy).
-/// `sigma(ch, row, col)` gives each pixel's noise in instrument units, or None for a pixel not
-/// taken (missing, NaN). The model is the template divided by its `norm_factor` (instrument
-/// units), as the fit's: ∂μ/∂C = T/f, ∂μ/∂x = −C·∂T/∂u/f, ∂μ/∂y = −C·∂T/∂v/f.
-pub fn beads_fisher(
+/// The Cramér–Rao bounds of the beads' weights and positions under the multi-bead template
+/// model (eq. multiBeadFit) at the beads `beads` (parameters (weight, x, y) per bead, in that
+/// order, as the fit's), for an image sampled at columns `x` and rows `y` (µm) in the channels
+/// `channels` (0 = Sx, 1 = Sy). `sigma(ch, row, col)` gives each pixel's noise in instrument
+/// units, or None for a pixel not taken (missing, NaN). The model is the template divided by
+/// its `norm_factor` (instrument units), as the fit's: ∂μ/∂C = T/f, ∂μ/∂x = −C·∂T/∂u/f,
+/// ∂μ/∂y = −C·∂T/∂v/f. Errors: no beads, a parameter the data carry no information about (a
+/// bead out of the template's reach of every pixel, or a weight of 0 for its position), a
+/// singular information matrix.
+pub fn beads_crlb(
     tpl: &Template,
     beads: &[BeadInit],
     x: &[f64],
     y: &[f64],
     channels: &[usize],
     sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
-) -> Fisher {
+) -> Result<Vec<BeadBound>> {
+    if beads.is_empty() {
+        return Err(AnalysisError::BadInput {
+            name: "beads",
+            reason: "no beads: the bound needs at least one".into(),
+        });
+    }
     let np = 3 * beads.len();
     let mut f = Fisher::new(np);
     let inv_f = 1.0 / tpl.norm_factor;
@@ -189,26 +197,6 @@ pub fn beads_fisher(
             }
         }
     }
-    f
-}
-
-/// The Cramér–Rao bounds of the beads' weights and positions (see [`beads_fisher`]). Errors: no
-/// beads, a parameter the data carry no information about (a bead out of the template's reach
-/// of every pixel, or a weight of 0 for its position), a singular information matrix.
-pub fn beads_crlb(
-    tpl: &Template,
-    beads: &[BeadInit],
-    x: &[f64],
-    y: &[f64],
-    channels: &[usize],
-    sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
-) -> Result<Vec<BeadBound>> {
-    if beads.is_empty() {
-        return Err(AnalysisError::BadInput {
-            name: "beads",
-            reason: "no beads: the bound needs at least one".into(),
-        });
-    }
     let names: Vec<String> = (0..beads.len())
         .flat_map(|i| {
             [
@@ -219,7 +207,7 @@ pub fn beads_crlb(
         })
         .collect();
     let names: Vec<&str> = names.iter().map(|s| s.as_str()).collect();
-    let b = beads_fisher(tpl, beads, x, y, channels, sigma).bounds(&names)?;
+    let b = f.bounds(&names)?;
     Ok((0..beads.len())
         .map(|i| BeadBound {
             weight: b[3 * i],

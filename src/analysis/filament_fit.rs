@@ -198,22 +198,11 @@ pub struct LineBound {
     pub background: [f64; 2],
 }
 
-/// Fisher information of the line filament on the grid, channels `channels` (0 = Sx, 1 = Sy),
-/// per-pixel noise `sigma(ch, row, col)` (None: pixel not taken). Parameter order
-/// [`LINE_PARAMS`]; a background of a channel not used is fixed (its row is the identity
-/// so that the matrix stays invertible, and its bound is reported as 0).
-pub fn line_fisher(
-    tpl: &Template,
-    fil: &LineFilament,
-    x: &[f64],
-    y: &[f64],
-    channels: &[usize],
-    sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
-) -> Result<Fisher> {
-    let ev = line_eval(tpl, fil, x, y)?;
-    Ok(fisher_of_eval(&ev, x.len(), channels, sigma))
-}
-
+/// Fisher information of the line filament evaluated on a grid `nx` columns wide (`ev`, see
+/// [`line_eval`]), channels `channels` (0 = Sx, 1 = Sy), per-pixel noise `sigma(ch, row, col)`
+/// (None: pixel not taken). Parameter order [`LINE_PARAMS`]; a background of a channel not
+/// used is fixed (its row is the identity so that the matrix stays invertible, and its bound is
+/// reported as 0).
 pub(crate) fn fisher_of_eval(
     ev: &LineEval,
     nx: usize,
@@ -239,7 +228,7 @@ pub(crate) fn fisher_of_eval(
     f
 }
 
-/// Bounds from a Fisher matrix of the line model (see [`line_fisher`]).
+/// Bounds from a Fisher matrix of the line model (see [`fisher_of_eval`]).
 pub fn line_bound(f: &Fisher, fil: &LineFilament, channels: &[usize]) -> Result<LineBound> {
     let b = f.bounds(&LINE_PARAMS)?;
     let rel = if fil.lambda != 0.0 {
@@ -277,8 +266,12 @@ pub fn line_crlb(
     channels: &[usize],
     sigma: &dyn Fn(usize, usize, usize) -> Option<f64>,
 ) -> Result<LineBound> {
-    let f = line_fisher(tpl, fil, x, y, channels, sigma)?;
-    line_bound(&f, fil, channels)
+    let ev = line_eval(tpl, fil, x, y)?;
+    line_bound(
+        &fisher_of_eval(&ev, x.len(), channels, sigma),
+        fil,
+        channels,
+    )
 }
 
 /// Volume per µm of a filament (nm³/µm) from its weight per length λ (reference-bead units/µm)
@@ -752,6 +745,15 @@ mod tests {
         (0..n).map(|i| i as f64 * h).collect()
     }
 
+    /// The stand-in template, a square grid of `n` pixels of `h` µm, and the line model of
+    /// `f` evaluated on it.
+    fn eval_on_grid(f: &LineFilament, n: usize, h: f64) -> (Template, Vec<f64>, LineEval) {
+        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
+        let xs = axis(n, h);
+        let ev = line_eval(&tpl, f, &xs, &xs).unwrap();
+        (tpl, xs, ev)
+    }
+
     fn fil(angle: f64, offset: f64, lambda: f64) -> LineFilament {
         LineFilament {
             centre: [1.0, 1.0],
@@ -767,10 +769,8 @@ mod tests {
     /// straight `Filament` on the same lattice) plus the backgrounds.
     #[test]
     fn line_model_equals_the_bead_model_render() {
-        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
-        let xs = axis(41, 0.05);
         let f = fil(20.0, 0.13, 2.0);
-        let ev = line_eval(&tpl, &f, &xs, &xs).unwrap();
+        let (tpl, xs, ev) = eval_on_grid(&f, 41, 0.05);
         // the same sections: t_k = k·h about the foot, far beyond the scan's reach
         let foot = f.foot();
         let t = f.angle_deg.to_radians();
@@ -805,10 +805,8 @@ mod tests {
     /// The analytic gradient equals central differences of the model.
     #[test]
     fn line_gradient_matches_central_differences() {
-        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
-        let xs = axis(31, 0.07);
         let f = fil(-35.0, -0.2, 1.5);
-        let ev = line_eval(&tpl, &f, &xs, &xs).unwrap();
+        let (tpl, xs, ev) = eval_on_grid(&f, 31, 0.07);
         let p = f.params();
         let steps = [1e-5, 1e-6, 1e-5];
         for (k, &dk) in steps.iter().enumerate() {
@@ -836,10 +834,8 @@ mod tests {
     /// parameters only adds variance), and bounds scale as σ (and λ's relative bound as σ/λ).
     #[test]
     fn line_bounds_scale_with_noise_and_dominate_the_single_parameter_bound() {
-        let tpl = Template::analytic_standin(0.4, 0.02, 1.6).unwrap();
-        let xs = axis(41, 0.05);
         let f = fil(0.0, 0.0, 2.0);
-        let ev = line_eval(&tpl, &f, &xs, &xs).unwrap();
+        let (tpl, xs, ev) = eval_on_grid(&f, 41, 0.05);
         let sig = 1e-3;
         let s2: f64 = ev.iter().flatten().map(|o| o[3] * o[3]).sum();
         let single = sig / s2.sqrt();

@@ -39,9 +39,11 @@ pub struct FocusBound {
 /// in `us` (µm) at height offset dz (µm).
 pub type UnitRow<'a> = &'a dyn Fn(&[f64], f64) -> Result<Vec<f64>>;
 
-/// Fisher information of the focus model on the grid `us` (columns) × `zs` (rows), µm, every
-/// pixel with noise `sigma` (the channel's units), at (u0, z0, w). See the module docs.
-pub fn focus_fisher(
+/// The Cramér–Rao bounds of the focus model's parameters from its Fisher information on the
+/// grid `us` (columns) × `zs` (rows), µm, every pixel with noise `sigma` (the channel's units),
+/// at (u0, z0, w). See the module docs. Errors: bad inputs, an object the scan carries no
+/// information about (w = 0, or a scan that misses it).
+pub fn focus_crlb(
     us: &[f64],
     zs: &[f64],
     u0: f64,
@@ -49,7 +51,7 @@ pub fn focus_fisher(
     w: f64,
     sigma: f64,
     row: UnitRow,
-) -> Result<Fisher> {
+) -> Result<FocusBound> {
     check_above("sigma", sigma, 0.0)?;
     super::check_axis("lateral axis", us, 2)?;
     super::check_axis("z axis", zs, 2)?;
@@ -84,21 +86,6 @@ pub fn focus_fisher(
             f.add(&g, sigma);
         }
     }
-    Ok(f)
-}
-
-/// The Cramér–Rao bounds of the focus model's parameters (see [`focus_fisher`]). Errors: bad
-/// inputs, an object the scan carries no information about (w = 0, or a scan that misses it).
-pub fn focus_crlb(
-    us: &[f64],
-    zs: &[f64],
-    u0: f64,
-    z0: f64,
-    w: f64,
-    sigma: f64,
-    row: UnitRow,
-) -> Result<FocusBound> {
-    let f = focus_fisher(us, zs, u0, z0, w, sigma, row)?;
     let b = f.bounds(&FOCUS_PARAMS)?;
     Ok(FocusBound {
         u: b[0],

@@ -133,6 +133,14 @@ pub(crate) fn check_above(name: &'static str, value: f64, lo: f64) -> Result<f64
     Ok(crate::optics::params::check_above(name, value, lo)?)
 }
 
+/// [`check_above`] 0 for every (name, value), in order: the first one not positive is the error.
+pub(crate) fn check_positive(values: &[(&'static str, f64)]) -> Result<()> {
+    for &(name, value) in values {
+        check_above(name, value, 0.0)?;
+    }
+    Ok(())
+}
+
 /// Validate an axis: at least `min_len` values, finite, strictly monotonic and (nearly) uniform
 /// (relative step deviation ≤ 1e-3). Returns the signed mean step (0 for a single value).
 pub(crate) fn check_axis(name: &'static str, a: &[f64], min_len: usize) -> Result<f64> {

@@ -101,6 +101,9 @@ pub struct Peak {
     pub truncated: bool,
 }
 
+/// A line's peak, or why it has none.
+pub type PeakResult = std::result::Result<Peak, PeakMiss>;
+
 /// Why a line has no peak.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -141,7 +144,7 @@ pub struct LinePeak {
     pub line: usize,
     /// Coordinate of the row (its y) or column (its x), µm.
     pub coord: f64,
-    pub result: std::result::Result<Peak, PeakMiss>,
+    pub result: PeakResult,
 }
 
 impl LinePeak {
@@ -173,7 +176,7 @@ pub fn line_noise(v: &[f64]) -> f64 {
 }
 
 /// Sub-pixel maximum of samples `v` at positions `t` (µm, monotonic) — see the module docs.
-pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> std::result::Result<Peak, PeakMiss> {
+pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> PeakResult {
     let n = t.len().min(v.len());
     let mut imax = None;
     for i in 0..n {
@@ -225,7 +228,7 @@ fn finish_peak(
     centre: f64,
     half: f64,
     opts: &PeakOptions,
-) -> std::result::Result<Peak, PeakMiss> {
+) -> PeakResult {
     let (lo, hi) = (t[0].min(t[n - 1]), t[0].max(t[n - 1]));
     p.truncated = centre - half < lo || centre + half > hi;
     let noise = if opts.min_snr > 0.0 {
@@ -249,12 +252,7 @@ fn finish_peak(
 /// biases the value upwards when the signal-to-noise ratio per line is modest), then re-centred
 /// on the vertex up to twice. Outcomes and thresholds as for [`peak_1d`]; `index` is the sample
 /// nearest the vertex.
-pub fn peak_near(
-    t: &[f64],
-    v: &[f64],
-    centre: f64,
-    opts: &PeakOptions,
-) -> std::result::Result<Peak, PeakMiss> {
+pub fn peak_near(t: &[f64], v: &[f64], centre: f64, opts: &PeakOptions) -> PeakResult {
     peak_near_impl(t, v, centre, opts, true)
 }
 
@@ -262,12 +260,7 @@ pub fn peak_near(
 /// is then free of the selection bias a window that follows the noise brings. For positions
 /// known better than the window's half-width from a global fit (a filament's line, fitted to
 /// all rows).
-pub fn peak_at(
-    t: &[f64],
-    v: &[f64],
-    centre: f64,
-    opts: &PeakOptions,
-) -> std::result::Result<Peak, PeakMiss> {
+pub fn peak_at(t: &[f64], v: &[f64], centre: f64, opts: &PeakOptions) -> PeakResult {
     peak_near_impl(t, v, centre, opts, false)
 }
 
@@ -277,7 +270,7 @@ fn peak_near_impl(
     centre: f64,
     opts: &PeakOptions,
     recentre: bool,
-) -> std::result::Result<Peak, PeakMiss> {
+) -> PeakResult {
     let n = t.len().min(v.len());
     if !centre.is_finite() || !(0..n).any(|i| v[i].is_finite()) {
         return Err(PeakMiss::NoData);
@@ -356,7 +349,7 @@ fn fit_parabola(
     half: f64,
     noise: &Noise,
     bias_min_curvature_snr: f64,
-) -> std::result::Result<Peak, PeakMiss> {
+) -> PeakResult {
     let sigma = noise.sigma;
     let pts: Vec<(f64, f64)> = t
         .iter()

@@ -20,7 +20,7 @@ use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
 use super::measure::MeasureOptions;
 pub use super::scaling::{clausius_mossotti, mass_kda, n_corr, DA_PER_G};
 use super::template::{RefBead, Template};
-use super::{check_above, check_range, AnalysisError, Result};
+use super::{check_above, check_positive, check_range, AnalysisError, Result};
 use serde::{Deserialize, Serialize};
 
 /// Tubulin dimer mass (kDa) and length (nm) (Sec. 6).
@@ -64,8 +64,7 @@ pub fn point_object(
     reference: &RefBead,
 ) -> Result<PointObject> {
     reference.validate()?;
-    check_above("sens_rb", sens_rb, 0.0)?;
-    check_above("density_obj", density_obj, 0.0)?;
+    check_positive(&[("sens_rb", sens_rb), ("density_obj", density_obj)])?;
     if !sens_obj.is_finite() {
         return Err(AnalysisError::OutOfRange {
             name: "sens_obj",
@@ -151,8 +150,7 @@ fn bead_model_contrast(
     n_medium: f64,
     why: &str,
 ) -> Result<f64> {
-    check_above("sens_bm", sens_bm, 0.0)?;
-    check_above("d_bm_nm", d_bm_nm, 0.0)?;
+    check_positive(&[("sens_bm", sens_bm), ("d_bm_nm", d_bm_nm)])?;
     let nc = n_corr(n_obj, n_bm, n_medium)?;
     if !(nc > 0.0) {
         return Err(AnalysisError::OutOfRange {
@@ -247,8 +245,7 @@ impl LinDensCalib {
         density_obj: f64,
         n_medium: f64,
     ) -> Result<Self> {
-        check_above("density_bm", density_bm, 0.0)?;
-        check_above("density_obj", density_obj, 0.0)?;
+        check_positive(&[("density_bm", density_bm), ("density_obj", density_obj)])?;
         let nc = bead_model_contrast(sens_bm, d_bm_nm, n_bm, n_obj, n_medium, "")?;
         let area = std::f64::consts::PI / 4.0 * d_bm_nm * d_bm_nm;
         let mu_bm = mass_kda(area * 1000.0, density_bm) / 1000.0;

@@ -25,7 +25,7 @@
 
 use super::peaks::PeakOptions;
 use super::sensitivity::{sensitivity, Axis, Stencil};
-use super::{check_above, AnalysisError, AxisMap, Result};
+use super::{check_above, check_positive, AnalysisError, AxisMap, Result};
 use crate::data::{Image, Scan};
 use crate::optics::grid::{Grid2, Interp, Sample};
 use ndarray::Array2;
@@ -216,8 +216,7 @@ impl Template {
     /// Closed-form stand-in: Sx = u·g, Sy = v·g, Sz = g with g = exp(−(u²+v²)/w²) (already
     /// normalised: ∂Sx/∂x(0,0) = 1 is the maximum), on a grid of spacing `h_um` over ±`half_um`.
     pub fn analytic_standin(w_um: f64, h_um: f64, half_um: f64) -> Result<Template> {
-        check_above("w_um", w_um, 0.0)?;
-        check_above("h_um", h_um, 0.0)?;
+        check_positive(&[("w_um", w_um), ("h_um", h_um)])?;
         check_above("half_um", half_um, h_um)?;
         let n = grid_nodes("h_um", h_um, half_um)?;
         let u0 = -0.5 * (n - 1) as f64 * h_um;
@@ -460,16 +459,10 @@ impl Template {
     /// Render beads into a [`Scan`] (status complete, empty metadata) on the given axes, in
     /// reference-bead units.
     pub fn render_scan(&self, beads: &[(f64, f64, f64)], x: &[f64], y: &[f64]) -> Scan {
-        let [sx, sy, sz] = self.render(beads, x, y);
-        Scan {
-            sx: Image::new(sx, x.to_vec(), y.to_vec()),
-            sy: Image::new(sy, x.to_vec(), y.to_vec()),
-            sz: Image::new(sz, x.to_vec(), y.to_vec()),
-            status: crate::data::ScanStatus::Complete,
-            meta: serde_json::Value::Null,
-            raw: Vec::new(),
-            flags: Default::default(),
-        }
+        let channels = self
+            .render(beads, x, y)
+            .map(|c| Image::new(c, x.to_vec(), y.to_vec()));
+        Scan::complete(channels, serde_json::Value::Null)
     }
 
     /// Maximum ∂Sx/∂x of the reference bead as measured by the pixel pipeline: the bead is
@@ -483,8 +476,7 @@ impl Template {
         stencil: Stencil,
         window_um: f64,
     ) -> Result<f64> {
-        check_above("pixel_um", pixel_um, 0.0)?;
-        check_above("window_um", window_um, 0.0)?;
+        check_positive(&[("pixel_um", pixel_um), ("window_um", window_um)])?;
         let half = 1.2f64.max(2.0 * window_um);
         let n = grid_nodes("pixel_um", pixel_um, half)?;
         let axis: Vec<f64> = (0..n).map(|i| -half + i as f64 * pixel_um).collect();

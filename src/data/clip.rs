@@ -454,20 +454,24 @@ fn plural(n: usize) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{Image, ScanStatus};
+    use crate::data::Image;
     use serde_json::json;
 
     fn scan(flags: InputFlags, meta: serde_json::Value) -> Scan {
         let img = Image::new(Array2::zeros((2, 3)), vec![0.0, 1.0, 2.0], vec![0.0, 1.0]);
         Scan {
-            sx: img.clone(),
-            sy: img.clone(),
-            sz: img,
-            status: ScanStatus::Complete,
-            meta,
-            raw: vec![],
             flags,
+            ..Scan::complete([img.clone(), img.clone(), img], meta)
         }
+    }
+
+    /// A scan whose Sx has the clipped samples `a` per pixel, read at a ±0.2 V input range.
+    fn sx_clipped(a: Array2<u32>) -> Scan {
+        let flags = InputFlags {
+            clipped: [Some(a), None, None],
+            dark: None,
+        };
+        scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}))
     }
 
     #[test]
@@ -475,11 +479,7 @@ mod tests {
         let mut a = Array2::<u32>::zeros((2, 3));
         a[[0, 0]] = 5;
         a[[1, 2]] = 1;
-        let flags = InputFlags {
-            clipped: [Some(a), None, None],
-            dark: None,
-        };
-        let s = scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}));
+        let s = sx_clipped(a);
         let c = input_check(&s, &["sx", "sy"], None);
         assert_eq!(c.clipped_pixels, [2, 0, 0]);
         assert_eq!(
@@ -525,11 +525,7 @@ mod tests {
         a[[1, 0]] = 3;
         a[[1, 1]] = 3;
         a[[1, 2]] = 3;
-        let flags = InputFlags {
-            clipped: [Some(a), None, None],
-            dark: None,
-        };
-        let s = scan(flags, json!({"clipped": {"range": "±0.2 V input range"}}));
+        let s = sx_clipped(a);
         // the whole scan: half clipped, a warning
         let c = input_check(&s, &["sx"], None);
         assert_eq!(c.refusal, None);
@@ -611,14 +607,10 @@ mod tests {
             vec![0.0, 0.1, 0.2, 0.3, 0.4],
             vec![0.0, 0.1, 0.2],
         );
+        let meta = json!({"clipped": {"range": "±1 input range (signal units)"}});
         Scan {
-            sx: img.clone(),
-            sy: img.clone(),
-            sz: img,
-            status: ScanStatus::Complete,
-            meta: json!({"clipped": {"range": "±1 input range (signal units)"}}),
-            raw: vec![],
             flags,
+            ..Scan::complete([img.clone(), img.clone(), img], meta)
         }
     }
 

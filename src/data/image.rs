@@ -36,31 +36,30 @@ pub struct Image {
 /// The statistics methods of [`Image`] and [`Profile`] (each type's `stats(what)` over its
 /// values; `what` names the operation in errors, e.g. "image mean").
 macro_rules! summary_methods {
+    // one field of `stats` per method, named after it ("image mean")
+    (@field $noun:literal, $($field:ident: $doc:expr,)*) => {
+        $(
+            #[doc = $doc]
+            pub fn $field(&self) -> Result<f64, DataError> {
+                Ok(self.stats(concat!($noun, " ", stringify!($field)))?.$field)
+            }
+        )*
+    };
     ($noun:literal, $value:literal) => {
         #[doc = concat!("min, max, mean, std and count of the non-NaN ", $value, "s in one pass.")]
         pub fn summary(&self) -> Result<Stats, DataError> {
             self.stats(concat!($noun, " summary"))
         }
-        #[doc = concat!("Smallest ", $value, ", NaN skipped.")]
-        pub fn min(&self) -> Result<f64, DataError> {
-            Ok(self.stats(concat!($noun, " min"))?.min)
-        }
-        #[doc = concat!("Largest ", $value, ", NaN skipped.")]
-        pub fn max(&self) -> Result<f64, DataError> {
-            Ok(self.stats(concat!($noun, " max"))?.max)
-        }
+        summary_methods!(@field $noun,
+            min: concat!("Smallest ", $value, ", NaN skipped."),
+            max: concat!("Largest ", $value, ", NaN skipped."),
+            mean: concat!("Mean of the non-NaN ", $value, "s."),
+            std: concat!("Population standard deviation (ddof = 0) of the non-NaN ", $value, "s."),
+        );
         #[doc = concat!("Largest absolute ", $value, ", NaN skipped.")]
         pub fn abs_max(&self) -> Result<f64, DataError> {
             let s = self.stats(concat!($noun, " abs_max"))?;
             Ok(s.min.abs().max(s.max.abs()))
-        }
-        #[doc = concat!("Mean of the non-NaN ", $value, "s.")]
-        pub fn mean(&self) -> Result<f64, DataError> {
-            Ok(self.stats(concat!($noun, " mean"))?.mean)
-        }
-        #[doc = concat!("Population standard deviation (ddof = 0) of the non-NaN ", $value, "s.")]
-        pub fn std(&self) -> Result<f64, DataError> {
-            Ok(self.stats(concat!($noun, " std"))?.std)
         }
     };
 }
@@ -157,21 +156,13 @@ impl Image {
     /// Row `i` as a profile along the horizontal axis (`t` = x values, named after `x_name`).
     pub fn row(&self, i: i64) -> Result<Profile, DataError> {
         let r = check_index("row", i, self.rows())?;
-        Ok(Profile {
-            t: self.x.clone(),
-            v: self.data.row(r).to_vec(),
-            t_name: self.x_name.clone(),
-        })
+        Ok(Profile::along(&self.x, &self.x_name, self.data.row(r)))
     }
 
     /// Column `j` as a profile along the vertical axis (`t` = y values, named after `y_name`).
     pub fn col(&self, j: i64) -> Result<Profile, DataError> {
         let c = check_index("column", j, self.cols())?;
-        Ok(Profile {
-            t: self.y.clone(),
-            v: self.data.column(c).to_vec(),
-            t_name: self.y_name.clone(),
-        })
+        Ok(Profile::along(&self.y, &self.y_name, self.data.column(c)))
     }
 
     /// The sub-image whose pixel centres lie within `x_range` and `y_range` (µm, inclusive,
@@ -311,6 +302,15 @@ pub struct Profile {
 }
 
 impl Profile {
+    /// The values `v` along the axis `t` named `t_name` (same length).
+    fn along(t: &[f64], t_name: &str, v: ndarray::ArrayView1<f64>) -> Self {
+        Self {
+            t: t.to_vec(),
+            v: v.to_vec(),
+            t_name: t_name.into(),
+        }
+    }
+
     pub fn new(t: Vec<f64>, v: Vec<f64>) -> Self {
         assert_eq!(t.len(), v.len());
         Self {

@@ -405,15 +405,7 @@ mod tests {
 
     fn tiny(meta: Value) -> Scan {
         let img = Image::new(Array2::zeros((1, 2)), vec![0.0, 1.0], vec![0.0]);
-        Scan {
-            sx: img.clone(),
-            sy: img.clone(),
-            sz: img,
-            status: ScanStatus::Complete,
-            meta,
-            raw: Vec::new(),
-            flags: Default::default(),
-        }
+        Scan::complete([img.clone(), img.clone(), img], meta)
     }
 
     #[test]

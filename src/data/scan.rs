@@ -67,6 +67,20 @@ impl fmt::Display for ScanStatus {
 }
 
 impl Scan {
+    /// A scan that ran to its end from its three channels (sx, sy, sz) and metadata: no raw
+    /// samples, no clipped or dark pixels.
+    pub fn complete([sx, sy, sz]: [Image; 3], meta: serde_json::Value) -> Scan {
+        Scan {
+            sx,
+            sy,
+            sz,
+            status: ScanStatus::Complete,
+            meta,
+            raw: Vec::new(),
+            flags: InputFlags::default(),
+        }
+    }
+
     /// Check that the three channels share one shape, one pair of axes and axis names
     /// (required to save the scan: the file stores the axes once).
     pub fn check_consistent(&self) -> Result<(), DataError> {

@@ -41,6 +41,24 @@ pub struct LineSweep {
     pub servo_cycle_s: f64,
 }
 
+/// Point `i` (0 ≤ i < n, n ≥ 2) of PI's `LIN` curve from 0 to `amp` over `n` points with `s`
+/// points of constant acceleration at each end: the distance from the curve's start. The
+/// wave tables the driver writes and the emulator's generator share it.
+pub fn lin_point(amp: f64, n: usize, s: usize, i: usize) -> f64 {
+    let t = (n - 1) as f64;
+    let s = s as f64;
+    let v = amp / (t - s);
+    let i = i as f64;
+    if s > 0.0 && i < s {
+        v * i * i / (2.0 * s)
+    } else if s > 0.0 && i > t - s {
+        let r = t - i;
+        amp - v * r * r / (2.0 * s)
+    } else {
+        v * (i - s / 2.0)
+    }
+}
+
 impl LineSweep {
     /// Duration of the wave, s: `points · rate · servo cycle`.
     pub fn duration_s(&self) -> f64 {
@@ -86,20 +104,7 @@ impl LineSweep {
         if n < 2 {
             return self.from_um;
         }
-        let amp = self.to_um - self.from_um;
-        let t = (n - 1) as f64;
-        let s = self.speedupdown as f64;
-        let v = amp / (t - s);
-        let i = i as f64;
-        let d = if s > 0.0 && i < s {
-            v * i * i / (2.0 * s)
-        } else if s > 0.0 && i > t - s {
-            let r = t - i;
-            amp - v * r * r / (2.0 * s)
-        } else {
-            v * (i - s / 2.0)
-        };
-        self.from_um + d
+        self.from_um + lin_point(self.to_um - self.from_um, n, self.speedupdown, i)
     }
 
     /// The target (the generator's output) at every servo cycle of the wave: point

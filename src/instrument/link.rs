@@ -259,48 +259,66 @@ pub fn io_error(device: &str, command: &str, timeout: Duration, e: &io::Error) -
     }
 }
 
-/// The one deadline-bounded read of every device link (lines, binary blocks, APT messages):
-/// read what `io` has into `buf`, waiting at most until `deadline`. `Ok(true)`: bytes arrived;
-/// `Ok(false)`: the deadline passed with nothing new (the caller tells a silence from a partial
-/// reply by what `buf` holds). End of file is `Disconnected`, any other I/O error too (a
-/// timeout reported as an error is only the read's own, retried until the deadline).
-pub fn fill(
-    io: &mut dyn Transport,
-    buf: &mut Vec<u8>,
-    device: &str,
-    command: &str,
-    deadline: Instant,
-    timeout: Duration,
-) -> Result<bool, DeviceError> {
-    let mut chunk = [0u8; 16384];
-    loop {
-        let now = Instant::now();
-        if now >= deadline {
-            return Ok(false);
+/// A device's port, the bytes read from it and not yet used, and the device's name (for
+/// errors): what every device link (lines, binary blocks, APT messages) reads through.
+pub struct Port {
+    pub io: Box<dyn Transport>,
+    pub device: String,
+    pub buf: Vec<u8>,
+}
+
+impl Port {
+    pub fn new(io: Box<dyn Transport>, device: impl Into<String>) -> Port {
+        Port {
+            io,
+            device: device.into(),
+            buf: Vec::new(),
         }
-        let remaining = (deadline - now).max(Duration::from_millis(1));
-        if let Err(e) = io.set_read_timeout(remaining) {
-            return Err(io_error(device, command, timeout, &e));
-        }
-        match io.read(&mut chunk) {
-            Ok(0) => {
-                return Err(DeviceError::Disconnected {
-                    device: device.to_string(),
-                    command: command.to_string(),
-                    detail: "end of file on the link (the device closed it)".into(),
-                })
+    }
+
+    /// The one deadline-bounded read of every device link (lines, binary blocks, APT
+    /// messages): read what the port has into `buf`, waiting at most until `deadline`.
+    /// `Ok(true)`: bytes arrived; `Ok(false)`: the deadline passed with nothing new (the caller
+    /// tells a silence from a partial reply by what `buf` holds). End of file is
+    /// `Disconnected`, any other I/O error too (a timeout reported as an error is only the
+    /// read's own, retried until the deadline).
+    pub fn fill(
+        &mut self,
+        command: &str,
+        deadline: Instant,
+        timeout: Duration,
+    ) -> Result<bool, DeviceError> {
+        let Port { io, device, buf } = self;
+        let mut chunk = [0u8; 16384];
+        loop {
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(false);
             }
-            Ok(n) => {
-                buf.extend_from_slice(&chunk[..n]);
-                return Ok(true);
+            let remaining = (deadline - now).max(Duration::from_millis(1));
+            if let Err(e) = io.set_read_timeout(remaining) {
+                return Err(io_error(device, command, timeout, &e));
             }
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                ) => {}
-            Err(e) => return Err(io_error(device, command, timeout, &e)),
+            match io.read(&mut chunk) {
+                Ok(0) => {
+                    return Err(DeviceError::Disconnected {
+                        device: device.to_string(),
+                        command: command.to_string(),
+                        detail: "end of file on the link (the device closed it)".into(),
+                    })
+                }
+                Ok(n) => {
+                    buf.extend_from_slice(&chunk[..n]);
+                    return Ok(true);
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                    ) => {}
+                Err(e) => return Err(io_error(device, command, timeout, &e)),
+            }
         }
     }
 }
@@ -410,9 +428,7 @@ pub fn cost_of<'a>(costs: &'a mut LinkCosts, word: &str) -> &'a mut CommandCost 
 /// A line-terminated (LF, optional CR before it) ASCII command link, which also reads IEEE
 /// 488.2 definite-length binary blocks (`#<k><len><bytes>`).
 pub struct LineLink {
-    io: Box<dyn Transport>,
-    device: String,
-    buf: Vec<u8>,
+    port: Port,
     /// Appended to every command sent (LF; a Red Pitaya's SCPI server: CR LF).
     terminator: &'static [u8],
     /// Longest reply line or block accepted, bytes (anything longer is garbage).
@@ -430,9 +446,7 @@ pub struct LineLink {
 impl LineLink {
     pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
         Self {
-            io,
-            device: device.into(),
-            buf: Vec::new(),
+            port: Port::new(io, device),
             terminator: b"\n",
             max_reply: MAX_LINE,
             timeout,
@@ -474,18 +488,18 @@ impl LineLink {
     }
 
     pub fn device(&self) -> &str {
-        &self.device
+        &self.port.device
     }
 
     pub fn set_device(&mut self, device: impl Into<String>) {
-        self.device = device.into();
+        self.port.device = device.into();
     }
 
     /// Forget stale input (ours and the port's) before a new exchange.
     pub fn discard_input(&mut self) {
-        self.buf.clear();
+        self.port.buf.clear();
         // Best effort: a port that cannot flush will show its problem on the next read/write.
-        let _ = self.io.discard_input();
+        let _ = self.port.io.discard_input();
     }
 
     /// Send one command line (the terminator appended).
@@ -502,10 +516,11 @@ impl LineLink {
         let timeout = self.timeout;
         let t0 = Instant::now();
         let r = self
+            .port
             .io
             .write_all(bytes)
-            .and_then(|_| self.io.flush())
-            .map_err(|e| io_error(&self.device, label, timeout, &e));
+            .and_then(|_| self.port.io.flush())
+            .map_err(|e| io_error(&self.port.device, label, timeout, &e));
         let c = self.cost(label);
         c.n += 1;
         c.bytes_out += bytes.len() as u64;
@@ -550,43 +565,26 @@ impl LineLink {
     fn read_line_inner(&mut self, command: &str, timeout: Duration) -> Result<String, DeviceError> {
         let deadline = Instant::now() + timeout;
         loop {
-            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
-                let mut line: Vec<u8> = self.buf.drain(..=i).collect();
+            if let Some(i) = self.port.buf.iter().position(|&b| b == b'\n') {
+                let mut line: Vec<u8> = self.port.buf.drain(..=i).collect();
                 line.pop();
                 if line.last() == Some(&b'\r') {
                     line.pop();
                 }
                 return self.check_text(command, line);
             }
-            if self.buf.len() > self.max_reply {
-                let reply = lossy(&self.buf[..200.min(self.buf.len())]);
-                self.buf.clear();
+            if self.port.buf.len() > self.max_reply {
+                let reply = lossy(&self.port.buf[..200.min(self.port.buf.len())]);
+                self.port.buf.clear();
                 return Err(self.garbled(
                     command,
                     format!("{reply} [no line end after {} bytes]", self.max_reply),
                 ));
             }
-            if !self.fill(command, deadline, timeout)? {
+            if !self.port.fill(command, deadline, timeout)? {
                 return Err(self.timed_out(command, timeout));
             }
         }
-    }
-
-    /// [`fill`] on this link's port and buffer.
-    fn fill(
-        &mut self,
-        command: &str,
-        deadline: Instant,
-        timeout: Duration,
-    ) -> Result<bool, DeviceError> {
-        fill(
-            self.io.as_mut(),
-            &mut self.buf,
-            &self.device,
-            command,
-            deadline,
-            timeout,
-        )
     }
 
     /// Read a definite-length block `#<k><len digits><len bytes>` (IEEE 488.2) and the line end
@@ -606,28 +604,28 @@ impl LineLink {
         timeout: Duration,
     ) -> Result<(Vec<u8>, usize), DeviceError> {
         let need = |s: &mut Self, n: usize| -> Result<(), DeviceError> {
-            while s.buf.len() < n {
-                if !s.fill(command, deadline, timeout)? {
+            while s.port.buf.len() < n {
+                if !s.port.fill(command, deadline, timeout)? {
                     return Err(s.timed_out(command, timeout));
                 }
             }
             Ok(())
         };
         let bad = |s: &mut Self, why: &str| {
-            let shown = lossy(&s.buf[..80.min(s.buf.len())]);
-            s.buf.clear();
+            let shown = lossy(&s.port.buf[..80.min(s.port.buf.len())]);
+            s.port.buf.clear();
             s.garbled(command, format!("{shown} [{why}]"))
         };
         need(self, 2)?;
-        if self.buf[0] != b'#' {
+        if self.port.buf[0] != b'#' {
             return Err(bad(self, "expected a binary block starting with `#`"));
         }
-        let k = match (self.buf[1] as char).to_digit(10) {
+        let k = match (self.port.buf[1] as char).to_digit(10) {
             Some(k @ 1..=9) => k as usize,
             _ => return Err(bad(self, "bad block header: digit count")),
         };
         need(self, 2 + k)?;
-        let len: usize = match std::str::from_utf8(&self.buf[2..2 + k])
+        let len: usize = match std::str::from_utf8(&self.port.buf[2..2 + k])
             .ok()
             .and_then(|t| t.parse().ok())
         {
@@ -636,19 +634,19 @@ impl LineLink {
         };
         let start = 2 + k;
         need(self, start + len)?;
-        let data: Vec<u8> = self.buf[start..start + len].to_vec();
-        self.buf.drain(..start + len);
+        let data: Vec<u8> = self.port.buf[start..start + len].to_vec();
+        self.port.buf.drain(..start + len);
         // the line end after the block (may still be on its way)
         let short = Instant::now() + Duration::from_millis(50).min(timeout);
-        while self.buf.len() < 2 && !self.buf.starts_with(b"\n") {
-            if !matches!(self.fill(command, short, timeout), Ok(true)) {
+        while self.port.buf.len() < 2 && !self.port.buf.starts_with(b"\n") {
+            if !matches!(self.port.fill(command, short, timeout), Ok(true)) {
                 break;
             }
         }
-        if self.buf.starts_with(b"\r\n") {
-            self.buf.drain(..2);
-        } else if self.buf.starts_with(b"\n") {
-            self.buf.drain(..1);
+        if self.port.buf.starts_with(b"\r\n") {
+            self.port.buf.drain(..2);
+        } else if self.port.buf.starts_with(b"\n") {
+            self.port.buf.drain(..1);
         }
         // the header `#<k><len>` and the data: the block's bytes on the wire
         let n = start + data.len();
@@ -673,16 +671,16 @@ impl LineLink {
     /// A timeout. If part of a line arrived, that is a garbled (unterminated) reply instead,
     /// and the message shows it.
     fn timed_out(&mut self, command: &str, timeout: Duration) -> DeviceError {
-        if self.buf.is_empty() {
+        if self.port.buf.is_empty() {
             DeviceError::Timeout {
-                device: self.device.clone(),
+                device: self.port.device.clone(),
                 command: command.to_string(),
                 timeout_ms: timeout.as_millis() as u64,
             }
         } else {
-            let reply = lossy(&self.buf[..200.min(self.buf.len())]);
-            let n = self.buf.len();
-            self.buf.clear();
+            let reply = lossy(&self.port.buf[..200.min(self.port.buf.len())]);
+            let n = self.port.buf.len();
+            self.port.buf.clear();
             self.garbled(
                 command,
                 format!(
@@ -695,7 +693,7 @@ impl LineLink {
 
     pub fn garbled(&self, command: &str, reply: impl Into<String>) -> DeviceError {
         DeviceError::Garbled {
-            device: self.device.clone(),
+            device: self.port.device.clone(),
             command: command.to_string(),
             reply: reply.into(),
         }

@@ -345,18 +345,13 @@ pub trait Qpd: Send {
     fn input_range(&self) -> Option<range::InputRange> {
         None
     }
-    /// Arm a triggered, hardware-timed buffered acquisition of `n_samples` samples at (at
-    /// least) `sample_rate` Hz, started by `trigger`: the fast path of a raster line, where the
+    /// Arm a triggered, hardware-timed buffered acquisition (arguments `n_samples`,
+    /// `sample_rate`, `trigger`) of `n_samples` samples at (at least) `sample_rate` Hz, started
+    /// by `trigger`: the fast path of a raster line, where the
     /// stage sweeps under its controller's clock and the controller's trigger output starts the
     /// digitiser. Returns what the device will actually record (digitisers have fixed rate
     /// steps). Digitisers without a triggered buffer keep the default: an error saying so.
-    fn arm_buffered(
-        &mut self,
-        n_samples: usize,
-        sample_rate: f64,
-        trigger: Trigger,
-    ) -> Result<BufferedArm, DeviceError> {
-        let _ = (n_samples, sample_rate, trigger);
+    fn arm_buffered(&mut self, _: usize, _: f64, _: Trigger) -> Result<BufferedArm, DeviceError> {
         Err(no_buffer(self.name(), "arm_buffered"))
     }
     /// Wait (at most `timeout` for the trigger, then the acquisition time) and read the

@@ -6,26 +6,23 @@
 //! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
 //! after a template's normalisation (the reference bead's max ∂Sx/∂x = 1).
 
+use super::keys::{DETECT_SNR, D_NM, N, POINTS, SIGMA, SPACING_NM, STENCIL};
 use super::registry::{array_of, err, fail, num, numbers, Opt, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
 use crate::analysis::{BeadModelOptions, LinePeak, MeasureOptions, PeakOptions, RefBead, Stencil};
-use crate::data::{Image, Scan, ScanStatus};
+use crate::data::{Image, Scan};
 use rhai::{Array, Dynamic, Map};
 use serde::Serialize;
 use std::sync::Arc;
 
 /// The options of this family's bindings, each key written once (`Opt`).
-const DETECT_SNR: Opt = Opt::new("detect_snr", "float", "");
 const END_MARGIN_UM: Opt = Opt::new("end_margin_um", "float", "µm");
 const MAX_OFFSET_UM: Opt = Opt::new("max_offset_um", "float", "µm");
 const MIN_SNR: Opt = Opt::new("min_snr", "float", "");
 const MIN_VALUE: Opt = Opt::new("min_value", "float", "");
 const PIXEL_UM: Opt = Opt::new("pixel_um", "float", "µm");
 const SCAN: Opt = Opt::new("scan", "Scan | Image", "");
-const SIGMA: Opt = Opt::new("sigma", "float", "");
-const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
-const STENCIL: Opt = Opt::new("stencil", "string", "");
 const WINDOW_UM: Opt = Opt::new("window_um", "float", "µm");
 
 /// A reference template in a script (`Template`).
@@ -328,13 +325,6 @@ pub(crate) fn bead_list(who: &str, v: &Dynamic) -> RResult<Vec<(f64, f64, f64)>>
 }
 
 /// `#{points: [[x, y], …], d_nm: 50.0 | [..], n: 1.41}` → a bead-model filament.
-/// The diameter key of a filament's map and of the reference bead's options.
-/// The vertices key of a filament's map.
-pub(crate) const POINTS: Opt = Opt::new("points", "array", "µm");
-pub(crate) const D_NM: Opt = Opt::new("d_nm", "float", "nm");
-/// The refractive-index key of a filament's map and of the reference bead's options.
-pub(crate) const N: Opt = Opt::new("n", "float", "");
-
 pub(crate) fn filament_arg(who: &str, v: &Dynamic) -> RResult<crate::analysis::Filament> {
     let Some(m) = v.read_lock::<Map>() else {
         return fail(format!(
@@ -407,13 +397,8 @@ pub(crate) fn scan_flagged(
 ) -> ScanRef {
     ScanRef::new(
         Scan {
-            sx,
-            sy,
-            sz,
-            status: ScanStatus::Complete,
-            meta,
-            raw: Vec::new(),
             flags,
+            ..Scan::complete([sx, sy, sz], meta)
         },
         None,
     )

@@ -7,7 +7,7 @@ pub use super::protocols::{
     module_protocols, property_hint, protocol_help, protocol_line, protocol_options, protocol_page,
     protocols_index, stdlib_dirs, stdlib_modules,
 };
-use super::registry::{fail, Doc, RResult, Registrar};
+use super::registry::{binding_list, fail, Doc, RResult, Registrar};
 use super::types::ScanRef;
 pub use super::words::{
     did_you_mean, edit_distance, fmt_num, suggestion, user_type, user_type_name, user_words,
@@ -101,13 +101,10 @@ fn line_channel(
     }
 }
 
-pub fn register(r: &mut Registrar) {
-    bind_session_files(r);
-    bind_spec_moves(r);
-    bind_lup(r);
-    bind_line_statistics(r);
-    bind_scan_kind(r);
-    bind_protocol_pages(r);
+binding_list! {
+    pub fn register {
+        bind_session_files, bind_spec_moves, bind_lup, bind_line_statistics, bind_scan_kind, bind_protocol_pages
+    }
 }
 
 /// `pwd`, `ls`, `note`, `scans`: the session folder and what is in it.

@@ -2,7 +2,7 @@
 //! `linspace`, `version`.
 
 use super::ctx::Ctx;
-use super::registry::{fail, find, help_index, int, num, Doc, RResult, Registrar};
+use super::registry::{binding_list, fail, find, help_index, int, num, Doc, RResult, Registrar};
 use rhai::{Array, Dynamic, FnPtr, Map, NativeCallContext};
 
 /// `assert_close`'s check, shared with the Rust tests: |a − b| ≤ rel·max(|a|, |b|).
@@ -10,11 +10,10 @@ pub fn close(a: f64, b: f64, rel: f64) -> bool {
     a == b || (a - b).abs() <= rel * a.abs().max(b.abs())
 }
 
-pub fn register(r: &mut Registrar) {
-    bind_help_and_asserts(r);
-    bind_numbers(r);
-    bind_protocol(r);
-    bind_trace(r);
+binding_list! {
+    pub fn register {
+        bind_help_and_asserts, bind_numbers, bind_protocol, bind_trace
+    }
 }
 
 /// `help` and the assertions of scripted tests.

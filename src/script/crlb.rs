@@ -2,7 +2,8 @@
 //! bounds of a planned XY raster of a scene (`analysis::crlb`, `analysis::filament_fit`).
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::keys::DWELL;
+use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::analysis::crlb::{beads_crlb, pixel_sigma};
 use crate::analysis::filament_fit::{lambda_of_diameter, line_crlb, volume_per_um, LineFilament};
@@ -13,9 +14,6 @@ use crate::analysis::template::{RefBead, Template, DEFAULT_MODEL_H_UM};
 use crate::instrument::sim::scene::DiameterProfile;
 use crate::optics::rayleigh::{alpha_um3, DetectorModel};
 use rhai::{Array, Dynamic, Map};
-
-/// The options of this family's bindings, each key written once (`Opt`).
-const DWELL: Opt = Opt::new("dwell", "float", "s");
 
 pub fn register(r: &mut Registrar) {
     let keys: &[(&str, &str, &str, &str)] = &[

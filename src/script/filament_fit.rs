@@ -3,6 +3,7 @@
 
 use super::analysis_values::{count, pos_f64, Key};
 use super::ctx::Ctx;
+use super::keys::{DENSITY_G_CM3, N, PATIENCE, SIGMA, SPACING_NM};
 use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ScanRef, TemplateRef, TEMPLATE_ARG};
 use crate::analysis::domain::{dipole_d_max_nm, status};
@@ -15,12 +16,7 @@ use crate::analysis::template::Template;
 use rhai::{Array, Dynamic, Map};
 
 /// The options of this family's bindings, each key written once (`Opt`).
-const DENSITY_G_CM3: Opt = Opt::new("density_g_cm3", "float", "g/cm³");
-const N: Opt = Opt::new("n", "float", "");
-const PATIENCE: Opt = Opt::new("patience", "int", "");
 const SEARCH_STEP_DEG: Opt = Opt::new("search_step_deg", "float", "°");
-const SIGMA: Opt = Opt::new("sigma", "float", "");
-const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
 const TOL: Opt = Opt::new("tol", "float", "");
 
 /// A noisy microtubule-like filament (110 nm polystyrene-like rod, n = 1.572) at 10 ms per pixel.

@@ -3,7 +3,10 @@
 //! linear density, masses.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::keys::{AXIS, DETECT_SNR, D_NM, N, SPACING_NM};
+use super::registry::{
+    binding_list, err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
+};
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::orientation::{measure_filament, Channel};
 use crate::analysis::quantities::{
@@ -23,18 +26,14 @@ use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
-const AXIS: Opt = Opt::new("axis", "string", "");
 const BOTH_ENDS: Opt = Opt::new("both_ends", "bool", "");
 const D_BM_NM: Opt = Opt::new("d_bm_nm", "float", "nm");
-const D_NM: Opt = Opt::new("d_nm", "float", "nm");
 const DENSITY: Opt = Opt::new("density", "float", "g/cm³");
 const DENSITY_OBJ: Opt = Opt::new("density_obj", "float", "g/cm³");
-const DETECT_SNR: Opt = Opt::new("detect_snr", "float", "");
 const EXCLUSION_UM: Opt = Opt::new("exclusion_um", "float", "µm");
 const FIT_WEIGHT: Opt = Opt::new("fit_weight", "bool", "");
 const MAX_OBJECTS: Opt = Opt::new("max_objects", "int", "");
 const MIN_WEIGHT: Opt = Opt::new("min_weight", "float", "");
-const N: Opt = Opt::new("n", "float", "");
 const N_ANGLES: Opt = Opt::new("n_angles", "int", "");
 const N_BM: Opt = Opt::new("n_bm", "float", "");
 const N_OBJ: Opt = Opt::new("n_obj", "float", "");
@@ -43,12 +42,7 @@ const SENS: Opt = Opt::new("sens", "float", "");
 const SENS_ERR: Opt = Opt::new("sens_err", "float", "");
 const SENS_RB: Opt = Opt::new("sens_rb", "float", "");
 const SKIP_UM: Opt = Opt::new("skip_um", "float", "µm");
-const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
 const TPL_KEY: Opt = Opt::new("tpl", "Template", "");
-
-pub fn register(r: &mut Registrar) {
-    register_filaments(r);
-}
 
 /// `lin_dens_calib`'s default density of the filament, g/cm³ (protein; kept as it was: the
 /// globular-protein value of Sec. 3.2, `quantities::PROTEIN_DENSITY_G_CM3` = 1/0.745, is 1.342).
@@ -59,11 +53,10 @@ const LIN_DENS_DENSITY_OBJ_G_CM3: f64 = 1.35;
 /// A filament measured from a scan, for the examples.
 const FIL_EX: &str = "let t = template_model(#{h_um: 0.025}); let c = angle_curve(t, #{n_angles: 7, pixel_um: 0.05}); let sc = render_beads(t, #{filaments: [#{points: [[-0.5, -2.0], [0.5, 2.0]], d_nm: 110.0, n: 1.572}], x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}); let m = measure_filament(sc, c);";
 
-fn register_filaments(r: &mut Registrar) {
-    bind_angle_curve(r);
-    bind_measure_filament(r);
-    bind_background(r);
-    bind_quantities(r);
+binding_list! {
+    pub fn register {
+        bind_angle_curve, bind_measure_filament, bind_background, bind_quantities
+    }
 }
 
 /// `angle_curve` and the `AngleCurve` it returns (Sec. 4.2 step 2, Fig. 4d).

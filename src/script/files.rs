@@ -6,7 +6,7 @@
 //! where it went.
 
 use super::ctx::Ctx;
-use super::registry::{fail, numbers, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{binding_list, fail, numbers, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::stats::MAX_BINS;
 use crate::plot::{
@@ -112,12 +112,10 @@ const PLOT_HIST_BINS: i64 = 20;
 
 const SCENE: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572}); let sc = simulate(s, #{x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}); let dir = status().data_dir;";
 
-pub fn register(r: &mut Registrar) {
-    bind_plot(r);
-    bind_line_plots(r);
-    bind_plot_hist(r);
-    bind_tiff(r);
-    bind_save_csv(r);
+binding_list! {
+    pub fn register {
+        bind_plot, bind_line_plots, bind_plot_hist, bind_tiff, bind_save_csv
+    }
 }
 
 /// `plot`: an image or a scan channel as a heat map.
@@ -125,7 +123,7 @@ fn bind_plot(r: &mut Registrar) {
     let ctx = r.ctx();
     let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
-        .arg("path", "string", "", "figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
+        .figure_file("figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
         .opts(&[
                 TITLE.doc("optional: figure title"),
                 OVERWRITE.doc("optional: replace an existing file (default false: a numbered name, never overwriting)"),
@@ -137,8 +135,6 @@ fn bind_plot(r: &mut Registrar) {
                 RANGE.doc("optional (images): fixed colour range [lo, hi]"),
             ],
         )
-        .form("plot(what, path) -> string")
-        .returns("string", "the path written")
         .summary("heat map with colour bar and µm axes: Sx/Sy diverging about 0, Sz sequential")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex_scan.png\").ends_with(\"ex_scan.png\")"), "true")
         .example(&format!("{SCENE} plot(sc.sx, dir + \"/ex_sx.svg\", #{{colormap: \"diverging\", title: \"Sx\"}}).ends_with(\".svg\")"), "true")
@@ -152,10 +148,8 @@ fn bind_line_plots(r: &mut Registrar) {
     let ctx = r.ctx();
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
-        .arg("path", "string", "", "figure file, .png or .svg")
+        .figure_file(FIGURE_FILE)
         .opts(XY_KEYS)
-        .form("plot_profile(profiles, path) -> string")
-        .returns("string", "the path written")
         .summary("line plot of one or more profiles with a legend")
         .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
         .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
@@ -163,10 +157,8 @@ fn bind_line_plots(r: &mut Registrar) {
 
     let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
-        .arg("path", "string", "", "figure file, .png or .svg")
+        .figure_file(FIGURE_FILE)
         .opts(XY_KEYS)
-        .form("plot_xy(series, path) -> string")
-        .returns("string", "the path written")
         .summary("x–y plot of curves and points with error bars, optionally log–log")
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
         .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
@@ -178,7 +170,7 @@ fn bind_plot_hist(r: &mut Registrar) {
     let ctx = r.ctx();
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
-        .arg("path", "string", "", "figure file, .png or .svg")
+        .figure_file(FIGURE_FILE)
         .opts(&[
                 BINS.doc(format!("optional: number of bins (default {PLOT_HIST_BINS})").as_str()),
                 TITLE.doc("optional: figure title"),
@@ -187,8 +179,6 @@ fn bind_plot_hist(r: &mut Registrar) {
                 YLABEL.doc("optional: y-axis label (default \"count\")"),
             ],
         )
-        .form("plot_hist(values, path) -> string")
-        .returns("string", "the path written")
         .summary("histogram figure (e.g. bead diameters, Fig. 3b)")
         .example("let p = status().data_dir + \"/ex_hist.png\"; plot_hist([1.0, 2.0, 2.0, 3.0], p, #{bins: 3, xlabel: \"d (nm)\"}) == p", "true")
         .example("plot_hist([1.0], status().data_dir + \"/ex_hist.png\", #{bins: 0})", "error: bins");
@@ -246,7 +236,26 @@ fn bind_save_csv(r: &mut Registrar) {
 /// Bind a figure binding `name(what, path[, opts])` and its form without `opts`: both read the
 /// options (without `opts`: every option takes its default), prepare the path (`overwrite`),
 /// `draw(ctx, opts, what, path)` and stamp the figure with its provenance; they return the path.
-fn bind_figure<T: std::any::Any + Clone + Send + Sync>(
+/// The path argument of a figure binding.
+const FIGURE_FILE: &str = "figure file, .png or .svg";
+
+/// The declaration of a figure binding after its subject (its one argument, `what`): the path
+/// of the figure file (`path`: its help), the form `name(what, path) -> string`, the path
+/// written returned.
+trait FigureDoc {
+    fn figure_file(self, path: &str) -> Doc;
+}
+
+impl FigureDoc for Doc {
+    fn figure_file(self, path: &str) -> Doc {
+        let form = format!("{}({}, path) -> string", self.name, self.params[0].name);
+        self.arg("path", "string", "", path)
+            .form(&form)
+            .returns("string", "the path written")
+    }
+}
+
+fn bind_figure<T: super::registry::Value>(
     r: &mut Registrar,
     d: Doc,
     ctx: &Arc<Ctx>,

@@ -3,6 +3,7 @@
 //! session's beam.
 
 use super::ctx::Ctx;
+use super::keys::{SIGMA, WEIGHT};
 use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::analysis::focus::{focus_search, FocusOptions};
@@ -15,9 +16,7 @@ use crate::optics::template::TemplateSpec;
 use rhai::{Dynamic, Map};
 
 /// The options of this family's bindings, each key written once (`Opt`).
-const SIGMA: Opt = Opt::new("sigma", "float", "");
 const U0: Opt = Opt::new("u0", "float", "µm");
-const WEIGHT: Opt = Opt::new("weight", "float", "");
 const Z_BEST: Opt = Opt::new("z_best", "float", "µm");
 
 const FOCUS_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, z: 0.1, d_nm: 110.0, n: 1.572}); s.effects([\"detector_noise\"]); simulate(s); let sc = scan_xz(#{x: [-1.0, 1.0], z: [-1.0, 1.0], nx: 41, nz: 41, dwell: 0.001}); let b = focus_crlb(sc);";

@@ -1,14 +1,13 @@
 //! Binding family `mie`: Lorenz–Mie efficiencies and the focused-beam Mie response of a sphere.
 
 use super::ctx::Ctx;
+use super::keys::{D_NM, N};
 use super::registry::{err, Doc, Opt, Opts, RResult, Registrar, Spec};
 use rhai::{Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
-const D_NM: Opt = Opt::new("d_nm", "float", "nm");
 const M_IM: Opt = Opt::new("m_im", "float", "");
 const M_RE: Opt = Opt::new("m_re", "float", "");
-const N: Opt = Opt::new("n", "float", "");
 const N_IM: Opt = Opt::new("n_im", "float", "");
 const X: Opt = Opt::new("x", "float", "");
 

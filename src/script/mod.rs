@@ -16,6 +16,7 @@ pub mod filaments;
 pub mod files;
 pub mod focus_crlb;
 pub mod hardware;
+pub mod keys;
 pub mod mie;
 pub mod motion;
 pub mod optics;

@@ -6,7 +6,9 @@
 //! each takes, how each opens); this file checks the keys and opens what the family says.
 
 use super::ctx::{Attached, Ctx};
-use super::registry::{fail, int, non_negative, num, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{
+    binding_list, fail, int, non_negative, num, Doc, Opt, Opts, RResult, Registrar, Spec,
+};
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
 use crate::config::connect::{connect_emulated, connect_emulated_redpitaya, EmulatedStageLink};
@@ -109,11 +111,7 @@ fn do_move(ctx: &Ctx, who: &str, m: &Map, relative: bool) -> RResult<()> {
     })
 }
 
-pub fn register(r: &mut Registrar) {
-    bind_moves(r);
-    bind_reads(r);
-    bind_connect(r);
-}
+binding_list! { pub fn register { bind_moves, bind_reads, bind_connect } }
 
 /// Where the stage is and moving it: `pos`, `wa`, `mv`, `mvr`.
 fn bind_moves(r: &mut Registrar) {

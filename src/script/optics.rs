@@ -3,6 +3,7 @@
 //! index correction, mass, maximum sensitivity; suppl. S1–S3).
 
 use super::ctx::Ctx;
+use super::keys::{D_NM, N, POLARIZATION, X, Y, Z};
 use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
@@ -19,17 +20,11 @@ use rhai::{Array, Dynamic, Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const BEAM: Opt = Opt::new("beam", "string", "");
-const D_NM: Opt = Opt::new("d_nm", "float", "nm");
 const MODEL: Opt = Opt::new("model", "string", "");
-const N: Opt = Opt::new("n", "float", "");
 const N_PHI: Opt = Opt::new("n_phi", "int", "");
 const N_THETA: Opt = Opt::new("n_theta", "int", "");
-const POLARIZATION: Opt = Opt::new("polarization", "bool", "");
 const SHAPE: Opt = Opt::new("shape", "string", "");
 const TEMPERATURE_K: Opt = Opt::new("temperature_k", "float", "K");
-const X: Opt = Opt::new("x", "float", "µm");
-const Y: Opt = Opt::new("y", "float", "µm");
-const Z: Opt = Opt::new("z", "float", "µm");
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {

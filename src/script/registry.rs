@@ -39,6 +39,10 @@ use std::sync::Arc;
 
 pub use super::doc::{fail, Doc, Example, Key, Kind, Opt, Param, RResult, Spec};
 
+/// A type a binding takes or returns: what Rhai stores in a `Dynamic`.
+pub trait Value: Any + Clone + Send + Sync {}
+impl<T: Any + Clone + Send + Sync> Value for T {}
+
 /// Declares and registers the property getters of one script type, one row a property:
 ///
 /// ```ignore
@@ -65,6 +69,18 @@ macro_rules! properties {
     )*};
 }
 pub(crate) use properties;
+
+/// A registration function that calls a family's binding functions (each
+/// `fn(&mut Registrar)`: one command, or a few that belong together) in order:
+/// `binding_list! { pub fn register { bind_help, bind_numbers } }`.
+macro_rules! binding_list {
+    ($vis:vis fn $name:ident { $($bind:ident),+ $(,)? }) => {
+        $vis fn $name(r: &mut $crate::script::registry::Registrar) {
+            $($bind(r);)+
+        }
+    };
+}
+pub(crate) use binding_list;
 
 /// Hands a family file the engine, the context and the list of declarations.
 pub struct Registrar<'a> {
@@ -182,13 +198,7 @@ impl<'a> Registrar<'a> {
     }
 
     /// Declare and register a function or method (Rhai name = `doc.name`).
-    pub fn bind<
-        A: 'static,
-        const N: usize,
-        const X: bool,
-        R: Any + Clone + Send + Sync,
-        const F: bool,
-    >(
+    pub fn bind<A: 'static, const N: usize, const X: bool, R: Value, const F: bool>(
         &mut self,
         doc: Doc,
         f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
@@ -217,7 +227,7 @@ impl<'a> Registrar<'a> {
         A: 'static,
         const N: usize,
         const X: bool,
-        R: Any + Clone + Send + Sync,
+        R: Value,
         const F: bool,
         G: RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
     >(
@@ -232,7 +242,7 @@ impl<'a> Registrar<'a> {
     /// Declare and register a binding whose last argument is its optional options map
     /// ([`Doc::opts`]) after one argument `a`: the form with the map and the form without it
     /// (an empty map) both call `f(spec, a, opts)`, `spec` the declaration's keys and usage.
-    pub fn bind_opts<A: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+    pub fn bind_opts<A: Value, R: Value>(
         &mut self,
         doc: Doc,
         f: impl Fn(&Spec, A, &Map) -> RResult<R> + Send + Sync + 'static,
@@ -244,7 +254,7 @@ impl<'a> Registrar<'a> {
     }
 
     /// As [`Registrar::bind_opts`], for a binding with no argument before its options map.
-    pub fn bind_opts0<R: Any + Clone + Send + Sync>(
+    pub fn bind_opts0<R: Value>(
         &mut self,
         doc: Doc,
         f: impl Fn(&Spec, &Map) -> RResult<R> + Send + Sync + 'static,
@@ -256,11 +266,7 @@ impl<'a> Registrar<'a> {
     }
 
     /// As [`Registrar::bind_opts`], for a binding with two arguments before its options map.
-    pub fn bind_opts2<
-        A: Any + Clone + Send + Sync,
-        B: Any + Clone + Send + Sync,
-        R: Any + Clone + Send + Sync,
-    >(
+    pub fn bind_opts2<A: Value, B: Value, R: Value>(
         &mut self,
         doc: Doc,
         f: impl Fn(&Spec, A, B, &Map) -> RResult<R> + Send + Sync + 'static,
@@ -272,13 +278,7 @@ impl<'a> Registrar<'a> {
     }
 
     /// Register another form (arity or argument types) of an already declared binding.
-    pub fn overload<
-        A: 'static,
-        const N: usize,
-        const X: bool,
-        R: Any + Clone + Send + Sync,
-        const F: bool,
-    >(
+    pub fn overload<A: 'static, const N: usize, const X: bool, R: Value, const F: bool>(
         &mut self,
         name: &str,
         f: impl RhaiNativeFunc<A, N, X, R, F> + Send + Sync + 'static,
@@ -297,7 +297,7 @@ impl<'a> Registrar<'a> {
     }
 
     /// Declare and register a property getter `value.name`.
-    pub fn getter<T: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+    pub fn getter<T: Value, R: Value>(
         &mut self,
         doc: Doc,
         f: impl Fn(&mut T) -> R + Send + Sync + 'static,
@@ -309,7 +309,7 @@ impl<'a> Registrar<'a> {
     /// Declare and register property getters of the type `ty` that share one accessor and whose
     /// summary is what they return (`returns`): one row `(name, what)` a property;
     /// `example(name)` gives a row's example and its expected value, `get(value, name)` its value.
-    pub fn named_getters<T: Any + Clone + Send + Sync, R: Any + Clone + Send + Sync>(
+    pub fn named_getters<T: Value, R: Value>(
         &mut self,
         ty: &str,
         returns: &str,

@@ -4,7 +4,8 @@
 //! with the acquisition strategy of its mode (point by point, hardware-timed lines).
 
 use super::ctx::Ctx;
-use super::registry::{fail, int, num, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::keys::{AXIS, DWELL};
+use super::registry::{binding_list, fail, int, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::ScanRef;
 use crate::acquire::plan::{Axis, Plan, Sweep, DEFAULT_DWELL_S, MAX_POINTS_PER_AXIS};
 use crate::acquire::raster::{RasterOptions, DEFAULT_SAMPLES_PER_PIXEL};
@@ -18,14 +19,12 @@ use std::path::PathBuf;
 use crate::acquire::stop_rule::STOP_RULE;
 
 /// The options of this family's bindings, each key written once (`Opt`).
-const DWELL: Opt = Opt::new("dwell", "float", "s");
 const FROM: Opt = Opt::new("from", "float", "µm");
 const N: Opt = Opt::new("n", "int", "");
 const REL: Opt = Opt::new("rel", "bool", "");
 const SNAKE: Opt = Opt::new("snake", "bool", "");
 const MODE: Opt = Opt::new("mode", "string", "");
 const TO: Opt = Opt::new("to", "float", "µm");
-const AXIS: Opt = Opt::new("axis", "string", "");
 const SAMPLES_PER_PIXEL: Opt = Opt::new("samples_per_pixel", "int", "");
 
 /// Where the stage is after a SPEC scan (help text): back at the start for a relative scan
@@ -196,12 +195,7 @@ fn register_grid(r: &mut Registrar, fast: Axis, slow: Axis, fixed: Axis) {
     });
 }
 
-pub fn register(r: &mut Registrar) {
-    bind_scan_planes(r);
-    bind_spec_scans(r);
-    bind_mesh(r);
-    bind_scan_files(r);
-}
+binding_list! { pub fn register { bind_scan_planes, bind_spec_scans, bind_mesh, bind_scan_files } }
 
 /// `scan_line` and the plane scans `scan_xy`, `scan_xz`, `scan_yz`.
 fn bind_scan_planes(r: &mut Registrar) {

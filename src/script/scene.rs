@@ -2,6 +2,7 @@
 //! aggregates, effects), `simulate` and the render `pipeline`.
 
 use super::ctx::Ctx;
+use super::keys::{D_NM, N, POINTS, SPACING_NM, X, Y, Z};
 use super::registry::{
     err, fail, non_negative, num, points, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
@@ -14,15 +15,8 @@ use rhai::{Array, Dynamic, Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const COUNT: Opt = Opt::new("count", "int", "");
-const D_NM: Opt = Opt::new("d_nm", "float", "nm");
-const N: Opt = Opt::new("n", "float", "");
 const N_SAMPLES: Opt = Opt::new("n_samples", "int", "");
 const SEED: Opt = Opt::new("seed", "int", "");
-const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
-const X: Opt = Opt::new("x", "float", "µm");
-const Y: Opt = Opt::new("y", "float", "µm");
-const Z: Opt = Opt::new("z", "float", "µm");
-const POINTS: Opt = Opt::new("points", "array", "µm");
 const TAPER: Opt = Opt::new("taper", "array", "nm");
 const ALPHA_TIP: Opt = Opt::new("alpha_tip", "map", "nm, µm");
 

@@ -2,7 +2,8 @@
 //! maxSens, parabola fits), focus search (suppl. S5), profiles along a line.
 
 use super::ctx::Ctx;
-use super::registry::{err, fail, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::keys::{AXIS, STENCIL};
+use super::registry::{binding_list, err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
 use crate::analysis::peaks::{col_peaks, point_peak_checked, row_peaks};
@@ -16,22 +17,12 @@ use std::sync::Arc;
 /// A reference template in a script (`Template`).
 use super::analysis_values::*;
 
-/// The options of this family's bindings, each key written once (`Opt`).
-const AXIS: Opt = Opt::new("axis", "string", "");
-const STENCIL: Opt = Opt::new("stencil", "string", "");
-
-pub fn register(r: &mut Registrar) {
-    register_sensitivity(r);
-}
-
 // ------------------------------------------------------------------ sensitivity
 
-fn register_sensitivity(r: &mut Registrar) {
-    bind_sensitivity(r);
-    bind_peaks(r);
-    bind_max_sens(r);
-    bind_focus_search(r);
-    bind_profile_along(r);
+binding_list! {
+    pub fn register {
+        bind_sensitivity, bind_peaks, bind_max_sens, bind_focus_search, bind_profile_along
+    }
 }
 
 /// `sensitivity(img | scan, [opts])`: the sensitivity image (eq. sensitivity).

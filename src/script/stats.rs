@@ -1,16 +1,12 @@
 //! Binding family `stats`: summaries, histograms and straight-line fits of numbers.
 
 use super::analysis_values::to_map;
-use super::registry::{err, fail, numbers, Doc, RResult, Registrar};
+use super::registry::{binding_list, err, fail, numbers, Doc, RResult, Registrar};
 use super::types::floats;
 use crate::analysis::stats::{histogram, linfit, loglog_fit, summary, MAX_BINS};
 use rhai::{Array, Dynamic, Map};
 
-pub fn register(r: &mut Registrar) {
-    bind_summary(r);
-    bind_histogram(r);
-    bind_line_fits(r);
-}
+binding_list! { pub fn register { bind_summary, bind_histogram, bind_line_fits } }
 
 /// `summary(values)`.
 fn bind_summary(r: &mut Registrar) {

@@ -3,6 +3,7 @@
 //! reading carries the most information about it (`analysis::point_fit`).
 
 use super::analysis_values::pos_f64;
+use super::keys::{DENSITY_G_CM3, N, SIGMA, WEIGHT, X, Y};
 use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{TemplateRef, TEMPLATE_ARG};
 use crate::analysis::point_fit::{design_points, fit_bead_points, PointReading};
@@ -12,12 +13,6 @@ use rhai::{Array, Dynamic, Map};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const BACKGROUND: Opt = Opt::new("background", "bool", "");
-const DENSITY_G_CM3: Opt = Opt::new("density_g_cm3", "float", "g/cm³");
-const N: Opt = Opt::new("n", "float", "");
-const SIGMA: Opt = Opt::new("sigma", "float", "");
-const WEIGHT: Opt = Opt::new("weight", "float", "");
-const X: Opt = Opt::new("x", "float", "µm");
-const Y: Opt = Opt::new("y", "float", "µm");
 
 const PTS_EX: &str = "let t = template_model(#{h_um: 0.025}); let k = 1.2 / t.norm_factor; let pts = []; for p in bead_design(t, #{x: 0.0, y: 0.0}) { for d in [[0.0, 0.0], [0.05, -0.05]] { let r = t.at(p[0] + d[0] - 0.02, p[1] + d[1] + 0.01); pts.push(#{x: p[0] + d[0], y: p[1] + d[1], sx: k * r.sx, sy: k * r.sy}); } }";
 

@@ -3,6 +3,7 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
+use super::keys::{N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
 use super::registry::{err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
@@ -33,12 +34,7 @@ const MAX_BEADS: Opt = Opt::new("max_beads", "int", "");
 const MERGE_DEGENERATE: Opt = Opt::new("merge_degenerate", "bool", "");
 const MIN_DROP: Opt = Opt::new("min_drop", "float", "");
 const MIN_SEPARATION: Opt = Opt::new("min_separation", "float", "");
-const N_KEY: Opt = Opt::new("n", "float", "");
 const N_BEADS: Opt = Opt::new("n_beads", "int", "");
-const PATIENCE: Opt = Opt::new("patience", "int", "");
-const POLARIZATION: Opt = Opt::new("polarization", "bool", "");
-const SIGMA: Opt = Opt::new("sigma", "float", "");
-const SPACING_NM: Opt = Opt::new("spacing_nm", "float", "nm");
 const THRESHOLD: Opt = Opt::new("threshold", "float", "");
 const XTOL: Opt = Opt::new("xtol", "float", "");
 const Z_UM: Opt = Opt::new("z_um", "float", "µm");
@@ -74,7 +70,7 @@ fn bind_template_model(r: &mut Registrar) {
                     "nm",
                     format!("optional: reference bead diameter (default {})", rb.d_nm),
                 ),
-                N_KEY.doc(format!("optional: reference bead index (default {})", rb.n)),
+                N.doc(format!("optional: reference bead index (default {})", rb.n)),
                 (
                     "density",
                     "float",
@@ -114,7 +110,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
                 THRESHOLD.doc(format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
                 ("iterations", "int", "", format!("optional: alignment iterations (default {})", fs.iterations)),
                 ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {})", rb.d_nm)),
-                N_KEY.doc(format!("optional: reference bead index (default {})", rb.n)),
+                N.doc(format!("optional: reference bead index (default {})", rb.n)),
                 ("density", "float", "g/cm³", format!("optional: density (default {})", rb.density_g_cm3)),
             ],
         )
@@ -250,7 +246,7 @@ fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
         PATIENCE.doc(format!("optional: residual evaluations allowed = patience × (3n + 1) (default {})", fd.patience)),
         MIN_SEPARATION.doc(format!("optional: beads closer than this × w0 (set_optics) are degenerate (default {})", fd.min_separation)),
         MERGE_DEGENERATE.doc(format!("optional: merge degenerate pairs and refit (default {})", fd.merge_degenerate)),
-        N_KEY.doc("optional: refractive index of the beads, for the diameter a weight implies in the size-domain check (default: the template reference's)".into()),
+        N.doc("optional: refractive index of the beads, for the diameter a weight implies in the size-domain check (default: the template reference's)".into()),
     ];
     let keys_ref: Vec<(&str, &str, &str, &str)> = keys
         .iter()
@@ -562,8 +558,8 @@ fn fit_beads_of(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map) -> 
         patience: count(who, &o, PATIENCE, 1, 1_000_000)?.unwrap_or(d.patience),
         min_separation: o.f64_or(MIN_SEPARATION, d.min_separation)?,
         merge_degenerate: o.bool_or(MERGE_DEGENERATE, d.merge_degenerate)?,
-        bead_n: match o.f64(N_KEY)? {
-            Some(n) => Some(pos_f64(who, &o, N_KEY, n, 1.0, 4.0)?),
+        bead_n: match o.f64(N)? {
+            Some(n) => Some(pos_f64(who, &o, N, n, 1.0, 4.0)?),
             None => None,
         },
         ..d

@@ -1,7 +1,7 @@
 //! Rhai types `Scan`, `Image`, `Profile`: property access, statistics, arithmetic, readable
 //! printing. Large arrays sit behind `Arc`, so passing them around in scripts is cheap.
 
-use super::registry::{fail, int, num, properties, Doc, RResult, Registrar};
+use super::registry::{binding_list, fail, int, num, properties, Doc, RResult, Registrar};
 use super::values::register_printable;
 pub use super::values::{
     register_types, show_custom, CurveRef, FilamentRef, FitRef, ImageRef, ProfileRef, ScanRef,
@@ -427,12 +427,10 @@ fn register_scan(r: &mut Registrar) {
 /// The image the `Image` examples read: the mock signal on a 21×21 grid.
 const IMG: &str = "let img = scan_xy(#{x: [-0.5, 0.5], y: [-0.5, 0.5], nx: 21, ny: 21}).sx;";
 
-fn register_image(r: &mut Registrar) {
-    bind_image_properties(r);
-    bind_image_sums(r);
-    bind_image_pixels(r);
-    bind_image_crop(r);
-    bind_image_arithmetic(r);
+binding_list! {
+    fn register_image {
+        bind_image_properties, bind_image_sums, bind_image_pixels, bind_image_crop, bind_image_arithmetic
+    }
 }
 
 /// `Image`'s shape and axes, and its statistics (`max`, `min`, …).
@@ -446,23 +444,8 @@ fn bind_image_properties(r: &mut Registrar) {
         dy: "float", "µm"; "pixel spacing along the rows, µm"; "img.dy" => "0.05"; |i| i.0.dy(),
     ]);
     // expected values checked independently with numpy (mock signal on a 21×21 grid)
-    let stat_list: [(&str, &str, StatFn, &str); 5] = [
-        ("max", "largest pixel value", |s| s.max, "0.1709"),
-        ("min", "smallest pixel value", |s| s.min, "-0.1709"),
-        ("mean", "mean pixel value", |s| s.mean, "0.0"),
-        (
-            "std",
-            "standard deviation of the pixel values (population)",
-            |s| s.std,
-            "0.0915",
-        ),
-        (
-            "abs_max",
-            "largest absolute pixel value",
-            |s| s.abs_max,
-            "0.1709",
-        ),
-    ];
+    let whats = stat_whats("pixel value", " of the pixel values");
+    let expected = ["0.1709", "-0.1709", "0.0", "0.0915", "0.1709"];
     let doc = |name: &str, what: &str, ex_val: &str| {
         Doc::method("Image", name)
             .returns("float", "signal units")
@@ -470,7 +453,7 @@ fn bind_image_properties(r: &mut Registrar) {
             .help("Unmeasured (NaN) pixels of a partial scan are skipped; an image without any finite pixel is an error.")
             .example(&format!("{IMG} round(img.{name}() * 1e4) / 1e4"), ex_val)
     };
-    register_stats(r, stat_list, doc, "img", image_stat);
+    register_stats(r, whats, expected, doc, "img", image_stat);
 }
 
 /// `Image.sum`, `abs`, `argmax`.
@@ -607,18 +590,8 @@ fn register_profile(r: &mut Registrar) {
         v: "array", "signal units"; "values of the samples"; "p.v.len" => "41"; |p| floats(&p.0.v),
         len: "int", ""; "number of samples"; "p.len" => "41"; |p| p.0.v.len() as INT,
     ]);
-    let stat_list: [(&str, &str, StatFn, &str); 5] = [
-        ("max", "largest value", |s| s.max, "0.1709"),
-        ("min", "smallest value", |s| s.min, "-0.1709"),
-        ("mean", "mean value", |s| s.mean, "0.0"),
-        (
-            "std",
-            "standard deviation (population)",
-            |s| s.std,
-            "0.0989",
-        ),
-        ("abs_max", "largest absolute value", |s| s.abs_max, "0.1709"),
-    ];
+    let whats = stat_whats("value", "");
+    let expected = ["0.1709", "-0.1709", "0.0", "0.0989", "0.1709"];
     let doc = |name: &str, what: &str, ex: &str| {
         Doc::method("Profile", name)
             .returns("float", "")
@@ -627,7 +600,7 @@ fn register_profile(r: &mut Registrar) {
             ))
             .example(&format!("{P} round(p.{name}() * 1e4) / 1e4"), ex)
     };
-    register_stats(r, stat_list, doc, "profile", profile_stat);
+    register_stats(r, whats, expected, doc, "profile", profile_stat);
     r.bind(
         Doc::method("Profile", "argmax")
             .returns("float", "µm")
@@ -653,20 +626,45 @@ fn register_profile(r: &mut Registrar) {
 /// The statistics (max, min, mean, std, abs_max) of a binding, as a function of [`Stats`].
 type StatFn = fn(&Stats) -> f64;
 
+/// The statistics bound on Image and Profile, in the order of their declarations.
+const STATS: [(&str, StatFn); 5] = [
+    ("max", |s| s.max),
+    ("min", |s| s.min),
+    ("mean", |s| s.mean),
+    ("std", |s| s.std),
+    ("abs_max", |s| s.abs_max),
+];
+
+/// What each of [`STATS`] is of a type whose values are `value`s (`std_of`: what the standard
+/// deviation's help adds, e.g. " of the pixel values").
+fn stat_whats(value: &str, std_of: &str) -> [String; 5] {
+    [
+        format!("largest {value}"),
+        format!("smallest {value}"),
+        format!("mean {value}"),
+        format!("standard deviation{std_of} (population)"),
+        format!("largest absolute {value}"),
+    ]
+}
+
 /// The statistics of a script type `T` (Image, Profile) as methods `value.name()` declared by
 /// `doc(name, what, expected example value)` and, undeclared, as the same properties
-/// `value.name`: one row `(name, what, statistic, expected)` each. `stat(who, value, f)`
-/// computes one; `who` (`receiver.name()` or `receiver.name`) names the call in its errors.
-fn register_stats<T: std::any::Any + Clone + Send + Sync>(
+/// `value.name`: one of each of [`STATS`], with `whats` and `expected` in its order.
+/// `stat(who, value, f)` computes one; `who` (`receiver.name()` or `receiver.name`) names the
+/// call in its errors.
+fn register_stats<T: super::registry::Value>(
     r: &mut Registrar,
-    rows: [(&'static str, &str, StatFn, &str); 5],
+    whats: [String; 5],
+    expected: [&str; 5],
     doc: impl Fn(&str, &str, &str) -> Doc,
     receiver: &str,
     stat: fn(&str, &T, StatFn) -> RResult<f64>,
 ) {
-    for (name, what, f, expected) in rows {
+    for (((name, f), what), expected) in STATS.into_iter().zip(whats).zip(expected) {
         let who = format!("{receiver}.{name}()");
-        r.bind(doc(name, what, expected), move |v: &mut T| stat(&who, v, f));
+        r.bind(doc(name, &what, expected), move |v: &mut T| {
+            stat(&who, v, f)
+        });
         // the same as a property (`img.max`)
         let who = format!("{receiver}.{name}");
         r.engine()

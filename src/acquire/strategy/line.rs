@@ -20,13 +20,13 @@
 //! not, and a relative scan then returns to its start.
 
 use super::{
-    line_by_line_steps, padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy,
+    line_by_line_steps, padded, planned, BinStats, Checked, Layout, StepFault, StepResult,
+    StopCause, Strategy,
 };
 use crate::acquire::error::ScanError;
-use crate::acquire::limits::SoftLimits;
-use crate::acquire::plan::{fmt_seconds, Plan, Point};
+use crate::acquire::plan::fmt_seconds;
 use crate::acquire::raster::{
-    bin_line, plan_lines, positions_at_samples, LineBins, RasterLine, RasterOptions, RasterPlan,
+    bin_line, positions_at_samples, LineBins, RasterLine, RasterOptions, RasterPlan,
 };
 use crate::instrument::line::{LineSweep, LineTiming, SweepRecord};
 use crate::instrument::{BufferedTrace, DeviceError, Instrument, Pos, Trigger};
@@ -205,14 +205,8 @@ impl Strategy for LineStrategy {
         "raster"
     }
 
-    fn prepare(
-        &mut self,
-        inst: &mut Instrument,
-        plan: &Plan,
-        start: Pos,
-        _points: &[Point],
-        limits: &SoftLimits,
-    ) -> Result<Layout, ScanError> {
+    fn prepare(&mut self, inst: &mut Instrument, checked: &Checked) -> Result<Layout, ScanError> {
+        let plan = checked.plan;
         let kind = &plan.kind;
         let timing = inst
             .stage
@@ -233,8 +227,7 @@ impl Strategy for LineStrategy {
                 self.opts.samples_per_pixel
             )));
         }
-        let rp =
-            plan_lines(plan, start, &timing, inst.settle_s, limits).map_err(ScanError::Refused)?;
+        let rp = checked.raster_lines(&timing, inst.settle_s)?;
         // per line: the move to its start, the wave, and what the devices cost around it (the
         // controller's start, end and recorder readout; the digitiser's arming and read-out)
         let line_extra_s = rp
@@ -361,12 +354,7 @@ impl Strategy for LineStrategy {
 }
 
 impl LineStrategy {
-    fn line_step(
-        &mut self,
-        inst: &mut Instrument,
-        rp: &RasterPlan,
-        i: usize,
-    ) -> Result<Vec<Pixel>, StepFault> {
+    fn line_step(&mut self, inst: &mut Instrument, rp: &RasterPlan, i: usize) -> StepResult {
         let l = &rp.lines[i];
         self.current = Some(i);
         self.stopped = false;

@@ -23,7 +23,8 @@ pub mod stream;
 use super::error::ScanError;
 use super::limits::SoftLimits;
 use super::plan::{Plan, Point};
-use super::raster::{LineBins, RasterOptions};
+use super::raster::{plan_lines, LineBins, RasterOptions, RasterPlan};
+use crate::instrument::line::LineTiming;
 use crate::instrument::{DeviceError, Instrument, Pos};
 use ndarray::Array2;
 use serde_json::{json, Value};
@@ -81,25 +82,42 @@ pub enum StopCause {
     Fault { stage: bool },
 }
 
+/// What the engine's pre-flight hands [`Strategy::prepare`]: the plan, the start (the commanded
+/// target), and every pixel (`points`, in visiting order) checked against `limits` (the soft
+/// limits already narrowed to the travel range).
+pub struct Checked<'a> {
+    pub plan: &'a Plan,
+    pub start: Pos,
+    pub points: &'a [Point],
+    pub limits: &'a SoftLimits,
+}
+
+impl Checked<'_> {
+    /// The raster lines of the plan ([`plan_lines`]) for a stage of this `timing` that settles
+    /// `settle_s` after each line's start; a refusal in the user's words.
+    pub fn raster_lines(
+        &self,
+        timing: &LineTiming,
+        settle_s: f64,
+    ) -> Result<RasterPlan, ScanError> {
+        plan_lines(self.plan, self.start, timing, settle_s, self.limits).map_err(ScanError::Refused)
+    }
+}
+
+/// What one step of a scan gives: its pixels, or why it failed.
+pub type StepResult = Result<Vec<Pixel>, StepFault>;
+
 /// One acquisition mode. See the module documentation.
 pub trait Strategy {
     /// `"points"` or `"raster"` (the scan's `meta.mode`).
     fn mode(&self) -> &'static str;
     /// The strategy's own pre-flight and configuration, after the engine has checked every
-    /// pixel (`points`, in visiting order) against `limits` (already narrowed to the travel
-    /// range). Nothing moves. `Err`: the refusal in the user's words, or the device error
-    /// that kept the strategy from asking what the devices can do.
-    fn prepare(
-        &mut self,
-        inst: &mut Instrument,
-        plan: &Plan,
-        start: Pos,
-        points: &[Point],
-        limits: &SoftLimits,
-    ) -> Result<Layout, ScanError>;
+    /// pixel of the plan (`checked`). Nothing moves. `Err`: the refusal in the user's words, or
+    /// the device error that kept the strategy from asking what the devices can do.
+    fn prepare(&mut self, inst: &mut Instrument, checked: &Checked) -> Result<Layout, ScanError>;
     /// Acquire step `i` (0-based, in order; after a pause the next step re-arms whatever
     /// the pause stopped). Returns the step's pixels in the order measured.
-    fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault>;
+    fn step(&mut self, inst: &mut Instrument, i: usize) -> StepResult;
     /// The commanded stage position after the last step, if one was measured (µm).
     fn resting_at(&self) -> Option<Pos>;
     /// Ctrl-C between steps: bring the acquisition to rest for the pause (a line: the
@@ -245,7 +263,7 @@ pub fn padded(rows: &[Vec<f64>], n_rows: usize) -> Array2<f64> {
 /// `self.clipped`. Expanded inside their `impl Strategy`.
 macro_rules! line_by_line_steps {
     () => {
-        fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
+        fn step(&mut self, inst: &mut Instrument, i: usize) -> StepResult {
             let rp = planned(&self.rp, inst)?;
             self.line_step(inst, &rp, i)
         }

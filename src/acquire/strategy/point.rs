@@ -7,10 +7,9 @@
 //! included). On a real-time instrument the metadata has `time.phases`: milliseconds per
 //! point spent moving, settling and reading the QPD, and per command what the links carried.
 
-use super::{samples_per_point, Layout, Pixel, StepFault, StopCause, Strategy};
+use super::{samples_per_point, Checked, Layout, StepFault, StepResult, StopCause, Strategy};
 use crate::acquire::error::ScanError;
-use crate::acquire::limits::SoftLimits;
-use crate::acquire::plan::{fmt_seconds, Plan, Point};
+use crate::acquire::plan::{fmt_seconds, Point};
 use crate::instrument::link::LinkCosts;
 use crate::instrument::{DeviceError, Instrument, Pos};
 use serde_json::{json, Value};
@@ -39,18 +38,13 @@ impl Strategy for PointStrategy {
         "points"
     }
 
-    fn prepare(
-        &mut self,
-        inst: &mut Instrument,
-        plan: &Plan,
-        start: Pos,
-        points: &[Point],
-        limits: &SoftLimits,
-    ) -> Result<Layout, ScanError> {
+    fn prepare(&mut self, inst: &mut Instrument, checked: &Checked) -> Result<Layout, ScanError> {
+        let (plan, points) = (checked.plan, checked.points);
         let rate = inst.qpd.sample_rate();
         self.n_samples = samples_per_point(plan.dwell_s, rate);
         self.dwell_s = self.n_samples as f64 / rate;
-        self.speed_um_s = limits
+        self.speed_um_s = checked
+            .limits
             .check_speed(&plan.kind, points, inst.settle_s, self.dwell_s)
             .map_err(|e| ScanError::Refused(e.0))?;
         self.points = points.to_vec();
@@ -61,7 +55,7 @@ impl Strategy for PointStrategy {
         let move_s = if points.is_empty() {
             0.0
         } else {
-            let mut from = start;
+            let mut from = checked.start;
             let mut sum = 0.0;
             for p in points {
                 sum += inst.stage.move_time_for_s(from, p.target);
@@ -108,7 +102,7 @@ impl Strategy for PointStrategy {
         })
     }
 
-    fn step(&mut self, inst: &mut Instrument, i: usize) -> Result<Vec<Pixel>, StepFault> {
+    fn step(&mut self, inst: &mut Instrument, i: usize) -> StepResult {
         let p = self.points[i];
         let t = std::time::Instant::now();
         let moved = inst.stage.move_to(p.target);

@@ -24,12 +24,13 @@
 //! A line that cannot be binned is not.
 
 use super::{
-    line_by_line_steps, padded, planned, BinStats, Layout, Pixel, StepFault, StopCause, Strategy,
+    line_by_line_steps, padded, planned, BinStats, Checked, Layout, StepFault, StepResult,
+    StopCause, Strategy,
 };
 use crate::acquire::error::ScanError;
 use crate::acquire::limits::SoftLimits;
-use crate::acquire::plan::{fmt_seconds, Plan, Point};
-use crate::acquire::raster::{bin_line, plan_lines, RasterOptions, RasterPlan};
+use crate::acquire::plan::fmt_seconds;
+use crate::acquire::raster::{bin_line, RasterOptions, RasterPlan};
 use crate::instrument::line::LineTiming;
 use crate::instrument::stream::{FrameStream, StreamChunk};
 use crate::instrument::{DeviceError, Instrument, Pos, AXES};
@@ -485,12 +486,7 @@ impl StreamStrategy {
         Ok(())
     }
 
-    fn line_step(
-        &mut self,
-        inst: &mut Instrument,
-        rp: &RasterPlan,
-        i: usize,
-    ) -> Result<Vec<Pixel>, StepFault> {
+    fn line_step(&mut self, inst: &mut Instrument, rp: &RasterPlan, i: usize) -> StepResult {
         let expected = self
             .run
             .as_ref()
@@ -666,14 +662,8 @@ impl Strategy for StreamStrategy {
         "raster"
     }
 
-    fn prepare(
-        &mut self,
-        inst: &mut Instrument,
-        plan: &Plan,
-        start: Pos,
-        _points: &[Point],
-        limits: &SoftLimits,
-    ) -> Result<Layout, ScanError> {
+    fn prepare(&mut self, inst: &mut Instrument, checked: &Checked) -> Result<Layout, ScanError> {
+        let (plan, start, limits) = (checked.plan, checked.start, checked.limits);
         let kind = &plan.kind;
         let who = format!("{kind} (raster)");
         let settle_cfg = inst.settle_s;
@@ -720,7 +710,7 @@ impl Strategy for StreamStrategy {
             max_record_points: usize::MAX / 4,
             trigger_line: None,
         };
-        let rp = plan_lines(plan, start, &timing, settle_s, limits).map_err(ScanError::Refused)?;
+        let rp = checked.raster_lines(&timing, settle_s)?;
         let geo = Geometry {
             rate,
             settle_s,

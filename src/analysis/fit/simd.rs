@@ -150,7 +150,7 @@ mod avx2 {
             res: &[Vec<f64>; 2],
             chans: &[usize],
             nx: usize,
-        ) -> ([[f64; 3]; 3], [f64; 3]) {
+        ) -> super::super::window::Sums {
             self.own_sums_impl(res, chans, nx)
         }
 

@@ -20,15 +20,13 @@ pub(super) struct Window<'s> {
     pub(super) s: &'s [f64],
 }
 
+/// The sums of a window's normal equations: JᵀJ over its three planes (3×3) and Jᵀe (3).
+pub(super) type Sums = ([[f64; 3]; 3], [f64; 3]);
+
 impl Window<'_> {
     /// Σ over the window of (Jₓ·J_y, Jₓ·e) for the three planes of each fitted channel
     /// (unscaled; see [`FitData::accumulate`]), e the residual images.
-    pub(super) fn own_sums(
-        &self,
-        res: &[Vec<f64>; 2],
-        chans: &[usize],
-        nx: usize,
-    ) -> ([[f64; 3]; 3], [f64; 3]) {
+    pub(super) fn own_sums(&self, res: &[Vec<f64>; 2], chans: &[usize], nx: usize) -> Sums {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
@@ -39,12 +37,7 @@ impl Window<'_> {
     }
 
     #[inline(always)]
-    pub(super) fn own_sums_impl(
-        &self,
-        res: &[Vec<f64>; 2],
-        chans: &[usize],
-        nx: usize,
-    ) -> ([[f64; 3]; 3], [f64; 3]) {
+    pub(super) fn own_sums_impl(&self, res: &[Vec<f64>; 2], chans: &[usize], nx: usize) -> Sums {
         let nc = self.cols.len();
         let mut a = [[0.0; 3]; 3];
         let mut g = [0.0; 3];
@@ -198,7 +191,7 @@ pub(super) fn dot_block(a: [&[f64]; 3], b: [&[f64]; 3]) -> [[f64; 3]; 3] {
 /// For one bead's rows a (value, ∂/∂u, ∂/∂v) and the residual row e: (Σ aₓ·a_y, Σ aₓ·e), with
 /// four accumulators per sum.
 #[inline(always)]
-pub(super) fn dot_sym(a: [&[f64]; 3], e: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
+pub(super) fn dot_sym(a: [&[f64]; 3], e: &[f64]) -> Sums {
     const L: usize = 4;
     let n = a[0].len();
     let (a0, a1, a2, e) = (&a[0][..n], &a[1][..n], &a[2][..n], &e[..n]);

@@ -210,26 +210,19 @@ fn channel_at(
         .transpose()
 }
 
-/// As [`channel_at`], for a key that is required: `what` says what is wired there.
-fn required_channel(
-    key: &str,
-    kind: &str,
-    v: Option<&str>,
-    dev: &str,
-    what: &str,
-) -> Result<String, SectionError> {
-    channel_at(key, kind, v, dev)?.ok_or_else(|| bad(key, format!("required: {what}")))
-}
-
 /// The NI raster's settings from `[raster]` and the board's `[qpd]`.
 pub fn raster_options(q: &QpdConfig, r: &RasterConfig) -> Result<NiRasterOptions, SectionError> {
     let qo = qpd_options(q)?;
     let dev = qo.device.clone();
-    let ao_x = required_channel(
+    // as `channel_at`, for a key that is required: `what` says what is wired there
+    let required =
+        |key: &str, kind: &str, v: Option<&str>, what: &str| -> Result<String, SectionError> {
+            channel_at(key, kind, v, &dev)?.ok_or_else(|| bad(key, format!("required: {what}")))
+        };
+    let ao_x = required(
         "raster.ao.x",
         "ao",
         r.ao.x.as_deref(),
-        &dev,
         "the NI output driving the fast axis's external input (e.g. \"ao0\")",
     )?;
     let ao_y = channel_at("raster.ao.y", "ao", r.ao.y.as_deref(), &dev)?;
@@ -258,11 +251,10 @@ pub fn raster_options(q: &QpdConfig, r: &RasterConfig) -> Result<NiRasterOptions
             "only the fast axis's sensor monitor (position.x) is recorded",
         ));
     }
-    let px = required_channel(
+    let px = required(
         "raster.position.x",
         "ai",
         r.position.x.as_deref(),
-        &dev,
         "the NI input wired to the fast axis's sensor-monitor output (e.g. \"ai3\")",
     )?;
     if qo.inputs.names().contains(&px) {

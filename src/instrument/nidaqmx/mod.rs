@@ -303,6 +303,10 @@ impl Task {
         &self.lib
     }
 
+    /// The name a channel is created with: none (`""`), so that it is called by its physical
+    /// name.
+    const NO_NAME: &'static std::ffi::CStr = c"";
+
     fn c(&self, what: &str, s: &str) -> Result<CString, DeviceError> {
         super::vendor::c_string(&self.device, what, s)
     }
@@ -319,13 +323,12 @@ impl Task {
         range_v: f64,
     ) -> Result<(), DeviceError> {
         let p = self.c("channel", physical)?;
-        let empty = self.c("name", "")?;
         // SAFETY: declaration of `DAQmxCreateAIVoltageChan` in NIDAQmx.h; NULL custom scale.
         let r = unsafe {
             (self.lib.create_ai_voltage_chan)(
                 self.handle,
                 p.as_ptr(),
-                empty.as_ptr(),
+                Self::NO_NAME.as_ptr(),
                 terminal.daqmx(),
                 -range_v,
                 range_v,
@@ -350,13 +353,12 @@ impl Task {
     /// `DAQmxCreateAOVoltageChan(task, physical, "", min, max, DAQmx_Val_Volts, NULL)`.
     pub fn add_ao(&self, physical: &str, min_v: f64, max_v: f64) -> Result<(), DeviceError> {
         let p = self.c("channel", physical)?;
-        let empty = self.c("name", "")?;
         // SAFETY: declaration of `DAQmxCreateAOVoltageChan` in NIDAQmx.h; NULL custom scale.
         let r = unsafe {
             (self.lib.create_ao_voltage_chan)(
                 self.handle,
                 p.as_ptr(),
-                empty.as_ptr(),
+                Self::NO_NAME.as_ptr(),
                 min_v,
                 max_v,
                 ffi::DAQMX_VAL_VOLTS,

@@ -7,7 +7,7 @@ pub mod render;
 pub mod scene;
 
 use super::{Clock, DeviceError, Instrument, Pos, Qpd, QpdReading, Stage, VirtualClock};
-use crate::data::{Image, Scan, ScanStatus};
+use crate::data::{Image, Scan};
 use crate::optics::params::OpticsError;
 use crate::optics::template::TemplateSpec;
 use crate::optics::{OpticsArg, ValidOptics};
@@ -581,24 +581,15 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
             ch[c] = Array2::from_shape_vec((ny, nx), out[c].clone()).expect("grid shape");
         }
     }
-    let [sx, sy, sz] = ch;
-    let img = |a| Image::new(a, xs.to_vec(), ys.to_vec());
-    let mut scan = Scan {
-        sx: img(sx),
-        sy: img(sy),
-        sz: img(sz),
-        status: ScanStatus::Complete,
-        meta: serde_json::json!({
-            "kind": "simulate",
-            "z_um": z,
-            "n_samples": n_samples,
-            "optics": renderer.optics,
-            "scene": renderer.scene,
-            "pipeline": renderer.stages(),
-        }),
-        raw: Vec::new(),
-        flags: Default::default(),
-    };
+    let meta = serde_json::json!({
+        "kind": "simulate",
+        "z_um": z,
+        "n_samples": n_samples,
+        "optics": renderer.optics,
+        "scene": renderer.scene,
+        "pipeline": renderer.stages(),
+    });
+    let mut scan = Scan::complete(ch.map(|a| Image::new(a, xs.to_vec(), ys.to_vec())), meta);
     // the detector's clipped and dark pixels (the `detector_range` effect), said by the caller
     clip.finish(&mut scan, "simulate", &|_| {});
     scan

@@ -773,6 +773,12 @@ impl Renderer {
             }
         }
         let padded: Vec<&[[f64; 4]]> = distinct.iter().map(|(_, p)| p.as_slice()).collect();
+        let rows = Rows {
+            terms: &terms,
+            padded: &padded,
+            xs,
+            ys,
+        };
         let mut px = vec![[0.0f64; 4]; nx * ny];
         #[cfg(target_arch = "x86_64")]
         let avx = std::arch::is_x86_feature_detected!("avx");
@@ -783,10 +789,10 @@ impl Renderer {
                 if avx {
                     // SAFETY: the CPU has AVX (checked above); the function only differs from
                     // `render_row` in the instructions the compiler may pick.
-                    unsafe { render_row_avx(iy, row, &terms, &padded, xs, ys) };
+                    unsafe { render_row_avx(&rows, iy, row) };
                     return;
                 }
-                render_row(iy, row, &terms, &padded, xs, ys)
+                render_row(&rows, iy, row)
             });
         let out = [0, 1, 2].map(|c| px.iter().map(|p| p[c]).collect());
         self.add_time(SUPERPOSITION, t.elapsed().as_secs_f64());
@@ -835,18 +841,26 @@ struct Term<'a> {
     sx: Vec<Option<(usize, [f64; 4])>>,
 }
 
+/// What every pixel row of [`Renderer::render_grid_ideal`] reads: the terms, the padded planes
+/// they index, and the grid's axes.
+struct Rows<'a> {
+    terms: &'a [Term<'a>],
+    padded: &'a [&'a [[f64; 4]]],
+    xs: &'a [f64],
+    ys: &'a [f64],
+}
+
 /// Add every term's contribution to pixel row `iy` (four lanes per pixel: Sx, Sy, Sz, 0).
 /// Per lane the arithmetic is [`Grid2::eval`]'s fast path, in its order, without fused
 /// multiply-adds, so the sums are bit-identical to the reference path.
 #[inline(always)]
-fn render_row(
-    iy: usize,
-    row: &mut [[f64; 4]],
-    terms: &[Term],
-    padded: &[&[[f64; 4]]],
-    xs: &[f64],
-    ys: &[f64],
-) {
+fn render_row(rows: &Rows, iy: usize, row: &mut [[f64; 4]]) {
+    let Rows {
+        terms,
+        padded,
+        xs,
+        ys,
+    } = *rows;
     for tm in terms.iter().filter(|tm| tm.iy.0 <= iy && iy < tm.iy.1) {
         let (g, f) = (tm.g, tm.f);
         let dy = ys[iy] - tm.pos[1];
@@ -887,15 +901,8 @@ fn render_row(
 /// [`render_row`] compiled for AVX (four f64 lanes: one template node per vector).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-fn render_row_avx(
-    iy: usize,
-    row: &mut [[f64; 4]],
-    terms: &[Term],
-    padded: &[&[[f64; 4]]],
-    xs: &[f64],
-    ys: &[f64],
-) {
-    render_row(iy, row, terms, padded, xs, ys)
+fn render_row_avx(rows: &Rows, iy: usize, row: &mut [[f64; 4]]) {
+    render_row(rows, iy, row)
 }
 
 /// Indices [i0, i1) of a monotonic axis whose values fall inside [lo, hi].

@@ -24,7 +24,7 @@ pub mod emulator;
 pub mod kpa101;
 pub mod kpz101;
 
-use super::link::{CommandCost, LinkCosts, Transport, Turnarounds};
+use super::link::{CommandCost, LinkCosts, Port, Transport, Turnarounds};
 use super::DeviceError;
 use std::io;
 use std::time::{Duration, Instant};
@@ -350,9 +350,7 @@ pub fn open_apt_serial(
 
 /// A binary APT link: send messages, wait for a given reply id.
 pub struct AptLink {
-    io: Box<dyn Transport>,
-    device: String,
-    buf: Vec<u8>,
+    port: Port,
     pub timeout: Duration,
     /// Messages received while waiting for another id (unsolicited status updates, replies
     /// to nothing), counted and skipped.
@@ -369,9 +367,7 @@ pub const APT_BYTES_PER_S: f64 = 115_200.0 / 10.0;
 impl AptLink {
     pub fn new(io: Box<dyn Transport>, device: impl Into<String>, timeout: Duration) -> Self {
         Self {
-            io,
-            device: device.into(),
-            buf: Vec::new(),
+            port: Port::new(io, device),
             timeout,
             skipped: 0,
             costs: Vec::new(),
@@ -395,11 +391,11 @@ impl AptLink {
     }
 
     pub fn device(&self) -> &str {
-        &self.device
+        &self.port.device
     }
 
     pub fn set_device(&mut self, device: impl Into<String>) {
-        self.device = device.into();
+        self.port.device = device.into();
     }
 
     /// The start of every connect: flash writes off (`HW_NO_FLASH_PROGRAMMING`), no unsolicited
@@ -411,7 +407,7 @@ impl AptLink {
         let req = Message::short(id::HW_REQ_INFO, 0, 0);
         let r = self.request(&req, id::HW_GET_INFO)?;
         HwInfo::decode(r.bytes()).ok_or_else(|| DeviceError::Garbled {
-            device: self.device.clone(),
+            device: self.port.device.clone(),
             command: req.describe(),
             reply: format!(
                 "{} with {} data bytes, expected {HW_INFO_LEN}",
@@ -424,12 +420,12 @@ impl AptLink {
     fn io_error(&self, command: &str, e: &io::Error) -> DeviceError {
         match e.kind() {
             io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock => DeviceError::Timeout {
-                device: self.device.clone(),
+                device: self.port.device.clone(),
                 command: command.to_string(),
                 timeout_ms: self.timeout.as_millis() as u64,
             },
             _ => DeviceError::Disconnected {
-                device: self.device.clone(),
+                device: self.port.device.clone(),
                 command: command.to_string(),
                 detail: e.to_string(),
             },
@@ -441,9 +437,10 @@ impl AptLink {
         let bytes = m.encode();
         let t0 = Instant::now();
         let r = self
+            .port
             .io
             .write_all(&bytes)
-            .and_then(|_| self.io.flush())
+            .and_then(|_| self.port.io.flush())
             .map_err(|e| self.io_error(&m.describe(), &e));
         let c = self.cost(m.id);
         c.n += 1;
@@ -455,8 +452,8 @@ impl AptLink {
     /// Send `m` and wait for a message with id `reply` (other messages are skipped), at most
     /// `timeout` in all. `MGMSG_HW_RESPONSE`/`RICHRESPONSE` become `Controller` errors.
     pub fn request(&mut self, m: &Message, reply: u16) -> Result<Message, DeviceError> {
-        self.buf.clear();
-        let _ = self.io.discard_input();
+        self.port.buf.clear();
+        let _ = self.port.io.discard_input();
         self.send(m)?;
         let timeout = self.timeout;
         let t0 = Instant::now();
@@ -481,9 +478,9 @@ impl AptLink {
     ) -> Result<Message, DeviceError> {
         let deadline = Instant::now() + timeout;
         loop {
-            match parse(&self.buf, HOST) {
+            match parse(&self.port.buf, HOST) {
                 Parsed::Message(msg, used) => {
-                    self.buf.drain(..used);
+                    self.port.buf.drain(..used);
                     if msg.id == reply {
                         return Ok(msg);
                     }
@@ -494,36 +491,29 @@ impl AptLink {
                     continue;
                 }
                 Parsed::Invalid(why) => {
-                    let got = hex(&self.buf);
-                    self.buf.clear();
-                    let _ = self.io.discard_input();
+                    let got = hex(&self.port.buf);
+                    self.port.buf.clear();
+                    let _ = self.port.io.discard_input();
                     return Err(DeviceError::Garbled {
-                        device: self.device.clone(),
+                        device: self.port.device.clone(),
                         command: command.to_string(),
                         reply: format!("[{got}]: {why}"),
                     });
                 }
                 Parsed::Incomplete => {}
             }
-            if !super::link::fill(
-                self.io.as_mut(),
-                &mut self.buf,
-                &self.device,
-                command,
-                deadline,
-                timeout,
-            )? {
-                return Err(if self.buf.is_empty() {
+            if !self.port.fill(command, deadline, timeout)? {
+                return Err(if self.port.buf.is_empty() {
                     DeviceError::Timeout {
-                        device: self.device.clone(),
+                        device: self.port.device.clone(),
                         command: command.to_string(),
                         timeout_ms: timeout.as_millis() as u64,
                     }
                 } else {
-                    let got = hex(&self.buf);
-                    self.buf.clear();
+                    let got = hex(&self.port.buf);
+                    self.port.buf.clear();
                     DeviceError::Garbled {
-                        device: self.device.clone(),
+                        device: self.port.device.clone(),
                         command: command.to_string(),
                         reply: format!(
                             "[{got}]: an incomplete message within {} ms (waiting for 0x{reply:04X} {})",
@@ -555,7 +545,7 @@ impl AptLink {
             )
         };
         DeviceError::Controller {
-            device: self.device.clone(),
+            device: self.port.device.clone(),
             command: command.to_string(),
             code,
             message,

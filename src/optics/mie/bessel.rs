@@ -77,6 +77,9 @@ fn guard(c: C64) -> C64 {
     }
 }
 
+/// A result of the continued fractions and the recurrences they start.
+pub(crate) type CfResult<T> = Result<T, CfNoConvergence>;
+
 /// Error from the continued fraction: it did not converge within `iterations` steps.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct CfNoConvergence {
@@ -98,7 +101,7 @@ fn cf_max_iter(abs_z: f64) -> usize {
 /// which follows from ψ_{n+1} = (2n+1)/z ψ_n − ψ_{n−1} and converges because ψ_n is the
 /// minimal solution of that recurrence as n → ∞. Then D_n(z) = r_n(z) − n/z.
 /// `n ≥ 1`, `z ≠ 0`.
-pub(crate) fn psi_ratio_cf(n: usize, z: C64) -> Result<C64, CfNoConvergence> {
+pub(crate) fn psi_ratio_cf(n: usize, z: C64) -> CfResult<C64> {
     let zinv = crecip(z);
     let b = |k: usize| zinv * ((2 * n + 2 * k + 1) as f64);
     let mut f = guard(b(0));
@@ -122,7 +125,7 @@ pub(crate) fn psi_ratio_cf(n: usize, z: C64) -> Result<C64, CfNoConvergence> {
 }
 
 /// Real-argument version of [`psi_ratio_cf`]: r_n(x) = ψ_{n−1}(x)/ψ_n(x) for real x > 0.
-pub(crate) fn psi_ratio_cf_real(n: usize, x: f64) -> Result<f64, CfNoConvergence> {
+pub(crate) fn psi_ratio_cf_real(n: usize, x: f64) -> CfResult<f64> {
     let xinv = 1.0 / x;
     let guard_r = |v: f64| if v.abs() < TINY { TINY } else { v };
     let b = |k: usize| xinv * ((2 * n + 2 * k + 1) as f64);
@@ -148,18 +151,14 @@ pub(crate) fn psi_ratio_cf_real(n: usize, x: f64) -> Result<f64, CfNoConvergence
 /// Logarithmic derivatives D_1(z) … D_N(z) (returned with `d[n-1] = D_n`) by downward
 /// recurrence D_{n−1} = n/z − 1/(D_n + n/z) (BH eq. 4.89) started from Lentz's continued
 /// fraction at n = N. Stable for every complex z (Wiscombe 1980; Kattawar & Plass 1967).
-pub(crate) fn log_derivatives(z: C64, n_max: usize) -> Result<Vec<C64>, CfNoConvergence> {
+pub(crate) fn log_derivatives(z: C64, n_max: usize) -> CfResult<Vec<C64>> {
     let mut d = Vec::new();
     log_derivatives_into(z, n_max, &mut d)?;
     Ok(d)
 }
 
 /// [`log_derivatives`] into a reused buffer (resized to `n_max`).
-pub(crate) fn log_derivatives_into(
-    z: C64,
-    n_max: usize,
-    d: &mut Vec<C64>,
-) -> Result<(), CfNoConvergence> {
+pub(crate) fn log_derivatives_into(z: C64, n_max: usize, d: &mut Vec<C64>) -> CfResult<()> {
     d.clear();
     d.resize(n_max, C64::new(0.0, 0.0));
     if n_max == 0 {
@@ -180,11 +179,7 @@ pub(crate) fn log_derivatives_into(
 /// Real-argument version of [`log_derivatives`] (real relative index): D_1(z) … D_N(z) for
 /// real z > 0, in real arithmetic (same recurrence and continued-fraction start).
 /// (Written into a reused buffer, resized to `n_max`.)
-pub(crate) fn log_derivatives_real_into(
-    z: f64,
-    n_max: usize,
-    d: &mut Vec<f64>,
-) -> Result<(), CfNoConvergence> {
+pub(crate) fn log_derivatives_real_into(z: f64, n_max: usize, d: &mut Vec<f64>) -> CfResult<()> {
     d.clear();
     d.resize(n_max, 0.0);
     if n_max == 0 {
@@ -210,7 +205,7 @@ pub(crate) fn log_derivatives_real_into(
 /// finite and positive and the division keeps full relative precision; ψ_n underflows
 /// gracefully to 0 for very high orders.
 #[cfg(test)]
-pub(crate) fn riccati_psi(x: f64, n_max: usize) -> Result<Vec<f64>, CfNoConvergence> {
+pub(crate) fn riccati_psi(x: f64, n_max: usize) -> CfResult<Vec<f64>> {
     let (mut psi, mut ratios) = (Vec::new(), Vec::new());
     riccati_psi_into(x, n_max, &mut psi, &mut ratios)?;
     Ok(psi)
@@ -222,7 +217,7 @@ pub(crate) fn riccati_psi_into(
     n_max: usize,
     psi: &mut Vec<f64>,
     ratios: &mut Vec<f64>,
-) -> Result<(), CfNoConvergence> {
+) -> CfResult<()> {
     psi.clear();
     psi.resize(n_max + 1, 0.0);
     psi[0] = x.sin();

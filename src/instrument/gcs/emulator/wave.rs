@@ -54,6 +54,7 @@
 use super::wave_state::{Rec, TrigLine, Wave};
 use super::{groups, GcsDevice};
 use crate::instrument::emulation::PathData;
+use crate::instrument::line::lin_point;
 use std::time::Instant;
 
 fn parse_u(s: &str) -> Option<u64> {
@@ -70,22 +71,7 @@ fn lin_curve(amp: f64, n: usize, s: usize) -> Vec<f64> {
     if n <= 1 {
         return vec![amp; n];
     }
-    let t = (n - 1) as f64;
-    let s = s as f64;
-    let v = amp / (t - s);
-    (0..n)
-        .map(|i| {
-            let i = i as f64;
-            if s > 0.0 && i < s {
-                v * i * i / (2.0 * s)
-            } else if s > 0.0 && i > t - s {
-                let r = t - i;
-                amp - v * r * r / (2.0 * s)
-            } else {
-                v * (i - s / 2.0)
-            }
-        })
-        .collect()
+    (0..n).map(|i| lin_point(amp, n, s, i)).collect()
 }
 
 /// Most servo cycles a published path holds (about 3.5 min at 50 µs).
