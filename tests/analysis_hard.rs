@@ -716,16 +716,56 @@ fn infinite_pixels_are_treated_as_missing() {
 /// A bright bead beyond the scan's edge (274 nm, outside the point-dipole template's domain)
 /// leaves the misfit of its far side lobes across the field; the fit took a piece of it for a
 /// "found" bead of weight 0.007 ± 0.001 at 1.35 µm from it, where there is none, unflagged (a
-/// truth-sweep scene, rendered by the sweep's own path). Such a faint bead is flagged as a
-/// possible residue; the real 122 nm bead is found where it is.
+/// truth-sweep scene, rendered by the sweep's own path). Every such faint bead is flagged
+/// (as a possible residue, or, where the misfit also shows around it, by the residual within
+/// w0 of it: the matched filter's grow step took a faint bead 0.47 µm from the 122 nm one, and
+/// that check speaks first); the real 122 nm bead is found where it is.
 #[test]
-fn a_faint_bead_beside_a_misfitted_bright_one_is_flagged_as_its_residue() {
+fn a_faint_bead_beside_a_misfitted_bright_one_is_flagged() {
     let scene = r#"{"beads": [[0.61094813019495, 0.09495793094338767, 122.23234524422291], [0.2763724661355942, -1.327569875369035, 273.91109354306883]], "family": "beads", "noise": 3.7591617790770715, "pixel_um": 0.011956582137418495, "seed": 4195137460189112169}"#;
     let out = bfpscope::accuracy::sweep::replay(scene).unwrap();
-    assert!(out.contains("may be the residue of bead"), "{out}");
+    // each found bead's line: "  bead (x, y) ± (…) µm, weight w ± e, found true: <warnings or ok>"
+    let faint: Vec<&str> = out
+        .lines()
+        .filter(|l| l.starts_with("  bead (") && l.contains("found true"))
+        .filter(|l| {
+            let w: f64 = l
+                .split("weight ")
+                .nth(1)
+                .unwrap()
+                .split(' ')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+            // 1 % of the bright bead's weight (reference-bead units: (d / 110 nm)³)
+            w < 0.01 * (273.911f64 / 110.0).powi(3)
+        })
+        .collect();
+    assert!(!faint.is_empty(), "no faint bead found: {out}");
+    for l in &faint {
+        assert!(
+            !l.ends_with(": ok"),
+            "a faint bead beside the misfit, unflagged: {l}"
+        );
+    }
     assert!(!out.contains("unflagged outlier:"), "{out}");
-    assert!(
-        out.contains("bead (0.611") && out.contains("weight 1.37"),
-        "{out}"
-    );
+    // the real bead (truth (0.6109, 0.0950) µm, weight (122.23/110)³ = 1.372)
+    let real = out.lines().any(|l| {
+        let Some(rest) = l.strip_prefix("  bead (") else {
+            return false;
+        };
+        let x: f64 = rest.split(',').next().unwrap().parse().unwrap();
+        let w: f64 = l
+            .split("weight ")
+            .nth(1)
+            .unwrap()
+            .split(' ')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap();
+        (x - 0.6109).abs() < 0.002 && (w / 1.372 - 1.0).abs() < 0.01
+    });
+    assert!(real, "the 122 nm bead is not found where it is: {out}");
 }

@@ -18,6 +18,7 @@
 
 use super::fit::{
     clean_peaks, detection_map, fit_beads, BeadInit, Channels, FitOptions, FitResult,
+    GrowCandidates,
 };
 use super::stats::robust_std;
 use super::template::Template;
@@ -198,6 +199,7 @@ pub fn remove_point_background(
         grow: true,
         max_beads: opts.max_objects,
         detect_smooth_um: 0.0,
+        grow_candidates: GrowCandidates::DetectionMap,
         ..opts.fit.clone()
     };
     let fit = fit_beads(sx, sy, tpl, &fo)?;

@@ -159,23 +159,44 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
             // misfit of that bead, not another bead: one large bead stays one. Those maxima are
             // passed over before the few are counted (a 53 nm bead merged into its neighbour
             // 0.22 µm away waited behind two large beads' misfits).
-            let candidates = detect::matched_candidates(
-                &best.residual_sx,
-                &best.residual_sy,
-                tpl,
-                opts.channels,
-                usize::MAX,
-                opts.w0_um,
-            )
-            .into_iter()
-            .filter(|nb| {
-                !large.iter().any(|&(i, d)| {
-                    let b = &best.beads[i];
-                    (nb.x - b.x).hypot(nb.y - b.y)
-                        < (opts.w0_um + d / 2000.0).max(warnings::NEIGHBOUR_REACH_W0 * opts.w0_um)
+            let found = match opts.grow_candidates {
+                GrowCandidates::MatchedFilter => detect::matched_candidates(
+                    &best.residual_sx,
+                    &best.residual_sy,
+                    tpl,
+                    opts.channels,
+                    usize::MAX,
+                    opts.w0_um,
+                ),
+                GrowCandidates::DetectionMap => {
+                    let Ok(d) = detection_map(
+                        &best.residual_sx,
+                        &best.residual_sy,
+                        opts.channels,
+                        opts.detect_stencil,
+                    ) else {
+                        break;
+                    };
+                    clean(
+                        &d,
+                        tpl,
+                        opts.channels,
+                        GROW_CANDIDATES,
+                        opts.detect_smooth_um,
+                    )
+                }
+            };
+            let candidates = found
+                .into_iter()
+                .filter(|nb| {
+                    !large.iter().any(|&(i, d)| {
+                        let b = &best.beads[i];
+                        (nb.x - b.x).hypot(nb.y - b.y)
+                            < (opts.w0_um + d / 2000.0)
+                                .max(warnings::NEIGHBOUR_REACH_W0 * opts.w0_um)
+                    })
                 })
-            })
-            .take(GROW_CANDIDATES);
+                .take(GROW_CANDIDATES);
             for nb in candidates {
                 let mut init = existing.clone();
                 init.push(nb);

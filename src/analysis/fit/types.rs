@@ -102,6 +102,24 @@ pub struct FitOptions {
     /// Refractive index of the beads, for the diameter their weight implies (default: the
     /// template reference's).
     pub bead_n: Option<f64>,
+    /// Where the grow step looks for the next bead.
+    pub grow_candidates: GrowCandidates,
+}
+
+/// Where the grow step takes its candidates for one more bead.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GrowCandidates {
+    /// The strongest maxima of the residual's matched filter: the χ² gain of one added bead of
+    /// the template's shape (the default; the detector a bead in white noise calls for).
+    #[default]
+    MatchedFilter,
+    /// The strongest maxima of the residual's detection map ∂Sx/∂x + ∂Sy/∂y (smoothed by
+    /// `detect_smooth_um`): point-like features only. The background removal of a filament scan
+    /// (Sec. 6) grows this way: in the one fitted channel the filament's own faint response is
+    /// a line, which the matched filter takes for a row of beads (their subtraction erased the
+    /// filament from Sx).
+    DetectionMap,
 }
 
 /// The σ of the Gaussian the detection map is smoothed with before its maximum is taken, µm:
@@ -133,6 +151,7 @@ impl Default for FitOptions {
             detect_smooth_um: DETECT_SMOOTH_UM,
             wavelength_nm: crate::optics::params::Optics::default().wavelength_nm,
             bead_n: None,
+            grow_candidates: GrowCandidates::MatchedFilter,
         }
     }
 }
