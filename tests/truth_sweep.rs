@@ -2,14 +2,14 @@
 //! fibrils, focus searches; `bfpscope sweep`'s scene space, src/accuracy/sweep.rs) rendered by
 //! the simulator and measured by every estimator in the sweep. The error bars must cover the
 //! truth as often as a Gaussian's do, within the binomial scatter of the in-domain count, and
-//! the focus search's answers without a warning hold no outlier at this seed (at N = 2000 it
-//! still had 6 among 639, at 100 nm pixels or z steps: a fresh seed fails about one run in
-//! four until that class is closed, docs/analysis.md "Still open"). The bead fit and the filament
-//! diameter still give a few unflagged outliers in a thousand scenes (faint beads absorbed by a
-//! bright neighbour, a bright bead's weight off by 0.4 % where its σ is 0.03 %, short fibrils
-//! read 1.5–2 % thin: docs/accuracy.md, "Truth sweep"); their outliers are printed here and
-//! counted by the benchmark, and asserted zero once those classes are closed. The full sweep
-//! (2000 scenes a family) is the benchmark of docs/accuracy.md.
+//! the bead fit's and the focus search's answers without a warning hold no outlier at this seed
+//! (at N = 2000, seed 2026, on 2026-12-06: none for the beads, one z_best and one max_sens among
+//! 609 focus answers, at a 200 nm bead and at 100 nm z steps — a fresh seed can fail until those
+//! classes are closed, docs/analysis.md "Still open"). The filament diameter still gives a few
+//! unflagged outliers in a thousand scenes (short fibrils read 1–3 % off: docs/accuracy.md,
+//! "Truth sweep"); they are printed here and counted by the benchmark, and asserted zero once
+//! that class is closed. The full sweep (2000 scenes a family) is the benchmark of
+//! docs/accuracy.md.
 //!
 //! Developers: `SWEEP_RANDOM=1` draws a fresh seed (printed), `SWEEP_N=500` more scenes:
 //! `SWEEP_RANDOM=1 SWEEP_N=500 cargo test --release --test physics truth_sweep::`.
@@ -21,7 +21,8 @@ const P1: f64 = 0.6827;
 const P2: f64 = 0.9545;
 
 #[test]
-fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_focus_searches_without_outliers() {
+fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_beads_and_focus_searches_without_outliers(
+) {
     let n: usize = std::env::var("SWEEP_N")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -48,7 +49,7 @@ fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_focus_searches_w
             .get(k)
             .unwrap_or_else(|| panic!("{k} is not in the sweep"));
         assert!(v.cases > 0, "{k}: no case");
-        if k.starts_with("focus_search.") {
+        if k.starts_with("focus_search.") || k.starts_with("fit_beads.") {
             assert_eq!(
                 v.unflagged_outliers, 0,
                 "{k}: answers without a warning beyond 4σ (or 5 %): {:#?}",

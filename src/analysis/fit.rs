@@ -149,54 +149,11 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
         {
             steps += 1;
             let existing: Vec<BeadInit> = best.beads.iter().map(Bead::init).collect();
-            // The matched filter's few strongest maxima in turn: the strongest can be a larger
-            // bead's misfit that no added bead explains while a small bead waits beside it (the
-            // truth sweep missed 43–67 nm beads beside 136–180 nm ones by stopping there).
-            let large = warnings::grow_exclusions(&best, tpl, opts);
             let mut accepted = None;
             let mut doubts = Vec::new();
-            // Next to a bead larger than the template describes, the residual is the template's
-            // misfit of that bead, not another bead: one large bead stays one. Those maxima are
-            // passed over before the few are counted (a 53 nm bead merged into its neighbour
-            // 0.22 µm away waited behind two large beads' misfits).
-            let found = match opts.grow_candidates {
-                GrowCandidates::MatchedFilter => detect::matched_candidates(
-                    &best.residual_sx,
-                    &best.residual_sy,
-                    tpl,
-                    opts.channels,
-                    usize::MAX,
-                    opts.w0_um,
-                ),
-                GrowCandidates::DetectionMap => {
-                    let Ok(d) = detection_map(
-                        &best.residual_sx,
-                        &best.residual_sy,
-                        opts.channels,
-                        opts.detect_stencil,
-                    ) else {
-                        break;
-                    };
-                    clean(
-                        &d,
-                        tpl,
-                        opts.channels,
-                        GROW_CANDIDATES,
-                        opts.detect_smooth_um,
-                    )
-                }
+            let Some(candidates) = grow_candidates(&best, tpl, opts) else {
+                break;
             };
-            let candidates = found
-                .into_iter()
-                .filter(|nb| {
-                    !large.iter().any(|&(i, d)| {
-                        let b = &best.beads[i];
-                        (nb.x - b.x).hypot(nb.y - b.y)
-                            < (opts.w0_um + d / 2000.0)
-                                .max(warnings::NEIGHBOUR_REACH_W0 * opts.w0_um)
-                    })
-                })
-                .take(GROW_CANDIDATES);
             for nb in candidates {
                 let mut init = existing.clone();
                 init.push(nb);
@@ -264,6 +221,57 @@ pub fn fit_beads(sx: &Image, sy: &Image, tpl: &Template, opts: &FitOptions) -> R
     attach_crlb(&mut best, sx, sy, tpl);
     warnings::attach(&mut best, sx, sy, tpl, opts);
     Ok(best)
+}
+
+/// The beads the grow step tries next, in turn (at most [`GROW_CANDIDATES`]); None when the
+/// residual's detection map cannot be made. The matched filter's few strongest maxima: the
+/// strongest can be a larger bead's misfit that no added bead explains while a small bead waits
+/// beside it (the truth sweep missed 43–67 nm beads beside 136–180 nm ones by stopping there).
+/// Next to a bead larger than the template describes, the residual is the template's misfit of
+/// that bead, not another bead: one large bead stays one. Those maxima are passed over before
+/// the few are counted (a 53 nm bead merged into its neighbour 0.22 µm away waited behind two
+/// large beads' misfits).
+fn grow_candidates(best: &FitResult, tpl: &Template, opts: &FitOptions) -> Option<Vec<BeadInit>> {
+    let large = warnings::grow_exclusions(best, tpl, opts);
+    let found = match opts.grow_candidates {
+        GrowCandidates::MatchedFilter => detect::matched_candidates(
+            &best.residual_sx,
+            &best.residual_sy,
+            tpl,
+            opts.channels,
+            usize::MAX,
+            opts.w0_um,
+        ),
+        GrowCandidates::DetectionMap => {
+            let d = detection_map(
+                &best.residual_sx,
+                &best.residual_sy,
+                opts.channels,
+                opts.detect_stencil,
+            )
+            .ok()?;
+            clean(
+                &d,
+                tpl,
+                opts.channels,
+                GROW_CANDIDATES,
+                opts.detect_smooth_um,
+            )
+        }
+    };
+    let reach = |d: f64| (opts.w0_um + d / 2000.0).max(warnings::NEIGHBOUR_REACH_W0 * opts.w0_um);
+    Some(
+        found
+            .into_iter()
+            .filter(|nb| {
+                !large.iter().any(|&(i, d)| {
+                    let b = &best.beads[i];
+                    (nb.x - b.x).hypot(nb.y - b.y) < reach(d)
+                })
+            })
+            .take(GROW_CANDIDATES)
+            .collect(),
+    )
 }
 
 /// The Cramér–Rao bounds of the fitted beads (`Bead::x_crlb` …): the Fisher information of the
