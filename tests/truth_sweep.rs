@@ -32,7 +32,15 @@ fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_focus_searches_w
         2026
     };
     println!("truth sweep: {n} scenes a family, seed {seed}");
-    let t = run(&SweepOptions { n, seed }, &|_, _| {}).expect("the sweep runs");
+    let t = run(
+        &SweepOptions {
+            n,
+            seed,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("the sweep runs");
     print!("{}", bfpscope::accuracy::sweep::table(&t));
     for k in [
         "fit_beads.x",
