@@ -15,7 +15,7 @@
 use super::background::{BackgroundOptions, FilamentAxis, Remaining};
 use super::checked::{measure_filament_scan, remove_background_scan};
 use super::fit::FitResult;
-use super::orientation::{AngleCurve, FilamentMeasurement};
+use super::orientation::{correction_rel_err, AngleCurve, FilamentMeasurement, CORRECTION_SYS_REL};
 use super::quantities::{protofilaments, LinDensCalib, PROTOFILAMENT_MDA_PER_UM};
 use super::sbr::{sbr, SbrOptions, SbrResult};
 use super::template::Template;
@@ -165,8 +165,9 @@ pub struct Density {
 
 /// The linear density of the filament of `scan` (aggregates removed) over its uniform region
 /// (`skip_um` from each end's first non-zero maximum), by the bead-model calibration `cal`
-/// (eq. mtLinDens). σ(μ) is the standard error of the region's maxima through the orientation
-/// correction. Warnings: the measurement's; fewer than [`MIN_UNIFORM_POINTS`] maxima in the
+/// (eq. mtLinDens). σ(μ): the standard error of the region's maxima through the orientation
+/// correction, the angle's σ through the correction's slope and the correction's systematic
+/// ([`CORRECTION_SYS_REL`]), in quadrature. Warnings: the measurement's; fewer than [`MIN_UNIFORM_POINTS`] maxima in the
 /// region; σ(μ) above half a protofilament.
 pub fn density(
     scan: &Scan,
@@ -178,9 +179,20 @@ pub fn density(
     let ld = |e| format!("linear_density: {e}");
     let mu = cal.linear_density(s.mean_corr).map_err(ld)?;
     let (exact, n) = protofilaments(mu).map_err(ld)?;
-    // 1σ of the mean corrected maximum over the region → of μ (linear in sens_corr)
+    // 1σ of the mean corrected maximum over the region → of μ (linear in sens_corr), with the
+    // terms measure_filament's sem_corr holds: the angle's σ through the correction's slope,
+    // and the correction's own systematic
     let sem = s.std_sens / (s.n_points.max(1) as f64).sqrt() * m.factor;
-    let mu_err = mu * sem / s.mean_corr;
+    let rel_angle = correction_rel_err(curve, m.channel, m.angle_deg, m.angle_err_deg)
+        .map_err(|e| format!("measure_filament: {e}"))?;
+    let rel = (sem / s.mean_corr)
+        .hypot(if rel_angle.is_finite() {
+            rel_angle
+        } else {
+            0.0
+        })
+        .hypot(CORRECTION_SYS_REL);
+    let mu_err = mu * rel;
     let mut warnings = m.warnings.clone();
     if s.n_points < MIN_UNIFORM_POINTS {
         warnings.push(format!(
