@@ -14,14 +14,23 @@
 //!   0.3–15 µm long and 10–150 nm thick, at any angle and position (ends inside or outside the
 //!   3 µm field); detector noise × 0–10; pixels of 20, 30, 50, 75 or 100 nm (the orientation
 //!   curve is computed once per pixel size); one scene in four clipped as the beads are.
-//!
 //! - **focus** (`focus_search.z_best`, `.max_sens`, `.detection`): an XZ scan (±1.5 µm × ±2 µm)
 //!   through one 40–200 nm bead at up to ±3 µm from the scan's focus, or an empty field (one in
 //!   eight); detector noise × 0–10; lateral pixels of 20–100 nm, z rows every 25, 50 or 100 nm
 //!   ([`focus`]).
 //!
+//! - **microtubules** (`microtubule.mu`): one protein filament (n 1.587, 1.35 g/cm³, 17–25 nm,
+//!   6–15 µm long) crossing a ±2 µm field at any angle, within 1 µm of its centre, an end
+//!   sometimes inside; 0–8 aggregates of 30–120 nm (n 1.45) on the line or within 0.4 µm of it;
+//!   detector noise × 0–10; pixels of 20, 30, 40 or 50 nm; one scene in four clipped. Cleaned
+//!   and measured as `aggregates::remove` then `microtubule::density` do (the same Rust
+//!   functions, `analysis::microtubule`), μ against ρ·πd²/4 ([`microtubule`]). Its scenes come
+//!   from a stream of their own, so the other families' scenes are those of earlier versions.
+//!
+//! `--family` runs some of the families only (the scenes of each are the same either way).
+//!
 //! Not yet in the space (stated in docs/analysis.md, "Still open"): focus offsets of the bead and
-//! fibril scenes, microtubules with aggregates, SBR and the beam fit.
+//! fibril scenes, the SBR itself and the beam fit.
 
 mod field;
 mod focus;
@@ -616,8 +625,8 @@ fn sweep_optics() -> Result<(Optics, Template), String> {
     Ok((optics, tpl))
 }
 
-/// Run the sweep: `opts.n` scenes of each family (beads, fibrils, focus); `progress(done, total)` after
-/// each. Returns one tally per estimator quantity.
+/// Run the sweep: `opts.n` scenes of each family run (`opts.families`; all by default);
+/// `progress(done, total)` after each. Returns one tally per estimator quantity.
 pub fn run(
     opts: &SweepOptions,
     progress: &(dyn Fn(usize, usize) + Sync),

@@ -178,6 +178,9 @@ impl MtCals {
     }
 }
 
+/// The density and every warning of the removal and the density, once each.
+pub(super) type Answer = (Density, Vec<String>);
+
 /// The microtubule family: one scene, its aggregates removed, its linear density against the
 /// truth. Returns the outcome and the answer (for `--replay`): the density and every warning.
 pub(super) fn microtubule_case(
@@ -185,7 +188,7 @@ pub(super) fn microtubule_case(
     tpl: &Template,
     optics: &Optics,
     cals: &MtCals,
-) -> (Vec<(&'static str, Outcome)>, Option<(Density, Vec<String>)>) {
+) -> (Vec<(&'static str, Outcome)>, Option<Answer>) {
     let key = "microtubule.mu";
     let refused = || (vec![(key, Outcome::Refused)], None);
     let Some(cal) = cals.get(case.pixel_nm, tpl) else {
