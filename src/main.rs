@@ -121,6 +121,10 @@ enum Cmd {
         /// Print one JSON object instead of the table
         #[arg(long)]
         json: bool,
+        /// Run only these families (beads, fibril, focus, microtubule; comma-separated; default
+        /// all). A family's scenes are the same whichever others run
+        #[arg(long, value_delimiter = ',')]
+        family: Vec<String>,
         /// Rerun one scene of a BFPSCOPE_SWEEP_DUMP line (its `scene` JSON) and tell it in words
         #[arg(long, value_name = "SCENE_JSON")]
         replay: Option<String>,
@@ -371,6 +375,29 @@ fn test_cmd(dir: Option<PathBuf>, settings: &Settings) -> ExitCode {
     }
 }
 
+/// `bfpscope sweep`: the truth sweep (`accuracy::sweep::cli`), or one scene of its dump rerun
+/// and told in words (`--replay`).
+fn sweep_cmd(
+    opts: bfpscope::accuracy::sweep::SweepOptions,
+    json: bool,
+    replay: Option<String>,
+    markdown: Option<PathBuf>,
+) -> ExitCode {
+    let Some(scene) = replay else {
+        return bfpscope::accuracy::sweep::cli(&opts, json, markdown.as_deref());
+    };
+    match bfpscope::accuracy::sweep::replay(&scene) {
+        Ok(s) => {
+            print!("{s}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: sweep: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 /// `bfpscope accuracy`: the accuracy-vs-time report.
 fn accuracy_cmd(
     quick: bool,
@@ -551,25 +578,22 @@ fn main() -> ExitCode {
             sweep,
         } => accuracy_cmd(quick, out, criterion, sweep),
         Cmd::Sweep {
-            replay: Some(scene),
-            ..
-        } => match bfpscope::accuracy::sweep::replay(&scene) {
-            Ok(s) => {
-                print!("{s}");
-                ExitCode::SUCCESS
-            }
-            Err(e) => {
-                eprintln!("error: sweep: {e}");
-                ExitCode::from(2)
-            }
-        },
-        Cmd::Sweep {
             n,
             seed,
             json,
+            family,
+            replay,
             markdown,
-            ..
-        } => bfpscope::accuracy::sweep::cli(n, seed, json, markdown.as_deref()),
+        } => sweep_cmd(
+            bfpscope::accuracy::sweep::SweepOptions {
+                n,
+                seed,
+                families: family,
+            },
+            json,
+            replay,
+            markdown,
+        ),
         Cmd::Docs { out, check } => docs_cmd(out, check),
     }
 }

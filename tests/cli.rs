@@ -1151,7 +1151,17 @@ fn a_sweep_prints_its_tallies_as_json_and_replays_a_dumped_scene_to_the_same_ans
     let d = tmp("sweep");
     let dump = d.join("dump.jsonl");
     let o = bin()
-        .args(["sweep", "--n", "3", "--seed", "7", "--json"])
+        // the microtubule family's scenes take minutes in a debug build: `--family` leaves it out
+        .args([
+            "sweep",
+            "--n",
+            "3",
+            "--seed",
+            "7",
+            "--json",
+            "--family",
+            "beads,fibril,focus",
+        ])
         .env("BFPSCOPE_SWEEP_DUMP", &dump)
         .output()
         .unwrap();

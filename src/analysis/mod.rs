@@ -23,6 +23,8 @@
 //! | the maximum-sensitivity pipeline's options | [`measure`] | Sec. 5 |
 //! | point-object background removal | [`background`] | Sec. 6 |
 //! | signal-to-background ratio | [`sbr`] | Sec. 6 |
+//! | the filament analyses of a scan with their input checks | [`checked`] | Sec. 4.2, 6 |
+//! | aggregate removal and a microtubule's linear density | [`microtubule`] | Sec. 6, eq. mtLinDens |
 //! | focus search | [`focus`] | suppl. S5 |
 //! | Cramér–Rao bound of the best focus | [`focus_crlb`] | suppl. S5, S8 |
 //! | histograms, summaries, linear fits | [`stats`] | Fig. 3c, Fig. 6d |
@@ -43,6 +45,7 @@
 pub mod background;
 pub mod bead_model;
 pub mod beam_fit;
+pub mod checked;
 pub mod crlb;
 pub mod domain;
 pub mod filament_fit;
@@ -51,6 +54,7 @@ pub mod focus;
 pub mod focus_crlb;
 pub mod kind;
 pub mod measure;
+pub mod microtubule;
 pub mod orientation;
 pub mod peaks;
 pub mod point_fit;

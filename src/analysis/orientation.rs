@@ -962,10 +962,26 @@ fn apply_correction(
     for p in points.iter_mut() {
         p.sens_corr = p.sens * factor;
     }
+    Ok((
+        factor,
+        correction_rel_err(curve, channel, angle, line.angle_err_deg)?,
+    ))
+}
+
+/// The relative 1σ of the orientation correction at `angle_deg` from the angle's 1σ
+/// `angle_err_deg`: the correction's slope (central difference over ±0.5°) × σ(angle) / factor.
+pub fn correction_rel_err(
+    curve: &AngleCurve,
+    channel: Channel,
+    angle_deg: f64,
+    angle_err_deg: f64,
+) -> Result<f64> {
+    let factor = curve.correction(angle_deg, channel)?;
     let h = 0.5;
-    let d =
-        (curve.correction(angle + h, channel)? - curve.correction(angle - h, channel)?) / (2.0 * h);
-    Ok((factor, (d * line.angle_err_deg / factor).abs()))
+    let d = (curve.correction(angle_deg + h, channel)?
+        - curve.correction(angle_deg - h, channel)?)
+        / (2.0 * h);
+    Ok((d * angle_err_deg / factor).abs())
 }
 
 /// The maxima along `line`, the line trace and one maximum's 1σ (median of the parabolas';

@@ -8,14 +8,16 @@ use super::registry::{
     binding_list, err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
-use crate::analysis::orientation::{measure_filament, Channel};
+use crate::analysis::background::Remaining;
+use crate::analysis::checked::{measure_filament_scan, remove_background_scan};
+use crate::analysis::microtubule::{density, remove_aggregates, AggregateOptions};
+use crate::analysis::orientation::Channel;
 use crate::analysis::quantities::{
     fibril_diameter_nm, point_object, protofilaments, DiameterCalib, LinDensCalib, PROTEIN_N,
 };
 use crate::analysis::sbr::{sbr, SbrOptions};
 use crate::analysis::{
-    remove_point_background, AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions,
-    FilamentAxis, RefBead,
+    AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions, FilamentAxis, RefBead,
 };
 use rhai::{Array, Dynamic, Map};
 use std::sync::Arc;
@@ -55,7 +57,7 @@ const FIL_EX: &str = "let t = template_model(#{h_um: 0.025}); let c = angle_curv
 
 binding_list! {
     pub fn register {
-        bind_angle_curve, bind_measure_filament, bind_background, bind_quantities
+        bind_angle_curve, bind_measure_filament, bind_background, bind_microtubule, bind_quantities
     }
 }
 
@@ -263,6 +265,52 @@ fn bind_background(r: &mut Registrar) {
     });
 }
 
+/// `remove_aggregates` and `microtubule_density`: the arithmetic of the `aggregates::remove`
+/// and `microtubule::density` protocols (`analysis::microtubule`), which call them.
+fn bind_microtubule(r: &mut Registrar) {
+    let ad = AggregateOptions::default();
+    const CURVE_DOC: &str = "orientation calibration for the scan's pixel size";
+    let d = Doc::func("remove_aggregates")
+        .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
+        .arg_of(TEMPLATE_ARG)
+        .arg("curve", "AngleCurve", "", CURVE_DOC)
+        .opts(&[
+                SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um)),
+                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", ad.detect_snr)),
+                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", ad.max_objects)),
+                MIN_WEIGHT.doc(format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight)),
+            ],
+        )
+        .form("remove_aggregates(scan, tpl, curve) -> map")
+        .returns("map", "#{scan (cleaned), n_objects, angle_deg, sbr_before, sbr_after, uniformity_before, uniformity_after, mean_corr_after, improvement, remaining: [#{x, y, weight, snr}], warning (() when none), warnings (both measurements' and the removal's, once each), status}")
+        .summary("aggregates::remove's arithmetic: measure the filament, remove the point objects fitted in the channel it barely shows in, measure again; SBR before and after (Sec. 6)")
+        .help("The protocol aggregates::remove calls it (and adds figures); the truth sweep runs the same Rust function (analysis::microtubule::remove_aggregates). Warnings are said as each step says them: measure_filament before, remove_background, measure_filament after.")
+        .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: 0.2}}).n_objects"), "0")
+        .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: -1.0}})"), "error: skip_um = -1");
+    let c = r.ctx();
+    r.bind_opts3(
+        d,
+        move |spec, s: ScanRef, t: TemplateRef, k: CurveRef, m| {
+            remove_aggregates_of(&c, spec, (&s, &t, &k), m)
+        },
+    );
+    let d = Doc::func("microtubule_density")
+        .arg("scan", "Scan", "", "XY scan of the microtubule, aggregates removed")
+        .arg("curve", "AngleCurve", "", CURVE_DOC)
+        .arg("calib", "map", "", "from lin_dens_calib (at the scan's pixel size)")
+        .opts(&[SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um))])
+        .form("microtubule_density(scan, curve, calib) -> map")
+        .returns("map", "#{mu_mda_um (MDa/µm), mu_err_mda_um, protofilaments, protofilaments_exact, mean_corr, sbr, uniformity, n_points, warnings, status}")
+        .summary("microtubule::density's arithmetic: the linear density over the uniform region, its σ and the protofilament number (eq. mtLinDens, Sec. 6)")
+        .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 5 maxima in the uniform region, σ(μ) above half a protofilament.")
+        .example(&format!("{FIL_EX} microtubule_density(sc, c, lin_dens_calib(t, #{{pixel_um: 0.05}}), #{{skip_um: 0.2}}).n_points > 10"), "true")
+        .example(&format!("{FIL_EX} microtubule_density(sc, c, #{{}})"), "error: microtubule_density: calib lacks");
+    let c = r.ctx();
+    r.bind_opts3(d, move |spec, s: ScanRef, k: CurveRef, cal: Map, m| {
+        microtubule_density_of(&c, spec, (&s, &k, &cal), m)
+    });
+}
+
 /// The quantities: `diameter_calib`, `lin_dens_calib`, `linear_density`, `point_mass` and what follows.
 fn bind_quantities(r: &mut Registrar) {
     // quantities
@@ -455,51 +503,9 @@ fn measure_filament_of(
 ) -> RResult<FilamentRef> {
     let o = Opts::new(spec, m)?;
     let mo = measure_opts("measure_filament", &o, c.0.options.measure)?;
-    let mut r = measure_filament(&s.scan.sx, &s.scan.sy, &c.0, &mo)
-        .map_err(|e| err("measure_filament", e))?;
-    let check = filament_input_check(&s.scan, &r, &mo);
-    r.warnings.extend(input_gate("measure_filament", check)?);
+    let r = measure_filament_scan(&s.scan, &c.0, &mo).or_else(fail)?;
     c0.warn_all("measure_filament", &r.warnings);
     Ok(FilamentRef(Arc::new(r)))
-}
-
-/// The clipped and dark pixels (`data::clip`) among those a filament measurement reads: in the
-/// channel it used, the parabola window around each line's maximum, widened by the stencil.
-fn filament_input_check(
-    scan: &crate::data::Scan,
-    r: &crate::analysis::orientation::FilamentMeasurement,
-    mo: &crate::analysis::MeasureOptions,
-) -> crate::data::clip::InputCheck {
-    let reach = mo.stencil.reach() as f64;
-    let img = &scan.sx;
-    let step = |v: &[f64]| {
-        if v.len() > 1 {
-            (v[v.len() - 1] - v[0]).abs() / (v.len() - 1) as f64
-        } else {
-            0.0
-        }
-    };
-    let rows = r.channel == Channel::SxRows;
-    let (ch, half) = if rows {
-        ("sx", 0.5 * mo.window_um + reach * step(&img.x))
-    } else {
-        ("sy", 0.5 * mo.window_um + reach * step(&img.y))
-    };
-    let mut centre = vec![None; if rows { img.y.len() } else { img.x.len() }];
-    for p in &r.points {
-        if let Some(v) = centre.get_mut(p.line) {
-            *v = Some(if rows { p.x } else { p.y });
-        }
-    }
-    let half = half * (1.0 + 1e-9);
-    crate::data::clip::input_check_where(scan, &[ch], |row, col| {
-        let (line, at) = if rows {
-            (row, img.x[col])
-        } else {
-            (col, img.y[row])
-        };
-        centre[line].is_some_and(|c| (at - c).abs() <= half)
-    })
 }
 
 /// `FilamentMeasurement.profile(key)`: `sens_corr` or `sens` vs arc length (µm) along the
@@ -558,38 +564,27 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
         min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
         ..d.clone()
     };
-    // both channels are read: the objects are fitted in one and subtracted from the other
-    let mut warnings = input_gate(
-        who,
-        crate::data::clip::input_check(&s.scan, &["sx", "sy"], None),
-    )?;
-    let r = remove_point_background(&s.scan.sx, &s.scan.sy, &t.0, &bo).map_err(|e| err(who, e))?;
+    let r = remove_background_scan(&s.scan, &t.0, &bo).or_else(fail)?;
     let mut out = Map::new();
-    let n = r.fit.as_ref().map_or(0, |f| f.beads.len());
-    let mut meta = s.scan.meta.clone();
-    meta["background_removed"] = serde_json::json!({
-        "axis": format!("{:?}", bo.axis),
-        "n_objects": n,
-    });
-    out.insert(
-        "scan".into(),
-        Dynamic::from(scan_flagged(
-            r.sx,
-            r.sy,
-            s.scan.sz.clone(),
-            meta,
-            s.scan.flags.clone(),
-        )),
-    );
+    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
     out.insert(
         "fit".into(),
         r.fit
             .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
     );
-    out.insert("n_objects".into(), (n as i64).into());
-    let remaining: Array = r
-        .remaining
-        .iter()
+    out.insert("n_objects".into(), (r.n_objects as i64).into());
+    out.insert("remaining".into(), remaining_array(&r.remaining).into());
+    out.insert(
+        "warning".into(),
+        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
+    );
+    with_warnings(c, who, &mut out, r.warnings);
+    Ok(out)
+}
+
+/// The point-like features left after a removal, as maps `#{x, y, weight, snr}`.
+fn remaining_array(rem: &[Remaining]) -> Array {
+    rem.iter()
         .map(|f| {
             let mut m = Map::new();
             m.insert("x".into(), f.x.into());
@@ -598,45 +593,92 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
             m.insert("snr".into(), f.snr.map_or(Dynamic::UNIT, Dynamic::from));
             Dynamic::from(m)
         })
-        .collect();
-    let warning = remaining_warning(&r.remaining);
-    out.insert("remaining".into(), remaining.into());
+        .collect()
+}
+
+/// `remove_aggregates(scan, tpl, curve[, opts])`: the arithmetic of `aggregates::remove`
+/// (`analysis::microtubule::remove_aggregates`): measured, cleaned, measured again; each step's
+/// warnings said as that step says them.
+fn remove_aggregates_of(
+    c: &Ctx,
+    spec: &Spec,
+    (s, t, curve): (&ScanRef, &TemplateRef, &CurveRef),
+    m: &Map,
+) -> RResult<Map> {
+    let who = "remove_aggregates";
+    let o = Opts::new(spec, m)?;
+    let d = AggregateOptions::default();
+    let ao = AggregateOptions {
+        skip_um: o.f64_or(SKIP_UM, d.skip_um)?,
+        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
+        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
+        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
+    };
+    let r = remove_aggregates(&s.scan, &t.0, &curve.0, &ao).or_else(fail)?;
+    for (step, w) in &r.said {
+        c.warn_all(step, w);
+    }
+    let mut out = Map::new();
+    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
+    out.insert("n_objects".into(), (r.n_objects as i64).into());
+    for (k, v) in [
+        ("angle_deg", r.angle_deg),
+        ("sbr_before", r.sbr_before),
+        ("sbr_after", r.sbr_after),
+        ("uniformity_before", r.uniformity_before),
+        ("uniformity_after", r.uniformity_after),
+        ("mean_corr_after", r.mean_corr_after),
+        ("improvement", r.improvement),
+    ] {
+        out.insert(k.into(), v.into());
+    }
+    out.insert("remaining".into(), remaining_array(&r.remaining).into());
     out.insert(
         "warning".into(),
-        warning.clone().map_or(Dynamic::UNIT, |w| w.into()),
+        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
     );
-    warnings.extend(warning);
-    with_warnings(c, who, &mut out, warnings);
+    domain_of(&mut out, r.warnings);
     Ok(out)
 }
 
-/// The warning for point-like features left after a removal (`None` when there are none).
-pub fn remaining_warning(rem: &[crate::analysis::background::Remaining]) -> Option<String> {
-    use crate::analysis::background::REMAINING_SNR;
-    if rem.is_empty() {
-        return None;
+/// `warnings` and `status` of an answer whose warnings were already said step by step.
+fn domain_of(out: &mut Map, w: Vec<String>) {
+    out.insert("status".into(), crate::analysis::domain::status(&w).into());
+    out.insert(
+        "warnings".into(),
+        w.into_iter().map(Dynamic::from).collect::<Array>().into(),
+    );
+}
+
+/// `microtubule_density(scan, curve, calib[, opts])`: the arithmetic of `microtubule::density`
+/// (`analysis::microtubule::density`); the measurement's warnings said as `measure_filament`
+/// says them.
+fn microtubule_density_of(
+    c: &Ctx,
+    spec: &Spec,
+    (s, curve, cal): (&ScanRef, &CurveRef, &Map),
+    m: &Map,
+) -> RResult<Map> {
+    let o = Opts::new(spec, m)?;
+    let cal = lin_dens_calib_of("microtubule_density", cal)?;
+    let skip = o.f64_or(SKIP_UM, SbrOptions::default().skip_um)?;
+    let r = density(&s.scan, &curve.0, &cal, skip).or_else(fail)?;
+    c.warn_all("measure_filament", &r.measure_warnings);
+    let mut out = Map::new();
+    for (k, v) in [
+        ("mu_mda_um", r.mu_mda_um),
+        ("mu_err_mda_um", r.mu_err_mda_um),
+        ("protofilaments_exact", r.protofilaments_exact),
+        ("mean_corr", r.mean_corr),
+        ("sbr", r.sbr),
+        ("uniformity", r.uniformity),
+    ] {
+        out.insert(k.into(), v.into());
     }
-    let list: Vec<String> = rem
-        .iter()
-        .take(5)
-        .map(|f| {
-            let snr = f
-                .snr
-                .map_or("noise-free data".to_string(), |s| format!("SNR {s:.1}"));
-            format!(
-                "({:.3}, {:.3}) µm, {:.3} reference beads, {snr}",
-                f.x, f.y, f.weight
-            )
-        })
-        .collect();
-    Some(format!(
-        "{} point-like feature{} still in the scan after the removal (at ≥ {REMAINING_SNR} × the detection map's noise): {}{}; lower detect_snr or min_weight to remove {}",
-        rem.len(),
-        if rem.len() == 1 { "" } else { "s" },
-        list.join("; "),
-        if rem.len() > 5 { "; …" } else { "" },
-        if rem.len() == 1 { "it" } else { "them" }
-    ))
+    out.insert("protofilaments".into(), (r.protofilaments as i64).into());
+    out.insert("n_points".into(), (r.n_points as i64).into());
+    domain_of(&mut out, r.warnings);
+    Ok(out)
 }
 
 /// `diameter_calib(tpl, opts)`: the constant A (nm) of fibril diameters d = A·√(sens_corr)
@@ -687,6 +729,19 @@ fn lin_dens_calib(spec: &Spec, t: &TemplateRef, m: &Map) -> RResult<Map> {
 /// protofilament number it implies (13.75 MDa/µm each; eq. mtLinDens, Sec. 6).
 fn linear_density(s: f64, c: &Map) -> RResult<Map> {
     let who = "linear_density";
+    let cal = lin_dens_calib_of(who, c)?;
+    let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
+    let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
+    let mut m = Map::new();
+    m.insert("mu_mda_um".into(), mu.into());
+    m.insert("protofilaments".into(), (n as i64).into());
+    m.insert("protofilaments_exact".into(), x.into());
+    Ok(m)
+}
+
+/// The linear-density calibration of the map `lin_dens_calib` returns (`who` names the binding
+/// in the error when a key is missing).
+fn lin_dens_calib_of(who: &str, c: &Map) -> RResult<LinDensCalib> {
     let get = |k: &str| -> RResult<f64> {
         match c.get(k) {
             Some(v) => num(who, &format!("calib.{k}"), v),
@@ -695,7 +750,7 @@ fn linear_density(s: f64, c: &Map) -> RResult<Map> {
             )),
         }
     };
-    let cal = LinDensCalib {
+    Ok(LinDensCalib {
         mu_bm_mda_um: get("mu_bm_mda_um")?,
         d_bm_nm: get("d_bm_nm")?,
         density_bm: get("density_bm")?,
@@ -703,14 +758,7 @@ fn linear_density(s: f64, c: &Map) -> RResult<Map> {
         n_obj: get("n_obj")?,
         density_obj: get("density_obj")?,
         n_corr: get("n_corr")?,
-    };
-    let mu = cal.linear_density(s).map_err(|e| err(who, e))?;
-    let (x, n) = protofilaments(mu).map_err(|e| err(who, e))?;
-    let mut m = Map::new();
-    m.insert("mu_mda_um".into(), mu.into());
-    m.insert("protofilaments".into(), (n as i64).into());
-    m.insert("protofilaments_exact".into(), x.into());
-    Ok(m)
+    })
 }
 
 /// `point_mass(obj)`: volume (nm³) and mass (kDa) of a point-like object from its maximum

@@ -277,6 +277,23 @@ impl<'a> Registrar<'a> {
         self.overload(&name, move |a: A, b: B| f2(&s2, a, b, &Map::new()));
     }
 
+    /// As [`Registrar::bind_opts`], for a binding with three arguments before its options map.
+    pub fn bind_opts3<
+        A: Any + Clone + Send + Sync,
+        B: Any + Clone + Send + Sync,
+        C: Any + Clone + Send + Sync,
+        R: Any + Clone + Send + Sync,
+    >(
+        &mut self,
+        doc: Doc,
+        f: impl Fn(&Spec, A, B, C, &Map) -> RResult<R> + Send + Sync + 'static,
+    ) {
+        let (name, spec, f) = (doc.name.clone(), doc.spec(), Arc::new(f));
+        let (s2, f2) = (spec.clone(), f.clone());
+        self.bind(doc, move |a: A, b: B, c: C, m: Map| f(&spec, a, b, c, &m));
+        self.overload(&name, move |a: A, b: B, c: C| f2(&s2, a, b, c, &Map::new()));
+    }
+
     /// Register another form (arity or argument types) of an already declared binding.
     pub fn overload<A: 'static, const N: usize, const X: bool, R: Value, const F: bool>(
         &mut self,

@@ -1,0 +1,155 @@
+//! The filament analyses of a whole scan with the checks of their inputs (`data::clip`: the
+//! clipped and dark pixels among those they read), as the bindings, the protocols and the truth
+//! sweep run them: one function each, so that a Rust caller gets the same warnings and refusals
+//! as a script.
+//!
+//! Errors are plain sentences that name the step that refused (`"measure_filament: …"`,
+//! `"remove_background: …"`), as the bindings say them.
+
+use super::background::{remove_point_background, BackgroundOptions, Remaining};
+use super::fit::FitResult;
+use super::orientation::{measure_filament, AngleCurve, Channel, FilamentMeasurement};
+use super::template::Template;
+use super::MeasureOptions;
+use crate::data::clip::InputCheck;
+use crate::data::{Scan, ScanStatus};
+
+/// `measure_filament` on a scan (Sec. 4.2 steps 4–5), with the clipped and dark pixels among
+/// those it reads added to its warnings (every one of them bad: a refusal).
+pub fn measure_filament_scan(
+    scan: &Scan,
+    curve: &AngleCurve,
+    mo: &MeasureOptions,
+) -> Result<FilamentMeasurement, String> {
+    let who = "measure_filament";
+    let mut r =
+        measure_filament(&scan.sx, &scan.sy, curve, mo).map_err(|e| format!("{who}: {e}"))?;
+    let check = filament_input_check(scan, &r, mo);
+    r.warnings.extend(check.gate(who)?);
+    Ok(r)
+}
+
+/// The clipped and dark pixels (`data::clip`) among those a filament measurement reads: in the
+/// channel it used, the parabola window around each line's maximum, widened by the stencil.
+pub fn filament_input_check(
+    scan: &Scan,
+    r: &FilamentMeasurement,
+    mo: &MeasureOptions,
+) -> InputCheck {
+    let reach = mo.stencil.reach() as f64;
+    let img = &scan.sx;
+    let step = |v: &[f64]| {
+        if v.len() > 1 {
+            (v[v.len() - 1] - v[0]).abs() / (v.len() - 1) as f64
+        } else {
+            0.0
+        }
+    };
+    let rows = r.channel == Channel::SxRows;
+    let (ch, half) = if rows {
+        ("sx", 0.5 * mo.window_um + reach * step(&img.x))
+    } else {
+        ("sy", 0.5 * mo.window_um + reach * step(&img.y))
+    };
+    let mut centre = vec![None; if rows { img.y.len() } else { img.x.len() }];
+    for p in &r.points {
+        if let Some(v) = centre.get_mut(p.line) {
+            *v = Some(if rows { p.x } else { p.y });
+        }
+    }
+    let half = half * (1.0 + 1e-9);
+    crate::data::clip::input_check_where(scan, &[ch], |row, col| {
+        let (line, at) = if rows {
+            (row, img.x[col])
+        } else {
+            (col, img.y[row])
+        };
+        centre[line].is_some_and(|c| (at - c).abs() <= half)
+    })
+}
+
+/// What [`remove_background_scan`] returns.
+#[derive(Debug, Clone)]
+pub struct Cleaned {
+    /// The scan with the point objects subtracted; its metadata says so
+    /// (`background_removed: {axis, n_objects}`), its clipped pixels stay flagged.
+    pub scan: Scan,
+    /// The fit of the point objects (None when nothing was detected).
+    pub fit: Option<FitResult>,
+    pub n_objects: usize,
+    /// Point-like features still there at ≥ `REMAINING_SNR` × the detection map's noise.
+    pub remaining: Vec<Remaining>,
+    /// The sentence saying so, None when there is none.
+    pub warning: Option<String>,
+    /// The clipped or dark pixels of Sx and Sy, then `warning`.
+    pub warnings: Vec<String>,
+}
+
+/// `remove_background` on a scan (Sec. 6, Fig. 6): the point objects fitted in one channel and
+/// subtracted from both; both channels' clipped and dark pixels checked (every one bad: a
+/// refusal), the features left after the removal said in words.
+pub fn remove_background_scan(
+    scan: &Scan,
+    tpl: &Template,
+    bo: &BackgroundOptions,
+) -> Result<Cleaned, String> {
+    let who = "remove_background";
+    // both channels are read: the objects are fitted in one and subtracted from the other
+    let mut warnings = crate::data::clip::input_check(scan, &["sx", "sy"], None).gate(who)?;
+    let r =
+        remove_point_background(&scan.sx, &scan.sy, tpl, bo).map_err(|e| format!("{who}: {e}"))?;
+    let n_objects = r.fit.as_ref().map_or(0, |f| f.beads.len());
+    let mut meta = scan.meta.clone();
+    meta["background_removed"] = serde_json::json!({
+        "axis": format!("{:?}", bo.axis),
+        "n_objects": n_objects,
+    });
+    let cleaned = Scan {
+        sx: r.sx,
+        sy: r.sy,
+        sz: scan.sz.clone(),
+        status: ScanStatus::Complete,
+        meta,
+        raw: Vec::new(),
+        flags: scan.flags.clone(),
+    };
+    let warning = remaining_warning(&r.remaining);
+    warnings.extend(warning.clone());
+    Ok(Cleaned {
+        scan: cleaned,
+        fit: r.fit,
+        n_objects,
+        remaining: r.remaining,
+        warning,
+        warnings,
+    })
+}
+
+/// The warning for point-like features left after a removal (`None` when there are none).
+pub fn remaining_warning(rem: &[Remaining]) -> Option<String> {
+    use super::background::REMAINING_SNR;
+    if rem.is_empty() {
+        return None;
+    }
+    let list: Vec<String> = rem
+        .iter()
+        .take(5)
+        .map(|f| {
+            let snr = f
+                .snr
+                .map_or("noise-free data".to_string(), |s| format!("SNR {s:.1}"));
+            format!(
+                "({:.3}, {:.3}) µm, {:.3} reference beads, {snr}",
+                f.x, f.y, f.weight
+            )
+        })
+        .collect();
+    Some(format!(
+        "{} point-like feature{} still in the scan after the removal (at ≥ {REMAINING_SNR} × the detection map's noise): {}{}; lower detect_snr or min_weight to remove {}",
+        rem.len(),
+        if rem.len() == 1 { "" } else { "s" },
+        list.join("; "),
+        if rem.len() > 5 { "; …" } else { "" },
+        if rem.len() == 1 { "it" } else { "them" }
+    ))
+}

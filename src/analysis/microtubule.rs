@@ -1,0 +1,223 @@
+//! A microtubule's linear density after the removal of point-like aggregates (Sec. 6, Fig. 6,
+//! eq. mtLinDens): the arithmetic of the `aggregates::remove` and `microtubule::density`
+//! protocols, in one place for the protocols (through their bindings) and the truth sweep.
+//!
+//! - [`remove_aggregates`]: the filament measured, the point objects fitted in the channel it
+//!   barely shows in and subtracted (`remove_background`), measured again; the SBR before and
+//!   after (both of the paper's definitions, over the uniform region after `skip_um`).
+//! - [`density`]: the mean orientation-corrected maximum over the uniform region, converted to a
+//!   linear density (MDa/µm) by the bead-model calibration, its 1σ from the maxima's spread, the
+//!   protofilament number it implies (13.75 MDa/µm each).
+//!
+//! Both carry the measurements' warnings (clipped or dark pixels, ends, the edge) and their own
+//! (docs/analysis.md, "Domains"); errors are sentences naming the step that refused.
+
+use super::background::{BackgroundOptions, FilamentAxis, Remaining};
+use super::checked::{measure_filament_scan, remove_background_scan};
+use super::fit::FitResult;
+use super::orientation::{correction_rel_err, AngleCurve, FilamentMeasurement, CORRECTION_SYS_REL};
+use super::quantities::{protofilaments, LinDensCalib, PROTOFILAMENT_MDA_PER_UM};
+use super::sbr::{sbr, SbrOptions, SbrResult};
+use super::template::Template;
+use crate::data::Scan;
+
+/// The measurement of `scan` by `curve`'s pipeline and its SBR over the uniform region.
+fn measured(
+    scan: &Scan,
+    curve: &AngleCurve,
+    skip_um: f64,
+) -> Result<(FilamentMeasurement, SbrResult), String> {
+    let m = measure_filament_scan(scan, curve, &curve.options.measure)?;
+    let so = SbrOptions {
+        skip_um,
+        ..SbrOptions::default()
+    };
+    let s = sbr(&m, &so).map_err(|e| format!("sbr: {e}"))?;
+    Ok((m, s))
+}
+
+/// Options of [`remove_aggregates`] (the protocol's defaults).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AggregateOptions {
+    /// Arc skipped from the filament's first (and last) non-zero maximum, µm.
+    pub skip_um: f64,
+    /// Detection threshold of point objects (× the detection map's robust noise).
+    pub detect_snr: f64,
+    /// Most point objects fitted and removed.
+    pub max_objects: usize,
+    /// Smallest object removed, reference-bead units.
+    pub min_weight: f64,
+}
+
+impl Default for AggregateOptions {
+    fn default() -> Self {
+        let b = BackgroundOptions::default();
+        Self {
+            skip_um: SbrOptions::default().skip_um,
+            detect_snr: b.detect_snr,
+            max_objects: b.max_objects,
+            min_weight: b.min_weight,
+        }
+    }
+}
+
+/// What [`remove_aggregates`] returns.
+#[derive(Debug, Clone)]
+pub struct Removal {
+    /// The cleaned scan (`remove_background`'s).
+    pub scan: Scan,
+    pub fit: Option<FitResult>,
+    pub n_objects: usize,
+    /// The filament's angle before the removal, ° from the QPD y-axis.
+    pub angle_deg: f64,
+    pub sbr_before: f64,
+    pub sbr_after: f64,
+    pub uniformity_before: f64,
+    pub uniformity_after: f64,
+    pub mean_corr_after: f64,
+    /// sbr_after / sbr_before.
+    pub improvement: f64,
+    pub remaining: Vec<Remaining>,
+    /// The sentence about `remaining`, None when nothing is left.
+    pub warning: Option<String>,
+    /// Both measurements' and the removal's warnings, once each.
+    pub warnings: Vec<String>,
+    /// The warnings of each step as that step says them (`measure_filament` before,
+    /// `remove_background`, `measure_filament` after), for printing.
+    pub said: Vec<(&'static str, Vec<String>)>,
+}
+
+/// Removes the point-like aggregates of a filament scan (see the module docs): the filament
+/// measured before (its angle picks the channel the objects are fitted in), the objects removed,
+/// the cleaned scan measured again. Errors: the measurements', the SBR's or the removal's.
+pub fn remove_aggregates(
+    scan: &Scan,
+    tpl: &Template,
+    curve: &AngleCurve,
+    opts: &AggregateOptions,
+) -> Result<Removal, String> {
+    let (before, sb) = measured(scan, curve, opts.skip_um)?;
+    let bo = BackgroundOptions {
+        axis: FilamentAxis::from_angle(before.angle_deg),
+        detect_snr: opts.detect_snr,
+        max_objects: opts.max_objects,
+        min_weight: opts.min_weight,
+        ..BackgroundOptions::default()
+    };
+    let r = remove_background_scan(scan, tpl, &bo)?;
+    let (after, sa) = measured(&r.scan, curve, opts.skip_um)?;
+    let mut warnings: Vec<String> = vec![];
+    for w in before
+        .warnings
+        .iter()
+        .chain(&r.warnings)
+        .chain(&after.warnings)
+    {
+        if !warnings.contains(w) {
+            warnings.push(w.clone());
+        }
+    }
+    Ok(Removal {
+        n_objects: r.n_objects,
+        angle_deg: before.angle_deg,
+        sbr_before: sb.sbr_background,
+        sbr_after: sa.sbr_background,
+        uniformity_before: sb.sbr_uniformity,
+        uniformity_after: sa.sbr_uniformity,
+        mean_corr_after: sa.mean_corr,
+        improvement: sa.sbr_background / sb.sbr_background,
+        warning: r.warning,
+        warnings,
+        said: vec![
+            ("measure_filament", before.warnings),
+            ("remove_background", r.warnings),
+            ("measure_filament", after.warnings),
+        ],
+        scan: r.scan,
+        fit: r.fit,
+        remaining: r.remaining,
+    })
+}
+
+/// Fewest maxima in the uniform region for μ and its σ (else a warning).
+pub const MIN_UNIFORM_POINTS: usize = 5;
+
+/// What [`density`] returns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Density {
+    /// Linear density, MDa/µm, and its 1σ.
+    pub mu_mda_um: f64,
+    pub mu_err_mda_um: f64,
+    /// μ / 13.75 MDa/µm, rounded and not.
+    pub protofilaments: u32,
+    pub protofilaments_exact: f64,
+    /// Mean orientation-corrected maximum over the uniform region.
+    pub mean_corr: f64,
+    pub sbr: f64,
+    pub uniformity: f64,
+    /// Maxima in the uniform region.
+    pub n_points: usize,
+    /// The measurement's warnings and the density's own.
+    pub warnings: Vec<String>,
+    /// The measurement's warnings alone, as `measure_filament` says them.
+    pub measure_warnings: Vec<String>,
+}
+
+/// The linear density of the filament of `scan` (aggregates removed) over its uniform region
+/// (`skip_um` from each end's first non-zero maximum), by the bead-model calibration `cal`
+/// (eq. mtLinDens). σ(μ): the standard error of the region's maxima through the orientation
+/// correction, the angle's σ through the correction's slope and the correction's systematic
+/// ([`CORRECTION_SYS_REL`]), in quadrature. Warnings: the measurement's; fewer than [`MIN_UNIFORM_POINTS`] maxima in the
+/// region; σ(μ) above half a protofilament.
+pub fn density(
+    scan: &Scan,
+    curve: &AngleCurve,
+    cal: &LinDensCalib,
+    skip_um: f64,
+) -> Result<Density, String> {
+    let (m, s) = measured(scan, curve, skip_um)?;
+    let ld = |e| format!("linear_density: {e}");
+    let mu = cal.linear_density(s.mean_corr).map_err(ld)?;
+    let (exact, n) = protofilaments(mu).map_err(ld)?;
+    // 1σ of the mean corrected maximum over the region → of μ (linear in sens_corr), with the
+    // terms measure_filament's sem_corr holds: the angle's σ through the correction's slope,
+    // and the correction's own systematic
+    let sem = s.std_sens / (s.n_points.max(1) as f64).sqrt() * m.factor;
+    let rel_angle = correction_rel_err(curve, m.channel, m.angle_deg, m.angle_err_deg)
+        .map_err(|e| format!("measure_filament: {e}"))?;
+    let rel = (sem / s.mean_corr)
+        .hypot(if rel_angle.is_finite() {
+            rel_angle
+        } else {
+            0.0
+        })
+        .hypot(CORRECTION_SYS_REL);
+    let mu_err = mu * rel;
+    let mut warnings = m.warnings.clone();
+    if s.n_points < MIN_UNIFORM_POINTS {
+        warnings.push(format!(
+            "the uniform region holds {} maxima (< {MIN_UNIFORM_POINTS}): μ and its σ rest on too few points",
+            s.n_points
+        ));
+    }
+    let half = 0.5 * PROTOFILAMENT_MDA_PER_UM;
+    if mu_err > half {
+        warnings.push(format!(
+            "σ(μ) = {} MDa/µm exceeds half a protofilament ({} MDa/µm): the protofilament count is not determined",
+            crate::data::image::fmt_sig(mu_err, 3),
+            crate::data::image::fmt_sig(half, 2)
+        ));
+    }
+    Ok(Density {
+        mu_mda_um: mu,
+        mu_err_mda_um: mu_err,
+        protofilaments: n,
+        protofilaments_exact: exact,
+        mean_corr: s.mean_corr,
+        sbr: s.sbr_background,
+        uniformity: s.sbr_uniformity,
+        n_points: s.n_points,
+        warnings,
+        measure_warnings: m.warnings,
+    })
+}
