@@ -309,7 +309,7 @@ fn preferred_but_undetermined(
         .filter(|e| e.found())
         .map(|e| (e, (e.x - b.x).hypot(e.y - b.y)))
         .min_by(|p, q| p.1.total_cmp(&q.1))?;
-    (d < opts.w0_um).then(|| Degeneracy::Unresolved {
+    (d < opts.w0_um).then_some(Degeneracy::Unresolved {
         a: [near.x, near.y, near.weight],
         b: [b.x, b.y, b.weight],
         distance_um: d,
