@@ -724,23 +724,12 @@ fn infinite_pixels_are_treated_as_missing() {
 fn a_faint_bead_beside_a_misfitted_bright_one_is_flagged() {
     let scene = r#"{"beads": [[0.61094813019495, 0.09495793094338767, 122.23234524422291], [0.2763724661355942, -1.327569875369035, 273.91109354306883]], "family": "beads", "noise": 3.7591617790770715, "pixel_um": 0.011956582137418495, "seed": 4195137460189112169}"#;
     let out = bfpscope::accuracy::sweep::replay(scene).unwrap();
-    // each found bead's line: "  bead (x, y) ± (…) µm, weight w ± e, found true: <warnings or ok>"
-    let faint: Vec<&str> = out
-        .lines()
-        .filter(|l| l.starts_with("  bead (") && l.contains("found true"))
-        .filter(|l| {
-            let w: f64 = l
-                .split("weight ")
-                .nth(1)
-                .unwrap()
-                .split(' ')
-                .next()
-                .unwrap()
-                .parse()
-                .unwrap();
-            // 1 % of the bright bead's weight (reference-bead units: (d / 110 nm)³)
-            w < 0.01 * (273.911f64 / 110.0).powi(3)
-        })
+    let beads = replayed_beads(&out);
+    // 1 % of the bright bead's weight (reference-bead units: (d / 110 nm)³)
+    let faint: Vec<&str> = beads
+        .iter()
+        .filter(|b| b.found && b.weight < 0.01 * (273.911f64 / 110.0).powi(3))
+        .map(|b| b.line)
         .collect();
     assert!(!faint.is_empty(), "no faint bead found: {out}");
     for l in &faint {
@@ -751,21 +740,38 @@ fn a_faint_bead_beside_a_misfitted_bright_one_is_flagged() {
     }
     assert!(!out.contains("unflagged outlier:"), "{out}");
     // the real bead (truth (0.6109, 0.0950) µm, weight (122.23/110)³ = 1.372)
-    let real = out.lines().any(|l| {
-        let Some(rest) = l.strip_prefix("  bead (") else {
-            return false;
-        };
-        let x: f64 = rest.split(',').next().unwrap().parse().unwrap();
-        let w: f64 = l
-            .split("weight ")
-            .nth(1)
-            .unwrap()
-            .split(' ')
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap();
-        (x - 0.6109).abs() < 0.002 && (w / 1.372 - 1.0).abs() < 0.01
-    });
+    let real = beads
+        .iter()
+        .any(|b| (b.x - 0.6109).abs() < 0.002 && (b.weight / 1.372 - 1.0).abs() < 0.01);
     assert!(real, "the 122 nm bead is not found where it is: {out}");
+}
+
+/// One bead of `sweep --replay`'s words: "  bead (x, y) ± (…) µm, weight w ± e, found f: …".
+struct ReplayedBead<'a> {
+    x: f64,
+    weight: f64,
+    found: bool,
+    line: &'a str,
+}
+
+fn replayed_beads(out: &str) -> Vec<ReplayedBead<'_>> {
+    out.lines()
+        .filter_map(|line| {
+            let rest = line.strip_prefix("  bead (")?;
+            let x = rest.split(',').next()?.parse().ok()?;
+            let weight = line
+                .split("weight ")
+                .nth(1)?
+                .split(' ')
+                .next()?
+                .parse()
+                .ok()?;
+            Some(ReplayedBead {
+                x,
+                weight,
+                found: line.contains("found true"),
+                line,
+            })
+        })
+        .collect()
 }
