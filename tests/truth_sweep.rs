@@ -120,8 +120,9 @@ fn bead_scenes_that_were_unflagged_outliers_are_now_found_or_flagged() {
 }
 
 /// Fibril scenes that were unflagged diameter outliers of `bfpscope sweep --n 2000 --seed 2026`
+/// (and one of seed 99)
 /// (the `scene` field of their `BFPSCOPE_SWEEP_DUMP` lines), each now within its σ or flagged.
-const FIBRIL_SCENES_ONCE_OUTLIERS: [&str; 3] = [
+const FIBRIL_SCENES_ONCE_OUTLIERS: [&str; 4] = [
     // 2.0 µm, both ends in the scan, low noise: the interior line's angle 0.6° off through the
     // ends (σ claimed 0.04°), the correction 1.5 % low, the diameter 0.8 % thin at 4.5σ
     r#"{"angle_deg": 55.535302957191846, "centre": [0.19272861564267485, -0.6387272181869652], "clip": null, "d_nm": 91.457708703603, "family": "fibril", "len_um": 2.0040182255458414, "noise": 0.23704919382736778, "pixel_nm": 30, "seed": 5426604955245316911}"#,
@@ -129,6 +130,10 @@ const FIBRIL_SCENES_ONCE_OUTLIERS: [&str; 3] = [
     r#"{"angle_deg": -47.07531276572976, "centre": [-0.7687732318970857, 0.013211888933907234], "clip": null, "d_nm": 125.11157397383934, "family": "fibril", "len_um": 2.7998111094156672, "noise": 5.590581734345806, "pixel_nm": 20, "seed": 14450850336560390790}"#,
     // 58 nm at 7.7× the paper's noise and 20 nm pixels, each maximum at 6σ: 3.4 % thin at 4.2σ
     r#"{"angle_deg": -5.423976368189088, "centre": [-0.2821646084493401, -0.28082579779505523], "clip": null, "d_nm": 57.6561642582714, "family": "fibril", "len_um": 3.587161142588356, "noise": 7.6823213854702015, "pixel_nm": 20, "seed": 10159378904788050856}"#,
+    // (seed 99) 2.25 µm at 56°, its end 0.04 µm beyond the scan's edge, 5× the paper's noise:
+    // the edge line's maximum did not clear 3σ of one maximum below a plateau read at its 90th
+    // percentile, the end's maxima bent the interior line 2°, the diameter read 2.9 % thin at 5.5σ
+    r#"{"angle_deg": 56.08173334421366, "centre": [0.602166986136508, 0.7879472368248326], "clip": 0.06559749931016226, "d_nm": 81.88033307202905, "family": "fibril", "len_um": 2.2536378386876548, "noise": 4.953794438773875, "pixel_nm": 20, "seed": 16770485003572424949}"#,
 ];
 
 #[test]
