@@ -619,23 +619,25 @@ fn remove_aggregates_of(
         c.warn_all(step, w);
     }
     let mut out = Map::new();
-    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
-    out.insert("n_objects".into(), (r.n_objects as i64).into());
+    let improvement = r.improvement();
+    let (cl, sb, sa) = (r.cleaned, r.before, r.after);
+    out.insert("scan".into(), Dynamic::from(ScanRef::new(cl.scan, None)));
+    out.insert("n_objects".into(), (cl.n_objects as i64).into());
     for (k, v) in [
         ("angle_deg", r.angle_deg),
-        ("sbr_before", r.sbr_before),
-        ("sbr_after", r.sbr_after),
-        ("uniformity_before", r.uniformity_before),
-        ("uniformity_after", r.uniformity_after),
-        ("mean_corr_after", r.mean_corr_after),
-        ("improvement", r.improvement),
+        ("sbr_before", sb.sbr_background),
+        ("sbr_after", sa.sbr_background),
+        ("uniformity_before", sb.sbr_uniformity),
+        ("uniformity_after", sa.sbr_uniformity),
+        ("mean_corr_after", sa.mean_corr),
+        ("improvement", improvement),
     ] {
         out.insert(k.into(), v.into());
     }
-    out.insert("remaining".into(), remaining_array(&r.remaining).into());
+    out.insert("remaining".into(), remaining_array(&cl.remaining).into());
     out.insert(
         "warning".into(),
-        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
+        cl.warning.map_or(Dynamic::UNIT, |w| w.into()),
     );
     domain_of(&mut out, r.warnings);
     Ok(out)
@@ -669,14 +671,14 @@ fn microtubule_density_of(
         ("mu_mda_um", r.mu_mda_um),
         ("mu_err_mda_um", r.mu_err_mda_um),
         ("protofilaments_exact", r.protofilaments_exact),
-        ("mean_corr", r.mean_corr),
-        ("sbr", r.sbr),
-        ("uniformity", r.uniformity),
+        ("mean_corr", r.region.mean_corr),
+        ("sbr", r.region.sbr_background),
+        ("uniformity", r.region.sbr_uniformity),
     ] {
         out.insert(k.into(), v.into());
     }
     out.insert("protofilaments".into(), (r.protofilaments as i64).into());
-    out.insert("n_points".into(), (r.n_points as i64).into());
+    out.insert("n_points".into(), (r.region.n_points as i64).into());
     domain_of(&mut out, r.warnings);
     Ok(out)
 }
