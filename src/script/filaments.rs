@@ -5,7 +5,7 @@
 use super::ctx::Ctx;
 use super::keys::{AXIS, DETECT_SNR, D_NM, N, SPACING_NM};
 use super::registry::{
-    binding_list, err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
+    binding_list, err, fail, fields_map, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::background::Remaining;
@@ -586,10 +586,7 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
 fn remaining_array(rem: &[Remaining]) -> Array {
     rem.iter()
         .map(|f| {
-            let mut m = Map::new();
-            m.insert("x".into(), f.x.into());
-            m.insert("y".into(), f.y.into());
-            m.insert("weight".into(), f.weight.into());
+            let mut m = fields_map!(f; x, y, weight);
             m.insert("snr".into(), f.snr.map_or(Dynamic::UNIT, Dynamic::from));
             Dynamic::from(m)
         })
@@ -666,11 +663,8 @@ fn microtubule_density_of(
     let skip = o.f64_or(SKIP_UM, SbrOptions::default().skip_um)?;
     let r = density(&s.scan, &curve.0, &cal, skip).or_else(fail)?;
     c.warn_all("measure_filament", &r.measure_warnings);
-    let mut out = Map::new();
+    let mut out = fields_map!(r; mu_mda_um, mu_err_mda_um, protofilaments_exact);
     for (k, v) in [
-        ("mu_mda_um", r.mu_mda_um),
-        ("mu_err_mda_um", r.mu_err_mda_um),
-        ("protofilaments_exact", r.protofilaments_exact),
         ("mean_corr", r.region.mean_corr),
         ("sbr", r.region.sbr_background),
         ("uniformity", r.region.sbr_uniformity),

@@ -4,7 +4,7 @@
 
 use super::ctx::Ctx;
 use super::keys::{D_NM, N, POLARIZATION, X, Y, Z};
-use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, fields_map, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
 use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM, V_MAX};
@@ -28,17 +28,10 @@ const TEMPERATURE_K: Opt = Opt::new("temperature_k", "float", "K");
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {
-    let mut m = Map::new();
-    m.insert("wavelength_nm".into(), o.wavelength_nm.into());
-    m.insert("n_medium".into(), o.n_medium.into());
-    m.insert("w0_nm".into(), o.w0_nm.into());
-    m.insert("na".into(), o.na.into());
-    m.insert("qpd_na".into(), o.qpd_na.into());
-    m.insert("power_mw".into(), o.power_mw.into());
+    let mut m = fields_map!(o; wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, pupil_filling);
     m.insert("n_theta".into(), (o.n_theta as INT).into());
     m.insert("n_phi".into(), (o.n_phi as INT).into());
     m.insert("beam".into(), o.beam.name().into());
-    m.insert("pupil_filling".into(), o.pupil_filling.into());
     m
 }
 

@@ -70,6 +70,19 @@ macro_rules! properties {
 }
 pub(crate) use properties;
 
+/// A Rhai map of some fields of a value, each under its own name and converted with `.into()`:
+/// `fields_map!(r; sx, sy, sz)` is `#{sx: r.sx, sy: r.sy, sz: r.sz}`. A key that is not a
+/// field's name, or a value that needs more than `.into()` (a count as `INT`), is inserted
+/// after.
+macro_rules! fields_map {
+    ($v:expr; $($f:ident),+ $(,)?) => {{
+        let mut m = rhai::Map::new();
+        $(m.insert(stringify!($f).into(), ($v).$f.into());)+
+        m
+    }};
+}
+pub(crate) use fields_map;
+
 /// A registration function that calls a family's binding functions (each
 /// `fn(&mut Registrar)`: one command, or a few that belong together) in order:
 /// `binding_list! { pub fn register { bind_help, bind_numbers } }`.
