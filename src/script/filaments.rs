@@ -3,7 +3,7 @@
 //! linear density, masses.
 
 use super::ctx::Ctx;
-use super::keys::{AXIS, DETECT_SNR, D_NM, N, SPACING_NM};
+use super::keys::{AXIS, DENSITY, DETECT_SNR, D_NM, N, SPACING_NM};
 use super::registry::{
     binding_list, err, fail, fields_map, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
@@ -30,7 +30,6 @@ use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef, TEMPLATE_ARG};
 const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
 const BOTH_ENDS: Opt = Opt::new("both_ends", "bool", "");
 const D_BM_NM: Opt = Opt::new("d_bm_nm", "float", "nm");
-const DENSITY: Opt = Opt::new("density", "float", "g/cm³");
 const DENSITY_OBJ: Opt = Opt::new("density_obj", "float", "g/cm³");
 const EXCLUSION_UM: Opt = Opt::new("exclusion_um", "float", "µm");
 const FIT_WEIGHT: Opt = Opt::new("fit_weight", "bool", "");

@@ -20,6 +20,13 @@ use rhai::{Array, Dynamic, Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const BEAM: Opt = Opt::new("beam", "string", "");
+const N_MEDIUM: Opt = Opt::new("n_medium", "float", "");
+const NA: Opt = Opt::new("na", "float", "");
+const POWER_MW: Opt = Opt::new("power_mw", "float", "mW");
+const PUPIL_FILLING: Opt = Opt::new("pupil_filling", "float", "");
+const QPD_NA: Opt = Opt::new("qpd_na", "float", "");
+const W0_NM: Opt = Opt::new("w0_nm", "float", "nm");
+const WAVELENGTH_NM: Opt = Opt::new("wavelength_nm", "float", "nm");
 const MODEL: Opt = Opt::new("model", "string", "");
 const N_PHI: Opt = Opt::new("n_phi", "int", "");
 const N_THETA: Opt = Opt::new("n_theta", "int", "");
@@ -57,46 +64,16 @@ fn bind_set_optics(r: &mut Registrar) {
             "changes",
             "any subset of the optical parameters",
             &[
-                (
-                    "wavelength_nm",
-                    "float",
-                    "nm",
-                    "optional: vacuum wavelength",
-                ),
-                (
-                    "n_medium",
-                    "float",
-                    "",
-                    "optional: refractive index of the medium",
-                ),
-                (
-                    "w0_nm",
-                    "float",
-                    "nm",
-                    "optional: beam waist (1/e² intensity radius)",
-                ),
-                ("na", "float", "", "optional: detection (condenser) NA"),
-                (
-                    "qpd_na",
-                    "float",
-                    "",
-                    "optional: NA subtended by the QPD (inf: not limiting)",
-                ),
-                (
-                    "power_mw",
-                    "float",
-                    "mW",
-                    "optional: laser power at the focus",
-                ),
+                WAVELENGTH_NM.doc("optional: vacuum wavelength"),
+                N_MEDIUM.doc("optional: refractive index of the medium"),
+                W0_NM.doc("optional: beam waist (1/e² intensity radius)"),
+                NA.doc("optional: detection (condenser) NA"),
+                QPD_NA.doc("optional: NA subtended by the QPD (inf: not limiting)"),
+                POWER_MW.doc("optional: laser power at the focus"),
                 N_THETA.doc("optional: cone quadrature nodes in θ"),
                 N_PHI.doc("optional: cone quadrature nodes in φ per quadrant"),
                 BEAM.doc("optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)"),
-                (
-                    "pupil_filling",
-                    "float",
-                    "",
-                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)",
-                ),
+                PUPIL_FILLING.doc("optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)"),
             ],
         )
         .returns("map", "the new optics")
@@ -359,13 +336,13 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let mut new = c.optics().into_optics();
     for (k, f) in [
-        ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
-        ("n_medium", &mut new.n_medium),
-        ("w0_nm", &mut new.w0_nm),
-        ("na", &mut new.na),
-        ("qpd_na", &mut new.qpd_na),
-        ("power_mw", &mut new.power_mw),
-        ("pupil_filling", &mut new.pupil_filling),
+        (WAVELENGTH_NM, &mut new.wavelength_nm as &mut f64),
+        (N_MEDIUM, &mut new.n_medium),
+        (W0_NM, &mut new.w0_nm),
+        (NA, &mut new.na),
+        (QPD_NA, &mut new.qpd_na),
+        (POWER_MW, &mut new.power_mw),
+        (PUPIL_FILLING, &mut new.pupil_filling),
     ] {
         if let Some(v) = o.f64(k)? {
             *f = v;

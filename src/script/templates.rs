@@ -3,7 +3,7 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::keys::{N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
+use super::keys::{DENSITY, D_NM, N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
 use super::registry::{err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
@@ -23,6 +23,7 @@ use super::registry::grid_axes;
 use super::types::{FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
+const BEADS_PER_SCAN: Opt = Opt::new("beads_per_scan", "int", "");
 const CHANNELS: Opt = Opt::new("channels", "string", "");
 const CRITERION: Opt = Opt::new("criterion", "string", "");
 const FTOL: Opt = Opt::new("ftol", "float", "");
@@ -30,6 +31,7 @@ const GROW: Opt = Opt::new("grow", "bool", "");
 const GTOL: Opt = Opt::new("gtol", "float", "");
 const H_UM: Opt = Opt::new("h_um", "float", "µm");
 const HALF_WIDTH_UM: Opt = Opt::new("half_width_um", "float", "µm");
+const ITERATIONS: Opt = Opt::new("iterations", "int", "");
 const MAX_BEADS: Opt = Opt::new("max_beads", "int", "");
 const MERGE_DEGENERATE: Opt = Opt::new("merge_degenerate", "bool", "");
 const MIN_DROP: Opt = Opt::new("min_drop", "float", "");
@@ -64,22 +66,9 @@ fn bind_template_model(r: &mut Registrar) {
         .opts(&[
                 H_UM.doc(format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)")),
                 Z_UM.doc("optional: axial offset of the bead from the focus (default 0)".to_string()),
-                (
-                    "d_nm",
-                    "float",
-                    "nm",
-                    format!("optional: reference bead diameter (default {})", rb.d_nm),
-                ),
+                D_NM.doc(format!("optional: reference bead diameter (default {})", rb.d_nm)),
                 N.doc(format!("optional: reference bead index (default {})", rb.n)),
-                (
-                    "density",
-                    "float",
-                    "g/cm³",
-                    format!(
-                        "optional: reference bead density (default {})",
-                        rb.density_g_cm3
-                    ),
-                ),
+                DENSITY.doc(format!("optional: reference bead density (default {})", rb.density_g_cm3)),
                 POLARIZATION.doc("optional: vector dipole field (default false)".to_string()),
             ],
         )
@@ -106,12 +95,12 @@ fn bind_template_from_scans(r: &mut Registrar) {
         .opts(&[
                 HALF_WIDTH_UM.doc(format!("optional: half-width of the template (default {})", fs.half_width_um)),
                 H_UM.doc("optional: node spacing (default: the finest pixel)".into()),
-                ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
+                BEADS_PER_SCAN.doc("optional: beads per scan (default: all isolated maxima)".into()),
                 THRESHOLD.doc(format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
-                ("iterations", "int", "", format!("optional: alignment iterations (default {})", fs.iterations)),
-                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {})", rb.d_nm)),
+                ITERATIONS.doc(format!("optional: alignment iterations (default {})", fs.iterations)),
+                D_NM.doc(format!("optional: reference bead diameter (default {})", rb.d_nm)),
                 N.doc(format!("optional: reference bead index (default {})", rb.n)),
-                ("density", "float", "g/cm³", format!("optional: density (default {})", rb.density_g_cm3)),
+                DENSITY.doc(format!("optional: density (default {})", rb.density_g_cm3)),
             ],
         )
         .form("template_from_scans(scans) -> Template")
@@ -391,9 +380,9 @@ fn template_from_scans(c: &Ctx, spec: &Spec, a: &Array, m: &Map) -> RResult<Temp
     let fo = FromScansOptions {
         half_width_um: o.f64_or(HALF_WIDTH_UM, d.half_width_um)?,
         h_um: o.f64(H_UM)?,
-        beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
+        beads_per_scan: count("template_from_scans", &o, BEADS_PER_SCAN, 1, 10_000)?,
         threshold: o.f64_or(THRESHOLD, d.threshold)?,
-        iterations: count("template_from_scans", &o, "iterations", 0, 100)?.unwrap_or(d.iterations),
+        iterations: count("template_from_scans", &o, ITERATIONS, 0, 100)?.unwrap_or(d.iterations),
     };
     let scans = scans_arg("template_from_scans", a)?;
     let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();
