@@ -154,11 +154,10 @@ fn bind_measure_filament(r: &mut Registrar) {
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried, then the search is repeated with candidates above 3/4 and 5/8 of detect_snr).");
-    let ctx = r.ctx();
-    r.bind_opts2(
+    r.bind_ctx_opts2(
         d.example(&format!("{FIL_EX} round(m.angle_deg)"), "14.0")
             .example(&format!("{FIL_EX} m.channel"), "\"sx_rows\""),
-        move |spec, s: ScanRef, c: CurveRef, m| measure_filament_of(&ctx, spec, &s, &c, m),
+        measure_filament_of,
     );
     let float_rows = [
         (
@@ -258,10 +257,7 @@ fn bind_background(r: &mut Registrar) {
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
-    let c = r.ctx();
-    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
-        remove_background(&c, spec, &s, &t, m)
-    });
+    r.bind_ctx_opts2(d, remove_background);
 }
 
 /// `remove_aggregates` and `microtubule_density`: the arithmetic of the `aggregates::remove`

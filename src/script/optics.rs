@@ -163,7 +163,6 @@ fn bind_response(r: &mut Registrar) {
 
 /// `max_sensitivity_model` and `fit_beam`.
 fn bind_model_sensitivity(r: &mut Registrar) {
-    let ctx = r.ctx();
     r.bind(
         Doc::func("sphere_mass_kda")
             .arg("d_nm", "float", "nm", "diameter")
@@ -195,14 +194,14 @@ fn bind_model_sensitivity(r: &mut Registrar) {
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
     let spec = d.spec();
     r.bind_ctx(d, |c| move |m: Map| max_sensitivity_model(&c, &spec, &m));
-    register_fit_beam(r, &ctx);
+    register_fit_beam(r);
 }
 
 /// `f0` as `set_optics` takes it: finite (the prompt refuses ∞); 1e6 is a uniformly filled
 /// pupil to 1e-12 (spectral waist 2/(k f0 sinΘ) ≈ 4e-8 µm).
 pub const UNIFORM_F0: f64 = 1e6;
 
-fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
+fn register_fit_beam(r: &mut Registrar) {
     let d = Doc::func("fit_beam")
         .arg("scan", "Scan", "", "an xy scan of one reference bead at the focus (Sx, Sy, Sz; pixels ≤ 0.1 µm over ≥ 1.2 µm)")
         .opts(&[
@@ -219,8 +218,7 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
         .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
         .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41}); fit_beam(sc, #{d_nm: 500.0})", "error: d_nm = 500")
         .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 21, ny: 21}); fit_beam(sc)", "error: the fit needs pixels ≤ 0.1 µm");
-    let c = ctx.clone();
-    r.bind_opts(d, move |spec, s: ScanRef, m| fit_beam_of(&c, spec, &s, m));
+    r.bind_ctx_opts(d, fit_beam_of);
 }
 
 /// `fit_beam(scan[, opts])`: the beam and QPD fitted to a reference-bead scan (module

@@ -252,6 +252,34 @@ impl<'a> Registrar<'a> {
         self.bind(doc, f);
     }
 
+    /// As [`Registrar::bind_opts0`], for a body that reads the session: `f(ctx, spec, opts)`.
+    pub fn bind_ctx_opts0<R: Value>(&mut self, doc: Doc, f: fn(&Ctx, &Spec, &Map) -> RResult<R>) {
+        let c = self.ctx();
+        self.bind_opts0(doc, move |spec, m| f(&c, spec, m));
+    }
+
+    /// As [`Registrar::bind_opts`], for a body that reads the session and borrows its argument:
+    /// `f(ctx, spec, &a, opts)`, e.g. `r.bind_ctx_opts(d, max_sens)`.
+    pub fn bind_ctx_opts<A: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: fn(&Ctx, &Spec, &A, &Map) -> RResult<R>,
+    ) {
+        let c = self.ctx();
+        self.bind_opts(doc, move |spec, a: A, m| f(&c, spec, &a, m));
+    }
+
+    /// As [`Registrar::bind_opts2`], for a body that reads the session and borrows its two
+    /// arguments: `f(ctx, spec, &a, &b, opts)`, e.g. `r.bind_ctx_opts2(d, fit_beads_of)`.
+    pub fn bind_ctx_opts2<A: Value, B: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: fn(&Ctx, &Spec, &A, &B, &Map) -> RResult<R>,
+    ) {
+        let c = self.ctx();
+        self.bind_opts2(doc, move |spec, a: A, b: B, m| f(&c, spec, &a, &b, m));
+    }
+
     /// Declare and register a binding whose last argument is its optional options map
     /// ([`Doc::opts`]) after one argument `a`: the form with the map and the form without it
     /// (an empty map) both call `f(spec, a, opts)`, `spec` the declaration's keys and usage.
@@ -758,21 +786,31 @@ pub fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
     a.iter()
         .enumerate()
         .map(|(i, p)| {
-            let Some(q) = p.read_lock::<Array>() else {
-                return fail(format!("{who}: points[{i}] must be [x, y] (µm), got {p}"));
-            };
-            if q.len() != 2 {
-                return fail(format!(
-                    "{who}: points[{i}] must have 2 numbers [x, y], got {} values",
-                    q.len()
-                ));
-            }
-            Ok([
-                num(who, &format!("points[{i}][0]"), &q[0])?,
-                num(who, &format!("points[{i}][1]"), &q[1])?,
-            ])
+            let what = format!("points[{i}]");
+            number_pair(who, &what, p, "[x, y] (µm)", "must have 2 numbers [x, y]")
         })
         .collect()
+}
+
+/// The two numbers of the array `v` (`what` it is in the errors, `points[3]` or `x`): refused
+/// unless an array (`{what} must be {must_be}`) of two (`{what} {two}, got n values`) numbers.
+pub fn number_pair(
+    who: &str,
+    what: &str,
+    v: &Dynamic,
+    must_be: &str,
+    two: &str,
+) -> RResult<[f64; 2]> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!("{who}: {what} must be {must_be}, got {v}"));
+    };
+    if a.len() != 2 {
+        return fail(format!("{who}: {what} {two}, got {} values", a.len()));
+    }
+    Ok([
+        num(who, &format!("{what}[0]"), &a[0])?,
+        num(who, &format!("{what}[1]"), &a[1])?,
+    ])
 }
 
 /// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).

@@ -4,7 +4,9 @@
 
 use super::ctx::Ctx;
 use super::keys::{DENSITY, D_NM, N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
-use super::registry::{err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{
+    binding_list, err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
+};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
@@ -44,23 +46,17 @@ const BEADS: Opt = Opt::new("beads", "array", "");
 const FILAMENTS: Opt = Opt::new("filaments", "array", "");
 const INIT: Opt = Opt::new("init", "array", "");
 
-pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
-    register_templates(r);
-    register_fit(r, &ctx);
+binding_list! {
+    pub fn register {
+        bind_template_model, bind_template_from_scans, bind_render_beads,
+        bind_fit_beads, bind_fit_numbers, bind_fit_verdict,
+    }
 }
 
 // ------------------------------------------------------------------ templates
 
-fn register_templates(r: &mut Registrar) {
-    bind_template_model(r);
-    bind_template_from_scans(r);
-    bind_render_beads(r);
-}
-
 /// `template_model`: the point-particle template from the model.
 fn bind_template_model(r: &mut Registrar) {
-    let ctx = r.ctx();
     let rb = RefBead::default();
     let d = Doc::func("template_model")
         .opts(&[
@@ -81,13 +77,11 @@ fn bind_template_model(r: &mut Registrar) {
         .help("In the current optics' beam: with set_optics(#{beam: \"vector\"}) (e.g. set_optics(fit_beam(scan).optics), the beam fitted to your reference bead) the point dipole in the aplanatic vector focus of that pupil filling (always vectorial: polarization is then ignored), else the paper's paraxial model (suppl. S2/S3). angle_curve, diameter_calib, lin_dens_calib and point_mass(#{tpl}) follow the template.")
         .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
         .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
-    let c = ctx.clone();
-    r.bind_opts0(d, move |spec, m| template_model(&c, spec, m));
+    r.bind_ctx_opts0(d, template_model);
 }
 
 /// `template_from_scans` and what a Template shows of itself.
 fn bind_template_from_scans(r: &mut Registrar) {
-    let ctx = r.ctx();
     let rb = RefBead::default();
     let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
@@ -108,10 +102,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
         .summary("reference template from measured scans of several reference beads: locate, align sub-pixel, average, normalise")
         .example(&format!("{TPL} let a = render_beads(t, #{{beads: [#{{x: 0.03, y: 0.0}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); let b = render_beads(t, #{{beads: [#{{x: -0.02, y: 0.04}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); template_from_scans([a, b]).source.n_beads"), "2")
         .example("template_from_scans([])", "error: no scans");
-    let c = ctx.clone();
-    r.bind_opts(d, move |spec, a: Array, m| {
-        template_from_scans(&c, spec, &a, m)
-    });
+    r.bind_ctx_opts(d, template_from_scans);
 
     // properties and methods
     properties!(r, "Template", TemplateRef, TPL, [
@@ -210,14 +201,8 @@ fn bind_render_beads(r: &mut Registrar) {
 /// Default relative RSS drop of the `rel_drop` growth criterion.
 const DEFAULT_MIN_DROP: f64 = 0.02;
 
-fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
-    bind_fit_beads(r, ctx);
-    bind_fit_numbers(r);
-    bind_fit_verdict(r);
-}
-
 /// `fit_beads(scan, tpl, [opts])`: its options, declared once with their defaults.
-fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
+fn bind_fit_beads(r: &mut Registrar) {
     // the defaults in the help come from FitOptions::default(), never repeated here
     let fd = FitOptions::default();
     let keys: Vec<(&str, &str, &str, String)> = vec![
@@ -250,10 +235,7 @@ fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
         .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
         .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
-    let c = ctx.clone();
-    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
-        fit_beads_of(&c, spec, &s, &t, m)
-    });
+    r.bind_ctx_opts2(d, fit_beads_of);
 }
 
 /// The fit's beads and numbers: `FitResult`'s beads, χ², RSS, σ, BIC, condition, counts.
