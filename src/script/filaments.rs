@@ -244,14 +244,13 @@ fn bind_background(r: &mut Registrar) {
     let d = Doc::func("remove_background")
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
         .arg_of(TEMPLATE_ARG)
-        .opts(&[
+        .opts(&point_object_keys(
+            vec![
                 AXIS.doc("optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
                 ANGLE_DEG.doc("optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
-                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
-                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", bd.max_objects)),
-                MIN_WEIGHT.doc(format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight)),
             ],
-        )
+            format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight),
+        ))
         .form("remove_background(scan, tpl) -> map")
         .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none, warnings: [string] (that text and clipped or dark pixels of Sx, Sy), status: \"ok\" when warnings is empty}")
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
@@ -269,26 +268,17 @@ fn bind_microtubule(r: &mut Registrar) {
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
         .arg_of(TEMPLATE_ARG)
         .arg("curve", "AngleCurve", "", CURVE_DOC)
-        .opts(&[
-                SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um)),
-                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", ad.detect_snr)),
-                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", ad.max_objects)),
-                MIN_WEIGHT.doc(format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight)),
-            ],
-        )
+        .opts(&point_object_keys(
+            vec![SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um))],
+            format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight),
+        ))
         .form("remove_aggregates(scan, tpl, curve) -> map")
         .returns("map", "#{scan (cleaned), n_objects, angle_deg, sbr_before, sbr_after, uniformity_before, uniformity_after, mean_corr_after, improvement, remaining: [#{x, y, weight, snr}], warning (() when none), warnings (both measurements' and the removal's, once each), status}")
         .summary("aggregates::remove's arithmetic: measure the filament, remove the point objects fitted in the channel it barely shows in, measure again; SBR before and after (Sec. 6)")
         .help("The protocol aggregates::remove calls it (and adds figures); the truth sweep runs the same Rust function (analysis::microtubule::remove_aggregates). Warnings are said as each step says them: measure_filament before, remove_background, measure_filament after.")
         .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: 0.2}}).n_objects"), "0")
         .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: -1.0}})"), "error: skip_um = -1");
-    let c = r.ctx();
-    r.bind_opts3(
-        d,
-        move |spec, s: ScanRef, t: TemplateRef, k: CurveRef, m| {
-            remove_aggregates_of(&c, spec, (&s, &t, &k), m)
-        },
-    );
+    r.bind_ctx_opts3(d, remove_aggregates_of);
     let d = Doc::func("microtubule_density")
         .arg("scan", "Scan", "", "XY scan of the microtubule, aggregates removed")
         .arg("curve", "AngleCurve", "", CURVE_DOC)
@@ -300,10 +290,7 @@ fn bind_microtubule(r: &mut Registrar) {
         .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 5 maxima in the uniform region, σ(μ) above half a protofilament.")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, lin_dens_calib(t, #{{pixel_um: 0.05}}), #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, #{{}})"), "error: microtubule_density: calib lacks");
-    let c = r.ctx();
-    r.bind_opts3(d, move |spec, s: ScanRef, k: CurveRef, cal: Map, m| {
-        microtubule_density_of(&c, spec, (&s, &k, &cal), m)
-    });
+    r.bind_ctx_opts3(d, microtubule_density_of);
 }
 
 /// The quantities: `diameter_calib`, `lin_dens_calib`, `linear_density`, `point_mass` and what follows.
@@ -552,13 +539,7 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
         (None, Some(a)) => FilamentAxis::from_angle(a),
         (None, None) => d.axis,
     };
-    let bo = BackgroundOptions {
-        axis,
-        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
-        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
-        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
-        ..d.clone()
-    };
+    let bo = point_object_opts(who, &o, BackgroundOptions { axis, ..d })?;
     let r = remove_background_scan(&s.scan, &t.0, &bo).or_else(fail)?;
     let mut out = Map::new();
     out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
@@ -575,6 +556,37 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
     );
     with_warnings(c, who, &mut out, r.warnings);
     Ok(out)
+}
+
+/// A key of an options map as `Doc::opts` declares it, its help built at run time.
+type KeyDoc = (&'static str, &'static str, &'static str, String);
+
+/// `remove_background`'s and `remove_aggregates`' keys: their own (`first`), then those of
+/// the point-object detection and fit they share with its defaults; `min_weight` says what
+/// the smallest object is to each.
+fn point_object_keys(first: Vec<KeyDoc>, min_weight: String) -> Vec<KeyDoc> {
+    let d = BackgroundOptions::default();
+    let mut keys = first;
+    keys.push(DETECT_SNR.doc(format!(
+        "optional: detections above detect_snr × robust noise (default {})",
+        d.detect_snr
+    )));
+    keys.push(MAX_OBJECTS.doc(format!(
+        "optional: most point objects fitted (default {})",
+        d.max_objects
+    )));
+    keys.push(MIN_WEIGHT.doc(min_weight));
+    keys
+}
+
+/// The point-object keys of `o` ([`point_object_keys`]) over `d`'s.
+fn point_object_opts(who: &str, o: &Opts, d: BackgroundOptions) -> RResult<BackgroundOptions> {
+    Ok(BackgroundOptions {
+        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
+        max_objects: count(who, o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
+        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
+        ..d
+    })
 }
 
 /// The point-like features left after a removal, as maps `#{x, y, weight, snr}`.
@@ -599,12 +611,13 @@ fn remove_aggregates_of(
 ) -> RResult<Map> {
     let who = "remove_aggregates";
     let o = Opts::new(spec, m)?;
-    let d = AggregateOptions::default();
+    let skip_um = o.f64_or(SKIP_UM, AggregateOptions::default().skip_um)?;
+    let b = point_object_opts(who, &o, BackgroundOptions::default())?;
     let ao = AggregateOptions {
-        skip_um: o.f64_or(SKIP_UM, d.skip_um)?,
-        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
-        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
-        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
+        skip_um,
+        detect_snr: b.detect_snr,
+        max_objects: b.max_objects,
+        min_weight: b.min_weight,
     };
     let r = remove_aggregates(&s.scan, &t.0, &curve.0, &ao).or_else(fail)?;
     for (step, w) in &r.said {

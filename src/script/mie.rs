@@ -44,8 +44,7 @@ pub fn register(r: &mut Registrar) {
         .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
         .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
         .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| mie(&c, &spec, &m));
+    r.bind_map(d, mie);
 }
 
 /// `mie_q(#{x, m_re, m_im})`: Lorenz–Mie efficiencies of a sphere of size parameter x and

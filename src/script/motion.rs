@@ -265,8 +265,7 @@ fn bind_connect(r: &mut Registrar) {
         )
         .example("connect(#{backend: \"sim\", stage_port: \"/dev/ttyUSB0\"})", "error: connect: stage_port applies to backend \"hardware\"")
         .example("connect(#{backend: \"hexapod\"})", "error: backend = \"hexapod\" is not available");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| connect(&c, &spec, &m));
+    r.bind_map(d, connect);
     let c = ctx.clone();
     r.overload("connect", move || connect_default(&c));
 

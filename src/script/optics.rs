@@ -82,8 +82,7 @@ fn bind_set_optics(r: &mut Registrar) {
         .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range")
         .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| set_optics(&c, &spec, &m));
+    r.bind_map(d, set_optics);
 }
 
 /// `response` and the trap depth: what a particle gives in this beam.
@@ -108,8 +107,7 @@ fn bind_response(r: &mut Registrar) {
         .example("response(#{x: 0.2}).sx > 0.0 && response(#{x: -0.2}).sx < 0.0", "true")
         .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
         .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| response_of(&c, &spec, &m));
+    r.bind_map(d, response_of);
 
     r.bind_ctx(
         Doc::func("p_scat_ratio")
@@ -146,8 +144,7 @@ fn bind_response(r: &mut Registrar) {
             "trap_depth_kt(#{shape: \"cube\", d_nm: 10.0, n: 1.5})",
             "error: shape = \"cube\"",
         );
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| trap_depth(&c, &spec, &m));
+    r.bind_map(d, trap_depth);
 
     r.bind_ctx(
         Doc::func("n_corr")
@@ -192,8 +189,7 @@ fn bind_model_sensitivity(r: &mut Registrar) {
         .summary("model maximum Sx sensitivity of a sphere at its best focus (Fig. 3c)")
         .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| max_sensitivity_model(&c, &spec, &m));
+    r.bind_map(d, max_sensitivity_model);
     register_fit_beam(r);
 }
 

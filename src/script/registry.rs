@@ -252,6 +252,13 @@ impl<'a> Registrar<'a> {
         self.bind(doc, f);
     }
 
+    /// Declare and register a binding whose one argument is a map of the declared keys, its
+    /// body reading the session: `f(ctx, spec, map)`, e.g. `r.bind_map(d, set_optics)`.
+    pub fn bind_map<R: Value>(&mut self, doc: Doc, f: fn(&Ctx, &Spec, &Map) -> RResult<R>) {
+        let (c, spec) = (self.ctx(), doc.spec());
+        self.bind(doc, move |m: Map| f(&c, &spec, &m));
+    }
+
     /// As [`Registrar::bind_opts0`], for a body that reads the session: `f(ctx, spec, opts)`.
     pub fn bind_ctx_opts0<R: Value>(&mut self, doc: Doc, f: fn(&Ctx, &Spec, &Map) -> RResult<R>) {
         let c = self.ctx();
@@ -278,6 +285,19 @@ impl<'a> Registrar<'a> {
     ) {
         let c = self.ctx();
         self.bind_opts2(doc, move |spec, a: A, b: B, m| f(&c, spec, &a, &b, m));
+    }
+
+    /// As [`Registrar::bind_opts3`], for a body that reads the session and borrows its three
+    /// arguments (as one tuple): `f(ctx, spec, (&a, &b, &c), opts)`.
+    pub fn bind_ctx_opts3<A: Value, B: Value, C: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: fn(&Ctx, &Spec, (&A, &B, &C), &Map) -> RResult<R>,
+    ) {
+        let ctx = self.ctx();
+        self.bind_opts3(doc, move |spec, a: A, b: B, c: C, m| {
+            f(&ctx, spec, (&a, &b, &c), m)
+        });
     }
 
     /// Declare and register a binding whose last argument is its optional options map

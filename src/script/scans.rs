@@ -218,8 +218,7 @@ fn bind_scan_planes(r: &mut Registrar) {
         .example("let s = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}); [s.rows, s.cols, s.x[20]]", "[1, 41, 0.0]")
         .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| scan_line(&c, &spec, &m));
+    r.bind_map(d, scan_line);
 
     register_grid(r, Axis::X, Axis::Y, Axis::Z);
     register_grid(r, Axis::X, Axis::Z, Axis::Y);
