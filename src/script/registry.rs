@@ -95,6 +95,10 @@ macro_rules! binding_list {
 }
 pub(crate) use binding_list;
 
+/// A binding body that reads the session and borrows its three arguments (as one tuple)
+/// before its options map ([`Registrar::bind_ctx_opts3`]).
+pub type Body3<A, B, C, R> = fn(&Ctx, &Spec, (&A, &B, &C), &Map) -> RResult<R>;
+
 /// Hands a family file the engine, the context and the list of declarations.
 pub struct Registrar<'a> {
     engine: &'a mut Engine,
@@ -292,7 +296,7 @@ impl<'a> Registrar<'a> {
     pub fn bind_ctx_opts3<A: Value, B: Value, C: Value, R: Value>(
         &mut self,
         doc: Doc,
-        f: fn(&Ctx, &Spec, (&A, &B, &C), &Map) -> RResult<R>,
+        f: Body3<A, B, C, R>,
     ) {
         let ctx = self.ctx();
         self.bind_opts3(doc, move |spec, a: A, b: B, c: C, m| {
