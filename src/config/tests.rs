@@ -454,25 +454,35 @@ fn bad_safety_table_is_an_error_naming_the_key() {
             .map(|c| c.soft_limits())
             .map_err(|e| e.to_string())
     };
-    let e = safety("[safety]\nsoft_limits = { x = [5, -5] }").unwrap_err();
-    assert!(e.contains("safety.soft_limits.x"), "{e}");
-    let e = safety("[safety]\nsoft_limits = { w = [0, 1] }").unwrap_err();
-    assert!(e.contains("safety.soft_limits"), "{e}");
-    assert!(
-        e.contains("unknown field `w`, expected one of `x`, `y`, `z`"),
-        "{e}"
-    );
-    let e = safety("[safety]\nmax_speed_um_s = -3").unwrap_err();
-    assert!(
-        e.contains("config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"),
-        "{e}"
-    );
-    // the legacy table: refused, with its [safety] equivalent
-    let e = safety("[limits]\nz = [0.0, 1.0]").unwrap_err();
-    assert!(
-        e.contains("write [safety] soft_limits = { z = [0.0, 1.0] }"),
-        "{e}"
-    );
+    // each table refused with every fragment its error must hold (the last: the legacy
+    // table, refused with its [safety] equivalent)
+    let refused: [(&str, &[&str]); 4] = [
+        (
+            "[safety]\nsoft_limits = { x = [5, -5] }",
+            &["safety.soft_limits.x"],
+        ),
+        (
+            "[safety]\nsoft_limits = { w = [0, 1] }",
+            &[
+                "safety.soft_limits",
+                "unknown field `w`, expected one of `x`, `y`, `z`",
+            ],
+        ),
+        (
+            "[safety]\nmax_speed_um_s = -3",
+            &["config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"],
+        ),
+        (
+            "[limits]\nz = [0.0, 1.0]",
+            &["write [safety] soft_limits = { z = [0.0, 1.0] }"],
+        ),
+    ];
+    for (table, fragments) in refused {
+        let e = safety(table).unwrap_err();
+        for f in fragments {
+            assert!(e.contains(f), "{e}");
+        }
+    }
     // no [safety]: defaults, no speed limit
     let l = safety("[sandbox]\nmax_operations = 5").unwrap();
     assert_eq!(l, SoftLimits::default());
