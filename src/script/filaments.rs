@@ -9,7 +9,7 @@ use super::registry::{
 };
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::background::Remaining;
-use crate::analysis::checked::{measure_filament_scan, remove_background_scan};
+use crate::analysis::checked::{measure_filament_scan, remove_background_scan, Cleaned};
 use crate::analysis::microtubule::{density, remove_aggregates, AggregateOptions};
 use crate::analysis::orientation::Channel;
 use crate::analysis::quantities::{
@@ -17,7 +17,8 @@ use crate::analysis::quantities::{
 };
 use crate::analysis::sbr::{sbr, SbrOptions};
 use crate::analysis::{
-    AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions, FilamentAxis, RefBead,
+    AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions, FilamentAxis, FitResult,
+    RefBead,
 };
 use rhai::{Array, Dynamic, Map};
 use std::sync::Arc;
@@ -541,21 +542,24 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
     };
     let bo = point_object_opts(who, &o, BackgroundOptions { axis, ..d })?;
     let r = remove_background_scan(&s.scan, &t.0, &bo).or_else(fail)?;
-    let mut out = Map::new();
-    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
-    out.insert(
-        "fit".into(),
-        r.fit
-            .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
-    );
-    out.insert("n_objects".into(), (r.n_objects as i64).into());
-    out.insert("remaining".into(), remaining_array(&r.remaining).into());
-    out.insert(
-        "warning".into(),
-        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
-    );
-    with_warnings(c, who, &mut out, r.warnings);
+    let (mut out, fit, warnings) = cleaned_map(r);
+    let fit = fit.map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f))));
+    out.insert("fit".into(), fit);
+    with_warnings(c, who, &mut out, warnings);
     Ok(out)
+}
+
+/// The keys `remove_background` and `remove_aggregates` answer alike: the cleaned scan, the
+/// objects removed, the features left and the sentence about them; the fit and the removal's
+/// warnings handed back.
+fn cleaned_map(cl: Cleaned) -> (Map, Option<FitResult>, Vec<String>) {
+    let mut out = Map::new();
+    out.insert("n_objects".into(), (cl.n_objects() as i64).into());
+    out.insert("remaining".into(), remaining_array(&cl.remaining).into());
+    let warning = cl.warning.map_or(Dynamic::UNIT, |w| w.into());
+    out.insert("warning".into(), warning);
+    out.insert("scan".into(), Dynamic::from(ScanRef::new(cl.scan, None)));
+    (out, cl.fit, cl.warnings)
 }
 
 /// A key of an options map as `Doc::opts` declares it, its help built at run time.
@@ -623,11 +627,9 @@ fn remove_aggregates_of(
     for (step, w) in &r.said {
         c.warn_all(step, w);
     }
-    let mut out = Map::new();
     let improvement = r.improvement();
-    let (cl, sb, sa) = (r.cleaned, r.before, r.after);
-    out.insert("scan".into(), Dynamic::from(ScanRef::new(cl.scan, None)));
-    out.insert("n_objects".into(), (cl.n_objects as i64).into());
+    let (sb, sa) = (r.before, r.after);
+    let (mut out, _, _) = cleaned_map(r.cleaned);
     for (k, v) in [
         ("angle_deg", r.angle_deg),
         ("sbr_before", sb.sbr_background),
@@ -639,11 +641,6 @@ fn remove_aggregates_of(
     ] {
         out.insert(k.into(), v.into());
     }
-    out.insert("remaining".into(), remaining_array(&cl.remaining).into());
-    out.insert(
-        "warning".into(),
-        cl.warning.map_or(Dynamic::UNIT, |w| w.into()),
-    );
     domain_of(&mut out, r.warnings);
     Ok(out)
 }
