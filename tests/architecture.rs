@@ -541,11 +541,16 @@ fn every_instrument_folder_is_a_registered_family() {
         // its `config.rs` beside the section it refers to, re-exported by the module file
         let read = |file: &str| std::fs::read_to_string(dir.join(f).join(file)).unwrap_or_default();
         let (module, config) = (read("mod.rs"), read("config.rs"));
-        let declared = |code: &str| code.contains(&format!("name: \"{f}\""));
+        // `name: "f"` in the literal, or `Family::new("f", …)` it takes the rest from
+        let declared = |code: &str| {
+            let code: String = code.split_whitespace().collect();
+            code.contains(&format!("name:\"{f}\""))
+                || code.contains(&format!("Family::new(\"{f}\","))
+        };
         assert!(
             declared(&module) || declared(&config) && module.contains("pub use config::FAMILY;"),
-            "src/instrument/{f}/ declares its FAMILY with name: \"{f}\" (mod.rs, or config.rs \
-             re-exported by mod.rs)"
+            "src/instrument/{f}/ declares its FAMILY with name: \"{f}\" or Family::new(\"{f}\", …) \
+             (mod.rs, or config.rs re-exported by mod.rs)"
         );
     }
 }

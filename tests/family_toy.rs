@@ -98,22 +98,17 @@ fn open_toy(
 
 /// The family's one line (a built-in family's line in `registry::FAMILIES`).
 const TOY: Family = Family {
-    name: "toy",
-    backend: "toy",
-    aliases: &[],
     stages: &["toy"],
     qpds: &["toy"],
-    keys: &[],
-    open: Open::Build(open_toy),
     stage_defaults: registry::StageDefaults {
         poll_ms: 7,
         settle_s: Some(0.002),
     },
-    section: registry::NO_SECTION,
     help: registry::ConnectHelp {
         backend: "\"toy\" (a test's own family)",
         about: "",
     },
+    ..Family::new("toy", "toy", Open::Build(open_toy))
 };
 
 fn workbench() -> Workbench {

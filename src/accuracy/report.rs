@@ -388,7 +388,7 @@ fn tradeoff_png(path: &Path, t: &Tradeoff, targeted: &[TargetedRow]) -> Result<(
     let t_lo = tb.map_or(x[0], |r| r.time_mean_s.min(x[0]) * 0.7);
     let t_hi = x[x.len() - 1];
     // the fit, then its bound dashed over it: where the fit reaches the bound both show
-    let mut series = vec![
+    let series = vec![
         Series::line(
             "raster + template fit (Sx+Sy): 1σ",
             x.clone(),
@@ -413,24 +413,42 @@ fn tradeoff_png(path: &Path, t: &Tradeoff, targeted: &[TargetedRow]) -> Result<(
         )
         .with_style(SeriesStyle::LinePoints),
     ];
-    if let Some(r) = tb {
-        series.extend(targeted_series(
-            "targeted::bead",
-            "its pattern",
-            r,
-            [t_lo, t_hi],
-        ));
+    tradeoff_figure(
+        path,
+        series,
+        tb.map(|r| ("targeted::bead".to_string(), "its pattern", r)),
+        (
+            "paper: 950 kDa (Sec. 3.2)",
+            instrument::PAPER_RESOLUTION_PS_KDA,
+        ),
+        [t_lo, t_hi],
+        (
+            "110 nm PS bead: 1σ mass vs time (paper noise)",
+            "1σ mass (kDa, polystyrene)",
+        ),
+    )
+}
+
+/// The end of both Pareto figures: the targeted protocol's series when it ran (`targeted`:
+/// its label, what it scans, its row), the paper's resolution as a horizontal line over `t`
+/// (two points: the legend goes where no measured point or sloped line is, even across it),
+/// log–log axes of 1σ (`y_label`) against the time.
+fn tradeoff_figure(
+    path: &Path,
+    mut series: Vec<Series>,
+    targeted: Option<(String, &str, &TargetedRow)>,
+    (paper, level): (&str, f64),
+    t: [f64; 2],
+    (title, y_label): (&str, &str),
+) -> Result<(), String> {
+    if let Some((label, what, r)) = targeted {
+        series.extend(targeted_series(&label, what, r, t));
     }
-    // two points: the legend goes where no measured point or sloped line is, even across it
-    series.push(Series::line(
-        "paper: 950 kDa (Sec. 3.2)",
-        vec![t_lo, t_hi],
-        vec![instrument::PAPER_RESOLUTION_PS_KDA; 2],
-    ));
+    series.push(Series::line(paper, t.to_vec(), vec![level; 2]));
     let opts = XyOpts::new(
-        "110 nm PS bead: 1σ mass vs time (paper noise)",
+        title,
         "time (s): raster = dwell × 4096 pixels; targeted = instrument time, moves included",
-        "1σ mass (kDa, polystyrene)",
+        y_label,
     )
     .log_log();
     plot_xy(path, &series, &opts).map_err(|e| e.to_string())
@@ -487,26 +505,54 @@ fn tradeoff_filament_png(
         t_lo,
         t_hi,
     ));
-    if let Some(r) = tf {
-        series.extend(targeted_series(
-            &format!("targeted::filament ({:.0} µm)", r.length_um),
-            "its strips",
-            r,
-            [t_lo, t_hi],
-        ));
-    }
-    series.push(Series::line(
-        "paper: 1.1 MDa per µm (Sec. 3.2)",
-        vec![t_lo, t_hi],
-        vec![instrument::PAPER_RESOLUTION_PROTEIN_KDA / 1e3; 2],
-    ));
-    let opts = XyOpts::new(
-        "13-protofilament microtubule: 1σ linear density vs time (paper noise)",
-        "time (s): raster = dwell × 4096 pixels; targeted = instrument time, moves included",
-        "1σ linear density (MDa/µm)",
+    tradeoff_figure(
+        path,
+        series,
+        tf.map(|r| {
+            let label = format!("targeted::filament ({:.0} µm)", r.length_um);
+            (label, "its strips", r)
+        }),
+        (
+            "paper: 1.1 MDa per µm (Sec. 3.2)",
+            instrument::PAPER_RESOLUTION_PROTEIN_KDA / 1e3,
+        ),
+        [t_lo, t_hi],
+        (
+            "13-protofilament microtubule: 1σ linear density vs time (paper noise)",
+            "1σ linear density (MDa/µm)",
+        ),
     )
-    .log_log();
-    plot_xy(path, &series, &opts).map_err(|e| e.to_string())
+}
+
+/// A row of a microtubule table after its first cells (`lead`): "filament not found" when no
+/// seed found it (`missed`, with the dashes of the columns before the CRLB), else the mean
+/// (and in how many seeds it was found), the bias column of a table that has one, 1σ μ, the
+/// scatter over seeds, the CRLB, the efficiency and the 1σ mass per µm.
+fn microtubule_row(
+    r: &TradeRow,
+    seeds: usize,
+    lead: &str,
+    bias: Option<String>,
+    missed: &str,
+) -> String {
+    if r.found == 0 {
+        return format!("{lead} {missed} | {:.2} MDa/µm | — | — |\n", r.crlb);
+    }
+    let found = if r.found < seeds {
+        format!(" (found in {} of {seeds} seeds)", r.found)
+    } else {
+        String::new()
+    };
+    let bias = bias.map_or(String::new(), |b| format!(" {b} |"));
+    format!(
+        "{lead} {:.1} MDa/µm{found} |{bias} {:.2} MDa/µm | {:.2} MDa/µm | {:.2} MDa/µm | {} | {:.0} kDa |\n",
+        r.mean,
+        r.sigma_fit,
+        r.sigma_scatter,
+        r.crlb,
+        fmt_eff(r.efficiency()),
+        r.sigma_fit * 1e3
+    )
 }
 
 /// The whole-image fit's table beside the per-row maxima's (the same scans).
@@ -519,35 +565,22 @@ fn whole_image_markdown(t: &Tradeoff, t_per_row: f64) -> String {
          | dwell | scan time | μ (mean) | bias (σ of one) | 1σ μ (fit) | scatter over seeds | CRLB | efficiency | 1σ mass per µm |\n|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in &t.microtubule_fit {
-        let found = if r.found < t.seeds {
-            format!(" (found in {} of {} seeds)", r.found, t.seeds)
-        } else {
-            String::new()
-        };
-        if r.found == 0 {
-            s += &format!(
-                "| {} | {:.3} s | filament not found | — | — | — | {:.2} MDa/µm | — | — |\n",
-                instrument::fmt_dwell(r.dwell_s),
-                r.scan_s,
-                r.crlb
-            );
-            continue;
-        }
-        s += &format!(
-            "| {} | {:.3} s | {:.1} MDa/µm{found} | {} | {:.2} MDa/µm | {:.2} MDa/µm | {:.2} MDa/µm | {} | {:.0} kDa |\n",
+        let lead = format!(
+            "| {} | {:.3} s |",
             instrument::fmt_dwell(r.dwell_s),
-            r.scan_s,
-            r.mean,
-            if r.found >= 2 {
-                format!("{:+.2}", (r.mean - t.mt_true_mu) / r.sigma_scatter)
-            } else {
-                "—".into()
-            },
-            r.sigma_fit,
-            r.sigma_scatter,
-            r.crlb,
-            fmt_eff(r.efficiency()),
-            r.sigma_fit * 1e3
+            r.scan_s
+        );
+        let bias = if r.found >= 2 {
+            format!("{:+.2}", (r.mean - t.mt_true_mu) / r.sigma_scatter)
+        } else {
+            "—".into()
+        };
+        s += &microtubule_row(
+            r,
+            t.seeds,
+            &lead,
+            Some(bias),
+            "filament not found | — | — | —",
         );
     }
     let first_all = |rows: &[TradeRow]| {
@@ -1065,33 +1098,14 @@ fn tradeoff_markdown(t: &Tradeoff, targeted: &[TargetedRow]) -> String {
         t.mt_true_mu
     );
     for r in &t.microtubule {
-        if r.found == 0 {
-            s += &format!(
-                "| {} | {:.3} s | {:.2} s | filament not found (too noisy) | — | — | {:.2} MDa/µm | — | — |\n",
-                instrument::fmt_dwell(r.dwell_s),
-                r.scan_s,
-                r.clock_s,
-                r.crlb
-            );
-            continue;
-        }
-        s += &format!(
-            "| {} | {:.3} s | {:.2} s | {:.1} MDa/µm{} | {:.2} MDa/µm | {:.2} MDa/µm | {:.2} MDa/µm | {} | {:.0} kDa |\n",
+        let lead = format!(
+            "| {} | {:.3} s | {:.2} s |",
             instrument::fmt_dwell(r.dwell_s),
             r.scan_s,
-            r.clock_s,
-            r.mean,
-            if r.found < t.seeds {
-                format!(" (found in {} of {} seeds)", r.found, t.seeds)
-            } else {
-                String::new()
-            },
-            r.sigma_fit,
-            r.sigma_scatter,
-            r.crlb,
-            fmt_eff(r.efficiency()),
-            r.sigma_fit * 1e3
+            r.clock_s
         );
+        let missed = "filament not found (too noisy) | — | —";
+        s += &microtubule_row(r, t.seeds, &lead, None, missed);
     }
     if let Some(first) = t.microtubule.iter().find(|r| r.found == t.seeds) {
         let dev =

@@ -840,8 +840,8 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
                     d.mu_mda_um,
                     d.mu_err_mda_um,
                     mc.truth_mu(),
-                    d.n_points,
-                    d.mean_corr,
+                    d.region.n_points,
+                    d.region.mean_corr,
                     if why.is_empty() { "ok".to_string() } else { why.join("; ") }
                 ));
             }

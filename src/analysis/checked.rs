@@ -76,13 +76,23 @@ pub struct Cleaned {
     pub scan: Scan,
     /// The fit of the point objects (None when nothing was detected).
     pub fit: Option<FitResult>,
-    pub n_objects: usize,
     /// Point-like features still there at ≥ `REMAINING_SNR` × the detection map's noise.
     pub remaining: Vec<Remaining>,
     /// The sentence saying so, None when there is none.
     pub warning: Option<String>,
     /// The clipped or dark pixels of Sx and Sy, then `warning`.
     pub warnings: Vec<String>,
+}
+
+impl Cleaned {
+    /// The point objects removed (the fit's beads; 0 when nothing was detected).
+    pub fn n_objects(&self) -> usize {
+        n_fitted(&self.fit)
+    }
+}
+
+fn n_fitted(fit: &Option<FitResult>) -> usize {
+    fit.as_ref().map_or(0, |f| f.beads.len())
 }
 
 /// `remove_background` on a scan (Sec. 6, Fig. 6): the point objects fitted in one channel and
@@ -98,7 +108,7 @@ pub fn remove_background_scan(
     let mut warnings = crate::data::clip::input_check(scan, &["sx", "sy"], None).gate(who)?;
     let r =
         remove_point_background(&scan.sx, &scan.sy, tpl, bo).map_err(|e| format!("{who}: {e}"))?;
-    let n_objects = r.fit.as_ref().map_or(0, |f| f.beads.len());
+    let n_objects = n_fitted(&r.fit);
     let mut meta = scan.meta.clone();
     meta["background_removed"] = serde_json::json!({
         "axis": format!("{:?}", bo.axis),
@@ -118,7 +128,6 @@ pub fn remove_background_scan(
     Ok(Cleaned {
         scan: cleaned,
         fit: r.fit,
-        n_objects,
         remaining: r.remaining,
         warning,
         warnings,

@@ -12,9 +12,8 @@
 //! Both carry the measurements' warnings (clipped or dark pixels, ends, the edge) and their own
 //! (docs/analysis.md, "Domains"); errors are sentences naming the step that refused.
 
-use super::background::{BackgroundOptions, FilamentAxis, Remaining};
-use super::checked::{measure_filament_scan, remove_background_scan};
-use super::fit::FitResult;
+use super::background::{BackgroundOptions, FilamentAxis};
+use super::checked::{measure_filament_scan, remove_background_scan, Cleaned};
 use super::orientation::{correction_rel_err, AngleCurve, FilamentMeasurement, CORRECTION_SYS_REL};
 use super::quantities::{protofilaments, LinDensCalib, PROTOFILAMENT_MDA_PER_UM};
 use super::sbr::{sbr, SbrOptions, SbrResult};
@@ -64,27 +63,27 @@ impl Default for AggregateOptions {
 /// What [`remove_aggregates`] returns.
 #[derive(Debug, Clone)]
 pub struct Removal {
-    /// The cleaned scan (`remove_background`'s).
-    pub scan: Scan,
-    pub fit: Option<FitResult>,
-    pub n_objects: usize,
+    /// The removal itself (`remove_background`'s): the cleaned scan, the fit, the objects
+    /// removed, the features left and the sentence about them; its `warnings` are the
+    /// removal's alone.
+    pub cleaned: Cleaned,
     /// The filament's angle before the removal, ° from the QPD y-axis.
     pub angle_deg: f64,
-    pub sbr_before: f64,
-    pub sbr_after: f64,
-    pub uniformity_before: f64,
-    pub uniformity_after: f64,
-    pub mean_corr_after: f64,
-    /// sbr_after / sbr_before.
-    pub improvement: f64,
-    pub remaining: Vec<Remaining>,
-    /// The sentence about `remaining`, None when nothing is left.
-    pub warning: Option<String>,
+    /// The SBR over the uniform region before and after the removal.
+    pub before: SbrResult,
+    pub after: SbrResult,
     /// Both measurements' and the removal's warnings, once each.
     pub warnings: Vec<String>,
     /// The warnings of each step as that step says them (`measure_filament` before,
     /// `remove_background`, `measure_filament` after), for printing.
     pub said: Vec<(&'static str, Vec<String>)>,
+}
+
+impl Removal {
+    /// sbr_after / sbr_before (the paper's method (a)).
+    pub fn improvement(&self) -> f64 {
+        self.after.sbr_background / self.before.sbr_background
+    }
 }
 
 /// Removes the point-like aggregates of a filament scan (see the module docs): the filament
@@ -118,24 +117,16 @@ pub fn remove_aggregates(
         }
     }
     Ok(Removal {
-        n_objects: r.n_objects,
         angle_deg: before.angle_deg,
-        sbr_before: sb.sbr_background,
-        sbr_after: sa.sbr_background,
-        uniformity_before: sb.sbr_uniformity,
-        uniformity_after: sa.sbr_uniformity,
-        mean_corr_after: sa.mean_corr,
-        improvement: sa.sbr_background / sb.sbr_background,
-        warning: r.warning,
+        before: sb,
+        after: sa,
         warnings,
         said: vec![
             ("measure_filament", before.warnings),
-            ("remove_background", r.warnings),
+            ("remove_background", r.warnings.clone()),
             ("measure_filament", after.warnings),
         ],
-        scan: r.scan,
-        fit: r.fit,
-        remaining: r.remaining,
+        cleaned: r,
     })
 }
 
@@ -151,12 +142,9 @@ pub struct Density {
     /// μ / 13.75 MDa/µm, rounded and not.
     pub protofilaments: u32,
     pub protofilaments_exact: f64,
-    /// Mean orientation-corrected maximum over the uniform region.
-    pub mean_corr: f64,
-    pub sbr: f64,
-    pub uniformity: f64,
-    /// Maxima in the uniform region.
-    pub n_points: usize,
+    /// The uniform region's SBR: its mean orientation-corrected maximum (`mean_corr`), both
+    /// SBRs (`sbr_background`, `sbr_uniformity`), its maxima (`n_points`).
+    pub region: SbrResult,
     /// The measurement's warnings and the density's own.
     pub warnings: Vec<String>,
     /// The measurement's warnings alone, as `measure_filament` says them.
@@ -213,10 +201,7 @@ pub fn density(
         mu_err_mda_um: mu_err,
         protofilaments: n,
         protofilaments_exact: exact,
-        mean_corr: s.mean_corr,
-        sbr: s.sbr_background,
-        uniformity: s.sbr_uniformity,
-        n_points: s.n_points,
+        region: s,
         warnings,
         measure_warnings: m.warnings,
     })

@@ -58,6 +58,13 @@ fn error_of(text: &str) -> ConfigError {
     Config::from_toml_str(text, "bfpscope.toml").unwrap_err()
 }
 
+/// The error of `text`, which must name `key`.
+fn refused_at(text: &str, key: &str) -> ConfigError {
+    let e = error_of(text);
+    assert_eq!(e.key, key, "{e}");
+    e
+}
+
 #[test]
 fn misspelled_tables_are_refused_with_the_nearest_name() {
     // a typo in [safety] must not drop the soft limits silently
@@ -153,8 +160,7 @@ fn optics_table_is_read_and_checked() {
     let e = error_of("[optics]\nna = 2.5\n");
     assert_eq!((e.key.as_str(), e.line), ("optics.na", Some(2)), "{e}");
     assert_eq!(e.message, "na = 2.5 is out of range: 0.01 ≤ na ≤ 1.7");
-    let e = error_of("[optics]\nbeam = \"gaussian\"\n");
-    assert_eq!(e.key, "optics.beam");
+    let e = refused_at("[optics]\nbeam = \"gaussian\"\n", "optics.beam");
     assert!(
         e.message
             .contains("beam = \"gaussian\" is not a beam model"),
@@ -166,8 +172,7 @@ fn optics_table_is_read_and_checked() {
         ("sandbox.max_operations", Some(2)),
         "{e}"
     );
-    let e = error_of("[session]\ndata_dir = \" \"\n");
-    assert_eq!(e.key, "session.data_dir");
+    refused_at("[session]\ndata_dir = \" \"\n", "session.data_dir");
     // [sandbox] and [session] as read
     let c = Config::from_toml_str(
         "[sandbox]\nmax_operations = 1000\n[session]\ndata_dir = \"/tmp/d\"\n",
@@ -184,8 +189,10 @@ fn optics_table_is_read_and_checked() {
 
 #[test]
 fn parse_errors_name_the_key_path() {
-    let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\nbaud = \"fast\"\n");
-    assert_eq!(e.key, "stage.baud");
+    let e = refused_at(
+        "[stage]\nbackend = \"gcs\"\nport = \"/dev/x\"\nbaud = \"fast\"\n",
+        "stage.baud",
+    );
     assert_eq!(e.line, Some(4));
     assert!(e.message.contains("invalid type"), "{e}");
     assert_eq!(
@@ -197,8 +204,10 @@ fn parse_errors_name_the_key_path() {
     assert_eq!((e.key.as_str(), e.line), ("stage.backend", Some(2)));
     assert!(e.message.contains("gsc"), "{e}");
 
-    let e = error_of("[safety]\nsoft_limits = { x = [0.0, 1.0] }\nmax_step = 2.0\n");
-    assert_eq!(e.key, "safety.max_step");
+    let e = refused_at(
+        "[safety]\nsoft_limits = { x = [0.0, 1.0] }\nmax_step = 2.0\n",
+        "safety.max_step",
+    );
     assert_eq!(
         e.to_string(),
         "bfpscope.toml: safety.max_step: unknown field `max_step`; did you mean `max_step_um`? \
@@ -208,14 +217,18 @@ fn parse_errors_name_the_key_path() {
     assert_eq!((e.key.as_str(), e.line), ("safety.soft_limits", Some(2)));
     assert!(e.message.contains("unknown field `w`"), "{e}");
 
-    let e = error_of("[qpd.calibration]\ngain = [1.0, 2.0]\n");
-    assert_eq!(e.key, "qpd.calibration.gain");
+    refused_at(
+        "[qpd.calibration]\ngain = [1.0, 2.0]\n",
+        "qpd.calibration.gain",
+    );
 }
 
 #[test]
 fn validation_errors_name_the_key_path() {
-    let e = error_of("[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n");
-    assert_eq!(e.key, "stage.port");
+    let e = refused_at(
+        "[stage]\nbackend = \"gcs\"\n[qpd]\nbackend = \"scpi\"\nport = \"/dev/b\"\n",
+        "stage.port",
+    );
     assert_eq!(e.line, None, "must not point at qpd.port");
     assert_eq!(
         e.to_string(),
@@ -223,23 +236,28 @@ fn validation_errors_name_the_key_path() {
          \"tcp://192.168.0.10:50000\"; or stage.ports = { x = …, y = …, z = … } for a stage split \
          across controllers)"
     );
-    let e = error_of("[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n");
-    assert_eq!(e.key, "qpd.backend");
+    refused_at(
+        "[stage]\nbackend = \"gcs\"\nport = \"/dev/a\"\n",
+        "qpd.backend",
+    );
     let e =
         error_of("[safety]\nmax_step_um = 1.0\nsoft_limits = { y = [0.0, 1.0], x = [5.0, 1.0] }\n");
     assert_eq!(e.key, "safety.soft_limits.x");
     assert_eq!(e.line, Some(3));
-    let e = error_of("[stage]\naxes = { x = \"1\", y = \"1\", z = \"3\" }\n");
-    assert_eq!(e.key, "stage.axes");
+    let e = refused_at(
+        "[stage]\naxes = { x = \"1\", y = \"1\", z = \"3\" }\n",
+        "stage.axes",
+    );
     assert!(
         e.message
             .starts_with("x and y are both \"1\" on one controller"),
         "{e}"
     );
-    let e = error_of("[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n");
-    assert_eq!(e.key, "qpd.calibration.gain");
-    let e = error_of("[safety]\nmax_step_um = -1.0\n");
-    assert_eq!(e.key, "safety.max_step_um");
+    refused_at(
+        "[qpd]\ncalibration = { gain = [0.0, 1.0, 1.0] }\n",
+        "qpd.calibration.gain",
+    );
+    refused_at("[safety]\nmax_step_um = -1.0\n", "safety.max_step_um");
     let e = error_of("\n[safety]\nmax_speed_um_s = 0.0\n");
     assert_eq!((e.key.as_str(), e.line), ("safety.max_speed_um_s", Some(3)));
     assert!(e.message.contains("positive"), "{e}");
@@ -279,11 +297,12 @@ fn raster_keys_are_checked_and_reach_the_driver() {
         e.message.starts_with("4: ") && e.message.contains("1, 2 or 3"),
         "{e}"
     );
-    let e = error_of("[stage]\nservo_cycle_s = -5e-5\n");
-    assert_eq!(e.key, "stage.servo_cycle_s");
+    let e = refused_at("[stage]\nservo_cycle_s = -5e-5\n", "stage.servo_cycle_s");
     assert!(e.message.starts_with("-0.00005: "), "{e}");
-    let e = error_of("[stage]\nmax_record_points = 0\n");
-    assert_eq!(e.key, "stage.max_record_points");
+    refused_at(
+        "[stage]\nmax_record_points = 0\n",
+        "stage.max_record_points",
+    );
     let c =
         Config::from_toml_str("[stage]\ntrigger_line = 2\nservo_cycle_s = 4e-5\n", "t").unwrap();
     let o = crate::instrument::gcs::config::options(&c.stage);
@@ -454,25 +473,35 @@ fn bad_safety_table_is_an_error_naming_the_key() {
             .map(|c| c.soft_limits())
             .map_err(|e| e.to_string())
     };
-    let e = safety("[safety]\nsoft_limits = { x = [5, -5] }").unwrap_err();
-    assert!(e.contains("safety.soft_limits.x"), "{e}");
-    let e = safety("[safety]\nsoft_limits = { w = [0, 1] }").unwrap_err();
-    assert!(e.contains("safety.soft_limits"), "{e}");
-    assert!(
-        e.contains("unknown field `w`, expected one of `x`, `y`, `z`"),
-        "{e}"
-    );
-    let e = safety("[safety]\nmax_speed_um_s = -3").unwrap_err();
-    assert!(
-        e.contains("config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"),
-        "{e}"
-    );
-    // the legacy table: refused, with its [safety] equivalent
-    let e = safety("[limits]\nz = [0.0, 1.0]").unwrap_err();
-    assert!(
-        e.contains("write [safety] soft_limits = { z = [0.0, 1.0] }"),
-        "{e}"
-    );
+    // each table refused with every fragment its error must hold (the last: the legacy
+    // table, refused with its [safety] equivalent)
+    let refused: [(&str, &[&str]); 4] = [
+        (
+            "[safety]\nsoft_limits = { x = [5, -5] }",
+            &["safety.soft_limits.x"],
+        ),
+        (
+            "[safety]\nsoft_limits = { w = [0, 1] }",
+            &[
+                "safety.soft_limits",
+                "unknown field `w`, expected one of `x`, `y`, `z`",
+            ],
+        ),
+        (
+            "[safety]\nmax_speed_um_s = -3",
+            &["config: safety.max_speed_um_s: -3: must be a positive number (µm/s)"],
+        ),
+        (
+            "[limits]\nz = [0.0, 1.0]",
+            &["write [safety] soft_limits = { z = [0.0, 1.0] }"],
+        ),
+    ];
+    for (table, fragments) in refused {
+        let e = safety(table).unwrap_err();
+        for f in fragments {
+            assert!(e.contains(f), "{e}");
+        }
+    }
     // no [safety]: defaults, no speed limit
     let l = safety("[sandbox]\nmax_operations = 5").unwrap();
     assert_eq!(l, SoftLimits::default());

@@ -30,6 +30,13 @@ pub enum Open {
     Build(BuildFn),
 }
 
+impl Open {
+    /// Through the tables, with the `[stage]` backend `stage` and the `[qpd]` backend `qpd`.
+    pub const fn config(stage: &'static str, qpd: &'static str) -> Open {
+        Open::Config { stage, qpd }
+    }
+}
+
 /// A family's own opening: `connect`'s options (every key but `backend` and `settle`, as
 /// JSON) and the settle time in s → the instrument, or an error naming the device.
 pub type BuildFn =
@@ -60,6 +67,27 @@ pub struct Family {
     pub section: Section,
     /// Its part of `connect`'s help.
     pub help: ConnectHelp,
+}
+
+impl Family {
+    /// A family named `name`, answering `connect` as `backend`, opened by `open`, with nothing
+    /// else of its own: no aliases, devices or keys, the default stage settings, no section of
+    /// `bfpscope.toml`, no help. A family's `FAMILY` names what it adds and takes the rest from
+    /// here (`Family { keys: …, ..Family::new(…) }`).
+    pub const fn new(name: &'static str, backend: &'static str, open: Open) -> Family {
+        Family {
+            name,
+            backend,
+            aliases: &[],
+            stages: &[],
+            qpds: &[],
+            keys: &[],
+            open,
+            stage_defaults: STAGE_DEFAULTS,
+            section: NO_SECTION,
+            help: ConnectHelp::entry(""),
+        }
+    }
 }
 
 /// A family's words in `help("connect")`.
@@ -125,6 +153,25 @@ pub struct Section {
     pub open_stage: Option<OpenStageFn>,
     pub open_qpd: Option<OpenQpdFn>,
     pub open_pair: Option<OpenPairFn>,
+}
+
+impl Section {
+    /// The section of a family providing a `[stage]` backend: its checks and its opening.
+    pub const fn stage(validate: ValidateFn, open_stage: OpenStageFn) -> Section {
+        Section {
+            validate: Some(validate),
+            open_stage: Some(open_stage),
+            ..NO_SECTION
+        }
+    }
+    /// The section of a family providing a `[qpd]` backend: its checks and its opening.
+    pub const fn qpd(validate: ValidateFn, open_qpd: OpenQpdFn) -> Section {
+        Section {
+            validate: Some(validate),
+            open_qpd: Some(open_qpd),
+            ..NO_SECTION
+        }
+    }
 }
 
 /// The section of a family the file cannot name (`sim`, `mock`, a test's).

@@ -215,19 +215,8 @@ mod tests {
     #[test]
     fn a_name_taken_is_refused() {
         let f = Family {
-            name: "twin",
-            backend: "twin",
             aliases: &["kpz101"],
-            stages: &[],
-            qpds: &[],
-            keys: &[],
-            open: Open::Mock,
-            stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-            section: NO_SECTION,
-            help: ConnectHelp {
-                backend: "",
-                about: "",
-            },
+            ..Family::new("twin", "twin", Open::Mock)
         };
         let e = register_family(f).unwrap_err();
         assert!(

@@ -6,7 +6,7 @@
 //! linear densities; sensitivities in the scan's units per µm, or reference-bead units per µm
 //! after a template's normalisation (the reference bead's max ∂Sx/∂x = 1).
 
-use super::keys::{DETECT_SNR, D_NM, N, POINTS, SIGMA, SPACING_NM, STENCIL};
+use super::keys::{DENSITY, DETECT_SNR, D_NM, N, POINTS, SIGMA, SPACING_NM, STENCIL};
 use super::registry::{array_of, err, fail, num, numbers, Opt, Opts, RResult};
 use super::types::{json_to_dynamic, ScanRef};
 use crate::analysis::fit::Bead as FitBead;
@@ -363,7 +363,7 @@ pub(crate) fn ref_bead(who: &str, o: &Opts, n_medium: f64) -> RResult<RefBead> {
         d_nm: o.f64_or(D_NM, d.d_nm)?,
         n: o.f64_or(N, d.n)?,
         n_medium,
-        density_g_cm3: o.f64_or("density", d.density_g_cm3)?,
+        density_g_cm3: o.f64_or(DENSITY, d.density_g_cm3)?,
     };
     r.validate().map_err(|e| err(who, e))?;
     Ok(r)

@@ -3,7 +3,7 @@
 
 use super::ctx::Ctx;
 use super::keys::DWELL;
-use super::registry::{err, fail, Doc, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, fields_map, Doc, Opts, RResult, Registrar, Spec};
 use super::scene::SceneRef;
 use crate::analysis::crlb::{beads_crlb, pixel_sigma};
 use crate::analysis::filament_fit::{lambda_of_diameter, line_crlb, volume_per_um, LineFilament};
@@ -113,10 +113,7 @@ fn crlb_of(c: &Ctx, spec: &Spec, m: &Map, s: &SceneRef) -> RResult<Map> {
         }
         let b = beads_crlb(&tpl, &init, &xs, &ys, &[0, 1], &sig).map_err(|e| err(who, e))?;
         for ((bi, bd), sb) in init.iter().zip(b).zip(&scene.beads) {
-            let mut m = Map::new();
-            m.insert("x".into(), bi.x.into());
-            m.insert("y".into(), bi.y.into());
-            m.insert("weight".into(), bi.weight.into());
+            let mut m = fields_map!(bi; x, y, weight);
             m.insert("x_crlb".into(), bd.x.into());
             m.insert("y_crlb".into(), bd.y.into());
             m.insert("weight_crlb".into(), bd.weight.into());

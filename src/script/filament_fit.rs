@@ -52,10 +52,7 @@ pub fn register(r: &mut Registrar) {
         .example("let t = template_model(#{h_um: 0.025}); let s = scene(); s.add_filament(#{points: [[-0.5, -3.0], [0.5, 3.0]], d_nm: 110.0, n: 1.572}); s.add_bead(#{x: 0.8, y: -0.6, d_nm: 110.0}); let sc = simulate(s, #{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 41, ny: 41}); let f = fit_filament(sc, t); f.warnings[0].starts_with(\"misfit\")", "true")
         .example(&format!("{FIL_EX} fit_filament(sc, t, #{{spacing_nm: 0.0}})"), "error: fit_filament: spacing_nm = 0")
         .example(&format!("{FIL_EX} fit_filament(sc, t, #{{n: 1.2}})"), "error: fit_filament: n = 1.2");
-    let c = r.ctx();
-    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
-        fit_filament_of(&c, spec, &s, &t, m)
-    });
+    r.bind_ctx_opts2(d, fit_filament_of);
 }
 
 /// `fit_filament(scan, tpl[, opts])`: see the declaration's help.

@@ -3,13 +3,13 @@
 //! linear density, masses.
 
 use super::ctx::Ctx;
-use super::keys::{AXIS, DETECT_SNR, D_NM, N, SPACING_NM};
+use super::keys::{AXIS, DENSITY, DETECT_SNR, D_NM, N, SPACING_NM};
 use super::registry::{
-    binding_list, err, fail, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
+    binding_list, err, fail, fields_map, num, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
 use super::types::{floats, ImageRef, ProfileRef, ScanRef};
 use crate::analysis::background::Remaining;
-use crate::analysis::checked::{measure_filament_scan, remove_background_scan};
+use crate::analysis::checked::{measure_filament_scan, remove_background_scan, Cleaned};
 use crate::analysis::microtubule::{density, remove_aggregates, AggregateOptions};
 use crate::analysis::orientation::Channel;
 use crate::analysis::quantities::{
@@ -17,7 +17,8 @@ use crate::analysis::quantities::{
 };
 use crate::analysis::sbr::{sbr, SbrOptions};
 use crate::analysis::{
-    AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions, FilamentAxis, RefBead,
+    AngleCurve, AngleCurveOptions, BackgroundOptions, BeadModelOptions, FilamentAxis, FitResult,
+    RefBead,
 };
 use rhai::{Array, Dynamic, Map};
 use std::sync::Arc;
@@ -30,7 +31,6 @@ use super::types::{CurveRef, FilamentRef, FitRef, TemplateRef, TEMPLATE_ARG};
 const ANGLE_DEG: Opt = Opt::new("angle_deg", "float", "°");
 const BOTH_ENDS: Opt = Opt::new("both_ends", "bool", "");
 const D_BM_NM: Opt = Opt::new("d_bm_nm", "float", "nm");
-const DENSITY: Opt = Opt::new("density", "float", "g/cm³");
 const DENSITY_OBJ: Opt = Opt::new("density_obj", "float", "g/cm³");
 const EXCLUSION_UM: Opt = Opt::new("exclusion_um", "float", "µm");
 const FIT_WEIGHT: Opt = Opt::new("fit_weight", "bool", "");
@@ -155,11 +155,10 @@ fn bind_measure_filament(r: &mut Registrar) {
         .returns("FilamentMeasurement", "angle, per-line maxima along the filament, corrected sensitivities")
         .summary("orientation from the row/column maxima and orientation-corrected sensitivities (Sec. 4.2 steps 4–5)")
         .help("Row maxima of ∂Sx/∂x are used for filaments within 45° of the QPD y-axis, column maxima of ∂Sy/∂y otherwise (the paper's step 4); a robust straight-line fit through the maxima gives the angle, the curve's correction maps every maximum to the y-axis orientation. Refused, with the reason: a single point object, or point objects in a row with no filament signal between them (if the preferred channel's line is such, the other channel's line is tried, then the search is repeated with candidates above 3/4 and 5/8 of detect_snr).");
-    let ctx = r.ctx();
-    r.bind_opts2(
+    r.bind_ctx_opts2(
         d.example(&format!("{FIL_EX} round(m.angle_deg)"), "14.0")
             .example(&format!("{FIL_EX} m.channel"), "\"sx_rows\""),
-        move |spec, s: ScanRef, c: CurveRef, m| measure_filament_of(&ctx, spec, &s, &c, m),
+        measure_filament_of,
     );
     let float_rows = [
         (
@@ -246,23 +245,19 @@ fn bind_background(r: &mut Registrar) {
     let d = Doc::func("remove_background")
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
         .arg_of(TEMPLATE_ARG)
-        .opts(&[
+        .opts(&point_object_keys(
+            vec![
                 AXIS.doc("optional: the filament's closer QPD axis, \"y\" (default: fit Sy, subtract from Sx, Fig. 6) or \"x\"".to_string()),
                 ANGLE_DEG.doc("optional: the filament's angle (chooses axis: |angle| ≤ 45° → \"y\")".to_string()),
-                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", bd.detect_snr)),
-                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", bd.max_objects)),
-                MIN_WEIGHT.doc(format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight)),
             ],
-        )
+            format!("optional: smallest object detected, reference-bead units (a 110 nm polystyrene bead is 1; default {}: the floor that keeps noise-free data from turning the filament's faint residue into objects)", bd.min_weight),
+        ))
         .form("remove_background(scan, tpl) -> map")
         .returns("map", "#{scan: the cleaned Scan, fit: FitResult or (), n_objects, remaining: [#{x, y, weight, snr}] (point-like features still in the fitted channel at ≥ 5 × the detection map's robust noise after the removal: µm, reference-bead units; snr () on noise-free data), warning: the text saying so, or () when none, warnings: [string] (that text and clipped or dark pixels of Sx, Sy), status: \"ok\" when warnings is empty}")
         .summary("remove point-like aggregates using the channel the filament barely shows in (Sec. 6)")
         .example(&format!("{TPL} let s = scene(); s.add_filament(#{{points: [[0.0, -3.0], [0.0, 3.0]], d_nm: 50.0, n: 1.41}}); s.add_bead(#{{x: 0.8, y: 0.5, d_nm: 90.0, n: 1.45}}); s.effects([\"detector_noise\"]); let sc = simulate(s, #{{x: [-1.5, 1.5], y: [-1.5, 1.5], nx: 61, ny: 61}}); remove_background(sc, t).n_objects"), "1")
         .example(&format!("{TPL} let sc = render_beads(t, #{{beads: [#{{x: 0.0, y: 0.0}}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 21, ny: 21}}); remove_background(sc, t, #{{axis: \"z\"}})"), "error: axis = \"z\"");
-    let c = r.ctx();
-    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
-        remove_background(&c, spec, &s, &t, m)
-    });
+    r.bind_ctx_opts2(d, remove_background);
 }
 
 /// `remove_aggregates` and `microtubule_density`: the arithmetic of the `aggregates::remove`
@@ -274,26 +269,17 @@ fn bind_microtubule(r: &mut Registrar) {
         .arg("scan", "Scan", "", "XY scan of a filament with point-like aggregates")
         .arg_of(TEMPLATE_ARG)
         .arg("curve", "AngleCurve", "", CURVE_DOC)
-        .opts(&[
-                SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um)),
-                DETECT_SNR.doc(format!("optional: detections above detect_snr × robust noise (default {})", ad.detect_snr)),
-                MAX_OBJECTS.doc(format!("optional: most point objects fitted (default {})", ad.max_objects)),
-                MIN_WEIGHT.doc(format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight)),
-            ],
-        )
+        .opts(&point_object_keys(
+            vec![SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um))],
+            format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight),
+        ))
         .form("remove_aggregates(scan, tpl, curve) -> map")
         .returns("map", "#{scan (cleaned), n_objects, angle_deg, sbr_before, sbr_after, uniformity_before, uniformity_after, mean_corr_after, improvement, remaining: [#{x, y, weight, snr}], warning (() when none), warnings (both measurements' and the removal's, once each), status}")
         .summary("aggregates::remove's arithmetic: measure the filament, remove the point objects fitted in the channel it barely shows in, measure again; SBR before and after (Sec. 6)")
         .help("The protocol aggregates::remove calls it (and adds figures); the truth sweep runs the same Rust function (analysis::microtubule::remove_aggregates). Warnings are said as each step says them: measure_filament before, remove_background, measure_filament after.")
         .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: 0.2}}).n_objects"), "0")
         .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: -1.0}})"), "error: skip_um = -1");
-    let c = r.ctx();
-    r.bind_opts3(
-        d,
-        move |spec, s: ScanRef, t: TemplateRef, k: CurveRef, m| {
-            remove_aggregates_of(&c, spec, (&s, &t, &k), m)
-        },
-    );
+    r.bind_ctx_opts3(d, remove_aggregates_of);
     let d = Doc::func("microtubule_density")
         .arg("scan", "Scan", "", "XY scan of the microtubule, aggregates removed")
         .arg("curve", "AngleCurve", "", CURVE_DOC)
@@ -305,10 +291,7 @@ fn bind_microtubule(r: &mut Registrar) {
         .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 5 maxima in the uniform region, σ(μ) above half a protofilament.")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, lin_dens_calib(t, #{{pixel_um: 0.05}}), #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, #{{}})"), "error: microtubule_density: calib lacks");
-    let c = r.ctx();
-    r.bind_opts3(d, move |spec, s: ScanRef, k: CurveRef, cal: Map, m| {
-        microtubule_density_of(&c, spec, (&s, &k, &cal), m)
-    });
+    r.bind_ctx_opts3(d, microtubule_density_of);
 }
 
 /// The quantities: `diameter_calib`, `lin_dens_calib`, `linear_density`, `point_mass` and what follows.
@@ -557,39 +540,64 @@ fn remove_background(c: &Ctx, spec: &Spec, s: &ScanRef, t: &TemplateRef, m: &Map
         (None, Some(a)) => FilamentAxis::from_angle(a),
         (None, None) => d.axis,
     };
-    let bo = BackgroundOptions {
-        axis,
-        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
-        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
-        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
-        ..d.clone()
-    };
+    let bo = point_object_opts(who, &o, BackgroundOptions { axis, ..d })?;
     let r = remove_background_scan(&s.scan, &t.0, &bo).or_else(fail)?;
-    let mut out = Map::new();
-    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
-    out.insert(
-        "fit".into(),
-        r.fit
-            .map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f)))),
-    );
-    out.insert("n_objects".into(), (r.n_objects as i64).into());
-    out.insert("remaining".into(), remaining_array(&r.remaining).into());
-    out.insert(
-        "warning".into(),
-        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
-    );
-    with_warnings(c, who, &mut out, r.warnings);
+    let (mut out, fit, warnings) = cleaned_map(r);
+    let fit = fit.map_or(Dynamic::UNIT, |f| Dynamic::from(FitRef(Arc::new(f))));
+    out.insert("fit".into(), fit);
+    with_warnings(c, who, &mut out, warnings);
     Ok(out)
+}
+
+/// The keys `remove_background` and `remove_aggregates` answer alike: the cleaned scan, the
+/// objects removed, the features left and the sentence about them; the fit and the removal's
+/// warnings handed back.
+fn cleaned_map(cl: Cleaned) -> (Map, Option<FitResult>, Vec<String>) {
+    let mut out = Map::new();
+    out.insert("n_objects".into(), (cl.n_objects() as i64).into());
+    out.insert("remaining".into(), remaining_array(&cl.remaining).into());
+    let warning = cl.warning.map_or(Dynamic::UNIT, |w| w.into());
+    out.insert("warning".into(), warning);
+    out.insert("scan".into(), Dynamic::from(ScanRef::new(cl.scan, None)));
+    (out, cl.fit, cl.warnings)
+}
+
+/// A key of an options map as `Doc::opts` declares it, its help built at run time.
+type KeyDoc = (&'static str, &'static str, &'static str, String);
+
+/// `remove_background`'s and `remove_aggregates`' keys: their own (`first`), then those of
+/// the point-object detection and fit they share with its defaults; `min_weight` says what
+/// the smallest object is to each.
+fn point_object_keys(first: Vec<KeyDoc>, min_weight: String) -> Vec<KeyDoc> {
+    let d = BackgroundOptions::default();
+    let mut keys = first;
+    keys.push(DETECT_SNR.doc(format!(
+        "optional: detections above detect_snr × robust noise (default {})",
+        d.detect_snr
+    )));
+    keys.push(MAX_OBJECTS.doc(format!(
+        "optional: most point objects fitted (default {})",
+        d.max_objects
+    )));
+    keys.push(MIN_WEIGHT.doc(min_weight));
+    keys
+}
+
+/// The point-object keys of `o` ([`point_object_keys`]) over `d`'s.
+fn point_object_opts(who: &str, o: &Opts, d: BackgroundOptions) -> RResult<BackgroundOptions> {
+    Ok(BackgroundOptions {
+        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
+        max_objects: count(who, o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
+        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
+        ..d
+    })
 }
 
 /// The point-like features left after a removal, as maps `#{x, y, weight, snr}`.
 fn remaining_array(rem: &[Remaining]) -> Array {
     rem.iter()
         .map(|f| {
-            let mut m = Map::new();
-            m.insert("x".into(), f.x.into());
-            m.insert("y".into(), f.y.into());
-            m.insert("weight".into(), f.weight.into());
+            let mut m = fields_map!(f; x, y, weight);
             m.insert("snr".into(), f.snr.map_or(Dynamic::UNIT, Dynamic::from));
             Dynamic::from(m)
         })
@@ -607,36 +615,32 @@ fn remove_aggregates_of(
 ) -> RResult<Map> {
     let who = "remove_aggregates";
     let o = Opts::new(spec, m)?;
-    let d = AggregateOptions::default();
+    let skip_um = o.f64_or(SKIP_UM, AggregateOptions::default().skip_um)?;
+    let b = point_object_opts(who, &o, BackgroundOptions::default())?;
     let ao = AggregateOptions {
-        skip_um: o.f64_or(SKIP_UM, d.skip_um)?,
-        detect_snr: o.f64_or(DETECT_SNR, d.detect_snr)?,
-        max_objects: count(who, &o, MAX_OBJECTS, 1, 10_000)?.unwrap_or(d.max_objects),
-        min_weight: o.f64_or(MIN_WEIGHT, d.min_weight)?,
+        skip_um,
+        detect_snr: b.detect_snr,
+        max_objects: b.max_objects,
+        min_weight: b.min_weight,
     };
     let r = remove_aggregates(&s.scan, &t.0, &curve.0, &ao).or_else(fail)?;
     for (step, w) in &r.said {
         c.warn_all(step, w);
     }
-    let mut out = Map::new();
-    out.insert("scan".into(), Dynamic::from(ScanRef::new(r.scan, None)));
-    out.insert("n_objects".into(), (r.n_objects as i64).into());
+    let improvement = r.improvement();
+    let (sb, sa) = (r.before, r.after);
+    let (mut out, _, _) = cleaned_map(r.cleaned);
     for (k, v) in [
         ("angle_deg", r.angle_deg),
-        ("sbr_before", r.sbr_before),
-        ("sbr_after", r.sbr_after),
-        ("uniformity_before", r.uniformity_before),
-        ("uniformity_after", r.uniformity_after),
-        ("mean_corr_after", r.mean_corr_after),
-        ("improvement", r.improvement),
+        ("sbr_before", sb.sbr_background),
+        ("sbr_after", sa.sbr_background),
+        ("uniformity_before", sb.sbr_uniformity),
+        ("uniformity_after", sa.sbr_uniformity),
+        ("mean_corr_after", sa.mean_corr),
+        ("improvement", improvement),
     ] {
         out.insert(k.into(), v.into());
     }
-    out.insert("remaining".into(), remaining_array(&r.remaining).into());
-    out.insert(
-        "warning".into(),
-        r.warning.map_or(Dynamic::UNIT, |w| w.into()),
-    );
     domain_of(&mut out, r.warnings);
     Ok(out)
 }
@@ -664,19 +668,16 @@ fn microtubule_density_of(
     let skip = o.f64_or(SKIP_UM, SbrOptions::default().skip_um)?;
     let r = density(&s.scan, &curve.0, &cal, skip).or_else(fail)?;
     c.warn_all("measure_filament", &r.measure_warnings);
-    let mut out = Map::new();
+    let mut out = fields_map!(r; mu_mda_um, mu_err_mda_um, protofilaments_exact);
     for (k, v) in [
-        ("mu_mda_um", r.mu_mda_um),
-        ("mu_err_mda_um", r.mu_err_mda_um),
-        ("protofilaments_exact", r.protofilaments_exact),
-        ("mean_corr", r.mean_corr),
-        ("sbr", r.sbr),
-        ("uniformity", r.uniformity),
+        ("mean_corr", r.region.mean_corr),
+        ("sbr", r.region.sbr_background),
+        ("uniformity", r.region.sbr_uniformity),
     ] {
         out.insert(k.into(), v.into());
     }
     out.insert("protofilaments".into(), (r.protofilaments as i64).into());
-    out.insert("n_points".into(), (r.n_points as i64).into());
+    out.insert("n_points".into(), (r.region.n_points as i64).into());
     domain_of(&mut out, r.warnings);
     Ok(out)
 }

@@ -120,7 +120,6 @@ binding_list! {
 
 /// `plot`: an image or a scan channel as a heat map.
 fn bind_plot(r: &mut Registrar) {
-    let ctx = r.ctx();
     let d = Doc::func("plot")
         .arg("what", "Scan | Image", "", "a scan (Sx, Sy, Sz panels) or one image")
         .figure_file("figure file, .png or .svg (relative: in the session folder; an existing file is kept and a numbered name used unless overwrite: true)")
@@ -140,12 +139,11 @@ fn bind_plot(r: &mut Registrar) {
         .example(&format!("{SCENE} plot(sc.sx, dir + \"/ex_sx.svg\", #{{colormap: \"diverging\", title: \"Sx\"}}).ends_with(\".svg\")"), "true")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.jpg\")"), "error: figure files end in .png or .svg")
         .example(&format!("{SCENE} plot(sc, dir + \"/ex.png\", #{{channel: \"sq\"}})"), "error: channel = \"sq\"");
-    bind_figure(r, d, &ctx, plot);
+    bind_figure(r, d, plot);
 }
 
 /// `plot_profile`, `plot_xy`: line figures.
 fn bind_line_plots(r: &mut Registrar) {
-    let ctx = r.ctx();
     let d = Doc::func("plot_profile")
         .arg("profiles", "Profile | array | map", "", "one Profile, [Profile, …], or #{label: Profile, …}")
         .figure_file(FIGURE_FILE)
@@ -153,7 +151,7 @@ fn bind_line_plots(r: &mut Registrar) {
         .summary("line plot of one or more profiles with a legend")
         .example(&format!("{SCENE} plot_profile(#{{sx: sc.sx.row(10), sy: sc.sy.col(10)}}, dir + \"/ex_prof.png\", #{{ylabel: \"signal\"}}).ends_with(\".png\")"), "true")
         .example(&format!("{SCENE} plot_profile([], dir + \"/ex_prof.png\")"), "error: no profiles");
-    bind_figure(r, d, &ctx, plot_profile);
+    bind_figure(r, d, plot_profile);
 
     let d = Doc::func("plot_xy")
         .arg("series", "array", "", "[#{x: [..], y: [..], label, style: \"line\" | \"points\" | \"linepoints\", yerr: [..]}, …]")
@@ -162,12 +160,11 @@ fn bind_line_plots(r: &mut Registrar) {
         .summary("x–y plot of curves and points with error bars, optionally log–log")
         .example("let p = status().data_dir + \"/ex_xy.png\"; plot_xy([#{x: [50.0, 100.0, 200.0], y: [1.0, 8.0, 64.0], label: \"d³\", style: \"linepoints\"}], p, #{log_x: true, log_y: true}) == p", "true")
         .example("plot_xy([#{x: [1.0, 2.0], y: [1.0]}], status().data_dir + \"/ex_xy.png\")", "error: x and y");
-    bind_figure(r, d, &ctx, plot_xy);
+    bind_figure(r, d, plot_xy);
 }
 
 /// `plot_hist`: a histogram figure.
 fn bind_plot_hist(r: &mut Registrar) {
-    let ctx = r.ctx();
     let d = Doc::func("plot_hist")
         .arg("values", "array", "", "numbers (NaN skipped and noted)")
         .figure_file(FIGURE_FILE)
@@ -182,7 +179,7 @@ fn bind_plot_hist(r: &mut Registrar) {
         .summary("histogram figure (e.g. bead diameters, Fig. 3b)")
         .example("let p = status().data_dir + \"/ex_hist.png\"; plot_hist([1.0, 2.0, 2.0, 3.0], p, #{bins: 3, xlabel: \"d (nm)\"}) == p", "true")
         .example("plot_hist([1.0], status().data_dir + \"/ex_hist.png\", #{bins: 0})", "error: bins");
-    bind_figure(r, d, &ctx, plot_hist);
+    bind_figure(r, d, plot_hist);
 
     // ---------------------------------------------------------------- TIFF and CSV
 }
@@ -258,18 +255,17 @@ impl FigureDoc for Doc {
 fn bind_figure<T: super::registry::Value>(
     r: &mut Registrar,
     d: Doc,
-    ctx: &Arc<Ctx>,
     draw: fn(&Ctx, &Opts, T, &str) -> RResult<()>,
 ) {
+    let ctx = r.ctx();
     let name = d.name.clone();
     let spec = Arc::new(d.spec());
     let (c, s) = (ctx.clone(), spec.clone());
     r.bind(d, move |v: T, path: &str, m: Map| {
         figure(&c, &s, draw, v, path, &m)
     });
-    let c = ctx.clone();
     r.overload(&name, move |v: T, path: &str| {
-        figure(&c, &spec, draw, v, path, &Map::new())
+        figure(&ctx, &spec, draw, v, path, &Map::new())
     });
 }
 

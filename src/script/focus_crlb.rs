@@ -39,8 +39,7 @@ pub fn register(r: &mut Registrar) {
         .example(&format!("{FOCUS_EX} round(b.weight * 10.0)"), "10.0")
         .example(&format!("{FOCUS_EX} let b2 = focus_crlb(sc, #{{sigma: b.sigma * 2.0}}); round(b2.z_crlb / b.z_crlb * 100.0)"), "200.0")
         .example(&format!("{FOCUS_EX} focus_crlb(sc, #{{sigma: -1.0}})"), "error: focus_crlb: sigma = -1");
-    let c = r.ctx();
-    r.bind_opts(d, move |spec, v: Dynamic, m| focus_crlb_of(&c, spec, v, m));
+    r.bind_ctx_opts(d, focus_crlb_of);
 }
 
 /// The channel image of an XZ (Sx) or YZ (Sy) scan, or the image itself.
@@ -62,10 +61,10 @@ fn channel_image(who: &str, v: &Dynamic) -> RResult<Image> {
 }
 
 /// `focus_crlb(img[, opts])`: see the declaration's help.
-fn focus_crlb_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
+fn focus_crlb_of(c: &Ctx, spec: &Spec, v: &Dynamic, m: &Map) -> RResult<Map> {
     let who = "focus_crlb";
     let o = Opts::new(spec, m)?;
-    let img = channel_image(who, &v)?;
+    let img = channel_image(who, v)?;
     crate::analysis::kind::require_plane(who, &img, &["XZ", "YZ"]).map_err(|e| err(who, e))?;
     let lateral_y = img.x_name == "y";
     let (us, zs) = (img.x.clone(), img.y.clone());

@@ -8,6 +8,8 @@ pub const AXIS: Opt = Opt::new("axis", "string", "");
 /// A sphere's, filament's or reference bead's diameter.
 pub const D_NM: Opt = Opt::new("d_nm", "float", "nm");
 pub const DENSITY_G_CM3: Opt = Opt::new("density_g_cm3", "float", "g/cm³");
+/// A reference bead's or an object's density.
+pub const DENSITY: Opt = Opt::new("density", "float", "g/cm³");
 pub const DETECT_SNR: Opt = Opt::new("detect_snr", "float", "");
 /// Dwell per point or pixel.
 pub const DWELL: Opt = Opt::new("dwell", "float", "s");

@@ -2,7 +2,7 @@
 
 use super::ctx::Ctx;
 use super::keys::{D_NM, N};
-use super::registry::{err, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fields_map, Doc, Opt, Opts, RResult, Registrar, Spec};
 use rhai::{Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
@@ -44,8 +44,7 @@ pub fn register(r: &mut Registrar) {
         .returns("map", "#{qext, qsca, qabs, qback, g, n_terms, x}")
         .summary("Lorenz–Mie efficiencies of a sphere at the current wavelength")
         .example("mie(#{d_nm: 110.0, n: 1.572}).qsca > 0.0", "true");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| mie(&c, &spec, &m));
+    r.bind_map(d, mie);
 }
 
 /// `mie_q(#{x, m_re, m_im})`: Lorenz–Mie efficiencies of a sphere of size parameter x and
@@ -82,16 +81,7 @@ fn mie(ctx: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
 }
 
 fn mie_map(q: &crate::optics::mie::MieResult) -> Map {
-    let mut m = Map::new();
-    for (k, v) in [
-        ("qext", q.qext),
-        ("qsca", q.qsca),
-        ("qabs", q.qabs),
-        ("qback", q.qback),
-        ("g", q.g),
-    ] {
-        m.insert(k.into(), v.into());
-    }
+    let mut m = fields_map!(q; qext, qsca, qabs, qback, g);
     m.insert("n_terms".into(), (q.n_terms as INT).into());
     m
 }

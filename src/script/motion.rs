@@ -7,7 +7,8 @@
 
 use super::ctx::{Attached, Ctx};
 use super::registry::{
-    binding_list, fail, int, non_negative, num, Doc, Opt, Opts, RResult, Registrar, Spec,
+    binding_list, fail, fields_map, int, non_negative, num, Doc, Opt, Opts, RResult, Registrar,
+    Spec,
 };
 use super::scene::SceneRef;
 use crate::acquire::{checked_move, Axis};
@@ -56,17 +57,7 @@ pub fn pos_map(p: Pos) -> Map {
 }
 
 fn reading_map(r: &QpdReading) -> Map {
-    let mut m = Map::new();
-    for (k, v) in [
-        ("sx", r.sx),
-        ("sy", r.sy),
-        ("sz", r.sz),
-        ("sx_std", r.sx_std),
-        ("sy_std", r.sy_std),
-        ("sz_std", r.sz_std),
-    ] {
-        m.insert(k.into(), v.into());
-    }
+    let mut m = fields_map!(r; sx, sy, sz, sx_std, sy_std, sz_std);
     m.insert("n".into(), (r.n as INT).into());
     m
 }
@@ -274,8 +265,7 @@ fn bind_connect(r: &mut Registrar) {
         )
         .example("connect(#{backend: \"sim\", stage_port: \"/dev/ttyUSB0\"})", "error: connect: stage_port applies to backend \"hardware\"")
         .example("connect(#{backend: \"hexapod\"})", "error: backend = \"hexapod\" is not available");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| connect(&c, &spec, &m));
+    r.bind_map(d, connect);
     let c = ctx.clone();
     r.overload("connect", move || connect_default(&c));
 

@@ -4,7 +4,7 @@
 
 use super::ctx::Ctx;
 use super::keys::{D_NM, N, POLARIZATION, X, Y, Z};
-use super::registry::{err, fail, num, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::registry::{err, fail, fields_map, num, Doc, Opt, Opts, RResult, Registrar, Spec};
 use super::scene::{BEAD_D_NM, BEAD_N};
 use super::types::ScanRef;
 use crate::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, D_RANGE_NM, V_MAX};
@@ -20,6 +20,13 @@ use rhai::{Array, Dynamic, Map, INT};
 
 /// The options of this family's bindings, each key written once (`Opt`).
 const BEAM: Opt = Opt::new("beam", "string", "");
+const N_MEDIUM: Opt = Opt::new("n_medium", "float", "");
+const NA: Opt = Opt::new("na", "float", "");
+const POWER_MW: Opt = Opt::new("power_mw", "float", "mW");
+const PUPIL_FILLING: Opt = Opt::new("pupil_filling", "float", "");
+const QPD_NA: Opt = Opt::new("qpd_na", "float", "");
+const W0_NM: Opt = Opt::new("w0_nm", "float", "nm");
+const WAVELENGTH_NM: Opt = Opt::new("wavelength_nm", "float", "nm");
 const MODEL: Opt = Opt::new("model", "string", "");
 const N_PHI: Opt = Opt::new("n_phi", "int", "");
 const N_THETA: Opt = Opt::new("n_theta", "int", "");
@@ -28,17 +35,10 @@ const TEMPERATURE_K: Opt = Opt::new("temperature_k", "float", "K");
 
 /// `optics()` as a map (the keys `set_optics` takes).
 fn optics_map(o: &Optics) -> Map {
-    let mut m = Map::new();
-    m.insert("wavelength_nm".into(), o.wavelength_nm.into());
-    m.insert("n_medium".into(), o.n_medium.into());
-    m.insert("w0_nm".into(), o.w0_nm.into());
-    m.insert("na".into(), o.na.into());
-    m.insert("qpd_na".into(), o.qpd_na.into());
-    m.insert("power_mw".into(), o.power_mw.into());
+    let mut m = fields_map!(o; wavelength_nm, n_medium, w0_nm, na, qpd_na, power_mw, pupil_filling);
     m.insert("n_theta".into(), (o.n_theta as INT).into());
     m.insert("n_phi".into(), (o.n_phi as INT).into());
     m.insert("beam".into(), o.beam.name().into());
-    m.insert("pupil_filling".into(), o.pupil_filling.into());
     m
 }
 
@@ -64,46 +64,16 @@ fn bind_set_optics(r: &mut Registrar) {
             "changes",
             "any subset of the optical parameters",
             &[
-                (
-                    "wavelength_nm",
-                    "float",
-                    "nm",
-                    "optional: vacuum wavelength",
-                ),
-                (
-                    "n_medium",
-                    "float",
-                    "",
-                    "optional: refractive index of the medium",
-                ),
-                (
-                    "w0_nm",
-                    "float",
-                    "nm",
-                    "optional: beam waist (1/e² intensity radius)",
-                ),
-                ("na", "float", "", "optional: detection (condenser) NA"),
-                (
-                    "qpd_na",
-                    "float",
-                    "",
-                    "optional: NA subtended by the QPD (inf: not limiting)",
-                ),
-                (
-                    "power_mw",
-                    "float",
-                    "mW",
-                    "optional: laser power at the focus",
-                ),
+                WAVELENGTH_NM.doc("optional: vacuum wavelength"),
+                N_MEDIUM.doc("optional: refractive index of the medium"),
+                W0_NM.doc("optional: beam waist (1/e² intensity radius)"),
+                NA.doc("optional: detection (condenser) NA"),
+                QPD_NA.doc("optional: NA subtended by the QPD (inf: not limiting)"),
+                POWER_MW.doc("optional: laser power at the focus"),
                 N_THETA.doc("optional: cone quadrature nodes in θ"),
                 N_PHI.doc("optional: cone quadrature nodes in φ per quadrant"),
                 BEAM.doc("optional: \"vector\" (aplanatic vectorial focus of the objective NA, Richards–Wolf; every tier in one beam) or \"paraxial\" (the paper's scalar Gaussian of waist w0, suppl. S3)"),
-                (
-                    "pupil_filling",
-                    "float",
-                    "",
-                    "optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)",
-                ),
+                PUPIL_FILLING.doc("optional: vector beam's Gaussian pupil filling f0 = pupil 1/e field radius / aperture radius (Novotny & Hecht eq. 3.52); default inf = uniformly filled (the prompt takes finite numbers: 1e6 is uniform to 1e-13)"),
             ],
         )
         .returns("map", "the new optics")
@@ -112,8 +82,7 @@ fn bind_set_optics(r: &mut Registrar) {
         .example("set_optics(#{na: -1.0})", "error: na = -1 is out of range")
         .example("set_optics(#{beam: \"vector\"}).beam", "\"vector\"")
         .example("set_optics(#{beam: \"gauss\"})", "error: beam = \"gauss\" is not a beam model");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| set_optics(&c, &spec, &m));
+    r.bind_map(d, set_optics);
 }
 
 /// `response` and the trap depth: what a particle gives in this beam.
@@ -138,8 +107,7 @@ fn bind_response(r: &mut Registrar) {
         .example("response(#{x: 0.2}).sx > 0.0 && response(#{x: -0.2}).sx < 0.0", "true")
         .example("response(#{x: 0.2, n: 1.333}).sx", "0.0")
         .example("response(#{d_nm: -5.0})", "error: d_nm = -5 is out of range");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| response_of(&c, &spec, &m));
+    r.bind_map(d, response_of);
 
     r.bind_ctx(
         Doc::func("p_scat_ratio")
@@ -176,8 +144,7 @@ fn bind_response(r: &mut Registrar) {
             "trap_depth_kt(#{shape: \"cube\", d_nm: 10.0, n: 1.5})",
             "error: shape = \"cube\"",
         );
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| trap_depth(&c, &spec, &m));
+    r.bind_map(d, trap_depth);
 
     r.bind_ctx(
         Doc::func("n_corr")
@@ -193,7 +160,6 @@ fn bind_response(r: &mut Registrar) {
 
 /// `max_sensitivity_model` and `fit_beam`.
 fn bind_model_sensitivity(r: &mut Registrar) {
-    let ctx = r.ctx();
     r.bind(
         Doc::func("sphere_mass_kda")
             .arg("d_nm", "float", "nm", "diameter")
@@ -223,16 +189,15 @@ fn bind_model_sensitivity(r: &mut Registrar) {
         .summary("model maximum Sx sensitivity of a sphere at its best focus (Fig. 3c)")
         .example("let a = max_sensitivity_model(#{d_nm: 110.0}); let b = max_sensitivity_model(#{d_nm: 220.0}); round(b.sens / a.sens)", "8.0")
         .example("max_sensitivity_model(#{d_nm: 110.0, model: \"qed\"})", "error: model = \"qed\"");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| max_sensitivity_model(&c, &spec, &m));
-    register_fit_beam(r, &ctx);
+    r.bind_map(d, max_sensitivity_model);
+    register_fit_beam(r);
 }
 
 /// `f0` as `set_optics` takes it: finite (the prompt refuses ∞); 1e6 is a uniformly filled
 /// pupil to 1e-12 (spectral waist 2/(k f0 sinΘ) ≈ 4e-8 µm).
 pub const UNIFORM_F0: f64 = 1e6;
 
-fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
+fn register_fit_beam(r: &mut Registrar) {
     let d = Doc::func("fit_beam")
         .arg("scan", "Scan", "", "an xy scan of one reference bead at the focus (Sx, Sy, Sz; pixels ≤ 0.1 µm over ≥ 1.2 µm)")
         .opts(&[
@@ -249,8 +214,7 @@ fn register_fit_beam(r: &mut Registrar, ctx: &std::sync::Arc<Ctx>) {
         .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
         .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-1.0, 1.0], y: [-1.0, 1.0], nx: 41, ny: 41}); fit_beam(sc, #{d_nm: 500.0})", "error: d_nm = 500")
         .example("let t = template_model(#{h_um: 0.025}); let sc = render_beads(t, #{beads: [#{x: 0.0, y: 0.0, weight: 1.0}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 21, ny: 21}); fit_beam(sc)", "error: the fit needs pixels ≤ 0.1 µm");
-    let c = ctx.clone();
-    r.bind_opts(d, move |spec, s: ScanRef, m| fit_beam_of(&c, spec, &s, m));
+    r.bind_ctx_opts(d, fit_beam_of);
 }
 
 /// `fit_beam(scan[, opts])`: the beam and QPD fitted to a reference-bead scan (module
@@ -366,13 +330,13 @@ fn set_optics(c: &Ctx, spec: &Spec, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let mut new = c.optics().into_optics();
     for (k, f) in [
-        ("wavelength_nm", &mut new.wavelength_nm as &mut f64),
-        ("n_medium", &mut new.n_medium),
-        ("w0_nm", &mut new.w0_nm),
-        ("na", &mut new.na),
-        ("qpd_na", &mut new.qpd_na),
-        ("power_mw", &mut new.power_mw),
-        ("pupil_filling", &mut new.pupil_filling),
+        (WAVELENGTH_NM, &mut new.wavelength_nm as &mut f64),
+        (N_MEDIUM, &mut new.n_medium),
+        (W0_NM, &mut new.w0_nm),
+        (NA, &mut new.na),
+        (QPD_NA, &mut new.qpd_na),
+        (POWER_MW, &mut new.power_mw),
+        (PUPIL_FILLING, &mut new.pupil_filling),
     ] {
         if let Some(v) = o.f64(k)? {
             *f = v;

@@ -70,6 +70,19 @@ macro_rules! properties {
 }
 pub(crate) use properties;
 
+/// A Rhai map of some fields of a value, each under its own name and converted with `.into()`:
+/// `fields_map!(r; sx, sy, sz)` is `#{sx: r.sx, sy: r.sy, sz: r.sz}`. A key that is not a
+/// field's name, or a value that needs more than `.into()` (a count as `INT`), is inserted
+/// after.
+macro_rules! fields_map {
+    ($v:expr; $($f:ident),+ $(,)?) => {{
+        let mut m = rhai::Map::new();
+        $(m.insert(stringify!($f).into(), ($v).$f.into());)+
+        m
+    }};
+}
+pub(crate) use fields_map;
+
 /// A registration function that calls a family's binding functions (each
 /// `fn(&mut Registrar)`: one command, or a few that belong together) in order:
 /// `binding_list! { pub fn register { bind_help, bind_numbers } }`.
@@ -81,6 +94,10 @@ macro_rules! binding_list {
     };
 }
 pub(crate) use binding_list;
+
+/// A binding body that reads the session and borrows its three arguments (as one tuple)
+/// before its options map ([`Registrar::bind_ctx_opts3`]).
+pub type Body3<A, B, C, R> = fn(&Ctx, &Spec, (&A, &B, &C), &Map) -> RResult<R>;
 
 /// Hands a family file the engine, the context and the list of declarations.
 pub struct Registrar<'a> {
@@ -237,6 +254,54 @@ impl<'a> Registrar<'a> {
     ) {
         let f = make(self.ctx());
         self.bind(doc, f);
+    }
+
+    /// Declare and register a binding whose one argument is a map of the declared keys, its
+    /// body reading the session: `f(ctx, spec, map)`, e.g. `r.bind_map(d, set_optics)`.
+    pub fn bind_map<R: Value>(&mut self, doc: Doc, f: fn(&Ctx, &Spec, &Map) -> RResult<R>) {
+        let (c, spec) = (self.ctx(), doc.spec());
+        self.bind(doc, move |m: Map| f(&c, &spec, &m));
+    }
+
+    /// As [`Registrar::bind_opts0`], for a body that reads the session: `f(ctx, spec, opts)`.
+    pub fn bind_ctx_opts0<R: Value>(&mut self, doc: Doc, f: fn(&Ctx, &Spec, &Map) -> RResult<R>) {
+        let c = self.ctx();
+        self.bind_opts0(doc, move |spec, m| f(&c, spec, m));
+    }
+
+    /// As [`Registrar::bind_opts`], for a body that reads the session and borrows its argument:
+    /// `f(ctx, spec, &a, opts)`, e.g. `r.bind_ctx_opts(d, max_sens)`.
+    pub fn bind_ctx_opts<A: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: fn(&Ctx, &Spec, &A, &Map) -> RResult<R>,
+    ) {
+        let c = self.ctx();
+        self.bind_opts(doc, move |spec, a: A, m| f(&c, spec, &a, m));
+    }
+
+    /// As [`Registrar::bind_opts2`], for a body that reads the session and borrows its two
+    /// arguments: `f(ctx, spec, &a, &b, opts)`, e.g. `r.bind_ctx_opts2(d, fit_beads_of)`.
+    pub fn bind_ctx_opts2<A: Value, B: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: fn(&Ctx, &Spec, &A, &B, &Map) -> RResult<R>,
+    ) {
+        let c = self.ctx();
+        self.bind_opts2(doc, move |spec, a: A, b: B, m| f(&c, spec, &a, &b, m));
+    }
+
+    /// As [`Registrar::bind_opts3`], for a body that reads the session and borrows its three
+    /// arguments (as one tuple): `f(ctx, spec, (&a, &b, &c), opts)`.
+    pub fn bind_ctx_opts3<A: Value, B: Value, C: Value, R: Value>(
+        &mut self,
+        doc: Doc,
+        f: Body3<A, B, C, R>,
+    ) {
+        let ctx = self.ctx();
+        self.bind_opts3(doc, move |spec, a: A, b: B, c: C, m| {
+            f(&ctx, spec, (&a, &b, &c), m)
+        });
     }
 
     /// Declare and register a binding whose last argument is its optional options map
@@ -745,21 +810,31 @@ pub fn points(who: &str, v: &Dynamic) -> RResult<Vec<[f64; 2]>> {
     a.iter()
         .enumerate()
         .map(|(i, p)| {
-            let Some(q) = p.read_lock::<Array>() else {
-                return fail(format!("{who}: points[{i}] must be [x, y] (µm), got {p}"));
-            };
-            if q.len() != 2 {
-                return fail(format!(
-                    "{who}: points[{i}] must have 2 numbers [x, y], got {} values",
-                    q.len()
-                ));
-            }
-            Ok([
-                num(who, &format!("points[{i}][0]"), &q[0])?,
-                num(who, &format!("points[{i}][1]"), &q[1])?,
-            ])
+            let what = format!("points[{i}]");
+            number_pair(who, &what, p, "[x, y] (µm)", "must have 2 numbers [x, y]")
         })
         .collect()
+}
+
+/// The two numbers of the array `v` (`what` it is in the errors, `points[3]` or `x`): refused
+/// unless an array (`{what} must be {must_be}`) of two (`{what} {two}, got n values`) numbers.
+pub fn number_pair(
+    who: &str,
+    what: &str,
+    v: &Dynamic,
+    must_be: &str,
+    two: &str,
+) -> RResult<[f64; 2]> {
+    let Some(a) = v.read_lock::<Array>() else {
+        return fail(format!("{who}: {what} must be {must_be}, got {v}"));
+    };
+    if a.len() != 2 {
+        return fail(format!("{who}: {what} {two}, got {} values", a.len()));
+    }
+    Ok([
+        num(who, &format!("{what}[0]"), &a[0])?,
+        num(who, &format!("{what}[1]"), &a[1])?,
+    ])
 }
 
 /// The `x: [from, to], y: [from, to], nx, ny` keys of a grid map → regular axes (µm).

@@ -218,8 +218,7 @@ fn bind_scan_planes(r: &mut Registrar) {
         .example("let s = scan_line(#{axis: \"x\", from: -1.0, to: 1.0, n: 41}); [s.rows, s.cols, s.x[20]]", "[1, 41, 0.0]")
         .example("scan_line(#{axis: \"q\", from: 0, to: 1, n: 3})", "error: axis = q is not one of")
         .example("scan_line(#{axis: \"z\", from: 0, to: 1, n: 3, dwell: -1})", "error: scan_line: dwell = -1 is out of range: 0 ≤ dwell ≤ 60 s");
-    let spec = d.spec();
-    r.bind_ctx(d, |c| move |m: Map| scan_line(&c, &spec, &m));
+    r.bind_map(d, scan_line);
 
     register_grid(r, Axis::X, Axis::Y, Axis::Z);
     register_grid(r, Axis::X, Axis::Z, Axis::Y);
@@ -230,9 +229,13 @@ fn bind_scan_planes(r: &mut Registrar) {
 
 /// SPEC's line scans: `ascan`, `dscan`, `a2scan`, `d2scan`.
 fn bind_spec_scans(r: &mut Registrar) {
-    for (name, rel) in [("ascan", false), ("dscan", true)] {
+    // each form with its example: (name, relative, (code, expected))
+    for (name, rel, (code, expect)) in [
+        ("ascan", false, ("let s = ascan(\"y\", -1, 1, 20, 0.001); [s.cols, s.x[20], pos().y]", "[21, 1.0, 1.0]")),
+        ("dscan", true, ("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")),
+    ] {
         let what = if rel { "relative" } else { "absolute" };
-        let mut d = Doc::func(name)
+        let d = Doc::func(name)
             .arg("axis", "string", "", "\"x\", \"y\" or \"z\"")
             .arg("from", "float", "µm", if rel { "start, relative to the current position" } else { "start position" })
             .arg("to", "float", "µm", if rel { "end, relative to the current position" } else { "end position" })
@@ -243,19 +246,12 @@ fn bind_spec_scans(r: &mut Registrar) {
             .help(&format!(
                 "As in SPEC, the fourth argument counts intervals, so `{name}(\"x\", -1, 1, 20, 0.01)` measures 21 points. {}",
                 where_the_stage_ends(rel)
-            ));
-        d = if rel {
-            d.example("mv(#{x: 2.0}); let s = dscan(\"x\", -0.5, 0.5, 10, 0.001); [s.cols, s.x[0], pos().x]", "[11, 1.5, 2.0]")
-        } else {
-            d.example(
-                "let s = ascan(\"y\", -1, 1, 20, 0.001); [s.cols, s.x[20], pos().y]",
-                "[21, 1.0, 1.0]",
-            )
-        };
-        d = d.example(
-            &format!("{name}(\"x\", 0, 1)"),
-            &format!("error: usage: {name}(axis, from, to, intervals, dwell)"),
-        );
+            ))
+            .example(code, expect)
+            .example(
+                &format!("{name}(\"x\", 0, 1)"),
+                &format!("error: usage: {name}(axis, from, to, intervals, dwell)"),
+            );
         let spec = d.spec();
         r.bind_ctx(d, |c| {
             move |axis: Dynamic, from: Dynamic, to: Dynamic, n: Dynamic, dwell: Dynamic| {
@@ -263,9 +259,12 @@ fn bind_spec_scans(r: &mut Registrar) {
             }
         });
     }
-    for (name, rel) in [("a2scan", false), ("d2scan", true)] {
+    for (name, rel, (code, expect)) in [
+        ("a2scan", false, ("let s = a2scan(\"x\", 0, 1, \"y\", 0, -2, 4, 0.001); [s.cols, s.x[2], pos().x, pos().y]", "[5, 0.5, 1.0, -2.0]")),
+        ("d2scan", true, ("mv(#{x: 2.0, y: 1.0}); let s = d2scan(\"x\", -0.5, 0.5, \"y\", 0.0, 1.0, 4, 0.001); [s.cols, s.x[4], pos().y]", "[5, 2.5, 1.0]")),
+    ] {
         let what = if rel { "relative" } else { "absolute" };
-        let mut d = Doc::func(name)
+        let d = Doc::func(name)
             .arg("axis1", "string", "", "first motor: \"x\", \"y\" or \"z\" (the image's columns follow it)")
             .arg("from1", "float", "µm", "")
             .arg("to1", "float", "µm", "")
@@ -281,16 +280,8 @@ fn bind_spec_scans(r: &mut Registrar) {
                  axis2: a line across the sample at any angle. {} Every point is checked against the soft \
                  limits before the first move, like every scan.",
                 where_the_stage_ends(rel)
-            ));
-        d = if rel {
-            d.example("mv(#{x: 2.0, y: 1.0}); let s = d2scan(\"x\", -0.5, 0.5, \"y\", 0.0, 1.0, 4, 0.001); [s.cols, s.x[4], pos().y]", "[5, 2.5, 1.0]")
-        } else {
-            d.example(
-                "let s = a2scan(\"x\", 0, 1, \"y\", 0, -2, 4, 0.001); [s.cols, s.x[2], pos().x, pos().y]",
-                "[5, 0.5, 1.0, -2.0]",
-            )
-        };
-        d = d
+            ))
+            .example(code, expect)
             .example(
                 &format!("{name}(\"x\", 0, 1, \"x\", 0, 1, 4, 0.001)"),
                 &format!("error: {name}: both motors are x"),

@@ -4,7 +4,7 @@
 use super::ctx::Ctx;
 use super::keys::{D_NM, N, POINTS, SPACING_NM, X, Y, Z};
 use super::registry::{
-    err, fail, non_negative, num, points, Doc, Opt, Opts, RResult, Registrar, Spec,
+    err, fail, non_negative, num, number_pair, points, Doc, Opt, Opts, RResult, Registrar, Spec,
 };
 use super::types::{json_to_dynamic, ScanRef};
 use crate::instrument::sim::render_xy;
@@ -24,20 +24,9 @@ const ALPHA_TIP: Opt = Opt::new("alpha_tip", "map", "nm, µm");
 #[derive(Debug, Clone, Default)]
 pub struct SceneRef(pub Scene);
 
+/// `[lo, hi]` of the key `key`.
 fn pair(who: &str, key: &str, v: &Dynamic) -> RResult<[f64; 2]> {
-    let Some(a) = v.read_lock::<Array>() else {
-        return fail(format!("{who}: {key} must be [lo, hi], got {v}"));
-    };
-    if a.len() != 2 {
-        return fail(format!(
-            "{who}: {key} must be [lo, hi] (2 numbers), got {} values",
-            a.len()
-        ));
-    }
-    Ok([
-        num(who, &format!("{key}[0]"), &a[0])?,
-        num(who, &format!("{key}[1]"), &a[1])?,
-    ])
+    number_pair(who, key, v, "[lo, hi]", "must be [lo, hi] (2 numbers)")
 }
 
 const SCENE_EX: &str = "let s = scene(); s.add_bead(#{x: 0.0, y: 0.0, d_nm: 110.0, n: 1.572});";

@@ -79,8 +79,7 @@ fn bind_max_sens(r: &mut Registrar) {
         .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum at the image's edge)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
-    let c = r.ctx();
-    r.bind_opts(d, move |spec, i: ImageRef, m| max_sens(&c, spec, &i, m));
+    r.bind_ctx_opts(d, max_sens);
 }
 
 /// `focus_search`: the focus from a z series.

@@ -3,8 +3,10 @@
 //! filaments with a template (the bead model).
 
 use super::ctx::Ctx;
-use super::keys::{N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
-use super::registry::{err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec};
+use super::keys::{DENSITY, D_NM, N, PATIENCE, POLARIZATION, SIGMA, SPACING_NM};
+use super::registry::{
+    binding_list, err, fail, properties, Doc, Opt, Opts, RResult, Registrar, Spec,
+};
 use super::types::{json_to_dynamic, ImageRef, ScanRef};
 use crate::analysis::bead_model::{filament_beads, render_scene};
 use crate::analysis::template::{FromScansOptions, DEFAULT_MODEL_H_UM};
@@ -23,6 +25,7 @@ use super::registry::grid_axes;
 use super::types::{FitRef, TemplateRef, TEMPLATE_ARG};
 
 /// The options of this family's bindings, each key written once (`Opt`).
+const BEADS_PER_SCAN: Opt = Opt::new("beads_per_scan", "int", "");
 const CHANNELS: Opt = Opt::new("channels", "string", "");
 const CRITERION: Opt = Opt::new("criterion", "string", "");
 const FTOL: Opt = Opt::new("ftol", "float", "");
@@ -30,6 +33,7 @@ const GROW: Opt = Opt::new("grow", "bool", "");
 const GTOL: Opt = Opt::new("gtol", "float", "");
 const H_UM: Opt = Opt::new("h_um", "float", "µm");
 const HALF_WIDTH_UM: Opt = Opt::new("half_width_um", "float", "µm");
+const ITERATIONS: Opt = Opt::new("iterations", "int", "");
 const MAX_BEADS: Opt = Opt::new("max_beads", "int", "");
 const MERGE_DEGENERATE: Opt = Opt::new("merge_degenerate", "bool", "");
 const MIN_DROP: Opt = Opt::new("min_drop", "float", "");
@@ -42,44 +46,25 @@ const BEADS: Opt = Opt::new("beads", "array", "");
 const FILAMENTS: Opt = Opt::new("filaments", "array", "");
 const INIT: Opt = Opt::new("init", "array", "");
 
-pub fn register(r: &mut Registrar) {
-    let ctx = r.ctx();
-    register_templates(r);
-    register_fit(r, &ctx);
+binding_list! {
+    pub fn register {
+        bind_template_model, bind_template_from_scans, bind_render_beads,
+        bind_fit_beads, bind_fit_numbers, bind_fit_verdict,
+    }
 }
 
 // ------------------------------------------------------------------ templates
 
-fn register_templates(r: &mut Registrar) {
-    bind_template_model(r);
-    bind_template_from_scans(r);
-    bind_render_beads(r);
-}
-
 /// `template_model`: the point-particle template from the model.
 fn bind_template_model(r: &mut Registrar) {
-    let ctx = r.ctx();
     let rb = RefBead::default();
     let d = Doc::func("template_model")
         .opts(&[
                 H_UM.doc(format!("optional: node spacing (default {DEFAULT_MODEL_H_UM}; 0.001–0.2)")),
                 Z_UM.doc("optional: axial offset of the bead from the focus (default 0)".to_string()),
-                (
-                    "d_nm",
-                    "float",
-                    "nm",
-                    format!("optional: reference bead diameter (default {})", rb.d_nm),
-                ),
+                D_NM.doc(format!("optional: reference bead diameter (default {})", rb.d_nm)),
                 N.doc(format!("optional: reference bead index (default {})", rb.n)),
-                (
-                    "density",
-                    "float",
-                    "g/cm³",
-                    format!(
-                        "optional: reference bead density (default {})",
-                        rb.density_g_cm3
-                    ),
-                ),
+                DENSITY.doc(format!("optional: reference bead density (default {})", rb.density_g_cm3)),
                 POLARIZATION.doc("optional: vector dipole field (default false)".to_string()),
             ],
         )
@@ -92,13 +77,11 @@ fn bind_template_model(r: &mut Registrar) {
         .help("In the current optics' beam: with set_optics(#{beam: \"vector\"}) (e.g. set_optics(fit_beam(scan).optics), the beam fitted to your reference bead) the point dipole in the aplanatic vector focus of that pupil filling (always vectorial: polarization is then ignored), else the paper's paraxial model (suppl. S2/S3). angle_curve, diameter_calib, lin_dens_calib and point_mass(#{tpl}) follow the template.")
         .example(&format!("{TPL} t.norm_factor > 0.0"), "true")
         .example("template_model(#{h_um: 5.0})", "error: h_um = 5");
-    let c = ctx.clone();
-    r.bind_opts0(d, move |spec, m| template_model(&c, spec, m));
+    r.bind_ctx_opts0(d, template_model);
 }
 
 /// `template_from_scans` and what a Template shows of itself.
 fn bind_template_from_scans(r: &mut Registrar) {
-    let ctx = r.ctx();
     let rb = RefBead::default();
     let fs = FromScansOptions::default();
     let d = Doc::func("template_from_scans")
@@ -106,12 +89,12 @@ fn bind_template_from_scans(r: &mut Registrar) {
         .opts(&[
                 HALF_WIDTH_UM.doc(format!("optional: half-width of the template (default {})", fs.half_width_um)),
                 H_UM.doc("optional: node spacing (default: the finest pixel)".into()),
-                ("beads_per_scan", "int", "", "optional: beads per scan (default: all isolated maxima)".into()),
+                BEADS_PER_SCAN.doc("optional: beads per scan (default: all isolated maxima)".into()),
                 THRESHOLD.doc(format!("optional: detection threshold, fraction of the largest peak (default {})", fs.threshold)),
-                ("iterations", "int", "", format!("optional: alignment iterations (default {})", fs.iterations)),
-                ("d_nm", "float", "nm", format!("optional: reference bead diameter (default {})", rb.d_nm)),
+                ITERATIONS.doc(format!("optional: alignment iterations (default {})", fs.iterations)),
+                D_NM.doc(format!("optional: reference bead diameter (default {})", rb.d_nm)),
                 N.doc(format!("optional: reference bead index (default {})", rb.n)),
-                ("density", "float", "g/cm³", format!("optional: density (default {})", rb.density_g_cm3)),
+                DENSITY.doc(format!("optional: density (default {})", rb.density_g_cm3)),
             ],
         )
         .form("template_from_scans(scans) -> Template")
@@ -119,10 +102,7 @@ fn bind_template_from_scans(r: &mut Registrar) {
         .summary("reference template from measured scans of several reference beads: locate, align sub-pixel, average, normalise")
         .example(&format!("{TPL} let a = render_beads(t, #{{beads: [#{{x: 0.03, y: 0.0}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); let b = render_beads(t, #{{beads: [#{{x: -0.02, y: 0.04}}], x: [-2.0, 2.0], y: [-2.0, 2.0], nx: 81, ny: 81}}); template_from_scans([a, b]).source.n_beads"), "2")
         .example("template_from_scans([])", "error: no scans");
-    let c = ctx.clone();
-    r.bind_opts(d, move |spec, a: Array, m| {
-        template_from_scans(&c, spec, &a, m)
-    });
+    r.bind_ctx_opts(d, template_from_scans);
 
     // properties and methods
     properties!(r, "Template", TemplateRef, TPL, [
@@ -221,14 +201,8 @@ fn bind_render_beads(r: &mut Registrar) {
 /// Default relative RSS drop of the `rel_drop` growth criterion.
 const DEFAULT_MIN_DROP: f64 = 0.02;
 
-fn register_fit(r: &mut Registrar, ctx: &Arc<Ctx>) {
-    bind_fit_beads(r, ctx);
-    bind_fit_numbers(r);
-    bind_fit_verdict(r);
-}
-
 /// `fit_beads(scan, tpl, [opts])`: its options, declared once with their defaults.
-fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
+fn bind_fit_beads(r: &mut Registrar) {
     // the defaults in the help come from FitOptions::default(), never repeated here
     let fd = FitOptions::default();
     let keys: Vec<(&str, &str, &str, String)> = vec![
@@ -261,10 +235,7 @@ fn bind_fit_beads(r: &mut Registrar, ctx: &Arc<Ctx>) {
         .summary("multi-bead template fit (eq. multiBeadFit) with Levenberg–Marquardt and an analytic Jacobian")
         .example(&format!("{ONE_BEAD} let f = fit_beads(sc, t, #{{n_beads: 1}}); round(f.beads[0].x * 1000.0)"), "100.0")
         .example(&format!("{ONE_BEAD} fit_beads(sc, t, #{{channels: \"sz\"}})"), "error: channels = \"sz\"");
-    let c = ctx.clone();
-    r.bind_opts2(d, move |spec, s: ScanRef, t: TemplateRef, m| {
-        fit_beads_of(&c, spec, &s, &t, m)
-    });
+    r.bind_ctx_opts2(d, fit_beads_of);
 }
 
 /// The fit's beads and numbers: `FitResult`'s beads, χ², RSS, σ, BIC, condition, counts.
@@ -391,9 +362,9 @@ fn template_from_scans(c: &Ctx, spec: &Spec, a: &Array, m: &Map) -> RResult<Temp
     let fo = FromScansOptions {
         half_width_um: o.f64_or(HALF_WIDTH_UM, d.half_width_um)?,
         h_um: o.f64(H_UM)?,
-        beads_per_scan: count("template_from_scans", &o, "beads_per_scan", 1, 10_000)?,
+        beads_per_scan: count("template_from_scans", &o, BEADS_PER_SCAN, 1, 10_000)?,
         threshold: o.f64_or(THRESHOLD, d.threshold)?,
-        iterations: count("template_from_scans", &o, "iterations", 0, 100)?.unwrap_or(d.iterations),
+        iterations: count("template_from_scans", &o, ITERATIONS, 0, 100)?.unwrap_or(d.iterations),
     };
     let scans = scans_arg("template_from_scans", a)?;
     let refs: Vec<&Scan> = scans.iter().map(|s| s.as_ref()).collect();

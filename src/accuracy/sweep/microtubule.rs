@@ -236,7 +236,7 @@ pub(super) fn microtubule_case(
     let ao = AggregateOptions::default();
     let answer = remove_aggregates(&scan, tpl, &cal.curve, &ao).and_then(|r| {
         Ok((
-            density(&r.scan, &cal.curve, &cal.cal, ao.skip_um)?,
+            density(&r.cleaned.scan, &cal.curve, &cal.cal, ao.skip_um)?,
             r.warnings,
         ))
     });
@@ -261,7 +261,7 @@ pub(super) fn microtubule_case(
                 "μ {:.3} ± {:.3} MDa/µm vs truth {truth:.3} ({} maxima): {}",
                 d.mu_mda_um,
                 d.mu_err_mda_um,
-                d.n_points,
+                d.region.n_points,
                 case.describe()
             ),
         }

@@ -83,15 +83,7 @@ pub fn start_pair(
 
 /// The family emulators started together, connected through the real drivers. (listed in `instrument::registry`).
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "emulator",
-    backend: "emulated",
-    aliases: &[],
-    stages: &[],
-    qpds: &[],
     keys: &["scene", "noise_v", "qpd"],
-    open: crate::instrument::family::Open::Emulated,
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: crate::instrument::family::NO_SECTION,
     help: crate::instrument::family::ConnectHelp {
         backend: "\"emulated\" (the serial drivers talking to in-process emulators)",
         about: "\"emulated\": starts a GCS stage emulator and a SCPI QPD emulator on pseudo-terminals in this process \
@@ -100,4 +92,9 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
              with qpd: \"redpitaya\" the QPD is a Red Pitaya board emulator over loopback TCP whose external \
              trigger is wired to the stage's trigger output OUT1, for hardware-timed rasters (mode: \"raster\").",
     },
+    ..crate::instrument::family::Family::new(
+        "emulator",
+        "emulated",
+        crate::instrument::family::Open::Emulated,
+    )
 };

@@ -5,7 +5,7 @@
 use super::split::GcsSplitStage;
 use super::{GcsOptions, GcsStage, GCS};
 use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults,
 };
 use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::tables::{bad, SectionError, StageConfig, Tables, AXIS_NAMES};
@@ -16,32 +16,21 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "gcs",
-    backend: "hardware",
-    aliases: &[],
     stages: &[GCS.0],
-    qpds: &[],
     keys: &["stage_port", "baud", "stage_baud", "timeout_ms"],
-    open: Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
     stage_defaults: StageDefaults {
         // `#5` is one byte each way (0.26 ms of wire per poll at 115200 baud): polling every
         // millisecond costs the controller little
         poll_ms: 1,
         settle_s: None,
     },
-    section: Section {
-        validate: Some(validate),
-        open_stage: Some(open_stage),
-        ..NO_SECTION
-    },
+    section: Section::stage(validate, open_stage),
     help: ConnectHelp {
         backend: "\"hardware\" (alias \"gcs\", \"scpi\": PI GCS stage + SCPI QPD on serial ports)",
         about: "\"hardware\": the PI GCS 2.0 stage and SCPI QPD drivers on the config's ports (stage_port, qpd_port, baud, … \
              override them); connecting identifies both devices, switches the servos on and reads the travel range.",
     },
+    ..Family::new("gcs", "hardware", Open::config("gcs", "scpi"))
 };
 
 /// `stage.port` and `stage.ports` of a GCS stage: one of the two, each port `tcp://HOST:PORT`

@@ -4,7 +4,7 @@
 
 use super::{MadlibOptions, MadlibStage, MADLIB};
 use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults,
 };
 use crate::instrument::tables::{bad, only_for, SectionError, StageConfig, Tables, AXIS_NAMES};
 use crate::instrument::Stage;
@@ -14,16 +14,8 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "madlib",
-    backend: "bench",
-    aliases: &[],
     stages: &[MADLIB.0],
-    qpds: &[],
     keys: &["timeout_ms"],
-    open: Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
     stage_defaults: StageDefaults {
         // the readings back to back: each `MCL_SingleReadN` is a USB round trip of its own
         // (≈ 0.2 ms), so the link sets the pace and a move ends as soon as the readings are on
@@ -32,12 +24,9 @@ pub const FAMILY: Family = Family {
         // settled on its readings (`tolerance_um`, two in a row): no fixed settle after them
         settle_s: Some(0.0),
     },
-    section: Section {
-        validate: Some(validate),
-        open_stage: Some(open_stage),
-        ..NO_SECTION
-    },
+    section: Section::stage(validate, open_stage),
     help: ConnectHelp::entry("\"madlib\" (alias \"nidaqmx\", \"bench\": the paper's bench, a Mad City Labs Nano-Drive + an NI DAQ board through their vendor libraries, the rest from the config's [stage], [qpd] and [raster])"),
+    ..Family::new("madlib", "bench", Open::config("madlib", "nidaqmx"))
 };
 
 /// A Nano-Drive's keys are valid; its keys (library, serial) are refused for another stage.

@@ -230,11 +230,6 @@ pub fn mock_instrument(cfg: MockConfig) -> (Instrument, MockHandle) {
 
 /// The mock instrument of the tests and examples. (listed in `instrument::registry`).
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "mock",
-    backend: "mock",
-    aliases: &[],
-    stages: &[],
-    qpds: &[],
     keys: &[
         "rate",
         "start",
@@ -242,9 +237,6 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
         "fail_read_after",
         "abort_after_reads",
     ],
-    open: crate::instrument::family::Open::Mock,
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: crate::instrument::family::NO_SECTION,
     help: crate::instrument::family::ConnectHelp {
         backend: "\"mock\"",
         about: "The mock backend is for tests and examples: a noiseless analytic signal \
@@ -252,4 +244,5 @@ pub const FAMILY: crate::instrument::family::Family = crate::instrument::family:
              virtual clock, travel x, y ±50 µm, z ±10 µm. It can be told to fail or to raise the \
              abort flag, to test the safety rules from scripts.",
     },
+    ..crate::instrument::family::Family::new("mock", "mock", crate::instrument::family::Open::Mock)
 };

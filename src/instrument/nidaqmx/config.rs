@@ -9,9 +9,7 @@ use super::{
     parse_channel, NiInputs, NiQpd, NiQpdOptions, Terminal, NIDAQMX, PCI6120_MAX_RANGE_V,
     PCI6120_MAX_RATE_HZ,
 };
-use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, OpenedPair, Section, NO_SECTION, STAGE_DEFAULTS,
-};
+use crate::instrument::family::{Family, Open, OpenError, Opened, OpenedPair, Section};
 use crate::instrument::madlib::MADLIB;
 use crate::instrument::tables::{
     bad, only_for, QpdChannels, QpdConfig, RasterConfig, SectionError, Tables,
@@ -23,24 +21,13 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "nidaqmx",
-    backend: "bench",
-    aliases: &[],
-    stages: &[],
     qpds: &[NIDAQMX.0],
     keys: &["timeout_ms"],
-    open: Open::Config {
-        stage: "madlib",
-        qpd: "nidaqmx",
-    },
-    stage_defaults: STAGE_DEFAULTS,
     section: Section {
-        validate: Some(validate),
-        open_qpd: Some(open_qpd),
         open_pair: Some(open_pair),
-        ..NO_SECTION
+        ..Section::qpd(validate, open_qpd)
     },
-    help: ConnectHelp::entry(""),
+    ..Family::new("nidaqmx", "bench", Open::config("madlib", "nidaqmx"))
 };
 
 /// The board's keys are valid (and refused for another QPD); `[raster]` names the board, with

@@ -3,9 +3,7 @@
 //! description scans record.
 
 use super::{RedPitaya, RedPitayaOptions, BASE_RATE_HZ, DEFAULT_PORT, REDPITAYA};
-use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, Section, NO_SECTION, STAGE_DEFAULTS,
-};
+use crate::instrument::family::{ConnectHelp, Family, Open, OpenError, Opened, Section};
 use crate::instrument::tables::{bad, QpdChannels, QpdConfig, SectionError, Tables};
 use crate::instrument::Qpd;
 use serde_json::json;
@@ -14,23 +12,11 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "redpitaya",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
     qpds: &[REDPITAYA.0],
     keys: &["qpd_host", "qpd_port", "timeout_ms"],
-    open: Open::Config {
-        stage: "gcs",
-        qpd: "redpitaya",
-    },
-    stage_defaults: STAGE_DEFAULTS,
-    section: Section {
-        validate: Some(validate),
-        open_qpd: Some(open_qpd),
-        ..NO_SECTION
-    },
+    section: Section::qpd(validate, open_qpd),
     help: ConnectHelp::entry("\"redpitaya\" (PI GCS stage + a Red Pitaya STEMlab QPD over TCP)"),
+    ..Family::new("redpitaya", "hardware", Open::config("gcs", "redpitaya"))
 };
 
 /// `[qpd]` for a Red Pitaya: `host` required (a name or address, without a port), `port`

@@ -2,9 +2,7 @@
 //! driver settings and its opening with the description scans record.
 
 use super::{ScpiOptions, ScpiQpd, SCPI};
-use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, Section, NO_SECTION, STAGE_DEFAULTS,
-};
+use crate::instrument::family::{Family, Open, OpenError, Opened, Section};
 use crate::instrument::tables::{bad, QpdConfig, SectionError, Tables};
 use crate::instrument::Qpd;
 use serde_json::json;
@@ -13,23 +11,10 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "scpi",
-    backend: "hardware",
-    aliases: &[],
-    stages: &[],
     qpds: &[SCPI.0],
     keys: &["qpd_port", "baud", "qpd_baud", "timeout_ms"],
-    open: Open::Config {
-        stage: "gcs",
-        qpd: "scpi",
-    },
-    stage_defaults: STAGE_DEFAULTS,
-    section: Section {
-        validate: Some(validate),
-        open_qpd: Some(open_qpd),
-        ..NO_SECTION
-    },
-    help: ConnectHelp::entry(""),
+    section: Section::qpd(validate, open_qpd),
+    ..Family::new("scpi", "hardware", Open::config("gcs", "scpi"))
 };
 
 /// A SCPI QPD needs its serial port; its input range, when given, is above 0.

@@ -600,17 +600,12 @@ pub fn render_xy(renderer: &Renderer, xs: &[f64], ys: &[f64], z: f64, n_samples:
 pub const SIM: crate::instrument::family::Backend = crate::instrument::family::Backend("sim");
 
 pub const FAMILY: crate::instrument::family::Family = crate::instrument::family::Family {
-    name: "sim",
-    backend: "sim",
-    aliases: &[],
     stages: &[SIM.0],
     qpds: &[SIM.0],
     keys: &["scene", "pace"],
-    open: crate::instrument::family::Open::Sim,
-    stage_defaults: crate::instrument::family::STAGE_DEFAULTS,
-    section: crate::instrument::family::NO_SECTION,
     help: crate::instrument::family::ConnectHelp {
         backend: "\"sim\"",
         about: "\"sim\": the simulated instrument.",
     },
+    ..crate::instrument::family::Family::new("sim", "sim", crate::instrument::family::Open::Sim)
 };

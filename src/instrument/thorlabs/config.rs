@@ -7,7 +7,7 @@ use super::kpa101::{Kpa101, KpaOptions};
 use super::kpz101::{Kpz101Stage, KpzOptions};
 use super::{KPA101, KPZ101};
 use crate::instrument::family::{
-    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults, NO_SECTION,
+    ConnectHelp, Family, Open, OpenError, Opened, Section, StageDefaults,
 };
 use crate::instrument::link::TCP_PREFIX;
 use crate::instrument::tables::{
@@ -20,16 +20,10 @@ use std::time::Duration;
 /// The family, as `instrument::registry` lists it: its names, `connect` keys, defaults,
 /// section and help.
 pub const FAMILY: Family = Family {
-    name: "thorlabs",
-    backend: "thorlabs",
     aliases: &["kpz101", "kpa101"],
     stages: &[KPZ101.0],
     qpds: &[KPA101.0],
     keys: &["qpd_port", "stage_ports", "timeout_ms"],
-    open: Open::Config {
-        stage: "kpz101",
-        qpd: "kpa101",
-    },
     stage_defaults: StageDefaults {
         // each poll is an `MGMSG_PZ_REQ_OUTPUTPOS` request and reply, and a strain-gauge
         // reading taken every millisecond catches the actuator still on its way, inside the
@@ -38,12 +32,11 @@ pub const FAMILY: Family = Family {
         settle_s: None,
     },
     section: Section {
-        validate: Some(validate),
-        open_stage: Some(open_stage),
         open_qpd: Some(open_qpd),
-        ..NO_SECTION
+        ..Section::stage(validate, open_stage)
     },
     help: ConnectHelp::entry("\"thorlabs\" (alias \"kpz101\", \"kpa101\": three KPZ101 cubes + a KPA101 position aligner)"),
+    ..Family::new("thorlabs", "thorlabs", Open::config("kpz101", "kpa101"))
 };
 
 fn validate(t: &Tables) -> Result<(), SectionError> {
