@@ -904,11 +904,23 @@ fn timed(t: &mut BTreeMap<String, Tally>, family: &str, s: f64, case: &str) {
 }
 
 /// The sweep's section of docs/accuracy.md: the command that reproduces it, when and how long
-/// it ran, the table, and every unflagged outlier's scene in words.
-pub fn markdown(t: &BTreeMap<String, Tally>, n: usize, seed: u64, seconds: f64) -> String {
+/// it ran (with `--family` where `families` are not all of them), the table, and every
+/// unflagged outlier's scene in words.
+pub fn markdown(
+    t: &BTreeMap<String, Tally>,
+    n: usize,
+    seed: u64,
+    families: &[&str],
+    seconds: f64,
+) -> String {
+    let family = if families.len() < FAMILIES.len() {
+        format!(" --family {}", families.join(","))
+    } else {
+        String::new()
+    };
     let mut s = format!(
-        "## Truth sweep\n\nFrom `bfpscope sweep --n {n} --seed {seed} --markdown FILE` (release) on {}, {seconds:.0} s on this machine: \
-         {n} random scenes of each family (the scene space is in `src/accuracy/sweep.rs` and docs/analysis.md, \"Domains\"), \
+        "## Truth sweep\n\nFrom `bfpscope sweep --n {n} --seed {seed}{family} --markdown FILE` (release) on {}, {seconds:.0} s on this machine: \
+         {n} random scenes of each family run (the scene space is in `src/accuracy/sweep.rs` and docs/analysis.md, \"Domains\"), \
          every answer compared with the scene's truth. Required: no unflagged outlier (an answer without a warning beyond 4σ, \
          or 5 % of a diameter or a count), 1σ coverage 0.60–0.76 and 2σ coverage 0.91–0.98 inside the domain.\n\n",
         crate::data::clock::today()
@@ -953,7 +965,7 @@ pub fn cli(
     match r {
         Ok(t) => {
             if let Some(path) = markdown_to {
-                let md = markdown(&t, n, seed, t0.elapsed().as_secs_f64());
+                let md = markdown(&t, n, seed, &families, t0.elapsed().as_secs_f64());
                 if let Err(e) = std::fs::write(path, md) {
                     eprintln!("error: sweep: --markdown {}: {e}", path.display());
                     return std::process::ExitCode::from(2);
