@@ -606,11 +606,7 @@ fn row_snr(m: &FilamentMeasurement) -> Option<f64> {
 
 /// A warning where one maximum stands under [`FILAMENT_ROW_SNR`] σ of its own noise.
 fn row_snr_check(m: &FilamentMeasurement) -> Option<String> {
-    let thr: f64 = std::env::var("ROWSNR")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(FILAMENT_ROW_SNR);
-    let k = row_snr(m).filter(|&k| k < thr)?;
+    let k = row_snr(m).filter(|&k| k < FILAMENT_ROW_SNR)?;
     Some(format!(
         "one maximum along the filament is {k:.1}σ of its own noise, below {FILAMENT_ROW_SNR}σ: each row's parabola vertex is then biased low (its curvature is as noisy as its value), and the mean and its sem do not hold (dwell longer, or use larger pixels)"
     ))
@@ -926,10 +922,13 @@ fn filament_ends(trace: &[(f64, f64, usize)], sigma: f64) -> FilamentEnds {
     // interior line was bent 2° by the end's maxima)
     let on: Vec<f64> = med.iter().copied().filter(|&m| m >= half).collect();
     let level = super::stats::median(&on).unwrap_or(plateau);
-    let edge = |found: Option<f64>, lines: &mut dyn Iterator<Item = usize>, i: usize| {
+    // `lines`: the trace's lines from the edge inwards
+    let edge = |found: Option<f64>, lines: &mut dyn Iterator<Item = usize>| {
+        let lines: Vec<usize> = lines.take(EDGE_LINES).collect();
+        let i = lines[0];
         let vals: Vec<f64> = lines
-            .take(EDGE_LINES)
-            .map(|k| trace[k].1)
+            .iter()
+            .map(|&k| trace[k].1)
             .filter(|x| x.is_finite())
             .collect();
         let (m, k) = if vals.len() >= 2 {
@@ -940,7 +939,7 @@ fn filament_ends(trace: &[(f64, f64, usize)], sigma: f64) -> FilamentEnds {
         let low = level - (3.0 * sigma / (k as f64).sqrt()).max(EDGE_LOWERED_REL * level);
         (found.is_none() && m >= half && m < low).then_some(trace[i].0)
     };
-    let (ea, eb) = (edge(a, &mut (0..n), 0), edge(b, &mut (0..n).rev(), n - 1));
+    let (ea, eb) = (edge(a, &mut (0..n)), edge(b, &mut (0..n).rev()));
     // the trace runs in line order; the arc may run either way along it
     let swap = match (a, b) {
         (Some(a), Some(b)) => a > b,
@@ -981,14 +980,21 @@ struct FilamentEnds {
 /// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
 
+/// Whether an end (or the scan's edge near one) cut maxima off and at least 3 interior ones
+/// are left: where the interior line is refitted and carries the end's systematics.
+fn ends_cut_maxima(points: &[FilamentPoint]) -> bool {
+    let n_in = points.iter().filter(|p| p.interior).count();
+    n_in >= 3 && n_in < points.len()
+}
+
 /// The line refitted on the interior maxima alone where an end cut some off: an end's maxima
 /// bend and fade, and near 45° a degree of angle moves the correction by percents (a 2.3 µm
 /// fibril at −42° was read at −49.7° from all its maxima, its diameter 16 % low).
 fn refit_on_interior(points: &[FilamentPoint], line: LineFit, rows: bool) -> LineFit {
-    let n_in = points.iter().filter(|p| p.interior).count();
-    if n_in < 3 || n_in == points.len() {
+    if !ends_cut_maxima(points) {
         return line;
     }
+    let n_in = points.iter().filter(|p| p.interior).count();
     let (c, q): (Vec<f64>, Vec<f64>) = points
         .iter()
         .filter(|p| p.interior)
@@ -1011,11 +1017,10 @@ fn refit_on_interior(points: &[FilamentPoint], line: LineFit, rows: bool) -> Lin
 /// the relative 1σ of the mean [`END_VALUE_SYS_UM`] / s, s the arc span of the interior maxima
 /// (µm). Returns the line and that relative 1σ (0 where no end cut maxima off).
 fn with_end_systematics(points: &[FilamentPoint], mut line: LineFit) -> (LineFit, f64) {
-    let arcs = points.iter().filter(|p| p.interior).map(|p| p.arc_um);
-    let n_in = arcs.clone().count();
-    if n_in < 3 || n_in == points.len() {
+    if !ends_cut_maxima(points) {
         return (line, 0.0);
     }
+    let arcs = points.iter().filter(|p| p.interior).map(|p| p.arc_um);
     let (lo, hi) = arcs.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), a| {
         (lo.min(a), hi.max(a))
     });

@@ -129,6 +129,18 @@ impl FocusTruth {
     }
 }
 
+/// A scene holding one polystyrene bead of `d_nm` at the origin, nothing else.
+fn lone_bead(d_nm: f64) -> Result<Scene, String> {
+    let mut sc = Scene::default();
+    sc.add_bead(Bead {
+        pos: [0.0; 3],
+        d_nm,
+        n: REF_BEAD_N,
+    })
+    .map_err(|e| e.to_string())?;
+    Ok(sc)
+}
+
 /// Whether the simulator renders a polystyrene bead of `d_nm` by the Mie tier: the domain
 /// check's verdict (the point dipole more than 1 % off, docs/accuracy.md#model_500), which
 /// the renderer reads the same way.
@@ -137,14 +149,7 @@ fn renders_by_mie(optics: &Optics, d_nm: f64) -> Result<bool, String> {
         return Ok(false);
     }
     let valid = optics.valid().map_err(|e| e.to_string())?;
-    let mut sc = Scene::default();
-    sc.add_bead(Bead {
-        pos: [0.0; 3],
-        d_nm,
-        n: REF_BEAD_N,
-    })
-    .map_err(|e| e.to_string())?;
-    Ok(DomainCheck::run_shared(&valid, &sc)
+    Ok(DomainCheck::run_shared(&valid, &lone_bead(d_nm)?)
         .outside(d_nm, REF_BEAD_N)
         .is_some())
 }
@@ -153,14 +158,8 @@ fn renders_by_mie(optics: &Optics, d_nm: f64) -> Result<bool, String> {
 /// (µm⁻¹), from the noise-free renderer of a scene holding that bead alone (the renderer's
 /// own tier: point dipole, or Mie where the domain check says so).
 fn bead_focus(optics: &Optics, d_nm: f64) -> Result<(f64, f64), String> {
-    let mut sc = Scene::default();
-    sc.add_bead(Bead {
-        pos: [0.0, 0.0, 0.0],
-        d_nm,
-        n: REF_BEAD_N,
-    })
-    .map_err(|e| e.to_string())?;
-    let r = Renderer::checked(optics, &sc, Default::default()).map_err(|e| e.to_string())?;
+    let r = Renderer::checked(optics, &lone_bead(d_nm)?, Default::default())
+        .map_err(|e| e.to_string())?;
     // the largest slope along x at each z: central differences of Sx every 1 nm over
     // ±0.15 µm, the maximum refined by the parabola through its neighbours (the lateral
     // maximum need not sit on the bead's centre)
