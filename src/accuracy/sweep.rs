@@ -81,6 +81,9 @@ pub struct Tally {
     pub scenes: usize,
     pub slowest_s: f64,
     pub slowest: String,
+    /// The slowest scene as `--replay` reads it (its JSON).
+    #[serde(skip)]
+    pub slowest_scene: String,
 }
 
 impl Tally {
@@ -146,6 +149,7 @@ impl Tally {
         if o.slowest_s > self.slowest_s {
             self.slowest_s = o.slowest_s;
             self.slowest = o.slowest;
+            self.slowest_scene = o.slowest_scene;
         }
     }
     fn finish(&mut self) {
@@ -834,9 +838,9 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
             let (outcomes, r) =
                 microtubule::microtubule_case(mc, &tpl, &optics, &Default::default());
             tally_outcomes(&mut t, outcomes);
-            if let Some((d, why)) = r {
+            if let Some((d, why, n_objects)) = r {
                 out.push_str(&format!(
-                    "  μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
+                    "  {n_objects} point objects removed; μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
                     d.mu_mda_um,
                     d.mu_err_mda_um,
                     mc.truth_mu(),
@@ -899,6 +903,7 @@ fn timed(t: &mut BTreeMap<String, Tally>, family: &str, s: f64, case: &str) {
         if s > v.slowest_s {
             v.slowest_s = s;
             v.slowest = case.to_string();
+            v.slowest_scene = CURRENT.with(|c| c.borrow().clone());
         }
     }
 }
@@ -988,6 +993,7 @@ pub fn cli(
                 let mut shown = std::collections::BTreeSet::new();
                 for v in t.values().filter(|v| shown.insert(v.slowest.clone())) {
                     println!("slowest scene: {:.1} s: {}", v.slowest_s, v.slowest);
+                    println!("  (bfpscope sweep --replay '{}')", v.slowest_scene);
                 }
                 if std::env::var_os("BFPSCOPE_SWEEP_REASONS").is_some() {
                     for (k, v) in &t {

@@ -178,8 +178,9 @@ impl MtCals {
     }
 }
 
-/// The density and every warning of the removal and the density, once each.
-pub(super) type Answer = (Density, Vec<String>);
+/// The density, every warning of the removal and the density (once each), and the number of
+/// point objects the removal fitted and subtracted.
+pub(super) type Answer = (Density, Vec<String>, usize);
 
 /// The microtubule family: one scene, its aggregates removed, its linear density against the
 /// truth. Returns the outcome and the answer (for `--replay`): the density and every warning.
@@ -238,9 +239,10 @@ pub(super) fn microtubule_case(
         Ok((
             density(&r.cleaned.scan, &cal.curve, &cal.cal, ao.skip_um)?,
             r.warnings,
+            r.cleaned.n_objects(),
         ))
     });
-    let (d, removal_warnings) = match answer {
+    let (d, removal_warnings, n_objects) = match answer {
         Ok(x) => x,
         Err(e) => return (vec![(key, Outcome::Flagged(vec![e]))], None),
     };
@@ -268,5 +270,5 @@ pub(super) fn microtubule_case(
     } else {
         Outcome::Flagged(why.clone())
     };
-    (vec![(key, o)], Some((d, why)))
+    (vec![(key, o)], Some((d, why, n_objects)))
 }
