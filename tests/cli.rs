@@ -1194,6 +1194,18 @@ fn a_sweep_prints_its_tallies_as_json_and_replays_a_dumped_scene_to_the_same_ans
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let again = dump_lines(&dump2);
     assert_eq!(again.first().map(|a| (a.0, a.1)), Some((value, sigma)));
+    // without --json, redirected: progress as lines on stderr (the bar needs a terminal), and
+    // the slowest scene with the command that replays it, whose JSON is a bead scene
+    let (code, out, err) = run(&["sweep", "--n", "2", "--seed", "7", "--family", "beads"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("sweep: 2 of 2 scenes"), "{err}");
+    let replay = out
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("(bfpscope sweep --replay '"))
+        .and_then(|l| l.strip_suffix("')"))
+        .unwrap_or_else(|| panic!("no replay command: {out}"));
+    let scene: serde_json::Value = serde_json::from_str(replay).expect("the scene's JSON");
+    assert_eq!(scene["family"], "beads", "{scene}");
     // a scene that is not one is refused in words
     let (code, _, err) = run(&["sweep", "--replay", "{\"family\": \"stars\"}"]);
     assert_eq!(code, 2);

@@ -961,9 +961,17 @@ pub fn cli(
         indicatif::ProgressBar::new((FAMILIES.len() * n) as u64)
     };
     let t0 = std::time::Instant::now();
+    // redirected to a file, the bar is hidden: a line on stderr at each tenth instead
+    let lines = !json && !std::io::IsTerminal::is_terminal(&std::io::stderr());
     let r = run(opts, &|done, total| {
         bar.set_length(total as u64);
-        bar.set_position(done as u64)
+        bar.set_position(done as u64);
+        if lines && total > 0 && (10 * done / total) > (10 * (done - 1) / total) {
+            eprintln!(
+                "sweep: {done} of {total} scenes, {:.0} s",
+                t0.elapsed().as_secs_f64()
+            );
+        }
     });
     bar.finish_and_clear();
     let families: Vec<&str> = FAMILIES.into_iter().filter(|f| opts.runs(f)).collect();
