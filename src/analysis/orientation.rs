@@ -980,21 +980,21 @@ struct FilamentEnds {
 /// or NaN), for the checks of `kind`.
 type LineTrace = Vec<(f64, f64)>;
 
-/// Whether an end (or the scan's edge near one) cut maxima off and at least 3 interior ones
-/// are left: where the interior line is refitted and carries the end's systematics.
-fn ends_cut_maxima(points: &[FilamentPoint]) -> bool {
+/// The number of interior maxima where an end (or the scan's edge near one) cut maxima off and
+/// at least 3 interior ones are left: where the interior line is refitted and carries the
+/// end's systematics (None otherwise).
+fn ends_cut_maxima(points: &[FilamentPoint]) -> Option<usize> {
     let n_in = points.iter().filter(|p| p.interior).count();
-    n_in >= 3 && n_in < points.len()
+    (n_in >= 3 && n_in < points.len()).then_some(n_in)
 }
 
 /// The line refitted on the interior maxima alone where an end cut some off: an end's maxima
 /// bend and fade, and near 45° a degree of angle moves the correction by percents (a 2.3 µm
 /// fibril at −42° was read at −49.7° from all its maxima, its diameter 16 % low).
 fn refit_on_interior(points: &[FilamentPoint], line: LineFit, rows: bool) -> LineFit {
-    if !ends_cut_maxima(points) {
+    let Some(n_in) = ends_cut_maxima(points) else {
         return line;
-    }
-    let n_in = points.iter().filter(|p| p.interior).count();
+    };
     let (c, q): (Vec<f64>, Vec<f64>) = points
         .iter()
         .filter(|p| p.interior)
@@ -1017,7 +1017,7 @@ fn refit_on_interior(points: &[FilamentPoint], line: LineFit, rows: bool) -> Lin
 /// the relative 1σ of the mean [`END_VALUE_SYS_UM`] / s, s the arc span of the interior maxima
 /// (µm). Returns the line and that relative 1σ (0 where no end cut maxima off).
 fn with_end_systematics(points: &[FilamentPoint], mut line: LineFit) -> (LineFit, f64) {
-    if !ends_cut_maxima(points) {
+    if ends_cut_maxima(points).is_none() {
         return (line, 0.0);
     }
     let arcs = points.iter().filter(|p| p.interior).map(|p| p.arc_um);
