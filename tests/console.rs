@@ -411,13 +411,22 @@ fn a_night_at_the_prompt() {
         long,
     );
     assert!(o.contains("weight"), "{o}");
-    // within 3σ of the fit plus the 0.2 nm to which a raster's pixels are dated (the bound
-    // tests/device_truth.rs holds both sweep directions of the same board to); the weight within
-    // 1 %: a raster pixel averages the signal over its 50 nm of travel, which lowers a focus of
-    // 1/e² radius w = 0.4 µm by ≈ p²/(6w²) = 0.3 % against the template's point samples
+    // x within 3σ of the fit plus the raster's dating bound: the digitiser's decimator phase
+    // at each line's trigger is not readable over SCPI, so every line's samples carry a common
+    // time offset within ±dt/2 (docs/hardware.md, Red Pitaya dating). At this scan's decimation
+    // (4096: dt = 32.8 µs) and 50 µm/s that is ±0.82 nm per line; the fit's σ (0.02 nm) does
+    // not contain it, and the few lines through the bead average it only partly (a CI run
+    // measured −0.29 nm). The bound still catches a dating error of one sample, v·dt = 1.6 nm.
+    // y (the slow axis) within 3σ plus 0.2 nm. The weight within 1 %: a raster pixel averages
+    // the signal over its 50 nm of travel, which lowers a focus of 1/e² radius w = 0.4 µm by
+    // ≈ p²/(6w²) = 0.3 % against the template's point samples
+    p.enter(
+        "let dt = 1.0 * s.meta.last_acquisition.decimation / 125e6; let v = (s.x[1] - s.x[0]) / s.meta.plan.dwell_s; [dt, v]",
+        T,
+    );
     holds(
         &mut p,
-        "b.found && abs(b.x) < 3.0 * b.x_err + 2e-4 && abs(b.y) < 3.0 * b.y_err + 2e-4 && abs(b.weight - 1.0) < 0.01",
+        "b.found && abs(b.x) < 3.0 * b.x_err + 0.5 * v * dt && abs(b.y) < 3.0 * b.y_err + 2e-4 && abs(b.weight - 1.0) < 0.01",
         "the emulator's bead at the origin, one reference bead",
     );
     out.push_str(&p.quit());
