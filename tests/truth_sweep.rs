@@ -138,6 +138,40 @@ fn fibril_scenes_that_were_unflagged_outliers_are_now_within_their_sigma_or_flag
     }
 }
 
+/// The slowest microtubule scene of seed 2026 (N = 12): a 13.4 µm filament 16.4° from the QPD
+/// x axis, noise × 6.7, 20 nm pixels, three aggregates. The filament shows in Sx, the channel
+/// the objects are fitted in: CLEAN took it (and one-pixel noise spikes of the unsmoothed
+/// detection map) for 60 objects, the fit took 335 s, and the removal erased the filament. Now
+/// the removal refuses it, before any fit, and says why.
+const MT_OFF_AXIS: &str = r#"{"family":"microtubule","len_um":13.38245159717844,"d_nm":23.513175998630235,"angle_deg":73.58895350760878,"centre":[5.482909196240237,1.2058440611093446],"aggregates":[[0.952999717499157,-0.4015237883708178,89.49139240591839],[0.8693105877454523,-0.21291062457828955,41.95124590256686],[-0.6831737167225068,-0.6102246867370652,51.79829887430727]],"noise":6.684018846032345,"pixel_nm":20,"seed":9143817694001983331,"clip":0.2018985446869819}"#;
+
+#[test]
+fn the_aggregate_removal_refuses_a_filament_that_shows_in_its_fitted_channel() {
+    let said = bfpscope::accuracy::sweep::replay(MT_OFF_AXIS).expect("the scene replays");
+    assert!(
+        said.contains("refused: remove_background: the filament itself shows in Sx")
+            && said.contains("° from the QPD x axis"),
+        "{said}"
+    );
+    let t = bfpscope::accuracy::sweep::replay_tallies(MT_OFF_AXIS).expect("the scene replays");
+    let v = &t["microtubule.mu"];
+    assert_eq!((v.cases, v.in_domain), (1, 0), "{said}");
+}
+
+/// A microtubule along the y axis, no aggregate, the paper's noise, 30 nm pixels: nothing to
+/// remove. The removal's CLEAN used to take the detection map's edge rows (one-sided
+/// derivative, and fewer pixels in the smoothing there) for 8 objects and fitted 6.
+#[test]
+fn the_aggregate_removal_finds_nothing_beside_a_clean_microtubule_at_the_papers_noise() {
+    for (angle, seed) in [(0.0, 5), (2.0, 6), (-3.0, 7)] {
+        let scene = format!(
+            r#"{{"family":"microtubule","len_um":13.0,"d_nm":23.5,"angle_deg":{angle},"centre":[0.3,0.2],"aggregates":[],"noise":1.0,"pixel_nm":30,"seed":{seed},"clip":null}}"#
+        );
+        let said = bfpscope::accuracy::sweep::replay(&scene).expect("the scene replays");
+        assert!(said.contains("  0 point objects removed ("), "{said}");
+    }
+}
+
 /// Microtubule scenes in the CI run: each costs the fit of its aggregates (a multi-object
 /// template fit on up to 201 × 201 pixels) and three filament measurements, 2 s to minutes of
 /// one core in a debug build (at seed 2026 the first scene takes 157 s, the second 1.7 s; 12

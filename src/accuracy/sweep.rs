@@ -837,16 +837,26 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
             out.push_str(&format!("{}\n", mc.describe()));
             let (outcomes, r) =
                 microtubule::microtubule_case(mc, &tpl, &optics, &Default::default());
+            if r.is_none() {
+                for (_, o) in &outcomes {
+                    if let focus::Outcome::Flagged(why) = o {
+                        out.push_str(&format!("  refused: {}\n", why.join("; ")));
+                    }
+                }
+            }
             tally_outcomes(&mut t, outcomes);
-            if let Some((d, why, n_objects)) = r {
+            if let Some(a) = r {
+                let d = &a.density;
                 out.push_str(&format!(
-                    "  {n_objects} point objects removed; μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
+                    "  {} point objects removed (the filament's visibility in the fitted channel {}); μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
+                    a.n_objects,
+                    a.visibility.map_or("not measured".to_string(), |v| format!("{v:.3}")),
                     d.mu_mda_um,
                     d.mu_err_mda_um,
                     mc.truth_mu(),
                     d.region.n_points,
                     d.region.mean_corr,
-                    if why.is_empty() { "ok".to_string() } else { why.join("; ") }
+                    if a.warnings.is_empty() { "ok".to_string() } else { a.warnings.join("; ") }
                 ));
             }
         }

@@ -77,7 +77,9 @@ mod warnings;
 mod window;
 
 pub use detect::detect_beads;
-pub(crate) use detect::{clean, clean_peaks, detection_map};
+pub(crate) use detect::{
+    clean, clean_peaks, detection_map, smoothed_map, smoothed_noise, template_dmap_peak,
+};
 pub use lm::FitStatus;
 pub(crate) use lm::{levenberg_marquardt, Tolerances};
 use problem::*;

@@ -198,6 +198,18 @@ impl AxisMap {
             n: a.len(),
         }
     }
+    /// Index of the sample nearest to `x`, `None` when `x` lies more than half a step outside
+    /// the axis (or is not finite).
+    pub fn nearest(&self, x: f64) -> Option<usize> {
+        if self.n == 0 || !x.is_finite() {
+            return None;
+        }
+        if self.h == 0.0 {
+            return Some(0);
+        }
+        let i = ((x - self.x0) / self.h).round();
+        (i >= 0.0 && i < self.n as f64).then_some(i as usize)
+    }
     /// Index range of samples whose coordinate lies in `[lo, hi]`.
     pub fn range(&self, lo: f64, hi: f64) -> std::ops::Range<usize> {
         if self.n == 0 || !(lo <= hi) {
@@ -225,6 +237,17 @@ impl AxisMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn axis_map_nearest_rounds_and_refuses_outside() {
+        let m = AxisMap::new(&[1.0, 0.5, 0.0]);
+        assert_eq!(m.nearest(0.74), Some(1));
+        assert_eq!(m.nearest(0.76), Some(0));
+        assert_eq!(m.nearest(-0.24), Some(2));
+        assert_eq!(m.nearest(-0.26), None);
+        assert_eq!(m.nearest(1.26), None);
+        assert_eq!(m.nearest(f64::NAN), None);
+    }
 
     #[test]
     fn axis_map_ranges_both_directions() {

@@ -43,7 +43,7 @@ pub(crate) fn detection_map(sx: &Image, sy: &Image, ch: Channels, st: Stencil) -
 }
 
 /// The template's own detection response and its peak.
-pub(super) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64) {
+pub(crate) fn template_dmap_peak(tpl: &Template, ch: Channels) -> (f64, f64, f64) {
     let g = &tpl.grid;
     let f = |u: f64, v: f64| {
         let s = g.eval_grad(u, v);
@@ -65,7 +65,7 @@ pub(crate) fn clean(
     n: usize,
     smooth_um: f64,
 ) -> Vec<BeadInit> {
-    clean_peaks(d, tpl, ch, n, 0.0, 0.0, smooth_um)
+    clean_peaks(d, tpl, ch, n, 0.0, 0.0, smooth_um, [0, 0])
         .into_iter()
         .map(|(b, _)| b)
         .collect()
@@ -74,7 +74,9 @@ pub(crate) fn clean(
 /// CLEAN: up to `n` beads from the detection map, stopping when the highest remaining maximum is
 /// not above `min_peak` (instrument units of the map) or its bead would weigh no more than
 /// `min_weight` (reference-bead units); each bead with the height of its maximum in the
-/// detection map (the map's units) when it was taken.
+/// detection map (the map's units) when it was taken. Maxima are looked for at least `skip`
+/// (columns, rows) pixels from the map's edges.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn clean_peaks(
     d: &Image,
     tpl: &Template,
@@ -83,6 +85,7 @@ pub(crate) fn clean_peaks(
     min_peak: f64,
     min_weight: f64,
     smooth_um: f64,
+    skip: [usize; 2],
 ) -> Vec<(BeadInit, f64)> {
     let (pu, pv, d0) = template_dmap_peak(tpl, ch);
     if !(d0 > 0.0) {
@@ -117,8 +120,12 @@ pub(crate) fn clean_peaks(
             &work
         };
         let mut best: Option<(usize, usize, f64)> = None;
+        let (rows, cols) = look.dim();
+        let inside = |r: usize, c: usize| {
+            r >= skip[1] && c >= skip[0] && r + skip[1] < rows && c + skip[0] < cols
+        };
         for ((r, c), &v) in look.indexed_iter() {
-            if v.is_finite() && best.is_none_or(|b| v > b.2) {
+            if v.is_finite() && inside(r, c) && best.is_none_or(|b| v > b.2) {
                 best = Some((r, c, v));
             }
         }
@@ -139,7 +146,6 @@ pub(crate) fn clean_peaks(
                 _ => 0.0,
             }
         };
-        let (rows, cols) = look.dim();
         let fx = para(
             (c > 0).then(|| look[[r, c - 1]]),
             v,
@@ -162,6 +168,33 @@ pub(crate) fn clean_peaks(
         out.push((b, v));
     }
     out
+}
+
+/// The robust noise (1.4826·MAD) of the detection map `d` smoothed as [`clean_peaks`] smooths
+/// it before taking its maxima (σ `smooth_um`; 0: not smoothed): the scale its thresholds are
+/// set in, over the pixels at least `skip` (columns, rows) from the edges. `None` when none of
+/// them is finite.
+pub(crate) fn smoothed_noise(d: &Image, smooth_um: f64, skip: [usize; 2]) -> Option<f64> {
+    let m = smoothed_map(d, smooth_um);
+    let (rows, cols) = m.dim();
+    let v: Vec<f64> = m
+        .indexed_iter()
+        .filter(|((r, c), _)| {
+            *r >= skip[1] && *c >= skip[0] && r + skip[1] < rows && c + skip[0] < cols
+        })
+        .map(|(_, &v)| v)
+        .collect();
+    crate::analysis::stats::robust_std(&v)
+}
+
+/// The detection map `d` smoothed as [`clean_peaks`] smooths it (σ `smooth_um`; 0: a copy).
+pub(crate) fn smoothed_map(d: &Image, smooth_um: f64) -> Array2<f64> {
+    if smooth_um > 0.0 {
+        let (ax, ay) = (AxisMap::new(&d.x), AxisMap::new(&d.y));
+        gaussian_smooth(&d.data, ax.h, ay.h, smooth_um)
+    } else {
+        d.data.clone()
+    }
 }
 
 /// `a` smoothed by a separable Gaussian of σ `sigma_um` (pixels `hx`, `hy` µm), NaN pixels left
