@@ -172,13 +172,37 @@ fn the_aggregate_removal_finds_nothing_beside_a_clean_microtubule_at_the_papers_
     }
 }
 
-/// Microtubule scenes in the CI run: each costs the fit of its aggregates (a multi-object
-/// template fit on up to 201 × 201 pixels) and three filament measurements, 2 s to minutes of
-/// one core in a debug build (at seed 2026 the first scene takes 157 s, the second 1.7 s; 12
-/// scenes ran more than 17 minutes on the shared machine), so CI runs 1, over the minute this
-/// test was allowed (open: the aggregates' fit is the cost): the family's plumbing and its
-/// tally, not its calibration; `SWEEP_N` and `SWEEP_RANDOM` apply as above, and the benchmark
-/// (`bfpscope sweep --family microtubule`) runs more.
+/// An unflagged outlier of `bfpscope sweep --n 2000 --seed 2026 --family microtubule` (at
+/// 648a212): a 6.3 µm microtubule 4.3° from the y axis, its end inside the field, noise × 0.14,
+/// 40 nm pixels; the removal took the filament for 13 objects and μ read 86 % low, with no
+/// warning. The removal moved the median maximum by −85 %: now it says so, and the answer is
+/// out of the domain. (The class is open: a −19 % answer moved it by −5 %; docs/analysis.md.)
+const MT_FILAMENT_TAKEN_FOR_OBJECTS: &str = r#"{"aggregates":[[0.24792688094230908,-3.419342304138612,92.06935823824696],[0.4225268980783561,-2.8401381731392594,91.98284163580986],[0.5732515826645153,2.5586481297569676,85.02593798411615],[0.5867251444519551,-2.985620988517058,84.85705599166444],[0.6291804603377337,1.4174326493014087,40.04220748676285]],"angle_deg":4.266041517122762,"centre":[0.3863187454023653,-1.8383322002339209],"clip":null,"d_nm":18.14333613007365,"family":"microtubule","len_um":6.269611755114823,"noise":0.1396972285223752,"pixel_nm":40,"seed":9346850379871553632}"#;
+
+#[test]
+fn a_removal_that_takes_the_filament_for_objects_is_flagged() {
+    let said = bfpscope::accuracy::sweep::replay(MT_FILAMENT_TAKEN_FOR_OBJECTS)
+        .expect("the scene replays");
+    assert!(
+        said.contains("the removal moved the filament's median corrected maximum by -85 %"),
+        "{said}"
+    );
+    let t = bfpscope::accuracy::sweep::replay_tallies(MT_FILAMENT_TAKEN_FOR_OBJECTS)
+        .expect("the scene replays");
+    let v = &t["microtubule.mu"];
+    assert_eq!(
+        (v.cases, v.in_domain, v.unflagged_outliers),
+        (1, 0, 0),
+        "{said}"
+    );
+}
+
+/// Microtubule scenes in the CI run: 1, the family's plumbing and its tally, not its
+/// calibration, which fails (15 unflagged outliers in 2000 scenes at seed 2026, release, at
+/// 648a212; docs/accuracy.md). Since that commit a scene costs 0.4 s of release time on average
+/// (before, 2 s to minutes: the aggregates' fit), but one scene in 2000 still took 498 s, so
+/// more scenes wait for the calibration; `SWEEP_N` and `SWEEP_RANDOM` apply as above, and the
+/// benchmark (`bfpscope sweep --family microtubule`) runs more.
 const MICROTUBULE_N: usize = 1;
 
 #[test]

@@ -657,6 +657,20 @@ pub fn run(
     cases.retain(|c| opts.runs(c.family()));
     let cals = Cals::default();
     let mt_cals = microtubule::MtCals::default();
+    // every calibration the scenes need, computed here, before the parallel loop: computed
+    // inside it, under the calibrations' lock, its own rayon work let the waiting thread take
+    // another scene that wanted the same lock
+    for c in &cases {
+        match c {
+            Case::Fibril(fc) => {
+                cals.get(fc.pixel_nm, &tpl);
+            }
+            Case::Microtubule(mc) => {
+                mt_cals.get(mc.pixel_nm, &tpl);
+            }
+            _ => {}
+        }
+    }
     let focus_truth = if opts.runs("focus") {
         Some(focus::FocusTruth::compute(&optics, &tpl)?)
     } else {

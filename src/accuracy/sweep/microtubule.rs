@@ -170,7 +170,7 @@ pub(super) struct MtCal {
 pub(super) struct MtCals(Mutex<BTreeMap<u32, Option<Arc<MtCal>>>>);
 
 impl MtCals {
-    fn get(&self, pixel_nm: u32, tpl: &Template) -> Option<Arc<MtCal>> {
+    pub(super) fn get(&self, pixel_nm: u32, tpl: &Template) -> Option<Arc<MtCal>> {
         let mut m = self.0.lock().unwrap_or_else(|e| e.into_inner());
         m.entry(pixel_nm)
             .or_insert_with(|| {
@@ -264,9 +264,10 @@ pub(super) fn microtubule_case(
             r.warnings,
             r.cleaned.n_objects(),
             r.visibility,
+            r.median_ratio,
         ))
     });
-    let (d, removal_warnings, n_objects, visibility) = match answer {
+    let (d, removal_warnings, n_objects, visibility, median_ratio) = match answer {
         Ok(x) => x,
         Err(e) => return (vec![(key, Outcome::Flagged(vec![e]))], None),
     };
@@ -284,10 +285,11 @@ pub(super) fn microtubule_case(
             sigma: Some(d.mu_err_mda_um),
             rel_limit: Some(0.05),
             what: format!(
-                "μ {:.3} ± {:.3} MDa/µm vs truth {truth:.3} ({} maxima): {}",
+                "μ {:.3} ± {:.3} MDa/µm vs truth {truth:.3} ({} maxima; {n_objects} objects removed, the median maximum × {}): {}",
                 d.mu_mda_um,
                 d.mu_err_mda_um,
                 d.region.n_points,
+                median_ratio.map_or("?".to_string(), |m| format!("{m:.4}")),
                 case.describe()
             ),
         }

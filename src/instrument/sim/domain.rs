@@ -35,7 +35,7 @@ pub fn is_suspect(d_nm: f64, n: f64) -> bool {
 /// Remembered point-dipole errors, keyed by (optics, d, n); oldest dropped first beyond
 /// [`Self::CAPACITY`]. The reference bead's Mie sensitivity (the error's denominator) is
 /// remembered per optics apart, so a new species costs one Mie response, not two.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 pub struct DomainMemo {
     entries: VecDeque<(ValidOptics, u64, u64, Result<f64, OpticsError>)>,
     /// (optics, the 110 nm polystyrene bead's M/α), the most recent [`Self::REF_CAPACITY`]
@@ -143,6 +143,30 @@ impl DomainMemo {
         }
     }
 
+    /// Remember what `other` remembers and `self` does not (newest last, bounded as always).
+    fn merge(&mut self, other: &DomainMemo) {
+        for (o, d, n, e) in &other.entries {
+            let known = self
+                .entries
+                .iter()
+                .any(|(oo, dd, nn, _)| (dd, nn) == (d, n) && oo == o);
+            if !known {
+                if self.entries.len() == Self::CAPACITY {
+                    self.entries.pop_front();
+                }
+                self.entries.push_back((o.clone(), *d, *n, e.clone()));
+            }
+        }
+        for (o, r) in &other.refs {
+            if !self.refs.iter().any(|(oo, _)| oo == o) {
+                if self.refs.len() == Self::REF_CAPACITY {
+                    self.refs.pop_front();
+                }
+                self.refs.push_back((o.clone(), r.clone()));
+            }
+        }
+    }
+
     /// Number of remembered results.
     pub fn len(&self) -> usize {
         self.entries.len()
@@ -203,11 +227,21 @@ impl DomainCheck {
 
     /// [`DomainCheck::run`] through the process-wide memo (bounded like any memo): what
     /// [`super::Renderer::checked`] and so `simulate` use.
+    ///
+    /// The shared memo is locked only to copy it and to merge what this check computed, never
+    /// while the Mie responses are computed: they run on rayon's pool, and a caller outside it
+    /// that held the lock while waiting for the pool deadlocked with pool threads waiting for
+    /// the lock (a truth-sweep replay beside a running sweep, 2026-12-06).
     pub fn run_shared(optics: &ValidOptics, scene: &Scene) -> DomainCheck {
-        let mut memo = SHARED
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        Self::run(optics, scene, &mut memo)
+        let lock = || {
+            SHARED
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+        };
+        let mut local = lock().clone();
+        let check = Self::run(optics, scene, &mut local);
+        lock().merge(&local);
+        check
     }
 
     /// The point dipole's error for bead (d, n) when it is beyond [`MODEL_NOTE_TOLERANCE`].
