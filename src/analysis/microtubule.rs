@@ -210,10 +210,11 @@ pub fn median_ratio(before: &FilamentMeasurement, after: &FilamentMeasurement) -
 }
 
 /// Largest change of the filament's median interior corrected maximum across the removal
-/// ([`median_ratio`] − 1) without a warning. In the truth sweep (seed 2026, the first 1800
-/// scenes), in-domain answers with objects removed moved it by −6 to +2.4 % (one by −19 %,
-/// μ 0.4 % low); the four answers 19–86 % low moved it by −5, −10, −35 and −85 %: the warning
-/// catches the two largest, not the class (docs/analysis.md, "Still open").
+/// ([`median_ratio`] − 1) without a warning. In the truth sweep (seed 2026, N = 2000, at
+/// 648a212), in-domain answers with objects removed and μ within its error bar moved it by −6
+/// to +2.4 % (one by −19 %, μ 0.4 % low); the four answers 19–86 % low moved it by −5, −10.5,
+/// −35 and −85 %: the warning catches the three largest, not the class (docs/analysis.md, the
+/// truth sweep's microtubules).
 pub const MAX_MEDIAN_CHANGE: f64 = 0.10;
 
 /// Fewest maxima in the uniform region for μ and its σ (else a warning).
