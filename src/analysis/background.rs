@@ -28,8 +28,9 @@
 //! `analysis::microtubule::MAX_FILAMENT_VISIBILITY`).
 
 use super::fit::{
-    clean_peaks, detection_map, fit_beads, smoothed_noise, template_dmap_peak, BeadInit, Channels,
-    FitOptions, FitResult, GrowCandidates, DETECT_SMOOTH_UM,
+    clean_peaks, detection_map, fit_beads, noise_within, smoothed_map, smoothed_noise,
+    template_dmap_peak, within, BeadInit, Channels, FitOptions, FitResult, GrowCandidates,
+    DETECT_SMOOTH_UM,
 };
 use super::template::Template;
 use super::AxisMap;
@@ -49,6 +50,14 @@ pub enum FilamentAxis {
 }
 
 impl FilamentAxis {
+    /// The channel the point objects are fitted in: the one this filament does not show in.
+    pub(crate) fn fitted_channel(self) -> Channels {
+        match self {
+            FilamentAxis::Y => Channels::Sy,
+            FilamentAxis::X => Channels::Sx,
+        }
+    }
+
     /// The closer axis for a filament at `angle_deg` from the y-axis.
     pub fn from_angle(angle_deg: f64) -> Self {
         if angle_deg.abs() <= 45.0 {
@@ -79,7 +88,7 @@ pub const REMAINING_SNR: f64 = 5.0;
 /// ([`edge_masked_map`]).
 const EDGE: usize = 2;
 
-/// The detection map of channel `ch` with NaN in the [`EDGE`] band at each edge, and how many
+/// The detection map of the fitted channel with NaN in the [`EDGE`] band at each edge, and how many
 /// columns and rows from each edge its maxima and its noise are not taken: that band plus the
 /// reach of the detection's smoothing ([`DETECT_SMOOTH_UM`], three σ), where the smoothed map
 /// averages fewer pixels and its noise is larger than the noise the thresholds are set in.
@@ -88,9 +97,9 @@ const EDGE: usize = 2;
 fn edge_masked_map(
     sx: &Image,
     sy: &Image,
-    ch: Channels,
     opts: &BackgroundOptions,
 ) -> Result<(Image, [usize; 2])> {
+    let ch = opts.axis.fitted_channel();
     let mut d = detection_map(sx, sy, ch, opts.fit.detect_stencil)?;
     let (rows, cols) = d.data.dim();
     for ((r, c), v) in d.data.indexed_iter_mut() {
@@ -161,18 +170,11 @@ pub struct BackgroundResult {
     pub remaining: Vec<Remaining>,
 }
 
-/// The detection threshold of [`remove_point_background`]'s CLEAN on the map `d` (instrument
-/// units of the map): `detect_snr` × the smoothed map's robust noise, and never below the peak
+/// The detection threshold of [`remove_point_background`]'s CLEAN (instrument units of the
+/// detection map): `detect_snr` × the smoothed map's robust `noise`, and never below the peak
 /// of an object of `min_weight` reference beads.
-fn clean_threshold(
-    d: &Image,
-    skip: [usize; 2],
-    tpl: &Template,
-    ch: Channels,
-    opts: &BackgroundOptions,
-) -> f64 {
-    let noise = smoothed_noise(d, DETECT_SMOOTH_UM, skip).unwrap_or(0.0);
-    let (_, _, d0) = template_dmap_peak(tpl, ch);
+fn clean_threshold(noise: f64, tpl: &Template, opts: &BackgroundOptions) -> f64 {
+    let (_, _, d0) = template_dmap_peak(tpl, opts.axis.fitted_channel());
     let floor = if d0 > 0.0 {
         opts.min_weight * d0 / tpl.norm_factor
     } else {
@@ -194,25 +196,20 @@ pub fn filament_visibility(
     opts: &BackgroundOptions,
     at: &[[f64; 2]],
 ) -> Result<Option<f64>> {
-    let ch = match opts.axis {
-        FilamentAxis::Y => Channels::Sy,
-        FilamentAxis::X => Channels::Sx,
-    };
-    let (d, skip) = edge_masked_map(sx, sy, ch, opts)?;
-    let t = clean_threshold(&d, skip, tpl, ch, opts);
+    let (d, skip) = edge_masked_map(sx, sy, opts)?;
+    let smooth = smoothed_map(&d, DETECT_SMOOTH_UM);
+    let t = clean_threshold(noise_within(&smooth, skip).unwrap_or(0.0), tpl, opts);
     if !(t > 0.0) {
         return Ok(None);
     }
     let (ax, ay) = (AxisMap::new(&d.x), AxisMap::new(&d.y));
-    let smooth = super::fit::smoothed_map(&d, DETECT_SMOOTH_UM);
     let v: Vec<f64> = at
         .iter()
         .filter_map(|&[x, y]| {
             let c = ax.nearest(x)?;
             let r = ay.nearest(y)?;
-            let inside = r >= skip[1] && c >= skip[0] && r + skip[1] < ay.n && c + skip[0] < ax.n;
-            let v = if inside { smooth[[r, c]] } else { f64::NAN };
-            v.is_finite().then_some(v)
+            let v = smooth[[r, c]];
+            (within(r, c, smooth.dim(), skip) && v.is_finite()).then_some(v)
         })
         .collect();
     Ok(super::stats::median(&v).map(|m| m / t))
@@ -225,23 +222,18 @@ struct Detected {
     noise: f64,
     /// Columns and rows at each edge not searched ([`edge_masked_map`]).
     skip: [usize; 2],
-    ch: Channels,
 }
 
 fn detect(sx: &Image, sy: &Image, tpl: &Template, opts: &BackgroundOptions) -> Result<Detected> {
     check_range("detect_snr", opts.detect_snr, 0.0, 1e6)?;
     check_range("max_objects", opts.max_objects as f64, 1.0, 10_000.0)?;
     check_range("min_weight", opts.min_weight, 0.0, 1e6)?;
-    let ch = match opts.axis {
-        FilamentAxis::Y => Channels::Sy,
-        FilamentAxis::X => Channels::Sx,
-    };
-    let (d, skip) = edge_masked_map(sx, sy, ch, opts)?;
+    let (d, skip) = edge_masked_map(sx, sy, opts)?;
     let noise = smoothed_noise(&d, DETECT_SMOOTH_UM, skip).unwrap_or(0.0);
     let init: Vec<BeadInit> = clean_peaks(
         &d,
         tpl,
-        ch,
+        opts.axis.fitted_channel(),
         opts.max_objects,
         opts.detect_snr * noise,
         opts.min_weight,
@@ -251,12 +243,7 @@ fn detect(sx: &Image, sy: &Image, tpl: &Template, opts: &BackgroundOptions) -> R
     .into_iter()
     .map(|(b, _)| b)
     .collect();
-    Ok(Detected {
-        init,
-        noise,
-        skip,
-        ch,
-    })
+    Ok(Detected { init, noise, skip })
 }
 
 /// The point objects [`remove_point_background`]'s CLEAN detects (before its fit): positions
@@ -280,17 +267,13 @@ pub fn remove_point_background(
     tpl: &Template,
     opts: &BackgroundOptions,
 ) -> Result<BackgroundResult> {
-    let Detected {
-        init,
-        noise,
-        skip,
-        ch,
-    } = detect(sx, sy, tpl, opts)?;
+    let Detected { init, noise, skip } = detect(sx, sy, tpl, opts)?;
+    let ch = opts.axis.fitted_channel();
     // what the same detection still finds after the removal, down to REMAINING_SNR (and, on
     // noise-free data, never below the default smallest object: the filament's faint residue
     // in this channel is not an object)
     let remaining = |sx: &Image, sy: &Image| -> Result<Vec<Remaining>> {
-        let (d, _) = edge_masked_map(sx, sy, ch, opts)?;
+        let (d, _) = edge_masked_map(sx, sy, opts)?;
         Ok(clean_peaks(
             &d,
             tpl,

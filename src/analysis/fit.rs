@@ -78,7 +78,8 @@ mod window;
 
 pub use detect::detect_beads;
 pub(crate) use detect::{
-    clean, clean_peaks, detection_map, smoothed_map, smoothed_noise, template_dmap_peak,
+    clean, clean_peaks, detection_map, noise_within, smoothed_map, smoothed_noise,
+    template_dmap_peak, within,
 };
 pub use lm::FitStatus;
 pub(crate) use lm::{levenberg_marquardt, Tolerances};

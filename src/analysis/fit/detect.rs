@@ -121,11 +121,8 @@ pub(crate) fn clean_peaks(
         };
         let mut best: Option<(usize, usize, f64)> = None;
         let (rows, cols) = look.dim();
-        let inside = |r: usize, c: usize| {
-            r >= skip[1] && c >= skip[0] && r + skip[1] < rows && c + skip[0] < cols
-        };
         for ((r, c), &v) in look.indexed_iter() {
-            if v.is_finite() && inside(r, c) && best.is_none_or(|b| v > b.2) {
+            if v.is_finite() && within(r, c, (rows, cols), skip) && best.is_none_or(|b| v > b.2) {
                 best = Some((r, c, v));
             }
         }
@@ -175,16 +172,24 @@ pub(crate) fn clean_peaks(
 /// set in, over the pixels at least `skip` (columns, rows) from the edges. `None` when none of
 /// them is finite.
 pub(crate) fn smoothed_noise(d: &Image, smooth_um: f64, skip: [usize; 2]) -> Option<f64> {
-    let m = smoothed_map(d, smooth_um);
-    let (rows, cols) = m.dim();
+    noise_within(&smoothed_map(d, smooth_um), skip)
+}
+
+/// The robust noise (1.4826·MAD) of the pixels of `m` at least `skip` (columns, rows) from its
+/// edges; `None` when none of them is finite.
+pub(crate) fn noise_within(m: &Array2<f64>, skip: [usize; 2]) -> Option<f64> {
+    let dim = m.dim();
     let v: Vec<f64> = m
         .indexed_iter()
-        .filter(|((r, c), _)| {
-            *r >= skip[1] && *c >= skip[0] && r + skip[1] < rows && c + skip[0] < cols
-        })
+        .filter(|((r, c), _)| within(*r, *c, dim, skip))
         .map(|(_, &v)| v)
         .collect();
     crate::analysis::stats::robust_std(&v)
+}
+
+/// Is pixel (`r`, `c`) of a map of `(rows, cols)` at least `skip` (columns, rows) from its edges?
+pub(crate) fn within(r: usize, c: usize, (rows, cols): (usize, usize), skip: [usize; 2]) -> bool {
+    r >= skip[1] && c >= skip[0] && r + skip[1] < rows && c + skip[0] < cols
 }
 
 /// The detection map `d` smoothed as [`clean_peaks`] smooths it (σ `smooth_um`; 0: a copy).
