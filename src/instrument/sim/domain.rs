@@ -178,6 +178,20 @@ impl DomainMemo {
     }
 }
 
+/// The suspect bead species of `scene` ([`is_suspect`]), each once, in order of first
+/// appearance; none when the scene pins a tier by naming `mie` or `finite_size`.
+fn suspects(scene: &Scene) -> Vec<(f64, f64)> {
+    let pinned = scene.effects.mie.is_some() || scene.effects.finite_size.is_some();
+    let mut species: Vec<(f64, f64)> = vec![];
+    for b in scene.beads.iter().filter(|_| !pinned) {
+        let (d, n) = (b.d_nm, b.n);
+        if is_suspect(d, n) && !species.contains(&(d, n)) {
+            species.push((d, n));
+        }
+    }
+    species
+}
+
 /// One suspect bead species of a scene and how far the point dipole is off for it
 /// (relative error, dimensionless; `None` when the Mie tier could not say, e.g. n = medium).
 #[derive(Debug, Clone, PartialEq)]
@@ -201,15 +215,15 @@ impl DomainCheck {
     /// Nothing to check when the scene pins a tier by naming `mie` or `finite_size`: the
     /// renderer then neither notes nor switches models.
     pub fn run(optics: &ValidOptics, scene: &Scene, memo: &mut DomainMemo) -> DomainCheck {
-        let t = Instant::now();
-        let pinned = scene.effects.mie.is_some() || scene.effects.finite_size.is_some();
-        let mut species: Vec<(f64, f64)> = vec![];
-        for b in scene.beads.iter().filter(|_| !pinned) {
-            let (d, n) = (b.d_nm, b.n);
-            if is_suspect(d, n) && !species.contains(&(d, n)) {
-                species.push((d, n));
-            }
-        }
+        Self::of_species(optics, suspects(scene), memo, Instant::now())
+    }
+
+    fn of_species(
+        optics: &ValidOptics,
+        species: Vec<(f64, f64)>,
+        memo: &mut DomainMemo,
+        t: Instant,
+    ) -> DomainCheck {
         memo.fill(optics, &species);
         let entries = species
             .into_iter()
@@ -228,8 +242,8 @@ impl DomainCheck {
     /// [`DomainCheck::run`] through the process-wide memo (bounded like any memo): what
     /// [`super::Renderer::checked`] and so `simulate` use.
     ///
-    /// The shared memo is locked only to copy it and to merge what this check computed, never
-    /// while the Mie responses are computed: they run on rayon's pool, and a caller outside it
+    /// The shared memo is locked to read what it remembers, or to copy it and merge what this
+    /// check computed, never while Mie responses are computed: they run on rayon's pool, and a caller outside it
     /// that held the lock while waiting for the pool deadlocked with pool threads waiting for
     /// the lock (a truth-sweep replay beside a running sweep, 2026-12-06).
     pub fn run_shared(optics: &ValidOptics, scene: &Scene) -> DomainCheck {
@@ -238,8 +252,21 @@ impl DomainCheck {
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner)
         };
+        let t = Instant::now();
+        let species = suspects(scene);
+        {
+            // everything remembered (the usual case, and every scene without a suspect bead):
+            // nothing to compute, so the lock may be held
+            let mut memo = lock();
+            if species
+                .iter()
+                .all(|&(d, n)| memo.remembered(optics, d, n).is_some())
+            {
+                return Self::of_species(optics, species, &mut memo, t);
+            }
+        }
         let mut local = lock().clone();
-        let check = Self::run(optics, scene, &mut local);
+        let check = Self::of_species(optics, species, &mut local, t);
         lock().merge(&local);
         check
     }
