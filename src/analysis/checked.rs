@@ -72,7 +72,9 @@ pub fn filament_input_check(
 #[derive(Debug, Clone)]
 pub struct Cleaned {
     /// The scan with the point objects subtracted; its metadata says so
-    /// (`background_removed: {axis, n_objects}`), its clipped pixels stay flagged.
+    /// (`background_removed: {axis, n_objects, objects: [[x µm, y µm, weight]…], footprint}`,
+    /// the footprint where each object's subtraction can move a filament's maxima,
+    /// [`super::background::Footprint`]), its clipped pixels stay flagged.
     pub scan: Scan,
     /// The fit of the point objects (None when nothing was detected).
     pub fit: Option<FitResult>,
@@ -110,9 +112,15 @@ pub fn remove_background_scan(
         remove_point_background(&scan.sx, &scan.sy, tpl, bo).map_err(|e| format!("{who}: {e}"))?;
     let n_objects = n_fitted(&r.fit);
     let mut meta = scan.meta.clone();
+    let objects: Vec<[f64; 3]> = r.fit.as_ref().map_or(vec![], |f| {
+        f.beads.iter().map(|b| [b.x, b.y, b.weight]).collect()
+    });
+    let footprint = (!objects.is_empty()).then(|| super::background::Footprint::of(tpl, bo.axis));
     meta["background_removed"] = serde_json::json!({
         "axis": format!("{:?}", bo.axis),
         "n_objects": n_objects,
+        "objects": objects,
+        "footprint": footprint,
     });
     let cleaned = Scan {
         sx: r.sx,

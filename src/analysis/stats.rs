@@ -66,6 +66,31 @@ pub fn median(values: &[f64]) -> Option<f64> {
     })
 }
 
+/// The von Neumann ratio of a sequence and its z-score under independence: d = Σ (x_{i+1} −
+/// x_i)² / Σ (x_i − x̄)² (von Neumann 1941, "Distribution of the ratio of the mean square
+/// successive difference to the variance", Ann. Math. Stat. 12, 367; the Durbin–Watson statistic
+/// of a constant). For n independent normal values E[d] = 2 and Var[d] = 4(n − 2)/((n − 1)(n +
+/// 1)); a slow structure (a bump, a dip, a trend spanning several values) makes d small, z =
+/// (d − 2)/√Var negative. Non-finite values are skipped; `None` below 3 values or when all are
+/// equal (no spread to compare with).
+pub fn von_neumann(values: &[f64]) -> Option<(f64, f64)> {
+    let v: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    let n = v.len();
+    if n < 3 {
+        return None;
+    }
+    let mean = v.iter().sum::<f64>() / n as f64;
+    let ss: f64 = v.iter().map(|x| (x - mean).powi(2)).sum();
+    if ss <= 0.0 {
+        return None;
+    }
+    let diff: f64 = v.windows(2).map(|w| (w[1] - w[0]).powi(2)).sum();
+    let d = diff / ss;
+    let nf = n as f64;
+    let var = 4.0 * (nf - 2.0) / ((nf - 1.0) * (nf + 1.0));
+    Some((d, (d - 2.0) / var.sqrt()))
+}
+
 /// Robust standard deviation: 1.4826 × median absolute deviation (σ for Gaussian data).
 pub fn robust_std(values: &[f64]) -> Option<f64> {
     let m = median(values)?;
@@ -303,6 +328,46 @@ pub fn loglog_fit(x: &[f64], y: &[f64], sigma_y: Option<&[f64]>) -> Result<LinFi
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn von_neumann_of_a_trend_and_of_white_noise() {
+        // a straight line: Σ diff² = n − 1, Σ (i − ī)² = n(n² − 1)/12, so d = 12/(n(n + 1))
+        for n in [3usize, 10, 33] {
+            let x: Vec<f64> = (0..n).map(|i| 2.0 - 0.5 * i as f64).collect();
+            let (d, z) = von_neumann(&x).unwrap();
+            let nf = n as f64;
+            assert!((d - 12.0 / (nf * (nf + 1.0))).abs() < 1e-12, "n {n}: d {d}");
+            assert!(z < 0.0);
+        }
+        // alternating values: every difference is 2a, every deviation a: d = 4(n − 1)/n
+        let x: Vec<f64> = (0..20)
+            .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
+        assert!((von_neumann(&x).unwrap().0 - 4.0 * 19.0 / 20.0).abs() < 1e-12);
+        // independent normal values (Box–Muller on a seeded generator): the mean of d is 2 and
+        // z has unit variance (its closed-form variance); 4000 sequences of 30
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(41);
+        let (mut sd, mut sz2) = (0.0, 0.0);
+        let m = 4000;
+        for _ in 0..m {
+            let x: Vec<f64> = (0..30)
+                .map(|_| {
+                    let (u, v): (f64, f64) = (rng.random(), rng.random());
+                    (-2.0 * (1.0 - u).ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+                })
+                .collect();
+            let (d, z) = von_neumann(&x).unwrap();
+            sd += d;
+            sz2 += z * z;
+        }
+        let (md, vz) = (sd / m as f64, sz2 / m as f64);
+        // standard errors: of the mean of d √(Var/m) = 0.0055, of mean z² about √(2/m) = 0.022
+        assert!((md - 2.0).abs() < 0.02, "mean d {md}");
+        assert!((vz - 1.0).abs() < 0.08, "var z {vz}");
+        assert!(von_neumann(&[1.0, 1.0, 1.0]).is_none());
+        assert!(von_neumann(&[1.0, 2.0]).is_none());
+    }
 
     #[test]
     fn summary_closed_form() {

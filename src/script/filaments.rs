@@ -286,9 +286,9 @@ fn bind_microtubule(r: &mut Registrar) {
         .arg("calib", "map", "", "from lin_dens_calib (at the scan's pixel size)")
         .opts(&[SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um))])
         .form("microtubule_density(scan, curve, calib) -> map")
-        .returns("map", "#{mu_mda_um (MDa/µm), mu_err_mda_um, protofilaments, protofilaments_exact, mean_corr, sbr, uniformity, n_points, warnings, status}")
+        .returns("map", "#{mu_mda_um (MDa/µm), mu_err_mda_um, protofilaments, protofilaments_exact, mean_corr, sbr, uniformity, n_points (maxima used), n_excluded (left out: within a removed object's footprint), warnings, status}")
         .summary("microtubule::density's arithmetic: the linear density over the uniform region, its σ and the protofilament number (eq. mtLinDens, Sec. 6)")
-        .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 5 maxima in the uniform region, σ(μ) above half a protofilament.")
+        .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). On a scan cleaned by remove_aggregates or remove_background, the maxima where a removed object's subtraction can move them (its template's derivative at ≥ 10 % of its peak; the footprint in the scan's meta.background_removed) are left out. σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 5 maxima in the uniform region, maxima that do not scatter about one level (a slope or a slow structure along the region), σ(μ) above half a protofilament.")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, lin_dens_calib(t, #{{pixel_um: 0.05}}), #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, #{{}})"), "error: microtubule_density: calib lacks");
     r.bind_ctx_opts3(d, microtubule_density_of);
@@ -678,6 +678,7 @@ fn microtubule_density_of(
     }
     out.insert("protofilaments".into(), (r.protofilaments as i64).into());
     out.insert("n_points".into(), (r.region.n_points as i64).into());
+    out.insert("n_excluded".into(), (r.n_excluded as i64).into());
     domain_of(&mut out, r.warnings);
     Ok(out)
 }
