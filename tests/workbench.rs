@@ -89,6 +89,7 @@ const DIMENSIONLESS: &[&str] = &[
     "n_beads",
     "n_objects",
     "n_points",
+    "n_excluded",
     "n_theta",
     "n_phi",
     "protofilaments",

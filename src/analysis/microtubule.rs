@@ -317,17 +317,9 @@ impl Removed {
         if kept.len() == all {
             return 0;
         }
-        let n = kept.len();
-        let mean = if n > 0 {
-            kept.iter().sum::<f64>() / n as f64
-        } else {
-            f64::NAN
-        };
-        let std = if n > 1 {
-            (kept.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt()
-        } else {
-            f64::NAN
-        };
+        // (fewer than 2 kept: density refuses on n_points)
+        let (n, mean, std) =
+            super::stats::summary(&kept).map_or((0, f64::NAN, f64::NAN), |k| (k.n, k.mean, k.std));
         let safe = |num: f64, den: f64| if den > 0.0 { num / den } else { f64::MAX };
         s.mean_sens = mean;
         s.mean_corr = mean * m.factor;
