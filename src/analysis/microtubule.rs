@@ -258,7 +258,8 @@ fn uniformity_warning(m: &FilamentMeasurement, s: &SbrResult, rel: f64) -> Optio
             "the uniform region holds {n} maxima (< {MIN_SERIAL_POINTS}): too few to test that they scatter about one level, which σ(μ) assumes"
         ));
     }
-    let mean = vals.iter().sum::<f64>() / n as f64;
+    let sm = super::stats::summary(&vals).ok()?;
+    let mean = sm.mean;
     if mean <= 0.0 {
         return None;
     }
@@ -274,10 +275,9 @@ fn uniformity_warning(m: &FilamentMeasurement, s: &SbrResult, rel: f64) -> Optio
         }
     }
     let (d, z) = super::stats::von_neumann(&vals)?;
-    // the slow structure's own spread: the spread the successive differences do not explain
-    let var = vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-    let diff = vals.windows(2).map(|w| (w[1] - w[0]).powi(2)).sum::<f64>() / (2 * (n - 1)) as f64;
-    let slow = (var - diff).max(0.0).sqrt() / mean;
+    // the slow structure's own spread: the spread the successive differences do not explain,
+    // var − Σ diff²/(2(n − 1)) = var·(1 − d/2)
+    let slow = sm.std * (1.0 - 0.5 * d).max(0.0).sqrt() / mean;
     (z < -MAX_SERIAL_Z && slow > rel).then(|| {
         format!(
             "the maxima along the uniform region are not uniform: a slow structure of {:.1} % spans several lines (von Neumann ratio {d:.2}, 2 for independent maxima; z = {z:.1} < -{MAX_SERIAL_Z}): a bump or dip (an aggregate left beside the filament, a removal's residual) {what}",
@@ -446,7 +446,7 @@ pub fn density(
     })
 }
 
-/// ", N more left out in removed objects' footprints" (empty for none).
+/// "; N more left out where a removed object's subtraction can move them" (empty for none).
 fn left_out(n: usize) -> String {
     if n == 0 {
         String::new()

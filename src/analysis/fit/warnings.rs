@@ -199,26 +199,21 @@ fn warnings(
         if !b.found() || !own[i].is_empty() {
             continue;
         }
-        if let Some((j, d)) = outside
+        // the nearest bead outside its domain: within its reach, its misfit biases bead i;
+        // within twice it, the fainter object its misfit can hide does
+        let nearest = outside
             .iter()
             .filter(|&&j| j != i)
             .map(|&j| (j, (r.beads[j].x - b.x).hypot(r.beads[j].y - b.y)))
-            .filter(|&(_, d)| d < reach)
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-        {
-            own[i].push(format!(
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        match nearest {
+            Some((j, d)) if d < reach => own[i].push(format!(
                 "bead {i} is {d:.2} µm from bead {j}, which is outside its domain: bead {j}'s misfit reaches {reach:.2} µm and may bias bead {i}'s values beyond σ"
-            ));
-        } else if let Some((j, d)) = outside
-            .iter()
-            .filter(|&&j| j != i)
-            .map(|&j| (j, (r.beads[j].x - b.x).hypot(r.beads[j].y - b.y)))
-            .filter(|&(_, d)| d < 2.0 * reach)
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-        {
-            own[i].push(format!(
+            )),
+            Some((j, d)) if d < 2.0 * reach => own[i].push(format!(
                 "bead {i} is {d:.2} µm from bead {j}, which is outside its domain: bead {j}'s misfit can hide a fainter object within {reach:.2} µm of it, whose own reach takes in bead {i} and may bias its values beyond σ"
-            ));
+            )),
+            _ => {}
         }
     }
     // Beyond the reach, a misfitted bright bead still leaves its far side lobes' misfit across
