@@ -236,10 +236,12 @@ fn kit(offset: f64, zero_s: f64) -> Kit {
     Kit { cubes, kpa, pos }
 }
 
+/// (The reply timeouts are 2 s: the cubes' emulators answer from threads on wall-clock time, and
+/// with the machine's two cores busy a reply once missed 300 ms. No test here waits on one.)
 fn kpz_config(k: &Kit, extra: &str) -> Config {
     let text = format!(
-        "[stage]\nbackend = \"kpz101\"\nports = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\ntimeout_ms = 300\n\
-         settle_s = 0.0\ntolerance_um = 0.001\n{extra}\n\n[qpd]\nbackend = \"kpa101\"\nport = \"{}\"\ntimeout_ms = 300\n\n\
+        "[stage]\nbackend = \"kpz101\"\nports = {{ x = \"{}\", y = \"{}\", z = \"{}\" }}\ntimeout_ms = 2000\n\
+         settle_s = 0.0\ntolerance_um = 0.001\n{extra}\n\n[qpd]\nbackend = \"kpa101\"\nport = \"{}\"\ntimeout_ms = 2000\n\n\
          [safety]\nmax_step_um = 2.0\n",
         k.cubes[0].path(),
         k.cubes[1].path(),

@@ -425,12 +425,26 @@ fn inliers(c: &[Cand], a: f64, b: f64, tol: f64) -> Vec<Cand> {
     best.into_values().map(|v| v.1).collect()
 }
 
-/// Relative 1σ of the orientation-corrected mean that no amount of data removes: the
-/// correction curve's interpolation between its angles and the parabola's sub-pixel bias
-/// against the curve's own offset average. On noise-free straight fibrils of the truth sweep
-/// (`bfpscope sweep`) the corrected mean scatters by 0.1–0.4 % about its truth; without this
-/// term a low-noise answer's σ (0.02 %) made those 4σ errors.
-pub const CORRECTION_SYS_REL: f64 = 0.003;
+/// Relative 1σ of the orientation-corrected mean that no amount of data removes, for a filament
+/// at `angle_deg` (from the y axis): the correction curve's interpolation between its angles
+/// and the parabola's sub-pixel bias against the curve's own offset average. Noise-free straight
+/// fibrils of the truth sweep (`bfpscope sweep --replay`, 2–8 µm, 20–100 nm pixels, several
+/// positions) read within 0.05–0.15 % of the truth in the diameter (0.1–0.3 % in the mean) away
+/// from 45°, and up to 0.4 % in the diameter near 45° (most at 100 nm pixels, where a row
+/// crosses the line obliquely over few pixels): [`CORRECTION_SYS_REL`] ⊕
+/// [`CORRECTION_SYS_REL_45`]·exp(−((|angle| − 45°)/10°)²). (A flat 0.3 % made the diameter's
+/// 1σ intervals hold 77 % of the seed-7 sweep's answers; without any term a low-noise answer's
+/// σ, 0.02 %, made those 4σ errors.)
+pub fn correction_sys_rel(angle_deg: f64) -> f64 {
+    let a = angle_deg.abs().min(180.0 - angle_deg.abs());
+    CORRECTION_SYS_REL.hypot(CORRECTION_SYS_REL_45 * (-((a - 45.0) / 10.0).powi(2)).exp())
+}
+
+/// [`correction_sys_rel`] away from 45°, relative to the corrected mean.
+pub const CORRECTION_SYS_REL: f64 = 0.0015;
+
+/// [`correction_sys_rel`]'s bump at 45°, relative to the corrected mean.
+pub const CORRECTION_SYS_REL_45: f64 = 0.006;
 
 /// Above this relative σ of the corrected mean (the σ of a diameter from it is half), the answer
 /// is flagged: a fibril diameter is wanted to 5 % (Sec. 4.3), which needs σ_d ≤ 1.25 % to hold
@@ -923,21 +937,28 @@ fn filament_ends(trace: &[(f64, f64, usize)], sigma: f64) -> FilamentEnds {
     let on: Vec<f64> = med.iter().copied().filter(|&m| m >= half).collect();
     let level = super::stats::median(&on).unwrap_or(plateau);
     // `lines`: the trace's lines from the edge inwards
-    let edge = |found: Option<f64>, lines: &mut dyn Iterator<Item = usize>| {
-        let lines: Vec<usize> = lines.take(EDGE_LINES).collect();
-        let i = lines[0];
+    // (`count` lines, lowered by more than `rel` of the level and 3σ of their mean)
+    let lowered = |lines: &[usize], count: usize, rel: f64| {
         let vals: Vec<f64> = lines
             .iter()
+            .take(count)
             .map(|&k| trace[k].1)
             .filter(|x| x.is_finite())
             .collect();
         let (m, k) = if vals.len() >= 2 {
             (vals.iter().sum::<f64>() / vals.len() as f64, vals.len())
         } else {
-            (med[i], 1)
+            (med[lines[0]], 1)
         };
-        let low = level - (3.0 * sigma / (k as f64).sqrt()).max(EDGE_LOWERED_REL * level);
-        (found.is_none() && m >= half && m < low).then_some(trace[i].0)
+        let low = level - (3.0 * sigma / (k as f64).sqrt()).max(rel * level);
+        m >= half && m < low
+    };
+    let edge = |found: Option<f64>, lines: &mut dyn Iterator<Item = usize>| {
+        let lines: Vec<usize> = lines.take(EDGE_LINES).collect();
+        (found.is_none()
+            && (lowered(&lines, EDGE_LINES, EDGE_LOWERED_REL)
+                || lowered(&lines, 2, EDGE_LOWERED_REL_2)))
+        .then_some(trace[lines[0]].0)
     };
     let (ea, eb) = (edge(a, &mut (0..n)), edge(b, &mut (0..n).rev()));
     // the trace runs in line order; the arc may run either way along it
@@ -962,6 +983,14 @@ fn filament_ends(trace: &[(f64, f64, usize)], sigma: f64) -> FilamentEnds {
 /// [`filament_ends`] to take an end just beyond the edge: the maxima fall to 50 % at an end and
 /// are within 5 % of the plateau from ≈ 0.5 µm in (the paper's focus).
 const EDGE_LOWERED_REL: f64 = 0.05;
+
+/// The same for the mean of the two lines at the edge: where 4 lines span much of an end's
+/// reach (75–100 nm pixels at an oblique angle: 0.3 µm of arc), an end just beyond the edge
+/// lowers their mean by less than 5 % while the last two stand 10–20 % low. A 2.33 µm fibril at
+/// −58° and 75 nm pixels, its end 0.05 µm beyond the edge, read 3.2 % thin noise-free (the end's
+/// maxima counted as interior bent its line 2°, and the correction with it): the 4 lines stood
+/// 4.7 % low, the last two 12 %.
+const EDGE_LOWERED_REL_2: f64 = 0.10;
 
 /// Lines at the scan's edge whose maxima [`filament_ends`] averages to tell an end just beyond
 /// it: 4 lines are 0.08–0.4 µm of arc at 20–100 nm pixels, where an end 0.05 µm beyond the edge
@@ -1207,7 +1236,7 @@ fn measure_sens_along(
     }
     s.sem = s
         .sem
-        .hypot(s.mean * CORRECTION_SYS_REL)
+        .hypot(s.mean * correction_sys_rel(angle))
         .hypot(s.mean * end_rel);
     let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {

@@ -93,6 +93,9 @@ pub struct Peak {
     pub value_err: Option<f64>,
     /// Second derivative of the fitted parabola, 2c (value/µm²), negative.
     pub curvature: f64,
+    /// 1σ of `curvature` (None when undetermined, as for `pos_err`).
+    #[serde(default)]
+    pub curvature_err: Option<f64>,
     /// Samples used by the fit.
     pub n_points: usize,
     /// Index of the discrete maximum.
@@ -401,7 +404,7 @@ fn fit_parabola(
         }
         None => None,
     };
-    let (pos_err, value_err, bias) = match s2 {
+    let (pos_err, value_err, bias, c2_err) = match s2 {
         Some(s2) => {
             // Σ = σ²·R over the window's samples (R the noise's correlation, the identity for
             // independent samples): cov(c) = (AᵀA)⁻¹ AᵀRA (AᵀA)⁻¹ σ².
@@ -445,9 +448,14 @@ fn fit_parabola(
             } else {
                 0.0
             };
-            (Some(vp.sqrt() * half), Some(vv.sqrt()), bias)
+            (
+                Some(vp.sqrt() * half),
+                Some(vv.sqrt()),
+                bias,
+                Some(2.0 * cov[(2, 2)].max(0.0).sqrt() / (half * half)),
+            )
         }
-        None => (None, None, 0.0),
+        None => (None, None, 0.0, None),
     };
     Ok(Peak {
         pos,
@@ -455,6 +463,7 @@ fn fit_parabola(
         pos_err,
         value_err,
         curvature: 2.0 * c[2] / (half * half),
+        curvature_err: c2_err,
         n_points: np,
         index: 0,
         truncated: false,

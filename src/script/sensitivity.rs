@@ -51,7 +51,7 @@ fn bind_peaks(r: &mut Registrar) {
             .arg("img", "Image", "", "usually a sensitivity image")
             .opts(&keys)
             .form(&format!("{name}(img) -> array"))
-            .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, n_points, truncated} or #{line, coord, ok: false, miss}")
+            .returns("array", "per line: #{line, coord, ok, pos, value, pos_err, value_err, curvature, curvature_err, n_points, truncated} or #{line, coord, ok: false, miss}")
             .summary(if rows {
                 "sub-pixel maximum of every row (x position) by a parabola over the window"
             } else {
