@@ -4,9 +4,11 @@
 //! the simulator and measured by every estimator in the sweep. The error bars must cover the
 //! truth as often as a Gaussian's do, within the binomial scatter of the in-domain count, and
 //! no answer without a warning may be an outlier at this seed: at N = 2000 (2026-12-06,
-//! docs/accuracy.md "Truth sweep") the bead fit, the filament diameter and the focus search
-//! had none at seeds 2026 and 7 (the focus search since its weak-curvature flag, seventh
-//! session), so a fresh seed that fails points at a class not yet seen. The full sweep (2000
+//! docs/accuracy.md "Truth sweep") the bead fit had none at seeds 2026 and 7, the filament
+//! diameter none at seeds 2026, 7 and 99 (seventh session), and z_best one among about 600
+//! answers at seed 2026 (a 121 nm bead at 100 nm z steps, not among the first 100 scenes: the
+//! vertex of a weakly curved parabola over z has tails; docs/analysis.md "Still open"), so a
+//! fresh seed can still fail on that class. The full sweep (2000
 //! scenes a family) is the benchmark of
 //! docs/accuracy.md.
 //!
@@ -110,41 +112,6 @@ fn bead_scenes_that_were_unflagged_outliers_are_now_found_or_flagged() {
             assert_eq!(v.unflagged_outliers, 0, "{k}: {:#?}", v.examples);
         }
         assert!(t.contains_key("fit_beads.count"), "{scene}: no bead fit");
-    }
-}
-
-/// The focus search's one unflagged outlier of `bfpscope sweep --n 2000 --seed 2026` (at
-/// 4a0e38a and after the noise fixes of 2026-12-06, seventh session): a 121 nm bead at 6.5× the
-/// paper's noise, 100 nm z steps, z_best 82 nm off at 5.6σ. Its rows' maxima carry Gaussian
-/// noise; the parabola over the 7 rows of the 0.6 µm window measures its curvature at 6.8σ, a
-/// draw that steepened a curve whose true curvature stands at 4.4σ, and such ratios have tails
-/// a σ does not cover. Now flagged (`Z_CURVATURE_SNR`), with the warning that says so.
-/// And the seed-99 one once the flag stood on the window's own curvature: a 154 nm bead at 8×
-/// the paper's noise, 100 nm pixels and rows, 4.1σ off; 54 of 61 noise draws of the scene were
-/// flagged, the 7 that passed held 29 % of their 1σ intervals. The curvature is now read over
-/// twice the window.
-const FOCUS_SCENES_ONCE_OUTLIERS: [&str; 2] = [
-    r#"{"family":"focus","bead":[-0.308,1.27187,121.2],"noise":6.4590,"pixel_nm":50,"z_step_nm":100,"seed":9364780362231550516}"#,
-    r#"{"family":"focus","bead":[0.237,0.48433,153.8],"noise":8.0841,"pixel_nm":100,"z_step_nm":100,"seed":14604980884282667453}"#,
-];
-
-#[test]
-fn the_focus_scenes_that_were_unflagged_outliers_are_flagged_for_their_weak_curvature() {
-    for scene in FOCUS_SCENES_ONCE_OUTLIERS {
-        let said = bfpscope::accuracy::sweep::replay(scene).expect("the scene replays");
-        assert!(
-            said.contains("the focus curve's curvature over the z window is"),
-            "{said}"
-        );
-        let t = bfpscope::accuracy::sweep::replay_tallies(scene).expect("the scene replays");
-        for k in ["focus_search.z_best", "focus_search.max_sens"] {
-            let v = &t[k];
-            assert_eq!(
-                (v.cases, v.in_domain, v.unflagged_outliers),
-                (1, 0, 0),
-                "{k}: {said}"
-            );
-        }
     }
 }
 

@@ -78,15 +78,7 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     if c.quieter_than_noise {
         c = focus_curve(&sens, opts, None)?;
     }
-    let FocusCurve {
-        rows,
-        z,
-        v,
-        p,
-        row_sigma,
-        ..
-    } = c;
-    let curvature_snr = expected_curvature_snr(&z, &v, &p, opts.z_window_um, row_sigma);
+    let FocusCurve { rows, z, v, p, .. } = c;
     let mut p = p;
     // the method's own systematic, in quadrature (noise-free, its σ would claim exactness)
     p.pos_err = p.pos_err.map(|e| e.hypot(Z_BEST_SYS_UM));
@@ -145,11 +137,6 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
             "the focus curve's peak {:.4} ± {e:.4} is {:.1}σ, below {FOCUS_PEAK_SNR}σ: the rows' maxima are picked from noise as much as from the object, and z_best and its σ do not hold (scan slower, or with larger pixels)",
             p.value,
             p.value / e
-        ));
-    }
-    if let Some(k) = curvature_snr.filter(|&k| k < Z_CURVATURE_SNR) {
-        warnings.push(format!(
-            "the focus curve's curvature over the z window is {k:.1}σ, below {Z_CURVATURE_SNR}σ: the rows are too noisy for the window's width, and z_best's errors have tails its σ does not cover (widen z_window_um, take finer z steps, or scan slower)"
         ));
     }
     if let Some(k) = row_snr.filter(|&k| k < ROW_PEAK_SNR) {
@@ -268,36 +255,6 @@ fn focus_curve(sens: &Image, opts: &FocusOptions, sens_sigma: Option<f64>) -> Re
     })
 }
 
-/// How many of its σ the parabola over the z window measures the focus curve's curvature to,
-/// with the curvature read over twice the window: there it is known about 5× better (twice the
-/// lever arm, twice the rows), so the test does not pass the noise draws that happened to
-/// steepen a weakly curved window (cut at the window's own measured curvature, a 154 nm bead at
-/// 8× the paper's noise and 100 nm pixels and rows was flagged in 54 of 61 noise draws, and the
-/// 7 that passed held 29 % of their 1σ intervals, one 4.1σ off in the truth sweep). The wide
-/// parabola reads the curvature 10–20 % low (the focus curve flattens away from its peak): the
-/// test errs towards a flag. Where the wide parabola cannot be fitted, the window's own
-/// curvature. None when the curvature's σ is unknown.
-fn expected_curvature_snr(
-    z: &[f64],
-    v: &[f64],
-    p: &super::peaks::Peak,
-    z_window_um: f64,
-    row_sigma: Option<f64>,
-) -> Option<f64> {
-    let e = p.curvature_err.filter(|&e| e > 0.0)?;
-    let wide = peak_1d(
-        z,
-        v,
-        &PeakOptions {
-            window_um: 2.0 * z_window_um,
-            sigma: row_sigma,
-            ..Default::default()
-        },
-    );
-    let c = wide.map_or(p.curvature, |w| w.curvature);
-    Some(c.abs() / e)
-}
-
 /// The noise of one sensitivity pixel (1σ): the image's robust pixel noise
 /// ([`pixel_noise_d4`], fourth differences along the lateral axis) through the
 /// stencil's noise gain, σ(∂S/∂x) = gain·σ(S)/h (Sec. 3.2). None on noise-free data.
@@ -412,16 +369,6 @@ pub const MAX_SENS_SYS_REL_100NM: f64 = 0.004;
 /// at 9× the paper's noise, its peak at 8σ, was put 0.28 µm off, 7σ, in the truth sweep; at
 /// 10–15σ one answer in 22 was 5σ off, at 15–20σ none beyond 2.5σ).
 pub const FOCUS_PEAK_SNR: f64 = 15.0;
-
-/// The parabola over z must measure its curvature to this many of its σ for z_best's σ to
-/// hold (the curvature read over twice the window, `expected_curvature_snr`). The vertex
-/// −c1/(2c2) is a ratio: where the curvature is weakly measured, a noise draw that steepens it
-/// (the window centred on a row the noise lifted) also narrows the claimed σ, and the errors
-/// grow tails the σ does not cover. Rows with Gaussian noise about the point-dipole focus curve
-/// of a 121 nm bead (100 nm z steps, 0.6 µm window), 40 000 draws: at a true curvature of 4.4σ
-/// one answer in 300 was beyond 4σ of its σ (the truth sweep met one, 5.6σ off), at 9.5σ one in
-/// 4 000.
-pub const Z_CURVATURE_SNR: f64 = 8.0;
 
 /// One row's maximum (the best row's parabola, against the σ of that parabola from the image's
 /// noise) must stand this many σ high for `max_sens` to hold: below it each row's window is
