@@ -797,6 +797,30 @@ mod tests {
         assert!(sd < 0.45, "spread {sd} (n {n})");
     }
 
+    /// The curvature's σ for a known noise σ: 5 samples at k = −1, −½, 0, ½, 1 of the half window
+    /// h give Var(c2) = σ²·[(AᵀA)⁻¹]₂₂ = σ²·5/4.375 for the basis (1, k, k²), and the curvature
+    /// 2c2/h² carries 2σ·√(5/4.375)/h².
+    #[test]
+    fn curvature_sigma_matches_the_least_squares_closed_form() {
+        let t: Vec<f64> = (0..11).map(|i| -0.5 + 0.1 * i as f64).collect();
+        let v: Vec<f64> = t.iter().map(|x| 1.0 - 5.0 * x * x).collect();
+        let p = peak_1d(
+            &t,
+            &v,
+            &PeakOptions {
+                window_um: 0.4,
+                sigma: Some(0.01),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(p.n_points, 5);
+        assert!((p.curvature + 10.0).abs() < 1e-9, "{}", p.curvature);
+        let want = 2.0 * 0.01 * (5.0f64 / 4.375).sqrt() / (0.2 * 0.2);
+        let got = p.curvature_err.unwrap();
+        assert!((got / want - 1.0).abs() < 1e-9, "{got} vs {want}");
+    }
+
     #[test]
     fn parabola_vertex_exact() {
         let t: Vec<f64> = (0..40).map(|i| i as f64 * 0.05).collect();
