@@ -82,10 +82,9 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     let mut p = p;
     // the method's own systematic, in quadrature (noise-free, its σ would claim exactness)
     p.pos_err = p.pos_err.map(|e| e.hypot(Z_BEST_SYS_UM));
-    let pixel_um = (img.x[img.x.len() - 1] - img.x[0]).abs() / (img.x.len().max(2) - 1) as f64;
     p.value_err = p
         .value_err
-        .map(|e| e.hypot(max_sens_sys_rel(pixel_um) * p.value.abs()));
+        .map(|e| e.hypot(max_sens_sys_rel(img.dx().abs()) * p.value.abs()));
     let thr = opts.level * p.value;
     // Walk outwards from the best row to the first crossings.
     let ib = p.index;
@@ -259,11 +258,10 @@ fn focus_curve(sens: &Image, opts: &FocusOptions, sens_sigma: Option<f64>) -> Re
 /// ([`pixel_noise_d4`], fourth differences along the lateral axis) through the
 /// stencil's noise gain, σ(∂S/∂x) = gain·σ(S)/h (Sec. 3.2). None on noise-free data.
 fn sens_pixel_noise(img: &Image, stencil: Stencil) -> Option<f64> {
-    let n = img.x.len();
-    if n < 2 {
+    if img.x.len() < 2 {
         return None;
     }
-    let h = (img.x[n - 1] - img.x[0]).abs() / (n - 1) as f64;
+    let h = img.dx().abs();
     let (noise, count) = pixel_noise_d4(img);
     let s = stencil.noise_gain() * noise / h;
     (count >= MIN_NOISE_DIFFERENCES && s > 0.0 && s.is_finite()).then_some(s)
@@ -392,12 +390,10 @@ pub const FOCUS_DETECT_SNR: f64 = 2.5;
 /// through the stencil's noise gain, σ(∂S/∂x) = gain · σ(S) / h (Sec. 3.2). None on noise-free
 /// data (no noise to compare with).
 fn detection(img: &Image, stencil: Stencil, best: f64) -> Option<String> {
-    let n = img.x.len();
-    let h = if n > 1 {
-        (img.x[n - 1] - img.x[0]).abs() / (n - 1) as f64
-    } else {
+    if img.x.len() < 2 {
         return None;
-    };
+    }
+    let h = img.dx().abs();
     let sigma = stencil.noise_gain() * super::domain::pixel_noise(img, true) / h;
     (sigma > 0.0 && best.is_finite() && best < FOCUS_DETECT_SNR * sigma).then(|| {
         format!(
@@ -417,7 +413,7 @@ fn lateral_edge(sens: &Image, rows: &[LinePeak]) -> Option<String> {
         .iter()
         .filter_map(|r| r.peak())
         .max_by(|a, b| a.value.total_cmp(&b.value))?;
-    let step = (x1 - x0) / (sens.x.len().max(2) - 1) as f64;
+    let step = sens.dx().abs();
     (best.pos - x0 < 1.5 * step || x1 - best.pos < 1.5 * step).then(|| {
         format!(
             "the object's maximum at x = {:.3} µm is at the scan's lateral edge [{x0:.3}, {x1:.3}] µm: centre the object in the scan",
