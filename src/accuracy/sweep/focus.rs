@@ -392,4 +392,50 @@ mod tests {
         let (z, s) = truth.of_bead(&optics, 120.0).unwrap();
         assert_eq!((z, s), (z_ref, s_ref * (120.0f64 / REF_D_NM).powi(3)));
     }
+
+    /// `focus::focus_curve_ratio`, the ratio of the parabola curvatures over a z window W and
+    /// over 2W on the noise-free focus curve, describes the renderer's focus curve: 60 and 110 nm
+    /// beads (point dipoles) and a 199 nm one (the Mie tier), at 25, 50 and 100 nm rows. The
+    /// table holds the lowest ratio measured; every curve's lies at most 2 % above it at W = 0.4
+    /// and 0.6 µm, 6 % at 0.8 µm (the curves part as the window reaches their sides).
+    #[test]
+    fn the_focus_curve_ratio_matches_the_rendered_focus_curves() {
+        use crate::analysis::focus::focus_curve_ratio;
+        use crate::analysis::peaks::{peak_1d, PeakOptions};
+        let optics = Optics::default();
+        for (d, step) in [(60.0, 50), (110.0, 100), (110.0, 25), (199.0, 50)] {
+            let case = FocusCase {
+                bead: Some([0.1, 0.3, d]),
+                noise: 0.0,
+                pixel_nm: 50,
+                z_step_nm: step,
+                seed: 1,
+            };
+            let img = render_xz(&optics, &case).unwrap();
+            let f = focus_search(&img, &FocusOptions::default()).unwrap();
+            let z: Vec<f64> = f.rows.iter().map(|r| r.coord).collect();
+            let v: Vec<f64> = f
+                .rows
+                .iter()
+                .map(|r| r.peak().map_or(f64::NAN, |p| p.value))
+                .collect();
+            let curv = |w: f64| {
+                let o = PeakOptions {
+                    window_um: w,
+                    ..Default::default()
+                };
+                peak_1d(&z, &v, &o).unwrap().curvature
+            };
+            for (w, tol) in [(0.4, 0.02), (0.6, 0.02), (0.8, 0.06)] {
+                let table = focus_curve_ratio(w).unwrap();
+                let r = curv(w) / curv(2.0 * w);
+                assert!(
+                    r >= table - 2e-3 && r <= table * (1.0 + tol),
+                    "{d} nm, {step} nm rows, W = {w} µm: ratio {r:.4}, table {table:.4}"
+                );
+            }
+        }
+        assert_eq!(focus_curve_ratio(0.0), Some(1.0));
+        assert_eq!(focus_curve_ratio(0.9), None);
+    }
 }
