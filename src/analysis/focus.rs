@@ -78,17 +78,10 @@ pub fn focus_search(img: &Image, opts: &FocusOptions) -> Result<FocusResult> {
     if c.quieter_than_noise {
         c = focus_curve(&sens, opts, None)?;
     }
-    let FocusCurve {
-        rows,
-        z,
-        v,
-        p,
-        row_sigma,
-        ..
-    } = c;
+    let FocusCurve { rows, z, v, p, .. } = c;
     let mut p = p;
     // the vertex's σ with a curvature no steeper than the curve's sides support
-    let k = steep_top(&z, &v, row_sigma, opts.z_window_um, p.curvature);
+    let k = steep_top(&z, &v, opts.z_window_um, p.curvature);
     p.pos_err = p.pos_err.map(|e| e * k);
     // the method's own systematic, in quadrature (noise-free, its σ would claim exactness)
     p.pos_err = p.pos_err.map(|e| e.hypot(z_best_sys_um(row_step(&z))));
@@ -193,11 +186,7 @@ fn warnings(
 
 /// The mean step between the z rows `z` (µm; 0 for one row).
 fn row_step(z: &[f64]) -> f64 {
-    if z.len() > 1 {
-        (z[z.len() - 1] - z[0]).abs() / (z.len() - 1) as f64
-    } else {
-        0.0
-    }
+    crate::data::image::axis_step(z).abs()
 }
 
 /// The rows' maxima and the parabola over z through them.
@@ -284,13 +273,13 @@ fn focus_curve(sens: &Image, opts: &FocusOptions, sens_sigma: Option<f64>) -> Re
 /// beyond 4σ, 1σ coverage 0.73, 2σ 0.965, and 0.69–0.71 at ≥ 15σ of curvature (where it is
 /// ~1). The vertex itself is unchanged: the wider parabola's is biased by the curve's
 /// non-parabolic sides wherever its window is not centred on the peak.
-fn steep_top(z: &[f64], v: &[f64], sigma: Option<f64>, z_window_um: f64, curvature: f64) -> f64 {
+fn steep_top(z: &[f64], v: &[f64], z_window_um: f64, curvature: f64) -> f64 {
     let Some(r) = focus_curve_ratio(z_window_um) else {
         return 1.0;
     };
+    // only the curvature is read: it does not depend on the rows' σ
     let o = PeakOptions {
         window_um: 2.0 * z_window_um,
-        sigma,
         ..Default::default()
     };
     match peak_1d(z, v, &o) {
@@ -514,7 +503,7 @@ mod tests {
             peak_1d(&z, v, &o).unwrap().curvature
         };
         assert!((curv(&v, 0.6) + 1.0).abs() < 1e-9);
-        assert_eq!(steep_top(&z, &v, Some(1e-3), 0.6, curv(&v, 0.6)), 1.0);
+        assert_eq!(steep_top(&z, &v, 0.6, curv(&v, 0.6)), 1.0);
         let mut top = v.clone();
         // the drop across ±0.3 µm is 0.045: the rows at −0.1, 0 and 0.1 µm up by 0.0135
         for t in &mut top[19..22] {
@@ -523,9 +512,9 @@ mod tests {
         let (c, c2) = (curv(&top, 0.6), curv(&top, 1.2));
         let r = focus_curve_ratio(0.6).unwrap();
         assert!(c / c2 > 1.05 * r, "top {c}, sides {c2}");
-        let k = steep_top(&z, &top, Some(1e-3), 0.6, c);
+        let k = steep_top(&z, &top, 0.6, c);
         assert!((k - c / (r * c2)).abs() < 1e-12 && k > 1.05, "factor {k}");
-        assert_eq!(steep_top(&z, &top, Some(1e-3), 0.9, c), 1.0);
+        assert_eq!(steep_top(&z, &top, 0.9, c), 1.0);
     }
 
     /// A smooth bump, as an XZ scan's rows hold it (0.3–0.45 µm wide along x, 25 nm pixels,
