@@ -34,9 +34,11 @@
 
 mod field;
 mod focus;
+mod maxsens;
 mod microtubule;
 use field::{clip_words, draw_clip, render_field};
 pub use focus::FocusCase;
+pub use maxsens::MaxSensCase;
 pub use microtubule::MicrotubuleCase;
 
 use crate::analysis::fit::{fit_beads, FitOptions};
@@ -182,7 +184,7 @@ pub struct SweepOptions {
 }
 
 /// The sweep's families, as `--family` names them (and the dump's `family` field).
-pub const FAMILIES: [&str; 4] = ["beads", "fibril", "focus", "microtubule"];
+pub const FAMILIES: [&str; 5] = ["beads", "fibril", "focus", "microtubule", "maxsens"];
 
 impl SweepOptions {
     /// An unknown family name, in words (None when every name is one of [`FAMILIES`]).
@@ -654,6 +656,10 @@ pub fn run(
     let mut mt_rng = ChaCha8Rng::seed_from_u64(opts.seed);
     mt_rng.set_stream(1);
     cases.extend((0..opts.n).map(|_| Case::Microtubule(MicrotubuleCase::draw(&mut mt_rng))));
+    // the max_sens scenes from a third stream
+    let mut ms_rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    ms_rng.set_stream(2);
+    cases.extend((0..opts.n).map(|_| Case::MaxSens(MaxSensCase::draw(&mut ms_rng))));
     cases.retain(|c| opts.runs(c.family()));
     let cals = Cals::default();
     let mt_cals = microtubule::MtCals::default();
@@ -671,6 +677,21 @@ pub fn run(
             _ => {}
         }
     }
+    // the pipeline's readings the max_sens scenes' truths interpolate between
+    let readings = maxsens::Readings::default();
+    let mut nodes: Vec<(u32, i32)> = cases
+        .iter()
+        .filter_map(|c| match c {
+            Case::MaxSens(m) => m.z_nodes().map(|z| z.map(|k| (m.pixel_nm, k))),
+            _ => None,
+        })
+        .flatten()
+        .collect();
+    nodes.sort_unstable();
+    nodes.dedup();
+    nodes.par_iter().for_each(|&(px, k)| {
+        readings.get(&optics, px, k);
+    });
     let focus_truth = if opts.runs("focus") {
         Some(focus::FocusTruth::compute(&optics, &tpl)?)
     } else {
@@ -704,6 +725,10 @@ pub fn run(
                     tally_outcomes(&mut t, o);
                     "microtubule."
                 }
+                Case::MaxSens(mc) => {
+                    tally_outcomes(&mut t, maxsens::maxsens_case(mc, &optics, &readings).0);
+                    "max_sens."
+                }
             };
             let what = case.describe();
             timed(&mut t, family, t0.elapsed().as_secs_f64(), &what);
@@ -732,6 +757,7 @@ pub enum Case {
     Fibril(FibrilCase),
     Focus(FocusCase),
     Microtubule(MicrotubuleCase),
+    MaxSens(MaxSensCase),
 }
 
 impl Case {
@@ -741,6 +767,7 @@ impl Case {
             Case::Fibril(c) => c.describe(),
             Case::Focus(c) => c.describe(),
             Case::Microtubule(c) => c.describe(),
+            Case::MaxSens(c) => c.describe(),
         }
     }
     /// The family's name ([`FAMILIES`]).
@@ -750,6 +777,7 @@ impl Case {
             Case::Fibril(_) => FAMILIES[1],
             Case::Focus(_) => FAMILIES[2],
             Case::Microtubule(_) => FAMILIES[3],
+            Case::MaxSens(_) => FAMILIES[4],
         }
     }
 }
@@ -871,6 +899,25 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
                     d.region.n_points,
                     d.region.mean_corr,
                     if a.warnings.is_empty() { "ok".to_string() } else { a.warnings.join("; ") }
+                ));
+            }
+        }
+        Case::MaxSens(mc) => {
+            out.push_str(&format!("{}\n", mc.describe()));
+            let (outcomes, r) = maxsens::maxsens_case(mc, &optics, &Default::default());
+            tally_outcomes(&mut t, outcomes);
+            if let Some((p, w)) = r {
+                out.push_str(&format!(
+                    "  max_sens {:.5} ± {:.5} µm⁻¹ at ({:.4}, {:.4}) µm: {}\n",
+                    p.value,
+                    p.value_err.unwrap_or(f64::NAN),
+                    p.x,
+                    p.y,
+                    if w.is_empty() {
+                        "ok".to_string()
+                    } else {
+                        w.join("; ")
+                    }
                 ));
             }
         }

@@ -6,6 +6,8 @@
 //! Input: the channel image with the lateral scan axis as columns and z as rows (Sx of an XZ
 //! scan; Sy of a YZ scan with y as columns). Units: z and positions in µm.
 
+use super::peaks::with_misfit;
+pub use super::peaks::{max_sens_sys_rel, MAX_SENS_SYS_REL, MAX_SENS_SYS_REL_100NM, ROW_PEAK_SNR};
 use super::peaks::{peak_1d, row_peaks, LinePeak, PeakOptions};
 use super::sensitivity::{sensitivity, Axis, Stencil};
 use super::{check_range, AnalysisError, Result};
@@ -348,47 +350,6 @@ fn pixel_noise_d4(img: &Image) -> (f64, usize) {
     )
 }
 
-/// The parabola over z with its σ from the rows' known noise; the peak value's σ widened by
-/// √(χ²/ν) when the rows scatter about the parabola by more than their noise (the focus curve
-/// is not a parabola over the window, or the noise is not what the image's first differences
-/// say): never narrower than the noise, and as wide as the misfit where that dominates. The
-/// position keeps the noise's σ: the focus curve is symmetric about its peak (the point-dipole
-/// model's noise-free z_best lies within 5 nm of the object), so its non-parabolic shape widens
-/// the residuals without moving the vertex (widening it too made 1σ intervals of z_best hold 84 %
-/// of the truth sweep's answers at high SNR). An aberrated focus with an asymmetric curve is
-/// outside this domain.
-fn with_misfit(
-    mut p: super::peaks::Peak,
-    z: &[f64],
-    v: &[f64],
-    o: &PeakOptions,
-) -> (super::peaks::Peak, bool) {
-    let Some(s) = o.sigma else {
-        return (p, false);
-    };
-    let half = 0.5 * o.window_um;
-    let r: Vec<f64> = z
-        .iter()
-        .zip(v)
-        .filter(|(zi, vi)| vi.is_finite() && (**zi - p.pos).abs() <= half)
-        .map(|(zi, vi)| vi - (p.value + 0.5 * p.curvature * (zi - p.pos).powi(2)))
-        .collect();
-    if r.len() > 3 {
-        // widened only when χ² is beyond its 99 % point for ν degrees of freedom
-        // (Wilson–Hilferty): a parabola over 7 rows has ν = 4, and widening at every χ²/ν > 1
-        // made 1σ intervals hold 81 % of the sweep's answers
-        let nu = (r.len() - 3) as f64;
-        let chi2 = r.iter().map(|x| (x / s).powi(2)).sum::<f64>();
-        let wh = |z: f64| nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3);
-        if chi2 > wh(2.326) {
-            let k = (chi2 / nu).sqrt();
-            p.value_err = p.value_err.map(|e| e * k);
-        }
-        return (p, chi2 < wh(-3.719).max(0.0));
-    }
-    (p, false)
-}
-
 /// The focus search's systematic error of z_best (µm, 1σ) for z rows `step_um` apart: the
 /// parabola over the z window against the point-dipole focus curve's peak, which depends on
 /// where the rows fall on the curve. Noise-free, 40–200 nm beads at random positions (314
@@ -403,35 +364,11 @@ pub fn z_best_sys_um(step_um: f64) -> f64 {
 /// z_best's systematic per unit of the z rows' step ([`z_best_sys_um`]): 0.7 nm at 100 nm rows.
 pub const Z_BEST_SYS_PER_STEP: f64 = 0.007;
 
-/// The focus search's systematic error of the peak sensitivity, relative (1σ), at lateral
-/// pixels of `pixel_um`: the sub-pixel position of the object under the row parabolas (the
-/// pipeline's reading is averaged over it, `Template::pipeline_max_sens`) and the parabola over
-/// z. Noise-free, 70 and 150 nm beads at six sub-pixel positions and 25 and 100 nm z steps read
-/// 0.10–0.13 % RMS off at 20–75 nm pixels and 0.35 % (at most 0.55 %) at 100 nm:
-/// 0.12 % ⊕ 0.4 %·(pixel / 100 nm)⁴. (A flat 0.3 % made 1σ intervals hold 75–76 % of the truth
-/// sweep's answers; a flat 0.22 % left 100 nm pixels' low-noise answers 2.3–2.7σ off.)
-pub fn max_sens_sys_rel(pixel_um: f64) -> f64 {
-    MAX_SENS_SYS_REL.hypot(MAX_SENS_SYS_REL_100NM * (pixel_um / 0.1).powi(4))
-}
-
-/// [`max_sens_sys_rel`]'s floor at fine pixels, relative.
-pub const MAX_SENS_SYS_REL: f64 = 0.0012;
-
-/// [`max_sens_sys_rel`]'s pixel term at 100 nm pixels, relative.
-pub const MAX_SENS_SYS_REL_100NM: f64 = 0.004;
-
 /// The focus curve's peak (the parabola over z) must stand this many of its σ above zero for
 /// z_best and its σ to hold: below it the rows' maxima are picked from the noise (a 73 nm bead
 /// at 9× the paper's noise, its peak at 8σ, was put 0.28 µm off, 7σ, in the truth sweep; at
 /// 10–15σ one answer in 22 was 5σ off, at 15–20σ none beyond 2.5σ).
 pub const FOCUS_PEAK_SNR: f64 = 15.0;
-
-/// One row's maximum (the best row's parabola, against the σ of that parabola from the image's
-/// noise) must stand this many σ high for `max_sens` to hold: below it each row's window is
-/// centred on a noise maximum and its vertex reads high. A 60 nm bead at 4.8× the paper's noise
-/// and 75 nm pixels, its rows' maxima at 4.7–4.9σ, read 14–24 % high in four noise draws where
-/// its σ claimed 4–6 % (the focus curve's peak, from 25 rows, stood at 16–28σ).
-pub const ROW_PEAK_SNR: f64 = 10.0;
 
 /// Detection threshold of a focus search: the best sensitivity (the parabola over z through
 /// the rows' parabola maxima) over the 1σ noise of one sensitivity pixel. The parabolas

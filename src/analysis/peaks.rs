@@ -507,11 +507,261 @@ pub(crate) fn line_peaks(
 }
 
 /// Maximum sensitivity of a point object the way Sec. 5 measures maxima: a parabola over
-/// `opts.window_um` along every row ([`row_peaks`]), the row with the largest maximum, refined
-/// across rows by a parabola through it and its two neighbours (position and value). x comes
-/// from the best row's parabola. Uncertainties: those of the best row's parabola.
+/// `opts.window_um` along every row ([`row_peaks`]), then a parabola over the rows' maxima
+/// within `opts.window_um` across the rows, centred on the best row (position and value); x
+/// from the best row's parabola.
+///
+/// σ: the rows' parabolas take the noise of one sensitivity pixel from the whole image, not
+/// their few residuals (`opts.sigma` when given, else [`sens_noise`]: fourth differences across
+/// the rows, with the noise's correlation along the rows that the stencil made), and the
+/// parabola across the rows takes theirs, widened by √(χ²/ν) where the rows scatter beyond
+/// their 99 % point (`focus::with_misfit`); where the image is too small or too quiet for its
+/// noise to be read ([`sens_noise`] None, or the rows far quieter than it), the residuals'.
+/// A method's systematic, [`max_sens_sys_rel`] of the value, in quadrature.
+///
+/// Until 2026-12-07 the value was the best row's refined by the parabola through it and its two
+/// neighbours, with the best row's residual σ: the maximum of several rows that noise makes
+/// compete (at 10–30 nm pixels) read high, and a parabola over 5 pixels has 2 degrees of
+/// freedom: in the truth sweep's max_sens family 1σ intervals held 56 % of the answers.
 /// Errors: no row with a maximum.
 pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
+    Ok(point_peak_snr(sens, opts)?.0)
+}
+
+/// [`point_peak`] and the best row's maximum over its own σ (None where σ is not known from
+/// the image's noise).
+fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64>)> {
+    let (sigma, acf) = match opts.sigma {
+        Some(s) => (Some(s), opts.acf),
+        None => match sens_noise(sens) {
+            Some((s, acf)) => (Some(s), acf),
+            None => (None, opts.acf),
+        },
+    };
+    let row_opts = PeakOptions {
+        sigma,
+        acf,
+        ..*opts
+    };
+    let mut p = rows_then_across(sens, &row_opts)?;
+    let mut snr = p.1;
+    if p.2 {
+        // the rows are far quieter than the image's noise: their residuals' σ
+        p = rows_then_across(
+            sens,
+            &PeakOptions {
+                sigma: None,
+                ..*opts
+            },
+        )?;
+        snr = None;
+    }
+    let mut pk = p.0;
+    let dx = sens.dx().abs();
+    pk.value_err = pk
+        .value_err
+        .map(|e| e.hypot(max_sens_sys_rel(dx) * pk.value.abs()));
+    Ok((pk, snr))
+}
+
+/// The rows' maxima and the parabola across them: the peak, the best row's maximum over its
+/// σ, and whether the rows scatter far below that σ (below the 0.01 % point of χ²).
+fn rows_then_across(sens: &Image, row_opts: &PeakOptions) -> Result<(Peak2, Option<f64>, bool)> {
+    let rows = row_peaks(sens, row_opts)?;
+    let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
+    let (ib, pb) = vals
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, p)))
+        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
+        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))?;
+    let half = 0.5 * row_opts.window_um + 1e-9;
+    let yb = rows[ib].coord;
+    let near: Vec<usize> = (0..rows.len())
+        .filter(|&i| (rows[i].coord - yb).abs() <= half)
+        .collect();
+    let y: Vec<f64> = near.iter().map(|&i| rows[i].coord).collect();
+    let v: Vec<f64> = near
+        .iter()
+        .map(|&i| vals[i].map_or(f64::NAN, |p| p.value))
+        .collect();
+    // the rows' σ (those in the window), when they have one from the image's noise
+    let row_sigma = row_opts.sigma.and_then(|_| {
+        let e: Vec<f64> = near
+            .iter()
+            .filter_map(|&i| vals[i].and_then(|p| p.value_err))
+            .collect();
+        (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
+    });
+    let snr = row_sigma.filter(|&s| s > 0.0).map(|s| pb.value / s);
+    let y_opts = PeakOptions {
+        window_um: row_opts.window_um,
+        sigma: row_sigma,
+        acf: [0.0; 4],
+        min_value: None,
+        min_snr: 0.0,
+    };
+    // the parabola across the rows; one row (or a window of fewer than 3): the best row's
+    let across = (v.iter().filter(|x| x.is_finite()).count() >= 3)
+        .then(|| peak_1d(&y, &v, &y_opts).ok())
+        .flatten()
+        .map(|p| with_misfit(p, &y, &v, &y_opts));
+    Ok(match across {
+        Some((p, quiet)) => (
+            Peak2 {
+                x: pb.pos,
+                y: p.pos,
+                value: p.value,
+                x_err: pb.pos_err,
+                y_err: p.pos_err,
+                value_err: p.value_err,
+                n_points: pb.n_points,
+            },
+            snr,
+            quiet,
+        ),
+        None => (
+            Peak2 {
+                x: pb.pos,
+                y: yb,
+                value: pb.value,
+                x_err: pb.pos_err,
+                y_err: None,
+                value_err: pb.value_err,
+                n_points: pb.n_points,
+            },
+            snr,
+            false,
+        ),
+    })
+}
+
+/// The noise of one pixel of a sensitivity image (1σ) and its correlation along the rows at
+/// lags 1–4 samples, from fourth differences across the rows (1.4826·MAD/√70 for white noise
+/// across them: a derivative along x does not correlate the rows, and the fourth difference
+/// takes the object's smooth profile off, as in the focus search); the correlation along the
+/// rows (the central difference's −½ at two samples) from the same differences, which a filter
+/// across the rows leaves as it was. None where fewer than [`MIN_XY_NOISE_DIFFERENCES`]
+/// differences are read, or on noise-free data.
+pub fn sens_noise(sens: &Image) -> Option<(f64, [f64; 4])> {
+    let (rows, cols) = sens.data.dim();
+    if rows < 5 {
+        return None;
+    }
+    let mut d = ndarray::Array2::<f64>::from_elem((rows - 4, cols), f64::NAN);
+    for r in 0..rows - 4 {
+        for c in 0..cols {
+            let w = |k: usize| sens.data[[r + k, c]];
+            d[[r, c]] = w(4) - 4.0 * w(3) + 6.0 * w(2) - 4.0 * w(1) + w(0);
+        }
+    }
+    let fin: Vec<f64> = d.iter().copied().filter(|v| v.is_finite()).collect();
+    if fin.len() < MIN_XY_NOISE_DIFFERENCES {
+        return None;
+    }
+    let sd = super::stats::robust_std(&fin)?;
+    let noise = sd / 70f64.sqrt();
+    if !(noise > 0.0 && noise.is_finite()) {
+        return None;
+    }
+    // the correlation along the rows, over differences within 5 robust σ (an object's residue
+    // left out)
+    let lim = 5.0 * sd;
+    let ok = |v: f64| v.is_finite() && v.abs() <= lim;
+    let mut acf = [0.0; 4];
+    let (mut s0, mut n0) = (0.0, 0usize);
+    for v in d.iter().copied().filter(|&v| ok(v)) {
+        s0 += v * v;
+        n0 += 1;
+    }
+    for (k, a) in acf.iter_mut().enumerate() {
+        let (mut s, mut n) = (0.0, 0usize);
+        for row in d.rows() {
+            for c in 0..cols.saturating_sub(k + 1) {
+                let (u, v) = (row[c], row[c + k + 1]);
+                if ok(u) && ok(v) {
+                    s += u * v;
+                    n += 1;
+                }
+            }
+        }
+        if n > 0 && n0 > 0 {
+            *a = (s / n as f64) / (s0 / n0 as f64);
+        }
+    }
+    Some((noise, acf))
+}
+
+/// The parabola over z with its σ from the rows' known noise; the peak value's σ widened by
+/// √(χ²/ν) when the rows scatter about the parabola by more than their noise (the focus curve
+/// is not a parabola over the window, or the noise is not what the image's first differences
+/// say): never narrower than the noise, and as wide as the misfit where that dominates. The
+/// position keeps the noise's σ: the focus curve is symmetric about its peak (the point-dipole
+/// model's noise-free z_best lies within 5 nm of the object), so its non-parabolic shape widens
+/// the residuals without moving the vertex (widening it too made 1σ intervals of z_best hold 84 %
+/// of the truth sweep's answers at high SNR). An aberrated focus with an asymmetric curve is
+/// outside this domain.
+pub(crate) fn with_misfit(mut p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> (Peak, bool) {
+    let Some(s) = o.sigma else {
+        return (p, false);
+    };
+    let half = 0.5 * o.window_um;
+    let r: Vec<f64> = z
+        .iter()
+        .zip(v)
+        .filter(|(zi, vi)| vi.is_finite() && (**zi - p.pos).abs() <= half)
+        .map(|(zi, vi)| vi - (p.value + 0.5 * p.curvature * (zi - p.pos).powi(2)))
+        .collect();
+    if r.len() > 3 {
+        // widened only when χ² is beyond its 99 % point for ν degrees of freedom
+        // (Wilson–Hilferty): a parabola over 7 rows has ν = 4, and widening at every χ²/ν > 1
+        // made 1σ intervals hold 81 % of the sweep's answers
+        let nu = (r.len() - 3) as f64;
+        let chi2 = r.iter().map(|x| (x / s).powi(2)).sum::<f64>();
+        let wh = |z: f64| nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3);
+        if chi2 > wh(2.326) {
+            let k = (chi2 / nu).sqrt();
+            p.value_err = p.value_err.map(|e| e * k);
+        }
+        return (p, chi2 < wh(-3.719).max(0.0));
+    }
+    (p, false)
+}
+
+/// The focus search's systematic error of the peak sensitivity, relative (1σ), at lateral
+/// pixels of `pixel_um`: the sub-pixel position of the object under the row parabolas (the
+/// pipeline's reading is averaged over it, `Template::pipeline_max_sens`) and the parabola over
+/// z. Noise-free, 70 and 150 nm beads at six sub-pixel positions and 25 and 100 nm z steps read
+/// 0.10–0.13 % RMS off at 20–75 nm pixels and 0.35 % (at most 0.55 %) at 100 nm:
+/// 0.12 % ⊕ 0.4 %·(pixel / 100 nm)⁴. (A flat 0.3 % made 1σ intervals hold 75–76 % of the truth
+/// sweep's answers; a flat 0.22 % left 100 nm pixels' low-noise answers 2.3–2.7σ off.)
+pub fn max_sens_sys_rel(pixel_um: f64) -> f64 {
+    MAX_SENS_SYS_REL.hypot(MAX_SENS_SYS_REL_100NM * (pixel_um / 0.1).powi(4))
+}
+
+/// [`max_sens_sys_rel`]'s floor at fine pixels, relative.
+pub const MAX_SENS_SYS_REL: f64 = 0.0012;
+
+/// [`max_sens_sys_rel`]'s pixel term at 100 nm pixels, relative.
+pub const MAX_SENS_SYS_REL_100NM: f64 = 0.004;
+
+/// One row's maximum (the best row's parabola, against the σ of that parabola from the image's
+/// noise) must stand this many σ high for `max_sens` to hold: below it each row's window is
+/// centred on a noise maximum and its vertex reads high. A 60 nm bead at 4.8× the paper's noise
+/// and 75 nm pixels, its rows' maxima at 4.7–4.9σ, read 14–24 % high in four noise draws where
+/// its σ claimed 4–6 % (the focus curve's peak, from 25 rows, stood at 16–28σ).
+pub const ROW_PEAK_SNR: f64 = 10.0;
+
+/// The fewest fourth differences [`sens_noise`] reads the noise from: a 21 × 21 image. An
+/// object in focus covers a small part of an XY image (a bead ~0.8 µm across, 10 % of a
+/// 2.4 µm field at 75 nm pixels), so the robust spread is the noise's well below the focus
+/// search's 1000 (whose defocused rows spread the object over most pixels).
+pub const MIN_XY_NOISE_DIFFERENCES: usize = 300;
+
+/// The maximum the way it was read before 2026-12-07 and the focus search still reads a row
+/// (the truth sweep's focus family reads the reference bead this way): the best row's
+/// parabola refined by the parabola through it and its two neighbours; σ the best row's.
+pub fn point_peak_3row(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
     let rows = row_peaks(sens, opts)?;
     let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
     let (ib, pb) = vals
@@ -545,12 +795,39 @@ pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
 }
 
 /// [`point_peak`] with its domain checked: warnings when the maximum lies within half a
-/// parabola window of the image's edge (the object is not whole inside the scan).
+/// parabola window of the image's edge (the object is not whole inside the scan), and when the
+/// best row's maximum stands less than [`ROW_PEAK_SNR`] of its σ from the image's noise (no
+/// object, or one too faint: an empty field's largest noise maximum read as an object's, with
+/// status "ok", before 2026-12-07).
 pub fn point_peak_checked(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Vec<String>)> {
-    let p = point_peak(sens, opts)?;
-    let w = super::domain::margin_warning("the maximum", sens, p.x, p.y, 0.5 * opts.window_um)
-        .into_iter()
-        .collect();
+    let (p, snr) = point_peak_snr(sens, opts)?;
+    let mut w: Vec<String> =
+        super::domain::margin_warning("the maximum", sens, p.x, p.y, 0.5 * opts.window_um)
+            .into_iter()
+            .collect();
+    let k = ROW_PEAK_SNR;
+    if let Some(snr) = snr.filter(|&s| s < k) {
+        w.push(format!(
+            "the best row's maximum is {snr:.1}σ of its own noise, below {k}σ: no object, or one too faint for its maximum to be read; each row's parabola centres on a noise maximum and reads high, so the value and its σ do not hold (scan slower, or with larger pixels)"
+        ));
+    }
+    Ok((p, w))
+}
+
+/// `max_sens`: the maximum of a point object's sensitivity image ([`point_peak_checked`]) with
+/// the pixels it is read from checked: clipped or dark pixels in the parabola window around
+/// the maximum (`data::clip`; a derivative pixel is flagged when its stencil reached a flagged
+/// one) are warnings, a window of nothing else a refusal. The `max_sens` binding and the truth
+/// sweep call this.
+pub fn max_sens(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Vec<String>)> {
+    let (p, mut w) = point_peak_checked(sens, opts)?;
+    let h = 0.5 * opts.window_um * (1.0 + 1e-9);
+    let used = |r: usize, c: usize| (sens.y[r] - p.y).abs() <= h && (sens.x[c] - p.x).abs() <= h;
+    let check = crate::data::clip::image_check(sens, used);
+    if let Some(r) = check.refusal {
+        return Err(AnalysisError::Failed(r));
+    }
+    w.extend(check.warnings);
     Ok((p, w))
 }
 
@@ -689,6 +966,52 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `sens_noise` reads a derivative image's pixel noise and its correlation along the rows
+    /// from the data, whatever the stencil: white noise of σ on a Gaussian bump, differentiated
+    /// along x, gives gain·σ/h (Sec. 3.2) and the stencil's own correlation
+    /// (`Stencil::noise_acf`: −½ at two samples for the central difference), within the
+    /// estimates' scatter over a 128 × 128 image; on the bump without noise, nothing to read.
+    #[test]
+    fn the_sensitivity_noise_and_its_correlation_are_read_from_the_image() {
+        const NPX: usize = 128;
+        use crate::analysis::sensitivity::{sensitivity, Axis, Stencil};
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let h = 0.02;
+        let ax: Vec<f64> = (0..NPX).map(|i| -0.63 + h * i as f64).collect();
+        let bump = |x: f64, y: f64| 0.05 * x * (-(x * x + y * y) / 0.08).exp();
+        let sigma = 1e-3;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let noise = Normal::new(0.0, sigma).unwrap();
+        for st in [Stencil::Central2, Stencil::Central5] {
+            let data = ndarray::Array2::from_shape_fn((NPX, NPX), |(r, c)| {
+                bump(ax[c], ax[r]) + noise.sample(&mut rng)
+            });
+            let sens = sensitivity(&Image::new(data, ax.clone(), ax.clone()), Axis::X, st).unwrap();
+            let (s, acf) = sens_noise(&sens).unwrap();
+            let want = st.noise_gain() * sigma / h;
+            // the robust σ of 15 872 differences scatters by ~1 %, the correlations by ~0.013
+            // (the differences of neighbouring rows share pixels)
+            assert!((s / want - 1.0).abs() < 0.06, "{st:?}: σ {s} vs {want}");
+            for (a, w) in acf.iter().zip(st.noise_acf()) {
+                assert!(
+                    (a - w).abs() < 0.05,
+                    "{st:?}: acf {acf:?} vs {:?}",
+                    st.noise_acf()
+                );
+            }
+        }
+        let clean = ndarray::Array2::from_shape_fn((NPX, NPX), |(r, c)| bump(ax[c], ax[r]));
+        let sens = sensitivity(
+            &Image::new(clean, ax.clone(), ax),
+            Axis::X,
+            Stencil::Central2,
+        )
+        .unwrap();
+        let quiet = sens_noise(&sens).map_or(0.0, |n| n.0);
+        assert!(quiet < 1e-3 * sigma / h, "noise-free: {quiet}");
+    }
 
     /// The vertex value of a noisy parabola is biased upwards (E[c1²] = c1² + var c1); the
     /// second-order correction removes it: over 4000 noisy copies of a Gaussian line profile

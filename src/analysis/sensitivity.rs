@@ -189,7 +189,29 @@ pub fn sensitivity(img: &Image, axis: Axis, stencil: Stencil) -> Result<Image> {
     let mut res = Image::new(out, img.x.clone(), img.y.clone());
     res.x_name = img.x_name.clone();
     res.y_name = img.y_name.clone();
+    res.flags = derived_flags(img, axis, stencil);
     Ok(res)
+}
+
+/// The clipped and dark pixels of the derivative of `img` along `axis` by `stencil`: every
+/// pixel whose stencil reaches a flagged pixel of `img` (None when `img` has no flags).
+pub fn derived_flags(
+    img: &Image,
+    axis: Axis,
+    stencil: Stencil,
+) -> Option<std::sync::Arc<crate::data::clip::PixelFlags>> {
+    let reach = stencil.reach();
+    let (rx, ry) = match axis {
+        Axis::X => (reach, 0),
+        Axis::Y => (0, reach),
+    };
+    let what = match axis {
+        Axis::X => "the sensitivity ∂/∂x",
+        Axis::Y => "the sensitivity ∂/∂y",
+    };
+    img.flags
+        .as_ref()
+        .map(|f| std::sync::Arc::new(f.derived(what, rx, ry)))
 }
 
 /// Derivative of equally spaced samples `v` (spacing `h`, may be negative) with the fallbacks

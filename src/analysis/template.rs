@@ -476,6 +476,19 @@ impl Template {
         stencil: Stencil,
         window_um: f64,
     ) -> Result<f64> {
+        self.pipeline_max_sens_by(pixel_um, stencil, window_um, super::peaks::point_peak)
+    }
+
+    /// [`Template::pipeline_max_sens`] with the maximum read by `read` (the truth sweep's focus
+    /// family reads the reference as the focus search reads a row,
+    /// [`point_peak_3row`](super::peaks::point_peak_3row)).
+    pub fn pipeline_max_sens_by(
+        &self,
+        pixel_um: f64,
+        stencil: Stencil,
+        window_um: f64,
+        read: fn(&Image, &PeakOptions) -> Result<super::peaks::Peak2>,
+    ) -> Result<f64> {
         check_positive(&[("pixel_um", pixel_um), ("window_um", window_um)])?;
         let half = 1.2f64.max(2.0 * window_um);
         let n = grid_nodes("pixel_um", pixel_um, half)?;
@@ -492,7 +505,7 @@ impl Template {
                 let [sx, _, _] = self.render(&[b], &axis, &axis);
                 let img = Image::new(sx, axis.clone(), axis.clone());
                 let sens = sensitivity(&img, Axis::X, stencil)?;
-                if let Ok(p) = super::peaks::point_peak(&sens, &opts) {
+                if let Ok(p) = read(&sens, &opts) {
                     acc += p.value;
                     cnt += 1;
                 }

@@ -6,7 +6,7 @@ use super::keys::{AXIS, STENCIL};
 use super::registry::{binding_list, err, fail, Doc, Opts, RResult, Registrar, Spec};
 use super::types::{ImageRef, ProfileRef, ScanRef};
 use crate::analysis::focus::{focus_search, FocusOptions};
-use crate::analysis::peaks::{col_peaks, point_peak_checked, row_peaks};
+use crate::analysis::peaks::{col_peaks, row_peaks};
 use crate::analysis::profile::profile_polyline;
 use crate::analysis::{sensitivity, Stencil};
 use crate::data::Image;
@@ -176,35 +176,9 @@ fn sensitivity_of(spec: &Spec, v: Dynamic, m: &Map) -> RResult<ImageRef> {
     )?;
     let st = stencil_of("sensitivity", &o, Stencil::Central2)?;
     let im = image_or_scan("sensitivity", &v, axis)?;
-    let mut out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
-    out.flags = derived_flags(&im, axis, st);
+    // (with the clipped and dark pixels its stencil reached, `derived_flags`)
+    let out = sensitivity(&im, axis, st).map_err(|e| err("sensitivity", e))?;
     Ok(ImageRef(Arc::new(out)))
-}
-
-/// The clipped and dark pixels of the derivative of `im` along `axis` by stencil `st`: every
-/// pixel whose stencil reaches a flagged pixel of `im`.
-fn derived_flags(
-    im: &Image,
-    axis: crate::analysis::Axis,
-    st: Stencil,
-) -> Option<Arc<crate::data::clip::PixelFlags>> {
-    let reach = st.reach();
-    let (rx, ry) = match axis {
-        crate::analysis::Axis::X => (reach, 0),
-        crate::analysis::Axis::Y => (0, reach),
-    };
-    let what = match axis {
-        crate::analysis::Axis::X => "the sensitivity ∂/∂x",
-        crate::analysis::Axis::Y => "the sensitivity ∂/∂y",
-    };
-    im.flags.as_ref().map(|f| Arc::new(f.derived(what, rx, ry)))
-}
-
-/// The pixels (row, column) of `img` within `half` µm of (x, y) in both directions: the
-/// window a 2-D parabola fit reads.
-fn window_mask(img: &Image, x: f64, y: f64, half: f64) -> impl Fn(usize, usize) -> bool + '_ {
-    let h = half * (1.0 + 1e-9);
-    move |r, c| (img.y[r] - y).abs() <= h && (img.x[c] - x).abs() <= h
 }
 
 /// `row_peaks(img[, opts])` (`rows` true) / `col_peaks` (false): the sub-pixel maximum of every
@@ -226,13 +200,8 @@ fn line_maxima(spec: &Spec, name: &str, rows: bool, i: &ImageRef, m: &Map) -> RR
 fn max_sens(c: &Ctx, spec: &Spec, i: &ImageRef, m: &Map) -> RResult<Map> {
     let o = Opts::new(spec, m)?;
     let po = peak_opts("max_sens", &o)?;
-    let (p, mut w) = point_peak_checked(&i.0, &po).map_err(|e| err("max_sens", e))?;
-    // clipped or dark pixels in the window the maximum is read from (`data::clip`)
-    let used = window_mask(&i.0, p.x, p.y, 0.5 * po.window_um);
-    w.extend(input_gate(
-        "max_sens",
-        crate::data::clip::image_check(&i.0, used),
-    )?);
+    // with the clipped or dark pixels of the window it is read from (`data::clip`)
+    let (p, w) = crate::analysis::peaks::max_sens(&i.0, &po).map_err(|e| err("max_sens", e))?;
     let mut out = to_map(&p);
     with_warnings(c, "max_sens", &mut out, w);
     Ok(out)
@@ -253,7 +222,8 @@ fn focus_search_of(c: &Ctx, spec: &Spec, v: Dynamic, m: &Map) -> RResult<Map> {
     let mut res = focus_search(&im, &fo).map_err(|e| err("focus_search", e))?;
     // clipped or dark pixels among those the row maxima are read from: the parabola window
     // around each row's maximum, widened by the stencil (`data::clip`)
-    let sflags = derived_flags(&im, crate::analysis::Axis::X, fo.stencil);
+    let sflags =
+        crate::analysis::sensitivity::derived_flags(&im, crate::analysis::Axis::X, fo.stencil);
     let half = 0.5 * fo.window_um * (1.0 + 1e-9);
     let centres: Vec<Option<f64>> = res.rows.iter().map(|r| r.peak().map(|p| p.pos)).collect();
     let used = |r: usize, c: usize| {

@@ -102,7 +102,12 @@ impl FocusTruth {
         let mut pipeline = [(0, 0.0); 5];
         for (p, &nm) in pipeline.iter_mut().zip(&PIXELS_NM) {
             let f = tpl
-                .pipeline_max_sens(nm as f64 / 1000.0, opts.stencil, opts.window_um)
+                .pipeline_max_sens_by(
+                    nm as f64 / 1000.0,
+                    opts.stencil,
+                    opts.window_um,
+                    crate::analysis::peaks::point_peak_3row,
+                )
                 .map_err(|e| e.to_string())?;
             *p = (nm, f);
         }
