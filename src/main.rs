@@ -121,7 +121,7 @@ enum Cmd {
         /// Print one JSON object instead of the table
         #[arg(long)]
         json: bool,
-        /// Run only these families (beads, fibril, focus, microtubule; comma-separated; default
+        /// Run only these families (beads, fibril, focus, microtubule, maxsens; comma-separated; default
         /// all). A family's scenes are the same whichever others run
         #[arg(long, value_delimiter = ',')]
         family: Vec<String>,

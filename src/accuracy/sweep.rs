@@ -26,11 +26,17 @@
 //!   and measured as `aggregates::remove` then `microtubule::density` do (the same Rust
 //!   functions, `analysis::microtubule`), μ against ρ·πd²/4 ([`microtubule`]). Its scenes come
 //!   from a stream of their own, so the other families' scenes are those of earlier versions.
+//! - **max_sens** (`max_sens.value`, `.detection`): an XY scan (±1.2 µm) of one 40–200 nm
+//!   bead anywhere within ±1.1 µm, in the focal plane for half the scenes and up to ±3 µm from
+//!   it for the others, or an empty field (one in eight); detector noise × 0–10; pixels of 10,
+//!   20, 30, 50, 75 or 100 nm; one scene in four clipped; its ∂Sx/∂x read by `max_sens`
+//!   ([`maxsens`]). From a third stream of its own.
 //!
 //! `--family` runs some of the families only (the scenes of each are the same either way).
 //!
 //! Not yet in the space (stated in docs/analysis.md, "Still open"): focus offsets of the bead and
-//! fibril scenes, the SBR itself and the beam fit.
+//! fibril scenes (the fit's weight reads low by ~1.4 %·(z/100 nm)² off the focus; `max_sens`'s
+//! family has them), the SBR itself, the count of removed aggregates and the beam fit.
 
 mod field;
 mod focus;
@@ -175,7 +181,7 @@ impl Tally {
 /// What to sweep.
 #[derive(Debug, Clone, Default)]
 pub struct SweepOptions {
-    /// Scenes per estimator family (beads, fibrils, focus, microtubules).
+    /// Scenes per estimator family (beads, fibrils, focus, microtubules, max_sens).
     pub n: usize,
     pub seed: u64,
     /// The families run (`FAMILIES`' names); empty: all. The scenes of a family are the same

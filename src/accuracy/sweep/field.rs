@@ -1,6 +1,6 @@
 //! The sweep's scenes on an XY field: the paper's detector noise × a factor, a digitiser of
 //! finite range for one scene in four, the square field rendered by the simulator. Shared by the
-//! families of the sweep (beads, fibrils, microtubules).
+//! families of the sweep (beads, fibrils, microtubules, max_sens).
 
 use crate::instrument::sim::scene::{
     DetectorNoise, DetectorRange, Scene, PAPER_DETECTOR_SIGMA_SAMPLE, PAPER_SAMPLES_PER_PIXEL,
