@@ -530,7 +530,7 @@ pub fn point_peak(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
 
 /// [`point_peak`] and the best row's maximum over its own σ (None where σ is not known from
 /// the image's noise).
-fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64>)> {
+fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64>, Option<Rival>)> {
     let (sigma, acf) = match opts.sigma {
         Some(s) => (Some(s), opts.acf),
         None => match sens_noise(sens) {
@@ -544,7 +544,7 @@ fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64
         ..*opts
     };
     let mut p = rows_then_across(sens, &row_opts)?;
-    let mut snr = p.1;
+    let (mut snr, rival) = (p.1, p.3);
     if p.2 {
         // the rows are far quieter than the image's noise: their residuals' σ
         p = rows_then_across(
@@ -561,12 +561,15 @@ fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64
     pk.value_err = pk
         .value_err
         .map(|e| e.hypot(max_sens_sys_rel(dx) * pk.value.abs()));
-    Ok((pk, snr))
+    Ok((pk, snr, rival))
 }
 
 /// The rows' maxima and the parabola across them: the peak, the best row's maximum over its
 /// σ, and whether the rows scatter far below that σ (below the 0.01 % point of χ²).
-fn rows_then_across(sens: &Image, row_opts: &PeakOptions) -> Result<(Peak2, Option<f64>, bool)> {
+fn rows_then_across(
+    sens: &Image,
+    row_opts: &PeakOptions,
+) -> Result<(Peak2, Option<f64>, bool, Option<Rival>)> {
     let rows = row_peaks(sens, row_opts)?;
     let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
     let (ib, pb) = vals
@@ -594,6 +597,7 @@ fn rows_then_across(sens: &Image, row_opts: &PeakOptions) -> Result<(Peak2, Opti
         (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
     });
     let snr = row_sigma.filter(|&s| s > 0.0).map(|s| pb.value / s);
+    let rival = row_sigma.and_then(|s| rival(&rows, ib, row_opts.window_um, s));
     let y_opts = PeakOptions {
         window_um: row_opts.window_um,
         sigma: row_sigma,
@@ -619,6 +623,7 @@ fn rows_then_across(sens: &Image, row_opts: &PeakOptions) -> Result<(Peak2, Opti
             },
             snr,
             quiet,
+            rival,
         ),
         None => (
             Peak2 {
@@ -632,7 +637,51 @@ fn rows_then_across(sens: &Image, row_opts: &PeakOptions) -> Result<(Peak2, Opti
             },
             snr,
             false,
+            rival,
         ),
+    })
+}
+
+/// A second maximum across the rows, apart from the best row's: (its y, its row maximum, the
+/// best row's maximum, the rows' σ).
+#[derive(Debug, Clone, Copy)]
+struct Rival {
+    y: f64,
+    value: f64,
+    best: f64,
+    sigma: f64,
+}
+
+/// The largest row maximum more than a window `w` from the best row `ib` that is the largest
+/// within half a window of itself and has a row between it and the best lower than it by 2σ
+/// (`s`, one row's σ): a second object, or a second lobe of one (a bead more than ~1.1 µm off
+/// the focus shows two equal lobes 0.45–0.55 µm across the rows from it).
+fn rival(rows: &[LinePeak], ib: usize, w: f64, s: f64) -> Option<Rival> {
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|r| r.peak().map_or(f64::NAN, |p| p.value))
+        .collect();
+    let yb = rows[ib].coord;
+    let mut best: Option<usize> = None;
+    for i in 0..rows.len() {
+        let yi = rows[i].coord;
+        if !v[i].is_finite() || (yi - yb).abs() <= w {
+            continue;
+        }
+        let local = (0..rows.len())
+            .filter(|&k| (rows[k].coord - yi).abs() <= 0.5 * w)
+            .all(|k| !(v[k] > v[i]));
+        let (a, b) = (i.min(ib), i.max(ib));
+        let valley = (a + 1..b).any(|k| v[k] < v[i] - 2.0 * s);
+        if local && valley && best.is_none_or(|j| v[i] > v[j]) {
+            best = Some(i);
+        }
+    }
+    best.map(|i| Rival {
+        y: rows[i].coord,
+        value: v[i],
+        best: v[ib],
+        sigma: s,
     })
 }
 
@@ -752,6 +801,10 @@ pub const MAX_SENS_SYS_REL_100NM: f64 = 0.004;
 /// its σ claimed 4–6 % (the focus curve's peak, from 25 rows, stood at 16–28σ).
 pub const ROW_PEAK_SNR: f64 = 10.0;
 
+/// A second maximum within this many σ of their difference of the best row's is a rival
+/// ([`point_peak_checked`]'s warning).
+pub const RIVAL_SIGMA: f64 = 2.0;
+
 /// The fewest fourth differences [`sens_noise`] reads the noise from: a 21 × 21 image. An
 /// object in focus covers a small part of an XY image (a bead ~0.8 µm across, 10 % of a
 /// 2.4 µm field at 75 nm pixels), so the robust spread is the noise's well below the focus
@@ -800,7 +853,7 @@ pub fn point_peak_3row(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
 /// object, or one too faint: an empty field's largest noise maximum read as an object's, with
 /// status "ok", before 2026-12-07).
 pub fn point_peak_checked(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Vec<String>)> {
-    let (p, snr) = point_peak_snr(sens, opts)?;
+    let (p, snr, rival) = point_peak_snr(sens, opts)?;
     let mut w: Vec<String> =
         super::domain::margin_warning("the maximum", sens, p.x, p.y, 0.5 * opts.window_um)
             .into_iter()
@@ -809,6 +862,16 @@ pub fn point_peak_checked(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Ve
     if let Some(snr) = snr.filter(|&s| s < k) {
         w.push(format!(
             "the best row's maximum is {snr:.1}σ of its own noise, below {k}σ: no object, or one too faint for its maximum to be read; each row's parabola centres on a noise maximum and reads high, so the value and its σ do not hold (scan slower, or with larger pixels)"
+        ));
+    }
+    // two maxima whose rows differ by less than 2σ of their difference: the larger of the two
+    // is picked, and reads high
+    if let Some(r) =
+        rival.filter(|r| r.best - r.value < RIVAL_SIGMA * std::f64::consts::SQRT_2 * r.sigma)
+    {
+        w.push(format!(
+            "a second maximum across the rows at y = {:.3} µm ({:.4}) is within {RIVAL_SIGMA}σ of the best row's ({:.4}, σ {:.4}): of two similar maxima (two objects, or the two lobes of a bead far off the focus) the larger is picked and reads high; crop the image to one object, or focus",
+            r.y, r.value, r.best, r.sigma
         ));
     }
     Ok((p, w))
@@ -966,6 +1029,42 @@ pub fn peak_2d(img: &Image, window_um: f64, sigma: Option<f64>) -> Result<Peak2>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two equal point objects 1.2 µm apart across the rows: whichever reads larger is picked,
+    /// so `max_sens` reads high; it says so. One object alone, or a second one far fainter, is
+    /// not warned about.
+    #[test]
+    fn a_second_maximum_as_high_as_the_best_is_a_warning() {
+        use crate::analysis::sensitivity::{sensitivity, Axis, Stencil};
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let h = 0.03;
+        let ax: Vec<f64> = (0..81).map(|i| -1.2 + h * i as f64).collect();
+        let obj = |x: f64, y: f64, y0: f64| x * (-(x * x + (y - y0) * (y - y0)) / 0.09).exp();
+        let noise = Normal::new(0.0, 2e-3).unwrap();
+        let rivals = |w2: f64, seed: u64| {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let data = ndarray::Array2::from_shape_fn((81, 81), |(r, c)| {
+                obj(ax[c], ax[r], -0.6) + w2 * obj(ax[c], ax[r], 0.6) + noise.sample(&mut rng)
+            });
+            let sens = sensitivity(
+                &Image::new(data, ax.clone(), ax.clone()),
+                Axis::X,
+                Stencil::Central2,
+            )
+            .unwrap();
+            let (_, w) = point_peak_checked(&sens, &PeakOptions::default()).unwrap();
+            w.iter().any(|w| w.contains("second maximum"))
+        };
+        for seed in 0..5 {
+            assert!(rivals(1.0, seed), "two equal objects, seed {seed}");
+            assert!(!rivals(0.0, seed), "one object, seed {seed}");
+            assert!(
+                !rivals(0.5, seed),
+                "a second at half the height, seed {seed}"
+            );
+        }
+    }
 
     /// `sens_noise` reads a derivative image's pixel noise and its correlation along the rows
     /// from the data, whatever the stencil: white noise of σ on a Gaussian bump, differentiated
