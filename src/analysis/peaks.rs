@@ -564,6 +564,15 @@ fn point_peak_snr(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Option<f64
     Ok((pk, snr, rival))
 }
 
+/// The row with the largest maximum (its index and its parabola). Errors: no row has one.
+fn best_row<'a>(vals: &[Option<&'a Peak>]) -> Result<(usize, &'a Peak)> {
+    vals.iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, p)))
+        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
+        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))
+}
+
 /// The rows' maxima and the parabola across them: the peak, the best row's maximum over its
 /// σ, and whether the rows scatter far below that σ (below the 0.01 % point of χ²).
 fn rows_then_across(
@@ -572,12 +581,7 @@ fn rows_then_across(
 ) -> Result<(Peak2, Option<f64>, bool, Option<Rival>)> {
     let rows = row_peaks(sens, row_opts)?;
     let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
-    let (ib, pb) = vals
-        .iter()
-        .enumerate()
-        .filter_map(|(i, p)| p.map(|p| (i, p)))
-        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
-        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))?;
+    let (ib, pb) = best_row(&vals)?;
     let half = 0.5 * row_opts.window_um + 1e-9;
     let yb = rows[ib].coord;
     let near: Vec<usize> = (0..rows.len())
@@ -817,12 +821,7 @@ pub const MIN_XY_NOISE_DIFFERENCES: usize = 300;
 pub fn point_peak_3row(sens: &Image, opts: &PeakOptions) -> Result<Peak2> {
     let rows = row_peaks(sens, opts)?;
     let vals: Vec<Option<&Peak>> = rows.iter().map(|l| l.peak()).collect();
-    let (ib, pb) = vals
-        .iter()
-        .enumerate()
-        .filter_map(|(i, p)| p.map(|p| (i, p)))
-        .max_by(|a, b| a.1.value.total_cmp(&b.1.value))
-        .ok_or_else(|| AnalysisError::Failed("no row of the image has a maximum".into()))?;
+    let (ib, pb) = best_row(&vals)?;
     let (mut y, mut value) = (rows[ib].coord, pb.value);
     if ib > 0 && ib + 1 < vals.len() {
         if let (Some(a), Some(c)) = (vals[ib - 1], vals[ib + 1]) {

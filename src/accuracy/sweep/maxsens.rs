@@ -139,14 +139,7 @@ impl Readings {
 fn reading(optics: &Optics, pixel_nm: u32, z: f64) -> Option<f64> {
     let bead = [0.0, 0.0, z, REF_D_NM];
     let peak = true_peak(optics, bead)?;
-    let mut sc = Scene::default();
-    sc.add_bead(Bead {
-        pos: [0.0, 0.0, z],
-        d_nm: REF_D_NM,
-        n: REF_BEAD_N,
-    })
-    .ok()?;
-    let r = Renderer::checked(optics, &sc, Default::default()).ok()?;
+    let r = lone_bead(optics, z, REF_D_NM)?;
     let h = pixel_nm as f64 / 1000.0;
     let n = (2.0 * HALF_UM / h).round() as usize + 1;
     let (mut acc, mut cnt) = (0.0, 0);
@@ -174,18 +167,24 @@ fn reading(optics: &Optics, pixel_nm: u32, z: f64) -> Option<f64> {
 /// The reference bead's diameter, nm.
 const REF_D_NM: f64 = 110.0;
 
+/// The renderer of a scene holding one polystyrene bead of `d_nm`, `z` µm above the focal
+/// plane at the origin, nothing else.
+fn lone_bead(optics: &Optics, z: f64, d_nm: f64) -> Option<Renderer> {
+    let mut sc = Scene::default();
+    sc.add_bead(Bead {
+        pos: [0.0, 0.0, z],
+        d_nm,
+        n: REF_BEAD_N,
+    })
+    .ok()?;
+    Renderer::checked(optics, &sc, Default::default()).ok()
+}
+
 /// The largest ∂Sx/∂x of the bead `[x, y, z, d]` alone, noise-free (µm⁻¹): see the module
 /// docs. None where no maximum is found within ±0.3 µm along the rows, ±1 µm across them.
 pub(super) fn true_peak(optics: &Optics, bead: [f64; 4]) -> Option<f64> {
     let [_, _, z, d] = bead;
-    let mut sc = Scene::default();
-    sc.add_bead(Bead {
-        pos: [0.0, 0.0, z],
-        d_nm: d,
-        n: REF_BEAD_N,
-    })
-    .ok()?;
-    let r = Renderer::checked(optics, &sc, Default::default()).ok()?;
+    let r = lone_bead(optics, z, d)?;
     let h = 1e-3;
     let xs: Vec<f64> = (0..=600).map(|i| -0.3 + h * i as f64).collect();
     // (beyond ~1.1 µm from the focus the largest slope lies on side lobes 0.45–0.55 µm
