@@ -6,9 +6,9 @@
 //! Input: the channel image with the lateral scan axis as columns and z as rows (Sx of an XZ
 //! scan; Sy of a YZ scan with y as columns). Units: z and positions in µm.
 
-use super::peaks::with_misfit;
 pub use super::peaks::{max_sens_sys_rel, MAX_SENS_SYS_REL, MAX_SENS_SYS_REL_100NM, ROW_PEAK_SNR};
 use super::peaks::{peak_1d, row_peaks, LinePeak, PeakOptions};
+use super::peaks::{window_sigma, with_misfit};
 use super::sensitivity::{sensitivity, Axis, Stencil};
 use super::{check_range, AnalysisError, Result};
 use crate::data::Image;
@@ -234,14 +234,7 @@ fn focus_curve(sens: &Image, opts: &FocusOptions, sens_sigma: Option<f64>) -> Re
         .filter(|&i| v[i].is_finite())
         .max_by(|&a, &b| v[a].total_cmp(&v[b]))
         .unwrap_or(0);
-    let row_sigma = sens_sigma.and_then(|_| {
-        let e: Vec<f64> = rows
-            .iter()
-            .filter(|r| (r.coord - z[ibest]).abs() <= 0.5 * opts.z_window_um + 1e-9)
-            .filter_map(|r| r.peak().and_then(|p| p.value_err))
-            .collect();
-        (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
-    });
+    let row_sigma = sens_sigma.and_then(|_| window_sigma(&rows, z[ibest], 0.5 * opts.z_window_um));
     let z_opts = PeakOptions {
         window_um: opts.z_window_um,
         sigma: row_sigma,

@@ -588,20 +588,18 @@ fn rows_then_across(
         .filter(|&i| (rows[i].coord - yb).abs() <= half)
         .collect();
     let y: Vec<f64> = near.iter().map(|&i| rows[i].coord).collect();
-    let v: Vec<f64> = near
+    // each row's maximum (NaN: none), and those in the window
+    let all: Vec<f64> = vals
         .iter()
-        .map(|&i| vals[i].map_or(f64::NAN, |p| p.value))
+        .map(|p| p.map_or(f64::NAN, |p| p.value))
         .collect();
+    let v: Vec<f64> = near.iter().map(|&i| all[i]).collect();
     // the rows' σ (those in the window), when they have one from the image's noise
-    let row_sigma = row_opts.sigma.and_then(|_| {
-        let e: Vec<f64> = near
-            .iter()
-            .filter_map(|&i| vals[i].and_then(|p| p.value_err))
-            .collect();
-        (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
-    });
+    let row_sigma = row_opts
+        .sigma
+        .and_then(|_| window_sigma(&rows, yb, 0.5 * row_opts.window_um));
     let snr = row_sigma.filter(|&s| s > 0.0).map(|s| pb.value / s);
-    let rival = row_sigma.and_then(|s| rival(&rows, ib, row_opts.window_um, s));
+    let rival = row_sigma.and_then(|s| rival(&rows, &all, ib, row_opts.window_um, s));
     let y_opts = PeakOptions {
         window_um: row_opts.window_um,
         sigma: row_sigma,
@@ -646,6 +644,17 @@ fn rows_then_across(
     })
 }
 
+/// The RMS of the σ of the lines' maxima within `half` of `centre` (their coordinates across
+/// the lines): the σ one line's maximum carries in a parabola over them (None: none has a σ).
+pub(crate) fn window_sigma(lines: &[LinePeak], centre: f64, half: f64) -> Option<f64> {
+    let e: Vec<f64> = lines
+        .iter()
+        .filter(|r| (r.coord - centre).abs() <= half + 1e-9)
+        .filter_map(|r| r.peak().and_then(|p| p.value_err))
+        .collect();
+    (!e.is_empty()).then(|| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt())
+}
+
 /// A second maximum across the rows, apart from the best row's: (its y, its row maximum, the
 /// best row's maximum, the rows' σ).
 #[derive(Debug, Clone, Copy)]
@@ -659,12 +668,9 @@ struct Rival {
 /// The largest row maximum more than a window `w` from the best row `ib` that is the largest
 /// within half a window of itself and has a row between it and the best lower than it by 2σ
 /// (`s`, one row's σ): a second object, or a second lobe of one (a bead more than ~1.1 µm off
-/// the focus shows two equal lobes 0.45–0.55 µm across the rows from it).
-fn rival(rows: &[LinePeak], ib: usize, w: f64, s: f64) -> Option<Rival> {
-    let v: Vec<f64> = rows
-        .iter()
-        .map(|r| r.peak().map_or(f64::NAN, |p| p.value))
-        .collect();
+/// the focus shows two equal lobes 0.45–0.55 µm across the rows from it). `v`: each row's
+/// maximum (NaN: none).
+fn rival(rows: &[LinePeak], v: &[f64], ib: usize, w: f64, s: f64) -> Option<Rival> {
     let yb = rows[ib].coord;
     let mut best: Option<usize> = None;
     for i in 0..rows.len() {
