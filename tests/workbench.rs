@@ -75,6 +75,9 @@ const DIMENSIONLESS: &[&str] = &[
     "implied_gain_y",
     "bead_fraction",
     "improvement",
+    "undetected_rel",
+    // weights in reference beads
+    "detection_limit",
     "mean_corr",
     "mean_corr_after",
     "sbr",

@@ -896,9 +896,10 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
             if let Some(a) = r {
                 let d = &a.density;
                 out.push_str(&format!(
-                    "  {} point objects removed (the filament's visibility in the fitted channel {}); μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
+                    "  {} point objects removed (the filament's visibility in the fitted channel {}; one object at the detection limit on the filament would add {} MDa/µm); μ {:.4} ± {:.4} MDa/µm (truth {:.4}), {} maxima in the uniform region, mean corrected {:.5}: {}\n",
                     a.n_objects,
                     a.visibility.map_or("not measured".to_string(), |v| format!("{v:.3}")),
+                    d.undetected_mda_um.map_or("?".to_string(), |v| format!("{v:.2}")),
                     d.mu_mda_um,
                     d.mu_err_mda_um,
                     mc.truth_mu(),

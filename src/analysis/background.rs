@@ -168,6 +168,11 @@ pub struct BackgroundResult {
     /// Point-like features still in the fitted channel after the removal, at
     /// [`REMAINING_SNR`] or more (strongest first; none on a clean removal).
     pub remaining: Vec<Remaining>,
+    /// The faintest point object the detection takes, reference-bead units: CLEAN's threshold
+    /// (`detect_snr` × the smoothed map's robust noise, never below `min_weight`) as a weight.
+    /// Objects below it stay in the scan (`None`: the template has no positive peak in the
+    /// fitted channel).
+    pub detection_limit: Option<f64>,
 }
 
 /// The detection threshold of [`remove_point_background`]'s CLEAN (instrument units of the
@@ -181,6 +186,14 @@ fn clean_threshold(noise: f64, tpl: &Template, opts: &BackgroundOptions) -> f64 
         0.0
     };
     (opts.detect_snr * noise).max(floor)
+}
+
+/// [`BackgroundResult::detection_limit`]: CLEAN's threshold at the smoothed map's robust `noise`
+/// as a weight (reference-bead units, as CLEAN weighs what it takes: the smoothed map's peak over
+/// the template's unsmoothed one, so at most a few % below the weight of an object just taken).
+fn detection_limit(noise: f64, tpl: &Template, opts: &BackgroundOptions) -> Option<f64> {
+    let (_, _, d0) = template_dmap_peak(tpl, opts.axis.fitted_channel());
+    (d0 > 0.0).then(|| clean_threshold(noise, tpl, opts) * tpl.norm_factor / d0)
 }
 
 /// How strongly a filament shows in the channel [`remove_point_background`] fits (the premise of
@@ -269,6 +282,7 @@ pub fn remove_point_background(
 ) -> Result<BackgroundResult> {
     let Detected { init, noise, skip } = detect(sx, sy, tpl, opts)?;
     let ch = opts.axis.fitted_channel();
+    let detection_limit = detection_limit(noise, tpl, opts);
     // what the same detection still finds after the removal, down to REMAINING_SNR (and, on
     // noise-free data, never below the default smallest object: the filament's faint residue
     // in this channel is not an object)
@@ -299,6 +313,7 @@ pub fn remove_point_background(
             sy: sy.clone(),
             fit: None,
             remaining: remaining(sx, sy)?,
+            detection_limit,
         });
     }
     let fo = FitOptions {
@@ -324,6 +339,7 @@ pub fn remove_point_background(
         sy: csy,
         fit: Some(fit),
         remaining,
+        detection_limit,
     })
 }
 

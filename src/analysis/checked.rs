@@ -84,6 +84,9 @@ pub struct Cleaned {
     pub warning: Option<String>,
     /// The clipped or dark pixels of Sx and Sy, then `warning`.
     pub warnings: Vec<String>,
+    /// The faintest point object the removal detects, reference-bead units
+    /// ([`super::background::BackgroundResult::detection_limit`]).
+    pub detection_limit: Option<f64>,
 }
 
 impl Cleaned {
@@ -121,6 +124,7 @@ pub fn remove_background_scan(
         "n_objects": n_objects,
         "objects": objects,
         "footprint": footprint,
+        "detection_limit": r.detection_limit,
     });
     let cleaned = Scan {
         sx: r.sx,
@@ -139,6 +143,7 @@ pub fn remove_background_scan(
         remaining: r.remaining,
         warning,
         warnings,
+        detection_limit: r.detection_limit,
     })
 }
 

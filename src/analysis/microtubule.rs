@@ -18,7 +18,8 @@ use super::background::{
     detect_point_objects, filament_visibility, BackgroundOptions, FilamentAxis, Footprint,
 };
 use super::checked::{measure_filament_scan, remove_background_scan, Cleaned};
-use super::orientation::{correction_rel_err, AngleCurve, FilamentMeasurement};
+use super::fit::{template_dmap_peak, Channels};
+use super::orientation::{correction_rel_err, AngleCurve, Channel, FilamentMeasurement};
 use super::quantities::{protofilaments, LinDensCalib, PROTOFILAMENT_MDA_PER_UM};
 use super::sbr::{sbr, SbrOptions, SbrResult};
 use super::template::Template;
@@ -80,6 +81,10 @@ pub struct Removal {
     /// ([`median_ratio`]): near 1 when the removal took aggregates (a few maxima each) and left
     /// the filament; far below 1 when it took the filament itself for objects.
     pub median_ratio: Option<f64>,
+    /// How much a point object just below the removal's detection limit, on the filament in the
+    /// middle of its uniform region, raises the region's mean corrected maximum, relative
+    /// ([`undetected_rel`]; `None` when it could not be measured).
+    pub undetected_rel: Option<f64>,
     /// The SBR over the uniform region before and after the removal.
     pub before: SbrResult,
     pub after: SbrResult,
@@ -155,8 +160,10 @@ pub fn remove_aggregates(
             ));
         }
     }
-    let r = remove_background_scan(scan, tpl, &bo)?;
+    let mut r = remove_background_scan(scan, tpl, &bo)?;
     let (after, sa) = measured(&r.scan, curve, opts.skip_um)?;
+    let undetected = undetected_rel(&r, &after, &sa, tpl, curve, opts.skip_um);
+    r.scan.meta["background_removed"]["undetected_rel"] = serde_json::json!(undetected);
     let mut warnings: Vec<String> = vec![];
     for w in before
         .warnings
@@ -179,6 +186,7 @@ pub fn remove_aggregates(
     }
     warnings.extend(own.iter().cloned());
     Ok(Removal {
+        undetected_rel: undetected,
         angle_deg: before.angle_deg,
         visibility,
         median_ratio: ratio,
@@ -193,6 +201,42 @@ pub fn remove_aggregates(
         ],
         cleaned: r,
     })
+}
+
+/// What a point object the removal cannot see does to μ: one of the removal's detection limit
+/// (`Cleaned::detection_limit`, reference-bead units) added to the cleaned scan on the filament
+/// (its sensitivity peak on the uniform region's middle maximum), the filament measured again;
+/// returns the relative rise of the uniform region's mean corrected maximum. Sec. 6's density
+/// holds only where such objects are absent: the removal subtracts what it detects, and an
+/// aggregate on the filament adds to every maximum within the template's reach along it.
+/// `None` without a limit, or where the measurement fails.
+fn undetected_rel(
+    r: &Cleaned,
+    after: &FilamentMeasurement,
+    sa: &SbrResult,
+    tpl: &Template,
+    curve: &AngleCurve,
+    skip_um: f64,
+) -> Option<f64> {
+    let w = r.detection_limit.filter(|w| *w > 0.0 && w.is_finite())?;
+    let mid = 0.5 * (sa.arc_start + sa.arc_end);
+    let p = after
+        .points
+        .iter()
+        .filter(|p| p.arc_um >= sa.arc_start && p.arc_um <= sa.arc_end)
+        .min_by(|a, b| (a.arc_um - mid).abs().total_cmp(&(b.arc_um - mid).abs()))?;
+    let ch = match after.channel {
+        Channel::SxRows => Channels::Sx,
+        Channel::SyCols => Channels::Sy,
+    };
+    let (pu, pv, _) = template_dmap_peak(tpl, ch);
+    let mut scan = r.scan.clone();
+    let [ax, ay, _] = tpl.render_instrument(&[(p.x - pu, p.y - pv, w)], &scan.sx.x, &scan.sx.y);
+    scan.sx.data = &scan.sx.data + &ax;
+    scan.sy.data = &scan.sy.data + &ay;
+    let (_, si) = measured(&scan, curve, skip_um).ok()?;
+    (sa.mean_corr > 0.0 && si.mean_corr.is_finite())
+        .then(|| (si.mean_corr - sa.mean_corr) / sa.mean_corr)
 }
 
 /// The median of `after`'s interior corrected maxima over `before`'s (`None` when either has
@@ -227,6 +271,19 @@ pub const MAX_MEDIAN_CHANGE: f64 = 0.10;
 /// 2.2 % low beside two removed aggregates stood 4.3σ off (seventh session); at 0.3 % it had
 /// no unflagged outlier at seeds 2026 and 7.
 pub const DENSITY_SYS_REL: f64 = 0.003;
+
+/// Largest rise of μ, in protofilaments (13.75 MDa/µm each), that one point object just below
+/// the removal's detection limit would cause on the filament's uniform region
+/// (`Density::undetected_mda_um`) without a warning. The removal subtracts what it detects
+/// (at `detect_snr` × the noise, never below `min_weight`); an aggregate below that limit on
+/// the filament adds to every maximum within the template's reach along it, and σ(μ) does not
+/// hold it. Such an object moves μ by 2–16 σ(μ) at every noise (both scale with the noise; at
+/// the noise-free floor, `min_weight`, 3.2 MDa/µm), so the limit is set by what μ is for, the
+/// protofilament count: above one protofilament, a single undetected aggregate changes it. In
+/// the truth sweep's microtubules at seed 99 (at 944a427, N = 2000), the three unflagged
+/// outliers (5.8 % high with 4 objects removed, 12.8 % high with 4 aggregates of 42–62 nm on
+/// the line and none detected, 5.2 % low) had one at 38–56 MDa/µm, 5–12× the paper's noise.
+pub const MAX_UNDETECTED_PF: f64 = 1.0;
 
 /// Fewest maxima in the uniform region for μ and its σ (else a warning).
 pub const MIN_UNIFORM_POINTS: usize = 5;
@@ -300,6 +357,10 @@ fn uniformity_warning(m: &FilamentMeasurement, s: &SbrResult, rel: f64) -> Optio
 struct Removed {
     objects: Vec<[f64; 3]>,
     footprint: Option<Footprint>,
+    /// `remove_aggregates`' [`undetected_rel`] (None: not measured, or not cleaned by it).
+    undetected_rel: Option<f64>,
+    /// The removal's detection limit, reference-bead units.
+    detection_limit: Option<f64>,
 }
 
 impl Removed {
@@ -308,6 +369,8 @@ impl Removed {
         Removed {
             objects: serde_json::from_value(b["objects"].clone()).unwrap_or_default(),
             footprint: serde_json::from_value(b["footprint"].clone()).ok(),
+            undetected_rel: b["undetected_rel"].as_f64(),
+            detection_limit: b["detection_limit"].as_f64(),
         }
     }
 
@@ -343,6 +406,8 @@ impl Removed {
         Removed {
             objects: vec![],
             footprint: None,
+            undetected_rel: None,
+            detection_limit: None,
         }
     }
 }
@@ -376,6 +441,10 @@ pub struct Density {
     /// (where its subtraction's error can move them; `background_removed` in a cleaned scan's
     /// metadata, [`Footprint`]). `region` holds the statistics of those kept.
     pub n_excluded: usize,
+    /// What one point object just below the removal's detection limit, on the uniform region,
+    /// would add to μ, MDa/µm (`remove_aggregates`' [`undetected_rel`] × μ; None on a scan
+    /// not cleaned by it).
+    pub undetected_mda_um: Option<f64>,
     /// The measurement's warnings and the density's own.
     pub warnings: Vec<String>,
     /// The measurement's warnings alone, as `measure_filament` says them.
@@ -435,6 +504,16 @@ pub fn density(
     if let Some(w) = uniformity_warning(&m, &s, rel) {
         warnings.push(w);
     }
+    let undetected_mda_um = removed.undetected_rel.map(|r| r * mu);
+    if let Some(b) = undetected_mda_um.filter(|b| *b > MAX_UNDETECTED_PF * PROTOFILAMENT_MDA_PER_UM)
+    {
+        warnings.push(format!(
+            "one point object just below the removal's detection limit ({} reference beads at this noise), on the filament, would add {} MDa/µm to μ, more than {MAX_UNDETECTED_PF} protofilament ({} MDa/µm): the removal subtracts only what it detects, so μ and the count hold only if no such aggregate lies on the uniform region; dwell longer (a lower limit) or scan a longer stretch",
+            removed.detection_limit.map_or("?".to_string(), |w| crate::data::image::fmt_sig(w, 2)),
+            crate::data::image::fmt_sig(b, 3),
+            crate::data::image::fmt_sig(MAX_UNDETECTED_PF * PROTOFILAMENT_MDA_PER_UM, 3)
+        ));
+    }
     let half = 0.5 * PROTOFILAMENT_MDA_PER_UM;
     if mu_err > half {
         warnings.push(format!(
@@ -450,6 +529,7 @@ pub fn density(
         protofilaments_exact: exact,
         region: s,
         n_excluded,
+        undetected_mda_um,
         warnings,
         measure_warnings: m.warnings,
     })

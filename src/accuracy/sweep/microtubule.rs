@@ -205,19 +205,9 @@ pub(super) struct Answer {
     pub visibility: Option<f64>,
 }
 
-/// The microtubule family: one scene, its aggregates removed, its linear density against the
-/// truth. Returns the outcome and the answer (for `--replay`): the density and every warning.
-pub(super) fn microtubule_case(
-    case: &MicrotubuleCase,
-    tpl: &Template,
-    optics: &Optics,
-    cals: &MtCals,
-) -> (Vec<(&'static str, Outcome)>, Option<Answer>) {
-    let key = "microtubule.mu";
-    let refused = || (vec![(key, Outcome::Refused)], None);
-    let Some(cal) = cals.get(case.pixel_nm, tpl) else {
-        return refused();
-    };
+/// The scan of a microtubule scene: its filament and aggregates rendered on ±[`HALF_UM`] with
+/// its noise and range (None: the simulator refused the scene).
+fn case_scan(case: &MicrotubuleCase, optics: &Optics) -> Option<crate::data::Scan> {
     let a = case.angle_deg.to_radians();
     let dir = [a.sin(), a.cos()];
     let h = 0.5 * case.len_um;
@@ -234,7 +224,7 @@ pub(super) fn microtubule_case(
         spacing_nm: FILAMENT_SPACING_NM,
     };
     if sc.add_filament(filament).is_err() {
-        return refused();
+        return None;
     }
     for &[x, y, d] in &case.aggregates {
         let bead = Bead {
@@ -243,18 +233,34 @@ pub(super) fn microtubule_case(
             n: AGGREGATE_N,
         };
         if sc.add_bead(bead).is_err() {
-            return refused();
+            return None;
         }
     }
     let pixel = case.pixel_nm as f64 / 1000.0;
-    let Some(scan) = render_field(
+    render_field(
         optics,
         sc,
         HALF_UM,
         pixel,
         (case.noise, case.clip),
         case.seed,
-    ) else {
+    )
+}
+
+/// The microtubule family: one scene, its aggregates removed, its linear density against the
+/// truth. Returns the outcome and the answer (for `--replay`): the density and every warning.
+pub(super) fn microtubule_case(
+    case: &MicrotubuleCase,
+    tpl: &Template,
+    optics: &Optics,
+    cals: &MtCals,
+) -> (Vec<(&'static str, Outcome)>, Option<Answer>) {
+    let key = "microtubule.mu";
+    let refused = || (vec![(key, Outcome::Refused)], None);
+    let Some(cal) = cals.get(case.pixel_nm, tpl) else {
+        return refused();
+    };
+    let Some(scan) = case_scan(case, optics) else {
         return refused();
     };
     let ao = AggregateOptions::default();
@@ -305,4 +311,71 @@ pub(super) fn microtubule_case(
             visibility,
         }),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Clausius–Mossotti factor (n² − n_m²)/(n² + 2n_m²): a Rayleigh particle's polarizability
+    /// over its volume (the paper's Sec. 2 dipole).
+    fn cm(n: f64, n_m: f64) -> f64 {
+        (n * n - n_m * n_m) / (n * n + 2.0 * n_m * n_m)
+    }
+
+    /// What `density` says one object at the removal's detection limit would add to μ (its
+    /// template injected on the filament, `undetected_rel`) against an independent path: a
+    /// protein aggregate of that weight (by the Rayleigh volume and Clausius–Mossotti scaling
+    /// from the reference bead) rendered by the simulator on the filament's axis at the middle
+    /// of the uniform region, μ measured with it and without. Noise-free, so the detection
+    /// limit is the removal's floor, `min_weight`.
+    #[test]
+    fn an_object_at_the_detection_limit_adds_to_mu_what_the_simulator_says() {
+        let (optics, tpl) = super::super::sweep_optics().unwrap();
+        let cals = MtCals::default();
+        let bare = MicrotubuleCase {
+            len_um: 12.0,
+            d_nm: 20.0,
+            angle_deg: 3.0,
+            centre: [0.0, 0.0],
+            aggregates: vec![],
+            noise: 0.0,
+            pixel_nm: 40,
+            seed: 1,
+            clip: None,
+        };
+        let cal = cals.get(bare.pixel_nm, &tpl).unwrap();
+        let ao = AggregateOptions::default();
+        let scan = case_scan(&bare, &optics).unwrap();
+        let r = remove_aggregates(&scan, &tpl, &cal.curve, &ao).unwrap();
+        assert_eq!(r.cleaned.n_objects(), 0);
+        let limit = r.cleaned.detection_limit.unwrap();
+        assert!(
+            (limit - ao.min_weight).abs() < 1e-12 * ao.min_weight,
+            "{limit}"
+        );
+        let d = density(&r.cleaned.scan, &cal.curve, &cal.cal, ao.skip_um).unwrap();
+        let said = d.undetected_mda_um.unwrap();
+        // the same weight as a protein aggregate of the simulator's, on the axis at the field's
+        // centre (the middle of the uniform region: the filament crosses the whole field)
+        let rb = tpl.reference;
+        let k = ao.min_weight * cm(rb.n, rb.n_medium) / cm(AGGREGATE_N, rb.n_medium);
+        let d_agg = rb.d_nm * k.cbrt();
+        let with = MicrotubuleCase {
+            aggregates: vec![[0.0, 0.0, d_agg]],
+            ..bare.clone()
+        };
+        let mu = |c: &MicrotubuleCase| {
+            let s = case_scan(c, &optics).unwrap();
+            density(&s, &cal.curve, &cal.cal, ao.skip_um)
+                .unwrap()
+                .mu_mda_um
+        };
+        let rise = mu(&with) - mu(&bare);
+        eprintln!("d_agg {d_agg:.2} nm: said {said:.4} MDa/µm, simulated {rise:.4}");
+        assert!(
+            (said - rise).abs() < 0.02 * rise,
+            "said {said} MDa/µm, simulated {rise}"
+        );
+    }
 }
