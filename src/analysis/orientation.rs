@@ -31,7 +31,7 @@
 
 use super::bead_model::{straight_filament_max_sens, BeadModelOptions};
 pub use super::measure::MeasureOptions;
-use super::peaks::{peak_1d, peak_at, pooled_vertex, PeakOptions};
+use super::peaks::{peak_1d, peak_at, PeakOptions};
 use super::sensitivity::{sensitivity, Axis};
 use super::stats::{linfit, robust_std, summary};
 use super::template::Template;
@@ -741,43 +741,6 @@ fn measurement_crlb(
     })
 }
 
-/// Each maximum of `points` (in the order of `parabolas`, their lines' parabolas) read again as
-/// its parabola's vertex with the curvature pooled over the filament ([`pooled_vertex`]: the
-/// median shape c2/c0 of every line's parabola), and `trace` with it; a maximum whose parabola
-/// is not known keeps its own vertex. The rows of a uniform filament share one profile shape,
-/// and each row's own curvature is known only to a few σ at modest signal-to-noise: the vertex
-/// with it, through its second-order noise correction, read a microtubule near the y axis (the
-/// weaker channel) 0.3 % low at 1.5× the paper's noise and 2.9 % low at 3× (24 seeds each,
-/// 2026-12-07). The value at the line's crossing (linear, unbiased in noise) was tried and not
-/// kept: where the crossing misses a row's peak by tens of nm (fibrils at 55–60°), it read the
-/// diameter 1–4 % thin.
-fn pool_curvature(
-    points: &mut [FilamentPoint],
-    parabolas: &[Option<super::peaks::Parabola>],
-    trace: &mut [(f64, f64, usize)],
-    factor: f64,
-) {
-    let shapes: Vec<f64> = parabolas
-        .iter()
-        .flatten()
-        .filter_map(|q| q.shape())
-        .collect();
-    let Some(shape) = super::stats::median(&shapes) else {
-        return;
-    };
-    for (p, q) in points.iter_mut().zip(parabolas) {
-        let Some((v, e)) = q.as_ref().and_then(|q| pooled_vertex(q, shape)) else {
-            continue;
-        };
-        p.sens = v;
-        p.sens_err = Some(e);
-        p.sens_corr = v * factor;
-        if let Some(tr) = trace.iter_mut().find(|tr| tr.2 == p.line) {
-            tr.1 = v;
-        }
-    }
-}
-
 /// Fractions of `detect_snr` at which [`measure_filament`] searches for the filament's line,
 /// in order (4σ, 3σ, 2.5σ at the default).
 pub const RETRY_SNR_SCALES: [f64; 3] = [1.0, 0.75, 0.625];
@@ -1168,8 +1131,6 @@ fn measure_sens_along(
         (sens.cols(), &sens.y)
     };
     let mut points = Vec::new();
-    // each point's parabola, for the pooled curvature
-    let mut parabolas = Vec::new();
     // Every line the filament line crosses inside the scan, in line order: (arc µm, maximum,
     // line index) — the maximum NaN where none was read — for the checks of `kind`.
     let mut trace: Vec<(f64, f64, usize)> = Vec::new();
@@ -1205,7 +1166,6 @@ fn measure_sens_along(
         if let Some(tr) = trace.last_mut().filter(|tr| tr.2 == l) {
             tr.1 = p.value;
         }
-        parabolas.push(p.parabola);
         points.push(FilamentPoint {
             line: l,
             x,
@@ -1217,7 +1177,6 @@ fn measure_sens_along(
             interior: true,
         });
     }
-    pool_curvature(&mut points, &parabolas, &mut trace, factor);
     if points.len() < 3 {
         return Err(AnalysisError::Failed(format!(
             "only {} maxima lie on the filament line",

@@ -102,48 +102,6 @@ pub struct Peak {
     pub index: usize,
     /// The window was cut by the end of the line.
     pub truncated: bool,
-    /// The parabola itself (None without a σ): for estimators that pool its curvature over
-    /// lines ([`pooled_vertex`]).
-    #[serde(skip)]
-    pub parabola: Option<Parabola>,
-}
-
-/// A fitted parabola c0 + c1·k + c2·k² in the window's coordinate k = (t − centre)/half, and
-/// the covariance of (c0, c1, c2).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Parabola {
-    pub c: [f64; 3],
-    pub cov: [[f64; 3]; 3],
-}
-
-impl Parabola {
-    /// The curvature relative to the value at the window's centre, c2/c0 (the profile's shape:
-    /// the same on every line of a uniform filament, whatever its level).
-    pub fn shape(&self) -> Option<f64> {
-        let r = self.c[2] / self.c[0];
-        (self.c[0] > 0.0 && self.c[2] < 0.0 && r.is_finite()).then_some(r)
-    }
-}
-
-/// The vertex value of `p` with its curvature taken as `shape`·c0 (a shape pooled over the lines
-/// of a filament, [`Parabola::shape`]) instead of its own: c0 − (c1² − var c1)/(4·shape·c0), and
-/// its 1σ. Each line's own curvature is known to a few σ at modest signal-to-noise, and the
-/// vertex divides by it: its second-order noise correction then over-corrects (E[1/ĉ2] > 1/c2),
-/// and a filament's maxima read low by the square of the noise. With the shape pooled, the
-/// vertex is quadratic in c1 alone, and E[c1²] = c1² + var c1 removes its bias exactly. None
-/// where `shape` is not negative or c0 not positive.
-pub fn pooled_vertex(p: &Parabola, shape: f64) -> Option<(f64, f64)> {
-    let [c0, c1, _] = p.c;
-    let c2 = shape * c0;
-    if !(c2 < 0.0 && c0 > 0.0) {
-        return None;
-    }
-    let v = c0 - (c1 * c1 - p.cov[1][1]) / (4.0 * c2);
-    // ∂v/∂c0 (through c2 = shape·c0) and ∂v/∂c1
-    let j0 = 1.0 + (c1 * c1 - p.cov[1][1]) / (4.0 * c2 * c0);
-    let j1 = -c1 / (2.0 * c2);
-    let var = j0 * j0 * p.cov[0][0] + 2.0 * j0 * j1 * p.cov[0][1] + j1 * j1 * p.cov[1][1];
-    (v.is_finite() && var.is_finite()).then(|| (v, var.max(0.0).sqrt()))
 }
 
 /// A line's peak, or why it has none.
@@ -446,7 +404,7 @@ fn fit_parabola(
         }
         None => None,
     };
-    let (pos_err, value_err, bias, c2_err, parabola) = match s2 {
+    let (pos_err, value_err, bias, c2_err) = match s2 {
         Some(s2) => {
             // Σ = σ²·R over the window's samples (R the noise's correlation, the identity for
             // independent samples): cov(c) = (AᵀA)⁻¹ AᵀRA (AᵀA)⁻¹ σ².
@@ -495,17 +453,9 @@ fn fit_parabola(
                 Some(vv.sqrt()),
                 bias,
                 Some(2.0 * cov[(2, 2)].max(0.0).sqrt() / (half * half)),
-                Some(Parabola {
-                    c: [c[0], c[1], c[2]],
-                    cov: [
-                        [cov[(0, 0)], cov[(0, 1)], cov[(0, 2)]],
-                        [cov[(1, 0)], cov[(1, 1)], cov[(1, 2)]],
-                        [cov[(2, 0)], cov[(2, 1)], cov[(2, 2)]],
-                    ],
-                }),
             )
         }
-        None => (None, None, 0.0, None, None),
+        None => (None, None, 0.0, None),
     };
     Ok(Peak {
         pos,
@@ -517,7 +467,6 @@ fn fit_parabola(
         n_points: np,
         index: 0,
         truncated: false,
-        parabola,
     })
 }
 
@@ -1297,47 +1246,6 @@ mod tests {
         let want = 2.0 * 0.01 * (5.0f64 / 4.375).sqrt() / (0.2 * 0.2);
         let got = p.curvature_err.unwrap();
         assert!((got / want - 1.0).abs() < 1e-9, "{got} vs {want}");
-    }
-
-    /// A parabola 1 − 10·(t − t0)² sampled every 0.05 µm, its window (0.4 µm) fixed 0.03 µm off
-    /// the peak (as on a fitted filament line), white noise σ = 0.12 (its curvature then known
-    /// to about 2σ per line): over 16 000 lines, the vertex with the pooled shape (the
-    /// noise-free c2/c0) is unbiased within 3 standard errors, while each line's own vertex,
-    /// its second-order correction dividing by its own noisy curvature, reads low by more than
-    /// 3 (0.27 % in 3 942 lines at this σ; at σ = 0.08, 0.06 %).
-    #[test]
-    fn the_vertex_with_a_pooled_curvature_is_free_of_the_noise_bias() {
-        use rand::SeedableRng;
-        use rand_distr::{Distribution, Normal};
-        let t: Vec<f64> = (0..41).map(|i| i as f64 * 0.05).collect();
-        let (t0, centre) = (1.0, 1.03);
-        let f = |t: f64| 1.0 - 10.0 * (t - t0) * (t - t0);
-        let clean: Vec<f64> = t.iter().map(|&t| f(t)).collect();
-        let o = PeakOptions::default();
-        let shape = peak_at(&t, &clean, centre, &o)
-            .unwrap()
-            .parabola
-            .unwrap()
-            .shape()
-            .unwrap();
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        let nd = Normal::new(0.0, 0.12).unwrap();
-        let (mut own, mut pooled) = (vec![], vec![]);
-        for _ in 0..16000 {
-            let v: Vec<f64> = clean.iter().map(|c| c + nd.sample(&mut rng)).collect();
-            let Ok(p) = peak_at(&t, &v, centre, &o) else {
-                continue;
-            };
-            own.push(p.value);
-            pooled.push(pooled_vertex(&p.parabola.unwrap(), shape).unwrap().0);
-        }
-        let m = |x: &[f64]| crate::analysis::stats::summary(x).unwrap();
-        let (a, b) = (m(&own), m(&pooled));
-        let se = |s: &crate::analysis::stats::Summary| s.std / (s.n as f64).sqrt();
-        // (a line whose parabola is not concave, or its vertex outside the window, has none)
-        assert!(own.len() > 15_500, "{} lines fitted", own.len());
-        assert!((b.mean - 1.0).abs() < 3.0 * se(&b), "pooled {b:?}");
-        assert!(a.mean < 1.0 - 3.0 * se(&a), "own {a:?}");
     }
 
     #[test]
