@@ -343,16 +343,27 @@ impl Noise {
     }
 }
 
-/// Least-squares parabola over finite samples within `centre ± half`; the noise-bias correction
-/// of the vertex value only if |c2| ≥ `bias_min_curvature_snr`·σ(c2) (0: always).
-fn fit_parabola(
+/// A least-squares parabola c0 + c1·k + c2·k² in the window's unit coordinate k = (t −
+/// centre)/half, with the coefficients' covariance where the noise is known or estimable.
+struct Coeffs {
+    c: nalgebra::Vector3<f64>,
+    cov: Option<nalgebra::Matrix3<f64>>,
+    centre: f64,
+    half: f64,
+    kmin: f64,
+    kmax: f64,
+    np: usize,
+}
+
+/// The parabola over finite samples within `centre ± half`, and its covariance: σ²·(AᵀA)⁻¹,
+/// or with correlated noise (AᵀA)⁻¹ AᵀRA (AᵀA)⁻¹ σ²; without a known σ, from the residuals.
+fn fit_coeffs(
     t: &[f64],
     v: &[f64],
     centre: f64,
     half: f64,
     noise: &Noise,
-    bias_min_curvature_snr: f64,
-) -> PeakResult {
+) -> std::result::Result<Coeffs, PeakMiss> {
     let sigma = noise.sigma;
     let pts: Vec<(f64, f64)> = t
         .iter()
@@ -378,9 +389,70 @@ fn fit_parabola(
     }
     let inv = ata.try_inverse().ok_or(PeakMiss::TooFewPoints { n: np })?;
     let c = inv * atb;
-    let scale = pts
+    let s2 = match sigma {
+        Some(s) => Some(s * s),
+        None if np > 3 => {
+            let rss: f64 = pts
+                .iter()
+                .map(|&(k, y)| (y - c[0] - c[1] * k - c[2] * k * k).powi(2))
+                .sum();
+            Some(rss / (np - 3) as f64)
+        }
+        None => None,
+    };
+    let cov = s2.map(|s2| {
+        if sigma.is_some() && noise.acf.iter().any(|&r| r != 0.0) {
+            let mut ara = nalgebra::Matrix3::<f64>::zeros();
+            for (i, &(ki, _)) in pts.iter().enumerate() {
+                let ri = nalgebra::Vector3::new(1.0, ki, ki * ki);
+                for &(kj, _) in &pts[i..] {
+                    let r = noise.corr(ki * half, kj * half);
+                    if r != 0.0 {
+                        let rj = nalgebra::Vector3::new(1.0, kj, kj * kj);
+                        let m = ri * rj.transpose() * r;
+                        ara += if ki == kj { m } else { m + m.transpose() };
+                    }
+                }
+            }
+            inv * ara * inv * s2
+        } else {
+            inv * s2
+        }
+    });
+    Ok(Coeffs {
+        c,
+        cov,
+        centre,
+        half,
+        kmin,
+        kmax,
+        np,
+    })
+}
+
+/// Least-squares parabola over finite samples within `centre ± half`; the noise-bias correction
+/// of the vertex value only if |c2| ≥ `bias_min_curvature_snr`·σ(c2) (0: always).
+fn fit_parabola(
+    t: &[f64],
+    v: &[f64],
+    centre: f64,
+    half: f64,
+    noise: &Noise,
+    bias_min_curvature_snr: f64,
+) -> PeakResult {
+    let Coeffs {
+        c,
+        cov,
+        kmin,
+        kmax,
+        np,
+        ..
+    } = fit_coeffs(t, v, centre, half, noise)?;
+    let scale = t
         .iter()
-        .map(|p| p.1.abs())
+        .zip(v)
+        .filter(|(ti, vi)| vi.is_finite() && (**ti - centre).abs() <= half)
+        .map(|(_, vi)| vi.abs())
         .fold(0.0, f64::max)
         .max(1e-300);
     // Concave with a curvature that is not round-off.
@@ -393,38 +465,8 @@ fn fit_parabola(
         return Err(PeakMiss::VertexOutside { pos });
     }
     let value = c[0] - c[1] * c[1] / (4.0 * c[2]);
-    let s2 = match sigma {
-        Some(s) => Some(s * s),
-        None if np > 3 => {
-            let rss: f64 = pts
-                .iter()
-                .map(|&(k, y)| (y - c[0] - c[1] * k - c[2] * k * k).powi(2))
-                .sum();
-            Some(rss / (np - 3) as f64)
-        }
-        None => None,
-    };
-    let (pos_err, value_err, bias, c2_err) = match s2 {
-        Some(s2) => {
-            // Σ = σ²·R over the window's samples (R the noise's correlation, the identity for
-            // independent samples): cov(c) = (AᵀA)⁻¹ AᵀRA (AᵀA)⁻¹ σ².
-            let cov = if sigma.is_some() && noise.acf.iter().any(|&r| r != 0.0) {
-                let mut ara = nalgebra::Matrix3::<f64>::zeros();
-                for (i, &(ki, _)) in pts.iter().enumerate() {
-                    let ri = nalgebra::Vector3::new(1.0, ki, ki * ki);
-                    for &(kj, _) in &pts[i..] {
-                        let r = noise.corr(ki * half, kj * half);
-                        if r != 0.0 {
-                            let rj = nalgebra::Vector3::new(1.0, kj, kj * kj);
-                            let m = ri * rj.transpose() * r;
-                            ara += if ki == kj { m } else { m + m.transpose() };
-                        }
-                    }
-                }
-                inv * ara * inv * s2
-            } else {
-                inv * s2
-            };
+    let (pos_err, value_err, bias, c2_err) = match cov {
+        Some(cov) => {
             let jp = nalgebra::Vector3::new(0.0, -1.0 / (2.0 * c[2]), c[1] / (2.0 * c[2] * c[2]));
             let jv = nalgebra::Vector3::new(
                 1.0,
@@ -470,7 +512,56 @@ fn fit_parabola(
     })
 }
 
-/// Maximum of every row along x (for ∂Sx/∂x images). Errors only for bad options.
+/// A line's parabola evaluated at a given position.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ValueAt {
+    /// The parabola's value at the position (signal units).
+    pub value: f64,
+    /// Its 1σ from the samples' noise (None when undetermined).
+    pub value_err: Option<f64>,
+    /// The parabola's second derivative 2c (value/µm²).
+    pub curvature: f64,
+}
+
+/// The least-squares parabola of [`peak_at`] (window fixed on `centre`, µm) evaluated at `at`
+/// (µm, inside the window): linear in the samples, so noise does not bias it, unlike the vertex
+/// value c0 − c1²/(4c2), whose second-order correction is itself biased where the curvature is
+/// known only to a few σ. For a maximum whose position is known better than one line can tell
+/// it (a straight filament's rows, [`super::orientation`]).
+pub fn parabola_at(
+    t: &[f64],
+    v: &[f64],
+    centre: f64,
+    at: f64,
+    opts: &PeakOptions,
+) -> Result<ValueAt> {
+    let n = t.len().min(v.len());
+    let half = 0.5 * opts.window_um * (1.0 + 1e-9);
+    if !(centre.is_finite() && at.is_finite() && (at - centre).abs() <= half) {
+        return Err(AnalysisError::OutOfRange {
+            name: "at",
+            value: at,
+            allowed: format!("within the window centre ± {half} µm"),
+        });
+    }
+    let step = if n > 1 {
+        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
+    } else {
+        0.0
+    };
+    let f = fit_coeffs(&t[..n], &v[..n], centre, half, &Noise::of(opts, step))
+        .map_err(|m| AnalysisError::Failed(format!("no parabola: {m}")))?;
+    let k = (at - f.centre) / f.half;
+    let j = nalgebra::Vector3::new(1.0, k, k * k);
+    Ok(ValueAt {
+        value: f.c.dot(&j),
+        value_err: f
+            .cov
+            .map(|cov| (j.transpose() * cov * j)[0].max(0.0).sqrt()),
+        curvature: 2.0 * f.c[2] / (f.half * f.half),
+    })
+}
+
 pub fn row_peaks(img: &Image, opts: &PeakOptions) -> Result<Vec<LinePeak>> {
     line_peaks(img, ndarray::Axis(0), opts)
 }
