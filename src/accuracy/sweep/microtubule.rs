@@ -323,6 +323,22 @@ mod tests {
         (n * n - n_m * n_m) / (n * n + 2.0 * n_m * n_m)
     }
 
+    /// A noise-free 20 nm microtubule 12 µm long, 3° from the QPD y axis (the weak channel),
+    /// through the field's centre, no aggregates, at `pixel_nm`.
+    fn bare_microtubule(pixel_nm: u32) -> MicrotubuleCase {
+        MicrotubuleCase {
+            len_um: 12.0,
+            d_nm: 20.0,
+            angle_deg: 3.0,
+            centre: [0.0, 0.0],
+            aggregates: vec![],
+            noise: 0.0,
+            pixel_nm,
+            seed: 1,
+            clip: None,
+        }
+    }
+
     /// What `density` says one object at the removal's detection limit would add to μ (its
     /// template injected on the filament, `undetected_rel`) against an independent path: a
     /// protein aggregate of that weight (by the Rayleigh volume and Clausius–Mossotti scaling
@@ -333,17 +349,7 @@ mod tests {
     fn an_object_at_the_detection_limit_adds_to_mu_what_the_simulator_says() {
         let (optics, tpl) = super::super::sweep_optics().unwrap();
         let cals = MtCals::default();
-        let bare = MicrotubuleCase {
-            len_um: 12.0,
-            d_nm: 20.0,
-            angle_deg: 3.0,
-            centre: [0.0, 0.0],
-            aggregates: vec![],
-            noise: 0.0,
-            pixel_nm: 40,
-            seed: 1,
-            clip: None,
-        };
+        let bare = bare_microtubule(40);
         let cal = cals.get(bare.pixel_nm, &tpl).unwrap();
         let ao = AggregateOptions::default();
         let scan = case_scan(&bare, &optics).unwrap();
@@ -389,17 +395,7 @@ mod tests {
     fn detector_noise_does_not_bias_mu_in_the_weak_channel() {
         let (optics, tpl) = super::super::sweep_optics().unwrap();
         let cals = MtCals::default();
-        let bare = MicrotubuleCase {
-            len_um: 12.0,
-            d_nm: 20.0,
-            angle_deg: 3.0,
-            centre: [0.0, 0.0],
-            aggregates: vec![],
-            noise: 0.0,
-            pixel_nm: 20,
-            seed: 1,
-            clip: None,
-        };
+        let bare = bare_microtubule(20);
         let cal = cals.get(bare.pixel_nm, &tpl).unwrap();
         let skip = AggregateOptions::default().skip_um;
         let mu = |c: &MicrotubuleCase| {
