@@ -1133,8 +1133,8 @@ struct Crossing {
 /// position's own scatter. The line's vertex value c0 − c1²/(4c2) divides by its own noisy
 /// curvature, and its second-order correction over-corrects once the curvature is known to a
 /// few σ only (a 20 nm microtubule at 3° from y read 1.3 % low at 3× the paper's noise, 6 % at
-/// 20 nm pixels); the value at a given position is linear in the samples. `points` (in line
-/// order) include the lines without a vertex between the first and the last with one: leaving
+/// 20 nm pixels); the value at a given position is linear in the samples. `points` include
+/// the lines without a vertex between the first and the last with one: leaving
 /// them out selects on the noise (a concave fit with its vertex inside the window has a higher
 /// c0), which biased the mean up by 2 % at 3× the noise.
 fn at_neighbours_vertex(
@@ -1348,19 +1348,20 @@ fn measure_sens_along(
         ends[0].or(found.near_edge[0]),
         ends[1].or(found.near_edge[1]),
     ];
+    // far enough from the ends (an arc in µm, before `a0` is taken off)
+    let interior = |arc: f64| {
+        bound[0].is_none_or(|e| arc >= e + opts.end_margin_um)
+            && bound[1].is_none_or(|e| arc <= e - opts.end_margin_um)
+    };
     let a0 = points[0].arc_um;
     for p in points.iter_mut() {
-        p.interior = bound[0].is_none_or(|e| p.arc_um >= e + opts.end_margin_um)
-            && bound[1].is_none_or(|e| p.arc_um <= e - opts.end_margin_um);
+        p.interior = interior(p.arc_um);
         p.arc_um -= a0;
     }
     let ends_um = ends.map(|e| e.map(|e| e - a0));
     let line = refit_on_interior(&points, line, rows);
     let (line, end_rel) = with_end_systematics(&points, line);
-    add_vertexless_lines(&mut points, &crossings, &sens, rows, dir, a0, |arc| {
-        bound[0].is_none_or(|e| arc >= e + opts.end_margin_um)
-            && bound[1].is_none_or(|e| arc <= e - opts.end_margin_um)
-    });
+    add_vertexless_lines(&mut points, &crossings, &sens, rows, dir, a0, interior);
     at_neighbours_vertex(&mut points, &crossings, t, &po);
     points.sort_by(|a, b| a.arc_um.total_cmp(&b.arc_um));
     let angle = line.angle_deg;

@@ -166,6 +166,15 @@ impl LinePeak {
     }
 }
 
+/// The spacing of a line's `n` first samples `t` (µm; 0 for a single sample).
+fn sample_step(t: &[f64], n: usize) -> f64 {
+    if n > 1 {
+        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
+    } else {
+        0.0
+    }
+}
+
 /// Robust noise of a line: 1.4826·MAD(first differences)/√2 over finite neighbours.
 pub fn line_noise(v: &[f64]) -> f64 {
     let d: Vec<f64> = v
@@ -203,11 +212,7 @@ pub fn peak_1d(t: &[f64], v: &[f64], opts: &PeakOptions) -> PeakResult {
     }
     let half = 0.5 * opts.window_um * (1.0 + 1e-9);
     let mut centre = t[imax];
-    let step = if n > 1 {
-        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
-    } else {
-        0.0
-    };
+    let step = sample_step(t, n);
     let noise = Noise::of(opts, step);
     let mut p = fit_parabola(t, v, centre, half, &noise, BIAS_MIN_CURVATURE_SNR)?;
     if (p.pos - centre).abs() > 0.5 * step {
@@ -279,11 +284,7 @@ fn peak_near_impl(
         return Err(PeakMiss::NoData);
     }
     let half = 0.5 * opts.window_um * (1.0 + 1e-9);
-    let step = if n > 1 {
-        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
-    } else {
-        0.0
-    };
+    let step = sample_step(t, n);
     let mut c = centre;
     let noise = Noise::of(opts, step);
     let mut p = fit_parabola(t, v, c, half, &noise, 0.0)?;
@@ -353,6 +354,8 @@ struct Coeffs {
     kmin: f64,
     kmax: f64,
     np: usize,
+    /// The largest |sample| in the window (the scale of round-off in c2).
+    scale: f64,
 }
 
 /// The parabola over finite samples within `centre ± half`, and its covariance: σ²·(AᵀA)⁻¹,
@@ -389,6 +392,11 @@ fn fit_coeffs(
     }
     let inv = ata.try_inverse().ok_or(PeakMiss::TooFewPoints { n: np })?;
     let c = inv * atb;
+    let scale = pts
+        .iter()
+        .map(|p| p.1.abs())
+        .fold(0.0, f64::max)
+        .max(1e-300);
     let s2 = match sigma {
         Some(s) => Some(s * s),
         None if np > 3 => {
@@ -427,6 +435,7 @@ fn fit_coeffs(
         kmin,
         kmax,
         np,
+        scale,
     })
 }
 
@@ -446,15 +455,9 @@ fn fit_parabola(
         kmin,
         kmax,
         np,
+        scale,
         ..
     } = fit_coeffs(t, v, centre, half, noise)?;
-    let scale = t
-        .iter()
-        .zip(v)
-        .filter(|(ti, vi)| vi.is_finite() && (**ti - centre).abs() <= half)
-        .map(|(_, vi)| vi.abs())
-        .fold(0.0, f64::max)
-        .max(1e-300);
     // Concave with a curvature that is not round-off.
     if !(c[2] < -1e-12 * scale) {
         return Err(PeakMiss::NotConcave);
@@ -544,11 +547,7 @@ pub fn parabola_at(
             allowed: format!("within the window centre ± {half} µm"),
         });
     }
-    let step = if n > 1 {
-        ((t[n - 1] - t[0]) / (n - 1) as f64).abs()
-    } else {
-        0.0
-    };
+    let step = sample_step(t, n);
     let f = fit_coeffs(&t[..n], &v[..n], centre, half, &Noise::of(opts, step))
         .map_err(|m| AnalysisError::Failed(format!("no parabola: {m}")))?;
     let k = (at - f.centre) / f.half;
