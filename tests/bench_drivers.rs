@@ -1577,8 +1577,9 @@ fn raster_margins_follow_the_measured_lag() {
         let duty = m["duty_cycle"].as_f64().unwrap();
         match last_lag {
             // the first: 2 τ from the move's settling, when the move's readings measured τ
-            // (two readings of the approach ≥ 10× apart in distance to go: a slow host may
-            // read the first only when the stage is nearly there); else the default ramp
+            // (two readings of the approach ≥ 10× apart in distance to go and each dated to
+            // 5 % of it: a slow host may read the first only when the stage is nearly there,
+            // or stretch a call); else the default ramp
             None if m["ramp_from"] == "default" => assert!(
                 (ramp - bfpscope::acquire::strategy::stream::DEFAULT_RAMP_S).abs() < 1e-12,
                 "ramp {ramp} s: {m}"

@@ -122,6 +122,51 @@ pub struct MadlibStage {
 /// ratio, the estimate's divisor, at least ln 10).
 const TAU_MIN_RATIO: f64 = 10.0;
 
+/// A reading of the approach is dated to within this fraction of the time between the first
+/// and the last reading (half its call's duration), or it is not used for τ: the sensor was
+/// read somewhere inside the call, and a host that preempts a call for longer than that would
+/// put its reading at the wrong time (two such readings could make τ 25 % wrong).
+const TAU_DATING: f64 = 0.05;
+
+/// One reading of the largest step's approach: when its call was made and returned (s since
+/// the move's write) and the distance still to go, µm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Reading {
+    t_call: f64,
+    t_back: f64,
+    to_go: f64,
+}
+
+impl Reading {
+    fn t(&self) -> f64 {
+        0.5 * (self.t_call + self.t_back)
+    }
+    fn half_width(&self) -> f64 {
+        0.5 * (self.t_back - self.t_call).max(0.0)
+    }
+}
+
+/// The stage's time constant from a move's approach, s: a first-order lag's distance to go
+/// falls as exp(−t/τ), so two readings give τ = (t₂ − t₁) / ln(e₁ / e₂), whatever the time the
+/// write and the first read took. The two are the first and the last reading dated to within
+/// [`TAU_DATING`] of the approach's duration (a call the host stretched is left out), at
+/// least [`TAU_MIN_RATIO`] apart in distance to go, so that the dating's error on τ is at
+/// most 2 · [`TAU_DATING`]. None when no such pair exists.
+fn tau_from_approach(approach: &[Reading]) -> Option<f64> {
+    let span = approach.last()?.t() - approach.first()?.t();
+    if span <= 0.0 {
+        return None;
+    }
+    let mut dated = approach
+        .iter()
+        .filter(|r| r.half_width() <= TAU_DATING * span);
+    let first = dated.next()?;
+    let last = dated.last()?;
+    let (dt, ratio) = (last.t() - first.t(), first.to_go / last.to_go);
+    let dating = first.half_width() + last.half_width();
+    (dt > 0.0 && ratio >= TAU_MIN_RATIO && dating <= 2.0 * TAU_DATING * dt).then(|| dt / ratio.ln())
+}
+
 impl MadlibStage {
     /// Count one call of `word` that took `since.elapsed()`.
     fn cost(&self, word: &str, since: Instant) {
@@ -428,7 +473,7 @@ impl MadlibStage {
                 d(a).total_cmp(&d(b))
             })
             .unwrap_or(0);
-        let mut approach: Vec<(f64, f64)> = Vec::new();
+        let mut approach: Vec<Reading> = Vec::new();
         let mut within_before = false;
         let mut last = target;
         loop {
@@ -441,8 +486,11 @@ impl MadlibStage {
                 if k == big {
                     let e = (last[k] - target[k]).abs();
                     if e > 4.0 * self.opts.tolerance_um {
-                        let t_mid = 0.5 * (t_call + t0.elapsed().as_secs_f64());
-                        approach.push((t_mid, e));
+                        approach.push(Reading {
+                            t_call,
+                            t_back: t0.elapsed().as_secs_f64(),
+                            to_go: e,
+                        });
                     }
                 }
             }
@@ -484,13 +532,9 @@ impl MadlibStage {
         }
         self.move_time_sum += t0.elapsed().as_secs_f64();
         self.moves += 1;
-        // the settling measured: a first-order lag's distance to go falls as exp(−t/τ), so
-        // two readings of the approach give τ = (t₂ − t₁) / ln(e₁ / e₂), whatever the time
-        // the write and the first read took (readings far enough apart: e₁/e₂ ≥ 10)
-        if let (Some(&(t1, e1)), Some(&(t2, e2))) = (approach.first(), approach.last()) {
-            if step / self.opts.tolerance_um >= TAU_MIN_RATIO && e1 / e2 >= TAU_MIN_RATIO && t2 > t1
-            {
-                self.tau.0 += (t2 - t1) / (e1 / e2).ln();
+        if step / self.opts.tolerance_um >= TAU_MIN_RATIO {
+            if let Some(tau) = tau_from_approach(&approach) {
+                self.tau.0 += tau;
                 self.tau.1 += 1;
             }
         }
@@ -701,6 +745,48 @@ pub const MADLIB: crate::instrument::family::Backend = crate::instrument::family
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An approach read every `every` s with calls of `call` s, the sensor read at the call's
+    /// start (as the fake does), τ = 0.5 ms, from 30 µm to go down to 0.2 µm.
+    fn approach(every: f64, call: f64) -> Vec<Reading> {
+        let tau = 0.5e-3;
+        (0..)
+            .map(|k| k as f64 * every + 0.1e-3)
+            .map(|t| Reading {
+                t_call: t,
+                t_back: t + call,
+                to_go: 30.0 * (-t / tau).exp(),
+            })
+            .take_while(|r| r.to_go > 0.2)
+            .collect()
+    }
+
+    #[test]
+    fn tau_from_well_dated_readings_is_exact() {
+        // readings every 0.1 ms whose calls take 0.05 ms: the midpoint's constant offset
+        // cancels in t₂ − t₁
+        let tau = tau_from_approach(&approach(0.1e-3, 0.05e-3)).unwrap();
+        assert!((tau / 0.5e-3 - 1.0).abs() < 1e-9, "τ {tau}");
+    }
+
+    #[test]
+    fn a_call_the_host_stretched_is_not_used_to_date_the_approach() {
+        // the first reading's call returned 1.2 ms late: dated at its midpoint it would be
+        // 0.6 ms late, and τ from it and the last reading 25 % short
+        let mut a = approach(0.1e-3, 0.02e-3);
+        a[0].t_back += 1.2e-3;
+        let naive = (a[a.len() - 1].t() - a[0].t()) / (a[0].to_go / a[a.len() - 1].to_go).ln();
+        assert!(naive / 0.5e-3 < 0.8, "the naive estimate {naive}");
+        let tau = tau_from_approach(&a).unwrap();
+        assert!((tau / 0.5e-3 - 1.0).abs() < 0.1, "τ {tau}");
+        // every call stretched that much: no estimate rather than a wrong one
+        let slow = approach(0.9e-3, 0.8e-3);
+        assert!(slow.len() >= 2);
+        assert_eq!(tau_from_approach(&slow), None);
+        // too little of the approach read (distance to go falls less than 10×): none either
+        assert_eq!(tau_from_approach(&a[a.len() - 3..]), None);
+        assert_eq!(tau_from_approach(&[]), None);
+    }
 
     #[test]
     fn errors_name_device_call_code_and_name() {
