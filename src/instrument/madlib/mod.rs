@@ -161,7 +161,7 @@ fn tau_from_approach(approach: &[Reading]) -> Option<f64> {
         .iter()
         .filter(|r| r.half_width() <= TAU_DATING * span);
     let first = dated.next()?;
-    let last = dated.last()?;
+    let last = dated.next_back()?;
     let (dt, ratio) = (last.t() - first.t(), first.to_go / last.to_go);
     let dating = first.half_width() + last.half_width();
     (dt > 0.0 && ratio >= TAU_MIN_RATIO && dating <= 2.0 * TAU_DATING * dt).then(|| dt / ratio.ln())
