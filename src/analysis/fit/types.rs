@@ -376,7 +376,7 @@ impl FitResult {
 }
 
 /// One bead replacing two: weights summed, position |C|-weighted.
-pub(super) fn merge_pair(a: BeadInit, b: BeadInit) -> BeadInit {
+pub(crate) fn merge_pair(a: BeadInit, b: BeadInit) -> BeadInit {
     let (wa, wb) = (a.weight.abs(), b.weight.abs());
     let s = wa + wb;
     if s > 0.0 {
