@@ -377,7 +377,7 @@ fn demo_script_runs() {
     // "fibril: angle a° ± e° (truth 20°), n maxima (…)"
     let f = nums(line("fibril: angle"));
     within("fibril angle (°)", f[0], 20.0, f[1]);
-    // "fibril: corrected sensitivity s ± e; A = a nm → d = d ± e nm (truth 60 nm)"
+    // "fibril: corrected sensitivity s ± e; A = a nm → d = d ± e nm (truth 60 nm); status"
     let d = nums(line("fibril: corrected"));
     within("fibril diameter (nm)", d[3], 60.0, d[4]);
 }

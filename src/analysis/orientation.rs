@@ -638,9 +638,9 @@ fn row_snr_check(m: &FilamentMeasurement) -> Option<String> {
 /// where the neighbours put the filament ([`at_neighbours_vertex`], 2026-12-07) that cause is
 /// gone: flagging below 4σ or 6σ kept the fibril sweeps calibrated with no outlier at seeds
 /// 2026, 7 and 99 (334/356/375 and 320/341/367 answers in the domain against 310/329/358 at
-/// 8σ; 1σ 0.71–0.75, 2σ 0.95–0.96). The flag stays at 8σ until the microtubule family, whose
-/// maxima are the faintest, is measured at the lower threshold (hours a seed).
-pub const FILAMENT_ROW_SNR: f64 = 8.0;
+/// 8σ; 1σ 0.71–0.75, 2σ 0.95–0.96), and the flag is at 4σ since 2026-12-07 (twelfth
+/// session), with the microtubule family measured there (docs/accuracy.md).
+pub const FILAMENT_ROW_SNR: f64 = 4.0;
 
 /// Perpendicular distances (µm) from a filament line at which its own side lobes are looked
 /// for: the focus's overshoot puts a parallel line of maxima of ∂S/∂x about 0.7–0.8 µm beside a
