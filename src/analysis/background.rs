@@ -31,9 +31,9 @@
 //! `analysis::microtubule::MAX_FILAMENT_VISIBILITY`).
 
 use super::fit::{
-    clean_peaks, detection_map, fit_beads, merge_pair, noise_within, smoothed_map, smoothed_noise,
-    template_dmap_peak, within, BeadInit, Channels, FitOptions, FitResult, GrowCandidates,
-    DETECT_SMOOTH_UM,
+    clean_peaks, closest_pair, detection_map, fit_beads, merge_pair, noise_within, smoothed_map,
+    smoothed_noise, template_dmap_peak, within, BeadInit, Channels, FitOptions, FitResult,
+    GrowCandidates, DETECT_SMOOTH_UM,
 };
 use super::template::Template;
 use super::AxisMap;
@@ -281,22 +281,11 @@ pub fn detect_point_objects(
 /// place again and again, and each repeat cost the fit an LM run over every bead (one seed-99
 /// sweep scene: 60 components at 17 places, 5912 s of fit).
 fn merge_repeated(mut init: Vec<BeadInit>, min_sep: f64) -> Vec<BeadInit> {
-    loop {
-        let mut pair: Option<(usize, usize, f64)> = None;
-        for i in 0..init.len() {
-            for j in i + 1..init.len() {
-                let d = (init[i].x - init[j].x).hypot(init[i].y - init[j].y);
-                if d < min_sep && pair.is_none_or(|p| d < p.2) {
-                    pair = Some((i, j, d));
-                }
-            }
-        }
-        let Some((i, j, _)) = pair else {
-            return init;
-        };
+    while let Some((i, j, _)) = closest_pair(&init, min_sep) {
         let b = init.remove(j);
         init[i] = merge_pair(init[i], b);
     }
+    init
 }
 
 /// Remove point-like objects from a filament scan (Sec. 6). Errors from the fit (shapes,

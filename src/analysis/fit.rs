@@ -76,6 +76,7 @@ mod types;
 mod warnings;
 mod window;
 
+pub(crate) use degeneracy::closest_pair;
 pub use detect::detect_beads;
 pub(crate) use detect::{
     clean, clean_peaks, detection_map, noise_within, smoothed_map, smoothed_noise,

@@ -109,20 +109,6 @@ impl FitData<'_> {
         Ok(res)
     }
 
-    /// The closest pair of beads below the separation limit: their indices and distance (µm).
-    fn closest_pair(&self, cur: &[BeadInit]) -> Option<(usize, usize, f64)> {
-        let mut pair: Option<(usize, usize, f64)> = None;
-        for i in 0..cur.len() {
-            for j in i + 1..cur.len() {
-                let d = (cur[i].x - cur[j].x).hypot(cur[i].y - cur[j].y);
-                if d < self.min_sep && pair.is_none_or(|p| d < p.2) {
-                    pair = Some((i, j, d));
-                }
-            }
-        }
-        pair
-    }
-
     /// LM fit with merging of pairs closer than min_separation·w0 and dropping of beads out of
     /// reach, then the statistics.
     pub(super) fn fit_merge_close(
@@ -160,7 +146,7 @@ impl FitData<'_> {
                 beads = keep;
                 continue;
             }
-            if let Some((i, j, d)) = self.closest_pair(&cur) {
+            if let Some((i, j, d)) = closest_pair(&cur, self.min_sep) {
                 let (a, b) = (cur[i], cur[j]);
                 degeneracies.push(Degeneracy::CloseBeads {
                     a: [a.x, a.y, a.weight],
@@ -268,4 +254,18 @@ impl FitData<'_> {
             bead_warnings: vec![],
         })
     }
+}
+
+/// The closest pair of `beads` nearer than `min_sep` (µm): their indices and distance.
+pub(crate) fn closest_pair(beads: &[BeadInit], min_sep: f64) -> Option<(usize, usize, f64)> {
+    let mut pair: Option<(usize, usize, f64)> = None;
+    for i in 0..beads.len() {
+        for j in i + 1..beads.len() {
+            let d = (beads[i].x - beads[j].x).hypot(beads[i].y - beads[j].y);
+            if d < min_sep && pair.is_none_or(|p| d < p.2) {
+                pair = Some((i, j, d));
+            }
+        }
+    }
+    pair
 }
