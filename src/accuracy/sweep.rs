@@ -20,9 +20,10 @@
 //!   ([`focus`]).
 //!
 //! - **microtubules** (`microtubule.mu`): one protein filament (n 1.587, 1.35 g/cm³, 17–25 nm,
-//!   6–15 µm long) crossing a ±2 µm field at any angle, within 1 µm of its centre, an end
-//!   sometimes inside; 0–8 aggregates of 30–120 nm (n 1.45) on the line or within 0.4 µm of it;
-//!   detector noise × 0–10; pixels of 20, 30, 40 or 50 nm; one scene in four clipped. Cleaned
+//!   6–15 µm long) crossing a ±2 µm field within 1 µm of its centre, three in four within 10°
+//!   of a QPD axis and the others at any angle, an end sometimes inside; 0–8 aggregates of
+//!   30–120 nm (n 1.45) on the line or within 0.4 µm of it; detector noise × 0–10 (half the
+//!   scenes × 0–4, where the filament is measured at all); pixels of 20, 30, 40 or 50 nm; one scene in four clipped. Cleaned
 //!   and measured as `aggregates::remove` then `microtubule::density` do (the same Rust
 //!   functions, `analysis::microtubule`), μ against ρ·πd²/4 ([`microtubule`]). Its scenes come
 //!   from a stream of their own, so the other families' scenes are those of earlier versions.
@@ -31,6 +32,13 @@
 //!   it for the others, or an empty field (one in eight); detector noise × 0–10; pixels of 10,
 //!   20, 30, 50, 75 or 100 nm; one scene in four clipped; its ∂Sx/∂x read by `max_sens`
 //!   ([`maxsens`]). From a third stream of its own.
+//! - **beam** (`fit_beam.inv_f0_sq`, `.qpd_rotation_deg`, `.polarization_deg`, `.gain_ratio`,
+//!   `.offset_x_sq`, `.offset_y_sq`, `.x0`, `.y0`, `.detection`): an XY scan (±1.2 µm) of one 60–180 nm
+//!   polystyrene reference bead in a vector beam of random pupil filling (v = 1/f0² 0 or
+//!   0.1–2), through a QPD aligned or misaligned at random (offsets ±0.15 cone radii, rotation
+//!   ±5°, Sy gain 0.6–1.2), in the focal plane (half), within ±0.1 µm of it (a quarter) or
+//!   ±1 µm, or an empty field (one in eight); detector noise × 0–10; pixels of 20–100 nm; one scene in four clipped; fitted by
+//!   `fit_beam` with the binding's domain checks ([`beam`]). From a fourth stream.
 //!
 //! `--family` runs some of the families only (the scenes of each are the same either way).
 //!
@@ -38,11 +46,13 @@
 //! fibril scenes (the fit's weight reads low by ~1.4 %·(z/100 nm)² off the focus; `max_sens`'s
 //! family has them), the SBR itself, the count of removed aggregates and the beam fit.
 
+mod beam;
 mod field;
 mod focus;
 mod maxsens;
 mod microtubule;
 use field::{clip_words, draw_clip, render_field};
+pub use beam::BeamCase;
 pub use focus::FocusCase;
 pub use maxsens::MaxSensCase;
 pub use microtubule::MicrotubuleCase;
@@ -181,7 +191,7 @@ impl Tally {
 /// What to sweep.
 #[derive(Debug, Clone, Default)]
 pub struct SweepOptions {
-    /// Scenes per estimator family (beads, fibrils, focus, microtubules, max_sens).
+    /// Scenes per estimator family (beads, fibrils, focus, microtubules, max_sens, beam).
     pub n: usize,
     pub seed: u64,
     /// The families run (`FAMILIES`' names); empty: all. The scenes of a family are the same
@@ -190,7 +200,7 @@ pub struct SweepOptions {
 }
 
 /// The sweep's families, as `--family` names them (and the dump's `family` field).
-pub const FAMILIES: [&str; 5] = ["beads", "fibril", "focus", "microtubule", "maxsens"];
+pub const FAMILIES: [&str; 6] = ["beads", "fibril", "focus", "microtubule", "maxsens", "beam"];
 
 impl SweepOptions {
     /// An unknown family name, in words (None when every name is one of [`FAMILIES`]).
@@ -666,6 +676,10 @@ pub fn run(
     let mut ms_rng = ChaCha8Rng::seed_from_u64(opts.seed);
     ms_rng.set_stream(2);
     cases.extend((0..opts.n).map(|_| Case::MaxSens(MaxSensCase::draw(&mut ms_rng))));
+    // the beam-fit scenes from a fourth
+    let mut bm_rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    bm_rng.set_stream(3);
+    cases.extend((0..opts.n).map(|_| Case::Beam(BeamCase::draw(&mut bm_rng))));
     cases.retain(|c| opts.runs(c.family()));
     let cals = Cals::default();
     let mt_cals = microtubule::MtCals::default();
@@ -735,6 +749,10 @@ pub fn run(
                     tally_outcomes(&mut t, maxsens::maxsens_case(mc, &optics, &readings).0);
                     "max_sens."
                 }
+                Case::Beam(bc) => {
+                    tally_outcomes(&mut t, beam::beam_case(bc, &optics).0);
+                    "fit_beam."
+                }
             };
             let what = case.describe();
             timed(&mut t, family, t0.elapsed().as_secs_f64(), &what);
@@ -764,6 +782,7 @@ pub enum Case {
     Focus(FocusCase),
     Microtubule(MicrotubuleCase),
     MaxSens(MaxSensCase),
+    Beam(BeamCase),
 }
 
 impl Case {
@@ -774,6 +793,7 @@ impl Case {
             Case::Focus(c) => c.describe(),
             Case::Microtubule(c) => c.describe(),
             Case::MaxSens(c) => c.describe(),
+            Case::Beam(c) => c.describe(),
         }
     }
     /// The family's name ([`FAMILIES`]).
@@ -784,6 +804,7 @@ impl Case {
             Case::Focus(_) => FAMILIES[2],
             Case::Microtubule(_) => FAMILIES[3],
             Case::MaxSens(_) => FAMILIES[4],
+            Case::Beam(_) => FAMILIES[5],
         }
     }
 }
@@ -925,6 +946,25 @@ fn replay_scene(json: &str) -> Result<(String, BTreeMap<String, Tally>), String>
                     } else {
                         w.join("; ")
                     }
+                ));
+            }
+        }
+        Case::Beam(bc) => {
+            out.push_str(&format!("{}\n", bc.describe()));
+            let (outcomes, r) = beam::beam_case(bc, &optics);
+            tally_outcomes(&mut t, outcomes);
+            if let Some((f, w)) = r {
+                out.push_str(&format!(
+                    "  v {:.4} ± {:.4}, δ {:.3} ± {:.3}°, ψ {:.3} ± {:.3}°, gain ratio {:.4} ± {:.4}, offsets ({:.4} ± {:.4}, {:.4} ± {:.4}), bead ({:.4}, {:.4}) µm, χ²/ν {:.3}: {}\n",
+                    f.inv_f0_sq.value, f.inv_f0_sq.sigma,
+                    f.qpd_rotation_deg.value, f.qpd_rotation_deg.sigma,
+                    f.polarization_deg.value, f.polarization_deg.sigma,
+                    f.gain_ratio.value, f.gain_ratio.sigma,
+                    f.offset_x.value, f.offset_x.sigma,
+                    f.offset_y.value, f.offset_y.sigma,
+                    f.x0.value, f.y0.value,
+                    f.chi2_red,
+                    if w.is_empty() { "ok".to_string() } else { w.join("; ") }
                 ));
             }
         }

@@ -80,12 +80,26 @@ pub const GAIN_Z_MIN_SIGMA: f64 = 5.0;
 /// (docs/physics.md §10), and large enough to be seen.
 pub const D_RANGE_NM: (f64, f64) = (40.0, 200.0);
 
+/// The aligned QPD (no offset, no rotation, equal gains).
+pub const ALIGNED: Misalignment = Misalignment {
+    offset_x: 0.0,
+    offset_y: 0.0,
+    rotation_deg: 0.0,
+    gain_y: 1.0,
+};
+
 /// Options of [`fit_beam`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BeamFitOptions {
     /// Reference bead diameter (nm) and refractive index.
     pub d_nm: f64,
     pub n: f64,
+    /// The bead's height in the model, µm (0: the scan at the focus; the defocus test tries
+    /// others).
+    pub z_um: f64,
+    /// The QPD misalignment the model's rotation and offset columns are taken about (the
+    /// linearisation point; `fit_beam` starts from the aligned QPD and moves it to its answer).
+    pub about: Misalignment,
     /// Template grid of the model planes (the simulator's default).
     pub grid: TemplateSpec,
 }
@@ -95,6 +109,8 @@ impl Default for BeamFitOptions {
         Self {
             d_nm: 110.0,
             n: 1.572,
+            z_um: 0.0,
+            about: ALIGNED,
             grid: TemplateSpec::default(),
         }
     }
@@ -120,8 +136,15 @@ pub struct BeamFit {
     pub polarization_deg: Value,
     /// QPD rotation δ relative to the polarisation axis (the QPD's angle to the stage is ψ + δ).
     pub qpd_rotation_deg: Value,
+    /// The QPD offsets' magnitudes, cone radii: at the focus an offset enters the response at
+    /// second order (the bead's interference term is odd across the QPD's dividing line there,
+    /// so the line's first-order shift integrates to nothing), and a scan at the focus does
+    /// not tell +o from −o. The misalignment effect's images at the focus are the same for
+    /// either sign. `offset_*_sq` are the measured squares (their σ holds near zero too).
     pub offset_x: Value,
     pub offset_y: Value,
+    pub offset_x_sq: Value,
+    pub offset_y_sq: Value,
     pub gain_x: Value,
     pub gain_y: Value,
     /// The Sz gain, when the scan determines it; `None` for a bead at the focus, where Sz
@@ -148,7 +171,27 @@ pub struct BeamFit {
     /// simulator's effect takes it: relative to the polarisation, δ; gain_y = g_y/g_x).
     pub optics: Optics,
     pub misalignment: Misalignment,
+    /// The test of the model's focus ([`defocus_test`]): the bead height that explains the scan
+    /// best among those tried, and by how much better than the model's (Δχ², in units of the
+    /// fit's residual variance).
+    pub defocus: Defocus,
 }
+
+/// What [`defocus_test`] found: `z_um`, the bead height (µm, the model's own convention, as
+/// `BeamFitOptions::z_um`) that explains the scan best, and `dchi2`, its χ² below the model's
+/// height (0 when the model's height is the best tried).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Defocus {
+    pub z_um: f64,
+    pub dchi2: f64,
+}
+
+/// Δχ² beyond which [`defocus_test`] says the bead is not at the model's height (3σ of one
+/// added parameter: a scan at that height exceeds it once in 740).
+pub const DEFOCUS_DCHI2: f64 = 9.0;
+
+/// The heights beside the model's that [`defocus_test`] tries, µm.
+const DEFOCUS_STEPS_UM: [f64; 8] = [0.04, 0.08, 0.15, 0.25, 0.35, 0.5, 0.7, 0.9];
 
 /// The three model planes for one v: ideal QPD, rotated QPD, offset QPD (all through the
 /// misaligned-QPD quadrature so that quadrature errors cancel in the differences).
@@ -171,13 +214,14 @@ fn plane(
     grid: TemplateSpec,
     m: Misalignment,
     alpha: f64,
+    z_um: f64,
 ) -> Result<Arc<Grid2>> {
     let detector = DetectorModel {
         polarization: true,
         misalignment: Some(m),
     };
     // the simulator's own point dipole in this beam, per unit α
-    let mut g = dipole_plane(optics, detector, grid.h, grid.interp, 0.0)?;
+    let mut g = dipole_plane(optics, detector, grid.h, grid.interp, z_um)?;
     for n in g.data.iter_mut() {
         for c in n.iter_mut() {
             *c *= alpha;
@@ -198,15 +242,14 @@ fn optics_for_v(base: &Optics, v: f64) -> Optics {
     }
 }
 
-fn basis(base: &Optics, grid: TemplateSpec, alpha: f64, v: f64) -> Result<Basis> {
+fn basis(base: &Optics, opts: &BeamFitOptions, alpha: f64, v: f64, z_um: f64) -> Result<Basis> {
     let o = ValidOptics::new(optics_for_v(base, v))?;
+    let grid = opts.grid;
     let zero = Misalignment {
-        offset_x: 0.0,
-        offset_y: 0.0,
-        rotation_deg: 0.0,
         gain_y: 1.0,
+        ..opts.about
     };
-    let g0 = plane(&o, grid, zero, alpha)?;
+    let g0 = plane(&o, grid, zero, alpha, z_um)?;
     let peak = |c: usize| g0.data.iter().fold(0.0f64, |m, v| m.max(v[c].abs()));
     let sz_ratio = peak(2) / peak(0).max(f64::MIN_POSITIVE);
     Ok(Basis {
@@ -216,20 +259,22 @@ fn basis(base: &Optics, grid: TemplateSpec, alpha: f64, v: f64) -> Result<Basis>
             &o,
             grid,
             Misalignment {
-                rotation_deg: EPS_ROT_DEG,
+                rotation_deg: zero.rotation_deg + EPS_ROT_DEG,
                 ..zero
             },
             alpha,
+            z_um,
         )?,
         goff: plane(
             &o,
             grid,
             Misalignment {
-                offset_x: EPS_OFFSET,
-                offset_y: EPS_OFFSET,
+                offset_x: zero.offset_x + EPS_OFFSET,
+                offset_y: zero.offset_y + EPS_OFFSET,
                 ..zero
             },
             alpha,
+            z_um,
         )?,
     })
 }
@@ -322,7 +367,7 @@ fn ss(r: &[f64]) -> f64 {
 fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
     let steps = [1e-4, 1e-4, 1e-3, 0.02];
     let fail = || {
-        AnalysisError::Failed("fit_beam: the model could not be evaluated (singular linear system: no signal in a channel?)".into())
+        AnalysisError::Failed("the model could not be evaluated (singular linear system: no signal in a channel?)".into())
     };
     let (mut r, _) = residuals(b, d, &th).ok_or_else(fail)?;
     let mut cost = ss(&r);
@@ -433,6 +478,7 @@ fn check_beam_inputs(
 ) -> Result<()> {
     check_range("d_nm", opts.d_nm, D_RANGE_NM.0, D_RANGE_NM.1)?;
     check_range("n", opts.n, 1.0, 3.0)?;
+    check_range("z", opts.z_um, -3.0, 3.0)?;
     if (opts.n - optics.n_medium).abs() < 0.02 {
         return Err(AnalysisError::OutOfRange {
             name: "n",
@@ -532,10 +578,11 @@ fn profile_over_v(
     sx: &Image,
     sy: &Image,
     data: &Data,
+    start: Option<(f64, Theta)>,
     builds: &mut usize,
 ) -> Result<(Vec<(f64, Basis)>, Vec<(f64, f64, Theta)>)> {
     let (x0, y0) = initial_position(sx, sy);
-    let mut theta: Theta = [x0, y0, 0.0, 0.0];
+    let mut theta: Theta = start.map_or([x0, y0, 0.0, 0.0], |s| s.1);
     let mut bases: Vec<(f64, Basis)> = Vec::new();
     let mut profile: Vec<(f64, f64, Theta)> = Vec::new();
     let mut eval_v = |v: f64,
@@ -543,7 +590,7 @@ fn profile_over_v(
                       bases: &mut Vec<(f64, Basis)>,
                       profile: &mut Vec<(f64, f64, Theta)>|
      -> Result<f64> {
-        let b = basis(optics, opts.grid, alpha, v)?;
+        let b = basis(optics, opts, alpha, v, opts.z_um)?;
         *builds += 3;
         // warm start from the nearest evaluated v
         let start = profile
@@ -557,18 +604,37 @@ fn profile_over_v(
         profile.push((v, cost, th));
         Ok(cost)
     };
-    // coarse profile over v, then parabolic refinement of its minimum
-    for v in [0.0, 0.5, 1.0, 2.0] {
+    // coarse profile over v (or three points about a previous answer), then parabolic
+    // refinement of its minimum
+    let coarse = match start {
+        None => vec![0.0, 0.5, 1.0, 2.0],
+        Some((v0, _)) => {
+            let h = 0.1 * v0.max(0.2);
+            let mut c = vec![(v0 - h).max(0.0), v0, (v0 + h).min(V_MAX)];
+            c.dedup();
+            c
+        }
+    };
+    for v in coarse {
         eval_v(v, &mut theta, &mut bases, &mut profile)?;
     }
-    for _ in 0..5 {
+    for _ in 0..8 {
         let mut p = profile.clone();
         p.sort_by(|a, b| a.0.total_cmp(&b.0));
         let k = (0..p.len())
             .min_by(|&a, &b| p[a].1.total_cmp(&p[b].1))
             .unwrap_or(0);
-        let next = if k == p.len() - 1 && p[k].0 < V_MAX {
-            (2.0 * p[k].0).min(V_MAX)
+        let next = if k == p.len() - 1 {
+            // minimum at the largest v done: go further out, up to the bound (at the bound
+            // there is no neighbour beyond it: the answer stays there and is flagged)
+            if p[k].0 >= V_MAX {
+                break;
+            }
+            if k > 0 {
+                (p[k].0 + 2.0 * (p[k].0 - p[k - 1].0)).min(V_MAX)
+            } else {
+                (2.0 * p[k].0).max(0.5).min(V_MAX)
+            }
         } else if k == 0 {
             // minimum at the bound v = 0 (uniform pupil) or just above it
             if p.len() > 1 && p[0].0 == 0.0 {
@@ -577,6 +643,9 @@ fn profile_over_v(
                     break;
                 }
                 0.25 * v1
+            } else if p.len() > 1 {
+                // a profile started about a previous answer: step down
+                (p[0].0 - 2.0 * (p[1].0 - p[0].0)).max(0.0)
             } else {
                 break;
             }
@@ -590,7 +659,7 @@ fn profile_over_v(
                 b.0
             };
             let vn = vn.clamp(a.0, c.0);
-            let tol = 2e-3 * b.0.max(0.05);
+            let tol = V_TOL_REL * b.0.max(0.05);
             if p.iter().any(|q| (q.0 - vn).abs() < tol) {
                 break;
             }
@@ -613,7 +682,7 @@ fn covariance(
     th_hat: &Theta,
 ) -> Result<(DMatrix<f64>, Vec<f64>, [DVector<f64>; 3], f64)> {
     let n = data.xy.len();
-    let fail = || AnalysisError::Failed("fit_beam: the model could not be evaluated".into());
+    let fail = || AnalysisError::Failed("the model could not be evaluated".into());
     let (r0, coef) = residuals(b, data, th_hat).ok_or_else(fail)?;
     // full model as a function of all 13 parameters: p = [x0, y0, ψ, δ, v, gx, ax, bx, gy, ay, by, gz, bz]
     let model = |b: &Basis, th: &Theta, k: &[DVector<f64>; 3]| -> Vec<f64> {
@@ -672,7 +741,7 @@ fn covariance(
     let s2 = ss(&r0) / dof;
     let cov = jtj.try_inverse().ok_or_else(|| {
         AnalysisError::Failed(
-            "fit_beam: the parameters are degenerate on this scan (JᵀJ singular)".into(),
+            "the parameters are degenerate on this scan (JᵀJ singular)".into(),
         )
     })? * s2;
     Ok((cov, r0, coef, s2))
@@ -690,14 +759,18 @@ fn refuse_meaningless(
 ) -> Result<()> {
     if !(gx.abs() > 10.0 * sd_gx) || !(gx > 0.0) {
         return Err(AnalysisError::Failed(format!(
-            "fit_beam: no bead in the scan: the Sx gain {gx:.3e} ± {:.1e} is not ≥ 10σ above zero (is there a reference bead within the field, at the focus?)",
+            "no bead in the scan: the Sx gain {gx:.3e} ± {:.1e} is not ≥ 10σ above zero (is there a reference bead within the field, at the focus?)",
             sd_gx
         )));
     }
+    // the relative floor against the largest channel's range: a noise-free scan's Sz is
+    // rounding noise on both sides (its residual 2e-19 against a "noise" of 1e-20 refused a
+    // noise-free bead)
+    let top = range.iter().copied().fold(0.0, f64::max);
     for c in 0..3 {
-        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c] {
+        if rms[c] > 2.0 * noise[c] && rms[c] > 5e-4 * range[c].max(top) {
             return Err(AnalysisError::Failed(format!(
-                "fit_beam: the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the channel's range); check d_nm, n, the focus and the optics (λ, NA)",
+                "the scan does not look like a {} nm bead (n = {}) at the focus in this beam: the {} residual rms {:.3e} is {:.1}× the channel's noise {:.3e} (allowed ≤ 2×, or ≤ 0.05 % of the largest channel's range); check d_nm, n, the focus and the optics (λ, NA)",
                 opts.d_nm,
                 opts.n,
                 ["sx", "sy", "sz"][c],
@@ -753,44 +826,46 @@ pub fn fit_beam(
     let (data, noise, range) = weighted_pixels(sx, sy, sz)?;
     let n = data.xy.len();
     let mut builds = 0usize;
-    let (bases, profile) = profile_over_v(optics, opts, alpha, sx, sy, &data, &mut builds)?;
-    let (v_hat, _, th_hat) = *profile
-        .iter()
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .expect("profile has entries");
-    let bi = bases
-        .iter()
-        .position(|(v, _)| *v == v_hat)
-        .expect("basis of the best v");
-    // Jacobian in v: forward difference (backward at V_MAX) over a new build
-    let hv = 0.05 * v_hat.max(0.2);
-    let v2 = if v_hat + hv <= V_MAX {
-        v_hat + hv
-    } else {
-        v_hat - hv
-    };
-    let mut b2 = basis(optics, opts.grid, alpha, v2)?;
-    // the same columns as at the optimum (the Sz bead column in or out)
-    b2.sz_ratio = bases[bi].1.sz_ratio;
-    builds += 3;
-    let b = &bases[bi].1;
-    let (cov, r0, coef, s2) = covariance(b, &b2, v2 - v_hat, &data, &th_hat)?;
+    // the model linearised about the aligned QPD, then about each answer in turn: the rotation
+    // and the offsets enter the response non-linearly (an offset at second order at the focus)
+    let mut o = *opts;
+    let mut st = stage(optics, &o, alpha, (sx, sy), &data, None, &mut builds)?;
+    for _ in 0..MAX_RELINEARISE {
+        let next = st.next_about(&o);
+        let moved = (next.rotation_deg - o.about.rotation_deg).abs() > 0.05
+            || (next.offset_x - o.about.offset_x).abs() > 0.002
+            || (next.offset_y - o.about.offset_y).abs() > 0.002;
+        if !moved {
+            break;
+        }
+        o.about = next;
+        // warm: v about the last answer, θ there with the rotation now in `about`
+        let mut th = st.th_hat;
+        th[3] = 0.0;
+        st = stage(optics, &o, alpha, (sx, sy), &data, Some((st.v_hat, th)), &mut builds)?;
+    }
+    let Stage {
+        v_hat,
+        cost_hat,
+        th_hat,
+        b,
+        cov,
+        r0,
+        coef,
+        s2,
+    } = &st;
+    let (v_hat, cost_hat, th_hat, s2) = (*v_hat, *cost_hat, *th_hat, *s2);
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let val = |value: f64, sigma: f64| Value { value, sigma };
     // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by,
     // 11 gz, 12 bz (without the Sz bead column: 11 bz)
-    let (gx, ax, gy, ay) = (coef[0][0], coef[0][1], coef[1][0], coef[1][1]);
+    let (gx, gy) = (coef[0][0], coef[1][0]);
     let ratio = gy / gx;
     let var_ratio = ratio
         * ratio
         * (cov[(8, 8)] / (gy * gy) + cov[(5, 5)] / (gx * gx) - 2.0 * cov[(5, 8)] / (gx * gy));
-    let var_ox = (ax / gx).powi(2)
-        * (cov[(6, 6)] / (ax * ax).max(1e-300) + cov[(5, 5)] / (gx * gx)
-            - 2.0 * cov[(5, 6)] / (ax * gx).abs().max(1e-300) * (ax * gx).signum());
-    let var_oy = (ay / gy).powi(2)
-        * (cov[(9, 9)] / (ay * ay).max(1e-300) + cov[(8, 8)] / (gy * gy)
-            - 2.0 * cov[(8, 9)] / (ay * gy).abs().max(1e-300) * (ay * gy).signum());
-    let sv = sd(4);
+    let [osq_x, osq_y] = st.offsets_sq(&o);
+    let sv = sd(4).hypot(0.5 * V_TOL_REL * v_hat.max(0.05));
     let f0 = if v_hat > 0.0 {
         1.0 / v_hat.sqrt()
     } else {
@@ -807,8 +882,29 @@ pub fn fit_beam(
         rms[c] = (ss(&r0[c * n..(c + 1) * n]) / n as f64).sqrt() / data.w[c];
     }
     refuse_meaningless(gx, sd(5), &rms, &noise, &range, opts)?;
+    let defocus = defocus_test(
+        optics,
+        &o,
+        alpha,
+        &data,
+        (v_hat, cost_hat, th_hat),
+        &mut builds,
+    )?;
     let psi_deg = th_hat[2].to_degrees();
-    let (gain_z, gain_z_note) = gain_z(b, &coef, sd(11));
+    let (gain_z, gain_z_note) = gain_z(b, coef, sd(11));
+    let rotation = o.about.rotation_deg + th_hat[3];
+    let magnitude = |q: Value| {
+        // σ of √q: σ_q/(2√q), and no less than √σ_q where q is within 2σ of zero (there the
+        // magnitude is known only to lie below √(q + 2σ_q))
+        let m = q.value.max(0.0).sqrt();
+        let near_zero = if q.value < 2.0 * q.sigma {
+            q.sigma.sqrt()
+        } else {
+            0.0
+        };
+        let s = if m > 0.0 { q.sigma / (2.0 * m) } else { 0.0 };
+        val(m, s.max(near_zero))
+    };
     let fitted = optics_for_v(optics, v_hat);
     Ok(BeamFit {
         inv_f0_sq: val(v_hat, sv),
@@ -816,9 +912,11 @@ pub fn fit_beam(
         x0: val(th_hat[0], sd(0)),
         y0: val(th_hat[1], sd(1)),
         polarization_deg: val(psi_deg, sd(2).to_degrees()),
-        qpd_rotation_deg: val(th_hat[3], sd(3)),
-        offset_x: val(ax / gx, var_ox.max(0.0).sqrt()),
-        offset_y: val(ay / gy, var_oy.max(0.0).sqrt()),
+        qpd_rotation_deg: val(rotation, sd(3)),
+        offset_x: magnitude(osq_x),
+        offset_y: magnitude(osq_y),
+        offset_x_sq: osq_x,
+        offset_y_sq: osq_y,
         gain_x: val(gx, sd(5)),
         gain_y: val(gy, sd(8)),
         gain_z,
@@ -832,11 +930,203 @@ pub fn fit_beam(
         builds,
         seconds: t_start.elapsed().as_secs_f64(),
         misalignment: Misalignment {
-            offset_x: ax / gx,
-            offset_y: ay / gy,
-            rotation_deg: th_hat[3],
+            offset_x: osq_x.value.max(0.0).sqrt(),
+            offset_y: osq_y.value.max(0.0).sqrt(),
+            rotation_deg: rotation,
             gain_y: ratio,
         },
         optics: fitted,
+        defocus,
     })
+}
+
+/// The profile over v stops where its next point would lie within this fraction of v (at
+/// least of 0.05) of one already fitted; the best point is the answer, so half of it is a
+/// systematic of v (in quadrature with the statistical σ).
+const V_TOL_REL: f64 = 3e-4;
+
+/// The largest offset (cone radii) the model is linearised about (the QPD's cross must stay
+/// inside the beam, |offset| < 0.95; a QPD offset by a third of the cone is far out of
+/// alignment).
+const MAX_ABOUT_OFFSET: f64 = 0.35;
+
+/// Linearisations of the misalignment after the first (each a profile over v about the last
+/// answer).
+const MAX_RELINEARISE: usize = 3;
+
+/// One fit of the model linearised about `opts.about`: the best v over the profile, its cost
+/// and θ, the basis there, the covariance of all parameters, the residuals, the linear
+/// coefficients and s².
+struct Stage {
+    v_hat: f64,
+    cost_hat: f64,
+    th_hat: Theta,
+    b: Basis,
+    cov: DMatrix<f64>,
+    r0: Vec<f64>,
+    coef: [DVector<f64>; 3],
+    s2: f64,
+}
+
+impl Stage {
+    /// o² of each offset with its σ. About ô the offset column is (T(ô+ε) − T(ô))/ε, which
+    /// under the second-order response T(o) = T(0) + o²Q is (2ô + ε)Q; its coefficient
+    /// c = a/g is (o² − ô²)/(2ô + ε), so o² = ô² + c(2ô + ε) (c's σ by propagation through a/g).
+    fn offsets_sq(&self, opts: &BeamFitOptions) -> [Value; 2] {
+        let (cov, coef) = (&self.cov, &self.coef);
+        let one = |ch: usize, ig: usize, ia: usize, about: f64| {
+            let (g, a) = (coef[ch][0], coef[ch][1]);
+            let c = a / g;
+            let var_c = c * c
+                * (cov[(ia, ia)] / (a * a).max(1e-300) + cov[(ig, ig)] / (g * g)
+                    - 2.0 * cov[(ig, ia)] / (a * g).abs().max(1e-300) * (a * g).signum());
+            let k = 2.0 * about + EPS_OFFSET;
+            Value {
+                value: about * about + c * k,
+                sigma: var_c.max(0.0).sqrt() * k,
+            }
+        };
+        [
+            one(0, 5, 6, opts.about.offset_x),
+            one(1, 8, 9, opts.about.offset_y),
+        ]
+    }
+
+    /// The next linearisation point: the rotation and the offsets' magnitudes of this fit.
+    fn next_about(&self, opts: &BeamFitOptions) -> Misalignment {
+        let [qx, qy] = self.offsets_sq(opts);
+        // (a noisy o² can exceed what the QPD allows; the model is taken about at most
+        // MAX_ABOUT_OFFSET, and the answer is still ô + Δo)
+        let o = |q: Value| q.value.max(0.0).sqrt().min(MAX_ABOUT_OFFSET);
+        Misalignment {
+            offset_x: o(qx),
+            offset_y: o(qy),
+            rotation_deg: opts.about.rotation_deg + self.th_hat[3],
+            gain_y: 1.0,
+        }
+    }
+}
+
+/// The profile over v of the model about `opts.about`, and the covariance at its best v.
+fn stage(
+    optics: &Optics,
+    opts: &BeamFitOptions,
+    alpha: f64,
+    (sx, sy): (&Image, &Image),
+    data: &Data,
+    start: Option<(f64, Theta)>,
+    builds: &mut usize,
+) -> Result<Stage> {
+    let (mut bases, profile) = profile_over_v(optics, opts, alpha, sx, sy, data, start, builds)?;
+    let (v_hat, cost_hat, th_hat) = *profile
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("profile has entries");
+    let bi = bases
+        .iter()
+        .position(|(v, _)| *v == v_hat)
+        .expect("basis of the best v");
+    // Jacobian in v: forward difference (backward at V_MAX) over a new build
+    let hv = 0.05 * v_hat.max(0.2);
+    let v2 = if v_hat + hv <= V_MAX {
+        v_hat + hv
+    } else {
+        v_hat - hv
+    };
+    let mut b2 = basis(optics, opts, alpha, v2, opts.z_um)?;
+    // the same columns as at the optimum (the Sz bead column in or out)
+    b2.sz_ratio = bases[bi].1.sz_ratio;
+    *builds += 3;
+    let b = bases.swap_remove(bi).1;
+    let (cov, r0, coef, s2) = covariance(&b, &b2, v2 - v_hat, data, &th_hat)?;
+    Ok(Stage {
+        v_hat,
+        cost_hat,
+        th_hat,
+        b,
+        cov,
+        r0,
+        coef,
+        s2,
+    })
+}
+
+/// Is the bead at the model's height (`opts.z_um`, 0: the focus)? One xy scan cannot tell a
+/// bead 0.5 µm off the focus from a beam of smaller pupil filling at the focus by its residual
+/// alone (at 3.9× the paper's noise such a scan fitted v = 1.06 ± 0.03 for 0.43, χ²/ν 0.94, and
+/// offsets of 1.6 cone radii for 0.07). The model is refitted at heights `DEFOCUS_STEPS_UM`
+/// beside the model's, v re-profiled at each (three builds about the last height's best v, a
+/// fourth where the minimum is at an end), until the best cost has risen twice in a row; the
+/// χ² gained, in units of the residual variance at the model's height, is returned with the
+/// height that gained it. A bead off the focus by ±z and a QPD offset ±o fit alike (the image
+/// is even under (z, o) → (−z, −o)); both sides are tried.
+fn defocus_test(
+    optics: &Optics,
+    opts: &BeamFitOptions,
+    alpha: f64,
+    data: &Data,
+    (v_hat, cost_hat, th_hat): (f64, f64, Theta),
+    builds: &mut usize,
+) -> Result<Defocus> {
+    let n = data.xy.len() as f64;
+    let s2 = cost_hat / (3.0 * n - 13.0).max(1.0);
+    let mut best = Defocus {
+        z_um: opts.z_um,
+        dchi2: 0.0,
+    };
+    if !(s2 > 0.0) {
+        return Ok(best);
+    }
+    // both sides: the model's offsets are taken about +|o| (their sign is not measured at the
+    // focus), and (z, o) fits as (−z, −o), so a bead at −z with offsets +o shows only on
+    // one side
+    let sides: &[f64] = &[1.0, -1.0];
+    for &side in sides {
+        let (mut v, mut th) = (v_hat, th_hat);
+        let (mut last, mut rises) = (cost_hat, 0);
+        for dz in DEFOCUS_STEPS_UM {
+            let z = opts.z_um + side * dz;
+            if z.abs() > 3.0 {
+                break;
+            }
+            let mut at = |v: f64, th: Theta| -> Result<(f64, Theta)> {
+                let b = basis(optics, opts, alpha, v, z)?;
+                *builds += 3;
+                let (t, c) = fit_theta(&b, data, th)?;
+                Ok((c, t))
+            };
+            let h = 0.3 * v.max(0.3);
+            let vs = [(v - h).max(0.0), v, (v + h).min(V_MAX)];
+            let mut pts = Vec::with_capacity(4);
+            for &vv in &vs {
+                let (c, t) = at(vv, th)?;
+                pts.push((vv, c, t));
+            }
+            let k = (0..3).min_by(|&a, &b| pts[a].1.total_cmp(&pts[b].1)).unwrap_or(1);
+            if k != 1 {
+                // the minimum at an end: one step further that way (within [0, V_MAX])
+                let vv = (pts[k].0 + if k == 0 { -h } else { h }).clamp(0.0, V_MAX);
+                if vv != pts[k].0 {
+                    let (c, t) = at(vv, pts[k].2)?;
+                    pts.push((vv, c, t));
+                }
+            }
+            let (bv, bc, bt) = pts
+                .iter()
+                .copied()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((v, f64::INFINITY, th));
+            (v, th) = (bv, bt);
+            let gain = (cost_hat - bc) / s2;
+            if gain > best.dchi2 {
+                best = Defocus { z_um: z, dchi2: gain };
+            }
+            rises = if bc > last { rises + 1 } else { 0 };
+            last = bc;
+            if rises >= 2 {
+                break;
+            }
+        }
+    }
+    Ok(best)
 }

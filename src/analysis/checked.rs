@@ -1,4 +1,4 @@
-//! The filament analyses of a whole scan with the checks of their inputs (`data::clip`: the
+//! The filament analyses and the beam fit of a whole scan with the checks of their inputs (`data::clip`: the
 //! clipped and dark pixels among those they read), as the bindings, the protocols and the truth
 //! sweep run them: one function each, so that a Rust caller gets the same warnings and refusals
 //! as a script.
@@ -7,10 +7,12 @@
 //! `"remove_background: …"`), as the bindings say them.
 
 use super::background::{remove_point_background, BackgroundOptions, Remaining};
+use super::beam_fit::{fit_beam, BeamFit, BeamFitOptions, DEFOCUS_DCHI2, V_MAX};
 use super::fit::FitResult;
 use super::orientation::{measure_filament, AngleCurve, Channel, FilamentMeasurement};
 use super::template::Template;
 use super::MeasureOptions;
+use crate::optics::params::Optics;
 use crate::data::clip::InputCheck;
 use crate::data::{Scan, ScanStatus};
 
@@ -174,4 +176,41 @@ pub fn remaining_warning(rem: &[Remaining]) -> Option<String> {
         if rem.len() > 5 { "; …" } else { "" },
         if rem.len() == 1 { "it" } else { "them" }
     ))
+}
+
+/// Half the field the beam fit needs around the bead, µm (`analysis::beam_fit`: ≥ 1.2 µm).
+pub const BEAM_FIT_FIELD_HALF_UM: f64 = 0.6;
+
+/// `fit_beam` on a scan, inside its domain (docs/analysis.md, Domains): no clipped or dark
+/// pixel among the three channels it fits (every one: a refusal), the bead whole inside the
+/// 1.2 µm field it needs, v = 1/f0² not at the search's upper bound. Returns the fit and its
+/// warnings.
+pub fn fit_beam_scan(
+    optics: &Optics,
+    scan: &Scan,
+    opts: &BeamFitOptions,
+) -> Result<(BeamFit, Vec<String>), String> {
+    let who = "fit_beam";
+    let check = crate::data::clip::input_check(scan, &["sx", "sy", "sz"], None);
+    let mut warnings = check.gate(who)?;
+    let f = fit_beam(optics, &scan.sx, &scan.sy, &scan.sz, opts).map_err(|e| format!("{who}: {e}"))?;
+    warnings.extend(super::domain::margin_warning(
+        "the bead",
+        &scan.sx,
+        f.x0.value,
+        f.y0.value,
+        BEAM_FIT_FIELD_HALF_UM,
+    ));
+    if f.defocus.dchi2 > DEFOCUS_DCHI2 {
+        warnings.push(format!(
+            "the bead is not at the height the model puts it ({} µm): the scan fits better {:.2} µm from the focus (Δχ² = {:.1} > {DEFOCUS_DCHI2}), and a bead off the focus reads as a smaller pupil filling and a QPD offset; focus on the bead first (focus_search) or give its height (z)",
+            opts.z_um, f.defocus.z_um.abs(), f.defocus.dchi2
+        ));
+    }
+    if f.inv_f0_sq.value >= V_MAX * (1.0 - 1e-9) {
+        warnings.push(format!(
+            "the pupil filling is at the search's bound v = 1/f0² = {V_MAX} (a beam much narrower than the pupil): its value and σ do not hold; check the bead's size and index and the optics"
+        ));
+    }
+    Ok((f, warnings))
 }

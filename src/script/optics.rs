@@ -208,7 +208,7 @@ fn register_fit_beam(r: &mut Registrar) {
         .form("fit_beam(scan) -> map")
         .returns(
             "map",
-            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y, gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys), warnings: [string] (clipped or dark pixels, the bead near the scan's edge, v at the search's bound), status: \"ok\" when warnings is empty}",
+            "#{pupil_filling, inv_f0_sq, polarization_deg, qpd_rotation_deg, offset_x, offset_y (magnitudes: a scan at the focus does not measure an offset's sign, which enters at second order), offset_x_sq, offset_y_sq (their squares, whose σ holds near zero too), gain_x, gain_y, gain_z, gain_ratio, x0, y0 (each with its 1σ as <key>_sd; gain_z () with gain_z_note when the scan does not determine it: at the focus Sz carries no bead signal), background, residual_rms, noise ([sx, sy, sz]), chi2_red, corr_polarization_rotation, builds, seconds, optics: #{beam, pupil_filling} (for set_optics), misalignment: #{offset_x, offset_y, rotation_deg, gain_y} (the scene effect's keys), warnings: [string] (clipped or dark pixels, the bead near the scan's edge, the bead off the focus, v at the search's bound), status: \"ok\" when warnings is empty}",
         )
         .summary("fit the focused beam (pupil filling, polarisation axis) and the QPD (gains, rotation, offsets) to a reference-bead scan")
         .help("Least-squares fit of the aplanatic vector focus to one xy scan of a reference bead (default 110 nm polystyrene) at the focus, in the session's λ, n_medium and NA: v = 1/f0² (0 = uniformly filled pupil; pupil_filling = 1/√v, inf when v = 0 — then optics.pupil_filling is 1e6, uniform to 1e-12), the polarisation axis ψ from the stage x axis, the QPD rotation δ relative to the polarisation (correlated with ψ: only the focus's ellipticity separates them; corr_polarization_rotation says how much), QPD offsets in cone radii, channel gains (gain_ratio = gain_y/gain_x, the misalignment effect's gain_y) and offsets, and the bead position (µm). Uncertainties (*_sd) are 1σ from the covariance of all 13 parameters scaled by the residual variance, with each channel weighted by its noise (estimated from the image's second differences). Refuses scans that are not xy, have no bead (Sx gain < 10σ), or that the model does not explain (residual rms > 2× the noise: wrong bead size or index, out of focus). About 20 template-plane builds: ~5 s. Use the beam: set_optics(f.optics); then template_model, angle_curve, diameter_calib, lin_dens_calib and point_mass describe the fitted instrument. docs/physics.md §10.4.")
@@ -262,6 +262,8 @@ fn fit_map(f: &BeamFit) -> Map {
         ("qpd_rotation_deg", f.qpd_rotation_deg),
         ("offset_x", f.offset_x),
         ("offset_y", f.offset_y),
+        ("offset_x_sq", f.offset_x_sq),
+        ("offset_y_sq", f.offset_y_sq),
         ("gain_x", f.gain_x),
         ("gain_y", f.gain_y),
         ("gain_ratio", f.gain_ratio),

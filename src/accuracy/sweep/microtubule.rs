@@ -59,16 +59,20 @@ pub struct MicrotubuleCase {
 
 impl MicrotubuleCase {
     /// A filament 6–15 µm long, 17–25 nm thick (13 protofilaments' mass as a solid protein
-    /// cylinder is 16.7 nm; the simulator's filament is 25 nm), half of them within 10° of a QPD
-    /// axis (the removal's domain: Sec. 6 fits the objects in the channel the filament does
-    /// not show in, `MAX_FILAMENT_VISIBILITY`), half at any angle (its refusal), passing within
+    /// cylinder is 16.7 nm; the simulator's filament is 25 nm), three in four within 10° of a
+    /// QPD axis (the removal's domain: Sec. 6 fits the objects in the channel the filament does
+    /// not show in, `MAX_FILAMENT_VISIBILITY`), one in four at any angle (its refusal), passing within
     /// 1 µm of the field's centre, its midpoint anywhere along the line so that an end may lie
     /// inside the field; 0–8 aggregates of 30–120 nm (log-uniform) on the line or within
-    /// 0.4 µm of it, along the whole visible stretch (the uniform region and the ends).
+    /// 0.4 µm of it, along the whole visible stretch (the uniform region and the ends); the
+    /// paper's noise × 0–10 for half the scenes and × 0–4 for the others. The draw weights the
+    /// domain (three in four near an axis, half the noise draws below 4×) so that N = 2000 gives
+    /// ~200 answers inside it, where an even draw gave ~80 (a 2σ coverage then moves ±0.025
+    /// between seeds by chance).
     pub(super) fn draw(rng: &mut ChaCha8Rng) -> MicrotubuleCase {
         let len_um = rng.random_range(6.0..15.0);
         let d_nm = rng.random_range(17.0..25.0);
-        let angle_deg = if rng.random_range(0..2) == 0 {
+        let angle_deg = if rng.random_range(0..4) == 0 {
             rng.random_range(-90.0f64..90.0)
         } else {
             let axis = if rng.random_range(0..2) == 0 {
@@ -108,7 +112,13 @@ impl MicrotubuleCase {
                 ]
             })
             .collect();
-        let noise = rng.random_range(0.0..10.0);
+        // half the scenes over the whole range, half below 4× (where the filament is measured
+        // at all: no answer above 5× was in the domain at N = 2000 over three seeds)
+        let noise = if rng.random_range(0..2) == 0 {
+            rng.random_range(0.0..10.0)
+        } else {
+            rng.random_range(0.0..4.0)
+        };
         let pixel_nm = PIXELS_NM[rng.random_range(0..PIXELS_NM.len())];
         let seed = rng.random::<u64>();
         MicrotubuleCase {
@@ -289,7 +299,11 @@ pub(super) fn microtubule_case(
             value: d.mu_mda_um,
             truth,
             sigma: Some(d.mu_err_mda_um),
-            rel_limit: Some(0.05),
+            // μ is a linear density, neither a count nor a diameter: an outlier beyond 4σ
+            // (issue 41's rule). A 5 % limit, used until 2026-12-07, is 1.4–2.5σ where the
+            // domain allows σ(μ) up to half a protofilament (6.9 MDa/µm, 2–3.5 % of μ), and
+            // called 3 of 164 answers at 2.7–3.0σ outliers in the seed-2026 run
+            rel_limit: None,
             what: format!(
                 "μ {:.3} ± {:.3} MDa/µm vs truth {truth:.3} ({} maxima; {n_objects} objects removed, the median maximum × {}): {}",
                 d.mu_mda_um,
