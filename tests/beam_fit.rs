@@ -7,7 +7,8 @@ use crate::analysis_support;
 
 use analysis_support::*;
 use bfpscope::analysis::bead_model::BeadModelOptions;
-use bfpscope::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions};
+use bfpscope::analysis::beam_fit::{fit_beam, BeamFit, BeamFitOptions, DEFOCUS_DCHI2, V_MAX};
+use bfpscope::analysis::checked::fit_beam_scan;
 use bfpscope::analysis::orientation::{AngleCurve, AngleCurveOptions, MeasureOptions};
 use bfpscope::analysis::quantities::{self, DiameterCalib, LinDensCalib};
 use bfpscope::analysis::template::{RefBead, Template};
@@ -31,9 +32,14 @@ fn vector(f0: f64) -> Optics {
 /// A 110 nm PS bead near the centre of a 64 × 64 scan of 50 nm pixels at the paper's detector
 /// noise, 10 ms dwell; `mis` the QPD misalignment effect.
 fn bead_scan(optics: &Optics, mis: Option<Misalignment>, seed: u64) -> Scan {
+    bead_scan_at(optics, mis, 0.0, seed)
+}
+
+/// As [`bead_scan`], the bead `z` µm above the focal plane.
+fn bead_scan_at(optics: &Optics, mis: Option<Misalignment>, z: f64, seed: u64) -> Scan {
     let mut s = Scene::default();
     s.add_bead(SimBead {
-        pos: [1.613, 1.561, 0.0],
+        pos: [1.613, 1.561, z],
         d_nm: 110.0,
         n: 1.572,
     })
@@ -246,4 +252,110 @@ fn fit_refuses_what_is_not_a_reference_bead_scan() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("pixels ≤ 0.1 µm"), "{e}");
+}
+
+/// At the focus a QPD offset enters the bead's response at second order: the bead's
+/// interference term is odd across the QPD's dividing line there, so the line's first-order
+/// shift integrates to nothing, and ±o give the same scan. The fit reports the offset's
+/// magnitude and its square (measured), the same for both signs. (Before the model was
+/// relinearised about its answer, the column taken at +0.05 read o²/0.05: an offset of 0.14
+/// came out as 0.40, with either sign.)
+#[test]
+fn an_offsets_square_is_measured_at_the_focus_and_its_sign_is_not() {
+    let truth = vector(1.0);
+    let mis = |oy: f64| Misalignment {
+        offset_x: 0.0,
+        offset_y: oy,
+        rotation_deg: 2.0,
+        gain_y: 0.8,
+    };
+    let plus = fit(&truth, &bead_scan(&truth, Some(mis(0.12)), 21));
+    let minus = fit(&truth, &bead_scan(&truth, Some(mis(-0.12)), 21));
+    // the same scan up to the noise draw: the same fit
+    let (a, b) = (plus.offset_y_sq, minus.offset_y_sq);
+    assert!(
+        (a.value - b.value).abs() <= 1e-6 * a.value.abs().max(1e-6),
+        "o² {a:?} (+0.12) vs {b:?} (−0.12)"
+    );
+    for f in [&plus, &minus] {
+        let q = f.offset_y_sq;
+        assert!(
+            (q.value - 0.0144).abs() <= 3.0 * q.sigma,
+            "o² {q:?} for 0.0144"
+        );
+        assert!(q.sigma < 0.006, "σ(o²) {q:?}");
+        let o = f.offset_y;
+        assert!(
+            (o.value - 0.12).abs() <= 3.0 * o.sigma,
+            "|o| {o:?} for 0.12"
+        );
+        let ox = f.offset_x_sq;
+        assert!(ox.value.abs() <= 3.0 * ox.sigma, "o_x² {ox:?} for 0");
+        assert_eq!(f.misalignment.offset_y, o.value);
+    }
+}
+
+/// A bead 0.5 µm off the focus looks, to a fit that puts it at the focus, like a beam of
+/// smaller pupil filling and an offset QPD, with a residual at the noise (v = 1.06 ± 0.03 for
+/// 0.43 and offsets of 1.6 cone radii in the truth sweep, status "ok"). The defocus test
+/// refits the model at heights beside the focus and flags it.
+#[test]
+fn a_bead_off_the_focus_is_flagged_not_read_as_a_narrower_pupil() {
+    let truth = vector(1.0);
+    let mis = Misalignment {
+        offset_x: 0.0,
+        offset_y: 0.07,
+        rotation_deg: 2.0,
+        gain_y: 0.8,
+    };
+    let sc = bead_scan_at(&truth, Some(mis), 0.5, 31);
+    let session = Optics {
+        beam: Beam::Paraxial,
+        ..truth.clone()
+    };
+    let (f, warnings) = fit_beam_scan(&session, &sc, &BeamFitOptions::default()).unwrap();
+    eprintln!("{:?} {:?}: {warnings:?}", f.inv_f0_sq, f.defocus);
+    // what the flag is about: v far from the truth for its σ
+    assert!(
+        (f.inv_f0_sq.value - 1.0).abs() > 4.0 * f.inv_f0_sq.sigma,
+        "v {:?}: the defocus does not bias this scan",
+        f.inv_f0_sq
+    );
+    assert!(f.defocus.dchi2 > DEFOCUS_DCHI2, "{:?}", f.defocus);
+    assert!(
+        (f.defocus.z_um.abs() - 0.5).abs() < 0.15,
+        "the test's best height {:?} for 0.5 µm",
+        f.defocus
+    );
+    assert!(
+        warnings.iter().any(|w| w.contains("not at the height")),
+        "{warnings:?}"
+    );
+    // and a bead at the focus is not flagged
+    let (g, w0) = fit_beam_scan(
+        &session,
+        &bead_scan(&truth, Some(mis), 31),
+        &BeamFitOptions::default(),
+    )
+    .unwrap();
+    assert!(
+        w0.is_empty() && g.defocus.dchi2 <= DEFOCUS_DCHI2,
+        "{w0:?} {:?}",
+        g.defocus
+    );
+}
+
+/// A bead 1 µm off the focus drives the profile over v to its bound V_MAX; the profile's
+/// refinement then indexed past its end (a panic, found by the truth sweep's beam family).
+/// Now the answer stays at the bound and says so.
+#[test]
+fn a_profile_at_the_v_bound_is_flagged_not_a_panic() {
+    let truth = vector(1.0);
+    let sc = bead_scan_at(&truth, None, 1.0, 41);
+    let (f, warnings) = fit_beam_scan(&truth, &sc, &BeamFitOptions::default()).unwrap();
+    assert_eq!(f.inv_f0_sq.value, V_MAX, "{:?}", f.inv_f0_sq);
+    assert!(
+        warnings.iter().any(|w| w.contains("search's bound")),
+        "{warnings:?}"
+    );
 }

@@ -388,3 +388,70 @@ fn a_fixed_seed_microtubule_sweep_measures_the_linear_density_after_aggregate_re
         }
     }
 }
+
+/// Scenes of the beam family CI runs (each fit takes 1–5 s: a profile over the pupil filling,
+/// the model relinearised about its answer, and the defocus test; the benchmark,
+/// `bfpscope sweep --family beam`, runs 2000).
+const BEAM_N: usize = 24;
+
+/// The beam fit on random reference-bead scans (`bfpscope sweep --family beam`'s scenes:
+/// random pupil filling, QPD misalignment, focus offsets to ±1 µm, noise, pixels, clipping,
+/// empty fields): no answer without a warning is an outlier, and every scene is an answer, a
+/// flag or a refusal. (The family's first run found a panic at the profile's bound, a bead
+/// 0.3–0.5 µm off the focus read as a smaller pupil filling at 4–11σ, and offsets read as
+/// o²/0.05 with either sign: `tests/beam_fit.rs` has each.)
+#[test]
+fn a_fixed_seed_beam_sweep_fits_the_beam_without_unflagged_outliers() {
+    let n: usize = std::env::var("SWEEP_N")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(BEAM_N);
+    let seed = if std::env::var_os("SWEEP_RANDOM").is_some() {
+        rand::random::<u64>()
+    } else {
+        2026
+    };
+    println!("truth sweep: {n} beam scenes, seed {seed}");
+    let opts = SweepOptions {
+        n,
+        seed,
+        families: vec!["beam".into()],
+    };
+    let t = run(&opts, &|_, _| {}).expect("the sweep runs");
+    print!("{}", bfpscope::accuracy::sweep::table(&t));
+    let keys = [
+        "fit_beam.inv_f0_sq",
+        "fit_beam.qpd_rotation_deg",
+        "fit_beam.polarization_deg",
+        "fit_beam.gain_ratio",
+        "fit_beam.offset_x_sq",
+        "fit_beam.offset_y_sq",
+        "fit_beam.x0",
+        "fit_beam.y0",
+    ];
+    let scenes = t["fit_beam.inv_f0_sq"].cases + t.get("fit_beam.detection").map_or(0, |d| d.cases);
+    assert_eq!(scenes, n, "every scene is an answer, a flag or a refusal");
+    for k in keys.into_iter().chain(["fit_beam.detection"]) {
+        let Some(v) = t.get(k) else { continue };
+        assert_eq!(
+            v.unflagged_outliers, 0,
+            "{k}: unflagged outliers: {:#?}",
+            v.examples
+        );
+        if v.coverage_1s.is_finite() && v.in_domain >= 20 {
+            let m = v.in_domain as f64;
+            for (c, p) in [(v.coverage_1s, P1), (v.coverage_2s, P2)] {
+                let band = 3.0 * (p * (1.0 - p) / m).sqrt();
+                assert!(
+                    (c - p).abs() <= band,
+                    "{k}: coverage {c:.3} over {m} answers, a Gaussian's {p} ± {band:.3}"
+                );
+            }
+        }
+    }
+    // the scenes reach the fit's domain and its flags
+    assert!(
+        t["fit_beam.inv_f0_sq"].in_domain > 0,
+        "no answer in the domain"
+    );
+}

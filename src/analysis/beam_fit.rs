@@ -30,8 +30,12 @@
 //! along the polarisation (→ ψ); a QPD rotation δ mixes Sx into Sy and back. δ and ψ are
 //! separable only through the focus's ellipticity (for a round focus a rotation of the whole
 //! response and a rotation of the QPD are the same thing); their correlation is reported.
-//! z0 is not fitted: the scan is taken at the focus (the bead's z enters at second order).
-//! The fitted QPD angle relative to the stage is ψ + δ.
+//! The fitted QPD angle relative to the stage is ψ + δ. At the focus a QPD offset enters at
+//! second order (the bead's interference term is odd across the QPD's dividing line), so o² is
+//! measured and o's sign is not; the rotation and offset columns are differences about a
+//! misalignment `about` that the fit moves to its answer (relinearisation; docs/physics.md
+//! §10.4). z0 is not fitted but tested ([`defocus_test`]): a bead off the focus reads as a
+//! smaller pupil filling with a residual at the noise.
 //!
 //! **Uncertainty.** Weighted least squares with per-channel weights 1/σ_c², σ_c the channel's
 //! noise estimated from second differences of the image (robust, independent of the model);
@@ -284,6 +288,10 @@ struct Data {
     xy: Vec<(f64, f64)>,
     s: [Vec<f64>; 3],
     w: [f64; 3],
+    /// The Sz decision of the first model (aligned QPD, the model's height), kept for every
+    /// later one: a model linearised about an offset QPD, or at another height, can carry a
+    /// trace of Sz that would switch the Sz bead column on with a degenerate gain.
+    sz_ratio: Option<f64>,
 }
 
 /// Non-linear parameters θ = (x0, y0, ψ rad, δ deg).
@@ -367,7 +375,10 @@ fn ss(r: &[f64]) -> f64 {
 fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
     let steps = [1e-4, 1e-4, 1e-3, 0.02];
     let fail = || {
-        AnalysisError::Failed("the model could not be evaluated (singular linear system: no signal in a channel?)".into())
+        AnalysisError::Failed(
+            "the model could not be evaluated (singular linear system: no signal in a channel?)"
+                .into(),
+        )
     };
     let (mut r, _) = residuals(b, d, &th).ok_or_else(fail)?;
     let mut cost = ss(&r);
@@ -564,7 +575,16 @@ fn weighted_pixels(sx: &Image, sy: &Image, sz: &Image) -> Result<(Data, [f64; 3]
             reason: format!("{n} finite pixels: at least 200 are needed"),
         });
     }
-    Ok((Data { xy, s, w }, noise, range))
+    Ok((
+        Data {
+            xy,
+            s,
+            w,
+            sz_ratio: None,
+        },
+        noise,
+        range,
+    ))
 }
 
 /// The fit's cost profile over the pupil's v = 1/f0²: θ fitted at a coarse set of v, then
@@ -575,8 +595,7 @@ fn profile_over_v(
     optics: &Optics,
     opts: &BeamFitOptions,
     alpha: f64,
-    sx: &Image,
-    sy: &Image,
+    (sx, sy): (&Image, &Image),
     data: &Data,
     start: Option<(f64, Theta)>,
     builds: &mut usize,
@@ -590,7 +609,8 @@ fn profile_over_v(
                       bases: &mut Vec<(f64, Basis)>,
                       profile: &mut Vec<(f64, f64, Theta)>|
      -> Result<f64> {
-        let b = basis(optics, opts, alpha, v, opts.z_um)?;
+        let mut b = basis(optics, opts, alpha, v, opts.z_um)?;
+        b.sz_ratio = data.sz_ratio.unwrap_or(b.sz_ratio);
         *builds += 3;
         // warm start from the nearest evaluated v
         let start = profile
@@ -633,7 +653,7 @@ fn profile_over_v(
             if k > 0 {
                 (p[k].0 + 2.0 * (p[k].0 - p[k - 1].0)).min(V_MAX)
             } else {
-                (2.0 * p[k].0).max(0.5).min(V_MAX)
+                (2.0 * p[k].0).clamp(0.5, V_MAX)
             }
         } else if k == 0 {
             // minimum at the bound v = 0 (uniform pupil) or just above it
@@ -740,9 +760,7 @@ fn covariance(
     let dof = (3 * n - np) as f64;
     let s2 = ss(&r0) / dof;
     let cov = jtj.try_inverse().ok_or_else(|| {
-        AnalysisError::Failed(
-            "the parameters are degenerate on this scan (JᵀJ singular)".into(),
-        )
+        AnalysisError::Failed("the parameters are degenerate on this scan (JᵀJ singular)".into())
     })? * s2;
     Ok((cov, r0, coef, s2))
 }
@@ -823,13 +841,14 @@ pub fn fit_beam(
     let t_start = Instant::now();
     check_beam_inputs(optics, sx, sy, sz, opts)?;
     let alpha = alpha_um3(opts.d_nm, opts.n, optics.n_medium);
-    let (data, noise, range) = weighted_pixels(sx, sy, sz)?;
+    let (mut data, noise, range) = weighted_pixels(sx, sy, sz)?;
     let n = data.xy.len();
     let mut builds = 0usize;
     // the model linearised about the aligned QPD, then about each answer in turn: the rotation
     // and the offsets enter the response non-linearly (an offset at second order at the focus)
     let mut o = *opts;
     let mut st = stage(optics, &o, alpha, (sx, sy), &data, None, &mut builds)?;
+    data.sz_ratio = Some(st.b.sz_ratio);
     for _ in 0..MAX_RELINEARISE {
         let next = st.next_about(&o);
         let moved = (next.rotation_deg - o.about.rotation_deg).abs() > 0.05
@@ -842,7 +861,15 @@ pub fn fit_beam(
         // warm: v about the last answer, θ there with the rotation now in `about`
         let mut th = st.th_hat;
         th[3] = 0.0;
-        st = stage(optics, &o, alpha, (sx, sy), &data, Some((st.v_hat, th)), &mut builds)?;
+        st = stage(
+            optics,
+            &o,
+            alpha,
+            (sx, sy),
+            &data,
+            Some((st.v_hat, th)),
+            &mut builds,
+        )?;
     }
     let Stage {
         v_hat,
@@ -977,7 +1004,8 @@ impl Stage {
         let one = |ch: usize, ig: usize, ia: usize, about: f64| {
             let (g, a) = (coef[ch][0], coef[ch][1]);
             let c = a / g;
-            let var_c = c * c
+            let var_c = c
+                * c
                 * (cov[(ia, ia)] / (a * a).max(1e-300) + cov[(ig, ig)] / (g * g)
                     - 2.0 * cov[(ig, ia)] / (a * g).abs().max(1e-300) * (a * g).signum());
             let k = 2.0 * about + EPS_OFFSET;
@@ -1017,7 +1045,7 @@ fn stage(
     start: Option<(f64, Theta)>,
     builds: &mut usize,
 ) -> Result<Stage> {
-    let (mut bases, profile) = profile_over_v(optics, opts, alpha, sx, sy, data, start, builds)?;
+    let (mut bases, profile) = profile_over_v(optics, opts, alpha, (sx, sy), data, start, builds)?;
     let (v_hat, cost_hat, th_hat) = *profile
         .iter()
         .min_by(|a, b| a.1.total_cmp(&b.1))
@@ -1081,6 +1109,17 @@ fn defocus_test(
     // focus), and (z, o) fits as (−z, −o), so a bead at −z with offsets +o shows only on
     // one side
     let sides: &[f64] = &[1.0, -1.0];
+    // off the focus an offset enters at first order (∝ z·o): the offsets' columns are taken
+    // about the aligned QPD there (taken about the focus's |ô|, which a defocused scan makes
+    // large, the columns could not reach a small offset of either sign)
+    let opts = &BeamFitOptions {
+        about: Misalignment {
+            offset_x: 0.0,
+            offset_y: 0.0,
+            ..opts.about
+        },
+        ..*opts
+    };
     for &side in sides {
         let (mut v, mut th) = (v_hat, th_hat);
         let (mut last, mut rises) = (cost_hat, 0);
@@ -1090,7 +1129,8 @@ fn defocus_test(
                 break;
             }
             let mut at = |v: f64, th: Theta| -> Result<(f64, Theta)> {
-                let b = basis(optics, opts, alpha, v, z)?;
+                let mut b = basis(optics, opts, alpha, v, z)?;
+                b.sz_ratio = data.sz_ratio.unwrap_or(b.sz_ratio);
                 *builds += 3;
                 let (t, c) = fit_theta(&b, data, th)?;
                 Ok((c, t))
@@ -1102,7 +1142,9 @@ fn defocus_test(
                 let (c, t) = at(vv, th)?;
                 pts.push((vv, c, t));
             }
-            let k = (0..3).min_by(|&a, &b| pts[a].1.total_cmp(&pts[b].1)).unwrap_or(1);
+            let k = (0..3)
+                .min_by(|&a, &b| pts[a].1.total_cmp(&pts[b].1))
+                .unwrap_or(1);
             if k != 1 {
                 // the minimum at an end: one step further that way (within [0, V_MAX])
                 let vv = (pts[k].0 + if k == 0 { -h } else { h }).clamp(0.0, V_MAX);
@@ -1119,7 +1161,10 @@ fn defocus_test(
             (v, th) = (bv, bt);
             let gain = (cost_hat - bc) / s2;
             if gain > best.dchi2 {
-                best = Defocus { z_um: z, dchi2: gain };
+                best = Defocus {
+                    z_um: z,
+                    dchi2: gain,
+                };
             }
             rises = if bc > last { rises + 1 } else { 0 };
             last = bc;

@@ -12,9 +12,9 @@ use super::fit::FitResult;
 use super::orientation::{measure_filament, AngleCurve, Channel, FilamentMeasurement};
 use super::template::Template;
 use super::MeasureOptions;
-use crate::optics::params::Optics;
 use crate::data::clip::InputCheck;
 use crate::data::{Scan, ScanStatus};
+use crate::optics::params::Optics;
 
 /// `measure_filament` on a scan (Sec. 4.2 steps 4–5), with the clipped and dark pixels among
 /// those it reads added to its warnings (every one of them bad: a refusal).
@@ -193,7 +193,8 @@ pub fn fit_beam_scan(
     let who = "fit_beam";
     let check = crate::data::clip::input_check(scan, &["sx", "sy", "sz"], None);
     let mut warnings = check.gate(who)?;
-    let f = fit_beam(optics, &scan.sx, &scan.sy, &scan.sz, opts).map_err(|e| format!("{who}: {e}"))?;
+    let f =
+        fit_beam(optics, &scan.sx, &scan.sy, &scan.sz, opts).map_err(|e| format!("{who}: {e}"))?;
     warnings.extend(super::domain::margin_warning(
         "the bead",
         &scan.sx,

@@ -54,7 +54,11 @@ impl BeamCase {
     /// one scene in four clipped.
     pub(super) fn draw(rng: &mut ChaCha8Rng) -> BeamCase {
         let empty = rng.random_range(0..8) == 0;
-        let reach = if rng.random_range(0..4) == 0 { 1.3 } else { 0.55 };
+        let reach = if rng.random_range(0..4) == 0 {
+            1.3
+        } else {
+            0.55
+        };
         let x = rng.random_range(-reach..reach);
         let y = rng.random_range(-reach..reach);
         let z = match rng.random_range(0..4) {
@@ -152,13 +156,16 @@ const KEYS: [&str; 8] = [
 /// The key of the empty fields' estimator.
 const DETECTION: &str = "fit_beam.detection";
 
+/// The fit and its warnings, for `--replay`.
+pub(super) type BeamAnswer = (BeamFit, Vec<String>);
+
 /// The beam family: one scene fitted; each parameter against the scene's, an empty field
 /// against "no bead". Returns each estimator's outcome and the fit with its warnings (for
 /// `--replay`).
 pub(super) fn beam_case(
     case: &BeamCase,
     base: &Optics,
-) -> (Vec<(&'static str, Outcome)>, Option<(BeamFit, Vec<String>)>) {
+) -> (Vec<(&'static str, Outcome)>, Option<BeamAnswer>) {
     let optics = case.optics(base);
     let mut sc = Scene::default();
     if let Some([x, y, z, d]) = case.bead {
