@@ -1084,7 +1084,7 @@ fn stage(
 /// alone (at 3.9× the paper's noise such a scan fitted v = 1.06 ± 0.03 for 0.43, χ²/ν 0.94, and
 /// offsets of 1.6 cone radii for 0.07). The model is refitted at heights `DEFOCUS_STEPS_UM`
 /// beside the model's, v re-profiled at each (three builds about the last height's best v, a
-/// fourth where the minimum is at an end), until the best cost has risen twice in a row; the
+/// fourth where the minimum is at an end, one more at the parabola's vertex), until the best cost has risen twice in a row; the
 /// χ² gained, in units of the residual variance at the model's height, is returned with the
 /// height that gained it. A bead off the focus by ±z and a QPD offset ±o fit alike (the image
 /// is even under (z, o) → (−z, −o)); both sides are tried.
@@ -1135,9 +1135,9 @@ fn defocus_test(
                 let (t, c) = fit_theta(&b, data, th)?;
                 Ok((c, t))
             };
-            let h = 0.3 * v.max(0.3);
+            let h = 0.2 * v.max(0.3);
             let vs = [(v - h).max(0.0), v, (v + h).min(V_MAX)];
-            let mut pts = Vec::with_capacity(4);
+            let mut pts: Vec<(f64, f64, Theta)> = Vec::with_capacity(5);
             for &vv in &vs {
                 let (c, t) = at(vv, th)?;
                 pts.push((vv, c, t));
@@ -1147,10 +1147,29 @@ fn defocus_test(
                 .unwrap_or(1);
             if k != 1 {
                 // the minimum at an end: one step further that way (within [0, V_MAX])
-                let vv = (pts[k].0 + if k == 0 { -h } else { h }).clamp(0.0, V_MAX);
+                let vv = (pts[k].0 + if k == 0 { -2.0 * h } else { 2.0 * h }).clamp(0.0, V_MAX);
                 if vv != pts[k].0 {
                     let (c, t) = at(vv, pts[k].2)?;
                     pts.push((vv, c, t));
+                }
+            }
+            // then the vertex of the parabola through the best point and its neighbours in v
+            // (a height's best v moves by ~0.25 per 0.1 µm: the three points alone missed it,
+            // and the cost along the heights rose where v lagged)
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let k = (0..pts.len())
+                .min_by(|&a, &b| pts[a].1.total_cmp(&pts[b].1))
+                .unwrap_or(0);
+            if k > 0 && k + 1 < pts.len() {
+                let (a, b, c) = (pts[k - 1], pts[k], pts[k + 1]);
+                let den = (b.0 - a.0) * (b.1 - c.1) - (b.0 - c.0) * (b.1 - a.1);
+                let num = (b.0 - a.0).powi(2) * (b.1 - c.1) - (b.0 - c.0).powi(2) * (b.1 - a.1);
+                if den.abs() > 0.0 {
+                    let vv = (b.0 - 0.5 * num / den).clamp(a.0, c.0);
+                    if (vv - b.0).abs() > 1e-3 * b.0.max(0.05) {
+                        let (cst, t) = at(vv, b.2)?;
+                        pts.push((vv, cst, t));
+                    }
                 }
             }
             let (bv, bc, bt) = pts
