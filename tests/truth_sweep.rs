@@ -1,5 +1,5 @@
 //! The truth sweep at a fixed seed, as CI runs it: random scenes of every family (beads,
-//! fibrils, focus searches, and apart, fewer, microtubules among aggregates; `bfpscope sweep`'s
+//! fibrils, focus searches, and apart, fewer, microtubules among aggregates and beam fits; `bfpscope sweep`'s
 //! scene space, src/accuracy/sweep.rs) rendered by
 //! the simulator and measured by every estimator in the sweep. The error bars must cover the
 //! truth as often as a Gaussian's do, within the binomial scatter of the in-domain count, and
