@@ -9,11 +9,12 @@
 //! offset enters at second order and its sign is not measured) and Sy gain ratio, the bead's
 //! position; the beam is x-polarised (ψ = 0).
 
-use super::field::{clip_words, draw_clip, render_field};
+use super::field::{
+    bead_words, clip_words, draw_clip, empty_field_outcome, one_bead_scene, render_field,
+};
 use super::focus::Outcome;
 use crate::analysis::beam_fit::{BeamFit, BeamFitOptions};
 use crate::analysis::checked::fit_beam_scan;
-use crate::instrument::sim::scene::{Bead, Scene};
 use crate::optics::params::{Beam, Optics, REF_BEAD_N};
 use crate::optics::rayleigh::Misalignment;
 use rand::Rng;
@@ -97,11 +98,7 @@ impl BeamCase {
     pub(super) fn describe(&self) -> String {
         format!(
             "beam: {}, v = 1/f0² {:.4}, QPD {}, noise ×{:.4}, pixel {} nm on ±{HALF_UM} µm, seed {}{}",
-            match self.bead {
-                Some([x, y, z, d]) =>
-                    format!("bead d {d:.1} nm at ({x:.3}, {y:.3}) µm, {z:.3} µm from the focus"),
-                None => "empty field".into(),
-            },
+            bead_words(self.bead),
             self.inv_f0_sq,
             match self.misalignment {
                 Some([ox, oy, r, g]) => format!(
@@ -167,14 +164,7 @@ pub(super) fn beam_case(
     base: &Optics,
 ) -> (Vec<(&'static str, Outcome)>, Option<BeamAnswer>) {
     let optics = case.optics(base);
-    let mut sc = Scene::default();
-    if let Some([x, y, z, d]) = case.bead {
-        let _ = sc.add_bead(Bead {
-            pos: [x, y, z],
-            d_nm: d,
-            n: REF_BEAD_N,
-        });
-    }
+    let mut sc = one_bead_scene(case.bead);
     sc.effects.misalignment = case.misalignment.map(|_| case.mis());
     let keys: &[&'static str] = if case.bead.is_some() {
         &KEYS
@@ -208,21 +198,8 @@ pub(super) fn beam_case(
         Err(e) => vec![e.clone()],
     };
     let Some(bead) = case.bead else {
-        let o = match (&r, why.is_empty()) {
-            (Ok((f, _)), true) => Outcome::Answer {
-                value: 1.0,
-                truth: 0.0,
-                sigma: None,
-                rel_limit: Some(0.05),
-                what: format!(
-                    "a bead fitted at ({:.3}, {:.3}) µm in an empty field: {}",
-                    f.x0.value,
-                    f.y0.value,
-                    case.describe()
-                ),
-            },
-            _ => Outcome::Flagged(why),
-        };
+        let found = r.as_ref().ok().map(|(f, _)| (f.x0.value, f.y0.value));
+        let o = empty_field_outcome(found, why, &case.describe());
         return (vec![(DETECTION, o)], r.ok());
     };
     let f = match &r {

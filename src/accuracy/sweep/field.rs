@@ -2,11 +2,13 @@
 //! finite range for one scene in four, the square field rendered by the simulator. Shared by the
 //! families of the sweep (beads, fibrils, microtubules, max_sens).
 
+use super::focus::Outcome;
 use crate::instrument::sim::scene::{
-    DetectorNoise, DetectorRange, Scene, PAPER_DETECTOR_SIGMA_SAMPLE, PAPER_SAMPLES_PER_PIXEL,
+    Bead, DetectorNoise, DetectorRange, Scene, PAPER_DETECTOR_SIGMA_SAMPLE, PAPER_SAMPLES_PER_PIXEL,
 };
 use crate::instrument::sim::{render_xy, Renderer};
 use crate::optics::params::Optics;
+use crate::optics::params::REF_BEAD_N;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -55,4 +57,47 @@ pub(super) fn render_field(
 pub(super) fn clip_words(clip: Option<f64>) -> String {
     clip.map(|r| format!(", input range ±{r:.2e}"))
         .unwrap_or_default()
+}
+
+/// A scene holding one polystyrene bead `[x µm, y µm, z µm, d nm]` (z: its height above the
+/// focal plane), or nothing (an empty field).
+pub(super) fn one_bead_scene(bead: Option<[f64; 4]>) -> Scene {
+    let mut sc = Scene::default();
+    if let Some([x, y, z, d]) = bead {
+        let _ = sc.add_bead(Bead {
+            pos: [x, y, z],
+            d_nm: d,
+            n: REF_BEAD_N,
+        });
+    }
+    sc
+}
+
+/// The bead `[x, y, z, d]` in words, or "empty field".
+pub(super) fn bead_words(bead: Option<[f64; 4]>) -> String {
+    match bead {
+        Some([x, y, z, d]) => {
+            format!("bead d {d:.1} nm at ({x:.3}, {y:.3}) µm, {z:.3} µm from the focus")
+        }
+        None => "empty field".into(),
+    }
+}
+
+/// An empty field's outcome: an answer without a warning is an object found where there is
+/// none (an outlier by any measure), else the flags or the refusal `why`.
+pub(super) fn empty_field_outcome(
+    found: Option<(f64, f64)>,
+    why: Vec<String>,
+    what: &str,
+) -> Outcome {
+    match found {
+        Some((x, y)) if why.is_empty() => Outcome::Answer {
+            value: 1.0,
+            truth: 0.0,
+            sigma: None,
+            rel_limit: Some(0.05),
+            what: format!("an object found at ({x:.3}, {y:.3}) µm in an empty field: {what}"),
+        },
+        _ => Outcome::Flagged(why),
+    }
 }

@@ -13,7 +13,9 @@
 //! built at that offset, read by [`Template::pipeline_max_sens`](crate::analysis::template::Template::pipeline_max_sens) (averaged over sub-pixel
 //! positions), tabulated every [`Z_NODE_UM`] and interpolated.
 
-use super::field::{clip_words, draw_clip, render_field};
+use super::field::{
+    bead_words, clip_words, draw_clip, empty_field_outcome, one_bead_scene, render_field,
+};
 use super::focus::Outcome;
 use crate::analysis::peaks::PeakOptions;
 use crate::analysis::sensitivity::{sensitivity, Axis, Stencil};
@@ -77,11 +79,7 @@ impl MaxSensCase {
     pub(super) fn describe(&self) -> String {
         format!(
             "max_sens: {}, noise ×{:.4}, pixel {} nm on ±{HALF_UM} µm, seed {}{}",
-            match self.bead {
-                Some([x, y, z, d]) =>
-                    format!("bead d {d:.1} nm at ({x:.3}, {y:.3}) µm, {z:.3} µm from the focus"),
-                None => "empty field".into(),
-            },
+            bead_words(self.bead),
             self.noise,
             self.pixel_nm,
             self.seed,
@@ -237,14 +235,7 @@ pub(super) fn maxsens_case(
     readings: &Readings,
 ) -> (Vec<(&'static str, Outcome)>, Option<MaxSensAnswer>) {
     let keys = ["max_sens.value", "max_sens.detection"];
-    let mut sc = Scene::default();
-    if let Some([x, y, z, d]) = case.bead {
-        let _ = sc.add_bead(Bead {
-            pos: [x, y, z],
-            d_nm: d,
-            n: REF_BEAD_N,
-        });
-    }
+    let sc = one_bead_scene(case.bead);
     let key = if case.bead.is_some() {
         keys[0]
     } else {
@@ -270,21 +261,8 @@ pub(super) fn maxsens_case(
         Err(e) => vec![e.to_string()],
     };
     let Some(bead) = case.bead else {
-        let o = match (&r, why.is_empty()) {
-            (Ok((p, _)), true) => Outcome::Answer {
-                value: 1.0,
-                truth: 0.0,
-                sigma: None,
-                rel_limit: Some(0.05),
-                what: format!(
-                    "an object found at ({:.3}, {:.3}) µm in an empty field: {}",
-                    p.x,
-                    p.y,
-                    case.describe()
-                ),
-            },
-            _ => Outcome::Flagged(why),
-        };
+        let found = r.as_ref().ok().map(|(p, _)| (p.x, p.y));
+        let o = empty_field_outcome(found, why, &case.describe());
         return (vec![(key, o)], r.ok());
     };
     let p = match &r {
