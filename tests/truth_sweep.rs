@@ -398,7 +398,7 @@ const BEAM_N: usize = 24;
 /// random pupil filling, QPD misalignment, focus offsets to ±1 µm, noise, pixels, clipping,
 /// empty fields): no answer without a warning is an outlier, and every scene is an answer, a
 /// flag or a refusal. (The family's first run found a panic at the profile's bound, a bead
-/// 0.3–0.5 µm off the focus read as a smaller pupil filling at 4–11σ, and offsets read as
+/// 0.34–0.5 µm off the focus read as a smaller pupil filling at 12–25σ, and offsets read as
 /// o²/0.05 with either sign: `tests/beam_fit.rs` has each.)
 #[test]
 fn a_fixed_seed_beam_sweep_fits_the_beam_without_unflagged_outliers() {
