@@ -62,6 +62,9 @@ const DIMENSIONLESS: &[&str] = &[
     "gain_ratio",
     "offset_x",
     "offset_y",
+    // their squares (cone radii²: at the focus an offset's sign is not measured)
+    "offset_x_sq",
+    "offset_y_sq",
     "inv_f0_sq",
     "chi2_red",
     "corr_polarization_rotation",
