@@ -12,23 +12,50 @@
 //! Developers: `SWEEP_RANDOM=1` draws a fresh seed (printed), `SWEEP_N=500` more scenes:
 //! `SWEEP_RANDOM=1 SWEEP_N=500 cargo test --release --test physics truth_sweep::`.
 
-use bfpscope::accuracy::sweep::{run, SweepOptions};
+use bfpscope::accuracy::sweep::{run, SweepOptions, BEAM_DETECTION, BEAM_KEYS};
 
 /// The 1σ and 2σ coverage of a Gaussian error bar.
 const P1: f64 = 0.6827;
 const P2: f64 = 0.9545;
 
-#[test]
-fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_answers_without_outliers() {
-    let n: usize = std::env::var("SWEEP_N")
+/// The scenes a family runs (`SWEEP_N`, else `default`) and the seed (`SWEEP_RANDOM`: a fresh
+/// one, else 2026).
+fn n_and_seed(default: usize) -> (usize, u64) {
+    let n = std::env::var("SWEEP_N")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(100);
+        .unwrap_or(default);
     let seed = if std::env::var_os("SWEEP_RANDOM").is_some() {
         rand::random::<u64>()
     } else {
         2026
     };
+    (n, seed)
+}
+
+/// No unflagged outlier, and, from 20 answers in the domain, the 1σ and 2σ coverage within 3σ
+/// of the binomial scatter about a Gaussian's.
+fn assert_calibrated(k: &str, v: &bfpscope::accuracy::sweep::Tally) {
+    assert_eq!(
+        v.unflagged_outliers, 0,
+        "{k}: answers without a warning beyond 4σ (or 5 %): {:#?}",
+        v.examples
+    );
+    if v.coverage_1s.is_finite() && v.in_domain >= 20 {
+        let m = v.in_domain as f64;
+        for (c, p) in [(v.coverage_1s, P1), (v.coverage_2s, P2)] {
+            let band = 3.0 * (p * (1.0 - p) / m).sqrt();
+            assert!(
+                (c - p).abs() <= band,
+                "{k}: coverage {c:.3} over {m} answers, a Gaussian's {p} ± {band:.3}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_answers_without_outliers() {
+    let (n, seed) = n_and_seed(100);
     println!("truth sweep: {n} scenes a family, seed {seed}");
     let t = run(
         &SweepOptions {
@@ -59,22 +86,7 @@ fn a_fixed_seed_sweep_gives_error_bars_that_cover_the_truth_and_answers_without_
             .get(k)
             .unwrap_or_else(|| panic!("{k} is not in the sweep"));
         assert!(v.cases > 0, "{k}: no case");
-        assert_eq!(
-            v.unflagged_outliers, 0,
-            "{k}: answers without a warning beyond 4σ (or 5 %): {:#?}",
-            v.examples
-        );
-        if v.coverage_1s.is_finite() && v.in_domain >= 20 {
-            // 3σ of the binomial scatter of a coverage over the in-domain answers
-            let m = v.in_domain as f64;
-            for (c, p) in [(v.coverage_1s, P1), (v.coverage_2s, P2)] {
-                let band = 3.0 * (p * (1.0 - p) / m).sqrt();
-                assert!(
-                    (c - p).abs() <= band,
-                    "{k}: coverage {c:.3} over {m} answers, a Gaussian's {p} ± {band:.3}"
-                );
-            }
-        }
+        assert_calibrated(k, v);
     }
 }
 
@@ -347,15 +359,7 @@ const MICROTUBULE_N: usize = 40;
 
 #[test]
 fn a_fixed_seed_microtubule_sweep_measures_the_linear_density_after_aggregate_removal() {
-    let n: usize = std::env::var("SWEEP_N")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(MICROTUBULE_N);
-    let seed = if std::env::var_os("SWEEP_RANDOM").is_some() {
-        rand::random::<u64>()
-    } else {
-        2026
-    };
+    let (n, seed) = n_and_seed(MICROTUBULE_N);
     println!("truth sweep: {n} microtubule scenes, seed {seed}");
     let opts = SweepOptions {
         n,
@@ -372,21 +376,7 @@ fn a_fixed_seed_microtubule_sweep_measures_the_linear_density_after_aggregate_re
     );
     let v = &t["microtubule.mu"];
     assert_eq!(v.cases, n, "every scene is an answer, a flag or a refusal");
-    assert_eq!(
-        v.unflagged_outliers, 0,
-        "microtubule.mu: unflagged outliers: {:#?}",
-        v.examples
-    );
-    if v.in_domain >= 20 {
-        let m = v.in_domain as f64;
-        for (c, p) in [(v.coverage_1s, P1), (v.coverage_2s, P2)] {
-            let band = 3.0 * (p * (1.0 - p) / m).sqrt();
-            assert!(
-                (c - p).abs() <= band,
-                "microtubule.mu: coverage {c:.3} over {m} answers, a Gaussian's {p} ± {band:.3}"
-            );
-        }
-    }
+    assert_calibrated("microtubule.mu", v);
 }
 
 /// Scenes of the beam family CI runs (each fit takes 1–5 s: a profile over the pupil filling,
@@ -402,15 +392,7 @@ const BEAM_N: usize = 24;
 /// o²/0.05 with either sign: `tests/beam_fit.rs` has each.)
 #[test]
 fn a_fixed_seed_beam_sweep_fits_the_beam_without_unflagged_outliers() {
-    let n: usize = std::env::var("SWEEP_N")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(BEAM_N);
-    let seed = if std::env::var_os("SWEEP_RANDOM").is_some() {
-        rand::random::<u64>()
-    } else {
-        2026
-    };
+    let (n, seed) = n_and_seed(BEAM_N);
     println!("truth sweep: {n} beam scenes, seed {seed}");
     let opts = SweepOptions {
         n,
@@ -419,39 +401,13 @@ fn a_fixed_seed_beam_sweep_fits_the_beam_without_unflagged_outliers() {
     };
     let t = run(&opts, &|_, _| {}).expect("the sweep runs");
     print!("{}", bfpscope::accuracy::sweep::table(&t));
-    let keys = [
-        "fit_beam.inv_f0_sq",
-        "fit_beam.qpd_rotation_deg",
-        "fit_beam.polarization_deg",
-        "fit_beam.gain_ratio",
-        "fit_beam.offset_x_sq",
-        "fit_beam.offset_y_sq",
-        "fit_beam.x0",
-        "fit_beam.y0",
-    ];
-    let scenes = t["fit_beam.inv_f0_sq"].cases + t.get("fit_beam.detection").map_or(0, |d| d.cases);
+    let scenes = t[BEAM_KEYS[0]].cases + t.get(BEAM_DETECTION).map_or(0, |d| d.cases);
     assert_eq!(scenes, n, "every scene is an answer, a flag or a refusal");
-    for k in keys.into_iter().chain(["fit_beam.detection"]) {
-        let Some(v) = t.get(k) else { continue };
-        assert_eq!(
-            v.unflagged_outliers, 0,
-            "{k}: unflagged outliers: {:#?}",
-            v.examples
-        );
-        if v.coverage_1s.is_finite() && v.in_domain >= 20 {
-            let m = v.in_domain as f64;
-            for (c, p) in [(v.coverage_1s, P1), (v.coverage_2s, P2)] {
-                let band = 3.0 * (p * (1.0 - p) / m).sqrt();
-                assert!(
-                    (c - p).abs() <= band,
-                    "{k}: coverage {c:.3} over {m} answers, a Gaussian's {p} ± {band:.3}"
-                );
-            }
+    for k in BEAM_KEYS.into_iter().chain([BEAM_DETECTION]) {
+        if let Some(v) = t.get(k) {
+            assert_calibrated(k, v);
         }
     }
     // the scenes reach the fit's domain and its flags
-    assert!(
-        t["fit_beam.inv_f0_sq"].in_domain > 0,
-        "no answer in the domain"
-    );
+    assert!(t[BEAM_KEYS[0]].in_domain > 0, "no answer in the domain");
 }

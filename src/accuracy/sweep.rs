@@ -51,7 +51,7 @@ mod field;
 mod focus;
 mod maxsens;
 mod microtubule;
-pub use beam::BeamCase;
+pub use beam::{BeamCase, DETECTION as BEAM_DETECTION, KEYS as BEAM_KEYS};
 use field::{clip_words, draw_clip, render_field};
 pub use focus::FocusCase;
 pub use maxsens::MaxSensCase;

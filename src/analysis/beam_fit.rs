@@ -250,7 +250,15 @@ fn optics_for_v(base: &Optics, v: f64) -> Optics {
     }
 }
 
-fn basis(base: &Optics, opts: &BeamFitOptions, alpha: f64, v: f64, z_um: f64) -> Result<Basis> {
+/// The model planes for one v at height `z_um`, about `opts.about`; `sz`: the Sz decision to
+/// keep (`Data::sz_ratio`), None: this plane's own.
+fn basis(
+    base: &Optics,
+    opts: &BeamFitOptions,
+    alpha: f64,
+    (v, z_um): (f64, f64),
+    sz: Option<f64>,
+) -> Result<Basis> {
     let o = ValidOptics::new(optics_for_v(base, v))?;
     let grid = opts.grid;
     let zero = Misalignment {
@@ -259,7 +267,7 @@ fn basis(base: &Optics, opts: &BeamFitOptions, alpha: f64, v: f64, z_um: f64) ->
     };
     let g0 = plane(&o, grid, zero, alpha, z_um)?;
     let peak = |c: usize| g0.data.iter().fold(0.0f64, |m, v| m.max(v[c].abs()));
-    let sz_ratio = peak(2) / peak(0).max(f64::MIN_POSITIVE);
+    let sz_ratio = sz.unwrap_or_else(|| peak(2) / peak(0).max(f64::MIN_POSITIVE));
     Ok(Basis {
         sz_ratio,
         g0,
@@ -613,8 +621,7 @@ fn profile_over_v(
                       bases: &mut Vec<(f64, Basis)>,
                       profile: &mut Vec<(f64, f64, Theta)>|
      -> Result<f64> {
-        let mut b = basis(optics, opts, alpha, v, opts.z_um)?;
-        b.sz_ratio = data.sz_ratio.unwrap_or(b.sz_ratio);
+        let b = basis(optics, opts, alpha, (v, opts.z_um), data.sz_ratio)?;
         *builds += 3;
         // warm start from the nearest evaluated v
         let start = profile
@@ -875,17 +882,8 @@ pub fn fit_beam(
             &mut builds,
         )?;
     }
-    let Stage {
-        v_hat,
-        cost_hat,
-        th_hat,
-        b,
-        cov,
-        r0,
-        coef,
-        s2,
-    } = &st;
-    let (v_hat, cost_hat, th_hat, s2) = (*v_hat, *cost_hat, *th_hat, *s2);
+    let (v_hat, cost_hat, th_hat, s2) = (st.v_hat, st.cost_hat, st.th_hat, st.s2);
+    let (b, cov, r0, coef) = (&st.b, &st.cov, &st.r0, &st.coef);
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let val = |value: f64, sigma: f64| Value { value, sigma };
     // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by,
@@ -1071,9 +1069,14 @@ fn stage(
     } else {
         v_hat - hv
     };
-    let mut b2 = basis(optics, opts, alpha, v2, opts.z_um)?;
     // the same columns as at the optimum (the Sz bead column in or out)
-    b2.sz_ratio = bases[bi].1.sz_ratio;
+    let b2 = basis(
+        optics,
+        opts,
+        alpha,
+        (v2, opts.z_um),
+        Some(bases[bi].1.sz_ratio),
+    )?;
     *builds += 3;
     let b = bases.swap_remove(bi).1;
     let (cov, r0, coef, s2) = covariance(&b, &b2, v2 - v_hat, data, &th_hat)?;
@@ -1139,8 +1142,7 @@ fn defocus_test(
                 break;
             }
             let mut at = |v: f64, th: Theta| -> Result<(f64, Theta)> {
-                let mut b = basis(optics, opts, alpha, v, z)?;
-                b.sz_ratio = data.sz_ratio.unwrap_or(b.sz_ratio);
+                let b = basis(optics, opts, alpha, (v, z), data.sz_ratio)?;
                 *builds += 3;
                 let (t, c) = fit_theta(&b, data, th)?;
                 Ok((c, t))

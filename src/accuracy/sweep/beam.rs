@@ -139,7 +139,7 @@ impl BeamCase {
 }
 
 /// The estimators of the family, in the order [`beam_case`] reports them.
-const KEYS: [&str; 8] = [
+pub const KEYS: [&str; 8] = [
     "fit_beam.inv_f0_sq",
     "fit_beam.qpd_rotation_deg",
     "fit_beam.polarization_deg",
@@ -151,7 +151,7 @@ const KEYS: [&str; 8] = [
 ];
 
 /// The key of the empty fields' estimator.
-const DETECTION: &str = "fit_beam.detection";
+pub const DETECTION: &str = "fit_beam.detection";
 
 /// The fit and its warnings, for `--replay`.
 pub(super) type BeamAnswer = (BeamFit, Vec<String>);
