@@ -23,8 +23,8 @@
 //!
 //! **Parameters and identifiability.** Linear (solved exactly for given non-linear ones,
 //! variable projection): g_x, g_x·o_x, b_x, g_y, g_y·o_y, b_y, g_z, b_z. Non-linear, cheap
-//! (template interpolation only): x0, y0, ψ, δ. Non-linear, expensive (three template-plane
-//! builds per value): v = 1/f0², so the uniformly filled pupil is v = 0 (the model is analytic
+//! (template interpolation only): x0, y0, ψ, δ and ζ, the bead's height off the model's squared
+//! (÷ `EPS_Z_UM`²). Non-linear, expensive (five template-plane builds per value): v = 1/f0², so the uniformly filled pupil is v = 0 (the model is analytic
 //! in v; v < 0, a pupil brighter at its rim, is not physical and is the search's lower bound).
 //! One xy scan at the focus sees the focal width (→ v) and the elongation of the vector focus
 //! along the polarisation (→ ψ); a QPD rotation δ mixes Sx into Sy and back. δ and ψ are
@@ -34,14 +34,17 @@
 //! second order (the bead's interference term is odd across the QPD's dividing line), so o² is
 //! measured and o's sign is not; the rotation and offset columns are differences about a
 //! misalignment `about` that the fit moves to its answer (relinearisation; docs/physics.md
-//! §10.4). z0 is not fitted but tested ([`defocus_test`]): a bead off the focus reads as a
-//! smaller pupil filling with a residual at the noise.
+//! §10.4). A height off the focus enters at second order too, and trades with v (a bead 46 nm
+//! off read v 4.3σ high with the height held at zero): its square is fitted, through the bead
+//! `EPS_Z_UM` above and below, averaged; beyond [`DEFOCUS_LIN_UM`] the answer is flagged, and
+//! [`defocus_test`] refits at heights out to 0.9 µm (a bead far off the focus reads as a smaller
+//! pupil filling with a residual at the noise).
 //!
 //! **Uncertainty.** Weighted least squares with per-channel weights 1/σ_c², σ_c the channel's
 //! noise estimated from second differences of the image (robust, independent of the model);
-//! the covariance is s²(JᵀJ)⁻¹ with J the Jacobian of all 13 parameters at the optimum (v by
+//! the covariance is s²(JᵀJ)⁻¹ with J the Jacobian of all 14 parameters at the optimum (v by
 //! a forward difference over two template builds) and s² the weighted residual variance
-//! (residual sum / (N − 13)). The answer is refused when it would not mean anything: no bead
+//! (residual sum / (N − 14)). The answer is refused when it would not mean anything: no bead
 //! (the gain g_x below 10 σ), or a residual rms above twice the noise (a scan that is not this
 //! bead in this beam: wrong size, wrong kind, out of focus).
 //!
@@ -52,7 +55,7 @@
 //! paper's ref. PralleEL99; the paper itself uses only Sx and Sy). The model plane's Sz at
 //! z = 0 is rounding noise (≲ 1e-12 of its Sx), and a free g_z fitted to it came out at
 //! ~7e12 ± 9e12: not a gain, a degenerate parameter. So when the model's Sz is below
-//! [`SZ_NIL`] × its Sx the Sz bead column is left out (only the offset b_z is fitted, 12
+//! [`SZ_NIL`] × its Sx the Sz bead column is left out (only the offset b_z is fitted, 13
 //! parameters) and `gain_z` is `None`, with the reason; when it is present, g_z is reported
 //! only when it stands [`GAIN_Z_MIN_SIGMA`] σ clear of zero.
 
@@ -149,6 +152,12 @@ pub struct BeamFit {
     pub offset_y: Value,
     pub offset_x_sq: Value,
     pub offset_y_sq: Value,
+    /// The bead's height off the model's (`BeamFitOptions::z_um`), squared, µm²: fitted with
+    /// the rest, as the curvature of the response in the height (at the focus a height enters
+    /// at second order and its sign is not measured). Held free, it widens σ(v), with which it
+    /// trades (a bead 46 nm off the focus read v 4.3σ high with the height held at zero).
+    /// Linear in the square to `EPS_Z_UM`; beyond, [`BeamFit::defocus`] tests other heights.
+    pub defocus_sq: Value,
     pub gain_x: Value,
     pub gain_y: Value,
     /// The Sz gain, when the scan determines it; `None` for a bead at the focus, where Sz
@@ -198,8 +207,17 @@ pub const DEFOCUS_DCHI2: f64 = 9.0;
 /// cost does.
 const DEFOCUS_FULL_UM: f64 = 0.6;
 
-/// The heights beside the model's that [`defocus_test`] tries, µm.
-const DEFOCUS_STEPS_UM: [f64; 8] = [0.04, 0.08, 0.15, 0.25, 0.35, 0.5, 0.7, 0.9];
+/// The heights beside the model's that [`defocus_test`] tries, µm: from
+/// [`DEFOCUS_LIN_UM`] out (nearer, the fitted height² says it).
+const DEFOCUS_STEPS_UM: [f64; 5] = [0.25, 0.35, 0.5, 0.7, 0.9];
+
+/// The largest height of the bead off the model's, µm, at which the fitted height²
+/// (`BeamFit::defocus_sq`, linear in the square with its curvature plane `EPS_Z_UM` = 0.1 µm
+/// away) holds the other parameters (above it, a warning). In the truth sweep (seed 2026) beads
+/// within 0.1 µm and one 0.29 µm off read every parameter within 2.4σ; one 0.5 µm off read the
+/// gain ratio 5σ and o_x² 4.4σ off, and its height² 0.204 ± 0.003 for 0.25; beads 0.87–0.93 µm
+/// off read v 9–13σ off.
+pub const DEFOCUS_LIN_UM: f64 = 0.25;
 
 /// The three model planes for one v: ideal QPD, rotated QPD, offset QPD (all through the
 /// misaligned-QPD quadrature so that quadrature errors cancel in the differences).
@@ -207,6 +225,9 @@ struct Basis {
     g0: Arc<Grid2>,
     grot: Arc<Grid2>,
     goff: Arc<Grid2>,
+    /// The bead `EPS_Z_UM` above and below the model's height, averaged: the curvature of the
+    /// response in the height (its first-order part, ∝ height × offset, cancels).
+    gz: Arc<Grid2>,
     /// max |Sz| / max |Sx| of the ideal plane: below [`SZ_NIL`] the Sz bead column is left out.
     sz_ratio: f64,
 }
@@ -268,8 +289,17 @@ fn basis(
     let g0 = plane(&o, grid, zero, alpha, z_um)?;
     let peak = |c: usize| g0.data.iter().fold(0.0f64, |m, v| m.max(v[c].abs()));
     let sz_ratio = sz.unwrap_or_else(|| peak(2) / peak(0).max(f64::MIN_POSITIVE));
+    let up = plane(&o, grid, zero, alpha, z_um + EPS_Z_UM)?;
+    let down = plane(&o, grid, zero, alpha, z_um - EPS_Z_UM)?;
+    let mut gz = (*up).clone();
+    for (a, b) in gz.data.iter_mut().zip(&down.data) {
+        for c in 0..3 {
+            a[c] = 0.5 * (a[c] + b[c]);
+        }
+    }
     Ok(Basis {
         sz_ratio,
+        gz: Arc::new(gz),
         g0,
         grot: plane(
             &o,
@@ -306,8 +336,29 @@ struct Data {
     sz_ratio: Option<f64>,
 }
 
-/// Non-linear parameters θ = (x0, y0, ψ rad, δ deg).
-type Theta = [f64; 4];
+/// Non-linear parameters θ = (x0, y0, ψ rad, δ deg, ζ), ζ = (z − z_model)²/`EPS_Z_UM`²: the
+/// bead's height off the model's, squared (at the focus a height enters at second order, as an
+/// offset does; the image is even in it for an aligned QPD).
+type Theta = [f64; NTH];
+
+/// How many non-linear parameters θ holds.
+const NTH: usize = 5;
+
+/// Finite-difference steps of θ (µm, µm, rad, deg, ζ).
+const TH_STEPS: Theta = [1e-4, 1e-4, 1e-3, 0.02, 0.01];
+
+/// The height step of the curvature plane (`Basis::gz`), µm: ζ = 1 is a bead this far off the
+/// model's height.
+const EPS_Z_UM: f64 = 0.1;
+
+/// Indices of the covariance's parameters: θ, then v, then the linear coefficients per channel
+/// (gain, offset, background; Sz: gain and background, or background alone).
+const I_V: usize = NTH;
+const I_GX: usize = NTH + 1;
+const I_AX: usize = NTH + 2;
+const I_GY: usize = NTH + 4;
+const I_AY: usize = NTH + 5;
+const I_GZ: usize = NTH + 7;
 
 /// Columns of each channel's linear model at θ (per pixel).
 fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
@@ -327,13 +378,14 @@ fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
         let t0 = b.g0.eval(u, v);
         let tr = b.grot.eval(u, v);
         let to = b.goff.eval(u, v);
-        let f = th[3] / EPS_ROT_DEG;
-        cx[0][i] = t0[0] + f * (tr[0] - t0[0]);
+        let tz = b.gz.eval(u, v);
+        let (f, zeta) = (th[3] / EPS_ROT_DEG, th[4]);
+        cx[0][i] = t0[0] + f * (tr[0] - t0[0]) + zeta * (tz[0] - t0[0]);
         cx[1][i] = (to[0] - t0[0]) / EPS_OFFSET;
-        cy[0][i] = t0[1] + f * (tr[1] - t0[1]);
+        cy[0][i] = t0[1] + f * (tr[1] - t0[1]) + zeta * (tz[1] - t0[1]);
         cy[1][i] = (to[1] - t0[1]) / EPS_OFFSET;
         if sz {
-            cz[0][i] = t0[2];
+            cz[0][i] = t0[2] + zeta * (tz[2] - t0[2]);
         }
     }
     [cx, cy, cz]
@@ -385,7 +437,7 @@ fn ss(r: &[f64]) -> f64 {
 /// Levenberg–Marquardt over θ on the variable-projection residual (numeric Jacobian: each
 /// evaluation costs template interpolation only). Returns (θ, residual sum of squares).
 fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
-    let steps = [1e-4, 1e-4, 1e-3, 0.02];
+    let steps = TH_STEPS;
     let fail = || {
         AnalysisError::Failed(
             "the model could not be evaluated (singular linear system: no signal in a channel?)"
@@ -396,8 +448,8 @@ fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
     let mut cost = ss(&r);
     let mut lambda = 1e-3;
     for _ in 0..40 {
-        let mut jac = Vec::with_capacity(4);
-        for p in 0..4 {
+        let mut jac = Vec::with_capacity(NTH);
+        for p in 0..NTH {
             let mut tp = th;
             tp[p] += steps[p];
             let (rp, _) = residuals(b, d, &tp).ok_or_else(fail)?;
@@ -408,10 +460,10 @@ fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
                     .collect::<Vec<_>>(),
             );
         }
-        let mut jtj = nalgebra::Matrix4::<f64>::zeros();
-        let mut jtr = nalgebra::Vector4::<f64>::zeros();
-        for i in 0..4 {
-            for j in 0..4 {
+        let mut jtj = nalgebra::SMatrix::<f64, NTH, NTH>::zeros();
+        let mut jtr = nalgebra::SVector::<f64, NTH>::zeros();
+        for i in 0..NTH {
+            for j in 0..NTH {
                 jtj[(i, j)] = jac[i].iter().zip(&jac[j]).map(|(p, q)| p * q).sum();
             }
             jtr[i] = jac[i].iter().zip(&r).map(|(p, q)| p * q).sum();
@@ -419,7 +471,7 @@ fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
         let mut improved = false;
         for _ in 0..10 {
             let mut a = jtj;
-            for i in 0..4 {
+            for i in 0..NTH {
                 a[(i, i)] *= 1.0 + lambda;
             }
             let Some(step) = a.lu().solve(&(-jtr)) else {
@@ -427,7 +479,7 @@ fn fit_theta(b: &Basis, d: &Data, mut th: Theta) -> Result<(Theta, f64)> {
                 continue;
             };
             let mut tn = th;
-            for i in 0..4 {
+            for i in 0..NTH {
                 tn[i] += step[i];
             }
             if let Some((rn, _)) = residuals(b, d, &tn) {
@@ -613,7 +665,7 @@ fn profile_over_v(
     builds: &mut usize,
 ) -> Result<(Vec<(f64, Basis)>, Vec<(f64, f64, Theta)>)> {
     let (x0, y0) = initial_position(sx, sy);
-    let mut theta: Theta = start.map_or([x0, y0, 0.0, 0.0], |s| s.1);
+    let mut theta: Theta = start.map_or([x0, y0, 0.0, 0.0, 0.0], |s| s.1);
     let mut bases: Vec<(f64, Basis)> = Vec::new();
     let mut profile: Vec<(f64, f64, Theta)> = Vec::new();
     let mut eval_v = |v: f64,
@@ -622,7 +674,7 @@ fn profile_over_v(
                       profile: &mut Vec<(f64, f64, Theta)>|
      -> Result<f64> {
         let b = basis(optics, opts, alpha, (v, opts.z_um), data.sz_ratio)?;
-        *builds += 3;
+        *builds += BUILDS_PER_BASIS;
         // warm start from the nearest evaluated v
         let start = profile
             .iter()
@@ -649,7 +701,7 @@ fn profile_over_v(
     for v in coarse {
         eval_v(v, &mut theta, &mut bases, &mut profile)?;
     }
-    for _ in 0..8 {
+    for _ in 0..12 {
         let mut p = profile.clone();
         p.sort_by(|a, b| a.0.total_cmp(&b.0));
         let k = (0..p.len())
@@ -692,16 +744,30 @@ fn profile_over_v(
             let vn = vn.clamp(a.0, c.0);
             let tol = V_TOL_REL * b.0.max(0.05);
             if p.iter().any(|q| (q.0 - vn).abs() < tol) {
-                break;
+                // The vertex lands on a point already fitted. Through tight neighbours that is
+                // the minimum; through a coarse bracket (1, 2, 4) it can be a grid point that
+                // the parabola happens to hit (seed 7: v 2.000 for 1.988, 4.3σ). Bracket it
+                // closely on both sides before accepting it.
+                let (left, right) = (b.0 - a.0, c.0 - b.0);
+                let wide = BRACKET_TOLS * tol;
+                if left <= wide && right <= wide {
+                    break;
+                }
+                if left > wide && (vn <= b.0 || right <= wide) {
+                    b.0 - (0.05 * left).max(2.0 * tol)
+                } else {
+                    b.0 + (0.05 * right).max(2.0 * tol)
+                }
+            } else {
+                vn
             }
-            vn
         };
         eval_v(next, &mut theta, &mut bases, &mut profile)?;
     }
     Ok((bases, profile))
 }
 
-/// The covariance of all 13 parameters from the Jacobian at the optimum (central
+/// The covariance of all 14 parameters from the Jacobian at the optimum (central
 /// differences in θ, a forward one in v over `b2`, built `dv` away; the linear columns as they
 /// are), scaled by the reduced χ²; with the residuals, the linear coefficients and χ².
 #[allow(clippy::type_complexity)]
@@ -715,7 +781,7 @@ fn covariance(
     let n = data.xy.len();
     let fail = || AnalysisError::Failed("the model could not be evaluated".into());
     let (r0, coef) = residuals(b, data, th_hat).ok_or_else(fail)?;
-    // full model as a function of all 13 parameters: p = [x0, y0, ψ, δ, v, gx, ax, bx, gy, ay, by, gz, bz]
+    // full model as a function of all 14 parameters: p = [x0, y0, ψ, δ, ζ, v, gx, ax, bx, gy, ay, by, gz, bz]
     let model = |b: &Basis, th: &Theta, k: &[DVector<f64>; 3]| -> Vec<f64> {
         let cols = columns(b, data, th);
         let mut out = Vec::with_capacity(3 * n);
@@ -733,8 +799,8 @@ fn covariance(
     };
     let m0 = model(b, th_hat, &coef);
     let mut jac: Vec<Vec<f64>> = Vec::new();
-    let steps = [1e-4, 1e-4, 1e-3, 0.02];
-    for p in 0..4 {
+    let steps = TH_STEPS;
+    for p in 0..NTH {
         let mut tp = *th_hat;
         let mut tm = *th_hat;
         tp[p] += steps[p];
@@ -886,15 +952,16 @@ pub fn fit_beam(
     let (b, cov, r0, coef) = (&st.b, &st.cov, &st.r0, &st.coef);
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let val = |value: f64, sigma: f64| Value { value, sigma };
-    // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 v, 5 gx, 6 ax, 7 bx, 8 gy, 9 ay, 10 by,
-    // 11 gz, 12 bz (without the Sz bead column: 11 bz)
+    // parameter indices: 0 x0, 1 y0, 2 ψ, 3 δ, 4 ζ, then I_V, I_GX … (without the Sz bead
+    // column, I_GZ is Sz's background)
     let (gx, gy) = (coef[0][0], coef[1][0]);
     let ratio = gy / gx;
     let var_ratio = ratio
         * ratio
-        * (cov[(8, 8)] / (gy * gy) + cov[(5, 5)] / (gx * gx) - 2.0 * cov[(5, 8)] / (gx * gy));
+        * (cov[(I_GY, I_GY)] / (gy * gy) + cov[(I_GX, I_GX)] / (gx * gx)
+            - 2.0 * cov[(I_GX, I_GY)] / (gx * gy));
     let [osq_x, osq_y] = st.offsets_sq(&o);
-    let sv = sd(4).hypot(0.5 * V_TOL_REL * v_hat.max(0.05));
+    let sv = sd(I_V).hypot(0.5 * V_TOL_REL * v_hat.max(0.05));
     let f0 = if v_hat > 0.0 {
         1.0 / v_hat.sqrt()
     } else {
@@ -910,7 +977,7 @@ pub fn fit_beam(
     for c in 0..3 {
         rms[c] = (ss(&r0[c * n..(c + 1) * n]) / n as f64).sqrt() / data.w[c];
     }
-    refuse_meaningless(gx, sd(5), &rms, &noise, &range, opts)?;
+    refuse_meaningless(gx, sd(I_GX), &rms, &noise, &range, opts)?;
     let defocus = defocus_test(
         optics,
         &o,
@@ -920,7 +987,7 @@ pub fn fit_beam(
         &mut builds,
     )?;
     let psi_deg = th_hat[2].to_degrees();
-    let (gain_z, gain_z_note) = gain_z(b, coef, sd(11));
+    let (gain_z, gain_z_note) = gain_z(b, coef, sd(I_GZ));
     let rotation = o.about.rotation_deg + th_hat[3];
     let magnitude = |q: Value| {
         // σ of √q: σ_q/(2√q), and no less than √σ_q where q is within 2σ of zero (there the
@@ -946,8 +1013,9 @@ pub fn fit_beam(
         offset_y: magnitude(osq_y),
         offset_x_sq: osq_x,
         offset_y_sq: osq_y,
-        gain_x: val(gx, sd(5)),
-        gain_y: val(gy, sd(8)),
+        defocus_sq: val(th_hat[4] * EPS_Z_UM * EPS_Z_UM, sd(4) * EPS_Z_UM * EPS_Z_UM),
+        gain_x: val(gx, sd(I_GX)),
+        gain_y: val(gy, sd(I_GY)),
         gain_z,
         gain_z_note,
         gain_ratio: val(ratio, var_ratio.max(0.0).sqrt()),
@@ -973,6 +1041,13 @@ pub fn fit_beam(
 /// least of 0.05) of one already fitted; the best point is the answer, so half of it is a
 /// systematic of v (in quadrature with the statistical σ).
 const V_TOL_REL: f64 = 3e-4;
+
+/// Template planes built per basis (`basis`): the aligned QPD, the rotated one, the offset
+/// one, and the bead above and below the model's height.
+const BUILDS_PER_BASIS: usize = 5;
+/// The profile's vertex is accepted on a fitted point only when both its neighbours lie within
+/// this many tolerances of it (otherwise it is bracketed more closely first).
+const BRACKET_TOLS: f64 = 40.0;
 
 /// The largest offset (cone radii) the model is linearised about (the QPD's cross must stay
 /// inside the beam, |offset| < 0.95; a QPD offset by a third of the cone is far out of
@@ -1023,8 +1098,8 @@ impl Stage {
             }
         };
         [
-            one(0, 5, 6, opts.about.offset_x),
-            one(1, 8, 9, opts.about.offset_y),
+            one(0, I_GX, I_AX, opts.about.offset_x),
+            one(1, I_GY, I_AY, opts.about.offset_y),
         ]
     }
 
@@ -1077,7 +1152,7 @@ fn stage(
         (v2, opts.z_um),
         Some(bases[bi].1.sz_ratio),
     )?;
-    *builds += 3;
+    *builds += BUILDS_PER_BASIS;
     let b = bases.swap_remove(bi).1;
     let (cov, r0, coef, s2) = covariance(&b, &b2, v2 - v_hat, data, &th_hat)?;
     Ok(Stage {
@@ -1110,7 +1185,7 @@ fn defocus_test(
     builds: &mut usize,
 ) -> Result<Defocus> {
     let n = data.xy.len() as f64;
-    let s2 = cost_hat / (3.0 * n - 13.0).max(1.0);
+    let s2 = cost_hat / (3.0 * n - (I_GZ + 2) as f64).max(1.0);
     let mut best = Defocus {
         z_um: opts.z_um,
         dchi2: 0.0,
@@ -1143,7 +1218,7 @@ fn defocus_test(
             }
             let mut at = |v: f64, th: Theta| -> Result<(f64, Theta)> {
                 let b = basis(optics, opts, alpha, (v, z), data.sz_ratio)?;
-                *builds += 3;
+                *builds += BUILDS_PER_BASIS;
                 let (t, c) = fit_theta(&b, data, th)?;
                 Ok((c, t))
             };

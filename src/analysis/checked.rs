@@ -7,7 +7,7 @@
 //! `"remove_background: …"`), as the bindings say them.
 
 use super::background::{remove_point_background, BackgroundOptions, Remaining};
-use super::beam_fit::{fit_beam, BeamFit, BeamFitOptions, DEFOCUS_DCHI2, V_MAX};
+use super::beam_fit::{fit_beam, BeamFit, BeamFitOptions, DEFOCUS_DCHI2, DEFOCUS_LIN_UM, V_MAX};
 use super::fit::FitResult;
 use super::orientation::{measure_filament, AngleCurve, Channel, FilamentMeasurement};
 use super::template::Template;
@@ -204,8 +204,13 @@ pub fn fit_beam_scan(
     ));
     if f.defocus.dchi2 > DEFOCUS_DCHI2 {
         warnings.push(format!(
-            "the bead is not at the height the model puts it ({} µm): the scan fits better {:.2} µm from the focus (Δχ² = {:.1} > {DEFOCUS_DCHI2}), and a bead off the focus reads as a smaller pupil filling and a QPD offset; focus on the bead first (focus_search) or give its height (z)",
+            "the bead is not at the height the model puts it ({} µm): the scan fits better {:.2} µm from the focus (Δχ² = {:.1} > {DEFOCUS_DCHI2}), and a bead off the focus reads as a smaller pupil filling and a QPD offset; focus on the bead first (focus_search)",
             opts.z_um, f.defocus.z_um.abs(), f.defocus.dchi2
+        ));
+    } else if f.defocus_sq.value > DEFOCUS_LIN_UM * DEFOCUS_LIN_UM {
+        warnings.push(format!(
+            "the bead is about {:.2} µm off the focus (its fitted height² {:.3} ± {:.3} µm²): the model follows a height to ±{DEFOCUS_LIN_UM} µm, and further off it reads a smaller pupil filling and QPD offsets; focus on the bead first (focus_search)",
+            f.defocus_sq.value.sqrt(), f.defocus_sq.value, f.defocus_sq.sigma
         ));
     }
     if f.inv_f0_sq.value >= V_MAX * (1.0 - 1e-9) {

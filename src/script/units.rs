@@ -11,6 +11,7 @@ pub const SUFFIXES: &[(&str, &str)] = &[
     ("_mda_um", "MDa/µm"),
     ("_g_cm3", "g/cm³"),
     ("_um_s", "µm/s"),
+    ("_um2", "µm²"),
     ("_per_um", "1/µm"),
     ("_deg", "°"),
     ("_mda", "MDa"),
@@ -95,6 +96,7 @@ mod tests {
     fn keys_name_their_units() {
         assert_eq!(unit_of_key("w0_nm"), Some("nm"));
         assert_eq!(unit_of_key("velocity_um_s"), Some("µm/s"));
+        assert_eq!(unit_of_key("defocus_sq_um2"), Some("µm²"));
         assert_eq!(unit_of_key("mu_mda_um"), Some("MDa/µm"));
         assert_eq!(unit_of_key("angle_err_deg"), Some("°"));
         assert_eq!(unit_of_key("clock_s"), Some("s"));

@@ -139,13 +139,14 @@ impl BeamCase {
 }
 
 /// The estimators of the family, in the order [`beam_case`] reports them.
-pub const KEYS: [&str; 8] = [
+pub const KEYS: [&str; 9] = [
     "fit_beam.inv_f0_sq",
     "fit_beam.qpd_rotation_deg",
     "fit_beam.polarization_deg",
     "fit_beam.gain_ratio",
     "fit_beam.offset_x_sq",
     "fit_beam.offset_y_sq",
+    "fit_beam.defocus_sq",
     "fit_beam.x0",
     "fit_beam.y0",
 ];
@@ -214,6 +215,7 @@ pub(super) fn beam_case(
         (f.gain_ratio, m.gain_y),
         (f.offset_x_sq, m.offset_x * m.offset_x),
         (f.offset_y_sq, m.offset_y * m.offset_y),
+        (f.defocus_sq, bead[2] * bead[2]),
         (f.x0, bead[0]),
         (f.y0, bead[1]),
     ];
