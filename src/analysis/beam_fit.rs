@@ -22,9 +22,11 @@
 //! offsets. The QPD gain ratio is g_y/g_x (the `misalignment` effect's `gain_y`).
 //!
 //! **Parameters and identifiability.** Linear (solved exactly for given non-linear ones,
-//! variable projection): g_x, g_x·o_x, b_x, g_y, g_y·o_y, b_y, g_z, b_z. Non-linear, cheap
+//! variable projection): g_x, g_x·o_x, g_x·z·o_x, b_x, g_y, g_y·o_y, g_y·z·o_y, b_y, g_z, b_z (the
+//! z·o terms: off the focus an offset enters at first order, through the mixed derivative
+//! ∂²T/∂z∂o, with the sign of z·o). Non-linear, cheap
 //! (template interpolation only): x0, y0, ψ, δ and ζ, the bead's height off the model's squared
-//! (÷ `EPS_Z_UM`²). Non-linear, expensive (five template-plane builds per value): v = 1/f0², so the uniformly filled pupil is v = 0 (the model is analytic
+//! (÷ `EPS_Z_UM`²). Non-linear, expensive (seven template-plane builds per value): v = 1/f0², so the uniformly filled pupil is v = 0 (the model is analytic
 //! in v; v < 0, a pupil brighter at its rim, is not physical and is the search's lower bound).
 //! One xy scan at the focus sees the focal width (→ v) and the elongation of the vector focus
 //! along the polarisation (→ ψ); a QPD rotation δ mixes Sx into Sy and back. δ and ψ are
@@ -42,9 +44,9 @@
 //!
 //! **Uncertainty.** Weighted least squares with per-channel weights 1/σ_c², σ_c the channel's
 //! noise estimated from second differences of the image (robust, independent of the model);
-//! the covariance is s²(JᵀJ)⁻¹ with J the Jacobian of all 14 parameters at the optimum (v by
+//! the covariance is s²(JᵀJ)⁻¹ with J the Jacobian of all 16 parameters at the optimum (v by
 //! a forward difference over two template builds) and s² the weighted residual variance
-//! (residual sum / (N − 14)). The answer is refused when it would not mean anything: no bead
+//! (residual sum / (N − 16)). The answer is refused when it would not mean anything: no bead
 //! (the gain g_x below 10 σ), or a residual rms above twice the noise (a scan that is not this
 //! bead in this beam: wrong size, wrong kind, out of focus).
 //!
@@ -55,7 +57,7 @@
 //! paper's ref. PralleEL99; the paper itself uses only Sx and Sy). The model plane's Sz at
 //! z = 0 is rounding noise (≲ 1e-12 of its Sx), and a free g_z fitted to it came out at
 //! ~7e12 ± 9e12: not a gain, a degenerate parameter. So when the model's Sz is below
-//! [`SZ_NIL`] × its Sx the Sz bead column is left out (only the offset b_z is fitted, 13
+//! [`SZ_NIL`] × its Sx the Sz bead column is left out (only the offset b_z is fitted, 15
 //! parameters) and `gain_z` is `None`, with the reason; when it is present, g_z is reported
 //! only when it stands [`GAIN_Z_MIN_SIGMA`] σ clear of zero.
 
@@ -213,11 +215,12 @@ const DEFOCUS_STEPS_UM: [f64; 5] = [0.25, 0.35, 0.5, 0.7, 0.9];
 
 /// The largest height of the bead off the model's, µm, at which the fitted height²
 /// (`BeamFit::defocus_sq`, linear in the square with its curvature plane `EPS_Z_UM` = 0.1 µm
-/// away) holds the other parameters (above it, a warning). In the truth sweep (seed 2026) beads
-/// within 0.1 µm and one 0.29 µm off read every parameter within 2.4σ; one 0.5 µm off read the
-/// gain ratio 5σ and o_x² 4.4σ off, and its height² 0.204 ± 0.003 for 0.25; beads 0.87–0.93 µm
-/// off read v 9–13σ off.
-pub const DEFOCUS_LIN_UM: f64 = 0.25;
+/// away, and the height × offset terms linear in the height) holds the other parameters (above
+/// it, a warning). In the truth sweep (seed 2026, N = 60) beads within 0.1 µm of the focus read
+/// every parameter within 2.1σ; one 0.19 µm off with offsets of 0.1 cone radii read the gain
+/// ratio 3.7σ and o_y² 4σ off; one 0.5 µm off (`tests/beam_fit.rs`) read the gain ratio 5σ and
+/// o_x² 4.4σ off, and its height² as 0.204 ± 0.003 for 0.25.
+pub const DEFOCUS_LIN_UM: f64 = 0.15;
 
 /// The three model planes for one v: ideal QPD, rotated QPD, offset QPD (all through the
 /// misaligned-QPD quadrature so that quadrature errors cancel in the differences).
@@ -228,6 +231,11 @@ struct Basis {
     /// The bead `EPS_Z_UM` above and below the model's height, averaged: the curvature of the
     /// response in the height (its first-order part, ∝ height × offset, cancels).
     gz: Arc<Grid2>,
+    /// The offset QPD's bead `EPS_Z_UM` above minus below, over 2·`EPS_Z_UM`, less the
+    /// aligned one's: with `EPS_OFFSET`, the mixed derivative ∂²T/∂z∂o (off the focus an offset
+    /// enters at first order, ∝ z·o; its coefficient per channel is g·z·o, whose sign the scan
+    /// does measure).
+    gzo: Arc<Grid2>,
     /// max |Sz| / max |Sx| of the ideal plane: below [`SZ_NIL`] the Sz bead column is left out.
     sz_ratio: f64,
 }
@@ -291,15 +299,23 @@ fn basis(
     let sz_ratio = sz.unwrap_or_else(|| peak(2) / peak(0).max(f64::MIN_POSITIVE));
     let up = plane(&o, grid, zero, alpha, z_um + EPS_Z_UM)?;
     let down = plane(&o, grid, zero, alpha, z_um - EPS_Z_UM)?;
-    let mut gz = (*up).clone();
-    for (a, b) in gz.data.iter_mut().zip(&down.data) {
-        for c in 0..3 {
-            a[c] = 0.5 * (a[c] + b[c]);
-        }
-    }
+    let off = Misalignment {
+        offset_x: zero.offset_x + EPS_OFFSET,
+        offset_y: zero.offset_y + EPS_OFFSET,
+        ..zero
+    };
+    let up_o = plane(&o, grid, off, alpha, z_um + EPS_Z_UM)?;
+    let down_o = plane(&o, grid, off, alpha, z_um - EPS_Z_UM)?;
+    let gz = combine(&[&up, &down], |t| {
+        std::array::from_fn(|c| 0.5 * (t[0][c] + t[1][c]))
+    });
+    let gzo = combine(&[&up, &down, &up_o, &down_o], |t| {
+        std::array::from_fn(|c| ((t[2][c] - t[3][c]) - (t[0][c] - t[1][c])) / (2.0 * EPS_Z_UM))
+    });
     Ok(Basis {
         sz_ratio,
         gz: Arc::new(gz),
+        gzo: Arc::new(gzo),
         g0,
         grot: plane(
             &o,
@@ -323,6 +339,38 @@ fn basis(
             z_um,
         )?,
     })
+}
+
+/// Planes combined node by node: `f` of every plane's value at each node of the widest (planes
+/// at other heights reach further: their node grids share the spacing and the centre, and a
+/// node outside a plane counts as zero there).
+fn combine(planes: &[&Grid2], f: impl Fn(&[[f64; 3]]) -> [f64; 3]) -> Grid2 {
+    let wide = planes
+        .iter()
+        .copied()
+        .max_by_key(|g| g.nu * g.nv)
+        .expect("planes to combine");
+    let at = |g: &Grid2, u: f64, v: f64| -> [f64; 3] {
+        let i = ((u - g.u0) / g.h).round();
+        let j = ((v - g.v0) / g.h).round();
+        if i < 0.0 || j < 0.0 || i as usize >= g.nu || j as usize >= g.nv {
+            [0.0; 3]
+        } else {
+            g.data[j as usize * g.nu + i as usize]
+        }
+    };
+    Grid2::from_fn(
+        wide.u0,
+        wide.v0,
+        wide.h,
+        wide.nu,
+        wide.nv,
+        wide.interp,
+        |u, v| {
+            let vals: Vec<[f64; 3]> = planes.iter().map(|g| at(g, u, v)).collect();
+            f(&vals)
+        },
+    )
 }
 
 /// The scan's pixels (finite only) and the data.
@@ -352,20 +400,20 @@ const TH_STEPS: Theta = [1e-4, 1e-4, 1e-3, 0.02, 0.01];
 const EPS_Z_UM: f64 = 0.1;
 
 /// Indices of the covariance's parameters: θ, then v, then the linear coefficients per channel
-/// (gain, offset, background; Sz: gain and background, or background alone).
+/// (gain, offset, height × offset, background; Sz: gain and background, or background alone).
 const I_V: usize = NTH;
 const I_GX: usize = NTH + 1;
 const I_AX: usize = NTH + 2;
-const I_GY: usize = NTH + 4;
-const I_AY: usize = NTH + 5;
-const I_GZ: usize = NTH + 7;
+const I_GY: usize = NTH + 5;
+const I_AY: usize = NTH + 6;
+const I_GZ: usize = NTH + 9;
 
 /// Columns of each channel's linear model at θ (per pixel).
 fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
     let (sp, cp) = th[2].sin_cos();
     let n = d.xy.len();
-    let mut cx = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
-    let mut cy = vec![vec![0.0; n], vec![0.0; n], vec![1.0; n]];
+    let mut cx = vec![vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![1.0; n]];
+    let mut cy = vec![vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![1.0; n]];
     let sz = b.sz_signal();
     let mut cz = if sz {
         vec![vec![0.0; n], vec![1.0; n]]
@@ -379,11 +427,14 @@ fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
         let tr = b.grot.eval(u, v);
         let to = b.goff.eval(u, v);
         let tz = b.gz.eval(u, v);
+        let tzo = b.gzo.eval(u, v);
         let (f, zeta) = (th[3] / EPS_ROT_DEG, th[4]);
         cx[0][i] = t0[0] + f * (tr[0] - t0[0]) + zeta * (tz[0] - t0[0]);
         cx[1][i] = (to[0] - t0[0]) / EPS_OFFSET;
+        cx[2][i] = tzo[0] / EPS_OFFSET;
         cy[0][i] = t0[1] + f * (tr[1] - t0[1]) + zeta * (tz[1] - t0[1]);
         cy[1][i] = (to[1] - t0[1]) / EPS_OFFSET;
+        cy[2][i] = tzo[1] / EPS_OFFSET;
         if sz {
             cz[0][i] = t0[2] + zeta * (tz[2] - t0[2]);
         }
@@ -767,7 +818,7 @@ fn profile_over_v(
     Ok((bases, profile))
 }
 
-/// The covariance of all 14 parameters from the Jacobian at the optimum (central
+/// The covariance of all 16 parameters from the Jacobian at the optimum (central
 /// differences in θ, a forward one in v over `b2`, built `dv` away; the linear columns as they
 /// are), scaled by the reduced χ²; with the residuals, the linear coefficients and χ².
 #[allow(clippy::type_complexity)]
@@ -781,7 +832,7 @@ fn covariance(
     let n = data.xy.len();
     let fail = || AnalysisError::Failed("the model could not be evaluated".into());
     let (r0, coef) = residuals(b, data, th_hat).ok_or_else(fail)?;
-    // full model as a function of all 14 parameters: p = [x0, y0, ψ, δ, ζ, v, gx, ax, bx, gy, ay, by, gz, bz]
+    // full model as a function of all 16 parameters: p = [x0, y0, ψ, δ, ζ, v, gx, ax, kx, bx, gy, ay, ky, by, gz, bz]
     let model = |b: &Basis, th: &Theta, k: &[DVector<f64>; 3]| -> Vec<f64> {
         let cols = columns(b, data, th);
         let mut out = Vec::with_capacity(3 * n);
@@ -1019,7 +1070,7 @@ pub fn fit_beam(
         gain_z,
         gain_z_note,
         gain_ratio: val(ratio, var_ratio.max(0.0).sqrt()),
-        background: [coef[0][2], coef[1][2], coef[2][coef[2].len() - 1]],
+        background: [coef[0][3], coef[1][3], coef[2][coef[2].len() - 1]],
         residual_rms: rms,
         noise,
         chi2_red: s2,
@@ -1043,8 +1094,8 @@ pub fn fit_beam(
 const V_TOL_REL: f64 = 3e-4;
 
 /// Template planes built per basis (`basis`): the aligned QPD, the rotated one, the offset
-/// one, and the bead above and below the model's height.
-const BUILDS_PER_BASIS: usize = 5;
+/// one, and the bead above and below the model's height with the QPD aligned and offset.
+const BUILDS_PER_BASIS: usize = 7;
 /// The profile's vertex is accepted on a fitted point only when both its neighbours lie within
 /// this many tolerances of it (otherwise it is bracketed more closely first).
 const BRACKET_TOLS: f64 = 40.0;
