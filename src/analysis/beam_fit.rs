@@ -231,10 +231,10 @@ struct Basis {
     /// The bead `EPS_Z_UM` above and below the model's height, averaged: the curvature of the
     /// response in the height (its first-order part, ∝ height × offset, cancels).
     gz: Arc<Grid2>,
-    /// The offset QPD's bead `EPS_Z_UM` above minus below, over 2·`EPS_Z_UM`, less the
-    /// aligned one's: with `EPS_OFFSET`, the mixed derivative ∂²T/∂z∂o (off the focus an offset
-    /// enters at first order, ∝ z·o; its coefficient per channel is g·z·o, whose sign the scan
-    /// does measure).
+    /// The height's first-order term per unit offset, (∂T/∂z)/o, as the secant through o = 0
+    /// over the linearisation's offsets ô and ô + `EPS_OFFSET` (at ô = 0, the mixed derivative
+    /// ∂²T/∂z∂o): off the focus an offset enters at first order, ∝ z·o, and about an offset QPD
+    /// the height does too. Its coefficient per channel is g·z·o, whose sign the scan measures.
     gzo: Arc<Grid2>,
     /// max |Sz| / max |Sx| of the ideal plane: below [`SZ_NIL`] the Sz bead column is left out.
     sz_ratio: f64,
@@ -309,8 +309,19 @@ fn basis(
     let gz = combine(&[&up, &down], |t| {
         std::array::from_fn(|c| 0.5 * (t[0][c] + t[1][c]))
     });
+    // the height's first-order term per unit offset, ∂T/∂z / o: odd in o (the image is even
+    // under (z, o) → (−z, −o)), so its secant through o = 0, taken over the linearisation's
+    // two offsets ô and ô + ε (at ô = 0, the mixed derivative ∂²T/∂z∂o); its coefficient
+    // per channel is g·z·o with o the signed offset
+    let span = [
+        2.0 * zero.offset_x + EPS_OFFSET,
+        2.0 * zero.offset_y + EPS_OFFSET,
+        1.0,
+    ];
     let gzo = combine(&[&up, &down, &up_o, &down_o], |t| {
-        std::array::from_fn(|c| ((t[2][c] - t[3][c]) - (t[0][c] - t[1][c])) / (2.0 * EPS_Z_UM))
+        std::array::from_fn(|c| {
+            ((t[0][c] - t[1][c]) + (t[2][c] - t[3][c])) / (2.0 * EPS_Z_UM * span[c])
+        })
     });
     Ok(Basis {
         sz_ratio,
@@ -431,10 +442,10 @@ fn columns(b: &Basis, d: &Data, th: &Theta) -> [Vec<Vec<f64>>; 3] {
         let (f, zeta) = (th[3] / EPS_ROT_DEG, th[4]);
         cx[0][i] = t0[0] + f * (tr[0] - t0[0]) + zeta * (tz[0] - t0[0]);
         cx[1][i] = (to[0] - t0[0]) / EPS_OFFSET;
-        cx[2][i] = tzo[0] / EPS_OFFSET;
+        cx[2][i] = tzo[0];
         cy[0][i] = t0[1] + f * (tr[1] - t0[1]) + zeta * (tz[1] - t0[1]);
         cy[1][i] = (to[1] - t0[1]) / EPS_OFFSET;
-        cy[2][i] = tzo[1] / EPS_OFFSET;
+        cy[2][i] = tzo[1];
         if sz {
             cz[0][i] = t0[2] + zeta * (tz[2] - t0[2]);
         }
