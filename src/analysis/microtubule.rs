@@ -85,6 +85,11 @@ pub struct Removal {
     /// middle of its uniform region, raises the region's mean corrected maximum, relative
     /// ([`undetected_rel`]; `None` when it could not be measured).
     pub undetected_rel: Option<f64>,
+    /// Point objects below the detection limit that a matched filter finds on the filament's
+    /// line ([`faint_on_line`]), strongest first, and what together they add to the uniform
+    /// region's mean corrected maximum, relative ([`faint_rise_rel`]; `None` without objects).
+    pub faint: Vec<super::faint::Faint>,
+    pub faint_rise_rel: Option<f64>,
     /// The SBR over the uniform region before and after the removal.
     pub before: SbrResult,
     pub after: SbrResult,
@@ -164,6 +169,10 @@ pub fn remove_aggregates(
     let (after, sa) = measured(&r.scan, curve, opts.skip_um)?;
     let undetected = undetected_rel(&r, &after, &sa, tpl, curve, opts.skip_um);
     r.scan.meta["background_removed"]["undetected_rel"] = serde_json::json!(undetected);
+    let faint = faint_on_line(&r, &after, &sa, tpl, bo.axis);
+    let faint_rise = faint_rise_rel(&r, &faint, &sa, tpl, curve, opts.skip_um);
+    r.scan.meta["background_removed"]["faint"] = serde_json::json!(&faint);
+    r.scan.meta["background_removed"]["faint_rise_rel"] = serde_json::json!(faint_rise);
     let mut warnings: Vec<String> = vec![];
     for w in before
         .warnings
@@ -187,6 +196,8 @@ pub fn remove_aggregates(
     warnings.extend(own.iter().cloned());
     Ok(Removal {
         undetected_rel: undetected,
+        faint,
+        faint_rise_rel: faint_rise,
         angle_deg: before.angle_deg,
         visibility,
         median_ratio: ratio,
@@ -232,6 +243,75 @@ fn undetected_rel(
     let (pu, pv, _) = template_dmap_peak(tpl, ch);
     let mut scan = r.scan.clone();
     let [ax, ay, _] = tpl.render_instrument(&[(p.x - pu, p.y - pv, w)], &scan.sx.x, &scan.sx.y);
+    scan.sx.data = &scan.sx.data + &ax;
+    scan.sy.data = &scan.sy.data + &ay;
+    let (_, si) = measured(&scan, curve, skip_um).ok()?;
+    (sa.mean_corr > 0.0 && si.mean_corr.is_finite())
+        .then(|| (si.mean_corr - sa.mean_corr) / sa.mean_corr)
+}
+
+/// The point objects below the removal's detection limit on the filament's line
+/// ([`super::faint::search`] in the fitted channel of the cleaned scan), along the maxima of
+/// `after` within [`super::faint::FAINT_HALF_UM`] of the uniform region (an object there reaches
+/// its maxima), on the filament's axis (each maximum less the template's derivative peak, as
+/// [`undetected_rel`] places its object).
+fn faint_on_line(
+    r: &Cleaned,
+    after: &FilamentMeasurement,
+    sa: &SbrResult,
+    tpl: &Template,
+    axis: super::background::FilamentAxis,
+) -> Vec<super::faint::Faint> {
+    use super::faint::{search, FAINT_HALF_UM};
+    let ch = match after.channel {
+        Channel::SxRows => Channels::Sx,
+        Channel::SyCols => Channels::Sy,
+    };
+    let (pu, pv, _) = template_dmap_peak(tpl, ch);
+    let (lo, hi) = (sa.arc_start - FAINT_HALF_UM, sa.arc_end + FAINT_HALF_UM);
+    let line: Vec<[f64; 2]> = after
+        .points
+        .iter()
+        .filter(|p| p.arc_um >= lo && p.arc_um <= hi)
+        .map(|p| [p.x - pu, p.y - pv])
+        .collect();
+    let a = after.angle_deg.to_radians();
+    let normal = [a.cos(), -a.sin()];
+    let removed: Vec<[f64; 2]> = r
+        .fit
+        .as_ref()
+        .map_or(vec![], |f| f.beads.iter().map(|b| [b.x, b.y]).collect());
+    let (img, fitted) = match axis {
+        super::background::FilamentAxis::Y => (&r.scan.sy, 1),
+        super::background::FilamentAxis::X => (&r.scan.sx, 0),
+    };
+    search(img, fitted, tpl, &line, normal, &removed)
+}
+
+/// What the objects `faint` (found on the line by [`faint_on_line`]) do to μ: each added to the
+/// cleaned scan at its position and weight (as [`undetected_rel`] adds its object), the filament
+/// measured again; returns the relative rise of the uniform region's mean corrected maximum.
+/// An object's reach along the line and across it is in the number: one at the region's end,
+/// or beside the line, moves fewer maxima than one on its middle. `None` without objects, or
+/// where the measurement fails.
+fn faint_rise_rel(
+    r: &Cleaned,
+    faint: &[super::faint::Faint],
+    sa: &SbrResult,
+    tpl: &Template,
+    curve: &AngleCurve,
+    skip_um: f64,
+) -> Option<f64> {
+    let objects: Vec<(f64, f64, f64)> = faint
+        .iter()
+        .filter(|f| f.weight > 0.0)
+        .map(|f| (f.x, f.y, f.weight))
+        .collect();
+    if objects.is_empty() {
+        return None;
+    }
+    let mut scan = r.scan.clone();
+    let [ax, ay, _] = tpl.render_instrument(&objects, &scan.sx.x, &scan.sx.y);
     scan.sx.data = &scan.sx.data + &ax;
     scan.sy.data = &scan.sy.data + &ay;
     let (_, si) = measured(&scan, curve, skip_um).ok()?;
@@ -372,6 +452,10 @@ struct Removed {
     undetected_rel: Option<f64>,
     /// The removal's detection limit, reference-bead units.
     detection_limit: Option<f64>,
+    /// `remove_aggregates`' objects below that limit on the filament's line ([`faint_on_line`]).
+    faint: Vec<super::faint::Faint>,
+    /// What they add to μ, relative ([`faint_rise_rel`]).
+    faint_rise_rel: Option<f64>,
 }
 
 impl Removed {
@@ -382,6 +466,8 @@ impl Removed {
             footprint: serde_json::from_value(b["footprint"].clone()).ok(),
             undetected_rel: b["undetected_rel"].as_f64(),
             detection_limit: b["detection_limit"].as_f64(),
+            faint: serde_json::from_value(b["faint"].clone()).unwrap_or_default(),
+            faint_rise_rel: b["faint_rise_rel"].as_f64(),
         }
     }
 
@@ -419,6 +505,8 @@ impl Removed {
             footprint: None,
             undetected_rel: None,
             detection_limit: None,
+            faint: vec![],
+            faint_rise_rel: None,
         }
     }
 }
@@ -456,6 +544,10 @@ pub struct Density {
     /// would add to μ, MDa/µm (`remove_aggregates`' [`undetected_rel`] × μ; None on a scan
     /// not cleaned by it).
     pub undetected_mda_um: Option<f64>,
+    /// What the point objects below the removal's detection limit that its matched filter found
+    /// on the filament's line add to μ, MDa/µm (`remove_aggregates`' [`faint_rise_rel`] × μ;
+    /// None where it found none, or on a scan not cleaned by it).
+    pub faint_mda_um: Option<f64>,
     /// The measurement's warnings and the density's own.
     pub warnings: Vec<String>,
     /// The measurement's warnings alone, as `measure_filament` says them.
@@ -525,6 +617,9 @@ pub fn density(
             crate::data::image::fmt_sig(MAX_UNDETECTED_PF * PROTOFILAMENT_MDA_PER_UM, 3)
         ));
     }
+    if let Some(w) = faint_warning(&removed, mu, mu_err) {
+        warnings.push(w);
+    }
     let half = 0.5 * PROTOFILAMENT_MDA_PER_UM;
     if mu_err > half {
         warnings.push(format!(
@@ -541,9 +636,58 @@ pub fn density(
         region: s,
         n_excluded,
         undetected_mda_um,
+        faint_mda_um: removed.faint_rise_rel.map(|r| r * mu),
         warnings,
         measure_warnings: m.warnings,
     })
+}
+
+/// The warning for point objects below the removal's detection limit that the matched filter
+/// found on the filament's line (`Removed::faint`), when together they raise μ (`mu`, MDa/µm)
+/// by more than its 1σ `mu_err` ([`faint_rise_rel`]: the objects added to the cleaned scan, the
+/// filament measured again). Where that rise was not measured, any such object is said.
+fn faint_warning(removed: &Removed, mu: f64, mu_err: f64) -> Option<String> {
+    let f = &removed.faint;
+    if f.is_empty() {
+        return None;
+    }
+    let rise = removed.faint_rise_rel.map(|r| r * mu);
+    if rise.is_some_and(|b| b <= mu_err) {
+        return None;
+    }
+    let fmt = crate::data::image::fmt_sig;
+    let list: Vec<String> = f
+        .iter()
+        .take(3)
+        .map(|o| {
+            format!(
+                "({:.2}, {:.2}) µm, {} ± {} reference beads ({:.0}σ)",
+                o.x,
+                o.y,
+                fmt(o.weight, 2),
+                fmt(o.weight_err, 1),
+                o.snr
+            )
+        })
+        .collect();
+    let by = rise.map_or(String::new(), |b| {
+        format!(
+            " together they raise μ by {} MDa/µm, more than σ(μ) = {} MDa/µm:",
+            fmt(b, 2),
+            fmt(mu_err, 2)
+        )
+    });
+    Some(format!(
+        "{} point object{} below the removal's detection limit lie{} on the filament's line ({}{}), found by a matched filter along it;{by} the removal did not subtract {}, so μ holds only without {}; dwell longer, or remove {} with a lower detect_snr",
+        f.len(),
+        if f.len() == 1 { "" } else { "s" },
+        if f.len() == 1 { "s" } else { "" },
+        list.join("; "),
+        if f.len() > 3 { "; …" } else { "" },
+        if f.len() == 1 { "it" } else { "them" },
+        if f.len() == 1 { "it" } else { "them" },
+        if f.len() == 1 { "it" } else { "them" },
+    ))
 }
 
 /// "; N more left out where a removed object's subtraction can move them" (empty for none).

@@ -48,6 +48,7 @@ pub mod beam_fit;
 pub mod checked;
 pub mod crlb;
 pub mod domain;
+pub mod faint;
 pub mod filament_fit;
 pub mod fit;
 pub mod focus;

@@ -274,7 +274,7 @@ fn bind_microtubule(r: &mut Registrar) {
             format!("optional: smallest object removed, reference-bead units (default {})", ad.min_weight),
         ))
         .form("remove_aggregates(scan, tpl, curve) -> map")
-        .returns("map", "#{scan (cleaned), n_objects, angle_deg, sbr_before, sbr_after, uniformity_before, uniformity_after, mean_corr_after, improvement, detection_limit (the faintest point object the removal detects, reference-bead units), undetected_rel (what one object just below it, on the filament, adds to its mean corrected maximum, relative), remaining: [#{x, y, weight, snr}], warning (() when none), warnings (both measurements' and the removal's, once each), status}")
+        .returns("map", "#{scan (cleaned), n_objects, angle_deg, sbr_before, sbr_after, uniformity_before, uniformity_after, mean_corr_after, improvement, detection_limit (the faintest point object the removal detects, reference-bead units), undetected_rel (what one object just below it, on the filament, adds to its mean corrected maximum, relative), faint: [#{x, y, weight, weight_err, snr}] (objects below that limit a matched filter finds on the filament's line, at ≥ 5σ), faint_rise_rel (what they add to the mean corrected maximum, relative; () when none), remaining: [#{x, y, weight, snr}], warning (() when none), warnings (both measurements' and the removal's, once each), status}")
         .summary("aggregates::remove's arithmetic: measure the filament, remove the point objects fitted in the channel it barely shows in, measure again; SBR before and after (Sec. 6)")
         .help("The protocol aggregates::remove calls it (and adds figures); the truth sweep runs the same Rust function (analysis::microtubule::remove_aggregates). Warnings are said as each step says them: measure_filament before, remove_background, measure_filament after.")
         .example(&format!("{FIL_EX} remove_aggregates(sc, t, c, #{{skip_um: 0.2}}).n_objects"), "0")
@@ -286,9 +286,9 @@ fn bind_microtubule(r: &mut Registrar) {
         .arg("calib", "map", "", "from lin_dens_calib (at the scan's pixel size)")
         .opts(&[SKIP_UM.doc(format!("optional: arc skipped from the first non-zero maximum (default {}, Sec. 6)", ad.skip_um))])
         .form("microtubule_density(scan, curve, calib) -> map")
-        .returns("map", "#{mu_mda_um (MDa/µm), mu_err_mda_um, protofilaments, protofilaments_exact, mean_corr, sbr, uniformity, n_points (maxima used), n_excluded (left out: within a removed object's footprint), undetected_mda_um (what one point object just below the removal's detection limit, on the filament, would add to μ; () on a scan not cleaned by aggregates::remove), warnings, status}")
+        .returns("map", "#{mu_mda_um (MDa/µm), mu_err_mda_um, protofilaments, protofilaments_exact, mean_corr, sbr, uniformity, n_points (maxima used), n_excluded (left out: within a removed object's footprint), undetected_mda_um (what one point object just below the removal's detection limit, on the filament, would add to μ; () on a scan not cleaned by aggregates::remove), faint_mda_um (what the objects below that limit found on the filament's line add to μ; () when none), warnings, status}")
         .summary("microtubule::density's arithmetic: the linear density over the uniform region, its σ and the protofilament number (eq. mtLinDens, Sec. 6)")
-        .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). On a scan cleaned by remove_aggregates or remove_background, the maxima where a removed object's subtraction can move them (its template's derivative at ≥ 10 % of its peak; the footprint in the scan's meta.background_removed) are left out. σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 10 maxima in the uniform region outside the removed objects' footprints, maxima that do not scatter about one level (a slope or a slow structure along the region), σ(μ) above half a protofilament, and (on a scan cleaned by remove_aggregates) one point object just below the removal's detection limit that would add more than a protofilament to μ (undetected_mda_um).")
+        .help("The protocol microtubule::density calls it; the truth sweep runs the same Rust function (analysis::microtubule::density). On a scan cleaned by remove_aggregates or remove_background, the maxima where a removed object's subtraction can move them (its template's derivative at ≥ 10 % of its peak; the footprint in the scan's meta.background_removed) are left out. σ(μ) is the standard error of the region's maxima through the orientation correction. Warnings: measure_filament's (said as it says them), fewer than 10 maxima in the uniform region outside the removed objects' footprints, maxima that do not scatter about one level (a slope or a slow structure along the region), σ(μ) above half a protofilament, and (on a scan cleaned by remove_aggregates) one point object just below the removal's detection limit that would add more than a protofilament to μ (undetected_mda_um), and point objects below that limit found on the filament's line by a matched filter (remove_aggregates' faint) that together add more than σ(μ) (faint_mda_um).")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, lin_dens_calib(t, #{{pixel_um: 0.05}}), #{{skip_um: 0.2}}).n_points > 10"), "true")
         .example(&format!("{FIL_EX} microtubule_density(sc, c, #{{}})"), "error: microtubule_density: calib lacks");
     r.bind_ctx_opts3(d, microtubule_density_of);
@@ -630,10 +630,17 @@ fn remove_aggregates_of(
     let improvement = r.improvement();
     let (sb, sa) = (r.before, r.after);
     let limit = r.cleaned.detection_limit;
+    let faint: Array = r
+        .faint
+        .iter()
+        .map(|f| Dynamic::from(fields_map!(f; x, y, weight, weight_err, snr)))
+        .collect();
     let (mut out, _, _) = cleaned_map(r.cleaned);
+    out.insert("faint".into(), faint.into());
     for (k, v) in [
         ("detection_limit", limit),
         ("undetected_rel", r.undetected_rel),
+        ("faint_rise_rel", r.faint_rise_rel),
     ] {
         out.insert(k.into(), v.map_or(Dynamic::UNIT, Dynamic::from_float));
     }
@@ -686,11 +693,12 @@ fn microtubule_density_of(
     out.insert("protofilaments".into(), (r.protofilaments as i64).into());
     out.insert("n_points".into(), (r.region.n_points as i64).into());
     out.insert("n_excluded".into(), (r.n_excluded as i64).into());
-    out.insert(
-        "undetected_mda_um".into(),
-        r.undetected_mda_um
-            .map_or(Dynamic::UNIT, Dynamic::from_float),
-    );
+    for (k, v) in [
+        ("undetected_mda_um", r.undetected_mda_um),
+        ("faint_mda_um", r.faint_mda_um),
+    ] {
+        out.insert(k.into(), v.map_or(Dynamic::UNIT, Dynamic::from_float));
+    }
     domain_of(&mut out, r.warnings);
     Ok(out)
 }
