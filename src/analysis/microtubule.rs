@@ -241,8 +241,22 @@ fn undetected_rel(
         Channel::SyCols => Channels::Sy,
     };
     let (pu, pv, _) = template_dmap_peak(tpl, ch);
+    rise_rel(r, &[(p.x - pu, p.y - pv, w)], sa, tpl, curve, skip_um)
+}
+
+/// The relative rise of the uniform region's mean corrected maximum (`sa`'s) when point
+/// `objects` (x, y µm, weight in reference beads) are added to the cleaned scan of `r` in both
+/// channels and the filament is measured again. `None` where that measurement fails.
+fn rise_rel(
+    r: &Cleaned,
+    objects: &[(f64, f64, f64)],
+    sa: &SbrResult,
+    tpl: &Template,
+    curve: &AngleCurve,
+    skip_um: f64,
+) -> Option<f64> {
     let mut scan = r.scan.clone();
-    let [ax, ay, _] = tpl.render_instrument(&[(p.x - pu, p.y - pv, w)], &scan.sx.x, &scan.sx.y);
+    let [ax, ay, _] = tpl.render_instrument(objects, &scan.sx.x, &scan.sx.y);
     scan.sx.data = &scan.sx.data + &ax;
     scan.sy.data = &scan.sy.data + &ay;
     let (_, si) = measured(&scan, curve, skip_um).ok()?;
@@ -310,13 +324,7 @@ fn faint_rise_rel(
     if objects.is_empty() {
         return None;
     }
-    let mut scan = r.scan.clone();
-    let [ax, ay, _] = tpl.render_instrument(&objects, &scan.sx.x, &scan.sx.y);
-    scan.sx.data = &scan.sx.data + &ax;
-    scan.sy.data = &scan.sy.data + &ay;
-    let (_, si) = measured(&scan, curve, skip_um).ok()?;
-    (sa.mean_corr > 0.0 && si.mean_corr.is_finite())
-        .then(|| (si.mean_corr - sa.mean_corr) / sa.mean_corr)
+    rise_rel(r, &objects, sa, tpl, curve, skip_um)
 }
 
 /// The median of `after`'s interior corrected maxima over `before`'s (`None` when either has
