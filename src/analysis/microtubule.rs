@@ -236,12 +236,19 @@ fn undetected_rel(
         .iter()
         .filter(|p| p.arc_um >= sa.arc_start && p.arc_um <= sa.arc_end)
         .min_by(|a, b| (a.arc_um - mid).abs().total_cmp(&(b.arc_um - mid).abs()))?;
-    let ch = match after.channel {
+    let (pu, pv) = axis_offset(tpl, after);
+    rise_rel(r, &[(p.x - pu, p.y - pv, w)], sa, tpl, curve, skip_um)
+}
+
+/// Where a filament's maximum lies from its axis in `m`'s measured channel (µm): the template's
+/// derivative peak. A point object at a maximum less this offset lies on the axis.
+fn axis_offset(tpl: &Template, m: &FilamentMeasurement) -> (f64, f64) {
+    let ch = match m.channel {
         Channel::SxRows => Channels::Sx,
         Channel::SyCols => Channels::Sy,
     };
     let (pu, pv, _) = template_dmap_peak(tpl, ch);
-    rise_rel(r, &[(p.x - pu, p.y - pv, w)], sa, tpl, curve, skip_um)
+    (pu, pv)
 }
 
 /// The relative rise of the uniform region's mean corrected maximum (`sa`'s) when point
@@ -277,11 +284,7 @@ fn faint_on_line(
     axis: super::background::FilamentAxis,
 ) -> Vec<super::faint::Faint> {
     use super::faint::{search, FAINT_HALF_UM};
-    let ch = match after.channel {
-        Channel::SxRows => Channels::Sx,
-        Channel::SyCols => Channels::Sy,
-    };
-    let (pu, pv, _) = template_dmap_peak(tpl, ch);
+    let (pu, pv) = axis_offset(tpl, after);
     let (lo, hi) = (sa.arc_start - FAINT_HALF_UM, sa.arc_end + FAINT_HALF_UM);
     let line: Vec<[f64; 2]> = after
         .points
@@ -685,16 +688,15 @@ fn faint_warning(removed: &Removed, mu: f64, mu_err: f64) -> Option<String> {
             fmt(mu_err, 2)
         )
     });
+    let (n, more) = (f.len(), if f.len() > 3 { "; …" } else { "" });
+    let (objects, lie, it) = if n == 1 {
+        ("object", "lies", "it")
+    } else {
+        ("objects", "lie", "them")
+    };
     Some(format!(
-        "{} point object{} below the removal's detection limit lie{} on the filament's line ({}{}), found by a matched filter along it;{by} the removal did not subtract {}, so μ holds only without {}; dwell longer, or remove {} with a lower detect_snr",
-        f.len(),
-        if f.len() == 1 { "" } else { "s" },
-        if f.len() == 1 { "s" } else { "" },
+        "{n} point {objects} below the removal's detection limit {lie} on the filament's line ({}{more}), found by a matched filter along it;{by} the removal did not subtract {it}, so μ holds only without {it}; dwell longer, or remove {it} with a lower detect_snr",
         list.join("; "),
-        if f.len() > 3 { "; …" } else { "" },
-        if f.len() == 1 { "it" } else { "them" },
-        if f.len() == 1 { "it" } else { "them" },
-        if f.len() == 1 { "it" } else { "them" },
     ))
 }
 
