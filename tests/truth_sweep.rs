@@ -171,6 +171,44 @@ fn max_sens_on_an_empty_field_is_flagged() {
     );
 }
 
+/// `max_sens` on a bead far off the focus (sixteenth session, 2026-12-07): beyond ~0.8 µm the
+/// bead's ∂Sx/∂x spreads into lobes across the rows (the noise-free second maximum is 0.03–0.17
+/// of the first within 0.7 µm, 0.28–1 from 1 to 3 µm), and the 32 answers beyond 1 µm of the
+/// three seeds' N = 2000 runs held only 55–58 % of their 1σ intervals. Here: a 110 nm bead at
+/// the paper's noise is in the domain up to 0.6 µm from the focus and flagged from 1 µm on, and
+/// the two 3σ answers of seed 7's run (3.3σ at −1.80 µm, 3.9σ at +1.90 µm) are flagged.
+#[test]
+fn max_sens_on_a_bead_far_off_the_focus_is_flagged() {
+    let scene = |z: f64| {
+        format!(
+            r#"{{"family":"maxsens","bead":[0.1,0.05,{z},110.0],"noise":1.0,"pixel_nm":30,"seed":11,"clip":null}}"#
+        )
+    };
+    let seed7 = [
+        r#"{"bead": [-0.5184406423533505, 0.9428668423647437, -1.8035008695126078, 137.06283525725829], "clip": null, "family": "maxsens", "noise": 0.7146291650438319, "pixel_nm": 50, "seed": 13214839769579892414}"#.to_string(),
+        r#"{"bead": [0.553967303488806, -0.8393456193549647, 1.9030589853270996, 194.09845260907002], "clip": null, "family": "maxsens", "noise": 2.5863451924448277, "pixel_nm": 20, "seed": 5372002028740144807}"#.to_string(),
+    ];
+    let near = [0.0, 0.3, -0.6].map(scene);
+    let far = [1.0, -1.2, 1.5, -2.0, 2.6].map(scene);
+    for (sc, in_domain) in near
+        .iter()
+        .map(|s| (s, true))
+        .chain(far.iter().chain(&seed7).map(|s| (s, false)))
+    {
+        let t = bfpscope::accuracy::sweep::replay_tallies(sc).expect("the scene replays");
+        let v = &t["max_sens.value"];
+        assert_eq!((v.cases, v.unflagged_outliers), (1, 0), "{sc}: {v:#?}");
+        assert_eq!(v.in_domain, usize::from(in_domain), "{sc}: {:?}", v.reasons);
+        if !in_domain {
+            assert!(
+                v.reasons.keys().any(|r| r.contains("second maximum")),
+                "{sc}: {:?}",
+                v.reasons
+            );
+        }
+    }
+}
+
 /// Fibril scenes that were unflagged diameter outliers of `bfpscope sweep --n 2000 --seed 2026`
 /// (and one of seed 99)
 /// (the `scene` field of their `BFPSCOPE_SWEEP_DUMP` lines), each now within its σ or flagged.
