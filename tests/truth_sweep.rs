@@ -209,6 +209,47 @@ fn max_sens_on_a_bead_far_off_the_focus_is_flagged() {
     }
 }
 
+/// `max_sens` where the window about the maximum reaches the derivative image's empty outer
+/// column (sixteenth session): the vertex 0.21 µm inside a scan of 50 nm pixels passed the
+/// half-window margin, but the window about its nearest pixel lost a sample, and a 105 nm bead
+/// read 1.5 % low noise-free. Once σ stopped counting the peak's shape as noise, the two such
+/// answers of seeds 7 and 99 stood 4.2σ off. Flagged now; the same bead at the same sub-pixel
+/// place 0.5 µm further in stays in the domain.
+#[test]
+fn max_sens_with_its_window_cut_by_the_edge_is_flagged() {
+    let scene = |x: f64, noise: f64, seed: u64| {
+        format!(
+            r#"{{"family":"maxsens","bead":[{x},-0.5869499664321294,-0.399153308350805,104.80059814493595],"noise":{noise},"pixel_nm":50,"seed":{seed},"clip":null}}"#
+        )
+    };
+    let seed99 = r#"{"bead": [-0.9886625119355834, 0.569736830517011, 0.0, 119.75953296919235], "clip": null, "family": "maxsens", "noise": 0.6667441069266333, "pixel_nm": 50, "seed": 7891929274627650539}"#;
+    let cases = [
+        (
+            scene(0.982080467821981, 0.4913465588206867, 2272684425455734254),
+            false,
+        ),
+        (scene(0.982080467821981, 0.0, 1), false),
+        (seed99.to_string(), false),
+        (
+            scene(0.482080467821981, 0.4913465588206867, 2272684425455734254),
+            true,
+        ),
+    ];
+    for (sc, in_domain) in cases {
+        let t = bfpscope::accuracy::sweep::replay_tallies(&sc).expect("the scene replays");
+        let v = &t["max_sens.value"];
+        assert_eq!((v.cases, v.unflagged_outliers), (1, 0), "{sc}: {v:#?}");
+        assert_eq!(v.in_domain, usize::from(in_domain), "{sc}: {:?}", v.reasons);
+        if !in_domain {
+            assert!(
+                v.reasons.keys().any(|r| r.contains("of the scan's edge")),
+                "{sc}: {:?}",
+                v.reasons
+            );
+        }
+    }
+}
+
 /// Fibril scenes that were unflagged diameter outliers of `bfpscope sweep --n 2000 --seed 2026`
 /// (and one of seed 99)
 /// (the `scene` field of their `BFPSCOPE_SWEEP_DUMP` lines), each now within its σ or flagged.

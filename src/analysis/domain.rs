@@ -86,12 +86,23 @@ pub fn dipole_d_max_nm(n: f64, wavelength_nm: f64, n_medium: f64) -> f64 {
 /// A warning when the point (x, y) (µm) lies closer than `margin_um` to the edge of the scanned
 /// area of `img` (or outside it): the object is then not whole inside the scan.
 pub fn margin_warning(what: &str, img: &Image, x: f64, y: f64, margin_um: f64) -> Option<String> {
-    let (x0, x1) = span(&img.x);
-    let (y0, y1) = span(&img.y);
+    margin_warning_in(what, span(&img.x), span(&img.y), x, y, margin_um)
+}
+
+/// [`margin_warning`] against the area x ∈ `xs`, y ∈ `ys` (µm): the part of an image that holds
+/// data (a derivative image's outer columns hold none).
+pub fn margin_warning_in(
+    what: &str,
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+    x: f64,
+    y: f64,
+    margin_um: f64,
+) -> Option<String> {
     let d = (x - x0).min(x1 - x).min(y - y0).min(y1 - y);
     (d < margin_um).then(|| {
         format!(
-            "{what} at ({x:.3}, {y:.3}) µm is {} of the scan's edge (needs ≥ {margin_um:.2} µm inside the scanned area x ∈ [{x0:.3}, {x1:.3}], y ∈ [{y0:.3}, {y1:.3}] µm to be whole inside it)",
+            "{what} at ({x:.3}, {y:.3}) µm is {} of the scan's edge (needs ≥ {margin_um:.2} µm inside the area with data x ∈ [{x0:.3}, {x1:.3}], y ∈ [{y0:.3}, {y1:.3}] µm to be whole inside it)",
             if d < 0.0 {
                 "outside".to_string()
             } else {
