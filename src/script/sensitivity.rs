@@ -76,7 +76,7 @@ fn bind_max_sens(r: &mut Registrar) {
         .arg("img", "Image", "", "a sensitivity image around one point object")
         .opts(&keys)
         .form("max_sens(img) -> map")
-        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum at the image's edge)")
+        .returns("map", "#{x, y, value, x_err, y_err, value_err, n_points, warnings, status} (µm; value in the image's units; warnings: the maximum within half a window and half a pixel of the edge of the image's data, the best row's maximum below 10σ of its noise, a second maximum across the rows that rivals the best (within 2σ) or stands above 20 % of it (a bead ≳0.8 µm off the focus spreads into lobes; or a second object), clipped or dark pixels in the window)")
         .summary("maximum sensitivity of a point object: row parabolas, refined across rows (Sec. 5)")
         .example(&format!("{ONE_BEAD} let m = max_sens(sensitivity(sc)); round(m.value * t.norm_factor / t.max_sens(0.05) * 100.0) / 100.0"), "1.0");
     r.bind_ctx_opts(d, max_sens);
