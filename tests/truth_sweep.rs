@@ -195,17 +195,23 @@ fn max_sens_on_a_bead_far_off_the_focus_is_flagged() {
         .map(|s| (s, true))
         .chain(far.iter().chain(&seed7).map(|s| (s, false)))
     {
-        let t = bfpscope::accuracy::sweep::replay_tallies(sc).expect("the scene replays");
-        let v = &t["max_sens.value"];
-        assert_eq!((v.cases, v.unflagged_outliers), (1, 0), "{sc}: {v:#?}");
-        assert_eq!(v.in_domain, usize::from(in_domain), "{sc}: {:?}", v.reasons);
-        if !in_domain {
-            assert!(
-                v.reasons.keys().any(|r| r.contains("second maximum")),
-                "{sc}: {:?}",
-                v.reasons
-            );
-        }
+        max_sens_scene_is(sc, in_domain, "second maximum");
+    }
+}
+
+/// One max_sens scene replayed: one case, no unflagged outlier, in the domain or not, and (if
+/// not) flagged with a reason holding `words`.
+fn max_sens_scene_is(sc: &str, in_domain: bool, words: &str) {
+    let t = bfpscope::accuracy::sweep::replay_tallies(sc).expect("the scene replays");
+    let v = &t["max_sens.value"];
+    assert_eq!((v.cases, v.unflagged_outliers), (1, 0), "{sc}: {v:#?}");
+    assert_eq!(v.in_domain, usize::from(in_domain), "{sc}: {:?}", v.reasons);
+    if !in_domain {
+        assert!(
+            v.reasons.keys().any(|r| r.contains(words)),
+            "{sc}: {:?}",
+            v.reasons
+        );
     }
 }
 
@@ -236,17 +242,7 @@ fn max_sens_with_its_window_cut_by_the_edge_is_flagged() {
         ),
     ];
     for (sc, in_domain) in cases {
-        let t = bfpscope::accuracy::sweep::replay_tallies(&sc).expect("the scene replays");
-        let v = &t["max_sens.value"];
-        assert_eq!((v.cases, v.unflagged_outliers), (1, 0), "{sc}: {v:#?}");
-        assert_eq!(v.in_domain, usize::from(in_domain), "{sc}: {:?}", v.reasons);
-        if !in_domain {
-            assert!(
-                v.reasons.keys().any(|r| r.contains("of the scan's edge")),
-                "{sc}: {:?}",
-                v.reasons
-            );
-        }
+        max_sens_scene_is(&sc, in_domain, "of the scan's edge");
     }
 }
 

@@ -874,14 +874,26 @@ pub(crate) fn with_misfit(mut p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) ->
         // made 1σ intervals hold 81 % of the sweep's answers
         let nu = (r.len() - 3) as f64;
         let chi2 = r.iter().map(|x| (x / s).powi(2)).sum::<f64>();
-        let wh = |z: f64| nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3);
-        if chi2 > wh(2.326) {
-            let k = (chi2 / nu).sqrt();
-            p.value_err = p.value_err.map(|e| e * k);
-        }
-        return (p, chi2 < wh(-3.719).max(0.0));
+        let k = misfit_factor(chi2, nu);
+        p.value_err = p.value_err.map(|e| e * k);
+        return (p, chi2 < chi2_point(nu, -3.719).max(0.0));
     }
     (p, false)
+}
+
+/// χ²'s quantile for ν degrees of freedom at the standard normal's `z` (Wilson–Hilferty).
+fn chi2_point(nu: f64, z: f64) -> f64 {
+    nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3)
+}
+
+/// The factor that widens a σ for a misfit of `chi2` on `nu` degrees of freedom: √(χ²/ν) beyond
+/// χ²'s 99 % point, else 1.
+fn misfit_factor(chi2: f64, nu: f64) -> f64 {
+    if chi2 > chi2_point(nu, 2.326) {
+        (chi2 / nu).sqrt()
+    } else {
+        1.0
+    }
 }
 
 /// [`with_misfit`] for the parabola across an XY image's rows: where the window holds at least
@@ -915,13 +927,7 @@ fn with_noise_misfit(p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> (Peak, b
         return (q, quiet);
     };
     let chi2 = (&a * c - b).iter().map(|r| (r / s).powi(2)).sum::<f64>();
-    let nu = (pts.len() - 5) as f64;
-    let wh = |z: f64| nu * (1.0 - 2.0 / (9.0 * nu) + z * (2.0 / (9.0 * nu)).sqrt()).powi(3);
-    let k = if chi2 > wh(2.326) {
-        (chi2 / nu).sqrt()
-    } else {
-        1.0
-    };
+    let k = misfit_factor(chi2, (pts.len() - 5) as f64);
     (
         Peak {
             value_err: p.value_err.map(|e| e * k),
@@ -1062,16 +1068,12 @@ pub fn point_peak_checked(sens: &Image, opts: &PeakOptions) -> Result<(Peak2, Ve
 
 /// The extent (µm) along x and along y of the columns and rows of `img` that hold a finite value.
 fn data_span(img: &Image) -> ((f64, f64), (f64, f64)) {
-    let along = |axis: &[f64], has: &dyn Fn(usize) -> bool| {
-        let i: Vec<f64> = (0..axis.len())
-            .filter(|&i| has(i))
-            .map(|i| axis[i])
-            .collect();
-        let (a, b) = (i.first().copied(), i.last().copied());
-        match (a, b) {
-            (Some(a), Some(b)) => (a.min(b), a.max(b)),
-            _ => (0.0, 0.0),
-        }
+    let along = |axis: &[f64], has: &dyn Fn(usize) -> bool| match (
+        (0..axis.len()).find(|&i| has(i)),
+        (0..axis.len()).rfind(|&i| has(i)),
+    ) {
+        (Some(a), Some(b)) => (axis[a].min(axis[b]), axis[a].max(axis[b])),
+        _ => (0.0, 0.0),
     };
     let d = &img.data;
     let xs = along(&img.x, &|c| d.column(c).iter().any(|v| v.is_finite()));
