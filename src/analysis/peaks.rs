@@ -1487,9 +1487,11 @@ mod tests {
         assert!(sd < 0.45, "spread {sd} (n {n})");
     }
 
-    /// The curvature's σ for a known noise σ: 5 samples at k = −1, −½, 0, ½, 1 of the half window
-    /// h give Var(c2) = σ²·[(AᵀA)⁻¹]₂₂ = σ²·5/4.375 for the basis (1, k, k²), and the curvature
-    /// 2c2/h² carries 2σ·√(5/4.375)/h².
+    /// The curvature's σ for a known noise σ: 5 samples at k = 0, ±½, ±1 of the half window h
+    /// (u = 0, ±0.4, ±0.8 of the kernel's reach 1.25 h) with the tricube weights w₀ = 1,
+    /// w₁ = (1 − 0.4³)³, w₂ = (1 − 0.8³)³. By the design's symmetry c2's variance is
+    /// σ²·(S₂²T₀ − 2S₀S₂T₂ + S₀²T₄)/(S₀S₄ − S₂²)², with S_m = Σ w·k^m and T_m = Σ w²·k^m, and
+    /// the curvature 2c2/h² carries twice its square root over h².
     #[test]
     fn curvature_sigma_matches_the_least_squares_closed_form() {
         let t: Vec<f64> = (0..11).map(|i| -0.5 + 0.1 * i as f64).collect();
@@ -1506,9 +1508,17 @@ mod tests {
         .unwrap();
         assert_eq!(p.n_points, 5);
         assert!((p.curvature + 10.0).abs() < 1e-9, "{}", p.curvature);
-        let want = 2.0 * 0.01 * (5.0f64 / 4.375).sqrt() / (0.2 * 0.2);
+        let (w1, w2) = ((1.0f64 - 0.064).powi(3), (1.0f64 - 0.512).powi(3));
+        let s = |m: i32, q: i32| {
+            1.0 * 0f64.powi(m) + 2.0 * w1.powi(q) * 0.5f64.powi(m) + 2.0 * w2.powi(q)
+        };
+        let (s0, s2, s4) = (s(0, 1), s(2, 1), s(4, 1));
+        let (t0, t2, t4) = (s(0, 2), s(2, 2), s(4, 2));
+        let var = (s2 * s2 * t0 - 2.0 * s0 * s2 * t2 + s0 * s0 * t4) / (s0 * s4 - s2 * s2).powi(2);
+        let want = 2.0 * 0.01 * var.sqrt() / (0.2 * 0.2);
         let got = p.curvature_err.unwrap();
-        assert!((got / want - 1.0).abs() < 1e-9, "{got} vs {want}");
+        // (the window's half-width carries a factor 1 + 1e-9 against round-off at its edge)
+        assert!((got / want - 1.0).abs() < 1e-8, "{got} vs {want}");
     }
 
     #[test]
@@ -1518,7 +1528,8 @@ mod tests {
         let p = peak_1d(&t, &v, &PeakOptions::default()).unwrap();
         assert!((p.pos - 1.013).abs() < 1e-12 && (p.value - 3.0).abs() < 1e-12);
         assert!((p.curvature + 20.0).abs() < 1e-9);
-        assert_eq!(p.n_points, 9);
+        // the samples within the kernel's reach, 1.25 × 0.2 µm of the vertex: 0.80 … 1.25
+        assert_eq!(p.n_points, 10);
         assert!(p.pos_err.unwrap() < 1e-9);
     }
 
