@@ -318,29 +318,6 @@ fn pixel_noise(sens: &Image, rows: bool) -> f64 {
     robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2
 }
 
-/// 1σ of a parabola's value at the centre of a window of ±`half` over samples every `step`, per
-/// unit of sample noise: √((XᵀX)⁻¹₀₀) of the least-squares quadratic, = S4/(n·S4 − S2²) under
-/// the root for the symmetric abscissae k (n samples, S2 = Σk², S4 = Σk⁴).
-fn parabola_value_noise(half: f64, step: f64) -> f64 {
-    if !(step > 0.0 && half >= step) {
-        return f64::NAN;
-    }
-    let m = (half / step + 1e-9).floor() as i64;
-    let (mut n, mut s2, mut s4) = (0.0, 0.0, 0.0);
-    for i in -m..=m {
-        let k = i as f64 * step / half;
-        n += 1.0;
-        s2 += k * k;
-        s4 += k.powi(4);
-    }
-    let det = n * s4 - s2 * s2;
-    if det > 0.0 {
-        (s4 / det).sqrt()
-    } else {
-        f64::NAN
-    }
-}
-
 /// What the filament checks need of a sensitivity image, computed once per scan: its pixel
 /// noise along its lines ([`pixel_noise`]) and its largest value (instrument units).
 #[derive(Clone, Copy)]
@@ -817,8 +794,9 @@ fn find_filament(
                 } else {
                     0.0
                 };
-                let from_pixels =
-                    lv.noise * curve.norm_factor * parabola_value_noise(0.5 * opts.window_um, step);
+                let from_pixels = lv.noise
+                    * curve.norm_factor
+                    * super::peaks::centre_value_noise(0.5 * opts.window_um, step);
                 let sigma = match (sigma.is_finite(), from_pixels.is_finite()) {
                     (true, true) => sigma.max(from_pixels),
                     (true, false) => sigma,
