@@ -1585,6 +1585,32 @@ mod tests {
         assert!((sd / want - 1.0).abs() < 0.04, "scatter {sd} vs {want}");
     }
 
+    /// A peak reads the same wherever it lies between two samples: a Gaussian of σ 0.13 µm
+    /// sampled every 30 nm at 21 sub-pixel phases, noise-free, within 0.05 % of each other
+    /// (measured 0.02 %). A flat window re-centred on the vertex spreads 1.0 % (0.28 % with a
+    /// fixed count of samples about the nearest one), which made a microtubule's maxima step
+    /// along its length.
+    #[test]
+    fn a_peak_reads_the_same_at_every_sub_pixel_phase() {
+        let vals: Vec<f64> = (0..21)
+            .map(|k| {
+                let ph = 0.03 * k as f64 / 20.0;
+                let t: Vec<f64> = (-40..=40).map(|i| 0.03 * i as f64 + ph).collect();
+                let v: Vec<f64> = t
+                    .iter()
+                    .map(|x| (-x * x / (2.0 * 0.13f64.powi(2))).exp())
+                    .collect();
+                let p = peak_1d(&t, &v, &PeakOptions::default()).unwrap();
+                assert!(p.pos.abs() < 1e-4, "{p:?}");
+                p.value
+            })
+            .collect();
+        let (lo, hi) = vals
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+        assert!(hi / lo - 1.0 < 5e-4, "{lo} … {hi}");
+    }
+
     #[test]
     fn parabola_vertex_exact() {
         let t: Vec<f64> = (0..40).map(|i| i as f64 * 0.05).collect();
