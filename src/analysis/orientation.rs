@@ -404,25 +404,33 @@ fn inliers(c: &[Cand], a: f64, b: f64, tol: f64) -> Vec<Cand> {
 }
 
 /// Relative 1σ of the orientation-corrected mean that no amount of data removes, for a filament
-/// at `angle_deg` (from the y axis): the correction curve's interpolation between its angles
-/// and the parabola's sub-pixel bias against the curve's own offset average. Noise-free straight
-/// fibrils of the truth sweep (`bfpscope sweep --replay`, 2–8 µm, 20–100 nm pixels, several
-/// positions) read within 0.05–0.15 % of the truth in the diameter (0.1–0.3 % in the mean) away
-/// from 45°, and up to 0.4 % in the diameter near 45° (most at 100 nm pixels, where a row
-/// crosses the line obliquely over few pixels): [`CORRECTION_SYS_REL`] ⊕
-/// [`CORRECTION_SYS_REL_45`]·exp(−((|angle| − 45°)/10°)²). (A flat 0.3 % made the diameter's
-/// 1σ intervals hold 77 % of the seed-7 sweep's answers; without any term a low-noise answer's
-/// σ, 0.02 %, made those 4σ errors.)
-pub fn correction_sys_rel(angle_deg: f64) -> f64 {
+/// at `angle_deg` (from the y axis) on pixels of `pixel_um`: the correction curve's
+/// interpolation between its angles and the parabola's sub-pixel bias against the curve's own
+/// offset average. With the tricube window (seventeenth session), noise-free 8 µm, 80 nm
+/// fibrils of the truth sweep (`bfpscope sweep --replay`, ten angles) read within 0.00–0.04 %
+/// of the truth in the diameter (0.08 % in the mean) away from 45° and 0.06–0.10 % at 45° at
+/// 20 and 50 nm pixels; at 100 nm 0.00–0.05 % away from 45° and the axes, −0.22 % along x (a
+/// line along an axis keeps one sub-pixel phase over its length) and +0.32 % at 45°:
+/// [`CORRECTION_SYS_REL`] ⊕ [`CORRECTION_SYS_REL_45`]·exp(−((|angle| − 45°)/10°)²) ⊕
+/// [`CORRECTION_SYS_REL_100NM`]·(pixel / 100 nm)⁴. (With the flat window: 0.15 % ⊕ 0.6 % at
+/// 45°, from noise-free errors of 0.05–0.15 % in the diameter, 0.4 % near 45°; a flat 0.3 %
+/// made the diameter's 1σ intervals hold 77 % of the seed-7 sweep's answers; without any term
+/// a low-noise answer's σ, 0.02 %, made those 4σ errors.)
+pub fn correction_sys_rel(angle_deg: f64, pixel_um: f64) -> f64 {
     let a = angle_deg.abs().min(180.0 - angle_deg.abs());
-    CORRECTION_SYS_REL.hypot(CORRECTION_SYS_REL_45 * (-((a - 45.0) / 10.0).powi(2)).exp())
+    CORRECTION_SYS_REL
+        .hypot(CORRECTION_SYS_REL_45 * (-((a - 45.0) / 10.0).powi(2)).exp())
+        .hypot(CORRECTION_SYS_REL_100NM * (pixel_um / 0.1).powi(4))
 }
 
 /// [`correction_sys_rel`] away from 45°, relative to the corrected mean.
-pub const CORRECTION_SYS_REL: f64 = 0.0015;
+pub const CORRECTION_SYS_REL: f64 = 0.0008;
 
 /// [`correction_sys_rel`]'s bump at 45°, relative to the corrected mean.
-pub const CORRECTION_SYS_REL_45: f64 = 0.006;
+pub const CORRECTION_SYS_REL_45: f64 = 0.002;
+
+/// [`correction_sys_rel`]'s pixel term at 100 nm pixels, relative to the corrected mean.
+pub const CORRECTION_SYS_REL_100NM: f64 = 0.005;
 
 /// Above this relative σ of the corrected mean (the σ of a diameter from it is half), the answer
 /// is flagged: a fibril diameter is wanted to 5 % (Sec. 4.3), which needs σ_d ≤ 1.25 % to hold
@@ -1375,7 +1383,7 @@ fn measure_sens_along(
     }
     s.sem = s
         .sem
-        .hypot(s.mean * correction_sys_rel(angle))
+        .hypot(s.mean * correction_sys_rel(angle, sens.dx().abs().max(sens.dy().abs())))
         .hypot(s.mean * end_rel);
     let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {
