@@ -284,13 +284,12 @@ fn steep_top(z: &[f64], v: &[f64], z_window_um: f64, curvature: f64) -> f64 {
 }
 
 /// The ratio of the focus curve's parabola curvatures over a z window W and over 2W, noise-free
-/// (the paper's optics, 60–200 nm beads, the 199 nm one by the Mie tier; 25–100 nm rows; the
-/// peaks' tricube window, [`super::peaks::KERNEL_SUPPORT`]): 1.0606–1.0646 at W = 0.4 µm,
-/// 1.1469–1.1500 at 0.6 µm, 1.2766–1.2775 at 0.8 µm; the lowest of each,
+/// (the paper's optics, 40–200 nm beads, the 199 nm one by the Mie tier; 25–100 nm rows):
+/// 1.072–1.082 at W = 0.4 µm, 1.167–1.182 at 0.6 µm, 1.27–1.33 at 0.8 µm; the lowest of each,
 /// interpolated in W² from 1 at W = 0. None beyond 0.8 µm (a window of 1.6 µm reaches the
 /// curve's turning points, and the ratio no longer measures the top).
 pub fn focus_curve_ratio(z_window_um: f64) -> Option<f64> {
-    const TABLE: [(f64, f64); 4] = [(0.0, 1.0), (0.4, 1.0606), (0.6, 1.1469), (0.8, 1.2766)];
+    const TABLE: [(f64, f64); 4] = [(0.0, 1.0), (0.4, 1.072), (0.6, 1.167), (0.8, 1.27)];
     let w = z_window_um;
     if !(0.0..=0.8 + 1e-9).contains(&w) {
         return None;

@@ -355,7 +355,7 @@ pub fn median_ratio(before: &FilamentMeasurement, after: &FilamentMeasurement) -
 pub const MAX_MEDIAN_CHANGE: f64 = 0.10;
 
 /// Relative 1σ of μ that no amount of data removes: the orientation correction's own systematic
-/// (`orientation::correction_sys_rel`, 0.15 % away from 45° with the flat window, where most microtubules of the
+/// (`orientation::correction_sys_rel`, 0.15 % away from 45°, where most microtubules of the
 /// truth sweep lie) and what an aggregate removal leaves on the filament beyond its footprints.
 /// Set from the microtubule family of the truth sweep, not from noise-free fibrils: with the
 /// correction's systematic alone, its 1σ coverage fell from 0.658 to 0.60 at seed 2026 and a μ

@@ -318,6 +318,29 @@ fn pixel_noise(sens: &Image, rows: bool) -> f64 {
     robust_std(&diffs).unwrap_or(0.0) / std::f64::consts::SQRT_2
 }
 
+/// 1σ of a parabola's value at the centre of a window of ±`half` over samples every `step`, per
+/// unit of sample noise: √((XᵀX)⁻¹₀₀) of the least-squares quadratic, = S4/(n·S4 − S2²) under
+/// the root for the symmetric abscissae k (n samples, S2 = Σk², S4 = Σk⁴).
+fn parabola_value_noise(half: f64, step: f64) -> f64 {
+    if !(step > 0.0 && half >= step) {
+        return f64::NAN;
+    }
+    let m = (half / step + 1e-9).floor() as i64;
+    let (mut n, mut s2, mut s4) = (0.0, 0.0, 0.0);
+    for i in -m..=m {
+        let k = i as f64 * step / half;
+        n += 1.0;
+        s2 += k * k;
+        s4 += k.powi(4);
+    }
+    let det = n * s4 - s2 * s2;
+    if det > 0.0 {
+        (s4 / det).sqrt()
+    } else {
+        f64::NAN
+    }
+}
+
 /// What the filament checks need of a sensitivity image, computed once per scan: its pixel
 /// noise along its lines ([`pixel_noise`]) and its largest value (instrument units).
 #[derive(Clone, Copy)]
@@ -404,33 +427,25 @@ fn inliers(c: &[Cand], a: f64, b: f64, tol: f64) -> Vec<Cand> {
 }
 
 /// Relative 1σ of the orientation-corrected mean that no amount of data removes, for a filament
-/// at `angle_deg` (from the y axis) on pixels of `pixel_um`: the correction curve's
-/// interpolation between its angles and the parabola's sub-pixel bias against the curve's own
-/// offset average. With the tricube window (seventeenth session), noise-free 8 µm, 80 nm
-/// fibrils of the truth sweep (`bfpscope sweep --replay`, ten angles) read within 0.00–0.04 %
-/// of the truth in the diameter (0.08 % in the mean) away from 45° and 0.06–0.10 % at 45° at
-/// 20 and 50 nm pixels; at 100 nm 0.00–0.05 % away from 45° and the axes, −0.22 % along x (a
-/// line along an axis keeps one sub-pixel phase over its length) and +0.32 % at 45°:
-/// [`CORRECTION_SYS_REL`] ⊕ [`CORRECTION_SYS_REL_45`]·exp(−((|angle| − 45°)/10°)²) ⊕
-/// [`CORRECTION_SYS_REL_100NM`]·(pixel / 100 nm)⁴. (With the flat window: 0.15 % ⊕ 0.6 % at
-/// 45°, from noise-free errors of 0.05–0.15 % in the diameter, 0.4 % near 45°; a flat 0.3 %
-/// made the diameter's 1σ intervals hold 77 % of the seed-7 sweep's answers; without any term
-/// a low-noise answer's σ, 0.02 %, made those 4σ errors.)
-pub fn correction_sys_rel(angle_deg: f64, pixel_um: f64) -> f64 {
+/// at `angle_deg` (from the y axis): the correction curve's interpolation between its angles
+/// and the parabola's sub-pixel bias against the curve's own offset average. Noise-free straight
+/// fibrils of the truth sweep (`bfpscope sweep --replay`, 2–8 µm, 20–100 nm pixels, several
+/// positions) read within 0.05–0.15 % of the truth in the diameter (0.1–0.3 % in the mean) away
+/// from 45°, and up to 0.4 % in the diameter near 45° (most at 100 nm pixels, where a row
+/// crosses the line obliquely over few pixels): [`CORRECTION_SYS_REL`] ⊕
+/// [`CORRECTION_SYS_REL_45`]·exp(−((|angle| − 45°)/10°)²). (A flat 0.3 % made the diameter's
+/// 1σ intervals hold 77 % of the seed-7 sweep's answers; without any term a low-noise answer's
+/// σ, 0.02 %, made those 4σ errors.)
+pub fn correction_sys_rel(angle_deg: f64) -> f64 {
     let a = angle_deg.abs().min(180.0 - angle_deg.abs());
-    CORRECTION_SYS_REL
-        .hypot(CORRECTION_SYS_REL_45 * (-((a - 45.0) / 10.0).powi(2)).exp())
-        .hypot(CORRECTION_SYS_REL_100NM * (pixel_um / 0.1).powi(4))
+    CORRECTION_SYS_REL.hypot(CORRECTION_SYS_REL_45 * (-((a - 45.0) / 10.0).powi(2)).exp())
 }
 
 /// [`correction_sys_rel`] away from 45°, relative to the corrected mean.
-pub const CORRECTION_SYS_REL: f64 = 0.0008;
+pub const CORRECTION_SYS_REL: f64 = 0.0015;
 
 /// [`correction_sys_rel`]'s bump at 45°, relative to the corrected mean.
-pub const CORRECTION_SYS_REL_45: f64 = 0.002;
-
-/// [`correction_sys_rel`]'s pixel term at 100 nm pixels, relative to the corrected mean.
-pub const CORRECTION_SYS_REL_100NM: f64 = 0.005;
+pub const CORRECTION_SYS_REL_45: f64 = 0.006;
 
 /// Above this relative σ of the corrected mean (the σ of a diameter from it is half), the answer
 /// is flagged: a fibril diameter is wanted to 5 % (Sec. 4.3), which needs σ_d ≤ 1.25 % to hold
@@ -802,9 +817,8 @@ fn find_filament(
                 } else {
                     0.0
                 };
-                let from_pixels = lv.noise
-                    * curve.norm_factor
-                    * super::peaks::centre_value_noise(0.5 * opts.window_um, step);
+                let from_pixels =
+                    lv.noise * curve.norm_factor * parabola_value_noise(0.5 * opts.window_um, step);
                 let sigma = match (sigma.is_finite(), from_pixels.is_finite()) {
                     (true, true) => sigma.max(from_pixels),
                     (true, false) => sigma,
@@ -1383,7 +1397,7 @@ fn measure_sens_along(
     }
     s.sem = s
         .sem
-        .hypot(s.mean * correction_sys_rel(angle, sens.dx().abs().max(sens.dy().abs())))
+        .hypot(s.mean * correction_sys_rel(angle))
         .hypot(s.mean * end_rel);
     let trace: LineTrace = trace.into_iter().map(|(arc, v, _)| (arc, v)).collect();
     let m = FilamentMeasurement {
