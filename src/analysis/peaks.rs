@@ -858,27 +858,42 @@ pub fn sens_noise(sens: &Image) -> Option<(f64, [f64; 4])> {
 /// of the truth sweep's answers at high SNR). An aberrated focus with an asymmetric curve is
 /// outside this domain.
 pub(crate) fn with_misfit(mut p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> (Peak, bool) {
-    let Some(s) = o.sigma else {
+    let Some((chi2, nu)) = parabola_misfit(&p, z, v, o) else {
         return (p, false);
     };
+    p.value_err = p.value_err.map(|e| e * misfit_factor(chi2, nu));
+    (p, quieter_than_noise(chi2, nu))
+}
+
+/// The samples within half a window of the vertex `p.pos`: (offset from the vertex, value).
+fn near_vertex(p: &Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> Vec<(f64, f64)> {
     let half = 0.5 * o.window_um;
-    let r: Vec<f64> = z
-        .iter()
+    z.iter()
         .zip(v)
         .filter(|(zi, vi)| vi.is_finite() && (**zi - p.pos).abs() <= half)
-        .map(|(zi, vi)| vi - (p.value + 0.5 * p.curvature * (zi - p.pos).powi(2)))
-        .collect();
-    if r.len() > 3 {
-        // widened only when χ² is beyond its 99 % point for ν degrees of freedom
-        // (Wilson–Hilferty): a parabola over 7 rows has ν = 4, and widening at every χ²/ν > 1
-        // made 1σ intervals hold 81 % of the sweep's answers
-        let nu = (r.len() - 3) as f64;
-        let chi2 = r.iter().map(|x| (x / s).powi(2)).sum::<f64>();
-        let k = misfit_factor(chi2, nu);
-        p.value_err = p.value_err.map(|e| e * k);
-        return (p, chi2 < chi2_point(nu, -3.719).max(0.0));
-    }
-    (p, false)
+        .map(|(zi, vi)| (zi - p.pos, *vi))
+        .collect()
+}
+
+/// The parabola's χ² against the known σ over the samples within half a window of its vertex,
+/// and its degrees of freedom ν (None without σ or with 3 samples or fewer). Widening follows
+/// only beyond χ²'s 99 % point (Wilson–Hilferty): a parabola over 7 rows has ν = 4, and widening
+/// at every χ²/ν > 1 made 1σ intervals hold 81 % of the sweep's answers.
+fn parabola_misfit(p: &Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> Option<(f64, f64)> {
+    let s = o.sigma?;
+    let pts = near_vertex(p, z, v, o);
+    (pts.len() > 3).then(|| {
+        let chi2 = pts
+            .iter()
+            .map(|(dz, vi)| ((vi - (p.value + 0.5 * p.curvature * dz * dz)) / s).powi(2))
+            .sum::<f64>();
+        (chi2, (pts.len() - 3) as f64)
+    })
+}
+
+/// The samples scatter far below their σ: χ² under its 0.01 % point for ν degrees of freedom.
+fn quieter_than_noise(chi2: f64, nu: f64) -> bool {
+    chi2 < chi2_point(nu, -3.719).max(0.0)
 }
 
 /// χ²'s quantile for ν degrees of freedom at the standard normal's `z` (Wilson–Hilferty).
@@ -906,35 +921,33 @@ fn misfit_factor(chi2: f64, nu: f64) -> f64 {
 /// take off is noise the rows' σ does not hold (at 10 nm pixels, without any widening, 13–17
 /// unflagged outliers a seed at N = 2000), and still widens it. The quiet test (rows far below
 /// their σ) stays the parabola's.
-fn with_noise_misfit(p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> (Peak, bool) {
-    let (q, quiet) = with_misfit(p, z, v, o);
-    let Some(s) = o.sigma.filter(|s| *s > 0.0) else {
-        return (q, quiet);
+fn with_noise_misfit(mut p: Peak, z: &[f64], v: &[f64], o: &PeakOptions) -> (Peak, bool) {
+    let parabola = parabola_misfit(&p, z, v, o);
+    let quiet = parabola.is_some_and(|(chi2, nu)| quieter_than_noise(chi2, nu));
+    let quartic = o
+        .sigma
+        .filter(|s| *s > 0.0)
+        .and_then(|s| quartic_misfit(&near_vertex(&p, z, v, o), 0.5 * o.window_um, s));
+    let k = match quartic.or(parabola) {
+        Some((chi2, nu)) => misfit_factor(chi2, nu),
+        None => 1.0,
     };
-    let half = 0.5 * o.window_um;
-    let pts: Vec<(f64, f64)> = z
-        .iter()
-        .zip(v)
-        .filter(|(zi, vi)| vi.is_finite() && (**zi - p.pos).abs() <= half)
-        .map(|(zi, vi)| ((zi - p.pos) / half, *vi))
-        .collect();
+    p.value_err = p.value_err.map(|e| e * k);
+    (p, quiet)
+}
+
+/// The χ² (against σ `s`) that an even-and-odd quartic leaves on the samples `pts` (offset from
+/// the vertex, value; offsets scaled by `half`), and its ν; None below [`MIN_SHAPE_ROWS`]
+/// samples or where the least-squares solve fails.
+fn quartic_misfit(pts: &[(f64, f64)], half: f64, s: f64) -> Option<(f64, f64)> {
     if pts.len() < MIN_SHAPE_ROWS {
-        return (q, quiet);
+        return None;
     }
-    let a = nalgebra::DMatrix::from_fn(pts.len(), 5, |i, k| pts[i].0.powi(k as i32));
+    let a = nalgebra::DMatrix::from_fn(pts.len(), 5, |i, k| (pts[i].0 / half).powi(k as i32));
     let b = nalgebra::DVector::from_iterator(pts.len(), pts.iter().map(|t| t.1));
-    let Ok(c) = a.clone().svd(true, true).solve(&b, 1e-12) else {
-        return (q, quiet);
-    };
+    let c = a.clone().svd(true, true).solve(&b, 1e-12).ok()?;
     let chi2 = (&a * c - b).iter().map(|r| (r / s).powi(2)).sum::<f64>();
-    let k = misfit_factor(chi2, (pts.len() - 5) as f64);
-    (
-        Peak {
-            value_err: p.value_err.map(|e| e * k),
-            ..q
-        },
-        quiet,
-    )
+    Some((chi2, (pts.len() - 5) as f64))
 }
 
 /// The fewest rows in the window across the rows for [`with_noise_misfit`]'s quartic (ν ≥ 3);
